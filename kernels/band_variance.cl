@@ -1,0 +1,116 @@
+/*
+ * Band-summed variance of the optimal (PSF-weighted) extraction of a point
+ * source, for many targets x many candidate detector readouts.
+ *
+ * For target t, candidate k, bin i in [band[t,0], band[t,1]):
+ *     w = sum_c  P2[i,c] / (A[k] + B[k] * Q[t,i,c])   over cells with Q <= Qsat[k]
+ *     v = 1 / w            (+inf when every cell is saturated)
+ *     if v is not NaN:  var_sum[t,k] += v,  nvalid[t,k] += 1
+ *
+ * NDRange: dimension 0 runs over groups of VW candidates, dimension 1 over
+ * the targets of the current chunk.  Each work item handles VW consecutive
+ * candidates with OpenCL vector types (VW = 1, 2, 4, 8 or 16, set with
+ * -DVW=...).  All loads of Q and P2 are uniform scalars broadcast to the
+ * vector lanes; A, B, Qsat are contiguous vector loads.  This vectorises on
+ * CPU devices (PoCL) even though the kernel has inner loops; GPUs use VW=1.
+ *
+ * The host pads the candidate arrays to a multiple of VW (padding lanes
+ * compute throw-away values), so there is no bounds branch.
+ *
+ * Q of the chunk holds only bins [lo, lo + nb); band indices are absolute.
+ * Double precision throughout; no fast-math build options are used, so the
+ * division is IEEE correctly rounded and 1/0 = +inf, NaN propagates.
+ */
+
+#if defined(cl_khr_fp64)
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#endif
+
+#ifndef VW
+#define VW 1
+#endif
+
+#if VW == 1
+typedef double realv;
+typedef long longv;
+typedef int intv;
+#define VLOAD(o, p) ((p)[o])
+#define VSTORE(x, o, p) ((p)[o] = (x))
+#define CONVERT_INTV convert_int
+#elif VW == 2
+typedef double2 realv;
+typedef long2 longv;
+typedef int2 intv;
+#define VLOAD(o, p) vload2((o), (p))
+#define VSTORE(x, o, p) vstore2((x), (o), (p))
+#define CONVERT_INTV convert_int2
+#elif VW == 4
+typedef double4 realv;
+typedef long4 longv;
+typedef int4 intv;
+#define VLOAD(o, p) vload4((o), (p))
+#define VSTORE(x, o, p) vstore4((x), (o), (p))
+#define CONVERT_INTV convert_int4
+#elif VW == 8
+typedef double8 realv;
+typedef long8 longv;
+typedef int8 intv;
+#define VLOAD(o, p) vload8((o), (p))
+#define VSTORE(x, o, p) vstore8((x), (o), (p))
+#define CONVERT_INTV convert_int8
+#elif VW == 16
+typedef double16 realv;
+typedef long16 longv;
+typedef int16 intv;
+#define VLOAD(o, p) vload16((o), (p))
+#define VSTORE(x, o, p) vstore16((x), (o), (p))
+#define CONVERT_INTV convert_int16
+#else
+#error "VW must be 1, 2, 4, 8 or 16"
+#endif
+
+__kernel void band_variance(
+    __global const double *restrict Q,     /* (nt, nb, ncell), bins lo..lo+nb-1 */
+    __global const double *restrict P2,    /* (nlbda, ncell)                    */
+    __global const double *restrict A,     /* (Kp,)                             */
+    __global const double *restrict B,     /* (Kp,)                             */
+    __global const double *restrict Qsat,  /* (Kp,)                             */
+    __global const int *restrict band,     /* (nt, 2) absolute [i0, i1)         */
+    const int Kp,                          /* padded candidate count, % VW == 0 */
+    const int nb,
+    const int ncell,
+    const int lo,
+    __global double *restrict var_sum,     /* (nt, Kp)                          */
+    __global int *restrict nvalid)         /* (nt, Kp)                          */
+{
+    const int kv = get_global_id(0);       /* group of VW candidates */
+    const int t = get_global_id(1);        /* target within the chunk */
+
+    const realv a = VLOAD(kv, A);
+    const realv b = VLOAD(kv, B);
+    const realv qs = VLOAD(kv, Qsat);
+    const int i0 = band[2 * t];
+    const int i1 = band[2 * t + 1];
+
+    __global const double *Qt = Q + (size_t)t * (size_t)nb * (size_t)ncell;
+    realv acc = (realv)(0.0);
+    longv cnt = (longv)(0);
+
+    for (int i = i0; i < i1; ++i) {
+        __global const double *q = Qt + (size_t)(i - lo) * (size_t)ncell;
+        __global const double *p = P2 + (size_t)i * (size_t)ncell;
+        realv w = (realv)(0.0);
+        for (int c = 0; c < ncell; ++c) {
+            const double qc = q[c];
+            const realv term = p[c] / (a + b * qc);
+            w += (qc > qs) ? (realv)(0.0) : term;   /* saturated: weight 0 */
+        }
+        const realv v = 1.0 / w;                      /* +inf if w == 0 */
+        acc += isnan(v) ? (realv)(0.0) : v;           /* NaN Q: skip the bin */
+        cnt += isnan(v) ? (longv)(0) : (longv)(1);
+    }
+
+    const size_t o = (size_t)t * (size_t)(Kp / VW) + (size_t)kv;
+    VSTORE(acc, o, var_sum);
+    VSTORE(CONVERT_INTV(cnt), o, nvalid);
+}

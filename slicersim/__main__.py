@@ -1,0 +1,5 @@
+"""Allow ``python -m slicersim``."""
+
+from slicersim.cli import main
+
+raise SystemExit(main())

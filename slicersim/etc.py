@@ -1,0 +1,246 @@
+"""Batch exposure-time calculator: thousands of point sources in one call.
+
+The instrument (PSF, throughput, QE, background, thermal terms) is computed
+once; each target only changes the point-source spectrum.  For every target the
+single-ramp band SNR of every candidate readout is evaluated at once (OpenCL
+kernel ``band_variance.cl`` or its NumPy twin), then the readout is chosen with
+:func:`slicersim.search.exact_choice` (or the reference walk).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .compute import band_variance_table
+from .detector import VARIANCE_MODELS, rauscher07_coefficients, readout_times
+from .scene import SpectrumError
+from .search import ETCError, candidate_readouts, check_snr_target, exact_choice, reference_walk
+from .simulation import ExtractionModel
+
+__all__ = ["solve_many", "band_snr_table_for_models", "sim_band_indices"]
+
+
+def sim_band_indices(mask):
+    """[i0, i1) of a contiguous boolean band mask."""
+    idx = np.nonzero(mask)[0]
+    return np.array([idx[0], idx[-1] + 1])
+
+
+def readout_variance_coefficients(sim, n, m, d):
+    """Cell variance V = A + B·Q [ADU²] per candidate, and the saturation limit Qsat [e-/s/cell].
+
+    Rauscher07 is linear in the cell electron rate Q: with a, b from
+    :func:`rauscher07_coefficients` and p pixels per cell,
+    A = p (a σ² + b D_eff) / g², B = b / g².
+    """
+    det, ppc = sim.detector, sim.spectrograph.pixels_per_cell
+    a, b = rauscher07_coefficients((n, m, d), det.tframe)
+    dark = sim.effective_dark()
+    A = ppc * (a * det.ron**2 + b * dark) / det.gain**2
+    B = b / det.gain**2
+    tint = (n - 1) * (m + d) * det.tframe
+    qsat = ppc * (det.saturation / (tint * det.gain) - dark)
+    return A, B, qsat
+
+
+def band_snr_table_for_models(sim, models, band, candidates, backend="auto"):
+    """Single-ramp band SNR per bin, shape (N, K), for N extraction models and K readouts.
+
+    Parameters
+    ----------
+    sim : Simulation  (instrument and detector)
+    models : list of ExtractionModel, or a tuple (Q (N, nλ, nc), signal_rate (N, nλ))
+    band : (N, 2) int  [i0, i1) bin ranges
+    candidates : (n, m, d) arrays of length K
+    """
+    n, m, d = (np.asarray(c) for c in candidates)
+    if isinstance(models, tuple):
+        Q, signal_rate = models
+    else:
+        Q = np.stack([mod.cell_rate() for mod in models])
+        signal_rate = np.stack([mod.signal_rate for mod in models])
+    psf2 = sim.extraction_model.psf2 if sim.scene.pointsource is not None else _template_psf2(sim)
+    tint = (n - 1) * (m + d) * sim.detector.tframe
+    band = np.asarray(band, dtype=np.int64)
+    if sim.detector.variance_model.lower().startswith("rauscher"):
+        A, B, qsat = readout_variance_coefficients(sim, n, m, d)
+        var_sum, nvalid = band_variance_table(Q, psf2, A, B, qsat, band, backend=backend)
+    else:  # non-linear variance model: NumPy evaluation per candidate
+        var_sum, nvalid = _generic_band_variance(sim, Q, psf2, band, n, m, d)
+    mean_signal = np.empty(Q.shape[0])
+    for t, (i0, i1) in enumerate(band):
+        mean_signal[t] = np.nanmean(signal_rate[t, i0:i1]) if i1 > i0 else np.nan
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_var = var_sum / nvalid
+        return mean_signal[:, None] * tint[None, :] / np.sqrt(mean_var)
+
+
+def _generic_band_variance(sim, Q, psf2, band, n, m, d):
+    det, ppc = sim.detector, sim.spectrograph.pixels_per_cell
+    model = VARIANCE_MODELS[det.variance_model.lower()]
+    dark = sim.effective_dark()
+    var_sum = np.zeros((Q.shape[0], n.size))
+    nvalid = np.zeros((Q.shape[0], n.size), dtype=np.int32)
+    for k in range(n.size):
+        nmd = (int(n[k]), int(m[k]), int(d[k]))
+        tint = readout_times(nmd, det.tframe)["integration_time"]
+        for t, (i0, i1) in enumerate(band):
+            q = Q[t, i0:i1] / ppc
+            var = ppc * model(q, nmd, det.tframe, det.ron, dark, det.gain)
+            var = np.where((q + dark) * tint * det.gain > det.saturation, np.inf, var)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v = 1.0 / np.sum(psf2[i0:i1] / var, axis=1)
+            ok = ~np.isnan(v)
+            var_sum[t, k], nvalid[t, k] = v[ok].sum(), ok.sum()
+    return var_sum, nvalid
+
+
+def _template_psf(sim):
+    from .psf import gaussian_psf_cells
+    sig_y, sig_x = sim.psf_sigmas
+    return gaussian_psf_cells(sig_y, sig_x, sim.spectrograph.shape, sim.position, sim.aperture)
+
+
+def _template_psf2(sim):
+    return _template_psf(sim) ** 2
+
+
+def _interp_matrix(lbda_in, lbda_out):
+    """Indices and weights of the linear interpolation λ_in → λ_out (NaN outside)."""
+    idx = np.clip(np.searchsorted(lbda_in, lbda_out) - 1, 0, lbda_in.size - 2)
+    w = (lbda_out - lbda_in[idx]) / (lbda_in[idx + 1] - lbda_in[idx])
+    outside = (lbda_out < lbda_in[0]) | (lbda_out > lbda_in[-1])
+    return idx, w, outside
+
+
+def _validate_batch(lbda, fluxes, lbda_ranges):
+    lbda = np.asarray(lbda, dtype=float)
+    fluxes = np.atleast_2d(np.asarray(fluxes, dtype=float))
+    if lbda.ndim != 1 or lbda.size < 2:
+        raise SpectrumError("lbda must be a 1-D array with at least 2 wavelengths")
+    if not np.all(np.isfinite(lbda)) or np.any(np.diff(lbda) <= 0):
+        raise SpectrumError("lbda must be finite and strictly increasing")
+    if fluxes.ndim != 2 or fluxes.shape[1] != lbda.size or fluxes.shape[0] == 0:
+        raise SpectrumError(f"fluxes must have shape (N, {lbda.size}), got {fluxes.shape}")
+    bad = ~np.all(np.isfinite(fluxes), axis=1)
+    if bad.any():
+        raise SpectrumError(f"fluxes of target(s) {np.nonzero(bad)[0][:10].tolist()} contain NaN/inf")
+    neg = np.any(fluxes < 0, axis=1)
+    if neg.any():
+        raise SpectrumError(f"fluxes of target(s) {np.nonzero(neg)[0][:10].tolist()} contain negative values")
+    ranges = np.asarray(lbda_ranges, dtype=float)
+    if ranges.shape == (2,):
+        ranges = np.broadcast_to(ranges, (fluxes.shape[0], 2))
+    if ranges.shape != (fluxes.shape[0], 2) or np.any(~(ranges[:, 1] > ranges[:, 0])):
+        raise ETCError(f"lbda_ranges must have shape (N, 2) with lo < hi, got {np.shape(lbda_ranges)}")
+    return lbda, fluxes, ranges
+
+
+def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field="narrow",
+               search="exact", redshifts=None, per_resolution=True, backend="auto",
+               max_bytes=256 * 2**20, progress=False):
+    """Solve the ETC for many point sources at once.
+
+    Parameters
+    ----------
+    lbda : (k,) [Å];  fluxes : (N, k) [erg/s/cm²/Å]
+    snr : float or (N,)  target SNR (per resolution element when ``per_resolution``)
+    lbda_ranges : (N, 2) or (2,) band [Å] in ``frame``
+    frame : "obs" or "rest" (needs ``redshifts``)
+    config, field : instrument (see :func:`slicersim.targets.build_simulation`)
+    search : "exact" or "reference"
+
+    Returns
+    -------
+    astropy Table, one row per target: n, m, d, nramps, exposure_time [s], snr
+    (band SNR per resolution element reached), snr_per_bin, data_volume [GB].
+    """
+    from astropy.table import Table
+
+    from .targets import build_simulation
+    lbda, fluxes, ranges = _validate_batch(lbda, fluxes, lbda_ranges)
+    ntarget = fluxes.shape[0]
+    snr = np.broadcast_to(np.asarray(snr, dtype=float), (ntarget,))
+    for s in np.unique(snr):
+        check_snr_target(s)
+    if frame == "rest":
+        if redshifts is None:
+            raise ETCError("frame='rest' needs the redshifts of the targets")
+        z = np.broadcast_to(np.asarray(redshifts, dtype=float), (ntarget,))
+        ranges = ranges * (1 + z)[:, None]
+    elif frame != "obs":
+        raise ETCError(f"frame must be 'obs' or 'rest', got {frame!r}")
+    if search not in ("exact", "reference"):
+        raise ETCError(f"unknown search {search!r}: 'exact' or 'reference'")
+
+    sim = build_simulation(config, field, pointsource=None)
+    spec, det = sim.spectrograph, sim.detector
+    grid = sim.lbda
+    if lbda[0] >= grid[-1] or lbda[-1] <= grid[0]:
+        raise SpectrumError(f"input wavelengths {lbda[0]:.0f}–{lbda[-1]:.0f} Å do not overlap the "
+                            f"instrument range {grid[0]:.0f}–{grid[-1]:.0f} Å")
+    band = np.stack([np.searchsorted(grid, ranges[:, 0], side="left"),
+                     np.searchsorted(grid, ranges[:, 1], side="right")], axis=1)
+    empty = band[:, 1] <= band[:, 0]
+    if empty.any():
+        raise ETCError(f"band of target(s) {np.nonzero(empty)[0][:10].tolist()} contains no "
+                       f"instrument bin ({grid[0]:.0f}–{grid[-1]:.0f} Å)")
+    target = snr / math.sqrt(spec.dispersion_resolution) if per_resolution else snr.copy()
+
+    psf = _template_psf(sim)
+    f2p, qe, gain = sim.flambda_to_photon, sim.qe, det.gain
+    uniform = sum(spec.apply_lsf(arr) for arr in (sim.background_photons, sim._thermal_photons("telescope"),
+                                                  sim._thermal_photons("optics")))
+    idx, w, outside = _interp_matrix(lbda, grid)
+    cand = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
+    per_target_bytes = grid.size * psf.shape[1] * 8 * 3
+    step = max(1, int(max_bytes // per_target_bytes))
+    rows = {k: np.zeros(ntarget, dtype=int) for k in ("n", "m", "d", "nramps")}
+    reached = np.full(ntarget, np.nan)
+    chunks = range(0, ntarget, step)
+    if progress:
+        from tqdm.auto import tqdm
+        chunks = tqdm(chunks, total=len(chunks), desc="ETC", unit="chunk")
+    for t0 in chunks:
+        t1 = min(ntarget, t0 + step)
+        flux_grid = fluxes[t0:t1, idx] * (1 - w) + fluxes[t0:t1, idx + 1] * w     # erg/s/cm²/Å
+        flux_grid[:, outside] = np.nan
+        photons = flux_grid * f2p                                                  # ph/s
+        point = spec.apply_lsf(photons[:, :, None] * psf[None], axis=1)            # ph/s/cell
+        Q = qe[None, :, None] * (point + uniform[None, :, None])                   # e-/s/cell
+        signal_rate = spec.apply_lsf(photons * qe, axis=1) * gain                  # ADU/s
+        if search == "exact":
+            snr1 = band_snr_table_for_models(sim, (Q, signal_rate), band[t0:t1], cand, backend=backend)
+            choice = exact_choice(snr1, *cand, target[t0:t1])
+            for key in rows:
+                rows[key][t0:t1] = choice[key if key != "nramps" else "nramps"]
+            reached[t0:t1] = choice["snr"]
+        else:
+            for t in range(t0, t1):
+                sub = (Q[t - t0:t - t0 + 1], signal_rate[t - t0:t - t0 + 1])
+                memo = {}
+
+                def snr_of(n, m, d, r, sub=sub, t=t):
+                    if (n, m, d) not in memo:
+                        one = (np.array([n]), np.array([m]), np.array([d]))
+                        memo[(n, m, d)] = band_snr_table_for_models(sim, sub, band[t:t + 1], one,
+                                                                    backend="numpy")[0, 0]
+                    return memo[(n, m, d)] * math.sqrt(r)
+                nmd, r, s, _ = reference_walk(snr_of, target[t], det.max_group or 64, det.nmd[2])
+                rows["n"][t], rows["m"][t], rows["d"][t] = nmd
+                rows["nramps"][t], reached[t] = r, s
+    failed = rows["n"] == 0
+    if failed.any():
+        raise ETCError(f"target(s) {np.nonzero(failed)[0][:10].tolist()} cannot reach their SNR "
+                       "(no signal in the band)")
+    frames = rows["n"] * (rows["m"] + rows["d"]) - rows["d"]
+    table = Table(rows)
+    table["exposure_time"] = rows["nramps"] * frames * det.tframe
+    table["exposure_time"].unit = "s"
+    table["snr"] = reached * (math.sqrt(spec.dispersion_resolution) if per_resolution else 1.0)
+    table["snr_per_bin"] = reached
+    table["data_volume"] = rows["nramps"] * rows["n"] * det.shape[0] * det.shape[1] * 16 / 8e9
+    table["data_volume"].unit = "GB"
+    table.meta.update(config=str(config), field=field, search=search, frame=frame)
+    return table

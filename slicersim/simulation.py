@@ -1,0 +1,363 @@
+"""Simulation: scene + telescope + spectrograph + detector → cubes, spectra, SNR, ETC.
+
+Reads as the physics (units in comments).  Noiseless expectations are computed
+first; a noise realisation is a separate step with an explicit seed.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .constants import HC_ERG_AA
+from .detector import check_readout, readout_times
+from .psf import aperture_cells, gaussian_psf_cells, gaussian_psf_fractions, gaussian_psf_sigmas
+from .spectrograph import apply_lsf
+from .thermal import thermal_dark_rate
+
+__all__ = ["Simulation", "VARIANCE_SOURCES", "ExtractionModel"]
+
+#: the eight variance sources of slicersim
+VARIANCE_SOURCES = ("dark", "roic_glow", "thermal_dark", "ron", "pointsource", "background",
+                    "host", "thermal")
+
+
+class ExtractionModel:
+    """Everything the optimal extraction of one point source needs, restricted to the aperture.
+
+    Attributes (nλ bins, nc aperture cells)
+    ----------
+    psf2 : (nλ, nc)  squared PSF weights P²
+    pointsource_ph : (nλ, nc)  LSF[F f2p P]  [ph/s/cell]
+    uniform_ph : dict name → (nλ,)  LSF of background / telescope / optics thermal [ph/s/cell]
+    qe : (nλ,)  [e-/ph];  signal_rate : (nλ,)  LSF[F f2p QE] g  [ADU/s of t_int]
+    """
+
+    def __init__(self, psf2, pointsource_ph, uniform_ph, qe, signal_rate):
+        self.psf2, self.pointsource_ph, self.uniform_ph = psf2, pointsource_ph, uniform_ph
+        self.qe, self.signal_rate = qe, signal_rate
+
+    def cell_rate(self, off=None):
+        """Electron rate per aperture cell QE · C [e-/s/cell] with source ``off`` removed."""
+        uniform = np.zeros_like(self.qe)
+        for name, arr in self.uniform_ph.items():
+            if off == name or (off == "thermal" and name.startswith("thermal")) \
+                    or (off == "thermal_dark" and name == "thermal_optics"):
+                continue
+            uniform = uniform + arr
+        point = 0.0 if off == "pointsource" else self.pointsource_ph
+        return self.qe[:, None] * (point + uniform[:, None])
+
+
+class Simulation:
+    """An IFS observation of a scene.
+
+    Parameters
+    ----------
+    scene, telescope, spectrograph, detector : model objects
+    nramps : int  number of identical ramps (summed)
+    aperture_radius_insigma : float  extraction radius in units of σ_ref / s
+    """
+
+    def __init__(self, scene, telescope, spectrograph, detector, nramps=1,
+                 aperture_radius_insigma=10.0):
+        self.scene, self.telescope = scene, telescope
+        self.spectrograph, self.detector = spectrograph, detector
+        _, self.nramps = check_readout(detector.nmd, nramps, detector.min_group)
+        self.aperture_radius_insigma = float(aperture_radius_insigma)
+        self._cache = {}
+        self._check_overlap()
+
+    # ------------------------------------------------------------------ updates
+    def update(self, **kwargs):
+        """Change any mutable parameter of the simulation or its components, keeping
+        every derived quantity consistent (caches are dropped)."""
+        groups = {"telescope": {}, "spectrograph": {}, "detector": {}}
+        for key, val in kwargs.items():
+            if key == "nramps":
+                _, self.nramps = check_readout(self.detector.nmd, val, self.detector.min_group)
+            elif key == "aperture_radius_insigma":
+                self.aperture_radius_insigma = float(val)
+            elif key in self.detector.mutable_parameters:
+                groups["detector"][key] = val
+            elif key in self.spectrograph.mutable_parameters:
+                groups["spectrograph"][key] = val
+            elif key in self.telescope.mutable_parameters:
+                groups["telescope"][key] = val
+            else:
+                raise ValueError(f"unknown simulation parameter {key!r}")
+        if "nmd" in groups["detector"]:
+            check_readout(groups["detector"]["nmd"], self.nramps, self.detector.min_group)
+        for name, params in groups.items():
+            if params:
+                getattr(self, name).update(**params)
+        self._cache.clear()
+        self._check_overlap()
+
+    def _check_overlap(self):
+        ps = self.scene.pointsource
+        lo, hi = self.lbda[0], self.lbda[-1]
+        if ps is not None and not ps.overlap(lo, hi):
+            raise ValueError(f"point-source spectrum ({ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å) does "
+                             f"not overlap the instrument range ({lo:.0f}–{hi:.0f} Å)")
+
+    def _cached(self, key, func):
+        if key not in self._cache:
+            self._cache[key] = func()
+        return self._cache[key]
+
+    # ------------------------------------------------------------------ spectral terms
+    @property
+    def lbda(self):
+        """Bin centres [Å]."""
+        return self.spectrograph.lbda
+
+    @property
+    def qe(self):
+        """Detector QE at the bin centres [e-/ph]."""
+        return self._cached("qe", lambda: self.detector.get_qe(self.lbda))
+
+    @property
+    def flambda_to_photon(self):
+        """f2p = A_tel[cm²] T(λ) Δλ λ / hc: photons/s per erg/s/cm²/Å in each bin."""
+        def f2p():
+            area_cm2 = self.telescope.area * 1e4
+            return area_cm2 * self.spectrograph.throughput * self.spectrograph.dlbda * self.lbda / HC_ERG_AA
+        return self._cached("f2p", f2p)
+
+    @property
+    def pointsource_flambda(self):
+        """F(λ) of the point source [erg/s/cm²/Å] (NaN outside its input range)."""
+        ps = self.scene.pointsource
+        return self._cached("ps_flambda", lambda: np.zeros_like(self.lbda) if ps is None
+                            else ps.flambda(self.lbda))
+
+    @property
+    def background_photons(self):
+        """Background photons per cell B(λ) f2p s² [ph/s/cell] (before LSF)."""
+        bkg = self.scene.background
+        return self._cached("bkg_ph", lambda: np.zeros_like(self.lbda) if bkg is None else
+                            bkg.flambda(self.lbda) * self.flambda_to_photon * self.spectrograph.spatial_scale**2)
+
+    def _thermal_photons(self, which):
+        """Dispersed thermal photons per cell A_tel Ω Δλ B(λ̄) [ph/s/cell] (no throughput)."""
+        edges = self.spectrograph.lbda_edges
+        lbda_mid = 0.5 * (edges[1:] + edges[:-1])
+        radiance = (self.telescope.thermal_radiance(lbda_mid) if which == "telescope"
+                    else self.spectrograph.dispersed_thermal_radiance(lbda_mid))
+        return self.telescope.area * self.spectrograph.cell_solid_angle * self.spectrograph.dlbda * radiance
+
+    @property
+    def thermal_photons(self):
+        """Telescope + dispersed optics thermal photons per cell [ph/s/cell] (before LSF)."""
+        return self._cached("th_ph", lambda: self._thermal_photons("telescope")
+                            + self._thermal_photons("optics"))
+
+    @property
+    def thermal_dark(self):
+        """Undispersed optics emission reaching each pixel [e-/s/px]."""
+        def dth():
+            rows = self.spectrograph.undispersed_optics()
+            lrange = self.detector.thermal_dark_range or (self.lbda[0], self.lbda[-1])
+            if not rows:
+                return 0.0
+            return thermal_dark_rate(*zip(*rows), self.detector.pixel_area, self.detector.get_qe, lrange)
+        return self._cached("thermal_dark", dth)
+
+    # ------------------------------------------------------------------ PSF
+    @property
+    def psf_sigmas(self):
+        """Gaussian PSF (σ_y, σ_x) [cells] per bin."""
+        spec = self.spectrograph
+        return self._cached("psf_sig", lambda: gaussian_psf_sigmas(
+            self.lbda, self.telescope.psf_sigma_ref, spec.spatial_scale,
+            self.telescope.guiding_sigma, spec.instrumental_sigma))
+
+    @property
+    def position(self):
+        ps = self.scene.pointsource
+        return (0.0, 0.0) if ps is None else ps.position
+
+    @property
+    def aperture_radius(self):
+        """Extraction radius [cells] = aperture_radius_insigma σ_ref / s."""
+        return self.aperture_radius_insigma * self.telescope.psf_sigma_ref / self.spectrograph.spatial_scale
+
+    @property
+    def aperture(self):
+        """(iy, ix) of the cells used by the extraction."""
+        return self._cached("aperture", lambda: aperture_cells(self.spectrograph.shape, self.position,
+                                                               self.aperture_radius))
+
+    def get_psf(self):
+        """PSF cube P[λ, y, x] (fraction of the point-source flux per cell)."""
+        sig_y, sig_x = self.psf_sigmas
+        return gaussian_psf_fractions(sig_y, sig_x, self.spectrograph.shape, self.position)
+
+    # ------------------------------------------------------------------ readout
+    def _readout(self, nmd=None, nramps=None):
+        nmd = self.detector.nmd if nmd is None else nmd
+        nramps = self.nramps if nramps is None else nramps
+        return check_readout(nmd, nramps, self.detector.min_group)
+
+    def get_times(self, nmd=None, nramps=None):
+        """Exposure, integration and group times [s] per ramp and total."""
+        nmd, nramps = self._readout(nmd, nramps)
+        t = readout_times(nmd, self.detector.tframe)
+        return {"nmd": nmd, "nramps": nramps, "nframes": t["nframes"], "tframe": self.detector.tframe,
+                "tgroup": t["group_time"], "exptime": t["exposure_time"], "inttime": t["integration_time"],
+                "total_exposure_time": nramps * t["exposure_time"],
+                "total_integration_time": nramps * t["integration_time"]}
+
+    def get_data_volume(self, nmd=None, nramps=None):
+        """Raw group-level data volume [GB] (16 bit per pixel per group, all ramps)."""
+        nmd, nramps = self._readout(nmd, nramps)
+        return self.detector.data_volume(nmd, nramps)
+
+    def effective_dark(self, off=None):
+        """Dark + ROIC glow / t_f + thermal dark [e-/s/px], with source ``off`` removed."""
+        det = self.detector
+        dark = 0.0 if off == "dark" else det.dark
+        glow = 0.0 if off == "roic_glow" else det.roic_glow
+        dth = 0.0 if off == "thermal_dark" else self.thermal_dark
+        return dark + glow / det.tframe + dth
+
+    def cell_variance(self, cell_rate, nmd, off=None):
+        """Per-cell variance [ADU²] over one ramp for a cell electron rate [e-/s/cell];
+        saturated cells get +inf."""
+        det, ppc = self.detector, self.spectrograph.pixels_per_cell
+        dark = self.effective_dark(off)
+        ron = 0.0 if off == "ron" else det.ron
+        pixel_rate = cell_rate / ppc
+        var = ppc * det.pixel_variance(pixel_rate, nmd=nmd, ron=ron, thermal_dark=0.0) \
+            if dark == det.effective_dark(0.0) else \
+            ppc * _pixel_variance_with_dark(det, pixel_rate, nmd, ron, dark)
+        tint = readout_times(nmd, det.tframe)["integration_time"]
+        saturated = (pixel_rate + dark) * tint * det.gain > det.saturation
+        return np.where(saturated, np.inf, var), saturated
+
+    # ------------------------------------------------------------------ cubes
+    def get_projected_scene(self):
+        """Photon cube C[λ, y, x] = LSF[F f2p P + B f2p s² + N_th] [ph/s/cell]."""
+        point = (self.pointsource_flambda * self.flambda_to_photon)[:, None, None] * self.get_psf()
+        uniform = (self.background_photons + self.thermal_photons)[:, None, None]
+        return self.spectrograph.apply_lsf(point + uniform, axis=0)
+
+    def get_cube(self, nmd=None, nramps=None, seed=None):
+        """Signal [ADU] and variance [ADU²] cubes summed over the ramps.
+
+        With ``seed`` (int or numpy Generator) a noisy realisation is drawn too
+        (Gaussian with the cube variance) and returned as a third array.
+        """
+        nmd, nramps = self._readout(nmd, nramps)
+        tint = readout_times(nmd, self.detector.tframe)["integration_time"]
+        photons = self.get_projected_scene()                         # ph/s/cell
+        electrons = photons * self.qe[:, None, None]                 # e-/s/cell
+        variance, saturated = self.cell_variance(electrons, nmd)     # ADU² per ramp
+        signal = np.where(saturated, np.nan, electrons * tint * self.detector.gain) * nramps
+        variance = variance * nramps
+        if seed is None:
+            return signal, variance
+        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        finite = np.isfinite(variance)
+        noisy = np.where(finite, signal + rng.standard_normal(signal.shape) * np.sqrt(np.where(finite, variance, 0)),
+                         np.nan)
+        return signal, variance, noisy
+
+    # ------------------------------------------------------------------ extraction
+    @property
+    def extraction_model(self):
+        """:class:`ExtractionModel` of the current configuration (cached)."""
+        def build():
+            iy, ix = self.aperture
+            sig_y, sig_x = self.psf_sigmas
+            psf = gaussian_psf_cells(sig_y, sig_x, self.spectrograph.shape, self.position, (iy, ix))
+            lsf = self.spectrograph.apply_lsf
+            flux_ph = self.pointsource_flambda * self.flambda_to_photon        # ph/s
+            uniform = {"background": lsf(self.background_photons),
+                       "thermal_telescope": lsf(self._thermal_photons("telescope")),
+                       "thermal_optics": lsf(self._thermal_photons("optics"))}
+            signal_rate = lsf(flux_ph * self.qe) * self.detector.gain           # ADU/s
+            return ExtractionModel(psf**2, lsf(flux_ph[:, None] * psf, axis=0), uniform, self.qe,
+                                   signal_rate)
+        return self._cached("extraction", build)
+
+    def _spectrum(self, nmd, nramps, off=None):
+        model = self.extraction_model
+        tint = readout_times(nmd, self.detector.tframe)["integration_time"]
+        var_cell, _ = self.cell_variance(model.cell_rate(off), nmd, off)   # ADU² per ramp
+        with np.errstate(divide="ignore", invalid="ignore"):
+            weight = np.sum(model.psf2 / var_cell, axis=1)
+            variance = nramps / weight                                      # ADU²
+        signal = np.zeros_like(variance) if off == "pointsource" else model.signal_rate * tint * nramps
+        return signal, variance
+
+    def get_spectrum(self, nmd=None, nramps=None):
+        """Optimally extracted spectrum: (λ [Å], signal [ADU], variance [ADU²]), all ramps."""
+        nmd, nramps = self._readout(nmd, nramps)
+        signal, variance = self._spectrum(nmd, nramps)
+        return self.lbda.copy(), signal, variance
+
+    def band_mask(self, lbda_range):
+        """Bins whose centres lie in [lo, hi] Å (inclusive)."""
+        lo, hi = lbda_range
+        mask = (self.lbda >= lo) & (self.lbda <= hi)
+        if not mask.any():
+            raise ValueError(f"band {lbda_range} Å contains no bin of the instrument grid "
+                             f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
+        return mask
+
+    def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False):
+        """Band SNR = nanmean(signal) / √nanmean(variance) over the bins in ``lbda_range``
+        (per bin; ×√dispersion_resolution when ``per_resolution``)."""
+        nmd, nramps = self._readout(nmd, nramps)
+        mask = self.band_mask(lbda_range)
+        signal, variance = self._spectrum(nmd, nramps)
+        snr = _band_snr(signal[mask], variance[mask])
+        return snr * np.sqrt(self.spectrograph.dispersion_resolution) if per_resolution else snr
+
+    def get_variance_contribution(self, nmd=None, nramps=None):
+        """Per-source variance contribution [ADU²] per bin: Var(all) − Var(source off)."""
+        nmd, nramps = self._readout(nmd, nramps)
+        _, total = self._spectrum(nmd, nramps)
+        out = {"variance": total}
+        for src in VARIANCE_SOURCES:
+            if src == "host":
+                out[src] = np.zeros_like(total)
+                continue
+            _, var_off = self._spectrum(nmd, nramps, off=src)
+            out[src] = total - var_off
+        return out
+
+    def get_band_variance_contribution(self, lbda_range, nmd=None, nramps=None):
+        """Band-mean variance contributions: absolute [ADU²] and fractions ``frac_<src>``."""
+        nmd, nramps = self._readout(nmd, nramps)
+        mask = self.band_mask(lbda_range)
+        signal, total = self._spectrum(nmd, nramps)
+        mean_total = np.nanmean(total[mask])
+        times = self.get_times(nmd, nramps)
+        out = {"signal": np.nanmean(signal[mask]), "variance": mean_total,
+               "snr": _band_snr(signal[mask], total[mask]), "exptime": times["exptime"],
+               "inttime": times["inttime"], "obstime": times["total_exposure_time"]}
+        for src in VARIANCE_SOURCES:
+            if src == "host":
+                val = 0.0
+            else:
+                val = mean_total - np.nanmean(self._spectrum(nmd, nramps, off=src)[1][mask])
+            out[src] = val
+            out[f"frac_{src}"] = val / mean_total
+        return out
+
+    # ------------------------------------------------------------------ ETC
+    def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", **kwargs):
+        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.search`)."""
+        from .search import solve_readout
+        return solve_readout(self, snr, lbda_range, per_resolution=per_resolution, search=search, **kwargs)
+
+
+def _band_snr(signal, variance):
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return float(np.nanmean(signal) / np.sqrt(np.nanmean(variance)))
+
+
+def _pixel_variance_with_dark(det, pixel_rate, nmd, ron, dark):
+    from .detector import VARIANCE_MODELS
+    return VARIANCE_MODELS[det.variance_model.lower()](pixel_rate, nmd, det.tframe, ron, dark, det.gain)

@@ -1,0 +1,302 @@
+"""High-level targets: build a Lazuli (or any configured) simulation around a source.
+
+``LazuliSupernova(redshift=1).setup_to_snr(20)`` is an exposure-time
+calculation in one line; :func:`lazuli_etc` / :func:`lazuli_sn_etc` return the
+result as a dict.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .config import ConfigError, load_config
+from .detector import Detector, check_readout
+from .scene import Background, PointSource, Scene, snia_spectrum
+from .search import ETCError
+from .simulation import Simulation
+from .spectrograph import MLASpectrograph, SlicerSpectrograph
+from .telescope import Telescope
+
+__all__ = ["LAZULI_FIELDS", "build_simulation", "Target", "Supernova", "BlackBody", "LazuliTarget",
+           "LazuliSupernova", "LazuliBlackBody", "lazuli_etc", "lazuli_sn_etc"]
+
+#: Lazuli slicer fields: cell size [arcsec], throughput column, IFU optics count (optics group 1)
+LAZULI_FIELDS = {"narrow": {"spatial_scale": 0.04, "throughput_column": "narrow", "ifu_nelements": 4},
+                 "wide": {"spatial_scale": 0.08, "throughput_column": "wide", "ifu_nelements": 6}}
+#: index of the IFU / slicer group in [spectrograph.optics]
+IFU_OPTICS_INDEX = 1
+
+
+def _check_field(field):
+    if field is not None and field not in LAZULI_FIELDS:
+        raise ConfigError(f"unknown field {field!r}: 'narrow' or 'wide'")
+    return field
+
+
+def build_simulation(config="cbe", field="narrow", pointsource=None, background="zodi",
+                     position=(0.0, 0.0)):
+    """Simulation from a configuration (see :func:`slicersim.config.load_config`) and a field.
+
+    ``field=None`` uses the configuration as written (single-channel instruments).
+    """
+    _check_field(field)
+    cfg = load_config(config)
+    tel, spc, det = cfg.get("telescope", {}), cfg.get("spectrograph", {}), cfg.get("detector", {})
+    optics = dict(cfg.get("spectrograph.optics", {}))
+    psf = cfg.get("spectrograph.psf.spatial", {})
+    ext = cfg.get("extraction", {})
+    thr = cfg.get("spectrograph.throughput", {})
+    fieldpar = LAZULI_FIELDS[field] if field else {}
+    if fieldpar and "nelements" in optics and len(optics["nelements"]) > IFU_OPTICS_INDEX:
+        optics["nelements"] = list(optics["nelements"])
+        optics["nelements"][IFU_OPTICS_INDEX] = fieldpar["ifu_nelements"]
+    telescope = Telescope(diameter_ext=tel.get("diameter_ext", 3.0), diameter_int=tel.get("diameter_int", 0.0),
+                          temperature=tel.get("temperature", 0.0),
+                          emissivity=tel.get("emissivity", [0.0]), nelements=tel.get("nelements", [1]),
+                          guiding_sigma=psf.get("guiding_sigma", 0.0))
+    if psf.get("psf_sigma_spectral", "default") not in ("default", None):
+        raise ConfigError("psf_sigma_spectral other than 'default' is not supported yet")
+    kind = spc.get("kind", "slicer")
+    if kind not in ("slicer", "mla"):
+        raise ConfigError(f"unknown spectrograph kind {kind!r}: 'slicer' or 'mla'")
+    cls = SlicerSpectrograph if kind == "slicer" else MLASpectrograph
+    if "dispersion_law" not in spc and "resolving_power" not in spc:
+        raise ConfigError("configuration needs [spectrograph] dispersion_law or resolving_power")
+    spectrograph = cls(spectral_range=spc.get("spectral_range", (4000.0, 17000.0)),
+                       dispersion_law=spc.get("dispersion_law"), resolving_power=spc.get("resolving_power"),
+                       dispersion_scale=spc.get("dispersion_scale", 1.0),
+                       dispersion_resolution=spc.get("dispersion_resolution", 2.0),
+                       throughput=thr.get("throughput", 1.0),
+                       throughput_column=fieldpar.get("throughput_column"),
+                       spatial_scale=fieldpar.get("spatial_scale", spc.get("spatial_scale", 0.04)),
+                       spatial_shape=spc.get("spatial_shape", (58, 58)), optics=optics)
+    detector = Detector(qe=det.get("QE", 1.0), gain=det.get("gain", 1.0), dark=det.get("dark", 0.0),
+                        roic_glow=det.get("roic_glow", 0.0), ron=det.get("ron", 0.0),
+                        tframe=det.get("tframe", 2.83), pixel_size=det.get("pixel_size", 10.0),
+                        saturation=det.get("saturation", 65535), nmd=det.get("readout_mode", (16, 8, 0)),
+                        min_group=det.get("min_group", 2), max_group=det.get("max_group", 64),
+                        variance_model=det.get("variance_model", "Rauscher07"),
+                        shape=det.get("shape", (4096, 4096)),
+                        thermal_dark_range=None)
+    thermal_dark_range = det.get("thermal_dark_range")
+    if thermal_dark_range is None:
+        thermal_dark_range = _base_grid_range(config)
+    if isinstance(background, str):
+        background = Background(model="zodi", scale=2.0) if background == "zodi" else None
+    scene = Scene(pointsource=pointsource, background=background)
+    detector.thermal_dark_range = thermal_dark_range
+    sim = Simulation(scene, telescope, spectrograph, detector, nramps=ext.get("nramps", 1),
+                     aperture_radius_insigma=ext.get("aperture_radius_insigma", 10.0))
+    sim.config, sim.field = config, field
+    return sim
+
+
+def _base_grid_range(config):
+    """Thermal-dark integration range of a layered configuration (slicersim 1.0 convention).
+
+    The undispersed thermal light is integrated over the wavelength grid of the
+    *base* instrument: when later files (e.g. end-of-life) change the dispersion,
+    the detector keeps the base grid, as ``change_configuration`` does in
+    slicersim 1.0.  Returns None for a single configuration (use its own grid).
+    """
+    from .config import _expand
+    if isinstance(config, dict):
+        return None
+    paths = _expand(config)
+    if len(paths) < 2:
+        return None
+    base = load_config(paths[0]).get("spectrograph", {})
+    if "dispersion_law" not in base:
+        return None
+    from .curves import read_curve
+    from .spectrograph import wavelength_grid_from_dispersion
+    llbda, cols = read_curve(base["dispersion_law"])
+    lbda, _ = wavelength_grid_from_dispersion(llbda, next(iter(cols.values())),
+                                              base.get("spectral_range", (4000.0, 17000.0)),
+                                              base.get("dispersion_scale", 1.0),
+                                              base.get("dispersion_resolution", 2.0))
+    return float(lbda[0]), float(lbda[-1])
+
+
+class Target:
+    """A point source observed with a configured instrument.
+
+    Parameters
+    ----------
+    lbda, flux : input spectrum [Å], [erg/s/cm²/Å]
+    mag, band : optional renormalisation to an AB magnitude in an sncosmo band
+    config : "cbe", "eol", a TOML path or a list of them
+    field : "narrow", "wide" (Lazuli) or None
+    position : (x, y) [cells] relative to the field centre
+    """
+
+    default_config, default_field = "cbe", None
+
+    def __init__(self, lbda, flux, mag=None, band="bessellb", config=None, field="default",
+                 position=(0.0, 0.0), redshift=None):
+        self.redshift = redshift
+        self._source_args = dict(lbda=lbda, flux=flux, mag=mag, band=band, position=position)
+        self.pointsource = PointSource(lbda, flux, position=position, mag=mag, band=band)
+        self.config = self.default_config if config is None else config
+        self.field = self.default_field if field == "default" else _check_field(field)
+        self._build()
+
+    def _build(self, keep_readout=False):
+        old = (self.simulation.detector.nmd, self.simulation.nramps) if keep_readout else None
+        self.simulation = build_simulation(self.config, self.field, self.pointsource)
+        if old:
+            self.simulation.update(nmd=old[0], nramps=old[1])
+
+    # ------------------------------------------------------------------ changes
+    def change_configuration(self, config):
+        """Switch to another configuration (``"cbe"``, ``"eol"``, TOML path(s)); keeps the readout."""
+        self.config = config
+        self._build(keep_readout=True)
+
+    def change_field(self, field):
+        self.field = _check_field(field)
+        self._build(keep_readout=True)
+
+    def change_spectrograph(self, field=None, **kwargs):
+        """Change the field (Lazuli) and/or spectrograph parameters."""
+        if field is not None:
+            self.change_field(field)
+        if kwargs:
+            self.simulation.update(**kwargs)
+
+    def change_detector(self, nmd=None, nramps=None, max_group=None, **kwargs):
+        """Set the readout (n, m, d), number of ramps, max_group or other detector parameters."""
+        params = dict(kwargs)
+        if max_group is not None:
+            params["max_group"] = int(max_group)
+        if nmd is not None:
+            check_readout(nmd, nramps or self.simulation.nramps, self.simulation.detector.min_group,
+                          params.get("max_group"))
+            params["nmd"] = tuple(int(v) for v in nmd)
+        if nramps is not None:
+            params["nramps"] = nramps
+        self.simulation.update(**params)
+
+    # ------------------------------------------------------------------ ETC
+    def _band(self, lbda_range, frame):
+        if lbda_range is None:
+            lbda_range = (4000.0, 6800.0)
+        lo, hi = (float(v) for v in lbda_range)
+        if not hi > lo:
+            raise ETCError(f"lbda_range must be (lo, hi) with lo < hi, got {lbda_range}")
+        if frame == "rest":
+            if self.redshift is None:
+                raise ETCError("frame='rest' needs a target redshift")
+            return lo * (1 + self.redshift), hi * (1 + self.redshift)
+        if frame != "obs":
+            raise ETCError(f"frame must be 'obs' or 'rest', got {frame!r}")
+        return lo, hi
+
+    def setup_to_snr(self, snr, lbda_range=None, frame="obs", search="exact", per_resolution=True,
+                     backend="auto"):
+        """Find and apply the readout reaching ``snr`` (per resolution element by default)
+        in ``lbda_range``; returns the ETC result dict."""
+        band = self._band(lbda_range, frame)
+        result = self.simulation.fetch_snr(snr, band, per_resolution=per_resolution, search=search,
+                                           backend=backend)
+        self.simulation.update(nmd=result["nmd"], nramps=result["nramps"])
+        result["lbda_range_obs"] = band
+        self.last_etc = result
+        return result
+
+    def get_readout_config(self):
+        return {"nmd": tuple(self.simulation.detector.nmd), "nramps": self.simulation.nramps}
+
+    def get_exposure_time(self):
+        """Total exposure time of all ramps [s]."""
+        return self.simulation.get_times()["total_exposure_time"]
+
+    def get_times(self):
+        return self.simulation.get_times()
+
+    def get_data_volume(self):
+        return self.simulation.get_data_volume()
+
+    def get_band_snr(self, lbda_range=None, frame="obs", per_resolution=False):
+        return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution)
+
+    def get_spectrum(self, incl_error=False, seed=None):
+        """(λ [Å], signal [ADU], variance [ADU²]); ``incl_error`` adds a Gaussian noise draw."""
+        lbda, signal, variance = self.simulation.get_spectrum()
+        if incl_error:
+            rng = np.random.default_rng(seed)
+            signal = signal + rng.standard_normal(signal.shape) * np.sqrt(variance)
+        return lbda, signal, variance
+
+    def get_cube(self, seed=None):
+        return self.simulation.get_cube(seed=seed)
+
+    def get_variance_contribution(self):
+        return self.simulation.get_variance_contribution()
+
+    def get_band_variance_contribution(self, lbda_range=None, frame="obs"):
+        return self.simulation.get_band_variance_contribution(self._band(lbda_range, frame))
+
+
+class Supernova(Target):
+    """SN Ia at ``redshift`` from sncosmo (default ``hsiao-subsampled``, offline), peak
+    absolute magnitude ``peak_absmag`` in Bessell B (AB, Planck18), at ``phase`` days."""
+
+    def __init__(self, redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3, config=None,
+                 field="default", position=(0.0, 0.0), **kwargs):
+        lbda, flux = snia_spectrum(redshift, phase, source, peak_absmag, **kwargs)
+        super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift)
+        self.phase, self.source = phase, source
+
+    def setup_to_snr(self, snr, lbda_range=None, frame="rest", **kwargs):
+        return super().setup_to_snr(snr, lbda_range, frame, **kwargs)
+
+
+class BlackBody(Target):
+    """Black body of ``temperature`` [K] normalised to ``mag`` (AB) in ``band``."""
+
+    def __init__(self, temperature, mag, band="bessellb", config=None, field="default", position=(0.0, 0.0)):
+        src = PointSource.from_blackbody(temperature, mag, band)
+        super().__init__(src.lbda_in, src.flux_in, mag=mag, band=band, config=config, field=field,
+                         position=position)
+        self.temperature = temperature
+
+
+class _Lazuli:
+    default_config, default_field = "cbe", "narrow"
+
+
+class LazuliTarget(_Lazuli, Target):
+    """Target observed with the Lazuli IFS (``config`` "cbe"/"eol", ``field`` "narrow"/"wide")."""
+
+
+class LazuliSupernova(_Lazuli, Supernova):
+    """SN Ia observed with the Lazuli IFS."""
+
+
+class LazuliBlackBody(_Lazuli, BlackBody):
+    """Black body observed with the Lazuli IFS."""
+
+
+def _result(target, etc):
+    sim = target.simulation
+    return {"nmd": etc["nmd"], "nramps": etc["nramps"], "exposure_time": etc["exposure_time"],
+            "snr": etc["snr_per_resolution"], "snr_per_bin": etc["snr"], "snr_target_per_bin": etc["snr_target"],
+            "lbda_range_obs": etc["lbda_range_obs"], "data_volume": sim.get_data_volume(),
+            "config": target.config, "field": target.field, "target": target}
+
+
+def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame="obs",
+               config="cbe", field="narrow", search="exact", redshift=None):
+    """Exposure time for any spectrum with the Lazuli IFS; returns a dict
+    (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target)."""
+    target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift)
+    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search))
+
+
+def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame="rest", config="cbe", field="narrow",
+                  search="exact", phase=0.0, source="hsiao-subsampled"):
+    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default)."""
+    target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field)
+    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search))

@@ -1,0 +1,139 @@
+"""Tests of the OpenCL runtime layer (slicersim.opencl)."""
+
+import os
+import time
+
+import pytest
+
+from slicersim import opencl
+
+HAVE_OPENCL = opencl.is_available()
+needs_opencl = pytest.mark.skipif(
+    not HAVE_OPENCL,
+    reason="no OpenCL platform/device (install pocl-opencl-icd, or run `make opencl`)",
+)
+
+
+@pytest.fixture
+def fresh(monkeypatch):
+    """Default device selection before and after the test."""
+    monkeypatch.delenv(opencl.ENV_VAR, raising=False)
+    opencl.reset()
+    yield monkeypatch
+    opencl.reset()
+
+
+def test_is_available_returns_bool():
+    assert isinstance(opencl.is_available(), bool)
+
+
+def test_disable_with_env(fresh):
+    fresh.setenv(opencl.ENV_VAR, "none")
+    assert opencl.is_available() is False
+    with pytest.raises(opencl.OpenCLUnavailableError, match="disabled"):
+        opencl.get_context()
+
+
+def test_kernel_source_found():
+    src = opencl.kernel_source("band_variance.cl")
+    assert "__kernel void band_variance" in src
+    with pytest.raises(FileNotFoundError):
+        opencl.kernel_source("no_such_kernel.cl")
+
+
+@needs_opencl
+def test_device_info_lists_devices(fresh):
+    info = opencl.device_info()
+    assert info
+    keys = {"index", "platform", "name", "vendor", "version", "type", "compute_units",
+            "global_mem", "max_work_group_size", "fp64", "selected"}
+    for d in info:
+        assert keys <= set(d)
+        assert d["compute_units"] >= 1 and d["global_mem"] > 0 and d["max_work_group_size"] >= 1
+    assert sum(d["selected"] for d in info) == 1
+    # the selected entry is the context's device
+    sel = next(d for d in info if d["selected"])
+    assert opencl.get_device().name.strip() == sel["name"]
+    assert isinstance(opencl.device_supports_fp64(), bool)
+
+
+@needs_opencl
+def test_context_and_program_are_cached(fresh):
+    assert opencl.get_context() is opencl.get_context()
+    assert opencl.get_queue() is opencl.get_queue()
+    p1 = opencl.get_program("band_variance.cl", ("-DVW=1",))
+    p2 = opencl.get_program("band_variance.cl", ["-DVW=1"])
+    assert p1 is p2
+    p3 = opencl.get_program("band_variance.cl", ("-DVW=2",))
+    assert p3 is not p1
+
+
+@needs_opencl
+def test_select_by_index_and_name(fresh):
+    info = opencl.device_info()
+    first = info[0]
+    fresh.setenv(opencl.ENV_VAR, first["index"])
+    assert opencl.is_available()
+    assert opencl.get_device().name.strip() == first["name"]
+    # platform index alone means device 0 of that platform
+    assert opencl.select_device(first["index"].split(":")[0]).name.strip() == first["name"]
+    # case-insensitive substring of the device name, and of the type
+    assert opencl.select_device(first["name"].swapcase()[:6]).name.strip() == first["name"]
+    typ = first["type"].lower()
+    if typ in ("cpu", "gpu"):
+        assert opencl.device_type(opencl.select_device(typ.upper())) == first["type"]
+
+
+@needs_opencl
+def test_env_change_switches_context(fresh):
+    ctx = opencl.get_context()
+    fresh.setenv(opencl.ENV_VAR, opencl.device_info()[0]["index"])
+    assert opencl.get_context() is not ctx
+
+
+@needs_opencl
+@pytest.mark.parametrize("spec", ["no-such-device-xyz", "99:0", "0:99"])
+def test_bogus_selection_is_a_clear_error(fresh, spec):
+    fresh.setenv(opencl.ENV_VAR, spec)
+    with pytest.warns(RuntimeWarning, match="matches no OpenCL device"):
+        opencl._warned.discard(spec)
+        assert opencl.is_available() is False
+    with pytest.raises(opencl.OpenCLUnavailableError, match="SLICERSIM_DEVICE") as err:
+        opencl.get_context()
+    assert "Available:" in str(err.value)
+
+
+def test_fork_guard_simulated(fresh):
+    fresh.setitem(opencl._state, "pid", os.getpid() + 1)  # pretend a parent initialised OpenCL
+    assert opencl.is_available() is False
+    with pytest.raises(opencl.OpenCLForkError, match="spawn"):
+        opencl.get_context()
+    with pytest.raises(opencl.OpenCLForkError):
+        opencl.device_info()
+
+
+@needs_opencl
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_fork_guard_real_fork(fresh):
+    opencl.get_queue()  # OpenCL live in this process
+    pid = os.fork()
+    if pid == 0:  # child: must refuse before touching the OpenCL runtime
+        code = 1
+        try:
+            opencl.get_context()
+        except opencl.OpenCLForkError as exc:
+            code = 0 if "spawn" in str(exc) else 2
+        except BaseException:
+            code = 3
+        os._exit(code)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            assert os.waitstatus_to_exitcode(status) == 0
+            return
+        time.sleep(0.02)
+    os.kill(pid, 9)
+    os.waitpid(pid, 0)
+    pytest.fail("forked child hung instead of raising OpenCLForkError")
