@@ -61,6 +61,7 @@ demo: venv opencl
 
 bench: venv opencl
 	@set -e; found=0; for f in benchmarks/*.py; do \
+	  case "$$(basename "$$f")" in _*) continue;; esac; \
 	  [ -e "$$f" ] || continue; found=1; echo "== $$f"; "$(PY)" "$$f"; \
 	done; [ $$found = 1 ] || echo "no benchmark scripts in benchmarks/"
 

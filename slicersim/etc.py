@@ -44,7 +44,7 @@ def readout_variance_coefficients(sim, n, m, d):
     return A, B, qsat
 
 
-def band_snr_table_for_models(sim, models, band, candidates, backend="auto"):
+def band_snr_table_for_models(sim, models, band, candidates, backend="auto", psf2=None):
     """Single-ramp band SNR per bin, shape (N, K), for N extraction models and K readouts.
 
     Parameters
@@ -60,7 +60,8 @@ def band_snr_table_for_models(sim, models, band, candidates, backend="auto"):
     else:
         Q = np.stack([mod.cell_rate() for mod in models])
         signal_rate = np.stack([mod.signal_rate for mod in models])
-    psf2 = sim.extraction_model.psf2 if sim.scene.pointsource is not None else _template_psf2(sim)
+    if psf2 is None:
+        psf2 = sim.extraction_model.psf2 if sim.scene.pointsource is not None else _template_psf2(sim)
     tint = (n - 1) * (m + d) * sim.detector.tframe
     band = np.asarray(band, dtype=np.int64)
     if sim.detector.variance_model.lower().startswith("rauscher"):
@@ -189,6 +190,8 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     target = snr / math.sqrt(spec.dispersion_resolution) if per_resolution else snr.copy()
 
     psf = _template_psf(sim)
+    psf2 = psf**2
+    half = int(4.0 * spec.lsf_sigma + 0.5)
     f2p, qe, gain = sim.flambda_to_photon, sim.qe, det.gain
     uniform = sum(spec.apply_lsf(arr) for arr in (sim.background_photons, sim._thermal_photons("telescope"),
                                                   sim._thermal_photons("optics")))
@@ -204,32 +207,48 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
         chunks = tqdm(chunks, total=len(chunks), desc="ETC", unit="chunk")
     for t0 in chunks:
         t1 = min(ntarget, t0 + step)
-        flux_grid = fluxes[t0:t1, idx] * (1 - w) + fluxes[t0:t1, idx + 1] * w     # erg/s/cm²/Å
-        flux_grid[:, outside] = np.nan
-        photons = flux_grid * f2p                                                  # ph/s
-        point = spec.apply_lsf(photons[:, :, None] * psf[None], axis=1)            # ph/s/cell
-        Q = qe[None, :, None] * (point + uniform[None, :, None])                   # e-/s/cell
-        signal_rate = spec.apply_lsf(photons * qe, axis=1) * gain                  # ADU/s
+        # only the bins of this chunk's bands (plus the LSF half-width) are needed
+        lo, hi = int(band[t0:t1, 0].min()), int(band[t0:t1, 1].max())
+        s0, s1 = max(0, lo - half), min(grid.size, hi + half)
+        flux_grid = fluxes[t0:t1, idx[s0:s1]] * (1 - w[s0:s1]) + fluxes[t0:t1, idx[s0:s1] + 1] * w[s0:s1]
+        flux_grid[:, outside[s0:s1]] = np.nan                                      # erg/s/cm²/Å
+        photons = flux_grid * f2p[s0:s1]                                           # ph/s
+        # LSF with reflect ends: at a window edge inside the grid only the discarded
+        # margin bins are affected (the margin is the LSF half-width)
+        def lsf(a, ax):
+            return spec.apply_lsf(a, axis=ax)
+        keep = slice(lo - s0, hi - s0)
+        point = lsf(photons[:, :, None] * psf[None, s0:s1], 1)[:, keep]            # ph/s/cell
+        Q = qe[None, lo:hi, None] * (point + uniform[None, lo:hi, None])           # e-/s/cell
+        signal_rate = lsf(photons * qe[s0:s1], 1)[:, keep] * gain                  # ADU/s
+        sub_band = band[t0:t1] - lo
+        snr1 = band_snr_table_for_models(sim, (Q, signal_rate), sub_band, cand, backend=backend,
+                                         psf2=psf2[lo:hi])
         if search == "exact":
-            snr1 = band_snr_table_for_models(sim, (Q, signal_rate), band[t0:t1], cand, backend=backend)
             choice = exact_choice(snr1, *cand, target[t0:t1])
             for key in rows:
-                rows[key][t0:t1] = choice[key if key != "nramps" else "nramps"]
+                rows[key][t0:t1] = choice[key]
             reached[t0:t1] = choice["snr"]
-        else:
-            for t in range(t0, t1):
-                sub = (Q[t - t0:t - t0 + 1], signal_rate[t - t0:t - t0 + 1])
-                memo = {}
+            continue
+        # reference walk: look the single-ramp SNR up in the table, evaluate off-table readouts
+        lookup = {(int(a), int(b), int(c)): k for k, (a, b, c) in enumerate(zip(*cand))}
+        for t in range(t0, t1):
+            local = t - t0
+            extra = {}
 
-                def snr_of(n, m, d, r, sub=sub, t=t):
-                    if (n, m, d) not in memo:
-                        one = (np.array([n]), np.array([m]), np.array([d]))
-                        memo[(n, m, d)] = band_snr_table_for_models(sim, sub, band[t:t + 1], one,
-                                                                    backend="numpy")[0, 0]
-                    return memo[(n, m, d)] * math.sqrt(r)
-                nmd, r, s, _ = reference_walk(snr_of, target[t], det.max_group or 64, det.nmd[2])
-                rows["n"][t], rows["m"][t], rows["d"][t] = nmd
-                rows["nramps"][t], reached[t] = r, s
+            def snr_of(n, m, d, r, local=local, extra=extra):
+                key = (n, m, d)
+                if key in lookup:
+                    return snr1[local, lookup[key]] * math.sqrt(r)
+                if key not in extra:
+                    one = (np.array([n]), np.array([m]), np.array([d]))
+                    extra[key] = band_snr_table_for_models(
+                        sim, (Q[local:local + 1], signal_rate[local:local + 1]), sub_band[local:local + 1],
+                        one, backend="numpy", psf2=psf2[lo:hi])[0, 0]
+                return extra[key] * math.sqrt(r)
+            nmd, r, s, _ = reference_walk(snr_of, target[t], det.max_group or 64, det.nmd[2])
+            rows["n"][t], rows["m"][t], rows["d"][t] = nmd
+            rows["nramps"][t], reached[t] = r, s
     failed = rows["n"] == 0
     if failed.any():
         raise ETCError(f"target(s) {np.nonzero(failed)[0][:10].tolist()} cannot reach their SNR "

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.ndimage import correlate1d
 
 from .constants import ARCSEC
 from .curves import read_curve
@@ -96,13 +97,8 @@ def apply_lsf(values, sigma_bins, axis=0, truncate=4.0):
     values = np.asarray(values, dtype=float)
     if sigma_bins <= 0:
         return values.copy()
-    moved = np.moveaxis(values, axis, 0)
-    idx, w = lsf_index_weights(moved.shape[0], sigma_bins, truncate)
-    out = np.zeros_like(moved)
-    for k in range(idx.shape[1]):
-        wk = w[:, k].reshape((-1,) + (1,) * (moved.ndim - 1))
-        out += wk * moved[idx[:, k]]
-    return np.moveaxis(out, 0, axis)
+    _, w = lsf_weights(sigma_bins, truncate)
+    return correlate1d(values, w, axis=axis, mode="reflect")
 
 
 # --------------------------------------------------------------------------- #
