@@ -159,7 +159,9 @@ class Simulation:
             lrange = self.detector.thermal_dark_range or (self.lbda[0], self.lbda[-1])
             if not rows:
                 return 0.0
-            return thermal_dark_rate(*zip(*rows), self.detector.pixel_area, self.detector.get_qe, lrange)
+            qe_nodes = self.detector._qe_table[0] if self.detector._qe_table is not None else None
+            return thermal_dark_rate(*zip(*rows), self.detector.pixel_area, self.detector.get_qe, lrange,
+                                     breakpoints=qe_nodes)
         return self._cached("thermal_dark", dth)
 
     # ------------------------------------------------------------------ PSF
