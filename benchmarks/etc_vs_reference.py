@@ -445,6 +445,15 @@ def build_report(inputs, ref, batch_ref, batch_exact, single, comparable):
                                             <= sum(x["exposure_time"] for x, _ in pairs) * (1 + 1e-12))
         summary["n_exact_longer_than_walk"] = int(sum(y["exposure_time"] > x["exposure_time"] * (1 + 1e-9)
                                                       for x, y in pairs))
+        snr_goal = rows[0].get("snr_goal") if rows else None
+        goal = snr_goal if snr_goal is not None else 20.0
+        below = [x for x, _ in pairs if x.get("snr") is not None and x["snr"] < goal * (1 - 1e-9)]
+        summary["n_walk_below_target"] = len(below)
+        summary["n_exact_below_target"] = int(sum(y.get("snr") is not None and y["snr"] < goal * (1 - 1e-9)
+                                                  for _, y in pairs))
+        longer_ok = [(x, y) for x, y in pairs if y["exposure_time"] > x["exposure_time"] * (1 + 1e-9)]
+        summary["n_exact_longer_and_walk_reached_target"] = int(sum(
+            x.get("snr") is not None and x["snr"] >= goal * (1 - 1e-9) for x, _ in longer_ok))
     return rows, summary
 
 
@@ -511,6 +520,11 @@ def print_table(rows, summary, ref_note, ours_note):
     if "exact_le_walk_sum" in summary:
         print(f"exact <= reference walk (sum): {summary['exact_le_walk_sum']}; "
               f"targets where exact is longer: {summary['n_exact_longer_than_walk']}")
+    if "n_walk_below_target" in summary:
+        print(f"reference walk ends BELOW the target SNR for {summary['n_walk_below_target']}/{n} targets "
+              f"(its 0.5-per-bin tolerance); exact search below target: {summary['n_exact_below_target']}/{n}; "
+              f"exact longer although the walk reached the target: "
+              f"{summary['n_exact_longer_and_walk_reached_target']} (must be 0)")
 
 
 def make_plot(path, rows, summary):
