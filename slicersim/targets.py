@@ -172,7 +172,7 @@ class Target:
             params["max_group"] = int(max_group)
         if nmd is not None:
             check_readout(nmd, nramps or self.simulation.nramps, self.simulation.detector.min_group,
-                          params.get("max_group"))
+                          params.get("max_group", self.simulation.detector.max_group))
             params["nmd"] = tuple(int(v) for v in nmd)
         if nramps is not None:
             params["nramps"] = nramps
