@@ -1,0 +1,163 @@
+/*
+ * 2-D linear convolution of a batch of planes (one kernel per plane, or one
+ * shared kernel: kstride = 0), 'same' output grid, zero outside the field.
+ *
+ * Direct:  the host zero-pads every plane into P (B, PY, PX) with the image
+ * at offset (ky/2, kx/2) and flips the kernel (Kf[a, c] = K[ky-1-a, kx-1-c]),
+ * so that
+ *     out[b, y, x] = sum_{a < ky} sum_{c < kx} Kf[b, a, c] P[b, y + a, x + c]
+ * with no bounds tests.
+ *   convolve_direct:       NDRange (nxo / VW, nyo, B); each work item makes VW
+ *                          consecutive outputs of a row with vector loads
+ *                          (CPU devices; VW = 1 on GPUs).
+ *   convolve_direct_tiled: work group (TX, TY); the (TY + KY - 1) x
+ *                          (TX + KX - 1) input tile is staged in local memory
+ *                          (GPUs).  TX, TY, KY, KX are build options.
+ *
+ * FFT helpers (transforms in fft.cl), complex planes (B, Ny, Nx):
+ *   pack_planes:    Z_b = image_b + i kernel_b, both zero-padded at the origin.
+ *   multiply_pairs: from Z_b(m) and conj Z_b(-m) the spectra of image and
+ *                   kernel, A = (Z + Z*)/2, K = (Z - Z*)/(2i), so the product
+ *                   is A K = -i (Z^2 - Z*^2) / 4; planes 2q and 2q+1 are packed
+ *                   as W_q = P_2q + i P_2q+1 (both inverse transforms are real).
+ *   crop_pairs:     out_2q = Re w_q / (Ny Nx), out_2q+1 = Im w_q / (Ny Nx) at
+ *                   offset (ky/2, kx/2) of the full linear convolution.
+ */
+
+#if defined(cl_khr_fp64)
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#endif
+
+#ifndef VW
+#define VW 1
+#endif
+
+#if VW == 1
+typedef double realv;
+#define VLOAD(o, p) ((p)[o])
+#define VSTORE(x, o, p) ((p)[o] = (x))
+#elif VW == 2
+typedef double2 realv;
+#define VLOAD(o, p) vload2((o), (p))
+#define VSTORE(x, o, p) vstore2((x), (o), (p))
+#elif VW == 4
+typedef double4 realv;
+#define VLOAD(o, p) vload4((o), (p))
+#define VSTORE(x, o, p) vstore4((x), (o), (p))
+#elif VW == 8
+typedef double8 realv;
+#define VLOAD(o, p) vload8((o), (p))
+#define VSTORE(x, o, p) vstore8((x), (o), (p))
+#else
+#error "VW must be 1, 2, 4 or 8"
+#endif
+
+__kernel void convolve_direct(
+    __global const double *restrict P,    /* (B, PY, PX) zero-padded planes   */
+    __global const double *restrict Kf,   /* (B or 1, ky, kx) flipped kernels */
+    const int ky, const int kx,
+    const int PY, const int PX,
+    const int kstride,                    /* ky * kx, or 0 for a shared kernel */
+    const int nyo, const int nxo,         /* output plane, nxo % VW == 0      */
+    __global double *restrict out)        /* (B, nyo, nxo)                    */
+{
+    const int xv = get_global_id(0);
+    const int y = get_global_id(1);
+    const int b = get_global_id(2);
+    __global const double *Pb = P + (size_t)b * (size_t)PY * (size_t)PX
+                                  + (size_t)y * (size_t)PX + (size_t)xv * VW;
+    __global const double *K = Kf + (size_t)b * (size_t)kstride;
+    realv acc = (realv)(0.0);
+    for (int a = 0; a < ky; ++a) {
+        __global const double *row = Pb + (size_t)a * (size_t)PX;
+        __global const double *krow = K + a * kx;
+        for (int c = 0; c < kx; ++c)
+            acc += krow[c] * VLOAD(0, row + c);
+    }
+    VSTORE(acc, 0, out + ((size_t)b * (size_t)nyo + (size_t)y) * (size_t)nxo + (size_t)xv * VW);
+}
+
+#if defined(TX) && defined(TY) && defined(KY) && defined(KX)
+#define TW (TX + KX - 1)
+#define TH (TY + KY - 1)
+__kernel __attribute__((reqd_work_group_size(TX, TY, 1)))
+void convolve_direct_tiled(
+    __global const double *restrict P,    /* (B, PY, PX), PY >= nyo + KY - 1  */
+    __global const double *restrict Kf,   /* (B or 1, KY, KX) flipped kernels  */
+    const int PY, const int PX,
+    const int kstride,
+    const int nyo, const int nxo,         /* multiples of TY, TX               */
+    __global double *restrict out)        /* (B, nyo, nxo)                     */
+{
+    __local double tile[TH * TW];
+    const int lx = get_local_id(0), ly = get_local_id(1);
+    const int x0 = get_group_id(0) * TX, y0 = get_group_id(1) * TY;
+    const int b = get_global_id(2);
+    __global const double *Pb = P + (size_t)b * (size_t)PY * (size_t)PX;
+    for (int idx = ly * TX + lx; idx < TH * TW; idx += TX * TY) {
+        const int ty = idx / TW, tx = idx - ty * TW;
+        tile[idx] = Pb[(size_t)(y0 + ty) * (size_t)PX + (size_t)(x0 + tx)];
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    __global const double *K = Kf + (size_t)b * (size_t)kstride;
+    double acc = 0.0;
+    for (int a = 0; a < KY; ++a)
+        for (int c = 0; c < KX; ++c)
+            acc += K[a * KX + c] * tile[(ly + a) * TW + lx + c];
+    out[((size_t)b * (size_t)nyo + (size_t)(y0 + ly)) * (size_t)nxo + (size_t)(x0 + lx)] = acc;
+}
+#endif
+
+__kernel void pack_planes(
+    __global const double *restrict img,  /* (B, ny, nx); planes b >= nb are zero */
+    __global const double *restrict kern, /* (B or 1, ky, kx)                      */
+    const int nb, const int ny, const int nx,
+    const int ky, const int kx, const int kstride,
+    const int Ny, const int Nx,
+    __global double2 *restrict Z)         /* (B, Ny, Nx)                           */
+{
+    const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
+    double re = 0.0, im = 0.0;
+    if (b < nb) {
+        if (y < ny && x < nx)
+            re = img[((size_t)b * ny + y) * nx + x];
+        if (y < ky && x < kx)
+            im = kern[(size_t)b * kstride + y * kx + x];
+    }
+    Z[((size_t)b * Ny + y) * Nx + x] = (double2)(re, im);
+}
+
+__kernel void multiply_pairs(
+    __global const double2 *restrict Z,   /* (2 B2, Ny, Nx) forward transforms */
+    const int Ny, const int Nx,
+    __global double2 *restrict W)         /* (B2, Ny, Nx)                      */
+{
+    const int x = get_global_id(0), y = get_global_id(1), q = get_global_id(2);
+    const int xm = (x == 0) ? 0 : Nx - x, ym = (y == 0) ? 0 : Ny - y;
+    double2 prod[2];
+    for (int h = 0; h < 2; ++h) {
+        const size_t plane = (size_t)(2 * q + h) * Ny;
+        const double2 z = Z[(plane + y) * Nx + x];
+        const double2 zm = Z[(plane + ym) * Nx + xm];
+        /* Z^2 - conj(Zm)^2, then times -i/4 */
+        const double2 d = (double2)(z.x * z.x - z.y * z.y - zm.x * zm.x + zm.y * zm.y,
+                                    2.0 * (z.x * z.y + zm.x * zm.y));
+        prod[h] = (double2)(0.25 * d.y, -0.25 * d.x);
+    }
+    W[((size_t)q * Ny + y) * Nx + x] = (double2)(prod[0].x - prod[1].y, prod[0].y + prod[1].x);
+}
+
+__kernel void crop_pairs(
+    __global const double2 *restrict W,   /* (B2, Ny, Nx) inverse transforms */
+    const int nb, const int ny, const int nx,
+    const int oy, const int ox,           /* ky/2, kx/2                     */
+    const int Ny, const int Nx,
+    const double scale,                   /* 1 / (Ny Nx)                    */
+    __global double *restrict out)        /* (nb, ny, nx)                   */
+{
+    const int x = get_global_id(0), y = get_global_id(1), q = get_global_id(2);
+    const double2 w = W[((size_t)q * Ny + y + oy) * Nx + x + ox];
+    out[((size_t)(2 * q) * ny + y) * nx + x] = w.x * scale;
+    if (2 * q + 1 < nb)
+        out[((size_t)(2 * q + 1) * ny + y) * nx + x] = w.y * scale;
+}

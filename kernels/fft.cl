@@ -1,0 +1,127 @@
+/*
+ * Mixed-radix (2, 3, 4, 5) Stockham autosort FFT passes, complex double.
+ *
+ * One pass of radix R on a transform of length N, with p = product of the
+ * radices of the previous passes (p = 1 for the first pass), T = N / R
+ * butterflies per transform.  Butterfly i (0 <= i < T), k = i mod p:
+ *
+ *     u_r = src[i + r T] * w^(r k N / (p R)),       r = 0 .. R-1
+ *     U_q = sum_r u_r exp(s 2 pi i r q / R)           (radix-R DFT)
+ *     dst[(i - k) R + k + q p] = U_q
+ *
+ * with w = exp(s 2 pi i / N), s = -1 forward, +1 inverse (unnormalised).
+ * After the last pass (p R = N) dst holds the DFT in natural order.
+ * tw[m] = (cos 2 pi m / N, sin 2 pi m / N), m < N, computed on the host in
+ * float64; the pass uses (tw.x, s tw.y).  twstep = N / (p R).
+ *
+ * Two layouts of a batch of 2-D arrays (B, Ny, Nx), element (b, y, x) at
+ * (b Ny + y) Nx + x:
+ *   fft_rows_R: transforms along x.  NDRange (T, B Ny): i, row.
+ *   fft_cols_R: transforms along y.  NDRange (Nx, T, B): column, i, plane;
+ *               neighbouring work items touch neighbouring columns, so
+ *               loads and stores are contiguous (vectorise on CPUs,
+ *               coalesce on GPUs) and the twiddles are uniform.
+ */
+
+#if defined(cl_khr_fp64)
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#endif
+
+#define CMUL(a, b) ((double2)((a).x * (b).x - (a).y * (b).y, (a).x * (b).y + (a).y * (b).x))
+/* multiply by s*i: (x + iy)(s i) = -s y + i s x */
+#define MUL_SI(a, s) ((double2)(-(s) * (a).y, (s) * (a).x))
+
+#define SQRT3_2 0.86602540378443864676
+#define C5_1 0.30901699437494742410   /* cos(2 pi / 5) */
+#define C5_2 -0.80901699437494742410  /* cos(4 pi / 5) */
+#define S5_1 0.95105651629515357212   /* sin(2 pi / 5) */
+#define S5_2 0.58778525229247312917   /* sin(4 pi / 5) */
+
+#define BUTTERFLY_2(u, s)                                                   \
+    {                                                                       \
+        const double2 a = u[0], b = u[1];                                   \
+        u[0] = a + b;                                                       \
+        u[1] = a - b;                                                       \
+    }
+
+#define BUTTERFLY_3(u, s)                                                   \
+    {                                                                       \
+        const double2 t = u[1] + u[2];                                      \
+        const double2 d = MUL_SI(u[1] - u[2], (s) * SQRT3_2);               \
+        const double2 m = u[0] - 0.5 * t;                                   \
+        u[0] = u[0] + t;                                                    \
+        u[1] = m + d;                                                       \
+        u[2] = m - d;                                                       \
+    }
+
+#define BUTTERFLY_4(u, s)                                                   \
+    {                                                                       \
+        const double2 a = u[0] + u[2], b = u[0] - u[2];                     \
+        const double2 c = u[1] + u[3], d = MUL_SI(u[1] - u[3], s);          \
+        u[0] = a + c;                                                       \
+        u[2] = a - c;                                                       \
+        u[1] = b + d;                                                       \
+        u[3] = b - d;                                                       \
+    }
+
+#define BUTTERFLY_5(u, s)                                                   \
+    {                                                                       \
+        const double2 t1 = u[1] + u[4], t2 = u[2] + u[3];                   \
+        const double2 d1 = u[1] - u[4], d2 = u[2] - u[3];                   \
+        const double2 a1 = u[0] + C5_1 * t1 + C5_2 * t2;                    \
+        const double2 a2 = u[0] + C5_2 * t1 + C5_1 * t2;                    \
+        const double2 b1 = MUL_SI(S5_1 * d1 + S5_2 * d2, s);                \
+        const double2 b2 = MUL_SI(S5_2 * d1 - S5_1 * d2, s);                \
+        u[0] = u[0] + t1 + t2;                                              \
+        u[1] = a1 + b1;                                                     \
+        u[4] = a1 - b1;                                                     \
+        u[2] = a2 + b2;                                                     \
+        u[3] = a2 - b2;                                                     \
+    }
+
+/* body of one butterfly: base = first element of the transform, es = stride */
+#define PASS_BODY(R)                                                        \
+    const int T = N / R;                                                    \
+    const int k = i % p;                                                    \
+    double2 u[R];                                                           \
+    for (int r = 0; r < R; ++r)                                             \
+        u[r] = src[base + (size_t)(i + r * T) * es];                        \
+    for (int r = 1; r < R; ++r) {                                           \
+        double2 w = tw[r * k * twstep];                                     \
+        w.y *= s;                                                           \
+        u[r] = CMUL(u[r], w);                                               \
+    }                                                                       \
+    BUTTERFLY_##R(u, s)                                                     \
+    const int j = (i - k) * R + k;                                          \
+    for (int r = 0; r < R; ++r)                                             \
+        dst[base + (size_t)(j + r * p) * es] = u[r];
+
+#define DEFINE_PASSES(R)                                                    \
+__kernel void fft_rows_##R(__global const double2 *restrict src,            \
+                           __global double2 *restrict dst,                  \
+                           __global const double2 *restrict tw,             \
+                           const int N, const int p, const int twstep,      \
+                           const double s)                                  \
+{                                                                           \
+    const int i = get_global_id(0);                                         \
+    const size_t base = (size_t)get_global_id(1) * (size_t)N;               \
+    const size_t es = 1;                                                    \
+    PASS_BODY(R)                                                            \
+}                                                                           \
+__kernel void fft_cols_##R(__global const double2 *restrict src,            \
+                           __global double2 *restrict dst,                  \
+                           __global const double2 *restrict tw,             \
+                           const int N, const int p, const int twstep,      \
+                           const double s, const int Nx)                    \
+{                                                                           \
+    const int i = get_global_id(1);                                         \
+    const size_t base = (size_t)get_global_id(2) * (size_t)N * (size_t)Nx   \
+                        + (size_t)get_global_id(0);                         \
+    const size_t es = (size_t)Nx;                                           \
+    PASS_BODY(R)                                                            \
+}
+
+DEFINE_PASSES(2)
+DEFINE_PASSES(3)
+DEFINE_PASSES(4)
+DEFINE_PASSES(5)

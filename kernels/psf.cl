@@ -1,0 +1,358 @@
+/*
+ * Point-source PSF kernels: fraction of a point source's flux in each cell.
+ *
+ * Cell coordinates are in cell units relative to the field centre (cell
+ * edges X_k = k - nx/2, Y_j = j - ny/2).  Flux outside the field is lost.
+ * Double precision throughout; no fast-math build options.
+ *
+ * gaussian_cell_fractions, outer_product
+ *                   Gaussian integrated exactly over each cell (erf product).
+ * airy_subsamples   Airy intensity of an annular pupil at the sub-samples.
+ * blur_bin_rows     banded contraction along y: Gaussian jitter + o-to-1 binning.
+ * blur_bin_cols     banded contraction along x: jitter and blur + binning.
+ * bessel_j1_values  J1(x) with the approximation below (for tests).
+ *
+ * J1: OpenCL C has no Bessel functions.  2 J1(v)/v is evaluated as
+ *   v < 12 : its power series in t = v^2/4, sum_k (-1)^k t^k / (k! (k+1)!),
+ *            28 terms (truncation < 1e-17; rounding ~1e-13 at v = 12);
+ *   v >= 12: Hankel's asymptotic expansion J1(v) = sqrt(2/(pi v))
+ *            [P(v) cos(v - 3pi/4) - Q(v) sin(v - 3pi/4)] with 10 terms each
+ *            of P and Q (truncation ~1.6e-12 at v = 12, less beyond);
+ *            sin and cos by sin_cos() below.
+ * Measured max |J1 - scipy.special.j1| ~2e-12 on [0, 500] (tests/test_psf.py).
+ *
+ * Vector width VW (1, 2, 4, 8, 16; -DVW=...): in airy_subsamples and
+ * blur_bin_rows each work item handles VW consecutive x sub-samples with
+ * explicit vector types (PoCL then vectorises on CPUs; GPUs use VW = 1).
+ */
+
+#if defined(cl_khr_fp64)
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#endif
+
+#ifndef VW
+#define VW 1
+#endif
+
+#if VW == 1
+typedef double realv;
+#define VLOAD(o, p) ((p)[o])
+#define VSTORE(x, o, p) ((p)[o] = (x))
+#define ANY(c) (c)
+#elif VW == 2
+typedef double2 realv;
+#define VLOAD(o, p) vload2((o), (p))
+#define VSTORE(x, o, p) vstore2((x), (o), (p))
+#define ANY(c) any(c)
+#elif VW == 4
+typedef double4 realv;
+#define VLOAD(o, p) vload4((o), (p))
+#define VSTORE(x, o, p) vstore4((x), (o), (p))
+#define ANY(c) any(c)
+#elif VW == 8
+typedef double8 realv;
+#define VLOAD(o, p) vload8((o), (p))
+#define VSTORE(x, o, p) vstore8((x), (o), (p))
+#define ANY(c) any(c)
+#elif VW == 16
+typedef double16 realv;
+#define VLOAD(o, p) vload16((o), (p))
+#define VSTORE(x, o, p) vstore16((x), (o), (p))
+#define ANY(c) any(c)
+#else
+#error "VW must be 1, 2, 4, 8 or 16"
+#endif
+
+#define JINC_SWITCH 12.0
+
+/* (-1)^k / (k! (k+1)!), k = 0..27 */
+__constant double JINC_SERIES[28] = {
+    1.0, -0.5, 0.08333333333333333, -0.006944444444444444, 0.00034722222222222224,
+    -1.1574074074074073e-05, 2.755731922398589e-07, -4.920949861426052e-09,
+    6.834652585313961e-11, -7.594058428126623e-13, 6.903689480115112e-15,
+    -5.230067787965994e-17, 3.352607556388458e-19, -1.842092063949702e-21,
+    8.771866971189057e-24, -3.654944571328774e-26, 1.3437296218120491e-28,
+    -4.391273273895586e-31, 1.2839980333028028e-33, -3.3789421929021126e-36,
+    8.045100459290744e-39, -1.7413637357772174e-41, 3.4414303078601135e-44,
+    -6.234475195398757e-47, 1.0390791992331261e-49, -1.5985833834355786e-52,
+    2.2771843068882885e-55, -3.0121485540850376e-58};
+
+/* Hankel expansion of J1 (mu = 4): P = sum_m P_m v^-2m, Q = sum_m Q_m v^-(2m+1) */
+__constant double HANKEL_P[10] = {
+    1.0, 0.1171875, -0.144195556640625, 0.6765925884246826, -6.883914268109947,
+    121.59789187653587, -3302.2722944808525, 127641.2726461746, -6656367.718817687,
+    450278600.3050392};
+__constant double HANKEL_Q[10] = {
+    0.375, -0.1025390625, 0.2775764465332031, -1.993531733751297, 27.248827311268542,
+    -603.8440767050702, 19718.37591223663, -890297.8767070678, 53104110.10968522,
+    -4043620325.1077538};
+
+/* 2 J1(v)/v for v < JINC_SWITCH (power series) */
+inline realv jinc_series(const realv v)
+{
+    const realv t = 0.25 * v * v;
+    realv s = (realv)(JINC_SERIES[27]);
+    for (int k = 26; k >= 0; --k)
+        s = fma(s, t, (realv)(JINC_SERIES[k]));
+    return s;
+}
+
+/*
+ * sin and cos of x (|x| < ~1e9), vector friendly and much cheaper than the
+ * built-in sincos on PoCL: x = n pi/2 + r with |r| <= pi/4 (two-constant
+ * Cody-Waite reduction through fma), Taylor polynomials of sin r (9 terms)
+ * and cos r (10 terms; truncation < 1e-17), then the quadrant n mod 4.
+ */
+#define PIO2_HI 1.5707963267948966
+#define PIO2_LO 6.123233995736766e-17
+__constant double SIN_TAYLOR[9] = {
+    1.0, -0.16666666666666666, 0.008333333333333333, -0.0001984126984126984,
+    2.7557319223985893e-06, -2.505210838544172e-08, 1.6059043836821613e-10,
+    -7.647163731819816e-13, 2.8114572543455206e-15};
+__constant double COS_TAYLOR[10] = {
+    1.0, -0.5, 0.041666666666666664, -0.001388888888888889, 2.48015873015873e-05,
+    -2.755731922398589e-07, 2.08767569878681e-09, -1.1470745597729725e-11,
+    4.779477332387385e-14, -1.5619206968586225e-16};
+
+inline realv sin_cos(const realv x, realv *cosx)
+{
+    const realv n = rint(x * 0.6366197723675814);            /* 2 / pi */
+    const realv r = fma(-n, (realv)(PIO2_LO), fma(-n, (realv)(PIO2_HI), x));
+    const realv r2 = r * r;
+    realv sp = (realv)(SIN_TAYLOR[8]);
+    for (int k = 7; k >= 0; --k)
+        sp = fma(sp, r2, (realv)(SIN_TAYLOR[k]));
+    sp *= r;
+    realv cp = (realv)(COS_TAYLOR[9]);
+    for (int k = 8; k >= 0; --k)
+        cp = fma(cp, r2, (realv)(COS_TAYLOR[k]));
+    const realv q = n - 4.0 * floor(0.25 * n);                /* quadrant 0..3 */
+    /* q = 0: (s, c); 1: (c, -s); 2: (-s, -c); 3: (-c, s) */
+    const realv s1 = (q == 1.0 || q == 3.0) ? cp : sp;
+    const realv c1 = (q == 1.0 || q == 3.0) ? sp : cp;
+    *cosx = (q == 1.0 || q == 2.0) ? -c1 : c1;
+    return (q >= 2.0) ? -s1 : s1;
+}
+
+/*
+ * Hankel expansion for v >= JINC_SWITCH (v is clamped to the switch):
+ * returns J1(v) and, in *jinc_out, 2 J1(v)/v.  No division: rsqrt only.
+ */
+inline realv j1_hankel(realv v, realv *jinc_out)
+{
+    v = fmax(v, (realv)(JINC_SWITCH));
+    const realv rs = rsqrt(v);
+    const realv rv = rs * rs;
+    const realv z = rv * rv;
+    realv p = (realv)(HANKEL_P[9]);
+    realv q = (realv)(HANKEL_Q[9]);
+    for (int m = 8; m >= 0; --m) {
+        p = fma(p, z, (realv)(HANKEL_P[m]));
+        q = fma(q, z, (realv)(HANKEL_Q[m]));
+    }
+    realv c;
+    const realv s = sin_cos(v - 2.356194490192345, &c);          /* 3 pi / 4 */
+    const realv j1v = 0.7978845608028654 * rs * (p * c - q * rv * s); /* sqrt(2/pi) */
+    *jinc_out = 2.0 * rv * j1v;
+    return j1v;
+}
+
+/* 2 J1(v)/v, v >= 0 (1 at v = 0); each branch only evaluated when a lane needs it */
+inline realv jinc(const realv v)
+{
+    if (!ANY(v >= JINC_SWITCH))
+        return jinc_series(v);
+    realv big;
+    j1_hankel(v, &big);
+    if (ANY(v < JINC_SWITCH))
+        return (v < JINC_SWITCH) ? jinc_series(v) : big;
+    return big;
+}
+
+__kernel void bessel_j1_values(__global const double *restrict x, __global double *restrict out)
+{
+    const int i = get_global_id(0);
+    const realv v = VLOAD(i, x);
+    realv jv;
+    const realv r = (v < JINC_SWITCH) ? 0.5 * v * jinc_series(v) : j1_hankel(v, &jv);
+    VSTORE(r, i, out);
+}
+
+/*
+ * Airy intensity per unit cell area at every sub-sample of a window:
+ *   S[l, v, u] = pref[l] * g(kwave[l] * sqrt(dx[u]^2 + dy[v]^2))^2
+ *   g(w) = (jinc(w) - eps^2 jinc(eps w)) / (1 - eps^2)
+ * dx, dy: sub-sample offsets from the source [cells]; kwave = pi D s / lambda
+ * [rad per cell]; pref = (1 - eps^2) kwave^2 / (4 pi) so that the intensity
+ * integrates to 1 over the plane.  Global size (nxs / VW, nys, nl); the row
+ * stride nxs is a multiple of VW (the host pads dx).
+ */
+__kernel void airy_subsamples(
+    __global const double *restrict dx,     /* (nxs,) */
+    __global const double *restrict dy,     /* (nys,) */
+    __global const double *restrict kwave,  /* (nl,)  */
+    __global const double *restrict pref,   /* (nl,)  */
+    const double eps,
+    const int nxs,
+    __global double *restrict S)            /* (nl, nys, nxs) */
+{
+    const int uv = get_global_id(0);
+    const int v = get_global_id(1);
+    const int l = get_global_id(2);
+    const int nys = get_global_size(1);
+    const double k = kwave[l];
+    const double y = dy[v];
+    const realv x = VLOAD(uv, dx);
+    const realv w = k * sqrt(fma(x, x, (realv)(y * y)));
+    realv g = jinc(w);
+    if (eps > 0.0) {
+        const double e2 = eps * eps;
+        g = (g - e2 * jinc(eps * w)) / (1.0 - e2);
+    }
+    const size_t row = ((size_t)l * (size_t)nys + (size_t)v) * (size_t)nxs;
+    VSTORE(pref[l] * g * g, 0, S + row + (size_t)uv * VW);
+}
+
+#ifdef NA
+/*
+ * airy_subsamples fused with blur_bin_rows (S never goes to memory):
+ *   U[l, j, u] = sum_{a < NA} sum_{b < o} ky[o a + b] S(l, row o (j + a) + b, u)
+ * Each work item walks down its VW columns; acc[a] accumulates output row
+ * c - a while window cell row c is processed (NA = 2 m_y + 1 is a build
+ * option, so the accumulators stay in registers).  Global (nxs / VW, nl).
+ */
+__kernel void airy_rows(
+    __global const double *restrict dx,     /* (nxs,) */
+    __global const double *restrict dy,     /* (o * (nyo + NA - 1),) */
+    __global const double *restrict kwave,  /* (nl,) */
+    __global const double *restrict pref,   /* (nl,) */
+    __global const double *restrict ky,     /* (o * NA,) */
+    const double eps,
+    const int o,
+    const int nyo,
+    const int nxs,
+    __global double *restrict U)            /* (nl, nyo, nxs) */
+{
+    const int uv = get_global_id(0);
+    const int l = get_global_id(1);
+    const double k = kwave[l];
+    const double pf = pref[l];
+    const double e2 = eps * eps;
+    const realv x = VLOAD(uv, dx);
+    const realv x2 = x * x;
+    realv acc[NA];
+    for (int a = 0; a < NA; ++a)
+        acc[a] = (realv)(0.0);
+    __global double *dst = U + (size_t)l * (size_t)nyo * (size_t)nxs + (size_t)uv * VW;
+    const int ncy = nyo + NA - 1;
+    for (int c = 0; c < ncy; ++c) {
+        for (int b = 0; b < o; ++b) {
+            const double y = dy[c * o + b];
+            const realv w = k * sqrt(x2 + y * y);
+            realv g = jinc(w);
+            if (eps > 0.0)
+                g = (g - e2 * jinc(eps * w)) / (1.0 - e2);
+            const realv sv = pf * g * g;
+#pragma unroll
+            for (int a = 0; a < NA; ++a)
+                acc[a] = fma((realv)(ky[o * a + b]), sv, acc[a]);
+        }
+        const int j = c - (NA - 1);           /* output row now complete */
+        if (j >= 0)
+            VSTORE(acc[NA - 1], 0, dst + (size_t)j * (size_t)nxs);
+#pragma unroll
+        for (int a = NA - 1; a > 0; --a)
+            acc[a] = acc[a - 1];
+        acc[0] = (realv)(0.0);
+    }
+}
+#endif
+
+/*
+ * U[l, j, u] = sum_{e < wy} ky[e] S[l, o j + e, u]   (rows of S: nys)
+ * ky holds the fraction of a sub-sample's light that the Gaussian jitter puts
+ * into the output row, times the quadrature weight.  Global (nxs / VW, nyo, nl).
+ */
+__kernel void blur_bin_rows(
+    __global const double *restrict S,      /* (nl, nys, nxs) */
+    __global const double *restrict ky,     /* (wy,) */
+    const int wy,
+    const int o,
+    const int nys,
+    const int nxs,
+    __global double *restrict U)            /* (nl, nyo, nxs) */
+{
+    const int uv = get_global_id(0);
+    const int j = get_global_id(1);
+    const int l = get_global_id(2);
+    const int nyo = get_global_size(1);
+    __global const double *src = S + ((size_t)l * (size_t)nys + (size_t)(o * j)) * (size_t)nxs
+                                 + (size_t)uv * VW;
+    realv acc = (realv)(0.0);
+    for (int e = 0; e < wy; ++e)
+        acc = fma((realv)(ky[e]), VLOAD(0, src + (size_t)e * (size_t)nxs), acc);
+    VSTORE(acc, 0, U + ((size_t)l * (size_t)nyo + (size_t)j) * (size_t)nxs + (size_t)uv * VW);
+}
+
+/*
+ * Along x the sub-samples of a row are stored de-interleaved: the sub-sample
+ * at node b of window cell c sits at b * ncx + c.  Then
+ *   P[l, j, k] = sum_{b < o} sum_{a < na} kx[o a + b] U[l, j, b ncx + k + a]
+ * reads contiguous vectors for VW consecutive output cells k.
+ * Global (nxo / VW, nyo, nl); output row stride nxo (padded to VW).
+ */
+__kernel void blur_bin_cols(
+    __global const double *restrict U,      /* (nl, nyo, nxs), nxs = o * ncx */
+    __global const double *restrict kx,     /* (o * na,) */
+    const int na,                           /* 2 m + 1 cells of taps */
+    const int o,
+    const int ncx,
+    __global double *restrict P)            /* (nl, nyo, nxo) */
+{
+    const int kv = get_global_id(0);
+    const int j = get_global_id(1);
+    const int l = get_global_id(2);
+    const int nxo = get_global_size(0) * VW;
+    const int nyo = get_global_size(1);
+    const size_t row = (size_t)l * (size_t)nyo + (size_t)j;
+    __global const double *src = U + row * (size_t)(o * ncx) + (size_t)kv * VW;
+    realv acc = (realv)(0.0);
+    for (int b = 0; b < o; ++b)
+        for (int a = 0; a < na; ++a)
+            acc = fma((realv)(kx[o * a + b]), VLOAD(0, src + (size_t)(b * ncx + a)), acc);
+    VSTORE(acc, 0, P + row * (size_t)nxo + (size_t)kv * VW);
+}
+
+/*
+ * Fraction of a 1-D Gaussian (centre c, sigma[l] cells) in each cell of an
+ * axis of n cells with edges e_k = k - n/2:
+ *   f[l, k] = 1/2 [erf((e_{k+1} - c)/(sqrt2 sigma)) - erf((e_k - c)/(sqrt2 sigma))]
+ * Global (n, nl).
+ */
+__kernel void gaussian_cell_fractions(
+    __global const double *restrict sigma,  /* (nl,) [cells] */
+    const double c,
+    __global double *restrict f)            /* (nl, n) */
+{
+    const int k = get_global_id(0);
+    const int l = get_global_id(1);
+    const int n = get_global_size(0);
+    const double z = M_SQRT2 * sigma[l];
+    const double e = (double)k - 0.5 * (double)n;
+    f[(size_t)l * (size_t)n + (size_t)k] = 0.5 * (erf((e + 1.0 - c) / z) - erf((e - c) / z));
+}
+
+/* P[l, j, k] = fy[l, j] fx[l, k] (Gaussian PSF: erf product).  Global (nx, ny, nl). */
+__kernel void outer_product(
+    __global const double *restrict fy,     /* (nl, ny) */
+    __global const double *restrict fx,     /* (nl, nx) */
+    __global double *restrict P)            /* (nl, ny, nx) */
+{
+    const int k = get_global_id(0);
+    const int j = get_global_id(1);
+    const int l = get_global_id(2);
+    const int nx = get_global_size(0);
+    const int ny = get_global_size(1);
+    const size_t row = (size_t)l * (size_t)ny + (size_t)j;
+    P[row * (size_t)nx + (size_t)k] = fy[row] * fx[(size_t)l * (size_t)nx + (size_t)k];
+}

@@ -1,0 +1,420 @@
+"""LSF along λ and 2-D convolution of cube planes: OpenCL kernels and NumPy/SciPy twins.
+
+* :func:`apply_lsf` — Gaussian line-spread function along the wavelength axis,
+  σ in bins, constant or varying with λ (kernel ``kernels/lsf.cl``).
+* :func:`convolve_cube` — linear 2-D convolution of every λ-plane of a cube with
+  its own (or a shared) PSF kernel, direct (``kernels/convolve.cl``) or by FFT
+  (own mixed-radix 2/3/4/5 Stockham FFT, ``kernels/fft.cl``).
+
+Every function takes ``backend="auto" | "opencl" | "numpy"`` (see
+:func:`slicersim.compute.resolve_backend`).  Non-finite input raises
+:class:`ValueError`: callers validate spectra and cubes, a NaN would otherwise
+spread over the LSF or PSF footprint (or, with the FFT, the whole plane).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.ndimage
+import scipy.signal
+import scipy.sparse
+
+from slicersim import opencl
+from slicersim.compute import resolve_backend
+
+__all__ = ["apply_lsf", "lsf_weights", "lsf_matrix", "convolve_cube", "choose_convolution_method",
+           "fft_good_size", "fft_radix_plan", "DEFAULT_MAX_BYTES", "FFT_COST_PER_DIRECT_TAP"]
+
+DEFAULT_MAX_BYTES = 256 * 2**20
+
+
+def _finite_array(values, name):
+    a = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains {np.count_nonzero(~np.isfinite(a))} NaN/inf value(s); "
+                         "validate the input first (NaN would spread over the convolution footprint)")
+    return a
+
+
+def _vector_width(cap=8):
+    """Doubles per work item: 1 on GPUs, the device's preferred double width on CPUs."""
+    dev = opencl.get_device()
+    if "GPU" in opencl.device_type(dev):
+        return 1
+    w = int(getattr(dev, "preferred_vector_width_double", 1) or 1)
+    v = 1
+    while v * 2 <= min(w, cap):
+        v *= 2
+    return v
+
+
+def _require_fp64():
+    if not opencl.device_supports_fp64():
+        raise opencl.OpenCLUnavailableError(
+            f"OpenCL device {opencl.get_device().name.strip()!r} lacks double precision (fp64); "
+            "use backend='numpy' or select another device with SLICERSIM_DEVICE.")
+
+
+# --------------------------------------------------------------------------- #
+#  line-spread function along λ                                                #
+# --------------------------------------------------------------------------- #
+def lsf_weights(sigma_bins, truncate=4.0):
+    """Discrete Gaussian weights exp(−k²/2σ²), |k| ≤ int(truncate σ + 0.5), summing to 1
+    (scipy.ndimage.gaussian_filter1d's kernel); σ = 0 gives [1]."""
+    sigma_bins = float(sigma_bins)
+    radius = int(truncate * sigma_bins + 0.5)
+    k = np.arange(-radius, radius + 1, dtype=np.float64)
+    if radius == 0:
+        return np.ones(1)
+    w = np.exp(-0.5 * (k / sigma_bins) ** 2)
+    return w / w.sum()
+
+
+def _reflect_index(t, n):
+    """Fold unfolded positions t onto [0, n) with scipy's 'reflect' (… x1 x0 | x0 x1 …)."""
+    m = np.mod(t, 2 * n)
+    return np.where(m >= n, 2 * n - 1 - m, m)
+
+
+def _check_sigma(sigma_bins, n, truncate):
+    if not (np.isfinite(truncate) and truncate >= 0):
+        raise ValueError(f"truncate must be finite and ≥ 0, got {truncate}")
+    sig = np.asarray(sigma_bins, dtype=np.float64)
+    if sig.ndim == 0:
+        sig = np.full(n, float(sig))
+    elif sig.shape != (n,):
+        raise ValueError(f"sigma_bins must be a float or an array of length {n} (the λ axis), got shape {sig.shape}")
+    if not np.all(np.isfinite(sig)) or np.any(sig < 0):
+        raise ValueError("sigma_bins must be finite and ≥ 0 [bins]")
+    return sig
+
+
+def lsf_matrix(sigma_bins, n, truncate=4.0):
+    """Flux-conserving LSF matrix M (n × n, scipy.sparse CSR): out = M @ in along λ.
+
+    Input bin j spreads its content over unfolded positions j + m, |m| ≤ r_j =
+    int(truncate σ_j + 0.5), with weights exp(−m²/2σ_j²) normalised to 1; positions
+    outside [0, n) are folded back with the 'reflect' rule (repeatedly when r_j > n),
+    so every column of M sums to 1 and Σ_λ is conserved exactly.
+
+    For a constant σ, M is symmetric (the reflect images of j are j + 2nt and
+    −1 − j + 2nt, and the weights depend on |k − image|), so this scatter form equals
+    scipy's gather form ``gaussian_filter1d(mode="reflect")`` everywhere, edges included.
+    Cost and memory ∝ Σ_j (2 r_j + 1): σ of a few thousand bins is fine.
+    """
+    sig = _check_sigma(sigma_bins, n, truncate)
+    radius = np.floor(truncate * sig + 0.5).astype(np.int64)
+    rmax = int(radius.max()) if n else 0
+    m = np.arange(-rmax, rmax + 1, dtype=np.float64)
+    rows, cols, vals = [], [], []
+    step = max(1, int(4e6 // (2 * rmax + 1)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for j0 in range(0, n, step):
+            j = np.arange(j0, min(n, j0 + step))
+            s = sig[j][:, None]
+            w = np.where(m == 0, 1.0, np.exp(-0.5 * (m / s) ** 2))
+            w[np.abs(m)[None, :] > radius[j][:, None]] = 0.0
+            w /= w.sum(axis=1, keepdims=True)
+            keep = w > 0
+            t = (j[:, None] + m.astype(np.int64)[None, :])
+            rows.append(_reflect_index(t[keep], n))
+            cols.append(np.broadcast_to(j[:, None], w.shape)[keep])
+            vals.append(w[keep])
+    if n == 0:
+        return scipy.sparse.csr_matrix((0, 0))
+    M = scipy.sparse.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                shape=(n, n)).tocsr()
+    M.sum_duplicates()
+    M.sort_indices()
+    return M
+
+
+def _band_form(M):
+    """(band (n, bw), jlo (n,), nband (n,)) of a CSR matrix whose rows are all non-empty
+    (true for LSF matrices: bin k always keeps part of its own content)."""
+    n = M.shape[0]
+    indptr, idx = M.indptr, M.indices
+    jlo, jhi = idx[indptr[:-1]], idx[indptr[1:] - 1]
+    nband = (jhi - jlo + 1).astype(np.int32)
+    band = np.zeros((n, max(1, int(nband.max()))))
+    row = np.repeat(np.arange(n), np.diff(indptr))
+    band[row, idx - jlo[row]] = M.data
+    return band, jlo.astype(np.int32), nband
+
+
+def apply_lsf(values, sigma_bins, axis=0, truncate=4.0, backend="auto", *, max_bytes=DEFAULT_MAX_BYTES):
+    """Gaussian LSF along ``axis`` (λ) of ``values`` (a spectrum or a (nλ, ny, nx) cube).
+
+    sigma_bins : float or (nλ,) array, Gaussian σ [bins].
+        A float reproduces ``scipy.ndimage.gaussian_filter1d(values, σ, axis,
+        mode="reflect", truncate=truncate)`` (weights exp(−k²/2σ²), |k| ≤
+        int(truncate σ + 0.5), normalised; edges reflected … x1 x0 | x0 x1 …).
+        An array gives σ per input bin in the flux-conserving scatter form of
+        :func:`lsf_matrix` (each input bin spreads its content with its own σ;
+        edge reflections folded back), so the sum over λ is conserved exactly.
+        For a constant σ both forms are the same matrix.  σ = 0 returns the
+        input; σ much larger than the spectrum folds repeatedly and tends to a
+        flat spectrum with the same total.
+    Raises ValueError on NaN/inf values and negative or non-finite σ.
+    """
+    x = _finite_array(values, "values")
+    if x.ndim == 0:
+        raise ValueError("values must have at least one dimension")
+    axis = int(axis) % x.ndim
+    n = x.shape[axis]
+    sig = _check_sigma(sigma_bins, n, truncate)
+    constant = np.ndim(sigma_bins) == 0
+    if n == 0 or x.size == 0 or not np.any(sig > 0):
+        return x.copy()
+    if resolve_backend(backend) == "numpy":
+        if constant:  # identical to gaussian_filter1d
+            return scipy.ndimage.correlate1d(x, lsf_weights(sig[0], truncate), axis=axis, mode="reflect")
+        M = lsf_matrix(sig, n, truncate)
+        x2 = np.moveaxis(x, axis, 0).reshape(n, -1)
+        return np.moveaxis((M @ x2).reshape(np.moveaxis(x, axis, 0).shape), 0, axis)
+    moved = np.moveaxis(x, axis, 0)
+    x2 = np.ascontiguousarray(moved.reshape(n, -1))
+    out = _lsf_opencl(x2, lsf_matrix(sig, n, truncate), max_bytes)
+    return np.moveaxis(out.reshape(moved.shape), 0, axis)
+
+
+def _lsf_opencl(x2, M, max_bytes):
+    _require_fp64()
+    n, npix = x2.shape
+    band, jlo, nband = _band_form(M)
+    VW = _vector_width()
+    step = max(VW, int(max_bytes // (2 * 8 * n)) // VW * VW)
+    step = min(step, -(-npix // VW) * VW)
+    kern = opencl.get_kernel("lsf.cl", "lsf_band_apply", (f"-DVW={VW}",))
+    d_band, d_jlo, d_nb = opencl.to_device(band), opencl.to_device(jlo), opencl.to_device(nband)
+    d_x, d_out = opencl.device_buffer(8 * n * step), opencl.device_buffer(8 * n * step)
+    out = np.empty_like(x2)
+    for p0 in range(0, npix, step):
+        p1 = min(npix, p0 + step)
+        cp = -(-(p1 - p0) // VW) * VW
+        h = np.zeros((n, cp))
+        h[:, :p1 - p0] = x2[:, p0:p1]
+        opencl.to_device(h, d_x)
+        opencl.launch(kern, (cp // VW, n), None, d_x, d_band, d_jlo, d_nb,
+                      np.int32(cp), np.int32(band.shape[1]), d_out)
+        opencl.from_device(h, d_out)
+        out[:, p0:p1] = h[:, :p1 - p0]
+    return out
+
+
+# --------------------------------------------------------------------------- #
+#  2-D convolution of cube planes                                              #
+# --------------------------------------------------------------------------- #
+def fft_good_size(n):
+    """Smallest integer ≥ n whose prime factors are 2, 3 and 5."""
+    n = max(1, int(n))
+    best = 1 << (n - 1).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            m = p35
+            while m < n:
+                m *= 2
+            best = min(best, m)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
+def fft_radix_plan(n):
+    """Radices (4, 2, 3, 5) whose product is n (n must be 2^a 3^b 5^c)."""
+    plan = []
+    for r in (4, 2, 3, 5):
+        while n % r == 0:
+            plan.append(r)
+            n //= r
+    if n != 1:
+        raise ValueError("FFT length must have only the prime factors 2, 3, 5")
+    return plan
+
+
+#: FFT cost per padded pixel per pass, in units of one direct multiply-add,
+#: fitted on the Lazuli benchmark (benchmarks/convolution_speed.py) per backend.
+FFT_COST_PER_DIRECT_TAP = {"opencl": 4.0, "numpy": 4.0}
+
+
+def choose_convolution_method(plane_shape, kernel_shape, backend="auto"):
+    """"direct" or "fft" from a cost model: direct ∝ ny nx ky kx,
+    FFT ∝ Ny Nx (n_passes + 2) with (Ny, Nx) the padded transform size; the ratio of
+    the two unit costs is :data:`FFT_COST_PER_DIRECT_TAP` (measured crossover)."""
+    (ny, nx), (ky, kx) = plane_shape, kernel_shape
+    Ny, Nx = fft_good_size(ny + ky - 1), fft_good_size(nx + kx - 1)
+    passes = len(fft_radix_plan(Ny)) + len(fft_radix_plan(Nx))
+    direct = ny * nx * ky * kx
+    fft = FFT_COST_PER_DIRECT_TAP[resolve_backend(backend)] * Ny * Nx * (passes + 2)
+    return "direct" if direct <= fft else "fft"
+
+
+def _check_conv_inputs(cube, kernels):
+    cube = _finite_array(cube, "cube")
+    kernels = _finite_array(kernels, "kernels")
+    if cube.ndim != 3:
+        raise ValueError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
+    if kernels.ndim not in (2, 3) or (kernels.ndim == 3 and kernels.shape[0] != cube.shape[0]):
+        raise ValueError(f"kernels must have shape (ky, kx) or ({cube.shape[0]}, ky, kx), got {kernels.shape}")
+    ky, kx = kernels.shape[-2:]
+    if ky % 2 == 0 or kx % 2 == 0:
+        raise ValueError(f"kernel sizes must be odd (centre at (ky//2, kx//2)), got {(ky, kx)}")
+    return cube, kernels
+
+
+def convolve_cube(cube, kernels, method="auto", backend="auto", *, max_bytes=DEFAULT_MAX_BYTES):
+    """Linear 2-D convolution of each λ-plane of ``cube`` with its PSF kernel.
+
+    cube : (nλ, ny, nx) array (any units per cell).
+    kernels : (nλ, ky, kx) per-plane kernels or one (ky, kx) kernel; odd sizes, centre
+        at (ky//2, kx//2) (as scipy.ndimage.convolve and fftconvolve(mode="same")).
+    method : "auto" (:func:`choose_convolution_method`), "direct" or "fft".
+    Returns (nλ, ny, nx): out[l, y, x] = Σ_ab K[l, a, b] cube[l, y + ky//2 − a,
+    x + kx//2 − b], zero outside the field (flux leaving the field is lost; a
+    normalised kernel conserves the flux of sources far enough from the edges).
+    """
+    cube, kernels = _check_conv_inputs(cube, kernels)
+    if method not in ("auto", "direct", "fft"):
+        raise ValueError(f"method must be 'auto', 'direct' or 'fft', got {method!r}")
+    backend = resolve_backend(backend)
+    if method == "auto":
+        method = choose_convolution_method(cube.shape[1:], kernels.shape[-2:], backend)
+    if cube.size == 0:
+        return cube.copy()
+    if backend == "numpy":
+        return (_direct_numpy if method == "direct" else _fft_numpy)(cube, kernels)
+    _require_fp64()
+    return (_direct_opencl if method == "direct" else _fft_opencl)(cube, kernels, max_bytes)
+
+
+def _direct_numpy(cube, kernels):
+    if kernels.ndim == 2:
+        return scipy.ndimage.convolve(cube, kernels[None], mode="constant", cval=0.0)
+    return np.stack([scipy.ndimage.convolve(p, k, mode="constant", cval=0.0)
+                     for p, k in zip(cube, kernels)]) if len(cube) else cube.copy()
+
+
+def _fft_numpy(cube, kernels):
+    k = kernels if kernels.ndim == 3 else kernels[None]
+    return scipy.signal.fftconvolve(cube, k, mode="same", axes=(1, 2))
+
+
+def _plane_chunks(nl, per_plane, max_bytes, multiple=1):
+    step = max(multiple, int(max_bytes // max(per_plane, 1)) // multiple * multiple)
+    for l0 in range(0, nl, step):
+        yield l0, min(nl, l0 + step)
+
+
+def _direct_opencl(cube, kernels, max_bytes):
+    nl, ny, nx = cube.shape
+    ky, kx = kernels.shape[-2:]
+    cy, cx = ky // 2, kx // 2
+    kf = np.ascontiguousarray(kernels[..., ::-1, ::-1])
+    kstride = ky * kx if kernels.ndim == 3 else 0
+    dev = opencl.get_device()
+    gpu = "GPU" in opencl.device_type(dev)
+    TX = TY = 16
+    tiled = gpu and (TY + ky - 1) * (TX + kx - 1) * 8 <= int(dev.local_mem_size) - 1024
+    if tiled:
+        VW = 1
+        nyo, nxo = -(-ny // TY) * TY, -(-nx // TX) * TX
+        kern = opencl.get_kernel("convolve.cl", "convolve_direct_tiled",
+                                 (f"-DTX={TX}", f"-DTY={TY}", f"-DKY={ky}", f"-DKX={kx}"))
+    else:
+        VW = 1 if gpu else _vector_width()
+        nyo, nxo = ny, -(-nx // VW) * VW
+        kern = opencl.get_kernel("convolve.cl", "convolve_direct", (f"-DVW={VW}",))
+    PY, PX = nyo + ky - 1, nxo + kx - 1
+    per_plane = 8 * (2 * PY * PX + 2 * nyo * nxo + kstride)
+    out = np.empty_like(cube)
+    d_k = opencl.to_device(kf) if kstride == 0 else None
+    for l0, l1 in _plane_chunks(nl, per_plane, max_bytes):
+        b = l1 - l0
+        P = np.zeros((b, PY, PX))
+        P[:, cy:cy + ny, cx:cx + nx] = cube[l0:l1]
+        d_P = opencl.to_device(P)
+        if kstride:
+            d_k = opencl.to_device(np.ascontiguousarray(kf[l0:l1]))
+        d_out = opencl.device_buffer(8 * b * nyo * nxo)
+        if tiled:
+            opencl.launch(kern, (nxo, nyo, b), (TX, TY, 1), d_P, d_k, np.int32(PY), np.int32(PX),
+                          np.int32(kstride), np.int32(nyo), np.int32(nxo), d_out)
+        else:
+            opencl.launch(kern, (nxo // VW, nyo, b), None, d_P, d_k, np.int32(ky), np.int32(kx),
+                          np.int32(PY), np.int32(PX), np.int32(kstride), np.int32(nyo), np.int32(nxo), d_out)
+        h = np.empty((b, nyo, nxo))
+        opencl.from_device(h, d_out)
+        out[l0:l1] = h[:, :ny, :nx]
+    return out
+
+
+def _twiddles(n):
+    """(cos 2πm/n, sin 2πm/n), m < n, as interleaved float64 (double2)."""
+    return np.ascontiguousarray(np.exp(2j * np.pi * np.arange(n) / n).astype(np.complex128))
+
+
+class _FFT2:
+    """Batched 2-D complex FFT (Stockham passes of kernels/fft.cl) on device buffers."""
+
+    def __init__(self, Ny, Nx):
+        self.Ny, self.Nx = Ny, Nx
+        self.plan_y, self.plan_x = fft_radix_plan(Ny), fft_radix_plan(Nx)
+        self.tw_y, self.tw_x = opencl.to_device(_twiddles(Ny)), opencl.to_device(_twiddles(Nx))
+        radices = set(self.plan_y) | set(self.plan_x)
+        self.rows = {r: opencl.get_kernel("fft.cl", f"fft_rows_{r}") for r in radices}
+        self.cols = {r: opencl.get_kernel("fft.cl", f"fft_cols_{r}") for r in radices}
+
+    def __call__(self, src, dst, nplanes, sign):
+        """Transform nplanes planes of src (s = −1 forward, +1 inverse, unnormalised);
+        returns (result buffer, other buffer)."""
+        Ny, Nx, s = self.Ny, self.Nx, np.float64(sign)
+        p = 1
+        for r in self.plan_x:
+            opencl.launch(self.rows[r], (Nx // r, nplanes * Ny), None, src, dst, self.tw_x,
+                          np.int32(Nx), np.int32(p), np.int32(Nx // (p * r)), s)
+            src, dst, p = dst, src, p * r
+        p = 1
+        for r in self.plan_y:
+            opencl.launch(self.cols[r], (Nx, Ny // r, nplanes), None, src, dst, self.tw_y,
+                          np.int32(Ny), np.int32(p), np.int32(Ny // (p * r)), s, np.int32(Nx))
+            src, dst, p = dst, src, p * r
+        return src, dst
+
+
+def _fft_opencl(cube, kernels, max_bytes):
+    nl, ny, nx = cube.shape
+    ky, kx = kernels.shape[-2:]
+    Ny, Nx = fft_good_size(ny + ky - 1), fft_good_size(nx + kx - 1)
+    kstride = ky * kx if kernels.ndim == 3 else 0
+    fft = _FFT2(Ny, Nx)
+    pack = opencl.get_kernel("convolve.cl", "pack_planes")
+    mult = opencl.get_kernel("convolve.cl", "multiply_pairs")
+    crop = opencl.get_kernel("convolve.cl", "crop_pairs")
+    per_plane = 2 * 16 * Ny * Nx + 2 * 8 * ny * nx + 8 * kstride
+    chunks = list(_plane_chunks(nl, per_plane, max_bytes, multiple=2))
+    Bmax = max(l1 - l0 for l0, l1 in chunks)
+    Bmax += Bmax % 2
+    i32 = np.int32
+    out = np.empty_like(cube)
+    d_k = opencl.to_device(np.ascontiguousarray(kernels)) if kstride == 0 else None
+    # device buffers allocated once for the largest chunk (first touch is costly on CPUs)
+    buf_a, buf_b = opencl.device_buffer(16 * Bmax * Ny * Nx), opencl.device_buffer(16 * Bmax * Ny * Nx)
+    d_img, d_out = opencl.device_buffer(8 * Bmax * ny * nx), opencl.device_buffer(8 * Bmax * ny * nx)
+    for l0, l1 in chunks:
+        nb = l1 - l0
+        B = nb + (nb % 2)
+        opencl.to_device(np.ascontiguousarray(cube[l0:l1]), d_img)
+        if kstride:
+            d_k = opencl.to_device(np.ascontiguousarray(kernels[l0:l1]))
+        opencl.launch(pack, (Nx, Ny, B), None, d_img, d_k, i32(nb), i32(ny), i32(nx), i32(ky), i32(kx),
+                      i32(kstride), i32(Ny), i32(Nx), buf_a)
+        a, b = fft(buf_a, buf_b, B, -1)
+        opencl.launch(mult, (Nx, Ny, B // 2), None, a, i32(Ny), i32(Nx), b)
+        a, b = fft(b, a, B // 2, +1)
+        opencl.launch(crop, (nx, ny, B // 2), None, a, i32(nb), i32(ny), i32(nx), i32(ky // 2), i32(kx // 2),
+                      i32(Ny), i32(Nx), np.float64(1.0 / (Ny * Nx)), d_out)
+        opencl.from_device(out[l0:l1], d_out)
+    return out

@@ -1,0 +1,253 @@
+"""Cube builder: signal, variance and noisy cubes (λ, y, x) computing only what the scene needs.
+
+Photon cube (reference §2.9), ph/s per cell:
+
+    C = LSF_λ[ F f2p P  +  H ]  +  LSF_λ[ B f2p s² + N_th ]
+        point source     host       uniform (1-D spectrum, broadcast)
+
+* point source: PSF(λ, y, x) × spectrum — no 2-D convolution;
+* background and dispersed thermal light: one 1-D spectrum, LSF'd once and
+  broadcast over the cells — no spatial work;
+* host (extended): f2p × (host flux per cell ⊛ PSF(λ)), a 2-D convolution per
+  wavelength (``slicersim.compute_conv``).
+
+Detector (§2.10–2.12), per ramp then × r ramps: electrons = C·QE,
+signal = electrons·t_int·g [ADU] (NaN where saturated), variance from
+``Simulation.cell_variance`` [ADU²] (+inf where saturated).  All physics comes
+from the :class:`~slicersim.simulation.Simulation` methods.
+
+The cube is built in wavelength chunks within a memory budget.  The LSF mixes
+±h = int(4σ + ½) bins, so each chunk is computed on [i0 − h, i1 + h) (clipped
+to the grid: the LSF reflects only at the true grid ends) and the halo is
+dropped: the chunked cube equals the unchunked one bit for bit.  The noisy
+realisation (:func:`slicersim.compute_noise.noisy_cube`) is keyed by the seed
+and the voxel's flat index in the full cube, so it does not depend on the
+chunking either.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .compute_noise import noisy_cube, seed_from
+from .psf import gaussian_psf_fractions
+from .spectrograph import lsf_weights
+
+__all__ = ["CubeResult", "build_cube", "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM", "PATH_ABSENT"]
+
+PSF_PROFILES = ("gaussian", "airy")
+PATH_POINT = "psf x spectrum (no 2-D convolution)"
+PATH_UNIFORM = "uniform: no spatial work"
+PATH_ABSENT = "absent: not in the scene"
+HOST_CONV_METHOD = "auto"
+#: float64 temporaries per voxel of a chunk (PSF, point, LSF output, electrons, variance, signal, noise, host)
+_TEMPORARIES_PER_VOXEL = 8
+_NOISE_BYTES_PER_VOXEL = 160           # NumPy noise draw: ~20 float64 temporaries per voxel
+
+
+@dataclass
+class CubeResult:
+    """Output of :func:`build_cube`; cubes are (nλ, ny, nx), summed over the ramps.
+
+    signal [ADU] (NaN where saturated), variance [ADU²] (+inf where saturated),
+    noisy [ADU] (None without seed; NaN where saturated), paths: component →
+    computation path, chunks: number of λ chunks, saturated: bool cube.
+    """
+    signal: np.ndarray
+    variance: np.ndarray
+    noisy: np.ndarray | None
+    paths: dict
+    chunks: int
+    lbda: np.ndarray = field(repr=False, default=None)
+    saturated: np.ndarray = field(repr=False, default=None)
+    psf_profile: str = "gaussian"
+    seed: int | None = None
+
+    def __iter__(self):
+        """Unpack like ``Simulation.get_cube``: (signal, variance[, noisy])."""
+        return iter((self.signal, self.variance) if self.noisy is None
+                    else (self.signal, self.variance, self.noisy))
+
+
+def _profile(psf_profile):
+    prof = "gaussian" if psf_profile in ("gaussian", "default") else psf_profile
+    if prof not in PSF_PROFILES:
+        raise ValueError(f"psf_profile must be one of {PSF_PROFILES} (or 'default'), got {psf_profile!r}")
+    return prof
+
+
+def lsf_halo(sim):
+    """Half width h [bins] of the LSF: output bin i depends on input bins i − h … i + h."""
+    return int(lsf_weights(sim.spectrograph.lsf_sigma)[0][-1])
+
+
+def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", options=None):
+    """PSF fractions P[λ, y, x] for bins lo … hi − 1 (any profile; shape/position default to the
+    field's; ``options``: extra keywords of ``compute_psf.psf_cube``, e.g. {"grid": "reference"})."""
+    shape = sim.spectrograph.shape if shape is None else shape
+    position = sim.position if position is None else position
+    if profile == "gaussian":
+        sig_y, sig_x = sim.psf_sigmas
+        return gaussian_psf_fractions(sig_y[lo:hi], sig_x[lo:hi], shape, position)
+    try:
+        from .compute_psf import psf_cube
+    except ModuleNotFoundError as exc:
+        if exc.name != f"{__package__}.compute_psf":
+            raise
+        raise NotImplementedError(f"psf_profile={profile!r} needs slicersim.compute_psf.psf_cube, which is "
+                                  "not available yet; use psf_profile='gaussian'") from exc
+    tel, spec = sim.telescope, sim.spectrograph
+    kwargs = dict(sigma_ref_arcsec=tel.psf_sigma_ref, spatial_scale=spec.spatial_scale,
+                  guiding_sigma=tel.guiding_sigma, instrumental_sigma=spec.instrumental_sigma,
+                  diameter=tel.diameter_ext, obscuration=tel.obscuration, oversampling=3, backend=backend)
+    kwargs.update(options or {})
+    return psf_cube(sim.lbda[lo:hi], shape, position, profile=profile, **kwargs)
+
+
+def _import_conv():
+    try:
+        from . import compute_conv
+    except ModuleNotFoundError as exc:
+        if exc.name != f"{__package__}.compute_conv":
+            raise
+        raise NotImplementedError("host light needs slicersim.compute_conv.convolve_cube, "
+                                  "which is not available yet") from exc
+    return compute_conv
+
+
+def host_kernel_shape(sim, profile):
+    """Odd (ky, kx) of the PSF kernels convolving the host: ±⌈8σ_max⌉ + 1 cells for the
+    Gaussian (dropped tail < 1e-15), the whole field for the Airy wings; (0, 0) is the central cell."""
+    ny, nx = sim.spectrograph.shape
+    hy, hx = ny // 2, nx // 2
+    if profile == "gaussian":
+        sig_y, sig_x = sim.psf_sigmas
+        hy = min(hy, int(np.ceil(8.0 * np.max(sig_y))) + 1)
+        hx = min(hx, int(np.ceil(8.0 * np.max(sig_x))) + 1)
+    return 2 * hy + 1, 2 * hx + 1
+
+
+def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_options=None):
+    """Host photons per cell before LSF, f2p · (F_host ⊛ PSF) [ph/s/cell], for bins lo … hi − 1.
+
+    Needs ``host.flux_cube(lbda, shape, spatial_scale)`` → F_host [erg/s/cm²/Å per cell]
+    (:class:`slicersim.host.Host`) and ``slicersim.compute_conv.convolve_cube``.
+    """
+    host, spec = sim.scene.host, sim.spectrograph
+    if not callable(getattr(host, "flux_cube", None)):
+        raise NotImplementedError(f"host light needs a host with flux_cube(lbda, shape, spatial_scale) "
+                                  f"(slicersim.host.Host); got {type(host).__module__}.{type(host).__name__}")
+    conv = _import_conv()
+    kernels = psf_block(sim, profile, lo, hi, shape=host_kernel_shape(sim, profile), position=(0.0, 0.0),
+                        backend=backend, options=psf_options)
+    flux = np.asarray(host.flux_cube(sim.lbda[lo:hi], spec.shape, spec.spatial_scale), dtype=float)
+    # convolve O(1) numbers (erg units are ~1e-17): scale by an exact power of two
+    peak = float(np.max(np.abs(flux))) if flux.size else 0.0
+    scale = np.ldexp(1.0, int(np.frexp(peak)[1])) if np.isfinite(peak) and peak > 0 else 1.0
+    blurred = conv.convolve_cube(flux / scale, kernels, method=method, backend=backend) * scale
+    return sim.flambda_to_photon[lo:hi, None, None] * blurred
+
+
+def _chunk_bins(nl, ny, nx, halo, max_bytes):
+    per_bin = 8 * _TEMPORARIES_PER_VOXEL * ny * nx
+    return int(min(nl, max(1, max_bytes // per_bin - 2 * halo)))
+
+
+def _progress_bar(progress, nchunks):
+    show = nchunks > 4 if progress is None else bool(progress)
+    if not show:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=nchunks, desc="cube", unit="chunk", leave=False)
+
+
+def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, max_bytes=300 * 2**20,
+               progress=None, backend="auto", psf_options=None):
+    """Signal [ADU], variance [ADU²] and optional noisy cube of ``sim`` (all ramps summed).
+
+    Parameters
+    ----------
+    sim : Simulation
+    nmd, nramps : readout (n, m, d) and ramps (default: the simulation's)
+    psf_profile : "gaussian" (erf-integrated, = Simulation.get_psf) or "airy" (slicersim.compute_psf)
+    seed : None (no noisy cube), int in [0, 2⁶⁴) or numpy Generator
+    max_bytes : working-memory budget of one λ chunk (the three output cubes come on top)
+    progress : None (tqdm bar when more than 4 chunks), True or False
+    backend : "auto" | "opencl" | "numpy", for the noise draw and the Airy/host hooks
+    psf_options : dict of extra ``compute_psf.psf_cube`` keywords for non-Gaussian profiles
+        (e.g. {"grid": "reference", "oversampling": 3} for slicersim 1.0's Airy sampling)
+    """
+    profile = _profile(psf_profile)
+    times = sim.get_times(nmd, nramps)
+    nmd, nramps, tint = times["nmd"], times["nramps"], times["inttime"]
+    seed = None if seed is None else seed_from(seed)
+    spec, scene = sim.spectrograph, sim.scene
+    lbda = sim.lbda
+    nl, (ny, nx) = lbda.size, spec.shape
+    has_point, has_host = scene.pointsource is not None, scene.host is not None
+    paths = {"pointsource": PATH_POINT if has_point else PATH_ABSENT,
+             "background": PATH_UNIFORM if scene.background is not None else PATH_ABSENT,
+             "thermal": PATH_UNIFORM,
+             "host": PATH_ABSENT}
+    host_method = None
+    if has_host:
+        host_method = HOST_CONV_METHOD
+        if host_method == "auto":
+            host_method = _import_conv().choose_convolution_method((ny, nx), host_kernel_shape(sim, profile),
+                                                                   backend)
+        paths["host"] = f"2-D convolution ({host_method})"
+    if has_point and profile != "gaussian":
+        paths["pointsource"] = f"{PATH_POINT}, {profile} PSF"
+
+    gain, qe = sim.detector.gain, sim.qe
+    uniform_ph = spec.apply_lsf(sim.background_photons + sim.thermal_photons)      # ph/s/cell, (nλ,)
+    shape = (nl, ny, nx)
+    signal, variance = np.empty(shape), np.empty(shape)
+    saturated = np.empty(shape, dtype=bool)
+    noisy = None if seed is None else np.empty(shape)
+
+    if not (has_point or has_host):        # uniform scene: everything is a 1-D spectrum
+        electrons = uniform_ph * qe
+        var1, sat1 = sim.cell_variance(electrons, nmd)
+        signal[...] = (np.where(sat1, np.nan, electrons * tint * gain) * nramps)[:, None, None]
+        variance[...] = (var1 * nramps)[:, None, None]
+        saturated[...] = sat1[:, None, None]
+        if seed is not None:
+            noisy[...] = noisy_cube(signal, variance, seed, backend=backend,
+                                    max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx))
+        return CubeResult(signal, variance, noisy, paths, 1, lbda.copy(), saturated, profile, seed)
+
+    flux_ph = sim.pointsource_flambda * sim.flambda_to_photon if has_point else None    # ph/s
+    halo = lsf_halo(sim)
+    step = _chunk_bins(nl, ny, nx, halo, max_bytes)
+    starts = range(0, nl, step)
+    noise_bytes_per_bin = _NOISE_BYTES_PER_VOXEL * ny * nx          # at least one λ plane per noise call
+    bar = _progress_bar(progress, len(starts))
+    try:
+        for i0 in starts:
+            i1 = min(nl, i0 + step)
+            lo, hi = max(0, i0 - halo), min(nl, i1 + halo)
+            block = 0.0                                                                   # ph/s/cell
+            if has_point:
+                block = flux_ph[lo:hi, None, None] * psf_block(sim, profile, lo, hi, backend=backend,
+                                                               options=psf_options)
+            if has_host:
+                block = block + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
+            photons = spec.apply_lsf(block, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
+            del block
+            electrons = photons * qe[i0:i1, None, None]                                  # e-/s/cell
+            var1, sat = sim.cell_variance(electrons, nmd)                                 # ADU² per ramp
+            signal[i0:i1] = np.where(sat, np.nan, electrons * tint * gain) * nramps
+            variance[i0:i1] = var1 * nramps
+            saturated[i0:i1] = sat
+            if seed is not None:
+                noisy[i0:i1] = noisy_cube(signal[i0:i1], variance[i0:i1], seed, backend=backend,
+                                          max_bytes=max(max_bytes, noise_bytes_per_bin),
+                                          first_index=i0 * ny * nx)
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return CubeResult(signal, variance, noisy, paths, len(starts), lbda.copy(), saturated, profile, seed)

@@ -1,0 +1,388 @@
+"""Extended sources as flux per cell before the PSF: Sersic host galaxies and user cubes.
+
+Cell grid (see :mod:`slicersim.psf`): cell (j, k) of an (ny, nx) field of square
+cells of side s [arcsec] spans x ∈ [(k − nx/2) s, (k + 1 − nx/2) s],
+y ∈ [(j − ny/2) s, (j + 1 − ny/2) s] relative to the field centre; positions are
+(x, y) in arcsec.  Angles are in degrees, counter-clockwise from the +x axis.
+Flux falling outside the field is lost (never renormalised).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import scipy.sparse
+from scipy.special import gammainc, gammaincinv, gammaln
+
+from .scene import validate_spectrum
+
+__all__ = ["sersic_bn", "SersicProfile", "Host", "CubeSource", "overlap_matrix", "integrate_radial_cells"]
+
+
+def sersic_bn(sersic_index):
+    """b_n with Γ(2n) = 2 γ(2n, b_n): half of the light inside r_eff."""
+    return float(gammaincinv(2.0 * sersic_index, 0.5))
+
+
+def _cell_edges(n, scale):
+    return (np.arange(n + 1, dtype=np.float64) - n / 2.0) * scale
+
+
+class SersicProfile:
+    """Elliptical Sersic profile normalised to a total flux of 1.
+
+    I(r) = I_e exp(−b_n [(r/r_eff)^(1/n) − 1]) [fraction of the flux per arcsec²],
+    with the elliptical radius r = √(u² + (v/q)²), u along the major axis (at
+    ``position_angle`` degrees counter-clockwise from +x), v along the minor axis,
+    both relative to ``offset`` = (x, y) [arcsec]; r_eff [arcsec] is the
+    semi-major axis of the half-light ellipse.  Total flux
+    2π n q r_e² e^{b_n} b_n^{−2n} Γ(2n) I_e = 1 fixes I_e.
+    """
+
+    def __init__(self, sersic_index, r_eff, axis_ratio=1.0, position_angle=0.0, offset=(0.0, 0.0)):
+        n, r_eff, q = float(sersic_index), float(r_eff), float(axis_ratio)
+        if not (0.1 <= n <= 20 and np.isfinite(r_eff) and r_eff > 0 and 0 < q <= 1):
+            raise ValueError("Sersic profile needs 0.1 ≤ sersic_index ≤ 20, r_eff > 0 [arcsec] "
+                             f"and 0 < axis_ratio ≤ 1, got n={n}, r_eff={r_eff}, q={q}")
+        offset = tuple(float(v) for v in offset)
+        if len(offset) != 2 or not all(np.isfinite(offset)) or not np.isfinite(position_angle):
+            raise ValueError("offset must be (x, y) [arcsec] and position_angle finite [deg]")
+        self.sersic_index, self.r_eff, self.axis_ratio = n, r_eff, q
+        self.position_angle, self.offset = float(position_angle), offset
+        self.b_n = sersic_bn(n)
+        log_total = (math.log(2 * math.pi * n * q * r_eff**2) + self.b_n
+                     - 2 * n * math.log(self.b_n) + gammaln(2 * n))
+        self.intensity_eff = math.exp(-log_total)  # I_e [1/arcsec²]
+
+    def elliptical_radius(self, x, y):
+        """r [arcsec] at sky positions (x, y) [arcsec]."""
+        th = math.radians(self.position_angle)
+        dx, dy = np.asarray(x, float) - self.offset[0], np.asarray(y, float) - self.offset[1]
+        u = dx * math.cos(th) + dy * math.sin(th)
+        v = -dx * math.sin(th) + dy * math.cos(th)
+        return np.sqrt(u * u + (v / self.axis_ratio) ** 2)
+
+    def surface_brightness(self, x, y):
+        """I(x, y) [fraction of the total flux per arcsec²] at sky positions [arcsec]."""
+        return self.radial_profile(self.elliptical_radius(x, y))
+
+    def enclosed_fraction(self, radius):
+        """Fraction of the flux inside the ellipse of semi-major axis ``radius`` [arcsec]:
+        P(2n, b_n (r/r_eff)^(1/n))."""
+        x = self.b_n * (np.asarray(radius, float) / self.r_eff) ** (1.0 / self.sersic_index)
+        return gammainc(2.0 * self.sersic_index, x)
+
+    @property
+    def geometry(self):
+        """(x0, y0 [arcsec], position angle [deg], axis ratio)."""
+        return (*self.offset, self.position_angle, self.axis_ratio)
+
+    def radial_profile(self, r):
+        """I at elliptical radius r [arcsec] (fraction of the total flux per arcsec²)."""
+        return self.intensity_eff * np.exp(-self.b_n * ((np.asarray(r, float) / self.r_eff)
+                                                        ** (1.0 / self.sersic_index) - 1.0))
+
+    def cell_fractions(self, shape, spatial_scale, oversampling=4, tol=1e-10):
+        """(ny, nx) fraction of the total flux in each cell [spatial_scale in arcsec]
+        (see :func:`integrate_radial_cells`; cusp handled exactly, ~1e-10 per cell)."""
+        return integrate_radial_cells(self.geometry, [self.radial_profile], shape, spatial_scale,
+                                      oversampling, tol)[0]
+
+
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
+_GL8_X, _GL8_W = np.polynomial.legendre.leggauss(8)
+
+
+class _RadialCumulative:
+    """G(R) = q ∫_0^R f(ρ) ρ dρ for a radial profile f [per arcsec²] (ρ the elliptical radius):
+    the flux per radian of polar angle inside R.  Table at ρ_k = R_max (k/K)⁴ (dense near
+    the cusp at 0) of 8-point Gauss–Legendre interval integrals, plus one 8-point
+    integral from the table node below R; ~1e-14 relative for Sersic profiles."""
+
+    def __init__(self, f, q, r_max, K=1024):
+        self.f, self.q, self.r_max = f, q, float(r_max)
+        self.nodes = self.r_max * (np.arange(K + 1) / K) ** 4
+        self.cum = np.concatenate([[0.0], np.cumsum(self._gl(self.nodes[:-1], self.nodes[1:]))])
+
+    def _gl(self, a, b):
+        mid, half = 0.5 * (a + b), 0.5 * (b - a)
+        rho = mid[..., None] + half[..., None] * _GL8_X
+        return half * np.sum(_GL8_W * self.q * self.f(rho) * rho, axis=-1)
+
+    def __call__(self, R):
+        R = np.minimum(np.asarray(R, float), self.r_max)
+        k = np.clip(np.searchsorted(self.nodes, R, side="right") - 1, 0, self.nodes.size - 2)
+        return self.cum[k] + self._gl(self.nodes[k], R)
+
+
+def _polygon_flux(corners, cumulatives, dz=0.5):
+    """Flux of each polygon (m, nv, 2) [arcsec, frame where the profile is circular,
+    vertices counter-clockwise] as the sum over edges of the signed triangle
+    (centre, A, B) integrals ∫ G(R(φ)) dφ.  Along an edge at distance d from the centre,
+    s = d sinh z gives ∫ G(d cosh z) / cosh z dz, smooth in z at every scale; panels of
+    width ≤ dz with 16-point Gauss–Legendre.  Returns (ncomp, m)."""
+    A = corners.reshape(-1, 2)
+    B = np.roll(corners, -1, axis=1).reshape(-1, 2)
+    e = B - A
+    L = np.hypot(e[:, 0], e[:, 1])
+    cross = A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]
+    ok = (L > 0) & (np.abs(cross) > 1e-15 * np.maximum(L, 1e-300) * np.hypot(A[:, 0], A[:, 1]).clip(1e-300))
+    d = np.where(ok, np.abs(cross) / np.where(L > 0, L, 1.0), 1.0)
+    sA = np.where(ok, (A * e).sum(1) / np.where(L > 0, L, 1.0), 0.0)
+    sB = sA + L
+    zA, zB = np.arcsinh(sA / d), np.arcsinh(sB / d)
+    npan = np.where(ok, np.ceil((zB - zA) / dz).astype(np.int64).clip(1), 0)
+    edge = np.repeat(np.arange(A.shape[0]), npan)
+    first = np.repeat(np.cumsum(npan) - npan, npan)
+    j = np.arange(edge.size) - first
+    width = ((zB - zA) / np.maximum(npan, 1))[edge]
+    z = zA[edge, None] + width[:, None] * (j[:, None] + 0.5 + 0.5 * _GL_X[None, :])
+    R = d[edge, None] * np.cosh(z)
+    wts = 0.5 * width[:, None] * _GL_W[None, :] / np.cosh(z) * np.sign(cross)[edge, None]
+    out = []
+    for G in cumulatives:
+        per_edge = np.bincount(edge, weights=(wts * G(R)).sum(axis=1), minlength=A.shape[0])
+        out.append(per_edge.reshape(corners.shape[:2]).sum(axis=1))
+    return np.array(out)
+
+
+def integrate_radial_cells(geometry, radial_funcs, shape, spatial_scale, oversampling=4, tol=1e-10,
+                           core_radius=2.0, max_oversampling=512):
+    """∫∫_cell f_c(r_ell) dA for every cell of an (ny, nx) field, each radial profile f_c
+    [per arcsec²] of the elliptical radius of ``geometry`` = (x0, y0 [arcsec], position
+    angle [deg], axis ratio q).  Returns (ncomp, ny, nx).
+
+    * Cells closer than ``core_radius`` cells to the centre (where a Sersic cusp sits):
+      exact polar integration, cell = Σ over edges of ∫ G(R(φ)) dφ with the cumulative
+      G(R) = q ∫_0^R f ρ dρ (no sampling of the cusp).
+    * Other cells: midpoint rule on o × o and 2o × 2o sub-cells, o = ``oversampling``,
+      Richardson-extrapolated; cells whose two estimates of component 0 differ by
+      more than ``tol`` (absolute; of the total flux for a normalised profile) are
+      refined by doubling o up to ``max_oversampling`` (RuntimeWarning if not reached).
+    """
+    ny, nx = (int(v) for v in shape)
+    s = float(spatial_scale)
+    if not (ny > 0 and nx > 0 and s > 0 and oversampling >= 1):
+        raise ValueError("shape must be positive, spatial_scale > 0 [arcsec] and oversampling ≥ 1")
+    x0, y0, pa, q = geometry
+    c, sn = math.cos(math.radians(pa)), math.sin(math.radians(pa))
+
+    def r_ell(x, y):
+        dx, dy = x - x0, y - y0
+        return np.sqrt((dx * c + dy * sn) ** 2 + ((-dx * sn + dy * c) / q) ** 2)
+
+    xe, ye = _cell_edges(nx, s), _cell_edges(ny, s)
+    # distance from the centre to the nearest point of each cell [cells]
+    gx = np.clip(x0, xe[:-1], xe[1:]) - x0
+    gy = np.clip(y0, ye[:-1], ye[1:]) - y0
+    dist = np.hypot(gy[:, None], gx[None, :]) / s
+    core = np.flatnonzero(dist.ravel() <= core_radius)
+    rest = np.flatnonzero(dist.ravel() > core_radius)
+    result = np.zeros((len(radial_funcs), ny * nx))
+
+    if core.size:
+        jy, kx = core // nx, core % nx
+        X = np.stack([xe[kx], xe[kx + 1], xe[kx + 1], xe[kx]], axis=1)
+        Y = np.stack([ye[jy], ye[jy], ye[jy + 1], ye[jy + 1]], axis=1)
+        dx, dy = X - x0, Y - y0
+        corners = np.stack([dx * c + dy * sn, (-dx * sn + dy * c) / q], axis=-1)
+        r_max = 1.01 * np.hypot(corners[..., 0], corners[..., 1]).max()
+        cumulatives = [_RadialCumulative(f, q, r_max) for f in radial_funcs]
+        result[:, core] = _polygon_flux(corners, cumulatives)
+
+    def estimate(idx, o):
+        out = []
+        sub = (np.arange(o) + 0.5) / o * s
+        step = max(1, int(2**20 // (o * o)))
+        for c0 in range(0, idx.size, step):
+            cc = idx[c0:c0 + step]
+            r = r_ell(xe[cc % nx][:, None, None] + sub[None, None, :],
+                      ye[cc // nx][:, None, None] + sub[None, :, None])
+            out.append(np.stack([f(r).mean(axis=(-2, -1)) for f in radial_funcs]) * s * s)
+        return np.concatenate(out, axis=1) if out else np.zeros((len(radial_funcs), 0))
+
+    o = int(oversampling)
+    coarse = estimate(rest, o)
+    active = rest
+    while active.size:
+        fine = estimate(active, 2 * o)
+        change = np.abs(fine[0] - coarse[0])
+        result[:, active] = fine + (fine - coarse) / 3.0         # Richardson (midpoint: O(h²))
+        keep = change > tol
+        active, coarse, o = active[keep], fine[:, keep], 2 * o
+        if active.size and 2 * o > max_oversampling:
+            warnings.warn(f"integrate_radial_cells: {active.size} cell(s) not converged to {tol:g} "
+                          f"at oversampling {o}", RuntimeWarning, stacklevel=2)
+            break
+    return result.reshape(-1, ny, nx)
+
+
+def _interp_spectrum(lbda_in, flux_in, lbda_grid, name):
+    lbda_grid = np.asarray(lbda_grid, dtype=float)
+    if lbda_grid.size and (lbda_grid.min() < lbda_in[0] or lbda_grid.max() > lbda_in[-1]):
+        raise ValueError(f"{name}: wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends "
+                         f"beyond the input spectrum [{lbda_in[0]:g}, {lbda_in[-1]:g}] Å")
+    return np.interp(lbda_grid, lbda_in, flux_in)
+
+
+class Host:
+    """Host galaxy: a (unit-flux) profile times a spectrum, flux per cell before the PSF.
+
+    profile : :class:`SersicProfile` (anything with ``cell_fractions``, ``geometry``,
+        ``radial_profile``, ``axis_ratio`` and ``r_eff``).
+    lbda, flux : spectrum [Å], total F_λ of the galaxy [erg/s/cm²/Å]; linear
+        interpolation onto the instrument grid (ValueError outside its range).
+    flux_outskirts : optional second spectrum on ``lbda`` for a radially varying
+        spectrum.  The surface brightness is then
+        I(r) [w(r) F_core(λ) + (1 − w(r)) F_out(λ)],  w(r) = exp(−r / blend_radius),
+        r the elliptical radius, ``blend_radius`` [arcsec] (default r_eff): ``flux`` is
+        the core spectrum and each spectrum is the total the galaxy would have if it
+        had that spectrum everywhere; the galaxy total is W F_core + (1 − W) F_out
+        with W = ∫ I w dA (:meth:`core_weight`).
+    """
+
+    def __init__(self, profile, lbda, flux, flux_outskirts=None, blend_radius=None):
+        self.profile = profile
+        self.lbda_in, self.flux_in = validate_spectrum(lbda, flux, "host spectrum")
+        self.flux_outskirts = None
+        if flux_outskirts is not None:
+            self.flux_outskirts = validate_spectrum(lbda, flux_outskirts, "host outskirts spectrum")[1]
+        self.blend_radius = float(profile.r_eff if blend_radius is None else blend_radius)
+        if not self.blend_radius > 0:
+            raise ValueError(f"blend_radius must be > 0 [arcsec], got {blend_radius}")
+
+    def _core_profile(self, r):
+        return self.profile.radial_profile(r) * np.exp(-np.asarray(r, float) / self.blend_radius)
+
+    def core_weight(self):
+        """W = ∫ I(r) exp(−r/r_b) dA: share of the flux carrying the core spectrum."""
+        from scipy.integrate import quad
+        q = self.profile.axis_ratio
+        return quad(lambda r: self._core_profile(r) * 2 * math.pi * q * r, 0, np.inf,
+                    limit=200, epsabs=1e-13, epsrel=1e-11)[0]
+
+    def flux_cube(self, lbda_grid, shape, spatial_scale, oversampling=4, tol=1e-10):
+        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]
+        (cells of side ``spatial_scale`` [arcsec]; before the PSF)."""
+        core = _interp_spectrum(self.lbda_in, self.flux_in, lbda_grid, "host spectrum")
+        p = self.profile
+        if self.flux_outskirts is None:
+            frac = p.cell_fractions(shape, spatial_scale, oversampling=oversampling, tol=tol)
+            return core[:, None, None] * frac[None]
+        out = _interp_spectrum(self.lbda_in, self.flux_outskirts, lbda_grid, "host outskirts spectrum")
+        frac, frac_core = integrate_radial_cells(p.geometry, [p.radial_profile, self._core_profile],
+                                                 shape, spatial_scale, oversampling, tol)
+        return core[:, None, None] * frac_core[None] + out[:, None, None] * (frac - frac_core)[None]
+
+
+def overlap_matrix(edges_out, edges_in):
+    """(n_out, n_in) fraction of each input interval inside each output interval
+    (exact overlap lengths / input length; intervals outside the output range are lost)."""
+    lo = np.maximum(edges_out[:-1, None], edges_in[None, :-1])
+    hi = np.minimum(edges_out[1:, None], edges_in[None, 1:])
+    return np.clip(hi - lo, 0.0, None) / np.diff(edges_in)[None, :]
+
+
+def _lambda_matrix(lbda_in, lbda_grid):
+    """Sparse (nλ_out, nλ_in) linear-interpolation matrix (ValueError outside the range)."""
+    lbda_grid = np.asarray(lbda_grid, dtype=float)
+    if lbda_grid.ndim != 1:
+        raise ValueError("lbda_grid must be 1-D [Å]")
+    if lbda_grid.size and (lbda_grid.min() < lbda_in[0] or lbda_grid.max() > lbda_in[-1]):
+        raise ValueError(f"wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends beyond "
+                         f"the cube's [{lbda_in[0]:g}, {lbda_in[-1]:g}] Å")
+    i = np.clip(np.searchsorted(lbda_in, lbda_grid, side="right") - 1, 0, lbda_in.size - 2)
+    t = (lbda_grid - lbda_in[i]) / (lbda_in[i + 1] - lbda_in[i])
+    rows = np.repeat(np.arange(lbda_grid.size), 2)
+    cols = np.stack([i, i + 1], axis=1).ravel()
+    vals = np.stack([1.0 - t, t], axis=1).ravel()
+    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(lbda_grid.size, lbda_in.size))
+
+
+class CubeSource:
+    """User cube [erg/s/cm²/Å per input pixel] placed on the field, flux conserving.
+
+    cube : (nλ_in, ny_in, nx_in), lbda_in : (nλ_in,) strictly increasing [Å],
+    pixel_scale : input pixel side [arcsec], centre : (x, y) [arcsec] of the cube
+    centre relative to the field centre, rotation : [deg] counter-clockwise about
+    that centre.
+
+    Spatial resampling: rotation = 0 uses exact area overlaps (separable overlap
+    matrices, each input pixel uniformly bright).  Otherwise each input pixel is
+    split into ``subsampling``² sub-pixels, each treated as an axis-aligned square of
+    side pixel_scale/subsampling at its rotated centre and shared among cells by exact
+    overlap; the total flux inside the field is exact, the per-cell distribution is
+    first-order accurate in pixel_scale/subsampling (exact for multiples of 90°).
+    Wavelength: F_λ linearly interpolated in λ (flux density, not integrated over
+    bins); grids beyond [lbda_in[0], lbda_in[-1]] raise ValueError.
+    """
+
+    def __init__(self, cube, lbda_in, pixel_scale, centre=(0.0, 0.0), rotation=0.0, subsampling=8):
+        cube = np.asarray(cube, dtype=np.float64)
+        if cube.ndim != 3 or min(cube.shape) == 0:
+            raise ValueError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
+        if not np.all(np.isfinite(cube)):
+            raise ValueError("cube contains NaN/inf values")
+        lbda_in = np.asarray(lbda_in, dtype=np.float64)
+        if lbda_in.shape != cube.shape[:1] or lbda_in.size < 2 or np.any(np.diff(lbda_in) <= 0):
+            raise ValueError("lbda_in must be strictly increasing with one value per cube plane (≥ 2)")
+        if not (np.isfinite(pixel_scale) and pixel_scale > 0 and int(subsampling) >= 1):
+            raise ValueError("pixel_scale must be > 0 [arcsec] and subsampling ≥ 1")
+        self.cube, self.lbda_in, self.pixel_scale = cube, lbda_in, float(pixel_scale)
+        self.centre = tuple(float(v) for v in centre)
+        self.rotation, self.subsampling = float(rotation), int(subsampling)
+
+    def spatial_matrix(self, shape, spatial_scale):
+        """Sparse (ny·nx, ny_in·nx_in) matrix: fraction of each input pixel in each cell."""
+        ny, nx = shape
+        _, nyi, nxi = self.cube.shape
+        p, (cx, cy) = self.pixel_scale, self.centre
+        if self.rotation % 360.0 == 0.0:
+            ox = overlap_matrix(_cell_edges(nx, spatial_scale), cx + _cell_edges(nxi, p))
+            oy = overlap_matrix(_cell_edges(ny, spatial_scale), cy + _cell_edges(nyi, p))
+            return scipy.sparse.kron(scipy.sparse.csr_matrix(oy), scipy.sparse.csr_matrix(ox), format="csr")
+        S, s = self.subsampling, float(spatial_scale)
+        h = p / S
+        sub = (np.arange(S) + 0.5) * h
+        u = (_cell_edges(nxi, p)[:-1, None] + sub[None, :]).ravel()  # (nxi S,)
+        v = (_cell_edges(nyi, p)[:-1, None] + sub[None, :]).ravel()  # (nyi S,)
+        V, U = np.meshgrid(v, u, indexing="ij")
+        th = math.radians(self.rotation)
+        X = cx + U * math.cos(th) - V * math.sin(th)
+        Y = cy + U * math.sin(th) + V * math.cos(th)
+        src = (np.arange(nyi)[:, None] * nxi + np.arange(nxi)[None, :]).repeat(S, 0).repeat(S, 1)
+        ix, fx = self._axis_shares(X.ravel(), h, nx, s)
+        iy, fy = self._axis_shares(Y.ravel(), h, ny, s)
+        rows = (iy[:, :, None] * nx + ix[:, None, :])
+        vals = fy[:, :, None] * fx[:, None, :] / (S * S)
+        cols = np.broadcast_to(src.ravel()[:, None, None], rows.shape)
+        keep = vals > 0
+        return scipy.sparse.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(ny * nx, nyi * nxi))
+
+    @staticmethod
+    def _axis_shares(c, h, n, s):
+        """Cells (index, fraction) covered by [c − h/2, c + h/2] on an axis of n cells of side s;
+        out-of-field parts get fraction 0."""
+        L = int(math.ceil(h / s)) + 1
+        first = np.floor((c - h / 2) / s + n / 2).astype(np.int64)
+        idx = first[:, None] + np.arange(L)[None, :]
+        lo = np.maximum((idx - n / 2) * s, (c - h / 2)[:, None])
+        hi = np.minimum((idx + 1 - n / 2) * s, (c + h / 2)[:, None])
+        frac = np.clip(hi - lo, 0.0, None) / h
+        inside = (idx >= 0) & (idx < n)
+        return np.where(inside, idx, 0), np.where(inside, frac, 0.0)
+
+    def flux_cube(self, lbda_grid, shape, spatial_scale):
+        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]."""
+        ny, nx = (int(v) for v in shape)
+        nl_in, nyi, nxi = self.cube.shape
+        L = _lambda_matrix(self.lbda_in, lbda_grid)
+        X = L @ self.cube.reshape(nl_in, nyi * nxi)                   # (nλ, npix_in)
+        if self.rotation % 360.0 == 0.0:
+            p, (cx, cy) = self.pixel_scale, self.centre
+            ox = overlap_matrix(_cell_edges(nx, spatial_scale), cx + _cell_edges(nxi, p))
+            oy = overlap_matrix(_cell_edges(ny, spatial_scale), cy + _cell_edges(nyi, p))
+            return oy @ (X.reshape(-1, nyi, nxi) @ ox.T)
+        W = self.spatial_matrix((ny, nx), spatial_scale)
+        return np.asarray((W @ X.T).T).reshape(-1, ny, nx)

@@ -1,0 +1,212 @@
+"""Raw-ramp generator: kernel vs NumPy twin, reproducibility, closed-loop statistics, files."""
+import math
+import os
+
+import numpy as np
+import pytest
+
+from slicersim import opencl
+from slicersim.detector import variance_kubik16, variance_rauscher07
+from slicersim.ramps import (RampParameters, _simulate_block_numpy, _simulate_block_opencl, fit_slopes,
+                             frame_mean_charge, simulate)
+from slicersim.rampio import RampFileError, read_ramps
+
+needs_opencl = pytest.mark.skipif(not (opencl.is_available() and opencl.device_supports_fp64()),
+                                  reason="no OpenCL device with fp64")
+
+
+def _mu(rate, p):
+    return frame_mean_charge(rate, 0.0, 0.0, p.roic_glow, p.tframe)
+
+
+@needs_opencl
+@pytest.mark.parametrize("nmd", [(5, 3, 2), (4, 1, 0), (7, 8, 1)])
+def test_kernel_equals_numpy_twin_bit_for_bit(nmd):
+    """Same integers: both paths use the same Philox keys and the same IEEE operations."""
+    rng = np.random.default_rng(1)
+    rate = 10 ** rng.uniform(-4, 4.4, 2501)            # sparse, inversion, PTRS and saturating pixels
+    p = RampParameters(nmd, ktc_noise=7.0, roic_glow=0.01, gauss_min_mean=np.inf)
+    dead = rng.random(rate.size) < 0.01
+    a = _simulate_block_numpy(_mu(rate, p), dead, 17, 3, 1234, p)
+    b = _simulate_block_opencl(_mu(rate, p), dead, 17, 3, 1234, p)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert a[1].any(), "some pixels must saturate in this test"
+
+
+@needs_opencl
+def test_gaussian_approximation_twin_and_moments():
+    p = RampParameters((6, 2, 0), gauss_min_mean=50.0, ron=0.0, roic_glow=0.0, bias=0.0, full_well=1e9)
+    rate = np.full(3001, 40.0)                           # mu = 113 e-/frame: Gaussian path
+    a = _simulate_block_numpy(_mu(rate, p), np.zeros(rate.size, bool), 0, 0, 9, p)
+    b = _simulate_block_opencl(_mu(rate, p), np.zeros(rate.size, bool), 0, 0, 9, p)
+    assert np.array_equal(a[0], b[0])
+
+
+@needs_opencl
+@pytest.mark.parametrize("work_group", [None, 1, 7, 64])
+def test_identical_for_any_work_group_and_chunking(work_group):
+    rate = np.random.default_rng(2).uniform(0, 50, (37, 41))
+    ref = simulate(rate, (6, 4, 1), nramps=2, seed=77, backend="numpy")
+    got = simulate(rate, (6, 4, 1), nramps=2, seed=77, backend="opencl", work_group=work_group,
+                   memory_budget=41 * 8 * (9 + 3 * 6) * 2)    # ~8 rows per block
+    assert np.array_equal(ref, got)
+
+
+def test_seed_changes_output_and_same_seed_repeats():
+    rate = np.full((8, 9), 3.0)
+    a = simulate(rate, (4, 2, 0), seed=1)
+    assert np.array_equal(a, simulate(rate, (4, 2, 0), seed=1))
+    assert not np.array_equal(a, simulate(rate, (4, 2, 0), seed=2))
+
+
+READOUTS = [(16, 8, 0), (8, 4, 2), (12, 1, 0), (5, 8, 4), (32, 1, 3)]
+
+
+@pytest.mark.parametrize("nmd", READOUTS)
+def test_slope_variance_matches_rauscher07(nmd):
+    """Empirical variance of least-squares slopes × t_int = Rauscher07 within 3 σ of its MC error.
+
+    The 1/12 ADU² rounding noise of each group mean is added to the read noise
+    (σ_eff² = σ² + m/12 for gain 1).  Kubik16 is reported where it departs.
+    """
+    npix, rate, ron, tf = 40000, 2.0, 12.0, 2.83
+    sci = simulate(np.full((200, 200), rate), nmd, seed=11, ron=ron, dark=0.0, roic_glow=0.0)[0]
+    n, m, d = nmd
+    tint = (n - 1) * (m + d) * tf
+    est = fit_slopes(sci.reshape(n, -1), nmd, tf) * tint
+    ron_eff = math.sqrt(ron**2 + m / 12.0)
+    expected = variance_rauscher07(rate, nmd, tf, ron_eff, 0.0)
+    var = est.var(ddof=1)
+    mc_err = var * math.sqrt(2.0 / (npix - 1))
+    assert abs(var - expected) < 3 * mc_err, f"{nmd}: {var:.2f} vs Rauscher {expected:.2f} ± {mc_err:.2f}"
+    assert abs(est.mean() / tint - rate) < 4 * math.sqrt(var / npix) / tint
+    kubik = variance_kubik16(rate, nmd, tf, ron_eff, 0.0)
+    print(f"{nmd}: empirical {var:.1f}, Rauscher07 {expected:.1f}, Kubik16 {kubik:.1f} "
+          f"({kubik / var - 1:+.1%})")
+
+
+@pytest.mark.parametrize("rate", [0.01, 0.1, 1.0, 10.0, 100.0, 1000.0])
+def test_slopes_unbiased_over_five_decades(rate):
+    nmd, tf = ((10, 4, 0) if rate < 100 else (10, 1, 0)), 2.83      # below the full well
+    sci = simulate(np.full((100, 100), rate), nmd, seed=5, ron=5.0, dark=0.0, roic_glow=0.0)[0]
+    est = fit_slopes(sci.reshape(nmd[0], -1), nmd, tf)
+    err = est.std(ddof=1) / math.sqrt(est.size)
+    assert abs(est.mean() - rate) < 4 * err, f"rate {rate}: {est.mean()} ± {err}"
+
+
+def test_sparse_path_statistics_unchanged():
+    """Dark pixels: the count-then-place sampler gives the dense sampler's statistics."""
+    nmd, tf = (8, 8, 1), 2.83
+    rate = np.full((150, 150), 0.02)
+    kw = dict(seed=21, ron=0.0, dark=0.0, roic_glow=0.0, bias=0.0)
+    sparse = simulate(rate, nmd, sparse_max_group=1.0, **kw)[0].reshape(nmd[0], -1).astype(float)
+    dense = simulate(rate, nmd, sparse_max_group=0.0, **kw)[0].reshape(nmd[0], -1).astype(float)
+    for g in (0, 3, 7):
+        for arr in (sparse, dense):
+            pass
+        ms, md = sparse[g].mean(), dense[g].mean()
+        err = math.sqrt(sparse[g].var() / sparse[g].size + dense[g].var() / dense[g].size)
+        assert abs(ms - md) < 4 * err
+        vs, vd = sparse[g].var(), dense[g].var()
+        assert abs(vs - vd) < 4 * vd * math.sqrt(2 / sparse[g].size) + 1e-3
+    # total charge of the last group is Poisson(mu F) with mu = rate t_f (no reads noise, no rounding)
+    total_expect = 0.02 * tf * (8 * 9 - 1 - 0.5 * 7)   # mean of the last group's 8 frames
+    assert sparse[-1].mean() == pytest.approx(total_expect, rel=0.05)
+
+
+def test_saturation_flags_and_full_well():
+    """A 1000 e-/s pixel saturates after ~22 frames: flagged from that group on; slopes from the
+    unflagged groups stay unbiased; a faint pixel is never flagged."""
+    nmd, tf = (10, 4, 0), 2.83
+    rate = np.concatenate([np.full((50, 100), 1000.0), np.full((50, 100), 1.0)])
+    sci, gdq = simulate(rate, nmd, seed=8, ron=5.0, return_dq=True)
+    sci, gdq = sci[0].reshape(10, -1), gdq[0].reshape(10, -1)
+    bright, faint = slice(0, 5000), slice(5000, None)
+    first = np.argmax(gdq[:, bright] == 2, axis=0)
+    full_well_time = (65535 - 2000) / 1000.0                 # s
+    assert np.all(gdq[-1, bright] == 2) and not gdq[:, faint].any()
+    assert np.all(np.abs(first * 4 * tf - full_well_time) < 2 * 4 * tf)
+    assert np.all(np.diff(gdq[:, bright].astype(int), axis=0) >= 0)   # flags are sticky
+    assert sci[:, bright].max() <= 65535 - 2000 + 2000
+    naive = fit_slopes(sci[:, bright], nmd, tf)
+    honoured = fit_slopes(sci[:, bright], nmd, tf, groupdq=gdq[:, bright])
+    assert abs(np.nanmean(honoured) - 1000.0) < 2.0 and np.nanmean(naive) < 800
+
+
+def test_hdf5_file_layout_and_data_volume(tmp_path):
+    from slicersim.detector import Detector
+    rate = np.random.default_rng(0).uniform(0, 100, (64, 48))
+    path = simulate(rate, (5, 4, 1), nramps=2, seed=9, out=tmp_path / "ramp.h5", truth=True)
+    sci, gdq, pdq, attrs = read_ramps(path)
+    assert sci.shape == (2, 5, 64, 48) and sci.dtype == np.uint16
+    assert gdq.shape == sci.shape and gdq.dtype == np.uint8 and pdq.dtype == np.uint32
+    assert attrs["READPATT"] == "MACC(5,4,1)" and attrs["NGROUPS"] == 5 and attrs["NFRAMES"] == 4
+    assert attrs["GROUPGAP"] == 1 and attrs["NINTS"] == 2 and attrs["SEED"] == 9
+    assert np.array_equal(sci, simulate(rate, (5, 4, 1), nramps=2, seed=9))
+    det = Detector(shape=(64, 48))
+    assert sci.nbytes / 1e9 == pytest.approx(det.data_volume((5, 4, 1), 2))
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".partial")]
+
+
+@pytest.mark.parametrize("compression", ["gzip", "lz4", "bitshuffle-lz4"])
+def test_compressed_files_roundtrip(tmp_path, compression):
+    rate = np.full((32, 32), 5.0)
+    path = simulate(rate, (4, 2, 0), seed=1, out=tmp_path / f"r_{compression}.h5", compression=compression)
+    sci, *_ = read_ramps(path)
+    assert np.array_equal(sci, simulate(rate, (4, 2, 0), seed=1))
+
+
+def test_read_only_directory_fails_cleanly(tmp_path):
+    if os.geteuid() == 0:
+        # root ignores permission bits: use a path under a file instead (not a directory)
+        target = tmp_path / "not_a_dir" / "ramp.h5"
+        (tmp_path / "not_a_dir").write_text("x")
+    else:
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        target = ro / "ramp.h5"
+    with pytest.raises(RampFileError):
+        simulate(np.ones((4, 4)), (3, 1, 0), out=target)
+    assert not os.path.exists(target)
+
+
+def test_interrupted_writer_leaves_no_complete_file(tmp_path, monkeypatch):
+    import slicersim.ramps as ramps
+    calls = {"n": 0}
+    real = ramps._simulate_block_numpy
+
+    def dying(*args, **kw):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt("killed")
+        return real(*args, **kw)
+    monkeypatch.setattr(ramps, "_simulate_block_numpy", dying)
+    out = tmp_path / "ramp.h5"
+    with pytest.raises(KeyboardInterrupt):
+        ramps.simulate(np.ones((16, 8)), (3, 1, 0), out=out, backend="numpy", memory_budget=8 * 8 * 40)
+    assert not out.exists()
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("kwargs, err", [
+    (dict(nmd=(1, 8, 0)), "n must be"), (dict(nmd=(4, 0, 0)), "m \\(frames"),
+    (dict(nmd=(4, 2, -1)), "dropped"), (dict(nramps=0), "nramps"),
+])
+def test_invalid_readouts(kwargs, err):
+    from slicersim.detector import ReadoutError
+    args = dict(nmd=(4, 2, 0), nramps=1) | kwargs
+    with pytest.raises(ReadoutError, match=err):
+        simulate(np.ones((2, 2)), **args)
+
+
+@pytest.mark.parametrize("rate, err", [(np.full((2, 2), np.nan), "NaN"), (-np.ones((2, 2)), "negative"),
+                                       (np.ones(4), "2-D")])
+def test_invalid_rates(rate, err):
+    with pytest.raises(ValueError, match=err):
+        simulate(rate, (3, 1, 0))
+
+
+def test_memory_busting_request_is_refused():
+    with pytest.raises(MemoryError):
+        simulate(np.ones((64, 64)), (64, 8, 0), nramps=100, memory_budget=10_000)
