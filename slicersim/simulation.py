@@ -243,26 +243,29 @@ class Simulation:
         uniform = (self.background_photons + self.thermal_photons)[:, None, None]
         return self.spectrograph.apply_lsf(point + uniform, axis=0)
 
-    def get_cube(self, nmd=None, nramps=None, seed=None):
-        """Signal [ADU] and variance [ADU²] cubes summed over the ramps.
+    def get_cube(self, nmd=None, nramps=None, seed=None, psf_profile="gaussian", backend="auto",
+                 **options):
+        """Signal [ADU] and variance [ADU²] cubes summed over the ramps, plus a noisy
+        realisation when ``seed`` (int or numpy Generator) is given.
 
-        With ``seed`` (int or numpy Generator) a noisy realisation is drawn too
-        (Gaussian with the cube variance) and returned as a third array.
+        ``psf_profile`` is ``"gaussian"`` (reference default) or ``"airy"``; see
+        :func:`slicersim.cube.build_cube` for the chunked OpenCL builder, the
+        computation path of each scene component and the options
+        (``max_bytes``, ``progress``, ``psf_options``).
         """
+        from .cube import build_cube
+        return tuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,
+                                **options))
+
+    def get_cube_numpy(self, nmd=None, nramps=None):
+        """NumPy oracle of the Gaussian cube: (signal [ADU], variance [ADU²])."""
         nmd, nramps = self._readout(nmd, nramps)
         tint = readout_times(nmd, self.detector.tframe)["integration_time"]
         photons = self.get_projected_scene()                         # ph/s/cell
         electrons = photons * self.qe[:, None, None]                 # e-/s/cell
         variance, saturated = self.cell_variance(electrons, nmd)     # ADU² per ramp
         signal = np.where(saturated, np.nan, electrons * tint * self.detector.gain) * nramps
-        variance = variance * nramps
-        if seed is None:
-            return signal, variance
-        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-        finite = np.isfinite(variance)
-        noisy = np.where(finite, signal + rng.standard_normal(signal.shape) * np.sqrt(np.where(finite, variance, 0)),
-                         np.nan)
-        return signal, variance, noisy
+        return signal, variance * nramps
 
     # ------------------------------------------------------------------ extraction
     @property
