@@ -9,22 +9,23 @@
  *
  * with the 1-D weight of pixel [c, c+1) (exact integral of the blurred box)
  *
- *     W(c) = [G(c+1-a) - G(c-a) - G(c+1-b) + G(c-b)] / (b - a),
- *     G(u) = integral_{-inf}^{u} Phi(t / s) dt = s [t Phi(t) + phi(t)], t = u / s
+ *     W(c) = [D(c+1) - D(c)] / (b - a),   D(c) = G(c - a) - G(c - b),
+ *     G(u) = integral_{-inf}^{u} Phi(t / s) dt = s [t Phi(t) + phi(t)],  t = u / s,
  *
- * (evaluated with a cubic Hermite table, absolute error < 4e-12 s)
- *
- * (G(u) = max(u, 0) when s = 0: exact area overlap of the box with the
- * pixel).  The window x0 .. x0 + nx - 1 covers [a - T s, b + T s]; scale
- * = factor / (sum wx * sum wy) renormalises the truncated window (sums of
- * the stored, possibly float32-rounded, weights) so that every cell
- * deposits exactly value * factor (minus what falls off the detector).
+ * G(u) = max(u, 0) when s = 0 (exact area overlap of the box with the
+ * pixel); a point (b = a) uses W(c) = Phi((c+1-a)/s) - Phi((c-a)/s).  The
+ * Gaussian integrals come from a cubic Hermite table (absolute error
+ * < 4e-12).  The window x0 .. x0 + nx - 1 covers [a - T s, b + T s]; scale =
+ * factor / (sum wx * sum wy) renormalises the truncated window (sums of the
+ * stored, possibly float32-rounded, weights), so that every cell deposits
+ * exactly value * factor (minus what falls off the detector).
  *
  * Weight pool layout per cell: wx[0 .. nxp) (nxp = nx rounded up to VW,
  * zero padded) followed by wy[0 .. ny).
  *
- * Compile options: -DVW=1|2|4|8|16 (x vector width), -DWTYPE=float|double
- * (weight storage), -DTMAX, -DTINV (Hermite table range and density).
+ * Compile options: -DVW=1|2|4|8|16 (x vector width of the deposit),
+ * -DWTYPE=float|double (weight storage), -DTMAX, -DTINV (table range and
+ * density, must match the host table), -DNEMAX (>= largest window + 1).
  */
 
 #if defined(cl_khr_fp64)
@@ -67,48 +68,38 @@ typedef CAT(double, VW) realv;
 #define TINV 128.0
 #endif
 #ifndef NEMAX
-#define NEMAX 32            /* >= max window + 1, multiple of 8 */
+#define NEMAX 32            /* >= max window + 1 (private edge buffer) */
 #endif
 
-/* Vector (8 lanes) table evaluation: col 0 -> Ht(t), col 1 -> Phi(t);
- * valid for |t| < TMAX (other lanes are replaced by the caller). */
-#define GATHER8(p, k) ((double8)((p)[(k).s0], (p)[(k).s1], (p)[(k).s2], (p)[(k).s3], \
-                                 (p)[(k).s4], (p)[(k).s5], (p)[(k).s6], (p)[(k).s7]))
-#define TN ((int)(2.0 * TMAX * TINV + 0.5))
-
-inline double8 hermite8(double8 t, __global const double *tab, int col)
+/* Table evaluation for |t| < TMAX: col 0 -> Ht(t), col 1 -> Phi(t). */
+inline double herm1(double t, __global const double *tab, int col)
 {
-    double8 x = (clamp(t, -TMAX, TMAX) + TMAX) * TINV;
-    int8 k = clamp(convert_int8(floor(x)), 0, TN - 1);
-    double8 f = x - convert_double8(k);
-    int8 i0 = 8 * k + 4 * col;
-    return ((GATHER8(tab, i0 + 3) * f + GATHER8(tab, i0 + 2)) * f + GATHER8(tab, i0 + 1)) * f
-           + GATHER8(tab, i0);
+    double x = (t + TMAX) * TINV;
+    double fk = floor(x);
+    int k = (int)fk;
+    double f = x - fk;
+    __global const double *c = tab + 8 * k + 4 * col;
+    return ((c[3] * f + c[2]) * f + c[1]) * f + c[0];
 }
 
-/* D(c) at the pixel edges c = c0 + j, j = 0 .. n (D(c) = G(c - a) - G(c - b)
- * for a box, Phi((c - a)/s) for a point), into d[0 .. n]; 8 lanes at a time. */
+/* D(c) at the pixel edges c = c0 + j, j = 0 .. n, into d[0 .. n]:
+ * D(c) = G(c - a) - G(c - b) for a box, Phi((c - a)/s) for a point. */
 inline void edge_values(double a, double b, double s, int c0, int n, bool point,
                         double *d, __global const double *tab)
 {
-    const double8 lane = (double8)(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
-    for (int j0 = 0; j0 <= n; j0 += 8) {
-        double8 c = (double8)((double)(c0 + j0)) + lane;
-        double8 ua = c - a, ub = c - b, val;
+    for (int j = 0; j <= n; ++j) {
+        double c = (double)(c0 + j);
+        double ua = c - a, ub = c - b, val;
         if (s <= 0.0) {
-            val = point ? select((double8)0.0, (double8)1.0, isgreaterequal(ua, 0.0))
-                        : fmax(ua, 0.0) - fmax(ub, 0.0);
+            val = point ? (ua >= 0.0 ? 1.0 : 0.0) : fmax(ua, 0.0) - fmax(ub, 0.0);
         } else if (point) {
-            double8 h = hermite8(ua / s, tab, 1);
-            val = select(h, select((double8)0.0, (double8)1.0, isgreaterequal(ua, 0.0)),
-                         isgreaterequal(fabs(ua), TMAX * s));
+            val = fabs(ua) >= TMAX * s ? (ua >= 0.0 ? 1.0 : 0.0) : herm1(ua / s, tab, 1);
         } else {
-            double8 ga = s * hermite8(ua / s, tab, 0), gb = s * hermite8(ub / s, tab, 0);
-            ga = select(ga, fmax(ua, 0.0), isgreaterequal(fabs(ua), TMAX * s));
-            gb = select(gb, fmax(ub, 0.0), isgreaterequal(fabs(ub), TMAX * s));
+            double ga = fabs(ua) >= TMAX * s ? fmax(ua, 0.0) : s * herm1(ua / s, tab, 0);
+            double gb = fabs(ub) >= TMAX * s ? fmax(ub, 0.0) : s * herm1(ub / s, tab, 0);
             val = ga - gb;
         }
-        vstore8(val, 0, d + j0);
+        d[j] = val;
     }
 }
 
@@ -221,11 +212,4 @@ __kernel void deposit_cells(
             }
         }
     }
-}
-
-__kernel void fill_zero(__global double *img, const long n)
-{
-    long i = get_global_id(0);
-    if (i < n)
-        img[i] = 0.0;
 }

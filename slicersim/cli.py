@@ -144,6 +144,25 @@ def cmd_etc(args) -> int:
     return 0
 
 
+def cmd_ramp(args) -> int:
+    import numpy as np
+
+    from slicersim import ramps
+    nmd = tuple(args.nmd)
+    common = dict(seed=args.seed, out=args.out, compression=args.compression, progress=True,
+                  backend=args.backend)
+    if args.rate is not None:
+        rate = np.load(args.rate) if args.rate.endswith(".npy") else np.loadtxt(args.rate, ndmin=2)
+        path = ramps.simulate(rate, nmd, args.nramps, tframe=args.tframe, ron=args.ron, dark=args.dark,
+                              roic_glow=args.roic_glow, gain=args.gain, **common)
+    else:
+        from slicersim.targets import LazuliSupernova
+        target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field)
+        path = target.get_ramps(nmd=nmd, nramps=args.nramps, **common)
+    print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="slicersim", description="Image-slicer IFS simulator.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version('slicersim')}")
@@ -169,6 +188,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--field", choices=("narrow", "wide"), help="field of view")
     p.add_argument("--search", choices=("exact", "reference"), help="readout search strategy")
     p.set_defaults(func=cmd_etc)
+
+    p = sub.add_parser("ramp", help="raw up-the-ramp H4RG reads to a group-level HDF5 file")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--redshift", type=float, metavar="Z", help="full detector image of a SN Ia at Z")
+    src.add_argument("--rate", metavar="FILE", help="rate image [e-/s] (.npy or text)")
+    p.add_argument("--nmd", type=int, nargs=3, default=(16, 8, 0), metavar=("N", "M", "D"),
+                   help="MACC readout (default: %(default)s)")
+    p.add_argument("--nramps", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, metavar="FILE.h5")
+    p.add_argument("--compression", choices=("gzip", "lz4", "zstd", "bitshuffle-lz4"))
+    p.add_argument("--config", metavar="cbe|eol|PATH")
+    p.add_argument("--field", choices=("narrow", "wide"), default="narrow")
+    p.add_argument("--tframe", type=float, default=2.83)
+    p.add_argument("--ron", type=float, default=12.0)
+    p.add_argument("--dark", type=float, default=2.8e-3)
+    p.add_argument("--roic-glow", type=float, default=3e-3)
+    p.add_argument("--gain", type=float, default=1.0)
+    p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto")
+    p.set_defaults(func=cmd_ramp)
     return parser
 
 

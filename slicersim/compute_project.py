@@ -117,13 +117,11 @@ def _colour(first, last, meta, vw):
     xhi = np.maximum.reduceat(x1, first)
     ylo = np.minimum.reduceat(y0, first)
     yhi = np.maximum.reduceat(y1, first)
-    colour = np.full(first.size, -1, np.int64)
-    for i in range(first.size):
-        done = colour[:i] >= 0
-        hit = done & (xlo[:i] < xhi[i]) & (xlo[i] < xhi[:i]) & (ylo[:i] < yhi[i]) & (ylo[i] < yhi[:i])
-        used = np.unique(colour[:i][hit])
-        free = np.setdiff1d(np.arange(used.size + 1), used)
-        colour[i] = free[0]
+    colour = np.zeros(first.size, np.int64)
+    for i in range(1, first.size):
+        hit = (xlo[:i] < xhi[i]) & (xlo[i] < xhi[:i]) & (ylo[:i] < yhi[i]) & (ylo[i] < yhi[:i])
+        used = np.bincount(colour[:i][hit], minlength=1)
+        colour[i] = int(np.argmin(used)) if used.min() == 0 else used.size
     return [(first[colour == k].copy(), last[colour == k].copy()) for k in range(colour.max() + 1)]
 
 
@@ -148,7 +146,7 @@ def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), t
     box = np.ascontiguousarray(box, dtype=np.float64)
     S, E, Q = (int(v) for v in grid)
     ne, nq = (int(v) for v in oversample)
-    if box.shape != (S * E * Q, 6) or E % ne or Q % nq:
+    if box.shape != (S * E * Q, 6) or E % ne or Q % nq or box.shape[0] == 0:
         raise ValueError(f"box must have shape ({S * E * Q}, 6) and grid {grid} be divisible by {oversample}")
     if np.any(box[:, [2, 5]] < 0) or np.any(box[:, 1] < box[:, 0]) or np.any(box[:, 4] < box[:, 3]):
         raise ValueError("boxes need lo <= hi and rms >= 0")

@@ -72,7 +72,8 @@ def _report_lines(title, s):
             f"  data volume               : {s['data_volume_gb']:.2f} GB"]
 
 
-def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="narrow", verbose=True):
+def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="narrow", verbose=True,
+             ramp_nmd=(3, 2, 0)):
     """Run the demonstration ETC and write its figures and JSON summary into ``outdir``.
 
     Parameters
@@ -91,7 +92,7 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     result under ``"reference"`` and the written ``files``.
     """
     from . import __version__
-    from .plotting import plot_instrument, plot_spectrum, plot_variance_budget
+    from .plotting import plot_instrument, plot_ramp_group, plot_spectrum, plot_variance_budget
     from .targets import LazuliSupernova
 
     t0 = time.perf_counter()
@@ -121,6 +122,13 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     plot_spectrum(target, seed=1, savefile=files["spectrum"])
     plot_variance_budget(target, savefile=files["variance_budget"])
     plot_instrument(target.simulation, savefile=files["instrument"])
+
+    # --- raw ramp of the full detector (short readout so the demo stays quick) ---------
+    if ramp_nmd:
+        files["ramp"] = os.path.join(outdir, "raw_ramp.h5")
+        files["ramp_group"] = os.path.join(outdir, "raw_ramp_group.png")
+        target.get_ramps(out=files["ramp"], nmd=tuple(ramp_nmd), nramps=1, seed=2026, progress=False)
+        plot_ramp_group(files["ramp"], savefile=files["ramp_group"])
 
     lo, hi = DEMO_BAND
     summary = {"slicersim_version": __version__,

@@ -9,7 +9,6 @@ Flux falling outside the field is lost (never renormalised).
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import scipy.sparse
@@ -83,11 +82,12 @@ class SersicProfile:
         return self.intensity_eff * np.exp(-self.b_n * ((np.asarray(r, float) / self.r_eff)
                                                         ** (1.0 / self.sersic_index) - 1.0))
 
-    def cell_fractions(self, shape, spatial_scale, oversampling=4, tol=1e-10):
-        """(ny, nx) fraction of the total flux in each cell [spatial_scale in arcsec]
-        (see :func:`integrate_radial_cells`; cusp handled exactly, ~1e-10 per cell)."""
+    def cell_fractions(self, shape, spatial_scale, oversampling=None):
+        """(ny, nx) fraction of the total flux in each cell of side ``spatial_scale``
+        [arcsec]: exact polar integration (~1e-12 per cell, cusp included), or the
+        midpoint rule on ``oversampling``² sub-cells (see :func:`integrate_radial_cells`)."""
         return integrate_radial_cells(self.geometry, [self.radial_profile], shape, spatial_scale,
-                                      oversampling, tol)[0]
+                                      oversampling)[0]
 
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
@@ -116,106 +116,75 @@ class _RadialCumulative:
         return self.cum[k] + self._gl(self.nodes[k], R)
 
 
-def _polygon_flux(corners, cumulatives, dz=0.5):
-    """Flux of each polygon (m, nv, 2) [arcsec, frame where the profile is circular,
-    vertices counter-clockwise] as the sum over edges of the signed triangle
-    (centre, A, B) integrals ∫ G(R(φ)) dφ.  Along an edge at distance d from the centre,
-    s = d sinh z gives ∫ G(d cosh z) / cosh z dz, smooth in z at every scale; panels of
-    width ≤ dz with 16-point Gauss–Legendre.  Returns (ncomp, m)."""
-    A = corners.reshape(-1, 2)
-    B = np.roll(corners, -1, axis=1).reshape(-1, 2)
+def _edge_integrals(A, B, cumulatives, dz=0.5):
+    """Signed integrals ∫ G(R(φ)) dφ over the triangles (centre, A, B), one per edge
+    A → B (arrays (m, 2) [arcsec] in the frame where the profile is circular).
+    Along an edge at distance d from the centre, s = d sinh z turns dφ = d ds/(d² + s²)
+    into dz / cosh z and R = d cosh z: a smooth integrand at every scale of d, r_eff
+    and the edge length; panels of width ≤ dz with 16-point Gauss–Legendre.
+    Edges through the centre contribute 0.  Returns (ncomp, m)."""
     e = B - A
     L = np.hypot(e[:, 0], e[:, 1])
     cross = A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]
-    ok = (L > 0) & (np.abs(cross) > 1e-15 * np.maximum(L, 1e-300) * np.hypot(A[:, 0], A[:, 1]).clip(1e-300))
-    d = np.where(ok, np.abs(cross) / np.where(L > 0, L, 1.0), 1.0)
-    sA = np.where(ok, (A * e).sum(1) / np.where(L > 0, L, 1.0), 0.0)
-    sB = sA + L
-    zA, zB = np.arcsinh(sA / d), np.arcsinh(sB / d)
-    npan = np.where(ok, np.ceil((zB - zA) / dz).astype(np.int64).clip(1), 0)
+    scale = np.maximum(L * np.maximum(np.hypot(A[:, 0], A[:, 1]), np.hypot(B[:, 0], B[:, 1])), 1e-300)
+    ok = np.abs(cross) > 1e-14 * scale
+    Ls = np.where(ok, L, 1.0)
+    d = np.where(ok, np.abs(cross) / Ls, 1.0)
+    sA = np.where(ok, (A * e).sum(1) / Ls, 0.0)
+    zA, zB = np.arcsinh(sA / d), np.arcsinh((sA + np.where(ok, L, 0.0)) / d)
+    npan = np.where(ok, np.ceil((zB - zA) / dz).clip(1), 0).astype(np.int64)
     edge = np.repeat(np.arange(A.shape[0]), npan)
-    first = np.repeat(np.cumsum(npan) - npan, npan)
-    j = np.arange(edge.size) - first
+    j = np.arange(edge.size) - np.repeat(np.cumsum(npan) - npan, npan)
     width = ((zB - zA) / np.maximum(npan, 1))[edge]
     z = zA[edge, None] + width[:, None] * (j[:, None] + 0.5 + 0.5 * _GL_X[None, :])
     R = d[edge, None] * np.cosh(z)
     wts = 0.5 * width[:, None] * _GL_W[None, :] / np.cosh(z) * np.sign(cross)[edge, None]
-    out = []
-    for G in cumulatives:
-        per_edge = np.bincount(edge, weights=(wts * G(R)).sum(axis=1), minlength=A.shape[0])
-        out.append(per_edge.reshape(corners.shape[:2]).sum(axis=1))
-    return np.array(out)
+    return np.array([np.bincount(edge, weights=(wts * G(R)).sum(axis=1), minlength=A.shape[0])
+                     for G in cumulatives])
 
 
-def integrate_radial_cells(geometry, radial_funcs, shape, spatial_scale, oversampling=4, tol=1e-10,
-                           core_radius=2.0, max_oversampling=512):
-    """∫∫_cell f_c(r_ell) dA for every cell of an (ny, nx) field, each radial profile f_c
-    [per arcsec²] of the elliptical radius of ``geometry`` = (x0, y0 [arcsec], position
-    angle [deg], axis ratio q).  Returns (ncomp, ny, nx).
+def integrate_radial_cells(geometry, radial_funcs, shape, spatial_scale, oversampling=None):
+    """∫∫_cell f_c(r) dA for every cell of an (ny, nx) field of side ``spatial_scale``
+    [arcsec], for radial profiles f_c [per arcsec²] of the elliptical radius r of
+    ``geometry`` = (x0, y0 [arcsec], position angle [deg], axis ratio q).
+    Returns (ncomp, ny, nx).
 
-    * Cells closer than ``core_radius`` cells to the centre (where a Sersic cusp sits):
-      exact polar integration, cell = Σ over edges of ∫ G(R(φ)) dφ with the cumulative
-      G(R) = q ∫_0^R f ρ dρ (no sampling of the cusp).
-    * Other cells: midpoint rule on o × o and 2o × 2o sub-cells, o = ``oversampling``,
-      Richardson-extrapolated; cells whose two estimates of component 0 differ by
-      more than ``tol`` (absolute; of the total flux for a normalised profile) are
-      refined by doubling o up to ``max_oversampling`` (RuntimeWarning if not reached).
+    Default (``oversampling=None``): exact polar integration, no sampling of the cusp.
+    In the frame u (major axis), w = v/q the profile is circular and the flux of a
+    polygon is Σ_edges ∫ G(R(φ)) dφ over the triangles (centre, A, B), with the
+    cumulative G(R) = q ∫_0^R f ρ dρ (:class:`_RadialCumulative`).  Edges are shared by
+    neighbouring cells, so each is integrated once.  Accuracy ~1e-12 of the total
+    flux per cell (tests: Gaussian n = 0.5 vs erf products; sums vs P(2n, x)),
+    whatever r_eff / cell or the offset.  Cost ~0.2 s for 58 × 116 cells.
+    ``oversampling=o``: plain midpoint rule on o × o sub-cells (cross-checks).
     """
     ny, nx = (int(v) for v in shape)
     s = float(spatial_scale)
-    if not (ny > 0 and nx > 0 and s > 0 and oversampling >= 1):
-        raise ValueError("shape must be positive, spatial_scale > 0 [arcsec] and oversampling ≥ 1")
+    if not (ny > 0 and nx > 0 and s > 0):
+        raise ValueError("shape must be positive and spatial_scale > 0 [arcsec]")
     x0, y0, pa, q = geometry
     c, sn = math.cos(math.radians(pa)), math.sin(math.radians(pa))
-
-    def r_ell(x, y):
-        dx, dy = x - x0, y - y0
-        return np.sqrt((dx * c + dy * sn) ** 2 + ((-dx * sn + dy * c) / q) ** 2)
-
-    xe, ye = _cell_edges(nx, s), _cell_edges(ny, s)
-    # distance from the centre to the nearest point of each cell [cells]
-    gx = np.clip(x0, xe[:-1], xe[1:]) - x0
-    gy = np.clip(y0, ye[:-1], ye[1:]) - y0
-    dist = np.hypot(gy[:, None], gx[None, :]) / s
-    core = np.flatnonzero(dist.ravel() <= core_radius)
-    rest = np.flatnonzero(dist.ravel() > core_radius)
-    result = np.zeros((len(radial_funcs), ny * nx))
-
-    if core.size:
-        jy, kx = core // nx, core % nx
-        X = np.stack([xe[kx], xe[kx + 1], xe[kx + 1], xe[kx]], axis=1)
-        Y = np.stack([ye[jy], ye[jy], ye[jy + 1], ye[jy + 1]], axis=1)
-        dx, dy = X - x0, Y - y0
-        corners = np.stack([dx * c + dy * sn, (-dx * sn + dy * c) / q], axis=-1)
-        r_max = 1.01 * np.hypot(corners[..., 0], corners[..., 1]).max()
-        cumulatives = [_RadialCumulative(f, q, r_max) for f in radial_funcs]
-        result[:, core] = _polygon_flux(corners, cumulatives)
-
-    def estimate(idx, o):
-        out = []
+    xe, ye = _cell_edges(nx, s) - x0, _cell_edges(ny, s) - y0
+    if oversampling is not None:
+        o = int(oversampling)
         sub = (np.arange(o) + 0.5) / o * s
-        step = max(1, int(2**20 // (o * o)))
-        for c0 in range(0, idx.size, step):
-            cc = idx[c0:c0 + step]
-            r = r_ell(xe[cc % nx][:, None, None] + sub[None, None, :],
-                      ye[cc // nx][:, None, None] + sub[None, :, None])
-            out.append(np.stack([f(r).mean(axis=(-2, -1)) for f in radial_funcs]) * s * s)
-        return np.concatenate(out, axis=1) if out else np.zeros((len(radial_funcs), 0))
-
-    o = int(oversampling)
-    coarse = estimate(rest, o)
-    active = rest
-    while active.size:
-        fine = estimate(active, 2 * o)
-        change = np.abs(fine[0] - coarse[0])
-        result[:, active] = fine + (fine - coarse) / 3.0         # Richardson (midpoint: O(h²))
-        keep = change > tol
-        active, coarse, o = active[keep], fine[:, keep], 2 * o
-        if active.size and 2 * o > max_oversampling:
-            warnings.warn(f"integrate_radial_cells: {active.size} cell(s) not converged to {tol:g} "
-                          f"at oversampling {o}", RuntimeWarning, stacklevel=2)
-            break
-    return result.reshape(-1, ny, nx)
+        out = np.empty((len(radial_funcs), ny, nx))
+        for j in range(ny):
+            dx = (xe[:-1, None, None] + sub[None, None, :])
+            dy = (ye[j] + sub)[None, :, None]
+            r = np.sqrt((dx * c + dy * sn) ** 2 + ((-dx * sn + dy * c) / q) ** 2)
+            out[:, j] = [f(r).mean(axis=(1, 2)) * s * s for f in radial_funcs]
+        return out
+    DY, DX = np.meshgrid(ye, xe, indexing="ij")                     # corners (ny+1, nx+1)
+    P = np.stack([DX * c + DY * sn, (-DX * sn + DY * c) / q], axis=-1)
+    r_max = 1.01 * np.hypot(P[..., 0], P[..., 1]).max()
+    cumulatives = [_RadialCumulative(f, q, r_max) for f in radial_funcs]
+    th = _edge_integrals(P[:, :-1].reshape(-1, 2), P[:, 1:].reshape(-1, 2), cumulatives)
+    tv = _edge_integrals(P[:-1, :].reshape(-1, 2), P[1:, :].reshape(-1, 2), cumulatives)
+    th = th.reshape(-1, ny + 1, nx)                                  # edges along +x
+    tv = tv.reshape(-1, ny, nx + 1)                                  # edges along +y
+    # counter-clockwise cell: bottom (+x), right (+y), top (−x), left (−y)
+    return th[:, :-1] - th[:, 1:] + tv[:, :, 1:] - tv[:, :, :-1]
 
 
 def _interp_spectrum(lbda_in, flux_in, lbda_grid, name):
@@ -262,17 +231,17 @@ class Host:
         return quad(lambda r: self._core_profile(r) * 2 * math.pi * q * r, 0, np.inf,
                     limit=200, epsabs=1e-13, epsrel=1e-11)[0]
 
-    def flux_cube(self, lbda_grid, shape, spatial_scale, oversampling=4, tol=1e-10):
+    def flux_cube(self, lbda_grid, shape, spatial_scale, oversampling=None):
         """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]
         (cells of side ``spatial_scale`` [arcsec]; before the PSF)."""
         core = _interp_spectrum(self.lbda_in, self.flux_in, lbda_grid, "host spectrum")
         p = self.profile
         if self.flux_outskirts is None:
-            frac = p.cell_fractions(shape, spatial_scale, oversampling=oversampling, tol=tol)
+            frac = p.cell_fractions(shape, spatial_scale, oversampling=oversampling)
             return core[:, None, None] * frac[None]
         out = _interp_spectrum(self.lbda_in, self.flux_outskirts, lbda_grid, "host outskirts spectrum")
         frac, frac_core = integrate_radial_cells(p.geometry, [p.radial_profile, self._core_profile],
-                                                 shape, spatial_scale, oversampling, tol)
+                                                 shape, spatial_scale, oversampling)
         return core[:, None, None] * frac_core[None] + out[:, None, None] * (frac - frac_core)[None]
 
 

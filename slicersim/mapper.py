@@ -19,14 +19,16 @@ the spectrum on the detector on a rectilinear (fieldpos × λ) node grid.
 * **Projection** of a cube (λ, row, column) onto the detector, flux
   conserving: each cube cell (slice s, column k, bin i) covers
   fieldpos [−1 + 2k/n, −1 + 2(k+1)/n] × [λ-edge i, λ-edge i+1]; its four
-  mapped corners give a box on the detector (centre = mean of the corners,
-  x-width from the fieldpos direction, y-height from the λ direction; the
-  small cross terms (shear) enter as a box variance w²/12 added to the
-  spot variance); the box blurred by the Gaussian spot (rms at the cell
-  centre) is integrated exactly over pixels, truncated at ±``truncate`` rms
-  and renormalised (:mod:`slicersim.compute_project`).  ``oversample =
-  (n_λ, n_φ)`` splits each cell into sub-cells for curved or sheared
-  footprints (not needed for the Lazuli layouts: see the tests).
+  mapped corners give an axis-aligned box on the detector (x between the
+  mean x of the two corners on each fieldpos edge, y between the mean y on
+  each λ edge; the small cross terms (shear) w enter as a variance w²/12
+  added to the spot variance); the box blurred by the Gaussian spot (rms at
+  the cell centre) is integrated exactly over pixels, truncated at
+  ±``truncate`` rms and renormalised (:mod:`slicersim.compute_project`):
+  every cell deposits exactly its value (what falls off the detector is
+  lost).  ``oversample = (n_λ, n_φ)`` splits each cell into sub-cells for
+  strongly curved or sheared footprints (for the Lazuli layouts 3 × 3
+  sub-cells change the image by < 0.2 % of its peak: see the tests).
   Cube row r of a field ↔ slice ``slices[n_rows − 1 − r]`` (narrow:
   s = 58 − r, wide: s = 116 − r).
 

@@ -276,3 +276,57 @@ def plot_instrument(sim, savefile=None):
         pass
     fig.suptitle("instrument: " + ", ".join(bits), fontsize="medium")
     return _finish(fig, savefile)
+
+
+def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None):
+    """One group of a raw-ramp HDF5 file [ADU] next to the input rate [e-/s] (``truth/rate``).
+
+    Panels: input rate of the full detector (log scale), the group [ADU] and the
+    rate in a zoom (default: 400 px around the brightest rate pixel).
+    """
+    import h5py
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+    with h5py.File(path, "r") as fh:
+        img = fh["SCI"][ramp, group].astype(float)
+        rate = fh["truth/rate"][...] if "truth/rate" in fh else None
+        patt = fh.attrs.get("READPATT", "")
+        ngroups = fh["SCI"].shape[1]
+    gidx = group % ngroups
+    ref = rate if rate is not None else img
+    if zoom is None:
+        r, c = np.unravel_index(np.argmax(ref), ref.shape)
+        r0, c0 = max(0, r - 200), max(0, c - 200)
+        zoom = (r0, min(img.shape[0], r0 + 400), c0, min(img.shape[1], c0 + 400))
+    r0, r1, c0, c1 = zoom
+    ncol = 3 if rate is not None else 1
+    fig, axes = plt.subplots(1, ncol, figsize=(6 * ncol, 5.4), squeeze=False)
+    axes = axes[0]
+    k = 0
+    if rate is not None:
+        pos = rate[rate > 0]
+        norm = LogNorm(vmin=max(pos.min(), np.percentile(pos, 1)), vmax=pos.max()) if pos.size else None
+        im = axes[0].imshow(np.where(rate > 0, rate, np.nan), origin="lower", norm=norm, cmap="viridis",
+                            interpolation="nearest")
+        axes[0].add_patch(plt.Rectangle((c0, r0), c1 - c0, r1 - r0, fill=False, color="w", lw=1))
+        axes[0].set_title("input photo-electron rate [e-/s/px]")
+        fig.colorbar(im, ax=axes[0], fraction=0.046)
+        k = 1
+    sub = img[r0:r1, c0:c1]
+    im = axes[k].imshow(sub, origin="lower", extent=(c0, c1, r0, r1), cmap="magma", interpolation="nearest",
+                        vmin=np.percentile(sub, 1), vmax=np.percentile(sub, 99.9))
+    axes[k].set_title(f"{patt} ramp {ramp}, group {gidx} [ADU] (zoom)")
+    fig.colorbar(im, ax=axes[k], fraction=0.046)
+    if rate is not None:
+        im = axes[2].imshow(rate[r0:r1, c0:c1], origin="lower", extent=(c0, c1, r0, r1), cmap="viridis",
+                            interpolation="nearest")
+        axes[2].set_title("input rate, same zoom [e-/s/px]")
+        fig.colorbar(im, ax=axes[2], fraction=0.046)
+    for ax in axes:
+        ax.set_xlabel("detector column [px]")
+        ax.set_ylabel("detector row [px]")
+    fig.tight_layout()
+    if savefile:
+        fig.savefig(savefile, dpi=100)
+        plt.close(fig)
+    return fig

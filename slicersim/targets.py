@@ -232,6 +232,48 @@ class Target:
     def get_cube(self, seed=None):
         return self.simulation.get_cube(seed=seed)
 
+    # ------------------------------------------------------------------ detector
+    def get_field_rate_cubes(self):
+        """Photo-electron rate cubes [e-/s per cell per bin] of both Lazuli fields:
+        the target's field holds the scene, the other field background and thermal light only."""
+        cubes = {}
+        for field in ("narrow", "wide"):
+            sim = self.simulation if field == (self.field or "narrow") else \
+                build_simulation(self.config, field, pointsource=None)
+            cubes[field] = (sim.get_projected_scene() * sim.qe[:, None, None], sim)
+        return cubes
+
+    def get_detector_image(self, mapper=None, backend="auto"):
+        """Photo-electron rate on the H4RG [e-/s/px] (both fields, flux-conserving projection).
+
+        Dark current, thermal dark and ROIC glow are not included: :meth:`get_ramps`
+        adds them to every pixel."""
+        from .mapper import SlicerMapper
+        mapper = SlicerMapper.default() if mapper is None else mapper
+        cubes = self.get_field_rate_cubes()
+        image = np.zeros(mapper.detector_shape)
+        for field, (cube, sim) in cubes.items():
+            kwargs = {"narrow": cube} if field == "narrow" else {"wide": cube}
+            mapper.project_fields(sim.lbda, sim.spectrograph.lbda_edges, out=image, backend=backend,
+                                  **kwargs)
+        return image
+
+    def get_ramps(self, out=None, nmd=None, nramps=None, seed=0, mapper=None, backend="auto", **kwargs):
+        """Raw MACC ramps of the full detector (see :func:`slicersim.ramps.simulate`).
+
+        Uses the current readout unless ``nmd`` / ``nramps`` are given; the detector
+        parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
+        saturation) come from the configuration.  Returns SCI or writes ``out`` (HDF5)."""
+        from .ramps import simulate
+        sim, det = self.simulation, self.simulation.detector
+        image = self.get_detector_image(mapper, backend=backend)
+        params = dict(tframe=det.tframe, ron=det.ron, dark=det.dark, thermal_dark=sim.thermal_dark,
+                      roic_glow=det.roic_glow, gain=det.gain,
+                      saturation=min(det.saturation, 65535.0), backend=backend,
+                      config={"config": str(self.config), "field": self.field})
+        params.update(kwargs)
+        return simulate(image, nmd or det.nmd, nramps or sim.nramps, seed=seed, out=out, **params)
+
     def get_variance_contribution(self):
         return self.simulation.get_variance_contribution()
 

@@ -309,7 +309,7 @@ def test_deposit_opencl_vs_numpy(oversample, vw):
 def test_project_cube_opencl_vs_numpy():
     """Whole path (tables + deposit) with each backend, on a few slices of the real grid."""
     lbda, edges = _LBDA, _EDGES
-    slices = [2, 31, 60, 89]
+    slices = [31, 89]
     cube = np.random.default_rng(9).uniform(0, 1, (lbda.size, len(slices), 116))
     img_n = SlicerMapper.default().project_cube(cube, lbda, edges, slices, backend="numpy")
     img_o = SlicerMapper.default().project_cube(cube, lbda, edges, slices, backend="opencl")
