@@ -21,14 +21,15 @@ Errors are measured against an oracle: the same Airy cube at o = 31 (OpenCL),
 itself cross-checked against 31-point Gauss–Legendre sub-cell nodes.
 ``max_err_rel_peak`` = max over λ of max |P − P_oracle| / max P_oracle(λ);
 ``flux_err`` = max over λ of |Σ P − Σ P_oracle| (fraction of the source flux).
-Times are warm (kernels built), best of ``--repeat`` runs, wall clock.
+Times are warm (kernels built), best of ``--repeat`` runs: wall clock
+(``seconds``) and process CPU time of all threads (``cpu_seconds``).
 A wide-field (0.08″) convergence check on 25 wavelengths is added to the JSON.
 
 Writes ``<out>/psf_speed_accuracy.json`` and ``.png``.
 
 Usage::
 
-    .venv/bin/python benchmarks/psf_speed_accuracy.py [--repeat 3] [--out benchmarks/results]
+    .venv/bin/python benchmarks/psf_speed_accuracy.py [--repeat 5] [--out benchmarks/results]
         [--no-numpy-above 15] [--oracle 31]
 """
 import argparse
@@ -65,14 +66,17 @@ def lazuli_narrow():
 
 
 def timed(func, repeat):
-    """(result, best wall time [s], all times) after one untimed warm-up call."""
+    """(result, best wall time [s], all wall times, best process CPU time [s]) after
+    one untimed warm-up call.  CPU time sums all threads of this process (the
+    OpenCL runtime's too): a load-independent measure of the work on a shared machine."""
     result = func()
-    times = []
+    times, cpu = [], []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         result = func()
         times.append(time.perf_counter() - t0)
-    return result, min(times), times
+        cpu.append(time.process_time() - c0)
+    return result, min(times), times, min(cpu)
 
 
 def errors(cube, oracle):
@@ -149,13 +153,14 @@ def run(args):
     points = []
 
     def add(method, setting, func, repeat):
-        cube, best, times = timed(func, repeat)
+        cube, best, times, cpu = timed(func, repeat)
         e, f, per_lbda = errors(cube, oracle)
         points.append({"method": method, "setting": setting, "seconds": best, "max_err_rel_peak": e,
-                       "flux_err": f, "all_seconds": times,
+                       "flux_err": f, "all_seconds": times, "cpu_seconds": cpu,
                        "err_at_lbda": {f"{lbda[i]:.0f}": float(per_lbda[i])
                                        for i in (0, len(lbda) // 4, len(lbda) // 2, len(lbda) - 1)}})
-        print(f"  {method:22s} {setting:12s} {best:8.3f} s  err/peak {e:.2e}  flux {f:.2e}", flush=True)
+        print(f"  {method:22s} {setting:12s} {best:8.3f} s (cpu {cpu:7.3f} s)  err/peak {e:.2e}  "
+              f"flux {f:.2e}", flush=True)
 
     backends = (["opencl"] if have_cl else []) + ["numpy"]
     for backend in backends:
@@ -211,46 +216,71 @@ def plot(result, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     floor = 1e-17
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     methods = []
     for p in result["points"]:
         if p["method"] not in methods:
             methods.append(p["method"])
-    markers = dict(zip(methods, "os^vD<>ph*"))
-    for ax, key, label in ((axes[0], "max_err_rel_peak", "max |P − P_oracle| / peak"),
+    markers = dict(zip(methods, "os^vD<>ph"))
+    colors = dict(zip(methods, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    for ax, key, label in ((axes[0], "max_err_rel_peak", "max |P − P_oracle| / peak (worst λ)"),
                            (axes[1], "flux_err", "|Σ P − Σ P_oracle| (fraction of the source flux)")):
         for m in methods:
             pts = [p for p in result["points"] if p["method"] == m]
-            x = [p["seconds"] for p in pts]
-            y = [max(p[key], floor) for p in pts]
-            ax.plot(x, y, marker=markers[m], ls="-" if m.startswith("airy-") and "reference" not in m else "none",
-                    label=m)
-            for p, xi, yi in zip(pts, x, y):
-                ax.annotate(p["setting"], (xi, yi), textcoords="offset points", xytext=(4, 3), fontsize=7)
+            line = [p for p in pts if p["setting"].startswith("o=")] if m.startswith("airy-") else []
+            other = [p for p in pts if p not in line]
+            if line and "reference" not in m:
+                ax.plot([p["seconds"] for p in line], [max(p[key], floor) for p in line], marker=markers[m],
+                        color=colors[m], label=m)
+            else:
+                other = pts
+            for p in other:
+                auto = p["setting"].startswith("auto")
+                ax.plot(p["seconds"], max(p[key], floor), ls="none", color=colors[m],
+                        marker="*" if auto else markers[m], ms=13 if auto else 7,
+                        label=f"{m} (default)" if auto else (m if not line or "reference" in m else None))
+            for p in pts:
+                below = p["setting"].startswith("auto")
+                ax.annotate(p["setting"], (p["seconds"], max(p[key], floor)), textcoords="offset points",
+                            xytext=(5, -11 if below else 3), fontsize=7)
+        ax.axvline(2.7, color="grey", lw=0.8, ls="--")
+        ax.text(2.7, 0.97, " slicersim 1.0\n get_cube(Airy)\n 2.7 s", transform=ax.get_xaxis_transform(),
+                fontsize=7, color="grey", va="top")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("wall time per cube [s] (warm)")
+        ax.set_xlabel("wall time per cube [s] (warm, best of runs)")
         ax.set_ylabel(label)
         ax.grid(True, which="major", alpha=0.3)
     axes[0].axhline(1e-3, color="grey", lw=0.8, ls=":")
-    c = result["cube"]
-    fig.suptitle(f"Airy PSF cube {c['nlbda']}×{c['shape'][0]}×{c['shape'][1]} (Lazuli narrow field, "
-                 f"jitter + blur) vs o={result['oracle']['oversampling']} oracle; "
-                 f"{result['machine']['cores']} cores, {result['machine']['opencl_device'] or 'NumPy'}",
-                 fontsize=10)
-    axes[0].legend(fontsize=8)
+    c, mach = result["cube"], result["machine"]
+    fig.suptitle(f"Airy PSF cube {c['nlbda']}×{c['shape'][0]}×{c['shape'][1]} (Lazuli narrow field, jitter + blur) "
+                 f"vs o={result['oracle']['oversampling']} oracle; {mach['cores']} cores, "
+                 f"{mach['opencl_device'] or 'NumPy only'}; load average {mach['loadavg_before'][0]:.1f}",
+                 fontsize=9)
+    axes[0].legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
+def replot(json_path):
+    """Redraw the PNG next to an existing JSON."""
+    json_path = Path(json_path)
+    plot(json.loads(json_path.read_text()), json_path.with_suffix(".png"))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=3, help="timed runs per point (best kept)")
+    ap.add_argument("--repeat", type=int, default=5, help="timed runs per point (best kept)")
     ap.add_argument("--oracle", type=int, default=31, help="oversampling of the oracle")
     ap.add_argument("--no-numpy-above", type=int, default=15, help="skip NumPy points above this o")
     ap.add_argument("--out", default=str(HERE / "results"))
-    run(ap.parse_args(argv))
+    ap.add_argument("--replot", metavar="JSON", help="only redraw the PNG of an existing JSON")
+    args = ap.parse_args(argv)
+    if args.replot:
+        replot(args.replot)
+    else:
+        run(args)
 
 
 if __name__ == "__main__":

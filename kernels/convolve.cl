@@ -15,13 +15,18 @@
  *                          (GPUs).  TX, TY, KY, KX are build options.
  *
  * FFT helpers (transforms in fft.cl), complex planes (B, Ny, Nx):
- *   pack_planes:    Z_b = image_b + i kernel_b, both zero-padded at the origin.
+ *   pack_planes:    Z_b = image_b / max|image_b| + i kernel_b / max|kernel_b|, both
+ *                   zero-padded at the origin.  The scaling matters: the two halves
+ *                   share one transform, so rounding errors are relative to the
+ *                   larger of the two (a 1e-20 erg/s/cm2/A plane next to a kernel
+ *                   of order 0.1 would be lost); crop_pairs undoes it.
  *   multiply_pairs: from Z_b(m) and conj Z_b(-m) the spectra of image and
  *                   kernel, A = (Z + Z*)/2, K = (Z - Z*)/(2i), so the product
  *                   is A K = -i (Z^2 - Z*^2) / 4; planes 2q and 2q+1 are packed
  *                   as W_q = P_2q + i P_2q+1 (both inverse transforms are real).
- *   crop_pairs:     out_2q = Re w_q / (Ny Nx), out_2q+1 = Im w_q / (Ny Nx) at
- *                   offset (ky/2, kx/2) of the full linear convolution.
+ *   crop_pairs:     out_2q = Re w_q scale_2q, out_2q+1 = Im w_q scale_2q+1 at
+ *                   offset (ky/2, kx/2) of the full linear convolution, with
+ *                   scale_b = max|image_b| max|kernel_b| / (Ny Nx).
  */
 
 #if defined(cl_khr_fp64)
@@ -111,6 +116,7 @@ void convolve_direct_tiled(
 __kernel void pack_planes(
     __global const double *restrict img,  /* (B, ny, nx); planes b >= nb are zero */
     __global const double *restrict kern, /* (B or 1, ky, kx)                      */
+    __global const double *restrict inv,  /* (nb, 2): 1/max|img_b|, 1/max|kern_b|  */
     const int nb, const int ny, const int nx,
     const int ky, const int kx, const int kstride,
     const int Ny, const int Nx,
@@ -120,9 +126,9 @@ __kernel void pack_planes(
     double re = 0.0, im = 0.0;
     if (b < nb) {
         if (y < ny && x < nx)
-            re = img[((size_t)b * ny + y) * nx + x];
+            re = img[((size_t)b * ny + y) * nx + x] * inv[2 * b];
         if (y < ky && x < kx)
-            im = kern[(size_t)b * kstride + y * kx + x];
+            im = kern[(size_t)b * kstride + y * kx + x] * inv[2 * b + 1];
     }
     Z[((size_t)b * Ny + y) * Nx + x] = (double2)(re, im);
 }
@@ -152,12 +158,12 @@ __kernel void crop_pairs(
     const int nb, const int ny, const int nx,
     const int oy, const int ox,           /* ky/2, kx/2                     */
     const int Ny, const int Nx,
-    const double scale,                   /* 1 / (Ny Nx)                    */
+    __global const double *restrict scale,/* (nb,) max|img| max|kern| / (Ny Nx) */
     __global double *restrict out)        /* (nb, ny, nx)                   */
 {
     const int x = get_global_id(0), y = get_global_id(1), q = get_global_id(2);
     const double2 w = W[((size_t)q * Ny + y + oy) * Nx + x + ox];
-    out[((size_t)(2 * q) * ny + y) * nx + x] = w.x * scale;
+    out[((size_t)(2 * q) * ny + y) * nx + x] = w.x * scale[2 * q];
     if (2 * q + 1 < nb)
-        out[((size_t)(2 * q + 1) * ny + y) * nx + x] = w.y * scale;
+        out[((size_t)(2 * q + 1) * ny + y) * nx + x] = w.y * scale[2 * q + 1];
 }

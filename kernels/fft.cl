@@ -14,13 +14,14 @@
  * tw[m] = (cos 2 pi m / N, sin 2 pi m / N), m < N, computed on the host in
  * float64; the pass uses (tw.x, s tw.y).  twstep = N / (p R).
  *
- * Two layouts of a batch of 2-D arrays (B, Ny, Nx), element (b, y, x) at
- * (b Ny + y) Nx + x:
- *   fft_rows_R: transforms along x.  NDRange (T, B Ny): i, row.
- *   fft_cols_R: transforms along y.  NDRange (Nx, T, B): column, i, plane;
- *               neighbouring work items touch neighbouring columns, so
- *               loads and stores are contiguous (vectorise on CPUs,
- *               coalesce on GPUs) and the twiddles are uniform.
+ * Transforms run along the middle axis of a batch of arrays (B, N, M), element
+ * (b, n, c) at (b N + n) M + c: fft_pass_R has NDRange (M, N / R, B), so
+ * neighbouring work items touch neighbouring columns c (contiguous loads and
+ * stores: vectorises on CPUs, coalesces on GPUs) with uniform twiddles.  The
+ * other axis of a 2-D transform is reached by transposing (B, N, M) -> (B, M, N)
+ * with `transpose` (CPUs) or `transpose_tiled` (16 x 16 tiles in local memory,
+ * GPUs): on PoCL a transpose plus contiguous passes is faster than passes along
+ * the contiguous axis.
  */
 
 #if defined(cl_khr_fp64)
@@ -79,13 +80,24 @@
         u[3] = a2 - b2;                                                     \
     }
 
-/* body of one butterfly: base = first element of the transform, es = stride */
-#define PASS_BODY(R)                                                        \
+#define DEFINE_PASS(R)                                                      \
+__kernel void fft_pass_##R(__global const double2 *restrict src,            \
+                           __global double2 *restrict dst,                  \
+                           __global const double2 *restrict tw,             \
+                           const int N, const int p, const int twstep,      \
+                           const double s, const int M)                     \
+{                                                                           \
+    const int i = get_global_id(1);                                         \
+    const size_t base = (size_t)get_global_id(2) * (size_t)N * (size_t)M    \
+                        + (size_t)get_global_id(0);                         \
+    const size_t es = (size_t)M;                                            \
     const int T = N / R;                                                    \
     const int k = i % p;                                                    \
     double2 u[R];                                                           \
+    _Pragma("unroll")                                                       \
     for (int r = 0; r < R; ++r)                                             \
         u[r] = src[base + (size_t)(i + r * T) * es];                        \
+    _Pragma("unroll")                                                       \
     for (int r = 1; r < R; ++r) {                                           \
         double2 w = tw[r * k * twstep];                                     \
         w.y *= s;                                                           \
@@ -93,35 +105,37 @@
     }                                                                       \
     BUTTERFLY_##R(u, s)                                                     \
     const int j = (i - k) * R + k;                                          \
+    _Pragma("unroll")                                                       \
     for (int r = 0; r < R; ++r)                                             \
-        dst[base + (size_t)(j + r * p) * es] = u[r];
-
-#define DEFINE_PASSES(R)                                                    \
-__kernel void fft_rows_##R(__global const double2 *restrict src,            \
-                           __global double2 *restrict dst,                  \
-                           __global const double2 *restrict tw,             \
-                           const int N, const int p, const int twstep,      \
-                           const double s)                                  \
-{                                                                           \
-    const int i = get_global_id(0);                                         \
-    const size_t base = (size_t)get_global_id(1) * (size_t)N;               \
-    const size_t es = 1;                                                    \
-    PASS_BODY(R)                                                            \
-}                                                                           \
-__kernel void fft_cols_##R(__global const double2 *restrict src,            \
-                           __global double2 *restrict dst,                  \
-                           __global const double2 *restrict tw,             \
-                           const int N, const int p, const int twstep,      \
-                           const double s, const int Nx)                    \
-{                                                                           \
-    const int i = get_global_id(1);                                         \
-    const size_t base = (size_t)get_global_id(2) * (size_t)N * (size_t)Nx   \
-                        + (size_t)get_global_id(0);                         \
-    const size_t es = (size_t)Nx;                                           \
-    PASS_BODY(R)                                                            \
+        dst[base + (size_t)(j + r * p) * es] = u[r];                        \
 }
 
-DEFINE_PASSES(2)
-DEFINE_PASSES(3)
-DEFINE_PASSES(4)
-DEFINE_PASSES(5)
+DEFINE_PASS(2)
+DEFINE_PASS(3)
+DEFINE_PASS(4)
+DEFINE_PASS(5)
+
+/* (B, N, M) -> (B, M, N); NDRange (M, N, B) */
+__kernel void transpose(__global const double2 *restrict src, __global double2 *restrict dst,
+                        const int N, const int M)
+{
+    const int c = get_global_id(0), n = get_global_id(1), b = get_global_id(2);
+    dst[((size_t)b * M + c) * N + n] = src[((size_t)b * N + n) * M + c];
+}
+
+/* same, 16 x 16 tiles through local memory; NDRange (ceil16(M), ceil16(N), B), local (16, 16, 1) */
+#define TT 16
+__kernel __attribute__((reqd_work_group_size(TT, TT, 1)))
+void transpose_tiled(__global const double2 *restrict src, __global double2 *restrict dst,
+                     const int N, const int M)
+{
+    __local double2 tile[TT][TT + 1];
+    const int lx = get_local_id(0), ly = get_local_id(1), b = get_global_id(2);
+    const int c = get_group_id(0) * TT + lx, n = get_group_id(1) * TT + ly;
+    if (c < M && n < N)
+        tile[ly][lx] = src[((size_t)b * N + n) * M + c];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const int n2 = get_group_id(1) * TT + lx, c2 = get_group_id(0) * TT + ly;
+    if (n2 < N && c2 < M)
+        dst[((size_t)b * M + c2) * N + n2] = tile[lx][ly];
+}

@@ -25,7 +25,7 @@
  *
  * Compile options: -DVW=1|2|4|8|16 (x vector width of the deposit),
  * -DWTYPE=float|double (weight storage), -DTMAX, -DTINV (table range and
- * density, must match the host table), -DNEMAX (>= largest window + 1).
+ * density, must match the host table).
  */
 
 #if defined(cl_khr_fp64)
@@ -67,9 +67,6 @@ typedef CAT(double, VW) realv;
 #ifndef TINV
 #define TINV 128.0
 #endif
-#ifndef NEMAX
-#define NEMAX 32            /* >= max window + 1 (private edge buffer) */
-#endif
 
 /* Table evaluation for |t| < TMAX: col 0 -> Ht(t), col 1 -> Phi(t). */
 inline double herm1(double t, __global const double *tab, int col)
@@ -82,25 +79,17 @@ inline double herm1(double t, __global const double *tab, int col)
     return ((c[3] * f + c[2]) * f + c[1]) * f + c[0];
 }
 
-/* D(c) at the pixel edges c = c0 + j, j = 0 .. n, into d[0 .. n]:
- * D(c) = G(c - a) - G(c - b) for a box, Phi((c - a)/s) for a point. */
-inline void edge_values(double a, double b, double s, int c0, int n, bool point,
-                        double *d, __global const double *tab)
+/* D(c) = G(c - a) - G(c - b) for a box, Phi((c - a)/s) for a point. */
+inline double edge_value(double c, double a, double b, double s, bool point, __global const double *tab)
 {
-    for (int j = 0; j <= n; ++j) {
-        double c = (double)(c0 + j);
-        double ua = c - a, ub = c - b, val;
-        if (s <= 0.0) {
-            val = point ? (ua >= 0.0 ? 1.0 : 0.0) : fmax(ua, 0.0) - fmax(ub, 0.0);
-        } else if (point) {
-            val = fabs(ua) >= TMAX * s ? (ua >= 0.0 ? 1.0 : 0.0) : herm1(ua / s, tab, 1);
-        } else {
-            double ga = fabs(ua) >= TMAX * s ? fmax(ua, 0.0) : s * herm1(ua / s, tab, 0);
-            double gb = fabs(ub) >= TMAX * s ? fmax(ub, 0.0) : s * herm1(ub / s, tab, 0);
-            val = ga - gb;
-        }
-        d[j] = val;
-    }
+    double ua = c - a, ub = c - b;
+    if (s <= 0.0)
+        return point ? (ua >= 0.0 ? 1.0 : 0.0) : fmax(ua, 0.0) - fmax(ub, 0.0);
+    if (point)
+        return fabs(ua) >= TMAX * s ? (ua >= 0.0 ? 1.0 : 0.0) : herm1(ua / s, tab, 1);
+    double ga = fabs(ua) >= TMAX * s ? fmax(ua, 0.0) : s * herm1(ua / s, tab, 0);
+    double gb = fabs(ub) >= TMAX * s ? fmax(ub, 0.0) : s * herm1(ub / s, tab, 0);
+    return ga - gb;
 }
 
 /* Fill w[0 .. n) with the blurred-box weights of pixels c0 .. c0 + n - 1
@@ -109,16 +98,17 @@ inline void edge_values(double a, double b, double s, int c0, int n, bool point,
 inline double box_weights(double a, double b, double s, int c0, int n, int npad,
                           __global WTYPE *w, __global const double *tab)
 {
-    double d[NEMAX];
     double width = b - a;
     bool point = !(width > 1e-9);
-    edge_values(a, b, s, c0, n, point, d, tab);
+    double d0 = edge_value((double)c0, a, b, s, point, tab);
     double sum = 0.0;
     for (int j = 0; j < n; ++j) {
-        double diff = d[j + 1] - d[j];
+        double d1 = edge_value((double)(c0 + j + 1), a, b, s, point, tab);
+        double diff = d1 - d0;
         WTYPE v = (WTYPE)fmax(point ? diff : diff / width, 0.0);
         w[j] = v;
         sum += (double)v;
+        d0 = d1;
     }
     for (int j = n; j < npad; ++j)
         w[j] = (WTYPE)0;

@@ -7,8 +7,10 @@
  *
  * gaussian_cell_fractions, outer_product
  *                   Gaussian integrated exactly over each cell (erf product).
- * airy_subsamples   Airy intensity of an annular pupil at the sub-samples.
- * blur_bin_rows     banded contraction along y: Gaussian jitter + o-to-1 binning.
+ * airy_rows         Airy intensity of an annular pupil at the sub-samples fused
+ *                   with the banded contraction along y (jitter + binning);
+ *                   airy_subsamples + blur_bin_rows do the same in two passes
+ *                   when the jitter margin is too wide for registers.
  * blur_bin_cols     banded contraction along x: jitter and blur + binning.
  * bessel_j1_values  J1(x) with the approximation below (for tests).
  *
@@ -19,11 +21,12 @@
  *            [P(v) cos(v - 3pi/4) - Q(v) sin(v - 3pi/4)] with 10 terms each
  *            of P and Q (truncation ~1.6e-12 at v = 12, less beyond);
  *            sin and cos by sin_cos() below.
- * Measured max |J1 - scipy.special.j1| ~2e-12 on [0, 500] (tests/test_psf.py).
+ * Measured max |J1 - scipy.special.j1| 1.6e-12 (at v = 12) on [0, 1e6] (tests/test_psf.py).
  *
- * Vector width VW (1, 2, 4, 8, 16; -DVW=...): in airy_subsamples and
- * blur_bin_rows each work item handles VW consecutive x sub-samples with
- * explicit vector types (PoCL then vectorises on CPUs; GPUs use VW = 1).
+ * Vector width VW (1, 2, 4, 8, 16; -DVW=...): in the Airy and contraction
+ * kernels each work item handles VW consecutive x sub-samples (or output
+ * cells) with explicit vector types (PoCL then vectorises on CPUs; GPUs use
+ * VW = 1).  NA (-DNA=2 m_y + 1) sizes airy_rows' register accumulators.
  */
 
 #if defined(cl_khr_fp64)

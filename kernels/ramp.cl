@@ -1,159 +1,473 @@
 /*
- * ramp.cl: per-frame up-the-ramp sampling of MACC(n, m, d) H4RG ramps.
+ * ramp.cl: up-the-ramp sampling of MACC(n, m, d) H4RG ramps.
  *
- * One work item = one pixel of one ramp; it walks the n(m+d)-d frames of the
- * ramp.  Random numbers come from Philox4x32-10 keyed by
- *   key = seed, counter = (pixel, frame or group, 4*ramp + purpose, attempt)
+ * Random numbers come from Philox4x32-10 keyed by
+ *   key = seed, counter = (pixel | (frame, group or pair) << 32, 4*ramp + purpose, draw)
  * (see slicersim/rng.py), so the output is the same for any work-group size,
- * chunking or device count.  The NumPy twin is slicersim/ramps.py
- * (_simulate_block_numpy); both use the same operations in the same order and
- * agree bit for bit.
+ * vector width, pixel order, chunking or device count.  The NumPy twin is
+ * slicersim/ramps.py (_simulate_block_numpy); both use the same operations in
+ * the same order and agree bit for bit.
  *
- * Paths (chosen from the expected charge only, never from a draw):
- *   dense : Poisson increment of mean mu = rate*t_f + glow in every frame
- *           (inversion below 10, PTRS above; optional Gaussian approximation
- *           above gauss_min_mean, rounded to an integer and clipped at 0);
- *   sparse: mu*(m+d) < sparse_max_group: total count N ~ Poisson(mu*F), then
- *           the N events are spread over the F frames with sequential
- *           binomials Bin(R, 1/(F-k)) (exact: uniform arrival frames), which
- *           costs nothing in frames where no event is left.
+ * Build with -I<kernels dir> -DRNG_VW=N.  One work item = N pixels in explicit
+ * vector lanes (PoCL does not vectorise the data-dependent loops of a scalar
+ * kernel; GPUs use N = 1), taken from a list of pixel indices (padded to a
+ * multiple of N by repeating the last one); data-dependent loops run while any
+ * lane needs them, with per-lane masks.  Two kernels, one per path:
+ *   macc_ramp_sparse  mu*(m+d) < sparse_max_group: a Poisson process seen group
+ *           by group.  The window of group g (its m reads then its d dropped
+ *           frames; the last group has m frames) collects K_g ~ Poisson(mu w)
+ *           events (CDF inversion, one uniform), each at a uniform frame of the
+ *           window; an event at position j adds 1 e- to the m - j reads j..m-1.
+ *           Exact, and its cost does not grow with m+d: a dark pixel costs
+ *           about 1.5 Philox blocks and one Gaussian per group.
+ *   macc_ramp_dense   a Poisson increment in every frame: inversion below 10 e-
+ *           (the CDF of the pixel is tabulated once, same values as the
+ *           recurrence), PTRS above; optional Gaussian approximation above
+ *           gauss_min_mean, rounded and clipped at 0.
  * Charge is clipped at the full well; the m reads of a group are averaged and
- * carry read noise of variance ron^2/m (one Gaussian per group, exactly the
- * distribution of the mean of m independent reads); the reset level adds kTC
- * noise once per ramp; output = rint(bias + gain*(kTC + mean)) clipped to
- * [0, 65535] as uint16; GROUPDQ bit 2 (SATURATED) from the first group whose
- * charge reached the full well or whose ADU hit the saturation level.
+ * carry read noise of variance ron^2/m (one Gaussian per group: both Box-Muller
+ * outputs of a block serve groups 2k and 2k+1); the reset level adds kTC noise
+ * once per ramp; output = rint(bias + gain*(kTC + mean)) clipped to [0, 65535]
+ * as uint16; GROUPDQ bit 2 (SATURATED) from the first group whose charge
+ * reached the full well or whose ADU hit the saturation level.
  */
 #include "philox.cl"
-#include "noise.cl"
 
 #define P_POISSON 0u
 #define P_READ 1u
 #define P_KTC 2u
 #define P_SPARSE 3u
+#define RAMP_PTRS_MIN_MEAN 10.0
+#define RAMP_PTRS_MAX_ATTEMPTS 1000u
+#define RAMP_INV_TABLE 32           /* tabulated CDF terms of the dense inversion */
+#define RAMP_SPARSE_TABLE 3         /* tabulated CDF terms of a full sparse window */
 
-/* Poisson increment of one frame.  Inversion (mu < 10) uses one uniform; frames
- * 2k and 2k+1 share one Philox block (words x,y and z,w).  PTRS (mu >= 10) and
- * the Gaussian approximation (mu >= gauss_min_mean) key their own blocks. */
-inline double frame_increment(const double mu, const double exp_neg_mu, const uint2 key, const uint pix,
-                              const int frame, const uint stream, const double gauss_min_mean)
+#define RAMP_CONVERT_ULONG RNG_PASTE(convert_ulong, RNG_SUFFIX)
+#define RAMP_CONVERT_INT RNG_PASTE(convert_int, RNG_SUFFIX)
+/* masks: comparisons and ! && || give 1/0 for scalars, -1/0 per lane for vectors */
+#if RNG_VW == 1
+typedef int ramp_mask;
+#define RAMP_ANY(c) (c)
+#define RAMP_FLAG(sat) ((uchar)((sat) ? 2 : 0))
+#define RAMP_U16(x) ((ushort)(x))
+#define RAMP_VSTORE(x, p) (*(p) = (x))
+#else
+typedef rng_long ramp_mask;
+#define RAMP_ANY(c) ramp_any(c)
+#define RAMP_FLAG(sat) RNG_PASTE(convert_uchar, RNG_SUFFIX)((sat) & 2L)
+#define RAMP_U16(x) RNG_PASTE(convert_ushort, RNG_SUFFIX)(x)
+#define RAMP_VSTORE(x, p) RNG_PASTE(vstore, RNG_SUFFIX)((x), 0, (p))
+#endif
+
+#if RNG_VW > 1
+/* any lane set: an OR tree (PoCL's any() extracts and branches lane by lane) */
+inline int ramp_any(const rng_long c)
 {
-    if (mu <= 0.0)
-        return 0.0;
-    if (mu >= gauss_min_mean) {
-        const uint4 w = philox_block(key, ((ulong)(frame >> 1) << 32) | (ulong)pix, stream, 1u);
-        const double2 z = box_muller(w);
-        const double k = rint(mu + sqrt(mu) * ((frame & 1) ? z.y : z.x));
-        return k > 0.0 ? k : 0.0;
-    }
-    if (mu >= PTRS_MIN_MEAN)
-        return poisson_ptrs(mu, key, ((ulong)frame << 32) | (ulong)pix, stream + 0x80000000u);
-    const uint4 w = philox_block(key, ((ulong)(frame >> 1) << 32) | (ulong)pix, stream, 0u);
-    const double u = (frame & 1) ? philox_u01(w.z, w.w) : philox_u01(w.x, w.y);
-    double p = exp_neg_mu;
-    double cdf = p;
-    double k = 0.0;
-    while (u > cdf && p > 0.0) {
-        k = k + 1.0;
-        p = p * mu / k;
-        cdf = cdf + p;
-    }
-    return k;
+#if RNG_VW == 16
+    const long8 c8 = c.lo | c.hi;
+#elif RNG_VW == 8
+    const long8 c8 = c;
+#endif
+#if RNG_VW >= 8
+    const long4 c4 = c8.lo | c8.hi;
+#elif RNG_VW == 4
+    const long4 c4 = c;
+#endif
+#if RNG_VW >= 4
+    const long2 c2 = c4.lo | c4.hi;
+#else
+    const long2 c2 = c;
+#endif
+    return (c2.x | c2.y) < 0;
+}
+#endif
+
+__constant double RAMP_LOG_FACTORIAL[10] = {
+    0x0.0p+0, 0x0.0p+0, 0x1.62e42fefa39ecp-1, 0x1.cab0bfa2a2004p+0, 0x1.96ca77c922cf7p+1,
+    0x1.326643c4479cap+2, 0x1.a51273acf01cbp+2, 0x1.10ce1f32dcc30p+3, 0x1.5358e82fcb70cp+3,
+    0x1.99a8921a7f7cep+3};
+
+/* Philox block of counter (index, stream, draw), any width. */
+inline void ramp_block(const rng_ulong index, const uint stream, const uint draw, const uint k0, const uint k1,
+                       rng_uint *a, rng_uint *b, rng_uint *c, rng_uint *d)
+{
+    philox_counter(index, stream, draw, a, b, c, d);
+    philox4x32_10(a, b, c, d, k0, k1);
 }
 
-/* Binomial(R, p) by inversion of the CDF, one uniform (R small: sparse path). */
-inline double binomial_inversion(const double R, const double p, const double u)
+/* exp(x), |x| < 700: the operations of rng_exp (noise.cl, rng.py) at any width */
+inline rng_double ramp_exp(const rng_double x)
 {
-    if (p >= 1.0)
-        return R;
-    const double q = 1.0 - p;
-    double prob = rng_exp(R * rng_log(q));
-    double cdf = prob;
-    double x = 0.0;
-    const double ratio = p / q;
-    while (u > cdf && x < R) {
-        prob = prob * ((R - x) / (x + 1.0)) * ratio;
-        x = x + 1.0;
-        cdf = cdf + prob;
-    }
-    return x;
+    const rng_double nn = floor(x * 0x1.71547652b82fep+0 + 0.5);
+    const rng_double r = (x - nn * RNG_LN2_HI) - nn * RNG_LN2_LO;
+    rng_double p = 0x1.6124613a86d09p-33;
+    p = p * r + 0x1.1eed8eff8d898p-29;
+    p = p * r + 0x1.ae64567f544e4p-26;
+    p = p * r + 0x1.27e4fb7789f5cp-22;
+    p = p * r + 0x1.71de3a556c734p-19;
+    p = p * r + 0x1.a01a01a01a01ap-16;
+    p = p * r + 0x1.a01a01a01a01ap-13;
+    p = p * r + 0x1.6c16c16c16c17p-10;
+    p = p * r + 0x1.1111111111111p-7;
+    p = p * r + 0x1.5555555555555p-5;
+    p = p * r + 0x1.5555555555555p-3;
+    p = p * r + 0x1.0000000000000p-1;
+    return ldexp(1.0 + r * (1.0 + r * p), RAMP_CONVERT_INT(nn));
 }
 
-__kernel void macc_ramp(__global const double *restrict mu_frame,   /* e-/frame per pixel */
-                        __global const uchar *restrict dead,         /* 1 = no charge collected */
-                        __global ushort *restrict sci,               /* (ngroups, npix) */
-                        __global uchar *restrict gdq,                /* (ngroups, npix) */
-                        const uint npix, const uint pixel0, const uint ramp,
-                        const uint key0, const uint key1, const int n, const int m, const int d,
-                        const double ron, const double gain, const double bias, const double ktc,
-                        const double full_well, const double saturation,
-                        const double sparse_max_group, const double gauss_min_mean)
+/* ln k! for integer-valued k >= 0: table below 10, Stirling series above (as noise.cl) */
+inline rng_double ramp_log_factorial(const rng_double k)
 {
-    const uint i = get_global_id(0);
-    if (i >= npix)
-        return;
-    const uint2 key = (uint2)(key0, key1);
-    const uint pix = pixel0 + i;
-    const double mu = dead[i] ? 0.0 : mu_frame[i];
-    const int nframes = n * (m + d) - d;
-    const uint sbase = 4u * ramp;
-    const double read_sigma = ron / sqrt((double)m);
+    const rng_double x = k + 1.0;
+    const rng_double r = 1.0 / x;
+    const rng_double z = r * r;
+    rng_double p = 0x1.a41a41a41a41ap-8;
+    p = p * z - 0x1.f6ab0d9993c7dp-10;
+    p = p * z + 0x1.b951e2b18ff23p-11;
+    p = p * z - 0x1.3813813813814p-11;
+    p = p * z + 0x1.a01a01a01a01ap-11;
+    p = p * z - 0x1.6c16c16c16c17p-9;
+    p = p * z + 0x1.5555555555555p-4;
+    rng_double out = ((x - 0.5) * rng_log(x) - x) + (0x1.d67f1c864beb4p-1 + r * p);
+    for (int t = 0; t < 10; ++t)
+        out = RNG_SELECT(out, (rng_double)RAMP_LOG_FACTORIAL[t], k == (double)t);
+    return out;
+}
 
-    double reset = 0.0;
-    if (ktc > 0.0)
-        reset = ktc * box_muller(philox_block(key, (ulong)pix, sbase + P_KTC, 0u)).x;
+/* 52-bit integer of a uniform (as philox_u01) mapped to a frame position in [0, w):
+ * (x * w) >> 52, exact integer arithmetic (w <= 4096), uniform to a relative 2^-40. */
+inline rng_double frame_position(const rng_uint hi, const rng_uint lo, const int w)
+{
+    const rng_ulong x = (RAMP_CONVERT_ULONG(hi) << 20) | RAMP_CONVERT_ULONG(lo >> 12);
+    return rng_convert_double(rng_as_long((x * (ulong)w) >> 52));   /* < 2^12: signed conversion is exact */
+}
 
-    const int sparse = mu * (double)(m + d) < sparse_max_group;
-    const double exp_neg_mu = rng_exp(-mu);
-    double remaining = 0.0;
-    if (sparse && mu > 0.0) {
-        const double mt = mu * (double)nframes;
-        remaining = mt < PTRS_MIN_MEAN ? poisson_inversion(mt, key, (ulong)pix, sbase + P_SPARSE)
-                                       : poisson_ptrs(mt, key, (ulong)pix, sbase + P_SPARSE);
-    }
+/* Position of event k >= 1 of group g: block (g << 32 | pixel, P_SPARSE, 1 + (k-1)/2),
+ * words x,y for odd k, z,w for even k (event 0 uses words z,w of draw 0). */
+inline rng_double event_position(const int g, const int k, const int w, const rng_ulong pixv, const uint stream,
+                                 const uint k0, const uint k1)
+{
+    rng_uint a, b, c, d;
+    ramp_block(((ulong)g << 32) | pixv, stream, 1u + (uint)((k - 1) >> 1), k0, k1, &a, &b, &c, &d);
+    return (k & 1) ? frame_position(a, b, w) : frame_position(c, d, w);
+}
 
-    double charge = 0.0;
-    int saturated = 0;
-    int frame = 0;
-    double2 z2 = (double2)(0.0, 0.0);
-    for (int g = 0; g < n; ++g) {
-        double sum = 0.0;
-        const int last = (g == n - 1) ? m : m + d;
-        if (sparse && remaining == 0.0) {        /* nothing left to collect: constant charge */
-            sum = charge * (double)m;
-            frame += last;
-        } else {
-            for (int j = 0; j < last; ++j, ++frame) {
-                double inc = 0.0;
-                if (sparse) {
-                    if (remaining > 0.0) {
-                        const uint4 w = philox_block(key, ((ulong)(frame + 1) << 32) | (ulong)pix,
-                                                     sbase + P_SPARSE, 1u);
-                        inc = binomial_inversion(remaining, 1.0 / (double)(nframes - frame),
-                                                 philox_u01(w.x, w.y));
-                        remaining = remaining - inc;
-                    }
-                } else {
-                    inc = frame_increment(mu, exp_neg_mu, key, pix, frame, sbase + P_POISSON, gauss_min_mean);
-                }
-                charge = charge + inc;
-                if (charge >= full_well) {
-                    charge = full_well;
-                    saturated = 1;
-                }
-                if (j < m)
-                    sum = sum + charge;
-            }
+/* Sum over reads j of min(full_well, before + #{events at positions <= j}) for the lanes whose
+ * window crosses the full well (rare; O(m K) Philox blocks). */
+inline rng_double clipped_read_sum(const rng_double before, const rng_double K, const rng_double pos0,
+                                   const int g, const int w, const int m, const double full_well,
+                                   const rng_ulong pixv, const uint stream, const uint k0, const uint k1)
+{
+    rng_double total = 0.0;
+    for (int j = 0; j < m; ++j) {
+        rng_double cj = RNG_SELECT((rng_double)0.0, (rng_double)1.0, (K > 0.0) && (pos0 <= (double)j));
+        for (int k = 1; RAMP_ANY((double)k < K); ++k) {
+            const rng_double pos = event_position(g, k, w, pixv, stream, k0, k1);
+            cj = RNG_SELECT(cj, cj + 1.0, ((double)k < K) && (pos <= (double)j));
         }
-        if ((g & 1) == 0)
-            z2 = box_muller(philox_block(key, ((ulong)(g >> 1) << 32) | (ulong)pix, sbase + P_READ, 0u));
-        const double z = (g & 1) ? z2.y : z2.x;
-        const double mean = sum / (double)m + read_sigma * z;
-        double adu = rint(bias + gain * (reset + mean));
-        adu = adu < 0.0 ? 0.0 : (adu > 65535.0 ? 65535.0 : adu);
-        if (adu >= saturation)
-            saturated = 1;
-        sci[(size_t)g * npix + i] = (ushort)adu;
-        gdq[(size_t)g * npix + i] = saturated ? (uchar)2 : (uchar)0;
+        const rng_double charge = before + cj;
+        total = total + RNG_SELECT(charge, (rng_double)full_well, charge >= full_well);
+    }
+    return total;
+}
+
+/* Read noise, rounding, clipping to uint16, flags; stores group g of the lanes. */
+inline void store_group(const int g, const rng_double sum, const rng_double z, const rng_double reset,
+                        ramp_mask *sat, const int m, const double read_sigma, const double gain,
+                        const double bias, const double saturation, __global ushort *restrict sci,
+                        __global uchar *restrict gdq, const uint *idx, const int contiguous, const size_t npix)
+{
+    const rng_double mean = sum / (double)m + read_sigma * z;
+    rng_double adu = rint(bias + gain * (reset + mean));
+    adu = RNG_SELECT(adu, (rng_double)0.0, adu < 0.0);
+    adu = RNG_SELECT(adu, (rng_double)65535.0, adu > 65535.0);
+    *sat = *sat | (adu >= saturation);
+    __global ushort *s = sci + (size_t)g * npix;
+    __global uchar *q = gdq + (size_t)g * npix;
+    if (contiguous) {
+        RAMP_VSTORE(RAMP_U16(adu), s + idx[0]);
+        RAMP_VSTORE(RAMP_FLAG(*sat), q + idx[0]);
+    } else {
+        ushort su[RNG_VW];
+        uchar sq[RNG_VW];
+        RAMP_VSTORE(RAMP_U16(adu), su);
+        RAMP_VSTORE(RAMP_FLAG(*sat), sq);
+        for (int l = 0; l < RNG_VW; ++l) {
+            s[idx[l]] = su[l];
+            q[idx[l]] = sq[l];
+        }
+    }
+}
+
+/* lanes of work item t: mu (0 for dead pixels), pixel numbers, whether they are consecutive */
+inline int gather_lanes(__global const double *restrict mu_frame, __global const uint *restrict list,
+                        const size_t t, const uint pixel0, uint *idx, rng_double *mu, rng_ulong *pixv)
+{
+    double m[RNG_VW];
+    int contiguous = 1;
+    for (int l = 0; l < RNG_VW; ++l) {
+        idx[l] = list[t * RNG_VW + l];
+        contiguous = contiguous && (idx[l] == idx[0] + (uint)l);
+    }
+    if (contiguous) {
+#if RNG_VW == 1
+        *mu = mu_frame[idx[0]];
+#else
+        *mu = RNG_PASTE(vload, RNG_SUFFIX)(0, mu_frame + idx[0]);
+#endif
+    } else {
+        for (int l = 0; l < RNG_VW; ++l)
+            m[l] = mu_frame[idx[l]];
+#if RNG_VW == 1
+        *mu = m[0];
+#else
+        *mu = RNG_PASTE(vload, RNG_SUFFIX)(0, m);
+#endif
+    }
+    *pixv = (rng_ulong)((ulong)pixel0 + idx[0]) + RNG_LANES;
+    if (!contiguous) {
+        ulong p[RNG_VW];
+        for (int l = 0; l < RNG_VW; ++l)
+            p[l] = (ulong)pixel0 + idx[l];
+#if RNG_VW == 1
+        *pixv = p[0];
+#else
+        *pixv = RNG_PASTE(vload, RNG_SUFFIX)(0, p);
+#endif
+    }
+    return contiguous;
+}
+
+inline rng_double ktc_reset(const double ktc, const rng_ulong pixv, const uint sbase, const uint k0, const uint k1)
+{
+    if (!(ktc > 0.0))
+        return 0.0;
+    rng_uint a, b, c, d;
+    rng_double unused;
+    ramp_block(pixv, sbase + P_KTC, 0u, k0, k1, &a, &b, &c, &d);
+    return ktc * box_muller_lanes(a, b, c, d, &unused);
+}
+
+#define RAMP_KERNEL_ARGS                                                                            \
+    __global const double *restrict mu_frame, /* e-/frame, 0 for dead pixels */                     \
+    __global const uint *restrict list, const uint nitems, /* RNG_VW pixel indices per item */      \
+    __global ushort *restrict sci, __global uchar *restrict gdq, /* (n, npix) */                    \
+    const uint npix, const uint pixel0, const uint ramp, const uint k0, const uint k1, const int n,  \
+    const int m, const int d, const double read_sigma, const double gain, const double bias,        \
+    const double ktc, const double full_well, const double saturation
+
+__kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
+{
+    const size_t t = get_global_id(0);
+    if (t >= nitems)
+        return;
+    uint idx[RNG_VW];
+    rng_double mu;
+    rng_ulong pixv;
+    const int contiguous = gather_lanes(mu_frame, list, t, pixel0, idx, &mu, &pixv);
+    const uint sbase = 4u * ramp, stream = sbase + P_SPARSE;
+    const int W = m + d;
+    const rng_double reset = ktc_reset(ktc, pixv, sbase, k0, k1);
+    /* CDF of Poisson(mu W) for full windows: first terms tabulated (the recurrence's values) */
+    const rng_double lam_full = mu * (double)W, lam_last = mu * (double)m;
+    rng_double tab_p[RAMP_SPARSE_TABLE], tab_cdf[RAMP_SPARSE_TABLE];
+    tab_p[0] = ramp_exp(-lam_full);
+    tab_cdf[0] = tab_p[0];
+    for (int k = 1; k < RAMP_SPARSE_TABLE; ++k) {
+        tab_p[k] = tab_p[k - 1] * lam_full / (double)k;
+        tab_cdf[k] = tab_cdf[k - 1] + tab_p[k];
+    }
+    const rng_double p_last = ramp_exp(-lam_last);
+    const int any_charge = RAMP_ANY(mu > 0.0);
+    rng_double before = 0.0;                                     /* clipped charge before the window */
+    ramp_mask sat = (ramp_mask)0;
+    rng_double z_even = 0.0, z_odd = 0.0;
+    for (int g = 0; g < n; ++g) {
+        const int last = g == n - 1;
+        const int w = last ? m : W;
+        rng_uint a, b, c, e;
+        if ((g & 1) == 0) {
+            ramp_block(((ulong)(g >> 1) << 32) | pixv, sbase + P_READ, 0u, k0, k1, &a, &b, &c, &e);
+            z_even = box_muller_lanes(a, b, c, e, &z_odd);
+        }
+        /* K ~ Poisson(mu w) by inversion of one uniform (words x,y); words z,w place event 0 */
+        rng_double K = 0.0, p, cdf, u = 0.0;
+        ramp_mask act;
+        if (!any_charge) {
+            a = 0u; b = 0u; c = 0u; e = 0u;     /* no lane collects charge: K = 0 without a draw */
+            act = (ramp_mask)0;
+            p = p_last;
+            cdf = p_last;
+        } else if (!last) {
+            ramp_block(((ulong)g << 32) | pixv, stream, 0u, k0, k1, &a, &b, &c, &e);
+            u = philox_u01(a, b);
+            act = (u > tab_cdf[0]) && (tab_p[0] > 0.0);
+            K = RNG_SELECT(K, K + 1.0, act);
+            for (int k = 1; k < RAMP_SPARSE_TABLE; ++k) {
+                act = act && (u > tab_cdf[k]) && (tab_p[k] > 0.0);
+                K = RNG_SELECT(K, K + 1.0, act);
+            }
+            p = tab_p[RAMP_SPARSE_TABLE - 1];
+            cdf = tab_cdf[RAMP_SPARSE_TABLE - 1];
+        } else {
+            ramp_block(((ulong)g << 32) | pixv, stream, 0u, k0, k1, &a, &b, &c, &e);
+            u = philox_u01(a, b);
+            p = p_last;
+            cdf = p_last;
+            act = (u > cdf) && (p > 0.0);
+            K = RNG_SELECT(K, K + 1.0, act);
+        }
+        const rng_double lam = last ? lam_last : lam_full;
+        while (RAMP_ANY(act)) {                   /* the recurrence p_k = p_(k-1) lam / k */
+            p = RNG_SELECT(p, p * lam / K, act);
+            cdf = RNG_SELECT(cdf, cdf + p, act);
+            act = act && (u > cdf) && (p > 0.0);
+            K = RNG_SELECT(K, K + 1.0, act);
+        }
+        /* reads that see each event: m - position */
+        const rng_double pos0 = frame_position(c, e, w);
+        rng_double seen = RNG_SELECT((rng_double)0.0, (double)m - pos0, (K > 0.0) && (pos0 < (double)m));
+        for (int k = 1; RAMP_ANY((double)k < K); ++k) {
+            if (k & 1)                           /* events 2i+1 and 2i+2 share draw 1 + i */
+                ramp_block(((ulong)g << 32) | pixv, stream, 1u + (uint)((k - 1) >> 1), k0, k1, &a, &b, &c, &e);
+            const rng_double pos = (k & 1) ? frame_position(a, b, w) : frame_position(c, e, w);
+            seen = RNG_SELECT(seen, seen + ((double)m - pos), ((double)k < K) && (pos < (double)m));
+        }
+        const rng_double total = before + K;
+        rng_double sum = (double)m * before + seen;
+        const ramp_mask over = total > full_well;
+        if (RAMP_ANY(over))
+            sum = RNG_SELECT(sum, clipped_read_sum(before, K, pos0, g, w, m, full_well, pixv, stream, k0, k1),
+                             over);
+        const ramp_mask full = total >= full_well;
+        sat = sat || full;
+        before = RNG_SELECT(total, (rng_double)full_well, full);
+        store_group(g, sum, (g & 1) ? z_odd : z_even, reset, &sat, m, read_sigma, gain, bias, saturation,
+                    sci, gdq, idx, contiguous, npix);
+    }
+}
+
+/* PTRS (Hoermann 1993) for the lanes in `lanes`, attempt a keyed by draw a (as noise.cl). */
+inline rng_double ptrs_lanes(const rng_double mu, const ramp_mask lanes, const rng_double log_mu,
+                             const rng_double a, const rng_double b, const rng_double log_inv_alpha,
+                             const rng_double vr, const rng_ulong index, const uint stream, const uint k0,
+                             const uint k1)
+{
+    rng_double res = 0.0;
+    ramp_mask todo = lanes;
+    for (uint attempt = 0u; attempt < RAMP_PTRS_MAX_ATTEMPTS && RAMP_ANY(todo); ++attempt) {
+        rng_uint wa, wb, wc, wd;
+        ramp_block(index, stream, attempt, k0, k1, &wa, &wb, &wc, &wd);
+        const rng_double U = philox_u01(wa, wb) - 0.5;
+        const rng_double V = philox_u01(wc, wd);
+        const rng_double us = 0.5 - fabs(U);
+        const rng_double k = floor((2.0 * a / us + b) * U + mu + 0.43);
+        ramp_mask accept = (us >= 0.07) && (V <= vr);
+        const ramp_mask test = todo && !accept && !((k < 0.0) || ((us < 0.013) && (V > us)));
+        if (RAMP_ANY(test)) {
+            const rng_double lhs = (rng_log(V) + log_inv_alpha) - rng_log(a / (us * us) + b);
+            const rng_double rhs = (k * log_mu - mu) - ramp_log_factorial(fmax(k, 0.0));
+            accept = accept || (test && (lhs <= rhs));
+        }
+        accept = accept && todo;
+        res = RNG_SELECT(res, k, accept);
+        todo = todo && !accept;
+    }
+    return RNG_SELECT(res, (rng_double)NAN, todo);
+}
+
+__kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
+{
+    const size_t t = get_global_id(0);
+    if (t >= nitems)
+        return;
+    uint idx[RNG_VW];
+    rng_double mu;
+    rng_ulong pixv;
+    const int contiguous = gather_lanes(mu_frame, list, t, pixel0, idx, &mu, &pixv);
+    const uint sbase = 4u * ramp, stream = sbase + P_POISSON;
+    const rng_double reset = ktc_reset(ktc, pixv, sbase, k0, k1);
+    const ramp_mask gauss = mu >= gauss_min_mean;
+    const ramp_mask ptrs = !gauss && (mu >= RAMP_PTRS_MIN_MEAN);
+    const ramp_mask inv = !gauss && !ptrs;
+    const int any_gauss = RAMP_ANY(gauss), any_ptrs = RAMP_ANY(ptrs), any_inv = RAMP_ANY(inv);
+    const rng_double sqrt_mu = sqrt(mu);
+    /* inversion: CDF terms 0..RAMP_INV_TABLE-1 (a term with p = 0 ends the search: +inf) */
+    rng_double tab[RAMP_INV_TABLE];
+    rng_double p_end = ramp_exp(-mu), cdf_end = p_end;
+    if (any_inv) {
+        tab[0] = RNG_SELECT(cdf_end, (rng_double)INFINITY, !(p_end > 0.0));
+        for (int k = 1; k < RAMP_INV_TABLE; ++k) {
+            p_end = p_end * mu / (double)k;
+            cdf_end = cdf_end + p_end;
+            tab[k] = RNG_SELECT(cdf_end, (rng_double)INFINITY, !(p_end > 0.0));
+        }
+    }
+    /* PTRS constants */
+    const rng_double log_mu = rng_log(mu);
+    const rng_double pb = 0.931 + 2.53 * sqrt_mu;
+    const rng_double pa = -0.059 + 0.02483 * pb;
+    const rng_double log_inv_alpha = rng_log(1.1239 + 1.1328 / (pb - 3.4));
+    const rng_double vr = 0.9277 - 3.6224 / (pb - 2.0);
+
+    rng_double charge = 0.0;
+    ramp_mask sat = (ramp_mask)0;
+    int frame = 0;
+    rng_uint wa = 0, wb = 0, wc = 0, wd = 0;
+    rng_double zf_even = 0.0, zf_odd = 0.0, z_even = 0.0, z_odd = 0.0;
+    for (int g = 0; g < n; ++g) {
+        rng_double sum = 0.0;
+        const int w = (g == n - 1) ? m : m + d;
+        for (int j = 0; j < w; ++j, ++frame) {
+            rng_double inc = 0.0;
+            const rng_ulong pair = ((ulong)(frame >> 1) << 32) | pixv;
+            if (any_inv) {
+                if ((frame & 1) == 0)
+                    ramp_block(pair, stream, 0u, k0, k1, &wa, &wb, &wc, &wd);
+                const rng_double u = (frame & 1) ? philox_u01(wc, wd) : philox_u01(wa, wb);
+                rng_double K = 0.0;
+                ramp_mask act = inv;
+                for (int k = 0; k < RAMP_INV_TABLE && RAMP_ANY(act); ++k) {
+                    act = act && (u > tab[k]);
+                    K = RNG_SELECT(K, K + 1.0, act);
+                }
+                if (RAMP_ANY(act)) {              /* beyond the table: the recurrence goes on */
+                    rng_double p = p_end, cdf = cdf_end;
+                    while (RAMP_ANY(act)) {
+                        p = RNG_SELECT(p, p * mu / K, act);
+                        cdf = RNG_SELECT(cdf, cdf + p, act);
+                        act = act && (u > cdf) && (p > 0.0);
+                        K = RNG_SELECT(K, K + 1.0, act);
+                    }
+                }
+                inc = K;
+            }
+            if (any_gauss) {
+                if ((frame & 1) == 0) {
+                    rng_uint a, b, c, e;
+                    ramp_block(pair, stream, 1u, k0, k1, &a, &b, &c, &e);
+                    zf_even = box_muller_lanes(a, b, c, e, &zf_odd);
+                }
+                const rng_double k = rint(mu + sqrt_mu * ((frame & 1) ? zf_odd : zf_even));
+                inc = RNG_SELECT(inc, RNG_SELECT(k, (rng_double)0.0, !(k > 0.0)), gauss);
+            }
+            if (any_ptrs)
+                inc = RNG_SELECT(inc, ptrs_lanes(mu, ptrs, log_mu, pa, pb, log_inv_alpha, vr,
+                                                 ((ulong)frame << 32) | pixv, stream + 0x80000000u, k0, k1),
+                                 ptrs);
+            charge = charge + inc;
+            const ramp_mask full = charge >= full_well;
+            charge = RNG_SELECT(charge, (rng_double)full_well, full);
+            sat = sat || full;
+            if (j < m)
+                sum = sum + charge;
+        }
+        if ((g & 1) == 0) {
+            rng_uint a, b, c, e;
+            ramp_block(((ulong)(g >> 1) << 32) | pixv, sbase + P_READ, 0u, k0, k1, &a, &b, &c, &e);
+            z_even = box_muller_lanes(a, b, c, e, &z_odd);
+        }
+        store_group(g, sum, (g & 1) ? z_odd : z_even, reset, &sat, m, read_sigma, gain, bias, saturation,
+                    sci, gdq, idx, contiguous, npix);
     }
 }

@@ -13,8 +13,6 @@ spread over the LSF or PSF footprint (or, with the FFT, the whole plane).
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import scipy.ndimage
 import scipy.signal
@@ -27,6 +25,9 @@ __all__ = ["apply_lsf", "lsf_weights", "lsf_matrix", "convolve_cube", "choose_co
            "fft_good_size", "fft_radix_plan", "DEFAULT_MAX_BYTES", "FFT_COST_PER_DIRECT_TAP"]
 
 DEFAULT_MAX_BYTES = 256 * 2**20
+#: FFT batches on CPU devices: a few MiB of planes stay in cache between the passes
+#: (measured on PoCL, 2 cores: 4–8 MiB batches ~2× faster than one 256 MiB batch)
+CPU_FFT_CHUNK_BYTES = 8 * 2**20
 
 
 def _finite_array(values, name):
@@ -235,9 +236,11 @@ def fft_radix_plan(n):
     return plan
 
 
-#: FFT cost per padded pixel per pass, in units of one direct multiply-add,
-#: fitted on the Lazuli benchmark (benchmarks/convolution_speed.py) per backend.
-FFT_COST_PER_DIRECT_TAP = {"opencl": 4.0, "numpy": 4.0}
+#: FFT cost per padded pixel per pass, in units of one direct multiply-add (median fit
+#: of benchmarks/convolution_speed.py on the 525 × 58 × 116 Lazuli cube, process CPU
+#: time, 2-core EPYC VM): PoCL 20 (crossover: direct up to k = 15–17, FFT from k = 19),
+#: SciPy 4.1 (crossover k = 7).  GPUs were not measured; they use the OpenCL value.
+FFT_COST_PER_DIRECT_TAP = {"opencl": 20.0, "numpy": 4.1}
 
 
 def choose_convolution_method(plane_shape, kernel_shape, backend="auto"):
@@ -308,7 +311,7 @@ def _plane_chunks(nl, per_plane, max_bytes, multiple=1):
         yield l0, min(nl, l0 + step)
 
 
-def _direct_opencl(cube, kernels, max_bytes):
+def _direct_opencl(cube, kernels, max_bytes, tiled=None):
     nl, ny, nx = cube.shape
     ky, kx = kernels.shape[-2:]
     cy, cx = ky // 2, kx // 2
@@ -317,7 +320,8 @@ def _direct_opencl(cube, kernels, max_bytes):
     dev = opencl.get_device()
     gpu = "GPU" in opencl.device_type(dev)
     TX = TY = 16
-    tiled = gpu and (TY + ky - 1) * (TX + kx - 1) * 8 <= int(dev.local_mem_size) - 1024
+    fits = (TY + ky - 1) * (TX + kx - 1) * 8 <= int(dev.local_mem_size) - 1024
+    tiled = (gpu if tiled is None else tiled) and fits   # local-memory tiles: GPUs only by default
     if tiled:
         VW = 1
         nyo, nxo = -(-ny // TY) * TY, -(-nx // TX) * TX
@@ -357,43 +361,64 @@ def _twiddles(n):
 
 
 class _FFT2:
-    """Batched 2-D complex FFT (Stockham passes of kernels/fft.cl) on device buffers."""
+    """Batched 2-D complex FFT on device buffers (kernels/fft.cl): Stockham passes along
+    the middle axis of (B, N, M) planes plus one transpose per 2-D transform.
 
-    def __init__(self, Ny, Nx):
+    forward: (B, Ny, Nx) natural layout -> spectrum in transposed layout (B, Nx, Ny);
+    inverse: transposed layout -> (B, Ny, Nx).  Both unnormalised."""
+
+    def __init__(self, Ny, Nx, tiled_transpose=None):
         self.Ny, self.Nx = Ny, Nx
         self.plan_y, self.plan_x = fft_radix_plan(Ny), fft_radix_plan(Nx)
         self.tw_y, self.tw_x = opencl.to_device(_twiddles(Ny)), opencl.to_device(_twiddles(Nx))
-        radices = set(self.plan_y) | set(self.plan_x)
-        self.rows = {r: opencl.get_kernel("fft.cl", f"fft_rows_{r}") for r in radices}
-        self.cols = {r: opencl.get_kernel("fft.cl", f"fft_cols_{r}") for r in radices}
+        self.passes = {r: opencl.get_kernel("fft.cl", f"fft_pass_{r}") for r in set(self.plan_y + self.plan_x)}
+        if tiled_transpose is None:
+            tiled_transpose = "GPU" in opencl.device_type()
+        self.tiled = bool(tiled_transpose)
+        self.tr = opencl.get_kernel("fft.cl", "transpose_tiled" if self.tiled else "transpose")
 
-    def __call__(self, src, dst, nplanes, sign):
-        """Transform nplanes planes of src (s = −1 forward, +1 inverse, unnormalised);
-        returns (result buffer, other buffer)."""
-        Ny, Nx, s = self.Ny, self.Nx, np.float64(sign)
+    def _axis(self, src, dst, nplanes, N, M, plan, tw, s):
         p = 1
-        for r in self.plan_x:
-            opencl.launch(self.rows[r], (Nx // r, nplanes * Ny), None, src, dst, self.tw_x,
-                          np.int32(Nx), np.int32(p), np.int32(Nx // (p * r)), s)
-            src, dst, p = dst, src, p * r
-        p = 1
-        for r in self.plan_y:
-            opencl.launch(self.cols[r], (Nx, Ny // r, nplanes), None, src, dst, self.tw_y,
-                          np.int32(Ny), np.int32(p), np.int32(Ny // (p * r)), s, np.int32(Nx))
+        for r in plan:
+            opencl.launch(self.passes[r], (M, N // r, nplanes), None, src, dst, tw,
+                          np.int32(N), np.int32(p), np.int32(N // (p * r)), s, np.int32(M))
             src, dst, p = dst, src, p * r
         return src, dst
 
+    def _transpose(self, src, dst, nplanes, N, M):
+        if self.tiled:
+            opencl.launch(self.tr, (-(-M // 16) * 16, -(-N // 16) * 16, nplanes), (16, 16, 1),
+                          src, dst, np.int32(N), np.int32(M))
+        else:
+            opencl.launch(self.tr, (M, N, nplanes), None, src, dst, np.int32(N), np.int32(M))
+        return dst, src
 
-def _fft_opencl(cube, kernels, max_bytes):
+    def forward(self, src, dst, nplanes):
+        """Returns (buffer holding the spectrum, other buffer)."""
+        s = np.float64(-1.0)
+        src, dst = self._axis(src, dst, nplanes, self.Ny, self.Nx, self.plan_y, self.tw_y, s)
+        src, dst = self._transpose(src, dst, nplanes, self.Ny, self.Nx)
+        return self._axis(src, dst, nplanes, self.Nx, self.Ny, self.plan_x, self.tw_x, s)
+
+    def inverse(self, src, dst, nplanes):
+        s = np.float64(1.0)
+        src, dst = self._axis(src, dst, nplanes, self.Nx, self.Ny, self.plan_x, self.tw_x, s)
+        src, dst = self._transpose(src, dst, nplanes, self.Nx, self.Ny)
+        return self._axis(src, dst, nplanes, self.Ny, self.Nx, self.plan_y, self.tw_y, s)
+
+
+def _fft_opencl(cube, kernels, max_bytes, tiled_transpose=None):
     nl, ny, nx = cube.shape
     ky, kx = kernels.shape[-2:]
     Ny, Nx = fft_good_size(ny + ky - 1), fft_good_size(nx + kx - 1)
     kstride = ky * kx if kernels.ndim == 3 else 0
-    fft = _FFT2(Ny, Nx)
+    fft = _FFT2(Ny, Nx, tiled_transpose)
     pack = opencl.get_kernel("convolve.cl", "pack_planes")
     mult = opencl.get_kernel("convolve.cl", "multiply_pairs")
     crop = opencl.get_kernel("convolve.cl", "crop_pairs")
     per_plane = 2 * 16 * Ny * Nx + 2 * 8 * ny * nx + 8 * kstride
+    if "GPU" not in opencl.device_type():
+        max_bytes = min(max_bytes, CPU_FFT_CHUNK_BYTES)
     chunks = list(_plane_chunks(nl, per_plane, max_bytes, multiple=2))
     Bmax = max(l1 - l0 for l0, l1 in chunks)
     Bmax += Bmax % 2
@@ -403,18 +428,27 @@ def _fft_opencl(cube, kernels, max_bytes):
     # device buffers allocated once for the largest chunk (first touch is costly on CPUs)
     buf_a, buf_b = opencl.device_buffer(16 * Bmax * Ny * Nx), opencl.device_buffer(16 * Bmax * Ny * Nx)
     d_img, d_out = opencl.device_buffer(8 * Bmax * ny * nx), opencl.device_buffer(8 * Bmax * ny * nx)
+    kmax = np.abs(kernels).max(axis=(-2, -1)) if kernels.size else np.zeros(1)
     for l0, l1 in chunks:
         nb = l1 - l0
         B = nb + (nb % 2)
-        opencl.to_device(np.ascontiguousarray(cube[l0:l1]), d_img)
+        img = np.ascontiguousarray(cube[l0:l1])
+        opencl.to_device(img, d_img)
         if kstride:
             d_k = opencl.to_device(np.ascontiguousarray(kernels[l0:l1]))
-        opencl.launch(pack, (Nx, Ny, B), None, d_img, d_k, i32(nb), i32(ny), i32(nx), i32(ky), i32(kx),
+        # per-plane normalisation of both halves of the packed transform (see convolve.cl)
+        amax = np.abs(img).max(axis=(1, 2))
+        km = kmax[l0:l1] if kstride else np.full(nb, kmax)
+        zero = (amax == 0) | (km == 0)                    # exact zeros out, not rounding noise
+        amax, km = np.where(amax > 0, amax, 1.0), np.where(km > 0, km, 1.0)
+        d_inv = opencl.to_device(np.ascontiguousarray(np.stack([1.0 / amax, 1.0 / km], axis=1)))
+        d_scale = opencl.to_device(np.where(zero, 0.0, amax * km / (Ny * Nx)))
+        opencl.launch(pack, (Nx, Ny, B), None, d_img, d_k, d_inv, i32(nb), i32(ny), i32(nx), i32(ky), i32(kx),
                       i32(kstride), i32(Ny), i32(Nx), buf_a)
-        a, b = fft(buf_a, buf_b, B, -1)
-        opencl.launch(mult, (Nx, Ny, B // 2), None, a, i32(Ny), i32(Nx), b)
-        a, b = fft(b, a, B // 2, +1)
+        a, b = fft.forward(buf_a, buf_b, B)                  # spectra in (B, Nx, Ny) layout
+        opencl.launch(mult, (Ny, Nx, B // 2), None, a, i32(Nx), i32(Ny), b)
+        a, b = fft.inverse(b, a, B // 2)
         opencl.launch(crop, (nx, ny, B // 2), None, a, i32(nb), i32(ny), i32(nx), i32(ky // 2), i32(kx // 2),
-                      i32(Ny), i32(Nx), np.float64(1.0 / (Ny * Nx)), d_out)
+                      i32(Ny), i32(Nx), d_scale, d_out)
         opencl.from_device(out[l0:l1], d_out)
     return out

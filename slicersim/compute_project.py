@@ -98,6 +98,13 @@ def _windows(lo, hi, sigma, truncate):
     return start.astype(np.int32), n.astype(np.int32)
 
 
+def default_block(backend="auto"):
+    """Bins per deposit item: 16 on CPUs (few long work items), 2 on GPUs (many short ones)."""
+    if resolve_backend(backend) == "opencl" and "GPU" in opencl.device_type():
+        return 2
+    return 16
+
+
 def _item_bounds(grid, block):
     S, E, Q = grid
     e0 = np.arange(0, E, block)
@@ -126,7 +133,7 @@ def _colour(first, last, meta, vw):
 
 
 def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), truncate=4.0,
-                 weights_dtype=np.float32, vw=None, block=16, backend="auto"):
+                 weights_dtype=np.float32, vw=None, block=None, backend="auto"):
     """Weight tables for sub-cell boxes.
 
     Parameters
@@ -140,8 +147,9 @@ def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), t
     weights_dtype : float32 or float64
     vw : int, optional
         x vector width (1, 2, 4, 8, 16); default 4 when most windows are ≤ 4 px, else 8.
-    block : int
-        cube wavelength bins per deposit item.
+    block : int, optional
+        cube wavelength bins per deposit item (a work item loops over them);
+        default :func:`default_block`.
     """
     box = np.ascontiguousarray(box, dtype=np.float64)
     S, E, Q = (int(v) for v in grid)
@@ -167,7 +175,8 @@ def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), t
     H = int(detector_shape[0])
     r0 = int(np.clip(y0.min(), 0, H)) if y0.size else 0
     r1 = int(np.clip((y0.astype(np.int64) + ny).max(), r0, H)) if y0.size else 0
-    first, last = _item_bounds((S, E, Q), max(1, int(block)) * ne)
+    block = default_block(backend) if block is None else int(block)
+    first, last = _item_bounds((S, E, Q), max(1, block) * ne)
     phases = _colour(first, last, meta, vw)
     tables = DepositTables((S, E, Q), (ne, nq), vw, weights_dtype, tuple(detector_shape), meta,
                            offset, pool_size, (r0, r1), phases)
@@ -268,8 +277,7 @@ def _weights_numpy(t, box, factor):
 
 def _options(t):
     wtype = "float" if t.weights_dtype == np.dtype(np.float32) else "double"
-    nemax = -(-(int(t.meta[:, 2:].max(initial=0)) + 1) // 8) * 8
-    return (f"-DVW={t.vw}", f"-DWTYPE={wtype}", f"-DTMAX={TMAX!r}", f"-DTINV={TINV!r}", f"-DNEMAX={nemax}")
+    return (f"-DVW={t.vw}", f"-DWTYPE={wtype}", f"-DTMAX={TMAX!r}", f"-DTINV={TINV!r}")
 
 
 def _check_fp64():

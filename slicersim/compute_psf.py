@@ -46,9 +46,11 @@ Grids (``grid``)
 Oversampling: an integer o (o × o per cell), a pair (o_y, o_x), or "auto"
 (default): per axis, the smallest o whose aliasing bound
 (:func:`slicersim.psf.midpoint_oversampling`) is below 1e-4 of the peak at
-the shortest wavelength — Lazuli narrow field (4, 3), 3e-7 of the peak; wide
-field (8, 4), 4e-8 (the strongly blurred x axis needs few sub-samples, the
-jitter-only y axis more); see benchmarks/results/psf_speed_accuracy.md.
+the shortest wavelength of the call — Lazuli narrow field (4, 3), 3e-7 of the
+peak; wide field (8, 4), 7e-8 (the strongly blurred x axis needs few
+sub-samples, the jitter-only y axis more); ``auto_oversampling`` returns the
+pair (pass it explicitly when building a cube in wavelength blocks); see
+benchmarks/results/psf_speed_accuracy.md.
 
 Backends agree to ~1e-13 of the peak (Gaussian ~1e-16; Airy: the kernel's
 own J1, |ΔJ1| <= 2e-12, see ``kernels/psf.cl``).
@@ -66,8 +68,8 @@ from slicersim.psf import (airy_encircled_energy, airy_intensity, airy_wavenumbe
                            blur_margin, cell_quadrature, gaussian_psf_cells, gaussian_psf_fractions,
                            gaussian_psf_sigmas, jinc, midpoint_oversampling)
 
-__all__ = ["psf_cube", "psf_cells", "bessel_j1", "airy_encircled_energy", "PROFILES", "GRIDS",
-           "DEFAULT_OVERSAMPLING"]
+__all__ = ["psf_cube", "psf_cells", "auto_oversampling", "bessel_j1", "airy_encircled_energy",
+           "PROFILES", "GRIDS", "DEFAULT_OVERSAMPLING"]
 
 PROFILES = ("gaussian", "airy")
 DEFAULT_OVERSAMPLING = "auto"
@@ -161,6 +163,23 @@ def psf_cells(lbda, shape, position=(0.0, 0.0), cells=None, profile="gaussian", 
     return box[:, iy - j0, ix - k0]
 
 
+def auto_oversampling(lbda, *, spatial_scale, guiding_sigma, instrumental_sigma, diameter=3.0):
+    """(o_y, o_x) that ``oversampling="auto"`` picks for wavelengths ``lbda`` [Å].
+
+    "auto" depends on the shortest wavelength of a call: a caller that builds
+    a cube in wavelength blocks should compute this once for the whole grid
+    and pass it to every block, so that the cube does not depend on the blocks.
+    """
+    lbda = np.asarray(lbda, dtype=float)
+    gamma = float(guiding_sigma) / float(spatial_scale)
+    kmax = float(airy_wavenumber(lbda.min(), diameter, spatial_scale))
+    return _auto_pair(kmax, gamma, float(np.hypot(gamma, instrumental_sigma)))
+
+
+def _auto_pair(kmax, sigma_y, sigma_x):
+    return midpoint_oversampling(sigma_y, kmax), midpoint_oversampling(sigma_x, kmax)
+
+
 def bessel_j1(x, backend="auto"):
     """J1(x): the OpenCL kernel's approximation ("opencl") or scipy's ("numpy")."""
     x = np.ascontiguousarray(np.ravel(x), dtype=np.float64)
@@ -249,8 +268,7 @@ class _AiryParams:
                 raise ValueError(f"oversampling must be 'auto', an integer or (o_y, o_x), got {oversampling!r}")
             if self.grid == "reference":
                 return 3, 3
-            kmax = float(self.kwave.max())
-            return midpoint_oversampling(self.sigma_y, kmax), midpoint_oversampling(self.sigma_x, kmax)
+            return _auto_pair(float(self.kwave.max()), self.sigma_y, self.sigma_x)
         pair = np.broadcast_to(np.asarray(oversampling), (2,))
         if not np.all(pair == np.round(pair)) or np.any(pair < 1):
             raise ValueError(f"oversampling must be positive integers, got {oversampling!r}")

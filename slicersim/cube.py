@@ -97,10 +97,15 @@ def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", o
             raise
         raise NotImplementedError(f"psf_profile={profile!r} needs slicersim.compute_psf.psf_cube, which is "
                                   "not available yet; use psf_profile='gaussian'") from exc
+    from .compute_psf import auto_oversampling
     tel, spec = sim.telescope, sim.spectrograph
-    kwargs = dict(sigma_ref_arcsec=tel.psf_sigma_ref, spatial_scale=spec.spatial_scale,
-                  guiding_sigma=tel.guiding_sigma, instrumental_sigma=spec.instrumental_sigma,
-                  diameter=tel.diameter_ext, obscuration=tel.obscuration, oversampling=3, backend=backend)
+    common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
+                  instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext)
+    # one oversampling for the whole grid (set by its bluest, most undersampled bin), so every
+    # wavelength block is computed alike; error < 1e-4 of the peak (benchmarks/psf_speed_accuracy.py)
+    oversampling = 3 if (options or {}).get("grid") == "reference" else auto_oversampling(sim.lbda, **common)
+    kwargs = dict(sigma_ref_arcsec=tel.psf_sigma_ref, obscuration=tel.obscuration, oversampling=oversampling,
+                  backend=backend, **common)
     kwargs.update(options or {})
     return psf_cube(sim.lbda[lo:hi], shape, position, profile=profile, **kwargs)
 

@@ -269,6 +269,28 @@ def _lambda_matrix(lbda_in, lbda_grid):
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(lbda_grid.size, lbda_in.size))
 
 
+def _clamped_edge_integral(xa, ya, xb, yb, s):
+    """∫ clamp(x, 0, s) 1[0 ≤ y ≤ s] dy along the segment (xa, ya) → (xb, yb), signed.
+
+    By Green's theorem, Σ over a counter-clockwise polygon's edges is the exact area of
+    the polygon inside the square [0, s]²: ∂/∂x clamp(x, 0, s) = 1[0 ≤ x ≤ s].  The
+    integrand is linear in y between the points where x crosses 0 or s, so the
+    trapezoid rule on those sub-intervals is exact."""
+    dy = yb - ya
+    lo = np.clip(np.minimum(ya, yb), 0.0, s)
+    hi = np.clip(np.maximum(ya, yb), 0.0, s)
+    flat = dy == 0
+    slope = np.where(flat, 0.0, (xb - xa) / np.where(flat, 1.0, dy))
+    steep = slope != 0
+    inv = np.where(steep, 1.0 / np.where(steep, slope, 1.0), 0.0)
+    k0 = np.where(steep, ya + (0.0 - xa) * inv, lo)
+    k1 = np.where(steep, ya + (s - xa) * inv, lo)
+    pts = np.sort(np.stack(np.broadcast_arrays(lo, np.clip(k0, lo, hi), np.clip(k1, lo, hi), hi)), axis=0)
+    xs = np.clip(xa + (pts - ya) * slope, 0.0, s)
+    total = 0.5 * np.sum((pts[1:] - pts[:-1]) * (xs[1:] + xs[:-1]), axis=0)
+    return np.where(flat, 0.0, np.sign(dy) * total)
+
+
 class CubeSource:
     """User cube [erg/s/cm²/Å per input pixel] placed on the field, flux conserving.
 
@@ -277,17 +299,16 @@ class CubeSource:
     centre relative to the field centre, rotation : [deg] counter-clockwise about
     that centre.
 
-    Spatial resampling: rotation = 0 uses exact area overlaps (separable overlap
-    matrices, each input pixel uniformly bright).  Otherwise each input pixel is
-    split into ``subsampling``² sub-pixels, each treated as an axis-aligned square of
-    side pixel_scale/subsampling at its rotated centre and shared among cells by exact
-    overlap; the total flux inside the field is exact, the per-cell distribution is
-    first-order accurate in pixel_scale/subsampling (exact for multiples of 90°).
+    Spatial resampling: each input pixel is uniformly bright and shares its flux among
+    cells in proportion to the exact overlap areas: separable overlap matrices for
+    rotation = 0, and for any other angle the exact area of the rotated pixel inside
+    each cell (Green's theorem on its edges, :func:`_clamped_edge_integral`; no
+    sub-pixel splitting, so no sampling error).
     Wavelength: F_λ linearly interpolated in λ (flux density, not integrated over
     bins); grids beyond [lbda_in[0], lbda_in[-1]] raise ValueError.
     """
 
-    def __init__(self, cube, lbda_in, pixel_scale, centre=(0.0, 0.0), rotation=0.0, subsampling=8):
+    def __init__(self, cube, lbda_in, pixel_scale, centre=(0.0, 0.0), rotation=0.0):
         cube = np.asarray(cube, dtype=np.float64)
         if cube.ndim != 3 or min(cube.shape) == 0:
             raise ValueError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
@@ -296,51 +317,45 @@ class CubeSource:
         lbda_in = np.asarray(lbda_in, dtype=np.float64)
         if lbda_in.shape != cube.shape[:1] or lbda_in.size < 2 or np.any(np.diff(lbda_in) <= 0):
             raise ValueError("lbda_in must be strictly increasing with one value per cube plane (≥ 2)")
-        if not (np.isfinite(pixel_scale) and pixel_scale > 0 and int(subsampling) >= 1):
-            raise ValueError("pixel_scale must be > 0 [arcsec] and subsampling ≥ 1")
+        if not (np.isfinite(pixel_scale) and pixel_scale > 0 and np.isfinite(rotation)):
+            raise ValueError("pixel_scale must be > 0 [arcsec] and rotation finite [deg]")
         self.cube, self.lbda_in, self.pixel_scale = cube, lbda_in, float(pixel_scale)
         self.centre = tuple(float(v) for v in centre)
-        self.rotation, self.subsampling = float(rotation), int(subsampling)
+        self.rotation = float(rotation)
 
     def spatial_matrix(self, shape, spatial_scale):
-        """Sparse (ny·nx, ny_in·nx_in) matrix: fraction of each input pixel in each cell."""
-        ny, nx = shape
+        """Sparse (ny·nx, ny_in·nx_in) matrix: fraction of each input pixel's area in each cell."""
+        ny, nx = (int(v) for v in shape)
         _, nyi, nxi = self.cube.shape
-        p, (cx, cy) = self.pixel_scale, self.centre
+        p, (cx, cy), s = self.pixel_scale, self.centre, float(spatial_scale)
         if self.rotation % 360.0 == 0.0:
-            ox = overlap_matrix(_cell_edges(nx, spatial_scale), cx + _cell_edges(nxi, p))
-            oy = overlap_matrix(_cell_edges(ny, spatial_scale), cy + _cell_edges(nyi, p))
+            ox = overlap_matrix(_cell_edges(nx, s), cx + _cell_edges(nxi, p))
+            oy = overlap_matrix(_cell_edges(ny, s), cy + _cell_edges(nyi, p))
             return scipy.sparse.kron(scipy.sparse.csr_matrix(oy), scipy.sparse.csr_matrix(ox), format="csr")
-        S, s = self.subsampling, float(spatial_scale)
-        h = p / S
-        sub = (np.arange(S) + 0.5) * h
-        u = (_cell_edges(nxi, p)[:-1, None] + sub[None, :]).ravel()  # (nxi S,)
-        v = (_cell_edges(nyi, p)[:-1, None] + sub[None, :]).ravel()  # (nyi S,)
-        V, U = np.meshgrid(v, u, indexing="ij")
         th = math.radians(self.rotation)
-        X = cx + U * math.cos(th) - V * math.sin(th)
-        Y = cy + U * math.sin(th) + V * math.cos(th)
-        src = (np.arange(nyi)[:, None] * nxi + np.arange(nxi)[None, :]).repeat(S, 0).repeat(S, 1)
-        ix, fx = self._axis_shares(X.ravel(), h, nx, s)
-        iy, fy = self._axis_shares(Y.ravel(), h, ny, s)
-        rows = (iy[:, :, None] * nx + ix[:, None, :])
-        vals = fy[:, :, None] * fx[:, None, :] / (S * S)
-        cols = np.broadcast_to(src.ravel()[:, None, None], rows.shape)
-        keep = vals > 0
-        return scipy.sparse.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(ny * nx, nyi * nxi))
-
-    @staticmethod
-    def _axis_shares(c, h, n, s):
-        """Cells (index, fraction) covered by [c − h/2, c + h/2] on an axis of n cells of side s;
-        out-of-field parts get fraction 0."""
-        L = int(math.ceil(h / s)) + 1
-        first = np.floor((c - h / 2) / s + n / 2).astype(np.int64)
-        idx = first[:, None] + np.arange(L)[None, :]
-        lo = np.maximum((idx - n / 2) * s, (c - h / 2)[:, None])
-        hi = np.minimum((idx + 1 - n / 2) * s, (c + h / 2)[:, None])
-        frac = np.clip(hi - lo, 0.0, None) / h
-        inside = (idx >= 0) & (idx < n)
-        return np.where(inside, idx, 0), np.where(inside, frac, 0.0)
+        c, sn = math.cos(th), math.sin(th)
+        V, U = np.meshgrid(_cell_edges(nyi, p), _cell_edges(nxi, p), indexing="ij")  # pixel corners
+        X, Y = cx + U * c - V * sn, cy + U * sn + V * c
+        # counter-clockwise corners of every input pixel (rotation keeps the orientation)
+        px = np.stack([X[:-1, :-1], X[:-1, 1:], X[1:, 1:], X[1:, :-1]], -1).reshape(-1, 4)
+        py = np.stack([Y[:-1, :-1], Y[:-1, 1:], Y[1:, 1:], Y[1:, :-1]], -1).reshape(-1, 4)
+        span = p * (abs(c) + abs(sn))
+        Lx = Ly = int(math.ceil(span / s)) + 1
+        kx0 = np.floor(px.min(1) / s + nx / 2).astype(np.int64)
+        ky0 = np.floor(py.min(1) / s + ny / 2).astype(np.int64)
+        kx = kx0[:, None, None] + np.arange(Lx)[None, None, :]                # (npix, 1, Lx)
+        ky = ky0[:, None, None] + np.arange(Ly)[None, :, None]                # (npix, Ly, 1)
+        x0 = (kx - nx / 2) * s
+        y0 = (ky - ny / 2) * s
+        area = np.zeros((px.shape[0], Ly, Lx))
+        for e in range(4):
+            f = (e + 1) % 4
+            area += _clamped_edge_integral(px[:, e, None, None] - x0, py[:, e, None, None] - y0,
+                                           px[:, f, None, None] - x0, py[:, f, None, None] - y0, s)
+        inside = (kx >= 0) & (kx < nx) & (ky >= 0) & (ky < ny) & (area > 0)
+        rows = np.broadcast_to(ky * nx + kx, area.shape)[inside]
+        cols = np.broadcast_to(np.arange(px.shape[0])[:, None, None], area.shape)[inside]
+        return scipy.sparse.csr_matrix((area[inside] / (p * p), (rows, cols)), shape=(ny * nx, nyi * nxi))
 
     def flux_cube(self, lbda_grid, shape, spatial_scale):
         """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]."""

@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slicersim.compute_project import build_tables, deposit
+from slicersim.compute_project import build_tables, default_block, deposit
 
 __all__ = ["SlicerMapper", "read_spot_table", "detector_rate_image", "NARROW_SLICES", "WIDE_SLICES",
            "DEFAULT_SPOT_TABLE"]
@@ -396,12 +396,13 @@ class SlicerMapper:
         return box.reshape(-1, 6)
 
     def projection_tables(self, slices, ncol, lbda_edges, *, oversample=(1, 1), truncate=4.0,
-                          weights_dtype=np.float32, block=16, backend="auto"):
+                          weights_dtype=np.float32, block=None, backend="auto"):
         """Cached :class:`~slicersim.compute_project.DepositTables` for a field and λ grid."""
         slices = tuple(int(s) for s in slices)
         edges = np.ascontiguousarray(lbda_edges, dtype=np.float64)
+        block = default_block(backend) if block is None else int(block)
         key = (slices, int(ncol), hashlib.sha1(edges.tobytes()).hexdigest(), tuple(oversample),
-               float(truncate), np.dtype(weights_dtype).str, int(block))
+               float(truncate), np.dtype(weights_dtype).str, block)
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
@@ -421,7 +422,7 @@ class SlicerMapper:
         self._trees = None
 
     def project_cube(self, cube, lbda, lbda_edges, slices=NARROW_SLICES, out=None, *, backend="auto",
-                     oversample=(1, 1), truncate=4.0, weights_dtype=np.float32, block=16):
+                     oversample=(1, 1), truncate=4.0, weights_dtype=np.float32, block=None):
         """Flux-conserving detector image of one field's cube.
 
         Parameters

@@ -1,21 +1,23 @@
-"""Raw up-the-ramp H4RG reads: per-frame sampling of MACC(n, m, d) ramps.
+"""Raw up-the-ramp H4RG reads: exact sampling of MACC(n, m, d) ramps.
 
 Readout physics in small documented steps (cf. romanisim ``l1``):
 
 1. :func:`frame_mean_charge` — mean charge collected per frame μ = (rate + dark
    + thermal dark)·t_f + ROIC glow  [e-/frame];
-2. charge accumulation — exact Poisson increments per frame (dense path) or,
-   for pixels whose expected charge per group is below ``sparse_max_group``,
-   an exact count-then-place sampler (sparse path);
+2. charge accumulation, a Poisson process sampled exactly by one of two paths
+   chosen from μ only: *dense* — a Poisson increment in every frame; *sparse*
+   (μ·(m+d) < ``sparse_max_group``, default μ < 1 e-/frame) — per group window
+   (m reads + d dropped frames) a Poisson count and a uniform frame for each
+   event, so a dark pixel costs one uniform and one Gaussian per group;
 3. full-well clipping; group averaging of the m reads with read noise
    σ_r/√m per group; kTC reset noise once per ramp;
 4. :func:`to_adu` — bias pedestal + gain, rounding and uint16 saturation;
    GROUPDQ flags (JWST SATURATED = 2).
 
-Randomness is Philox4x32-10 keyed by (seed, ramp, pixel, frame): the output is
-identical for any chunking, work-group size or device count.  The OpenCL
-kernel is ``kernels/ramp.cl``; :func:`_simulate_block_numpy` is its bit-exact
-NumPy twin.
+Randomness is Philox4x32-10 keyed by (seed, ramp, pixel, frame or group): the
+output is identical for any chunking, work-group size, vector width or device
+count.  The OpenCL kernels are in ``kernels/ramp.cl``;
+:func:`_simulate_block_numpy` is their bit-exact NumPy twin.
 """
 from __future__ import annotations
 
@@ -41,7 +43,7 @@ class RampParameters:
 
     def __init__(self, nmd, nramps=1, tframe=2.83, ron=12.0, dark=2.8e-3, thermal_dark=0.0,
                  roic_glow=3e-3, gain=1.0, saturation=65535, bias=DEFAULT_BIAS, ktc_noise=0.0,
-                 full_well=None, sparse_max_group=0.1, gauss_min_mean=np.inf):
+                 full_well=None, sparse_max_group=None, gauss_min_mean=np.inf):
         try:
             n, m, d = (int(v) for v in nmd)
         except Exception as exc:
@@ -68,7 +70,9 @@ class RampParameters:
         self.dark, self.thermal_dark, self.roic_glow = dark, float(thermal_dark), float(roic_glow)
         self.saturation, self.bias, self.ktc_noise = float(saturation), float(bias), float(ktc_noise)
         self.full_well = float((saturation - bias) / gain if full_well is None else full_well)
-        self.sparse_max_group = float(sparse_max_group)
+        if sparse_max_group is not None and not float(sparse_max_group) >= 0:
+            raise ValueError(f"sparse_max_group must be ≥ 0 e-/group (or None), got {sparse_max_group}")
+        self.sparse_max_group = None if sparse_max_group is None else float(sparse_max_group)
         self.gauss_min_mean = float(gauss_min_mean)
         t = readout_times(self.nmd, self.tframe)
         self.nframes, self.tgroup = t["nframes"], t["group_time"]
@@ -114,8 +118,26 @@ def to_adu(charge_mean, reset, p):
 
 
 # --------------------------------------------------------------------------- NumPy twin
+SPARSE_GROUP_CAP = 64.0        # e-/group: larger sparse_max_group values act as this (CDF inversion cost)
+SPARSE_AUTO_FRAME = 1.0        # e-/frame: default sparse/dense boundary (equal cost on a CPU, see ramp.cl)
+MAX_SPARSE_WINDOW = 4096       # frames per group window: event positions use (x·w) >> 52, x < 2⁵²
+
+
+def sparse_threshold(p):
+    """Expected e- per group below which a pixel takes the sparse path (0: never).
+
+    ``p.sparse_max_group`` None: (m + d)·SPARSE_AUTO_FRAME; any value is capped at SPARSE_GROUP_CAP.
+    Both paths are exact: the choice changes the random numbers, not their distribution.
+    """
+    n, m, d = p.nmd
+    smg = (m + d) * SPARSE_AUTO_FRAME if p.sparse_max_group is None else p.sparse_max_group
+    if m + d > MAX_SPARSE_WINDOW or not smg > 0:
+        return 0.0
+    return min(smg, SPARSE_GROUP_CAP)
+
+
 def _frame_increment(mu, exp_neg_mu, seed, pix, frame, stream, gauss_min_mean):
-    """Poisson increments of one frame (twin of ``frame_increment`` in ramp.cl)."""
+    """Poisson increments of one frame (twin of the dense path in ramp.cl)."""
     out = np.zeros_like(mu)
     gauss = (mu > 0) & (mu >= gauss_min_mean)
     ptrs = (mu >= rng.PTRS_MIN_MEAN) & ~gauss
@@ -134,6 +156,7 @@ def _frame_increment(mu, exp_neg_mu, seed, pix, frame, stream, gauss_min_mean):
 
 
 def _inversion(mu, p, u):
+    """Poisson(mu) by sequential search of the CDF from p = e^−mu with uniforms u."""
     p = p.copy()
     cdf = p.copy()
     k = np.zeros_like(mu)
@@ -146,26 +169,67 @@ def _inversion(mu, p, u):
     return k
 
 
-def _binomial_inversion(R, p, u):
-    """Binomial(R, p) by CDF inversion (vectorised twin of ramp.cl)."""
-    out = np.where(p >= 1.0, R, 0.0)
-    todo = np.nonzero(p < 1.0)[0]
-    if not todo.size:
-        return out
-    q = 1.0 - p[todo]
-    prob = rng.rng_exp(R[todo] * rng.rng_log(q))
-    cdf = prob.copy()
-    x = np.zeros_like(prob)
-    ratio = p[todo] / q
-    Rt, ut = R[todo], u[todo]
-    act = np.nonzero((ut > cdf) & (x < Rt))[0]
-    while act.size:
-        prob[act] = prob[act] * ((Rt[act] - x[act]) / (x[act] + 1.0)) * ratio[act]
-        x[act] = x[act] + 1.0
-        cdf[act] = cdf[act] + prob[act]
-        act = act[(ut[act] > cdf[act]) & (x[act] < Rt[act])]
-    out[todo] = x
-    return out
+def _frame_position(hi, lo, w):
+    """Frame position in [0, w): (x·w) >> 52 with the 52-bit x of a uniform (exact integers)."""
+    x = (hi.astype(np.uint64) << np.uint64(20)) | (lo.astype(np.uint64) >> np.uint64(12))
+    return ((x * np.uint64(w)) >> np.uint64(52)).astype(np.float64)
+
+
+def _event_words(seed, g, k, pix, stream):
+    """Block of events k ≥ 1 of group g: draw 1 + (k−1)//2, words 0–1 for odd k, 2–3 for even k."""
+    return rng.random_words(seed, (np.uint64(g) << np.uint64(32)) | pix, stream, 1 + ((k - 1) >> 1))
+
+
+def _event_position(words, k, w):
+    return _frame_position(words[:, 0], words[:, 1], w) if k & 1 else _frame_position(words[:, 2], words[:, 3], w)
+
+
+def _events_seen(K, pos0, g, w, m, pix, seed, stream):
+    """Σ over the K events of a group window of the reads that see them (m − position)."""
+    seen = np.where((K > 0) & (pos0 < m), m - pos0, 0.0)
+    words = np.empty((K.size, 4), np.uint32)
+    sel, k = np.nonzero(K > 1)[0], 1
+    while sel.size:
+        if k & 1:
+            words[sel] = _event_words(seed, g, k, pix[sel], stream)
+        pos = _event_position(words[sel], k, w)
+        seen[sel] = np.where(pos < m, seen[sel] + (m - pos), seen[sel])
+        k += 1
+        sel = sel[K[sel] > k]
+    return seen
+
+
+def _clipped_read_sum(before, K, pos0, g, w, m, full_well, pix, seed, stream):
+    """Σ_j min(full well, before + #{events at positions ≤ j}) (windows over the full well; rare)."""
+    kmax = int(K.max())
+    pos = [pos0] + [_event_position(_event_words(seed, g, k, pix, stream), k, w) for k in range(1, kmax)]
+    total = np.zeros(before.size)
+    for j in range(m):
+        cj = np.zeros(before.size)
+        for k in range(kmax):
+            cj = np.where((k < K) & (pos[k] <= j), cj + 1.0, cj)
+        charge = before + cj
+        total = total + np.where(charge >= full_well, full_well, charge)
+    return total
+
+
+def _sparse_group(mu, p_empty, before, g, w, m, full_well, pix, seed, stream):
+    """(read sum, clipped charge after the window, window reached the full well) of group g.
+
+    K ~ Poisson(mu·w) by inversion of the uniform of words 0–1 of block (g << 32 | pixel, stream,
+    0); words 2–3 place event 0, later events use draws ≥ 1 (:func:`_event_words`)."""
+    words = rng.random_words(seed, (np.uint64(g) << np.uint64(32)) | pix, stream, 0)
+    K = _inversion(mu * float(w), p_empty, rng.words_to_uniform(words[:, 0], words[:, 1]))
+    pos0 = _frame_position(words[:, 2], words[:, 3], w)
+    seen = _events_seen(K, pos0, g, w, m, pix, seed, stream)
+    total = before + K
+    read_sum = float(m) * before + seen
+    over = np.nonzero(total > full_well)[0]
+    if over.size:
+        read_sum[over] = _clipped_read_sum(before[over], K[over], pos0[over], g, w, m, full_well, pix[over],
+                                           seed, stream)
+    full = total >= full_well
+    return read_sum, np.where(full, full_well, total), full
 
 
 def _simulate_block_numpy(mu_frame, dead, pixel0, ramp, seed, p):
@@ -178,44 +242,41 @@ def _simulate_block_numpy(mu_frame, dead, pixel0, ramp, seed, p):
     reset = np.zeros(npix)
     if p.ktc_noise > 0:
         reset = p.ktc_noise * rng.normal(seed, pix, sbase + P_KTC, 0)[..., 0]
-    sparse = mu * (m + d) < p.sparse_max_group
-    dense = np.nonzero(~sparse)[0]
-    exp_neg_mu = rng.rng_exp(-mu)
-    remaining = np.zeros(npix)
-    sp = np.nonzero(sparse & (mu > 0))[0]
-    if sp.size:
-        remaining[sp] = rng.poisson(mu[sp] * p.nframes, seed, pix[sp], sbase + P_SPARSE)
-    charge = np.zeros(npix)
+    sparse = mu * float(m + d) < sparse_threshold(p)
+    sp, dn = np.nonzero(sparse)[0], np.nonzero(~sparse)[0]
+    mu_sp, pix_sp, mu_dn, pix_dn = mu[sp], pix[sp], mu[dn], pix[dn]
+    p_full, p_last = rng.rng_exp(-(mu_sp * float(m + d))), rng.rng_exp(-(mu_sp * float(m)))
+    before = np.zeros(sp.size)
+    exp_neg_mu = rng.rng_exp(-mu_dn)
+    charge = np.zeros(dn.size)
     saturated = np.zeros(npix, dtype=bool)
     sci = np.empty((n, npix), np.uint16)
     gdq = np.empty((n, npix), np.uint8)
     read_sigma = p.ron / math.sqrt(m)
     frame = 0
     for g in range(n):
+        w = m if g == n - 1 else m + d
         total = np.zeros(npix)
-        for j in range(m if g == n - 1 else m + d):
-            inc = np.zeros(npix)
-            if dense.size:
-                inc[dense] = _frame_increment(mu[dense], exp_neg_mu[dense], seed, pix[dense], frame,
-                                              sbase + P_POISSON, p.gauss_min_mean)
-            live = np.nonzero(remaining > 0)[0]
-            if live.size:
-                idx = (np.uint64(frame + 1) << np.uint64(32)) | pix[live]
-                u = rng.uniform(seed, idx, sbase + P_SPARSE, 1)[..., 0]
-                pr = np.full(live.size, 1.0 / (p.nframes - frame))
-                got = _binomial_inversion(remaining[live], pr, u)
-                inc[live] = got
-                remaining[live] = remaining[live] - got
-            charge = charge + inc
-            full = charge >= p.full_well
-            charge[full] = p.full_well
-            saturated |= full
-            if j < m:
-                total = total + charge
-            frame += 1
-        idx = (np.uint64(g >> 1) << np.uint64(32)) | pix
-        z = rng.normal(seed, idx, sbase + P_READ, 0)[..., g & 1]
-        mean = total / float(m) + read_sigma * z
+        pair = (np.uint64(g >> 1) << np.uint64(32)) | pix
+        if g % 2 == 0:
+            z_pair = rng.normal(seed, pair, sbase + P_READ, 0)
+        if sp.size:
+            total[sp], before, full = _sparse_group(mu_sp, p_last if g == n - 1 else p_full, before, g, w, m,
+                                                    p.full_well, pix_sp, seed, sbase + P_SPARSE)
+            saturated[sp] |= full
+        if dn.size:
+            sum_dn = np.zeros(dn.size)
+            for j in range(w):
+                charge = charge + _frame_increment(mu_dn, exp_neg_mu, seed, pix_dn, frame + j,
+                                                   sbase + P_POISSON, p.gauss_min_mean)
+                full = charge >= p.full_well
+                charge[full] = p.full_well
+                saturated[dn] |= full
+                if j < m:
+                    sum_dn = sum_dn + charge
+            total[dn] = sum_dn
+        frame += w
+        mean = total / float(m) + read_sigma * z_pair[:, g & 1]
         adu = to_adu(mean, reset, p)
         saturated |= adu >= p.saturation
         sci[g] = adu.astype(np.uint16)
@@ -224,34 +285,81 @@ def _simulate_block_numpy(mu_frame, dead, pixel0, ramp, seed, p):
 
 
 # --------------------------------------------------------------------------- OpenCL
-def _ramp_kernel():
+CPU_WORK_GROUP = 64        # work items per group on CPUs (PoCL's own choice can overflow the
+MAX_CPU_WORK_GROUP = 1024  # thread stack with the private CDF tables: it is never left to it)
+
+
+def _launch_geometry(vector_width, work_group):
+    """(pixels per work item, work-group size or None) for the selected device.
+
+    Pixels per work item: 1 on GPUs; on CPUs twice the preferred double vector width (≤ 16:
+    two AVX-512 registers per operation give the out-of-order core independent Philox chains).
+    """
+    from . import opencl
+    dev = opencl.get_device()
+    gpu = "GPU" in opencl.device_type(dev)
+    if vector_width is None:
+        native = int(getattr(dev, "preferred_vector_width_double", 1) or 1)
+        vector_width = 1 if gpu else max(w for w in (1, 2, 4, 8, 16) if w <= 2 * native)
+    if vector_width not in (1, 2, 4, 8, 16):
+        raise ValueError(f"vector_width must be 1, 2, 4, 8 or 16, got {vector_width}")
+    limit = int(dev.max_work_group_size) if gpu else min(int(dev.max_work_group_size), MAX_CPU_WORK_GROUP)
+    if work_group is None:
+        work_group = None if gpu else CPU_WORK_GROUP
+    elif not 1 <= int(work_group) <= limit:
+        raise ValueError(f"work_group must be in [1, {limit}] on this device, got {work_group}")
+    return vector_width, (int(work_group) if work_group else None)
+
+
+def _ramp_kernel(name, vector_width):
     from . import opencl
     from .compute_noise import _kernel_dir
-    src_dir = _kernel_dir()
-    digest = hashlib.sha1((opencl.kernel_source("philox.cl") + opencl.kernel_source("noise.cl"))
-                          .encode()).hexdigest()[:16]
-    return opencl.get_kernel("ramp.cl", "macc_ramp", (f"-I{src_dir}", f"-DSLICERSIM_RNG_SHA=0x{digest}"))
+    digest = hashlib.sha1(opencl.kernel_source("philox.cl").encode()).hexdigest()[:16]
+    return opencl.get_kernel("ramp.cl", name, (f"-I{_kernel_dir()}", f"-DRNG_VW={int(vector_width)}",
+                                               f"-DSLICERSIM_PHILOX_SHA=0x{digest}"))
 
 
-def _simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None):
+def _pixel_lists(mu, p, vector_width):
+    """(sparse, dense) uint32 pixel indices, each padded to a multiple of ``vector_width`` by
+    repeating its last entry: sparse pixels in detector order (lanes of consecutive pixels load
+    and store as vectors), dense pixels sorted by mean charge (lanes take the same branches)."""
+    sparse = mu * float(p.nmd[1] + p.nmd[2]) < sparse_threshold(p)
+    sp = np.flatnonzero(sparse).astype(np.uint32)
+    dn = np.flatnonzero(~sparse).astype(np.uint32)
+    dn = dn[np.argsort(mu[dn], kind="stable")]
+
+    def pad(idx):
+        extra = -idx.size % vector_width
+        return np.concatenate([idx, np.full(extra, idx[-1], np.uint32)]) if extra and idx.size else idx
+    return pad(sp), pad(dn)
+
+
+def _simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None, vector_width=None):
+    """OpenCL twin of :func:`_simulate_block_numpy`: sparse then dense pixels, ``vector_width``
+    pixels per work item (see :func:`_launch_geometry`); the result does not depend on either."""
     from . import opencl
     n, m, d = p.nmd
     npix = mu_frame.size
+    vw, work_group = _launch_geometry(vector_width, work_group)
     key = rng.seed_to_key(seed)
-    kern = _ramp_kernel()
-    d_mu = opencl.to_device(np.ascontiguousarray(mu_frame, dtype=np.float64))
-    d_dead = opencl.to_device(np.ascontiguousarray(dead, dtype=np.uint8))
+    mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
+    lists = _pixel_lists(mu, p, vw)
+    d_mu = opencl.to_device(mu)
     d_sci = opencl.device_buffer(2 * n * npix)
     d_gdq = opencl.device_buffer(n * npix)
-    local = None
-    gsize = npix
-    if work_group:
-        gsize = -(-npix // work_group) * work_group
-        local = (work_group,)
-    opencl.launch(kern, (gsize,), local, d_mu, d_dead, d_sci, d_gdq, np.uint32(npix), np.uint32(pixel0),
-                  np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]), np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron),
-                  np.float64(p.gain), np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well),
-                  np.float64(p.saturation), np.float64(p.sparse_max_group), np.float64(p.gauss_min_mean))
+    common = (np.uint32(npix), np.uint32(pixel0), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]),
+              np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron / math.sqrt(m)), np.float64(p.gain),
+              np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation))
+    for name, idx, extra in (("macc_ramp_sparse", lists[0], ()),
+                             ("macc_ramp_dense", lists[1], (np.float64(p.gauss_min_mean),))):
+        items = idx.size // vw
+        if not items:
+            continue
+        gsize, lsize = (items,), None
+        if work_group:
+            gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
+        opencl.launch(_ramp_kernel(name, vw), gsize, lsize, d_mu, opencl.to_device(idx), np.uint32(items),
+                      d_sci, d_gdq, *common, *extra)
     sci = np.empty((n, npix), np.uint16)
     gdq = np.empty((n, npix), np.uint8)
     opencl.from_device(sci, d_sci)
@@ -267,7 +375,7 @@ def _resolve_backend(backend):
 
 def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=12.0, dark=2.8e-3,
              thermal_dark=0.0, roic_glow=3e-3, gain=1.0, saturation=65535, bias=DEFAULT_BIAS,
-             ktc_noise=0.0, full_well=None, dead_pixels=None, pixeldq=None, sparse_max_group=0.1,
+             ktc_noise=0.0, full_well=None, dead_pixels=None, pixeldq=None, sparse_max_group=None,
              gauss_min_mean=np.inf, compression=None, memory_budget=2**30, truth=True,
              config=None, backend="auto", progress=None, work_group=None, return_dq=False):
     """Simulate raw MACC ramps of a rate image.
@@ -281,9 +389,11 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     roic_glow [e-/frame], gain [ADU/e-], saturation [ADU], bias [ADU], ktc_noise [e-],
     full_well [e-] (default (saturation − bias)/gain)
     dead_pixels : bool (ny, nx) pixels collecting no charge;  pixeldq : uint32 (ny, nx) flags
-    sparse_max_group : expected e- per group below which the exact sparse sampler is used
+    sparse_max_group : expected e- per group below which the sparse sampler is used (None:
+        μ < 1 e-/frame; capped at 64).  Both samplers are exact; this only trades speed.
     gauss_min_mean : Poisson mean above which a rounded Gaussian replaces the exact draw
     memory_budget : bytes of host memory for the row blocks (default 1 GiB)
+    work_group : OpenCL local size (None: 64 on CPUs, the runtime's on GPUs); never changes the result
 
     Returns
     -------
@@ -311,8 +421,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     dead = np.zeros(rate.shape, bool) if dead_pixels is None else np.asarray(dead_pixels, bool)
     if dead.shape != rate.shape:
         raise ValueError("dead_pixels must have the shape of rate")
-    # bytes per pixel in flight: mu + dead + SCI + GDQ (host and device copies)
-    per_row = nx * (8 + 1 + 3 * n) * 2
+    # bytes per pixel in flight: mu + dead + index list + SCI + GDQ (host and device copies)
+    per_row = nx * (8 + 1 + 4 + 3 * n) * 2
     rows = int(max(1, min(ny, memory_budget // per_row)))
     if memory_budget < per_row:
         raise MemoryError(f"memory budget {memory_budget} B is smaller than one detector row "

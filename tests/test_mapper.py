@@ -158,6 +158,10 @@ def test_flux_conservation_total_and_per_slice(mapper, backend="auto"):
         one[:, row] = narrow[:, row]
         img1 = mapper.project_cube(one, LBDA, EDGES, "narrow", backend=backend)
         assert img1.sum() == pytest.approx(narrow[:, row].sum(), rel=1e-12)
+        yy, xx = np.nonzero(img1)                                       # row r <-> slice 58 - r
+        w = img1[yy, xx] / img1.sum()
+        px, py = mapper.forward(58 - row, 0.0, LBDA.mean())
+        assert abs((w * xx).sum() + 0.5 - px) < 3 and abs((w * yy).sum() + 0.5 - py) < 3
 
 
 def test_delta_cube_lands_on_forward_map(mapper):

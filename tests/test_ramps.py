@@ -52,6 +52,88 @@ def test_identical_for_any_work_group_and_chunking(work_group):
     assert np.array_equal(ref, got)
 
 
+@needs_opencl
+@pytest.mark.parametrize("npix", [1, 13, 1001])
+def test_vector_lanes_any_width_and_odd_pixel_counts(npix):
+    """Lane widths 1–16 and work groups 1/3/default give the twin's integers when the pixel count
+    is not a multiple of the width (the last lanes repeat a pixel), with sparse, dense inversion,
+    PTRS, Gaussian, dead and saturating pixels mixed in the same lanes."""
+    gen = np.random.default_rng(npix)
+    rate = 10 ** gen.uniform(-3, 4.5, npix)
+    rate[gen.random(npix) < 0.3] = 0.004                  # dark pixels between bright ones
+    p = RampParameters((6, 4, 2), ktc_noise=5.0, gauss_min_mean=300.0)
+    dead = gen.random(npix) < 0.05
+    ref = _simulate_block_numpy(_mu(rate, p), dead, 5, 1, 99, p)
+    for vw, wg in [(1, None), (2, 3), (4, 1), (8, None), (16, 3), (16, None)]:
+        got = _simulate_block_opencl(_mu(rate, p), dead, 5, 1, 99, p, vector_width=vw, work_group=wg)
+        assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1]), (vw, wg)
+
+
+@needs_opencl
+def test_sparse_full_well_clipping_twin_and_statistics():
+    """A 6 e- full well reached inside sparse windows (the rare clipped branch): kernel = twin, and
+    the clipped group sums and flags have the dense sampler's mean, variance and flag rate."""
+    nmd, npix = (6, 4, 2), 6000
+    kw = dict(full_well=6.0, ron=0.0, bias=0.0, gain=4.0, roic_glow=0.0)   # ADU = sum of the 4 reads
+    ps, pd = RampParameters(nmd, sparse_max_group=64.0, **kw), RampParameters(nmd, sparse_max_group=0.0, **kw)
+    mu = np.full(npix, 0.25)                                   # 1.5 e- per window
+    dead = np.zeros(npix, bool)
+    a = _simulate_block_numpy(mu[:500], dead[:500], 0, 0, 3, ps)
+    b = _simulate_block_opencl(mu[:500], dead[:500], 0, 0, 3, ps)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    (ss, fs), (sd, fd) = (_simulate_block_opencl(mu, dead, 0, 0, 7, q) for q in (ps, pd))
+    assert ss.max() == sd.max() == 24 and fs[-1].mean() > 0.5        # clipped at 4 × 6 e-
+    for g in range(nmd[0]):
+        xs, xd = ss[g].astype(float), sd[g].astype(float)
+        err = math.sqrt((xs.var() + xd.var()) / npix)
+        assert abs(xs.mean() - xd.mean()) < 4 * err + 1e-9
+        assert abs(xs.var() - xd.var()) < 4 * math.sqrt(2.0 / npix) * (xs.var() + xd.var()) / 2 + 1e-9
+        f = (fd[g] == 2).mean()
+        assert abs((fs[g] == 2).mean() - f) < 4 * math.sqrt(2 * f * (1 - f) / npix) + 1e-9
+
+
+@pytest.mark.parametrize("sparse_max_group", [0.0, 64.0])
+def test_group_means_follow_the_poisson_process(sparse_max_group):
+    """No read noise, ADU = Σ of the m reads: E = mμ(s + (m+1)/2), Var = m²μ(s + (m+1)(2m+1)/(6m)),
+    Cov(g < h) = m²μ(s_g + (m+1)/2), s = g(m+d) frames before group g — for both samplers (d > 0:
+    an event in a dropped frame is first seen by the next group)."""
+    nmd, tf, mu, npix = (5, 4, 3), 2.83, 0.3, 40000
+    n, m, d = nmd
+    sci = simulate(np.full((200, 200), mu / tf), nmd, seed=4, ron=0.0, bias=0.0, gain=float(m), dark=0.0,
+                   roic_glow=0.0, sparse_max_group=sparse_max_group)[0].reshape(n, -1).astype(float)
+    for g in range(n):
+        s = g * (m + d)
+        mean, var = m * mu * (s + (m + 1) / 2), m * m * mu * (s + (m + 1) * (2 * m + 1) / (6 * m))
+        assert abs(sci[g].mean() - mean) < 4 * math.sqrt(var / npix), g
+        assert abs(sci[g].var() - var) < 4 * var * math.sqrt(2.0 / npix), g
+    cov = m * m * mu * (1 * (m + d) + (m + 1) / 2)
+    v1, v3 = sci[1].var(), sci[3].var()
+    assert abs(np.cov(sci[1], sci[3])[0, 1] - cov) < 4 * math.sqrt((v1 * v3 + cov**2) / npix)
+
+
+@pytest.mark.parametrize("nmd", [(16, 8, 0), (8, 4, 2)])
+def test_sparse_sampler_slope_variance_matches_rauscher07(nmd):
+    """2 e-/s forced onto the sparse sampler (≈ 45 and 34 e- per window): Rauscher07 within 3 σ."""
+    npix, rate, ron, tf = 22500, 2.0, 12.0, 2.83
+    n, m, d = nmd
+    sci = simulate(np.full((150, 150), rate), nmd, seed=12, ron=ron, dark=0.0, roic_glow=0.0,
+                   sparse_max_group=64.0)[0]
+    tint = (n - 1) * (m + d) * tf
+    est = fit_slopes(sci.reshape(n, -1), nmd, tf) * tint
+    expected = variance_rauscher07(rate, nmd, tf, math.sqrt(ron**2 + m / 12.0), 0.0)
+    var = est.var(ddof=1)
+    assert abs(var - expected) < 3 * var * math.sqrt(2.0 / (npix - 1)), f"{var:.1f} vs {expected:.1f}"
+    assert abs(est.mean() / tint - rate) < 4 * math.sqrt(var / npix) / tint
+
+
+def test_bad_tuning_parameters_are_refused():
+    with pytest.raises(ValueError, match="sparse_max_group"):
+        simulate(np.ones((2, 2)), (3, 1, 0), sparse_max_group=-1.0)
+    if opencl.is_available() and "GPU" not in opencl.device_type():
+        with pytest.raises(ValueError, match="work_group"):
+            simulate(np.ones((2, 2)), (3, 1, 0), backend="opencl", work_group=4096)
+
+
 def test_seed_changes_output_and_same_seed_repeats():
     rate = np.full((8, 9), 3.0)
     a = simulate(rate, (4, 2, 0), seed=1)

@@ -120,7 +120,8 @@ def main(argv):
     disp, k = dispersion_px()
     lam = lbda_nodes(disp)
     table = layout(disp, lam)
-    np.savetxt(OUT, table, fmt=["%d", "%.2f", "%.4f", "%.5f", "%.5f", "%.3f", "%.3f"], header="slice fieldpos lbda x y rmsx_um rmsy_um",
+    np.savetxt(OUT, table, fmt=["%d", "%.2f", "%.4f", "%.5f", "%.5f", "%.3f", "%.3f"],
+               header="slice fieldpos lbda x y rmsx_um rmsy_um",
                comments="")
     print(f"K = {k:.4f}; {lam.size} lbda nodes {lam[0]}-{lam[-1]} um; {table.shape[0]} rows -> {OUT}")
     print(f"x {table[:, 3].min() * 100 + 2048:.1f}-{table[:, 3].max() * 100 + 2048:.1f} px, "
