@@ -42,6 +42,7 @@
 #define RAMP_INV_TABLE 32           /* tabulated CDF terms of the dense inversion */
 #define RAMP_SPARSE_TABLE 3         /* tabulated CDF terms of a full sparse window */
 
+#define RAMP_INLINE inline __attribute__((always_inline))
 #define RAMP_CONVERT_ULONG RNG_PASTE(convert_ulong, RNG_SUFFIX)
 #define RAMP_CONVERT_INT RNG_PASTE(convert_int, RNG_SUFFIX)
 /* masks: comparisons and ! && || give 1/0 for scalars, -1/0 per lane for vectors */
@@ -61,7 +62,7 @@ typedef rng_long ramp_mask;
 
 #if RNG_VW > 1
 /* any lane set: an OR tree (PoCL's any() extracts and branches lane by lane) */
-inline int ramp_any(const rng_long c)
+RAMP_INLINE int ramp_any(const rng_long c)
 {
 #if RNG_VW == 16
     const long8 c8 = c.lo | c.hi;
@@ -87,16 +88,41 @@ __constant double RAMP_LOG_FACTORIAL[10] = {
     0x1.326643c4479cap+2, 0x1.a51273acf01cbp+2, 0x1.10ce1f32dcc30p+3, 0x1.5358e82fcb70cp+3,
     0x1.99a8921a7f7cep+3};
 
-/* Philox block of counter (index, stream, draw), any width. */
-inline void ramp_block(const rng_ulong index, const uint stream, const uint draw, const uint k0, const uint k1,
-                       rng_uint *a, rng_uint *b, rng_uint *c, rng_uint *d)
+/* Philox4x32-10 block of counter (index, stream, draw), any width: the rounds of philox4x32_10
+ * (philox.cl macros) expanded here, as PoCL would otherwise call it out of line with the
+ * vectors passed through memory. */
+RAMP_INLINE void ramp_block(const rng_ulong index, const uint stream, const uint draw, uint k0, uint k1,
+                            rng_uint *pa, rng_uint *pb, rng_uint *pc, rng_uint *pd)
 {
-    philox_counter(index, stream, draw, a, b, c, d);
-    philox4x32_10(a, b, c, d, k0, k1);
+    rng_uint a = rng_convert_uint(index), b = rng_convert_uint(index >> 32), c = (rng_uint)stream,
+             d = (rng_uint)draw;
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
+    PHILOX_ROUND(a, b, c, d, k0, k1)
+    *pa = a; *pb = b; *pc = c; *pd = d;
+}
+
+/* Two N(0,1) draws from one block (cos returned, sin in *z1): box_muller_lanes of philox.cl,
+ * forced inline for the same reason. */
+RAMP_INLINE rng_double ramp_box_muller(const rng_uint a, const rng_uint b, const rng_uint c, const rng_uint d,
+                                       rng_double *z1)
+{
+    const rng_double radius = sqrt(-2.0 * rng_log(philox_u01(a, b)));
+    rng_double s;
+    const rng_double cs = rng_sincos_2pi(philox_u01(c, d), &s);
+    *z1 = radius * s;
+    return radius * cs;
 }
 
 /* exp(x), |x| < 700: the operations of rng_exp (noise.cl, rng.py) at any width */
-inline rng_double ramp_exp(const rng_double x)
+RAMP_INLINE rng_double ramp_exp(const rng_double x)
 {
     const rng_double nn = floor(x * 0x1.71547652b82fep+0 + 0.5);
     const rng_double r = (x - nn * RNG_LN2_HI) - nn * RNG_LN2_LO;
@@ -116,7 +142,7 @@ inline rng_double ramp_exp(const rng_double x)
 }
 
 /* ln k! for integer-valued k >= 0: table below 10, Stirling series above (as noise.cl) */
-inline rng_double ramp_log_factorial(const rng_double k)
+RAMP_INLINE rng_double ramp_log_factorial(const rng_double k)
 {
     const rng_double x = k + 1.0;
     const rng_double r = 1.0 / x;
@@ -136,7 +162,7 @@ inline rng_double ramp_log_factorial(const rng_double k)
 
 /* 52-bit integer of a uniform (as philox_u01) mapped to a frame position in [0, w):
  * (x * w) >> 52, exact integer arithmetic (w <= 4096), uniform to a relative 2^-40. */
-inline rng_double frame_position(const rng_uint hi, const rng_uint lo, const int w)
+RAMP_INLINE rng_double frame_position(const rng_uint hi, const rng_uint lo, const int w)
 {
     const rng_ulong x = (RAMP_CONVERT_ULONG(hi) << 20) | RAMP_CONVERT_ULONG(lo >> 12);
     return rng_convert_double(rng_as_long((x * (ulong)w) >> 52));   /* < 2^12: signed conversion is exact */
@@ -144,7 +170,7 @@ inline rng_double frame_position(const rng_uint hi, const rng_uint lo, const int
 
 /* Position of event k >= 1 of group g: block (g << 32 | pixel, P_SPARSE, 1 + (k-1)/2),
  * words x,y for odd k, z,w for even k (event 0 uses words z,w of draw 0). */
-inline rng_double event_position(const int g, const int k, const int w, const rng_ulong pixv, const uint stream,
+RAMP_INLINE rng_double event_position(const int g, const int k, const int w, const rng_ulong pixv, const uint stream,
                                  const uint k0, const uint k1)
 {
     rng_uint a, b, c, d;
@@ -154,7 +180,7 @@ inline rng_double event_position(const int g, const int k, const int w, const rn
 
 /* Sum over reads j of min(full_well, before + #{events at positions <= j}) for the lanes whose
  * window crosses the full well (rare; O(m K) Philox blocks). */
-inline rng_double clipped_read_sum(const rng_double before, const rng_double K, const rng_double pos0,
+RAMP_INLINE rng_double clipped_read_sum(const rng_double before, const rng_double K, const rng_double pos0,
                                    const int g, const int w, const int m, const double full_well,
                                    const rng_ulong pixv, const uint stream, const uint k0, const uint k1)
 {
@@ -172,7 +198,7 @@ inline rng_double clipped_read_sum(const rng_double before, const rng_double K, 
 }
 
 /* Read noise, rounding, clipping to uint16, flags; stores group g of the lanes. */
-inline void store_group(const int g, const rng_double sum, const rng_double z, const rng_double reset,
+RAMP_INLINE void store_group(const int g, const rng_double sum, const rng_double z, const rng_double reset,
                         ramp_mask *sat, const int m, const double read_sigma, const double gain,
                         const double bias, const double saturation, __global ushort *restrict sci,
                         __global uchar *restrict gdq, const uint *idx, const int contiguous, const size_t npix)
@@ -200,7 +226,7 @@ inline void store_group(const int g, const rng_double sum, const rng_double z, c
 }
 
 /* lanes of work item t: mu (0 for dead pixels), pixel numbers, whether they are consecutive */
-inline int gather_lanes(__global const double *restrict mu_frame, __global const uint *restrict list,
+RAMP_INLINE int gather_lanes(__global const double *restrict mu_frame, __global const uint *restrict list,
                         const size_t t, const uint pixel0, uint *idx, rng_double *mu, rng_ulong *pixv)
 {
     double m[RNG_VW];
@@ -238,14 +264,14 @@ inline int gather_lanes(__global const double *restrict mu_frame, __global const
     return contiguous;
 }
 
-inline rng_double ktc_reset(const double ktc, const rng_ulong pixv, const uint sbase, const uint k0, const uint k1)
+RAMP_INLINE rng_double ktc_reset(const double ktc, const rng_ulong pixv, const uint sbase, const uint k0, const uint k1)
 {
     if (!(ktc > 0.0))
         return 0.0;
     rng_uint a, b, c, d;
     rng_double unused;
     ramp_block(pixv, sbase + P_KTC, 0u, k0, k1, &a, &b, &c, &d);
-    return ktc * box_muller_lanes(a, b, c, d, &unused);
+    return ktc * ramp_box_muller(a, b, c, d, &unused);
 }
 
 #define RAMP_KERNEL_ARGS                                                                            \
@@ -288,7 +314,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
         rng_uint a, b, c, e;
         if ((g & 1) == 0) {
             ramp_block(((ulong)(g >> 1) << 32) | pixv, sbase + P_READ, 0u, k0, k1, &a, &b, &c, &e);
-            z_even = box_muller_lanes(a, b, c, e, &z_odd);
+            z_even = ramp_box_muller(a, b, c, e, &z_odd);
         }
         /* K ~ Poisson(mu w) by inversion of one uniform (words x,y); words z,w place event 0 */
         rng_double K = 0.0, p, cdf, u = 0.0;
@@ -348,7 +374,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
 }
 
 /* PTRS (Hoermann 1993) for the lanes in `lanes`, attempt a keyed by draw a (as noise.cl). */
-inline rng_double ptrs_lanes(const rng_double mu, const ramp_mask lanes, const rng_double log_mu,
+RAMP_INLINE rng_double ptrs_lanes(const rng_double mu, const ramp_mask lanes, const rng_double log_mu,
                              const rng_double a, const rng_double b, const rng_double log_inv_alpha,
                              const rng_double vr, const rng_ulong index, const uint stream, const uint k0,
                              const uint k1)
@@ -446,7 +472,7 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
                 if ((frame & 1) == 0) {
                     rng_uint a, b, c, e;
                     ramp_block(pair, stream, 1u, k0, k1, &a, &b, &c, &e);
-                    zf_even = box_muller_lanes(a, b, c, e, &zf_odd);
+                    zf_even = ramp_box_muller(a, b, c, e, &zf_odd);
                 }
                 const rng_double k = rint(mu + sqrt_mu * ((frame & 1) ? zf_odd : zf_even));
                 inc = RNG_SELECT(inc, RNG_SELECT(k, (rng_double)0.0, !(k > 0.0)), gauss);
@@ -465,7 +491,7 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
         if ((g & 1) == 0) {
             rng_uint a, b, c, e;
             ramp_block(((ulong)(g >> 1) << 32) | pixv, sbase + P_READ, 0u, k0, k1, &a, &b, &c, &e);
-            z_even = box_muller_lanes(a, b, c, e, &z_odd);
+            z_even = ramp_box_muller(a, b, c, e, &z_odd);
         }
         store_group(g, sum, (g & 1) ? z_odd : z_even, reset, &sat, m, read_sigma, gain, bias, saturation,
                     sci, gdq, idx, contiguous, npix);

@@ -270,11 +270,30 @@ class Simulation:
     # ------------------------------------------------------------------ extraction
     @property
     def extraction_model(self):
-        """:class:`ExtractionModel` of the current configuration (cached)."""
-        def build():
-            iy, ix = self.aperture
+        """:class:`ExtractionModel` of the current configuration, Gaussian PSF (cached)."""
+        return self.get_extraction_model("gaussian")
+
+    def aperture_psf(self, psf_profile="gaussian", backend="auto"):
+        """PSF fractions of the aperture cells (nλ, ncell): Gaussian (erf) or Airy (exact
+        sub-cell quadrature, jitter and slice blur; :func:`slicersim.compute_psf.psf_cells`)."""
+        iy, ix = self.aperture
+        if psf_profile in ("gaussian", "default"):
             sig_y, sig_x = self.psf_sigmas
-            psf = gaussian_psf_cells(sig_y, sig_x, self.spectrograph.shape, self.position, (iy, ix))
+            return gaussian_psf_cells(sig_y, sig_x, self.spectrograph.shape, self.position, (iy, ix))
+        if psf_profile != "airy":
+            raise ValueError(f"unknown psf_profile {psf_profile!r}: 'gaussian' or 'airy'")
+        from .compute_psf import auto_oversampling, psf_cells
+        tel, spec = self.telescope, self.spectrograph
+        common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
+                      instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext)
+        return psf_cells(self.lbda, spec.shape, self.position, cells=(iy, ix), profile="airy",
+                         sigma_ref_arcsec=tel.psf_sigma_ref, obscuration=tel.obscuration,
+                         oversampling=auto_oversampling(self.lbda, **common), backend=backend, **common)
+
+    def get_extraction_model(self, psf_profile="gaussian"):
+        """:class:`ExtractionModel` with the cube's PSF model as extraction weights (cached)."""
+        def build():
+            psf = self.aperture_psf(psf_profile)
             lsf = self.spectrograph.apply_lsf
             flux_ph = self.pointsource_flambda * self.flambda_to_photon        # ph/s
             uniform = {"background": lsf(self.background_photons),
@@ -283,10 +302,10 @@ class Simulation:
             signal_rate = lsf(flux_ph * self.qe) * self.detector.gain           # ADU/s
             return ExtractionModel(psf**2, lsf(flux_ph[:, None] * psf, axis=0), uniform, self.qe,
                                    signal_rate)
-        return self._cached("extraction", build)
+        return self._cached(("extraction", psf_profile), build)
 
-    def _spectrum(self, nmd, nramps, off=None):
-        model = self.extraction_model
+    def _spectrum(self, nmd, nramps, off=None, psf_profile="gaussian"):
+        model = self.get_extraction_model(psf_profile)
         tint = readout_times(nmd, self.detector.tframe)["integration_time"]
         var_cell, _ = self.cell_variance(model.cell_rate(off), nmd, off)   # ADU² per ramp
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -295,10 +314,12 @@ class Simulation:
         signal = np.zeros_like(variance) if off == "pointsource" else model.signal_rate * tint * nramps
         return signal, variance
 
-    def get_spectrum(self, nmd=None, nramps=None):
-        """Optimally extracted spectrum: (λ [Å], signal [ADU], variance [ADU²]), all ramps."""
+    def get_spectrum(self, nmd=None, nramps=None, psf_profile="gaussian"):
+        """Optimally extracted spectrum: (λ [Å], signal [ADU], variance [ADU²]), all ramps.
+
+        The extraction weights are the cube's PSF (``"gaussian"`` or ``"airy"``)."""
         nmd, nramps = self._readout(nmd, nramps)
-        signal, variance = self._spectrum(nmd, nramps)
+        signal, variance = self._spectrum(nmd, nramps, psf_profile=psf_profile)
         return self.lbda.copy(), signal, variance
 
     def band_mask(self, lbda_range):
