@@ -201,7 +201,8 @@ RAMP_INLINE rng_double clipped_read_sum(const rng_double before, const rng_doubl
 RAMP_INLINE void store_group(const int g, const rng_double sum, const rng_double z, const rng_double reset,
                         ramp_mask *sat, const int m, const double read_sigma, const double gain,
                         const double bias, const double saturation, __global ushort *restrict sci,
-                        __global uchar *restrict gdq, const uint *idx, const int contiguous, const size_t npix)
+                        __global uchar *restrict gdq, const int write_dq, const uint *idx, const int contiguous,
+                        const size_t npix)
 {
     const rng_double mean = sum / (double)m + read_sigma * z;
     rng_double adu = rint(bias + gain * (reset + mean));
@@ -212,16 +213,18 @@ RAMP_INLINE void store_group(const int g, const rng_double sum, const rng_double
     __global uchar *q = gdq + (size_t)g * npix;
     if (contiguous) {
         RAMP_VSTORE(RAMP_U16(adu), s + idx[0]);
-        RAMP_VSTORE(RAMP_FLAG(*sat), q + idx[0]);
+        if (write_dq)
+            RAMP_VSTORE(RAMP_FLAG(*sat), q + idx[0]);
     } else {
         ushort su[RNG_VW];
         uchar sq[RNG_VW];
         RAMP_VSTORE(RAMP_U16(adu), su);
         RAMP_VSTORE(RAMP_FLAG(*sat), sq);
-        for (int l = 0; l < RNG_VW; ++l) {
+        for (int l = 0; l < RNG_VW; ++l)
             s[idx[l]] = su[l];
-            q[idx[l]] = sq[l];
-        }
+        if (write_dq)
+            for (int l = 0; l < RNG_VW; ++l)
+                q[idx[l]] = sq[l];
     }
 }
 
@@ -280,7 +283,8 @@ RAMP_INLINE rng_double ktc_reset(const double ktc, const rng_ulong pixv, const u
     __global ushort *restrict sci, __global uchar *restrict gdq, /* (n, npix) */                    \
     const uint npix, const uint pixel0, const uint ramp, const uint k0, const uint k1, const int n,  \
     const int m, const int d, const double read_sigma, const double gain, const double bias,        \
-    const double ktc, const double full_well, const double saturation
+    const double ktc, const double full_well, const double saturation,                            \
+    const int write_dq /* 0: GROUPDQ not wanted */
 
 __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
 {
@@ -369,7 +373,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
         sat = sat || full;
         before = RNG_SELECT(total, (rng_double)full_well, full);
         store_group(g, sum, (g & 1) ? z_odd : z_even, reset, &sat, m, read_sigma, gain, bias, saturation,
-                    sci, gdq, idx, contiguous, npix);
+                    sci, gdq, write_dq, idx, contiguous, npix);
     }
 }
 
@@ -494,6 +498,6 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
             z_even = ramp_box_muller(a, b, c, e, &z_odd);
         }
         store_group(g, sum, (g & 1) ? z_odd : z_even, reset, &sat, m, read_sigma, gain, bias, saturation,
-                    sci, gdq, idx, contiguous, npix);
+                    sci, gdq, write_dq, idx, contiguous, npix);
     }
 }

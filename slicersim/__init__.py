@@ -9,7 +9,7 @@ __version__ = "0.1.0"
 
 from .config import ConfigError, load_config
 from .detector import Detector, ReadoutError
-from .scene import Background, Host, PointSource, Scene, SpectrumError
+from .scene import Background, CubeSource, Host, PointSource, Scene, SersicProfile, SpectrumError
 from .search import ETCError
 from .simulation import Simulation
 from .spectrograph import MLASpectrograph, OpticalThroughput, SlicerSpectrograph, Spectrograph
@@ -17,7 +17,7 @@ from .targets import (BlackBody, LazuliBlackBody, LazuliSupernova, LazuliTarget,
                       build_simulation, lazuli_etc, lazuli_sn_etc)
 from .telescope import Telescope
 
-__all__ = ["ConfigError", "load_config", "Detector", "ReadoutError", "Background", "Host", "PointSource",
+__all__ = ["ConfigError", "load_config", "Detector", "ReadoutError", "Background", "Host", "SersicProfile", "CubeSource", "PointSource",
            "Scene", "SpectrumError", "ETCError", "Simulation", "MLASpectrograph", "OpticalThroughput",
            "SlicerSpectrograph", "Spectrograph", "BlackBody", "LazuliBlackBody", "LazuliSupernova",
            "LazuliTarget", "Supernova", "Target", "build_simulation", "lazuli_etc", "lazuli_sn_etc",

@@ -30,16 +30,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .compute import resolve_backend
 from .compute_noise import noisy_cube, seed_from
-from .psf import gaussian_psf_fractions
+from .psf import _erf_cell_fractions, cell_edges, gaussian_psf_fractions
 from .spectrograph import lsf_weights
 
-__all__ = ["CubeResult", "build_cube", "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM", "PATH_ABSENT"]
+__all__ = ["CubeResult", "build_cube", "readout_constants", "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM",
+           "PATH_ABSENT", "FUSED_KERNEL"]
 
 PSF_PROFILES = ("gaussian", "airy")
 PATH_POINT = "psf x spectrum (no 2-D convolution)"
 PATH_UNIFORM = "uniform: no spatial work"
 PATH_ABSENT = "absent: not in the scene"
+FUSED_KERNEL = "fused OpenCL kernel (LSF, QE, signal, variance)"
 HOST_CONV_METHOD = "auto"
 #: float64 temporaries per voxel of a chunk (PSF, point, LSF output, electrons, variance, signal, noise, host)
 _TEMPORARIES_PER_VOXEL = 8
@@ -152,6 +155,35 @@ def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_
     scale = np.ldexp(1.0, int(np.frexp(peak)[1])) if np.isfinite(peak) and peak > 0 else 1.0
     blurred = conv.convolve_cube(flux / scale, kernels, method=method, backend=backend) * scale
     return sim.flambda_to_photon[lo:hi, None, None] * blurred
+
+
+def gaussian_psf_factors(sim, lo, hi):
+    """(fy (n, ny), fx (n, nx)) erf cell fractions of bins lo … hi − 1: P = fy[:, :, None] fx[:, None, :]
+    (the factors of :func:`slicersim.psf.gaussian_psf_fractions`)."""
+    (ny, nx), (x0, y0) = sim.spectrograph.shape, sim.position
+    sig_y, sig_x = sim.psf_sigmas
+    return (_erf_cell_fractions(cell_edges(ny), y0, sig_y[lo:hi]),
+            _erf_cell_fractions(cell_edges(nx), x0, sig_x[lo:hi]))
+
+
+def readout_constants(sim, nmd, nramps):
+    """:class:`slicersim.compute_cube.ReadoutConstants` of a readout: Rauscher07 cell variance
+    V = A + B e [ADU²] (:func:`slicersim.etc.readout_variance_coefficients`) and the saturation
+    test of ``Simulation.cell_variance``."""
+    from .compute_cube import ReadoutConstants
+    from .etc import readout_variance_coefficients
+    det = sim.detector
+    var_a, var_b, _ = readout_variance_coefficients(sim, *nmd)
+    tint = sim.get_times(nmd, nramps)["inttime"]
+    return ReadoutConstants(tint=float(tint), gain=det.gain, nramps=int(nramps), var_a=float(var_a),
+                            var_b=float(var_b), pixels_per_cell=float(sim.spectrograph.pixels_per_cell),
+                            dark=float(sim.effective_dark()), saturation=float(det.saturation))
+
+
+def _use_fused_kernel(sim, backend):
+    """The fused kernel serves the Rauscher07 (linear) variance on an OpenCL backend."""
+    return (resolve_backend(backend) == "opencl"
+            and sim.detector.variance_model.lower().startswith("rauscher"))
 
 
 def _chunk_bins(nl, ny, nx, halo, max_bytes):

@@ -334,9 +334,26 @@ def _pixel_lists(mu, p, vector_width):
     return pad(sp), pad(dn)
 
 
-def _simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None, vector_width=None):
+def _buffer(workspace, name, nbytes):
+    """Device buffer of ≥ nbytes, reused from ``workspace`` (a dict kept across row blocks)."""
+    from . import opencl
+    if workspace is None:
+        return opencl.device_buffer(nbytes)
+    buf, size = workspace.get(name, (None, 0))
+    if size < nbytes:
+        buf, size = opencl.device_buffer(nbytes), nbytes
+        workspace[name] = (buf, size)
+    return buf
+
+
+def _simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None, vector_width=None, *,
+                           want_dq=True, sci_out=None, gdq_out=None, workspace=None):
     """OpenCL twin of :func:`_simulate_block_numpy`: sparse then dense pixels, ``vector_width``
-    pixels per work item (see :func:`_launch_geometry`); the result does not depend on either."""
+    pixels per work item (see :func:`_launch_geometry`); the result does not depend on either.
+
+    want_dq=False skips GROUPDQ (returned as None); sci_out / gdq_out: C-contiguous (n, npix)
+    arrays to fill (default: new ones); workspace: dict reusing device buffers between blocks.
+    """
     from . import opencl
     n, m, d = p.nmd
     npix = mu_frame.size
@@ -344,12 +361,13 @@ def _simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=Non
     key = rng.seed_to_key(seed)
     mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
     lists = _pixel_lists(mu, p, vw)
-    d_mu = opencl.to_device(mu)
-    d_sci = opencl.device_buffer(2 * n * npix)
-    d_gdq = opencl.device_buffer(n * npix)
+    d_mu = opencl.to_device(mu, _buffer(workspace, "mu", mu.nbytes))
+    d_sci = _buffer(workspace, "sci", 2 * n * npix)
+    d_gdq = _buffer(workspace, "gdq", n * npix if want_dq else 1)
     common = (np.uint32(npix), np.uint32(pixel0), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]),
               np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron / math.sqrt(m)), np.float64(p.gain),
-              np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation))
+              np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation),
+              np.int32(bool(want_dq)))
     for name, idx, extra in (("macc_ramp_sparse", lists[0], ()),
                              ("macc_ramp_dense", lists[1], (np.float64(p.gauss_min_mean),))):
         items = idx.size // vw
@@ -358,12 +376,15 @@ def _simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=Non
         gsize, lsize = (items,), None
         if work_group:
             gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
-        opencl.launch(_ramp_kernel(name, vw), gsize, lsize, d_mu, opencl.to_device(idx), np.uint32(items),
-                      d_sci, d_gdq, *common, *extra)
-    sci = np.empty((n, npix), np.uint16)
-    gdq = np.empty((n, npix), np.uint8)
+        d_idx = opencl.to_device(idx, _buffer(workspace, name, idx.nbytes))
+        opencl.launch(_ramp_kernel(name, vw), gsize, lsize, d_mu, d_idx, np.uint32(items), d_sci, d_gdq,
+                      *common, *extra)
+    sci = np.empty((n, npix), np.uint16) if sci_out is None else sci_out
     opencl.from_device(sci, d_sci)
-    opencl.from_device(gdq, d_gdq)
+    gdq = None
+    if want_dq:
+        gdq = np.empty((n, npix), np.uint8) if gdq_out is None else gdq_out
+        opencl.from_device(gdq, d_gdq)
     return sci, gdq
 
 
@@ -432,7 +453,9 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
     backend = _resolve_backend(backend)
     block = _simulate_block_opencl if backend == "opencl" else _simulate_block_numpy
-    kwargs = {"work_group": work_group} if backend == "opencl" else {}
+    kwargs = {}
+    if backend == "opencl":
+        kwargs = {"work_group": work_group, "want_dq": out is not None or return_dq, "workspace": {}}
     steps = [(r, y0) for r in range(p.nramps) for y0 in range(0, ny, rows)]
     if progress is None:
         progress = len(steps) > 4
@@ -456,7 +479,14 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
                 w.write_truth(rate)
         for ramp, y0 in iterator:
             y1 = min(ny, y0 + rows)
-            sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs)
+            direct = {}
+            if w is None and backend == "opencl" and y0 == 0 and y1 == ny:     # whole ramp: no copy
+                direct = {"sci_out": result[ramp].reshape(n, -1)}
+                if result_dq is not None:
+                    direct["gdq_out"] = result_dq[ramp].reshape(n, -1)
+            sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **direct)
+            if direct:
+                continue
             sci = sci.reshape(n, y1 - y0, nx)
             if w is not None:
                 w.write_block(ramp, y0, sci, gdq.reshape(n, y1 - y0, nx))

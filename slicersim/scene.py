@@ -9,7 +9,7 @@ import numpy as np
 
 from .constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
 
-__all__ = ["PointSource", "Background", "Host", "Scene", "SpectrumError", "validate_spectrum",
+__all__ = ["PointSource", "Background", "Host", "SersicProfile", "CubeSource", "Scene", "SpectrumError", "validate_spectrum",
            "snia_spectrum", "blackbody_flambda", "zodiacal_light", "SNCOSMO_SNIA_MODELS"]
 
 #: sncosmo SN Ia sources and whether they work offline (built into sncosmo)
@@ -151,23 +151,15 @@ class Background:
         return zodiacal_light(lbda, self.scale)
 
 
-class Host:
-    """Host galaxy: Sersic profile (index n, r_eff [arcsec], axis ratio, PA [deg],
-    offset [arcsec]) with a spectrum, or a user cube.  Accepted by the scene; its
-    light enters cubes and spectra with the OpenCL cube generator."""
-
-    def __init__(self, lbda=None, flux=None, sersic_index=1.0, r_eff=0.3, axis_ratio=1.0,
-                 position_angle=0.0, offset=(0.0, 0.0), cube=None, name="host"):
-        if lbda is not None:
-            self.lbda_in, self.flux_in = validate_spectrum(lbda, flux, "host spectrum")
-        if not (sersic_index > 0 and r_eff > 0 and 0 < axis_ratio <= 1):
-            raise ValueError("host needs sersic_index > 0, r_eff > 0 and 0 < axis_ratio ≤ 1")
-        self.sersic_index, self.r_eff, self.axis_ratio = sersic_index, r_eff, axis_ratio
-        self.position_angle, self.offset, self.cube, self.name = position_angle, tuple(offset), cube, name
-
-
 class Scene:
     """Container of the point source, background and host (any may be None)."""
 
     def __init__(self, pointsource=None, background=None, host=None):
+        if host is not None and not callable(getattr(host, "flux_cube", None)):
+            raise TypeError("host must provide flux_cube(lbda, shape, spatial_scale) "
+                            "(slicersim.Host or slicersim.CubeSource)")
         self.pointsource, self.background, self.host = pointsource, background, host
+
+
+# extended sources live in slicersim.host (imported last: host.py uses validate_spectrum)
+from .host import CubeSource, Host, SersicProfile  # noqa: E402

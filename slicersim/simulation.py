@@ -31,9 +31,9 @@ class ExtractionModel:
     qe : (nλ,)  [e-/ph];  signal_rate : (nλ,)  LSF[F f2p QE] g  [ADU/s of t_int]
     """
 
-    def __init__(self, psf2, pointsource_ph, uniform_ph, qe, signal_rate):
+    def __init__(self, psf2, pointsource_ph, uniform_ph, qe, signal_rate, host_ph=None):
         self.psf2, self.pointsource_ph, self.uniform_ph = psf2, pointsource_ph, uniform_ph
-        self.qe, self.signal_rate = qe, signal_rate
+        self.qe, self.signal_rate, self.host_ph = qe, signal_rate, host_ph
 
     def cell_rate(self, off=None):
         """Electron rate per aperture cell QE · C [e-/s/cell] with source ``off`` removed."""
@@ -44,6 +44,8 @@ class ExtractionModel:
                 continue
             uniform = uniform + arr
         point = 0.0 if off == "pointsource" else self.pointsource_ph
+        if self.host_ph is not None and off != "host":
+            point = point + self.host_ph
         return self.qe[:, None] * (point + uniform[:, None])
 
 
@@ -300,8 +302,15 @@ class Simulation:
                        "thermal_telescope": lsf(self._thermal_photons("telescope")),
                        "thermal_optics": lsf(self._thermal_photons("optics"))}
             signal_rate = lsf(flux_ph * self.qe) * self.detector.gain           # ADU/s
+            host_ph = None
+            if self.scene.host is not None:                                     # host light: photon noise
+                from .cube import host_photons_block
+                iy, ix = self.aperture
+                profile = "gaussian" if psf_profile in ("gaussian", "default") else psf_profile
+                host_cube = host_photons_block(self, profile, 0, self.lbda.size)  # ph/s/cell, before LSF
+                host_ph = lsf(host_cube[:, iy, ix], axis=0)
             return ExtractionModel(psf**2, lsf(flux_ph[:, None] * psf, axis=0), uniform, self.qe,
-                                   signal_rate)
+                                   signal_rate, host_ph)
         return self._cached(("extraction", psf_profile), build)
 
     def _spectrum(self, nmd, nramps, off=None, psf_profile="gaussian"):
@@ -346,7 +355,7 @@ class Simulation:
         _, total = self._spectrum(nmd, nramps)
         out = {"variance": total}
         for src in VARIANCE_SOURCES:
-            if src == "host":
+            if src == "host" and self.scene.host is None:
                 out[src] = np.zeros_like(total)
                 continue
             _, var_off = self._spectrum(nmd, nramps, off=src)
@@ -364,7 +373,7 @@ class Simulation:
                "snr": _band_snr(signal[mask], total[mask]), "exptime": times["exptime"],
                "inttime": times["inttime"], "obstime": times["total_exposure_time"]}
         for src in VARIANCE_SOURCES:
-            if src == "host":
+            if src == "host" and self.scene.host is None:
                 val = 0.0
             else:
                 val = mean_total - np.nanmean(self._spectrum(nmd, nramps, off=src)[1][mask])

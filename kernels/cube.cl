@@ -1,0 +1,158 @@
+/*
+ * Fused point-source cube: LSF, QE, signal and Rauscher07 variance of a
+ * wavelength chunk in one pass, from small inputs (no product cube).
+ *
+ * For output bin i (global index, i0 <= i < i1), cell (y, x):
+ *
+ *   photons  C = sum_t w_t [ G_j P_j(y, x) + H_j(y, x) ] + U_i     [ph/s/cell]
+ *                j = reflect(i + t - h) (mirror about the outer edges of
+ *                the whole grid of nl bins, as scipy's "reflect")
+ *   electrons e = QE_i C                                           [e-/s/cell]
+ *   signal    S = e t_int g r                                      [ADU]
+ *   variance  V = (A + B e) r                                      [ADU^2]
+ *   saturated   (e / p + D_eff) t_int g > saturation  ->  S = NaN, V = +inf
+ *
+ * P is the separable erf product fy[j, y] fx[j, x] (SEPARABLE=1) or a full
+ * block P[j, y, x] (SEPARABLE=0, e.g. Airy); H (HAS_HOST=1) is an extended
+ * source already blurred by the PSF [ph/s/cell]; HAS_POINT=0 drops G P.
+ * The input blocks hold bins lo .. lo + nb - 1 (the chunk plus the LSF halo).
+ *
+ * NDRange (ceil(nx / VW), ny, i1 - i0): each work item does VW consecutive
+ * cells of a row with explicit vector types (vectorises on PoCL; VW = 1 on
+ * GPUs, where consecutive work items then write consecutive cells).  The
+ * last vector of a row may be partial (nx % VW): it loads and stores the
+ * valid lanes one by one.  Arithmetic in double precision; OUT (double or
+ * float) is only the storage type of signal and variance.
+ */
+
+#if defined(cl_khr_fp64)
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#endif
+
+#ifndef VW
+#define VW 1
+#endif
+#ifndef OUT
+#define OUT double
+#endif
+#ifndef SEPARABLE
+#define SEPARABLE 1
+#endif
+#ifndef HAS_POINT
+#define HAS_POINT 1
+#endif
+#ifndef HAS_HOST
+#define HAS_HOST 0
+#endif
+
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+
+#if VW == 1
+typedef double realv;
+typedef long maskv;
+typedef OUT outv;
+#define VLOAD(o, p) ((p)[o])
+#define VSTORE(x, o, p) ((p)[o] = (x))
+#define TO_OUT(x) ((OUT)(x))
+#define TO_UCHAR(m) ((uchar)((m) != 0))
+#define SELECT(a, b, m) ((m) ? (b) : (a))
+#define GREATER(a, b) ((long)((a) > (b)))
+#elif VW == 2 || VW == 4 || VW == 8 || VW == 16
+typedef CAT(double, VW) realv;
+typedef CAT(long, VW) maskv;
+typedef CAT(OUT, VW) outv;
+#define VLOAD(o, p) CAT(vload, VW)((o), (p))
+#define VSTORE(x, o, p) CAT(vstore, VW)((x), (o), (p))
+#define TO_OUT(x) CAT(convert_, CAT(OUT, VW))(x)
+#define TO_UCHAR(m) CAT(convert_uchar, VW)(-(m))
+#define SELECT(a, b, m) select((a), (b), (m))
+#define GREATER(a, b) isgreater((a), (b))
+#else
+#error "VW must be 1, 2, 4, 8 or 16"
+#endif
+
+/* Index of bin j on a grid of n bins extended by mirror images (period 2n). */
+inline int reflect_index(int j, const int n)
+{
+    const int period = 2 * n;
+    j %= period;
+    if (j < 0)
+        j += period;
+    return j < n ? j : period - 1 - j;
+}
+
+/* VW cells row[x0 .. x0 + VW - 1]; lanes at x >= nx read as 0. */
+inline realv load_cells(__global const double *restrict row, const int x0, const int nx)
+{
+    if (x0 + VW <= nx)
+        return VLOAD(0, row + x0);
+    double lanes[VW];
+    for (int t = 0; t < VW; ++t)
+        lanes[t] = (x0 + t < nx) ? row[x0 + t] : 0.0;
+    return VLOAD(0, lanes);
+}
+
+__kernel void pointsource_cube(
+    __global const double *restrict psf_a,    /* SEPARABLE: fy (nb, ny); else P (nb, ny, nx) */
+    __global const double *restrict psf_b,    /* SEPARABLE: fx (nb, nx); else unused          */
+    __global const double *restrict host,     /* HAS_HOST: H (nb, ny, nx) [ph/s/cell]         */
+    __global const double *restrict rate,     /* (nb,) G = F f2p [ph/s]                       */
+    __global const double *restrict uniform,  /* (nc,) U of the output bins [ph/s/cell]        */
+    __global const double *restrict qe,       /* (nc,) [e-/ph]                                 */
+    __global const double *restrict taps,     /* (2 halo + 1,) LSF weights                     */
+    const int halo, const int nl, const int lo, const int i0, const int ny, const int nx,
+    const double tint, const double gain, const double nramps,
+    const double var_a, const double var_b,   /* V_cell = A + B e per ramp [ADU^2]            */
+    const double pixels_per_cell, const double dark, const double saturation,
+    __global OUT *restrict signal,            /* (nc, ny, nx) [ADU]                            */
+    __global OUT *restrict variance,          /* (nc, ny, nx) [ADU^2]                          */
+    __global uchar *restrict saturated)       /* (nc, ny, nx) 0/1                              */
+{
+    const int x0 = (int)get_global_id(0) * VW;
+    const int y = (int)get_global_id(1);
+    const int c = (int)get_global_id(2);
+    const int i = i0 + c;
+    realv acc = (realv)(0.0);
+    for (int t = 0; t <= 2 * halo; ++t) {
+        const size_t j = (size_t)(reflect_index(i + t - halo, nl) - lo);
+        const size_t cells = (j * (size_t)ny + (size_t)y) * (size_t)nx;
+#if HAS_POINT && SEPARABLE && !HAS_HOST
+        const double a = taps[t] * rate[j] * psf_a[j * (size_t)ny + (size_t)y];
+        acc += a * load_cells(psf_b + j * (size_t)nx, x0, nx);
+#else
+#if HAS_POINT && SEPARABLE
+        realv ph = (rate[j] * psf_a[j * (size_t)ny + (size_t)y]) * load_cells(psf_b + j * (size_t)nx, x0, nx);
+#elif HAS_POINT
+        realv ph = rate[j] * load_cells(psf_a + cells, x0, nx);
+#else
+        realv ph = (realv)(0.0);
+#endif
+#if HAS_HOST
+        ph += load_cells(host + cells, x0, nx);
+#endif
+        acc += taps[t] * ph;
+#endif
+    }
+    const realv e = qe[c] * (acc + uniform[c]);
+    const maskv sat = GREATER(((e / pixels_per_cell + dark) * tint) * gain, (realv)(saturation));
+    const realv s = SELECT(((e * tint) * gain) * nramps, (realv)(NAN), sat);
+    const realv v = SELECT((var_a + var_b * e) * nramps, (realv)(INFINITY), sat);
+    const size_t o = ((size_t)c * (size_t)ny + (size_t)y) * (size_t)nx + (size_t)x0;
+    if (x0 + VW <= nx) {
+        VSTORE(TO_OUT(s), 0, signal + o);
+        VSTORE(TO_OUT(v), 0, variance + o);
+        VSTORE(TO_UCHAR(sat), 0, saturated + o);
+    } else {
+        OUT s_l[VW], v_l[VW];
+        uchar m_l[VW];
+        VSTORE(TO_OUT(s), 0, s_l);
+        VSTORE(TO_OUT(v), 0, v_l);
+        VSTORE(TO_UCHAR(sat), 0, m_l);
+        for (int t = 0; t < nx - x0; ++t) {
+            signal[o + t] = s_l[t];
+            variance[o + t] = v_l[t];
+            saturated[o + t] = m_l[t];
+        }
+    }
+}
