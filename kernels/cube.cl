@@ -44,6 +44,9 @@
 #ifndef HAS_HOST
 #define HAS_HOST 0
 #endif
+#ifndef NTAPS
+#define NTAPS 1
+#endif
 
 #define CAT_(a, b) a##b
 #define CAT(a, b) CAT_(a, b)
@@ -100,59 +103,87 @@ __kernel void pointsource_cube(
     __global const double *restrict rate,     /* (nb,) G = F f2p [ph/s]                       */
     __global const double *restrict uniform,  /* (nc,) U of the output bins [ph/s/cell]        */
     __global const double *restrict qe,       /* (nc,) [e-/ph]                                 */
-    __global const double *restrict taps,     /* (2 halo + 1,) LSF weights                     */
-    const int halo, const int nl, const int lo, const int i0, const int ny, const int nx,
-    const double tint, const double gain, const double nramps,
-    const double var_a, const double var_b,   /* V_cell = A + B e per ramp [ADU^2]            */
-    const double pixels_per_cell, const double dark, const double saturation,
+    __global const double *restrict taps,     /* (NTAPS,) LSF weights, offsets -h .. h         */
+    const int nl, const int lo, const int i0, const int ny, const int nx, const int nvec,
+    const double signal_scale,                /* t_int g r [ADU per e-/s]                      */
+    const double var_a, const double var_b,   /* r A [ADU^2], r B [ADU^2 per e-/s]             */
+    const double e_sat,                       /* saturation rate [e-/s/cell]                    */
     __global OUT *restrict signal,            /* (nc, ny, nx) [ADU]                            */
     __global OUT *restrict variance,          /* (nc, ny, nx) [ADU^2]                          */
     __global uchar *restrict saturated)       /* (nc, ny, nx) 0/1                              */
 {
-    const int x0 = (int)get_global_id(0) * VW;
     const int y = (int)get_global_id(1);
     const int c = (int)get_global_id(2);
     const int i = i0 + c;
-    realv acc = (realv)(0.0);
-    for (int t = 0; t <= 2 * halo; ++t) {
-        const size_t j = (size_t)(reflect_index(i + t - halo, nl) - lo);
-        const size_t cells = (j * (size_t)ny + (size_t)y) * (size_t)nx;
-#if HAS_POINT && SEPARABLE && !HAS_HOST
-        const double a = taps[t] * rate[j] * psf_a[j * (size_t)ny + (size_t)y];
-        acc += a * load_cells(psf_b + j * (size_t)nx, x0, nx);
-#else
-#if HAS_POINT && SEPARABLE
-        realv ph = (rate[j] * psf_a[j * (size_t)ny + (size_t)y]) * load_cells(psf_b + j * (size_t)nx, x0, nx);
-#elif HAS_POINT
-        realv ph = rate[j] * load_cells(psf_a + cells, x0, nx);
-#else
-        realv ph = (realv)(0.0);
-#endif
+    /* per tap: offset of the input row, and the row's scalar factor */
+    size_t row[NTAPS];
+    double coef[NTAPS];
 #if HAS_HOST
-        ph += load_cells(host + cells, x0, nx);
+    size_t cells[NTAPS];
 #endif
-        acc += taps[t] * ph;
+    for (int t = 0; t < NTAPS; ++t) {
+        const size_t j = (size_t)(reflect_index(i + t - NTAPS / 2, nl) - lo);
+#if HAS_HOST
+        cells[t] = (j * (size_t)ny + (size_t)y) * (size_t)nx;
+#endif
+#if HAS_POINT && SEPARABLE
+        row[t] = j * (size_t)nx;
+        coef[t] = rate[j] * psf_a[j * (size_t)ny + (size_t)y];
+#elif HAS_POINT
+        row[t] = (j * (size_t)ny + (size_t)y) * (size_t)nx;
+        coef[t] = rate[j];
+#else
+        row[t] = 0;
+        coef[t] = 0.0;
+#endif
+#if !HAS_HOST
+        coef[t] *= taps[t];                 /* fold the LSF weight into the row factor */
 #endif
     }
-    const realv e = qe[c] * (acc + uniform[c]);
-    const maskv sat = GREATER(((e / pixels_per_cell + dark) * tint) * gain, (realv)(saturation));
-    const realv s = SELECT(((e * tint) * gain) * nramps, (realv)(NAN), sat);
-    const realv v = SELECT((var_a + var_b * e) * nramps, (realv)(INFINITY), sat);
-    const size_t o = ((size_t)c * (size_t)ny + (size_t)y) * (size_t)nx + (size_t)x0;
-    if (x0 + VW <= nx) {
-        VSTORE(TO_OUT(s), 0, signal + o);
-        VSTORE(TO_OUT(v), 0, variance + o);
-        VSTORE(TO_UCHAR(sat), 0, saturated + o);
-    } else {
-        OUT s_l[VW], v_l[VW];
-        uchar m_l[VW];
-        VSTORE(TO_OUT(s), 0, s_l);
-        VSTORE(TO_OUT(v), 0, v_l);
-        VSTORE(TO_UCHAR(sat), 0, m_l);
-        for (int t = 0; t < nx - x0; ++t) {
-            signal[o + t] = s_l[t];
-            variance[o + t] = v_l[t];
-            saturated[o + t] = m_l[t];
+#if HAS_POINT && SEPARABLE
+    __global const double *restrict prow = psf_b;
+#else
+    __global const double *restrict prow = psf_a;
+#endif
+    const double qe_c = qe[c], u_c = uniform[c];
+    const size_t plane = ((size_t)c * (size_t)ny + (size_t)y) * (size_t)nx;
+    for (int v = 0; v < nvec; ++v) {
+        const int x0 = ((int)get_global_id(0) * nvec + v) * VW;
+        if (x0 >= nx)
+            break;
+        realv acc = (realv)(0.0);
+        for (int t = 0; t < NTAPS; ++t) {
+#if HAS_HOST
+#if HAS_POINT
+            const realv ph = coef[t] * load_cells(prow + row[t], x0, nx) + load_cells(host + cells[t], x0, nx);
+#else
+            const realv ph = load_cells(host + cells[t], x0, nx);
+#endif
+            acc += taps[t] * ph;
+#else
+            acc += coef[t] * load_cells(prow + row[t], x0, nx);
+#endif
+        }
+        const realv e = qe_c * (acc + u_c);
+        const maskv sat = GREATER(e, (realv)(e_sat));
+        const realv s = SELECT(e * signal_scale, (realv)(NAN), sat);
+        const realv var = SELECT(var_a + var_b * e, (realv)(INFINITY), sat);
+        const size_t o = plane + (size_t)x0;
+        if (x0 + VW <= nx) {
+            VSTORE(TO_OUT(s), 0, signal + o);
+            VSTORE(TO_OUT(var), 0, variance + o);
+            VSTORE(TO_UCHAR(sat), 0, saturated + o);
+        } else {
+            OUT s_l[VW], v_l[VW];
+            uchar m_l[VW];
+            VSTORE(TO_OUT(s), 0, s_l);
+            VSTORE(TO_OUT(var), 0, v_l);
+            VSTORE(TO_UCHAR(sat), 0, m_l);
+            for (int t = 0; t < nx - x0; ++t) {
+                signal[o + t] = s_l[t];
+                variance[o + t] = v_l[t];
+                saturated[o + t] = m_l[t];
+            }
         }
     }
 }

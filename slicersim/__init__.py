@@ -16,9 +16,10 @@ from .spectrograph import MLASpectrograph, OpticalThroughput, SlicerSpectrograph
 from .targets import (BlackBody, LazuliBlackBody, LazuliSupernova, LazuliTarget, Supernova, Target,
                       build_simulation, lazuli_etc, lazuli_sn_etc)
 from .telescope import Telescope
+from .mapper import SlicerMapper, detector_rate_image
 
 __all__ = ["ConfigError", "load_config", "Detector", "ReadoutError", "Background", "Host", "SersicProfile", "CubeSource", "PointSource",
            "Scene", "SpectrumError", "ETCError", "Simulation", "MLASpectrograph", "OpticalThroughput",
            "SlicerSpectrograph", "Spectrograph", "BlackBody", "LazuliBlackBody", "LazuliSupernova",
            "LazuliTarget", "Supernova", "Target", "build_simulation", "lazuli_etc", "lazuli_sn_etc",
-           "Telescope", "__version__"]
+           "Telescope", "SlicerMapper", "detector_rate_image", "__version__"]

@@ -200,7 +200,7 @@ def _progress_bar(progress, nchunks):
 
 
 def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, max_bytes=300 * 2**20,
-               progress=None, backend="auto", psf_options=None):
+               progress=None, backend="auto", psf_options=None, dtype=np.float64):
     """Signal [ADU], variance [ADU²] and optional noisy cube of ``sim`` (all ramps summed).
 
     Parameters
@@ -211,11 +211,18 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     seed : None (no noisy cube), int in [0, 2⁶⁴) or numpy Generator
     max_bytes : working-memory budget of one λ chunk (the three output cubes come on top)
     progress : None (tqdm bar when more than 4 chunks), True or False
-    backend : "auto" | "opencl" | "numpy", for the noise draw and the Airy/host hooks
+    backend : "auto" | "opencl" | "numpy".  OpenCL with the Rauscher07 variance: LSF, QE, signal,
+        variance and saturation in one fused kernel (:mod:`slicersim.compute_cube`); also the
+        backend of the noise draw and the Airy/host hooks
     psf_options : dict of extra ``compute_psf.psf_cube`` keywords for non-Gaussian profiles
         (e.g. {"grid": "reference", "oversampling": 3} for slicersim 1.0's Airy sampling)
+    dtype : float64 (default) or float32 storage of the signal, variance and noisy cubes
+        (computed in float64 either way; the noise is drawn from the stored values)
     """
     profile = _profile(psf_profile)
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float64, np.float32):
+        raise ValueError(f"dtype must be float64 or float32, got {dtype}")
     times = sim.get_times(nmd, nramps)
     nmd, nramps, tint = times["nmd"], times["nramps"], times["inttime"]
     seed = None if seed is None else seed_from(seed)
@@ -240,9 +247,9 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     gain, qe = sim.detector.gain, sim.qe
     uniform_ph = spec.apply_lsf(sim.background_photons + sim.thermal_photons)      # ph/s/cell, (nλ,)
     shape = (nl, ny, nx)
-    signal, variance = np.empty(shape), np.empty(shape)
+    signal, variance = np.empty(shape, dtype), np.empty(shape, dtype)
     saturated = np.empty(shape, dtype=bool)
-    noisy = None if seed is None else np.empty(shape)
+    noisy = None if seed is None else np.empty(shape, dtype)
 
     if not (has_point or has_host):        # uniform scene: everything is a 1-D spectrum
         electrons = uniform_ph * qe
@@ -250,6 +257,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         signal[...] = (np.where(sat1, np.nan, electrons * tint * gain) * nramps)[:, None, None]
         variance[...] = (var1 * nramps)[:, None, None]
         saturated[...] = sat1[:, None, None]
+        paths["detector"] = "1-D spectrum, broadcast"
         if seed is not None:
             noisy[...] = noisy_cube(signal, variance, seed, backend=backend,
                                     max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx))
@@ -260,24 +268,34 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     step = _chunk_bins(nl, ny, nx, halo, max_bytes)
     starts = range(0, nl, step)
     noise_bytes_per_bin = _NOISE_BYTES_PER_VOXEL * ny * nx          # at least one λ plane per noise call
+    fused = _use_fused_kernel(sim, backend)
+    if fused:
+        from .compute_cube import detector_block
+        readout = readout_constants(sim, nmd, nramps)
+        taps = lsf_weights(spec.lsf_sigma)[1]
+    paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
     bar = _progress_bar(progress, len(starts))
     try:
         for i0 in starts:
             i1 = min(nl, i0 + step)
             lo, hi = max(0, i0 - halo), min(nl, i1 + halo)
-            block = 0.0                                                                   # ph/s/cell
-            if has_point:
-                block = flux_ph[lo:hi, None, None] * psf_block(sim, profile, lo, hi, backend=backend,
-                                                               options=psf_options)
-            if has_host:
-                block = block + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
-            photons = spec.apply_lsf(block, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
-            del block
-            electrons = photons * qe[i0:i1, None, None]                                  # e-/s/cell
-            var1, sat = sim.cell_variance(electrons, nmd)                                 # ADU² per ramp
-            signal[i0:i1] = np.where(sat, np.nan, electrons * tint * gain) * nramps
-            variance[i0:i1] = var1 * nramps
-            saturated[i0:i1] = sat
+            out = (signal[i0:i1], variance[i0:i1], saturated[i0:i1])
+            if fused:
+                point = {}
+                if has_point and profile == "gaussian":
+                    point["psf_y"], point["psf_x"] = gaussian_psf_factors(sim, lo, hi)
+                elif has_point:
+                    point["psf"] = psf_block(sim, profile, lo, hi, backend=backend, options=psf_options)
+                host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
+                        if has_host else None)
+                detector_block(taps, flux_ph[lo:hi] if has_point else None, uniform_ph[i0:i1], qe[i0:i1],
+                               readout, bins=(i0, i1), nl=nl, lo=lo, host=host, out=out, dtype=dtype,
+                               backend="opencl",
+                               **point)
+                del point, host
+            else:
+                _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
+                             psf_options, nmd, tint, nramps, out)
             if seed is not None:
                 noisy[i0:i1] = noisy_cube(signal[i0:i1], variance[i0:i1], seed, backend=backend,
                                           max_bytes=max(max_bytes, noise_bytes_per_bin),
@@ -288,3 +306,22 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         if bar is not None:
             bar.close()
     return CubeResult(signal, variance, noisy, paths, len(starts), lbda.copy(), saturated, profile, seed)
+
+
+def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, backend, psf_options, nmd, tint,
+                 nramps, out):
+    """NumPy oracle of one chunk: photon block, LSF (scipy), QE, ``Simulation.cell_variance``."""
+    (i0, i1), (lo, hi) = bins, block
+    photons = 0.0                                                                    # ph/s/cell
+    if flux_ph is not None:
+        photons = flux_ph[lo:hi, None, None] * psf_block(sim, profile, lo, hi, backend=backend,
+                                                         options=psf_options)
+    if sim.scene.host is not None:
+        photons = photons + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
+    photons = sim.spectrograph.apply_lsf(photons, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
+    electrons = photons * sim.qe[i0:i1, None, None]                                 # e-/s/cell
+    var1, sat = sim.cell_variance(electrons, nmd)                                    # ADU² per ramp
+    signal, variance, saturated = out
+    signal[...] = np.where(sat, np.nan, electrons * tint * sim.detector.gain) * nramps
+    variance[...] = var1 * nramps
+    saturated[...] = sat

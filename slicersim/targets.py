@@ -119,6 +119,18 @@ def _base_grid_range(config):
     return float(lbda[0]), float(lbda[-1])
 
 
+_DEFAULT_MAPPER = []
+
+
+def default_mapper():
+    """The built-in Lazuli detector layout, built once per process (its projection tables
+    are cached inside it, so later detector images are fast)."""
+    if not _DEFAULT_MAPPER:
+        from .mapper import SlicerMapper
+        _DEFAULT_MAPPER.append(SlicerMapper.default())
+    return _DEFAULT_MAPPER[0]
+
+
 class Target:
     """A point source observed with a configured instrument.
 
@@ -248,8 +260,7 @@ class Target:
 
         Dark current, thermal dark and ROIC glow are not included: :meth:`get_ramps`
         adds them to every pixel."""
-        from .mapper import SlicerMapper
-        mapper = SlicerMapper.default() if mapper is None else mapper
+        mapper = default_mapper() if mapper is None else mapper
         cubes = self.get_field_rate_cubes()
         image = np.zeros(mapper.detector_shape)
         for field, (cube, sim) in cubes.items():
