@@ -292,3 +292,31 @@ def test_invalid_rates(rate, err):
 def test_memory_busting_request_is_refused():
     with pytest.raises(MemoryError):
         simulate(np.ones((64, 64)), (64, 8, 0), nramps=100, memory_budget=10_000)
+
+
+def test_full_disk_is_refused_before_writing(tmp_path, monkeypatch):
+    import shutil
+    from collections import namedtuple
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**6, 10**6 - 1000, 1000))
+    out = tmp_path / "big.h5"
+    with pytest.raises(RampFileError, match="disk space"):
+        simulate(np.ones((64, 64)), (8, 1, 0), out=out)
+    assert not list(tmp_path.iterdir())
+
+
+def test_write_error_mid_file_leaves_nothing(tmp_path, monkeypatch):
+    """An OSError while writing (e.g. the disk filling up) ends in RampFileError and no file."""
+    from slicersim import rampio
+    real = rampio.RampWriter.write_block
+    calls = {"n": 0}
+
+    def failing(self, *args, **kw):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RampFileError("writing failed (disk full?): [Errno 28] No space left on device")
+        return real(self, *args, **kw)
+    monkeypatch.setattr(rampio.RampWriter, "write_block", failing)
+    with pytest.raises(RampFileError, match="No space"):
+        simulate(np.ones((16, 8)), (3, 1, 0), out=tmp_path / "r.h5", memory_budget=8 * 8 * 40)
+    assert not list(tmp_path.iterdir())
