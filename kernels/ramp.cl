@@ -24,6 +24,14 @@
  *           (the CDF of the pixel is tabulated once, same values as the
  *           recurrence), PTRS above; optional Gaussian approximation above
  *           gauss_min_mean, rounded and clipped at 0.
+ * Counters (index, stream, draw) of ramp r, pixel p, stream 4r + purpose:
+ *   kTC            (p, P_KTC, 0), cos branch
+ *   read noise     (p | (g/2) << 32, P_READ, 0): cos for even g, sin for odd g
+ *   sparse count   (p | g << 32, P_SPARSE, 0): words x,y the uniform, z,w event 0's frame;
+ *                  event k >= 1: draw 1 + (k-1)/2, words x,y (odd k) or z,w (even k)
+ *   dense frame f  inversion (p | (f/2) << 32, P_POISSON, 0) words x,y (even f) or z,w;
+ *                  Gaussian the same with draw 1, cos / sin; PTRS (p | f << 32,
+ *                  P_POISSON + 2^31, attempt)
  * Charge is clipped at the full well; the m reads of a group are averaged and
  * carry read noise of variance ron^2/m (one Gaussian per group: both Box-Muller
  * outputs of a block serve groups 2k and 2k+1); the reset level adds kTC noise
