@@ -1,28 +1,33 @@
 /*
  * Fused point-source cube: LSF, QE, signal and Rauscher07 variance of a
- * wavelength chunk in one pass, from small inputs (no product cube).
+ * wavelength chunk in one pass, from small inputs (no product cube G P).
  *
  * For output bin i (global index, i0 <= i < i1), cell (y, x):
  *
- *   photons  C = sum_t w_t [ G_j P_j(y, x) + H_j(y, x) ] + U_i     [ph/s/cell]
- *                j = reflect(i + t - h) (mirror about the outer edges of
- *                the whole grid of nl bins, as scipy's "reflect")
- *   electrons e = QE_i C                                           [e-/s/cell]
- *   signal    S = e t_int g r                                      [ADU]
- *   variance  V = (A + B e) r                                      [ADU^2]
- *   saturated   (e / p + D_eff) t_int g > saturation  ->  S = NaN, V = +inf
+ *   photons   C = sum_t w_t [G_j P_j(y, x) + H_j(y, x)] + U_i     [ph/s/cell]
+ *                 j = reflect(i + t - NTAPS/2): mirror about the outer edges
+ *                 of the whole grid of nl bins (scipy's "reflect", period 2 nl)
+ *   electrons e = QE_i C                                          [e-/s/cell]
+ *   signal    S = e t_int g r                                     [ADU]
+ *   variance  V = r A + r B e   (Rauscher07, linear in e)         [ADU^2]
+ *   saturated e > e_sat  ->  S = NaN, V = +inf
  *
  * P is the separable erf product fy[j, y] fx[j, x] (SEPARABLE=1) or a full
  * block P[j, y, x] (SEPARABLE=0, e.g. Airy); H (HAS_HOST=1) is an extended
  * source already blurred by the PSF [ph/s/cell]; HAS_POINT=0 drops G P.
  * The input blocks hold bins lo .. lo + nb - 1 (the chunk plus the LSF halo).
+ * Each voxel's arithmetic depends only on its own inputs, never on the chunk.
  *
- * NDRange (ceil(nx / VW), ny, i1 - i0): each work item does VW consecutive
- * cells of a row with explicit vector types (vectorises on PoCL; VW = 1 on
- * GPUs, where consecutive work items then write consecutive cells).  The
- * last vector of a row may be partial (nx % VW): it loads and stores the
- * valid lanes one by one.  Arithmetic in double precision; OUT (double or
- * float) is only the storage type of signal and variance.
+ * NDRange (ceil(nvec_row / nvec), ny, planes of the launch), nvec_row = ceil(nx / VW):
+ * a work item does nvec consecutive vectors of VW cells of row (y, i) with
+ * explicit vector types.  CPUs (PoCL): VW = preferred double width and a
+ * whole row per work item, so the per-row tap factors are computed once and
+ * the inner loop is NTAPS vector FMAs.  GPUs: VW = 1, nvec = 1, consecutive
+ * work items write consecutive cells.  The last vector of a row may be
+ * partial (nx % VW): fx rows are zero-padded to nxp = whole vectors by the
+ * host; P and H rows are loaded lane by lane there, and outputs stored so.
+ * Arithmetic in double precision; OUT (double or float) is only the storage
+ * type of signal and variance.
  */
 
 #if defined(cl_khr_fp64)
@@ -54,21 +59,17 @@
 #if VW == 1
 typedef double realv;
 typedef long maskv;
-typedef OUT outv;
 #define VLOAD(o, p) ((p)[o])
 #define VSTORE(x, o, p) ((p)[o] = (x))
 #define TO_OUT(x) ((OUT)(x))
-#define TO_UCHAR(m) ((uchar)((m) != 0))
 #define SELECT(a, b, m) ((m) ? (b) : (a))
 #define GREATER(a, b) ((long)((a) > (b)))
 #elif VW == 2 || VW == 4 || VW == 8 || VW == 16
 typedef CAT(double, VW) realv;
 typedef CAT(long, VW) maskv;
-typedef CAT(OUT, VW) outv;
 #define VLOAD(o, p) CAT(vload, VW)((o), (p))
 #define VSTORE(x, o, p) CAT(vstore, VW)((x), (o), (p))
 #define TO_OUT(x) CAT(convert_, CAT(OUT, VW))(x)
-#define TO_UCHAR(m) CAT(convert_uchar, VW)(-(m))
 #define SELECT(a, b, m) select((a), (b), (m))
 #define GREATER(a, b) isgreater((a), (b))
 #else
@@ -78,6 +79,8 @@ typedef CAT(OUT, VW) outv;
 /* Index of bin j on a grid of n bins extended by mirror images (period 2n). */
 inline int reflect_index(int j, const int n)
 {
+    if (j >= 0 && j < n)
+        return j;
     const int period = 2 * n;
     j %= period;
     if (j < 0)
@@ -98,24 +101,24 @@ inline realv load_cells(__global const double *restrict row, const int x0, const
 
 __kernel void pointsource_cube(
     __global const double *restrict psf_a,    /* SEPARABLE: fy (nb, ny); else P (nb, ny, nx) */
-    __global const double *restrict psf_b,    /* SEPARABLE: fx (nb, nx); else unused          */
+    __global const double *restrict psf_b,    /* SEPARABLE: fx (nb, nxp), rows zero-padded    */
     __global const double *restrict host,     /* HAS_HOST: H (nb, ny, nx) [ph/s/cell]         */
     __global const double *restrict rate,     /* (nb,) G = F f2p [ph/s]                       */
     __global const double *restrict uniform,  /* (nc,) U of the output bins [ph/s/cell]        */
     __global const double *restrict qe,       /* (nc,) [e-/ph]                                 */
     __global const double *restrict taps,     /* (NTAPS,) LSF weights, offsets -h .. h         */
-    const int nl, const int lo, const int i0, const int ny, const int nx, const int nvec,
+    const int nl, const int lo, const int i0, const int c0, const int ny, const int nx, const int nxp,
+    const int nvec,
     const double signal_scale,                /* t_int g r [ADU per e-/s]                      */
     const double var_a, const double var_b,   /* r A [ADU^2], r B [ADU^2 per e-/s]             */
-    const double e_sat,                       /* saturation rate [e-/s/cell]                    */
-    __global OUT *restrict signal,            /* (nc, ny, nx) [ADU]                            */
-    __global OUT *restrict variance,          /* (nc, ny, nx) [ADU^2]                          */
-    __global uchar *restrict saturated)       /* (nc, ny, nx) 0/1                              */
+    const double e_sat,                       /* saturation rate [e-/s/cell]                   */
+    __global OUT *restrict signal,            /* planes c0 .. c0 + nplanes - 1 [ADU]           */
+    __global OUT *restrict variance)          /* same planes [ADU^2]                           */
 {
     const int y = (int)get_global_id(1);
-    const int c = (int)get_global_id(2);
+    const int c = c0 + (int)get_global_id(2);  /* output bin i0 + c; stored at plane c - c0 */
     const int i = i0 + c;
-    /* per tap: offset of the input row, and the row's scalar factor */
+    /* per tap: offset of the input row and the row's scalar factor */
     size_t row[NTAPS];
     double coef[NTAPS];
 #if HAS_HOST
@@ -127,7 +130,7 @@ __kernel void pointsource_cube(
         cells[t] = (j * (size_t)ny + (size_t)y) * (size_t)nx;
 #endif
 #if HAS_POINT && SEPARABLE
-        row[t] = j * (size_t)nx;
+        row[t] = j * (size_t)nxp;
         coef[t] = rate[j] * psf_a[j * (size_t)ny + (size_t)y];
 #elif HAS_POINT
         row[t] = (j * (size_t)ny + (size_t)y) * (size_t)nx;
@@ -146,20 +149,19 @@ __kernel void pointsource_cube(
     __global const double *restrict prow = psf_a;
 #endif
     const double qe_c = qe[c], u_c = uniform[c];
-    const size_t plane = ((size_t)c * (size_t)ny + (size_t)y) * (size_t)nx;
+    const size_t plane = ((size_t)get_global_id(2) * (size_t)ny + (size_t)y) * (size_t)nx;
     for (int v = 0; v < nvec; ++v) {
         const int x0 = ((int)get_global_id(0) * nvec + v) * VW;
         if (x0 >= nx)
             break;
         realv acc = (realv)(0.0);
         for (int t = 0; t < NTAPS; ++t) {
-#if HAS_HOST
-#if HAS_POINT
-            const realv ph = coef[t] * load_cells(prow + row[t], x0, nx) + load_cells(host + cells[t], x0, nx);
-#else
-            const realv ph = load_cells(host + cells[t], x0, nx);
-#endif
-            acc += taps[t] * ph;
+#if HAS_HOST && HAS_POINT
+            acc += taps[t] * (coef[t] * load_cells(prow + row[t], x0, nx) + load_cells(host + cells[t], x0, nx));
+#elif HAS_HOST
+            acc += taps[t] * load_cells(host + cells[t], x0, nx);
+#elif SEPARABLE
+            acc += coef[t] * VLOAD(0, prow + row[t] + x0);      /* padded rows: whole vectors */
 #else
             acc += coef[t] * load_cells(prow + row[t], x0, nx);
 #endif
@@ -172,17 +174,13 @@ __kernel void pointsource_cube(
         if (x0 + VW <= nx) {
             VSTORE(TO_OUT(s), 0, signal + o);
             VSTORE(TO_OUT(var), 0, variance + o);
-            VSTORE(TO_UCHAR(sat), 0, saturated + o);
         } else {
             OUT s_l[VW], v_l[VW];
-            uchar m_l[VW];
             VSTORE(TO_OUT(s), 0, s_l);
             VSTORE(TO_OUT(var), 0, v_l);
-            VSTORE(TO_UCHAR(sat), 0, m_l);
             for (int t = 0; t < nx - x0; ++t) {
                 signal[o + t] = s_l[t];
                 variance[o + t] = v_l[t];
-                saturated[o + t] = m_l[t];
             }
         }
     }

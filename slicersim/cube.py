@@ -13,8 +13,17 @@ Photon cube (reference §2.9), ph/s per cell:
 
 Detector (§2.10–2.12), per ramp then × r ramps: electrons = C·QE,
 signal = electrons·t_int·g [ADU] (NaN where saturated), variance from
-``Simulation.cell_variance`` [ADU²] (+inf where saturated).  All physics comes
-from the :class:`~slicersim.simulation.Simulation` methods.
+``Simulation.cell_variance`` [ADU²] (+inf where saturated, and only there).
+All physics comes from the :class:`~slicersim.simulation.Simulation` methods.
+
+Backends: on OpenCL with the Rauscher07 variance (linear in the electron rate,
+V = A + B e), LSF, QE, signal and variance of a chunk are one fused kernel
+(:func:`slicersim.compute_cube.detector_block`) fed with small inputs: the
+Gaussian PSF as its two erf factors (nλ × (ny + nx) values), or the Airy PSF
+block, the spectrum G = F f2p, the host block if any, U, QE and the LSF taps;
+the product cube G·P is never stored.  Its NumPy twin and, for Kubik16 or
+``backend="numpy"``, the NumPy path below (scipy LSF + ``cell_variance``) are
+the oracles; they agree to ~1e-15 of the peak.
 
 The cube is built in wavelength chunks within a memory budget.  The LSF mixes
 ±h = int(4σ + ½) bins, so each chunk is computed on [i0 − h, i1 + h) (clipped
@@ -27,12 +36,13 @@ chunking either.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
 from .compute import resolve_backend
 from .compute_noise import noisy_cube, seed_from
-from .psf import _erf_cell_fractions, cell_edges, gaussian_psf_fractions
+from .psf import gaussian_psf_fractions
 from .spectrograph import lsf_weights
 
 __all__ = ["CubeResult", "build_cube", "readout_constants", "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM",
@@ -53,9 +63,9 @@ _NOISE_BYTES_PER_VOXEL = 160           # NumPy noise draw: ~20 float64 temporari
 class CubeResult:
     """Output of :func:`build_cube`; cubes are (nλ, ny, nx), summed over the ramps.
 
-    signal [ADU] (NaN where saturated), variance [ADU²] (+inf where saturated),
+    signal [ADU] (NaN where saturated), variance [ADU²] (+inf where saturated, and only there),
     noisy [ADU] (None without seed; NaN where saturated), paths: component →
-    computation path, chunks: number of λ chunks, saturated: bool cube.
+    computation path, chunks: number of λ chunks; ``saturated``: bool cube (variance = +inf).
     """
     signal: np.ndarray
     variance: np.ndarray
@@ -63,9 +73,13 @@ class CubeResult:
     paths: dict
     chunks: int
     lbda: np.ndarray = field(repr=False, default=None)
-    saturated: np.ndarray = field(repr=False, default=None)
     psf_profile: str = "gaussian"
     seed: int | None = None
+
+    @cached_property
+    def saturated(self):
+        """Saturated voxels: exactly those with variance = +inf (NaN fluxes give NaN, not inf)."""
+        return np.isposinf(self.variance)
 
     def __iter__(self):
         """Unpack like ``Simulation.get_cube``: (signal, variance[, noisy])."""
@@ -157,15 +171,6 @@ def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_
     return sim.flambda_to_photon[lo:hi, None, None] * blurred
 
 
-def gaussian_psf_factors(sim, lo, hi):
-    """(fy (n, ny), fx (n, nx)) erf cell fractions of bins lo … hi − 1: P = fy[:, :, None] fx[:, None, :]
-    (the factors of :func:`slicersim.psf.gaussian_psf_fractions`)."""
-    (ny, nx), (x0, y0) = sim.spectrograph.shape, sim.position
-    sig_y, sig_x = sim.psf_sigmas
-    return (_erf_cell_fractions(cell_edges(ny), y0, sig_y[lo:hi]),
-            _erf_cell_fractions(cell_edges(nx), x0, sig_x[lo:hi]))
-
-
 def readout_constants(sim, nmd, nramps):
     """:class:`slicersim.compute_cube.ReadoutConstants` of a readout: Rauscher07 cell variance
     V = A + B e [ADU²] (:func:`slicersim.etc.readout_variance_coefficients`) and the saturation
@@ -248,7 +253,6 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     uniform_ph = spec.apply_lsf(sim.background_photons + sim.thermal_photons)      # ph/s/cell, (nλ,)
     shape = (nl, ny, nx)
     signal, variance = np.empty(shape, dtype), np.empty(shape, dtype)
-    saturated = np.empty(shape, dtype=bool)
     noisy = None if seed is None else np.empty(shape, dtype)
 
     if not (has_point or has_host):        # uniform scene: everything is a 1-D spectrum
@@ -256,12 +260,11 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         var1, sat1 = sim.cell_variance(electrons, nmd)
         signal[...] = (np.where(sat1, np.nan, electrons * tint * gain) * nramps)[:, None, None]
         variance[...] = (var1 * nramps)[:, None, None]
-        saturated[...] = sat1[:, None, None]
         paths["detector"] = "1-D spectrum, broadcast"
         if seed is not None:
             noisy[...] = noisy_cube(signal, variance, seed, backend=backend,
                                     max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx))
-        return CubeResult(signal, variance, noisy, paths, 1, lbda.copy(), saturated, profile, seed)
+        return CubeResult(signal, variance, noisy, paths, 1, lbda.copy(), profile, seed)
 
     flux_ph = sim.pointsource_flambda * sim.flambda_to_photon if has_point else None    # ph/s
     halo = lsf_halo(sim)
@@ -270,7 +273,8 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     noise_bytes_per_bin = _NOISE_BYTES_PER_VOXEL * ny * nx          # at least one λ plane per noise call
     fused = _use_fused_kernel(sim, backend)
     if fused:
-        from .compute_cube import detector_block
+        from .compute_cube import GaussianPSF, detector_block
+        sig_y, sig_x = sim.psf_sigmas
         readout = readout_constants(sim, nmd, nramps)
         taps = lsf_weights(spec.lsf_sigma)[1]
     paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
@@ -279,20 +283,19 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         for i0 in starts:
             i1 = min(nl, i0 + step)
             lo, hi = max(0, i0 - halo), min(nl, i1 + halo)
-            out = (signal[i0:i1], variance[i0:i1], saturated[i0:i1])
+            out = (signal[i0:i1], variance[i0:i1])
             if fused:
-                point = {}
+                psf = None
                 if has_point and profile == "gaussian":
-                    point["psf_y"], point["psf_x"] = gaussian_psf_factors(sim, lo, hi)
+                    psf = GaussianPSF(sig_y[lo:hi], sig_x[lo:hi], sim.position, (ny, nx))
                 elif has_point:
-                    point["psf"] = psf_block(sim, profile, lo, hi, backend=backend, options=psf_options)
+                    psf = psf_block(sim, profile, lo, hi, backend=backend, options=psf_options)
                 host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
                         if has_host else None)
                 detector_block(taps, flux_ph[lo:hi] if has_point else None, uniform_ph[i0:i1], qe[i0:i1],
-                               readout, bins=(i0, i1), nl=nl, lo=lo, host=host, out=out, dtype=dtype,
-                               backend="opencl",
-                               **point)
-                del point, host
+                               readout, bins=(i0, i1), nl=nl, lo=lo, psf=psf, host=host, out=out, dtype=dtype,
+                               backend="opencl")
+                del psf, host
             else:
                 _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
                              psf_options, nmd, tint, nramps, out)
@@ -305,7 +308,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     finally:
         if bar is not None:
             bar.close()
-    return CubeResult(signal, variance, noisy, paths, len(starts), lbda.copy(), saturated, profile, seed)
+    return CubeResult(signal, variance, noisy, paths, len(starts), lbda.copy(), profile, seed)
 
 
 def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, backend, psf_options, nmd, tint,
@@ -321,7 +324,6 @@ def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, ba
     photons = sim.spectrograph.apply_lsf(photons, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
     electrons = photons * sim.qe[i0:i1, None, None]                                 # e-/s/cell
     var1, sat = sim.cell_variance(electrons, nmd)                                    # ADU² per ramp
-    signal, variance, saturated = out
+    signal, variance = out
     signal[...] = np.where(sat, np.nan, electrons * tint * sim.detector.gain) * nramps
     variance[...] = var1 * nramps
-    saturated[...] = sat

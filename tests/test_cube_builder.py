@@ -6,6 +6,7 @@ changes the rounding, ~1e-16); against the slicersim 1.0.0 reference cubes
 1e-6 of the peak (as tests/test_reference_cases.py; measured ~2e-8, set by the
 reference's rounded h c).  Chunked and unchunked cubes must be bit-identical.
 """
+import copy
 import importlib.util
 import json
 import math
@@ -263,3 +264,171 @@ def test_reference_airy_cube_through_the_hook(refdir):
     res = build_cube(target.simulation, nmd=tuple(readout["nmd"]), nramps=readout["nramps"], progress=False,
                      psf_profile="airy", psf_options={"grid": "reference"})
     _check_reference_cube(meta, arr, res, "airy")
+
+
+# --------------------------------------------------------------------------- fused kernel (compute_cube)
+# Tolerances: kernel vs NumPy twin 1e-13 of the peak (measured ~5e-16: summation order and FMA
+# contraction only); chunked vs unchunked kernel output must be bit-identical.
+from scipy.ndimage import correlate1d  # noqa: E402
+
+from slicersim.compute_cube import (GaussianPSF, ReadoutConstants, default_vector_width,  # noqa: E402
+                                    detector_block, reflect_indices)
+from slicersim.cube import FUSED_KERNEL, readout_constants  # noqa: E402
+from slicersim.spectrograph import lsf_index_weights, lsf_weights  # noqa: E402
+
+needs_opencl = pytest.mark.skipif(resolve_backend("auto") != "opencl",
+                                  reason="no OpenCL device with fp64: the fused-kernel tests need one")
+RO = ReadoutConstants(tint=181.1, gain=1.3, nramps=3, var_a=41.0, var_b=0.62, pixels_per_cell=2.0,
+                      dark=0.011, saturation=3.0e5)
+
+
+def _inputs(rng, nl=29, ny=7, nx=19, halo=4, e_peak=2.0e4):
+    """Random block: odd sizes, photon rates reaching above saturation (RO: 2548 e-/s/cell)."""
+    taps = rng.random(2 * halo + 1) + 0.2
+    taps /= taps.sum()
+    fy, fx = rng.random((nl, ny)), rng.random((nl, nx))
+    rate = e_peak * (0.2 + rng.random(nl))
+    return dict(taps=taps, rate=rate, uniform=rng.random(nl), qe=0.3 + 0.7 * rng.random(nl),
+                fy=fy, fx=fx, full=0.5 * rng.random((nl, ny, nx)), host=50.0 * rng.random((nl, ny, nx)),
+                gauss=GaussianPSF(0.3 + 0.4 * rng.random(nl), 0.3 + rng.random(nl), (1.0, -1.0), (ny, nx)))
+
+
+def _run(d, psf_kind, with_host=False, bins=None, lo=0, backend="numpy", **kw):
+    nl = d["rate"].size
+    i0, i1 = bins or (0, nl)
+    hi = min(nl, i1 + d["taps"].size // 2) if bins else nl
+    sl = slice(lo, hi)
+    psf = {"factors": lambda: (d["fy"][sl], d["fx"][sl]), "full": lambda: d["full"][sl], "none": lambda: None,
+           "gauss": lambda: GaussianPSF(d["gauss"].sig_y[sl], d["gauss"].sig_x[sl], d["gauss"].position,
+                                        d["gauss"].shape)}[psf_kind]()
+    return detector_block(d["taps"], None if psf is None else d["rate"][sl], d["uniform"][i0:i1], d["qe"][i0:i1],
+                          RO, bins=(i0, i1), nl=nl, lo=lo, psf=psf,
+                          host=d["host"][sl] if with_host else None, backend=backend, **kw)
+
+
+def test_twin_lsf_reflect_and_readout_physics():
+    """NumPy twin against independent oracles: scipy's reflect LSF (also for a grid shorter than the
+    LSF, several mirror images), the reflect indices of spectrograph.lsf_index_weights, signal =
+    e t_int g r, variance = r (A + B e), saturation at e_sat, NaN (not inf) for a NaN flux."""
+    rng = np.random.default_rng(7)
+    for nl, halo in ((29, 3), (3, 4)):
+        d = _inputs(rng, nl=nl, halo=halo)
+        assert np.array_equal(reflect_indices((0, nl), nl, halo), lsf_index_weights(nl, halo / 4.0)[0])
+        signal, variance = _run(d, "full")
+        e = (correlate1d(d["rate"][:, None, None] * d["full"], d["taps"], axis=0, mode="reflect")
+             + d["uniform"][:, None, None]) * d["qe"][:, None, None]
+        sat = e > RO.saturation_rate
+        assert 0 < sat.mean() < 0.9 and RO.saturation_rate == pytest.approx(
+            2.0 * (3.0e5 / (181.1 * 1.3) - 0.011))
+        assert np.array_equal(np.isnan(signal), sat) and np.array_equal(np.isposinf(variance), sat)
+        ok = ~sat
+        assert np.allclose(signal[ok], (e * 181.1 * 1.3 * 3)[ok], rtol=1e-14, atol=0)
+        assert np.allclose(variance[ok], (3 * (41.0 + 0.62 * e))[ok], rtol=1e-14, atol=0)
+    # a flat spectrum through a flat PSF block is unchanged by the (normalised, reflecting) LSF
+    d = _inputs(rng)
+    d["rate"][:] = 1.0
+    d["full"][:] = d["full"][0]
+    signal, _ = _run(d, "full")
+    e = (d["full"][0] + d["uniform"][:, None, None]) * d["qe"][:, None, None]
+    assert np.allclose(signal, e * RO.signal_scale, rtol=1e-14, equal_nan=True)
+    d["rate"][5] = np.nan                                          # NaN flux: NaN, never "saturated"
+    signal, variance = _run(d, "full")
+    reach = np.unique(np.nonzero(reflect_indices((0, 29), 29, 4) == 5)[0])
+    assert np.isnan(signal[reach]).all() and np.isnan(variance[reach]).all()
+    assert not np.isinf(variance[reach]).any()
+
+
+@needs_opencl
+@pytest.mark.parametrize("psf_kind,with_host", [("gauss", False), ("factors", False), ("full", False),
+                                                 ("factors", True), ("none", True)])
+def test_fused_kernel_matches_twin(psf_kind, with_host):
+    rng = np.random.default_rng(11)
+    d = _inputs(rng)
+    twin = _run(d, psf_kind, with_host)
+    widths = {default_vector_width()} | ({1, 2} if psf_kind == "factors" and not with_host else set())
+    for vw in sorted(widths):              # nx = 19: partial last vector for vw > 1; vw = 1 as on GPUs
+        signal, variance = _run(d, psf_kind, with_host, backend="opencl", vector_width=vw,
+                                row_per_item=vw != 1)
+        assert _peak_err(signal, twin[0]) < 1e-13
+        assert np.array_equal(np.isposinf(variance), np.isposinf(twin[1]))
+        assert np.isposinf(variance).any() == (psf_kind != "none")       # the host alone stays faint
+        fin = np.isfinite(twin[1])
+        assert np.max(np.abs(variance[fin] - twin[1][fin])) < 1e-13 * np.max(twin[1][fin])
+
+
+@needs_opencl
+def test_fused_kernel_chunking_float32_and_checks():
+    """Chunks with their LSF halos (grid ends included) are bit-identical to one launch; float32
+    storage is the float64 result rounded; inputs that miss the halo are refused."""
+    rng = np.random.default_rng(3)
+    d = _inputs(rng, nl=31, halo=4)
+    whole = _run(d, "gauss", backend="opencl")
+    for i0, i1 in ((0, 5), (5, 17), (17, 26), (26, 31), (3, 4)):
+        lo = max(0, i0 - 4)
+        part = _run(d, "gauss", bins=(i0, i1), lo=lo, backend="opencl")
+        assert np.array_equal(part[0], whole[0][i0:i1], equal_nan=True)
+        assert np.array_equal(part[1], whole[1][i0:i1])
+    single = _run(d, "gauss", backend="opencl", dtype=np.float32)
+    assert single[0].dtype == np.float32
+    assert np.array_equal(single[0], whole[0].astype(np.float32), equal_nan=True)
+    assert np.array_equal(single[1], whole[1].astype(np.float32))
+    with pytest.raises(ValueError, match="reaches"):
+        _run(d, "gauss", bins=(10, 20), lo=7, backend="opencl")
+    with pytest.raises(ValueError, match="odd"):
+        detector_block(np.ones(4), None, [1.0], [1.0], RO, bins=(0, 1), nl=1, lo=0, host=np.ones((1, 2, 2)))
+
+
+@needs_opencl
+@pytest.mark.skipif(importlib.util.find_spec("slicersim.compute_psf") is None,
+                    reason="slicersim.compute_psf not available yet")
+def test_fused_kernel_airy_block(narrow_band_sim):
+    """A real Airy PSF block (non-separable) through the kernel and its twin; build_cube's fused
+    path against its NumPy path (1e-12: compute_psf's two backends differ by ~1e-14)."""
+    from slicersim.cube import psf_block
+    sim = narrow_band_sim
+    nl, halo = sim.lbda.size, lsf_halo(sim)
+    psf = psf_block(sim, "airy", 0, nl)
+    taps = lsf_weights(sim.spectrograph.lsf_sigma)[1]
+    args = (taps, sim.pointsource_flambda * sim.flambda_to_photon, np.zeros(nl), sim.qe,
+            readout_constants(sim, (16, 8, 0), 2))
+    kern = detector_block(*args, bins=(0, nl), nl=nl, lo=0, psf=psf, backend="opencl")
+    twin = detector_block(*args, bins=(0, nl), nl=nl, lo=0, psf=psf, backend="numpy")
+    assert _peak_err(kern[0], twin[0]) < 1e-13 and _peak_err(kern[1], twin[1]) < 1e-13
+    assert halo == taps.size // 2
+    fused = build_cube(sim, **READOUT, psf_profile="airy", progress=False)
+    oracle = build_cube(sim, **READOUT, psf_profile="airy", progress=False, backend="numpy")
+    assert fused.paths["detector"] == FUSED_KERNEL != oracle.paths["detector"]
+    assert _peak_err(fused.signal, oracle.signal) < 1e-12 and _peak_err(fused.variance, oracle.variance) < 1e-12
+
+
+def test_paths_kubik_and_float32(sim, cube):
+    """Kubik16 (non-linear variance) keeps the NumPy path; float32 storage rounds the float64 cube."""
+    assert cube.paths["detector"] == (FUSED_KERNEL if resolve_backend("auto") == "opencl"
+                                      else "NumPy (LSF, QE, signal, variance)")
+    detector = copy.deepcopy(sim.detector)
+    detector.update(variance_model="Kubik16")
+    kubik = Simulation(sim.scene, sim.telescope, sim.spectrograph, detector)
+    res = build_cube(kubik, **READOUT, progress=False)
+    assert res.paths["detector"].startswith("NumPy")
+    signal, variance = kubik.get_cube_numpy(**READOUT)
+    assert _peak_err(res.signal, signal) < 1e-12 and _peak_err(res.variance, variance) < 1e-12
+    assert _peak_err(res.variance, cube.variance) > 1e-3                  # a different variance model
+    single = build_cube(sim, **READOUT, progress=False, dtype=np.float32, seed=2024)
+    assert single.signal.dtype == single.variance.dtype == single.noisy.dtype == np.float32
+    assert np.allclose(single.signal, cube.signal, rtol=1e-7, atol=0)
+    assert np.allclose(single.variance, cube.variance, rtol=1e-7, atol=0)
+    with pytest.raises(ValueError, match="dtype"):
+        build_cube(sim, dtype=np.int32)
+
+
+def test_gaussian_factors_bit_identical_to_psf_module():
+    """GaussianPSF.factors skips erf where |z| ≥ 6 (erf = ±1 exactly): P = fy fx must equal
+    slicersim.psf.gaussian_psf_fractions bit for bit, and hold the flux inside the field."""
+    from slicersim.psf import gaussian_psf_fractions
+    rng = np.random.default_rng(5)
+    sig_y, sig_x = 0.05 + 3 * rng.random(40), 0.05 + 3 * rng.random(40)
+    for shape, position in (((58, 116), (0.0, 0.0)), ((7, 19), (1.37, -2.6)), ((9, 4), (30.0, 0.2))):
+        fy, fx = GaussianPSF(sig_y, sig_x, position, shape).factors()
+        assert np.array_equal(fy[:, :, None] * fx[:, None, :], gaussian_psf_fractions(sig_y, sig_x, shape, position))
+    fy, fx = GaussianPSF(sig_y, sig_x, (0.0, 0.0), (58, 116)).factors()
+    assert np.allclose(fy.sum(1) * fx.sum(1), 1.0, atol=1e-12)        # σ ≤ 3 cells: nothing lost
