@@ -235,6 +235,14 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     lbda = sim.lbda
     nl, (ny, nx) = lbda.size, spec.shape
     has_point, has_host = scene.pointsource is not None, scene.host is not None
+    if has_point:
+        uncovered = np.isnan(sim.pointsource_flambda)
+        if uncovered.any():
+            import warnings
+            ps = scene.pointsource
+            warnings.warn(f"the point-source spectrum covers {ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å only: "
+                          f"{int(uncovered.sum())} of {uncovered.size} bins (and their LSF neighbours) are NaN "
+                          "in the cube", RuntimeWarning, stacklevel=2)
     paths = {"pointsource": PATH_POINT if has_point else PATH_ABSENT,
              "background": PATH_UNIFORM if scene.background is not None else PATH_ABSENT,
              "thermal": PATH_UNIFORM,

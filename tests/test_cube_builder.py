@@ -432,3 +432,18 @@ def test_gaussian_factors_bit_identical_to_psf_module():
         assert np.array_equal(fy[:, :, None] * fx[:, None, :], gaussian_psf_fractions(sig_y, sig_x, shape, position))
     fy, fx = GaussianPSF(sig_y, sig_x, (0.0, 0.0), (58, 116)).factors()
     assert np.allclose(fy.sum(1) * fx.sum(1), 1.0, atol=1e-12)        # σ ≤ 3 cells: nothing lost
+
+
+def test_zero_and_partial_spectra():
+    """A zero spectrum gives the source-free cube (no NaN); a partial one warns about its NaN bins."""
+    zero = LazuliTarget(LBDA_IN, np.zeros_like(LBDA_IN)).simulation
+    none = LazuliTarget(LBDA_IN, np.zeros_like(LBDA_IN)).simulation
+    none.scene.pointsource = None
+    none._cache.clear()
+    a = build_cube(zero, **READOUT, progress=False)
+    b = build_cube(none, **READOUT, progress=False)
+    assert np.isfinite(a.signal).all() and np.array_equal(a.signal, b.signal)
+    part = LazuliTarget(LBDA_IN[LBDA_IN < 12000], np.ones(np.count_nonzero(LBDA_IN < 12000)) * 1e-17)
+    with pytest.warns(RuntimeWarning, match="NaN"):
+        res = build_cube(part.simulation, **READOUT, progress=False)
+    assert np.isnan(res.signal[-1]).all() and np.isfinite(res.signal[0]).all()
