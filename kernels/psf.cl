@@ -9,9 +9,12 @@
  *                   Gaussian integrated exactly over each cell (erf product).
  * airy_rows         Airy intensity of an annular pupil at the sub-samples fused
  *                   with the banded contraction along y (jitter + binning);
+ *                   equal |dx| (mirror blocks) and |dy| (shared rows) are
+ *                   evaluated once; unobscured pupils use jinc_squared(v^2);
  *                   airy_subsamples + blur_bin_rows do the same in two passes
  *                   when the jitter margin is too wide for registers.
- * blur_bin_cols     banded contraction along x: jitter and blur + binning.
+ * blur_bin_cols     banded contraction along x: jitter and blur + binning
+ *                   (mirrored output blocks stored reversed).
  * bessel_j1_values  J1(x) with the approximation below (for tests).
  *
  * J1: OpenCL C has no Bessel functions.  2 J1(v)/v is evaluated as
@@ -187,6 +190,52 @@ inline realv jinc(const realv v)
     return big;
 }
 
+/*
+ * (2 J1(v)/v)^2 from v^2 (unobscured pupil): the series needs only v^2, and
+ * for v >= JINC_SWITCH (2 J1(v)/v)^2 = 8 / (pi v^3) [P cos(v - 3pi/4) - Q sin(...) / v]^2
+ * needs one sqrt and one division (no rsqrt): a sqrt costs as much as a
+ * good part of the rest of a sub-sample on CPUs.
+ */
+inline realv jinc_series_t(const realv t)      /* 2 J1(v)/v, t = v^2 / 4 */
+{
+    realv s = (realv)(JINC_SERIES[27]);
+    for (int k = 26; k >= 0; --k)
+        s = fma(s, t, (realv)(JINC_SERIES[k]));
+    return s;
+}
+
+inline realv jinc_squared_hankel(const realv v2)
+{
+    const realv v = sqrt(fmax(v2, (realv)(JINC_SWITCH * JINC_SWITCH)));
+    const realv rv = 1.0 / v;
+    const realv z = rv * rv;
+    realv p = (realv)(HANKEL_P[9]);
+    realv q = (realv)(HANKEL_Q[9]);
+    for (int m = 8; m >= 0; --m) {
+        p = fma(p, z, (realv)(HANKEL_P[m]));
+        q = fma(q, z, (realv)(HANKEL_Q[m]));
+    }
+    realv c;
+    const realv s = sin_cos(v - 2.356194490192345, &c);          /* 3 pi / 4 */
+    const realv h = p * c - q * rv * s;
+    return 2.5464790894703255 * (z * rv) * (h * h);                /* 8 / pi */
+}
+
+inline realv jinc_squared(const realv v2)
+{
+    const double sw2 = JINC_SWITCH * JINC_SWITCH;
+    if (!ANY(v2 >= sw2)) {
+        const realv g = jinc_series_t(0.25 * v2);
+        return g * g;
+    }
+    const realv big = jinc_squared_hankel(v2);
+    if (ANY(v2 < sw2)) {
+        const realv g = jinc_series_t(0.25 * v2);
+        return (v2 < sw2) ? g * g : big;
+    }
+    return big;
+}
+
 __kernel void bessel_j1_values(__global const double *restrict x, __global double *restrict out)
 {
     const int i = get_global_id(0);
@@ -231,13 +280,35 @@ __kernel void airy_subsamples(
     VSTORE(pref[l] * g * g, 0, S + row + (size_t)uv * VW);
 }
 
+#if VW == 1
+#define REVERSE(v) (v)
+#elif VW == 2
+#define REVERSE(v) ((v).s10)
+#elif VW == 4
+#define REVERSE(v) ((v).s3210)
+#elif VW == 8
+#define REVERSE(v) ((v).s76543210)
+#else
+#define REVERSE(v) ((v).sfedcba9876543210)
+#endif
+
 #ifdef NA
 /*
  * airy_subsamples fused with blur_bin_rows (S never goes to memory):
  *   U[l, j, u] = sum_{a < NA} sum_{b < o} ky[o a + b] S(l, row o (j + a) + b, u)
- * Each work item walks down its VW columns; acc[a] accumulates output row
- * c - a while window cell row c is processed (NA = 2 m_y + 1 is a build
- * option, so the accumulators stay in registers).  Global (nxs / VW, nl).
+ * Each work item walks down one block of VW columns; acc[a] accumulates output
+ * row c - a while window cell row c is processed (NA = 2 m_y + 1 is a build
+ * option, so the accumulators stay in registers).  Global (nw, nl).
+ *
+ * The Airy intensity depends on |dx| and |dy| only, so equal offsets are
+ * evaluated once (a source centred in a symmetric window: 4x fewer J1):
+ *   x: xblocks[2 w] is the block (VW columns) of work item w, xblocks[2 w + 1]
+ *      the block holding the same |dx| in reverse lane order (or -1): U of
+ *      the mirror block is U of the block reversed (the row contraction is
+ *      the same linear map of the same samples).
+ *   y: yslot[i] = -1: evaluate row i; 2 s: evaluate and keep it in slot s of
+ *      the scratch T; 2 s + 1: row i has the |dy| of slot s, read it back
+ *      (rows are walked in order, so a slot is written before it is read).
  */
 __kernel void airy_rows(
     __global const double *restrict dx,     /* (nxs,) */
@@ -245,39 +316,62 @@ __kernel void airy_rows(
     __global const double *restrict kwave,  /* (nl,) */
     __global const double *restrict pref,   /* (nl,) */
     __global const double *restrict ky,     /* (o * NA,) */
+    __global const int *restrict xblocks,   /* (nw, 2) */
+    __global const int *restrict yslot,     /* (o * (nyo + NA - 1),) */
     const double eps,
     const int o,
     const int nyo,
     const int nxs,
+    const int nslot,
+    __global double *restrict T,            /* scratch (nl, nslot, nw VW) */
     __global double *restrict U)            /* (nl, nyo, nxs) */
 {
-    const int uv = get_global_id(0);
+    const int w = get_global_id(0);
     const int l = get_global_id(1);
+    const int nw = get_global_size(0);
+    const int blk = xblocks[2 * w];
+    const int mir = xblocks[2 * w + 1];
     const double k = kwave[l];
     const double pf = pref[l];
     const double e2 = eps * eps;
-    const realv x = VLOAD(uv, dx);
+    const double k2 = k * k;
+    const realv x = VLOAD(blk, dx);
     const realv x2 = x * x;
     realv acc[NA];
     for (int a = 0; a < NA; ++a)
         acc[a] = (realv)(0.0);
-    __global double *dst = U + (size_t)l * (size_t)nyo * (size_t)nxs + (size_t)uv * VW;
+    __global double *dst = U + (size_t)l * (size_t)nyo * (size_t)nxs;
+    __global double *scr = T + ((size_t)l * (size_t)nslot * (size_t)nw + (size_t)w) * VW;
+    const size_t slot_stride = (size_t)nw * VW;
     const int ncy = nyo + NA - 1;
     for (int c = 0; c < ncy; ++c) {
         for (int b = 0; b < o; ++b) {
-            const double y = dy[c * o + b];
-            const realv w = k * sqrt(x2 + y * y);
-            realv g = jinc(w);
-            if (eps > 0.0)
-                g = (g - e2 * jinc(eps * w)) / (1.0 - e2);
-            const realv sv = pf * g * g;
+            const int code = yslot[c * o + b];
+            realv sv;
+            if (code >= 0 && (code & 1)) {
+                sv = VLOAD(0, scr + (size_t)(code >> 1) * slot_stride);
+            } else {
+                const double y = dy[c * o + b];
+                if (eps > 0.0) {
+                    const realv wv = k * sqrt(x2 + y * y);
+                    const realv g = (jinc(wv) - e2 * jinc(eps * wv)) / (1.0 - e2);
+                    sv = pf * g * g;
+                } else {
+                    sv = pf * jinc_squared(k2 * (x2 + y * y));
+                }
+                if (code >= 0)
+                    VSTORE(sv, 0, scr + (size_t)(code >> 1) * slot_stride);
+            }
 #pragma unroll
             for (int a = 0; a < NA; ++a)
                 acc[a] = fma((realv)(ky[o * a + b]), sv, acc[a]);
         }
         const int j = c - (NA - 1);           /* output row now complete */
-        if (j >= 0)
-            VSTORE(acc[NA - 1], 0, dst + (size_t)j * (size_t)nxs);
+        if (j >= 0) {
+            VSTORE(acc[NA - 1], 0, dst + (size_t)j * (size_t)nxs + (size_t)blk * VW);
+            if (mir >= 0)
+                VSTORE(REVERSE(acc[NA - 1]), 0, dst + (size_t)j * (size_t)nxs + (size_t)mir * VW);
+        }
 #pragma unroll
         for (int a = NA - 1; a > 0; --a)
             acc[a] = acc[a - 1];
@@ -315,30 +409,56 @@ __kernel void blur_bin_rows(
 /*
  * Along x the sub-samples of a row are stored de-interleaved: the sub-sample
  * at node b of window cell c sits at b * ncx + c.  Then
- *   P[l, j, k] = sum_{b < o} sum_{a < na} kx[o a + b] U[l, j, b ncx + k + a]
+ *   P[l, j, k] = sum_{b < o} sum_{a < na} kx[o a + b] U[l, j, b ncx + xoff + k + a]
  * reads contiguous vectors for VW consecutive output cells k.
- * Global (nxo / VW, nyo, nl); output row stride nxo (padded to VW).
+ * oblocks[2 w] is the block (VW output cells) of work item w, oblocks[2 w + 1]
+ * the block whose cells mirror it in reverse order about the source (equal
+ * inputs, symmetric taps; the host checks both) or -1: it gets the values
+ * reversed.  Blocks count padded cells (nxo rounded up to VW, pad of them
+ * before the first output cell); padding is not stored.  Global (nwo, nyo, nl).
  */
+/* VW values for cells [k, k + VW) of a row of n cells; lanes outside [0, n) are dropped */
+inline void store_cells(const realv v, const int k, const int n, __global double *row)
+{
+    if (k >= 0 && k + VW <= n) {
+        VSTORE(v, 0, row + k);
+    } else {
+        double lanes[VW];
+        VSTORE(v, 0, lanes);
+        for (int i = 0; i < VW; ++i)
+            if (k + i >= 0 && k + i < n)
+                row[k + i] = lanes[i];
+    }
+}
+
 __kernel void blur_bin_cols(
     __global const double *restrict U,      /* (nl, nyo, nxs), nxs = o * ncx */
     __global const double *restrict kx,     /* (o * na,) */
+    __global const int *restrict oblocks,   /* (nwo, 2) */
     const int na,                           /* 2 m + 1 cells of taps */
     const int o,
     const int ncx,
+    const int xoff,
+    const int pad,                          /* padded output cell pad is output cell 0 */
+    const int nxo,
     __global double *restrict P)            /* (nl, nyo, nxo) */
 {
-    const int kv = get_global_id(0);
+    const int w = get_global_id(0);
     const int j = get_global_id(1);
     const int l = get_global_id(2);
-    const int nxo = get_global_size(0) * VW;
     const int nyo = get_global_size(1);
+    const int kv = oblocks[2 * w];
+    const int mir = oblocks[2 * w + 1];
     const size_t row = (size_t)l * (size_t)nyo + (size_t)j;
-    __global const double *src = U + row * (size_t)(o * ncx) + (size_t)kv * VW;
+    __global const double *src = U + row * (size_t)(o * ncx) + (size_t)(kv * VW + xoff);
     realv acc = (realv)(0.0);
     for (int b = 0; b < o; ++b)
         for (int a = 0; a < na; ++a)
             acc = fma((realv)(kx[o * a + b]), VLOAD(0, src + (size_t)(b * ncx + a)), acc);
-    VSTORE(acc, 0, P + row * (size_t)nxo + (size_t)kv * VW);
+    __global double *dst = P + row * (size_t)nxo;
+    store_cells(acc, kv * VW - pad, nxo, dst);
+    if (mir >= 0)
+        store_cells(REVERSE(acc), mir * VW - pad, nxo, dst);
 }
 
 /*

@@ -298,6 +298,84 @@ def _banded(taps, nout, o):
     return m
 
 
+def _offset_keys(d):
+    """|d| [cells] as integers (units of 2^-44 cell): equal keys, equal Airy intensity to ~1e-14."""
+    return np.round(np.abs(d) * 2.0**44).astype(np.int64)
+
+
+def _mirror_blocks(dx, vw):
+    """(nw, 2) int32: x blocks of VW sub-samples to evaluate, and the block holding the
+    same |dx| in reverse order (its values are the reversed block's) or -1."""
+    keys = _offset_keys(dx).reshape(-1, vw)
+    seen, rows = {}, []
+    for w in range(keys.shape[0]):
+        partner = seen.pop(tuple(keys[w][::-1]), None)
+        if partner is not None:
+            rows[partner][1] = w
+        else:
+            seen.setdefault(tuple(keys[w]), len(rows))
+            rows.append([w, -1])
+    return np.ascontiguousarray(rows, dtype=np.int32).reshape(-1, 2)
+
+
+def _x_layout(c0, nxo_p, mx, nx, x0, t, vw):
+    """De-interleaved x sub-samples for output cells [c0, c0 + nxo_p) [window indices]:
+    (xoff, ncx, dx, xblocks).  The window starts mx + xoff cells before c0; xoff < VW is
+    the shift that pairs the most mirror blocks (a centred source: half of them)."""
+    best = None
+    for xoff in range(vw):
+        ncx = -(-(nxo_p + 2 * mx + xoff) // vw) * vw
+        cells = np.arange(c0 - mx - xoff, c0 - mx - xoff + ncx, dtype=float) - nx / 2.0
+        dx = np.ascontiguousarray((t[:, None] + cells[None, :] - x0).ravel())
+        blocks = _mirror_blocks(dx, vw)
+        if best is None or blocks.shape[0] < best[3].shape[0]:
+            best = (xoff, ncx, dx, blocks)
+        if 2 * blocks.shape[0] <= ncx * t.size // vw + 1:      # every block paired: done
+            break
+    return best
+
+
+def _output_mirror_blocks(c0, nxo_p, nx, x0, kx, vw):
+    """(nwo, 2) int32: output blocks of VW cells to compute and the block whose cells
+    mirror them about the source in reverse order (or -1).  Mirroring needs symmetric
+    taps kx (to 1e-15) and cell centres at exactly opposite offsets (keys to 2^-44 cell)."""
+    nb = nxo_p // vw
+    centres = np.arange(c0, c0 + nxo_p, dtype=float) + 0.5 - nx / 2.0 - x0
+    keys = np.round(centres * 2.0**44).astype(np.int64).reshape(nb, vw)
+    symmetric = np.abs(kx - kx[::-1]).max() <= 1e-15 * np.abs(kx).max()
+    where = {tuple(keys[w]): w for w in range(nb)}
+    rows, covered = [], set()
+    for w in range(nb):
+        if w in covered:
+            continue
+        partner = where.get(tuple(-keys[w][::-1])) if symmetric else None
+        if partner is not None and partner != w and partner not in covered and partner > w:
+            covered.add(partner)
+            rows.append([w, partner])
+        else:
+            rows.append([w, -1])
+    return np.ascontiguousarray(rows, dtype=np.int32).reshape(-1, 2)
+
+
+def _shared_rows(dy):
+    """int32 code per sub-sample row: -1 evaluate; 2 s evaluate and keep in slot s;
+    2 s + 1 read slot s (an earlier row with the same |dy|)."""
+    keys = _offset_keys(dy)
+    first, counts = {}, {}
+    for i, k in enumerate(keys):
+        counts[k] = counts.get(k, 0) + 1
+    code = np.full(keys.size, -1, dtype=np.int32)
+    for i, k in enumerate(keys):
+        if counts[k] < 2:
+            continue
+        if k in first:
+            code[i] = 2 * first[k] + 1
+        else:
+            first[k] = len(first)
+            code[i] = 2 * first[k]
+    return code
+
+
 def _vector_width():
     dev = opencl.get_device()
     if "GPU" in opencl.device_type(dev):
@@ -401,7 +479,11 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes):
     ``blur_bin_rows`` when the jitter margin is too wide for registers);
     x: ``blur_bin_cols`` on sub-samples stored de-interleaved (node b of window
     cell c at b·ncx + c) so that VW consecutive output cells read contiguous
-    vectors.  Output cells along x are padded to a multiple of VW.
+    vectors.  Output blocks of VW cells are padded symmetrically (padding is
+    not stored).  The intensity depends on |dx|, |dy| only: x blocks and rows
+    with the same offsets, and output blocks that mirror each other about the
+    source, are computed once (a source at the centre of the narrow field:
+    ¼ of the J1 evaluations, ~½ of the column contractions; 2.7× faster).
     """
     ny, nx = shape
     x0, y0 = position
@@ -411,19 +493,24 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes):
     nyo, nxo, nys = j1_ - j0, k1 - k0, dy.size
     mx = blur_margin(airy.sigma_x)
     nxo_p = -(-nxo // vw) * vw
-    ncx = -(-(nxo_p + 2 * mx) // vw) * vw
+    pad = (nxo_p - nxo) // 2          # output cells [k0 - pad, k0 - pad + nxo_p): symmetric padding
     t, _ = cell_quadrature(ox, airy.grid)
-    cells = np.arange(k0 - mx, k0 - mx + ncx, dtype=float) - nx / 2.0
-    dx = np.ascontiguousarray((t[:, None] + cells[None, :] - x0).ravel())
     kx = blur_bin_taps(ox, airy.grid, airy.sigma_x)
+    xoff, ncx, dx, xblocks = _x_layout(k0 - pad, nxo_p, mx, nx, x0, t, vw)
+    oblocks = _output_mirror_blocks(k0 - pad, nxo_p, nx, x0, kx, vw)
     nxs, nl = ox * ncx, airy.lbda.size
     na_y = 2 * blur_margin(airy.sigma_y) + 1
     fused = na_y <= _FUSED_MAX_ROWS
-    per_lbda = 8 * ((0 if fused else nys * nxs) + nyo * nxs + nyo * nxo_p) + 16
+    yslot = _shared_rows(dy)
+    nslot = int(np.count_nonzero((yslot >= 0) & (yslot % 2 == 0))) if fused else 0
+    nw = xblocks.shape[0]
+    per_lbda = 8 * ((nslot * nw * vw) if fused else nys * nxs) + 8 * (nyo * nxs + nyo * nxo_p) + 16
     step = max(1, min(nl, int(max_bytes // per_lbda), _CHUNK_LBDA))
     opts = (f"-DVW={vw}", f"-DNA={na_y}") if fused else (f"-DVW={vw}",)
     if fused:
         k_rows = opencl.get_kernel(_KERNELS, "airy_rows", opts)
+        d_xb, d_ys = opencl.to_device(xblocks), opencl.to_device(yslot)
+        d_t = opencl.device_buffer(8 * step * nslot * nw * vw)
     else:
         k_sub = opencl.get_kernel(_KERNELS, "airy_subsamples", opts)
         k_rows = opencl.get_kernel(_KERNELS, "blur_bin_rows", opts)
@@ -431,10 +518,10 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes):
     k_cols = opencl.get_kernel(_KERNELS, "blur_bin_cols", opts)
     d_dx, d_dy = opencl.to_device(dx), opencl.to_device(np.ascontiguousarray(dy))
     d_ky, d_kx = opencl.to_device(ky), opencl.to_device(kx)
+    d_ob = opencl.to_device(oblocks)
     d_u = opencl.device_buffer(8 * step * nyo * nxs)
-    d_out = opencl.device_buffer(8 * step * nyo * nxo_p)
+    d_out = opencl.device_buffer(8 * step * nyo * nxo)
     out = np.empty((nl, nyo, nxo))
-    host = np.empty((step, nyo, nxo_p)) if nxo_p != nxo else None
     i32, f64 = np.int32, np.float64
     for l0 in range(0, nl, step):
         l1 = min(nl, l0 + step)
@@ -442,18 +529,14 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes):
         d_k = opencl.to_device(np.ascontiguousarray(airy.kwave[l0:l1]))
         d_p = opencl.to_device(np.ascontiguousarray(airy.pref[l0:l1]))
         if fused:
-            opencl.launch(k_rows, (nxs // vw, n), None, d_dx, d_dy, d_k, d_p, d_ky, f64(airy.eps),
-                          i32(oy), i32(nyo), i32(nxs), d_u)
+            opencl.launch(k_rows, (nw, n), None, d_dx, d_dy, d_k, d_p, d_ky, d_xb, d_ys, f64(airy.eps),
+                          i32(oy), i32(nyo), i32(nxs), i32(nslot), d_t, d_u)
         else:
             opencl.launch(k_sub, (nxs // vw, nys, n), None, d_dx, d_dy, d_k, d_p, f64(airy.eps),
                           i32(nxs), d_s)
             opencl.launch(k_rows, (nxs // vw, nyo, n), None, d_s, d_ky, i32(ky.size), i32(oy),
                           i32(nys), i32(nxs), d_u)
-        opencl.launch(k_cols, (nxo_p // vw, nyo, n), None, d_u, d_kx, i32(2 * mx + 1), i32(ox),
-                      i32(ncx), d_out)
-        if host is None:
-            opencl.from_device(out[l0:l1], d_out)
-        else:
-            opencl.from_device(host[:n], d_out)
-            out[l0:l1] = host[:n, :, :nxo]
+        opencl.launch(k_cols, (oblocks.shape[0], nyo, n), None, d_u, d_kx, d_ob, i32(2 * mx + 1),
+                      i32(ox), i32(ncx), i32(xoff), i32(pad), i32(nxo), d_out)
+        opencl.from_device(out[l0:l1], d_out)
     return out
