@@ -158,16 +158,7 @@ def _frame_increment(mu, exp_neg_mu, seed, pix, frame, stream, gauss_min_mean):
 
 def _inversion(mu, p, u):
     """Poisson(mu) by sequential search of the CDF from p = e^−mu with uniforms u."""
-    p = p.copy()
-    cdf = p.copy()
-    k = np.zeros_like(mu)
-    todo = np.nonzero((u > cdf) & (p > 0.0))[0]
-    while todo.size:
-        k[todo] += 1.0
-        p[todo] = p[todo] * mu[todo] / k[todo]
-        cdf[todo] = cdf[todo] + p[todo]
-        todo = todo[(u[todo] > cdf[todo]) & (p[todo] > 0.0)]
-    return k
+    return rng.inversion_search(mu, p, u)
 
 
 def _frame_position(hi, lo, w):

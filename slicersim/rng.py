@@ -230,7 +230,13 @@ def poisson(mean, seed, index=None, stream=0):
 
 def _poisson_inversion(mu, seed, index, stream):
     u = uniform(seed, index, stream, 0)[..., 0]
-    p = rng_exp(-mu)
+    return inversion_search(mu, rng_exp(-mu), u)
+
+
+def inversion_search(mu, p0, u):
+    """Poisson(mu) by sequential search of the CDF from P(0) = p0 = e^−mu, one uniform u each
+    (vectorised twin of the OpenCL loops; the same operations in the same order)."""
+    p = np.array(p0, dtype=np.float64, copy=True)
     cdf = p.copy()
     k = np.zeros_like(mu)
     todo = np.nonzero((u > cdf) & (p > 0.0))[0]
