@@ -415,7 +415,8 @@ __kernel void blur_bin_rows(
  * the block whose cells mirror it in reverse order about the source (equal
  * inputs, symmetric taps; the host checks both) or -1: it gets the values
  * reversed.  Blocks count padded cells (nxo rounded up to VW, pad of them
- * before the first output cell); padding is not stored.  Global (nwo, nyo, nl).
+ * before the first output cell); padding is not stored.  Global (nwo, nyo, nl);
+ * plane l of the launch is stored at plane lout + l of P (a whole cube in one buffer).
  */
 /* VW values for cells [k, k + VW) of a row of n cells; lanes outside [0, n) are dropped */
 inline void store_cells(const realv v, const int k, const int n, __global double *row)
@@ -441,7 +442,8 @@ __kernel void blur_bin_cols(
     const int xoff,
     const int pad,                          /* padded output cell pad is output cell 0 */
     const int nxo,
-    __global double *restrict P)            /* (nl, nyo, nxo) */
+    const int lout,                         /* first output plane of the launch */
+    __global double *restrict P)            /* (lout + nl, nyo, nxo) */
 {
     const int w = get_global_id(0);
     const int j = get_global_id(1);
@@ -455,7 +457,7 @@ __kernel void blur_bin_cols(
     for (int b = 0; b < o; ++b)
         for (int a = 0; a < na; ++a)
             acc = fma((realv)(kx[o * a + b]), VLOAD(0, src + (size_t)(b * ncx + a)), acc);
-    __global double *dst = P + row * (size_t)nxo;
+    __global double *dst = P + ((size_t)lout * (size_t)nyo + row) * (size_t)nxo;
     store_cells(acc, kv * VW - pad, nxo, dst);
     if (mir >= 0)
         store_cells(REVERSE(acc), mir * VW - pad, nxo, dst);

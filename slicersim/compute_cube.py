@@ -31,6 +31,7 @@ from scipy.special import erf
 
 from slicersim import opencl
 from slicersim.compute import resolve_backend
+from slicersim.compute_psf import DevicePSF
 from slicersim.psf import cell_edges
 
 __all__ = ["ReadoutConstants", "GaussianPSF", "detector_block", "reflect_indices", "release_buffers",
@@ -124,6 +125,10 @@ def _check_psf(psf):
         if fy.ndim != 2 or fx.ndim != 2 or fy.shape[0] != fx.shape[0]:
             raise ValueError(f"PSF factors must be fy (nb, ny) and fx (nb, nx), got {fy.shape}, {fx.shape}")
         return "factors", (fy, fx), (fy.shape[0], fy.shape[1], fx.shape[1])
+    if isinstance(psf, DevicePSF):
+        if len(psf.shape) != 3:
+            raise ValueError(f"a DevicePSF must be (nb, ny, nx), got shape {psf.shape}")
+        return "full", psf, tuple(int(n) for n in psf.shape)
     psf = _as_f64(psf)
     if psf.ndim != 3:
         raise ValueError(f"psf must be (nb, ny, nx), (fy, fx) or a GaussianPSF, got shape {psf.shape}")
@@ -175,7 +180,8 @@ def detector_block(taps, rate, uniform, qe, readout, *, bins, nl, lo, psf=None, 
     uniform : (i1 − i0,) LSF'd uniform photons U [ph/s/cell];  qe : (i1 − i0,) [e-/ph]
     readout : :class:`ReadoutConstants`
     bins, nl, lo : output bin range, grid size, first input bin
-    psf : :class:`GaussianPSF`, factors (fy (nb, ny), fx (nb, nx)), or P (nb, ny, nx); None without rate
+    psf : :class:`GaussianPSF`, factors (fy (nb, ny), fx (nb, nx)), P (nb, ny, nx) or P left on the
+        device (:class:`slicersim.compute_psf.DevicePSF`); None without rate
     host : (nb, ny, nx) extended-source photons before the LSF [ph/s/cell], or None
     out : optional (signal, variance) C-contiguous arrays (i1 − i0, ny, nx) of ``dtype``
     dtype : float64 or float32 storage (arithmetic is float64)
@@ -213,6 +219,8 @@ def _detector_block_numpy(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, 
             psf = psf.factors()
         if kind != "full":
             psf = psf[0][:, :, None] * psf[1][:, None, :]
+        elif isinstance(psf, DevicePSF):
+            psf = psf.to_host()
         photons_in = rate[:, None, None] * psf
     if host is not None:
         photons_in = photons_in + host
@@ -273,11 +281,19 @@ def default_vector_width():
     return vw
 
 
+def _host_memory_device():
+    """True on CPU devices: buffers over the NumPy outputs (``opencl.host_buffer``) are used in
+    place, saving the device → host copies of signal and variance (2 × 28 MB for Lazuli)."""
+    return opencl.device_type() == "CPU"
+
+
 def _psf_on_device(kind, psf, nxp):
     """(buffer a, buffer b) for the kernel's psf_a, psf_b arguments; fx rows padded with zeros to
     nxp cells (whole vectors).  Gaussian erf factors are computed on the host: scipy's erf takes
     ~1 ms for the Lazuli cube, PoCL's double erf ~10 ms."""
     if kind == "full":
+        if isinstance(psf, DevicePSF):                  # already on the device: no round trip
+            return psf.buffer, _buffer("unused", 8)
         return opencl.to_device(psf, _buffer("psf", psf.nbytes)), _buffer("unused", 8)
     fy, fx = psf.factors() if kind == "gaussian" else psf
     fx_padded = np.zeros((fx.shape[0], nxp))
@@ -304,15 +320,23 @@ def _detector_block_opencl(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf,
     d_u, d_qe, d_w = opencl.to_device(uniform), opencl.to_device(qe), opencl.to_device(taps)
     plane_bytes = signal.itemsize * ny * nx
     step = max(1, min(nc, _LAUNCH_BYTES // (2 * plane_bytes)))    # output planes per launch
-    d_s, d_v = _buffer("signal", step * plane_bytes), _buffer("variance", step * plane_bytes)
+    zero_copy = _host_memory_device()
+    if not zero_copy:
+        d_s, d_v = _buffer("signal", step * plane_bytes), _buffer("variance", step * plane_bytes)
     per_item = nvec if rows else 1        # CPU: a whole row per work item; GPU: one vector (cell)
     i32, f64 = np.int32, np.float64
     for c0 in range(0, nc, step):
         c1 = min(nc, c0 + step)
+        if zero_copy:     # the kernel writes (and first-touches) the output arrays themselves
+            d_s, d_v = opencl.host_buffer(signal[c0:c1]), opencl.host_buffer(variance[c0:c1])
         opencl.launch(kern, (-(-nvec // per_item), ny, c1 - c0), None, d_a, d_b, d_host, d_rate, d_u, d_qe,
                       d_w, i32(nl), i32(lo), i32(bins[0]), i32(c0), i32(ny), i32(nx),
                       i32(nvec * vw), i32(per_item),
                       f64(ro.signal_scale), f64(ro.var_a * ro.nramps), f64(ro.var_b * ro.nramps),
                       f64(ro.saturation_rate), d_s, d_v)
-        opencl.from_device(signal[c0:c1], d_s)
-        opencl.from_device(variance[c0:c1], d_v)
+        if zero_copy:
+            opencl.sync_to_host(d_s, signal[c0:c1])
+            opencl.sync_to_host(d_v, variance[c0:c1])
+        else:
+            opencl.from_device(signal[c0:c1], d_s)
+            opencl.from_device(variance[c0:c1], d_v)

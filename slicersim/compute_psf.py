@@ -57,6 +57,8 @@ own J1, |ΔJ1| <= 2e-12, see ``kernels/psf.cl``).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.ndimage import gaussian_filter
 from scipy.special import j1
@@ -68,8 +70,8 @@ from slicersim.psf import (airy_encircled_energy, airy_intensity, airy_wavenumbe
                            blur_margin, cell_quadrature, gaussian_psf_cells, gaussian_psf_fractions,
                            gaussian_psf_sigmas, jinc, midpoint_oversampling)
 
-__all__ = ["psf_cube", "psf_cells", "auto_oversampling", "bessel_j1", "airy_encircled_energy",
-           "PROFILES", "GRIDS", "DEFAULT_OVERSAMPLING"]
+__all__ = ["psf_cube", "psf_cube_device", "DevicePSF", "psf_cells", "auto_oversampling", "bessel_j1",
+           "airy_encircled_energy", "PROFILES", "GRIDS", "DEFAULT_OVERSAMPLING"]
 
 PROFILES = ("gaussian", "airy")
 DEFAULT_OVERSAMPLING = "auto"
@@ -120,6 +122,47 @@ def psf_cube(lbda, shape, position=(0.0, 0.0), profile="gaussian", *, sigma_ref_
     if _backend(backend, grid) == "opencl":
         return _airy_window_opencl(airy, shape, position, window, max_bytes)
     return _airy_window_numpy(airy, shape, position, window, max_bytes)
+
+
+@dataclass(frozen=True)
+class DevicePSF:
+    """A PSF cube P[λ, y, x] (float64, C order) left in an OpenCL device buffer."""
+    buffer: object
+    shape: tuple
+
+    def to_host(self):
+        """The cube as a NumPy array (nλ, ny, nx) (one device → host copy)."""
+        out = np.empty(self.shape)
+        if out.size:
+            opencl.from_device(out, self.buffer)
+        return out
+
+
+def psf_cube_device(lbda, shape, position=(0.0, 0.0), profile="airy", *, sigma_ref_arcsec=None,
+                    spatial_scale, guiding_sigma, instrumental_sigma, diameter=3.0, obscuration=0.0,
+                    oversampling=DEFAULT_OVERSAMPLING, grid="exact", backend="auto",
+                    max_bytes=DEFAULT_MAX_BYTES, out_buffer=None):
+    """:func:`psf_cube` left on the OpenCL device when it is computed there: a :class:`DevicePSF`
+    (Airy, grid "exact"/"gauss", OpenCL backend), else the NumPy array of :func:`psf_cube`.
+
+    Saves the device → host → device round trip of the cube (28 MB for the Lazuli narrow field)
+    for device consumers such as :func:`slicersim.compute_cube.detector_block`.  ``out_buffer``:
+    a device buffer of at least 8 nλ ny nx bytes to reuse (None: a new one); other parameters
+    as :func:`psf_cube`.
+    """
+    common = dict(sigma_ref_arcsec=sigma_ref_arcsec, spatial_scale=spatial_scale, guiding_sigma=guiding_sigma,
+                  instrumental_sigma=instrumental_sigma, diameter=diameter, obscuration=obscuration,
+                  oversampling=oversampling, grid=grid, backend=backend, max_bytes=max_bytes)
+    if profile != "airy" or grid == "reference" or _backend(backend, grid) != "opencl":
+        return psf_cube(lbda, shape, position, profile, **common)
+    lbda, shape, position = _check(lbda, shape, position, profile, grid)
+    ny, nx = shape
+    airy = _AiryParams(lbda, spatial_scale, guiding_sigma, instrumental_sigma, diameter, obscuration,
+                       oversampling, grid)
+    if out_buffer is None:
+        out_buffer = opencl.device_buffer(8 * lbda.size * ny * nx)
+    _airy_window_opencl(airy, shape, position, (0, ny, 0, nx), max_bytes, out_buffer=out_buffer)
+    return DevicePSF(out_buffer, (lbda.size, ny, nx))
 
 
 def psf_cells(lbda, shape, position=(0.0, 0.0), cells=None, profile="gaussian", *,
@@ -471,7 +514,7 @@ def _gaussian_opencl(sig_y, sig_x, shape, position, max_bytes):
     return out
 
 
-def _airy_window_opencl(airy, shape, position, window, max_bytes):
+def _airy_window_opencl(airy, shape, position, window, max_bytes, out_buffer=None):
     """OpenCL twin of :func:`_airy_window_numpy`.
 
     y: ``airy_rows`` evaluates the Airy sub-samples of VW columns walking down
@@ -484,6 +527,8 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes):
     with the same offsets, and output blocks that mirror each other about the
     source, are computed once (a source at the centre of the narrow field:
     ¼ of the J1 evaluations, ~½ of the column contractions; 2.7× faster).
+    ``out_buffer``: device buffer of ≥ 8 nλ nyo nxo bytes to receive the whole
+    window (returned, nothing is copied to the host); None: a NumPy array.
     """
     ny, nx = shape
     x0, y0 = position
@@ -520,8 +565,9 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes):
     d_ky, d_kx = opencl.to_device(ky), opencl.to_device(kx)
     d_ob = opencl.to_device(oblocks)
     d_u = opencl.device_buffer(8 * step * nyo * nxs)
-    d_out = opencl.device_buffer(8 * step * nyo * nxo)
-    out = np.empty((nl, nyo, nxo))
+    on_device = out_buffer is not None
+    d_out = out_buffer if on_device else opencl.device_buffer(8 * step * nyo * nxo)
+    out = None if on_device else np.empty((nl, nyo, nxo))
     i32, f64 = np.int32, np.float64
     for l0 in range(0, nl, step):
         l1 = min(nl, l0 + step)
@@ -537,6 +583,7 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes):
             opencl.launch(k_rows, (nxs // vw, nyo, n), None, d_s, d_ky, i32(ky.size), i32(oy),
                           i32(nys), i32(nxs), d_u)
         opencl.launch(k_cols, (oblocks.shape[0], nyo, n), None, d_u, d_kx, d_ob, i32(2 * mx + 1),
-                      i32(ox), i32(ncx), i32(xoff), i32(pad), i32(nxo), d_out)
-        opencl.from_device(out[l0:l1], d_out)
-    return out
+                      i32(ox), i32(ncx), i32(xoff), i32(pad), i32(nxo), i32(l0 if on_device else 0), d_out)
+        if not on_device:
+            opencl.from_device(out[l0:l1], d_out)
+    return out_buffer if on_device else out

@@ -99,9 +99,10 @@ def lsf_halo(sim):
     return int(lsf_weights(sim.spectrograph.lsf_sigma)[0][-1])
 
 
-def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", options=None):
+def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", options=None, on_device=False):
     """PSF fractions P[λ, y, x] for bins lo … hi − 1 (any profile; shape/position default to the
-    field's; ``options``: extra keywords of ``compute_psf.psf_cube``, e.g. {"grid": "reference"})."""
+    field's; ``options``: extra keywords of ``compute_psf.psf_cube``, e.g. {"grid": "reference"}).
+    ``on_device``: leave a block computed by OpenCL on the device (``compute_psf.DevicePSF``)."""
     shape = sim.spectrograph.shape if shape is None else shape
     position = sim.position if position is None else position
     if profile == "gaussian":
@@ -114,7 +115,7 @@ def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", o
             raise
         raise NotImplementedError(f"psf_profile={profile!r} needs slicersim.compute_psf.psf_cube, which is "
                                   "not available yet; use psf_profile='gaussian'") from exc
-    from .compute_psf import auto_oversampling
+    from .compute_psf import auto_oversampling, psf_cube_device
     tel, spec = sim.telescope, sim.spectrograph
     common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
                   instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext)
@@ -124,7 +125,8 @@ def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", o
     kwargs = dict(sigma_ref_arcsec=tel.psf_sigma_ref, obscuration=tel.obscuration, oversampling=oversampling,
                   backend=backend, **common)
     kwargs.update(options or {})
-    return psf_cube(sim.lbda[lo:hi], shape, position, profile=profile, **kwargs)
+    return (psf_cube_device if on_device else psf_cube)(sim.lbda[lo:hi], shape, position, profile=profile,
+                                                       **kwargs)
 
 
 def _import_conv():
@@ -297,7 +299,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
                 if has_point and profile == "gaussian":
                     psf = GaussianPSF(sig_y[lo:hi], sig_x[lo:hi], sim.position, (ny, nx))
                 elif has_point:
-                    psf = psf_block(sim, profile, lo, hi, backend=backend, options=psf_options)
+                    psf = psf_block(sim, profile, lo, hi, backend=backend, options=psf_options, on_device=True)
                 host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
                         if has_host else None)
                 detector_block(taps, flux_ph[lo:hi] if has_point else None, uniform_ph[i0:i1], qe[i0:i1],

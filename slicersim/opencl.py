@@ -283,3 +283,26 @@ def device_info() -> list[dict]:
             "selected": dev.int_ptr == chosen,
         })
     return out
+
+
+def host_buffer(array):
+    """Read-write buffer over the C-contiguous NumPy *array* itself (``USE_HOST_PTR``).
+
+    On CPU devices (PoCL) kernels then read and write the array's memory directly: no copy.
+    Call :func:`sync_to_host` after the kernels that write it, before reading *array*.
+    """
+    cl = _cl()
+    if not array.flags.c_contiguous or not array.flags.writeable:
+        raise ValueError("host_buffer needs a writeable C-contiguous array")
+    return cl.Buffer(get_context(), cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
+
+
+def sync_to_host(buffer, array) -> None:
+    """Make the kernels' writes to a :func:`host_buffer` visible in *array* (blocking map/unmap;
+    no copy where the device uses the host memory, as PoCL does)."""
+    cl = _cl()
+    queue = get_queue()
+    mapped, _ = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape, array.dtype,
+                                      is_blocking=True)
+    mapped.base.release(queue)
+    del mapped

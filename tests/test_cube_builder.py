@@ -401,6 +401,35 @@ def test_fused_kernel_airy_block(narrow_band_sim):
     assert _peak_err(fused.signal, oracle.signal) < 1e-12 and _peak_err(fused.variance, oracle.variance) < 1e-12
 
 
+@needs_opencl
+@pytest.mark.skipif(importlib.util.find_spec("slicersim.compute_psf") is None,
+                    reason="slicersim.compute_psf not available yet")
+def test_fused_kernel_device_resident_psf(narrow_band_sim):
+    """The Airy block left on the device (no host round trip) gives the same cube, bit for bit, as
+    the host block, in the kernel and in its twin; the zero-copy outputs are the caller's arrays."""
+    from slicersim import opencl
+    from slicersim.compute_psf import DevicePSF
+    from slicersim.cube import psf_block
+    sim = narrow_band_sim
+    nl = sim.lbda.size
+    host_psf = psf_block(sim, "airy", 0, nl)
+    dev_psf = psf_block(sim, "airy", 0, nl, on_device=True)
+    assert isinstance(dev_psf, DevicePSF) and np.array_equal(dev_psf.to_host(), host_psf)
+    taps = lsf_weights(sim.spectrograph.lsf_sigma)[1]
+    args = (taps, sim.pointsource_flambda * sim.flambda_to_photon, np.zeros(nl), sim.qe,
+            readout_constants(sim, (16, 8, 0), 2))
+    out = (np.full(host_psf.shape, -1.0), np.full(host_psf.shape, -1.0))
+    got = detector_block(*args, bins=(0, nl), nl=nl, lo=0, psf=dev_psf, out=out, backend="opencl")
+    assert got[0] is out[0] and got[1] is out[1]
+    ref = detector_block(*args, bins=(0, nl), nl=nl, lo=0, psf=host_psf, backend="opencl")
+    assert np.array_equal(out[0], ref[0], equal_nan=True) and np.array_equal(out[1], ref[1])
+    assert np.all(out[1] > 0)                                  # every voxel written (variance > 0)
+    twin = detector_block(*args, bins=(0, nl), nl=nl, lo=0, psf=dev_psf, backend="numpy")
+    assert _peak_err(twin[0], ref[0]) < 1e-13
+    with pytest.raises(ValueError, match="contiguous"):
+        opencl.host_buffer(np.zeros((4, 6))[:, ::2])
+
+
 def test_paths_kubik_and_float32(sim, cube):
     """Kubik16 (non-linear variance) keeps the NumPy path; float32 storage rounds the float64 cube."""
     assert cube.paths["detector"] == (FUSED_KERNEL if resolve_backend("auto") == "opencl"

@@ -141,6 +141,31 @@ def test_chunking_does_not_change_the_cube(backend):
 
 
 # --------------------------------------------------------------------------- analytic Airy
+@needs_opencl
+def test_device_resident_cube_equals_host_cube():
+    """psf_cube_device leaves the Airy cube on the device: bit-identical to psf_cube's OpenCL
+    result for one launch and for one wavelength per launch (planes placed at their offsets, odd
+    sizes), reusing a buffer; holds the flux of a small field (< 1, most of it); other profiles
+    and the reference grid fall back to psf_cube's host arrays."""
+    from slicersim.compute_psf import DevicePSF, psf_cube_device
+    lbda = np.linspace(4000, 17000, 11)
+    host = psf_cube(lbda, (9, 15), (0.2, 0.1), "airy", backend="opencl", **NARROW)
+    dev = psf_cube_device(lbda, (9, 15), (0.2, 0.1), "airy", backend="opencl", **NARROW)
+    assert isinstance(dev, DevicePSF) and dev.shape == host.shape
+    assert np.array_equal(dev.to_host(), host)
+    again = psf_cube_device(lbda, (9, 15), (0.2, 0.1), "airy", backend="opencl", max_bytes=1,
+                            out_buffer=dev.buffer, **NARROW)
+    assert again.buffer is dev.buffer and np.array_equal(again.to_host(), host)
+    total = host.sum(axis=(1, 2))
+    assert np.all(total < 1.0) and np.all(total > 0.5)
+    gauss = psf_cube_device(lbda, (9, 15), (0.2, 0.1), "gaussian", sigma_ref_arcsec=SIGMA_REF, **NARROW)
+    assert isinstance(gauss, np.ndarray)
+    assert np.array_equal(gauss, psf_cube(lbda, (9, 15), (0.2, 0.1), "gaussian", sigma_ref_arcsec=SIGMA_REF,
+                                          **NARROW))
+    ref = psf_cube_device(lbda, (9, 15), (0.2, 0.1), "airy", grid="reference", oversampling=3, **NARROW)
+    assert isinstance(ref, np.ndarray)
+
+
 def test_encircled_energy_analytic_and_numerical():
     lbda, D = np.array([4000.0, 10000.0]), 3.0
     r = 1.22 * lbda * 1e-10 / D / (np.pi / 648000)                  # first dark ring [arcsec]
