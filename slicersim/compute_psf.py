@@ -78,6 +78,7 @@ DEFAULT_OVERSAMPLING = "auto"
 GRIDS = ("exact", "gauss", "reference")
 _KERNELS = "psf.cl"
 _FUSED_MAX_ROWS = 17      # jitter margins up to 8 cells: Airy + row blur in one kernel
+_COL_ROWS_CPU = 4         # blur_bin_cols rows per work item on CPUs: 4 independent FMA chains
 _CHUNK_LBDA = 64          # wavelengths per OpenCL launch (keeps buffers small, cache-warm)
 
 
@@ -551,7 +552,8 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes, out_buffer=Non
     nw = xblocks.shape[0]
     per_lbda = 8 * ((nslot * nw * vw) if fused else nys * nxs) + 8 * (nyo * nxs + nyo * nxo_p) + 16
     step = max(1, min(nl, int(max_bytes // per_lbda), _CHUNK_LBDA))
-    opts = (f"-DVW={vw}", f"-DNA={na_y}") if fused else (f"-DVW={vw}",)
+    jr = 1 if vw == 1 else _COL_ROWS_CPU       # rows per blur_bin_cols work item (GPUs: 1)
+    opts = (f"-DVW={vw}", f"-DJR={jr}") + ((f"-DNA={na_y}",) if fused else ())
     if fused:
         k_rows = opencl.get_kernel(_KERNELS, "airy_rows", opts)
         d_xb, d_ys = opencl.to_device(xblocks), opencl.to_device(yslot)
@@ -582,8 +584,9 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes, out_buffer=Non
                           i32(nxs), d_s)
             opencl.launch(k_rows, (nxs // vw, nyo, n), None, d_s, d_ky, i32(ky.size), i32(oy),
                           i32(nys), i32(nxs), d_u)
-        opencl.launch(k_cols, (oblocks.shape[0], nyo, n), None, d_u, d_kx, d_ob, i32(2 * mx + 1),
-                      i32(ox), i32(ncx), i32(xoff), i32(pad), i32(nxo), i32(l0 if on_device else 0), d_out)
+        opencl.launch(k_cols, (oblocks.shape[0], -(-nyo // jr), n), None, d_u, d_kx, d_ob, i32(2 * mx + 1),
+                      i32(ox), i32(ncx), i32(xoff), i32(pad), i32(nxo), i32(l0 if on_device else 0),
+                      i32(nyo), d_out)
         if not on_device:
             opencl.from_device(out[l0:l1], d_out)
     return out_buffer if on_device else out
