@@ -27,24 +27,7 @@
 #define RNG_HALF_LOG_2PI 0x1.d67f1c864beb4p-1
 
 /* exp(x), |x| < 700: x = n ln2 + r, Taylor series of e^r to r^13 */
-inline double rng_exp(const double x)
-{
-    const double n = floor(x * RNG_INV_LN2 + 0.5);
-    const double r = (x - n * RNG_LN2_HI) - n * RNG_LN2_LO;
-    double p = 0x1.6124613a86d09p-33;            /* 1/13! */
-    p = p * r + 0x1.1eed8eff8d898p-29;
-    p = p * r + 0x1.ae64567f544e4p-26;
-    p = p * r + 0x1.27e4fb7789f5cp-22;
-    p = p * r + 0x1.71de3a556c734p-19;
-    p = p * r + 0x1.a01a01a01a01ap-16;
-    p = p * r + 0x1.a01a01a01a01ap-13;
-    p = p * r + 0x1.6c16c16c16c17p-10;
-    p = p * r + 0x1.1111111111111p-7;
-    p = p * r + 0x1.5555555555555p-5;
-    p = p * r + 0x1.5555555555555p-3;
-    p = p * r + 0x1.0000000000000p-1;            /* 1/2! */
-    return ldexp(1.0 + r * (1.0 + r * p), (int)n);
-}
+/* rng_exp: see philox.cl */
 
 __constant double LOG_FACTORIAL[10] = {
     0x0.0p+0, 0x0.0p+0, 0x1.62e42fefa39ecp-1, 0x1.cab0bfa2a2004p+0, 0x1.96ca77c922cf7p+1,

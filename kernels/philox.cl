@@ -36,6 +36,10 @@
 #endif
 #pragma OPENCL FP_CONTRACT OFF
 
+#ifndef RNG_INLINE            /* a kernel may force inlining: #define RNG_INLINE before #include */
+#define RNG_INLINE inline
+#endif
+
 #ifndef RNG_VW
 #define RNG_VW 1
 #endif
@@ -107,7 +111,7 @@ typedef RNG_PASTE(double, RNG_SUFFIX) rng_double;
     (k1) += PHILOX_W1;
 
 /* Philox4x32-10 in place: ten rounds, the key bumped before rounds 2..10. */
-inline void philox4x32_10(rng_uint *pa, rng_uint *pb, rng_uint *pc, rng_uint *pd, uint k0, uint k1)
+RNG_INLINE void philox4x32_10(rng_uint *pa, rng_uint *pb, rng_uint *pc, rng_uint *pd, uint k0, uint k1)
 {
     rng_uint a = *pa, b = *pb, c = *pc, d = *pd;
     PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
@@ -124,7 +128,7 @@ inline void philox4x32_10(rng_uint *pa, rng_uint *pb, rng_uint *pc, rng_uint *pd
 }
 
 /* counter = (index lo, index hi, stream, draw) */
-inline void philox_counter(const rng_ulong index, const uint stream, const uint draw,
+RNG_INLINE void philox_counter(const rng_ulong index, const uint stream, const uint draw,
                            rng_uint *a, rng_uint *b, rng_uint *c, rng_uint *d)
 {
     *a = rng_convert_uint(index);
@@ -134,14 +138,14 @@ inline void philox_counter(const rng_ulong index, const uint stream, const uint 
 }
 
 /* u = (2x + 1) 2^-53 with the 52-bit x = hi * 2^20 + (lo >> 12): exact, in (0, 1) */
-inline rng_double philox_u01(const rng_uint hi, const rng_uint lo)
+RNG_INLINE rng_double philox_u01(const rng_uint hi, const rng_uint lo)
 {
     const rng_long x = (rng_convert_long(hi) << 20) | rng_convert_long(lo >> 12);
     return rng_convert_double(2L * x + 1L) * 0x1.0p-53;
 }
 
 /* ln u for positive normal u: u = m 2^e, m in [sqrt(1/2), sqrt(2)), ln m = 2 atanh s. */
-inline rng_double rng_log(const rng_double u)
+RNG_INLINE rng_double rng_log(const rng_double u)
 {
     const rng_long bits = rng_as_long(u);
     rng_long e = ((bits >> 52) & 0x7ffL) - 1022L;
@@ -170,7 +174,7 @@ inline rng_double rng_log(const rng_double u)
 
 /* cos 2 pi u (returned) and sin 2 pi u (*sin_out) for u in (0, 1): u = q/4 + r exactly,
  * |2 pi r| <= pi/4, Taylor series to t^19, quadrant applied by exact bit selection. */
-inline rng_double rng_sincos_2pi(const rng_double u, rng_double *sin_out)
+RNG_INLINE rng_double rng_sincos_2pi(const rng_double u, rng_double *sin_out)
 {
     const rng_long q = rng_convert_long(4.0 * u + 0.5);              /* floor (> 0): 0..4 */
     const rng_double t = (u - 0.25 * rng_convert_double(q)) * RNG_TWO_PI;
@@ -201,8 +205,29 @@ inline rng_double rng_sincos_2pi(const rng_double u, rng_double *sin_out)
     return rng_as_double(((cbits & ~swap) | (sbits & swap)) ^ (((q + 1L) & 2L) << 62));
 }
 
+/* exp(x) for |x| < 700, any width: Cody–Waite reduction and a degree-13 Taylor series
+ * (the operations of slicersim.rng.rng_exp, bit for bit). */
+RNG_INLINE rng_double rng_exp(const rng_double x)
+{
+    const rng_double n = floor(x * 0x1.71547652b82fep+0 + 0.5);
+    const rng_double r = (x - n * RNG_LN2_HI) - n * RNG_LN2_LO;
+    rng_double p = 0x1.6124613a86d09p-33;        /* 1/13! */
+    p = p * r + 0x1.1eed8eff8d898p-29;
+    p = p * r + 0x1.ae64567f544e4p-26;
+    p = p * r + 0x1.27e4fb7789f5cp-22;
+    p = p * r + 0x1.71de3a556c734p-19;
+    p = p * r + 0x1.a01a01a01a01ap-16;
+    p = p * r + 0x1.a01a01a01a01ap-13;
+    p = p * r + 0x1.6c16c16c16c17p-10;
+    p = p * r + 0x1.1111111111111p-7;
+    p = p * r + 0x1.5555555555555p-5;
+    p = p * r + 0x1.5555555555555p-3;
+    p = p * r + 0x1.0000000000000p-1;            /* 1/2! */
+    return ldexp(1.0 + r * (1.0 + r * p), RNG_PASTE(convert_int, RNG_SUFFIX)(n));
+}
+
 /* Two independent N(0, 1) draws from one block: cos branch returned, sin branch in *z1. */
-inline rng_double box_muller_lanes(const rng_uint a, const rng_uint b, const rng_uint c, const rng_uint d,
+RNG_INLINE rng_double box_muller_lanes(const rng_uint a, const rng_uint b, const rng_uint c, const rng_uint d,
                              rng_double *z1)
 {
     const rng_double radius = sqrt(-2.0 * rng_log(philox_u01(a, b)));

@@ -39,6 +39,7 @@
  * as uint16; GROUPDQ bit 2 (SATURATED) from the first group whose charge
  * reached the full well or whose ADU hit the saturation level.
  */
+#define RNG_INLINE inline __attribute__((always_inline))   /* PoCL: no out-of-line vector calls */
 #include "philox.cl"
 
 #define P_POISSON 0u
@@ -96,60 +97,17 @@ __constant double RAMP_LOG_FACTORIAL[10] = {
     0x1.326643c4479cap+2, 0x1.a51273acf01cbp+2, 0x1.10ce1f32dcc30p+3, 0x1.5358e82fcb70cp+3,
     0x1.99a8921a7f7cep+3};
 
-/* Philox4x32-10 block of counter (index, stream, draw), any width: the rounds of philox4x32_10
- * (philox.cl macros) expanded here, as PoCL would otherwise call it out of line with the
- * vectors passed through memory. */
+/* Philox4x32-10 block of counter (index, stream, draw), any width (philox.cl, forced inline) */
 RAMP_INLINE void ramp_block(const rng_ulong index, const uint stream, const uint draw, uint k0, uint k1,
                             rng_uint *pa, rng_uint *pb, rng_uint *pc, rng_uint *pd)
 {
-    rng_uint a = rng_convert_uint(index), b = rng_convert_uint(index >> 32), c = (rng_uint)stream,
-             d = (rng_uint)draw;
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND_BUMP(a, b, c, d, k0, k1)
-    PHILOX_ROUND(a, b, c, d, k0, k1)
-    *pa = a; *pb = b; *pc = c; *pd = d;
+    philox_counter(index, stream, draw, pa, pb, pc, pd);
+    philox4x32_10(pa, pb, pc, pd, k0, k1);
 }
 
-/* Two N(0,1) draws from one block (cos returned, sin in *z1): box_muller_lanes of philox.cl,
- * forced inline for the same reason. */
-RAMP_INLINE rng_double ramp_box_muller(const rng_uint a, const rng_uint b, const rng_uint c, const rng_uint d,
-                                       rng_double *z1)
-{
-    const rng_double radius = sqrt(-2.0 * rng_log(philox_u01(a, b)));
-    rng_double s;
-    const rng_double cs = rng_sincos_2pi(philox_u01(c, d), &s);
-    *z1 = radius * s;
-    return radius * cs;
-}
+#define ramp_box_muller box_muller_lanes
+#define ramp_exp rng_exp
 
-/* exp(x), |x| < 700: the operations of rng_exp (noise.cl, rng.py) at any width */
-RAMP_INLINE rng_double ramp_exp(const rng_double x)
-{
-    const rng_double nn = floor(x * 0x1.71547652b82fep+0 + 0.5);
-    const rng_double r = (x - nn * RNG_LN2_HI) - nn * RNG_LN2_LO;
-    rng_double p = 0x1.6124613a86d09p-33;
-    p = p * r + 0x1.1eed8eff8d898p-29;
-    p = p * r + 0x1.ae64567f544e4p-26;
-    p = p * r + 0x1.27e4fb7789f5cp-22;
-    p = p * r + 0x1.71de3a556c734p-19;
-    p = p * r + 0x1.a01a01a01a01ap-16;
-    p = p * r + 0x1.a01a01a01a01ap-13;
-    p = p * r + 0x1.6c16c16c16c17p-10;
-    p = p * r + 0x1.1111111111111p-7;
-    p = p * r + 0x1.5555555555555p-5;
-    p = p * r + 0x1.5555555555555p-3;
-    p = p * r + 0x1.0000000000000p-1;
-    return ldexp(1.0 + r * (1.0 + r * p), RAMP_CONVERT_INT(nn));
-}
-
-/* ln k! for integer-valued k >= 0: table below 10, Stirling series above (as noise.cl) */
 RAMP_INLINE rng_double ramp_log_factorial(const rng_double k)
 {
     const rng_double x = k + 1.0;

@@ -270,15 +270,8 @@ def _buffer(name, nbytes):
 
 
 def default_vector_width():
-    """Cells per vector: 1 on GPUs (coalesced rows), the preferred double width (≤ 16) on CPUs."""
-    dev = opencl.get_device()
-    if "GPU" in opencl.device_type(dev):
-        return 1
-    native = int(getattr(dev, "preferred_vector_width_double", 1) or 1)
-    vw = 1
-    while vw * 2 <= min(native, 16):
-        vw *= 2
-    return vw
+    """Cells per vector: 1 on GPUs, the preferred double width (≤ 16) on CPUs."""
+    return opencl.preferred_vector_width(16)
 
 
 def _host_memory_device():

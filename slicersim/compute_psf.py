@@ -421,14 +421,8 @@ def _shared_rows(dy):
 
 
 def _vector_width():
-    dev = opencl.get_device()
-    if "GPU" in opencl.device_type(dev):
-        return 1
-    native = int(getattr(dev, "preferred_vector_width_double", 1) or 1)
-    vw = 1
-    while vw * 2 <= min(native, 8):
-        vw *= 2
-    return vw
+    """Cells per vector: 1 on GPUs, the preferred double width (≤ 8) on CPUs."""
+    return opencl.preferred_vector_width(8)
 
 
 # --------------------------------------------------------------------------- #

@@ -258,6 +258,20 @@ def launch(kernel, global_size, local_size, *args):
     return kernel(get_queue(), tuple(global_size), None if local_size is None else tuple(local_size), *args)
 
 
+def preferred_vector_width(cap: int = 16) -> int:
+    """Doubles per vector for kernels that vectorise along a row: 1 on GPUs (one element
+    per work item coalesces), else the device's preferred double width as a power of
+    two ≤ ``cap`` (PoCL does not vectorise scalar kernels with inner loops)."""
+    dev = get_device()
+    if "GPU" in device_type(dev):
+        return 1
+    native = int(getattr(dev, "preferred_vector_width_double", 1) or 1)
+    width = 1
+    while width * 2 <= min(native, cap):
+        width *= 2
+    return width
+
+
 def device_info() -> list[dict]:
     """Describe every OpenCL device of every platform (raises OpenCLUnavailableError)."""
     found = _devices()
