@@ -29,33 +29,7 @@
  *                   scale_b = max|image_b| max|kernel_b| / (Ny Nx).
  */
 
-#if defined(cl_khr_fp64)
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-#endif
-
-#ifndef VW
-#define VW 1
-#endif
-
-#if VW == 1
-typedef double realv;
-#define VLOAD(o, p) ((p)[o])
-#define VSTORE(x, o, p) ((p)[o] = (x))
-#elif VW == 2
-typedef double2 realv;
-#define VLOAD(o, p) vload2((o), (p))
-#define VSTORE(x, o, p) vstore2((x), (o), (p))
-#elif VW == 4
-typedef double4 realv;
-#define VLOAD(o, p) vload4((o), (p))
-#define VSTORE(x, o, p) vstore4((x), (o), (p))
-#elif VW == 8
-typedef double8 realv;
-#define VLOAD(o, p) vload8((o), (p))
-#define VSTORE(x, o, p) vstore8((x), (o), (p))
-#else
-#error "VW must be 1, 2, 4 or 8"
-#endif
+#include "vector_types.cl"
 
 __kernel void convolve_direct(
     __global const double *restrict P,    /* (B, PY, PX) zero-padded planes   */

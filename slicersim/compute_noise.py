@@ -10,9 +10,6 @@ are identical — bit for bit — whatever the backend, the chunking
 """
 from __future__ import annotations
 
-import hashlib
-import importlib.resources
-from pathlib import Path
 
 import numpy as np
 
@@ -34,27 +31,9 @@ def seed_from(seed):
     return int(seed)
 
 
-def _kernel_dir():
-    """Filesystem directory of the installed kernels (for the -I build option)."""
-    try:
-        res = importlib.resources.files("slicersim.kernels")
-        if (res / "philox.cl").is_file():
-            return str(res)
-    except (ModuleNotFoundError, TypeError):
-        pass
-    return str(Path(__file__).resolve().parent.parent / "kernels")
-
-
 def _kernel(name, vector_width=1):
-    """Kernel of noise.cl built for ``vector_width`` elements per work item; philox.cl is
-    #included (its hash is in the build options, so editing it rebuilds)."""
-    src_dir = _kernel_dir()
-    if any(ch.isspace() for ch in src_dir):
-        raise opencl.OpenCLUnavailableError(f"kernel directory {src_dir!r} contains whitespace: "
-                                            "cannot pass it as an OpenCL -I option")
-    digest = hashlib.sha1(opencl.kernel_source("philox.cl").encode()).hexdigest()[:16]
-    return opencl.get_kernel("noise.cl", name, (f"-I{src_dir}", f"-DRNG_VW={int(vector_width)}",
-                                                f"-DSLICERSIM_PHILOX_SHA=0x{digest}"))
+    """Kernel of noise.cl (which #includes philox.cl) for ``vector_width`` elements per work item."""
+    return opencl.get_kernel("noise.cl", name, (f"-DRNG_VW={int(vector_width)}",))
 
 
 def _vector_width(vector_width):

@@ -22,6 +22,7 @@ start method.
 
 from __future__ import annotations
 
+import hashlib
 import importlib.resources
 import os
 import re
@@ -214,9 +215,41 @@ def kernel_source(name: str) -> str:
     return path.read_text(encoding="utf-8")
 
 
+def kernel_dir() -> str:
+    """Filesystem directory of the kernel sources (the ``-I`` path for ``#include``)."""
+    try:
+        res = importlib.resources.files("slicersim.kernels")
+        if res.joinpath("philox.cl").is_file():
+            return str(res)
+    except (ModuleNotFoundError, TypeError):
+        pass
+    return str(Path(__file__).resolve().parent.parent / "kernels")
+
+
+_digest: list = []
+
+
+def _include_options() -> tuple:
+    """``-I<kernel dir>`` plus a digest of every ``.cl`` source: kernels may ``#include``
+    shared headers (philox.cl, vector_types.cl) and an edited header still rebuilds, since
+    PoCL's on-disk cache keys on the main source and the options only."""
+    directory = kernel_dir()
+    if any(ch.isspace() for ch in directory):
+        raise OpenCLUnavailableError(f"kernel directory {directory!r} contains whitespace: "
+                                     "it cannot be passed as an OpenCL -I option")
+    if not _digest:
+        sha = hashlib.sha1()
+        for path in sorted(Path(directory).glob("*.cl")):
+            sha.update(path.read_bytes())
+        _digest.append(sha.hexdigest()[:16])
+    return (f"-I{directory}", f"-DSLICERSIM_KERNELS_SHA=0x{_digest[0]}")
+
+
 def get_program(name: str, options=()):
-    """Built program for ``kernels/<name>``; cached per (name, options, device)."""
-    options = tuple(options)
+    """Built program for ``kernels/<name>``; cached per (name, options, device).
+
+    Every program is built with the kernel directory on its include path."""
+    options = tuple(options) + _include_options()
     state = _ensure()
     key = (name, options, state["device"].int_ptr)
     with _lock:

@@ -21,7 +21,6 @@ count.  The OpenCL kernels are in ``kernels/ramp.cl``;
 """
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 
@@ -305,10 +304,7 @@ def _launch_geometry(vector_width, work_group):
 
 def _ramp_kernel(name, vector_width):
     from . import opencl
-    from .compute_noise import _kernel_dir
-    digest = hashlib.sha1(opencl.kernel_source("philox.cl").encode()).hexdigest()[:16]
-    return opencl.get_kernel("ramp.cl", name, (f"-I{_kernel_dir()}", f"-DRNG_VW={int(vector_width)}",
-                                               f"-DSLICERSIM_PHILOX_SHA=0x{digest}"))
+    return opencl.get_kernel("ramp.cl", name, (f"-DRNG_VW={int(vector_width)}",))
 
 
 def _pixel_lists(mu, p, vector_width):
