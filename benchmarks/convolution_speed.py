@@ -1,7 +1,7 @@
 """PSF convolution and LSF of a Lazuli host-galaxy cube: direct vs FFT, OpenCL vs SciPy.
 
 Cube: a Sersic host (n = 1, r_eff = 0.4″, q = 0.6, PA 30°) with a smooth spectrum,
-``slicersim.host.Host.flux_cube`` on 525 λ bins × 58 × 116 cells of 0.04″.
+``slicersim.sources.extended.Host.flux_cube`` on 525 λ bins × 58 × 116 cells of 0.04″.
 Kernels: per-λ Gaussian PSFs (σ_y, σ_x from ``psf.gaussian_psf_sigmas`` with the
 Lazuli narrow-field numbers) cut to k × k cells, k = 5 … 61 (odd), normalised.
 
@@ -33,9 +33,9 @@ import numpy as np
 import scipy
 import scipy.ndimage
 
-from slicersim import compute_conv as cc, opencl
-from slicersim.host import Host, SersicProfile
-from slicersim.psf import gaussian_psf_sigmas
+from slicersim.backends import convolution as cc, opencl
+from slicersim.sources.extended import Host, SersicProfile
+from slicersim.physics.psf import gaussian_psf_sigmas
 
 NL, NY, NX, SCALE = 525, 58, 116, 0.04
 SIZES = [5, 7, 9, 11, 13, 15, 19, 21, 25, 31, 41, 51, 61]

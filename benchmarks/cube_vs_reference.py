@@ -75,7 +75,8 @@ def run_reference(lbda, flux, repeat):
 
 
 def run_ours(lbda, flux, repeat):
-    from slicersim import LazuliTarget, opencl
+    from slicersim.backends import opencl
+    from slicersim import LazuliTarget
     target = LazuliTarget(lbda, flux, config=reference_config(), field="narrow")
     target.change_detector(nmd=(16, 8, 0), nramps=1)
     sim = target.simulation

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Benchmark: spectro-imaging cubes → 4096² H4RG detector image.
 
-Compares our flux-conserving :class:`slicersim.mapper.SlicerMapper` (OpenCL
+Compares our flux-conserving :class:`slicersim.instrument.mapper.SlicerMapper` (OpenCL
 kernel and NumPy twin) with the public reference (``slicersim==1.0.0``,
 ``LazuliTarget.get_detector_image``, a point painter that interpolates the
 spot table with a Delaunay interpolator, see ../shared/reference/README.md
@@ -51,7 +51,7 @@ NMD = (16, 8, 0)
 REF_CODE = r"""
 import sys, time, numpy as np
 from slicersim import LazuliTarget
-from slicersim.mapper import SlicerMapper
+from slicersim.instrument.mapper import SlicerMapper
 inp, out, table = sys.argv[1:4]
 d = np.load(inp)
 t0 = time.perf_counter(); mapper = SlicerMapper.from_data(table); t_map = time.perf_counter() - t0
@@ -171,7 +171,7 @@ def flux_report(mapper, lbda, edges, img, narrow, wide, per_slice):
 
 
 def trace_errors(refdir):
-    from slicersim.mapper import SlicerMapper
+    from slicersim.instrument.mapper import SlicerMapper
     d = np.load(refdir / "detector" / "sn_z1.00_cbe_detector.npz")
     table = refdir / "config" / "mapping_spotdata.csv"
     out = {}
@@ -193,7 +193,7 @@ def trace_errors(refdir):
 
 def opencl_info():
     try:
-        from slicersim import opencl
+        from slicersim.backends import opencl
         if opencl.is_available():
             dev = opencl.get_device()
             return {"device": dev.name.strip(), "platform": dev.platform.name.strip(),
@@ -258,8 +258,8 @@ def main(argv=None):
     outdir.mkdir(parents=True, exist_ok=True)
 
     import slicersim
-    from slicersim import compute_project, opencl
-    from slicersim.mapper import SlicerMapper, detector_rate_image
+    from slicersim.backends import projection as compute_project, opencl
+    from slicersim.instrument.mapper import SlicerMapper, detector_rate_image
 
     refdir = reference_dir()
     result = {"machine": {"cpu": platform.processor() or platform.machine(), "ncpu": os.cpu_count(),

@@ -238,7 +238,7 @@ def _import_ours():
         out["error"] = f"import slicersim: {exc.__class__.__name__}: {exc}"
         return out
     try:
-        from slicersim.etc import solve_many
+        from slicersim.etc.solve import solve_many
         out["solve_many"] = solve_many
     except Exception as exc:
         out["solve_many_error"] = f"{exc.__class__.__name__}: {exc}"
@@ -344,7 +344,7 @@ def run_ours_single(LazuliTarget, inputs, config, warmup=1):
 
 def opencl_info():
     try:
-        from slicersim.opencl import device_info
+        from slicersim.backends.opencl import device_info
     except Exception as exc:
         return {"available": False, "reason": f"{exc.__class__.__name__}: {exc}"}
     try:

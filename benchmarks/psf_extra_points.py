@@ -13,9 +13,9 @@ import numpy as np
 def points(ctx):
     from scipy import ndimage
 
-    from slicersim.compute_conv import convolve_cube
-    from slicersim.compute_psf import psf_cube
-    from slicersim.host import SersicProfile
+    from slicersim.backends.convolution import convolve_cube
+    from slicersim.backends.psf import psf_cube
+    from slicersim.sources.extended import SersicProfile
 
     lbda, shape, kw, repeat = ctx["lbda"], ctx["shape"], dict(ctx["kwargs"]), ctx["repeat"]
     timed = ctx["timed"]

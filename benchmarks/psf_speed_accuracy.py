@@ -103,7 +103,7 @@ def extra_points(ctx):
 
 def wide_field_check(oracle_o, backend):
     """Convergence with o in the wide field (0.08″, jitter 0.125 cells) on 25 wavelengths."""
-    from slicersim.compute_psf import psf_cube
+    from slicersim.backends.psf import psf_cube
     lbda, shape, kw, _ = lazuli_narrow()
     lbda = lbda[np.linspace(0, lbda.size - 1, 25).astype(int)]
     kw = dict(kw, spatial_scale=0.08)
@@ -121,7 +121,7 @@ def label(o, lbda, kw):
     """"o=N", or "auto=(o_y,o_x)" with the factors "auto" picks."""
     if o != "auto":
         return f"o={o}"
-    from slicersim.psf import airy_wavenumber, midpoint_oversampling
+    from slicersim.physics.psf import airy_wavenumber, midpoint_oversampling
     kmax = float(airy_wavenumber(np.min(lbda), kw["diameter"], kw["spatial_scale"]))
     gam = kw["guiding_sigma"] / kw["spatial_scale"]
     oy = midpoint_oversampling(gam, kmax)
@@ -130,9 +130,9 @@ def label(o, lbda, kw):
 
 
 def run(args):
-    from slicersim import opencl
-    from slicersim.compute import resolve_backend
-    from slicersim.compute_psf import psf_cube
+    from slicersim.backends import opencl
+    from slicersim.backends.band_variance import resolve_backend
+    from slicersim.backends.psf import psf_cube
 
     lbda, shape, kw, source = lazuli_narrow()
     airy_kw = {k: v for k, v in kw.items() if k != "sigma_ref_arcsec"}

@@ -4,10 +4,10 @@
 The ramp: the Lazuli-like 2048² image of ``ramp_throughput.py``
 (:func:`lazuli_rate_image`), MACC(16, 8, 0), one ramp, read noise 12 e-, simulated once in
 memory (SCI uint16 + GROUPDQ uint8).  Each compression setting of
-:func:`slicersim.rampio.compression_options` — None, gzip levels 1 and 4 (+ byte shuffle),
+:func:`slicersim.io.rampfile.compression_options` — None, gzip levels 1 and 4 (+ byte shuffle),
 ``lz4`` (Blosc2/LZ4 + bit-shuffle), ``zstd`` (Blosc2/Zstd level 3 + bit-shuffle),
 ``bitshuffle-lz4`` (bitshuffle filter + LZ4) — writes the same arrays through
-:class:`slicersim.rampio.RampWriter` exactly as ``simulate(out=...)`` does (chunks of one group
+:class:`slicersim.io.rampfile.RampWriter` exactly as ``simulate(out=...)`` does (chunks of one group
 × 256 rows); the time covers ``write_block`` and closing the file (median of ``--repeat``).
 Reported: stored SCI and GROUPDQ bytes (HDF5 storage size), SCI compression ratio
 (uncompressed / stored), write speed in MB/s of uncompressed SCI + GROUPDQ (1 MB = 1e6 B),
@@ -36,9 +36,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
 from ramp_throughput import DETECTOR, lazuli_rate_image  # noqa: E402
-from slicersim.detector import Detector  # noqa: E402
-from slicersim.rampio import RampWriter, read_ramps  # noqa: E402
-from slicersim.ramps import simulate  # noqa: E402
+from slicersim.instrument.detector import Detector  # noqa: E402
+from slicersim.io.rampfile import RampWriter, read_ramps  # noqa: E402
+from slicersim.products.ramps import simulate  # noqa: E402
 
 SETTINGS = [None, "gzip:1", "gzip:4", "lz4", "zstd", "bitshuffle-lz4"]
 NMD, NRAMPS = (16, 8, 0), 1
@@ -144,7 +144,7 @@ def main():
     check = {"sci_stored_bytes": plain["sci_stored_bytes"], "sci_stored_GB": plain["sci_stored_bytes"] / 1e9,
              "data_volume_GB": vol, "equal": bool(plain["sci_stored_bytes"] == round(vol * 1e9))}
     print(f"uncompressed SCI {check['sci_stored_GB']:.6f} GB vs data_volume {vol:.6f} GB: equal {check['equal']}")
-    from slicersim import opencl
+    from slicersim.backends import opencl
     dev = opencl.get_device() if opencl.is_available() else None
     result = {"benchmark": "ramp_compression", "shape": [args.side, args.side], "nmd": list(NMD), "nramps": NRAMPS,
               "sci_bytes": sci.nbytes, "gdq_bytes": gdq.nbytes, "repeat": args.repeat, "rows": rows,

@@ -42,9 +42,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from slicersim import opencl  # noqa: E402
-from slicersim.detector import variance_rauscher07  # noqa: E402
-from slicersim.ramps import DEFAULT_BIAS, fit_slopes, simulate  # noqa: E402
+from slicersim.backends import opencl  # noqa: E402
+from slicersim.instrument.detector import variance_rauscher07  # noqa: E402
+from slicersim.products.ramps import DEFAULT_BIAS, fit_slopes, simulate  # noqa: E402
 
 TF, RON, GAIN = 2.83, 12.0, 1.0
 CASES = [(0.1, (16, 8, 0)), (10.0, (16, 8, 0)), (1000.0, (8, 2, 0))]

@@ -49,8 +49,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from slicersim import opencl, ramps  # noqa: E402
-from slicersim.detector import Detector  # noqa: E402
+from slicersim.backends import opencl
+from slicersim.products import ramps  # noqa: E402
+from slicersim.instrument.detector import Detector  # noqa: E402
 
 DETECTOR = dict(dark=2.8e-3, thermal_dark=1.2e-3, roic_glow=3e-3, tframe=2.83, ron=12.0, gain=1.0)
 

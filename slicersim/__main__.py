@@ -1,5 +1,5 @@
 """Allow ``python -m slicersim``."""
 
-from slicersim.cli import main
+from slicersim.app.cli import main
 
 raise SystemExit(main())

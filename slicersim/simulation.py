@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import HC_ERG_AA
-from .detector import check_readout, readout_times
-from .psf import aperture_cells, gaussian_psf_cells, gaussian_psf_fractions, gaussian_psf_sigmas
-from .spectrograph import apply_lsf
-from .thermal import thermal_dark_rate
+from slicersim.backends.psf import auto_oversampling, psf_cells
+from slicersim.constants import HC_ERG_AA
+from slicersim.physics.psf import aperture_cells, gaussian_psf_cells, gaussian_psf_fractions, gaussian_psf_sigmas
+from slicersim.physics.readout import VARIANCE_MODELS, check_readout, readout_times
+from slicersim.physics.thermal import thermal_dark_rate
+from slicersim.products.cube import build_cube, host_photons_block
 
 __all__ = ["Simulation", "VARIANCE_SOURCES", "ExtractionModel"]
 
@@ -255,7 +256,6 @@ class Simulation:
         computation path of each scene component and the options
         (``max_bytes``, ``progress``, ``psf_options``).
         """
-        from .cube import build_cube
         return tuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,
                                 **options))
 
@@ -277,14 +277,13 @@ class Simulation:
 
     def aperture_psf(self, psf_profile="gaussian", backend="auto"):
         """PSF fractions of the aperture cells (nλ, ncell): Gaussian (erf) or Airy (exact
-        sub-cell quadrature, jitter and slice blur; :func:`slicersim.compute_psf.psf_cells`)."""
+        sub-cell quadrature, jitter and slice blur; :func:`slicersim.backends.psf.psf_cells`)."""
         iy, ix = self.aperture
         if psf_profile in ("gaussian", "default"):
             sig_y, sig_x = self.psf_sigmas
             return gaussian_psf_cells(sig_y, sig_x, self.spectrograph.shape, self.position, (iy, ix))
         if psf_profile != "airy":
             raise ValueError(f"unknown psf_profile {psf_profile!r}: 'gaussian' or 'airy'")
-        from .compute_psf import auto_oversampling, psf_cells
         tel, spec = self.telescope, self.spectrograph
         common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
                       instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext)
@@ -304,7 +303,6 @@ class Simulation:
             signal_rate = lsf(flux_ph * self.qe) * self.detector.gain           # ADU/s
             host_ph = None
             if self.scene.host is not None:                                     # host light: photon noise
-                from .cube import host_photons_block
                 iy, ix = self.aperture
                 profile = "gaussian" if psf_profile in ("gaussian", "default") else psf_profile
                 host_cube = host_photons_block(self, profile, 0, self.lbda.size)  # ph/s/cell, before LSF
@@ -383,8 +381,8 @@ class Simulation:
 
     # ------------------------------------------------------------------ ETC
     def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", **kwargs):
-        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.search`)."""
-        from .search import solve_readout
+        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.etc.search`)."""
+        from slicersim.etc.search import solve_readout  # etc/ sits above: its solve_many builds Simulations
         return solve_readout(self, snr, lbda_range, per_resolution=per_resolution, search=search, **kwargs)
 
 
@@ -394,5 +392,4 @@ def _band_snr(signal, variance):
 
 
 def _pixel_variance_with_dark(det, pixel_rate, nmd, ron, dark):
-    from .detector import VARIANCE_MODELS
     return VARIANCE_MODELS[det.variance_model.lower()](pixel_rate, nmd, det.tframe, ron, dark, det.gain)

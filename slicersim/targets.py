@@ -10,126 +10,13 @@ import math
 
 import numpy as np
 
-from .config import ConfigError, load_config
-from .detector import Detector, check_readout
-from .scene import Background, PointSource, Scene, snia_spectrum
-from .search import ETCError
-from .simulation import Simulation
-from .spectrograph import MLASpectrograph, SlicerSpectrograph
-from .telescope import Telescope
+from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field, default_mapper  # noqa: F401
+from slicersim.errors import ETCError
+from slicersim.physics.readout import check_readout
+from slicersim.sources.scene import PointSource, snia_spectrum
 
 __all__ = ["LAZULI_FIELDS", "build_simulation", "Target", "Supernova", "BlackBody", "LazuliTarget",
            "LazuliSupernova", "LazuliBlackBody", "lazuli_etc", "lazuli_sn_etc"]
-
-#: Lazuli slicer fields: cell size [arcsec], throughput column, IFU optics count (optics group 1)
-LAZULI_FIELDS = {"narrow": {"spatial_scale": 0.04, "throughput_column": "narrow", "ifu_nelements": 4},
-                 "wide": {"spatial_scale": 0.08, "throughput_column": "wide", "ifu_nelements": 6}}
-#: index of the IFU / slicer group in [spectrograph.optics]
-IFU_OPTICS_INDEX = 1
-
-
-def _check_field(field):
-    if field is not None and field not in LAZULI_FIELDS:
-        raise ConfigError(f"unknown field {field!r}: 'narrow' or 'wide'")
-    return field
-
-
-def build_simulation(config="cbe", field="narrow", pointsource=None, background="zodi",
-                     position=(0.0, 0.0)):
-    """Simulation from a configuration (see :func:`slicersim.config.load_config`) and a field.
-
-    ``field=None`` uses the configuration as written (single-channel instruments).
-    """
-    _check_field(field)
-    cfg = load_config(config)
-    tel, spc, det = cfg.get("telescope", {}), cfg.get("spectrograph", {}), cfg.get("detector", {})
-    optics = dict(cfg.get("spectrograph.optics", {}))
-    psf = cfg.get("spectrograph.psf.spatial", {})
-    ext = cfg.get("extraction", {})
-    thr = cfg.get("spectrograph.throughput", {})
-    fieldpar = LAZULI_FIELDS[field] if field else {}
-    if fieldpar and "nelements" in optics and len(optics["nelements"]) > IFU_OPTICS_INDEX:
-        optics["nelements"] = list(optics["nelements"])
-        optics["nelements"][IFU_OPTICS_INDEX] = fieldpar["ifu_nelements"]
-    telescope = Telescope(diameter_ext=tel.get("diameter_ext", 3.0), diameter_int=tel.get("diameter_int", 0.0),
-                          temperature=tel.get("temperature", 0.0),
-                          emissivity=tel.get("emissivity", [0.0]), nelements=tel.get("nelements", [1]),
-                          guiding_sigma=psf.get("guiding_sigma", 0.0))
-    if psf.get("psf_sigma_spectral", "default") not in ("default", None):
-        raise ConfigError("psf_sigma_spectral other than 'default' is not supported yet")
-    kind = spc.get("kind", "slicer")
-    if kind not in ("slicer", "mla"):
-        raise ConfigError(f"unknown spectrograph kind {kind!r}: 'slicer' or 'mla'")
-    cls = SlicerSpectrograph if kind == "slicer" else MLASpectrograph
-    if "dispersion_law" not in spc and "resolving_power" not in spc:
-        raise ConfigError("configuration needs [spectrograph] dispersion_law or resolving_power")
-    spectrograph = cls(spectral_range=spc.get("spectral_range", (4000.0, 17000.0)),
-                       dispersion_law=spc.get("dispersion_law"), resolving_power=spc.get("resolving_power"),
-                       dispersion_scale=spc.get("dispersion_scale", 1.0),
-                       dispersion_resolution=spc.get("dispersion_resolution", 2.0),
-                       throughput=thr.get("throughput", 1.0),
-                       throughput_column=fieldpar.get("throughput_column"),
-                       spatial_scale=fieldpar.get("spatial_scale", spc.get("spatial_scale", 0.04)),
-                       spatial_shape=spc.get("spatial_shape", (58, 58)), optics=optics)
-    detector = Detector(qe=det.get("QE", 1.0), gain=det.get("gain", 1.0), dark=det.get("dark", 0.0),
-                        roic_glow=det.get("roic_glow", 0.0), ron=det.get("ron", 0.0),
-                        tframe=det.get("tframe", 2.83), pixel_size=det.get("pixel_size", 10.0),
-                        saturation=det.get("saturation", 65535), nmd=det.get("readout_mode", (16, 8, 0)),
-                        min_group=det.get("min_group", 2), max_group=det.get("max_group", 64),
-                        variance_model=det.get("variance_model", "Rauscher07"),
-                        shape=det.get("shape", (4096, 4096)),
-                        thermal_dark_range=None)
-    thermal_dark_range = det.get("thermal_dark_range")
-    if thermal_dark_range is None:
-        thermal_dark_range = _base_grid_range(config)
-    if isinstance(background, str):
-        background = Background(model="zodi", scale=2.0) if background == "zodi" else None
-    scene = Scene(pointsource=pointsource, background=background)
-    detector.thermal_dark_range = thermal_dark_range
-    sim = Simulation(scene, telescope, spectrograph, detector, nramps=ext.get("nramps", 1),
-                     aperture_radius_insigma=ext.get("aperture_radius_insigma", 10.0))
-    sim.config, sim.field = config, field
-    return sim
-
-
-def _base_grid_range(config):
-    """Thermal-dark integration range of a layered configuration (slicersim 1.0 convention).
-
-    The undispersed thermal light is integrated over the wavelength grid of the
-    *base* instrument: when later files (e.g. end-of-life) change the dispersion,
-    the detector keeps the base grid, as ``change_configuration`` does in
-    slicersim 1.0.  Returns None for a single configuration (use its own grid).
-    """
-    from .config import _expand
-    if isinstance(config, dict):
-        return None
-    paths = _expand(config)
-    if len(paths) < 2:
-        return None
-    base = load_config(paths[0]).get("spectrograph", {})
-    if "dispersion_law" not in base:
-        return None
-    from .curves import read_curve
-    from .spectrograph import wavelength_grid_from_dispersion
-    llbda, cols = read_curve(base["dispersion_law"])
-    lbda, _ = wavelength_grid_from_dispersion(llbda, next(iter(cols.values())),
-                                              base.get("spectral_range", (4000.0, 17000.0)),
-                                              base.get("dispersion_scale", 1.0),
-                                              base.get("dispersion_resolution", 2.0))
-    return float(lbda[0]), float(lbda[-1])
-
-
-_DEFAULT_MAPPER = []
-
-
-def default_mapper():
-    """The built-in Lazuli detector layout, built once per process (its projection tables
-    are cached inside it, so later detector images are fast)."""
-    if not _DEFAULT_MAPPER:
-        from .mapper import SlicerMapper
-        _DEFAULT_MAPPER.append(SlicerMapper.default())
-    return _DEFAULT_MAPPER[0]
-
 
 class Target:
     """A point source observed with a configured instrument.
@@ -151,7 +38,7 @@ class Target:
         self._source_args = dict(lbda=lbda, flux=flux, mag=mag, band=band, position=position)
         self.pointsource = PointSource(lbda, flux, position=position, mag=mag, band=band)
         self.config = self.default_config if config is None else config
-        self.field = self.default_field if field == "default" else _check_field(field)
+        self.field = self.default_field if field == "default" else check_field(field)
         self._build()
 
     def _build(self, keep_readout=False):
@@ -167,7 +54,7 @@ class Target:
         self._build(keep_readout=True)
 
     def change_field(self, field):
-        self.field = _check_field(field)
+        self.field = check_field(field)
         self._build(keep_readout=True)
 
     def change_spectrograph(self, field=None, **kwargs):
@@ -275,7 +162,7 @@ class Target:
         Uses the current readout unless ``nmd`` / ``nramps`` are given; the detector
         parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
         saturation) come from the configuration.  Returns SCI or writes ``out`` (HDF5)."""
-        from .ramps import simulate
+        from slicersim.products.ramps import simulate
         sim, det = self.simulation, self.simulation.detector
         image = self.get_detector_image(mapper, backend=backend)
         params = dict(tframe=det.tframe, ron=det.ron, dark=det.dark, thermal_dark=sim.thermal_dark,

@@ -36,8 +36,8 @@ def test_airy_cube_sums_within_two_percent_of_reference(case, refdir):
 
 def test_airy_field_flux_matches_analytic_fraction():
     """Point-source flux captured by the field = exact flux of the blurred Airy pattern in the field."""
-    from slicersim.compute_psf import psf_cube
-    from slicersim.psf import airy_rectangle_fraction
+    from slicersim.backends.psf import psf_cube
+    from slicersim.physics.psf import airy_rectangle_fraction
     lbda = np.array([4000.0, 9000.0, 16000.0])
     shape = (21, 41)
     kw = dict(spatial_scale=0.04, guiding_sigma=0.0, instrumental_sigma=0.0, diameter=3.0)

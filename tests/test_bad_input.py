@@ -10,11 +10,11 @@ import shutil
 import numpy as np
 import pytest
 
-from slicersim.config import ConfigError, builtin_config_dir, load_config
-from slicersim.detector import ReadoutError
-from slicersim.etc import solve_many
-from slicersim.scene import SpectrumError
-from slicersim.search import ETCError
+from slicersim.io.config import ConfigError, builtin_config_dir, load_config
+from slicersim.instrument.detector import ReadoutError
+from slicersim.etc.solve import solve_many
+from slicersim.sources.scene import SpectrumError
+from slicersim.etc.search import ETCError
 from slicersim.targets import LazuliTarget, build_simulation
 
 BAND = (8000.0, 13600.0)

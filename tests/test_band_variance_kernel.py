@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from slicersim import compute, opencl
+from slicersim.backends import band_variance as compute, opencl
 
 HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
 needs_opencl = pytest.mark.skipif(

@@ -8,12 +8,12 @@ import pytest
 from scipy.ndimage import gaussian_filter1d
 from scipy.special import erf, lambertw
 
-from slicersim.config import builtin_config_dir
+from slicersim.io.config import builtin_config_dir
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
-from slicersim.psf import cell_centres, gaussian_psf_fractions
-from slicersim.spectrograph import apply_lsf, lsf_weights
+from slicersim.physics.psf import cell_centres, gaussian_psf_fractions
+from slicersim.physics.lsf import apply_lsf, lsf_weights
 from slicersim.targets import LazuliTarget, build_simulation
-from slicersim.thermal import photon_radiance
+from slicersim.physics.thermal import photon_radiance
 
 BAND = (8000.0, 13600.0)
 LBDA = np.linspace(3000.0, 20000.0, 600)

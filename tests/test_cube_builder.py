@@ -16,9 +16,9 @@ import pytest
 from scipy import stats
 
 from conftest import reference_dir
-from slicersim.compute import resolve_backend
-from slicersim.cube import PATH_ABSENT, PATH_POINT, PATH_UNIFORM, build_cube, lsf_halo
-from slicersim.scene import Host, PointSource, Scene, SpectrumError
+from slicersim.backends.band_variance import resolve_backend
+from slicersim.products.cube import PATH_ABSENT, PATH_POINT, PATH_UNIFORM, build_cube, lsf_halo
+from slicersim.sources.scene import Host, PointSource, Scene, SpectrumError
 from slicersim.simulation import Simulation
 from slicersim.targets import LazuliTarget
 
@@ -137,13 +137,13 @@ def test_nan_only_where_saturated(sim, cube):
         PointSource(LBDA_IN, -np.ones_like(LBDA_IN))
 
 
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.host") is None
-                    or importlib.util.find_spec("slicersim.compute_conv") is None,
-                    reason="slicersim.host / slicersim.compute_conv not available yet")
+@pytest.mark.skipif(importlib.util.find_spec("slicersim.sources.extended") is None
+                    or importlib.util.find_spec("slicersim.backends.convolution") is None,
+                    reason="slicersim.sources.extended / slicersim.backends.convolution not available yet")
 def test_host_is_convolved_and_conserves_flux(narrow_band_sim):
     """A Sersic host of total F = 1e-17 erg/s/cm²/Å: Σ_cells signal = (flux fraction in the field)
     · LSF[F f2p] QE t_int g, up to the PSF blur losing light over the field edges (< 2e-3)."""
-    from slicersim.host import Host as SersicHost, SersicProfile
+    from slicersim.sources.extended import Host as SersicHost, SersicProfile
     sim = narrow_band_sim
     host = SersicHost(SersicProfile(1.0, 0.3), LBDA_IN, np.full(LBDA_IN.size, 1e-17))
     parts = {name: Simulation(Scene(None, None, h), sim.telescope, sim.spectrograph, sim.detector)
@@ -169,8 +169,8 @@ class _BlobHost:
         return 1e-17 * np.ones(len(lbda))[:, None, None] * (blob / blob.sum())[None]
 
 
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.compute_conv") is None,
-                    reason="slicersim.compute_conv not available yet")
+@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.convolution") is None,
+                    reason="slicersim.backends.convolution not available yet")
 def test_host_chunking_and_device_twin(narrow_band_sim):
     sim = narrow_band_sim
     blob = Simulation(Scene(None, None, _BlobHost()), sim.telescope, sim.spectrograph, sim.detector)
@@ -183,8 +183,8 @@ def test_host_chunking_and_device_twin(narrow_band_sim):
         assert _peak_err(res.signal, twin.signal) < 1e-12
 
 
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.compute_psf") is None,
-                    reason="slicersim.compute_psf not available yet")
+@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.psf") is None,
+                    reason="slicersim.backends.psf not available yet")
 def test_airy_profile_hook(sim, cube):
     airy = build_cube(sim, **READOUT, psf_profile="airy", progress=False)
     assert airy.paths["pointsource"].startswith(PATH_POINT) and "airy" in airy.paths["pointsource"]
@@ -202,7 +202,7 @@ def test_airy_profile_hook(sim, cube):
 def test_options_and_hooks(sim):
     with pytest.raises(ValueError, match="psf_profile"):
         build_cube(sim, psf_profile="moffat")
-    if importlib.util.find_spec("slicersim.compute_psf") is None:
+    if importlib.util.find_spec("slicersim.backends.psf") is None:
         with pytest.raises(NotImplementedError, match="compute_psf"):
             build_cube(sim, psf_profile="airy", progress=False)
     with pytest.raises(TypeError, match="flux_cube"):
@@ -252,8 +252,8 @@ def test_reference_gaussian_cube(refdir, case):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.compute_psf") is None,
-                    reason="slicersim.compute_psf not available yet")
+@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.psf") is None,
+                    reason="slicersim.backends.psf not available yet")
 def test_reference_airy_cube_through_the_hook(refdir):
     """psf_options reach compute_psf: its slicersim-1.0 sampling reproduces the reference Airy cube."""
     case = "sn_z1.00_cbe_wide_snr20"
@@ -271,10 +271,10 @@ def test_reference_airy_cube_through_the_hook(refdir):
 # contraction only); chunked vs unchunked kernel output must be bit-identical.
 from scipy.ndimage import correlate1d  # noqa: E402
 
-from slicersim.compute_cube import (GaussianPSF, ReadoutConstants, default_vector_width,  # noqa: E402
+from slicersim.backends.cube import (GaussianPSF, ReadoutConstants, default_vector_width,  # noqa: E402
                                     detector_block, reflect_indices)
-from slicersim.cube import FUSED_KERNEL, readout_constants  # noqa: E402
-from slicersim.spectrograph import lsf_index_weights, lsf_weights  # noqa: E402
+from slicersim.products.cube import FUSED_KERNEL, readout_constants  # noqa: E402
+from slicersim.physics.lsf import lsf_index_weights, lsf_weights  # noqa: E402
 
 needs_opencl = pytest.mark.skipif(resolve_backend("auto") != "opencl",
                                   reason="no OpenCL device with fp64: the fused-kernel tests need one")
@@ -379,12 +379,12 @@ def test_fused_kernel_chunking_float32_and_checks():
 
 
 @needs_opencl
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.compute_psf") is None,
-                    reason="slicersim.compute_psf not available yet")
+@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.psf") is None,
+                    reason="slicersim.backends.psf not available yet")
 def test_fused_kernel_airy_block(narrow_band_sim):
     """A real Airy PSF block (non-separable) through the kernel and its twin; build_cube's fused
     path against its NumPy path (1e-12: compute_psf's two backends differ by ~1e-14)."""
-    from slicersim.cube import psf_block
+    from slicersim.products.cube import psf_block
     sim = narrow_band_sim
     nl, halo = sim.lbda.size, lsf_halo(sim)
     psf = psf_block(sim, "airy", 0, nl)
@@ -402,14 +402,14 @@ def test_fused_kernel_airy_block(narrow_band_sim):
 
 
 @needs_opencl
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.compute_psf") is None,
-                    reason="slicersim.compute_psf not available yet")
+@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.psf") is None,
+                    reason="slicersim.backends.psf not available yet")
 def test_fused_kernel_device_resident_psf(narrow_band_sim):
     """The Airy block left on the device (no host round trip) gives the same cube, bit for bit, as
     the host block, in the kernel and in its twin; the zero-copy outputs are the caller's arrays."""
-    from slicersim import opencl
-    from slicersim.compute_psf import DevicePSF
-    from slicersim.cube import psf_block
+    from slicersim.backends import opencl
+    from slicersim.backends.psf import DevicePSF
+    from slicersim.products.cube import psf_block
     sim = narrow_band_sim
     nl = sim.lbda.size
     host_psf = psf_block(sim, "airy", 0, nl)
@@ -452,8 +452,8 @@ def test_paths_kubik_and_float32(sim, cube):
 
 def test_gaussian_factors_bit_identical_to_psf_module():
     """GaussianPSF.factors skips erf where |z| ≥ 6 (erf = ±1 exactly): P = fy fx must equal
-    slicersim.psf.gaussian_psf_fractions bit for bit, and hold the flux inside the field."""
-    from slicersim.psf import gaussian_psf_fractions
+    slicersim.physics.psf.gaussian_psf_fractions bit for bit, and hold the flux inside the field."""
+    from slicersim.physics.psf import gaussian_psf_fractions
     rng = np.random.default_rng(5)
     sig_y, sig_x = 0.05 + 3 * rng.random(40), 0.05 + 3 * rng.random(40)
     for shape, position in (((58, 116), (0.0, 0.0)), ((7, 19), (1.37, -2.6)), ((9, 4), (30.0, 0.2))):

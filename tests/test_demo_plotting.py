@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from slicersim import plotting  # noqa: E402
+from slicersim.app import plotting  # noqa: E402
 from slicersim.targets import LazuliTarget  # noqa: E402
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -33,7 +33,7 @@ def _close_figures():
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    from slicersim.demo import run_demo
+    from slicersim.app.demo import run_demo
 
     outdir = tmp_path_factory.mktemp("demo")
     return outdir, run_demo(str(outdir), verbose=False)
@@ -67,7 +67,7 @@ def test_demo_json(demo):
 
 
 def test_cli_demo_wiring(monkeypatch, tmp_path):
-    from slicersim import cli, demo as demo_module
+    from slicersim.app import cli, demo as demo_module
 
     calls = []
     monkeypatch.setattr(demo_module, "run_demo", lambda *a, **k: calls.append((a, k)) or {})

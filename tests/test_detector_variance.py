@@ -2,14 +2,14 @@
 
 Hand values are written out as explicit arithmetic from the published formulas,
 never by calling the library twice, so a wrong coefficient in
-:mod:`slicersim.detector` fails here.
+:mod:`slicersim.instrument.detector` fails here.
 """
 import math
 
 import numpy as np
 import pytest
 
-from slicersim.detector import (Detector, ReadoutError, check_readout, rauscher07_coefficients,
+from slicersim.instrument.detector import (Detector, ReadoutError, check_readout, rauscher07_coefficients,
                                 readout_times, variance_kubik16, variance_rauscher07)
 
 TF = 2.83   # s, Lazuli frame time

@@ -12,8 +12,8 @@ import sncosmo
 from astropy.cosmology import Planck18
 
 from conftest import reference_dir
-from slicersim.etc import solve_many
-from slicersim.search import candidate_readouts, exact_choice
+from slicersim.etc.solve import solve_many
+from slicersim.etc.search import candidate_readouts, exact_choice
 from slicersim.targets import LazuliTarget
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
@@ -144,7 +144,7 @@ def test_exact_choice_prefers_fewer_ramps_on_ties():
 
 
 def test_unreachable_target_raises():
-    from slicersim.search import ETCError
+    from slicersim.etc.search import ETCError
     flux = np.where(LBDA < 5000, 1e-17, 0.0)
     with pytest.raises(ETCError, match="cannot reach"):
         solve_many(LBDA, flux[None], 20.0, [(9000.0, 12000.0)])

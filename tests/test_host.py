@@ -16,7 +16,7 @@ import pytest
 from scipy.integrate import quad
 from scipy.special import erf, gammainc
 
-from slicersim.host import CubeSource, Host, SersicProfile, integrate_radial_cells, sersic_bn
+from slicersim.sources.extended import CubeSource, Host, SersicProfile, integrate_radial_cells, sersic_bn
 
 NARROW = ((58, 116), 0.04)
 

@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 import scipy.ndimage
 
-from slicersim import compute_conv as cc, opencl
+from slicersim.backends import convolution as cc
+from slicersim.backends import opencl
+from slicersim.physics import lsf
 
 HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
 needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 "
@@ -77,14 +79,14 @@ def test_lsf_varying_sigma_conserves_flux_and_matches_definition(backend):
     ref = np.apply_along_axis(scatter_reference, 0, x, sigma)
     assert peak_error(out, ref) <= 1e-12
     assert np.allclose(out.sum(axis=0), x.sum(axis=0), rtol=1e-12, atol=0)
-    cols = np.asarray(cc.lsf_matrix(sigma, n).sum(axis=0)).ravel()
+    cols = np.asarray(lsf.lsf_matrix(sigma, n).sum(axis=0)).ravel()
     assert np.abs(cols - 1).max() <= 1e-13
 
 
 def test_lsf_constant_sigma_scatter_equals_gather_everywhere():
     """For constant σ the flux-conserving matrix is symmetric: the two forms coincide,
     edges included."""
-    M = cc.lsf_matrix(np.full(40, 2.3), 40).toarray()
+    M = lsf.lsf_matrix(np.full(40, 2.3), 40).toarray()
     assert np.abs(M - M.T).max() <= 1e-16
     x = np.random.default_rng(1).random((40, 2))
     ref = scipy.ndimage.gaussian_filter1d(x, 2.3, axis=0, mode="reflect")

@@ -27,9 +27,9 @@ import numpy as np
 import pytest
 
 from conftest import reference_dir
-from slicersim import compute_project as cp
-from slicersim import opencl
-from slicersim.mapper import SlicerMapper, detector_rate_image
+from slicersim.backends import projection as cp
+from slicersim.backends import opencl
+from slicersim.instrument.mapper import SlicerMapper, detector_rate_image
 
 HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
 needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
@@ -37,9 +37,9 @@ BACKENDS = ["numpy", pytest.param("opencl", marks=needs_opencl)]
 
 def cbe_grid():
     """The built-in CBE wavelength grid (510 bins, ~1 px each on the default layout)."""
-    from slicersim.config import builtin_config_dir
-    from slicersim.curves import read_curve
-    from slicersim.spectrograph import wavelength_grid_from_dispersion
+    from slicersim.io.config import builtin_config_dir
+    from slicersim.io.curves import read_curve
+    from slicersim.instrument.spectrograph import wavelength_grid_from_dispersion
     lam, cols = read_curve(f"{builtin_config_dir()}/dispersion_prism.ecsv")
     return wavelength_grid_from_dispersion(lam, next(iter(cols.values())), (4000, 17000), 1.3, 2.3)
 

@@ -1,11 +1,11 @@
-"""Tests of the OpenCL runtime layer (slicersim.opencl)."""
+"""Tests of the OpenCL runtime layer (slicersim.backends.opencl)."""
 
 import os
 import time
 
 import pytest
 
-from slicersim import opencl
+from slicersim.backends import opencl
 
 HAVE_OPENCL = opencl.is_available()
 needs_opencl = pytest.mark.skipif(

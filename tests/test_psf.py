@@ -1,4 +1,4 @@
-"""Point-source PSF cubes (slicersim.compute_psf, kernels/psf.cl): kernels vs
+"""Point-source PSF cubes (slicersim.backends.psf, kernels/psf.cl): kernels vs
 NumPy twins, and physics (flux, analytic limits, symmetry, scaling).
 
 Tolerances
@@ -20,9 +20,9 @@ from scipy.integrate import quad
 from scipy.special import erf, j1
 
 from conftest import reference_dir
-from slicersim import opencl
-from slicersim.compute_psf import bessel_j1, psf_cells, psf_cube
-from slicersim.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
+from slicersim.backends import opencl
+from slicersim.backends.psf import bessel_j1, psf_cells, psf_cube
+from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
                            airy_wavenumber, aperture_cells, blur_bin_taps, gaussian_psf_fractions,
                            gaussian_psf_sigmas)
 
@@ -102,7 +102,7 @@ def test_airy_kernel_symmetric_sources_match_numpy(case):
 
 
 def test_mirror_and_shared_offset_maps():
-    from slicersim.compute_psf import _mirror_blocks, _output_mirror_blocks, _shared_rows
+    from slicersim.backends.psf import _mirror_blocks, _output_mirror_blocks, _shared_rows
     d = np.arange(-8.0, 8.0) + 0.5                        # symmetric about 0: 4 blocks of 4
     blocks = _mirror_blocks(d, 4)
     assert blocks.tolist() == [[0, 3], [1, 2]]
@@ -147,7 +147,7 @@ def test_device_resident_cube_equals_host_cube():
     result for one launch and for one wavelength per launch (planes placed at their offsets, odd
     sizes), reusing a buffer; holds the flux of a small field (< 1, most of it); other profiles
     and the reference grid fall back to psf_cube's host arrays."""
-    from slicersim.compute_psf import DevicePSF, psf_cube_device
+    from slicersim.backends.psf import DevicePSF, psf_cube_device
     lbda = np.linspace(4000, 17000, 11)
     host = psf_cube(lbda, (9, 15), (0.2, 0.1), "airy", backend="opencl", **NARROW)
     dev = psf_cube_device(lbda, (9, 15), (0.2, 0.1), "airy", backend="opencl", **NARROW)
@@ -274,7 +274,7 @@ def test_oversampling_convergence_undersampled_psf():
 def test_auto_oversampling(field, scale, expected):
     """"auto" picks (o_y, o_x) per axis from the aliasing bound (< 1e-4 of the peak):
     few sub-samples along the strongly blurred x axis, more along y (jitter only)."""
-    from slicersim.compute_psf import auto_oversampling
+    from slicersim.backends.psf import auto_oversampling
     kw = dict(NARROW, spatial_scale=scale)
     lbda = np.array([4000.0, 7000.0])
     assert auto_oversampling(lbda, **kw) == expected
@@ -358,7 +358,7 @@ def test_reference_airy_cube(case, refdir):
     LSF[F f2p P + uniform] QE t_int g r) at its three slice wavelengths; only the
     ±5 bins the LSF mixes are computed.  Measured agreement 2.2e-8 of the peak
     (the reference's rounded h c, as for the Gaussian path)."""
-    from slicersim.detector import readout_times
+    from slicersim.instrument.detector import readout_times
     from slicersim.targets import LazuliTarget
     meta = json.load(open(refdir / "cases" / f"{case}.json"))
     with np.load(refdir / "cases" / f"{case}.npz") as npz:

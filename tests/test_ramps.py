@@ -5,11 +5,12 @@ import os
 import numpy as np
 import pytest
 
-from slicersim import opencl
-from slicersim.detector import variance_kubik16, variance_rauscher07
-from slicersim.ramps import (RampParameters, _simulate_block_numpy, _simulate_block_opencl, fit_slopes,
+from slicersim.backends import opencl
+from slicersim.instrument.detector import variance_kubik16, variance_rauscher07
+from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
+from slicersim.products.ramps import (RampParameters, fit_slopes,
                              frame_mean_charge, simulate)
-from slicersim.rampio import RampFileError, read_ramps
+from slicersim.io.rampfile import RampFileError, read_ramps
 
 needs_opencl = pytest.mark.skipif(not (opencl.is_available() and opencl.device_supports_fp64()),
                                   reason="no OpenCL device with fp64")
@@ -25,20 +26,20 @@ def test_kernel_equals_numpy_twin_bit_for_bit(nmd):
     """Same integers: both paths use the same Philox keys and the same IEEE operations."""
     rng = np.random.default_rng(1)
     rate = 10 ** rng.uniform(-4, 4.4, 2501)            # sparse, inversion, PTRS and saturating pixels
-    p = RampParameters(nmd, ktc_noise=7.0, roic_glow=0.01, gauss_min_mean=np.inf)
+    p = RampParameters(nmd=nmd, ktc_noise=7.0, roic_glow=0.01, gauss_min_mean=np.inf)
     dead = rng.random(rate.size) < 0.01
-    a = _simulate_block_numpy(_mu(rate, p), dead, 17, 3, 1234, p)
-    b = _simulate_block_opencl(_mu(rate, p), dead, 17, 3, 1234, p)
+    a = simulate_block_numpy(_mu(rate, p), dead, 17, 3, 1234, p)
+    b = simulate_block_opencl(_mu(rate, p), dead, 17, 3, 1234, p)
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
     assert a[1].any(), "some pixels must saturate in this test"
 
 
 @needs_opencl
 def test_gaussian_approximation_twin_and_moments():
-    p = RampParameters((6, 2, 0), gauss_min_mean=50.0, ron=0.0, roic_glow=0.0, bias=0.0, full_well=1e9)
+    p = RampParameters(nmd=(6, 2, 0), gauss_min_mean=50.0, ron=0.0, roic_glow=0.0, bias=0.0, full_well=1e9)
     rate = np.full(3001, 40.0)                           # mu = 113 e-/frame: Gaussian path
-    a = _simulate_block_numpy(_mu(rate, p), np.zeros(rate.size, bool), 0, 0, 9, p)
-    b = _simulate_block_opencl(_mu(rate, p), np.zeros(rate.size, bool), 0, 0, 9, p)
+    a = simulate_block_numpy(_mu(rate, p), np.zeros(rate.size, bool), 0, 0, 9, p)
+    b = simulate_block_opencl(_mu(rate, p), np.zeros(rate.size, bool), 0, 0, 9, p)
     assert np.array_equal(a[0], b[0])
 
 
@@ -61,11 +62,11 @@ def test_vector_lanes_any_width_and_odd_pixel_counts(npix):
     gen = np.random.default_rng(npix)
     rate = 10 ** gen.uniform(-3, 4.5, npix)
     rate[gen.random(npix) < 0.3] = 0.004                  # dark pixels between bright ones
-    p = RampParameters((6, 4, 2), ktc_noise=5.0, gauss_min_mean=300.0)
+    p = RampParameters(nmd=(6, 4, 2), ktc_noise=5.0, gauss_min_mean=300.0)
     dead = gen.random(npix) < 0.05
-    ref = _simulate_block_numpy(_mu(rate, p), dead, 5, 1, 99, p)
+    ref = simulate_block_numpy(_mu(rate, p), dead, 5, 1, 99, p)
     for vw, wg in [(1, None), (2, 3), (4, 1), (8, None), (16, 3), (16, None)]:
-        got = _simulate_block_opencl(_mu(rate, p), dead, 5, 1, 99, p, vector_width=vw, work_group=wg)
+        got = simulate_block_opencl(_mu(rate, p), dead, 5, 1, 99, p, vector_width=vw, work_group=wg)
         assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1]), (vw, wg)
 
 
@@ -75,13 +76,13 @@ def test_sparse_full_well_clipping_twin_and_statistics():
     the clipped group sums and flags have the dense sampler's mean, variance and flag rate."""
     nmd, npix = (6, 4, 2), 6000
     kw = dict(full_well=6.0, ron=0.0, bias=0.0, gain=4.0, roic_glow=0.0)   # ADU = sum of the 4 reads
-    ps, pd = RampParameters(nmd, sparse_max_group=64.0, **kw), RampParameters(nmd, sparse_max_group=0.0, **kw)
+    ps, pd = RampParameters(nmd=nmd, sparse_max_group=64.0, **kw), RampParameters(nmd=nmd, sparse_max_group=0.0, **kw)
     mu = np.full(npix, 0.25)                                   # 1.5 e- per window
     dead = np.zeros(npix, bool)
-    a = _simulate_block_numpy(mu[:500], dead[:500], 0, 0, 3, ps)
-    b = _simulate_block_opencl(mu[:500], dead[:500], 0, 0, 3, ps)
+    a = simulate_block_numpy(mu[:500], dead[:500], 0, 0, 3, ps)
+    b = simulate_block_opencl(mu[:500], dead[:500], 0, 0, 3, ps)
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
-    (ss, fs), (sd, fd) = (_simulate_block_opencl(mu, dead, 0, 0, 7, q) for q in (ps, pd))
+    (ss, fs), (sd, fd) = (simulate_block_opencl(mu, dead, 0, 0, 7, q) for q in (ps, pd))
     assert ss.max() == sd.max() == 24 and fs[-1].mean() > 0.5        # clipped at 4 × 6 e-
     for g in range(nmd[0]):
         xs, xd = ss[g].astype(float), sd[g].astype(float)
@@ -216,7 +217,7 @@ def test_saturation_flags_and_full_well():
 
 
 def test_hdf5_file_layout_and_data_volume(tmp_path):
-    from slicersim.detector import Detector
+    from slicersim.instrument.detector import Detector
     rate = np.random.default_rng(0).uniform(0, 100, (64, 48))
     path = simulate(rate, (5, 4, 1), nramps=2, seed=9, out=tmp_path / "ramp.h5", truth=True)
     sci, gdq, pdq, attrs = read_ramps(path)
@@ -254,16 +255,16 @@ def test_read_only_directory_fails_cleanly(tmp_path):
 
 
 def test_interrupted_writer_leaves_no_complete_file(tmp_path, monkeypatch):
-    import slicersim.ramps as ramps
+    import slicersim.products.ramps as ramps
     calls = {"n": 0}
-    real = ramps._simulate_block_numpy
+    real = ramps.simulate_block_numpy
 
     def dying(*args, **kw):
         calls["n"] += 1
         if calls["n"] == 2:
             raise KeyboardInterrupt("killed")
         return real(*args, **kw)
-    monkeypatch.setattr(ramps, "_simulate_block_numpy", dying)
+    monkeypatch.setattr(ramps, "simulate_block_numpy", dying)
     out = tmp_path / "ramp.h5"
     with pytest.raises(KeyboardInterrupt):
         ramps.simulate(np.ones((16, 8)), (3, 1, 0), out=out, backend="numpy", memory_budget=8 * 8 * 40)
@@ -276,7 +277,7 @@ def test_interrupted_writer_leaves_no_complete_file(tmp_path, monkeypatch):
     (dict(nmd=(4, 2, -1)), "dropped"), (dict(nramps=0), "nramps"),
 ])
 def test_invalid_readouts(kwargs, err):
-    from slicersim.detector import ReadoutError
+    from slicersim.instrument.detector import ReadoutError
     args = dict(nmd=(4, 2, 0), nramps=1) | kwargs
     with pytest.raises(ReadoutError, match=err):
         simulate(np.ones((2, 2)), **args)
@@ -307,7 +308,7 @@ def test_full_disk_is_refused_before_writing(tmp_path, monkeypatch):
 
 def test_write_error_mid_file_leaves_nothing(tmp_path, monkeypatch):
     """An OSError while writing (e.g. the disk filling up) ends in RampFileError and no file."""
-    from slicersim import rampio
+    from slicersim.io import rampfile as rampio
     real = rampio.RampWriter.write_block
     calls = {"n": 0}
 

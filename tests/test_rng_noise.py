@@ -1,4 +1,4 @@
-"""Philox4x32-10 RNG (slicersim.rng) and its OpenCL twin (kernels/philox.cl, noise.cl).
+"""Philox4x32-10 RNG (slicersim.backends.rng) and its OpenCL twin (kernels/philox.cl, noise.cl).
 
 * Known-answer vectors of Random123 for both implementations.
 * OpenCL and NumPy streams are bit-identical (uniforms, Gaussians, noisy
@@ -15,9 +15,9 @@ import pytest
 from scipy import stats
 from scipy.special import gammaln
 
-from slicersim import compute_noise as cn
-from slicersim import opencl, rng
-from slicersim.compute import resolve_backend
+from slicersim.backends import noise as cn
+from slicersim.backends import opencl, rng
+from slicersim.backends.band_variance import resolve_backend
 
 HAS_CL = resolve_backend("auto") == "opencl"
 needs_cl = pytest.mark.skipif(not HAS_CL, reason="no OpenCL device with fp64: NumPy-only run")

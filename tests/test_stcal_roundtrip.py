@@ -7,8 +7,8 @@ saturated groups flagged in GROUPDQ are honoured (bright pixels stay unbiased).
 import numpy as np
 import pytest
 
-from slicersim.ramps import simulate
-from slicersim.rampio import read_ramps
+from slicersim.products.ramps import simulate
+from slicersim.io.rampfile import read_ramps
 
 stcal_fit = pytest.importorskip("stcal.ramp_fitting.ramp_fit", reason="stcal not installed")
 from stcal.ramp_fitting.ramp_fit_class import RampData  # noqa: E402

@@ -1,0 +1,1 @@
+"""User-facing applications: the ``slicersim`` command line, the demo and plots."""

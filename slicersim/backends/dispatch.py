@@ -1,0 +1,45 @@
+"""Backend choice, memory budget and chunking shared by every kernel family.
+
+Every kernel-backed function takes ``backend="auto" | "opencl" | "numpy"``:
+"auto" uses OpenCL when a device with double precision is available (see
+:mod:`slicersim.backends.opencl`) and the NumPy twin otherwise.
+"""
+from __future__ import annotations
+
+from slicersim.backends import opencl
+
+__all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges", "check_vector_width"]
+
+#: memory budget [bytes] of the temporaries of one call, unless the caller gives max_bytes
+DEFAULT_MAX_BYTES = 256 * 2**20
+BACKENDS = ("auto", "opencl", "numpy")
+VECTOR_WIDTHS = (1, 2, 4, 8, 16)
+
+
+def resolve_backend(backend: str = "auto") -> str:
+    """Return "opencl" or "numpy" for *backend* (raises on unknown names)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend != "auto":
+        return backend
+    opencl.check_process()  # a forked child must not silently change backend
+    if opencl.is_available() and opencl.device_supports_fp64():
+        return "opencl"
+    return "numpy"
+
+
+def chunk_ranges(n, bytes_per_item, max_bytes=DEFAULT_MAX_BYTES, multiple=1):
+    """Half-open ranges [i0, i1) covering 0…n, each within ``max_bytes`` for items of
+    ``bytes_per_item`` bytes, a multiple of ``multiple`` items long (at least one multiple)."""
+    step = max(multiple, int(max_bytes // max(bytes_per_item, 1)) // multiple * multiple)
+    for i0 in range(0, n, step):
+        yield i0, min(n, i0 + step)
+
+
+def check_vector_width(vector_width, default_cap=16, scale=1):
+    """Validated elements per work item: the device's preferred width when None."""
+    if vector_width is None:
+        return opencl.preferred_vector_width(default_cap, scale)
+    if vector_width not in VECTOR_WIDTHS:
+        raise ValueError(f"vector_width must be 1, 2, 4, 8 or 16, got {vector_width}")
+    return int(vector_width)

@@ -1,0 +1,186 @@
+"""Random draws on the device (``kernels/noise.cl``) with their NumPy twins (:mod:`slicersim.backends.rng`).
+
+Every element is keyed by (seed, stream, global element index), so results
+are identical — bit for bit — whatever the backend, the chunking
+(``max_bytes``) or the work-group size.
+
+* :func:`noisy_cube` — expectation + √variance · N(0, 1) per voxel (ADU).
+* :func:`poisson_draw` — Poisson counts (inversion below mean 10, PTRS above).
+* :func:`uniform_normal_draw`, :func:`philox_blocks` — raw streams (tests, other kernels).
+"""
+from __future__ import annotations
+
+
+import numpy as np
+
+from slicersim.backends import opencl, rng
+from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, resolve_backend
+
+__all__ = ["noisy_cube", "poisson_draw", "uniform_normal_draw", "philox_blocks", "seed_from",
+           "DEFAULT_MAX_BYTES"]
+
+MIN_CHUNK = 256          # elements: floor of a chunk whatever max_bytes (avoids absurd launch counts)
+
+
+def seed_from(seed):
+    """Integer seed in [0, 2⁶⁴) from an int or a ``numpy.random.Generator`` (one 64-bit draw)."""
+    if isinstance(seed, np.random.Generator):
+        return int(seed.integers(0, 2**64, dtype=np.uint64))
+    rng.seed_to_key(seed)  # validates
+    return int(seed)
+
+
+def _kernel(name, vector_width=1):
+    """Kernel of noise.cl (which #includes philox.cl) for ``vector_width`` elements per work item."""
+    return opencl.get_kernel("noise.cl", name, (f"-DRNG_VW={int(vector_width)}",))
+
+
+def _chunk_len(n, bytes_per_item, max_bytes, multiple):
+    """Elements per chunk: within max_bytes, a multiple of ``multiple``, at least MIN_CHUNK."""
+    step = max(MIN_CHUNK, int(max_bytes // bytes_per_item))
+    step = min(max(n, 1), step, 2**31)
+    return -(-step // multiple) * multiple
+
+
+def _sizes(nitems, work_group):
+    """(global, local) sizes for nitems work items, padded to whole work groups."""
+    if work_group is None:
+        return (nitems,), None
+    wg = int(work_group)
+    if wg < 1 or wg > int(opencl.get_device().max_work_group_size):
+        raise ValueError(f"work_group must be in [1, {opencl.get_device().max_work_group_size}], got {wg}")
+    return (-(-nitems // wg) * wg,), (wg,)
+
+
+def _stream(stream):
+    stream = int(stream)
+    if not 0 <= stream < 2**32:
+        raise ValueError(f"stream must be in [0, 2**32), got {stream}")
+    return stream
+
+
+# --------------------------------------------------------------------------- Gaussian noise
+def noisy_cube(expectation, variance, seed, backend="auto", max_bytes=DEFAULT_MAX_BYTES,
+               work_group=None, *, stream=0, first_index=0, vector_width=None):
+    """One Gaussian realisation: expectation + √variance · N(0, 1) per element.
+
+    expectation, variance : arrays of the same shape (e.g. ADU, ADU²); variance ≥ 0,
+        non-finite variance (saturated voxel) → NaN, variance 0 → the expectation exactly.
+    seed : int in [0, 2⁶⁴) or numpy Generator;  stream : int in [0, 2³²)
+    first_index : global flat index of element 0 (to draw a slab of a larger cube consistently)
+    Element i uses the Box–Muller cos branch of Philox block (first_index + i, stream, 0).
+    OpenCL: max_bytes bounds the device buffers (3 float64 per element); work_group is the
+    local size (None: the runtime's); vector_width elements per work item (None: 1 on GPUs,
+    the preferred double width on CPUs).  None of them changes the result.
+    """
+    e = np.ascontiguousarray(expectation, dtype=np.float64)
+    v = np.ascontiguousarray(variance, dtype=np.float64)
+    if e.shape != v.shape:
+        raise ValueError(f"expectation {e.shape} and variance {v.shape} must have the same shape")
+    if np.any(v < 0):
+        raise ValueError(f"variance must be ≥ 0 ({np.count_nonzero(v < 0)} negative value(s))")
+    seed, stream = seed_from(seed), _stream(stream)
+    out = np.empty_like(e)
+    ef, vf, of = e.reshape(-1), v.reshape(-1), out.reshape(-1)
+    n = ef.size
+    if n == 0:
+        return out
+    if resolve_backend(backend) == "opencl":
+        opencl.require_fp64()
+        vw = check_vector_width(vector_width)
+        step = _chunk_len(n, 24, max_bytes, vw)       # buffers hold whole vectors
+        kern = _kernel("gaussian_noise", vw)
+        d_e, d_v, d_o = (opencl.device_buffer(8 * step) for _ in range(3))
+        key = rng.seed_to_key(seed)
+        for i0 in range(0, n, step):
+            i1 = min(n, i0 + step)
+            opencl.to_device(ef[i0:i1], d_e)
+            opencl.to_device(vf[i0:i1], d_v)
+            gsize, lsize = _sizes(-(-(i1 - i0) // vw), work_group)
+            opencl.launch(kern, gsize, lsize, d_e, d_v, d_o, np.uint64(first_index + i0),
+                          np.uint32(i1 - i0), np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream))
+            opencl.from_device(of[i0:i1], d_o)
+        return out
+    step = _chunk_len(n, 160, max_bytes, 1)       # ~20 float64 temporaries per element
+    with np.errstate(invalid="ignore"):
+        for i0 in range(0, n, step):
+            i1 = min(n, i0 + step)
+            z = rng.normal(seed, np.arange(first_index + i0, first_index + i1, dtype=np.uint64), stream)[:, 0]
+            vv, ee = vf[i0:i1], ef[i0:i1]
+            of[i0:i1] = np.where(~np.isfinite(vv), np.nan,
+                                 np.where(vv == 0.0, ee, ee + np.sqrt(np.where(np.isfinite(vv), vv, 0.0)) * z))
+    return out
+
+
+# --------------------------------------------------------------------------- Poisson
+def poisson_draw(mean, seed, stream=0, backend="auto", max_bytes=DEFAULT_MAX_BYTES, work_group=None,
+                 *, first_index=0):
+    """Poisson counts of expectation ``mean`` (≥ 0) as float64 (exact integers, NaN for non-finite mean).
+
+    Same algorithm and keys as :func:`slicersim.backends.rng.poisson` (element i: index first_index + i).
+    """
+    m = np.ascontiguousarray(mean, dtype=np.float64)
+    if np.any(m < 0):
+        raise ValueError(f"Poisson mean must be ≥ 0 ({np.count_nonzero(m < 0)} negative value(s))")
+    seed, stream = seed_from(seed), _stream(stream)
+    if resolve_backend(backend) != "opencl":
+        index = np.arange(first_index, first_index + m.size, dtype=np.uint64).reshape(m.shape)
+        return rng.poisson(m, seed, index, stream)
+    opencl.require_fp64()
+    out = np.empty_like(m)
+    mf, of = m.reshape(-1), out.reshape(-1)
+    n = mf.size
+    if n == 0:
+        return out
+    step = _chunk_len(n, 16, max_bytes, 1)
+    kern = _kernel("poisson_draw")
+    d_m, d_o = opencl.device_buffer(8 * step), opencl.device_buffer(8 * step)
+    key = rng.seed_to_key(seed)
+    for i0 in range(0, n, step):
+        i1 = min(n, i0 + step)
+        opencl.to_device(mf[i0:i1], d_m)
+        gsize, lsize = _sizes(i1 - i0, work_group)
+        opencl.launch(kern, gsize, lsize, d_m, d_o, np.uint64(first_index + i0), np.uint32(i1 - i0),
+                      np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream))
+        opencl.from_device(of[i0:i1], d_o)
+    return out
+
+
+# --------------------------------------------------------------------------- raw streams
+def uniform_normal_draw(n, seed, stream=0, draw=0, backend="auto", work_group=None, *, first_index=0,
+                        vector_width=None):
+    """(uniforms, normals), each (n, 2) float64, for indices first_index … first_index + n − 1
+    (the two uniforms of each Philox block and their two Box–Muller Gaussians)."""
+    seed, stream = seed_from(seed), _stream(stream)
+    if resolve_backend(backend) != "opencl":
+        index = np.arange(first_index, first_index + n, dtype=np.uint64)
+        return rng.uniform(seed, index, stream, draw), rng.normal(seed, index, stream, draw)
+    opencl.require_fp64()
+    vw = check_vector_width(vector_width)
+    npad = -(-max(n, 1) // vw) * vw
+    planes = np.empty((4, npad))
+    bufs = [opencl.device_buffer(8 * npad) for _ in range(4)]
+    key = rng.seed_to_key(seed)
+    gsize, lsize = _sizes(npad // vw, work_group)
+    opencl.launch(_kernel("uniform_normal", vw), gsize, lsize, *bufs, np.uint64(first_index), np.uint32(n),
+                  np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream), np.uint32(draw))
+    for plane, buf in zip(planes, bufs):
+        opencl.from_device(plane, buf)
+    return planes[:2, :n].T.copy(), planes[2:, :n].T.copy()
+
+
+def philox_blocks(counter, key, backend="auto"):
+    """Philox4x32-10 of (n, 4) uint32 counters with (n, 2) uint32 keys → (n, 4) uint32."""
+    counter = np.ascontiguousarray(counter, dtype=np.uint32).reshape(-1, 4)
+    key = np.ascontiguousarray(np.broadcast_to(np.asarray(key, np.uint32), (counter.shape[0], 2)))
+    if resolve_backend(backend) != "opencl":
+        return rng.philox4x32(counter, key)
+    out = np.empty_like(counter)
+    n = counter.shape[0]
+    if n == 0:
+        return out
+    d_o = opencl.device_buffer(out.nbytes)
+    opencl.launch(_kernel("philox_words"), (n,), None, opencl.to_device(counter), opencl.to_device(key),
+                  d_o, np.uint32(n))
+    opencl.from_device(out, d_o)
+    return out

@@ -1,0 +1,404 @@
+"""Cube → detector deposit: per-cell weight tables and the flux-conserving deposit.
+
+Host side of ``kernels/project.cl`` with NumPy twins (``backend="auto" |
+"opencl" | "numpy"``, see :mod:`slicersim.backends.band_variance`).  The geometry (which
+box on the detector each cube cell covers, and its spot rms) comes from
+:class:`slicersim.instrument.mapper.SlicerMapper`; this module only knows boxes.
+
+Model of one (sub-)cell: a uniform axis-aligned box [ax, bx] × [ay, by] [px]
+convolved with a Gaussian spot of rms (sx, sy) [px], integrated exactly over
+each pixel [c, c+1) (closed form, see the kernel's header; the Gaussian
+integrals come from a cubic Hermite table, absolute error < 4e-12).  The
+window covers the box ± ``truncate`` rms; the weights are renormalised over
+it, so every cell deposits exactly its value (cells are never split between
+"lost" and "kept" except by the detector edge, where the part that falls off
+is lost).  The deposit is separable: w(c_y, c_x) = scale · wx · wy.
+
+Tables are cube-independent: build them once per (mapper, slices, λ grid)
+and deposit any number of cubes.  Weights are stored as float32 by default
+(half the memory and bandwidth); the per-cell ``scale`` is computed in
+float64 from the *stored* weights, so flux conservation is exact to float64
+rounding whatever the storage type.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import erfc
+
+from slicersim.backends import opencl
+from slicersim.backends.dispatch import resolve_backend
+
+__all__ = ["DepositTables", "build_tables", "deposit"]
+
+_KERNEL = "project.cl"
+_INV_SQRT_2PI = 0.3989422804014327
+TMAX, TINV = 8.5, 128.0          # Hermite table of the Gaussian integrals: range, nodes per unit
+_NUMPY_CHUNK = 1 << 15          # cells per NumPy chunk (weights)
+_DEPOSIT_CHUNK = 1 << 15        # cells per NumPy chunk (deposit: ~ny*nxp temporaries each)
+
+
+@dataclass
+class DepositTables:
+    """Weight tables of N sub-cells on a (S, E, Q) grid (slice, λ row, φ column).
+
+    ``meta[c] = (x0, y0, nx, ny)``: first pixel column/row of the window and
+    its size; ``offset[c]``: start of the cell's weights in ``pool`` (``wx``
+    padded to a multiple of ``vw``, then ``wy``); ``scale[c]``: value
+    multiplier (1/(ne nq) over the stored weight sums).  ``oversample =
+    (ne, nq)`` sub-cells per cube cell along λ and φ.  ``phases``: per
+    launch, the (first, last) cell ranges of items that never share a pixel.
+    """
+
+    grid: tuple
+    oversample: tuple
+    vw: int
+    weights_dtype: np.dtype
+    detector_shape: tuple
+    meta: np.ndarray
+    offset: np.ndarray
+    pool_size: int
+    row_range: tuple
+    phases: list
+    scale: np.ndarray | None = None
+    pool: np.ndarray | None = None
+    device: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def ncell(self):
+        return int(self.meta.shape[0])
+
+    def host(self):
+        """Make sure ``pool`` and ``scale`` exist on the host (download if needed)."""
+        if self.pool is None:
+            pool = np.empty(self.pool_size, self.weights_dtype)
+            scale = np.empty(self.ncell, np.float64)
+            opencl.from_device(pool, self.device["pool"])
+            opencl.from_device(scale, self.device["scale"])
+            self.pool, self.scale = pool, scale
+        return self
+
+    def nbytes(self):
+        n = self.meta.nbytes + self.offset.nbytes + self.ncell * 8
+        return n + self.pool_size * np.dtype(self.weights_dtype).itemsize
+
+
+# --------------------------------------------------------------------------- #
+#  tables                                                                      #
+# --------------------------------------------------------------------------- #
+def _windows(lo, hi, sigma, truncate):
+    start = np.floor(lo - truncate * sigma)
+    stop = np.floor(hi + truncate * sigma)
+    n = stop - start + 1
+    if n.size and (not np.all(np.isfinite(n)) or n.max() > 4096):
+        raise ValueError("cell footprint or spot rms is not finite or spans more than 4096 px")
+    return start.astype(np.int32), n.astype(np.int32)
+
+
+def default_block(backend="auto"):
+    """Bins per deposit item: 16 on CPUs (few long work items), 2 on GPUs (many short ones)."""
+    if resolve_backend(backend) == "opencl" and "GPU" in opencl.device_type():
+        return 2
+    return 16
+
+
+def _item_bounds(grid, block):
+    S, E, Q = grid
+    e0 = np.arange(0, E, block)
+    e1 = np.minimum(e0 + block, E)
+    s = np.arange(S)[:, None]
+    first = ((s * E + e0[None]) * Q).ravel()
+    last = ((s * E + e1[None]) * Q).ravel()
+    return first.astype(np.int64), last.astype(np.int64)
+
+
+def _colour(first, last, meta, vw):
+    """Greedy colouring of items whose padded pixel boxes overlap."""
+    x0, y0, nx, ny = (meta[:, i].astype(np.int64) for i in range(4))
+    x1 = x0 + -(-nx // vw) * vw
+    y1 = y0 + ny
+    xlo = np.minimum.reduceat(x0, first)
+    xhi = np.maximum.reduceat(x1, first)
+    ylo = np.minimum.reduceat(y0, first)
+    yhi = np.maximum.reduceat(y1, first)
+    colour = np.zeros(first.size, np.int64)
+    for i in range(1, first.size):
+        hit = (xlo[:i] < xhi[i]) & (xlo[i] < xhi[:i]) & (ylo[:i] < yhi[i]) & (ylo[i] < yhi[:i])
+        used = np.bincount(colour[:i][hit], minlength=1)
+        colour[i] = int(np.argmin(used)) if used.min() == 0 else used.size
+    return [(first[colour == k].copy(), last[colour == k].copy()) for k in range(colour.max() + 1)]
+
+
+def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), truncate=4.0,
+                 weights_dtype=np.float32, vw=None, block=None, backend="auto"):
+    """Weight tables for sub-cell boxes.
+
+    Parameters
+    ----------
+    box : (N, 6) float array
+        ax, bx, sx, ay, by, sy [px] of each sub-cell, in (s, e, q) order of ``grid``.
+    grid : (S, E, Q)
+        sub-cell grid; ``E`` and ``Q`` are multiples of ``oversample = (ne, nq)``.
+    truncate : float
+        window half-width beyond the box, in spot rms.
+    weights_dtype : float32 or float64
+    vw : int, optional
+        x vector width (1, 2, 4, 8, 16); default 4 when most windows are ≤ 4 px, else 8.
+    block : int, optional
+        cube wavelength bins per deposit item (a work item loops over them);
+        default :func:`default_block`.
+    """
+    box = np.ascontiguousarray(box, dtype=np.float64)
+    S, E, Q = (int(v) for v in grid)
+    ne, nq = (int(v) for v in oversample)
+    if box.shape != (S * E * Q, 6) or E % ne or Q % nq or box.shape[0] == 0:
+        raise ValueError(f"box must have shape ({S * E * Q}, 6) and grid {grid} be divisible by {oversample}")
+    if np.any(box[:, [2, 5]] < 0) or np.any(box[:, 1] < box[:, 0]) or np.any(box[:, 4] < box[:, 3]):
+        raise ValueError("boxes need lo <= hi and rms >= 0")
+    weights_dtype = np.dtype(weights_dtype)
+    if weights_dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ValueError("weights_dtype must be float32 or float64")
+    x0, nx = _windows(box[:, 0], box[:, 1], box[:, 2], truncate)
+    y0, ny = _windows(box[:, 3], box[:, 4], box[:, 5], truncate)
+    if vw is None:
+        vw = 4 if np.median(nx) <= 4 else 8
+    if vw not in (1, 2, 4, 8, 16):
+        raise ValueError(f"vw must be 1, 2, 4, 8 or 16, got {vw}")
+    meta = np.ascontiguousarray(np.stack([x0, y0, nx, ny], axis=1), dtype=np.int32)
+    size = -(-nx.astype(np.int64) // vw) * vw + ny
+    offset = np.zeros(size.size, np.int64)
+    np.cumsum(size[:-1], out=offset[1:])
+    pool_size = int(size.sum())
+    H = int(detector_shape[0])
+    r0 = int(np.clip(y0.min(), 0, H)) if y0.size else 0
+    r1 = int(np.clip((y0.astype(np.int64) + ny).max(), r0, H)) if y0.size else 0
+    block = default_block(backend) if block is None else int(block)
+    first, last = _item_bounds((S, E, Q), max(1, block) * ne)
+    phases = _colour(first, last, meta, vw)
+    tables = DepositTables((S, E, Q), (ne, nq), vw, weights_dtype, tuple(detector_shape), meta,
+                           offset, pool_size, (r0, r1), phases)
+    factor = 1.0 / (ne * nq)
+    if resolve_backend(backend) == "opencl":
+        _weights_opencl(tables, box, factor)
+    else:
+        _weights_numpy(tables, box, factor)
+    return tables
+
+
+@functools.lru_cache(maxsize=1)
+def hermite_table():
+    """(TN, 8) cubic coefficients of Ht = t Φ(t) + φ(t) (cols 0–3) and Φ (cols 4–7).
+
+    Interval k covers t ∈ [t_k, t_k + 1/TINV), t_k = −TMAX + k/TINV; with
+    f = (t − t_k)·TINV the value is ((c3 f + c2) f + c1) f + c0: the cubic
+    Hermite interpolant of the exact values and derivatives (Ht' = Φ,
+    Φ' = φ) at both interval ends; absolute error < 4e-12 (h⁴/384 max|φ''|).
+    """
+    t = -TMAX + np.arange(int(round(2 * TMAX * TINV)) + 1) / TINV
+    cdf = 0.5 * erfc(-t * np.sqrt(0.5))
+    pdf = _INV_SQRT_2PI * np.exp(-0.5 * t * t)
+    h = 1.0 / TINV
+    cols = []
+    for v, d in ((t * cdf + pdf, cdf), (cdf, pdf)):
+        v0, v1, d0, d1 = v[:-1], v[1:], h * d[:-1], h * d[1:]
+        cols += [v0, d0, -3 * v0 - 2 * d0 + 3 * v1 - d1, 2 * v0 + d0 - 2 * v1 + d1]
+    return np.ascontiguousarray(np.stack(cols, axis=1))
+
+
+def _hermite(u, s, which):
+    """Ht (which=0) or Φ (which=1) at t = u/s, and the mask |t| < TMAX where it applies."""
+    tab = hermite_table()
+    inside = (s > 0) & (np.abs(u) < TMAX * s)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.where(inside, (u / s + TMAX) * TINV, 0.0)
+    k = np.floor(x)
+    f = x - k
+    base = k.astype(np.intp) * 8 + 4 * which
+    flat = tab.ravel()
+    return inside, ((flat[base + 3] * f + flat[base + 2]) * f + flat[base + 1]) * f + flat[base]
+
+
+def _g_cdf_integral(u, s):
+    """G(u) = ∫_{−∞}^{u} Φ(t/s) dt (s = 0 or |u| ≥ TMAX s: max(u, 0))."""
+    inside, val = _hermite(u, s, 0)
+    return np.where(inside, s * val, np.maximum(u, 0.0))
+
+
+def _g_cdf(u, s):
+    """Φ(u/s) (s = 0 or |u| ≥ TMAX s: step)."""
+    inside, val = _hermite(u, s, 1)
+    return np.where(inside, val, (u >= 0).astype(np.float64))
+
+
+def box_weights_numpy(a, b, s, c0, n, nmax, dtype=np.float64):
+    """(len(a), nmax) blurred-box pixel weights of pixels c0 + j (zero for j >= n).
+
+    W(c) = (D(c+1) − D(c)) / (b − a), D(c) = G(c − a) − G(c − b); a point
+    (b − a ≤ 1e-9): W(c) = Φ((c+1−a)/s) − Φ((c−a)/s).
+    """
+    a, b, s = (np.asarray(v, np.float64)[:, None] for v in (a, b, s))
+    c = np.asarray(c0, np.float64)[:, None] + np.arange(nmax + 1)[None]
+    width = b - a
+    box = width > 1e-9
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wbox = np.diff(_g_cdf_integral(c - a, s) - _g_cdf_integral(c - b, s), axis=1) / width
+    wpt = np.diff(_g_cdf(c - a, s), axis=1) if not box.all() else 0.0
+    w = np.maximum(np.where(box, wbox, wpt), 0.0).astype(dtype)
+    w[np.arange(nmax)[None] >= np.asarray(n)[:, None]] = 0
+    return w
+
+
+def _weights_numpy(t, box, factor):
+    x0, y0, nx, ny = (t.meta[:, i] for i in range(4))
+    pool = np.zeros(t.pool_size, t.weights_dtype)
+    scale = np.empty(t.ncell, np.float64)
+    for c0 in range(0, t.ncell, _NUMPY_CHUNK):
+        sl = slice(c0, min(c0 + _NUMPY_CHUNK, t.ncell))
+        b = box[sl]
+        nxp = -(-nx[sl] // t.vw) * t.vw
+        wx = box_weights_numpy(b[:, 0], b[:, 1], b[:, 2], x0[sl], nx[sl], int(nxp.max()), t.weights_dtype)
+        wy = box_weights_numpy(b[:, 3], b[:, 4], b[:, 5], y0[sl], ny[sl], int(ny[sl].max()), t.weights_dtype)
+        jx = np.arange(wx.shape[1])[None]
+        jy = np.arange(wy.shape[1])[None]
+        off = t.offset[sl][:, None]
+        mx = jx < nxp[:, None]
+        my = jy < ny[sl][:, None]
+        pool[(off + jx)[mx]] = wx[mx]
+        pool[(off + nxp[:, None] + jy)[my]] = wy[my]
+        sx = wx.astype(np.float64).sum(axis=1)
+        sy = wy.astype(np.float64).sum(axis=1)
+        with np.errstate(divide="ignore"):
+            scale[sl] = np.where((sx > 0) & (sy > 0), factor / (sx * sy), 0.0)
+    t.pool, t.scale = pool, scale
+
+
+def _options(t):
+    wtype = "float" if t.weights_dtype == np.dtype(np.float32) else "double"
+    return (f"-DVW={t.vw}", f"-DWTYPE={wtype}", f"-DTMAX={TMAX!r}", f"-DTINV={TINV!r}")
+
+
+def _weights_opencl(t, box, factor):
+    opencl.require_fp64()
+    kern = opencl.get_kernel(_KERNEL, "cell_weights", _options(t))
+    dev = t.device
+    dev["meta"] = opencl.to_device(t.meta)
+    dev["offset"] = opencl.to_device(t.offset)
+    dev["pool"] = opencl.device_buffer(t.pool_size * t.weights_dtype.itemsize)
+    dev["scale"] = opencl.device_buffer(8 * t.ncell)
+    d_box = opencl.to_device(box)
+    d_tab = opencl.to_device(hermite_table())
+    lsize = 64
+    gsize = -(-t.ncell // lsize) * lsize
+    opencl.launch(kern, (gsize,), None, d_box, dev["meta"], dev["offset"], np.int64(t.ncell),
+                  np.float64(factor), d_tab, dev["pool"], dev["scale"])
+    opencl.get_queue().finish()
+
+
+# --------------------------------------------------------------------------- #
+#  deposit                                                                     #
+# --------------------------------------------------------------------------- #
+def deposit(value, tables, out=None, backend="auto"):
+    """Deposit cube values into a detector image.
+
+    Parameters
+    ----------
+    value : (S, E/ne, Q/nq) float array
+        value of each cube cell (any unit per cell per bin; the image is in the
+        same unit per pixel); finite (a NaN would spread over its padded window).
+    tables : DepositTables
+    out : (H, W) float64 array, optional
+        accumulated into in place (a new zero image when None).
+
+    Returns the (H, W) float64 image.
+    """
+    t = tables
+    S, E, Q = t.grid
+    ne, nq = t.oversample
+    value = np.ascontiguousarray(value, dtype=np.float64)
+    if value.shape != (S, E // ne, Q // nq):
+        raise ValueError(f"value must have shape {(S, E // ne, Q // nq)}, got {value.shape}")
+    H, W = t.detector_shape
+    if out is None:
+        out = np.zeros((H, W), np.float64)
+    elif out.shape != (H, W) or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float64 array of shape {(H, W)}")
+    r0, r1 = t.row_range
+    if r1 <= r0 or t.ncell == 0:
+        return out
+    if resolve_backend(backend) == "opencl":
+        _deposit_opencl(value, t, out)
+    else:
+        _deposit_numpy(value, t, out)
+    return out
+
+
+def _parent_index(t, c):
+    S, E, Q = t.grid
+    ne, nq = t.oversample
+    s, rem = np.divmod(c, E * Q)
+    e, q = np.divmod(rem, Q)
+    return (s * (E // ne) + e // ne) * (Q // nq) + q // nq
+
+
+def _deposit_numpy(value, t, out):
+    """Twin of ``deposit_cells``: per chunk of cells, one bincount on the chunk's bounding box."""
+    t.host()
+    H, W = t.detector_shape
+    flat = value.ravel()
+    for c0 in range(0, t.ncell, _DEPOSIT_CHUNK):
+        c = np.arange(c0, min(c0 + _DEPOSIT_CHUNK, t.ncell))
+        v = flat[_parent_index(t, c)]
+        keep = v != 0
+        c, v = c[keep], v[keep] * t.scale[c[keep]]
+        if c.size == 0:
+            continue
+        x0, y0, nx, ny = (t.meta[c, i].astype(np.int64) for i in range(4))
+        nxp = -(-nx // t.vw) * t.vw
+        NX, NY = int(nx.max()), int(ny.max())
+        jx, jy = np.arange(NX)[None], np.arange(NY)[None]
+        off = t.offset[c][:, None]
+        wx = np.where(jx < nx[:, None], t.pool[np.minimum(off + jx, t.pool_size - 1)], 0).astype(np.float64)
+        wy = np.where(jy < ny[:, None], t.pool[np.minimum(off + nxp[:, None] + jy, t.pool_size - 1)], 0)
+        f = v[:, None] * wy.astype(np.float64)                         # (n, NY)
+        rlo, rhi = int(y0.min()), int(y0.max()) + NY
+        clo, chi = int(x0.min()), int(x0.max()) + NX
+        width = chi - clo
+        idx = ((y0 - rlo) * width + (x0 - clo))[:, None, None] + (jy * width)[:, :, None] + jx[:, None, :]
+        contrib = f[:, :, None] * wx[:, None, :]
+        acc = np.bincount(idx.ravel(), weights=contrib.ravel(), minlength=(rhi - rlo) * width)
+        acc = acc.reshape(rhi - rlo, width)
+        r_a, r_b, c_a, c_b = max(rlo, 0), min(rhi, H), max(clo, 0), min(chi, W)
+        if r_a < r_b and c_a < c_b:                     # what falls off the detector is lost
+            out[r_a:r_b, c_a:c_b] += acc[r_a - rlo:r_b - rlo, c_a - clo:c_b - clo]
+
+
+def _deposit_opencl(value, t, out):
+    opencl.require_fp64()
+    dev = t.device
+    if "pool" not in dev:
+        dev["meta"] = opencl.to_device(t.meta)
+        dev["offset"] = opencl.to_device(t.offset)
+        dev["pool"] = opencl.to_device(t.pool)
+        dev["scale"] = opencl.to_device(t.scale)
+    if "phases" not in dev:
+        dev["phases"] = [(opencl.to_device(f), opencl.to_device(l), f.size) for f, l in t.phases]
+    is_gpu = "GPU" in opencl.device_type()
+    S, E, Q = t.grid
+    ne, nq = t.oversample
+    H, W = t.detector_shape
+    r0, r1 = t.row_range
+    band = out[r0:r1]                                   # contiguous rows of a C array
+    d_img = opencl.to_device(band, opencl.device_buffer(band.nbytes))
+    d_val = opencl.to_device(value)
+    kern = opencl.get_kernel(_KERNEL, "deposit_cells", _options(t))
+    i32 = np.int32
+    for d_first, d_last, n in dev["phases"]:
+        lsize = 32 if is_gpu else 1
+        gsize = -(-n // lsize) * lsize
+        opencl.launch(kern, (gsize,), (lsize,), d_val, dev["meta"], dev["offset"], dev["pool"],
+                      dev["scale"], d_first, d_last, i32(n), i32(E), i32(Q), i32(ne), i32(nq),
+                      d_img, i32(W), i32(r0), i32(r1 - r0))
+    opencl.from_device(band, d_img)

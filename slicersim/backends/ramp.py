@@ -1,0 +1,265 @@
+"""Ramp samplers: the OpenCL kernels of ``kernels/ramp.cl`` and their bit-exact NumPy twin.
+
+Readout physics in small documented steps (cf. romanisim ``l1``):
+
+1. :func:`frame_mean_charge` — mean charge collected per frame μ = (rate + dark
+   + thermal dark)·t_f + ROIC glow  [e-/frame];
+2. charge accumulation, a Poisson process sampled exactly by one of two paths
+   chosen from μ only: *dense* — a Poisson increment in every frame; *sparse*
+   (μ·(m+d) < ``sparse_max_group``, default ≈ μ < 0.75 e-/frame) — per group window
+   (m reads + d dropped frames) a Poisson count and a uniform frame for each
+   event, so a dark pixel costs one uniform and one Gaussian per group;
+3. full-well clipping; group averaging of the m reads with read noise
+   σ_r/√m per group; kTC reset noise once per ramp;
+4. :func:`to_adu` — bias pedestal + gain, rounding and uint16 saturation;
+   GROUPDQ flags (JWST SATURATED = 2).
+
+Randomness is Philox4x32-10 keyed by (seed, ramp, pixel, frame or group): the
+output is identical for any chunking, work-group size, vector width or device
+count.  The OpenCL kernels are in ``kernels/ramp.cl``;
+:func:`simulate_block_numpy` is their bit-exact NumPy twin.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from slicersim.backends import opencl, rng
+from slicersim.backends.dispatch import check_vector_width
+from slicersim.io.rampfile import DQ
+from slicersim.physics.ramp import (MAX_SPARSE_WINDOW, P_KTC, P_POISSON, P_READ, P_SPARSE,  # noqa: F401
+                                    frame_mean_charge, macc_frame_schedule, sparse_threshold, to_adu)
+
+__all__ = ["simulate_block_numpy", "simulate_block_opencl", "CPU_WORK_GROUP", "MAX_CPU_WORK_GROUP"]
+
+def _frame_increment(mu, exp_neg_mu, seed, pix, frame, stream, gauss_min_mean):
+    """Poisson increments of one frame (twin of the dense path in ramp.cl)."""
+    out = np.zeros_like(mu)
+    gauss = (mu > 0) & (mu >= gauss_min_mean)
+    ptrs = (mu >= rng.PTRS_MIN_MEAN) & ~gauss
+    inv = (mu > 0) & ~gauss & ~ptrs
+    pair = (np.uint64(frame >> 1) << np.uint64(32))
+    if gauss.any():
+        z = rng.normal(seed, pair | pix[gauss], stream, 1)[..., frame & 1]
+        out[gauss] = np.maximum(np.rint(mu[gauss] + np.sqrt(mu[gauss]) * z), 0.0)
+    if ptrs.any():
+        idx = (np.uint64(frame) << np.uint64(32)) | pix[ptrs]
+        out[ptrs] = rng._poisson_ptrs(mu[ptrs], seed, idx, stream + 0x80000000)
+    if inv.any():
+        u = rng.uniform(seed, pair | pix[inv], stream, 0)[..., frame & 1]
+        out[inv] = _inversion(mu[inv], exp_neg_mu[inv], u)
+    return out
+
+
+def _inversion(mu, p, u):
+    """Poisson(mu) by sequential search of the CDF from p = e^−mu with uniforms u."""
+    return rng.inversion_search(mu, p, u)
+
+
+def _frame_position(hi, lo, w):
+    """Frame position in [0, w): (x·w) >> 52 with the 52-bit x of a uniform (exact integers)."""
+    x = (hi.astype(np.uint64) << np.uint64(20)) | (lo.astype(np.uint64) >> np.uint64(12))
+    return ((x * np.uint64(w)) >> np.uint64(52)).astype(np.float64)
+
+
+def _event_words(seed, g, k, pix, stream):
+    """Block of events k ≥ 1 of group g: draw 1 + (k−1)//2, words 0–1 for odd k, 2–3 for even k."""
+    return rng.random_words(seed, (np.uint64(g) << np.uint64(32)) | pix, stream, 1 + ((k - 1) >> 1))
+
+
+def _event_position(words, k, w):
+    return _frame_position(words[:, 0], words[:, 1], w) if k & 1 else _frame_position(words[:, 2], words[:, 3], w)
+
+
+def _events_seen(K, pos0, g, w, m, pix, seed, stream):
+    """Σ over the K events of a group window of the reads that see them (m − position)."""
+    seen = np.where((K > 0) & (pos0 < m), m - pos0, 0.0)
+    words = np.empty((K.size, 4), np.uint32)
+    sel, k = np.nonzero(K > 1)[0], 1
+    while sel.size:
+        if k & 1:
+            words[sel] = _event_words(seed, g, k, pix[sel], stream)
+        pos = _event_position(words[sel], k, w)
+        seen[sel] = np.where(pos < m, seen[sel] + (m - pos), seen[sel])
+        k += 1
+        sel = sel[K[sel] > k]
+    return seen
+
+
+def _clipped_read_sum(before, K, pos0, g, w, m, full_well, pix, seed, stream):
+    """Σ_j min(full well, before + #{events at positions ≤ j}) (windows over the full well; rare)."""
+    kmax = int(K.max())
+    pos = [pos0] + [_event_position(_event_words(seed, g, k, pix, stream), k, w) for k in range(1, kmax)]
+    total = np.zeros(before.size)
+    for j in range(m):
+        cj = np.zeros(before.size)
+        for k in range(kmax):
+            cj = np.where((k < K) & (pos[k] <= j), cj + 1.0, cj)
+        charge = before + cj
+        total = total + np.where(charge >= full_well, full_well, charge)
+    return total
+
+
+def _sparse_group(mu, p_empty, before, g, w, m, full_well, pix, seed, stream):
+    """(read sum, clipped charge after the window, window reached the full well) of group g.
+
+    K ~ Poisson(mu·w) by inversion of the uniform of words 0–1 of block (g << 32 | pixel, stream,
+    0); words 2–3 place event 0, later events use draws ≥ 1 (:func:`_event_words`)."""
+    words = rng.random_words(seed, (np.uint64(g) << np.uint64(32)) | pix, stream, 0)
+    K = _inversion(mu * float(w), p_empty, rng.words_to_uniform(words[:, 0], words[:, 1]))
+    pos0 = _frame_position(words[:, 2], words[:, 3], w)
+    seen = _events_seen(K, pos0, g, w, m, pix, seed, stream)
+    total = before + K
+    read_sum = float(m) * before + seen
+    over = np.nonzero(total > full_well)[0]
+    if over.size:
+        read_sum[over] = _clipped_read_sum(before[over], K[over], pos0[over], g, w, m, full_well, pix[over],
+                                           seed, stream)
+    full = total >= full_well
+    return read_sum, np.where(full, full_well, total), full
+
+
+def simulate_block_numpy(mu_frame, dead, pixel0, ramp, seed, p):
+    """SCI (ngroups, npix) uint16 and GROUPDQ uint8 for one ramp of a flat pixel block."""
+    n, m, d = p.nmd
+    npix = mu_frame.size
+    pix = np.arange(pixel0, pixel0 + npix, dtype=np.uint64)
+    mu = np.where(dead, 0.0, mu_frame)
+    sbase = 4 * ramp
+    reset = np.zeros(npix)
+    if p.ktc_noise > 0:
+        reset = p.ktc_noise * rng.normal(seed, pix, sbase + P_KTC, 0)[..., 0]
+    sparse = mu * float(m + d) < sparse_threshold(p)
+    sp, dn = np.nonzero(sparse)[0], np.nonzero(~sparse)[0]
+    mu_sp, pix_sp, mu_dn, pix_dn = mu[sp], pix[sp], mu[dn], pix[dn]
+    p_full, p_last = rng.rng_exp(-(mu_sp * float(m + d))), rng.rng_exp(-(mu_sp * float(m)))
+    before = np.zeros(sp.size)
+    exp_neg_mu = rng.rng_exp(-mu_dn)
+    charge = np.zeros(dn.size)
+    saturated = np.zeros(npix, dtype=bool)
+    sci = np.empty((n, npix), np.uint16)
+    gdq = np.empty((n, npix), np.uint8)
+    read_sigma = p.ron / math.sqrt(m)
+    frame = 0
+    for g in range(n):
+        w = m if g == n - 1 else m + d
+        total = np.zeros(npix)
+        pair = (np.uint64(g >> 1) << np.uint64(32)) | pix
+        if g % 2 == 0:
+            z_pair = rng.normal(seed, pair, sbase + P_READ, 0)
+        if sp.size:
+            total[sp], before, full = _sparse_group(mu_sp, p_last if g == n - 1 else p_full, before, g, w, m,
+                                                    p.full_well, pix_sp, seed, sbase + P_SPARSE)
+            saturated[sp] |= full
+        if dn.size:
+            sum_dn = np.zeros(dn.size)
+            for j in range(w):
+                charge = charge + _frame_increment(mu_dn, exp_neg_mu, seed, pix_dn, frame + j,
+                                                   sbase + P_POISSON, p.gauss_min_mean)
+                full = charge >= p.full_well
+                charge[full] = p.full_well
+                saturated[dn] |= full
+                if j < m:
+                    sum_dn = sum_dn + charge
+            total[dn] = sum_dn
+        frame += w
+        mean = total / float(m) + read_sigma * z_pair[:, g & 1]
+        adu = to_adu(mean, reset, p)
+        saturated |= adu >= p.saturation
+        sci[g] = adu.astype(np.uint16)
+        gdq[g] = np.where(saturated, DQ["SATURATED"], 0).astype(np.uint8)
+    return sci, gdq
+
+
+# --------------------------------------------------------------------------- OpenCL
+CPU_WORK_GROUP = 64        # work items per group on CPUs (PoCL's own choice can overflow the
+MAX_CPU_WORK_GROUP = 1024  # thread stack with the private CDF tables: it is never left to it)
+
+
+def _launch_geometry(vector_width, work_group):
+    """(pixels per work item, work-group size or None) for the selected device.
+
+    Pixels per work item: 1 on GPUs; on CPUs twice the preferred double vector width (≤ 16:
+    two AVX-512 registers per operation give the out-of-order core independent Philox chains).
+    """
+    dev = opencl.get_device()
+    gpu = "GPU" in opencl.device_type(dev)
+    vector_width = check_vector_width(vector_width, 16, scale=2)
+    limit = int(dev.max_work_group_size) if gpu else min(int(dev.max_work_group_size), MAX_CPU_WORK_GROUP)
+    if work_group is None:
+        work_group = None if gpu else CPU_WORK_GROUP
+    elif not 1 <= int(work_group) <= limit:
+        raise ValueError(f"work_group must be in [1, {limit}] on this device, got {work_group}")
+    return vector_width, (int(work_group) if work_group else None)
+
+
+def _ramp_kernel(name, vector_width):
+    return opencl.get_kernel("ramp.cl", name, (f"-DRNG_VW={int(vector_width)}",))
+
+
+def _pixel_lists(mu, p, vector_width):
+    """(sparse, dense) uint32 pixel indices, each padded to a multiple of ``vector_width`` by
+    repeating its last entry: sparse pixels in detector order (lanes of consecutive pixels load
+    and store as vectors), dense pixels sorted by mean charge (lanes take the same branches)."""
+    sparse = mu * float(p.nmd[1] + p.nmd[2]) < sparse_threshold(p)
+    sp = np.flatnonzero(sparse).astype(np.uint32)
+    dn = np.flatnonzero(~sparse).astype(np.uint32)
+    dn = dn[np.argsort(mu[dn], kind="stable")]
+
+    def pad(idx):
+        extra = -idx.size % vector_width
+        return np.concatenate([idx, np.full(extra, idx[-1], np.uint32)]) if extra and idx.size else idx
+    return pad(sp), pad(dn)
+
+
+def _buffer(workspace, name, nbytes):
+    """Device buffer of ≥ nbytes, reused from ``workspace`` (a dict kept across row blocks)."""
+    if workspace is None:
+        return opencl.device_buffer(nbytes)
+    buf, size = workspace.get(name, (None, 0))
+    if size < nbytes:
+        buf, size = opencl.device_buffer(nbytes), nbytes
+        workspace[name] = (buf, size)
+    return buf
+
+
+def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None, vector_width=None, *,
+                           want_dq=True, sci_out=None, gdq_out=None, workspace=None):
+    """OpenCL twin of :func:`simulate_block_numpy`: sparse then dense pixels, ``vector_width``
+    pixels per work item (see :func:`_launch_geometry`); the result does not depend on either.
+
+    want_dq=False skips GROUPDQ (returned as None); sci_out / gdq_out: C-contiguous (n, npix)
+    arrays to fill (default: new ones); workspace: dict reusing device buffers between blocks.
+    """
+    n, m, d = p.nmd
+    npix = mu_frame.size
+    vw, work_group = _launch_geometry(vector_width, work_group)
+    key = rng.seed_to_key(seed)
+    mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
+    lists = _pixel_lists(mu, p, vw)
+    d_mu = opencl.to_device(mu, _buffer(workspace, "mu", mu.nbytes))
+    d_sci = _buffer(workspace, "sci", 2 * n * npix)
+    d_gdq = _buffer(workspace, "gdq", n * npix if want_dq else 1)
+    common = (np.uint32(npix), np.uint32(pixel0), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]),
+              np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron / math.sqrt(m)), np.float64(p.gain),
+              np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation),
+              np.int32(bool(want_dq)))
+    for name, idx, extra in (("macc_ramp_sparse", lists[0], ()),
+                             ("macc_ramp_dense", lists[1], (np.float64(p.gauss_min_mean),))):
+        items = idx.size // vw
+        if not items:
+            continue
+        gsize, lsize = (items,), None
+        if work_group:
+            gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
+        d_idx = opencl.to_device(idx, _buffer(workspace, name, idx.nbytes))
+        opencl.launch(_ramp_kernel(name, vw), gsize, lsize, d_mu, d_idx, np.uint32(items), d_sci, d_gdq,
+                      *common, *extra)
+    sci = np.empty((n, npix), np.uint16) if sci_out is None else sci_out
+    opencl.from_device(sci, d_sci)
+    gdq = None
+    if want_dq:
+        gdq = np.empty((n, npix), np.uint8) if gdq_out is None else gdq_out
+        opencl.from_device(gdq, d_gdq)
+    return sci, gdq

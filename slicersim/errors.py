@@ -1,0 +1,46 @@
+"""Every exception slicersim raises on purpose.
+
+All user-facing errors derive from :class:`SlicersimError`, so a script (or the
+CLI) can catch them in one place; each is also a ``ValueError``, ``OSError`` or
+``RuntimeError`` as its meaning suggests, so code catching those keeps working.
+"""
+from __future__ import annotations
+
+__all__ = ["SlicersimError", "ConfigError", "ReadoutError", "SpectrumError", "ETCError",
+           "ParameterError", "RampFileError", "OpenCLUnavailableError", "OpenCLForkError"]
+
+
+class SlicersimError(Exception):
+    """Base class of every slicersim error."""
+
+
+class ConfigError(SlicersimError, ValueError):
+    """Invalid configuration: unknown key, bad or unphysical value, missing curve file."""
+
+
+class ParameterError(SlicersimError, ValueError):
+    """Invalid model parameter (``update``, ``set_*``, ``change_*``, constructors)."""
+
+
+class ReadoutError(SlicersimError, ValueError):
+    """Impossible readout mode or number of ramps."""
+
+
+class SpectrumError(SlicersimError, ValueError):
+    """Invalid input spectrum, or a band the spectrum/grid does not cover."""
+
+
+class ETCError(SlicersimError, ValueError):
+    """Impossible exposure-time request."""
+
+
+class RampFileError(SlicersimError, OSError):
+    """Raw-ramp file cannot be written or read (exists, disk full, incomplete, foreign layout)."""
+
+
+class OpenCLUnavailableError(SlicersimError, RuntimeError):
+    """No usable OpenCL platform/device (or the selected one does not exist or lacks fp64)."""
+
+
+class OpenCLForkError(SlicersimError, RuntimeError):
+    """OpenCL used in a process forked after OpenCL was initialised."""

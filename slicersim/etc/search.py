@@ -1,0 +1,214 @@
+"""Exposure-time search: the readout (n, m, d) × nramps reaching a band SNR.
+
+Two strategies:
+
+* ``"exact"`` (default): the readout with the smallest total exposure time whose
+  band SNR is ≥ the target, found directly on the allowed grid
+  n ∈ [min_group, max_group], m ∈ {8, 4, 1}, d = the detector's d, r ≥ 1,
+  using SNR(n, m, d, r) = √r · SNR(n, m, d, 1) (ramps are summed).
+* ``"reference"``: the integer walk of slicersim 1.0 (``fetch_snr``), step for
+  step, including its tolerance of 0.5 and its cycles.
+"""
+from __future__ import annotations
+
+from slicersim.errors import ETCError  # noqa: F401  (re-exported)
+
+import math
+
+import numpy as np
+
+from slicersim.etc.snr_table import band_snr_table_for_models, sim_band_indices
+from slicersim.physics.readout import readout_times
+
+__all__ = ["solve_readout", "reference_walk", "exact_choice", "ETCError", "FRAMES_PER_GROUP"]
+
+#: frames per group allowed by the exact search (MACC modes of the H4RG ROIC)
+FRAMES_PER_GROUP = (8, 4, 1)
+
+
+
+
+def check_snr_target(snr):
+    if not (np.isfinite(snr) and snr > 0):
+        raise ETCError(f"target SNR must be a finite number > 0, got {snr!r}")
+    return float(snr)
+
+
+# --------------------------------------------------------------------------- #
+#  reference walk (slicersim 1.0 fetch_snr)                                    #
+# --------------------------------------------------------------------------- #
+def _walk(value, snr_of, target, tol, vmin, vmax, maxiter, trace):
+    """Integer walk on one free parameter; returns (value, snr)."""
+    s = snr_of(value)
+    history, step, stop, it = [], 1, False, 0
+    while abs(s - target) > tol and it < maxiter:
+        history.append(value)
+        if value <= vmin:
+            value = vmin
+            s = snr_of(value)
+        if stop or (value <= vmin and s >= target):
+            break
+        high = s >= target
+        new = value - step if high else value + step
+        if new <= 0:
+            new = 1
+        new = max(new, vmin)
+        if vmax is not None:
+            new = min(new, vmax)
+        s_new = snr_of(new)
+        step = 2 * step if (s_new >= target) == high else 1
+        value, s = new, s_new
+        if len(history) > 3 and history[-2] == value:
+            if value > history[-1]:
+                break
+            stop = True
+        it += 1
+    return value, s
+
+
+def reference_walk(snr, target, max_group=64, d0=0, tol=0.5, maxiter=30):
+    """slicersim 1.0 readout walk.
+
+    Parameters
+    ----------
+    snr : callable (n, m, d, r) -> band SNR per bin
+    target : float  target band SNR per bin
+
+    Returns
+    -------
+    (n, m, d), r, reached SNR, trace (list of ((n, m, d), r, snr))
+    """
+    trace = []
+
+    def evaluate(n, m, d, r):
+        val = float(snr(n, m, d, r))
+        trace.append(((n, m, d), r, val))
+        return val
+
+    s1 = evaluate(max_group, 8, d0, 1)
+    if s1 >= target - tol:  # bright: walk on n (no upper bound)
+        if evaluate(32, 4, 0, 1) <= target - tol:
+            n, m, d = 32, 8, 0
+        elif evaluate(8, 4, 0, 1) >= target - tol:
+            n, m, d = 32, 1, 0
+        else:
+            n, m, d = 20, 4, 0
+        n, s = _walk(n, lambda v: evaluate(v, m, d, 1), target, tol, 2, None, maxiter, trace)
+        return (n, m, d), 1, s, trace
+    # faint: walk on the number of ramps, then fine-tune the groups
+    n, m, d = max_group, 8, d0
+    r, s = _walk(4, lambda v: evaluate(n, m, d, v), target, tol, 2, None, maxiter, trace)
+    if abs(s - target) > 1:
+        r = r if s - 1 > target else r + 1
+        n, m = n - 10, 8
+        n, s = _walk(n, lambda v: evaluate(v, m, d, r), target, tol, 2, max_group, maxiter, trace)
+    return (n, m, d), r, s, trace
+
+
+# --------------------------------------------------------------------------- #
+#  exact search                                                                #
+# --------------------------------------------------------------------------- #
+def candidate_readouts(min_group, max_group, d=0, frames_per_group=FRAMES_PER_GROUP):
+    """Arrays (n, m, d) of every candidate single-ramp readout, m-major."""
+    ns = np.arange(min_group, max_group + 1)
+    n = np.tile(ns, len(frames_per_group))
+    m = np.repeat(np.asarray(frames_per_group), ns.size)
+    return n, m, np.full_like(n, d)
+
+
+def exact_choice(snr1, n, m, d, target, max_extra_ramps=None):
+    """Choose the minimal-exposure readout from single-ramp SNRs.
+
+    Parameters
+    ----------
+    snr1 : (N, K) band SNR per bin of one ramp for each target and candidate
+    n, m, d : (K,) candidate readouts (m-major blocks of increasing n)
+    target : (N,) target SNR per bin
+
+    Returns
+    -------
+    dict of (N,) arrays: n, m, d, nramps, nframes (total frames), snr
+    (n = 0 where no readout reaches the target).
+    """
+    snr1 = np.atleast_2d(np.asarray(snr1, dtype=float))
+    target = np.broadcast_to(np.asarray(target, dtype=float), snr1.shape[:1])
+    ntarget = snr1.shape[0]
+    frames = n * (m + d) - d                               # frames per ramp per candidate
+    clean = np.where(np.isfinite(snr1), snr1, -np.inf)
+    best_snr1 = clean.max(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rmin = np.ceil((target / best_snr1) ** 2 * (1 - 1e-12))
+    rmin = np.where(best_snr1 > 0, np.maximum(rmin, 1), np.inf)
+    # feasible ramps r ≥ rmin; beyond 2 rmin + 10 extra ramps only add read noise
+    rmax_extra = 10 if max_extra_ramps is None else max_extra_ramps
+    out = {k: np.zeros(ntarget, dtype=int) for k in ("n", "m", "d", "nramps", "nframes")}
+    out["snr"] = np.full(ntarget, np.nan)
+    best_key = np.full(ntarget, np.iinfo(np.int64).max, dtype=np.int64)
+    finite_r = np.isfinite(rmin)
+    if not finite_r.any():
+        return out
+    r_lo = int(rmin[finite_r].min())
+    r_hi = int(np.max(2 * rmin[finite_r] + rmax_extra))
+    # candidates are grouped in blocks of equal (m, d): cumulative max makes the
+    # first-reaching n findable by counting (monotone even if SNR(n) is not)
+    blocks = [np.nonzero((m == mm) & (d == dd))[0] for mm, dd in dict.fromkeys(zip(m, d))]
+    for r in range(r_lo, r_hi + 1):
+        need = target / math.sqrt(r)
+        active = finite_r & (r >= rmin) & (r <= 2 * rmin + rmax_extra)
+        if not active.any():
+            continue
+        for blk in blocks:
+            cm = np.maximum.accumulate(clean[:, blk], axis=1)          # (N, nb)
+            idx = np.sum(cm < need[:, None], axis=1)                   # first index reaching
+            ok = active & (idx < blk.size)
+            kk = blk[np.minimum(idx, blk.size - 1)]
+            tot = r * frames[kk]
+            # ordering key: total frames, then fewer ramps, then fewer groups
+            key = (tot.astype(np.int64) * 100000 + r) * 1000 + n[kk]
+            better = ok & (key < best_key)
+            if better.any():
+                best_key[better] = key[better]
+                out["n"][better], out["m"][better], out["d"][better] = n[kk][better], m[kk][better], d[kk][better]
+                out["nramps"][better], out["nframes"][better] = r, tot[better]
+                out["snr"][better] = clean[better, kk[better]] * math.sqrt(r)
+    return out
+
+
+# --------------------------------------------------------------------------- #
+#  single-target driver                                                        #
+# --------------------------------------------------------------------------- #
+def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", backend="auto"):
+    """Solve the ETC for a :class:`~slicersim.simulation.Simulation`.
+
+    Returns a dict: nmd, nramps, snr (band SNR per bin reached), snr_target (per bin),
+    exposure_time (total, s), trace (reference search only).
+    """
+    snr = check_snr_target(snr)
+    dr = sim.spectrograph.dispersion_resolution
+    target = snr / math.sqrt(dr) if per_resolution else snr
+    det = sim.detector
+    mask = sim.band_mask(lbda_range)
+    if search == "reference":
+        memo = {}
+
+        def snr_of(n, m, d, r):
+            key = (n, m, d)
+            if key not in memo:
+                memo[key] = sim.get_band_snr(lbda_range, nmd=key, nramps=1)
+            return memo[key] * math.sqrt(r)
+        nmd, nramps, reached, trace = reference_walk(snr_of, target, det.max_group or 64, det.nmd[2])
+    elif search == "exact":
+        n, m, d = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
+        band = sim_band_indices(mask)[None, :]
+        snr1 = band_snr_table_for_models(sim, [sim.extraction_model], band, (n, m, d), backend=backend)
+        choice = exact_choice(snr1, n, m, d, np.array([target]))
+        if choice["n"][0] == 0:
+            raise ETCError(f"target SNR {snr} cannot be reached in {lbda_range} Å "
+                           "(no signal in the band?)")
+        nmd = (int(choice["n"][0]), int(choice["m"][0]), int(choice["d"][0]))
+        nramps, reached, trace = int(choice["nramps"][0]), float(choice["snr"][0]), None
+    else:
+        raise ETCError(f"unknown search {search!r}: 'exact' or 'reference'")
+    exptime = nramps * readout_times(nmd, det.tframe)["exposure_time"]
+    return {"nmd": nmd, "nramps": nramps, "snr": reached, "snr_target": target,
+            "snr_per_resolution": reached * math.sqrt(dr), "exposure_time": exptime, "trace": trace}

@@ -1,0 +1,133 @@
+"""H4RG-like detector: QE, gain, dark, ROIC glow, read noise, saturation and MACC readout.
+
+The readout physics (MACC times, variance models) lives in :mod:`slicersim.physics.readout`.
+"""
+from __future__ import annotations
+
+from slicersim.errors import ReadoutError  # noqa: F401  (re-exported)
+
+import numpy as np
+
+from slicersim.io.curves import read_curve
+from slicersim.physics.readout import (VARIANCE_MODELS, check_readout, rauscher07_coefficients,  # noqa: F401
+                                       readout_times, variance_kubik16, variance_rauscher07)
+
+__all__ = ["Detector"]
+
+
+
+
+class Detector:
+    """HxRG detector with a MACC readout.
+
+    Parameters
+    ----------
+    qe : float, (λ[Å], QE) arrays or ECSV/CSV path — QE [e-/ph], 0 outside the table
+    gain : ADU/e-;  dark : e-/s/px;  roic_glow : e-/px/frame;  ron : e-/frame
+    tframe : s;  pixel_size : µm;  saturation : ADU (0 or None: none)
+    nmd : (n, m, d);  min_group, max_group : allowed n range
+    variance_model : "Rauscher07" or "Kubik16"
+    """
+
+    mutable_parameters = ("qe", "gain", "dark", "roic_glow", "ron", "tframe", "pixel_size",
+                          "saturation", "nmd", "min_group", "max_group", "variance_model", "shape",
+                          "thermal_dark_range")
+
+    def __init__(self, qe=0.8, gain=1.0, dark=2.8e-3, roic_glow=3e-3, ron=12.0, tframe=2.83,
+                 pixel_size=10.0, saturation=65535.0, nmd=(16, 8, 0), min_group=2, max_group=64,
+                 variance_model="Rauscher07", shape=(4096, 4096), thermal_dark_range=None):
+        self.qe = qe
+        self.gain = float(gain)
+        self.dark = float(dark)
+        self.roic_glow = float(roic_glow)
+        self.ron = float(ron)
+        self.tframe = float(tframe)
+        self.pixel_size = float(pixel_size)
+        self.saturation = float(saturation) if saturation else np.inf
+        self.min_group = int(min_group)
+        self.max_group = int(max_group) if max_group else None
+        self.variance_model = str(variance_model)
+        self.shape = tuple(int(s) for s in shape)
+        self.thermal_dark_range = thermal_dark_range
+        self._check()
+        self.nmd, _ = check_readout(nmd, 1, self.min_group, None)
+        self._qe_table = self._load_qe(qe)
+
+    def _check(self):
+        for name in ("gain", "tframe", "pixel_size"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"detector {name} must be > 0")
+        for name in ("dark", "roic_glow", "ron"):
+            val = getattr(self, name)
+            if not (np.isfinite(val) and val >= 0):
+                raise ValueError(f"detector {name} must be finite and ≥ 0, got {val}")
+        if self.variance_model.lower() not in VARIANCE_MODELS:
+            raise ValueError(f"unknown variance model {self.variance_model!r}: "
+                             "use 'Rauscher07' or 'Kubik16'")
+        if self.min_group < 2:
+            raise ValueError("min_group must be ≥ 2")
+
+    @staticmethod
+    def _load_qe(qe):
+        if isinstance(qe, str):
+            lbda, cols = read_curve(qe)
+            return lbda, next(iter(cols.values()))
+        if np.isscalar(qe):
+            if not 0 <= float(qe) <= 10:
+                raise ValueError(f"QE must be ≥ 0, got {qe}")
+            return None
+        lbda, val = (np.asarray(v, dtype=float) for v in qe)
+        return lbda, val
+
+    def update(self, **kwargs):
+        """Change mutable parameters (validated)."""
+        for key in kwargs:
+            if key not in self.mutable_parameters:
+                raise ValueError(f"unknown detector parameter {key!r}")
+        params = {k: getattr(self, k) for k in self.mutable_parameters}
+        params["saturation"] = 0 if not np.isfinite(self.saturation) else self.saturation
+        params.update(kwargs)
+        self.__init__(**params)
+
+    # -- curves -----------------------------------------------------------------
+    def get_qe(self, lbda):
+        """QE [e-/ph] at λ [Å]: linear interpolation of the table, 0 outside it."""
+        lbda = np.asarray(lbda, dtype=float)
+        if self._qe_table is None:
+            return np.full_like(lbda, float(self.qe))
+        tl, tv = self._qe_table
+        return np.interp(lbda, tl, tv, left=0.0, right=0.0)
+
+    # -- readout ------------------------------------------------------------------
+    @property
+    def pixel_area(self):
+        """Pixel area [m²]."""
+        return (self.pixel_size * 1e-6) ** 2
+
+    def times(self, nmd=None):
+        return readout_times(self.nmd if nmd is None else nmd, self.tframe)
+
+    @property
+    def integration_time(self):
+        """(n − 1)(m + d) t_f [s] per ramp."""
+        return self.times()["integration_time"]
+
+    @property
+    def exposure_time(self):
+        """(n (m + d) − d) t_f [s] per ramp."""
+        return self.times()["exposure_time"]
+
+    def effective_dark(self, thermal_dark=0.0):
+        """dark + roic_glow / t_f + thermal dark [e-/s/px]."""
+        return self.dark + self.roic_glow / self.tframe + thermal_dark
+
+    def data_volume(self, nmd=None, nramps=1, bits=16):
+        """Raw group-level data volume [GB = 1e9 bytes] of nramps ramps."""
+        n = (self.nmd if nmd is None else nmd)[0]
+        return nramps * n * self.shape[0] * self.shape[1] * bits / 8e9
+
+    def pixel_variance(self, flux, thermal_dark=0.0, nmd=None, ron=None):
+        """Per-pixel variance [ADU²] over one ramp for a rate ``flux`` [e-/s]."""
+        model = VARIANCE_MODELS[self.variance_model.lower()]
+        return model(flux, self.nmd if nmd is None else nmd, self.tframe,
+                     self.ron if ron is None else ron, self.effective_dark(thermal_dark), self.gain)

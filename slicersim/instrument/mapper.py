@@ -1,0 +1,490 @@
+"""Optical model of the slicer spectrograph on the detector: :class:`SlicerMapper`.
+
+A spot table (format of the reference's ``mapping_spotdata.csv``: columns
+``slice fieldpos lbda x y rmsx_um rmsy_um``, λ in µm, x/y in mm from the
+detector centre, spot rms in µm) samples, for every slice, the position of
+the spectrum on the detector on a rectilinear (fieldpos × λ) node grid.
+
+* **Forward map** (slice, fieldpos, λ [Å]) → (p_x, p_y) [px]: piecewise
+  interpolation on that slice's node grid, **bilinear** in each rectangle
+  (default) or, to reproduce the reference exactly, linear on the two
+  triangles chosen by ``face_diagonal`` (0: split along P00–P11, 1: along
+  P10–P01).  Both agree on the rectangle edges.  Outside the node range the
+  end rectangles are extrapolated linearly.  Pixel coordinates:
+  p = 1000·X[mm]/pixel_size[µm] + n/2; pixel column c covers p_x ∈ [c, c+1)
+  (``image[row, col]``, row ↔ p_y).
+* **Spot rms** (σ_x, σ_y) [px] interpolated the same way.
+* **Inverse map** (p_x, p_y) → (slice, fieldpos, λ): Newton iterations on the
+  piecewise map, started from the nearest point of a fine forward grid.
+* **Projection** of a cube (λ, row, column) onto the detector, flux
+  conserving: each cube cell (slice s, column k, bin i) covers
+  fieldpos [−1 + 2k/n, −1 + 2(k+1)/n] × [λ-edge i, λ-edge i+1]; its four
+  mapped corners give an axis-aligned box on the detector (x between the
+  mean x of the two corners on each fieldpos edge, y between the mean y on
+  each λ edge; the small cross terms (shear) w enter as a variance w²/12
+  added to the spot variance); the box blurred by the Gaussian spot (rms at
+  the cell centre) is integrated exactly over pixels, truncated at
+  ±``truncate`` rms and renormalised (:mod:`slicersim.backends.projection`):
+  every cell deposits exactly its value (what falls off the detector is
+  lost).  ``oversample = (n_λ, n_φ)`` splits each cell into sub-cells for
+  strongly curved or sheared footprints (for the Lazuli layouts 3 × 3
+  sub-cells change the image by < 0.2 % of its peak: see the tests).
+  Cube row r of a field ↔ slice ``slices[n_rows − 1 − r]`` (narrow:
+  s = 58 − r, wide: s = 116 − r).
+
+``SlicerMapper.default()`` loads slicersim's own synthetic Lazuli layout
+(``data/lazuli/lazuli_spots.csv``, see ``build_spots.py``).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from slicersim.io.config import builtin_config_dir
+from slicersim.backends.projection import build_tables, default_block, deposit
+
+__all__ = ["SlicerMapper", "read_spot_table", "detector_rate_image", "NARROW_SLICES", "WIDE_SLICES",
+           "DEFAULT_SPOT_TABLE"]
+
+DEFAULT_SPOT_TABLE = Path(builtin_config_dir()) / "lazuli_spots.csv"
+NARROW_SLICES = tuple(range(1, 59))
+WIDE_SLICES = tuple(range(59, 117))
+COLUMNS = ("slice", "fieldpos", "lbda", "x", "y", "rmsx_um", "rmsy_um")
+_CHUNK = 1 << 20
+
+
+def read_spot_table(table_or_path):
+    """Columns of a spot table as a dict of float arrays.
+
+    Accepts a path (whitespace-separated text with the header line
+    ``slice fieldpos lbda x y rmsx_um rmsy_um``), a mapping / structured
+    array / DataFrame / astropy Table with those column names, or a
+    (n, 7) array in that column order.
+    """
+    if isinstance(table_or_path, (str, Path)):
+        path = Path(table_or_path)
+        with open(path, encoding="utf-8") as fh:
+            header = fh.readline().split()
+        if header != list(COLUMNS):
+            raise ValueError(f"{path}: header must be {' '.join(COLUMNS)!r}, got {' '.join(header)!r}")
+        data = np.loadtxt(path, skiprows=1, ndmin=2)
+        return {name: data[:, i] for i, name in enumerate(COLUMNS)}
+    try:
+        return {name: np.asarray(table_or_path[name], dtype=np.float64).ravel() for name in COLUMNS}
+    except (KeyError, IndexError, ValueError, TypeError):
+        arr = np.asarray(table_or_path, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != len(COLUMNS):
+            raise ValueError(f"spot table needs the columns {COLUMNS}") from None
+        return {name: arr[:, i] for i, name in enumerate(COLUMNS)}
+
+
+def _locate(nodes, x):
+    """Rectangle index j and fraction t with x = nodes[j] + t (nodes[j+1] − nodes[j])."""
+    j = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, nodes.size - 2)
+    return j, (x - nodes[j]) / (nodes[j + 1] - nodes[j])
+
+
+def _hat_matrix(nodes, x):
+    """(len(x), len(nodes)) linear-interpolation weights (end intervals extrapolated)."""
+    j, t = _locate(nodes, x)
+    A = np.zeros((x.size, nodes.size))
+    A[np.arange(x.size), j] = 1.0 - t
+    A[np.arange(x.size), j + 1] = t
+    return A
+
+
+@functools.lru_cache(maxsize=2)
+def _default_table(path):
+    return read_spot_table(path)
+
+
+class SlicerMapper:
+    """Forward/inverse optical map of a slicer spectrograph and cube projection.
+
+    Parameters
+    ----------
+    slice_ids : (S,) int
+    fieldpos_nodes : (J,) increasing, position along the slice (−1 … +1)
+    lbda_nodes : (M,) increasing [Å]
+    values : (S, J, M, 4) float
+        p_x, p_y [px] and σ_x, σ_y [px] at the nodes.
+    detector_shape : (rows, cols)
+    interpolation : "bilinear" or "triangles"
+    face_diagonal : (S, J−1, M−1) int, for "triangles" (default 0 everywhere)
+    """
+
+    def __init__(self, slice_ids, fieldpos_nodes, lbda_nodes, values, *, pixel_size_um=10.0,
+                 detector_shape=(4096, 4096), interpolation="bilinear", face_diagonal=None, cache_size=4):
+        self.slice_ids = np.asarray(slice_ids, dtype=np.int64)
+        self.fieldpos_nodes = np.asarray(fieldpos_nodes, dtype=np.float64)
+        self.lbda_nodes = np.asarray(lbda_nodes, dtype=np.float64)
+        self.values = np.ascontiguousarray(values, dtype=np.float64)
+        S, J, M = self.slice_ids.size, self.fieldpos_nodes.size, self.lbda_nodes.size
+        if self.values.shape != (S, J, M, 4) or J < 2 or M < 2:
+            raise ValueError(f"values must have shape ({S}, {J}, {M}, 4) with >= 2 nodes per axis")
+        for name, nodes in (("fieldpos", self.fieldpos_nodes), ("lbda", self.lbda_nodes)):
+            if np.any(np.diff(nodes) <= 0):
+                raise ValueError(f"{name} nodes must be strictly increasing")
+        if not np.all(np.isfinite(self.values)) or np.any(self.values[..., 2:] < 0):
+            raise ValueError("spot positions must be finite and rms sizes >= 0")
+        if np.unique(self.slice_ids).size != S or np.any(self.slice_ids < 0):
+            raise ValueError("slice ids must be distinct non-negative integers")
+        if interpolation not in ("bilinear", "triangles"):
+            raise ValueError(f"interpolation must be 'bilinear' or 'triangles', got {interpolation!r}")
+        self.interpolation = interpolation
+        diag = np.zeros((S, J - 1, M - 1), np.int8) if face_diagonal is None else np.asarray(face_diagonal)
+        if diag.shape != (S, J - 1, M - 1) or not np.isin(diag, (0, 1)).all():
+            raise ValueError(f"face_diagonal must have shape {(S, J - 1, M - 1)} with values 0/1")
+        self.face_diagonal = diag.astype(np.int8)
+        self.pixel_size_um = float(pixel_size_um)
+        self.detector_shape = tuple(int(v) for v in detector_shape)
+        self._lookup = np.full(self.slice_ids.max() + 1, -1, np.int64)
+        self._lookup[self.slice_ids] = np.arange(S)
+        self._cache = OrderedDict()
+        self._cache_size = int(cache_size)
+        self._trees = None
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_table(cls, table_or_path, pixel_size_um=10.0, detector_shape=(4096, 4096), **kwargs):
+        """Mapper from a spot table (path or columns; λ in µm, x/y in mm, rms in µm)."""
+        t = read_spot_table(table_or_path)
+        return cls._from_columns(t, pixel_size_um, detector_shape, **kwargs)
+
+    @classmethod
+    def default(cls, **kwargs):
+        """slicersim's own Lazuli layout (``data/lazuli/lazuli_spots.csv``)."""
+        return cls._from_columns(_default_table(str(DEFAULT_SPOT_TABLE)), 10.0, (4096, 4096), **kwargs)
+
+    @classmethod
+    def _from_columns(cls, t, pixel_size_um, detector_shape, **kwargs):
+        sid = np.rint(t["slice"]).astype(np.int64)
+        if np.any(np.abs(sid - t["slice"]) > 1e-9):
+            raise ValueError("slice ids must be integers")
+        ids, s = np.unique(sid, return_inverse=True)
+        fp, j = np.unique(t["fieldpos"], return_inverse=True)
+        lb, m = np.unique(t["lbda"], return_inverse=True)
+        S, J, M = ids.size, fp.size, lb.size
+        count = np.zeros((S, J, M), np.int64)
+        np.add.at(count, (s, j, m), 1)
+        if not np.all(count == 1):
+            raise ValueError(f"spot table must hold every (slice, fieldpos, lbda) node exactly once on a "
+                             f"rectilinear grid ({S} slices x {J} fieldpos x {M} lbda; "
+                             f"{int((count == 0).sum())} missing, {int((count > 1).sum())} repeated)")
+        rows, cols = (int(v) for v in detector_shape)
+        values = np.empty((S, J, M, 4))
+        px_per_mm = 1000.0 / float(pixel_size_um)
+        values[s, j, m, 0] = t["x"] * px_per_mm + cols / 2
+        values[s, j, m, 1] = t["y"] * px_per_mm + rows / 2
+        values[s, j, m, 2] = t["rmsx_um"] / float(pixel_size_um)
+        values[s, j, m, 3] = t["rmsy_um"] / float(pixel_size_um)
+        return cls(ids, fp, lb * 1e4, values, pixel_size_um=pixel_size_um, detector_shape=detector_shape,
+                   **kwargs)
+
+    def __repr__(self):
+        return (f"SlicerMapper({self.slice_ids.size} slices, {self.fieldpos_nodes.size} fieldpos x "
+                f"{self.lbda_nodes.size} lbda nodes [{self.lbda_nodes[0]:.0f}-{self.lbda_nodes[-1]:.0f} AA], "
+                f"detector {self.detector_shape}, {self.interpolation})")
+
+    # ------------------------------------------------------------------ forward map
+    def slice_index(self, slice_id):
+        """Row of ``values`` for slice ids (raises on unknown ids)."""
+        sid = np.asarray(slice_id)
+        if not np.issubdtype(sid.dtype, np.integer):
+            if np.any(sid != np.rint(sid)):
+                raise ValueError("slice ids must be integers")
+            sid = np.rint(sid).astype(np.int64)
+        bad = (sid < 0) | (sid >= self._lookup.size)
+        idx = np.where(bad, -1, self._lookup[np.where(bad, 0, sid)])
+        if np.any(idx < 0):
+            raise ValueError(f"unknown slice id(s): {np.unique(sid[idx < 0])[:10]}")
+        return idx
+
+    def _interp(self, sidx, phi, lam, ch, jacobian=False):
+        """Interpolated channels ``ch`` (and d/dφ, d/dλ) at flat arrays of points."""
+        j, u = _locate(self.fieldpos_nodes, phi)
+        m, v = _locate(self.lbda_nodes, lam)
+        V = self.values
+        P00, P10 = V[sidx, j, m][:, ch], V[sidx, j + 1, m][:, ch]
+        P01, P11 = V[sidx, j, m + 1][:, ch], V[sidx, j + 1, m + 1][:, ch]
+        u, v = u[:, None], v[:, None]
+        if self.interpolation == "bilinear":
+            a0 = (1 - u) * P00 + u * P10
+            a1 = (1 - u) * P01 + u * P11
+            P = (1 - v) * a0 + v * a1
+            Du, Dv = (1 - v) * (P10 - P00) + v * (P11 - P01), a1 - a0
+        else:
+            d = self.face_diagonal[sidx, j, m][:, None] == 1
+            lower0 = u >= v
+            lower1 = u + v <= 1
+            P = np.where(d,
+                         np.where(lower1, P00 + u * (P10 - P00) + v * (P01 - P00),
+                                  P11 + (1 - u) * (P01 - P11) + (1 - v) * (P10 - P11)),
+                         np.where(lower0, P00 + u * (P10 - P00) + v * (P11 - P10),
+                                  P00 + v * (P01 - P00) + u * (P11 - P01)))
+            Du = np.where(d, np.where(lower1, P10 - P00, P11 - P01), np.where(lower0, P10 - P00, P11 - P01))
+            Dv = np.where(d, np.where(lower1, P01 - P00, P11 - P10), np.where(lower0, P11 - P10, P01 - P00))
+        if not jacobian:
+            return P
+        hj = (self.fieldpos_nodes[j + 1] - self.fieldpos_nodes[j])[:, None]
+        hm = (self.lbda_nodes[m + 1] - self.lbda_nodes[m])[:, None]
+        return P, Du / hj, Dv / hm
+
+    def _evaluate(self, slice_id, fieldpos, lbda, ch):
+        s, phi, lam = np.broadcast_arrays(np.asarray(slice_id), np.asarray(fieldpos, dtype=np.float64),
+                                          np.asarray(lbda, dtype=np.float64))
+        sidx = self.slice_index(s).ravel()
+        phi, lam = phi.ravel(), lam.ravel()
+        out = np.empty((sidx.size, len(ch)))
+        for i in range(0, sidx.size, _CHUNK):
+            sl = slice(i, i + _CHUNK)
+            out[sl] = self._interp(sidx[sl], phi[sl], lam[sl], ch)
+        return tuple(out[:, c].reshape(s.shape) for c in range(len(ch)))
+
+    def forward(self, slice_id, fieldpos, lbda):
+        """Detector position (p_x, p_y) [px] of (slice id, fieldpos, λ [Å]) (broadcast)."""
+        return self._evaluate(slice_id, fieldpos, lbda, [0, 1])
+
+    def spot_rms(self, slice_id, fieldpos, lbda):
+        """Spot rms (σ_x, σ_y) [px] at (slice id, fieldpos, λ [Å]) (broadcast)."""
+        return self._evaluate(slice_id, fieldpos, lbda, [2, 3])
+
+    def forward_grid(self, slice_ids, fieldpos, lbda, channels=(0, 1)):
+        """Channels on the tensor grid: (S, C, len(lbda), len(fieldpos)) (p_x, p_y, σ_x, σ_y).
+
+        Bilinear: products with the (sparse) hat-function matrices; equal to
+        :meth:`forward` up to rounding (~1e-12 px).
+        """
+        sidx = self.slice_index(np.asarray(slice_ids).ravel())
+        phi, lam = np.asarray(fieldpos, np.float64).ravel(), np.asarray(lbda, np.float64).ravel()
+        ch = list(channels)
+        if self.interpolation == "bilinear":
+            A = _hat_matrix(self.fieldpos_nodes, phi)                       # (Q, J)
+            B = _hat_matrix(self.lbda_nodes, lam)                           # (E, M)
+            V = np.ascontiguousarray(self.values[sidx][..., ch].transpose(0, 3, 1, 2))   # (S, C, J, M)
+            return np.matmul(np.matmul(V, B.T).swapaxes(-1, -2), A.T)       # (S, C, E, Q)
+        S, E, Q = sidx.size, lam.size, phi.size
+        ss, ee, qq = (a.ravel() for a in np.meshgrid(sidx, lam, phi, indexing="ij"))
+        out = np.empty((S * E * Q, len(ch)))
+        for i in range(0, out.shape[0], _CHUNK):
+            sl = slice(i, i + _CHUNK)
+            out[sl] = self._interp(ss[sl], qq[sl], ee[sl], ch)
+        return np.ascontiguousarray(out.reshape(S, E, Q, len(ch)).transpose(0, 3, 1, 2))
+
+    # ------------------------------------------------------------------ inverse map
+    def _seed_grid(self):
+        if self._trees is None:
+            from scipy.spatial import cKDTree
+            phi = np.linspace(self.fieldpos_nodes[0], self.fieldpos_nodes[-1], 17)
+            L = self.lbda_nodes
+            sub = max(2, -(-256 // (L.size - 1)))             # ~256 seeds along λ (several per node interval)
+            lam = np.concatenate([L[:-1, None] + np.diff(L)[:, None] * np.arange(sub)[None] / sub, L[-1:, None]],
+                                 axis=None)
+            xy = self.forward_grid(self.slice_ids, phi, lam).transpose(0, 2, 3, 1)   # (S, E, Q, 2)
+            S = self.slice_ids.size
+            sidx, ee, qq = np.meshgrid(np.arange(S), lam, phi, indexing="ij")
+            seeds = (sidx.reshape(S, -1), qq.reshape(S, -1), ee.reshape(S, -1))
+            pts = xy.reshape(S, -1, 2)
+            self._trees = {"all": cKDTree(pts.reshape(-1, 2)), "seeds": [a.ravel() for a in seeds],
+                           "per_slice": [cKDTree(pts[s]) for s in range(S)], "per_slice_seeds": seeds}
+        return self._trees
+
+    def _newton(self, sidx, phi, lam, target, tol, maxiter=50):
+        lo_p, hi_p = self.fieldpos_nodes[[0, -1]]
+        span_p = hi_p - lo_p
+        lo_l, hi_l = self.lbda_nodes[[0, -1]]
+        span_l = hi_l - lo_l
+        phi, lam = phi.copy(), lam.copy()
+        active = np.arange(phi.size)
+        for _ in range(maxiter):
+            if active.size == 0:
+                break
+            P, Dp, Dl = self._interp(sidx[active], phi[active], lam[active], [0, 1], jacobian=True)
+            r = target[active] - P
+            det = Dp[:, 0] * Dl[:, 1] - Dp[:, 1] * Dl[:, 0]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                dphi = (r[:, 0] * Dl[:, 1] - r[:, 1] * Dl[:, 0]) / det
+                dlam = (Dp[:, 0] * r[:, 1] - Dp[:, 1] * r[:, 0]) / det
+            bad = ~np.isfinite(dphi) | ~np.isfinite(dlam)
+            dphi[bad], dlam[bad] = 0.0, 0.0
+            phi[active] = np.clip(phi[active] + dphi, lo_p - span_p, hi_p + span_p)
+            lam[active] = np.clip(lam[active] + dlam, lo_l - span_l, hi_l + span_l)
+            moving = (np.abs(dphi) > 1e-14 * span_p) | (np.abs(dlam) > 1e-14 * span_l)
+            active = active[moving & ~bad & (np.hypot(r[:, 0], r[:, 1]) > 1e-3 * tol)]
+        P = self._interp(sidx, phi, lam, [0, 1])
+        return phi, lam, np.hypot(*(target - P).T)
+
+    def inverse(self, p_x, p_y, slice_id=None, lbda_range=None, tol=1e-9, candidates=4):
+        """(slice id, fieldpos, λ [Å]) of detector points (p_x, p_y) [px].
+
+        Points that are not on a trace (no slice with fieldpos in the node range
+        and λ in ``lbda_range``, default the node range, whose forward map hits
+        the point to ``tol`` px) get slice id 0 and NaN.  With ``slice_id`` the
+        search is restricted to that slice (broadcast).
+        """
+        px, py = np.broadcast_arrays(np.asarray(p_x, np.float64), np.asarray(p_y, np.float64))
+        shape = px.shape
+        target = np.stack([px.ravel(), py.ravel()], axis=1)
+        n = target.shape[0]
+        lo, hi = (self.lbda_nodes[0], self.lbda_nodes[-1]) if lbda_range is None else lbda_range
+        trees = self._seed_grid()
+        if slice_id is None:
+            k = min(int(candidates), trees["all"].n)
+            _, nb = trees["all"].query(target, k=k)
+            nb = nb.reshape(n, k)
+            cand = [tuple(a[nb[:, c]] for a in trees["seeds"]) for c in range(k)]
+        else:
+            sidx = self.slice_index(np.broadcast_to(np.asarray(slice_id), shape).ravel())
+            seed = np.empty((n, 2))
+            for s in np.unique(sidx):
+                sel = sidx == s
+                _, i = trees["per_slice"][s].query(target[sel])
+                seed[sel] = np.stack([trees["per_slice_seeds"][1][s][i], trees["per_slice_seeds"][2][s][i]], 1)
+            cand = [(sidx, seed[:, 0], seed[:, 1])]
+        out_s = np.zeros(n, np.int64)
+        out_p = np.full(n, np.nan)
+        out_l = np.full(n, np.nan)
+        todo = np.ones(n, bool)
+        eps = 1e-9 * (self.fieldpos_nodes[-1] - self.fieldpos_nodes[0])
+        for sidx, phi0, lam0 in cand:
+            i = np.flatnonzero(todo)
+            if i.size == 0:
+                break
+            phi, lam, res = self._newton(sidx[i], phi0[i], lam0[i], target[i], tol)
+            ok = ((res <= tol) & (phi >= self.fieldpos_nodes[0] - eps) & (phi <= self.fieldpos_nodes[-1] + eps)
+                  & (lam >= lo) & (lam <= hi))
+            i = i[ok]
+            out_s[i] = self.slice_ids[sidx[i]]
+            out_p[i], out_l[i] = phi[ok], lam[ok]
+            todo[i] = False
+        return out_s.reshape(shape), out_p.reshape(shape), out_l.reshape(shape)
+
+    # ------------------------------------------------------------------ projection
+    def cell_boxes(self, slices, ncol, lbda_edges, oversample=(1, 1)):
+        """(N, 6) detector boxes ax, bx, sx, ay, by, sy [px] of the (sub-)cells, (s, e, q) order.
+
+        x-extent: between the mean x of the cell's two corners at each fieldpos
+        edge; y-extent: between the mean y at each λ edge (neighbouring cells
+        share their edges exactly).  The cross terms (x change along λ, y change
+        along fieldpos, w) widen the spot: σ² = rms² + w²/12.
+        """
+        ne, nq = (int(v) for v in oversample)
+        edges = np.asarray(lbda_edges, np.float64)
+        frac = np.arange(ne) / ne
+        lam = np.append((edges[:-1, None] + np.diff(edges)[:, None] * frac[None]).ravel(), edges[-1])
+        phi = np.linspace(-1.0, 1.0, ncol * nq + 1)
+        X, Y = self.forward_grid(slices, phi, lam, (0, 1)).swapaxes(0, 1)  # (S, E+1, Q+1) each
+        rms = self.forward_grid(slices, 0.5 * (phi[1:] + phi[:-1]), 0.5 * (lam[1:] + lam[:-1]), (2, 3))
+        S, E, Q = X.shape[0], X.shape[1] - 1, X.shape[2] - 1
+        box = np.empty((S, E, Q, 6))
+        x_q0 = 0.5 * (X[:, :-1, :-1] + X[:, 1:, :-1])         # mean x at fieldpos edge q
+        x_q1 = 0.5 * (X[:, :-1, 1:] + X[:, 1:, 1:])           # ... and q + 1
+        np.minimum(x_q0, x_q1, out=box[..., 0])
+        np.maximum(x_q0, x_q1, out=box[..., 1])
+        shear = 0.5 * ((X[:, 1:, :-1] - X[:, :-1, :-1]) + (X[:, 1:, 1:] - X[:, :-1, 1:]))
+        box[..., 2] = np.sqrt(rms[:, 0] ** 2 + shear ** 2 / 12.0)
+        y_e0 = 0.5 * (Y[:, :-1, :-1] + Y[:, :-1, 1:])         # mean y at λ edge e
+        y_e1 = 0.5 * (Y[:, 1:, :-1] + Y[:, 1:, 1:])           # ... and e + 1
+        np.minimum(y_e0, y_e1, out=box[..., 3])
+        np.maximum(y_e0, y_e1, out=box[..., 4])
+        shear = 0.5 * ((Y[:, :-1, 1:] - Y[:, :-1, :-1]) + (Y[:, 1:, 1:] - Y[:, 1:, :-1]))
+        box[..., 5] = np.sqrt(rms[:, 1] ** 2 + shear ** 2 / 12.0)
+        return box.reshape(-1, 6)
+
+    def projection_tables(self, slices, ncol, lbda_edges, *, oversample=(1, 1), truncate=4.0,
+                          weights_dtype=np.float32, block=None, backend="auto"):
+        """Cached :class:`~slicersim.backends.projection.DepositTables` for a field and λ grid."""
+        slices = tuple(int(s) for s in slices)
+        edges = np.ascontiguousarray(lbda_edges, dtype=np.float64)
+        block = default_block(backend) if block is None else int(block)
+        key = (slices, int(ncol), hashlib.sha1(edges.tobytes()).hexdigest(), tuple(oversample),
+               float(truncate), np.dtype(weights_dtype).str, block)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        ne, nq = (int(v) for v in oversample)
+        box = self.cell_boxes(slices, ncol, edges, (ne, nq))
+        grid = (len(slices), (edges.size - 1) * ne, ncol * nq)
+        tables = build_tables(box, grid, (ne, nq), detector_shape=self.detector_shape, truncate=truncate,
+                              weights_dtype=weights_dtype, block=block, backend=backend)
+        self._cache[key] = tables
+        while len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        return tables
+
+    def clear_cache(self):
+        """Forget the projection tables (and the inverse-map seeds)."""
+        self._cache.clear()
+        self._trees = None
+
+    def project_cube(self, cube, lbda, lbda_edges, slices=NARROW_SLICES, out=None, *, backend="auto",
+                     oversample=(1, 1), truncate=4.0, weights_dtype=np.float32, block=None):
+        """Flux-conserving detector image of one field's cube.
+
+        Parameters
+        ----------
+        cube : (nλ, n_rows, n_cols) float
+            value per cell per bin (ADU, e-/s, ...); the image is in the same unit per pixel.
+        lbda, lbda_edges : (nλ,), (nλ+1,) [Å]
+            bin centres (checked only) and edges.
+        slices : sequence of n_rows slice ids, or "narrow" / "wide"
+            cube row r ↔ slice ``slices[n_rows − 1 − r]``.
+        out : (rows, cols) float64 array, optional
+            accumulated into in place.
+        """
+        if isinstance(slices, str):
+            slices = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}[slices]
+        slices = [int(s) for s in slices]
+        cube = np.asarray(cube)
+        lbda = np.asarray(lbda, np.float64)
+        edges = np.asarray(lbda_edges, np.float64)
+        if cube.ndim != 3 or cube.shape[1] != len(slices):
+            raise ValueError(f"cube must have shape (nlbda, {len(slices)}, ncol), got {cube.shape}")
+        if not np.all(np.isfinite(cube)):
+            raise ValueError("cube values must be finite (replace NaN, e.g. saturated cells, first)")
+        if lbda.shape != (cube.shape[0],) or edges.shape != (cube.shape[0] + 1,):
+            raise ValueError(f"lbda must have shape ({cube.shape[0]},) and lbda_edges ({cube.shape[0] + 1},)")
+        if np.any(np.diff(edges) <= 0) or np.any(lbda < edges[:-1]) or np.any(lbda > edges[1:]):
+            raise ValueError("lbda_edges must increase and bracket the bin centres lbda")
+        self.slice_index(slices)
+        tables = self.projection_tables(slices, cube.shape[2], edges, oversample=oversample,
+                                        truncate=truncate, weights_dtype=weights_dtype, block=block,
+                                        backend=backend)
+        value = cube[:, ::-1, :].transpose(1, 0, 2)                         # (slice, bin, column)
+        return deposit(value, tables, out=out, backend=backend)
+
+    def project_fields(self, lbda, lbda_edges, narrow=None, wide=None, out=None, **kwargs):
+        """Image of the narrow (slices 1–58) and wide (59–116) cubes together."""
+        if out is None:
+            out = np.zeros(self.detector_shape)
+        for cube, slices in ((narrow, NARROW_SLICES), (wide, WIDE_SLICES)):
+            if cube is not None:
+                self.project_cube(cube, lbda, lbda_edges, slices, out=out, **kwargs)
+        return out
+
+
+def detector_rate_image(mapper, lbda, lbda_edges, narrow=None, wide=None, *, dark=0.0, thermal_dark=0.0,
+                        roic_glow=None, tframe=None, **kwargs):
+    """Expected electron rate per pixel [e-/s/px] of the whole detector.
+
+    ``narrow`` / ``wide``: photo-electron rate cubes [e-/s per cell per bin]
+    (photon cube × QE), projected flux-conservingly.  ``dark`` [e-/s/px] and
+    ``thermal_dark`` [e-/s/px, scalar or image] are added to **every** pixel,
+    painted or not.  ROIC glow is a charge per frame read [e-/px/frame]: it is
+    added as the rate ``roic_glow / tframe`` only when both are given (the
+    same D_eff = dark + glow/t_f + thermal dark as the noise model); a ramp
+    simulator that adds glow per read should leave it out here.
+    """
+    img = mapper.project_fields(lbda, lbda_edges, narrow=narrow, wide=wide, **kwargs)
+    img += dark
+    img += thermal_dark
+    if roic_glow is not None:
+        if tframe is None or not tframe > 0:
+            raise ValueError("roic_glow [e-/px/frame] needs the frame time tframe [s] > 0")
+        img += roic_glow / tframe
+    return img

@@ -1,0 +1,331 @@
+"""Spectrographs: wavelength sampling, throughput, LSF and internal thermal optics.
+
+``SlicerSpectrograph`` (image slicer, anamorphic 1×2 cells, 2 detector pixels
+per cell) and ``MLASpectrograph`` (micro-lens array) share the ``Spectrograph``
+base.  The wavelength grid comes from a dispersion law (detector offset versus
+wavelength) or from a resolving power.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from slicersim.constants import ARCSEC
+from slicersim.io.curves import read_curve
+from slicersim.physics.lsf import apply_lsf
+from slicersim.physics.thermal import photon_radiance, solid_angle_from_fratio
+
+__all__ = ["Spectrograph", "SlicerSpectrograph", "MLASpectrograph", "OpticalThroughput",
+           "wavelength_grid_from_dispersion", "wavelength_grid_from_resolving_power",
+]
+
+
+# --------------------------------------------------------------------------- #
+#  wavelength sampling                                                        #
+# --------------------------------------------------------------------------- #
+def wavelength_grid_from_dispersion(law_lbda, law_offset, spectral_range, dispersion_scale=1.0,
+                                    dispersion_resolution=2.0):
+    """Bin centres and edges [Å] from a dispersion law.
+
+    The law gives the detector offset [px] versus λ [Å]; it is scaled by
+    K = dispersion_scale × dispersion_resolution / 2.  Two not-a-knot cubic
+    splines are built, D: λ → offset and W: offset → λ; the grid has
+    N = round(D(λ_max) − D(λ_min)) + 1 bins with centres W(i) and edges W(i − ½),
+    starting where the law's offset is 0.
+    """
+    law_lbda = np.asarray(law_lbda, dtype=float)
+    scaled = np.asarray(law_offset, dtype=float) * dispersion_scale * dispersion_resolution / 2.0
+    if np.any(np.diff(law_lbda) <= 0) or np.any(np.diff(scaled) <= 0):
+        raise ValueError("dispersion law must be strictly increasing in wavelength and offset")
+    lbda_to_offset = CubicSpline(law_lbda, scaled, bc_type="not-a-knot", extrapolate=True)
+    offset_to_lbda = CubicSpline(scaled, law_lbda, bc_type="not-a-knot", extrapolate=True)
+    lo, hi = spectral_range
+    nbins = int(round(float(lbda_to_offset(hi) - lbda_to_offset(lo)))) + 1
+    if nbins < 2:
+        raise ValueError(f"spectral range {spectral_range} gives fewer than 2 bins")
+    lbda = offset_to_lbda(np.arange(nbins, dtype=float))
+    edges = offset_to_lbda(np.arange(nbins + 1, dtype=float) - 0.5)
+    return lbda, edges
+
+
+def wavelength_grid_from_resolving_power(resolving_power, spectral_range, dispersion_resolution=2.0):
+    """Bin centres and edges [Å] for a resolving power R (float or callable λ→R).
+
+    Bins are spaced so that λ/Δλ_bin = R · dispersion_resolution.
+    """
+    lo, hi = spectral_range
+    fine = np.geomspace(lo, hi, 4097)
+    rpow = resolving_power(fine) if callable(resolving_power) else np.full_like(fine, resolving_power)
+    if np.any(~(rpow > 0)):
+        raise ValueError("resolving power must be > 0")
+    # offset [bins] = ∫ R dr / λ dλ (trapezoid in ln λ)
+    dln = np.diff(np.log(fine))
+    offset = np.concatenate([[0.0], np.cumsum(0.5 * (rpow[1:] + rpow[:-1]) * dispersion_resolution * dln)])
+    return wavelength_grid_from_dispersion(fine, offset, spectral_range, 1.0, 2.0)
+
+
+# --------------------------------------------------------------------------- #
+#  throughput                                                                  #
+# --------------------------------------------------------------------------- #
+class OpticalThroughput:
+    """Throughput T(λ) = Π_i T_i(λ)^noptics_i of optical components.
+
+    Each component is a float or a (λ[Å], T) curve, interpolated with a
+    not-a-knot cubic spline (values in [−1e-3, 0) are set to 0).
+    """
+
+    def __init__(self, components, noptics=None):
+        if not isinstance(components, dict):
+            components = {"total": components}
+        self.components = dict(components)
+        self.noptics = {k: 1 for k in self.components}
+        if noptics:
+            unknown = set(noptics) - set(self.components)
+            if unknown:
+                raise ValueError(f"noptics names unknown components {sorted(unknown)}")
+            self.noptics.update({k: int(v) for k, v in noptics.items()})
+        for name, comp in self.components.items():
+            if np.isscalar(comp):
+                if not 0 <= float(comp) <= 1:
+                    raise ValueError(f"throughput {name}={comp} must be within [0, 1]")
+            else:
+                lbda, val = (np.asarray(c, dtype=float) for c in comp)
+                if lbda.shape != val.shape or lbda.size < 4:
+                    raise ValueError(f"throughput curve {name}: need matching λ and T arrays (≥ 4 points)")
+
+    def __call__(self, lbda):
+        lbda = np.asarray(lbda, dtype=float)
+        total = np.ones_like(lbda)
+        for name, comp in self.components.items():
+            if np.isscalar(comp):
+                val = np.full_like(lbda, float(comp))
+            else:
+                clbda, cval = (np.asarray(c, dtype=float) for c in comp)
+                val = CubicSpline(clbda, cval, bc_type="not-a-knot", extrapolate=True)(lbda)
+                val[(val < 0) & (val >= -1e-3)] = 0.0
+            total = total * val ** self.noptics[name]
+        return total
+
+
+# --------------------------------------------------------------------------- #
+#  spectrographs                                                               #
+# --------------------------------------------------------------------------- #
+class Spectrograph:
+    """Generic IFS: wavelength grid, throughput, spatial sampling, LSF and thermal optics.
+
+    Parameters
+    ----------
+    spectral_range : (float, float)  [Å]
+    dispersion_law : (λ[Å], offset[px]) arrays or a curve file path; or None
+    resolving_power : float or callable, used when ``dispersion_law`` is None
+    dispersion_scale, dispersion_resolution : float  law scaling, pixels per resolution element
+    throughput : float, (λ, T), OpticalThroughput or curve path (with ``throughput_column``)
+    spatial_scale : float  cell size along the slice width [arcsec]
+    spatial_shape : (ny, nx)  cells before anamorphosis
+    optics : dict of lists  temperature, emissivity, nelements, fratio, geometry, dispersed
+    """
+
+    anamorphosis = (1, 1)
+    pixels_per_cell = 1
+    kind = "generic"
+    mutable_parameters = ("spectral_range", "dispersion_scale", "dispersion_resolution",
+                          "spatial_scale", "spatial_shape", "resolving_power", "optics",
+                          "noptics", "throughput", "throughput_column")
+
+    def __init__(self, spectral_range=(4000.0, 17000.0), dispersion_law=None, resolving_power=None,
+                 dispersion_scale=1.0, dispersion_resolution=2.0, throughput=1.0,
+                 throughput_column=None, spatial_scale=0.04, spatial_shape=(58, 58), optics=None,
+                 noptics=None):
+        self._params = dict(spectral_range=tuple(float(v) for v in spectral_range),
+                            dispersion_law=dispersion_law, resolving_power=resolving_power,
+                            dispersion_scale=float(dispersion_scale),
+                            dispersion_resolution=float(dispersion_resolution),
+                            throughput=throughput, throughput_column=throughput_column,
+                            spatial_scale=float(spatial_scale),
+                            spatial_shape=tuple(int(v) for v in spatial_shape),
+                            optics=optics, noptics=noptics)
+        self._build()
+
+    # -- construction ---------------------------------------------------------
+    def _build(self):
+        p = self._params
+        lo, hi = p["spectral_range"]
+        if not (0 < lo < hi) or not np.isfinite(hi):
+            raise ValueError(f"spectral_range must satisfy 0 < min < max, got {p['spectral_range']}")
+        if p["dispersion_resolution"] <= 0 or p["dispersion_scale"] <= 0:
+            raise ValueError("dispersion_resolution and dispersion_scale must be > 0")
+        if p["spatial_scale"] <= 0 or min(p["spatial_shape"]) < 1:
+            raise ValueError("spatial_scale must be > 0 and spatial_shape ≥ 1")
+        law = p["dispersion_law"]
+        if law is not None:
+            if isinstance(law, str):
+                llbda, cols = read_curve(law)
+                law = (llbda, next(iter(cols.values())))
+            self.lbda, self.lbda_edges = wavelength_grid_from_dispersion(
+                law[0], law[1], p["spectral_range"], p["dispersion_scale"], p["dispersion_resolution"])
+        elif p["resolving_power"] is not None:
+            self.lbda, self.lbda_edges = wavelength_grid_from_resolving_power(
+                p["resolving_power"], p["spectral_range"], p["dispersion_resolution"])
+        else:
+            raise ValueError("a spectrograph needs a dispersion_law or a resolving_power")
+        self.throughput_model = self._make_throughput(p["throughput"], p["throughput_column"], p["noptics"])
+        self.throughput = self.throughput_model(self.lbda)
+        self.optics = self._make_optics(p["optics"])
+
+    @staticmethod
+    def _make_throughput(throughput, column, noptics):
+        if isinstance(throughput, OpticalThroughput):
+            return throughput
+        if isinstance(throughput, str):
+            lbda, cols = read_curve(throughput)
+            if column is None:
+                if len(cols) == 1:
+                    column = next(iter(cols))
+                else:  # several channels and none chosen: product of all (reference behaviour)
+                    return OpticalThroughput({c: (lbda, v) for c, v in cols.items()})
+            if column not in cols:
+                raise ValueError(f"throughput file {throughput} has no column {column!r} ({list(cols)})")
+            return OpticalThroughput({column: (lbda, cols[column])})
+        if isinstance(throughput, dict):
+            comps = {}
+            for name, val in throughput.items():
+                if isinstance(val, str):
+                    lbda, cols = read_curve(val)
+                    val = (lbda, cols[column] if column in cols else next(iter(cols.values())))
+                comps[name] = val
+            return OpticalThroughput(comps, noptics)
+        return OpticalThroughput({"total": throughput})
+
+    @staticmethod
+    def _make_optics(optics):
+        optics = dict(optics or {})
+        nopt = len(optics.get("temperature", []))
+        out = {"temperature": [float(t) for t in optics.get("temperature", [])],
+               "emissivity": [float(e) for e in optics.get("emissivity", [0.0] * nopt)],
+               "nelements": [int(n) for n in optics.get("nelements", [1] * nopt)],
+               "fratio": list(optics.get("fratio", [[1.0, 1.0]] * nopt)),
+               "geometry": list(optics.get("geometry", ["square"] * nopt)),
+               "dispersed": [bool(d) for d in optics.get("dispersed", [False] * nopt)]}
+        if any(len(v) != nopt for v in out.values()):
+            raise ValueError("spectrograph optics lists must all have the same length")
+        return out
+
+    def update(self, **kwargs):
+        """Change mutable parameters and rebuild everything that depends on them."""
+        for key in kwargs:
+            if key not in self.mutable_parameters and key != "dispersion_law":
+                raise ValueError(f"unknown spectrograph parameter {key!r}")
+        self._params.update(kwargs)
+        self._build()
+
+    def set_throughput(self, throughput, column=None, noptics=None):
+        """Replace the throughput (float, curve, file or per-component dict)."""
+        self.update(throughput=throughput, throughput_column=column, noptics=noptics)
+
+    # -- derived quantities -----------------------------------------------------
+    @property
+    def spectral_range(self):
+        return self._params["spectral_range"]
+
+    @property
+    def dispersion_resolution(self):
+        """Detector pixels per resolution element."""
+        return self._params["dispersion_resolution"]
+
+    @property
+    def spatial_scale(self):
+        """Cell size [arcsec] (cells are treated as squares of this side)."""
+        return self._params["spatial_scale"]
+
+    @property
+    def shape(self):
+        """Cube spatial shape (ny, nx) after anamorphosis."""
+        ny, nx = self._params["spatial_shape"]
+        return ny * self.anamorphosis[0], nx * self.anamorphosis[1]
+
+    @property
+    def nlbda(self):
+        return self.lbda.size
+
+    @property
+    def dlbda(self):
+        """Bin widths Δλ [Å]."""
+        return np.diff(self.lbda_edges)
+
+    @property
+    def resolving_power(self):
+        """R = λ / Δλ / dispersion_resolution."""
+        return self.lbda / self.dlbda / self.dispersion_resolution
+
+    @property
+    def lsf_sigma(self):
+        """Gaussian LSF σ along λ [bins] = dispersion_resolution / 2."""
+        return self.dispersion_resolution / 2.0
+
+    @property
+    def instrumental_sigma(self):
+        """Spectrograph blur along the slice [cells]: √(dr² − 2²), 0 when dr ≤ 2."""
+        dr = self.dispersion_resolution
+        return float(np.sqrt(dr**2 - 4.0)) if dr > 2 else 0.0
+
+    @property
+    def cell_solid_angle(self):
+        """Solid angle of one cell [sr], sin²(s) with s in radians."""
+        return float(np.sin(self.spatial_scale * ARCSEC) ** 2)
+
+    def dispersed_thermal_radiance(self, lbda):
+        """Photon radiance of the dispersed internal optics Σ ε n B_ph(λ, T) [ph/s/m²/sr/Å]."""
+        o = self.optics
+        total = np.zeros_like(np.asarray(lbda, dtype=float))
+        for temp, eps, n, disp in zip(o["temperature"], o["emissivity"], o["nelements"], o["dispersed"]):
+            if disp and eps * n:
+                total = total + eps * n * photon_radiance(lbda, temp)
+        return total
+
+    def undispersed_optics(self):
+        """(temperature, emissivity, nelements, solid angle [sr]) of optics after the disperser."""
+        o = self.optics
+        rows = []
+        for temp, eps, n, fr, geo, disp in zip(o["temperature"], o["emissivity"], o["nelements"],
+                                               o["fratio"], o["geometry"], o["dispersed"]):
+            if not disp:
+                rows.append((temp, eps, n, solid_angle_from_fratio(fr, geo)))
+        return rows
+
+    def apply_lsf(self, values, axis=0):
+        """Apply this spectrograph's LSF along ``axis`` (see :func:`apply_lsf`)."""
+        return apply_lsf(values, self.lsf_sigma, axis=axis)
+
+
+class SlicerSpectrograph(Spectrograph):
+    """Image slicer: 1×2 anamorphosis, each cell imaged on 2 detector pixels."""
+    anamorphosis = (1, 2)
+    pixels_per_cell = 2
+    kind = "slicer"
+
+
+class MLASpectrograph(Spectrograph):
+    """Micro-lens array: square cells, cross-dispersion profile on the detector.
+
+    Extra parameters: ``xdisp_sigma_spectral`` [px at 1 µm], ``xdisp_sigma`` [px],
+    ``xdisp_width_insigma`` (extraction width).  Each spaxel spectrum spreads over
+    ~2 × xdisp_width_insigma × σ_xdisp pixels across the dispersion.
+    """
+    anamorphosis = (1, 1)
+    kind = "mla"
+
+    def __init__(self, *args, xdisp_sigma_spectral=0.9, xdisp_sigma=0.3, xdisp_width_insigma=10,
+                 **kwargs):
+        self.xdisp_sigma_spectral = float(xdisp_sigma_spectral)
+        self.xdisp_sigma = float(xdisp_sigma)
+        self.xdisp_width_insigma = float(xdisp_width_insigma)
+        super().__init__(*args, **kwargs)
+
+    def xdisp_sigma_at(self, lbda):
+        """Cross-dispersion σ [px] at λ [Å]."""
+        return np.hypot(self.xdisp_sigma_spectral * np.asarray(lbda) / 1e4, self.xdisp_sigma)
+
+    @property
+    def pixels_per_cell(self):
+        """Pixels summed across the dispersion per spaxel (at 1 µm)."""
+        return max(1, int(np.ceil(2 * self.xdisp_width_insigma * float(self.xdisp_sigma_at(1e4)))))

@@ -1,0 +1,321 @@
+"""Cube builder: signal, variance and noisy cubes (λ, y, x) computing only what the scene needs.
+
+Photon cube (reference §2.9), ph/s per cell:
+
+    C = LSF_λ[ F f2p P  +  H ]  +  LSF_λ[ B f2p s² + N_th ]
+        point source     host       uniform (1-D spectrum, broadcast)
+
+* point source: PSF(λ, y, x) × spectrum — no 2-D convolution;
+* background and dispersed thermal light: one 1-D spectrum, LSF'd once and
+  broadcast over the cells — no spatial work;
+* host (extended): f2p × (host flux per cell ⊛ PSF(λ)), a 2-D convolution per
+  wavelength (``slicersim.backends.convolution``).
+
+Detector (§2.10–2.12), per ramp then × r ramps: electrons = C·QE,
+signal = electrons·t_int·g [ADU] (NaN where saturated), variance from
+``Simulation.cell_variance`` [ADU²] (+inf where saturated, and only there).
+All physics comes from the :class:`~slicersim.simulation.Simulation` methods.
+
+Backends: on OpenCL with the Rauscher07 variance (linear in the electron rate,
+V = A + B e), LSF, QE, signal and variance of a chunk are one fused kernel
+(:func:`slicersim.backends.cube.detector_block`) fed with small inputs: the
+Gaussian PSF as its two erf factors (nλ × (ny + nx) values), or the Airy PSF
+block, the spectrum G = F f2p, the host block if any, U, QE and the LSF taps;
+the product cube G·P is never stored.  Its NumPy twin and, for Kubik16 or
+``backend="numpy"``, the NumPy path below (scipy LSF + ``cell_variance``) are
+the oracles; they agree to ~1e-15 of the peak.
+
+The cube is built in wavelength chunks within a memory budget.  The LSF mixes
+±h = int(4σ + ½) bins, so each chunk is computed on [i0 − h, i1 + h) (clipped
+to the grid: the LSF reflects only at the true grid ends) and the halo is
+dropped: the chunked cube equals the unchunked one bit for bit.  The noisy
+realisation (:func:`slicersim.backends.noise.noisy_cube`) is keyed by the seed
+and the voxel's flat index in the full cube, so it does not depend on the
+chunking either.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from slicersim.backends.convolution import choose_convolution_method, convolve_cube
+from slicersim.backends.cube import GaussianPSF, ReadoutConstants, detector_block
+from slicersim.backends.dispatch import resolve_backend
+from slicersim.backends.noise import noisy_cube, seed_from
+from slicersim.backends.psf import auto_oversampling, psf_cube, psf_cube_device
+from slicersim.physics.lsf import lsf_weights
+from slicersim.physics.psf import gaussian_psf_fractions
+from slicersim.physics.readout import cell_variance_coefficients
+
+__all__ = ["CubeResult", "build_cube", "readout_constants", "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM",
+           "PATH_ABSENT", "FUSED_KERNEL"]
+
+PSF_PROFILES = ("gaussian", "airy")
+PATH_POINT = "psf x spectrum (no 2-D convolution)"
+PATH_UNIFORM = "uniform: no spatial work"
+PATH_ABSENT = "absent: not in the scene"
+FUSED_KERNEL = "fused OpenCL kernel (LSF, QE, signal, variance)"
+HOST_CONV_METHOD = "auto"
+#: float64 temporaries per voxel of a chunk (PSF, point, LSF output, electrons, variance, signal, noise, host)
+_TEMPORARIES_PER_VOXEL = 8
+_NOISE_BYTES_PER_VOXEL = 160           # NumPy noise draw: ~20 float64 temporaries per voxel
+
+
+@dataclass
+class CubeResult:
+    """Output of :func:`build_cube`; cubes are (nλ, ny, nx), summed over the ramps.
+
+    signal [ADU] (NaN where saturated), variance [ADU²] (+inf where saturated, and only there),
+    noisy [ADU] (None without seed; NaN where saturated), paths: component →
+    computation path, chunks: number of λ chunks; ``saturated``: bool cube (variance = +inf).
+    """
+    signal: np.ndarray
+    variance: np.ndarray
+    noisy: np.ndarray | None
+    paths: dict
+    chunks: int
+    lbda: np.ndarray = field(repr=False, default=None)
+    psf_profile: str = "gaussian"
+    seed: int | None = None
+
+    @cached_property
+    def saturated(self):
+        """Saturated voxels: exactly those with variance = +inf (NaN fluxes give NaN, not inf)."""
+        return np.isposinf(self.variance)
+
+    def __iter__(self):
+        """Unpack like ``Simulation.get_cube``: (signal, variance[, noisy])."""
+        return iter((self.signal, self.variance) if self.noisy is None
+                    else (self.signal, self.variance, self.noisy))
+
+
+def _profile(psf_profile):
+    prof = "gaussian" if psf_profile in ("gaussian", "default") else psf_profile
+    if prof not in PSF_PROFILES:
+        raise ValueError(f"psf_profile must be one of {PSF_PROFILES} (or 'default'), got {psf_profile!r}")
+    return prof
+
+
+def lsf_halo(sim):
+    """Half width h [bins] of the LSF: output bin i depends on input bins i − h … i + h."""
+    return int(lsf_weights(sim.spectrograph.lsf_sigma)[0][-1])
+
+
+def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", options=None, on_device=False):
+    """PSF fractions P[λ, y, x] for bins lo … hi − 1 (any profile; shape/position default to the
+    field's; ``options``: extra keywords of ``compute_psf.psf_cube``, e.g. {"grid": "reference"}).
+    ``on_device``: leave a block computed by OpenCL on the device (``compute_psf.DevicePSF``)."""
+    shape = sim.spectrograph.shape if shape is None else shape
+    position = sim.position if position is None else position
+    if profile == "gaussian":
+        sig_y, sig_x = sim.psf_sigmas
+        return gaussian_psf_fractions(sig_y[lo:hi], sig_x[lo:hi], shape, position)
+    tel, spec = sim.telescope, sim.spectrograph
+    common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
+                  instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext)
+    # one oversampling for the whole grid (set by its bluest, most undersampled bin), so every
+    # wavelength block is computed alike; error < 1e-4 of the peak (benchmarks/psf_speed_accuracy.py)
+    oversampling = 3 if (options or {}).get("grid") == "reference" else auto_oversampling(sim.lbda, **common)
+    kwargs = dict(sigma_ref_arcsec=tel.psf_sigma_ref, obscuration=tel.obscuration, oversampling=oversampling,
+                  backend=backend, **common)
+    kwargs.update(options or {})
+    return (psf_cube_device if on_device else psf_cube)(sim.lbda[lo:hi], shape, position, profile=profile,
+                                                       **kwargs)
+
+
+def host_kernel_shape(sim, profile):
+    """Odd (ky, kx) of the PSF kernels convolving the host: ±⌈8σ_max⌉ + 1 cells for the
+    Gaussian (dropped tail < 1e-15), the whole field for the Airy wings; (0, 0) is the central cell."""
+    ny, nx = sim.spectrograph.shape
+    hy, hx = ny // 2, nx // 2
+    if profile == "gaussian":
+        sig_y, sig_x = sim.psf_sigmas
+        hy = min(hy, int(np.ceil(8.0 * np.max(sig_y))) + 1)
+        hx = min(hx, int(np.ceil(8.0 * np.max(sig_x))) + 1)
+    return 2 * hy + 1, 2 * hx + 1
+
+
+def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_options=None):
+    """Host photons per cell before LSF, f2p · (F_host ⊛ PSF) [ph/s/cell], for bins lo … hi − 1.
+
+    Needs ``host.flux_cube(lbda, shape, spatial_scale)`` → F_host [erg/s/cm²/Å per cell]
+    (:class:`slicersim.sources.extended.Host`) and ``slicersim.backends.convolution.convolve_cube``.
+    """
+    host, spec = sim.scene.host, sim.spectrograph
+    if not callable(getattr(host, "flux_cube", None)):
+        raise NotImplementedError(f"host light needs a host with flux_cube(lbda, shape, spatial_scale) "
+                                  f"(slicersim.sources.extended.Host); got {type(host).__module__}.{type(host).__name__}")
+    kernels = psf_block(sim, profile, lo, hi, shape=host_kernel_shape(sim, profile), position=(0.0, 0.0),
+                        backend=backend, options=psf_options)
+    flux = np.asarray(host.flux_cube(sim.lbda[lo:hi], spec.shape, spec.spatial_scale), dtype=float)
+    # convolve O(1) numbers (erg units are ~1e-17): scale by an exact power of two
+    peak = float(np.max(np.abs(flux))) if flux.size else 0.0
+    scale = np.ldexp(1.0, int(np.frexp(peak)[1])) if np.isfinite(peak) and peak > 0 else 1.0
+    blurred = convolve_cube(flux / scale, kernels, method=method, backend=backend) * scale
+    return sim.flambda_to_photon[lo:hi, None, None] * blurred
+
+
+def readout_constants(sim, nmd, nramps):
+    """:class:`slicersim.backends.cube.ReadoutConstants` of a readout: Rauscher07 cell variance
+    V = A + B e [ADU²] (:func:`slicersim.etc.readout_variance_coefficients`) and the saturation
+    test of ``Simulation.cell_variance``."""
+    det = sim.detector
+    var_a, var_b, _ = cell_variance_coefficients(nmd, det.tframe, det.ron, sim.effective_dark(), det.gain,
+                                                 det.saturation, sim.spectrograph.pixels_per_cell)
+    tint = sim.get_times(nmd, nramps)["inttime"]
+    return ReadoutConstants(tint=float(tint), gain=det.gain, nramps=int(nramps), var_a=float(var_a),
+                            var_b=float(var_b), pixels_per_cell=float(sim.spectrograph.pixels_per_cell),
+                            dark=float(sim.effective_dark()), saturation=float(det.saturation))
+
+
+def _use_fused_kernel(sim, backend):
+    """The fused kernel serves the Rauscher07 (linear) variance on an OpenCL backend."""
+    return (resolve_backend(backend) == "opencl"
+            and sim.detector.variance_model.lower().startswith("rauscher"))
+
+
+def _chunk_bins(nl, ny, nx, halo, max_bytes):
+    per_bin = 8 * _TEMPORARIES_PER_VOXEL * ny * nx
+    return int(min(nl, max(1, max_bytes // per_bin - 2 * halo)))
+
+
+def _progress_bar(progress, nchunks):
+    show = nchunks > 4 if progress is None else bool(progress)
+    if not show:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=nchunks, desc="cube", unit="chunk", leave=False)
+
+
+def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, max_bytes=300 * 2**20,
+               progress=None, backend="auto", psf_options=None, dtype=np.float64):
+    """Signal [ADU], variance [ADU²] and optional noisy cube of ``sim`` (all ramps summed).
+
+    Parameters
+    ----------
+    sim : Simulation
+    nmd, nramps : readout (n, m, d) and ramps (default: the simulation's)
+    psf_profile : "gaussian" (erf-integrated, = Simulation.get_psf) or "airy" (slicersim.backends.psf)
+    seed : None (no noisy cube), int in [0, 2⁶⁴) or numpy Generator
+    max_bytes : working-memory budget of one λ chunk (the three output cubes come on top)
+    progress : None (tqdm bar when more than 4 chunks), True or False
+    backend : "auto" | "opencl" | "numpy".  OpenCL with the Rauscher07 variance: LSF, QE, signal,
+        variance and saturation in one fused kernel (:mod:`slicersim.backends.cube`); also the
+        backend of the noise draw and the Airy/host hooks
+    psf_options : dict of extra ``compute_psf.psf_cube`` keywords for non-Gaussian profiles
+        (e.g. {"grid": "reference", "oversampling": 3} for slicersim 1.0's Airy sampling)
+    dtype : float64 (default) or float32 storage of the signal, variance and noisy cubes
+        (computed in float64 either way; the noise is drawn from the stored values)
+    """
+    profile = _profile(psf_profile)
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float64, np.float32):
+        raise ValueError(f"dtype must be float64 or float32, got {dtype}")
+    times = sim.get_times(nmd, nramps)
+    nmd, nramps, tint = times["nmd"], times["nramps"], times["inttime"]
+    seed = None if seed is None else seed_from(seed)
+    spec, scene = sim.spectrograph, sim.scene
+    lbda = sim.lbda
+    nl, (ny, nx) = lbda.size, spec.shape
+    has_point, has_host = scene.pointsource is not None, scene.host is not None
+    if has_point:
+        uncovered = np.isnan(sim.pointsource_flambda)
+        if uncovered.any():
+            import warnings
+            ps = scene.pointsource
+            warnings.warn(f"the point-source spectrum covers {ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å only: "
+                          f"{int(uncovered.sum())} of {uncovered.size} bins (and their LSF neighbours) are NaN "
+                          "in the cube", RuntimeWarning, stacklevel=2)
+    paths = {"pointsource": PATH_POINT if has_point else PATH_ABSENT,
+             "background": PATH_UNIFORM if scene.background is not None else PATH_ABSENT,
+             "thermal": PATH_UNIFORM,
+             "host": PATH_ABSENT}
+    host_method = None
+    if has_host:
+        host_method = HOST_CONV_METHOD
+        if host_method == "auto":
+            host_method = choose_convolution_method((ny, nx), host_kernel_shape(sim, profile),
+                                                                   backend)
+        paths["host"] = f"2-D convolution ({host_method})"
+    if has_point and profile != "gaussian":
+        paths["pointsource"] = f"{PATH_POINT}, {profile} PSF"
+
+    gain, qe = sim.detector.gain, sim.qe
+    uniform_ph = spec.apply_lsf(sim.background_photons + sim.thermal_photons)      # ph/s/cell, (nλ,)
+    shape = (nl, ny, nx)
+    signal, variance = np.empty(shape, dtype), np.empty(shape, dtype)
+    noisy = None if seed is None else np.empty(shape, dtype)
+
+    if not (has_point or has_host):        # uniform scene: everything is a 1-D spectrum
+        electrons = uniform_ph * qe
+        var1, sat1 = sim.cell_variance(electrons, nmd)
+        signal[...] = (np.where(sat1, np.nan, electrons * tint * gain) * nramps)[:, None, None]
+        variance[...] = (var1 * nramps)[:, None, None]
+        paths["detector"] = "1-D spectrum, broadcast"
+        if seed is not None:
+            noisy[...] = noisy_cube(signal, variance, seed, backend=backend,
+                                    max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx))
+        return CubeResult(signal, variance, noisy, paths, 1, lbda.copy(), profile, seed)
+
+    flux_ph = sim.pointsource_flambda * sim.flambda_to_photon if has_point else None    # ph/s
+    halo = lsf_halo(sim)
+    step = _chunk_bins(nl, ny, nx, halo, max_bytes)
+    starts = range(0, nl, step)
+    noise_bytes_per_bin = _NOISE_BYTES_PER_VOXEL * ny * nx          # at least one λ plane per noise call
+    fused = _use_fused_kernel(sim, backend)
+    if fused:
+        sig_y, sig_x = sim.psf_sigmas
+        readout = readout_constants(sim, nmd, nramps)
+        taps = lsf_weights(spec.lsf_sigma)[1]
+    paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
+    bar = _progress_bar(progress, len(starts))
+    try:
+        for i0 in starts:
+            i1 = min(nl, i0 + step)
+            lo, hi = max(0, i0 - halo), min(nl, i1 + halo)
+            out = (signal[i0:i1], variance[i0:i1])
+            if fused:
+                psf = None
+                if has_point and profile == "gaussian":
+                    psf = GaussianPSF(sig_y[lo:hi], sig_x[lo:hi], sim.position, (ny, nx))
+                elif has_point:
+                    psf = psf_block(sim, profile, lo, hi, backend=backend, options=psf_options, on_device=True)
+                host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
+                        if has_host else None)
+                detector_block(taps, flux_ph[lo:hi] if has_point else None, uniform_ph[i0:i1], qe[i0:i1],
+                               readout, bins=(i0, i1), nl=nl, lo=lo, psf=psf, host=host, out=out, dtype=dtype,
+                               backend="opencl")
+                del psf, host
+            else:
+                _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
+                             psf_options, nmd, tint, nramps, out)
+            if seed is not None:
+                noisy[i0:i1] = noisy_cube(signal[i0:i1], variance[i0:i1], seed, backend=backend,
+                                          max_bytes=max(max_bytes, noise_bytes_per_bin),
+                                          first_index=i0 * ny * nx)
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return CubeResult(signal, variance, noisy, paths, len(starts), lbda.copy(), profile, seed)
+
+
+def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, backend, psf_options, nmd, tint,
+                 nramps, out):
+    """NumPy oracle of one chunk: photon block, LSF (scipy), QE, ``Simulation.cell_variance``."""
+    (i0, i1), (lo, hi) = bins, block
+    photons = 0.0                                                                    # ph/s/cell
+    if flux_ph is not None:
+        photons = flux_ph[lo:hi, None, None] * psf_block(sim, profile, lo, hi, backend=backend,
+                                                         options=psf_options)
+    if sim.scene.host is not None:
+        photons = photons + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
+    photons = sim.spectrograph.apply_lsf(photons, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
+    electrons = photons * sim.qe[i0:i1, None, None]                                 # e-/s/cell
+    var1, sat = sim.cell_variance(electrons, nmd)                                    # ADU² per ramp
+    signal, variance = out
+    signal[...] = np.where(sat, np.nan, electrons * tint * sim.detector.gain) * nramps
+    variance[...] = var1 * nramps

@@ -1,0 +1,180 @@
+"""Raw up-the-ramp H4RG reads: exact sampling of MACC(n, m, d) ramps.
+
+Readout physics in small documented steps (cf. romanisim ``l1``):
+
+1. :func:`frame_mean_charge` — mean charge collected per frame μ = (rate + dark
+   + thermal dark)·t_f + ROIC glow  [e-/frame];
+2. charge accumulation, a Poisson process sampled exactly by one of two paths
+   chosen from μ only: *dense* — a Poisson increment in every frame; *sparse*
+   (μ·(m+d) < ``sparse_max_group``, default ≈ μ < 0.75 e-/frame) — per group window
+   (m reads + d dropped frames) a Poisson count and a uniform frame for each
+   event, so a dark pixel costs one uniform and one Gaussian per group;
+3. full-well clipping; group averaging of the m reads with read noise
+   σ_r/√m per group; kTC reset noise once per ramp;
+4. :func:`to_adu` — bias pedestal + gain, rounding and uint16 saturation;
+   GROUPDQ flags (JWST SATURATED = 2).
+
+Randomness is Philox4x32-10 keyed by (seed, ramp, pixel, frame or group): the
+output is identical for any chunking, work-group size, vector width or device
+count.  The OpenCL kernels are in ``kernels/ramp.cl``;
+:func:`simulate_block_numpy` is their bit-exact NumPy twin.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from slicersim.backends import rng
+from slicersim.backends.dispatch import resolve_backend
+from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
+from slicersim.io.rampfile import DQ, RampWriter
+from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, frame_mean_charge,  # noqa: F401
+                                    macc_frame_schedule, readpatt)
+from slicersim.physics.readout import readout_times
+
+__all__ = ["simulate", "RampParameters", "frame_mean_charge", "macc_frame_schedule", "readpatt",
+           "fit_slopes", "DEFAULT_BIAS"]
+
+
+def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=12.0, dark=2.8e-3,
+             thermal_dark=0.0, roic_glow=3e-3, gain=1.0, saturation=65535, bias=DEFAULT_BIAS,
+             ktc_noise=0.0, full_well=None, dead_pixels=None, pixeldq=None, sparse_max_group=None,
+             gauss_min_mean=np.inf, compression=None, memory_budget=2**30, truth=True,
+             config=None, backend="auto", progress=None, work_group=None, return_dq=False):
+    """Simulate raw MACC ramps of a rate image.
+
+    Parameters
+    ----------
+    rate : (ny, nx) photo-electron rate [e-/s] (detector terms are added here)
+    nmd : (n, m, d) readout;  nramps : ramps between resets;  seed : int in [0, 2⁶⁴)
+    out : HDF5 path (group-level file, see :mod:`slicersim.io.rampfile`) or None
+    tframe [s], ron [e-/read], dark [e-/s, scalar or image], thermal_dark [e-/s],
+    roic_glow [e-/frame], gain [ADU/e-], saturation [ADU], bias [ADU], ktc_noise [e-],
+    full_well [e-] (default (saturation − bias)/gain)
+    dead_pixels : bool (ny, nx) pixels collecting no charge;  pixeldq : uint32 (ny, nx) flags
+    sparse_max_group : expected e- per group below which the sparse sampler is used (None:
+        0.9·(m+d) − 1, see :func:`sparse_threshold`; capped at 64).  Both samplers are exact:
+        this only trades speed.
+    gauss_min_mean : Poisson mean above which a rounded Gaussian replaces the exact draw
+    memory_budget : bytes of host memory for the row blocks (default 1 GiB)
+    work_group : OpenCL local size (None: 64 on CPUs, the runtime's on GPUs); never changes the result
+
+    Returns
+    -------
+    SCI (nramps, ngroups, ny, nx) uint16 when ``out`` is None (and GROUPDQ with
+    ``return_dq``), else the path written.
+    """
+    rate = np.asarray(rate, dtype=float)
+    if rate.ndim != 2 or rate.size == 0:
+        raise ValueError(f"rate must be a non-empty 2-D image (ny, nx), got shape {rate.shape}")
+    if not np.all(np.isfinite(rate)):
+        raise ValueError(f"rate contains {np.count_nonzero(~np.isfinite(rate))} NaN/inf pixel(s)")
+    if np.any(rate < 0):
+        raise ValueError(f"rate contains {np.count_nonzero(rate < 0)} negative pixel(s) [e-/s]")
+    dark_arr = np.asarray(dark, dtype=float)
+    if np.any(~np.isfinite(dark_arr)) or np.any(dark_arr < 0):
+        raise ValueError("dark must be finite and ≥ 0")
+    seed = int(rng.seed_to_key(seed).astype(np.uint64)[0] | (rng.seed_to_key(seed).astype(np.uint64)[1] << np.uint64(32)))
+    p = RampParameters(nmd=nmd, nramps=nramps, tframe=tframe, ron=ron, dark=0.0, thermal_dark=thermal_dark,
+                       roic_glow=roic_glow, gain=gain, saturation=saturation, bias=bias, ktc_noise=ktc_noise,
+                       full_well=full_well, sparse_max_group=sparse_max_group, gauss_min_mean=gauss_min_mean)
+    ny, nx = rate.shape
+    if ny * nx >= 2**32:
+        raise ValueError("image too large: pixel indices must fit in 32 bits")
+    n = p.nmd[0]
+    mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
+    dead = np.zeros(rate.shape, bool) if dead_pixels is None else np.asarray(dead_pixels, bool)
+    if dead.shape != rate.shape:
+        raise ValueError("dead_pixels must have the shape of rate")
+    # bytes per pixel in flight: mu + dead + index list + SCI + GDQ (host and device copies)
+    per_row = nx * (8 + 1 + 4 + 3 * n) * 2
+    rows = int(max(1, min(ny, memory_budget // per_row)))
+    if memory_budget < per_row:
+        raise MemoryError(f"memory budget {memory_budget} B is smaller than one detector row "
+                          f"({per_row} B for {n} groups)")
+    full_bytes = p.nramps * n * ny * nx * 2
+    if out is None and full_bytes > 8 * memory_budget:
+        raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
+    backend = resolve_backend(backend)
+    block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
+    kwargs = {}
+    if backend == "opencl":
+        kwargs = {"work_group": work_group, "want_dq": out is not None or return_dq, "workspace": {}}
+    steps = [(r, y0) for r in range(p.nramps) for y0 in range(0, ny, rows)]
+    if progress is None:
+        progress = len(steps) > 4
+    iterator = steps
+    if progress:
+        from tqdm.auto import tqdm
+        iterator = tqdm(steps, desc="ramps", unit="block")
+    attrs = p.attrs(seed)
+    attrs.update({"SOFTWARE": "slicersim", "VERSION": _version(), "BACKEND": backend,
+                  "CONFIG": config if config is not None else {}, "DARK": float(np.mean(dark_arr)),
+                  "THERMAL_DARK": thermal_dark, "ROIC_GLOW": roic_glow, "KTC_NOISE": ktc_noise})
+    result = None if out is not None else np.empty((p.nramps, n, ny, nx), np.uint16)
+    result_dq = np.empty((p.nramps, n, ny, nx), np.uint8) if (out is None and return_dq) else None
+    writer = RampWriter(out, p.nramps, n, (ny, nx), attrs=attrs, row_block=min(rows, 256),
+                        compression=compression, truth_rate=truth) if out is not None else None
+
+    def run(w):
+        if w is not None:
+            w.write_pixeldq(_pixeldq(pixeldq, dead, rate.shape))
+            if truth:
+                w.write_truth(rate)
+        for ramp, y0 in iterator:
+            y1 = min(ny, y0 + rows)
+            direct = {}
+            if w is None and backend == "opencl" and y0 == 0 and y1 == ny:     # whole ramp: no copy
+                direct = {"sci_out": result[ramp].reshape(n, -1)}
+                if result_dq is not None:
+                    direct["gdq_out"] = result_dq[ramp].reshape(n, -1)
+            sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **direct)
+            if direct:
+                continue
+            sci = sci.reshape(n, y1 - y0, nx)
+            if w is not None:
+                w.write_block(ramp, y0, sci, gdq.reshape(n, y1 - y0, nx))
+            else:
+                result[ramp, :, y0:y1] = sci
+                if result_dq is not None:
+                    result_dq[ramp, :, y0:y1] = gdq.reshape(n, y1 - y0, nx)
+    if writer is None:
+        run(None)
+        return (result, result_dq) if return_dq else result
+    with writer as w:
+        run(w)
+    return os.path.abspath(out)
+
+
+def _pixeldq(pixeldq, dead, shape):
+    flags = np.zeros(shape, np.uint32) if pixeldq is None else np.asarray(pixeldq, np.uint32).copy()
+    flags[dead] |= DQ["DEAD"] | DQ["DO_NOT_USE"]
+    return flags
+
+
+def _version():
+    from slicersim import __version__
+    return __version__
+
+
+def fit_slopes(sci, nmd, tframe, gain=1.0, groupdq=None):
+    """Unweighted least-squares slopes over group means [e-/s] of SCI (ngroups, ...) ADU.
+
+    Groups flagged in ``groupdq`` are excluded; pixels with < 2 good groups give NaN.
+    """
+    n, m, d = nmd
+    t = ((np.arange(n) * (m + d)) + (m + 1) / 2.0) * tframe          # mean time of each group
+    y = np.asarray(sci, dtype=float) / gain
+    good = np.ones(y.shape, bool) if groupdq is None else (np.asarray(groupdq) == 0)
+    tt = np.broadcast_to(t.reshape((n,) + (1,) * (y.ndim - 1)), y.shape)
+    w = good.astype(float)
+    sw = w.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tm = (w * tt).sum(0) / sw
+        ym = (w * y).sum(0) / sw
+        num = (w * (tt - tm) * (y - ym)).sum(0)
+        den = (w * (tt - tm) ** 2).sum(0)
+        slope = num / den
+    return np.where(sw >= 2, slope, np.nan)

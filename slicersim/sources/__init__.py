@@ -1,0 +1,1 @@
+"""Astrophysical sources: spectra and point sources, extended hosts, background, the scene."""

@@ -1,0 +1,372 @@
+"""Extended sources as flux per cell before the PSF: Sersic host galaxies and user cubes.
+
+Cell grid (see :mod:`slicersim.physics.psf`): cell (j, k) of an (ny, nx) field of square
+cells of side s [arcsec] spans x ∈ [(k − nx/2) s, (k + 1 − nx/2) s],
+y ∈ [(j − ny/2) s, (j + 1 − ny/2) s] relative to the field centre; positions are
+(x, y) in arcsec.  Angles are in degrees, counter-clockwise from the +x axis.
+Flux falling outside the field is lost (never renormalised).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.sparse
+from scipy.special import gammainc, gammaincinv, gammaln
+
+from slicersim.sources.spectra import validate_spectrum
+
+__all__ = ["sersic_bn", "SersicProfile", "Host", "CubeSource", "overlap_matrix", "integrate_radial_cells"]
+
+
+def sersic_bn(sersic_index):
+    """b_n with Γ(2n) = 2 γ(2n, b_n): half of the light inside r_eff."""
+    return float(gammaincinv(2.0 * sersic_index, 0.5))
+
+
+def _cell_edges(n, scale):
+    return (np.arange(n + 1, dtype=np.float64) - n / 2.0) * scale
+
+
+class SersicProfile:
+    """Elliptical Sersic profile normalised to a total flux of 1.
+
+    I(r) = I_e exp(−b_n [(r/r_eff)^(1/n) − 1]) [fraction of the flux per arcsec²],
+    with the elliptical radius r = √(u² + (v/q)²), u along the major axis (at
+    ``position_angle`` degrees counter-clockwise from +x), v along the minor axis,
+    both relative to ``offset`` = (x, y) [arcsec]; r_eff [arcsec] is the
+    semi-major axis of the half-light ellipse.  Total flux
+    2π n q r_e² e^{b_n} b_n^{−2n} Γ(2n) I_e = 1 fixes I_e.
+    """
+
+    def __init__(self, sersic_index, r_eff, axis_ratio=1.0, position_angle=0.0, offset=(0.0, 0.0)):
+        n, r_eff, q = float(sersic_index), float(r_eff), float(axis_ratio)
+        if not (0.1 <= n <= 20 and np.isfinite(r_eff) and r_eff > 0 and 0 < q <= 1):
+            raise ValueError("Sersic profile needs 0.1 ≤ sersic_index ≤ 20, r_eff > 0 [arcsec] "
+                             f"and 0 < axis_ratio ≤ 1, got n={n}, r_eff={r_eff}, q={q}")
+        offset = tuple(float(v) for v in offset)
+        if len(offset) != 2 or not all(np.isfinite(offset)) or not np.isfinite(position_angle):
+            raise ValueError("offset must be (x, y) [arcsec] and position_angle finite [deg]")
+        self.sersic_index, self.r_eff, self.axis_ratio = n, r_eff, q
+        self.position_angle, self.offset = float(position_angle), offset
+        self.b_n = sersic_bn(n)
+        log_total = (math.log(2 * math.pi * n * q * r_eff**2) + self.b_n
+                     - 2 * n * math.log(self.b_n) + gammaln(2 * n))
+        self.intensity_eff = math.exp(-log_total)  # I_e [1/arcsec²]
+
+    def elliptical_radius(self, x, y):
+        """r [arcsec] at sky positions (x, y) [arcsec]."""
+        th = math.radians(self.position_angle)
+        dx, dy = np.asarray(x, float) - self.offset[0], np.asarray(y, float) - self.offset[1]
+        u = dx * math.cos(th) + dy * math.sin(th)
+        v = -dx * math.sin(th) + dy * math.cos(th)
+        return np.sqrt(u * u + (v / self.axis_ratio) ** 2)
+
+    def surface_brightness(self, x, y):
+        """I(x, y) [fraction of the total flux per arcsec²] at sky positions [arcsec]."""
+        return self.radial_profile(self.elliptical_radius(x, y))
+
+    def enclosed_fraction(self, radius):
+        """Fraction of the flux inside the ellipse of semi-major axis ``radius`` [arcsec]:
+        P(2n, b_n (r/r_eff)^(1/n))."""
+        x = self.b_n * (np.asarray(radius, float) / self.r_eff) ** (1.0 / self.sersic_index)
+        return gammainc(2.0 * self.sersic_index, x)
+
+    @property
+    def geometry(self):
+        """(x0, y0 [arcsec], position angle [deg], axis ratio)."""
+        return (*self.offset, self.position_angle, self.axis_ratio)
+
+    def radial_profile(self, r):
+        """I at elliptical radius r [arcsec] (fraction of the total flux per arcsec²)."""
+        return self.intensity_eff * np.exp(-self.b_n * ((np.asarray(r, float) / self.r_eff)
+                                                        ** (1.0 / self.sersic_index) - 1.0))
+
+    def cell_fractions(self, shape, spatial_scale, oversampling=None):
+        """(ny, nx) fraction of the total flux in each cell of side ``spatial_scale``
+        [arcsec]: exact polar integration (~1e-12 per cell, cusp included), or the
+        midpoint rule on ``oversampling``² sub-cells (see :func:`integrate_radial_cells`)."""
+        return integrate_radial_cells(self.geometry, [self.radial_profile], shape, spatial_scale,
+                                      oversampling)[0]
+
+
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
+_GL8_X, _GL8_W = np.polynomial.legendre.leggauss(8)
+
+
+class _RadialCumulative:
+    """G(R) = q ∫_0^R f(ρ) ρ dρ for a radial profile f [per arcsec²] (ρ the elliptical radius):
+    the flux per radian of polar angle inside R.  Table at ρ_k = R_max (k/K)⁴ (dense near
+    the cusp at 0) of 8-point Gauss–Legendre interval integrals, plus one 8-point
+    integral from the table node below R; ~1e-14 relative for Sersic profiles."""
+
+    def __init__(self, f, q, r_max, K=1024):
+        self.f, self.q, self.r_max = f, q, float(r_max)
+        self.nodes = self.r_max * (np.arange(K + 1) / K) ** 4
+        self.cum = np.concatenate([[0.0], np.cumsum(self._gl(self.nodes[:-1], self.nodes[1:]))])
+
+    def _gl(self, a, b):
+        mid, half = 0.5 * (a + b), 0.5 * (b - a)
+        rho = mid[..., None] + half[..., None] * _GL8_X
+        return half * np.sum(_GL8_W * self.q * self.f(rho) * rho, axis=-1)
+
+    def __call__(self, R):
+        R = np.minimum(np.asarray(R, float), self.r_max)
+        k = np.clip(np.searchsorted(self.nodes, R, side="right") - 1, 0, self.nodes.size - 2)
+        return self.cum[k] + self._gl(self.nodes[k], R)
+
+
+def _edge_integrals(A, B, cumulatives, dz=0.5):
+    """Signed integrals ∫ G(R(φ)) dφ over the triangles (centre, A, B), one per edge
+    A → B (arrays (m, 2) [arcsec] in the frame where the profile is circular).
+    Along an edge at distance d from the centre, s = d sinh z turns dφ = d ds/(d² + s²)
+    into dz / cosh z and R = d cosh z: a smooth integrand at every scale of d, r_eff
+    and the edge length; panels of width ≤ dz with 16-point Gauss–Legendre.
+    Edges through the centre contribute 0.  Returns (ncomp, m)."""
+    e = B - A
+    L = np.hypot(e[:, 0], e[:, 1])
+    cross = A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]
+    scale = np.maximum(L * np.maximum(np.hypot(A[:, 0], A[:, 1]), np.hypot(B[:, 0], B[:, 1])), 1e-300)
+    ok = np.abs(cross) > 1e-14 * scale
+    Ls = np.where(ok, L, 1.0)
+    d = np.where(ok, np.abs(cross) / Ls, 1.0)
+    sA = np.where(ok, (A * e).sum(1) / Ls, 0.0)
+    zA, zB = np.arcsinh(sA / d), np.arcsinh((sA + np.where(ok, L, 0.0)) / d)
+    npan = np.where(ok, np.ceil((zB - zA) / dz).clip(1), 0).astype(np.int64)
+    edge = np.repeat(np.arange(A.shape[0]), npan)
+    j = np.arange(edge.size) - np.repeat(np.cumsum(npan) - npan, npan)
+    width = ((zB - zA) / np.maximum(npan, 1))[edge]
+    z = zA[edge, None] + width[:, None] * (j[:, None] + 0.5 + 0.5 * _GL_X[None, :])
+    R = d[edge, None] * np.cosh(z)
+    wts = 0.5 * width[:, None] * _GL_W[None, :] / np.cosh(z) * np.sign(cross)[edge, None]
+    return np.array([np.bincount(edge, weights=(wts * G(R)).sum(axis=1), minlength=A.shape[0])
+                     for G in cumulatives])
+
+
+def integrate_radial_cells(geometry, radial_funcs, shape, spatial_scale, oversampling=None):
+    """∫∫_cell f_c(r) dA for every cell of an (ny, nx) field of side ``spatial_scale``
+    [arcsec], for radial profiles f_c [per arcsec²] of the elliptical radius r of
+    ``geometry`` = (x0, y0 [arcsec], position angle [deg], axis ratio q).
+    Returns (ncomp, ny, nx).
+
+    Default (``oversampling=None``): exact polar integration, no sampling of the cusp.
+    In the frame u (major axis), w = v/q the profile is circular and the flux of a
+    polygon is Σ_edges ∫ G(R(φ)) dφ over the triangles (centre, A, B), with the
+    cumulative G(R) = q ∫_0^R f ρ dρ (:class:`_RadialCumulative`).  Edges are shared by
+    neighbouring cells, so each is integrated once.  Accuracy ~1e-12 of the total
+    flux per cell (tests: Gaussian n = 0.5 vs erf products; sums vs P(2n, x)),
+    whatever r_eff / cell or the offset.  Cost ~0.2 s for 58 × 116 cells.
+    ``oversampling=o``: plain midpoint rule on o × o sub-cells (cross-checks).
+    """
+    ny, nx = (int(v) for v in shape)
+    s = float(spatial_scale)
+    if not (ny > 0 and nx > 0 and s > 0):
+        raise ValueError("shape must be positive and spatial_scale > 0 [arcsec]")
+    x0, y0, pa, q = geometry
+    c, sn = math.cos(math.radians(pa)), math.sin(math.radians(pa))
+    xe, ye = _cell_edges(nx, s) - x0, _cell_edges(ny, s) - y0
+    if oversampling is not None:
+        o = int(oversampling)
+        sub = (np.arange(o) + 0.5) / o * s
+        out = np.empty((len(radial_funcs), ny, nx))
+        for j in range(ny):
+            dx = (xe[:-1, None, None] + sub[None, None, :])
+            dy = (ye[j] + sub)[None, :, None]
+            r = np.sqrt((dx * c + dy * sn) ** 2 + ((-dx * sn + dy * c) / q) ** 2)
+            out[:, j] = [f(r).mean(axis=(1, 2)) * s * s for f in radial_funcs]
+        return out
+    DY, DX = np.meshgrid(ye, xe, indexing="ij")                     # corners (ny+1, nx+1)
+    P = np.stack([DX * c + DY * sn, (-DX * sn + DY * c) / q], axis=-1)
+    r_max = 1.01 * np.hypot(P[..., 0], P[..., 1]).max()
+    cumulatives = [_RadialCumulative(f, q, r_max) for f in radial_funcs]
+    th = _edge_integrals(P[:, :-1].reshape(-1, 2), P[:, 1:].reshape(-1, 2), cumulatives)
+    tv = _edge_integrals(P[:-1, :].reshape(-1, 2), P[1:, :].reshape(-1, 2), cumulatives)
+    th = th.reshape(-1, ny + 1, nx)                                  # edges along +x
+    tv = tv.reshape(-1, ny, nx + 1)                                  # edges along +y
+    # counter-clockwise cell: bottom (+x), right (+y), top (−x), left (−y)
+    return th[:, :-1] - th[:, 1:] + tv[:, :, 1:] - tv[:, :, :-1]
+
+
+def _interp_spectrum(lbda_in, flux_in, lbda_grid, name):
+    lbda_grid = np.asarray(lbda_grid, dtype=float)
+    if lbda_grid.size and (lbda_grid.min() < lbda_in[0] or lbda_grid.max() > lbda_in[-1]):
+        raise ValueError(f"{name}: wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends "
+                         f"beyond the input spectrum [{lbda_in[0]:g}, {lbda_in[-1]:g}] Å")
+    return np.interp(lbda_grid, lbda_in, flux_in)
+
+
+class Host:
+    """Host galaxy: a (unit-flux) profile times a spectrum, flux per cell before the PSF.
+
+    profile : :class:`SersicProfile` (anything with ``cell_fractions``, ``geometry``,
+        ``radial_profile``, ``axis_ratio`` and ``r_eff``).
+    lbda, flux : spectrum [Å], total F_λ of the galaxy [erg/s/cm²/Å]; linear
+        interpolation onto the instrument grid (ValueError outside its range).
+    flux_outskirts : optional second spectrum on ``lbda`` for a radially varying
+        spectrum.  The surface brightness is then
+        I(r) [w(r) F_core(λ) + (1 − w(r)) F_out(λ)],  w(r) = exp(−r / blend_radius),
+        r the elliptical radius, ``blend_radius`` [arcsec] (default r_eff): ``flux`` is
+        the core spectrum and each spectrum is the total the galaxy would have if it
+        had that spectrum everywhere; the galaxy total is W F_core + (1 − W) F_out
+        with W = ∫ I w dA (:meth:`core_weight`).
+    """
+
+    def __init__(self, profile, lbda, flux, flux_outskirts=None, blend_radius=None):
+        self.profile = profile
+        self.lbda_in, self.flux_in = validate_spectrum(lbda, flux, "host spectrum")
+        self.flux_outskirts = None
+        if flux_outskirts is not None:
+            self.flux_outskirts = validate_spectrum(lbda, flux_outskirts, "host outskirts spectrum")[1]
+        self.blend_radius = float(profile.r_eff if blend_radius is None else blend_radius)
+        if not self.blend_radius > 0:
+            raise ValueError(f"blend_radius must be > 0 [arcsec], got {blend_radius}")
+
+    def _core_profile(self, r):
+        return self.profile.radial_profile(r) * np.exp(-np.asarray(r, float) / self.blend_radius)
+
+    def core_weight(self):
+        """W = ∫ I(r) exp(−r/r_b) dA: share of the flux carrying the core spectrum."""
+        from scipy.integrate import quad
+        q = self.profile.axis_ratio
+        return quad(lambda r: self._core_profile(r) * 2 * math.pi * q * r, 0, np.inf,
+                    limit=200, epsabs=1e-13, epsrel=1e-11)[0]
+
+    def flux_cube(self, lbda_grid, shape, spatial_scale, oversampling=None):
+        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]
+        (cells of side ``spatial_scale`` [arcsec]; before the PSF)."""
+        core = _interp_spectrum(self.lbda_in, self.flux_in, lbda_grid, "host spectrum")
+        p = self.profile
+        if self.flux_outskirts is None:
+            frac = p.cell_fractions(shape, spatial_scale, oversampling=oversampling)
+            return core[:, None, None] * frac[None]
+        out = _interp_spectrum(self.lbda_in, self.flux_outskirts, lbda_grid, "host outskirts spectrum")
+        frac, frac_core = integrate_radial_cells(p.geometry, [p.radial_profile, self._core_profile],
+                                                 shape, spatial_scale, oversampling)
+        return core[:, None, None] * frac_core[None] + out[:, None, None] * (frac - frac_core)[None]
+
+
+def overlap_matrix(edges_out, edges_in):
+    """(n_out, n_in) fraction of each input interval inside each output interval
+    (exact overlap lengths / input length; intervals outside the output range are lost)."""
+    lo = np.maximum(edges_out[:-1, None], edges_in[None, :-1])
+    hi = np.minimum(edges_out[1:, None], edges_in[None, 1:])
+    return np.clip(hi - lo, 0.0, None) / np.diff(edges_in)[None, :]
+
+
+def _lambda_matrix(lbda_in, lbda_grid):
+    """Sparse (nλ_out, nλ_in) linear-interpolation matrix (ValueError outside the range)."""
+    lbda_grid = np.asarray(lbda_grid, dtype=float)
+    if lbda_grid.ndim != 1:
+        raise ValueError("lbda_grid must be 1-D [Å]")
+    if lbda_grid.size and (lbda_grid.min() < lbda_in[0] or lbda_grid.max() > lbda_in[-1]):
+        raise ValueError(f"wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends beyond "
+                         f"the cube's [{lbda_in[0]:g}, {lbda_in[-1]:g}] Å")
+    i = np.clip(np.searchsorted(lbda_in, lbda_grid, side="right") - 1, 0, lbda_in.size - 2)
+    t = (lbda_grid - lbda_in[i]) / (lbda_in[i + 1] - lbda_in[i])
+    rows = np.repeat(np.arange(lbda_grid.size), 2)
+    cols = np.stack([i, i + 1], axis=1).ravel()
+    vals = np.stack([1.0 - t, t], axis=1).ravel()
+    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(lbda_grid.size, lbda_in.size))
+
+
+def _clamped_edge_integral(xa, ya, xb, yb, s):
+    """∫ clamp(x, 0, s) 1[0 ≤ y ≤ s] dy along the segment (xa, ya) → (xb, yb), signed.
+
+    By Green's theorem, Σ over a counter-clockwise polygon's edges is the exact area of
+    the polygon inside the square [0, s]²: ∂/∂x clamp(x, 0, s) = 1[0 ≤ x ≤ s].  The
+    integrand is linear in y between the points where x crosses 0 or s, so the
+    trapezoid rule on those sub-intervals is exact."""
+    dy = yb - ya
+    lo = np.clip(np.minimum(ya, yb), 0.0, s)
+    hi = np.clip(np.maximum(ya, yb), 0.0, s)
+    flat = dy == 0
+    slope = np.where(flat, 0.0, (xb - xa) / np.where(flat, 1.0, dy))
+    steep = slope != 0
+    inv = np.where(steep, 1.0 / np.where(steep, slope, 1.0), 0.0)
+    k0 = np.where(steep, ya + (0.0 - xa) * inv, lo)
+    k1 = np.where(steep, ya + (s - xa) * inv, lo)
+    pts = np.sort(np.stack(np.broadcast_arrays(lo, np.clip(k0, lo, hi), np.clip(k1, lo, hi), hi)), axis=0)
+    xs = np.clip(xa + (pts - ya) * slope, 0.0, s)
+    total = 0.5 * np.sum((pts[1:] - pts[:-1]) * (xs[1:] + xs[:-1]), axis=0)
+    return np.where(flat, 0.0, np.sign(dy) * total)
+
+
+class CubeSource:
+    """User cube [erg/s/cm²/Å per input pixel] placed on the field, flux conserving.
+
+    cube : (nλ_in, ny_in, nx_in), lbda_in : (nλ_in,) strictly increasing [Å],
+    pixel_scale : input pixel side [arcsec], centre : (x, y) [arcsec] of the cube
+    centre relative to the field centre, rotation : [deg] counter-clockwise about
+    that centre.
+
+    Spatial resampling: each input pixel is uniformly bright and shares its flux among
+    cells in proportion to the exact overlap areas: separable overlap matrices for
+    rotation = 0, and for any other angle the exact area of the rotated pixel inside
+    each cell (Green's theorem on its edges, :func:`_clamped_edge_integral`; no
+    sub-pixel splitting, so no sampling error).
+    Wavelength: F_λ linearly interpolated in λ (flux density, not integrated over
+    bins); grids beyond [lbda_in[0], lbda_in[-1]] raise ValueError.
+    """
+
+    def __init__(self, cube, lbda_in, pixel_scale, centre=(0.0, 0.0), rotation=0.0):
+        cube = np.asarray(cube, dtype=np.float64)
+        if cube.ndim != 3 or min(cube.shape) == 0:
+            raise ValueError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
+        if not np.all(np.isfinite(cube)):
+            raise ValueError("cube contains NaN/inf values")
+        lbda_in = np.asarray(lbda_in, dtype=np.float64)
+        if lbda_in.shape != cube.shape[:1] or lbda_in.size < 2 or np.any(np.diff(lbda_in) <= 0):
+            raise ValueError("lbda_in must be strictly increasing with one value per cube plane (≥ 2)")
+        if not (np.isfinite(pixel_scale) and pixel_scale > 0 and np.isfinite(rotation)):
+            raise ValueError("pixel_scale must be > 0 [arcsec] and rotation finite [deg]")
+        self.cube, self.lbda_in, self.pixel_scale = cube, lbda_in, float(pixel_scale)
+        self.centre = tuple(float(v) for v in centre)
+        self.rotation = float(rotation)
+
+    def spatial_matrix(self, shape, spatial_scale):
+        """Sparse (ny·nx, ny_in·nx_in) matrix: fraction of each input pixel's area in each cell."""
+        ny, nx = (int(v) for v in shape)
+        _, nyi, nxi = self.cube.shape
+        p, (cx, cy), s = self.pixel_scale, self.centre, float(spatial_scale)
+        if self.rotation % 360.0 == 0.0:
+            ox = overlap_matrix(_cell_edges(nx, s), cx + _cell_edges(nxi, p))
+            oy = overlap_matrix(_cell_edges(ny, s), cy + _cell_edges(nyi, p))
+            return scipy.sparse.kron(scipy.sparse.csr_matrix(oy), scipy.sparse.csr_matrix(ox), format="csr")
+        th = math.radians(self.rotation)
+        c, sn = math.cos(th), math.sin(th)
+        V, U = np.meshgrid(_cell_edges(nyi, p), _cell_edges(nxi, p), indexing="ij")  # pixel corners
+        X, Y = cx + U * c - V * sn, cy + U * sn + V * c
+        # counter-clockwise corners of every input pixel (rotation keeps the orientation)
+        px = np.stack([X[:-1, :-1], X[:-1, 1:], X[1:, 1:], X[1:, :-1]], -1).reshape(-1, 4)
+        py = np.stack([Y[:-1, :-1], Y[:-1, 1:], Y[1:, 1:], Y[1:, :-1]], -1).reshape(-1, 4)
+        span = p * (abs(c) + abs(sn))
+        Lx = Ly = int(math.ceil(span / s)) + 1
+        kx0 = np.floor(px.min(1) / s + nx / 2).astype(np.int64)
+        ky0 = np.floor(py.min(1) / s + ny / 2).astype(np.int64)
+        kx = kx0[:, None, None] + np.arange(Lx)[None, None, :]                # (npix, 1, Lx)
+        ky = ky0[:, None, None] + np.arange(Ly)[None, :, None]                # (npix, Ly, 1)
+        x0 = (kx - nx / 2) * s
+        y0 = (ky - ny / 2) * s
+        area = np.zeros((px.shape[0], Ly, Lx))
+        for e in range(4):
+            f = (e + 1) % 4
+            area += _clamped_edge_integral(px[:, e, None, None] - x0, py[:, e, None, None] - y0,
+                                           px[:, f, None, None] - x0, py[:, f, None, None] - y0, s)
+        inside = (kx >= 0) & (kx < nx) & (ky >= 0) & (ky < ny) & (area > 0)
+        rows = np.broadcast_to(ky * nx + kx, area.shape)[inside]
+        cols = np.broadcast_to(np.arange(px.shape[0])[:, None, None], area.shape)[inside]
+        return scipy.sparse.csr_matrix((area[inside] / (p * p), (rows, cols)), shape=(ny * nx, nyi * nxi))
+
+    def flux_cube(self, lbda_grid, shape, spatial_scale):
+        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]."""
+        ny, nx = (int(v) for v in shape)
+        nl_in, nyi, nxi = self.cube.shape
+        L = _lambda_matrix(self.lbda_in, lbda_grid)
+        X = L @ self.cube.reshape(nl_in, nyi * nxi)                   # (nλ, npix_in)
+        if self.rotation % 360.0 == 0.0:
+            p, (cx, cy) = self.pixel_scale, self.centre
+            ox = overlap_matrix(_cell_edges(nx, spatial_scale), cx + _cell_edges(nxi, p))
+            oy = overlap_matrix(_cell_edges(ny, spatial_scale), cy + _cell_edges(nyi, p))
+            return oy @ (X.reshape(-1, nyi, nxi) @ ox.T)
+        W = self.spatial_matrix((ny, nx), spatial_scale)
+        return np.asarray((W @ X.T).T).reshape(-1, ny, nx)

@@ -1,0 +1,46 @@
+"""The astrophysical scene: point source, uniform background and host.
+
+Spectra are flux densities F(λ) [erg/s/cm²/Å] (per arcsec² for backgrounds),
+evaluated on the spectrograph's wavelength grid.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from slicersim.errors import SpectrumError  # noqa: F401  (re-exported)
+from slicersim.sources.extended import CubeSource, Host, SersicProfile  # noqa: F401  (re-exported)
+from slicersim.sources.spectra import (SNCOSMO_SNIA_MODELS, PointSource, blackbody_flambda,  # noqa: F401
+                                       snia_spectrum, validate_spectrum)
+
+__all__ = ["Background", "Scene", "zodiacal_light"]
+
+def zodiacal_light(lbda, scale=2.0):
+    """Zodiacal light, Aldering (2001) 5800 K black-body fit [erg/s/cm²/Å/arcsec²]."""
+    lbda = np.asarray(lbda, dtype=float)
+    return scale * 1e-17 * (lbda / 1e4) ** -4.64 / np.expm1(24806.498 / lbda)
+
+
+class Background:
+    """Spatially uniform background (zodiacal light by default) [erg/s/cm²/Å/arcsec²]."""
+
+    def __init__(self, model="zodi", scale=2.0, name="zodi"):
+        if model not in ("zodi", "Aldering01.BB5800") and not callable(model):
+            raise ValueError(f"unknown background model {model!r}")
+        if not (np.isfinite(scale) and scale >= 0):
+            raise ValueError(f"background scale must be ≥ 0, got {scale}")
+        self.model, self.scale, self.name = model, float(scale), name
+
+    def flambda(self, lbda):
+        if callable(self.model):
+            return self.scale * np.asarray(self.model(lbda), dtype=float)
+        return zodiacal_light(lbda, self.scale)
+
+
+class Scene:
+    """Container of the point source, background and host (any may be None)."""
+
+    def __init__(self, pointsource=None, background=None, host=None):
+        if host is not None and not callable(getattr(host, "flux_cube", None)):
+            raise TypeError("host must provide flux_cube(lbda, shape, spatial_scale) "
+                            "(slicersim.Host or slicersim.CubeSource)")
+        self.pointsource, self.background, self.host = pointsource, background, host
