@@ -59,7 +59,7 @@ def lazuli_narrow():
     sim = LazuliTarget(lbda_in, np.ones_like(lbda_in), mag=None, config=config, field="narrow").simulation
     tel, spec = sim.telescope, sim.spectrograph
     kw = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
-              instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext,
+              instrumental_sigma=sim.instrumental_sigma, diameter=tel.diameter_ext,
               obscuration=tel.obscuration, sigma_ref_arcsec=tel.psf_sigma_ref)
     source = "reference lazuli_cbe.toml" if cfg_file.is_file() else "built-in cbe"
     return sim.lbda.copy(), tuple(spec.shape), kw, source

@@ -14,6 +14,7 @@ from slicersim.instrument.spectrograph import MLASpectrograph, SlicerSpectrograp
 from slicersim.instrument.telescope import Telescope
 from slicersim.io.config import expand_config, load_config
 from slicersim.io.curves import read_curve
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS
 from slicersim.simulation import Simulation
 from slicersim.sources.scene import Background, Scene
 
@@ -33,10 +34,11 @@ def check_field(field):
 
 
 def build_simulation(config="cbe", field="narrow", pointsource=None, background="zodi",
-                     position=(0.0, 0.0)):
+                     position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS):
     """Simulation from a configuration (see :func:`slicersim.io.config.load_config`) and a field.
 
-    ``field=None`` uses the configuration as written (single-channel instruments).
+    ``field=None`` uses the configuration as written (single-channel instruments);
+    ``conventions``: "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`).
     """
     check_field(field)
     cfg = load_config(config)
@@ -85,7 +87,7 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
     scene = Scene(pointsource=pointsource, background=background)
     detector.thermal_dark_range = thermal_dark_range
     sim = Simulation(scene, telescope, spectrograph, detector, nramps=ext.get("nramps", 1),
-                     aperture_radius_insigma=ext.get("aperture_radius_insigma", 10.0))
+                     aperture_radius_insigma=ext.get("aperture_radius_insigma", 10.0), conventions=conventions)
     sim.config, sim.field = config, field
     return sim
 

@@ -9,8 +9,9 @@ import numpy as np
 
 from slicersim.backends.psf import auto_oversampling, psf_cells
 from slicersim.constants import HC_ERG_AA
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, instrumental_blur_sigma
 from slicersim.physics.psf import aperture_cells, gaussian_psf_cells, gaussian_psf_fractions, gaussian_psf_sigmas
-from slicersim.physics.readout import VARIANCE_MODELS, check_readout, readout_times
+from slicersim.physics.readout import check_readout, readout_times
 from slicersim.physics.thermal import thermal_dark_rate
 from slicersim.products.cube import build_cube, host_photons_block
 
@@ -58,16 +59,29 @@ class Simulation:
     scene, telescope, spectrograph, detector : model objects
     nramps : int  number of identical ramps (summed)
     aperture_radius_insigma : float  extraction radius in units of σ_ref / s
+    conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
     """
 
     def __init__(self, scene, telescope, spectrograph, detector, nramps=1,
-                 aperture_radius_insigma=10.0):
+                 aperture_radius_insigma=10.0, conventions=DEFAULT_CONVENTIONS):
+        self._conventions = check_conventions(conventions)
         self.scene, self.telescope = scene, telescope
         self.spectrograph, self.detector = spectrograph, detector
         _, self.nramps = check_readout(detector.nmd, nramps, detector.min_group)
         self.aperture_radius_insigma = float(aperture_radius_insigma)
         self._cache = {}
         self._check_overlap()
+
+    @property
+    def conventions(self):
+        """"physical" or "slicersim-1.0" (fixed at construction: build a new Simulation to change it)."""
+        return self._conventions
+
+    @property
+    def instrumental_sigma(self):
+        """Spectrograph aberration blur σ along the slice [cells] under this simulation's conventions."""
+        spec = self.spectrograph
+        return instrumental_blur_sigma(spec.dispersion_resolution, spec.anamorphosis, self._conventions)
 
     # ------------------------------------------------------------------ updates
     def update(self, **kwargs):
@@ -174,7 +188,7 @@ class Simulation:
         spec = self.spectrograph
         return self._cached("psf_sig", lambda: gaussian_psf_sigmas(
             self.lbda, self.telescope.psf_sigma_ref, spec.spatial_scale,
-            self.telescope.guiding_sigma, spec.instrumental_sigma))
+            self.telescope.guiding_sigma, self.instrumental_sigma))
 
     @property
     def position(self):
@@ -232,9 +246,7 @@ class Simulation:
         dark = self.effective_dark(off)
         ron = 0.0 if off == "ron" else det.ron
         pixel_rate = cell_rate / ppc
-        var = ppc * det.pixel_variance(pixel_rate, nmd=nmd, ron=ron, thermal_dark=0.0) \
-            if dark == det.effective_dark(0.0) else \
-            ppc * _pixel_variance_with_dark(det, pixel_rate, nmd, ron, dark)
+        var = ppc * det.pixel_variance(pixel_rate, nmd=nmd, ron=ron, dark=dark, conventions=self.conventions)
         tint = readout_times(nmd, det.tframe)["integration_time"]
         saturated = (pixel_rate + dark) * tint * det.gain > det.saturation
         return np.where(saturated, np.inf, var), saturated
@@ -286,7 +298,7 @@ class Simulation:
             raise ValueError(f"unknown psf_profile {psf_profile!r}: 'gaussian' or 'airy'")
         tel, spec = self.telescope, self.spectrograph
         common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
-                      instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext)
+                      instrumental_sigma=self.instrumental_sigma, diameter=tel.diameter_ext)
         return psf_cells(self.lbda, spec.shape, self.position, cells=(iy, ix), profile="airy",
                          sigma_ref_arcsec=tel.psf_sigma_ref, obscuration=tel.obscuration,
                          oversampling=auto_oversampling(self.lbda, **common), backend=backend, **common)
@@ -390,6 +402,3 @@ def _band_snr(signal, variance):
     with np.errstate(invalid="ignore", divide="ignore"):
         return float(np.nanmean(signal) / np.sqrt(np.nanmean(variance)))
 
-
-def _pixel_variance_with_dark(det, pixel_rate, nmd, ron, dark):
-    return VARIANCE_MODELS[det.variance_model.lower()](pixel_rate, nmd, det.tframe, ron, dark, det.gain)

@@ -12,6 +12,7 @@ import numpy as np
 
 from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field, default_mapper  # noqa: F401
 from slicersim.errors import ETCError
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.readout import check_readout
 from slicersim.sources.scene import PointSource, snia_spectrum
 
@@ -28,12 +29,15 @@ class Target:
     config : "cbe", "eol", a TOML path or a list of them
     field : "narrow", "wide" (Lazuli) or None
     position : (x, y) [cells] relative to the field centre
+    conventions : "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly
+        (gain in the variance, instrumental blur; :mod:`slicersim.physics.conventions`)
     """
 
     default_config, default_field = "cbe", None
 
     def __init__(self, lbda, flux, mag=None, band="bessellb", config=None, field="default",
-                 position=(0.0, 0.0), redshift=None):
+                 position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS):
+        self.conventions = check_conventions(conventions)
         self.redshift = redshift
         self._source_args = dict(lbda=lbda, flux=flux, mag=mag, band=band, position=position)
         self.pointsource = PointSource(lbda, flux, position=position, mag=mag, band=band)
@@ -43,7 +47,8 @@ class Target:
 
     def _build(self, keep_readout=False):
         old = (self.simulation.detector.nmd, self.simulation.nramps) if keep_readout else None
-        self.simulation = build_simulation(self.config, self.field, self.pointsource)
+        self.simulation = build_simulation(self.config, self.field, self.pointsource,
+                                           conventions=self.conventions)
         if old:
             self.simulation.update(nmd=old[0], nramps=old[1])
 
@@ -138,7 +143,7 @@ class Target:
         cubes = {}
         for field in ("narrow", "wide"):
             sim = self.simulation if field == (self.field or "narrow") else \
-                build_simulation(self.config, field, pointsource=None)
+                build_simulation(self.config, field, pointsource=None, conventions=self.conventions)
             cubes[field] = (sim.get_projected_scene() * sim.qe[:, None, None], sim)
         return cubes
 
@@ -184,9 +189,10 @@ class Supernova(Target):
     absolute magnitude ``peak_absmag`` in Bessell B (AB, Planck18), at ``phase`` days."""
 
     def __init__(self, redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3, config=None,
-                 field="default", position=(0.0, 0.0), **kwargs):
+                 field="default", position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, **kwargs):
         lbda, flux = snia_spectrum(redshift, phase, source, peak_absmag, **kwargs)
-        super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift)
+        super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift,
+                         conventions=conventions)
         self.phase, self.source = phase, source
 
     def setup_to_snr(self, snr, lbda_range=None, frame="rest", **kwargs):
@@ -196,10 +202,11 @@ class Supernova(Target):
 class BlackBody(Target):
     """Black body of ``temperature`` [K] normalised to ``mag`` (AB) in ``band``."""
 
-    def __init__(self, temperature, mag, band="bessellb", config=None, field="default", position=(0.0, 0.0)):
+    def __init__(self, temperature, mag, band="bessellb", config=None, field="default", position=(0.0, 0.0),
+                 conventions=DEFAULT_CONVENTIONS):
         src = PointSource.from_blackbody(temperature, mag, band)
         super().__init__(src.lbda_in, src.flux_in, mag=mag, band=band, config=config, field=field,
-                         position=position)
+                         position=position, conventions=conventions)
         self.temperature = temperature
 
 
@@ -228,15 +235,17 @@ def _result(target, etc):
 
 
 def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame="obs",
-               config="cbe", field="narrow", search="exact", redshift=None):
+               config="cbe", field="narrow", search="exact", redshift=None, conventions=DEFAULT_CONVENTIONS):
     """Exposure time for any spectrum with the Lazuli IFS; returns a dict
     (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target)."""
-    target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift)
+    target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift,
+                          conventions=conventions)
     return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search))
 
 
 def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame="rest", config="cbe", field="narrow",
-                  search="exact", phase=0.0, source="hsiao-subsampled"):
+                  search="exact", phase=0.0, source="hsiao-subsampled", conventions=DEFAULT_CONVENTIONS):
     """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default)."""
-    target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field)
+    target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field,
+                             conventions=conventions)
     return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search))

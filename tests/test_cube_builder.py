@@ -225,6 +225,7 @@ def _reference_case(refdir, case):
     if inp["configuration"] == "eol":
         config.append(str(refdir / "config" / "lazuli_eol.toml"))
     target = LazuliTarget(arr["input_lbda"], arr["input_flux"], mag=inp["mag_passed_to_reference"],
+                          conventions="slicersim-1.0",
                           band=inp.get("band", "bessellb"), config=config, field=inp["field"],
                           position=tuple(inp.get("position_cells_x_y") or (0.0, 0.0)))
     return meta, arr, target

@@ -53,7 +53,11 @@ def test_rauscher07_hand_value_with_drops_and_gain():
     b = 6 * (10**2 + 1) / (5 * 10 * 11) * 9 * (6 * 2.83) - 2 * (4**2 - 1) * 9 / (4 * 10 * 11) * 2.83
     expected = (a * 20.0**2 + b * 3.01) / 2.0**2
     assert expected == pytest.approx(149.94451043181817, rel=1e-14)
-    assert variance_rauscher07(3.0, (10, 4, 2), TF, 20.0, 0.01, gain=2.0) == pytest.approx(expected, rel=1e-12)
+    assert variance_rauscher07(3.0, (10, 4, 2), TF, 20.0, 0.01, gain=2.0,
+                               conventions="slicersim-1.0") == pytest.approx(expected, rel=1e-12)
+    # physical: ADU = g·e-, so the e-² variance (599.7780…) is multiplied by g² = 4
+    assert variance_rauscher07(3.0, (10, 4, 2), TF, 20.0, 0.01, gain=2.0) == pytest.approx(
+        expected * 2.0**4, rel=1e-12)
 
 
 def test_rauscher07_two_groups_is_cds():
@@ -115,14 +119,38 @@ def test_kubik16_photon_dominated():
 
 
 def test_gain_conventions():
-    # Rauscher07 (reference convention) returns the e-² variance divided by g²;
-    # Kubik16 works in ADU and scales as g² (it is the true ADU² variance).
-    # With the Lazuli gain of 1 the two conventions coincide.
+    # Physical: a signal of N e- reads g·N ADU, so every variance in ADU² is the e-²
+    # variance times g² (both models).  slicersim 1.0 divided Rauscher07 by g²
+    # (conventions="slicersim-1.0"); its Kubik16 formula already scaled as g².
+    # With the Lazuli gain of 1 the conventions coincide.
     flux, nmd = np.array([1e-2, 1.0, 300.0]), (12, 4, 1)
     r1 = variance_rauscher07(flux, nmd, TF, 11.0, 0.02, gain=1.0)
     k1 = variance_kubik16(flux, nmd, TF, 11.0, 0.02, gain=1.0)
-    np.testing.assert_allclose(variance_rauscher07(flux, nmd, TF, 11.0, 0.02, gain=2.5), r1 / 2.5**2, rtol=1e-13)
+    np.testing.assert_allclose(variance_rauscher07(flux, nmd, TF, 11.0, 0.02, gain=2.5), r1 * 2.5**2, rtol=1e-13)
     np.testing.assert_allclose(variance_kubik16(flux, nmd, TF, 11.0, 0.02, gain=2.5), k1 * 2.5**2, rtol=1e-12)
+    old = dict(conventions="slicersim-1.0")
+    np.testing.assert_array_equal(variance_rauscher07(flux, nmd, TF, 11.0, 0.02, gain=1.0, **old), r1)
+    np.testing.assert_allclose(variance_rauscher07(flux, nmd, TF, 11.0, 0.02, gain=2.5, **old), r1 / 2.5**2,
+                               rtol=1e-13)
+    np.testing.assert_allclose(variance_kubik16(flux, nmd, TF, 11.0, 0.02, gain=2.5, **old), k1 * 2.5**2,
+                               rtol=1e-12)
+
+
+@pytest.mark.parametrize("gain", [0.5, 2.0])
+def test_snr_does_not_depend_on_gain(gain):
+    """Physical convention: the band SNR of a target is independent of the gain (noise and
+    signal both scale with g); slicersim 1.0 made it ∝ g² (SNR 80.9 instead of 20.2 at g = 2)."""
+    from slicersim import LazuliSupernova
+    sn = LazuliSupernova(1.0)
+    band = (8000.0, 13600.0)
+    ref = sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4)
+    sn.simulation.update(gain=gain)
+    assert sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4) == pytest.approx(ref, rel=1e-12)
+    old = LazuliSupernova(1.0, conventions="slicersim-1.0")
+    ref_old = old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4)
+    old.simulation.update(gain=gain)
+    assert old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4) == pytest.approx(ref_old * gain**2,
+                                                                                         rel=1e-12)
 
 
 # --------------------------------------------------------------------------- #

@@ -368,6 +368,7 @@ def test_reference_airy_cube(case, refdir):
     if inp["configuration"] == "eol":
         cfg.append(str(refdir / "config" / "lazuli_eol.toml"))
     sim = LazuliTarget(arr["input_lbda"], arr["input_flux"], mag=inp["mag_passed_to_reference"],
+                       conventions="slicersim-1.0",
                        band=inp.get("band", "bessellb"), config=cfg, field=inp["field"]).simulation
     tel, spec = sim.telescope, sim.spectrograph
     idx = np.array(meta["cube"]["slice_indices"])
@@ -375,7 +376,7 @@ def test_reference_airy_cube(case, refdir):
     psf = np.zeros((sim.lbda.size,) + spec.shape)
     psf[near] = psf_cube(sim.lbda[near], spec.shape, (0.0, 0.0), "airy", grid="reference", oversampling=3,
                          spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
-                         instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext)
+                         instrumental_sigma=sim.instrumental_sigma, diameter=tel.diameter_ext)
     nmd, nramps = tuple(meta["cube"]["readout"]["nmd"]), meta["cube"]["readout"]["nramps"]
     tint = readout_times(nmd, sim.detector.tframe)["integration_time"]
     point = (sim.pointsource_flambda * sim.flambda_to_photon)[:, None, None] * psf

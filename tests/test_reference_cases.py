@@ -49,6 +49,7 @@ def solved(request, refdir):
     meta, arrays = _load(refdir, request.param)
     inp = meta["inputs"]
     target = LazuliTarget(arrays["input_lbda"], arrays["input_flux"], mag=inp["mag_passed_to_reference"],
+                          conventions="slicersim-1.0",
                           band=inp.get("band", "bessellb"), config=_config(refdir, inp["configuration"]),
                           field=inp["field"])
     result = target.setup_to_snr(inp["snr_target_per_resolution_element"], lbda_range=inp["lbda_range_AA"],

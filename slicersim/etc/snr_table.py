@@ -27,7 +27,7 @@ def readout_variance_coefficients(sim, n, m, d):
     Qsat [e-/s/cell] of a simulation's detector (:func:`slicersim.physics.readout.cell_variance_coefficients`)."""
     det = sim.detector
     return cell_variance_coefficients((n, m, d), det.tframe, det.ron, sim.effective_dark(), det.gain,
-                                      det.saturation, sim.spectrograph.pixels_per_cell)
+                                      det.saturation, sim.spectrograph.pixels_per_cell, sim.conventions)
 
 
 def band_snr_table_for_models(sim, models, band, candidates, backend="auto", psf2=None):
@@ -74,7 +74,7 @@ def _generic_band_variance(sim, Q, psf2, band, n, m, d):
         tint = readout_times(nmd, det.tframe)["integration_time"]
         for t, (i0, i1) in enumerate(band):
             q = Q[t, i0:i1] / ppc
-            var = ppc * model(q, nmd, det.tframe, det.ron, dark, det.gain)
+            var = ppc * model(q, nmd, det.tframe, det.ron, dark, det.gain, sim.conventions)
             var = np.where((q + dark) * tint * det.gain > det.saturation, np.inf, var)
             with np.errstate(divide="ignore", invalid="ignore"):
                 v = 1.0 / np.sum(psf2[i0:i1] / var, axis=1)

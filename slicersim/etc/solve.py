@@ -12,7 +12,9 @@ import math
 
 import numpy as np
 
+from slicersim.backends.dispatch import DEFAULT_MAX_BYTES
 from slicersim.errors import ETCError, SpectrumError
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS
 from slicersim.etc.search import candidate_readouts, check_snr_target, exact_choice, reference_walk
 from slicersim.etc.snr_table import band_snr_table_for_models, template_psf
 
@@ -52,7 +54,7 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
 
 def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field="narrow",
                search="exact", redshifts=None, per_resolution=True, backend="auto",
-               max_bytes=256 * 2**20, progress=False):
+               max_bytes=DEFAULT_MAX_BYTES, progress=False, conventions=DEFAULT_CONVENTIONS):
     """Solve the ETC for many point sources at once.
 
     Parameters
@@ -63,6 +65,7 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     frame : "obs" or "rest" (needs ``redshifts``)
     config, field : instrument (see :func:`slicersim.targets.build_simulation`)
     search : "exact" or "reference"
+    conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
 
     Returns
     -------
@@ -87,7 +90,7 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     if search not in ("exact", "reference"):
         raise ETCError(f"unknown search {search!r}: 'exact' or 'reference'")
 
-    sim = build_simulation(config, field, pointsource=None)
+    sim = build_simulation(config, field, pointsource=None, conventions=conventions)
     spec, det = sim.spectrograph, sim.detector
     grid = sim.lbda
     if lbda[0] >= grid[-1] or lbda[-1] <= grid[0]:
@@ -173,5 +176,5 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     table["snr_per_bin"] = reached
     table["data_volume"] = rows["nramps"] * rows["n"] * det.shape[0] * det.shape[1] * 16 / 8e9
     table["data_volume"].unit = "GB"
-    table.meta.update(config=str(config), field=field, search=search, frame=frame)
+    table.meta.update(config=str(config), field=field, search=search, frame=frame, conventions=conventions)
     return table

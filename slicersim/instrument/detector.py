@@ -126,8 +126,10 @@ class Detector:
         n = (self.nmd if nmd is None else nmd)[0]
         return nramps * n * self.shape[0] * self.shape[1] * bits / 8e9
 
-    def pixel_variance(self, flux, thermal_dark=0.0, nmd=None, ron=None):
-        """Per-pixel variance [ADU²] over one ramp for a rate ``flux`` [e-/s]."""
+    def pixel_variance(self, flux, thermal_dark=0.0, nmd=None, ron=None, dark=None, conventions="physical"):
+        """Per-pixel variance [ADU²] over one ramp for a rate ``flux`` [e-/s]; ``dark`` [e-/s]
+        overrides the effective dark (dark + glow/t_f + ``thermal_dark``)."""
         model = VARIANCE_MODELS[self.variance_model.lower()]
+        dark = self.effective_dark(thermal_dark) if dark is None else dark
         return model(flux, self.nmd if nmd is None else nmd, self.tframe,
-                     self.ron if ron is None else ron, self.effective_dark(thermal_dark), self.gain)
+                     self.ron if ron is None else ron, dark, self.gain, conventions)

@@ -263,12 +263,6 @@ class Spectrograph:
         return self.dispersion_resolution / 2.0
 
     @property
-    def instrumental_sigma(self):
-        """Spectrograph blur along the slice [cells]: √(dr² − 2²), 0 when dr ≤ 2."""
-        dr = self.dispersion_resolution
-        return float(np.sqrt(dr**2 - 4.0)) if dr > 2 else 0.0
-
-    @property
     def cell_solid_angle(self):
         """Solid angle of one cell [sr], sin²(s) with s in radians."""
         return float(np.sin(self.spatial_scale * ARCSEC) ** 2)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.errors import ReadoutError
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, variance_gain_factor
 
 __all__ = ["check_readout", "readout_times", "rauscher07_coefficients", "variance_rauscher07",
            "variance_kubik16", "VARIANCE_MODELS", "cell_variance_coefficients"]
@@ -65,15 +66,15 @@ def rauscher07_coefficients(nmd, tframe):
     return a, b
 
 
-def variance_rauscher07(flux, nmd, tframe, ron, dark, gain=1.0):
+def variance_rauscher07(flux, nmd, tframe, ron, dark, gain=1.0, conventions=DEFAULT_CONVENTIONS):
     """Variance [ADU²] of the integrated signal over t_int for a pixel receiving ``flux`` [e-/s]
-    plus ``dark`` [e-/s] (Rauscher et al. 2007 as corrected in 2010).  Divided by gain²
-    (slicersim 1.0 convention)."""
+    plus ``dark`` [e-/s] (Rauscher et al. 2007 as corrected in 2010): a σ_r² + b S [e-²]
+    times g² (``conventions="slicersim-1.0"``: divided by g²)."""
     a, b = rauscher07_coefficients(nmd, tframe)
-    return (a * ron**2 + b * (np.asarray(flux, dtype=float) + dark)) / gain**2
+    return (a * ron**2 + b * (np.asarray(flux, dtype=float) + dark)) * variance_gain_factor(gain, conventions)
 
 
-def variance_kubik16(flux, nmd, tframe, ron, dark, gain=1.0):
+def variance_kubik16(flux, nmd, tframe, ron, dark, gain=1.0, conventions=DEFAULT_CONVENTIONS):
     """Variance [ADU²] of the Kubik et al. (2016) maximum-likelihood signal estimator.
 
     With S_A = (flux + dark) g t_int [ADU], ĝ = S_A/(n−1), α = (1−m²)/(3m(m+d)),
@@ -82,7 +83,12 @@ def variance_kubik16(flux, nmd, tframe, ron, dark, gain=1.0):
     It equals Rauscher07 for n ≤ 3 in the read-noise limit and within ~4 % for
     bright pixels with few groups; for many groups the read-noise term stays at
     2σ²/m (two-point limit) where Rauscher's least-squares term falls as 12σ²/(m n).
+
+    Physical convention: the estimator's variance in e-² (the formula with g = 1) times g²;
+    ``conventions="slicersim-1.0"`` evaluates the formula with the gain as written.
     """
+    if check_conventions(conventions) == "physical" and gain != 1.0:
+        return variance_kubik16(flux, nmd, tframe, ron, dark, 1.0, conventions) * gain**2
     n, m, d = nmd
     tint = (n - 1) * (m + d) * tframe
     signal = (np.asarray(flux, dtype=float) + dark) * gain * tint
@@ -99,18 +105,21 @@ VARIANCE_MODELS = {"rauscher07": variance_rauscher07, "rauscher10": variance_rau
                    "kubik16": variance_kubik16}
 
 
-def cell_variance_coefficients(nmd, tframe, ron, dark, gain, saturation, pixels_per_cell):
+def cell_variance_coefficients(nmd, tframe, ron, dark, gain, saturation, pixels_per_cell,
+                               conventions=DEFAULT_CONVENTIONS):
     """Rauscher07 variance of one cell as V = A + B·Q [ADU²] for a cell electron rate Q [e-/s],
     and the saturation limit Qsat [e-/s/cell] (cells with Q > Qsat saturate).
 
     ``nmd`` may hold arrays (one entry per candidate readout).  With a, b from
     :func:`rauscher07_coefficients` and p pixels per cell:
-    A = p (a σ² + b D_eff) / g²,  B = b / g²,  Qsat = p (sat / (t_int g) − D_eff).
+    A = p (a σ² + b D_eff) G,  B = b G,  Qsat = p (sat / (t_int g) − D_eff), with
+    G = :func:`~slicersim.physics.conventions.variance_gain_factor` (g², or 1/g² for slicersim 1.0).
     """
     n, m, d = nmd
     a, b = rauscher07_coefficients((n, m, d), tframe)
-    var_a = pixels_per_cell * (a * ron**2 + b * dark) / gain**2
-    var_b = b / gain**2
+    factor = variance_gain_factor(gain, conventions)
+    var_a = pixels_per_cell * (a * ron**2 + b * dark) * factor
+    var_b = b * factor
     tint = (n - 1) * (m + d) * tframe
     qsat = pixels_per_cell * (saturation / (tint * gain) - dark)
     return var_a, var_b, qsat

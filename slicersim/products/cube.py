@@ -114,7 +114,7 @@ def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", o
         return gaussian_psf_fractions(sig_y[lo:hi], sig_x[lo:hi], shape, position)
     tel, spec = sim.telescope, sim.spectrograph
     common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
-                  instrumental_sigma=spec.instrumental_sigma, diameter=tel.diameter_ext)
+                  instrumental_sigma=sim.instrumental_sigma, diameter=tel.diameter_ext)
     # one oversampling for the whole grid (set by its bluest, most undersampled bin), so every
     # wavelength block is computed alike; error < 1e-4 of the peak (benchmarks/psf_speed_accuracy.py)
     oversampling = 3 if (options or {}).get("grid") == "reference" else auto_oversampling(sim.lbda, **common)
@@ -163,7 +163,8 @@ def readout_constants(sim, nmd, nramps):
     test of ``Simulation.cell_variance``."""
     det = sim.detector
     var_a, var_b, _ = cell_variance_coefficients(nmd, det.tframe, det.ron, sim.effective_dark(), det.gain,
-                                                 det.saturation, sim.spectrograph.pixels_per_cell)
+                                                 det.saturation, sim.spectrograph.pixels_per_cell,
+                                                 sim.conventions)
     tint = sim.get_times(nmd, nramps)["inttime"]
     return ReadoutConstants(tint=float(tint), gain=det.gain, nramps=int(nramps), var_a=float(var_a),
                             var_b=float(var_b), pixels_per_cell=float(sim.spectrograph.pixels_per_cell),

@@ -1,0 +1,70 @@
+"""Conventions: the physical default, or every slicersim 1.0 behaviour that differs from it.
+
+``conventions="physical"`` (default) and ``conventions="slicersim-1.0"`` are
+accepted by every target, :func:`~slicersim.assembly.build_simulation` and
+:class:`~slicersim.simulation.Simulation`.  What differs:
+
+=====================  ===================================  =====================================
+quantity               physical                             slicersim-1.0
+=====================  ===================================  =====================================
+variance in ADU²       V_e [e-²] × g²  (ADU = g · e-)       V_e [e-²] / g²  (SNR ∝ g² for g ≠ 1)
+instrumental blur σ_x  √(dr² − 2²)/2 cells                 √(dr² − 2²) cells (a full width used
+                       (:func:`physical_blur_sigma`)        as σ: 2× too large)
+=====================  ===================================  =====================================
+"""
+from __future__ import annotations
+
+import math
+
+from slicersim.errors import ParameterError
+
+__all__ = ["CONVENTIONS", "DEFAULT_CONVENTIONS", "check_conventions", "variance_gain_factor",
+           "instrumental_blur_sigma", "physical_blur_sigma"]
+
+DEFAULT_CONVENTIONS = "physical"
+CONVENTIONS = ("physical", "slicersim-1.0")
+
+
+def check_conventions(conventions):
+    """The validated convention name (raises ParameterError listing the known ones)."""
+    if conventions not in CONVENTIONS:
+        raise ParameterError(f"unknown conventions {conventions!r}: one of {', '.join(map(repr, CONVENTIONS))}")
+    return conventions
+
+
+def variance_gain_factor(gain, conventions=DEFAULT_CONVENTIONS):
+    """ADU² per e-² of a variance: g² (physical: a signal of N e- reads g·N ADU, so its
+    variance is g² Var[N]); 1/g² under slicersim 1.0 (exact for g = 1 only)."""
+    return gain**2 if check_conventions(conventions) == "physical" else 1.0 / gain**2
+
+
+def instrumental_blur_sigma(dispersion_resolution, anamorphosis=(1, 1), conventions=DEFAULT_CONVENTIONS):
+    """Gaussian σ [cells] of the spectrograph aberrations along the slice (x axis of the cube).
+
+    See :func:`slicersim.physics.conventions.physical_blur_sigma` for the derivation of
+    the physical default; slicersim 1.0 used √(dr² − 2²) with dr in pixels, read as cells.
+    """
+    dr = float(dispersion_resolution)
+    if check_conventions(conventions) == "slicersim-1.0":
+        return math.sqrt(dr**2 - 4.0) if dr > 2 else 0.0
+    return physical_blur_sigma(dr, anamorphosis)
+
+
+def physical_blur_sigma(dispersion_resolution, anamorphosis=(1, 1)):
+    """Aberration blur σ_x [cells] along the slice, from the resolution element.
+
+    ``dispersion_resolution`` dr [px] is the full width of a monochromatic slice image
+    on the detector along the dispersion.  Of it, 2 px is the geometric image of the
+    slice width (the 1×2 anamorphosis images one cell on 2 pixels); the spectrograph
+    aberrations add, in quadrature, a full width w = √(dr² − 2²) [px] (1.136 px for
+    dr = 2.3: the paper's "typical 1 pixel extra scatter").  The code's own width
+    convention is width = 2σ (the LSF has σ = dr/2 bins), so σ_ab = w / 2 [px].
+    Along the slice one detector pixel spans one cell (the anamorphosis stretches the
+    other axis), so σ_x = √(dr² − 4) / 2 cells (0.568 for dr = 2.3, 0.75 for 2.5);
+    across slices the aberrations act after the slicer and add nothing (σ_y = 0).
+    slicersim 1.0 used w as σ (2× too large); 1.4.2 also divided by the anamorphosis
+    (2× too small).  ``anamorphosis`` is accepted for MLA/other spectrographs, whose
+    cells map to one pixel along the slice too; it does not enter the formula.
+    """
+    dr = float(dispersion_resolution)
+    return 0.5 * math.sqrt(dr**2 - 4.0) if dr > 2 else 0.0
