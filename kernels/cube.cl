@@ -30,13 +30,8 @@
  * type of signal and variance.
  */
 
-#if defined(cl_khr_fp64)
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-#endif
+#include "vector_types.cl"
 
-#ifndef VW
-#define VW 1
-#endif
 #ifndef OUT
 #define OUT double
 #endif
@@ -53,27 +48,10 @@
 #define NTAPS 1
 #endif
 
-#define CAT_(a, b) a##b
-#define CAT(a, b) CAT_(a, b)
-
 #if VW == 1
-typedef double realv;
-typedef long maskv;
-#define VLOAD(o, p) ((p)[o])
-#define VSTORE(x, o, p) ((p)[o] = (x))
 #define TO_OUT(x) ((OUT)(x))
-#define SELECT(a, b, m) ((m) ? (b) : (a))
-#define GREATER(a, b) ((long)((a) > (b)))
-#elif VW == 2 || VW == 4 || VW == 8 || VW == 16
-typedef CAT(double, VW) realv;
-typedef CAT(long, VW) maskv;
-#define VLOAD(o, p) CAT(vload, VW)((o), (p))
-#define VSTORE(x, o, p) CAT(vstore, VW)((x), (o), (p))
-#define TO_OUT(x) CAT(convert_, CAT(OUT, VW))(x)
-#define SELECT(a, b, m) select((a), (b), (m))
-#define GREATER(a, b) isgreater((a), (b))
 #else
-#error "VW must be 1, 2, 4, 8 or 16"
+#define TO_OUT(x) CONVERT_V(OUT, x)
 #endif
 
 /* Index of bin j on a grid of n bins extended by mirror images (period 2n). */

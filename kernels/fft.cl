@@ -24,9 +24,7 @@
  * the contiguous axis.
  */
 
-#if defined(cl_khr_fp64)
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-#endif
+#include "vector_types.cl"
 
 #define CMUL(a, b) ((double2)((a).x * (b).x - (a).y * (b).y, (a).x * (b).y + (a).y * (b).x))
 /* multiply by s*i: (x + iy)(s i) = -s y + i s x */

@@ -31,9 +31,10 @@
 #ifndef SLICERSIM_PHILOX_CL
 #define SLICERSIM_PHILOX_CL
 
-#if defined(cl_khr_fp64)
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#if defined(RNG_VW) && !defined(VW)
+#define VW RNG_VW                 /* the shared vector types follow the generator's width */
 #endif
+#include "vector_types.cl"
 #pragma OPENCL FP_CONTRACT OFF
 
 #ifndef RNG_INLINE            /* a kernel may force inlining: #define RNG_INLINE before #include */

@@ -28,31 +28,17 @@
  * density, must match the host table).
  */
 
-#if defined(cl_khr_fp64)
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-#endif
-
 #ifndef VW
 #define VW 8
 #endif
 #ifndef WTYPE
 #define WTYPE float
 #endif
+#include "vector_types.cl"
 
-#define CAT_(a, b) a##b
-#define CAT(a, b) CAT_(a, b)
-
-#if VW == 1
-typedef double realv;
-#define VLOADD(p) (*(p))
-#define VSTORED(x, p) (*(p) = (x))
-#define VLOADW(p) ((double)(*(p)))
-#else
-typedef CAT(double, VW) realv;
-#define VLOADD(p) CAT(vload, VW)(0, (p))
-#define VSTORED(x, p) CAT(vstore, VW)((x), 0, (p))
-#define VLOADW(p) CAT(convert_double, VW)(CAT(vload, VW)(0, (p)))
-#endif
+#define VLOADD(p) VLOAD(0, (p))
+#define VSTORED(x, p) VSTORE((x), 0, (p))
+#define VLOADW(p) CONVERT_REALV(VLOAD(0, (p)))
 
 /*
  * G and Phi through a cubic Hermite table (host-built from exact values):

@@ -32,55 +32,10 @@
  * VW = 1).  NA (-DNA=2 m_y + 1) sizes airy_rows' register accumulators.
  */
 
-#if defined(cl_khr_fp64)
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-#endif
-
-#ifndef VW
-#define VW 1
-#endif
+#include "vector_types.cl"
 
 #ifndef JR
 #define JR 1
-#endif
-
-#if VW == 1
-typedef double realv;
-typedef long longv;
-#define AS_LONGV as_long
-#define VLOAD(o, p) ((p)[o])
-#define VSTORE(x, o, p) ((p)[o] = (x))
-#define ANY(c) (c)
-#elif VW == 2
-typedef double2 realv;
-typedef long2 longv;
-#define AS_LONGV as_long2
-#define VLOAD(o, p) vload2((o), (p))
-#define VSTORE(x, o, p) vstore2((x), (o), (p))
-#define ANY(c) any(c)
-#elif VW == 4
-typedef double4 realv;
-typedef long4 longv;
-#define AS_LONGV as_long4
-#define VLOAD(o, p) vload4((o), (p))
-#define VSTORE(x, o, p) vstore4((x), (o), (p))
-#define ANY(c) any(c)
-#elif VW == 8
-typedef double8 realv;
-typedef long8 longv;
-#define AS_LONGV as_long8
-#define VLOAD(o, p) vload8((o), (p))
-#define VSTORE(x, o, p) vstore8((x), (o), (p))
-#define ANY(c) any(c)
-#elif VW == 16
-typedef double16 realv;
-typedef long16 longv;
-#define AS_LONGV as_long16
-#define VLOAD(o, p) vload16((o), (p))
-#define VSTORE(x, o, p) vstore16((x), (o), (p))
-#define ANY(c) any(c)
-#else
-#error "VW must be 1, 2, 4, 8 or 16"
 #endif
 
 #define JINC_SWITCH 12.0

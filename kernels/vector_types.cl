@@ -3,9 +3,12 @@
  * doubles per work item (build option -DVW=1|2|4|8|16, default 1).  PoCL does not
  * vectorise scalar kernels with inner loops; GPUs use VW = 1.
  *
- *   realv / longv / intv   double, long, int vectors of width VW
+ *   realv / longv / intv   double, long, int vectors of width VW (maskv = longv)
  *   VLOAD(o, p)            vector o of p (vloadVW), VSTORE(x, o, p) the store
- *   CONVERT_INTV(x)        convert_intVW
+ *   CONVERT_INTV(x)        convert_intVW;  CONVERT_REALV(x) convert_doubleVW
+ *   CONVERT_V(type, x)     convert_<type>VW;  AS_LONGV(x) as_longVW
+ *   ANY(c), SELECT(a, b, m), GREATER(a, b)   scalar/vector-agnostic any, select, isgreater
+ *   CAT(a, b)              token pasting after expansion
  *
  * Include with #include "vector_types.cl" (the kernel directory is on the
  * include path of every program, see slicersim/opencl.py).
@@ -20,6 +23,9 @@
 #ifndef VW
 #define VW 1
 #endif
+
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
 
 #if VW == 1
 typedef double realv;
@@ -58,6 +64,24 @@ typedef int16 intv;
 #define CONVERT_INTV convert_int16
 #else
 #error "VW must be 1, 2, 4, 8 or 16"
+#endif
+
+typedef longv maskv;
+
+#if VW == 1
+#define AS_LONGV as_long
+#define ANY(c) (c)
+#define SELECT(a, b, m) ((m) ? (b) : (a))
+#define GREATER(a, b) ((long)((a) > (b)))
+#define CONVERT_REALV(x) ((double)(x))
+#define CONVERT_V(type, x) ((type)(x))
+#else
+#define AS_LONGV CAT(as_long, VW)
+#define ANY(c) any(c)
+#define SELECT(a, b, m) select((a), (b), (m))
+#define GREATER(a, b) isgreater((a), (b))
+#define CONVERT_REALV(x) CAT(convert_double, VW)(x)
+#define CONVERT_V(type, x) CAT(convert_, CAT(type, VW))(x)
 #endif
 
 #endif
