@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from slicersim.backends.psf import auto_oversampling, psf_cells
 from slicersim.constants import HC_ERG_AA
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, instrumental_blur_sigma
-from slicersim.physics.psf import aperture_cells, gaussian_psf_cells, gaussian_psf_fractions, gaussian_psf_sigmas
+from slicersim.physics.psf import aperture_cells, gaussian_psf_fractions, gaussian_psf_sigmas
 from slicersim.physics.readout import check_readout, readout_times
 from slicersim.physics.thermal import thermal_dark_rate
 from slicersim.products.cube import build_cube, host_photons_block
+from slicersim.products.psf_profiles import get_psf_profile
 
 __all__ = ["Simulation", "VARIANCE_SOURCES", "ExtractionModel"]
 
@@ -288,20 +288,9 @@ class Simulation:
         return self.get_extraction_model("gaussian")
 
     def aperture_psf(self, psf_profile="gaussian", backend="auto"):
-        """PSF fractions of the aperture cells (nλ, ncell): Gaussian (erf) or Airy (exact
-        sub-cell quadrature, jitter and slice blur; :func:`slicersim.backends.psf.psf_cells`)."""
-        iy, ix = self.aperture
-        if psf_profile in ("gaussian", "default"):
-            sig_y, sig_x = self.psf_sigmas
-            return gaussian_psf_cells(sig_y, sig_x, self.spectrograph.shape, self.position, (iy, ix))
-        if psf_profile != "airy":
-            raise ValueError(f"unknown psf_profile {psf_profile!r}: 'gaussian' or 'airy'")
-        tel, spec = self.telescope, self.spectrograph
-        common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
-                      instrumental_sigma=self.instrumental_sigma, diameter=tel.diameter_ext)
-        return psf_cells(self.lbda, spec.shape, self.position, cells=(iy, ix), profile="airy",
-                         sigma_ref_arcsec=tel.psf_sigma_ref, obscuration=tel.obscuration,
-                         oversampling=auto_oversampling(self.lbda, **common), backend=backend, **common)
+        """PSF fractions of the aperture cells (nλ, ncell) of a registered profile
+        (:mod:`slicersim.products.psf_profiles`: "gaussian", "airy")."""
+        return get_psf_profile(psf_profile).cells(self, self.aperture, backend)
 
     def get_extraction_model(self, psf_profile="gaussian"):
         """:class:`ExtractionModel` with the cube's PSF model as extraction weights (cached)."""
@@ -316,8 +305,7 @@ class Simulation:
             host_ph = None
             if self.scene.host is not None:                                     # host light: photon noise
                 iy, ix = self.aperture
-                profile = "gaussian" if psf_profile in ("gaussian", "default") else psf_profile
-                host_cube = host_photons_block(self, profile, 0, self.lbda.size)  # ph/s/cell, before LSF
+                host_cube = host_photons_block(self, psf_profile, 0, self.lbda.size)  # ph/s/cell, before LSF
                 host_ph = lsf(host_cube[:, iy, ix], axis=0)
             return ExtractionModel(psf**2, lsf(flux_ph[:, None] * psf, axis=0), uniform, self.qe,
                                    signal_rate, host_ph)

@@ -41,18 +41,16 @@ from functools import cached_property
 import numpy as np
 
 from slicersim.backends.convolution import choose_convolution_method, convolve_cube
-from slicersim.backends.cube import GaussianPSF, ReadoutConstants, detector_block
+from slicersim.backends.cube import ReadoutConstants, detector_block
 from slicersim.backends.dispatch import resolve_backend
 from slicersim.backends.noise import noisy_cube, seed_from
-from slicersim.backends.psf import auto_oversampling, psf_cube, psf_cube_device
 from slicersim.physics.lsf import lsf_weights
-from slicersim.physics.psf import gaussian_psf_fractions
 from slicersim.physics.readout import cell_variance_coefficients
+from slicersim.products.psf_profiles import PSF_PROFILES, get_psf_profile
 
 __all__ = ["CubeResult", "build_cube", "readout_constants", "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM",
            "PATH_ABSENT", "FUSED_KERNEL"]
 
-PSF_PROFILES = ("gaussian", "airy")
 PATH_POINT = "psf x spectrum (no 2-D convolution)"
 PATH_UNIFORM = "uniform: no spatial work"
 PATH_ABSENT = "absent: not in the scene"
@@ -91,50 +89,24 @@ class CubeResult:
                     else (self.signal, self.variance, self.noisy))
 
 
-def _profile(psf_profile):
-    prof = "gaussian" if psf_profile in ("gaussian", "default") else psf_profile
-    if prof not in PSF_PROFILES:
-        raise ValueError(f"psf_profile must be one of {PSF_PROFILES} (or 'default'), got {psf_profile!r}")
-    return prof
-
-
 def lsf_halo(sim):
     """Half width h [bins] of the LSF: output bin i depends on input bins i − h … i + h."""
     return int(lsf_weights(sim.spectrograph.lsf_sigma)[0][-1])
 
 
 def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", options=None, on_device=False):
-    """PSF fractions P[λ, y, x] for bins lo … hi − 1 (any profile; shape/position default to the
-    field's; ``options``: extra keywords of ``compute_psf.psf_cube``, e.g. {"grid": "reference"}).
-    ``on_device``: leave a block computed by OpenCL on the device (``compute_psf.DevicePSF``)."""
+    """PSF fractions P[λ, y, x] for bins lo … hi − 1 of a registered profile (name or
+    :class:`~slicersim.products.psf_profiles.PSFProfile`; shape/position default to the field's;
+    ``options``: extra keywords of ``backends.psf.psf_cube``, e.g. {"grid": "reference"}).
+    ``on_device``: leave a block computed by OpenCL on the device (``backends.psf.DevicePSF``)."""
     shape = sim.spectrograph.shape if shape is None else shape
     position = sim.position if position is None else position
-    if profile == "gaussian":
-        sig_y, sig_x = sim.psf_sigmas
-        return gaussian_psf_fractions(sig_y[lo:hi], sig_x[lo:hi], shape, position)
-    tel, spec = sim.telescope, sim.spectrograph
-    common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
-                  instrumental_sigma=sim.instrumental_sigma, diameter=tel.diameter_ext)
-    # one oversampling for the whole grid (set by its bluest, most undersampled bin), so every
-    # wavelength block is computed alike; error < 1e-4 of the peak (benchmarks/psf_speed_accuracy.py)
-    oversampling = 3 if (options or {}).get("grid") == "reference" else auto_oversampling(sim.lbda, **common)
-    kwargs = dict(sigma_ref_arcsec=tel.psf_sigma_ref, obscuration=tel.obscuration, oversampling=oversampling,
-                  backend=backend, **common)
-    kwargs.update(options or {})
-    return (psf_cube_device if on_device else psf_cube)(sim.lbda[lo:hi], shape, position, profile=profile,
-                                                       **kwargs)
+    return get_psf_profile(profile).block(sim, lo, hi, shape, position, backend, options, on_device)
 
 
 def host_kernel_shape(sim, profile):
-    """Odd (ky, kx) of the PSF kernels convolving the host: ±⌈8σ_max⌉ + 1 cells for the
-    Gaussian (dropped tail < 1e-15), the whole field for the Airy wings; (0, 0) is the central cell."""
-    ny, nx = sim.spectrograph.shape
-    hy, hx = ny // 2, nx // 2
-    if profile == "gaussian":
-        sig_y, sig_x = sim.psf_sigmas
-        hy = min(hy, int(np.ceil(8.0 * np.max(sig_y))) + 1)
-        hx = min(hx, int(np.ceil(8.0 * np.max(sig_x))) + 1)
-    return 2 * hy + 1, 2 * hx + 1
+    """Odd (ky, kx) of the PSF kernels convolving the host ((0, 0) is the central cell)."""
+    return get_psf_profile(profile).kernel_shape(sim)
 
 
 def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_options=None):
@@ -210,7 +182,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     dtype : float64 (default) or float32 storage of the signal, variance and noisy cubes
         (computed in float64 either way; the noise is drawn from the stored values)
     """
-    profile = _profile(psf_profile)
+    profile = get_psf_profile(psf_profile)
     dtype = np.dtype(dtype)
     if dtype not in (np.float64, np.float32):
         raise ValueError(f"dtype must be float64 or float32, got {dtype}")
@@ -240,8 +212,8 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
             host_method = choose_convolution_method((ny, nx), host_kernel_shape(sim, profile),
                                                                    backend)
         paths["host"] = f"2-D convolution ({host_method})"
-    if has_point and profile != "gaussian":
-        paths["pointsource"] = f"{PATH_POINT}, {profile} PSF"
+    if has_point and profile.name != "gaussian":
+        paths["pointsource"] = f"{PATH_POINT}, {profile.name} PSF"
 
     gain, qe = sim.detector.gain, sim.qe
     uniform_ph = spec.apply_lsf(sim.background_photons + sim.thermal_photons)      # ph/s/cell, (nλ,)
@@ -258,7 +230,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         if seed is not None:
             noisy[...] = noisy_cube(signal, variance, seed, backend=backend,
                                     max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx))
-        return CubeResult(signal, variance, noisy, paths, 1, lbda.copy(), profile, seed)
+        return CubeResult(signal, variance, noisy, paths, 1, lbda.copy(), profile.name, seed)
 
     flux_ph = sim.pointsource_flambda * sim.flambda_to_photon if has_point else None    # ph/s
     halo = lsf_halo(sim)
@@ -267,7 +239,6 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     noise_bytes_per_bin = _NOISE_BYTES_PER_VOXEL * ny * nx          # at least one λ plane per noise call
     fused = _use_fused_kernel(sim, backend)
     if fused:
-        sig_y, sig_x = sim.psf_sigmas
         readout = readout_constants(sim, nmd, nramps)
         taps = lsf_weights(spec.lsf_sigma)[1]
     paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
@@ -278,11 +249,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
             lo, hi = max(0, i0 - halo), min(nl, i1 + halo)
             out = (signal[i0:i1], variance[i0:i1])
             if fused:
-                psf = None
-                if has_point and profile == "gaussian":
-                    psf = GaussianPSF(sig_y[lo:hi], sig_x[lo:hi], sim.position, (ny, nx))
-                elif has_point:
-                    psf = psf_block(sim, profile, lo, hi, backend=backend, options=psf_options, on_device=True)
+                psf = profile.fused(sim, lo, hi, backend, psf_options) if has_point else None
                 host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
                         if has_host else None)
                 detector_block(taps, flux_ph[lo:hi] if has_point else None, uniform_ph[i0:i1], qe[i0:i1],
@@ -301,7 +268,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     finally:
         if bar is not None:
             bar.close()
-    return CubeResult(signal, variance, noisy, paths, len(starts), lbda.copy(), profile, seed)
+    return CubeResult(signal, variance, noisy, paths, len(starts), lbda.copy(), profile.name, seed)
 
 
 def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, backend, psf_options, nmd, tint,
