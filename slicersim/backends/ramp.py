@@ -1,23 +1,12 @@
 """Ramp samplers: the OpenCL kernels of ``kernels/ramp.cl`` and their bit-exact NumPy twin.
 
-Readout physics in small documented steps (cf. romanisim ``l1``):
-
-1. :func:`frame_mean_charge` — mean charge collected per frame μ = (rate + dark
-   + thermal dark)·t_f + ROIC glow  [e-/frame];
-2. charge accumulation, a Poisson process sampled exactly by one of two paths
-   chosen from μ only: *dense* — a Poisson increment in every frame; *sparse*
-   (μ·(m+d) < ``sparse_max_group``, default ≈ μ < 0.75 e-/frame) — per group window
-   (m reads + d dropped frames) a Poisson count and a uniform frame for each
-   event, so a dark pixel costs one uniform and one Gaussian per group;
-3. full-well clipping; group averaging of the m reads with read noise
-   σ_r/√m per group; kTC reset noise once per ramp;
-4. :func:`to_adu` — bias pedestal + gain, rounding and uint16 saturation;
-   GROUPDQ flags (JWST SATURATED = 2).
-
-Randomness is Philox4x32-10 keyed by (seed, ramp, pixel, frame or group): the
-output is identical for any chunking, work-group size, vector width or device
-count.  The OpenCL kernels are in ``kernels/ramp.cl``;
-:func:`simulate_block_numpy` is their bit-exact NumPy twin.
+:func:`simulate_block_numpy` and :func:`simulate_block_opencl` sample one ramp of
+a flat block of pixels from the mean charge per frame (dense path: a Poisson
+increment per frame; sparse path: per group window a Poisson count and a frame
+for each event), with Philox4x32-10 keyed by (seed, ramp, pixel, frame or
+group), so both return the same integers for any chunking, work-group size or
+vector width.  The readout physics is in :mod:`slicersim.physics.ramp`; the
+driver is :func:`slicersim.products.ramps.simulate`.
 """
 from __future__ import annotations
 
