@@ -286,6 +286,15 @@ class Simulation(Versioned):
         """Signal [ADU] and variance [ADU²] cubes summed over the ramps, plus a noisy
         realisation when ``seed`` (int or numpy Generator) is given.
 
+        Noise: ``noisy = signal + √variance · z`` with z the Philox/Box–Muller normal keyed
+        by (seed, flat voxel index, stream 0), :func:`slicersim.backends.noise.noisy_cube`.
+        For the same signal and variance the NumPy twin and the OpenCL kernel give
+        bit-identical noisy cubes (same Philox words, same correctly rounded √, no FMA
+        contraction).  Between ``backend="numpy"`` and ``"opencl"`` the *expectation and
+        variance* cubes themselves may differ by a few ulp (different summation order of the
+        PSF/LSF contractions), so noisy cubes agree to
+        |Δ| ≤ 1e-13 · (|signal| + √variance) per voxel, not bit for bit.
+
         ``psf_profile`` is ``"gaussian"`` (reference default) or ``"airy"``; see
         :func:`slicersim.cube.build_cube` for the chunked OpenCL builder, the
         computation path of each scene component and the options

@@ -124,6 +124,16 @@ class PointSource(Versioned):
         return cls(lbda, blackbody_flambda(lbda, temperature), position=position, mag=mag,
                    band=band, name=f"blackbody {temperature} K")
 
+    def set_spectrum(self, lbda, flux, flux_ratio=None, native_mag=None):
+        """Replace the spectrum in place (validated first; renormalised to ``mag`` when set,
+        unless ``flux_ratio`` is given)."""
+        lbda, flux = validate_spectrum(lbda, flux, self.name)
+        if flux_ratio is None:
+            flux_ratio, native_mag = (1.0, None) if self.mag is None else \
+                normalise_to_mag(lbda, flux, self.mag, self.band)
+        self.lbda_in, self.flux_in = lbda, flux
+        self.flux_ratio, self.native_mag = flux_ratio, native_mag
+
     @property
     def position(self):
         """(x, y) [cells] relative to the field centre."""
