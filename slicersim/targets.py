@@ -17,14 +17,15 @@ from slicersim.io.curves import read_curve
 from slicersim.physics.readout import check_readout
 from slicersim.sources.scene import PointSource, snia_spectrum
 
-__all__ = ["LAZULI_FIELDS", "build_simulation", "default_field", "SPECTRUM_NOISE_STREAM", "Target", "Supernova", "BlackBody", "LazuliTarget",
-           "LazuliSupernova", "LazuliBlackBody", "lazuli_etc", "lazuli_sn_etc"]
+__all__ = ["LAZULI_FIELDS", "build_simulation", "config_default_field", "SPECTRUM_NOISE_STREAM", "Target",
+           "Supernova", "BlackBody", "LazuliTarget", "LazuliSupernova", "LazuliBlackBody", "lazuli_etc",
+           "lazuli_sn_etc"]
 
 #: Philox stream of the noise drawn by :meth:`Target.get_spectrum` (cube noise uses stream 0)
 SPECTRUM_NOISE_STREAM = 0x53504543
 
 
-def default_field(config):
+def config_default_field(config):
     """Field a target uses when none is given: ``"narrow"`` when the configuration's throughput
     file has Lazuli field columns (``narrow``/``wide``), else None (single-channel instrument)."""
     try:
@@ -49,7 +50,7 @@ class Target:
     config : "cbe", "eol", a TOML path or a list of them
     field : "narrow", "wide" (Lazuli) or None.  A target has exactly one field: the
         default is "narrow" when the configuration has Lazuli field throughputs
-        (:func:`default_field`), None for single-channel configurations; None with a
+        (:func:`config_default_field`), None for single-channel configurations; None with a
         several-column throughput raises (columns are never multiplied).
     position : (x, y) [cells] relative to the field centre
     redshift : optional; used by ``frame="rest"`` (the spectrum is in the observer frame)
@@ -67,7 +68,7 @@ class Target:
         self._host, self._host_offset = None, None
         self.config = self.default_config if config is None else config
         if field == "default":
-            field = default_field(self.config) if self.default_field == "auto" else self.default_field
+            field = config_default_field(self.config) if self.default_field == "auto" else self.default_field
         self._field = check_field(field)
         self.simulation = self._new_simulation(self.config, self._field, keep_readout=False)
 
@@ -123,13 +124,14 @@ class Target:
             upd = dict(nmd=old.detector.nmd, nramps=old.nramps, **upd)
         if upd:
             sim.update(**upd)
-        if self._host is not None:
-            self._place_host(self._host, self.pointsource.position, sim.spectrograph.spatial_scale)
+        if self._host is not None:      # placed for the new cell size when applied (update)
             sim.scene.host = self._host
         return sim
 
     def _build(self, keep_readout=False):
         self.simulation = self._new_simulation(self.config, self._field, keep_readout)
+        if self._host is not None:
+            self._place_host(self._host, self.pointsource.position, self.simulation.spectrograph.spatial_scale)
 
     def _spectrum_at(self, redshift):
         """(λ, F) of the source at ``redshift``, or None when the spectrum does not depend on
@@ -166,7 +168,6 @@ class Target:
             host.profile.offset = centre
         elif hasattr(host, "centre"):
             host.centre = centre
-        host.touch() if hasattr(host, "touch") else None
 
     # ------------------------------------------------------------------ changes
     def update(self, **params):
@@ -211,10 +212,12 @@ class Target:
             finally:
                 self.pointsource = saved
             lbda = new_sim.lbda
-        elif sim_params:
-            lbda = self.simulation.spectrograph.updated(**{k: v for k, v in sim_params.items()
-                                                           if k in self.simulation.spectrograph.mutable_parameters}).lbda \
-                if any(k in self.simulation.spectrograph.mutable_parameters for k in sim_params) else lbda
+        else:
+            spec = self.simulation.spectrograph
+            spec_params = {k: v for k, v in sim_params.items()
+                           if k in spec.mutable_parameters and k not in self.simulation.detector.mutable_parameters}
+            if spec_params:
+                lbda = spec.updated(**spec_params).lbda
         if probe is not None and not probe.overlap(lbda[0], lbda[-1]):
             raise ParameterError(f"the spectrum at redshift {redshift} does not overlap the instrument range")
         if new_sim is None and sim_params:

@@ -283,3 +283,31 @@ def test_noisy_cube_numpy_vs_opencl():
     # across backends the expectation/variance differ by ulps: bounded difference
     scale = np.abs(a[0]) + np.sqrt(a[1])
     assert np.all(np.abs(a[2] - b[2]) <= 1e-13 * scale)
+
+
+def test_field_update_atomic_and_host_follows():
+    t = LazuliSupernova(1.0, position=(2.0, 1.0))
+    lbda = np.arange(3000.0, 20000.0, 10.0)
+    host = Host(SersicProfile(1.0, 0.3, 0.7, 20.0, offset=(0.1, 0.0)), lbda, np.full(lbda.size, 5e-17))
+    t.set_host(host)
+    sim, offset = t.simulation, host.profile.offset
+    with pytest.raises(ParameterError, match="ron"):
+        t.update(field="wide", ron=-1.0)
+    assert t.simulation is sim and t.field == "narrow" and host.profile.offset == offset
+    t.update(field="wide")
+    scale = t.simulation.spectrograph.spatial_scale
+    assert t.simulation.scene.host is host
+    assert host.profile.offset == pytest.approx((2.0 * scale + 0.1, 1.0 * scale))
+
+
+def test_partial_optics_update_keeps_other_keys(sn):
+    sim = sn.simulation
+    optics = {k: list(v) for k, v in sim.spectrograph.optics.items()}
+    th = sim.thermal_photons.copy()
+    sim.update(optics={"temperature": [t + 20 for t in optics["temperature"]]})
+    try:
+        assert sim.spectrograph.optics["emissivity"] == optics["emissivity"]
+        assert np.all(sim.thermal_photons >= th) and np.any(sim.thermal_photons > th)
+    finally:
+        sim.update(optics={"temperature": optics["temperature"]})
+    np.testing.assert_array_equal(sim.thermal_photons, th)
