@@ -38,7 +38,7 @@ Every difference > 2 % between ours (physical) and a release is split into
 Survey line: N SNe with z ~ U[0.05, 1.5] (``default_rng(seed)``), narrow below
 z = 0.8, wide above, SNR 20 per resolution element rest 4000-6800 Å, total
 exposure time of ``slicersim.etc.solve_many(search="exact")`` under both
-conventions (one call per field).
+conventions (one call per field); also with ``search="reference"`` for context.
 
 Outputs ``<out>/conventions_vs_reference.{json,png,md}``; the markdown table is
 printed to stdout at the end.
@@ -403,7 +403,31 @@ def run_ours(slicersim, config, snr):
     return rows
 
 
-def run_survey(slicersim, config, n, seed, snr, scale_to):
+def _survey_block(solve_many, lbda, fluxes, z, config, snr, conv, search, scale):
+    block = {"fields": {}, "search": search}
+    total = 0.0
+    for field, sel in (("narrow", z < Z_SWITCH), ("wide", z >= Z_SWITCH)):
+        t1 = time.perf_counter()
+        tab = solve_many(lbda, fluxes[sel], snr=snr, lbda_ranges=BAND, frame="rest", redshifts=z[sel],
+                         config=config, field=field, search=search, conventions=conv)
+        wall = time.perf_counter() - t1
+        texp = np.asarray(tab["exposure_time"], dtype=float)
+        snrs = np.asarray(tab["snr"], dtype=float) if "snr" in tab.colnames else None
+        block["fields"][field] = {
+            "n": int(sel.sum()), "seconds": wall, "exposure_time_s": float(texp.sum()),
+            "exposure_time_yr": float(texp.sum() / YEAR_S),
+            "n_below_target": None if snrs is None else int((snrs < snr * (1 - 1e-9)).sum()),
+            "n_nonfinite": int((~np.isfinite(texp)).sum())}
+        total += float(np.nansum(texp))
+        print(f"[survey] {search:9s} {conv:13s} {field:6s} n={int(sel.sum())} T={texp.sum() / YEAR_S:.4f} yr "
+              f"({wall:.1f} s)", flush=True)
+    block["exposure_time_s"] = total
+    block["exposure_time_yr"] = total / YEAR_S
+    block["exposure_time_yr_scaled"] = total / YEAR_S * scale
+    return block
+
+
+def run_survey(slicersim, config, n, seed, snr, scale_to, searches=("exact", "reference")):
     from slicersim.etc import solve_many
     from slicersim.sources.spectra import snia_spectrum
     lbda = np.arange(*LBDA_IN)
@@ -422,28 +446,12 @@ def run_survey(slicersim, config, n, seed, snr, scale_to):
            "year_s": YEAR_S, "spectra_seconds": t_spectra,
            "n_narrow": int((z < Z_SWITCH).sum()), "n_wide": int((z >= Z_SWITCH).sum()),
            "scale": (scale_to / n) if scale_to and scale_to != n else 1.0, "conventions": {}}
-    for conv in ("physical", "slicersim-1.0"):
-        block = {"fields": {}}
-        total = 0.0
-        for field, sel in (("narrow", z < Z_SWITCH), ("wide", z >= Z_SWITCH)):
-            t1 = time.perf_counter()
-            tab = solve_many(lbda, fluxes[sel], snr=snr, lbda_ranges=BAND, frame="rest", redshifts=z[sel],
-                             config=config, field=field, search="exact", conventions=conv)
-            wall = time.perf_counter() - t1
-            texp = np.asarray(tab["exposure_time"], dtype=float)
-            snrs = np.asarray(tab["snr"], dtype=float) if "snr" in tab.colnames else None
-            block["fields"][field] = {
-                "n": int(sel.sum()), "seconds": wall, "exposure_time_s": float(texp.sum()),
-                "exposure_time_yr": float(texp.sum() / YEAR_S),
-                "n_below_target": None if snrs is None else int((snrs < snr * (1 - 1e-9)).sum()),
-                "n_nonfinite": int((~np.isfinite(texp)).sum())}
-            total += float(np.nansum(texp))
-            print(f"[survey] {conv:13s} {field:6s} n={int(sel.sum())} T={texp.sum() / YEAR_S:.4f} yr "
-                  f"({wall:.1f} s)", flush=True)
-        block["exposure_time_s"] = total
-        block["exposure_time_yr"] = total / YEAR_S
-        block["exposure_time_yr_scaled"] = total / YEAR_S * out["scale"]
-        out["conventions"][conv] = block
+    out["by_search"] = {}
+    for search in searches:
+        convs = out["by_search"].setdefault(search, {})
+        for conv in ("physical", "slicersim-1.0"):
+            convs[conv] = _survey_block(solve_many, lbda, fluxes, z, config, snr, conv, search, out["scale"])
+    out["conventions"] = out["by_search"]["exact"]
     out["ratio_physical_over_v10"] = (out["conventions"]["physical"]["exposure_time_s"]
                                       / out["conventions"]["slicersim-1.0"]["exposure_time_s"])
     out["quoted"] = {"issue": "8000 SNe: 0.74 yr with the 1.4.2 blur vs 1.10 yr with the 1.0 blur (SNR 20)",
@@ -622,6 +630,12 @@ def survey_line(s):
     if scale != 1.0:
         txt += (f" Scaled to {s['n'] * scale:.0f} SNe (×{scale:g}): {p['exposure_time_yr_scaled']:.3f} yr "
                 f"vs {v['exposure_time_yr_scaled']:.3f} yr.")
+    ref = s.get("by_search", {}).get("reference")
+    if ref:
+        txt += (f" With search='reference' (the releases' walk; {ref['physical']['fields']['narrow']['n_below_target'] + ref['physical']['fields']['wide']['n_below_target']}"
+                f" resp. {ref['slicersim-1.0']['fields']['narrow']['n_below_target'] + ref['slicersim-1.0']['fields']['wide']['n_below_target']}"
+                f" SNe end below SNR {s['snr']:g}): {ref['physical']['exposure_time_yr']:.3f} yr physical vs "
+                f"{ref['slicersim-1.0']['exposure_time_yr']:.3f} yr 'slicersim-1.0'.")
     txt += (" For comparison, the issue quotes 8000 SNe in 0.74 yr (1.4.2 blur) vs 1.10 yr (1.0 blur); "
             "the paper says ~1 yr.")
     return txt
@@ -717,6 +731,23 @@ def main(argv=None):
     n_ident = sum(r["ours_v10_identical_to_v100"] for r in rows)
     identity_line = (f"ours with conventions='slicersim-1.0', search='reference' gives the same readout as "
                      f"slicersim 1.0.0 for {n_ident}/{len(rows)} targets.")
+    n_blur = {lab: sum(_same_readout(r[key], r["cols"]["ours_phys_ref"]) for r in rows)
+              for lab, key in (("1.0.0", "v100_physical_blur"), ("1.4.2", "v142_physical_blur"))}
+    identity_line += (f" With their blur replaced by σ_x = 0.568 cells, slicersim 1.0.0 and 1.4.2 give the readout of "
+                      f"ours (physical, search='reference') for {n_blur['1.0.0']}/{len(rows)} and "
+                      f"{n_blur['1.4.2']}/{len(rows)} targets: the blur is the only model difference (gain = 1).")
+    cfg_eq = config_equality(cfg_file)
+    for label, doc in refs.items():
+        eq = cfg_eq.get(label, {}).get("files_byte_identical", {})
+        info = doc.get("config", {}) if doc.get("available") else {}
+        same = info.get("packaged_equals_shared_ignoring_whitespace_and_name")
+        others = [f for f, ok in eq.items() if f != "lazuli_cbe.toml" and not ok]
+        identity_line += (f" {label} config: packaged lazuli_cbe.toml "
+                          + ("byte-identical to ours" if eq.get("lazuli_cbe.toml") else
+                             "identical to ours up to whitespace/comments and the 1.4.2-only `name` key"
+                             if same else "DIFFERENT from ours")
+                          + ("" if not eq else "; other config-folder files " + ("byte-identical" if not others else
+                                                                 f"byte-identical except {', '.join(others)} (not used here)")) + ".")
     meta = {"snr": args.snr, "config_name": Path(config).name if cfg_file else "cbe (own curves)",
             "cpu_model": _cpu_model(), "cpu_count": os.cpu_count(), "loadavg_start": load_start,
             "loadavg_end": _loadavg(), "created": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
@@ -732,7 +763,7 @@ def main(argv=None):
                      "sncosmo_source": "hsiao-subsampled", "peak_absmag": -19.3, "peak_absmag_band": "bessellb",
                      "magsys": "ab", "cosmology": "Planck18", "phase": 0.0, "flat_mag_B_AB": 22.0,
                      "our_config": config, "release_config": "packaged lazuli_cbe.toml (instrument=None)",
-                     "config_equality": config_equality(cfg_file), "threshold": THRESHOLD,
+                     "config_equality": cfg_eq, "threshold": THRESHOLD,
                      "columns": {k: long_ for k, _, long_ in COLUMNS}, "runner_input": payload},
         "machine": {"platform": platform.platform(), "cpu_model": meta["cpu_model"], "cpu_count": os.cpu_count(),
                     "loadavg_start": load_start, "loadavg_end": meta["loadavg_end"],
@@ -743,7 +774,8 @@ def main(argv=None):
         "releases": {label: {k: v for k, v in doc.items() if k not in ("rows", "targets_input")}
                      for label, doc in refs.items()},
         "explanations": EXPLANATIONS,
-        "identity": {"ours_v10_identical_to_v100": n_ident, "n": len(rows)},
+        "identity": {"ours_v10_identical_to_v100": n_ident, "n": len(rows),
+                     "release_with_physical_blur_identical_to_ours_phys_ref": n_blur},
         "rows": rows,
         "differences": expl,
         "survey": survey,

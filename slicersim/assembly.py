@@ -67,7 +67,7 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
                        dispersion_law=spc.get("dispersion_law"), resolving_power=spc.get("resolving_power"),
                        dispersion_scale=spc.get("dispersion_scale", 1.0),
                        dispersion_resolution=spc.get("dispersion_resolution", 2.0),
-                       throughput=thr.get("throughput", 1.0),
+                       throughput=thr.get("throughput", 1.0), noptics=thr.get("noptics"),
                        throughput_column=fieldpar.get("throughput_column"),
                        spatial_scale=fieldpar.get("spatial_scale", spc.get("spatial_scale", 0.04)),
                        spatial_shape=spc.get("spatial_shape", (58, 58)), optics=optics)

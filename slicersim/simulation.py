@@ -8,12 +8,14 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.constants import HC_ERG_AA
+from slicersim.errors import ETCError, ParameterError
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, instrumental_blur_sigma
 from slicersim.physics.psf import aperture_cells, gaussian_psf_fractions, gaussian_psf_sigmas
 from slicersim.physics.readout import check_readout, readout_times
 from slicersim.physics.thermal import thermal_dark_rate
 from slicersim.products.cube import build_cube, host_photons_block
 from slicersim.products.psf_profiles import get_psf_profile
+from slicersim.versioning import Versioned, state_token
 
 __all__ = ["Simulation", "VARIANCE_SOURCES", "ExtractionModel"]
 
@@ -51,7 +53,7 @@ class ExtractionModel:
         return self.qe[:, None] * (point + uniform[:, None])
 
 
-class Simulation:
+class Simulation(Versioned):
     """An IFS observation of a scene.
 
     Parameters
@@ -60,16 +62,28 @@ class Simulation:
     nramps : int  number of identical ramps (summed)
     aperture_radius_insigma : float  extraction radius in units of σ_ref / s
     conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
+    redshift : optional redshift of the observed source (set by targets; used by
+        ``frame="rest"`` bands)
+
+    Every derived quantity is cached, keyed on the versions of the scene, its
+    sources and the instrument components (:mod:`slicersim.versioning`): any
+    ``update``, ``set_throughput``, ``scene.host = ...`` or attribute assignment
+    invalidates it at once.
     """
 
+    #: parameters of the simulation itself (the components add theirs)
+    own_parameters = ("nramps", "aperture_radius_insigma")
+
     def __init__(self, scene, telescope, spectrograph, detector, nramps=1,
-                 aperture_radius_insigma=10.0, conventions=DEFAULT_CONVENTIONS):
+                 aperture_radius_insigma=10.0, redshift=None, conventions=DEFAULT_CONVENTIONS):
         self._conventions = check_conventions(conventions)
         self.scene, self.telescope = scene, telescope
         self.spectrograph, self.detector = spectrograph, detector
         _, self.nramps = check_readout(detector.nmd, nramps, detector.min_group)
-        self.aperture_radius_insigma = float(aperture_radius_insigma)
+        self.aperture_radius_insigma = _check_aperture(aperture_radius_insigma)
+        self.redshift = redshift
         self._cache = {}
+        object.__setattr__(self, "_cache_token", None)
         self._check_overlap()
 
     @property
@@ -83,40 +97,61 @@ class Simulation:
         spec = self.spectrograph
         return instrumental_blur_sigma(spec.dispersion_resolution, spec.anamorphosis, self._conventions)
 
-    # ------------------------------------------------------------------ updates
-    def update(self, **kwargs):
-        """Change any mutable parameter of the simulation or its components, keeping
-        every derived quantity consistent (caches are dropped)."""
-        groups = {"telescope": {}, "spectrograph": {}, "detector": {}}
-        for key, val in kwargs.items():
-            if key == "nramps":
-                _, self.nramps = check_readout(self.detector.nmd, val, self.detector.min_group)
-            elif key == "aperture_radius_insigma":
-                self.aperture_radius_insigma = float(val)
-            elif key in self.detector.mutable_parameters:
-                groups["detector"][key] = val
-            elif key in self.spectrograph.mutable_parameters:
-                groups["spectrograph"][key] = val
-            elif key in self.telescope.mutable_parameters:
-                groups["telescope"][key] = val
-            else:
-                raise ValueError(f"unknown simulation parameter {key!r}")
-        if "nmd" in groups["detector"]:
-            check_readout(groups["detector"]["nmd"], self.nramps, self.detector.min_group)
-        for name, params in groups.items():
-            if params:
-                getattr(self, name).update(**params)
-        self._cache.clear()
-        self._check_overlap()
+    def _state_parts(self):
+        return (self.scene, self.telescope, self.spectrograph, self.detector)
 
-    def _check_overlap(self):
+    # ------------------------------------------------------------------ updates
+    @property
+    def mutable_parameters(self):
+        """Every name :meth:`update` accepts: the simulation's own, then the detector's,
+        the spectrograph's and the telescope's (routed in that order)."""
+        names = list(self.own_parameters)
+        for comp in (self.detector, self.spectrograph, self.telescope):
+            names += [n for n in comp.mutable_parameters if n not in names]
+        return tuple(names)
+
+    def update(self, **kwargs):
+        """Change any mutable parameter of the simulation or its components (see
+        ``mutable_parameters``), atomically: the new components are built and validated
+        off to the side first; on any error (:class:`ParameterError`, ReadoutError)
+        nothing changes.  Caches follow automatically (version keyed)."""
+        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
+        if unknown:
+            raise ParameterError(f"unknown simulation parameter(s) {unknown}; accepted: "
+                                 f"{', '.join(self.mutable_parameters)}")
+        groups = {"detector": {}, "spectrograph": {}, "telescope": {}}
+        own = {}
+        for key, val in kwargs.items():
+            if key in self.own_parameters:
+                own[key] = val
+            else:
+                name = next(n for n in groups if key in getattr(self, n).mutable_parameters)
+                groups[name][key] = val
+        new = {name: getattr(self, name).updated(**params) for name, params in groups.items() if params}
+        det = new.get("detector", self.detector)
+        _, nramps = check_readout(det.nmd, own.get("nramps", self.nramps), det.min_group)
+        aperture = _check_aperture(own.get("aperture_radius_insigma", self.aperture_radius_insigma))
+        spec = new.get("spectrograph", self.spectrograph)
+        self._check_overlap(spec.lbda)
+        # everything validated: apply (nothing below can fail)
+        for name, obj in new.items():
+            getattr(self, name)._adopt(obj)
+        self.nramps, self.aperture_radius_insigma = nramps, aperture
+        self._cache.clear()
+
+    def _check_overlap(self, lbda=None):
         ps = self.scene.pointsource
-        lo, hi = self.lbda[0], self.lbda[-1]
+        lbda = self.lbda if lbda is None else lbda
+        lo, hi = lbda[0], lbda[-1]
         if ps is not None and not ps.overlap(lo, hi):
             raise ValueError(f"point-source spectrum ({ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å) does "
                              f"not overlap the instrument range ({lo:.0f}–{hi:.0f} Å)")
 
     def _cached(self, key, func):
+        token = state_token(self)
+        if token != self._cache_token:
+            self._cache.clear()
+            object.__setattr__(self, "_cache_token", token)
         if key not in self._cache:
             self._cache[key] = func()
         return self._cache[key]
@@ -263,6 +298,15 @@ class Simulation:
         """Signal [ADU] and variance [ADU²] cubes summed over the ramps, plus a noisy
         realisation when ``seed`` (int or numpy Generator) is given.
 
+        Noise: ``noisy = signal + √variance · z`` with z the Philox/Box–Muller normal keyed
+        by (seed, flat voxel index, stream 0), :func:`slicersim.backends.noise.noisy_cube`.
+        For the same signal and variance the NumPy twin and the OpenCL kernel give
+        bit-identical noisy cubes (same Philox words, same correctly rounded √, no FMA
+        contraction).  Between ``backend="numpy"`` and ``"opencl"`` the *expectation and
+        variance* cubes themselves may differ by a few ulp (different summation order of the
+        PSF/LSF contractions), so noisy cubes agree to
+        |Δ| ≤ 1e-13 · (|signal| + √variance) per voxel, not bit for bit.
+
         ``psf_profile`` is ``"gaussian"`` (reference default) or ``"airy"``; see
         :func:`slicersim.cube.build_cube` for the chunked OpenCL builder, the
         computation path of each scene component and the options
@@ -338,11 +382,24 @@ class Simulation:
                              f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
         return mask
 
-    def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False):
+    def band_range(self, lbda_range, frame="obs"):
+        """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame
+        (rest: ×(1 + redshift); needs :attr:`redshift`)."""
+        lo, hi = (float(v) for v in lbda_range)
+        if frame == "rest":
+            if self.redshift is None:
+                raise ETCError("frame='rest' needs a redshift (Simulation.redshift is None)")
+            return lo * (1 + self.redshift), hi * (1 + self.redshift)
+        if frame != "obs":
+            raise ETCError(f"frame must be 'obs' or 'rest', got {frame!r}")
+        return lo, hi
+
+    def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False, frame="obs"):
         """Band SNR = nanmean(signal) / √nanmean(variance) over the bins in ``lbda_range``
-        (per bin; ×√dispersion_resolution when ``per_resolution``)."""
+        (per bin; ×√dispersion_resolution when ``per_resolution``); ``frame="rest"``
+        reads ``lbda_range`` in the source rest frame (needs :attr:`redshift`)."""
         nmd, nramps = self._readout(nmd, nramps)
-        mask = self.band_mask(lbda_range)
+        mask = self.band_mask(self.band_range(lbda_range, frame))
         signal, variance = self._spectrum(nmd, nramps)
         snr = _band_snr(signal[mask], variance[mask])
         return snr * np.sqrt(self.spectrograph.dispersion_resolution) if per_resolution else snr
@@ -384,6 +441,16 @@ class Simulation:
         """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.etc.search`)."""
         from slicersim.etc.search import solve_readout  # etc/ sits above: its solve_many builds Simulations
         return solve_readout(self, snr, lbda_range, per_resolution=per_resolution, search=search, **kwargs)
+
+
+def _check_aperture(value):
+    try:
+        value = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"aperture_radius_insigma must be a number, got {value!r}") from exc
+    if not (np.isfinite(value) and value > 0):
+        raise ParameterError(f"aperture_radius_insigma must be finite and > 0, got {value}")
+    return value
 
 
 def _band_snr(signal, variance):

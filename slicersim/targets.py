@@ -11,13 +11,35 @@ import math
 import numpy as np
 
 from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field, default_mapper  # noqa: F401
-from slicersim.errors import ETCError
+from slicersim.errors import ETCError, ParameterError
+from slicersim.io.config import load_config
+from slicersim.io.curves import read_curve
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.readout import check_readout
 from slicersim.sources.scene import PointSource, snia_spectrum
 
-__all__ = ["LAZULI_FIELDS", "build_simulation", "Target", "Supernova", "BlackBody", "LazuliTarget",
-           "LazuliSupernova", "LazuliBlackBody", "lazuli_etc", "lazuli_sn_etc"]
+__all__ = ["LAZULI_FIELDS", "build_simulation", "config_default_field", "SPECTRUM_NOISE_STREAM", "Target",
+           "Supernova", "BlackBody", "LazuliTarget", "LazuliSupernova", "LazuliBlackBody", "lazuli_etc",
+           "lazuli_sn_etc"]
+
+#: Philox stream of the noise drawn by :meth:`Target.get_spectrum` (cube noise uses stream 0)
+SPECTRUM_NOISE_STREAM = 0x53504543
+
+
+def config_default_field(config):
+    """Field a target uses when none is given: ``"narrow"`` when the configuration's throughput
+    file has Lazuli field columns (``narrow``/``wide``), else None (single-channel instrument)."""
+    try:
+        cfg = load_config(config)
+        thr = cfg.get("spectrograph.throughput", {}).get("throughput")
+        if isinstance(thr, str):
+            _, cols = read_curve(thr)
+            if "narrow" in cols:
+                return "narrow"
+    except (OSError, ValueError, KeyError):
+        return None      # build_simulation reports the problem
+    return None
+
 
 class Target:
     """A point source observed with a configured instrument.
@@ -27,47 +49,218 @@ class Target:
     lbda, flux : input spectrum [Å], [erg/s/cm²/Å]
     mag, band : optional renormalisation to an AB magnitude in an sncosmo band
     config : "cbe", "eol", a TOML path or a list of them
-    field : "narrow", "wide" (Lazuli) or None
+    field : "narrow", "wide" (Lazuli) or None.  A target has exactly one field: the
+        default is "narrow" when the configuration has Lazuli field throughputs
+        (:func:`config_default_field`), None for single-channel configurations; None with a
+        several-column throughput raises (columns are never multiplied).
     position : (x, y) [cells] relative to the field centre
     conventions : "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly
         (gain in the variance, instrumental blur; :mod:`slicersim.physics.conventions`)
+    redshift : optional; used by ``frame="rest"`` (the spectrum is in the observer frame)
     """
 
-    default_config, default_field = "cbe", None
+    default_config, default_field = "cbe", "auto"
+    #: parameters of the target itself (the simulation adds its own, see ``mutable_parameters``)
+    own_parameters = ("redshift", "position", "field", "config")
 
     def __init__(self, lbda, flux, mag=None, band="bessellb", config=None, field="default",
                  position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS):
-        self.conventions = check_conventions(conventions)
-        self.redshift = redshift
+        self._conventions = check_conventions(conventions)
+        self._redshift = redshift
         self._source_args = dict(lbda=lbda, flux=flux, mag=mag, band=band, position=position)
         self.pointsource = PointSource(lbda, flux, position=position, mag=mag, band=band)
+        self._host, self._host_offset = None, None
         self.config = self.default_config if config is None else config
-        self.field = self.default_field if field == "default" else check_field(field)
-        self._build()
+        if field == "default":
+            field = config_default_field(self.config) if self.default_field == "auto" else self.default_field
+        self._field = check_field(field)
+        self.simulation = self._new_simulation(self.config, self._field, keep_readout=False)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def field(self):
+        """Lazuli field ("narrow"/"wide") or None; assigning it rebuilds the simulation."""
+        return self._field
+
+    @field.setter
+    def field(self, field):
+        self.change_field(field)
+
+    @property
+    def redshift(self):
+        return self._redshift
+
+    @redshift.setter
+    def redshift(self, redshift):
+        self.update(redshift=redshift)
+
+    @property
+    def position(self):
+        """(x, y) [cells] of the point source relative to the field centre."""
+        return self.pointsource.position
+
+    @position.setter
+    def position(self, position):
+        self.update(position=position)
+
+    @property
+    def host(self):
+        return self._host
+
+    @host.setter
+    def host(self, host):
+        self.set_host(host)
+
+    @property
+    def conventions(self):
+        """"physical" or "slicersim-1.0" (fixed at construction)."""
+        return self._conventions
+
+    @property
+    def mutable_parameters(self):
+        """Every name :meth:`update` accepts: the target's own (redshift, position, field,
+        config) and those of its :class:`~slicersim.simulation.Simulation`."""
+        return self.own_parameters + tuple(p for p in self.simulation.mutable_parameters
+                                           if p not in self.own_parameters)
+
+    def _new_simulation(self, config, field, keep_readout=True, params=None):
+        """A new simulation of this target (validated; nothing of self changes)."""
+        sim = build_simulation(config, field, self.pointsource, conventions=self._conventions)
+        sim.redshift = self._redshift
+        upd = dict(params or {})
+        if keep_readout:
+            old = self.simulation
+            upd = dict(nmd=old.detector.nmd, nramps=old.nramps, **upd)
+        if upd:
+            sim.update(**upd)
+        if self._host is not None:      # placed for the new cell size when applied (update)
+            sim.scene.host = self._host
+        return sim
 
     def _build(self, keep_readout=False):
-        old = (self.simulation.detector.nmd, self.simulation.nramps) if keep_readout else None
-        self.simulation = build_simulation(self.config, self.field, self.pointsource,
-                                           conventions=self.conventions)
-        if old:
-            self.simulation.update(nmd=old[0], nramps=old[1])
+        self.simulation = self._new_simulation(self.config, self._field, keep_readout)
+        if self._host is not None:
+            self._place_host(self._host, self.pointsource.position, self.simulation.spectrograph.spatial_scale)
+
+    def _spectrum_at(self, redshift):
+        """(λ, F) of the source at ``redshift``, or None when the spectrum does not depend on
+        it (a user spectrum is given in the observer frame: only the label changes)."""
+        return None
+
+    # ------------------------------------------------------------------ host
+    def set_host(self, host, relative=True):
+        """Put a host galaxy (:class:`~slicersim.sources.extended.Host` or CubeSource) in the scene.
+
+        ``relative=True``: the host's offset (``profile.offset`` / ``centre``, arcsec) is read
+        relative to the target and the host follows the target when its position changes;
+        ``relative=False``: the offset is relative to the field centre and stays fixed.
+        ``None`` removes the host.  Takes effect at once."""
+        if host is None:
+            self._host, self._host_offset = None, None
+            self.simulation.scene.host = None
+            return
+        if not callable(getattr(host, "flux_cube", None)):
+            raise TypeError("host must provide flux_cube(lbda, shape, spatial_scale) "
+                            "(slicersim.Host or slicersim.CubeSource)")
+        offset = _host_offset(host)
+        self._host_offset = offset if relative else None
+        self._host = host
+        self._place_host(host, self.pointsource.position, self.simulation.spectrograph.spatial_scale)
+        self.simulation.scene.host = host
+
+    def _place_host(self, host, position, spatial_scale):
+        if self._host_offset is None:
+            return
+        dx, dy = self._host_offset
+        centre = (position[0] * spatial_scale + dx, position[1] * spatial_scale + dy)
+        if hasattr(host, "profile") and hasattr(host.profile, "offset"):
+            host.profile.offset = centre
+        elif hasattr(host, "centre"):
+            host.centre = centre
 
     # ------------------------------------------------------------------ changes
+    def update(self, **params):
+        """Change any of ``mutable_parameters`` atomically (validated first; on error nothing
+        changes).  ``redshift`` recomputes the source spectrum in place (SN Ia: same phase,
+        source and peak magnitude; a user spectrum keeps its observer-frame flux and only
+        the label used by ``frame="rest"`` changes); ``position=(x, y)`` [cells] moves the
+        point source in place (and a host attached relative to it); ``field`` / ``config``
+        rebuild the simulation keeping the readout; the other names go to
+        :meth:`Simulation.update <slicersim.simulation.Simulation.update>`.  The readout is kept."""
+        accepted = self.mutable_parameters
+        unknown = sorted(set(params) - set(accepted))
+        if unknown:
+            raise ParameterError(f"unknown target parameter(s) {unknown}; accepted: {', '.join(accepted)}")
+        sim_params = {k: v for k, v in params.items() if k not in self.own_parameters}
+        # -- validate everything off to the side
+        spectrum = None
+        redshift = self._redshift
+        if "redshift" in params:
+            redshift = params["redshift"]
+            if redshift is not None and not (np.isfinite(redshift) and redshift > 0):
+                raise ParameterError(f"redshift must be > 0, got {redshift}")
+            spectrum = self._spectrum_at(redshift) if redshift is not None else None
+            if spectrum is None and redshift is None and self._spectrum_at(1.0) is not None:
+                raise ParameterError("this target's spectrum needs a redshift")
+        probe = None
+        if spectrum is not None:
+            probe = PointSource(*spectrum, position=self.pointsource.position,
+                                mag=self.pointsource.mag, band=self.pointsource.band)
+        position = self.pointsource.position
+        if "position" in params:
+            position = PointSource([1.0, 2.0], [0.0, 0.0], position=params["position"]).position
+        config = params.get("config", self.config)
+        field = check_field(params["field"]) if "field" in params else self._field
+        new_sim = None
+        lbda = self.simulation.lbda
+        if "config" in params or "field" in params:
+            saved = self.pointsource
+            self.pointsource = probe or saved
+            try:
+                new_sim = self._new_simulation(config, field, params=sim_params)
+            finally:
+                self.pointsource = saved
+            lbda = new_sim.lbda
+        else:
+            spec = self.simulation.spectrograph
+            spec_params = {k: v for k, v in sim_params.items()
+                           if k in spec.mutable_parameters and k not in self.simulation.detector.mutable_parameters}
+            if spec_params:
+                lbda = spec.updated(**spec_params).lbda
+        if probe is not None and not probe.overlap(lbda[0], lbda[-1]):
+            raise ParameterError(f"the spectrum at redshift {redshift} does not overlap the instrument range")
+        if new_sim is None and sim_params:
+            self.simulation.update(**sim_params)       # atomic by itself; last step that can fail
+        # -- apply (nothing below can fail)
+        if probe is not None:
+            self.pointsource.set_spectrum(probe.lbda_in, probe.flux_in, probe.flux_ratio, probe.native_mag)
+        self._redshift = redshift
+        if new_sim is not None:
+            new_sim.scene.pointsource = self.pointsource
+            self.config, self._field, self.simulation = config, field, new_sim
+        self.simulation.redshift = redshift
+        if position != self.pointsource.position:
+            self.pointsource.position = position
+        if self._host is not None:
+            self._place_host(self._host, position, self.simulation.spectrograph.spatial_scale)
+
+    def set_throughput(self, throughput, column=None, noptics=None):
+        """Replace the spectrograph throughput (see :meth:`Spectrograph.set_throughput`); at once."""
+        self.simulation.spectrograph.set_throughput(throughput, column=column, noptics=noptics)
+
     def change_configuration(self, config):
         """Switch to another configuration (``"cbe"``, ``"eol"``, TOML path(s)); keeps the readout."""
-        self.config = config
-        self._build(keep_readout=True)
+        self.update(config=config)
 
     def change_field(self, field):
-        self.field = check_field(field)
-        self._build(keep_readout=True)
+        self.update(field=field)
 
     def change_spectrograph(self, field=None, **kwargs):
         """Change the field (Lazuli) and/or spectrograph parameters."""
         if field is not None:
-            self.change_field(field)
+            kwargs["field"] = field
         if kwargs:
-            self.simulation.update(**kwargs)
+            self.update(**kwargs)
 
     def change_detector(self, nmd=None, nramps=None, max_group=None, **kwargs):
         """Set the readout (n, m, d), number of ramps, max_group or other detector parameters."""
@@ -89,13 +282,9 @@ class Target:
         lo, hi = (float(v) for v in lbda_range)
         if not hi > lo:
             raise ETCError(f"lbda_range must be (lo, hi) with lo < hi, got {lbda_range}")
-        if frame == "rest":
-            if self.redshift is None:
-                raise ETCError("frame='rest' needs a target redshift")
-            return lo * (1 + self.redshift), hi * (1 + self.redshift)
-        if frame != "obs":
-            raise ETCError(f"frame must be 'obs' or 'rest', got {frame!r}")
-        return lo, hi
+        if frame == "rest" and self.redshift is None:
+            raise ETCError("frame='rest' needs a target redshift")
+        return self.simulation.band_range((lo, hi), frame)
 
     def setup_to_snr(self, snr, lbda_range=None, frame="obs", search="exact", per_resolution=True,
                      backend="auto"):
@@ -116,6 +305,10 @@ class Target:
         """Total exposure time of all ramps [s]."""
         return self.simulation.get_times()["total_exposure_time"]
 
+    def get_exptime(self):
+        """Total exposure time of all ramps [s] (paper name of :meth:`get_exposure_time`)."""
+        return self.get_exposure_time()
+
     def get_times(self):
         return self.simulation.get_times()
 
@@ -126,11 +319,19 @@ class Target:
         return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution)
 
     def get_spectrum(self, incl_error=False, seed=None):
-        """(λ [Å], signal [ADU], variance [ADU²]); ``incl_error`` adds a Gaussian noise draw."""
+        """(λ [Å], signal [ADU], variance [ADU²]); ``incl_error`` adds a Gaussian noise draw.
+
+        The draw is signal + √variance · z with z the counter-based Philox / Box–Muller
+        normal of :mod:`slicersim.backends.rng` keyed by (seed, bin index,
+        stream :data:`SPECTRUM_NOISE_STREAM`) — the same generator and arithmetic as the
+        noisy cubes (:func:`slicersim.backends.noise.noisy_cube`): the same seed (int in
+        [0, 2⁶⁴)) gives the same draw on every machine and backend; bins with zero variance
+        keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed."""
         lbda, signal, variance = self.simulation.get_spectrum()
         if incl_error:
-            rng = np.random.default_rng(seed)
-            signal = signal + rng.standard_normal(signal.shape) * np.sqrt(variance)
+            from slicersim.backends.noise import noisy_cube
+            seed = np.random.default_rng() if seed is None else seed
+            signal = noisy_cube(signal, variance, seed, backend="numpy", stream=SPECTRUM_NOISE_STREAM)
         return lbda, signal, variance
 
     def get_cube(self, seed=None):
@@ -143,7 +344,7 @@ class Target:
         cubes = {}
         for field in ("narrow", "wide"):
             sim = self.simulation if field == (self.field or "narrow") else \
-                build_simulation(self.config, field, pointsource=None, conventions=self.conventions)
+                build_simulation(self.config, field, pointsource=None, conventions=self._conventions)
             cubes[field] = (sim.get_projected_scene() * sim.qe[:, None, None], sim)
         return cubes
 
@@ -190,10 +391,13 @@ class Supernova(Target):
 
     def __init__(self, redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3, config=None,
                  field="default", position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, **kwargs):
+        self.phase, self.source, self.peak_absmag, self._sn_kwargs = phase, source, peak_absmag, dict(kwargs)
         lbda, flux = snia_spectrum(redshift, phase, source, peak_absmag, **kwargs)
         super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift,
                          conventions=conventions)
-        self.phase, self.source = phase, source
+
+    def _spectrum_at(self, redshift):
+        return snia_spectrum(redshift, self.phase, self.source, self.peak_absmag, **self._sn_kwargs)
 
     def setup_to_snr(self, snr, lbda_range=None, frame="rest", **kwargs):
         return super().setup_to_snr(snr, lbda_range, frame, **kwargs)
@@ -224,6 +428,15 @@ class LazuliSupernova(_Lazuli, Supernova):
 
 class LazuliBlackBody(_Lazuli, BlackBody):
     """Black body observed with the Lazuli IFS."""
+
+
+def _host_offset(host):
+    """(x, y) [arcsec] of a host: its profile offset or its cube centre."""
+    if hasattr(host, "profile") and hasattr(host.profile, "offset"):
+        return tuple(float(v) for v in host.profile.offset)
+    if hasattr(host, "centre"):
+        return tuple(float(v) for v in host.centre)
+    return (0.0, 0.0)
 
 
 def _result(target, etc):

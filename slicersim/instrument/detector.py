@@ -4,20 +4,21 @@ The readout physics (MACC times, variance models) lives in :mod:`slicersim.physi
 """
 from __future__ import annotations
 
-from slicersim.errors import ReadoutError  # noqa: F401  (re-exported)
+from slicersim.errors import ParameterError, ReadoutError  # noqa: F401  (re-exported)
 
 import numpy as np
 
 from slicersim.io.curves import read_curve
 from slicersim.physics.readout import (VARIANCE_MODELS, check_readout, rauscher07_coefficients,  # noqa: F401
                                        readout_times, variance_kubik16, variance_rauscher07)
+from slicersim.versioning import Versioned
 
 __all__ = ["Detector"]
 
 
 
 
-class Detector:
+class Detector(Versioned):
     """HxRG detector with a MACC readout.
 
     Parameters
@@ -36,36 +37,41 @@ class Detector:
     def __init__(self, qe=0.8, gain=1.0, dark=2.8e-3, roic_glow=3e-3, ron=12.0, tframe=2.83,
                  pixel_size=10.0, saturation=65535.0, nmd=(16, 8, 0), min_group=2, max_group=64,
                  variance_model="Rauscher07", shape=(4096, 4096), thermal_dark_range=None):
-        self.qe = qe
-        self.gain = float(gain)
-        self.dark = float(dark)
-        self.roic_glow = float(roic_glow)
-        self.ron = float(ron)
-        self.tframe = float(tframe)
-        self.pixel_size = float(pixel_size)
-        self.saturation = float(saturation) if saturation else np.inf
-        self.min_group = int(min_group)
-        self.max_group = int(max_group) if max_group else None
-        self.variance_model = str(variance_model)
-        self.shape = tuple(int(s) for s in shape)
-        self.thermal_dark_range = thermal_dark_range
-        self._check()
-        self.nmd, _ = check_readout(nmd, 1, self.min_group, None)
-        self._qe_table = self._load_qe(qe)
+        try:
+            self.qe = qe
+            self.gain = float(gain)
+            self.dark = float(dark)
+            self.roic_glow = float(roic_glow)
+            self.ron = float(ron)
+            self.tframe = float(tframe)
+            self.pixel_size = float(pixel_size)
+            self.saturation = float(saturation) if saturation else np.inf
+            self.min_group = int(min_group)
+            self.max_group = int(max_group) if max_group else None
+            self.variance_model = str(variance_model)
+            self.shape = tuple(int(s) for s in shape)
+            self.thermal_dark_range = thermal_dark_range
+            self._check()
+            self.nmd, _ = check_readout(nmd, 1, self.min_group, None)
+            self._qe_table = self._load_qe(qe)
+        except (ParameterError, ReadoutError):
+            raise
+        except (TypeError, ValueError, OSError) as exc:
+            raise ParameterError(f"invalid detector parameter: {exc}") from exc
 
     def _check(self):
         for name in ("gain", "tframe", "pixel_size"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"detector {name} must be > 0")
+                raise ParameterError(f"detector {name} must be > 0")
         for name in ("dark", "roic_glow", "ron"):
             val = getattr(self, name)
             if not (np.isfinite(val) and val >= 0):
-                raise ValueError(f"detector {name} must be finite and ≥ 0, got {val}")
+                raise ParameterError(f"detector {name} must be finite and ≥ 0, got {val}")
         if self.variance_model.lower() not in VARIANCE_MODELS:
-            raise ValueError(f"unknown variance model {self.variance_model!r}: "
+            raise ParameterError(f"unknown variance model {self.variance_model!r}: "
                              "use 'Rauscher07' or 'Kubik16'")
         if self.min_group < 2:
-            raise ValueError("min_group must be ≥ 2")
+            raise ParameterError("min_group must be ≥ 2")
 
     @staticmethod
     def _load_qe(qe):
@@ -74,20 +80,26 @@ class Detector:
             return lbda, next(iter(cols.values()))
         if np.isscalar(qe):
             if not 0 <= float(qe) <= 10:
-                raise ValueError(f"QE must be ≥ 0, got {qe}")
+                raise ParameterError(f"QE must be within [0, 10], got {qe}")
             return None
         lbda, val = (np.asarray(v, dtype=float) for v in qe)
         return lbda, val
 
-    def update(self, **kwargs):
-        """Change mutable parameters (validated)."""
-        for key in kwargs:
-            if key not in self.mutable_parameters:
-                raise ValueError(f"unknown detector parameter {key!r}")
+    def updated(self, **kwargs):
+        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
+        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
+        if unknown:
+            raise ParameterError(f"unknown detector parameter(s) {unknown}; accepted: "
+                                 f"{', '.join(self.mutable_parameters)}")
         params = {k: getattr(self, k) for k in self.mutable_parameters}
         params["saturation"] = 0 if not np.isfinite(self.saturation) else self.saturation
         params.update(kwargs)
-        self.__init__(**params)
+        return Detector(**params)
+
+    def update(self, **kwargs):
+        """Change mutable parameters, atomically: a copy is built and validated first; on
+        error (:class:`ParameterError`, :class:`ReadoutError`) nothing changes."""
+        self._adopt(self.updated(**kwargs))
 
     # -- curves -----------------------------------------------------------------
     def get_qe(self, lbda):

@@ -11,9 +11,11 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from slicersim.constants import ARCSEC
+from slicersim.errors import ParameterError
 from slicersim.io.curves import read_curve
 from slicersim.physics.lsf import apply_lsf
 from slicersim.physics.thermal import photon_radiance, solid_angle_from_fratio
+from slicersim.versioning import Versioned
 
 __all__ = ["Spectrograph", "SlicerSpectrograph", "MLASpectrograph", "OpticalThroughput",
            "wavelength_grid_from_dispersion", "wavelength_grid_from_resolving_power",
@@ -79,6 +81,8 @@ class OpticalThroughput:
             components = {"total": components}
         self.components = dict(components)
         self.noptics = {k: 1 for k in self.components}
+        if noptics is not None and np.ndim(noptics) == 0 and not isinstance(noptics, dict):
+            noptics = {k: noptics for k in self.components}    # one count for every component
         if noptics:
             unknown = set(noptics) - set(self.components)
             if unknown:
@@ -110,7 +114,7 @@ class OpticalThroughput:
 # --------------------------------------------------------------------------- #
 #  spectrographs                                                               #
 # --------------------------------------------------------------------------- #
-class Spectrograph:
+class Spectrograph(Versioned):
     """Generic IFS: wavelength grid, throughput, spatial sampling, LSF and thermal optics.
 
     Parameters
@@ -128,9 +132,11 @@ class Spectrograph:
     anamorphosis = (1, 1)
     pixels_per_cell = 1
     kind = "generic"
-    mutable_parameters = ("spectral_range", "dispersion_scale", "dispersion_resolution",
+    mutable_parameters = ("spectral_range", "dispersion_law", "dispersion_scale", "dispersion_resolution",
                           "spatial_scale", "spatial_shape", "resolving_power", "optics",
                           "noptics", "throughput", "throughput_column")
+    #: optics keys, one value per optics group
+    OPTICS_KEYS = ("temperature", "emissivity", "nelements", "fratio", "geometry", "dispersed")
 
     def __init__(self, spectral_range=(4000.0, 17000.0), dispersion_law=None, resolving_power=None,
                  dispersion_scale=1.0, dispersion_resolution=2.0, throughput=1.0,
@@ -144,7 +150,12 @@ class Spectrograph:
                             spatial_scale=float(spatial_scale),
                             spatial_shape=tuple(int(v) for v in spatial_shape),
                             optics=optics, noptics=noptics)
-        self._build()
+        try:
+            self._build()
+        except ParameterError:
+            raise
+        except (TypeError, ValueError, KeyError, OSError) as exc:
+            raise ParameterError(f"invalid spectrograph parameter: {exc}") from exc
 
     # -- construction ---------------------------------------------------------
     def _build(self):
@@ -157,6 +168,10 @@ class Spectrograph:
         if p["spatial_scale"] <= 0 or min(p["spatial_shape"]) < 1:
             raise ValueError("spatial_scale must be > 0 and spatial_shape ≥ 1")
         law = p["dispersion_law"]
+        if law is not None and p["resolving_power"] is not None:
+            raise ParameterError("resolving_power is ignored when the spectrograph has a dispersion_law: "
+                                 "give one of them (update(resolving_power=R, dispersion_law=None) "
+                                 "switches to a resolving power)")
         if law is not None:
             if isinstance(law, str):
                 llbda, cols = read_curve(law)
@@ -175,17 +190,24 @@ class Spectrograph:
     @staticmethod
     def _make_throughput(throughput, column, noptics):
         if isinstance(throughput, OpticalThroughput):
-            return throughput
+            if noptics is None:
+                return throughput
+            merged = dict(throughput.noptics)
+            merged.update({k: noptics for k in merged} if np.ndim(noptics) == 0 and not isinstance(noptics, dict)
+                          else noptics)
+            return OpticalThroughput(throughput.components, merged)
         if isinstance(throughput, str):
             lbda, cols = read_curve(throughput)
             if column is None:
                 if len(cols) == 1:
                     column = next(iter(cols))
-                else:  # several channels and none chosen: product of all (reference behaviour)
-                    return OpticalThroughput({c: (lbda, v) for c, v in cols.items()})
+                else:  # several channels (e.g. Lazuli narrow/wide): never multiply them
+                    raise ParameterError(
+                        f"throughput file {throughput} has several columns {list(cols)}: choose one with "
+                        "throughput_column (a Lazuli field: field='narrow' or 'wide')")
             if column not in cols:
-                raise ValueError(f"throughput file {throughput} has no column {column!r} ({list(cols)})")
-            return OpticalThroughput({column: (lbda, cols[column])})
+                raise ParameterError(f"throughput file {throughput} has no column {column!r} ({list(cols)})")
+            return OpticalThroughput({column: (lbda, cols[column])}, noptics)
         if isinstance(throughput, dict):
             comps = {}
             for name, val in throughput.items():
@@ -194,7 +216,7 @@ class Spectrograph:
                     val = (lbda, cols[column] if column in cols else next(iter(cols.values())))
                 comps[name] = val
             return OpticalThroughput(comps, noptics)
-        return OpticalThroughput({"total": throughput})
+        return OpticalThroughput({"total": throughput}, noptics)
 
     @staticmethod
     def _make_optics(optics):
@@ -210,16 +232,81 @@ class Spectrograph:
             raise ValueError("spectrograph optics lists must all have the same length")
         return out
 
+    def _merged_optics(self, optics):
+        """Current optics with the keys of ``optics`` replaced; every list one value per group."""
+        if optics is None:
+            return None
+        if not isinstance(optics, dict):
+            raise ParameterError(f"optics must be a dict of per-group lists ({', '.join(self.OPTICS_KEYS)})")
+        unknown = sorted(set(optics) - set(self.OPTICS_KEYS))
+        if unknown:
+            raise ParameterError(f"unknown optics key(s) {unknown}; accepted: {', '.join(self.OPTICS_KEYS)}")
+        current = self.optics
+        nexp = len(optics["temperature"]) if "temperature" in optics else len(current["temperature"])
+        merged = {k: list(v) for k, v in current.items()}
+        merged.update({k: list(np.atleast_1d(v)) if np.ndim(v) == 0 else list(v) for k, v in optics.items()})
+        for key in self.OPTICS_KEYS:
+            if len(merged[key]) != nexp:
+                raise ParameterError(f"optics {key!r} needs one value per optics group: expected length "
+                                     f"{nexp}, got {len(merged[key])}")
+        return merged
+
+    def updated(self, **kwargs):
+        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
+        import copy
+        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
+        if unknown:
+            raise ParameterError(f"unknown spectrograph parameter(s) {unknown}; accepted: "
+                                 f"{', '.join(self.mutable_parameters)}")
+        params = dict(self._params)
+        kwargs = dict(kwargs)
+        if "optics" in kwargs:
+            kwargs["optics"] = self._merged_optics(kwargs["optics"])
+        if kwargs.get("resolving_power") is not None and params["dispersion_law"] is not None \
+                and "dispersion_law" not in kwargs:
+            raise ParameterError("this spectrograph's grid comes from its dispersion_law: resolving_power "
+                                 "would be ignored; pass dispersion_law=None with it to switch to a "
+                                 "resolving-power grid")
+        if kwargs.get("dispersion_law") is not None and "resolving_power" not in kwargs:
+            params["resolving_power"] = None          # the new law defines the grid
+        params.update(kwargs)
+        for key in ("spectral_range", "spatial_shape"):
+            params[key] = tuple(float(v) if key == "spectral_range" else int(v) for v in params[key])
+        for key in ("dispersion_scale", "dispersion_resolution", "spatial_scale"):
+            params[key] = float(params[key])
+        new = copy.copy(self)
+        object.__setattr__(new, "_params", params)
+        try:
+            new._build()
+        except ParameterError:
+            raise
+        except (TypeError, ValueError, KeyError, OSError) as exc:
+            raise ParameterError(f"invalid spectrograph parameter: {exc}") from exc
+        return new
+
     def update(self, **kwargs):
-        """Change mutable parameters and rebuild everything that depends on them."""
-        for key in kwargs:
-            if key not in self.mutable_parameters and key != "dispersion_law":
-                raise ValueError(f"unknown spectrograph parameter {key!r}")
-        self._params.update(kwargs)
-        self._build()
+        """Change mutable parameters and rebuild everything that depends on them, atomically:
+        a copy is rebuilt and validated first; on error (:class:`ParameterError`) nothing changes.
+
+        ``optics`` may give only some keys (the others are kept); each list needs one value
+        per optics group.  ``noptics`` (dict per component or one int) applies to the current
+        throughput.  ``resolving_power`` with a dispersion-law grid raises unless
+        ``dispersion_law=None`` is passed too (then the grid switches to the resolving power);
+        a new ``dispersion_law`` replaces a resolving-power grid."""
+        self._adopt(self.updated(**kwargs))
 
     def set_throughput(self, throughput, column=None, noptics=None):
-        """Replace the throughput (float, curve, file or per-component dict)."""
+        """Replace the throughput (float, curve, file, OpticalThroughput or per-component dict).
+
+        For a file with several columns ``column`` picks one (default: the current
+        ``throughput_column`` when the file has it); ``noptics`` as in :class:`OpticalThroughput`.
+        Takes effect at once (the owning Simulation sees the new version)."""
+        if column is None and isinstance(throughput, str):
+            current = self._params["throughput_column"]
+            if current is not None:
+                _, cols = read_curve(throughput)
+                if current in cols:
+                    column = current
         self.update(throughput=throughput, throughput_column=column, noptics=noptics)
 
     # -- derived quantities -----------------------------------------------------

@@ -4,19 +4,22 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.constants import AIRY_SIGMA_FACTOR, ARCSEC, LBDA_REF_AA
+from slicersim.errors import ParameterError
 from slicersim.physics.thermal import photon_radiance
+from slicersim.versioning import Versioned
 
 __all__ = ["Telescope"]
 
 
-class Telescope:
+class Telescope(Versioned):
     """An (annular) telescope aperture with warm mirrors.
 
     Parameters
     ----------
     diameter_ext, diameter_int : float  outer / central-obscuration diameter [m]
-    temperature : float  mirror temperature [K]
-    emissivity, nelements : sequence  per mirror group emissivity and count
+    temperature : float, or one value per mirror group  mirror temperature [K]
+    emissivity, nelements : sequence  per mirror group emissivity and count (a scalar
+        applies to every group)
     guiding_sigma : float  achromatic Gaussian jitter [arcsec]
     """
 
@@ -25,29 +28,79 @@ class Telescope:
 
     def __init__(self, diameter_ext=3.0, diameter_int=0.0, temperature=293.0,
                  emissivity=(0.05, 0.02, 0.02, 0.02), nelements=(1, 1, 1, 1), guiding_sigma=0.010):
-        self.diameter_ext = float(diameter_ext)
-        self.diameter_int = float(diameter_int)
-        self.temperature = float(temperature)
-        self.emissivity = list(np.atleast_1d(emissivity).astype(float))
-        self.nelements = list(np.atleast_1d(nelements).astype(int))
-        self.guiding_sigma = float(guiding_sigma)
+        try:
+            self.diameter_ext = float(diameter_ext)
+            self.diameter_int = float(diameter_int)
+            emissivity = np.atleast_1d(np.asarray(emissivity, dtype=float))
+            nelements = np.atleast_1d(np.asarray(nelements)).astype(int)
+            if emissivity.ndim != 1 or nelements.ndim != 1:
+                raise ValueError("telescope emissivity and nelements must be scalars or 1-D lists")
+            if emissivity.size == 1 and nelements.size > 1:
+                emissivity = np.full(nelements.size, emissivity[0])
+            elif nelements.size == 1 and emissivity.size > 1:
+                nelements = np.full(emissivity.size, nelements[0])
+            self.emissivity = list(emissivity)
+            self.nelements = list(nelements)
+            if np.ndim(temperature) == 0:
+                self.temperature = float(temperature)
+            else:
+                temps = [float(t) for t in np.asarray(temperature, dtype=float).ravel()]
+                if len(temps) != len(self.emissivity):
+                    raise ParameterError(f"telescope temperature needs one value per mirror group: "
+                                         f"expected length {len(self.emissivity)}, got {len(temps)}")
+                self.temperature = temps
+            self.guiding_sigma = float(guiding_sigma)
+        except ParameterError:
+            raise
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"invalid telescope parameter: {exc}") from exc
         self._check()
 
     def _check(self):
         if not self.diameter_ext > 0 or not (0 <= self.diameter_int < self.diameter_ext):
-            raise ValueError("telescope needs diameter_ext > 0 and 0 <= diameter_int < diameter_ext")
+            raise ParameterError("telescope needs diameter_ext > 0 and 0 <= diameter_int < diameter_ext")
         if len(self.emissivity) != len(self.nelements):
-            raise ValueError("telescope emissivity and nelements must have the same length")
-        if self.guiding_sigma < 0:
-            raise ValueError("guiding_sigma must be >= 0")
+            raise ParameterError("telescope emissivity and nelements must have the same length")
+        temps = np.atleast_1d(self.temperature)
+        if not (np.all(np.isfinite(temps)) and np.all(temps >= 0)):
+            raise ParameterError(f"telescope temperature must be finite and ≥ 0 K, got {self.temperature}")
+        if not (np.all(np.isfinite(self.emissivity)) and np.all(np.asarray(self.emissivity) >= 0)):
+            raise ParameterError(f"telescope emissivity must be finite and ≥ 0, got {self.emissivity}")
+        if np.any(np.asarray(self.nelements) < 0):
+            raise ParameterError(f"telescope nelements must be ≥ 0, got {self.nelements}")
+        if not (np.isfinite(self.guiding_sigma) and self.guiding_sigma >= 0):
+            raise ParameterError("guiding_sigma must be >= 0")
+
+    @property
+    def nmirrors(self):
+        """Number of mirror groups (length of the per-mirror lists)."""
+        return len(self.emissivity)
+
+    def updated(self, **kwargs):
+        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
+        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
+        if unknown:
+            raise ParameterError(f"unknown telescope parameter(s) {unknown}; accepted: "
+                                 f"{', '.join(self.mutable_parameters)}")
+        # the mirror set is redefined only when emissivity and nelements change together
+        redefine = "emissivity" in kwargs and "nelements" in kwargs
+        nexp = len(np.atleast_1d(kwargs["emissivity"])) if redefine else self.nmirrors
+        for key in ("temperature", "emissivity", "nelements"):
+            if key in kwargs and np.ndim(kwargs[key]) > 0 and len(np.ravel(kwargs[key])) != nexp:
+                raise ParameterError(f"telescope {key} needs one value per mirror group: expected length "
+                                     f"{nexp}, got {len(np.ravel(kwargs[key]))}")
+        params = {k: getattr(self, k) for k in self.mutable_parameters}
+        if not redefine and "temperature" not in kwargs and np.ndim(self.temperature) > 0 \
+                and nexp != len(self.temperature):
+            raise ParameterError("telescope temperature list no longer matches the mirror groups")
+        params.update(kwargs)
+        return Telescope(**params)
 
     def update(self, **kwargs):
-        """Change mutable parameters (see ``mutable_parameters``)."""
-        for key, val in kwargs.items():
-            if key not in self.mutable_parameters:
-                raise ValueError(f"unknown telescope parameter {key!r}")
-            setattr(self, key, val)
-        self.__init__(**{k: getattr(self, k) for k in self.mutable_parameters})
+        """Change mutable parameters (see ``mutable_parameters``), atomically: everything is
+        validated on a copy first; on error (:class:`ParameterError`) nothing changes.
+        ``temperature``, ``emissivity`` and ``nelements`` accept one value per mirror group."""
+        self._adopt(self.updated(**kwargs))
 
     @property
     def area(self):
@@ -74,5 +127,12 @@ class Telescope:
         return float(np.dot(self.emissivity, self.nelements))
 
     def thermal_radiance(self, lbda):
-        """Mirror photon radiance ε_eff B_ph(λ, T) [ph/s/m²/sr/Å]."""
-        return self.effective_emissivity * photon_radiance(lbda, self.temperature)
+        """Mirror photon radiance ε_eff B_ph(λ, T) [ph/s/m²/sr/Å]; with one temperature per
+        mirror group Σ εᵢ nᵢ B_ph(λ, Tᵢ)."""
+        if np.ndim(self.temperature) == 0:
+            return self.effective_emissivity * photon_radiance(lbda, self.temperature)
+        total = np.zeros_like(np.asarray(lbda, dtype=float))
+        for temp, eps, n in zip(self.temperature, self.emissivity, self.nelements):
+            if eps * n:
+                total = total + eps * n * photon_radiance(lbda, temp)
+        return total

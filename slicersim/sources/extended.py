@@ -15,6 +15,7 @@ import scipy.sparse
 from scipy.special import gammainc, gammaincinv, gammaln
 
 from slicersim.sources.spectra import validate_spectrum
+from slicersim.versioning import Versioned
 
 __all__ = ["sersic_bn", "SersicProfile", "Host", "CubeSource", "overlap_matrix", "integrate_radial_cells"]
 
@@ -28,7 +29,7 @@ def _cell_edges(n, scale):
     return (np.arange(n + 1, dtype=np.float64) - n / 2.0) * scale
 
 
-class SersicProfile:
+class SersicProfile(Versioned):
     """Elliptical Sersic profile normalised to a total flux of 1.
 
     I(r) = I_e exp(−b_n [(r/r_eff)^(1/n) − 1]) [fraction of the flux per arcsec²],
@@ -195,7 +196,7 @@ def _interp_spectrum(lbda_in, flux_in, lbda_grid, name):
     return np.interp(lbda_grid, lbda_in, flux_in)
 
 
-class Host:
+class Host(Versioned):
     """Host galaxy: a (unit-flux) profile times a spectrum, flux per cell before the PSF.
 
     profile : :class:`SersicProfile` (anything with ``cell_fractions``, ``geometry``,
@@ -220,6 +221,9 @@ class Host:
         self.blend_radius = float(profile.r_eff if blend_radius is None else blend_radius)
         if not self.blend_radius > 0:
             raise ValueError(f"blend_radius must be > 0 [arcsec], got {blend_radius}")
+
+    def _state_parts(self):
+        return (self.profile,)
 
     def _core_profile(self, r):
         return self.profile.radial_profile(r) * np.exp(-np.asarray(r, float) / self.blend_radius)
@@ -291,7 +295,7 @@ def _clamped_edge_integral(xa, ya, xb, yb, s):
     return np.where(flat, 0.0, np.sign(dy) * total)
 
 
-class CubeSource:
+class CubeSource(Versioned):
     """User cube [erg/s/cm²/Å per input pixel] placed on the field, flux conserving.
 
     cube : (nλ_in, ny_in, nx_in), lbda_in : (nλ_in,) strictly increasing [Å],

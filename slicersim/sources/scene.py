@@ -11,6 +11,7 @@ from slicersim.errors import SpectrumError  # noqa: F401  (re-exported)
 from slicersim.sources.extended import CubeSource, Host, SersicProfile  # noqa: F401  (re-exported)
 from slicersim.sources.spectra import (SNCOSMO_SNIA_MODELS, PointSource, blackbody_flambda,  # noqa: F401
                                        snia_spectrum, validate_spectrum)
+from slicersim.versioning import Versioned
 
 __all__ = ["Background", "Scene", "zodiacal_light"]
 
@@ -20,7 +21,7 @@ def zodiacal_light(lbda, scale=2.0):
     return scale * 1e-17 * (lbda / 1e4) ** -4.64 / np.expm1(24806.498 / lbda)
 
 
-class Background:
+class Background(Versioned):
     """Spatially uniform background (zodiacal light by default) [erg/s/cm²/Å/arcsec²]."""
 
     def __init__(self, model="zodi", scale=2.0, name="zodi"):
@@ -36,11 +37,25 @@ class Background:
         return zodiacal_light(lbda, self.scale)
 
 
-class Scene:
-    """Container of the point source, background and host (any may be None)."""
+class Scene(Versioned):
+    """Container of the point source, background and host (any may be None).
+
+    Assigning any of them (``scene.host = Host(...)``) takes effect at once: the
+    Simulation's cache is keyed on the versions of the scene and of its parts."""
 
     def __init__(self, pointsource=None, background=None, host=None):
+        self.pointsource, self.background, self.host = pointsource, background, host
+
+    @property
+    def host(self):
+        return self._host
+
+    @host.setter
+    def host(self, host):
         if host is not None and not callable(getattr(host, "flux_cube", None)):
             raise TypeError("host must provide flux_cube(lbda, shape, spatial_scale) "
                             "(slicersim.Host or slicersim.CubeSource)")
-        self.pointsource, self.background, self.host = pointsource, background, host
+        self._host = host
+
+    def _state_parts(self):
+        return (self.pointsource, self.background, self._host)

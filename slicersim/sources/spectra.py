@@ -8,6 +8,7 @@ import numpy as np
 
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
 from slicersim.errors import SpectrumError
+from slicersim.versioning import Versioned
 
 __all__ = ["PointSource", "validate_spectrum", "snia_spectrum", "blackbody_flambda", "normalise_to_mag",
            "SNCOSMO_SNIA_MODELS"]
@@ -49,13 +50,19 @@ def blackbody_flambda(lbda, temperature):
 
 
 def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3,
-                  band="bessellb", magsys="ab", lbda=None, x1=0.0, c=0.0, cosmology=None):
+                  band="bessellb", magsys="ab", lbda=None, x1=None, c=None, cosmology=None):
     """SN Ia spectrum from sncosmo at ``phase`` days (observer frame) after peak.
 
     Returns (λ[Å], F[erg/s/cm²/Å]) on ``lbda`` (default 3000–19990 Å, 10 Å step).
     ``hsiao-subsampled`` is built into sncosmo and works offline; SALT2/3 need
     sncosmo's data download and raise a clear error when unavailable.
+    ``x1`` and ``c`` (default 0) exist only for SALT sources: given with any other
+    source (e.g. Hsiao) they would be ignored, so they raise :class:`ParameterError`.
     """
+    from slicersim.errors import ParameterError
+    if "salt" not in str(source).lower() and (x1 is not None or c is not None):
+        raise ParameterError(f"x1 / c are SALT parameters: sncosmo source {source!r} has none "
+                             "(use source='salt2' or 'salt3', or drop them)")
     import sncosmo
     from astropy.cosmology import Planck18
     if not redshift > 0:
@@ -69,8 +76,8 @@ def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-1
                            "'hsiao-subsampled' works without network, SALT models need "
                            "sncosmo's data to be downloaded first") from exc
     params = {"z": redshift, "t0": 0.0}
-    if "salt" in source:
-        params.update(x1=x1, c=c)
+    if "salt" in str(source).lower():
+        params.update(x1=0.0 if x1 is None else x1, c=0.0 if c is None else c)
     model.set(**params)
     model.set_source_peakabsmag(peak_absmag, band, magsys, cosmo=cosmology or Planck18)
     lo, hi = model.minwave(), model.maxwave()
@@ -91,13 +98,13 @@ def normalise_to_mag(lbda, flux, mag, band="bessellb", magsys="ab"):
     return 10 ** (-0.4 * (mag - m_in)), m_in
 
 
-class PointSource:
+class PointSource(Versioned):
     """A point source: spectrum (linear interpolation, NaN outside) at a position [cells]."""
 
     def __init__(self, lbda, flux, position=(0.0, 0.0), mag=None, band="bessellb", magsys="ab",
                  name="pointsource"):
         self.lbda_in, self.flux_in = validate_spectrum(lbda, flux, name)
-        self.position = tuple(float(p) for p in position)
+        self.position = position
         self.name = name
         self.mag, self.band = mag, band
         self.flux_ratio, self.native_mag = 1.0, None
@@ -116,6 +123,31 @@ class PointSource:
         lbda = np.arange(3000.0, 20000.0, 10.0) if lbda is None else np.asarray(lbda, float)
         return cls(lbda, blackbody_flambda(lbda, temperature), position=position, mag=mag,
                    band=band, name=f"blackbody {temperature} K")
+
+    def set_spectrum(self, lbda, flux, flux_ratio=None, native_mag=None):
+        """Replace the spectrum in place (validated first; renormalised to ``mag`` when set,
+        unless ``flux_ratio`` is given)."""
+        lbda, flux = validate_spectrum(lbda, flux, self.name)
+        if flux_ratio is None:
+            flux_ratio, native_mag = (1.0, None) if self.mag is None else \
+                normalise_to_mag(lbda, flux, self.mag, self.band)
+        self.lbda_in, self.flux_in = lbda, flux
+        self.flux_ratio, self.native_mag = flux_ratio, native_mag
+
+    @property
+    def position(self):
+        """(x, y) [cells] relative to the field centre."""
+        return self._position
+
+    @position.setter
+    def position(self, position):
+        try:
+            pos = tuple(float(p) for p in position)
+        except (TypeError, ValueError) as exc:
+            raise SpectrumError(f"position must be (x, y) [cells], got {position!r}") from exc
+        if len(pos) != 2 or not all(np.isfinite(pos)):
+            raise SpectrumError(f"position must be two finite numbers (x, y) [cells], got {position!r}")
+        self._position = pos
 
     def flambda(self, lbda):
         """F(λ) [erg/s/cm²/Å] at λ [Å]."""
