@@ -26,7 +26,7 @@ Tolerances
 import numpy as np
 import pytest
 
-from conftest import reference_dir
+from conftest import missing_reference
 from slicersim.backends import projection as cp
 from slicersim.backends import opencl
 from slicersim.instrument.mapper import SlicerMapper, detector_rate_image
@@ -54,11 +54,10 @@ def mapper():
 
 
 @pytest.fixture(scope="module")
-def ref():
-    path = reference_dir()
-    if path is None or not (path / "detector" / "sn_z1.00_cbe_detector.npz").is_file():
-        pytest.skip("reference detector products not found (../shared/reference/detector)")
-    return path, dict(np.load(path / "detector" / "sn_z1.00_cbe_detector.npz"))
+def ref(refdir):
+    if not (refdir / "detector" / "sn_z1.00_cbe_detector.npz").is_file():
+        missing_reference("reference detector products (../shared/reference/detector)")
+    return refdir, dict(np.load(refdir / "detector" / "sn_z1.00_cbe_detector.npz"))
 
 
 # --------------------------------------------------------------------------- reference optical model
@@ -146,7 +145,8 @@ def test_inverse_round_trip(mapper):
 
 
 # --------------------------------------------------------------------------- projection physics
-def test_flux_conservation_total_and_per_slice(mapper, backend="auto"):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_flux_conservation_total_and_per_slice(mapper, backend):
     rng = np.random.default_rng(3)
     narrow = rng.uniform(0, 2, (EDGES.size - 1, 58, 116))
     wide = rng.uniform(0, 2, (EDGES.size - 1, 58, 116))

@@ -12,14 +12,13 @@ Tolerances
 * Physics checks state their own tolerance (quadrature error of the chosen
   oversampling, measured values in comments).
 """
-import json
 
 import numpy as np
 import pytest
 from scipy.integrate import quad
 from scipy.special import erf, j1
 
-from conftest import reference_dir
+from conftest import reference_case_ids, reference_target
 from slicersim.backends import opencl
 from slicersim.backends.psf import bessel_j1, psf_cells, psf_cube
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
@@ -348,27 +347,19 @@ def test_bad_input():
 
 
 # --------------------------------------------------------------------------- slicersim 1.0 grid
-_ref = reference_dir()
-REF_CASES = ["sn_z1.00_cbe_narrow_snr20", "sn_z1.00_cbe_wide_snr20", "sn_z1.00_eol_narrow_snr20"] if _ref else []
+REF_CASES = ["sn_z1.00_cbe_narrow_snr20", "sn_z1.00_cbe_wide_snr20", "sn_z1.00_eol_narrow_snr20"]
 
 
-@pytest.mark.parametrize("case", REF_CASES or ["none"])
-def test_reference_airy_cube(case, refdir):
+@pytest.mark.reference
+@pytest.mark.parametrize("case", REF_CASES)
+def test_reference_airy_cube(case, refdir, reference_case):
     """grid="reference" reproduces the reference's Airy cube slices and sums (cube =
     LSF[F f2p P + uniform] QE t_int g r) at its three slice wavelengths; only the
     ±5 bins the LSF mixes are computed.  Measured agreement 2.2e-8 of the peak
     (the reference's rounded h c, as for the Gaussian path)."""
     from slicersim.instrument.detector import readout_times
-    from slicersim.targets import LazuliTarget
-    meta = json.load(open(refdir / "cases" / f"{case}.json"))
-    with np.load(refdir / "cases" / f"{case}.npz") as npz:
-        arr = {k: npz[k] for k in npz.files}
-    inp = meta["inputs"]
-    cfg = [str(refdir / "config" / "lazuli_cbe.toml")]
-    if inp["configuration"] == "eol":
-        cfg.append(str(refdir / "config" / "lazuli_eol.toml"))
-    sim = LazuliTarget(arr["input_lbda"], arr["input_flux"], mag=inp["mag_passed_to_reference"],
-                       band=inp.get("band", "bessellb"), config=cfg, field=inp["field"]).simulation
+    meta, arr = reference_case(case)
+    sim = reference_target(refdir, meta, arr, position=False).simulation
     tel, spec = sim.telescope, sim.spectrograph
     idx = np.array(meta["cube"]["slice_indices"])
     near = np.unique((idx[:, None] + np.arange(-6, 7)).ravel())
