@@ -206,6 +206,7 @@ def test_detector_image_conserves_the_field_rate_cubes(short_target, backend):
 def test_get_ramps_file_shapes_and_attributes(short_target, tmp_path):
     h5py = pytest.importorskip("h5py")
     det = short_target.simulation.detector
+    image = short_target.get_detector_image(backend="opencl")
     path = short_target.get_ramps(out=str(tmp_path / "ramps.h5"), nmd=(3, 1, 0), nramps=1, seed=3,
                                   backend="opencl")
     with h5py.File(path, "r") as f:
@@ -219,13 +220,13 @@ def test_get_ramps_file_shapes_and_attributes(short_target, tmp_path):
         assert a["THERMAL_DARK"] == pytest.approx(short_target.simulation.thermal_dark, rel=1e-12)
         truth = f["truth/rate"][...]
         # the truth image is the detector image, stored at the file's precision (float32: 6e-8)
-        np.testing.assert_allclose(truth, short_target.get_detector_image(backend="opencl"),
+        np.testing.assert_allclose(truth, image,
                                    rtol=np.finfo(truth.dtype).eps, atol=0)
         sci = f["SCI"][0].astype(float)
     # mean charge accumulated between group 0 and 2 (two frames) over all pixels:
     # (rate + dark + thermal dark + glow / t_f) · 2 t_f · gain, known to ±4 standard errors
     diff = (sci[2] - sci[0]).ravel()
-    rate = short_target.get_detector_image(backend="opencl").mean()
+    rate = image.mean()
     d_eff = det.dark + short_target.simulation.thermal_dark + det.roic_glow / det.tframe
     expected = (rate + d_eff) * 2 * det.tframe * det.gain
     assert abs(diff.mean() - expected) < 4 * diff.std() / math.sqrt(diff.size)
