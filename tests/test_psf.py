@@ -18,7 +18,7 @@ import pytest
 from scipy.integrate import quad
 from scipy.special import erf, j1
 
-from conftest import reference_case_ids, reference_target
+from conftest import reference_target
 from slicersim.backends import opencl
 from slicersim.backends.psf import bessel_j1, psf_cells, psf_cube
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
