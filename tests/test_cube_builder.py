@@ -63,16 +63,18 @@ def test_equals_simulation_get_cube(sim, cube):
     assert np.array_equal(cube.lbda, sim.lbda)
 
 
-def test_flux_conservation_and_ramps(sim, cube):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_flux_conservation_and_ramps(sim, backend):
     """Σ_cells (signal − uniform level) = r·LSF[F f2p QE]·t_int·g (the true spectrum) to 1 %:
     the Gaussian PSF loses < 1e-6 outside the field; the LSF is applied before QE in the cube and
     after QE in the spectrum (reference §2.7), a small difference where QE varies."""
+    cube = build_cube(sim, **READOUT, progress=False, backend=backend)
     uniform_level = cube.signal[:, 0, 0]                       # corner cell: PSF wing ≈ exp(−300)
     point_sum = (cube.signal - uniform_level[:, None, None]).sum(axis=(1, 2))
     _, true_signal, _ = sim.get_spectrum(**READOUT)
     inner = slice(10, -10)
     assert np.allclose(point_sum[inner], true_signal[inner], rtol=1e-2)
-    one = build_cube(sim, nmd=READOUT["nmd"], nramps=1, progress=False)
+    one = build_cube(sim, nmd=READOUT["nmd"], nramps=1, progress=False, backend=backend)
     assert np.allclose(cube.signal, 2 * one.signal, rtol=1e-14)
     assert np.allclose(cube.variance, 2 * one.variance, rtol=1e-14)
 
