@@ -7,6 +7,7 @@ never the implementation's own output copied into the test.
 """
 import math
 
+import h5py
 import numpy as np
 import pytest
 
@@ -204,7 +205,6 @@ def test_detector_image_conserves_the_field_rate_cubes(short_target, backend):
 
 @needs_opencl      # the NumPy ramp sampler needs ~2 min for 4096² pixels
 def test_get_ramps_file_shapes_and_attributes(short_target, tmp_path):
-    h5py = pytest.importorskip("h5py")
     det = short_target.simulation.detector
     image = short_target.get_detector_image(backend="opencl")
     path = short_target.get_ramps(out=str(tmp_path / "ramps.h5"), nmd=(3, 1, 0), nramps=1, seed=3,
