@@ -1,7 +1,23 @@
-"""Shared fixtures: location of the reference material (``../shared/reference``)."""
+"""Shared fixtures: the reference material (``../shared/reference``) and its cases.
+
+One loader for everything under the reference folder:
+
+* :func:`reference_dir` — the folder, or None ($SLICERSIM_REFERENCE_DIR, else ../shared/reference);
+* :func:`reference_case_ids` — the case ids listed in ``index.json`` (for parametrize at collection);
+* :func:`load_reference_case` — ``(meta, arrays)`` of ``cases/<case>.json`` / ``.npz``;
+* :func:`reference_config` — the Lazuli TOML list of a case's configuration ("cbe" / "eol");
+* :func:`reference_target` — a :class:`LazuliTarget` built as the reference built the case;
+* fixtures ``refdir`` (the folder), ``reference_case`` (a loader bound to it).
+
+Tests that use ``refdir`` (directly or through ``reference_case``) get the ``reference``
+marker automatically.  Without the material they are skipped, except with ``CI=true`` in
+the environment, where a missing reference is a failure (CI must never silently skip them).
+"""
+import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -14,10 +30,78 @@ def reference_dir():
     return path if (path / "cases").is_dir() and (path / "config").is_dir() else None
 
 
+def _ci():
+    return os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
+
+
+def missing_reference(what="reference material"):
+    """Skip (or, with CI=true, fail) a test whose reference material is absent."""
+    where = os.environ.get("SLICERSIM_REFERENCE_DIR") or str(ROOT.parent / "shared" / "reference")
+    msg = (f"{what} not found (looked in {where}; set $SLICERSIM_REFERENCE_DIR or provide "
+           "../shared/reference): reference-reproduction tests need it")
+    if _ci():
+        pytest.fail(f"CI=true: {msg}", pytrace=False)
+    pytest.skip(msg)
+
+
+def reference_case_ids(path=None):
+    """Case ids of ``index.json`` ([] without reference material)."""
+    path = reference_dir() if path is None else path
+    if path is None or not (path / "index.json").is_file():
+        return []
+    with open(path / "index.json", encoding="utf-8") as fh:
+        return [c["case_id"] for c in json.load(fh)["cases"]]
+
+
+def load_reference_case(refdir, case):
+    """(meta dict, {name: array}) of one reference case."""
+    with open(Path(refdir) / "cases" / f"{case}.json", encoding="utf-8") as fh:
+        meta = json.load(fh)
+    with np.load(Path(refdir) / "cases" / f"{case}.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    return meta, arrays
+
+
+def reference_config(refdir, configuration):
+    """The reference's Lazuli TOML files for ``configuration`` ("cbe" or "eol"), in order."""
+    cfg = [str(Path(refdir) / "config" / "lazuli_cbe.toml")]
+    if configuration == "eol":
+        cfg.append(str(Path(refdir) / "config" / "lazuli_eol.toml"))
+    return cfg
+
+
+def reference_target(refdir, meta, arrays, position=True):
+    """LazuliTarget of a case, configured with the reference's own TOML files and the
+    slicersim 1.0 conventions (the reference's gain and blur)."""
+    from slicersim.targets import LazuliTarget
+    inp = meta["inputs"]
+    kwargs = {}
+    if position:
+        kwargs["position"] = tuple(inp.get("position_cells_x_y") or (0.0, 0.0))
+    return LazuliTarget(arrays["input_lbda"], arrays["input_flux"], mag=inp["mag_passed_to_reference"],
+                        band=inp.get("band", "bessellb"), config=reference_config(refdir, inp["configuration"]),
+                        field=inp["field"], conventions="slicersim-1.0", **kwargs)
+
+
 @pytest.fixture(scope="session")
 def refdir():
     path = reference_dir()
     if path is None:
-        pytest.skip("reference material not found (../shared/reference or $SLICERSIM_REFERENCE_DIR): "
-                    "reference-reproduction tests need it")
+        missing_reference()
     return path
+
+
+@pytest.fixture(scope="session")
+def reference_case(refdir):
+    """``reference_case(case_id)`` → (meta, arrays); a case missing from the folder skips/fails."""
+    def load(case):
+        if case not in reference_case_ids(refdir):
+            missing_reference(f"reference case {case!r}")
+        return load_reference_case(refdir, case)
+    return load
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if "refdir" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.reference)

@@ -4,24 +4,21 @@ Our Airy cube sums (true sub-cell centres, exact quadrature) are within 2 % of
 the reference's per wavelength, and our point-source flux in the field equals
 the analytic fraction of the Airy ⊗ jitter ⊗ blur pattern inside the field.
 """
-import json
-
 import numpy as np
 import pytest
 
-from conftest import reference_dir
+from conftest import reference_config
 from slicersim.targets import LazuliTarget
 
 CASES = ["sn_z1.00_cbe_narrow_snr20", "sn_z1.00_cbe_wide_snr20"]
 
 
+@pytest.mark.reference
 @pytest.mark.parametrize("case", CASES)
-def test_airy_cube_sums_within_two_percent_of_reference(case, refdir):
-    meta = json.load(open(refdir / "cases" / f"{case}.json"))
-    with np.load(refdir / "cases" / f"{case}.npz") as npz:
-        arr = {k: npz[k] for k in npz.files}
+def test_airy_cube_sums_within_two_percent_of_reference(case, refdir, reference_case):
+    meta, arr = reference_case(case)
     inp = meta["inputs"]
-    target = LazuliTarget(arr["input_lbda"], arr["input_flux"], config=str(refdir / "config" / "lazuli_cbe.toml"),
+    target = LazuliTarget(arr["input_lbda"], arr["input_flux"], config=reference_config(refdir, "cbe"),
                           field=inp["field"])
     readout = meta["cube"]["readout"]
     signal, _ = target.simulation.get_cube(nmd=tuple(readout["nmd"]), nramps=readout["nramps"],

@@ -7,15 +7,13 @@ changes the rounding, ~1e-16); against the slicersim 1.0.0 reference cubes
 reference's rounded h c).  Chunked and unchunked cubes must be bit-identical.
 """
 import copy
-import importlib.util
-import json
 import math
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from conftest import reference_dir
+from conftest import reference_case_ids, reference_target
 from slicersim.backends.band_variance import resolve_backend
 from slicersim.products.cube import PATH_ABSENT, PATH_POINT, PATH_UNIFORM, build_cube, lsf_halo
 from slicersim.sources.scene import Host, PointSource, Scene, SpectrumError
@@ -24,6 +22,9 @@ from slicersim.targets import LazuliTarget
 
 LBDA_IN = np.arange(3000.0, 20000.0, 10.0)
 READOUT = {"nmd": (16, 8, 0), "nramps": 2}
+HAVE_OPENCL = resolve_backend("auto") == "opencl"          # an OpenCL device with fp64
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.skipif(
+    not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)"))]
 
 
 def _target(mag=21.0, position=(0.0, 0.0), field="narrow"):
@@ -62,16 +63,18 @@ def test_equals_simulation_get_cube(sim, cube):
     assert np.array_equal(cube.lbda, sim.lbda)
 
 
-def test_flux_conservation_and_ramps(sim, cube):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_flux_conservation_and_ramps(sim, backend):
     """Σ_cells (signal − uniform level) = r·LSF[F f2p QE]·t_int·g (the true spectrum) to 1 %:
     the Gaussian PSF loses < 1e-6 outside the field; the LSF is applied before QE in the cube and
     after QE in the spectrum (reference §2.7), a small difference where QE varies."""
+    cube = build_cube(sim, **READOUT, progress=False, backend=backend)
     uniform_level = cube.signal[:, 0, 0]                       # corner cell: PSF wing ≈ exp(−300)
     point_sum = (cube.signal - uniform_level[:, None, None]).sum(axis=(1, 2))
     _, true_signal, _ = sim.get_spectrum(**READOUT)
     inner = slice(10, -10)
     assert np.allclose(point_sum[inner], true_signal[inner], rtol=1e-2)
-    one = build_cube(sim, nmd=READOUT["nmd"], nramps=1, progress=False)
+    one = build_cube(sim, nmd=READOUT["nmd"], nramps=1, progress=False, backend=backend)
     assert np.allclose(cube.signal, 2 * one.signal, rtol=1e-14)
     assert np.allclose(cube.variance, 2 * one.variance, rtol=1e-14)
 
@@ -137,9 +140,6 @@ def test_nan_only_where_saturated(sim, cube):
         PointSource(LBDA_IN, -np.ones_like(LBDA_IN))
 
 
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.sources.extended") is None
-                    or importlib.util.find_spec("slicersim.backends.convolution") is None,
-                    reason="slicersim.sources.extended / slicersim.backends.convolution not available yet")
 def test_host_is_convolved_and_conserves_flux(narrow_band_sim):
     """A Sersic host of total F = 1e-17 erg/s/cm²/Å: Σ_cells signal = (flux fraction in the field)
     · LSF[F f2p] QE t_int g, up to the PSF blur losing light over the field edges (< 2e-3)."""
@@ -169,22 +169,27 @@ class _BlobHost:
         return 1e-17 * np.ones(len(lbda))[:, None, None] * (blob / blob.sum())[None]
 
 
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.convolution") is None,
-                    reason="slicersim.backends.convolution not available yet")
-def test_host_chunking_and_device_twin(narrow_band_sim):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_host_chunking_and_device_twin(narrow_band_sim, backend):
+    """Chunking does not change the host cube; the device convolution equals the NumPy twin; the
+    host's flux (a 1e-17 flat spectrum, blob well inside the field) is conserved by the cube."""
     sim = narrow_band_sim
     blob = Simulation(Scene(None, None, _BlobHost()), sim.telescope, sim.spectrograph, sim.detector)
     ny, nx = sim.spectrograph.shape
-    res = build_cube(blob, **READOUT, progress=False)
-    chunked = build_cube(blob, **READOUT, progress=False, max_bytes=8 * 8 * ny * nx * 24)
+    res = build_cube(blob, **READOUT, progress=False, backend=backend)
+    chunked = build_cube(blob, **READOUT, progress=False, max_bytes=8 * 8 * ny * nx * 24, backend=backend)
     assert chunked.chunks > 1 and _peak_err(chunked.signal, res.signal) < 1e-13
-    if resolve_backend("auto") == "opencl":            # device convolution = NumPy twin
-        twin = build_cube(blob, **READOUT, progress=False, backend="numpy")
-        assert _peak_err(res.signal, twin.signal) < 1e-12
+    twin = build_cube(blob, **READOUT, progress=False, backend="numpy")
+    assert _peak_err(res.signal, twin.signal) < 1e-12
+    empty = build_cube(Simulation(Scene(None, None, None), sim.telescope, sim.spectrograph, sim.detector),
+                       **READOUT, progress=False, backend="numpy")
+    tint = sim.get_times(READOUT["nmd"], 1)["inttime"]
+    expected = sim.spectrograph.apply_lsf(1e-17 * sim.flambda_to_photon) * sim.qe * tint * sim.detector.gain \
+        * READOUT["nramps"]
+    ratio = ((res.signal - empty.signal).sum(axis=(1, 2)) / expected)[6:-6]
+    assert np.allclose(ratio, 1.0, atol=1e-3)                  # σ = 3 cells blob + PSF: nothing leaves
 
 
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.psf") is None,
-                    reason="slicersim.backends.psf not available yet")
 def test_airy_profile_hook(sim, cube):
     airy = build_cube(sim, **READOUT, psf_profile="airy", progress=False)
     assert airy.paths["pointsource"].startswith(PATH_POINT) and "airy" in airy.paths["pointsource"]
@@ -202,9 +207,6 @@ def test_airy_profile_hook(sim, cube):
 def test_options_and_hooks(sim):
     with pytest.raises(ValueError, match="psf_profile"):
         build_cube(sim, psf_profile="moffat")
-    if importlib.util.find_spec("slicersim.backends.psf") is None:
-        with pytest.raises(NotImplementedError, match="compute_psf"):
-            build_cube(sim, psf_profile="airy", progress=False)
     with pytest.raises(TypeError, match="flux_cube"):
         Scene(sim.scene.pointsource, sim.scene.background, object())
     with pytest.raises(ValueError):
@@ -212,23 +214,12 @@ def test_options_and_hooks(sim):
 
 
 # --------------------------------------------------------------------------- reference cubes
-_ref = reference_dir()
-CASES = [c["case_id"] for c in json.load(open(_ref / "index.json"))["cases"]] if _ref else []
+CASES = reference_case_ids()
 
 
-def _reference_case(refdir, case):
-    meta = json.load(open(refdir / "cases" / f"{case}.json"))
-    with np.load(refdir / "cases" / f"{case}.npz") as npz:
-        arr = {k: npz[k] for k in npz.files}
-    inp = meta["inputs"]
-    config = [str(refdir / "config" / "lazuli_cbe.toml")]
-    if inp["configuration"] == "eol":
-        config.append(str(refdir / "config" / "lazuli_eol.toml"))
-    target = LazuliTarget(arr["input_lbda"], arr["input_flux"], mag=inp["mag_passed_to_reference"],
-                          conventions="slicersim-1.0",
-                          band=inp.get("band", "bessellb"), config=config, field=inp["field"],
-                          position=tuple(inp.get("position_cells_x_y") or (0.0, 0.0)))
-    return meta, arr, target
+def _reference_case(refdir, reference_case, case):
+    meta, arr = reference_case(case)
+    return meta, arr, reference_target(refdir, meta, arr)
 
 
 def _check_reference_cube(meta, arr, res, prof):
@@ -244,23 +235,20 @@ def _check_reference_cube(meta, arr, res, prof):
     assert np.nanmax(res.signal) == pytest.approx(ref["max_signal_adu"], rel=1e-6)
 
 
+@pytest.mark.reference
 @pytest.mark.parametrize("case", CASES or ["none"])
-def test_reference_gaussian_cube(refdir, case):
-    meta, arr, target = _reference_case(refdir, case)
+def test_reference_gaussian_cube(refdir, reference_case, case):
+    meta, arr, target = _reference_case(refdir, reference_case, case)
     readout = meta["cube"]["readout"]
     res = build_cube(target.simulation, nmd=tuple(readout["nmd"]), nramps=readout["nramps"], progress=False)
     _check_reference_cube(meta, arr, res, "default")
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.psf") is None,
-                    reason="slicersim.backends.psf not available yet")
-def test_reference_airy_cube_through_the_hook(refdir):
+@pytest.mark.reference
+def test_reference_airy_cube_through_the_hook(refdir, reference_case):
     """psf_options reach compute_psf: its slicersim-1.0 sampling reproduces the reference Airy cube."""
-    case = "sn_z1.00_cbe_wide_snr20"
-    if case not in CASES:
-        pytest.skip(f"reference case {case} not available")
-    meta, arr, target = _reference_case(refdir, case)
+    meta, arr, target = _reference_case(refdir, reference_case, "sn_z1.00_cbe_wide_snr20")
     readout = meta["cube"]["readout"]
     res = build_cube(target.simulation, nmd=tuple(readout["nmd"]), nramps=readout["nramps"], progress=False,
                      psf_profile="airy", psf_options={"grid": "reference"})
@@ -380,8 +368,6 @@ def test_fused_kernel_chunking_float32_and_checks():
 
 
 @needs_opencl
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.psf") is None,
-                    reason="slicersim.backends.psf not available yet")
 def test_fused_kernel_airy_block(narrow_band_sim):
     """A real Airy PSF block (non-separable) through the kernel and its twin; build_cube's fused
     path against its NumPy path (1e-12: compute_psf's two backends differ by ~1e-14)."""
@@ -403,8 +389,6 @@ def test_fused_kernel_airy_block(narrow_band_sim):
 
 
 @needs_opencl
-@pytest.mark.skipif(importlib.util.find_spec("slicersim.backends.psf") is None,
-                    reason="slicersim.backends.psf not available yet")
 def test_fused_kernel_device_resident_psf(narrow_band_sim):
     """The Airy block left on the device (no host round trip) gives the same cube, bit for bit, as
     the host block, in the kernel and in its twin; the zero-copy outputs are the caller's arrays."""

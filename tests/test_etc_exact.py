@@ -3,7 +3,6 @@
 SNRs are re-evaluated independently through ``Simulation.get_band_snr`` (NumPy
 path), not through the batch kernel that made the choice.
 """
-import json
 import math
 
 import numpy as np
@@ -11,7 +10,7 @@ import pytest
 import sncosmo
 from astropy.cosmology import Planck18
 
-from conftest import reference_dir
+from conftest import reference_case_ids, reference_config
 from slicersim.etc.solve import solve_many
 from slicersim.etc.search import candidate_readouts, exact_choice
 from slicersim.targets import LazuliTarget
@@ -63,19 +62,16 @@ def assert_minimal(target, lbda_range, snr_res, nmd, nramps):
     return reached
 
 
-_ref = reference_dir()
-CASES = [c["case_id"] for c in json.load(open(_ref / "index.json"))["cases"]] if _ref else []
+CASES = reference_case_ids()
 
 
+@pytest.mark.reference
 @pytest.mark.parametrize("case", CASES or ["none"])
-def test_exact_on_public_cases(case, refdir):
-    meta = json.load(open(refdir / "cases" / f"{case}.json"))
-    with np.load(refdir / "cases" / f"{case}.npz") as npz:
-        lbda, flux = npz["input_lbda"], npz["input_flux"]
+def test_exact_on_public_cases(case, refdir, reference_case):
+    meta, arrays = reference_case(case)
+    lbda, flux = arrays["input_lbda"], arrays["input_flux"]
     inp = meta["inputs"]
-    cfg = [str(refdir / "config" / "lazuli_cbe.toml")]
-    if inp["configuration"] == "eol":
-        cfg.append(str(refdir / "config" / "lazuli_eol.toml"))
+    cfg = reference_config(refdir, inp["configuration"])
     target = LazuliTarget(lbda, flux, mag=inp["mag_passed_to_reference"], config=cfg, field=inp["field"])
     snr = inp["snr_target_per_resolution_element"]
     res = target.setup_to_snr(snr, lbda_range=inp["lbda_range_AA"], frame="obs", search="exact")

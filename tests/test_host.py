@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 from scipy.integrate import quad
-from scipy.special import erf, gammainc
+from scipy.special import erf, gammainc, gammaincinv
 
 from slicersim.sources.extended import CubeSource, Host, SersicProfile, integrate_radial_cells, sersic_bn
 
@@ -143,7 +143,14 @@ def test_host_radially_varying_spectrum():
     core, outs = np.array([2.0, 2.0]), np.array([1.0, 1.0])
     p = SersicProfile(2, 0.15, axis_ratio=0.8, position_angle=45, offset=(0.02, 0.0))
     host = Host(p, lbda, core, flux_outskirts=outs, blend_radius=0.1)
-    W = host.core_weight()                                   # independent: 1-D quad
+    W = host.core_weight()
+    # independent W: Sersic n = 2 written out here (b_n from gammaincinv, not sersic_bn), the
+    # elliptical area element cancels in the ratio; W = ∫ I e^{−r/r_b} r dr / ∫ I r dr
+    b2 = gammaincinv(4.0, 0.5)
+    prof = lambda r: math.exp(-b2 * (math.sqrt(r / 0.15) - 1.0)) * r          # noqa: E731
+    top = quad(lambda r: prof(r) * math.exp(-r / 0.1), 0, np.inf, limit=400, epsabs=0, epsrel=1e-12)[0]
+    bottom = quad(prof, 0, np.inf, limit=400, epsabs=0, epsrel=1e-12)[0]
+    assert W == pytest.approx(top / bottom, rel=1e-8)
     assert 0.1 < W < 0.9
     big = host.flux_cube([5000.0, 9000.0], (101, 101), 0.5)  # 50″ field: nothing lost
     assert np.allclose(big.sum(axis=(1, 2)), 2 * W + 1 * (1 - W), rtol=1e-10, atol=0)

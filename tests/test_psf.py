@@ -12,14 +12,13 @@ Tolerances
 * Physics checks state their own tolerance (quadrature error of the chosen
   oversampling, measured values in comments).
 """
-import json
 
 import numpy as np
 import pytest
 from scipy.integrate import quad
 from scipy.special import erf, j1
 
-from conftest import reference_dir
+from conftest import reference_target
 from slicersim.backends import opencl
 from slicersim.backends.psf import bessel_j1, psf_cells, psf_cube
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
@@ -29,7 +28,6 @@ from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_r
 HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
 needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
 BACKENDS = ["numpy", pytest.param("opencl", marks=needs_opencl)]
-BEST = "opencl" if HAVE_OPENCL else "numpy"
 
 NARROW = dict(spatial_scale=0.04, guiding_sigma=0.010, instrumental_sigma=np.sqrt(2.3**2 - 4))
 SHARP = dict(spatial_scale=0.04, guiding_sigma=0.0, instrumental_sigma=0.0)   # no jitter, no blur
@@ -187,13 +185,14 @@ def test_encircled_energy_analytic_and_numerical():
                                                                                  rel=1e-2)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("eps", [0.0, 0.3])
-def test_airy_flux_in_big_field(eps):
+def test_airy_flux_in_big_field(eps, backend):
     """Σ P over a 61×121 field vs the exact flux in that rectangle (radial/angular
     quadrature of the encircled energy) and vs the encircled energy itself."""
     lbda = np.array([4000.0, 10000.0, 17000.0])
     shape = (61, 121)
-    flux = psf_cube(lbda, shape, (0.0, 0.0), "airy", obscuration=eps, backend=BEST, **SHARP).sum(axis=(1, 2))
+    flux = psf_cube(lbda, shape, (0.0, 0.0), "airy", obscuration=eps, backend=backend, **SHARP).sum(axis=(1, 2))
     k = airy_wavenumber(lbda, 3.0, 0.04)
     rect = np.array([airy_rectangle_fraction(shape[1] / 2, shape[0] / 2, kk, eps) for kk in k])
     assert np.abs(flux - rect).max() <= 5e-7       # measured 6e-8 ("auto": (8, 8), no blur: O(1/o²))
@@ -202,33 +201,35 @@ def test_airy_flux_in_big_field(eps):
     ee_out = airy_encircled_energy(np.hypot(*half), lbda, 3.0, eps)  # circumscribed circle
     assert np.all(ee_in - 1e-6 <= flux) and np.all(flux <= ee_out + 1e-6)
     # a big square field vs the encircled energy of the circle of the same area
-    square = psf_cube(lbda, (101, 101), (0.0, 0.0), "airy", obscuration=eps, backend=BEST,
+    square = psf_cube(lbda, (101, 101), (0.0, 0.0), "airy", obscuration=eps, backend=backend,
                       **SHARP).sum(axis=(1, 2))
     ee_eq = airy_encircled_energy(101 * 0.04 / np.sqrt(np.pi), lbda, 3.0, eps)
     assert np.abs(square - ee_eq).max() <= 1e-3                      # measured 1.2e-4 / 6e-4
 
 
-def test_psf_much_larger_than_field():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_psf_much_larger_than_field(backend):
     lbda = np.array([4000.0, 10000.0, 17000.0])
     shape, pos = (9, 15), (0.0, 0.0)
     # Gaussian σ = 5–21 cells over 9×15 cells: erf product of the field half-sizes
     kw = dict(sigma_ref_arcsec=SIGMA_REF, spatial_scale=0.002, guiding_sigma=0.0, instrumental_sigma=0.0)
     sig = SIGMA_REF * lbda / 1e4 / 0.002
     want = erf(7.5 / (np.sqrt(2) * sig)) * erf(4.5 / (np.sqrt(2) * sig))
-    got = psf_cube(lbda, shape, pos, "gaussian", backend=BEST, **kw).sum(axis=(1, 2))
+    got = psf_cube(lbda, shape, pos, "gaussian", backend=backend, **kw).sum(axis=(1, 2))
     assert np.abs(got - want).max() <= 1e-14
     # Airy with R_Airy = 17–71 cells: flux in the rectangle (sub-cell rules: GL is
     # spectrally accurate for this smooth unblurred integrand, midpoint is O(1/o²))
     k = airy_wavenumber(lbda, 3.0, 0.002)
     want = np.array([airy_rectangle_fraction(7.5, 4.5, kk) for kk in k])
     for grid, o, tol in (("gauss", 4, 1e-12), ("exact", 15, 1e-5)):
-        got = psf_cube(lbda, shape, pos, "airy", backend=BEST, oversampling=o, grid=grid,
+        got = psf_cube(lbda, shape, pos, "airy", backend=backend, oversampling=o, grid=grid,
                        **dict(kw, sigma_ref_arcsec=None)).sum(axis=(1, 2))
         assert np.abs(got / want - 1).max() <= tol
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("profile", ["gaussian", "airy"])
-def test_source_on_the_field_edge_and_far_outside(profile):
+def test_source_on_the_field_edge_and_far_outside(profile, backend):
     lbda = np.array([4000.0, 10000.0, 17000.0])
     shape = (58, 116)
     # On the right edge: half of the flux in a 2nx × ny rectangle centred on the source.
@@ -239,22 +240,23 @@ def test_source_on_the_field_edge_and_far_outside(profile):
         half = np.array([0.5 * airy_rectangle_fraction(116, 29, kk) for kk in k])
         blur_x = dict(SHARP, instrumental_sigma=NARROW["instrumental_sigma"])
         for kw in (SHARP, blur_x):
-            on_edge = psf_cube(lbda, shape, (58.0, 0.0), profile, backend=BEST, **kw).sum(axis=(1, 2))
+            on_edge = psf_cube(lbda, shape, (58.0, 0.0), profile, backend=backend, **kw).sum(axis=(1, 2))
             assert np.abs(on_edge - half).max() <= 1e-6                 # measured 1.6e-7
     else:
         sy, sx = gaussian_psf_sigmas(lbda, SIGMA_REF, 0.04, 0.01, NARROW["instrumental_sigma"])
         half = 0.5 * erf(116 / (np.sqrt(2) * sx)) * erf(29 / (np.sqrt(2) * sy))
-        on_edge = psf_cube(lbda, shape, (58.0, 0.0), profile, sigma_ref_arcsec=SIGMA_REF, backend=BEST,
+        on_edge = psf_cube(lbda, shape, (58.0, 0.0), profile, sigma_ref_arcsec=SIGMA_REF, backend=backend,
                            **NARROW).sum(axis=(1, 2))
         assert np.abs(on_edge - half).max() <= 1e-14
     assert np.all(np.abs(on_edge - 0.5) < 0.01)
     # far outside: ~0, finite and non-negative
     for pos in ((1000.0, 0.0), (-1e5, 3.0), (0.0, 2e3)):
-        p = psf_cube(lbda, shape, pos, profile, sigma_ref_arcsec=SIGMA_REF, backend=BEST, **NARROW)
+        p = psf_cube(lbda, shape, pos, profile, sigma_ref_arcsec=SIGMA_REF, backend=backend, **NARROW)
         assert np.all(np.isfinite(p)) and p.min() >= 0 and p.sum(axis=(1, 2)).max() < 1e-5
 
 
-def test_oversampling_convergence_undersampled_psf():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_oversampling_convergence_undersampled_psf(backend):
     """Narrow field at 4000 Å: R_Airy = 0.84 cells.  With the jitter the midpoint rule
     converges spectrally (the Airy pattern is band-limited and the Gaussian kernel
     damps the aliases): max error / peak vs o = 31, measured at (0.37, -0.21):
@@ -262,16 +264,17 @@ def test_oversampling_convergence_undersampled_psf():
     5: 8e-11, 6: 2e-15."""
     lbda = np.array([4000.0])
     for pos in ((0.0, 0.0), (0.37, -0.21)):
-        oracle = psf_cube(lbda, (15, 17), pos, "airy", oversampling=31, backend=BEST, **NARROW)
-        err = [peak_err(psf_cube(lbda, (15, 17), pos, "airy", oversampling=o, backend=BEST, **NARROW),
+        oracle = psf_cube(lbda, (15, 17), pos, "airy", oversampling=31, backend=backend, **NARROW)
+        err = [peak_err(psf_cube(lbda, (15, 17), pos, "airy", oversampling=o, backend=backend, **NARROW),
                         oracle) for o in range(1, 7)]
         assert err[0] > 0.1
         assert all(b < a for a, b in zip(err[:5], err[1:5]))
         assert err[2] < 1e-3 and err[3] < 1e-6 and err[5] < 1e-12
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("field, scale, expected", [("narrow", 0.04, (4, 3)), ("wide", 0.08, (8, 4))])
-def test_auto_oversampling(field, scale, expected):
+def test_auto_oversampling(field, scale, expected, backend):
     """"auto" picks (o_y, o_x) per axis from the aliasing bound (< 1e-4 of the peak):
     few sub-samples along the strongly blurred x axis, more along y (jitter only)."""
     from slicersim.backends.psf import auto_oversampling
@@ -279,14 +282,15 @@ def test_auto_oversampling(field, scale, expected):
     lbda = np.array([4000.0, 7000.0])
     assert auto_oversampling(lbda, **kw) == expected
     assert np.all(np.less(auto_oversampling([17000.0], **kw), expected))  # longer λ: fewer samples
-    kw["backend"] = BEST
+    kw["backend"] = backend
     oracle = psf_cube(lbda, (15, 17), (0.37, -0.21), "airy", oversampling=31, **kw)
     auto = psf_cube(lbda, (15, 17), (0.37, -0.21), "airy", **kw)
     assert np.array_equal(auto, psf_cube(lbda, (15, 17), (0.37, -0.21), "airy", oversampling=expected, **kw))
     assert peak_err(auto, oracle) < 1e-5                               # measured 3e-7 / 7e-8
 
 
-def test_blur_conserves_flux():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_blur_conserves_flux(backend):
     # the discrete blur-and-bin operator: every sub-sample's light is shared out completely
     for o, grid, sigma in ((1, "exact", 0.0), (3, "exact", 0.25), (4, "gauss", 1.16), (5, "exact", 3.3)):
         taps = blur_bin_taps(o, grid, sigma)
@@ -295,30 +299,32 @@ def test_blur_conserves_flux():
     # a source in the centre of a 61×121 field at 4000 Å: jitter + blur move < 1e-6 of the flux
     # across the field edges (measured 1.8e-7)
     lbda = np.array([4000.0])
-    sharp = psf_cube(lbda, (61, 121), (0.0, 0.0), "airy", oversampling=5, backend=BEST, **SHARP).sum()
-    blurred = psf_cube(lbda, (61, 121), (0.0, 0.0), "airy", oversampling=5, backend=BEST, **NARROW).sum()
+    sharp = psf_cube(lbda, (61, 121), (0.0, 0.0), "airy", oversampling=5, backend=backend, **SHARP).sum()
+    blurred = psf_cube(lbda, (61, 121), (0.0, 0.0), "airy", oversampling=5, backend=backend, **NARROW).sum()
     assert abs(blurred / sharp - 1) <= 1e-6
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("profile", ["gaussian", "airy"])
-def test_symmetry_of_a_centred_source(profile):
+def test_symmetry_of_a_centred_source(profile, backend):
     lbda = np.array([4000.0, 9000.0])
-    p = psf_cube(lbda, (10, 14), (0.0, 0.0), profile, sigma_ref_arcsec=SIGMA_REF, backend=BEST,
+    p = psf_cube(lbda, (10, 14), (0.0, 0.0), profile, sigma_ref_arcsec=SIGMA_REF, backend=backend,
                  obscuration=0.2, **NARROW)
     scale = p.max()
     assert np.abs(p - p[:, ::-1, :]).max() <= 1e-14 * scale
     assert np.abs(p - p[:, :, ::-1]).max() <= 1e-14 * scale
     # with equal blur on both axes the square-field PSF is also symmetric under x <-> y
-    q = psf_cube(lbda, (12, 12), (0.0, 0.0), profile, sigma_ref_arcsec=SIGMA_REF, backend=BEST,
+    q = psf_cube(lbda, (12, 12), (0.0, 0.0), profile, sigma_ref_arcsec=SIGMA_REF, backend=backend,
                  spatial_scale=0.04, guiding_sigma=0.01, instrumental_sigma=0.0)
     assert np.abs(q - q.transpose(0, 2, 1)).max() <= 1e-14 * q.max()
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("profile", ["gaussian", "airy"])
-def test_psf_width_scales_with_wavelength(profile):
+def test_psf_width_scales_with_wavelength(profile, backend):
     """Without jitter or blur, the flux in a box of half-side a at λ equals that
     in a box of 2a at 2λ (cells of the same size)."""
-    kw = dict(SHARP, spatial_scale=0.01, sigma_ref_arcsec=SIGMA_REF, backend=BEST, grid="gauss",
+    kw = dict(SHARP, spatial_scale=0.01, sigma_ref_arcsec=SIGMA_REF, backend=backend, grid="gauss",
               oversampling=8)
     for lbda, a in ((4500.0, 3), (6000.0, 4)):
         small = psf_cube([lbda], (2 * a, 2 * a), (0.0, 0.0), profile, **kw).sum()
@@ -348,28 +354,19 @@ def test_bad_input():
 
 
 # --------------------------------------------------------------------------- slicersim 1.0 grid
-_ref = reference_dir()
-REF_CASES = ["sn_z1.00_cbe_narrow_snr20", "sn_z1.00_cbe_wide_snr20", "sn_z1.00_eol_narrow_snr20"] if _ref else []
+REF_CASES = ["sn_z1.00_cbe_narrow_snr20", "sn_z1.00_cbe_wide_snr20", "sn_z1.00_eol_narrow_snr20"]
 
 
-@pytest.mark.parametrize("case", REF_CASES or ["none"])
-def test_reference_airy_cube(case, refdir):
+@pytest.mark.reference
+@pytest.mark.parametrize("case", REF_CASES)
+def test_reference_airy_cube(case, refdir, reference_case):
     """grid="reference" reproduces the reference's Airy cube slices and sums (cube =
     LSF[F f2p P + uniform] QE t_int g r) at its three slice wavelengths; only the
     ±5 bins the LSF mixes are computed.  Measured agreement 2.2e-8 of the peak
     (the reference's rounded h c, as for the Gaussian path)."""
     from slicersim.instrument.detector import readout_times
-    from slicersim.targets import LazuliTarget
-    meta = json.load(open(refdir / "cases" / f"{case}.json"))
-    with np.load(refdir / "cases" / f"{case}.npz") as npz:
-        arr = {k: npz[k] for k in npz.files}
-    inp = meta["inputs"]
-    cfg = [str(refdir / "config" / "lazuli_cbe.toml")]
-    if inp["configuration"] == "eol":
-        cfg.append(str(refdir / "config" / "lazuli_eol.toml"))
-    sim = LazuliTarget(arr["input_lbda"], arr["input_flux"], mag=inp["mag_passed_to_reference"],
-                       conventions="slicersim-1.0",
-                       band=inp.get("band", "bessellb"), config=cfg, field=inp["field"]).simulation
+    meta, arr = reference_case(case)
+    sim = reference_target(refdir, meta, arr, position=False).simulation
     tel, spec = sim.telescope, sim.spectrograph
     idx = np.array(meta["cube"]["slice_indices"])
     near = np.unique((idx[:, None] + np.arange(-6, 7)).ravel())

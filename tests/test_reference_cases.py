@@ -6,33 +6,16 @@ Configured with the reference's own Lazuli files (TOML + curves), the readout
 peak (float64 everywhere; the measured agreement is ~2e-8, set by the rounded
 h c constant of the reference).  Skipped when ../shared/reference is absent.
 """
-import json
-
 import numpy as np
 import pytest
 
-from conftest import reference_dir
+from conftest import reference_case_ids, reference_target
 from slicersim.simulation import VARIANCE_SOURCES
-from slicersim.targets import LazuliTarget
 
 PEAK_TOL = 1e-6
 
-_ref = reference_dir()
-CASES = [c["case_id"] for c in json.load(open(_ref / "index.json"))["cases"]] if _ref else []
-
-
-def _load(refdir, case):
-    meta = json.load(open(refdir / "cases" / f"{case}.json"))
-    with np.load(refdir / "cases" / f"{case}.npz") as npz:
-        arrays = {k: npz[k] for k in npz.files}
-    return meta, arrays
-
-
-def _config(refdir, name):
-    cfg = [str(refdir / "config" / "lazuli_cbe.toml")]
-    if name == "eol":
-        cfg.append(str(refdir / "config" / "lazuli_eol.toml"))
-    return cfg
+pytestmark = pytest.mark.reference
+CASES = reference_case_ids()
 
 
 def assert_peak_close(name, got, ref, tol=PEAK_TOL, peak=None):
@@ -45,13 +28,10 @@ def assert_peak_close(name, got, ref, tol=PEAK_TOL, peak=None):
 
 
 @pytest.fixture(scope="module", params=CASES or ["none"])
-def solved(request, refdir):
-    meta, arrays = _load(refdir, request.param)
+def solved(request, refdir, reference_case):
+    meta, arrays = reference_case(request.param)
     inp = meta["inputs"]
-    target = LazuliTarget(arrays["input_lbda"], arrays["input_flux"], mag=inp["mag_passed_to_reference"],
-                          conventions="slicersim-1.0",
-                          band=inp.get("band", "bessellb"), config=_config(refdir, inp["configuration"]),
-                          field=inp["field"])
+    target = reference_target(refdir, meta, arrays, position=False)
     result = target.setup_to_snr(inp["snr_target_per_resolution_element"], lbda_range=inp["lbda_range_AA"],
                                  frame="obs", search="reference")
     return meta, arrays, target, result

@@ -6,12 +6,11 @@ saturated groups flagged in GROUPDQ are honoured (bright pixels stay unbiased).
 """
 import numpy as np
 import pytest
+import stcal.ramp_fitting.ramp_fit as stcal_fit          # a [test] dependency (pyproject): never skipped
+from stcal.ramp_fitting.ramp_fit_class import RampData
 
-from slicersim.products.ramps import simulate
 from slicersim.io.rampfile import read_ramps
-
-stcal_fit = pytest.importorskip("stcal.ramp_fitting.ramp_fit", reason="stcal not installed")
-from stcal.ramp_fitting.ramp_fit_class import RampData  # noqa: E402
+from slicersim.products.ramps import simulate
 
 JWST_DQ = {"GOOD": 0, "DO_NOT_USE": 1, "SATURATED": 2, "JUMP_DET": 4, "PERSISTENCE": 32,
            "CHARGELOSS": 128, "NO_GAIN_VALUE": 524288, "UNRELIABLE_SLOPE": 16777216}
