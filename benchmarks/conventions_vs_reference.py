@@ -163,6 +163,18 @@ def _sha256(path):
         return None
 
 
+def _git_state():
+    """HEAD commit of the repository and whether slicersim/ differs from it."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                              timeout=30).stdout.strip() or None
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "slicersim"], cwd=REPO,
+                               capture_output=True, text=True, timeout=30).stdout.strip()
+        return {"head": head, "slicersim_dirty": bool(dirty)}
+    except (OSError, subprocess.SubprocessError):
+        return {"head": None, "slicersim_dirty": None}
+
+
 def reference_dir():
     env = os.environ.get("SLICERSIM_REFERENCE_DIR")
     if env:
@@ -692,6 +704,7 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     load_start = _loadavg()
+    git_start = _git_state()
     t_start = time.perf_counter()
 
     cfg_file = reference_config_file()
@@ -770,6 +783,7 @@ def main(argv=None):
                     "python": sys.version.split()[0], "total_seconds": time.perf_counter() - t_start},
         "versions": {"ours": getattr(slicersim, "__version__", None),
                      "ours_module": str(Path(slicersim.__file__).resolve()),
+                     "ours_git_start": git_start, "ours_git_end": _git_state(),
                      "1.0.0": refs["1.0.0"].get("versions"), "1.4.2": refs["1.4.2"].get("versions")},
         "releases": {label: {k: v for k, v in doc.items() if k not in ("rows", "targets_input")}
                      for label, doc in refs.items()},
