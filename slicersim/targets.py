@@ -50,8 +50,13 @@ class Target:
     # ------------------------------------------------------------------ changes
     def change_configuration(self, config):
         """Switch to another configuration (``"cbe"``, ``"eol"``, TOML path(s)); keeps the readout."""
+        old = self.config, self.simulation
         self.config = config
-        self._build(keep_readout=True)
+        try:
+            self._build(keep_readout=True)
+        except Exception:       # a refused configuration leaves the old one in place
+            self.config, self.simulation = old
+            raise
 
     def change_field(self, field):
         self.field = check_field(field)
