@@ -64,7 +64,7 @@ class Simulation:
                  aperture_radius_insigma=10.0):
         self.scene, self.telescope = scene, telescope
         self.spectrograph, self.detector = spectrograph, detector
-        _, self.nramps = check_readout(detector.nmd, nramps, detector.min_group)
+        _, self.nramps = check_readout(detector.nmd, nramps, detector.min_group, detector.max_group)
         self.aperture_radius_insigma = float(aperture_radius_insigma)
         self._cache = {}
         self._check_overlap()
@@ -76,7 +76,8 @@ class Simulation:
         groups = {"telescope": {}, "spectrograph": {}, "detector": {}}
         for key, val in kwargs.items():
             if key == "nramps":
-                _, self.nramps = check_readout(self.detector.nmd, val, self.detector.min_group)
+                _, self.nramps = check_readout(self.detector.nmd, val, self.detector.min_group,
+                                               self.detector.max_group)
             elif key == "aperture_radius_insigma":
                 self.aperture_radius_insigma = float(val)
             elif key in self.detector.mutable_parameters:
@@ -87,8 +88,9 @@ class Simulation:
                 groups["telescope"][key] = val
             else:
                 raise ValueError(f"unknown simulation parameter {key!r}")
-        if "nmd" in groups["detector"]:
-            check_readout(groups["detector"]["nmd"], self.nramps, self.detector.min_group)
+        if "nmd" in groups["detector"] or "max_group" in groups["detector"]:
+            check_readout(groups["detector"].get("nmd", self.detector.nmd), self.nramps,
+                          self.detector.min_group, groups["detector"].get("max_group", self.detector.max_group))
         for name, params in groups.items():
             if params:
                 getattr(self, name).update(**params)
@@ -201,7 +203,7 @@ class Simulation:
     def _readout(self, nmd=None, nramps=None):
         nmd = self.detector.nmd if nmd is None else nmd
         nramps = self.nramps if nramps is None else nramps
-        return check_readout(nmd, nramps, self.detector.min_group)
+        return check_readout(nmd, nramps, self.detector.min_group, self.detector.max_group)
 
     def get_times(self, nmd=None, nramps=None):
         """Exposure, integration and group times [s] per ramp and total."""
@@ -336,6 +338,8 @@ class Simulation:
         if not mask.any():
             raise ValueError(f"band {lbda_range} Å contains no bin of the instrument grid "
                              f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
+        from slicersim.etc.bands import check_band_coverage  # validation helper (etc/ sits above)
+        check_band_coverage(self, lbda_range)
         return mask
 
     def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False):

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from slicersim.errors import ETCError, SpectrumError
+from slicersim.etc.bands import check_band_in_grid, warn_partial_spectrum
 from slicersim.etc.search import (candidate_readouts, check_reference_result,
                                   check_snr_target, exact_choice, limit_error, max_frames_for,
                                   reference_walk)
@@ -101,6 +102,8 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     if empty.any():
         raise ETCError(f"band of target(s) {np.nonzero(empty)[0][:10].tolist()} contains no "
                        f"instrument bin ({grid[0]:.0f}–{grid[-1]:.0f} Å)")
+    check_band_in_grid(ranges, spec.lbda_edges, who="batch")
+    warn_partial_spectrum(ranges, lbda[0], lbda[-1], who="batch")
     target = snr / math.sqrt(spec.dispersion_resolution) if per_resolution else snr.copy()
 
     psf = template_psf(sim)

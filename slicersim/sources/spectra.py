@@ -65,9 +65,9 @@ def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-1
     try:
         model = sncosmo.Model(source)
     except Exception as exc:
-        raise RuntimeError(f"sncosmo source {source!r} is not available offline ({exc}); "
-                           "'hsiao-subsampled' works without network, SALT models need "
-                           "sncosmo's data to be downloaded first") from exc
+        raise SpectrumError(f'sncosmo source "{source}" could not be loaded (needs download; offline?) '
+                            f"— available offline: {', '.join(k for k, v in SNCOSMO_SNIA_MODELS.items() if v)} "
+                            f"({type(exc).__name__}: {exc})") from exc
     params = {"z": redshift, "t0": 0.0}
     if "salt" in source:
         params.update(x1=x1, c=c)
