@@ -200,14 +200,22 @@ def test_failed_change_configuration_keeps_old(tmp_path):
 
 
 # --------------------------------------------------------------------------- 4. bands, max_group
-def test_band_partly_outside_grid_refused(sn):
+def test_band_mostly_outside_grid_refused(sn):
+    with pytest.raises(SpectrumError, match=r"only 25\.1 % inside the instrument grid"):
+        sn.setup_to_snr(20, lbda_range=(16000, 20000), frame="obs")
     with pytest.raises(SpectrumError, match=r"% inside the instrument grid"):
-        sn.setup_to_snr(20, lbda_range=(15000, 18000), frame="obs")
-    with pytest.raises(SpectrumError, match=r"% inside the instrument grid"):
-        sn.simulation.get_band_snr((3000, 5000))
+        sn.simulation.get_band_snr((1000, 4500))
     lb = np.linspace(3000, 20000, 300)
     with pytest.raises(SpectrumError, match=r"target\(s\) \[1\].*% inside the instrument grid"):
-        solve_many(lb, np.full((2, lb.size), 1e-17), 20, [[6000, 8000], [16000, 18000]])
+        solve_many(lb, np.full((2, lb.size), 1e-17), 20, [[6000, 8000], [16000, 20000]])
+
+
+def test_band_partly_outside_grid_warns(sn):
+    with pytest.warns(BandCoverageWarning, match=r"only 66\.9 % inside the instrument grid"):
+        sn.setup_to_snr(20, lbda_range=(15000, 18000), frame="obs")
+    lb = np.linspace(3000, 20000, 300)
+    with pytest.warns(BandCoverageWarning, match=r"target\(s\) \[1\].*66\.9 % inside the instrument grid"):
+        solve_many(lb, np.full((2, lb.size), 1e-17), 20, [[6000, 8000], [15000, 18000]])
 
 
 def test_band_partly_covered_by_spectrum_warns():
@@ -247,3 +255,9 @@ def test_offline_sncosmo_source_named():
     with pytest.raises(SpectrumError, match=r'sncosmo source "salt2" could not be loaded \(needs download; '
                                             r'offline\?\) — available offline: hsiao-subsampled'):
         LazuliSupernova(1.0, source="salt2")
+
+
+def test_reference_walk_beyond_max_group_refused():
+    with pytest.raises(ETCError, match=r"readout \(70, 8, 0\), beyond max_group = 64"):
+        S.check_reference_result(20.0, (8000, 9000), 13.0, 13.1, 100.0, 2.83, nmd=(70, 8, 0), max_group=64)
+    S.check_reference_result(20.0, (8000, 9000), 13.0, 13.1, 100.0, 2.83, nmd=(64, 8, 0), max_group=64)

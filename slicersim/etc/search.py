@@ -275,11 +275,17 @@ def limit_error(snr, lbda_range, tframe, what="exceeds", exposure=None):
                     f"{MAX_RAMPS} ramps{got}")
 
 
-def check_reference_result(snr, lbda_range, target, reached, exposure_time, tframe, tol=0.5):
+def check_reference_result(snr, lbda_range, target, reached, exposure_time, tframe, tol=0.5,
+                           nmd=None, max_group=None):
     """Refuse the end of a reference walk beyond :data:`MAX_TOTAL_EXPOSURE`, or below the
     target by more than its tolerance ``tol`` plus :data:`REFERENCE_SHORTFALL` × target
     (the slicersim 1.0 walk stops up to ~5 % short on the public reference cases, which
-    must keep reproducing)."""
+    must keep reproducing).  A walk ending at n > ``max_group`` raises too."""
+    if nmd is not None and max_group and nmd[0] > max_group:
+        lo, hi = (float(v) for v in lbda_range)
+        raise ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å: the reference walk ends at "
+                       f"readout {tuple(int(v) for v in nmd)}, beyond max_group = {max_group} "
+                       "(use search='exact')")
     if not np.isfinite(reached) or reached < target * (1 - REFERENCE_SHORTFALL) - tol:
         lo, hi = (float(v) for v in lbda_range)
         if exposure_time > MAX_TOTAL_EXPOSURE or not np.isfinite(reached):
@@ -312,6 +318,9 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
         def snr_of(n, m, d, r):
             key = (n, m, d)
             if key not in memo:
+                if det.max_group and n > det.max_group:   # the 1.0 walk on n has no upper bound
+                    check_reference_result(snr, lbda_range, target, np.inf, 0.0, det.tframe,
+                                           nmd=key, max_group=det.max_group)
                 memo[key] = sim.get_band_snr(lbda_range, nmd=key, nramps=1)
             return memo[key] * math.sqrt(r)
         nmd, nramps, reached, trace = reference_walk(snr_of, target, det.max_group or 64, det.nmd[2])

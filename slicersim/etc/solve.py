@@ -170,7 +170,8 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
             nmd, r, s, _ = reference_walk(snr_of, target[t], det.max_group or 64, det.nmd[2])
             try:
                 check_reference_result(snr[t], ranges[t], target[t], s,
-                                       r * (nmd[0] * (nmd[1] + nmd[2]) - nmd[2]) * det.tframe, det.tframe)
+                                       r * (nmd[0] * (nmd[1] + nmd[2]) - nmd[2]) * det.tframe, det.tframe,
+                                       nmd=nmd, max_group=det.max_group)
             except ETCError as exc:
                 raise ETCError(f"target {t}: {exc}") from None
             rows["n"][t], rows["m"][t], rows["d"][t] = nmd
