@@ -261,3 +261,12 @@ def test_reference_walk_beyond_max_group_refused():
     with pytest.raises(ETCError, match=r"readout \(70, 8, 0\), beyond max_group = 64"):
         S.check_reference_result(20.0, (8000, 9000), 13.0, 13.1, 100.0, 2.83, nmd=(70, 8, 0), max_group=64)
     S.check_reference_result(20.0, (8000, 9000), 13.0, 13.1, 100.0, 2.83, nmd=(64, 8, 0), max_group=64)
+
+
+def test_nan_position_psf_parameter_error():
+    # NumPy Gaussian PSF paths (the OpenCL cube builder, products/cube.py, is not covered here)
+    tgt = LazuliSupernova(1.0, position=(np.nan, 0.0))
+    with pytest.raises(ParameterError, match="position must be finite"):
+        tgt.simulation.get_psf()
+    with pytest.raises(ParameterError, match="position must be finite"):
+        tgt.simulation.get_cube(backend="numpy")

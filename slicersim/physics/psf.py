@@ -68,7 +68,7 @@ def gaussian_psf_fractions(sig_y, sig_x, shape, position=(0.0, 0.0)):
     position : (x0, y0) source position [cells] relative to the field centre
     """
     ny, nx = shape
-    x0, y0 = position
+    x0, y0 = check_position(position)
     fy = _erf_cell_fractions(cell_edges(ny), y0, sig_y)
     fx = _erf_cell_fractions(cell_edges(nx), x0, sig_x)
     return fy[:, :, None] * fx[:, None, :]
@@ -77,11 +77,22 @@ def gaussian_psf_fractions(sig_y, sig_x, shape, position=(0.0, 0.0)):
 def gaussian_psf_cells(sig_y, sig_x, shape, position, cells):
     """P restricted to a list of cells: (nλ, ncell) for ``cells`` = (iy, ix) index arrays."""
     ny, nx = shape
-    x0, y0 = position
+    x0, y0 = check_position(position)
     fy = _erf_cell_fractions(cell_edges(ny), y0, sig_y)
     fx = _erf_cell_fractions(cell_edges(nx), x0, sig_x)
     iy, ix = cells
     return fy[:, iy] * fx[:, ix]
+
+
+def check_position(position):
+    """(x0, y0) as finite floats, else :class:`~slicersim.errors.ParameterError`."""
+    try:
+        x0, y0 = (float(v) for v in position)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"point-source position must be (x, y) in cells, got {position!r}") from exc
+    if not (np.isfinite(x0) and np.isfinite(y0)):
+        raise ParameterError(f"point-source position must be finite, got ({x0}, {y0}) cells")
+    return x0, y0
 
 
 def check_aperture(shape, position, radius):
