@@ -79,7 +79,7 @@ class Simulation(Versioned):
         self._conventions = check_conventions(conventions)
         self.scene, self.telescope = scene, telescope
         self.spectrograph, self.detector = spectrograph, detector
-        _, self.nramps = check_readout(detector.nmd, nramps, detector.min_group)
+        _, self.nramps = check_readout(detector.nmd, nramps, detector.min_group, detector.max_group)
         self.aperture_radius_insigma = _check_aperture(aperture_radius_insigma)
         self.redshift = redshift
         self._cache = {}
@@ -129,7 +129,7 @@ class Simulation(Versioned):
                 groups[name][key] = val
         new = {name: getattr(self, name).updated(**params) for name, params in groups.items() if params}
         det = new.get("detector", self.detector)
-        _, nramps = check_readout(det.nmd, own.get("nramps", self.nramps), det.min_group)
+        _, nramps = check_readout(det.nmd, own.get("nramps", self.nramps), det.min_group, det.max_group)
         aperture = _check_aperture(own.get("aperture_radius_insigma", self.aperture_radius_insigma))
         spec = new.get("spectrograph", self.spectrograph)
         self._check_overlap(spec.lbda)
@@ -250,7 +250,7 @@ class Simulation(Versioned):
     def _readout(self, nmd=None, nramps=None):
         nmd = self.detector.nmd if nmd is None else nmd
         nramps = self.nramps if nramps is None else nramps
-        return check_readout(nmd, nramps, self.detector.min_group)
+        return check_readout(nmd, nramps, self.detector.min_group, self.detector.max_group)
 
     def get_times(self, nmd=None, nramps=None):
         """Exposure, integration and group times [s] per ramp and total."""
@@ -380,6 +380,8 @@ class Simulation(Versioned):
         if not mask.any():
             raise ValueError(f"band {lbda_range} Å contains no bin of the instrument grid "
                              f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
+        from slicersim.etc.bands import check_band_coverage  # validation helper (etc/ sits above)
+        check_band_coverage(self, lbda_range)
         return mask
 
     def band_range(self, lbda_range, frame="obs"):

@@ -370,6 +370,7 @@ class Target:
         saturation) come from the configuration.  Returns SCI or writes ``out`` (HDF5)."""
         from slicersim.products.ramps import simulate
         sim, det = self.simulation, self.simulation.detector
+        check_readout(nmd or det.nmd, nramps or sim.nramps, det.min_group, det.max_group)
         image = self.get_detector_image(mapper, backend=backend)
         params = dict(tframe=det.tframe, ron=det.ron, dark=det.dark, thermal_dark=sim.thermal_dark,
                       roic_glow=det.roic_glow, gain=det.gain,

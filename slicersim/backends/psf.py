@@ -66,6 +66,7 @@ from scipy.special import j1
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, chunk_ranges, resolve_backend
 from slicersim.constants import AIRY_RHO, ARCSEC
+from slicersim.errors import ParameterError
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_wavenumber, blur_bin_taps,
                            blur_margin, cell_quadrature, gaussian_psf_cells, gaussian_psf_fractions,
                            gaussian_psf_sigmas, jinc, midpoint_oversampling)
@@ -259,7 +260,7 @@ def _check(lbda, shape, position, profile, grid):
         raise ValueError(f"shape must be two positive integers, got {shape}")
     x0, y0 = (float(p) for p in position)
     if not (np.isfinite(x0) and np.isfinite(y0)):
-        raise ValueError(f"position must be finite, got {position}")
+        raise ParameterError(f"point-source position must be finite, got {position}")
     return lbda, (ny, nx), (x0, y0)
 
 

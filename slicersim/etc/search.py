@@ -20,10 +20,18 @@ import numpy as np
 from slicersim.etc.snr_table import band_snr_table_for_models, sim_band_indices
 from slicersim.physics.readout import readout_times
 
-__all__ = ["solve_readout", "reference_walk", "exact_choice", "ETCError", "FRAMES_PER_GROUP"]
+__all__ = ["solve_readout", "reference_walk", "exact_choice", "ETCError", "FRAMES_PER_GROUP",
+           "MAX_TOTAL_EXPOSURE", "MAX_RAMPS"]
 
 #: frames per group allowed by the exact search (MACC modes of the H4RG ROIC)
 FRAMES_PER_GROUP = (8, 4, 1)
+#: longest total exposure [s] the ETC returns (1 Julian year); longer requests raise ETCError
+MAX_TOTAL_EXPOSURE = 365.25 * 86400.0
+#: most ramps the ETC returns (keeps ramps × frames exact in int64); more raise ETCError
+MAX_RAMPS = 10**9
+#: relative shortfall (beyond the walk's absolute tolerance 0.5) accepted at the end of the
+#: reference walk; a walk ending lower raises ETCError
+REFERENCE_SHORTFALL = 0.10
 
 
 
@@ -116,7 +124,7 @@ def candidate_readouts(min_group, max_group, d=0, frames_per_group=FRAMES_PER_GR
     return n, m, np.full_like(n, d)
 
 
-def exact_choice(snr1, n, m, d, target, max_extra_ramps=None):
+def exact_choice(snr1, n, m, d, target, max_extra_ramps=None, max_frames=None):
     """Choose the minimal-exposure readout from single-ramp SNRs.
 
     Parameters
@@ -124,22 +132,101 @@ def exact_choice(snr1, n, m, d, target, max_extra_ramps=None):
     snr1 : (N, K) band SNR per bin of one ramp for each target and candidate
     n, m, d : (K,) candidate readouts (m-major blocks of increasing n)
     target : (N,) target SNR per bin
+    max_extra_ramps : int, optional
+        ramps r are searched in [rmin, 2 rmin + max_extra_ramps] (default 10), rmin the
+        fewest ramps any candidate needs
+    max_frames : float, optional
+        largest total number of frames (nramps × frames per ramp) accepted; a target
+        whose best readout needs more gets n = 0 and ``limited`` = True.  Default
+        :data:`MAX_RAMPS` × the longest candidate ramp (keeps the integers exact).
 
     Returns
     -------
-    dict of (N,) arrays: n, m, d, nramps, nframes (total frames), snr
-    (n = 0 where no readout reaches the target).
+    dict of (N,) arrays: n, m, d, nramps, nframes (total frames), snr, limited
+    (n = 0 where no readout reaches the target; ``limited`` where one would, but
+    beyond ``max_frames`` / :data:`MAX_RAMPS`).
+
+    The cost does not depend on the number of ramps: for each candidate k the fewest
+    ramps r_k with snr1_k √r_k ≥ target is found in closed form (then corrected by
+    ±1 with the exact float test of the former loop over r), and the candidate with
+    the smallest (total frames, ramps, groups) is kept -- the same choice as the
+    former loop over r (kept as :func:`exact_choice_loop` for reference).
     """
     snr1 = np.atleast_2d(np.asarray(snr1, dtype=float))
     target = np.broadcast_to(np.asarray(target, dtype=float), snr1.shape[:1])
+    n, m, d = (np.asarray(a) for a in (n, m, d))
+    ntarget, ncand = snr1.shape
+    frames = (n * (m + d) - d).astype(np.int64)              # frames per ramp per candidate
+    clean = np.where(np.isfinite(snr1), snr1, -np.inf)
+    best_snr1 = clean.max(axis=1) if ncand else np.full(ntarget, -np.inf)
+    out = {k: np.zeros(ntarget, dtype=int) for k in ("n", "m", "d", "nramps", "nframes")}
+    out["snr"] = np.full(ntarget, np.nan)
+    out["limited"] = np.zeros(ntarget, dtype=bool)
+    if ntarget == 0 or ncand == 0:
+        return out
+    rmax_extra = 10 if max_extra_ramps is None else max_extra_ramps
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        rmin = np.ceil((target / best_snr1) ** 2 * (1 - 1e-12))
+        rmin = np.where(best_snr1 > 0, np.maximum(rmin, 1), np.inf)
+        # closed-form fewest ramps per candidate (float), then exact integer correction
+        rk = np.ceil((target[:, None] / clean) ** 2 * (1 - 1e-12))
+    rk = np.where(clean > 0, np.maximum(rk, rmin[:, None]), np.inf)
+    rk = np.where(np.isfinite(rk), rk, np.inf)
+    # beyond MAX_RAMPS the integers are not exact any more: such a candidate is "limited"
+    reachable = np.isfinite(rk) & (rk <= MAX_RAMPS)
+    r = np.where(reachable, rk, 1).astype(np.int64)
+    t2 = target[:, None]
+
+    def feasible(rr):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return clean >= t2 / np.sqrt(rr.astype(float))
+    for _ in range(4):                                      # r_k too small: step up
+        up = reachable & ~feasible(r)
+        if not up.any():
+            break
+        r = np.where(up, r + 1, r)
+    for _ in range(4):                                      # r_k - 1 still reaches: step down
+        prev = np.maximum(r - 1, 1)
+        down = reachable & (r - 1 >= rmin[:, None]) & feasible(prev)
+        if not down.any():
+            break
+        r = np.where(down, prev, r)
+    ok = reachable & feasible(r) & (r >= rmin[:, None])
+    within = ok & (r <= 2 * rmin[:, None] + rmax_extra)
+    big = np.iinfo(np.int64).max
+    tot = np.where(within, r * frames[None, :], big)
+    # lexicographic minimum of (total frames, ramps, groups) per target
+    rr = np.where(within, r, big)
+    nn = np.broadcast_to(n, tot.shape)
+    first = np.lexsort((nn, rr, tot), axis=-1)[:, 0]
+    best = np.where(within.any(axis=1), first, -1)
+    limit = (MAX_RAMPS * int(frames.max())) if max_frames is None else max_frames
+    found = best >= 0
+    rows = np.nonzero(found)[0]
+    kk = best[rows]
+    over = np.zeros(ntarget, dtype=bool)
+    over[rows] = tot[rows, kk] > limit
+    # a target with signal whose best readout is off-limits (or needs more than MAX_RAMPS)
+    out["limited"] = (best_snr1 > 0) & (over | ~found)
+    keep = rows[~over[rows]]
+    kk = best[keep]
+    out["n"][keep], out["m"][keep], out["d"][keep] = n[kk], m[kk], d[kk]
+    out["nramps"][keep], out["nframes"][keep] = r[keep, kk], tot[keep, kk]
+    out["snr"][keep] = clean[keep, kk] * np.sqrt(r[keep, kk].astype(float))
+    return out
+
+
+def exact_choice_loop(snr1, n, m, d, target, max_extra_ramps=None):
+    """The former loop over ramps r (cost ∝ r; kept to test :func:`exact_choice` against)."""
+    snr1 = np.atleast_2d(np.asarray(snr1, dtype=float))
+    target = np.broadcast_to(np.asarray(target, dtype=float), snr1.shape[:1])
     ntarget = snr1.shape[0]
-    frames = n * (m + d) - d                               # frames per ramp per candidate
+    frames = n * (m + d) - d
     clean = np.where(np.isfinite(snr1), snr1, -np.inf)
     best_snr1 = clean.max(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         rmin = np.ceil((target / best_snr1) ** 2 * (1 - 1e-12))
     rmin = np.where(best_snr1 > 0, np.maximum(rmin, 1), np.inf)
-    # feasible ramps r ≥ rmin; beyond 2 rmin + 10 extra ramps only add read noise
     rmax_extra = 10 if max_extra_ramps is None else max_extra_ramps
     out = {k: np.zeros(ntarget, dtype=int) for k in ("n", "m", "d", "nramps", "nframes")}
     out["snr"] = np.full(ntarget, np.nan)
@@ -149,8 +236,6 @@ def exact_choice(snr1, n, m, d, target, max_extra_ramps=None):
         return out
     r_lo = int(rmin[finite_r].min())
     r_hi = int(np.max(2 * rmin[finite_r] + rmax_extra))
-    # candidates are grouped in blocks of equal (m, d): cumulative max makes the
-    # first-reaching n findable by counting (monotone even if SNR(n) is not)
     blocks = [np.nonzero((m == mm) & (d == dd))[0] for mm, dd in dict.fromkeys(zip(m, d))]
     for r in range(r_lo, r_hi + 1):
         need = target / math.sqrt(r)
@@ -158,12 +243,11 @@ def exact_choice(snr1, n, m, d, target, max_extra_ramps=None):
         if not active.any():
             continue
         for blk in blocks:
-            cm = np.maximum.accumulate(clean[:, blk], axis=1)          # (N, nb)
-            idx = np.sum(cm < need[:, None], axis=1)                   # first index reaching
+            cm = np.maximum.accumulate(clean[:, blk], axis=1)
+            idx = np.sum(cm < need[:, None], axis=1)
             ok = active & (idx < blk.size)
             kk = blk[np.minimum(idx, blk.size - 1)]
             tot = r * frames[kk]
-            # ordering key: total frames, then fewer ramps, then fewer groups
             key = (tot.astype(np.int64) * 100000 + r) * 1000 + n[kk]
             better = ok & (key < best_key)
             if better.any():
@@ -172,6 +256,46 @@ def exact_choice(snr1, n, m, d, target, max_extra_ramps=None):
                 out["nramps"][better], out["nframes"][better] = r, tot[better]
                 out["snr"][better] = clean[better, kk[better]] * math.sqrt(r)
     return out
+
+
+def max_frames_for(tframe, max_exposure=None):
+    """Largest total number of frames of an exposure of at most ``max_exposure`` s
+    (default :data:`MAX_TOTAL_EXPOSURE`) with frames of ``tframe`` s."""
+    max_exposure = MAX_TOTAL_EXPOSURE if max_exposure is None else max_exposure
+    return math.floor(max_exposure / tframe)
+
+
+def limit_error(snr, lbda_range, tframe, what="exceeds", exposure=None):
+    """ETCError for a target beyond :data:`MAX_TOTAL_EXPOSURE` / :data:`MAX_RAMPS`."""
+    lo, hi = (float(v) for v in lbda_range)
+    got = f" (the search ends at {exposure:.3g} s)" if exposure is not None else ""
+    return ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å {what} the exposure limit: "
+                    f"it needs more than MAX_TOTAL_EXPOSURE = {MAX_TOTAL_EXPOSURE:.4g} s (1 year; "
+                    f"{max_frames_for(tframe)} frames of {tframe} s) or more than MAX_RAMPS = "
+                    f"{MAX_RAMPS} ramps{got}")
+
+
+def check_reference_result(snr, lbda_range, target, reached, exposure_time, tframe, tol=0.5,
+                           nmd=None, max_group=None):
+    """Refuse the end of a reference walk beyond :data:`MAX_TOTAL_EXPOSURE`, or below the
+    target by more than its tolerance ``tol`` plus :data:`REFERENCE_SHORTFALL` × target
+    (the slicersim 1.0 walk stops up to ~5 % short on the public reference cases, which
+    must keep reproducing).  A walk ending at n > ``max_group`` raises too."""
+    if nmd is not None and max_group and nmd[0] > max_group:
+        lo, hi = (float(v) for v in lbda_range)
+        raise ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å: the reference walk ends at "
+                       f"readout {tuple(int(v) for v in nmd)}, beyond max_group = {max_group} "
+                       "(use search='exact')")
+    if not np.isfinite(reached) or reached < target * (1 - REFERENCE_SHORTFALL) - tol:
+        lo, hi = (float(v) for v in lbda_range)
+        if exposure_time > MAX_TOTAL_EXPOSURE or not np.isfinite(reached):
+            raise limit_error(snr, lbda_range, tframe, "cannot be reached within", exposure_time)
+        raise ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å: the reference walk ends "
+                       f"at SNR {reached:.6g} per bin, below the target {target:.6g} by more than its "
+                       f"tolerance {tol} (after {exposure_time:.3g} s; limit MAX_TOTAL_EXPOSURE = "
+                       f"{MAX_TOTAL_EXPOSURE:.4g} s)")
+    if exposure_time > MAX_TOTAL_EXPOSURE:
+        raise limit_error(snr, lbda_range, tframe, "exceeds", exposure_time)
 
 
 # --------------------------------------------------------------------------- #
@@ -194,14 +318,21 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
         def snr_of(n, m, d, r):
             key = (n, m, d)
             if key not in memo:
+                if det.max_group and n > det.max_group:   # the 1.0 walk on n has no upper bound
+                    check_reference_result(snr, lbda_range, target, np.inf, 0.0, det.tframe,
+                                           nmd=key, max_group=det.max_group)
                 memo[key] = sim.get_band_snr(lbda_range, nmd=key, nramps=1)
             return memo[key] * math.sqrt(r)
         nmd, nramps, reached, trace = reference_walk(snr_of, target, det.max_group or 64, det.nmd[2])
+        check_reference_result(snr, lbda_range, target, reached,
+                               nramps * readout_times(nmd, det.tframe)["exposure_time"], det.tframe)
     elif search == "exact":
         n, m, d = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
         band = sim_band_indices(mask)[None, :]
         snr1 = band_snr_table_for_models(sim, [sim.extraction_model], band, (n, m, d), backend=backend)
-        choice = exact_choice(snr1, n, m, d, np.array([target]))
+        choice = exact_choice(snr1, n, m, d, np.array([target]), max_frames=max_frames_for(det.tframe))
+        if choice["limited"][0]:
+            raise limit_error(snr, lbda_range, det.tframe)
         if choice["n"][0] == 0:
             raise ETCError(f"target SNR {snr} cannot be reached in {lbda_range} Å "
                            "(no signal in the band?)")

@@ -15,7 +15,10 @@ import numpy as np
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES
 from slicersim.errors import ETCError, SpectrumError
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS
-from slicersim.etc.search import candidate_readouts, check_snr_target, exact_choice, reference_walk
+from slicersim.etc.bands import check_band_in_grid, warn_partial_spectrum
+from slicersim.etc.search import (candidate_readouts, check_reference_result,
+                                  check_snr_target, exact_choice, limit_error, max_frames_for,
+                                  reference_walk)
 from slicersim.etc.snr_table import band_snr_table_for_models, template_psf
 
 __all__ = ["solve_many"]
@@ -102,6 +105,8 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     if empty.any():
         raise ETCError(f"band of target(s) {np.nonzero(empty)[0][:10].tolist()} contains no "
                        f"instrument bin ({grid[0]:.0f}–{grid[-1]:.0f} Å)")
+    check_band_in_grid(ranges, spec.lbda_edges, who="batch")
+    warn_partial_spectrum(ranges, lbda[0], lbda[-1], who="batch")
     target = snr / math.sqrt(spec.dispersion_resolution) if per_resolution else snr.copy()
 
     psf = template_psf(sim)
@@ -140,7 +145,11 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
         snr1 = band_snr_table_for_models(sim, (Q, signal_rate), sub_band, cand, backend=backend,
                                          psf2=psf2[lo:hi])
         if search == "exact":
-            choice = exact_choice(snr1, *cand, target[t0:t1])
+            choice = exact_choice(snr1, *cand, target[t0:t1], max_frames=max_frames_for(det.tframe))
+            if choice["limited"].any():
+                t = t0 + int(np.nonzero(choice["limited"])[0][0])
+                err = limit_error(snr[t], ranges[t], det.tframe)
+                raise ETCError(f"target {t}: {err}")
             for key in rows:
                 rows[key][t0:t1] = choice[key]
             reached[t0:t1] = choice["snr"]
@@ -162,6 +171,12 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
                         one, backend="numpy", psf2=psf2[lo:hi])[0, 0]
                 return extra[key] * math.sqrt(r)
             nmd, r, s, _ = reference_walk(snr_of, target[t], det.max_group or 64, det.nmd[2])
+            try:
+                check_reference_result(snr[t], ranges[t], target[t], s,
+                                       r * (nmd[0] * (nmd[1] + nmd[2]) - nmd[2]) * det.tframe, det.tframe,
+                                       nmd=nmd, max_group=det.max_group)
+            except ETCError as exc:
+                raise ETCError(f"target {t}: {exc}") from None
             rows["n"][t], rows["m"][t], rows["d"][t] = nmd
             rows["nramps"][t], reached[t] = r, s
     failed = rows["n"] == 0

@@ -13,9 +13,12 @@ from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
 import copy
 import os
 import tomllib
+from functools import lru_cache
 from importlib import resources
 
-__all__ = ["load_config", "ConfigError", "builtin_config_dir", "SCHEMA"]
+import numpy as np
+
+__all__ = ["load_config", "validate_config", "ConfigError", "builtin_config_dir", "SCHEMA"]
 
 
 
@@ -130,11 +133,152 @@ def load_config(config="cbe"):
     the ``"_sources"`` entry lists the files read.
     """
     if isinstance(config, dict):
-        return copy.deepcopy(config)
+        return validate_config(copy.deepcopy(config))
     merged = {}
     paths = expand_config(config)
     for path in paths:
         for table, entries in _read_toml(path).items():
             merged.setdefault(table, {}).update(entries)
     merged["_sources"] = [os.path.abspath(p) for p in paths]
-    return merged
+    return validate_config(merged)
+
+
+# --------------------------------------------------------------------------- #
+#  physical validation of the merged configuration                            #
+# --------------------------------------------------------------------------- #
+def _bad(table, key, value, reason):
+    return ConfigError(f"[{table}] {key} = {value!r}: {reason}")
+
+
+def _numbers(table, key, value):
+    """Flat float array of a scalar or (nested) list value; ConfigError if not numeric."""
+    try:
+        arr = np.asarray(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise _bad(table, key, value, "must be a number or a list of numbers") from None
+    if arr.size == 0:
+        raise _bad(table, key, value, "must not be empty")
+    return arr
+
+
+def _check_range(cfg, table, key, lo=None, hi=None, lo_open=False, finite=True, integer=False):
+    entries = cfg.get(table, {})
+    if not isinstance(entries, dict) or key not in entries or entries[key] is None:
+        return
+    value = entries[key]
+    if isinstance(value, bool):
+        raise _bad(table, key, value, "must be a number")
+    arr = _numbers(table, key, value)
+    if np.any(np.isnan(arr)) or (finite and not np.all(np.isfinite(arr))):
+        raise _bad(table, key, value, "must be finite")
+    if integer and np.any(arr != np.round(arr)):
+        raise _bad(table, key, value, "must be an integer")
+    if lo is not None:
+        if lo_open and np.any(arr <= lo):
+            raise _bad(table, key, value, f"must be > {lo:g}")
+        if not lo_open and np.any(arr < lo):
+            raise _bad(table, key, value, f"must be ≥ {lo:g}")
+    if hi is not None and np.any(arr > hi):
+        raise _bad(table, key, value, f"must be ≤ {hi:g}")
+
+
+@lru_cache(maxsize=64)
+def _curve_values(path, mtime):
+    from slicersim.io.curves import CurveError, read_curve
+    try:
+        _, cols = read_curve(path)
+    except CurveError as exc:
+        raise ConfigError(str(exc)) from exc
+    return {name: (float(np.min(v)), float(np.max(v)), bool(np.all(np.isfinite(v))))
+            for name, v in cols.items()}
+
+
+def _check_fraction(cfg, table, key, what):
+    """Scalar in [0, 1], or a curve file whose every value column lies in [0, 1]."""
+    entries = cfg.get(table, {})
+    if not isinstance(entries, dict) or key not in entries or entries[key] is None:
+        return
+    value = entries[key]
+    if isinstance(value, (str, os.PathLike)):
+        path = os.fspath(value)
+        if not os.path.isfile(path):
+            raise _bad(table, key, value, "curve file not found")
+        for col, (vmin, vmax, finite) in _curve_values(path, os.path.getmtime(path)).items():
+            if not finite:
+                raise _bad(table, key, value, f"{what} column {col!r} of the curve file has NaN/inf values")
+            if vmin < 0 or vmax > 1:
+                raise _bad(table, key, value, f"{what} column {col!r} of the curve file spans "
+                                              f"{vmin:g}–{vmax:g}, must lie in [0, 1]")
+        return
+    if isinstance(value, (list, tuple)) and len(value) == 2 and np.ndim(value[0]) == 1:
+        arr = _numbers(table, key, value[1])          # (lbda, values) pair
+    else:
+        arr = _numbers(table, key, value)
+    if not np.all(np.isfinite(arr)):
+        raise _bad(table, key, value, f"{what} must be finite")
+    if np.any(arr < 0) or np.any(arr > 1):
+        raise _bad(table, key, value, f"{what} must lie in [0, 1]")
+
+
+def validate_config(cfg):
+    """Refuse physically invalid values of a merged configuration (returned unchanged).
+
+    Raises :class:`ConfigError` ``"[table] key = value: reason"`` for: emissivities
+    outside [0, 1]; negative temperatures; throughput or QE outside [0, 1] (scalars and
+    every value of their curve files); saturation ≤ 0; tframe ≤ 0 or not finite; a
+    detector shape that is not two integers ≥ 1; negative dark, ron, roic_glow (or
+    full_well, when given); gain ≤ 0; bias ≥ saturation (when given); diameter_ext ≤ 0;
+    diameter_int < 0 or ≥ diameter_ext; aperture_radius_insigma ≤ 0; nramps < 1;
+    min_group < 2, max_group < min_group, readout_mode n > max_group.
+    """
+    for table, key in (("telescope", "emissivity"), ("spectrograph.optics", "emissivity")):
+        _check_range(cfg, table, key, 0.0, 1.0)
+    for table in ("telescope", "spectrograph.optics"):
+        _check_range(cfg, table, "temperature", 0.0)
+        _check_range(cfg, table, "nelements", 0.0, integer=True)
+    tel = cfg.get("telescope", {})
+    _check_range(cfg, "telescope", "diameter_ext", 0.0, lo_open=True)
+    _check_range(cfg, "telescope", "diameter_int", 0.0)
+    if "diameter_int" in tel and tel.get("diameter_int") is not None:
+        dext = tel.get("diameter_ext", 3.0)
+        if float(tel["diameter_int"]) >= float(dext):
+            raise _bad("telescope", "diameter_int", tel["diameter_int"],
+                       f"must be smaller than diameter_ext = {dext!r}")
+    _check_fraction(cfg, "spectrograph.throughput", "throughput", "throughput")
+    _check_fraction(cfg, "detector", "QE", "QE")
+    _check_range(cfg, "spectrograph", "spatial_scale", 0.0, lo_open=True)
+    _check_range(cfg, "spectrograph", "dispersion_resolution", 0.0, lo_open=True)
+    _check_range(cfg, "spectrograph.psf.spatial", "guiding_sigma", 0.0)
+    det = cfg.get("detector", {})
+    _check_range(cfg, "detector", "saturation", 0.0, lo_open=True, finite=False)
+    _check_range(cfg, "detector", "tframe", 0.0, lo_open=True)
+    _check_range(cfg, "detector", "gain", 0.0, lo_open=True)
+    _check_range(cfg, "detector", "pixel_size", 0.0, lo_open=True)
+    for key in ("dark", "ron", "roic_glow", "full_well"):
+        _check_range(cfg, "detector", key, 0.0)
+    if "shape" in det:
+        shape = det["shape"]
+        if (not isinstance(shape, (list, tuple)) or len(shape) != 2
+                or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
+                           for v in shape)):
+            raise _bad("detector", "shape", shape, "must be two integers ≥ 1 (ny, nx)")
+    if det.get("bias") is not None:
+        sat = det.get("saturation", 65535)
+        if float(det["bias"]) >= float(sat):
+            raise _bad("detector", "bias", det["bias"], f"must be below saturation = {sat!r}")
+    _check_range(cfg, "detector", "min_group", 2.0, integer=True)
+    _check_range(cfg, "detector", "max_group", 2.0, integer=True)
+    min_group, max_group = det.get("min_group", 2), det.get("max_group", 64)
+    if max_group and min_group and max_group < min_group:
+        raise _bad("detector", "max_group", max_group, f"must be ≥ min_group = {min_group!r}")
+    mode = det.get("readout_mode")
+    if mode is not None and max_group:
+        try:
+            n = int(list(mode)[0])
+        except (TypeError, ValueError, IndexError):
+            raise _bad("detector", "readout_mode", mode, "must be (n, m, d) integers") from None
+        if n > max_group:
+            raise _bad("detector", "readout_mode", mode, f"n = {n} exceeds max_group = {max_group!r}")
+    _check_range(cfg, "extraction", "aperture_radius_insigma", 0.0, lo_open=True)
+    _check_range(cfg, "extraction", "nramps", 1.0, integer=True)
+    return cfg

@@ -15,8 +15,9 @@ import numpy as np
 from scipy.special import erf, j0, j1, roots_legendre
 
 from slicersim.constants import ARCSEC
+from slicersim.errors import ParameterError
 
-__all__ = ["gaussian_psf_sigmas", "gaussian_psf_fractions", "cell_centres", "aperture_cells",
+__all__ = ["gaussian_psf_sigmas", "gaussian_psf_fractions", "cell_centres", "aperture_cells", "check_aperture",
            "airy_wavenumber", "jinc", "airy_intensity", "airy_encircled_energy",
            "airy_rectangle_fraction", "cell_quadrature", "blur_margin", "blur_bin_taps",
            "midpoint_oversampling"]
@@ -67,7 +68,7 @@ def gaussian_psf_fractions(sig_y, sig_x, shape, position=(0.0, 0.0)):
     position : (x0, y0) source position [cells] relative to the field centre
     """
     ny, nx = shape
-    x0, y0 = position
+    x0, y0 = check_position(position)
     fy = _erf_cell_fractions(cell_edges(ny), y0, sig_y)
     fx = _erf_cell_fractions(cell_edges(nx), x0, sig_x)
     return fy[:, :, None] * fx[:, None, :]
@@ -76,19 +77,64 @@ def gaussian_psf_fractions(sig_y, sig_x, shape, position=(0.0, 0.0)):
 def gaussian_psf_cells(sig_y, sig_x, shape, position, cells):
     """P restricted to a list of cells: (nλ, ncell) for ``cells`` = (iy, ix) index arrays."""
     ny, nx = shape
-    x0, y0 = position
+    x0, y0 = check_position(position)
     fy = _erf_cell_fractions(cell_edges(ny), y0, sig_y)
     fx = _erf_cell_fractions(cell_edges(nx), x0, sig_x)
     iy, ix = cells
     return fy[:, iy] * fx[:, ix]
 
 
+def check_position(position):
+    """(x0, y0) as finite floats, else :class:`~slicersim.errors.ParameterError`."""
+    try:
+        x0, y0 = (float(v) for v in position)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"point-source position must be (x, y) in cells, got {position!r}") from exc
+    if not (np.isfinite(x0) and np.isfinite(y0)):
+        raise ParameterError(f"point-source position must be finite, got ({x0}, {y0}) cells")
+    return x0, y0
+
+
+def check_aperture(shape, position, radius):
+    """Validate an extraction aperture before anything is computed with it (same error on
+    every backend): ``position`` (x, y) [cells] finite and inside the field, ``radius``
+    [cells] finite and > 0.  Returns ((x0, y0), radius) as floats.
+
+    Raises :class:`~slicersim.errors.ParameterError`.
+    """
+    ny, nx = (int(v) for v in shape)
+    try:
+        x0, y0 = (float(v) for v in position)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"point-source position must be (x, y) in cells, got {position!r}") from exc
+    if not (np.isfinite(x0) and np.isfinite(y0)):
+        raise ParameterError(f"point-source position must be finite, got ({x0}, {y0}) cells")
+    if abs(x0) > nx / 2 or abs(y0) > ny / 2:
+        raise ParameterError(f"point-source position ({x0:g}, {y0:g}) cells lies outside the field "
+                             f"(|x| ≤ {nx / 2:g}, |y| ≤ {ny / 2:g} cells; shape {ny}×{nx})")
+    try:
+        radius = float(radius)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"aperture radius must be a number, got {radius!r}") from exc
+    if not (np.isfinite(radius) and radius > 0):
+        raise ParameterError(f"aperture radius must be finite and > 0 (aperture_radius_insigma > 0), "
+                             f"got {radius!r} cells")
+    return (x0, y0), radius
+
+
 def aperture_cells(shape, position, radius):
-    """(iy, ix) indices of the cells whose centre lies within ``radius`` [cells] of ``position``."""
+    """(iy, ix) indices of the cells whose centre lies within ``radius`` [cells] of ``position``.
+
+    The aperture is validated first (:func:`check_aperture`); an aperture containing no
+    cell centre raises :class:`~slicersim.errors.ParameterError`."""
+    (x0, y0), radius = check_aperture(shape, position, radius)
     yc, xc = cell_centres(shape)
-    x0, y0 = position
     inside = np.sqrt((xc - x0) ** 2 + (yc - y0) ** 2) <= radius
-    return np.nonzero(inside)
+    cells = np.nonzero(inside)
+    if cells[0].size == 0:
+        raise ParameterError(f"extraction aperture of radius {radius:g} cells at ({x0:g}, {y0:g}) "
+                             "contains no cell centre: increase aperture_radius_insigma")
+    return cells
 
 
 # --------------------------------------------------------------------------- #

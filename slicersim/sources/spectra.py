@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
-from slicersim.errors import SpectrumError
+from slicersim.errors import ParameterError, SpectrumError
 from slicersim.versioning import Versioned
 
 __all__ = ["PointSource", "validate_spectrum", "snia_spectrum", "blackbody_flambda", "normalise_to_mag",
@@ -72,9 +72,9 @@ def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-1
     try:
         model = sncosmo.Model(source)
     except Exception as exc:
-        raise RuntimeError(f"sncosmo source {source!r} is not available offline ({exc}); "
-                           "'hsiao-subsampled' works without network, SALT models need "
-                           "sncosmo's data to be downloaded first") from exc
+        raise SpectrumError(f'sncosmo source "{source}" could not be loaded (needs download; offline?) '
+                            f"— available offline: {', '.join(k for k, v in SNCOSMO_SNIA_MODELS.items() if v)} "
+                            f"({type(exc).__name__}: {exc})") from exc
     params = {"z": redshift, "t0": 0.0}
     if "salt" in str(source).lower():
         params.update(x1=0.0 if x1 is None else x1, c=0.0 if c is None else c)
@@ -144,9 +144,9 @@ class PointSource(Versioned):
         try:
             pos = tuple(float(p) for p in position)
         except (TypeError, ValueError) as exc:
-            raise SpectrumError(f"position must be (x, y) [cells], got {position!r}") from exc
+            raise ParameterError(f"position must be (x, y) [cells], got {position!r}") from exc
         if len(pos) != 2 or not all(np.isfinite(pos)):
-            raise SpectrumError(f"position must be two finite numbers (x, y) [cells], got {position!r}")
+            raise ParameterError(f"position must be finite: two numbers (x, y) [cells], got {position!r}")
         self._position = pos
 
     def flambda(self, lbda):

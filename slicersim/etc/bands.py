@@ -1,0 +1,89 @@
+"""Coverage of an SNR band by the instrument grid and by the source spectrum.
+
+A band is never silently clipped.  When part of it lies outside the instrument
+wavelength grid (its bin edges), a :class:`BandCoverageWarning` names the covered
+fraction, and the request is refused with a :class:`~slicersim.errors.SpectrumError`
+when less than :data:`MIN_GRID_COVERAGE` of the band is inside the grid (a hard
+100 % rule would refuse SN Ia bands such as 4000–6800 Å rest at z > 1.5, which the
+existing batch tests use).  When the *source spectrum* covers only part of the band
+(the rest is NaN and ignored by the band means) a :class:`BandCoverageWarning`
+names the covered fraction.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from slicersim.errors import SpectrumError
+
+__all__ = ["MIN_GRID_COVERAGE", "BandCoverageWarning", "covered_fraction", "check_band_in_grid", "warn_partial_spectrum",
+           "check_band_coverage"]
+
+
+#: smallest fraction of a band that must lie inside the instrument grid (else SpectrumError)
+MIN_GRID_COVERAGE = 0.5
+
+
+class BandCoverageWarning(UserWarning):
+    """The source spectrum covers only part of an SNR band."""
+
+
+def covered_fraction(lo, hi, cover_lo, cover_hi):
+    """Fraction of [lo, hi] inside [cover_lo, cover_hi] (arrays broadcast)."""
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    inside = np.clip(np.minimum(hi, cover_hi) - np.maximum(lo, cover_lo), 0.0, None)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(hi > lo, inside / (hi - lo), 0.0)
+
+
+def check_band_in_grid(ranges, grid_edges, who=None):
+    """Bands (N, 2) [Å] against the instrument grid [grid_edges[0], grid_edges[-1]]: raise
+    SpectrumError when less than :data:`MIN_GRID_COVERAGE` of a band is inside, warn
+    (BandCoverageWarning) naming the covered fraction when it is not 100 %.  Returns the
+    covered fractions."""
+    ranges = np.atleast_2d(np.asarray(ranges, dtype=float))
+    g0, g1 = float(grid_edges[0]), float(grid_edges[-1])
+    frac = covered_fraction(ranges[:, 0], ranges[:, 1], g0, g1)
+
+    def head(idx):
+        lo, hi = ranges[int(idx[0])]
+        return f"band {lo:.0f}–{hi:.0f} Å" if who is None else \
+            f"band of target(s) {idx[:10].tolist()} (first: {lo:.0f}–{hi:.0f} Å)"
+    bad = np.nonzero(frac < MIN_GRID_COVERAGE)[0]
+    if bad.size:
+        raise SpectrumError(f"{head(bad)} is only {100 * frac[bad[0]]:.1f} % inside the instrument grid "
+                            f"{g0:.0f}–{g1:.0f} Å (at least {100 * MIN_GRID_COVERAGE:.0f} % needed): "
+                            "choose a band inside the grid")
+    part = np.nonzero(frac < 1.0)[0]
+    if part.size:
+        warnings.warn(f"{head(part)} is only {100 * frac[part[0]]:.1f} % inside the instrument grid "
+                      f"{g0:.0f}–{g1:.0f} Å: the SNR is computed on the covered part",
+                      BandCoverageWarning, stacklevel=3)
+    return frac
+
+
+def warn_partial_spectrum(ranges, spec_lo, spec_hi, who=None):
+    """Warn (BandCoverageWarning) when the source spectrum [spec_lo, spec_hi] covers only
+    part of a band; returns the covered fractions."""
+    ranges = np.atleast_2d(np.asarray(ranges, dtype=float))
+    frac = covered_fraction(ranges[:, 0], ranges[:, 1], spec_lo, spec_hi)
+    part = np.nonzero(frac < 1.0)[0]
+    if part.size:
+        i = int(part[0])
+        lo, hi = ranges[i]
+        head = f"band {lo:.0f}–{hi:.0f} Å" if who is None else \
+            f"band of target(s) {part[:10].tolist()} (first: {lo:.0f}–{hi:.0f} Å)"
+        warnings.warn(f"the source spectrum ({float(spec_lo):.0f}–{float(spec_hi):.0f} Å) covers only "
+                      f"{100 * frac[i]:.1f} % of the {head}: the SNR is computed on the covered part",
+                      BandCoverageWarning, stacklevel=3)
+    return frac
+
+
+def check_band_coverage(sim, lbda_range):
+    """Single-target check (called by ``Simulation.band_mask``): see
+    :func:`check_band_in_grid` and :func:`warn_partial_spectrum`."""
+    check_band_in_grid([lbda_range], sim.spectrograph.lbda_edges)
+    ps = sim.scene.pointsource
+    if ps is not None:
+        warn_partial_spectrum([lbda_range], ps.lbda_in[0], ps.lbda_in[-1])
