@@ -112,17 +112,28 @@ def test_full_disk_cli_one_line_exit_2(tmp_path, tiny_tmpfs):
 
 # --------------------------------------------------------------------------- 2. sizes before allocation
 def test_huge_request_refused_before_allocating(tmp_path):
-    """nramps = 10⁹: refused from the sizes alone (before: a list of 10⁹ work items → host OOM)."""
-    import tracemalloc
-    tracemalloc.start()
-    try:
-        with pytest.raises(RampFileError, match=r"need [0-9.e+]+ GB"):
-            simulate(np.ones((4096, 4096), np.float32), (16, 8, 0), nramps=10**9, out=tmp_path / "big.h5")
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    assert peak < 2**30                       # the rate copy only (128 MiB), no work list, no buffers
-    assert os.listdir(tmp_path) == []
+    """nramps = 10⁹: refused from the sizes alone (before: a list of 10⁹ work items → host OOM).
+    Run under a 3 GiB address-space limit so that a regression fails instead of exhausting the host."""
+    import resource
+    body = """
+        import sys, numpy as np
+        from slicersim.products.ramps import simulate
+        try:
+            simulate(np.ones((4096, 4096), np.float32), (16, 8, 0), nramps=10**9, out=sys.argv[1])
+        except Exception as exc:
+            print(type(exc).__name__ + ": " + str(exc), file=sys.stderr)
+            sys.exit(3)
+    """
+    out = tmp_path / "out"
+    out.mkdir()
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+    proc = subprocess.run([sys.executable, _script(tmp_path, body), str(out / "big.h5")], env=_env(),
+                          capture_output=True, text=True, timeout=300, preexec_fn=limit)
+    assert proc.returncode == 3, proc.stderr[-2000:]
+    assert proc.stderr.startswith("RampFileError: not enough disk space") and " GB" in proc.stderr
+    assert os.listdir(out) == []
 
 
 def test_huge_in_memory_request_names_the_size():
