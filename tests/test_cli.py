@@ -164,3 +164,28 @@ def test_demo_refuses_existing_outputs(tmp_path):
     line = one_error_line(run("demo", "--outdir", tmp_path))
     assert "spectrum.png" in line and "exists" in line and "--overwrite" in line
     assert (tmp_path / "spectrum.png").read_bytes() == b"mine"
+
+
+def test_ctrl_c_during_ramp_is_one_line_and_leaves_nothing(tmp_path):
+    import signal
+    import time
+    from slicersim.io.rampfile import is_temporary
+    rate = tmp_path / "big.npy"
+    np.save(rate, np.random.default_rng(0).uniform(0, 100, (2048, 2048)))
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("SLICERSIM_DEBUG", None)
+    proc = subprocess.Popen([sys.executable, "-m", "slicersim", "ramp", "--rate", str(rate), "--nmd", "40", "1", "0",
+                             "--backend", "numpy", "--out", str(out_dir / "r.h5")], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while not any(is_temporary(f) for f in os.listdir(out_dir)):
+        assert proc.poll() is None and time.time() - t0 < 300, proc.communicate()
+        time.sleep(0.01)
+    time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert one_error_line(subprocess.CompletedProcess(proc.args, proc.returncode, "", err)) == \
+        "slicersim: error: interrupted"
+    assert os.listdir(out_dir) == []
