@@ -270,11 +270,15 @@ def test_killed_writer_temporary_is_incomplete_and_cleaned_by_next_write(tmp_pat
     assert tmp_name.startswith(".r.h5.tmp-") and os.listdir(out_dir) == [tmp_name]
     with pytest.raises(RampFileError, match="incomplete file"):
         read_ramps(out_dir / tmp_name)
-    # a temporary of a running process (ours) is left alone
-    mine = out_dir / f".x.h5.tmp-{os.getpid()}-abcd"
-    mine.write_bytes(b"")
+    # a temporary of a running process (ours), or of another host, is left alone
+    from slicersim.io.rampfile import _host_tag
+    mine = out_dir / f".x.h5.tmp-{os.getpid()}-{_host_tag()}abcd"
+    other_host = out_dir / f".y.h5.tmp-{2**22 + 12345}-{'0' if _host_tag()[0] != '0' else '1'}{_host_tag()[1:]}abcd"
+    for keep in (mine, other_host):
+        keep.write_bytes(b"")
+        assert is_temporary(keep)
     simulate(RATE, (3, 1, 0), out=out_dir / "next.h5")
-    assert sorted(os.listdir(out_dir)) == sorted(["next.h5", mine.name])
+    assert sorted(os.listdir(out_dir)) == sorted(["next.h5", mine.name, other_host.name])
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.3, 1.0])

@@ -65,9 +65,16 @@ def compression_options(compression):
                         "'bitshuffle-lz4'")
 
 
-#: temporaries are ``.<final name>.tmp-<pid>-<random>``
+#: temporaries are ``.<final name>.tmp-<pid>-<host tag><random>`` (the host tag keeps a writer from
+#: removing the temporary of a live process on another machine sharing the directory)
 _TMP_TAG = ".tmp-"
-_TMP_RE = re.compile(r"^\.(?P<final>.+)\.tmp-(?P<pid>\d+)-[A-Za-z0-9_]+$")
+_TMP_RE = re.compile(r"^\.(?P<final>.+)\.tmp-(?P<pid>\d+)-(?P<host>[0-9a-f]{6})[0-9a-f]+$")
+
+
+def _host_tag():
+    import hashlib
+    import socket
+    return hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:6]
 #: bytes of HDF5 metadata allowed for beyond the raw data when checking free space
 _HDF5_MARGIN = 1 << 20
 
@@ -91,14 +98,15 @@ def _pid_alive(pid):
 
 def remove_stale_temporaries(directory):
     """Remove temporaries left in ``directory`` by writers that no longer run; returns their paths."""
-    removed = []
+    removed, host = [], _host_tag()
     try:
         names = os.listdir(directory)
     except OSError:
         return removed
     for name in names:
         match = _TMP_RE.match(name)
-        if match is None or int(match["pid"]) == os.getpid() or _pid_alive(int(match["pid"])):
+        if (match is None or match["host"] != host or int(match["pid"]) == os.getpid()
+                or _pid_alive(int(match["pid"]))):
             continue
         path = os.path.join(directory, name)
         try:
@@ -298,7 +306,7 @@ class RampWriter:
         import h5py
         base = os.path.basename(self.path)
         for _ in range(100):
-            tmp = os.path.join(directory, f".{base}{_TMP_TAG}{os.getpid()}-{secrets.token_hex(4)}")
+            tmp = os.path.join(directory, f".{base}{_TMP_TAG}{os.getpid()}-{_host_tag()}{secrets.token_hex(4)}")
             try:
                 self._fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0),
                                    0o666)        # the umask applies, as for any new file
