@@ -1,4 +1,9 @@
-"""Command-line interface: ``slicersim {info,demo,etc}`` (also ``python -m slicersim``)."""
+"""Command-line interface: ``slicersim {info,demo,etc,ramp}`` (also ``python -m slicersim``).
+
+User errors (bad values, impossible requests, unwritable or existing outputs,
+Ctrl-C) are reported as one line ``slicersim: error: ...`` on stderr with exit
+status 2.  Set ``SLICERSIM_DEBUG=1`` to get the full traceback instead.
+"""
 
 from __future__ import annotations
 
@@ -61,7 +66,7 @@ def cmd_info(args) -> int:
 def cmd_demo(args) -> int:
     from slicersim.app.demo import run_demo
 
-    run_demo(args.outdir)
+    run_demo(args.outdir, **({"overwrite": True} if args.overwrite else {}))
     return 0
 
 
@@ -83,7 +88,8 @@ def _read_spectrum(path):
             lbda.append(x)
             flux.append(y)
     if len(lbda) < 2:
-        raise SystemExit(f"slicersim etc: {path}: need at least two numeric 'wavelength flux' rows")
+        from slicersim.errors import SpectrumError
+        raise SpectrumError(f"{path}: need at least two numeric 'wavelength flux' rows")
     lbda, flux = np.asarray(lbda), np.asarray(flux)
     order = np.argsort(lbda, kind="stable")
     return lbda[order], flux[order]
@@ -107,10 +113,18 @@ def _fmt_value(v) -> str:
     return str(v)
 
 
-def _print_result(result, indent=0) -> None:
+#: units (or meaning) printed after the keys of the ETC result
+ETC_UNITS = {"nmd": "(groups, frames/group, dropped)", "nramps": "(ramps)", "exposure_time": "[s]",
+             "snr": "(per resolution element)", "snr_per_bin": "(per bin)",
+             "snr_target_per_bin": "(per bin)", "lbda_range_obs": "[Angstrom]", "data_volume": "[GB]"}
+
+
+def _print_result(result, indent=0, units=None) -> None:
     if not isinstance(result, dict):
         print(" " * indent + _fmt_value(result))
         return
+    units = units or {}
+    result = {(f"{k} {units[k]}" if k in units else k): v for k, v in result.items()}
     width = max((len(str(k)) for k in result), default=0)
     for key, value in result.items():
         if isinstance(value, dict):
@@ -140,75 +154,150 @@ def cmd_etc(args) -> int:
             kwargs["frame"] = args.frame
         lbda, flux = _read_spectrum(args.spectrum)
         result = targets.lazuli_etc(lbda, flux, **kwargs)
-    _print_result(result)
+    result.pop("target", None)           # the Python object: nothing a user can read
+    _print_result(result, units=ETC_UNITS)
     return 0
 
 
-def cmd_ramp(args) -> int:
+#: detector flags of ``ramp`` and their defaults with ``--rate`` (with ``--redshift`` the
+#: configuration supplies them; given flags override it)
+RAMP_DETECTOR_DEFAULTS = {"tframe": 2.83, "ron": 12.0, "dark": 2.8e-3, "roic_glow": 3e-3, "gain": 1.0}
+
+
+def _check_output(path, overwrite):
+    """Refuse an existing output before any (slow) simulation."""
+    from slicersim.errors import RampFileError
+    if os.path.isdir(path):
+        raise RampFileError(f"output path is a directory: {path}")
+    if os.path.lexists(path) and not overwrite:
+        raise RampFileError(f"output file exists: {path} (use --overwrite to replace it)")
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise RampFileError(f"output directory does not exist: {directory}")
+
+
+def _load_rate(path):
     import numpy as np
 
+    from slicersim.errors import ParameterError
+    try:
+        rate = np.load(path) if path.endswith(".npy") else np.loadtxt(path, ndmin=2)
+    except OSError:
+        raise
+    except ValueError as exc:
+        raise ParameterError(f"{path}: cannot read a rate image: {exc}") from exc
+    return rate
+
+
+def cmd_ramp(args) -> int:
     from slicersim.products import ramps
     nmd = tuple(args.nmd)
+    _check_output(args.out, args.overwrite)
     common = dict(seed=args.seed, out=args.out, compression=args.compression, progress=True,
-                  backend=args.backend)
+                  backend=args.backend, overwrite=args.overwrite)
+    detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
     if args.rate is not None:
-        rate = np.load(args.rate) if args.rate.endswith(".npy") else np.loadtxt(args.rate, ndmin=2)
-        path = ramps.simulate(rate, nmd, args.nramps, tframe=args.tframe, ron=args.ron, dark=args.dark,
-                              roic_glow=args.roic_glow, gain=args.gain, **common)
+        given = [f"--{k}" for k in ("config", "field") if getattr(args, k) is not None]
+        if given:
+            raise ValueError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} only with --redshift (with --rate the "
+                             "detector is set by --tframe/--ron/--dark/--roic-glow/--gain)")
+        rate = _load_rate(args.rate)
+        path = ramps.simulate(rate, nmd, args.nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
     else:
         from slicersim.targets import LazuliSupernova
-        target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field)
-        path = target.get_ramps(nmd=nmd, nramps=args.nramps, **common)
+        target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field or "narrow")
+        path = target.get_ramps(nmd=nmd, nramps=args.nramps, **detector, **common)
     print(f"wrote {path}")
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="slicersim", description="Image-slicer IFS simulator.")
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version('slicersim')}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows ``(default: ...)`` for every option that has a default (not for None)."""
 
-    p = sub.add_parser("info", help="versions and OpenCL platforms/devices")
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line ``slicersim: error: ...`` (exit 2), like every other user error."""
+
+    def error(self, message):
+        hint = f" (see '{self.prog} --help')"
+        self.exit(2, f"slicersim: error: {_one_line(message)}{hint}\n")
+
+
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    fmt = dict(formatter_class=_HelpFormatter)
+    parser = _Parser(prog="slicersim", description="Image-slicer IFS simulator.", **fmt)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version('slicersim')}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("info", help="versions and OpenCL platforms/devices",
+                       description="Versions and OpenCL platforms/devices.", **fmt)
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("demo", help="run the demonstration simulation")
-    p.add_argument("--outdir", default="demo_output", metavar="DIR", help="output directory (default: %(default)s)")
+    p = sub.add_parser("demo", help="run the demonstration simulation",
+                       description="Demonstration: ETC of a z = 1 SN Ia, figures, a short raw ramp.", **fmt)
+    p.add_argument("--outdir", default="demo_output", metavar="DIR", help="output directory")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("etc", help="exposure-time calculator")
+    p = sub.add_parser("etc", help="exposure-time calculator",
+                       description="Exposure time to reach a SNR with the Lazuli IFS.", **fmt)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--redshift", type=float, metavar="Z", help="SN Ia at redshift Z")
     src.add_argument("--spectrum", metavar="FILE",
                      help="two-column text/CSV: wavelength [Angstrom], flux [erg/s/cm^2/Angstrom]")
-    p.add_argument("--snr", type=float, default=20.0, help="target signal-to-noise ratio (default: %(default)s)")
-    p.add_argument("--lbda-range", type=float, nargs=2, metavar=("LO", "HI"), help="wavelength range [Angstrom]")
-    p.add_argument("--frame", choices=("obs", "rest"), help="frame of --lbda-range (default: rest for --redshift)")
+    p.add_argument("--snr", type=float, default=20.0, help="target signal-to-noise ratio per resolution element")
+    p.add_argument("--lbda-range", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="wavelength range [Angstrom] (default: 4000 6800)")
+    p.add_argument("--frame", choices=("obs", "rest"),
+                   help="frame of --lbda-range (default: rest with --redshift, obs with --spectrum)")
     p.add_argument("--config", action="append", metavar="cbe|eol|PATH",
-                   help="instrument configuration; repeat to apply several in order")
-    p.add_argument("--field", choices=("narrow", "wide"), help="field of view")
-    p.add_argument("--search", choices=("exact", "reference"), help="readout search strategy")
+                   help="instrument configuration; repeat to apply several in order (default: cbe)")
+    p.add_argument("--field", choices=("narrow", "wide"), help="field of view (default: narrow)")
+    p.add_argument("--search", choices=("exact", "reference"), help="readout search strategy (default: exact)")
     p.set_defaults(func=cmd_etc)
 
-    p = sub.add_parser("ramp", help="raw up-the-ramp H4RG reads to a group-level HDF5 file")
+    d = RAMP_DETECTOR_DEFAULTS
+    from_config = "with --redshift: the configuration's"
+    p = sub.add_parser("ramp", help="raw up-the-ramp H4RG reads to a group-level HDF5 file",
+                       description="Raw up-the-ramp H4RG reads to a group-level HDF5 file.", **fmt)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--redshift", type=float, metavar="Z", help="full detector image of a SN Ia at Z")
     src.add_argument("--rate", metavar="FILE", help="rate image [e-/s] (.npy or text)")
     p.add_argument("--nmd", type=int, nargs=3, default=(16, 8, 0), metavar=("N", "M", "D"),
-                   help="MACC readout (default: %(default)s)")
-    p.add_argument("--nramps", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True, metavar="FILE.h5")
-    p.add_argument("--compression", choices=("gzip", "lz4", "zstd", "bitshuffle-lz4"))
-    p.add_argument("--config", metavar="cbe|eol|PATH")
-    p.add_argument("--field", choices=("narrow", "wide"), default="narrow")
-    p.add_argument("--tframe", type=float, default=2.83)
-    p.add_argument("--ron", type=float, default=12.0)
-    p.add_argument("--dark", type=float, default=2.8e-3)
-    p.add_argument("--roic-glow", type=float, default=3e-3)
-    p.add_argument("--gain", type=float, default=1.0)
-    p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto")
+                   help="MACC readout: groups, frames per group, dropped frames")
+    p.add_argument("--nramps", type=int, default=1, help="ramps between resets")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--out", required=True, metavar="FILE.h5", help="output HDF5 file")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.add_argument("--compression", choices=("gzip", "lz4", "zstd", "bitshuffle-lz4"),
+                   help="HDF5 compression (default: none)")
+    p.add_argument("--config", metavar="cbe|eol|PATH", help="instrument configuration, only with --redshift "
+                   "(default: cbe)")
+    p.add_argument("--field", choices=("narrow", "wide"), help="field of view, only with --redshift "
+                   "(default: narrow)")
+    p.add_argument("--tframe", type=float, help=f"frame time [s] (default: {d['tframe']}; {from_config})")
+    p.add_argument("--ron", type=float, help=f"read noise [e-/read] (default: {d['ron']}; {from_config})")
+    p.add_argument("--dark", type=float, help=f"dark current [e-/s] (default: {d['dark']}; {from_config})")
+    p.add_argument("--roic-glow", type=float,
+                   help=f"ROIC glow [e-/frame] (default: {d['roic_glow']}; {from_config})")
+    p.add_argument("--gain", type=float, help=f"gain [ADU/e-] (default: {d['gain']}; {from_config})")
+    p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto", help="compute backend")
     p.set_defaults(func=cmd_ramp)
     return parser
+
+
+def _user_errors():
+    from slicersim.errors import SlicersimError
+    return (SlicersimError, ValueError, OSError, MemoryError, KeyboardInterrupt)
 
 
 def main(argv=None) -> int:
@@ -218,6 +307,20 @@ def main(argv=None) -> int:
     except BrokenPipeError:  # e.g. `slicersim info | head`
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except _user_errors() as exc:
+        if os.environ.get("SLICERSIM_DEBUG", "") not in ("", "0"):
+            raise
+        if isinstance(exc, KeyboardInterrupt):
+            message = "interrupted"
+        elif isinstance(exc, MemoryError):
+            message = f"out of memory: {exc}" if str(exc) else "out of memory"
+        elif isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+            message = f"{exc.filename}: {exc.strerror}"
+        else:
+            message = str(exc) or type(exc).__name__
+        sys.stdout.flush()
+        print(f"slicersim: error: {_one_line(message)}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

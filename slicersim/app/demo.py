@@ -8,6 +8,7 @@ reference walk and writes ``spectrum.png``, ``variance_budget.png``,
 """
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -72,8 +73,13 @@ def _report_lines(title, s):
             f"  data volume               : {s['data_volume_gb']:.2f} GB"]
 
 
+#: files written by :func:`run_demo` (the last two only with ``ramp_nmd``)
+DEMO_FILES = ("spectrum.png", "variance_budget.png", "instrument.png", "etc_result.json", "raw_ramp.h5",
+              "raw_ramp_group.png")
+
+
 def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="narrow", verbose=True,
-             ramp_nmd=(3, 2, 0)):
+             ramp_nmd=(3, 2, 0), overwrite=False):
     """Run the demonstration ETC and write its figures and JSON summary into ``outdir``.
 
     Parameters
@@ -83,6 +89,7 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     snr : target band SNR per resolution element in the rest-frame band :data:`DEMO_BAND`
     config, field : Lazuli configuration ("cbe", "eol", TOML path(s)) and field ("narrow", "wide")
     verbose : print the report
+    overwrite : replace existing output files (default: refuse with FileExistsError before any work)
 
     Returns
     -------
@@ -97,6 +104,12 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
 
     t0 = time.perf_counter()
     out = print if verbose else (lambda *a, **k: None)
+    if not overwrite:
+        for name in DEMO_FILES[:None if ramp_nmd else 4]:
+            path = os.path.join(outdir, name)
+            if os.path.lexists(path):
+                raise FileExistsError(errno.EEXIST, "output file exists (use --overwrite / overwrite=True "
+                                      "to replace it)", path)
     os.makedirs(outdir, exist_ok=True)
 
     # --- exact search (default) -------------------------------------------------
@@ -127,7 +140,8 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     if ramp_nmd:
         files["ramp"] = os.path.join(outdir, "raw_ramp.h5")
         files["ramp_group"] = os.path.join(outdir, "raw_ramp_group.png")
-        target.get_ramps(out=files["ramp"], nmd=tuple(ramp_nmd), nramps=1, seed=2026, progress=False)
+        target.get_ramps(out=files["ramp"], nmd=tuple(ramp_nmd), nramps=1, seed=2026, progress=False,
+                         overwrite=overwrite)
         plot_ramp_group(files["ramp"], savefile=files["ramp_group"])
 
     lo, hi = DEMO_BAND

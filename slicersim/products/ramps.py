@@ -42,7 +42,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
              thermal_dark=0.0, roic_glow=3e-3, gain=1.0, saturation=65535, bias=DEFAULT_BIAS,
              ktc_noise=0.0, full_well=None, dead_pixels=None, pixeldq=None, sparse_max_group=None,
              gauss_min_mean=np.inf, compression=None, memory_budget=2**30, truth=True,
-             config=None, backend="auto", progress=None, work_group=None, return_dq=False):
+             config=None, backend="auto", progress=None, work_group=None, return_dq=False, overwrite=False):
     """Simulate raw MACC ramps of a rate image.
 
     Parameters
@@ -60,6 +60,10 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     gauss_min_mean : Poisson mean above which a rounded Gaussian replaces the exact draw
     memory_budget : bytes of host memory for the row blocks (default 1 GiB)
     work_group : OpenCL local size (None: 64 on CPUs, the runtime's on GPUs); never changes the result
+    overwrite : replace an existing ``out`` (default: refuse with :class:`~slicersim.errors.RampFileError`)
+
+    The output size is checked against the free disk space (``out``) or memory (``out`` None)
+    before anything is allocated.
 
     Returns
     -------
@@ -84,9 +88,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     if ny * nx >= 2**32:
         raise ValueError("image too large: pixel indices must fit in 32 bits")
     n = p.nmd[0]
-    mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
-    dead = np.zeros(rate.shape, bool) if dead_pixels is None else np.asarray(dead_pixels, bool)
-    if dead.shape != rate.shape:
+    dead = None if dead_pixels is None else np.asarray(dead_pixels, bool)
+    if dead is not None and dead.shape != rate.shape:
         raise ValueError("dead_pixels must have the shape of rate")
     # bytes per pixel in flight: mu + dead + index list + SCI + GDQ (host and device copies)
     per_row = nx * (8 + 1 + 4 + 3 * n) * 2
@@ -94,29 +97,43 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     if memory_budget < per_row:
         raise MemoryError(f"memory budget {memory_budget} B is smaller than one detector row "
                           f"({per_row} B for {n} groups)")
-    full_bytes = p.nramps * n * ny * nx * 2
-    if out is None and full_bytes > 8 * memory_budget:
-        raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
+    # sizes first: nothing below is allocated before the output is known to fit
+    writer = None
+    if out is not None:
+        writer = RampWriter(out, p.nramps, n, (ny, nx), row_block=min(rows, 256), compression=compression,
+                            truth_rate=truth, overwrite=overwrite).check()
+    else:
+        full_bytes = p.nramps * n * ny * nx * (3 if return_dq else 2)
+        if full_bytes > 8 * memory_budget:
+            raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
+        avail = _available_memory()
+        if avail is not None and full_bytes > avail:
+            raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB, "
+                              f"{avail / 2**30:.1f} GiB available: pass out=<file.h5>")
+    if dead is None:
+        dead = np.zeros(rate.shape, bool)
+    mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
     backend = resolve_backend(backend)
     block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
     kwargs = {}
     if backend == "opencl":
         kwargs = {"work_group": work_group, "want_dq": out is not None or return_dq, "workspace": {}}
-    steps = [(r, y0) for r in range(p.nramps) for y0 in range(0, ny, rows)]
+    nsteps = p.nramps * -(-ny // rows)
+    steps = ((r, y0) for r in range(p.nramps) for y0 in range(0, ny, rows))     # lazy: nramps may be huge
     if progress is None:
-        progress = len(steps) > 4
+        progress = nsteps > 4
     iterator = steps
     if progress:
         from tqdm.auto import tqdm
-        iterator = tqdm(steps, desc="ramps", unit="block")
+        iterator = tqdm(steps, desc="ramps", unit="block", total=nsteps)
     attrs = p.attrs(seed)
     attrs.update({"SOFTWARE": "slicersim", "VERSION": _version(), "BACKEND": backend,
                   "CONFIG": config if config is not None else {}, "DARK": float(np.mean(dark_arr)),
                   "THERMAL_DARK": thermal_dark, "ROIC_GLOW": roic_glow, "KTC_NOISE": ktc_noise})
     result = None if out is not None else np.empty((p.nramps, n, ny, nx), np.uint16)
     result_dq = np.empty((p.nramps, n, ny, nx), np.uint8) if (out is None and return_dq) else None
-    writer = RampWriter(out, p.nramps, n, (ny, nx), attrs=attrs, row_block=min(rows, 256),
-                        compression=compression, truth_rate=truth) if out is not None else None
+    if writer is not None:
+        writer.attrs = attrs
 
     def run(w):
         if w is not None:
@@ -146,6 +163,21 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     with writer as w:
         run(w)
     return os.path.abspath(out)
+
+
+def _available_memory():
+    """Bytes of memory available to this process (Linux MemAvailable, else free pages), or None."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
 
 
 def _pixeldq(pixeldq, dead, shape):

@@ -1,0 +1,191 @@
+"""The ``slicersim`` command line, run as a real subprocess (``python -m slicersim``)."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from slicersim.io.rampfile import read_ramps
+from slicersim.products.ramps import simulate
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def run(*args, cwd=None, debug=False, timeout=600):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    env.pop("SLICERSIM_DEBUG", None)
+    if debug:
+        env["SLICERSIM_DEBUG"] = "1"
+    return subprocess.run([sys.executable, "-m", "slicersim", *map(str, args)], env=env, capture_output=True,
+                          text=True, timeout=timeout, cwd=cwd)
+
+
+def one_error_line(proc):
+    """The single ``slicersim: error: ...`` line of a failed run (exit 2, no traceback)."""
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-3000:])
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and "block/s" not in ln]
+    assert len(lines) == 1 and lines[0].startswith("slicersim: error: "), proc.stderr
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def rate_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("rate") / "rate.npy"
+    np.save(path, np.random.default_rng(11).uniform(0, 80, (24, 20)))
+    return path
+
+
+def test_info():
+    proc = run("info")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("slicersim ") and "numpy" in proc.stdout and "pyopencl" in proc.stdout
+
+
+def test_version():
+    proc = run("--version")
+    assert proc.returncode == 0 and proc.stdout.startswith("slicersim ")
+
+
+def _etc_values(stdout):
+    rows = {}
+    for line in stdout.splitlines():
+        key, _, value = line.partition(" : ")
+        rows[key.strip()] = value.strip()
+    return rows
+
+
+def test_etc_redshift_states_units_and_no_object_line():
+    proc = run("etc", "--redshift", "1")
+    assert proc.returncode == 0, proc.stderr
+    rows = _etc_values(proc.stdout)
+    assert float(rows["exposure_time [s]"]) > 0 and float(rows["data_volume [GB]"]) > 0
+    assert "lbda_range_obs [Angstrom]" in rows and rows["config"] == "cbe"
+    assert "target" not in rows and "object at 0x" not in proc.stdout
+
+
+def test_etc_spectrum_csv(tmp_path):
+    csv = tmp_path / "spec.csv"
+    csv.write_text("wavelength,flux\n3000,1e-17\n8000,1e-17\n20000,1e-17\n")
+    proc = run("etc", "--spectrum", csv, "--snr", "10", "--lbda-range", "5000", "6000")
+    assert proc.returncode == 0, proc.stderr
+    rows = _etc_values(proc.stdout)
+    assert float(rows["exposure_time [s]"]) > 0
+    assert rows["lbda_range_obs [Angstrom]"] == "[5000, 6000]"
+
+
+def test_ramp_rate_file_writes_the_simulated_ramp(tmp_path, rate_file):
+    out = tmp_path / "r.h5"
+    proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--tframe", "3",
+               "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == f"wrote {out}"
+    sci, gdq, pdq, attrs = read_ramps(out)
+    expect = simulate(np.load(rate_file), (3, 1, 0), seed=4, tframe=3.0)      # CLI flags honoured
+    assert np.array_equal(sci, expect) and attrs["TFRAME"] == 3.0
+    # an existing file is kept unless --overwrite
+    mtime = os.stat(out).st_mtime_ns
+    line = one_error_line(run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", out))
+    assert "exists" in line and "--overwrite" in line and os.stat(out).st_mtime_ns == mtime
+    proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "5", "--out", out, "--overwrite")
+    assert proc.returncode == 0, proc.stderr
+    assert np.array_equal(read_ramps(out)[0], simulate(np.load(rate_file), (3, 1, 0), seed=5))
+    assert os.listdir(tmp_path) == ["r.h5"]
+
+
+def test_ramp_redshift_full_detector(tmp_path):
+    """The --redshift path (full 4096² detector) once, with the shortest readout."""
+    out = tmp_path / "sn.h5"
+    proc = run("ramp", "--redshift", "1", "--nmd", "2", "1", "0", "--tframe", "3", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    import h5py
+    with h5py.File(out, "r") as fh:
+        assert fh["SCI"].shape == (1, 2, 4096, 4096) and bool(fh.attrs["COMPLETE"])
+        assert fh.attrs["TFRAME"] == 3.0                                        # --tframe honoured
+
+
+@pytest.mark.parametrize("args, match", [
+    (["etc", "--redshift", "-1"], "redshift"),
+    (["etc", "--redshift", "1", "--snr", "0"], "SNR"),
+    (["etc", "--redshift", "1", "--lbda-range", "7000", "5000"], "lbda_range"),
+    (["etc", "--redshift", "1", "--config", "/no/such/config.toml"], "not found"),
+    (["etc", "--spectrum", "/no/such/spectrum.csv"], "No such file"),
+    (["etc", "--redshift", "1", "--snr", "abc"], "invalid float"),
+    (["etc"], "required"),
+    (["ramp", "--rate", "RATE", "--nmd", "1", "1", "0", "--out", "OUT"], "n must be"),
+    (["ramp", "--rate", "RATE", "--nramps", "0", "--nmd", "3", "1", "0", "--out", "OUT"], "nramps"),
+    (["ramp", "--rate", "RATE", "--config", "eol", "--out", "OUT"], "--config applies only with --redshift"),
+    (["ramp", "--rate", "RATE", "--field", "wide", "--out", "OUT"], "--field applies only with --redshift"),
+    (["ramp", "--rate", "/no/such/rate.npy", "--out", "OUT"], "No such file"),
+    (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--out", "/no/such/dir/r.h5"], "directory does not exist"),
+    (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "negative"),
+    (["nosuchcommand"], "invalid choice"),
+])
+def test_user_errors_are_one_line_exit_2(tmp_path, rate_file, args, match):
+    bad = tmp_path / "bad.npy"
+    np.save(bad, -np.ones((4, 4)))
+    subst = {"RATE": str(rate_file), "BADRATE": str(bad), "OUT": str(tmp_path / "o.h5")}
+    line = one_error_line(run(*[subst.get(a, a) for a in args]))
+    assert match in line, line
+    assert not (tmp_path / "o.h5").exists()
+
+
+def test_spectrum_with_one_row_is_a_user_error(tmp_path):
+    csv = tmp_path / "one.csv"
+    csv.write_text("5000 1e-17\n")
+    assert "two numeric" in one_error_line(run("etc", "--spectrum", csv))
+
+
+def test_debug_env_shows_the_traceback():
+    proc = run("etc", "--redshift", "-1", debug=True)
+    assert proc.returncode == 1 and "Traceback" in proc.stderr
+    assert "redshift" in proc.stderr.splitlines()[-1]
+
+
+@pytest.mark.parametrize("command, expected", [
+    ("etc", ["(default: 20.0)", "(default: 4000 6800)"]),
+    ("ramp", ["(default: (16, 8, 0))", "(default: 1)", "(default: 0)", "(default: 2.83", "(default: auto)",
+              "--overwrite"]),
+    ("demo", ["(default: demo_output)", "--overwrite"]),
+    ("info", []),
+])
+def test_help_shows_defaults(command, expected):
+    proc = run(command, "--help")
+    assert proc.returncode == 0, proc.stderr
+    text = " ".join(proc.stdout.split())
+    for item in expected:
+        assert item in text, (item, proc.stdout)
+
+
+def test_demo_refuses_existing_outputs(tmp_path):
+    (tmp_path / "spectrum.png").write_bytes(b"mine")
+    line = one_error_line(run("demo", "--outdir", tmp_path))
+    assert "spectrum.png" in line and "exists" in line and "--overwrite" in line
+    assert (tmp_path / "spectrum.png").read_bytes() == b"mine"
+
+
+def test_ctrl_c_during_ramp_is_one_line_and_leaves_nothing(tmp_path):
+    import signal
+    import time
+    from slicersim.io.rampfile import is_temporary
+    rate = tmp_path / "big.npy"
+    np.save(rate, np.random.default_rng(0).uniform(0, 100, (2048, 2048)))
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("SLICERSIM_DEBUG", None)
+    proc = subprocess.Popen([sys.executable, "-m", "slicersim", "ramp", "--rate", str(rate), "--nmd", "40", "1", "0",
+                             "--backend", "numpy", "--out", str(out_dir / "r.h5")], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while not any(is_temporary(f) for f in os.listdir(out_dir)):
+        assert proc.poll() is None and time.time() - t0 < 300, proc.communicate()
+        time.sleep(0.01)
+    time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert one_error_line(subprocess.CompletedProcess(proc.args, proc.returncode, "", err)) == \
+        "slicersim: error: interrupted"
+    assert os.listdir(out_dir) == []

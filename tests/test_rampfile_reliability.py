@@ -1,0 +1,313 @@
+"""Raw-ramp files under failure: full disk, huge requests, existing files, concurrent writers,
+permissions, killed and interrupted writers, incomplete files.  Real files, real subprocesses."""
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from slicersim.errors import RampFileError
+from slicersim.io.rampfile import RampWriter, is_temporary, read_ramps
+from slicersim.products.ramps import simulate
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    env.pop("SLICERSIM_DEBUG", None)
+    return env
+
+
+def _script(tmp_path, body, name="writer.py"):
+    path = tmp_path.parent / f"{tmp_path.name}_{name}"         # outside the output directory
+    path.write_text(textwrap.dedent(body))
+    return str(path)
+
+
+def _hidden(directory):
+    return [f for f in os.listdir(directory) if f.startswith(".")]
+
+
+# --------------------------------------------------------------------------- 1. disk full
+WRITE_NOISY = """
+    import sys
+    import numpy as np
+    from slicersim.products.ramps import simulate
+    rate = np.random.default_rng(0).uniform(0, 100, (256, 256))
+    try:
+        simulate(rate, (16, 1, 0), out=sys.argv[1], backend="numpy", compression="gzip",
+                 memory_budget=256 * 8 * 60, progress=False)
+    except Exception as exc:
+        print(type(exc).__name__ + ": " + str(exc), file=sys.stderr)
+        sys.exit(3)
+    print("no error")
+"""
+
+
+def _check_full_disk_run(proc, directory):
+    assert proc.returncode == 3, (proc.returncode, proc.stderr[-2000:])      # not 139 / -11 (SIGSEGV)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("RampFileError: ")
+    assert os.listdir(directory) == []                                       # nothing left behind
+
+
+def test_file_size_limit_mid_write_is_a_clean_error(tmp_path):
+    """RLIMIT_FSIZE makes HDF5's writes fail like a full disk (EFBIG): before the fix HDF5 crashed
+    the process (SIGSEGV) when the failed file was released."""
+    import resource
+    out = tmp_path / "out"
+    out.mkdir()
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 20, 1 << 20))
+    proc = subprocess.run([sys.executable, _script(tmp_path, WRITE_NOISY), str(out / "r.h5")],
+                          env=_env(), capture_output=True, text=True, timeout=300, preexec_fn=limit)
+    _check_full_disk_run(proc, out)
+    assert "File too large" in proc.stderr
+
+
+@pytest.fixture
+def tiny_tmpfs(tmp_path):
+    if os.geteuid() != 0 or not sys.platform.startswith("linux"):
+        pytest.skip("mounting a tmpfs needs root on Linux")
+    mnt = tmp_path / "tmpfs"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2M", "tmpfs", str(mnt)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+def test_full_disk_mid_write_is_a_clean_error(tmp_path, tiny_tmpfs):
+    """A real ENOSPC on a 2 MB tmpfs (compressed output, so the free-space check cannot know)."""
+    proc = subprocess.run([sys.executable, _script(tmp_path, WRITE_NOISY), str(tiny_tmpfs / "r.h5")],
+                          env=_env(), capture_output=True, text=True, timeout=300)
+    _check_full_disk_run(proc, tiny_tmpfs)
+    assert "No space left on device" in proc.stderr
+
+
+def test_full_disk_cli_one_line_exit_2(tmp_path, tiny_tmpfs):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.random.default_rng(0).uniform(0, 100, (512, 512)))
+    proc = subprocess.run([sys.executable, "-m", "slicersim", "ramp", "--rate", str(rate), "--nmd", "16", "1", "0",
+                           "--compression", "gzip", "--backend", "numpy", "--out", str(tiny_tmpfs / "r.h5")],
+                          env=_env(), capture_output=True, text=True, timeout=300, cwd=str(tmp_path))
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [ln for ln in proc.stderr.splitlines() if "error" in ln.lower()]
+    assert errors == [ln for ln in errors if ln.startswith("slicersim: error: ")] and len(errors) == 1
+    assert "No space left on device" in errors[0] and "Traceback" not in proc.stderr
+    assert os.listdir(tiny_tmpfs) == []
+
+
+# --------------------------------------------------------------------------- 2. sizes before allocation
+def test_huge_request_refused_before_allocating(tmp_path):
+    """nramps = 10⁹: refused from the sizes alone (before: a list of 10⁹ work items → host OOM).
+    Run under a 3 GiB address-space limit so that a regression fails instead of exhausting the host."""
+    import resource
+    body = """
+        import sys, numpy as np
+        from slicersim.products.ramps import simulate
+        try:
+            simulate(np.ones((4096, 4096), np.float32), (16, 8, 0), nramps=10**9, out=sys.argv[1])
+        except Exception as exc:
+            print(type(exc).__name__ + ": " + str(exc), file=sys.stderr)
+            sys.exit(3)
+    """
+    out = tmp_path / "out"
+    out.mkdir()
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+    proc = subprocess.run([sys.executable, _script(tmp_path, body), str(out / "big.h5")], env=_env(),
+                          capture_output=True, text=True, timeout=300, preexec_fn=limit)
+    assert proc.returncode == 3, proc.stderr[-2000:]
+    assert proc.stderr.startswith("RampFileError: not enough disk space") and " GB" in proc.stderr
+    assert os.listdir(out) == []
+
+
+def test_huge_in_memory_request_names_the_size():
+    with pytest.raises(MemoryError, match="GiB"):
+        simulate(np.ones((64, 64)), (16, 8, 0), nramps=10**9)
+
+
+# --------------------------------------------------------------------------- 3. existing files, races, perms
+RATE = np.random.default_rng(3).uniform(0, 50, (24, 16))
+
+
+def test_existing_file_is_not_overwritten(tmp_path):
+    out = tmp_path / "r.h5"
+    out.write_bytes(b"precious")
+    with pytest.raises(RampFileError, match="exists.*overwrite"):
+        simulate(RATE, (3, 1, 0), out=out)
+    assert out.read_bytes() == b"precious" and _hidden(tmp_path) == []
+    simulate(RATE, (3, 1, 0), seed=5, out=out, overwrite=True)
+    assert np.array_equal(read_ramps(out)[0], simulate(RATE, (3, 1, 0), seed=5))
+
+
+def test_file_appearing_during_the_write_wins(tmp_path):
+    """Another writer finishes first: ours fails clearly at publication, its file stays intact."""
+    import slicersim.products.ramps as ramps
+    out = tmp_path / "r.h5"
+    real = ramps.simulate_block_numpy
+
+    def other_writer_finishes(*args, **kw):
+        if not out.exists():
+            out.write_bytes(b"the other writer's file")
+        return real(*args, **kw)
+    ramps.simulate_block_numpy, saved = other_writer_finishes, real
+    try:
+        with pytest.raises(RampFileError, match="exists"):
+            simulate(RATE, (3, 1, 0), out=out, backend="numpy")
+    finally:
+        ramps.simulate_block_numpy = saved
+    assert out.read_bytes() == b"the other writer's file" and _hidden(tmp_path) == []
+
+
+def test_two_concurrent_writers_one_wins(tmp_path):
+    body = """
+        import sys, numpy as np
+        from slicersim.products.ramps import simulate
+        rate = np.random.default_rng(0).uniform(0, 100, (512, 256))
+        try:
+            simulate(rate, (6, 1, 0), seed=int(sys.argv[2]), out=sys.argv[1], backend="numpy", progress=False)
+        except Exception as exc:
+            print(type(exc).__name__ + ": " + str(exc), file=sys.stderr)
+            sys.exit(3)
+    """
+    script, out = _script(tmp_path, body), tmp_path / "r.h5"
+    procs = [subprocess.Popen([sys.executable, script, str(out), str(seed)], env=_env(), stderr=subprocess.PIPE,
+                              text=True) for seed in (1, 2)]
+    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    codes = sorted(rc for rc, _ in results)
+    assert codes == [0, 3], results
+    loser = [err for rc, err in results if rc == 3][0]
+    assert "RampFileError" in loser and "exists" in loser
+    sci = read_ramps(out)[0]
+    winner = [seed for (rc, _), seed in zip(results, (1, 2)) if rc == 0][0]
+    rate = np.random.default_rng(0).uniform(0, 100, (512, 256))
+    assert np.array_equal(sci, simulate(rate, (6, 1, 0), seed=winner, backend="numpy"))
+    assert os.listdir(tmp_path) == ["r.h5"]
+
+
+def test_files_get_the_umask_permissions(tmp_path):
+    old = os.umask(0o022)
+    try:
+        path = simulate(RATE, (3, 1, 0), out=tmp_path / "a.h5")
+        os.umask(0o027)
+        path2 = simulate(RATE, (3, 1, 0), out=tmp_path / "b.h5")
+    finally:
+        os.umask(old)
+    assert os.stat(path).st_mode & 0o777 == 0o644          # not mkstemp's 0600
+    assert os.stat(path2).st_mode & 0o777 == 0o640
+
+
+def test_incomplete_files_are_named_so(tmp_path):
+    # a file without the completion marker (as left by a writer that stopped before the end)
+    import h5py
+    partial = tmp_path / "partial.h5"
+    with h5py.File(partial, "w") as fh:
+        fh.create_dataset("SCI", (1, 3, 2, 2), "u2")
+        fh.attrs["COMPLETE"] = False
+    with pytest.raises(RampFileError, match="incomplete file"):
+        read_ramps(partial)
+    # a truncated file
+    trunc = tmp_path / "trunc.h5"
+    trunc.write_bytes(open(simulate(RATE, (3, 1, 0), out=tmp_path / "full.h5"), "rb").read()[:300])
+    with pytest.raises(RampFileError, match="incomplete file"):
+        read_ramps(trunc)
+    with pytest.raises(RampFileError, match="no such file"):
+        read_ramps(tmp_path / "missing.h5")
+
+
+SLOW_WRITER = """
+    import os, sys, time
+    import numpy as np
+    import slicersim.products.ramps as ramps
+    real = ramps.simulate_block_numpy
+    def slow(*args, **kw):
+        time.sleep(0.05)
+        return real(*args, **kw)
+    ramps.simulate_block_numpy = slow
+    rate = np.random.default_rng(0).uniform(0, 100, (256, 64))
+    print("start", flush=True)
+    ramps.simulate(rate, (4, 1, 0), nramps=50, out=sys.argv[1], backend="numpy", progress=False,
+                   memory_budget=64 * 8 * 40)
+    print("done", flush=True)
+"""
+
+
+def _wait_for_temporary(directory, proc, timeout=120):
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        tmps = [f for f in os.listdir(directory) if is_temporary(f)]
+        if tmps:
+            return tmps[0]
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.01)
+    raise AssertionError("the writer never created its temporary")
+
+
+def test_killed_writer_temporary_is_incomplete_and_cleaned_by_next_write(tmp_path):
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    proc = subprocess.Popen([sys.executable, _script(tmp_path, SLOW_WRITER), str(out_dir / "r.h5")], env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    tmp_name = _wait_for_temporary(out_dir, proc)
+    time.sleep(0.5)
+    proc.kill()
+    proc.wait(timeout=60)
+    assert tmp_name.startswith(".r.h5.tmp-") and os.listdir(out_dir) == [tmp_name]
+    with pytest.raises(RampFileError, match="incomplete file"):
+        read_ramps(out_dir / tmp_name)
+    # a temporary of a running process (ours), or of another host, is left alone
+    from slicersim.io.rampfile import _host_tag
+    mine = out_dir / f".x.h5.tmp-{os.getpid()}-{_host_tag()}abcd"
+    other_host = out_dir / f".y.h5.tmp-{2**22 + 12345}-{'0' if _host_tag()[0] != '0' else '1'}{_host_tag()[1:]}abcd"
+    for keep in (mine, other_host):
+        keep.write_bytes(b"")
+        assert is_temporary(keep)
+    simulate(RATE, (3, 1, 0), out=out_dir / "next.h5")
+    assert sorted(os.listdir(out_dir)) == sorted(["next.h5", mine.name, other_host.name])
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.3, 1.0])
+def test_sigint_during_write_aborts_and_leaves_nothing(tmp_path, delay):
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    proc = subprocess.Popen([sys.executable, _script(tmp_path, SLOW_WRITER), str(out_dir / "r.h5")], env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for_temporary(out_dir, proc)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    # Python ends an uncaught KeyboardInterrupt by SIGINT (-2); never a crash
+    assert proc.returncode in (-signal.SIGINT, 1) and "KeyboardInterrupt" in err, (proc.returncode, err[-2000:])
+    assert "done" not in out
+    assert os.listdir(out_dir) == []
+
+
+def test_sigint_held_back_while_hdf5_writes(tmp_path):
+    """SIGINT arriving inside an HDF5 write is delivered when the write returns, then aborts."""
+    out = tmp_path / "r.h5"
+    with pytest.raises(KeyboardInterrupt):
+        with RampWriter(out, 1, 3, (8, 8)) as w:
+            w._busy += 1
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)                                      # handler runs: held back
+            w._busy -= 1
+            assert w._pending_signal is not None
+            w.write_block(0, 0, np.zeros((3, 8, 8), np.uint16))   # delivered after the write
+            raise AssertionError("not interrupted")
+    assert os.listdir(tmp_path) == []
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
