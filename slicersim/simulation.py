@@ -253,13 +253,16 @@ class Simulation(Versioned):
         return check_readout(nmd, nramps, self.detector.min_group, self.detector.max_group)
 
     def get_times(self, nmd=None, nramps=None):
-        """Exposure, integration and group times [s] per ramp and total."""
+        """Readout times [s]: ``frame_time``, ``group_time``, ``exposure_time_per_ramp``,
+        ``integration_time_per_ramp`` and the totals over the ``nramps`` ramps,
+        ``exposure_time`` and ``integration_time`` (plus nmd, nramps, nframes per ramp)."""
         nmd, nramps = self._readout(nmd, nramps)
         t = readout_times(nmd, self.detector.tframe)
-        return {"nmd": nmd, "nramps": nramps, "nframes": t["nframes"], "tframe": self.detector.tframe,
-                "tgroup": t["group_time"], "exptime": t["exposure_time"], "inttime": t["integration_time"],
-                "total_exposure_time": nramps * t["exposure_time"],
-                "total_integration_time": nramps * t["integration_time"]}
+        return {"nmd": nmd, "nramps": nramps, "nframes": t["nframes"], "frame_time": self.detector.tframe,
+                "group_time": t["group_time"], "exposure_time_per_ramp": t["exposure_time_per_ramp"],
+                "integration_time_per_ramp": t["integration_time_per_ramp"],
+                "exposure_time": nramps * t["exposure_time_per_ramp"],
+                "integration_time": nramps * t["integration_time_per_ramp"]}
 
     def get_data_volume(self, nmd=None, nramps=None):
         """Raw group-level data volume [GB] (16 bit per pixel per group, all ramps)."""
@@ -282,7 +285,7 @@ class Simulation(Versioned):
         ron = 0.0 if off == "ron" else det.ron
         pixel_rate = cell_rate / ppc
         var = ppc * det.pixel_variance(pixel_rate, nmd=nmd, ron=ron, dark=dark, conventions=self.conventions)
-        tint = readout_times(nmd, det.tframe)["integration_time"]
+        tint = readout_times(nmd, det.tframe)["integration_time_per_ramp"]
         saturated = (pixel_rate + dark) * tint * det.gain > det.saturation
         return np.where(saturated, np.inf, var), saturated
 
@@ -318,7 +321,7 @@ class Simulation(Versioned):
     def get_cube_numpy(self, nmd=None, nramps=None):
         """NumPy oracle of the Gaussian cube: (signal [ADU], variance [ADU²])."""
         nmd, nramps = self._readout(nmd, nramps)
-        tint = readout_times(nmd, self.detector.tframe)["integration_time"]
+        tint = readout_times(nmd, self.detector.tframe)["integration_time_per_ramp"]
         photons = self.get_projected_scene()                         # ph/s/cell
         electrons = photons * self.qe[:, None, None]                 # e-/s/cell
         variance, saturated = self.cell_variance(electrons, nmd)     # ADU² per ramp
@@ -357,7 +360,7 @@ class Simulation(Versioned):
 
     def _spectrum(self, nmd, nramps, off=None, psf_profile="gaussian"):
         model = self.get_extraction_model(psf_profile)
-        tint = readout_times(nmd, self.detector.tframe)["integration_time"]
+        tint = readout_times(nmd, self.detector.tframe)["integration_time_per_ramp"]
         var_cell, _ = self.cell_variance(model.cell_rate(off), nmd, off)   # ADU² per ramp
         with np.errstate(divide="ignore", invalid="ignore"):
             weight = np.sum(model.psf2 / var_cell, axis=1)
@@ -427,8 +430,10 @@ class Simulation(Versioned):
         mean_total = np.nanmean(total[mask])
         times = self.get_times(nmd, nramps)
         out = {"signal": np.nanmean(signal[mask]), "variance": mean_total,
-               "snr": _band_snr(signal[mask], total[mask]), "exptime": times["exptime"],
-               "inttime": times["inttime"], "obstime": times["total_exposure_time"]}
+               "snr": _band_snr(signal[mask], total[mask]),
+               "exposure_time_per_ramp": times["exposure_time_per_ramp"],
+               "integration_time_per_ramp": times["integration_time_per_ramp"],
+               "exposure_time": times["exposure_time"]}
         for src in VARIANCE_SOURCES:
             if src == "host" and self.scene.host is None:
                 val = 0.0

@@ -303,7 +303,7 @@ class Target:
 
     def get_exposure_time(self):
         """Total exposure time of all ramps [s]."""
-        return self.simulation.get_times()["total_exposure_time"]
+        return self.simulation.get_times()["exposure_time"]
 
     def get_exptime(self):
         """Total exposure time of all ramps [s] (paper name of :meth:`get_exposure_time`)."""

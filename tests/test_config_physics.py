@@ -250,8 +250,8 @@ def test_update_readout():
     sim.update(nmd=(10, 4, 0), nramps=3)
     times = sim.get_times()
     assert times["nmd"] == (10, 4, 0) and times["nramps"] == 3
-    assert times["total_exposure_time"] == pytest.approx(3 * (10 * 4) * 2.83, rel=1e-14)
-    assert times["total_integration_time"] == pytest.approx(3 * 9 * 4 * 2.83, rel=1e-14)
+    assert times["exposure_time"] == pytest.approx(3 * (10 * 4) * 2.83, rel=1e-14)
+    assert times["integration_time"] == pytest.approx(3 * 9 * 4 * 2.83, rel=1e-14)
     assert sim.get_data_volume() == pytest.approx(3 * 10 * 4096**2 * 16 / 8e9, rel=1e-14)
     _, s3, v3 = sim.get_spectrum()
     _, s1, v1 = sim.get_spectrum(nramps=1)

@@ -139,7 +139,7 @@ def test_mla_simulation_spreads_cells_over_pixels(generic_and_mla):
     v1, _ = gen.cell_variance(rate, nmd)
     vp, _ = mla.cell_variance(rate, nmd)
     np.testing.assert_allclose(vp - v1, (p - 1) * v1[0], rtol=1e-10)
-    tint = readout_times(nmd, gen.detector.tframe)["integration_time"]
+    tint = readout_times(nmd, gen.detector.tframe)["integration_time_per_ramp"]
     bright = np.array([3.0 * gen.detector.saturation / tint])       # 3× a pixel's full scale
     assert gen.cell_variance(bright, nmd)[1].all() and not mla.cell_variance(bright, nmd)[1].any()
     _, s1, var1 = gen.get_spectrum(nmd=nmd, nramps=1)

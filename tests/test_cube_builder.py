@@ -152,7 +152,7 @@ def test_host_is_convolved_and_conserves_flux(narrow_band_sim):
     assert res.paths["host"].startswith("2-D convolution (") and res.paths["pointsource"] == PATH_ABSENT
     empty = build_cube(parts["empty"], nmd=(16, 8, 0), nramps=1, progress=False)
     spec = sim.spectrograph
-    tint = sim.get_times((16, 8, 0), 1)["inttime"]
+    tint = sim.get_times((16, 8, 0), 1)["integration_time_per_ramp"]
     expected = spec.apply_lsf(1e-17 * sim.flambda_to_photon) * sim.qe * tint * sim.detector.gain
     in_field = host.profile.cell_fractions(spec.shape, spec.spatial_scale).sum()
     ratio = ((res.signal - empty.signal).sum(axis=(1, 2)) / expected)[6:-6]
@@ -183,7 +183,7 @@ def test_host_chunking_and_device_twin(narrow_band_sim, backend):
     assert _peak_err(res.signal, twin.signal) < 1e-12
     empty = build_cube(Simulation(Scene(None, None, None), sim.telescope, sim.spectrograph, sim.detector),
                        **READOUT, progress=False, backend="numpy")
-    tint = sim.get_times(READOUT["nmd"], 1)["inttime"]
+    tint = sim.get_times(READOUT["nmd"], 1)["integration_time_per_ramp"]
     expected = sim.spectrograph.apply_lsf(1e-17 * sim.flambda_to_photon) * sim.qe * tint * sim.detector.gain \
         * READOUT["nramps"]
     ratio = ((res.signal - empty.signal).sum(axis=(1, 2)) / expected)[6:-6]

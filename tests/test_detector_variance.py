@@ -219,20 +219,20 @@ def test_models_depart_for_many_groups():
 def test_readout_times_hand_values():
     t = readout_times((64, 8, 0), 2.83)
     assert t["nframes"] == 512                                         # 64·8 − 0
-    assert t["exposure_time"] == pytest.approx(1448.96, rel=1e-14)     # 512·2.83
-    assert t["integration_time"] == pytest.approx(1426.32, rel=1e-14)  # 63·8·2.83
+    assert t["exposure_time_per_ramp"] == pytest.approx(1448.96, rel=1e-14)     # 512·2.83
+    assert t["integration_time_per_ramp"] == pytest.approx(1426.32, rel=1e-14)  # 63·8·2.83
     assert t["group_time"] == pytest.approx(22.64, rel=1e-14)          # 8·2.83
     t = readout_times((10, 4, 2), 2.83)
     assert t["nframes"] == 58                                          # 10·6 − 2
-    assert t["exposure_time"] == pytest.approx(164.14, rel=1e-14)      # 58·2.83
-    assert t["integration_time"] == pytest.approx(152.82, rel=1e-14)   # 9·6·2.83
+    assert t["exposure_time_per_ramp"] == pytest.approx(164.14, rel=1e-14)      # 58·2.83
+    assert t["integration_time_per_ramp"] == pytest.approx(152.82, rel=1e-14)   # 9·6·2.83
     assert t["group_time"] == pytest.approx(16.98, rel=1e-14)          # 6·2.83
 
 
 def test_detector_times_follow_nmd():
     det = Detector(nmd=(10, 4, 2), tframe=2.0)
-    assert det.exposure_time == pytest.approx(58 * 2.0)
-    assert det.integration_time == pytest.approx(9 * 6 * 2.0)
+    assert det.exposure_time_per_ramp == pytest.approx(58 * 2.0)
+    assert det.integration_time_per_ramp == pytest.approx(9 * 6 * 2.0)
 
 
 def test_data_volume():

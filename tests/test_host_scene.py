@@ -22,7 +22,7 @@ def test_host_photons_enter_the_cube_flux_conserved(pair):
     bare, sim = pair
     s0, _ = bare.get_cube(nmd=(16, 8, 0))
     s1, _ = sim.get_cube(nmd=(16, 8, 0))
-    tint = sim.get_times((16, 8, 0))["inttime"]
+    tint = sim.get_times((16, 8, 0))["integration_time_per_ramp"]
     shape, scale = sim.spectrograph.shape, sim.spectrograph.spatial_scale
     host_in_field = sim.scene.host.flux_cube(sim.lbda, shape, scale).sum(axis=(1, 2))   # erg/s/cm²/Å
     expected = host_in_field * sim.flambda_to_photon * sim.qe * tint

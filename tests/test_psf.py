@@ -375,7 +375,7 @@ def test_reference_airy_cube(case, refdir, reference_case):
                          spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
                          instrumental_sigma=sim.instrumental_sigma, diameter=tel.diameter_ext)
     nmd, nramps = tuple(meta["cube"]["readout"]["nmd"]), meta["cube"]["readout"]["nramps"]
-    tint = readout_times(nmd, sim.detector.tframe)["integration_time"]
+    tint = readout_times(nmd, sim.detector.tframe)["integration_time_per_ramp"]
     point = (sim.pointsource_flambda * sim.flambda_to_photon)[:, None, None] * psf
     uniform = (sim.background_photons + sim.thermal_photons)[:, None, None]
     cube = spec.apply_lsf(point + uniform, axis=0)[idx] * (sim.qe * tint * sim.detector.gain * nramps)[idx, None, None]

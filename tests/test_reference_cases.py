@@ -75,7 +75,7 @@ def test_instrument_arrays(solved):
     assert_peak_close("thermal", sim.thermal_photons, arr["thermal_ph_s_per_cell_noLSF"])
     assert_peak_close("psf_sigma_y", sim.psf_sigmas[0], arr["psf_sigma_y_cells"])
     assert_peak_close("psf_sigma_x", sim.psf_sigmas[1], arr["psf_sigma_x_cells"])
-    tint = sim.get_times()["inttime"]
+    tint = sim.get_times()["integration_time_per_ramp"]
     assert_peak_close("photonflux_to_adu", sim.qe * tint * sim.detector.gain, arr["photonflux_to_adu"])
 
 
@@ -97,7 +97,7 @@ def test_band_variance_budget(solved):
     got = target.simulation.get_band_variance_contribution(meta["inputs"]["lbda_range_AA"])
     for src in VARIANCE_SOURCES:
         assert got[src] == pytest.approx(ref[src], abs=1e-6 * ref["variance"])
-    assert got["obstime"] == pytest.approx(ref["obstime"], rel=1e-9)
+    assert got["exposure_time"] == pytest.approx(ref["obstime"], rel=1e-9)   # reference: "obstime"
 
 
 def test_gaussian_cube(solved):

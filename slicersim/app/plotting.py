@@ -47,7 +47,7 @@ def _last_etc(target):
 def _readout_title(sim, target=None):
     t = sim.get_times()
     n, m, d = (int(v) for v in t["nmd"])
-    texp = float(t["total_exposure_time"])
+    texp = float(t["exposure_time"])
     title = (f"readout (n, m, d) = ({n}, {m}, {d}) × {int(t['nramps'])} ramp"
              f"{'s' if int(t['nramps']) != 1 else ''} — total exposure {texp:.0f} s ({texp / 60:.1f} min)")
     bits = []

@@ -325,7 +325,7 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
             return memo[key] * math.sqrt(r)
         nmd, nramps, reached, trace = reference_walk(snr_of, target, det.max_group or 64, det.nmd[2])
         check_reference_result(snr, lbda_range, target, reached,
-                               nramps * readout_times(nmd, det.tframe)["exposure_time"], det.tframe)
+                               nramps * readout_times(nmd, det.tframe)["exposure_time_per_ramp"], det.tframe)
     elif search == "exact":
         n, m, d = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
         band = sim_band_indices(mask)[None, :]
@@ -340,6 +340,6 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
         nramps, reached, trace = int(choice["nramps"][0]), float(choice["snr"][0]), None
     else:
         raise ETCError(f"unknown search {search!r}: 'exact' or 'reference'")
-    exptime = nramps * readout_times(nmd, det.tframe)["exposure_time"]
+    exptime = nramps * readout_times(nmd, det.tframe)["exposure_time_per_ramp"]
     return {"nmd": nmd, "nramps": nramps, "snr": reached, "snr_target": target,
             "snr_per_resolution": reached * math.sqrt(dr), "exposure_time": exptime, "trace": trace}

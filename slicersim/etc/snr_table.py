@@ -71,7 +71,7 @@ def _generic_band_variance(sim, Q, psf2, band, n, m, d):
     nvalid = np.zeros((Q.shape[0], n.size), dtype=np.int32)
     for k in range(n.size):
         nmd = (int(n[k]), int(m[k]), int(d[k]))
-        tint = readout_times(nmd, det.tframe)["integration_time"]
+        tint = readout_times(nmd, det.tframe)["integration_time_per_ramp"]
         for t, (i0, i1) in enumerate(band):
             q = Q[t, i0:i1] / ppc
             var = ppc * model(q, nmd, det.tframe, det.ron, dark, det.gain, sim.conventions)

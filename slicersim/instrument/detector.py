@@ -120,14 +120,14 @@ class Detector(Versioned):
         return readout_times(self.nmd if nmd is None else nmd, self.tframe)
 
     @property
-    def integration_time(self):
-        """(n − 1)(m + d) t_f [s] per ramp."""
-        return self.times()["integration_time"]
+    def integration_time_per_ramp(self):
+        """(n − 1)(m + d) t_f [s] of one ramp."""
+        return self.times()["integration_time_per_ramp"]
 
     @property
-    def exposure_time(self):
-        """(n (m + d) − d) t_f [s] per ramp."""
-        return self.times()["exposure_time"]
+    def exposure_time_per_ramp(self):
+        """(n (m + d) − d) t_f [s] of one ramp."""
+        return self.times()["exposure_time_per_ramp"]
 
     def effective_dark(self, thermal_dark=0.0):
         """dark + roic_glow / t_f + thermal dark [e-/s/px]."""

@@ -42,11 +42,15 @@ def check_readout(nmd, nramps=1, min_group=2, max_group=None):
 
 
 def readout_times(nmd, tframe):
-    """Dict of frames per ramp, exposure, integration and group times [s] for (n, m, d)."""
+    """Times of ONE ramp of MACC (n, m, d): ``nframes``, ``exposure_time_per_ramp``,
+    ``integration_time_per_ramp`` and ``group_time`` [s].
+
+    Vocabulary used everywhere in slicersim: ``exposure_time`` / ``integration_time``
+    without a suffix are totals over all ramps; ``*_per_ramp`` are one ramp's."""
     n, m, d = nmd
     nframes = n * (m + d) - d
-    return {"nframes": nframes, "exposure_time": nframes * tframe,
-            "integration_time": (n - 1) * (m + d) * tframe, "group_time": (m + d) * tframe}
+    return {"nframes": nframes, "exposure_time_per_ramp": nframes * tframe,
+            "integration_time_per_ramp": (n - 1) * (m + d) * tframe, "group_time": (m + d) * tframe}
 
 
 # --------------------------------------------------------------------------- #

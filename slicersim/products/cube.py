@@ -137,7 +137,7 @@ def readout_constants(sim, nmd, nramps):
     var_a, var_b, _ = cell_variance_coefficients(nmd, det.tframe, det.ron, sim.effective_dark(), det.gain,
                                                  det.saturation, sim.spectrograph.pixels_per_cell,
                                                  sim.conventions)
-    tint = sim.get_times(nmd, nramps)["inttime"]
+    tint = sim.get_times(nmd, nramps)["integration_time_per_ramp"]
     return ReadoutConstants(tint=float(tint), gain=det.gain, nramps=int(nramps), var_a=float(var_a),
                             var_b=float(var_b), pixels_per_cell=float(sim.spectrograph.pixels_per_cell),
                             dark=float(sim.effective_dark()), saturation=float(det.saturation))
@@ -187,7 +187,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     if dtype not in (np.float64, np.float32):
         raise ValueError(f"dtype must be float64 or float32, got {dtype}")
     times = sim.get_times(nmd, nramps)
-    nmd, nramps, tint = times["nmd"], times["nramps"], times["inttime"]
+    nmd, nramps, tint = times["nmd"], times["nramps"], times["integration_time_per_ramp"]
     seed = None if seed is None else seed_from(seed)
     spec, scene = sim.spectrograph, sim.scene
     lbda = sim.lbda
