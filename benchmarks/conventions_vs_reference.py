@@ -65,6 +65,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import cpu_model, jsonable, loadavg  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 RUNNER = HERE / "_blur_reference_runner.py"
@@ -123,39 +126,6 @@ EXPLANATIONS = {
 # --------------------------------------------------------------------------- #
 #  helpers                                                                    #
 # --------------------------------------------------------------------------- #
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    return str(value)
-
-
-def _cpu_model():
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.lower().startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or None
-
-
-def _loadavg():
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:
-        return None
-
-
 def _sha256(path):
     try:
         return hashlib.sha256(Path(path).read_bytes()).hexdigest()
@@ -703,7 +673,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    load_start = _loadavg()
+    load_start = loadavg()
     git_start = _git_state()
     t_start = time.perf_counter()
 
@@ -762,8 +732,8 @@ def main(argv=None):
                           + ("" if not eq else "; other config-folder files " + ("byte-identical" if not others else
                                                                  f"byte-identical except {', '.join(others)} (not used here)")) + ".")
     meta = {"snr": args.snr, "config_name": Path(config).name if cfg_file else "cbe (own curves)",
-            "cpu_model": _cpu_model(), "cpu_count": os.cpu_count(), "loadavg_start": load_start,
-            "loadavg_end": _loadavg(), "created": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+            "cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "loadavg_start": load_start,
+            "loadavg_end": loadavg(), "created": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
             "identity_line": identity_line}
 
     md = markdown(rows, expl, survey, meta)
@@ -796,7 +766,7 @@ def main(argv=None):
         "survey_line": survey_line(survey) if survey.get("conventions") else None,
         "markdown": md,
     }
-    (out / "conventions_vs_reference.json").write_text(json.dumps(_jsonable(result), indent=1))
+    (out / "conventions_vs_reference.json").write_text(json.dumps(jsonable(result), indent=1))
     (out / "conventions_vs_reference.md").write_text(md)
     try:
         make_plot(out / "conventions_vs_reference.png", rows, meta)

@@ -42,6 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import cpu_model, jsonable, loadavg  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 REFVENV = HERE / ".refvenv"
@@ -58,23 +61,6 @@ TFRAME = 2.83  # s, Lazuli CBE frame time (only for the sanity check T = r N_f t
 # --------------------------------------------------------------------------- #
 #  small helpers                                                              #
 # --------------------------------------------------------------------------- #
-def _jsonable(value):
-    """Recursively convert numpy / tuples / non-finite floats for json."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    return str(value)
-
-
 def _readout_str(row):
     if not row or not row.get("ok"):
         return "error"
@@ -85,16 +71,6 @@ def _readout_str(row):
 def _same_readout(a, b):
     return bool(a and b and a.get("ok") and b.get("ok")
                 and list(a["nmd"]) == list(b["nmd"]) and int(a["nramps"]) == int(b["nramps"]))
-
-
-def _cpu_model():
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.lower().startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or None
 
 
 def reference_dir():
@@ -348,7 +324,7 @@ def opencl_info():
     except Exception as exc:
         return {"available": False, "reason": f"{exc.__class__.__name__}: {exc}"}
     try:
-        return {"available": True, "device": _jsonable(device_info())}
+        return {"available": True, "device": jsonable(device_info())}
     except Exception as exc:
         return {"available": False, "reason": f"device_info(): {exc.__class__.__name__}: {exc}"}
 
@@ -669,7 +645,7 @@ def main(argv=None):
     print_table(rows, summary, ref_note, ours_note)
 
     machine = {"platform": platform.platform(), "machine": platform.machine(),
-               "cpu_model": _cpu_model(), "cpu_count": os.cpu_count(),
+               "cpu_model": cpu_model(), "cpu_count": os.cpu_count(),
                "python": sys.version.split()[0],
                "opencl": opencl_info() if "error" not in ours else {"available": False}}
     flux_hash = hashlib.sha256(np.ascontiguousarray(inputs["fluxes"]).tobytes()).hexdigest()
@@ -697,7 +673,7 @@ def main(argv=None):
         "rows": rows,
     }
     json_path = out / "etc_vs_reference.json"
-    json_path.write_text(json.dumps(_jsonable(result), indent=1))
+    json_path.write_text(json.dumps(jsonable(result), indent=1))
     png_path = out / "etc_vs_reference.png"
     try:
         make_plot(png_path, rows, summary)

@@ -103,12 +103,7 @@ def check_aperture(shape, position, radius):
     Raises :class:`~slicersim.errors.ParameterError`.
     """
     ny, nx = (int(v) for v in shape)
-    try:
-        x0, y0 = (float(v) for v in position)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(f"point-source position must be (x, y) in cells, got {position!r}") from exc
-    if not (np.isfinite(x0) and np.isfinite(y0)):
-        raise ParameterError(f"point-source position must be finite, got ({x0}, {y0}) cells")
+    x0, y0 = check_position(position)
     if abs(x0) > nx / 2 or abs(y0) > ny / 2:
         raise ParameterError(f"point-source position ({x0:g}, {y0:g}) cells lies outside the field "
                              f"(|x| ≤ {nx / 2:g}, |y| ≤ {ny / 2:g} cells; shape {ny}×{nx})")
