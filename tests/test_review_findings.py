@@ -286,4 +286,5 @@ def test_cli_etc_prints_units_and_no_object_repr():
     out = subprocess.run([sys.executable, "-m", "slicersim", "etc", "--redshift", "1.0", "--snr", "20"],
                          capture_output=True, text=True, timeout=30, check=True).stdout
     assert "object at 0x" not in out
-    assert "GB" in out and " s" in out
+    # the CLI now prints units in brackets after the key ("exposure_time [s]", "data_volume [GB]")
+    assert "[GB]" in out and "[s]" in out and "[Angstrom]" in out
