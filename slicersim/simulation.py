@@ -403,7 +403,7 @@ class Simulation(Versioned):
         lo, hi = _check_band(lbda_range)
         mask = (self.lbda >= lo) & (self.lbda <= hi)
         if not mask.any():
-            raise SpectrumError(f"band {lo:.0f}–{hi:.0f} Å contains no bin of the instrument grid "
+            raise SpectrumError(f"band ({lo}, {hi}) Å contains no bin of the instrument grid "
                                 f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
         from slicersim.etc.bands import check_band_coverage  # validation helper (etc/ sits above)
         check_band_coverage(self, (lo, hi), allow_partial=allow_partial)
@@ -511,7 +511,7 @@ def _check_nramps(value):
     except (TypeError, ValueError) as exc:
         raise ReadoutError(f"nramps must be an integer ≥ 1, got {value!r}") from exc
     if not np.isfinite(fval) or fval != int(fval) or fval < 1:
-        raise ReadoutError(f"nramps must be a finite integer ≥ 1, got {value!r}")
+        raise ReadoutError(f"nramps must be an integer ≥ 1, got {value!r}")
     return int(fval)
 
 
