@@ -512,17 +512,21 @@ def _result(target, etc):
 
 
 def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame="obs",
-               config="cbe", field="narrow", search="exact", redshift=None, conventions=DEFAULT_CONVENTIONS):
+               config="cbe", field="narrow", search="exact", redshift=None, conventions=DEFAULT_CONVENTIONS,
+               allow_partial=False):
     """Exposure time for any spectrum with the Lazuli IFS; returns a dict
-    (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target)."""
+    (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target).
+    ``allow_partial``: band coverage rule of :meth:`Target.setup_to_snr`."""
     target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift,
                           conventions=conventions)
-    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search))
+    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))
 
 
 def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame="rest", config="cbe", field="narrow",
-                  search="exact", phase=0.0, source="hsiao-subsampled", conventions=DEFAULT_CONVENTIONS):
-    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default)."""
+                  search="exact", phase=0.0, source="hsiao-subsampled", conventions=DEFAULT_CONVENTIONS,
+                  allow_partial=False):
+    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default;
+    ``allow_partial``: band coverage rule of :meth:`Target.setup_to_snr`)."""
     target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field,
                              conventions=conventions)
-    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search))
+    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))
