@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.constants import HC_ERG_AA
-from slicersim.errors import ETCError, ParameterError
+from slicersim.errors import ETCError, ParameterError, ReadoutError, SpectrumError
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, instrumental_blur_sigma
 from slicersim.physics.psf import aperture_cells, gaussian_psf_fractions, gaussian_psf_sigmas
 from slicersim.physics.readout import check_readout, readout_times
@@ -79,12 +79,14 @@ class Simulation(Versioned):
         self._conventions = check_conventions(conventions)
         self.scene, self.telescope = scene, telescope
         self.spectrograph, self.detector = spectrograph, detector
-        _, self.nramps = check_readout(detector.nmd, nramps, detector.min_group, detector.max_group)
+        _, self.nramps = check_readout(detector.nmd, _check_nramps(nramps), detector.min_group,
+                                       detector.max_group)
         self.aperture_radius_insigma = _check_aperture(aperture_radius_insigma)
         self.redshift = redshift
         self._cache = {}
         object.__setattr__(self, "_cache_token", None)
         self._check_overlap()
+        self._check_aperture_cells(spectrograph, telescope, self.aperture_radius_insigma, self.position)
 
     @property
     def conventions(self):
@@ -110,11 +112,16 @@ class Simulation(Versioned):
             names += [n for n in comp.mutable_parameters if n not in names]
         return tuple(names)
 
-    def update(self, **kwargs):
+    def update(self, _position=None, **kwargs):
         """Change any mutable parameter of the simulation or its components (see
         ``mutable_parameters``), atomically: the new components are built and validated
         off to the side first; on any error (:class:`ParameterError`, ReadoutError)
-        nothing changes.  Caches follow automatically (version keyed)."""
+        nothing changes.  Caches follow automatically (version keyed).
+
+        The extraction aperture is validated for the new state: a point source outside the
+        field or an aperture containing no cell centre raises ParameterError.
+        ``_position`` (internal, used by targets) validates it for a point-source position
+        about to be set."""
         unknown = sorted(set(kwargs) - set(self.mutable_parameters))
         if unknown:
             raise ParameterError(f"unknown simulation parameter(s) {unknown}; accepted: "
@@ -129,10 +136,13 @@ class Simulation(Versioned):
                 groups[name][key] = val
         new = {name: getattr(self, name).updated(**params) for name, params in groups.items() if params}
         det = new.get("detector", self.detector)
-        _, nramps = check_readout(det.nmd, own.get("nramps", self.nramps), det.min_group, det.max_group)
+        nramps = _check_nramps(own["nramps"]) if "nramps" in own else self.nramps
+        _, nramps = check_readout(det.nmd, nramps, det.min_group, det.max_group)
         aperture = _check_aperture(own.get("aperture_radius_insigma", self.aperture_radius_insigma))
         spec = new.get("spectrograph", self.spectrograph)
         self._check_overlap(spec.lbda)
+        self._check_aperture_cells(spec, new.get("telescope", self.telescope), aperture,
+                                   self.position if _position is None else _position)
         # everything validated: apply (nothing below can fail)
         for name, obj in new.items():
             getattr(self, name)._adopt(obj)
@@ -144,8 +154,16 @@ class Simulation(Versioned):
         lbda = self.lbda if lbda is None else lbda
         lo, hi = lbda[0], lbda[-1]
         if ps is not None and not ps.overlap(lo, hi):
-            raise ValueError(f"point-source spectrum ({ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å) does "
-                             f"not overlap the instrument range ({lo:.0f}–{hi:.0f} Å)")
+            raise SpectrumError(f"point-source spectrum ({ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å) does "
+                                f"not overlap the instrument range ({lo:.0f}–{hi:.0f} Å)")
+
+    def _check_aperture_cells(self, spec, telescope, aperture_insigma, position):
+        """ParameterError unless ``position`` [cells] is inside the field and the extraction
+        aperture (``aperture_insigma`` σ_ref / s) contains at least one cell centre."""
+        if self.scene.pointsource is None:
+            return
+        radius = aperture_insigma * telescope.psf_sigma_ref / spec.spatial_scale
+        aperture_cells(spec.shape, position, radius)
 
     def _cached(self, key, func):
         token = state_token(self)
@@ -249,7 +267,7 @@ class Simulation(Versioned):
     # ------------------------------------------------------------------ readout
     def _readout(self, nmd=None, nramps=None):
         nmd = self.detector.nmd if nmd is None else nmd
-        nramps = self.nramps if nramps is None else nramps
+        nramps = self.nramps if nramps is None else _check_nramps(nramps)
         return check_readout(nmd, nramps, self.detector.min_group, self.detector.max_group)
 
     def get_times(self, nmd=None, nramps=None):
@@ -315,6 +333,7 @@ class Simulation(Versioned):
         computation path of each scene component and the options
         (``max_bytes``, ``progress``, ``psf_options``).
         """
+        seed = check_seed(seed)
         return tuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,
                                 **options))
 
@@ -376,21 +395,27 @@ class Simulation(Versioned):
         signal, variance = self._spectrum(nmd, nramps, psf_profile=psf_profile)
         return self.lbda.copy(), signal, variance
 
-    def band_mask(self, lbda_range):
-        """Bins whose centres lie in [lo, hi] Å (inclusive)."""
-        lo, hi = lbda_range
+    def band_mask(self, lbda_range, allow_partial=False):
+        """Bins whose centres lie in [lo, hi] Å (inclusive).
+
+        The band must lie entirely inside the instrument grid and be entirely covered by
+        the point-source spectrum, else SpectrumError naming the covered fraction;
+        ``allow_partial=True`` accepts a partly covered band (≥ 50 % inside the grid) with
+        a BandCoverageWarning, the SNR being that of the covered part
+        (:mod:`slicersim.etc.bands`)."""
+        lo, hi = _check_band(lbda_range)
         mask = (self.lbda >= lo) & (self.lbda <= hi)
         if not mask.any():
-            raise ValueError(f"band {lbda_range} Å contains no bin of the instrument grid "
-                             f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
+            raise SpectrumError(f"band ({lo}, {hi}) Å contains no bin of the instrument grid "
+                                f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
         from slicersim.etc.bands import check_band_coverage  # validation helper (etc/ sits above)
-        check_band_coverage(self, lbda_range)
+        check_band_coverage(self, (lo, hi), allow_partial=allow_partial)
         return mask
 
     def band_range(self, lbda_range, frame="obs"):
         """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame
         (rest: ×(1 + redshift); needs :attr:`redshift`)."""
-        lo, hi = (float(v) for v in lbda_range)
+        lo, hi = _check_band(lbda_range)
         if frame == "rest":
             if self.redshift is None:
                 raise ETCError("frame='rest' needs a redshift (Simulation.redshift is None)")
@@ -399,12 +424,17 @@ class Simulation(Versioned):
             raise ETCError(f"frame must be 'obs' or 'rest', got {frame!r}")
         return lo, hi
 
-    def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False, frame="obs"):
-        """Band SNR = nanmean(signal) / √nanmean(variance) over the bins in ``lbda_range``
+    def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False, frame="obs",
+                     allow_partial=False):
+        """Band SNR = mean(signal) / √mean(variance) over the bins in ``lbda_range``
         (per bin; ×√dispersion_resolution when ``per_resolution``); ``frame="rest"``
-        reads ``lbda_range`` in the source rest frame (needs :attr:`redshift`)."""
+        reads ``lbda_range`` in the source rest frame (needs :attr:`redshift`).
+
+        A band not entirely inside the grid and the source spectrum raises SpectrumError
+        unless ``allow_partial=True`` (then a BandCoverageWarning, and the means run over
+        the covered bins only); see :meth:`band_mask`."""
         nmd, nramps = self._readout(nmd, nramps)
-        mask = self.band_mask(self.band_range(lbda_range, frame))
+        mask = self.band_mask(self.band_range(lbda_range, frame), allow_partial=allow_partial)
         signal, variance = self._spectrum(nmd, nramps)
         snr = _band_snr(signal[mask], variance[mask])
         return snr * np.sqrt(self.spectrograph.dispersion_resolution) if per_resolution else snr
@@ -422,10 +452,11 @@ class Simulation(Versioned):
             out[src] = total - var_off
         return out
 
-    def get_band_variance_contribution(self, lbda_range, nmd=None, nramps=None):
-        """Band-mean variance contributions: absolute [ADU²] and fractions ``frac_<src>``."""
+    def get_band_variance_contribution(self, lbda_range, nmd=None, nramps=None, allow_partial=False):
+        """Band-mean variance contributions: absolute [ADU²] and fractions ``frac_<src>``
+        (band coverage rule: :meth:`band_mask`)."""
         nmd, nramps = self._readout(nmd, nramps)
-        mask = self.band_mask(lbda_range)
+        mask = self.band_mask(lbda_range, allow_partial=allow_partial)
         signal, total = self._spectrum(nmd, nramps)
         mean_total = np.nanmean(total[mask])
         times = self.get_times(nmd, nramps)
@@ -444,10 +475,15 @@ class Simulation(Versioned):
         return out
 
     # ------------------------------------------------------------------ ETC
-    def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", **kwargs):
-        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.etc.search`)."""
+    def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", allow_partial=False, **kwargs):
+        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.etc.search`);
+        band coverage rule (``allow_partial``): :meth:`band_mask`."""
         from slicersim.etc.search import solve_readout  # etc/ sits above: its solve_many builds Simulations
-        return solve_readout(self, snr, lbda_range, per_resolution=per_resolution, search=search, **kwargs)
+        if isinstance(snr, (bool, np.bool_)) or not isinstance(snr, (int, float, np.integer, np.floating)) \
+                or not (np.isfinite(snr) and snr > 0):
+            raise ETCError(f"the target SNR must be a finite number > 0, got {snr!r}")
+        return solve_readout(self, float(snr), lbda_range, per_resolution=per_resolution, search=search,
+                             allow_partial=allow_partial, **kwargs)
 
 
 def _check_aperture(value):
@@ -458,6 +494,41 @@ def _check_aperture(value):
     if not (np.isfinite(value) and value > 0):
         raise ParameterError(f"aperture_radius_insigma must be finite and > 0, got {value}")
     return value
+
+
+def _check_band(lbda_range):
+    """(lo, hi) [Å] as finite floats with lo < hi (ETCError otherwise)."""
+    try:
+        lo, hi = (float(v) for v in lbda_range)
+    except (TypeError, ValueError) as exc:
+        raise ETCError(f"band must be (lo, hi) in Å, got {lbda_range!r}") from exc
+    if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+        raise ETCError(f"band must be finite (lo, hi) with lo < hi, got {lbda_range!r}")
+    return lo, hi
+
+
+def _check_nramps(value):
+    """nramps as an int ≥ 1 (ReadoutError for None, NaN, inf, non-integers, strings, bools)."""
+    if isinstance(value, (bool, np.bool_)) or isinstance(value, str) or value is None:
+        raise ReadoutError(f"nramps must be an integer ≥ 1, got {value!r}")
+    try:
+        fval = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ReadoutError(f"nramps must be an integer ≥ 1, got {value!r}") from exc
+    if not np.isfinite(fval) or fval != int(fval) or fval < 1:
+        raise ReadoutError(f"nramps must be an integer ≥ 1, got {value!r}")
+    return int(fval)
+
+
+def check_seed(seed):
+    """A noise seed: None, a numpy Generator or an int in [0, 2⁶⁴) (ParameterError otherwise)."""
+    if seed is None or isinstance(seed, np.random.Generator):
+        return seed
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+        raise ParameterError(f"seed must be an integer in [0, 2**64) or a numpy Generator, got {seed!r}")
+    if not 0 <= int(seed) < 2**64:
+        raise ParameterError(f"seed must be in [0, 2**64), got {seed}")
+    return int(seed)
 
 
 def _band_snr(signal, variance):

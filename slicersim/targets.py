@@ -7,11 +7,13 @@ result as a dict.
 from __future__ import annotations
 
 import math
+import numbers
+import os
 
 import numpy as np
 
 from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field, default_mapper  # noqa: F401
-from slicersim.errors import ETCError, ParameterError
+from slicersim.errors import ETCError, ParameterError, SlicersimError
 from slicersim.io.config import load_config
 from slicersim.io.curves import read_curve
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
@@ -66,11 +68,11 @@ class Target:
     def __init__(self, lbda, flux, mag=None, band="bessellb", config=None, field="default",
                  position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS):
         self._conventions = check_conventions(conventions)
-        self._redshift = redshift
+        self._redshift = _check_redshift(redshift)
         self._source_args = dict(lbda=lbda, flux=flux, mag=mag, band=band, position=position)
         self.pointsource = PointSource(lbda, flux, position=position, mag=mag, band=band)
         self._host, self._host_offset = None, None
-        self.config = self.default_config if config is None else config
+        self.config = self.default_config if config is None else _check_config(config)
         if field == "default":
             field = config_default_field(self.config) if self.default_field == "auto" else self.default_field
         self._field = check_field(field)
@@ -130,7 +132,7 @@ class Target:
         upd = dict(params or {})
         if keep_readout:
             old = self.simulation
-            upd = dict(nmd=old.detector.nmd, nramps=old.nramps, **upd)
+            upd = {"nmd": old.detector.nmd, "nramps": old.nramps, **upd}    # explicit readout wins
         if upd:
             sim.update(**upd)
         if self._host is not None:      # placed for the new cell size when applied (update)
@@ -196,9 +198,7 @@ class Target:
         spectrum = None
         redshift = self._redshift
         if "redshift" in params:
-            redshift = params["redshift"]
-            if redshift is not None and not (np.isfinite(redshift) and redshift > 0):
-                raise ParameterError(f"redshift must be > 0, got {redshift}")
+            redshift = _check_redshift(params["redshift"])
             spectrum = self._spectrum_at(redshift) if redshift is not None else None
             if spectrum is None and redshift is None and self._spectrum_at(1.0) is not None:
                 raise ParameterError("this target's spectrum needs a redshift")
@@ -209,7 +209,7 @@ class Target:
         position = self.pointsource.position
         if "position" in params:
             position = PointSource([1.0, 2.0], [0.0, 0.0], position=params["position"]).position
-        config = params.get("config", self.config)
+        config = _check_config(params["config"]) if "config" in params else self.config
         field = check_field(params["field"]) if "field" in params else self._field
         new_sim = None
         lbda = self.simulation.lbda
@@ -221,6 +221,8 @@ class Target:
             finally:
                 self.pointsource = saved
             lbda = new_sim.lbda
+            new_sim._check_aperture_cells(new_sim.spectrograph, new_sim.telescope,
+                                          new_sim.aperture_radius_insigma, position)
         else:
             spec = self.simulation.spectrograph
             spec_params = {k: v for k, v in sim_params.items()
@@ -229,8 +231,9 @@ class Target:
                 lbda = spec.updated(**spec_params).lbda
         if probe is not None and not probe.overlap(lbda[0], lbda[-1]):
             raise ParameterError(f"the spectrum at redshift {redshift} does not overlap the instrument range")
-        if new_sim is None and sim_params:
-            self.simulation.update(**sim_params)       # atomic by itself; last step that can fail
+        if new_sim is None and (sim_params or "position" in params):
+            # atomic by itself; validates the aperture at the new position; last step that can fail
+            self.simulation.update(_position=position, **sim_params)
         # -- apply (nothing below can fail)
         if probe is not None:
             self.pointsource.set_spectrum(probe.lbda_in, probe.flux_in, probe.flux_ratio, probe.native_mag)
@@ -246,7 +249,12 @@ class Target:
 
     def set_throughput(self, throughput, column=None, noptics=None):
         """Replace the spectrograph throughput (see :meth:`Spectrograph.set_throughput`); at once."""
-        self.simulation.spectrograph.set_throughput(throughput, column=column, noptics=noptics)
+        try:
+            self.simulation.spectrograph.set_throughput(throughput, column=column, noptics=noptics)
+        except SlicersimError:
+            raise
+        except (ValueError, TypeError, OSError, KeyError) as exc:
+            raise ParameterError(f"invalid throughput {throughput!r}: {exc}") from exc
 
     def change_configuration(self, config):
         """Switch to another configuration (``"cbe"``, ``"eol"``, TOML path(s)); keeps the readout."""
@@ -266,6 +274,9 @@ class Target:
         """Set the readout (n, m, d), number of ramps, max_group or other detector parameters."""
         params = dict(kwargs)
         if max_group is not None:
+            if isinstance(max_group, bool) or not isinstance(max_group, numbers.Real) \
+                    or not math.isfinite(max_group) or int(max_group) != max_group or max_group < 1:
+                raise ParameterError(f"max_group must be an integer ≥ 1 (None: no limit), got {max_group!r}")
             params["max_group"] = int(max_group)
         if nmd is not None:
             check_readout(nmd, nramps or self.simulation.nramps, self.simulation.detector.min_group,
@@ -279,20 +290,22 @@ class Target:
     def _band(self, lbda_range, frame):
         if lbda_range is None:
             lbda_range = (4000.0, 6800.0)
-        lo, hi = (float(v) for v in lbda_range)
-        if not hi > lo:
-            raise ETCError(f"lbda_range must be (lo, hi) with lo < hi, got {lbda_range}")
+        lo, hi = _check_band(lbda_range)
         if frame == "rest" and self.redshift is None:
             raise ETCError("frame='rest' needs a target redshift")
         return self.simulation.band_range((lo, hi), frame)
 
     def setup_to_snr(self, snr, lbda_range=None, frame="obs", search="exact", per_resolution=True,
-                     backend="auto"):
+                     backend="auto", allow_partial=False):
         """Find and apply the readout reaching ``snr`` (per resolution element by default)
-        in ``lbda_range``; returns the ETC result dict."""
+        in ``lbda_range``; returns the ETC result dict.
+
+        The band must lie inside the instrument grid and the source spectrum, else
+        SpectrumError naming the covered fraction; ``allow_partial=True`` solves on the
+        covered part with a BandCoverageWarning (:mod:`slicersim.etc.bands`)."""
         band = self._band(lbda_range, frame)
         result = self.simulation.fetch_snr(snr, band, per_resolution=per_resolution, search=search,
-                                           backend=backend)
+                                           backend=backend, allow_partial=allow_partial)
         self.simulation.update(nmd=result["nmd"], nramps=result["nramps"])
         result["lbda_range_obs"] = band
         self.last_etc = result
@@ -315,8 +328,11 @@ class Target:
     def get_data_volume(self):
         return self.simulation.get_data_volume()
 
-    def get_band_snr(self, lbda_range=None, frame="obs", per_resolution=False):
-        return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution)
+    def get_band_snr(self, lbda_range=None, frame="obs", per_resolution=False, allow_partial=False):
+        """Band SNR (per bin; per resolution element when ``per_resolution``); band coverage
+        rule (``allow_partial``) as :meth:`setup_to_snr`."""
+        return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution,
+                                            allow_partial=allow_partial)
 
     def get_spectrum(self, incl_error=False, seed=None):
         """(λ [Å], signal [ADU], variance [ADU²]); ``incl_error`` adds a Gaussian noise draw.
@@ -327,6 +343,8 @@ class Target:
         noisy cubes (:func:`slicersim.backends.noise.noisy_cube`): the same seed (int in
         [0, 2⁶⁴)) gives the same draw on every machine and backend; bins with zero variance
         keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed."""
+        from slicersim.simulation import check_seed
+        seed = check_seed(seed)
         lbda, signal, variance = self.simulation.get_spectrum()
         if incl_error:
             from slicersim.backends.noise import noisy_cube
@@ -382,8 +400,9 @@ class Target:
     def get_variance_contribution(self):
         return self.simulation.get_variance_contribution()
 
-    def get_band_variance_contribution(self, lbda_range=None, frame="obs"):
-        return self.simulation.get_band_variance_contribution(self._band(lbda_range, frame))
+    def get_band_variance_contribution(self, lbda_range=None, frame="obs", allow_partial=False):
+        return self.simulation.get_band_variance_contribution(self._band(lbda_range, frame),
+                                                              allow_partial=allow_partial)
 
 
 class Supernova(Target):
@@ -393,6 +412,9 @@ class Supernova(Target):
     def __init__(self, redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3, config=None,
                  field="default", position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, **kwargs):
         self.phase, self.source, self.peak_absmag, self._sn_kwargs = phase, source, peak_absmag, dict(kwargs)
+        redshift = _check_redshift(redshift)
+        if redshift is None:
+            raise ParameterError("a supernova needs a redshift")
         lbda, flux = snia_spectrum(redshift, phase, source, peak_absmag, **kwargs)
         super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift,
                          conventions=conventions)
@@ -400,8 +422,19 @@ class Supernova(Target):
     def _spectrum_at(self, redshift):
         return snia_spectrum(redshift, self.phase, self.source, self.peak_absmag, **self._sn_kwargs)
 
+    # A supernova's bands are read in the rest frame by default (4000–6800 Å rest), in
+    # setup_to_snr, get_band_snr and get_band_variance_contribution alike, so that
+    # ``get_band_snr(per_resolution=True)`` after ``setup_to_snr(snr)`` reports the SNR the
+    # ETC reached (the ETC works per resolution element by default; get_band_snr per bin
+    # unless ``per_resolution=True``, as for every target).
     def setup_to_snr(self, snr, lbda_range=None, frame="rest", **kwargs):
         return super().setup_to_snr(snr, lbda_range, frame, **kwargs)
+
+    def get_band_snr(self, lbda_range=None, frame="rest", per_resolution=False, allow_partial=False):
+        return super().get_band_snr(lbda_range, frame, per_resolution, allow_partial)
+
+    def get_band_variance_contribution(self, lbda_range=None, frame="rest", allow_partial=False):
+        return super().get_band_variance_contribution(lbda_range, frame, allow_partial)
 
 
 class BlackBody(Target):
@@ -431,6 +464,36 @@ class LazuliBlackBody(_Lazuli, BlackBody):
     """Black body observed with the Lazuli IFS."""
 
 
+def _check_redshift(redshift):
+    """None or a finite number > 0 (ParameterError otherwise: strings, lists, NaN, ≤ 0)."""
+    if redshift is None:
+        return None
+    if isinstance(redshift, (bool, np.bool_)) or not isinstance(redshift, numbers.Real):
+        raise ParameterError(f"redshift must be a number > 0 or None, got {redshift!r}")
+    if not (math.isfinite(redshift) and redshift > 0):
+        raise ParameterError(f"redshift must be finite and > 0, got {redshift!r}")
+    return float(redshift)
+
+
+def _check_config(config):
+    """A configuration name / TOML path or a non-empty list of them (ParameterError otherwise)."""
+    items = config if isinstance(config, (list, tuple)) else [config]
+    if not items or not all(isinstance(c, (str, os.PathLike)) for c in items):
+        raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
+    return config
+
+
+def _check_band(lbda_range):
+    """(lo, hi) [Å] as finite floats with lo < hi (ETCError otherwise)."""
+    try:
+        lo, hi = (float(v) for v in lbda_range)
+    except (TypeError, ValueError) as exc:
+        raise ETCError(f"lbda_range must be (lo, hi) in Å, got {lbda_range!r}") from exc
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        raise ETCError(f"lbda_range must be finite (lo, hi) with lo < hi, got {lbda_range!r}")
+    return lo, hi
+
+
 def _host_offset(host):
     """(x, y) [arcsec] of a host: its profile offset or its cube centre."""
     if hasattr(host, "profile") and hasattr(host.profile, "offset"):
@@ -449,17 +512,21 @@ def _result(target, etc):
 
 
 def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame="obs",
-               config="cbe", field="narrow", search="exact", redshift=None, conventions=DEFAULT_CONVENTIONS):
+               config="cbe", field="narrow", search="exact", redshift=None, conventions=DEFAULT_CONVENTIONS,
+               allow_partial=False):
     """Exposure time for any spectrum with the Lazuli IFS; returns a dict
-    (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target)."""
+    (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target).
+    ``allow_partial``: band coverage rule of :meth:`Target.setup_to_snr`."""
     target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift,
                           conventions=conventions)
-    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search))
+    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))
 
 
 def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame="rest", config="cbe", field="narrow",
-                  search="exact", phase=0.0, source="hsiao-subsampled", conventions=DEFAULT_CONVENTIONS):
-    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default)."""
+                  search="exact", phase=0.0, source="hsiao-subsampled", conventions=DEFAULT_CONVENTIONS,
+                  allow_partial=False):
+    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default;
+    ``allow_partial``: band coverage rule of :meth:`Target.setup_to_snr`)."""
     target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field,
                              conventions=conventions)
-    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search))
+    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))

@@ -217,11 +217,11 @@ def test_update_position_moves_source_and_host():
     host = Host(SersicProfile(1.0, 0.3, 0.7, 20.0, offset=(0.1, 0.0)), lbda, np.full(lbda.size, 5e-17))
     t.set_host(host)                                   # offset relative to the target
     scale = t.simulation.spectrograph.spatial_scale
-    snr0 = t.get_band_snr(BAND)
+    snr0 = t.get_band_snr(BAND, frame="obs")   # a supernova's bands default to the rest frame
     t.update(position=(3.3, -2.1))
     assert t.simulation.position == (3.3, -2.1)
     assert host.profile.offset == pytest.approx((3.3 * scale + 0.1, -2.1 * scale))
-    assert t.get_band_snr(BAND) != snr0
+    assert t.get_band_snr(BAND, frame="obs") != snr0
     fixed = Host(SersicProfile(1.0, 0.3, 0.7, 20.0, offset=(0.1, 0.0)), lbda, np.full(lbda.size, 5e-17))
     t.set_host(fixed, relative=False)
     t.update(position=(0.0, 0.0))

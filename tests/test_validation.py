@@ -212,8 +212,11 @@ def test_band_mostly_outside_grid_refused(sn):
 
 
 def test_band_partly_outside_grid_warns(sn):
-    with pytest.warns(BandCoverageWarning, match=r"only 66\.9 % inside the instrument grid"):
+    # single-target calls refuse a partly covered band unless allow_partial=True (etc/bands.py)
+    with pytest.raises(SpectrumError, match=r"only 66\.9 % inside the instrument grid"):
         sn.setup_to_snr(20, lbda_range=(15000, 18000), frame="obs")
+    with pytest.warns(BandCoverageWarning, match=r"only 66\.9 % inside the instrument grid"):
+        sn.setup_to_snr(20, lbda_range=(15000, 18000), frame="obs", allow_partial=True)
     lb = np.linspace(3000, 20000, 300)
     with pytest.warns(BandCoverageWarning, match=r"target\(s\) \[1\].*66\.9 % inside the instrument grid"):
         solve_many(lb, np.full((2, lb.size), 1e-17), 20, [[6000, 8000], [15000, 18000]])
@@ -222,8 +225,10 @@ def test_band_partly_outside_grid_warns(sn):
 def test_band_partly_covered_by_spectrum_warns():
     lb = np.linspace(3000, 9000, 300)
     tgt = LazuliTarget(lb, np.full(lb.size, 1e-17))
-    with pytest.warns(BandCoverageWarning, match=r"covers only 50\.0 %"):
+    with pytest.raises(SpectrumError, match=r"covers only 50\.0 %"):
         tgt.setup_to_snr(5, lbda_range=(8000, 10000))
+    with pytest.warns(BandCoverageWarning, match=r"covers only 50\.0 %"):
+        tgt.setup_to_snr(5, lbda_range=(8000, 10000), allow_partial=True)
     with pytest.warns(BandCoverageWarning, match=r"covers only 50\.0 %"):
         solve_many(lb, np.full((1, lb.size), 1e-17), 5, (8000, 10000))
     with warnings.catch_warnings():

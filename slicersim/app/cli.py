@@ -146,6 +146,8 @@ def cmd_etc(args) -> int:
         kwargs["field"] = args.field
     if args.search is not None:
         kwargs["search"] = args.search
+    if args.allow_partial:
+        kwargs["allow_partial"] = True
     if args.redshift is not None:
         kwargs["frame"] = args.frame or "rest"
         result = targets.lazuli_sn_etc(args.redshift, **kwargs)
@@ -263,6 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instrument configuration; repeat to apply several in order (default: cbe)")
     p.add_argument("--field", choices=("narrow", "wide"), help="field of view (default: narrow)")
     p.add_argument("--search", choices=("exact", "reference"), help="readout search strategy (default: exact)")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="accept a band partly outside the instrument grid or the spectrum (warns; the SNR "
+                        "is that of the covered part; default: refuse)")
     p.set_defaults(func=cmd_etc)
 
     d = RAMP_DETECTOR_DEFAULTS

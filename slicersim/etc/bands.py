@@ -1,13 +1,23 @@
 """Coverage of an SNR band by the instrument grid and by the source spectrum.
 
-A band is never silently clipped.  When part of it lies outside the instrument
-wavelength grid (its bin edges), a :class:`BandCoverageWarning` names the covered
-fraction, and the request is refused with a :class:`~slicersim.errors.SpectrumError`
-when less than :data:`MIN_GRID_COVERAGE` of the band is inside the grid (a hard
-100 % rule would refuse SN Ia bands such as 4000–6800 Å rest at z > 1.5, which the
-existing batch tests use).  When the *source spectrum* covers only part of the band
-(the rest is NaN and ignored by the band means) a :class:`BandCoverageWarning`
-names the covered fraction.
+A band is never silently clipped.  The rule (the same for the grid and the spectrum):
+
+* a band entirely inside the instrument grid (its bin edges) and entirely covered by
+  the source spectrum is used as is;
+* a band only partly covered raises :class:`~slicersim.errors.SpectrumError` naming the
+  covered fraction (the SNR would otherwise be that of a narrower band: bins outside
+  the spectrum are NaN and the band means would ignore them) — unless the caller passes
+  ``allow_partial=True``: then a :class:`BandCoverageWarning` names the covered fraction
+  and the SNR is computed on the covered part;
+* a band less than :data:`MIN_GRID_COVERAGE` inside the grid, or with no bin at all, is
+  refused even with ``allow_partial=True``.
+
+Single-target calls (``Target.get_band_snr`` / ``setup_to_snr``,
+``Simulation.get_band_snr`` / ``fetch_snr`` / ``band_mask`` /
+``get_band_variance_contribution``) default to ``allow_partial=False``;
+:func:`slicersim.etc.solve.solve_many` defaults to ``allow_partial=True`` (a batch of
+survey targets whose rest-frame bands straddle the grid edge, e.g. SN Ia 4000–6800 Å rest
+at z > 1.5, is answered with one warning naming the targets instead of failing).
 """
 from __future__ import annotations
 
@@ -37,11 +47,11 @@ def covered_fraction(lo, hi, cover_lo, cover_hi):
         return np.where(hi > lo, inside / (hi - lo), 0.0)
 
 
-def check_band_in_grid(ranges, grid_edges, who=None):
+def check_band_in_grid(ranges, grid_edges, who=None, allow_partial=True):
     """Bands (N, 2) [Å] against the instrument grid [grid_edges[0], grid_edges[-1]]: raise
     SpectrumError when less than :data:`MIN_GRID_COVERAGE` of a band is inside, warn
     (BandCoverageWarning) naming the covered fraction when it is not 100 %.  Returns the
-    covered fractions."""
+    covered fractions.  ``allow_partial=False``: SpectrumError below 100 %."""
     ranges = np.atleast_2d(np.asarray(ranges, dtype=float))
     g0, g1 = float(grid_edges[0]), float(grid_edges[-1])
     frac = covered_fraction(ranges[:, 0], ranges[:, 1], g0, g1)
@@ -56,6 +66,10 @@ def check_band_in_grid(ranges, grid_edges, who=None):
                             f"{g0:.0f}–{g1:.0f} Å (at least {100 * MIN_GRID_COVERAGE:.0f} % needed): "
                             "choose a band inside the grid")
     part = np.nonzero(frac < 1.0)[0]
+    if part.size and not allow_partial:
+        raise SpectrumError(f"{head(part)} is only {100 * frac[part[0]]:.1f} % inside the instrument grid "
+                            f"{g0:.0f}–{g1:.0f} Å: the SNR would be that of a narrower band; choose a band "
+                            "inside the grid or pass allow_partial=True to use the covered part")
     if part.size:
         warnings.warn(f"{head(part)} is only {100 * frac[part[0]]:.1f} % inside the instrument grid "
                       f"{g0:.0f}–{g1:.0f} Å: the SNR is computed on the covered part",
@@ -63,9 +77,10 @@ def check_band_in_grid(ranges, grid_edges, who=None):
     return frac
 
 
-def warn_partial_spectrum(ranges, spec_lo, spec_hi, who=None):
+def warn_partial_spectrum(ranges, spec_lo, spec_hi, who=None, allow_partial=True):
     """Warn (BandCoverageWarning) when the source spectrum [spec_lo, spec_hi] covers only
-    part of a band; returns the covered fractions."""
+    part of a band (``allow_partial=False``: raise SpectrumError); returns the covered
+    fractions."""
     ranges = np.atleast_2d(np.asarray(ranges, dtype=float))
     frac = covered_fraction(ranges[:, 0], ranges[:, 1], spec_lo, spec_hi)
     part = np.nonzero(frac < 1.0)[0]
@@ -74,16 +89,21 @@ def warn_partial_spectrum(ranges, spec_lo, spec_hi, who=None):
         lo, hi = ranges[i]
         head = f"band {lo:.0f}–{hi:.0f} Å" if who is None else \
             f"band of target(s) {part[:10].tolist()} (first: {lo:.0f}–{hi:.0f} Å)"
+        msg = (f"the source spectrum ({float(spec_lo):.0f}–{float(spec_hi):.0f} Å) covers only "
+               f"{100 * frac[i]:.1f} % of the {head}")
+        if not allow_partial:
+            raise SpectrumError(f"{msg}: the SNR would be that of a narrower band; choose a band the "
+                                "spectrum covers or pass allow_partial=True to use the covered part")
         warnings.warn(f"the source spectrum ({float(spec_lo):.0f}–{float(spec_hi):.0f} Å) covers only "
                       f"{100 * frac[i]:.1f} % of the {head}: the SNR is computed on the covered part",
                       BandCoverageWarning, stacklevel=3)
     return frac
 
 
-def check_band_coverage(sim, lbda_range):
+def check_band_coverage(sim, lbda_range, allow_partial=False):
     """Single-target check (called by ``Simulation.band_mask``): see
-    :func:`check_band_in_grid` and :func:`warn_partial_spectrum`."""
-    check_band_in_grid([lbda_range], sim.spectrograph.lbda_edges)
+    :func:`check_band_in_grid` and :func:`warn_partial_spectrum` (module docstring: the rule)."""
+    check_band_in_grid([lbda_range], sim.spectrograph.lbda_edges, allow_partial=allow_partial)
     ps = sim.scene.pointsource
     if ps is not None:
-        warn_partial_spectrum([lbda_range], ps.lbda_in[0], ps.lbda_in[-1])
+        warn_partial_spectrum([lbda_range], ps.lbda_in[0], ps.lbda_in[-1], allow_partial=allow_partial)

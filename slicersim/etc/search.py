@@ -301,8 +301,12 @@ def check_reference_result(snr, lbda_range, target, reached, exposure_time, tfra
 # --------------------------------------------------------------------------- #
 #  single-target driver                                                        #
 # --------------------------------------------------------------------------- #
-def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", backend="auto"):
+def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", backend="auto",
+                  allow_partial=False):
     """Solve the ETC for a :class:`~slicersim.simulation.Simulation`.
+
+    ``allow_partial``: band coverage rule of :meth:`Simulation.band_mask
+    <slicersim.simulation.Simulation.band_mask>` (:mod:`slicersim.etc.bands`).
 
     Returns a dict: nmd, nramps, snr (band SNR per bin reached), snr_target (per bin),
     exposure_time (total, s), trace (reference search only).
@@ -311,7 +315,7 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
     dr = sim.spectrograph.dispersion_resolution
     target = snr / math.sqrt(dr) if per_resolution else snr
     det = sim.detector
-    mask = sim.band_mask(lbda_range)
+    mask = sim.band_mask(lbda_range, allow_partial=allow_partial)
     if search == "reference":
         memo = {}
 
@@ -321,7 +325,7 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
                 if det.max_group and n > det.max_group:   # the 1.0 walk on n has no upper bound
                     check_reference_result(snr, lbda_range, target, np.inf, 0.0, det.tframe,
                                            nmd=key, max_group=det.max_group)
-                memo[key] = sim.get_band_snr(lbda_range, nmd=key, nramps=1)
+                memo[key] = sim.get_band_snr(lbda_range, nmd=key, nramps=1, allow_partial=allow_partial)
             return memo[key] * math.sqrt(r)
         nmd, nramps, reached, trace = reference_walk(snr_of, target, det.max_group or 64, det.nmd[2])
         check_reference_result(snr, lbda_range, target, reached,

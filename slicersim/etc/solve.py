@@ -57,7 +57,8 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
 
 def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field="narrow",
                search="exact", redshifts=None, per_resolution=True, backend="auto",
-               max_bytes=DEFAULT_MAX_BYTES, progress=False, conventions=DEFAULT_CONVENTIONS):
+               max_bytes=DEFAULT_MAX_BYTES, progress=False, conventions=DEFAULT_CONVENTIONS,
+               allow_partial=True):
     """Solve the ETC for many point sources at once.
 
     Parameters
@@ -69,6 +70,10 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     config, field : instrument (see :func:`slicersim.targets.build_simulation`)
     search : "exact" or "reference"
     conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
+    allow_partial : bands partly outside the grid (≥ 50 % inside) or partly outside the input
+        spectrum are answered on the covered part with one BandCoverageWarning naming the
+        targets (default, batch); False raises SpectrumError as the single-target calls do
+        (:mod:`slicersim.etc.bands`)
 
     Returns
     -------
@@ -105,8 +110,8 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     if empty.any():
         raise ETCError(f"band of target(s) {np.nonzero(empty)[0][:10].tolist()} contains no "
                        f"instrument bin ({grid[0]:.0f}–{grid[-1]:.0f} Å)")
-    check_band_in_grid(ranges, spec.lbda_edges, who="batch")
-    warn_partial_spectrum(ranges, lbda[0], lbda[-1], who="batch")
+    check_band_in_grid(ranges, spec.lbda_edges, who="batch", allow_partial=allow_partial)
+    warn_partial_spectrum(ranges, lbda[0], lbda[-1], who="batch", allow_partial=allow_partial)
     target = snr / math.sqrt(spec.dispersion_resolution) if per_resolution else snr.copy()
 
     psf = template_psf(sim)

@@ -83,6 +83,10 @@ def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-1
     lo, hi = model.minwave(), model.maxwave()
     lbda = np.asarray(lbda, dtype=float)
     keep = (lbda >= lo) & (lbda <= hi)
+    if np.count_nonzero(keep) < 2:
+        raise SpectrumError(f"redshift {redshift}: the sncosmo model {source!r} covers {lo:.0f}–{hi:.0f} Å "
+                            f"(observer frame) at this redshift, outside the wavelength range "
+                            f"{lbda[0]:.0f}–{lbda[-1]:.0f} Å: the redshift is outside the model's range")
     return lbda[keep], model.flux(phase, lbda[keep])
 
 
@@ -106,6 +110,9 @@ class PointSource(Versioned):
         self.lbda_in, self.flux_in = validate_spectrum(lbda, flux, name)
         self.position = position
         self.name = name
+        if mag is not None and (isinstance(mag, (bool, np.bool_)) or not isinstance(mag, (int, float, np.number))
+                                or not np.isfinite(mag)):
+            raise SpectrumError(f"mag must be a finite AB magnitude or None, got {mag!r}")
         self.mag, self.band = mag, band
         self.flux_ratio, self.native_mag = 1.0, None
         if mag is not None:
