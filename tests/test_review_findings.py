@@ -29,7 +29,7 @@ def state(t):
     sim = t.simulation
     _, sig, var = sim.get_spectrum()
     return (sim.get_band_snr(BAND), float(np.sum(sig)), float(np.sum(var)),
-            sim.get_times()["total_exposure_time"], t.get_readout_config(), sim.lbda.size)
+            sim.get_times()["exposure_time"], t.get_readout_config(), sim.lbda.size)
 
 
 def assert_rejected_unchanged(t, func, exc=SlicersimError):
