@@ -508,7 +508,7 @@ def _result(target, etc):
     return {"nmd": etc["nmd"], "nramps": etc["nramps"], "exposure_time": etc["exposure_time"],
             "snr": etc["snr_per_resolution"], "snr_per_bin": etc["snr"], "snr_target_per_bin": etc["snr_target"],
             "lbda_range_obs": etc["lbda_range_obs"], "data_volume": sim.get_data_volume(),
-            "config": target.config, "field": target.field, "target": target}
+            "config": target.config, "field": target.field, "conventions": target.conventions, "target": target}
 
 
 def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame="obs",

@@ -66,6 +66,16 @@ def test_etc_redshift_states_units_and_no_object_line():
     assert "target" not in rows and "object at 0x" not in proc.stdout
 
 
+def test_etc_conventions_flag_reproduces_slicersim_1_0():
+    """--conventions slicersim-1.0 gives slicersim 1.0.0's readout (56,8,0)x4, 5071.36 s for a z=1
+    SN Ia (benchmarks/conventions_vs_reference.py); the physical default needs less time (smaller blur)."""
+    old = _etc_values(run("etc", "--redshift", "1", "--conventions", "slicersim-1.0").stdout)
+    new = _etc_values(run("etc", "--redshift", "1").stdout)
+    assert float(old["exposure_time [s]"]) == pytest.approx(56 * 8 * 4 * 2.83, rel=1e-9)
+    assert float(new["exposure_time [s]"]) < float(old["exposure_time [s]"])
+    assert old["conventions"] == "slicersim-1.0" and new["conventions"] == "physical"
+
+
 def test_etc_spectrum_csv(tmp_path):
     csv = tmp_path / "spec.csv"
     csv.write_text("wavelength,flux\n3000,1e-17\n8000,1e-17\n20000,1e-17\n")
@@ -118,6 +128,8 @@ def test_ramp_redshift_full_detector(tmp_path):
     (["ramp", "--rate", "RATE", "--nramps", "0", "--nmd", "3", "1", "0", "--out", "OUT"], "nramps"),
     (["ramp", "--rate", "RATE", "--config", "eol", "--out", "OUT"], "--config applies only with --redshift"),
     (["ramp", "--rate", "RATE", "--field", "wide", "--out", "OUT"], "--field applies only with --redshift"),
+    (["ramp", "--rate", "RATE", "--conventions", "physical", "--out", "OUT"], "--conventions applies only"),
+    (["etc", "--redshift", "1", "--conventions", "slicersim-2"], "invalid choice"),
     (["ramp", "--rate", "/no/such/rate.npy", "--out", "OUT"], "No such file"),
     (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--out", "/no/such/dir/r.h5"], "directory does not exist"),
     (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "negative"),

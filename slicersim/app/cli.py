@@ -13,6 +13,8 @@ import platform
 import sys
 from importlib import metadata
 
+from slicersim.physics.conventions import CONVENTIONS, DEFAULT_CONVENTIONS
+
 
 def _version(dist: str) -> str:
     try:
@@ -148,6 +150,7 @@ def cmd_etc(args) -> int:
         kwargs["search"] = args.search
     if args.allow_partial:
         kwargs["allow_partial"] = True
+    kwargs["conventions"] = args.conventions
     if args.redshift is not None:
         kwargs["frame"] = args.frame or "rest"
         result = targets.lazuli_sn_etc(args.redshift, **kwargs)
@@ -199,7 +202,7 @@ def cmd_ramp(args) -> int:
                   backend=args.backend, overwrite=args.overwrite)
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
     if args.rate is not None:
-        given = [f"--{k}" for k in ("config", "field") if getattr(args, k) is not None]
+        given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None]
         if given:
             raise ValueError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} only with --redshift (with --rate the "
                              "detector is set by --tframe/--ron/--dark/--roic-glow/--gain)")
@@ -207,7 +210,8 @@ def cmd_ramp(args) -> int:
         path = ramps.simulate(rate, nmd, args.nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
     else:
         from slicersim.targets import LazuliSupernova
-        target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field or "narrow")
+        target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field or "narrow",
+                                 conventions=args.conventions or DEFAULT_CONVENTIONS)
         path = target.get_ramps(nmd=nmd, nramps=args.nramps, **detector, **common)
     print(f"wrote {path}")
     return 0
@@ -265,6 +269,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instrument configuration; repeat to apply several in order (default: cbe)")
     p.add_argument("--field", choices=("narrow", "wide"), help="field of view (default: narrow)")
     p.add_argument("--search", choices=("exact", "reference"), help="readout search strategy (default: exact)")
+    p.add_argument("--conventions", choices=CONVENTIONS, default=DEFAULT_CONVENTIONS,
+                   help="physical model, or every slicersim 1.0 behaviour (gain in the variance, blur)")
     p.add_argument("--allow-partial", action="store_true",
                    help="accept a band partly outside the instrument grid or the spectrum (warns; the SNR "
                         "is that of the covered part; default: refuse)")
@@ -295,6 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--roic-glow", type=float,
                    help=f"ROIC glow [e-/frame] (default: {d['roic_glow']}; {from_config})")
     p.add_argument("--gain", type=float, help=f"gain [ADU/e-] (default: {d['gain']}; {from_config})")
+    p.add_argument("--conventions", choices=CONVENTIONS,
+                   help=f"model conventions of the scene, only with --redshift (default: {DEFAULT_CONVENTIONS})")
     p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto", help="compute backend")
     p.set_defaults(func=cmd_ramp)
     return parser
