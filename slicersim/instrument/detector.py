@@ -25,8 +25,11 @@ class Detector(Versioned):
     ----------
     qe : float, (λ[Å], QE) arrays or ECSV/CSV path — QE [e-/ph], 0 outside the table
     gain : ADU/e-;  dark : e-/s/px;  roic_glow : e-/px/frame;  ron : e-/frame
-    tframe : s;  pixel_size : µm;  saturation : ADU (0 or None: none)
-    nmd : (n, m, d);  min_group, max_group : allowed n range
+    tframe : s;  pixel_size : µm (gain, tframe, pixel_size finite > 0)
+    saturation : ADU, finite > 0 (0, None or inf: no saturation)
+    thermal_dark_range : None or (min, max) [Å], 0 < min < max: range of the undispersed thermal dark
+    nmd : (n, m, d);  min_group, max_group : allowed n range (max_group an integer ≥ min_group,
+    or None: no limit)
     variance_model : "Rauscher07" or "Kubik16"
     """
 
@@ -45,12 +48,12 @@ class Detector(Versioned):
             self.ron = float(ron)
             self.tframe = float(tframe)
             self.pixel_size = float(pixel_size)
-            self.saturation = float(saturation) if saturation else np.inf
+            self.saturation = self._check_saturation(saturation)
             self.min_group = int(min_group)
-            self.max_group = int(max_group) if max_group else None
+            self.max_group = self._check_max_group(max_group, self.min_group)
             self.variance_model = str(variance_model)
             self.shape = tuple(int(s) for s in shape)
-            self.thermal_dark_range = thermal_dark_range
+            self.thermal_dark_range = self._check_thermal_dark_range(thermal_dark_range)
             self._check()
             self.nmd, _ = check_readout(nmd, 1, self.min_group, None)
             self._qe_table = self._load_qe(qe)
@@ -59,10 +62,53 @@ class Detector(Versioned):
         except (TypeError, ValueError, OSError) as exc:
             raise ParameterError(f"invalid detector parameter: {exc}") from exc
 
+    @staticmethod
+    def _check_saturation(saturation):
+        """Saturation [ADU]: finite > 0; None, 0 or +inf mean no saturation (stored as inf)."""
+        if saturation is None:
+            return np.inf
+        sat = float(saturation)
+        if sat == 0 or sat == np.inf:
+            return np.inf
+        if not (np.isfinite(sat) and sat > 0):
+            raise ParameterError(f"detector saturation must be finite and > 0 ADU (0 or None: no saturation), "
+                                 f"got {saturation!r}")
+        return sat
+
+    @staticmethod
+    def _check_max_group(max_group, min_group):
+        """max_group: None (no limit) or an integer ≥ min_group."""
+        if max_group is None:
+            return None
+        try:
+            ok = not isinstance(max_group, (bool, np.bool_, str)) and float(max_group) == int(max_group)
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok or int(max_group) < min_group:
+            raise ParameterError(f"max_group must be an integer ≥ min_group = {min_group} (None: no limit), "
+                                 f"got {max_group!r}")
+        return int(max_group)
+
+    @staticmethod
+    def _check_thermal_dark_range(rng):
+        """None (the simulation's own grid) or (lo, hi) [Å], finite with 0 < lo < hi."""
+        if rng is None:
+            return None
+        try:
+            if isinstance(rng, (str, bytes)):
+                raise TypeError
+            lo, hi = (float(v) for v in rng)
+        except (TypeError, ValueError):
+            raise ParameterError(f"thermal_dark_range must be None or (min, max) in Å, got {rng!r}") from None
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+            raise ParameterError(f"thermal_dark_range must be finite with 0 < min < max, got {rng!r}")
+        return lo, hi
+
     def _check(self):
         for name in ("gain", "tframe", "pixel_size"):
-            if not getattr(self, name) > 0:
-                raise ParameterError(f"detector {name} must be > 0")
+            val = getattr(self, name)
+            if not (np.isfinite(val) and val > 0):
+                raise ParameterError(f"detector {name} must be finite and > 0, got {val}")
         for name in ("dark", "roic_glow", "ron"):
             val = getattr(self, name)
             if not (np.isfinite(val) and val >= 0):
@@ -75,14 +121,29 @@ class Detector(Versioned):
 
     @staticmethod
     def _load_qe(qe):
+        """None for a scalar QE (within [0, 1]), else the (λ, QE) table: ≥ 2 points, finite,
+        strictly increasing λ, QE within [0, 1]."""
         if isinstance(qe, str):
             lbda, cols = read_curve(qe)
-            return lbda, next(iter(cols.values()))
-        if np.isscalar(qe):
-            if not 0 <= float(qe) <= 10:
-                raise ParameterError(f"QE must be within [0, 10], got {qe}")
+            val = next(iter(cols.values()))
+        elif np.isscalar(qe):
+            if isinstance(qe, bytes) or not 0 <= float(qe) <= 1:
+                raise ParameterError(f"QE must be within [0, 1] e-/ph, got {qe!r}")
             return None
-        lbda, val = (np.asarray(v, dtype=float) for v in qe)
+        else:
+            try:
+                lbda, val = (np.asarray(v, dtype=float) for v in qe)
+            except (TypeError, ValueError):
+                raise ParameterError(f"QE must be a number, a (λ, QE) pair of arrays or a curve file, "
+                                     f"got {qe!r}") from None
+        if lbda.ndim != 1 or lbda.shape != val.shape or lbda.size < 2:
+            raise ParameterError(f"QE curve: need matching 1-D λ and QE arrays (≥ 2 points), got shapes "
+                                 f"{lbda.shape} and {val.shape}")
+        if not (np.all(np.isfinite(lbda)) and np.all(np.diff(lbda) > 0)):
+            raise ParameterError("QE curve: wavelengths must be finite and strictly increasing")
+        if not (np.all(np.isfinite(val)) and np.all((val >= 0) & (val <= 1))):
+            raise ParameterError(f"QE curve: values must be finite and within [0, 1] e-/ph "
+                                 f"(got {np.nanmin(val):g} to {np.nanmax(val):g})")
         return lbda, val
 
     def updated(self, **kwargs):

@@ -22,6 +22,12 @@ __all__ = ["Spectrograph", "SlicerSpectrograph", "MLASpectrograph", "OpticalThro
 ]
 
 
+#: largest wavelength grid accepted (guards against absurd ranges / resolving powers)
+MAX_BINS = 1_000_000
+#: spline values within this distance outside [0, 1] are clipped (tabulation round-off)
+THROUGHPUT_TOL = 1e-3
+
+
 # --------------------------------------------------------------------------- #
 #  wavelength sampling                                                        #
 # --------------------------------------------------------------------------- #
@@ -42,7 +48,13 @@ def wavelength_grid_from_dispersion(law_lbda, law_offset, spectral_range, disper
     lbda_to_offset = CubicSpline(law_lbda, scaled, bc_type="not-a-knot", extrapolate=True)
     offset_to_lbda = CubicSpline(scaled, law_lbda, bc_type="not-a-knot", extrapolate=True)
     lo, hi = spectral_range
+    tol = 1e-9 * max(abs(law_lbda[0]), abs(law_lbda[-1]))
+    if not (law_lbda[0] - tol <= lo < hi <= law_lbda[-1] + tol):
+        raise ParameterError(f"spectral_range {tuple(spectral_range)} Å lies outside the dispersion law's "
+                             f"wavelength coverage [{law_lbda[0]:g}, {law_lbda[-1]:g}] Å (no extrapolation)")
     nbins = int(round(float(lbda_to_offset(hi) - lbda_to_offset(lo)))) + 1
+    if nbins > MAX_BINS:
+        raise ParameterError(f"spectral range {tuple(spectral_range)} gives {nbins} bins (more than {MAX_BINS})")
     if nbins < 2:
         raise ValueError(f"spectral range {spectral_range} gives fewer than 2 bins")
     lbda = offset_to_lbda(np.arange(nbins, dtype=float))
@@ -58,8 +70,8 @@ def wavelength_grid_from_resolving_power(resolving_power, spectral_range, disper
     lo, hi = spectral_range
     fine = np.geomspace(lo, hi, 4097)
     rpow = resolving_power(fine) if callable(resolving_power) else np.full_like(fine, resolving_power)
-    if np.any(~(rpow > 0)):
-        raise ValueError("resolving power must be > 0")
+    if np.any(~(rpow > 0)) or not np.all(np.isfinite(rpow)):
+        raise ValueError("resolving power must be finite and > 0")
     # offset [bins] = ∫ R dr / λ dλ (trapezoid in ln λ)
     dln = np.diff(np.log(fine))
     offset = np.concatenate([[0.0], np.cumsum(0.5 * (rpow[1:] + rpow[:-1]) * dispersion_resolution * dln)])
@@ -72,8 +84,11 @@ def wavelength_grid_from_resolving_power(resolving_power, spectral_range, disper
 class OpticalThroughput:
     """Throughput T(λ) = Π_i T_i(λ)^noptics_i of optical components.
 
-    Each component is a float or a (λ[Å], T) curve, interpolated with a
-    not-a-knot cubic spline (values in [−1e-3, 0) are set to 0).
+    Each component is a float in [0, 1] or a (λ[Å], T) curve (finite, strictly increasing λ,
+    T in [0, 1]) interpolated with a not-a-knot cubic spline; spline values in [−1e-3, 0)
+    are set to 0 and values in (1, 1 + 1e-3] to 1.  Curves are never extrapolated: evaluating
+    outside a curve's wavelength coverage, or where its spline leaves [−1e-3, 1 + 1e-3],
+    raises :class:`ParameterError`.  ``noptics``: non-negative integers (int or integral float).
     """
 
     def __init__(self, components, noptics=None):
@@ -87,15 +102,32 @@ class OpticalThroughput:
             unknown = set(noptics) - set(self.components)
             if unknown:
                 raise ValueError(f"noptics names unknown components {sorted(unknown)}")
-            self.noptics.update({k: int(v) for k, v in noptics.items()})
+            self.noptics.update({k: self._check_noptics(k, v) for k, v in noptics.items()})
         for name, comp in self.components.items():
             if np.isscalar(comp):
-                if not 0 <= float(comp) <= 1:
-                    raise ValueError(f"throughput {name}={comp} must be within [0, 1]")
+                if isinstance(comp, (str, bytes)) or not 0 <= float(comp) <= 1:
+                    raise ParameterError(f"throughput {name}={comp!r} must be a number within [0, 1]")
             else:
                 lbda, val = (np.asarray(c, dtype=float) for c in comp)
-                if lbda.shape != val.shape or lbda.size < 4:
-                    raise ValueError(f"throughput curve {name}: need matching λ and T arrays (≥ 4 points)")
+                if lbda.ndim != 1 or lbda.shape != val.shape or lbda.size < 4:
+                    raise ParameterError(f"throughput curve {name}: need matching 1-D λ and T arrays "
+                                         "(≥ 4 points)")
+                if not (np.all(np.isfinite(lbda)) and np.all(np.diff(lbda) > 0)):
+                    raise ParameterError(f"throughput curve {name}: wavelengths must be finite and "
+                                         "strictly increasing")
+                if not (np.all(np.isfinite(val)) and np.all((val >= 0) & (val <= 1))):
+                    raise ParameterError(f"throughput curve {name}: values must be finite and within [0, 1] "
+                                         f"(got {np.nanmin(val):g} to {np.nanmax(val):g})")
+
+    @staticmethod
+    def _check_noptics(name, value):
+        try:
+            ok = not isinstance(value, (bool, np.bool_)) and float(value) == int(value) and int(value) >= 0
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise ParameterError(f"noptics {name}={value!r} must be a non-negative integer")
+        return int(value)
 
     def __call__(self, lbda):
         lbda = np.asarray(lbda, dtype=float)
@@ -105,8 +137,16 @@ class OpticalThroughput:
                 val = np.full_like(lbda, float(comp))
             else:
                 clbda, cval = (np.asarray(c, dtype=float) for c in comp)
+                if lbda.size and (np.min(lbda) < clbda[0] or np.max(lbda) > clbda[-1]):
+                    raise ParameterError(
+                        f"throughput curve {name} covers {clbda[0]:g}-{clbda[-1]:g} Å only, not the "
+                        f"instrument's {np.min(lbda):g}-{np.max(lbda):g} Å (curves are not extrapolated)")
                 val = CubicSpline(clbda, cval, bc_type="not-a-knot", extrapolate=True)(lbda)
-                val[(val < 0) & (val >= -1e-3)] = 0.0
+                if np.any(~np.isfinite(val)) or np.any(val < -THROUGHPUT_TOL) or np.any(val > 1 + THROUGHPUT_TOL):
+                    raise ParameterError(f"throughput curve {name}: its spline leaves [0, 1] on the grid "
+                                         f"({np.nanmin(val):g} to {np.nanmax(val):g}); sample it more finely")
+                val[(val < 0) & (val >= -THROUGHPUT_TOL)] = 0.0
+                val[(val > 1) & (val <= 1 + THROUGHPUT_TOL)] = 1.0
             total = total * val ** self.noptics[name]
         return total
 
@@ -163,10 +203,12 @@ class Spectrograph(Versioned):
         lo, hi = p["spectral_range"]
         if not (0 < lo < hi) or not np.isfinite(hi):
             raise ValueError(f"spectral_range must satisfy 0 < min < max, got {p['spectral_range']}")
-        if p["dispersion_resolution"] <= 0 or p["dispersion_scale"] <= 0:
-            raise ValueError("dispersion_resolution and dispersion_scale must be > 0")
-        if p["spatial_scale"] <= 0 or min(p["spatial_shape"]) < 1:
-            raise ValueError("spatial_scale must be > 0 and spatial_shape ≥ 1")
+        if not (np.isfinite(p["dispersion_resolution"]) and p["dispersion_resolution"] > 0
+                and np.isfinite(p["dispersion_scale"]) and p["dispersion_scale"] > 0):
+            raise ParameterError("dispersion_resolution and dispersion_scale must be finite and > 0")
+        if not (np.isfinite(p["spatial_scale"]) and p["spatial_scale"] > 0) or min(p["spatial_shape"]) < 1:
+            raise ParameterError(f"spatial_scale must be finite and > 0 and spatial_shape ≥ 1, got "
+                                 f"{p['spatial_scale']} and {p['spatial_shape']}")
         law = p["dispersion_law"]
         if law is not None and p["resolving_power"] is not None:
             raise ParameterError("resolving_power is ignored when the spectrograph has a dispersion_law: "
@@ -230,6 +272,20 @@ class Spectrograph(Versioned):
                "dispersed": [bool(d) for d in optics.get("dispersed", [False] * nopt)]}
         if any(len(v) != nopt for v in out.values()):
             raise ValueError("spectrograph optics lists must all have the same length")
+        temps, eps = np.asarray(out["temperature"]), np.asarray(out["emissivity"])
+        if not (np.all(np.isfinite(temps)) and np.all(temps >= 0)):
+            raise ParameterError(f"optics temperature must be finite and ≥ 0 K, got {out['temperature']}")
+        if not (np.all(np.isfinite(eps)) and np.all((eps >= 0) & (eps <= 1))):
+            raise ParameterError(f"optics emissivity must be within [0, 1], got {out['emissivity']}")
+        if any(n < 0 for n in out["nelements"]):
+            raise ParameterError(f"optics nelements must be ≥ 0, got {out['nelements']}")
+        for fr in out["fratio"]:
+            f = np.atleast_1d(np.asarray(fr, dtype=float))
+            if not (1 <= f.size <= 2 and np.all(np.isfinite(f)) and np.all(f > 0)):
+                raise ParameterError(f"optics fratio must be f or (f_y, f_x), finite and > 0, got {fr!r}")
+        bad = [g for g in out["geometry"] if g not in ("square", "circular")]
+        if bad:
+            raise ParameterError(f"unknown optics geometry {bad}: 'square' or 'circular'")
         return out
 
     def _merged_optics(self, optics):

@@ -32,7 +32,10 @@ class Telescope(Versioned):
             self.diameter_ext = float(diameter_ext)
             self.diameter_int = float(diameter_int)
             emissivity = np.atleast_1d(np.asarray(emissivity, dtype=float))
-            nelements = np.atleast_1d(np.asarray(nelements)).astype(int)
+            nelements = np.atleast_1d(np.asarray(nelements, dtype=float))
+            if not np.all(np.isfinite(nelements)) or np.any(nelements != np.round(nelements)):
+                raise ParameterError(f"telescope nelements must be integers, got {nelements.tolist()}")
+            nelements = nelements.astype(int)
             if emissivity.ndim != 1 or nelements.ndim != 1:
                 raise ValueError("telescope emissivity and nelements must be scalars or 1-D lists")
             if emissivity.size == 1 and nelements.size > 1:
@@ -57,15 +60,18 @@ class Telescope(Versioned):
         self._check()
 
     def _check(self):
-        if not self.diameter_ext > 0 or not (0 <= self.diameter_int < self.diameter_ext):
-            raise ParameterError("telescope needs diameter_ext > 0 and 0 <= diameter_int < diameter_ext")
+        if not (np.isfinite(self.diameter_ext) and self.diameter_ext > 0) \
+                or not (0 <= self.diameter_int < self.diameter_ext):
+            raise ParameterError("telescope needs a finite diameter_ext > 0 and 0 <= diameter_int < diameter_ext, "
+                                 f"got {self.diameter_ext}, {self.diameter_int}")
         if len(self.emissivity) != len(self.nelements):
             raise ParameterError("telescope emissivity and nelements must have the same length")
         temps = np.atleast_1d(self.temperature)
         if not (np.all(np.isfinite(temps)) and np.all(temps >= 0)):
             raise ParameterError(f"telescope temperature must be finite and ≥ 0 K, got {self.temperature}")
-        if not (np.all(np.isfinite(self.emissivity)) and np.all(np.asarray(self.emissivity) >= 0)):
-            raise ParameterError(f"telescope emissivity must be finite and ≥ 0, got {self.emissivity}")
+        eps = np.asarray(self.emissivity, dtype=float)
+        if not (np.all(np.isfinite(eps)) and np.all((eps >= 0) & (eps <= 1))):
+            raise ParameterError(f"telescope emissivity must be within [0, 1], got {self.emissivity}")
         if np.any(np.asarray(self.nelements) < 0):
             raise ParameterError(f"telescope nelements must be ≥ 0, got {self.nelements}")
         if not (np.isfinite(self.guiding_sigma) and self.guiding_sigma >= 0):

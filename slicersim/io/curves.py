@@ -8,14 +8,17 @@ import os
 
 import numpy as np
 
+from slicersim.errors import ConfigError
+
 __all__ = ["read_curve", "CurveError"]
 
 _UNIT_TO_AA = {"angstrom": 1.0, "aa": 1.0, "a": 1.0, "nm": 10.0, "nanometer": 10.0,
                "micron": 1e4, "um": 1e4, "µm": 1e4, "micrometer": 1e4, "m": 1e10}
 
 
-class CurveError(ValueError):
-    """A curve file is missing, unreadable or malformed."""
+class CurveError(ConfigError):
+    """A curve file is missing, unreadable or malformed (a :class:`ConfigError`, hence a
+    ``ValueError`` and a :class:`~slicersim.errors.SlicersimError`)."""
 
 
 def _to_angstrom(values, unit, default_unit):
