@@ -403,7 +403,7 @@ class Simulation(Versioned):
         ``allow_partial=True`` accepts a partly covered band (≥ 50 % inside the grid) with
         a BandCoverageWarning, the SNR being that of the covered part
         (:mod:`slicersim.etc.bands`)."""
-        lo, hi = _check_band(lbda_range)
+        lo, hi = check_band(lbda_range)
         mask = (self.lbda >= lo) & (self.lbda <= hi)
         if not mask.any():
             raise SpectrumError(f"band ({lo}, {hi}) Å contains no bin of the instrument grid "
@@ -415,7 +415,7 @@ class Simulation(Versioned):
     def band_range(self, lbda_range, frame="obs"):
         """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame
         (rest: ×(1 + redshift); needs :attr:`redshift`)."""
-        lo, hi = _check_band(lbda_range)
+        lo, hi = check_band(lbda_range)
         if frame == "rest":
             if self.redshift is None:
                 raise ETCError("frame='rest' needs a redshift (Simulation.redshift is None)")
@@ -496,14 +496,14 @@ def _check_aperture(value):
     return value
 
 
-def _check_band(lbda_range):
+def check_band(lbda_range):
     """(lo, hi) [Å] as finite floats with lo < hi (ETCError otherwise)."""
     try:
         lo, hi = (float(v) for v in lbda_range)
     except (TypeError, ValueError) as exc:
-        raise ETCError(f"band must be (lo, hi) in Å, got {lbda_range!r}") from exc
+        raise ETCError(f"lbda_range must be (lo, hi) in Å, got {lbda_range!r}") from exc
     if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
-        raise ETCError(f"band must be finite (lo, hi) with lo < hi, got {lbda_range!r}")
+        raise ETCError(f"lbda_range must be finite (lo, hi) with lo < hi, got {lbda_range!r}")
     return lo, hi
 
 

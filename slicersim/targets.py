@@ -18,6 +18,7 @@ from slicersim.io.config import load_config
 from slicersim.io.curves import read_curve
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.readout import check_readout
+from slicersim.simulation import check_band
 from slicersim.sources.scene import PointSource, snia_spectrum
 
 __all__ = ["LAZULI_FIELDS", "build_simulation", "config_default_field", "SPECTRUM_NOISE_STREAM", "Target",
@@ -290,7 +291,7 @@ class Target:
     def _band(self, lbda_range, frame):
         if lbda_range is None:
             lbda_range = (4000.0, 6800.0)
-        lo, hi = _check_band(lbda_range)
+        lo, hi = check_band(lbda_range)
         if frame == "rest" and self.redshift is None:
             raise ETCError("frame='rest' needs a target redshift")
         return self.simulation.band_range((lo, hi), frame)
@@ -481,17 +482,6 @@ def _check_config(config):
     if not items or not all(isinstance(c, (str, os.PathLike)) for c in items):
         raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
     return config
-
-
-def _check_band(lbda_range):
-    """(lo, hi) [Å] as finite floats with lo < hi (ETCError otherwise)."""
-    try:
-        lo, hi = (float(v) for v in lbda_range)
-    except (TypeError, ValueError) as exc:
-        raise ETCError(f"lbda_range must be (lo, hi) in Å, got {lbda_range!r}") from exc
-    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
-        raise ETCError(f"lbda_range must be finite (lo, hi) with lo < hi, got {lbda_range!r}")
-    return lo, hi
 
 
 def _host_offset(host):
