@@ -78,18 +78,20 @@ def band_variance_table(Q, P2, A, B, Qsat, band, backend="auto", *,
         ``var_sum / nvalid``.
     """
     Q, P2, A, B, Qsat, band = _check_inputs(Q, P2, A, B, Qsat, band)
+    var_sum = np.zeros((Q.shape[0], A.size), np.float64)     # accumulated in place by either backend
+    nvalid = np.zeros((Q.shape[0], A.size), np.int32)
+    if var_sum.size == 0:
+        return var_sum, nvalid
     if resolve_backend(backend) == "opencl":
-        return _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width)
-    return _band_variance_numpy(Q, P2, A, B, Qsat, band, max_bytes)
+        _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_sum, nvalid)
+    else:
+        _band_variance_numpy(Q, P2, A, B, Qsat, band, max_bytes, var_sum, nvalid)
+    return var_sum, nvalid
 
 
-def _band_variance_numpy(Q, P2, A, B, Qsat, band, max_bytes):
+def _band_variance_numpy(Q, P2, A, B, Qsat, band, max_bytes, var_sum, nvalid):
     N, nlbda, ncell = Q.shape
     K = A.size
-    var_sum = np.zeros((N, K), np.float64)
-    nvalid = np.zeros((N, K), np.int32)
-    if N == 0 or K == 0:
-        return var_sum, nvalid
     # per target: the float64 copy of its Q row plus ~4 (K, ncell) temporaries
     per_target = 8 * (nlbda * ncell + 4 * K * ncell + 2 * K)
     Ak, Bk, Sk = A[:, None], B[:, None], Qsat[:, None]
@@ -124,13 +126,9 @@ def _pow2_at_most(n, cap):
     return w
 
 
-def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width):
+def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_sum, nvalid):
     N, nlbda, ncell = Q.shape
     K = A.size
-    var_sum = np.zeros((N, K), np.float64)
-    nvalid = np.zeros((N, K), np.int32)
-    if N == 0 or K == 0:
-        return var_sum, nvalid
     opencl.require_fp64()
     dev = opencl.get_device()
     is_gpu = "GPU" in opencl.device_type(dev)
