@@ -44,3 +44,7 @@ class OpenCLUnavailableError(SlicersimError, RuntimeError):
 
 class OpenCLForkError(SlicersimError, RuntimeError):
     """OpenCL used in a process forked after OpenCL was initialised."""
+
+
+class DatasetError(SlicersimError, OSError):
+    """A campaign dataset or one of its files cannot be written, read or trusted."""
