@@ -1,4 +1,4 @@
-"""Command-line interface: ``slicersim {info,demo,etc,ramp}`` (also ``python -m slicersim``).
+"""Command-line interface: ``slicersim {info,demo,etc,ramp,survey,campaign}`` (also ``python -m slicersim``).
 
 User errors (bad values, impossible requests, unwritable or existing outputs,
 Ctrl-C) are reported as one line ``slicersim: error: ...`` on stderr with exit
@@ -305,6 +305,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"model conventions of the scene, only with --redshift (default: {DEFAULT_CONVENTIONS})")
     p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto", help="compute backend")
     p.set_defaults(func=cmd_ramp)
+
+    from slicersim.app.campaign_cli import add_parsers
+    add_parsers(sub, fmt)
     return parser
 
 

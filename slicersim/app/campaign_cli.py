@@ -1,0 +1,138 @@
+"""``slicersim survey plan`` and ``slicersim campaign {run,status}`` (registered by :mod:`slicersim.app.cli`)."""
+from __future__ import annotations
+
+import os
+
+__all__ = ["add_parsers"]
+
+YEAR_S = 365.25 * 86400.0
+
+
+def _gb(nbytes):
+    return f"{nbytes / 1e9:,.1f} GB"
+
+
+def cmd_survey_plan(args) -> int:
+    from slicersim.campaign.plan import plan_survey
+    from slicersim.campaign.population import SNIaPopulation
+    from slicersim.campaign.products import spectrum_grid
+    from slicersim.errors import ParameterError
+    if args.out and os.path.lexists(args.out) and not args.overwrite:
+        raise ParameterError(f"output file exists: {args.out} (pass --overwrite to replace it)")
+    if args.out and os.path.isdir(args.out):
+        raise ParameterError(f"output path is a directory: {args.out}")
+    if args.n < 1:
+        raise ParameterError(f"--n must be ≥ 1 (an empty population has nothing to plan), got {args.n}")
+    pop = SNIaPopulation(args.n, redshift={"distribution": args.distribution, "min": args.zmin, "max": args.zmax})
+    table = pop.draw(args.seed)
+    lbda = spectrum_grid()
+    fluxes = pop.spectra(table, lbda)
+    import numpy as np
+    fluxes = np.where(np.isfinite(fluxes), fluxes, 0.0)
+    plan = plan_survey(np.asarray(table["redshift"]), lbda, fluxes, snr=args.snr, lbda_range=tuple(args.lbda_range),
+                       frame="rest", z_switch=args.z_switch, config=args.config, search=args.search,
+                       conventions=args.conventions, overhead=args.overhead, efficiency=args.efficiency,
+                       compression_ratio=args.compression_ratio, target_ids=np.asarray(table["target_id"]),
+                       progress=True)
+    if args.out:
+        _write_table(plan.table, args.out, args.overwrite)
+    print(plan.summary())
+    if args.figure:
+        from slicersim.campaign.plan import plot_time_and_volume
+        plot_time_and_volume({f"SNR {args.snr:g}": plan}, args.figure)
+        print(f"wrote {args.figure}")
+    if args.out:
+        print(f"wrote {args.out}")
+    return 0
+
+
+def _write_table(table, path, overwrite):
+    import io
+
+    from slicersim.io.atomic import atomic_bytes
+    buf = io.StringIO()
+    fmt = "ascii.ecsv" if path.endswith(".ecsv") else "ascii.csv"
+    if not path.endswith((".ecsv", ".csv")):
+        raise ValueError(f"--out must end with .ecsv or .csv, got {path}")
+    table.write(buf, format=fmt)
+    atomic_bytes(path, buf.getvalue().encode(), overwrite=overwrite)
+
+
+def cmd_campaign_run(args) -> int:
+    from slicersim.campaign.runner import run_campaign
+    res = run_campaign(args.spec, args.out, workers=args.workers, scheduler=args.scheduler, force=args.force,
+                       retry_failed=args.retry_failed, progress=not args.no_progress,
+                       threads_per_worker=args.threads_per_worker,
+                       max_bytes=int(args.memory_per_task * 2**20))
+    print(f"{res['dataset']}: {res['targets']} targets, {res['done']} done, {res['failed']} failed, "
+          f"{res['missing']} missing ({res['computed']} computed in {res['seconds']:.1f} s)")
+    return 0 if res["failed"] == 0 and res["missing"] == 0 else 1
+
+
+def cmd_campaign_status(args) -> int:
+    from slicersim.campaign.runner import campaign_status
+    st = campaign_status(args.dataset, verify=not args.no_verify)
+    print(f"{st['dataset']}: {st['targets']} targets, {st['done']} done, {st['missing']} missing, "
+          f"{st['failed']} failed")
+    for tid, why in st["failed_targets"][:args.show]:
+        print(f"  failed  {tid}: {why}")
+    for tid, why in st["missing_targets"][:args.show]:
+        print(f"  missing {tid}: {why}")
+    return 0 if st["missing"] == 0 and st["failed"] == 0 else 1
+
+
+def add_parsers(sub, fmt):
+    """Add the ``survey`` and ``campaign`` commands to the CLI's subparsers."""
+    from slicersim.physics.conventions import CONVENTIONS, DEFAULT_CONVENTIONS
+
+    survey = sub.add_parser("survey", help="survey planning (time and raw data volume of a population)",
+                            description="Survey planning.", **fmt)
+    ssub = survey.add_subparsers(dest="survey_command", metavar="SUBCOMMAND", required=True,
+                                 parser_class=type(survey))
+    p = ssub.add_parser("plan", help="batch ETC of a SN Ia population: per-target readout, time, volume; totals",
+                        description="Plan a SN Ia survey: one batch ETC per field, per-target readout, "
+                                    "exposure time, SNR and raw data volume, and the totals.", **fmt)
+    p.add_argument("--n", type=int, default=8000, help="number of SNe Ia")
+    p.add_argument("--zmin", type=float, default=0.05, help="lowest redshift")
+    p.add_argument("--zmax", type=float, default=1.5, help="highest redshift")
+    p.add_argument("--distribution", choices=("uniform", "volumetric"), default="uniform",
+                   help="redshift distribution")
+    p.add_argument("--snr", type=float, default=20.0, help="SNR per resolution element in the band")
+    p.add_argument("--lbda-range", type=float, nargs=2, default=(4000.0, 6800.0), metavar=("LO", "HI"),
+                   help="rest-frame band [Angstrom]")
+    p.add_argument("--z-switch", type=float, default=0.8, help="narrow field below, wide field from this redshift")
+    p.add_argument("--config", default="cbe", metavar="cbe|eol|PATH", help="instrument configuration")
+    p.add_argument("--search", choices=("exact", "reference"), default="exact", help="readout search")
+    p.add_argument("--conventions", choices=CONVENTIONS, default=DEFAULT_CONVENTIONS, help="model conventions")
+    p.add_argument("--overhead", type=float, default=0.0, help="per-target overhead (slew, settle) [s]")
+    p.add_argument("--efficiency", type=float, default=1.0, help="observing efficiency (fraction of time on sky)")
+    p.add_argument("--compression-ratio", type=float, default=1.0, help="raw data compression ratio")
+    p.add_argument("--seed", type=int, default=1, help="population seed")
+    p.add_argument("--out", metavar="FILE.ecsv", help="per-target table (ECSV or CSV)")
+    p.add_argument("--figure", metavar="FILE.png", help="time and volume vs redshift figure")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.set_defaults(func=cmd_survey_plan)
+
+    camp = sub.add_parser("campaign", help="mock datasets on Dask: run a campaign spec, report its status",
+                          description="Campaigns: per-target products of a population on Dask.", **fmt)
+    csub = camp.add_subparsers(dest="campaign_command", metavar="SUBCOMMAND", required=True,
+                               parser_class=type(camp))
+    p = csub.add_parser("run", help="run or resume a campaign",
+                        description="Run (or resume: only what is missing is computed) a campaign spec "
+                                    "into a dataset directory.", **fmt)
+    p.add_argument("spec", metavar="SPEC.toml", help="campaign spec")
+    p.add_argument("--out", required=True, metavar="DIR", help="dataset directory")
+    p.add_argument("--workers", type=int, help="workers of the embedded LocalCluster (default: CPU count)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
+    p.add_argument("--threads-per-worker", type=int, help="OpenCL CPU threads per worker (default: CPUs/workers)")
+    p.add_argument("--memory-per-task", type=float, default=256.0, help="memory budget of a task's chunks [MiB]")
+    p.add_argument("--force", action="store_true", help="start again in a dataset made from another spec")
+    p.add_argument("--retry-failed", action="store_true", help="run failed targets again")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_campaign_run)
+    p = csub.add_parser("status", help="done / missing / failed targets of a dataset",
+                        description="Report a dataset's done, missing and failed targets.", **fmt)
+    p.add_argument("dataset", metavar="DIR", help="dataset directory")
+    p.add_argument("--no-verify", action="store_true", help="skip the product checksums (sizes only)")
+    p.add_argument("--show", type=int, default=20, help="list at most this many failed/missing targets")
+    p.set_defaults(func=cmd_campaign_status)

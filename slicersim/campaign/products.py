@@ -1,0 +1,170 @@
+"""One campaign target: build it, simulate the products its spec asks for, write them.
+
+:func:`run_target` is the unit of work a Dask worker executes.  It depends only on the
+spec, the target's row (parameters and readout) and its seeds, so the products are the same
+bit for bit whichever worker runs it, in whatever order, however often (on the same kind of
+OpenCL device: backends differ by a few ulp in the cube expectation).
+
+Products (``DIR/products/tNNNNNNN/``; HDF5, each written atomically):
+
+==================  ===========================================================================
+spectrum.h5         lbda [Å], flambda (input F_λ on lbda) [erg/s/cm²/Å], signal [ADU],
+                    variance [ADU²], noisy [ADU] (Philox stream of the extracted spectra)
+cube.h5             lbda [Å], signal [ADU], variance [ADU²], noisy [ADU] (nλ, ny, nx), cube_dtype
+detector_image.h5   rate [e-/s/px] (float32) on the full H4RG, both fields
+ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout)
+==================  ===========================================================================
+"""
+from __future__ import annotations
+
+import os
+import traceback
+
+import numpy as np
+
+from slicersim.backends import rng
+from slicersim.io.dataset import Dataset, ProductFile, product_info
+
+__all__ = ["target_seeds", "run_target", "SEED_STREAM", "SPECTRUM_GRID"]
+
+#: Philox stream deriving a target's seeds from (campaign seed, target id)
+SEED_STREAM = 0x43414D50          # "CAMP"
+#: wavelength grid [Å] on which the input spectra are sampled
+SPECTRUM_GRID = (3000.0, 20000.0, 10.0)
+
+
+def spectrum_grid():
+    return np.arange(*SPECTRUM_GRID)
+
+
+def target_seeds(campaign_seed, target_ids):
+    """(noise seed, ramp seed) per target, uint64, from one Philox block keyed by
+    (campaign seed, target id, :data:`SEED_STREAM`): independent of the number of targets,
+    their order and the workers."""
+    ids = np.asarray(target_ids, dtype=np.uint64)
+    words = rng.random_words(int(campaign_seed), ids, stream=SEED_STREAM).astype(np.uint64)
+    noise = words[..., 0] | (words[..., 1] << np.uint64(32))
+    ramps = words[..., 2] | (words[..., 3] << np.uint64(32))
+    return noise, ramps
+
+
+def _limit_threads(threads):
+    """Restrict this process's OpenCL CPU threads (before its context exists)."""
+    if not threads:
+        return
+    from slicersim.backends import opencl
+    limit = getattr(opencl, "limit_cpu_threads", None)
+    if limit is not None:
+        try:
+            limit(int(threads))
+        except Exception:                   # context already made with another count: keep it
+            pass
+    else:
+        os.environ.setdefault("POCL_MAX_PTHREAD_COUNT", str(int(threads)))
+
+
+def build_target(spec, row):
+    """The :class:`~slicersim.targets.LazuliTarget` of one catalog row, readout applied."""
+    from slicersim.targets import LazuliTarget
+    obs = spec.observation
+    lbda, flux = spec.population.spectrum(row, spectrum_grid())
+    redshift = float(row["redshift"])
+    target = LazuliTarget(lbda, flux, config=obs["config"], field=str(row["field"]),
+                          redshift=redshift if redshift > 0 else None, conventions=obs["conventions"])
+    host = spec.population.host(row)
+    if host is not None:
+        target.set_host(host)
+    target.change_detector(nmd=(int(row["n"]), int(row["m"]), int(row["d"])), nramps=int(row["nramps"]))
+    return target, (lbda, flux)
+
+
+def _attrs(row, seed, kind):
+    return {"target_id": int(row["target_id"]), "redshift": float(row["redshift"]), "field": str(row["field"]),
+            "nmd": np.array([row["n"], row["m"], row["d"]], dtype=np.int64), "nramps": int(row["nramps"]),
+            "seed": np.uint64(seed), "product": kind, "software": "slicersim"}
+
+
+def _write_spectrum(path, target, row, seed, source):
+    lbda, signal, variance = target.get_spectrum()
+    noisy = target.get_spectrum(incl_error=True, seed=int(seed))[1]
+    flambda = np.interp(lbda, source[0], source[1], left=np.nan, right=np.nan)
+    with ProductFile(path, overwrite=True) as f:
+        f.set_attrs(_attrs(row, seed, "spectrum"))
+        f.write("lbda", lbda, {"unit": "Angstrom"})
+        f.write("flambda", flambda, {"unit": "erg/s/cm2/Angstrom"})
+        f.write("signal", signal, {"unit": "adu"})
+        f.write("variance", variance, {"unit": "adu2"})
+        f.write("noisy", noisy, {"unit": "adu"})
+
+
+def _write_cube(path, target, row, seed, spec, max_bytes):
+    obs, prod = spec.observation, spec.products
+    dtype = np.dtype(prod["cube_dtype"])
+    signal, variance, noisy = target.simulation.get_cube(seed=int(seed), psf_profile=obs["psf_profile"],
+                                                         max_bytes=max_bytes)
+    with ProductFile(path, overwrite=True) as f:
+        f.set_attrs({**_attrs(row, seed, "cube"), "psf_profile": obs["psf_profile"]})
+        f.write("lbda", target.simulation.lbda, {"unit": "Angstrom"})
+        for name, cube, unit in (("signal", signal, "adu"), ("variance", variance, "adu2"), ("noisy", noisy, "adu")):
+            f.write(name, np.asarray(cube, dtype=dtype), {"unit": unit}, chunks=True)
+
+
+def _write_image(path, target, row, seed):
+    image = target.get_detector_image()
+    with ProductFile(path, overwrite=True) as f:
+        f.set_attrs(_attrs(row, seed, "detector_image"))
+        f.write("rate", np.asarray(image, dtype=np.float32), {"unit": "electron/s"}, chunks=True)
+
+
+def _write_ramps(path, target, row, seed, spec, memory):
+    comp = spec.products["compression"]
+    target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
+                     overwrite=True, memory_budget=memory, progress=False)
+
+
+def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None):
+    """Simulate and write the products of one target; returns its record (also written to
+    ``records/``).  Any error is caught and recorded (status "failed") so a campaign goes on."""
+    _limit_threads(threads)
+    row = dict(row)
+    tid = int(row["target_id"])
+    ds = Dataset(dataset_path)
+    seed, ramp_seed = int(row["seed"]), int(row["ramp_seed"])
+    record = {"target_id": tid, "spec_sha256": spec_sha256, "seed": seed, "ramp_seed": ramp_seed,
+              "readout": [int(row["n"]), int(row["m"]), int(row["d"]), int(row["nramps"])],
+              "field": str(row["field"])}
+    try:
+        ds.clean_target(tid)
+        pdir = ds.product_dir(tid)
+        os.makedirs(pdir, exist_ok=True)
+        target, source = build_target(spec, row)
+        products = {}
+        for name in spec.wanted:
+            path = os.path.join(pdir, f"{name}.h5")
+            if name == "spectrum":
+                _write_spectrum(path, target, row, seed, source)
+            elif name == "cube":
+                _write_cube(path, target, row, seed, spec, max_bytes)
+            elif name == "detector_image":
+                _write_image(path, target, row, seed)
+            else:
+                _write_ramps(path, target, row, ramp_seed, spec, max(max_bytes, 64 * 2**20))
+            products[name] = product_info(path)
+        record.update(status="done", products=products, device=_device_name())
+    except Exception as exc:                       # recorded, the campaign goes on
+        record.update(status="failed", error=f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+                      traceback=traceback.format_exc(limit=8))
+        try:
+            ds.clean_target(tid)
+        except OSError:
+            pass
+    ds.write_record(tid, record)
+    return record
+
+
+def _device_name():
+    try:
+        from slicersim.backends import opencl
+        return str(opencl.get_device().name).strip()
+    except Exception:
+        return "numpy"

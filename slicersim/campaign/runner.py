@@ -1,0 +1,269 @@
+"""Run a campaign on Dask: plan every target on the client, simulate them on the workers.
+
+``run_campaign(spec, out)`` starts an embedded :class:`distributed.LocalCluster` (process
+workers, one task each at a time, each with its own OpenCL context limited to its share of
+the CPU threads) or connects to an existing scheduler (``scheduler="tcp://host:port"``,
+e.g. started by dask-jobqueue on Slurm/PBS: every worker must see the dataset directory on a
+shared file system and have slicersim installed).
+
+Reproducible and resumable:
+
+* the population, the readouts (batch ETC) and the seeds are computed on the client, each
+  target's seeds from (campaign seed, target id) by Philox (:func:`target_seeds`);
+* a worker writes a target's products atomically and its record last
+  (:mod:`slicersim.io.dataset`), so after ``kill -9`` of the client or of a worker the same
+  command computes only what is missing, truncated or corrupted (checksums);
+* a failing target is recorded with its error and does not stop the campaign
+  (``retry_failed`` runs the failed ones again);
+* a directory made from another spec is refused unless ``force``.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+
+import numpy as np
+
+from slicersim.campaign.products import run_target, spectrum_grid, target_seeds
+from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec
+from slicersim.errors import ConfigError, DatasetError
+from slicersim.io.dataset import CATALOG, Dataset
+
+__all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions"]
+
+#: seconds between two catalog writes while a campaign runs
+CATALOG_INTERVAL = 10.0
+
+
+def software_versions():
+    """Versions of the packages that determine the products."""
+    from importlib import metadata
+    out = {"python": sys.version.split()[0]}
+    for dist in ("slicersim", "numpy", "scipy", "astropy", "sncosmo", "h5py", "pyopencl", "dask", "distributed"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = None
+    return out
+
+
+def plan_campaign(spec):
+    """Catalog of the campaign before any simulation: the population's parameters, the
+    field, the readout of the batch ETC (one call per field), the exposure time, the SNR,
+    the raw data volume and the seeds.  Targets the ETC cannot serve get ``status`` "failed"
+    and their error in ``error``."""
+    from slicersim.campaign.plan import plan_survey
+    obs, survey = spec.observation, spec.survey
+    table = spec.population.draw(spec.seed)
+    if len(table) == 0:
+        raise ConfigError("the population is empty: nothing to simulate")
+    lbda = spectrum_grid()
+    fluxes = np.asarray(spec.population.spectra(table, lbda), dtype=float)
+    fluxes = np.where(np.isfinite(fluxes), fluxes, 0.0)      # outside a model's coverage: no flux
+    z = np.asarray(table["redshift"], dtype=float)
+    if obs["field"] is not None:
+        zswitch, fields = (np.inf, (obs["field"],) * 2)
+    else:
+        zswitch, fields = obs["field_switch_redshift"], ("narrow", "wide")
+    plan = plan_survey(z, lbda, fluxes, snr=obs["snr"], lbda_range=tuple(obs["lbda_range"]),
+                       frame=obs["frame"], z_switch=zswitch, fields=fields, config=obs["config"],
+                       search=obs["search"], conventions=obs["conventions"], overhead=survey["overhead"],
+                       efficiency=survey["efficiency"], compression_ratio=survey["compression_ratio"],
+                       target_ids=np.asarray(table["target_id"]), per_resolution=obs["per_resolution"])
+    cat = table.copy()
+    ptab = plan.table
+    for name in ptab.colnames:
+        if name not in ("target_id", "redshift"):
+            cat[name] = ptab[name]
+    seed, ramp_seed = target_seeds(spec.seed, cat["target_id"])
+    cat["seed"], cat["ramp_seed"] = seed, ramp_seed
+    if "status" not in cat.colnames:
+        cat["status"] = "planned"
+    if "error" not in cat.colnames:
+        cat["error"] = ""
+    cat.meta = {"name": spec.name, "seed": spec.seed, "totals": _jsonable(plan.totals)}
+    return cat, plan
+
+
+def _jsonable(d):
+    return {k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()}
+
+
+def _catalog_with_records(base, records, wanted):
+    """The catalog: the plan plus, per target, its status, error and products (file, sha256)."""
+    cat = base.copy(copy_data=True)
+    status, error = [], []
+    files = {p: [] for p in PRODUCTS}
+    sums = {p: [] for p in PRODUCTS}
+    for row in base:
+        tid = int(row["target_id"])
+        planned_fail = str(row["status"]) == "failed"
+        rec = records.get(tid)
+        if planned_fail:
+            status.append("failed")
+            error.append(str(row["error"]))
+        elif rec is None:
+            status.append("missing")
+            error.append("")
+        else:
+            status.append(rec["status"])
+            error.append(rec.get("error", ""))
+        prods = (rec or {}).get("products", {}) if rec and rec.get("status") == "done" else {}
+        for p in PRODUCTS:
+            info = prods.get(p)
+            files[p].append(f"products/{_key(tid)}/{info['file']}" if info else "")
+            sums[p].append(info["sha256"] if info else "")
+    cat["status"], cat["error"] = status, error
+    for p in PRODUCTS:
+        if p in wanted or any(files[p]):
+            cat[f"{p}_file"], cat[f"{p}_sha256"] = files[p], sums[p]
+    return cat
+
+
+def _key(tid):
+    from slicersim.io.dataset import target_key
+    return target_key(tid)
+
+
+def _client(workers, scheduler, threads):
+    """(client, cluster or None): an existing scheduler or an embedded LocalCluster."""
+    from distributed import Client, LocalCluster
+    if scheduler:
+        try:
+            return Client(scheduler, timeout="20s"), None
+        except (OSError, TimeoutError) as exc:
+            raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: {exc}") from None
+    env = {"POCL_MAX_PTHREAD_COUNT": str(threads), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                           silence_logs=logging.ERROR, env=env)
+    return Client(cluster), cluster
+
+
+def _check_workers(workers):
+    if workers is None:
+        return max(1, os.cpu_count() or 1)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ConfigError(f"workers must be an integer ≥ 1, got {workers!r}")
+    return workers
+
+
+def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_failed=False, progress=True,
+                 max_bytes=256 * 2**20, threads_per_worker=None, window=None):
+    """Run (or resume) a campaign into dataset directory ``out``; returns a summary dict.
+
+    spec : a :class:`CampaignSpec` or the path of its TOML file
+    workers : embedded LocalCluster size (default: the CPU count); ignored with ``scheduler``
+    scheduler : address of an existing Dask scheduler ("tcp://host:port")
+    force : start again in a directory made from another spec (its products are discarded)
+    retry_failed : run the targets recorded as failed again
+    max_bytes : memory budget of one task's cube chunks / ramp blocks [bytes]
+    threads_per_worker : OpenCL CPU threads per worker (default: CPUs / workers)
+    window : tasks in flight at once (default 2 per worker): bounds the client's memory
+    """
+    spec = spec if isinstance(spec, CampaignSpec) else load_spec(spec)
+    workers = _check_workers(workers)
+    ds = Dataset(Dataset.check_path(out))
+    t0 = time.perf_counter()
+    with ds:
+        catalog, plan = plan_campaign(spec)
+        digest = ds.initialise(spec.text, spec.canonical(), software_versions(), force=force)
+        ids = [int(t) for t in catalog["target_id"]]
+        state = ds.state(ids)
+        records = {tid: rec for tid, (st, rec, _) in state.items() if st in ("done", "failed")}
+        rows = {int(r["target_id"]): r for r in catalog}
+        todo = [tid for tid, (st, _, _) in state.items()
+                if str(rows[tid]["status"]) != "failed" and (st == "missing" or (st == "failed" and retry_failed))]
+        ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted))
+        if todo:
+            _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes,
+                      threads_per_worker, window)
+        final = _catalog_with_records(catalog, records, spec.wanted)
+        ds.write_catalog(final)
+    counts = {s: int(np.count_nonzero(np.asarray(final["status"]) == s)) for s in ("done", "failed", "missing")}
+    return {"dataset": ds.path, "targets": len(final), **counts, "computed": len(todo),
+            "seconds": time.perf_counter() - t0, "totals": plan.totals}
+
+
+def _row_dict(row):
+    return {name: (row[name].item() if hasattr(row[name], "item") else row[name]) for name in row.colnames}
+
+
+def _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes, threads,
+              window):
+    from distributed import as_completed
+    from tqdm.auto import tqdm
+    threads = threads or max(1, (os.cpu_count() or 1) // workers)
+    client, cluster = _client(workers, scheduler, threads)
+    try:
+        nworkers = max(1, len(client.scheduler_info().get("workers", {})) or workers)
+        window = window or 2 * nworkers
+        spec_future = client.scatter(spec, broadcast=True)
+        rows = {int(r["target_id"]): _row_dict(r) for r in catalog}
+        pending = list(todo)
+        futures = {}
+
+        def submit(tid):
+            fut = client.submit(run_target, spec_future, rows[tid], ds.path, digest, max_bytes, threads,
+                                key=f"slicersim-target-{digest[:12]}-{tid}", pure=False, retries=0)
+            futures[fut] = tid
+            return fut
+
+        queue = as_completed([submit(pending.pop(0)) for _ in range(min(window, len(pending)))])
+        last = time.monotonic()
+        with tqdm(total=len(todo), desc="campaign", unit="target", disable=not progress) as bar:
+            for fut in queue:
+                tid = futures.pop(fut)
+                try:
+                    rec = fut.result()
+                except Exception as exc:           # the worker died (KilledWorker) or the task was lost
+                    rec = {"target_id": tid, "status": "failed", "spec_sha256": digest,
+                           "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
+                    ds.write_record(tid, rec)
+                records[tid] = rec
+                bar.update(1)
+                if rec.get("status") == "failed":
+                    bar.set_postfix(failed=sum(1 for r in records.values()
+                                               if r.get("status") == "failed"))
+                if pending:
+                    queue.add(submit(pending.pop(0)))
+                if time.monotonic() - last > CATALOG_INTERVAL:
+                    ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted))
+                    last = time.monotonic()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def campaign_status(out, verify=True):
+    """{"targets", "done", "failed", "missing", "failed_targets": [(id, error)], "missing_targets"}
+    of a dataset; ``verify`` checks every product's checksum."""
+    from astropy.table import Table
+    ds = Dataset(out)
+    if not os.path.isdir(ds.path):
+        raise DatasetError(f"no such dataset directory: {ds.path}")
+    if ds.stored_spec() is None:
+        raise DatasetError(f"{ds.path} is not a slicersim dataset (no spec.json)")
+    try:
+        catalog = Table.read(ds.file(CATALOG), format="ascii.ecsv")
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{ds.file(CATALOG)} is missing or unreadable ({exc}); run the campaign again "
+                           "to rebuild it") from None
+    ids = [int(t) for t in catalog["target_id"]]
+    planned_fail = {int(r["target_id"]): str(r["error"]) for r in catalog
+                    if "error" in catalog.colnames and str(r["status"]) == "failed" and r["error"]}
+    state = ds.state(ids, deep=verify)
+    out = {"dataset": ds.path, "targets": len(ids), "done": 0, "failed": 0, "missing": 0,
+           "failed_targets": [], "missing_targets": []}
+    for tid in ids:
+        st, rec, why = state[tid]
+        if st == "missing" and tid in planned_fail:
+            st, why = "failed", planned_fail[tid]
+        out[st] += 1
+        if st == "failed":
+            out["failed_targets"].append((tid, why))
+        elif st == "missing":
+            out["missing_targets"].append((tid, why))
+    return out

@@ -1,0 +1,241 @@
+"""Campaign specs: a TOML file saying which targets, how they are observed and what to produce.
+
+::
+
+    seed = 1                                  # campaign seed, int in [0, 2⁶⁴)
+    name = "snia-mock"                        # optional label
+    [population]                              # see slicersim.campaign.population
+    kind = "snia"
+    n = 100
+    redshift = {distribution = "uniform", min = 0.05, max = 1.5}
+    [observation]
+    snr = 20                                  # per resolution element (per_resolution = true)
+    lbda_range = [4000, 6800]                 # Å, in ``frame``
+    frame = "rest"                            # "rest" or "obs"
+    config = "cbe"                            # "cbe", "eol", a TOML path or a list of them
+    field_switch_redshift = 0.8               # narrow below, wide at and above; or field = "narrow"
+    psf_profile = "airy"                      # of the cubes ("gaussian" or "airy")
+    conventions = "physical"                  # or "slicersim-1.0"
+    search = "exact"                          # or "reference"
+    [products]
+    spectrum = true                           # noiseless and noisy extracted spectrum
+    cube = false                              # signal, variance, noisy cube
+    detector_image = false                    # photo-electron rate on the H4RG
+    ramps = false                             # raw MACC ramps (HDF5)
+    cube_dtype = "float32"                    # or "float64"
+    compression = "none"                      # of the ramps: none, gzip[:level], lz4, zstd, bitshuffle-lz4
+    [survey]                                  # totals of the plan
+    overhead = 0.0                            # s per target (slew, settle, acquisition)
+    efficiency = 1.0                          # fraction of time on sky
+    compression_ratio = 1.0                   # of the raw data volume
+
+Unknown keys are errors naming the key; every value is checked before anything runs.
+The canonical form (:meth:`CampaignSpec.canonical`, defaults filled in, configuration and
+catalog files replaced by their content digests too) identifies a dataset.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import numbers
+import os
+import tomllib
+from dataclasses import dataclass, field as dc_field
+
+from slicersim.errors import ConfigError, SlicersimError
+
+__all__ = ["CampaignSpec", "load_spec", "parse_spec", "PRODUCTS"]
+
+#: products a campaign can write per target
+PRODUCTS = ("spectrum", "cube", "detector_image", "ramps")
+
+_TOP = {"seed", "name", "population", "observation", "products", "survey"}
+_OBSERVATION = {"snr": 20.0, "lbda_range": [4000.0, 6800.0], "frame": "rest", "config": "cbe",
+                "field": None, "field_switch_redshift": None, "psf_profile": "airy",
+                "conventions": "physical", "search": "exact", "per_resolution": True}
+_PRODUCTS = {"spectrum": True, "cube": False, "detector_image": False, "ramps": False,
+             "cube_dtype": "float32", "compression": "none"}
+_SURVEY = {"overhead": 0.0, "efficiency": 1.0, "compression_ratio": 1.0}
+DEFAULT_Z_SWITCH = 0.8
+
+
+def _unknown(section, allowed, where):
+    for key in section:
+        if key not in allowed:
+            raise ConfigError(f"unknown key {where}{key!r} in the campaign spec; known: "
+                              f"{', '.join(sorted(allowed))}")
+
+
+def _number(value, name, lo=None, hi=None, lo_open=False, integer=False):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or (integer and not isinstance(value, int)):
+        raise ConfigError(f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}")
+    if not math.isfinite(value):
+        raise ConfigError(f"{name} must be finite, got {value!r}")
+    if lo is not None and (value < lo or (lo_open and value == lo)):
+        raise ConfigError(f"{name} must be {'>' if lo_open else '≥'} {lo}, got {value!r}")
+    if hi is not None and value > hi:
+        raise ConfigError(f"{name} must be ≤ {hi}, got {value!r}")
+    return value
+
+
+def _choice(value, name, choices):
+    if value not in choices:
+        raise ConfigError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+    return value
+
+
+def _file_digest(path):
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
+
+
+@dataclass
+class CampaignSpec:
+    """A validated campaign spec (see the module docstring)."""
+
+    seed: int
+    population: object
+    observation: dict
+    products: dict
+    survey: dict
+    name: str = ""
+    text: str = ""
+    base_dir: str = "."
+    config_digests: dict = dc_field(default_factory=dict)
+
+    @property
+    def wanted(self):
+        """Names of the products to write, in :data:`PRODUCTS` order."""
+        return [p for p in PRODUCTS if self.products[p]]
+
+    def field_of(self, redshift):
+        """Field observing a target at ``redshift``."""
+        obs = self.observation
+        if obs["field"] is not None:
+            return obs["field"]
+        return "narrow" if redshift < obs["field_switch_redshift"] else "wide"
+
+    def canonical(self):
+        """JSON-able canonical dict (defaults filled in): the identity of a dataset."""
+        out = {"seed": self.seed, "name": self.name, "population": self.population.to_spec(),
+               "observation": dict(self.observation), "products": dict(self.products),
+               "survey": dict(self.survey)}
+        if self.config_digests:
+            out["observation"]["config_sha256"] = dict(sorted(self.config_digests.items()))
+        return out
+
+
+def _check_config(config, base_dir):
+    """Configuration names/paths (paths relative to the spec's directory) and their digests."""
+    items = config if isinstance(config, list) else [config]
+    if not items or not all(isinstance(c, str) and c for c in items):
+        raise ConfigError(f"observation.config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
+    resolved, digests = [], {}
+    for item in items:
+        if item in ("cbe", "eol") or not item.endswith(".toml"):
+            resolved.append(item)
+            continue
+        path = item if os.path.isabs(item) else os.path.normpath(os.path.join(base_dir, item))
+        if not os.path.isfile(path):
+            raise ConfigError(f"observation.config: no such configuration file {path}")
+        resolved.append(path)
+        digests[item] = _file_digest(path)
+    return (resolved if isinstance(config, list) else resolved[0]), digests
+
+
+def _observation(section):
+    from slicersim.physics.conventions import CONVENTIONS
+    from slicersim.products.psf_profiles import PSF_PROFILES
+    _unknown(section, _OBSERVATION, "observation.")
+    obs = {**_OBSERVATION, **section}
+    obs["snr"] = float(_number(obs["snr"], "observation.snr", lo=0, lo_open=True))
+    rng = obs["lbda_range"]
+    if (not isinstance(rng, list) or len(rng) != 2
+            or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in rng)
+            or not all(math.isfinite(v) and v > 0 for v in rng) or not rng[0] < rng[1]):
+        raise ConfigError(f"observation.lbda_range must be [lo, hi] in Å with 0 < lo < hi, got {rng!r}")
+    obs["lbda_range"] = [float(rng[0]), float(rng[1])]
+    _choice(obs["frame"], "observation.frame", ("rest", "obs"))
+    _choice(obs["conventions"], "observation.conventions", CONVENTIONS)
+    _choice(obs["search"], "observation.search", ("exact", "reference"))
+    _choice(obs["psf_profile"], "observation.psf_profile", tuple(PSF_PROFILES))
+    if not isinstance(obs["per_resolution"], bool):
+        raise ConfigError(f"observation.per_resolution must be true or false, got {obs['per_resolution']!r}")
+    if obs["field"] is not None and obs["field_switch_redshift"] is not None:
+        raise ConfigError("observation: give field or field_switch_redshift, not both")
+    if obs["field"] is not None:
+        _choice(obs["field"], "observation.field", ("narrow", "wide"))
+    else:
+        zs = DEFAULT_Z_SWITCH if obs["field_switch_redshift"] is None else obs["field_switch_redshift"]
+        obs["field_switch_redshift"] = float(_number(zs, "observation.field_switch_redshift", lo=0))
+    return obs
+
+
+def _products(section):
+    from slicersim.io.rampfile import compression_options
+    _unknown(section, _PRODUCTS, "products.")
+    prod = {**_PRODUCTS, **section}
+    for name in PRODUCTS:
+        if not isinstance(prod[name], bool):
+            raise ConfigError(f"products.{name} must be true or false, got {prod[name]!r}")
+    _choice(prod["cube_dtype"], "products.cube_dtype", ("float32", "float64"))
+    try:
+        compression_options(None if prod["compression"] == "none" else prod["compression"])
+    except (SlicersimError, ValueError) as exc:
+        raise ConfigError(f"products.compression: {exc}") from None
+    return prod
+
+
+def _survey(section):
+    _unknown(section, _SURVEY, "survey.")
+    sv = {**_SURVEY, **section}
+    sv["overhead"] = float(_number(sv["overhead"], "survey.overhead", lo=0))
+    sv["efficiency"] = float(_number(sv["efficiency"], "survey.efficiency", lo=0, lo_open=True, hi=1))
+    sv["compression_ratio"] = float(_number(sv["compression_ratio"], "survey.compression_ratio", lo=1))
+    return sv
+
+
+def parse_spec(doc, text="", base_dir="."):
+    """:class:`CampaignSpec` from a parsed TOML document (dict)."""
+    from slicersim.campaign.population import population_from_spec
+    if not isinstance(doc, dict):
+        raise ConfigError("a campaign spec is a TOML document with [population], [observation], [products]")
+    _unknown(doc, _TOP, "")
+    for name in ("population", "observation", "products", "survey"):
+        if name in doc and not isinstance(doc[name], dict):
+            raise ConfigError(f"{name} must be a TOML table [{name}], got {doc[name]!r}")
+    if "population" not in doc:
+        raise ConfigError("the campaign spec has no [population] table")
+    if "seed" not in doc:
+        raise ConfigError("the campaign spec has no seed (seed = <integer>)")
+    seed = _number(doc["seed"], "seed", lo=0, hi=2**64 - 1, integer=True)
+    name = doc.get("name", "")
+    if not isinstance(name, str):
+        raise ConfigError(f"name must be a string, got {name!r}")
+    obs = _observation(doc.get("observation", {}))
+    obs["config"], digests = _check_config(obs["config"], base_dir)
+    products = _products(doc.get("products", {}))
+    if not any(products[p] for p in PRODUCTS):
+        raise ConfigError(f"[products] asks for nothing: set one of {', '.join(PRODUCTS)} to true")
+    survey = _survey(doc.get("survey", {}))
+    population = population_from_spec(doc["population"], base_dir=base_dir)
+    return CampaignSpec(seed=int(seed), population=population, observation=obs, products=products,
+                        survey=survey, name=name, text=text, base_dir=base_dir, config_digests=digests)
+
+
+def load_spec(path):
+    """Read and validate a campaign spec file (one :class:`~slicersim.errors.ConfigError` per problem)."""
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        raise ConfigError(f"campaign spec {path} is a directory, not a TOML file")
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
+        raise ConfigError(f"cannot read campaign spec {path}: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+        doc = tomllib.loads(text)
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"campaign spec {path} is not valid TOML: {exc}") from None
+    return parse_spec(doc, text=text, base_dir=os.path.dirname(os.path.abspath(path)))

@@ -1,0 +1,259 @@
+"""Campaign dataset directories: layout, per-target records, checksums, a lock; no physics.
+
+Layout::
+
+    DIR/spec.toml             the spec exactly as given
+    DIR/spec.json             the canonical spec (sorted JSON) and its sha256: the dataset's identity
+    DIR/versions.json         software versions that made the dataset
+    DIR/catalog.ecsv          one row per target (parameters, readout, seeds, products + sha256)
+    DIR/products/tNNNNNN/     products of one target (HDF5 files, each written atomically)
+    DIR/records/tNNNNNN.json  the target's record, written last: status "done" with every
+                              product's file name, size and sha256, or "failed" with its error
+    DIR/.lock                 held (flock) by the client running the campaign
+
+A target is *done* when its record says so and every product listed there exists with the
+recorded size and sha256; anything else (no record, a missing, truncated or corrupted
+product) is *missing* and is computed again.  Every file is written under a temporary name
+and published complete (:mod:`slicersim.io.atomic`).
+"""
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+
+from slicersim.errors import DatasetError
+from slicersim.io.atomic import AtomicH5File, atomic_bytes, one_line, remove_stale_temporaries, sha256_file
+
+__all__ = ["Dataset", "ProductFile", "canonical_json", "spec_digest", "target_key"]
+
+SPEC_TOML, SPEC_JSON, VERSIONS, CATALOG, LOCK = "spec.toml", "spec.json", "versions.json", "catalog.ecsv", ".lock"
+PRODUCTS, RECORDS = "products", "records"
+
+
+def canonical_json(obj):
+    """Canonical JSON text (sorted keys, no spaces variation) of a JSON-able object."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
+
+
+def spec_digest(spec_dict):
+    """sha256 of the canonical JSON of a spec."""
+    return hashlib.sha256(canonical_json(spec_dict).encode()).hexdigest()
+
+
+def target_key(target_id):
+    """Directory / record name of a target: ``t`` + zero-padded id."""
+    return f"t{int(target_id):07d}"
+
+
+class ProductFile(AtomicH5File):
+    """One HDF5 product file written atomically (datasets via :meth:`write`)."""
+
+
+class Dataset:
+    """A campaign dataset directory (see the module docstring)."""
+
+    def __init__(self, path):
+        self.path = os.path.abspath(os.fspath(path))
+        self._lock_fd = None
+
+    # ------------------------------------------------------------------ paths
+    def file(self, name):
+        return os.path.join(self.path, name)
+
+    def product_dir(self, target_id):
+        return os.path.join(self.path, PRODUCTS, target_key(target_id))
+
+    def record_path(self, target_id):
+        return os.path.join(self.path, RECORDS, target_key(target_id) + ".json")
+
+    @property
+    def exists(self):
+        return os.path.isfile(self.file(SPEC_JSON))
+
+    # ------------------------------------------------------------------ creation
+    @staticmethod
+    def check_path(path):
+        """Refuse an output path that is a file, or whose parent does not exist or is read-only."""
+        path = os.path.abspath(os.fspath(path))
+        if os.path.exists(path) and not os.path.isdir(path):
+            raise DatasetError(f"output path is a file, not a dataset directory: {path}")
+        parent = os.path.dirname(path)
+        if not os.path.isdir(parent):
+            raise DatasetError(f"parent directory does not exist: {parent}")
+        if os.path.isdir(path):
+            if not os.access(path, os.W_OK):
+                raise DatasetError(f"dataset directory is not writable: {path}")
+            if os.listdir(path) and not os.path.isfile(os.path.join(path, SPEC_JSON)):
+                names = [n for n in os.listdir(path) if n != LOCK]
+                if names:
+                    raise DatasetError(f"{path} exists and is not a slicersim dataset (no {SPEC_JSON}); "
+                                       "choose a new or empty directory")
+        elif not os.access(parent, os.W_OK):
+            raise DatasetError(f"directory is not writable: {parent}")
+        return path
+
+    def stored_spec(self):
+        """(canonical spec dict, digest) stored in the dataset, or None."""
+        try:
+            with open(self.file(SPEC_JSON), encoding="utf-8") as fh:
+                doc = json.load(fh)
+            return doc["spec"], doc["sha256"]
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError) as exc:
+            raise DatasetError(f"{self.file(SPEC_JSON)} is unreadable ({one_line(exc)}): the directory is "
+                               "not a valid dataset; use --force to start it again") from exc
+
+    def initialise(self, spec_text, spec_dict, versions, force=False):
+        """Create the dataset or check that it was made from the same spec.
+
+        A different spec is refused (:class:`DatasetError`) unless ``force``, which deletes
+        the old records and products before writing the new spec."""
+        digest = spec_digest(spec_dict)
+        stored = self.stored_spec()
+        if stored is not None and stored[1] != digest:
+            if not force:
+                changed = sorted(_changed_keys(stored[0], spec_dict))
+                raise DatasetError(f"{self.path} was made from a different spec (changed: "
+                                   f"{', '.join(changed[:6]) or 'content'}); use a new directory, or "
+                                   "--force to discard its products and start again")
+            self.discard()
+        os.makedirs(self.file(PRODUCTS), exist_ok=True)
+        os.makedirs(self.file(RECORDS), exist_ok=True)
+        if stored is None or stored[1] != digest:
+            atomic_bytes(self.file(SPEC_TOML), spec_text.encode(), overwrite=True)
+            atomic_bytes(self.file(VERSIONS), (json.dumps(versions, indent=1, sort_keys=True) + "\n").encode(),
+                         overwrite=True)
+            doc = {"sha256": digest, "spec": spec_dict}
+            atomic_bytes(self.file(SPEC_JSON), (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode(),
+                         overwrite=True)
+        return digest
+
+    def discard(self):
+        """Remove records, products, catalog and spec (``--force``)."""
+        import shutil
+        for name in (RECORDS, PRODUCTS):
+            shutil.rmtree(self.file(name), ignore_errors=True)
+        for name in (CATALOG, SPEC_JSON, SPEC_TOML, VERSIONS):
+            try:
+                os.remove(self.file(name))
+            except FileNotFoundError:
+                pass
+
+    # ------------------------------------------------------------------ lock
+    def lock(self):
+        """Hold the dataset's lock (one running client per dataset); released on exit or death."""
+        os.makedirs(self.path, exist_ok=True)
+        fd = os.open(self.file(LOCK), os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
+            finally:
+                os.close(fd)
+            raise DatasetError(f"dataset {self.path} is in use by another slicersim campaign "
+                               f"({holder or 'unknown process'}); wait for it or stop it") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()} on {os.uname().nodename}\n".encode(), 0)
+        self._lock_fd = fd
+        return self
+
+    def unlock(self):
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)          # closing releases the flock
+            self._lock_fd = None
+
+    def __enter__(self):
+        return self.lock()
+
+    def __exit__(self, *exc):
+        self.unlock()
+        return False
+
+    # ------------------------------------------------------------------ records
+    def write_record(self, target_id, record):
+        atomic_bytes(self.record_path(target_id),
+                     (json.dumps(record, indent=1, sort_keys=True) + "\n").encode(), overwrite=True)
+
+    def read_record(self, target_id):
+        """The target's record, or None when absent or unreadable (a torn file counts as absent)."""
+        try:
+            with open(self.record_path(target_id), encoding="utf-8") as fh:
+                rec = json.load(fh)
+        except (OSError, ValueError):
+            return None
+        return rec if isinstance(rec, dict) and rec.get("target_id") == int(target_id) else None
+
+    def verify(self, record, deep=True):
+        """'' when every product of a done record is intact, else the reason it is not."""
+        for name, info in sorted(record.get("products", {}).items()):
+            path = os.path.join(self.product_dir(record["target_id"]), info["file"])
+            try:
+                size = os.path.getsize(path)
+            except OSError:
+                return f"{name}: missing"
+            if size != info["bytes"]:
+                return f"{name}: {size} bytes, expected {info['bytes']} (truncated?)"
+            if deep and sha256_file(path) != info["sha256"]:
+                return f"{name}: checksum mismatch (corrupted)"
+        return ""
+
+    def state(self, target_ids, deep=True):
+        """{target_id: ("done" | "failed" | "missing", record or None, reason)}."""
+        out = {}
+        for tid in target_ids:
+            tid = int(tid)
+            rec = self.read_record(tid)
+            if rec is None:
+                out[tid] = ("missing", None, "no record")
+            elif rec.get("status") == "failed":
+                out[tid] = ("failed", rec, rec.get("error", ""))
+            elif rec.get("status") == "done":
+                why = self.verify(rec, deep)
+                out[tid] = ("done", rec, "") if not why else ("missing", rec, why)
+            else:
+                out[tid] = ("missing", rec, f"unknown status {rec.get('status')!r}")
+        return out
+
+    def clean_target(self, target_id):
+        """Remove a target's record and products before it is computed again."""
+        try:
+            os.remove(self.record_path(target_id))
+        except FileNotFoundError:
+            pass
+        pdir = self.product_dir(target_id)
+        if os.path.isdir(pdir):
+            remove_stale_temporaries(pdir)
+            for name in os.listdir(pdir):
+                if not name.startswith("."):
+                    os.remove(os.path.join(pdir, name))
+
+    def write_catalog(self, table):
+        """Write ``catalog.ecsv`` atomically (astropy Table)."""
+        import io
+        buf = io.StringIO()
+        table.write(buf, format="ascii.ecsv")
+        atomic_bytes(self.file(CATALOG), buf.getvalue().encode(), overwrite=True)
+
+
+def product_info(path):
+    """{file, bytes, sha256} of a written product."""
+    return {"file": os.path.basename(path), "bytes": os.path.getsize(path), "sha256": sha256_file(path)}
+
+
+def _changed_keys(old, new, prefix=""):
+    """Dotted keys whose values differ between two nested dicts."""
+    keys = set(old) | set(new) if isinstance(old, dict) and isinstance(new, dict) else set()
+    if not keys:
+        return {prefix or "spec"} if old != new else set()
+    out = set()
+    for key in keys:
+        name = f"{prefix}.{key}" if prefix else str(key)
+        if key not in old or key not in new:
+            out.add(name)
+        elif old[key] != new[key]:
+            out |= _changed_keys(old[key], new[key], name)
+    return out
