@@ -166,8 +166,9 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     workers = _check_workers(workers)
     ds = Dataset(Dataset.check_path(out))
     t0 = time.perf_counter()
+    ds.check_spec(spec.canonical(), force)            # refuse early, before planning
+    catalog, plan = plan_campaign(spec)                # nothing is written before the plan succeeds
     with ds:
-        catalog, plan = plan_campaign(spec)
         digest = ds.initialise(spec.text, spec.canonical(), software_versions(), force=force)
         ids = [int(t) for t in catalog["target_id"]]
         state = ds.state(ids)

@@ -106,19 +106,26 @@ class Dataset:
             raise DatasetError(f"{self.file(SPEC_JSON)} is unreadable ({one_line(exc)}): the directory is "
                                "not a valid dataset; use --force to start it again") from exc
 
+    def check_spec(self, spec_dict, force=False):
+        """Refuse (:class:`DatasetError`) a dataset made from another spec unless ``force``;
+        writes nothing.  Returns the spec's digest."""
+        digest = spec_digest(spec_dict)
+        stored = self.stored_spec()
+        if stored is not None and stored[1] != digest and not force:
+            changed = sorted(_changed_keys(stored[0], spec_dict))
+            raise DatasetError(f"{self.path} was made from a different spec (changed: "
+                               f"{', '.join(changed[:6]) or 'content'}); use a new directory, or "
+                               "--force to discard its products and start again")
+        return digest
+
     def initialise(self, spec_text, spec_dict, versions, force=False):
         """Create the dataset or check that it was made from the same spec.
 
         A different spec is refused (:class:`DatasetError`) unless ``force``, which deletes
         the old records and products before writing the new spec."""
-        digest = spec_digest(spec_dict)
+        digest = self.check_spec(spec_dict, force)
         stored = self.stored_spec()
         if stored is not None and stored[1] != digest:
-            if not force:
-                changed = sorted(_changed_keys(stored[0], spec_dict))
-                raise DatasetError(f"{self.path} was made from a different spec (changed: "
-                                   f"{', '.join(changed[:6]) or 'content'}); use a new directory, or "
-                                   "--force to discard its products and start again")
             self.discard()
         os.makedirs(self.file(PRODUCTS), exist_ok=True)
         os.makedirs(self.file(RECORDS), exist_ok=True)
@@ -163,6 +170,10 @@ class Dataset:
 
     def unlock(self):
         if self._lock_fd is not None:
+            try:
+                os.ftruncate(self._lock_fd, 0)
+            except OSError:
+                pass
             os.close(self._lock_fd)          # closing releases the flock
             self._lock_fd = None
 
