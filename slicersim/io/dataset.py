@@ -129,6 +129,8 @@ class Dataset:
             self.discard()
         os.makedirs(self.file(PRODUCTS), exist_ok=True)
         os.makedirs(self.file(RECORDS), exist_ok=True)
+        for directory in (self.path, self.file(RECORDS)):   # left by a killed client or worker
+            remove_stale_temporaries(directory)
         if stored is None or stored[1] != digest:
             atomic_bytes(self.file(SPEC_TOML), spec_text.encode(), overwrite=True)
             atomic_bytes(self.file(VERSIONS), (json.dumps(versions, indent=1, sort_keys=True) + "\n").encode(),

@@ -1,0 +1,303 @@
+"""Campaigns on Dask: real LocalCluster and real `dask scheduler` / `dask worker` processes.
+
+One small campaign (6 SNe Ia, spectra + noisy Airy cubes) is run once with 1 worker as the
+reference; every other run (2 workers, an external scheduler, a run killed with SIGKILL and
+resumed, a corrupted dataset repaired) must give the same files, byte for byte.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slicersim.errors import ConfigError, DatasetError
+
+SPEC = """\
+seed = 11
+name = "test campaign"
+[population]
+kind = "snia"
+n = 6
+redshift = {distribution = "uniform", min = 0.3, max = 1.2}
+[observation]
+snr = 8
+psf_profile = "airy"
+[products]
+spectrum = true
+cube = true
+"""
+
+BIN = Path(sys.executable).parent
+
+
+def _files(root):
+    """{relative path: sha256} of every non-hidden file under root."""
+    out = {}
+    for path in sorted(Path(root).rglob("*")):
+        rel = path.relative_to(root)
+        if path.is_file() and not any(part.startswith(".") for part in rel.parts):
+            out[str(rel)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return out
+
+
+def _cli(*args, **kwargs):
+    return subprocess.run([str(BIN / "slicersim"), *args], capture_output=True, text=True, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def spec_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("spec") / "campaign.toml"
+    path.write_text(SPEC)
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(spec_path, tmp_path_factory):
+    """The campaign run once, uninterrupted, on a 1-worker LocalCluster."""
+    from slicersim.campaign.runner import run_campaign
+    out = tmp_path_factory.mktemp("ref") / "dataset"
+    res = run_campaign(spec_path, out, workers=1, progress=False)
+    assert (res["done"], res["failed"], res["missing"], res["computed"]) == (6, 0, 0, 6)
+    return out
+
+
+def test_reference_dataset_layout_and_catalog(reference, spec_path):
+    from astropy.table import Table
+    files = _files(reference)
+    assert {"spec.toml", "spec.json", "versions.json", "catalog.ecsv"} <= set(files)
+    assert (reference / "spec.toml").read_text() == spec_path.read_text()      # the spec as given
+    cat = Table.read(reference / "catalog.ecsv", format="ascii.ecsv")
+    assert list(cat["target_id"]) == list(range(6))
+    assert set(cat["status"]) == {"done"}
+    for row in cat:
+        for product in ("spectrum", "cube"):
+            path = reference / row[f"{product}_file"]
+            assert hashlib.sha256(path.read_bytes()).hexdigest() == row[f"{product}_sha256"]
+        assert int(row["n"]) >= 1 and float(row["exposure_time"]) > 0 and float(row["snr"]) >= 8 * (1 - 1e-9)
+    # seeds: distinct per target, from (campaign seed, target id) only
+    from slicersim.campaign.products import target_seeds
+    noise, ramps = target_seeds(11, np.arange(6))
+    assert list(cat["seed"]) == [int(s) for s in noise] and len(set(noise)) == 6
+    assert target_seeds(11, [5, 2])[0].tolist() == [int(noise[5]), int(noise[2])]
+
+
+def test_cube_products_are_float32_noisy_airy_cubes(reference):
+    import h5py
+    with h5py.File(reference / "products" / "t0000003" / "cube.h5", "r") as f:
+        sig, var, noisy = f["signal"][...], f["variance"][...], f["noisy"][...]
+        assert sig.dtype == np.float32 and f.attrs["psf_profile"] == "airy"
+        seed = int(f.attrs["seed"])
+    ok = var > 0
+    pulls = (noisy[ok].astype(float) - sig[ok]) / np.sqrt(var[ok].astype(float))
+    # 3.4e5 Gaussian pulls: mean within 5σ/√N, width 1 within 5·√(2/N)·... (float32 rounding ≪ 1e-3)
+    assert abs(pulls.mean()) < 5 / np.sqrt(pulls.size) + 1e-3
+    assert abs(pulls.std() - 1) < 5 / np.sqrt(2 * pulls.size) + 1e-3
+    assert seed > 0
+
+
+def test_two_workers_give_identical_files(reference, spec_path, tmp_path):
+    from slicersim.campaign.runner import run_campaign
+    res = run_campaign(spec_path, tmp_path / "d2", workers=2, progress=False)
+    assert res["done"] == 6
+    assert _files(tmp_path / "d2") == _files(reference)
+    # resuming a complete dataset computes nothing and changes nothing
+    res = run_campaign(spec_path, tmp_path / "d2", workers=2, progress=False)
+    assert res["computed"] == 0 and _files(tmp_path / "d2") == _files(reference)
+
+
+def test_damaged_dataset_is_detected_and_repaired(reference, spec_path, tmp_path):
+    from slicersim.campaign.runner import campaign_status, run_campaign
+    d = tmp_path / "damaged"
+    shutil.copytree(reference, d)
+    cube = d / "products" / "t0000001" / "cube.h5"
+    data = bytearray(cube.read_bytes())
+    data[len(data) // 2] ^= 0xFF                                   # one flipped byte: corrupted
+    cube.write_bytes(bytes(data))
+    spec = d / "products" / "t0000004" / "spectrum.h5"
+    spec.write_bytes(spec.read_bytes()[:1000])                     # truncated
+    (d / "records" / "t0000005.json").unlink()                     # never finished
+    st = campaign_status(d)
+    assert (st["done"], st["missing"], st["failed"]) == (3, 3, 0)
+    reasons = dict(st["missing_targets"])
+    assert "checksum" in reasons[1] and "truncated" in reasons[4] and "no record" in reasons[5]
+    res = run_campaign(spec_path, d, workers=1, progress=False)
+    assert res["computed"] == 3
+    assert _files(d) == _files(reference)
+    proc = _cli("campaign", "status", str(d))
+    assert proc.returncode == 0 and "6 done, 0 missing, 0 failed" in proc.stdout
+
+
+def test_external_scheduler_and_workers(reference, spec_path, tmp_path):
+    """A real `dask scheduler` and two `dask worker` processes on 127.0.0.1, via --scheduler."""
+    sched_file = tmp_path / "scheduler.json"
+    env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1")
+    procs = [subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--no-dashboard", "--scheduler-file", str(sched_file)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    try:
+        deadline = time.time() + 60
+        while not sched_file.exists() and time.time() < deadline:
+            time.sleep(0.2)
+        address = json.loads(sched_file.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        for _ in range(2):
+            procs.append(subprocess.Popen([str(BIN / "dask"), "worker", address, "--nthreads", "1",
+                                           "--nworkers", "1", "--no-dashboard", "--host", "127.0.0.1"],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
+        from distributed import Client
+        with Client(address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=60)
+        out = tmp_path / "ext"
+        proc = _cli("campaign", "run", str(spec_path), "--out", str(out), "--scheduler", address,
+                    "--no-progress", timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        assert "6 done, 0 failed, 0 missing" in proc.stdout
+        assert _files(out) == _files(reference)
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_kill9_then_resume_equals_uninterrupted_run(reference, spec_path, tmp_path):
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([str(BIN / "slicersim"), "campaign", "run", str(spec_path), "--out", str(out),
+                             "--workers", "2", "--no-progress"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None:
+            if (out / "records").is_dir() and len(list((out / "records").glob("t*.json"))) >= 2:
+                break
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)                 # the client, its scheduler and its workers
+        proc.wait()
+    done_before = len(list((out / "records").glob("t*.json")))
+    assert 1 <= done_before < 6, "the run must be interrupted part-way for this test to mean anything"
+    time.sleep(0.5)
+    res = _cli("campaign", "run", str(spec_path), "--out", str(out), "--workers", "2", "--no-progress",
+               timeout=300)
+    assert res.returncode == 0, res.stderr
+    computed = int(res.stdout.split("(")[1].split()[0])
+    assert computed <= 6 - done_before + 2                 # only what was missing (+ targets in flight)
+    assert _files(out) == _files(reference)
+    assert not [p for p in out.rglob(".*tmp-*")]            # no temporaries left behind
+
+
+# --------------------------------------------------------------------------- failures
+class _FailingPopulation:
+    """Wraps a population; target 2's spectrum raises (a target that cannot be simulated)."""
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def __getattr__(self, name):
+        if name == "inner":                    # while unpickling, before __dict__ is filled
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    def spectrum(self, row, lbda):
+        if int(row["target_id"]) == 2:
+            raise RuntimeError("synthetic failure of target 2")
+        return self.inner.spectrum(row, lbda)
+
+
+def test_failing_target_is_recorded_and_does_not_stop_the_campaign(spec_path, tmp_path):
+    import cloudpickle
+
+    from slicersim.campaign.runner import campaign_status, run_campaign
+    from slicersim.campaign.spec import load_spec
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    spec = load_spec(spec_path)
+    spec.products["cube"] = False
+    spec.population = _FailingPopulation(spec.population)
+    res = run_campaign(spec, tmp_path / "f", workers=1, progress=False)
+    assert (res["done"], res["failed"]) == (5, 1)
+    st = campaign_status(tmp_path / "f")
+    assert st["failed_targets"][0][0] == 2 and "synthetic failure" in st["failed_targets"][0][1]
+    assert not list((tmp_path / "f" / "products" / "t0000002").glob("*.h5"))
+
+
+# --------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("edit, message", [
+    (lambda s: s.replace("snr = 8", "snr = 8\nsnrr = 3"), "observation.'snrr'"),
+    (lambda s: s.replace("cube = true", "cube = true\nspectra = true"), "products.'spectra'"),
+    (lambda s: s + "\n[extra]\nx = 1\n", "'extra'"),
+    (lambda s: s.replace("n = 6", "n = 0"), "n"),
+    (lambda s: s.replace("min = 0.3, max = 1.2", "min = 1.2, max = 0.3"), "min"),
+    (lambda s: s.replace("min = 0.3", "min = -0.3"), "negative"),
+    (lambda s: s.replace("snr = 8", "snr = -8"), "observation.snr"),
+    (lambda s: s.replace("seed = 11", "seed = 1.5"), "seed"),
+    (lambda s: s.replace("spectrum = true\ncube = true", "spectrum = false"), "nothing"),
+    (lambda s: s.replace('psf_profile = "airy"', 'psf_profile = "moffat"'), "psf_profile"),
+    (lambda s: s + "\n[survey]\nefficiency = 1.5\n", "survey.efficiency"),
+    (lambda s: s.replace("[products]", "[products"), "TOML"),
+])
+def test_bad_specs_give_one_clear_error_and_write_nothing(tmp_path, edit, message):
+    spec = tmp_path / "bad.toml"
+    spec.write_text(edit(SPEC))
+    out = tmp_path / "never"
+    proc = _cli("campaign", "run", str(spec), "--out", str(out))
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("slicersim: error:"), proc.stderr
+    assert message.lower() in lines[0].lower(), lines[0]
+    assert not out.exists()
+
+
+def test_output_path_that_is_a_file_and_changed_spec_are_refused(reference, spec_path, tmp_path):
+    from slicersim.campaign.runner import run_campaign
+    afile = tmp_path / "file"
+    afile.write_text("x")
+    with pytest.raises(DatasetError, match="is a file"):
+        run_campaign(spec_path, afile, workers=1, progress=False)
+    d = tmp_path / "copy"
+    shutil.copytree(reference, d)
+    before = _files(d)
+    changed = tmp_path / "changed.toml"
+    changed.write_text(SPEC.replace("snr = 8", "snr = 9"))
+    proc = _cli("campaign", "run", str(changed), "--out", str(d))
+    assert proc.returncode == 2 and "different spec" in proc.stderr and "observation.snr" in proc.stderr
+    assert _files(d) == before                                  # nothing touched
+    notds = tmp_path / "notds"
+    notds.mkdir()
+    (notds / "mine.txt").write_text("keep")
+    with pytest.raises(DatasetError, match="not a slicersim dataset"):
+        run_campaign(spec_path, notds, workers=1, progress=False)
+
+
+def test_two_clients_on_one_dataset_are_refused(reference, spec_path, tmp_path):
+    from slicersim.campaign.runner import run_campaign
+    from slicersim.io.dataset import Dataset
+    d = tmp_path / "locked"
+    shutil.copytree(reference, d)
+    with Dataset(d):
+        with pytest.raises(DatasetError, match="in use"):
+            run_campaign(spec_path, d, workers=1, progress=False)
+
+
+def test_unknown_population_key_is_named(tmp_path):
+    from slicersim.campaign.spec import parse_spec
+    import tomllib
+    doc = tomllib.loads(SPEC.replace("n = 6", "n = 6\nzmax = 3"))
+    with pytest.raises(ConfigError, match="zmax"):
+        parse_spec(doc)
+
+
+def test_status_of_non_dataset(tmp_path):
+    proc = _cli("campaign", "status", str(tmp_path / "nope"))
+    assert proc.returncode == 2 and "no such dataset" in proc.stderr
