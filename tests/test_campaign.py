@@ -136,40 +136,78 @@ def test_damaged_dataset_is_detected_and_repaired(reference, spec_path, tmp_path
     assert proc.returncode == 0 and "6 done, 0 missing, 0 failed" in proc.stdout
 
 
+class _ExternalCluster:
+    """A real `dask scheduler` and `dask worker` processes on 127.0.0.1 (each in its own session)."""
+
+    def __init__(self, tmp_path, nworkers=2):
+        self.sched_file = tmp_path / "scheduler.json"
+        self.env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1")
+        self.procs = [self._start("scheduler", "--host", "127.0.0.1", "--port", "0",
+                                  "--no-dashboard", "--scheduler-file", str(self.sched_file))]
+        deadline = time.time() + 60
+        while not self.sched_file.exists() and time.time() < deadline:
+            time.sleep(0.2)
+        self.address = json.loads(self.sched_file.read_text())["address"]
+        self.workers = [self._start("worker", self.address, "--nthreads", "1", "--nworkers", "1",
+                                    "--no-dashboard", "--host", "127.0.0.1") for _ in range(nworkers)]
+        from distributed import Client
+        with Client(self.address, timeout="30s") as client:
+            client.wait_for_workers(nworkers, timeout=60)
+
+    def _start(self, *args):
+        proc = subprocess.Popen([str(BIN / "dask"), *args], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, env=self.env, start_new_session=True)
+        self.procs = getattr(self, "procs", []) + [proc]
+        return proc
+
+    def close(self):
+        for p in self.procs[::-1]:
+            try:
+                os.killpg(p.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        for p in self.procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+
+
 def test_external_scheduler_and_workers(reference, spec_path, tmp_path):
     """A real `dask scheduler` and two `dask worker` processes on 127.0.0.1, via --scheduler."""
-    sched_file = tmp_path / "scheduler.json"
-    env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1")
-    procs = [subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", "0",
-                               "--no-dashboard", "--scheduler-file", str(sched_file)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    cluster = _ExternalCluster(tmp_path)
     try:
-        deadline = time.time() + 60
-        while not sched_file.exists() and time.time() < deadline:
-            time.sleep(0.2)
-        address = json.loads(sched_file.read_text())["address"]
-        assert address.startswith("tcp://127.0.0.1:")
-        for _ in range(2):
-            procs.append(subprocess.Popen([str(BIN / "dask"), "worker", address, "--nthreads", "1",
-                                           "--nworkers", "1", "--no-dashboard", "--host", "127.0.0.1"],
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
-        from distributed import Client
-        with Client(address, timeout="30s") as client:
-            client.wait_for_workers(2, timeout=60)
+        assert cluster.address.startswith("tcp://127.0.0.1:")
         out = tmp_path / "ext"
-        proc = _cli("campaign", "run", str(spec_path), "--out", str(out), "--scheduler", address,
+        proc = _cli("campaign", "run", str(spec_path), "--out", str(out), "--scheduler", cluster.address,
                     "--no-progress", timeout=300)
         assert proc.returncode == 0, proc.stderr
         assert "6 done, 0 failed, 0 missing" in proc.stdout
         assert _files(out) == _files(reference)
     finally:
-        for p in procs[::-1]:
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        cluster.close()
+
+
+def test_worker_killed_mid_campaign(reference, spec_path, tmp_path):
+    """kill -9 of one worker (and its nanny) while it works: the other finishes the campaign."""
+    cluster = _ExternalCluster(tmp_path)
+    out = tmp_path / "wk"
+    try:
+        client = subprocess.Popen([str(BIN / "slicersim"), "campaign", "run", str(spec_path), "--out", str(out),
+                                   "--scheduler", cluster.address, "--no-progress"],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.time() + 240
+        while time.time() < deadline and client.poll() is None:
+            if (out / "records").is_dir() and list((out / "records").glob("t*.json")):
+                break
+            time.sleep(0.05)
+        os.killpg(cluster.workers[0].pid, signal.SIGKILL)
+        stdout, stderr = client.communicate(timeout=300)
+        assert client.returncode == 0, stderr
+        assert "6 done, 0 failed, 0 missing" in stdout
+        assert _files(out) == _files(reference)
+    finally:
+        cluster.close()
 
 
 def test_kill9_then_resume_equals_uninterrupted_run(reference, spec_path, tmp_path):
