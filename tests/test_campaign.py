@@ -339,3 +339,33 @@ def test_unknown_population_key_is_named(tmp_path):
 def test_status_of_non_dataset(tmp_path):
     proc = _cli("campaign", "status", str(tmp_path / "nope"))
     assert proc.returncode == 2 and "no such dataset" in proc.stderr
+
+
+def test_ramps_and_detector_image_products(tmp_path):
+    """One low-SNR target (short readout) with the full-detector products, in-process."""
+    import h5py
+
+    from slicersim.campaign.products import run_target
+    from slicersim.campaign.runner import plan_campaign
+    from slicersim.campaign.spec import parse_spec
+    from slicersim.io.dataset import Dataset
+    from slicersim.io.rampfile import read_ramps
+    import tomllib
+    text = SPEC.replace("n = 6", "n = 1").replace("snr = 8", "snr = 1").replace(
+        "spectrum = true\ncube = true", 'spectrum = false\ndetector_image = true\nramps = true\ncompression = "lz4"')
+    spec = parse_spec(tomllib.loads(text), text=text)
+    cat, _ = plan_campaign(spec)
+    ds = Dataset(tmp_path / "r")
+    digest = ds.initialise(spec.text, spec.canonical(), {}, False)
+    row = {k: (cat[0][k].item() if hasattr(cat[0][k], "item") else cat[0][k]) for k in cat.colnames}
+    rec = run_target(spec, row, ds.path, digest)
+    assert rec["status"] == "done", rec.get("error")
+    assert ds.verify(rec) == ""
+    pdir = tmp_path / "r" / "products" / "t0000000"
+    sci, gdq, pixdq, attrs = read_ramps(pdir / "ramps.h5")
+    n, m, d, nramps = rec["readout"]
+    assert sci.shape == (nramps, n, 4096, 4096) and int(attrs["SEED"]) == row["ramp_seed"]
+    assert int(attrs["NFRAMES"]) == m
+    with h5py.File(pdir / "detector_image.h5", "r") as f:
+        rate = f["rate"][...]
+    assert rate.dtype == np.float32 and rate.shape == (4096, 4096) and rate.max() > 0

@@ -113,7 +113,8 @@ def _write_image(path, target, row, seed):
     image = target.get_detector_image()
     with ProductFile(path, overwrite=True) as f:
         f.set_attrs(_attrs(row, seed, "detector_image"))
-        f.write("rate", np.asarray(image, dtype=np.float32), {"unit": "electron/s"}, chunks=True)
+        f.write("rate", np.asarray(image, dtype=np.float32), {"unit": "electron/s"}, chunks=(256, 4096),
+                compression="gzip", compression_opts=1, shuffle=True)     # mostly dark: ~10× smaller
 
 
 def _write_ramps(path, target, row, seed, spec, memory):
