@@ -177,11 +177,13 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
         todo = [tid for tid, (st, _, _) in state.items()
                 if str(rows[tid]["status"]) != "failed" and (st == "missing" or (st == "failed" and retry_failed))]
         ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted))
-        if todo:
-            _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes,
-                      threads_per_worker, window)
-        final = _catalog_with_records(catalog, records, spec.wanted)
-        ds.write_catalog(final)
+        try:
+            if todo:
+                _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes,
+                          threads_per_worker, window)
+        finally:                                   # also on Ctrl-C: the catalog says what is done
+            final = _catalog_with_records(catalog, records, spec.wanted)
+            ds.write_catalog(final)
     counts = {s: int(np.count_nonzero(np.asarray(final["status"]) == s)) for s in ("done", "failed", "missing")}
     return {"dataset": ds.path, "targets": len(final), **counts, "computed": len(todo),
             "seconds": time.perf_counter() - t0, "totals": plan.totals}

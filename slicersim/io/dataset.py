@@ -138,7 +138,24 @@ class Dataset:
             doc = {"sha256": digest, "spec": spec_dict}
             atomic_bytes(self.file(SPEC_JSON), (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode(),
                          overwrite=True)
+        else:
+            self._compare_versions(versions)
         return digest
+
+    def _compare_versions(self, versions):
+        """Warn when a dataset is resumed with other software versions (products may differ)."""
+        import warnings
+        try:
+            with open(self.file(VERSIONS), encoding="utf-8") as fh:
+                old = json.load(fh)
+        except (OSError, ValueError):
+            return
+        changed = sorted(k for k in set(old) | set(versions) if old.get(k) != versions.get(k))
+        if changed:
+            warnings.warn(f"{self.path} was started with other software versions ("
+                          + ", ".join(f"{k} {old.get(k)} → {versions.get(k)}" for k in changed[:5])
+                          + "): products computed now may differ bit for bit from the earlier ones",
+                          stacklevel=3)
 
     def discard(self):
         """Remove records, products, catalog and spec (``--force``)."""
