@@ -1,0 +1,549 @@
+"""Target populations: SNe Ia drawn from distributions, or a user catalog.
+
+A population draws its targets' parameters as an astropy Table (:meth:`draw`) and gives
+their observer-frame spectra F_λ [erg/s/cm²/Å] (:meth:`spectra` for many, :meth:`spectrum`
+for one catalog row: the same numbers, one implementation).  Every random parameter is
+drawn from its own Philox stream keyed by (population seed, target id), so a target's
+parameters depend on nothing else: not on ``n``, the order, nor on which other parameters
+are switched on.
+
+SN Ia spectra follow sncosmo's model exactly (``Model._flux``)::
+
+    F_obs(t, λ) = A · a · F_src(t_rest, a λ) · 10^(−0.4 A_host(a λ)) · 10^(−0.4 A_MW(λ)),  a = 1/(1+z)
+
+with ``phase`` = t_rest the *rest-frame* days from B-band peak, and the amplitude A set
+from the rest-frame peak magnitude in ``band``: m = M + μ(z) with μ the distance modulus of
+``cosmology`` (``set_source_peakabsmag``).  M = ``peak_absmag`` + N(0, ``mag_scatter``),
+and for SALT sources the Tripp relation M − α x1 + β c (x0 from the standardised m_B, the
+SALT convention; x1, c only exist for SALT).  Dust (sncosmo effects): host CCM89 in the
+rest frame, Milky Way F99 in the observer frame, each with E(B−V) and R_V.
+
+Hosts (optional): an elliptical Sersic profile whose effective radius follows the
+Shen et al. (2003, MNRAS 343, 978, eq. 18, late types, SDSS r, h = 0.7) size–luminosity
+relation with its luminosity-dependent log-normal scatter; the SN is placed on the host's
+light distribution (inverse of the Sersic enclosed-light fraction, uniform azimuth).
+The host spectrum is a two-temperature stellar continuum (old 4000 K + young 12000 K
+black bodies, ``young_fraction`` of the flux at 5500 Å) normalised to the host's absolute
+magnitude in rest-frame ``bessellr`` (AB) — a smooth continuum, no lines or 4000 Å break —
+or a user rest-frame spectrum file.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from slicersim.backends import rng
+from slicersim.campaign.distributions import Distribution, RedshiftDistribution
+from slicersim.errors import ConfigError, SpectrumError
+from slicersim.sources.spectra import SNCOSMO_SNIA_MODELS, blackbody_flambda
+
+__all__ = ["SNIaPopulation", "CatalogPopulation", "population_from_spec", "POPULATIONS", "snia_fluxes"]
+
+#: Philox streams of the population parameters (one per parameter)
+STREAMS = {"redshift": 0x5A01, "phase": 0x5A02, "x1": 0x5A03, "c": 0x5A04, "mag": 0x5A05,
+           "mwebv": 0x5A06, "hostebv": 0x5A07, "host_absmag": 0x5A08, "host_size": 0x5A09,
+           "host_shape": 0x5A0A, "host_position": 0x5A0B}
+MAX_TARGETS = 10_000_000
+PC10_CM = 10 * 3.0856775814913673e18          # 10 pc [cm]
+
+_SN_KEYS = {"source": "hsiao-subsampled", "phase": 0.0, "peak_absmag": -19.3, "mag_scatter": 0.0,
+            "band": "bessellb", "magsys": "ab", "x1": None, "c": None, "alpha": 0.14, "beta": 3.1,
+            "cosmology": "Planck18", "mw_dust": None, "host_dust": None, "hosts": None}
+_DUST_KEYS = {"ebv": 0.0, "r_v": 3.1}
+_HOST_KEYS = {"absmag": {"distribution": "normal", "mean": -20.5, "sigma": 1.0, "min": -23.5, "max": -17.0},
+              "sersic_index": 1.0, "axis_ratio": {"distribution": "uniform", "min": 0.3, "max": 1.0},
+              "young_fraction": 0.5, "spectrum": None, "max_radius": 4.0}
+
+
+# ---------------------------------------------------------------------------- helpers
+def _unknown(section, allowed, where):
+    for key in section:
+        if key not in allowed:
+            raise ConfigError(f"unknown key {where}{key!r} in the campaign spec; known: {', '.join(sorted(allowed))}")
+
+
+def _cosmology(name):
+    """The astropy cosmology realisation ``name`` (e.g. "Planck18")."""
+    from astropy.cosmology import realizations
+    if not isinstance(name, str) or name not in realizations.available:
+        raise ConfigError(f"population.cosmology: unknown cosmology {name!r}; known: "
+                          f"{', '.join(realizations.available)}")
+    return getattr(realizations, name)
+
+
+_SOURCES = {}
+
+
+def _source(name):
+    """The sncosmo source ``name`` (loaded once per process; SALT needs sncosmo's data)."""
+    if name not in _SOURCES:
+        import sncosmo
+        try:
+            _SOURCES[name] = sncosmo.get_source(name)
+        except Exception as exc:
+            offline = ", ".join(k for k, v in SNCOSMO_SNIA_MODELS.items() if v)
+            raise SpectrumError(f"sncosmo source {name!r} is not available here ({type(exc).__name__}: "
+                                f"{' '.join(str(exc).split())[:200]}); it needs sncosmo's data download "
+                                f"(SNCOSMO_DATA_DIR); available offline: {offline}") from None
+    return _SOURCES[name]
+
+
+def _rest_peak_mag(source, band, magsys, x1=0.0, c=0.0):
+    """Rest-frame peak magnitude of ``source`` at unit amplitude (x0 = 1, x1, c for SALT)."""
+    src = source.__class__.__new__(source.__class__)
+    src.__dict__.update(source.__dict__)
+    src._parameters = source._parameters.copy()
+    src._parameters[0] = 1.0
+    if "x1" in src.param_names:
+        src.set(x1=x1, c=c)
+    return src.peakmag(band, magsys)
+
+
+def _dust_curve(law, wave, r_v):
+    """A_λ / E(B−V) of a sncosmo dust law at ``wave`` [Å] (linear in E(B−V) at fixed R_V)."""
+    import sncosmo
+    effect = {"ccm89": sncosmo.CCM89Dust, "f99": sncosmo.F99Dust}[law]()
+    effect.set(ebv=1.0, r_v=r_v) if "r_v" in effect.param_names else effect.set(ebv=1.0)
+    ok = (wave >= effect.minwave()) & (wave <= effect.maxwave())
+    out = np.full(wave.shape, np.nan)
+    out[ok] = -2.5 * np.log10(effect.propagate(wave[ok], np.ones(np.count_nonzero(ok))))
+    return out
+
+
+def snia_fluxes(lbda, redshift, phase, peak_absmag, source="hsiao-subsampled", band="bessellb", magsys="ab",
+                x1=None, c=None, alpha=0.14, beta=3.1, cosmology="Planck18", mwebv=None, mw_rv=3.1,
+                hostebv=None, host_rv=3.1):
+    """Observer-frame SN Ia F_λ [erg/s/cm²/Å] (N, k) on ``lbda`` [Å]; NaN outside the model.
+
+    redshift, phase (rest-frame days), peak_absmag: (N,) arrays; x1, c for SALT sources;
+    mwebv / hostebv: E(B−V) of the Milky-Way (F99, observer frame) and host (CCM89, rest
+    frame) dust.  Equal to sncosmo.Model(source, effects).flux to rounding (tested)."""
+    lbda = np.asarray(lbda, dtype=float)
+    z = np.atleast_1d(np.asarray(redshift, dtype=float))
+    n = z.size
+    if np.any(~(z > 0)):
+        raise SpectrumError("SN Ia redshifts must be > 0")
+    phase = np.broadcast_to(np.asarray(phase, dtype=float), (n,))
+    absmag = np.broadcast_to(np.asarray(peak_absmag, dtype=float), (n,))
+    src = _source(source)
+    salt = "x1" in src.param_names
+    if not salt and (x1 is not None or c is not None):
+        raise ConfigError(f"x1 / c are SALT parameters: sncosmo source {source!r} has none")
+    x1 = np.broadcast_to(np.asarray(0.0 if x1 is None else x1, dtype=float), (n,))
+    c = np.broadcast_to(np.asarray(0.0 if c is None else c, dtype=float), (n,))
+    mu = np.asarray(_cosmology(cosmology).distmod(z).value, dtype=float)
+    m0 = _rest_peak_mag(src, band, magsys)
+    standardised = absmag - alpha * x1 + beta * c if salt else absmag
+    amplitude = 10.0 ** (-0.4 * (standardised + mu - m0))            # x0 (SALT) or amplitude
+    a = 1.0 / (1.0 + z)
+    out = np.full((n, lbda.size), np.nan)
+    mw = None
+    if mwebv is not None and np.any(np.asarray(mwebv) != 0):
+        mw = _dust_curve("f99", lbda, mw_rv)[None, :] * np.broadcast_to(np.asarray(mwebv, float), (n,))[:, None]
+    params = src._parameters.copy()
+    try:
+        for i in range(n):
+            rest = lbda * a[i]
+            ok = (rest >= src.minwave()) & (rest <= src.maxwave())
+            if not (src.minphase() <= phase[i] <= src.maxphase()) or np.count_nonzero(ok) < 2:
+                continue
+            src._parameters[0] = 1.0
+            if salt:
+                src.set(x1=x1[i], c=c[i])
+            f = amplitude[i] * a[i] * src._flux(np.array([phase[i]]), rest[ok])[0]
+            if hostebv is not None and hostebv[i] != 0:
+                f = f * 10.0 ** (-0.4 * hostebv[i] * _dust_curve("ccm89", rest[ok], host_rv))
+            out[i, ok] = f
+    finally:
+        src._parameters[:] = params
+    if mw is not None:
+        out *= 10.0 ** (-0.4 * mw)
+    return out
+
+
+def _restframe_to_observed(lbda, rest_lbda, rest_flux, absmag, z, band, cosmo):
+    """F_λ on ``lbda`` of a rest-frame SED scaled to ``absmag`` (AB) in rest-frame ``band``
+    at redshift z: F_obs(λ) = F_10pc(λ/(1+z)) (10 pc / D_L)² / (1+z)."""
+    import sncosmo
+    m_in = sncosmo.Spectrum(rest_lbda, rest_flux).bandmag(band, "ab")
+    scale = 10 ** (-0.4 * (absmag - m_in))
+    dl_cm = cosmo.luminosity_distance(z).to_value("cm")
+    flux = np.interp(lbda / (1 + z), rest_lbda, rest_flux * scale, left=np.nan, right=np.nan)
+    return flux * (PC10_CM / dl_cm) ** 2 / (1 + z)
+
+
+# ---------------------------------------------------------------------------- hosts
+def shen03_radius_kpc(absmag, u):
+    """Shen et al. (2003) late-type R_50 [kpc] at SDSS r absolute magnitude ``absmag``
+    (h = 0.7), with its log-normal scatter drawn from the uniform ``u`` (eq. 16, 18)."""
+    from scipy.special import ndtri
+    alpha, beta, gamma, m0, s1, s2 = 0.21, 0.53, -1.31, -20.52, 0.48, 0.25
+    absmag = np.asarray(absmag, float)
+    log_r = -0.4 * alpha * absmag + (beta - alpha) * np.log10(1 + 10 ** (-0.4 * (absmag - m0))) + gamma
+    sigma_ln = s2 + (s1 - s2) / (1 + 10 ** (-0.8 * (absmag - m0)))
+    return 10 ** log_r * np.exp(sigma_ln * ndtri(u))
+
+
+class HostModel:
+    """Sersic hosts from a size–luminosity relation (see the module docstring)."""
+
+    def __init__(self, section, base_dir="."):
+        section = {} if section is True else dict(section)
+        _unknown(section, _HOST_KEYS, "population.hosts.")
+        cfg = {**_HOST_KEYS, **section}
+        self.absmag = Distribution.parse(cfg["absmag"], "population.hosts.absmag")
+        self.sersic_index = Distribution.parse(cfg["sersic_index"], "population.hosts.sersic_index", lo=0.3, hi=8)
+        self.axis_ratio = Distribution.parse(cfg["axis_ratio"], "population.hosts.axis_ratio", lo=0.05, hi=1)
+        self.young_fraction = float(_check_range(cfg["young_fraction"], "population.hosts.young_fraction", 0, 1))
+        self.max_radius = float(_check_range(cfg["max_radius"], "population.hosts.max_radius", 0.5, 20))
+        self.spectrum_file = cfg["spectrum"]
+        self.spectrum_digest = None
+        if self.spectrum_file is not None:
+            path = _resolve(self.spectrum_file, base_dir, "population.hosts.spectrum")
+            self.spectrum_file = path
+            self.rest_lbda, self.rest_flux = _read_spectrum(path, "population.hosts.spectrum")
+            self.spectrum_digest = _digest(path)
+        else:
+            self.rest_lbda = np.arange(900.0, 30000.0, 10.0)
+            old, young = blackbody_flambda(self.rest_lbda, 4000.0), blackbody_flambda(self.rest_lbda, 12000.0)
+            i55 = np.searchsorted(self.rest_lbda, 5500.0)
+            self.rest_flux = ((1 - self.young_fraction) * old / old[i55]
+                              + self.young_fraction * young / young[i55])
+        self.section = cfg
+
+    def to_spec(self):
+        out = {"absmag": self.absmag.to_spec(), "sersic_index": self.sersic_index.to_spec(),
+               "axis_ratio": self.axis_ratio.to_spec(), "young_fraction": self.young_fraction,
+               "max_radius": self.max_radius, "spectrum": self.spectrum_file}
+        if self.spectrum_digest:
+            out["spectrum_sha256"] = self.spectrum_digest
+        return out
+
+    def draw(self, seed, ids, z, cosmo):
+        from scipy.special import gammaincinv
+
+        from slicersim.sources.extended import sersic_bn
+        absmag = self.absmag.draw(rng.uniform(seed, ids, STREAMS["host_absmag"]))
+        size_u = rng.uniform(seed, ids, STREAMS["host_size"])
+        shape_u = rng.uniform(seed, ids, STREAMS["host_shape"])
+        pos_u = rng.uniform(seed, ids, STREAMS["host_position"])
+        n_s = self.sersic_index.draw(size_u[:, 1:])
+        q = self.axis_ratio.draw(shape_u[:, :1] if shape_u.ndim == 2 else shape_u)
+        pa = 180.0 * shape_u[:, 1]
+        r_kpc = shen03_radius_kpc(absmag, size_u[:, 0])
+        arcsec_per_kpc = cosmo.arcsec_per_kpc_proper(z).value
+        r_eff = r_kpc * arcsec_per_kpc
+        # the SN on the host's light: L(<r)/L = P(2n, b_n (r/r_e)^(1/n)), truncated at max_radius r_e
+        bn = np.array([sersic_bn(v) for v in n_s])
+        from scipy.special import gammainc
+        fmax = gammainc(2 * n_s, bn * self.max_radius ** (1 / n_s))
+        r_sn = r_eff * (gammaincinv(2 * n_s, pos_u[:, 0] * fmax) / bn) ** n_s
+        theta = 2 * np.pi * pos_u[:, 1]
+        u, v = r_sn * np.cos(theta), q * r_sn * np.sin(theta)          # host frame (major, minor axes)
+        phi = np.deg2rad(pa)
+        dx, dy = u * np.cos(phi) - v * np.sin(phi), u * np.sin(phi) + v * np.cos(phi)
+        return {"host_absmag": absmag, "host_r_eff": r_eff, "host_sersic_index": n_s, "host_axis_ratio": q,
+                "host_position_angle": pa, "host_offset_x": -dx, "host_offset_y": -dy}
+
+    def build(self, row, cosmo):
+        """The :class:`~slicersim.sources.extended.Host` of one row (offset relative to the SN)."""
+        from slicersim.sources.extended import Host, SersicProfile
+        z = float(row["redshift"])
+        lbda = np.arange(3000.0, 20001.0, 10.0)
+        flux = _restframe_to_observed(lbda, self.rest_lbda, self.rest_flux, float(row["host_absmag"]), z,
+                                      "bessellr", cosmo)
+        ok = np.isfinite(flux)
+        profile = SersicProfile(float(row["host_sersic_index"]), float(row["host_r_eff"]),
+                                float(row["host_axis_ratio"]), float(row["host_position_angle"]),
+                                offset=(float(row["host_offset_x"]), float(row["host_offset_y"])))
+        return Host(profile, lbda[ok], flux[ok])
+
+
+def _check_range(value, name, lo, hi):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (lo <= value <= hi):
+        raise ConfigError(f"{name} must be a number in [{lo}, {hi}], got {value!r}")
+    return value
+
+
+def _resolve(path, base_dir, name):
+    if not isinstance(path, str) or not path:
+        raise ConfigError(f"{name} must be a file path, got {path!r}")
+    full = path if os.path.isabs(path) else os.path.normpath(os.path.join(base_dir, path))
+    if not os.path.isfile(full):
+        raise ConfigError(f"{name}: no such file {full}")
+    return full
+
+
+def _digest(path):
+    import hashlib
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
+
+
+def _read_table(path, name):
+    from astropy.table import Table
+    fmt = {".ecsv": "ascii.ecsv", ".csv": "ascii.csv", ".parquet": "parquet", ".pq": "parquet"}.get(
+        os.path.splitext(path)[1].lower())
+    if fmt is None:
+        raise ConfigError(f"{name}: {path} must be an .ecsv, .csv or .parquet file")
+    try:
+        return Table.read(path, format=fmt)
+    except Exception as exc:
+        raise ConfigError(f"{name}: cannot read {path} ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})") \
+            from None
+
+
+def _read_spectrum(path, name):
+    """(λ [Å], F_λ) from a table with columns lbda/wavelength and flux."""
+    tab = _read_table(path, name)
+    cols = {c.lower(): c for c in tab.colnames}
+    lcol = next((cols[k] for k in ("lbda", "wavelength", "wave", "lambda") if k in cols), None)
+    fcol = next((cols[k] for k in ("flux", "flambda", "f_lambda") if k in cols), None)
+    if lcol is None or fcol is None:
+        raise ConfigError(f"{name}: {path} needs columns lbda (Å) and flux (erg/s/cm²/Å), has {tab.colnames}")
+    from slicersim.sources.spectra import validate_spectrum
+    try:
+        return validate_spectrum(np.asarray(tab[lcol], float), np.asarray(tab[fcol], float), f"{name} {path}")
+    except SpectrumError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+# ---------------------------------------------------------------------------- populations
+class _SNParameters:
+    """SN Ia parameters shared by the drawn and the catalog populations."""
+
+    def _parse_sn(self, cfg, base_dir):
+        src = cfg["source"]
+        if not isinstance(src, str) or not src:
+            raise ConfigError(f"population.source must be an sncosmo SN Ia source name, got {src!r}")
+        self.source = src
+        self.salt = "salt" in src.lower()
+        for key in ("x1", "c"):
+            if cfg[key] is not None and not self.salt:
+                raise ConfigError(f"population.{key}: x1 / c are SALT parameters; source {src!r} has none "
+                                  "(use source = \"salt2\" or \"salt3\", with sncosmo's data available)")
+        self.phase = Distribution.parse(cfg["phase"], "population.phase", lo=-20, hi=85)
+        self.peak_absmag = float(_check_range(cfg["peak_absmag"], "population.peak_absmag", -25, -10))
+        self.mag_scatter = float(_check_range(cfg["mag_scatter"], "population.mag_scatter", 0, 2))
+        self.x1 = Distribution.parse(cfg["x1"] if cfg["x1"] is not None else
+                                     ({"distribution": "normal", "mean": 0.0, "sigma": 1.0, "min": -3, "max": 3}
+                                      if self.salt else 0.0), "population.x1", lo=-5, hi=5)
+        self.c = Distribution.parse(cfg["c"] if cfg["c"] is not None else
+                                    ({"distribution": "normal", "mean": 0.0, "sigma": 0.1, "min": -0.3, "max": 0.5}
+                                     if self.salt else 0.0), "population.c", lo=-1, hi=2)
+        self.alpha = float(_check_range(cfg["alpha"], "population.alpha", -5, 5))
+        self.beta = float(_check_range(cfg["beta"], "population.beta", -10, 10))
+        import sncosmo
+        for key, reg in (("band", sncosmo.get_bandpass), ("magsys", sncosmo.get_magsystem)):
+            try:
+                reg(cfg[key])
+            except Exception:
+                raise ConfigError(f"population.{key}: unknown sncosmo {key} {cfg[key]!r}") from None
+        self.band, self.magsys = cfg["band"], cfg["magsys"]
+        self.cosmology_name = cfg["cosmology"]
+        _cosmology(self.cosmology_name)
+        self.mw_dust = self._dust(cfg["mw_dust"], "population.mw_dust")
+        self.host_dust = self._dust(cfg["host_dust"], "population.host_dust")
+        self.hosts = None if cfg["hosts"] in (None, False) else HostModel(cfg["hosts"], base_dir)
+
+    @staticmethod
+    def _dust(section, name):
+        if section is None:
+            return None
+        if not isinstance(section, dict):
+            raise ConfigError(f"{name} must be a table {{ebv = ..., r_v = 3.1}}, got {section!r}")
+        _unknown(section, _DUST_KEYS, f"{name}.")
+        cfg = {**_DUST_KEYS, **section}
+        return {"ebv": Distribution.parse(cfg["ebv"], f"{name}.ebv", lo=0, hi=5),
+                "r_v": float(_check_range(cfg["r_v"], f"{name}.r_v", 1, 8))}
+
+    @property
+    def cosmology(self):
+        return _cosmology(self.cosmology_name)
+
+    def _sn_spec(self):
+        dust = {k: (None if d is None else {"ebv": d["ebv"].to_spec(), "r_v": d["r_v"]})
+                for k, d in (("mw_dust", self.mw_dust), ("host_dust", self.host_dust))}
+        return {"source": self.source, "phase": self.phase.to_spec(), "peak_absmag": self.peak_absmag,
+                "mag_scatter": self.mag_scatter, "x1": self.x1.to_spec(), "c": self.c.to_spec(),
+                "alpha": self.alpha, "beta": self.beta, "band": self.band, "magsys": self.magsys,
+                "cosmology": self.cosmology_name, **dust,
+                "hosts": None if self.hosts is None else self.hosts.to_spec()}
+
+    def _draw_sn(self, seed, ids, table):
+        """Fill the SN columns of ``table`` that it does not have (catalog columns win)."""
+        from scipy.special import ndtri
+        n = len(ids)
+
+        def put(name, values):
+            if name not in table.colnames:
+                table[name] = np.broadcast_to(values, (n,)).astype(float)
+        put("phase", self.phase.draw(rng.uniform(seed, ids, STREAMS["phase"])))
+        if self.salt:
+            put("x1", self.x1.draw(rng.uniform(seed, ids, STREAMS["x1"])))
+            put("c", self.c.draw(rng.uniform(seed, ids, STREAMS["c"])))
+        scatter = self.mag_scatter * ndtri(rng.uniform(seed, ids, STREAMS["mag"])[:, 0]) if self.mag_scatter \
+            else 0.0
+        put("peak_absmag", self.peak_absmag + scatter)
+        if self.mw_dust is not None:
+            put("mwebv", self.mw_dust["ebv"].draw(rng.uniform(seed, ids, STREAMS["mwebv"])))
+        if self.host_dust is not None:
+            put("hostebv", self.host_dust["ebv"].draw(rng.uniform(seed, ids, STREAMS["hostebv"])))
+        if self.hosts is not None:
+            for name, col in self.hosts.draw(seed, ids, np.asarray(table["redshift"], float),
+                                             self.cosmology).items():
+                put(name, col)
+        return table
+
+    def _sn_fluxes(self, table, lbda):
+        def col(name):
+            return np.asarray(table[name], dtype=float) if name in table.colnames else None
+        return snia_fluxes(lbda, col("redshift"), col("phase"), col("peak_absmag"), self.source, self.band,
+                           self.magsys, x1=col("x1"), c=col("c"), alpha=self.alpha, beta=self.beta,
+                           cosmology=self.cosmology_name, mwebv=col("mwebv"),
+                           mw_rv=(self.mw_dust or _DUST_KEYS)["r_v"], hostebv=col("hostebv"),
+                           host_rv=(self.host_dust or _DUST_KEYS)["r_v"])
+
+    def host(self, row):
+        """The host of a catalog row, or None."""
+        if self.hosts is None or "host_r_eff" not in row:
+            return None
+        return self.hosts.build(row, self.cosmology)
+
+    def spectrum(self, row, lbda):
+        """(λ, F_λ) of one catalog row: the covered part of :meth:`spectra` on ``lbda``."""
+        from astropy.table import Table
+        table = Table({k: [v] for k, v in dict(row).items() if np.ndim(v) == 0})
+        flux = self.spectra(table, lbda)[0]
+        ok = np.isfinite(flux)
+        if np.count_nonzero(ok) < 2:
+            raise SpectrumError(f"target {row.get('target_id')}: no model flux on {lbda[0]:.0f}–{lbda[-1]:.0f} Å")
+        return np.asarray(lbda, float)[ok], flux[ok]
+
+
+class SNIaPopulation(_SNParameters):
+    """``n`` SNe Ia with redshifts from ``redshift`` (see :class:`RedshiftDistribution`)
+    and the SN parameters of the module docstring."""
+
+    kind = "snia"
+
+    def __init__(self, n, redshift=None, base_dir=".", **sn):
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
+            raise ConfigError(f"population.n must be an integer, got {n!r}")
+        if not 1 <= n <= MAX_TARGETS:
+            raise ConfigError(f"population.n must be in [1, {MAX_TARGETS}] (an empty population has nothing "
+                              f"to simulate), got {n}")
+        self.n = int(n)
+        self.redshift = RedshiftDistribution.parse(
+            redshift if redshift is not None else {"distribution": "uniform", "min": 0.05, "max": 1.5},
+            base_dir=base_dir)
+        _unknown(sn, _SN_KEYS, "population.")
+        self._parse_sn({**_SN_KEYS, **sn}, base_dir)
+
+    def draw(self, seed):
+        """Table of the targets: target_id, redshift, phase, peak_absmag [, x1, c, mwebv, hostebv, host_*]."""
+        from astropy.table import Table
+        ids = np.arange(self.n, dtype=np.int64)
+        z = self.redshift.draw(rng.uniform(seed, ids.astype(np.uint64), STREAMS["redshift"]),
+                               cosmology=self.cosmology)
+        table = Table({"target_id": ids, "redshift": z})
+        return self._draw_sn(seed, ids.astype(np.uint64), table)
+
+    def spectra(self, table, lbda):
+        return self._sn_fluxes(table, lbda)
+
+    def to_spec(self):
+        return {"kind": self.kind, "n": self.n, "redshift": self.redshift.to_spec(), **self._sn_spec()}
+
+
+class CatalogPopulation(_SNParameters):
+    """Targets from a user table (ECSV, CSV or Parquet).
+
+    Required column: ``redshift`` (> 0).  Optional: ``target_id`` (unique integers ≥ 0;
+    default the row number), SN Ia parameters (``phase``, ``peak_absmag``, ``x1``, ``c``,
+    ``mwebv``, ``hostebv``, ``host_*``; missing ones are drawn as for ``kind = "snia"``),
+    and ``spectrum_file``: a table (lbda [Å], flux [erg/s/cm²/Å], observer frame, relative
+    to the catalog) used as the target's spectrum instead of the SN Ia model.  Other
+    columns are carried to the dataset catalog."""
+
+    kind = "catalog"
+    RESERVED = ("field", "n", "m", "d", "nramps", "exposure_time", "snr", "data_volume", "status", "error",
+                "seed", "ramp_seed")
+
+    def __init__(self, file, base_dir=".", **sn):
+        self.file = _resolve(file, base_dir, "population.file")
+        self.digest = _digest(self.file)
+        _unknown(sn, _SN_KEYS, "population.")
+        self._parse_sn({**_SN_KEYS, **sn}, base_dir)
+        self.base_dir = os.path.dirname(self.file)
+        self._check(self._read())
+
+    def _read(self):
+        return _read_table(self.file, "population.file")
+
+    def _check(self, tab):
+        if len(tab) == 0:
+            raise ConfigError(f"population.file {self.file} has no rows: an empty population has nothing to simulate")
+        if "redshift" not in tab.colnames:
+            raise ConfigError(f"population.file {self.file} has no 'redshift' column (columns: {tab.colnames})")
+        clash = [c for c in tab.colnames if c in self.RESERVED]
+        if clash:
+            raise ConfigError(f"population.file: columns {clash} are computed by the campaign; rename them")
+        z = np.asarray(tab["redshift"], dtype=float)
+        if np.any(~np.isfinite(z)) or np.any(z < 0):
+            raise ConfigError(f"population.file: redshifts must be finite and not negative (row "
+                              f"{int(np.nonzero(~(z >= 0))[0][0])})")
+        if "spectrum_file" not in tab.colnames and np.any(z == 0):
+            raise ConfigError("population.file: SN Ia redshifts must be > 0 (give a spectrum_file for z = 0)")
+        if "target_id" in tab.colnames:
+            ids = np.asarray(tab["target_id"])
+            if ids.dtype.kind not in "iu" or np.any(ids < 0) or len(np.unique(ids)) != len(ids):
+                raise ConfigError("population.file: target_id must be unique integers ≥ 0")
+        return tab
+
+    def draw(self, seed):
+        tab = self._read()
+        if "target_id" not in tab.colnames:
+            tab.add_column(np.arange(len(tab), dtype=np.int64), name="target_id", index=0)
+        ids = np.asarray(tab["target_id"]).astype(np.uint64)
+        tab["redshift"] = np.asarray(tab["redshift"], dtype=float)
+        return self._draw_sn(seed, ids, tab)
+
+    def spectra(self, table, lbda):
+        lbda = np.asarray(lbda, float)
+        if "spectrum_file" not in table.colnames:
+            return self._sn_fluxes(table, lbda)
+        files = np.asarray(table["spectrum_file"]).astype(str)
+        user = np.char.str_len(np.char.strip(files)) > 0
+        out = np.full((len(table), lbda.size), np.nan)
+        if (~user).any():
+            out[~user] = self._sn_fluxes(table[~user], lbda)
+        for i in np.nonzero(user)[0]:
+            path = _resolve(files[i], self.base_dir, f"population.file row {i} spectrum_file")
+            sl, sf = _read_spectrum(path, "spectrum_file")
+            out[i] = np.interp(lbda, sl, sf, left=np.nan, right=np.nan)
+        return out
+
+    def to_spec(self):
+        return {"kind": self.kind, "file": self.file, "file_sha256": self.digest, **self._sn_spec()}
+
+
+POPULATIONS = {"snia": SNIaPopulation, "catalog": CatalogPopulation}
+
+
+def population_from_spec(section, base_dir="."):
+    """The population of a ``[population]`` table (unknown keys and kinds are errors)."""
+    section = dict(section)
+    kind = section.pop("kind", "snia")
+    if kind not in POPULATIONS:
+        raise ConfigError(f"population.kind {kind!r} unknown; known: {', '.join(POPULATIONS)}")
+    if kind == "snia":
+        _unknown(section, {"n", "redshift", *_SN_KEYS}, "population.")
+        if "n" not in section:
+            raise ConfigError("population.n (the number of targets) is required for kind = \"snia\"")
+        return SNIaPopulation(section.pop("n"), section.pop("redshift", None), base_dir=base_dir, **section)
+    _unknown(section, {"file", *_SN_KEYS}, "population.")
+    if "file" not in section:
+        raise ConfigError("population.file (ECSV, CSV or Parquet table of targets) is required for kind = \"catalog\"")
+    return CatalogPopulation(section.pop("file"), base_dir=base_dir, **section)
