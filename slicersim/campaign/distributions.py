@@ -77,14 +77,9 @@ class Distribution:
         return dist
 
     def support(self):
-        p, k = self.params, self.kind
-        if k == "fixed":
-            return p["value"], p["value"]
-        if k == "uniform":
-            return p["min"], p["max"]
-        if k == "normal":
-            return p.get("min", -np.inf), p.get("max", np.inf)
-        return 0.0, p.get("max", np.inf)
+        """Smallest and largest value a draw can take (uniforms lie in [2⁻⁵³, 1 − 2⁻⁵³])."""
+        lo, hi = self.draw(np.array([2.0**-53, 1 - 2.0**-53]))
+        return float(lo), float(hi)
 
     def draw(self, u):
         """Values from uniforms ``u`` in (0, 1) ((N,) or (N, 2): the first column is used)."""

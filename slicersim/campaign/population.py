@@ -288,6 +288,9 @@ def _read_table(path, name):
     if fmt is None:
         raise ConfigError(f"{name}: {path} must be an .ecsv, .csv or .parquet file")
     try:
+        if fmt == "parquet":                    # pyarrow directly (astropy's reader needs pandas)
+            import pyarrow.parquet as pq
+            return Table(pq.read_table(path).to_pydict())
         return Table.read(path, format=fmt)
     except Exception as exc:
         raise ConfigError(f"{name}: cannot read {path} ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})") \
@@ -514,7 +517,8 @@ class CatalogPopulation(_SNParameters):
         lbda = np.asarray(lbda, float)
         if "spectrum_file" not in table.colnames:
             return self._sn_fluxes(table, lbda)
-        files = np.asarray(table["spectrum_file"]).astype(str)
+        col = table["spectrum_file"]
+        files = np.asarray(col.filled("") if hasattr(col, "filled") else col).astype(str)
         user = np.char.str_len(np.char.strip(files)) > 0
         out = np.full((len(table), lbda.size), np.nan)
         if (~user).any():
