@@ -1,16 +1,26 @@
 """Reading tabulated instrument curves (ECSV / CSV) and turning them into callables.
 
 File I/O only: no physics here.  Wavelengths are returned in Angstrom.
+
+Parsed curves are cached by the SHA-256 of the file's bytes (plus the arguments), so building
+many models from the same files parses each file once per process while an edited file is
+parsed again; callers get fresh copies (:data:`CURVE_CACHE`, ``slicersim.memo.clear_caches``).
 """
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 
 import numpy as np
 
 from slicersim.errors import ConfigError
+from slicersim.memo import ByteLRU
 
-__all__ = ["read_curve", "CurveError"]
+__all__ = ["read_curve", "CurveError", "CURVE_CACHE"]
+
+#: parsed curve files, keyed by content digest (a few kB each)
+CURVE_CACHE = ByteLRU("curves", 16 * 2**20)
 
 _UNIT_TO_AA = {"angstrom": 1.0, "aa": 1.0, "a": 1.0, "nm": 10.0, "nanometer": 10.0,
                "micron": 1e4, "um": 1e4, "µm": 1e4, "micrometer": 1e4, "m": 1e10}
@@ -50,26 +60,22 @@ def read_curve(path, columns=None, wavelength_unit=None):
     if not os.path.isfile(path):
         raise CurveError(f"curve file not found: {path}")
     try:
-        if path.lower().endswith(".ecsv"):
-            from astropy.table import Table
-            tab = Table.read(path, format="ascii.ecsv")
-            names = tab.colnames
-            wcol = tab[names[0]]
-            unit = wavelength_unit or (str(wcol.unit) if wcol.unit is not None else "micron")
-            lbda = _to_angstrom(np.asarray(wcol), unit, "micron")
-            data = {n: np.asarray(tab[n], dtype=float) for n in names[1:]}
-        else:
-            with open(path) as fh:
-                first = fh.readline()
-            delim = "," if "," in first else None
-            raw = np.genfromtxt(path, delimiter=delim, names=True, dtype=float, comments="#")
-            names = list(raw.dtype.names)
-            lbda = _to_angstrom(raw[names[0]], wavelength_unit, "angstrom")
-            data = {n: np.asarray(raw[n], dtype=float) for n in names[1:]}
-    except CurveError:
-        raise
-    except Exception as exc:  # pragma: no cover - message path
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
         raise CurveError(f"cannot read curve file {path}: {exc}") from exc
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")
+    text = text.replace("\r\n", "\n").replace("\r", "\n")         # universal newlines, as open()
+    ecsv = path.lower().endswith(".ecsv")
+    key = (hashlib.sha256(raw).hexdigest(), ecsv, wavelength_unit)
+    hit = CURVE_CACHE.get(key)
+    if hit is None:
+        hit = _parse(text, path, ecsv, wavelength_unit)
+        CURVE_CACHE.put(key, hit, hit[0].nbytes + sum(a.nbytes for a in hit[1].values()) + len(raw))
+    lbda, data = hit[0].copy(), {n: a.copy() for n, a in hit[1].items()}
     if columns is not None:
         missing = [c for c in columns if c not in data]
         if missing:
@@ -78,3 +84,28 @@ def read_curve(path, columns=None, wavelength_unit=None):
     if lbda.size < 2 or np.any(~np.isfinite(lbda)) or np.any(np.diff(lbda) <= 0):
         raise CurveError(f"curve file {path}: wavelengths must be finite and strictly increasing")
     return lbda, data
+
+
+def _parse(text, path, ecsv, wavelength_unit):
+    """(lbda [Å], {column: values}) of a curve file's text (``path`` for messages only)."""
+    try:
+        if ecsv:
+            from astropy.table import Table
+            tab = Table.read(text.splitlines(), format="ascii.ecsv")
+            names = tab.colnames
+            wcol = tab[names[0]]
+            unit = wavelength_unit or (str(wcol.unit) if wcol.unit is not None else "micron")
+            lbda = _to_angstrom(np.asarray(wcol), unit, "micron")
+            data = {n: np.asarray(tab[n], dtype=float) for n in names[1:]}
+        else:
+            first = text.split("\n", 1)[0]
+            delim = "," if "," in first else None
+            raw = np.genfromtxt(io.StringIO(text), delimiter=delim, names=True, dtype=float, comments="#")
+            names = list(raw.dtype.names)
+            lbda = _to_angstrom(raw[names[0]], wavelength_unit, "angstrom")
+            data = {n: np.asarray(raw[n], dtype=float) for n in names[1:]}
+    except CurveError:
+        raise
+    except Exception as exc:  # pragma: no cover - message path
+        raise CurveError(f"cannot read curve file {path}: {exc}") from exc
+    return np.array(lbda, dtype=float), {n: np.array(a, dtype=float) for n, a in data.items()}
