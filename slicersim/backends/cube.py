@@ -23,7 +23,6 @@ only); each voxel's arithmetic does not depend on the chunking.
 """
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -234,39 +233,20 @@ def _detector_block_numpy(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, 
 
 
 # --------------------------------------------------------------------------- OpenCL
-_local = threading.local()
-
-
 def release_buffers():
     """Free this thread's cached device buffers and kernels (re-created on demand)."""
-    _local.__dict__.clear()
-
-
-def _cache():
-    """This thread's (context, kernels, buffers); reset when the OpenCL context changes."""
-    ctx = opencl.get_context()
-    if getattr(_local, "ctx", None) is not ctx:
-        _local.ctx, _local.kernels, _local.buffers = ctx, {}, {}
-    return _local
+    opencl.release_thread_resources()
 
 
 def _kernel(file, name, options=()):
     """Kernel object reused between calls (creating one costs ~1 ms of pyopencl set-up)."""
-    kernels = _cache().kernels
-    key = (file, name, tuple(options))
-    if key not in kernels:
-        kernels[key] = opencl.get_kernel(file, name, tuple(options))
-    return kernels[key]
+    return opencl.cached_kernel(file, name, tuple(options))
 
 
 def _buffer(name, nbytes):
     """Device buffer ``name`` of at least ``nbytes``, reused between calls: allocating and
     first-touching ~60 MB of output buffers per cube costs as much as the kernel on PoCL."""
-    buffers = _cache().buffers
-    hit = buffers.get(name)
-    if hit is None or hit[0] < nbytes:
-        hit = buffers[name] = (max(int(nbytes), 8), opencl.device_buffer(max(int(nbytes), 8)))
-    return hit[1]
+    return opencl.scratch_buffer(f"cube.{name}", nbytes)
 
 
 def default_vector_width():

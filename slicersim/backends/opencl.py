@@ -18,11 +18,17 @@ PoCL starts worker threads; a process forked after that can hang inside
 OpenCL.  Every entry point therefore refuses to run in a forked child
 (:class:`OpenCLForkError`): use ``multiprocessing`` with the ``"spawn"``
 start method.
+
+PoCL's CPU device runs one worker thread per core unless ``POCL_MAX_PTHREAD_COUNT`` says
+otherwise, and reads it once, when the platform is first used: :func:`limit_cpu_threads`
+sets it for this process before that (several processes sharing a machine then do not
+oversubscribe its cores).
 """
 
 from __future__ import annotations
 
 from slicersim.errors import OpenCLUnavailableError, OpenCLForkError  # noqa: F401  (re-exported)
+from slicersim.errors import ParameterError, SlicersimError
 
 import hashlib
 import importlib.resources
@@ -32,7 +38,10 @@ import threading
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 ENV_VAR = "SLICERSIM_DEVICE"
+POCL_THREADS_VAR = "POCL_MAX_PTHREAD_COUNT"
 _DISABLE = {"none", "off", "numpy", "disable", "disabled"}
 _TYPES = ("cpu", "gpu", "accelerator")
 
@@ -42,13 +51,8 @@ INSTALL_HINT = (
     "(or run `make opencl`), then check with `slicersim info`."
 )
 
-
-
-
-
-
 _lock = threading.RLock()
-_state: dict = {"pid": None, "spec": None, "device": None, "ctx": None, "queue": None}
+_state: dict = {"pid": None, "spec": None, "device": None, "ctx": None, "queue": None, "threads_env": None}
 _programs: dict = {}
 _warned: set = set()
 
@@ -81,6 +85,7 @@ def _devices() -> list:
     with _lock:
         if _state["pid"] is None:
             _state["pid"] = os.getpid()  # the OpenCL runtime is now live in this process
+            _state["threads_env"] = os.environ.get(POCL_THREADS_VAR)   # what PoCL reads now
     try:
         platforms = cl.get_platforms()
     except Exception as exc:  # clGetPlatformIDs fails when no ICD is installed
@@ -147,6 +152,41 @@ def reset() -> None:
     with _lock:
         _state.update(spec=None, device=None, ctx=None, queue=None)
         _programs.clear()
+
+
+def limit_cpu_threads(n: int) -> int:
+    """Restrict this process's OpenCL CPU device (PoCL) to ``n`` worker threads; returns n.
+
+    Sets ``POCL_MAX_PTHREAD_COUNT``, which PoCL reads once, when the OpenCL platform is first
+    used in the process: call it before anything uses OpenCL (e.g. at the start of a worker
+    process).  Afterwards it is a no-op when the runtime already runs with ``n`` threads (the
+    variable held ``n`` when the platform started, or the selected CPU device has ``n`` compute
+    units) or when the selected device is not a CPU, and otherwise raises
+    :class:`~slicersim.errors.SlicersimError` (the thread count of a live runtime cannot change:
+    start a new process, or set the variable in its environment).
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or int(n) < 1:
+        raise ParameterError(f"limit_cpu_threads needs an integer n >= 1, got {n!r}")
+    n = int(n)
+    check_process()
+    with _lock:
+        if _state["pid"] is None:                     # PoCL not started yet: it will read this
+            os.environ[POCL_THREADS_VAR] = str(n)
+            return n
+        at_start = _state["threads_env"]
+        if at_start is not None and at_start.strip() == str(n):
+            return n
+        dev = _state["device"]
+        if dev is not None and "CPU" not in device_type(dev):
+            return n                                  # no CPU threads to limit
+        units = None if dev is None else int(dev.max_compute_units)
+        if units == n:
+            return n
+    raise SlicersimError(
+        f"limit_cpu_threads({n}): the OpenCL runtime of this process already started with "
+        f"{POCL_THREADS_VAR}={at_start!r}" + (f" ({units} compute units on {dev.name.strip()!r})" if units else "")
+        + "; PoCL fixes its thread count when the platform is first used. Call limit_cpu_threads "
+        f"before any OpenCL use, or start a new process with {POCL_THREADS_VAR}={n} in its environment.")
 
 
 def _ensure() -> dict:
@@ -262,6 +302,53 @@ def get_program(name: str, options=()):
 def get_kernel(name: str, kernel: str, options=()):
     """A new kernel object (kernels hold their arguments: do not share across threads)."""
     return _cl().Kernel(get_program(name, options), kernel)
+
+
+def device_fingerprint() -> tuple:
+    """(platform, device, vendor, driver version, kernel-source digest) of the selected device:
+    what a result computed by the kernels depends on besides their arguments (cache keys)."""
+    dev = get_device()
+    return (dev.platform.name.strip(), dev.name.strip(), dev.vendor.strip(), dev.driver_version.strip(),
+            _include_options()[1])
+
+
+_local = threading.local()
+
+
+def _thread_cache():
+    """This thread's kernels and scratch buffers; reset when the context changes."""
+    ctx = get_context()
+    if getattr(_local, "ctx", None) is not ctx:
+        _local.ctx, _local.kernels, _local.buffers = ctx, {}, {}
+    return _local
+
+
+def cached_kernel(name: str, kernel: str, options=()):
+    """Kernel object reused by this thread between calls (creating one costs ~1 ms of pyopencl
+    set-up; a kernel holds its arguments, hence one per thread)."""
+    kernels = _thread_cache().kernels
+    key = (name, kernel, tuple(options))
+    if key not in kernels:
+        kernels[key] = get_kernel(name, kernel, tuple(options))
+    return kernels[key]
+
+
+def scratch_buffer(tag: str, nbytes: int):
+    """Device buffer ``tag`` of at least ``nbytes``, reused by this thread between calls
+    (allocating and first-touching tens of MB per call costs as much as a kernel on PoCL).
+    Its content is undefined; safe because the queue is in order and every caller finishes
+    with a blocking read."""
+    buffers = _thread_cache().buffers
+    hit = buffers.get(tag)
+    if hit is None or hit[0] < nbytes:
+        size = max(int(nbytes), 8)
+        hit = buffers[tag] = (size, device_buffer(size))
+    return hit[1]
+
+
+def release_thread_resources() -> None:
+    """Free this thread's cached kernels and scratch buffers (re-created on demand)."""
+    _local.__dict__.clear()
 
 
 def device_buffer(nbytes: int):
