@@ -3,7 +3,8 @@
 A profile turns a simulation (telescope, spectrograph, position, conventions)
 into PSF fractions per cell: over a block of wavelengths (cubes), over a list of
 cells (the extraction aperture), or in the compact form the fused cube kernel
-takes.  Built in: ``"gaussian"`` (Airy-equivalent Gaussian integrated over the
+takes.  Airy blocks are cached across simulations (:mod:`slicersim.backends.psf_cache`, keyed
+by the content of every input; read-only results).  Built in: ``"gaussian"`` (Airy-equivalent Gaussian integrated over the
 cells with erf; the slicersim 1.0 default, alias ``"default"``) and ``"airy"``
 (annular-pupil diffraction, exact sub-cell quadrature, jitter and slice blur).
 """
@@ -12,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.backends.cube import GaussianPSF
-from slicersim.backends.psf import auto_oversampling, psf_cells, psf_cube, psf_cube_device
+from slicersim.backends.psf import auto_oversampling
+from slicersim.backends.psf_cache import psf_cells, psf_cube, psf_cube_device
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import gaussian_psf_cells, gaussian_psf_fractions
 
