@@ -31,8 +31,9 @@ def seed_from(seed):
 
 
 def _kernel(name, vector_width=1):
-    """Kernel of noise.cl (which #includes philox.cl) for ``vector_width`` elements per work item."""
-    return opencl.get_kernel("noise.cl", name, (f"-DRNG_VW={int(vector_width)}",))
+    """Kernel of noise.cl (which #includes philox.cl) for ``vector_width`` elements per work item
+    (reused by this thread between calls)."""
+    return opencl.cached_kernel("noise.cl", name, (f"-DRNG_VW={int(vector_width)}",))
 
 
 def _chunk_len(n, bytes_per_item, max_bytes, multiple):
@@ -60,8 +61,23 @@ def _stream(stream):
 
 
 # --------------------------------------------------------------------------- Gaussian noise
+def _check_out(out, shape):
+    if out is None:
+        return np.empty(shape)
+    if not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float64 \
+            or not out.flags.c_contiguous or not out.flags.writeable:
+        raise ValueError(f"out must be a writeable C-contiguous float64 array of shape {shape}")
+    return out
+
+
+def _any_negative(v):
+    """Whether any element of the flat float64 ``v`` is < 0 (NaN is not), without a full-size
+    temporary: fmin ignores NaN, so the smallest non-NaN value decides."""
+    return v.size > 0 and bool(np.fmin.reduce(v) < 0)
+
+
 def noisy_cube(expectation, variance, seed, backend="auto", max_bytes=DEFAULT_MAX_BYTES,
-               work_group=None, *, stream=0, first_index=0, vector_width=None):
+               work_group=None, *, stream=0, first_index=0, vector_width=None, out=None):
     """One Gaussian realisation: expectation + √variance · N(0, 1) per element.
 
     expectation, variance : arrays of the same shape (e.g. ADU, ADU²); variance ≥ 0,
@@ -69,37 +85,29 @@ def noisy_cube(expectation, variance, seed, backend="auto", max_bytes=DEFAULT_MA
     seed : int in [0, 2⁶⁴) or numpy Generator;  stream : int in [0, 2³²)
     first_index : global flat index of element 0 (to draw a slab of a larger cube consistently)
     Element i uses the Box–Muller cos branch of Philox block (first_index + i, stream, 0).
-    OpenCL: max_bytes bounds the device buffers (3 float64 per element); work_group is the
-    local size (None: the runtime's); vector_width elements per work item (None: 1 on GPUs,
-    the preferred double width on CPUs).  None of them changes the result.
+    OpenCL: max_bytes bounds the device buffers (3 float64 per element; on CPU devices the
+    kernel reads and writes the arrays in place, no buffer); work_group is the local size
+    (None: the runtime's); vector_width elements per work item (None: 1 on GPUs, the preferred
+    double width on CPUs).  None of them changes the result.
+    out : optional writeable C-contiguous float64 array of the same shape receiving the result
     """
     e = np.ascontiguousarray(expectation, dtype=np.float64)
     v = np.ascontiguousarray(variance, dtype=np.float64)
     if e.shape != v.shape:
         raise ValueError(f"expectation {e.shape} and variance {v.shape} must have the same shape")
-    if np.any(v < 0):
+    ef, vf = e.reshape(-1), v.reshape(-1)
+    if _any_negative(vf):
         raise ValueError(f"variance must be ≥ 0 ({np.count_nonzero(v < 0)} negative value(s))")
     seed, stream = seed_from(seed), _stream(stream)
-    out = np.empty_like(e)
-    ef, vf, of = e.reshape(-1), v.reshape(-1), out.reshape(-1)
+    out = _check_out(out, e.shape)
+    of = out.reshape(-1)
     n = ef.size
     if n == 0:
         return out
     if resolve_backend(backend) == "opencl":
         opencl.require_fp64()
-        vw = check_vector_width(vector_width)
-        step = _chunk_len(n, 24, max_bytes, vw)       # buffers hold whole vectors
-        kern = _kernel("gaussian_noise", vw)
-        d_e, d_v, d_o = (opencl.device_buffer(8 * step) for _ in range(3))
-        key = rng.seed_to_key(seed)
-        for i0 in range(0, n, step):
-            i1 = min(n, i0 + step)
-            opencl.to_device(ef[i0:i1], d_e)
-            opencl.to_device(vf[i0:i1], d_v)
-            gsize, lsize = _sizes(-(-(i1 - i0) // vw), work_group)
-            opencl.launch(kern, gsize, lsize, d_e, d_v, d_o, np.uint64(first_index + i0),
-                          np.uint32(i1 - i0), np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream))
-            opencl.from_device(of[i0:i1], d_o)
+        _gaussian_noise_opencl(ef, vf, of, seed, stream, first_index, max_bytes, work_group,
+                               check_vector_width(vector_width))
         return out
     step = _chunk_len(n, 160, max_bytes, 1)       # ~20 float64 temporaries per element
     with np.errstate(invalid="ignore"):
@@ -110,6 +118,43 @@ def noisy_cube(expectation, variance, seed, backend="auto", max_bytes=DEFAULT_MA
             of[i0:i1] = np.where(~np.isfinite(vv), np.nan,
                                  np.where(vv == 0.0, ee, ee + np.sqrt(np.where(np.isfinite(vv), vv, 0.0)) * z))
     return out
+
+
+_ZERO_COPY_LAUNCH = 2**26      # elements per launch when the kernel works on the arrays in place
+
+
+def _gaussian_noise_opencl(ef, vf, of, seed, stream, first_index, max_bytes, work_group, vw):
+    """The draw on the device.  CPU devices (host memory): the kernel reads ``ef``, ``vf`` and
+    writes ``of`` in place (``opencl.host_buffer``), whole vectors only, the last n mod vw
+    elements through a small padded scratch; other devices: chunks through scratch buffers
+    reused between calls.  Each element's draw depends on its global index only."""
+    n = ef.size
+    key = rng.seed_to_key(seed)
+    kern = opencl.cached_kernel("noise.cl", "gaussian_noise", (f"-DRNG_VW={int(vw)}",))
+    args = (np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream))
+
+    def launch(d_e, d_v, d_o, i0, count):
+        gsize, lsize = _sizes(-(-count // vw), work_group)
+        opencl.launch(kern, gsize, lsize, d_e, d_v, d_o, np.uint64(first_index + i0), np.uint32(count), *args)
+
+    bulk = 0
+    if opencl.device_type() == "CPU" and ef.flags.writeable and vf.flags.writeable:
+        bulk = n // vw * vw
+        for i0 in range(0, bulk, _ZERO_COPY_LAUNCH // vw * vw):
+            i1 = min(bulk, i0 + _ZERO_COPY_LAUNCH // vw * vw)
+            d_o = opencl.host_buffer(of[i0:i1])
+            launch(opencl.host_buffer(ef[i0:i1]), opencl.host_buffer(vf[i0:i1]), d_o, i0, i1 - i0)
+            opencl.sync_to_host(d_o, of[i0:i1])
+    if bulk == n:
+        return
+    step = _chunk_len(n - bulk, 24, max_bytes, vw)       # buffers hold whole vectors
+    d_e, d_v, d_o = (opencl.scratch_buffer(f"noise.{name}", 8 * step) for name in "evo")
+    for i0 in range(bulk, n, step):
+        i1 = min(n, i0 + step)
+        opencl.to_device(ef[i0:i1], d_e)
+        opencl.to_device(vf[i0:i1], d_v)
+        launch(d_e, d_v, d_o, i0, i1 - i0)
+        opencl.from_device(of[i0:i1], d_o)
 
 
 # --------------------------------------------------------------------------- Poisson

@@ -259,10 +259,13 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
             else:
                 _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
                              psf_options, nmd, tint, nramps, out)
-            if seed is not None:
-                noisy[i0:i1] = noisy_cube(signal[i0:i1], variance[i0:i1], seed, backend=backend,
-                                          max_bytes=max(max_bytes, noise_bytes_per_bin),
-                                          first_index=i0 * ny * nx)
+            if seed is not None:        # float64: drawn straight into the output (no temporary)
+                drawn = noisy_cube(signal[i0:i1], variance[i0:i1], seed, backend=backend,
+                                   max_bytes=max(max_bytes, noise_bytes_per_bin), first_index=i0 * ny * nx,
+                                   out=noisy[i0:i1] if dtype == np.float64 else None)
+                if dtype != np.float64:
+                    noisy[i0:i1] = drawn
+                del drawn
             if bar is not None:
                 bar.update(1)
     finally:
