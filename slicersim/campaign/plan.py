@@ -191,8 +191,10 @@ def plot_time_and_volume(plans, path, zbins=None, paper=None):
         axt.plot(med_h, mid, color=color, lw=2, label=f"{label}: {plan.totals['duration_years']:.2f} yr")
         axv.plot(med_v, mid, color=color, lw=2, label=f"{label}: {plan.totals['data_volume'] / 1e12:.1f} TB")
     for label, (pz, ph, pv) in (paper or {}).items():
-        axt.plot(ph, pz, "k*", ms=9, label=f"paper {label}" if ph is not None else None)
-        axv.plot(pv, pz, "k*", ms=9, label=f"paper {label}")
+        if ph is not None:
+            axt.plot(ph, pz, "k*", ms=9, label=f"paper {label}")
+        if pv is not None:
+            axv.plot(pv, pz, "k*", ms=9, label=f"paper {label}")
     axv.invert_xaxis()
     axv.set_xlabel("raw data volume per target [GB]")
     axt.set_xlabel("exposure time per target [h]")
