@@ -18,6 +18,12 @@
  * compute throw-away values), so there is no bounds branch.
  *
  * Q of the chunk holds only bins [lo, lo + nb); band indices are absolute.
+ *
+ * Cells whose weight P2[i,c] is exactly 0 are skipped: the host passes the
+ * non-zero weights of each bin in CSR form (row_start[i] .. row_start[i+1]
+ * index cell[] and weight[]).  Skipping is exact: A + B*Q > 0, so each
+ * skipped term is +0.0 and w + 0.0 == w; the order of the other terms is kept.
+ * (A NaN Q is NaN in every cell of its bin, so the bin is still skipped.)
  * Double precision throughout; no fast-math build options are used, so the
  * division is IEEE correctly rounded and 1/0 = +inf, NaN propagates.
  */
@@ -26,7 +32,9 @@
 
 __kernel void band_variance(
     __global const double *restrict Q,     /* (nt, nb, ncell), bins lo..lo+nb-1 */
-    __global const double *restrict P2,    /* (nlbda, ncell)                    */
+    __global const double *restrict weight,   /* non-zero P2 values, bin-major   */
+    __global const int *restrict cell,        /* their cell indices              */
+    __global const int *restrict row_start,   /* (nlbda + 1,) CSR row pointers    */
     __global const double *restrict A,     /* (Kp,)                             */
     __global const double *restrict B,     /* (Kp,)                             */
     __global const double *restrict Qsat,  /* (Kp,)                             */
@@ -53,11 +61,11 @@ __kernel void band_variance(
 
     for (int i = i0; i < i1; ++i) {
         __global const double *q = Qt + (size_t)(i - lo) * (size_t)ncell;
-        __global const double *p = P2 + (size_t)i * (size_t)ncell;
         realv w = (realv)(0.0);
-        for (int c = 0; c < ncell; ++c) {
-            const double qc = q[c];
-            const realv term = p[c] / (a + b * qc);
+        const int j1 = row_start[i + 1];
+        for (int j = row_start[i]; j < j1; ++j) {
+            const double qc = q[cell[j]];
+            const realv term = weight[j] / (a + b * qc);
             w += (qc > qs) ? (realv)(0.0) : term;   /* saturated: weight 0 */
         }
         const realv v = 1.0 / w;                      /* +inf if w == 0 */

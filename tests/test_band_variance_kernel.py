@@ -189,3 +189,32 @@ def test_numpy_twin_property(N, nlbda, ncell, K, seed, nan_frac):
     assert_same(compute.band_variance_table(Q, P2, A, B, Qsat, band, backend="numpy"), want, rtol=1e-13)
     if HAVE_OPENCL:
         assert_same(compute.band_variance_table(Q, P2, A, B, Qsat, band, backend="opencl"), want, rtol=1e-12)
+
+
+@needs_opencl
+def test_zero_weight_cells_are_skipped_exactly():
+    """The kernel skips cells of weight exactly 0 (CSR of the non-zero weights): adding
+    zero-weight cells with any Q (huge, saturated) changes no bit of the result."""
+    from slicersim.backends.band_variance import band_variance_table, nonzero_weights
+    rng = np.random.default_rng(4)
+    N, nl, nc, K = 5, 30, 12, 37
+    Q = rng.uniform(0, 50, (N, nl, nc))
+    Q[1, 7] = np.nan                                       # an invalid bin
+    P2 = rng.uniform(0, 1, (nl, nc)) * (rng.uniform(size=(nl, nc)) > 0.4)
+    P2[3] = 0.0                                            # a bin with no weight: variance +inf
+    A, B = rng.uniform(1, 5, K), rng.uniform(0.5, 2, K)
+    Qsat = np.full(K, 40.0)
+    band = np.array([[0, nl], [2, 20], [5, 6], [0, 0], [10, 30]])
+    ref = band_variance_table(Q, P2, A, B, Qsat, band, backend="opencl")
+    Qx = np.concatenate([Q, rng.uniform(0, 1e9, (N, nl, 7))], axis=2)
+    P2x = np.concatenate([P2, np.zeros((nl, 7))], axis=1)
+    got = band_variance_table(Qx, P2x, A, B, Qsat, band, backend="opencl")
+    assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
+    assert np.isinf(ref[0][0]).all()                        # bin 3 has no weight in target 0's band
+    w, c, r = nonzero_weights(P2)
+    assert r[-1] == np.count_nonzero(P2) and np.array_equal(w, P2[P2 != 0]) and r[4] == r[3]
+    # and the NumPy twin agrees (summation order differs: 1e-12 relative)
+    num = band_variance_table(Q, P2, A, B, Qsat, band, backend="numpy")
+    fin = np.isfinite(ref[0])
+    np.testing.assert_allclose(ref[0][fin], num[0][fin], rtol=1e-12)
+    assert np.array_equal(ref[1], num[1])

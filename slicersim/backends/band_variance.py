@@ -119,6 +119,18 @@ def _band_variance_numpy(Q, P2, A, B, Qsat, band, max_bytes, var_sum, nvalid):
     return var_sum, nvalid
 
 
+def nonzero_weights(P2):
+    """CSR form of the non-zero extraction weights: (weight (nnz,) float64, cell (nnz,)
+    int32, row_start (nlbda + 1,) int32), bin-major, cells in increasing order."""
+    nz = P2 != 0
+    row_start = np.zeros(P2.shape[0] + 1, np.int32)
+    np.cumsum(nz.sum(axis=1), out=row_start[1:])
+    bins, cells = np.nonzero(nz)
+    if cells.size == 0:                    # keep the buffers non-empty for OpenCL
+        return np.zeros(1), np.zeros(1, np.int32), row_start
+    return np.ascontiguousarray(P2[bins, cells]), cells.astype(np.int32), row_start
+
+
 def _pow2_at_most(n, cap):
     w = 1
     while w * 2 <= min(n, cap):
@@ -151,7 +163,8 @@ def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_
     per_target = 2 * 8 * nlbda * ncell + 2 * 12 * Kp + 16
     nt_max = max(1, min(N, int(max_bytes // per_target)))
     kern = opencl.get_kernel("band_variance.cl", "band_variance", (f"-DVW={VW}",))
-    d_P2, d_A, d_B, d_S = (opencl.to_device(x) for x in (P2, Ap, Bp, Sp))
+    weight, cell, row_start = nonzero_weights(P2)
+    d_w, d_c, d_r, d_A, d_B, d_S = (opencl.to_device(x) for x in (weight, cell, row_start, Ap, Bp, Sp))
     d_Q = opencl.device_buffer(8 * nt_max * nlbda * ncell)
     d_band = opencl.device_buffer(8 * nt_max)
     d_vs = opencl.device_buffer(8 * nt_max * Kp)
@@ -167,7 +180,7 @@ def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_
         if nb:
             opencl.to_device(np.ascontiguousarray(Q[t0:t1, lo:hi], dtype=np.float64), d_Q)
         opencl.to_device(bd, d_band)
-        opencl.launch(kern, (Kp // VW, nt), local, d_Q, d_P2, d_A, d_B, d_S, d_band,
+        opencl.launch(kern, (Kp // VW, nt), local, d_Q, d_w, d_c, d_r, d_A, d_B, d_S, d_band,
                       i32(Kp), i32(nb), i32(ncell), i32(lo), d_vs, d_nv)
         opencl.from_device(h_vs[:nt], d_vs)
         opencl.from_device(h_nv[:nt], d_nv)
