@@ -103,9 +103,11 @@ class ByteLRU:
             self.evictions += 1
 
     def clear(self):
+        """Drop every entry and reset the counters."""
         with self._lock:
             self._items.clear()
             self._nbytes = 0
+            self.hits = self.misses = self.evictions = 0
 
     def info(self):
         """{"entries", "nbytes", "max_bytes", "hits", "misses", "evictions"}."""

@@ -18,8 +18,10 @@ context (a context created later, e.g. after ``opencl.reset()``, computes its ow
 """
 from __future__ import annotations
 
+import contextlib
 import inspect
 import os
+import threading
 
 import numpy as np
 
@@ -29,7 +31,7 @@ from slicersim.errors import SlicersimError
 from slicersim.memo import ByteLRU, content_key, read_only
 
 __all__ = ["psf_cube", "psf_cube_device", "psf_cells", "clear_psf_cache", "psf_cache_info",
-           "set_psf_cache_limit", "PSF_CACHE_MAX_BYTES", "PSF_CACHE"]
+           "set_psf_cache_limit", "bypass", "PSF_CACHE_MAX_BYTES", "PSF_CACHE"]
 
 #: bytes of PSF blocks kept per process (env SLICERSIM_PSF_CACHE_BYTES overrides; 0 disables)
 PSF_CACHE_MAX_BYTES = 256 * 2**20
@@ -68,6 +70,20 @@ def set_psf_cache_limit(max_bytes):
     PSF_CACHE.max_bytes = max_bytes
 
 
+_bypass = threading.local()
+
+
+@contextlib.contextmanager
+def bypass():
+    """Within the block, this thread computes every PSF afresh (no lookup, nothing stored)."""
+    depth = getattr(_bypass, "depth", 0)
+    _bypass.depth = depth + 1
+    try:
+        yield
+    finally:
+        _bypass.depth = depth
+
+
 def _device_identity():
     return opencl.device_fingerprint()
 
@@ -91,7 +107,7 @@ def _nbytes(value):
 
 
 def _cached(func, args, kwargs):
-    if PSF_CACHE.max_bytes == 0:
+    if PSF_CACHE.max_bytes == 0 or getattr(_bypass, "depth", 0):
         return getattr(_psf, func)(*args, **kwargs)
     key = _key(func, args, kwargs)
     hit = PSF_CACHE.get(key)
