@@ -124,9 +124,11 @@ def plan_8000(n=8000):
 
 def reference_loop(k=12):
     """slicersim 1.0.0's per-target ETC loop on k SNe Ia (its own venv), seconds per target."""
+    from etc_vs_reference import ensure_reference_venv      # creates benchmarks/.refvenv on demand
+    ok, why = ensure_reference_venv()
+    if not ok:
+        return {"error": why}
     py = HERE / ".refvenv" / "bin" / "python"
-    if not py.exists():
-        return None
     code = r"""
 import time, numpy as np, warnings
 warnings.filterwarnings("ignore")

@@ -148,9 +148,9 @@ class RedshiftDistribution:
 
     @classmethod
     def _from_table(cls, spec, base_dir):
-        from slicersim.campaign.population import _digest, _read_table, _resolve
-        path = _resolve(spec.get("file"), base_dir, "population.redshift.file")
-        tab = _read_table(path, "population.redshift.file")
+        from slicersim.io.tables import file_digest, read_table, resolve_path
+        path = resolve_path(spec.get("file"), base_dir, "population.redshift.file")
+        tab = read_table(path, "population.redshift.file")
         if not {"z", "weight"} <= set(tab.colnames):
             raise ConfigError(f"population.redshift.file {path} needs columns z and weight, has {tab.colnames}")
         z, w = np.asarray(tab["z"], float), np.asarray(tab["weight"], float)
@@ -160,7 +160,7 @@ class RedshiftDistribution:
                               "(redshifts cannot be negative), with ≥ 2 rows")
         if not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
             raise ConfigError("population.redshift.file: weights must be finite, ≥ 0 and not all 0")
-        return cls("table", {"file": os.path.abspath(path)}, table=(z, w), digest=_digest(path))
+        return cls("table", {"file": os.path.abspath(path)}, table=(z, w), digest=file_digest(path))
 
     def density(self, cosmology, npts=4097):
         """(z grid, unnormalised density) of the distribution."""

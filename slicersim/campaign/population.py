@@ -36,6 +36,7 @@ import numpy as np
 from slicersim.backends import rng
 from slicersim.campaign.distributions import Distribution, RedshiftDistribution
 from slicersim.errors import ConfigError, SpectrumError
+from slicersim.io.tables import file_digest, read_spectrum_table as _read_spectrum_table, read_table, resolve_path
 from slicersim.sources.spectra import SNCOSMO_SNIA_MODELS, blackbody_flambda
 
 __all__ = ["SNIaPopulation", "CatalogPopulation", "population_from_spec", "POPULATIONS", "snia_fluxes"]
@@ -200,10 +201,10 @@ class HostModel:
         self.spectrum_file = cfg["spectrum"]
         self.spectrum_digest = None
         if self.spectrum_file is not None:
-            path = _resolve(self.spectrum_file, base_dir, "population.hosts.spectrum")
+            path = resolve_path(self.spectrum_file, base_dir, "population.hosts.spectrum")
             self.spectrum_file = path
-            self.rest_lbda, self.rest_flux = _read_spectrum(path, "population.hosts.spectrum")
-            self.spectrum_digest = _digest(path)
+            self.rest_lbda, self.rest_flux = read_spectrum_table(path, "population.hosts.spectrum")
+            self.spectrum_digest = file_digest(path)
         else:
             self.rest_lbda = np.arange(900.0, 30000.0, 10.0)
             old, young = blackbody_flambda(self.rest_lbda, 4000.0), blackbody_flambda(self.rest_lbda, 12000.0)
@@ -260,56 +261,19 @@ class HostModel:
         return Host(profile, lbda[ok], flux[ok])
 
 
+def read_spectrum_table(path, name):
+    """Validated (λ [Å], F_λ) of a user spectrum file (one ConfigError naming ``name``)."""
+    from slicersim.sources.spectra import validate_spectrum
+    try:
+        return validate_spectrum(*_read_spectrum_table(path, name), f"{name} {path}")
+    except SpectrumError as exc:
+        raise ConfigError(str(exc)) from None
+
+
 def _check_range(value, name, lo, hi):
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not (lo <= value <= hi):
         raise ConfigError(f"{name} must be a number in [{lo}, {hi}], got {value!r}")
     return value
-
-
-def _resolve(path, base_dir, name):
-    if not isinstance(path, str) or not path:
-        raise ConfigError(f"{name} must be a file path, got {path!r}")
-    full = path if os.path.isabs(path) else os.path.normpath(os.path.join(base_dir, path))
-    if not os.path.isfile(full):
-        raise ConfigError(f"{name}: no such file {full}")
-    return full
-
-
-def _digest(path):
-    import hashlib
-    with open(path, "rb") as fh:
-        return hashlib.sha256(fh.read()).hexdigest()
-
-
-def _read_table(path, name):
-    from astropy.table import Table
-    fmt = {".ecsv": "ascii.ecsv", ".csv": "ascii.csv", ".parquet": "parquet", ".pq": "parquet"}.get(
-        os.path.splitext(path)[1].lower())
-    if fmt is None:
-        raise ConfigError(f"{name}: {path} must be an .ecsv, .csv or .parquet file")
-    try:
-        if fmt == "parquet":                    # pyarrow directly (astropy's reader needs pandas)
-            import pyarrow.parquet as pq
-            return Table(pq.read_table(path).to_pydict())
-        return Table.read(path, format=fmt)
-    except Exception as exc:
-        raise ConfigError(f"{name}: cannot read {path} ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})") \
-            from None
-
-
-def _read_spectrum(path, name):
-    """(λ [Å], F_λ) from a table with columns lbda/wavelength and flux."""
-    tab = _read_table(path, name)
-    cols = {c.lower(): c for c in tab.colnames}
-    lcol = next((cols[k] for k in ("lbda", "wavelength", "wave", "lambda") if k in cols), None)
-    fcol = next((cols[k] for k in ("flux", "flambda", "f_lambda") if k in cols), None)
-    if lcol is None or fcol is None:
-        raise ConfigError(f"{name}: {path} needs columns lbda (Å) and flux (erg/s/cm²/Å), has {tab.colnames}")
-    from slicersim.sources.spectra import validate_spectrum
-    try:
-        return validate_spectrum(np.asarray(tab[lcol], float), np.asarray(tab[fcol], float), f"{name} {path}")
-    except SpectrumError as exc:
-        raise ConfigError(str(exc)) from None
 
 
 # ---------------------------------------------------------------------------- populations
@@ -475,15 +439,15 @@ class CatalogPopulation(_SNParameters):
                 "seed", "ramp_seed")
 
     def __init__(self, file, base_dir=".", **sn):
-        self.file = _resolve(file, base_dir, "population.file")
-        self.digest = _digest(self.file)
+        self.file = resolve_path(file, base_dir, "population.file")
+        self.digest = file_digest(self.file)
         _unknown(sn, _SN_KEYS, "population.")
         self._parse_sn({**_SN_KEYS, **sn}, base_dir)
         self.base_dir = os.path.dirname(self.file)
         self._check(self._read())
 
     def _read(self):
-        return _read_table(self.file, "population.file")
+        return read_table(self.file, "population.file")
 
     def _check(self, tab):
         if len(tab) == 0:
@@ -524,8 +488,8 @@ class CatalogPopulation(_SNParameters):
         if (~user).any():
             out[~user] = self._sn_fluxes(table[~user], lbda)
         for i in np.nonzero(user)[0]:
-            path = _resolve(files[i], self.base_dir, f"population.file row {i} spectrum_file")
-            sl, sf = _read_spectrum(path, "spectrum_file")
+            path = resolve_path(files[i], self.base_dir, f"population.file row {i} spectrum_file")
+            sl, sf = read_spectrum_table(path, "spectrum_file")
             out[i] = np.interp(lbda, sl, sf, left=np.nan, right=np.nan)
         return out
 

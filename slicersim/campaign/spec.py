@@ -35,7 +35,6 @@ catalog files replaced by their content digests too) identifies a dataset.
 """
 from __future__ import annotations
 
-import hashlib
 import math
 import numbers
 import os
@@ -43,6 +42,7 @@ import tomllib
 from dataclasses import dataclass, field as dc_field
 
 from slicersim.errors import ConfigError, SlicersimError
+from slicersim.io.tables import file_digest
 
 __all__ = ["CampaignSpec", "load_spec", "parse_spec", "PRODUCTS"]
 
@@ -82,11 +82,6 @@ def _choice(value, name, choices):
     if value not in choices:
         raise ConfigError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
     return value
-
-
-def _file_digest(path):
-    with open(path, "rb") as fh:
-        return hashlib.sha256(fh.read()).hexdigest()
 
 
 @dataclass
@@ -139,7 +134,7 @@ def _check_config(config, base_dir):
         if not os.path.isfile(path):
             raise ConfigError(f"observation.config: no such configuration file {path}")
         resolved.append(path)
-        digests[item] = _file_digest(path)
+        digests[item] = file_digest(path)
     return (resolved if isinstance(config, list) else resolved[0]), digests
 
 
