@@ -352,3 +352,54 @@ def test_cli_survey_plan_bad_input(tmp_path, args, message):
     assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("slicersim: error:"), proc.stderr
     assert message in lines[0]
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- campaign targets
+def test_catalog_campaign_with_dust_hosts_and_user_spectrum(tmp_path):
+    """A catalog campaign in-process: planned, simulated (host in the scene) and recorded;
+    editing the catalog changes the dataset's identity (a changed catalog is refused)."""
+    import tomllib
+
+    import h5py
+
+    from slicersim.campaign.products import run_target
+    from slicersim.campaign.runner import plan_campaign
+    from slicersim.campaign.spec import parse_spec
+    from slicersim.io.dataset import Dataset
+    Table({"lbda": [3000.0, 20000.0], "flux": [3e-18, 3e-18]}).write(tmp_path / "flat.ecsv")
+    Table({"target_id": [10, 11], "redshift": [0.4, 0.5], "spectrum_file": ["", "flat.ecsv"],
+           "program": ["snia", "flat"]}).write(tmp_path / "targets.csv")
+    text = """seed = 5
+[population]
+kind = "catalog"
+file = "targets.csv"
+mw_dust = {ebv = 0.03}
+host_dust = {ebv = {distribution = "exponential", scale = 0.1}}
+hosts = {absmag = -19.0}
+[observation]
+snr = 5
+[products]
+spectrum = true
+"""
+    (tmp_path / "c.toml").write_text(text)
+    spec = parse_spec(tomllib.loads(text), text=text, base_dir=str(tmp_path))
+    cat, plan = plan_campaign(spec)
+    assert list(cat["target_id"]) == [10, 11] and list(cat["program"]) == ["snia", "flat"]
+    assert {"mwebv", "hostebv", "host_r_eff", "host_offset_x"} <= set(cat.colnames)
+    assert np.all(np.asarray(cat["mwebv"]) == 0.03) and set(cat["status"]) == {"planned"}
+    ds = Dataset(tmp_path / "d")
+    digest = ds.initialise(spec.text, spec.canonical(), {}, False)
+    for row in cat:
+        rec = run_target(spec, {k: (row[k].item() if hasattr(row[k], "item") else row[k]) for k in cat.colnames},
+                         ds.path, digest)
+        assert rec["status"] == "done", rec.get("error")
+    with h5py.File(tmp_path / "d" / "products" / "t0000011" / "spectrum.h5", "r") as f:
+        np.testing.assert_allclose(f["flambda"][...], 3e-18, rtol=1e-12)       # the user's spectrum
+        assert np.all(f["variance"][...] > 0)
+    # the catalog's content is part of the spec's identity
+    Table({"target_id": [10, 11], "redshift": [0.4, 0.6], "spectrum_file": ["", "flat.ecsv"],
+           "program": ["snia", "flat"]}).write(tmp_path / "targets.csv", overwrite=True)
+    changed = parse_spec(tomllib.loads(text), text=text, base_dir=str(tmp_path))
+    from slicersim.errors import DatasetError
+    with pytest.raises(DatasetError, match="different spec.*population.file_sha256"):
+        ds.check_spec(changed.canonical())

@@ -446,8 +446,29 @@ class CatalogPopulation(_SNParameters):
         self.base_dir = os.path.dirname(self.file)
         self._check(self._read())
 
+    SN_COLUMNS = ("redshift", "target_id", "phase", "peak_absmag", "x1", "c", "mwebv", "hostebv")
+
     def _read(self):
-        return read_table(self.file, "population.file")
+        """The user table with its empty cells filled: "" in text columns, NaN in other
+        numeric columns; an empty redshift or SN parameter is an error naming the row."""
+        from astropy.table import Table
+        tab = read_table(self.file, "population.file")
+        for name in tab.colnames:
+            col = tab[name]
+            mask = np.asarray(getattr(col, "mask", np.zeros(len(col), bool)))
+            if not mask.any():
+                continue
+            if name in self.SN_COLUMNS or name.startswith("host_"):
+                raise ConfigError(f"population.file: column {name!r} is empty in row {int(np.nonzero(mask)[0][0])}")
+            kind = np.asarray(col).dtype.kind
+            if kind in "US":
+                tab[name] = col.filled("")
+            elif kind in "iufcb":                 # integers become floats: an empty cell is NaN, not 0
+                tab[name] = np.where(mask, np.nan, np.asarray(col.filled(0), dtype=float))
+            else:
+                raise ConfigError(f"population.file: column {name!r} has empty cells (row "
+                                  f"{int(np.nonzero(mask)[0][0])}) of an unsupported type")
+        return Table(tab, masked=False)
 
     def _check(self, tab):
         if len(tab) == 0:
