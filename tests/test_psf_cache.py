@@ -120,10 +120,11 @@ def test_noisy_airy_cubes_of_new_targets_identical_with_and_without_cache(backen
 
 
 # --------------------------------------------------------------------------- invalidation
-def _changed(make):
+def _changed(make, options):
     """(block of the changed state, uncached block of it, misses it caused)."""
     before = psf_cache.psf_cache_info()["misses"]
     sim, kwargs = make()
+    kwargs["options"] = {**(options or {}), **kwargs.get("options", {})} or None
     got = _block(sim, "auto", **kwargs)
     misses = psf_cache.psf_cache_info()["misses"] - before
     return got, _uncached(_block, sim, "auto", **kwargs), misses
@@ -143,12 +144,12 @@ def _target(**kwargs):
 
 CHANGES = {
     "wide field": _target(field="wide"),
-    "telescope diameter (update)": _updated(diameter_ext=2.5),
+    "telescope diameter (update)": _updated(diameter_ext=2.9),
     "central obscuration (update)": _updated(diameter_int=0.9),
-    "guiding jitter (update)": _updated(guiding_sigma=0.02),
-    "spatial scale (update)": _updated(spatial_scale=0.05),
+    "guiding jitter (update)": _updated(guiding_sigma=0.011),
+    "spatial scale (update)": _updated(spatial_scale=0.041),
     "wavelength grid (update)": _updated(dispersion_scale=1.1),
-    "dispersion (update)": _updated(dispersion_resolution=1.5),
+    "dispersion (update)": _updated(dispersion_resolution=1.9),
     "source position": _target(position=(1.5, -0.5)),
     "oversampling": lambda: (_sn().simulation, {"options": {"oversampling": (5, 4)}}),
     "grid rule": lambda: (_sn().simulation, {"options": {"grid": "gauss"}}),
@@ -156,17 +157,50 @@ CHANGES = {
 }
 
 
+@pytest.mark.parametrize("options", [None, {"oversampling": (4, 3)}], ids=["auto-oversampling", "fixed-oversampling"])
 @pytest.mark.parametrize("change", list(CHANGES))
-def test_every_dependency_changes_the_key(change):
-    base = _block(_sn().simulation, "auto")
-    got, ref, misses = _changed(CHANGES[change])
+def test_every_dependency_changes_the_key(change, options):
+    """Each change alone must miss, also with a fixed oversampling (with "auto", most changes
+    also move the oversampling, which would hide a missing key part)."""
+    base = _block(_sn().simulation, "auto", options=options)
+    got, ref, misses = _changed(CHANGES[change], options)
     assert misses == 1, f"{change}: served from the cache"
     np.testing.assert_array_equal(got, ref)                         # the new state's true PSF
     assert got.shape != base.shape or np.any(got != base), f"{change}: PSF did not change"
     # the original inputs, built anew, still hit and give the original block
     hits = psf_cache.psf_cache_info()["hits"]
-    np.testing.assert_array_equal(_block(_sn(redshift=0.3).simulation, "auto"), base)
+    np.testing.assert_array_equal(_block(_sn(redshift=0.3).simulation, "auto", options=options), base)
     assert psf_cache.psf_cache_info()["hits"] == hits + 1
+
+
+BASE_ARGS = dict(lbda=np.linspace(4000.0, 4300.0, 6), shape=(15, 24), position=(0.3, -0.2), profile="airy",
+                 sigma_ref_arcsec=0.03, spatial_scale=0.04, guiding_sigma=0.01, instrumental_sigma=0.4,
+                 diameter=3.0, obscuration=0.2, oversampling=(4, 3), grid="exact")
+VARIANTS = dict(lbda=np.linspace(4000.0, 4300.0, 6) + [0, 0, 0, 1e-9, 0, 0], shape=(15, 22), position=(0.3, -0.25),
+                profile="gaussian", sigma_ref_arcsec=0.031, spatial_scale=0.0401, guiding_sigma=0.0101,
+                instrumental_sigma=0.41, diameter=3.01, obscuration=0.21, oversampling=(4, 4), grid="gauss")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("name", list(VARIANTS))
+def test_every_argument_of_psf_cube_is_in_the_key(name, backend):
+    """Unit level: each argument of ``backends.psf.psf_cube`` alone changes the key (at the
+    model level several of them move together, e.g. the diameter and σ_ref)."""
+    base_args = {**BASE_ARGS, "profile": "gaussian"} if name == "sigma_ref_arcsec" else BASE_ARGS  # (Gaussian only)
+    base = psf_cache.psf_cube(**base_args, backend=backend)
+    np.testing.assert_array_equal(base, bpsf.psf_cube(**base_args, backend=backend))
+    args = {**base_args, name: VARIANTS[name]}
+    misses = psf_cache.psf_cache_info()["misses"]
+    got = psf_cache.psf_cube(**args, backend=backend)
+    assert psf_cache.psf_cache_info()["misses"] == misses + 1, f"{name}: served from the cache"
+    direct = bpsf.psf_cube(**args, backend=backend)
+    np.testing.assert_array_equal(got, direct)
+    assert got.shape != base.shape or np.any(got != base)
+    # the base arguments as new objects (a copied array, a list for the shape) still hit
+    again = psf_cache.psf_cube(**{**base_args, "lbda": base_args["lbda"].copy(),
+                                  "position": list(base_args["position"])}, backend=backend)
+    assert psf_cache.psf_cache_info()["hits"] >= 1
+    np.testing.assert_array_equal(again, base)
 
 
 def test_update_back_and_forth_hits_the_original_and_same_wavelengths_share_blocks():
