@@ -55,10 +55,10 @@ def thermal_dark_rate(temperatures, emissivities, nelements, solid_angles, pixel
     lo, hi = (float(v) for v in lbda_range)
     knots = [lo, hi] + [b for b in (breakpoints if breakpoints is not None else []) if lo < b < hi]
     knots = np.unique(knots)
-    pieces = []
-    for a, b in zip(knots[:-1], knots[1:]):
-        nsub = max(1, int(np.ceil((b - a) / 250.0)))
-        pieces.append(np.linspace(a, b, nsub + 1))
+    # pieces longer than 250 Å split evenly (np.linspace); the others (dense QE tables: thousands)
+    # are just their two knots, taken as they are
+    nsub = np.maximum(1, np.ceil(np.diff(knots) / 250.0).astype(int))
+    pieces = [knots] + [np.linspace(knots[i], knots[i + 1], nsub[i] + 1) for i in np.flatnonzero(nsub > 1)]
     edges = np.unique(np.concatenate(pieces))
     x, w = np.polynomial.legendre.leggauss(order)
     half = 0.5 * np.diff(edges)[:, None]
