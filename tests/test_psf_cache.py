@@ -181,6 +181,16 @@ VARIANTS = dict(lbda=np.linspace(4000.0, 4300.0, 6) + [0, 0, 0, 1e-9, 0, 0], sha
                 instrumental_sigma=0.41, diameter=3.01, obscuration=0.21, oversampling=(4, 4), grid="gauss")
 
 
+class _Wavelengths:
+    """An array-like without content key (``content_key`` refuses it)."""
+
+    def __init__(self, values):
+        self.values = values
+
+    def __array__(self, dtype=None, copy=None):
+        return np.asarray(self.values, dtype=dtype)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("name", list(VARIANTS))
 def test_every_argument_of_psf_cube_is_in_the_key(name, backend):
@@ -196,6 +206,11 @@ def test_every_argument_of_psf_cube_is_in_the_key(name, backend):
     direct = bpsf.psf_cube(**args, backend=backend)
     np.testing.assert_array_equal(got, direct)
     assert got.shape != base.shape or np.any(got != base)
+    # an argument that cannot be keyed by content is computed, not cached
+    entries = psf_cache.psf_cache_info()["entries"]
+    odd = psf_cache.psf_cube(**{**args, "lbda": _Wavelengths(args["lbda"])}, backend=backend)
+    np.testing.assert_array_equal(odd, direct)
+    assert psf_cache.psf_cache_info()["entries"] == entries
     # the base arguments as new objects (a copied array, a list for the shape) still hit
     again = psf_cache.psf_cube(**{**base_args, "lbda": base_args["lbda"].copy(),
                                   "position": list(base_args["position"])}, backend=backend)

@@ -109,7 +109,10 @@ def _nbytes(value):
 def _cached(func, args, kwargs):
     if PSF_CACHE.max_bytes == 0 or getattr(_bypass, "depth", 0):
         return getattr(_psf, func)(*args, **kwargs)
-    key = _key(func, args, kwargs)
+    try:
+        key = _key(func, args, kwargs)
+    except TypeError:              # an argument without content key (or a bad call): computed, not cached
+        return getattr(_psf, func)(*args, **kwargs)
     hit = PSF_CACHE.get(key)
     if hit is not None:
         ctx, value = hit
