@@ -80,7 +80,7 @@ def test_reference_dataset_layout_and_catalog(reference, spec_path):
     assert set(cat["status"]) == {"done"}
     for row in cat:
         for product in ("spectrum", "cube"):
-            path = reference / row[f"{product}_file"]
+            path = reference / row[f"{product}_product"]
             assert hashlib.sha256(path.read_bytes()).hexdigest() == row[f"{product}_sha256"]
         assert int(row["n"]) >= 1 and float(row["exposure_time"]) > 0 and float(row["snr"]) >= 8 * (1 - 1e-9)
     # seeds: distinct per target, from (campaign seed, target id) only

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
+
 __all__ = ["add_parsers"]
 
 YEAR_S = 365.25 * 86400.0
@@ -17,17 +19,29 @@ def cmd_survey_plan(args) -> int:
     from slicersim.campaign.population import SNIaPopulation
     from slicersim.campaign.products import spectrum_grid
     from slicersim.errors import ParameterError
-    if args.out and os.path.lexists(args.out) and not args.overwrite:
-        raise ParameterError(f"output file exists: {args.out} (pass --overwrite to replace it)")
-    if args.out and os.path.isdir(args.out):
-        raise ParameterError(f"output path is a directory: {args.out}")
+    from slicersim.campaign.plan import check_client_memory
+    for path, exts, flag in ((args.out, (".ecsv", ".csv"), "--out"), (args.figure, (".png", ".pdf", ".svg"),
+                                                                       "--figure")):
+        if not path:
+            continue
+        if os.path.isdir(path):
+            raise ParameterError(f"{flag} is a directory: {path}")
+        if not path.endswith(exts):
+            raise ParameterError(f"{flag} must end with {' or '.join(exts)}, got {path}")
+        if os.path.lexists(path) and not args.overwrite:
+            raise ParameterError(f"output file exists: {path} (pass --overwrite to replace it)")
+        parent = os.path.dirname(os.path.abspath(path))
+        if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
+            raise ParameterError(f"{flag}: directory {parent} does not exist or is not writable")
     if args.n < 1:
         raise ParameterError(f"--n must be ≥ 1 (an empty population has nothing to plan), got {args.n}")
+    if not args.seed >= 0:
+        raise ParameterError(f"--seed must be ≥ 0, got {args.seed}")
+    lbda = spectrum_grid()
+    check_client_memory(args.n, lbda.size)
     pop = SNIaPopulation(args.n, redshift={"distribution": args.distribution, "min": args.zmin, "max": args.zmax})
     table = pop.draw(args.seed)
-    lbda = spectrum_grid()
     fluxes = pop.spectra(table, lbda)
-    import numpy as np
     fluxes = np.where(np.isfinite(fluxes), fluxes, 0.0)
     plan = plan_survey(np.asarray(table["redshift"]), lbda, fluxes, snr=args.snr, lbda_range=tuple(args.lbda_range),
                        frame="rest", z_switch=args.z_switch, config=args.config, search=args.search,
@@ -43,7 +57,11 @@ def cmd_survey_plan(args) -> int:
         print(f"wrote {args.figure}")
     if args.out:
         print(f"wrote {args.out}")
-    return 0
+    failed = plan.totals["failed"]
+    if failed:
+        first = plan.table[np.asarray(plan.table["status"]) == "failed"][0]
+        print(f"{failed} target(s) could not be planned, e.g. target {first['target_id']}: {first['error']}")
+    return 1 if failed else 0
 
 
 def _write_table(table, path, overwrite):
@@ -59,7 +77,12 @@ def _write_table(table, path, overwrite):
 
 
 def cmd_campaign_run(args) -> int:
+    import math
+
     from slicersim.campaign.runner import run_campaign
+    from slicersim.errors import ParameterError
+    if not (math.isfinite(args.memory_per_task) and 1 <= args.memory_per_task <= 2**20):
+        raise ParameterError(f"--memory-per-task must be in [1, 1048576] MiB, got {args.memory_per_task}")
     res = run_campaign(args.spec, args.out, workers=args.workers, scheduler=args.scheduler, force=args.force,
                        retry_failed=args.retry_failed, progress=not args.no_progress,
                        threads_per_worker=args.threads_per_worker,

@@ -55,7 +55,7 @@ class Distribution:
             spec = {"distribution": "fixed", "value": spec}
         spec = dict(spec)
         kind = spec.pop("distribution", None)
-        if kind not in _KEYS:
+        if not isinstance(kind, str) or kind not in _KEYS:
             raise ConfigError(f"{name}.distribution must be one of {', '.join(map(repr, _KEYS))}, got {kind!r}")
         for key in spec:
             if key not in _KEYS[kind]:
@@ -72,8 +72,9 @@ class Distribution:
         dist = cls(kind, p, name)
         lo_v, hi_v = dist.support()
         if (lo is not None and lo_v < lo) or (hi is not None and hi_v > hi):
+            how = {"normal": "min / max", "exponential": "max", "uniform": "min / max"}.get(kind, "value")
             raise ConfigError(f"{name} must lie in [{lo}, {hi}]; the {kind} distribution {p} reaches "
-                              f"[{lo_v}, {hi_v}] (truncate it with min / max)")
+                              f"[{lo_v:.6g}, {hi_v:.6g}] (set its {how} within the range)")
         return dist
 
     def support(self):
@@ -119,7 +120,7 @@ class RedshiftDistribution:
             spec = {"distribution": "fixed", "value": spec}
         spec = dict(spec)
         kind = spec.pop("distribution", "uniform")
-        if kind not in cls.KINDS:
+        if not isinstance(kind, str) or kind not in cls.KINDS:
             raise ConfigError(f"{name}.distribution must be one of {', '.join(map(repr, cls.KINDS))}, got {kind!r}")
         for key in spec:
             if key not in cls.KINDS[kind]:

@@ -24,7 +24,7 @@ import numpy as np
 
 from slicersim.errors import ETCError, ParameterError, SpectrumError
 
-__all__ = ["SurveyPlan", "plan_survey", "plot_time_and_volume", "YEAR_S", "PLAN_COLUMNS"]
+__all__ = ["SurveyPlan", "plan_survey", "plot_time_and_volume", "check_client_memory", "YEAR_S", "PLAN_COLUMNS"]
 
 YEAR_S = 365.25 * 86400.0
 BYTES_PER_READ = 2
@@ -56,13 +56,17 @@ class SurveyPlan:
         return "\n".join(lines)
 
 
-def _check(snr, z_switch, overhead, efficiency, compression_ratio, redshift, fluxes, lbda):
+def _check(snr, lbda_range, z_switch, overhead, efficiency, compression_ratio, redshift, fluxes, lbda):
     def finite(v, name, lo=None, lo_open=False, hi=None):
         if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
             raise ParameterError(f"{name} must be a finite number, got {v!r}")
         if lo is not None and (v < lo or (lo_open and v == lo)) or hi is not None and v > hi:
             raise ParameterError(f"{name} must be {'>' if lo_open else '≥'} {lo}"
                                  + (f" and ≤ {hi}" if hi is not None else "") + f", got {v!r}")
+    finite(snr, "snr", 0, True)
+    rng_ = np.asarray(lbda_range, dtype=float) if np.size(lbda_range) == 2 else None
+    if rng_ is None or not np.all(np.isfinite(rng_)) or not 0 < rng_[0] < rng_[1]:
+        raise ParameterError(f"lbda_range must be (lo, hi) in Å with 0 < lo < hi, got {lbda_range!r}")
     finite(overhead, "overhead", 0)
     finite(efficiency, "efficiency", 0, True, 1)
     finite(compression_ratio, "compression_ratio", 1)
@@ -78,6 +82,25 @@ def _check(snr, z_switch, overhead, efficiency, compression_ratio, redshift, flu
     return z
 
 
+def _target_error(exc, target_id):
+    """The ETC's error for a batch of one, naming the target by its id (not its batch index)."""
+    import re
+    msg = " ".join(str(exc).split())
+    msg = re.sub(r"^target(\(s\))? \[?0\]?:? ", "", msg)
+    return f"{type(exc).__name__}: target {target_id}: {msg}"
+
+
+def check_client_memory(ntarget, nlbda, copies=4):
+    """Refuse (ParameterError) a population whose spectra would not fit in this machine's
+    available memory (``copies`` float64 arrays of (N, nλ) during planning)."""
+    import psutil
+    need = int(ntarget) * int(nlbda) * 8 * copies
+    avail = psutil.virtual_memory().available
+    if need > 0.8 * avail:
+        raise ParameterError(f"{ntarget} targets need ~{need / 2**30:.1f} GiB to plan on this machine "
+                             f"({avail / 2**30:.1f} GiB available): split the population")
+
+
 def _solve(lbda, fluxes, idx, errors, out, kwargs):
     """Solve targets ``idx``; a failing batch is bisected so each failing target gets its error."""
     from slicersim.etc.solve import solve_many
@@ -87,7 +110,7 @@ def _solve(lbda, fluxes, idx, errors, out, kwargs):
             tab = solve_many(lbda, fluxes[idx], redshifts=kwargs["z"][idx], **kwargs["etc"])
     except (ETCError, SpectrumError) as exc:
         if idx.size == 1:
-            errors[int(idx[0])] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+            errors[int(idx[0])] = _target_error(exc, kwargs["ids"][int(idx[0])])
             return
         half = idx.size // 2
         _solve(lbda, fluxes, idx[:half], errors, out, kwargs)
@@ -111,7 +134,7 @@ def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), f
     from astropy.table import Table
 
     from slicersim.assembly import build_simulation
-    z = _check(snr, z_switch, overhead, efficiency, compression_ratio, redshift, fluxes, lbda)
+    z = _check(snr, lbda_range, z_switch, overhead, efficiency, compression_ratio, redshift, fluxes, lbda)
     fluxes = np.asarray(fluxes, dtype=float)
     ntarget = z.size
     ids = np.arange(ntarget) if target_ids is None else np.asarray(target_ids)
@@ -128,7 +151,7 @@ def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), f
         # transfers then cover ~1 band instead of the union of all (same numbers per target)
         sel = sel[np.argsort(z[sel], kind="stable")]
         shapes[f] = tuple(build_simulation(config, f, pointsource=None, conventions=conventions).detector.shape)
-        _solve(lbda, fluxes, sel, errors, out, {"z": z, "etc": {**etc, "field": f}})
+        _solve(lbda, fluxes, sel, errors, out, {"z": z, "ids": ids, "etc": {**etc, "field": f}})
     shape = detector_shape or next(iter(shapes.values()))
     failed = np.zeros(ntarget, dtype=bool)
     failed[list(errors)] = True

@@ -187,10 +187,21 @@ def shen03_radius_kpc(absmag, u):
 
 
 class HostModel:
-    """Sersic hosts from a size–luminosity relation (see the module docstring)."""
+    """Sersic hosts from a size–luminosity relation (see the module docstring).
+
+    Catalog columns: host_absmag (rest-frame bessellr AB), host_r_eff [arcsec],
+    host_sersic_index, host_axis_ratio, host_position_angle [deg], host_offset_x/y
+    [arcsec]: the host centre relative to the SN."""
+
+    COLUMNS = ("host_absmag", "host_r_eff", "host_sersic_index", "host_axis_ratio", "host_position_angle",
+               "host_offset_x", "host_offset_y")
 
     def __init__(self, section, base_dir="."):
-        section = {} if section is True else dict(section)
+        if section is True:
+            section = {}
+        if not isinstance(section, dict):
+            raise ConfigError(f"population.hosts must be a table (hosts = {{}} for the defaults), got {section!r}")
+        section = dict(section)
         _unknown(section, _HOST_KEYS, "population.hosts.")
         cfg = {**_HOST_KEYS, **section}
         self.absmag = Distribution.parse(cfg["absmag"], "population.hosts.absmag")
@@ -435,8 +446,14 @@ class CatalogPopulation(_SNParameters):
     columns are carried to the dataset catalog."""
 
     kind = "catalog"
-    RESERVED = ("field", "n", "m", "d", "nramps", "exposure_time", "snr", "data_volume", "status", "error",
-                "seed", "ramp_seed")
+    RESERVED = ("field", "n", "m", "d", "nramps", "exposure_time", "snr", "data_volume", "data_volume_compressed",
+                "status", "error", "seed", "ramp_seed",
+                *(f"{p}_{s}" for p in ("spectrum", "cube", "detector_image", "ramps") for s in ("product", "sha256")))
+    #: bounds of the catalog's parameter columns (the spec's bounds for the same parameters)
+    BOUNDS = {"redshift": (0, 10), "phase": (-20, 85), "peak_absmag": (-25, -10), "x1": (-5, 5), "c": (-1, 2),
+              "mwebv": (0, 5), "hostebv": (0, 5), "host_absmag": (-26, -10), "host_r_eff": (1e-3, 600),
+              "host_sersic_index": (0.3, 8), "host_axis_ratio": (0.05, 1), "host_position_angle": (-360, 360),
+              "host_offset_x": (-600, 600), "host_offset_y": (-600, 600)}
 
     def __init__(self, file, base_dir=".", **sn):
         self.file = resolve_path(file, base_dir, "population.file")
@@ -478,6 +495,22 @@ class CatalogPopulation(_SNParameters):
         clash = [c for c in tab.colnames if c in self.RESERVED]
         if clash:
             raise ConfigError(f"population.file: columns {clash} are computed by the campaign; rename them")
+        for name, (lo, hi) in self.BOUNDS.items():
+            if name not in tab.colnames:
+                continue
+            try:
+                values = np.asarray(tab[name], dtype=float)
+            except (TypeError, ValueError):
+                raise ConfigError(f"population.file: column {name!r} of {self.file} is not numeric") from None
+            bad = ~((values >= lo) & (values <= hi))
+            if bad.any():
+                i = int(np.nonzero(bad)[0][0])
+                raise ConfigError(f"population.file: {name} = {values[i]!r} in row {i} is outside [{lo}, {hi}]"
+                                  + (" (redshifts cannot be negative)" if name == "redshift" and values[i] < 0 else ""))
+        host_cols = [c for c in tab.colnames if c.startswith("host_")]
+        if host_cols and self.hosts is not None and set(host_cols) != set(HostModel.COLUMNS):
+            raise ConfigError(f"population.file: give all host columns {list(HostModel.COLUMNS)} or none "
+                              f"(has {host_cols})")
         z = np.asarray(tab["redshift"], dtype=float)
         if np.any(~np.isfinite(z)) or np.any(z < 0):
             raise ConfigError(f"population.file: redshifts must be finite and not negative (row "
@@ -514,8 +547,23 @@ class CatalogPopulation(_SNParameters):
             out[i] = np.interp(lbda, sl, sf, left=np.nan, right=np.nan)
         return out
 
+    def spectrum_files_digest(self):
+        """sha256 over the (name, sha256) of every spectrum_file the catalog names ('' if none):
+        editing a user spectrum changes the dataset's identity."""
+        import hashlib
+        tab = self._read()
+        if "spectrum_file" not in tab.colnames:
+            return ""
+        names = sorted({str(v).strip() for v in tab["spectrum_file"] if str(v).strip()})
+        h = hashlib.sha256()
+        for name in names:
+            path = resolve_path(name, self.base_dir, "population.file spectrum_file")
+            h.update(f"{name}\0{file_digest(path)}\n".encode())
+        return h.hexdigest() if names else ""
+
     def to_spec(self):
-        return {"kind": self.kind, "file": self.file, "file_sha256": self.digest, **self._sn_spec()}
+        return {"kind": self.kind, "file": self.file, "file_sha256": self.digest,
+                "spectrum_files_sha256": self.spectrum_files_digest(), **self._sn_spec()}
 
 
 POPULATIONS = {"snia": SNIaPopulation, "catalog": CatalogPopulation}
@@ -523,9 +571,11 @@ POPULATIONS = {"snia": SNIaPopulation, "catalog": CatalogPopulation}
 
 def population_from_spec(section, base_dir="."):
     """The population of a ``[population]`` table (unknown keys and kinds are errors)."""
+    if not isinstance(section, dict):
+        raise ConfigError(f"[population] must be a TOML table, got {section!r}")
     section = dict(section)
     kind = section.pop("kind", "snia")
-    if kind not in POPULATIONS:
+    if not isinstance(kind, str) or kind not in POPULATIONS:
         raise ConfigError(f"population.kind {kind!r} unknown; known: {', '.join(POPULATIONS)}")
     if kind == "snia":
         _unknown(section, {"n", "redshift", *_SN_KEYS}, "population.")

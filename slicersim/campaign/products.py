@@ -63,8 +63,9 @@ def _limit_threads(threads):
         os.environ.setdefault("POCL_MAX_PTHREAD_COUNT", str(int(threads)))
 
 
-def build_target(spec, row):
-    """The :class:`~slicersim.targets.LazuliTarget` of one catalog row, readout applied."""
+def build_target(spec, row, readout=True):
+    """The :class:`~slicersim.targets.LazuliTarget` of one catalog row (its host in the
+    scene), with the row's readout applied when ``readout``."""
     from slicersim.targets import LazuliTarget
     obs = spec.observation
     lbda, flux = spec.population.spectrum(row, spectrum_grid())
@@ -74,7 +75,8 @@ def build_target(spec, row):
     host = spec.population.host(row)
     if host is not None:
         target.set_host(host)
-    target.change_detector(nmd=(int(row["n"]), int(row["m"]), int(row["d"])), nramps=int(row["nramps"]))
+    if readout:
+        target.change_detector(nmd=(int(row["n"]), int(row["m"]), int(row["d"])), nramps=int(row["nramps"]))
     return target, (lbda, flux)
 
 
@@ -101,7 +103,7 @@ def _write_cube(path, target, row, seed, spec, max_bytes):
     obs, prod = spec.observation, spec.products
     dtype = np.dtype(prod["cube_dtype"])
     signal, variance, noisy = target.simulation.get_cube(seed=int(seed), psf_profile=obs["psf_profile"],
-                                                         max_bytes=max_bytes)
+                                                         max_bytes=max_bytes, progress=False)
     with ProductFile(path, overwrite=True) as f:
         f.set_attrs({**_attrs(row, seed, "cube"), "psf_profile": obs["psf_profile"]})
         f.write("lbda", target.simulation.lbda, {"unit": "Angstrom"})

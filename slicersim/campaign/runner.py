@@ -26,10 +26,10 @@ import time
 
 import numpy as np
 
-from slicersim.campaign.products import run_target, spectrum_grid, target_seeds
+from slicersim.campaign.products import build_target, run_target, spectrum_grid, target_seeds
 from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec
 from slicersim.errors import ConfigError, DatasetError
-from slicersim.io.dataset import CATALOG, Dataset
+from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset
 
 __all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions"]
 
@@ -56,10 +56,13 @@ def plan_campaign(spec):
     and their error in ``error``."""
     from slicersim.campaign.plan import plan_survey
     obs, survey = spec.observation, spec.survey
+    from slicersim.campaign.plan import check_client_memory
+    lbda = spectrum_grid()
+    check_client_memory(getattr(spec.population, "n", 0), lbda.size)
     table = spec.population.draw(spec.seed)
     if len(table) == 0:
         raise ConfigError("the population is empty: nothing to simulate")
-    lbda = spectrum_grid()
+    check_client_memory(len(table), lbda.size)
     fluxes = np.asarray(spec.population.spectra(table, lbda), dtype=float)
     fluxes = np.where(np.isfinite(fluxes), fluxes, 0.0)      # outside a model's coverage: no flux
     z = np.asarray(table["redshift"], dtype=float)
@@ -77,6 +80,8 @@ def plan_campaign(spec):
     for name in ptab.colnames:
         if name not in ("target_id", "redshift"):
             cat[name] = ptab[name]
+    if getattr(spec.population, "hosts", None) is not None:
+        _host_aware_readouts(spec, cat, plan)
     seed, ramp_seed = target_seeds(spec.seed, cat["target_id"])
     cat["seed"], cat["ramp_seed"] = seed, ramp_seed
     if "status" not in cat.colnames:
@@ -85,6 +90,47 @@ def plan_campaign(spec):
         cat["error"] = ""
     cat.meta = {"name": spec.name, "seed": spec.seed, "totals": _jsonable(plan.totals)}
     return cat, plan
+
+
+def _host_aware_readouts(spec, cat, plan, progress=True):
+    """Readouts with each target's host in the scene (its light adds photon noise the batch
+    ETC, which knows point sources only, does not see): the single-target ETC per target,
+    ~0.1 s each.  Updates ``cat`` and ``plan.totals`` in place."""
+    from tqdm.auto import tqdm
+
+    from slicersim.campaign.plan import BYTES_PER_READ, YEAR_S
+    obs, survey = spec.observation, spec.survey
+    rows = [i for i in range(len(cat)) if str(cat["status"][i]) != "failed"]
+    status, error = [str(v) for v in cat["status"]], [str(v) for v in cat["error"]]   # no fixed-width truncation
+    shape = None
+    for i in tqdm(rows, desc="ETC with hosts", unit="target", disable=not progress or len(rows) < 20):
+        row = _row_dict(cat[i])
+        try:
+            target, _ = build_target(spec, row, readout=False)
+            res = target.setup_to_snr(obs["snr"], tuple(obs["lbda_range"]), frame=obs["frame"], search=obs["search"],
+                                      per_resolution=obs["per_resolution"], allow_partial=True)
+        except Exception as exc:                   # recorded like the batch ETC's failures
+            status[i], error[i] = "failed", f"{type(exc).__name__}: target {row['target_id']}: {' '.join(str(exc).split())}"
+            continue
+        n, m, d = res["nmd"]
+        shape = target.simulation.detector.shape
+        cat["n"][i], cat["m"][i], cat["d"][i], cat["nramps"][i] = n, m, d, res["nramps"]
+        cat["exposure_time"][i] = res["exposure_time"]
+        cat["snr"][i] = res["snr_per_resolution"] if obs["per_resolution"] else res["snr"]
+        volume = res["nramps"] * n * int(shape[0]) * int(shape[1]) * BYTES_PER_READ
+        cat["data_volume"][i] = volume
+        cat["data_volume_compressed"][i] = round(volume / survey["compression_ratio"])
+    cat["status"], cat["error"] = status, error
+    ok = np.asarray(cat["status"]) != "failed"
+    t = plan.totals
+    t["exposure_time"] = float(np.sum(np.asarray(cat["exposure_time"])[ok]))
+    t["planned"], t["failed"] = int(ok.sum()), int((~ok).sum())
+    t["overhead_time"] = t["planned"] * t["overhead"]
+    t["duration"] = (t["exposure_time"] + t["overhead_time"]) / t["efficiency"]
+    t["duration_years"] = t["duration"] / YEAR_S
+    t["data_volume"] = int(np.sum(np.asarray(cat["data_volume"])[ok]))
+    t["data_volume_compressed"] = int(np.sum(np.asarray(cat["data_volume_compressed"])[ok]))
+    t["hosts_in_etc"] = True
 
 
 def _jsonable(d):
@@ -113,12 +159,12 @@ def _catalog_with_records(base, records, wanted):
         prods = (rec or {}).get("products", {}) if rec and rec.get("status") == "done" else {}
         for p in PRODUCTS:
             info = prods.get(p)
-            files[p].append(f"products/{_key(tid)}/{info['file']}" if info else "")
+            files[p].append(f"{PRODUCT_DIR}/{_key(tid)}/{info['file']}" if info else "")
             sums[p].append(info["sha256"] if info else "")
     cat["status"], cat["error"] = status, error
     for p in PRODUCTS:
         if p in wanted or any(files[p]):
-            cat[f"{p}_file"], cat[f"{p}_sha256"] = files[p], sums[p]
+            cat[f"{p}_product"], cat[f"{p}_sha256"] = files[p], sums[p]
     return cat
 
 
@@ -131,13 +177,16 @@ def _client(workers, scheduler, threads):
     """(client, cluster or None): an existing scheduler or an embedded LocalCluster."""
     from distributed import Client, LocalCluster
     if scheduler:
+        if not isinstance(scheduler, str) or "://" not in scheduler:
+            raise ConfigError(f"scheduler address must look like tcp://host:port, got {scheduler!r}")
         try:
-            return Client(scheduler, timeout="20s"), None
-        except (OSError, TimeoutError) as exc:
-            raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: {exc}") from None
+            return Client(scheduler, timeout="10s"), None
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: "
+                               f"{' '.join(str(exc).split())[:200]}") from None
     env = {"POCL_MAX_PTHREAD_COUNT": str(threads), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR, env=env)
+                           silence_logs=logging.CRITICAL, env=env)
     return Client(cluster), cluster
 
 
@@ -164,23 +213,36 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     """
     spec = spec if isinstance(spec, CampaignSpec) else load_spec(spec)
     workers = _check_workers(workers)
-    ds = Dataset(Dataset.check_path(out))
+    _check_positive_int(max_bytes, "memory per task [bytes]", lo=2**20)
+    if threads_per_worker is not None:
+        _check_positive_int(threads_per_worker, "threads per worker")
+    if window is not None:
+        _check_positive_int(window, "window")
+    ds = Dataset(Dataset.check_path(out, force=force))
     t0 = time.perf_counter()
     ds.check_spec(spec.canonical(), force)            # refuse early, before planning
-    catalog, plan = plan_campaign(spec)                # nothing is written before the plan succeeds
+    connection = _client(workers, scheduler, 1) if scheduler else None   # reachable before anything is written
+    try:
+        catalog, plan = plan_campaign(spec)            # nothing is written before the plan succeeds
+    except BaseException:
+        if connection:
+            connection[0].close()
+        raise
     with ds:
         digest = ds.initialise(spec.text, spec.canonical(), software_versions(), force=force)
         ids = [int(t) for t in catalog["target_id"]]
-        state = ds.state(ids)
-        records = {tid: rec for tid, (st, rec, _) in state.items() if st in ("done", "failed")}
         rows = {int(r["target_id"]): r for r in catalog}
+        state = _consistent(ds.state(ids), rows)
+        records = {tid: rec for tid, (st, rec, _) in state.items() if st in ("done", "failed")}
         todo = [tid for tid, (st, _, _) in state.items()
                 if str(rows[tid]["status"]) != "failed" and (st == "missing" or (st == "failed" and retry_failed))]
         ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted))
         try:
             if todo:
                 _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes,
-                          threads_per_worker, window)
+                          threads_per_worker, window, connection)
+            elif connection:
+                connection[0].close()
         finally:                                   # also on Ctrl-C: the catalog says what is done
             final = _catalog_with_records(catalog, records, spec.wanted)
             ds.write_catalog(final)
@@ -189,16 +251,33 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
             "seconds": time.perf_counter() - t0, "totals": plan.totals}
 
 
+def _consistent(state, rows):
+    """A done record whose readout or seeds differ from its catalog row (the plan changed
+    under it, e.g. an input file edited) counts as missing: its products are stale."""
+    out = dict(state)
+    for tid, (st, rec, why) in state.items():
+        if st != "done" or tid not in rows:
+            continue
+        row = rows[tid]
+        expect = [int(row["n"]), int(row["m"]), int(row["d"]), int(row["nramps"])]
+        if rec.get("readout") != expect or rec.get("seed") != int(row["seed"]) \
+                or rec.get("ramp_seed") != int(row["ramp_seed"]):
+            out[tid] = ("missing", rec, f"stale: record readout {rec.get('readout')} / seeds differ from the "
+                                        f"catalog's {expect}")
+    return out
+
+
 def _row_dict(row):
     return {name: (row[name].item() if hasattr(row[name], "item") else row[name]) for name in row.colnames}
 
 
 def _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes, threads,
-              window):
+              window, connection=None):
     from distributed import as_completed
     from tqdm.auto import tqdm
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    client, cluster = _client(workers, scheduler, threads)
+    quiet = _QuietDask()
+    client, cluster = connection or _client(workers, scheduler, threads)
     try:
         nworkers = max(1, len(client.scheduler_info().get("workers", {})) or workers)
         window = window or 2 * nworkers
@@ -238,6 +317,32 @@ def _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, prog
         client.close()
         if cluster is not None:
             cluster.close()
+        quiet.restore()
+
+
+class _QuietDask:
+    """Silence distributed's loggers on the client while a campaign runs: worker deaths and
+    task errors are recorded per target and summarised; their tracebacks would bury the one
+    line the CLI prints."""
+
+    NAMES = ("distributed", "distributed.worker", "distributed.nanny", "distributed.scheduler",
+             "distributed.client", "distributed.core", "distributed.comm", "distributed.batched")
+
+    def __init__(self):
+        self.levels = {}
+        for name in self.NAMES:
+            logger = logging.getLogger(name)
+            self.levels[name] = logger.level
+            logger.setLevel(logging.CRITICAL)
+
+    def restore(self):
+        for name, level in self.levels.items():
+            logging.getLogger(name).setLevel(level)
+
+
+def _check_positive_int(value, name, lo=1):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+        raise ConfigError(f"{name} must be an integer ≥ {lo}, got {value!r}")
 
 
 def campaign_status(out, verify=True):
@@ -257,7 +362,8 @@ def campaign_status(out, verify=True):
     ids = [int(t) for t in catalog["target_id"]]
     planned_fail = {int(r["target_id"]): str(r["error"]) for r in catalog
                     if "error" in catalog.colnames and str(r["status"]) == "failed" and r["error"]}
-    state = ds.state(ids, deep=verify)
+    state = _consistent(ds.state(ids, deep=verify), {int(r["target_id"]): r for r in catalog}) \
+        if {"n", "m", "d", "nramps", "seed", "ramp_seed"} <= set(catalog.colnames) else ds.state(ids, deep=verify)
     out = {"dataset": ds.path, "targets": len(ids), "done": 0, "failed": 0, "missing": 0,
            "failed_targets": [], "missing_targets": []}
     for tid in ids:

@@ -213,7 +213,10 @@ def parse_spec(doc, text="", base_dir="."):
     if not any(products[p] for p in PRODUCTS):
         raise ConfigError(f"[products] asks for nothing: set one of {', '.join(PRODUCTS)} to true")
     survey = _survey(doc.get("survey", {}))
-    population = population_from_spec(doc["population"], base_dir=base_dir)
+    try:
+        population = population_from_spec(doc["population"], base_dir=base_dir)
+    except (TypeError, AttributeError) as exc:       # a value of the wrong kind the checks did not name
+        raise ConfigError(f"[population]: a value has the wrong type ({exc})") from None
     return CampaignSpec(seed=int(seed), population=population, observation=obs, products=products,
                         survey=survey, name=name, text=text, base_dir=base_dir, config_digests=digests)
 

@@ -74,8 +74,10 @@ class Dataset:
 
     # ------------------------------------------------------------------ creation
     @staticmethod
-    def check_path(path):
-        """Refuse an output path that is a file, or whose parent does not exist or is read-only."""
+    def check_path(path, force=False):
+        """Refuse an output path that is a file, or whose parent does not exist or is read-only;
+        a directory that is not a dataset is refused, a damaged one (records or products but
+        no spec.json) only without ``force``."""
         path = os.path.abspath(os.fspath(path))
         if os.path.exists(path) and not os.path.isdir(path):
             raise DatasetError(f"output path is a file, not a dataset directory: {path}")
@@ -87,7 +89,12 @@ class Dataset:
                 raise DatasetError(f"dataset directory is not writable: {path}")
             if os.listdir(path) and not os.path.isfile(os.path.join(path, SPEC_JSON)):
                 names = [n for n in os.listdir(path) if n != LOCK]
-                if names:
+                damaged = set(names) <= {SPEC_TOML, VERSIONS, CATALOG, PRODUCTS, RECORDS} and \
+                    bool(set(names) & {SPEC_TOML, PRODUCTS, RECORDS})
+                if damaged and not force:
+                    raise DatasetError(f"{path} is a damaged slicersim dataset ({SPEC_JSON} is missing); "
+                                       "--force discards its products and starts it again")
+                if names and not damaged:
                     raise DatasetError(f"{path} exists and is not a slicersim dataset (no {SPEC_JSON}); "
                                        "choose a new or empty directory")
         elif not os.access(parent, os.W_OK):
@@ -125,7 +132,7 @@ class Dataset:
         the old records and products before writing the new spec."""
         digest = self.check_spec(spec_dict, force)
         stored = self.stored_spec()
-        if stored is not None and stored[1] != digest:
+        if (stored is not None and stored[1] != digest) or (stored is None and force):
             self.discard()
         os.makedirs(self.file(PRODUCTS), exist_ok=True)
         os.makedirs(self.file(RECORDS), exist_ok=True)
@@ -219,7 +226,13 @@ class Dataset:
 
     def verify(self, record, deep=True):
         """'' when every product of a done record is intact, else the reason it is not."""
-        for name, info in sorted(record.get("products", {}).items()):
+        products = record.get("products")
+        if not isinstance(products, dict) or not all(
+                isinstance(i, dict) and isinstance(i.get("file"), str) and isinstance(i.get("bytes"), int)
+                and isinstance(i.get("sha256"), str) and os.path.basename(i["file"]) == i["file"]
+                for i in products.values()):
+            return "malformed record (products)"
+        for name, info in sorted(products.items()):
             path = os.path.join(self.product_dir(record["target_id"]), info["file"])
             try:
                 size = os.path.getsize(path)
