@@ -123,26 +123,37 @@ def plan_8000(n=8000):
 
 
 def reference_loop(k=12):
-    """slicersim 1.0.0's per-target ETC loop on k SNe Ia (its own venv), seconds per target."""
+    """slicersim 1.0.0's per-target ETC loop (its own venv): k SNe Ia (hsiao at peak, z uniform
+    0.05–1.5, spectra made here and passed as arrays: 1.0.0 downloads nothing), each
+    ``LazuliTarget(lbda, flux).setup_to_snr(20, rest-frame 4000–6800 Å)``; seconds per target."""
     from etc_vs_reference import ensure_reference_venv      # creates benchmarks/.refvenv on demand
     ok, why = ensure_reference_venv()
     if not ok:
         return {"error": why}
-    py = HERE / ".refvenv" / "bin" / "python"
-    code = r"""
-import time, numpy as np, warnings
+    from slicersim.campaign.population import SNIaPopulation
+    from slicersim.campaign.products import spectrum_grid
+    pop = SNIaPopulation(k, redshift={"distribution": "uniform", "min": 0.05, "max": 1.5})
+    tab = pop.draw(1)
+    lbda = spectrum_grid()
+    flux = np.nan_to_num(pop.spectra(tab, lbda))
+    with tempfile.TemporaryDirectory() as tmp:
+        npz = Path(tmp) / "in.npz"
+        np.savez(npz, lbda=lbda, fluxes=flux, z=np.asarray(tab["redshift"]))
+        code = r"""
+import sys, time, warnings, contextlib, io, numpy as np
 warnings.filterwarnings("ignore")
 import slicersim
-z = np.random.default_rng(1).uniform(0.05, 1.5, %d)
+d = np.load(sys.argv[1])
 t = time.perf_counter()
-for zi in z:
-    field = "narrow" if zi < 0.8 else "wide"
-    sn = slicersim.LazuliSupernova(redshift=float(zi), field=field) if "field" in slicersim.LazuliSupernova.__init__.__code__.co_varnames else slicersim.LazuliSupernova(redshift=float(zi))
-    sn.setup_to_snr(20, lbda_range=(4000, 6800), frame="rest")
-print((time.perf_counter() - t) / len(z))
-""" % k
-    out = subprocess.run([str(py), "-c", code], capture_output=True, text=True, timeout=1800,
-                         cwd=tempfile.gettempdir())
+for flux, z in zip(d["fluxes"], d["z"]):
+    with contextlib.redirect_stdout(io.StringIO()):
+        tg = slicersim.LazuliTarget(d["lbda"], flux, mag=None, band="bessellb")
+        tg.setup_to_snr(20, per_resolution=True, lbda_range=(4000 * (1 + z), 6800 * (1 + z)), frame="obs")
+print((time.perf_counter() - t) / len(d["z"]))
+"""
+        py = HERE / ".refvenv" / "bin" / "python"
+        out = subprocess.run([str(py), "-c", code, str(npz)], capture_output=True, text=True, timeout=1800,
+                             cwd=tempfile.gettempdir())
     if out.returncode:
         return {"error": out.stderr.strip().splitlines()[-1] if out.stderr.strip() else "failed"}
     return {"k": k, "seconds_per_target": float(out.stdout.strip().splitlines()[-1])}

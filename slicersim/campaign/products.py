@@ -103,12 +103,12 @@ def _write_cube(path, target, row, seed, spec, max_bytes):
     obs, prod = spec.observation, spec.products
     dtype = np.dtype(prod["cube_dtype"])
     signal, variance, noisy = target.simulation.get_cube(seed=int(seed), psf_profile=obs["psf_profile"],
-                                                         max_bytes=max_bytes, progress=False)
+                                                         max_bytes=max_bytes, progress=False, dtype=dtype)
     with ProductFile(path, overwrite=True) as f:
         f.set_attrs({**_attrs(row, seed, "cube"), "psf_profile": obs["psf_profile"]})
         f.write("lbda", target.simulation.lbda, {"unit": "Angstrom"})
         for name, cube, unit in (("signal", signal, "adu"), ("variance", variance, "adu2"), ("noisy", noisy, "adu")):
-            f.write(name, np.asarray(cube, dtype=dtype), {"unit": unit}, chunks=True)
+            f.write(name, cube, {"unit": unit})      # stored as computed (cube_dtype); contiguous: one write each
 
 
 def _write_image(path, target, row, seed):

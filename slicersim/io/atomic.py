@@ -246,6 +246,9 @@ class AtomicH5File:
     error_class = DatasetError
     #: attributes holding h5py datasets, dropped when the file closes
     _dataset_names = ()
+    #: fsync the file before publishing it (durable against an OS crash); a subclass whose
+    #: files are checksummed elsewhere (campaign products) may skip it
+    durable = True
 
     def __init__(self, path, overwrite=False):
         self.path = os.path.abspath(os.fspath(path))
@@ -341,7 +344,8 @@ class AtomicH5File:
                 self._file.attrs["COMPLETE"] = True
                 self._close_file()
                 self._raise_io_error("cannot finish")
-                os.fsync(self._fd)
+                if self.durable:
+                    os.fsync(self._fd)
                 os.close(self._fd)
                 self._fd = None
                 if self._pending_signal is not None:

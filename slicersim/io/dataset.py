@@ -48,7 +48,13 @@ def target_key(target_id):
 
 
 class ProductFile(AtomicH5File):
-    """One HDF5 product file written atomically (datasets via :meth:`write`)."""
+    """One HDF5 product file written atomically (datasets via :meth:`write`).
+
+    Not fsynced: the target's record (written durably, last) holds the product's size and
+    sha256, which every resume verifies, so a product an OS crash lost or tore is found
+    and computed again, like one a ``kill -9`` interrupted."""
+
+    durable = False
 
 
 class Dataset:
