@@ -91,11 +91,26 @@ def base_checkout(rev, dest):
     return dest                      # the kernels are found in <dest>/kernels (repo layout)
 
 
-def run_campaign_timed(tmp, n, workers):
+def disk_write_rate(directory, nbytes=512 * 2**20):
+    """Sustained write rate [bytes/s] of ``directory`` (written, then fdatasync)."""
+    path = Path(directory) / ".bench-write-rate"
+    block = os.urandom(4 * 2**20)
+    t = time.perf_counter()
+    with open(path, "wb") as fh:
+        for _ in range(nbytes // len(block)):
+            fh.write(block)
+        fh.flush()
+        os.fdatasync(fh.fileno())
+    rate = nbytes / (time.perf_counter() - t)
+    path.unlink()
+    return rate
+
+
+def run_campaign_timed(tmp, n, workers, where=None):
     from slicersim.campaign.runner import run_campaign
     spec = Path(tmp) / f"spec{n}.toml"
     spec.write_text(SPEC.format(n=n))
-    out = Path(tmp) / f"d{n}w{workers}"
+    out = Path(where or tmp) / f"d{n}w{workers}"
     t = time.perf_counter()
     res = run_campaign(spec, out, workers=workers, progress=False)
     wall = time.perf_counter() - t
@@ -177,24 +192,33 @@ def main():
         print(f"[loop] now float64: {res['loop_now_f64']['median_ms']:.0f} ms/cube", flush=True)
         res["loop_now_f32"] = run_loop(ROOT, args.loop, kw="{'dtype': 'float32'}")
         print(f"[loop] now float32: {res['loop_now_f32']['median_ms']:.0f} ms/cube", flush=True)
-        res["campaign"] = {}
-        for workers in (1, 2):
-            small = run_campaign_timed(tmp, args.n_small, workers)
-            large = run_campaign_timed(tmp, args.n_large, workers)
-            steady = (args.n_large - args.n_small) / (large - small)
-            res["campaign"][workers] = {"n_small": args.n_small, "t_small": small, "n_large": args.n_large,
-                                        "t_large": large, "steady_cubes_per_s": steady,
-                                        "end_to_end_cubes_per_s": args.n_large / large,
-                                        "steady_ms_per_cube": 1e3 / steady}
-            print(f"[campaign] {workers} worker(s): {steady:.2f} cubes/s steady "
-                  f"({args.n_large / large:.2f} end to end)", flush=True)
+        res["campaign"], res["campaign_tmpfs"] = {}, {}
+        res["disk_write_MBps"] = disk_write_rate(tmp) / 1e6
+        places = [("campaign", tmp)] + ([("campaign_tmpfs", "/dev/shm")] if os.path.isdir("/dev/shm") else [])
+        for key, where in places:
+            for workers in (1, 2):
+                with tempfile.TemporaryDirectory(dir=where) as wdir:
+                    small = run_campaign_timed(tmp, args.n_small, workers, wdir)
+                    large = run_campaign_timed(tmp, args.n_large, workers, wdir)
+                steady = (args.n_large - args.n_small) / (large - small)
+                res[key][workers] = {"n_small": args.n_small, "t_small": small, "n_large": args.n_large,
+                                     "t_large": large, "steady_cubes_per_s": steady,
+                                     "end_to_end_cubes_per_s": args.n_large / large,
+                                     "steady_ms_per_cube": 1e3 / steady, "where": where}
+                print(f"[{key}] {workers} worker(s): {steady:.2f} cubes/s steady "
+                      f"({args.n_large / large:.2f} end to end)", flush=True)
     today = res["loop_today"]["cubes_per_s"]
     res["ratios_vs_today"] = {
         "loop_now_f64": res["loop_now_f64"]["cubes_per_s"] / today,
         "loop_now_f32": res["loop_now_f32"]["cubes_per_s"] / today,
         **{f"campaign_{w}w_steady": c["steady_cubes_per_s"] / today for w, c in res["campaign"].items()},
         **{f"campaign_{w}w_end_to_end": c["end_to_end_cubes_per_s"] / today for w, c in res["campaign"].items()}}
+    for w, c in res["campaign_tmpfs"].items():
+        res["ratios_vs_today"][f"campaign_tmpfs_{w}w_steady"] = c["steady_cubes_per_s"] / today
     res["scaling_2w_over_1w"] = res["campaign"][2]["steady_cubes_per_s"] / res["campaign"][1]["steady_cubes_per_s"]
+    if res["campaign_tmpfs"]:
+        res["scaling_2w_over_1w_tmpfs"] = (res["campaign_tmpfs"][2]["steady_cubes_per_s"]
+                                           / res["campaign_tmpfs"][1]["steady_cubes_per_s"])
     if not args.skip_plan:
         res["plan_8000"] = plan_8000()
         print(f"[plan] 8000 SNe: {res['plan_8000']['seconds']:.1f} s", flush=True)
@@ -231,8 +255,14 @@ def markdown(res):
         lines.append(f"| campaign, {w} worker(s), end to end ({c['n_large']} targets, incl. start and plan) | "
                      f"{1e3 / c['end_to_end_cubes_per_s']:.0f} | {c['end_to_end_cubes_per_s']:.2f} | "
                      f"{r[f'campaign_{w}w_end_to_end']:.2f} |")
+    for w, c in res.get("campaign_tmpfs", {}).items():
+        lines.append(f"| campaign, {w} worker(s), steady, dataset on tmpfs (no disk) | {c['steady_ms_per_cube']:.0f} | "
+                     f"{c['steady_cubes_per_s']:.2f} | {r[f'campaign_tmpfs_{w}w_steady']:.2f} |")
     lines.append("")
-    lines.append(f"2 workers / 1 worker (steady): {res['scaling_2w_over_1w']:.2f}×.")
+    lines.append(f"2 workers / 1 worker (steady): {res['scaling_2w_over_1w']:.2f}× on disk"
+                 + (f", {res['scaling_2w_over_1w_tmpfs']:.2f}× on tmpfs" if "scaling_2w_over_1w_tmpfs" in res else "")
+                 + f".  Disk write rate (512 MiB + fdatasync): {res['disk_write_MBps']:.0f} MB/s; a cube target "
+                   "writes 3 float32 cubes (~40 MB) and reads them back for its sha256.")
     if "plan_8000" in res:
         p = res["plan_8000"]
         txt = f"8000-SN plan (population, spectra, batch ETC): {p['seconds']:.1f} s (spectra {p['spectra_seconds']:.1f} s)"
@@ -252,11 +282,13 @@ def figure(res, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     labels = ["today's loop", "loop now f64", "loop now f32"] + \
-        [f"campaign {w}w" for w in res["campaign"]]
+        [f"campaign {w}w\ndisk" for w in res["campaign"]] + [f"campaign {w}w\ntmpfs" for w in res["campaign_tmpfs"]]
     rates = [res["loop_today"]["cubes_per_s"], res["loop_now_f64"]["cubes_per_s"],
-             res["loop_now_f32"]["cubes_per_s"]] + [c["steady_cubes_per_s"] for c in res["campaign"].values()]
-    fig, ax = plt.subplots(figsize=(7, 3.6))
-    bars = ax.bar(labels, rates, color=["0.6", "C0", "C0", "C2", "C2"])
+             res["loop_now_f32"]["cubes_per_s"]] + [c["steady_cubes_per_s"] for c in res["campaign"].values()] + \
+        [c["steady_cubes_per_s"] for c in res["campaign_tmpfs"].values()]
+    fig, ax = plt.subplots(figsize=(8.5, 3.8))
+    bars = ax.bar(labels, rates, color=["0.6", "C0", "C0"] + ["C2"] * len(res["campaign"])
+                  + ["C1"] * len(res["campaign_tmpfs"]))
     for b, r in zip(bars, rates):
         ax.text(b.get_x() + b.get_width() / 2, r, f"{r / rates[0]:.1f}×", ha="center", va="bottom")
     ax.axhline(2.5 * rates[0], ls="--", color="C3", lw=1, label="goal: 2.5× today's loop")
