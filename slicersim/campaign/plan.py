@@ -24,7 +24,7 @@ import numpy as np
 
 from slicersim.errors import ETCError, ParameterError, SpectrumError
 
-__all__ = ["SurveyPlan", "plan_survey", "plot_time_and_volume", "check_client_memory", "YEAR_S", "PLAN_COLUMNS"]
+__all__ = ["SurveyPlan", "plan_survey", "plot_time_and_volume", "check_client_memory", "survey_totals", "YEAR_S", "PLAN_COLUMNS"]
 
 YEAR_S = 365.25 * 86400.0
 BYTES_PER_READ = 2
@@ -170,23 +170,33 @@ def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), f
     table["data_volume_compressed"].unit = "byte"
     table["status"] = np.where(failed, "failed", "planned")
     table["error"] = [errors.get(i, "") for i in range(ntarget)]
-    ok = ~failed
-    nplanned = int(ok.sum())
-    exposure = float(out["exposure_time"][ok].sum())
-    overhead_time = nplanned * float(overhead)
-    duration = (exposure + overhead_time) / float(efficiency)
-    totals = {"targets": ntarget, "planned": nplanned, "failed": int(failed.sum()),
-              "targets_per_field": {f: int(np.count_nonzero(field[ok] == f)) for f in dict.fromkeys(field)},
-              "exposure_time": exposure, "overhead": float(overhead), "overhead_time": overhead_time,
-              "efficiency": float(efficiency), "duration": duration, "duration_years": duration / YEAR_S,
-              "data_volume": int(volume[ok].sum()), "compression_ratio": float(compression_ratio),
-              "data_volume_compressed": int(np.round(volume[ok].sum() / compression_ratio)),
-              "median_exposure_time": float(np.median(out["exposure_time"][ok])) if nplanned else 0.0,
-              "median_data_volume": float(np.median(volume[ok])) if nplanned else 0.0,
-              "snr": float(snr), "lbda_range": [float(v) for v in lbda_range], "frame": frame,
-              "z_switch": float(z_switch), "config": str(config), "search": search, "conventions": conventions}
+    totals = {"targets": ntarget, "overhead": float(overhead), "efficiency": float(efficiency),
+              "compression_ratio": float(compression_ratio), "snr": float(snr),
+              "lbda_range": [float(v) for v in lbda_range], "frame": frame, "z_switch": float(z_switch),
+              "config": str(config), "search": search, "conventions": conventions}
+    totals.update(survey_totals(table, overhead, efficiency, compression_ratio))
     table.meta["totals"] = totals
     return SurveyPlan(table, totals)
+
+
+def survey_totals(table, overhead, efficiency, compression_ratio):
+    """Totals of a plan table (module docstring): planned / failed counts, per field,
+    exposure, overheads, duration [s, yr], raw volume [bytes], medians."""
+    ok = np.asarray(table["status"]) != "failed"
+    field = np.asarray(table["field"])
+    exposure_s = np.asarray(table["exposure_time"], dtype=float)[ok]
+    volume = np.asarray(table["data_volume"], dtype=np.int64)[ok]
+    nplanned = int(ok.sum())
+    exposure = float(exposure_s.sum())
+    overhead_time = nplanned * float(overhead)
+    duration = (exposure + overhead_time) / float(efficiency)
+    return {"planned": nplanned, "failed": int((~ok).sum()),
+            "targets_per_field": {f: int(np.count_nonzero(field[ok] == f)) for f in dict.fromkeys(field)},
+            "exposure_time": exposure, "overhead_time": overhead_time, "duration": duration,
+            "duration_years": duration / YEAR_S, "data_volume": int(volume.sum()),
+            "data_volume_compressed": int(np.round(volume.sum() / compression_ratio)),
+            "median_exposure_time": float(np.median(exposure_s)) if nplanned else 0.0,
+            "median_data_volume": float(np.median(volume)) if nplanned else 0.0}
 
 
 def plot_time_and_volume(plans, path, zbins=None, paper=None):

@@ -98,7 +98,7 @@ def _host_aware_readouts(spec, cat, plan, progress=True):
     ~0.1 s each.  Updates ``cat`` and ``plan.totals`` in place."""
     from tqdm.auto import tqdm
 
-    from slicersim.campaign.plan import BYTES_PER_READ, YEAR_S
+    from slicersim.campaign.plan import BYTES_PER_READ, survey_totals
     obs, survey = spec.observation, spec.survey
     rows = [i for i in range(len(cat)) if str(cat["status"][i]) != "failed"]
     status, error = [str(v) for v in cat["status"]], [str(v) for v in cat["error"]]   # no fixed-width truncation
@@ -121,16 +121,8 @@ def _host_aware_readouts(spec, cat, plan, progress=True):
         cat["data_volume"][i] = volume
         cat["data_volume_compressed"][i] = round(volume / survey["compression_ratio"])
     cat["status"], cat["error"] = status, error
-    ok = np.asarray(cat["status"]) != "failed"
-    t = plan.totals
-    t["exposure_time"] = float(np.sum(np.asarray(cat["exposure_time"])[ok]))
-    t["planned"], t["failed"] = int(ok.sum()), int((~ok).sum())
-    t["overhead_time"] = t["planned"] * t["overhead"]
-    t["duration"] = (t["exposure_time"] + t["overhead_time"]) / t["efficiency"]
-    t["duration_years"] = t["duration"] / YEAR_S
-    t["data_volume"] = int(np.sum(np.asarray(cat["data_volume"])[ok]))
-    t["data_volume_compressed"] = int(np.sum(np.asarray(cat["data_volume_compressed"])[ok]))
-    t["hosts_in_etc"] = True
+    plan.totals.update(survey_totals(cat, survey["overhead"], survey["efficiency"], survey["compression_ratio"]))
+    plan.totals["hosts_in_etc"] = True
 
 
 def _jsonable(d):
@@ -193,8 +185,7 @@ def _client(workers, scheduler, threads):
 def _check_workers(workers):
     if workers is None:
         return max(1, os.cpu_count() or 1)
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ConfigError(f"workers must be an integer ≥ 1, got {workers!r}")
+    _check_positive_int(workers, "workers")
     return workers
 
 
