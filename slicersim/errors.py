@@ -7,7 +7,7 @@ CLI) can catch them in one place; each is also a ``ValueError``, ``OSError`` or
 from __future__ import annotations
 
 __all__ = ["SlicersimError", "ConfigError", "ReadoutError", "SpectrumError", "ETCError",
-           "ParameterError", "RampFileError", "OpenCLUnavailableError", "OpenCLForkError"]
+           "ParameterError", "RampFileError", "OpenCLUnavailableError", "OpenCLForkError", "DatasetError", "EffectsError"]
 
 
 class SlicersimError(Exception):
@@ -48,3 +48,8 @@ class OpenCLForkError(SlicersimError, RuntimeError):
 
 class DatasetError(SlicersimError, OSError):
     """A campaign dataset or one of its files cannot be written, read or trusted."""
+
+
+class EffectsError(SlicersimError, ValueError):
+    """Invalid detector-systematics request: unknown effect name, negative rate or fraction,
+    IPC kernel summing to more than 1, non-invertible nonlinearity."""
