@@ -250,7 +250,18 @@ RAMP_INLINE rng_double ktc_reset(const double ktc, const rng_ulong pixv, const u
     const uint npix, const uint pixel0, const uint ramp, const uint k0, const uint k1, const int n,  \
     const int m, const int d, const double read_sigma, const double gain, const double bias,        \
     const double ktc, const double full_well, const double saturation,                            \
-    const int write_dq /* 0: GROUPDQ not wanted */
+    const int write_dq /* 0: GROUPDQ not wanted */ RAMP_EFFECT_ARGS
+
+#ifdef RAMP_EFFECTS
+#include "ramp_effects.cl"
+#define RAMP_EFFECT_ARGS ,                                                                           \
+    __global const uint *restrict dep_start, /* (npix + 1) CSR of each pixel's deposits */          \
+    __global const int *restrict dep_frame, __global const double *restrict dep_e, /* frame, e- */  \
+    __global const double *restrict nl_a2, __global const double *restrict nl_a3, const int use_nl,  \
+    __global double *restrict gmean /* (n, npix) group mean of the read values [e-] */
+#else
+#define RAMP_EFFECT_ARGS
+#endif
 
 __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
 {
@@ -278,14 +289,22 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
     rng_double before = 0.0;                                     /* clipped charge before the window */
     ramp_mask sat = (ramp_mask)0;
     rng_double z_even = 0.0, z_odd = 0.0;
+#ifdef RAMP_EFFECTS
+    uint dp[RNG_VW], de[RNG_VW], ws[RNG_VW];
+    rng_double next_dep = deposit_cursor(dep_start, dep_frame, idx, dp, de);
+    const rng_double a2 = use_nl ? load_lanes(nl_a2, idx) : 0.0, a3 = use_nl ? load_lanes(nl_a3, idx) : 0.0;
+    int f0 = 0;                                                  /* first frame of the window */
+#endif
     for (int g = 0; g < n; ++g) {
         const int last = g == n - 1;
         const int w = last ? m : W;
         rng_uint a, b, c, e;
+#ifndef RAMP_EFFECTS
         if ((g & 1) == 0) {
             ramp_block(((ulong)(g >> 1) << 32) | pixv, sbase + P_READ, 0u, k0, k1, &a, &b, &c, &e);
             z_even = ramp_box_muller(a, b, c, e, &z_odd);
         }
+#endif
         /* K ~ Poisson(mu w) by inversion of one uniform (words x,y); words z,w place event 0 */
         rng_double K = 0.0, p, cdf, u = 0.0;
         ramp_mask act;
@@ -323,23 +342,56 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
         /* reads that see each event: m - position */
         const rng_double pos0 = frame_position(c, e, w);
         rng_double seen = RNG_SELECT((rng_double)0.0, (double)m - pos0, (K > 0.0) && (pos0 < (double)m));
+#ifdef RAMP_EFFECTS
+        rng_double posk[RAMP_POS_MAX];
+#endif
         for (int k = 1; RAMP_ANY((double)k < K); ++k) {
             if (k & 1)                           /* events 2i+1 and 2i+2 share draw 1 + i */
                 ramp_block(((ulong)g << 32) | pixv, stream, 1u + (uint)((k - 1) >> 1), k0, k1, &a, &b, &c, &e);
             const rng_double pos = (k & 1) ? frame_position(a, b, w) : frame_position(c, e, w);
             seen = RNG_SELECT(seen, seen + ((double)m - pos), ((double)k < K) && (pos < (double)m));
+#ifdef RAMP_EFFECTS
+            if (k < RAMP_POS_MAX)
+                posk[k] = pos;
+#endif
         }
+#ifdef RAMP_EFFECTS
+        rng_double dsum = 0.0;                   /* deposits of the window */
+        ramp_mask has_dep = (ramp_mask)0;
+        const int any_dep = RAMP_ANY(next_dep < (double)(f0 + w));
+        if (any_dep) {
+            dsum = take_deposits(dep_frame, dep_e, f0 + w, dp, de, ws, &next_dep);
+            double hd[RNG_VW];
+            for (int l = 0; l < RNG_VW; ++l)
+                hd[l] = dp[l] > ws[l] ? 1.0 : 0.0;
+            has_dep = lanes_from(hd) > 0.0;
+        }
+        const rng_double total = (before + K) + dsum;
+#else
         const rng_double total = before + K;
+#endif
         rng_double sum = (double)m * before + seen;
         const ramp_mask over = total > full_well;
         if (RAMP_ANY(over))
             sum = RNG_SELECT(sum, clipped_read_sum(before, K, pos0, g, w, m, full_well, pixv, stream, k0, k1),
                              over);
+#ifdef RAMP_EFFECTS
+        if (use_nl || any_dep) {                 /* read by read where a deposit or R(Q) needs it */
+            const rng_double by_read = window_read_sum(before, K, pos0, posk, g, w, m, f0, full_well, pixv, stream,
+                                                       k0, k1, any_dep, ws, dp, dep_frame, dep_e, a2, a3, use_nl);
+            sum = use_nl ? by_read : RNG_SELECT(sum, by_read, has_dep);
+        }
+        f0 += w;
+#endif
         const ramp_mask full = total >= full_well;
         sat = sat || full;
         before = RNG_SELECT(total, (rng_double)full_well, full);
+#ifdef RAMP_EFFECTS
+        store_mean(g, sum, sat, m, gmean, gdq, idx, npix);
+#else
         store_group(g, sum, (g & 1) ? z_odd : z_even, reset, &sat, m, read_sigma, gain, bias, saturation,
                     sci, gdq, write_dq, idx, contiguous, npix);
+#endif
     }
 }
 
@@ -411,6 +463,11 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
     int frame = 0;
     rng_uint wa = 0, wb = 0, wc = 0, wd = 0;
     rng_double zf_even = 0.0, zf_odd = 0.0, z_even = 0.0, z_odd = 0.0;
+#ifdef RAMP_EFFECTS
+    uint dp[RNG_VW], de[RNG_VW], ws[RNG_VW];
+    rng_double next_dep = deposit_cursor(dep_start, dep_frame, idx, dp, de);
+    const rng_double a2 = use_nl ? load_lanes(nl_a2, idx) : 0.0, a3 = use_nl ? load_lanes(nl_a3, idx) : 0.0;
+#endif
     for (int g = 0; g < n; ++g) {
         rng_double sum = 0.0;
         const int w = (g == n - 1) ? m : m + d;
@@ -452,12 +509,24 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
                                                  ((ulong)frame << 32) | pixv, stream + 0x80000000u, k0, k1),
                                  ptrs);
             charge = charge + inc;
+#ifdef RAMP_EFFECTS
+            if (RAMP_ANY(next_dep == (double)frame))
+                charge = charge + take_deposits(dep_frame, dep_e, frame + 1, dp, de, ws, &next_dep);
+#endif
             const ramp_mask full = charge >= full_well;
             charge = RNG_SELECT(charge, (rng_double)full_well, full);
             sat = sat || full;
+#ifdef RAMP_EFFECTS
+            if (j < m)
+                sum = sum + (use_nl ? nl_read(charge, a2, a3) : charge);
+#else
             if (j < m)
                 sum = sum + charge;
+#endif
         }
+#ifdef RAMP_EFFECTS
+        store_mean(g, sum, sat, m, gmean, gdq, idx, npix);
+#else
         if ((g & 1) == 0) {
             rng_uint a, b, c, e;
             ramp_block(((ulong)(g >> 1) << 32) | pixv, sbase + P_READ, 0u, k0, k1, &a, &b, &c, &e);
@@ -465,5 +534,6 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
         }
         store_group(g, sum, (g & 1) ? z_odd : z_even, reset, &sat, m, read_sigma, gain, bias, saturation,
                     sci, gdq, write_dq, idx, contiguous, npix);
+#endif
     }
 }

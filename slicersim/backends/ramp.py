@@ -20,7 +20,7 @@ from slicersim.io.rampfile import DQ
 from slicersim.physics.ramp import (MAX_SPARSE_WINDOW, P_KTC, P_POISSON, P_READ, P_SPARSE,  # noqa: F401
                                     frame_mean_charge, macc_frame_schedule, sparse_threshold, to_adu)
 
-__all__ = ["simulate_block_numpy", "simulate_block_opencl", "CPU_WORK_GROUP", "MAX_CPU_WORK_GROUP"]
+__all__ = ["simulate_block_numpy", "simulate_block_opencl", "charge_groups", "CPU_WORK_GROUP", "MAX_CPU_WORK_GROUP"]
 
 def _frame_increment(mu, exp_neg_mu, seed, pix, frame, stream, gauss_min_mean):
     """Poisson increments of one frame (twin of the dense path in ramp.cl)."""
@@ -90,35 +90,43 @@ def _clipped_read_sum(before, K, pos0, g, w, m, full_well, pix, seed, stream):
     return total
 
 
-def _sparse_group(mu, p_empty, before, g, w, m, full_well, pix, seed, stream):
+def _sparse_group(mu, p_empty, before, g, w, m, full_well, pix, seed, stream, fx=None):
     """(read sum, clipped charge after the window, window reached the full well) of group g.
 
     K ~ Poisson(mu·w) by inversion of the uniform of words 0–1 of block (g << 32 | pixel, stream,
-    0); words 2–3 place event 0, later events use draws ≥ 1 (:func:`_event_words`)."""
+    0); words 2–3 place event 0, later events use draws ≥ 1 (:func:`_event_words`).  ``fx``
+    (effects twin, :mod:`slicersim.backends.ramp_effects`) adds the window's deposits and the
+    nonlinear read values."""
     words = rng.random_words(seed, (np.uint64(g) << np.uint64(32)) | pix, stream, 0)
     K = _inversion(mu * float(w), p_empty, rng.words_to_uniform(words[:, 0], words[:, 1]))
     pos0 = _frame_position(words[:, 2], words[:, 3], w)
     seen = _events_seen(K, pos0, g, w, m, pix, seed, stream)
     total = before + K
+    dsum = None
+    if fx is not None:
+        dsum = fx.window_deposits(w)
+        total = total + dsum
     read_sum = float(m) * before + seen
     over = np.nonzero(total > full_well)[0]
     if over.size:
         read_sum[over] = _clipped_read_sum(before[over], K[over], pos0[over], g, w, m, full_well, pix[over],
                                            seed, stream)
+    if fx is not None:
+        read_sum = fx.window_read_sum(read_sum, before, K, pos0, g, w, m, full_well, pix, seed, stream)
     full = total >= full_well
     return read_sum, np.where(full, full_well, total), full
 
 
-def simulate_block_numpy(mu_frame, dead, pixel0, ramp, seed, p):
-    """SCI (ngroups, npix) uint16 and GROUPDQ uint8 for one ramp of a flat pixel block."""
+def charge_groups(mu_frame, dead, pixel0, ramp, seed, p, fx=None):
+    """Yield (g, read sum over the m reads of group g [e-] (npix,), sticky saturation flags (npix,)).
+
+    The flags array is shared between groups: a consumer may OR further flags into it.  ``fx``:
+    the effects twin (deposits, nonlinearity), None for the plain ramp."""
     n, m, d = p.nmd
     npix = mu_frame.size
     pix = np.arange(pixel0, pixel0 + npix, dtype=np.uint64)
     mu = np.where(dead, 0.0, mu_frame)
     sbase = 4 * ramp
-    reset = np.zeros(npix)
-    if p.ktc_noise > 0:
-        reset = p.ktc_noise * rng.normal(seed, pix, sbase + P_KTC, 0)[..., 0]
     sparse = mu * float(m + d) < sparse_threshold(p)
     sp, dn = np.nonzero(sparse)[0], np.nonzero(~sparse)[0]
     mu_sp, pix_sp, mu_dn, pix_dn = mu[sp], pix[sp], mu[dn], pix[dn]
@@ -127,32 +135,51 @@ def simulate_block_numpy(mu_frame, dead, pixel0, ramp, seed, p):
     exp_neg_mu = rng.rng_exp(-mu_dn)
     charge = np.zeros(dn.size)
     saturated = np.zeros(npix, dtype=bool)
-    sci = np.empty((n, npix), np.uint16)
-    gdq = np.empty((n, npix), np.uint8)
-    read_sigma = p.ron / math.sqrt(m)
+    fx_sp = fx_dn = None
+    if fx is not None:
+        fx_sp, fx_dn = fx.subset(sp), fx.subset(dn)
     frame = 0
     for g in range(n):
         w = m if g == n - 1 else m + d
         total = np.zeros(npix)
-        pair = (np.uint64(g >> 1) << np.uint64(32)) | pix
-        if g % 2 == 0:
-            z_pair = rng.normal(seed, pair, sbase + P_READ, 0)
         if sp.size:
+            if fx_sp is not None:
+                fx_sp.start_window(frame)
             total[sp], before, full = _sparse_group(mu_sp, p_last if g == n - 1 else p_full, before, g, w, m,
-                                                    p.full_well, pix_sp, seed, sbase + P_SPARSE)
+                                                    p.full_well, pix_sp, seed, sbase + P_SPARSE, fx_sp)
             saturated[sp] |= full
         if dn.size:
             sum_dn = np.zeros(dn.size)
             for j in range(w):
                 charge = charge + _frame_increment(mu_dn, exp_neg_mu, seed, pix_dn, frame + j,
                                                    sbase + P_POISSON, p.gauss_min_mean)
+                if fx_dn is not None:
+                    charge = fx_dn.frame_deposits(charge, frame + j)
                 full = charge >= p.full_well
                 charge[full] = p.full_well
                 saturated[dn] |= full
                 if j < m:
-                    sum_dn = sum_dn + charge
+                    sum_dn = sum_dn + (charge if fx_dn is None else fx_dn.read_value(charge))
             total[dn] = sum_dn
         frame += w
+        yield g, total, saturated
+
+
+def simulate_block_numpy(mu_frame, dead, pixel0, ramp, seed, p):
+    """SCI (ngroups, npix) uint16 and GROUPDQ uint8 for one ramp of a flat pixel block."""
+    n, m, d = p.nmd
+    npix = mu_frame.size
+    pix = np.arange(pixel0, pixel0 + npix, dtype=np.uint64)
+    sbase = 4 * ramp
+    reset = np.zeros(npix)
+    if p.ktc_noise > 0:
+        reset = p.ktc_noise * rng.normal(seed, pix, sbase + P_KTC, 0)[..., 0]
+    sci = np.empty((n, npix), np.uint16)
+    gdq = np.empty((n, npix), np.uint8)
+    read_sigma = p.ron / math.sqrt(m)
+    for g, total, saturated in charge_groups(mu_frame, dead, pixel0, ramp, seed, p):
+        if g % 2 == 0:
+            z_pair = rng.normal(seed, (np.uint64(g >> 1) << np.uint64(32)) | pix, sbase + P_READ, 0)
         mean = total / float(m) + read_sigma * z_pair[:, g & 1]
         adu = to_adu(mean, reset, p)
         saturated |= adu >= p.saturation

@@ -1,0 +1,137 @@
+/*
+ * ramp_effects.cl: charge-domain detector effects of the MACC samplers of ramp.cl
+ * (included by ramp.cl when built with -DRAMP_EFFECTS=1; not a program by itself).
+ *
+ * With RAMP_EFFECTS the two samplers keep every random draw of the plain build
+ * (same counters, same paths) and add, per pixel:
+ *   deposits     extra charge [e-] at given frames (cosmic rays, persistence): a
+ *                CSR list per block pixel (dep_start[i] .. dep_start[i+1]) of
+ *                (frame counted from the reset, electrons), sorted by frame, added
+ *                to the accumulated charge of that frame before full-well clipping;
+ *   nonlinearity the read value of accumulated charge Q is
+ *                R(Q) = Q + Q*Q*(a2 + a3*Q)  [e-]  (per-pixel a2, a3; use_nl = 0: R = Q)
+ * and store the group mean of R over the m reads as float64 (gmean, e-) with the
+ * charge-saturation flag, leaving read noise, IPC, correlated noise and
+ * digitisation to ramp_readout.cl.  Sparse windows whose pixel has a deposit in
+ * the window (or every window when use_nl) are summed read by read:
+ *   sum_j R(min(full_well, (before + c_j) + d_j)),
+ * c_j = number of Poisson events at positions <= j, d_j = deposits at positions <= j
+ * (added in list order); other windows keep the plain closed form m*before + seen.
+ * The NumPy twin is slicersim/backends/ramp_effects.py; both agree bit for bit.
+ */
+#define RAMP_POS_MAX 8            /* event positions kept per window (later ones recomputed) */
+#define RAMP_NO_DEPOSIT 1e300
+
+RAMP_INLINE rng_double nl_read(const rng_double q, const rng_double a2, const rng_double a3)
+{
+    return q + q * q * (a2 + a3 * q);
+}
+
+/* per-lane values of a per-pixel array */
+RAMP_INLINE rng_double load_lanes(__global const double *restrict a, const uint *idx)
+{
+    double v[RNG_VW];
+    for (int l = 0; l < RNG_VW; ++l)
+        v[l] = a[idx[l]];
+#if RNG_VW == 1
+    return v[0];
+#else
+    return RNG_PASTE(vload, RNG_SUFFIX)(0, v);
+#endif
+}
+
+RAMP_INLINE rng_double lanes_from(const double *v)
+{
+#if RNG_VW == 1
+    return v[0];
+#else
+    return RNG_PASTE(vload, RNG_SUFFIX)(0, v);
+#endif
+}
+
+/* cursor of each lane in its deposit list; returns the frame of each lane's next deposit */
+RAMP_INLINE rng_double deposit_cursor(__global const uint *restrict dep_start, __global const int *restrict dep_frame,
+                                      const uint *idx, uint *dp, uint *de)
+{
+    double nf[RNG_VW];
+    for (int l = 0; l < RNG_VW; ++l) {
+        dp[l] = dep_start[idx[l]];
+        de[l] = dep_start[idx[l] + 1];
+        nf[l] = dp[l] < de[l] ? (double)dep_frame[dp[l]] : RAMP_NO_DEPOSIT;
+    }
+    return lanes_from(nf);
+}
+
+/* Sum of the deposits of each lane at frames < frame_end (list order, from 0.0); advances the
+ * cursors (ws: each lane's first deposit consumed) and returns the next deposit frames in *next. */
+RAMP_INLINE rng_double take_deposits(__global const int *restrict dep_frame, __global const double *restrict dep_e,
+                                     const int frame_end, uint *dp, const uint *de, uint *ws, rng_double *next)
+{
+    double add[RNG_VW], nf[RNG_VW];
+    for (int l = 0; l < RNG_VW; ++l) {
+        double a = 0.0;
+        ws[l] = dp[l];
+        while (dp[l] < de[l] && dep_frame[dp[l]] < frame_end) {
+            a = a + dep_e[dp[l]];
+            dp[l] += 1u;
+        }
+        add[l] = a;
+        nf[l] = dp[l] < de[l] ? (double)dep_frame[dp[l]] : RAMP_NO_DEPOSIT;
+    }
+    *next = lanes_from(nf);
+    return lanes_from(add);
+}
+
+/* Read-by-read sum of a sparse window: sum_j R(min(full_well, (before + c_j) + d_j)). */
+RAMP_INLINE rng_double window_read_sum(const rng_double before, const rng_double K, const rng_double pos0,
+                                       const rng_double *posk, const int g, const int w, const int m, const int f0,
+                                       const double full_well, const rng_ulong pixv, const uint stream,
+                                       const uint k0, const uint k1, const int any_dep, const uint *ws,
+                                       const uint *dp, __global const int *restrict dep_frame,
+                                       __global const double *restrict dep_e, const rng_double a2,
+                                       const rng_double a3, const int use_nl)
+{
+    rng_double total = 0.0;
+    for (int j = 0; j < m; ++j) {
+        rng_double cj = RNG_SELECT((rng_double)0.0, (rng_double)1.0, (K > 0.0) && (pos0 <= (double)j));
+        for (int k = 1; RAMP_ANY((double)k < K); ++k) {
+            const rng_double pos = k < RAMP_POS_MAX ? posk[k] : event_position(g, k, w, pixv, stream, k0, k1);
+            cj = RNG_SELECT(cj, cj + 1.0, ((double)k < K) && (pos <= (double)j));
+        }
+        rng_double charge = before + cj;
+        if (any_dep) {
+            double dj[RNG_VW];
+            for (int l = 0; l < RNG_VW; ++l) {
+                double a = 0.0;
+                for (uint q = ws[l]; q < dp[l]; ++q)
+                    if (dep_frame[q] - f0 <= j)
+                        a = a + dep_e[q];
+                dj[l] = a;
+            }
+            charge = charge + lanes_from(dj);
+        }
+        charge = RNG_SELECT(charge, (rng_double)full_well, charge >= full_well);
+        total = total + (use_nl ? nl_read(charge, a2, a3) : charge);
+    }
+    return total;
+}
+
+/* group mean of the read values [e-] and the sticky charge-saturation flag of group g */
+RAMP_INLINE void store_mean(const int g, const rng_double sum, const ramp_mask sat, const int m,
+                            __global double *restrict gmean, __global uchar *restrict gdq, const uint *idx,
+                            const size_t npix)
+{
+    double v[RNG_VW];
+    uchar q[RNG_VW];
+#if RNG_VW == 1
+    v[0] = sum / (double)m;
+    q[0] = RAMP_FLAG(sat);
+#else
+    RNG_PASTE(vstore, RNG_SUFFIX)(sum / (double)m, 0, v);
+    RAMP_VSTORE(RAMP_FLAG(sat), q);
+#endif
+    for (int l = 0; l < RNG_VW; ++l) {
+        gmean[(size_t)g * npix + idx[l]] = v[l];
+        gdq[(size_t)g * npix + idx[l]] = q[l];
+    }
+}

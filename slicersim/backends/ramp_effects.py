@@ -1,0 +1,272 @@
+"""Ramps with detector effects: charge sampler with deposits and nonlinearity, and the readout
+(IPC, read noise, correlated noise, bias map, digitisation) — OpenCL kernels
+(``kernels/ramp.cl`` built with ``-DRAMP_EFFECTS=1``, ``kernels/ramp_readout.cl``) and their
+bit-exact NumPy twins.
+
+The charge stage keeps every draw of the plain sampler (:mod:`slicersim.backends.ramp`): same
+Philox counters, same sparse/dense choice, so switching an effect on or off never changes the
+Poisson charge, the read noise or the kTC noise of a pixel.  Deposits (cosmic rays, persistence)
+are a CSR list per block pixel of (frame from the reset, electrons), sorted by frame.  The read
+value of accumulated charge Q [e-] is R(Q) = Q + Q²(a2 + a3 Q) when nonlinearity is on.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from slicersim.backends import opencl, rng
+from slicersim.backends.ramp import (P_KTC, P_READ, _buffer, _event_position, _event_words, _launch_geometry,
+                                     _pixel_lists, charge_groups)
+from slicersim.io.rampfile import DQ
+
+__all__ = ["ChargeEffects", "charge_block_numpy", "charge_block_opencl", "readout_numpy", "readout_opencl",
+           "deposits_csr"]
+
+
+def deposits_csr(npix, pixel, frame, electrons):
+    """CSR arrays (start (npix+1) uint32, frame int32, electrons float64) of deposits given per row
+    (block-local pixel index, frame, e-), sorted by (pixel, frame) with ties in input order."""
+    pixel = np.asarray(pixel, np.int64)
+    order = np.lexsort((np.asarray(frame), pixel))
+    start = np.zeros(npix + 1, np.uint32)
+    np.cumsum(np.bincount(pixel, minlength=npix), out=start[1:])
+    return start, np.asarray(frame, np.int32)[order], np.asarray(electrons, np.float64)[order]
+
+
+def nl_read(q, a2, a3):
+    """Read value R(Q) = Q + Q²(a2 + a3 Q) [e-] (same operations as ``nl_read`` in ramp_effects.cl)."""
+    return q + q * q * (a2 + a3 * q)
+
+
+class ChargeEffects:
+    """Charge-domain effects of a block of pixels for the NumPy twin (deposits, nonlinearity).
+
+    start, frame, electrons : deposits CSR (:func:`deposits_csr`);  a2, a3 : (npix,) [e-⁻¹, e-⁻²] or None.
+    """
+
+    def __init__(self, start, frame, electrons, a2=None, a3=None):
+        self.start, self.frame, self.electrons = start, frame, electrons
+        counts = np.diff(start.astype(np.int64))
+        self.owner = np.repeat(np.arange(counts.size), counts)          # local pixel of each deposit
+        self.use_nl = a2 is not None
+        self.a2, self.a3 = a2, a3
+        self.f0 = 0
+
+    def subset(self, pixels):
+        """Effects of the pixels ``pixels`` (ascending indices into this block), in that order."""
+        pixels = np.asarray(pixels, np.int64)
+        npix = self.start.size - 1
+        local = np.full(npix, -1, np.int64)
+        local[pixels] = np.arange(pixels.size)
+        rows = np.nonzero(local[self.owner] >= 0)[0]
+        start = np.zeros(pixels.size + 1, np.uint32)
+        np.cumsum(np.diff(self.start.astype(np.int64))[pixels], out=start[1:])
+        a2 = None if not self.use_nl else self.a2[pixels]
+        a3 = None if not self.use_nl else self.a3[pixels]
+        return ChargeEffects(start, self.frame[rows], self.electrons[rows], a2, a3)
+
+    # dense path ----------------------------------------------------------------------------
+    def frame_deposits(self, charge, frame):
+        """charge + the deposits of ``frame`` (per pixel summed in list order from 0.0)."""
+        sel = np.nonzero(self.frame == frame)[0]
+        if not sel.size:
+            return charge
+        add = np.zeros(charge.size)
+        np.add.at(add, self.owner[sel], self.electrons[sel])
+        return charge + add
+
+    def read_value(self, charge):
+        return nl_read(charge, self.a2, self.a3) if self.use_nl else charge
+
+    # sparse path ---------------------------------------------------------------------------
+    def start_window(self, f0):
+        self.f0 = f0
+
+    def window_deposits(self, w):
+        """Per pixel: sum of the deposits at frames [f0, f0 + w) (list order from 0.0)."""
+        npix = self.start.size - 1
+        self.win = np.nonzero((self.frame >= self.f0) & (self.frame < self.f0 + w))[0]
+        self.has_dep = np.zeros(npix, bool)
+        self.has_dep[self.owner[self.win]] = True
+        dsum = np.zeros(npix)
+        np.add.at(dsum, self.owner[self.win], self.electrons[self.win])
+        return dsum
+
+    def window_read_sum(self, read_sum, before, K, pos0, g, w, m, full_well, pix, seed, stream):
+        """Σ_j R(min(full_well, (before + c_j) + d_j)) where a deposit or R(Q) needs it."""
+        sel = np.arange(before.size) if self.use_nl else np.nonzero(self.has_dep)[0]
+        if not sel.size:
+            return read_sum
+        kmax = int(K[sel].max()) if sel.size else 0
+        pos = [pos0[sel]] + [_event_position(_event_words(seed, g, k, pix[sel], stream), k, w)
+                             for k in range(1, kmax)]
+        local = np.full(before.size, -1)
+        local[sel] = np.arange(sel.size)
+        win = self.win[local[self.owner[self.win]] >= 0]
+        out = read_sum.copy()
+        total = np.zeros(sel.size)
+        for j in range(m):
+            cj = np.zeros(sel.size)
+            for k in range(kmax):
+                cj = np.where((k < K[sel]) & (pos[k] <= j), cj + 1.0, cj)
+            charge = before[sel] + cj
+            dj_rows = win[self.frame[win] - self.f0 <= j]
+            if dj_rows.size:
+                dj = np.zeros(sel.size)
+                np.add.at(dj, local[self.owner[dj_rows]], self.electrons[dj_rows])
+                charge = charge + dj
+            charge = np.where(charge >= full_well, full_well, charge)
+            total = total + (nl_read(charge, self.a2[sel], self.a3[sel]) if self.use_nl else charge)
+        out[sel] = total
+        return out
+
+
+def charge_block_numpy(mu_frame, dead, pixel0, ramp, seed, p, fx):
+    """(group means of the read values (n, npix) float64 [e-], charge-saturation flags (n, npix) uint8)."""
+    n, m, _ = p.nmd
+    gmean = np.empty((n, mu_frame.size))
+    qsat = np.empty((n, mu_frame.size), np.uint8)
+    for g, total, saturated in charge_groups(mu_frame, dead, pixel0, ramp, seed, p, fx):
+        gmean[g] = total / float(m)
+        qsat[g] = np.where(saturated, DQ["SATURATED"], 0)
+    return gmean, qsat
+
+
+def _charge_kernel(name, vector_width):
+    return opencl.get_kernel("ramp.cl", name, (f"-DRNG_VW={int(vector_width)}", "-DRAMP_EFFECTS=1"))
+
+
+def charge_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, fx, work_group=None, vector_width=None, *,
+                        workspace=None):
+    """OpenCL twin of :func:`charge_block_numpy` (same lists and launch geometry as the plain ramp)."""
+    n, m, d = p.nmd
+    npix = mu_frame.size
+    vw, work_group = _launch_geometry(vector_width, work_group)
+    key = rng.seed_to_key(seed)
+    mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
+    lists = _pixel_lists(mu, p, vw)
+    d_mu = opencl.to_device(mu, _buffer(workspace, "mu", mu.nbytes))
+    d_gdq = _buffer(workspace, "gdq", n * npix)
+    d_gmean = _buffer(workspace, "gmean", 8 * n * npix)
+    d_sci = _buffer(workspace, "sci_unused", 8)
+    ndep = max(1, fx.frame.size)
+    d_start = opencl.to_device(np.ascontiguousarray(fx.start, np.uint32), _buffer(workspace, "dep_start", 4 * (npix + 1)))
+    d_frame = opencl.to_device(np.resize(np.ascontiguousarray(fx.frame, np.int32), ndep),
+                               _buffer(workspace, "dep_frame", 4 * ndep))
+    d_e = opencl.to_device(np.resize(np.ascontiguousarray(fx.electrons, np.float64), ndep),
+                           _buffer(workspace, "dep_e", 8 * ndep))
+    if fx.use_nl:
+        d_a2 = opencl.to_device(np.ascontiguousarray(fx.a2, np.float64), _buffer(workspace, "nl_a2", 8 * npix))
+        d_a3 = opencl.to_device(np.ascontiguousarray(fx.a3, np.float64), _buffer(workspace, "nl_a3", 8 * npix))
+    else:
+        d_a2 = d_a3 = _buffer(workspace, "nl_unused", 8)
+    common = (np.uint32(npix), np.uint32(pixel0), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]),
+              np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron / math.sqrt(m)), np.float64(p.gain),
+              np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation),
+              np.int32(1))
+    effect_args = (d_start, d_frame, d_e, d_a2, d_a3, np.int32(bool(fx.use_nl)), d_gmean)
+    for name, idx, extra in (("macc_ramp_sparse", lists[0], ()),
+                             ("macc_ramp_dense", lists[1], (np.float64(p.gauss_min_mean),))):
+        items = idx.size // vw
+        if not items:
+            continue
+        gsize, lsize = (items,), None
+        if work_group:
+            gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
+        d_idx = opencl.to_device(idx, _buffer(workspace, name, idx.nbytes))
+        kernel = _charge_kernel(name, vw)
+        # the dense kernel takes gauss_min_mean after the effect arguments
+        opencl.launch(kernel, gsize, lsize, d_mu, d_idx, np.uint32(items), d_sci, d_gdq, *common, *effect_args,
+                      *extra)
+    gmean = np.empty((n, npix))
+    qsat = np.empty((n, npix), np.uint8)
+    opencl.from_device(gmean, d_gmean)
+    opencl.from_device(qsat, d_gdq)
+    return gmean, qsat
+
+
+# --------------------------------------------------------------------------- readout
+def _check_readout_inputs(gmean, rows, halo_top):
+    n, rows_in, nx = gmean.shape
+    if not 0 <= halo_top <= rows_in - rows:
+        raise ValueError(f"halo_top {halo_top} and rows {rows} do not fit the {rows_in} input rows")
+    return n, rows_in, nx
+
+
+def readout_numpy(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None, extra=None, bias_map=None):
+    """SCI (n, rows, nx) uint16 and GROUPDQ uint8 from group means (n, rows_in, nx) [e-] whose row
+    ``halo_top`` is detector row ``y0`` (see kernels/ramp_readout.cl for the operations)."""
+    n, rows_in, nx = _check_readout_inputs(gmean, rows, halo_top)
+    m = p.nmd[1]
+    ys = y0 + np.arange(rows)
+    pix = (ys[:, None].astype(np.uint64) * np.uint64(nx) + np.arange(nx, dtype=np.uint64)[None, :]).ravel()
+    sbase = 4 * ramp
+    reset = np.zeros(pix.size)
+    if p.ktc_noise > 0:
+        reset = p.ktc_noise * rng.normal(seed, pix, sbase + P_KTC, 0)[..., 0]
+    b0 = p.bias if bias_map is None else np.asarray(bias_map, np.float32).astype(np.float64).ravel()
+    read_sigma = p.ron / math.sqrt(m)
+    sci = np.empty((n, rows, nx), np.uint16)
+    gdq = np.empty((n, rows, nx), np.uint8)
+    sat = np.zeros(pix.size, bool)
+    core = slice(halo_top, halo_top + rows)
+    if ipc is not None:
+        rows_idx = np.arange(rows_in) - halo_top + y0
+        valid_row = (rows_idx >= 0) & (rows_idx < ny)
+    for g in range(n):
+        if ipc is not None:
+            padded = np.zeros((rows_in + 2, nx + 2))
+            padded[1:-1, 1:-1] = np.where(valid_row[:, None], gmean[g], 0.0)
+            v = np.zeros((rows, nx))
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    s = padded[1 + halo_top + dy:1 + halo_top + dy + rows, 1 + dx:1 + dx + nx]
+                    v = v + ipc[dy + 1, dx + 1] * s
+            v = v.ravel()
+        else:
+            v = gmean[g, core].ravel()
+        if g % 2 == 0:
+            z_pair = rng.normal(seed, (np.uint64(g >> 1) << np.uint64(32)) | pix, sbase + P_READ, 0)
+        mean = v + read_sigma * z_pair[:, g & 1]
+        if extra is not None:
+            mean = mean + np.asarray(extra[g], np.float32).astype(np.float64).ravel()
+        adu = np.clip(np.rint(b0 + p.gain * (reset + mean)), 0.0, 65535.0)
+        sat |= (qsat[g, core].ravel() != 0) | (adu >= p.saturation)
+        sci[g] = adu.astype(np.uint16).reshape(rows, nx)
+        gdq[g] = np.where(sat, DQ["SATURATED"], 0).astype(np.uint8).reshape(rows, nx)
+    return sci, gdq
+
+
+def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None, extra=None, bias_map=None,
+                   workspace=None):
+    """OpenCL twin of :func:`readout_numpy`."""
+    n, rows_in, nx = _check_readout_inputs(gmean, rows, halo_top)
+    key = rng.seed_to_key(seed)
+    d_gm = opencl.to_device(np.ascontiguousarray(gmean, np.float64), _buffer(workspace, "ro_gmean", gmean.size * 8))
+    d_q = opencl.to_device(np.ascontiguousarray(qsat, np.uint8), _buffer(workspace, "ro_qsat", qsat.size))
+    plane = rows * nx
+    if extra is not None:
+        d_x = opencl.to_device(np.ascontiguousarray(extra, np.float32), _buffer(workspace, "ro_extra", 4 * n * plane))
+    else:
+        d_x = _buffer(workspace, "ro_unused_x", 8)
+    if bias_map is not None:
+        d_b = opencl.to_device(np.ascontiguousarray(bias_map, np.float32), _buffer(workspace, "ro_bias", 4 * plane))
+    else:
+        d_b = _buffer(workspace, "ro_unused_b", 8)
+    kern = np.zeros(9) if ipc is None else np.ascontiguousarray(ipc, np.float64).ravel()
+    d_k = opencl.to_device(kern, _buffer(workspace, "ro_ipc", 72))
+    d_sci = _buffer(workspace, "ro_sci", 2 * n * plane)
+    d_gdq = _buffer(workspace, "ro_gdq", n * plane)
+    kernel = opencl.get_kernel("ramp_readout.cl", "ramp_readout")
+    m = p.nmd[1]
+    opencl.launch(kernel, (plane,), None, d_gm, d_q, d_x, d_b, d_k, d_sci, d_gdq, np.uint32(rows), np.uint32(nx),
+                  np.uint32(rows_in), np.uint32(halo_top), np.uint32(y0), np.uint32(ny), np.uint32(ramp),
+                  np.uint32(key[0]), np.uint32(key[1]), np.int32(n), np.float64(p.ron / math.sqrt(m)),
+                  np.float64(p.gain), np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.saturation),
+                  np.int32(ipc is not None), np.int32(extra is not None), np.int32(bias_map is not None))
+    sci = np.empty((n, rows, nx), np.uint16)
+    gdq = np.empty((n, rows, nx), np.uint8)
+    opencl.from_device(sci, d_sci)
+    opencl.from_device(gdq, d_gdq)
+    return sci, gdq
