@@ -11,7 +11,11 @@ never the stream), disjoint from those for any nramps < 2**26.
 """
 from __future__ import annotations
 
-__all__ = ["EFFECT_NAMES", "STREAMS"]
+import math
+
+from slicersim.errors import EffectsError
+
+__all__ = ["EFFECT_NAMES", "STREAMS", "check_number", "check_fraction"]
 
 #: effect names accepted by ``--effects`` and :class:`DetectorEffects` (``"all"`` = every one)
 EFFECT_NAMES = ("cosmic_rays", "ipc", "nonlinearity", "correlated_noise", "reference_pixels",
@@ -26,3 +30,22 @@ STREAMS = {
     "bad_pixels": 0x14000000,
     "persistence": 0x15000000,
 }
+
+
+# --------------------------------------------------------------------------- validation helpers
+def check_number(name, value, low=0.0, high=math.inf, *, low_open=False, high_open=False):
+    """``value`` as a float in [low, high] (bounds open where asked), else EffectsError naming it."""
+    try:
+        val = float(value)
+    except (TypeError, ValueError):
+        raise EffectsError(f"{name} must be a number, got {value!r}") from None
+    if isinstance(value, bool) or not math.isfinite(val) or val < low or val > high \
+            or (low_open and val == low) or (high_open and val == high):
+        lo, hi = "(" if low_open else "[", ")" if high_open or high == math.inf else "]"
+        raise EffectsError(f"{name} must be in {lo}{low:g}, {high:g}{hi}, got {value!r}")
+    return val
+
+
+def check_fraction(name, value):
+    """A fraction in [0, 1]."""
+    return check_number(name, value, 0.0, 1.0)
