@@ -6,6 +6,9 @@ Layout (one file per exposure)::
     /GROUPDQ        uint8   (nramps, ngroups, ny, nx)   JWST group flags (2 = SATURATED)
     /PIXELDQ        uint32  (ny, nx)                    JWST pixel flags (1 DO_NOT_USE, 1024 DEAD, 2048 HOT)
     /truth/rate     float32 (ny, nx)   optional         input rate [e-/s]
+    /truth/<name>   truth of the detector effects (``effects=``): cosmic_rays (compound: ramp,
+                    frame, y, x, electrons), nonlinearity/coefficients, ..., see
+                    :mod:`slicersim.products.effects`
     root attributes NINTS NGROUPS NFRAMES GROUPGAP TFRAME TGROUP READPATT GAIN READNOISE
                     SEED BUNIT SOFTWARE VERSION CONFIG (JSON) COMPLETE
 
@@ -146,6 +149,17 @@ class RampWriter(AtomicH5File):
 
     def write_truth(self, rate):
         self._h5(self.truth.__setitem__, Ellipsis, np.asarray(rate, dtype=np.float32))
+
+    def write_dataset(self, name, array, attrs=None):
+        """Write ``truth/<name>`` (any array, structured arrays as compound datasets) with attributes."""
+        array = np.asarray(array)
+
+        def put():
+            kwargs = {"chunks": True, "compression": "gzip", "compression_opts": 1} if array.size > 4096 else {}
+            ds = self.file.create_dataset(f"truth/{name}", data=array, **kwargs)
+            for key, val in (attrs or {}).items():
+                ds.attrs[key] = val if not isinstance(val, (dict, list, tuple)) else json.dumps(val)
+        self._h5(put)
 
 
 def read_ramps(path):

@@ -42,7 +42,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
              thermal_dark=0.0, roic_glow=3e-3, gain=1.0, saturation=65535, bias=DEFAULT_BIAS,
              ktc_noise=0.0, full_well=None, dead_pixels=None, pixeldq=None, sparse_max_group=None,
              gauss_min_mean=np.inf, compression=None, memory_budget=2**30, truth=True,
-             config=None, backend="auto", progress=None, work_group=None, return_dq=False, overwrite=False):
+             config=None, backend="auto", progress=None, work_group=None, return_dq=False, overwrite=False,
+             effects=None, previous_charge=None):
     """Simulate raw MACC ramps of a rate image.
 
     Parameters
@@ -61,6 +62,10 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     memory_budget : bytes of host memory for the row blocks (default 1 GiB)
     work_group : OpenCL local size (None: 64 on CPUs, the runtime's on GPUs); never changes the result
     overwrite : replace an existing ``out`` (default: refuse with :class:`~slicersim.errors.RampFileError`)
+    effects : detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a preset
+        (``"lazuli"``), a config dict or a :class:`~slicersim.physics.effects.DetectorEffects`; see
+        :mod:`slicersim.products.effects`.  Their truth is written to ``truth/<name>``.
+    previous_charge : (ny, nx) charge [e-] of the previous exposure, for ``persistence``
 
     The output size is checked against the free disk space (``out``) or memory (``out`` None)
     before anything is allocated.
@@ -84,6 +89,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     p = RampParameters(nmd=nmd, nramps=nramps, tframe=tframe, ron=ron, dark=0.0, thermal_dark=thermal_dark,
                        roic_glow=roic_glow, gain=gain, saturation=saturation, bias=bias, ktc_noise=ktc_noise,
                        full_well=full_well, sparse_max_group=sparse_max_group, gauss_min_mean=gauss_min_mean)
+    from slicersim.products.effects import EffectsPlan, resolve_effects
+    fx = resolve_effects(effects)
     ny, nx = rate.shape
     if ny * nx >= 2**32:
         raise ValueError("image too large: pixel indices must fit in 32 bits")
@@ -91,8 +98,9 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     dead = None if dead_pixels is None else np.asarray(dead_pixels, bool)
     if dead is not None and dead.shape != rate.shape:
         raise ValueError("dead_pixels must have the shape of rate")
-    # bytes per pixel in flight: mu + dead + index list + SCI + GDQ (host and device copies)
-    per_row = nx * (8 + 1 + 4 + 3 * n) * 2
+    # bytes per pixel in flight: mu + dead + index list + SCI + GDQ (host and device copies); with
+    # effects also the group means (8 B), flags, read-domain noise (4 B) and deposits
+    per_row = nx * (8 + 1 + 4 + 3 * n) * 2 if fx is None else nx * (8 + 1 + 4 + 16 + 16 * n) * 2
     rows = int(max(1, min(ny, memory_budget // per_row)))
     if memory_budget < per_row:
         raise MemoryError(f"memory budget {memory_budget} B is smaller than one detector row "
@@ -112,6 +120,12 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
                               f"{avail / 2**30:.1f} GiB available: pass out=<file.h5>")
     if dead is None:
         dead = np.zeros(rate.shape, bool)
+    plan, rate_in = None, rate
+    if fx is not None:
+        plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge)
+        rate, dark_arr, dead_fx, flags = plan.rate_and_dark(rate, dark_arr)
+        dead = dead | dead_fx
+        pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
     mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
     backend = resolve_backend(backend)
     block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
@@ -135,13 +149,27 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     if writer is not None:
         writer.attrs = attrs
 
+    if plan is not None:
+        attrs["EFFECTS"] = fx.to_config()
+
     def run(w):
         if w is not None:
             w.write_pixeldq(_pixeldq(pixeldq, dead, rate.shape))
             if truth:
-                w.write_truth(rate)
+                w.write_truth(rate_in)
+                if plan is not None:
+                    plan.write_truth(w, p.nramps)
         for ramp, y0 in iterator:
             y1 = min(ny, y0 + rows)
+            if plan is not None:
+                sci, gdq = _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs)
+                if w is not None:
+                    w.write_block(ramp, y0, sci, gdq)
+                else:
+                    result[ramp, :, y0:y1] = sci
+                    if result_dq is not None:
+                        result_dq[ramp, :, y0:y1] = gdq
+                continue
             direct = {}
             if w is None and backend == "opencl" and y0 == 0 and y1 == ny:     # whole ramp: no copy
                 direct = {"sci_out": result[ramp].reshape(n, -1)}
@@ -163,6 +191,30 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     with writer as w:
         run(w)
     return os.path.abspath(out)
+
+
+def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs):
+    """SCI, GROUPDQ (n, y1 − y0, nx) of rows [y0, y1) with detector effects (charge on the rows ± the
+    IPC halo, then the readout)."""
+    from slicersim.backends import ramp_effects as rfx
+    ny, nx = mu.shape
+    n = p.nmd[0]
+    yi0, yi1 = max(0, y0 - plan.halo), min(ny, y1 + plan.halo)
+    start, frame, electrons = plan.block_deposits(ramp, yi0, yi1)
+    a2, a3 = plan.nonlinearity_block(yi0, yi1)
+    charge_fx = rfx.ChargeEffects(start, frame, electrons, a2, a3)
+    args = (mu[yi0:yi1].ravel(), dead[yi0:yi1].ravel(), yi0 * nx, ramp, seed, p, charge_fx)
+    if backend == "opencl":
+        gmean, qsat = rfx.charge_block_opencl(*args, work_group=kwargs.get("work_group"),
+                                              workspace=kwargs.get("workspace"))
+    else:
+        gmean, qsat = rfx.charge_block_numpy(*args)
+    shape_in = (n, yi1 - yi0, nx)
+    readout = rfx.readout_opencl if backend == "opencl" else rfx.readout_numpy
+    extra = {"workspace": kwargs.get("workspace")} if backend == "opencl" else {}
+    return readout(gmean.reshape(shape_in), qsat.reshape(shape_in), y1 - y0, y0 - yi0, y0, ny, ramp, seed, p,
+                   ipc=plan.ipc, extra=plan.read_noise_block(ramp, y0, y1), bias_map=plan.bias_block(y0, y1),
+                   **extra)
 
 
 def _available_memory():

@@ -1,0 +1,216 @@
+"""Detector effects of a raw ramp, assembled for the ramp driver (:func:`slicersim.products.ramps.simulate`).
+
+:class:`EffectsPlan` turns a :class:`~slicersim.physics.effects.DetectorEffects` request into the
+inputs of the effects stage of :mod:`slicersim.backends.ramp_effects`, in the order of the signal
+chain of an H4RG pixel:
+
+1. photo-response: bad pixels (low QE scales the photo-electron rate, hot/warm pixels add dark
+   current, dead pixels and reference pixels collect nothing);
+2. charge: Poisson electrons (the plain sampler's draws), cosmic-ray and persistence deposits at
+   their frames, full-well clipping;
+3. read value: per-pixel nonlinearity R(Q) of the accumulated charge, averaged over the m reads;
+4. voltage: inter-pixel capacitance (3×3 kernel), white read noise, correlated read noise
+   (NGHXRG) and telegraph offsets, bias (per-output and per-pixel with reference pixels);
+5. digitisation: gain, rounding, uint16 clipping, saturation flags.
+
+Each effect draws from its own Philox stream range, so switching one on or off leaves the others'
+draws — and the plain ramp's — unchanged.  The truth of each effect is written beside the data
+(``truth/<name>`` in the HDF5 file).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from slicersim.errors import EffectsError
+
+__all__ = ["EffectsPlan", "CR_DTYPE", "resolve_effects"]
+
+#: one row per pixel crossed (or per persistence release): full-detector y, x; frame from the reset
+CR_DTYPE = np.dtype([("ramp", "<u4"), ("frame", "<u4"), ("y", "<u2"), ("x", "<u2"), ("electrons", "<f4")])
+
+#: JWST PIXELDQ bit of reference pixels
+REFERENCE_PIXEL = 2**31
+
+
+def resolve_effects(effects):
+    """:class:`DetectorEffects` or None from None, a DetectorEffects, names ("ipc,cosmic_rays", "all",
+    a list), a preset name ("lazuli") or a config dict."""
+    if effects is None or effects is False:
+        return None
+    from slicersim.physics.effects import DetectorEffects
+    if isinstance(effects, DetectorEffects):
+        return effects if effects.enabled else None
+    if isinstance(effects, dict):
+        fx = DetectorEffects.from_config(effects)
+    elif isinstance(effects, str) and effects.strip().lower() in DetectorEffects.PRESETS:
+        fx = DetectorEffects.preset(effects.strip().lower())
+    elif isinstance(effects, (str, list, tuple)):
+        fx = DetectorEffects.from_names(effects)
+    else:
+        raise EffectsError(f"effects must be None, names, a preset, a config dict or a DetectorEffects, "
+                           f"got {type(effects).__name__}")
+    return fx if fx.enabled else None
+
+
+class EffectsPlan:
+    """Host-side inputs of the effects stage for one exposure (all ramps) of a ``shape`` detector.
+
+    effects : DetectorEffects;  p : RampParameters;  seed : int;  shape : (ny, nx)
+    previous_charge : (ny, nx) [e-] charge of the previous exposure (persistence), or None
+    """
+
+    def __init__(self, effects, p, seed, shape, previous_charge=None):
+        self.effects, self.p, self.seed, self.shape = effects, p, int(seed), tuple(shape)
+        self.on = set(effects.enabled)
+        ny, nx = self.shape
+        if "persistence" in self.on and previous_charge is None:
+            raise EffectsError("persistence needs previous_charge: the (ny, nx) charge image [e-] of the "
+                               "previous exposure")
+        if previous_charge is not None:
+            previous_charge = np.asarray(previous_charge, float)
+            if previous_charge.shape != self.shape or not np.all(np.isfinite(previous_charge)) \
+                    or np.any(previous_charge < 0):
+                raise EffectsError(f"previous_charge must be a finite, non-negative {self.shape} image [e-]")
+        self.previous_charge = previous_charge
+        self.halo = 1 if "ipc" in self.on else 0
+        self.ipc = None
+        if "ipc" in self.on:
+            from slicersim.physics.ipc import ipc_kernel
+            self.ipc = ipc_kernel(**effects.params("ipc").kernel_arguments())
+        self.reference = None
+        if "reference_pixels" in self.on:
+            from slicersim.physics.reference_pixels import reference_pixel_mask
+            self.reference = reference_pixel_mask(self.shape, effects.params("reference_pixels").border)
+        self.bad = None
+        if "bad_pixels" in self.on:
+            from slicersim.physics.bad_pixels import bad_pixel_maps
+            self.bad = bad_pixel_maps(self.seed, self.shape, effects.params("bad_pixels"))
+        self.nl = None
+        if "nonlinearity" in self.on:
+            from slicersim.physics.nonlinearity import nonlinearity_coefficients
+            self.nl = nonlinearity_coefficients(self.seed, self.shape, effects.params("nonlinearity"),
+                                                p.full_well)
+        self.bias = None
+        if "reference_pixels" in self.on:
+            from slicersim.physics.reference_pixels import bias_map
+            self.bias = np.asarray(p.bias + bias_map(self.seed, self.shape, effects.params("reference_pixels")),
+                                   np.float32)
+        self.noise = None
+        if "correlated_noise" in self.on:
+            from slicersim.backends.correlated_noise import CorrelatedNoise
+            self.noise = CorrelatedNoise(effects.params("correlated_noise"), self.shape, p.nmd, p.tframe, self.seed)
+        self._deposits = {}
+        self._telegraph = {}
+        self.nx = nx
+
+    # ------------------------------------------------------------------ photo-response
+    def rate_and_dark(self, rate, dark):
+        """(photo rate [e-/s], dark [e-/s], dead mask, PIXELDQ flags) after bad and reference pixels."""
+        rate = np.asarray(rate, float)
+        dark = np.broadcast_to(np.asarray(dark, float), self.shape)
+        dead = np.zeros(self.shape, bool)
+        flags = np.zeros(self.shape, np.uint32)
+        if self.bad is not None:
+            rate = rate * self.bad["qe_factor"]
+            dark = dark + self.bad["extra_dark"]
+            dead |= self.bad["dead"]
+            flags |= self.bad["pixeldq"]
+        if self.reference is not None:
+            dead |= self.reference                      # no photodiode: no charge at all
+            flags[self.reference] |= np.uint32(REFERENCE_PIXEL)
+        return rate, dark, dead, flags
+
+    # ------------------------------------------------------------------ charge deposits
+    def deposits(self, ramp):
+        """All charge deposits of ``ramp`` (CR_DTYPE rows, sorted by y, x, frame), cosmic rays first."""
+        if ramp in self._deposits:
+            return self._deposits[ramp]
+        parts = []
+        if "cosmic_rays" in self.on:
+            from slicersim.physics.cosmic_rays import cosmic_ray_deposits
+            parts.append(np.asarray(cosmic_ray_deposits(self.seed, ramp, self.p.nframes, self.p.tframe, self.shape,
+                                                        self.effects.params("cosmic_rays"))).astype(CR_DTYPE))
+        if "persistence" in self.on:
+            from slicersim.physics.persistence import persistence_deposits
+            parts.append(np.asarray(persistence_deposits(self.seed, ramp, self.p.nframes, self.p.tframe,
+                                                         self.previous_charge,
+                                                         self.effects.params("persistence"))).astype(CR_DTYPE))
+        rows = np.concatenate(parts) if parts else np.zeros(0, CR_DTYPE)
+        if self.reference is not None or self.bad is not None:      # nothing is collected there
+            dead = np.zeros(self.shape, bool) if self.reference is None else self.reference.copy()
+            if self.bad is not None:
+                dead |= self.bad["dead"]
+            rows = rows[~dead[rows["y"], rows["x"]]]
+        rows = rows[np.lexsort((rows["frame"], rows["x"], rows["y"]))]
+        self._deposits = {ramp: rows}                    # one ramp at a time in memory
+        return rows
+
+    def block_deposits(self, ramp, y0, y1):
+        """CSR deposits (start, frame, electrons) of rows [y0, y1) (block-local pixel numbers)."""
+        from slicersim.backends.ramp_effects import deposits_csr
+        rows = self.deposits(ramp)
+        lo, hi = np.searchsorted(rows["y"], [y0, y1])
+        sel = rows[lo:hi]
+        local = (sel["y"].astype(np.int64) - y0) * self.nx + sel["x"]
+        return deposits_csr((y1 - y0) * self.nx, local, sel["frame"], sel["electrons"].astype(np.float64))
+
+    # ------------------------------------------------------------------ voltage domain
+    def read_noise_block(self, ramp, y0, y1):
+        """Group-averaged read-domain noise [e-] (n, y1−y0, nx) float32 (correlated + telegraph), or None."""
+        out = None
+        if self.noise is not None:
+            out = np.asarray(self.noise.block(ramp, y0, y1), np.float32)
+        if self.bad is not None and len(self.bad.get("telegraph", ())):
+            offsets, ys, xs = self._telegraph_offsets(ramp)
+            sel = (ys >= y0) & (ys < y1)
+            if sel.any():
+                if out is None:
+                    out = np.zeros((self.p.nmd[0], y1 - y0, self.nx), np.float32)
+                out[:, ys[sel] - y0, xs[sel]] += offsets[:, sel]
+        return out
+
+    def _telegraph_offsets(self, ramp):
+        if ramp not in self._telegraph:
+            from slicersim.physics.bad_pixels import telegraph_offsets
+            pixels = np.asarray(self.bad["telegraph"])
+            offsets = np.asarray(telegraph_offsets(self.seed, ramp, self.p.nmd, self.p.tframe, pixels,
+                                                   self.effects.params("bad_pixels")), np.float32)
+            ys, xs = np.divmod(pixels.astype(np.int64), self.nx)
+            self._telegraph = {ramp: (offsets, ys, xs)}
+        return self._telegraph[ramp]
+
+    def nonlinearity_block(self, y0, y1):
+        """(a2, a3) of rows [y0, y1) raveled, or (None, None)."""
+        if self.nl is None:
+            return None, None
+        return (np.ascontiguousarray(self.nl[0, y0:y1]).ravel(), np.ascontiguousarray(self.nl[1, y0:y1]).ravel())
+
+    def bias_block(self, y0, y1):
+        return None if self.bias is None else self.bias[y0:y1]
+
+    # ------------------------------------------------------------------ truth
+    def write_truth(self, writer, nramps):
+        """Truth of every effect into ``writer`` (RampWriter or UncalWriter: ``write_dataset``)."""
+        attrs = {"EFFECTS": self.effects.to_config()}
+        if "cosmic_rays" in self.on or "persistence" in self.on:
+            cr = [self.deposits(r) for r in range(nramps)]
+            rows = np.concatenate(cr) if cr else np.zeros(0, CR_DTYPE)
+            if "cosmic_rays" in self.on:
+                writer.write_dataset("cosmic_rays", rows, {"UNITS": "electrons", "FRAME": "from the reset, "
+                                                           "dropped frames included"})
+        if self.ipc is not None:
+            writer.write_dataset("ipc_kernel", self.ipc)
+        if self.nl is not None:
+            from slicersim.physics.nonlinearity import inverse_coefficients
+            writer.write_dataset("nonlinearity/coefficients", self.nl.astype(np.float64),
+                                 {"MODEL": "R(Q) = Q + a2 Q^2 + a3 Q^3 [e-]"})
+            writer.write_dataset("nonlinearity/inverse_coefficients",
+                                 inverse_coefficients(self.nl[0], self.nl[1], self.p.full_well, self.p.gain),
+                                 {"CONVENTION": "JWST linearity: corrected DN = sum_k c_k DN^k (bias removed)"})
+        if self.bad is not None:
+            writer.write_dataset("bad_pixels/extra_dark", self.bad["extra_dark"])
+            writer.write_dataset("bad_pixels/qe_factor", self.bad["qe_factor"])
+        if self.bias is not None:
+            writer.write_dataset("bias", self.bias)
+        return attrs
+
