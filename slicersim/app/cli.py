@@ -194,12 +194,31 @@ def _load_rate(path):
     return rate
 
 
+def _ramp_effects(args):
+    """DetectorEffects from --effects, --effects-config and --cr-rate (None: no effect)."""
+    from slicersim.errors import EffectsError
+    from slicersim.physics.effects import DetectorEffects
+    effects = None
+    if args.effects_config is not None:
+        effects = DetectorEffects.from_file(args.effects_config)
+    if args.effects is not None:
+        named = DetectorEffects.from_names(args.effects) if args.effects.strip().lower() not in \
+            DetectorEffects.PRESETS else DetectorEffects.preset(args.effects.strip().lower())
+        effects = named if effects is None else effects.restricted_to(named.enabled)
+    if args.cr_rate is not None:
+        if effects is None or "cosmic_rays" not in effects.enabled:
+            raise EffectsError("--cr-rate needs cosmic_rays in --effects (or in --effects-config)")
+        effects = effects.with_overrides(cr_rate=args.cr_rate)
+    return effects
+
+
 def cmd_ramp(args) -> int:
     from slicersim.products import ramps
     nmd = tuple(args.nmd)
+    effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
     _check_output(args.out, args.overwrite)
     common = dict(seed=args.seed, out=args.out, compression=args.compression, progress=True,
-                  backend=args.backend, overwrite=args.overwrite)
+                  backend=args.backend, overwrite=args.overwrite, effects=effects)
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
     if args.rate is not None:
         given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None]
@@ -304,6 +323,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--conventions", choices=CONVENTIONS,
                    help=f"model conventions of the scene, only with --redshift (default: {DEFAULT_CONVENTIONS})")
     p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto", help="compute backend")
+    p.add_argument("--effects", metavar="NAME[,NAME...]",
+                   help="detector systematics (off by default): cosmic_rays, ipc, nonlinearity, correlated_noise, "
+                        "reference_pixels, bad_pixels, persistence, all, or the preset 'lazuli'; parameters from "
+                        "--effects-config")
+    p.add_argument("--effects-config", metavar="FILE", help="TOML or JSON file with an [effects] section: "
+                   "enabled = [...] and one table per effect (every parameter; see the README)")
+    p.add_argument("--cr-rate", type=float, metavar="RATE",
+                   help="cosmic-ray rate [cm^-2 s^-1] (default 5, the L2 value used for JWST)")
     p.set_defaults(func=cmd_ramp)
 
     from slicersim.app.campaign_cli import add_parsers
