@@ -1,0 +1,410 @@
+"""Generators of the correlated read noise of :mod:`slicersim.physics.correlated_noise`.
+
+:class:`CorrelatedNoise` gives, for one ramp, the GROUP-AVERAGED correlated noise [e-] of
+any block of detector rows — the mean over each group's m reads of the noise added to
+every read — with counter-based Philox draws keyed by (seed, ramp, group or frame,
+output, segment), so any row blocking returns the same values.
+
+Gaussian streams with a PSD S are synthesised in the Fourier domain: bin k of a length-L
+stream at cadence Δt gets X_k = a_k (z₀ + i z₁), a_k = √(L S(f_k) / (4Δt)), f_k = k/(LΔt)
+(E|X_k|² = L S_k/(2Δt), so Var x = Σ S_k Δf), then ``scipy.fft.irfft``.  The (z₀, z₁) of
+bin k are the Box–Muller pair of the Philox block with counter (index = ramp·2³² + k,
+stream = STREAMS["correlated_noise"] + 2¹⁶·component + output, draw = 2¹⁶·group + segment);
+:func:`spectral_coefficients_opencl` (``kernels/correlated_noise.cl``) and its NumPy twin
+:func:`spectral_coefficients_numpy` agree bit for bit (same double draws, one rounding).
+
+Methods:
+
+* ``"exact"`` — one stream per output (plus the common one) at the pixel clock over the
+  whole ramp, dropped frames included (FFT length ≥ max(2N, 1/(f_min τ)): no wrap-around
+  and the model's lowest frequency resolved), read at every pixel's read times and
+  averaged over each group's m reads.  Memory ∝ frames × frame_len: small detectors only.
+* ``"multirate"`` (default) — the PSD is split, W_L²(f) + W_H²(f) = 1 around ν_c
+  (:func:`~slicersim.physics.correlated_noise.crossover_low`).  The low part is a stream
+  every q rows over the whole ramp (its PSD divided by sinc⁴(f q t_row) to undo the linear
+  interpolation), reduced at once to two numbers per (group, row, stream): the group mean
+  of the interpolated values is A + B·j/row_len for the pixel at scan position j.  The
+  high part (correlation time ≲ 1/ν_c ≪ tframe, hence independent between frames) is
+  drawn per group with PSD W_H²·S/m (the mean of m independent frames) in segments of
+  ``segment_rows`` rows overlapping by 2·``taper_rows``, windowed by sin/cos tapers whose
+  squares sum to one; a row block needs only the segments it overlaps.  The alternating
+  (even/odd) half of ACN is a slow stream times (−1)^j: its low part is a third low stream
+  per output, its high part lives near the Nyquist frequency of the high streams.
+* ``"group"`` — the high-part machinery with the whole PSD /m per group (no low part): the
+  frame-to-frame correlation of the 1/f noise is lost (group means too noisy at low
+  frequency: pink power below 1/tframe is divided by m instead of kept).
+* ``"white"`` — independent Gaussian per pixel and group with the model's group-mean variance.
+
+Pedestal (per output and frame) and picture frame (template × amplitude per frame) are
+drawn per frame and averaged over the group's reads in every method except ``"white"``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.fft as sfft
+
+from slicersim.backends import opencl, rng
+from slicersim.backends.dispatch import resolve_backend
+from slicersim.errors import EffectsError
+from slicersim.physics.correlated_noise import (METHODS, CorrelatedNoiseParameters, ReadoutGeometry, _acn_half,
+                                                crossover_low, group_mean_variance, model_psd, pink_psd,
+                                                picture_frame_template)
+from slicersim.physics.effects import STREAMS
+from slicersim.physics.ramp import macc_frame_schedule
+
+__all__ = ["CorrelatedNoise", "spectral_coefficients_numpy", "spectral_coefficients_opencl",
+           "stream_amplitudes", "COMPONENTS"]
+
+#: component codes of the Philox stream (STREAMS["correlated_noise"] + 2**16·code + output)
+COMPONENTS = {"low_common": 0, "low_own": 1, "low_alternating": 2, "high_common": 3, "high_own": 4,
+              "exact_common": 5, "exact_own": 6, "frame": 7, "white": 8}
+FFT_WORKERS = 2
+_VW = 8                     # bins per work item on CPUs (AVX-512 lanes of doubles)
+
+
+def _stream(component, output=0):
+    return STREAMS["correlated_noise"] + (COMPONENTS[component] << 16) + int(output)
+
+
+# --------------------------------------------------------------------------- spectral draws
+def stream_amplitudes(psd, length, dt):
+    """a_k = √(L S(f_k)/(4Δt)) for the L//2 + 1 bins of a length-L stream at cadence Δt,
+    with DC and (even L) Nyquist bins set to 0; ``psd``: callable f [Hz] → S [e-²/Hz]."""
+    f = np.arange(length // 2 + 1) / (length * dt)
+    s = np.asarray(psd(f), dtype=float)
+    amp = np.sqrt(np.maximum(s, 0.0) * length / (4.0 * dt))
+    amp[0] = 0.0
+    if length % 2 == 0:
+        amp[-1] = 0.0
+    return amp.astype(np.float32)
+
+
+def _padded(nbins, vw):
+    return -(-nbins // vw) * vw
+
+
+def spectral_coefficients_numpy(amp, kind, hi, stream, draw, seed):
+    """complex64 (rows, nbins): X[r, k] = amp[kind[r], k]·(z₀ + i z₁) (NumPy twin of the kernel).
+
+    amp: float32 (kinds, nbins); kind, hi, stream, draw: one uint per row (see module doc)."""
+    amp = np.asarray(amp, np.float32)
+    nbins = amp.shape[1]
+    out = np.empty((len(kind), nbins), np.complex64)
+    k = np.arange(nbins, dtype=np.uint64)
+    for r in range(len(kind)):
+        z = rng.normal(seed, (np.uint64(hi[r]) << np.uint64(32)) | k, int(stream[r]), int(draw[r]))
+        a = amp[kind[r]].astype(np.float64)
+        out[r].real = (a * z[:, 0]).astype(np.float32)
+        out[r].imag = (a * z[:, 1]).astype(np.float32)
+    return out
+
+
+def spectral_coefficients_opencl(amp, kind, hi, stream, draw, seed, vector_width=None):
+    """OpenCL twin of :func:`spectral_coefficients_numpy` (bit-identical); returns complex64
+    (rows, padded bins): bins past nbins are padding (``irfft(n=L)`` crops them)."""
+    dev_gpu = "GPU" in opencl.device_type(opencl.get_device())
+    vw = 1 if dev_gpu else (_VW if vector_width is None else int(vector_width))
+    amp = np.asarray(amp, np.float32)
+    nb = _padded(amp.shape[1], vw)
+    amp_p = np.zeros((amp.shape[0], nb), np.float32)
+    amp_p[:, :amp.shape[1]] = amp
+    rows = len(kind)
+    out = np.empty((rows, nb), np.complex64)
+    key = rng.seed_to_key(seed)
+    kern = opencl.cached_kernel("correlated_noise.cl", "spectral_coefficients", (f"-DRNG_VW={vw}",))
+    bufs = [opencl.to_device(np.ascontiguousarray(a, np.uint32)) for a in (kind, hi, stream, draw)]
+    d_amp = opencl.to_device(amp_p)
+    d_out = opencl.scratch_buffer("cn_coeff", out.nbytes)
+    opencl.launch(kern, (nb // vw, rows), None, d_amp, *bufs, np.uint32(nb), np.uint32(key[0]),
+                  np.uint32(key[1]), d_out)
+    opencl.from_device(out, d_out)
+    return out
+
+
+# --------------------------------------------------------------------------- the generator
+class CorrelatedNoise:
+    """Group-averaged correlated read noise of one exposure (see module doc).
+
+    params : :class:`CorrelatedNoiseParameters` (or a dict of its fields);
+    shape : (ny, nx) of the full detector; nmd : MACC (n, m, d); tframe : s; seed : int;
+    method : one of ``METHODS``; backend : "auto" | "opencl" | "numpy" (spectral draws);
+    nu_c [Hz], low_rows (q), segment_rows, taper_rows : multirate tuning (None: defaults,
+    ν_c = min(40 Hz, 1/(8 t_row)), q = ⌊1/(8 ν_c t_row)⌋ ≥ 1, 128 and 12 rows).
+    """
+
+    def __init__(self, params, shape, nmd, tframe, seed, method="multirate", *, backend="auto", nu_c=None,
+                 low_rows=None, segment_rows=128, taper_rows=12):
+        if isinstance(params, dict):
+            params = CorrelatedNoiseParameters(**params)
+        if not isinstance(params, CorrelatedNoiseParameters):
+            raise EffectsError(f"correlated noise: params must be CorrelatedNoiseParameters or a dict, "
+                               f"got {type(params).__name__}")
+        if method not in METHODS:
+            raise EffectsError(f"correlated noise: unknown method {method!r}; use one of {METHODS}")
+        try:
+            n, m, d = (int(v) for v in nmd)
+        except Exception as exc:
+            raise EffectsError(f"correlated noise: nmd must be (n, m, d) integers, got {nmd!r}") from exc
+        if n < 1 or m < 1 or d < 0:
+            raise EffectsError(f"correlated noise: nmd = {nmd!r} needs n ≥ 1, m ≥ 1, d ≥ 0")
+        self.params, self.method, self.seed = params, method, int(seed)
+        rng.seed_to_key(self.seed)
+        self.geometry = g = ReadoutGeometry.from_params(params, shape, tframe)
+        self.nmd = (n, m, d)
+        self.backend = resolve_backend(backend)
+        self.frames_group, _ = macc_frame_schedule(self.nmd)
+        self.nframes = self.frames_group.size
+        self.nu_c = float(min(40.0, 1.0 / (8.0 * g.row_time)) if nu_c is None else nu_c)
+        self.low_rows = int(max(1, math.floor(1.0 / (8.0 * self.nu_c * g.row_time))) if low_rows is None
+                            else low_rows)
+        self.segment_rows, self.taper_rows = int(segment_rows), int(taper_rows)
+        if not (self.nu_c > 0 and self.low_rows >= 1 and self.segment_rows >= 1 and 0 <= self.taper_rows
+                and 2 * self.taper_rows <= self.segment_rows):
+            raise EffectsError("correlated noise: tuning needs nu_c > 0, low_rows ≥ 1, segment_rows ≥ 1 and "
+                               f"0 ≤ 2·taper_rows ≤ segment_rows, got {self.nu_c}, {self.low_rows}, "
+                               f"{self.segment_rows}, {self.taper_rows}")
+        self._ey, self._ex = picture_frame_template((g.ny, g.nx))
+        self._cache_key, self._cache = None, None
+        self._amp = {}
+
+    # ------------------------------------------------------------------ helpers
+    def _coefficients(self, amp, kind, hi, stream, draw):
+        if self.backend == "opencl":
+            return spectral_coefficients_opencl(amp, kind, hi, stream, draw, self.seed)
+        return spectral_coefficients_numpy(amp, kind, hi, stream, draw, self.seed)
+
+    def _synthesize(self, amp, length, kind, hi, stream, draw):
+        """float32 (rows, length) streams of the spectral draws (irfft, crops padded bins)."""
+        coeff = self._coefficients(amp, kind, hi, stream, draw)
+        return sfft.irfft(coeff, n=length, axis=-1, workers=FFT_WORKERS, overwrite_x=True)
+
+    def _frame_terms(self, ramp):
+        """Group means of the pedestal (n, n_outputs) and picture-frame amplitude (n,) [e-]."""
+        p, g = self.params, self.geometry
+        n, m, d = self.nmd
+        nout = g.n_outputs
+        idx = (np.uint64(ramp) << np.uint64(32)) | np.arange(self.nframes * (nout + 1), dtype=np.uint64)
+        z = rng.normal(self.seed, idx, _stream("frame"), 0)[:, 0].reshape(self.nframes, nout + 1)
+        reads = self.frames_group >= 0
+        ped = np.zeros((n, nout))
+        pf = np.zeros(n)
+        np.add.at(ped, self.frames_group[reads], z[reads, :nout])
+        np.add.at(pf, self.frames_group[reads], z[reads, nout])
+        return (p.pedestal * ped / m).astype(np.float32), (p.picture_frame * pf / m).astype(np.float32)
+
+    def _ramp_state(self, ramp):
+        key = int(ramp)
+        if self._cache_key != key:
+            self._cache = None
+            state = {"frame": self._frame_terms(key)}
+            if self.method == "exact":
+                state["exact"] = self._exact_streams(key)
+            elif self.method == "multirate":
+                state["low"] = self._low_coefficients(key)
+            self._cache_key, self._cache = key, state
+        return self._cache
+
+    # ------------------------------------------------------------------ exact
+    def _exact_length(self, nsamples, dt):
+        return sfft.next_fast_len(int(max(2 * nsamples, math.ceil(1.0 / (self.params.f_min * dt)))), real=True)
+
+    def _exact_streams(self, ramp):
+        p, g = self.params, self.geometry
+        nsamp = self.nframes * g.frame_len
+        length = self._exact_length(nsamp, g.dwell)
+        amp = np.stack([stream_amplitudes(lambda f: model_psd(f, p, g, "c_pink"), length, g.dwell),
+                        stream_amplitudes(lambda f: model_psd(f, p, g, "own"), length, g.dwell)])
+        nout = g.n_outputs
+        kind = np.array([0] + [1] * nout)
+        streams = np.array([_stream("exact_common")] + [_stream("exact_own", o) for o in range(nout)])
+        x = self._synthesize(amp, length, kind, np.full(nout + 1, ramp), streams, np.zeros(nout + 1))
+        return x[:, :nsamp]
+
+    def _block_exact(self, state, y0, y1, out):
+        g = self.geometry
+        n, m, d = self.nmd
+        streams = state["exact"]
+        x = np.arange(g.nx)
+        out_of_x = x // g.ncol
+        j = g.scan_index(x)
+        ys = np.arange(y0, y1)
+        for f in np.flatnonzero(self.frames_group >= 0):
+            idx = f * g.frame_len + ys[:, None] * g.row_len + j[None, :]
+            out[self.frames_group[f]] += streams[0][idx] + streams[1 + out_of_x[None, :], idx]
+        out /= m
+
+    # ------------------------------------------------------------------ multirate: low part
+    def _low_psds(self):
+        p, g = self.params, self.geometry
+        dl = self.low_rows * g.row_time
+        nu, fm = self.nu_c, p.f_min
+
+        def comp(f):
+            return crossover_low(f, nu) / np.sinc(f * dl) ** 4
+        return ({"c": lambda f: comp(f) * pink_psd(f, p.c_pink, g, fm),
+                 "u": lambda f: comp(f) * (pink_psd(f, p.u_pink, g, fm) + _acn_half(f, p.acn, g, fm)),
+                 "d": lambda f: comp(f) * _acn_half(f, p.acn, g, fm)}, dl)
+
+    def _low_coefficients(self, ramp):
+        """(A, B) float32 arrays (streams, n, ny): group mean of the low part at row y, pixel
+        position j: A + B·j/row_len; streams = common, own per output, alternating per output."""
+        g = self.geometry
+        n, m, d = self.nmd
+        q = self.low_rows
+        psds, dl = self._low_psds()
+        rows_total = self.nframes * g.frame_rows
+        nlow = rows_total // q + 2
+        length = sfft.next_fast_len(int(max(2 * nlow, math.ceil(1.0 / (self.params.f_min * dl)))), real=True)
+        amp = np.stack([stream_amplitudes(psds[k], length, dl) for k in ("c", "u", "d")])
+        nout = g.n_outputs
+        kind = np.array([0] + [1] * nout + [2] * nout)
+        streams = np.array([_stream("low_common")] + [_stream("low_own", o) for o in range(nout)]
+                           + [_stream("low_alternating", o) for o in range(nout)])
+        # positions: frames of each group's reads × rows
+        reads = np.flatnonzero(self.frames_group >= 0).reshape(n, m)
+        r = reads[:, :, None] * g.frame_rows + np.arange(g.ny)[None, None, :]          # (n, m, ny)
+        k, phi = np.divmod(r, q)
+        frac = (phi / q).astype(np.float32)
+        nst = kind.size
+        A = np.empty((nst, n, g.ny), np.float32)
+        B = np.empty((nst, n, g.ny), np.float32)
+        batch = max(1, int(2**26 // (length * 4)))
+        for s0 in range(0, nst, batch):
+            s1 = min(nst, s0 + batch)
+            low = self._synthesize(amp, length, kind[s0:s1], np.full(s1 - s0, ramp), streams[s0:s1],
+                                   np.zeros(s1 - s0))
+            for i, row in enumerate(low):
+                lo, hi_ = row[k], row[k + 1]
+                diff = hi_ - lo
+                A[s0 + i] = np.mean(lo + frac * diff, axis=1)
+                B[s0 + i] = np.mean(diff, axis=1) / q
+        return A, B
+
+    # ------------------------------------------------------------------ multirate / group: segments
+    def _segment_geometry(self):
+        g = self.geometry
+        S, h = self.segment_rows, self.taper_rows
+        nseg = -(-g.frame_rows // S)
+        span = (S + 2 * h) * g.row_len
+        length = sfft.next_fast_len(span + h * g.row_len + g.row_len, real=True)
+        return S, h, nseg, span, length
+
+    def _high_amplitudes(self, length):
+        key = (self.method, length)
+        if key not in self._amp:
+            p, g = self.params, self.geometry
+            m = self.nmd[1]
+            fm, fn = p.f_min, g.f_nyquist
+            if self.method == "multirate":
+                def wh(f):
+                    return 1.0 - crossover_low(f, self.nu_c)
+            else:
+                def wh(f):
+                    return np.ones_like(f)
+            c = lambda f: wh(f) * pink_psd(f, p.c_pink, g, fm) / m                       # noqa: E731
+            u = lambda f: (wh(f) * (pink_psd(f, p.u_pink, g, fm) + _acn_half(f, p.acn, g, fm))   # noqa: E731
+                           + wh(fn - f) * _acn_half(fn - f, p.acn, g, fm)) / m
+            self._amp[key] = np.stack([stream_amplitudes(c, length, g.dwell), stream_amplitudes(u, length, g.dwell)])
+        return self._amp[key]
+
+    def _window(self, s, nseg, S, h, span):
+        """Window of segment s over its span (samples), squares summing to 1 with neighbours."""
+        rl = self.geometry.row_len
+        t = np.arange(span, dtype=np.float64) - h * rl          # sample position relative to the segment's start
+        w = np.ones(span)
+        if h:
+            H = h * rl
+            if s > 0:
+                u = np.clip(t / H, -1.0, 1.0)
+                w *= np.sin(0.25 * np.pi * (1.0 + u))
+            if s < nseg - 1:
+                u = np.clip((t - S * rl) / H, -1.0, 1.0)
+                w *= np.cos(0.25 * np.pi * (1.0 + u))
+        return w.astype(np.float32)
+
+    def _high_streams(self, ramp, group, y0, y1):
+        """(common (rows, row_len), own (n_out, rows, row_len)) high-part streams of rows y0:y1."""
+        g = self.geometry
+        S, h, nseg, span, length = self._segment_geometry()
+        rl, nout = g.row_len, g.n_outputs
+        s_first = max(0, (y0 - h) // S)
+        s_last = min(nseg - 1, (y1 - 1 + h) // S)
+        segs = np.arange(s_first, s_last + 1)
+        nsg = segs.size
+        kind = np.tile(np.array([0] + [1] * nout), nsg)
+        streams = np.tile(np.array([_stream("high_common")] + [_stream("high_own", o) for o in range(nout)]), nsg)
+        draw = np.repeat((int(group) << 16) | segs, nout + 1)
+        amp = self._high_amplitudes(length)
+        x = self._synthesize(amp, length, kind, np.full(kind.size, ramp), streams, draw)
+        x = x.reshape(nsg, nout + 1, length)
+        acc = np.zeros((nout + 1, (y1 - y0) * rl), np.float32)
+        for i, s in enumerate(segs):
+            start = (s * S - h) * rl                     # first sample of the span (frame samples)
+            a0, a1 = max(start, y0 * rl), min(start + span, y1 * rl)
+            if a1 <= a0:
+                continue
+            w = self._window(s, nseg, S, h, span)[a0 - start:a1 - start]
+            acc[:, a0 - y0 * rl:a1 - y0 * rl] += x[i, :, a0 - start:a1 - start] * w
+        acc = acc.reshape(nout + 1, y1 - y0, rl)
+        return acc[0], acc[1:]
+
+    # ------------------------------------------------------------------ assembly
+    def block(self, ramp, y0, y1):
+        """float32 (n_groups, y1 − y0, nx) [e-]: group-averaged correlated noise of rows y0:y1."""
+        g = self.geometry
+        if not (0 <= int(y0) < int(y1) <= g.ny):
+            raise EffectsError(f"correlated noise: rows {y0}:{y1} outside the detector's 0:{g.ny}")
+        if int(ramp) != ramp or not 0 <= int(ramp) < 2**32:
+            raise EffectsError(f"correlated noise: ramp must be an integer in [0, 2**32), got {ramp!r}")
+        y0, y1, ramp = int(y0), int(y1), int(ramp)
+        n, m, d = self.nmd
+        out = np.zeros((n, y1 - y0, g.nx), np.float32)
+        if self.method == "white":
+            return self._block_white(ramp, y0, y1, out)
+        state = self._ramp_state(ramp)
+        if self.method == "exact":
+            self._block_exact(state, y0, y1, out)
+        else:
+            self._block_segments(state, ramp, y0, y1, out)
+        ped, pf = state["frame"]
+        ey, ex = self._ey[y0:y1], self._ex
+        for grp in range(n):
+            out[grp] += np.repeat(ped[grp], g.ncol)[None, :]
+            out[grp] += pf[grp] * (ey[:, None] + ex[None, :])
+        return out
+
+    def _block_segments(self, state, ramp, y0, y1, out):
+        g = self.geometry
+        n = self.nmd[0]
+        rl, nc = g.row_len, g.ncol
+        t = (np.arange(rl) / rl).astype(np.float32)
+        sign = np.where(np.arange(rl) % 2 == 0, 1.0, -1.0).astype(np.float32)
+        low = state.get("low")
+        nout = g.n_outputs
+        for grp in range(n):
+            hc, hu = self._high_streams(ramp, grp, y0, y1)
+            if low is not None:
+                A, B = low[0][:, grp, y0:y1], low[1][:, grp, y0:y1]          # (streams, rows)
+                a = A[1:1 + nout] + A[0][None, :]
+                b = B[1:1 + nout] + B[0][None, :]
+                ad, bd = A[1 + nout:], B[1 + nout:]
+                hu += (a[:, :, None] + b[:, :, None] * t) + sign * (ad[:, :, None] + bd[:, :, None] * t)
+            hu += hc[None]
+            tile = out[grp].reshape(y1 - y0, nout, nc)
+            tile[:, 0::2, :] = hu[0::2, :, :nc].transpose(1, 0, 2)
+            tile[:, 1::2, :] = hu[1::2, :, nc - 1::-1].transpose(1, 0, 2)
+
+    def _block_white(self, ramp, y0, y1, out):
+        g = self.geometry
+        n, m, d = self.nmd
+        sigma = math.sqrt(group_mean_variance(m, self.params, g))
+        nb = g.nx
+        amp = np.full((1, nb), sigma, np.float32)
+        rows = np.arange(y0, y1)
+        for grp in range(n):
+            coeff = self._coefficients(amp, np.zeros(rows.size, int), np.full(rows.size, ramp),
+                                       np.full(rows.size, _stream("white")), (grp << 16) | rows)
+            out[grp] = coeff[:, :nb].real
+        return out

@@ -1,0 +1,287 @@
+"""Correlated read noise of an H4RG read through a SIDECAR-like ASIC (NGHXRG model).
+
+After Rauscher (2015, PASP 127, 1144, "NGHXRG: a noise generator for Teledyne HxRG
+detector arrays"; its public ``nghxrg.py`` was read to learn the clocking and the
+components, no code was taken): the detector is read by ``n_outputs`` video outputs in
+parallel, each a stripe of ``ncol = nx / n_outputs`` columns.  Even outputs scan their
+columns left → right, odd outputs right → left (Teledyne's power-up default); rows are
+read in order, bottom to top.  Each row costs ``nroh`` extra pixel times of row overhead
+and each frame ``nfoh`` extra rows, so one output clocks
+
+    row_len   = ncol + nroh                       pixel times per row
+    frame_len = row_len · (ny + nfoh)             pixel times per frame
+    dwell τ   = tframe / frame_len                [s] per pixel
+
+For the Lazuli H4RG-10 (4096², 32 outputs, nroh = 12, nfoh = 1, tframe = 2.83 s):
+row_len = 140, frame_len = 573 580, τ = 4.934 µs (a 202.7 kHz pixel clock), row time
+690.8 µs.  The pixel (y, x) of frame f is read at t = τ·(f·frame_len + y·row_len + j(x)),
+with j the position of x in its output's scan order (:meth:`ReadoutGeometry.scan_index`).
+
+Components (all in e-, added to every read; white read noise is the ramp's ``ron``):
+
+* correlated pink (``c_pink``): one 1/f time stream common to all outputs, each output
+  seeing it in its own scan order;
+* uncorrelated pink (``u_pink``): one independent 1/f stream per output;
+* alternating column noise (``acn``): per output, independent 1/f streams on the even
+  and on the odd pixel times (NGHXRG's ``a``/``b`` vectors at cadence 2τ, interleaved);
+* picture frame (``picture_frame``): a static spatial template brighter toward the
+  detector edges (:func:`picture_frame_template`, ours: NGHXRG's PCA-zero file is a
+  NIRSpec measurement we do not ship) times a N(0, 1) amplitude per frame;
+* pedestal drift (``pedestal``): a N(0, pedestal²) offset per output per frame.
+
+Model PSD (one-sided, e-²/Hz, frequency f of the pixel-time stream of one output, Nyquist
+f_N = 1/(2τ)).  A pink component of amplitude σ has
+
+    S(f) = σ² / (f · ln(f_N · tframe))      for f_min ≤ f ≤ f_N,  0 otherwise,
+
+so σ is its rms over the band [1/tframe, f_N] (the noise seen within one frame, as
+NGHXRG normalises its streams per frame); the power below 1/tframe (down to f_min, the
+longest time scale modelled) adds frame-to-frame drifts.  ACN's even/odd streams a, b
+(cadence 2τ, Nyquist f_N/2) each have P_a(f) = σ_acn²/(f ln(f_N tframe/2)) on
+[f_min, f_N/2]; their interleave is stationary with S_acn(f) = ½[P_a(f) + P_a(f_N − f)]
+(the sum (a+b)/2 near 0 Hz, the alternating (a−b)/2·(−1)ⁿ near Nyquist).  One output's
+stream therefore has S_out(f) = S_c(f) + S_u(f) + S_acn(f) (:func:`model_psd`).
+
+Default amplitudes are NGHXRG's (``mknoise``: c_pink 3, u_pink 1, acn 0.5, pca0_amp 0.2,
+pedestal 4 e-), which resemble JWST NIRSpec's H2RGs (Rauscher 2015, §4); no better-cited
+per-component numbers for an H4RG-10 were found (Mosby et al. 2020, JATIS 6, 046001 give
+totals only), so these are the defaults.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from slicersim.errors import EffectsError
+
+__all__ = ["CorrelatedNoiseParameters", "ReadoutGeometry", "pink_psd", "acn_psd", "model_psd",
+           "autocovariance", "group_mean_variance", "picture_frame_template", "crossover_low",
+           "METHODS"]
+
+#: generators of :class:`slicersim.backends.correlated_noise.CorrelatedNoise`
+METHODS = ("exact", "multirate", "group", "white")
+
+
+def _nonneg(name, value):
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise EffectsError(f"correlated noise: {name} must be a number ≥ 0, got {value!r}") from exc
+    if not (math.isfinite(v) and v >= 0):
+        raise EffectsError(f"correlated noise: {name} must be finite and ≥ 0, got {value!r}")
+    return v
+
+
+def _posint(name, value, minimum=1):
+    if isinstance(value, bool) or int(value) != value or int(value) < minimum:
+        raise EffectsError(f"correlated noise: {name} must be an integer ≥ {minimum}, got {value!r}")
+    return int(value)
+
+
+@dataclass(kw_only=True)
+class CorrelatedNoiseParameters:
+    """Amplitudes [e-] and readout clocking of the correlated read noise (keyword-only).
+
+    c_pink, u_pink, acn : rms [e-] of each pink component over [1/tframe, f_N] (see module doc);
+    picture_frame : rms [e-] over the detector of the frame template per unit amplitude;
+    pedestal : rms [e-] of the per-output, per-frame offset;
+    f_min : Hz, lowest frequency of the 1/f spectra (default 1 mHz ≈ 1/(17 min));
+    n_outputs : video outputs (32 for an H4RG-10); nroh : pixel times of row overhead;
+    nfoh : rows of frame overhead.
+    """
+
+    c_pink: float = 3.0
+    u_pink: float = 1.0
+    acn: float = 0.5
+    picture_frame: float = 0.2
+    pedestal: float = 4.0
+    f_min: float = 1e-3
+    n_outputs: int = 32
+    nroh: int = 12
+    nfoh: int = 1
+
+    def __post_init__(self):
+        for name in ("c_pink", "u_pink", "acn", "picture_frame", "pedestal"):
+            setattr(self, name, _nonneg(name, getattr(self, name)))
+        self.f_min = _nonneg("f_min", self.f_min)
+        if self.f_min <= 0:
+            raise EffectsError(f"correlated noise: f_min must be > 0 Hz, got {self.f_min!r}")
+        self.n_outputs = _posint("n_outputs", self.n_outputs)
+        self.nroh = _posint("nroh", self.nroh, 0)
+        self.nfoh = _posint("nfoh", self.nfoh, 0)
+
+
+@dataclass(frozen=True)
+class ReadoutGeometry:
+    """Clocking of one frame: ``ny`` rows × ``nx`` columns over ``n_outputs`` outputs.
+
+    ncol = nx / n_outputs columns per output; row_len = ncol + nroh and
+    frame_len = row_len·(ny + nfoh) pixel times; dwell = tframe / frame_len [s].
+    """
+
+    ny: int
+    nx: int
+    n_outputs: int
+    nroh: int
+    nfoh: int
+    tframe: float
+
+    def __post_init__(self):
+        for name in ("ny", "nx", "n_outputs"):
+            _posint(name, getattr(self, name))
+        if self.nx % self.n_outputs:
+            raise EffectsError(f"correlated noise: nx = {self.nx} columns is not divisible by "
+                               f"n_outputs = {self.n_outputs}")
+        if (self.ncol + self.nroh) % 2:
+            raise EffectsError(f"correlated noise: columns per output + nroh = {self.ncol} + {self.nroh} "
+                               "must be even (alternating columns must keep their parity from row to row)")
+        if not (math.isfinite(self.tframe) and self.tframe > 0):
+            raise EffectsError(f"correlated noise: tframe must be > 0 s, got {self.tframe!r}")
+
+    @classmethod
+    def from_params(cls, params, shape, tframe):
+        ny, nx = (int(v) for v in shape)
+        return cls(ny, nx, params.n_outputs, params.nroh, params.nfoh, float(tframe))
+
+    @property
+    def ncol(self):
+        """Columns per output."""
+        return self.nx // self.n_outputs
+
+    @property
+    def row_len(self):
+        """Pixel times per row (columns + row overhead)."""
+        return self.ncol + self.nroh
+
+    @property
+    def frame_rows(self):
+        """Row times per frame (rows + frame overhead)."""
+        return self.ny + self.nfoh
+
+    @property
+    def frame_len(self):
+        """Pixel times per frame and output."""
+        return self.row_len * self.frame_rows
+
+    @property
+    def dwell(self):
+        """Pixel dwell time τ = tframe / frame_len [s]."""
+        return self.tframe / self.frame_len
+
+    @property
+    def f_nyquist(self):
+        """Nyquist frequency of the pixel clock 1/(2τ) [Hz]."""
+        return 0.5 / self.dwell
+
+    @property
+    def row_time(self):
+        """Time of one row, row_len·τ [s]."""
+        return self.row_len * self.dwell
+
+    def scan_index(self, x):
+        """Position j ∈ [0, ncol) of column(s) x in its output's scan (odd outputs reversed)."""
+        x = np.asarray(x)
+        out, xl = np.divmod(x, self.ncol)
+        return np.where(out % 2 == 0, xl, self.ncol - 1 - xl)
+
+    def sample_index(self, frame, y, x):
+        """Pixel-time index n of pixel (y, x) in frame ``frame``: t = n·τ from the ramp's first read."""
+        return (np.asarray(frame, np.int64) * self.frame_len + np.asarray(y, np.int64) * self.row_len
+                + self.scan_index(x))
+
+
+# --------------------------------------------------------------------------- PSD model
+def pink_psd(f, sigma, geometry, f_min):
+    """One-sided 1/f PSD [e-²/Hz] with rms ``sigma`` [e-] over [1/tframe, f_N], cut outside [f_min, f_N]."""
+    f = np.asarray(f, dtype=float)
+    norm = sigma**2 / math.log(geometry.f_nyquist * geometry.tframe)
+    inside = (f >= f_min) & (f <= geometry.f_nyquist)
+    return np.where(inside, norm / np.where(f > 0, f, 1.0), 0.0)
+
+
+def _acn_half(f, sigma, geometry, f_min):
+    """P_a(f)/2: half the PSD of one of ACN's even/odd streams (cadence 2τ) [e-²/Hz]."""
+    f = np.asarray(f, dtype=float)
+    fa = 0.5 * geometry.f_nyquist
+    norm = sigma**2 / math.log(fa * geometry.tframe)
+    inside = (f >= f_min) & (f <= fa)
+    return np.where(inside, 0.5 * norm / np.where(f > 0, f, 1.0), 0.0)
+
+
+def acn_psd(f, sigma, geometry, f_min):
+    """Stationary PSD of alternating column noise in the pixel-time stream [e-²/Hz]:
+    ½[P_a(f) + P_a(f_N − f)] (the sum of the even/odd streams near 0, their difference near f_N)."""
+    f = np.asarray(f, dtype=float)
+    return _acn_half(f, sigma, geometry, f_min) + _acn_half(geometry.f_nyquist - f, sigma, geometry, f_min)
+
+
+def model_psd(f, params, geometry, component="output"):
+    """Model PSD [e-²/Hz, one-sided] of one output's pixel-time stream.
+
+    component: "c_pink", "u_pink", "acn", "own" (u_pink + acn: independent per output) or
+    "output" (all three; picture frame and pedestal are per-frame, not stationary streams).
+    """
+    fm = params.f_min
+    parts = {"c_pink": lambda: pink_psd(f, params.c_pink, geometry, fm),
+             "u_pink": lambda: pink_psd(f, params.u_pink, geometry, fm),
+             "acn": lambda: acn_psd(f, params.acn, geometry, fm)}
+    if component in parts:
+        return parts[component]()
+    if component == "own":
+        return parts["u_pink"]() + parts["acn"]()
+    if component == "output":
+        return parts["c_pink"]() + parts["u_pink"]() + parts["acn"]()
+    raise EffectsError(f"correlated noise: unknown PSD component {component!r}")
+
+
+def crossover_low(f, nu_c):
+    """Power fraction W_L²(f) given to the low-frequency generator: 1 below ν_c/2, 0 above 2ν_c,
+    cos² in log f between (W_L² + W_H² = 1 with W_H² = 1 − W_L²)."""
+    f = np.asarray(f, dtype=float)
+    u = np.clip((np.log2(np.maximum(f, 1e-300) / nu_c) + 1.0) / 2.0, 0.0, 1.0)
+    return np.cos(0.5 * np.pi * u) ** 2
+
+
+def _log_grid(lo, hi, per_decade=400):
+    n = int(max(8, per_decade * math.log10(hi / lo)))
+    edges = np.geomspace(lo, hi, n + 1)
+    return np.sqrt(edges[:-1] * edges[1:]), np.diff(edges)
+
+
+def autocovariance(lags, params, geometry, component="output"):
+    """R(lag) = ∫ S(f) cos(2π f lag) df [e-²] of the stationary stream (lags in s; numerical,
+    relative error ≲ 1e-3 for lags ≤ a few thousand frames)."""
+    lags = np.atleast_1d(np.asarray(lags, dtype=float))
+    f, df = _log_grid(params.f_min, geometry.f_nyquist, 4000)
+    w = model_psd(f, params, geometry, component) * df
+    return np.array([np.sum(w * np.cos(2 * np.pi * f * lag)) for lag in lags])
+
+
+def group_mean_variance(m, params, geometry, component="output", include_frame_terms=True):
+    """Variance [e-²] of the mean of m consecutive reads of one pixel (reads tframe apart):
+    (1/m²) Σ_ij R(|i − j|·tframe), plus (pedestal² + picture_frame²)/m when include_frame_terms
+    (their per-frame draws are independent; the picture-frame template has unit rms)."""
+    m = _posint("m", m)
+    lags = np.arange(m) * geometry.tframe
+    r = autocovariance(lags, params, geometry, component)
+    weights = np.where(np.arange(m) == 0, m, 2.0 * (m - np.arange(m)))
+    var = float(np.sum(weights * r)) / m**2
+    if include_frame_terms and component == "output":
+        var += (params.pedestal**2 + params.picture_frame**2) / m
+    return var
+
+
+def picture_frame_template(shape, width=0.04):
+    """Static picture-frame pattern, unit rms over the detector, brighter toward the edges:
+    exp(−d_y/w) + exp(−d_x/w) minus its mean, with d the distance to the nearest edge as a
+    fraction of the detector size and w = ``width`` (our own template; NGHXRG uses a
+    measured NIRSpec PCA-zero image)."""
+    ny, nx = shape
+    dy = np.minimum(np.arange(ny) + 0.5, ny - 0.5 - np.arange(ny)) / ny
+    dx = np.minimum(np.arange(nx) + 0.5, nx - 0.5 - np.arange(nx)) / nx
+    ey, ex = np.exp(-dy / width), np.exp(-dx / width)
+    ey, ex = ey - ey.mean(), ex - ex.mean()
+    rms = math.sqrt(float(np.mean(ey**2) + np.mean(ex**2)))
+    return (ey / rms).astype(np.float32), (ex / rms).astype(np.float32)
