@@ -1,0 +1,278 @@
+"""JWST level-1b ("uncal") export: stdatamodels reads and validates it, SCI is bit-identical to
+the HDF5 ramp, GROUP / INT_TIMES / exposure keywords follow the JWST definitions, writes are
+atomic and refused early, truth extensions survive a round trip."""
+import datetime as dt
+import os
+import subprocess
+import sys
+import tracemalloc
+import warnings
+
+import numpy as np
+import pytest
+
+from slicersim.errors import RampFileError
+from slicersim.io import uncal
+from slicersim.io.atomic import _host_tag
+from slicersim.io.rampfile import read_ramps
+from slicersim.io.uncal import UncalWriter, read_uncal, read_uncal_truth, truth_extname, write_uncal_from_hdf5
+from slicersim.products.ramps import simulate
+
+datamodels = pytest.importorskip("stdatamodels.jwst.datamodels")
+
+NMD, NINTS, TFRAME = (4, 2, 1), 2, 2.83
+CR_DTYPE = [("ramp", "<u4"), ("frame", "<u4"), ("y", "<u2"), ("x", "<u2"), ("electrons", "<f4")]
+
+
+def _attrs(**extra):
+    n, m, d = NMD
+    return {"NINTS": NINTS, "NGROUPS": n, "NFRAMES": m, "GROUPGAP": d, "TFRAME": TFRAME,
+            "TGROUP": (m + d) * TFRAME, "READPATT": "MACC(4,2,1)", "SEED": 5, "BUNIT": "ADU", **extra}
+
+
+def _open_strict(path):
+    """Level1bModel with schema violations as errors (stdatamodels otherwise drops bad values
+    with a warning and validate() then passes)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model = datamodels.Level1bModel(str(path), strict_validation=True)
+        model.validate()
+    return model
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A 64×64 MACC(4,2,1) ramp, 2 integrations, simulated to HDF5 and converted to FITS."""
+    d = tmp_path_factory.mktemp("uncal")
+    rate = np.random.default_rng(3).uniform(0.0, 50.0, (64, 64))
+    h5 = simulate(rate, nmd=NMD, nramps=NINTS, seed=11, out=str(d / "ramp.h5"), tframe=TFRAME,
+                  backend="numpy", progress=False)
+    fits_path = write_uncal_from_hdf5(h5, d / "ramp_uncal.fits", start_mjd=60000.25)
+    return h5, fits_path, rate
+
+
+# --------------------------------------------------------------------------- stdatamodels
+def test_level1b_model_opens_and_validates(exported):
+    h5, path, _ = exported
+    model = _open_strict(path)
+    sci, gdq, pdq, attrs = read_ramps(h5)
+    assert model.data.dtype == np.uint16 and model.data.shape == (NINTS, NMD[0], 64, 64)
+    np.testing.assert_array_equal(model.data, sci)               # same seed, same SCI values
+    assert model.meta.exposure.nints == NINTS and model.meta.exposure.ngroups == NMD[0]
+    assert model.meta.instrument.name == "N/A" and model.meta.telescope == "Lazuli"
+    assert model.meta.subarray.name == "FULL"
+    # GROUPDQ / PIXELDQ are not Level1bModel attributes: RampModel reads them from the same file
+    ramp_model = datamodels.RampModel(str(path))
+    np.testing.assert_array_equal(ramp_model.groupdq, gdq)
+    np.testing.assert_array_equal(ramp_model.pixeldq, pdq)
+
+
+def test_schema_enumerations_are_enforced_by_the_check(tmp_path):
+    """The strict check used above does catch a non-JWST instrument name (so passing it means
+    something); our default INSTRUME "N/A" is one of the schema's values."""
+    path = tmp_path / "bad.fits"
+    with UncalWriter(path, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2), keywords={"INSTRUME": "LAZULI"}):
+        pass
+    with pytest.raises(Exception, match="LAZULI"):
+        _open_strict(path)
+
+
+def test_sci_groupdq_pixeldq_identical_to_hdf5(exported):
+    h5, path, _ = exported
+    sci, gdq, pdq, _ = read_ramps(h5)
+    fsci, fgdq, fpdq, header = read_uncal(path)
+    assert fsci.dtype == np.uint16 and fgdq.dtype == np.uint8 and fpdq.dtype == np.uint32
+    np.testing.assert_array_equal(fsci, sci)
+    np.testing.assert_array_equal(fgdq, gdq)
+    np.testing.assert_array_equal(fpdq, pdq)
+    assert header["SLICERSIM SEED"] == read_ramps(h5)[3]["SEED"]
+
+
+# --------------------------------------------------------------------------- keywords and tables
+def test_exposure_keywords_follow_the_jwst_definitions(exported):
+    _, path, _ = exported
+    n, m, d = NMD
+    h = read_uncal(path)[3]
+    assert (h["NINTS"], h["NGROUPS"], h["NFRAMES"], h["GROUPGAP"]) == (NINTS, n, m, d)
+    assert h["TFRAME"] == TFRAME and h["TGROUP"] == pytest.approx((m + d) * TFRAME, rel=1e-12)
+    # EFFINTTM: first to last group, (n − 1)(m + d) t_f = 3·3·2.83 s (JWST keyword dictionary)
+    assert h["EFFINTTM"] == pytest.approx((n - 1) * (m + d) * TFRAME, rel=1e-12)
+    assert h["EFFINTTM"] == pytest.approx(25.47, rel=1e-12)
+    assert h["TMEASURE"] == pytest.approx(NINTS * 25.47, rel=1e-12)
+    # photon collection n m + (n − 1) d = 11 frames per integration; one reset frame each
+    assert h["EFFEXPTM"] == pytest.approx(NINTS * 11 * TFRAME, rel=1e-12)
+    assert h["DURATION"] == pytest.approx((NINTS * 11 + NINTS) * TFRAME, rel=1e-12)
+    assert (h["NRSTSTRT"], h["NRESETS"], h["DRPFRMS1"], h["DRPFRMS3"]) == (1, 1, 0, 0)
+    assert h["FRMDIVSR"] == m and h["ZEROFRAM"] is False and h["DATAPROB"] is False
+    assert (h["SUBSTRT1"], h["SUBSTRT2"], h["SUBSIZE1"], h["SUBSIZE2"]) == (1, 1, 64, 64)
+    assert h["READPATT"] == "N/A" and h["SLICERSIM READPATT"] == "MACC(4,2,1)"
+    assert h["ORIGIN"] == "slicersim" and h["EXPSTART"] == 60000.25
+    assert h["EXPEND"] == pytest.approx(60000.25 + h["DURATION"] / 86400, abs=1e-9)
+    model = _open_strict(path)
+    assert model.meta.exposure.effective_exposure_time == pytest.approx(h["EFFEXPTM"])   # XPOSURE (SCI)
+    assert model.meta.exposure.elapsed_exposure_time == pytest.approx(h["DURATION"])      # TELAPSE (SCI)
+    assert model.meta.bunit_data == "DN"
+
+
+def test_group_table_times(exported):
+    _, path, _ = exported
+    n, m, d = NMD
+    group = _open_strict(path).group
+    assert len(group) == NINTS * n
+    assert list(group["integration_number"]) == [1] * n + [2] * n
+    assert list(group["group_number"]) == [1, 2, 3, 4] * NINTS
+    ends = np.array([(dt.datetime.fromisoformat(t) - dt.datetime(2000, 1, 1)).total_seconds()
+                     for t in group["group_end_time"]])
+    # the split day / millisecond / microsecond fields say the same as the ISO string
+    split = group["end_day"] * 86400.0 + group["end_milliseconds"] / 1e3 + group["end_submilliseconds"] / 1e6
+    np.testing.assert_allclose(split, ends, atol=1e-6, rtol=0)
+    steps = np.diff(ends.reshape(NINTS, n), axis=1)
+    np.testing.assert_allclose(steps, (m + d) * TFRAME, atol=2e-6)          # TGROUP apart
+    # a group ends with its m-th frame: the first one m frames after the start reset frame,
+    # the next integration's first one its own reset frame and m frames after the last group
+    start = (60000.25 - 51544.0) * 86400.0                                   # EXPSTART since 2000-01-01
+    assert ends[0] - start == pytest.approx((1 + m) * TFRAME, abs=2e-6)
+    assert ends[n] - ends[n - 1] == pytest.approx((1 + m) * TFRAME, abs=2e-6)
+    assert set(group["number_of_columns"]) == {64} and set(group["number_of_rows"]) == {64}
+
+
+def test_int_times_table(exported):
+    _, path, _ = exported
+    model = _open_strict(path)
+    it, group = model.int_times, model.group
+    assert len(it) == NINTS and list(it["integration_number"]) == [1, 2]
+    length = (it["int_end_MJD_UTC"] - it["int_start_MJD_UTC"]) * 86400.0
+    np.testing.assert_allclose(length, 11 * TFRAME, atol=1e-4)               # 11 frames each
+    np.testing.assert_allclose(it["int_mid_MJD_UTC"], 0.5 * (it["int_start_MJD_UTC"] + it["int_end_MJD_UTC"]))
+    last = group[group["group_number"] == NMD[0]]
+    last_mjd = 51544.0 + (last["end_day"] + last["end_milliseconds"] / 86400e3
+                          + last["end_submilliseconds"] / 86400e6)
+    np.testing.assert_allclose(it["int_end_MJD_UTC"], last_mjd, atol=1e-4 / 86400)   # ends with its last group
+    assert np.all(np.isnan(it["int_mid_BJD_TDB"]))                            # no position known: not faked
+
+
+# --------------------------------------------------------------------------- truth
+def test_truth_extensions_round_trip(tmp_path, exported):
+    _, path, rate = exported
+    truth = read_uncal_truth(path)
+    np.testing.assert_array_equal(truth["truth/rate"], rate.astype(np.float32))
+    rng = np.random.default_rng(0)
+    cr = np.zeros(7, dtype=CR_DTYPE)
+    cr["ramp"], cr["frame"] = rng.integers(0, 2, 7), [0, 1, 2, 3, 4, 2**32 - 1, 9]
+    cr["y"], cr["x"], cr["electrons"] = [0, 65535, 3, 4, 5, 6, 7], rng.integers(0, 64, 7), rng.random(7) * 1e4
+    inverse = rng.normal(size=(3, 8, 8))
+    mask = rng.random((8, 8)) > 0.5
+    out = tmp_path / "truth.fits"
+    with UncalWriter(out, 1, 4, (8, 8), attrs=_attrs(NINTS=1)) as w:
+        w.write_block(0, 0, np.zeros((4, 8, 8), np.uint16))
+        w.write_dataset("truth/cosmic_rays", cr)
+        w.write_dataset("truth/nonlinearity/inverse_coefficients", inverse)
+        w.write_dataset("truth/bad_pixels/mask", mask)
+        with pytest.raises(RampFileError, match="already written"):
+            w.write_dataset("truth/cosmic_rays", cr)
+    back = read_uncal_truth(out)
+    assert back["truth/cosmic_rays"].dtype == np.dtype(CR_DTYPE)
+    np.testing.assert_array_equal(back["truth/cosmic_rays"], cr)
+    np.testing.assert_array_equal(back["truth/nonlinearity/inverse_coefficients"], inverse)
+    assert back["truth/bad_pixels/mask"].dtype == bool
+    np.testing.assert_array_equal(back["truth/bad_pixels/mask"], mask)
+    model = _open_strict(out)                        # tolerated as extra extensions
+    assert "TRUTH_CR" in model.extra_fits.instance and "TRUTH_NONLINEARITY_INVERSE_COEFFICIENTS" in model.extra_fits.instance
+    assert truth_extname("cosmic_rays") == "TRUTH_CR" and truth_extname("truth/rate") == "TRUTH_RATE"
+
+
+# --------------------------------------------------------------------------- atomic writes, refusals
+def test_exception_leaves_no_file(tmp_path):
+    out = tmp_path / "x.fits"
+    with pytest.raises(ZeroDivisionError):
+        with UncalWriter(out, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2)) as w:
+            w.write_block(0, 0, np.ones((2, 4, 4), np.uint16))
+            1 / 0
+    assert os.listdir(tmp_path) == []
+
+
+def test_existing_file_refused_unless_overwrite(tmp_path):
+    out = tmp_path / "x.fits"
+    out.write_bytes(b"precious")
+    with pytest.raises(RampFileError, match="exists"):
+        UncalWriter(out, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2)).check()
+    assert out.read_bytes() == b"precious"
+    with UncalWriter(out, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2), overwrite=True) as w:
+        w.write_block(0, 0, np.full((2, 4, 4), 7, np.uint16))
+    assert read_uncal(out)[0].max() == 7
+
+
+def test_two_writers_one_wins(tmp_path):
+    out = tmp_path / "x.fits"
+    first = UncalWriter(out, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2)).__enter__()
+    second = UncalWriter(out, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2)).__enter__()
+    first.write_block(0, 0, np.full((2, 4, 4), 1, np.uint16))
+    second.write_block(0, 0, np.full((2, 4, 4), 2, np.uint16))
+    first.__exit__(None, None, None)
+    with pytest.raises(RampFileError, match="another writer finished first"):
+        second.__exit__(None, None, None)
+    assert read_uncal(out)[0].max() == 1 and os.listdir(tmp_path) == ["x.fits"]
+
+
+def test_killed_writer_temporary_is_cleaned(tmp_path):
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".x.fits.tmp-{dead.pid}-{_host_tag()}00aa"
+    stale.write_bytes(b"half")
+    with UncalWriter(tmp_path / "y.fits", 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2)):
+        pass
+    assert sorted(os.listdir(tmp_path)) == ["y.fits"]
+
+
+def test_disk_space_refused_before_anything(tmp_path, monkeypatch):
+    class Usage:
+        total, used, free = 10**9, 10**9 - 10**6, 10**6
+    monkeypatch.setattr(uncal.shutil, "disk_usage", lambda _: Usage)
+    writer = UncalWriter(tmp_path / "big.fits", 2, 16, (2048, 2048), attrs=_attrs(NINTS=2, NGROUPS=16))
+    with pytest.raises(RampFileError, match="not enough disk space"):
+        writer.check()
+    with pytest.raises(RampFileError, match="not enough disk space"):
+        writer.__enter__()
+    assert os.listdir(tmp_path) == []
+
+
+def test_bad_input_is_one_clear_error(tmp_path):
+    out = tmp_path / "x.fits"
+    with pytest.raises(RampFileError, match="TFRAME"):
+        UncalWriter(out, 1, 2, (4, 4), attrs={"NFRAMES": 1, "GROUPGAP": 0}).check()
+    with pytest.raises(RampFileError, match="NGROUPS"):
+        UncalWriter(out, 1, 2, (4, 4), attrs=_attrs(NINTS=1)).check()          # says 4 groups
+    with pytest.raises(RampFileError, match="uncompressed"):
+        UncalWriter(out, 1, 2, (4, 4), compression="gzip")
+    with pytest.raises(RampFileError, match="directory does not exist"):
+        UncalWriter(tmp_path / "no" / "x.fits", 1, 2, (4, 4)).check()
+    with UncalWriter(out, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2)) as w:
+        with pytest.raises(RampFileError, match="SCI block"):
+            w.write_block(0, 0, np.zeros((3, 4, 4), np.uint16))
+        with pytest.raises(RampFileError, match="outside"):
+            w.write_block(0, 2, np.zeros((2, 4, 4), np.uint16))
+        with pytest.raises(RampFileError, match=r"\[0, 65535\]"):
+            w.write_block(0, 0, np.full((2, 4, 4), 70000))
+        w.write_block(0, 0, np.full((2, 4, 4), 65535))                        # int64 in range: fine
+    assert read_uncal(out)[0].min() == 65535
+
+
+def test_conversion_streams_in_blocks(tmp_path):
+    """Converting a 16 MiB SCI with a 1 MiB budget never holds SCI in memory."""
+    n, ny, nx = 8, 512, 512
+    h5 = tmp_path / "big.h5"
+    from slicersim.io.rampfile import RampWriter
+    sci = np.arange(n * ny * nx, dtype=np.uint64).astype(np.uint16).reshape(n, ny, nx)
+    with RampWriter(h5, 2, n, (ny, nx), attrs=_attrs(NINTS=2, NGROUPS=n, NFRAMES=1, GROUPGAP=0)) as w:
+        for ramp in range(2):
+            w.write_block(ramp, 0, sci)
+    del w
+    write_uncal_from_hdf5(h5, tmp_path / "warm.fits")             # imports (astropy) outside the trace
+    tracemalloc.start()
+    write_uncal_from_hdf5(h5, tmp_path / "big.fits", memory_budget=1 << 20)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    print(f"peak traced memory {peak / 2**20:.2f} MiB for a {2 * 2 * n * ny * nx / 2**20:.0f} MiB SCI")
+    assert peak < 2 * 2 * n * ny * nx / 4                                   # < a quarter of SCI
+    back = read_uncal(tmp_path / "big.fits")[0]
+    np.testing.assert_array_equal(back[1], sci)
