@@ -276,3 +276,23 @@ def test_conversion_streams_in_blocks(tmp_path):
     assert peak < 2 * 2 * n * ny * nx / 4                                   # < a quarter of SCI
     back = read_uncal(tmp_path / "big.fits")[0]
     np.testing.assert_array_equal(back[1], sci)
+
+
+def test_simulate_through_the_writer_interface(tmp_path, monkeypatch, exported):
+    """UncalWriter is a drop-in for RampWriter in simulate() (what ``--format jwst-uncal`` does):
+    the same seed gives the same SCI in both formats, and the root attributes (CONFIG as JSON)
+    are kept as SLICERSIM keywords."""
+    import json
+
+    import slicersim.products.ramps as ramps
+    h5, _, rate = exported
+    monkeypatch.setattr(ramps, "RampWriter", UncalWriter)
+    config = {"detector": {"ron": 12.0, "note": "σ ≥ 0"}, "list": list(range(40))}
+    out = simulate(rate, nmd=NMD, nramps=NINTS, seed=11, out=str(tmp_path / "direct.fits"), tframe=TFRAME,
+                   backend="numpy", progress=False, config=config)
+    model = _open_strict(out)
+    np.testing.assert_array_equal(model.data, read_ramps(h5)[0])
+    header = read_uncal(out)[3]
+    assert json.loads(header["SLICERSIM CONFIG"]) == config
+    assert header["SLICERSIM READPATT"] == "MACC(4,2,1)" and header["SLICERSIM GAIN"] == 1.0
+    np.testing.assert_array_equal(read_uncal_truth(out)["truth/rate"], rate.astype(np.float32))

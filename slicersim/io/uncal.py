@@ -29,9 +29,9 @@ has 32 outputs).
 
 Timing keywords follow the JWST keyword dictionary (archive.stsci.edu/jwst/keyword, build 11):
 TGROUP = (NFRAMES + GROUPGAP)·TFRAME; EFFINTTM = (NGROUPS − 1)·TGROUP, the time between the
-first and last group (the dictionary's "(NGROUPS−1)·TGROUP + TGROUP0"; JWST Webb Office
-Hours, 22 Feb 2024: "the effective integration time is the time interval between the first
-and last group"); TMEASURE = TGROUP·(NGROUPS − 1)·NINTS; EFFEXPTM = XPOSURE =
+first and last group (the dictionary writes "(NGROUPS−1)·TGROUP + TGROUP0" without defining
+TGROUP0, taken as 0 here after JWST Webb Office Hours, 22 Feb 2024: "the effective integration
+time is the time interval between the first and last group"); TMEASURE = TGROUP·(NGROUPS − 1)·NINTS; EFFEXPTM = XPOSURE =
 TFRAME·(NGROUPS·NFRAMES + (NGROUPS − 1)·GROUPGAP + DRPFRMS1)·NINTS (photon collection time);
 DURATION = TELAPSE = EFFEXPTM + TFRAME·(DRPFRMS3·NINTS + NRSTSTRT + NRESETS·(NINTS − 1)).
 Defaults: one reset frame before each integration (NRSTSTRT = NRESETS = 1), no dropped
@@ -43,6 +43,7 @@ times are NaN (no target or observatory position is known here).
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import io
 import json
@@ -67,7 +68,6 @@ DEFAULT_KEYWORDS = {"TELESCOP": "Lazuli", "INSTRUME": "N/A", "DETECTOR": "N/A", 
                     "DATAMODL": "Level1bModel", "ZEROFRAM": False, "DATAPROB": False,
                     "FASTAXIS": 1, "SLOWAXIS": 2}
 _TIMING_DEFAULTS = {"NRSTSTRT": 1, "NRESETS": 1, "DRPFRMS1": 0, "DRPFRMS3": 0}
-_RESERVED = {"PRIMARY", "SCI", "GROUPDQ", "PIXELDQ", "GROUP", "INT_TIMES", "ASDF", "ZEROFRAME", "REFOUT"}
 _ALIASES = {"rate": "TRUTH_RATE", "cosmic_rays": "TRUTH_CR"}
 #: (BITPIX, BZERO, storage dtype) of each image dtype; the stored value is value − BZERO
 _IMAGE_TYPES = {"u1": (8, None, ">u1"), "i1": (8, -128, ">u1"), "u2": (16, 32768, ">i2"),
@@ -122,6 +122,7 @@ def _card_value(val):
 
 
 def _mjd(when):
+    """MJD of a naive UTC datetime (calendar arithmetic, no leap seconds)."""
     return (when - _MJD0).total_seconds() / 86400.0
 
 
@@ -343,18 +344,13 @@ class UncalWriter:
         return False
 
     def _abort(self):
-        if self._fd is not None:
-            try:
-                os.close(self._fd)
-            except OSError:
-                pass
-            self._fd = None
-        if self._tmp is not None:
-            try:
-                os.remove(self._tmp)
-            except FileNotFoundError:
-                pass
-            self._tmp = None
+        fd, tmp, self._fd, self._tmp = self._fd, self._tmp, None, None
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(tmp)
 
     def _pwrite(self, data, offset):
         view, done = memoryview(data).cast("B"), 0
@@ -380,7 +376,7 @@ class UncalWriter:
             raise RampFileError(f"writing {self.path} failed: {one_line(exc)}") from exc
 
     # ------------------------------------------------------------------ headers
-    def _times(self, timing):
+    def _start_mjd(self):
         start = self.start_mjd if self.start_mjd is not None else self.attrs.get("EXPSTART")
         return _mjd(_dt.datetime.now(_dt.timezone.utc).replace(tzinfo=None)) if start is None else float(start)
 
@@ -415,7 +411,7 @@ class UncalWriter:
         return out
 
     def _layout(self, timing):
-        t0 = self._times(timing)
+        t0 = self._start_mjd()
         ny, nx = self.shape
         dims = (self.nramps, self.ngroups, ny, nx)
         self._append(_header(self._primary_cards(timing, t0)))
@@ -523,7 +519,9 @@ class UncalWriter:
 
         ``array`` may be an h5py dataset: images are copied in slices of the first axis."""
         extname = truth_extname(name)
-        if extname in self._extnames or extname in _RESERVED:
+        if not hasattr(array, "dtype"):
+            array = np.asarray(array)
+        if extname in self._extnames:                      # every truth EXTNAME starts with TRUTH_
             raise RampFileError(f"{self.path}: extension {extname} (dataset {name!r}) already written")
         dtype, shape = np.dtype(array.dtype), tuple(array.shape)
         extra = [("H5PATH", _ascii(name)), ("H5DTYPE", json.dumps(dtype.descr) if dtype.names else str(dtype))]
