@@ -1,25 +1,70 @@
 /*
  * ramp_readout.cl: the voltage-domain end of an H4RG read chain for ramps with
  * detector effects (ramp.cl built with -DRAMP_EFFECTS=1 gives the group means of
- * the read values).  One work item = one pixel of the block's output rows, all
- * groups g of one ramp:
+ * the read values).  One work item = RNG_VW consecutive pixels of one output row
+ * (explicit vector lanes, lanes past the row end are computed on a clamped column
+ * and not stored), all groups g of one ramp:
  *   v    = sum_{dy,dx} K[dy][dx] * gmean[g, y+dy, x+dx]   inter-pixel capacitance
- *          (3x3 kernel, rows in the halo of the block, zero outside the detector)
+ *          (3x3 kernel, row-major order of the sum; rows from the block's halo,
+ *          zero outside the detector)
  *   mean = v + read_sigma * z_g + extra[g, y, x]          white read noise (the same
  *          Philox counters as the plain ramp) + correlated read noise [e-]
  *   adu  = rint(bias[y, x] + gain * (reset + mean)),  clipped to [0, 65535]
  * reset = kTC noise (plain ramp's counters).  GROUPDQ bit 2 (SATURATED) is sticky
  * from the first group flagged by the charge sampler or reaching `saturation`.
- * The NumPy twin is slicersim/backends/ramp_effects.py (readout_numpy).
+ * Build with -I<kernels dir> -DRNG_VW=N.  NumPy twin: slicersim/backends/ramp_effects.py
+ * (readout_numpy); the two agree bit for bit.
  */
 #define RNG_INLINE inline __attribute__((always_inline))
 #include "philox.cl"
 
 #define P_READ 1u
 #define P_KTC 2u
+#define RO_INLINE inline __attribute__((always_inline))
+
+RO_INLINE rng_double ro_lanes(const double *v)
+{
+#if RNG_VW == 1
+    return v[0];
+#else
+    return RNG_PASTE(vload, RNG_SUFFIX)(0, v);
+#endif
+}
+
+/* lanes of a row segment p[0 .. VW-1]: one vector load when every lane is inside the row */
+RO_INLINE rng_double ro_load_d(__global const double *p, const int nl)
+{
+#if RNG_VW > 1
+    if (nl == RNG_VW)
+        return RNG_PASTE(vload, RNG_SUFFIX)(0, p);
+#endif
+    double v[RNG_VW];
+    for (int l = 0; l < RNG_VW; ++l)
+        v[l] = p[l < nl ? l : nl - 1];
+    return ro_lanes(v);
+}
+
+RO_INLINE rng_double ro_load_f(__global const float *p, const int nl)
+{
+#if RNG_VW > 1
+    if (nl == RNG_VW)
+        return rng_convert_double(RNG_PASTE(vload, RNG_SUFFIX)(0, p));
+#endif
+    double v[RNG_VW];
+    for (int l = 0; l < RNG_VW; ++l)
+        v[l] = (double)p[l < nl ? l : nl - 1];
+    return ro_lanes(v);
+}
+
+RO_INLINE void ro_block(const rng_ulong index, const uint stream, uint k0, uint k1, rng_uint *a, rng_uint *b,
+                        rng_uint *c, rng_uint *d)
+{
+    philox_counter(index, stream, 0u, a, b, c, d);
+    philox4x32_10(a, b, c, d, k0, k1);
+}
 
 __kernel void ramp_readout(
-    __global const double *restrict gmean,   /* (n, rows_in, nx) group means [e-], rows y_in0 .. */
+    __global const double *restrict gmean,   /* (n, rows_in, nx) group means [e-], row halo_top = y0 */
     __global const uchar *restrict qsat,     /* (n, rows_in, nx) charge-saturation flags */
     __global const float *restrict extra,    /* (n, rows, nx) read-domain noise [e-] or unused */
     __global const float *restrict bias_map, /* (rows, nx) [ADU] or unused */
@@ -30,57 +75,101 @@ __kernel void ramp_readout(
     const double gain, const double bias, const double ktc, const double saturation,
     const int use_ipc, const int use_extra, const int use_bias_map)
 {
-    const size_t i = get_global_id(0);
-    if (i >= (size_t)rows * nx)
+    const uint per_row = (nx + RNG_VW - 1) / RNG_VW;
+    const size_t t = get_global_id(0);
+    if (t >= (size_t)rows * per_row)
         return;
-    const uint r = (uint)(i / nx), x = (uint)(i % nx);
-    const uint y = y0 + r;                     /* detector row */
-    const uint ri = r + halo_top;              /* row in gmean */
-    const ulong pix = (ulong)y * nx + x;
+    const uint r = (uint)(t / per_row), x0 = (uint)(t % per_row) * RNG_VW;
+    const uint y = y0 + r, ri = r + halo_top;
+    int nl = (int)nx - (int)x0;                 /* lanes inside the row */
+    nl = nl < RNG_VW ? nl : RNG_VW;
+    uint xs[RNG_VW];
+    ulong pixs[RNG_VW];
+    for (int l = 0; l < RNG_VW; ++l) {
+        xs[l] = l < nl ? x0 + (uint)l : nx - 1u;
+        pixs[l] = (ulong)y * nx + xs[l];
+    }
+#if RNG_VW == 1
+    const rng_ulong pixv = pixs[0];
+#else
+    const rng_ulong pixv = RNG_PASTE(vload, RNG_SUFFIX)(0, pixs);
+#endif
     const uint sbase = 4u * ramp;
-    double reset = 0.0;
+    rng_double reset = 0.0;
     if (ktc > 0.0) {
-        uint a, b, c, d;
-        double unused;
-        philox_counter(pix, sbase + P_KTC, 0u, &a, &b, &c, &d);
-        philox4x32_10(&a, &b, &c, &d, k0, k1);
+        rng_uint a, b, c, d;
+        rng_double unused;
+        ro_block(pixv, sbase + P_KTC, k0, k1, &a, &b, &c, &d);
         reset = ktc * box_muller_lanes(a, b, c, d, &unused);
     }
-    const double b0 = use_bias_map ? (double)bias_map[i] : bias;
+    const size_t o_row = (size_t)r * nx + x0;                   /* output offset of lane 0 */
+    const size_t i_row = (size_t)ri * nx + x0;                  /* input offset of lane 0 */
+    const rng_double b0 = use_bias_map ? ro_load_f(bias_map + o_row, nl) : (rng_double)bias;
     const size_t plane_in = (size_t)rows_in * nx, plane = (size_t)rows * nx;
-    int sat = 0;
-    double z_even = 0.0, z_odd = 0.0;
+    const int interior = nl == RNG_VW && x0 >= 1u && x0 + RNG_VW < nx;
+    rng_double sat = 0.0;                                       /* 1.0 once flagged */
+    rng_double z_even = 0.0, z_odd = 0.0;
     for (int g = 0; g < n; ++g) {
         __global const double *gm = gmean + (size_t)g * plane_in;
-        double v;
+        rng_double v;
         if (use_ipc) {
             v = 0.0;
             for (int dy = -1; dy <= 1; ++dy) {
                 const int yy = (int)y + dy, rr = (int)ri + dy;
-                for (int dx = -1; dx <= 1; ++dx) {
-                    const int xx = (int)x + dx;
-                    const double s = (yy >= 0 && yy < (int)ny && xx >= 0 && xx < (int)nx && rr >= 0 &&
-                                      rr < (int)rows_in) ? gm[(size_t)rr * nx + xx] : 0.0;
-                    v = v + ipc[(dy + 1) * 3 + (dx + 1)] * s;
+                const int row_ok = yy >= 0 && yy < (int)ny && rr >= 0 && rr < (int)rows_in;
+                if (row_ok && interior) {
+                    __global const double *q = gm + (size_t)rr * nx + x0;
+                    for (int dx = -1; dx <= 1; ++dx)
+                        v = v + ipc[(dy + 1) * 3 + (dx + 1)] * ro_load_d(q + dx, RNG_VW);
+                } else {
+                    double s[RNG_VW + 2];       /* columns x0-1 .. x0+VW, zero outside the detector */
+                    for (int l = 0; l < RNG_VW + 2; ++l) {
+                        const int xx = (int)x0 + l - 1;  /* lanes past the row end are not stored */
+                        s[l] = (row_ok && xx >= 0 && xx < (int)nx) ? gm[(size_t)rr * nx + xx] : 0.0;
+                    }
+                    for (int dx = -1; dx <= 1; ++dx)
+                        v = v + ipc[(dy + 1) * 3 + (dx + 1)] * ro_lanes(s + dx + 1);
                 }
             }
         } else {
-            v = gm[(size_t)ri * nx + x];
+            v = ro_load_d(gm + i_row, nl);
         }
         if ((g & 1) == 0) {
-            uint a, b, c, d;
-            philox_counter((((ulong)(g >> 1)) << 32) | pix, sbase + P_READ, 0u, &a, &b, &c, &d);
-            philox4x32_10(&a, &b, &c, &d, k0, k1);
+            rng_uint a, b, c, d;
+            ro_block(((ulong)(g >> 1) << 32) | pixv, sbase + P_READ, k0, k1, &a, &b, &c, &d);
             z_even = box_muller_lanes(a, b, c, d, &z_odd);
         }
-        double mean = v + read_sigma * ((g & 1) ? z_odd : z_even);
+        rng_double mean = v + read_sigma * ((g & 1) ? z_odd : z_even);
         if (use_extra)
-            mean = mean + (double)extra[(size_t)g * plane + i];
-        double adu = rint(b0 + gain * (reset + mean));
-        adu = adu < 0.0 ? 0.0 : adu;
-        adu = adu > 65535.0 ? 65535.0 : adu;
-        sat = sat || qsat[(size_t)g * plane_in + (size_t)ri * nx + x] || (adu >= saturation);
-        sci[(size_t)g * plane + i] = (ushort)adu;
-        gdq[(size_t)g * plane + i] = sat ? (uchar)2 : (uchar)0;
+            mean = mean + ro_load_f(extra + (size_t)g * plane + o_row, nl);
+        rng_double adu = rint(b0 + gain * (reset + mean));
+        adu = RNG_SELECT(adu, (rng_double)0.0, adu < 0.0);
+        adu = RNG_SELECT(adu, (rng_double)65535.0, adu > 65535.0);
+        __global const uchar *qs = qsat + (size_t)g * plane_in + i_row;
+        double qv[RNG_VW];
+        for (int l = 0; l < RNG_VW; ++l)
+            qv[l] = (double)qs[l < nl ? l : nl - 1];
+        sat = RNG_SELECT(sat, (rng_double)1.0, (ro_lanes(qv) > 0.0) || (adu >= saturation));
+        __global ushort *so = sci + (size_t)g * plane + o_row;
+        __global uchar *go = gdq + (size_t)g * plane + o_row;
+#if RNG_VW > 1
+        if (nl == RNG_VW) {
+            RNG_PASTE(vstore, RNG_SUFFIX)(RNG_PASTE(convert_ushort, RNG_SUFFIX)(adu), 0, so);
+            RNG_PASTE(vstore, RNG_SUFFIX)(RNG_PASTE(convert_uchar, RNG_SUFFIX)(sat * 2.0), 0, go);
+            continue;
+        }
+#endif
+        double av[RNG_VW], sv[RNG_VW];
+#if RNG_VW == 1
+        av[0] = adu;
+        sv[0] = sat;
+#else
+        RNG_PASTE(vstore, RNG_SUFFIX)(adu, 0, av);
+        RNG_PASTE(vstore, RNG_SUFFIX)(sat, 0, sv);
+#endif
+        for (int l = 0; l < nl; ++l) {
+            so[l] = (ushort)av[l];
+            go[l] = sv[l] > 0.0 ? (uchar)2 : (uchar)0;
+        }
     }
 }

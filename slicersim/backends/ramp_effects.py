@@ -138,8 +138,10 @@ def _charge_kernel(name, vector_width):
 
 
 def charge_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, fx, work_group=None, vector_width=None, *,
-                        workspace=None):
-    """OpenCL twin of :func:`charge_block_numpy` (same lists and launch geometry as the plain ramp)."""
+                        workspace=None, to_host=True):
+    """OpenCL twin of :func:`charge_block_numpy` (same lists and launch geometry as the plain ramp).
+
+    to_host=False returns the device buffers (gmean, flags) instead, for :func:`readout_opencl`."""
     n, m, d = p.nmd
     npix = mu_frame.size
     vw, work_group = _launch_geometry(vector_width, work_group)
@@ -179,6 +181,8 @@ def charge_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, fx, work_group=No
         # the dense kernel takes gauss_min_mean after the effect arguments
         opencl.launch(kernel, gsize, lsize, d_mu, d_idx, np.uint32(items), d_sci, d_gdq, *common, *effect_args,
                       *extra)
+    if not to_host:
+        return d_gmean, d_gdq
     gmean = np.empty((n, npix))
     qsat = np.empty((n, npix), np.uint8)
     opencl.from_device(gmean, d_gmean)
@@ -239,12 +243,18 @@ def readout_numpy(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None, 
 
 
 def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None, extra=None, bias_map=None,
-                   workspace=None):
-    """OpenCL twin of :func:`readout_numpy`."""
-    n, rows_in, nx = _check_readout_inputs(gmean, rows, halo_top)
+                   workspace=None, vector_width=None, shape_in=None):
+    """OpenCL twin of :func:`readout_numpy`; ``gmean``, ``qsat`` may be device buffers of
+    :func:`charge_block_opencl` (``to_host=False``), then ``shape_in`` = (n, rows_in, nx)."""
+    if shape_in is None:
+        n, rows_in, nx = _check_readout_inputs(gmean, rows, halo_top)
+        d_gm = opencl.to_device(np.ascontiguousarray(gmean, np.float64),
+                                _buffer(workspace, "ro_gmean", gmean.size * 8))
+        d_q = opencl.to_device(np.ascontiguousarray(qsat, np.uint8), _buffer(workspace, "ro_qsat", qsat.size))
+    else:
+        n, rows_in, nx = _check_readout_inputs(np.empty((0,) + tuple(shape_in[1:])), rows, halo_top)
+        n, d_gm, d_q = shape_in[0], gmean, qsat
     key = rng.seed_to_key(seed)
-    d_gm = opencl.to_device(np.ascontiguousarray(gmean, np.float64), _buffer(workspace, "ro_gmean", gmean.size * 8))
-    d_q = opencl.to_device(np.ascontiguousarray(qsat, np.uint8), _buffer(workspace, "ro_qsat", qsat.size))
     plane = rows * nx
     if extra is not None:
         d_x = opencl.to_device(np.ascontiguousarray(extra, np.float32), _buffer(workspace, "ro_extra", 4 * n * plane))
@@ -258,9 +268,11 @@ def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None,
     d_k = opencl.to_device(kern, _buffer(workspace, "ro_ipc", 72))
     d_sci = _buffer(workspace, "ro_sci", 2 * n * plane)
     d_gdq = _buffer(workspace, "ro_gdq", n * plane)
-    kernel = opencl.get_kernel("ramp_readout.cl", "ramp_readout")
+    vw = opencl.preferred_vector_width(16, 2) if vector_width is None else int(vector_width)
+    kernel = opencl.get_kernel("ramp_readout.cl", "ramp_readout", (f"-DRNG_VW={vw}",))
     m = p.nmd[1]
-    opencl.launch(kernel, (plane,), None, d_gm, d_q, d_x, d_b, d_k, d_sci, d_gdq, np.uint32(rows), np.uint32(nx),
+    items = rows * -(-nx // vw)
+    opencl.launch(kernel, (items,), None, d_gm, d_q, d_x, d_b, d_k, d_sci, d_gdq, np.uint32(rows), np.uint32(nx),
                   np.uint32(rows_in), np.uint32(halo_top), np.uint32(y0), np.uint32(ny), np.uint32(ramp),
                   np.uint32(key[0]), np.uint32(key[1]), np.int32(n), np.float64(p.ron / math.sqrt(m)),
                   np.float64(p.gain), np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.saturation),

@@ -204,17 +204,17 @@ def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs):
     a2, a3 = plan.nonlinearity_block(yi0, yi1)
     charge_fx = rfx.ChargeEffects(start, frame, electrons, a2, a3)
     args = (mu[yi0:yi1].ravel(), dead[yi0:yi1].ravel(), yi0 * nx, ramp, seed, p, charge_fx)
-    if backend == "opencl":
-        gmean, qsat = rfx.charge_block_opencl(*args, work_group=kwargs.get("work_group"),
-                                              workspace=kwargs.get("workspace"))
-    else:
-        gmean, qsat = rfx.charge_block_numpy(*args)
     shape_in = (n, yi1 - yi0, nx)
-    readout = rfx.readout_opencl if backend == "opencl" else rfx.readout_numpy
-    extra = {"workspace": kwargs.get("workspace")} if backend == "opencl" else {}
-    return readout(gmean.reshape(shape_in), qsat.reshape(shape_in), y1 - y0, y0 - yi0, y0, ny, ramp, seed, p,
-                   ipc=plan.ipc, extra=plan.read_noise_block(ramp, y0, y1), bias_map=plan.bias_block(y0, y1),
-                   **extra)
+    noise = plan.read_noise_block(ramp, y0, y1)
+    common = dict(ipc=plan.ipc, extra=noise, bias_map=plan.bias_block(y0, y1))
+    if backend == "opencl":               # group means stay on the device between the two kernels
+        d_gmean, d_flags = rfx.charge_block_opencl(*args, work_group=kwargs.get("work_group"),
+                                                   workspace=kwargs.get("workspace"), to_host=False)
+        return rfx.readout_opencl(d_gmean, d_flags, y1 - y0, y0 - yi0, y0, ny, ramp, seed, p,
+                                  workspace=kwargs.get("workspace"), shape_in=shape_in, **common)
+    gmean, qsat = rfx.charge_block_numpy(*args)
+    return rfx.readout_numpy(gmean.reshape(shape_in), qsat.reshape(shape_in), y1 - y0, y0 - yi0, y0, ny, ramp,
+                             seed, p, **common)
 
 
 def _available_memory():
