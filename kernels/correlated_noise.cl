@@ -1,40 +1,139 @@
 /*
  * correlated_noise.cl: random Fourier coefficients of Gaussian noise streams with a given PSD
- * (slicersim/backends/correlated_noise.py; NumPy twin: spectral_coefficients_numpy).
- *
- * spectral_coefficients: row r of the output, bin k:
- *     X[r, k] = amp[kind[r], k] * (z0 + i z1)
- * where (z0, z1) are the two Box-Muller normals of the Philox4x32-10 block with
- * counter (index = (hi[r] << 32) | k, stream[r], draw[r]) and key (key0, key1) -
- * the double-precision draws of philox.cl, bit-identical to slicersim.backends.rng.normal.
- * The product is formed in double and rounded once to float, as the twin does.
- * Work item (k0, r): bins k0*RNG_VW ... k0*RNG_VW + RNG_VW - 1 of row r (nbins a multiple
- * of RNG_VW: rows are padded).
+ * (slicersim/backends/correlated_noise.py, NumPy twin spectral_coefficients_numpy).
  */
 #include "philox.cl"
 
+/*
+ * spectral_coefficients: one Philox4x32-10 block
+ * (counter (index = (hi[r] << 32) | b, stream[r], draw[r])) gives bins 2b and 2b + 1 of row r:
+ * four 23-bit uniforms u = (2 (w >> 9) + 1) 2^-24 in (0, 1) (exact in float), and
+ *     X[r, 2b + i] = amp[kind[r], 2b + i] * sqrt(-2 ln u_2i) * (cos 2 pi u_2i+1 + i sin 2 pi u_2i+1)
+ * in float (the Box-Muller radius is capped at sqrt(-2 ln 2^-24) = 5.77 sigma).  Its NumPy twin
+ * (spectral_coefficients_numpy) uses NumPy's float32 log/sin/cos: the two agree within a few
+ * float ulps (libm differences), not bit for bit.  Work item (g, r): blocks g*FVW ... g*FVW+FVW-1.
+ * Rows of amp and out have nbins (a multiple of 2*FVW) entries.
+ */
+#ifndef FVW
+#define FVW 16
+#endif
+#if FVW == 1
+#define FSUF
+#define FLANES 0u
+#elif FVW == 4
+#define FSUF 4
+#define FLANES ((uint4)(0, 1, 2, 3))
+#elif FVW == 8
+#define FSUF 8
+#define FLANES ((uint8)(0, 1, 2, 3, 4, 5, 6, 7))
+#elif FVW == 16
+#define FSUF 16
+#define FLANES ((uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#else
+#error "FVW must be 1, 4, 8 or 16"
+#endif
+typedef RNG_PASTE(uint, FSUF) fuint;
+typedef RNG_PASTE(float, FSUF) ffloat;
+#define FROUND(a, b, c, d, k0, k1)                                        \
+    {                                                                     \
+        const fuint hi0_ = mul_hi((fuint)PHILOX_M0, a), lo0_ = (fuint)PHILOX_M0 * (a); \
+        const fuint hi1_ = mul_hi((fuint)PHILOX_M1, c), lo1_ = (fuint)PHILOX_M1 * (c); \
+        (a) = hi1_ ^ (b) ^ (k0);                                          \
+        (b) = lo1_;                                                       \
+        (c) = hi0_ ^ (d) ^ (k1);                                          \
+        (d) = lo0_;                                                       \
+    }
+
 __kernel void spectral_coefficients(__global const float *restrict amp, __global const uint *restrict kind,
-                                    __global const uint *restrict hi, __global const uint *restrict stream,
-                                    __global const uint *restrict draw, const uint nbins,
-                                    const uint key0, const uint key1, __global float *restrict out)
+                                        __global const uint *restrict hi, __global const uint *restrict stream,
+                                        __global const uint *restrict draw, const uint nbins,
+                                        const uint key0, const uint key1, __global float *restrict out)
 {
     const size_t g = get_global_id(0);
     const size_t r = get_global_id(1);
-    if (g * RNG_VW >= nbins)
+    if (g * FVW * 2 >= nbins)
         return;
-    const ulong k0 = g * RNG_VW;
-    rng_uint a, b, c, d;
-    philox_counter(((rng_ulong)(((ulong)hi[r] << 32) | k0)) + RNG_LANES, stream[r], draw[r], &a, &b, &c, &d);
-    philox4x32_10(&a, &b, &c, &d, key0, key1);
-    rng_double zs;
-    const rng_double zc = box_muller_lanes(a, b, c, d, &zs);
-    const rng_double w = RNG_PASTE(convert_double, RNG_SUFFIX)(RNG_VLOAD(g, amp + (size_t)kind[r] * nbins));
-    float re[RNG_VW], im[RNG_VW];
-    RNG_VSTORE(RNG_PASTE(convert_float, RNG_SUFFIX)(w * zc), 0, re);
-    RNG_VSTORE(RNG_PASTE(convert_float, RNG_SUFFIX)(w * zs), 0, im);
-    __global float *o = out + 2 * ((size_t)r * nbins + k0);
-    for (int l = 0; l < RNG_VW; l++) {
-        o[2 * l] = re[l];
-        o[2 * l + 1] = im[l];
+    const uint b0 = (uint)(g * FVW);
+    fuint a = (fuint)b0 + FLANES;
+    fuint b = (fuint)hi[r], c = (fuint)stream[r], d = (fuint)draw[r];
+    uint k0 = key0, k1 = key1;
+    for (int i = 0; i < 9; i++) {
+        FROUND(a, b, c, d, k0, k1)
+        k0 += PHILOX_W0;
+        k1 += PHILOX_W1;
     }
+    FROUND(a, b, c, d, k0, k1)
+    const ffloat s24 = (ffloat)0x1.0p-24f;
+    const ffloat ua = RNG_PASTE(convert_float, FSUF)((a >> 9) * 2u + 1u) * s24;
+    const ffloat ub = RNG_PASTE(convert_float, FSUF)((b >> 9) * 2u + 1u) * s24;
+    const ffloat uc = RNG_PASTE(convert_float, FSUF)((c >> 9) * 2u + 1u) * s24;
+    const ffloat ud = RNG_PASTE(convert_float, FSUF)((d >> 9) * 2u + 1u) * s24;
+    const ffloat r0 = sqrt(-2.0f * log(ua)), r1 = sqrt(-2.0f * log(uc));
+    const ffloat c0 = cospi(2.0f * ub), s0 = sinpi(2.0f * ub);
+    const ffloat c1 = cospi(2.0f * ud), s1 = sinpi(2.0f * ud);
+    float x0[FVW], y0[FVW], x1[FVW], y1[FVW];
+#if FVW == 1
+    x0[0] = r0 * c0; y0[0] = r0 * s0; x1[0] = r1 * c1; y1[0] = r1 * s1;
+#else
+    RNG_PASTE(vstore, FSUF)(r0 * c0, 0, x0);
+    RNG_PASTE(vstore, FSUF)(r0 * s0, 0, y0);
+    RNG_PASTE(vstore, FSUF)(r1 * c1, 0, x1);
+    RNG_PASTE(vstore, FSUF)(r1 * s1, 0, y1);
+#endif
+    __global const float *w = amp + (size_t)kind[r] * nbins + 2 * (size_t)b0;
+    __global float *o = out + 2 * ((size_t)r * nbins + 2 * (size_t)b0);
+    for (int l = 0; l < FVW; l++) {
+        const float w0 = w[2 * l], w1 = w[2 * l + 1];
+        o[4 * l] = w0 * x0[l];
+        o[4 * l + 1] = w0 * y0[l];
+        o[4 * l + 2] = w1 * x1[l];
+        o[4 * l + 3] = w1 * y1[l];
+    }
+}
+
+/*
+ * assemble_group: one group's averaged correlated noise of a block of rows (twin: assemble_numpy).
+ * Pixel (y, x) of the block (row y0 + y of the detector, output o = x / ncol, scan position j):
+ *     sum over the (at most two) segments s whose span holds row y0 + y of
+ *         win[s, p_s] * (seg[s, 0, p_s] + seg[s, 1 + o, p_s]),   p_s = (y0 + y - s*S + h)*row_len + j
+ *   + lowA[y, o] + (j / row_len) * (lowA2[y, o] - lowA[y, o])          (low part, common + own)
+ *   + (-1)^j * (altA[y, o] + (j / row_len) * (altA2[y, o] - altA[y, o]))  (alternating ACN, low part)
+ *   + ped[o] + pf * (ey[y] + ex[x])
+ * seg: (nsg, nout + 1, length) streams of segments s_first ... s_first + nsg - 1, win: (nsg, span).
+ */
+__kernel void assemble_group(__global const float *restrict seg, __global const float *restrict win,
+                             const int s_first, const int nsg, const int nseg, const int S, const int h,
+                             const int span, const int length, const int y0, const int row_len,
+                             const int ncol, const int nout, const int nx,
+                             __global const float *restrict lowA, __global const float *restrict lowA2,
+                             __global const float *restrict altA, __global const float *restrict altA2,
+                             __global const float *restrict ped, const float pf,
+                             __global const float *restrict ey, __global const float *restrict ex,
+                             __global float *restrict out)
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    if (x >= nx)
+        return;
+    const int o = x / ncol, xl = x - o * ncol;
+    const int j = (o & 1) ? ncol - 1 - xl : xl;
+    const int row = y0 + y;
+    const int s1 = row / S, r1 = row - s1 * S;
+    int s2 = (r1 < h) ? s1 - 1 : ((r1 >= S - h) ? s1 + 1 : -1);
+    const int ok2 = (s2 >= 0) && (s2 < nseg);
+    s2 = ok2 ? s2 : s1;
+    const int i1 = s1 - s_first, i2 = s2 - s_first;
+    const int p1 = (row - s1 * S + h) * row_len + j, p2 = (row - s2 * S + h) * row_len + j;
+    const size_t b1 = (size_t)i1 * (nout + 1) * length, b2 = (size_t)i2 * (nout + 1) * length;
+    const float v1 = win[(size_t)i1 * span + p1] * (seg[b1 + p1] + seg[b1 + (size_t)(1 + o) * length + p1]);
+    const float v2 = win[(size_t)i2 * span + p2] * (seg[b2 + p2] + seg[b2 + (size_t)(1 + o) * length + p2]);
+    const float t = (float)j / (float)row_len;
+    const int lo = y * nout + o;
+    const float a = lowA[lo], a2 = lowA2[lo], c = altA[lo], c2 = altA2[lo];
+    const float low = a + t * (a2 - a);
+    const float alt = c + t * (c2 - c);
+    float v = v1 + (ok2 ? v2 : 0.0f);
+    v = v + low + ((j & 1) ? -alt : alt);
+    v = v + ped[o] + pf * (ey[y] + ex[x]);
+    out[(size_t)y * nx + x] = v;
 }

@@ -8,10 +8,10 @@ output, segment), so any row blocking returns the same values.
 Gaussian streams with a PSD S are synthesised in the Fourier domain: bin k of a length-L
 stream at cadence Δt gets X_k = a_k (z₀ + i z₁), a_k = √(L S(f_k) / (4Δt)), f_k = k/(LΔt)
 (E|X_k|² = L S_k/(2Δt), so Var x = Σ S_k Δf), then ``scipy.fft.irfft``.  The (z₀, z₁) of
-bin k are the Box–Muller pair of the Philox block with counter (index = ramp·2³² + k,
-stream = STREAMS["correlated_noise"] + 2¹⁶·component + output, draw = 2¹⁶·group + segment);
-:func:`spectral_coefficients_opencl` (``kernels/correlated_noise.cl``) and its NumPy twin
-:func:`spectral_coefficients_numpy` agree bit for bit (same double draws, one rounding).
+bins 2b, 2b+1 come from the Philox block with counter (index = ramp·2³² + b, stream =
+STREAMS["correlated_noise"] + 2¹⁶·component + output, draw = 2¹⁶·group + segment), as two
+float32 Box–Muller pairs; :func:`spectral_coefficients_opencl` (``kernels/correlated_noise.cl``)
+and its NumPy twin :func:`spectral_coefficients_numpy` agree within a few float ulps.
 
 Methods:
 
@@ -61,7 +61,7 @@ __all__ = ["CorrelatedNoise", "spectral_coefficients_numpy", "spectral_coefficie
 COMPONENTS = {"low_common": 0, "low_own": 1, "low_alternating": 2, "high_common": 3, "high_own": 4,
               "exact_common": 5, "exact_own": 6, "frame": 7, "white": 8}
 FFT_WORKERS = 2
-_VW = 8                     # bins per work item on CPUs (AVX-512 lanes of doubles)
+_VW = 16                    # Philox blocks per work item on CPUs (AVX-512 lanes of floats)
 
 
 def _stream(component, output=0):
@@ -86,38 +86,48 @@ def _padded(nbins, vw):
 
 
 def spectral_coefficients_numpy(amp, kind, hi, stream, draw, seed):
-    """complex64 (rows, nbins): X[r, k] = amp[kind[r], k]·(z₀ + i z₁) (NumPy twin of the kernel).
+    """complex64 (rows, nbins): X[r, k] = amp[kind[r], k]·√(−2 ln u)·e^{2πi v} (twin of the kernel).
 
-    amp: float32 (kinds, nbins); kind, hi, stream, draw: one uint per row (see module doc)."""
+    Bins 2b and 2b + 1 of row r use the Philox block (index = hi[r]·2³² + b, stream[r], draw[r]):
+    u = (2(w ≫ 9) + 1)·2⁻²⁴ from words 0 and 2 (radii), words 1 and 3 (phases).  Float32
+    arithmetic; the phase is evaluated in double and rounded (the kernel's cospi/sinpi are
+    within 4 ulp of it).  amp: float32 (kinds, nbins); kind, hi, stream, draw: one uint per row."""
     amp = np.asarray(amp, np.float32)
     nbins = amp.shape[1]
-    out = np.empty((len(kind), nbins), np.complex64)
-    k = np.arange(nbins, dtype=np.uint64)
+    nblocks = -(-nbins // 2)
+    out = np.empty((len(kind), 2 * nblocks), np.complex64)
+    b = np.arange(nblocks, dtype=np.uint64)
     for r in range(len(kind)):
-        z = rng.normal(seed, (np.uint64(hi[r]) << np.uint64(32)) | k, int(stream[r]), int(draw[r]))
-        a = amp[kind[r]].astype(np.float64)
-        out[r].real = (a * z[:, 0]).astype(np.float32)
-        out[r].imag = (a * z[:, 1]).astype(np.float32)
-    return out
+        w = rng.random_words(seed, (np.uint64(hi[r]) << np.uint64(32)) | b, int(stream[r]), int(draw[r]))
+        u = ((w >> np.uint32(9)) * np.uint32(2) + np.uint32(1)).astype(np.float32) * np.float32(2.0**-24)
+        rad = np.sqrt(np.float32(-2.0) * np.log(u[:, 0::2]))                   # (blocks, 2)
+        phase = 2.0 * np.pi * u[:, 1::2].astype(np.float64)
+        re = rad * np.cos(phase).astype(np.float32)
+        im = rad * np.sin(phase).astype(np.float32)
+        a = np.zeros(2 * nblocks, np.float32)
+        a[:nbins] = amp[kind[r]]
+        out[r].real = a * re.ravel()
+        out[r].imag = a * im.ravel()
+    return out[:, :nbins]
 
 
 def spectral_coefficients_opencl(amp, kind, hi, stream, draw, seed, vector_width=None):
-    """OpenCL twin of :func:`spectral_coefficients_numpy` (bit-identical); returns complex64
-    (rows, padded bins): bins past nbins are padding (``irfft(n=L)`` crops them)."""
+    """OpenCL twin of :func:`spectral_coefficients_numpy` (within a few float ulps); returns
+    complex64 (rows, padded bins): bins past nbins are padding (``irfft(n=L)`` crops them)."""
     dev_gpu = "GPU" in opencl.device_type(opencl.get_device())
     vw = 1 if dev_gpu else (_VW if vector_width is None else int(vector_width))
     amp = np.asarray(amp, np.float32)
-    nb = _padded(amp.shape[1], vw)
+    nb = _padded(amp.shape[1], 2 * vw)
     amp_p = np.zeros((amp.shape[0], nb), np.float32)
     amp_p[:, :amp.shape[1]] = amp
     rows = len(kind)
     out = np.empty((rows, nb), np.complex64)
     key = rng.seed_to_key(seed)
-    kern = opencl.cached_kernel("correlated_noise.cl", "spectral_coefficients", (f"-DRNG_VW={vw}",))
+    kern = opencl.cached_kernel("correlated_noise.cl", "spectral_coefficients", (f"-DFVW={vw}",))
     bufs = [opencl.to_device(np.ascontiguousarray(a, np.uint32)) for a in (kind, hi, stream, draw)]
     d_amp = opencl.to_device(amp_p)
     d_out = opencl.scratch_buffer("cn_coeff", out.nbytes)
-    opencl.launch(kern, (nb // vw, rows), None, d_amp, *bufs, np.uint32(nb), np.uint32(key[0]),
+    opencl.launch(kern, (nb // (2 * vw), rows), None, d_amp, *bufs, np.uint32(nb), np.uint32(key[0]),
                   np.uint32(key[1]), d_out)
     opencl.from_device(out, d_out)
     return out
@@ -248,8 +258,10 @@ class CorrelatedNoise:
                  "d": lambda f: comp(f) * _acn_half(f, p.acn, g, fm)}, dl)
 
     def _low_coefficients(self, ramp):
-        """(A, B) float32 arrays (streams, n, ny): group mean of the low part at row y, pixel
-        position j: A + B·j/row_len; streams = common, own per output, alternating per output."""
+        """(A, A2) float32 (streams, n, ny): group means of the low part, interpolated linearly
+        between its samples every q rows, at the start of row y (A) and of row y + 1 (A2); the
+        pixel at scan position j reads A + (j/row_len)(A2 − A).  Streams: common, own per
+        output, alternating per output."""
         g = self.geometry
         n, m, d = self.nmd
         q = self.low_rows
@@ -262,25 +274,22 @@ class CorrelatedNoise:
         kind = np.array([0] + [1] * nout + [2] * nout)
         streams = np.array([_stream("low_common")] + [_stream("low_own", o) for o in range(nout)]
                            + [_stream("low_alternating", o) for o in range(nout)])
-        # positions: frames of each group's reads × rows
         reads = np.flatnonzero(self.frames_group >= 0).reshape(n, m)
-        r = reads[:, :, None] * g.frame_rows + np.arange(g.ny)[None, None, :]          # (n, m, ny)
-        k, phi = np.divmod(r, q)
-        frac = (phi / q).astype(np.float32)
+        rows_at = np.arange(rows_total + 1) / q                   # row starts in low-sample units
         nst = kind.size
         A = np.empty((nst, n, g.ny), np.float32)
-        B = np.empty((nst, n, g.ny), np.float32)
+        A2 = np.empty((nst, n, g.ny), np.float32)
         batch = max(1, int(2**26 // (length * 4)))
         for s0 in range(0, nst, batch):
             s1 = min(nst, s0 + batch)
             low = self._synthesize(amp, length, kind[s0:s1], np.full(s1 - s0, ramp), streams[s0:s1],
                                    np.zeros(s1 - s0))
             for i, row in enumerate(low):
-                lo, hi_ = row[k], row[k + 1]
-                diff = hi_ - lo
-                A[s0 + i] = np.mean(lo + frac * diff, axis=1)
-                B[s0 + i] = np.mean(diff, axis=1) / q
-        return A, B
+                at_rows = np.interp(rows_at, np.arange(nlow), row[:nlow])
+                for arr, shift in ((A, 0), (A2, 1)):
+                    frames = at_rows[shift:shift + rows_total].reshape(self.nframes, g.frame_rows)
+                    arr[s0 + i] = frames[reads][:, :, :g.ny].mean(axis=1)
+        return A, A2
 
     # ------------------------------------------------------------------ multirate / group: segments
     def _segment_geometry(self):
@@ -324,11 +333,12 @@ class CorrelatedNoise:
                 w *= np.cos(0.25 * np.pi * (1.0 + u))
         return w.astype(np.float32)
 
-    def _high_streams(self, ramp, group, y0, y1):
-        """(common (rows, row_len), own (n_out, rows, row_len)) high-part streams of rows y0:y1."""
+    def _segments(self, ramp, group, y0, y1):
+        """(first segment, segment streams float32 (nsg, n_out + 1, length), windows (nsg, span))
+        of the segments whose spans overlap rows y0:y1 (stream 0 common, 1 + o output o's own)."""
         g = self.geometry
         S, h, nseg, span, length = self._segment_geometry()
-        rl, nout = g.row_len, g.n_outputs
+        nout = g.n_outputs
         s_first = max(0, (y0 - h) // S)
         s_last = min(nseg - 1, (y1 - 1 + h) // S)
         segs = np.arange(s_first, s_last + 1)
@@ -338,63 +348,57 @@ class CorrelatedNoise:
         draw = np.repeat((int(group) << 16) | segs, nout + 1)
         amp = self._high_amplitudes(length)
         x = self._synthesize(amp, length, kind, np.full(kind.size, ramp), streams, draw)
-        x = x.reshape(nsg, nout + 1, length)
-        acc = np.zeros((nout + 1, (y1 - y0) * rl), np.float32)
-        for i, s in enumerate(segs):
-            start = (s * S - h) * rl                     # first sample of the span (frame samples)
-            a0, a1 = max(start, y0 * rl), min(start + span, y1 * rl)
-            if a1 <= a0:
-                continue
-            w = self._window(s, nseg, S, h, span)[a0 - start:a1 - start]
-            acc[:, a0 - y0 * rl:a1 - y0 * rl] += x[i, :, a0 - start:a1 - start] * w
-        acc = acc.reshape(nout + 1, y1 - y0, rl)
-        return acc[0], acc[1:]
+        win = np.stack([self._window(s, nseg, S, h, span) for s in segs])
+        return s_first, x.reshape(nsg, nout + 1, length), win
 
-    # ------------------------------------------------------------------ assembly
+    def _block_segments(self, state, ramp, y0, y1, out):
+        g = self.geometry
+        n = self.nmd[0]
+        nout, rows = g.n_outputs, y1 - y0
+        low = state.get("low")
+        ped, pf = state["frame"]
+        zeros = np.zeros((rows, nout), np.float32)
+        ey, ex = np.ascontiguousarray(self._ey[y0:y1]), self._ex
+        for grp in range(n):
+            s_first, seg, win = self._segments(ramp, grp, y0, y1)
+            if low is None:
+                la = la2 = aa = aa2 = zeros
+            else:
+                A, A2 = low[0][:, grp, y0:y1], low[1][:, grp, y0:y1]          # (streams, rows)
+                la = np.ascontiguousarray((A[1:1 + nout] + A[0]).T)
+                la2 = np.ascontiguousarray((A2[1:1 + nout] + A2[0]).T)
+                aa = np.ascontiguousarray(A[1 + nout:].T)
+                aa2 = np.ascontiguousarray(A2[1 + nout:].T)
+            args = (seg, win, s_first, y0, la, la2, aa, aa2, ped[grp], float(pf[grp]), ey, ex)
+            if self.backend == "opencl":
+                assemble_opencl(self, *args, out=out[grp])
+            else:
+                assemble_numpy(self, *args, out=out[grp])
+
+    # ------------------------------------------------------------------ public
     def block(self, ramp, y0, y1):
         """float32 (n_groups, y1 − y0, nx) [e-]: group-averaged correlated noise of rows y0:y1."""
         g = self.geometry
+        if isinstance(ramp, bool) or int(ramp) != ramp or not 0 <= int(ramp) < 2**32:
+            raise EffectsError(f"correlated noise: ramp must be an integer in [0, 2**32), got {ramp!r}")
         if not (0 <= int(y0) < int(y1) <= g.ny):
             raise EffectsError(f"correlated noise: rows {y0}:{y1} outside the detector's 0:{g.ny}")
-        if int(ramp) != ramp or not 0 <= int(ramp) < 2**32:
-            raise EffectsError(f"correlated noise: ramp must be an integer in [0, 2**32), got {ramp!r}")
         y0, y1, ramp = int(y0), int(y1), int(ramp)
-        n, m, d = self.nmd
+        n = self.nmd[0]
         out = np.zeros((n, y1 - y0, g.nx), np.float32)
         if self.method == "white":
             return self._block_white(ramp, y0, y1, out)
         state = self._ramp_state(ramp)
-        if self.method == "exact":
-            self._block_exact(state, y0, y1, out)
-        else:
+        if self.method != "exact":
             self._block_segments(state, ramp, y0, y1, out)
+            return out
+        self._block_exact(state, y0, y1, out)
         ped, pf = state["frame"]
         ey, ex = self._ey[y0:y1], self._ex
         for grp in range(n):
             out[grp] += np.repeat(ped[grp], g.ncol)[None, :]
             out[grp] += pf[grp] * (ey[:, None] + ex[None, :])
         return out
-
-    def _block_segments(self, state, ramp, y0, y1, out):
-        g = self.geometry
-        n = self.nmd[0]
-        rl, nc = g.row_len, g.ncol
-        t = (np.arange(rl) / rl).astype(np.float32)
-        sign = np.where(np.arange(rl) % 2 == 0, 1.0, -1.0).astype(np.float32)
-        low = state.get("low")
-        nout = g.n_outputs
-        for grp in range(n):
-            hc, hu = self._high_streams(ramp, grp, y0, y1)
-            if low is not None:
-                A, B = low[0][:, grp, y0:y1], low[1][:, grp, y0:y1]          # (streams, rows)
-                a = A[1:1 + nout] + A[0][None, :]
-                b = B[1:1 + nout] + B[0][None, :]
-                ad, bd = A[1 + nout:], B[1 + nout:]
-                hu += (a[:, :, None] + b[:, :, None] * t) + sign * (ad[:, :, None] + bd[:, :, None] * t)
-            hu += hc[None]
-            tile = out[grp].reshape(y1 - y0, nout, nc)
-            tile[:, 0::2, :] = hu[0::2, :, :nc].transpose(1, 0, 2)
-            tile[:, 1::2, :] = hu[1::2, :, nc - 1::-1].transpose(1, 0, 2)
 
     def _block_white(self, ramp, y0, y1, out):
         g = self.geometry
@@ -408,3 +412,53 @@ class CorrelatedNoise:
                                        np.full(rows.size, _stream("white")), (grp << 16) | rows)
             out[grp] = coeff[:, :nb].real
         return out
+
+
+# --------------------------------------------------------------------------- assembly of one group
+def assemble_numpy(gen, seg, win, s_first, y0, la, la2, aa, aa2, ped, pf, ey, ex, out):
+    """NumPy twin of ``assemble_group`` (kernels/correlated_noise.cl): writes out (rows, nx)."""
+    g = gen.geometry
+    S, h, nseg, span, length = gen._segment_geometry()
+    rl, nc, nout = g.row_len, g.ncol, g.n_outputs
+    rows = out.shape[0]
+    x = np.arange(g.nx)
+    o = x // nc
+    j = g.scan_index(x)
+    row = y0 + np.arange(rows)[:, None]
+    s1 = row // S
+    r1 = row - s1 * S
+    s2 = np.where(r1 < h, s1 - 1, np.where(r1 >= S - h, s1 + 1, -1))
+    ok2 = (s2 >= 0) & (s2 < nseg)
+    s2 = np.where(ok2, s2, s1)
+
+    def part(s):
+        i = s - s_first
+        p = (row - s * S + h) * rl + j
+        return win[i, p] * (seg[i, 0, p] + seg[i, 1 + o, p])
+    v1, v2 = part(s1), part(s2)
+    t = (j.astype(np.float32) / np.float32(rl))
+    a, a2, c, c2 = la[:, o], la2[:, o], aa[:, o], aa2[:, o]
+    low = a + t * (a2 - a)
+    alt = c + t * (c2 - c)
+    v = v1 + np.where(ok2, v2, np.float32(0.0))
+    v = v + low + np.where(j % 2 == 1, -alt, alt)
+    out[:] = v + ped[o] + np.float32(pf) * (ey[:, None] + ex[None, :])
+    return out
+
+
+def assemble_opencl(gen, seg, win, s_first, y0, la, la2, aa, aa2, ped, pf, ey, ex, out):
+    """OpenCL ``assemble_group`` into ``out`` (C-contiguous float32 (rows, nx)), zero-copy on CPUs."""
+    g = gen.geometry
+    S, h, nseg, span, length = gen._segment_geometry()
+    rows = out.shape[0]
+    kern = opencl.cached_kernel("correlated_noise.cl", "assemble_group", ("-DFVW=1",))
+    bufs = [opencl.host_buffer(np.ascontiguousarray(a, np.float32)) for a in (seg, win)]
+    small = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in (la, la2, aa, aa2, ped)]
+    d_ey, d_ex = opencl.to_device(np.ascontiguousarray(ey, np.float32)), opencl.to_device(ex)
+    d_out = opencl.host_buffer(out)
+    opencl.launch(kern, (g.nx, rows), None, *bufs, np.int32(s_first), np.int32(seg.shape[0]), np.int32(nseg),
+                  np.int32(S), np.int32(h), np.int32(span), np.int32(length), np.int32(y0), np.int32(g.row_len),
+                  np.int32(g.ncol), np.int32(g.n_outputs), np.int32(g.nx), *small, np.float32(pf), d_ey, d_ex,
+                  d_out)
+    opencl.sync_to_host(d_out, out)
+    return out
