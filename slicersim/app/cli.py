@@ -196,6 +196,8 @@ def _load_rate(path):
 
 def _ramp_effects(args):
     """DetectorEffects from --effects, --effects-config and --cr-rate (None: no effect)."""
+    if args.effects is None and args.effects_config is None and args.cr_rate is None:
+        return None
     from slicersim.errors import EffectsError
     from slicersim.physics.effects import DetectorEffects
     effects = None
@@ -218,7 +220,7 @@ def cmd_ramp(args) -> int:
     effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
     _check_output(args.out, args.overwrite)
     common = dict(seed=args.seed, out=args.out, compression=args.compression, progress=True,
-                  backend=args.backend, overwrite=args.overwrite, effects=effects)
+                  backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format)
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
     if args.rate is not None:
         given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None]
@@ -306,7 +308,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MACC readout: groups, frames per group, dropped frames")
     p.add_argument("--nramps", type=int, default=1, help="ramps between resets")
     p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--out", required=True, metavar="FILE.h5", help="output HDF5 file")
+    p.add_argument("--out", required=True, metavar="FILE", help="output file (HDF5, or JWST uncal FITS with "
+                   "--format jwst-uncal)")
+    p.add_argument("--format", choices=("hdf5", "jwst-uncal"),
+                   help="output format (default: jwst-uncal for a .fits name, else hdf5)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--compression", choices=("gzip", "lz4", "zstd", "bitshuffle-lz4"),
                    help="HDF5 compression (default: none)")

@@ -43,7 +43,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
              ktc_noise=0.0, full_well=None, dead_pixels=None, pixeldq=None, sparse_max_group=None,
              gauss_min_mean=np.inf, compression=None, memory_budget=2**30, truth=True,
              config=None, backend="auto", progress=None, work_group=None, return_dq=False, overwrite=False,
-             effects=None, previous_charge=None):
+             effects=None, previous_charge=None, file_format=None):
     """Simulate raw MACC ramps of a rate image.
 
     Parameters
@@ -66,6 +66,9 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         (``"lazuli"``), a config dict or a :class:`~slicersim.physics.effects.DetectorEffects`; see
         :mod:`slicersim.products.effects`.  Their truth is written to ``truth/<name>``.
     previous_charge : (ny, nx) charge [e-] of the previous exposure, for ``persistence``
+    file_format : ``"hdf5"`` (group-level file, :mod:`slicersim.io.rampfile`) or ``"jwst-uncal"`` (JWST
+        level-1b FITS, :mod:`slicersim.io.uncal`); None: ``jwst-uncal`` for a ``.fits`` name, else hdf5.
+        The same seed gives the same SCI in both formats.
 
     The output size is checked against the free disk space (``out``) or memory (``out`` None)
     before anything is allocated.
@@ -108,8 +111,9 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     # sizes first: nothing below is allocated before the output is known to fit
     writer = None
     if out is not None:
-        writer = RampWriter(out, p.nramps, n, (ny, nx), row_block=min(rows, 256), compression=compression,
-                            truth_rate=truth, overwrite=overwrite).check()
+        writer_class = _writer_class(out, file_format)
+        writer = writer_class(out, p.nramps, n, (ny, nx), row_block=min(rows, 256), compression=compression,
+                              truth_rate=truth, overwrite=overwrite).check()
     else:
         full_bytes = p.nramps * n * ny * nx * (3 if return_dq else 2)
         if full_bytes > 8 * memory_budget:
@@ -215,6 +219,21 @@ def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs):
     gmean, qsat = rfx.charge_block_numpy(*args)
     return rfx.readout_numpy(gmean.reshape(shape_in), qsat.reshape(shape_in), y1 - y0, y0 - yi0, y0, ny, ramp,
                              seed, p, **common)
+
+
+FILE_FORMATS = ("hdf5", "jwst-uncal")
+
+
+def _writer_class(out, file_format):
+    """RampWriter or UncalWriter for ``file_format`` (None: from the extension of ``out``)."""
+    if file_format is None:
+        file_format = "jwst-uncal" if str(out).lower().endswith((".fits", ".fit", ".fits.gz")) else "hdf5"
+    if file_format == "hdf5":
+        return RampWriter
+    if file_format == "jwst-uncal":
+        from slicersim.io.uncal import UncalWriter
+        return UncalWriter
+    raise ValueError(f"file_format must be one of {', '.join(FILE_FORMATS)} (or None), got {file_format!r}")
 
 
 def _available_memory():
