@@ -24,21 +24,32 @@ rounding whatever the storage type.
 from __future__ import annotations
 
 import functools
+import hashlib
+import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+import scipy
 from scipy.special import erfc
 
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import resolve_backend
+from slicersim.io.table_cache import ArrayCache, Chunks, TableCacheWarning, default_directory
+from slicersim.memo import content_key
 
-__all__ = ["DepositTables", "build_tables", "deposit"]
+__all__ = ["DepositTables", "build_tables", "deposit", "table_key", "load_tables", "store_tables",
+           "default_table_cache", "resolve_table_cache", "backend_tag", "TABLE_FORMAT"]
 
 _KERNEL = "project.cl"
 _INV_SQRT_2PI = 0.3989422804014327
 TMAX, TINV = 8.5, 128.0          # Hermite table of the Gaussian integrals: range, nodes per unit
 _NUMPY_CHUNK = 1 << 15          # cells per NumPy chunk (weights)
 _DEPOSIT_CHUNK = 1 << 15        # cells per NumPy chunk (deposit: ~ny*nxp temporaries each)
+#: version of the on-disk table layout (part of every cache key, with this module's source)
+TABLE_FORMAT = 1
+_STREAM_BYTES = 8 << 20         # bytes per piece when streaming device tables to disk
+_WEIGHTS_CHUNK = 1 << 18        # cells per cell_weights launch (12 MiB of boxes on the device)
 
 
 @dataclass
@@ -280,21 +291,180 @@ def _options(t):
     return (f"-DVW={t.vw}", f"-DWTYPE={wtype}", f"-DTMAX={TMAX!r}", f"-DTINV={TINV!r}")
 
 
+def _table_host_buffer(array):
+    """Device buffer holding a host table: the array itself on CPU devices (no copy)."""
+    if "CPU" in opencl.device_type() and array.flags.c_contiguous and array.flags.writeable:
+        return opencl.host_buffer(array)
+    return opencl.to_device(array)
+
+
 def _weights_opencl(t, box, factor):
+    """``cell_weights`` in launches of :data:`_WEIGHTS_CHUNK` cells: the boxes go to the
+    device one chunk at a time (sub-buffers of meta, offset and scale; every cell is computed
+    alone, so the result does not depend on the chunking)."""
     opencl.require_fp64()
     kern = opencl.get_kernel(_KERNEL, "cell_weights", _options(t))
     dev = t.device
-    dev["meta"] = opencl.to_device(t.meta)
-    dev["offset"] = opencl.to_device(t.offset)
+    dev["meta"] = _table_host_buffer(t.meta)
+    dev["offset"] = _table_host_buffer(t.offset)
     dev["pool"] = opencl.device_buffer(t.pool_size * t.weights_dtype.itemsize)
     dev["scale"] = opencl.device_buffer(8 * t.ncell)
-    d_box = opencl.to_device(box)
     d_tab = opencl.to_device(hermite_table())
+    chunk = min(_WEIGHTS_CHUNK, t.ncell)
+    d_box = opencl.device_buffer(chunk * 6 * 8)
     lsize = 64
-    gsize = -(-t.ncell // lsize) * lsize
-    opencl.launch(kern, (gsize,), None, d_box, dev["meta"], dev["offset"], np.int64(t.ncell),
-                  np.float64(factor), d_tab, dev["pool"], dev["scale"])
+    for c0 in range(0, t.ncell, chunk):
+        n = min(chunk, t.ncell - c0)
+        opencl.to_device(box[c0:c0 + n], d_box)
+        whole = n == t.ncell
+        sub = (lambda buf, size: buf) if whole else (lambda buf, size: buf.get_sub_region(c0 * size, n * size))
+        gsize = -(-n // lsize) * lsize
+        opencl.launch(kern, (gsize,), None, d_box, sub(dev["meta"], 16), sub(dev["offset"], 8), np.int64(n),
+                      np.float64(factor), d_tab, dev["pool"], sub(dev["scale"], 8))
     opencl.get_queue().finish()
+
+
+# --------------------------------------------------------------------------- #
+#  tables on disk                                                              #
+# --------------------------------------------------------------------------- #
+_CACHES: dict = {}
+
+
+def default_table_cache():
+    """The projection-table cache of this process: ``$SLICERSIM_CACHE/projection`` (else
+    ``~/.cache/slicersim/projection``, see :func:`slicersim.io.table_cache.cache_root`), or
+    None when ``$SLICERSIM_CACHE`` is "off".  Read at every call (the variable may change)."""
+    directory = default_directory("projection")
+    if directory is None:
+        return None
+    key = str(directory)
+    if key not in _CACHES:
+        _CACHES[key] = ArrayCache(directory)
+    return _CACHES[key]
+
+
+def resolve_table_cache(cache):
+    """``"default"`` → :func:`default_table_cache`; None → no disk cache; a path → an
+    :class:`~slicersim.io.table_cache.ArrayCache` there; an ArrayCache → itself."""
+    if isinstance(cache, str) and cache == "default":
+        return default_table_cache()
+    if cache is None or isinstance(cache, ArrayCache):
+        return cache
+    if isinstance(cache, (str, Path)):
+        key = str(Path(cache).expanduser().absolute())
+        if key not in _CACHES:
+            _CACHES[key] = ArrayCache(key)
+        return _CACHES[key]
+    raise TypeError(f"table cache must be 'default', None, a path or an ArrayCache, got {cache!r}")
+
+
+@functools.lru_cache(maxsize=1)
+def _code_version():
+    """Digest of what the weights depend on besides their arguments: this module's source,
+    the deposit kernel's source, NumPy and SciPy versions and :data:`TABLE_FORMAT`."""
+    sha = hashlib.sha256(Path(__file__).read_bytes())
+    for name in (_KERNEL, "vector_types.cl"):        # the deposit kernel and what it includes
+        try:
+            sha.update(opencl.kernel_source(name).encode("utf-8"))
+        except FileNotFoundError:          # NumPy-only installation without the kernels
+            sha.update(b"no kernel")
+    sha.update(f"{TABLE_FORMAT} numpy {np.__version__} scipy {scipy.__version__}".encode())
+    return sha.hexdigest()
+
+
+def backend_tag(backend="auto"):
+    """(resolved backend, OpenCL device fingerprint or None): what built tables depend on
+    besides their arguments and the code."""
+    backend = resolve_backend(backend)
+    # platform, device, vendor, driver; not the digest of every kernel source (other kernels
+    # change independently: the deposit kernel's own sources are in _code_version)
+    return backend, (tuple(opencl.device_fingerprint()[:4]) if backend == "opencl" else None)
+
+
+def table_key(geometry, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), truncate=4.0,
+              weights_dtype=np.float32, vw=None, block=None, backend="auto"):
+    """Hex cache key of the tables :func:`build_tables` makes from these arguments.
+
+    ``geometry`` stands for the sub-cell boxes: the (N, 6) box array itself, or anything
+    :func:`slicersim.memo.content_key` accepts that determines it (a mapper passes its
+    nodes, spot values, slices, λ edges and the digest of its own code, so a hit needs no
+    boxes).  The key is a SHA-256 of the content of that, the grid, detector shape,
+    truncation, storage dtype, vector width and block, the resolved backend (the OpenCL and
+    NumPy builders agree to float32 rounding, not bit for bit), on OpenCL the device
+    (platform, name, vendor, driver) and the code version (:func:`_code_version`)."""
+    if isinstance(geometry, np.ndarray):
+        geometry = np.ascontiguousarray(geometry, dtype=np.float64)
+    backend, device = backend_tag(backend)
+    block = default_block(backend) if block is None else int(block)
+    parts = {"geometry": geometry, "grid": tuple(int(v) for v in grid),
+             "oversample": tuple(int(v) for v in oversample),
+             "detector_shape": tuple(int(v) for v in detector_shape), "truncate": float(truncate),
+             "weights_dtype": np.dtype(weights_dtype).str, "vw": None if vw is None else int(vw),
+             "block": block, "backend": backend,
+             "device": None if device is None else list(device),
+             "code": _code_version()}
+    return hashlib.sha256(repr(content_key(parts)).encode("utf-8")).hexdigest()
+
+
+def _device_pieces(buffer, dtype, n):
+    """C-order host pieces of a device buffer of ``n`` items (one bounded host block at a time)."""
+    itemsize = np.dtype(dtype).itemsize
+    step = max(1, _STREAM_BYTES // itemsize)
+    for i0 in range(0, n, step):
+        k = min(step, n - i0)
+        host = np.empty(k, dtype)
+        sub = buffer.get_sub_region(i0 * itemsize, k * itemsize) if (i0 or k < n) else buffer
+        opencl.from_device(host, sub)
+        yield host
+
+
+def store_tables(cache, key, tables):
+    """Write ``tables`` to ``cache`` under ``key`` and return them read back memory-mapped
+    (the built arrays and device buffers can then be dropped); ``tables`` itself when the
+    cache cannot be written (one warning, see :class:`~slicersim.io.table_cache.ArrayCache`).
+    Tables that live on the device are streamed to disk in 8 MiB pieces (no host copy)."""
+    t = tables
+    if t.pool is None:
+        pool = Chunks(t.weights_dtype, (t.pool_size,), _device_pieces(t.device["pool"], t.weights_dtype,
+                                                                      t.pool_size))
+        scale = Chunks(np.float64, (t.ncell,), _device_pieces(t.device["scale"], np.float64, t.ncell))
+    else:
+        pool, scale = t.pool, t.scale
+    arrays = {"meta": t.meta, "offset": t.offset, "scale": scale, "pool": pool,
+              "phase_first": np.concatenate([f for f, _ in t.phases]),
+              "phase_last": np.concatenate([last for _, last in t.phases]),
+              "phase_size": np.array([f.size for f, _ in t.phases], np.int64)}
+    meta = {"grid": list(t.grid), "oversample": list(t.oversample), "vw": int(t.vw),
+            "weights_dtype": np.dtype(t.weights_dtype).str, "detector_shape": list(t.detector_shape),
+            "pool_size": int(t.pool_size), "row_range": list(t.row_range)}
+    if not cache.store(key, arrays, meta):
+        return tables
+    return load_tables(cache, key) or tables
+
+
+def load_tables(cache, key):
+    """:class:`DepositTables` of entry ``key`` (arrays memory-mapped, read-only), or None when
+    absent or damaged (a damaged entry is removed with a warning)."""
+    found = cache.load(key)
+    if found is None:
+        return None
+    a, m = found
+    try:
+        bounds = np.cumsum(a["phase_size"])[:-1]
+        phases = list(zip(np.split(a["phase_first"], bounds), np.split(a["phase_last"], bounds)))
+        t = DepositTables(tuple(m["grid"]), tuple(m["oversample"]), int(m["vw"]), np.dtype(m["weights_dtype"]),
+                          tuple(m["detector_shape"]), a["meta"], a["offset"], int(m["pool_size"]),
+                          tuple(m["row_range"]), phases, scale=a["scale"], pool=a["pool"])
+        if (t.meta.shape != (t.ncell, 4) or t.offset.shape != (t.ncell,) or t.scale.shape != (t.ncell,)
+                or t.pool.shape != (t.pool_size,) or t.pool.dtype != t.weights_dtype
+                or int(np.prod(t.grid)) != t.ncell):
+            raise ValueError("array shapes do not match the metadata")
+    except (KeyError, TypeError, ValueError) as exc:
+        warnings.warn(f"projection tables {key} in {cache.directory} are inconsistent ({exc}); rebuilt",
+                      TableCacheWarning, stacklevel=2)
+        cache.remove(key)
+        return None
+    return t
 
 
 # --------------------------------------------------------------------------- #
@@ -375,14 +545,23 @@ def _deposit_numpy(value, t, out):
             out[r_a:r_b, c_a:c_b] += acc[r_a - rlo:r_b - rlo, c_a - clo:c_b - clo]
 
 
+def _table_buffer(array):
+    """Device buffer of a table array.  On CPU devices a memory-mapped table (read from the
+    cache) is used in place: a copy-on-write mapping of its file (the kernels only read it),
+    so no copy of the tables is made in host memory."""
+    if (isinstance(array, np.memmap) and array.size and array.filename is not None
+            and "CPU" in opencl.device_type()):
+        private = np.memmap(array.filename, dtype=array.dtype, mode="c", offset=array.offset, shape=array.shape)
+        return opencl.host_buffer(private)
+    return opencl.to_device(np.ascontiguousarray(array))
+
+
 def _deposit_opencl(value, t, out):
     opencl.require_fp64()
     dev = t.device
     if "pool" not in dev:
-        dev["meta"] = opencl.to_device(t.meta)
-        dev["offset"] = opencl.to_device(t.offset)
-        dev["pool"] = opencl.to_device(t.pool)
-        dev["scale"] = opencl.to_device(t.scale)
+        for name in ("meta", "offset", "pool", "scale"):
+            dev[name] = _table_buffer(getattr(t, name))
     if "phases" not in dev:
         dev["phases"] = [(opencl.to_device(f), opencl.to_device(l), f.size) for f, l in t.phases]
     is_gpu = "GPU" in opencl.device_type()

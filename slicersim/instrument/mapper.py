@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np
 
 from slicersim.io.config import builtin_config_dir
-from slicersim.backends.projection import build_tables, default_block, deposit
+from slicersim.backends.projection import (backend_tag, build_tables, default_block, deposit, load_tables, resolve_table_cache,
+                                          store_tables, table_key)
 
 __all__ = ["SlicerMapper", "read_spot_table", "detector_rate_image", "NARROW_SLICES", "WIDE_SLICES",
            "DEFAULT_SPOT_TABLE"]
@@ -98,6 +99,12 @@ def _hat_matrix(nodes, x):
     return A
 
 
+@functools.lru_cache(maxsize=1)
+def _code_digest():
+    """SHA-256 of this module's source (the cell boxes it computes key the table cache)."""
+    return hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+
+
 @functools.lru_cache(maxsize=2)
 def _default_table(path):
     return read_spot_table(path)
@@ -116,10 +123,16 @@ class SlicerMapper:
     detector_shape : (rows, cols)
     interpolation : "bilinear" or "triangles"
     face_diagonal : (S, J−1, M−1) int, for "triangles" (default 0 everywhere)
+    table_cache : "default", None, a directory or an
+        :class:`~slicersim.io.table_cache.ArrayCache`: where projection tables are cached on
+        disk (:meth:`projection_tables`); "default" is ``$SLICERSIM_CACHE/projection`` (else
+        ``~/.cache/slicersim/projection``), None keeps them in memory only (``cache_size``
+        tables, least recently used first out).
     """
 
     def __init__(self, slice_ids, fieldpos_nodes, lbda_nodes, values, *, pixel_size_um=10.0,
-                 detector_shape=(4096, 4096), interpolation="bilinear", face_diagonal=None, cache_size=4):
+                 detector_shape=(4096, 4096), interpolation="bilinear", face_diagonal=None, cache_size=4,
+                 table_cache="default"):
         self.slice_ids = np.asarray(slice_ids, dtype=np.int64)
         self.fieldpos_nodes = np.asarray(fieldpos_nodes, dtype=np.float64)
         self.lbda_nodes = np.asarray(lbda_nodes, dtype=np.float64)
@@ -147,6 +160,9 @@ class SlicerMapper:
         self._lookup[self.slice_ids] = np.arange(S)
         self._cache = OrderedDict()
         self._cache_size = int(cache_size)
+        self._disk_keys = {}
+        resolve_table_cache(table_cache)          # checks the type now
+        self.table_cache = table_cache
         self._trees = None
 
     # ------------------------------------------------------------------ construction
@@ -398,7 +414,14 @@ class SlicerMapper:
 
     def projection_tables(self, slices, ncol, lbda_edges, *, oversample=(1, 1), truncate=4.0,
                           weights_dtype=np.float32, block=None, backend="auto"):
-        """Cached :class:`~slicersim.backends.projection.DepositTables` for a field and λ grid."""
+        """:class:`~slicersim.backends.projection.DepositTables` for a field and λ grid.
+
+        With a disk cache (``table_cache``, see :mod:`slicersim.io.table_cache`) the tables
+        are built once per content key (:func:`~slicersim.backends.projection.table_key`: the
+        cell boxes, grid, truncation, dtype, backend, code version) and read back
+        memory-mapped; nothing is kept in this object but the key, so the tables leave memory
+        when the caller drops them.  Without one (or when it cannot be written) they are kept
+        in memory here (``cache_size`` of them, :meth:`release_tables` drops them)."""
         slices = tuple(int(s) for s in slices)
         edges = np.ascontiguousarray(lbda_edges, dtype=np.float64)
         block = default_block(backend) if block is None else int(block)
@@ -407,19 +430,52 @@ class SlicerMapper:
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
+        disk = resolve_table_cache(self.table_cache)
+        memo = (key, disk, backend_tag(backend)) if disk is not None else None
+        disk_key = self._disk_keys.get(memo)
+        if disk is not None and disk_key is not None:
+            tables = load_tables(disk, disk_key)
+            if tables is not None:
+                return tables
         ne, nq = (int(v) for v in oversample)
-        box = self.cell_boxes(slices, ncol, edges, (ne, nq))
         grid = (len(slices), (edges.size - 1) * ne, ncol * nq)
-        tables = build_tables(box, grid, (ne, nq), detector_shape=self.detector_shape, truncate=truncate,
-                              weights_dtype=weights_dtype, block=block, backend=backend)
+        options = dict(detector_shape=self.detector_shape, truncate=truncate, weights_dtype=weights_dtype,
+                       block=block, backend=backend)
+        if disk is not None:
+            disk_key = table_key(self._geometry(slices, ncol, edges), grid, (ne, nq), **options)
+            self._disk_keys[memo] = disk_key
+            tables = load_tables(disk, disk_key)
+            if tables is not None:
+                return tables
+        box = self.cell_boxes(slices, ncol, edges, (ne, nq))
+        tables = build_tables(box, grid, (ne, nq), **options)
+        del box
+        if disk is not None:
+            stored = store_tables(disk, disk_key, tables)
+            if stored is not tables:
+                return stored
         self._cache[key] = tables
         while len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
         return tables
 
-    def clear_cache(self):
-        """Forget the projection tables (and the inverse-map seeds)."""
+    def _geometry(self, slices, ncol, edges):
+        """What :meth:`cell_boxes` depends on, for the table cache key: the node grids, spot
+        values, interpolation, face diagonals, pixel size, slices, columns, λ edges and this
+        module's code (which computes the boxes)."""
+        return {"slice_ids": self.slice_ids, "fieldpos": self.fieldpos_nodes, "lbda": self.lbda_nodes,
+                "values": self.values, "interpolation": self.interpolation, "diagonal": self.face_diagonal,
+                "pixel_size_um": self.pixel_size_um, "slices": tuple(slices), "ncol": int(ncol),
+                "edges": np.asarray(edges, np.float64), "code": _code_digest()}
+
+    def release_tables(self):
+        """Drop the projection tables held in memory (those on disk stay there)."""
         self._cache.clear()
+
+    def clear_cache(self):
+        """Forget the projection tables held in memory (and the inverse-map seeds)."""
+        self._cache.clear()
+        self._disk_keys.clear()
         self._trees = None
 
     def project_cube(self, cube, lbda, lbda_edges, slices=NARROW_SLICES, out=None, *, backend="auto",
