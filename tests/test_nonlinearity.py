@@ -21,6 +21,9 @@ def test_coefficients_statistics_and_keying():
     # keyed by the full-detector pixel: a window equals the same pixels of a larger map
     big = nl.nonlinearity_coefficients(3, (64, 512), P, FW)
     np.testing.assert_array_equal(big[:, :, :256], a)
+    np.testing.assert_array_equal(nl.nonlinearity_coefficients(3, (64, 256), P, FW, rows=(20, 40)), a[:, 20:40])
+    with pytest.raises(EffectsError, match="rows"):
+        nl.nonlinearity_coefficients(3, (64, 256), P, FW, rows=(40, 20))
     assert not np.array_equal(nl.nonlinearity_coefficients(4, (64, 256), P, FW), a)
 
 

@@ -135,7 +135,8 @@ def bad_pixel_maps(seed, shape, params, rows=None):
                                    np.where(warm, _log_uniform(v, params.warm_dark), 0.0))
         qe[rel] = np.where(dead, 0.0, np.where(low, params.low_qe[0] + v * (params.low_qe[1] - params.low_qe[0]),
                                                 1.0))
-        pdq[rel] = (dead * (DQ_FLAGS["DEAD"] | DQ_FLAGS["DO_NOT_USE"]) + hot * (DQ_FLAGS["HOT"] | DQ_FLAGS["DO_NOT_USE"])
+        pdq[rel] = (dead * (DQ_FLAGS["DEAD"] | DQ_FLAGS["DO_NOT_USE"])
+                    + hot * (DQ_FLAGS["HOT"] | DQ_FLAGS["DO_NOT_USE"])
                     + warm * DQ_FLAGS["WARM"] + low * DQ_FLAGS["LOW_QE"] + tel * DQ_FLAGS["TELEGRAPH"])
         ty, tx = np.nonzero(tel)
         tel_y.append(yy[ty])

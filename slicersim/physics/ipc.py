@@ -132,8 +132,8 @@ def ipc_alpha_from_autocorrelation(flat, noise_variance=0.0, border=1, iteration
     difference of two reads of a uniform illumination; each image's mean is removed).
     ``noise_variance``: variance [same units²] of noise added after IPC (read noise), removed from
     the zero lag.  ``border`` pixels are dropped on every side (IPC with zero outside the image
-    darkens the edge, a structure that would bias the lags).  The normalised lag-1 correlations (averaged over the four directions of each
-    kind) are matched to :func:`kernel_autocorrelation` of the symmetric kernel by Newton steps.
+    darkens the edge, a structure that would bias the lags).  The normalised lag-1 correlations
+    (averaged over the four directions of each kind) are matched to :func:`kernel_autocorrelation` of the symmetric kernel by Newton steps.
     """
     img = np.asarray(flat, dtype=np.float64)
     if img.ndim == 2:

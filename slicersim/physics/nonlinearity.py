@@ -93,22 +93,26 @@ def _check_shape(shape):
     return ny, nx
 
 
-def nonlinearity_coefficients(seed, shape, params, full_well):
-    """Per-pixel (a₂ [e-⁻¹], a₃ [e-⁻²]) of M(Q) = Q + a₂Q² + a₃Q³: float64 (2, ny, nx)."""
+def nonlinearity_coefficients(seed, shape, params, full_well, rows=None):
+    """Per-pixel (a₂ [e-⁻¹], a₃ [e-⁻²]) of M(Q) = Q + a₂Q² + a₃Q³: float64 (2, ny, nx), or
+    (2, r1 − r0, nx) for ``rows`` = (r0, r1) (the same values as those rows of the full map)."""
     ny, nx = _check_shape(shape)
     full_well = check_number("full_well [e-]", full_well, 0.0, low_open=True)
+    r0, r1 = (0, ny) if rows is None else (int(rows[0]), int(rows[1]))
+    if not 0 <= r0 < r1 <= ny:
+        raise EffectsError(f"rows must satisfy 0 ≤ r0 < r1 ≤ {ny}, got {rows!r}")
     rng.seed_to_key(seed)
-    out = np.empty((2, ny, nx))
-    for r0 in range(0, ny, ROWS_PER_CHUNK):
-        rows = np.arange(r0, min(r0 + ROWS_PER_CHUNK, ny))
-        u = rng.uniform(seed, pixel_index(rows, nx), STREAMS["nonlinearity"], 0)
+    out = np.empty((2, r1 - r0, nx))
+    for c0 in range(r0, r1, ROWS_PER_CHUNK):
+        block = np.arange(c0, min(c0 + ROWS_PER_CHUNK, r1))
+        u = rng.uniform(seed, pixel_index(block, nx), STREAMS["nonlinearity"], 0)
         radius = np.sqrt(-2.0 * np.log(u[..., 0]))                  # Box–Muller (host libm: no
         z = np.stack([radius * np.cos(2 * np.pi * u[..., 1]),       # device twin to match)
                       radius * np.sin(2 * np.pi * u[..., 1])], -1)
         deficit = params.deficit * np.maximum(1.0 + params.deficit_scatter * z[..., 0], 0.0)
         share = np.clip(params.cubic_share + params.cubic_share_scatter * z[..., 1], 0.0, 1.0)
-        out[0, rows] = -deficit * (1.0 - share) / full_well
-        out[1, rows] = -deficit * share / full_well ** 2
+        out[0, block - r0] = -deficit * (1.0 - share) / full_well
+        out[1, block - r0] = -deficit * share / full_well ** 2
     return out
 
 
