@@ -69,11 +69,21 @@ def _stream(component, output=0):
 
 
 # --------------------------------------------------------------------------- spectral draws
-def stream_amplitudes(psd, length, dt):
-    """a_k = √(L S(f_k)/(4Δt)) for the L//2 + 1 bins of a length-L stream at cadence Δt,
-    with DC and (even L) Nyquist bins set to 0; ``psd``: callable f [Hz] → S [e-²/Hz]."""
-    f = np.arange(length // 2 + 1) / (length * dt)
+def stream_amplitudes(psd, length, dt, edge_bins=64, sub=32):
+    """a_k = √(L S̄_k/(4Δt)) for the L//2 + 1 bins of a length-L stream at cadence Δt, with DC
+    and (even L) Nyquist bins set to 0; ``psd``: callable f [Hz] → S [e-²/Hz].
+
+    S̄_k is S averaged over the bin [f_k − Δf/2, f_k + Δf/2] (``sub`` midpoints) for the
+    ``edge_bins`` bins next to 0 Hz and to Nyquist, where 1/f spectra (and ACN's mirrored one)
+    change fast across a bin, so Σ S̄_k Δf is the model's integral (point samples lose up to
+    ~0.4 e-fold of a pink spectrum's power there); S(f_k) elsewhere."""
+    nb = length // 2 + 1
+    df = 1.0 / (length * dt)
+    f = np.arange(nb) * df
     s = np.asarray(psd(f), dtype=float)
+    edge = np.unique(np.concatenate([np.arange(1, min(edge_bins, nb)), np.arange(max(1, nb - edge_bins), nb)]))
+    offsets = (np.arange(sub) + 0.5) / sub - 0.5
+    s[edge] = np.asarray(psd((edge[:, None] + offsets[None, :]) * df), dtype=float).mean(axis=1)
     amp = np.sqrt(np.maximum(s, 0.0) * length / (4.0 * dt))
     amp[0] = 0.0
     if length % 2 == 0:

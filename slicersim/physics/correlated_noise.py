@@ -57,7 +57,7 @@ import numpy as np
 from slicersim.errors import EffectsError
 
 __all__ = ["CorrelatedNoiseParameters", "ReadoutGeometry", "pink_psd", "acn_psd", "model_psd",
-           "autocovariance", "group_mean_variance", "picture_frame_template", "crossover_low",
+           "group_mean_variance", "picture_frame_template", "crossover_low",
            "METHODS"]
 
 #: generators of :class:`slicersim.backends.correlated_noise.CorrelatedNoise`
@@ -244,30 +244,50 @@ def crossover_low(f, nu_c):
     return np.cos(0.5 * np.pi * u) ** 2
 
 
-def _log_grid(lo, hi, per_decade=400):
-    n = int(max(8, per_decade * math.log10(hi / lo)))
-    edges = np.geomspace(lo, hi, n + 1)
-    return np.sqrt(edges[:-1] * edges[1:]), np.diff(edges)
+def _integral(func, lo, hi, n, log):
+    """Midpoint-rule ∫ func over [lo, hi] on n cells (log or linear spacing)."""
+    if hi <= lo:
+        return 0.0
+    edges = np.geomspace(lo, hi, n + 1) if log else np.linspace(lo, hi, n + 1)
+    mid = np.sqrt(edges[:-1] * edges[1:]) if log else 0.5 * (edges[:-1] + edges[1:])
+    return float(np.sum(func(mid) * np.diff(edges)))
 
 
-def autocovariance(lags, params, geometry, component="output"):
-    """R(lag) = ∫ S(f) cos(2π f lag) df [e-²] of the stationary stream (lags in s; numerical,
-    relative error ≲ 1e-3 for lags ≤ a few thousand frames)."""
-    lags = np.atleast_1d(np.asarray(lags, dtype=float))
-    f, df = _log_grid(params.f_min, geometry.f_nyquist, 4000)
-    w = model_psd(f, params, geometry, component) * df
-    return np.array([np.sum(w * np.cos(2 * np.pi * f * lag)) for lag in lags])
+def _fejer(f, m, tframe):
+    """|mean of m reads tframe apart|² transfer F_m(f) = sin²(π f m t)/(m² sin²(π f t))."""
+    x = np.pi * f * tframe
+    den = np.sin(x)
+    small = np.abs(den) < 1e-12
+    return np.where(small, 1.0, np.sin(m * x) ** 2 / (m**2 * np.where(small, 1.0, den) ** 2))
 
 
 def group_mean_variance(m, params, geometry, component="output", include_frame_terms=True):
-    """Variance [e-²] of the mean of m consecutive reads of one pixel (reads tframe apart):
-    (1/m²) Σ_ij R(|i − j|·tframe), plus (pedestal² + picture_frame²)/m when include_frame_terms
-    (their per-frame draws are independent; the picture-frame template has unit rms)."""
+    """Variance [e-²] of the mean of m consecutive reads of one pixel (reads tframe apart).
+
+    ∫ S_slow(f) F_m(f) df with F_m the Fejér transfer of the m-read mean.  ACN's alternating
+    half aliases onto 0 Hz at the frame cadence (frame_len even: a pixel keeps its parity), so
+    S_slow = S_c + S_u + P_a (its two halves).  Cells resolve F_m below 64/tframe; above,
+    F_m is replaced by its period mean 1/m (S varies < 2 % over a period there).  Adds
+    (pedestal² + picture_frame²)/m when include_frame_terms (independent draws per frame; the
+    picture-frame template has unit rms)."""
     m = _posint("m", m)
-    lags = np.arange(m) * geometry.tframe
-    r = autocovariance(lags, params, geometry, component)
-    weights = np.where(np.arange(m) == 0, m, 2.0 * (m - np.arange(m)))
-    var = float(np.sum(weights * r)) / m**2
+    fm, t = params.f_min, geometry.tframe
+    fn = geometry.f_nyquist
+    if component == "output":
+        def slow(f):
+            return (pink_psd(f, params.c_pink, geometry, fm) + pink_psd(f, params.u_pink, geometry, fm)
+                    + 2.0 * _acn_half(f, params.acn, geometry, fm))
+    else:
+        def slow(f):
+            psd = model_psd(f, params, geometry, component)
+            if component in ("acn", "own"):
+                psd = psd - _acn_half(fn - f, params.acn, geometry, fm) + _acn_half(f, params.acn, geometry, fm)
+            return psd
+    f1 = min(0.05 / (m * t), fn)
+    f2 = min(64.0 / t, fn)
+    var = _integral(lambda f: slow(f) * _fejer(f, m, t), fm, f1, 2000, True)
+    var += _integral(lambda f: slow(f) * _fejer(f, m, t), max(fm, f1), f2, int(64 * m * 64), False)
+    var += _integral(slow, max(fm, f2), fn, 4000, True) / m
     if include_frame_terms and component == "output":
         var += (params.pedestal**2 + params.picture_frame**2) / m
     return var
