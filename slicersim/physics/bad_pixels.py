@@ -13,7 +13,7 @@ masks; the flag bits are those of ``stdatamodels.jwst.datamodels.dqflags``):
 * telegraph 0.1 %: a read offset switching between 0 and A = 20–200 e- (log-uniform), with
   exponential dwell times of means τ_low, τ_high = 5–500 s (log-uniform, independent);
   TELEGRAPH.  RTS noise comes from a single trap in the source-follower gate switching between
-  two charge states (Kirton & Uren 1989, Adv. Phys. 38, 367; Bacon et al. 2005 for H2RGs).
+  two charge states (Kirton & Uren 1989, Adv. Phys. 38, 367; seen in JWST H2RGs, Rauscher et al. 2014).
 
 The classes are exclusive: one uniform per pixel picks the class by cumulative fraction, the
 second gives its value (Philox index ``y << 16 | x``, full-detector pixel, stream

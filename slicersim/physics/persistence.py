@@ -1,7 +1,7 @@
 """Persistence: charge trapped during a previous exposure, released as a decaying extra dark
 current in the following ramps.
 
-Model (Smith et al. 2008, Proc. SPIE 7021, 70210J/K, "A theory for image persistence in HgCdTe
+Model (Smith et al. 2008, Proc. SPIE 7021, "A theory for image persistence in HgCdTe
 photodiodes": traps in the depletion region fill while it shrinks under illumination and empty
 with a spread of emission time constants; Long et al. 2015, WFC3 ISR 2015-15 and Long, Baggett &
 MacKenty 2012, Proc. SPIE 8442: the persistence amplitude is a Fermi-like function of the previous
