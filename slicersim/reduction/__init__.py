@@ -1,0 +1,1 @@
+"""Reduction algorithms applied to simulated raw ramps (validation of the simulated effects)."""
