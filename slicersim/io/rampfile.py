@@ -151,12 +151,25 @@ class RampWriter(AtomicH5File):
         self._h5(self.truth.__setitem__, Ellipsis, np.asarray(rate, dtype=np.float32))
 
     def write_dataset(self, name, array, attrs=None):
-        """Write ``truth/<name>`` (any array, structured arrays as compound datasets) with attributes."""
-        array = np.asarray(array)
+        """Write ``truth/<name>`` (any array, structured arrays as compound datasets) with attributes.
+
+        ``array`` may be a lazy (k, ny, nx) array-like (``shape``, ``dtype``, ``[:, y0:y1]``): it is
+        then written in blocks of rows, never whole in memory."""
+        lazy = not isinstance(array, np.ndarray) and hasattr(array, "shape") and len(getattr(array, "shape")) == 3
+        if not lazy:
+            array = np.asarray(array)
 
         def put():
-            kwargs = {"chunks": True, "compression": "gzip", "compression_opts": 1} if array.size > 4096 else {}
-            ds = self.file.create_dataset(f"truth/{name}", data=array, **kwargs)
+            if lazy:
+                k, ny, nx = array.shape
+                rows = max(1, min(ny, (16 << 20) // max(1, k * nx * np.dtype(array.dtype).itemsize)))
+                ds = self.file.create_dataset(f"truth/{name}", array.shape, dtype=array.dtype,
+                                              chunks=(1, rows, nx))
+                for y0 in range(0, ny, rows):
+                    ds[:, y0:y0 + rows] = array[:, y0:y0 + rows]
+            else:
+                kwargs = {"chunks": True, "compression": "gzip", "compression_opts": 1} if array.size > 4096 else {}
+                ds = self.file.create_dataset(f"truth/{name}", data=array, **kwargs)
             for key, val in (attrs or {}).items():
                 ds.attrs[key] = val if not isinstance(val, (dict, list, tuple)) else json.dumps(val)
         self._h5(put)

@@ -208,6 +208,38 @@ class DetectorEffects:
         built = {n: _params_from_dict(n, section.get(n)) for n in EFFECT_NAMES if n in enabled or n in section}
         return cls({n: built[n] for n in enabled})
 
+    @classmethod
+    def from_file(cls, path, has_previous_charge=False):
+        """From a TOML (``.toml``) or JSON file holding an ``[effects]`` table (see :meth:`from_config`)."""
+        import json
+        import os
+        path = os.fspath(path)
+        try:
+            with open(path, "rb") as fh:
+                raw = fh.read()
+        except OSError as exc:
+            raise EffectsError(f"cannot read effects config {path}: {exc.strerror or exc}") from exc
+        try:
+            if path.lower().endswith(".json"):
+                config = json.loads(raw.decode("utf-8"))
+            else:
+                import tomllib
+                config = tomllib.loads(raw.decode("utf-8"))
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise EffectsError(f"{path}: not a valid {'JSON' if path.lower().endswith('.json') else 'TOML'} "
+                               f"file ({exc})") from exc
+        return cls.from_config(config, has_previous_charge)
+
+    def restricted_to(self, names):
+        """Exactly the effects ``names`` enabled, with this object's parameters where it has them
+        (defaults otherwise)."""
+        config = self.to_config()["effects"]
+        config["enabled"] = list(names)
+        for name in list(config):
+            if name != "enabled" and name not in names:
+                del config[name]
+        return DetectorEffects.from_config(config, has_previous_charge="persistence" in names)
+
     def to_config(self):
         """JSON-able {"effects": {"enabled": [...], name: {parameters}, ...}} (from_config round trip)."""
         out = {"enabled": list(self.enabled)}

@@ -40,9 +40,10 @@ def resolve_effects(effects):
     from slicersim.physics.effects import DetectorEffects
     if isinstance(effects, DetectorEffects):
         return effects if effects.enabled else None
+    from slicersim.physics.effects import PRESETS
     if isinstance(effects, dict):
         fx = DetectorEffects.from_config(effects)
-    elif isinstance(effects, str) and effects.strip().lower() in DetectorEffects.PRESETS:
+    elif isinstance(effects, str) and effects.strip().lower() in PRESETS:
         fx = DetectorEffects.preset(effects.strip().lower())
     elif isinstance(effects, (str, list, tuple)):
         fx = DetectorEffects.from_names(effects)
@@ -75,8 +76,7 @@ class EffectsPlan:
         self.halo = 1 if "ipc" in self.on else 0
         self.ipc = None
         if "ipc" in self.on:
-            from slicersim.physics.ipc import ipc_kernel
-            self.ipc = ipc_kernel(**effects.params("ipc").kernel_arguments())
+            self.ipc = effects.params("ipc").matrix()
         self.reference = None
         if "reference_pixels" in self.on:
             from slicersim.physics.reference_pixels import reference_pixel_mask
@@ -85,11 +85,6 @@ class EffectsPlan:
         if "bad_pixels" in self.on:
             from slicersim.physics.bad_pixels import bad_pixel_maps
             self.bad = bad_pixel_maps(self.seed, self.shape, effects.params("bad_pixels"))
-        self.nl = None
-        if "nonlinearity" in self.on:
-            from slicersim.physics.nonlinearity import nonlinearity_coefficients
-            self.nl = nonlinearity_coefficients(self.seed, self.shape, effects.params("nonlinearity"),
-                                                p.full_well)
         self.bias = None
         if "reference_pixels" in self.on:
             from slicersim.physics.reference_pixels import bias_map
@@ -125,25 +120,37 @@ class EffectsPlan:
         """All charge deposits of ``ramp`` (CR_DTYPE rows, sorted by y, x, frame), cosmic rays first."""
         if ramp in self._deposits:
             return self._deposits[ramp]
-        parts = []
-        if "cosmic_rays" in self.on:
-            from slicersim.physics.cosmic_rays import cosmic_ray_deposits
-            parts.append(np.asarray(cosmic_ray_deposits(self.seed, ramp, self.p.nframes, self.p.tframe, self.shape,
-                                                        self.effects.params("cosmic_rays"))).astype(CR_DTYPE))
-        if "persistence" in self.on:
-            from slicersim.physics.persistence import persistence_deposits
-            parts.append(np.asarray(persistence_deposits(self.seed, ramp, self.p.nframes, self.p.tframe,
-                                                         self.previous_charge,
-                                                         self.effects.params("persistence"))).astype(CR_DTYPE))
-        rows = np.concatenate(parts) if parts else np.zeros(0, CR_DTYPE)
-        if self.reference is not None or self.bad is not None:      # nothing is collected there
-            dead = np.zeros(self.shape, bool) if self.reference is None else self.reference.copy()
-            if self.bad is not None:
-                dead |= self.bad["dead"]
-            rows = rows[~dead[rows["y"], rows["x"]]]
+        parts = [self._cosmic_rays(ramp), self._persistence(ramp)]
+        rows = np.concatenate(parts)
         rows = rows[np.lexsort((rows["frame"], rows["x"], rows["y"]))]
         self._deposits = {ramp: rows}                    # one ramp at a time in memory
         return rows
+
+    def _collected(self, rows):
+        """The deposits on pixels that collect charge (not on dead or reference pixels)."""
+        if self.reference is None and self.bad is None:
+            return rows
+        dead = np.zeros(self.shape, bool) if self.reference is None else self.reference.copy()
+        if self.bad is not None:
+            dead |= self.bad["dead"]
+        return rows[~dead[rows["y"], rows["x"]]]
+
+    def _cosmic_rays(self, ramp):
+        """Cosmic-ray truth of ``ramp`` (pixels that collect charge), CR_DTYPE sorted by y, x, frame."""
+        if "cosmic_rays" not in self.on:
+            return np.zeros(0, CR_DTYPE)
+        from slicersim.physics.cosmic_rays import cosmic_ray_deposits
+        rows = cosmic_ray_deposits(self.seed, ramp, self.p.nframes, self.p.tframe, self.shape,
+                                   self.effects.params("cosmic_rays"))
+        return self._collected(np.asarray(rows).astype(CR_DTYPE))
+
+    def _persistence(self, ramp):
+        if "persistence" not in self.on:
+            return np.zeros(0, CR_DTYPE)
+        from slicersim.physics.persistence import persistence_deposits
+        rows = persistence_deposits(self.seed, ramp, self.p.nframes, self.p.tframe, self.previous_charge,
+                                    self.effects.params("persistence"))
+        return self._collected(np.asarray(rows).astype(CR_DTYPE))
 
     def block_deposits(self, ramp, y0, y1):
         """CSR deposits (start, frame, electrons) of rows [y0, y1) (block-local pixel numbers)."""
@@ -172,18 +179,22 @@ class EffectsPlan:
     def _telegraph_offsets(self, ramp):
         if ramp not in self._telegraph:
             from slicersim.physics.bad_pixels import telegraph_offsets
-            pixels = np.asarray(self.bad["telegraph"])
+            pixels = self.bad["telegraph"]                # structured: y, x, amplitude, dwell times
             offsets = np.asarray(telegraph_offsets(self.seed, ramp, self.p.nmd, self.p.tframe, pixels,
                                                    self.effects.params("bad_pixels")), np.float32)
-            ys, xs = np.divmod(pixels.astype(np.int64), self.nx)
+            ys, xs = pixels["y"].astype(np.int64), pixels["x"].astype(np.int64)
             self._telegraph = {ramp: (offsets, ys, xs)}
         return self._telegraph[ramp]
 
     def nonlinearity_block(self, y0, y1):
-        """(a2, a3) of rows [y0, y1) raveled, or (None, None)."""
-        if self.nl is None:
+        """(a2 [e-⁻¹], a3 [e-⁻²]) of rows [y0, y1) raveled, or (None, None) (drawn per pixel: the same
+        values whatever the blocks)."""
+        if "nonlinearity" not in self.on:
             return None, None
-        return (np.ascontiguousarray(self.nl[0, y0:y1]).ravel(), np.ascontiguousarray(self.nl[1, y0:y1]).ravel())
+        from slicersim.physics.nonlinearity import nonlinearity_coefficients
+        a = nonlinearity_coefficients(self.seed, self.shape, self.effects.params("nonlinearity"), self.p.full_well,
+                                      rows=(y0, y1))
+        return np.ascontiguousarray(a[0]).ravel(), np.ascontiguousarray(a[1]).ravel()
 
     def bias_block(self, y0, y1):
         return None if self.bias is None else self.bias[y0:y1]
@@ -192,21 +203,19 @@ class EffectsPlan:
     def write_truth(self, writer, nramps):
         """Truth of every effect into ``writer`` (RampWriter or UncalWriter: ``write_dataset``)."""
         attrs = {"EFFECTS": self.effects.to_config()}
-        if "cosmic_rays" in self.on or "persistence" in self.on:
-            cr = [self.deposits(r) for r in range(nramps)]
-            rows = np.concatenate(cr) if cr else np.zeros(0, CR_DTYPE)
-            if "cosmic_rays" in self.on:
-                writer.write_dataset("cosmic_rays", rows, {"UNITS": "electrons", "FRAME": "from the reset, "
-                                                           "dropped frames included"})
+        if "cosmic_rays" in self.on:
+            rows = np.concatenate([self._cosmic_rays(r) for r in range(nramps)])
+            writer.write_dataset("cosmic_rays", rows, {"UNITS": "electrons", "FRAME": "from the reset, "
+                                                       "dropped frames included", "Y_X": "full-detector pixel"})
         if self.ipc is not None:
             writer.write_dataset("ipc_kernel", self.ipc)
-        if self.nl is not None:
-            from slicersim.physics.nonlinearity import inverse_coefficients
-            writer.write_dataset("nonlinearity/coefficients", self.nl.astype(np.float64),
-                                 {"MODEL": "R(Q) = Q + a2 Q^2 + a3 Q^3 [e-]"})
-            writer.write_dataset("nonlinearity/inverse_coefficients",
-                                 inverse_coefficients(self.nl[0], self.nl[1], self.p.full_well, self.p.gain),
+        if "nonlinearity" in self.on:
+            writer.write_dataset("nonlinearity/coefficients", _RowBlocks(self, "forward"),
+                                 {"MODEL": "R(Q) = Q + a2 Q^2 + a3 Q^3 [e-] (a2, a3)"})
+            writer.write_dataset("nonlinearity/inverse_coefficients", _RowBlocks(self, "inverse"),
                                  {"CONVENTION": "JWST linearity: corrected DN = sum_k c_k DN^k (bias removed)"})
+        if "persistence" in self.on:
+            writer.write_dataset("persistence", np.concatenate([self._persistence(r) for r in range(nramps)]))
         if self.bad is not None:
             writer.write_dataset("bad_pixels/extra_dark", self.bad["extra_dark"])
             writer.write_dataset("bad_pixels/qe_factor", self.bad["qe_factor"])
@@ -214,3 +223,42 @@ class EffectsPlan:
             writer.write_dataset("bias", self.bias)
         return attrs
 
+
+
+class _RowBlocks:
+    """Lazy (k, ny, nx) truth array of nonlinearity coefficients, computed by row blocks when sliced
+    (``forward``: a2, a3 float64; ``inverse``: JWST correction coefficients float32)."""
+
+    ROWS = 256
+
+    def __init__(self, plan, kind):
+        self.plan, self.kind = plan, kind
+        ny, nx = plan.shape
+        ncoef = 2 if kind == "forward" else plan.effects.params("nonlinearity").degree + 1
+        self.shape = (ncoef, ny, nx)
+        self.dtype = np.dtype(np.float64 if kind == "forward" else np.float32)
+        self.ndim = 3
+        self._full = None
+
+    def rows(self, y0, y1):
+        a2, a3 = self.plan.nonlinearity_block(y0, y1)
+        nx = self.shape[2]
+        if self.kind == "forward":
+            return np.stack([a2, a3]).reshape(2, y1 - y0, nx)
+        from slicersim.physics.nonlinearity import inverse_coefficients
+        p = self.plan.p
+        params = self.plan.effects.params("nonlinearity")
+        return np.asarray(inverse_coefficients(a2.reshape(y1 - y0, nx), a3.reshape(y1 - y0, nx), p.full_well, p.gain,
+                                               degree=params.degree, tolerance=params.tolerance), self.dtype)
+
+    def __getitem__(self, key):
+        """``[:, y0:y1]`` row slices (HDF5 writer), first-axis slices ``[i:j]`` (FITS writer: the
+        whole array is computed once and kept) and ``[...]``."""
+        if key is Ellipsis or isinstance(key, slice):
+            if self._full is None:
+                self._full = np.concatenate([self.rows(y0, min(self.shape[1], y0 + self.ROWS))
+                                             for y0 in range(0, self.shape[1], self.ROWS)], axis=1)
+            return self._full if key is Ellipsis else self._full[key]
+        rows = key[1] if isinstance(key, tuple) and len(key) >= 2 else slice(None)
+        y0, y1, _ = rows.indices(self.shape[1])
+        return self.rows(y0, y1)
