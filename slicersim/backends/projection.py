@@ -19,6 +19,13 @@ and deposit any number of cubes.  Weights are stored as float32 by default
 (half the memory and bandwidth); the per-cell ``scale`` is computed in
 float64 from the *stored* weights, so flux conservation is exact to float64
 rounding whatever the storage type.
+
+Tables on disk (:func:`table_key`, :func:`store_tables`, :func:`load_tables`): a full Lazuli
+field's tables take ~0.46 GB, so :class:`~slicersim.instrument.mapper.SlicerMapper` keeps them
+in an :class:`~slicersim.io.table_cache.ArrayCache` (``$SLICERSIM_CACHE/projection``) under a
+content key and reads them back memory-mapped; a hit is the built tables bit for bit.  Built
+on the device, they are streamed to disk without a host copy; read back on a CPU device, the
+kernels use the mapped file in place.
 """
 
 from __future__ import annotations

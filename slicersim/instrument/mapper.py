@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 
 from slicersim.io.config import builtin_config_dir
-from slicersim.backends.projection import (backend_tag, build_tables, default_block, deposit, load_tables, resolve_table_cache,
-                                          store_tables, table_key)
+from slicersim.backends.projection import (backend_tag, build_tables, default_block, deposit, load_tables,
+                                          resolve_table_cache, store_tables, table_key)
 
 __all__ = ["SlicerMapper", "read_spot_table", "detector_rate_image", "NARROW_SLICES", "WIDE_SLICES",
            "DEFAULT_SPOT_TABLE"]
