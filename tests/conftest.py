@@ -105,3 +105,15 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "refdir" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.reference)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _temporary_table_cache(tmp_path_factory):
+    """The whole suite caches projection tables in a temporary directory, never in ~/.cache."""
+    saved = os.environ.get("SLICERSIM_CACHE")
+    os.environ["SLICERSIM_CACHE"] = str(tmp_path_factory.mktemp("slicersim-cache"))
+    yield
+    if saved is None:
+        os.environ.pop("SLICERSIM_CACHE", None)
+    else:
+        os.environ["SLICERSIM_CACHE"] = saved

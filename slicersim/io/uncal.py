@@ -514,17 +514,21 @@ class UncalWriter:
             raise RampFileError(f"{self.path}: truth rate must be {self.shape}, got {rate.shape}")
         self.write_dataset("truth/rate", rate)
 
-    def write_dataset(self, name, array):
+    def write_dataset(self, name, array, attrs=None):
         """Append ``array`` (an image, or a structured array as a binary table) as TRUTH_<NAME>.
 
-        ``array`` may be an h5py dataset: images are copied in slices of the first axis."""
+        ``array`` may be an h5py dataset: images are copied in slices of the first axis.
+        ``attrs``: string/number attributes, kept as HIERARCH keywords of the extension."""
         extname = truth_extname(name)
         if not hasattr(array, "dtype"):
             array = np.asarray(array)
         if extname in self._extnames:                      # every truth EXTNAME starts with TRUTH_
             raise RampFileError(f"{self.path}: extension {extname} (dataset {name!r}) already written")
         dtype, shape = np.dtype(array.dtype), tuple(array.shape)
-        extra = [("H5PATH", _ascii(name)), ("H5DTYPE", json.dumps(dtype.descr) if dtype.names else str(dtype))]
+        h5path = str(name).strip("/")
+        h5path = h5path if h5path.startswith("truth/") else f"truth/{h5path}"    # as RampWriter.write_dataset
+        extra = [("H5PATH", _ascii(h5path)), ("H5DTYPE", json.dumps(dtype.descr) if dtype.names else str(dtype))]
+        extra += [(f"HIERARCH SLICERSIM {key}", _ascii(str(val))[:60]) for key, val in (attrs or {}).items()]
         if dtype.names:
             self._append(_table_bytes(np.asarray(array[()]), extname, extra))
         else:

@@ -40,6 +40,7 @@ from slicersim.physics.effects import STREAMS, check_number
 __all__ = ["NonlinearityParameters", "nonlinearity_coefficients", "measured_charge", "linear_charge",
            "inverse_coefficients", "check_invertible", "apply_correction", "pixel_index"]
 
+Z_MAX = 8.6                    # largest |z| of a Box–Muller pair from 53-bit uniforms: √(2·53·ln 2) = 8.57
 ROWS_PER_CHUNK = 16            # rows per block of the per-pixel draws (cache-sized: 2.3× faster than 256)
 EXACT_MAX_PIXELS = 1 << 14     # above: fits interpolated in (A₂, A₃) (inverse_coefficients)
 GRID_NODES = 6                 # Chebyshev nodes per parameter axis of that interpolation
@@ -72,6 +73,21 @@ class NonlinearityParameters:
             raise EffectsError(f"nonlinearity.degree must be an integer in [2, 12], got {self.degree!r}")
         self.degree = int(degree)
         self.tolerance = check_number("nonlinearity.tolerance", self.tolerance, 0.0, 0.1, low_open=True)
+        self._check_invertible()
+
+    def _check_invertible(self):
+        """No pixel may get a non-monotonic M(Q) on [0, Q_fw]: with δ the pixel's deficit and s its
+        cubic share, dM/dQ = 1 − 2δ(1 − s)Q/Q_fw − 3δs(Q/Q_fw)² is smallest at Q_fw: 1 − 2δ − δs.  The largest
+        Gaussian the Box–Muller draws can give is Z_MAX, so δ ≤ deficit·(1 + deficit_scatter·Z_MAX)
+        and s ≤ min(1, cubic_share + cubic_share_scatter·Z_MAX) bound every pixel."""
+        d_max = self.deficit * (1.0 + self.deficit_scatter * Z_MAX)
+        s_max = min(1.0, self.cubic_share + self.cubic_share_scatter * Z_MAX)
+        slope = 1.0 - 2.0 * d_max - d_max * s_max
+        if slope <= 0.05:
+            raise EffectsError(f"nonlinearity is not invertible: deficit {self.deficit} with scatter "
+                               f"{self.deficit_scatter} (cubic share ≤ {s_max:.2f}) lets a pixel's deficit reach "
+                               f"{d_max:.2f}, where M(Q) stops increasing before the full well (dM/dQ = {slope:.2f}); "
+                               "lower deficit or deficit_scatter")
 
     def to_dict(self):
         return asdict(self)

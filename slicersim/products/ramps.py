@@ -41,7 +41,7 @@ __all__ = ["simulate", "RampParameters", "frame_mean_charge", "macc_frame_schedu
 def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=12.0, dark=2.8e-3,
              thermal_dark=0.0, roic_glow=3e-3, gain=1.0, saturation=65535, bias=DEFAULT_BIAS,
              ktc_noise=0.0, full_well=None, dead_pixels=None, pixeldq=None, sparse_max_group=None,
-             gauss_min_mean=np.inf, compression=None, memory_budget=2**30, truth=True,
+             gauss_min_mean=np.inf, compression=None, memory_budget=2**29, truth=True,
              config=None, backend="auto", progress=None, work_group=None, return_dq=False, overwrite=False,
              effects=None, previous_charge=None, file_format=None):
     """Simulate raw MACC ramps of a rate image.
@@ -59,7 +59,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         0.9·(m+d) − 1, see :func:`sparse_threshold`; capped at 64).  Both samplers are exact:
         this only trades speed.
     gauss_min_mean : Poisson mean above which a rounded Gaussian replaces the exact draw
-    memory_budget : bytes of host memory for the row blocks (default 1 GiB)
+    memory_budget : bytes of host memory for the row blocks (default 512 MiB: a full-detector ramp
+        peaks below 1.5 GB; larger blocks are not faster)
     work_group : OpenCL local size (None: 64 on CPUs, the runtime's on GPUs); never changes the result
     overwrite : replace an existing ``out`` (default: refuse with :class:`~slicersim.errors.RampFileError`)
     effects : detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a preset
@@ -116,7 +117,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
                               truth_rate=truth, overwrite=overwrite).check()
     else:
         full_bytes = p.nramps * n * ny * nx * (3 if return_dq else 2)
-        if full_bytes > 8 * memory_budget:
+        if full_bytes > 16 * memory_budget:
             raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
         avail = _available_memory()
         if avail is not None and full_bytes > avail:
@@ -156,6 +157,13 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     if plan is not None:
         attrs["EFFECTS"] = fx.to_config()
 
+    buffers = []
+
+    def block_buffers(size):
+        if not buffers:
+            buffers.extend([np.empty(size, np.uint16), np.empty(size, np.uint8)])
+        return buffers
+
     def run(w):
         if w is not None:
             w.write_pixeldq(_pixeldq(pixeldq, dead, rate.shape))
@@ -179,6 +187,14 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
                 direct = {"sci_out": result[ramp].reshape(n, -1)}
                 if result_dq is not None:
                     direct["gdq_out"] = result_dq[ramp].reshape(n, -1)
+            elif w is not None and backend == "opencl":      # one pair of host buffers for every block
+                npix = (y1 - y0) * nx
+                sci_buf, gdq_buf = block_buffers(n * rows * nx)
+                reused = {"sci_out": sci_buf[:n * npix].reshape(n, npix),
+                          "gdq_out": gdq_buf[:n * npix].reshape(n, npix)}
+                sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **reused)
+                w.write_block(ramp, y0, sci.reshape(n, y1 - y0, nx), gdq.reshape(n, y1 - y0, nx))
+                continue
             sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **direct)
             if direct:
                 continue

@@ -1,0 +1,143 @@
+"""Raw ramps with detector effects through :func:`slicersim.products.ramps.simulate`: backends,
+chunking, independence of the random streams, truth layout, formats and bad input."""
+import h5py
+import numpy as np
+import pytest
+
+from slicersim.errors import EffectsError
+from slicersim.io.rampfile import read_ramps
+from slicersim.physics.effects import EFFECT_NAMES, DetectorEffects
+from slicersim.products.ramps import simulate
+
+NMD = (6, 4, 1)
+
+
+def _rate(ny=48, nx=128):
+    rate = np.full((ny, nx), 3.0)
+    rate[10:20, 30:40] = 400.0
+    return rate
+
+
+def _truth(path, name):
+    with h5py.File(path, "r") as fh:
+        return fh[f"truth/{name}"][...]
+
+
+@pytest.mark.parametrize("effects", ["lazuli", "cosmic_rays,ipc,nonlinearity"])
+def test_backends_and_chunking_give_the_same_integers(effects):
+    rate = _rate()
+    kw = dict(seed=3, effects=effects, progress=False, return_dq=True)
+    ref = simulate(rate, NMD, backend="numpy", **kw)
+    for extra in ({}, {"memory_budget": 128 * 200 * 50}):                  # one block, ~7-row blocks
+        got = simulate(rate, NMD, backend="opencl", **extra, **kw)
+        assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
+
+
+def test_cosmic_rays_change_only_the_pixels_they_hit(tmp_path):
+    """One stream per effect: with cosmic rays on, every pixel without a hit keeps the plain ramp's
+    integers, and a hit pixel keeps them before its first hit group."""
+    rate = _rate()
+    plain = simulate(rate, NMD, seed=5, progress=False)
+    path = simulate(rate, NMD, seed=5, progress=False, out=tmp_path / "cr.h5",
+                    effects={"effects": {"enabled": ["cosmic_rays"], "cosmic_rays": {"rate": 2000.0}}})
+    sci = read_ramps(path)[0]
+    hits = _truth(path, "cosmic_rays")
+    assert hits.dtype.names == ("ramp", "frame", "y", "x", "electrons") and hits.size > 50
+    n, m, d = NMD
+    changed = np.any(sci != plain, axis=1)[0]
+    hit = np.zeros(rate.shape, bool)
+    hit[hits["y"], hits["x"]] = True
+    assert not np.any(changed & ~hit)
+    first = np.full(rate.shape, n)
+    np.minimum.at(first, (hits["y"], hits["x"]), np.minimum(hits["frame"] // (m + d), n))
+    g = np.arange(n)[:, None, None]
+    before = g < first[None]
+    assert np.array_equal(sci[0][before], plain[0][before])
+    big = hits["electrons"] > 200                                 # ≫ read noise: the pixel changed
+    assert changed[hits["y"][big], hits["x"][big]].all()
+
+
+def test_switching_an_effect_leaves_the_others_draws(tmp_path):
+    """IPC on or off: the same charge (b = IPC(a) within the ±½ ADU roundings, no read noise);
+    other effects on or off: the same cosmic rays and nonlinearity coefficients."""
+    rate = _rate()
+    kw = dict(seed=9, progress=False, ron=0.0)
+    a = simulate(rate, NMD, effects="cosmic_rays,nonlinearity", **kw)[0].astype(float) - 2000.0
+    with_ipc = DetectorEffects.from_names("cosmic_rays,nonlinearity,ipc")
+    b = simulate(rate, NMD, effects=with_ipc, **kw)[0].astype(float) - 2000.0
+    from slicersim.physics.ipc import apply_ipc
+    diff = b - apply_ipc(a, with_ipc.params("ipc").matrix())
+    assert np.abs(diff[:, 1:-1, 1:-1]).max() <= 1.0
+    alone = simulate(rate, NMD, out=tmp_path / "cr.h5", effects="cosmic_rays,nonlinearity", **kw)
+    every = simulate(rate, NMD, out=tmp_path / "all.h5", effects="lazuli", **kw)
+    for name in ("nonlinearity/coefficients", "nonlinearity/inverse_coefficients"):
+        assert np.array_equal(_truth(alone, name), _truth(every, name))
+    cr_alone, cr_all = _truth(alone, "cosmic_rays"), _truth(every, "cosmic_rays")
+    with h5py.File(every, "r") as fh:
+        flags = fh["PIXELDQ"][...]
+    collecting = (flags & np.uint32(2**31 | 1024)) == 0
+    keep = collecting[cr_alone["y"], cr_alone["x"]]
+    assert np.array_equal(cr_alone[keep], cr_all)
+
+
+def test_truth_datasets_and_uncal_export_agree(tmp_path):
+    rate = _rate()
+    h5 = simulate(rate, NMD, seed=4, progress=False, out=tmp_path / "a.h5", effects="lazuli")
+    fits = simulate(rate, NMD, seed=4, progress=False, out=tmp_path / "a.fits", effects="lazuli")
+    from slicersim.io.uncal import read_uncal, read_uncal_truth
+    assert np.array_equal(read_ramps(h5)[0], read_uncal(fits)[0])
+    truth = read_uncal_truth(fits)
+    with h5py.File(h5, "r") as fh:
+        names = []
+        fh["truth"].visititems(lambda k, v: names.append(k) if isinstance(v, h5py.Dataset) else None)
+        for k in names:
+            assert np.array_equal(fh["truth"][k][...], truth[f"truth/{k}"]), k
+        assert {"rate", "cosmic_rays", "ipc_kernel", "nonlinearity/coefficients",
+                "nonlinearity/inverse_coefficients", "bias"} <= set(names)
+        pixeldq = fh["PIXELDQ"][...]
+    ref = np.zeros(rate.shape, bool)
+    ref[:4], ref[-4:], ref[:, :4], ref[:, -4:] = True, True, True, True
+    assert np.all(pixeldq[ref] & np.uint32(2**31)) and not np.any(pixeldq[~ref] & np.uint32(2**31))
+
+
+def test_reference_pixels_collect_no_charge():
+    rate = np.full((32, 128), 50.0)
+    sci = simulate(rate, (4, 2, 0), seed=1, progress=False, ron=0.0, effects="reference_pixels")
+    ramp = sci[0].astype(float)
+    slope = ramp[-1] - ramp[0]
+    assert np.all(np.abs(slope[:4]) <= 1) and np.all(np.abs(slope[:, -4:]) <= 1)
+    assert np.all(slope[8:-8, 8:-8] > 100)
+
+
+def test_ipc_alpha_recovered_from_a_flat_ramp():
+    """The autocorrelation of a flat field simulated through the ramp gives back α and α_d."""
+    from slicersim.physics.ipc import ipc_alpha_from_autocorrelation
+    rate = np.full((256, 256), 2000.0)
+    sci = simulate(rate, (2, 1, 0), seed=11, progress=False, ron=0.0, effects="ipc", tframe=10.0)
+    flat = sci[0, 1].astype(float) - sci[0, 0].astype(float)
+    alpha, alpha_d = ipc_alpha_from_autocorrelation(flat, noise_variance=2 / 12.0)
+    sigma = 0.46 / np.sqrt(2 * (254 ** 2))                         # (c/2)/√(2N), c = kernel centre
+    assert abs(alpha - 0.016) < 4 * sigma and abs(alpha_d - 0.002) < 4 * sigma
+
+
+@pytest.mark.parametrize("bad, message", [
+    ("cosmic_ray", "unknown"), ("ipc,bogus", "bogus"),
+    ({"effects": {"enabled": ["cosmic_rays"], "cosmic_rays": {"rate": -1.0}}}, "rate"),
+    ({"effects": {"enabled": ["bad_pixels"], "bad_pixels": {"hot_fraction": -0.1}}}, "hot"),
+    ({"effects": {"enabled": ["ipc"], "ipc": {"alpha": 0.2, "alpha_diag": 0.1}}}, "centre"),
+    ({"effects": {"enabled": ["ipc"], "ipc": {"kernel": [[0, 0.2, 0], [0.2, 0.5, 0.2], [0, 0.2, 0]]}}}, "sum"),
+    ({"effects": {"enabled": ["nonlinearity"], "nonlinearity": {"deficit": 0.3, "deficit_scatter": 0.1}}},
+     "not invertible"),
+    ({"effects": {"enabled": ["correlated_noise"], "correlated_noise": {"method": "fancy"}}}, "method"),
+    (3.5, "effects must be"),
+])
+def test_bad_effects_one_clear_error(tmp_path, bad, message):
+    with pytest.raises(EffectsError, match=message):
+        simulate(_rate(), NMD, seed=1, progress=False, effects=bad, out=tmp_path / "x.h5")
+    assert not list(tmp_path.iterdir())
+
+
+def test_effect_names_are_the_documented_ones():
+    assert EFFECT_NAMES == ("cosmic_rays", "ipc", "nonlinearity", "correlated_noise", "reference_pixels",
+                            "bad_pixels", "persistence")
+    assert set(DetectorEffects.from_names("all").enabled) == set(EFFECT_NAMES) - {"persistence"}
