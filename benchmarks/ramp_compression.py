@@ -14,6 +14,11 @@ Reported: stored SCI and GROUPDQ bytes (HDF5 storage size), SCI compression rati
 read-back time (median) and a lossless check.  The uncompressed SCI size is compared with
 ``Detector(shape=(ny, nx)).data_volume((n, m, d), nramps)`` [GB].
 
+Two noise models, simulated with the same seed: ``white`` (Poisson, white read noise, kTC-free
+bias: today's ramp) and ``lazuli`` (``effects="lazuli"``: cosmic rays, IPC, nonlinearity, NGHXRG
+correlated noise, reference and bad pixels) — 1/f noise and cosmic rays make raw data less
+compressible.
+
 Writes ``<out>/ramp_compression.json``, ``.png`` and ``.md``.
 
     .venv/bin/python benchmarks/ramp_compression.py [--side 2048] [--repeat 3] [--out benchmarks/results]
@@ -87,14 +92,17 @@ def plot(result, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    for k, r in enumerate(result["rows"]):
-        ax.scatter(r["write_MB_per_s"], r["sci_ratio"], s=60, color=f"C{k}", label=r["compression"])
-        ax.annotate(r["compression"], (r["write_MB_per_s"], r["sci_ratio"]), textcoords="offset points",
-                    xytext=(6, 4), fontsize=8)
+    for c, case in enumerate(result["cases"]):
+        for k, r in enumerate(case["rows"]):
+            ax.scatter(r["write_MB_per_s"], r["sci_ratio"], s=60, color=f"C{k}", marker="os"[c % 2],
+                       label=f"{r['compression']} ({case['noise']})")
+            ax.annotate(r["compression"], (r["write_MB_per_s"], r["sci_ratio"]), textcoords="offset points",
+                        xytext=(6, 4), fontsize=7)
+    ax.legend(fontsize=6, ncol=2)
     ax.set_xscale("log")
     ax.set_xlabel("write speed [MB/s of uncompressed SCI + GROUPDQ]")
     ax.set_ylabel("SCI compression ratio")
-    ax.set_title(f"{result['shape'][0]}² × {result['nmd'][0]} groups, noisy raw ramp (load "
+    ax.set_title(f"{result['shape'][0]}² × {result['nmd'][0]} groups, raw ramps: o white, s lazuli effects (load "
                  f"{result['machine']['loadavg_before'][0]:.1f})", fontsize=10)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -108,11 +116,13 @@ def markdown(result):
              f"(SCI {result['sci_bytes'] / 1e6:.0f} MB + GROUPDQ {result['gdq_bytes'] / 1e6:.0f} MB); "
              "chunks of 1 group × 256 rows; median of "
              f"{result['repeat']} writes on the shared 2-core VM (load {result['machine']['loadavg_before'][0]:.1f}).",
-             "", "| compression | SCI ratio | GROUPDQ ratio | file [MB] | write [MB/s] median (best) | read [MB/s] | lossless |",
-             "|---|---:|---:|---:|---:|---:|---|"]
-    for r in result["rows"]:
-        lines.append(f"| {r['compression']} | {r['sci_ratio']:.2f} | {r['gdq_ratio']:.0f} | {r['file_bytes'] / 1e6:.0f} | "
-                     f"{r['write_MB_per_s']:.0f} ({r['write_MB_per_s_best']:.0f}) | {r['read_MB_per_s']:.0f} | {r['lossless']} |")
+             "", "| noise | compression | SCI ratio | GROUPDQ ratio | file [MB] | write [MB/s] median (best) | read [MB/s] | lossless |",
+             "|---|---|---:|---:|---:|---:|---:|---|"]
+    for case in result["cases"]:
+        for r in case["rows"]:
+            lines.append(f"| {case['noise']} | {r['compression']} | {r['sci_ratio']:.2f} | {r['gdq_ratio']:.0f} | "
+                         f"{r['file_bytes'] / 1e6:.0f} | {r['write_MB_per_s']:.0f} ({r['write_MB_per_s_best']:.0f}) | "
+                         f"{r['read_MB_per_s']:.0f} | {r['lossless']} |")
     dv = result["data_volume_check"]
     lines += ["", f"Uncompressed SCI dataset: {dv['sci_stored_bytes']} B = {dv['sci_stored_GB']:.6f} GB; "
               f"`Detector(shape=({ny}, {nx})).data_volume({tuple(result['nmd'])}, 1)` = {dv['data_volume_GB']:.6f} GB "
@@ -129,16 +139,22 @@ def main():
     args = ap.parse_args()
     load0 = os.getloadavg()
     rate = lazuli_rate_image(args.side, args.side)
-    sci, gdq = simulate(rate, NMD, nramps=NRAMPS, seed=5, return_dq=True, progress=False, **DETECTOR)
-    print(f"ramp {sci.shape}: SCI {sci.nbytes / 1e6:.0f} MB, GROUPDQ {gdq.nbytes / 1e6:.0f} MB", flush=True)
-    rows = []
-    with tempfile.TemporaryDirectory(dir=args.tmp) as tmp:
-        for comp in SETTINGS:
-            r = measure(sci, gdq, comp, args.repeat, tmp)
-            rows.append(r)
-            print(f"{r['compression']:15s} SCI ratio {r['sci_ratio']:5.2f}  GDQ ratio {r['gdq_ratio']:7.1f}  "
-                  f"write {r['write_MB_per_s']:6.0f} MB/s  read {r['read_MB_per_s']:6.0f} MB/s  "
-                  f"lossless {r['lossless']}", flush=True)
+    cases = []
+    for noise, effects in (("white", None), ("lazuli", "lazuli")):
+        sci, gdq = simulate(rate, NMD, nramps=NRAMPS, seed=5, return_dq=True, progress=False, effects=effects,
+                            **DETECTOR)
+        print(f"{noise} ramp {sci.shape}: SCI {sci.nbytes / 1e6:.0f} MB, GROUPDQ {gdq.nbytes / 1e6:.0f} MB", flush=True)
+        rows = []
+        with tempfile.TemporaryDirectory(dir=args.tmp) as tmp:
+            for comp in SETTINGS:
+                r = measure(sci, gdq, comp, args.repeat, tmp)
+                rows.append(r)
+                print(f"{noise:7s} {r['compression']:15s} SCI ratio {r['sci_ratio']:5.2f}  GDQ ratio "
+                      f"{r['gdq_ratio']:7.1f}  write {r['write_MB_per_s']:6.0f} MB/s  read {r['read_MB_per_s']:6.0f} MB/s  "
+                      f"lossless {r['lossless']}", flush=True)
+        cases.append({"noise": noise, "effects": effects, "rows": rows})
+        del sci, gdq
+    rows = cases[0]["rows"]
     plain = rows[0]
     vol = Detector(shape=(args.side, args.side)).data_volume(NMD, NRAMPS)
     check = {"sci_stored_bytes": plain["sci_stored_bytes"], "sci_stored_GB": plain["sci_stored_bytes"] / 1e9,
@@ -147,7 +163,8 @@ def main():
     from slicersim.backends import opencl
     dev = opencl.get_device() if opencl.is_available() else None
     result = {"benchmark": "ramp_compression", "shape": [args.side, args.side], "nmd": list(NMD), "nramps": NRAMPS,
-              "sci_bytes": sci.nbytes, "gdq_bytes": gdq.nbytes, "repeat": args.repeat, "rows": rows,
+              "sci_bytes": plain["sci_stored_bytes"], "gdq_bytes": plain["gdq_stored_bytes"], "repeat": args.repeat,
+              "rows": rows, "cases": cases,
               "data_volume_check": check,
               "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                           "opencl_device": f"{dev.name.strip()} [{dev.platform.name.strip()}]" if dev else None,
