@@ -141,3 +141,50 @@ def test_effect_names_are_the_documented_ones():
     assert EFFECT_NAMES == ("cosmic_rays", "ipc", "nonlinearity", "correlated_noise", "reference_pixels",
                             "bad_pixels", "persistence")
     assert set(DetectorEffects.from_names("all").enabled) == set(EFFECT_NAMES) - {"persistence"}
+
+
+# ------------------------------------------------------------------ review findings (issue 9)
+def test_cli_effects_names_and_presets(tmp_path):
+    """Finding 1: --effects NAMES / all / lazuli ran into an AttributeError."""
+    from slicersim.app.cli import main
+    rate = tmp_path / "r.npy"
+    np.save(rate, _rate())
+    for k, names in enumerate(("cosmic_rays,ipc", "all", "lazuli")):
+        assert main(["ramp", "--rate", str(rate), "--nmd", "3", "2", "0", "--out", str(tmp_path / f"{k}.h5"),
+                     "--effects", names]) == 0
+    assert main(["ramp", "--rate", str(rate), "--nmd", "3", "2", "0", "--out", str(tmp_path / "x.h5"),
+                 "--effects", "cosmic_rays", "--cr-rate", "-1"]) == 2
+
+
+def test_previous_charge_enables_persistence_with_all_and_presets(tmp_path):
+    """Finding 2: "all"/"lazuli" with previous_charge silently left persistence off; previous_charge
+    without persistence was silently ignored."""
+    prev = np.zeros((48, 128))
+    prev[5:9, 50:60] = 60000.0
+    path = simulate(_rate(), NMD, seed=2, progress=False, out=tmp_path / "p.h5", effects="all",
+                    previous_charge=prev)
+    assert _truth(path, "persistence").size > 0
+    with pytest.raises(EffectsError, match="persistence"):
+        simulate(_rate(), NMD, seed=2, progress=False, effects="ipc", previous_charge=prev)
+
+
+def test_user_dead_pixels_collect_no_cosmic_rays(tmp_path):
+    """Finding 3: dead_pixels= were flagged DEAD but still got cosmic-ray charge and truth rows."""
+    dead = np.zeros((48, 128), bool)
+    dead[::2] = True
+    path = simulate(_rate(), NMD, seed=3, progress=False, out=tmp_path / "d.h5", dead_pixels=dead,
+                    effects={"effects": {"enabled": ["cosmic_rays"], "cosmic_rays": {"rate": 2000.0}}})
+    hits = _truth(path, "cosmic_rays")
+    assert hits.size and not dead[hits["y"], hits["x"]].any()
+    sci = read_ramps(path)[0]
+    assert np.all(np.abs(np.diff(sci[0].astype(int), axis=0))[:, dead] < 80)      # read noise only
+
+
+def test_reference_pixels_carry_only_the_reference_flag(tmp_path):
+    """Finding 4: reference pixels were also flagged DEAD/DO_NOT_USE (and HOT/WARM/LOW_QE)."""
+    path = simulate(_rate(), NMD, seed=3, progress=False, out=tmp_path / "r.h5", effects="reference_pixels,bad_pixels")
+    with h5py.File(path, "r") as fh:
+        flags = fh["PIXELDQ"][...]
+    border = np.zeros(flags.shape, bool)
+    border[:4], border[-4:], border[:, :4], border[:, -4:] = True, True, True, True
+    assert np.all(flags[border] == np.uint32(2**31))

@@ -204,8 +204,9 @@ def _ramp_effects(args):
     if args.effects_config is not None:
         effects = DetectorEffects.from_file(args.effects_config)
     if args.effects is not None:
+        from slicersim.physics.effects import PRESETS
         named = DetectorEffects.from_names(args.effects) if args.effects.strip().lower() not in \
-            DetectorEffects.PRESETS else DetectorEffects.preset(args.effects.strip().lower())
+            PRESETS else DetectorEffects.preset(args.effects.strip().lower())
         effects = named if effects is None else effects.restricted_to(named.enabled)
     if args.cr_rate is not None:
         if effects is None or "cosmic_rays" not in effects.enabled:

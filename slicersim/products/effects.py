@@ -32,9 +32,10 @@ CR_DTYPE = np.dtype([("ramp", "<u4"), ("frame", "<u4"), ("y", "<u2"), ("x", "<u2
 REFERENCE_PIXEL = 2**31
 
 
-def resolve_effects(effects):
+def resolve_effects(effects, has_previous_charge=False):
     """:class:`DetectorEffects` or None from None, a DetectorEffects, names ("ipc,cosmic_rays", "all",
-    a list), a preset name ("lazuli") or a config dict."""
+    a list), a preset name ("lazuli") or a config dict.  With ``has_previous_charge`` "all" and the
+    presets include persistence."""
     if effects is None or effects is False:
         return None
     from slicersim.physics.effects import DetectorEffects
@@ -42,11 +43,11 @@ def resolve_effects(effects):
         return effects if effects.enabled else None
     from slicersim.physics.effects import PRESETS
     if isinstance(effects, dict):
-        fx = DetectorEffects.from_config(effects)
+        fx = DetectorEffects.from_config(effects, has_previous_charge)
     elif isinstance(effects, str) and effects.strip().lower() in PRESETS:
-        fx = DetectorEffects.preset(effects.strip().lower())
+        fx = DetectorEffects.preset(effects.strip().lower(), has_previous_charge)
     elif isinstance(effects, (str, list, tuple)):
-        fx = DetectorEffects.from_names(effects)
+        fx = DetectorEffects.from_names(effects, has_previous_charge)
     else:
         raise EffectsError(f"effects must be None, names, a preset, a config dict or a DetectorEffects, "
                            f"got {type(effects).__name__}")
@@ -99,8 +100,11 @@ class EffectsPlan:
         self.nx = nx
 
     # ------------------------------------------------------------------ photo-response
-    def rate_and_dark(self, rate, dark):
-        """(photo rate [e-/s], dark [e-/s], dead mask, PIXELDQ flags) after bad and reference pixels."""
+    def rate_and_dark(self, rate, dark, user_dead=None):
+        """(photo rate [e-/s], dark [e-/s], mask of pixels collecting no charge, PIXELDQ flags) after bad
+        and reference pixels.  Reference pixels get only the REFERENCE_PIXEL flag (no photodiode: no
+        DEAD, HOT, WARM or LOW_QE)."""
+        self.user_dead = None if user_dead is None else np.asarray(user_dead, bool)
         rate = np.asarray(rate, float)
         dark = np.broadcast_to(np.asarray(dark, float), self.shape)
         dead = np.zeros(self.shape, bool)
@@ -112,7 +116,7 @@ class EffectsPlan:
             flags |= self.bad["pixeldq"]
         if self.reference is not None:
             dead |= self.reference                      # no photodiode: no charge at all
-            flags[self.reference] |= np.uint32(REFERENCE_PIXEL)
+            flags[self.reference] = np.uint32(REFERENCE_PIXEL)
         return rate, dark, dead, flags
 
     # ------------------------------------------------------------------ charge deposits
@@ -128,11 +132,14 @@ class EffectsPlan:
 
     def _collected(self, rows):
         """The deposits on pixels that collect charge (not on dead or reference pixels)."""
-        if self.reference is None and self.bad is None:
+        user_dead = getattr(self, "user_dead", None)
+        if self.reference is None and self.bad is None and user_dead is None:
             return rows
         dead = np.zeros(self.shape, bool) if self.reference is None else self.reference.copy()
         if self.bad is not None:
             dead |= self.bad["dead"]
+        if user_dead is not None:
+            dead |= user_dead
         return rows[~dead[rows["y"], rows["x"]]]
 
     def _cosmic_rays(self, ramp):

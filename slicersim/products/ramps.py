@@ -94,7 +94,11 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
                        roic_glow=roic_glow, gain=gain, saturation=saturation, bias=bias, ktc_noise=ktc_noise,
                        full_well=full_well, sparse_max_group=sparse_max_group, gauss_min_mean=gauss_min_mean)
     from slicersim.products.effects import EffectsPlan, resolve_effects
-    fx = resolve_effects(effects)
+    fx = resolve_effects(effects, has_previous_charge=previous_charge is not None)
+    if previous_charge is not None and (fx is None or "persistence" not in fx.enabled):
+        from slicersim.errors import EffectsError
+        raise EffectsError("previous_charge is given but the persistence effect is not enabled "
+                           "(add 'persistence' to effects)")
     ny, nx = rate.shape
     if ny * nx >= 2**32:
         raise ValueError("image too large: pixel indices must fit in 32 bits")
@@ -126,11 +130,13 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     if dead is None:
         dead = np.zeros(rate.shape, bool)
     plan, rate_in = None, rate
+    dq_dead = dead                                   # pixels flagged DEAD in PIXELDQ
     if fx is not None:
         plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge)
-        rate, dark_arr, dead_fx, flags = plan.rate_and_dark(rate, dark_arr)
-        dead = dead | dead_fx
+        rate, dark_arr, no_charge, flags = plan.rate_and_dark(rate, dark_arr, dead)
+        flags[dead] |= np.uint32(DQ["DEAD"] | DQ["DO_NOT_USE"])              # the user's dead pixels
         pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
+        dead = dead | no_charge
     mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
     backend = resolve_backend(backend)
     block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
@@ -166,7 +172,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
 
     def run(w):
         if w is not None:
-            w.write_pixeldq(_pixeldq(pixeldq, dead, rate.shape))
+            w.write_pixeldq(_pixeldq(pixeldq, dq_dead, rate.shape))
             if truth:
                 w.write_truth(rate_in)
                 if plan is not None:
