@@ -188,3 +188,13 @@ def test_reference_pixels_carry_only_the_reference_flag(tmp_path):
     border = np.zeros(flags.shape, bool)
     border[:4], border[-4:], border[:, :4], border[:, -4:] = True, True, True, True
     assert np.all(flags[border] == np.uint32(2**31))
+
+
+@pytest.mark.parametrize("section, key", [("correlated_noise", "n_outputs"), ("correlated_noise", "nroh"),
+                                          ("correlated_noise", "c_pink"), ("correlated_noise", "acn"),
+                                          ("reference_pixels", "border")])
+@pytest.mark.parametrize("value", [float("inf"), float("nan"), 1e300, True, "3"])
+def test_non_finite_huge_or_wrong_type_parameters_refused(section, key, value):
+    """Finding 5/6: inf, 1e300 (TOML accepts them) or booleans/strings raised OverflowError or passed."""
+    with pytest.raises(EffectsError):
+        DetectorEffects.from_config({"effects": {"enabled": [section], section: {key: value}}})

@@ -64,19 +64,27 @@ __all__ = ["CorrelatedNoiseParameters", "ReadoutGeometry", "pink_psd", "acn_psd"
 METHODS = ("exact", "multirate", "group", "white")
 
 
+MAX_AMPLITUDE = 1e6            # e-: any larger noise amplitude is a typo, not a detector
+MAX_COUNT = 1 << 16            # outputs, overhead pixels or rows
+
+
 def _nonneg(name, value):
+    if isinstance(value, (bool, str, bytes)):
+        raise EffectsError(f"correlated noise: {name} must be a number ≥ 0, got {value!r}")
     try:
         v = float(value)
     except (TypeError, ValueError) as exc:
         raise EffectsError(f"correlated noise: {name} must be a number ≥ 0, got {value!r}") from exc
-    if not (math.isfinite(v) and v >= 0):
-        raise EffectsError(f"correlated noise: {name} must be finite and ≥ 0, got {value!r}")
+    if not (math.isfinite(v) and 0 <= v <= MAX_AMPLITUDE):
+        raise EffectsError(f"correlated noise: {name} must be finite, ≥ 0 and ≤ {MAX_AMPLITUDE:g}, got {value!r}")
     return v
 
 
 def _posint(name, value, minimum=1):
-    if isinstance(value, bool) or int(value) != value or int(value) < minimum:
-        raise EffectsError(f"correlated noise: {name} must be an integer ≥ {minimum}, got {value!r}")
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
+        and math.isfinite(value) and int(value) == value and minimum <= int(value) <= MAX_COUNT
+    if not ok:
+        raise EffectsError(f"correlated noise: {name} must be an integer in [{minimum}, {MAX_COUNT}], got {value!r}")
     return int(value)
 
 

@@ -43,7 +43,8 @@ class ReferencePixelParameters:
     def __post_init__(self):
         for name in ("border", "n_outputs"):
             v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or int(v) < (0 if name == "border" else 1):
+            if isinstance(v, (bool, str, bytes)) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                    or not math.isfinite(v) or int(v) != v or not (0 if name == "border" else 1) <= int(v) <= 1 << 16:
                 raise EffectsError(f"reference pixels: {name} must be an integer ≥ "
                                    f"{0 if name == 'border' else 1}, got {v!r}")
             setattr(self, name, int(v))
