@@ -198,3 +198,9 @@ def test_non_finite_huge_or_wrong_type_parameters_refused(section, key, value):
     """Finding 5/6: inf, 1e300 (TOML accepts them) or booleans/strings raised OverflowError or passed."""
     with pytest.raises(EffectsError):
         DetectorEffects.from_config({"effects": {"enabled": [section], section: {key: value}}})
+
+
+def test_config_sections_without_enabled_list_enable_their_effects():
+    """Finding 7: sections without an "enabled" list silently gave a plain ramp."""
+    fx = DetectorEffects.from_config({"effects": {"cosmic_rays": {"rate": 7.0}, "ipc": {}}})
+    assert fx.enabled == ("cosmic_rays", "ipc") and fx.params("cosmic_rays").rate == 7.0

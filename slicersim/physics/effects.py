@@ -163,8 +163,8 @@ class DetectorEffects:
         {"effects": {"enabled": ["cosmic_rays", "ipc"],       # or "all" / "cosmic_rays,ipc"
                      "cosmic_rays": {"rate": 5.0, ...}, "ipc": {"alpha": 0.016}, ...}}
 
-    A section of an effect that is not enabled is validated and dropped; unknown sections or
-    parameters raise EffectsError.
+    A section of an effect that is not enabled is validated and dropped; without ``enabled`` the
+    effects that have a section are enabled; unknown sections or parameters raise EffectsError.
     """
 
     def __init__(self, params=None):
@@ -204,7 +204,9 @@ class DetectorEffects:
         if unknown:
             raise EffectsError(f"unknown key(s) {', '.join(map(repr, unknown))} in effects; known: enabled, "
                                f"{', '.join(EFFECT_NAMES)}")
-        enabled = _parse_names(section.get("enabled", ()), has_previous_charge)
+        # without an "enabled" list, the effects that have a table are the enabled ones
+        default = [n for n in EFFECT_NAMES if n in section]
+        enabled = _parse_names(section.get("enabled", default), has_previous_charge)
         built = {n: _params_from_dict(n, section.get(n)) for n in EFFECT_NAMES if n in enabled or n in section}
         return cls({n: built[n] for n in enabled})
 
