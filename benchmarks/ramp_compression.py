@@ -54,7 +54,7 @@ def write_once(path, sci, gdq, compression, row_block):
     nramps, n, ny, nx = sci.shape
     t = time.perf_counter()
     with RampWriter(path, nramps, n, (ny, nx), attrs={"READPATT": "MACC(16,8,0)"}, row_block=row_block,
-                    compression=compression, pixeldq=False) as w:
+                    compression=compression, pixeldq=False, overwrite=True) as w:
         for y0 in range(0, ny, row_block):
             w.write_block(0, y0, sci[0, :, y0:y0 + row_block], gdq[0, :, y0:y0 + row_block])
     return time.perf_counter() - t
