@@ -136,10 +136,14 @@ def spectral_coefficients_opencl(amp, kind, hi, stream, draw, seed, vector_width
     kern = opencl.cached_kernel("correlated_noise.cl", "spectral_coefficients", (f"-DFVW={vw}",))
     bufs = [opencl.to_device(np.ascontiguousarray(a, np.uint32)) for a in (kind, hi, stream, draw)]
     d_amp = opencl.to_device(amp_p)
-    d_out = opencl.scratch_buffer("cn_coeff", out.nbytes)
+    zero_copy = not dev_gpu                     # CPU devices write the host array in place
+    d_out = opencl.host_buffer(out) if zero_copy else opencl.scratch_buffer("cn_coeff", out.nbytes)
     opencl.launch(kern, (nb // (2 * vw), rows), None, d_amp, *bufs, np.uint32(nb), np.uint32(key[0]),
                   np.uint32(key[1]), d_out)
-    opencl.from_device(out, d_out)
+    if zero_copy:
+        opencl.sync_to_host(d_out, out)
+    else:
+        opencl.from_device(out, d_out)
     return out
 
 

@@ -256,18 +256,31 @@ def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None,
         n, d_gm, d_q = shape_in[0], gmean, qsat
     key = rng.seed_to_key(seed)
     plane = rows * nx
+    # on CPU devices the host arrays are used in place (no copy of the (n, rows, nx) noise block)
+    zero_copy = "GPU" not in opencl.device_type()
     if extra is not None:
-        d_x = opencl.to_device(np.ascontiguousarray(extra, np.float32), _buffer(workspace, "ro_extra", 4 * n * plane))
+        extra = np.ascontiguousarray(extra, np.float32)
+        if zero_copy and not extra.flags.writeable:
+            extra = extra.copy()
+        d_x = opencl.host_buffer(extra) if zero_copy else \
+            opencl.to_device(extra, _buffer(workspace, "ro_extra", 4 * n * plane))
     else:
         d_x = _buffer(workspace, "ro_unused_x", 8)
     if bias_map is not None:
-        d_b = opencl.to_device(np.ascontiguousarray(bias_map, np.float32), _buffer(workspace, "ro_bias", 4 * plane))
+        bias_map = np.array(bias_map, np.float32, order="C")
+        d_b = opencl.host_buffer(bias_map) if zero_copy else \
+            opencl.to_device(bias_map, _buffer(workspace, "ro_bias", 4 * plane))
     else:
         d_b = _buffer(workspace, "ro_unused_b", 8)
     kern = np.zeros(9) if ipc is None else np.ascontiguousarray(ipc, np.float64).ravel()
     d_k = opencl.to_device(kern, _buffer(workspace, "ro_ipc", 72))
-    d_sci = _buffer(workspace, "ro_sci", 2 * n * plane)
-    d_gdq = _buffer(workspace, "ro_gdq", n * plane)
+    sci = np.empty((n, rows, nx), np.uint16)
+    gdq = np.empty((n, rows, nx), np.uint8)
+    if zero_copy:
+        d_sci, d_gdq = opencl.host_buffer(sci), opencl.host_buffer(gdq)
+    else:
+        d_sci = _buffer(workspace, "ro_sci", 2 * n * plane)
+        d_gdq = _buffer(workspace, "ro_gdq", n * plane)
     vw = opencl.preferred_vector_width(16, 2) if vector_width is None else int(vector_width)
     kernel = opencl.get_kernel("ramp_readout.cl", "ramp_readout", (f"-DRNG_VW={vw}",))
     m = p.nmd[1]
@@ -277,8 +290,10 @@ def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None,
                   np.uint32(key[0]), np.uint32(key[1]), np.int32(n), np.float64(p.ron / math.sqrt(m)),
                   np.float64(p.gain), np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.saturation),
                   np.int32(ipc is not None), np.int32(extra is not None), np.int32(bias_map is not None))
-    sci = np.empty((n, rows, nx), np.uint16)
-    gdq = np.empty((n, rows, nx), np.uint8)
-    opencl.from_device(sci, d_sci)
-    opencl.from_device(gdq, d_gdq)
+    if zero_copy:
+        opencl.sync_to_host(d_sci, sci)
+        opencl.sync_to_host(d_gdq, gdq)
+    else:
+        opencl.from_device(sci, d_sci)
+        opencl.from_device(gdq, d_gdq)
     return sci, gdq
