@@ -210,6 +210,33 @@ def _launch_geometry(vector_width, work_group):
     return vector_width, (int(work_group) if work_group else None)
 
 
+def block_arguments(npix, pixel0, ramp, key, p, want_dq):
+    """Scalar arguments of the two samplers after the output buffers (RAMP_KERNEL_ARGS)."""
+    n, m, d = p.nmd
+    return (np.uint32(npix), np.uint32(pixel0), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]),
+            np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron / math.sqrt(m)), np.float64(p.gain),
+            np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation),
+            np.int32(bool(want_dq)))
+
+
+def launch_samplers(kernel_of, lists, vw, work_group, workspace, head, outputs, scalars, gauss_min_mean,
+                    tail=()):
+    """Launch ``macc_ramp_sparse`` then ``macc_ramp_dense`` (``kernel_of(name, vw)``) on their pixel
+    lists; arguments: ``head`` (mu), the list and its item count, ``outputs``, ``scalars``
+    (:func:`block_arguments`), ``tail`` (the effects build's), then gauss_min_mean (dense only)."""
+    for name, idx in (("macc_ramp_sparse", lists[0]), ("macc_ramp_dense", lists[1])):
+        items = idx.size // vw
+        if not items:
+            continue
+        gsize, lsize = (items,), None
+        if work_group:
+            gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
+        d_idx = opencl.to_device(idx, _buffer(workspace, name, idx.nbytes))
+        extra = (np.float64(gauss_min_mean),) if name == "macc_ramp_dense" else ()
+        opencl.launch(kernel_of(name, vw), gsize, lsize, *head, d_idx, np.uint32(items), *outputs, *scalars,
+                      *tail, *extra)
+
+
 def _ramp_kernel(name, vector_width):
     return opencl.get_kernel("ramp.cl", name, (f"-DRNG_VW={int(vector_width)}",))
 
@@ -257,21 +284,8 @@ def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None
     d_mu = opencl.to_device(mu, _buffer(workspace, "mu", mu.nbytes))
     d_sci = _buffer(workspace, "sci", 2 * n * npix)
     d_gdq = _buffer(workspace, "gdq", n * npix if want_dq else 1)
-    common = (np.uint32(npix), np.uint32(pixel0), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]),
-              np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron / math.sqrt(m)), np.float64(p.gain),
-              np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation),
-              np.int32(bool(want_dq)))
-    for name, idx, extra in (("macc_ramp_sparse", lists[0], ()),
-                             ("macc_ramp_dense", lists[1], (np.float64(p.gauss_min_mean),))):
-        items = idx.size // vw
-        if not items:
-            continue
-        gsize, lsize = (items,), None
-        if work_group:
-            gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
-        d_idx = opencl.to_device(idx, _buffer(workspace, name, idx.nbytes))
-        opencl.launch(_ramp_kernel(name, vw), gsize, lsize, d_mu, d_idx, np.uint32(items), d_sci, d_gdq,
-                      *common, *extra)
+    launch_samplers(_ramp_kernel, lists, vw, work_group, workspace, (d_mu,), (d_sci, d_gdq),
+                    block_arguments(npix, pixel0, ramp, key, p, want_dq), p.gauss_min_mean)
     sci = np.empty((n, npix), np.uint16) if sci_out is None else sci_out
     opencl.from_device(sci, d_sci)
     gdq = None

@@ -17,7 +17,7 @@ import numpy as np
 
 from slicersim.backends import opencl, rng
 from slicersim.backends.ramp import (P_KTC, P_READ, _buffer, _event_position, _event_words, _launch_geometry,
-                                     _pixel_lists, charge_groups)
+                                     _pixel_lists, block_arguments, charge_groups, launch_samplers)
 from slicersim.io.rampfile import DQ
 
 __all__ = ["ChargeEffects", "charge_block_numpy", "charge_block_opencl", "readout_numpy", "readout_opencl",
@@ -163,24 +163,9 @@ def charge_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, fx, work_group=No
         d_a3 = opencl.to_device(np.ascontiguousarray(fx.a3, np.float64), _buffer(workspace, "nl_a3", 8 * npix))
     else:
         d_a2 = d_a3 = _buffer(workspace, "nl_unused", 8)
-    common = (np.uint32(npix), np.uint32(pixel0), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]),
-              np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron / math.sqrt(m)), np.float64(p.gain),
-              np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation),
-              np.int32(1))
     effect_args = (d_start, d_frame, d_e, d_a2, d_a3, np.int32(bool(fx.use_nl)), d_gmean)
-    for name, idx, extra in (("macc_ramp_sparse", lists[0], ()),
-                             ("macc_ramp_dense", lists[1], (np.float64(p.gauss_min_mean),))):
-        items = idx.size // vw
-        if not items:
-            continue
-        gsize, lsize = (items,), None
-        if work_group:
-            gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
-        d_idx = opencl.to_device(idx, _buffer(workspace, name, idx.nbytes))
-        kernel = _charge_kernel(name, vw)
-        # the dense kernel takes gauss_min_mean after the effect arguments
-        opencl.launch(kernel, gsize, lsize, d_mu, d_idx, np.uint32(items), d_sci, d_gdq, *common, *effect_args,
-                      *extra)
+    launch_samplers(_charge_kernel, lists, vw, work_group, workspace, (d_mu,), (d_sci, d_gdq),
+                    block_arguments(npix, pixel0, ramp, key, p, True), p.gauss_min_mean, effect_args)
     if not to_host:
         return d_gmean, d_gdq
     gmean = np.empty((n, npix))

@@ -30,7 +30,7 @@ import numpy as np
 
 from slicersim.backends import rng
 from slicersim.errors import EffectsError
-from slicersim.physics.effects import STREAMS, check_fraction, check_number
+from slicersim.physics.effects import STREAMS, check_fraction, check_number, check_shape_rows
 
 __all__ = ["BadPixelParameters", "bad_pixel_maps", "telegraph_offsets", "telegraph_states", "DQ_FLAGS",
            "TELEGRAPH_DTYPE", "expected_run_frames"]
@@ -108,15 +108,7 @@ def bad_pixel_maps(seed, shape, params, rows=None):
     detector's): dict of ``extra_dark`` [e-/s] float32 (ny, nx), ``qe_factor`` float32 (0 for dead),
     ``dead`` bool, ``pixeldq`` uint32 (JWST bits) and ``telegraph`` (:data:`TELEGRAPH_DTYPE`,
     full-detector y, x, sorted by (y, x))."""
-    try:
-        ny, nx = (int(v) for v in shape)
-    except (TypeError, ValueError):
-        raise EffectsError(f"shape must be (ny, nx), got {shape!r}") from None
-    if not (1 <= ny <= 65536 and 1 <= nx <= 65536):
-        raise EffectsError(f"shape must be within 1…65536 pixels per side, got {shape!r}")
-    r0, r1 = (0, ny) if rows is None else (int(rows[0]), int(rows[1]))
-    if not 0 <= r0 < r1 <= ny:
-        raise EffectsError(f"rows must satisfy 0 ≤ r0 < r1 ≤ {ny}, got {rows!r}")
+    (ny, nx), (r0, r1) = check_shape_rows(shape, rows)
     rng.seed_to_key(seed)
     edges = np.cumsum([getattr(params, f"{c}_fraction") for c in CLASSES])
     n = r1 - r0

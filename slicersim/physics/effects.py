@@ -17,7 +17,7 @@ import math
 
 from slicersim.errors import EffectsError
 
-__all__ = ["EFFECT_NAMES", "STREAMS", "PRESETS", "DetectorEffects", "parameter_class", "check_number",
+__all__ = ["EFFECT_NAMES", "STREAMS", "PRESETS", "DetectorEffects", "parameter_class", "check_number", "check_shape_rows",
            "check_fraction"]
 
 #: effect names accepted by ``--effects`` and :class:`DetectorEffects` (``"all"`` = every one)
@@ -47,6 +47,20 @@ def check_number(name, value, low=0.0, high=math.inf, *, low_open=False, high_op
         lo, hi = "(" if low_open else "[", ")" if high_open or high == math.inf else "]"
         raise EffectsError(f"{name} must be in {lo}{low:g}, {high:g}{hi}, got {value!r}")
     return val
+
+
+def check_shape_rows(shape, rows=None, max_side=65536):
+    """((ny, nx), (r0, r1)) of a detector ``shape`` and an optional row range ``rows`` = (r0, r1)."""
+    try:
+        ny, nx = (int(v) for v in shape)
+    except (TypeError, ValueError):
+        raise EffectsError(f"shape must be (ny, nx), got {shape!r}") from None
+    if not (1 <= ny <= max_side and 1 <= nx <= max_side):
+        raise EffectsError(f"shape must be within 1…{max_side} pixels per side, got {shape!r}")
+    r0, r1 = (0, ny) if rows is None else (int(rows[0]), int(rows[1]))
+    if not 0 <= r0 < r1 <= ny:
+        raise EffectsError(f"rows must satisfy 0 ≤ r0 < r1 ≤ {ny}, got {rows!r}")
+    return (ny, nx), (r0, r1)
 
 
 def check_fraction(name, value):

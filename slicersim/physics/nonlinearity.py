@@ -35,7 +35,7 @@ import numpy as np
 
 from slicersim.backends import rng
 from slicersim.errors import EffectsError
-from slicersim.physics.effects import STREAMS, check_number
+from slicersim.physics.effects import STREAMS, check_number, check_shape_rows
 
 __all__ = ["NonlinearityParameters", "nonlinearity_coefficients", "measured_charge", "linear_charge",
            "inverse_coefficients", "check_invertible", "apply_correction", "pixel_index"]
@@ -99,24 +99,11 @@ def pixel_index(rows, nx):
     return (y << np.uint64(16)) | np.arange(nx, dtype=np.uint64)[None, :]
 
 
-def _check_shape(shape):
-    try:
-        ny, nx = (int(v) for v in shape)
-    except (TypeError, ValueError):
-        raise EffectsError(f"shape must be (ny, nx), got {shape!r}") from None
-    if not (1 <= ny <= 65536 and 1 <= nx <= 65536):
-        raise EffectsError(f"shape must be within 1…65536 pixels per side, got {shape!r}")
-    return ny, nx
-
-
 def nonlinearity_coefficients(seed, shape, params, full_well, rows=None):
     """Per-pixel (a₂ [e-⁻¹], a₃ [e-⁻²]) of M(Q) = Q + a₂Q² + a₃Q³: float64 (2, ny, nx), or
     (2, r1 − r0, nx) for ``rows`` = (r0, r1) (the same values as those rows of the full map)."""
-    ny, nx = _check_shape(shape)
+    (ny, nx), (r0, r1) = check_shape_rows(shape, rows)
     full_well = check_number("full_well [e-]", full_well, 0.0, low_open=True)
-    r0, r1 = (0, ny) if rows is None else (int(rows[0]), int(rows[1]))
-    if not 0 <= r0 < r1 <= ny:
-        raise EffectsError(f"rows must satisfy 0 ≤ r0 < r1 ≤ {ny}, got {rows!r}")
     rng.seed_to_key(seed)
     out = np.empty((2, r1 - r0, nx))
     for c0 in range(r0, r1, ROWS_PER_CHUNK):
