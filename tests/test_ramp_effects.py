@@ -204,3 +204,26 @@ def test_config_sections_without_enabled_list_enable_their_effects():
     """Finding 7: sections without an "enabled" list silently gave a plain ramp."""
     fx = DetectorEffects.from_config({"effects": {"cosmic_rays": {"rate": 7.0}, "ipc": {}}})
     assert fx.enabled == ("cosmic_rays", "ipc") and fx.params("cosmic_rays").rate == 7.0
+
+
+def test_asymmetric_user_ipc_kernel_follows_the_documented_convention():
+    """Finding 13: K[1+dy, 1+dx] is the fraction of a pixel's signal seen at offset (dy, dx)."""
+    rate = np.zeros((16, 128))
+    rate[8, 40] = 1000.0
+    kernel = [[0, 0.1, 0], [0, 0.8, 0.1], [0, 0, 0]]
+    sci = simulate(rate, (2, 1, 0), seed=1, progress=False, ron=0.0, dark=0.0, roic_glow=0.0,
+                   effects={"effects": {"enabled": ["ipc"], "ipc": {"kernel": kernel}}})[0].astype(float)
+    signal = sci[1] - sci[0]
+    assert signal[7, 40] > 200 and signal[8, 41] > 200                # offsets (−1, 0) and (0, +1)
+    assert signal[9, 40] < 20 and signal[8, 39] < 20
+
+
+def test_telegraph_pixels_have_truth(tmp_path):
+    """Finding 12: telegraph pixels were flagged but had no truth."""
+    path = simulate(np.full((64, 128), 1.0), NMD, seed=2, progress=False, out=tmp_path / "t.h5",
+                    effects={"effects": {"enabled": ["bad_pixels"], "bad_pixels": {"telegraph_fraction": 0.01}}})
+    tele = _truth(path, "bad_pixels/telegraph")
+    with h5py.File(path, "r") as fh:
+        flags = fh["PIXELDQ"][...]
+    flagged = np.argwhere(flags & np.uint32(32768))
+    assert tele.size and {tuple(v) for v in flagged} == set(zip(tele["y"].tolist(), tele["x"].tolist()))

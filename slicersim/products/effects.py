@@ -77,7 +77,11 @@ class EffectsPlan:
         self.halo = 1 if "ipc" in self.on else 0
         self.ipc = None
         if "ipc" in self.on:
-            self.ipc = effects.params("ipc").matrix()
+            # K[1+dy, 1+dx]: fraction of a pixel's signal that appears at offset (dy, dx) (the
+            # convention of apply_ipc and of the truth); the readout gathers v(y, x) =
+            # Σ W[1+dy, 1+dx]·s(y+dy, x+dx), so it takes W = K flipped
+            self.ipc_kernel = effects.params("ipc").matrix()
+            self.ipc = np.ascontiguousarray(self.ipc_kernel[::-1, ::-1])
         self.reference = None
         if "reference_pixels" in self.on:
             from slicersim.physics.reference_pixels import reference_pixel_mask
@@ -215,7 +219,8 @@ class EffectsPlan:
             writer.write_dataset("cosmic_rays", rows, {"UNITS": "electrons", "FRAME": "from the reset, "
                                                        "dropped frames included", "Y_X": "full-detector pixel"})
         if self.ipc is not None:
-            writer.write_dataset("ipc_kernel", self.ipc)
+            writer.write_dataset("ipc_kernel", self.ipc_kernel,
+                                 {"CONVENTION": "K[1+dy, 1+dx]: fraction of a pixel's signal seen at offset (dy, dx)"})
         if "nonlinearity" in self.on:
             writer.write_dataset("nonlinearity/coefficients", _RowBlocks(self, "forward"),
                                  {"MODEL": "R(Q) = Q + a2 Q^2 + a3 Q^3 [e-] (a2, a3)"})
@@ -224,10 +229,12 @@ class EffectsPlan:
         if "persistence" in self.on:
             writer.write_dataset("persistence", np.concatenate([self._persistence(r) for r in range(nramps)]))
         if self.bad is not None:
-            writer.write_dataset("bad_pixels/extra_dark", self.bad["extra_dark"])
-            writer.write_dataset("bad_pixels/qe_factor", self.bad["qe_factor"])
+            writer.write_dataset("bad_pixels/extra_dark", self.bad["extra_dark"], {"UNITS": "e-/s"})
+            writer.write_dataset("bad_pixels/qe_factor", self.bad["qe_factor"], {"UNITS": "dimensionless"})
+            writer.write_dataset("bad_pixels/telegraph", self.bad["telegraph"],
+                                 {"UNITS": "amplitude e- (read offset), dwell times s"})
         if self.bias is not None:
-            writer.write_dataset("bias", self.bias)
+            writer.write_dataset("bias", self.bias, {"UNITS": "ADU"})
         return attrs
 
 

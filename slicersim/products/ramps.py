@@ -248,8 +248,11 @@ FILE_FORMATS = ("hdf5", "jwst-uncal")
 
 def _writer_class(out, file_format):
     """RampWriter or UncalWriter for ``file_format`` (None: from the extension of ``out``)."""
+    if str(out).lower().endswith((".gz", ".bz2", ".xz", ".zip")):
+        raise ValueError(f"{out}: ramp files are not written compressed by a file suffix; use a plain .h5/.fits "
+                         "name (HDF5 compresses internally with compression=)")
     if file_format is None:
-        file_format = "jwst-uncal" if str(out).lower().endswith((".fits", ".fit", ".fits.gz")) else "hdf5"
+        file_format = "jwst-uncal" if str(out).lower().endswith((".fits", ".fit")) else "hdf5"
     if file_format == "hdf5":
         return RampWriter
     if file_format == "jwst-uncal":
