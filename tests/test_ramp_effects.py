@@ -227,3 +227,17 @@ def test_telegraph_pixels_have_truth(tmp_path):
         flags = fh["PIXELDQ"][...]
     flagged = np.argwhere(flags & np.uint32(32768))
     assert tele.size and {tuple(v) for v in flagged} == set(zip(tele["y"].tolist(), tele["x"].tolist()))
+
+
+def test_cli_previous_charge_gives_persistence(tmp_path):
+    """Finding 11: persistence was offered by the CLI with no way to give the previous charge."""
+    from slicersim.app.cli import main
+    rate, prev = tmp_path / "r.npy", tmp_path / "prev.npy"
+    np.save(rate, _rate())
+    charge = np.zeros((48, 128))
+    charge[5:9, 50:60] = 60000.0
+    np.save(prev, charge)
+    out = tmp_path / "p.h5"
+    assert main(["ramp", "--rate", str(rate), "--nmd", "6", "4", "1", "--out", str(out), "--effects", "all",
+                 "--previous-charge", str(prev)]) == 0
+    assert _truth(out, "persistence").size > 0

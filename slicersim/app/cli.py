@@ -201,12 +201,13 @@ def _ramp_effects(args):
     from slicersim.errors import EffectsError
     from slicersim.physics.effects import DetectorEffects
     effects = None
+    prev = args.previous_charge is not None          # "all" and the presets then include persistence
     if args.effects_config is not None:
-        effects = DetectorEffects.from_file(args.effects_config)
+        effects = DetectorEffects.from_file(args.effects_config, has_previous_charge=prev)
     if args.effects is not None:
         from slicersim.physics.effects import PRESETS
-        named = DetectorEffects.from_names(args.effects) if args.effects.strip().lower() not in \
-            PRESETS else DetectorEffects.preset(args.effects.strip().lower())
+        name = args.effects.strip().lower()
+        named = DetectorEffects.preset(name, prev) if name in PRESETS else DetectorEffects.from_names(args.effects, prev)
         effects = named if effects is None else effects.restricted_to(named.enabled)
     if args.cr_rate is not None:
         if effects is None or "cosmic_rays" not in effects.enabled:
@@ -222,6 +223,8 @@ def cmd_ramp(args) -> int:
     _check_output(args.out, args.overwrite)
     common = dict(seed=args.seed, out=args.out, compression=args.compression, progress=True,
                   backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format)
+    if args.previous_charge is not None:
+        common["previous_charge"] = _load_rate(args.previous_charge)
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
     if args.rate is not None:
         given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None]
@@ -335,6 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "--effects-config")
     p.add_argument("--effects-config", metavar="FILE", help="TOML or JSON file with an [effects] section: "
                    "enabled = [...] and one table per effect (every parameter; see the README)")
+    p.add_argument("--previous-charge", metavar="FILE",
+                   help="charge image [e-] of the previous exposure (.npy or text), for the persistence effect")
     p.add_argument("--cr-rate", type=float, metavar="RATE",
                    help="cosmic-ray rate [cm^-2 s^-1] (default 5, the L2 value used for JWST)")
     p.set_defaults(func=cmd_ramp)
