@@ -241,3 +241,8 @@ def test_cli_previous_charge_gives_persistence(tmp_path):
     assert main(["ramp", "--rate", str(rate), "--nmd", "6", "4", "1", "--out", str(out), "--effects", "all",
                  "--previous-charge", str(prev)]) == 0
     assert _truth(out, "persistence").size > 0
+
+
+def test_effect_names_are_case_insensitive_like_presets():
+    """Finding 15: "Lazuli" was accepted but "IPC" was not."""
+    assert DetectorEffects.from_names("IPC, Cosmic_Rays").enabled == ("cosmic_rays", "ipc")

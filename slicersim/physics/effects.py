@@ -153,7 +153,7 @@ def _parse_names(names, has_previous_charge):
     if isinstance(names, str):
         names = [n.strip() for n in names.split(",") if n.strip()]
     try:
-        names = [str(n).strip() for n in names]
+        names = [str(n).strip().lower() for n in names]          # "IPC" as "ipc", like the presets
     except TypeError:
         raise EffectsError(f"effect names must be a string or a list of strings, got {names!r}") from None
     out = []
