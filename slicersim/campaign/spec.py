@@ -42,7 +42,7 @@ import tomllib
 from dataclasses import dataclass, field as dc_field
 
 from slicersim.errors import ConfigError, SlicersimError
-from slicersim.io.tables import file_digest
+from slicersim.io.tables import file_digest, read_file_bytes
 
 __all__ = ["CampaignSpec", "load_spec", "parse_spec", "PRODUCTS"]
 
@@ -226,11 +226,7 @@ def load_spec(path):
     path = os.fspath(path)
     if os.path.isdir(path):
         raise ConfigError(f"campaign spec {path} is a directory, not a TOML file")
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read()
-    except OSError as exc:
-        raise ConfigError(f"cannot read campaign spec {path}: {exc.strerror or exc}") from None
+    raw = read_file_bytes(path, ConfigError, "campaign spec")
     try:
         text = raw.decode("utf-8")
         doc = tomllib.loads(text)

@@ -15,6 +15,7 @@ import os
 import numpy as np
 
 from slicersim.errors import ConfigError
+from slicersim.io.tables import read_file_bytes
 from slicersim.memo import ByteLRU
 
 __all__ = ["read_curve", "CurveError", "CURVE_CACHE"]
@@ -59,11 +60,7 @@ def read_curve(path, columns=None, wavelength_unit=None):
     """
     if not os.path.isfile(path):
         raise CurveError(f"curve file not found: {path}")
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read()
-    except OSError as exc:
-        raise CurveError(f"cannot read curve file {path}: {exc}") from exc
+    raw = read_file_bytes(path, CurveError, "curve file")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:

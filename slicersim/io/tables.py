@@ -8,9 +8,18 @@ import numpy as np
 
 from slicersim.errors import ConfigError
 
-__all__ = ["resolve_path", "file_digest", "read_table", "read_spectrum_table"]
+__all__ = ["resolve_path", "file_digest", "read_file_bytes", "read_table", "read_spectrum_table"]
 
 TABLE_FORMATS = {".ecsv": "ascii.ecsv", ".csv": "ascii.csv", ".parquet": "parquet", ".pq": "parquet"}
+
+
+def read_file_bytes(path, error_class, what):
+    """The bytes of ``path``, or one ``error_class`` line "cannot read <what> <path>: <reason>"."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read()
+    except OSError as exc:
+        raise error_class(f"cannot read {what} {path}: {exc.strerror or exc}") from None
 
 
 def resolve_path(path, base_dir, name):

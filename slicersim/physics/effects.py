@@ -229,12 +229,10 @@ class DetectorEffects:
         """From a TOML (``.toml``) or JSON file holding an ``[effects]`` table (see :meth:`from_config`)."""
         import json
         import os
+
+        from slicersim.io.tables import read_file_bytes
         path = os.fspath(path)
-        try:
-            with open(path, "rb") as fh:
-                raw = fh.read()
-        except OSError as exc:
-            raise EffectsError(f"cannot read effects config {path}: {exc.strerror or exc}") from exc
+        raw = read_file_bytes(path, EffectsError, "effects config")
         try:
             if path.lower().endswith(".json"):
                 config = json.loads(raw.decode("utf-8"))
