@@ -267,6 +267,15 @@ def _buffer(workspace, name, nbytes):
     return buf
 
 
+def device_block(mu_frame, dead, p, vector_width, work_group, workspace):
+    """Setup shared by the OpenCL samplers of a flat pixel block: (vw, work_group, pixel lists,
+    device buffer of μ [e-/frame] with 0 for dead pixels)."""
+    vw, work_group = _launch_geometry(vector_width, work_group)
+    mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
+    lists = _pixel_lists(mu, p, vw)
+    return vw, work_group, lists, opencl.to_device(mu, _buffer(workspace, "mu", mu.nbytes))
+
+
 def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None, vector_width=None, *,
                            want_dq=True, sci_out=None, gdq_out=None, workspace=None):
     """OpenCL twin of :func:`simulate_block_numpy`: sparse then dense pixels, ``vector_width``
@@ -275,13 +284,10 @@ def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None
     want_dq=False skips GROUPDQ (returned as None); sci_out / gdq_out: C-contiguous (n, npix)
     arrays to fill (default: new ones); workspace: dict reusing device buffers between blocks.
     """
-    n, m, d = p.nmd
+    n = p.nmd[0]
     npix = mu_frame.size
-    vw, work_group = _launch_geometry(vector_width, work_group)
+    vw, work_group, lists, d_mu = device_block(mu_frame, dead, p, vector_width, work_group, workspace)
     key = rng.seed_to_key(seed)
-    mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
-    lists = _pixel_lists(mu, p, vw)
-    d_mu = opencl.to_device(mu, _buffer(workspace, "mu", mu.nbytes))
     d_sci = _buffer(workspace, "sci", 2 * n * npix)
     d_gdq = _buffer(workspace, "gdq", n * npix if want_dq else 1)
     launch_samplers(_ramp_kernel, lists, vw, work_group, workspace, (d_mu,), (d_sci, d_gdq),

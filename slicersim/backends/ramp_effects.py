@@ -16,8 +16,8 @@ import math
 import numpy as np
 
 from slicersim.backends import opencl, rng
-from slicersim.backends.ramp import (P_KTC, P_READ, _buffer, _event_position, _event_words, _launch_geometry,
-                                     _pixel_lists, block_arguments, charge_groups, launch_samplers)
+from slicersim.backends.ramp import (P_KTC, P_READ, _buffer, _event_position, _event_words, block_arguments,
+                                     charge_groups, device_block, launch_samplers)
 from slicersim.io.rampfile import DQ
 
 __all__ = ["ChargeEffects", "charge_block_numpy", "charge_block_opencl", "readout_numpy", "readout_opencl",
@@ -142,13 +142,10 @@ def charge_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, fx, work_group=No
     """OpenCL twin of :func:`charge_block_numpy` (same lists and launch geometry as the plain ramp).
 
     to_host=False returns the device buffers (gmean, flags) instead, for :func:`readout_opencl`."""
-    n, m, d = p.nmd
+    n = p.nmd[0]
     npix = mu_frame.size
-    vw, work_group = _launch_geometry(vector_width, work_group)
+    vw, work_group, lists, d_mu = device_block(mu_frame, dead, p, vector_width, work_group, workspace)
     key = rng.seed_to_key(seed)
-    mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
-    lists = _pixel_lists(mu, p, vw)
-    d_mu = opencl.to_device(mu, _buffer(workspace, "mu", mu.nbytes))
     d_gdq = _buffer(workspace, "gdq", n * npix)
     d_gmean = _buffer(workspace, "gmean", 8 * n * npix)
     d_sci = _buffer(workspace, "sci_unused", 8)
