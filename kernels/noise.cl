@@ -125,24 +125,29 @@ __kernel void poisson_draw(__global const double *restrict mean, __global double
 }
 #endif /* RNG_VW == 1 */
 
-/* work item g: elements g*RNG_VW ... g*RNG_VW + RNG_VW - 1 of the chunk (n: valid elements) */
+/* Grid of rows x ncols elements (ncols a multiple of RNG_VW; the host pads): work item (g, row)
+ * draws elements g*RNG_VW ... g*RNG_VW + RNG_VW - 1 of its row, element (row, col) keyed by
+ * index = first_index + row*row_stride + col, stored at row*ncols + col of each plane. */
 __kernel void uniform_normal(__global double *restrict u1, __global double *restrict u2,
                              __global double *restrict z1, __global double *restrict z2,
-                             const ulong first_index, const uint n, const uint key_lo, const uint key_hi,
-                             const uint stream, const uint draw)
+                             const ulong first_index, const ulong row_stride, const uint ncols,
+                             const uint key_lo, const uint key_hi, const uint stream, const uint draw)
 {
     const size_t g = get_global_id(0);
-    if (g * RNG_VW >= n)
+    const size_t row = get_global_id(1);
+    if (g * RNG_VW >= ncols)
         return;
+    const size_t o = row * (ncols / RNG_VW) + g;
     rng_uint a, b, c, d;
-    philox_counter((rng_ulong)(first_index + g * RNG_VW) + RNG_LANES, stream, draw, &a, &b, &c, &d);
+    philox_counter((rng_ulong)(first_index + row * row_stride + g * RNG_VW) + RNG_LANES, stream, draw,
+                   &a, &b, &c, &d);
     philox4x32_10(&a, &b, &c, &d, key_lo, key_hi);
-    RNG_VSTORE(philox_u01(a, b), g, u1);
-    RNG_VSTORE(philox_u01(c, d), g, u2);
+    RNG_VSTORE(philox_u01(a, b), o, u1);
+    RNG_VSTORE(philox_u01(c, d), o, u2);
     rng_double zs;
     const rng_double zc = box_muller_lanes(a, b, c, d, &zs);
-    RNG_VSTORE(zc, g, z1);
-    RNG_VSTORE(zs, g, z2);
+    RNG_VSTORE(zc, o, z1);
+    RNG_VSTORE(zs, o, z2);
 }
 
 /* out = expectation + sqrt(variance) N(0,1); NaN for non-finite variance, the expectation for 0 */

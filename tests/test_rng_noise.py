@@ -78,6 +78,26 @@ def test_streams_bit_identical(n, first, stream, draw):
         assert np.array_equal(uc, un) and np.array_equal(zc, zn), f"work_group={wg}, vector_width={vw}"
 
 
+@needs_cl
+@pytest.mark.parametrize("rows, ncols, first, stride", [(3, 37, 5 << 16, 1 << 16), (17, 4096, 0, 1 << 16),
+                                                         (2, 1001, 2**40 + 3, 1001), (1, 9, 0, 0)])
+def test_grid_streams_bit_identical_to_rng(rows, ncols, first, stride):
+    """The grid kernel (maps keyed y << 16 | x) gives rng.uniform/normal of the same indices, bit for bit."""
+    index = np.uint64(first) + np.arange(rows, dtype=np.uint64)[:, None] * np.uint64(stride) \
+        + np.arange(ncols, dtype=np.uint64)[None, :]
+    ur, zr = rng.uniform(77, index, 9, 3), rng.normal(77, index, 9, 3)
+    for wg, vw in ((None, None), (1, 1), (7, 4), (None, 16)):
+        uc, zc = cn.uniform_normal_grid(rows, ncols, 77, 9, 3, "opencl", wg, first_index=first, row_stride=stride,
+                                        vector_width=vw)
+        assert uc.shape == zc.shape == (rows, ncols, 2)
+        assert np.array_equal(uc, ur) and np.array_equal(zc, zr), f"work_group={wg}, vector_width={vw}"
+
+
+def test_grid_rejects_indices_past_64_bits():
+    with pytest.raises(ValueError, match="2\\*\\*64"):
+        cn.uniform_normal_grid(2, 10, 1, first_index=2**64 - 5, row_stride=1, backend="numpy")
+
+
 def test_uniform_and_normal_statistics():
     n = 200_000
     u = rng.uniform(2024, np.arange(n))

@@ -61,6 +61,9 @@ __all__ = ["CorrelatedNoise", "spectral_coefficients_numpy", "spectral_coefficie
 COMPONENTS = {"low_common": 0, "low_own": 1, "low_alternating": 2, "high_common": 3, "high_own": 4,
               "exact_common": 5, "exact_own": 6, "frame": 7, "white": 8}
 FFT_WORKERS = 2
+#: bytes of synthesised segments kept between row blocks (a segment spans several blocks of the
+#: ramp driver: each is synthesised once when the blocks come in order)
+CACHE_BYTES = 2**28
 _VW = 16                    # Philox blocks per work item on CPUs (AVX-512 lanes of floats)
 
 
@@ -159,7 +162,7 @@ class CorrelatedNoise:
     """
 
     def __init__(self, params, shape, nmd, tframe, seed, method="multirate", *, backend="auto", nu_c=None,
-                 low_rows=None, segment_rows=128, taper_rows=12):
+                 low_rows=None, segment_rows=128, taper_rows=12, cache_bytes=CACHE_BYTES):
         if isinstance(params, dict):
             params = CorrelatedNoiseParameters(**params)
         if not isinstance(params, CorrelatedNoiseParameters):
@@ -191,7 +194,9 @@ class CorrelatedNoise:
                                f"{self.segment_rows}, {self.taper_rows}")
         self._ey, self._ex = picture_frame_template((g.ny, g.nx))
         self._cache_key, self._cache = None, None
-        self._amp = {}
+        self._amp = {}                    # spectral amplitudes and windows, by their parameters
+        self.cache_bytes = int(cache_bytes)
+        self._segment_cache = {}          # (ramp, group, segment) -> float32 (n_out + 1, length) streams
 
     # ------------------------------------------------------------------ helpers
     def _coefficients(self, amp, kind, hi, stream, draw):
@@ -334,15 +339,21 @@ class CorrelatedNoise:
 
     def _window(self, s, nseg, S, h, span):
         """Window of segment s over its span (samples), squares summing to 1 with neighbours."""
+        kind = (s > 0, s < nseg - 1)                       # first, middle and last segments differ
+        if (kind, span) not in self._amp:
+            self._amp[(kind, span)] = self._window_shape(kind, S, h, span)
+        return self._amp[(kind, span)]
+
+    def _window_shape(self, kind, S, h, span):
         rl = self.geometry.row_len
         t = np.arange(span, dtype=np.float64) - h * rl          # sample position relative to the segment's start
         w = np.ones(span)
         if h:
             H = h * rl
-            if s > 0:
+            if kind[0]:
                 u = np.clip(t / H, -1.0, 1.0)
                 w *= np.sin(0.25 * np.pi * (1.0 + u))
-            if s < nseg - 1:
+            if kind[1]:
                 u = np.clip((t - S * rl) / H, -1.0, 1.0)
                 w *= np.cos(0.25 * np.pi * (1.0 + u))
         return w.astype(np.float32)
@@ -357,13 +368,33 @@ class CorrelatedNoise:
         s_last = min(nseg - 1, (y1 - 1 + h) // S)
         segs = np.arange(s_first, s_last + 1)
         nsg = segs.size
-        kind = np.tile(np.array([0] + [1] * nout), nsg)
-        streams = np.tile(np.array([_stream("high_common")] + [_stream("high_own", o) for o in range(nout)]), nsg)
-        draw = np.repeat((int(group) << 16) | segs, nout + 1)
-        amp = self._high_amplitudes(length)
-        x = self._synthesize(amp, length, kind, np.full(kind.size, ramp), streams, draw)
+        cache = self._segment_cache
+        missing = np.array([s for s in segs if (ramp, group, s) not in cache], dtype=np.int64)
+        x = np.empty((nsg, nout + 1, length), np.float32)
+        if missing.size:
+            kind = np.tile(np.array([0] + [1] * nout), missing.size)
+            streams = np.tile(np.array([_stream("high_common")] + [_stream("high_own", o) for o in range(nout)]),
+                              missing.size)
+            draw = np.repeat((int(group) << 16) | missing, nout + 1)
+            amp = self._high_amplitudes(length)
+            new = self._synthesize(amp, length, kind, np.full(kind.size, ramp), streams, draw)
+            new = new.reshape(missing.size, nout + 1, length)
+            for s, streams_s in zip(missing, new):
+                x[s - s_first] = streams_s
+                if (len(cache) + 1) * streams_s.nbytes <= self.cache_bytes:
+                    cache[(ramp, group, int(s))] = streams_s.copy()
+        for s in segs:
+            if s not in missing:
+                x[s - s_first] = cache[(ramp, group, int(s))]
         win = np.stack([self._window(s, nseg, S, h, span) for s in segs])
-        return s_first, x.reshape(nsg, nout + 1, length), win
+        return s_first, x, win
+
+    def _evict_segments(self, ramp, y_next):
+        """Forget cached segments that a block starting at row ``y_next`` of ``ramp`` does not need."""
+        S, h = self.segment_rows, self.taper_rows
+        first = max(0, (y_next - h) // S)
+        for key in [k for k in self._segment_cache if k[0] != ramp or k[2] < first]:
+            del self._segment_cache[key]
 
     def _block_segments(self, state, ramp, y0, y1, out):
         g = self.geometry
@@ -405,6 +436,7 @@ class CorrelatedNoise:
         state = self._ramp_state(ramp)
         if self.method != "exact":
             self._block_segments(state, ramp, y0, y1, out)
+            self._evict_segments(ramp, y1)
             return out
         self._block_exact(state, y0, y1, out)
         ped, pf = state["frame"]

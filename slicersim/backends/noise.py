@@ -6,7 +6,7 @@ are identical — bit for bit — whatever the backend, the chunking
 
 * :func:`noisy_cube` — expectation + √variance · N(0, 1) per voxel (ADU).
 * :func:`poisson_draw` — Poisson counts (inversion below mean 10, PTRS above).
-* :func:`uniform_normal_draw`, :func:`philox_blocks` — raw streams (tests, other kernels).
+* :func:`uniform_normal_draw`, :func:`uniform_normal_grid`, :func:`philox_blocks` — raw streams (tests, other kernels).
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import numpy as np
 from slicersim.backends import opencl, rng
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, resolve_backend
 
-__all__ = ["noisy_cube", "poisson_draw", "uniform_normal_draw", "philox_blocks", "seed_from",
+__all__ = ["noisy_cube", "poisson_draw", "uniform_normal_draw", "uniform_normal_grid", "philox_blocks", "seed_from",
            "DEFAULT_MAX_BYTES"]
 
 MIN_CHUNK = 256          # elements: floor of a chunk whatever max_bytes (avoids absurd launch counts)
@@ -196,22 +196,42 @@ def uniform_normal_draw(n, seed, stream=0, draw=0, backend="auto", work_group=No
                         vector_width=None):
     """(uniforms, normals), each (n, 2) float64, for indices first_index … first_index + n − 1
     (the two uniforms of each Philox block and their two Box–Muller Gaussians)."""
+    u, z = uniform_normal_grid(1, n, seed, stream, draw, backend, work_group, first_index=first_index,
+                               vector_width=vector_width)
+    return u[0], z[0]
+
+
+def uniform_normal_grid(rows, ncols, seed, stream=0, draw=0, backend="auto", work_group=None, *,
+                        first_index=0, row_stride=None, vector_width=None):
+    """(uniforms, normals), each (rows, ncols, 2) float64: element (r, c) keyed by Philox index
+    ``first_index + r·row_stride + c`` (row_stride default ncols) — e.g. a block of detector rows
+    keyed ``y << 16 | x`` with first_index = y0 << 16 and row_stride = 2¹⁶.  Bit-identical to
+    :func:`slicersim.backends.rng.uniform` / :func:`~slicersim.backends.rng.normal` of those indices."""
     seed, stream = seed_from(seed), _stream(stream)
-    if resolve_backend(backend) != "opencl":
-        index = np.arange(first_index, first_index + n, dtype=np.uint64)
+    rows, ncols = int(rows), int(ncols)
+    row_stride = ncols if row_stride is None else int(row_stride)
+    if rows < 0 or ncols < 0 or row_stride < 0 or int(first_index) < 0 \
+            or int(first_index) + max(rows - 1, 0) * row_stride + ncols > 2**64:
+        raise ValueError(f"uniform_normal_grid: rows = {rows}, ncols = {ncols}, row_stride = {row_stride} "
+                         f"and first_index = {first_index} must be ≥ 0 with indices below 2**64")
+    if resolve_backend(backend) != "opencl" or rows * ncols == 0:
+        index = (np.uint64(first_index) + np.arange(rows, dtype=np.uint64)[:, None] * np.uint64(row_stride)
+                 + np.arange(ncols, dtype=np.uint64)[None, :])
         return rng.uniform(seed, index, stream, draw), rng.normal(seed, index, stream, draw)
     opencl.require_fp64()
     vw = check_vector_width(vector_width)
-    npad = -(-max(n, 1) // vw) * vw
-    planes = np.empty((4, npad))
-    bufs = [opencl.device_buffer(8 * npad) for _ in range(4)]
+    npad = -(-ncols // vw) * vw
+    planes = np.empty((4, rows, npad))
+    bufs = [opencl.host_buffer(plane) for plane in planes]              # zero-copy on CPU devices
     key = rng.seed_to_key(seed)
-    gsize, lsize = _sizes(npad // vw, work_group)
-    opencl.launch(_kernel("uniform_normal", vw), gsize, lsize, *bufs, np.uint64(first_index), np.uint32(n),
-                  np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream), np.uint32(draw))
+    (gx,), local = _sizes(npad // vw, work_group)
+    opencl.launch(_kernel("uniform_normal", vw), (gx, rows), None if local is None else (local[0], 1), *bufs,
+                  np.uint64(first_index), np.uint64(row_stride), np.uint32(npad), np.uint32(key[0]),
+                  np.uint32(key[1]), np.uint32(stream), np.uint32(draw))
     for plane, buf in zip(planes, bufs):
-        opencl.from_device(plane, buf)
-    return planes[:2, :n].T.copy(), planes[2:, :n].T.copy()
+        opencl.sync_to_host(buf, plane)
+    planes = np.moveaxis(planes[:, :, :ncols], 0, -1)                   # views, no copy
+    return planes[..., :2], planes[..., 2:]
 
 
 def philox_blocks(counter, key, backend="auto"):

@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from slicersim.backends import rng
+from slicersim.backends.noise import uniform_normal_grid
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import STREAMS, check_fraction, check_number, check_shape_rows
 
@@ -41,7 +42,7 @@ TELEGRAPH_DTYPE = np.dtype([("y", "<u2"), ("x", "<u2"), ("amplitude", "<f4"), ("
                             ("tau_high", "<f4")])
 CLASSES = ("dead", "hot", "warm", "low_qe", "telegraph")
 SUB_CLASS, SUB_DWELL, SUB_STATE = 0, 1, 2
-ROWS_PER_CHUNK = 16
+ROWS_PER_CHUNK = 256
 
 
 def _check_range(name, value, low, high):
@@ -118,7 +119,8 @@ def bad_pixel_maps(seed, shape, params, rows=None):
     tel_y, tel_x, tel_u = [], [], []
     for c0 in range(r0, r1, ROWS_PER_CHUNK):
         yy = np.arange(c0, min(c0 + ROWS_PER_CHUNK, r1))
-        u = rng.uniform(seed, _pixel_index(yy[:, None], np.arange(nx)[None, :]), STREAMS["bad_pixels"] + SUB_CLASS, 0)
+        u, _ = uniform_normal_grid(yy.size, nx, seed, STREAMS["bad_pixels"] + SUB_CLASS, 0, first_index=c0 << 16,
+                                   row_stride=1 << 16)                   # index y << 16 | x
         cls = np.searchsorted(edges, u[..., 0], side="right")        # 0 dead … 4 telegraph, 5 good
         rel = slice(c0 - r0, c0 - r0 + yy.size)
         v = u[..., 1]

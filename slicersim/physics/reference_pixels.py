@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.backends import rng
+from slicersim.backends.noise import uniform_normal_draw
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import STREAMS
 
@@ -86,11 +87,11 @@ def bias_map(seed, shape, params=None):
     z_out = rng.normal(seed, np.arange(params.n_outputs, dtype=np.uint64), base + _SUB_OUTPUT)[:, 0]
     out = np.repeat(params.output_offset * np.clip(z_out, -5, 5), nx // params.n_outputs)
     bias = np.empty((ny, nx), np.float32)
-    rows = max(1, (1 << 20) // nx)
+    rows = max(1, (1 << 22) // nx)
     for y0 in range(0, ny, rows):
         y1 = min(ny, y0 + rows)
-        pix = np.arange(y0 * nx, y1 * nx, dtype=np.uint64)
-        z = rng.normal(seed, pix >> np.uint64(1), base + _SUB_PIXEL)
-        z = np.where(pix % np.uint64(2) == 0, z[:, 0], z[:, 1])
+        p0, p1 = y0 * nx, y1 * nx                       # pixel p uses branch p % 2 of block p // 2
+        _, z = uniform_normal_draw((p1 + 1) // 2 - p0 // 2, seed, base + _SUB_PIXEL, first_index=p0 // 2)
+        z = z.reshape(-1)[p0 % 2:p0 % 2 + p1 - p0]
         bias[y0:y1] = (out[None, :] + params.pixel_offset * np.clip(z, -5, 5).reshape(y1 - y0, nx))
     return bias
