@@ -92,6 +92,26 @@ def test_chunk_independent_and_deterministic(method):
     assert not np.array_equal(full, seed2)
 
 
+@pytest.mark.parametrize("method", ["multirate", "group"])
+def test_segment_cache_changes_nothing(method):
+    """Segments cached between row blocks (any order, any cache size, ramps interleaved) give the
+    values of a generator that caches nothing, and the cache keeps only what later blocks need."""
+    p = CorrelatedNoiseParameters(n_outputs=4)
+    kw = dict(segment_rows=16, taper_rows=4, method=method)
+    ref = CorrelatedNoise(p, (96, 64), (3, 2, 1), 2.83, 5, cache_bytes=0, **kw)
+    cached = CorrelatedNoise(p, (96, 64), (3, 2, 1), 2.83, 5, **kw)
+    small = CorrelatedNoise(p, (96, 64), (3, 2, 1), 2.83, 5, cache_bytes=3 * 5 * 4 * 1500, **kw)
+    order = [(0, 0, 11), (0, 11, 40), (1, 0, 20), (0, 40, 96), (0, 5, 17), (1, 20, 96), (0, 90, 96)]
+    for ramp, y0, y1 in order:
+        want = ref.block(ramp, y0, y1)
+        for gen in (cached, small):
+            np.testing.assert_array_equal(gen.block(ramp, y0, y1), want)
+    assert ref._segment_cache == {}
+    assert all(key[0] == 0 and key[2] >= (96 - 4) // 16 for key in cached._segment_cache)
+    for gen in (cached, small):
+        assert gen._cache_nbytes == sum(a.nbytes for _, a in gen._segment_cache.values()) <= gen.cache_bytes
+
+
 @needs_cl
 def test_spectral_draws_twin():
     """Kernel vs NumPy twin: the same Philox words; float32 Box–Muller with libm differences

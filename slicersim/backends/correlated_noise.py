@@ -196,7 +196,8 @@ class CorrelatedNoise:
         self._cache_key, self._cache = None, None
         self._amp = {}                    # spectral amplitudes and windows, by their parameters
         self.cache_bytes = int(cache_bytes)
-        self._segment_cache = {}          # (ramp, group, segment) -> float32 (n_out + 1, length) streams
+        self._segment_cache = {}          # (ramp, group, segment) -> (first sample, float32 streams[:, first:])
+        self._cache_nbytes = 0
 
     # ------------------------------------------------------------------ helpers
     def _coefficients(self, amp, kind, hi, stream, draw):
@@ -277,10 +278,10 @@ class CorrelatedNoise:
                  "d": lambda f: comp(f) * _acn_half(f, p.acn, g, fm)}, dl)
 
     def _low_coefficients(self, ramp):
-        """(A, A2) float32 (streams, n, ny): group means of the low part, interpolated linearly
-        between its samples every q rows, at the start of row y (A) and of row y + 1 (A2); the
-        pixel at scan position j reads A + (j/row_len)(A2 − A).  Streams: common, own per
-        output, alternating per output."""
+        """float32 (streams, n, ny + 1): group means of the low part, interpolated linearly between
+        its samples every q rows, at the start of scan row y (y = ny: the row after the last); the
+        pixel at scan position j of row y reads A[y] + (j/row_len)(A[y + 1] − A[y]).  Streams:
+        common, own per output, alternating per output."""
         g = self.geometry
         n, m, d = self.nmd
         q = self.low_rows
@@ -295,9 +296,9 @@ class CorrelatedNoise:
                            + [_stream("low_alternating", o) for o in range(nout)])
         reads = np.flatnonzero(self.frames_group >= 0).reshape(n, m)
         rows_at = np.arange(rows_total + 1) / q                   # row starts in low-sample units
+        at_read_rows = reads[:, :, None] * g.frame_rows + np.arange(g.ny + 1)      # (n, m, ny + 1)
         nst = kind.size
-        A = np.empty((nst, n, g.ny), np.float32)
-        A2 = np.empty((nst, n, g.ny), np.float32)
+        A = np.empty((nst, n, g.ny + 1), np.float32)
         batch = max(1, int(2**26 // (length * 4)))
         for s0 in range(0, nst, batch):
             s1 = min(nst, s0 + batch)
@@ -305,10 +306,8 @@ class CorrelatedNoise:
                                    np.zeros(s1 - s0))
             for i, row in enumerate(low):
                 at_rows = np.interp(rows_at, np.arange(nlow), row[:nlow])
-                for arr, shift in ((A, 0), (A2, 1)):
-                    frames = at_rows[shift:shift + rows_total].reshape(self.nframes, g.frame_rows)
-                    arr[s0 + i] = frames[reads][:, :, :g.ny].mean(axis=1)
-        return A, A2
+                A[s0 + i] = at_rows[at_read_rows].mean(axis=1)
+        return A
 
     # ------------------------------------------------------------------ multirate / group: segments
     def _segment_geometry(self):
@@ -368,8 +367,14 @@ class CorrelatedNoise:
         s_last = min(nseg - 1, (y1 - 1 + h) // S)
         segs = np.arange(s_first, s_last + 1)
         nsg = segs.size
+        rl = g.row_len
         cache = self._segment_cache
-        missing = np.array([s for s in segs if (ramp, group, s) not in cache], dtype=np.int64)
+
+        def first_sample(s, y):                      # first sample of segment s that rows ≥ y use
+            return max(0, (y - int(s) * S + h) * rl)
+        hit = {int(s): cache[(ramp, group, int(s))] for s in segs if (ramp, group, int(s)) in cache
+               and cache[(ramp, group, int(s))][0] <= first_sample(s, y0)}
+        missing = np.array([s for s in segs if int(s) not in hit], dtype=np.int64)
         x = np.empty((nsg, nout + 1, length), np.float32)
         if missing.size:
             kind = np.tile(np.array([0] + [1] * nout), missing.size)
@@ -381,20 +386,37 @@ class CorrelatedNoise:
             new = new.reshape(missing.size, nout + 1, length)
             for s, streams_s in zip(missing, new):
                 x[s - s_first] = streams_s
-                if (len(cache) + 1) * streams_s.nbytes <= self.cache_bytes:
-                    cache[(ramp, group, int(s))] = streams_s.copy()
-        for s in segs:
-            if s not in missing:
-                x[s - s_first] = cache[(ramp, group, int(s))]
+                self._cache_put((ramp, group, int(s)), 0, streams_s)
+        for s, (p_from, data) in hit.items():
+            x[s - s_first, :, :p_from] = 0.0                    # samples of rows before y0: unused
+            x[s - s_first, :, p_from:] = data
         win = np.stack([self._window(s, nseg, S, h, span) for s in segs])
         return s_first, x, win
 
+    def _cache_put(self, key, p_from, streams):
+        """Keep samples p_from: of a segment's streams while the cache has room (else nothing)."""
+        old = self._segment_cache.pop(key, None)
+        if old is not None:
+            self._cache_nbytes -= old[1].nbytes
+        part = streams[:, p_from:]
+        if self._cache_nbytes + part.nbytes <= self.cache_bytes:
+            self._segment_cache[key] = (p_from, part.copy())
+            self._cache_nbytes += part.nbytes
+
     def _evict_segments(self, ramp, y_next):
-        """Forget cached segments that a block starting at row ``y_next`` of ``ramp`` does not need."""
-        S, h = self.segment_rows, self.taper_rows
+        """Keep of the cached segments only what a block starting at row ``y_next`` of ``ramp`` and
+        later blocks use: other ramps and earlier segments go, the rest is cropped to rows ≥ y_next."""
+        S, h, rl = self.segment_rows, self.taper_rows, self.geometry.row_len
         first = max(0, (y_next - h) // S)
-        for key in [k for k in self._segment_cache if k[0] != ramp or k[2] < first]:
-            del self._segment_cache[key]
+        for key in list(self._segment_cache):
+            p_from, data = self._segment_cache[key]
+            keep_from = max(0, (y_next - key[2] * S + h) * rl)
+            if key[0] != ramp or key[2] < first:
+                del self._segment_cache[key]
+                self._cache_nbytes -= data.nbytes
+            elif keep_from > p_from:
+                self._cache_put(key, keep_from - p_from, data)
+                self._segment_cache[key] = (keep_from, self._segment_cache[key][1])
 
     def _block_segments(self, state, ramp, y0, y1, out):
         g = self.geometry
@@ -409,7 +431,7 @@ class CorrelatedNoise:
             if low is None:
                 la = la2 = aa = aa2 = zeros
             else:
-                A, A2 = low[0][:, grp, y0:y1], low[1][:, grp, y0:y1]          # (streams, rows)
+                A, A2 = low[:, grp, y0:y1], low[:, grp, y0 + 1:y1 + 1]        # (streams, rows)
                 la = np.ascontiguousarray((A[1:1 + nout] + A[0]).T)
                 la2 = np.ascontiguousarray((A2[1:1 + nout] + A2[0]).T)
                 aa = np.ascontiguousarray(A[1 + nout:].T)

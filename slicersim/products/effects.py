@@ -123,6 +123,12 @@ class EffectsPlan:
             flags[self.reference] = np.uint32(REFERENCE_PIXEL)
         return rate, dark, dead, flags
 
+    def drop_photo_maps(self):
+        """Free the extra-dark and QE maps (2 × 4 B per pixel) once the rates and the truth have them."""
+        if self.bad is not None:
+            self.bad.pop("extra_dark", None)
+            self.bad.pop("qe_factor", None)
+
     # ------------------------------------------------------------------ charge deposits
     def deposits(self, ramp):
         """All charge deposits of ``ramp`` (CR_DTYPE rows, sorted by y, x, frame), cosmic rays first."""

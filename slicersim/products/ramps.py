@@ -138,6 +138,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
         dead = dead | no_charge
     mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
+    dark_mean = float(np.mean(dark_arr))
+    rate = dark_arr = None                           # the effects' copies: not needed past mu
     backend = resolve_backend(backend)
     block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
     kwargs = {}
@@ -153,7 +155,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         iterator = tqdm(steps, desc="ramps", unit="block", total=nsteps)
     attrs = p.attrs(seed)
     attrs.update({"SOFTWARE": "slicersim", "VERSION": _version(), "BACKEND": backend,
-                  "CONFIG": config if config is not None else {}, "DARK": float(np.mean(dark_arr)),
+                  "CONFIG": config if config is not None else {}, "DARK": dark_mean,
                   "THERMAL_DARK": thermal_dark, "ROIC_GLOW": roic_glow, "KTC_NOISE": ktc_noise})
     result = None if out is not None else np.empty((p.nramps, n, ny, nx), np.uint16)
     result_dq = np.empty((p.nramps, n, ny, nx), np.uint8) if (out is None and return_dq) else None
@@ -172,11 +174,13 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
 
     def run(w):
         if w is not None:
-            w.write_pixeldq(_pixeldq(pixeldq, dq_dead, rate.shape))
+            w.write_pixeldq(_pixeldq(pixeldq, dq_dead, rate_in.shape))
             if truth:
                 w.write_truth(rate_in)
                 if plan is not None:
                     plan.write_truth(w, p.nramps)
+        if plan is not None:
+            plan.drop_photo_maps()                   # used by rate_and_dark and the truth only
         for ramp, y0 in iterator:
             y1 = min(ny, y0 + rows)
             if plan is not None:
