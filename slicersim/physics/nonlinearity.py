@@ -206,7 +206,7 @@ class _InterpolatedFit:
         return np.polynomial.chebyshev.chebvander((v - lo) / half - 1.0, nodes.size - 1)
 
     def __call__(self, A2, A3):
-        w = (self._basis(A2, 0) @ self.matrix).reshape(-1, self.degree, self.n3)     # BLAS
+        w = np.einsum("pi,ij->pj", self._basis(A2, 0), self.matrix).reshape(-1, self.degree, self.n3)
         return np.einsum("pkj,pj->kp", w, self._basis(A3, 1))
 
 

@@ -59,9 +59,10 @@ class EffectsPlan:
 
     effects : DetectorEffects;  p : RampParameters;  seed : int;  shape : (ny, nx)
     previous_charge : (ny, nx) [e-] charge of the previous exposure (persistence), or None
+    noise_cache_bytes : bytes the correlated noise may keep between row blocks (None: its default)
     """
 
-    def __init__(self, effects, p, seed, shape, previous_charge=None):
+    def __init__(self, effects, p, seed, shape, previous_charge=None, noise_cache_bytes=None):
         self.effects, self.p, self.seed, self.shape = effects, p, int(seed), tuple(shape)
         self.on = set(effects.enabled)
         ny, nx = self.shape
@@ -98,7 +99,9 @@ class EffectsPlan:
         self.noise = None
         if "correlated_noise" in self.on:
             from slicersim.backends.correlated_noise import CorrelatedNoise
-            self.noise = CorrelatedNoise(effects.params("correlated_noise"), self.shape, p.nmd, p.tframe, self.seed)
+            cache = {} if noise_cache_bytes is None else {"cache_bytes": int(noise_cache_bytes)}
+            self.noise = CorrelatedNoise(effects.params("correlated_noise"), self.shape, p.nmd, p.tframe, self.seed,
+                                         **cache)
         self._deposits = {}
         self._telegraph = {}
         self.nx = nx

@@ -59,7 +59,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         0.9·(m+d) − 1, see :func:`sparse_threshold`; capped at 64).  Both samplers are exact:
         this only trades speed.
     gauss_min_mean : Poisson mean above which a rounded Gaussian replaces the exact draw
-    memory_budget : bytes of host memory for the row blocks (default 512 MiB: a full-detector ramp
+    memory_budget : bytes of host memory for the row blocks and, with correlated noise, a third of it
+        for its cached segments (default 512 MiB: a full-detector ramp
         peaks below 1.5 GB; larger blocks are not faster)
     work_group : OpenCL local size (None: 64 on CPUs, the runtime's on GPUs); never changes the result
     overwrite : replace an existing ``out`` (default: refuse with :class:`~slicersim.errors.RampFileError`)
@@ -109,10 +110,12 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     # bytes per pixel in flight: mu + dead + index list + SCI + GDQ (host and device copies); with
     # effects also the group means (8 B), flags, read-domain noise (4 B) and deposits
     per_row = nx * (8 + 1 + 4 + 3 * n) * 2 if fx is None else nx * (8 + 1 + 4 + 16 + 16 * n) * 2
-    rows = int(max(1, min(ny, memory_budget // per_row)))
-    if memory_budget < per_row:
+    # a third of the budget (with correlated noise) keeps the noise segments that span row blocks
+    noise_cache = memory_budget // 3 if fx is not None and "correlated_noise" in fx.enabled else 0
+    rows = int(max(1, min(ny, (memory_budget - noise_cache) // per_row)))
+    if memory_budget - noise_cache < per_row:
         raise MemoryError(f"memory budget {memory_budget} B is smaller than one detector row "
-                          f"({per_row} B for {n} groups)")
+                          f"({per_row} B for {n} groups{' plus the noise cache' if noise_cache else ''})")
     # sizes first: nothing below is allocated before the output is known to fit
     writer = None
     if out is not None:
@@ -132,7 +135,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     plan, rate_in = None, rate
     dq_dead = dead                                   # pixels flagged DEAD in PIXELDQ
     if fx is not None:
-        plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge)
+        plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge, noise_cache_bytes=noise_cache)
         rate, dark_arr, no_charge, flags = plan.rate_and_dark(rate, dark_arr, dead)
         flags[dead] |= np.uint32(DQ["DEAD"] | DQ["DO_NOT_USE"])              # the user's dead pixels
         pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
