@@ -246,3 +246,45 @@ def test_cli_previous_charge_gives_persistence(tmp_path):
 def test_effect_names_are_case_insensitive_like_presets():
     """Finding 15: "Lazuli" was accepted but "IPC" was not."""
     assert DetectorEffects.from_names("IPC, Cosmic_Rays").enabled == ("cosmic_rays", "ipc")
+
+
+def test_persistence_ramp_limit_refused_before_any_file(tmp_path):
+    """Review finding 15: persistence keyed 12 bits of ramp failed mid-run at ramp 4096; now refused
+    before anything is written."""
+    prev = np.zeros((16, 32))
+    out = tmp_path / "many.h5"
+    with pytest.raises(EffectsError, match="4096 ramps"):
+        simulate(_rate(16, 32), (2, 1, 0), nramps=4097, seed=1, progress=False, out=out, effects="persistence",
+                 previous_charge=prev)
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_bias_too_low_for_reference_offsets_is_refused():
+    """Review finding 9: a bias map reaching below 0 ADU was clipped at 0 in every read, unflagged."""
+    with pytest.raises(EffectsError, match="bias .* too low"):
+        simulate(_rate(), NMD, seed=1, progress=False, effects="reference_pixels", bias=5.0)
+    simulate(_rate(), NMD, seed=1, progress=False, effects="reference_pixels")      # default bias: fine
+
+
+def test_disk_check_counts_the_effects_truth(tmp_path, monkeypatch):
+    """Review finding 8: the free-space check ignored the truth of the effects (e.g. nonlinearity
+    coefficients, 40 B per pixel)."""
+    import collections
+    import shutil
+
+    from slicersim.io.rampfile import RampWriter
+    from slicersim.physics.ramp import RampParameters
+    from slicersim.products.effects import EffectsPlan
+    shape = (48, 128)
+    plain = RampWriter(tmp_path / "a.h5", 1, NMD[0], shape, truth_rate=True).expected_bytes()
+    fx = DetectorEffects.from_names("nonlinearity")
+    extra = EffectsPlan.truth_nbytes(fx, RampParameters(nmd=NMD), shape)
+    assert extra == 48 * 128 * (16 + 4 * (fx.params("nonlinearity").degree + 1))
+    usage = collections.namedtuple("usage", "total used free")
+    free = plain + 2**20 + extra // 2                  # room for the data and margin, not the truth
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**12, 10**12 - free, free))
+    simulate(_rate(), NMD, seed=1, progress=False, out=tmp_path / "plain.h5")
+    from slicersim.errors import RampFileError
+    with pytest.raises(RampFileError, match="not enough disk space"):
+        simulate(_rate(), NMD, seed=1, progress=False, out=tmp_path / "fx.h5", effects="nonlinearity")
+    assert not (tmp_path / "fx.h5").exists()

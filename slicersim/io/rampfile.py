@@ -76,6 +76,7 @@ class RampWriter(AtomicH5File):
     attrs : dict of root attributes (values JSON-serialisable or scalars)
     row_block : rows per chunk;  compression : see :func:`compression_options`
     truth_rate : bool, reserve /truth/rate
+    extra_bytes : further bytes (truth of detector effects) for the disk-space check
     overwrite : replace an existing ``path`` (default: refuse with :class:`RampFileError`)
 
     The file is written as ``.NAME.tmp-PID-xxxx`` in the target directory (created with the
@@ -89,8 +90,9 @@ class RampWriter(AtomicH5File):
     _dataset_names = ("sci", "groupdq", "pixdq", "truth")
 
     def __init__(self, path, nramps, ngroups, shape, attrs=None, row_block=64, compression=None,
-                 truth_rate=False, pixeldq=True, overwrite=False):
+                 truth_rate=False, pixeldq=True, overwrite=False, extra_bytes=0):
         super().__init__(path, overwrite)
+        self.extra_bytes = int(extra_bytes)
         self.nramps, self.ngroups = int(nramps), int(ngroups)
         self.shape = tuple(int(s) for s in shape)
         self.attrs = dict(attrs or {})
@@ -100,9 +102,9 @@ class RampWriter(AtomicH5File):
 
     # ------------------------------------------------------------------ lifecycle
     def expected_bytes(self):
-        """Uncompressed size of SCI + GROUPDQ (+ PIXELDQ, truth) [bytes]."""
+        """Uncompressed size of SCI + GROUPDQ (+ PIXELDQ, truth rate, ``extra_bytes``) [bytes]."""
         n = self.nramps * self.ngroups * self.shape[0] * self.shape[1]
-        return n * 3 + self.shape[0] * self.shape[1] * (4 * self.pixeldq + 4 * self.truth_rate)
+        return n * 3 + self.shape[0] * self.shape[1] * (4 * self.pixeldq + 4 * self.truth_rate) + self.extra_bytes
 
     def check(self):
         """Refuse early (before any simulation or allocation): missing or read-only directory,

@@ -190,6 +190,7 @@ class UncalWriter:
     row_block : rows per block in :func:`write_uncal_from_hdf5` (the writer takes any block)
     compression : None only (a level-1b file is uncompressed)
     truth_rate : bool, count a TRUTH_RATE image in the disk-space check
+    extra_bytes : further bytes (truth of detector effects) for the disk-space check
     pixeldq, groupdq : bool, preallocate PIXELDQ / GROUPDQ
     overwrite : replace an existing ``path`` (default: refuse with :class:`RampFileError`)
     keywords : primary keywords overriding the defaults (:data:`DEFAULT_KEYWORDS`)
@@ -208,8 +209,9 @@ class UncalWriter:
 
     def __init__(self, path, nramps, ngroups, shape, attrs=None, row_block=64, compression=None,
                  truth_rate=False, pixeldq=True, groupdq=True, overwrite=False, keywords=None,
-                 start_mjd=None, detector_shape=None, substrt=(1, 1)):
+                 start_mjd=None, detector_shape=None, substrt=(1, 1), extra_bytes=0):
         self.path = os.path.abspath(os.fspath(path))
+        self.extra_bytes = int(extra_bytes)
         self.overwrite = bool(overwrite)
         self.nramps, self.ngroups = int(nramps), int(ngroups)
         self.shape = tuple(int(s) for s in shape)
@@ -236,12 +238,12 @@ class UncalWriter:
         return self.nramps * self.ngroups * self.shape[0] * self.shape[1]
 
     def expected_bytes(self):
-        """File size without truth extensions except TRUTH_RATE when ``truth_rate`` [bytes]."""
+        """File size [bytes]: data, TRUTH_RATE when ``truth_rate``, and ``extra_bytes`` (other truth)."""
         plane = self.shape[0] * self.shape[1]
         rows = self.nramps * self.ngroups
         size = 8 * _BLOCK + _padded(2 * self._pixels()) + self.groupdq * _padded(self._pixels())
         size += self.pixeldq * _padded(4 * plane) + self.truth_rate * _padded(4 * plane)
-        return size + _padded(rows * 112) + _padded(self.nramps * 56)
+        return size + _padded(rows * 112) + _padded(self.nramps * 56) + self.extra_bytes
 
     def timing(self):
         """JWST timing keywords from the root attributes (see the module docstring) [s, frames]."""

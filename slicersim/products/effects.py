@@ -69,6 +69,9 @@ class EffectsPlan:
         if "persistence" in self.on and previous_charge is None:
             raise EffectsError("persistence needs previous_charge: the (ny, nx) charge image [e-] of the "
                                "previous exposure")
+        if "persistence" in self.on and not (p.nramps <= 2**12 and p.nframes <= 2**20):
+            raise EffectsError(f"persistence supports up to 4096 ramps of up to 2**20 frames, got {p.nramps} "
+                               f"ramps of {p.nframes} frames")
         if previous_charge is not None:
             previous_charge = np.asarray(previous_charge, float)
             if previous_charge.shape != self.shape or not np.all(np.isfinite(previous_charge)) \
@@ -96,6 +99,10 @@ class EffectsPlan:
             from slicersim.physics.reference_pixels import bias_map
             self.bias = np.asarray(p.bias + bias_map(self.seed, self.shape, effects.params("reference_pixels")),
                                    np.float32)
+            lowest = float(self.bias.min())
+            if lowest < 0.0:                  # the ADC would clip these pixels at 0 ADU in every read
+                raise EffectsError(f"bias {p.bias:g} ADU is too low for the reference-pixel offsets: the bias map "
+                                   f"reaches {lowest:.1f} ADU; raise the bias or lower output_offset/pixel_offset")
         self.noise = None
         if "correlated_noise" in self.on:
             from slicersim.backends.correlated_noise import CorrelatedNoise
@@ -105,6 +112,25 @@ class EffectsPlan:
         self._deposits = {}
         self._telegraph = {}
         self.nx = nx
+
+    @staticmethod
+    def truth_nbytes(effects, p, shape):
+        """Upper estimate [bytes] of the effects' truth datasets (for the disk-space check before a run)."""
+        ny, nx = shape
+        on = set(effects.enabled)
+        nbytes = 0
+        if "nonlinearity" in on:              # a2, a3 float64 + inverse coefficients float32
+            nbytes += ny * nx * (16 + 4 * (effects.params("nonlinearity").degree + 1))
+        if "bad_pixels" in on:                # extra dark, QE factor (float32)
+            nbytes += ny * nx * 8
+        if "reference_pixels" in on:          # bias map (float32)
+            nbytes += ny * nx * 4
+        if "cosmic_rays" in on:               # CR_DTYPE rows: hits × pixels crossed (≤ 64 on average)
+            params = effects.params("cosmic_rays")
+            area_cm2 = ny * nx * (params.pixel_pitch * 1e-4) ** 2
+            hits = params.rate * area_cm2 * p.nframes * p.tframe * p.nramps
+            nbytes += int(hits * 64 * CR_DTYPE.itemsize)
+        return nbytes
 
     # ------------------------------------------------------------------ photo-response
     def rate_and_dark(self, rate, dark, user_dead=None):

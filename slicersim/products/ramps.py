@@ -120,8 +120,9 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     writer = None
     if out is not None:
         writer_class = _writer_class(out, file_format)
+        truth_bytes = EffectsPlan.truth_nbytes(fx, p, (ny, nx)) if (fx is not None and truth) else 0
         writer = writer_class(out, p.nramps, n, (ny, nx), row_block=min(rows, 256), compression=compression,
-                              truth_rate=truth, overwrite=overwrite).check()
+                              truth_rate=truth, overwrite=overwrite, extra_bytes=truth_bytes).check()
     else:
         full_bytes = p.nramps * n * ny * nx * (3 if return_dq else 2)
         if full_bytes > 16 * memory_budget:
