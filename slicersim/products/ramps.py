@@ -66,7 +66,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     overwrite : replace an existing ``out`` (default: refuse with :class:`~slicersim.errors.RampFileError`)
     effects : detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a preset
         (``"lazuli"``), a config dict or a :class:`~slicersim.physics.effects.DetectorEffects`; see
-        :mod:`slicersim.products.effects`.  Their truth is written to ``truth/<name>``.
+        :mod:`slicersim.products.effects`.  Their truth is written to ``truth/<name>``
+        of ``out`` (with ``out=None`` only SCI is returned: write a file to keep the truth).
     previous_charge : (ny, nx) charge [e-] of the previous exposure, for ``persistence``
     file_format : ``"hdf5"`` (group-level file, :mod:`slicersim.io.rampfile`) or ``"jwst-uncal"`` (JWST
         level-1b FITS, :mod:`slicersim.io.uncal`); None: ``jwst-uncal`` for a ``.fits`` name, else hdf5.
