@@ -166,3 +166,16 @@ def test_bad_input():
     gen = CorrelatedNoise(CorrelatedNoiseParameters(n_outputs=4), (64, 64), (2, 1, 0), 2.83, 0)
     with pytest.raises(EffectsError, match="rows"):
         gen.block(0, 10, 70)
+
+
+def test_fft_length_is_the_smallest_5_smooth():
+    from slicersim.backends.correlated_noise import fft_length
+
+    def smooth(k):
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        return k == 1
+    for n in list(range(1, 400)) + [23100, 23101, 65537]:
+        m = fft_length(n)
+        assert m >= n and smooth(m) and not any(smooth(k) for k in range(n, m)), n

@@ -94,6 +94,21 @@ def stream_amplitudes(psd, length, dt, edge_bins=64, sub=32):
     return amp.astype(np.float32)
 
 
+def fft_length(n):
+    """Smallest 2ᵃ3ᵇ5ᶜ ≥ n: pocketfft runs these ≈ 1.5× faster than lengths with factors 7 or 11."""
+    best, p5 = None, 1
+    while p5 < 2 * n:
+        p35 = p5
+        while p35 < 2 * n:
+            p = p35
+            while p < n:
+                p *= 2
+            best = p if best is None else min(best, p)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
 def _padded(nbins, vw):
     return -(-nbins // vw) * vw
 
@@ -315,7 +330,7 @@ class CorrelatedNoise:
         S, h = self.segment_rows, self.taper_rows
         nseg = -(-g.frame_rows // S)
         span = (S + 2 * h) * g.row_len
-        length = sfft.next_fast_len(span + h * g.row_len + g.row_len, real=True)
+        length = fft_length(span + h * g.row_len + g.row_len)
         return S, h, nseg, span, length
 
     def _high_amplitudes(self, length):
