@@ -13,15 +13,13 @@ from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.psf import aperture_cells, gaussian_psf_fractions, gaussian_psf_sigmas
 from slicersim.physics.readout import check_readout, readout_times
 from slicersim.physics.thermal import thermal_dark_rate
-from slicersim.products.cube import build_cube, host_photons_block
+from slicersim.products.components import (SCENE_COMPONENTS, VARIANCE_SOURCES, as_switched_off,  # noqa: F401
+                                             check_switch_off, uniform_terms_on)
+from slicersim.products.cube import build_cube, build_scene_cubes, host_photons_block, scene_photon_rates
 from slicersim.products.psf_profiles import get_psf_profile
 from slicersim.versioning import Versioned, state_token
 
-__all__ = ["Simulation", "VARIANCE_SOURCES", "ExtractionModel"]
-
-#: the eight variance sources of slicersim
-VARIANCE_SOURCES = ("dark", "roic_glow", "thermal_dark", "ron", "pointsource", "background",
-                    "host", "thermal")
+__all__ = ["Simulation", "VARIANCE_SOURCES", "SCENE_COMPONENTS", "ExtractionModel"]
 
 
 class ExtractionModel:
@@ -40,15 +38,16 @@ class ExtractionModel:
         self.qe, self.signal_rate, self.host_ph = qe, signal_rate, host_ph
 
     def cell_rate(self, off=None):
-        """Electron rate per aperture cell QE · C [e-/s/cell] with source ``off`` removed."""
+        """Electron rate per aperture cell QE · C [e-/s/cell] with the sources ``off`` removed
+        (a name or names; rule: :mod:`slicersim.products.components`)."""
+        off = as_switched_off(off)
+        on = uniform_terms_on(off)
         uniform = np.zeros_like(self.qe)
         for name, arr in self.uniform_ph.items():
-            if off == name or (off == "thermal" and name.startswith("thermal")) \
-                    or (off == "thermal_dark" and name == "thermal_optics"):
-                continue
-            uniform = uniform + arr
-        point = 0.0 if off == "pointsource" else self.pointsource_ph
-        if self.host_ph is not None and off != "host":
+            if name in on:
+                uniform = uniform + arr
+        point = 0.0 if "pointsource" in off else self.pointsource_ph
+        if self.host_ph is not None and "host" not in off:
             point = point + self.host_ph
         return self.qe[:, None] * (point + uniform[:, None])
 
@@ -221,6 +220,20 @@ class Simulation(Versioned):
         return self._cached("th_ph", lambda: self._thermal_photons("telescope")
                             + self._thermal_photons("optics"))
 
+    def uniform_photons(self, switch_off=None):
+        """(background, thermal) photons per cell [ph/s/cell] (nλ,) each, before the LSF, with the
+        terms ``switch_off`` removes set to 0 (rule: :mod:`slicersim.products.components`)."""
+        on = uniform_terms_on(as_switched_off(switch_off))
+        zero = np.zeros_like(self.lbda)
+        background = self.background_photons if "background" in on else zero
+        if "thermal_telescope" in on and "thermal_optics" in on:
+            return background, self.thermal_photons
+        thermal = zero
+        for which in ("telescope", "optics"):
+            if f"thermal_{which}" in on:
+                thermal = thermal + self._thermal_photons(which)
+        return background, thermal
+
     @property
     def thermal_dark(self):
         """Undispersed optics emission reaching each pixel [e-/s/px]."""
@@ -288,19 +301,23 @@ class Simulation(Versioned):
         return self.detector.data_volume(nmd, nramps)
 
     def effective_dark(self, off=None):
-        """Dark + ROIC glow / t_f + thermal dark [e-/s/px], with source ``off`` removed."""
-        det = self.detector
-        dark = 0.0 if off == "dark" else det.dark
-        glow = 0.0 if off == "roic_glow" else det.roic_glow
-        dth = 0.0 if off == "thermal_dark" else self.thermal_dark
+        """Dark + ROIC glow / t_f + thermal dark [e-/s/px], with the sources ``off`` removed."""
+        det, off = self.detector, as_switched_off(off)
+        dark = 0.0 if "dark" in off else det.dark
+        glow = 0.0 if "roic_glow" in off else det.roic_glow
+        dth = 0.0 if "thermal_dark" in off else self.thermal_dark
         return dark + glow / det.tframe + dth
 
+    def read_noise(self, off=None):
+        """Read noise per read [e-]: the detector's, 0 when ``"ron"`` is switched off."""
+        return 0.0 if "ron" in as_switched_off(off) else self.detector.ron
+
     def cell_variance(self, cell_rate, nmd, off=None):
-        """Per-cell variance [ADU²] over one ramp for a cell electron rate [e-/s/cell];
-        saturated cells get +inf."""
+        """Per-cell variance [ADU²] over one ramp for a cell electron rate [e-/s/cell], with the
+        detector terms ``off`` removed; saturated cells get +inf."""
         det, ppc = self.detector, self.spectrograph.pixels_per_cell
         dark = self.effective_dark(off)
-        ron = 0.0 if off == "ron" else det.ron
+        ron = self.read_noise(off)
         pixel_rate = cell_rate / ppc
         var = ppc * det.pixel_variance(pixel_rate, nmd=nmd, ron=ron, dark=dark, conventions=self.conventions)
         tint = readout_times(nmd, det.tframe)["integration_time_per_ramp"]
@@ -308,16 +325,37 @@ class Simulation(Versioned):
         return np.where(saturated, np.inf, var), saturated
 
     # ------------------------------------------------------------------ cubes
-    def get_projected_scene(self):
-        """Photon cube C[λ, y, x] = LSF[F f2p P + B f2p s² + N_th] [ph/s/cell]."""
-        point = (self.pointsource_flambda * self.flambda_to_photon)[:, None, None] * self.get_psf()
-        uniform = (self.background_photons + self.thermal_photons)[:, None, None]
-        return self.spectrograph.apply_lsf(point + uniform, axis=0)
+    def get_projected_scene(self, switch_off=None, psf_profile="gaussian", backend="auto"):
+        """Photon cube C[λ, y, x] = LSF[F f2p P] + LSF[host] + LSF[B f2p s² + N_th] [ph/s/cell]:
+        the sum of the scene components (:meth:`get_scene_cubes`) left on by ``switch_off``."""
+        rates = scene_photon_rates(self, check_switch_off(switch_off), psf_profile, backend)
+        cube = np.broadcast_to((rates["background"] + rates["thermal"])[:, None, None],
+                               (self.lbda.size, *self.spectrograph.shape)).copy()
+        for name in ("pointsource", "host"):
+            if rates[name] is not None:
+                cube += rates[name]
+        return cube
+
+    def get_scene_cubes(self, unit="adu", nmd=None, nramps=None, per_ramp=False, psf_profile="gaussian",
+                        switch_off=None, backend="auto"):
+        """Noise-free cube (nλ, ny, nx) of each scene component: dict ``pointsource``,
+        ``background``, ``host``, ``thermal`` (absent or switched-off components are zeros).
+
+        ``unit``: ``"adu"`` (signal: × QE t_int g, × nramps unless ``per_ramp``), ``"electron"``
+        [e-/s/cell], ``"photon"`` [ph/s/cell] or ``"flambda"`` (÷ f2p: erg/s/cm²/Å per cell).
+        In ADU their sum is the signal of :meth:`get_cube` (same readout, PSF and
+        ``switch_off``), to rounding, where no cell saturates (the cube is NaN there)."""
+        return build_scene_cubes(self, unit=unit, nmd=nmd, nramps=nramps, per_ramp=per_ramp,
+                                 psf_profile=psf_profile, switch_off=switch_off, backend=backend)
 
     def get_cube(self, nmd=None, nramps=None, seed=None, psf_profile="gaussian", backend="auto",
-                 **options):
+                 switch_off=None, **options):
         """Signal [ADU] and variance [ADU²] cubes summed over the ramps, plus a noisy
         realisation when ``seed`` (int or numpy Generator) is given.
+
+        ``switch_off`` (a name or names of :data:`VARIANCE_SOURCES`, or ``"effective_dark"``)
+        removes scene components from the signal and variance and detector terms from the
+        variance (:mod:`slicersim.products.components`).
 
         Noise: ``noisy = signal + √variance · z`` with z the Philox/Box–Muller normal keyed
         by (seed, flat voxel index, stream 0), :func:`slicersim.backends.noise.noisy_cube`.
@@ -335,15 +373,16 @@ class Simulation(Versioned):
         """
         seed = check_seed(seed)
         return tuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,
-                                **options))
+                                switch_off=switch_off, **options))
 
-    def get_cube_numpy(self, nmd=None, nramps=None):
+    def get_cube_numpy(self, nmd=None, nramps=None, switch_off=None):
         """NumPy oracle of the Gaussian cube: (signal [ADU], variance [ADU²])."""
+        off = check_switch_off(switch_off)
         nmd, nramps = self._readout(nmd, nramps)
         tint = readout_times(nmd, self.detector.tframe)["integration_time_per_ramp"]
-        photons = self.get_projected_scene()                         # ph/s/cell
+        photons = self.get_projected_scene(off, backend="numpy")     # ph/s/cell
         electrons = photons * self.qe[:, None, None]                 # e-/s/cell
-        variance, saturated = self.cell_variance(electrons, nmd)     # ADU² per ramp
+        variance, saturated = self.cell_variance(electrons, nmd, off)  # ADU² per ramp
         signal = np.where(saturated, np.nan, electrons * tint * self.detector.gain) * nramps
         return signal, variance * nramps
 
@@ -384,15 +423,18 @@ class Simulation(Versioned):
         with np.errstate(divide="ignore", invalid="ignore"):
             weight = np.sum(model.psf2 / var_cell, axis=1)
             variance = nramps / weight                                      # ADU²
-        signal = np.zeros_like(variance) if off == "pointsource" else model.signal_rate * tint * nramps
+        signal = np.zeros_like(variance) if "pointsource" in as_switched_off(off) \
+            else model.signal_rate * tint * nramps
         return signal, variance
 
-    def get_spectrum(self, nmd=None, nramps=None, psf_profile="gaussian"):
+    def get_spectrum(self, nmd=None, nramps=None, psf_profile="gaussian", switch_off=None):
         """Optimally extracted spectrum: (λ [Å], signal [ADU], variance [ADU²]), all ramps.
 
-        The extraction weights are the cube's PSF (``"gaussian"`` or ``"airy"``)."""
+        The extraction weights are the cube's PSF (``"gaussian"`` or ``"airy"``);
+        ``switch_off`` as :meth:`get_cube` (a switched-off point source has zero signal)."""
+        off = check_switch_off(switch_off)
         nmd, nramps = self._readout(nmd, nramps)
-        signal, variance = self._spectrum(nmd, nramps, psf_profile=psf_profile)
+        signal, variance = self._spectrum(nmd, nramps, off, psf_profile=psf_profile)
         return self.lbda.copy(), signal, variance
 
     def band_mask(self, lbda_range, allow_partial=False):
@@ -425,17 +467,18 @@ class Simulation(Versioned):
         return lo, hi
 
     def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False, frame="obs",
-                     allow_partial=False):
+                     allow_partial=False, switch_off=None):
         """Band SNR = mean(signal) / √mean(variance) over the bins in ``lbda_range``
         (per bin; ×√dispersion_resolution when ``per_resolution``); ``frame="rest"``
         reads ``lbda_range`` in the source rest frame (needs :attr:`redshift`).
 
         A band not entirely inside the grid and the source spectrum raises SpectrumError
         unless ``allow_partial=True`` (then a BandCoverageWarning, and the means run over
-        the covered bins only); see :meth:`band_mask`."""
+        the covered bins only); see :meth:`band_mask`.  ``switch_off`` as :meth:`get_cube`."""
+        off = check_switch_off(switch_off)
         nmd, nramps = self._readout(nmd, nramps)
         mask = self.band_mask(self.band_range(lbda_range, frame), allow_partial=allow_partial)
-        signal, variance = self._spectrum(nmd, nramps)
+        signal, variance = self._spectrum(nmd, nramps, off)
         snr = _band_snr(signal[mask], variance[mask])
         return snr * np.sqrt(self.spectrograph.dispersion_resolution) if per_resolution else snr
 

@@ -25,6 +25,10 @@ the product cube G·P is never stored.  Its NumPy twin and, for Kubik16 or
 ``backend="numpy"``, the NumPy path below (scipy LSF + ``cell_variance``) are
 the oracles; they agree to ~1e-15 of the peak.
 
+``switch_off`` (:mod:`slicersim.products.components`) drops scene components from the photon
+cube and detector terms from the variance.  :func:`build_scene_cubes` returns the noise-free
+components separately (their sum in ADU is the signal cube, to rounding).
+
 The cube is built in wavelength chunks within a memory budget.  The LSF mixes
 ±h = int(4σ + ½) bins, so each chunk is computed on [i0 − h, i1 + h) (clipped
 to the grid: the LSF reflects only at the true grid ends) and the halo is
@@ -45,15 +49,21 @@ from slicersim.backends.cube import ReadoutConstants, detector_block
 from slicersim.backends.dispatch import resolve_backend
 from slicersim.backends.noise import noisy_cube, seed_from
 from slicersim.physics.lsf import lsf_weights
+from slicersim.errors import ParameterError
 from slicersim.physics.readout import cell_variance_coefficients
+from slicersim.products.components import SCENE_COMPONENTS, check_switch_off
 from slicersim.products.psf_profiles import PSF_PROFILES, get_psf_profile
 
-__all__ = ["CubeResult", "build_cube", "readout_constants", "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM",
-           "PATH_ABSENT", "FUSED_KERNEL"]
+__all__ = ["CubeResult", "build_cube", "build_scene_cubes", "scene_photon_rates", "readout_constants",
+           "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM", "PATH_ABSENT", "PATH_OFF", "FUSED_KERNEL",
+           "SCENE_CUBE_UNITS"]
 
 PATH_POINT = "psf x spectrum (no 2-D convolution)"
 PATH_UNIFORM = "uniform: no spatial work"
 PATH_ABSENT = "absent: not in the scene"
+PATH_OFF = "switched off"
+#: units of :func:`build_scene_cubes`
+SCENE_CUBE_UNITS = ("adu", "electron", "photon", "flambda")
 FUSED_KERNEL = "fused OpenCL kernel (LSF, QE, signal, variance)"
 HOST_CONV_METHOD = "auto"
 #: float64 temporaries per voxel of a chunk (PSF, point, LSF output, electrons, variance, signal, noise, host)
@@ -129,18 +139,19 @@ def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_
     return sim.flambda_to_photon[lo:hi, None, None] * blurred
 
 
-def readout_constants(sim, nmd, nramps):
+def readout_constants(sim, nmd, nramps, off=frozenset()):
     """:class:`slicersim.backends.cube.ReadoutConstants` of a readout: Rauscher07 cell variance
     V = A + B e [ADU²] (:func:`slicersim.etc.readout_variance_coefficients`) and the saturation
-    test of ``Simulation.cell_variance``."""
+    test of ``Simulation.cell_variance``; detector terms in ``off`` (frozenset) removed."""
     det = sim.detector
-    var_a, var_b, _ = cell_variance_coefficients(nmd, det.tframe, det.ron, sim.effective_dark(), det.gain,
+    dark = sim.effective_dark(off)
+    var_a, var_b, _ = cell_variance_coefficients(nmd, det.tframe, sim.read_noise(off), dark, det.gain,
                                                  det.saturation, sim.spectrograph.pixels_per_cell,
                                                  sim.conventions)
     tint = sim.get_times(nmd, nramps)["integration_time_per_ramp"]
     return ReadoutConstants(tint=float(tint), gain=det.gain, nramps=int(nramps), var_a=float(var_a),
                             var_b=float(var_b), pixels_per_cell=float(sim.spectrograph.pixels_per_cell),
-                            dark=float(sim.effective_dark()), saturation=float(det.saturation))
+                            dark=float(dark), saturation=float(det.saturation))
 
 
 def _use_fused_kernel(sim, backend):
@@ -163,7 +174,7 @@ def _progress_bar(progress, nchunks):
 
 
 def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, max_bytes=300 * 2**20,
-               progress=None, backend="auto", psf_options=None, dtype=np.float64):
+               progress=None, backend="auto", psf_options=None, dtype=np.float64, switch_off=None):
     """Signal [ADU], variance [ADU²] and optional noisy cube of ``sim`` (all ramps summed).
 
     Parameters
@@ -181,7 +192,10 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         (e.g. {"grid": "reference", "oversampling": 3} for slicersim 1.0's Airy sampling)
     dtype : float64 (default) or float32 storage of the signal, variance and noisy cubes
         (computed in float64 either way; the noise is drawn from the stored values)
+    switch_off : None, a name or names (:mod:`slicersim.products.components`): scene components
+        leave signal and variance, detector terms (dark, roic_glow, thermal_dark, ron) the variance
     """
+    off = check_switch_off(switch_off)
     profile = get_psf_profile(psf_profile)
     dtype = np.dtype(dtype)
     if dtype not in (np.float64, np.float32):
@@ -192,7 +206,8 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     spec, scene = sim.spectrograph, sim.scene
     lbda = sim.lbda
     nl, (ny, nx) = lbda.size, spec.shape
-    has_point, has_host = scene.pointsource is not None, scene.host is not None
+    has_point = scene.pointsource is not None and "pointsource" not in off
+    has_host = scene.host is not None and "host" not in off
     if has_point:
         uncovered = np.isnan(sim.pointsource_flambda)
         if uncovered.any():
@@ -205,6 +220,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
              "background": PATH_UNIFORM if scene.background is not None else PATH_ABSENT,
              "thermal": PATH_UNIFORM,
              "host": PATH_ABSENT}
+    paths.update({name: PATH_OFF for name in SCENE_COMPONENTS if name in off})
     host_method = None
     if has_host:
         host_method = HOST_CONV_METHOD
@@ -216,14 +232,15 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         paths["pointsource"] = f"{PATH_POINT}, {profile.name} PSF"
 
     gain, qe = sim.detector.gain, sim.qe
-    uniform_ph = spec.apply_lsf(sim.background_photons + sim.thermal_photons)      # ph/s/cell, (nλ,)
+    background_ph, thermal_ph = sim.uniform_photons(off)
+    uniform_ph = spec.apply_lsf(background_ph + thermal_ph)                         # ph/s/cell, (nλ,)
     shape = (nl, ny, nx)
     signal, variance = np.empty(shape, dtype), np.empty(shape, dtype)
     noisy = None if seed is None else np.empty(shape, dtype)
 
     if not (has_point or has_host):        # uniform scene: everything is a 1-D spectrum
         electrons = uniform_ph * qe
-        var1, sat1 = sim.cell_variance(electrons, nmd)
+        var1, sat1 = sim.cell_variance(electrons, nmd, off)
         signal[...] = (np.where(sat1, np.nan, electrons * tint * gain) * nramps)[:, None, None]
         variance[...] = (var1 * nramps)[:, None, None]
         paths["detector"] = "1-D spectrum, broadcast"
@@ -239,7 +256,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     noise_bytes_per_bin = _NOISE_BYTES_PER_VOXEL * ny * nx          # at least one λ plane per noise call
     fused = _use_fused_kernel(sim, backend)
     if fused:
-        readout = readout_constants(sim, nmd, nramps)
+        readout = readout_constants(sim, nmd, nramps, off)
         taps = lsf_weights(spec.lsf_sigma)[1]
     paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
     bar = _progress_bar(progress, len(starts))
@@ -258,7 +275,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
                 del psf, host
             else:
                 _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
-                             psf_options, nmd, tint, nramps, out)
+                             psf_options, nmd, tint, nramps, out, has_host, off)
             if seed is not None:        # float64: drawn straight into the output (no temporary)
                 drawn = noisy_cube(signal[i0:i1], variance[i0:i1], seed, backend=backend,
                                    max_bytes=max(max_bytes, noise_bytes_per_bin), first_index=i0 * ny * nx,
@@ -275,18 +292,70 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
 
 
 def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, backend, psf_options, nmd, tint,
-                 nramps, out):
+                 nramps, out, has_host, off):
     """NumPy oracle of one chunk: photon block, LSF (scipy), QE, ``Simulation.cell_variance``."""
     (i0, i1), (lo, hi) = bins, block
     photons = 0.0                                                                    # ph/s/cell
     if flux_ph is not None:
         photons = flux_ph[lo:hi, None, None] * psf_block(sim, profile, lo, hi, backend=backend,
                                                          options=psf_options)
-    if sim.scene.host is not None:
+    if has_host:
         photons = photons + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
     photons = sim.spectrograph.apply_lsf(photons, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
     electrons = photons * sim.qe[i0:i1, None, None]                                 # e-/s/cell
-    var1, sat = sim.cell_variance(electrons, nmd)                                    # ADU² per ramp
+    var1, sat = sim.cell_variance(electrons, nmd, off)                               # ADU² per ramp
     signal, variance = out
     signal[...] = np.where(sat, np.nan, electrons * tint * sim.detector.gain) * nramps
     variance[...] = var1 * nramps
+
+
+def scene_photon_rates(sim, off=frozenset(), psf_profile="gaussian", backend="auto", psf_options=None):
+    """LSF'd photon rate of each scene component [ph/s/cell]: ``pointsource`` and ``host``
+    (nλ, ny, nx) cubes or None (absent or in ``off``), ``background`` and ``thermal`` (nλ,)
+    spectra, uniform over the field (zeros when switched off)."""
+    scene, lsf, nl = sim.scene, sim.spectrograph.apply_lsf, sim.lbda.size
+    rates = dict.fromkeys(SCENE_COMPONENTS)
+    if scene.pointsource is not None and "pointsource" not in off:
+        flux_ph = sim.pointsource_flambda * sim.flambda_to_photon                       # ph/s
+        psf = psf_block(sim, psf_profile, 0, nl, backend=backend, options=psf_options)   # may be cached
+        rates["pointsource"] = lsf(flux_ph[:, None, None] * psf, axis=0)
+        del psf
+    if scene.host is not None and "host" not in off:
+        rates["host"] = lsf(host_photons_block(sim, psf_profile, 0, nl, backend=backend,
+                                               psf_options=psf_options), axis=0)
+    background, thermal = sim.uniform_photons(off)
+    rates["background"], rates["thermal"] = lsf(background), lsf(thermal)
+    return rates
+
+
+def build_scene_cubes(sim, unit="adu", nmd=None, nramps=None, per_ramp=False, psf_profile="gaussian",
+                      switch_off=None, backend="auto", psf_options=None):
+    """Noise-free (nλ, ny, nx) cube of each scene component (dict keyed by
+    :data:`~slicersim.products.components.SCENE_COMPONENTS`; zeros when absent or switched off).
+
+    ``unit``: ``"adu"`` = photons × QE × t_int × g [ADU] per ramp (``per_ramp``) or summed over
+    the ramps; ``"electron"`` = photons × QE [e-/s/cell]; ``"photon"`` [ph/s/cell]; ``"flambda"`` =
+    photons / f2p [erg/s/cm²/Å per cell].  No saturation: these are expectations."""
+    off = check_switch_off(switch_off)
+    if not isinstance(unit, str) or unit.lower() not in SCENE_CUBE_UNITS:
+        raise ParameterError(f"unit must be one of {', '.join(SCENE_CUBE_UNITS)}, got {unit!r}")
+    unit = unit.lower()
+    times = sim.get_times(nmd, nramps)                      # validates the readout
+    get_psf_profile(psf_profile)
+    factor = np.ones_like(sim.lbda)                         # per λ: photons → unit
+    if unit in ("adu", "electron"):
+        factor = sim.qe.copy()
+    if unit == "adu":
+        factor *= times["integration_time_per_ramp"] * sim.detector.gain * (1 if per_ramp else times["nramps"])
+    elif unit == "flambda":
+        factor = 1.0 / sim.flambda_to_photon
+    shape = (sim.lbda.size, *sim.spectrograph.shape)
+    cubes = {}
+    for name, rate in scene_photon_rates(sim, off, psf_profile, backend, psf_options).items():
+        if rate is None:
+            cubes[name] = np.zeros(shape)
+        elif rate.ndim == 1:
+            cubes[name] = np.broadcast_to((rate * factor)[:, None, None], shape).copy()
+        else:
+            cubes[name] = rate * factor[:, None, None]
+    return cubes
