@@ -1,0 +1,445 @@
+"""Calibration exposures: continuum (QTH) flats and Fabry–Perot exposures as cubes, detector
+images and raw ramps.
+
+A flat's scene has no point source and no host: the lamp (:mod:`slicersim.sources.lamps`)
+is a spatially uniform surface brightness S(λ) [erg/s/cm²/Å/arcsec²] filling the field, so it
+enters the simulation as a uniform background (each bin gets the lamp's bin average), and with
+the default (ideal) instrument the cube is spatially uniform.  Flat-field structure is an
+option (:class:`FlatFieldStructure`, off by default):
+
+* slice-to-slice throughput: each slice s transmits t_s = exp(σ_s z_s − σ_s²/2) of the lamp
+  light (the instrument's own thermal light is not scaled), z_s ~ N(0, 1);
+* pixel response non-uniformity (PRNU): each detector pixel p multiplies its photo-electrons
+  by r_p = exp(σ_p z_p − σ_p²/2) (mean 1; dark current is not affected).  In the cube a cell
+  (``pixels_per_cell`` pixels, 2 for the slicer) gets the mean of its pixels' responses,
+  drawn per voxel; in the detector image every pixel gets its own.  The two are independent
+  draws of the same statistics (the cube is not the inverse projection of the image).
+
+Draws are counter-based Philox keyed by (``seed``, slice id or voxel / pixel index, stream
+:data:`FLAT_SLICE_STREAM` / :data:`FLAT_PIXEL_STREAM` + k): reproducible on any backend and
+chunking, and independent of the noise seed.
+
+API as slicersim 1.4.2 (``Lazuli3DFlat.from_qth``, ``from_febryperot``, ``Flat3DCalibration``):
+``from_fabryperot`` takes an Airy etalon (``fsr`` [cm⁻¹] or ``optical_thickness`` [µm],
+``finesse``, ``peak_transmission``) or 1.4.2's tabulated transmission (``fp_throughput``: a
+file or a callable); ``from_febryperot`` is its 1.4.2 spelling.  Differences from 1.4.2: the
+default band is ``"bessellr"`` (1.4.2's ``"sdssr"`` needs a download), ``temperature`` is
+honoured by ``from_febryperot`` (1.4.2 always uses 3000 K), lamp lines are integrated over
+each bin (1.4.2 samples them at the bin centres), and ramps exist.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from slicersim.assembly import check_field, default_mapper
+from slicersim.errors import ParameterError
+from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
+from slicersim.sources.lamps import (DEFAULT_LAMP_BAND, QTH_TEMPERATURE, BlackBodyContinuum, CalibrationLamp,
+                                     FabryPerotEtalon, LampIllumination, TabulatedContinuum, as_etalon, _number)
+from slicersim.targets.base import Target, build_simulation, config_default_field
+
+__all__ = ["FLAT_SLICE_STREAM", "FLAT_PIXEL_STREAM", "DEFAULT_ETALON_FSR", "DEFAULT_ETALON_FINESSE",
+           "FlatFieldStructure", "Flat3DCalibration", "Lazuli3DFlat", "locate_peaks"]
+
+#: Philox stream of the slice throughputs (index: slice id)
+FLAT_SLICE_STREAM = 0x464C5331
+#: Philox streams of the pixel responses: + 0 detector pixels (index y·2¹⁶ + x), + 1 narrow cube,
+#: + 2 wide cube, + 3 single-field cube (index: flat voxel index)
+FLAT_PIXEL_STREAM = 0x464C5058
+_FIELD_STREAM = {"narrow": 1, "wide": 2, None: 3}
+#: default etalon: free spectral range [cm⁻¹] and finesse, close to 1.4.2's tabulated Lazuli
+#: etalon (898.8 cm⁻¹, i.e. n·d = 5.563 µm; finesse ≈ 25 near 6500 Å)
+DEFAULT_ETALON_FSR, DEFAULT_ETALON_FINESSE = 898.8, 25.0
+#: rows of the detector drawn per block for the pixel response
+_PIXEL_BLOCK_ROWS = 256
+#: largest slice or pixel scatter accepted (lognormal σ)
+MAX_SCATTER = 0.5
+
+
+class FlatFieldStructure:
+    """Multiplicative flat-field structure of the instrument (ideal by default).
+
+    slice_scatter : σ of the slice throughputs (lognormal, mean 1), in [0, 0.5]
+    pixel_scatter : σ of the per-pixel responses (PRNU, lognormal, mean 1), in [0, 0.5]
+    seed : int in [0, 2⁶⁴) keying the draws
+    """
+
+    def __init__(self, slice_scatter=0.0, pixel_scatter=0.0, seed=0):
+        from slicersim.simulation import check_seed
+        self.slice_scatter = _number("slice_scatter", slice_scatter, allow_zero=True, upper=MAX_SCATTER)
+        self.pixel_scatter = _number("pixel_scatter", pixel_scatter, allow_zero=True, upper=MAX_SCATTER)
+        if seed is None or isinstance(seed, np.random.Generator):
+            raise ParameterError("the flat-field structure needs an integer seed in [0, 2**64)")
+        self.seed = check_seed(seed)
+
+    @property
+    def is_ideal(self):
+        return self.slice_scatter == 0.0 and self.pixel_scatter == 0.0
+
+    def __repr__(self):
+        return (f"FlatFieldStructure(slice_scatter={self.slice_scatter}, pixel_scatter={self.pixel_scatter}, "
+                f"seed={self.seed})")
+
+    @staticmethod
+    def _lognormal(z, sigma):
+        return np.exp(sigma * z - 0.5 * sigma * sigma)
+
+    def slice_throughput(self, slice_ids):
+        """Throughput t_s (mean 1) of each slice id."""
+        from slicersim.backends import rng
+        ids = np.asarray(slice_ids, dtype=np.uint64)
+        if self.slice_scatter == 0.0:
+            return np.ones(ids.shape)
+        return self._lognormal(rng.normal(self.seed, ids, FLAT_SLICE_STREAM)[..., 0], self.slice_scatter)
+
+    def row_throughput(self, field, nrows):
+        """Slice throughput of each cube row (row r ↔ slice ``slices[nrows − 1 − r]``; Lazuli
+        narrow: slices 1–58, wide 59–116; single-field instruments: 1 … nrows)."""
+        slices = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}.get(field, tuple(range(1, nrows + 1)))
+        if len(slices) != nrows:
+            slices = tuple(range(1, nrows + 1))
+        return self.slice_throughput(slices[::-1])
+
+    def cell_response(self, shape, field, pixels_per_cell=2, backend="auto"):
+        """(nλ, ny, nx) response of each cube cell: the mean of its ``pixels_per_cell`` pixel
+        responses (voxel v, pixel k: the Box–Muller branch k mod 2 of Philox draw k div 2)."""
+        from slicersim.backends.noise import uniform_normal_grid
+        shape = tuple(int(v) for v in shape)
+        if self.pixel_scatter == 0.0:
+            return np.ones(shape)
+        nl, npix, ppc = shape[0], int(np.prod(shape[1:])), max(1, int(pixels_per_cell))
+        total = np.zeros((nl, npix))
+        for draw in range((ppc + 1) // 2):
+            z = uniform_normal_grid(nl, npix, self.seed, FLAT_PIXEL_STREAM + _FIELD_STREAM.get(field, 3),
+                                    draw, backend)[1]
+            for branch in range(min(2, ppc - 2 * draw)):
+                total += self._lognormal(z[..., branch], self.pixel_scatter)
+            del z
+        return (total / ppc).reshape(shape)
+
+    def pixel_response(self, shape, backend="auto"):
+        """(ny, nx) response r_p of each detector pixel (index y·2¹⁶ + x)."""
+        from slicersim.backends.noise import uniform_normal_grid
+        ny, nx = (int(v) for v in shape)
+        out = np.ones((ny, nx))
+        if self.pixel_scatter == 0.0:
+            return out
+        for y0 in range(0, ny, _PIXEL_BLOCK_ROWS):
+            rows = min(_PIXEL_BLOCK_ROWS, ny - y0)
+            z = uniform_normal_grid(rows, nx, self.seed, FLAT_PIXEL_STREAM, 0, backend, first_index=y0 << 16,
+                                    row_stride=1 << 16)[1]
+            out[y0:y0 + rows] = self._lognormal(z[..., 0], self.pixel_scatter)
+        return out
+
+
+def _check_structure(structure):
+    if structure is None:
+        return FlatFieldStructure()
+    if isinstance(structure, FlatFieldStructure):
+        return structure
+    if isinstance(structure, dict):
+        unknown = sorted(set(structure) - {"slice_scatter", "pixel_scatter", "seed"})
+        if unknown:
+            raise ParameterError(f"unknown flat-field structure key(s) {unknown}: slice_scatter, pixel_scatter, seed")
+        return FlatFieldStructure(**structure)
+    raise ParameterError(f"structure must be None, a dict or a FlatFieldStructure, got {structure!r}")
+
+
+def _check_config(config):
+    items = config if isinstance(config, (list, tuple)) else [config]
+    if not items or not all(isinstance(c, (str, os.PathLike)) for c in items):
+        raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
+    return config
+
+
+class Flat3DCalibration(Target):
+    """A calibration exposure: a lamp filling the field uniformly, observed with an instrument.
+
+    Parameters
+    ----------
+    lamp : :class:`~slicersim.sources.lamps.CalibrationLamp` (see the ``from_*`` constructors)
+    config : "cbe", "eol", a TOML path or a list of them
+    field : "narrow", "wide" or None (default: as :class:`~slicersim.targets.base.Target`)
+    conventions : "physical" (default) or "slicersim-1.0"
+    structure : None (ideal instrument), a :class:`FlatFieldStructure` or a dict of its arguments
+
+    Products: :meth:`get_cube` (signal [ADU], variance [ADU²], noisy with a seed),
+    :meth:`get_detector_image` (e-/s/px, both fields lit), :meth:`get_ramps` (raw MACC ramps),
+    :meth:`get_scene_cube` (the lamp before the instrument), :meth:`get_lamp_spectrum`.
+    The readout is set with :meth:`change_detector` (default: the configuration's).
+    """
+
+    default_config, default_field = "cbe", "auto"
+    own_parameters = ("field", "config")
+
+    def __init__(self, lamp, config=None, field="default", conventions=DEFAULT_CONVENTIONS, structure=None):
+        if field != "default":
+            check_field(field)
+        self._conventions = check_conventions(conventions)
+        if not isinstance(lamp, CalibrationLamp):
+            raise ParameterError(f"lamp must be a slicersim.sources.lamps.CalibrationLamp, got {lamp!r}")
+        self.structure = _check_structure(structure)
+        self.config = self.default_config if config is None else _check_config(config)
+        self._redshift, self.pointsource, self._host, self._host_offset = None, None, None, None
+        self._lamp = lamp
+        if field == "default":
+            field = config_default_field(self.config) if self.default_field == "auto" else self.default_field
+        self._field = check_field(field)
+        self.simulation = self._new_simulation(self.config, self._field, keep_readout=False)
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_lamp(cls, lamp, **kwargs):
+        return cls(lamp, **kwargs)
+
+    @classmethod
+    def from_spectrum(cls, lbda, flux, mag=None, band="bessellb", magsys="ab", **kwargs):
+        """Uniform lamp of tabulated surface brightness (λ [Å], S [erg/s/cm²/Å/arcsec²]),
+        optionally renormalised to ``mag`` per arcsec² in ``band``."""
+        return cls(CalibrationLamp(TabulatedContinuum(lbda, flux, mag, band, magsys)), **kwargs)
+
+    @classmethod
+    def from_blackbody(cls, temperature, mag=15.0, band=DEFAULT_LAMP_BAND, magsys="ab", **kwargs):
+        """Black-body lamp of ``temperature`` [K], ``mag`` per arcsec² (AB) in ``band``."""
+        return cls(CalibrationLamp(BlackBodyContinuum(temperature, mag, band, magsys)), **kwargs)
+
+    @classmethod
+    def from_qth(cls, temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, magsys="ab", **kwargs):
+        """The QTH lamp: a black body of ``temperature`` (default 3000 K), ``mag`` per arcsec²."""
+        temperature = QTH_TEMPERATURE if temperature is None else temperature
+        return cls.from_blackbody(temperature, mag, band, magsys, **kwargs)
+
+    @classmethod
+    def from_fabryperot(cls, fsr=None, finesse=None, optical_thickness=None, peak_transmission=None,
+                        fp_throughput=None, temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, magsys="ab",
+                        **kwargs):
+        """The QTH lamp through a Fabry–Perot etalon (``mag``: the lamp's, before the etalon).
+
+        Airy etalon: ``fsr`` [cm⁻¹] or ``optical_thickness`` n·d [µm] (default fsr
+        :data:`DEFAULT_ETALON_FSR`), ``finesse`` (default :data:`DEFAULT_ETALON_FINESSE`),
+        ``peak_transmission`` (default 1).  Or 1.4.2's tabulated form: ``fp_throughput`` = a
+        CSV/ECSV with a ``transmission`` column, a callable T(λ [Å]) or an etalon object."""
+        airy = dict(fsr=fsr, finesse=finesse, optical_thickness=optical_thickness,
+                    peak_transmission=peak_transmission)
+        if fp_throughput is not None:
+            given = sorted(k for k, v in airy.items() if v is not None)
+            if given:
+                raise ParameterError(f"give either fp_throughput or the Airy etalon's {given}, not both")
+            etalon = as_etalon(fp_throughput)
+        else:
+            if fsr is None and optical_thickness is None:
+                fsr = DEFAULT_ETALON_FSR
+            etalon = FabryPerotEtalon(fsr, DEFAULT_ETALON_FINESSE if finesse is None else finesse,
+                                      optical_thickness, 1.0 if peak_transmission is None else peak_transmission)
+        continuum = BlackBodyContinuum(QTH_TEMPERATURE if temperature is None else temperature, mag, band, magsys)
+        return cls(CalibrationLamp(continuum, etalon), **kwargs)
+
+    @classmethod
+    def from_febryperot(cls, fp_throughput=None, temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, **kwargs):
+        """slicersim 1.4.2's spelling of :meth:`from_fabryperot` (same first argument, ``fp_throughput``;
+        None: the default Airy etalon)."""
+        return cls.from_fabryperot(fp_throughput=fp_throughput, temperature=temperature, mag=mag, band=band,
+                                   **kwargs)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def lamp(self):
+        """The :class:`~slicersim.sources.lamps.CalibrationLamp`; assigning one takes effect at once."""
+        return self._lamp
+
+    @lamp.setter
+    def lamp(self, lamp):
+        if not isinstance(lamp, CalibrationLamp):
+            raise ParameterError(f"lamp must be a CalibrationLamp, got {lamp!r}")
+        edges = self.simulation.spectrograph.lbda_edges
+        lamp.check_coverage(edges[0], edges[-1])
+        self._lamp = lamp
+        self.simulation.scene.background.lamp = lamp
+
+    @property
+    def position(self):
+        """A flat has no point source: None."""
+        return None
+
+    def _new_simulation(self, config, field, keep_readout=True, params=None):
+        sim = build_simulation(config, field, pointsource=None, background=None, conventions=self._conventions)
+        edges = sim.spectrograph.lbda_edges
+        self._lamp.check_coverage(edges[0], edges[-1])
+        sim.scene.background = LampIllumination(self._lamp, sim.spectrograph)
+        upd = dict(params or {})
+        if keep_readout:
+            upd = {"nmd": self.simulation.detector.nmd, "nramps": self.simulation.nramps, **upd}
+        if upd:
+            sim.update(**upd)
+        return sim
+
+    def update(self, **params):
+        """Change ``field``, ``config`` or any simulation parameter (``Simulation.mutable_parameters``)
+        atomically; the readout is kept."""
+        accepted = self.mutable_parameters
+        unknown = sorted(set(params) - set(accepted))
+        if unknown:
+            raise ParameterError(f"unknown calibration parameter(s) {unknown}; accepted: {', '.join(accepted)}")
+        sim_params = {k: v for k, v in params.items() if k not in self.own_parameters}
+        config = _check_config(params["config"]) if "config" in params else self.config
+        field = check_field(params["field"]) if "field" in params else self._field
+        if "config" in params or "field" in params:
+            new_sim = self._new_simulation(config, field, params=sim_params)
+            self.config, self._field, self.simulation = config, field, new_sim
+            return
+        spec = self.simulation.spectrograph
+        spec_params = {k: v for k, v in sim_params.items()
+                       if k in spec.mutable_parameters and k not in self.simulation.detector.mutable_parameters}
+        if spec_params:
+            edges = spec.updated(**spec_params).lbda_edges
+            self._lamp.check_coverage(edges[0], edges[-1])
+        if sim_params:
+            self.simulation.update(**sim_params)
+
+    def _simulation_for(self, field):
+        """The simulation of ``field`` (this one, or a copy in the other Lazuli field, same readout)."""
+        if field == self._field:
+            return self.simulation
+        return self._new_simulation(self.config, check_field(field))
+
+    # ------------------------------------------------------------------ products
+    def get_lamp_spectrum(self):
+        """(λ [Å], S̄ [erg/s/cm²/Å/arcsec²]): the lamp averaged over each instrument bin."""
+        sim = self.simulation
+        return sim.lbda.copy(), sim.scene.background.flambda(sim.lbda)
+
+    def get_scene_cube(self):
+        """(nλ, ny, nx) lamp flux per cell before the instrument [erg/s/cm²/Å per cell]: S̄(λ) s²."""
+        sim = self.simulation
+        ny, nx = sim.spectrograph.shape
+        per_cell = sim.scene.background.flambda(sim.lbda) * sim.spectrograph.spatial_scale ** 2
+        return np.repeat(np.repeat(per_cell[:, None, None], ny, axis=1), nx, axis=2)
+
+    def _which(self, which):
+        if which in (None, "current"):
+            return [self._field]
+        if which == "both":
+            if self._field is None:
+                raise ParameterError("which='both' needs a Lazuli configuration (narrow and wide fields)")
+            return ["narrow", "wide"]
+        if which in ("narrow", "wide"):
+            if self._field is None:
+                raise ParameterError(f"which={which!r} needs a Lazuli configuration")
+            return [which]
+        raise ParameterError(f"which must be 'current', 'narrow', 'wide' or 'both', got {which!r}")
+
+    def get_cube(self, seed=None, which="current", nmd=None, nramps=None, backend="auto", **options):
+        """Signal [ADU] and variance [ADU²] cubes (+ a noisy one with ``seed``), all ramps summed.
+
+        ``which``: "current" (this field), "narrow", "wide" or "both" (a tuple (narrow, wide), as 1.4.2).
+        Ideal instrument: :meth:`Simulation.get_cube <slicersim.simulation.Simulation.get_cube>`
+        (uniform: a 1-D spectrum broadcast); with structure, per voxel (same readout physics:
+        ``Simulation.cell_variance``; noise as there, stream 0)."""
+        from slicersim.simulation import check_seed
+        seed = check_seed(seed)
+        fields = self._which(which)
+        out = tuple(self._field_cube(self._simulation_for(f), f, nmd, nramps, seed, backend, options)
+                    for f in fields)
+        return out if which == "both" else out[0]
+
+    def _field_cube(self, sim, field, nmd, nramps, seed, backend, options):
+        if self.structure.is_ideal:
+            return sim.get_cube(nmd, nramps, seed=seed, backend=backend, **options)
+        from slicersim.backends.noise import noisy_cube, seed_from
+        from slicersim.products.cube import CubeResult
+        unknown = sorted(set(options) - {"dtype", "psf_profile", "max_bytes", "progress", "psf_options"})
+        if unknown:
+            raise ParameterError(f"unknown cube option(s) {unknown}")
+        dtype = np.dtype(options.get("dtype", np.float64))
+        if dtype not in (np.float64, np.float32):
+            raise ParameterError(f"dtype must be float64 or float32, got {dtype}")
+        times = sim.get_times(nmd, nramps)
+        nmd, nramps, tint = times["nmd"], times["nramps"], times["integration_time_per_ramp"]
+        spec = sim.spectrograph
+        (ny, nx), nl = spec.shape, sim.lbda.size
+        electrons = self._rate_cube(sim, field) * self.structure.cell_response(
+            (nl, ny, nx), field, getattr(spec, "pixels_per_cell", 1), backend)           # e-/s/cell
+        variance, saturated = sim.cell_variance(electrons, nmd)                           # ADU² per ramp
+        signal = (np.where(saturated, np.nan, electrons * tint * sim.detector.gain) * nramps).astype(dtype)
+        variance = (variance * nramps).astype(dtype)
+        del electrons
+        noisy = None
+        if seed is not None:
+            seed = seed_from(seed)
+            noisy = noisy_cube(signal, variance, seed, backend=backend).astype(dtype, copy=False)
+        paths = {"pointsource": "absent: not in the scene", "host": "absent: not in the scene",
+                 "background": "lamp: uniform, × flat-field structure", "thermal": "uniform",
+                 "detector": "NumPy per voxel (flat-field structure)"}
+        return CubeResult(signal, variance, noisy, paths, 1, sim.lbda.copy(), "uniform", seed)
+
+    def _rate_cube(self, sim, field):
+        """Photo-electron rate [e-/s/cell] of a field, slice throughputs t_row applied to the lamp
+        light (not to the instrument's thermal light; no pixel response):
+        QE · (t_row LSF[lamp] + LSF[thermal])."""
+        spec = sim.spectrograph
+        (ny, nx), qe = spec.shape, sim.qe
+        lamp = spec.apply_lsf(sim.background_photons) * qe                 # e-/s/cell
+        thermal = spec.apply_lsf(sim.thermal_photons) * qe
+        rows = self.structure.row_throughput(field, ny)
+        rate = lamp[:, None, None] * rows[None, :, None] + thermal[:, None, None]
+        return np.ascontiguousarray(np.broadcast_to(rate, (sim.lbda.size, ny, nx)))
+
+    def get_field_rate_cubes(self):
+        """Photo-electron rate cubes [e-/s per cell per bin] of both Lazuli fields, both lit by the lamp."""
+        if self._field is None:
+            raise ParameterError("detector images need a Lazuli configuration (narrow and wide fields)")
+        return {f: (self._rate_cube(sim, f), sim) for f in ("narrow", "wide")
+                for sim in [self._simulation_for(f)]}
+
+    def get_detector_image(self, mapper=None, backend="auto"):
+        """Photo-electron rate on the H4RG [e-/s/px] with both fields lit (flux-conserving
+        projection), times the pixel response when ``structure`` has one.  Dark current, thermal
+        dark and ROIC glow are added by :meth:`get_ramps`."""
+        mapper = default_mapper() if mapper is None else mapper
+        image = np.zeros(mapper.detector_shape)
+        for field, (cube, sim) in self.get_field_rate_cubes().items():
+            mapper.project_fields(sim.lbda, sim.spectrograph.lbda_edges, out=image, backend=backend,
+                                  **{field: cube})
+        if self.structure.pixel_scatter:
+            image *= self.structure.pixel_response(image.shape, backend)
+        return image
+
+    # get_ramps: Target.get_ramps (raw MACC ramps of get_detector_image + the detector's dark terms)
+
+    # ------------------------------------------------------------------ not for a flat
+    def _no_point_source(self, *args, **kwargs):
+        raise NotImplementedError("a calibration flat has no point source: no extracted spectrum, SNR or "
+                                  "ETC; use get_cube / get_detector_image / get_ramps (the readout is set "
+                                  "with change_detector)")
+
+    get_spectrum = setup_to_snr = get_band_snr = _no_point_source
+    get_variance_contribution = get_band_variance_contribution = set_host = _no_point_source
+
+
+class Lazuli3DFlat(Flat3DCalibration):
+    """Lazuli calibration exposure (``config`` "cbe"/"eol", ``field`` "narrow" by default)."""
+
+    default_config, default_field = "cbe", "narrow"
+
+
+def locate_peaks(lbda, spectrum, guesses, half_window=3):
+    """Positions of spectral peaks: (fractional bin index, λ [Å]) of each peak near ``guesses`` [Å].
+
+    The maximum within ±``half_window`` bins of each guess, refined by the vertex of the
+    parabola through the logarithms of the three bins around it (exact for a Gaussian line);
+    bin index → λ by linear interpolation of the bin centres ``lbda``.  NaN where the maximum
+    sits on the window's or the grid's edge."""
+    lbda, spectrum = np.asarray(lbda, float), np.asarray(spectrum, float)
+    guess_idx = np.interp(np.asarray(guesses, float), lbda, np.arange(lbda.size))
+    out = np.full(guess_idx.size, np.nan)
+    for n, g in enumerate(guess_idx):
+        lo, hi = max(0, int(round(g)) - half_window), min(lbda.size, int(round(g)) + half_window + 1)
+        i = lo + int(np.argmax(spectrum[lo:hi]))
+        if i in (lo, hi - 1) or i == 0 or i == lbda.size - 1 or np.any(spectrum[i - 1:i + 2] <= 0):
+            continue
+        a, b, c = np.log(spectrum[i - 1:i + 2])
+        out[n] = i + 0.5 * (a - c) / (a - 2 * b + c)
+    return out, np.interp(out, np.arange(lbda.size), lbda, left=np.nan, right=np.nan)
