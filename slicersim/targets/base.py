@@ -18,7 +18,11 @@ from slicersim.io.config import load_config
 from slicersim.io.curves import read_curve
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.readout import check_readout
+from slicersim.products.extraction import (EXTRACTION_METHODS, ExtractionSetup, aperture_radius,
+                                           check_aperture_in_field, extract_model, unit_factors)
 from slicersim.simulation import check_band
+from slicersim.sources.cosmology import redshift_scalings
+from slicersim.sources.galaxies import GalaxyModel
 from slicersim.sources.scene import PointSource, snia_spectrum
 
 __all__ = ["LAZULI_FIELDS", "build_simulation", "config_default_field", "SPECTRUM_NOISE_STREAM", "Target",
@@ -60,6 +64,9 @@ class Target:
     conventions : "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly
         (gain in the variance, instrumental blur; :mod:`slicersim.physics.conventions`)
     redshift : optional; used by ``frame="rest"`` (the spectrum is in the observer frame)
+    host : optional host galaxy (see :meth:`set_host`): a model name ("sersic:bb-5000",
+        "ngc0628", "sersic:ngc2403", ...), a dict with ``refmodel`` and parameters (1.4.2), a
+        :class:`~slicersim.sources.galaxies.GalaxyModel`, a ``Host`` or a ``CubeSource``
     """
 
     default_config, default_field = "cbe", "auto"
@@ -67,17 +74,23 @@ class Target:
     own_parameters = ("redshift", "position", "field", "config")
 
     def __init__(self, lbda, flux, mag=None, band="bessellb", config=None, field="default",
-                 position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS):
+                 position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS, host=None):
         self._conventions = check_conventions(conventions)
         self._redshift = _check_redshift(redshift)
         self._source_args = dict(lbda=lbda, flux=flux, mag=mag, band=band, position=position)
         self.pointsource = PointSource(lbda, flux, position=position, mag=mag, band=band)
-        self._host, self._host_offset = None, None
+        self._setup(config, field, host)
+
+    def _setup(self, config, field, host):
+        """Configuration, field, simulation and host (shared by every target kind)."""
+        self._host, self._host_state = None, None
         self.config = self.default_config if config is None else _check_config(config)
         if field == "default":
             field = config_default_field(self.config) if self.default_field == "auto" else self.default_field
         self._field = check_field(field)
         self.simulation = self._new_simulation(self.config, self._field, keep_readout=False)
+        if host is not None:
+            self.set_host(host)
 
     # ------------------------------------------------------------------ state
     @property
@@ -108,7 +121,13 @@ class Target:
 
     @property
     def host(self):
+        """The host in the scene (Host or CubeSource, at the target's redshift) or None."""
         return self._host
+
+    @property
+    def host_model(self):
+        """:class:`~slicersim.sources.galaxies.GalaxyModel` of a host given by name, else None."""
+        return None if self._host_state is None else self._host_state.model
 
     @host.setter
     def host(self, host):
@@ -122,9 +141,12 @@ class Target:
     @property
     def mutable_parameters(self):
         """Every name :meth:`update` accepts: the target's own (redshift, position, field,
-        config) and those of its :class:`~slicersim.simulation.Simulation`."""
-        return self.own_parameters + tuple(p for p in self.simulation.mutable_parameters
-                                           if p not in self.own_parameters)
+        config), ``host__<name>`` for a host given by name (1.4.2; names of
+        :class:`~slicersim.sources.galaxies.GalaxyModel`) and those of its
+        :class:`~slicersim.simulation.Simulation`."""
+        host = () if self.host_model is None else tuple(f"host__{k}" for k in HOST_PARAMETERS)
+        return self.own_parameters + host + tuple(p for p in self.simulation.mutable_parameters
+                                                  if p not in self.own_parameters)
 
     def _new_simulation(self, config, field, keep_readout=True, params=None):
         """A new simulation of this target (validated; nothing of self changes)."""
@@ -143,7 +165,7 @@ class Target:
     def _build(self, keep_readout=False):
         self.simulation = self._new_simulation(self.config, self._field, keep_readout)
         if self._host is not None:
-            self._place_host(self._host, self.pointsource.position, self.simulation.spectrograph.spatial_scale)
+            self._place_host(self._host, self.position, self.simulation.spectrograph.spatial_scale)
 
     def _spectrum_at(self, redshift):
         """(λ, F) of the source at ``redshift``, or None when the spectrum does not depend on
@@ -152,34 +174,52 @@ class Target:
 
     # ------------------------------------------------------------------ host
     def set_host(self, host, relative=True):
-        """Put a host galaxy (:class:`~slicersim.sources.extended.Host` or CubeSource) in the scene.
+        """Put a host galaxy in the scene, at the target's redshift; ``None`` removes it.
 
-        ``relative=True``: the host's offset (``profile.offset`` / ``centre``, arcsec) is read
-        relative to the target and the host follows the target when its position changes;
-        ``relative=False``: the offset is relative to the field centre and stays fixed.
-        ``None`` removes the host.  Takes effect at once."""
+        ``host`` is a model name ("sersic:bb-5000", "ngc0628", "sersic:ngc2403", ...), a dict
+        (``refmodel`` + parameters, slicersim 1.4.2), a :class:`~slicersim.sources.galaxies.GalaxyModel`
+        (all rendered at the target's redshift, or the dict's ``redshift`` when the target has
+        none), or a ready ``Host`` / ``CubeSource``: one with a different ``redshift`` is moved
+        to the target's (:meth:`~slicersim.sources.extended.Host.at_redshift`), one without is
+        taken to be at it.  ``update(redshift=z)`` then moves source and host together.
+
+        Placement: the host centre (``offset`` [arcsec] of a model, ``profile.offset`` /
+        ``centre`` of an object) is read relative to the target when ``relative`` (the host
+        follows the target; offsets scale with D_A when the redshift changes), else relative to
+        the field centre; a model's 1.4.2 ``position`` [cells] is absolute.  Takes effect at once."""
         if host is None:
-            self._host, self._host_offset = None, None
+            self._host, self._host_state = None, None
             self.simulation.scene.host = None
             return
-        if not callable(getattr(host, "flux_cube", None)):
-            raise TypeError("host must provide flux_cube(lbda, shape, spatial_scale) "
-                            "(slicersim.Host or slicersim.CubeSource)")
-        offset = _host_offset(host)
-        self._host_offset = offset if relative else None
-        self._host = host
-        self._place_host(host, self.pointsource.position, self.simulation.spectrograph.spatial_scale)
-        self.simulation.scene.host = host
+        state = _HostState.resolve(host, self._redshift, relative, self.simulation.spectrograph.spatial_scale)
+        placed = state.at(self._redshift)
+        _check_host_covers(placed, self.simulation.lbda)
+        self._host_state, self._host = state, placed
+        self._place_host(placed, self.position, self.simulation.spectrograph.spatial_scale)
+        self.simulation.scene.host = placed
 
     def _place_host(self, host, position, spatial_scale):
-        if self._host_offset is None:
+        state = self._host_state
+        if state is None:
             return
-        dx, dy = self._host_offset
-        centre = (position[0] * spatial_scale + dx, position[1] * spatial_scale + dy)
+        dx, dy = state.offset_at(self._redshift)
+        if state.relative:
+            centre = (position[0] * spatial_scale + dx, position[1] * spatial_scale + dy)
+        else:
+            centre = (dx, dy)
         if hasattr(host, "profile") and hasattr(host.profile, "offset"):
-            host.profile.offset = centre
-        elif hasattr(host, "centre"):
+            if tuple(host.profile.offset) != centre:
+                host.profile.offset = centre
+        elif hasattr(host, "centre") and tuple(host.centre) != centre:
             host.centre = centre
+
+    def host_centre(self):
+        """(x, y) [cells] of the host centre in the field (None without host)."""
+        if self._host is None:
+            return None
+        s = self.simulation.spectrograph.spatial_scale
+        x, y = _host_offset(self._host)
+        return (x / s, y / s)
 
     # ------------------------------------------------------------------ changes
     def update(self, **params):
@@ -193,8 +233,11 @@ class Target:
         accepted = self.mutable_parameters
         unknown = sorted(set(params) - set(accepted))
         if unknown:
-            raise ParameterError(f"unknown target parameter(s) {unknown}; accepted: {', '.join(accepted)}")
-        sim_params = {k: v for k, v in params.items() if k not in self.own_parameters}
+            hint = ("; host__<name> needs a host given by name (set_host('sersic:bb-5000', ...))"
+                    if any(k.startswith("host__") for k in unknown) else "")
+            raise ParameterError(f"unknown target parameter(s) {unknown}{hint}; accepted: {', '.join(accepted)}")
+        host_params = {k[len("host__"):]: v for k, v in params.items() if k.startswith("host__")}
+        sim_params = {k: v for k, v in params.items() if k not in self.own_parameters and not k.startswith("host__")}
         # -- validate everything off to the side
         spectrum = None
         redshift = self._redshift
@@ -207,7 +250,7 @@ class Target:
         if spectrum is not None:
             probe = PointSource(*spectrum, position=self.pointsource.position,
                                 mag=self.pointsource.mag, band=self.pointsource.band)
-        position = self.pointsource.position
+        position = self.position
         if "position" in params:
             position = PointSource([1.0, 2.0], [0.0, 0.0], position=params["position"]).position
         config = _check_config(params["config"]) if "config" in params else self.config
@@ -232,6 +275,14 @@ class Target:
                 lbda = spec.updated(**spec_params).lbda
         if probe is not None and not probe.overlap(lbda[0], lbda[-1]):
             raise ParameterError(f"the spectrum at redshift {redshift} does not overlap the instrument range")
+        host_state, new_host = self._host_state, None
+        if host_state is not None:
+            scale = (new_sim or self.simulation).spectrograph.spatial_scale
+            if host_params:
+                host_state = host_state.updated(host_params, redshift, scale)
+            if host_params or redshift != self._redshift:
+                new_host = host_state.at(redshift)
+            _check_host_covers(new_host or self._host, lbda)
         if new_sim is None and (sim_params or "position" in params):
             # atomic by itself; validates the aperture at the new position; last step that can fail
             self.simulation.update(_position=position, **sim_params)
@@ -243,10 +294,18 @@ class Target:
             new_sim.scene.pointsource = self.pointsource
             self.config, self._field, self.simulation = config, field, new_sim
         self.simulation.redshift = redshift
-        if position != self.pointsource.position:
-            self.pointsource.position = position
+        if position != self.position:
+            self._move_to(position)
+        self._host_state = host_state
+        if new_host is not None:
+            self._host = new_host
+            self.simulation.scene.host = new_host
         if self._host is not None:
             self._place_host(self._host, position, self.simulation.spectrograph.spatial_scale)
+
+    def _move_to(self, position):
+        """Set the source position [cells] (validated by :meth:`update`)."""
+        self.pointsource.position = position
 
     def set_throughput(self, throughput, column=None, noptics=None):
         """Replace the spectrograph throughput (see :meth:`Spectrograph.set_throughput`); at once."""
@@ -335,23 +394,59 @@ class Target:
         return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution,
                                             allow_partial=allow_partial)
 
-    def get_spectrum(self, incl_error=False, seed=None):
-        """(λ [Å], signal [ADU], variance [ADU²]); ``incl_error`` adds a Gaussian noise draw.
+    def get_spectrum(self, incl_error=False, seed=None, method="optimal", of_host=False, aperture=None,
+                     unit="adu"):
+        """(λ [Å], signal, variance) extracted from the noiseless model, all ramps.
 
-        The draw is signal + √variance · z with z the counter-based Philox / Box–Muller
-        normal of :mod:`slicersim.backends.rng` keyed by (seed, bin index,
-        stream :data:`SPECTRUM_NOISE_STREAM`) — the same generator and arithmetic as the
-        noisy cubes (:func:`slicersim.backends.noise.noisy_cube`): the same seed (int in
-        [0, 2⁶⁴)) gives the same draw on every machine and backend; bins with zero variance
-        keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed."""
+        method : "optimal" (PSF-weighted; the point source's true LSF-convolved spectrum and
+            the optimal variance of :meth:`Simulation.get_spectrum`) or "aperture" (plain sum
+            over the aperture cells of the point-source light, no aperture correction).
+        of_host : extract the host light instead, in an aperture centred on the host.
+        aperture : "core" (default: the point-source extraction radius), "<x>-arcsec" or
+            "<x>-kpc" (:mod:`slicersim.products.extraction`).
+        unit : "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s] or
+            "framerate" [ADU/frame]; the variance is in unit².
+        incl_error : add a Gaussian noise draw (in ADU, before the unit conversion):
+            signal + √variance · z with z the counter-based Philox / Box–Muller
+            normal of :mod:`slicersim.backends.rng` keyed by (seed, bin index,
+            stream :data:`SPECTRUM_NOISE_STREAM`) — the same generator and arithmetic as the
+            noisy cubes (:func:`slicersim.backends.noise.noisy_cube`): the same seed (int in
+            [0, 2⁶⁴)) gives the same draw on every machine and backend; bins with zero variance
+            keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed."""
         from slicersim.simulation import check_seed
         seed = check_seed(seed)
-        lbda, signal, variance = self.simulation.get_spectrum()
+        lbda, signal, variance = self._extract(method, of_host, aperture)
         if incl_error:
             from slicersim.backends.noise import noisy_cube
             seed = np.random.default_rng() if seed is None else seed
             signal = noisy_cube(signal, variance, seed, backend="numpy", stream=SPECTRUM_NOISE_STREAM)
-        return lbda, signal, variance
+        factor = unit_factors(self.simulation, unit)
+        return lbda, signal * factor, variance * factor**2
+
+    def _extraction_setup(self, of_host=False, aperture=None):
+        """(:class:`~slicersim.products.extraction.ExtractionSetup`, optimal-by-default) of an
+        aperture centred on the point source, or on the host with ``of_host``."""
+        sim = self.simulation
+        if of_host and self._host is None:
+            raise ParameterError("of_host=True: this target has no host")
+        centre = self.host_centre() if of_host else self.position
+        aperture = "core" if aperture is None else aperture
+        cosmo = getattr(self._host, "cosmology", None)
+        radius, core = aperture_radius(aperture, sim.spectrograph.spatial_scale, sim.aperture_radius,
+                                       self._redshift, cosmo)
+        if not core:
+            check_aperture_in_field(aperture, sim.spectrograph.shape, centre, radius,
+                                    sim.spectrograph.spatial_scale)
+        return ExtractionSetup(sim, centre, radius, of_host=of_host), core
+
+    def _extract(self, method, of_host=False, aperture=None):
+        if method not in EXTRACTION_METHODS:
+            raise ParameterError(f"method must be one of {EXTRACTION_METHODS}, got {method!r}")
+        if method == "optimal" and not of_host and aperture in (None, "core"):
+            return self.simulation.get_spectrum()
+        setup, _ = self._extraction_setup(of_host, aperture)
+        signal, variance = extract_model(self.simulation, setup, method)
+        return self.simulation.lbda.copy(), signal, variance
 
     def get_cube(self, seed=None):
         return self.simulation.get_cube(seed=seed)
@@ -416,14 +511,14 @@ class Supernova(Target):
     absolute magnitude ``peak_absmag`` in Bessell B (AB, Planck18), at ``phase`` days."""
 
     def __init__(self, redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3, config=None,
-                 field="default", position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, **kwargs):
+                 field="default", position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, host=None, **kwargs):
         self.phase, self.source, self.peak_absmag, self._sn_kwargs = phase, source, peak_absmag, dict(kwargs)
         redshift = _check_redshift(redshift)
         if redshift is None:
             raise ParameterError("a supernova needs a redshift")
         lbda, flux = snia_spectrum(redshift, phase, source, peak_absmag, **kwargs)
         super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift,
-                         conventions=conventions)
+                         conventions=conventions, host=host)
 
     def _spectrum_at(self, redshift):
         return snia_spectrum(redshift, self.phase, self.source, self.peak_absmag, **self._sn_kwargs)
@@ -447,10 +542,10 @@ class BlackBody(Target):
     """Black body of ``temperature`` [K] normalised to ``mag`` (AB) in ``band``."""
 
     def __init__(self, temperature, mag, band="bessellb", config=None, field="default", position=(0.0, 0.0),
-                 conventions=DEFAULT_CONVENTIONS):
+                 conventions=DEFAULT_CONVENTIONS, redshift=None, host=None):
         src = PointSource.from_blackbody(temperature, mag, band)
         super().__init__(src.lbda_in, src.flux_in, mag=mag, band=band, config=config, field=field,
-                         position=position, conventions=conventions)
+                         position=position, conventions=conventions, redshift=redshift, host=host)
         self.temperature = temperature
 
 
@@ -503,6 +598,79 @@ def _check_config(config):
     if not items or not all(isinstance(c, (str, os.PathLike)) for c in items):
         raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
     return config
+
+
+#: ``host__<name>`` parameters of a host given by name (slicersim 1.4.2 names included)
+HOST_PARAMETERS = ("refmodel", "r_kpc", "r_eff", "sersic_index", "n", "axis_ratio", "ellip", "position_angle",
+                   "theta", "rotation", "magabs", "mag", "band", "temperature", "offset", "position")
+
+
+class _HostState:
+    """How a target holds its host: the origin object (Host / CubeSource) and its redshift, the
+    GalaxyModel it was rendered from (or None), its offset [arcsec] at the origin redshift and
+    whether that offset is relative to the target."""
+
+    def __init__(self, origin, origin_z, model, offset, relative):
+        self.origin, self.origin_z, self.model = origin, origin_z, model
+        self.offset, self.relative = (float(offset[0]), float(offset[1])), bool(relative)
+
+    @classmethod
+    def resolve(cls, host, redshift, relative, spatial_scale):
+        """Validated state of a ``set_host`` argument (nothing applied)."""
+        if isinstance(host, (str, dict, GalaxyModel)):
+            model = GalaxyModel.from_spec(dict(host) if isinstance(host, dict) else host)
+            z = redshift if redshift is not None else (host.get("redshift") if isinstance(host, dict) else None)
+            if z is None:
+                raise ParameterError("a host given by name needs a redshift: give the target a redshift "
+                                     "(or the host dict a 'redshift')")
+            origin = model.host(z)
+            p = model.params
+            if "position" in p:      # 1.4.2: cells from the field centre, absolute
+                return cls(origin, float(z), model, (p["position"][0] * spatial_scale,
+                                                     p["position"][1] * spatial_scale), False)
+            return cls(origin, float(z), model, p.get("offset", (0.0, 0.0)), relative)
+        if not callable(getattr(host, "flux_cube", None)):
+            raise TypeError("host must be a model name, a dict with 'refmodel', a GalaxyModel or provide "
+                            "flux_cube(lbda, shape, spatial_scale) (slicersim.Host or slicersim.CubeSource)")
+        origin_z = getattr(host, "redshift", None)
+        return cls(host, redshift if origin_z is None else origin_z, None, _host_offset(host), relative)
+
+    def _angle(self, redshift):
+        if redshift is None or self.origin_z is None or redshift == self.origin_z:
+            return 1.0
+        return redshift_scalings(self.origin_z, redshift, getattr(self.origin, "cosmology", None))[0]
+
+    def at(self, redshift):
+        """The host seen at ``redshift`` (the origin itself when it is already there)."""
+        if redshift is None or self.origin_z is None or redshift == self.origin_z:
+            return self.origin
+        if not callable(getattr(self.origin, "at_redshift", None)):
+            raise ParameterError(f"the host ({type(self.origin).__name__}) cannot be moved to another redshift")
+        return self.origin.at_redshift(redshift, from_redshift=self.origin_z)
+
+    def offset_at(self, redshift):
+        """Offset [arcsec] at ``redshift``: a relative offset keeps its proper length."""
+        a = self._angle(redshift) if self.relative else 1.0
+        return (self.offset[0] * a, self.offset[1] * a)
+
+    def updated(self, host_params, redshift, spatial_scale):
+        """State after ``host__<name>`` changes (validated; model hosts only)."""
+        model = self.model.updated(**host_params)
+        z = redshift if redshift is not None else self.origin_z
+        new = _HostState.resolve(model, z, self.relative, spatial_scale)
+        if "offset" not in host_params and "position" not in host_params:
+            new.offset, new.relative = self.offset_at(z), self.relative
+        return new
+
+
+def _check_host_covers(host, lbda):
+    """ParameterError unless the host spectrum covers the instrument grid ``lbda`` [Å]."""
+    lbda_in = getattr(host, "lbda_in", None)
+    if lbda_in is not None and (lbda_in[0] > lbda[0] or lbda_in[-1] < lbda[-1]):
+        z = getattr(host, "redshift", None)
+        at = "" if z is None else f" at z = {z:g}"
+        raise ParameterError(f"the host spectrum{at} covers {lbda_in[0]:.0f}–{lbda_in[-1]:.0f} Å (observer frame), "
+                             f"not the instrument range {lbda[0]:.0f}–{lbda[-1]:.0f} Å")
 
 
 def _host_offset(host):

@@ -1,0 +1,193 @@
+"""Spectral extraction: apertures, aperture sums and optimal (PSF-weighted) extraction, units.
+
+Apertures (slicersim 1.4.2 names): ``"core"`` (radius ``aperture_radius_insigma`` σ_ref / s,
+optimal extraction by default), ``"<x>-arcsec"`` (radius x″) and ``"<x>-kpc"`` (x proper kpc
+at the source redshift); a cell belongs to an aperture when its centre lies inside.  A named
+radius aperture must lie entirely inside the field (else its sum silently loses light).
+
+For a cube C [ADU] with variance V [ADU²] over the aperture cells c, per bin:
+
+* aperture:  S = Σ_c C_c,                       Var = Σ_c V_c
+* optimal:   S = Σ_c P_c C_c / V_c / Σ_c P_c² / V_c,   Var = 1 / Σ_c P_c² / V_c
+
+with P the PSF fractions of a point source at the aperture centre (Horne 1986).  For an
+isolated point source of total ADU F, C = F P: the optimal estimate is F (unbiased) and the
+aperture sum is F × EE, EE = Σ_c P_c the enclosed-energy fraction.
+
+:func:`extract_model` applies the same formulas to the noiseless model of a simulation (no cube
+is built): the extracted component (point source or host light), and the variance of the whole
+scene from ``Simulation.cell_variance``.  Units (:func:`unit_factors`): ``adu`` (all ramps),
+``flambda`` [erg/s/cm²/Å] = ADU / (f2p QE g t_int r), ``fphoton`` [ph/s] = ADU / (QE g t_int r),
+``rate`` [ADU/s] = ADU / exposure time (all ramps), ``framerate`` [ADU/frame] = rate × t_frame.
+"""
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+
+from slicersim.errors import ParameterError
+from slicersim.physics.psf import aperture_cells, gaussian_psf_cells
+from slicersim.physics.readout import readout_times
+from slicersim.products.cube import host_photons_block
+
+__all__ = ["parse_aperture", "aperture_radius", "check_aperture_in_field", "extract_aperture", "extract_optimal",
+           "extract_model", "unit_factors", "UNITS", "EXTRACTION_METHODS", "ExtractionSetup", "band_snr_table"]
+
+EXTRACTION_METHODS = ("optimal", "aperture")
+#: unit names and 1.4.2 aliases
+UNITS = {"adu": "adu", "default": "adu", "flambda": "flambda", "erg/s/a/cm2": "flambda",
+         "fphoton": "fphoton", "ph/s": "fphoton", "rate": "rate", "adu/s": "rate",
+         "framerate": "framerate", "adu/frame": "framerate"}
+_APERTURE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*-\s*(arcsec|kpc)\s*$")
+
+
+def parse_aperture(aperture):
+    """("core", None) or (unit, value) with unit "arcsec" / "kpc" and value > 0."""
+    if isinstance(aperture, str) and aperture.strip().lower() == "core":
+        return "core", None
+    m = _APERTURE.match(aperture.lower()) if isinstance(aperture, str) else None
+    if m is None or not float(m.group(1)) > 0:
+        raise ParameterError(f"aperture must be 'core', '<x>-arcsec' or '<x>-kpc' with x > 0 "
+                             f"(e.g. '1-arcsec', '2-kpc'), got {aperture!r}")
+    return m.group(2), float(m.group(1))
+
+
+def aperture_radius(aperture, spatial_scale, core_radius, redshift=None, cosmology=None):
+    """Radius [cells] of a named aperture and whether it is the ``core`` one; ``core_radius``
+    [cells] is the point-source extraction radius; kpc apertures need the redshift."""
+    kind, value = parse_aperture(aperture)
+    if kind == "core":
+        return float(core_radius), True
+    if kind == "arcsec":
+        return value / spatial_scale, False
+    if redshift is None:
+        raise ParameterError(f"aperture {aperture!r} is in kpc: it needs a source redshift")
+    from slicersim.sources.cosmology import arcsec_per_kpc
+    return value * arcsec_per_kpc(redshift, cosmology) / spatial_scale, False
+
+
+def check_aperture_in_field(aperture, shape, centre, radius, spatial_scale):
+    """ParameterError unless the circle of ``radius`` [cells] at ``centre`` (x, y) [cells] lies
+    inside the (ny, nx) field."""
+    ny, nx = shape
+    x0, y0 = centre
+    room = min(nx / 2 - abs(x0), ny / 2 - abs(y0))
+    if radius > room * (1 + 1e-12):
+        raise ParameterError(
+            f"aperture {aperture!r} (radius {radius * spatial_scale:.4g}″ = {radius:.4g} cells) centred at "
+            f"({x0:.4g}, {y0:.4g}) cells extends beyond the field ({nx * spatial_scale:.4g}″ × "
+            f"{ny * spatial_scale:.4g}″): at most {max(room, 0) * spatial_scale:.4g}″ fits there; use a "
+            "smaller aperture, move it, or use the wide field")
+
+
+def extract_aperture(cube, variance, cells):
+    """Aperture sum of (nλ, ny, nx) cubes over ``cells`` = (iy, ix): (S, Var) per bin."""
+    iy, ix = cells
+    return np.sum(cube[:, iy, ix], axis=1), np.sum(variance[:, iy, ix], axis=1)
+
+
+def extract_optimal(cube, variance, weights, cells):
+    """Optimal extraction with PSF weights ``weights`` (nλ, ncell) over ``cells``: (S, Var)."""
+    iy, ix = cells
+    return _optimal(cube[:, iy, ix], variance[:, iy, ix], weights)
+
+
+def _optimal(values, var, weights):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = np.sum(weights**2 / var, axis=1)
+        return np.sum(weights * values / var, axis=1) / norm, 1.0 / norm
+
+
+def unit_factors(sim, unit, nmd=None, nramps=None):
+    """Per-bin factor turning an extracted spectrum in ADU (all ramps) into ``unit``
+    (variances take the factor squared); see the module docstring."""
+    name = UNITS.get(unit.lower() if isinstance(unit, str) else unit)
+    if name is None:
+        raise ParameterError(f"unknown unit {unit!r}; known: {', '.join(UNITS)}")
+    times = sim.get_times(nmd, nramps)
+    if name == "adu":
+        return np.ones_like(sim.lbda)
+    if name in ("rate", "framerate"):
+        frame = sim.detector.tframe if name == "framerate" else 1.0
+        return np.full_like(sim.lbda, frame / times["exposure_time"])
+    ph_to_adu = sim.qe * sim.detector.gain * times["integration_time"]      # ADU per ph/s (all ramps)
+    if name == "fphoton":
+        return 1.0 / ph_to_adu
+    return 1.0 / (ph_to_adu * sim.flambda_to_photon)
+
+
+class ExtractionSetup:
+    """Noiseless photon rates of one aperture [ph/s/cell, after the LSF], per bin × cell.
+
+    cells : (iy, ix); centre : (x, y) [cells]; weights : PSF fractions at the centre (nλ, nc);
+    component : rate of the extracted component (point source or host); total : rate of the
+    whole scene (point source, host, background, thermal) in the aperture cells."""
+
+    def __init__(self, sim, centre, radius, of_host=False, psf_profile="gaussian"):
+        spec = sim.spectrograph
+        self.centre, self.radius = (float(centre[0]), float(centre[1])), float(radius)
+        self.cells = aperture_cells(spec.shape, self.centre, self.radius)
+        sig_y, sig_x = sim.psf_sigmas
+        self.weights = gaussian_psf_cells(sig_y, sig_x, spec.shape, self.centre, self.cells)
+        point = host = 0.0
+        iy, ix = self.cells
+        if sim.scene.pointsource is not None:
+            flux_ph = np.nan_to_num(sim.pointsource_flambda) * sim.flambda_to_photon
+            psf = gaussian_psf_cells(sig_y, sig_x, spec.shape, sim.position, self.cells)
+            point = spec.apply_lsf(flux_ph[:, None] * psf, axis=0)
+        if sim.scene.host is not None:
+            host = host_light(sim, psf_profile)[:, iy, ix]
+        if of_host and sim.scene.host is None:
+            raise ParameterError("of_host=True: this target has no host")
+        uniform = spec.apply_lsf(sim.background_photons + sim.thermal_photons)
+        self.component = (host if of_host else point) + np.zeros((sim.lbda.size, iy.size))
+        self.total = point + host + uniform[:, None] + np.zeros((sim.lbda.size, iy.size))
+
+
+def host_light(sim, psf_profile="gaussian"):
+    """Host photons per cell after the PSF and the LSF, (nλ, ny, nx) [ph/s/cell] (cached on
+    the simulation's state)."""
+    def build():
+        return sim.spectrograph.apply_lsf(host_photons_block(sim, psf_profile, 0, sim.lbda.size), axis=0)
+    return sim._cached(("host_light", psf_profile), build)
+
+
+def extract_model(sim, setup, method, nmd=None, nramps=None):
+    """(S [ADU], Var [ADU²]) per bin of the noiseless model extracted with ``setup``
+    (:class:`ExtractionSetup`) by ``method`` ("aperture" or "optimal"), all ramps."""
+    if method not in EXTRACTION_METHODS:
+        raise ParameterError(f"method must be one of {EXTRACTION_METHODS}, got {method!r}")
+    times = sim.get_times(nmd, nramps)
+    nmd, nramps, tint = times["nmd"], times["nramps"], times["integration_time_per_ramp"]
+    qe = sim.qe[:, None]
+    var, _ = sim.cell_variance(setup.total * qe, nmd)                           # ADU² per ramp
+    signal = setup.component * qe * sim.detector.gain * tint                     # ADU per ramp
+    if method == "aperture":
+        return nramps * np.sum(signal, axis=1), nramps * np.sum(var, axis=1)
+    s, v = _optimal(signal, var, setup.weights)
+    return nramps * s, nramps * v
+
+
+def band_snr_table(sim, setup, method, band, candidates):
+    """Single-ramp band SNR per bin (mean S / √mean Var over the bins ``band`` = [i0, i1)) of
+    every candidate readout (n, m, d arrays): the input of ``etc.search.exact_choice``."""
+    i0, i1 = (int(v) for v in band)
+    sub = ExtractionSetup.__new__(ExtractionSetup)
+    sub.weights, sub.cells = setup.weights[i0:i1], setup.cells
+    sub.component, sub.total = setup.component[i0:i1], setup.total[i0:i1]
+    det, qe = sim.detector, sim.qe[i0:i1, None]
+    out = np.empty(len(candidates[0]))
+    for k, nmd in enumerate(zip(*candidates)):
+        nmd = tuple(int(v) for v in nmd)
+        tint = readout_times(nmd, det.tframe)["integration_time_per_ramp"]
+        var, _ = sim.cell_variance(sub.total * qe, nmd)
+        signal = sub.component * qe * det.gain * tint
+        if method == "aperture":
+            s, v = np.sum(signal, axis=1), np.sum(var, axis=1)
+        else:
+            s, v = _optimal(signal, var, sub.weights)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[k] = np.nanmean(s) / math.sqrt(np.nanmean(v)) if np.isfinite(np.nanmean(v)) else 0.0
+    return out

@@ -1,0 +1,336 @@
+"""Named galaxy models: Sersic profiles, black bodies and real nearby galaxies.
+
+A model is named ``"spatial:spectral"`` as in slicersim 1.4.2:
+
+* spatial: ``"sersic"`` (analytic, :class:`~slicersim.sources.extended.SersicProfile`) or
+  an NGC name (its r-band image, :class:`~slicersim.sources.extended.ImageProfile`);
+* spectral: ``"bb"`` / ``"blackbody"`` with an optional temperature ``"bb-6000"`` [K], or an
+  NGC name (its rest-frame spectral template);
+* a bare NGC name ``"ngc0628"`` means ``"ngc0628:ngc0628"``, a bare ``"sersic"`` means
+  ``"sersic:bb-5000"``.
+
+Real galaxies come from the optional package ``lazuli-astrosim-data`` (``pip install
+'slicersim[galaxies]'``; offline): 90 NGC spectra (Brown et al. 2014 atlas, treated as
+rest-frame templates) of which 63 have a Legacy Surveys DR10 r-band image (nanomaggy,
+``PIXSCALE`` [arcsec], ``REDSHIFT``, ``XCENTER``/``YCENTER``).  We use it rather than GalSim:
+GalSim's real-galaxy catalogues (COSMOS) must be downloaded, and its parametric profiles add
+nothing to our exact Sersic integration.
+
+:class:`GalaxyModel` holds the physical, redshift-independent description (proper half-light
+radius ``r_kpc``, luminosity through ``magabs``); :meth:`GalaxyModel.host` renders it at a
+redshift (:mod:`slicersim.sources.cosmology`): angles ∝ 1/D_A, F_λ ∝ 1/(D_L² (1+z)),
+λ ∝ (1+z).  An NGC image keeps its physical size: its pixel scale at z is
+``PIXSCALE`` · D_A(z_gal)/D_A(z), so z must exceed the galaxy's own redshift.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import numbers
+import re
+
+import numpy as np
+
+from slicersim.errors import ParameterError, SlicersimError
+from slicersim.sources.cosmology import (angular_diameter_distance_kpc, arcsec_per_kpc, check_source_redshift,
+                                         get_cosmology, restframe_to_observed)
+from slicersim.sources.extended import Host, ImageProfile, SersicProfile
+from slicersim.sources.spectra import blackbody_flambda, validate_spectrum
+
+__all__ = ["GALAXY_PACKAGE", "GalaxyDataUnavailable", "known_galaxies", "galaxy_name", "load_galaxy_spectrum",
+           "load_galaxy_image", "parse_host_model", "GalaxyModel", "HOST_DEFAULTS"]
+
+GALAXY_PACKAGE = "lazuli-astrosim-data"
+#: slicersim 1.4.2 defaults (``band`` is Bessell R here: sncosmo's SDSS r needs a download)
+HOST_DEFAULTS = {"r_kpc": 5.0, "sersic_index": 2.0, "axis_ratio": 0.7, "position_angle": -30.0,
+                 "rotation": 0.0, "magabs": -21.0, "band": "bessellr", "temperature": 5000.0}
+#: slicersim 1.4.2 parameter names → ours
+ALIASES = {"n": "sersic_index", "theta": "position_angle"}
+PARAMETERS = ("refmodel", "redshift", "cosmology", "r_kpc", "r_eff", "sersic_index", "ellip", "axis_ratio",
+              "position_angle", "rotation", "magabs", "mag", "band", "temperature", "offset", "position") \
+    + tuple(ALIASES)
+_NGC = re.compile(r"^ngc[\s_]*0*(\d{1,4})(?:[\s_]*([a-z]))?$")
+_REST_BB_LBDA = np.geomspace(100.0, 1.0e5, 8000)          # rest-frame black-body grid [Å]
+
+
+class GalaxyDataUnavailable(SlicersimError, ImportError):
+    """A named real galaxy was asked for without the optional ``lazuli-astrosim-data`` package."""
+
+
+def _data_dir():
+    try:
+        from lazuli_astrosim_data.io import PACKAGE_PATH
+    except ImportError:
+        raise GalaxyDataUnavailable(f"named real galaxies (NGC images and spectra) need the optional package "
+                                    f"{GALAXY_PACKAGE}: pip install 'slicersim[galaxies]' (or pip install "
+                                    f"{GALAXY_PACKAGE}); 'sersic' and 'bb-<T>' models need nothing") from None
+    return PACKAGE_PATH.joinpath("data", "ngc")
+
+
+def _file_stem(name):
+    return "ngc_" + name[3:]
+
+
+@functools.lru_cache(maxsize=2)
+def known_galaxies(with_image=False):
+    """Sorted names ("ngc0628", ...) of the galaxies with a spectrum (and an image)."""
+    suffix = "_thumbnails.fits.gz" if with_image else "_spec.fits"
+    names = [p.name[:-len(suffix)].replace("ngc_", "ngc") for p in _data_dir().iterdir() if p.name.endswith(suffix)]
+    return tuple(sorted(names))
+
+
+def is_galaxy_name(name):
+    """True when ``name`` reads as an NGC name (whether or not the data has it)."""
+    return isinstance(name, str) and _NGC.match(name.strip().lower()) is not None
+
+
+def galaxy_name(name, with_image=False):
+    """Canonical name ``"ngc0628"`` of ``"NGC628"``, ``"ngc_0628"``, ``"NGC 0628"`` ...; ParameterError
+    naming the known galaxies when the data has no such galaxy (or no image of it)."""
+    m = _NGC.match(name.strip().lower()) if isinstance(name, str) else None
+    canon = None if m is None else f"ngc{int(m.group(1)):04d}" + (f"_{m.group(2)}" if m.group(2) else "")
+    known = known_galaxies(with_image)
+    if canon in known:
+        return canon
+    what = "galaxy image" if with_image else "galaxy"
+    extra = ""
+    if with_image and canon in known_galaxies(False):
+        extra = f" ({canon} has a spectrum only: use it as the spectral part, e.g. 'sersic:{canon}')"
+    raise ParameterError(f"unknown {what} {name!r}{extra}; known: {', '.join(known)}")
+
+
+@functools.lru_cache(maxsize=16)
+def load_galaxy_spectrum(name):
+    """Rest-frame template (λ [Å], F_λ [erg/s/cm²/Å], arbitrary scale) of a named galaxy."""
+    from astropy.io import fits
+    name = galaxy_name(name)
+    with fits.open(_data_dir().joinpath(_file_stem(name) + "_spec.fits")) as hdul:
+        data = hdul[1].data
+        lbda, flux = np.array(data["WAVELENGTH"], float), np.array(data["FLUX"], float)
+    lbda, flux = validate_spectrum(lbda, np.clip(flux, 0.0, None), f"{name} spectrum")
+    lbda.setflags(write=False)
+    flux.setflags(write=False)
+    return lbda, flux
+
+
+@functools.lru_cache(maxsize=8)
+def load_galaxy_image(name):
+    """(image normalised to 1, pixel scale [arcsec], galaxy redshift, centre (x, y) 0-based pixel,
+    header dict) of a named galaxy's r-band image."""
+    from astropy.io import fits
+    name = galaxy_name(name, with_image=True)
+    with fits.open(_data_dir().joinpath(_file_stem(name) + "_thumbnails.fits.gz")) as hdul:
+        image, header = np.array(hdul[0].data, dtype=np.float64), dict(hdul[0].header)
+    image = np.clip(np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
+    image /= image.sum()
+    image.setflags(write=False)
+    return (image, float(header["PIXSCALE"]), float(header["REDSHIFT"]),
+            (float(header["XCENTER"]) - 1.0, float(header["YCENTER"]) - 1.0), header)
+
+
+def _blackbody_temperature(part):
+    head, _, tail = part.partition("-")
+    if head not in ("bb", "blackbody"):
+        return None
+    if not tail:
+        return "default"
+    try:
+        t = float(tail)
+    except ValueError:
+        raise ParameterError(f"black-body model {part!r}: the temperature must be a number [K], "
+                             "e.g. 'bb-5000'") from None
+    if not (math.isfinite(t) and t > 0):
+        raise ParameterError(f"black-body temperature must be > 0 K, got {part!r}")
+    return t
+
+
+def parse_host_model(model):
+    """(spatial, spectral) of a model name; spatial "sersic" or an NGC name, spectral
+    "bb-<T>" (T may be "default") or an NGC name.  ParameterError for anything else."""
+    if not isinstance(model, str) or not model.strip():
+        raise ParameterError(f"host model must be a name 'spatial:spectral', got {model!r}")
+    text = model.strip().lower()
+    if ":" not in text:
+        if text == "sersic":
+            text = "sersic:bb"
+        elif is_galaxy_name(text):
+            text = f"{text}:{text}"
+        else:
+            raise ParameterError(f"host model {model!r} not understood: use 'spatial:spectral' with spatial "
+                                 "'sersic' or an NGC name and spectral 'bb[-T]' or an NGC name "
+                                 "(e.g. 'sersic:bb-5000', 'ngc0628', 'sersic:ngc2403')")
+    spatial, spectral = (p.strip() for p in text.split(":", 1))
+    if spatial != "sersic" and not is_galaxy_name(spatial):
+        raise ParameterError(f"spatial model {spatial!r} not understood: 'sersic' or an NGC name")
+    temperature = _blackbody_temperature(spectral)
+    if temperature is None and not is_galaxy_name(spectral):
+        raise ParameterError(f"spectral model {spectral!r} not understood: 'bb[-<T K>]' or an NGC name")
+    return spatial, (f"bb-{temperature}" if temperature is not None else spectral)
+
+
+def _positive(value, name, upper=None):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ParameterError(f"{name} must be a finite number, got {value!r}")
+    if not value > 0 or (upper is not None and value > upper):
+        bound = f"in (0, {upper}]" if upper is not None else "> 0"
+        raise ParameterError(f"{name} must be {bound}, got {value!r}")
+    return float(value)
+
+
+class GalaxyModel:
+    """A galaxy independent of its redshift: a named model and its physical parameters.
+
+    Parameters (slicersim 1.4.2 names accepted: ``n``, ``theta``, ``ellip``, ``refmodel``)
+    ----------
+    model : model name (module docstring), default ``"sersic:bb-5000"``
+    r_kpc : proper half-light radius [kpc] (Sersic; default 5), or ``r_eff`` [arcsec] at the
+        first redshift the model is rendered at (then kept as a proper size)
+    sersic_index (n) : in [0.1, 20] (default 2); axis_ratio b/a (default 0.7) or ellip = 1 − b/a;
+    position_angle (theta) : major axis [deg] counter-clockwise from +x (default −30)
+    rotation : NGC image rotation [deg] counter-clockwise (default 0)
+    magabs : AB magnitude in the rest-frame ``band`` (default −21), or ``mag``: observed AB
+        magnitude in ``band`` at the redshift the model is rendered at
+    band : sncosmo band (default "bessellr"); temperature : black body [K] (default 5000)
+    offset : (x, y) [arcsec] relative to the target, or position : (x, y) [cells] from the
+        field centre (1.4.2); resolved by the target
+    cosmology : astropy cosmology or realisation name (default Planck18)
+    """
+
+    def __init__(self, model="sersic:bb-5000", **params):
+        params = {ALIASES.get(k, k): v for k, v in params.items()}
+        if "refmodel" in params:
+            model = params.pop("refmodel")
+        unknown = sorted(set(params) - set(PARAMETERS))
+        if unknown:
+            raise ParameterError(f"unknown host parameter(s) {unknown}; accepted: {', '.join(PARAMETERS)}")
+        self.spatial, self.spectral = parse_host_model(model)
+        params.pop("redshift", None)                   # a host is at its target's redshift
+        if "ellip" in params:
+            if "axis_ratio" in params:
+                raise ParameterError("give ellip or axis_ratio, not both")
+            ellip = params.pop("ellip")
+            if isinstance(ellip, (bool, np.bool_)) or not isinstance(ellip, numbers.Real) \
+                    or not (0 <= ellip < 1):
+                raise ParameterError(f"ellip = 1 − b/a must be in [0, 1), got {ellip!r}")
+            params["axis_ratio"] = 1.0 - float(ellip)
+        if "mag" in params and "magabs" in params:
+            raise ParameterError("give mag (observed) or magabs (rest frame), not both")
+        if "offset" in params and "position" in params:
+            raise ParameterError("give offset [arcsec, relative to the target] or position [cells], not both")
+        if "r_eff" in params and "r_kpc" in params:
+            raise ParameterError("give r_kpc [proper kpc] or r_eff [arcsec], not both")
+        p = dict(HOST_DEFAULTS)
+        if "mag" in params:
+            p.pop("magabs")
+        if "r_eff" in params:
+            p.pop("r_kpc")
+        p.update(params)
+        if self.spectral.startswith("bb-"):       # a temperature in the name wins (1.4.2)
+            if self.spectral != "bb-default":
+                p["temperature"] = float(self.spectral[3:])
+            self.spectral = "bb"
+        if "sersic_index" in p:
+            n = p["sersic_index"]
+            if isinstance(n, numbers.Real) and not isinstance(n, bool) and math.isfinite(n) and n <= 0:
+                raise ParameterError(f"Sersic index must be > 0 (0.5 Gaussian, 1 exponential, "
+                                     f"4 de Vaucouleurs; allowed [0.1, 20]), got {n!r}")
+            p["sersic_index"] = _positive(n, "Sersic index", 20.0)
+            if p["sersic_index"] < 0.1:
+                raise ParameterError(f"Sersic index must be in [0.1, 20], got {n!r}")
+        for key in ("r_kpc", "r_eff"):
+            if key in p:
+                p[key] = _positive(p[key], f"Sersic half-light radius {key}")
+        p["axis_ratio"] = _positive(p["axis_ratio"], "axis ratio b/a", 1.0)
+        for key in ("position_angle", "rotation", "magabs", "mag"):
+            if key in p and (isinstance(p[key], (bool, np.bool_)) or not isinstance(p[key], numbers.Real)
+                             or not math.isfinite(p[key])):
+                raise ParameterError(f"host {key} must be a finite number, got {p[key]!r}")
+        p["temperature"] = _positive(p["temperature"], "black-body temperature [K]")
+        if not isinstance(p["band"], str):
+            raise ParameterError(f"band must be an sncosmo band name, got {p['band']!r}")
+        for key in ("offset", "position"):
+            if key in p:
+                try:
+                    x, y = (float(v) for v in p[key])
+                except (TypeError, ValueError):
+                    raise ParameterError(f"host {key} must be (x, y), got {p[key]!r}") from None
+                if not (math.isfinite(x) and math.isfinite(y)):
+                    raise ParameterError(f"host {key} must be finite, got {p[key]!r}")
+                p[key] = (x, y)
+        p["cosmology"] = get_cosmology(p.get("cosmology"))
+        self.params = p
+        # real-galaxy data checked now (unknown names and a missing package fail at once)
+        if self.spatial != "sersic":
+            self.spatial = galaxy_name(self.spatial, with_image=True)
+        if self.spectral != "bb":
+            self.spectral = galaxy_name(self.spectral)
+
+    @property
+    def name(self):
+        """Model name, e.g. "sersic:bb-5000" or "ngc0628:ngc0628"."""
+        spectral = f"bb-{self.params['temperature']:g}" if self.spectral == "bb" else self.spectral
+        return f"{self.spatial}:{spectral}"
+
+    def __repr__(self):
+        return f"GalaxyModel({self.name!r})"
+
+    def config(self):
+        """Parameters as a dict (``refmodel`` and our parameter names)."""
+        return {"refmodel": self.name, **self.params}
+
+    def updated(self, **params):
+        """A new model with some parameters changed (validated)."""
+        params = {ALIASES.get(k, k): v for k, v in params.items()}
+        current = {**self.params, **params}
+        current["refmodel"] = params.get("refmodel", f"{self.spatial}:{'bb' if self.spectral == 'bb' else self.spectral}")
+        if "mag" in params or "magabs" in params:
+            current.pop("magabs" if "mag" in params else "mag", None)
+        if "r_eff" in params or "r_kpc" in params:
+            current.pop("r_kpc" if "r_eff" in params else "r_eff", None)
+        if "offset" in params or "position" in params:
+            current.pop("position" if "offset" in params else "offset", None)
+        if "ellip" in params:
+            current.pop("axis_ratio", None)
+        model = current.pop("refmodel", self.name)
+        return GalaxyModel(model, **current)
+
+    def rest_spectrum(self):
+        """Rest-frame SED (λ [Å], F_λ, arbitrary scale)."""
+        if self.spectral == "bb":
+            return _REST_BB_LBDA, blackbody_flambda(_REST_BB_LBDA, self.params["temperature"])
+        return load_galaxy_spectrum(self.spectral)
+
+    def host(self, redshift):
+        """The :class:`~slicersim.sources.extended.Host` seen at ``redshift``, centred at (0, 0)
+        (the target places it); ``host.model`` is this model."""
+        z = check_source_redshift(redshift, "host redshift")
+        p, cosmo = self.params, self.params["cosmology"]
+        if self.spatial == "sersic":
+            r_eff = p["r_eff"] if "r_eff" in p else p["r_kpc"] * arcsec_per_kpc(z, cosmo)
+            profile = SersicProfile(p["sersic_index"], r_eff, p["axis_ratio"], p["position_angle"])
+        else:
+            image, pixscale, z_gal, centre, _ = load_galaxy_image(self.spatial)
+            if not z > z_gal:
+                raise ParameterError(f"{self.spatial} is at z = {z_gal:g}: it can be placed only at a larger "
+                                     f"redshift (its image has no finer detail), got {z:g}")
+            scale = pixscale * angular_diameter_distance_kpc(z_gal, cosmo) / angular_diameter_distance_kpc(z, cosmo)
+            profile = ImageProfile(image, scale, rotation=p["rotation"], centre_pixel=centre)
+        lbda, flux = restframe_to_observed(*self.rest_spectrum(), z, cosmo, absmag=p.get("magabs"),
+                                           mag=p.get("mag"), band=p["band"])
+        host = Host(profile, lbda, flux, redshift=z, cosmology=cosmo)
+        host.model = self
+        if "r_eff" in p:     # an angular size fixes the proper size at this first redshift
+            self.params = {**{k: v for k, v in p.items() if k != "r_eff"}, "r_kpc": r_eff / arcsec_per_kpc(z, cosmo)}
+        return host
+
+    @classmethod
+    def from_spec(cls, spec):
+        """A model from a name, a dict (``refmodel`` + parameters) or a GalaxyModel."""
+        if isinstance(spec, GalaxyModel):
+            return spec
+        if isinstance(spec, str):
+            return cls(spec)
+        if isinstance(spec, dict):
+            return cls(**{"refmodel": "sersic:bb-5000", **spec})
+        raise ParameterError(f"host must be a model name, a dict with 'refmodel', a GalaxyModel, a Host or a "
+                             f"CubeSource, got {type(spec).__name__}")
