@@ -373,7 +373,7 @@ class Flat3DCalibration(Target):
         paths = {"pointsource": "absent: not in the scene", "host": "absent: not in the scene",
                  "background": "lamp: uniform, × flat-field structure", "thermal": "uniform",
                  "detector": "NumPy per voxel (flat-field structure)"}
-        return CubeResult(signal, variance, noisy, paths, 1, sim.lbda.copy(), "uniform", seed)
+        return tuple(CubeResult(signal, variance, noisy, paths, 1, sim.lbda.copy(), "uniform", seed))
 
     def _rate_cube(self, sim, field):
         """Photo-electron rate [e-/s/cell] of a field, slice throughputs t_row applied to the lamp
