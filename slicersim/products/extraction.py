@@ -122,28 +122,53 @@ class ExtractionSetup:
     """Noiseless photon rates of one aperture [ph/s/cell, after the LSF], per bin × cell.
 
     cells : (iy, ix); centre : (x, y) [cells]; weights : PSF fractions at the centre (nλ, nc);
-    component : rate of the extracted component (point source or host); total : rate of the
-    whole scene (point source, host, background, thermal) in the aperture cells."""
+    qe : (nλ, 1) [e-/ph];
+    parts : rate of each scene component in the aperture cells ("pointsource", "host",
+    "background", "thermal_telescope", "thermal_optics"); ``source`` names the extracted one
+    ("host" with ``of_host``, else "pointsource")."""
 
     def __init__(self, sim, centre, radius, of_host=False, psf_profile="gaussian"):
         spec = sim.spectrograph
+        if of_host and sim.scene.host is None:
+            raise ParameterError("of_host=True: this target has no host")
         self.centre, self.radius = (float(centre[0]), float(centre[1])), float(radius)
         self.cells = aperture_cells(spec.shape, self.centre, self.radius)
         sig_y, sig_x = sim.psf_sigmas
         self.weights = gaussian_psf_cells(sig_y, sig_x, spec.shape, self.centre, self.cells)
-        point = host = 0.0
         iy, ix = self.cells
+        zero = np.zeros((sim.lbda.size, iy.size))
+        self.parts = {"pointsource": zero, "host": zero}
         if sim.scene.pointsource is not None:
             flux_ph = np.nan_to_num(sim.pointsource_flambda) * sim.flambda_to_photon
             psf = gaussian_psf_cells(sig_y, sig_x, spec.shape, sim.position, self.cells)
-            point = spec.apply_lsf(flux_ph[:, None] * psf, axis=0)
+            self.parts["pointsource"] = spec.apply_lsf(flux_ph[:, None] * psf, axis=0)
         if sim.scene.host is not None:
-            host = host_light(sim, psf_profile)[:, iy, ix]
-        if of_host and sim.scene.host is None:
-            raise ParameterError("of_host=True: this target has no host")
-        uniform = spec.apply_lsf(sim.background_photons + sim.thermal_photons)
-        self.component = (host if of_host else point) + np.zeros((sim.lbda.size, iy.size))
-        self.total = point + host + uniform[:, None] + np.zeros((sim.lbda.size, iy.size))
+            self.parts["host"] = host_light(sim, psf_profile)[:, iy, ix]
+        self.parts["background"] = zero + spec.apply_lsf(sim.background_photons)[:, None]
+        for which in ("telescope", "optics"):
+            self.parts[f"thermal_{which}"] = zero + spec.apply_lsf(sim._thermal_photons(which))[:, None]
+        self.source = "host" if of_host else "pointsource"
+        self.qe = sim.qe[:, None]                                                   # e-/ph
+
+    def total(self, off=None):
+        """Scene rate [ph/s/cell] with the variance source ``off`` removed (the rules of
+        ``Simulation.get_variance_contribution``: "thermal" removes both thermal parts,
+        "thermal_dark" the optics emission)."""
+        out = 0.0
+        for name, rate in self.parts.items():
+            if off == name or (off == "thermal" and name.startswith("thermal")) \
+                    or (off == "thermal_dark" and name == "thermal_optics"):
+                continue
+            out = out + rate
+        return out
+
+    def band(self, i0, i1):
+        """The same setup restricted to bins i0 … i1 − 1."""
+        sub = ExtractionSetup.__new__(ExtractionSetup)
+        sub.centre, sub.radius, sub.cells, sub.source = self.centre, self.radius, self.cells, self.source
+        sub.weights, sub.qe = self.weights[i0:i1], self.qe[i0:i1]
+        sub.parts = {k: v[i0:i1] for k, v in self.parts.items()}
+        return sub
 
 
 def host_light(sim, psf_profile="gaussian"):
@@ -154,40 +179,41 @@ def host_light(sim, psf_profile="gaussian"):
     return sim._cached(("host_light", psf_profile), build)
 
 
-def extract_model(sim, setup, method, nmd=None, nramps=None):
+def extract_model(sim, setup, method, nmd=None, nramps=None, off=None):
     """(S [ADU], Var [ADU²]) per bin of the noiseless model extracted with ``setup``
-    (:class:`ExtractionSetup`) by ``method`` ("aperture" or "optimal"), all ramps."""
+    (:class:`ExtractionSetup`) by ``method`` ("aperture" or "optimal"), all ramps; ``off``
+    removes one variance source (and the signal when it is the extracted component)."""
     if method not in EXTRACTION_METHODS:
         raise ParameterError(f"method must be one of {EXTRACTION_METHODS}, got {method!r}")
     times = sim.get_times(nmd, nramps)
-    nmd, nramps, tint = times["nmd"], times["nramps"], times["integration_time_per_ramp"]
-    qe = sim.qe[:, None]
-    var, _ = sim.cell_variance(setup.total * qe, nmd)                           # ADU² per ramp
-    signal = setup.component * qe * sim.detector.gain * tint                     # ADU per ramp
+    s, v = _extract_rates(sim, setup, method, times["nmd"], times["integration_time_per_ramp"], off)
+    return times["nramps"] * s, times["nramps"] * v
+
+
+def _extract_rates(sim, setup, method, nmd, tint, off=None):
+    qe = setup.qe
+    var, _ = sim.cell_variance(setup.total(off) * qe, nmd, off)                   # ADU² per ramp
+    component = 0.0 if off == setup.source else setup.parts[setup.source]
+    signal = component * qe * sim.detector.gain * tint + np.zeros_like(var)        # ADU per ramp
     if method == "aperture":
-        return nramps * np.sum(signal, axis=1), nramps * np.sum(var, axis=1)
-    s, v = _optimal(signal, var, setup.weights)
-    return nramps * s, nramps * v
+        return np.sum(signal, axis=1), np.sum(var, axis=1)
+    return _optimal(signal, var, setup.weights)
 
 
 def band_snr_table(sim, setup, method, band, candidates):
     """Single-ramp band SNR per bin (mean S / √mean Var over the bins ``band`` = [i0, i1)) of
     every candidate readout (n, m, d arrays): the input of ``etc.search.exact_choice``."""
+    if method not in EXTRACTION_METHODS:
+        raise ParameterError(f"method must be one of {EXTRACTION_METHODS}, got {method!r}")
     i0, i1 = (int(v) for v in band)
-    sub = ExtractionSetup.__new__(ExtractionSetup)
-    sub.weights, sub.cells = setup.weights[i0:i1], setup.cells
-    sub.component, sub.total = setup.component[i0:i1], setup.total[i0:i1]
-    det, qe = sim.detector, sim.qe[i0:i1, None]
-    out = np.empty(len(candidates[0]))
+    sub = setup.band(i0, i1)
+    out = np.zeros(len(candidates[0]))
     for k, nmd in enumerate(zip(*candidates)):
         nmd = tuple(int(v) for v in nmd)
-        tint = readout_times(nmd, det.tframe)["integration_time_per_ramp"]
-        var, _ = sim.cell_variance(sub.total * qe, nmd)
-        signal = sub.component * qe * det.gain * tint
-        if method == "aperture":
-            s, v = np.sum(signal, axis=1), np.sum(var, axis=1)
-        else:
-            s, v = _optimal(signal, var, sub.weights)
+        s, v = _extract_rates(sim, sub, method, nmd, readout_times(nmd, sim.detector.tframe)
+                              ["integration_time_per_ramp"])
         with np.errstate(invalid="ignore", divide="ignore"):
-            out[k] = np.nanmean(s) / math.sqrt(np.nanmean(v)) if np.isfinite(np.nanmean(v)) else 0.0
+            mean_v = np.nanmean(v)
+            if np.isfinite(mean_v) and mean_v > 0:
+                out[k] = np.nanmean(s) / math.sqrt(mean_v)
     return out

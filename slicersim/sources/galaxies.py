@@ -33,12 +33,13 @@ import numpy as np
 
 from slicersim.errors import ParameterError, SlicersimError
 from slicersim.sources.cosmology import (angular_diameter_distance_kpc, arcsec_per_kpc, check_source_redshift,
-                                         get_cosmology, restframe_to_observed)
+                                         get_cosmology, redshift_scalings, restframe_to_observed)
 from slicersim.sources.extended import Host, ImageProfile, SersicProfile
 from slicersim.sources.spectra import blackbody_flambda, validate_spectrum
 
 __all__ = ["GALAXY_PACKAGE", "GalaxyDataUnavailable", "known_galaxies", "galaxy_name", "load_galaxy_spectrum",
-           "load_galaxy_image", "parse_host_model", "GalaxyModel", "HOST_DEFAULTS"]
+           "load_galaxy_image", "parse_host_model", "GalaxyModel", "HOST_DEFAULTS", "HOST_PARAMETERS", "HostPlacement",
+           "check_host_covers", "host_offset"]
 
 GALAXY_PACKAGE = "lazuli-astrosim-data"
 #: slicersim 1.4.2 defaults (``band`` is Bessell R here: sncosmo's SDSS r needs a download)
@@ -334,3 +335,85 @@ class GalaxyModel:
             return cls(**{"refmodel": "sersic:bb-5000", **spec})
         raise ParameterError(f"host must be a model name, a dict with 'refmodel', a GalaxyModel, a Host or a "
                              f"CubeSource, got {type(spec).__name__}")
+
+
+#: ``host__<name>`` parameters of a host given by name (slicersim 1.4.2 names included)
+HOST_PARAMETERS = ("refmodel", "r_kpc", "r_eff", "sersic_index", "n", "axis_ratio", "ellip", "position_angle",
+                   "theta", "rotation", "magabs", "mag", "band", "temperature", "offset", "position")
+
+
+class HostPlacement:
+    """How a target holds its host: the origin object (Host / CubeSource) and its redshift, the
+    GalaxyModel it was rendered from (or None), its offset [arcsec] at the origin redshift and
+    whether that offset is relative to the target."""
+
+    def __init__(self, origin, origin_z, model, offset, relative):
+        self.origin, self.origin_z, self.model = origin, origin_z, model
+        self.offset, self.relative = (float(offset[0]), float(offset[1])), bool(relative)
+
+    @classmethod
+    def resolve(cls, host, redshift, relative, spatial_scale):
+        """Validated state of a ``set_host`` argument (nothing applied)."""
+        if isinstance(host, (str, dict, GalaxyModel)):
+            model = GalaxyModel.from_spec(dict(host) if isinstance(host, dict) else host)
+            z = redshift if redshift is not None else (host.get("redshift") if isinstance(host, dict) else None)
+            if z is None:
+                raise ParameterError("a host given by name needs a redshift: give the target a redshift "
+                                     "(or the host dict a 'redshift')")
+            origin = model.host(z)
+            p = model.params
+            if "position" in p:      # 1.4.2: cells from the field centre, absolute
+                return cls(origin, float(z), model, (p["position"][0] * spatial_scale,
+                                                     p["position"][1] * spatial_scale), False)
+            return cls(origin, float(z), model, p.get("offset", (0.0, 0.0)), relative)
+        if not callable(getattr(host, "flux_cube", None)):
+            raise TypeError("host must be a model name, a dict with 'refmodel', a GalaxyModel or provide "
+                            "flux_cube(lbda, shape, spatial_scale) (slicersim.Host or slicersim.CubeSource)")
+        origin_z = getattr(host, "redshift", None)
+        return cls(host, redshift if origin_z is None else origin_z, None, host_offset(host), relative)
+
+    def _angle(self, redshift):
+        if redshift is None or self.origin_z is None or redshift == self.origin_z:
+            return 1.0
+        return redshift_scalings(self.origin_z, redshift, getattr(self.origin, "cosmology", None))[0]
+
+    def at(self, redshift):
+        """The host seen at ``redshift`` (the origin itself when it is already there)."""
+        if redshift is None or self.origin_z is None or redshift == self.origin_z:
+            return self.origin
+        if not callable(getattr(self.origin, "at_redshift", None)):
+            raise ParameterError(f"the host ({type(self.origin).__name__}) cannot be moved to another redshift")
+        return self.origin.at_redshift(redshift, from_redshift=self.origin_z)
+
+    def offset_at(self, redshift):
+        """Offset [arcsec] at ``redshift``: a relative offset keeps its proper length."""
+        a = self._angle(redshift) if self.relative else 1.0
+        return (self.offset[0] * a, self.offset[1] * a)
+
+    def updated(self, host_params, redshift, spatial_scale):
+        """State after ``host__<name>`` changes (validated; model hosts only)."""
+        model = self.model.updated(**host_params)
+        z = redshift if redshift is not None else self.origin_z
+        new = HostPlacement.resolve(model, z, self.relative, spatial_scale)
+        if "offset" not in host_params and "position" not in host_params:
+            new.offset, new.relative = self.offset_at(z), self.relative
+        return new
+
+
+def check_host_covers(host, lbda):
+    """ParameterError unless the host spectrum covers the instrument grid ``lbda`` [Å]."""
+    lbda_in = getattr(host, "lbda_in", None)
+    if lbda_in is not None and (lbda_in[0] > lbda[0] or lbda_in[-1] < lbda[-1]):
+        z = getattr(host, "redshift", None)
+        at = "" if z is None else f" at z = {z:g}"
+        raise ParameterError(f"the host spectrum{at} covers {lbda_in[0]:.0f}–{lbda_in[-1]:.0f} Å (observer frame), "
+                             f"not the instrument range {lbda[0]:.0f}–{lbda[-1]:.0f} Å")
+
+
+def host_offset(host):
+    """(x, y) [arcsec] of a host: its profile offset or its cube centre."""
+    if hasattr(host, "profile") and hasattr(host.profile, "offset"):
+        return tuple(float(v) for v in host.profile.offset)
+    if hasattr(host, "centre"):
+        return tuple(float(v) for v in host.centre)
+    return (0.0, 0.0)

@@ -21,8 +21,7 @@ from slicersim.physics.readout import check_readout
 from slicersim.products.extraction import (EXTRACTION_METHODS, ExtractionSetup, aperture_radius,
                                            check_aperture_in_field, extract_model, unit_factors)
 from slicersim.simulation import check_band
-from slicersim.sources.cosmology import redshift_scalings
-from slicersim.sources.galaxies import GalaxyModel
+from slicersim.sources.galaxies import HOST_PARAMETERS, HostPlacement, check_host_covers, host_offset
 from slicersim.sources.scene import PointSource, snia_spectrum
 
 __all__ = ["LAZULI_FIELDS", "build_simulation", "config_default_field", "SPECTRUM_NOISE_STREAM", "Target",
@@ -191,9 +190,9 @@ class Target:
             self._host, self._host_state = None, None
             self.simulation.scene.host = None
             return
-        state = _HostState.resolve(host, self._redshift, relative, self.simulation.spectrograph.spatial_scale)
+        state = HostPlacement.resolve(host, self._redshift, relative, self.simulation.spectrograph.spatial_scale)
         placed = state.at(self._redshift)
-        _check_host_covers(placed, self.simulation.lbda)
+        check_host_covers(placed, self.simulation.lbda)
         self._host_state, self._host = state, placed
         self._place_host(placed, self.position, self.simulation.spectrograph.spatial_scale)
         self.simulation.scene.host = placed
@@ -218,7 +217,7 @@ class Target:
         if self._host is None:
             return None
         s = self.simulation.spectrograph.spatial_scale
-        x, y = _host_offset(self._host)
+        x, y = host_offset(self._host)
         return (x / s, y / s)
 
     # ------------------------------------------------------------------ changes
@@ -282,7 +281,7 @@ class Target:
                 host_state = host_state.updated(host_params, redshift, scale)
             if host_params or redshift != self._redshift:
                 new_host = host_state.at(redshift)
-            _check_host_covers(new_host or self._host, lbda)
+            check_host_covers(new_host or self._host, lbda)
         if new_sim is None and (sim_params or "position" in params):
             # atomic by itself; validates the aperture at the new position; last step that can fail
             self.simulation.update(_position=position, **sim_params)
@@ -598,88 +597,6 @@ def _check_config(config):
     if not items or not all(isinstance(c, (str, os.PathLike)) for c in items):
         raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
     return config
-
-
-#: ``host__<name>`` parameters of a host given by name (slicersim 1.4.2 names included)
-HOST_PARAMETERS = ("refmodel", "r_kpc", "r_eff", "sersic_index", "n", "axis_ratio", "ellip", "position_angle",
-                   "theta", "rotation", "magabs", "mag", "band", "temperature", "offset", "position")
-
-
-class _HostState:
-    """How a target holds its host: the origin object (Host / CubeSource) and its redshift, the
-    GalaxyModel it was rendered from (or None), its offset [arcsec] at the origin redshift and
-    whether that offset is relative to the target."""
-
-    def __init__(self, origin, origin_z, model, offset, relative):
-        self.origin, self.origin_z, self.model = origin, origin_z, model
-        self.offset, self.relative = (float(offset[0]), float(offset[1])), bool(relative)
-
-    @classmethod
-    def resolve(cls, host, redshift, relative, spatial_scale):
-        """Validated state of a ``set_host`` argument (nothing applied)."""
-        if isinstance(host, (str, dict, GalaxyModel)):
-            model = GalaxyModel.from_spec(dict(host) if isinstance(host, dict) else host)
-            z = redshift if redshift is not None else (host.get("redshift") if isinstance(host, dict) else None)
-            if z is None:
-                raise ParameterError("a host given by name needs a redshift: give the target a redshift "
-                                     "(or the host dict a 'redshift')")
-            origin = model.host(z)
-            p = model.params
-            if "position" in p:      # 1.4.2: cells from the field centre, absolute
-                return cls(origin, float(z), model, (p["position"][0] * spatial_scale,
-                                                     p["position"][1] * spatial_scale), False)
-            return cls(origin, float(z), model, p.get("offset", (0.0, 0.0)), relative)
-        if not callable(getattr(host, "flux_cube", None)):
-            raise TypeError("host must be a model name, a dict with 'refmodel', a GalaxyModel or provide "
-                            "flux_cube(lbda, shape, spatial_scale) (slicersim.Host or slicersim.CubeSource)")
-        origin_z = getattr(host, "redshift", None)
-        return cls(host, redshift if origin_z is None else origin_z, None, _host_offset(host), relative)
-
-    def _angle(self, redshift):
-        if redshift is None or self.origin_z is None or redshift == self.origin_z:
-            return 1.0
-        return redshift_scalings(self.origin_z, redshift, getattr(self.origin, "cosmology", None))[0]
-
-    def at(self, redshift):
-        """The host seen at ``redshift`` (the origin itself when it is already there)."""
-        if redshift is None or self.origin_z is None or redshift == self.origin_z:
-            return self.origin
-        if not callable(getattr(self.origin, "at_redshift", None)):
-            raise ParameterError(f"the host ({type(self.origin).__name__}) cannot be moved to another redshift")
-        return self.origin.at_redshift(redshift, from_redshift=self.origin_z)
-
-    def offset_at(self, redshift):
-        """Offset [arcsec] at ``redshift``: a relative offset keeps its proper length."""
-        a = self._angle(redshift) if self.relative else 1.0
-        return (self.offset[0] * a, self.offset[1] * a)
-
-    def updated(self, host_params, redshift, spatial_scale):
-        """State after ``host__<name>`` changes (validated; model hosts only)."""
-        model = self.model.updated(**host_params)
-        z = redshift if redshift is not None else self.origin_z
-        new = _HostState.resolve(model, z, self.relative, spatial_scale)
-        if "offset" not in host_params and "position" not in host_params:
-            new.offset, new.relative = self.offset_at(z), self.relative
-        return new
-
-
-def _check_host_covers(host, lbda):
-    """ParameterError unless the host spectrum covers the instrument grid ``lbda`` [Å]."""
-    lbda_in = getattr(host, "lbda_in", None)
-    if lbda_in is not None and (lbda_in[0] > lbda[0] or lbda_in[-1] < lbda[-1]):
-        z = getattr(host, "redshift", None)
-        at = "" if z is None else f" at z = {z:g}"
-        raise ParameterError(f"the host spectrum{at} covers {lbda_in[0]:.0f}–{lbda_in[-1]:.0f} Å (observer frame), "
-                             f"not the instrument range {lbda[0]:.0f}–{lbda[-1]:.0f} Å")
-
-
-def _host_offset(host):
-    """(x, y) [arcsec] of a host: its profile offset or its cube centre."""
-    if hasattr(host, "profile") and hasattr(host.profile, "offset"):
-        return tuple(float(v) for v in host.profile.offset)
-    if hasattr(host, "centre"):
-        return tuple(float(v) for v in host.centre)
-    return (0.0, 0.0)
 
 
 def _result(target, etc):

@@ -1,0 +1,248 @@
+"""Galaxy targets: a galaxy alone (no point source), its spectrum extracted in an aperture.
+
+``LazuliGalaxy(0.5, model="ngc0628", aperture="2-kpc").setup_to_snr(10)`` is the exposure
+needed for SNR 10 per resolution element in the galaxy light within 2 proper kpc.  The galaxy
+is the host model of the point-source targets (:mod:`slicersim.sources.galaxies`) rendered at
+``redshift``; the extraction follows :mod:`slicersim.products.extraction`.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from slicersim.errors import ETCError, ParameterError
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
+from slicersim.physics.readout import readout_times
+from slicersim.products.extraction import (EXTRACTION_METHODS, aperture_radius, band_snr_table,
+                                           check_aperture_in_field, extract_model, parse_aperture)
+from slicersim.simulation import VARIANCE_SOURCES
+from slicersim.sources.galaxies import GalaxyModel
+from slicersim.sources.scene import PointSource
+from slicersim.targets.base import Target, _check_redshift, _Lazuli
+
+__all__ = ["Galaxy", "LazuliGalaxy"]
+
+
+class Galaxy(Target):
+    """A galaxy alone observed with a configured instrument (slicersim 1.4.2 ``Galaxy``).
+
+    Parameters
+    ----------
+    redshift : > 0; sets the spectrum, the brightness and the angular size (fixed proper size)
+    model : name ("sersic:bb-5000" default, "ngc0628", "sersic:ngc2403", "ngc4321:bb-6000"),
+        dict with ``refmodel`` or :class:`~slicersim.sources.galaxies.GalaxyModel`
+    aperture : "core" (PSF-weighted optimal extraction at the centre), "<x>-arcsec" or
+        "<x>-kpc" (plain sums; default "1-arcsec")
+    aperture__position : "host" (the galaxy centre, default) or (x, y) [cells] from the field centre
+    method : "default" (optimal for "core", else aperture), "optimal" or "aperture"
+    position : (x, y) [cells] of the galaxy centre from the field centre
+    config, field, conventions : as :class:`~slicersim.targets.base.Target`
+    **host_params : model parameters (``band`` (default "bessellr"), ``magabs`` / ``mag``,
+        ``r_kpc``, ``n``, ``ellip``, ``theta``, ``rotation``, ... see GalaxyModel)
+    """
+
+    own_parameters = Target.own_parameters + ("aperture", "aperture__position", "method")
+
+    def __init__(self, redshift, model="sersic:bb-5000", aperture="1-arcsec", aperture__position="host",
+                 method="default", config=None, field="default", position=(0.0, 0.0),
+                 conventions=DEFAULT_CONVENTIONS, **host_params):
+        self._conventions = check_conventions(conventions)
+        self._redshift = _check_redshift(redshift)
+        if self._redshift is None:
+            raise ParameterError("a galaxy needs a redshift")
+        self._aperture = _check_aperture_name(aperture)
+        self._aperture_position = _check_aperture_position(aperture__position)
+        self._method = _check_method(method)
+        self.pointsource = None
+        self._position = _check_position(position)
+        galaxy = GalaxyModel.from_spec(model)
+        if host_params:
+            galaxy = galaxy.updated(**host_params)
+        self._setup(config, field, galaxy)
+        self._extraction_setup()                 # the aperture is checked at once
+
+    # ------------------------------------------------------------------ state
+    @property
+    def position(self):
+        """(x, y) [cells] of the galaxy centre relative to the field centre."""
+        return self._position
+
+    @position.setter
+    def position(self, position):
+        self.update(position=position)
+
+    def _move_to(self, position):
+        self._position = position
+
+    @property
+    def model(self):
+        """The galaxy's :class:`~slicersim.sources.galaxies.GalaxyModel`."""
+        return self.host_model
+
+    @property
+    def aperture(self):
+        return self._aperture
+
+    @property
+    def method(self):
+        """Extraction method used by default: "optimal" for the "core" aperture, else "aperture"."""
+        if self._method != "default":
+            return self._method
+        return "optimal" if self._aperture.strip().lower() == "core" else "aperture"
+
+    def update(self, **params):
+        """As :meth:`Target.update`, plus ``aperture``, ``aperture__position`` and ``method``
+        (the aperture is checked against the field at once when only these change, and at
+        every extraction otherwise)."""
+        params = dict(params)
+        aperture = _check_aperture_name(params.pop("aperture")) if "aperture" in params else self._aperture
+        centre = _check_aperture_position(params.pop("aperture__position")) if "aperture__position" in params \
+            else self._aperture_position
+        method = _check_method(params.pop("method")) if "method" in params else self._method
+        if not params:
+            saved = (self._aperture, self._aperture_position)
+            self._aperture, self._aperture_position = aperture, centre
+            try:
+                self._extraction_setup()
+            except ParameterError:
+                self._aperture, self._aperture_position = saved
+                raise
+        else:
+            super().update(**params)
+        self._aperture, self._aperture_position, self._method = aperture, centre, method
+
+    def _spectrum_at(self, redshift):
+        return None
+
+    # ------------------------------------------------------------------ extraction
+    def _extraction_setup(self, of_host=True, aperture=None):
+        """ExtractionSetup of the galaxy light in ``aperture`` (default: the target's) centred on
+        ``aperture__position``, and whether the aperture is "core"."""
+        from slicersim.products.extraction import ExtractionSetup
+        sim = self.simulation
+        aperture = self._aperture if aperture is None else _check_aperture_name(aperture)
+        centre = self.host_centre() if self._aperture_position == "host" else self._aperture_position
+        radius, core = aperture_radius(aperture, sim.spectrograph.spatial_scale, sim.aperture_radius,
+                                       self._redshift, self.host.cosmology)
+        if not core:
+            check_aperture_in_field(aperture, sim.spectrograph.shape, centre, radius,
+                                    sim.spectrograph.spatial_scale)
+        return ExtractionSetup(sim, centre, radius, of_host=True), core
+
+    def _resolve_method(self, method, aperture):
+        if method in (None, "default"):
+            if aperture is None:
+                return self.method
+            return "optimal" if aperture.strip().lower() == "core" else "aperture"
+        return _check_method(method)
+
+    def _extract(self, method, of_host=True, aperture=None, nmd=None, nramps=None, off=None):
+        aperture = None if aperture is None else _check_aperture_name(aperture)
+        method = self._resolve_method(method, aperture)
+        setup, _ = self._extraction_setup(aperture=aperture)
+        signal, variance = extract_model(self.simulation, setup, method, nmd, nramps, off)
+        return self.simulation.lbda.copy(), signal, variance
+
+    def get_spectrum(self, incl_error=False, seed=None, method="default", of_host=True, aperture=None,
+                     unit="adu"):
+        """Spectrum of the galaxy light (λ [Å], signal, variance) in ``aperture`` (default: the
+        target's) by ``method`` ("default": the target's), in ``unit``; see
+        :meth:`Target.get_spectrum` for ``incl_error`` / ``seed`` / ``unit``.  A galaxy target has
+        no point source: ``of_host`` must stay True."""
+        if not of_host:
+            raise ParameterError("a galaxy target has no point source: its spectrum is that of the galaxy "
+                                 "(of_host=True)")
+        return super().get_spectrum(incl_error, seed, method, True, aperture, unit)
+
+    # ------------------------------------------------------------------ SNR and ETC
+    # bands are read in the rest frame by default (4000–6800 Å rest), as for supernovae and 1.4.2
+    def get_band_snr(self, lbda_range=None, frame="rest", per_resolution=False, allow_partial=False):
+        """Band SNR of the extracted galaxy spectrum: mean(signal) / √mean(variance) over the bins
+        of ``lbda_range`` (per resolution element with ``per_resolution``)."""
+        sim = self.simulation
+        mask = sim.band_mask(self._band(lbda_range, frame), allow_partial=allow_partial)
+        _, signal, variance = self._extract(None)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            snr = float(np.nanmean(signal[mask]) / np.sqrt(np.nanmean(variance[mask])))
+        return snr * np.sqrt(sim.spectrograph.dispersion_resolution) if per_resolution else snr
+
+    def setup_to_snr(self, snr, lbda_range=None, frame="rest", search="exact", per_resolution=True,
+                     backend="auto", allow_partial=False):
+        """Find and apply the readout with the shortest total exposure reaching ``snr`` in the
+        extracted galaxy spectrum (per resolution element by default); returns the ETC result dict.
+        Every candidate (n, m, d) × ramps of ``etc.search.candidate_readouts`` is evaluated."""
+        from slicersim.etc.search import (candidate_readouts, check_snr_target, exact_choice, limit_error,
+                                          max_frames_for)
+        if search != "exact":
+            raise ETCError(f"galaxy targets support search='exact' only, got {search!r}")
+        sim, det = self.simulation, self.simulation.detector
+        snr = check_snr_target(snr)
+        band = self._band(lbda_range, frame)
+        idx = np.nonzero(sim.band_mask(band, allow_partial=allow_partial))[0]
+        dr = sim.spectrograph.dispersion_resolution
+        target = snr / np.sqrt(dr) if per_resolution else snr
+        setup, _ = self._extraction_setup()
+        n, m, d = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
+        snr1 = band_snr_table(sim, setup, self.method, (idx[0], idx[-1] + 1), (n, m, d))
+        choice = exact_choice(snr1[None, :], n, m, d, np.array([target]), max_frames=max_frames_for(det.tframe))
+        if choice["limited"][0]:
+            raise limit_error(snr, band, det.tframe)
+        if choice["n"][0] == 0:
+            raise ETCError(f"target SNR {snr} cannot be reached in {band} Å (no galaxy light in the aperture?)")
+        nmd = (int(choice["n"][0]), int(choice["m"][0]), int(choice["d"][0]))
+        nramps, reached = int(choice["nramps"][0]), float(choice["snr"][0])
+        sim.update(nmd=nmd, nramps=nramps)
+        result = {"nmd": nmd, "nramps": nramps, "snr": reached, "snr_target": target,
+                  "snr_per_resolution": reached * np.sqrt(dr),
+                  "exposure_time": nramps * readout_times(nmd, det.tframe)["exposure_time_per_ramp"],
+                  "trace": None, "lbda_range_obs": band}
+        self.last_etc = result
+        return result
+
+    def get_variance_contribution(self):
+        """Per-source variance contribution [ADU²] per bin of the extracted galaxy spectrum:
+        Var(all) − Var(source off), for the eight sources of slicersim."""
+        _, _, total = self._extract(None)
+        out = {"variance": total}
+        for src in VARIANCE_SOURCES:
+            out[src] = total - self._extract(None, off=src)[2]
+        return out
+
+    def get_band_variance_contribution(self, lbda_range=None, frame="rest", allow_partial=False):
+        """Band means of :meth:`get_variance_contribution` (absolute [ADU²] and ``frac_<src>``)."""
+        mask = self.simulation.band_mask(self._band(lbda_range, frame), allow_partial=allow_partial)
+        _, signal, total = self._extract(None)
+        mean_total = float(np.nanmean(total[mask]))
+        out = {"signal": float(np.nanmean(signal[mask])), "variance": mean_total,
+               "snr": float(np.nanmean(signal[mask]) / np.sqrt(mean_total))}
+        for src, var in self.get_variance_contribution().items():
+            if src != "variance":
+                out[src] = float(np.nanmean(var[mask]))
+                out[f"frac_{src}"] = out[src] / mean_total
+        return out
+
+
+class LazuliGalaxy(_Lazuli, Galaxy):
+    """A galaxy alone observed with the Lazuli IFS (slicersim 1.4.2 ``LazuliGalaxy``)."""
+
+
+def _check_aperture_name(aperture):
+    parse_aperture(aperture)
+    return aperture
+
+
+def _check_aperture_position(position):
+    if isinstance(position, str):
+        if position != "host":
+            raise ParameterError(f"aperture__position must be 'host' or (x, y) [cells], got {position!r}")
+        return position
+    return _check_position(position)
+
+
+def _check_position(position):
+    return PointSource([1.0, 2.0], [0.0, 0.0], position=position).position
+
+
+def _check_method(method):
+    if method != "default" and method not in EXTRACTION_METHODS:
+        raise ParameterError(f"method must be 'default', 'optimal' or 'aperture', got {method!r}")
+    return method
