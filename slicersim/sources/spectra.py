@@ -1,8 +1,12 @@
-"""Source spectra: validated (λ, F) tables, point sources, SNe Ia (sncosmo), black bodies.
+"""Source spectra: validated (λ, F) tables, point sources, any sncosmo source (SNe Ia),
+black bodies, power laws and CALSPEC files.
 
 Flux densities F(λ) are in erg/s/cm²/Å, wavelengths in Å.
 """
 from __future__ import annotations
+
+import os
+from pathlib import Path
 
 import numpy as np
 
@@ -10,13 +14,24 @@ from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
 from slicersim.errors import ParameterError, SpectrumError
 from slicersim.versioning import Versioned
 
-__all__ = ["PointSource", "validate_spectrum", "snia_spectrum", "blackbody_flambda", "normalise_to_mag",
-           "SNCOSMO_SNIA_MODELS"]
+__all__ = ["PointSource", "validate_spectrum", "snia_spectrum", "sncosmo_spectrum", "load_sncosmo_source",
+           "blackbody_flambda", "powerlaw_flambda", "normalise_to_mag", "find_calspec_file", "read_calspec",
+           "SNCOSMO_SNIA_MODELS", "SNCOSMO_OFFLINE", "POWERLAW_LAMBDA_REF", "CALSPEC_URL", "default_lbda"]
 
 #: sncosmo SN Ia sources and whether they work offline (built into sncosmo)
 SNCOSMO_SNIA_MODELS = {"hsiao-subsampled": True, "hsiao": False, "salt2": False,
                        "salt2-extended": False, "salt3": False, "salt3-nir": False}
+#: sncosmo sources whose files ship inside the sncosmo package (every other one needs its data files)
+SNCOSMO_OFFLINE = ("hsiao-subsampled",)
+#: reference wavelength of the power law [Å] (slicersim 1.4.2's; it cancels in the normalisation)
+POWERLAW_LAMBDA_REF = 5500.0
+#: the CALSPEC archive (STScI): ``<star>_<instruments>_<version>.fits`` files
+CALSPEC_URL = "https://archive.stsci.edu/hlsps/reference-atlases/cdbs/current_calspec/"
 
+
+def default_lbda():
+    """Default wavelength grid of model spectra: 3000–19990 Å, 10 Å steps."""
+    return np.arange(3000.0, 20000.0, 10.0)
 
 
 
@@ -49,9 +64,19 @@ def blackbody_flambda(lbda, temperature):
     return blam * 1e3 * 1e-10  # erg/s/cm²/Å/sr  (W/m²/m = 1e3 erg/s/cm²/cm ... = 1e-7 erg/s/cm²/Å)
 
 
+def powerlaw_flambda(lbda, alpha, lambda_ref=POWERLAW_LAMBDA_REF):
+    """Power-law shape (λ / λ_ref)^α at λ [Å] (dimensionless): F_λ ∝ λ^α, i.e. F_ν ∝ λ^(α+2)
+    (slicersim 1.4.2's convention: α is the F_λ index)."""
+    if isinstance(alpha, (bool, np.bool_)) or not isinstance(alpha, (int, float, np.number)) \
+            or not np.isfinite(alpha):
+        raise SpectrumError(f"power-law index alpha must be a finite number, got {alpha!r}")
+    return (np.asarray(lbda, dtype=float) / lambda_ref) ** float(alpha)
+
+
 def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3,
                   band="bessellb", magsys="ab", lbda=None, x1=None, c=None, cosmology=None):
-    """SN Ia spectrum from sncosmo at ``phase`` days (observer frame) after peak.
+    """SN Ia spectrum from sncosmo at ``phase`` days (observer frame) after peak
+    (:func:`sncosmo_spectrum` with the peak absolute magnitude ``peak_absmag`` in rest-frame ``band``).
 
     Returns (λ[Å], F[erg/s/cm²/Å]) on ``lbda`` (default 3000–19990 Å, 10 Å step).
     ``hsiao-subsampled`` is built into sncosmo and works offline; SALT2/3 need
@@ -59,35 +84,169 @@ def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-1
     ``x1`` and ``c`` (default 0) exist only for SALT sources: given with any other
     source (e.g. Hsiao) they would be ignored, so they raise :class:`ParameterError`.
     """
-    from slicersim.errors import ParameterError
-    if "salt" not in str(source).lower() and (x1 is not None or c is not None):
+    salt = "salt" in str(source).lower()
+    if not salt and (x1 is not None or c is not None):
         raise ParameterError(f"x1 / c are SALT parameters: sncosmo source {source!r} has none "
                              "(use source='salt2' or 'salt3', or drop them)")
+    params = {"x1": 0.0 if x1 is None else x1, "c": 0.0 if c is None else c} if salt else None
+    return sncosmo_spectrum(source, redshift, phase, peak_absmag=peak_absmag, band=band, magsys=magsys,
+                            params=params, cosmology=cosmology, lbda=lbda)
+
+
+def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessellb", magsys="ab",
+                     params=None, cosmology=None, lbda=None):
+    """Observer-frame spectrum of any sncosmo source: ``sncosmo.Model(source)`` at ``redshift``,
+    t0 = 0, evaluated at ``phase`` [observer-frame days] on the part of ``lbda`` [Å] (default
+    3000–19990 Å, 10 Å) the model covers.  Returns (λ [Å], F_λ [erg/s/cm²/Å]).
+
+    source : a registry name, a (name, version) pair or a ``sncosmo.Source`` (your own files,
+        e.g. ``sncosmo.TimeSeriesSource``); see :func:`load_sncosmo_source`
+    params : the source's own parameters, e.g. {"x1": 1.0, "c": 0.1} (SALT), {"theta": 30} (kilonova)
+    peak_absmag : peak absolute magnitude in rest-frame ``band`` / ``magsys``
+        (``Model.set_source_peakabsmag``, distance modulus of ``cosmology``, default Planck18);
+        None keeps the source's own amplitude
+    """
     import sncosmo
     from astropy.cosmology import Planck18
-    if not redshift > 0:
+    if isinstance(redshift, (bool, np.bool_)) or not isinstance(redshift, (int, float, np.number)) \
+            or not (np.isfinite(redshift) and redshift > 0):
         raise SpectrumError(f"redshift must be > 0, got {redshift}")
-    if lbda is None:
-        lbda = np.arange(3000.0, 20000.0, 10.0)
-    try:
-        model = sncosmo.Model(source)
-    except Exception as exc:
-        raise SpectrumError(f'sncosmo source "{source}" could not be loaded (needs download; offline?) '
-                            f"— available offline: {', '.join(k for k, v in SNCOSMO_SNIA_MODELS.items() if v)} "
-                            f"({type(exc).__name__}: {exc})") from exc
-    params = {"z": redshift, "t0": 0.0}
-    if "salt" in str(source).lower():
-        params.update(x1=0.0 if x1 is None else x1, c=0.0 if c is None else c)
-    model.set(**params)
-    model.set_source_peakabsmag(peak_absmag, band, magsys, cosmo=cosmology or Planck18)
+    if isinstance(phase, (bool, np.bool_)) or not isinstance(phase, (int, float, np.number)) \
+            or not np.isfinite(phase):
+        raise SpectrumError(f"phase must be a finite number of days, got {phase!r}")
+    if peak_absmag is not None and (isinstance(peak_absmag, (bool, np.bool_)) or not isinstance(
+            peak_absmag, (int, float, np.number)) or not np.isfinite(peak_absmag)):
+        raise SpectrumError(f"peak_absmag must be a finite magnitude or None, got {peak_absmag!r}")
+    lbda = default_lbda() if lbda is None else np.asarray(lbda, dtype=float)
+    model = sncosmo.Model(load_sncosmo_source(source))
+    params = dict(params or {})
+    settable = [p for p in model.param_names if p not in ("z", "t0")]
+    bad = [k for k, v in params.items() if k not in settable or isinstance(v, (bool, np.bool_))
+           or not isinstance(v, (int, float, np.number)) or not np.isfinite(v)]
+    if bad:
+        raise ParameterError(f"invalid parameter(s) {bad} of sncosmo source {_source_label(source)!r}: "
+                             f"its parameters are {', '.join(settable)} (finite numbers)")
+    model.set(z=redshift, t0=0.0, **params)
+    if peak_absmag is not None:
+        try:
+            model.set_source_peakabsmag(peak_absmag, band, magsys, cosmo=cosmology or Planck18)
+        except Exception as exc:
+            raise SpectrumError(f"cannot normalise {_source_label(source)!r} to peak absolute magnitude "
+                                f"{peak_absmag} in {band!r} ({magsys}): {type(exc).__name__}: {exc}") from exc
     lo, hi = model.minwave(), model.maxwave()
-    lbda = np.asarray(lbda, dtype=float)
     keep = (lbda >= lo) & (lbda <= hi)
     if np.count_nonzero(keep) < 2:
-        raise SpectrumError(f"redshift {redshift}: the sncosmo model {source!r} covers {lo:.0f}–{hi:.0f} Å "
-                            f"(observer frame) at this redshift, outside the wavelength range "
-                            f"{lbda[0]:.0f}–{lbda[-1]:.0f} Å: the redshift is outside the model's range")
+        raise SpectrumError(f"redshift {redshift}: the sncosmo model {_source_label(source)!r} covers "
+                            f"{lo:.0f}–{hi:.0f} Å (observer frame) at this redshift, outside the wavelength "
+                            f"range {lbda[0]:.0f}–{lbda[-1]:.0f} Å: the redshift is outside the model's range")
     return lbda[keep], model.flux(phase, lbda[keep])
+
+
+def _source_label(source):
+    name = getattr(source, "name", None) if not isinstance(source, (str, tuple)) else source
+    return name if isinstance(name, str) else str(source)
+
+
+def load_sncosmo_source(source):
+    """A ``sncosmo.Source`` from a registry name, a (name, version) pair or a Source (returned as is).
+
+    Only the sources in :data:`SNCOSMO_OFFLINE` ship inside sncosmo; the others load from
+    sncosmo's data directory, which sncosmo fills by downloading.  When that fails, or the
+    name is unknown, SpectrumError says (in one line) which source and how to provide it."""
+    import sncosmo
+    if isinstance(source, sncosmo.Source):
+        return source
+    name, version = source if isinstance(source, tuple) and len(source) == 2 else (source, None)
+    if not isinstance(name, str) or not name.strip() or not (version is None or isinstance(version, str)):
+        raise SpectrumError(f"an sncosmo source is a name, a (name, version) pair or a sncosmo.Source, "
+                            f"got {source!r}")
+    try:
+        return sncosmo.get_source(name, version=version)
+    except Exception as exc:
+        raise SpectrumError(_missing_source_message(name, version, exc)) from exc
+
+
+def _missing_source_message(name, version, exc):
+    """One line: the source, why it failed and how to provide its files."""
+    label = name if version is None else f"{name}, version {version}"
+    cause = " ".join(f"{type(exc).__name__}: {exc}".split())[:160]
+    own = "pass a sncosmo.Source built from your own files (e.g. sncosmo.TimeSeriesSource(phase, wave, flux))"
+    known, relpath = _sncosmo_registry_entry(name, version)
+    if known is False:
+        return (f'sncosmo source "{label}" is not a name sncosmo knows (its list of built-in sources) — '
+                f"available offline: {', '.join(SNCOSMO_OFFLINE)}; for a model of your own, {own}")
+    where = relpath or "its files"
+    try:
+        from sncosmo.builtins import DATADIR
+        datadir, remote = DATADIR.rootdir(), DATADIR._remote_root
+    except Exception:  # noqa: BLE001  (sncosmo internals differ between versions)
+        datadir, remote = "sncosmo's data directory", "https://sncosmo.github.io/data/"
+    return (f'sncosmo source "{label}" could not be loaded (needs download; offline?) — available offline: '
+            f"{', '.join(SNCOSMO_OFFLINE)}.  To provide it, put sncosmo's {where!r} (downloaded from "
+            f"{remote}, a folder comes as .tar.gz) under {datadir} or set SNCOSMO_DATA_DIR to a folder "
+            f"holding it, or {own} ({cause})")
+
+
+def _sncosmo_registry_entry(name, version):
+    """(known, relative data path) of a source in sncosmo's registry; (None, None) if unknown here."""
+    try:
+        from sncosmo.models import _SOURCES
+        loaders = dict(_SOURCES._loaders)
+    except Exception:  # noqa: BLE001  (private registry layout)
+        return None, None
+    keys = [k for k in loaders if k[0] == name.lower() and (version is None or k[1] == version)]
+    if not keys:
+        return False, None
+    args = loaders[max(keys, key=lambda k: str(k[1]))][1]
+    return True, next((a for a in args if isinstance(a, str) and "/" in a), None)
+
+
+def find_calspec_file(name, calspec_dir=None):
+    """Path of a CALSPEC FITS file: ``name`` itself when it is a file, else the last (latest
+    version) ``<name>*.fits`` in ``calspec_dir`` or $SLICERSIM_CALSPEC_DIR (case-insensitive
+    prefix, e.g. ``"bd_17d4708"``).  SpectrumError, saying where to download it, when absent."""
+    if not isinstance(name, (str, os.PathLike)) or not str(name).strip():
+        raise SpectrumError(f"a CALSPEC star is a name (e.g. 'bd_17d4708') or a FITS path, got {name!r}")
+    if Path(name).is_file():
+        return Path(name)
+    folder = calspec_dir if calspec_dir is not None else os.environ.get("SLICERSIM_CALSPEC_DIR")
+    how = (f"download it from {CALSPEC_URL} and pass its path, or calspec_dir= (or $SLICERSIM_CALSPEC_DIR) "
+           "naming the folder that holds it")
+    if folder is None:
+        raise SpectrumError(f"CALSPEC star {str(name)!r}: no such file and no CALSPEC folder given; {how}")
+    if not Path(folder).is_dir():
+        raise SpectrumError(f"CALSPEC star {str(name)!r}: the CALSPEC folder {str(folder)!r} does not exist; {how}")
+    prefix = Path(name).name.lower()
+    found = sorted(p for p in Path(folder).iterdir() if p.is_file() and p.name.lower().startswith(prefix)
+                   and p.name.lower().endswith((".fits", ".fits.gz")))
+    if not found:
+        raise SpectrumError(f"CALSPEC star {str(name)!r}: no file {prefix}*.fits in {str(folder)!r}; {how}")
+    return found[-1]
+
+
+def read_calspec(path):
+    """(λ [Å], F_λ [erg/s/cm²/Å]) of a CALSPEC FITS file: the first table with WAVELENGTH
+    (Å) and FLUX (FLAM) columns; units other than those raise SpectrumError."""
+    from astropy.io import fits
+    try:
+        with fits.open(path) as hdus:
+            for hdu in hdus:
+                cols = getattr(hdu, "columns", None)
+                names = [c.name.upper() for c in cols] if cols is not None else []
+                if "WAVELENGTH" in names and "FLUX" in names:
+                    units = {c.name.upper(): (c.unit or "").strip().lower() for c in cols}
+                    lbda = np.array(hdu.data.field(names.index("WAVELENGTH")), dtype=float)
+                    flux = np.array(hdu.data.field(names.index("FLUX")), dtype=float)
+                    break
+            else:
+                raise SpectrumError(f"{path}: no table with WAVELENGTH and FLUX columns (CALSPEC layout)")
+    except OSError as exc:
+        raise SpectrumError(f"{path}: not a readable FITS file ({exc})") from exc
+    if units["WAVELENGTH"] not in ("", "angstroms", "angstrom", "a"):
+        raise SpectrumError(f"{path}: WAVELENGTH in {units['WAVELENGTH']!r}, expected Angstroms (CALSPEC)")
+    if units["FLUX"] not in ("", "flam", "erg/s/cm2/a", "erg/(s cm2 angstrom)", "erg s-1 cm-2 angstrom-1"):
+        raise SpectrumError(f"{path}: FLUX in {units['FLUX']!r}, expected FLAM = erg/s/cm²/Å (CALSPEC)")
+    return validate_spectrum(lbda, flux, name=str(path))
 
 
 def normalise_to_mag(lbda, flux, mag, band="bessellb", magsys="ab"):

@@ -1,0 +1,159 @@
+"""More target kinds: power laws, any sncosmo source by name, kilonovae and CALSPEC stars from files.
+
+Every spectrum is in the observer frame [erg/s/cm²/Å] and normalised when the target is
+built; offline, sncosmo serves ``hsiao-subsampled`` and the Bessell bands only (a source or
+band that needs a download raises SpectrumError saying how to provide its files).
+
+* :class:`PowerLaw` — F_λ ∝ (λ / 5500 Å)^α (slicersim 1.4.2's convention), ``mag`` in ``band``;
+* :class:`SncosmoTarget` — ``sncosmo.Model(source)`` at a redshift and phase;
+* :class:`Kilonova` — a POSSIS model file (:mod:`slicersim.sources.kilonova`) through sncosmo;
+* :class:`CalSpec` — a CALSPEC FITS file (absolute flux; optional renormalisation).
+
+Each has a ``Lazuli*`` variant (Lazuli IFS, CBE configuration, narrow field by default).
+"""
+from __future__ import annotations
+
+import math
+import numbers
+
+import numpy as np
+
+from slicersim.errors import ParameterError
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS
+from slicersim.sources.spectra import (find_calspec_file, load_sncosmo_source, normalise_to_mag,
+                                       powerlaw_flambda, read_calspec, sncosmo_spectrum, validate_spectrum)
+from slicersim.targets.base import Target, _check_redshift, _Lazuli
+
+__all__ = ["PowerLaw", "SncosmoTarget", "Kilonova", "CalSpec", "LazuliPowerLaw", "LazuliSncosmoTarget",
+           "LazuliKilonova", "LazuliCalSpec", "powerlaw_grid"]
+
+
+def powerlaw_grid():
+    """Default wavelength grid of a power law [Å]: 1000–30000 Å in 5 Å steps."""
+    return np.arange(1000.0, 30000.0 + 2.5, 5.0)
+
+
+def _check_mag(mag, name="mag", required=False):
+    if mag is None and not required:
+        return None
+    if isinstance(mag, bool) or not isinstance(mag, numbers.Real) or not math.isfinite(mag):
+        raise ParameterError(f"{name} must be a finite magnitude{'' if required else ' or None'}, got {mag!r}")
+    return float(mag)
+
+
+class PowerLaw(Target):
+    """F_λ = F_0 (λ / 5500 Å)^α [erg/s/cm²/Å] (F_ν ∝ λ^(α+2)), F_0 such that the spectrum has
+    magnitude ``mag`` in ``band`` / ``magsys`` (sncosmo synthetic photometry on ``lbda``).
+
+    ``lbda`` [Å] defaults to :func:`powerlaw_grid` and must cover the band.  ``band`` defaults
+    to ``"bessellr"`` (slicersim 1.4.2's ``"sdssr"`` needs a download).  ``redshift`` is only a
+    label for ``frame="rest"`` bands.  Other arguments: :class:`~slicersim.targets.base.Target`.
+    """
+
+    def __init__(self, alpha, mag, band="bessellr", magsys="ab", lbda=None, config=None, field="default",
+                 position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS):
+        mag = _check_mag(mag, required=True)
+        lbda = powerlaw_grid() if lbda is None else lbda
+        lbda, shape = validate_spectrum(lbda, powerlaw_flambda(lbda, alpha), "power law")
+        ratio, _ = normalise_to_mag(lbda, shape, mag, band, magsys)
+        self.alpha, self.mag, self.band, self.magsys = float(alpha), mag, band, magsys
+        super().__init__(lbda, shape * ratio, config=config, field=field, position=position,
+                         redshift=redshift, conventions=conventions)
+
+
+class SncosmoTarget(Target):
+    """Any sncosmo source at ``redshift`` and ``phase`` [observer-frame days from t0 = 0]:
+    F_λ = ``sncosmo.Model(source).flux(phase, λ)`` (:func:`~slicersim.sources.spectra.sncosmo_spectrum`).
+
+    source : a registry name (e.g. ``"hsiao-subsampled"``, ``"salt3"`` when its files are here),
+        a (name, version) pair, or a ``sncosmo.Source`` built from your own files
+    params : the source's parameters, e.g. {"x1": 1, "c": 0.1} for SALT (finite numbers)
+    peak_absmag : peak absolute magnitude in rest-frame ``band`` (``set_source_peakabsmag``,
+        ``cosmology`` default Planck18), or
+    mag : apparent magnitude of the observed spectrum at ``phase`` in observer-frame ``band``;
+        exactly one of the two
+    ``update(redshift=...)`` recomputes the spectrum with the same normalisation rule.
+    """
+
+    def __init__(self, source, redshift, phase=0.0, peak_absmag=None, mag=None, band="bessellb", magsys="ab",
+                 params=None, cosmology=None, config=None, field="default", position=(0.0, 0.0),
+                 conventions=DEFAULT_CONVENTIONS):
+        peak_absmag, mag = _check_mag(peak_absmag, "peak_absmag"), _check_mag(mag)
+        if (peak_absmag is None) == (mag is None):
+            raise ParameterError("give exactly one normalisation: peak_absmag (rest-frame peak absolute "
+                                 f"magnitude) or mag (observed magnitude at this phase), got {peak_absmag=}, {mag=}")
+        redshift = _check_redshift(redshift)
+        if redshift is None:
+            raise ParameterError("an sncosmo source needs a redshift > 0")
+        if params is not None and not isinstance(params, dict):
+            raise ParameterError(f"params must be a dict of source parameters, got {params!r}")
+        self.source = load_sncosmo_source(source)
+        self.phase, self.peak_absmag, self.mag, self.band, self.magsys = phase, peak_absmag, mag, band, magsys
+        self.params, self.cosmology = dict(params or {}), cosmology
+        lbda, flux = self._spectrum_at(redshift)
+        super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift,
+                         conventions=conventions)
+
+    def _spectrum_at(self, redshift):
+        lbda, flux = sncosmo_spectrum(self.source, redshift, self.phase, peak_absmag=self.peak_absmag,
+                                      band=self.band, magsys=self.magsys, params=self.params,
+                                      cosmology=self.cosmology)
+        if self.mag is not None:
+            flux = flux * normalise_to_mag(lbda, flux, self.mag, self.band, self.magsys)[0]
+        return lbda, flux
+
+
+class Kilonova(SncosmoTarget):
+    """Kilonova from a POSSIS model file (``.txt`` or ``.fits``; :mod:`slicersim.sources.kilonova`)
+    at ``redshift``, ``phase`` [observer-frame days since merger] and viewing angle ``theta``
+    [deg, 0 pole-on … 90 edge-on].
+
+    Normalised to ``peak_absmag`` (default −15.8, slicersim 1.4.2's) in rest-frame ``band``
+    (default ``"bessellr"``; 1.4.2's ``"sdssr"`` needs a download), or to the observed ``mag``
+    at ``phase`` when given (1.4.2's ``mag`` is instead a rest-frame peak magnitude).
+    No model ships with slicersim: a missing file raises SpectrumError saying where to get one.
+    """
+
+    def __init__(self, model, redshift=0.2, phase=1.4, theta=0.0, peak_absmag=-15.8, mag=None, band="bessellr",
+                 magsys="ab", cosmology=None, config=None, field="default", position=(0.0, 0.0),
+                 conventions=DEFAULT_CONVENTIONS):
+        if isinstance(theta, bool) or not isinstance(theta, numbers.Real) or not 0 <= theta <= 180:
+            raise ParameterError(f"theta must be a viewing angle in [0, 180] degrees, got {theta!r}")
+        from slicersim.sources.kilonova import kilonova_source
+        self.model, self.theta = model, float(theta)
+        super().__init__(kilonova_source(model), redshift, phase, peak_absmag=None if mag is not None else peak_absmag,
+                         mag=mag, band=band, magsys=magsys, params={"theta": float(theta)}, cosmology=cosmology,
+                         config=config, field=field, position=position, conventions=conventions)
+
+
+class CalSpec(Target):
+    """CALSPEC spectrophotometric standard from a FITS file (absolute F_λ, no redshift).
+
+    ``name``: a FITS path, or a star name (file-name prefix, e.g. ``"bd_17d4708"``) looked up
+    in ``calspec_dir`` or $SLICERSIM_CALSPEC_DIR (latest version wins;
+    :func:`~slicersim.sources.spectra.find_calspec_file`).  ``mag`` (AB, in ``band``)
+    optionally renormalises the spectrum."""
+
+    def __init__(self, name, calspec_dir=None, mag=None, band="bessellb", config=None, field="default",
+                 position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS):
+        self.path = find_calspec_file(name, calspec_dir)
+        lbda, flux = read_calspec(self.path)
+        self.star = str(name)
+        super().__init__(lbda, flux, mag=_check_mag(mag), band=band, config=config, field=field,
+                         position=position, conventions=conventions)
+
+
+class LazuliPowerLaw(_Lazuli, PowerLaw):
+    """Power law observed with the Lazuli IFS."""
+
+
+class LazuliSncosmoTarget(_Lazuli, SncosmoTarget):
+    """sncosmo source observed with the Lazuli IFS."""
+
+
+class LazuliKilonova(_Lazuli, Kilonova):
+    """Kilonova observed with the Lazuli IFS."""
+
+
+class LazuliCalSpec(_Lazuli, CalSpec):
+    """CALSPEC standard star observed with the Lazuli IFS."""
