@@ -1,4 +1,5 @@
-"""Command-line interface: ``slicersim {info,demo,etc,ramp,survey,campaign}`` (also ``python -m slicersim``).
+"""Command-line interface: ``slicersim {info,demo,etc,ramp,survey,campaign,footprints,plot}`` (also
+``python -m slicersim``).
 
 User errors (bad values, impossible requests, unwritable or existing outputs,
 Ctrl-C) are reported as one line ``slicersim: error: ...`` on stderr with exit
@@ -346,6 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     from slicersim.app.campaign_cli import add_parsers
     add_parsers(sub, fmt)
+    from slicersim.app import pictures_cli
+    pictures_cli.add_parsers(sub, fmt)
     return parser
 
 

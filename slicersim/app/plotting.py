@@ -1,4 +1,5 @@
-"""Diagnostic figures: extracted spectrum and SNR, variance budget, instrument curves.
+"""Diagnostic figures: extracted spectrum and SNR, variance budget, instrument curves; and (from
+:mod:`slicersim.app.pictures`) both fields' scene and cube, PSF profiles, the slice map.
 
 Every function accepts either a :class:`~slicersim.targets.Target` (anything
 with a ``.simulation``) or a :class:`~slicersim.simulation.Simulation`, returns
@@ -11,7 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_spectrum", "plot_variance_budget", "plot_instrument", "SOURCE_STYLES"]
+from slicersim.app.pictures import show_fields, show_psf_profiles, show_slice_map
+
+__all__ = ["plot_spectrum", "plot_variance_budget", "plot_instrument", "SOURCE_STYLES", "show_fields",
+           "show_psf_profiles", "show_slice_map"]
 
 #: label and colour of each variance source (fixed so that figures are comparable)
 SOURCE_STYLES = {

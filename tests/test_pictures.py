@@ -1,0 +1,202 @@
+"""Pictures (slicersim.app.pictures, re-exported by app.plotting) and the footprints/plot CLI.
+
+Every figure is drawn with Agg and checked against arrays computed independently: the
+image data, the curves, the number of slice outlines."""
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+from matplotlib.patches import Polygon  # noqa: E402
+from scipy.special import j1  # noqa: E402
+
+from slicersim.app import plotting  # noqa: E402
+from slicersim.app.cli import main  # noqa: E402
+from slicersim.assembly import build_simulation  # noqa: E402
+from slicersim.errors import ParameterError  # noqa: E402
+from slicersim.instrument.footprints import detector_label_image, field_footprints  # noqa: E402
+from slicersim.instrument.mapper import SlicerMapper  # noqa: E402
+from slicersim.io.footprint_files import read_label_image, read_outlines  # noqa: E402
+from slicersim.targets import LazuliSupernova  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def target():
+    return LazuliSupernova(redshift=0.5)
+
+
+@pytest.fixture(scope="module")
+def small_fields():
+    """Both fields' footprints on 30 bins of the CBE grid (fast)."""
+    mapper = SlicerMapper.default(table_cache=None)
+    edges = build_simulation("cbe", "narrow").spectrograph.lbda_edges[300:331]
+    return mapper, edges, [field_footprints(mapper, f, edges, 116) for f in ("narrow", "wide")]
+
+
+@pytest.fixture(autouse=True)
+def close_figures():
+    yield
+    plt.close("all")
+
+
+def _by_gid(items, gid):
+    found = [a for a in items if a.get_gid() == gid]
+    assert len(found) == 1, (gid, [a.get_gid() for a in items])
+    return found[0]
+
+
+# --------------------------------------------------------------------------- both fields
+def test_show_fields_draws_both_fields_scene_and_cube(target):
+    assert plotting.show_fields is plotting.__dict__["show_fields"]          # exported by plotting
+    fig = plotting.show_fields(target, lbda_range=(5000, 8000))
+    wide = LazuliSupernova(redshift=0.5, field="wide").simulation           # built independently
+    images = [im for ax in fig.axes for im in ax.get_images()]
+    lines = [ln for ax in fig.axes for ln in ax.get_lines()]
+    assert len(images) == 4
+    for field, sim in (("narrow", target.simulation), ("wide", wide)):
+        sel = (sim.lbda >= 5000) & (sim.lbda <= 8000)
+        scene = sim.get_projected_scene()
+        signal = sim.get_cube()[0]
+        assert np.allclose(_by_gid(images, f"{field}:scene").get_array(), scene[sel].sum(axis=0), rtol=1e-12)
+        assert np.allclose(_by_gid(images, f"{field}:cube").get_array(), signal[sel].sum(axis=0), rtol=1e-12)
+        iy, ix = sim.aperture
+        assert np.allclose(_by_gid(lines, f"{field}:cube").get_ydata(), signal[:, iy, ix].sum(axis=1), rtol=1e-12)
+        assert np.allclose(_by_gid(lines, f"{field}:scene").get_ydata(), scene[:, iy, ix].sum(axis=1), rtol=1e-12)
+        half = 29 * sim.spectrograph.spatial_scale                          # 58 cells across: ±1.16″ / ±2.32″
+        assert np.allclose(_by_gid(images, f"{field}:cube").get_extent(), (-half, half, -half, half))
+    assert target.field == "narrow"                                        # the target itself is untouched
+
+
+def test_show_fields_from_a_simulation_and_a_noisy_cube(target, tmp_path):
+    sim = build_simulation("cbe", "wide", pointsource=target.pointsource)
+    fig = plotting.show_fields(sim, seed=7, savefile=tmp_path / "fields.png")
+    assert (tmp_path / "fields.png").stat().st_size > 10_000
+    images = [im for ax in fig.axes for im in ax.get_images()]
+    narrow = build_simulation("cbe", "narrow", pointsource=target.pointsource)
+    noisy = narrow.get_cube(seed=7)[2]
+    assert np.allclose(_by_gid(images, "narrow:cube").get_array(), noisy.sum(axis=0), rtol=1e-12)
+    assert np.allclose(_by_gid(images, "narrow:scene").get_array(),
+                       narrow.get_projected_scene().sum(axis=0), rtol=1e-12)
+    with pytest.raises(ParameterError, match="selects no bin"):
+        plotting.show_fields(target, lbda_range=(100, 200))
+    with pytest.raises(ParameterError, match="Target or a Simulation"):
+        plotting.show_fields("narrow")
+
+
+# --------------------------------------------------------------------------- PSF
+def test_show_psf_profiles_curves_are_the_airy_and_gaussian_models(target):
+    lbdas = (6000.0, 12000.0)
+    fig = plotting.show_psf_profiles(target, lbda=lbdas, rmax=0.3, npoints=301)
+    lines = [ln for ax in fig.axes for ln in ax.get_lines()]
+    assert len(lines) == 5 * len(lbdas) + 2 * 2                            # 5 curves per λ, 2 cell marks per panel
+    tel, sim = target.simulation.telescope, target.simulation
+    assert tel.obscuration == 0.0
+    for lam in lbdas:
+        r = _by_gid(lines, f"airy:{lam:g}").get_xdata()
+        v = np.pi * tel.diameter_ext * np.radians(r / 3600) / (lam * 1e-10)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            airy = np.where(v > 0, (2 * j1(v) / v) ** 2, 1.0)
+        assert np.allclose(_by_gid(lines, f"airy:{lam:g}").get_ydata(), airy, rtol=1e-9, atol=1e-15)
+        sig_t = tel.psf_sigma_ref * lam / 1e4                               # Airy-equivalent σ [arcsec]
+        sig_y = np.hypot(sig_t, tel.guiding_sigma)
+        sig_x = np.sqrt(sig_y**2 + (sim.instrumental_sigma * sim.spectrograph.spatial_scale) ** 2)
+        assert np.allclose(_by_gid(lines, f"gauss_y:{lam:g}").get_ydata(), np.exp(-0.5 * (r / sig_y) ** 2))
+        assert np.allclose(_by_gid(lines, f"gauss_x:{lam:g}").get_ydata(), np.exp(-0.5 * (r / sig_x) ** 2))
+        ee = _by_gid(lines, f"ee_airy:{lam:g}")
+        first_dark = 1.22 * lam * 1e-10 / tel.diameter_ext * 206264.806
+        assert np.interp(first_dark, ee.get_xdata(), ee.get_ydata()) == pytest.approx(0.8378, abs=2e-3)
+    for bad in ((), (-5.0,), (np.nan,)):
+        with pytest.raises(ParameterError, match="lbda"):
+            plotting.show_psf_profiles(target, lbda=bad)
+
+
+# --------------------------------------------------------------------------- slice map
+def test_show_slice_map_outlines_every_slice(small_fields):
+    mapper, edges, fields = small_fields
+    fig = plotting.show_slice_map(footprints=fields)
+    ax = fig.axes[0]
+    outlines = [p for p in ax.patches if isinstance(p, Polygon) and str(p.get_gid()).startswith("slice ")]
+    assert len(outlines) == 116
+    texts = [t for t in ax.texts if str(t.get_gid()).startswith("label ")]
+    assert sorted(int(t.get_text()) for t in texts) == list(range(1, 117))
+    for f in fields:
+        for s in f:
+            xy = _by_gid(outlines, f"slice {s.slice_id}").get_xy()
+            assert np.array_equal(xy[:-1], s.contour) and np.array_equal(xy[-1], s.contour[0])
+    background = _by_gid(ax.get_images(), "background").get_array()
+    label = detector_label_image(*fields)
+    assert np.array_equal(background.mask, label == -1)
+    assert np.array_equal(background.data, label)
+
+    narrow = plotting.show_slice_map(mapper, "narrow", lbda_edges=edges, ncol=116, labels=False,
+                                     region=(2200, 3900, 200, 3900))
+    ax = narrow.axes[0]
+    assert len([p for p in ax.patches if isinstance(p, Polygon)]) == 58 and not ax.texts
+    assert ax.get_xlim() == (200, 3900) and ax.get_ylim() == (2200, 3900)
+
+
+def test_show_slice_map_over_a_detector_image(small_fields):
+    mapper, edges, fields = small_fields
+    rng = np.random.default_rng(1)
+    image = rng.uniform(0.0, 1.0, mapper.detector_shape)
+    image[:10] = 0.0
+    fig = plotting.show_slice_map(footprints=fields[1], image=image)
+    shown = _by_gid(fig.axes[0].get_images(), "background").get_array()
+    assert np.array_equal(np.isnan(shown), image <= 0)
+    assert np.array_equal(shown[10:], image[10:])
+    with pytest.raises(ParameterError, match="detector shape"):
+        plotting.show_slice_map(footprints=fields, image=image[:100])
+    with pytest.raises(ParameterError, match="fields must be"):
+        plotting.show_slice_map(mapper, fields="middle", lbda_edges=edges)
+
+
+# --------------------------------------------------------------------------- CLI
+def test_cli_footprints_writes_label_image_and_outlines(tmp_path, capsys):
+    out = tmp_path / "fp"
+    assert main(["footprints", "--field", "wide", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "wide: 58 slices" in text and "footprints_labels.fits" in text
+    image, header = read_label_image(out / "footprints_labels.fits")
+    desc = read_outlines(out / "footprints_outlines.json")
+    assert header["FIELDS"] == "wide" and header["NBINS"] == 510
+    assert set(np.unique(image)) == {-1, *range(59, 117)} and image[2048:].max() == -1
+    slices = desc["fields"][0]["slices"]
+    assert [s["slice_id"] for s in slices] == list(range(59, 117))
+    # every shared pixel is in two masks and carries one label
+    assert sum(s["npix"] for s in slices) - int((image != -1).sum()) == header["NSHARED"] > 0
+    r0, r1, c0, c1 = slices[0]["bbox"]
+    rows, cols = np.nonzero(image == 59)
+    assert rows.min() >= r0 and rows.max() < r1 and cols.min() >= c0 and cols.max() < c1
+    # existing outputs: one line, exit 2, nothing changed
+    before = (out / "footprints_labels.fits").stat().st_mtime_ns
+    assert main(["footprints", "--field", "wide", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("slicersim: error: output file exists")
+    assert (out / "footprints_labels.fits").stat().st_mtime_ns == before
+
+
+@pytest.mark.parametrize("args, match", [
+    (["plot", "psf", "--out", "x.txt"], "must end with"),
+    (["plot", "slice-map", "--out", "m.png", "--region", "10", "5", "0", "100"], "--region"),
+    (["plot", "fields", "--out", "f.png", "--lbda-range", "8000", "5000"], "LO < HI"),
+    (["footprints", "--out", "fp", "--truncate", "-1"], "--truncate"),
+    (["footprints", "--out", "fp", "--spot-table", "missing.csv"], "no such file"),
+    (["footprints", "--out", "missing/fp"], "parent directory"),
+])
+def test_cli_user_errors_are_one_line(tmp_path, monkeypatch, capsys, args, match):
+    monkeypatch.chdir(tmp_path)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and match in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_plot_psf_and_slice_map(tmp_path, capsys):
+    assert main(["plot", "psf", "--lbda", "8000", "--out", str(tmp_path / "psf.png")]) == 0
+    assert (tmp_path / "psf.png").stat().st_size > 10_000
+    assert main(["plot", "slice-map", "--field", "narrow", "--region", "3300", "3900", "3400", "3900",
+                 "--out", str(tmp_path / "map.png")]) == 0
+    assert (tmp_path / "map.png").stat().st_size > 10_000
+    assert "wrote" in capsys.readouterr().out
