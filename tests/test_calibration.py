@@ -257,6 +257,14 @@ def test_field_switch_readout_and_generic_class(short_range_toml):
     flat.update(field="wide")
     assert flat.field == "wide" and flat.get_readout_config() == {"nmd": (8, 4, 0), "nramps": 2}
     assert flat.simulation.spectrograph.spatial_scale == 0.08
+    before = flat.get_cube()[0]
+    flat.lamp = qth_lamp(mag=12.0 - 2.5 * math.log10(3.0))                 # 3× brighter, at once
+    thermal = flat.simulation.spectrograph.apply_lsf(flat.simulation.thermal_photons) * flat.simulation.qe
+    t = flat.simulation.get_times()["integration_time_per_ramp"] * 2 * flat.simulation.detector.gain
+    np.testing.assert_allclose(flat.get_cube()[0][:, 3, 4] - thermal * t, 3 * (before[:, 3, 4] - thermal * t),
+                               rtol=1e-9)
+    with pytest.raises(ParameterError, match="which"):
+        flat.get_cube(which="medium")
     generic = Flat3DCalibration.from_spectrum([3000.0, 20000.0], [1e-16, 1e-16], config=["cbe", short_range_toml])
     assert generic.field == "narrow"
     with pytest.raises(SpectrumError, match="covers"):
