@@ -71,6 +71,8 @@ class Target:
     default_config, default_field = "cbe", "auto"
     #: parameters of the target itself (the simulation adds its own, see ``mutable_parameters``)
     own_parameters = ("redshift", "position", "field", "config")
+    #: host in the scene and how it is held (sources.galaxies.HostPlacement); none by default
+    _host = _host_state = None
 
     def __init__(self, lbda, flux, mag=None, band="bessellb", config=None, field="default",
                  position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS, host=None):
