@@ -27,7 +27,7 @@ detector.  So:
   and ``lbda_range`` [Å], the edges of the bins whose windows reach the detector.
 
 Footprints of one (mapper, field, grid, truncate) are computed once per process (a full
-Lazuli field — 58 slices × 116 columns × 510 bins — takes ~2 s) and kept
+Lazuli field — 58 slices × 116 columns × 510 bins — takes ~1 s, its label image 0.1–0.4 s) and kept
 (:func:`field_footprints`, a few per mapper).
 """
 from __future__ import annotations
