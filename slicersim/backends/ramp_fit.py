@@ -1,0 +1,281 @@
+"""Up-the-ramp fitting of MACC group means: the kernel ``kernels/ramp_fit.cl`` and its NumPy twin.
+
+Per pixel, over all integrations of a flat block (group means g_k [DN], gain g [DN/e-]):
+
+* differences D_j = (g_{j+1} − g_j)/g [e-] of consecutive usable groups (not SATURATED, not
+  DO_NOT_USE; a group at or above ``satlim`` and every later group are SATURATED); a JUMP_DET
+  flag on group j+1 drops D_j;
+* jumps (two-point differences, as stcal's): the used difference farthest from their median
+  is a jump while |D_j − med| > ``jump_threshold``·σ, σ² = 2σ_g² + (max(med, 0)/τ)(τ − 2c) the
+  exact variance of a difference (at least 3 differences are needed);
+* the runs of used differences are the segments.  Their covariance is tridiagonal Toeplitz:
+  Var D = 2σ_g² + λ(τ − 2c), Cov(D_j, D_j+1) = λc − σ_g², with σ_g² the read (and rounding)
+  variance of a group mean [e-²], τ = (m + d) t_f and c = t_f (m² − 1)/(6m);
+* ``ols``: unweighted least squares per segment, segments (and integrations) combined with
+  read-noise weights (stcal's combination); ``gls``: generalised least squares with the exact
+  covariance at the OLS rate λ₀ (one iteration), which is the inverse-variance combination of
+  the segments' GLS slopes.  Either way rate = Σw·D/(τΣw) and the variance is wᵀTw/(τΣw)²,
+  split exactly into read and Poisson parts.
+
+Both backends follow the same operation order (FP contraction off in the kernel); they agree
+to rounding (≈1e-15 relative) and make the same jump decisions.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from slicersim.backends import opencl
+
+__all__ = ["FitConstants", "fit_constants", "fit_block_numpy", "fit_block_opencl", "WEIGHTINGS",
+           "JUMP_MIN_DIFFS", "DQ_DO_NOT_USE", "DQ_SATURATED", "DQ_JUMP_DET"]
+
+WEIGHTINGS = ("gls", "ols")
+JUMP_MIN_DIFFS = 3                 # used differences needed to test for a jump
+DQ_DO_NOT_USE, DQ_SATURATED, DQ_JUMP_DET = 1, 2, 4
+MAX_GROUPS = 1024                  # private arrays of the kernel hold NGROUPS − 1 doubles each
+
+
+@dataclass(frozen=True)
+class FitConstants:
+    """Validated scalars of a fit (see :func:`fit_constants`)."""
+
+    ngroups: int
+    inv_gain: float        # e- per DN
+    sg2: float             # variance of one group mean [e-²]
+    tau: float             # group time (m + d) t_f [s]
+    ccorr: float           # t_f (m² − 1)/(6m) [s]
+    satlim: float          # DN at and above which a group is saturated (inf: never)
+    jump_thr: float        # σ; 0: no jump detection
+    weighting: str
+
+
+def fit_constants(nmd, tframe, gain, read_noise, quantization=0.0, saturation=math.inf, jump_threshold=4.0,
+                  weighting="gls"):
+    """FitConstants of a MACC(n, m, d) readout.
+
+    tframe [s]; gain [DN/e-]; read_noise [e-] per frame; quantization [DN²] added to the variance
+    of each group mean (1/12 for integer data); saturation [DN]; jump_threshold [σ] (None or 0:
+    off); weighting ``"gls"`` or ``"ols"``."""
+    n, m, d = (int(v) for v in nmd)
+    if n < 2 or n > MAX_GROUPS or m < 1 or d < 0:
+        raise ValueError(f"readout (n, m, d) = {nmd}: need 2 ≤ n ≤ {MAX_GROUPS}, m ≥ 1, d ≥ 0")
+    for name, val, low in (("tframe", tframe, 0.0), ("gain", gain, 0.0)):
+        if not (math.isfinite(val) and val > low):
+            raise ValueError(f"{name} must be finite and > 0, got {val}")
+    for name, val in (("read_noise", read_noise), ("quantization", quantization)):
+        if not (math.isfinite(val) and val >= 0):
+            raise ValueError(f"{name} must be finite and ≥ 0, got {val}")
+    thr = 0.0 if jump_threshold is None else float(jump_threshold)
+    if not (math.isfinite(thr) and thr >= 0):
+        raise ValueError(f"jump_threshold must be finite and ≥ 0 σ (or None), got {jump_threshold}")
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    sat = math.inf if saturation is None else float(saturation)
+    if math.isnan(sat):
+        raise ValueError("saturation must be a number of DN (or None)")
+    sg2 = read_noise ** 2 / m + quantization / gain ** 2
+    return FitConstants(n, 1.0 / gain, sg2, (m + d) * tframe, tframe * (m * m - 1) / (6.0 * m), sat, thr, weighting)
+
+
+def _check_block(sci, gdq, pixeldq, k):
+    if sci.ndim != 3 or sci.shape[1] != k.ngroups or gdq.shape != sci.shape:
+        raise ValueError(f"sci and gdq must be (nints, {k.ngroups}, npix) alike, got {sci.shape} and {gdq.shape}")
+    if sci.dtype not in (np.uint16, np.float64) or gdq.dtype != np.uint8:
+        raise ValueError(f"sci must be uint16 or float64 and gdq uint8, got {sci.dtype} and {gdq.dtype}")
+    if pixeldq.shape != (sci.shape[2],) or pixeldq.dtype != np.uint32:
+        raise ValueError(f"pixeldq must be uint32 ({sci.shape[2]},), got {pixeldq.dtype} {pixeldq.shape}")
+
+
+# ----------------------------------------------------------------------------- NumPy twin
+def _differences(sci_i, flags, inv_gain):
+    """D (N, npix) [e-] and used (N, npix) of one integration from its flags."""
+    raw = sci_i.astype(np.float64, copy=False)
+    usable = (flags & (DQ_SATURATED | DQ_DO_NOT_USE)) == 0
+    used = usable[:-1] & usable[1:] & ((flags[1:] & DQ_JUMP_DET) == 0)
+    return (raw[1:] - raw[:-1]) * inv_gain, used
+
+
+def _detect_jumps(D, used, flags, njump, k, pois_diag):
+    """Flag jumps in place (used, flags, njump), as the kernel's loop, for all pixels at once."""
+    idx = np.arange(D.shape[1])
+    while idx.size:
+        u, d = used[:, idx], D[:, idx]
+        nv = u.sum(axis=0)
+        keep = nv >= JUMP_MIN_DIFFS
+        idx, u, d, nv = idx[keep], u[:, keep], d[:, keep], nv[keep]
+        if not idx.size:
+            break
+        cols = np.arange(idx.size)
+        ordered = np.sort(np.where(u, d, np.inf), axis=0)
+        med = 0.5 * (ordered[(nv - 1) // 2, cols] + ordered[nv // 2, cols])
+        limit = k.jump_thr * np.sqrt(2.0 * k.sg2 + (np.maximum(med, 0.0) / k.tau) * pois_diag)
+        dev = np.where(u, np.abs(d - med), -1.0)
+        jbest = np.argmax(dev, axis=0)
+        hit = dev[jbest, cols] > limit
+        idx, jbest = idx[hit], jbest[hit]
+        used[jbest, idx] = False
+        flags[jbest + 1, idx] |= DQ_JUMP_DET
+        njump[idx] += 1
+
+
+def _ols_sums(D, used, sums):
+    """Add the OLS sums of each run of L used differences to sums = [P, S, W2, Q] (in place):
+    P = Σ p(L+1−p) D_p, S = L(L+1)(L+2)/6, Σw² = L(L+1)(L+2)(L²+2L+2)/30, Q = L(L+1)(L+2)/3."""
+    N, npix = D.shape
+    s1, s2, pos = np.zeros(npix), np.zeros(npix), np.zeros(npix)
+    for j in range(N):
+        u = used[j]
+        pos = np.where(u, pos + 1.0, pos)
+        s1 = np.where(u, s1 + pos * D[j], s1)
+        s2 = np.where(u, s2 + pos * pos * D[j], s2)
+        end = u & (used[j + 1] == 0) if j + 1 < N else u
+        if end.any():
+            L = pos[end]
+            L3 = L * (L + 1.0) * (L + 2.0)
+            sums[0][end] += (L + 1.0) * s1[end] - s2[end]
+            sums[1][end] += L3 / 6.0
+            sums[2][end] += L3 * (L * L + 2.0 * L + 2.0) / 30.0
+            sums[3][end] += L3 / 3.0
+            s1[end], s2[end], pos[end] = 0.0, 0.0, 0.0
+
+
+def _gls_sums(D, used, a, r, sums):
+    """Add Σw·D, Σw, Σw², Σw_j·w_j+1, Σ(w_j − w_j−1)² (sums, in place) for w = T'⁻¹1 per run,
+    T' = tridiag(r, 1, r) (leading-minor recurrences, as the kernel; equal weights where a ≤ 0)."""
+    N, npix = D.shape
+    A, B, C = np.zeros((N, npix)), np.zeros((N, npix)), np.zeros((N, npix))
+    r2 = r * r
+    mq, mq1, e = np.ones(npix), np.ones(npix), np.zeros(npix)
+    for j in range(N):
+        u = used[j]
+        e = np.where(u, mq - r * e, 0.0)
+        B[j], C[j], A[j] = e, r * mq, 1.0 / mq1
+        nxt = mq1 - r2 * mq
+        mq, mq1 = np.where(u, mq1, 1.0), np.where(u, nxt, 1.0)
+    P, S, W2, WW, Q = sums
+    positive = a > 0.0
+    wnext = np.zeros(npix)
+    for j in range(N - 1, -1, -1):
+        w = np.where(used[j], np.where(positive, (B[j] - C[j] * wnext) * A[j], 1.0), 0.0)
+        P += w * D[j]
+        S += w
+        W2 += w * w
+        WW += w * wnext
+        step = w - wnext
+        Q += step * step
+        wnext = w
+    Q += wnext * wnext
+
+
+def fit_block_numpy(sci, gdq, pixeldq, k):
+    """NumPy twin of the ``ramp_fit`` kernel.
+
+    sci (nints, n, npix) uint16 [DN] or float64 [DN]; gdq uint8 alike; pixeldq uint32 (npix,);
+    k : :class:`FitConstants`.  Returns fit (4, npix) float64 = rate [e-/s], variance, Poisson
+    and read variance [e-²/s²]; dq uint32 (npix,); njump int32 (npix,); gdq_out uint8 like gdq."""
+    _check_block(sci, gdq, pixeldq, k)
+    nints, n, npix = sci.shape
+    pois_diag = k.tau - 2.0 * k.ccorr
+    gdq_out = np.empty_like(gdq)
+    anysat = np.zeros(npix, bool)
+    njump = np.zeros(npix, np.int32)
+    ols = [np.zeros(npix) for _ in range(4)]                 # P, S, W2, Q
+    for i in range(nints):
+        raw = sci[i].astype(np.float64, copy=False)
+        flags = gdq_out[i]
+        sat = np.logical_or.accumulate(((gdq[i] & DQ_SATURATED) != 0) | (raw >= k.satlim), axis=0)
+        flags[...] = gdq[i] | np.where(sat, DQ_SATURATED, 0).astype(np.uint8)
+        usable = (flags & (DQ_SATURATED | DQ_DO_NOT_USE)) == 0
+        njump += (usable[:-1] & usable[1:] & ((flags[1:] & DQ_JUMP_DET) != 0)).sum(axis=0, dtype=np.int32)
+        anysat |= sat[-1]
+        D, used = _differences(sci[i], flags, k.inv_gain)
+        if k.jump_thr > 0.0:
+            _detect_jumps(D, used, flags, njump, k, pois_diag)
+        _ols_sums(D, used, ols)
+    P, S, W2, Q = ols
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam0 = np.where(S > 0.0, np.maximum(P / (k.tau * S), 0.0), 0.0)
+    WW = W2 - 0.5 * Q
+    if k.weighting == "gls":
+        a = 2.0 * k.sg2 + lam0 * pois_diag
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.where(a > 0.0, (lam0 * k.ccorr - k.sg2) / a, 0.0)
+        P, S, W2, WW, Q = sums = [np.zeros(npix) for _ in range(5)]
+        for i in range(nints):
+            _gls_sums(*_differences(sci[i], gdq_out[i], k.inv_gain), a, r, sums)
+    dq = pixeldq | np.where(anysat, DQ_SATURATED, 0).astype(np.uint32) \
+        | np.where(njump > 0, DQ_JUMP_DET, 0).astype(np.uint32)
+    fit = np.full((4, npix), np.nan)
+    ok = S > 0.0
+    norm = k.tau * S[ok]
+    n2 = norm * norm
+    var_read = k.sg2 * Q[ok] / n2
+    var_pois = lam0[ok] * (pois_diag * W2[ok] + 2.0 * k.ccorr * WW[ok]) / n2
+    fit[0, ok] = P[ok] / norm
+    fit[1, ok] = var_read + var_pois
+    fit[2, ok] = var_pois
+    fit[3, ok] = var_read
+    dq[~ok] |= np.uint32(DQ_DO_NOT_USE)
+    return fit, dq, njump, gdq_out
+
+
+# ----------------------------------------------------------------------------- OpenCL
+CPU_WORK_GROUP = 64
+
+
+def _buffer(workspace, name, nbytes):
+    if workspace is None:
+        return opencl.device_buffer(nbytes)
+    buf, size = workspace.get(name, (None, 0))
+    if size < nbytes:
+        buf, size = opencl.device_buffer(nbytes), nbytes
+        workspace[name] = (buf, size)
+    return buf
+
+
+def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True):
+    """OpenCL version of :func:`fit_block_numpy` (same arguments and results); ``workspace``: a dict
+    reusing device buffers between blocks; ``want_gdq=False`` skips copying GROUPDQ back (None)."""
+    _check_block(sci, gdq, pixeldq, k)
+    opencl.require_fp64()
+    nints, n, npix = sci.shape
+    sci = np.ascontiguousarray(sci)
+    gdq = np.ascontiguousarray(gdq)
+    options = (f"-DNGROUPS={n}", f"-DWEIGHTING={WEIGHTINGS.index(k.weighting)}",
+               f"-DSCI_DOUBLE={int(sci.dtype == np.float64)}", f"-DWANT_GDQ={int(bool(want_gdq))}")
+    kernel = opencl.cached_kernel("ramp_fit.cl", "ramp_fit", options)
+    dev = opencl.get_device()
+    gpu = "GPU" in opencl.device_type(dev)
+    if work_group is None:
+        work_group = None if gpu else CPU_WORK_GROUP
+    elif not 1 <= int(work_group) <= int(dev.max_work_group_size):
+        raise ValueError(f"work_group must be in [1, {int(dev.max_work_group_size)}], got {work_group}")
+    d_sci = opencl.to_device(sci, _buffer(workspace, "sci", sci.nbytes))
+    d_gdq = opencl.to_device(gdq, _buffer(workspace, "gdq", gdq.nbytes))
+    d_pdq = opencl.to_device(np.ascontiguousarray(pixeldq), _buffer(workspace, "pdq", pixeldq.nbytes))
+    d_gout = _buffer(workspace, "gdq_out", gdq.nbytes if want_gdq else 1)
+    nwords = -(-(n - 1) // 64)
+    d_bits = _buffer(workspace, "bits", 8 * nints * nwords * npix if nints > 1 and k.weighting == "gls" else 8)
+    d_fit = _buffer(workspace, "fit", 4 * 8 * npix)
+    d_dq = _buffer(workspace, "dq", 4 * npix)
+    d_nj = _buffer(workspace, "njump", 4 * npix)
+    gsize, lsize = (npix,), None
+    if work_group:
+        gsize, lsize = (-(-npix // int(work_group)) * int(work_group),), (int(work_group),)
+    opencl.launch(kernel, gsize, lsize, d_sci, d_gdq, d_gout, d_bits, d_pdq, d_fit, d_dq, d_nj, np.uint32(npix),
+                  np.uint32(nints), np.float64(k.inv_gain), np.float64(k.sg2), np.float64(k.tau),
+                  np.float64(k.ccorr), np.float64(min(k.satlim, 1e300)), np.float64(k.jump_thr))
+    fit = np.empty((4, npix))
+    dq = np.empty(npix, np.uint32)
+    njump = np.empty(npix, np.int32)
+    opencl.from_device(fit, d_fit)
+    opencl.from_device(dq, d_dq)
+    opencl.from_device(njump, d_nj)
+    gdq_out = None
+    if want_gdq:
+        gdq_out = np.empty_like(gdq)
+        opencl.from_device(gdq_out, d_gout)
+    return fit, dq, njump, gdq_out

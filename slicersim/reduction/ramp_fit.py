@@ -1,0 +1,537 @@
+"""Ramps → rates: up-the-ramp fitting of raw MACC ramps (our HDF5 files, JWST level-1b FITS, arrays).
+
+Per block of detector rows, all integrations at once (the JWST order of steps):
+
+1. saturation: GROUPDQ SATURATED, or a raw group ≥ ``saturation`` [DN], and every later group;
+2. with corrections (float DN): superbias subtracted (``truth/bias`` when the file has it, else
+   the BIAS attribute), reference-pixel correction (:func:`slicersim.reduction.refpix.refpix_correct`,
+   JWST's algorithm, applied to whole frames in a first pass that keeps its column and row terms),
+   classical nonlinearity (:func:`slicersim.physics.nonlinearity.apply_correction`, JWST coefficients);
+3. the fit (``kernels/ramp_fit.cl`` or its NumPy twin, :mod:`slicersim.backends.ramp_fit`): jumps by
+   two-point differences, segments, ``gls`` (default: generalised least squares with the exact
+   covariance of MACC group means at the OLS rate) or ``ols`` (unweighted, stcal's combination of
+   segments); rate [e-/s], variance = Poisson + read [e-²/s²], DQ (JWST bits), jumps per pixel.
+
+The rate is the total charge rate measured: photo-current plus dark, thermal dark and ROIC glow
+(their expectation is the attribute DARK_RATE when the file records them).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slicersim.backends.dispatch import resolve_backend
+from slicersim.backends.ramp_fit import (DQ_DO_NOT_USE, DQ_SATURATED, WEIGHTINGS, fit_block_numpy,
+                                         fit_block_opencl, fit_constants)
+from slicersim.errors import RampFileError
+from slicersim.io.atomic import AtomicH5File, is_temporary, one_line
+
+__all__ = ["fit_ramps", "RateProduct", "DEFAULT_JUMP_THRESHOLD", "open_ramps"]
+
+DEFAULT_JUMP_THRESHOLD = 4.0          # σ (stcal's default rejection threshold)
+_HDF5_MAGIC, _FITS_MAGIC = b"\x89HDF\r\n\x1a\n", b"SIMPLE  ="
+_LINEARITY_TRUTH = "nonlinearity/inverse_coefficients"
+
+
+@dataclass
+class RateProduct:
+    """Rates of a ramp file: rate [e-/s], variance, var_poisson, var_rnoise [e-²/s²] (ny, nx) float64;
+    dq uint32 (JWST bits: PIXELDQ | SATURATED | JUMP_DET | DO_NOT_USE where no rate); njumps int32;
+    attrs (readout, corrections, units); groupdq with the jump flags (``return_groupdq``);
+    truth_rate [e-/s] (``with_truth``)."""
+
+    rate: np.ndarray
+    variance: np.ndarray
+    var_poisson: np.ndarray
+    var_rnoise: np.ndarray
+    dq: np.ndarray
+    njumps: np.ndarray
+    attrs: dict = field(default_factory=dict)
+    groupdq: np.ndarray | None = None
+    truth_rate: np.ndarray | None = None
+
+    @property
+    def err(self):
+        """√variance [e-/s]."""
+        return np.sqrt(self.variance)
+
+    def write(self, path, overwrite=False):
+        """Write RATE, VAR, VAR_POISSON, VAR_RNOISE, DQ, NJUMPS (and TRUTH_RATE) to HDF5 with the
+        attributes, atomically; returns the absolute path."""
+        class _Writer(AtomicH5File):
+            error_class = RampFileError
+        names = {"RATE": self.rate, "VAR": self.variance, "VAR_POISSON": self.var_poisson,
+                 "VAR_RNOISE": self.var_rnoise, "DQ": self.dq, "NJUMPS": self.njumps}
+        if self.truth_rate is not None:
+            names["TRUTH_RATE"] = self.truth_rate
+        writer = _Writer(path, overwrite=overwrite)
+        writer.check()
+        with writer as w:
+            for name, data in names.items():
+                w.write(name, data)
+            w.set_attrs({k: (json.dumps(v) if isinstance(v, (dict, list, tuple)) else v)
+                         for k, v in self.attrs.items() if v is not None})
+        return os.path.abspath(os.fspath(path))
+
+
+# ----------------------------------------------------------------------------- sources
+class _Ramps:
+    """A raw ramp to read by row blocks: ``shape`` (nints, ngroups, ny, nx), ``attrs`` (keywords),
+    ``integer`` (uint16 SCI), ``read(y0, y1, sci, gdq)``, ``pixeldq(y0, y1)``, ``frame(i, g)``,
+    ``truth(name)`` (row-sliceable array or None), ``name``, ``kind``."""
+
+    kind, name = "arrays", "<arrays>"
+
+    def close(self):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class _ArrayRamps(_Ramps):
+    def __init__(self, arrays):
+        if not isinstance(arrays, (tuple, list)) or len(arrays) != 4:
+            raise RampFileError("arrays must be (SCI, GROUPDQ or None, PIXELDQ or None, attrs), as read_ramps returns")
+        sci, gdq, pdq, attrs = arrays
+        sci = np.asarray(sci)
+        if sci.ndim != 4 or sci.dtype.kind not in "uif" or 0 in sci.shape:
+            raise RampFileError(f"SCI must be a non-empty 4-D numeric array (nints, ngroups, ny, nx), got "
+                                f"{sci.dtype} {sci.shape}")
+        self.integer = sci.dtype == np.uint16
+        self.sci = sci if self.integer else sci.astype(np.float64, copy=False)
+        self.shape = sci.shape
+        self.gdq = np.zeros(sci.shape, np.uint8) if gdq is None else np.asarray(gdq)
+        self.pdq = np.zeros(sci.shape[2:], np.uint32) if pdq is None else np.asarray(pdq)
+        if self.gdq.shape != sci.shape or self.pdq.shape != sci.shape[2:]:
+            raise RampFileError(f"GROUPDQ {self.gdq.shape} and PIXELDQ {self.pdq.shape} do not match SCI {sci.shape}")
+        if not isinstance(attrs, dict):
+            raise RampFileError("attrs must be a dict of readout keywords (NFRAMES, GROUPGAP, TFRAME, ...)")
+        self.attrs = dict(attrs)
+
+    def read(self, y0, y1, sci, gdq):
+        sci[...] = self.sci[:, :, y0:y1]
+        gdq[...] = self.gdq[:, :, y0:y1]
+
+    def pixeldq(self, y0, y1):
+        return self.pdq[y0:y1].astype(np.uint32)
+
+    def frame(self, i, g):
+        return self.sci[i, g]
+
+    def truth(self, name):
+        return None
+
+
+class _HDF5Ramps(_Ramps):
+    kind = "hdf5"
+
+    def __init__(self, path):
+        import h5py
+        self.name = path
+        try:
+            self.fh = h5py.File(path, "r")
+        except OSError as exc:
+            raise RampFileError(f"{path}: not a readable HDF5 ramp file ({one_line(exc)})") from exc
+        fh = self.fh
+        if not fh.attrs.get("COMPLETE", False):
+            self.close()
+            raise RampFileError(f"{path}: incomplete file (no completion marker)")
+        sci = fh.get("SCI")
+        if sci is None or sci.ndim != 4 or sci.dtype != np.uint16:
+            self.close()
+            raise RampFileError(f"{path}: not a slicersim ramp file (needs SCI uint16 (nints, ngroups, ny, nx))")
+        self.sci, self.gdq, self.shape, self.integer = sci, fh.get("GROUPDQ"), sci.shape, True
+        pdq = fh.get("PIXELDQ")
+        if (self.gdq is not None and self.gdq.shape != sci.shape) or (pdq is not None and pdq.shape != sci.shape[2:]):
+            self.close()
+            raise RampFileError(f"{path}: GROUPDQ/PIXELDQ shapes do not match SCI {sci.shape}")
+        self.pdq = pdq
+        self.attrs = {k: fh.attrs[k] for k in fh.attrs}
+        self.chunk_rows = sci.chunks[2] if sci.chunks else 1
+
+    def read(self, y0, y1, sci, gdq):
+        self.sci.read_direct(sci, np.s_[:, :, y0:y1, :])
+        if self.gdq is None:
+            gdq[...] = 0
+        else:
+            self.gdq.read_direct(gdq, np.s_[:, :, y0:y1, :])
+
+    def pixeldq(self, y0, y1):
+        nx = self.shape[3]
+        return np.zeros((y1 - y0, nx), np.uint32) if self.pdq is None else self.pdq[y0:y1].astype(np.uint32)
+
+    def frame(self, i, g):
+        return self.sci[i, g]
+
+    def truth(self, name):
+        return self.fh.get(f"truth/{name}")
+
+    def close(self):
+        self.fh.close()
+
+
+class _FitsImage:
+    """Row-sliceable view of a FITS image extension (memory-mapped, BZERO applied)."""
+
+    _TYPES = {8: ">u1", 16: ">i2", 32: ">i4", 64: ">i8", -32: ">f4", -64: ">f8"}
+
+    def __init__(self, path, hdul, index):
+        hdr = hdul[index].header
+        bitpix, naxis = hdr["BITPIX"], hdr["NAXIS"]
+        self.shape = tuple(int(hdr[f"NAXIS{naxis - a}"]) for a in range(naxis))
+        self.bzero, bscale = hdr.get("BZERO", 0), hdr.get("BSCALE", 1)
+        if bitpix not in self._TYPES or bscale != 1:
+            raise RampFileError(f"{path}: extension {hdr.get('EXTNAME')} has BITPIX {bitpix}, BSCALE {bscale}")
+        self.raw = np.memmap(path, dtype=self._TYPES[bitpix], mode="r", offset=hdul.fileinfo(index)["datLoc"],
+                             shape=self.shape)
+        unsigned = {(16, 32768): np.uint16, (32, 2**31): np.uint32, (8, 0): np.uint8}
+        self.dtype = unsigned.get((bitpix, self.bzero), np.dtype(self._TYPES[bitpix]).newbyteorder("="))
+        self.flip = bitpix in (16, 32) and self.dtype in (np.uint16, np.uint32)
+        self.ndim = naxis
+
+    def __getitem__(self, key):
+        raw = np.asarray(self.raw[key])
+        if self.flip:                               # v − BZERO stored in two's complement: flip the top bit
+            u = raw.view(raw.dtype.str.replace("i", "u"))
+            return (u ^ u.dtype.type(1 << (8 * u.dtype.itemsize - 1))).astype(self.dtype)
+        out = raw.astype(self.dtype)
+        return out + self.bzero if self.bzero else out
+
+
+class _FitsRamps(_Ramps):
+    kind = "jwst-uncal"
+
+    def __init__(self, path):
+        from astropy.io import fits
+        self.name = path
+        try:
+            self.hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
+        except OSError as exc:
+            raise RampFileError(f"{path}: not a readable FITS file ({one_line(exc)})") from exc
+        names = [h.name for h in self.hdul]
+        if "SCI" not in names:
+            self.close()
+            raise RampFileError(f"{path}: not a level-1b ramp file (no SCI extension)")
+        self.images = {n: _FitsImage(path, self.hdul, names.index(n)) for n in names
+                       if n in ("SCI", "GROUPDQ", "PIXELDQ") or n.startswith("TRUTH_")
+                       and self.hdul[n].header.get("XTENSION") == "IMAGE"}
+        sci = self.images["SCI"]
+        if sci.ndim != 4 or sci.dtype != np.uint16:
+            self.close()
+            raise RampFileError(f"{path}: SCI must be uint16 (nints, ngroups, ny, nx), got {sci.dtype} {sci.shape}")
+        self.shape, self.integer = sci.shape, True
+        gdq, pdq = self.images.get("GROUPDQ"), self.images.get("PIXELDQ")
+        if (gdq is not None and gdq.shape != sci.shape) or (pdq is not None and pdq.shape != sci.shape[2:]):
+            self.close()
+            raise RampFileError(f"{path}: GROUPDQ/PIXELDQ shapes do not match SCI {sci.shape}")
+        header = self.hdul[0].header
+        attrs = {k[len("SLICERSIM "):]: v for k, v in header.items() if k.startswith("SLICERSIM ")}
+        attrs.update({k: header[k] for k in ("NINTS", "NGROUPS", "NFRAMES", "GROUPGAP", "TFRAME", "TGROUP")
+                      if k in header})
+        self.attrs = attrs
+
+    def read(self, y0, y1, sci, gdq):
+        sci[...] = self.images["SCI"][:, :, y0:y1]
+        gdq[...] = self.images["GROUPDQ"][:, :, y0:y1] if "GROUPDQ" in self.images else 0
+
+    def pixeldq(self, y0, y1):
+        pdq = self.images.get("PIXELDQ")
+        return np.zeros((y1 - y0, self.shape[3]), np.uint32) if pdq is None else pdq[y0:y1].astype(np.uint32)
+
+    def frame(self, i, g):
+        return self.images["SCI"][i, g]
+
+    def truth(self, name):
+        from slicersim.io.uncal import truth_extname
+        return self.images.get(truth_extname(name))
+
+    def close(self):
+        self.images = {}
+        self.hdul.close()
+
+
+def open_ramps(source):
+    """A raw ramp reader for a path (HDF5 or level-1b FITS, by content) or arrays
+    (SCI, GROUPDQ, PIXELDQ, attrs); RampFileError for anything else."""
+    if isinstance(source, (str, os.PathLike)):
+        path = os.fspath(source)
+        if is_temporary(path):
+            raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
+        try:
+            with open(path, "rb") as fh:
+                magic = fh.read(9)
+        except OSError as exc:
+            raise RampFileError(f"{path}: cannot read ({one_line(exc)})") from exc
+        if magic.startswith(_HDF5_MAGIC):
+            return _HDF5Ramps(path)
+        if magic.startswith(_FITS_MAGIC):
+            return _FitsRamps(path)
+        raise RampFileError(f"{path}: neither an HDF5 ramp file nor a JWST level-1b FITS file")
+    return _ArrayRamps(source)
+
+
+# ----------------------------------------------------------------------------- readout
+def _number(attrs, key, where, kind=float):
+    val = attrs[key]
+    if isinstance(val, bytes):
+        val = val.decode()
+    try:
+        num = kind(val) if kind is float else int(val)
+        if kind is int and num != float(val):
+            raise ValueError
+    except (TypeError, ValueError) as exc:
+        raise RampFileError(f"{where}: keyword {key} = {val!r} is not {'an integer' if kind is int else 'a number'}") from exc
+    return num
+
+
+def _readout(attrs, shape, gain, read_noise, where):
+    """Validated (n, m, d), tframe [s], gain [DN/e-], read noise [e-/frame] of a ramp's keywords."""
+    missing = [k for k in ("NFRAMES", "GROUPGAP", "TFRAME") if k not in attrs]
+    if gain is None and "GAIN" not in attrs:
+        missing.append("GAIN (or pass gain=)")
+    if read_noise is None and "READNOISE" not in attrs:
+        missing.append("READNOISE (or pass read_noise=)")
+    if missing:
+        raise RampFileError(f"{where}: readout keyword(s) missing: {', '.join(missing)}")
+    nints, n = shape[:2]
+    m, d = _number(attrs, "NFRAMES", where, int), _number(attrs, "GROUPGAP", where, int)
+    tframe = _number(attrs, "TFRAME", where)
+    if m < 1 or d < 0 or not (math.isfinite(tframe) and tframe > 0):
+        raise RampFileError(f"{where}: inconsistent readout keywords: NFRAMES = {m} (≥ 1), GROUPGAP = {d} (≥ 0), "
+                            f"TFRAME = {tframe} s (> 0)")
+    for key, val in (("NGROUPS", n), ("NINTS", nints)):
+        if key in attrs and _number(attrs, key, where, int) != val:
+            raise RampFileError(f"{where}: inconsistent readout keywords: {key} = {attrs[key]} but SCI has {val}")
+    if "TGROUP" in attrs and not math.isclose(_number(attrs, "TGROUP", where), (m + d) * tframe, rel_tol=1e-6):
+        raise RampFileError(f"{where}: inconsistent readout keywords: TGROUP = {attrs['TGROUP']} s but "
+                            f"(NFRAMES + GROUPGAP)·TFRAME = {(m + d) * tframe:g} s")
+    patt = attrs.get("READPATT", "")
+    patt = patt.decode() if isinstance(patt, bytes) else str(patt)
+    if patt.startswith("MACC(") and patt != f"MACC({n},{m},{d})":
+        raise RampFileError(f"{where}: inconsistent readout keywords: READPATT = {patt} but NGROUPS, NFRAMES, "
+                            f"GROUPGAP = {n}, {m}, {d}")
+    if n < 2:
+        raise RampFileError(f"{where}: {n} group(s) per integration: a slope needs at least 2")
+    gain = _number(attrs, "GAIN", where) if gain is None else float(gain)
+    read_noise = _number(attrs, "READNOISE", where) if read_noise is None else float(read_noise)
+    if not (math.isfinite(gain) and gain > 0) or not (math.isfinite(read_noise) and read_noise >= 0):
+        raise RampFileError(f"{where}: gain {gain} DN/e- must be > 0 and read noise {read_noise} e- ≥ 0")
+    return (n, m, d), tframe, gain, read_noise
+
+
+def _effects(attrs):
+    text = attrs.get("EFFECTS")
+    if text is None:
+        return {}
+    try:
+        return json.loads(text.decode() if isinstance(text, bytes) else text).get("effects", {})
+    except (ValueError, AttributeError):
+        return {}
+
+
+# ----------------------------------------------------------------------------- corrections
+def _plan_corrections(src, refpix, linearity, superbias, where):
+    """(refpix kwargs or None, linearity coefficients or None, superbias, labels) before any reading."""
+    effects = _effects(src.attrs)
+    enabled = effects.get("enabled", [])
+    ny, nx = src.shape[2:]
+    if refpix is None:
+        refpix = "reference_pixels" in enabled
+    refpix_kw = None
+    if refpix is not False:
+        params = effects.get("reference_pixels", {})
+        refpix_kw = {k: params[k] for k in ("border", "n_outputs") if k in params}
+        if isinstance(refpix, dict):
+            refpix_kw.update(refpix)
+        elif refpix is not True:
+            raise ValueError(f"refpix must be None, True, False or a dict of refpix_correct options, got {refpix!r}")
+    coeffs, lin_label = None, "none"
+    if linearity is None:
+        linearity = "truth" if src.truth(_LINEARITY_TRUTH) is not None else False
+    if isinstance(linearity, str):
+        if linearity != "truth":
+            raise ValueError(f"linearity must be None, False, 'truth' or coefficients (k, ny, nx), got {linearity!r}")
+        coeffs = src.truth(_LINEARITY_TRUTH)
+        if coeffs is None:
+            raise RampFileError(f"{where}: linearity='truth' but the file has no truth/{_LINEARITY_TRUTH} "
+                                "(simulated without the nonlinearity effect?)")
+        lin_label = "truth"
+    elif linearity is not False:
+        coeffs, lin_label = np.asarray(linearity, np.float64), "user"
+    if coeffs is not None and (len(coeffs.shape) != 3 or tuple(coeffs.shape[1:]) != (ny, nx) or coeffs.shape[0] < 2):
+        raise RampFileError(f"{where}: linearity coefficients must be (k ≥ 2, {ny}, {nx}), got {tuple(coeffs.shape)}")
+    bias, bias_label = None, "none"
+    if refpix_kw is not None or coeffs is not None:
+        if superbias is None:
+            bias = src.truth("bias")
+            bias_label = "truth/bias"
+            if bias is None and "BIAS" in src.attrs:
+                bias, bias_label = _number(src.attrs, "BIAS", where), "BIAS keyword"
+            if bias is None and coeffs is not None:
+                raise RampFileError(f"{where}: the linearity correction needs the bias: no truth/bias, no BIAS "
+                                    "keyword (pass superbias=)")
+        else:
+            bias, bias_label = superbias, "user"
+        if bias is not None and np.ndim(bias) and tuple(np.shape(bias)) != (ny, nx):
+            raise RampFileError(f"{where}: superbias must be a number or ({ny}, {nx}), got {np.shape(bias)}")
+    return refpix_kw, coeffs, bias, {"REFPIX": refpix_kw is not None, "LINEARITY": lin_label, "SUPERBIAS": bias_label}
+
+
+def _bias_rows(bias, y0, y1):
+    if bias is None:
+        return 0.0
+    return float(bias) if not np.ndim(bias) else np.asarray(bias[y0:y1], np.float64)
+
+
+def _refpix_terms(src, bias, kw):
+    """Column and row terms of JWST's reference-pixel correction of every frame (bias removed):
+    correction(y, x) = col[i, g, x] + row[i, g, y] (its top/bottom and side steps)."""
+    from slicersim.reduction.refpix import refpix_correct
+    nints, n, ny, nx = src.shape
+    col, row = np.empty((nints, n, nx)), np.empty((nints, n, ny))
+    full_bias = _bias_rows(bias, 0, ny)
+    for i in range(nints):
+        for g in range(n):
+            frame = np.asarray(src.frame(i, g), np.float64) - full_bias
+            corr = frame - refpix_correct(frame[None, None], **kw)[0, 0]
+            col[i, g] = corr[0]
+            row[i, g] = corr[:, 0] - corr[0, 0]
+    return col, row
+
+
+# ----------------------------------------------------------------------------- driver
+def fit_ramps(source, *, refpix=None, linearity=None, superbias=None, jump_threshold=DEFAULT_JUMP_THRESHOLD,
+              weighting="gls", gain=None, read_noise=None, saturation=None, with_truth=False,
+              return_groupdq=False, memory_budget=256 << 20, backend="auto", progress=None, work_group=None):
+    """Fit the rates of a raw ramp.
+
+    source : path of a ramp file (our HDF5 or a JWST level-1b FITS, recognised by content) or arrays
+        (SCI (nints, ngroups, ny, nx) [DN], GROUPDQ or None, PIXELDQ or None, attrs) as ``read_ramps``
+        returns them (attrs: NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE; NINTS, NGROUPS, TGROUP,
+        READPATT are checked when present)
+    refpix : None (when the file's EFFECTS has reference_pixels), True, False, or refpix_correct options
+    linearity : None (the file's truth coefficients when present), False, "truth" (required), or
+        coefficients (k, ny, nx) of the JWST convention (corrected DN = Σ c_k DN^k, bias removed)
+    superbias : bias [DN] removed before the corrections: None (``truth/bias``, else the BIAS keyword),
+        a number or an (ny, nx) map
+    jump_threshold : σ of the two-point-difference jump test (None or 0: no detection)
+    weighting : "gls" (exact MACC covariance) or "ols" (unweighted; its variance is Rauscher07's)
+    gain [DN/e-], read_noise [e- per frame], saturation [DN]: override the file's GAIN, READNOISE,
+        SATURATION (default 65535 for integer data)
+    with_truth : also load ``truth/rate`` [e-/s] (RampFileError if the file has none)
+    return_groupdq : keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx)
+    memory_budget : bytes for the row blocks in flight;  backend : "auto", "opencl", "numpy"
+
+    Returns a :class:`RateProduct`.  Everything is checked before data are read.
+    """
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    backend = resolve_backend(backend)
+    with open_ramps(source) as src:
+        where = src.name
+        nints, n, ny, nx = src.shape
+        nmd, tframe, gain, read_noise = _readout(src.attrs, src.shape, gain, read_noise, where)
+        if saturation is None:
+            saturation = _number(src.attrs, "SATURATION", where) if "SATURATION" in src.attrs else (
+                65535.0 if src.integer else math.inf)
+        consts = fit_constants(nmd, tframe, gain, read_noise, 1.0 / 12.0 if src.integer else 0.0, saturation,
+                               jump_threshold, weighting)
+        refpix_kw, coeffs, bias, labels = _plan_corrections(src, refpix, linearity, superbias, where)
+        truth_rate = None
+        if with_truth:
+            truth = src.truth("rate")
+            if truth is None:
+                raise RampFileError(f"{where}: with_truth=True but the file has no truth/rate")
+            truth_rate = np.asarray(truth[...], np.float64)
+        corrected = refpix_kw is not None or coeffs is not None or not src.integer
+        # bytes per pixel-group: SCI + GROUPDQ on the host and the device (+ GROUPDQ out, + float DN, its
+        # temporary and device copy with corrections); per pixel: the outputs of a block, twice
+        per_row = nx * (nints * n * (6 + (2 if return_groupdq else 0) + (24 if corrected else 0)) + 96)
+        if per_row > memory_budget:
+            raise MemoryError(f"memory_budget {memory_budget} B is below one detector row ({per_row} B)")
+        rows = int(min(ny, memory_budget // per_row))
+        chunk = getattr(src, "chunk_rows", 1)
+        if rows > chunk:
+            rows -= rows % chunk
+        out = {"rate": np.empty((ny, nx)), "variance": np.empty((ny, nx)), "var_poisson": np.empty((ny, nx)),
+               "var_rnoise": np.empty((ny, nx)), "dq": np.empty((ny, nx), np.uint32),
+               "njumps": np.empty((ny, nx), np.int32)}
+        groupdq = np.empty(src.shape, np.uint8) if return_groupdq else None
+        terms = _refpix_terms(src, bias, refpix_kw) if refpix_kw is not None else None
+        blocks = range(0, ny, rows)
+        if progress is None:
+            progress = len(blocks) > 8
+        if progress:
+            from tqdm.auto import tqdm
+            blocks = tqdm(blocks, desc="ramp fit", unit="block")
+        sci_buf = np.empty(nints * n * rows * nx, np.uint16 if src.integer else np.float64)
+        gdq_buf = np.empty(nints * n * rows * nx, np.uint8)
+        workspace = {}
+        for y0 in blocks:
+            y1 = min(ny, y0 + rows)
+            shape = (nints, n, y1 - y0, nx)
+            sci = sci_buf[:np.prod(shape)].reshape(shape)
+            gdq = gdq_buf[:np.prod(shape)].reshape(shape)
+            src.read(y0, y1, sci, gdq)
+            block_consts = consts
+            if corrected:
+                sci, block_consts = _correct(sci, gdq, y0, y1, consts, bias, terms, coeffs)
+            npix = (y1 - y0) * nx
+            flat = (sci.reshape(nints, n, npix), gdq.reshape(nints, n, npix),
+                    src.pixeldq(y0, y1).reshape(npix), block_consts)
+            if backend == "opencl":
+                fit, dq, nj, gout = fit_block_opencl(*flat, workspace=workspace, work_group=work_group,
+                                                     want_gdq=return_groupdq)
+            else:
+                fit, dq, nj, gout = fit_block_numpy(*flat)
+            for key, val in zip(("rate", "variance", "var_poisson", "var_rnoise"), fit):
+                out[key][y0:y1] = val.reshape(y1 - y0, nx)
+            out["dq"][y0:y1] = dq.reshape(y1 - y0, nx)
+            out["njumps"][y0:y1] = nj.reshape(y1 - y0, nx)
+            if return_groupdq:
+                groupdq[:, :, y0:y1] = gout.reshape(shape)
+        attrs = _attrs(src, nmd, tframe, gain, read_noise, saturation, jump_threshold, weighting, backend, labels)
+    return RateProduct(**out, attrs=attrs, groupdq=groupdq, truth_rate=truth_rate)
+
+
+def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):
+    """Float DN of a block after saturation flags (raw DN), superbias, reference pixels, linearity."""
+    from dataclasses import replace
+    from slicersim.physics.nonlinearity import apply_correction
+    if raw.dtype == np.uint16:
+        gdq |= np.where(raw >= consts.satlim, DQ_SATURATED, 0).astype(np.uint8)
+    dn = raw.astype(np.float64) - _bias_rows(bias, y0, y1)
+    if terms is not None:
+        col, row = terms
+        dn -= col[:, :, None, :]
+        dn -= row[:, :, y0:y1, None]
+    if coeffs is not None:
+        dn = apply_correction(dn, np.asarray(coeffs[:, y0:y1], np.float64))
+    bad = ~np.isfinite(dn)
+    if bad.any():
+        gdq[bad] |= np.uint8(DQ_DO_NOT_USE)
+        dn[bad] = 0.0
+    return dn, replace(consts, satlim=math.inf) if raw.dtype == np.uint16 else consts
+
+
+def _attrs(src, nmd, tframe, gain, read_noise, saturation, jump_threshold, weighting, backend, labels):
+    from slicersim import __version__
+    n, m, d = nmd
+    attrs = {"BUNIT": "e-/s", "VARUNIT": "e-2/s2", "SOURCE": src.name, "FORMAT": src.kind,
+             "NINTS": src.shape[0], "NGROUPS": n, "NFRAMES": m, "GROUPGAP": d, "TFRAME": tframe,
+             "TGROUP": (m + d) * tframe, "GAIN": gain, "READNOISE": read_noise, "SATURATION": saturation,
+             "WEIGHTING": weighting, "JUMP_THRESHOLD": float(jump_threshold or 0.0), "BACKEND": backend,
+             "SOFTWARE": "slicersim", "VERSION": __version__, **labels}
+    keys = ("DARK", "THERMAL_DARK", "ROIC_GLOW")
+    if all(k in src.attrs for k in keys):
+        attrs["DARK_RATE"] = (_number(src.attrs, "DARK", src.name) + _number(src.attrs, "THERMAL_DARK", src.name)
+                              + _number(src.attrs, "ROIC_GLOW", src.name) / tframe)
+    return attrs
