@@ -11,21 +11,24 @@
  * 2. jumps (jump_thr > 0): while >= JUMP_MIN_DIFFS differences are used, the one farthest from
  *    their median med is a jump if |D_j - med| > jump_thr * sigma, with
  *    sigma^2 = 2 sg2 + (max(med, 0) / tau) * (tau - 2 c)   (exact variance of a difference);
- *    it is dropped and JUMP_DET set on group j+1;
- * 3. runs of used differences are the segments; the OLS slope of a segment of L differences is
- *    sum_j w_j D_j / (tau sum_j w_j) with w_j = (j+1)(L-j) (unweighted least squares of its L+1
- *    group means); all segments of all integrations combined with the read-noise weights
- *    L(L+1)(L+2) give lam0 = sum P / (tau sum S), clipped at 0 (the rate in the covariance);
- * 4. weights: WEIGHTING 1 = OLS (as 3); WEIGHTING 0 = GLS: w = T^-1 1 per segment, T the
- *    covariance of its differences, tridiagonal Toeplitz, diagonal a = 2 sg2 + lam0 (tau - 2c),
- *    off-diagonal b = lam0 c - sg2 (Thomas algorithm); c = tframe (m^2 - 1) / (6 m);
- * 5. rate = sum P / (tau sum S)  [e-/s]; variance = sum_seg w^T T w / (tau sum S)^2 split into
- *    read  sg2 sum_j (w_j - w_{j-1})^2  and Poisson  lam0 ((tau - 2c) sum w^2 + 2c sum w_j w_{j+1}).
+ *    it is dropped and JUMP_DET set on group j+1 (find_jump: no sort of all differences);
+ * 3. runs of used differences are the segments; the OLS slope of a run of L differences is
+ *    sum_p w_p D_p / (tau sum_p w_p) with w_p = p (L + 1 - p), p = 1..L (unweighted least squares
+ *    of its L + 1 group means), summed in closed form: sum w = L(L+1)(L+2)/6, sum w^2 =
+ *    L(L+1)(L+2)(L^2+2L+2)/30, sum (w_p - w_{p-1})^2 = L(L+1)(L+2)/3; all runs of all integrations
+ *    combined with the read-noise weights L(L+1)(L+2) (stcal's combination) give the OLS rate
+ *    lam0 = sum P / (tau sum S), clipped at 0: the rate in the covariance;
+ * 4. WEIGHTING 1 = OLS (as 3); WEIGHTING 0 = GLS: w = T^-1 1 per run, T the covariance of its
+ *    differences, tridiagonal Toeplitz: diagonal a = 2 sg2 + lam0 (tau - 2c), off-diagonal
+ *    b = lam0 c - sg2, c = tframe (m^2 - 1) / (6 m); solved through leading minors (pass 2);
+ * 5. rate = sum P / (tau sum S)  [e-/s]; variance = sum_run w^T T w / (tau sum S)^2 split into
+ *    read  sg2 sum_p (w_p - w_{p-1})^2  and Poisson  lam0 ((tau - 2c) sum w^2 + 2c sum w_p w_{p+1}).
  *
  * Output: fit (4, npix) = rate, variance, Poisson variance, read variance [e-^2/s^2];
  * dq = PIXELDQ | SATURATED (any group) | JUMP_DET (any jump) | DO_NOT_USE (no used difference,
  * rate NaN); njump = jumps (detected and flagged on input); gdq_out = GROUPDQ with SATURATED and
- * JUMP_DET set.  Build with -DNGROUPS=n -DWEIGHTING=0|1 -DSCI_DOUBLE=0|1.
+ * JUMP_DET set (WANT_GDQ); bits: scratch (nints, NWORDS, npix) of the used flags between the passes
+ * (GLS, nints > 1).  Build with -DNGROUPS=n -DWEIGHTING=0|1 -DSCI_DOUBLE=0|1 -DWANT_GDQ=0|1.
  * NumPy twin: slicersim/backends/ramp_fit.py (fit_block_numpy), same operation order.
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable

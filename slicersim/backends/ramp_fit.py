@@ -12,10 +12,13 @@ Per pixel, over all integrations of a flat block (group means g_k [DN], gain g [
   Var D = 2σ_g² + λ(τ − 2c), Cov(D_j, D_j+1) = λc − σ_g², with σ_g² the read (and rounding)
   variance of a group mean [e-²], τ = (m + d) t_f and c = t_f (m² − 1)/(6m);
 * ``ols``: unweighted least squares per segment, segments (and integrations) combined with
-  read-noise weights (stcal's combination); ``gls``: generalised least squares with the exact
-  covariance at the OLS rate λ₀ (one iteration), which is the inverse-variance combination of
-  the segments' GLS slopes.  Either way rate = Σw·D/(τΣw) and the variance is wᵀTw/(τΣw)²,
-  split exactly into read and Poisson parts.
+  read-noise weights (stcal's combination; per-run sums in closed form); ``gls``: generalised
+  least squares with the exact covariance at the OLS rate λ₀ (one iteration), w = T⁻¹1 per
+  segment through the leading minors of T (no division in the recurrences), which is the
+  inverse-variance combination of the segments' GLS slopes.  Either way rate = Σw·D/(τΣw) and
+  the variance is wᵀTw/(τΣw)², split exactly into read and Poisson parts.
+* the jump test brackets the median by counting and stops as soon as the bracket decides it
+  (kernel); the twin sorts.  The decisions are the same.
 
 Both backends follow the same operation order (FP contraction off in the kernel); they agree
 to rounding (≈1e-15 relative) and make the same jump decisions.
@@ -35,7 +38,7 @@ __all__ = ["FitConstants", "fit_constants", "fit_block_numpy", "fit_block_opencl
 WEIGHTINGS = ("gls", "ols")
 JUMP_MIN_DIFFS = 3                 # used differences needed to test for a jump
 DQ_DO_NOT_USE, DQ_SATURATED, DQ_JUMP_DET = 1, 2, 4
-MAX_GROUPS = 1024                  # private arrays of the kernel hold NGROUPS − 1 doubles each
+MAX_GROUPS = 512                   # leading minors of the GLS recurrences stay ≥ n/2ⁿ (no underflow)
 
 
 @dataclass(frozen=True)
