@@ -18,10 +18,23 @@ from slicersim.targets import (BlackBody, LazuliBlackBody, LazuliSupernova, Lazu
                       build_simulation, lazuli_etc, lazuli_sn_etc)
 from slicersim.instrument.telescope import Telescope
 from slicersim.instrument.mapper import SlicerMapper, detector_rate_image
+from slicersim.instrument.footprints import (FieldFootprints, SliceFootprint, detector_label_image, field_footprints,
+                                             save_footprints)
+from slicersim.sources.extended import ImageProfile
+from slicersim.sources.galaxies import GalaxyDataUnavailable, GalaxyModel, known_galaxies
+from slicersim.sources.lamps import CalibrationLamp, FabryPerotEtalon, TabulatedEtalon, fabry_perot_lamp, qth_lamp
+from slicersim.targets import (CalSpec, Flat3DCalibration, FlatFieldStructure, Galaxy, Kilonova, Lazuli3DFlat,
+                               LazuliCalSpec, LazuliGalaxy, LazuliKilonova, LazuliPowerLaw, LazuliSncosmoTarget,
+                               PowerLaw, SncosmoTarget)
 
 __all__ = ["ConfigError", "load_config", "Detector", "ReadoutError", "Background", "Host", "SersicProfile", "CubeSource", "PointSource",
            "Scene", "SpectrumError", "ETCError", "Simulation", "MLASpectrograph", "OpticalThroughput",
            "SlicerSpectrograph", "Spectrograph", "BlackBody", "LazuliBlackBody", "LazuliSupernova",
            "LazuliTarget", "Supernova", "Target", "build_simulation", "lazuli_etc", "lazuli_sn_etc",
            "Telescope", "SlicerMapper", "detector_rate_image", "SlicersimError", "ParameterError",
-           "RampFileError", "__version__"]
+           "RampFileError", "__version__",
+           "FieldFootprints", "SliceFootprint", "detector_label_image", "field_footprints", "save_footprints",
+           "ImageProfile", "GalaxyDataUnavailable", "GalaxyModel", "known_galaxies", "CalibrationLamp",
+           "FabryPerotEtalon", "TabulatedEtalon", "fabry_perot_lamp", "qth_lamp", "CalSpec", "Flat3DCalibration",
+           "FlatFieldStructure", "Galaxy", "Kilonova", "Lazuli3DFlat", "LazuliCalSpec", "LazuliGalaxy",
+           "LazuliKilonova", "LazuliPowerLaw", "LazuliSncosmoTarget", "PowerLaw", "SncosmoTarget"]

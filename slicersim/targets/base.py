@@ -449,8 +449,14 @@ class Target:
         signal, variance = extract_model(self.simulation, setup, method)
         return self.simulation.lbda.copy(), signal, variance
 
-    def get_cube(self, seed=None):
-        return self.simulation.get_cube(seed=seed)
+    def get_cube(self, seed=None, switch_off=None):
+        """Cube [ADU] of the scene (noisy with ``seed``); ``switch_off``: components left out
+        (:func:`~slicersim.products.components.check_switch_off`)."""
+        return self.simulation.get_cube(seed=seed, switch_off=switch_off)
+
+    def get_scene_cubes(self, unit="adu", switch_off=None, **kwargs):
+        """Noise-free cube of each scene component (:meth:`Simulation.get_scene_cubes`)."""
+        return self.simulation.get_scene_cubes(unit=unit, switch_off=switch_off, **kwargs)
 
     # ------------------------------------------------------------------ detector
     def get_field_rate_cubes(self):

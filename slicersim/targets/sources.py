@@ -51,14 +51,14 @@ class PowerLaw(Target):
     """
 
     def __init__(self, alpha, mag, band="bessellr", magsys="ab", lbda=None, config=None, field="default",
-                 position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS):
+                 position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS, host=None):
         mag = _check_mag(mag, required=True)
         lbda = powerlaw_grid() if lbda is None else lbda
         lbda, shape = validate_spectrum(lbda, powerlaw_flambda(lbda, alpha), "power law")
         ratio, _ = normalise_to_mag(lbda, shape, mag, band, magsys)
         self.alpha, self.mag, self.band, self.magsys = float(alpha), mag, band, magsys
         super().__init__(lbda, shape * ratio, config=config, field=field, position=position,
-                         redshift=redshift, conventions=conventions)
+                         redshift=redshift, conventions=conventions, host=host)
 
 
 class SncosmoTarget(Target):
@@ -77,7 +77,7 @@ class SncosmoTarget(Target):
 
     def __init__(self, source, redshift, phase=0.0, peak_absmag=None, mag=None, band="bessellb", magsys="ab",
                  params=None, cosmology=None, config=None, field="default", position=(0.0, 0.0),
-                 conventions=DEFAULT_CONVENTIONS):
+                 conventions=DEFAULT_CONVENTIONS, host=None):
         peak_absmag, mag = _check_mag(peak_absmag, "peak_absmag"), _check_mag(mag)
         if (peak_absmag is None) == (mag is None):
             raise ParameterError("give exactly one normalisation: peak_absmag (rest-frame peak absolute "
@@ -92,7 +92,7 @@ class SncosmoTarget(Target):
         self.params, self.cosmology = dict(params or {}), cosmology
         lbda, flux = self._spectrum_at(redshift)
         super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift,
-                         conventions=conventions)
+                         conventions=conventions, host=host)
 
     def _spectrum_at(self, redshift):
         lbda, flux = sncosmo_spectrum(self.source, redshift, self.phase, peak_absmag=self.peak_absmag,
@@ -116,14 +116,14 @@ class Kilonova(SncosmoTarget):
 
     def __init__(self, model, redshift=0.2, phase=1.4, theta=0.0, peak_absmag=-15.8, mag=None, band="bessellr",
                  magsys="ab", cosmology=None, config=None, field="default", position=(0.0, 0.0),
-                 conventions=DEFAULT_CONVENTIONS):
+                 conventions=DEFAULT_CONVENTIONS, host=None):
         if isinstance(theta, bool) or not isinstance(theta, numbers.Real) or not 0 <= theta <= 180:
             raise ParameterError(f"theta must be a viewing angle in [0, 180] degrees, got {theta!r}")
         from slicersim.sources.kilonova import kilonova_source
         self.model, self.theta = model, float(theta)
         super().__init__(kilonova_source(model), redshift, phase, peak_absmag=None if mag is not None else peak_absmag,
                          mag=mag, band=band, magsys=magsys, params={"theta": float(theta)}, cosmology=cosmology,
-                         config=config, field=field, position=position, conventions=conventions)
+                         config=config, field=field, position=position, conventions=conventions, host=host)
 
 
 class CalSpec(Target):
