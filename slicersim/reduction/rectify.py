@@ -1,0 +1,467 @@
+"""Rectification: detector rate image → (λ, y, x) cubes of the narrow and wide fields, with variance.
+
+The forward model is linear: image = P · cube, P[pixel, cell] the weight with which a cube
+cell (slice, λ bin, column along the slice) deposits on a pixel — its footprint blurred by
+the spot, integrated over the pixel (:meth:`SlicerMapper.project_cube`, the deposit tables
+of :mod:`slicersim.backends.projection`).  Every column of P sums to 1 for a cell on the
+detector.  Cube row r ↔ slice ``slices[n_rows − 1 − r]`` as in ``project_cube``.  Two
+estimators of the cube on a grid (λ edges, ``ncol`` columns per slice):
+
+* ``method="lsq"`` (exact): weighted least squares x̂ = argmin Σ_p w_p ((P x)_p − d_p)²,
+  w_p = 1/var_p (1 without a variance).  Noiseless data d = P x give x back (to κ(P)·ε);
+  unbiased, flux-conserving (Σ x̂ = Σ P x̂: the model image carries the cube's flux) and
+  its covariance is (PᵀWP)⁻¹, whose diagonal is the variance returned.  Neighbouring slices
+  share a few pixels (the ±``truncate``·σ tails of their spots meet between the traces:
+  ~1.4 % of a Lazuli field's footprint pixels).  Those pixels are left out of the fit, so
+  every slice is an independent problem, solved exactly: its normal matrix PᵀWP (cells
+  ordered λ-major, column-minor: block tridiagonal with blocks of the bandwidth) is
+  factorised by block Cholesky, one step of refinement with the data residual (corrected
+  semi-normal equations) restores the accuracy of the squared condition, and the diagonal
+  of the inverse comes from the block Takahashi recursion.  Pᵀ·(W d) and the model image
+  P x̂ for the diagnostics go through the projection kernels (gather / deposit).
+* ``method="drizzle"`` (pixel-to-cell): every pixel's rate is shared among the cells that
+  deposit on it in proportion to their weight, x̂_c = Σ_p P_pc d_p / (P·1)_p, divided by
+  Σ_p P_pc m_p (m: usable pixels; 1 without bad pixels).  One deposit and one gather: fast,
+  conserves the total flux exactly and returns constant cubes exactly, but it is biased: the
+  truth smoothed by PᵀD⁻¹P (about the spot blur twice plus pixel and cell boxes).  Variance
+  Σ_p (P_pc/(P·1)_p)² var_p / (Σ_p P_pc m_p)²; neighbouring cells are correlated (only the
+  diagonal is returned).
+
+Conditioning: on the native Lazuli grid (510 bins ~1 px, 116 columns of ~0.9 px per
+~105 px long slice, spot σ 0.9–1.4 px) P is numerically singular (κ(P) ~ 1e12–1e13: more
+cells than pixels across a slice), so ``lsq`` refuses it; 58 columns give κ ~ 4e2–2e5
+(blue–red), 58 columns and 2-px bins κ ~ 13–220 (``benchmarks/rectify_speed_accuracy.py``).
+Noise is amplified as the conditioning says: the variance returned shows it.
+"""
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import LinAlgError, cholesky, solve_triangular
+from scipy.sparse.linalg import LinearOperator, onenormest
+
+from slicersim.backends.dispatch import BACKENDS
+from slicersim.backends.projection import _windows, deposit
+from slicersim.backends.projection_transpose import gather, matrix_entries
+from slicersim.errors import ParameterError
+from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES, SlicerMapper
+
+__all__ = ["rectify", "CubeProduct", "FIELDS", "METHODS", "MAX_CONDITION"]
+
+FIELDS = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}
+METHODS = ("lsq", "drizzle")
+#: largest 1-norm condition number of a slice's normal matrix PᵀWP that ``lsq`` accepts
+#: (beyond, float64 cannot resolve the cube: the grid is finer than the detector samples it)
+MAX_CONDITION = 1e14
+_ENTRY_CHUNK = 1 << 13           # sub-cells per matrix_entries call
+
+
+@dataclass
+class CubeProduct:
+    """A rectified cube of one field.
+
+    ``flux``: (nλ, n_rows, ncol), or (N, nλ, n_rows, ncol) for a stack of N images, in the
+    image's unit per cell per bin (``unit``, e.g. e-/s); ``variance``: same shape minus the
+    stack axis [unit²] (None without an input variance); NaN for cells no usable pixel sees.
+    ``wcs``: the axes (λ centres and edges [Å], slice id of every row, fieldpos edges of the
+    columns, −1 … +1 along the slice).  ``diagnostics``: see :func:`rectify`.
+    """
+
+    field: str
+    method: str
+    flux: np.ndarray
+    variance: np.ndarray | None
+    lbda: np.ndarray
+    lbda_edges: np.ndarray
+    slices: tuple
+    unit: str = "e-/s"
+    wcs: dict = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
+
+
+@functools.lru_cache(maxsize=1)
+def _default_mapper():
+    return SlicerMapper.default()
+
+
+# --------------------------------------------------------------------------- validation
+def _check_grid(lbda, lbda_edges, mapper):
+    """(centres, edges) [Å] of the output λ grid, or ParameterError."""
+    if lbda is None and lbda_edges is None:
+        raise ParameterError("the λ grid is missing: give lbda (bin centres [Å]) and/or lbda_edges")
+    try:
+        c = None if lbda is None else np.asarray(lbda, np.float64)
+        e = None if lbda_edges is None else np.asarray(lbda_edges, np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError("inconsistent λ grid: lbda and lbda_edges must be numbers [Å]") from None
+    for name, a in (("lbda", c), ("lbda_edges", e)):
+        if a is not None and (a.ndim != 1 or a.size < (1 if name == "lbda" else 2) or not np.all(np.isfinite(a))):
+            raise ParameterError(f"inconsistent λ grid: {name} must be a finite 1-D array, got shape "
+                                 f"{a.shape}")
+    if e is None:
+        if c.size < 2:
+            raise ParameterError("inconsistent λ grid: give lbda_edges for a single bin")
+        mid = 0.5 * (c[1:] + c[:-1])
+        e = np.concatenate([[1.5 * c[0] - 0.5 * c[1]], mid, [1.5 * c[-1] - 0.5 * c[-2]]])
+    if np.any(np.diff(e) <= 0):
+        raise ParameterError("inconsistent λ grid: lbda_edges must increase strictly")
+    if c is None:
+        c = 0.5 * (e[1:] + e[:-1])
+    if c.shape != (e.size - 1,):
+        raise ParameterError(f"inconsistent λ grid: {c.size} bin centres for {e.size} edges "
+                             f"(need {e.size - 1})")
+    if np.any(c < e[:-1]) or np.any(c > e[1:]):
+        raise ParameterError("inconsistent λ grid: every centre lbda[i] must lie in [lbda_edges[i], "
+                             "lbda_edges[i+1]]")
+    lo, hi = mapper.lbda_nodes[0], mapper.lbda_nodes[-1]
+    if e[0] < lo or e[-1] > hi:
+        raise ParameterError(f"inconsistent λ grid: {e[0]:.1f}–{e[-1]:.1f} Å leaves the traces of the "
+                             f"mapper ({lo:.1f}–{hi:.1f} Å)")
+    return c, e
+
+
+def _check_images(rate_image, variance, shape):
+    try:
+        d = np.asarray(rate_image, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError("rate_image must be a numeric array") from None
+    if d.ndim not in (2, 3) or d.shape[-2:] != tuple(shape):
+        raise ParameterError(f"rate_image must have shape {tuple(shape)} (the mapper's detector) or "
+                             f"(N, {shape[0]}, {shape[1]}) for a stack, got {d.shape}")
+    if variance is None:
+        return d, None
+    try:
+        v = np.asarray(variance, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError("variance must be a numeric array") from None
+    if v.shape != tuple(shape):
+        raise ParameterError(f"variance must have shape {tuple(shape)} (one image for the stack), got {v.shape}")
+    if np.isnan(v).any() or (v < 0).any():
+        raise ParameterError("variance must be ≥ 0 (+inf marks an unusable pixel), got NaN or negative values")
+    return d, v
+
+
+def _check_options(field_name, method, ncol, backend, mapper):
+    if field_name not in (*FIELDS, "both"):
+        raise ParameterError(f"unknown field {field_name!r}: 'narrow', 'wide' or 'both'")
+    if method not in METHODS:
+        raise ParameterError(f"unknown method {method!r}: one of {METHODS}")
+    if backend not in BACKENDS:
+        raise ParameterError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if isinstance(ncol, bool) or not isinstance(ncol, (int, np.integer)) or ncol < 1:
+        raise ParameterError(f"ncol must be a positive integer, got {ncol!r}")
+    names = list(FIELDS) if field_name == "both" else [field_name]
+    for name in names:
+        try:
+            mapper.slice_index(FIELDS[name])
+        except ValueError:
+            raise ParameterError(f"the mapper has no {name} field (slices {FIELDS[name][0]}–"
+                                 f"{FIELDS[name][-1]})") from None
+    return names
+
+
+# --------------------------------------------------------------------------- pixels
+def _slice_coverage(mapper, ncol, edges, oversample, truncate):
+    """(H, W) int16: how many slices of the mapper reach each pixel (their ±truncate·σ windows)."""
+    H, W = mapper.detector_shape
+    count = np.zeros((H, W), np.int16)
+    for sid in mapper.slice_ids:
+        box = mapper.cell_boxes([int(sid)], ncol, edges, oversample)
+        x0, nx = _windows(box[:, 0], box[:, 1], box[:, 2], truncate)
+        y0, ny = _windows(box[:, 3], box[:, 4], box[:, 5], truncate)
+        xa, xb = np.clip(x0, 0, W), np.clip(x0.astype(np.int64) + nx, 0, W)
+        ya, yb = np.clip(y0, 0, H), np.clip(y0.astype(np.int64) + ny, 0, H)
+        ok = (xa < xb) & (ya < yb)
+        if not ok.any():
+            continue
+        xa, xb, ya, yb = xa[ok], xb[ok], ya[ok], yb[ok]
+        bx0, by0 = int(xa.min()), int(ya.min())
+        h, w = int(yb.max()) - by0, int(xb.max()) - bx0
+        diff = np.zeros((h + 1, w + 1), np.int32)          # union of rectangles by 2-D prefix sums
+        np.add.at(diff, (ya - by0, xa - bx0), 1)
+        np.add.at(diff, (ya - by0, xb - bx0), -1)
+        np.add.at(diff, (yb - by0, xa - bx0), -1)
+        np.add.at(diff, (yb - by0, xb - bx0), 1)
+        inside = np.cumsum(np.cumsum(diff, axis=0), axis=1)[:h, :w] > 0
+        count[by0:by0 + h, bx0:bx0 + w] += inside
+    return count
+
+
+# --------------------------------------------------------------------------- block Cholesky
+class _BlockCholesky:
+    """Cholesky factor of a symmetric positive-definite block-tridiagonal matrix (sparse A).
+
+    Blocks of ``block`` rows (≥ the bandwidth): L has lower-triangular diagonal blocks
+    ``diag[i]`` and full sub-diagonal blocks ``sub[i]`` = L[i+1, i]."""
+
+    def __init__(self, A, block):
+        n = A.shape[0]
+        self.bounds = list(range(0, n, block)) + [n]
+        self.diag, self.sub = [], []
+        nb = len(self.bounds) - 1
+        b0, b1 = self.bounds[0], self.bounds[1]
+        S = A[b0:b1, b0:b1].toarray()
+        for i in range(nb):
+            L = cholesky(S, lower=True, check_finite=False)
+            self.diag.append(L)
+            if i + 1 < nb:
+                b0, b1, b2 = self.bounds[i:i + 3]
+                C = A[b1:b2, b0:b1].toarray()
+                M = solve_triangular(L, C.T, lower=True, check_finite=False).T      # C L⁻ᵀ
+                self.sub.append(M)
+                S = A[b1:b2, b1:b2].toarray() - M @ M.T
+
+    def solve(self, rhs):
+        """A⁻¹ rhs for (n,) or (n, k) rhs."""
+        b = self.bounds
+        y = np.empty_like(rhs, dtype=np.float64)
+        prev = None
+        for i, L in enumerate(self.diag):
+            r = rhs[b[i]:b[i + 1]] if prev is None else rhs[b[i]:b[i + 1]] - self.sub[i - 1] @ prev
+            prev = y[b[i]:b[i + 1]] = solve_triangular(L, r, lower=True, check_finite=False)
+        x = np.empty_like(y)
+        nxt = None
+        for i in range(len(self.diag) - 1, -1, -1):
+            r = y[b[i]:b[i + 1]] if nxt is None else y[b[i]:b[i + 1]] - self.sub[i].T @ nxt
+            nxt = x[b[i]:b[i + 1]] = solve_triangular(self.diag[i], r, lower=True, trans="T",
+                                                     check_finite=False)
+        return x
+
+    def inverse_diagonal(self):
+        """diag(A⁻¹) by the block Takahashi recursion: Z_ii = L_ii⁻ᵀL_ii⁻¹ + Tᵀ Z_{i+1} T,
+        T = L[i+1, i] L_ii⁻¹."""
+        b = self.bounds
+        out = np.empty(b[-1])
+        Z = None
+        for i in range(len(self.diag) - 1, -1, -1):
+            L = self.diag[i]
+            Linv = solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
+            Znew = Linv.T @ Linv
+            if Z is not None:
+                T = self.sub[i] @ Linv
+                Znew += T.T @ (Z @ T)
+            Z = Znew
+            out[b[i]:b[i + 1]] = np.diag(Z)
+        return out
+
+    def nbytes(self):
+        return sum(a.nbytes for a in self.diag) + sum(a.nbytes for a in self.sub)
+
+
+def _slice_matrix(tables, s, weight_flat):
+    """P of slice s on its usable pixels: (CSR (npix × ncell), flat pixel indices, flux
+    fraction of every cell on excluded pixels)."""
+    S, E, Q = tables.grid
+    ne, nq = tables.oversample
+    nc = (E // ne) * (Q // nq)
+    pix, cell, wgt = [], [], []
+    for c0 in range(s * E * Q, (s + 1) * E * Q, _ENTRY_CHUNK):
+        p, c, w = matrix_entries(tables, c0, min(c0 + _ENTRY_CHUNK, (s + 1) * E * Q))
+        pix.append(p)
+        cell.append(c - s * nc)
+        wgt.append(w)
+    pix, cell, wgt = np.concatenate(pix), np.concatenate(cell), np.concatenate(wgt)
+    use = weight_flat[pix] > 0
+    lost = np.bincount(cell[~use], weights=wgt[~use], minlength=nc)
+    upix, row = np.unique(pix[use], return_inverse=True)
+    P = sp.csr_matrix((wgt[use], (row, cell[use])), shape=(upix.size, nc))
+    P.sum_duplicates()
+    return P, upix, lost
+
+
+def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid):
+    """Weighted LSQ of one slice: (x (nc, N), variance (nc,) or None, κ₁(PᵀWP))."""
+    nc = P.shape[1]
+    WP = sp.csr_matrix(P.multiply(w[:, None]))
+    A = (P.T @ WP).tocsr()
+    A = 0.5 * (A + A.T)                                  # exactly symmetric
+    seen = A.diagonal() > 0
+    x = np.full((nc, rhs.shape[1]), np.nan)
+    var = np.full(nc, np.nan) if want_variance else None
+    if not seen.any():
+        return x, var, 1.0
+    idx = np.flatnonzero(seen)
+    A = A[idx][:, idx].tocsr()
+    coo = A.tocoo()
+    band = int(np.abs(coo.row - coo.col).max()) if coo.nnz else 0
+    block = max(band, 1)
+    need = 2 * idx.size * block * 8 + 4 * block * block * 8
+    if need > max_bytes:
+        raise ParameterError(f"slice {sid}: the normal matrix needs {need / 2**20:.0f} MiB (bandwidth {band}) "
+                             f"> max_bytes {max_bytes / 2**20:.0f} MiB: use fewer columns, wider λ bins "
+                             "or method='drizzle'")
+    try:
+        fac = _BlockCholesky(A, block)
+    except LinAlgError:
+        raise ParameterError(f"slice {sid}: the normal matrix PᵀWP is singular — the grid is finer than the "
+                             "detector samples it (cells smaller than pixel and spot); use fewer columns "
+                             "(ncol), wider λ bins or method='drizzle'") from None
+    op = LinearOperator(A.shape, matvec=fac.solve, rmatvec=fac.solve, matmat=fac.solve, dtype=np.float64)
+    cond = float(abs(A).sum(axis=0).max() * onenormest(op))
+    if not cond < MAX_CONDITION:
+        raise ParameterError(f"slice {sid}: the normal matrix PᵀWP has condition {cond:.2g} > "
+                             f"{MAX_CONDITION:.0e}: the grid is finer than the detector samples it; use fewer "
+                             "columns (ncol), wider λ bins or method='drizzle'")
+    Pk = P[:, idx]
+    xs = fac.solve(rhs[idx])
+    resid = data - Pk @ xs                               # refinement with the data residual (CSNE)
+    xs += fac.solve(Pk.T @ (w[:, None] * resid))
+    x[idx] = xs
+    if want_variance:
+        var[idx] = fac.inverse_diagonal()
+    return x, var, cond
+
+
+# --------------------------------------------------------------------------- fields
+def _cube_axes(values):
+    """(…, S, nλ, ncol) gather order → (…, nλ, n_rows, ncol) cube order (row r ↔ slices[S − 1 − r])."""
+    return np.ascontiguousarray(np.swapaxes(values, -3, -2)[..., ::-1, :])
+
+
+def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend):
+    """Weighted LSQ of one field: ((N, S, nλ, ncol) flux, (S, nλ, ncol) variance or None, diagnostics)."""
+    S, E, Q = tables.grid
+    ne, nq = tables.oversample
+    shape = (S, E // ne, Q // nq)
+    nc = shape[1] * shape[2]
+    N = images.shape[0]
+    usable = weight > 0
+    rhs = np.stack([gather(np.where(usable, img, 0.0) * weight, tables, backend=backend)    # Pᵀ W d
+                    for img in images]).reshape(N, S, nc)
+    flat_w, flat_d = weight.ravel(), images.reshape(N, -1)
+    flux = np.empty((N, S, nc))
+    var = np.empty((S, nc)) if want_variance else None
+    cond, lost = 0.0, 0.0
+    for s in range(S):
+        P, upix, lost_s = _slice_matrix(tables, s, flat_w)
+        x, v, c = _solve_slice(P, flat_w[upix], rhs[:, s].T, flat_d[:, upix].T, want_variance, max_bytes,
+                               slices[s])
+        flux[:, s] = x.T
+        if want_variance:
+            var[s] = v
+        cond, lost = max(cond, c), max(lost, float(lost_s.max()))
+    flux = flux.reshape((N,) + shape)
+    chi2, grad = [], []
+    for n in range(N):                                                  # model image P x̂ on the device
+        resid = np.where(usable, images[n] - deposit(np.nan_to_num(flux[n]), tables, backend=backend), 0.0)
+        chi2.append(float((weight * resid * resid).sum()))
+        g = gather(weight * resid, tables, backend=backend)
+        grad.append(float(np.linalg.norm(g) / max(np.linalg.norm(rhs[n]), 1e-300)))
+    diag = {"cond1_normal_max": cond, "chi2": np.array(chi2), "dof": int(usable.sum()) - int(np.isfinite(
+        flux[0]).sum()), "gradient_rel": np.array(grad), "excluded_flux_max": lost}
+    return flux, None if var is None else var.reshape(shape), diag
+
+
+def _field_drizzle(images, usable, variance, tables, backend):
+    """Pixel-to-cell estimate of one field: ((N, S, nλ, ncol) flux, variance or None, diagnostics)."""
+    S, E, Q = tables.grid
+    ne, nq = tables.oversample
+    cover = deposit(np.ones((S, E // ne, Q // nq)), tables, backend=backend)     # (P·1)_p
+    inside = usable & (cover > 0)
+    safe = np.where(inside, cover, 1.0)
+    seen = gather(inside.astype(np.float64), tables, backend=backend)          # Σ_p P_pc m_p
+    ok = seen > 0
+    den = np.where(ok, seen, 1.0)
+    num = np.stack([gather(np.where(inside, img, 0.0) / safe, tables, backend=backend) for img in images])
+    flux = np.where(ok, num / den, np.nan)
+    var = None
+    if variance is not None:
+        vq = gather(np.where(inside, variance, 0.0) / (safe * safe), tables, power=2, backend=backend)
+        var = np.where(ok, vq / (den * den), np.nan)
+    diag = {"flux_image": np.array([float(img[inside].sum()) for img in images]),
+            "flux_cube": np.nansum(flux, axis=(1, 2, 3)), "coverage_min": float(seen[ok].min()) if ok.any()
+            else 0.0}
+    return flux, var, diag
+
+
+def _usable_pixels(images, variance, owner_ok, field_name):
+    """Usable pixels of a field and the LSQ weights: finite variance and rate."""
+    usable = owner_ok.copy()
+    if variance is not None:
+        usable &= np.isfinite(variance)
+        if (variance[usable] == 0).any():
+            raise ParameterError(f"variance must be > 0 on the pixels the {field_name} field reaches "
+                                 "(+inf leaves a pixel out)")
+    bad = np.zeros(usable.shape, bool)
+    for img in images:
+        bad |= usable & ~np.isfinite(img)
+    if bad.any():
+        raise ParameterError(f"rate_image is not finite on {int(bad.sum())} pixel(s) the {field_name} field "
+                             "reaches: give them variance=+inf to leave them out")
+    weight = np.zeros(usable.shape)
+    weight[usable] = 1.0 if variance is None else 1.0 / variance[usable]
+    return usable, weight
+
+
+def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None, lbda_edges=None, ncol=116,
+            method="lsq", oversample=(1, 1), truncate=4.0, weights_dtype=np.float32, unit="e-/s",
+            max_bytes=2**30, backend="auto"):
+    """Rectify a detector rate image into the cube(s) of a field: see the module docstring.
+
+    Parameters
+    ----------
+    rate_image : (H, W) or (N, H, W) float [``unit`` per pixel, e.g. e-/s]
+        the mapper's detector; a stack shares one variance (one factorisation for all).
+    variance : (H, W) float, optional
+        per-pixel variance [unit²]; +inf leaves a pixel out (its rate may then be NaN).
+        Without it ``lsq`` is unweighted and no variance is returned.
+    mapper : SlicerMapper (default ``SlicerMapper.default()``)
+    field : "narrow" (slices 1–58), "wide" (59–116) or "both"
+    lbda, lbda_edges : (nλ,), (nλ+1,) [Å]
+        output bin centres and/or edges (edges from midpoints when only centres are given).
+    ncol : columns per slice (cells along the slice, fieldpos −1 … +1).
+    method : "lsq" (exact weighted least squares) or "drizzle" (pixel-to-cell).
+    oversample, truncate, weights_dtype : the projection's options (as ``project_cube``: the
+        same values give the same P, hence exact recovery of a cube projected with them).
+    max_bytes : memory allowed for one slice's factorisation (``lsq``).
+
+    Returns a :class:`CubeProduct` (``field="both"``: a dict of two).  ``diagnostics``:
+    lsq: ``cond1_normal_max`` (largest κ₁(PᵀWP) of a slice), ``chi2`` per image over the used
+    pixels, ``dof``, ``gradient_rel`` (‖Pᵀ W (d − P x̂)‖ / ‖Pᵀ W d‖, 0 at the optimum),
+    ``excluded_flux_max`` (largest fraction of a cell's flux on pixels shared with another
+    slice, left out); drizzle: ``flux_image`` and ``flux_cube`` (equal: flux conserved),
+    ``coverage_min``; both: ``pixels_used``, ``pixels_shared``, ``time_s``.
+    """
+    mapper = _default_mapper() if mapper is None else mapper
+    names = _check_options(field, method, ncol, backend, mapper)
+    ov = tuple(int(v) for v in np.ravel(oversample))
+    if len(ov) != 2 or min(ov) < 1:
+        raise ParameterError(f"oversample must be two positive integers, got {oversample!r}")
+    if not (np.isfinite(truncate) and truncate > 0):
+        raise ParameterError(f"truncate must be a positive number of spot rms, got {truncate!r}")
+    if np.dtype(weights_dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ParameterError(f"weights_dtype must be float32 or float64, got {weights_dtype!r}")
+    if method == "drizzle" and variance is not None and ov != (1, 1):
+        raise ParameterError("drizzle variances need oversample (1, 1)")
+    centres, edges = _check_grid(lbda, lbda_edges, mapper)
+    images, var = _check_images(rate_image, variance, mapper.detector_shape)
+    stack = images.ndim == 3
+    images = images if stack else images[None]
+    ncol = int(ncol)
+    count = _slice_coverage(mapper, ncol, edges, ov, truncate) if method == "lsq" else None
+    out = {}
+    for name in names:
+        t0 = time.perf_counter()
+        slices = [int(s) for s in FIELDS[name]]
+        tables = mapper.projection_tables(slices, ncol, edges, oversample=ov, truncate=truncate,
+                                          weights_dtype=weights_dtype, backend=backend)
+        reach = deposit(np.ones((len(slices), edges.size - 1, ncol)), tables, backend=backend) > 0
+        if method == "lsq":
+            usable, weight = _usable_pixels(images, var, reach & (count == 1), name)
+            flux, fvar, diag = _field_lsq(images, weight, tables, slices, var is not None, max_bytes, backend)
+        else:
+            usable, _ = _usable_pixels(images, var, reach, name)
+            flux, fvar, diag = _field_drizzle(images, usable, var, tables, backend)
+        diag.update(pixels_used=int(usable.sum()), pixels_shared=0 if count is None
+                    else int((reach & (count > 1)).sum()), time_s=time.perf_counter() - t0)
+        flux = _cube_axes(flux)
+        wcs = {"axes": ("lbda", "slice", "fieldpos"), "lbda": centres, "lbda_edges": edges, "lbda_unit": "Angstrom",
+               "slice_of_row": tuple(slices[::-1]), "fieldpos_edges": np.linspace(-1.0, 1.0, ncol + 1),
+               "unit": f"{unit} per cell per bin"}
+        out[name] = CubeProduct(name, method, flux if stack else flux[0], None if fvar is None else
+                                _cube_axes(fvar), centres, edges, tuple(slices[::-1]), unit, wcs, diag)
+    return out if field == "both" else out[field]

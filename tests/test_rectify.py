@@ -1,0 +1,266 @@
+"""Rectification (slicersim.reduction.rectify) and the transposed projection it uses.
+
+Tolerances
+----------
+* gather (Pᵀ) OpenCL vs NumPy, and the adjoint identity ⟨P v, y⟩ = ⟨v, Pᵀ y⟩: same
+  formulas, different summation order: 1e-12 relative (measured ~1e-16).
+* Noiseless LSQ recovery: the cube comes back to κ(P)·ε; on the grids used here κ₁(PᵀWP) ≤
+  ~7e4 (2-px bins, 58 or 29 columns), measured errors 1e-15 … 1e-13 of the peak; asserted
+  1e-10 of the peak (the acceptance goal).
+* Pulls: width measured over all cells and realisations; its Monte Carlo error is the
+  realisation-to-realisation scatter of the mean squared pull (neighbouring cells are
+  correlated, so cells are not independent draws) — asserted |width − 1| < 0.05 and within
+  5 of those errors.
+* Flux: Σ cube = Σ model image (lsq) and Σ cube = Σ image over the footprint (drizzle) to
+  1e-12 relative (float64 sums of ~1e5 terms).
+"""
+import numpy as np
+import pytest
+
+from slicersim.backends import opencl
+from slicersim.backends import projection as cp
+from slicersim.backends.projection_transpose import gather, matrix_entries
+from slicersim.errors import ParameterError
+from slicersim.instrument.mapper import SlicerMapper
+from slicersim.io.config import builtin_config_dir
+from slicersim.io.curves import read_curve
+from slicersim.instrument.spectrograph import wavelength_grid_from_dispersion
+from slicersim.reduction.rectify import rectify
+
+HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
+needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
+
+
+def _cbe_grid():
+    lam, cols = read_curve(f"{builtin_config_dir()}/dispersion_prism.ecsv")
+    return wavelength_grid_from_dispersion(lam, next(iter(cols.values())), (4000, 17000), 1.3, 2.3)
+
+
+_, _EDGES = _cbe_grid()                      # 510 bins of ~1 px on the default layout
+BLUE = _EDGES[200:213:2]                     # 6 bins of 2 px (blue: spot σ ~ 1 px)
+RED = _EDGES[480:493:2]                      # 6 bins of 2 px (red: spot σ ~ 1.4 px, the worst κ)
+
+
+@pytest.fixture(scope="module")
+def mapper():
+    return SlicerMapper.default(table_cache=None)
+
+
+@pytest.fixture(scope="module")
+def small():
+    """116 straight, slightly tilted and sheared traces (8 tiers of 15) on a 660 × 600 detector,
+    λ 9000–10000 Å over 60 px, spot σ 0.6–1.2 px growing with λ; neighbouring slices share
+    their spot tails (gap ~6 px).  The Monte Carlo tests run on it (full 4096² images × 40
+    realisations would take 5 GB)."""
+    phi, lam = np.array([-1.0, 0.0, 1.0]), np.array([9000.0, 9500.0, 10000.0])
+    ids = np.arange(1, 117)
+    k, tier = (ids - 1) % 15, (ids - 1) // 15
+    u = ((lam - 9000.0) / 1000.0)[None, None, :]
+    values = np.empty((116, 3, 3, 4))
+    values[..., 0] = 20 + 38 * k[:, None, None] - 16 * phi[None, :, None] + 1.5 * u
+    values[..., 1] = 15 + 80 * tier[:, None, None] + 60 * u + 0.8 * phi[None, :, None]
+    values[..., 2] = 0.6 + 0.4 * u
+    values[..., 3] = 0.7 + 0.5 * u
+    return SlicerMapper(ids, phi, lam, values, detector_shape=(660, 600), table_cache=None)
+
+
+SMALL = np.linspace(9050.0, 9950.0, 13)     # 12 bins of 5 px on the small layout
+
+
+def _centres(edges):
+    return 0.5 * (edges[1:] + edges[:-1])
+
+
+def _truth(rng, edges, ncol):
+    """Smooth continuum × random structure, plus a point-like bright cell: peak ~ 5."""
+    cube = rng.uniform(0.5, 1.5, (edges.size - 1, 58, ncol))
+    cube[:, 20, ncol // 3] += 3.0
+    return cube
+
+
+# --------------------------------------------------------------------------- transpose projection
+def _random_tables(rng, grid, oversample, shape, dtype, vw):
+    H, W = shape
+    n = int(np.prod(grid))
+    ax, ay = rng.uniform(-3, W + 1, n), rng.uniform(-3, H + 1, n)
+    box = np.stack([ax, ax + rng.uniform(0, 2, n), rng.uniform(0, 1.5, n),
+                    ay, ay + rng.uniform(0, 2, n), rng.uniform(0, 1.5, n)], axis=1)
+    return cp.build_tables(box, grid, oversample, detector_shape=shape, weights_dtype=dtype, vw=vw, block=3,
+                           backend="numpy")
+
+
+@pytest.mark.parametrize("oversample,vw,dtype", [((1, 1), 4, np.float64), ((1, 1), 16, np.float32),
+                                                  ((2, 3), 8, np.float32), ((1, 1), 1, np.float64)])
+def test_gather_is_the_transpose(oversample, vw, dtype):
+    rng = np.random.default_rng(sum(oversample) + vw)
+    ne, nq = oversample
+    shape = (67, 53)
+    t = _random_tables(rng, (3, 9 * ne, 13 * nq), oversample, shape, dtype, vw)
+    v, img = rng.uniform(-1, 1, (3, 9, 13)), rng.uniform(-1, 1, shape)
+    dep = cp.deposit(v, t, backend="numpy")
+    backends = ["numpy"] + (["opencl"] if HAVE_OPENCL else [])
+    for be in backends:
+        g = gather(img, t, backend=be)
+        assert (v * g).sum() == pytest.approx((dep * img).sum(), rel=1e-12, abs=1e-12)
+    pix, cell, w = matrix_entries(t, 0, t.ncell)                     # explicit P: P v = deposit(v)
+    Pv = np.bincount(pix, weights=w * v.ravel()[cell], minlength=img.size).reshape(shape)
+    assert np.abs(Pv - dep).max() < 1e-12 * np.abs(dep).max()
+    if oversample == (1, 1):                                          # squared weights: (P∘P)ᵀ y
+        expect = np.bincount(cell, weights=w * w * img.ravel()[pix], minlength=v.size).reshape(v.shape)
+        assert np.abs(gather(img, t, power=2, backend="numpy") - expect).max() < 1e-13
+    else:
+        with pytest.raises(ValueError, match="oversample"):
+            gather(img, t, power=2)
+
+
+@needs_opencl
+def test_gather_opencl_matches_numpy_twin(mapper):
+    t = mapper.projection_tables([3, 4, 31], 58, BLUE)
+    img = np.random.default_rng(4).uniform(0, 1, mapper.detector_shape)
+    for power in (1, 2):
+        a, b = gather(img, t, power, backend="opencl"), gather(img, t, power, backend="numpy")
+        assert np.abs(a - b).max() < 1e-12 * np.abs(b).max()
+        assert np.array_equal(a, gather(img, t, power, backend="opencl"))       # bit-identical reruns
+
+
+# --------------------------------------------------------------------------- exact LSQ
+@pytest.mark.parametrize("edges,ncol", [(BLUE, 58), (RED, 58)])
+def test_noiseless_lsq_returns_the_truth_both_fields(mapper, edges, ncol):
+    rng = np.random.default_rng(1)
+    lbda = _centres(edges)
+    narrow, wide = _truth(rng, edges, ncol), _truth(rng, edges, ncol)
+    img = mapper.project_fields(lbda, edges, narrow=narrow, wide=wide)
+    out = rectify(img, mapper=mapper, field="both", lbda=lbda, lbda_edges=edges, ncol=ncol)
+    for name, truth in (("narrow", narrow), ("wide", wide)):
+        p = out[name]
+        assert p.flux.shape == truth.shape and p.variance is None and p.field == name
+        err = np.abs(p.flux - truth).max() / truth.max()
+        assert err < 1e-10, (name, err)
+        d = p.diagnostics
+        assert d["gradient_rel"][0] < 1e-12 and d["chi2"][0] < 1e-20
+        assert d["pixels_shared"] > 0 and 0 < d["excluded_flux_max"] < 1      # slices do share tail pixels
+        model = mapper.project_cube(p.flux, lbda, edges, name)
+        assert p.flux.sum() == pytest.approx(model.sum(), rel=1e-12)          # flux-conserving
+        assert p.wcs["slice_of_row"][0] == (58 if name == "narrow" else 116)
+        np.testing.assert_array_equal(p.lbda_edges, edges)
+
+
+def test_noiseless_lsq_weighted_with_bad_pixels_numpy(small):
+    """Weights, unusable pixels (NaN rate, infinite variance) and the NumPy backend."""
+    rng = np.random.default_rng(2)
+    edges, ncol, mapper = SMALL, 24, small
+    lbda = _centres(edges)
+    narrow = _truth(rng, edges, ncol)
+    img = mapper.project_fields(lbda, edges, narrow=narrow)
+    var = 0.01 + 0.02 * img
+    rows, cols = np.nonzero(img > 0.05 * img.max())
+    pick = rng.choice(rows.size, 200, replace=False)
+    img[rows[pick], cols[pick]] = np.nan
+    var[rows[pick], cols[pick]] = np.inf
+    p = rectify(img, var, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges, ncol=ncol, backend="numpy")
+    assert np.abs(p.flux - narrow).max() < 1e-10 * narrow.max()
+    assert np.all(np.isfinite(p.variance)) and np.all(p.variance > 0)
+    with pytest.raises(ParameterError, match="variance=\\+inf"):
+        rectify(img, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges, ncol=ncol)
+
+
+def test_native_grid_is_refused_by_lsq(mapper):
+    """116 columns of ~0.9 px across a ~105 px slice: more cells than pixels, P singular."""
+    edges = _EDGES[200:206]
+    img = mapper.project_fields(_centres(edges), edges, narrow=np.ones((5, 58, 116)))
+    with pytest.raises(ParameterError, match="singular|condition"):
+        rectify(img, mapper=mapper, field="narrow", lbda_edges=edges, ncol=116)
+
+
+# --------------------------------------------------------------------------- noise
+def _pull_width(pulls):
+    """Width sqrt(<pull²>) and its Monte Carlo error from the scatter between realisations."""
+    per = (pulls ** 2).reshape(pulls.shape[0], -1).mean(axis=1)
+    mean = per.mean()
+    return np.sqrt(mean), 0.5 * per.std(ddof=1) / np.sqrt(per.size) / np.sqrt(mean)
+
+
+@pytest.mark.parametrize("method", ["lsq", "drizzle"])
+def test_variance_pulls(small, method):
+    rng = np.random.default_rng(7)
+    mapper, edges, ncol, nreal = small, SMALL, 24, 40
+    lbda = _centres(edges)
+    truth = _truth(rng, edges, ncol)
+    model = mapper.project_fields(lbda, edges, narrow=truth)
+    var = 0.05 + 0.1 * model                                  # read-noise floor + shot noise [(e-/s)²]
+    noisy = model + np.sqrt(var) * rng.standard_normal((nreal,) + model.shape)
+    kw = dict(mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges, ncol=ncol, method=method)
+    p = rectify(noisy, var, **kw)
+    centre = truth if method == "lsq" else rectify(model, var, **kw).flux     # drizzle is biased: its mean
+    pulls = (p.flux - centre) / np.sqrt(p.variance)
+    width, err = _pull_width(pulls)
+    assert abs(width - 1) < 0.05 and abs(width - 1) < 5 * err + 1e-3, (width, err)
+    bias = pulls.mean(axis=0)                                 # per cell, over the realisations
+    assert abs(bias.mean()) < 5 / np.sqrt(nreal * 10)         # ≥ 10 independent cells' worth
+    if method == "lsq":                                       # the variance is the real noise amplification
+        assert p.variance.max() / p.variance.min() > 10
+
+
+def test_variance_pulls_lazuli_layout(mapper):
+    """A few realisations on the real layout (red end: the worst conditioning)."""
+    rng = np.random.default_rng(8)
+    edges, nreal = RED, 4
+    lbda = _centres(edges)
+    truth = _truth(rng, edges, 58)
+    model = mapper.project_fields(lbda, edges, narrow=truth)
+    var = 0.05 + 0.1 * model
+    rows = np.flatnonzero(model.any(axis=1))                  # noise where the field is (saves time)
+    noisy = np.repeat(model[None], nreal, axis=0)
+    noisy[:, rows] += np.sqrt(var[rows]) * rng.standard_normal((nreal, rows.size, model.shape[1]))
+    p = rectify(noisy, var, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges, ncol=58)
+    width, err = _pull_width((p.flux - truth) / np.sqrt(p.variance))
+    assert abs(width - 1) < 0.05 and abs(width - 1) < 5 * err + 2e-3, (width, err)
+
+
+# --------------------------------------------------------------------------- drizzle
+def test_drizzle_conserves_flux_and_constants(mapper):
+    edges, ncol = BLUE, 58
+    lbda = _centres(edges)
+    rng = np.random.default_rng(3)
+    truth = _truth(rng, edges, ncol)
+    img = mapper.project_fields(lbda, edges, narrow=truth, wide=np.full_like(truth, 2.5))
+    out = rectify(img, mapper=mapper, field="both", lbda=lbda, lbda_edges=edges, ncol=ncol, method="drizzle")
+    d = out["narrow"].diagnostics
+    assert d["flux_cube"][0] == pytest.approx(d["flux_image"][0], rel=1e-12)
+    assert d["flux_image"][0] == pytest.approx(img[2048:].sum(), rel=1e-12)    # narrow: top half
+    assert np.abs(out["wide"].flux - 2.5).max() < 1e-12                       # constants come back
+    err_drizzle = np.abs(out["narrow"].flux - truth).max() / truth.max()
+    lsq = rectify(img, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges, ncol=ncol)
+    assert np.abs(lsq.flux - truth).max() / truth.max() < 1e-10 < 0.01 < err_drizzle     # drizzle is biased
+
+
+# --------------------------------------------------------------------------- bad input
+def test_bad_input_is_refused_before_any_work(mapper, monkeypatch):
+    calls = []
+    monkeypatch.setattr(mapper, "projection_tables", lambda *a, **k: calls.append(a))
+    lbda, edges = _centres(BLUE), BLUE
+    good = np.zeros(mapper.detector_shape)
+    cases = [
+        (dict(rate_image=np.zeros((4096, 4095))), "rate_image must have shape"),
+        (dict(field="medium"), "unknown field 'medium'"),
+        (dict(lbda=lbda[:-1]), "inconsistent λ grid: 5 bin centres for 7 edges"),
+        (dict(lbda=lbda + 500), "inconsistent λ grid: every centre"),
+        (dict(lbda=None, lbda_edges=edges[::-1]), "inconsistent λ grid: lbda_edges must increase"),
+        (dict(lbda=None, lbda_edges=np.array([3000.0, 3500.0])), "inconsistent λ grid: .* leaves the traces"),
+        (dict(lbda=None, lbda_edges=None), "λ grid is missing"),
+        (dict(variance=np.ones((10, 10))), "variance must have shape"),
+        (dict(variance=np.full(mapper.detector_shape, -1.0)), "variance must be ≥ 0"),
+        (dict(method="psf"), "unknown method"),
+        (dict(ncol=0), "ncol must be a positive integer"),
+    ]
+    for change, message in cases:
+        kw = dict(rate_image=good, variance=None, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges,
+                  ncol=58)
+        kw.update(change)
+        with pytest.raises(ParameterError, match=message):
+            rectify(kw.pop("rate_image"), kw.pop("variance"), **kw)
+    assert calls == []                                        # nothing built or launched
+    other = SlicerMapper(mapper.slice_ids[:58], mapper.fieldpos_nodes, mapper.lbda_nodes, mapper.values[:58],
+                         table_cache=None)
+    with pytest.raises(ParameterError, match="no wide field"):
+        rectify(good, mapper=other, field="both", lbda=lbda, lbda_edges=edges, ncol=58)
