@@ -288,3 +288,22 @@ def test_cli_etc_prints_units_and_no_object_repr():
     assert "object at 0x" not in out
     # the CLI now prints units in brackets after the key ("exposure_time [s]", "data_volume [GB]")
     assert "[GB]" in out and "[s]" in out and "[Angstrom]" in out
+
+
+def test_partial_spectral_range_starts_at_its_own_wavelength():
+    """A spectral_range that does not begin where the dispersion law's offset is 0 gave (like slicersim
+    1.0) the right number of bins at the wrong wavelengths (47 bins at 4000–4255 Å for 9000–11000 Å).
+    Now the bins are the sub-grid of the full grid that covers the range."""
+    import numpy as np
+
+    from slicersim import LazuliTarget
+    t = LazuliTarget(np.linspace(3000, 18000, 100), np.full(100, 1e-17))
+    full = t.simulation.spectrograph.lbda.copy()
+    full_edges = t.simulation.spectrograph.lbda_edges.copy()
+    t.update(spectral_range=(9000, 11000))
+    part = t.simulation.spectrograph.lbda
+    edges = t.simulation.spectrograph.lbda_edges
+    assert part[0] - 9000 < np.diff(edges)[0] and 11000 - part[-1] < np.diff(edges)[-1]
+    i = np.argmin(abs(full - part[0]))
+    np.testing.assert_allclose(part, full[i:i + part.size], rtol=1e-12)
+    np.testing.assert_allclose(edges, full_edges[i:i + part.size + 1], rtol=1e-12)

@@ -38,8 +38,11 @@ def wavelength_grid_from_dispersion(law_lbda, law_offset, spectral_range, disper
     The law gives the detector offset [px] versus λ [Å]; it is scaled by
     K = dispersion_scale × dispersion_resolution / 2.  Two not-a-knot cubic
     splines are built, D: λ → offset and W: offset → λ; the grid has
-    N = round(D(λ_max) − D(λ_min)) + 1 bins with centres W(i) and edges W(i − ½),
-    starting where the law's offset is 0.
+    N = round(D(λ_max) − D(λ_min)) + 1 bins with centres W(o₀ + i) and edges W(o₀ + i − ½),
+    o₀ = round(D(λ_min)): the bins sit on the detector's pixel lattice and start at λ_min.
+    (slicersim 1.0 always started at offset 0, whatever λ_min — the same grid for the default
+    range, which begins where the law's offset is 0, and a grid at the wrong wavelengths for
+    any other range.)
     """
     law_lbda = np.asarray(law_lbda, dtype=float)
     scaled = np.asarray(law_offset, dtype=float) * dispersion_scale * dispersion_resolution / 2.0
@@ -57,8 +60,9 @@ def wavelength_grid_from_dispersion(law_lbda, law_offset, spectral_range, disper
         raise ParameterError(f"spectral range {tuple(spectral_range)} gives {nbins} bins (more than {MAX_BINS})")
     if nbins < 2:
         raise ValueError(f"spectral range {spectral_range} gives fewer than 2 bins")
-    lbda = offset_to_lbda(np.arange(nbins, dtype=float))
-    edges = offset_to_lbda(np.arange(nbins + 1, dtype=float) - 0.5)
+    first = float(round(float(lbda_to_offset(lo))))
+    lbda = offset_to_lbda(first + np.arange(nbins, dtype=float))
+    edges = offset_to_lbda(first + np.arange(nbins + 1, dtype=float) - 0.5)
     return lbda, edges
 
 
