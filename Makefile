@@ -21,8 +21,8 @@ $(STAMP): pyproject.toml
 	  if [ -n "$(UV)" ]; then echo "creating $(VENV) with uv"; uv venv "$(VENV)"; \
 	  else echo "creating $(VENV) with $(PYTHON3) -m venv"; $(PYTHON3) -m venv "$(VENV)"; fi; \
 	fi
-	@if [ -n "$(UV)" ]; then uv pip install --python "$(PY)" -e ".[test]"; \
-	else "$(PY)" -m pip install -e ".[test]"; fi
+	@if [ -n "$(UV)" ]; then uv pip install --python "$(PY)" -e ".[test,galaxies]"; \
+	else "$(PY)" -m pip install -e ".[test,galaxies]"; fi
 	@touch "$@"
 
 # Make sure pyopencl sees at least one OpenCL platform; install PoCL otherwise.
