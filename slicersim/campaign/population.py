@@ -79,14 +79,12 @@ _SOURCES = {}
 def _source(name):
     """The sncosmo source ``name`` (loaded once per process; SALT needs sncosmo's data)."""
     if name not in _SOURCES:
-        import sncosmo
+        from slicersim.sources.spectra import load_sncosmo_source
         try:
-            _SOURCES[name] = sncosmo.get_source(name)
-        except Exception as exc:
+            _SOURCES[name] = load_sncosmo_source(name)
+        except SpectrumError as exc:
             offline = ", ".join(k for k, v in SNCOSMO_SNIA_MODELS.items() if v)
-            raise SpectrumError(f"sncosmo source {name!r} is not available here ({type(exc).__name__}: "
-                                f"{' '.join(str(exc).split())[:200]}); it needs sncosmo's data download "
-                                f"(SNCOSMO_DATA_DIR); available offline: {offline}") from None
+            raise SpectrumError(f"{exc} — available offline: {offline}") from None
     return _SOURCES[name]
 
 
