@@ -239,14 +239,19 @@ def _buffer(workspace, name, nbytes):
     return buf
 
 
-def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True):
-    """OpenCL version of :func:`fit_block_numpy` (same arguments and results); ``workspace``: a dict
-    reusing device buffers between blocks; ``want_gdq=False`` skips copying GROUPDQ back (None)."""
+def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True, wait=True):
+    """OpenCL version of :func:`fit_block_numpy` (same arguments and results).
+
+    workspace : dict reusing device buffers between blocks;  want_gdq=False : GROUPDQ out is None;
+    wait=False : return at once a function that waits for the kernel and returns the results, so
+    that the caller can read the next block meanwhile.  On CPU devices the kernel works on the
+    arrays in place (zero-copy): ``sci``, ``gdq`` and ``pixeldq`` must then stay untouched until
+    the results are fetched."""
     _check_block(sci, gdq, pixeldq, k)
     opencl.require_fp64()
     nints, n, npix = sci.shape
-    sci = np.ascontiguousarray(sci)
-    gdq = np.ascontiguousarray(gdq)
+    sci, gdq = np.ascontiguousarray(sci), np.ascontiguousarray(gdq)
+    pixeldq = np.ascontiguousarray(pixeldq)
     options = (f"-DNGROUPS={n}", f"-DWEIGHTING={WEIGHTINGS.index(k.weighting)}",
                f"-DSCI_DOUBLE={int(sci.dtype == np.float64)}", f"-DWANT_GDQ={int(bool(want_gdq))}")
     kernel = opencl.cached_kernel("ramp_fit.cl", "ramp_fit", options)
@@ -256,29 +261,38 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
         work_group = None if gpu else CPU_WORK_GROUP
     elif not 1 <= int(work_group) <= int(dev.max_work_group_size):
         raise ValueError(f"work_group must be in [1, {int(dev.max_work_group_size)}], got {work_group}")
-    d_sci = opencl.to_device(sci, _buffer(workspace, "sci", sci.nbytes))
-    d_gdq = opencl.to_device(gdq, _buffer(workspace, "gdq", gdq.nbytes))
-    d_pdq = opencl.to_device(np.ascontiguousarray(pixeldq), _buffer(workspace, "pdq", pixeldq.nbytes))
-    d_gout = _buffer(workspace, "gdq_out", gdq.nbytes if want_gdq else 1)
+    fit, dq, njump = np.empty((4, npix)), np.empty(npix, np.uint32), np.empty(npix, np.int32)
+    gdq_out = np.empty_like(gdq) if want_gdq else np.empty(1, np.uint8)
+    outputs = (fit, dq, njump, gdq_out)
+    zero_copy = not gpu and all(a.flags.writeable for a in (sci, gdq, pixeldq))
+    if zero_copy:                    # PoCL: the kernel reads and writes the host arrays themselves
+        d_sci, d_gdq, d_pdq = (opencl.host_buffer(a) for a in (sci, gdq, pixeldq))
+        d_fit, d_dq, d_nj, d_gout = (opencl.host_buffer(a) for a in outputs)
+    else:
+        d_sci = opencl.to_device(sci, _buffer(workspace, "sci", sci.nbytes))
+        d_gdq = opencl.to_device(gdq, _buffer(workspace, "gdq", gdq.nbytes))
+        d_pdq = opencl.to_device(pixeldq, _buffer(workspace, "pdq", pixeldq.nbytes))
+        d_fit, d_dq, d_nj, d_gout = (_buffer(workspace, name, a.nbytes)
+                                     for name, a in zip(("fit", "dq", "njump", "gdq_out"), outputs))
     nwords = -(-(n - 1) // 64)
     d_bits = _buffer(workspace, "bits", 8 * nints * nwords * npix if nints > 1 and k.weighting == "gls" else 8)
-    d_fit = _buffer(workspace, "fit", 4 * 8 * npix)
-    d_dq = _buffer(workspace, "dq", 4 * npix)
-    d_nj = _buffer(workspace, "njump", 4 * npix)
     gsize, lsize = (npix,), None
     if work_group:
         gsize, lsize = (-(-npix // int(work_group)) * int(work_group),), (int(work_group),)
     opencl.launch(kernel, gsize, lsize, d_sci, d_gdq, d_gout, d_bits, d_pdq, d_fit, d_dq, d_nj, np.uint32(npix),
                   np.uint32(nints), np.float64(k.inv_gain), np.float64(k.sg2), np.float64(k.tau),
                   np.float64(k.ccorr), np.float64(min(k.satlim, 1e300)), np.float64(k.jump_thr))
-    fit = np.empty((4, npix))
-    dq = np.empty(npix, np.uint32)
-    njump = np.empty(npix, np.int32)
-    opencl.from_device(fit, d_fit)
-    opencl.from_device(dq, d_dq)
-    opencl.from_device(njump, d_nj)
-    gdq_out = None
-    if want_gdq:
-        gdq_out = np.empty_like(gdq)
-        opencl.from_device(gdq_out, d_gout)
-    return fit, dq, njump, gdq_out
+
+    inputs = (sci, gdq, pixeldq)                 # alive until the kernel is done with them
+
+    def finish():
+        assert inputs
+        for d_buf, host in zip((d_fit, d_dq, d_nj, d_gout), outputs):
+            if host is gdq_out and not want_gdq:
+                continue
+            if zero_copy:
+                opencl.sync_to_host(d_buf, host)
+            else:
+                opencl.from_device(host, d_buf)
+        return fit, dq, njump, (gdq_out if want_gdq else None)
+    return finish() if wait else finish

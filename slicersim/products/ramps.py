@@ -299,19 +299,17 @@ def _version():
 def fit_slopes(sci, nmd, tframe, gain=1.0, groupdq=None):
     """Unweighted least-squares slopes over group means [e-/s] of SCI (ngroups, ...) ADU.
 
-    Groups flagged in ``groupdq`` are excluded; pixels with < 2 good groups give NaN.
+    Groups flagged in ``groupdq`` (any bit) are excluded; a ramp broken by flagged groups is fitted
+    per segment, the segments combined with read-noise weights.  This is the OLS fit of
+    :mod:`slicersim.backends.ramp_fit` (NumPy twin) without jump detection; the full reduction
+    (jumps, GLS weights, variances, corrections, files) is
+    :func:`slicersim.reduction.ramp_fit.fit_ramps`.  Pixels with no two consecutive good groups give NaN.
     """
-    n, m, d = nmd
-    t = ((np.arange(n) * (m + d)) + (m + 1) / 2.0) * tframe          # mean time of each group
-    y = np.asarray(sci, dtype=float) / gain
-    good = np.ones(y.shape, bool) if groupdq is None else (np.asarray(groupdq) == 0)
-    tt = np.broadcast_to(t.reshape((n,) + (1,) * (y.ndim - 1)), y.shape)
-    w = good.astype(float)
-    sw = w.sum(0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        tm = (w * tt).sum(0) / sw
-        ym = (w * y).sum(0) / sw
-        num = (w * (tt - tm) * (y - ym)).sum(0)
-        den = (w * (tt - tm) ** 2).sum(0)
-        slope = num / den
-    return np.where(sw >= 2, slope, np.nan)
+    from slicersim.backends.ramp_fit import fit_block_numpy, fit_constants
+    sci = np.asarray(sci, dtype=float)
+    flat = sci.reshape(1, sci.shape[0], -1)
+    flags = np.zeros(flat.shape, np.uint8) if groupdq is None else \
+        (np.asarray(groupdq).reshape(flat.shape) != 0).astype(np.uint8)        # DO_NOT_USE
+    consts = fit_constants(nmd, tframe, gain, 0.0, 0.0, None, None, "ols")
+    fit = fit_block_numpy(flat, flags, np.zeros(flat.shape[2], np.uint32), consts)[0]
+    return fit[0].reshape(sci.shape[1:])

@@ -472,12 +472,24 @@ def fit_ramps(source, *, refpix=None, linearity=None, superbias=None, jump_thres
         if progress:
             from tqdm.auto import tqdm
             blocks = tqdm(blocks, desc="ramp fit", unit="block")
-        sci_buf = np.empty(nints * n * rows * nx, np.uint16 if src.integer else np.float64)
-        gdq_buf = np.empty(nints * n * rows * nx, np.uint8)
-        workspace = {}
-        for y0 in blocks:
+        # two sets of block buffers: the next block is read while the kernel works on the last one
+        sets = [(np.empty(nints * n * rows * nx, np.uint16 if src.integer else np.float64),
+                 np.empty(nints * n * rows * nx, np.uint8)) for _ in range(2 if backend == "opencl" else 1)]
+        workspace, pending = {}, None
+
+        def store(y0, y1, results):
+            fit, dq, nj, gout = results
+            for key, val in zip(("rate", "variance", "var_poisson", "var_rnoise"), fit):
+                out[key][y0:y1] = val.reshape(y1 - y0, nx)
+            out["dq"][y0:y1] = dq.reshape(y1 - y0, nx)
+            out["njumps"][y0:y1] = nj.reshape(y1 - y0, nx)
+            if return_groupdq:
+                groupdq[:, :, y0:y1] = gout.reshape(nints, n, y1 - y0, nx)
+
+        for count, y0 in enumerate(blocks):
             y1 = min(ny, y0 + rows)
             shape = (nints, n, y1 - y0, nx)
+            sci_buf, gdq_buf = sets[count % len(sets)]
             sci = sci_buf[:np.prod(shape)].reshape(shape)
             gdq = gdq_buf[:np.prod(shape)].reshape(shape)
             src.read(y0, y1, sci, gdq)
@@ -488,16 +500,15 @@ def fit_ramps(source, *, refpix=None, linearity=None, superbias=None, jump_thres
             flat = (sci.reshape(nints, n, npix), gdq.reshape(nints, n, npix),
                     src.pixeldq(y0, y1).reshape(npix), block_consts)
             if backend == "opencl":
-                fit, dq, nj, gout = fit_block_opencl(*flat, workspace=workspace, work_group=work_group,
-                                                     want_gdq=return_groupdq)
+                launched = fit_block_opencl(*flat, workspace=workspace, work_group=work_group,
+                                            want_gdq=return_groupdq, wait=False)
+                if pending is not None:
+                    store(*pending[0], pending[1]())
+                pending = ((y0, y1), launched)
             else:
-                fit, dq, nj, gout = fit_block_numpy(*flat)
-            for key, val in zip(("rate", "variance", "var_poisson", "var_rnoise"), fit):
-                out[key][y0:y1] = val.reshape(y1 - y0, nx)
-            out["dq"][y0:y1] = dq.reshape(y1 - y0, nx)
-            out["njumps"][y0:y1] = nj.reshape(y1 - y0, nx)
-            if return_groupdq:
-                groupdq[:, :, y0:y1] = gout.reshape(shape)
+                store(y0, y1, fit_block_numpy(*flat))
+        if pending is not None:
+            store(*pending[0], pending[1]())
         attrs = _attrs(src, nmd, tframe, gain, read_noise, saturation, jump_threshold, weighting, backend, labels)
     return RateProduct(**out, attrs=attrs, groupdq=groupdq, truth_rate=truth_rate)
 
