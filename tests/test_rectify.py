@@ -135,6 +135,7 @@ def test_noiseless_lsq_returns_the_truth_both_fields(mapper, edges, ncol):
         p = out[name]
         assert p.flux.shape == truth.shape and p.variance is None and p.field == name
         err = np.abs(p.flux - truth).max() / truth.max()
+        print(f"{name}: max |cube − truth| / peak = {err:.2e}, κ₁(PᵀP) ≤ {p.diagnostics['cond1_normal_max']:.3g}")
         assert err < 1e-10, (name, err)
         d = p.diagnostics
         assert d["gradient_rel"][0] < 1e-12 and d["chi2"][0] < 1e-20
@@ -194,17 +195,20 @@ def test_variance_pulls(small, method):
     centre = truth if method == "lsq" else rectify(model, var, **kw).flux     # drizzle is biased: its mean
     pulls = (p.flux - centre) / np.sqrt(p.variance)
     width, err = _pull_width(pulls)
+    print(f"{method}: pull width {width:.4f} ± {err:.4f}, mean {pulls.mean():+.4f}")
     assert abs(width - 1) < 0.05 and abs(width - 1) < 5 * err + 1e-3, (width, err)
     bias = pulls.mean(axis=0)                                 # per cell, over the realisations
     assert abs(bias.mean()) < 5 / np.sqrt(nreal * 10)         # ≥ 10 independent cells' worth
     if method == "lsq":                                       # the variance is the real noise amplification
         assert p.variance.max() / p.variance.min() > 10
+        chi2, dof = p.diagnostics["chi2"], p.diagnostics["dof"]  # χ² of the fit: dof ± √(2 dof)
+        assert abs(chi2.mean() / dof - 1) < 5 * np.sqrt(2 / dof / nreal)
 
 
 def test_variance_pulls_lazuli_layout(mapper):
     """A few realisations on the real layout (red end: the worst conditioning)."""
     rng = np.random.default_rng(8)
-    edges, nreal = RED, 4
+    edges, nreal = RED, 8
     lbda = _centres(edges)
     truth = _truth(rng, edges, 58)
     model = mapper.project_fields(lbda, edges, narrow=truth)
@@ -214,6 +218,7 @@ def test_variance_pulls_lazuli_layout(mapper):
     noisy[:, rows] += np.sqrt(var[rows]) * rng.standard_normal((nreal, rows.size, model.shape[1]))
     p = rectify(noisy, var, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges, ncol=58)
     width, err = _pull_width((p.flux - truth) / np.sqrt(p.variance))
+    print(f"Lazuli layout, lsq: pull width {width:.4f} ± {err:.4f}")
     assert abs(width - 1) < 0.05 and abs(width - 1) < 5 * err + 2e-3, (width, err)
 
 
