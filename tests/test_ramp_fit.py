@@ -211,6 +211,13 @@ def test_saturated_groups_are_excluded(tmp_path):
     assert abs(((bright - 800.0) / r.err[:20]).std() - 1) < 0.1
     assert np.all(r.dq[:20] & 2) and not (r.dq[20:40] & 3).any()
     assert np.all(np.isnan(r.rate[40:])) and np.all(r.dq[40:] == 3)
+    import h5py
+    written = r.write(tmp_path / "rate.h5")
+    with h5py.File(written, "r") as fh:
+        assert np.array_equal(fh["RATE"][...], r.rate, equal_nan=True) and np.array_equal(fh["DQ"][...], r.dq)
+        assert fh.attrs["BUNIT"] == "e-/s" and fh.attrs["WEIGHTING"] == "gls"
+    with pytest.raises(RampFileError, match="exists"):
+        r.write(written)
 
 
 # ----------------------------------------------------------------------------- corrections and formats
@@ -335,12 +342,16 @@ def test_bad_input_gives_one_clear_error(tmp_path):
     with h5py.File(tmp_path / "other.h5", "w") as fh:
         fh["data"] = np.zeros(3)
         fh.attrs["COMPLETE"] = True
+    with h5py.File(tmp_path / "partial.h5", "w") as fh:
+        fh["SCI"] = sci
+        fh.attrs["COMPLETE"] = False
     from astropy.io import fits
     fits.HDUList([fits.PrimaryHDU(np.zeros((2, 2)))]).writeto(tmp_path / "image.fits")
     cases = [
         (text, {}, "neither an HDF5 ramp file nor a JWST level-1b"),
         (tmp_path / "other.h5", {}, "not a slicersim ramp file"),
         (tmp_path / "image.fits", {}, "no SCI extension"),
+        (tmp_path / "partial.h5", {}, "incomplete file"),
         (tmp_path / "missing.h5", {}, "cannot read"),
         (path, {"with_truth": True}, "no truth/rate"),
         (path, {"linearity": "truth"}, "no truth/nonlinearity/inverse_coefficients"),
@@ -360,5 +371,7 @@ def test_bad_input_gives_one_clear_error(tmp_path):
         fit_ramps(path, weighting="optimal")
     with pytest.raises(ValueError, match="jump_threshold"):
         fit_ramps(path, jump_threshold=-1)
+    with pytest.raises(ValueError, match="superbias"):
+        fit_ramps(path, refpix=True, superbias="2000")
     with pytest.raises(MemoryError, match="below one detector row"):
         fit_ramps(path, memory_budget=100)

@@ -380,6 +380,8 @@ def _plan_corrections(src, refpix, linearity, superbias, where):
                                     "keyword (pass superbias=)")
         else:
             bias, bias_label = superbias, "user"
+            if isinstance(superbias, (str, bytes)) or not np.all(np.isfinite(np.asarray(superbias, np.float64))):
+                raise ValueError(f"superbias must be a finite number or ({ny}, {nx}) map [DN], got {superbias!r}")
         if bias is not None and np.ndim(bias) and tuple(np.shape(bias)) != (ny, nx):
             raise RampFileError(f"{where}: superbias must be a number or ({ny}, {nx}), got {np.shape(bias)}")
     return refpix_kw, coeffs, bias, {"REFPIX": refpix_kw is not None, "LINEARITY": lin_label, "SUPERBIAS": bias_label}
@@ -461,11 +463,11 @@ def fit_ramps(source, *, refpix=None, linearity=None, superbias=None, jump_thres
         chunk = getattr(src, "chunk_rows", 1)
         if rows > chunk:
             rows -= rows % chunk
+        terms = _refpix_terms(src, bias, refpix_kw) if refpix_kw is not None else None
         out = {"rate": np.empty((ny, nx)), "variance": np.empty((ny, nx)), "var_poisson": np.empty((ny, nx)),
                "var_rnoise": np.empty((ny, nx)), "dq": np.empty((ny, nx), np.uint32),
                "njumps": np.empty((ny, nx), np.int32)}
         groupdq = np.empty(src.shape, np.uint8) if return_groupdq else None
-        terms = _refpix_terms(src, bias, refpix_kw) if refpix_kw is not None else None
         blocks = range(0, ny, rows)
         if progress is None:
             progress = len(blocks) > 8
