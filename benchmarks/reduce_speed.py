@@ -34,7 +34,6 @@ from _common import cpu_model, jsonable, loadavg  # noqa: E402
 from ramp_throughput import DETECTOR, lazuli_rate_image  # noqa: E402
 
 from slicersim.backends import opencl  # noqa: E402
-from slicersim.io.rampfile import read_ramps  # noqa: E402,F401
 from slicersim.products.ramps import simulate  # noqa: E402
 from slicersim.reduction.ramp_fit import fit_ramps  # noqa: E402
 
