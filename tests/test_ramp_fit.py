@@ -13,7 +13,7 @@ import pytest
 from scipy.special import erfc
 
 from slicersim.backends.ramp_fit import fit_block_numpy, fit_block_opencl, fit_constants
-from slicersim.errors import RampFileError
+from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.rampfile import read_ramps
 from slicersim.io.uncal import write_uncal_from_hdf5
 from slicersim.physics.nonlinearity import inverse_coefficients, measured_charge
@@ -367,11 +367,11 @@ def test_bad_input_gives_one_clear_error(tmp_path):
     for source, kwargs, message in cases:
         with pytest.raises(RampFileError, match=message):
             fit_ramps(source, **kwargs)
-    with pytest.raises(ValueError, match="weighting"):
+    with pytest.raises(ParameterError, match="weighting"):
         fit_ramps(path, weighting="optimal")
-    with pytest.raises(ValueError, match="jump_threshold"):
+    with pytest.raises(ParameterError, match="jump_threshold"):
         fit_ramps(path, jump_threshold=-1)
-    with pytest.raises(ValueError, match="superbias"):
+    with pytest.raises(ParameterError, match="superbias"):
         fit_ramps(path, refpix=True, superbias="2000")
     with pytest.raises(MemoryError, match="below one detector row"):
         fit_ramps(path, memory_budget=100)

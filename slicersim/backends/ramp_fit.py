@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.backends import opencl
+from slicersim.errors import ParameterError
 
 __all__ = ["FitConstants", "fit_constants", "fit_block_numpy", "fit_block_opencl", "WEIGHTINGS",
            "JUMP_MIN_DIFFS", "DQ_DO_NOT_USE", "DQ_SATURATED", "DQ_JUMP_DET"]
@@ -64,21 +65,21 @@ def fit_constants(nmd, tframe, gain, read_noise, quantization=0.0, saturation=ma
     off); weighting ``"gls"`` or ``"ols"``."""
     n, m, d = (int(v) for v in nmd)
     if n < 2 or n > MAX_GROUPS or m < 1 or d < 0:
-        raise ValueError(f"readout (n, m, d) = {nmd}: need 2 ≤ n ≤ {MAX_GROUPS}, m ≥ 1, d ≥ 0")
+        raise ParameterError(f"readout (n, m, d) = {nmd}: need 2 ≤ n ≤ {MAX_GROUPS}, m ≥ 1, d ≥ 0")
     for name, val, low in (("tframe", tframe, 0.0), ("gain", gain, 0.0)):
         if not (math.isfinite(val) and val > low):
-            raise ValueError(f"{name} must be finite and > 0, got {val}")
+            raise ParameterError(f"{name} must be finite and > 0, got {val}")
     for name, val in (("read_noise", read_noise), ("quantization", quantization)):
         if not (math.isfinite(val) and val >= 0):
-            raise ValueError(f"{name} must be finite and ≥ 0, got {val}")
+            raise ParameterError(f"{name} must be finite and ≥ 0, got {val}")
     thr = 0.0 if jump_threshold is None else float(jump_threshold)
     if not (math.isfinite(thr) and thr >= 0):
-        raise ValueError(f"jump_threshold must be finite and ≥ 0 σ (or None), got {jump_threshold}")
+        raise ParameterError(f"jump_threshold must be finite and ≥ 0 σ (or None), got {jump_threshold}")
     if weighting not in WEIGHTINGS:
-        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+        raise ParameterError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
     sat = math.inf if saturation is None else float(saturation)
     if math.isnan(sat):
-        raise ValueError("saturation must be a number of DN (or None)")
+        raise ParameterError("saturation must be a number of DN (or None)")
     sg2 = read_noise ** 2 / m + quantization / gain ** 2
     return FitConstants(n, 1.0 / gain, sg2, (m + d) * tframe, tframe * (m * m - 1) / (6.0 * m), sat, thr, weighting)
 

@@ -36,7 +36,7 @@ import numpy as np
 from slicersim.backends.dispatch import resolve_backend
 from slicersim.backends.ramp_fit import (DQ_DO_NOT_USE, DQ_SATURATED, WEIGHTINGS, fit_block_numpy,
                                          fit_block_opencl, fit_constants)
-from slicersim.errors import RampFileError
+from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import AtomicH5File, is_temporary, one_line
 
 __all__ = ["fit_ramps", "RateProduct", "DEFAULT_JUMP_THRESHOLD", "open_ramps"]
@@ -361,13 +361,13 @@ def _plan_corrections(src, refpix, linearity, superbias, where):
         if isinstance(refpix, dict):
             refpix_kw.update(refpix)
         elif refpix is not True:
-            raise ValueError(f"refpix must be None, True, False or a dict of refpix_correct options, got {refpix!r}")
+            raise ParameterError(f"refpix must be None, True, False or a dict of refpix_correct options, got {refpix!r}")
     coeffs, lin_label = None, "none"
     if linearity is None:
         linearity = "truth" if src.truth(_LINEARITY_TRUTH) is not None else False
     if isinstance(linearity, str):
         if linearity != "truth":
-            raise ValueError(f"linearity must be None, False, 'truth' or coefficients (k, ny, nx), got {linearity!r}")
+            raise ParameterError(f"linearity must be None, False, 'truth' or coefficients (k, ny, nx), got {linearity!r}")
         coeffs = src.truth(_LINEARITY_TRUTH)
         if coeffs is None:
             raise RampFileError(f"{where}: linearity='truth' but the file has no truth/{_LINEARITY_TRUTH} "
@@ -390,7 +390,7 @@ def _plan_corrections(src, refpix, linearity, superbias, where):
         else:
             bias, bias_label = superbias, "user"
             if isinstance(superbias, (str, bytes)) or not np.all(np.isfinite(np.asarray(superbias, np.float64))):
-                raise ValueError(f"superbias must be a finite number or ({ny}, {nx}) map [DN], got {superbias!r}")
+                raise ParameterError(f"superbias must be a finite number or ({ny}, {nx}) map [DN], got {superbias!r}")
         if bias is not None and np.ndim(bias) and tuple(np.shape(bias)) != (ny, nx):
             raise RampFileError(f"{where}: superbias must be a number or ({ny}, {nx}), got {np.shape(bias)}")
     return refpix_kw, coeffs, bias, {"REFPIX": refpix_kw is not None, "LINEARITY": lin_label, "SUPERBIAS": bias_label}
@@ -445,7 +445,7 @@ def fit_ramps(source, *, refpix=None, linearity=None, superbias=None, jump_thres
     Returns a :class:`RateProduct`.  Everything is checked before data are read.
     """
     if weighting not in WEIGHTINGS:
-        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+        raise ParameterError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
     backend = resolve_backend(backend)
     with open_ramps(source) as src:
         where = src.name
