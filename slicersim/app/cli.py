@@ -349,6 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_parsers(sub, fmt)
     from slicersim.app import pictures_cli
     pictures_cli.add_parsers(sub, fmt)
+    from slicersim.app import reduce_cli
+    reduce_cli.add_parsers(sub, fmt)
     return parser
 
 
