@@ -1,4 +1,5 @@
-"""Helpers shared by the benchmark scripts: JSON-safe values and the machine description."""
+"""Helpers shared by the benchmark scripts: JSON-safe values, the machine description, reference
+releases run in their own venvs (configuration folder, runner subprocesses), markdown tables."""
 import math
 import os
 import platform
@@ -41,3 +42,137 @@ def loadavg():
         return [round(v, 2) for v in os.getloadavg()]
     except OSError:
         return None
+
+
+# --------------------------------------------------------------------------- #
+#  public reference releases run in their own venvs (*_vs_142.py and friends)
+# --------------------------------------------------------------------------- #
+BENCHMARKS = Path(__file__).resolve().parent
+#: venv holding slicersim 1.4.2 (git-ignored; made on first use)
+REFVENV142 = BENCHMARKS / ".refvenv142"
+
+
+def reference_config_dir():
+    """Folder of the reference's configuration files (``$SLICERSIM_REFERENCE_DIR/config``, default
+    ``../shared/reference/config``), or None when it has no ``lazuli_cbe.toml``."""
+    env = os.environ.get("SLICERSIM_REFERENCE_DIR")
+    root = Path(env) if env else BENCHMARKS.parents[1] / "shared" / "reference"
+    return root / "config" if (root / "config" / "lazuli_cbe.toml").is_file() else None
+
+
+def reference_config():
+    """Path (str) of the reference's ``lazuli_cbe.toml`` (1.4.2's own up to whitespace and its
+    ``name`` key), or None."""
+    folder = reference_config_dir()
+    return None if folder is None else str(folder / "lazuli_cbe.toml")
+
+
+def ensure_refvenv(venv=REFVENV142, requirement="slicersim==1.4.2"):
+    """Python of a reference venv, created with ``pip install requirement`` when missing."""
+    import subprocess
+    import sys
+    py = Path(venv) / "bin" / "python"
+    if not py.exists():
+        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+        subprocess.run([str(py), "-m", "pip", "install", "-q", requirement], check=True)
+    return py
+
+
+def reference_env():
+    """Our environment without PYTHON* variables (the reference venv must not see our package)."""
+    return {k: v for k, v in os.environ.items() if not k.startswith("PYTHON")}
+
+
+class RunnerJob:
+    """A runner script started in a reference venv (:func:`start_runner`); :meth:`wait` returns
+    (JSON result, dict of the arrays of its .npz)."""
+
+    def __init__(self, process, tmp, paths, started):
+        self.process, self._tmp, self.paths, self.started = process, tmp, paths, started
+
+    def wait(self):
+        import json
+        import time
+        try:
+            rc = self.process.wait()
+            self.seconds = time.perf_counter() - self.started
+            if rc != 0:
+                raise RuntimeError(f"reference runner {self.process.args[1]} failed (exit {rc})")
+            result = json.loads(self.paths["json"].read_text())
+            arrays = {}
+            if self.paths["npz"].exists():
+                with np.load(self.paths["npz"]) as data:
+                    arrays = {k: data[k] for k in data.files}
+            return result, arrays
+        finally:
+            self._tmp.cleanup()
+
+
+def start_runner(runner, spec=None, venv=REFVENV142, requirement="slicersim==1.4.2",
+                 argv=("{input}", "{json}", "{npz}"), nice=None):
+    """Start ``runner`` (a file in benchmarks/) with the venv's Python, in a temporary folder,
+    without waiting: it runs alongside our side of a comparison.  ``spec`` is written to
+    ``{input}`` (JSON); ``argv`` names the runner's arguments ({input}, {json}, {npz}).
+    ``nice``: niceness increment of the child (None: inherit)."""
+    import json
+    import subprocess
+    import tempfile
+    import time
+    py = ensure_refvenv(venv, requirement)
+    tmp = tempfile.TemporaryDirectory(prefix="slicersim_ref_")
+    paths = {"input": Path(tmp.name) / "in.json", "json": Path(tmp.name) / "out.json",
+             "npz": Path(tmp.name) / "out.npz"}
+    if spec is not None:
+        paths["input"].write_text(json.dumps(jsonable(spec)))
+    args = [str(py), str(BENCHMARKS / runner)] + [a.format(**{k: str(v) for k, v in paths.items()}) for a in argv]
+    preexec = (lambda: os.nice(nice)) if nice else None
+    process = subprocess.Popen(args, env=reference_env(), cwd=tmp.name, preexec_fn=preexec)
+    return RunnerJob(process, tmp, paths, time.perf_counter())
+
+
+def run_runner(runner, spec=None, **kwargs):
+    """:func:`start_runner` and wait: (JSON result, arrays)."""
+    return start_runner(runner, spec, **kwargs).wait()
+
+
+# --------------------------------------------------------------------------- #
+#  markdown and results
+# --------------------------------------------------------------------------- #
+def rel_diff(value, reference):
+    """value / reference − 1, or None when either is missing or the reference is 0."""
+    if value is None or reference is None or reference == 0:
+        return None
+    return value / reference - 1
+
+
+def fmt(value, spec="{:.4g}"):
+    """A number formatted with ``spec``, "–" for None / non-finite."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "–"
+    return spec.format(value)
+
+
+def fmt_delta(delta, flag=None):
+    """A relative difference as "+1.23 %" ("–" for None); bold when |Δ| > ``flag``."""
+    if delta is None:
+        return "–"
+    text = f"{delta:+.2%}".replace("%", " %")
+    return f"**{text}**" if flag is not None and abs(delta) > flag else text
+
+
+def markdown_table(header, rows, align=None):
+    """Markdown table lines; ``align`` per column: "l" or "r" (default: first left, others right)."""
+    align = align or ["l"] + ["r"] * (len(header) - 1)
+    sep = ["---" if a == "l" else "---:" for a in align]
+    return ["| " + " | ".join(header) + " |", "|" + "|".join(sep) + "|"] + \
+        ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+
+
+def write_results(out_dir, stem, result, markdown):
+    """Write ``stem``.json (:func:`jsonable`, indent 1) and ``stem``.md into ``out_dir``."""
+    import json
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(jsonable(result), indent=1))
+    (out / f"{stem}.md").write_text(markdown)
+    return out / f"{stem}.json", out / f"{stem}.md"
