@@ -64,8 +64,8 @@ def test_show_fields_draws_both_fields_scene_and_cube(target):
         iy, ix = sim.aperture
         assert np.allclose(_by_gid(lines, f"{field}:cube").get_ydata(), signal[:, iy, ix].sum(axis=1), rtol=1e-12)
         assert np.allclose(_by_gid(lines, f"{field}:scene").get_ydata(), scene[:, iy, ix].sum(axis=1), rtol=1e-12)
-        half = 29 * sim.spectrograph.spatial_scale                          # 58 cells across: ±1.16″ / ±2.32″
-        assert np.allclose(_by_gid(images, f"{field}:cube").get_extent(), (-half, half, -half, half))
+        s = sim.spectrograph.spatial_scale                                  # square cells, 58 × 116
+        assert np.allclose(_by_gid(images, f"{field}:cube").get_extent(), (-58 * s, 58 * s, -29 * s, 29 * s))
     assert target.field == "narrow"                                        # the target itself is untouched
 
 

@@ -7,21 +7,57 @@ from pyplot), imports pyplot lazily and never calls ``plt.show``, so it works wi
 from __future__ import annotations
 
 import copy
+import os
 
 import numpy as np
 
 from slicersim.errors import ParameterError
 
-__all__ = ["show_fields", "show_psf_profiles", "show_slice_map", "field_simulations", "FIELDS"]
+__all__ = ["show_fields", "show_psf_profiles", "show_slice_map", "field_simulations", "save_figure", "figure_writer",
+           "check_region", "check_wavelengths", "FIELDS"]
 
 FIELDS = ("narrow", "wide")
 
 
+def figure_writer(fig, path, **options):
+    """(path, writer) for :func:`slicersim.io.atomic.write_files`: ``writer(file)`` draws ``fig``
+    (``savefig`` ``options``) in the format of the path's suffix (none: matplotlib's
+    default, appended to the path as ``savefig`` does)."""
+    import matplotlib
+    path = os.fspath(path)
+    fmt = os.path.splitext(path)[1][1:].lower()
+    if not fmt:
+        fmt = matplotlib.rcParams["savefig.format"]
+        path = f"{path}.{fmt}"
+    supported = fig.canvas.get_supported_filetypes()
+    if fmt not in supported:
+        raise ParameterError(f"unsupported figure format {fmt!r} ({path}); use {', '.join(sorted(supported))}")
+    return path, lambda fh: fig.savefig(fh, format=fmt, **options)
+
+
+def save_figure(fig, savefile, **options):
+    """Write ``fig`` (``savefig`` ``options``) and release it from pyplot; returns the path.
+
+    A path is written atomically (:func:`slicersim.io.atomic.write_files`: a temporary in its
+    directory, renamed in when complete, replacing an existing file; on any error, e.g. a full
+    disk, nothing is left; temporaries of killed writers there are removed), see
+    :func:`figure_writer` for the format.  A binary file object is written directly."""
+    import matplotlib.pyplot as plt
+    from slicersim.errors import DatasetError
+    from slicersim.io.atomic import write_files
+    if hasattr(savefile, "write"):
+        fig.savefig(savefile, **options)
+        plt.close(fig)
+        return savefile
+    path, writer = figure_writer(fig, savefile, **options)
+    write_files({path: writer}, overwrite=True, error_class=DatasetError)
+    plt.close(fig)
+    return path
+
+
 def _finish(fig, savefile):
     if savefile is not None:
-        import matplotlib.pyplot as plt
-        fig.savefig(savefile, dpi=120, bbox_inches="tight")
-        plt.close(fig)
+        save_figure(fig, savefile, dpi=120, bbox_inches="tight")
     return fig
 
 
@@ -73,12 +109,64 @@ def _band(lbda, lbda_range):
 
 
 def _extent(sim):
-    """Field extent [arcsec] of the cube image (x along the slices, y across them)."""
+    """Field extent [arcsec] of the cube image (x along the slices, y across them): the
+    simulation's cells are squares of side ``spatial_scale`` (Lazuli: 58 × 116 cells of
+    0.04″ or 0.08″), so a round source is drawn round."""
     spec = sim.spectrograph
     ny, nx = spec.shape
     half_y = 0.5 * ny * spec.spatial_scale
-    half_x = 0.5 * nx / spec.anamorphosis[1] * spec.spatial_scale
+    half_x = 0.5 * nx * spec.spatial_scale
     return (-half_x, half_x, -half_y, half_y)
+
+
+def _image_norm(img):
+    """Colour scale of an image: asinh (linear below 1 % of the peak) for a high contrast (a
+    point source: min < 10 % of max); linear for a low contrast; ±0.5 % around the value
+    for a uniform image (a flat), whose rounding noise would else fill the colour bar."""
+    from matplotlib.colors import AsinhNorm, Normalize
+    lo, hi = float(img.min()), float(img.max())
+    peak = max(abs(lo), abs(hi))
+    if peak == 0 or hi - lo <= 1e-6 * peak:
+        mid = 0.5 * (lo + hi)
+        half = 0.005 * abs(mid) or 1.0
+        return Normalize(vmin=mid - half, vmax=mid + half)
+    if lo >= 0.1 * hi:
+        return Normalize(vmin=lo, vmax=hi)
+    return AsinhNorm(linear_width=0.01 * peak, vmin=lo, vmax=hi)
+
+
+def _colorbar(fig, im, ax, label, min_gap=0.09):
+    """Colour bar whose tick labels do not overlap: ticks closer than ``min_gap`` (fraction
+    of the bar) to a kept one are dropped (asinh scales crowd ticks around 0)."""
+    cb = fig.colorbar(im, ax=ax, fraction=0.046, label=label)
+    norm = im.norm
+    ticks = [t for t in cb.get_ticks() if norm.vmin <= t <= norm.vmax]
+    if len(ticks) > 2:
+        pos = np.asarray(norm(ticks), float)
+        kept = []
+        for i in np.argsort(-np.abs(np.asarray(ticks))):         # the largest |value| first
+            if all(abs(pos[i] - pos[j]) >= min_gap for j in kept):
+                kept.append(i)
+        cb.set_ticks(sorted(ticks[i] for i in kept))
+    return cb
+
+
+def _has_compact_source(sim):
+    """False for a field-filling illumination (a flat: no point source, no host)."""
+    scene = getattr(sim, "scene", None)
+    if scene is None:
+        return True
+    return getattr(scene, "pointsource", None) is not None or getattr(scene, "host", None) is not None
+
+
+def _subject(target_or_sim, sims):
+    """What the figure shows: the target's class (or Simulation), and for a flat what the spectra are."""
+    if isinstance(target_or_sim, dict):
+        target_or_sim = next(iter(target_or_sim.values()))
+    name = type(target_or_sim).__name__
+    if not _has_compact_source(next(iter(sims.values()))):
+        name += " (field-filling illumination: mean spectra per cell)"
+    return name
 
 
 # --------------------------------------------------------------------------- #
@@ -89,19 +177,20 @@ def show_fields(target_or_sim, lbda_range=None, seed=None, savefile=None):
 
     Rows: the projected scene C summed over ``lbda_range`` [Å, observed; default all bins]
     [ph/s per cell]; the signal cube (all ramps, noisy when ``seed`` is given) summed the
-    same way [ADU] (asinh colour scales, linear below 1 % of the peak); the spectra summed over the
-    extraction aperture's cells (``sim.aperture``): cube [ADU] (left axis) and scene [ph/s]
-    (right axis).  Images in arcsec on the sky (x along the slices).  See
-    :func:`field_simulations` for what ``target_or_sim`` may be.
+    same way [ADU] (asinh colour scales, linear below 1 % of the peak; linear for images of
+    low contrast such as flats); the spectra summed over the extraction aperture's cells
+    (``sim.aperture``): cube [ADU] (left axis) and scene [ph/s] (right axis) — without a
+    point source (flats, lamps) the mean spectra per cell over the whole field instead.
+    Images in arcsec on the sky (x along the slices, square cells: equal scales on both
+    axes).  See :func:`field_simulations` for what ``target_or_sim`` may be.
     """
     import matplotlib.pyplot as plt
-    from matplotlib.colors import AsinhNorm
     from matplotlib.ticker import MaxNLocator
 
     sims = field_simulations(target_or_sim)
     fields = [f for f in FIELDS if f in sims]
-    fig, axes = plt.subplots(3, len(fields), figsize=(5.2 * len(fields), 11.5), squeeze=False,
-                             gridspec_kw={"height_ratios": [1, 1, 0.8]}, layout="constrained")
+    fig, axes = plt.subplots(3, len(fields), figsize=(6.4 * len(fields), 9.5), squeeze=False,
+                             gridspec_kw={"height_ratios": [1, 1, 1.2]}, layout="constrained")
     for k, field in enumerate(fields):
         sim = sims[field]
         lbda = sim.lbda
@@ -111,43 +200,58 @@ def show_fields(target_or_sim, lbda_range=None, seed=None, savefile=None):
         cube = noisy[0] if noisy else signal
         extent = _extent(sim)
         lo, hi = lbda[sel][0], lbda[sel][-1]
-        iy, ix = sim.aperture
         for row, (data, unit, what) in enumerate(((scene, "ph/s/cell", "projected scene"),
                                                   (cube, "ADU", "noisy cube" if noisy else "signal cube"))):
             ax = axes[row, k]
             img = data[sel].sum(axis=0)
-            peak = float(np.max(np.abs(img)))
-            norm = AsinhNorm(linear_width=0.01 * peak, vmin=img.min(), vmax=img.max()) if peak > 0 else None
             im = ax.imshow(img, origin="lower", extent=extent, cmap="cividis", interpolation="nearest",
-                           aspect="equal", norm=norm)
+                           aspect="equal", norm=_image_norm(img))
             im.set_gid(f"{field}:{'scene' if row == 0 else 'cube'}")
-            fig.colorbar(im, ax=ax, fraction=0.046, label=f"Σλ [{unit}]")
+            _colorbar(fig, im, ax, f"Σλ [{unit}]")
             ax.set_title(f"{field} field ({sim.spectrograph.spatial_scale:g}″ cells): {what}\n"
                          f"{lo:.0f}–{hi:.0f} Å", fontsize="medium")
             ax.set_xlabel("x along the slices [arcsec]")
             ax.set_ylabel("y across the slices [arcsec]")
         ax = axes[2, k]
-        ax.plot(lbda, cube[:, iy, ix].sum(axis=1), color="tab:blue", lw=1.2, ds="steps-mid", gid=f"{field}:cube")
-        ax.set_ylabel(f"cube in the aperture ({iy.size} cells) [ADU]", color="tab:blue")
+        if _has_compact_source(sim):
+            iy, ix = sim.aperture
+            spec_cube, spec_scene = cube[:, iy, ix].sum(axis=1), scene[:, iy, ix].sum(axis=1)
+            where, unit = f"in the aperture ({iy.size} cells)", ""
+        else:                                   # a flat: no aperture, the mean cell of the field
+            spec_cube, spec_scene = cube.mean(axis=(1, 2)), scene.mean(axis=(1, 2))
+            where, unit = f"field mean ({cube.shape[1]}×{cube.shape[2]} cells)", "/cell"
+        ax.plot(lbda, spec_cube, color="tab:blue", lw=1.2, ds="steps-mid", gid=f"{field}:cube")
+        ax.set_ylabel(f"cube, {where} [ADU{unit}]", color="tab:blue")
         ax.set_xlabel("observed wavelength [Å]")
         twin = ax.twinx()
-        twin.plot(lbda, scene[:, iy, ix].sum(axis=1), color="tab:orange", lw=1.0, ds="steps-mid",
-                  gid=f"{field}:scene")
-        twin.set_ylabel("scene in the aperture [ph/s]", color="tab:orange")
+        twin.plot(lbda, spec_scene, color="tab:orange", lw=1.0, ds="steps-mid", gid=f"{field}:scene")
+        twin.set_ylabel(f"scene, {where.split(' (')[0]} [ph/s{unit}]", color="tab:orange")
         if lbda_range is not None:
             ax.axvspan(lo, hi, color="gold", alpha=0.25, lw=0, zorder=0)
         ax.xaxis.set_major_locator(MaxNLocator(5))
         ax.set_xlim(lbda[0], lbda[-1])
         ax.grid(alpha=0.3)
     t = sims[fields[0]].get_times()
-    fig.suptitle(f"both Lazuli fields, readout {tuple(int(v) for v in t['nmd'])} × {int(t['nramps'])} "
-                 f"ramp(s), {float(t['exposure_time']):.0f} s", fontsize="medium")
+    which = "narrow and wide fields" if len(fields) == 2 else f"{fields[0]} field"
+    fig.suptitle(f"{_subject(target_or_sim, sims)}: Lazuli {which}, readout "
+                 f"{tuple(int(v) for v in t['nmd'])} × {int(t['nramps'])} ramp(s), "
+                 f"{float(t['exposure_time']):.0f} s", fontsize="medium")
     return _finish(fig, savefile)
 
 
 # --------------------------------------------------------------------------- #
 #  PSF                                                                         #
 # --------------------------------------------------------------------------- #
+def check_wavelengths(sim, lbda, what="lbda"):
+    """Refuse (ParameterError) wavelengths [Å] outside the simulation's spectral range."""
+    edges = sim.spectrograph.lbda_edges
+    lo, hi = float(edges[0]), float(edges[-1])
+    bad = [float(v) for v in np.ravel(lbda) if not lo <= v <= hi]
+    if bad:
+        raise ParameterError(f"{what} must lie within the instrument's range {lo:.0f}-{hi:.0f} AA, got "
+                             f"{', '.join(f'{v:g}' for v in bad)}")
+
+
 def psf_profile_curves(sim, lbda, radius):
     """Normalised radial profiles and encircled energies at λ [Å] and r [arcsec].
 
@@ -173,7 +277,8 @@ def show_psf_profiles(target_or_sim, lbda=(5000.0, 10000.0, 15000.0), rmax=None,
 
     Per λ: the Airy pattern of the telescope's annular pupil (solid) and the simulation's
     Gaussian model across (dashed) and along (dotted) the slices, from
-    :func:`psf_profile_curves`; ``rmax`` [arcsec] defaults to 3 Airy radii at the largest λ.
+    :func:`psf_profile_curves`; ``lbda`` must lie within the instrument's spectral range;
+    ``rmax`` [arcsec] defaults to 3 Airy radii at the largest λ.
     The cell sizes of both fields (0.04″, 0.08″ for Lazuli) are marked.
     """
     import matplotlib.pyplot as plt
@@ -182,6 +287,7 @@ def show_psf_profiles(target_or_sim, lbda=(5000.0, 10000.0, 15000.0), rmax=None,
     lbdas = np.atleast_1d(np.asarray(lbda, np.float64))
     if lbdas.ndim != 1 or lbdas.size == 0 or not np.all(np.isfinite(lbdas) & (lbdas > 0)):
         raise ParameterError(f"lbda must be one or more wavelengths > 0 [AA], got {lbda!r}")
+    check_wavelengths(sim, lbdas)
     if rmax is None:
         rmax = 3.0 * float(sim.telescope.airy_radius(lbdas.max()))
     if not (np.isfinite(rmax) and rmax > 0) or int(npoints) < 2:
@@ -233,14 +339,17 @@ def _field_footprints(mapper, fields, config, lbda_edges, ncol, truncate):
     return out
 
 
-def _region(region, shape):
+def check_region(region, shape):
+    """(row0, row1, col0, col1) [px] of a zoom, checked to lie within a detector of ``shape``."""
     try:
+        if len(region) != 4 or not all(float(v).is_integer() for v in region):
+            raise TypeError
         r0, r1, c0, c1 = (int(v) for v in region)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ParameterError(f"region must be (row0, row1, col0, col1) [px], got {region!r}") from None
-    r0, r1, c0, c1 = max(r0, 0), min(r1, shape[0]), max(c0, 0), min(c1, shape[1])
-    if not (r0 < r1 and c0 < c1):
-        raise ParameterError(f"region {region!r} does not overlap the {shape[0]}x{shape[1]} detector")
+    if not (0 <= r0 < r1 <= shape[0] and 0 <= c0 < c1 <= shape[1]):
+        raise ParameterError(f"region (row0, row1, col0, col1) must satisfy 0 <= row0 < row1 <= {shape[0]} "
+                             f"and 0 <= col0 < col1 <= {shape[1]} (the detector) [px], got {tuple(region)}")
     return r0, r1, c0, c1
 
 
@@ -255,7 +364,7 @@ def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, c
     (:class:`~slicersim.instrument.footprints.FieldFootprints`, one or a list), else from
     ``mapper`` (default: the built-in Lazuli layout) for ``fields`` on the grid of
     ``config`` (or ``lbda_edges`` [Å] and ``ncol``).  ``region`` (row0, row1, col0, col1)
-    [px] zooms in.
+    [px], within the detector, zooms in.
     """
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
@@ -278,7 +387,7 @@ def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, c
         fig, ax = plt.subplots(figsize=(9, 8.5), layout="constrained")
     else:
         fig = ax.figure
-    r0, r1, c0, c1 = (0, shape[0], 0, shape[1]) if region is None else _region(region, shape)
+    r0, r1, c0, c1 = (0, shape[0], 0, shape[1]) if region is None else check_region(region, shape)
     view = dict(origin="lower", interpolation="nearest", interpolation_stage="data", extent=(c0, c1, r0, r1))
     if image is not None:
         data = np.asarray(image, np.float64)

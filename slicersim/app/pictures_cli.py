@@ -19,7 +19,9 @@ def _fields(choice):
     return ("narrow", "wide") if choice == "both" else (choice,)
 
 
-def _check_figure(path, overwrite, flag="--out"):
+def _check_figure(path, overwrite, flag="--out", created=None):
+    """Refuse a bad figure path before anything is computed; its directory may be ``created``
+    (the footprints' --out, made when missing)."""
     if not path.lower().endswith(FIGURE_SUFFIXES):
         raise ParameterError(f"{flag} must end with {', '.join(FIGURE_SUFFIXES)}, got {path}")
     if os.path.isdir(path):
@@ -27,6 +29,8 @@ def _check_figure(path, overwrite, flag="--out"):
     if os.path.lexists(path) and not overwrite:
         raise ParameterError(f"output file exists: {path} (pass --overwrite to replace it)")
     parent = os.path.dirname(os.path.abspath(path))
+    if parent == created and not os.path.exists(parent):
+        return
     if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
         raise ParameterError(f"{flag}: directory {parent} does not exist or is not writable")
 
@@ -67,21 +71,38 @@ def cmd_footprints(args) -> int:
     if os.path.isdir(out):
         check_outputs(paths, args.overwrite)
     if args.figure:
-        _check_figure(args.figure, args.overwrite, "--figure")
+        _check_figure(args.figure, args.overwrite, "--figure", created=out)
+        if os.path.abspath(args.figure) in map(os.path.abspath, paths):
+            raise ParameterError(f"--figure must not be one of the footprint files: {args.figure}")
     mapper = _mapper(args)
     fields = _footprints(args, mapper)
+    also, fig = {}, None
+    if args.figure:                    # drawn into a temporary, published together with the pair
+        from slicersim.app.pictures import figure_writer, show_slice_map
+        fig = show_slice_map(footprints=fields)
+        path, writer = figure_writer(fig, args.figure, dpi=120, bbox_inches="tight")
+        also[path] = writer
+    made = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
-    written = save_footprints(out, *fields, name=args.name, overwrite=args.overwrite)
+    try:
+        written = save_footprints(out, *fields, name=args.name, overwrite=args.overwrite, also=also)
+    except BaseException:
+        if made:                       # nothing written: leave no empty directory behind
+            try:
+                os.rmdir(out)
+            except OSError:
+                pass
+        raise
+    finally:
+        if fig is not None:
+            import matplotlib.pyplot as plt
+            plt.close(fig)
     for f in fields:
         shared = f.overlaps()
         npix = sum(s.npix for s in f)
         print(f"{f.field}: {len(f)} slices, {npix} px lit, {sum(n for *_, n in shared)} px shared by "
               f"{len(shared)} neighbour pairs (label: nearest slice), "
               f"{f.lbda_edges[0]:.0f}-{f.lbda_edges[-1]:.0f} Angstrom")
-    if args.figure:
-        from slicersim.app.pictures import show_slice_map
-        show_slice_map(footprints=fields, savefile=args.figure)
-        written = (*written, args.figure)
     for path in written:
         print(f"wrote {path}")
     return 0
@@ -102,6 +123,11 @@ def cmd_plot(args) -> int:
             if not (r0 < r1 and c0 < c1):
                 raise ParameterError(f"--region needs ROW0 < ROW1 and COL0 < COL1, got {args.region}")
         mapper = _mapper(args)
+        if args.region is not None:
+            try:
+                pictures.check_region(args.region, mapper.detector_shape)
+            except ParameterError as exc:
+                raise ParameterError(f"--region: {exc}") from None
         fields = _footprints(args, mapper)
         image = None
         if args.redshift is not None:
@@ -111,9 +137,16 @@ def cmd_plot(args) -> int:
     elif args.figure == "fields":
         if args.lbda_range is not None and not args.lbda_range[0] < args.lbda_range[1]:
             raise ParameterError(f"--lbda-range needs LO < HI, got {args.lbda_range}")
-        pictures.show_fields(_target(args), lbda_range=args.lbda_range, seed=args.seed, savefile=args.out)
+        target = _target(args)
+        if args.lbda_range is not None:
+            pictures.check_wavelengths(target.simulation, args.lbda_range, "--lbda-range")
+        if args.seed is not None and args.seed < 0:
+            raise ParameterError(f"--seed must be >= 0, got {args.seed}")
+        pictures.show_fields(target, lbda_range=args.lbda_range, seed=args.seed, savefile=args.out)
     else:
-        pictures.show_psf_profiles(_target(args), lbda=args.lbda, savefile=args.out)
+        target = _target(args)
+        pictures.check_wavelengths(target.simulation, args.lbda, "--lbda")
+        pictures.show_psf_profiles(target, lbda=args.lbda, savefile=args.out)
     print(f"wrote {args.out}")
     return 0
 

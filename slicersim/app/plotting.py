@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slicersim.app.pictures import show_fields, show_psf_profiles, show_slice_map
+from slicersim.app.pictures import save_figure, show_fields, show_psf_profiles, show_slice_map
 
 __all__ = ["plot_spectrum", "plot_variance_budget", "plot_instrument", "SOURCE_STYLES", "show_fields",
            "show_psf_profiles", "show_slice_map"]
@@ -84,10 +84,8 @@ def _add_rest_axis(ax, target):
 
 
 def _finish(fig, savefile):
-    if savefile is not None:
-        import matplotlib.pyplot as plt
-        fig.savefig(savefile, dpi=120, bbox_inches="tight")
-        plt.close(fig)   # free pyplot's reference; the Figure object stays usable
+    if savefile is not None:     # atomic (temporary + rename); frees pyplot's reference
+        save_figure(fig, savefile, dpi=120, bbox_inches="tight")
     return fig
 
 
@@ -331,6 +329,5 @@ def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None):
         ax.set_ylabel("detector row [px]")
     fig.tight_layout()
     if savefile:
-        fig.savefig(savefile, dpi=100)
-        plt.close(fig)
+        save_figure(fig, savefile, dpi=100)
     return fig

@@ -367,8 +367,8 @@ def field_footprints(mapper, field="narrow", lbda_edges=None, ncol=None, *, spec
     mapper : :class:`~slicersim.instrument.mapper.SlicerMapper`
     field : "narrow" (slices 1–58) or "wide" (59–116), or any name with ``slices``
     lbda_edges : (nλ+1,) [Å] bin edges of the cube grid, and ``ncol``, its columns per
-        slice; or ``spectrograph`` (its ``lbda_edges`` and ``shape[1]``, e.g. a
-        :class:`~slicersim.simulation.Simulation`'s spectrograph)
+        slice; or ``spectrograph``: a spectrograph (its ``lbda_edges`` and ``shape[1]``), or a
+        :class:`~slicersim.simulation.Simulation` or a Target, whose spectrograph is used
     slices : slice ids (default: those of ``field``)
     truncate : window half-width beyond each cell box [spot rms] (the projection's 4)
     oversample : (n_λ, n_φ) sub-cells per cell, as in :meth:`SlicerMapper.project_cube`
@@ -380,7 +380,7 @@ def field_footprints(mapper, field="narrow", lbda_edges=None, ncol=None, *, spec
     if spectrograph is not None:
         if lbda_edges is not None or ncol is not None:
             raise ParameterError("give either a spectrograph or lbda_edges and ncol, not both")
-        lbda_edges, ncol = spectrograph.lbda_edges, spectrograph.shape[1]
+        lbda_edges, ncol = _grid_of(spectrograph)
     if lbda_edges is None or ncol is None:
         raise ParameterError("footprints need the cube grid: lbda_edges [AA] and ncol, or a spectrograph")
     edges = np.asarray(lbda_edges, np.float64).ravel()
@@ -417,6 +417,19 @@ def field_footprints(mapper, field="narrow", lbda_edges=None, ncol=None, *, spec
     return result
 
 
+def _grid_of(spectrograph):
+    """(lbda_edges, ncol) of a spectrograph, or of the spectrograph of a Simulation or Target."""
+    spec = spectrograph
+    for attr in ("simulation", "spectrograph"):        # Target -> Simulation -> spectrograph
+        if not (hasattr(spec, "lbda_edges") and hasattr(spec, "shape")):
+            spec = getattr(spec, attr, spec)
+    try:
+        return spec.lbda_edges, spec.shape[1]
+    except (AttributeError, TypeError, IndexError):
+        raise ParameterError("spectrograph must be a spectrograph (lbda_edges, shape) or a Simulation or "
+                             f"Target, got {type(spectrograph).__name__}") from None
+
+
 def detector_label_image(*fields):
     """Label image of several fields together (e.g. narrow and wide: both halves of the
     H4RG); a pixel claimed by two fields is an error (their slices would have to be
@@ -435,18 +448,21 @@ def detector_label_image(*fields):
     return label
 
 
-def save_footprints(directory, *fields, name="footprints", overwrite=False):
-    """Write the footprints of one or more fields for a pipeline; returns the two paths.
+def save_footprints(directory, *fields, name="footprints", overwrite=False, also=None):
+    """Write the footprints of one or more fields for a pipeline; returns the paths written.
 
     ``<name>_labels.fits``: the label image of all the fields (:func:`detector_label_image`,
     −1 where no light falls); ``<name>_outlines.json``: ``{"format", "version",
-    "coordinates", "no_slice", "fields": [FieldFootprints.polygons(), ...]}``.  Existing files
-    are refused unless ``overwrite`` (checked before anything is written).
+    "coordinates", "no_slice", "fields": [FieldFootprints.polygons(), ...]}``.  Both files
+    (and ``also``, {path: bytes or a callable writing to a binary file}, e.g. a figure of
+    them) are published together: all or none, never a pair of two writers
+    (:func:`slicersim.io.footprint_files.write_footprint_set`).  Existing files are refused
+    unless ``overwrite`` (checked before anything is computed or written).
     """
     if not fields or not all(isinstance(f, FieldFootprints) for f in fields):
         raise ParameterError("save_footprints needs one or more FieldFootprints")
     paths = footprint_files.footprint_paths(directory, name)
-    footprint_files.check_outputs(paths, overwrite)
+    footprint_files.check_outputs((*paths, *(also or {})), overwrite)
     label = detector_label_image(*fields)
     first = fields[0]
     cards = [("FIELDS", ",".join(f.field for f in fields), "fields in this image"),
@@ -464,6 +480,4 @@ def save_footprints(directory, *fields, name="footprints", overwrite=False):
                                   "[c, c+1) x [r, r+1); outlines run along pixel edges, the first "
                                   "is the outer contour",
                    "fields": [f.polygons() for f in fields]}
-    footprint_files.write_outlines(paths[1], description, overwrite=overwrite)
-    footprint_files.write_label_image(paths[0], label, cards, overwrite=overwrite)
-    return paths
+    return footprint_files.write_footprint_set(paths, label, cards, description, overwrite=overwrite, also=also)

@@ -19,7 +19,7 @@ import threading
 
 from slicersim.errors import DatasetError
 
-__all__ = ["AtomicH5File", "GuardedFile", "is_temporary", "remove_stale_temporaries", "atomic_bytes",
+__all__ = ["AtomicH5File", "GuardedFile", "is_temporary", "remove_stale_temporaries", "atomic_bytes", "write_files",
            "publish", "sha256_file", "one_line"]
 
 #: temporaries are ``.<final name>.tmp-<pid>-<host tag><random>`` (the host tag keeps a writer from
@@ -449,3 +449,187 @@ class AtomicH5File:
         self._raise_io_error("cannot write")
         self._deliver_pending()
 
+
+
+# --------------------------------------------------------------------------- #
+#  several files published together                                            #
+# --------------------------------------------------------------------------- #
+def _write_temporary(path, data):
+    """A new, fsync'd temporary for ``path`` holding ``data`` (bytes, or a callable writing to
+    a binary file object); removed again on any error."""
+    for _ in range(100):
+        tmp = temporary_path(path)
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+            break
+        except FileExistsError:
+            continue
+    else:  # pragma: no cover
+        raise FileExistsError(errno.EEXIST, "no free temporary name", path)
+    try:
+        if callable(data):
+            with os.fdopen(fd, "wb", closefd=False) as fh:
+                data(fh)
+        else:
+            view, done = memoryview(data).cast("B"), 0
+            while done < len(view):
+                done += os.write(fd, view[done:])
+        os.fsync(fd)
+    except BaseException:
+        os.close(fd)
+        _remove(tmp)
+        raise
+    os.close(fd)
+    return tmp
+
+
+def _remove(path):
+    try:
+        os.remove(path)
+    except FileNotFoundError:
+        pass
+
+
+def _same_file(path, ino):
+    try:
+        return os.lstat(path).st_ino == ino
+    except OSError:
+        return False
+
+
+class _SetLock:
+    """Exclusive ``fcntl.flock`` on ``path`` (created if missing; released by the kernel when
+    the holder dies, even by kill -9).  The holder keeps a journal of its renames in the file
+    and removes the file when it is done."""
+
+    def __init__(self, path):
+        self.path, self.fd = path, None
+
+    def __enter__(self):
+        import fcntl
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+                if _same_file(self.path, os.fstat(fd).st_ino):   # not removed by the previous holder
+                    self.fd = fd
+                    return self
+            except BaseException:
+                os.close(fd)
+                raise
+            os.close(fd)
+
+    def __exit__(self, *exc):
+        fd, self.fd = self.fd, None
+        try:
+            _remove(self.path)             # while holding it: a waiter then sees a removed file and retries
+        finally:
+            os.close(fd)
+        return False
+
+    def journal(self, items):
+        """Record the renames about to be made: [(temporary, final path, inode)]."""
+        import json
+        data = json.dumps({"pid": os.getpid(), "items": items}).encode()
+        os.ftruncate(self.fd, 0)
+        os.pwrite(self.fd, data, 0)
+        os.fsync(self.fd)
+
+    def recover(self):
+        """Finish the renames of a writer killed among them: all its files if every one is still
+        there (as temporary or already renamed), else none; then clear the journal."""
+        import json
+        raw = os.pread(self.fd, 1 << 20, 0)
+        if not raw:
+            return
+        try:
+            items = json.loads(raw)["items"]
+        except (ValueError, KeyError, TypeError):  # torn journal: killed before any rename
+            items = []
+        done = [_same_file(path, ino) for _, path, ino in items]
+        whole = all(d or os.path.lexists(tmp) for d, (tmp, _, _) in zip(done, items))
+        for d, (tmp, path, _) in zip(done, items):
+            if whole and not d:
+                os.replace(tmp, path)
+            elif not whole:
+                _remove(path if d else tmp)
+        os.ftruncate(self.fd, 0)
+
+
+def write_files(files, overwrite=False, error_class=DatasetError, lock_name=None):
+    """Write several files and publish them together: all of them or none.
+
+    ``files``: {path: bytes, or a callable writing the content to a binary file object}.
+    Every file is first written to a temporary next to its final path (``.NAME.tmp-PID-…``,
+    fsync'd; temporaries left there by dead writers are removed first,
+    :func:`remove_stale_temporaries`).  Only when all are complete are they renamed in: with
+    ``overwrite`` replacing existing files, else refusing (``error_class``) when any of them
+    exists.  Several files are renamed under an exclusive lock, ``.<lock_name>.lock`` in the
+    first file's directory (default: its name; ``fcntl.flock``, so a killed writer never
+    holds it), so that concurrent writers of the same set publish one after the other and
+    never leave a mixture.  The lock file journals the renames in progress: a writer killed
+    among them is completed, or its partial set removed, by the next writer of the set.  On
+    any error every temporary and every file this call already renamed in is removed (with
+    ``overwrite`` the previous files of the set are then gone too: neither, never a mixture)
+    and the error is raised as ``error_class``.  Returns the final paths.
+    """
+    paths = [os.path.abspath(os.fspath(p)) for p in files]
+    if len(set(paths)) != len(paths) or not paths:
+        raise error_class(f"write_files needs distinct paths, got {paths}")
+    datas = list(files.values())
+    first_dir = os.path.dirname(paths[0])
+    lock_path = os.path.join(first_dir, f".{lock_name or os.path.basename(paths[0])}.lock")
+    temps = []
+    try:
+        if len(paths) > 1 and os.path.lexists(lock_path):       # a writer died holding it
+            with _SetLock(lock_path) as lock:
+                lock.recover()
+        for directory in dict.fromkeys(os.path.dirname(p) for p in paths):
+            remove_stale_temporaries(directory)
+        if not overwrite:
+            _refuse_existing(paths, error_class)
+        for path, data in zip(paths, datas):
+            temps.append(_write_temporary(path, data))
+        if len(paths) == 1:
+            publish(temps[0], paths[0], overwrite, error_class)
+            temps = []
+        else:
+            with _SetLock(lock_path) as lock:
+                lock.recover()
+                _publish_set(lock, temps, paths, overwrite, error_class)
+            temps = []
+    except OSError as exc:
+        if isinstance(exc, error_class):
+            raise
+        raise error_class(f"cannot write {paths[len(temps)] if len(temps) < len(paths) else paths[0]}: "
+                          f"{one_line(exc)}") from exc
+    finally:
+        for tmp in temps:
+            _remove(tmp)
+    return paths
+
+
+def _refuse_existing(paths, error_class):
+    for path in paths:
+        if os.path.lexists(path):
+            raise error_class(f"output file exists: {path} (pass overwrite=True / --overwrite to replace it)")
+
+
+def _publish_set(lock, temps, paths, overwrite, error_class):
+    """Rename the complete temporaries in (the caller holds the set's lock)."""
+    if not overwrite:
+        _refuse_existing(paths, error_class)
+    inodes = [os.lstat(t).st_ino for t in temps]
+    lock.journal([[t, p, i] for t, p, i in zip(temps, paths, inodes)])
+    done = []
+    try:
+        for tmp, path in zip(temps, paths):
+            publish(tmp, path, overwrite, error_class)
+            done.append(path)
+    except BaseException:
+        for path, ino in zip(done, inodes):
+            if _same_file(path, ino):
+                _remove(path)
+        raise
+    finally:
+        os.ftruncate(lock.fd, 0)

@@ -1,8 +1,11 @@
 """Files of detector footprints for pipelines: a FITS label image and a JSON description.
 
 No physics here: the writers take an integer image and a JSON-able mapping (built by
-:func:`slicersim.instrument.footprints.save_footprints`).  Both files are written atomically
-(temporary file, fsync, rename) and an existing file is refused unless ``overwrite``.
+:func:`slicersim.instrument.footprints.save_footprints`).  :func:`write_footprint_set`
+publishes both files together (:func:`slicersim.io.atomic.write_files`: temporaries in the
+directory, renamed in under a lock only when both are complete; a full disk or a killed
+writer leaves neither, concurrent writers never a mixed pair); an existing file is refused
+unless ``overwrite``.
 
 * ``<name>_labels.fits``: primary HDU, the label image ``image[row, col]`` (int16 when the
   values fit, else int32), header cards given by the caller (keys ≤ 8 characters or
@@ -19,10 +22,10 @@ import os
 import numpy as np
 
 from slicersim.errors import DatasetError, ParameterError
-from slicersim.io.atomic import atomic_bytes
+from slicersim.io.atomic import atomic_bytes, write_files
 
 __all__ = ["write_label_image", "read_label_image", "write_outlines", "read_outlines", "footprint_paths",
-           "check_outputs"]
+           "check_outputs", "write_footprint_set", "label_image_bytes", "outlines_bytes"]
 
 
 def footprint_paths(directory, name="footprints"):
@@ -48,8 +51,8 @@ def check_outputs(paths, overwrite=False):
             raise ParameterError(f"output file exists: {path} (pass overwrite=True / --overwrite to replace it)")
 
 
-def write_label_image(path, image, header=(), overwrite=False):
-    """Write an integer image to a FITS file (primary HDU).
+def label_image_bytes(image, header=()):
+    """A FITS file (primary HDU) of an integer image, as bytes.
 
     ``header``: (key, value[, comment]) cards (str, int, float or bool values)."""
     from astropy.io import fits
@@ -72,7 +75,12 @@ def write_label_image(path, image, header=(), overwrite=False):
                                     comment[0] if comment else None), end=True)
     buf = io.BytesIO()
     hdu.writeto(buf)
-    atomic_bytes(path, buf.getvalue(), overwrite=overwrite, error_class=DatasetError)
+    return buf.getvalue()
+
+
+def write_label_image(path, image, header=(), overwrite=False):
+    """Write an integer image to a FITS file (:func:`label_image_bytes`) atomically."""
+    atomic_bytes(path, label_image_bytes(image, header), overwrite=overwrite, error_class=DatasetError)
     return os.fspath(path)
 
 
@@ -85,14 +93,34 @@ def read_label_image(path):
     return data.astype(data.dtype.newbyteorder("=")), header
 
 
-def write_outlines(path, description, overwrite=False):
-    """Write a JSON-able mapping (polygons, ranges, metadata) to ``path`` as JSON."""
+def outlines_bytes(description):
+    """A JSON-able mapping (polygons, ranges, metadata) as UTF-8 JSON bytes."""
     try:
         text = json.dumps(description, sort_keys=True, allow_nan=False, separators=(",", ":"))
     except (TypeError, ValueError) as exc:
         raise ParameterError(f"footprint description is not plain JSON: {exc}") from exc
-    atomic_bytes(path, (text + "\n").encode("utf-8"), overwrite=overwrite, error_class=DatasetError)
+    return (text + "\n").encode("utf-8")
+
+
+def write_outlines(path, description, overwrite=False):
+    """Write a JSON-able mapping to ``path`` as JSON (:func:`outlines_bytes`) atomically."""
+    atomic_bytes(path, outlines_bytes(description), overwrite=overwrite, error_class=DatasetError)
     return os.fspath(path)
+
+
+def write_footprint_set(paths, image, header, description, overwrite=False, also=None):
+    """Write the label image and the outlines (``paths`` from :func:`footprint_paths`) and the
+    files ``also`` ({path: bytes or a callable writing to a binary file}, e.g. a figure),
+    published together: all of them or none (:func:`~slicersim.io.atomic.write_files`).
+    Everything is encoded before anything is written.  Returns the paths written."""
+    absolute = [os.path.abspath(os.fspath(p)) for p in paths]
+    files = {absolute[0]: label_image_bytes(image, header), absolute[1]: outlines_bytes(description)}
+    for path, data in (also or {}).items():
+        files[os.path.abspath(os.fspath(path))] = data
+    if len(files) != 2 + len(also or {}):
+        raise ParameterError(f"output paths must be distinct, got {list(files)}")
+    write_files(files, overwrite=overwrite, error_class=DatasetError)
+    return tuple(os.fspath(p) for p in paths) + tuple(os.fspath(p) for p in (also or {}))
 
 
 def read_outlines(path):
