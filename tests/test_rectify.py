@@ -165,6 +165,22 @@ def test_noiseless_lsq_weighted_with_bad_pixels_numpy(small):
         rectify(img, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges, ncol=ncol)
 
 
+def test_oversampled_projection_and_stack(small):
+    """Sub-cells (oversample) enter P as their sum; a stack gives each image's own answer."""
+    rng = np.random.default_rng(5)
+    edges, ncol, mapper = SMALL, 16, small
+    lbda = _centres(edges)
+    a, b = _truth(rng, edges, ncol), _truth(rng, edges, ncol)
+    imgs = np.stack([mapper.project_fields(lbda, edges, wide=c, oversample=(2, 3)) for c in (a, b)])
+    kw = dict(mapper=mapper, field="wide", lbda=lbda, lbda_edges=edges, ncol=ncol, oversample=(2, 3))
+    p = rectify(imgs, **kw)
+    assert p.flux.shape == (2,) + a.shape
+    assert np.abs(p.flux[0] - a).max() < 1e-10 * a.max() and np.abs(p.flux[1] - b).max() < 1e-10 * b.max()
+    np.testing.assert_allclose(rectify(imgs[1], **kw).flux, p.flux[1], rtol=0, atol=1e-13 * b.max())
+    with pytest.raises(ParameterError, match="oversample"):
+        rectify(imgs[0], np.ones(imgs[0].shape), method="drizzle", **kw)
+
+
 def test_native_grid_is_refused_by_lsq(mapper):
     """116 columns of ~0.9 px across a ~105 px slice: more cells than pixels, P singular."""
     edges = _EDGES[200:206]

@@ -13,7 +13,9 @@ estimators of the cube on a grid (λ edges, ``ncol`` columns per slice):
   its covariance is (PᵀWP)⁻¹, whose diagonal is the variance returned.  Neighbouring slices
   share a few pixels (the ±``truncate``·σ tails of their spots meet between the traces:
   ~1.4 % of a Lazuli field's footprint pixels).  Those pixels are left out of the fit, so
-  every slice is an independent problem, solved exactly: its normal matrix PᵀWP (cells
+  every slice is an independent problem, solved exactly (the price: the two end columns of a
+  slice lose up to ~50 % of their flux to left-out pixels in the red, where the traces come
+  closest, and their variance grows accordingly).  A slice's normal matrix PᵀWP (cells
   ordered λ-major, column-minor: block tridiagonal with blocks of the bandwidth) is
   factorised by block Cholesky, one step of refinement with the data residual (corrected
   semi-normal equations) restores the accuracy of the squared condition, and the diagonal
@@ -193,25 +195,26 @@ def _slice_coverage(mapper, ncol, edges, oversample, truncate):
 
 # --------------------------------------------------------------------------- block Cholesky
 class _BlockCholesky:
-    """Cholesky factor of a symmetric positive-definite block-tridiagonal matrix (sparse A).
+    """Cholesky factor A = L Lᵀ of a symmetric positive-definite block-tridiagonal matrix (sparse A).
 
-    Blocks of ``block`` rows (≥ the bandwidth): L has lower-triangular diagonal blocks
-    ``diag[i]`` and full sub-diagonal blocks ``sub[i]`` = L[i+1, i]."""
+    Blocks of ``block`` rows (≥ the bandwidth).  Kept: the inverses of L's lower-triangular
+    diagonal blocks, ``inv[i]`` = L_ii⁻¹, and its sub-diagonal blocks ``sub[i]`` = L[i+1, i]:
+    solves are then matrix products (no small triangular solves)."""
 
     def __init__(self, A, block):
         n = A.shape[0]
         self.bounds = list(range(0, n, block)) + [n]
-        self.diag, self.sub = [], []
+        self.inv, self.sub = [], []
         nb = len(self.bounds) - 1
         b0, b1 = self.bounds[0], self.bounds[1]
         S = A[b0:b1, b0:b1].toarray()
         for i in range(nb):
             L = cholesky(S, lower=True, check_finite=False)
-            self.diag.append(L)
+            Linv = solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
+            self.inv.append(Linv)
             if i + 1 < nb:
                 b0, b1, b2 = self.bounds[i:i + 3]
-                C = A[b1:b2, b0:b1].toarray()
-                M = solve_triangular(L, C.T, lower=True, check_finite=False).T      # C L⁻ᵀ
+                M = A[b1:b2, b0:b1].toarray() @ Linv.T                       # C L⁻ᵀ
                 self.sub.append(M)
                 S = A[b1:b2, b1:b2].toarray() - M @ M.T
 
@@ -220,15 +223,14 @@ class _BlockCholesky:
         b = self.bounds
         y = np.empty_like(rhs, dtype=np.float64)
         prev = None
-        for i, L in enumerate(self.diag):
+        for i, Linv in enumerate(self.inv):
             r = rhs[b[i]:b[i + 1]] if prev is None else rhs[b[i]:b[i + 1]] - self.sub[i - 1] @ prev
-            prev = y[b[i]:b[i + 1]] = solve_triangular(L, r, lower=True, check_finite=False)
+            prev = y[b[i]:b[i + 1]] = Linv @ r
         x = np.empty_like(y)
         nxt = None
-        for i in range(len(self.diag) - 1, -1, -1):
+        for i in range(len(self.inv) - 1, -1, -1):
             r = y[b[i]:b[i + 1]] if nxt is None else y[b[i]:b[i + 1]] - self.sub[i].T @ nxt
-            nxt = x[b[i]:b[i + 1]] = solve_triangular(self.diag[i], r, lower=True, trans="T",
-                                                     check_finite=False)
+            nxt = x[b[i]:b[i + 1]] = self.inv[i].T @ r
         return x
 
     def inverse_diagonal(self):
@@ -237,9 +239,8 @@ class _BlockCholesky:
         b = self.bounds
         out = np.empty(b[-1])
         Z = None
-        for i in range(len(self.diag) - 1, -1, -1):
-            L = self.diag[i]
-            Linv = solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
+        for i in range(len(self.inv) - 1, -1, -1):
+            Linv = self.inv[i]
             Znew = Linv.T @ Linv
             if Z is not None:
                 T = self.sub[i] @ Linv
@@ -249,7 +250,7 @@ class _BlockCholesky:
         return out
 
     def nbytes(self):
-        return sum(a.nbytes for a in self.diag) + sum(a.nbytes for a in self.sub)
+        return sum(a.nbytes for a in self.inv) + sum(a.nbytes for a in self.sub)
 
 
 def _slice_matrix(tables, s, weight_flat):
@@ -356,11 +357,9 @@ def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend
     return flux, None if var is None else var.reshape(shape), diag
 
 
-def _field_drizzle(images, usable, variance, tables, backend):
-    """Pixel-to-cell estimate of one field: ((N, S, nλ, ncol) flux, variance or None, diagnostics)."""
-    S, E, Q = tables.grid
-    ne, nq = tables.oversample
-    cover = deposit(np.ones((S, E // ne, Q // nq)), tables, backend=backend)     # (P·1)_p
+def _field_drizzle(images, usable, variance, cover, tables, backend):
+    """Pixel-to-cell estimate of one field (``cover`` = P·1): ((N, S, nλ, ncol) flux, variance or
+    None, diagnostics)."""
     inside = usable & (cover > 0)
     safe = np.where(inside, cover, 1.0)
     seen = gather(inside.astype(np.float64), tables, backend=backend)          # Σ_p P_pc m_p
@@ -378,12 +377,12 @@ def _field_drizzle(images, usable, variance, tables, backend):
     return flux, var, diag
 
 
-def _usable_pixels(images, variance, owner_ok, field_name):
-    """Usable pixels of a field and the LSQ weights: finite variance and rate."""
+def _usable_pixels(images, variance, owner_ok, field_name, weighted):
+    """Usable pixels of a field and the LSQ weights: finite variance (> 0 when ``weighted``) and rate."""
     usable = owner_ok.copy()
     if variance is not None:
         usable &= np.isfinite(variance)
-        if (variance[usable] == 0).any():
+        if weighted and (variance[usable] == 0).any():
             raise ParameterError(f"variance must be > 0 on the pixels the {field_name} field reaches "
                                  "(+inf leaves a pixel out)")
     bad = np.zeros(usable.shape, bool)
@@ -423,8 +422,8 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
     lsq: ``cond1_normal_max`` (largest κ₁(PᵀWP) of a slice), ``chi2`` per image over the used
     pixels, ``dof``, ``gradient_rel`` (‖Pᵀ W (d − P x̂)‖ / ‖Pᵀ W d‖, 0 at the optimum),
     ``excluded_flux_max`` (largest fraction of a cell's flux on pixels shared with another
-    slice, left out); drizzle: ``flux_image`` and ``flux_cube`` (equal: flux conserved),
-    ``coverage_min``; both: ``pixels_used``, ``pixels_shared``, ``time_s``.
+    slice, left out), ``pixels_shared``; drizzle: ``flux_image`` and ``flux_cube`` (equal:
+    flux conserved), ``coverage_min``; both: ``pixels_used``, ``time_s``.
     """
     mapper = _default_mapper() if mapper is None else mapper
     names = _check_options(field, method, ncol, backend, mapper)
@@ -449,15 +448,16 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
         slices = [int(s) for s in FIELDS[name]]
         tables = mapper.projection_tables(slices, ncol, edges, oversample=ov, truncate=truncate,
                                           weights_dtype=weights_dtype, backend=backend)
-        reach = deposit(np.ones((len(slices), edges.size - 1, ncol)), tables, backend=backend) > 0
+        cover = deposit(np.ones((len(slices), edges.size - 1, ncol)), tables, backend=backend)   # P·1
+        reach = cover > 0
         if method == "lsq":
-            usable, weight = _usable_pixels(images, var, reach & (count == 1), name)
+            usable, weight = _usable_pixels(images, var, reach & (count == 1), name, True)
             flux, fvar, diag = _field_lsq(images, weight, tables, slices, var is not None, max_bytes, backend)
+            diag["pixels_shared"] = int((reach & (count > 1)).sum())
         else:
-            usable, _ = _usable_pixels(images, var, reach, name)
-            flux, fvar, diag = _field_drizzle(images, usable, var, tables, backend)
-        diag.update(pixels_used=int(usable.sum()), pixels_shared=0 if count is None
-                    else int((reach & (count > 1)).sum()), time_s=time.perf_counter() - t0)
+            usable, _ = _usable_pixels(images, var, reach, name, False)
+            flux, fvar, diag = _field_drizzle(images, usable, var, cover, tables, backend)
+        diag.update(pixels_used=int(usable.sum()), time_s=time.perf_counter() - t0)
         flux = _cube_axes(flux)
         wcs = {"axes": ("lbda", "slice", "fieldpos"), "lbda": centres, "lbda_edges": edges, "lbda_unit": "Angstrom",
                "slice_of_row": tuple(slices[::-1]), "fieldpos_edges": np.linspace(-1.0, 1.0, ncol + 1),
