@@ -41,6 +41,7 @@ from slicersim.products.extraction import EXTRACTION_METHODS, extract_aperture, 
 __all__ = ["extract_spectrum", "SpectrumProduct", "fit_gaussian_psf", "psf_from_cube"]
 
 _MAX_CHUNKS = 512
+_MIN_SIGMA = 0.25
 
 
 @dataclass
@@ -98,19 +99,23 @@ def _fit_image(image, weight, shape, start, fix_position=None):
             x0, y0, sx, sy = par[:4]
         else:
             (x0, y0), (sx, sy) = fix_position, par[:2]
-        g = _gaussian_field(shape, abs(sx) + 1e-3, abs(sy) + 1e-3, (x0, y0))[0]
+        g = _gaussian_field(shape, sx, sy, (x0, y0))[0]
         design = np.stack([g[good], np.ones(good.sum())], axis=1) * sw[:, None]
         coef, *_ = np.linalg.lstsq(design, image[good] * sw, rcond=None)    # A, B linear
         return design @ coef - image[good] * sw, coef
 
     x0 = np.asarray(start if fix_position is None else start[2:4], float)
-    res = least_squares(lambda p: model(p)[0], x0, x_scale="jac", method="lm", max_nfev=400)
+    lo = np.full(x0.size, -np.inf)
+    lo[-2:] = _MIN_SIGMA                                    # σ ≥ 0.25 cell: no collapse onto one cell
+    x0[-2:] = np.maximum(x0[-2:], 2 * _MIN_SIGMA)
+    res = least_squares(lambda p: model(p)[0], x0, x_scale="jac", method="trf", bounds=(lo, np.inf),
+                        max_nfev=400)
     coef = model(res.x)[1]
     if fix_position is None:
         x, y, sx, sy = res.x
     else:
         (x, y), (sx, sy) = fix_position, res.x
-    return np.array([x, y, abs(sx) + 1e-3, abs(sy) + 1e-3, coef[0], coef[1]]), bool(res.success)
+    return np.array([x, y, sx, sy, coef[0], coef[1]]), bool(res.success)
 
 
 def fit_gaussian_psf(flux, variance=None, lbda=None, position=None, nchunks=_MAX_CHUNKS, degree=2):
