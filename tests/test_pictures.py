@@ -2,6 +2,11 @@
 
 Every figure is drawn with Agg and checked against arrays computed independently: the
 image data, the curves, the number of slice outlines."""
+import errno
+import os
+import subprocess
+import sys
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -19,7 +24,8 @@ from slicersim.errors import ParameterError  # noqa: E402
 from slicersim.instrument.footprints import detector_label_image, field_footprints  # noqa: E402
 from slicersim.instrument.mapper import SlicerMapper  # noqa: E402
 from slicersim.io.footprint_files import read_label_image, read_outlines  # noqa: E402
-from slicersim.targets import LazuliSupernova  # noqa: E402
+from slicersim.io.atomic import temporary_path  # noqa: E402
+from slicersim.targets import Lazuli3DFlat, LazuliGalaxy, LazuliSupernova  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -39,6 +45,27 @@ def small_fields():
 def close_figures():
     yield
     plt.close("all")
+
+
+def _colorbar_labels_readable(fig):
+    """Every colour bar has 2-8 tick labels and none overlaps another."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    canvas = FigureCanvasAgg(fig)                          # also after save_figure closed it
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert bars
+    for ax in bars:
+        labels = [t for t in ax.get_yticklabels() if t.get_visible() and t.get_text()]
+        assert 2 <= len(labels) <= 8, [t.get_text() for t in labels]
+        boxes = sorted((t.get_window_extent(renderer) for t in labels), key=lambda b: b.y0)
+        assert all(a.y1 <= b.y0 for a, b in zip(boxes, boxes[1:])), [t.get_text() for t in labels]
+
+
+def _dead_pid():
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
 
 
 def _by_gid(items, gid):
@@ -79,10 +106,51 @@ def test_show_fields_from_a_simulation_and_a_noisy_cube(target, tmp_path):
     assert np.allclose(_by_gid(images, "narrow:cube").get_array(), noisy.sum(axis=0), rtol=1e-12)
     assert np.allclose(_by_gid(images, "narrow:scene").get_array(),
                        narrow.get_projected_scene().sum(axis=0), rtol=1e-12)
+    _colorbar_labels_readable(fig)                                       # asinh ticks crowd around 0
     with pytest.raises(ParameterError, match="selects no bin"):
         plotting.show_fields(target, lbda_range=(100, 200))
     with pytest.raises(ParameterError, match="Target or a Simulation"):
         plotting.show_fields("narrow")
+
+
+def test_round_galaxy_is_drawn_round():
+    """Review 10 #2: square cells of spatial_scale, 116 × 58 of them: x spans twice y."""
+    galaxy = LazuliGalaxy(0.5, axis_ratio=1.0)
+    fig = plotting.show_fields({"narrow": galaxy})
+    im = _by_gid([im for ax in fig.axes for im in ax.get_images()], "narrow:scene")
+    s, (ny, nx) = galaxy.simulation.spectrograph.spatial_scale, galaxy.simulation.spectrograph.shape
+    assert (ny, nx, s) == (58, 116, 0.04)
+    x0, x1, y0, y1 = im.get_extent()
+    assert np.allclose((x1 - x0, y1 - y0), (nx * s, ny * s))               # 4.64″ × 2.32″
+    img = np.asarray(im.get_array(), float)
+    img = img - img.min()
+    x = x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx
+    y = y0 + (np.arange(ny) + 0.5) * (y1 - y0) / ny
+    xx, yy = np.meshgrid(x, y)
+    w = np.where(np.hypot(xx, yy) < 1.0, img, 0.0)                        # moments within 1″ (in the field)
+    vx = (w * xx**2).sum() / w.sum()
+    vy = (w * yy**2).sum() / w.sum()
+    assert np.sqrt(vx / vy) == pytest.approx(1.0, abs=0.03)                # round on the plot (was 0.5)
+
+
+def test_show_fields_of_a_flat():
+    """Review 10 #21: no aperture spectrum for a lamp, readable colour bars, a true title."""
+    flat = Lazuli3DFlat.from_qth()
+    fig = plotting.show_fields(flat)
+    texts = [fig.get_suptitle()] + [t.get_text() for ax in fig.axes
+                                          for t in (ax.yaxis.label, ax.title)]
+    assert not any("aperture" in t for t in texts)
+    title = fig.get_suptitle()
+    assert "Lazuli3DFlat" in title and "narrow and wide" in title and "both" not in title
+    lines = [ln for ax in fig.axes for ln in ax.get_lines()]
+    for field, sim in (("narrow", flat.simulation), ("wide", None)):
+        if sim is None:
+            continue
+        cube = sim.get_cube()[0]
+        assert np.allclose(_by_gid(lines, f"{field}:cube").get_ydata(), cube.mean(axis=(1, 2)), rtol=1e-12)
+    _colorbar_labels_readable(fig)
+    one = plotting.show_fields({"wide": flat.simulation})
+    assert "wide field" in one.get_suptitle() and "narrow" not in one.get_suptitle()
 
 
 # --------------------------------------------------------------------------- PSF
@@ -109,6 +177,9 @@ def test_show_psf_profiles_curves_are_the_airy_and_gaussian_models(target):
         assert np.interp(first_dark, ee.get_xdata(), ee.get_ydata()) == pytest.approx(0.8378, abs=2e-3)
     for bad in ((), (-5.0,), (np.nan,)):
         with pytest.raises(ParameterError, match="lbda"):
+            plotting.show_psf_profiles(target, lbda=bad)
+    for bad in ((1e9,), (5000.0, 3000.0)):                                 # review 10 #17
+        with pytest.raises(ParameterError, match="instrument's range"):
             plotting.show_psf_profiles(target, lbda=bad)
 
 
@@ -150,6 +221,9 @@ def test_show_slice_map_over_a_detector_image(small_fields):
         plotting.show_slice_map(footprints=fields, image=image[:100])
     with pytest.raises(ParameterError, match="fields must be"):
         plotting.show_slice_map(mapper, fields="middle", lbda_edges=edges)
+    for region in ((0, 99999, 0, 10), (-5, 100, 0, 10), (0, 100, 4000, 4097)):   # review 10 #17
+        with pytest.raises(ParameterError, match="within|detector"):
+            plotting.show_slice_map(footprints=fields, region=region)
 
 
 # --------------------------------------------------------------------------- CLI
@@ -184,6 +258,9 @@ def test_cli_footprints_writes_label_image_and_outlines(tmp_path, capsys):
     (["footprints", "--out", "fp", "--truncate", "-1"], "--truncate"),
     (["footprints", "--out", "fp", "--spot-table", "missing.csv"], "no such file"),
     (["footprints", "--out", "missing/fp"], "parent directory"),
+    (["plot", "psf", "--out", "p.png", "--lbda", "1e9"], "instrument's range"),            # review 10 #17
+    (["plot", "slice-map", "--out", "m.png", "--region", "0", "99999", "0", "10"], "--region"),
+    (["plot", "fields", "--out", "f.png", "--lbda-range", "3000", "8000"], "instrument's range"),
 ])
 def test_cli_user_errors_are_one_line(tmp_path, monkeypatch, capsys, args, match):
     monkeypatch.chdir(tmp_path)
@@ -200,3 +277,63 @@ def test_cli_plot_psf_and_slice_map(tmp_path, capsys):
                  "--out", str(tmp_path / "map.png")]) == 0
     assert (tmp_path / "map.png").stat().st_size > 10_000
     assert "wrote" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------- atomic outputs (review 10)
+def _write_fails_on_second_file(monkeypatch, directory):
+    """os.write raises ENOSPC from the second file written under ``directory`` on (a full disk)."""
+    real, files = os.write, []
+
+    def write(fd, data):
+        path = os.readlink(f"/proc/self/fd/{fd}")
+        if path.startswith(str(directory)):
+            if path not in files:
+                files.append(path)
+            if len(files) > 1:
+                raise OSError(errno.ENOSPC, "No space left on device")
+        return real(fd, data)
+    monkeypatch.setattr(os, "write", write)
+
+
+def test_cli_footprints_figure_in_new_out_and_full_disk(tmp_path, monkeypatch, capsys):
+    """#8: --figure may point into the --out directory to be created; #5: a full disk leaves
+    neither file (nor the directory it created)."""
+    out = tmp_path / "new"
+    args = ["footprints", "--field", "narrow", "--out", str(out), "--figure", str(out / "map.png")]
+    with monkeypatch.context() as m:
+        _write_fails_on_second_file(m, tmp_path)
+        assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "No space left" in err
+    assert list(tmp_path.iterdir()) == []
+    assert main(args) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["footprints_labels.fits", "footprints_outlines.json", "map.png"]
+    assert (out / "map.png").stat().st_size > 10_000 and "wrote" in capsys.readouterr().out
+
+
+def test_cli_figures_are_written_atomically(tmp_path, monkeypatch, capsys):
+    """#7: a failing savefig (full disk) leaves no partial figure and keeps an existing one;
+    a temporary left by a killed writer is removed by the next write."""
+    good = tmp_path / "p.png"
+    assert main(["plot", "psf", "--lbda", "8000", "--out", str(good)]) == 0
+    before = good.read_bytes()
+    capsys.readouterr()
+
+    def partial_savefig(self, fname, *args, **kwargs):
+        fh = open(fname, "wb") if isinstance(fname, (str, os.PathLike)) else fname
+        fh.write(b"\x89PNG partial")
+        if fh is not fname:
+            fh.close()
+        raise OSError(errno.ENOSPC, "No space left on device")
+    with monkeypatch.context() as m:
+        m.setattr(matplotlib.figure.Figure, "savefig", partial_savefig)
+        assert main(["plot", "psf", "--lbda", "8000", "--out", str(good), "--overwrite"]) == 2
+        assert main(["plot", "psf", "--lbda", "8000", "--out", str(tmp_path / "q.png")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 2 and err.count("No space left") == 2
+    assert good.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["p.png"]
+    stale = temporary_path(tmp_path / "q.png").replace(f"-{os.getpid()}-", f"-{_dead_pid()}-")
+    open(stale, "wb").write(b"\x89PNG killed")
+    assert main(["plot", "psf", "--lbda", "8000", "--out", str(tmp_path / "q.png")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.png", "q.png"]
