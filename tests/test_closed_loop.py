@@ -18,7 +18,7 @@ from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import SlicerMapper
 from slicersim.physics.psf import gaussian_psf_cells
 from slicersim.reduction.rectify import rectify
-from slicersim.reduction.spectra import extract_spectrum, psf_from_cube
+from slicersim.reduction.spectra import extract_spectrum, propagate_variance, psf_from_cube
 
 EDGES = np.linspace(9050.0, 9950.0, 13)      # 12 bins of 5 px on the small layout
 NCOL = 24
@@ -85,7 +85,7 @@ def _noisy_extraction(small, n=48):
     rng = np.random.default_rng(11)
     stack = img[None] + rng.standard_normal((n,) + img.shape) * np.sqrt(var)
     cp = rectify(stack, var, mapper=small, field="narrow", lbda_edges=EDGES, ncol=NCOL)
-    return cp, psf, F, n
+    return cp, psf, F, n, var
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +95,7 @@ def noisy(small):
 
 def test_white_noise_bias(noisy):
     """Unbiased within the Monte Carlo error (optimal, aperture, fitted PSF)."""
-    cp, psf, F, n = noisy
+    cp, psf, F, n, _ = noisy
     for method in ("optimal", "aperture"):
         sp = extract_spectrum(cp, psf=psf, method=method)
         truth = F if method == "optimal" else F * sp.enclosed_energy
@@ -120,8 +120,23 @@ def test_white_noise_bias(noisy):
                    "anti-correlated, so the spectrum variance summed over cells is too large "
                    "(measured χ²/dof ≈ 0.11 here); needs the covariance from rectify")
 def test_white_noise_chi2_is_one(noisy):
-    cp, psf, F, n = noisy
+    cp, psf, F, n, _ = noisy
     sp = extract_spectrum(cp, psf=psf)
     per_real = (((sp.flux - F) / np.sqrt(sp.variance)) ** 2).mean(axis=1)
     chi2, err = per_real.mean(), per_real.std(ddof=1) / np.sqrt(n)
     assert abs(chi2 - 1) < max(4 * err, 0.02) and abs(chi2 - 1) < 0.1
+
+
+@pytest.mark.parametrize("method", ["optimal", "aperture"])
+def test_white_noise_chi2_with_propagated_variance(noisy, small, method):
+    """With the full cube covariance (propagate_variance) the reported errors match the scatter."""
+    cp, psf, F, n, var = noisy
+    sp = extract_spectrum(cp, psf=psf, method=method)
+    exact = propagate_variance(sp, cp, var, mapper=small)
+    truth = F if method == "optimal" else F * sp.enclosed_energy
+    per_real = (((sp.flux - truth) ** 2) / exact).mean(axis=1)
+    chi2, err = per_real.mean(), per_real.std(ddof=1) / np.sqrt(n)
+    print(f"{method}: χ²/dof with propagated variance = {chi2:.3f} ± {err:.3f}; "
+          f"diagonal/propagated variance = {np.median(sp.variance / exact):.2f}")
+    assert abs(chi2 - 1) < max(4 * err, 0.02) and abs(chi2 - 1) < 0.2   # MC error ≈ 0.05 (48 draws)
+    assert np.all(exact < sp.variance)                     # anti-correlated cells: the diagonal sum is too large

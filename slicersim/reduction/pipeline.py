@@ -57,7 +57,7 @@ def rate_variance(rates):
 
 def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, ncol=58, rectify_method="lsq",
                     extraction="optimal", psf="fit", position=None, aperture=3.0, background=True,
-                    fit_options=None, out=None, overwrite=False):
+                    propagate=True, fit_options=None, out=None, overwrite=False):
     """Reduce one raw exposure to rates, cube(s) and spectra.
 
     raw_path : ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts
@@ -65,6 +65,8 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     lbda_edges : rectification λ edges [Å] (default :func:`default_lbda_edges`: 2 native bins)
     ncol : columns per slice;  rectify_method : "lsq" or "drizzle"
     extraction, psf, position, aperture, background : :func:`extract_spectrum` options
+    propagate : spectrum variance with the full LSQ cube covariance (:func:`propagate_variance`;
+        the cells-independent sum is kept as ``diagnostics["variance_diagonal"]``)
     fit_options : keyword arguments of ``fit_ramps`` (refpix, linearity, jump_threshold, weighting, ...)
     out : HDF5 path written atomically with all three products (module docstring)
 
@@ -73,7 +75,7 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     """
     from slicersim.reduction.ramp_fit import fit_ramps
     from slicersim.reduction.rectify import FIELDS, _default_mapper, rectify
-    from slicersim.reduction.spectra import extract_spectrum
+    from slicersim.reduction.spectra import extract_spectrum, propagate_variance
     if field not in (*FIELDS, "both"):
         raise ParameterError(f"unknown field {field!r}: 'narrow', 'wide' or 'both'")
     if fit_options is not None and not isinstance(fit_options, dict):
@@ -94,6 +96,11 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     cubes = cubes if field == "both" else {field: cubes}
     spectra = {name: extract_spectrum(cube, method=extraction, psf=psf, position=position, aperture=aperture,
                                       background=background) for name, cube in cubes.items()}
+    if propagate and rectify_method == "lsq":
+        for name, spec in spectra.items():
+            spec.diagnostics["variance_diagonal"] = spec.variance
+            spec.variance = propagate_variance(spec, cubes[name], var, mapper=mapper)
+            spec.diagnostics["variance_model"] = "full LSQ cube covariance (propagate_variance)"
     result = {"rates": rates, "cubes": cubes, "spectra": spectra}
     if writer is not None:
         result["path"] = _write(writer, result)

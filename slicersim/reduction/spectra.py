@@ -38,7 +38,7 @@ from slicersim.errors import ParameterError
 from slicersim.physics.psf import cell_centres, gaussian_psf_cells
 from slicersim.products.extraction import EXTRACTION_METHODS, extract_aperture, extract_optimal
 
-__all__ = ["extract_spectrum", "SpectrumProduct", "fit_gaussian_psf", "psf_from_cube"]
+__all__ = ["extract_spectrum", "SpectrumProduct", "fit_gaussian_psf", "psf_from_cube", "propagate_variance"]
 
 _MAX_CHUNKS = 512
 _MIN_SIGMA = 0.25
@@ -50,7 +50,8 @@ class SpectrumProduct:
     ``variance`` (nλ,) [unit²] (None without a cube variance); ``lbda`` centres, ``lbda_edges``
     [Å]; ``position`` (x, y) [cells]; ``psf_sigma`` (nλ, 2) (σ_x, σ_y) [cells] of the Gaussian
     model (None for a given PSF); ``background`` (nλ,) or (N, nλ) [unit per cell] and
-    ``background_variance``; ``enclosed_energy`` (nλ,) Σ_aperture P; ``diagnostics``."""
+    ``background_variance``; ``enclosed_energy`` (nλ,) Σ_aperture P; ``cell_weights`` (nλ, ny, nx):
+    the linear estimator, F̂_λ = Σ u_λc C_λc (for :func:`propagate_variance`); ``diagnostics``."""
 
     lbda: np.ndarray
     lbda_edges: np.ndarray
@@ -64,6 +65,7 @@ class SpectrumProduct:
     background: np.ndarray | None = None
     background_variance: np.ndarray | None = None
     enclosed_energy: np.ndarray | None = None
+    cell_weights: np.ndarray | None = None
     diagnostics: dict = field(default_factory=dict)
 
     @property
@@ -292,6 +294,7 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
         else:
             b, bvar, pbar = np.zeros(nl), np.zeros(nl), np.zeros(nl)
         sub = c - b[:, None, None]
+        u = np.zeros(shape)                          # F̂_λ = Σ_c u_λc C_c (cells of bin λ)
         if method == "optimal":
             weights = P[:, iy, ix]
             s0, var0 = extract_optimal(sub, v, weights, (iy, ix))
@@ -301,6 +304,9 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
                 k = 1.0 - pbar * suma
                 f = s0 / k
                 fv = (var0 + suma ** 2 * bvar) / k ** 2
+                u[:, iy, ix] = a / k[:, None]
+                if background:
+                    u -= (suma / k / norm)[:, None, None] * wo
         else:
             gsel = good[:, iy, ix]
             s0, var0 = extract_aperture(np.where(good, sub, 0.0), np.where(good, v, 0.0), (iy, ix))
@@ -311,12 +317,18 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
                 k = (ee_used - nused * pbar) / ee_full
                 f = s0 / k
                 fv = (var0 + nused ** 2 * bvar) / k ** 2
+                u[:, iy, ix] = gsel / k[:, None]
+                if background:
+                    u -= (nused / k / norm)[:, None, None] * wo
+        if not out_f:
+            cell_weights = np.nan_to_num(u)
         out_f.append(f)
         out_b.append(b)
         out_bv.append(bvar)
         variance = fv
     ee = P[:, iy, ix].sum(axis=1)
-    diag.update(aperture_cells=int(iy.size), background_cells=int(outer.sum()) if background else 0)
+    diag.update(aperture_cells=int(iy.size), background_cells=int(outer.sum()) if background else 0,
+                variance_model="cells independent (diagonal of the cube covariance)")
     return SpectrumProduct(
         lbda=np.asarray(cube_product.lbda), lbda_edges=np.asarray(cube_product.lbda_edges),
         flux=np.array(out_f) if stack else out_f[0], variance=None if var is None else variance,
@@ -324,4 +336,64 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
         aperture=float(aperture), psf_sigma=sigma,
         background=(np.array(out_b) if stack else out_b[0]) if background else None,
         background_variance=(out_bv[0] if var is not None else None) if background else None,
-        enclosed_energy=ee, diagnostics=diag)
+        enclosed_energy=ee, cell_weights=cell_weights, diagnostics=diag)
+
+
+# --------------------------------------------------------------------------- exact variance
+def propagate_variance(spectrum, cube_product, rate_variance, *, mapper=None, oversample=(1, 1), truncate=4.0,
+                       weights_dtype=np.float32, backend="auto"):
+    """Variance [unit²] of an extracted spectrum with the full covariance of an LSQ cube.
+
+    The ``variance`` of :func:`extract_spectrum` treats cells as independent (the cube carries
+    only diag((PᵀWP)⁻¹)); neighbouring LSQ cells are anti-correlated, so that sum is too large.
+    Here Var F̂_λ = Σ_slices u_λᵀ (P_sᵀ W P_s)⁻¹ u_λ exactly, slice by slice, for every slice the
+    extraction weights ``u`` reach with more than 1e-3 of their largest weight (the background's
+    tiny weights on the other slices keep their diagonal term).  ``rate_variance`` (H, W)
+    [unit²/px] and the projection options must be those given to ``rectify``.
+
+    Note: rebuilds P of those slices with rectify's internal helpers (same pixels: unshared,
+    finite variance); to be replaced by a covariance hook in ``rectify``.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    from slicersim.backends.projection import deposit
+    from slicersim.reduction.rectify import FIELDS, _default_mapper, _slice_coverage, _slice_matrix
+    if getattr(cube_product, "method", None) != "lsq":
+        raise ParameterError("propagate_variance needs an LSQ cube (rectify(method='lsq'))")
+    u = getattr(spectrum, "cell_weights", None)
+    if u is None or u.shape != np.shape(cube_product.flux)[-3:]:
+        raise ParameterError("spectrum must come from extract_spectrum on this cube")
+    mapper = _default_mapper() if mapper is None else mapper
+    var = np.asarray(rate_variance, float)
+    if var.shape != tuple(mapper.detector_shape):
+        raise ParameterError(f"rate_variance must have the detector's shape {tuple(mapper.detector_shape)}")
+    slices = [int(v) for v in FIELDS[cube_product.field]]
+    nl, nrow, ncol = u.shape
+    edges = np.asarray(cube_product.lbda_edges, float)
+    ov = tuple(int(v) for v in np.ravel(oversample))
+    tables = mapper.projection_tables(slices, ncol, edges, oversample=ov, truncate=truncate,
+                                      weights_dtype=weights_dtype, backend=backend)
+    cover = deposit(np.ones((len(slices), nl, ncol)), tables, backend=backend)
+    count = _slice_coverage(mapper, ncol, edges, ov, truncate)
+    usable = (cover > 0) & (count == 1) & np.isfinite(var) & (var > 0)
+    weight = np.where(usable, 1.0 / np.where(usable, var, 1.0), 0.0).ravel()
+    cvar = np.nan_to_num(np.asarray(cube_product.variance, float)) if cube_product.variance is not None else None
+    total = np.zeros(nl)
+    reach = np.abs(u).max(axis=(0, 2))
+    for s in range(len(slices)):
+        row = nrow - 1 - s                                   # cube row of slice s
+        us = u[:, row, :]                                    # (nλ, ncol)
+        if reach[row] <= 1e-3 * reach.max() and cvar is not None:
+            total += (us ** 2 * cvar[:, row, :]).sum(axis=1)
+            continue
+        P, upix, _ = _slice_matrix(tables, s, weight)
+        A = (P.T @ sp.csr_matrix(P.multiply(weight[upix][:, None]))).tocsc()
+        seen = A.diagonal() > 0
+        idx = np.flatnonzero(seen)
+        rhs = np.zeros((nl * ncol, nl))
+        rhs[np.arange(nl * ncol), np.repeat(np.arange(nl), ncol)] = us.ravel()    # λ-major cells
+        rhs = rhs[idx]
+        z = splu(A[idx][:, idx].tocsc()).solve(rhs)
+        total += (rhs * z).sum(axis=0)
+    return total
