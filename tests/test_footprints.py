@@ -4,7 +4,14 @@ The reference for "which pixels receive light" is the projection itself: a unifo
 (and one-slice cubes) projected with SlicerMapper.project_cube on a 40-bin piece of the
 CBE grid.  Footprints must give exactly its lit pixels (the windows are the projection's).
 """
+import errno
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -176,6 +183,23 @@ def test_spectrograph_gives_the_grid(mapper):
     class Spec:
         lbda_edges, shape = EDGES, (58, NCOL)
     assert field_footprints(mapper, "narrow", spectrograph=Spec()) is field_footprints(mapper, "narrow", EDGES, NCOL)
+    with pytest.raises(ParameterError, match="spectrograph must be"):
+        field_footprints(mapper, "narrow", spectrograph=object())
+
+
+def test_spectrograph_may_be_a_simulation_or_a_target(mapper):
+    """Review 10 #15: the docstring's "a Simulation's spectrograph" — a Simulation (or a
+    Target) is accepted and gives the same (cached) footprints as its spectrograph."""
+    from slicersim.assembly import build_simulation
+    from slicersim.targets import LazuliSupernova
+    sim = build_simulation("cbe", "wide")
+    sim.spectrograph.update(spectral_range=(9000.0, 9300.0))               # a few bins: fast
+    ref = field_footprints(mapper, "wide", spectrograph=sim.spectrograph)
+    assert ref.lbda_edges.size < 30 and ref.ncol == 116
+    assert field_footprints(mapper, "wide", spectrograph=sim) is ref
+    target = LazuliSupernova(0.5, field="wide")
+    target.simulation.spectrograph.update(spectral_range=(9000.0, 9300.0))
+    assert field_footprints(mapper, "wide", spectrograph=target) is ref
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -219,3 +243,170 @@ def test_save_and_read_back(fields, tmp_path):
     assert json.loads(open(json_path, encoding="utf-8").read())["fields"][0]["field"] == "narrow"
     with pytest.raises(ParameterError, match="does not exist"):
         save_footprints(tmp_path / "missing", narrow)
+
+
+# --------------------------------------------------------------------------- published together (review 10 #5, #6)
+REPO = Path(__file__).resolve().parents[1]
+CHILD = r"""
+import os, sys, time
+ctl, out, field, mode = sys.argv[1:5]
+sys.path.insert(0, os.path.join(os.getcwd(), "tests"))
+from test_footprints import tiny_footprints
+from slicersim.instrument.footprints import save_footprints
+fp = tiny_footprints(field)
+def flag(name):
+    open(os.path.join(ctl, name), "w").close()
+def replace_then(pause, only_first=True):
+    real, calls = os.replace, []
+    def replace(src, dst):
+        real(src, dst)
+        calls.append(dst)
+        if str(dst).startswith(out) and (len(calls) == 1 or not only_first):
+            flag("published-one")
+            time.sleep(pause)
+    os.replace = replace
+if mode == "hang-second-fsync":           # killed -9 while the second file is written
+    real, calls = os.fsync, []
+    def fsync(fd):
+        calls.append(fd)
+        if len(calls) == 2:
+            flag("hanging")
+            time.sleep(60)
+        real(fd)
+    os.fsync = fsync
+elif mode == "hang-after-first-rename":   # killed -9 between the renames
+    replace_then(60)
+elif mode == "slow-renames":              # race: a long pause between the renames
+    replace_then(0.6)
+flag(f"ready-{field}")
+while mode in ("slow-renames", "late") and not os.path.exists(os.path.join(ctl, "go")):
+    time.sleep(0.005)
+if mode == "late":
+    time.sleep(0.2)
+save_footprints(out, fp, overwrite=True)
+"""
+
+
+def _start(tmp_path, field, mode):
+    ctl = tmp_path / "ctl"
+    ctl.mkdir(exist_ok=True)
+    (tmp_path / "out").mkdir(exist_ok=True)
+    return subprocess.Popen([sys.executable, "-c", CHILD, str(ctl), str(tmp_path / "out"), field, mode],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def _wait_for(path, procs, timeout=60):
+    t0 = time.monotonic()
+    while not path.exists():
+        if time.monotonic() - t0 > timeout or any(p.poll() is not None for p in procs):
+            for p in procs:
+                p.kill()
+            raise AssertionError(f"{path.name} never appeared: {[p.communicate()[0] for p in procs]}")
+        time.sleep(0.01)
+
+
+def _kill(proc):
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()                                       # reaped: its pid is dead, not a zombie
+
+
+def _fields_of_pair(out):
+    """(FIELDS of the label image, fields of the outlines) of the pair in ``out``."""
+    header = read_label_image(out / "footprints_labels.fits")[1]
+    desc = read_outlines(out / "footprints_outlines.json")
+    return header["FIELDS"], ",".join(f["field"] for f in desc["fields"])
+
+
+def tiny_footprints(field, mapper=None):
+    """Slices 1-2 on 3 bins, labelled ``field``, on a 64 × 288 px detector (small files)."""
+    mapper = mapper or SlicerMapper.default(table_cache=None)
+    values = mapper.values.copy()
+    values[..., 0] -= 3540.0                                   # x, y [px]
+    values[..., 1] -= 3480.0
+    small = SlicerMapper(mapper.slice_ids, mapper.fieldpos_nodes, mapper.lbda_nodes, values,
+                         detector_shape=(64, 288), table_cache=None)
+    return field_footprints(small, field, np.linspace(9000, 9100, 4), NCOL, slices=[1, 2])
+
+
+@pytest.fixture(scope="module")
+def tiny(mapper):
+    return {f: tiny_footprints(f, mapper) for f in ("narrow", "wide")}
+
+
+def test_full_disk_or_failed_rename_leaves_neither_file(tiny, tmp_path, monkeypatch):
+    real_write, real_replace, files = os.write, os.replace, []
+
+    def write(fd, data):                               # the disk fills up during the second file
+        path = os.readlink(f"/proc/self/fd/{fd}")
+        if path.startswith(str(tmp_path)) and path not in files:
+            files.append(path)
+        if path.startswith(str(tmp_path)) and len(files) > 1:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+    with monkeypatch.context() as m:
+        m.setattr(os, "write", write)
+        with pytest.raises(OSError, match="No space left"):
+            save_footprints(tmp_path, tiny["narrow"])
+    assert len(files) == 2 and list(tmp_path.iterdir()) == []     # no file, no temporary
+
+    def replace(src, dst):                             # the second rename fails
+        if files and str(dst).startswith(str(tmp_path)):
+            raise OSError(errno.EIO, "Input/output error")
+        files.append(dst)
+        return real_replace(src, dst)
+    files.clear()
+    with monkeypatch.context() as m:
+        m.setattr(os, "replace", replace)
+        with pytest.raises(OSError, match="Input/output"):
+            save_footprints(tmp_path, tiny["wide"], overwrite=True)
+    assert [p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")] == []
+    save_footprints(tmp_path, tiny["wide"])
+    assert _fields_of_pair(tmp_path) == ("wide", "wide") and len(list(tmp_path.iterdir())) == 2
+
+
+def test_killed_writer_leaves_no_file_and_its_temporaries_are_removed(tiny, tmp_path):
+    proc = _start(tmp_path, "narrow", "hang-second-fsync")
+    try:
+        _wait_for(tmp_path / "ctl" / "hanging", [proc])
+    finally:
+        _kill(proc)
+    out = tmp_path / "out"
+    names = [p.name for p in out.iterdir()]
+    assert names and all(".tmp-" in n for n in names), names       # temporaries only, no final file
+    save_footprints(out, tiny["wide"])                             # no --overwrite needed
+    assert sorted(p.name for p in out.iterdir()) == ["footprints_labels.fits", "footprints_outlines.json"]
+
+
+def test_writer_killed_between_renames_is_completed_by_the_next(tiny, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    save_footprints(out, tiny["wide"])
+    proc = _start(tmp_path, "narrow", "hang-after-first-rename")
+    try:
+        _wait_for(tmp_path / "ctl" / "published-one", [proc])
+    finally:
+        _kill(proc)
+    with pytest.raises(ParameterError, match="exists"):
+        save_footprints(out, tiny["wide"])                         # finishes the killed set first
+    assert _fields_of_pair(out) == ("narrow", "narrow")
+    assert sorted(p.name for p in out.iterdir()) == ["footprints_labels.fits", "footprints_outlines.json"]
+
+
+def test_concurrent_writers_never_leave_a_mixed_pair(tmp_path):
+    """The narrow writer pauses 0.6 s between its two renames; the wide writer starts 0.2 s
+    later: without a lock the pair ends up half narrow, half wide."""
+    procs = [_start(tmp_path, "narrow", "slow-renames"), _start(tmp_path, "wide", "late")]
+    try:
+        for field in ("narrow", "wide"):
+            _wait_for(tmp_path / "ctl" / f"ready-{field}", procs)
+        (tmp_path / "ctl" / "go").touch()
+        for p in procs:
+            assert p.wait(timeout=60) == 0, p.communicate()[0]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                _kill(p)
+    labels, outlines = _fields_of_pair(tmp_path / "out")
+    assert labels == outlines
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["footprints_labels.fits",
+                                                                    "footprints_outlines.json"]

@@ -20,7 +20,7 @@ import threading
 from slicersim.errors import DatasetError
 
 __all__ = ["AtomicH5File", "GuardedFile", "is_temporary", "remove_stale_temporaries", "atomic_bytes", "write_files",
-           "publish", "sha256_file", "one_line"]
+           "recover_interrupted", "publish", "sha256_file", "one_line"]
 
 #: temporaries are ``.<final name>.tmp-<pid>-<host tag><random>`` (the host tag keeps a writer from
 #: removing the temporary of a live process on another machine sharing the directory)
@@ -556,6 +556,20 @@ class _SetLock:
         os.ftruncate(self.fd, 0)
 
 
+def _lock_path(first, lock_name=None):
+    first = os.path.abspath(os.fspath(first))
+    return os.path.join(os.path.dirname(first), f".{lock_name or os.path.basename(first)}.lock")
+
+
+def recover_interrupted(first, lock_name=None):
+    """Complete (or remove) the set whose first file is ``first`` if its writer was killed
+    while renaming it in (see :func:`write_files`); a no-op when no lock file is there."""
+    lock_path = _lock_path(first, lock_name)
+    if os.path.lexists(lock_path):                # a writer holds it, or died holding it
+        with _SetLock(lock_path) as lock:
+            lock.recover()
+
+
 def write_files(files, overwrite=False, error_class=DatasetError, lock_name=None):
     """Write several files and publish them together: all of them or none.
 
@@ -577,13 +591,11 @@ def write_files(files, overwrite=False, error_class=DatasetError, lock_name=None
     if len(set(paths)) != len(paths) or not paths:
         raise error_class(f"write_files needs distinct paths, got {paths}")
     datas = list(files.values())
-    first_dir = os.path.dirname(paths[0])
-    lock_path = os.path.join(first_dir, f".{lock_name or os.path.basename(paths[0])}.lock")
+    lock_path = _lock_path(paths[0], lock_name)
     temps = []
     try:
-        if len(paths) > 1 and os.path.lexists(lock_path):       # a writer died holding it
-            with _SetLock(lock_path) as lock:
-                lock.recover()
+        if len(paths) > 1:
+            recover_interrupted(paths[0], lock_name)
         for directory in dict.fromkeys(os.path.dirname(p) for p in paths):
             remove_stale_temporaries(directory)
         if not overwrite:

@@ -22,7 +22,7 @@ import os
 import numpy as np
 
 from slicersim.errors import DatasetError, ParameterError
-from slicersim.io.atomic import atomic_bytes, write_files
+from slicersim.io.atomic import atomic_bytes, recover_interrupted, write_files
 
 __all__ = ["write_label_image", "read_label_image", "write_outlines", "read_outlines", "footprint_paths",
            "check_outputs", "write_footprint_set", "label_image_bytes", "outlines_bytes"]
@@ -38,7 +38,10 @@ def footprint_paths(directory, name="footprints"):
 
 def check_outputs(paths, overwrite=False):
     """Refuse (ParameterError) outputs that exist (without ``overwrite``) or whose directory
-    is missing or not writable, before anything is computed."""
+    is missing or not writable, before anything is computed.  A set whose writer was killed
+    while publishing it (first path: the label image) is completed first."""
+    if paths and os.path.isdir(os.path.dirname(os.path.abspath(paths[0]))):
+        recover_interrupted(paths[0])
     for path in paths:
         directory = os.path.dirname(os.path.abspath(path))
         if not os.path.isdir(directory):
