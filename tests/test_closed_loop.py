@@ -140,3 +140,28 @@ def test_white_noise_chi2_with_propagated_variance(noisy, small, method):
           f"diagonal/propagated variance = {np.median(sp.variance / exact):.2f}")
     assert abs(chi2 - 1) < max(4 * err, 0.02) and abs(chi2 - 1) < 0.2   # MC error ≈ 0.05 (48 draws)
     assert np.all(exact < sp.variance)                     # anti-correlated cells: the diagonal sum is too large
+
+
+def test_reduce_exposure_writes_all_products(small, tmp_path):
+    """Raw ramps of the small layout → reduce_exposure → HDF5 with rates, cube and spectrum;
+    the spectrum agrees with the truth within its propagated error; an existing file is refused."""
+    import h5py
+    from slicersim.errors import RampFileError
+    from slicersim.products.ramps import simulate
+    from slicersim.reduction.pipeline import reduce_exposure
+    lbda, cube, psf, F, B = _scene()
+    img = small.project_fields(lbda, EDGES, narrow=cube * 20)         # brighter: SNR ~ 50 per bin
+    raw = tmp_path / "raw.h5"
+    simulate(img, (16, 8, 0), seed=3, out=str(raw), ron=5.0, dark=0.0, roic_glow=0.0)
+    out = tmp_path / "red.h5"
+    r = reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, out=str(out))
+    sp = r["spectra"]["narrow"]
+    z = (sp.flux - 20 * F) / np.sqrt(sp.variance)
+    print(f"pipeline: pulls {np.round(z, 2)}, χ²/dof {np.mean(z ** 2):.2f}")
+    assert np.mean(z ** 2) < 3 and abs(z.mean()) < 3 / np.sqrt(z.size) * 1.5
+    with h5py.File(out) as f:
+        assert {"rates", "cubes", "spectra"} <= set(f)
+        np.testing.assert_array_equal(f["spectra/narrow/FLUX"][...], sp.flux)
+        assert f["cubes/narrow/FLUX"].shape == (12, 58, NCOL) and f["rates/RATE"].shape == (660, 600)
+    with pytest.raises(RampFileError, match="exists"):
+        reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, out=str(out))
