@@ -250,10 +250,15 @@ REPO = Path(__file__).resolve().parents[1]
 CHILD = r"""
 import os, sys, time
 ctl, out, field, mode = sys.argv[1:5]
-sys.path.insert(0, os.path.join(os.getcwd(), "tests"))
-from test_footprints import tiny_footprints
-from slicersim.instrument.footprints import save_footprints
-fp = tiny_footprints(field)
+import numpy as np
+from slicersim.instrument.footprints import field_footprints, save_footprints
+from slicersim.instrument.mapper import SlicerMapper
+m = SlicerMapper.default(table_cache=None)
+values = m.values.copy()
+values[..., 0] -= 3540.0
+values[..., 1] -= 3480.0
+small = SlicerMapper(m.slice_ids, m.fieldpos_nodes, m.lbda_nodes, values, detector_shape=(64, 288), table_cache=None)
+fp = field_footprints(small, field, np.linspace(9000, 9100, 4), 116, slices=[1, 2])
 def flag(name):
     open(os.path.join(ctl, name), "w").close()
 def replace_then(pause, only_first=True):
@@ -277,12 +282,12 @@ if mode == "hang-second-fsync":           # killed -9 while the second file is w
 elif mode == "hang-after-first-rename":   # killed -9 between the renames
     replace_then(60)
 elif mode == "slow-renames":              # race: a long pause between the renames
-    replace_then(0.6)
+    replace_then(0.5)
 flag(f"ready-{field}")
 while mode in ("slow-renames", "late") and not os.path.exists(os.path.join(ctl, "go")):
     time.sleep(0.005)
 if mode == "late":
-    time.sleep(0.2)
+    time.sleep(0.15)
 save_footprints(out, fp, overwrite=True)
 """
 
@@ -293,6 +298,23 @@ def _start(tmp_path, field, mode):
     (tmp_path / "out").mkdir(exist_ok=True)
     return subprocess.Popen([sys.executable, "-c", CHILD, str(ctl), str(tmp_path / "out"), field, mode],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+@pytest.fixture(scope="module")
+def killed(tmp_path_factory, tiny):
+    """Two writers killed -9 (started together): one while writing its second file, one
+    between its two renames (over a pair of the wide field).  {mode: its directory}."""
+    dirs = {mode: tmp_path_factory.mktemp(mode) for mode in ("hang-second-fsync", "hang-after-first-rename")}
+    (dirs["hang-after-first-rename"] / "out").mkdir()
+    save_footprints(dirs["hang-after-first-rename"] / "out", tiny["wide"])
+    procs = {mode: _start(d, "narrow", mode) for mode, d in dirs.items()}
+    try:
+        _wait_for(dirs["hang-second-fsync"] / "ctl" / "hanging", list(procs.values()))
+        _wait_for(dirs["hang-after-first-rename"] / "ctl" / "published-one", list(procs.values()))
+    finally:
+        for p in procs.values():
+            _kill(p)
+    return {mode: d / "out" for mode, d in dirs.items()}
 
 
 def _wait_for(path, procs, timeout=60):
@@ -317,9 +339,8 @@ def _fields_of_pair(out):
     return header["FIELDS"], ",".join(f["field"] for f in desc["fields"])
 
 
-def tiny_footprints(field, mapper=None):
-    """Slices 1-2 on 3 bins, labelled ``field``, on a 64 × 288 px detector (small files)."""
-    mapper = mapper or SlicerMapper.default(table_cache=None)
+def tiny_footprints(field, mapper):
+    """Slices 1-2 on 3 bins, labelled ``field``, on a 64 × 288 px detector (small files; as CHILD's)."""
     values = mapper.values.copy()
     values[..., 0] -= 3540.0                                   # x, y [px]
     values[..., 1] -= 3480.0
@@ -364,28 +385,16 @@ def test_full_disk_or_failed_rename_leaves_neither_file(tiny, tmp_path, monkeypa
     assert _fields_of_pair(tmp_path) == ("wide", "wide") and len(list(tmp_path.iterdir())) == 2
 
 
-def test_killed_writer_leaves_no_file_and_its_temporaries_are_removed(tiny, tmp_path):
-    proc = _start(tmp_path, "narrow", "hang-second-fsync")
-    try:
-        _wait_for(tmp_path / "ctl" / "hanging", [proc])
-    finally:
-        _kill(proc)
-    out = tmp_path / "out"
+def test_killed_writer_leaves_no_file_and_its_temporaries_are_removed(tiny, killed):
+    out = killed["hang-second-fsync"]
     names = [p.name for p in out.iterdir()]
     assert names and all(".tmp-" in n for n in names), names       # temporaries only, no final file
     save_footprints(out, tiny["wide"])                             # no --overwrite needed
     assert sorted(p.name for p in out.iterdir()) == ["footprints_labels.fits", "footprints_outlines.json"]
 
 
-def test_writer_killed_between_renames_is_completed_by_the_next(tiny, tmp_path):
-    out = tmp_path / "out"
-    out.mkdir()
-    save_footprints(out, tiny["wide"])
-    proc = _start(tmp_path, "narrow", "hang-after-first-rename")
-    try:
-        _wait_for(tmp_path / "ctl" / "published-one", [proc])
-    finally:
-        _kill(proc)
+def test_writer_killed_between_renames_is_completed_by_the_next(tiny, killed):
+    out = killed["hang-after-first-rename"]
     with pytest.raises(ParameterError, match="exists"):
         save_footprints(out, tiny["wide"])                         # finishes the killed set first
     assert _fields_of_pair(out) == ("narrow", "narrow")
@@ -393,7 +402,7 @@ def test_writer_killed_between_renames_is_completed_by_the_next(tiny, tmp_path):
 
 
 def test_concurrent_writers_never_leave_a_mixed_pair(tmp_path):
-    """The narrow writer pauses 0.6 s between its two renames; the wide writer starts 0.2 s
+    """The narrow writer pauses 0.5 s between its two renames; the wide writer starts 0.15 s
     later: without a lock the pair ends up half narrow, half wide."""
     procs = [_start(tmp_path, "narrow", "slow-renames"), _start(tmp_path, "wide", "late")]
     try:

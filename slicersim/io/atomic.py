@@ -450,22 +450,14 @@ class AtomicH5File:
         self._deliver_pending()
 
 
-
 # --------------------------------------------------------------------------- #
 #  several files published together                                            #
 # --------------------------------------------------------------------------- #
 def _write_temporary(path, data):
-    """A new, fsync'd temporary for ``path`` holding ``data`` (bytes, or a callable writing to
+    """A new fsync'd temporary for ``path`` holding ``data`` (bytes, or a callable writing to
     a binary file object); removed again on any error."""
-    for _ in range(100):
-        tmp = temporary_path(path)
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
-            break
-        except FileExistsError:
-            continue
-    else:  # pragma: no cover
-        raise FileExistsError(errno.EEXIST, "no free temporary name", path)
+    tmp = temporary_path(path)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
     try:
         if callable(data):
             with os.fdopen(fd, "wb", closefd=False) as fh:
@@ -498,9 +490,8 @@ def _same_file(path, ino):
 
 
 class _SetLock:
-    """Exclusive ``fcntl.flock`` on ``path`` (created if missing; released by the kernel when
-    the holder dies, even by kill -9).  The holder keeps a journal of its renames in the file
-    and removes the file when it is done."""
+    """Exclusive ``fcntl.flock`` on the file ``path`` (released by the kernel when its holder
+    dies, even by kill -9); it journals the holder's renames and is removed when it is done."""
 
     def __init__(self, path):
         self.path, self.fd = path, None
@@ -511,7 +502,7 @@ class _SetLock:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX)
-                if _same_file(self.path, os.fstat(fd).st_ino):   # not removed by the previous holder
+                if _same_file(self.path, os.fstat(fd).st_ino):   # else removed by the previous holder
                     self.fd = fd
                     return self
             except BaseException:
@@ -520,31 +511,27 @@ class _SetLock:
             os.close(fd)
 
     def __exit__(self, *exc):
-        fd, self.fd = self.fd, None
         try:
-            _remove(self.path)             # while holding it: a waiter then sees a removed file and retries
+            _remove(self.path)             # while holding it: a waiter sees it removed and retries
         finally:
-            os.close(fd)
-        return False
+            os.close(self.fd)
 
     def journal(self, items):
-        """Record the renames about to be made: [(temporary, final path, inode)]."""
+        """Record the renames about to be made: [[temporary, final path, inode]] (or none)."""
         import json
-        data = json.dumps({"pid": os.getpid(), "items": items}).encode()
         os.ftruncate(self.fd, 0)
-        os.pwrite(self.fd, data, 0)
-        os.fsync(self.fd)
+        if items:
+            os.pwrite(self.fd, json.dumps(items).encode(), 0)
+            os.fsync(self.fd)
 
     def recover(self):
-        """Finish the renames of a writer killed among them: all its files if every one is still
-        there (as temporary or already renamed), else none; then clear the journal."""
+        """Finish the renames of a writer killed among them: all its files when each is still
+        there (as temporary or renamed), else none of them."""
         import json
-        raw = os.pread(self.fd, 1 << 20, 0)
-        if not raw:
-            return
+        raw = os.pread(self.fd, 1 << 22, 0)
         try:
-            items = json.loads(raw)["items"]
-        except (ValueError, KeyError, TypeError):  # torn journal: killed before any rename
+            items = json.loads(raw) if raw else []
+        except ValueError:                 # torn journal: killed before any rename
             items = []
         done = [_same_file(path, ino) for _, path, ino in items]
         whole = all(d or os.path.lexists(tmp) for d, (tmp, _, _) in zip(done, items))
@@ -553,7 +540,7 @@ class _SetLock:
                 os.replace(tmp, path)
             elif not whole:
                 _remove(path if d else tmp)
-        os.ftruncate(self.fd, 0)
+        self.journal(None)
 
 
 def _lock_path(first, lock_name=None):
@@ -563,35 +550,29 @@ def _lock_path(first, lock_name=None):
 
 def recover_interrupted(first, lock_name=None):
     """Complete (or remove) the set whose first file is ``first`` if its writer was killed
-    while renaming it in (see :func:`write_files`); a no-op when no lock file is there."""
-    lock_path = _lock_path(first, lock_name)
-    if os.path.lexists(lock_path):                # a writer holds it, or died holding it
-        with _SetLock(lock_path) as lock:
+    while renaming it in (:func:`write_files`); nothing to do without a lock file."""
+    if os.path.lexists(_lock_path(first, lock_name)):     # a writer holds it, or died holding it
+        with _SetLock(_lock_path(first, lock_name)) as lock:
             lock.recover()
 
 
 def write_files(files, overwrite=False, error_class=DatasetError, lock_name=None):
-    """Write several files and publish them together: all of them or none.
+    """Write several files and publish them together: all of them or none; returns the paths.
 
-    ``files``: {path: bytes, or a callable writing the content to a binary file object}.
-    Every file is first written to a temporary next to its final path (``.NAME.tmp-PID-…``,
-    fsync'd; temporaries left there by dead writers are removed first,
-    :func:`remove_stale_temporaries`).  Only when all are complete are they renamed in: with
-    ``overwrite`` replacing existing files, else refusing (``error_class``) when any of them
-    exists.  Several files are renamed under an exclusive lock, ``.<lock_name>.lock`` in the
-    first file's directory (default: its name; ``fcntl.flock``, so a killed writer never
-    holds it), so that concurrent writers of the same set publish one after the other and
-    never leave a mixture.  The lock file journals the renames in progress: a writer killed
-    among them is completed, or its partial set removed, by the next writer of the set.  On
-    any error every temporary and every file this call already renamed in is removed (with
-    ``overwrite`` the previous files of the set are then gone too: neither, never a mixture)
-    and the error is raised as ``error_class``.  Returns the final paths.
+    ``files``: {path: bytes, or a callable writing to a binary file object}.  Each is written
+    to a temporary next to its final path (fsync'd; stale temporaries of dead writers there
+    are removed first, :func:`remove_stale_temporaries`); only when all are complete are they
+    renamed in (``overwrite``: replacing files, else refusing if any exists), under an
+    exclusive lock, the file ``.<lock_name>.lock`` in the first path's directory (default: its
+    name; ``fcntl.flock``: a killed writer never holds it), so that concurrent writers of a set
+    publish one after the other.  The lock file journals the renames: a writer killed among
+    them is completed (or its partial set removed) by the next one.  On any error, every
+    temporary and every file already renamed in is removed (neither, never a mixture: with
+    ``overwrite`` the set's previous files are then gone) and ``error_class`` is raised.
     """
     paths = [os.path.abspath(os.fspath(p)) for p in files]
     if len(set(paths)) != len(paths) or not paths:
         raise error_class(f"write_files needs distinct paths, got {paths}")
-    datas = list(files.values())
-    lock_path = _lock_path(paths[0], lock_name)
     temps = []
     try:
         if len(paths) > 1:
@@ -600,21 +581,19 @@ def write_files(files, overwrite=False, error_class=DatasetError, lock_name=None
             remove_stale_temporaries(directory)
         if not overwrite:
             _refuse_existing(paths, error_class)
-        for path, data in zip(paths, datas):
+        for path, data in zip(paths, files.values()):
             temps.append(_write_temporary(path, data))
         if len(paths) == 1:
             publish(temps[0], paths[0], overwrite, error_class)
-            temps = []
         else:
-            with _SetLock(lock_path) as lock:
+            with _SetLock(_lock_path(paths[0], lock_name)) as lock:
                 lock.recover()
                 _publish_set(lock, temps, paths, overwrite, error_class)
-            temps = []
+        temps = []
     except OSError as exc:
         if isinstance(exc, error_class):
             raise
-        raise error_class(f"cannot write {paths[len(temps)] if len(temps) < len(paths) else paths[0]}: "
-                          f"{one_line(exc)}") from exc
+        raise error_class(f"cannot write {paths[min(len(temps), len(paths) - 1)]}: {one_line(exc)}") from exc
     finally:
         for tmp in temps:
             _remove(tmp)
@@ -644,4 +623,4 @@ def _publish_set(lock, temps, paths, overwrite, error_class):
                 _remove(path)
         raise
     finally:
-        os.ftruncate(lock.fd, 0)
+        lock.journal(None)
