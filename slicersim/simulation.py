@@ -19,7 +19,7 @@ from slicersim.products.cube import build_cube, build_scene_cubes, host_photons_
 from slicersim.products.psf_profiles import get_psf_profile
 from slicersim.versioning import Versioned, state_token
 
-__all__ = ["Simulation", "VARIANCE_SOURCES", "SCENE_COMPONENTS", "ExtractionModel"]
+__all__ = ["Simulation", "SimulationUpdate", "VARIANCE_SOURCES", "SCENE_COMPONENTS", "ExtractionModel", "check_snr"]
 
 
 class ExtractionModel:
@@ -50,6 +50,21 @@ class ExtractionModel:
         if self.host_ph is not None and "host" not in off:
             point = point + self.host_ph
         return self.qe[:, None] * (point + uniform[:, None])
+
+
+class SimulationUpdate:
+    """A validated, not yet applied :meth:`Simulation.update`: the new components (built off to
+    the side), ``nramps`` and ``aperture_radius_insigma``; ``spectrograph`` / ``telescope`` /
+    ``detector`` give the state the simulation will have."""
+
+    def __init__(self, simulation, components, nramps, aperture_radius_insigma):
+        self.simulation, self.components = simulation, components
+        self.nramps, self.aperture_radius_insigma = nramps, aperture_radius_insigma
+
+    def __getattr__(self, name):
+        if name in ("spectrograph", "telescope", "detector"):
+            return self.components.get(name, getattr(self.simulation, name))
+        raise AttributeError(name)
 
 
 class Simulation(Versioned):
@@ -121,6 +136,11 @@ class Simulation(Versioned):
         field or an aperture containing no cell centre raises ParameterError.
         ``_position`` (internal, used by targets) validates it for a point-source position
         about to be set."""
+        self.apply_update(self.plan_update(_position, **kwargs))
+
+    def plan_update(self, _position=None, **kwargs):
+        """The validated new state of :meth:`update` (:class:`SimulationUpdate`), nothing changed:
+        targets validate their own parts against it before :meth:`apply_update`."""
         unknown = sorted(set(kwargs) - set(self.mutable_parameters))
         if unknown:
             raise ParameterError(f"unknown simulation parameter(s) {unknown}; accepted: "
@@ -142,10 +162,15 @@ class Simulation(Versioned):
         self._check_overlap(spec.lbda)
         self._check_aperture_cells(spec, new.get("telescope", self.telescope), aperture,
                                    self.position if _position is None else _position)
-        # everything validated: apply (nothing below can fail)
-        for name, obj in new.items():
+        return SimulationUpdate(self, new, nramps, aperture)
+
+    def apply_update(self, plan):
+        """Apply a :meth:`plan_update` result of this simulation (nothing here can fail)."""
+        if plan.simulation is not self:
+            raise ValueError("this update was planned for another simulation")
+        for name, obj in plan.components.items():
             getattr(self, name)._adopt(obj)
-        self.nramps, self.aperture_radius_insigma = nramps, aperture
+        self.nramps, self.aperture_radius_insigma = plan.nramps, plan.aperture_radius_insigma
         self._cache.clear()
 
     def _check_overlap(self, lbda=None):
@@ -337,16 +362,22 @@ class Simulation(Versioned):
         return cube
 
     def get_scene_cubes(self, unit="adu", nmd=None, nramps=None, per_ramp=False, psf_profile="gaussian",
-                        switch_off=None, backend="auto"):
+                        switch_off=None, backend="auto", as_dict=True):
         """Noise-free cube (nλ, ny, nx) of each scene component: dict ``pointsource``,
-        ``background``, ``host``, ``thermal`` (absent or switched-off components are zeros).
+        ``background``, ``host``, ``thermal`` (absent or switched-off components are zeros; 1.4.2's
+        keys ``host_cube`` / ``thermal_cube`` read the same arrays, :class:`~slicersim.products.cube.SceneCubes`).
 
         ``unit``: ``"adu"`` (signal: × QE t_int g, × nramps unless ``per_ramp``), ``"electron"``
-        [e-/s/cell], ``"photon"`` [ph/s/cell] or ``"flambda"`` (÷ f2p: erg/s/cm²/Å per cell).
+        [e-/s/cell], ``"photon"`` [ph/s/cell] or ``"flambda"`` (÷ f2p: erg/s/cm²/Å per cell);
+        1.4.2's ``"default"``, ``"ph"``, ``"photons"`` are accepted.  ``as_dict=False``: one
+        (4, nλ, ny, nx) array in that order (1.4.2).
         In ADU their sum is the signal of :meth:`get_cube` (same readout, PSF and
         ``switch_off``), to rounding, where no cell saturates (the cube is NaN there)."""
-        return build_scene_cubes(self, unit=unit, nmd=nmd, nramps=nramps, per_ramp=per_ramp,
-                                 psf_profile=psf_profile, switch_off=switch_off, backend=backend)
+        if not isinstance(as_dict, (bool, np.bool_)):
+            raise ParameterError(f"as_dict must be True or False, got {as_dict!r}")
+        cubes = build_scene_cubes(self, unit=unit, nmd=nmd, nramps=nramps, per_ramp=per_ramp,
+                                  psf_profile=psf_profile, switch_off=switch_off, backend=backend)
+        return cubes if as_dict else cubes.stack()
 
     def get_cube(self, nmd=None, nramps=None, seed=None, psf_profile="gaussian", backend="auto",
                  switch_off=None, **options):
@@ -522,10 +553,7 @@ class Simulation(Versioned):
         """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.etc.search`);
         band coverage rule (``allow_partial``): :meth:`band_mask`."""
         from slicersim.etc.search import solve_readout  # etc/ sits above: its solve_many builds Simulations
-        if isinstance(snr, (bool, np.bool_)) or not isinstance(snr, (int, float, np.integer, np.floating)) \
-                or not (np.isfinite(snr) and snr > 0):
-            raise ETCError(f"the target SNR must be a finite number > 0, got {snr!r}")
-        return solve_readout(self, float(snr), lbda_range, per_resolution=per_resolution, search=search,
+        return solve_readout(self, check_snr(snr), lbda_range, per_resolution=per_resolution, search=search,
                              allow_partial=allow_partial, **kwargs)
 
 
@@ -537,6 +565,16 @@ def _check_aperture(value):
     if not (np.isfinite(value) and value > 0):
         raise ParameterError(f"aperture_radius_insigma must be finite and > 0, got {value}")
     return value
+
+
+def check_snr(snr):
+    """A target SNR as a float: a finite number > 0.  ParameterError for what is not a number
+    (strings, bools, lists), ETCError for an impossible value (NaN, inf, ≤ 0)."""
+    if isinstance(snr, (bool, np.bool_)) or not isinstance(snr, (int, float, np.integer, np.floating)):
+        raise ParameterError(f"the target SNR must be a finite number > 0, got {snr!r}")
+    if not (np.isfinite(snr) and snr > 0):
+        raise ETCError(f"the target SNR must be a finite number > 0, got {snr!r}")
+    return float(snr)
 
 
 def check_band(lbda_range):

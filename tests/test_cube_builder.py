@@ -79,7 +79,9 @@ def test_flux_conservation_and_ramps(sim, backend):
     assert np.allclose(cube.variance, 2 * one.variance, rtol=1e-14)
 
 
-def test_chunked_equals_unchunked(sim, cube, capsys):
+def test_chunked_equals_unchunked(sim, cube, capsys, monkeypatch):
+    import slicersim.products.cube as cube_module
+    monkeypatch.setattr(cube_module, "PROGRESS_DELAY_S", 1e9)   # a "short" run, whatever the machine's speed
     ny, nx = sim.spectrograph.shape
     halo = lsf_halo(sim)
     assert halo == int(4 * sim.spectrograph.lsf_sigma + 0.5)
@@ -92,7 +94,9 @@ def test_chunked_equals_unchunked(sim, cube, capsys):
         assert np.array_equal(got.variance, cube.variance)
         assert np.array_equal(got.noisy, cube.noisy, equal_nan=True)
     assert cube.chunks == 1                                    # default budget: one chunk
-    assert "cube" in capsys.readouterr().err                   # many chunks: automatic tqdm bar
+    assert "cube" not in capsys.readouterr().err               # short runs: no bar (only after PROGRESS_DELAY_S)
+    build_cube(sim, **READOUT, max_bytes=1, progress=True)
+    assert "cube" in capsys.readouterr().err                   # progress=True: at once
 
 
 def test_noisy_cube(sim, cube):

@@ -131,13 +131,13 @@ def test_user_host_without_redshift_is_taken_at_the_target_redshift():
     lbda = np.arange(2000.0, 40000.0, 10.0)
     host = Host(SersicProfile(1.0, 0.4, 0.8, 10.0), lbda, np.full(lbda.size, 3e-17))
     t = LazuliSupernova(0.5, host=host)
-    assert t.host is host
+    assert t.host is not host and t.host.profile.r_eff == 0.4        # the target's own copy (host untouched)
     t.update(redshift=0.8)
     a, w, f = redshift_scalings(0.5, 0.8)
     assert t.host.profile.r_eff == pytest.approx(0.4 * a, rel=1e-12)
     assert t.host.flux_in[0] == pytest.approx(3e-17 * f, rel=1e-12)
     t.update(redshift=0.5)
-    assert t.host is host                                        # back at its own redshift
+    assert t.host.profile.r_eff == 0.4 and t.host.flux_in[0] == 3e-17    # back at its own redshift
 
 
 def test_host_at_field_centre_adds_exactly_its_psf_convolved_flux():
@@ -182,10 +182,13 @@ def test_host_call_forms_of_slicersim_142():
                 GalaxyModel(form)
             continue
         assert GalaxyModel(form).name == name
+    form = {"refmodel": "sersic:bb-5000", "redshift": 2.0, "band": "bessellr", "n": 1,
+            "ellip": 0.5, "theta": 10, "magabs": -20, "position": (3, -2)}
+    with pytest.raises(ParameterError, match="redshift 2 but the target is at 0.5"):   # 1.4.2 ignored it
+        LazuliTarget(np.arange(3000.0, 20000.0, 10.0), np.full(1700, 1e-18), redshift=0.5, host=form)
     t = LazuliTarget(np.arange(3000.0, 20000.0, 10.0), np.full(1700, 1e-18), redshift=0.5,
-                     host={"refmodel": "sersic:bb-5000", "redshift": 2.0, "band": "bessellr", "n": 1,
-                           "ellip": 0.5, "theta": 10, "magabs": -20, "position": (3, -2)})
-    assert t.host.redshift == 0.5                                # the target's redshift wins (1.4.2)
+                     host={**form, "redshift": 0.5})
+    assert t.host.redshift == 0.5
     p = t.host.profile
     assert (p.sersic_index, p.axis_ratio, p.position_angle) == (1.0, 0.5, 10.0)
     s = t.simulation.spectrograph.spatial_scale

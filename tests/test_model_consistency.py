@@ -220,12 +220,13 @@ def test_update_position_moves_source_and_host():
     snr0 = t.get_band_snr(BAND, frame="obs")   # a supernova's bands default to the rest frame
     t.update(position=(3.3, -2.1))
     assert t.simulation.position == (3.3, -2.1)
-    assert host.profile.offset == pytest.approx((3.3 * scale + 0.1, -2.1 * scale))
+    assert t.host.profile.offset == pytest.approx((3.3 * scale + 0.1, -2.1 * scale))   # the target's copy
+    assert host.profile.offset == (0.1, 0.0)                                            # the user's: untouched
     assert t.get_band_snr(BAND, frame="obs") != snr0
     fixed = Host(SersicProfile(1.0, 0.3, 0.7, 20.0, offset=(0.1, 0.0)), lbda, np.full(lbda.size, 5e-17))
     t.set_host(fixed, relative=False)
     t.update(position=(0.0, 0.0))
-    assert fixed.profile.offset == (0.1, 0.0)
+    assert t.host.profile.offset == (0.1, 0.0)
     with pytest.raises(ValueError):
         t.update(position=(1.0,))
     assert t.position == (0.0, 0.0)
@@ -290,14 +291,15 @@ def test_field_update_atomic_and_host_follows():
     lbda = np.arange(3000.0, 20000.0, 10.0)
     host = Host(SersicProfile(1.0, 0.3, 0.7, 20.0, offset=(0.1, 0.0)), lbda, np.full(lbda.size, 5e-17))
     t.set_host(host)
-    sim, offset = t.simulation, host.profile.offset
+    sim, offset = t.simulation, t.host.profile.offset
     with pytest.raises(ParameterError, match="ron"):
         t.update(field="wide", ron=-1.0)
-    assert t.simulation is sim and t.field == "narrow" and host.profile.offset == offset
+    assert t.simulation is sim and t.field == "narrow" and t.host.profile.offset == offset
     t.update(field="wide")
     scale = t.simulation.spectrograph.spatial_scale
-    assert t.simulation.scene.host is host
-    assert host.profile.offset == pytest.approx((2.0 * scale + 0.1, 1.0 * scale))
+    assert t.simulation.scene.host is t.host and t.host is not host          # the target's own copy
+    assert t.host.profile.offset == pytest.approx((2.0 * scale + 0.1, 1.0 * scale))
+    assert host.profile.offset == (0.1, 0.0)
 
 
 def test_partial_optics_update_keeps_other_keys(sn):

@@ -32,7 +32,10 @@ components separately (their sum in ADU is the signal cube, to rounding).
 The cube is built in wavelength chunks within a memory budget.  The LSF mixes
 ±h = int(4σ + ½) bins, so each chunk is computed on [i0 − h, i1 + h) (clipped
 to the grid: the LSF reflects only at the true grid ends) and the halo is
-dropped: the chunked cube equals the unchunked one bit for bit.  The noisy
+dropped; a host is convolved in groups of :data:`HOST_PLANE_GROUP` planes aligned on the grid
+(the batched FFT's rounding depends on the planes transformed together) and a user cube is
+resampled plane by plane alike (:mod:`slicersim.sources.pixels`): the chunked cube equals the
+unchunked one bit for bit, hosts included.  The noisy
 realisation (:func:`slicersim.backends.noise.noisy_cube`) is keyed by the seed
 and the voxel's flat index in the full cube, so it does not depend on the
 chunking either.
@@ -56,7 +59,7 @@ from slicersim.products.psf_profiles import PSF_PROFILES, get_psf_profile
 
 __all__ = ["CubeResult", "build_cube", "build_scene_cubes", "scene_photon_rates", "readout_constants",
            "PSF_PROFILES", "PATH_POINT", "PATH_UNIFORM", "PATH_ABSENT", "PATH_OFF", "FUSED_KERNEL",
-           "SCENE_CUBE_UNITS"]
+           "SCENE_CUBE_UNITS", "SceneCubes"]
 
 PATH_POINT = "psf x spectrum (no 2-D convolution)"
 PATH_UNIFORM = "uniform: no spatial work"
@@ -64,6 +67,16 @@ PATH_ABSENT = "absent: not in the scene"
 PATH_OFF = "switched off"
 #: units of :func:`build_scene_cubes`
 SCENE_CUBE_UNITS = ("adu", "electron", "photon", "flambda")
+#: unit aliases of :func:`build_scene_cubes` (slicersim 1.4.2's "default", "ph", "photons")
+SCENE_CUBE_UNIT_ALIASES = {"default": "adu", "ph": "photon", "photons": "photon", "electrons": "electron",
+                           "e-": "electron"}
+#: slicersim 1.4.2's names of the scene cubes (``get_scene_cubes`` keys)
+SCENE_CUBE_KEY_ALIASES = {"host_cube": "host", "thermal_cube": "thermal"}
+#: λ planes of the host convolved together: groups start at multiples of this bin index whatever
+#: the chunk, so every plane goes through the same arithmetic (chunked == unchunked bit for bit)
+HOST_PLANE_GROUP = 64
+#: a cube's progress bar appears only once the cube has taken this long [s] (long runs only)
+PROGRESS_DELAY_S = 2.0
 FUSED_KERNEL = "fused OpenCL kernel (LSF, QE, signal, variance)"
 HOST_CONV_METHOD = "auto"
 #: float64 temporaries per voxel of a chunk (PSF, point, LSF output, electrons, variance, signal, noise, host)
@@ -99,6 +112,25 @@ class CubeResult:
                     else (self.signal, self.variance, self.noisy))
 
 
+class SceneCubes(dict):
+    """The scene-component cubes, keyed by :data:`~slicersim.products.components.SCENE_COMPONENTS`;
+    slicersim 1.4.2's keys (:data:`SCENE_CUBE_KEY_ALIASES`: ``host_cube``, ``thermal_cube``) read
+    the same arrays (iteration and ``keys()`` give the canonical names only)."""
+
+    def __getitem__(self, key):
+        return super().__getitem__(SCENE_CUBE_KEY_ALIASES.get(key, key))
+
+    def __contains__(self, key):
+        return super().__contains__(SCENE_CUBE_KEY_ALIASES.get(key, key))
+
+    def get(self, key, default=None):
+        return super().get(SCENE_CUBE_KEY_ALIASES.get(key, key), default)
+
+    def stack(self):
+        """(4, nλ, ny, nx) array in the order of SCENE_COMPONENTS (1.4.2's ``as_dict=False``)."""
+        return np.stack([self[name] for name in SCENE_COMPONENTS])
+
+
 def lsf_halo(sim):
     """Half width h [bins] of the LSF: output bin i depends on input bins i − h … i + h."""
     return int(lsf_weights(sim.spectrograph.lsf_sigma)[0][-1])
@@ -119,24 +151,43 @@ def host_kernel_shape(sim, profile):
     return get_psf_profile(profile).kernel_shape(sim)
 
 
-def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_options=None):
+def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_options=None, groups=None):
     """Host photons per cell before LSF, f2p · (F_host ⊛ PSF) [ph/s/cell], for bins lo … hi − 1.
 
     Needs ``host.flux_cube(lbda, shape, spatial_scale)`` → F_host [erg/s/cm²/Å per cell]
     (:class:`slicersim.sources.extended.Host`) and ``slicersim.backends.convolution.convolve_cube``.
+    The convolution runs over whole groups of :data:`HOST_PLANE_GROUP` planes aligned on the grid
+    (the batched FFT's rounding depends on the planes transformed together: so a plane is always
+    convolved with the same ones, whatever ``lo`` / ``hi``).  ``groups``: a dict kept by the caller
+    across consecutive blocks (the cube builder's chunks): convolved groups are reused from it,
+    and groups ending before ``lo`` dropped.
     """
     host, spec = sim.scene.host, sim.spectrograph
     if not callable(getattr(host, "flux_cube", None)):
         raise NotImplementedError(f"host light needs a host with flux_cube(lbda, shape, spatial_scale) "
                                   f"(slicersim.sources.extended.Host); got {type(host).__module__}.{type(host).__name__}")
-    kernels = psf_block(sim, profile, lo, hi, shape=host_kernel_shape(sim, profile), position=(0.0, 0.0),
-                        backend=backend, options=psf_options)
-    flux = np.asarray(host.flux_cube(sim.lbda[lo:hi], spec.shape, spec.spatial_scale), dtype=float)
-    # convolve O(1) numbers (erg units are ~1e-17): scale by an exact power of two
-    peak = float(np.max(np.abs(flux))) if flux.size else 0.0
-    scale = np.ldexp(1.0, int(np.frexp(peak)[1])) if np.isfinite(peak) and peak > 0 else 1.0
-    blurred = convolve_cube(flux / scale, kernels, method=method, backend=backend) * scale
-    return sim.flambda_to_photon[lo:hi, None, None] * blurred
+    g, nl = HOST_PLANE_GROUP, sim.lbda.size
+    g0, g1 = lo - lo % g, min(nl, -(-hi // g) * g)
+    groups = {} if groups is None else groups
+    for start in [k for k in groups if k + g <= lo]:
+        del groups[start]
+    missing = [a for a in range(g0, g1, g) if a not in groups]
+    if missing:
+        m0, m1 = missing[0], min(nl, missing[-1] + g)
+        kernels = psf_block(sim, profile, m0, m1, shape=host_kernel_shape(sim, profile), position=(0.0, 0.0),
+                            backend=backend, options=psf_options)
+        flux = np.asarray(host.flux_cube(sim.lbda[m0:m1], spec.shape, spec.spatial_scale), dtype=float)
+        for a in missing:
+            b = min(m1, a + g)
+            part = flux[a - m0:b - m0]
+            # convolve O(1) numbers (erg units are ~1e-17): scale by an exact power of two
+            peak = float(np.max(np.abs(part))) if part.size else 0.0
+            scale = np.ldexp(1.0, int(np.frexp(peak)[1])) if np.isfinite(peak) and peak > 0 else 1.0
+            groups[a] = convolve_cube(part / scale, kernels[a - m0:b - m0], method=method, backend=backend) * scale
+        del flux, kernels
+    blurred = np.concatenate([groups[a] for a in range(g0, g1, g)]) if g1 > g0 else \
+        np.zeros((0,) + tuple(spec.shape))
+    return sim.flambda_to_photon[lo:hi, None, None] * blurred[lo - g0:hi - g0]
 
 
 def readout_constants(sim, nmd, nramps, off=frozenset()):
@@ -166,11 +217,13 @@ def _chunk_bins(nl, ny, nx, halo, max_bytes):
 
 
 def _progress_bar(progress, nchunks):
-    show = nchunks > 4 if progress is None else bool(progress)
-    if not show:
+    """tqdm bar of the chunks: ``progress=True`` shows it at once, None (default) only for a long
+    run (it appears after :data:`PROGRESS_DELAY_S` seconds; a short cube prints nothing), False never."""
+    if progress is False or nchunks < 2:
         return None
     from tqdm import tqdm
-    return tqdm(total=nchunks, desc="cube", unit="chunk", leave=False)
+    return tqdm(total=nchunks, desc="cube", unit="chunk", leave=False,
+                delay=0.0 if progress else PROGRESS_DELAY_S)
 
 
 def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, max_bytes=300 * 2**20,
@@ -184,7 +237,8 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     psf_profile : "gaussian" (erf-integrated, = Simulation.get_psf) or "airy" (slicersim.backends.psf)
     seed : None (no noisy cube), int in [0, 2⁶⁴) or numpy Generator
     max_bytes : working-memory budget of one λ chunk (the three output cubes come on top)
-    progress : None (tqdm bar when more than 4 chunks), True or False
+    progress : None (a tqdm bar for long runs only: shown once the cube has taken
+        :data:`PROGRESS_DELAY_S`), True (at once) or False
     backend : "auto" | "opencl" | "numpy".  OpenCL with the Rauscher07 variance: LSF, QE, signal,
         variance and saturation in one fused kernel (:mod:`slicersim.backends.cube`); also the
         backend of the noise draw and the Airy/host hooks
@@ -260,6 +314,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         taps = lsf_weights(spec.lsf_sigma)[1]
     paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
     bar = _progress_bar(progress, len(starts))
+    host_groups = {}                    # convolved host planes shared by consecutive chunks
     try:
         for i0 in starts:
             i1 = min(nl, i0 + step)
@@ -267,7 +322,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
             out = (signal[i0:i1], variance[i0:i1])
             if fused:
                 psf = profile.fused(sim, lo, hi, backend, psf_options) if has_point else None
-                host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
+                host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options, host_groups)
                         if has_host else None)
                 detector_block(taps, flux_ph[lo:hi] if has_point else None, uniform_ph[i0:i1], qe[i0:i1],
                                readout, bins=(i0, i1), nl=nl, lo=lo, psf=psf, host=host, out=out, dtype=dtype,
@@ -275,7 +330,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
                 del psf, host
             else:
                 _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
-                             psf_options, nmd, tint, nramps, out, has_host, off)
+                             psf_options, nmd, tint, nramps, out, host_groups if has_host else None, off)
             if seed is not None:        # float64: drawn straight into the output (no temporary)
                 drawn = noisy_cube(signal[i0:i1], variance[i0:i1], seed, backend=backend,
                                    max_bytes=max(max_bytes, noise_bytes_per_bin), first_index=i0 * ny * nx,
@@ -292,15 +347,16 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
 
 
 def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, backend, psf_options, nmd, tint,
-                 nramps, out, has_host, off):
+                 nramps, out, host_groups, off):
     """NumPy oracle of one chunk: photon block, LSF (scipy), QE, ``Simulation.cell_variance``."""
     (i0, i1), (lo, hi) = bins, block
     photons = 0.0                                                                    # ph/s/cell
     if flux_ph is not None:
         photons = flux_ph[lo:hi, None, None] * psf_block(sim, profile, lo, hi, backend=backend,
                                                          options=psf_options)
-    if has_host:
-        photons = photons + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options)
+    if host_groups is not None:         # the builder's dict of convolved host groups (None: no host)
+        photons = photons + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options,
+                                               host_groups)
     photons = sim.spectrograph.apply_lsf(photons, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
     electrons = photons * sim.qe[i0:i1, None, None]                                 # e-/s/cell
     var1, sat = sim.cell_variance(electrons, nmd, off)                               # ADU² per ramp
@@ -335,11 +391,15 @@ def build_scene_cubes(sim, unit="adu", nmd=None, nramps=None, per_ramp=False, ps
 
     ``unit``: ``"adu"`` = photons × QE × t_int × g [ADU] per ramp (``per_ramp``) or summed over
     the ramps; ``"electron"`` = photons × QE [e-/s/cell]; ``"photon"`` [ph/s/cell]; ``"flambda"`` =
-    photons / f2p [erg/s/cm²/Å per cell].  No saturation: these are expectations."""
+    photons / f2p [erg/s/cm²/Å per cell] (1.4.2 aliases: :data:`SCENE_CUBE_UNIT_ALIASES`).  No
+    saturation: these are expectations.  The dict (:class:`SceneCubes`) also answers to
+    1.4.2's keys ``host_cube`` and ``thermal_cube``."""
     off = check_switch_off(switch_off)
-    if not isinstance(unit, str) or unit.lower() not in SCENE_CUBE_UNITS:
-        raise ParameterError(f"unit must be one of {', '.join(SCENE_CUBE_UNITS)}, got {unit!r}")
-    unit = unit.lower()
+    unit = unit.lower() if isinstance(unit, str) else unit
+    unit = SCENE_CUBE_UNIT_ALIASES.get(unit, unit)
+    if unit not in SCENE_CUBE_UNITS:
+        raise ParameterError(f"unit must be one of {', '.join(SCENE_CUBE_UNITS)} (aliases: "
+                             f"{', '.join(SCENE_CUBE_UNIT_ALIASES)}), got {unit!r}")
     times = sim.get_times(nmd, nramps)                      # validates the readout
     get_psf_profile(psf_profile)
     factor = np.ones_like(sim.lbda)                         # per λ: photons → unit
@@ -350,7 +410,7 @@ def build_scene_cubes(sim, unit="adu", nmd=None, nramps=None, per_ramp=False, ps
     elif unit == "flambda":
         factor = 1.0 / sim.flambda_to_photon
     shape = (sim.lbda.size, *sim.spectrograph.shape)
-    cubes = {}
+    cubes = SceneCubes()
     for name, rate in scene_photon_rates(sim, off, psf_profile, backend, psf_options).items():
         if rate is None:
             cubes[name] = np.zeros(shape)

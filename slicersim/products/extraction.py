@@ -30,9 +30,11 @@ import numpy as np
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import aperture_cells, gaussian_psf_cells
 from slicersim.physics.readout import readout_times
+from slicersim.products.components import UNIFORM_TERMS, as_switched_off, uniform_terms_on
 from slicersim.products.cube import host_photons_block
 
-__all__ = ["parse_aperture", "aperture_radius", "check_aperture_in_field", "extract_aperture", "extract_optimal",
+__all__ = ["parse_aperture", "aperture_radius", "check_aperture_in_field", "named_aperture_cells",
+           "extract_aperture", "extract_optimal",
            "extract_model", "unit_factors", "UNITS", "EXTRACTION_METHODS", "ExtractionSetup", "band_snr_table"]
 
 EXTRACTION_METHODS = ("optimal", "aperture")
@@ -82,6 +84,20 @@ def check_aperture_in_field(aperture, shape, centre, radius, spatial_scale):
             "smaller aperture, move it, or use the wide field")
 
 
+def named_aperture_cells(aperture, shape, centre, radius, spatial_scale):
+    """Cells (iy, ix) of an aperture; ParameterError with the fix that applies when it holds no
+    cell centre: a larger named aperture, or a larger ``aperture_radius_insigma`` for "core"."""
+    try:
+        return aperture_cells(shape, centre, radius)
+    except ParameterError as exc:
+        if aperture is None or parse_aperture(aperture)[0] == "core" or "no cell centre" not in str(exc):
+            raise
+        raise ParameterError(f"aperture {aperture!r} (radius {radius * spatial_scale:.3g}″ = {radius:.3g} cells) "
+                             f"centred at ({centre[0]:.4g}, {centre[1]:.4g}) cells contains no cell centre: use a "
+                             f"larger aperture (cells are {spatial_scale:g}″; a radius ≥ "
+                             f"{spatial_scale / math.sqrt(2):.3g}″ always holds one)") from None
+
+
 def extract_aperture(cube, variance, cells):
     """Aperture sum of (nλ, ny, nx) cubes over ``cells`` = (iy, ix): (S, Var) per bin."""
     iy, ix = cells
@@ -127,12 +143,12 @@ class ExtractionSetup:
     "background", "thermal_telescope", "thermal_optics"); ``source`` names the extracted one
     ("host" with ``of_host``, else "pointsource")."""
 
-    def __init__(self, sim, centre, radius, of_host=False, psf_profile="gaussian"):
+    def __init__(self, sim, centre, radius, of_host=False, psf_profile="gaussian", aperture=None):
         spec = sim.spectrograph
         if of_host and sim.scene.host is None:
             raise ParameterError("of_host=True: this target has no host")
         self.centre, self.radius = (float(centre[0]), float(centre[1])), float(radius)
-        self.cells = aperture_cells(spec.shape, self.centre, self.radius)
+        self.cells = named_aperture_cells(aperture, spec.shape, self.centre, self.radius, spec.spatial_scale)
         sig_y, sig_x = sim.psf_sigmas
         self.weights = gaussian_psf_cells(sig_y, sig_x, spec.shape, self.centre, self.cells)
         iy, ix = self.cells
@@ -151,13 +167,14 @@ class ExtractionSetup:
         self.qe = sim.qe[:, None]                                                   # e-/ph
 
     def total(self, off=None):
-        """Scene rate [ph/s/cell] with the variance source ``off`` removed (the rules of
-        ``Simulation.get_variance_contribution``: "thermal" removes both thermal parts,
+        """Scene rate [ph/s/cell] with the sources ``off`` (a name or names) removed: the rule of
+        :mod:`slicersim.products.components` ("thermal" removes both thermal parts,
         "thermal_dark" the optics emission)."""
+        off = as_switched_off(off)
+        on = uniform_terms_on(off)
         out = 0.0
         for name, rate in self.parts.items():
-            if off == name or (off == "thermal" and name.startswith("thermal")) \
-                    or (off == "thermal_dark" and name == "thermal_optics"):
+            if (name in UNIFORM_TERMS and name not in on) or name in off:
                 continue
             out = out + rate
         return out
@@ -182,7 +199,8 @@ def host_light(sim, psf_profile="gaussian"):
 def extract_model(sim, setup, method, nmd=None, nramps=None, off=None):
     """(S [ADU], Var [ADU²]) per bin of the noiseless model extracted with ``setup``
     (:class:`ExtractionSetup`) by ``method`` ("aperture" or "optimal"), all ramps; ``off``
-    removes one variance source (and the signal when it is the extracted component)."""
+    (a name or names, valid ``switch_off`` names) removes those sources (and the signal when
+    the extracted component is one of them)."""
     if method not in EXTRACTION_METHODS:
         raise ParameterError(f"method must be one of {EXTRACTION_METHODS}, got {method!r}")
     times = sim.get_times(nmd, nramps)
@@ -191,9 +209,9 @@ def extract_model(sim, setup, method, nmd=None, nramps=None, off=None):
 
 
 def _extract_rates(sim, setup, method, nmd, tint, off=None):
-    qe = setup.qe
+    qe, off = setup.qe, as_switched_off(off)
     var, _ = sim.cell_variance(setup.total(off) * qe, nmd, off)                   # ADU² per ramp
-    component = 0.0 if off == setup.source else setup.parts[setup.source]
+    component = 0.0 if setup.source in off else setup.parts[setup.source]
     signal = component * qe * sim.detector.gain * tint + np.zeros_like(var)        # ADU per ramp
     if method == "aperture":
         return np.sum(signal, axis=1), np.sum(var, axis=1)

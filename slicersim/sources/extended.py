@@ -19,28 +19,22 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.sparse
-from scipy.special import gammainc, gammaincinv, gammaln
+from scipy.special import gammainc, gammaincc, gammaincinv, gammaln
 
 from slicersim.errors import ParameterError
 from slicersim.sources.cosmology import check_source_redshift, get_cosmology, redshift_scalings
+from slicersim.sources.pixels import (HOST_MAX_BYTES, CubeSource, _cell_edges, _field_columns,  # noqa: F401
+                                      _from_redshift, _number, _pair, overlap_matrix, resample_pixels)
 from slicersim.sources.spectra import validate_spectrum
 from slicersim.versioning import Versioned
 
 __all__ = ["sersic_bn", "SersicProfile", "ImageProfile", "Host", "CubeSource", "overlap_matrix",
-           "integrate_radial_cells", "resample_pixels", "HOST_MAX_BYTES"]
-
-#: default working-memory budget [bytes] of one block of input pixels (images, user cubes)
-HOST_MAX_BYTES = 64 * 2**20
+           "integrate_radial_cells", "resample_pixels", "HOST_MAX_BYTES", "host_field_fraction"]
 
 
 def sersic_bn(sersic_index):
     """b_n with Γ(2n) = 2 γ(2n, b_n): half of the light inside r_eff."""
     return float(gammaincinv(2.0 * sersic_index, 0.5))
-
-
-def _cell_edges(n, scale):
-    return (np.arange(n + 1, dtype=np.float64) - n / 2.0) * scale
 
 
 class SersicProfile(Versioned):
@@ -207,33 +201,9 @@ def integrate_radial_cells(geometry, radial_funcs, shape, spatial_scale, oversam
     tv = _edge_integrals(P[:-1, :].reshape(-1, 2), P[1:, :].reshape(-1, 2), cumulatives)
     th = th.reshape(-1, ny + 1, nx)                                  # edges along +x
     tv = tv.reshape(-1, ny, nx + 1)                                  # edges along +y
-    # counter-clockwise cell: bottom (+x), right (+y), top (−x), left (−y)
-    return th[:, :-1] - th[:, 1:] + tv[:, :, 1:] - tv[:, :, :-1]
-
-
-def _number(value, name):
-    """A finite real number as float (ParameterError otherwise)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(value):
-        raise ParameterError(f"{name} must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _pair(value, name):
-    """(x, y) [arcsec] as two finite floats (ParameterError otherwise)."""
-    try:
-        x, y = value
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be (x, y) [arcsec], got {value!r}") from None
-    return _number(x, f"{name}[0]"), _number(y, f"{name}[1]")
-
-
-def _from_redshift(source, from_redshift):
-    z0 = source.redshift if from_redshift is None else from_redshift
-    if z0 is None:
-        raise ParameterError(f"this {type(source).__name__} has no redshift: give redshift=z when building it "
-                             "(or from_redshift) to move it to another redshift")
-    return check_source_redshift(z0, "redshift of origin")
+    # counter-clockwise cell: bottom (+x), right (+y), top (−x), left (−y); the profiles are ≥ 0, so a
+    # negative sum is round-off of the cancelling edge terms (~1e-17 far from the centre): clipped to 0
+    return np.maximum(th[:, :-1] - th[:, 1:] + tv[:, :, 1:] - tv[:, :, :-1], 0.0)
 
 
 def _interp_spectrum(lbda_in, flux_in, lbda_grid, name):
@@ -320,157 +290,31 @@ class Host(Versioned):
         """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]
         (cells of side ``spatial_scale`` [arcsec]; before the PSF)."""
         core = _interp_spectrum(self.lbda_in, self.flux_in, lbda_grid, "host spectrum")
-        p = self.profile
+        fractions = self._cell_fractions(tuple(int(v) for v in shape), float(spatial_scale), oversampling)
         if self.flux_outskirts is None:
-            frac = p.cell_fractions(shape, spatial_scale, oversampling=oversampling)
-            return core[:, None, None] * frac[None]
+            return core[:, None, None] * fractions[0][None]
         out = _interp_spectrum(self.lbda_in, self.flux_outskirts, lbda_grid, "host outskirts spectrum")
-        frac, frac_core = integrate_radial_cells(p.geometry, [p.radial_profile, self._core_profile],
-                                                 shape, spatial_scale, oversampling)
-        return core[:, None, None] * frac_core[None] + out[:, None, None] * (frac - frac_core)[None]
+        frac_core, outskirts = fractions
+        return core[:, None, None] * frac_core[None] + out[:, None, None] * outskirts[None]
 
-
-def overlap_matrix(edges_out, edges_in):
-    """(n_out, n_in) fraction of each input interval inside each output interval
-    (exact overlap lengths / input length; intervals outside the output range are lost)."""
-    lo = np.maximum(edges_out[:-1, None], edges_in[None, :-1])
-    hi = np.minimum(edges_out[1:, None], edges_in[None, 1:])
-    return np.clip(hi - lo, 0.0, None) / np.diff(edges_in)[None, :]
-
-
-def _lambda_matrix(lbda_in, lbda_grid):
-    """Sparse (nλ_out, nλ_in) linear-interpolation matrix (ValueError outside the range)."""
-    lbda_grid = np.asarray(lbda_grid, dtype=float)
-    if lbda_grid.ndim != 1:
-        raise ValueError("lbda_grid must be 1-D [Å]")
-    if lbda_grid.size and (lbda_grid.min() < lbda_in[0] or lbda_grid.max() > lbda_in[-1]):
-        raise ValueError(f"wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends beyond "
-                         f"the cube's [{lbda_in[0]:g}, {lbda_in[-1]:g}] Å")
-    i = np.clip(np.searchsorted(lbda_in, lbda_grid, side="right") - 1, 0, lbda_in.size - 2)
-    t = (lbda_grid - lbda_in[i]) / (lbda_in[i + 1] - lbda_in[i])
-    rows = np.repeat(np.arange(lbda_grid.size), 2)
-    cols = np.stack([i, i + 1], axis=1).ravel()
-    vals = np.stack([1.0 - t, t], axis=1).ravel()
-    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(lbda_grid.size, lbda_in.size))
-
-
-def _clamped_edge_integral(xa, ya, xb, yb, s):
-    """∫ clamp(x, 0, s) 1[0 ≤ y ≤ s] dy along the segment (xa, ya) → (xb, yb), signed.
-
-    By Green's theorem, Σ over a counter-clockwise polygon's edges is the exact area of
-    the polygon inside the square [0, s]²: ∂/∂x clamp(x, 0, s) = 1[0 ≤ x ≤ s].  The
-    integrand is linear in y between the points where x crosses 0 or s, so the
-    trapezoid rule on those sub-intervals is exact."""
-    dy = yb - ya
-    lo = np.clip(np.minimum(ya, yb), 0.0, s)
-    hi = np.clip(np.maximum(ya, yb), 0.0, s)
-    flat = dy == 0
-    slope = np.where(flat, 0.0, (xb - xa) / np.where(flat, 1.0, dy))
-    steep = slope != 0
-    inv = np.where(steep, 1.0 / np.where(steep, slope, 1.0), 0.0)
-    k0 = np.where(steep, ya + (0.0 - xa) * inv, lo)
-    k1 = np.where(steep, ya + (s - xa) * inv, lo)
-    pts = np.sort(np.stack(np.broadcast_arrays(lo, np.clip(k0, lo, hi), np.clip(k1, lo, hi), hi)), axis=0)
-    xs = np.clip(xa + (pts - ya) * slope, 0.0, s)
-    total = 0.5 * np.sum((pts[1:] - pts[:-1]) * (xs[1:] + xs[:-1]), axis=0)
-    return np.where(flat, 0.0, np.sign(dy) * total)
-
-
-def _rotated_overlap(u_edges, v_edges, p, centre, rotation, shape, s):
-    """Sparse (ny·nx, nv·nu) fraction of each input pixel (edges ``u_edges``, ``v_edges``
-    [arcsec] in the frame of the input grid, centred on ``centre``) inside each cell,
-    for a grid rotated by ``rotation`` [deg]: exact areas by Green's theorem."""
-    ny, nx = shape
-    th = math.radians(rotation)
-    c, sn = math.cos(th), math.sin(th)
-    cx, cy = centre
-    V, U = np.meshgrid(v_edges, u_edges, indexing="ij")                        # pixel corners
-    X, Y = cx + U * c - V * sn, cy + U * sn + V * c
-    # counter-clockwise corners of every input pixel (rotation keeps the orientation)
-    px = np.stack([X[:-1, :-1], X[:-1, 1:], X[1:, 1:], X[1:, :-1]], -1).reshape(-1, 4)
-    py = np.stack([Y[:-1, :-1], Y[:-1, 1:], Y[1:, 1:], Y[1:, :-1]], -1).reshape(-1, 4)
-    L = int(math.ceil(p * (abs(c) + abs(sn)) / s)) + 1
-    kx0 = np.floor(px.min(1) / s + nx / 2).astype(np.int64)
-    ky0 = np.floor(py.min(1) / s + ny / 2).astype(np.int64)
-    kx = kx0[:, None, None] + np.arange(L)[None, None, :]                     # (npix, 1, L)
-    ky = ky0[:, None, None] + np.arange(L)[None, :, None]                     # (npix, L, 1)
-    x0, y0 = (kx - nx / 2) * s, (ky - ny / 2) * s
-    area = np.zeros((px.shape[0], L, L))
-    for e in range(4):
-        f = (e + 1) % 4
-        area += _clamped_edge_integral(px[:, e, None, None] - x0, py[:, e, None, None] - y0,
-                                       px[:, f, None, None] - x0, py[:, f, None, None] - y0, s)
-    inside = (kx >= 0) & (kx < nx) & (ky >= 0) & (ky < ny) & (area > 0)
-    rows = np.broadcast_to(ky * nx + kx, area.shape)[inside]
-    cols = np.broadcast_to(np.arange(px.shape[0])[:, None, None], area.shape)[inside]
-    return scipy.sparse.csr_matrix((area[inside] / (p * p), (rows, cols)), shape=(ny * nx, px.shape[0]))
-
-
-def _field_columns(in_shape, p, centre, rotation, shape, s):
-    """Per input row, the [first, last) input columns whose pixels can touch the field
-    (pixel centre within half a pixel diagonal of the field rectangle)."""
-    nyi, nxi = in_shape
-    ny, nx = shape
-    th = math.radians(rotation)
-    c, sn = math.cos(th), math.sin(th)
-    m = p * math.sqrt(0.5) * (1 + 1e-9)
-    v = (np.arange(nyi) + 0.5 - nyi / 2) * p
-    lo, hi = np.full(nyi, -np.inf), np.full(nyi, np.inf)
-    # x(u) = cx − v sn + u c ∈ [−nx s/2 − m, nx s/2 + m], y(u) = cy + v c + u sn likewise
-    for a, slope, half in ((centre[0] - v * sn, c, nx * s / 2 + m), (centre[1] + v * c, sn, ny * s / 2 + m)):
-        if abs(slope) < 1e-15:
-            out = np.abs(a) > half
-            lo, hi = np.where(out, np.inf, lo), np.where(out, -np.inf, hi)
-            continue
-        u1, u2 = (-half - a) / slope, (half - a) / slope
-        lo, hi = np.maximum(lo, np.minimum(u1, u2)), np.minimum(hi, np.maximum(u1, u2))
-    j0 = np.clip(np.ceil(lo / p + nxi / 2 - 0.5), 0, nxi).astype(np.int64)
-    j1 = np.clip(np.floor(hi / p + nxi / 2 - 0.5) + 1, 0, nxi).astype(np.int64)
-    j1 = np.maximum(j1, j0)
-    return j0, j1
-
-
-def resample_pixels(read, in_shape, pixel_scale, centre, rotation, shape, spatial_scale, nplanes,
-                    max_bytes=None):
-    """Flux-conserving resampling of (nplanes) images of uniformly bright input pixels onto
-    the (ny, nx) cell grid: out[k, cell] = Σ_pixels value[k, pixel] · area(pixel ∩ cell) / p².
-
-    read(r0, r1, j0, j1) → (nplanes, r1 − r0, j1 − j0) values of input rows r0 … r1 − 1 and
-    columns j0 … j1 − 1 (any units).  The input grid has pixels of side ``pixel_scale`` [arcsec],
-    its geometric centre at ``centre`` (x, y) [arcsec] and is rotated by ``rotation`` [deg]
-    counter-clockwise.  Rows and columns that cannot touch the field are never read; the others
-    are read in blocks of rows sized to ``max_bytes`` (default :data:`HOST_MAX_BYTES`), so the
-    input may be larger than memory (a numpy memmap, an h5py dataset).  Exact overlaps:
-    separable for rotation = 0, polygon areas otherwise."""
-    nyi, nxi = (int(v) for v in in_shape)
-    ny, nx = (int(v) for v in shape)
-    p, s = float(pixel_scale), float(spatial_scale)
-    budget = HOST_MAX_BYTES if max_bytes is None else int(max_bytes)
-    out = np.zeros((nplanes, ny, nx))
-    j0, j1 = _field_columns((nyi, nxi), p, centre, rotation, (ny, nx), s)
-    used = np.nonzero(j1 > j0)[0]
-    if used.size == 0:
-        return out
-    r_first, r_last = int(used[0]), int(used[-1]) + 1
-    c_first, c_last = int(j0[used].min()), int(j1[used].max())
-    ncol = c_last - c_first
-    separable = rotation % 360.0 == 0.0
-    per_pixel = 8 * (2 * nplanes + (4 if separable else 12 * (int(p * 1.5 / s) + 2) ** 2))
-    step = max(1, budget // max(1, per_pixel * ncol))
-    u_edges, v_edges = _cell_edges(nxi, p), _cell_edges(nyi, p)
-    ox = overlap_matrix(_cell_edges(nx, s), centre[0] + u_edges[c_first:c_last + 1]) if separable else None
-    for r0 in range(r_first, r_last, step):
-        r1 = min(r_last, r0 + step)
-        values = np.asarray(read(r0, r1, c_first, c_last), dtype=np.float64)
-        if separable:
-            oy = overlap_matrix(_cell_edges(ny, s), centre[1] + v_edges[r0:r1 + 1])
-            out += np.matmul(oy, values @ ox.T)
+    def _cell_fractions(self, shape, spatial_scale, oversampling):
+        """(fractions,) or (core fractions, outskirts fractions) per cell, kept for the last
+        (profile state, grid): the cube builder asks for them once per chunk of planes."""
+        p = self.profile
+        key = (id(p), getattr(p, "_version", None), self.blend_radius, shape, spatial_scale, oversampling)
+        cached = self.__dict__.get("_fractions")
+        if cached is not None and cached[0] == key and key[1] is not None:
+            return cached[1]
+        if self.flux_outskirts is None:
+            value = (p.cell_fractions(shape, spatial_scale, oversampling=oversampling),)
         else:
-            W = _rotated_overlap(u_edges[c_first:c_last + 1], v_edges[r0:r1 + 1], p, centre, rotation,
-                                 (ny, nx), s)
-            out += np.asarray(W @ values.reshape(nplanes, -1).T).T.reshape(nplanes, ny, nx)
-        del values
-    return out
+            frac, frac_core = integrate_radial_cells(p.geometry, [p.radial_profile, self._core_profile],
+                                                     shape, spatial_scale, oversampling)
+            value = (frac_core, np.maximum(frac - frac_core, 0.0))   # ≥ 0: w(r) ≤ 1 (round-off clipped)
+        for arr in value:
+            arr.setflags(write=False)
+        object.__setattr__(self, "_fractions", (key, value))      # a cache: not a change of the host
+        return value
 
 
 class ImageProfile(Versioned):
@@ -530,72 +374,29 @@ class ImageProfile(Versioned):
                                self.grid_centre(), self.rotation, shape, spatial_scale, 1, self.max_bytes)[0]
 
 
-class CubeSource(Versioned):
-    """User cube [erg/s/cm²/Å per input pixel] placed on the field, flux conserving.
 
-    cube : (nλ_in, ny_in, nx_in) array-like (numpy array, memmap or h5py dataset: it is read
-    in blocks, never copied whole), lbda_in : (nλ_in,) strictly increasing [Å],
-    pixel_scale : input pixel side [arcsec], centre : (x, y) [arcsec] of the cube
-    centre relative to the field centre, rotation : [deg] counter-clockwise about
-    that centre, flux_scale : factor applied to the values when read, redshift /
-    cosmology : as for :class:`Host` (:meth:`at_redshift`), max_bytes : working-memory
-    budget of one block of input rows (default :data:`HOST_MAX_BYTES`).
+def host_field_fraction(host, centre, shape, spatial_scale):
+    """Upper bound of the fraction of a host's light falling in the (ny, nx) field of cells of
+    side ``spatial_scale`` [arcsec] when its centre is at ``centre`` (x, y) [arcsec] from the
+    field centre, without integrating the profile; None for a host it cannot tell (user objects).
 
-    Spatial resampling: each input pixel is uniformly bright and shares its flux among
-    cells in proportion to the exact overlap areas (:func:`resample_pixels`).
-    Wavelength: F_λ linearly interpolated in λ (flux density, not integrated over
-    bins); grids beyond [lbda_in[0], lbda_in[-1]] raise ValueError; only the input
-    planes the grid needs are read.
-    """
-
-    def __init__(self, cube, lbda_in, pixel_scale, centre=(0.0, 0.0), rotation=0.0, flux_scale=1.0,
-                 redshift=None, cosmology=None, max_bytes=None):
-        if not hasattr(cube, "shape") or not hasattr(cube, "__getitem__"):
-            cube = np.asarray(cube, dtype=np.float64)
-        if len(cube.shape) != 3 or min(cube.shape) == 0:
-            raise ValueError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
-        lbda_in = np.asarray(lbda_in, dtype=np.float64)
-        if lbda_in.shape != tuple(cube.shape[:1]) or lbda_in.size < 2 or np.any(np.diff(lbda_in) <= 0):
-            raise ValueError("lbda_in must be strictly increasing with one value per cube plane (≥ 2)")
-        if not (np.isfinite(pixel_scale) and pixel_scale > 0 and np.isfinite(rotation)):
-            raise ValueError("pixel_scale must be > 0 [arcsec] and rotation finite [deg]")
-        self.max_bytes = max_bytes
-        budget = HOST_MAX_BYTES if max_bytes is None else int(max_bytes)
-        plane = 8 * int(cube.shape[1]) * int(cube.shape[2])
-        step = max(1, budget // max(1, plane))
-        for k in range(0, cube.shape[0], step):            # validated block by block
-            if not np.all(np.isfinite(np.asarray(cube[k:k + step], dtype=np.float64))):
-                raise ValueError("cube contains NaN/inf values")
-        self.cube, self.lbda_in, self.pixel_scale = cube, lbda_in, float(pixel_scale)
-        self.centre = _pair(centre, "centre")
-        self.rotation = float(rotation)
-        self.flux_scale = _number(flux_scale, "flux_scale")
-        self.redshift = None if redshift is None else check_source_redshift(redshift, "cube redshift")
-        self.cosmology = get_cosmology(cosmology)
-
-    def at_redshift(self, redshift, cosmology=None, from_redshift=None):
-        """The same source seen at ``redshift`` (see :meth:`Host.at_redshift`); the cube
-        array is shared, not copied."""
-        z0 = _from_redshift(self, from_redshift)
-        cosmo = self.cosmology if cosmology is None else get_cosmology(cosmology)
-        z = check_source_redshift(redshift, "cube redshift")
-        angle, stretch, dim = redshift_scalings(z0, z, cosmo)
-        return CubeSource(self.cube, self.lbda_in * stretch, self.pixel_scale * angle,
-                          (self.centre[0] * angle, self.centre[1] * angle), self.rotation,
-                          self.flux_scale * dim, z, cosmo, self.max_bytes)
-
-    def flux_cube(self, lbda_grid, shape, spatial_scale):
-        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]."""
-        nl_in, nyi, nxi = (int(v) for v in self.cube.shape)
-        L = _lambda_matrix(self.lbda_in, lbda_grid).tocsc()
-        cols = np.nonzero(np.diff(L.indptr))[0]
-        if cols.size == 0:
-            return np.zeros((L.shape[0],) + tuple(int(v) for v in shape))
-        k0, k1 = int(cols[0]), int(cols[-1]) + 1
-        Lk = L[:, k0:k1].tocsr() * self.flux_scale
-
-        def read(r0, r1, j0, j1):
-            block = np.asarray(self.cube[k0:k1, r0:r1, j0:j1], dtype=np.float64)
-            return (Lk @ block.reshape(k1 - k0, -1)).reshape(-1, r1 - r0, j1 - j0)
-        return resample_pixels(read, (nyi, nxi), self.pixel_scale, self.centre, self.rotation, shape,
-                               spatial_scale, L.shape[0], self.max_bytes)
+    Sersic: every field point is at elliptical radius ≥ d, the distance from the centre to the
+    field rectangle, so the fraction is ≤ Q(2n, b_n (d/r_eff)^{1/n}).  Image: the light of the
+    pixels that can touch the field.  CubeSource: 1 when a pixel touches the field, else 0."""
+    ny, nx = (int(v) for v in shape)
+    s = float(spatial_scale)
+    cx, cy = float(centre[0]), float(centre[1])
+    profile = getattr(host, "profile", None)
+    if isinstance(profile, SersicProfile):
+        d = math.hypot(max(abs(cx) - nx * s / 2, 0.0), max(abs(cy) - ny * s / 2, 0.0))
+        n = profile.sersic_index
+        return float(gammaincc(2.0 * n, profile.b_n * (d / profile.r_eff) ** (1.0 / n)))
+    if isinstance(profile, ImageProfile):
+        gx, gy = profile.grid_centre()
+        grid = (gx + cx - profile.offset[0], gy + cy - profile.offset[1])
+        j0, j1 = _field_columns(profile.image.shape, profile.pixel_scale, grid, profile.rotation, (ny, nx), s)
+        return float(sum(profile.image[r, j0[r]:j1[r]].sum() for r in np.nonzero(j1 > j0)[0]))
+    if isinstance(host, CubeSource):
+        j0, j1 = _field_columns(host.cube.shape[1:], host.pixel_scale, (cx, cy), host.rotation, (ny, nx), s)
+        return 1.0 if np.any(j1 > j0) else 0.0
+    return None

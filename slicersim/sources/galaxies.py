@@ -24,6 +24,7 @@ redshift (:mod:`slicersim.sources.cosmology`): angles ∝ 1/D_A, F_λ ∝ 1/(D_L
 """
 from __future__ import annotations
 
+import copy
 import functools
 import math
 import numbers
@@ -34,12 +35,12 @@ import numpy as np
 from slicersim.errors import ParameterError, SlicersimError
 from slicersim.sources.cosmology import (angular_diameter_distance_kpc, arcsec_per_kpc, check_source_redshift,
                                          get_cosmology, redshift_scalings, restframe_to_observed)
-from slicersim.sources.extended import Host, ImageProfile, SersicProfile
+from slicersim.sources.extended import CubeSource, Host, ImageProfile, SersicProfile, host_field_fraction
 from slicersim.sources.spectra import blackbody_flambda, validate_spectrum
 
 __all__ = ["GALAXY_PACKAGE", "GalaxyDataUnavailable", "known_galaxies", "galaxy_name", "load_galaxy_spectrum",
            "load_galaxy_image", "parse_host_model", "GalaxyModel", "HOST_DEFAULTS", "HOST_PARAMETERS", "HostPlacement",
-           "check_host_covers", "host_offset"]
+           "check_host_covers", "host_offset", "check_host_in_field", "HOST_MIN_FIELD_FRACTION"]
 
 GALAXY_PACKAGE = "lazuli-astrosim-data"
 #: slicersim 1.4.2 defaults (``band`` is Bessell R here: sncosmo's SDSS r needs a download)
@@ -50,6 +51,15 @@ ALIASES = {"n": "sersic_index", "theta": "position_angle"}
 PARAMETERS = ("refmodel", "redshift", "cosmology", "r_kpc", "r_eff", "sersic_index", "ellip", "axis_ratio",
               "position_angle", "rotation", "magabs", "mag", "band", "temperature", "offset", "position") \
     + tuple(ALIASES)
+#: parameter pairs that say the same thing: giving both is refused (never one silently wins)
+CONFLICTS = (("mag", "magabs", "mag (observed) or magabs (rest frame)"),
+             ("offset", "position", "offset [arcsec, relative to the target] or position [cells]"),
+             ("r_kpc", "r_eff", "r_kpc [proper kpc] or r_eff [arcsec]"),
+             ("ellip", "axis_ratio", "ellip or axis_ratio"),
+             ("n", "sersic_index", "n or sersic_index (the same parameter)"),
+             ("theta", "position_angle", "theta or position_angle (the same parameter)"))
+#: a host putting less than this fraction of its light in the field is refused
+HOST_MIN_FIELD_FRACTION = 1e-6
 _NGC = re.compile(r"^ngc[\s_]*0*(\d{1,4})(?:[\s_]*([a-z]))?$")
 _REST_BB_LBDA = np.geomspace(100.0, 1.0e5, 8000)          # rest-frame black-body grid [Å]
 
@@ -169,6 +179,13 @@ def parse_host_model(model):
     return spatial, (f"bb-{temperature}" if temperature is not None else spectral)
 
 
+def _check_conflicts(params):
+    """ParameterError when two given parameters name the same thing (:data:`CONFLICTS`)."""
+    for a, b, what in CONFLICTS:
+        if a in params and b in params:
+            raise ParameterError(f"give {what}, not both (got {a}={params[a]!r} and {b}={params[b]!r})")
+
+
 def _positive(value, name, upper=None):
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         raise ParameterError(f"{name} must be a finite number, got {value!r}")
@@ -185,7 +202,8 @@ class GalaxyModel:
     ----------
     model : model name (module docstring), default ``"sersic:bb-5000"``
     r_kpc : proper half-light radius [kpc] (Sersic; default 5), or ``r_eff`` [arcsec] at the
-        first redshift the model is rendered at (then kept as a proper size)
+        redshift a target first renders it at (the target then keeps that proper size when its
+        redshift changes; the model itself is never changed: :meth:`pinned`)
     sersic_index (n) : in [0.1, 20] (default 2); axis_ratio b/a (default 0.7) or ellip = 1 − b/a;
     position_angle (theta) : major axis [deg] counter-clockwise from +x (default −30)
     rotation : NGC image rotation [deg] counter-clockwise (default 0)
@@ -195,40 +213,44 @@ class GalaxyModel:
     offset : (x, y) [arcsec] relative to the target, or position : (x, y) [cells] from the
         field centre (1.4.2); resolved by the target
     cosmology : astropy cosmology or realisation name (default Planck18)
+    redshift : optional (1.4.2 dicts); a target with another redshift refuses the model
+    Pairs naming the same thing (``mag``/``magabs``, ``offset``/``position``, ``r_kpc``/``r_eff``,
+    ``ellip``/``axis_ratio``, ``n``/``sersic_index``, ``theta``/``position_angle``, a temperature in
+    the name and ``temperature``) are refused when both are given.
     """
 
     def __init__(self, model="sersic:bb-5000", **params):
-        params = {ALIASES.get(k, k): v for k, v in params.items()}
-        if "refmodel" in params:
-            model = params.pop("refmodel")
         unknown = sorted(set(params) - set(PARAMETERS))
         if unknown:
             raise ParameterError(f"unknown host parameter(s) {unknown}; accepted: {', '.join(PARAMETERS)}")
+        _check_conflicts(params)
+        params = {ALIASES.get(k, k): v for k, v in params.items()}
+        if "refmodel" in params:
+            model = params.pop("refmodel")
         self.spatial, self.spectral = parse_host_model(model)
-        params.pop("redshift", None)                   # a host is at its target's redshift
+        z = params.pop("redshift", None)
+        #: redshift the model was given with (None: its target's); a target refuses a different one
+        self.redshift = None if z is None else check_source_redshift(z, "host redshift")
         if "ellip" in params:
-            if "axis_ratio" in params:
-                raise ParameterError("give ellip or axis_ratio, not both")
             ellip = params.pop("ellip")
             if isinstance(ellip, (bool, np.bool_)) or not isinstance(ellip, numbers.Real) \
                     or not (0 <= ellip < 1):
                 raise ParameterError(f"ellip = 1 − b/a must be in [0, 1), got {ellip!r}")
             params["axis_ratio"] = 1.0 - float(ellip)
-        if "mag" in params and "magabs" in params:
-            raise ParameterError("give mag (observed) or magabs (rest frame), not both")
-        if "offset" in params and "position" in params:
-            raise ParameterError("give offset [arcsec, relative to the target] or position [cells], not both")
-        if "r_eff" in params and "r_kpc" in params:
-            raise ParameterError("give r_kpc [proper kpc] or r_eff [arcsec], not both")
         p = dict(HOST_DEFAULTS)
         if "mag" in params:
             p.pop("magabs")
         if "r_eff" in params:
             p.pop("r_kpc")
         p.update(params)
-        if self.spectral.startswith("bb-"):       # a temperature in the name wins (1.4.2)
-            if self.spectral != "bb-default":
-                p["temperature"] = float(self.spectral[3:])
+        if self.spectral.startswith("bb-"):
+            if self.spectral != "bb-default":         # a temperature in the name: it must agree
+                named = float(self.spectral[3:])
+                given = params.get("temperature")
+                if given is not None and not (isinstance(given, numbers.Real) and float(given) == named):
+                    raise ParameterError(f"host model {model!r} names a {named:g} K black body but "
+                                         f"temperature={given!r}: give the temperature once")
+                p["temperature"] = named
             self.spectral = "bb"
         if "sersic_index" in p:
             n = p["sersic_index"]
@@ -280,10 +302,24 @@ class GalaxyModel:
         return {"refmodel": self.name, **self.params}
 
     def updated(self, **params):
-        """A new model with some parameters changed (validated)."""
+        """A new model with some parameters changed (validated; conflicting pairs such as
+        ``mag`` + ``magabs`` given together raise ParameterError)."""
+        unknown = sorted(set(params) - set(PARAMETERS))
+        if unknown:
+            raise ParameterError(f"unknown host parameter(s) {unknown}; accepted: {', '.join(PARAMETERS)}")
+        _check_conflicts(params)
         params = {ALIASES.get(k, k): v for k, v in params.items()}
         current = {**self.params, **params}
+        if self.redshift is not None and "redshift" not in params:
+            current["redshift"] = self.redshift
         current["refmodel"] = params.get("refmodel", f"{self.spatial}:{'bb' if self.spectral == 'bb' else self.spectral}")
+        if "refmodel" in params and "temperature" not in params:
+            try:
+                named = parse_host_model(params["refmodel"])[1]
+            except ParameterError:
+                named = None                      # reported by the constructor below
+            if named is not None and named.startswith("bb-") and named != "bb-default":
+                current.pop("temperature", None)  # the new name's temperature replaces the old one
         if "mag" in params or "magabs" in params:
             current.pop("magabs" if "mag" in params else "mag", None)
         if "r_eff" in params or "r_kpc" in params:
@@ -320,9 +356,25 @@ class GalaxyModel:
                                            mag=p.get("mag"), band=p["band"])
         host = Host(profile, lbda, flux, redshift=z, cosmology=cosmo)
         host.model = self
-        if "r_eff" in p:     # an angular size fixes the proper size at this first redshift
-            self.params = {**{k: v for k, v in p.items() if k != "r_eff"}, "r_kpc": r_eff / arcsec_per_kpc(z, cosmo)}
         return host
+
+    def copy(self):
+        """An independent copy (its ``params`` dict is its own)."""
+        new = copy.copy(self)
+        new.params = dict(self.params)
+        return new
+
+    def pinned(self, redshift):
+        """A copy fixed to the target that renders it at ``redshift``: an angular ``r_eff`` becomes
+        the proper ``r_kpc`` it has there, and the model's own ``redshift`` is dropped (the
+        target's rules from then on).  The model itself is never changed."""
+        new = self.copy()
+        new.redshift = None
+        p = new.params
+        if "r_eff" in p:
+            z = check_source_redshift(redshift, "host redshift")
+            p["r_kpc"] = p.pop("r_eff") / arcsec_per_kpc(z, p["cosmology"])
+        return new
 
     @classmethod
     def from_spec(cls, spec):
@@ -332,6 +384,9 @@ class GalaxyModel:
         if isinstance(spec, str):
             return cls(spec)
         if isinstance(spec, dict):
+            bad = [k for k in spec if not isinstance(k, str)]
+            if bad:
+                raise ParameterError(f"host dict keys must be parameter names, got {bad}")
             return cls(**{"refmodel": "sersic:bb-5000", **spec})
         raise ParameterError(f"host must be a model name, a dict with 'refmodel', a GalaxyModel, a Host or a "
                              f"CubeSource, got {type(spec).__name__}")
@@ -353,14 +408,22 @@ class HostPlacement:
 
     @classmethod
     def resolve(cls, host, redshift, relative, spatial_scale):
-        """Validated state of a ``set_host`` argument (nothing applied)."""
+        """Validated state of a ``set_host`` argument (nothing applied; the argument itself is
+        never changed: models and Host / CubeSource objects are copied)."""
         if isinstance(host, (str, dict, GalaxyModel)):
             model = GalaxyModel.from_spec(dict(host) if isinstance(host, dict) else host)
-            z = redshift if redshift is not None else (host.get("redshift") if isinstance(host, dict) else None)
+            z = redshift
+            if model.redshift is not None:
+                if z is None:
+                    z = model.redshift
+                elif model.redshift != z:
+                    raise ParameterError(f"the host is given at redshift {model.redshift:g} but the target is at "
+                                         f"{z:g}: a host is at its target's redshift (drop the host's 'redshift')")
             if z is None:
                 raise ParameterError("a host given by name needs a redshift: give the target a redshift "
                                      "(or the host dict a 'redshift')")
             origin = model.host(z)
+            model = origin.model = model.pinned(z)
             p = model.params
             if "position" in p:      # 1.4.2: cells from the field centre, absolute
                 return cls(origin, float(z), model, (p["position"][0] * spatial_scale,
@@ -370,7 +433,7 @@ class HostPlacement:
             raise TypeError("host must be a model name, a dict with 'refmodel', a GalaxyModel or provide "
                             "flux_cube(lbda, shape, spatial_scale) (slicersim.Host or slicersim.CubeSource)")
         origin_z = getattr(host, "redshift", None)
-        return cls(host, redshift if origin_z is None else origin_z, None, host_offset(host), relative)
+        return cls(_own_copy(host), redshift if origin_z is None else origin_z, None, host_offset(host), relative)
 
     def _angle(self, redshift):
         if redshift is None or self.origin_z is None or redshift == self.origin_z:
@@ -392,12 +455,39 @@ class HostPlacement:
 
     def updated(self, host_params, redshift, spatial_scale):
         """State after ``host__<name>`` changes (validated; model hosts only)."""
+        if self.model is None:
+            raise ParameterError("host__<name> needs a host given by name (set_host('sersic:bb-5000', ...))")
         model = self.model.updated(**host_params)
         z = redshift if redshift is not None else self.origin_z
         new = HostPlacement.resolve(model, z, self.relative, spatial_scale)
         if "offset" not in host_params and "position" not in host_params:
             new.offset, new.relative = self.offset_at(z), self.relative
         return new
+
+
+def _own_copy(host):
+    """A copy of a Host / CubeSource the target may place (profile copied; arrays shared)."""
+    if not isinstance(host, (Host, CubeSource)):
+        return host                     # a user object with flux_cube: used as given
+    new = copy.copy(host)
+    if isinstance(host, Host):
+        new.profile = copy.copy(host.profile)
+        new.profile.touch()
+    new.touch()
+    return new
+
+
+def check_host_in_field(host, centre, shape, spatial_scale):
+    """ParameterError when a host centred at ``centre`` (x, y) [arcsec] puts less than
+    :data:`HOST_MIN_FIELD_FRACTION` of its light in the (ny, nx) field (its light would be lost)."""
+    frac = host_field_fraction(host, centre, shape, spatial_scale)
+    if frac is None or frac >= HOST_MIN_FIELD_FRACTION:
+        return
+    ny, nx = shape
+    amount = "none" if frac == 0 else f"less than {frac:.1e}"
+    raise ParameterError(f"the host centred at ({centre[0]:.4g}″, {centre[1]:.4g}″) from the field centre puts "
+                         f"{amount} of its light in the field ({nx * spatial_scale:.4g}″ × {ny * spatial_scale:.4g}″): "
+                         "its light would be lost; move it (offset [arcsec] / position [cells]) or drop it")
 
 
 def check_host_covers(host, lbda):

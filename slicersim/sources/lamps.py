@@ -58,6 +58,8 @@ def _number(name, value, *, positive=True, allow_zero=False, upper=None):
     bad = not math.isfinite(val) or (positive and (val < 0 or (val == 0 and not allow_zero))) \
         or (upper is not None and val > upper)
     if bad:
+        if not positive:
+            raise ParameterError(f"{name} must be a finite number (negative values allowed), got {value!r}")
         rng = f"in {'[0' if allow_zero else '(0'}, {upper:g}]" if upper is not None else \
             ("≥ 0" if allow_zero else "> 0")
         raise ParameterError(f"{name} must be finite and {rng}, got {value!r}")

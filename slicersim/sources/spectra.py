@@ -60,7 +60,8 @@ def blackbody_flambda(lbda, temperature):
         raise SpectrumError(f"blackbody temperature must be > 0 K, got {temperature}")
     lbda_m = np.asarray(lbda, dtype=float) * 1e-10
     x = H_PLANCK * C_LIGHT / (lbda_m * K_BOLTZMANN * temperature)
-    blam = 2 * H_PLANCK * C_LIGHT**2 / lbda_m**5 / np.expm1(x)  # W/m²/m/sr
+    with np.errstate(over="ignore"):            # x ≫ 700 (cold body, short λ): exp overflows to inf → B = 0
+        blam = 2 * H_PLANCK * C_LIGHT**2 / lbda_m**5 / np.expm1(x)  # W/m²/m/sr
     return blam * 1e3 * 1e-10  # erg/s/cm²/Å/sr  (W/m²/m = 1e3 erg/s/cm²/cm ... = 1e-7 erg/s/cm²/Å)
 
 
@@ -70,7 +71,8 @@ def powerlaw_flambda(lbda, alpha, lambda_ref=POWERLAW_LAMBDA_REF):
     if isinstance(alpha, (bool, np.bool_)) or not isinstance(alpha, (int, float, np.number)) \
             or not np.isfinite(alpha):
         raise SpectrumError(f"power-law index alpha must be a finite number, got {alpha!r}")
-    return (np.asarray(lbda, dtype=float) / lambda_ref) ** float(alpha)
+    with np.errstate(over="ignore", under="ignore", divide="ignore"):
+        return (np.asarray(lbda, dtype=float) / lambda_ref) ** float(alpha)   # overflow: inf, refused by callers
 
 
 def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3,
@@ -250,10 +252,15 @@ def read_calspec(path):
 
 
 def normalise_to_mag(lbda, flux, mag, band="bessellb", magsys="ab"):
-    """Scale factor 10^(−0.4 (mag − m_in)) with m_in the synthetic magnitude of (λ, F)."""
+    """Scale factor 10^(−0.4 (mag − m_in)) with m_in the synthetic magnitude of (λ, F).
+
+    ``band`` / ``magsys`` are sncosmo names (strings; ParameterError otherwise)."""
     import sncosmo
+    if not isinstance(band, str) or not isinstance(magsys, str):
+        raise ParameterError(f"band and magsys must be sncosmo names (strings), got band={band!r}, magsys={magsys!r}")
     try:
-        m_in = sncosmo.Spectrum(lbda, flux).bandmag(band, magsys)
+        with np.errstate(divide="ignore"):      # no flux in the band: log10(0) = −inf, reported below
+            m_in = sncosmo.Spectrum(lbda, flux).bandmag(band, magsys)
     except Exception as exc:
         raise SpectrumError(f"cannot compute the {band} {magsys} magnitude of the spectrum: {exc}") from exc
     if not np.isfinite(m_in):

@@ -6,13 +6,14 @@ result as a dict.
 """
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 import os
 
 import numpy as np
 
-from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field, default_mapper  # noqa: F401
+from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field  # noqa: F401
 from slicersim.errors import ETCError, ParameterError, SlicersimError
 from slicersim.io.config import load_config
 from slicersim.io.curves import read_curve
@@ -20,11 +21,14 @@ from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.readout import check_readout
 from slicersim.products.extraction import (EXTRACTION_METHODS, ExtractionSetup, aperture_radius,
                                            check_aperture_in_field, extract_model, unit_factors)
+from slicersim.products.components import check_switch_off
 from slicersim.simulation import check_band
-from slicersim.sources.galaxies import HOST_PARAMETERS, HostPlacement, check_host_covers, host_offset
+from slicersim.sources.galaxies import (HOST_PARAMETERS, HostPlacement, check_host_covers, check_host_in_field,
+                                        host_offset)
 from slicersim.sources.scene import PointSource, snia_spectrum
+from slicersim.targets.detector import DetectorProducts
 
-__all__ = ["LAZULI_FIELDS", "build_simulation", "config_default_field", "SPECTRUM_NOISE_STREAM", "Target",
+__all__ = ["LAZULI_FIELDS", "build_simulation", "config_default_field", "SPECTRUM_NOISE_STREAM", "Target", "lazuli_doc",
            "Supernova", "BlackBody", "LazuliTarget", "LazuliSupernova", "LazuliBlackBody", "lazuli_etc",
            "lazuli_sn_etc"]
 
@@ -47,7 +51,7 @@ def config_default_field(config):
     return None
 
 
-class Target:
+class Target(DetectorProducts):
     """A point source observed with a configured instrument.
 
     Parameters
@@ -163,11 +167,6 @@ class Target:
             sim.scene.host = self._host
         return sim
 
-    def _build(self, keep_readout=False):
-        self.simulation = self._new_simulation(self.config, self._field, keep_readout)
-        if self._host is not None:
-            self._place_host(self._host, self.position, self.simulation.spectrograph.spatial_scale)
-
     def _spectrum_at(self, redshift):
         """(λ, F) of the source at ``redshift``, or None when the spectrum does not depend on
         it (a user spectrum is given in the observer frame: only the label changes)."""
@@ -192,27 +191,20 @@ class Target:
             self._host, self._host_state = None, None
             self.simulation.scene.host = None
             return
-        state = HostPlacement.resolve(host, self._redshift, relative, self.simulation.spectrograph.spatial_scale)
+        relative = _check_flag(relative, "relative")
+        sim = self.simulation
+        state = HostPlacement.resolve(host, self._redshift, relative, sim.spectrograph.spatial_scale)
         placed = state.at(self._redshift)
-        check_host_covers(placed, self.simulation.lbda)
+        check_host_covers(placed, sim.lbda)
+        centre = _host_centre(state, self._redshift, self.position, sim.spectrograph.spatial_scale)
+        check_host_in_field(placed, centre, sim.spectrograph.shape, sim.spectrograph.spatial_scale)
         self._host_state, self._host = state, placed
-        self._place_host(placed, self.position, self.simulation.spectrograph.spatial_scale)
-        self.simulation.scene.host = placed
+        _move_host(placed, centre)
+        sim.scene.host = placed
 
     def _place_host(self, host, position, spatial_scale):
-        state = self._host_state
-        if state is None:
-            return
-        dx, dy = state.offset_at(self._redshift)
-        if state.relative:
-            centre = (position[0] * spatial_scale + dx, position[1] * spatial_scale + dy)
-        else:
-            centre = (dx, dy)
-        if hasattr(host, "profile") and hasattr(host.profile, "offset"):
-            if tuple(host.profile.offset) != centre:
-                host.profile.offset = centre
-        elif hasattr(host, "centre") and tuple(host.centre) != centre:
-            host.centre = centre
+        if self._host_state is not None:
+            _move_host(host, _host_centre(self._host_state, self._redshift, position, spatial_scale))
 
     def host_centre(self):
         """(x, y) [cells] of the host centre in the field (None without host)."""
@@ -231,15 +223,19 @@ class Target:
         point source in place (and a host attached relative to it); ``field`` / ``config``
         rebuild the simulation keeping the readout; the other names go to
         :meth:`Simulation.update <slicersim.simulation.Simulation.update>`.  The readout is kept."""
+        self._apply_update(self._plan_update(params))
+
+    def _plan_update(self, params):
+        """Validate an :meth:`update` off to the side: a :class:`_TargetUpdate` (nothing changed)."""
         accepted = self.mutable_parameters
         unknown = sorted(set(params) - set(accepted))
         if unknown:
             hint = ("; host__<name> needs a host given by name (set_host('sersic:bb-5000', ...))"
                     if any(k.startswith("host__") for k in unknown) else "")
             raise ParameterError(f"unknown target parameter(s) {unknown}{hint}; accepted: {', '.join(accepted)}")
+        plan = _TargetUpdate()
         host_params = {k[len("host__"):]: v for k, v in params.items() if k.startswith("host__")}
         sim_params = {k: v for k, v in params.items() if k not in self.own_parameters and not k.startswith("host__")}
-        # -- validate everything off to the side
         spectrum = None
         redshift = self._redshift
         if "redshift" in params:
@@ -256,53 +252,59 @@ class Target:
             position = PointSource([1.0, 2.0], [0.0, 0.0], position=params["position"]).position
         config = _check_config(params["config"]) if "config" in params else self.config
         field = check_field(params["field"]) if "field" in params else self._field
-        new_sim = None
-        lbda = self.simulation.lbda
         if "config" in params or "field" in params:
             saved = self.pointsource
             self.pointsource = probe or saved
             try:
-                new_sim = self._new_simulation(config, field, params=sim_params)
+                plan.new_sim = self._new_simulation(config, field, params=sim_params)
             finally:
                 self.pointsource = saved
-            lbda = new_sim.lbda
-            new_sim._check_aperture_cells(new_sim.spectrograph, new_sim.telescope,
-                                          new_sim.aperture_radius_insigma, position)
+            plan.new_sim._check_aperture_cells(plan.new_sim.spectrograph, plan.new_sim.telescope,
+                                               plan.new_sim.aperture_radius_insigma, position)
+            state = plan.new_sim
         else:
-            spec = self.simulation.spectrograph
-            spec_params = {k: v for k, v in sim_params.items()
-                           if k in spec.mutable_parameters and k not in self.simulation.detector.mutable_parameters}
-            if spec_params:
-                lbda = spec.updated(**spec_params).lbda
-        if probe is not None and not probe.overlap(lbda[0], lbda[-1]):
+            if sim_params or "position" in params:
+                # validates the components and the aperture at the new position (nothing applied)
+                plan.sim_update = self.simulation.plan_update(_position=position, **sim_params)
+            state = plan.sim_update or self.simulation
+        spec = state.spectrograph
+        if probe is not None and not probe.overlap(spec.lbda[0], spec.lbda[-1]):
             raise ParameterError(f"the spectrum at redshift {redshift} does not overlap the instrument range")
-        host_state, new_host = self._host_state, None
+        host_state = self._host_state
         if host_state is not None:
-            scale = (new_sim or self.simulation).spectrograph.spatial_scale
             if host_params:
-                host_state = host_state.updated(host_params, redshift, scale)
+                host_state = host_state.updated(host_params, redshift, spec.spatial_scale)
             if host_params or redshift != self._redshift:
-                new_host = host_state.at(redshift)
-            check_host_covers(new_host or self._host, lbda)
-        if new_sim is None and (sim_params or "position" in params):
-            # atomic by itself; validates the aperture at the new position; last step that can fail
-            self.simulation.update(_position=position, **sim_params)
-        # -- apply (nothing below can fail)
-        if probe is not None:
+                plan.new_host = host_state.at(redshift)
+            host = plan.new_host or self._host
+            check_host_covers(host, spec.lbda)
+            plan.host_centre = _host_centre(host_state, redshift, position, spec.spatial_scale)
+            check_host_in_field(host, plan.host_centre, spec.shape, spec.spatial_scale)
+        plan.params = params
+        plan.probe, plan.redshift, plan.position, plan.config, plan.field = probe, redshift, position, config, field
+        plan.host_state, plan.state = host_state, state
+        return plan
+
+    def _apply_update(self, plan):
+        """Apply a :meth:`_plan_update` result (nothing here can fail)."""
+        if plan.probe is not None:
+            probe = plan.probe
             self.pointsource.set_spectrum(probe.lbda_in, probe.flux_in, probe.flux_ratio, probe.native_mag)
-        self._redshift = redshift
-        if new_sim is not None:
-            new_sim.scene.pointsource = self.pointsource
-            self.config, self._field, self.simulation = config, field, new_sim
-        self.simulation.redshift = redshift
-        if position != self.position:
-            self._move_to(position)
-        self._host_state = host_state
-        if new_host is not None:
-            self._host = new_host
-            self.simulation.scene.host = new_host
+        self._redshift = plan.redshift
+        if plan.new_sim is not None:
+            plan.new_sim.scene.pointsource = self.pointsource
+            self.config, self._field, self.simulation = plan.config, plan.field, plan.new_sim
+        elif plan.sim_update is not None:
+            self.simulation.apply_update(plan.sim_update)
+        self.simulation.redshift = plan.redshift
+        if plan.position != self.position:
+            self._move_to(plan.position)
+        self._host_state = plan.host_state
+        if plan.new_host is not None:
+            self._host = plan.new_host
+            self.simulation.scene.host = plan.new_host
         if self._host is not None:
-            self._place_host(self._host, position, self.simulation.spectrograph.spatial_scale)
+            _move_host(self._host, plan.host_centre)
 
     def _move_to(self, position):
         """Set the source position [cells] (validated by :meth:`update`)."""
@@ -340,7 +342,8 @@ class Target:
                 raise ParameterError(f"max_group must be an integer ≥ 1 (None: no limit), got {max_group!r}")
             params["max_group"] = int(max_group)
         if nmd is not None:
-            check_readout(nmd, nramps or self.simulation.nramps, self.simulation.detector.min_group,
+            check_readout(nmd, self.simulation.nramps if nramps is None else nramps,
+                          self.simulation.detector.min_group,
                           params.get("max_group", self.simulation.detector.max_group))
             params["nmd"] = tuple(int(v) for v in nmd)
         if nramps is not None:
@@ -396,7 +399,7 @@ class Target:
                                             allow_partial=allow_partial)
 
     def get_spectrum(self, incl_error=False, seed=None, method="optimal", of_host=False, aperture=None,
-                     unit="adu"):
+                     unit="adu", switch_off=None):
         """(λ [Å], signal, variance) extracted from the noiseless model, all ramps.
 
         method : "optimal" (PSF-weighted; the point source's true LSF-convolved spectrum and
@@ -406,7 +409,11 @@ class Target:
         aperture : "core" (default: the point-source extraction radius), "<x>-arcsec" or
             "<x>-kpc" (:mod:`slicersim.products.extraction`).
         unit : "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s] or
-            "framerate" [ADU/frame]; the variance is in unit².
+            "framerate" [ADU/frame] (1.4.2 names accepted: :data:`~slicersim.products.extraction.UNITS`);
+            the variance is in unit².
+        switch_off : components left out of the signal and variance (a name or names:
+            :func:`~slicersim.products.components.check_switch_off`, the rule of cubes and spectra;
+            switching off the extracted component gives zero signal).
         incl_error : add a Gaussian noise draw (in ADU, before the unit conversion):
             signal + √variance · z with z the counter-based Philox / Box–Muller
             normal of :mod:`slicersim.backends.rng` keyed by (seed, bin index,
@@ -416,12 +423,15 @@ class Target:
             keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed."""
         from slicersim.simulation import check_seed
         seed = check_seed(seed)
-        lbda, signal, variance = self._extract(method, of_host, aperture)
+        incl_error = _check_flag(incl_error, "incl_error")
+        of_host = _check_flag(of_host, "of_host")
+        off = check_switch_off(switch_off)
+        factor = unit_factors(self.simulation, unit)                  # validates the unit first
+        lbda, signal, variance = self._extract(method, of_host, aperture, off=off)
         if incl_error:
             from slicersim.backends.noise import noisy_cube
             seed = np.random.default_rng() if seed is None else seed
             signal = noisy_cube(signal, variance, seed, backend="numpy", stream=SPECTRUM_NOISE_STREAM)
-        factor = unit_factors(self.simulation, unit)
         return lbda, signal * factor, variance * factor**2
 
     def _extraction_setup(self, of_host=False, aperture=None):
@@ -438,72 +448,27 @@ class Target:
         if not core:
             check_aperture_in_field(aperture, sim.spectrograph.shape, centre, radius,
                                     sim.spectrograph.spatial_scale)
-        return ExtractionSetup(sim, centre, radius, of_host=of_host), core
+        return ExtractionSetup(sim, centre, radius, of_host=of_host, aperture=aperture), core
 
-    def _extract(self, method, of_host=False, aperture=None):
+    def _extract(self, method, of_host=False, aperture=None, off=None):
         if method not in EXTRACTION_METHODS:
             raise ParameterError(f"method must be one of {EXTRACTION_METHODS}, got {method!r}")
         if method == "optimal" and not of_host and aperture in (None, "core"):
-            return self.simulation.get_spectrum()
+            return self.simulation.get_spectrum(switch_off=off)
         setup, _ = self._extraction_setup(of_host, aperture)
-        signal, variance = extract_model(self.simulation, setup, method)
+        signal, variance = extract_model(self.simulation, setup, method, off=off)
         return self.simulation.lbda.copy(), signal, variance
 
-    def get_cube(self, seed=None, switch_off=None):
+    def get_cube(self, seed=None, switch_off=None, psf_profile="gaussian", **options):
         """Cube [ADU] of the scene (noisy with ``seed``); ``switch_off``: components left out
-        (:func:`~slicersim.products.components.check_switch_off`)."""
-        return self.simulation.get_cube(seed=seed, switch_off=switch_off)
+        (:func:`~slicersim.products.components.check_switch_off`); ``psf_profile`` "gaussian" or
+        "airy" and the other options (``nmd``, ``nramps``, ``max_bytes``, ``progress``, ``backend``,
+        ``dtype``, ...) as :meth:`Simulation.get_cube <slicersim.simulation.Simulation.get_cube>`."""
+        return self.simulation.get_cube(seed=seed, switch_off=switch_off, psf_profile=psf_profile, **options)
 
     def get_scene_cubes(self, unit="adu", switch_off=None, **kwargs):
         """Noise-free cube of each scene component (:meth:`Simulation.get_scene_cubes`)."""
         return self.simulation.get_scene_cubes(unit=unit, switch_off=switch_off, **kwargs)
-
-    # ------------------------------------------------------------------ detector
-    def get_field_rate_cubes(self):
-        """Photo-electron rate cubes [e-/s per cell per bin] of both Lazuli fields:
-        the target's field holds the scene, the other field background and thermal light only."""
-        cubes = {}
-        for field in ("narrow", "wide"):
-            sim = self.simulation if field == (self.field or "narrow") else \
-                build_simulation(self.config, field, pointsource=None, conventions=self._conventions)
-            cubes[field] = (sim.get_projected_scene() * sim.qe[:, None, None], sim)
-        return cubes
-
-    def get_detector_image(self, mapper=None, backend="auto"):
-        """Photo-electron rate on the H4RG [e-/s/px] (both fields, flux-conserving projection).
-
-        Dark current, thermal dark and ROIC glow are not included: :meth:`get_ramps`
-        adds them to every pixel."""
-        mapper = default_mapper() if mapper is None else mapper
-        cubes = self.get_field_rate_cubes()
-        image = np.zeros(mapper.detector_shape)
-        for field, (cube, sim) in cubes.items():
-            kwargs = {"narrow": cube} if field == "narrow" else {"wide": cube}
-            mapper.project_fields(sim.lbda, sim.spectrograph.lbda_edges, out=image, backend=backend,
-                                  **kwargs)
-        return image
-
-    def get_ramps(self, out=None, nmd=None, nramps=None, seed=0, mapper=None, backend="auto", **kwargs):
-        """Raw MACC ramps of the full detector (see :func:`slicersim.ramps.simulate`).
-
-        Uses the current readout unless ``nmd`` / ``nramps`` are given; the detector
-        parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
-        saturation) come from the configuration.  Returns SCI or writes ``out`` (HDF5)."""
-        from slicersim.products.ramps import simulate
-        sim, det = self.simulation, self.simulation.detector
-        check_readout(nmd or det.nmd, nramps or sim.nramps, det.min_group, det.max_group)
-        mapper = default_mapper() if mapper is None else mapper
-        image = self.get_detector_image(mapper, backend=backend)
-        release = getattr(mapper, "release_tables", None)
-        if release is not None:         # tables kept in memory (no disk cache): not needed by the ramp
-            release()
-        _return_free_memory()
-        params = dict(tframe=det.tframe, ron=det.ron, dark=det.dark, thermal_dark=sim.thermal_dark,
-                      roic_glow=det.roic_glow, gain=det.gain,
-                      saturation=min(det.saturation, 65535.0), backend=backend,
-                      config={"config": str(self.config), "field": self.field})
-        params.update(kwargs)
-        return simulate(image, nmd or det.nmd, nramps or sim.nramps, seed=seed, out=out, **params)
 
     def get_variance_contribution(self):
         return self.simulation.get_variance_contribution()
@@ -560,32 +525,69 @@ class _Lazuli:
     default_config, default_field = "cbe", "narrow"
 
 
+def lazuli_doc(parent, summary):
+    """Docstring of a Lazuli variant of ``parent``: ``summary``, the Lazuli defaults, then the
+    parent's whole documentation (so ``help()`` of the variant lists every parameter)."""
+    body = inspect.cleandoc(parent.__doc__ or "")
+    return (f"{summary}\n\nLazuli defaults: ``config=\"cbe\"`` (current best estimate; or \"eol\", TOML "
+            f"paths), ``field=\"narrow\"`` (or \"wide\").  Otherwise as :class:`{parent.__name__}`:\n\n{body}")
+
+
 class LazuliTarget(_Lazuli, Target):
-    """Target observed with the Lazuli IFS (``config`` "cbe"/"eol", ``field`` "narrow"/"wide")."""
+    __doc__ = lazuli_doc(Target, "Target observed with the Lazuli IFS.")
 
 
 class LazuliSupernova(_Lazuli, Supernova):
-    """SN Ia observed with the Lazuli IFS."""
+    __doc__ = lazuli_doc(Supernova, "SN Ia observed with the Lazuli IFS.")
 
 
 class LazuliBlackBody(_Lazuli, BlackBody):
-    """Black body observed with the Lazuli IFS."""
+    __doc__ = lazuli_doc(BlackBody, "Black body observed with the Lazuli IFS.")
 
 
-def _return_free_memory():
-    """Give the heap's free pages back to the OS (glibc ``malloc_trim``; a no-op elsewhere).
+class _TargetUpdate:
+    """A validated, not yet applied :meth:`Target.update`: the new state of every part."""
 
-    Building and depositing projection tables leaves ~0.4 GB of freed but fragmented heap
-    that the process would otherwise keep resident while the ramp runs."""
-    import ctypes
-    import ctypes.util
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        trim = libc.malloc_trim
-    except (OSError, AttributeError):
+    new_sim = sim_update = new_host = host_centre = probe = None
+
+    @property
+    def spectrograph(self):
+        return self.state.spectrograph
+
+    @property
+    def telescope(self):
+        return self.state.telescope
+
+    @property
+    def aperture_radius_insigma(self):
+        return self.state.aperture_radius_insigma
+
+
+def _host_centre(state, redshift, position, spatial_scale):
+    """(x, y) [arcsec] of the host centre from the field centre for a target at ``position``
+    [cells]: the state's offset (at ``redshift``) from the target, or from the field centre."""
+    dx, dy = state.offset_at(redshift)
+    if state.relative:
+        return (position[0] * spatial_scale + dx, position[1] * spatial_scale + dy)
+    return (dx, dy)
+
+
+def _move_host(host, centre):
+    """Place the target's own host copy at ``centre`` [arcsec] (profile offset or cube centre)."""
+    if centre is None:
         return
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    trim(0)
+    if hasattr(host, "profile") and hasattr(host.profile, "offset"):
+        if tuple(host.profile.offset) != tuple(centre):
+            host.profile.offset = centre
+    elif hasattr(host, "centre") and tuple(host.centre) != tuple(centre):
+        host.centre = centre
+
+
+def _check_flag(value, name):
+    """A bool (numpy bools included); ParameterError for anything else ("no", 1, None, ...)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ParameterError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
 
 
 def _check_redshift(redshift):

@@ -39,7 +39,7 @@ from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.sources.lamps import (DEFAULT_LAMP_BAND, QTH_TEMPERATURE, BlackBodyContinuum, CalibrationLamp,
                                      FabryPerotEtalon, LampIllumination, TabulatedContinuum, as_etalon, _number)
-from slicersim.targets.base import Target, build_simulation, config_default_field
+from slicersim.targets.base import Target, build_simulation, config_default_field, lazuli_doc
 
 __all__ = ["FLAT_SLICE_STREAM", "FLAT_PIXEL_STREAM", "DEFAULT_ETALON_FSR", "DEFAULT_ETALON_FINESSE",
            "FlatFieldStructure", "Flat3DCalibration", "Lazuli3DFlat", "locate_peaks"]
@@ -331,68 +331,85 @@ class Flat3DCalibration(Target):
             return [which]
         raise ParameterError(f"which must be 'current', 'narrow', 'wide' or 'both', got {which!r}")
 
-    def get_cube(self, seed=None, which="current", nmd=None, nramps=None, backend="auto", **options):
+    def get_cube(self, seed=None, which="current", nmd=None, nramps=None, backend="auto", switch_off=None,
+                 **options):
         """Signal [ADU] and variance [ADU²] cubes (+ a noisy one with ``seed``), all ramps summed.
 
         ``which``: "current" (this field), "narrow", "wide" or "both" (a tuple (narrow, wide), as 1.4.2).
-        Ideal instrument: :meth:`Simulation.get_cube <slicersim.simulation.Simulation.get_cube>`
-        (uniform: a 1-D spectrum broadcast); with structure, per voxel (same readout physics:
-        ``Simulation.cell_variance``; noise as there, stream 0)."""
+        ``switch_off``: components left out, the rule of every cube
+        (:mod:`slicersim.products.components`: "background" is the lamp, "thermal" the instrument's
+        light, detector terms leave the variance; "pointsource" / "host" are absent anyway).
+        One computation with or without flat-field structure: QE · (t_row LSF[lamp] + LSF[thermal])
+        per row, × the cell response with pixel structure, then ``Simulation.cell_variance``
+        (saturated cells NaN / +inf); noise as every cube (Philox, stream 0, voxel index).
+        ``options``: ``dtype`` (float64 / float32); ``psf_profile``, ``max_bytes``, ``progress``,
+        ``psf_options`` are accepted as for any cube and unused (a uniform scene needs no PSF)."""
+        from slicersim.products.components import check_switch_off
         from slicersim.simulation import check_seed
         seed = check_seed(seed)
+        off = check_switch_off(switch_off)
         fields = self._which(which)
-        out = tuple(self._field_cube(self._simulation_for(f), f, nmd, nramps, seed, backend, options)
-                    for f in fields)
-        return out if which == "both" else out[0]
-
-    def _field_cube(self, sim, field, nmd, nramps, seed, backend, options):
-        if self.structure.is_ideal:
-            return sim.get_cube(nmd, nramps, seed=seed, backend=backend, **options)
-        from slicersim.backends.noise import noisy_cube, seed_from
-        from slicersim.products.cube import CubeResult
         unknown = sorted(set(options) - {"dtype", "psf_profile", "max_bytes", "progress", "psf_options"})
         if unknown:
             raise ParameterError(f"unknown cube option(s) {unknown}")
         dtype = np.dtype(options.get("dtype", np.float64))
         if dtype not in (np.float64, np.float32):
             raise ParameterError(f"dtype must be float64 or float32, got {dtype}")
+        if "psf_profile" in options:
+            from slicersim.products.psf_profiles import get_psf_profile
+            get_psf_profile(options["psf_profile"])
+        out = tuple(self._field_cube(self._simulation_for(f), f, nmd, nramps, seed, backend, dtype, off)
+                    for f in fields)
+        return out if which == "both" else out[0]
+
+    def _field_cube(self, sim, field, nmd, nramps, seed, backend, dtype, off):
+        from slicersim.backends.noise import noisy_cube, seed_from
+        from slicersim.products.cube import PATH_ABSENT, PATH_OFF, CubeResult
         times = sim.get_times(nmd, nramps)
         nmd, nramps, tint = times["nmd"], times["nramps"], times["integration_time_per_ramp"]
         spec = sim.spectrograph
         (ny, nx), nl = spec.shape, sim.lbda.size
-        electrons = self._rate_cube(sim, field) * self.structure.cell_response(
-            (nl, ny, nx), field, getattr(spec, "pixels_per_cell", 1), backend)           # e-/s/cell
-        variance, saturated = sim.cell_variance(electrons, nmd)                           # ADU² per ramp
-        signal = (np.where(saturated, np.nan, electrons * tint * sim.detector.gain) * nramps).astype(dtype)
-        variance = (variance * nramps).astype(dtype)
+        electrons = self._rate_cube(sim, field, off)                                     # e-/s/cell (nλ, ny, 1)
+        if self.structure.pixel_scatter:
+            electrons = electrons * self.structure.cell_response((nl, ny, nx), field,
+                                                                 getattr(spec, "pixels_per_cell", 1), backend)
+        variance, saturated = sim.cell_variance(electrons, nmd, off)                      # ADU² per ramp
+        signal = np.where(saturated, np.nan, electrons * tint * sim.detector.gain) * nramps
         del electrons
+        shape = (nl, ny, nx)
+        signal = np.broadcast_to(signal, shape).astype(dtype)
+        variance = np.broadcast_to(variance * nramps, shape).astype(dtype)
         noisy = None
         if seed is not None:
             seed = seed_from(seed)
             noisy = noisy_cube(signal, variance, seed, backend=backend).astype(dtype, copy=False)
-        paths = {"pointsource": "absent: not in the scene", "host": "absent: not in the scene",
-                 "background": "lamp: uniform, × flat-field structure", "thermal": "uniform",
-                 "detector": "NumPy per voxel (flat-field structure)"}
+        lamp = "lamp: uniform" + ("" if self.structure.is_ideal else ", × flat-field structure")
+        paths = {"pointsource": PATH_OFF if "pointsource" in off else PATH_ABSENT,
+                 "host": PATH_OFF if "host" in off else PATH_ABSENT,
+                 "background": PATH_OFF if "background" in off else lamp,
+                 "thermal": PATH_OFF if "thermal" in off else "uniform",
+                 "detector": "NumPy: spectrum per row" + (", per voxel (pixel structure)"
+                                                          if self.structure.pixel_scatter else ", broadcast")}
         return tuple(CubeResult(signal, variance, noisy, paths, 1, sim.lbda.copy(), "uniform", seed))
 
-    def _rate_cube(self, sim, field):
-        """Photo-electron rate [e-/s/cell] of a field, slice throughputs t_row applied to the lamp
-        light (not to the instrument's thermal light; no pixel response):
-        QE · (t_row LSF[lamp] + LSF[thermal])."""
+    def _rate_cube(self, sim, field, off=frozenset()):
+        """Photo-electron rate [e-/s/cell] of a field as (nλ, ny, 1) (uniform along the slices):
+        slice throughputs t_row applied to the lamp light, not to the instrument's thermal light
+        (no pixel response), components ``off`` removed: QE · (t_row LSF[lamp] + LSF[thermal])."""
         spec = sim.spectrograph
-        (ny, nx), qe = spec.shape, sim.qe
-        lamp = spec.apply_lsf(sim.background_photons) * qe                 # e-/s/cell
-        thermal = spec.apply_lsf(sim.thermal_photons) * qe
-        rows = self.structure.row_throughput(field, ny)
-        rate = lamp[:, None, None] * rows[None, :, None] + thermal[:, None, None]
-        return np.ascontiguousarray(np.broadcast_to(rate, (sim.lbda.size, ny, nx)))
+        lamp_ph, thermal_ph = sim.uniform_photons(off)
+        lamp = spec.apply_lsf(lamp_ph) * sim.qe                                          # e-/s/cell
+        thermal = spec.apply_lsf(thermal_ph) * sim.qe
+        rows = self.structure.row_throughput(field, spec.shape[0])
+        return lamp[:, None, None] * rows[None, :, None] + thermal[:, None, None]
 
     def get_field_rate_cubes(self):
         """Photo-electron rate cubes [e-/s per cell per bin] of both Lazuli fields, both lit by the lamp."""
         if self._field is None:
             raise ParameterError("detector images need a Lazuli configuration (narrow and wide fields)")
-        return {f: (self._rate_cube(sim, f), sim) for f in ("narrow", "wide")
-                for sim in [self._simulation_for(f)]}
+        return {f: (np.ascontiguousarray(np.broadcast_to(self._rate_cube(sim, f), (sim.lbda.size,
+                                                                                 *sim.spectrograph.shape))), sim)
+                for f in ("narrow", "wide") for sim in [self._simulation_for(f)]}
 
     def get_detector_image(self, mapper=None, backend="auto"):
         """Photo-electron rate on the H4RG [e-/s/px] with both fields lit (flux-conserving
@@ -416,11 +433,17 @@ class Flat3DCalibration(Target):
                                   "with change_detector)")
 
     get_spectrum = setup_to_snr = get_band_snr = _no_point_source
-    get_variance_contribution = get_band_variance_contribution = set_host = _no_point_source
+    get_variance_contribution = get_band_variance_contribution = _no_point_source
+
+    def set_host(self, host, relative=True):
+        """A flat takes no host: ParameterError (``None``, no host, is accepted)."""
+        if host is not None:
+            raise ParameterError("a calibration flat takes no host: its scene is the lamp filling the field "
+                                 "(put hosts on astronomical targets: LazuliSupernova(..., host=...), set_host)")
 
 
 class Lazuli3DFlat(Flat3DCalibration):
-    """Lazuli calibration exposure (``config`` "cbe"/"eol", ``field`` "narrow" by default)."""
+    __doc__ = lazuli_doc(Flat3DCalibration, "Lazuli calibration exposure (slicersim 1.4.2 ``Lazuli3DFlat``).")
 
     default_config, default_field = "cbe", "narrow"
 

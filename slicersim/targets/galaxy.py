@@ -14,10 +14,10 @@ from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.readout import readout_times
 from slicersim.products.extraction import (EXTRACTION_METHODS, aperture_radius, band_snr_table,
                                            check_aperture_in_field, extract_model, parse_aperture)
-from slicersim.simulation import VARIANCE_SOURCES
+from slicersim.simulation import VARIANCE_SOURCES, check_snr
 from slicersim.sources.galaxies import GalaxyModel
 from slicersim.sources.scene import PointSource
-from slicersim.targets.base import Target, _check_redshift, _Lazuli
+from slicersim.targets.base import Target, _check_flag, _check_redshift, _Lazuli, lazuli_doc
 
 __all__ = ["Galaxy", "LazuliGalaxy"]
 
@@ -90,24 +90,21 @@ class Galaxy(Target):
         return "optimal" if self._aperture.strip().lower() == "core" else "aperture"
 
     def update(self, **params):
-        """As :meth:`Target.update`, plus ``aperture``, ``aperture__position`` and ``method``
-        (the aperture is checked against the field at once when only these change, and at
-        every extraction otherwise)."""
+        """As :meth:`Target.update`, plus ``aperture``, ``aperture__position`` and ``method``,
+        atomically: the aperture is checked against the field in the new state (redshift,
+        position, host, instrument) before anything changes."""
         params = dict(params)
         aperture = _check_aperture_name(params.pop("aperture")) if "aperture" in params else self._aperture
         centre = _check_aperture_position(params.pop("aperture__position")) if "aperture__position" in params \
             else self._aperture_position
         method = _check_method(params.pop("method")) if "method" in params else self._method
-        if not params:
-            saved = (self._aperture, self._aperture_position)
-            self._aperture, self._aperture_position = aperture, centre
-            try:
-                self._extraction_setup()
-            except ParameterError:
-                self._aperture, self._aperture_position = saved
-                raise
-        else:
-            super().update(**params)
+        plan = self._plan_update(params)
+        host = plan.new_host or self.host
+        host_centre = plan.host_centre
+        host_centre = (host_centre[0] / plan.spectrograph.spatial_scale, host_centre[1] / plan.spectrograph.spatial_scale)
+        _aperture_geometry(aperture, host_centre if centre == "host" else centre, plan.spectrograph, plan.telescope,
+                           plan.aperture_radius_insigma, plan.redshift, host.cosmology)
+        self._apply_update(plan)
         self._aperture, self._aperture_position, self._method = aperture, centre, method
 
     def _spectrum_at(self, redshift):
@@ -121,12 +118,9 @@ class Galaxy(Target):
         sim = self.simulation
         aperture = self._aperture if aperture is None else _check_aperture_name(aperture)
         centre = self.host_centre() if self._aperture_position == "host" else self._aperture_position
-        radius, core = aperture_radius(aperture, sim.spectrograph.spatial_scale, sim.aperture_radius,
-                                       self._redshift, self.host.cosmology)
-        if not core:
-            check_aperture_in_field(aperture, sim.spectrograph.shape, centre, radius,
-                                    sim.spectrograph.spatial_scale)
-        return ExtractionSetup(sim, centre, radius, of_host=True), core
+        radius, core = _aperture_geometry(aperture, centre, sim.spectrograph, sim.telescope,
+                                          sim.aperture_radius_insigma, self._redshift, self.host.cosmology)
+        return ExtractionSetup(sim, centre, radius, of_host=True, aperture=aperture), core
 
     def _resolve_method(self, method, aperture):
         if method in (None, "default"):
@@ -143,15 +137,15 @@ class Galaxy(Target):
         return self.simulation.lbda.copy(), signal, variance
 
     def get_spectrum(self, incl_error=False, seed=None, method="default", of_host=True, aperture=None,
-                     unit="adu"):
+                     unit="adu", switch_off=None):
         """Spectrum of the galaxy light (λ [Å], signal, variance) in ``aperture`` (default: the
         target's) by ``method`` ("default": the target's), in ``unit``; see
-        :meth:`Target.get_spectrum` for ``incl_error`` / ``seed`` / ``unit``.  A galaxy target has
-        no point source: ``of_host`` must stay True."""
-        if not of_host:
+        :meth:`Target.get_spectrum` for ``incl_error`` / ``seed`` / ``unit`` / ``switch_off``.  A
+        galaxy target has no point source: ``of_host`` must stay True."""
+        if _check_flag(of_host, "of_host") is False:
             raise ParameterError("a galaxy target has no point source: its spectrum is that of the galaxy "
                                  "(of_host=True)")
-        return super().get_spectrum(incl_error, seed, method, True, aperture, unit)
+        return super().get_spectrum(incl_error, seed, method, True, aperture, unit, switch_off)
 
     # ------------------------------------------------------------------ SNR and ETC
     # bands are read in the rest frame by default (4000–6800 Å rest), as for supernovae and 1.4.2
@@ -170,12 +164,11 @@ class Galaxy(Target):
         """Find and apply the readout with the shortest total exposure reaching ``snr`` in the
         extracted galaxy spectrum (per resolution element by default); returns the ETC result dict.
         Every candidate (n, m, d) × ramps of ``etc.search.candidate_readouts`` is evaluated."""
-        from slicersim.etc.search import (candidate_readouts, check_snr_target, exact_choice, limit_error,
-                                          max_frames_for)
+        from slicersim.etc.search import candidate_readouts, exact_choice, limit_error, max_frames_for
+        snr = check_snr(snr)
         if search != "exact":
             raise ETCError(f"galaxy targets support search='exact' only, got {search!r}")
         sim, det = self.simulation, self.simulation.detector
-        snr = check_snr_target(snr)
         band = self._band(lbda_range, frame)
         idx = np.nonzero(sim.band_mask(band, allow_partial=allow_partial))[0]
         dr = sim.spectrograph.dispersion_resolution
@@ -222,7 +215,20 @@ class Galaxy(Target):
 
 
 class LazuliGalaxy(_Lazuli, Galaxy):
-    """A galaxy alone observed with the Lazuli IFS (slicersim 1.4.2 ``LazuliGalaxy``)."""
+    __doc__ = lazuli_doc(Galaxy, "A galaxy alone observed with the Lazuli IFS (slicersim 1.4.2 ``LazuliGalaxy``).")
+
+
+def _aperture_geometry(aperture, centre, spec, telescope, aperture_insigma, redshift, cosmology):
+    """(radius [cells], is_core) of ``aperture`` centred at ``centre`` [cells] for an instrument
+    state (spectrograph, telescope, core radius in σ); ParameterError unless a named aperture
+    lies inside the field and holds a cell centre."""
+    from slicersim.products.extraction import named_aperture_cells
+    core_radius = aperture_insigma * telescope.psf_sigma_ref / spec.spatial_scale
+    radius, core = aperture_radius(aperture, spec.spatial_scale, core_radius, redshift, cosmology)
+    if not core:
+        check_aperture_in_field(aperture, spec.shape, centre, radius, spec.spatial_scale)
+        named_aperture_cells(aperture, spec.shape, centre, radius, spec.spatial_scale)
+    return radius, core
 
 
 def _check_aperture_name(aperture):

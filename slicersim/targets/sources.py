@@ -22,7 +22,7 @@ from slicersim.errors import ParameterError
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS
 from slicersim.sources.spectra import (find_calspec_file, load_sncosmo_source, normalise_to_mag,
                                        powerlaw_flambda, read_calspec, sncosmo_spectrum, validate_spectrum)
-from slicersim.targets.base import Target, _check_redshift, _Lazuli
+from slicersim.targets.base import Target, _check_redshift, _Lazuli, lazuli_doc
 
 __all__ = ["PowerLaw", "SncosmoTarget", "Kilonova", "CalSpec", "LazuliPowerLaw", "LazuliSncosmoTarget",
            "LazuliKilonova", "LazuliCalSpec", "powerlaw_grid"]
@@ -132,28 +132,29 @@ class CalSpec(Target):
     ``name``: a FITS path, or a star name (file-name prefix, e.g. ``"bd_17d4708"``) looked up
     in ``calspec_dir`` or $SLICERSIM_CALSPEC_DIR (latest version wins;
     :func:`~slicersim.sources.spectra.find_calspec_file`).  ``mag`` (AB, in ``band``)
-    optionally renormalises the spectrum."""
+    optionally renormalises the spectrum.  ``host`` (and the ``redshift`` a host by name needs)
+    as for every target (:meth:`~slicersim.targets.base.Target.set_host`)."""
 
     def __init__(self, name, calspec_dir=None, mag=None, band="bessellb", config=None, field="default",
-                 position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS):
+                 position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, redshift=None, host=None):
         self.path = find_calspec_file(name, calspec_dir)
         lbda, flux = read_calspec(self.path)
         self.star = str(name)
         super().__init__(lbda, flux, mag=_check_mag(mag), band=band, config=config, field=field,
-                         position=position, conventions=conventions)
+                         position=position, conventions=conventions, redshift=redshift, host=host)
 
 
 class LazuliPowerLaw(_Lazuli, PowerLaw):
-    """Power law observed with the Lazuli IFS."""
+    __doc__ = lazuli_doc(PowerLaw, "Power law observed with the Lazuli IFS.")
 
 
 class LazuliSncosmoTarget(_Lazuli, SncosmoTarget):
-    """sncosmo source observed with the Lazuli IFS."""
+    __doc__ = lazuli_doc(SncosmoTarget, "sncosmo source observed with the Lazuli IFS.")
 
 
 class LazuliKilonova(_Lazuli, Kilonova):
-    """Kilonova observed with the Lazuli IFS."""
+    __doc__ = lazuli_doc(Kilonova, "Kilonova observed with the Lazuli IFS.")
 
 
 class LazuliCalSpec(_Lazuli, CalSpec):
-    """CALSPEC standard star observed with the Lazuli IFS."""
+    __doc__ = lazuli_doc(CalSpec, "CALSPEC standard star observed with the Lazuli IFS.")

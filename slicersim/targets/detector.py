@@ -1,0 +1,134 @@
+"""Detector products of a target: both Lazuli fields projected on the H4RG, and raw ramps.
+
+The two Lazuli fields look at neighbouring patches of sky (slicersim 1.4.2's layout,
+``VirtualLazuliTarget._get_field_positions``): the narrow field (58 × 116 cells of 0.04″,
+2.32″ × 4.64″) sits above the wide field (58 × 116 cells of 0.08″, 4.64″ × 9.28″), their
+long sides parallel, with a gap of :data:`FIELD_GAP_ARCSEC`.  In sky coordinates (x along the
+slices, y across them, arcsec) the narrow field's centre is therefore at
+(0, h_wide/2 + gap + h_narrow/2) = (0, 3.54″) from the wide field's centre
+(:func:`field_offset`).  A target's scene is simulated in its own field; for the detector
+image the other field sees the same sky: the host and the point source (never inside both
+fields: only its PSF wings can cross the gap) at positions converted between the fields, plus
+that field's background and thermal light.
+"""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from slicersim.assembly import build_simulation, default_mapper
+from slicersim.physics.readout import check_readout
+
+__all__ = ["FIELD_GAP_ARCSEC", "field_offset", "DetectorProducts"]
+
+#: gap between the narrow and the wide field on the sky [arcsec] (slicersim 1.4.2's ``hspace``)
+FIELD_GAP_ARCSEC = 0.06
+
+
+def field_offset(narrow_sim, wide_sim):
+    """(dx, dy) [arcsec]: centre of the narrow field minus centre of the wide field on the sky."""
+    h_narrow = narrow_sim.spectrograph.shape[0] * narrow_sim.spectrograph.spatial_scale
+    h_wide = wide_sim.spectrograph.shape[0] * wide_sim.spectrograph.spatial_scale
+    return 0.0, h_wide / 2 + FIELD_GAP_ARCSEC + h_narrow / 2
+
+
+class DetectorProducts:
+    """Mixin of :class:`~slicersim.targets.base.Target`: detector image and raw ramps."""
+
+    def _other_field_simulation(self, field):
+        """The simulation of the other Lazuli field seeing the same sky: host and point source at
+        positions converted between the fields (the point source lies outside that field: only
+        its PSF wings can reach it)."""
+        own = self.simulation
+        sim = build_simulation(self.config, field, pointsource=None, conventions=self._conventions)
+        narrow, wide = (own, sim) if field == "wide" else (sim, own)
+        dx, dy = field_offset(narrow, wide)
+        sign = 1.0 if field == "wide" else -1.0          # narrow → wide coordinates: + offset
+        scale = sim.spectrograph.spatial_scale
+        ps = own.scene.pointsource
+        if ps is not None:             # outside that field: only its PSF wings can reach it
+            moved = copy.copy(ps)
+            moved.position = ((ps.position[0] * own.spectrograph.spatial_scale + sign * dx) / scale,
+                              (ps.position[1] * own.spectrograph.spatial_scale + sign * dy) / scale)
+            sim.scene.pointsource = moved
+        host = own.scene.host
+        if host is not None:
+            from slicersim.sources.galaxies import _own_copy, host_offset
+            moved = _own_copy(host)
+            hx, hy = host_offset(host)
+            centre = (hx + sign * dx, hy + sign * dy)
+            if moved is host:                          # a user object (not Host / CubeSource): left out
+                moved = None
+            elif hasattr(moved, "profile"):
+                moved.profile.offset = centre
+            else:
+                moved.centre = centre
+            sim.scene.host = moved
+        return sim
+
+    def get_field_rate_cubes(self):
+        """Photo-electron rate cubes [e-/s per cell per bin] of both Lazuli fields: the target's
+        field holds its scene; the other field the same sky (host and point source at positions
+        converted between the fields, :func:`field_offset`) with its own background and thermal
+        light.  A target without field is taken to be in the narrow one."""
+        cubes = {}
+        for field in ("narrow", "wide"):
+            sim = self.simulation if field == (self.field or "narrow") else self._other_field_simulation(field)
+            cubes[field] = (sim.get_projected_scene() * sim.qe[:, None, None], sim)
+        return cubes
+
+    def get_detector_image(self, mapper=None, backend="auto"):
+        """Photo-electron rate on the H4RG [e-/s/px] (both fields, flux-conserving projection).
+
+        Dark current, thermal dark and ROIC glow are not included: :meth:`get_ramps`
+        adds them to every pixel."""
+        mapper = default_mapper() if mapper is None else mapper
+        cubes = self.get_field_rate_cubes()
+        image = np.zeros(mapper.detector_shape)
+        for field, (cube, sim) in cubes.items():
+            mapper.project_fields(sim.lbda, sim.spectrograph.lbda_edges, out=image, backend=backend,
+                                  **{field: cube})
+        return image
+
+    def get_ramps(self, out=None, nmd=None, nramps=None, seed=0, mapper=None, backend="auto", **kwargs):
+        """Raw MACC ramps of the full detector (see :func:`slicersim.ramps.simulate`).
+
+        Uses the current readout unless ``nmd`` / ``nramps`` are given (validated first:
+        ``nramps`` must be an integer ≥ 1, ReadoutError otherwise); the detector
+        parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
+        saturation) come from the configuration.  Returns SCI or writes ``out`` (HDF5)."""
+        from slicersim.products.ramps import simulate
+        from slicersim.simulation import _check_nramps
+        sim, det = self.simulation, self.simulation.detector
+        nmd = det.nmd if nmd is None else nmd
+        nramps = sim.nramps if nramps is None else _check_nramps(nramps)
+        nmd, nramps = check_readout(nmd, nramps, det.min_group, det.max_group)
+        mapper = default_mapper() if mapper is None else mapper
+        image = self.get_detector_image(mapper, backend=backend)
+        release = getattr(mapper, "release_tables", None)
+        if release is not None:         # tables kept in memory (no disk cache): not needed by the ramp
+            release()
+        _return_free_memory()
+        params = dict(tframe=det.tframe, ron=det.ron, dark=det.dark, thermal_dark=sim.thermal_dark,
+                      roic_glow=det.roic_glow, gain=det.gain,
+                      saturation=min(det.saturation, 65535.0), backend=backend,
+                      config={"config": str(self.config), "field": self.field})
+        params.update(kwargs)
+        return simulate(image, nmd, nramps, seed=seed, out=out, **params)
+
+
+def _return_free_memory():
+    """Give the heap's free pages back to the OS (glibc ``malloc_trim``; a no-op elsewhere).
+
+    Building and depositing projection tables leaves ~0.4 GB of freed but fragmented heap
+    that the process would otherwise keep resident while the ramp runs."""
+    import ctypes
+    import ctypes.util
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):
+        return
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    trim(0)
