@@ -14,6 +14,7 @@ that field's background and thermal light.
 from __future__ import annotations
 
 import copy
+import math
 
 import numpy as np
 
@@ -24,6 +25,8 @@ __all__ = ["FIELD_GAP_ARCSEC", "field_offset", "DetectorProducts"]
 
 #: gap between the narrow and the wide field on the sky [arcsec] (slicersim 1.4.2's ``hspace``)
 FIELD_GAP_ARCSEC = 0.06
+#: a point source farther than this many PSF σ from the other field is left out of it (no light)
+PSF_REACH_SIGMA = 10.0
 
 
 def field_offset(narrow_sim, wide_sim):
@@ -39,7 +42,7 @@ class DetectorProducts:
     def _other_field_simulation(self, field):
         """The simulation of the other Lazuli field seeing the same sky: host and point source at
         positions converted between the fields (the point source lies outside that field: only
-        its PSF wings can reach it)."""
+        its PSF wings can reach it, so it is left out beyond :data:`PSF_REACH_SIGMA` σ)."""
         own = self.simulation
         sim = build_simulation(self.config, field, pointsource=None, conventions=self._conventions)
         narrow, wide = (own, sim) if field == "wide" else (sim, own)
@@ -48,10 +51,14 @@ class DetectorProducts:
         scale = sim.spectrograph.spatial_scale
         ps = own.scene.pointsource
         if ps is not None:             # outside that field: only its PSF wings can reach it
-            moved = copy.copy(ps)
-            moved.position = ((ps.position[0] * own.spectrograph.spatial_scale + sign * dx) / scale,
-                              (ps.position[1] * own.spectrograph.spatial_scale + sign * dy) / scale)
-            sim.scene.pointsource = moved
+            x = (ps.position[0] * own.spectrograph.spatial_scale + sign * dx) / scale
+            y = (ps.position[1] * own.spectrograph.spatial_scale + sign * dy) / scale
+            ny, nx = sim.spectrograph.shape
+            gap = math.hypot(max(abs(x) - nx / 2, 0.0), max(abs(y) - ny / 2, 0.0))      # [cells]
+            if gap < PSF_REACH_SIGMA * max(float(np.max(s)) for s in sim.psf_sigmas):
+                moved = copy.copy(ps)
+                moved.position = (x, y)
+                sim.scene.pointsource = moved
         host = own.scene.host
         if host is not None:
             from slicersim.sources.galaxies import _own_copy, host_offset
