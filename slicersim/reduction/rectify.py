@@ -127,13 +127,14 @@ def _check_grid(lbda, lbda_edges, mapper):
 
 
 def _check_images(rate_image, variance, shape):
+    got = np.shape(rate_image)                         # before any conversion (no copy of a bad input)
+    if len(got) not in (2, 3) or got[-2:] != tuple(shape):
+        raise ParameterError(f"rate_image must have shape {tuple(shape)} (the mapper's detector) or "
+                             f"(N, {shape[0]}, {shape[1]}) for a stack, got {got}")
     try:
         d = np.asarray(rate_image, dtype=np.float64)
     except (TypeError, ValueError):
         raise ParameterError("rate_image must be a numeric array") from None
-    if d.ndim not in (2, 3) or d.shape[-2:] != tuple(shape):
-        raise ParameterError(f"rate_image must have shape {tuple(shape)} (the mapper's detector) or "
-                             f"(N, {shape[0]}, {shape[1]}) for a stack, got {d.shape}")
     if variance is None:
         return d, None
     try:
