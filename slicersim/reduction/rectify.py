@@ -14,7 +14,7 @@ estimators of the cube on a grid (λ edges, ``ncol`` columns per slice):
   share a few pixels (the ±``truncate``·σ tails of their spots meet between the traces:
   ~1.4 % of a Lazuli field's footprint pixels).  Those pixels are left out of the fit, so
   every slice is an independent problem, solved exactly (the price: the two end columns of a
-  slice lose up to ~50 % of their flux to left-out pixels in the red, where the traces come
+  slice lose up to ~60 % of their flux to left-out pixels in the red, where the traces come
   closest, and their variance grows accordingly).  A slice's normal matrix PᵀWP (cells
   ordered λ-major, column-minor: block tridiagonal with blocks of the bandwidth) is
   factorised by block Cholesky, one step of refinement with the data residual (corrected
