@@ -16,40 +16,11 @@ from slicersim.physics.thermal import thermal_dark_rate
 from slicersim.products.components import (SCENE_COMPONENTS, VARIANCE_SOURCES, as_switched_off,  # noqa: F401
                                              check_switch_off, uniform_terms_on)
 from slicersim.products.cube import build_cube, build_scene_cubes, host_photons_block, scene_photon_rates
+from slicersim.products.extraction import ExtractionModel
 from slicersim.products.psf_profiles import get_psf_profile
 from slicersim.versioning import Versioned, state_token
 
 __all__ = ["Simulation", "SimulationUpdate", "VARIANCE_SOURCES", "SCENE_COMPONENTS", "ExtractionModel", "check_snr"]
-
-
-class ExtractionModel:
-    """Everything the optimal extraction of one point source needs, restricted to the aperture.
-
-    Attributes (nλ bins, nc aperture cells)
-    ----------
-    psf2 : (nλ, nc)  squared PSF weights P²
-    pointsource_ph : (nλ, nc)  LSF[F f2p P]  [ph/s/cell]
-    uniform_ph : dict name → (nλ,)  LSF of background / telescope / optics thermal [ph/s/cell]
-    qe : (nλ,)  [e-/ph];  signal_rate : (nλ,)  LSF[F f2p QE] g  [ADU/s of t_int]
-    """
-
-    def __init__(self, psf2, pointsource_ph, uniform_ph, qe, signal_rate, host_ph=None):
-        self.psf2, self.pointsource_ph, self.uniform_ph = psf2, pointsource_ph, uniform_ph
-        self.qe, self.signal_rate, self.host_ph = qe, signal_rate, host_ph
-
-    def cell_rate(self, off=None):
-        """Electron rate per aperture cell QE · C [e-/s/cell] with the sources ``off`` removed
-        (a name or names; rule: :mod:`slicersim.products.components`)."""
-        off = as_switched_off(off)
-        on = uniform_terms_on(off)
-        uniform = np.zeros_like(self.qe)
-        for name, arr in self.uniform_ph.items():
-            if name in on:
-                uniform = uniform + arr
-        point = 0.0 if "pointsource" in off else self.pointsource_ph
-        if self.host_ph is not None and "host" not in off:
-            point = point + self.host_ph
-        return self.qe[:, None] * (point + uniform[:, None])
 
 
 class SimulationUpdate:

@@ -35,7 +35,7 @@ from slicersim.products.cube import host_photons_block
 
 __all__ = ["parse_aperture", "aperture_radius", "check_aperture_in_field", "named_aperture_cells",
            "extract_aperture", "extract_optimal",
-           "extract_model", "unit_factors", "UNITS", "EXTRACTION_METHODS", "ExtractionSetup", "band_snr_table"]
+           "extract_model", "unit_factors", "UNITS", "EXTRACTION_METHODS", "ExtractionSetup", "ExtractionModel", "band_snr_table"]
 
 EXTRACTION_METHODS = ("optimal", "aperture")
 #: unit names and 1.4.2 aliases
@@ -132,6 +132,36 @@ def unit_factors(sim, unit, nmd=None, nramps=None):
     if name == "fphoton":
         return 1.0 / ph_to_adu
     return 1.0 / (ph_to_adu * sim.flambda_to_photon)
+
+
+class ExtractionModel:
+    """Everything the optimal extraction of one point source needs, restricted to the aperture.
+
+    Attributes (nλ bins, nc aperture cells)
+    ----------
+    psf2 : (nλ, nc)  squared PSF weights P²
+    pointsource_ph : (nλ, nc)  LSF[F f2p P]  [ph/s/cell]
+    uniform_ph : dict name → (nλ,)  LSF of background / telescope / optics thermal [ph/s/cell]
+    qe : (nλ,)  [e-/ph];  signal_rate : (nλ,)  LSF[F f2p QE] g  [ADU/s of t_int]
+    """
+
+    def __init__(self, psf2, pointsource_ph, uniform_ph, qe, signal_rate, host_ph=None):
+        self.psf2, self.pointsource_ph, self.uniform_ph = psf2, pointsource_ph, uniform_ph
+        self.qe, self.signal_rate, self.host_ph = qe, signal_rate, host_ph
+
+    def cell_rate(self, off=None):
+        """Electron rate per aperture cell QE · C [e-/s/cell] with the sources ``off`` removed
+        (a name or names; rule: :mod:`slicersim.products.components`)."""
+        off = as_switched_off(off)
+        on = uniform_terms_on(off)
+        uniform = np.zeros_like(self.qe)
+        for name, arr in self.uniform_ph.items():
+            if name in on:
+                uniform = uniform + arr
+        point = 0.0 if "pointsource" in off else self.pointsource_ph
+        if self.host_ph is not None and "host" not in off:
+            point = point + self.host_ph
+        return self.qe[:, None] * (point + uniform[:, None])
 
 
 class ExtractionSetup:

@@ -29,8 +29,6 @@ each bin (1.4.2 samples them at the bin centres), and ramps exist.
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from slicersim.assembly import check_field, default_mapper
@@ -40,6 +38,7 @@ from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.sources.lamps import (DEFAULT_LAMP_BAND, QTH_TEMPERATURE, BlackBodyContinuum, CalibrationLamp,
                                      FabryPerotEtalon, LampIllumination, TabulatedContinuum, as_etalon, _number)
 from slicersim.targets.base import Target, build_simulation, config_default_field, lazuli_doc
+from slicersim.targets.state import _check_config
 
 __all__ = ["FLAT_SLICE_STREAM", "FLAT_PIXEL_STREAM", "DEFAULT_ETALON_FSR", "DEFAULT_ETALON_FINESSE",
            "FlatFieldStructure", "Flat3DCalibration", "Lazuli3DFlat", "locate_peaks"]
@@ -146,13 +145,6 @@ def _check_structure(structure):
             raise ParameterError(f"unknown flat-field structure key(s) {unknown}: slice_scatter, pixel_scatter, seed")
         return FlatFieldStructure(**structure)
     raise ParameterError(f"structure must be None, a dict or a FlatFieldStructure, got {structure!r}")
-
-
-def _check_config(config):
-    items = config if isinstance(config, (list, tuple)) else [config]
-    if not items or not all(isinstance(c, (str, os.PathLike)) for c in items):
-        raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
-    return config
 
 
 class Flat3DCalibration(Target):
