@@ -272,3 +272,19 @@ def test_finding22_clean_errors_without_runtime_warnings(make):
         warnings.simplefilter("error", RuntimeWarning)
         with pytest.raises(SpectrumError):
             make()
+
+
+def test_host_and_aperture_defaults_follow_1_4_2():
+    """scenes_vs_142 finding: get_spectrum(of_host=True) used the PSF-weighted "core" fit (91.6–98.8 %
+    low against 1.4.2's 1-arcsec sum), and method="aperture" summed the core radius, not 1"."""
+    import numpy as np
+
+    import slicersim as S
+    sn = S.LazuliSupernova(0.5, host="sersic:bb-5000")
+    host_default = sn.get_spectrum(of_host=True)[1]
+    host_sum = sn.get_spectrum(of_host=True, aperture="1-arcsec", method="aperture")[1]
+    np.testing.assert_array_equal(host_default, host_sum)
+    assert not np.allclose(host_default, sn.get_spectrum(of_host=True, aperture="core")[1])
+    np.testing.assert_array_equal(sn.get_spectrum(method="aperture")[1],
+                                  sn.get_spectrum(method="aperture", aperture="1-arcsec")[1])
+    np.testing.assert_array_equal(sn.get_spectrum()[1], sn.simulation.get_spectrum()[1])   # the ETC's

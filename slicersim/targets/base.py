@@ -399,16 +399,18 @@ class Target(DetectorProducts):
         return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution,
                                             allow_partial=allow_partial)
 
-    def get_spectrum(self, incl_error=False, seed=None, method="optimal", of_host=False, aperture=None,
+    def get_spectrum(self, incl_error=False, seed=None, method="default", of_host=False, aperture=None,
                      unit="adu", switch_off=None):
         """(λ [Å], signal, variance) extracted from the noiseless model, all ramps.
 
         method : "optimal" (PSF-weighted; the point source's true LSF-convolved spectrum and
-            the optimal variance of :meth:`Simulation.get_spectrum`) or "aperture" (plain sum
-            over the aperture cells of the point-source light, no aperture correction).
+            the optimal variance of :meth:`Simulation.get_spectrum`), "aperture" (plain sum
+            over the aperture cells, no aperture correction) or "default" (slicersim 1.4.2's
+            rule: optimal for the "core" aperture, a plain sum otherwise).
         of_host : extract the host light instead, in an aperture centred on the host.
-        aperture : "core" (default: the point-source extraction radius), "<x>-arcsec" or
-            "<x>-kpc" (:mod:`slicersim.products.extraction`).
+        aperture : "core" (the point-source extraction radius), "<x>-arcsec" or "<x>-kpc"
+            (:mod:`slicersim.products.extraction`); None: "core", or "1-arcsec" (1.4.2's) for
+            the host (``of_host``) and for ``method="aperture"``.
         unit : "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s] or
             "framerate" [ADU/frame] (1.4.2 names accepted: :data:`~slicersim.products.extraction.UNITS`);
             the variance is in unit².
@@ -428,6 +430,7 @@ class Target(DetectorProducts):
         of_host = _check_flag(of_host, "of_host")
         off = check_switch_off(switch_off)
         factor = unit_factors(self.simulation, unit)                  # validates the unit first
+        method, aperture = _default_extraction(method, of_host, aperture)
         lbda, signal, variance = self._extract(method, of_host, aperture, off=off)
         if incl_error:
             from slicersim.backends.noise import noisy_cube
@@ -573,3 +576,14 @@ def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame="rest", confi
     target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field,
                              conventions=conventions)
     return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))
+
+
+def _default_extraction(method, of_host, aperture):
+    """(method, aperture) with slicersim 1.4.2's defaults: "1-arcsec" for the host and for plain
+    sums, optimal extraction only for the "core" aperture."""
+    if aperture is None and (of_host or method == "aperture"):
+        aperture = "1-arcsec"
+    if method in (None, "default"):
+        core = aperture is None or (isinstance(aperture, str) and aperture.strip().lower() == "core")
+        method = "optimal" if core else "aperture"
+    return method, aperture
