@@ -67,6 +67,8 @@ def test_finding04_update_checks_the_aperture_in_the_combined_state():
     assert np.all(np.isfinite(k.get_spectrum()[1]))                 # still usable
     k.update(redshift=0.1, aperture="1-kpc")                         # a fitting combination is accepted
     assert (k.aperture, k.redshift) == ("1-kpc", 0.1)
+    np.testing.assert_array_equal(k.get_spectrum()[1],                # and is the one extracted
+                                  k.get_spectrum(aperture="1-kpc", method="aperture")[1])
 
 
 # --------------------------------------------------------------------------- 9

@@ -145,6 +145,11 @@ class Galaxy(Target):
         if _check_flag(of_host, "of_host") is False:
             raise ParameterError("a galaxy target has no point source: its spectrum is that of the galaxy "
                                  "(of_host=True)")
+        if aperture is None:               # the target's own aperture and method (not Target's defaults)
+            aperture = self._aperture
+            method = self.method if method in (None, "default") else method
+        else:
+            method = self._resolve_method(method, _check_aperture_name(aperture))
         return super().get_spectrum(incl_error, seed, method, True, aperture, unit, switch_off)
 
     # ------------------------------------------------------------------ SNR and ETC
