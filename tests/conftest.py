@@ -117,3 +117,20 @@ def _temporary_table_cache(tmp_path_factory):
         os.environ.pop("SLICERSIM_CACHE", None)
     else:
         os.environ["SLICERSIM_CACHE"] = saved
+
+
+def small_slicer_mapper():
+    """116 straight, slightly tilted and sheared traces (8 tiers of 15) on a 660 × 600 detector,
+    λ 9000–10000 Å over 60 px, spot σ 0.6–1.2 px growing with λ; neighbouring slices share their
+    spot tails (gap ~6 px).  A layout small enough for Monte Carlo tests of the reduction."""
+    from slicersim.instrument.mapper import SlicerMapper
+    phi, lam = np.array([-1.0, 0.0, 1.0]), np.array([9000.0, 9500.0, 10000.0])
+    ids = np.arange(1, 117)
+    k, tier = (ids - 1) % 15, (ids - 1) // 15
+    u = ((lam - 9000.0) / 1000.0)[None, None, :]
+    values = np.empty((116, 3, 3, 4))
+    values[..., 0] = 20 + 38 * k[:, None, None] - 16 * phi[None, :, None] + 1.5 * u
+    values[..., 1] = 15 + 80 * tier[:, None, None] + 60 * u + 0.8 * phi[None, :, None]
+    values[..., 2] = 0.6 + 0.4 * u
+    values[..., 3] = 0.7 + 0.5 * u
+    return SlicerMapper(ids, phi, lam, values, detector_shape=(660, 600), table_cache=None)

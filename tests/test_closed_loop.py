@@ -13,9 +13,9 @@ Tolerances
 """
 import numpy as np
 import pytest
+from conftest import small_slicer_mapper
 
 from slicersim.errors import ParameterError
-from slicersim.instrument.mapper import SlicerMapper
 from slicersim.physics.psf import gaussian_psf_cells
 from slicersim.reduction.rectify import rectify
 from slicersim.reduction.spectra import extract_spectrum, propagate_variance, psf_from_cube
@@ -26,18 +26,8 @@ NCOL = 24
 
 @pytest.fixture(scope="module")
 def small():
-    """116 straight, tilted traces (8 tiers of 15) on a 660 × 600 detector, λ 9000–10000 Å over
-    60 px, spot σ 0.6–1.2 px (as tests/test_rectify.py)."""
-    phi, lam = np.array([-1.0, 0.0, 1.0]), np.array([9000.0, 9500.0, 10000.0])
-    ids = np.arange(1, 117)
-    k, tier = (ids - 1) % 15, (ids - 1) // 15
-    u = ((lam - 9000.0) / 1000.0)[None, None, :]
-    values = np.empty((116, 3, 3, 4))
-    values[..., 0] = 20 + 38 * k[:, None, None] - 16 * phi[None, :, None] + 1.5 * u
-    values[..., 1] = 15 + 80 * tier[:, None, None] + 60 * u + 0.8 * phi[None, :, None]
-    values[..., 2] = 0.6 + 0.4 * u
-    values[..., 3] = 0.7 + 0.5 * u
-    return SlicerMapper(ids, phi, lam, values, detector_shape=(660, 600), table_cache=None)
+    """The small test layout (conftest.small_slicer_mapper)."""
+    return small_slicer_mapper()
 
 
 def _scene():

@@ -16,6 +16,7 @@ Tolerances
 """
 import numpy as np
 import pytest
+from conftest import small_slicer_mapper
 
 from slicersim.backends import opencl
 from slicersim.backends import projection as cp
@@ -48,20 +49,8 @@ def mapper():
 
 @pytest.fixture(scope="module")
 def small():
-    """116 straight, slightly tilted and sheared traces (8 tiers of 15) on a 660 × 600 detector,
-    λ 9000–10000 Å over 60 px, spot σ 0.6–1.2 px growing with λ; neighbouring slices share
-    their spot tails (gap ~6 px).  The Monte Carlo tests run on it (full 4096² images × 40
-    realisations would take 5 GB)."""
-    phi, lam = np.array([-1.0, 0.0, 1.0]), np.array([9000.0, 9500.0, 10000.0])
-    ids = np.arange(1, 117)
-    k, tier = (ids - 1) % 15, (ids - 1) // 15
-    u = ((lam - 9000.0) / 1000.0)[None, None, :]
-    values = np.empty((116, 3, 3, 4))
-    values[..., 0] = 20 + 38 * k[:, None, None] - 16 * phi[None, :, None] + 1.5 * u
-    values[..., 1] = 15 + 80 * tier[:, None, None] + 60 * u + 0.8 * phi[None, :, None]
-    values[..., 2] = 0.6 + 0.4 * u
-    values[..., 3] = 0.7 + 0.5 * u
-    return SlicerMapper(ids, phi, lam, values, detector_shape=(660, 600), table_cache=None)
+    """The small test layout (conftest.small_slicer_mapper)."""
+    return small_slicer_mapper()
 
 
 SMALL = np.linspace(9050.0, 9950.0, 13)     # 12 bins of 5 px on the small layout

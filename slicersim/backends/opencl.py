@@ -446,3 +446,15 @@ def sync_to_host(buffer, array) -> None:
                                       is_blocking=True)
     mapped.base.release(queue)
     del mapped
+
+
+def workspace_buffer(workspace, name, nbytes):
+    """Device buffer of ≥ nbytes, reused from ``workspace`` (a dict kept by the caller across
+    launches, e.g. the row blocks of a ramp); a fresh buffer when ``workspace`` is None."""
+    if workspace is None:
+        return device_buffer(nbytes)
+    buf, size = workspace.get(name, (None, 0))
+    if size < nbytes:
+        buf, size = device_buffer(nbytes), nbytes
+        workspace[name] = (buf, size)
+    return buf

@@ -231,7 +231,7 @@ def launch_samplers(kernel_of, lists, vw, work_group, workspace, head, outputs, 
         gsize, lsize = (items,), None
         if work_group:
             gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
-        d_idx = opencl.to_device(idx, _buffer(workspace, name, idx.nbytes))
+        d_idx = opencl.to_device(idx, opencl.workspace_buffer(workspace, name, idx.nbytes))
         extra = (np.float64(gauss_min_mean),) if name == "macc_ramp_dense" else ()
         opencl.launch(kernel_of(name, vw), gsize, lsize, *head, d_idx, np.uint32(items), *outputs, *scalars,
                       *tail, *extra)
@@ -256,15 +256,6 @@ def _pixel_lists(mu, p, vector_width):
     return pad(sp), pad(dn)
 
 
-def _buffer(workspace, name, nbytes):
-    """Device buffer of ≥ nbytes, reused from ``workspace`` (a dict kept across row blocks)."""
-    if workspace is None:
-        return opencl.device_buffer(nbytes)
-    buf, size = workspace.get(name, (None, 0))
-    if size < nbytes:
-        buf, size = opencl.device_buffer(nbytes), nbytes
-        workspace[name] = (buf, size)
-    return buf
 
 
 def device_block(mu_frame, dead, p, vector_width, work_group, workspace):
@@ -273,7 +264,7 @@ def device_block(mu_frame, dead, p, vector_width, work_group, workspace):
     vw, work_group = _launch_geometry(vector_width, work_group)
     mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
     lists = _pixel_lists(mu, p, vw)
-    return vw, work_group, lists, opencl.to_device(mu, _buffer(workspace, "mu", mu.nbytes))
+    return vw, work_group, lists, opencl.to_device(mu, opencl.workspace_buffer(workspace, "mu", mu.nbytes))
 
 
 def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None, vector_width=None, *,
@@ -288,8 +279,8 @@ def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None
     npix = mu_frame.size
     vw, work_group, lists, d_mu = device_block(mu_frame, dead, p, vector_width, work_group, workspace)
     key = rng.seed_to_key(seed)
-    d_sci = _buffer(workspace, "sci", 2 * n * npix)
-    d_gdq = _buffer(workspace, "gdq", n * npix if want_dq else 1)
+    d_sci = opencl.workspace_buffer(workspace, "sci", 2 * n * npix)
+    d_gdq = opencl.workspace_buffer(workspace, "gdq", n * npix if want_dq else 1)
     launch_samplers(_ramp_kernel, lists, vw, work_group, workspace, (d_mu,), (d_sci, d_gdq),
                     block_arguments(npix, pixel0, ramp, key, p, want_dq), p.gauss_min_mean)
     sci = np.empty((n, npix), np.uint16) if sci_out is None else sci_out

@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from slicersim.backends import opencl, rng
-from slicersim.backends.ramp import (P_KTC, P_READ, _buffer, _event_position, _event_words, block_arguments,
+from slicersim.backends.ramp import (P_KTC, P_READ, _event_position, _event_words, block_arguments,
                                      charge_groups, device_block, launch_samplers)
 from slicersim.io.rampfile import DQ
 
@@ -146,20 +146,20 @@ def charge_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, fx, work_group=No
     npix = mu_frame.size
     vw, work_group, lists, d_mu = device_block(mu_frame, dead, p, vector_width, work_group, workspace)
     key = rng.seed_to_key(seed)
-    d_gdq = _buffer(workspace, "gdq", n * npix)
-    d_gmean = _buffer(workspace, "gmean", 8 * n * npix)
-    d_sci = _buffer(workspace, "sci_unused", 8)
+    d_gdq = opencl.workspace_buffer(workspace, "gdq", n * npix)
+    d_gmean = opencl.workspace_buffer(workspace, "gmean", 8 * n * npix)
+    d_sci = opencl.workspace_buffer(workspace, "sci_unused", 8)
     ndep = max(1, fx.frame.size)
-    d_start = opencl.to_device(np.ascontiguousarray(fx.start, np.uint32), _buffer(workspace, "dep_start", 4 * (npix + 1)))
+    d_start = opencl.to_device(np.ascontiguousarray(fx.start, np.uint32), opencl.workspace_buffer(workspace, "dep_start", 4 * (npix + 1)))
     d_frame = opencl.to_device(np.resize(np.ascontiguousarray(fx.frame, np.int32), ndep),
-                               _buffer(workspace, "dep_frame", 4 * ndep))
+                               opencl.workspace_buffer(workspace, "dep_frame", 4 * ndep))
     d_e = opencl.to_device(np.resize(np.ascontiguousarray(fx.electrons, np.float64), ndep),
-                           _buffer(workspace, "dep_e", 8 * ndep))
+                           opencl.workspace_buffer(workspace, "dep_e", 8 * ndep))
     if fx.use_nl:
-        d_a2 = opencl.to_device(np.ascontiguousarray(fx.a2, np.float64), _buffer(workspace, "nl_a2", 8 * npix))
-        d_a3 = opencl.to_device(np.ascontiguousarray(fx.a3, np.float64), _buffer(workspace, "nl_a3", 8 * npix))
+        d_a2 = opencl.to_device(np.ascontiguousarray(fx.a2, np.float64), opencl.workspace_buffer(workspace, "nl_a2", 8 * npix))
+        d_a3 = opencl.to_device(np.ascontiguousarray(fx.a3, np.float64), opencl.workspace_buffer(workspace, "nl_a3", 8 * npix))
     else:
-        d_a2 = d_a3 = _buffer(workspace, "nl_unused", 8)
+        d_a2 = d_a3 = opencl.workspace_buffer(workspace, "nl_unused", 8)
     effect_args = (d_start, d_frame, d_e, d_a2, d_a3, np.int32(bool(fx.use_nl)), d_gmean)
     launch_samplers(_charge_kernel, lists, vw, work_group, workspace, (d_mu,), (d_sci, d_gdq),
                     block_arguments(npix, pixel0, ramp, key, p, True), p.gauss_min_mean, effect_args)
@@ -231,8 +231,8 @@ def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None,
     if shape_in is None:
         n, rows_in, nx = _check_readout_inputs(gmean, rows, halo_top)
         d_gm = opencl.to_device(np.ascontiguousarray(gmean, np.float64),
-                                _buffer(workspace, "ro_gmean", gmean.size * 8))
-        d_q = opencl.to_device(np.ascontiguousarray(qsat, np.uint8), _buffer(workspace, "ro_qsat", qsat.size))
+                                opencl.workspace_buffer(workspace, "ro_gmean", gmean.size * 8))
+        d_q = opencl.to_device(np.ascontiguousarray(qsat, np.uint8), opencl.workspace_buffer(workspace, "ro_qsat", qsat.size))
     else:
         n, rows_in, nx = _check_readout_inputs(np.empty((0,) + tuple(shape_in[1:])), rows, halo_top)
         n, d_gm, d_q = shape_in[0], gmean, qsat
@@ -245,24 +245,24 @@ def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None,
         if zero_copy and not extra.flags.writeable:
             extra = extra.copy()
         d_x = opencl.host_buffer(extra) if zero_copy else \
-            opencl.to_device(extra, _buffer(workspace, "ro_extra", 4 * n * plane))
+            opencl.to_device(extra, opencl.workspace_buffer(workspace, "ro_extra", 4 * n * plane))
     else:
-        d_x = _buffer(workspace, "ro_unused_x", 8)
+        d_x = opencl.workspace_buffer(workspace, "ro_unused_x", 8)
     if bias_map is not None:
         bias_map = np.array(bias_map, np.float32, order="C")
         d_b = opencl.host_buffer(bias_map) if zero_copy else \
-            opencl.to_device(bias_map, _buffer(workspace, "ro_bias", 4 * plane))
+            opencl.to_device(bias_map, opencl.workspace_buffer(workspace, "ro_bias", 4 * plane))
     else:
-        d_b = _buffer(workspace, "ro_unused_b", 8)
+        d_b = opencl.workspace_buffer(workspace, "ro_unused_b", 8)
     kern = np.zeros(9) if ipc is None else np.ascontiguousarray(ipc, np.float64).ravel()
-    d_k = opencl.to_device(kern, _buffer(workspace, "ro_ipc", 72))
+    d_k = opencl.to_device(kern, opencl.workspace_buffer(workspace, "ro_ipc", 72))
     sci = np.empty((n, rows, nx), np.uint16)
     gdq = np.empty((n, rows, nx), np.uint8)
     if zero_copy:
         d_sci, d_gdq = opencl.host_buffer(sci), opencl.host_buffer(gdq)
     else:
-        d_sci = _buffer(workspace, "ro_sci", 2 * n * plane)
-        d_gdq = _buffer(workspace, "ro_gdq", n * plane)
+        d_sci = opencl.workspace_buffer(workspace, "ro_sci", 2 * n * plane)
+        d_gdq = opencl.workspace_buffer(workspace, "ro_gdq", n * plane)
     vw = opencl.preferred_vector_width(16, 2) if vector_width is None else int(vector_width)
     kernel = opencl.get_kernel("ramp_readout.cl", "ramp_readout", (f"-DRNG_VW={vw}",))
     m = p.nmd[1]

@@ -230,14 +230,6 @@ def fit_block_numpy(sci, gdq, pixeldq, k):
 CPU_WORK_GROUP = 64
 
 
-def _buffer(workspace, name, nbytes):
-    if workspace is None:
-        return opencl.device_buffer(nbytes)
-    buf, size = workspace.get(name, (None, 0))
-    if size < nbytes:
-        buf, size = opencl.device_buffer(nbytes), nbytes
-        workspace[name] = (buf, size)
-    return buf
 
 
 def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True, wait=True):
@@ -270,13 +262,13 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
         d_sci, d_gdq, d_pdq = (opencl.host_buffer(a) for a in (sci, gdq, pixeldq))
         d_fit, d_dq, d_nj, d_gout = (opencl.host_buffer(a) for a in outputs)
     else:
-        d_sci = opencl.to_device(sci, _buffer(workspace, "sci", sci.nbytes))
-        d_gdq = opencl.to_device(gdq, _buffer(workspace, "gdq", gdq.nbytes))
-        d_pdq = opencl.to_device(pixeldq, _buffer(workspace, "pdq", pixeldq.nbytes))
-        d_fit, d_dq, d_nj, d_gout = (_buffer(workspace, name, a.nbytes)
+        d_sci = opencl.to_device(sci, opencl.workspace_buffer(workspace, "sci", sci.nbytes))
+        d_gdq = opencl.to_device(gdq, opencl.workspace_buffer(workspace, "gdq", gdq.nbytes))
+        d_pdq = opencl.to_device(pixeldq, opencl.workspace_buffer(workspace, "pdq", pixeldq.nbytes))
+        d_fit, d_dq, d_nj, d_gout = (opencl.workspace_buffer(workspace, name, a.nbytes)
                                      for name, a in zip(("fit", "dq", "njump", "gdq_out"), outputs))
     nwords = -(-(n - 1) // 64)
-    d_bits = _buffer(workspace, "bits", 8 * nints * nwords * npix if nints > 1 and k.weighting == "gls" else 8)
+    d_bits = opencl.workspace_buffer(workspace, "bits", 8 * nints * nwords * npix if nints > 1 and k.weighting == "gls" else 8)
     gsize, lsize = (npix,), None
     if work_group:
         gsize, lsize = (-(-npix // int(work_group)) * int(work_group),), (int(work_group),)
