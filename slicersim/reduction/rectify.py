@@ -52,7 +52,8 @@ from slicersim.backends.projection_transpose import gather, matrix_entries
 from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES, SlicerMapper
 
-__all__ = ["rectify", "CubeProduct", "FIELDS", "METHODS", "MAX_CONDITION"]
+__all__ = ["rectify", "CubeProduct", "InverseCovariance", "inverse_covariance", "FIELDS", "METHODS",
+           "MAX_CONDITION"]
 
 FIELDS = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}
 METHODS = ("lsq", "drizzle")
@@ -69,6 +70,8 @@ class CubeProduct:
     ``flux``: (nλ, n_rows, ncol), or (N, nλ, n_rows, ncol) for a stack of N images, in the
     image's unit per cell per bin (``unit``, e.g. e-/s); ``variance``: same shape minus the
     stack axis [unit²] (None without an input variance); NaN for cells no usable pixel sees.
+    ``inverse_covariance`` (``lsq`` with a variance): the full inverse covariance of the cube,
+    one sparse block per row (:class:`InverseCovariance`, :meth:`normal_matrix`).
     ``wcs``: the axes (λ centres and edges [Å], slice id of every row, fieldpos edges of the
     columns, −1 … +1 along the slice).  ``diagnostics``: see :func:`rectify`.
     """
@@ -83,6 +86,15 @@ class CubeProduct:
     unit: str = "e-/s"
     wcs: dict = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
+    inverse_covariance: "InverseCovariance | None" = field(default=None, repr=False, compare=False)
+
+    def normal_matrix(self, row):
+        """The inverse covariance block N_s = P_sᵀW P_s of cube row ``row`` (:class:`InverseCovariance`;
+        ``lsq`` cubes rectified with a variance only)."""
+        if self.inverse_covariance is None:
+            raise ParameterError(f"this {self.method} cube carries no inverse covariance (lsq with a "
+                                 "variance only)")
+        return self.inverse_covariance.matrix(row)
 
 
 @functools.lru_cache(maxsize=1)
@@ -254,9 +266,10 @@ class _BlockCholesky:
         return sum(a.nbytes for a in self.inv) + sum(a.nbytes for a in self.sub)
 
 
-def _slice_matrix(tables, s, weight_flat):
-    """P of slice s on its usable pixels: (CSR (npix × ncell), flat pixel indices, flux
-    fraction of every cell on excluded pixels)."""
+def _slice_matrix(tables, s, weight_of):
+    """P of slice s on its usable pixels: (CSR (npix × ncell), flat pixel indices, their
+    weights, flux fraction of every cell on excluded pixels).  ``weight_of(flat pixels)``:
+    the LSQ weights (0: unusable)."""
     S, E, Q = tables.grid
     ne, nq = tables.oversample
     nc = (E // ne) * (Q // nq)
@@ -267,20 +280,77 @@ def _slice_matrix(tables, s, weight_flat):
         cell.append(c - s * nc)
         wgt.append(w)
     pix, cell, wgt = np.concatenate(pix), np.concatenate(cell), np.concatenate(wgt)
-    use = weight_flat[pix] > 0
+    use = weight_of(pix) > 0
     lost = np.bincount(cell[~use], weights=wgt[~use], minlength=nc)
     upix, row = np.unique(pix[use], return_inverse=True)
     P = sp.csr_matrix((wgt[use], (row, cell[use])), shape=(upix.size, nc))
     P.sum_duplicates()
-    return P, upix, lost
+    return P, upix, weight_of(upix), lost
 
 
-def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid):
-    """Weighted LSQ of one slice: (x (nc, N), variance (nc,) or None, κ₁(PᵀWP))."""
+def _normal_matrix(P, w):
+    """PᵀWP (CSR, exactly symmetric) of one slice: the inverse covariance of its LSQ cells."""
+    A = (P.T @ sp.csr_matrix(P.multiply(w[:, None]))).tocsr()
+    return (0.5 * (A + A.T)).tocsr()
+
+
+class InverseCovariance:
+    """Inverse covariance N = PᵀWP of an LSQ cube: the cube's covariance (PᵀWP)⁻¹ is block diagonal
+    over the slices (pixels shared between slices are left out of the fit), so N is one sparse
+    (nλ·ncol)² block per cube row.
+
+    ``matrix(row)``: CSR block of cube row ``row``, cells λ-major, column-minor (index
+    λ·ncol + column: ``cube[:, row, :].ravel()``), block tridiagonal over λ bins; a cell no usable
+    pixel sees has a zero row and column (NaN in the cube).  N x̂ = PᵀW d: fits to the cube weighted
+    by N are fits to the detector pixels (:func:`slicersim.reduction.gls_extraction.extract_gls`).
+    Built on demand from the projection tables and the weights 1/var of the usable pixels (held:
+    the tables, 12 bytes per usable pixel), or kept (``keep``: rectify's own matrices, about
+    12 bytes × nλ·ncol·(2·bandwidth + 1) per slice, bandwidth ≈ ncol × (1 + spot width / bin
+    width); ``nbytes()``).  Valid for every image of a stack (one variance)."""
+
+    def __init__(self, tables, weight, slices, shape, keep=False):
+        flat = np.asarray(weight, np.float64).ravel()
+        usable = np.flatnonzero(flat > 0)
+        self._pix = usable.astype(np.int32 if flat.size < 2**31 else np.int64)
+        self._w = flat[usable]
+        self._tables = tables
+        self.slices = tuple(int(v) for v in slices)       # gather order: cube row r ↔ slices[S − 1 − r]
+        self.shape = tuple(int(v) for v in shape)         # (nλ, n_rows, ncol)
+        self.keep = bool(keep)
+        self._kept = {}
+
+    def _weight_of(self, pix):
+        if self._pix.size == 0:
+            return np.zeros(np.shape(pix))
+        i = np.minimum(np.searchsorted(self._pix, pix), self._pix.size - 1)
+        return np.where(self._pix[i] == pix, self._w[i], 0.0)
+
+    def _store(self, s, A):
+        if self.keep:
+            self._kept[s] = A
+
+    def matrix(self, row):
+        """N of cube row ``row`` (CSR, (nλ·ncol)²) [unit⁻²]."""
+        nrow = self.shape[1]
+        if not 0 <= int(row) < nrow:
+            raise ParameterError(f"row must be in 0 … {nrow - 1}, got {row!r}")
+        s = nrow - 1 - int(row)
+        if s in self._kept:
+            return self._kept[s]
+        P, _, w, _ = _slice_matrix(self._tables, s, self._weight_of)
+        A = _normal_matrix(P, w)
+        self._store(s, A)
+        return A
+
+    def nbytes(self):
+        """Bytes held: the pixel weights and the kept matrices (not the shared projection tables)."""
+        kept = sum(A.data.nbytes + A.indices.nbytes + A.indptr.nbytes for A in self._kept.values())
+        return int(self._pix.nbytes + self._w.nbytes + kept)
+
+
+def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A):
+    """Weighted LSQ of one slice (A = PᵀWP): (x (nc, N), variance (nc,) or None, κ₁(A))."""
     nc = P.shape[1]
-    WP = sp.csr_matrix(P.multiply(w[:, None]))
-    A = (P.T @ WP).tocsr()
-    A = 0.5 * (A + A.T)                                  # exactly symmetric
     seen = A.diagonal() > 0
     x = np.full((nc, rhs.shape[1]), np.nan)
     var = np.full(nc, np.nan) if want_variance else None
@@ -324,8 +394,9 @@ def _cube_axes(values):
     return np.ascontiguousarray(np.swapaxes(values, -3, -2)[..., ::-1, :])
 
 
-def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend):
-    """Weighted LSQ of one field: ((N, S, nλ, ncol) flux, (S, nλ, ncol) variance or None, diagnostics)."""
+def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend, info):
+    """Weighted LSQ of one field: ((N, S, nλ, ncol) flux, (S, nλ, ncol) variance or None, diagnostics);
+    the slices' normal matrices go to ``info`` (an :class:`InverseCovariance`, kept if it keeps them)."""
     S, E, Q = tables.grid
     ne, nq = tables.oversample
     shape = (S, E // ne, Q // nq)
@@ -339,9 +410,10 @@ def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend
     var = np.empty((S, nc)) if want_variance else None
     cond, lost = 0.0, 0.0
     for s in range(S):
-        P, upix, lost_s = _slice_matrix(tables, s, flat_w)
-        x, v, c = _solve_slice(P, flat_w[upix], rhs[:, s].T, flat_d[:, upix].T, want_variance, max_bytes,
-                               slices[s])
+        P, upix, w, lost_s = _slice_matrix(tables, s, flat_w.__getitem__)
+        A = _normal_matrix(P, w)
+        info._store(s, A)
+        x, v, c = _solve_slice(P, w, rhs[:, s].T, flat_d[:, upix].T, want_variance, max_bytes, slices[s], A)
         flux[:, s] = x.T
         if want_variance:
             var[s] = v
@@ -397,9 +469,29 @@ def _usable_pixels(images, variance, owner_ok, field_name, weighted):
     return usable, weight
 
 
+def _check_projection(oversample, truncate, weights_dtype):
+    ov = tuple(int(v) for v in np.ravel(oversample))
+    if len(ov) != 2 or min(ov) < 1:
+        raise ParameterError(f"oversample must be two positive integers, got {oversample!r}")
+    if not (np.isfinite(truncate) and truncate > 0):
+        raise ParameterError(f"truncate must be a positive number of spot rms, got {truncate!r}")
+    if np.dtype(weights_dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ParameterError(f"weights_dtype must be float32 or float64, got {weights_dtype!r}")
+    return ov
+
+
+def _field_tables(mapper, name, edges, ncol, ov, truncate, weights_dtype, backend):
+    """(slices in gather order, projection tables, P·1 image) of a field."""
+    slices = [int(s) for s in FIELDS[name]]
+    tables = mapper.projection_tables(slices, ncol, edges, oversample=ov, truncate=truncate,
+                                      weights_dtype=weights_dtype, backend=backend)
+    cover = deposit(np.ones((len(slices), edges.size - 1, ncol)), tables, backend=backend)
+    return slices, tables, cover
+
+
 def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None, lbda_edges=None, ncol=116,
             method="lsq", oversample=(1, 1), truncate=4.0, weights_dtype=np.float32, unit="e-/s",
-            max_bytes=2**30, backend="auto"):
+            max_bytes=2**30, backend="auto", keep_information=False):
     """Rectify a detector rate image into the cube(s) of a field: see the module docstring.
 
     Parameters
@@ -418,8 +510,11 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
     oversample, truncate, weights_dtype : the projection's options (as ``project_cube``: the
         same values give the same P, hence exact recovery of a cube projected with them).
     max_bytes : memory allowed for one slice's factorisation (``lsq``).
+    keep_information : ``lsq`` with a variance: keep every slice's normal matrix PᵀWP (the cube's
+        inverse covariance, :class:`InverseCovariance`) instead of rebuilding it when asked.
 
-    Returns a :class:`CubeProduct` (``field="both"``: a dict of two).  ``diagnostics``:
+    Returns a :class:`CubeProduct` (``field="both"``: a dict of two); ``lsq`` with a variance:
+    its ``inverse_covariance``.  ``diagnostics``:
     lsq: ``cond1_normal_max`` (largest κ₁(PᵀWP) of a slice), ``chi2`` per image over the used
     pixels, ``dof``, ``gradient_rel`` (‖Pᵀ W (d − P x̂)‖ / ‖Pᵀ W d‖, 0 at the optimum),
     ``excluded_flux_max`` (largest fraction of a cell's flux on pixels shared with another
@@ -428,13 +523,7 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
     """
     mapper = _default_mapper() if mapper is None else mapper
     names = _check_options(field, method, ncol, backend, mapper)
-    ov = tuple(int(v) for v in np.ravel(oversample))
-    if len(ov) != 2 or min(ov) < 1:
-        raise ParameterError(f"oversample must be two positive integers, got {oversample!r}")
-    if not (np.isfinite(truncate) and truncate > 0):
-        raise ParameterError(f"truncate must be a positive number of spot rms, got {truncate!r}")
-    if np.dtype(weights_dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
-        raise ParameterError(f"weights_dtype must be float32 or float64, got {weights_dtype!r}")
+    ov = _check_projection(oversample, truncate, weights_dtype)
     if method == "drizzle" and variance is not None and ov != (1, 1):
         raise ParameterError("drizzle variances need oversample (1, 1)")
     centres, edges = _check_grid(lbda, lbda_edges, mapper)
@@ -446,15 +535,17 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
     out = {}
     for name in names:
         t0 = time.perf_counter()
-        slices = [int(s) for s in FIELDS[name]]
-        tables = mapper.projection_tables(slices, ncol, edges, oversample=ov, truncate=truncate,
-                                          weights_dtype=weights_dtype, backend=backend)
-        cover = deposit(np.ones((len(slices), edges.size - 1, ncol)), tables, backend=backend)   # P·1
+        slices, tables, cover = _field_tables(mapper, name, edges, ncol, ov, truncate, weights_dtype, backend)
         reach = cover > 0
+        info = None
         if method == "lsq":
             usable, weight = _usable_pixels(images, var, reach & (count == 1), name, True)
-            flux, fvar, diag = _field_lsq(images, weight, tables, slices, var is not None, max_bytes, backend)
+            shape = (edges.size - 1, len(slices), ncol)
+            info = InverseCovariance(tables, weight, slices, shape, keep_information and var is not None)
+            flux, fvar, diag = _field_lsq(images, weight, tables, slices, var is not None, max_bytes, backend,
+                                          info)
             diag["pixels_shared"] = int((reach & (count > 1)).sum())
+            info = info if var is not None else None
         else:
             usable, _ = _usable_pixels(images, var, reach, name, False)
             flux, fvar, diag = _field_drizzle(images, usable, var, cover, tables, backend)
@@ -464,5 +555,26 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
                "slice_of_row": tuple(slices[::-1]), "fieldpos_edges": np.linspace(-1.0, 1.0, ncol + 1),
                "unit": f"{unit} per cell per bin"}
         out[name] = CubeProduct(name, method, flux if stack else flux[0], None if fvar is None else
-                                _cube_axes(fvar), centres, edges, tuple(slices[::-1]), unit, wcs, diag)
+                                _cube_axes(fvar), centres, edges, tuple(slices[::-1]), unit, wcs, diag, info)
+    return out if field == "both" else out[field]
+
+
+def inverse_covariance(variance, *, mapper=None, field="narrow", lbda_edges, ncol, oversample=(1, 1), truncate=4.0,
+                       weights_dtype=np.float32, backend="auto", keep=False):
+    """The :class:`InverseCovariance` that ``rectify(…, variance, method="lsq")`` with the same
+    options attaches to its cube (same usable pixels: unshared, finite variance > 0), without
+    rectifying anything (e.g. for a cube read back from a file).  ``field="both"``: a dict of two."""
+    mapper = _default_mapper() if mapper is None else mapper
+    names = _check_options(field, "lsq", ncol, "auto" if backend is None else backend, mapper)
+    ov = _check_projection(oversample, truncate, weights_dtype)
+    _, edges = _check_grid(None, lbda_edges, mapper)
+    _, var = _check_images(np.zeros((0,) + tuple(mapper.detector_shape)), variance, mapper.detector_shape)
+    if var is None:
+        raise ParameterError("inverse_covariance needs the per-pixel variance the cube was rectified with")
+    count = _slice_coverage(mapper, int(ncol), edges, ov, truncate)
+    out = {}
+    for name in names:
+        slices, tables, cover = _field_tables(mapper, name, edges, int(ncol), ov, truncate, weights_dtype, backend)
+        _, weight = _usable_pixels((), var, (cover > 0) & (count == 1), name, True)
+        out[name] = InverseCovariance(tables, weight, slices, (edges.size - 1, len(slices), int(ncol)), keep)
     return out if field == "both" else out[field]

@@ -26,7 +26,10 @@ unbiased:
   F̂_ap = S₀ · EE / (EE − N p̄) estimates F·EE, the light in the aperture (EE = Σ_ap P, as the
   ETC's aperture spectrum: no aperture correction; ``enclosed_energy`` is returned).
 
-Cells with non-finite flux or variance get zero weight (bin by bin).
+Cells with non-finite flux or variance get zero weight (bin by bin).  Both weight cells with the
+diagonal of the cube covariance only: on an LSQ cube, whose cells are strongly correlated, use
+``method="gls"`` (:mod:`slicersim.reduction.gls_extraction`: the full inverse covariance, minimum
+variance) or at least :func:`propagate_variance` for the exact variance of these estimators.
 """
 from __future__ import annotations
 
@@ -38,8 +41,12 @@ from slicersim.errors import ParameterError
 from slicersim.physics.psf import cell_centres, gaussian_psf_cells
 from slicersim.products.extraction import EXTRACTION_METHODS, extract_aperture, extract_optimal
 
-__all__ = ["extract_spectrum", "SpectrumProduct", "fit_gaussian_psf", "psf_from_cube", "propagate_variance"]
+__all__ = ["extract_spectrum", "SpectrumProduct", "fit_gaussian_psf", "psf_from_cube", "propagate_variance",
+           "METHODS"]
 
+#: extraction methods: the cube's cells weighted by the diagonal of its covariance ("optimal",
+#: "aperture") or the GLS fit with its full inverse covariance ("gls", LSQ cubes)
+METHODS = (*EXTRACTION_METHODS, "gls")
 _MAX_CHUNKS = 512
 _MIN_SIGMA = 0.25
 
@@ -193,8 +200,8 @@ def psf_from_cube(point_source_cube):
 
 # --------------------------------------------------------------------------- extraction
 def _check(cube_product, method, psf, aperture, background_radius, position):
-    if method not in EXTRACTION_METHODS:
-        raise ParameterError(f"method must be one of {EXTRACTION_METHODS}, got {method!r}")
+    if method not in METHODS:
+        raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     flux = getattr(cube_product, "flux", None)
     if flux is None:
         raise ParameterError("cube_product must be a CubeProduct (from slicersim.reduction.rectify)")
@@ -243,7 +250,12 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
                      background=True, background_radius=6.0, nchunks=_MAX_CHUNKS):
     """Spectrum of a point source in a rectified cube (see the module docstring).
 
-    method : "optimal" (PSF-weighted: total flux) or "aperture" (sum: light in the aperture)
+    method : "optimal" (PSF-weighted: total flux), "aperture" (sum: light in the aperture) — cells
+        weighted with the diagonal of the cube covariance — or "gls" (total flux: the
+        generalised-least-squares fit F_λ P + B_λ over every cell with the cube's full inverse
+        covariance, :func:`slicersim.reduction.gls_extraction.extract_gls`: minimum variance,
+        exact variance; LSQ cubes rectified with a variance; ``aperture`` and
+        ``background_radius`` unused)
     psf : None / "fit" (Gaussian fitted on the cube) or an (nλ, ny, nx) array of PSF fractions
     position : (x, y) [cells from the field centre]; None: fitted (or the given PSF's centroid)
     aperture : radius of the elliptical aperture [white-light PSF σ along each axis]
@@ -252,6 +264,9 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
 
     Returns a :class:`SpectrumProduct` in the cube's unit per bin.
     """
+    if method == "gls":
+        from slicersim.reduction.gls_extraction import extract_gls
+        return extract_gls(cube_product, psf=psf, position=position, background=background, nchunks=nchunks)
     flux, var, psf, position = _check(cube_product, method, psf, aperture, background_radius, position)
     shape = flux.shape[-3:]
     stack = flux.ndim == 4
@@ -340,57 +355,52 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
 
 
 # --------------------------------------------------------------------------- exact variance
-def propagate_variance(spectrum, cube_product, rate_variance, *, mapper=None, oversample=(1, 1), truncate=4.0,
-                       weights_dtype=np.float32, backend="auto"):
+def propagate_variance(spectrum, cube_product, rate_variance=None, *, mapper=None, oversample=(1, 1),
+                       truncate=4.0, weights_dtype=np.float32, backend="auto"):
     """Variance [unit²] of an extracted spectrum with the full covariance of an LSQ cube.
 
-    The ``variance`` of :func:`extract_spectrum` treats cells as independent (the cube carries
-    only diag((PᵀWP)⁻¹)); neighbouring LSQ cells are anti-correlated, so that sum is too large.
-    Here Var F̂_λ = Σ_slices u_λᵀ (P_sᵀ W P_s)⁻¹ u_λ exactly, slice by slice, for every slice the
-    extraction weights ``u`` reach with more than 1e-3 of their largest weight (the background's
-    tiny weights on the other slices keep their diagonal term).  ``rate_variance`` (H, W)
-    [unit²/px] and the projection options must be those given to ``rectify``.
+    The ``variance`` of :func:`extract_spectrum` ("optimal", "aperture") treats cells as
+    independent (the cube carries only diag((PᵀWP)⁻¹)); neighbouring LSQ cells are
+    anti-correlated, so that sum is too large.  Here Var F̂_λ = Σ_slices u_λᵀ N_s⁻¹ u_λ exactly,
+    N_s = P_sᵀ W P_s the cube's inverse covariance per slice (``cube_product.inverse_covariance``,
+    :class:`~slicersim.reduction.rectify.InverseCovariance`), for every slice the extraction
+    weights ``u`` reach with more than 1e-3 of their largest weight (the background's tiny
+    weights on the other slices keep their diagonal term).  A "gls" spectrum's variance is
+    already exact: returned as is.
 
-    Note: rebuilds P of those slices with rectify's internal helpers (same pixels: unshared,
-    finite variance); to be replaced by a covariance hook in ``rectify``.
+    ``rate_variance`` (H, W) [unit²/px]: optional; given, N is rebuilt from it
+    (:func:`~slicersim.reduction.rectify.inverse_covariance`, with ``mapper`` and the projection
+    options, which must be those given to ``rectify``) — for a cube without its own.
     """
-    import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
-    from slicersim.backends.projection import deposit
-    from slicersim.reduction.rectify import FIELDS, _default_mapper, _slice_coverage, _slice_matrix
+    from slicersim.reduction.rectify import inverse_covariance
     if getattr(cube_product, "method", None) != "lsq":
         raise ParameterError("propagate_variance needs an LSQ cube (rectify(method='lsq'))")
+    if getattr(spectrum, "method", None) == "gls":
+        return np.array(spectrum.variance, float)
     u = getattr(spectrum, "cell_weights", None)
     if u is None or u.shape != np.shape(cube_product.flux)[-3:]:
         raise ParameterError("spectrum must come from extract_spectrum on this cube")
-    mapper = _default_mapper() if mapper is None else mapper
-    var = np.asarray(rate_variance, float)
-    if var.shape != tuple(mapper.detector_shape):
-        raise ParameterError(f"rate_variance must have the detector's shape {tuple(mapper.detector_shape)}")
-    slices = [int(v) for v in FIELDS[cube_product.field]]
     nl, nrow, ncol = u.shape
-    edges = np.asarray(cube_product.lbda_edges, float)
-    ov = tuple(int(v) for v in np.ravel(oversample))
-    tables = mapper.projection_tables(slices, ncol, edges, oversample=ov, truncate=truncate,
-                                      weights_dtype=weights_dtype, backend=backend)
-    cover = deposit(np.ones((len(slices), nl, ncol)), tables, backend=backend)
-    count = _slice_coverage(mapper, ncol, edges, ov, truncate)
-    usable = (cover > 0) & (count == 1) & np.isfinite(var) & (var > 0)
-    weight = np.where(usable, 1.0 / np.where(usable, var, 1.0), 0.0).ravel()
+    if rate_variance is not None:
+        info = inverse_covariance(rate_variance, mapper=mapper, field=cube_product.field,
+                                  lbda_edges=cube_product.lbda_edges, ncol=ncol, oversample=oversample,
+                                  truncate=truncate, weights_dtype=weights_dtype, backend=backend)
+    else:
+        info = getattr(cube_product, "inverse_covariance", None)
+        if info is None:
+            raise ParameterError("the cube carries no inverse covariance: give rate_variance (rectify's variance)")
     cvar = np.nan_to_num(np.asarray(cube_product.variance, float)) if cube_product.variance is not None else None
     total = np.zeros(nl)
     reach = np.abs(u).max(axis=(0, 2))
-    for s in range(len(slices)):
-        row = nrow - 1 - s                                   # cube row of slice s
+    for row in range(nrow):
         us = u[:, row, :]                                    # (nλ, ncol)
         if reach[row] <= 1e-3 * reach.max() and cvar is not None:
             total += (us ** 2 * cvar[:, row, :]).sum(axis=1)
             continue
-        P, upix, _ = _slice_matrix(tables, s, weight)
-        A = (P.T @ sp.csr_matrix(P.multiply(weight[upix][:, None]))).tocsc()
-        seen = A.diagonal() > 0
-        idx = np.flatnonzero(seen)
+        A = info.matrix(row)
+        idx = np.flatnonzero(A.diagonal() > 0)
         rhs = np.zeros((nl * ncol, nl))
         rhs[np.arange(nl * ncol), np.repeat(np.arange(nl), ncol)] = us.ravel()    # λ-major cells
         rhs = rhs[idx]
