@@ -56,17 +56,23 @@ def rate_variance(rates):
 
 
 def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, ncol=58, rectify_method="lsq",
-                    extraction="optimal", psf="fit", position=None, aperture=3.0, background=True,
-                    propagate=True, fit_options=None, out=None, overwrite=False):
+                    extraction=None, psf="fit", position=None, aperture=3.0, background=True,
+                    propagate=True, fit_options=None, out=None, overwrite=False, keep_information=False):
     """Reduce one raw exposure to rates, cube(s) and spectra.
 
     raw_path : ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts
     mapper : SlicerMapper (default ``SlicerMapper.default()``);  field : "narrow", "wide" or "both"
     lbda_edges : rectification λ edges [Å] (default :func:`default_lbda_edges`: 2 native bins)
     ncol : columns per slice;  rectify_method : "lsq" or "drizzle"
-    extraction, psf, position, aperture, background : :func:`extract_spectrum` options
-    propagate : spectrum variance with the full LSQ cube covariance (:func:`propagate_variance`;
-        the cells-independent sum is kept as ``diagnostics["variance_diagonal"]``)
+    extraction : :func:`extract_spectrum` method; None (default): "gls" for an LSQ cube (fit with
+        its full inverse covariance: minimum variance, exact variance), "optimal" for drizzle
+    psf, position, aperture, background : :func:`extract_spectrum` options
+    propagate : "optimal" / "aperture" on an LSQ cube: spectrum variance with the full cube
+        covariance (:func:`propagate_variance`; the cells-independent sum is kept as
+        ``diagnostics["variance_diagonal"]``)
+    keep_information : keep the LSQ cube's inverse covariance from the rectification (rectify's
+        ``keep_information``: faster GLS, memory :meth:`InverseCovariance.nbytes`) instead of
+        rebuilding it for the extraction
     fit_options : keyword arguments of ``fit_ramps`` (refpix, linearity, jump_threshold, weighting, ...)
     out : HDF5 path written atomically with all three products (module docstring)
 
@@ -92,14 +98,17 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
                              f"{tuple(mapper.detector_shape)}")
     var = rate_variance(rates)
     rate = np.where(np.isfinite(var), rates.rate, 0.0)
-    cubes = rectify(rate, var, mapper=mapper, field=field, lbda_edges=edges, ncol=ncol, method=rectify_method)
+    if extraction is None:
+        extraction = "gls" if rectify_method == "lsq" else "optimal"
+    cubes = rectify(rate, var, mapper=mapper, field=field, lbda_edges=edges, ncol=ncol, method=rectify_method,
+                    keep_information=bool(keep_information))
     cubes = cubes if field == "both" else {field: cubes}
     spectra = {name: extract_spectrum(cube, method=extraction, psf=psf, position=position, aperture=aperture,
                                       background=background) for name, cube in cubes.items()}
-    if propagate and rectify_method == "lsq":
+    if propagate and rectify_method == "lsq" and extraction != "gls":
         for name, spec in spectra.items():
             spec.diagnostics["variance_diagonal"] = spec.variance
-            spec.variance = propagate_variance(spec, cubes[name], var, mapper=mapper)
+            spec.variance = propagate_variance(spec, cubes[name])
             spec.diagnostics["variance_model"] = "full LSQ cube covariance (propagate_variance)"
     result = {"rates": rates, "cubes": cubes, "spectra": spectra}
     if writer is not None:
