@@ -19,7 +19,9 @@ estimators of the cube on a grid (λ edges, ``ncol`` columns per slice):
   ordered λ-major, column-minor: block tridiagonal with blocks of the bandwidth) is
   factorised by block Cholesky, one step of refinement with the data residual (corrected
   semi-normal equations) restores the accuracy of the squared condition, and the diagonal
-  of the inverse comes from the block Takahashi recursion.  Pᵀ·(W d) and the model image
+  of the inverse comes from the block Takahashi recursion.  The full inverse covariance
+  N = PᵀWP travels with the cube (``CubeProduct.inverse_covariance``, one sparse block per
+  slice, rebuilt on demand or kept): the GLS extraction uses it.  Pᵀ·(W d) and the model image
   P x̂ for the diagnostics go through the projection kernels (gather / deposit).
 * ``method="drizzle"`` (pixel-to-cell): every pixel's rate is shared among the cells that
   deposit on it in proportion to their weight, x̂_c = Σ_p P_pc d_p / (P·1)_p, divided by
