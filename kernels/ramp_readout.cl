@@ -56,6 +56,19 @@ RO_INLINE rng_double ro_load_f(__global const float *p, const int nl)
     return ro_lanes(v);
 }
 
+/* charge-saturation flags of the lanes as doubles (one vector load inside the row) */
+RO_INLINE rng_double ro_load_q(__global const uchar *p, const int nl)
+{
+#if RNG_VW > 1
+    if (nl == RNG_VW)
+        return rng_convert_double(RNG_PASTE(convert_float, RNG_SUFFIX)(RNG_PASTE(vload, RNG_SUFFIX)(0, p)));
+#endif
+    double v[RNG_VW];
+    for (int l = 0; l < RNG_VW; ++l)
+        v[l] = (double)p[l < nl ? l : nl - 1];
+    return ro_lanes(v);
+}
+
 RO_INLINE void ro_block(const rng_ulong index, const uint stream, uint k0, uint k1, rng_uint *a, rng_uint *b,
                         rng_uint *c, rng_uint *d)
 {
@@ -146,10 +159,7 @@ __kernel void ramp_readout(
         adu = RNG_SELECT(adu, (rng_double)0.0, adu < 0.0);
         adu = RNG_SELECT(adu, (rng_double)65535.0, adu > 65535.0);
         __global const uchar *qs = qsat + (size_t)g * plane_in + i_row;
-        double qv[RNG_VW];
-        for (int l = 0; l < RNG_VW; ++l)
-            qv[l] = (double)qs[l < nl ? l : nl - 1];
-        sat = RNG_SELECT(sat, (rng_double)1.0, (ro_lanes(qv) > 0.0) || (adu >= saturation));
+        sat = RNG_SELECT(sat, (rng_double)1.0, (ro_load_q(qs, nl) > 0.0) || (adu >= saturation));
         __global ushort *so = sci + (size_t)g * plane + o_row;
         __global uchar *go = gdq + (size_t)g * plane + o_row;
 #if RNG_VW > 1

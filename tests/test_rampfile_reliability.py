@@ -311,3 +311,30 @@ def test_sigint_held_back_while_hdf5_writes(tmp_path):
             raise AssertionError("not interrupted")
     assert os.listdir(tmp_path) == []
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_truth_compression_only_where_it_pays(tmp_path):
+    """Truth maps: shuffled gzip where a probe compresses below 75 % (sparse bad-pixel maps,
+    compound tables, a bias map: 68 %), none for white-noise-like float maps (86 %: gzip would
+    cost ~1 s per 64 MB for nothing); the values read back are the written ones either way."""
+    import h5py
+
+    from slicersim.io.rampfile import RampWriter, _compression_for
+    rng = np.random.default_rng(3)
+    noisy = rng.standard_normal((256, 256)).astype(np.float32)
+    bias = (1000 + 50 * rng.standard_normal((256, 256))).astype(np.float32)
+    assert _compression_for(bias)["shuffle"]
+    sparse = np.ones((256, 256), np.float32)
+    sparse[rng.random((256, 256)) < 0.01] = 0.5
+    assert _compression_for(noisy) == {}
+    assert _compression_for(sparse)["compression"] == "gzip" and _compression_for(sparse)["shuffle"]
+    assert _compression_for(np.zeros(10)) == {}                       # small: never
+    path = tmp_path / "t.h5"
+    with RampWriter(path, 1, 2, (256, 256)) as w:
+        w.write_block(0, 0, np.zeros((2, 256, 256), np.uint16), np.zeros((2, 256, 256), np.uint8))
+        w.write_dataset("bias", noisy)
+        w.write_dataset("qe", sparse)
+    with h5py.File(path) as f:
+        assert f["truth/bias"].compression is None and f["truth/qe"].compression == "gzip"
+        np.testing.assert_array_equal(f["truth/bias"][...], noisy)
+        np.testing.assert_array_equal(f["truth/qe"][...], sparse)

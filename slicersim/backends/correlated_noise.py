@@ -40,6 +40,7 @@ drawn per frame and averaged over the group's reads in every method except ``"wh
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -94,6 +95,7 @@ def stream_amplitudes(psd, length, dt, edge_bins=64, sub=32):
     return amp.astype(np.float32)
 
 
+@functools.lru_cache(maxsize=64)
 def fft_length(n):
     """Smallest 2ᵃ3ᵇ5ᶜ ≥ n: pocketfft runs these ≈ 1.5× faster than lengths with factors 7 or 11."""
     best, p5 = None, 1
@@ -374,7 +376,10 @@ class CorrelatedNoise:
 
     def _segments(self, ramp, group, y0, y1):
         """(first segment, segment streams float32 (nsg, n_out + 1, length), windows (nsg, span))
-        of the segments whose spans overlap rows y0:y1 (stream 0 common, 1 + o output o's own)."""
+        of the segments whose spans overlap rows y0:y1 (stream 0 common, 1 + o output o's own).
+
+        Only the samples of rows y0:y1 are filled in (the assembly reads no others); the array
+        is this generator's reusable work buffer, valid until the next call."""
         g = self.geometry
         S, h, nseg, span, length = self._segment_geometry()
         nout = g.n_outputs
@@ -387,10 +392,13 @@ class CorrelatedNoise:
 
         def first_sample(s, y):                      # first sample of segment s that rows ≥ y use
             return max(0, (y - int(s) * S + h) * rl)
+
+        def used(s):                                 # samples of segment s that rows y0:y1 use
+            return first_sample(s, y0), min(span, (y1 - int(s) * S + h) * rl)
         hit = {int(s): cache[(ramp, group, int(s))] for s in segs if (ramp, group, int(s)) in cache
                and cache[(ramp, group, int(s))][0] <= first_sample(s, y0)}
         missing = np.array([s for s in segs if int(s) not in hit], dtype=np.int64)
-        x = np.empty((nsg, nout + 1, length), np.float32)
+        x = self._work_buffer((nsg, nout + 1, length))
         if missing.size:
             kind = np.tile(np.array([0] + [1] * nout), missing.size)
             streams = np.tile(np.array([_stream("high_common")] + [_stream("high_own", o) for o in range(nout)]),
@@ -400,38 +408,53 @@ class CorrelatedNoise:
             new = self._synthesize(amp, length, kind, np.full(kind.size, ramp), streams, draw)
             new = new.reshape(missing.size, nout + 1, length)
             for s, streams_s in zip(missing, new):
-                x[s - s_first] = streams_s
-                self._cache_put((ramp, group, int(s)), 0, streams_s)
+                lo, hi = used(s)
+                x[s - s_first, :, lo:hi] = streams_s[:, lo:hi]
+                keep = first_sample(s, y1)           # what later blocks use
+                if keep < span:
+                    self._cache_put((ramp, group, int(s)), keep, streams_s[:, keep:span])
         for s, (p_from, data) in hit.items():
-            x[s - s_first, :, :p_from] = 0.0                    # samples of rows before y0: unused
-            x[s - s_first, :, p_from:] = data
-        win = np.stack([self._window(s, nseg, S, h, span) for s in segs])
-        return s_first, x, win
+            lo, hi = used(s)
+            x[s - s_first, :, lo:hi] = data[:, lo - p_from:hi - p_from]
+        return s_first, x, self._windows(s_first, nsg, nseg, S, h, span)
+
+    def _work_buffer(self, shape):
+        """Reusable float32 array of ``shape`` (no fresh pages, hence no page faults, per call)."""
+        size = int(np.prod(shape))
+        if getattr(self, "_work", None) is None or self._work.size < size:
+            self._work = np.empty(size, np.float32)
+        return self._work[:size].reshape(shape)
+
+    def _windows(self, s_first, nsg, nseg, S, h, span):
+        key = ("stack", s_first, nsg, nseg, span)
+        if key not in self._amp:
+            self._amp[key] = np.stack([self._window(s, nseg, S, h, span) for s in range(s_first, s_first + nsg)])
+        return self._amp[key]
 
     def _cache_put(self, key, p_from, streams):
-        """Keep samples p_from: of a segment's streams while the cache has room (else nothing)."""
+        """Keep a copy of samples p_from: of a segment's streams (``streams``: those samples) while
+        the cache has room (else nothing)."""
         old = self._segment_cache.pop(key, None)
         if old is not None:
             self._cache_nbytes -= old[1].nbytes
-        part = streams[:, p_from:]
-        if self._cache_nbytes + part.nbytes <= self.cache_bytes:
-            self._segment_cache[key] = (p_from, part.copy())
-            self._cache_nbytes += part.nbytes
+        if self._cache_nbytes + streams.nbytes <= self.cache_bytes:
+            self._segment_cache[key] = (p_from, np.array(streams, np.float32, order="C"))
+            self._cache_nbytes += streams.nbytes
 
     def _evict_segments(self, ramp, y_next):
         """Keep of the cached segments only what a block starting at row ``y_next`` of ``ramp`` and
-        later blocks use: other ramps and earlier segments go, the rest is cropped to rows ≥ y_next."""
+        later blocks use: other ramps and earlier segments go; a segment is cropped to rows
+        ≥ y_next when that frees at least half of it (cropping copies: not at every block)."""
         S, h, rl = self.segment_rows, self.taper_rows, self.geometry.row_len
         first = max(0, (y_next - h) // S)
         for key in list(self._segment_cache):
             p_from, data = self._segment_cache[key]
             keep_from = max(0, (y_next - key[2] * S + h) * rl)
-            if key[0] != ramp or key[2] < first:
+            if key[0] != ramp or key[2] < first or keep_from >= p_from + data.shape[1]:
                 del self._segment_cache[key]
                 self._cache_nbytes -= data.nbytes
-            elif keep_from > p_from:
-                self._cache_put(key, keep_from - p_from, data)
-                self._segment_cache[key] = (keep_from, self._segment_cache[key][1])
+            elif 2 * (keep_from - p_from) >= data.shape[1]:
+                self._cache_put(key, keep_from, data[:, keep_from - p_from:])
 
     def _block_segments(self, state, ramp, y0, y1, out):
         g = self.geometry

@@ -170,11 +170,26 @@ class RampWriter(AtomicH5File):
                 for y0 in range(0, ny, rows):
                     ds[:, y0:y0 + rows] = array[:, y0:y0 + rows]
             else:
-                kwargs = {"chunks": True, "compression": "gzip", "compression_opts": 1} if array.size > 4096 else {}
+                kwargs = _compression_for(array)
                 ds = self.file.create_dataset(f"truth/{name}", data=array, **kwargs)
             for key, val in (attrs or {}).items():
                 ds.attrs[key] = val if not isinstance(val, (dict, list, tuple)) else json.dumps(val)
         self._h5(put)
+
+
+def _compression_for(array, probe_bytes=1 << 20, worth=0.75):
+    """h5py options for a truth array: byte-shuffled gzip-1 when a zlib probe of its first
+    ``probe_bytes`` (shuffled) compresses below ``worth`` of its size, else none (noise-like
+    float maps barely compress and gzip would cost ~1 s per 64 MB)."""
+    if array.size <= 4096 or array.dtype.kind not in "biufV":
+        return {}
+    import zlib
+    flat = np.ascontiguousarray(array).reshape(-1)
+    head = flat[:max(1, probe_bytes // flat.itemsize)]
+    shuffled = head.view(np.uint8).reshape(-1, flat.itemsize).T.tobytes()
+    if len(zlib.compress(shuffled, 1)) >= worth * len(shuffled):
+        return {}
+    return {"chunks": True, "compression": "gzip", "compression_opts": 1, "shuffle": True}
 
 
 def read_ramps(path):
