@@ -1,13 +1,29 @@
-"""``slicersim reduce``: raw ramps (our HDF5 or a JWST level-1b FITS) → rates, with variance and DQ.
+"""``slicersim reduce``: raw ramps (our HDF5 or a JWST level-1b FITS) → rates, with variance and DQ;
+with ``--spectra`` → rates, rectified cubes and point-source spectra; a campaign dataset
+directory → one reduced product per target (a Dask task each, resumable).
 
-The heavy part is :func:`slicersim.reduction.ramp_fit.fit_ramps`; this module only maps the
-command-line flags onto it (validated before any data are read) and writes the product atomically.
+The heavy parts are :func:`slicersim.reduction.ramp_fit.fit_ramps`,
+:func:`slicersim.reduction.pipeline.reduce_exposure` and
+:func:`slicersim.reduction.campaign.reduce_dataset`; this module only maps the command-line
+flags onto them (validated before any data are read) and prints one line per product.
 """
 from __future__ import annotations
 
+import math
 import os
 
-__all__ = ["add_parsers", "cmd_reduce"]
+__all__ = ["add_parsers", "cmd_reduce", "parse_lbda_edges"]
+
+#: flags of --spectra (name on the command line, attribute)
+_SPECTRA_FLAGS = (("--field", "field"), ("--lbda-edges", "lbda_edges"), ("--ncol", "ncol"),
+                  ("--rectify", "rectify"), ("--extraction", "extraction"), ("--psf", "psf"),
+                  ("--position", "position"), ("--aperture", "aperture"), ("--no-background", "no_background"),
+                  ("--no-propagate", "no_propagate"))
+#: flags of a dataset directory
+_DATASET_FLAGS = (("--workers", "workers"), ("--scheduler", "scheduler"), ("--retry-failed", "retry_failed"),
+                  ("--force", "force"), ("--verify", "verify"))
+#: most λ bins accepted from START,STOP,STEP
+MAX_BINS = 100_000
 
 
 def _check_out(path, overwrite):
@@ -15,38 +31,170 @@ def _check_out(path, overwrite):
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise ParameterError(f"--out: directory {directory} does not exist")
+    if os.path.isdir(path):
+        raise ParameterError(f"--out: {path} is a directory (a single ramp file is reduced to one HDF5 file)")
     if os.path.lexists(path) and not overwrite:
         raise ParameterError(f"--out: {path} exists (pass --overwrite to replace it)")
 
 
-def cmd_reduce(args) -> int:
+def parse_lbda_edges(text):
+    """λ edges [Å] of ``--lbda-edges``: ``START,STOP,STEP`` (START, START+STEP, ..., STOP; STOP − START a
+    multiple of STEP) or the name of a file (.npy, or text: the edges, whitespace or comma separated)."""
+    import numpy as np
+
     from slicersim.errors import ParameterError
-    from slicersim.reduction.ramp_fit import fit_ramps
-    if not os.path.isfile(args.raw):
-        raise ParameterError(f"{args.raw}: no such ramp file")
-    _check_out(args.out, args.overwrite)
+    if os.path.isfile(text):
+        try:
+            if text.endswith(".npy"):
+                edges = np.load(text, allow_pickle=False)
+            else:
+                import io
+                with open(text, encoding="utf-8") as fh:
+                    edges = np.loadtxt(io.StringIO(fh.read().replace(",", " ")), ndmin=1)
+        except (OSError, ValueError, UnicodeDecodeError) as exc:
+            raise ParameterError(f"--lbda-edges: cannot read λ edges from {text}: {' '.join(str(exc).split())}") \
+                from None
+        edges = np.ravel(edges) if np.ndim(edges) == 2 and 1 in np.shape(edges) else edges
+        if np.ndim(edges) != 1 or np.size(edges) < 2 or not np.issubdtype(np.asarray(edges).dtype, np.number):
+            raise ParameterError(f"--lbda-edges: {text} must hold ≥ 2 numbers (λ edges [Å]), got shape "
+                                 f"{np.shape(edges)}")
+        return np.asarray(edges, np.float64)
+    parts = text.split(",")
+    try:
+        start, stop, step = (float(p) for p in parts)
+    except ValueError:
+        raise ParameterError(f"--lbda-edges must be START,STOP,STEP [Å] or an existing file, got {text!r}") from None
+    if not all(math.isfinite(v) for v in (start, stop, step)) or step <= 0 or stop <= start:
+        raise ParameterError(f"--lbda-edges START,STOP,STEP needs finite START < STOP and STEP > 0, got {text!r}")
+    nbins = (stop - start) / step
+    if nbins > MAX_BINS:
+        raise ParameterError(f"--lbda-edges {text!r} makes {nbins:.3g} bins (at most {MAX_BINS})")
+    if abs(nbins - round(nbins)) > 1e-6 * max(1.0, nbins):
+        raise ParameterError(f"--lbda-edges {text!r}: STOP − START must be a multiple of STEP")
+    return start + step * np.arange(int(round(nbins)) + 1)
+
+
+def _parse_position(text):
+    from slicersim.errors import ParameterError
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ParameterError(f"--position must be X,Y [cells from the field centre], got {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ParameterError(f"--position must be finite, got {text!r}")
+    return x, y
+
+
+def _load_psf(text):
+    import numpy as np
+
+    from slicersim.errors import ParameterError
+    if text == "fit":
+        return "fit"
+    if not os.path.isfile(text):
+        raise ParameterError(f"--psf must be 'fit' or an existing .npy file (nλ, slices, columns), got {text!r}")
+    try:
+        return np.load(text, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ParameterError(f"--psf: cannot read {text} as a .npy array: {' '.join(str(exc).split())}") from None
+
+
+def _given(args, flags):
+    return [flag for flag, attr in flags if getattr(args, attr) not in (None, False)]
+
+
+def _check_flags(args, dataset):
+    from slicersim.errors import ParameterError
+    if not args.spectra and _given(args, _SPECTRA_FLAGS):
+        raise ParameterError(f"{', '.join(_given(args, _SPECTRA_FLAGS))} apply only with --spectra")
+    if not dataset and _given(args, _DATASET_FLAGS):
+        raise ParameterError(f"{', '.join(_given(args, _DATASET_FLAGS))} apply only to a campaign dataset "
+                             f"directory, and {args.raw} is not a directory")
+    if dataset and args.overwrite:
+        raise ParameterError("--overwrite applies to a single ramp file; a reduction directory is resumed "
+                             "(--force starts it again when its options changed)")
+    if args.workers is not None and args.workers < 1:
+        raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
     if args.jump_threshold is not None and not args.jump_threshold >= 0:
         raise ParameterError(f"--jump-threshold must be ≥ 0 (0: no jump detection), got {args.jump_threshold}")
-    product = fit_ramps(args.raw, refpix=False if args.no_refpix else None,
-                        linearity=False if args.no_linearity else None, jump_threshold=args.jump_threshold,
-                        weighting=args.weighting, gain=args.gain, read_noise=args.read_noise,
-                        with_truth=args.with_truth, progress=not args.quiet and None)
-    path = product.write(args.out, overwrite=args.overwrite)
-    rate = product.rate
-    print(f"{path}: rates {rate.shape[-2]}×{rate.shape[-1]} of {rate.shape[0] if rate.ndim == 3 else 1} "
-          f"integration(s), {int((product.njumps > 0).sum())} pixel(s) with jumps")
+    for flag, val, lo in (("--gain", args.gain, 0.0), ("--read-noise", args.read_noise, None)):
+        if val is not None and not (math.isfinite(val) and (val > lo if lo is not None else val >= 0)):
+            raise ParameterError(f"{flag} must be a finite number {'> 0' if lo is not None else '≥ 0'}, got {val}")
+
+
+def _spectra_options(args):
+    """reduce_exposure options of the flags given (None left to the pipeline's defaults)."""
+    from slicersim.reduction.checks import check_spectra_options
+    opts = {"field": args.field, "ncol": args.ncol, "rectify_method": args.rectify, "extraction": args.extraction,
+            "aperture": args.aperture, "background": False if args.no_background else None,
+            "propagate": False if args.no_propagate else None,
+            "lbda_edges": parse_lbda_edges(args.lbda_edges) if args.lbda_edges is not None else None,
+            "position": _parse_position(args.position) if args.position is not None else None,
+            "psf": _load_psf(args.psf) if args.psf is not None else None}
+    opts = {k: v for k, v in opts.items() if v is not None}
+    check_spectra_options(**opts)                  # every value, before any data are read
+    return opts
+
+
+def cmd_reduce(args) -> int:
+    from slicersim.errors import ParameterError
+    dataset = os.path.isdir(args.raw)
+    _check_flags(args, dataset)
+    if not dataset and not os.path.isfile(args.raw):
+        raise ParameterError(f"{args.raw}: no such ramp file or dataset directory")
+    fit_options = {"refpix": False if args.no_refpix else None, "linearity": False if args.no_linearity else None,
+                   "jump_threshold": args.jump_threshold, "weighting": args.weighting, "gain": args.gain,
+                   "read_noise": args.read_noise, "with_truth": args.with_truth}
+    options = _spectra_options(args) if args.spectra else {}
+    if dataset:
+        return _reduce_dataset(args, fit_options, options)
+    _check_out(args.out, args.overwrite)
+    from slicersim.reduction.campaign import reduce_file
+    result = reduce_file(args.raw, args.out, spectra=args.spectra, overwrite=args.overwrite,
+                         fit_options=fit_options, progress=not args.quiet and None, **options)
+    rate = result["rates"].rate
+    line = (f"{result['path']}: rates {rate.shape[-2]}×{rate.shape[-1]} of {rate.shape[0] if rate.ndim == 3 else 1} "
+            f"integration(s), {int((result['rates'].njumps > 0).sum())} pixel(s) with jumps")
+    if args.spectra:
+        line += "; " + ", ".join(f"{name} cube {'×'.join(map(str, cube.flux.shape[-3:]))}, spectrum "
+                                 f"({result['spectra'][name].method})" for name, cube in result["cubes"].items())
+    print(line)
     return 0
+
+
+def _reduce_dataset(args, fit_options, options):
+    from slicersim.reduction.campaign import reduce_dataset
+    res = reduce_dataset(args.raw, args.out, workers=args.workers, scheduler=args.scheduler, spectra=args.spectra,
+                         retry_failed=args.retry_failed, force=args.force, verify=args.verify,
+                         progress=not args.quiet, fit_options=fit_options, **options)
+    print(f"{res['out']}: {res['targets']} targets, {res['done']} reduced, {res['failed']} failed, "
+          f"{res['missing']} missing, {res['unavailable']} without ramps ({res['computed']} reduced now "
+          f"in {res['seconds']:.1f} s)")
+    for tid, error in res["failed_targets"][:args.show]:
+        print(f"  failed {tid}: {error}")
+    return 0 if res["failed"] == 0 and res["missing"] == 0 else 1
 
 
 def add_parsers(sub, fmt):
     """Add ``reduce`` to the ``slicersim`` subcommands."""
+    from slicersim.reduction.checks import MAX_NCOL
     from slicersim.reduction.ramp_fit import DEFAULT_JUMP_THRESHOLD, WEIGHTINGS
-    p = sub.add_parser("reduce", help="raw ramps → rates [e-/s] with variance, DQ and jumps",
+    from slicersim.reduction.rectify import METHODS as RECTIFY_METHODS
+    from slicersim.reduction.spectra import METHODS as EXTRACTION_METHODS
+    p = sub.add_parser("reduce", help="raw ramps → rates [e-/s] (--spectra: cubes and spectra); campaign datasets",
                        description="Up-the-ramp fit of a raw ramp file (slicersim HDF5 or JWST level-1b FITS): "
                                    "bias, reference-pixel and nonlinearity corrections when the file carries "
-                                   "those effects, saturation, jump detection, GLS or OLS slopes.", **fmt)
-    p.add_argument("raw", metavar="RAW", help="ramp file (.h5 from `slicersim ramp`, or a level-1b .fits)")
-    p.add_argument("--out", required=True, metavar="RATES.h5", help="output HDF5 file (RATE, VAR, DQ, NJUMPS, ...)")
+                                   "those effects, saturation, jump detection, GLS or OLS slopes.  With "
+                                   "--spectra, the rates are rectified into (λ, slice, column) cubes and the "
+                                   "point source's spectrum is extracted (one HDF5: rates/, cubes/, spectra/).  "
+                                   "RAW may be a campaign dataset directory (products.ramps = true): every "
+                                   "target is reduced in a Dask task into the directory --out "
+                                   "(products/tNNNNNNN/rates.h5 or reduced.h5, records/, catalog.ecsv); run "
+                                   "again, it resumes.", **fmt)
+    p.add_argument("raw", metavar="RAW", help="ramp file (.h5 from `slicersim ramp`, or a level-1b .fits), or a "
+                   "campaign dataset directory")
+    p.add_argument("--out", required=True, metavar="OUT.h5|DIR",
+                   help="output HDF5 file (RATE, VAR, DQ, NJUMPS, ...), or directory for a dataset")
     p.add_argument("--weighting", choices=WEIGHTINGS, default="gls",
                    help="gls: exact MACC covariance (lowest variance); ols: unweighted (Rauscher07 variance)")
     p.add_argument("--jump-threshold", type=float, default=DEFAULT_JUMP_THRESHOLD, metavar="SIGMA",
@@ -55,7 +203,42 @@ def add_parsers(sub, fmt):
     p.add_argument("--no-linearity", action="store_true", help="skip the nonlinearity correction")
     p.add_argument("--gain", type=float, metavar="DN/e-", help="override the file's GAIN")
     p.add_argument("--read-noise", type=float, metavar="e-", help="override the file's read noise per frame")
-    p.add_argument("--with-truth", action="store_true", help="copy truth/rate beside the fitted rates")
+    p.add_argument("--with-truth", action="store_true", help="copy truth/rate beside the fitted rates "
+                   "(TRUTH_RATE; rates/TRUTH_RATE with --spectra)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    g = p.add_argument_group("rates → cubes → spectra (with --spectra)")
+    g.add_argument("--spectra", action="store_true", help="also rectify cubes and extract spectra")
+    g.add_argument("--field", choices=("narrow", "wide", "both"),
+                   help="field(s) to rectify (default: narrow; for a dataset, each target's own field)")
+    g.add_argument("--lbda-edges", metavar="START,STOP,STEP|FILE",
+                   help="λ bin edges [Å]: START, START+STEP, ..., STOP; or a file of edges (.npy or text) "
+                        "(default: the prism's native grid, 2 native bins per bin)")
+    g.add_argument("--ncol", type=int, metavar="N", help=f"columns per slice, 1 to {MAX_NCOL} (default: 58)")
+    g.add_argument("--rectify", choices=RECTIFY_METHODS, help="lsq: exact weighted least squares (default); "
+                   "drizzle: fast pixel-to-cell sharing, biased")
+    g.add_argument("--extraction", choices=EXTRACTION_METHODS,
+                   help="spectrum extraction (default: the pipeline's choice for the --rectify method)")
+    g.add_argument("--psf", metavar="fit|FILE.npy", help="'fit': Gaussian fitted on the cube (default); or a "
+                   ".npy array (nλ, slices, columns) of PSF fractions")
+    g.add_argument("--position", metavar="X,Y", help="source position [cells from the field centre] "
+                   "(default: fitted)")
+    g.add_argument("--aperture", type=float, metavar="SIGMA", help="aperture radius [white-light PSF σ] "
+                   "(default: 3)")
+    g.add_argument("--no-background", action="store_true", help="no background subtraction")
+    g.add_argument("--no-propagate", action="store_true",
+                   help="optimal/aperture on an lsq cube: cells-independent variance instead of the full "
+                        "cube covariance")
+    g = p.add_argument_group("campaign datasets (RAW is a dataset directory)")
+    w = g.add_mutually_exclusive_group()
+    w.add_argument("--workers", type=int, metavar="N", help="workers of the embedded Dask LocalCluster "
+                   "(default: CPU count)")
+    w.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786 (every "
+                   "worker must see both directories)")
+    g.add_argument("--retry-failed", action="store_true", help="reduce the targets recorded as failed again")
+    g.add_argument("--force", action="store_true", help="start again in a reduction directory made with other "
+                   "options or from another dataset")
+    g.add_argument("--verify", action="store_true", help="check the checksum of every reduced product when "
+                   "resuming (default: sizes)")
+    g.add_argument("--show", type=int, default=5, metavar="N", help="list at most N failed targets")
     p.set_defaults(func=cmd_reduce)

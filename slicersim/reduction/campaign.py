@@ -1,0 +1,461 @@
+"""Reduce a campaign dataset: every target's raw ramps → rates (or rates, cubes, spectra), one Dask
+task per target; and :func:`reduce_file`, the same for one raw file.
+
+``reduce_dataset(DATASET, OUT)`` reads the dataset a campaign wrote
+(:mod:`slicersim.campaign.runner`; its spec must ask for ``ramps``) and writes a *reduction
+directory* with the layout of a dataset (:mod:`slicersim.io.dataset`)::
+
+    OUT/spec.toml, spec.json  the reduction's identity: mode, options, the source spec's sha256
+    OUT/versions.json         software versions
+    OUT/catalog.ecsv          per target: status, error, reduced product and sha256, source ramps
+    OUT/products/tNNNNNNN/    rates.h5 (RATE, VAR, ... as ``slicersim reduce``) or, with
+                              ``spectra=True``, reduced.h5 (rates/, cubes/<field>/, spectra/<field>/)
+    OUT/records/tNNNNNNN.json written last: "done" (product size, sha256, the source's sha256) or
+                              "failed" (error)
+
+so ``slicersim campaign status OUT`` reports it too.  The dask client comes from the campaign
+runner (an embedded LocalCluster of ``workers`` processes, or ``scheduler="tcp://host:port"``;
+every worker must see both directories).
+
+Resumable like a campaign: a target is skipped when its record is "done", its product is there
+with the recorded size (``verify``: and sha256), and the source ramps are still the ones it was
+reduced from (the campaign's sha256); anything else is reduced again (a product is written under a
+temporary name and renamed complete, its record after it: ``kill -9`` leaves nothing half-written
+under a final name).  A target that fails is recorded and the others go on; ``retry_failed``
+reduces the failed ones again (a failed target whose source ramps changed is retried anyway).
+A directory made with other options or from another campaign is refused unless ``force``.
+"""
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from slicersim.errors import DatasetError, ParameterError, RampFileError
+
+__all__ = ["reduce_dataset", "reduce_file", "reduce_target", "is_dataset", "reduction_client"]
+
+#: per-target product names
+RATES_FILE, REDUCED_FILE = "rates.h5", "reduced.h5"
+#: seconds between two catalog writes while a reduction runs
+CATALOG_INTERVAL = 10.0
+_KIND = "slicersim reduction"
+
+
+# ----------------------------------------------------------------------------- one file
+def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=None, progress=None, mapper=None,
+                **options):
+    """Reduce one raw ramp file (our HDF5 or a level-1b FITS), every input checked before any data
+    are read (:func:`~slicersim.reduction.checks.check_ramp_file`).
+
+    spectra : False: rates only (:func:`~slicersim.reduction.ramp_fit.fit_ramps`, ``out`` as
+        :meth:`RateProduct.write`); True: rates, cubes and spectra
+        (:func:`~slicersim.reduction.pipeline.reduce_exposure` with ``options``: field, lbda_edges,
+        ncol, rectify_method, extraction, psf, position, aperture, background, propagate)
+    fit_options : ``fit_ramps`` keywords (weighting, jump_threshold, refpix, linearity, gain,
+        read_noise, with_truth: the truth rate is written as TRUTH_RATE / rates/TRUTH_RATE)
+    out : HDF5 path written atomically (None: nothing written)
+
+    Returns ``{"rates": RateProduct, "path": absolute path or None}`` (rates only) or
+    reduce_exposure's dict (``rates``, ``cubes``, ``spectra`` and ``path`` with ``out``).
+    """
+    from slicersim.reduction.checks import check_fit_options, check_ramp_file, check_spectra_options
+    fit = check_fit_options(fit_options)
+    if not spectra and options:
+        raise ParameterError(f"option(s) {', '.join(sorted(options))} apply only with spectra=True")
+    if not spectra and mapper is not None:
+        raise ParameterError("mapper applies only with spectra=True")
+    opts = check_spectra_options(mapper=mapper, **options) if spectra else {}
+    writer = _check_out_file(out, overwrite) if out is not None else None
+    shape = None
+    if spectra:
+        from slicersim.reduction.rectify import _default_mapper
+        shape = tuple((mapper or _default_mapper()).detector_shape)
+    check_ramp_file(raw, with_truth=bool(fit.get("with_truth")), gain=fit.get("gain"),
+                    read_noise=fit.get("read_noise"), detector_shape=shape)
+    if progress is not None:
+        fit["progress"] = progress
+    if not spectra:
+        from slicersim.reduction.ramp_fit import fit_ramps
+        product = fit_ramps(raw, **fit)
+        path = product.write(out, overwrite=overwrite) if writer is not None else None
+        return {"rates": product, "path": path}
+    return _reduce_spectra(raw, out, overwrite, fit, opts, mapper)
+
+
+def _check_out_file(out, overwrite):
+    from slicersim.io.atomic import AtomicH5File
+
+    class _Check(AtomicH5File):
+        error_class = RampFileError
+    return _Check(out, overwrite=overwrite).check()
+
+
+def _reduce_spectra(raw, out, overwrite, fit, opts, mapper):
+    """reduce_exposure; with the truth, its file gets rates/TRUTH_RATE before it is published."""
+    from slicersim.io.atomic import publish, temporary_path
+    from slicersim.reduction.pipeline import reduce_exposure
+    kwargs = dict(opts, fit_options=fit or None)
+    if mapper is not None:
+        kwargs["mapper"] = mapper
+    if out is None or not fit.get("with_truth"):
+        return reduce_exposure(raw, out=out, overwrite=overwrite, **kwargs)
+    import h5py
+    tmp = temporary_path(out)                 # a hidden temporary: removed as stale if we are killed
+    try:
+        result = reduce_exposure(raw, out=tmp, **kwargs)
+        with h5py.File(tmp, "r+") as fh:
+            fh.create_dataset("rates/TRUTH_RATE", data=result["rates"].truth_rate)
+        publish(tmp, os.path.abspath(out), overwrite, RampFileError)
+    finally:
+        if os.path.lexists(tmp):
+            os.remove(tmp)
+    result["path"] = os.path.abspath(out)
+    return result
+
+
+# ----------------------------------------------------------------------------- datasets
+def is_dataset(path):
+    """True for a directory holding a campaign dataset (spec.json) — or a reduction directory."""
+    from slicersim.io.dataset import SPEC_JSON
+    return os.path.isdir(path) and os.path.isfile(os.path.join(path, SPEC_JSON))
+
+
+def reduction_client(workers=None, scheduler=None, threads=None):
+    """(client, cluster or None) from the campaign runner: an embedded LocalCluster of ``workers``
+    processes (one task each at a time) or the scheduler at ``scheduler``."""
+    from slicersim.campaign import runner
+    workers = runner._check_workers(workers)
+    threads = threads or max(1, (os.cpu_count() or 1) // workers)
+    return runner._client(workers, scheduler, threads)
+
+
+def _source(dataset):
+    """(Dataset, spec dict, spec sha256, catalog Table) of a campaign dataset with ramps."""
+    from astropy.table import Table
+
+    from slicersim.io.dataset import CATALOG, Dataset
+    src = Dataset(dataset)
+    if not os.path.isdir(src.path):
+        raise DatasetError(f"no such dataset directory: {src.path}")
+    stored = src.stored_spec()
+    if stored is None:
+        raise DatasetError(f"{src.path} is not a slicersim campaign dataset (no spec.json)")
+    spec, digest = stored
+    if isinstance(spec, dict) and spec.get("kind") == _KIND:
+        raise DatasetError(f"{src.path} is a reduction directory (made by `slicersim reduce`), not a campaign "
+                           "dataset")
+    if not isinstance(spec, dict) or not isinstance(spec.get("products"), dict):
+        raise DatasetError(f"{src.path}/spec.json is not a campaign spec")
+    if not spec["products"].get("ramps"):
+        raise DatasetError(f"{src.path} has no raw ramps to reduce (its spec has products.ramps = false)")
+    try:
+        catalog = Table.read(src.file(CATALOG), format="ascii.ecsv")
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{src.file(CATALOG)} is missing or unreadable ({' '.join(str(exc).split())[:200]}); "
+                           "run the campaign again to rebuild it") from None
+    if "target_id" not in catalog.colnames:
+        raise DatasetError(f"{src.file(CATALOG)} has no target_id column")
+    return src, spec, digest, catalog
+
+
+#: fit_ramps keywords that do not change the rates (left out of a reduction's identity)
+_RUNTIME = {"progress", "memory_budget", "backend", "work_group", "return_groupdq"}
+
+
+def _defaults(func, keys=None):
+    import inspect
+    return {name: p.default for name, p in inspect.signature(func).parameters.items()
+            if p.default is not inspect.Parameter.empty and (keys is None or name in keys)}
+
+
+def _identity(mode, opts, fit, source_digest, mapper):
+    """The canonical dict identifying a reduction: every option that shapes the products, the
+    defaults filled in (options as JSON; arrays by value or digest)."""
+    import hashlib
+
+    from slicersim.reduction.pipeline import reduce_exposure
+    from slicersim.reduction.ramp_fit import fit_ramps
+    fit = {**{k: v for k, v in _defaults(fit_ramps).items() if k not in _RUNTIME},
+           **{k: v for k, v in fit.items() if k not in _RUNTIME and v is not None}}
+    if mode == "spectra":
+        keys = {"field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
+                "background", "propagate"}
+        opts = {**_defaults(reduce_exposure, keys), **opts}
+        opts.setdefault("field", "(each target's)")
+    canon = {}
+    for key, val in sorted(opts.items()):
+        if isinstance(val, np.ndarray):
+            val = [float(v) for v in val] if val.ndim == 1 and val.size <= 4096 else \
+                {"sha256": hashlib.sha256(np.ascontiguousarray(val, np.float64).tobytes()).hexdigest(),
+                 "shape": list(val.shape)}
+        elif isinstance(val, tuple):
+            val = list(val)
+        canon[key] = val
+    fit_c = {k: (v if isinstance(v, (bool, int, float, str, type(None))) else repr(v)) for k, v in sorted(fit.items())}
+    return {"kind": _KIND, "mode": mode, "options": canon, "fit_options": fit_c,
+            "mapper": None if mapper is None else repr(mapper), "source_spec_sha256": source_digest}
+
+
+def _check_identity(ds, identity, force):
+    from slicersim.io.dataset import _changed_keys, spec_digest
+    stored = ds.stored_spec()
+    if stored is not None and stored[1] != spec_digest(identity) and not force:
+        changed = sorted(_changed_keys(stored[0], identity))
+        raise DatasetError(f"{ds.path} was reduced with other options or from another dataset (changed: "
+                           f"{', '.join(changed[:6]) or 'content'}); use a new directory, or --force to discard "
+                           "its products and start again")
+
+
+def _toml(identity, source_path):
+    """A human-readable TOML rendering of the identity (spec.toml of the reduction directory)."""
+    import json
+    lines = [f"# {_KIND} of {source_path}", f'kind = "{_KIND}"', f'mode = "{identity["mode"]}"',
+             f'source_spec_sha256 = "{identity["source_spec_sha256"]}"']
+    for table in ("options", "fit_options"):
+        lines.append(f"[{table}]")
+        for key, val in identity[table].items():
+            if val is not None:
+                lines.append(f"{key} = {json.dumps(val, ensure_ascii=False)}")
+    return "\n".join(lines) + "\n"
+
+
+def _lock(ds):
+    try:
+        return ds.lock()
+    except DatasetError as exc:
+        raise DatasetError(f"reduction directory {ds.path} is in use by another process "
+                           f"({str(exc).rsplit('(', 1)[-1].split(')')[0]}); wait for it or stop it") from None
+
+
+def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False, retry_failed=False, force=False,
+                   verify=False, progress=True, window=None, fit_options=None, mapper=None, **options):
+    """Reduce (or resume reducing) every target's ramps of campaign dataset ``dataset`` into the
+    reduction directory ``out`` (module docstring), one Dask task per target.
+
+    workers : embedded LocalCluster size (default: the CPU count); scheduler : "tcp://host:port"
+    spectra : rates, cubes and spectra (reduce_exposure) instead of rates only; ``field`` defaults
+        to each target's own field (the campaign's), the other ``options`` to reduce_exposure's
+    fit_options : fit_ramps keywords;  mapper : SlicerMapper of the ramps' detector (spectra)
+    retry_failed : reduce the targets recorded as failed again
+    force : start again in a directory made with other options or from another dataset
+    verify : check every reduced product's sha256 when resuming (default: its size)
+    window : tasks in flight at once (default 2 per worker)
+
+    Returns {"dataset", "out", "targets", "done", "failed", "missing", "unavailable" (targets
+    the campaign has no ramps for: failed or not yet simulated), "computed", "seconds",
+    "failed_targets": [(id, error)]}.
+    """
+    from slicersim.campaign.runner import _check_positive_int, software_versions
+    from slicersim.io.dataset import Dataset
+    from slicersim.reduction.checks import check_fit_options, check_spectra_options
+    t0 = time.perf_counter()
+    fit = check_fit_options(fit_options)
+    fit.pop("progress", None)                      # no progress bars on the workers
+    if not spectra and (options or mapper is not None):
+        raise ParameterError(f"option(s) {', '.join(sorted(options) or ['mapper'])} apply only with spectra=True")
+    opts = check_spectra_options(mapper=mapper, **options) if spectra else {}
+    if workers is not None:
+        _check_positive_int(workers, "workers")
+    if window is not None:
+        _check_positive_int(window, "window")
+    src, _, source_digest, catalog = _source(dataset)
+    out_path = os.path.abspath(os.fspath(out))
+    if out_path == src.path or out_path.startswith(os.path.join(src.path, "products") + os.sep) \
+            or out_path.startswith(os.path.join(src.path, "records") + os.sep) or src.path.startswith(out_path + os.sep):
+        raise DatasetError(f"the reduction directory {out_path} must not be the dataset {src.path}, contain it "
+                           "or lie in its products or records")
+    identity = _identity("spectra" if spectra else "rates", opts, fit, source_digest, mapper)
+    ds = Dataset(Dataset.check_path(out_path, force=force))
+    stored = ds.stored_spec()
+    if stored is not None and not (isinstance(stored[0], dict) and stored[0].get("kind") == _KIND):
+        raise DatasetError(f"{ds.path} is a campaign dataset, not a reduction directory: choose another output "
+                           "directory (it is never overwritten, even with force)")
+    _check_identity(ds, identity, force)            # refuse early: other options or another source
+    ids = [int(t) for t in catalog["target_id"]]
+    connection = reduction_client(workers, scheduler) if scheduler else None
+    try:
+        _lock(ds)
+    except BaseException:
+        if connection:
+            connection[0].close()
+        raise
+    try:
+        digest = ds.initialise(_toml(identity, src.path), identity, software_versions(), force=force)
+        sources = _sources(src, ids)
+        state = ds.state(ids, deep=verify)
+        records, todo = {}, []
+        for tid in ids:
+            st, rec, _ = state[tid]
+            info = sources.get(tid)
+            same = rec is not None and info is not None and rec.get("source_sha256") == info["sha256"]
+            if st in ("done", "failed") and same:
+                records[tid] = rec
+            if info is not None and (not same or st == "missing" or (st == "failed" and retry_failed)):
+                todo.append(tid)
+        base = _base_catalog(catalog)
+        ds.write_catalog(_catalog(base, records, sources, src))
+        try:
+            if todo:
+                tasks = {tid: _task(src, ds, tid, sources[tid], digest, spectra, opts, fit, mapper, catalog)
+                         for tid in todo}
+                _dispatch(ds, tasks, records, workers, scheduler, progress, window, connection,
+                          lambda: ds.write_catalog(_catalog(base, records, sources, src)))
+            elif connection:
+                connection[0].close()
+        finally:                                    # also on Ctrl-C: the catalog says what is done
+            final = _catalog(base, records, sources, src)
+            ds.write_catalog(final)
+    finally:
+        ds.unlock()
+    status = [str(s) for s in final["status"]]
+    failed = [(int(t), str(e)) for t, s, e in zip(final["target_id"], status, final["error"]) if s == "failed"]
+    return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
+            "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
+            "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed}
+
+
+def _sources(src, ids):
+    """{target id: the campaign's ramps product info (file, bytes, sha256) + path} of the done targets."""
+    out = {}
+    for tid, (st, rec, _) in src.state(ids, deep=False).items():
+        info = (rec or {}).get("products", {}).get("ramps") if st == "done" else None
+        if info:
+            out[tid] = dict(info, path=os.path.join(src.product_dir(tid), info["file"]),
+                            field=str(rec.get("field", "")))
+    return out
+
+
+def _base_catalog(catalog):
+    cols = [c for c in ("target_id", "redshift", "field") if c in catalog.colnames]
+    return catalog[cols].copy(copy_data=True)
+
+
+def _catalog(base, records, sources, src):
+    """Per target: status ("done", "failed", "missing": not reduced yet, "unavailable": no ramps in
+    the campaign), error, product and sha256, the source ramps and their sha256."""
+    from slicersim.io.dataset import PRODUCTS, target_key
+    cat = base.copy(copy_data=True)
+    status, error, product, sha, source, source_sha = [], [], [], [], [], []
+    for tid in (int(t) for t in base["target_id"]):
+        rec, info = records.get(tid), sources.get(tid)
+        if info is None:
+            st, err = "unavailable", "no ramps in the campaign dataset (target failed or not simulated yet)"
+        elif rec is None:
+            st, err = "missing", ""
+        else:
+            st, err = rec.get("status", "missing"), rec.get("error", "")
+        prod = (rec or {}).get("products", {}) if st == "done" else {}
+        name, pinfo = next(iter(prod.items()), (None, None))
+        status.append(st)
+        error.append(err)
+        product.append(f"{PRODUCTS}/{target_key(tid)}/{pinfo['file']}" if pinfo else "")
+        sha.append(pinfo["sha256"] if pinfo else "")
+        source.append(os.path.relpath(info["path"], src.path) if info else "")
+        source_sha.append(info["sha256"] if info else "")
+    cat["status"], cat["error"], cat["product"], cat["sha256"] = status, error, product, sha
+    cat["source"], cat["source_sha256"] = source, source_sha
+    cat.meta = {"dataset": src.path}
+    return cat
+
+
+def _task(src, ds, tid, info, digest, spectra, opts, fit, mapper, catalog):
+    opts = dict(opts)
+    if spectra and "field" not in opts:            # each target in its own field
+        opts["field"] = info.get("field") or "narrow"
+    return {"target_id": tid, "source": info, "out": ds.path, "digest": digest, "spectra": bool(spectra),
+            "options": opts, "fit_options": dict(fit), "mapper": mapper}
+
+
+def reduce_target(task, threads=None):
+    """The unit of work of a worker: reduce one target's ramps (checked against the campaign's
+    record: size and sha256), write its product atomically and its record last; returns the
+    record.  Errors are recorded (status "failed"), never raised."""
+    import traceback
+
+    from slicersim.campaign.products import _limit_threads
+    from slicersim.io.atomic import sha256_file
+    from slicersim.io.dataset import Dataset, product_info
+    _limit_threads(threads)
+    tid, info = int(task["target_id"]), task["source"]
+    ds = Dataset(task["out"])
+    record = {"target_id": tid, "spec_sha256": task["digest"], "source": info["path"],
+              "source_sha256": info["sha256"], "mode": "spectra" if task["spectra"] else "rates"}
+    try:
+        ds.clean_target(tid)
+        path = info["path"]
+        try:
+            size = os.path.getsize(path)
+        except OSError as exc:
+            raise RampFileError(f"{path}: cannot read the campaign's ramps ({exc.strerror})") from None
+        if size != info["bytes"]:
+            raise RampFileError(f"{path}: {size} bytes, the campaign recorded {info['bytes']} (truncated or replaced)")
+        if sha256_file(path) != info["sha256"]:
+            raise RampFileError(f"{path}: checksum differs from the campaign's record (corrupted or replaced)")
+        pdir = ds.product_dir(tid)
+        os.makedirs(pdir, exist_ok=True)
+        out = os.path.join(pdir, REDUCED_FILE if task["spectra"] else RATES_FILE)
+        reduce_file(path, out, spectra=task["spectra"], overwrite=True, progress=False,
+                    fit_options=task["fit_options"], mapper=task["mapper"], **task["options"])
+        record.update(status="done", products={"reduced": product_info(out)})
+    except Exception as exc:
+        record.update(status="failed", error=f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+                      traceback=traceback.format_exc(limit=8))
+        try:
+            ds.clean_target(tid)
+        except OSError:
+            pass
+    ds.write_record(tid, record)
+    return record
+
+
+def _dispatch(ds, tasks, records, workers, scheduler, progress, window, connection, checkpoint):
+    """Submit one task per target (at most ``window`` in flight), collect the records."""
+    from distributed import as_completed
+    from tqdm.auto import tqdm
+
+    from slicersim.campaign.runner import _QuietDask, _check_workers
+    quiet = _QuietDask()
+    nw = _check_workers(workers)
+    threads = max(1, (os.cpu_count() or 1) // nw)
+    client, cluster = connection or reduction_client(nw, scheduler, threads)
+    try:
+        nworkers = max(1, len(client.scheduler_info().get("workers", {})) or nw)
+        window = window or 2 * nworkers
+        pending = list(tasks)
+        futures = {}
+
+        def submit(tid):
+            fut = client.submit(reduce_target, tasks[tid], threads, pure=False, retries=0,
+                                key=f"slicersim-reduce-{tasks[tid]['digest'][:12]}-{tid}")
+            futures[fut] = tid
+            return fut
+
+        queue = as_completed([submit(pending.pop(0)) for _ in range(min(window, len(pending)))])
+        last = time.monotonic()
+        with tqdm(total=len(tasks), desc="reduce", unit="target", disable=not progress) as bar:
+            for fut in queue:
+                tid = futures.pop(fut)
+                try:
+                    rec = fut.result()
+                except Exception as exc:           # the worker died (KilledWorker) or the task was lost
+                    rec = {"target_id": tid, "status": "failed", "spec_sha256": tasks[tid]["digest"],
+                           "source_sha256": tasks[tid]["source"]["sha256"],
+                           "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
+                    ds.write_record(tid, rec)
+                records[tid] = rec
+                bar.update(1)
+                nfail = sum(1 for r in records.values() if r.get("status") == "failed")
+                if nfail:
+                    bar.set_postfix(failed=nfail)
+                if pending:
+                    queue.add(submit(pending.pop(0)))
+                if time.monotonic() - last > CATALOG_INTERVAL:
+                    checkpoint()
+                    last = time.monotonic()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+        quiet.restore()

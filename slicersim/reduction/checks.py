@@ -1,0 +1,353 @@
+"""Checks made before a reduction reads any data: the raw file, the readout keywords, the options.
+
+:func:`check_ramp_file` refuses, with one :class:`~slicersim.errors.RampFileError` each, what
+:func:`~slicersim.reduction.ramp_fit.fit_ramps` cannot reduce or would reduce wrongly, reading
+headers only:
+
+* files of another layout, named for what they are: a rates file or a reduced exposure (outputs
+  of ``slicersim reduce``), a campaign spectrum / cube / detector-image product, a directory;
+* an empty SCI, GROUPDQ or PIXELDQ of the wrong type, data compressed with an HDF5 filter this
+  installation lacks (``hdf5plugin``), ``truth/rate`` missing or of the wrong shape when the
+  truth is asked for;
+* inconsistent readout keywords: those ``fit_ramps`` checks (NGROUPS, NINTS against SCI, TGROUP =
+  (NFRAMES + GROUPGAP)·TFRAME, READPATT, missing or non-numeric keywords), and in files written by
+  slicersim the timing keywords (FRMDIVSR = NFRAMES, EFFINTTM = (NGROUPS − 1)·TGROUP,
+  TMEASURE = EFFINTTM·NINTS, EFFEXPTM = XPOSURE = TFRAME·(NGROUPS·NFRAMES + (NGROUPS − 1)·GROUPGAP
+  + DRPFRMS1)·NINTS) and, in level-1b FITS, the ``SLICERSIM`` copies of the readout keywords
+  against the JWST ones.
+
+:func:`check_spectra_options` validates the options of
+:func:`~slicersim.reduction.pipeline.reduce_exposure` (and the ``fit_ramps`` ones) the same way.
+"""
+from __future__ import annotations
+
+import inspect
+import math
+import numbers
+import os
+
+import numpy as np
+
+from slicersim.errors import ParameterError, RampFileError
+from slicersim.io.atomic import is_temporary, one_line
+
+__all__ = ["check_ramp_file", "check_spectra_options", "check_fit_options", "register_hdf5_filters",
+           "MAX_NCOL"]
+
+#: largest number of columns per slice accepted (a slice is 58 cells wide in the Lazuli design)
+MAX_NCOL = 1024
+_HDF5_MAGIC, _FITS_MAGIC = b"\x89HDF\r\n\x1a\n", b"SIMPLE  ="
+_READOUT_KEYS = ("NINTS", "NGROUPS", "NFRAMES", "GROUPGAP", "TFRAME", "TGROUP")
+_TIMING_KEYS = ("FRMDIVSR", "EFFINTTM", "TMEASURE", "EFFEXPTM", "XPOSURE", "DURATION", "TELAPSE", "DRPFRMS1")
+
+
+def register_hdf5_filters():
+    """Make the compression filters of ``hdf5plugin`` (Blosc2/LZ4, Zstd, Bitshuffle: the
+    campaigns' ramp compressions) readable in this process; False without the package."""
+    try:
+        import hdf5plugin  # noqa: F401  (registers the filters on import)
+    except ImportError:
+        return False
+    return True
+
+
+# ----------------------------------------------------------------------------- the raw file
+def check_ramp_file(path, with_truth=False, gain=None, read_noise=None, detector_shape=None):
+    """Refuse (RampFileError) a raw ramp file the reduction cannot use; headers only.
+
+    with_truth : ``truth/rate`` must exist with the detector's shape
+    gain, read_noise : overrides of the file's GAIN / READNOISE (as ``fit_ramps``)
+    detector_shape : (ny, nx) the data must have (the mapper's detector, for spectra)
+
+    Returns {"kind", "shape" (nints, ngroups, ny, nx), "nmd", "tframe"}.
+    """
+    from slicersim.reduction.ramp_fit import _readout, open_ramps
+    register_hdf5_filters()
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        raise RampFileError(f"{path} is a directory, not a ramp file (a campaign dataset needs spec.json "
+                            "and catalog.ecsv)")
+    if not os.path.lexists(path):
+        raise RampFileError(f"{path}: no such ramp file")
+    if is_temporary(path):
+        raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(9)
+    except OSError as exc:
+        raise RampFileError(f"{path}: cannot read ({one_line(exc)})") from exc
+    header = None
+    if magic.startswith(_HDF5_MAGIC):
+        _check_hdf5_layout(path, with_truth)
+    elif magic.startswith(_FITS_MAGIC):
+        header = _fits_primary_header(path)
+    with open_ramps(path) as src:                    # its own layout checks (SCI, shapes, completeness)
+        shape = tuple(int(s) for s in src.shape)
+        if 0 in shape:
+            raise RampFileError(f"{path}: SCI is empty {shape}")
+        nmd, tframe, _, _ = _readout(src.attrs, src.shape, gain, read_noise, path)
+        if header is not None:
+            _check_fits_duplicates(header, path)
+        if _made_by_slicersim(src.attrs, header):
+            timing = {k: header[k] for k in _TIMING_KEYS if k in header} if header is not None else {}
+            _check_timing({**src.attrs, **timing}, shape, nmd, tframe, path)
+        if with_truth:
+            truth = src.truth("rate")
+            if truth is None:
+                raise RampFileError(f"{path}: the truth is asked for (--with-truth) but the file has no truth/rate")
+            if tuple(truth.shape) != shape[2:]:
+                raise RampFileError(f"{path}: truth/rate has shape {tuple(truth.shape)}, the data {shape[2:]}")
+    if detector_shape is not None and shape[2:] != tuple(detector_shape):
+        raise RampFileError(f"{path}: the ramps are {shape[2]}×{shape[3]} pixels, the mapper's detector "
+                            f"{detector_shape[0]}×{detector_shape[1]}: cubes and spectra need the full detector "
+                            "(reduce without --spectra for rates only)")
+    return {"kind": "jwst-uncal" if header is not None else "hdf5", "shape": shape, "nmd": nmd, "tframe": tframe}
+
+
+def _check_hdf5_layout(path, with_truth):
+    """Name what a foreign HDF5 file is; types and filters of the ramp datasets."""
+    import h5py
+    try:
+        fh = h5py.File(path, "r")
+    except OSError as exc:
+        raise RampFileError(f"{path}: not a readable HDF5 ramp file ({one_line(exc)})") from exc
+    with fh:
+        what = _foreign_product(fh)
+        if what:
+            raise RampFileError(f"{path} is {what}, not a raw ramp file")
+        for name, kinds in (("SCI", "u"), ("GROUPDQ", "u"), ("PIXELDQ", "ui")):
+            dset = fh.get(name)
+            if not isinstance(dset, h5py.Dataset):
+                continue
+            if dset.dtype.kind not in kinds:
+                raise RampFileError(f"{path}: {name} has type {dset.dtype}, expected unsigned integers")
+            _check_filters(dset, path, name)
+        truth = fh.get("truth/rate")
+        if with_truth and isinstance(truth, h5py.Dataset):
+            _check_filters(truth, path, "truth/rate")
+
+
+def _foreign_product(fh):
+    """A description of a known non-ramp slicersim file, or ''."""
+    attrs = fh.attrs
+    product = attrs.get("product")
+    if isinstance(product, bytes):
+        product = product.decode(errors="replace")
+    if product in ("spectrum", "cube", "detector_image"):
+        return f"a campaign {product.replace('_', ' ')} product"
+    if "rates" in fh and ("cubes" in fh or "spectra" in fh):
+        return "a reduced exposure (rates, cubes, spectra from `slicersim reduce --spectra`)"
+    if "RATE" in fh and "VAR" in fh and "SCI" not in fh:
+        return "a rates file (from `slicersim reduce`)"
+    return ""
+
+
+def _check_filters(dset, path, name):
+    import h5py
+    plist = dset.id.get_create_plist()
+    for i in range(plist.get_nfilters()):
+        code, _, _, label = plist.get_filter(i)
+        if not h5py.h5z.filter_avail(code):
+            label = label.decode(errors="replace") if isinstance(label, bytes) else str(label)
+            raise RampFileError(f"{path}: {name} is compressed with HDF5 filter {code} ({label or 'unknown'}), "
+                                "which this installation cannot decode (install the 'hdf5plugin' package)")
+
+
+def _fits_primary_header(path):
+    from astropy.io import fits
+    try:
+        return fits.getheader(path, 0)
+    except (OSError, ValueError, IndexError) as exc:
+        raise RampFileError(f"{path}: not a readable FITS file ({one_line(exc)})") from exc
+
+
+def _made_by_slicersim(attrs, header):
+    def text(v):
+        return v.decode(errors="replace") if isinstance(v, bytes) else str(v)
+    if header is not None:
+        return text(header.get("ORIGIN", "")).strip().lower() == "slicersim" or \
+            any(str(k).startswith("SLICERSIM ") for k in header)
+    return text(attrs.get("SOFTWARE", "")).strip().lower() == "slicersim"
+
+
+def _check_fits_duplicates(header, path):
+    """The SLICERSIM copies of the readout keywords (HIERARCH) must agree with the JWST ones."""
+    for key in _READOUT_KEYS:
+        copy = f"SLICERSIM {key}"
+        if key in header and copy in header:
+            a, b = header[key], header[copy]
+            try:
+                same = math.isclose(float(a), float(b), rel_tol=1e-6)
+            except (TypeError, ValueError):
+                same = a == b
+            if not same:
+                raise RampFileError(f"{path}: inconsistent readout keywords: {key} = {a} but "
+                                    f"SLICERSIM {key} = {b}")
+
+
+def _num(attrs, key, path):
+    val = attrs[key]
+    if isinstance(val, bytes):
+        val = val.decode(errors="replace")
+    try:
+        out = float(val)
+    except (TypeError, ValueError):
+        raise RampFileError(f"{path}: keyword {key} = {val!r} is not a number") from None
+    if not math.isfinite(out):
+        raise RampFileError(f"{path}: keyword {key} = {val!r} is not finite")
+    return out
+
+
+def _check_timing(attrs, shape, nmd, tframe, path):
+    """Timing keywords (JWST definitions, :mod:`slicersim.io.uncal`) against the readout."""
+    nints = shape[0]
+    n, m, d = nmd
+    tgroup = (m + d) * tframe
+    drop1 = _num(attrs, "DRPFRMS1", path) if "DRPFRMS1" in attrs else 0.0
+    expect = {"FRMDIVSR": (m, "NFRAMES"),
+              "EFFINTTM": ((n - 1) * tgroup, "(NGROUPS − 1)·TGROUP"),
+              "TMEASURE": ((n - 1) * tgroup * nints, "(NGROUPS − 1)·TGROUP·NINTS"),
+              "EFFEXPTM": (tframe * (n * m + (n - 1) * d + drop1) * nints,
+                           "TFRAME·(NGROUPS·NFRAMES + (NGROUPS − 1)·GROUPGAP + DRPFRMS1)·NINTS"),
+              "XPOSURE": (tframe * (n * m + (n - 1) * d + drop1) * nints,
+                          "TFRAME·(NGROUPS·NFRAMES + (NGROUPS − 1)·GROUPGAP + DRPFRMS1)·NINTS")}
+    for key, (value, formula) in expect.items():
+        if key in attrs and not math.isclose(_num(attrs, key, path), value, rel_tol=1e-6, abs_tol=1e-9):
+            raise RampFileError(f"{path}: inconsistent readout keywords: {key} = {attrs[key]} but {formula} = "
+                                f"{value:g} (NGROUPS, NFRAMES, GROUPGAP, TFRAME, NINTS = {n}, {m}, {d}, "
+                                f"{tframe:g}, {nints})")
+    for key in ("DURATION", "TELAPSE"):
+        if key in attrs and _num(attrs, key, path) < tframe * (n * m + (n - 1) * d) * nints * (1 - 1e-6):
+            raise RampFileError(f"{path}: inconsistent readout keywords: {key} = {attrs[key]} s is shorter "
+                                "than the frames read")
+
+
+# ----------------------------------------------------------------------------- options
+def _real(value, name, lo=None, lo_open=False, hi=None):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ParameterError(f"{name} must be a finite number, got {value!r}")
+    if lo is not None and (value < lo or (lo_open and value == lo)):
+        raise ParameterError(f"{name} must be {'>' if lo_open else '≥'} {lo:g}, got {value!r}")
+    if hi is not None and value >= hi:
+        raise ParameterError(f"{name} must be < {hi:g}, got {value!r}")
+    return float(value)
+
+
+def check_fit_options(fit_options):
+    """A dict of ``fit_ramps`` keyword arguments, checked (names and the simple values)."""
+    from slicersim.backends.ramp_fit import WEIGHTINGS
+    from slicersim.reduction.ramp_fit import fit_ramps
+    if fit_options is None:
+        return {}
+    if not isinstance(fit_options, dict):
+        raise ParameterError("fit_options must be a dict of fit_ramps keyword arguments")
+    known = set(inspect.signature(fit_ramps).parameters) - {"source"}
+    unknown = sorted(set(fit_options) - known)
+    if unknown:
+        raise ParameterError(f"unknown fit_ramps option(s) {', '.join(map(repr, unknown))}; known: "
+                             f"{', '.join(sorted(known))}")
+    opts = dict(fit_options)
+    if "weighting" in opts and opts["weighting"] not in WEIGHTINGS:
+        raise ParameterError(f"weighting must be one of {WEIGHTINGS}, got {opts['weighting']!r}")
+    if opts.get("jump_threshold") is not None:
+        _real(opts["jump_threshold"], "jump_threshold [σ] (0: no jump detection)", lo=0.0)
+    if opts.get("gain") is not None:
+        _real(opts["gain"], "gain [DN/e-]", lo=0.0, lo_open=True)
+    if opts.get("read_noise") is not None:
+        _real(opts["read_noise"], "read noise [e-]", lo=0.0)
+    for key in ("with_truth", "return_groupdq"):
+        if key in opts and not isinstance(opts[key], (bool, np.bool_)):
+            raise ParameterError(f"{key} must be True or False, got {opts[key]!r}")
+    return opts
+
+
+def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, rectify_method=None,
+                          extraction=None, psf=None, position=None, aperture=None, background=None,
+                          propagate=None):
+    """Validate :func:`~slicersim.reduction.pipeline.reduce_exposure` options before any data are
+    read; returns the dict of those given (None: the pipeline's default), the λ edges as an array.
+
+    The λ grid is checked against ``mapper`` (default: the built-in layout) and a PSF array
+    against the cube it will be applied to ((nλ, 58, ncol) for the Lazuli fields)."""
+    from slicersim.reduction.rectify import FIELDS, METHODS as RECTIFY_METHODS, _check_grid, _default_mapper
+    from slicersim.reduction.spectra import METHODS, extract_spectrum
+    out = {}
+    if field is not None:
+        if field not in (*FIELDS, "both"):
+            raise ParameterError(f"field must be one of {(*FIELDS, 'both')}, got {field!r}")
+        out["field"] = field
+    if ncol is not None:
+        if isinstance(ncol, bool) or not isinstance(ncol, (int, np.integer)) or not 1 <= ncol <= MAX_NCOL:
+            raise ParameterError(f"ncol must be an integer in [1, {MAX_NCOL}] (columns per slice), got {ncol!r}")
+        out["ncol"] = int(ncol)
+    if rectify_method is not None:
+        if rectify_method not in RECTIFY_METHODS:
+            raise ParameterError(f"rectify_method must be one of {RECTIFY_METHODS}, got {rectify_method!r}")
+        out["rectify_method"] = rectify_method
+    if extraction is not None:
+        if extraction not in METHODS:
+            raise ParameterError(f"extraction must be one of {METHODS}, got {extraction!r}")
+        if extraction == "gls" and rectify_method == "drizzle":
+            raise ParameterError("extraction 'gls' needs an lsq cube (its inverse covariance): not with "
+                                 "rectify_method 'drizzle'")
+        out["extraction"] = extraction
+    params = inspect.signature(extract_spectrum).parameters
+    if aperture is not None:
+        radius = params["background_radius"].default
+        out["aperture"] = _real(aperture, "aperture [PSF σ]", lo=0.0, lo_open=True,
+                                hi=radius if isinstance(radius, (int, float)) else None)
+    if position is not None:
+        try:
+            pos = tuple(position)
+        except TypeError:
+            pos = ()
+        if len(pos) != 2:
+            raise ParameterError(f"position must be (x, y) [cells from the field centre], got {position!r}")
+        out["position"] = tuple(_real(v, "position [cells]") for v in pos)
+    for key, val in (("background", background), ("propagate", propagate)):
+        if val is not None:
+            if not isinstance(val, (bool, np.bool_)):
+                raise ParameterError(f"{key} must be True or False, got {val!r}")
+            out[key] = bool(val)
+    if lbda_edges is not None or (psf is not None and not isinstance(psf, str)):
+        mapper = _default_mapper() if mapper is None else mapper
+    if lbda_edges is not None:
+        try:
+            edges = np.asarray(lbda_edges, np.float64)
+        except (TypeError, ValueError):
+            raise ParameterError("lbda_edges must be numbers [Å]") from None
+        if edges.ndim != 1 or edges.size < 2:
+            raise ParameterError(f"lbda_edges must be a 1-D array of ≥ 2 edges [Å], got shape {edges.shape}")
+        _, edges = _check_grid(None, edges, mapper)
+        out["lbda_edges"] = edges
+    if psf is not None:
+        out["psf"] = _check_psf(psf, mapper, out, FIELDS)
+    return out
+
+
+def _check_psf(psf, mapper, opts, fields):
+    if isinstance(psf, str):
+        if psf != "fit":
+            raise ParameterError(f"psf must be 'fit' or an (nλ, ny, nx) array of PSF fractions, got {psf!r}")
+        return psf
+    try:
+        arr = np.asarray(psf, np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError("psf must be 'fit' or a numeric (nλ, ny, nx) array") from None
+    if arr.ndim != 3 or not np.all(np.isfinite(arr)) or (arr < 0).any():
+        raise ParameterError(f"psf must be a finite (nλ, ny, nx) array of fractions ≥ 0, got shape {arr.shape}")
+    from slicersim.reduction.pipeline import default_lbda_edges
+    edges = opts.get("lbda_edges")
+    nbins = (edges.size if edges is not None else default_lbda_edges(mapper).size) - 1
+    ncol = opts.get("ncol", inspect.signature(_reduce_exposure()).parameters["ncol"].default)
+    names = list(fields) if opts.get("field") in (None, "both") else [opts["field"]]
+    rows = {len(fields[name]) for name in names}
+    if len(rows) == 1 and arr.shape != (nbins, rows.pop(), ncol):
+        raise ParameterError(f"psf has shape {arr.shape}; the cube will be ({nbins}, {len(fields[names[0]])}, "
+                             f"{ncol}) (λ bins, slices, columns)")
+    return arr
+
+
+def _reduce_exposure():
+    from slicersim.reduction.pipeline import reduce_exposure
+    return reduce_exposure
