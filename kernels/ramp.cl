@@ -387,7 +387,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
         sat = sat || full;
         before = RNG_SELECT(total, (rng_double)full_well, full);
 #ifdef RAMP_EFFECTS
-        store_mean(g, sum, sat, m, gmean, gdq, idx, npix);
+        store_mean(g, sum, sat, m, gmean, gdq, idx, contiguous, npix);
 #else
         store_group(g, sum, (g & 1) ? z_odd : z_even, reset, &sat, m, read_sigma, gain, bias, saturation,
                     sci, gdq, write_dq, idx, contiguous, npix);
@@ -525,7 +525,7 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
 #endif
         }
 #ifdef RAMP_EFFECTS
-        store_mean(g, sum, sat, m, gmean, gdq, idx, npix);
+        store_mean(g, sum, sat, m, gmean, gdq, idx, contiguous, npix);
 #else
         if ((g & 1) == 0) {
             rng_uint a, b, c, e;

@@ -116,11 +116,21 @@ RAMP_INLINE rng_double window_read_sum(const rng_double before, const rng_double
     return total;
 }
 
-/* group mean of the read values [e-] and the sticky charge-saturation flag of group g */
+/* group mean of the read values [e-] and the sticky charge-saturation flag of group g
+ * (one vector store each where the lanes are consecutive pixels) */
 RAMP_INLINE void store_mean(const int g, const rng_double sum, const ramp_mask sat, const int m,
                             __global double *restrict gmean, __global uchar *restrict gdq, const uint *idx,
-                            const size_t npix)
+                            const int contiguous, const size_t npix)
 {
+    __global double *gm = gmean + (size_t)g * npix;
+    __global uchar *gq = gdq + (size_t)g * npix;
+#if RNG_VW > 1
+    if (contiguous) {
+        RNG_PASTE(vstore, RNG_SUFFIX)(sum / (double)m, 0, gm + idx[0]);
+        RAMP_VSTORE(RAMP_FLAG(sat), gq + idx[0]);
+        return;
+    }
+#endif
     double v[RNG_VW];
     uchar q[RNG_VW];
 #if RNG_VW == 1
@@ -131,7 +141,7 @@ RAMP_INLINE void store_mean(const int g, const rng_double sum, const ramp_mask s
     RAMP_VSTORE(RAMP_FLAG(sat), q);
 #endif
     for (int l = 0; l < RNG_VW; ++l) {
-        gmean[(size_t)g * npix + idx[l]] = v[l];
-        gdq[(size_t)g * npix + idx[l]] = q[l];
+        gm[idx[l]] = v[l];
+        gq[idx[l]] = q[l];
     }
 }
