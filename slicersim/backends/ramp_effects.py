@@ -267,11 +267,15 @@ def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None,
     kernel = opencl.get_kernel("ramp_readout.cl", "ramp_readout", (f"-DRNG_VW={vw}",))
     m = p.nmd[1]
     items = rows * -(-nx // vw)
-    opencl.launch(kernel, (items,), None, d_gm, d_q, d_x, d_b, d_k, d_sci, d_gdq, np.uint32(rows), np.uint32(nx),
-                  np.uint32(rows_in), np.uint32(halo_top), np.uint32(y0), np.uint32(ny), np.uint32(ramp),
-                  np.uint32(key[0]), np.uint32(key[1]), np.int32(n), np.float64(p.ron / math.sqrt(m)),
-                  np.float64(p.gain), np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.saturation),
-                  np.int32(ipc is not None), np.int32(extra is not None), np.int32(bias_map is not None))
+    state = [opencl.workspace_buffer(workspace, name, size * plane) for name, size in
+             (("ro_reset", 8), ("ro_z", 8), ("ro_sat", 1))]
+    head = (d_gm, d_q, d_x, d_b, d_k, d_sci, d_gdq, *state, np.uint32(rows), np.uint32(nx), np.uint32(rows_in),
+            np.uint32(halo_top), np.uint32(y0), np.uint32(ny), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]))
+    tail = (np.float64(p.ron / math.sqrt(m)), np.float64(p.gain), np.float64(p.bias), np.float64(p.ktc_noise),
+            np.float64(p.saturation), np.int32(ipc is not None), np.int32(extra is not None),
+            np.int32(bias_map is not None))
+    for g in range(n):                       # one launch per group: each streams through one plane
+        opencl.launch(kernel, (items,), None, *head, np.int32(g), *tail)
     if zero_copy:
         opencl.sync_to_host(d_sci, sci)
         opencl.sync_to_host(d_gdq, gdq)
