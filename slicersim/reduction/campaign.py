@@ -273,6 +273,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
         raise DatasetError(f"{ds.path} is a campaign dataset, not a reduction directory: choose another output "
                            "directory (it is never overwritten, even with force)")
     _check_identity(ds, identity, force)            # refuse early: other options or another source
+    mapper = _portable(mapper)
     ids = [int(t) for t in catalog["target_id"]]
     connection = reduction_client(workers, scheduler) if scheduler else None
     try:
@@ -314,6 +315,25 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
             "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
             "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed}
+
+
+def _portable(mapper):
+    """A mapper the workers can receive: a used SlicerMapper holds OpenCL buffers (not picklable),
+    so it travels as a fresh one built from its nodes; anything else must pickle."""
+    import pickle
+    if mapper is None:
+        return None
+    try:
+        pickle.dumps(mapper)
+        return mapper
+    except Exception as exc:
+        from slicersim.instrument.mapper import SlicerMapper
+        if type(mapper) is not SlicerMapper:
+            raise ParameterError(f"mapper cannot be sent to the Dask workers ({type(exc).__name__}: {exc})") from None
+    return SlicerMapper(mapper.slice_ids, mapper.fieldpos_nodes, mapper.lbda_nodes, mapper.values,
+                        pixel_size_um=mapper.pixel_size_um, detector_shape=mapper.detector_shape,
+                        interpolation=mapper.interpolation, face_diagonal=mapper.face_diagonal,
+                        table_cache=mapper.table_cache)
 
 
 def _sources(src, ids):
