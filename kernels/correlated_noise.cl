@@ -23,12 +23,15 @@
 #elif FVW == 4
 #define FSUF 4
 #define FLANES ((uint4)(0, 1, 2, 3))
+#define FLANES_REVERSED ((uint4)(3, 2, 1, 0))
 #elif FVW == 8
 #define FSUF 8
 #define FLANES ((uint8)(0, 1, 2, 3, 4, 5, 6, 7))
+#define FLANES_REVERSED ((uint8)(7, 6, 5, 4, 3, 2, 1, 0))
 #elif FVW == 16
 #define FSUF 16
 #define FLANES ((uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#define FLANES_REVERSED ((uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0))
 #else
 #error "FVW must be 1, 4, 8 or 16"
 #endif
@@ -111,29 +114,57 @@ __kernel void assemble_group(__global const float *restrict seg, __global const 
                              __global const float *restrict ey, __global const float *restrict ex,
                              __global float *restrict out)
 {
-    const int x = get_global_id(0);
+    /* work item (v, y): pixels x = v*FVW ... v*FVW + FVW - 1 of block row y, all in one output
+     * (ncol % FVW == 0).  Lanes are evaluated in ascending scan position j (one vector load
+     * from each stream; an odd output reads its columns right to left, so its lanes are
+     * reversed before the per-column terms). */
+    const int x0 = (int)get_global_id(0) * FVW;
     const int y = get_global_id(1);
-    if (x >= nx)
+    if (x0 >= nx)
         return;
-    const int o = x / ncol, xl = x - o * ncol;
-    const int j = (o & 1) ? ncol - 1 - xl : xl;
+    const int o = x0 / ncol, xl0 = x0 - o * ncol;
+    const int odd = o & 1;
+    const int jlo = odd ? ncol - FVW - xl0 : xl0;          /* smallest scan position of the lanes */
     const int row = y0 + y;
     const int s1 = row / S, r1 = row - s1 * S;
     int s2 = (r1 < h) ? s1 - 1 : ((r1 >= S - h) ? s1 + 1 : -1);
     const int ok2 = (s2 >= 0) && (s2 < nseg);
     s2 = ok2 ? s2 : s1;
     const int i1 = s1 - s_first, i2 = s2 - s_first;
-    const int p1 = (row - s1 * S + h) * row_len + j, p2 = (row - s2 * S + h) * row_len + j;
+    const int p1 = (row - s1 * S + h) * row_len + jlo, p2 = (row - s2 * S + h) * row_len + jlo;
     const size_t b1 = (size_t)i1 * (nout + 1) * length, b2 = (size_t)i2 * (nout + 1) * length;
-    const float v1 = win[(size_t)i1 * span + p1] * (seg[b1 + p1] + seg[b1 + (size_t)(1 + o) * length + p1]);
-    const float v2 = win[(size_t)i2 * span + p2] * (seg[b2 + p2] + seg[b2 + (size_t)(1 + o) * length + p2]);
-    const float t = (float)j / (float)row_len;
+    const size_t own = (size_t)(1 + o) * length;
+#if FVW == 1
+#define FLOAD(p) (*(p))
+#else
+#define FLOAD(p) RNG_PASTE(vload, FSUF)(0, (p))
+#endif
+    const ffloat v1 = FLOAD(win + (size_t)i1 * span + p1) * (FLOAD(seg + b1 + p1) + FLOAD(seg + b1 + own + p1));
+    ffloat v = v1;
+    if (ok2) {
+        const ffloat v2 = FLOAD(win + (size_t)i2 * span + p2) * (FLOAD(seg + b2 + p2) + FLOAD(seg + b2 + own + p2));
+        v = v1 + v2;
+    } else {
+        v = v1 + (ffloat)0.0f;
+    }
+    const fuint j = (fuint)(uint)jlo + FLANES;
+    const ffloat t = RNG_PASTE(convert_float, FSUF)(j) / (ffloat)(float)row_len;
     const int lo = y * nout + o;
     const float a = lowA[lo], a2 = lowA2[lo], c = altA[lo], c2 = altA2[lo];
-    const float low = a + t * (a2 - a);
-    const float alt = c + t * (c2 - c);
-    float v = v1 + (ok2 ? v2 : 0.0f);
-    v = v + low + ((j & 1) ? -alt : alt);
-    v = v + ped[o] + pf * (ey[y] + ex[x]);
-    out[(size_t)y * nx + x] = v;
+    const ffloat low = (ffloat)a + t * (ffloat)(a2 - a);
+    const ffloat alt = (ffloat)c + t * (ffloat)(c2 - c);
+#if FVW == 1
+    v = v + low + ((j & 1u) ? -alt : alt);
+#else
+    v = v + low + select(alt, -alt, RNG_PASTE(convert_int, FSUF)(j & 1u) != 0);
+    if (odd)
+        v = shuffle(v, FLANES_REVERSED);
+#endif
+    v = v + (ffloat)ped[o] + (ffloat)pf * ((ffloat)ey[y] + FLOAD(ex + x0));
+#if FVW == 1
+    out[(size_t)y * nx + x0] = v;
+#else
+    RNG_PASTE(vstore, FSUF)(v, 0, out + (size_t)y * nx + x0);
+#endif
+#undef FLOAD
 }

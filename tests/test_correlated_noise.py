@@ -139,16 +139,19 @@ def test_generator_backends_agree():
 
 
 @needs_cl
-def test_assembly_twin():
-    gen = CorrelatedNoise(CorrelatedNoiseParameters(n_outputs=4), (64, 64), (2, 1, 0), 2.83, 1,
+@pytest.mark.parametrize("nout, nx", [(4, 64), (8, 64), (4, 48), (4, 56)])
+def test_assembly_twin(nout, nx):
+    """The kernel's explicit lanes (16, 8, 4 or 1 columns per work item: the largest dividing
+    the output width; odd outputs reversed) against the NumPy twin."""
+    gen = CorrelatedNoise(CorrelatedNoiseParameters(n_outputs=nout), (64, nx), (2, 1, 0), 2.83, 1,
                           segment_rows=16, taper_rows=4)
     s_first, seg, win = gen._segments(0, 1, 10, 40)
     rng = np.random.default_rng(1)
-    small = [rng.normal(size=(30, 4)).astype(np.float32) for _ in range(4)]
-    args = (seg, win, s_first, 10, *small, rng.normal(size=4).astype(np.float32), 0.7,
+    small = [rng.normal(size=(30, nout)).astype(np.float32) for _ in range(4)]
+    args = (seg, win, s_first, 10, *small, rng.normal(size=nout).astype(np.float32), 0.7,
             gen._ey[10:40].copy(), gen._ex)
-    a = assemble_numpy(gen, *args, out=np.empty((30, 64), np.float32))
-    b = assemble_opencl(gen, *args, out=np.empty((30, 64), np.float32))
+    a = assemble_numpy(gen, *args, out=np.empty((30, nx), np.float32))
+    b = assemble_opencl(gen, *args, out=np.empty((30, nx), np.float32))
     np.testing.assert_allclose(a, b, atol=1e-5, rtol=1e-6)
 
 

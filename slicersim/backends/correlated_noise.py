@@ -557,12 +557,15 @@ def assemble_opencl(gen, seg, win, s_first, y0, la, la2, aa, aa2, ped, pf, ey, e
     g = gen.geometry
     S, h, nseg, span, length = gen._segment_geometry()
     rows = out.shape[0]
-    kern = opencl.cached_kernel("correlated_noise.cl", "assemble_group", ("-DFVW=1",))
+    vw = 1
+    if "GPU" not in opencl.device_type(opencl.get_device()):     # explicit lanes on CPUs
+        vw = next(v for v in (16, 8, 4, 1) if g.ncol % v == 0)
+    kern = opencl.cached_kernel("correlated_noise.cl", "assemble_group", (f"-DFVW={vw}",))
     bufs = [opencl.host_buffer(np.ascontiguousarray(a, np.float32)) for a in (seg, win)]
     small = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in (la, la2, aa, aa2, ped)]
     d_ey, d_ex = opencl.to_device(np.ascontiguousarray(ey, np.float32)), opencl.to_device(ex)
     d_out = opencl.host_buffer(out)
-    opencl.launch(kern, (g.nx, rows), None, *bufs, np.int32(s_first), np.int32(seg.shape[0]), np.int32(nseg),
+    opencl.launch(kern, (g.nx // vw, rows), None, *bufs, np.int32(s_first), np.int32(seg.shape[0]), np.int32(nseg),
                   np.int32(S), np.int32(h), np.int32(span), np.int32(length), np.int32(y0), np.int32(g.row_len),
                   np.int32(g.ncol), np.int32(g.n_outputs), np.int32(g.nx), *small, np.float32(pf), d_ey, d_ex,
                   d_out)
