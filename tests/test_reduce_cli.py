@@ -1,4 +1,6 @@
 """`slicersim reduce`: raw ramp file → rates file, and one-line errors that write nothing."""
+import json
+
 import h5py
 import numpy as np
 import pytest
@@ -54,3 +56,211 @@ def test_reduce_bad_input_is_one_line_and_writes_nothing(raw, tmp_path, capsys, 
         assert out.read_bytes() == b"keep me"
     else:
         assert not out.exists()
+
+
+# --------------------------------------------------------------------------- --spectra
+EDGES = "9050,9950,75"                      # 12 bins on the small test layout
+NCOL = 24
+
+
+@pytest.fixture(scope="module")
+def small_raw(tmp_path_factory):
+    """Raw ramps of a point source (400 e-/s per bin) in the narrow field of the small test layout."""
+    from conftest import small_slicer_mapper
+
+    from slicersim.physics.psf import gaussian_psf_cells
+    mapper = small_slicer_mapper()
+    edges = np.arange(9050.0, 9951.0, 75.0)
+    lbda = 0.5 * (edges[1:] + edges[:-1])
+    sig = np.linspace(1.2, 1.8, lbda.size)
+    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
+    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
+    image = mapper.project_fields(lbda, edges, narrow=400.0 * psf)
+    path = tmp_path_factory.mktemp("small") / "raw.h5"
+    simulate(image, (8, 4, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
+    return path, mapper, psf
+
+
+@pytest.fixture
+def small_layout(small_raw, monkeypatch):
+    """The CLI's default layout is the small test one (the full detector's tables take minutes)."""
+    from slicersim.reduction import rectify
+    monkeypatch.setattr(rectify, "_default_mapper", lambda: small_raw[1])
+    return small_raw
+
+
+def _one_line_error(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("slicersim: error:"), err
+    return err[0]
+
+
+def test_reduce_spectra_writes_rates_cubes_and_spectra(small_layout, tmp_path, capsys):
+    path, _, _ = small_layout
+    out = tmp_path / "red.h5"
+    argv = ["reduce", str(path), "--out", str(out), "--spectra", "--lbda-edges", EDGES, "--ncol", str(NCOL),
+            "--with-truth", "--quiet"]
+    assert main(argv) == 0
+    line = capsys.readouterr().out
+    assert "narrow cube 12×58×24, spectrum (gls)" in line
+    with h5py.File(out, "r") as fh:
+        assert {"rates", "cubes", "spectra"} <= set(fh) and list(fh["cubes"]) == ["narrow"]
+        assert fh["rates/TRUTH_RATE"].shape == fh["rates/RATE"].shape == (660, 600)
+        flux, var = fh["spectra/narrow/FLUX"][...], fh["spectra/narrow/VAR"][...]
+    assert np.all(np.abs(flux - 400.0) < 5 * np.sqrt(var)), (flux - 400.0) / np.sqrt(var)
+    assert main(argv) == 2 and "exists" in _one_line_error(capsys)        # --overwrite needed
+    # rates only: unchanged behaviour, no cube
+    assert main(["reduce", str(path), "--out", str(tmp_path / "rates.h5"), "--quiet"]) == 0
+    with h5py.File(tmp_path / "rates.h5", "r") as fh:
+        assert "RATE" in fh and "cubes" not in fh
+
+
+def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
+    """λ edges from a text file, a given PSF (.npy), position, aperture, drizzle + optimal,
+    no background, no propagation, both fields."""
+    path, _, psf = small_layout
+    edges = tmp_path / "edges.txt"
+    edges.write_text("# λ edges [Å]\n" + "\n".join(f"{v:.1f}" for v in np.arange(9050.0, 9951.0, 75.0)))
+    np.save(tmp_path / "psf.npy", psf)
+    out = tmp_path / "red.h5"
+    assert main(["reduce", str(path), "--out", str(out), "--spectra", "--field", "both", "--lbda-edges", str(edges),
+                 "--ncol", str(NCOL), "--rectify", "drizzle", "--extraction", "optimal", "--psf",
+                 str(tmp_path / "psf.npy"), "--position", "0.7,-1.4", "--aperture", "2.5", "--no-background",
+                 "--no-propagate", "--quiet"]) == 0
+    with h5py.File(out, "r") as fh:
+        assert sorted(fh["cubes"]) == ["narrow", "wide"] and fh["cubes/narrow/FLUX"].attrs["METHOD"] == "drizzle"
+        info = json.loads(fh.attrs["SPECTRUM_NARROW"])
+        flux = fh["spectra/narrow/FLUX"][...]
+    assert info["method"] == "optimal" and info["aperture_sigma"] == 2.5 and info["position"] == [0.7, -1.4]
+    assert np.all(flux > 0)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--field", "wide"], "--field applies only with --spectra"),
+    (["--spectra", "--lbda-edges", "9000,9000,10"], "START < STOP"),
+    (["--spectra", "--lbda-edges", "9000,9950"], "START,STOP,STEP"),
+    (["--spectra", "--lbda-edges", "9050,9950,7"], "multiple of STEP"),
+    (["--spectra", "--lbda-edges", "0,1e12,1e-3"], "bins (at most"),
+    (["--spectra", "--lbda-edges", "5000,6000,50"], "leaves the traces"),
+    (["--spectra", "--ncol", "0"], "ncol must be an integer in [1, 1024]"),
+    (["--spectra", "--ncol", "100000"], "ncol must be an integer in [1, 1024]"),
+    (["--spectra", "--aperture", "-1"], "aperture"),
+    (["--spectra", "--aperture", "nan"], "aperture"),
+    (["--spectra", "--aperture", "7"], "aperture [PSF σ] must be < 6"),
+    (["--spectra", "--position", "1"], "--position must be X,Y"),
+    (["--spectra", "--position", "nan,1"], "finite"),
+    (["--spectra", "--psf", "nope.npy"], "--psf must be 'fit' or an existing .npy"),
+    (["--spectra", "--psf", "BADPSF"], "psf has shape (2, 3, 4)"),
+    (["--spectra", "--extraction", "gls", "--rectify", "drizzle"], "needs an lsq cube"),
+    (["--workers", "2"], "--workers applies only to a campaign dataset"),
+    (["--retry-failed"], "--retry-failed applies only to a campaign dataset"),
+    (["--gain", "0"], "--gain must be a finite number > 0"),
+    (["--read-noise", "-1"], "--read-noise must be a finite number ≥ 0"),
+    (["--out-is-dir"], "is a directory"),
+])
+def test_reduce_spectra_bad_options_are_one_line_and_write_nothing(small_layout, tmp_path, capsys, extra, message):
+    path, _, _ = small_layout
+    out = tmp_path / "red.h5"
+    if "BADPSF" in extra:
+        np.save(tmp_path / "bad.npy", np.ones((2, 3, 4)))
+        extra = [str(tmp_path / "bad.npy") if v == "BADPSF" else v for v in extra]
+    if extra == ["--out-is-dir"]:
+        out.mkdir()
+        extra = []
+    assert main(["reduce", str(path), "--out", str(out), "--quiet", "--ncol", "24", *extra]
+                if "--spectra" in extra and "--ncol" not in extra else
+                ["reduce", str(path), "--out", str(out), "--quiet", *extra]) == 2
+    assert message in _one_line_error(capsys)
+    assert not out.exists() or out.is_dir()
+
+
+def test_spectra_of_a_detector_that_is_not_the_mappers_is_refused_before_the_fit(raw, tmp_path, capsys):
+    path, _ = raw                                            # 16 × 32 pixels; the layout is 4096 × 4096
+    assert main(["reduce", str(path), "--out", str(tmp_path / "r.h5"), "--spectra", "--quiet"]) == 2
+    assert "cubes and spectra need the full detector" in _one_line_error(capsys)
+
+
+def test_bad_extraction_choice_is_a_usage_error(raw, tmp_path, capsys):
+    path, _ = raw
+    with pytest.raises(SystemExit) as exc:
+        main(["reduce", str(path), "--out", str(tmp_path / "r.h5"), "--spectra", "--extraction", "psf"])
+    assert exc.value.code == 2 and "invalid choice" in _one_line_error(capsys)
+
+
+# --------------------------------------------------------------------------- bad input files
+def _h5_copy(src, dst, edit):
+    import shutil
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as fh:
+        edit(fh)
+    return dst
+
+
+def test_files_of_other_layouts_and_inconsistent_keywords_are_named(raw, tmp_path, capsys):
+    from astropy.io import fits
+    path, rate = raw
+    rates = tmp_path / "rates.h5"
+    assert main(["reduce", str(path), "--out", str(rates), "--quiet"]) == 0
+    reduced = tmp_path / "reduced.h5"
+    with h5py.File(reduced, "w") as fh:
+        fh["rates/RATE"], fh["spectra/narrow/FLUX"] = np.zeros((2, 2)), np.zeros(3)
+    spectrum = tmp_path / "spectrum.h5"
+    with h5py.File(spectrum, "w") as fh:
+        fh["lbda"] = np.zeros(3)
+        fh.attrs["product"] = "spectrum"
+    notruth = _h5_copy(path, tmp_path / "notruth.h5", lambda fh: fh.__delitem__("truth/rate"))
+    ngroups = _h5_copy(path, tmp_path / "ngroups.h5", lambda fh: fh.attrs.__setitem__("NGROUPS", 13))
+    tgroup = _h5_copy(path, tmp_path / "tgroup.h5", lambda fh: fh.attrs.__setitem__("TGROUP", 9.0))
+    effinttm = _h5_copy(path, tmp_path / "effinttm.h5", lambda fh: fh.attrs.__setitem__("EFFINTTM", 1.0))
+
+    def float_sci(fh):
+        sci = fh["SCI"][...]
+        del fh["SCI"]
+        fh["SCI"] = sci.astype(np.float64)
+    floats = _h5_copy(path, tmp_path / "floats.h5", float_sci)
+    uncal = simulate(rate, (6, 2, 1), seed=1, progress=False, out=tmp_path / "uncal.fits", ron=5.0)
+    fits_bad = {}
+    for name, key, val in (("frmdivsr", "FRMDIVSR", 3), ("effexptm", "EFFEXPTM", 1.0),
+                           ("copy", "HIERARCH SLICERSIM NFRAMES", 4)):
+        bad = tmp_path / f"{name}.fits"
+        with fits.open(uncal) as hdul:
+            hdul[0].header[key] = val
+            hdul.writeto(bad)
+        fits_bad[name] = bad
+    cases = [(rates, [], "is a rates file (from `slicersim reduce`), not a raw ramp file"),
+             (reduced, [], "is a reduced exposure"),
+             (spectrum, [], "is a campaign spectrum product"),
+             (notruth, ["--with-truth"], "the truth is asked for (--with-truth) but the file has no truth/rate"),
+             (ngroups, [], "inconsistent readout keywords: NGROUPS = 13 but SCI has 12"),
+             (tgroup, [], "inconsistent readout keywords: TGROUP = 9.0 s"),
+             (effinttm, [], "inconsistent readout keywords: EFFINTTM = 1.0 but (NGROUPS − 1)·TGROUP = 124.52"),
+             (floats, [], "SCI has type float64"),
+             (fits_bad["frmdivsr"], [], "FRMDIVSR = 3 but NFRAMES = 2"),
+             (fits_bad["effexptm"], [], "EFFEXPTM = 1.0 but TFRAME·(NGROUPS·NFRAMES"),
+             (fits_bad["copy"], [], "NFRAMES = 2 but SLICERSIM NFRAMES = 4"),
+             (tmp_path, [], "not a slicersim campaign dataset")]
+    for source, extra, message in cases:
+        out = tmp_path / "out.h5" if source != tmp_path else tmp_path / "outdir"
+        assert main(["reduce", str(source), "--out", str(out), "--quiet", *extra]) == 2, source
+        assert message in _one_line_error(capsys), source
+        assert not out.exists()
+    assert main(["reduce", str(uncal), "--out", str(tmp_path / "ok.h5"), "--quiet"]) == 0   # the FITS itself is fine
+
+
+def test_compressed_ramps_need_their_filter(tmp_path, monkeypatch):
+    """lz4 ramps (the campaigns' compression) reduce in a fresh process (the filter is registered);
+    without the filter the error names it."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from slicersim.errors import RampFileError
+    from slicersim.reduction.checks import check_ramp_file
+    path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, progress=False, out=tmp_path / "lz4.h5",
+                    compression="lz4")
+    proc = subprocess.run([str(Path(sys.executable).parent / "slicersim"), "reduce", str(path), "--out",
+                           str(tmp_path / "r.h5"), "--quiet"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    monkeypatch.setattr(h5py.h5z, "filter_avail", lambda code: False)
+    with pytest.raises(RampFileError, match="cannot decode .install the 'hdf5plugin' package"):
+        check_ramp_file(path)

@@ -246,7 +246,7 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
 @pytest.mark.parametrize("argv, message", [
     (["--overwrite"], "--overwrite applies to a single ramp file"),
     (["--workers", "0"], "--workers must be ≥ 1"),
-    (["--ncol", "20"], "apply only with --spectra"),
+    (["--ncol", "20"], "--ncol applies only with --spectra"),
     (["--spectra", "--lbda-edges", "9000,8000,10"], "START < STOP"),
     (["--spectra", "--extraction", "gls", "--rectify", "drizzle"], "needs an lsq cube"),
     (["--scheduler", "nowhere"], "tcp://host:port"),

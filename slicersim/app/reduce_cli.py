@@ -103,12 +103,16 @@ def _given(args, flags):
     return [flag for flag, attr in flags if getattr(args, attr) not in (None, False)]
 
 
+def _apply(flags):
+    return f"{', '.join(flags)} appl{'ies' if len(flags) == 1 else 'y'}"
+
+
 def _check_flags(args, dataset):
     from slicersim.errors import ParameterError
     if not args.spectra and _given(args, _SPECTRA_FLAGS):
-        raise ParameterError(f"{', '.join(_given(args, _SPECTRA_FLAGS))} apply only with --spectra")
+        raise ParameterError(f"{_apply(_given(args, _SPECTRA_FLAGS))} only with --spectra")
     if not dataset and _given(args, _DATASET_FLAGS):
-        raise ParameterError(f"{', '.join(_given(args, _DATASET_FLAGS))} apply only to a campaign dataset "
+        raise ParameterError(f"{_apply(_given(args, _DATASET_FLAGS))} only to a campaign dataset "
                              f"directory, and {args.raw} is not a directory")
     if dataset and args.overwrite:
         raise ParameterError("--overwrite applies to a single ramp file; a reduction directory is resumed "
