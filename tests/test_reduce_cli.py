@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from slicersim.app.cli import main
+from slicersim.errors import ParameterError
 from slicersim.products.ramps import simulate
 
 
@@ -157,6 +158,8 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     (["--gain", "0"], "--gain must be a finite number > 0"),
     (["--read-noise", "-1"], "--read-noise must be a finite number ≥ 0"),
     (["--out-is-dir"], "is a directory"),
+    (["--spectra", "--position", "1e300,0"], "lies outside the field"),
+    (["--spectra", "--position", "0,29.5"], "|y| ≤ 29"),
 ])
 def test_reduce_spectra_bad_options_are_one_line_and_write_nothing(small_layout, tmp_path, capsys, extra, message):
     path, _, _ = small_layout
@@ -264,3 +267,43 @@ def test_compressed_ramps_need_their_filter(tmp_path, monkeypatch):
     monkeypatch.setattr(h5py.h5z, "filter_avail", lambda code: False)
     with pytest.raises(RampFileError, match="cannot decode .install the 'hdf5plugin' package"):
         check_ramp_file(path)
+
+
+def test_out_that_is_the_raw_file_is_refused_even_with_overwrite(raw, tmp_path, capsys):
+    """Adversarial finding: `--out RAW --overwrite` replaced the raw ramps by the rates."""
+    import shutil
+
+    from slicersim.reduction.campaign import reduce_file
+    path = str(shutil.copy(raw[0], tmp_path / "raw.h5"))
+    before = (tmp_path / "raw.h5").read_bytes()
+    for out in (path, str(tmp_path / "." / "raw.h5")):
+        assert main(["reduce", str(path), "--out", out, "--overwrite", "--quiet"]) == 2
+        assert "the ramps would be lost" in _one_line_error(capsys)
+    with pytest.raises(ParameterError, match="the ramps would be lost"):
+        reduce_file(path, path, overwrite=True)
+    assert (tmp_path / "raw.h5").read_bytes() == before
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda f: f(None), "raw must be a path"),
+    (lambda f: f(3.5, "x.h5"), "raw must be a path"),
+    (lambda f: f("raw.h5", out=["x.h5"]), "out must be a path"),
+    (lambda f: f("raw.h5", fit_options=[("gain", 1)]), "fit_options must be a dict"),
+    (lambda f: f("raw.h5", fit_options={"gain": True}), "gain"),
+    (lambda f: f("raw.h5", fit_options={"jump_threshold": float("inf")}), "jump_threshold"),
+    (lambda f: f("raw.h5", fit_options={"with_truth": "yes"}), "with_truth must be True or False"),
+    (lambda f: f("raw.h5", spectra=True, ncol=2.5), "ncol"),
+    (lambda f: f("raw.h5", spectra=True, ncol=True), "ncol"),
+    (lambda f: f("raw.h5", spectra=True, field="all"), "field"),
+    (lambda f: f("raw.h5", spectra=True, lbda_edges="9000-9500"), "lbda_edges must be numbers"),
+    (lambda f: f("raw.h5", spectra=True, lbda_edges=[[9000, 9500]]), "1-D"),
+    (lambda f: f("raw.h5", spectra=True, psf="gauss"), "psf must be 'fit'"),
+    (lambda f: f("raw.h5", spectra=True, psf=np.full((12, 58, 58), np.nan)), "finite"),
+    (lambda f: f("raw.h5", spectra=True, background="no"), "background must be True or False"),
+    (lambda f: f("raw.h5", spectra=True, position=(1, 2, 3)), "position must be"),
+    (lambda f: f("raw.h5", spectra=True, wavelength=3), "unexpected keyword"),
+])
+def test_reduce_file_wrong_types(call, message):
+    from slicersim.reduction.campaign import reduce_file
+    with pytest.raises((ParameterError, TypeError), match=message):
+        call(reduce_file)

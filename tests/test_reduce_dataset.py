@@ -132,6 +132,20 @@ def test_resume_redoes_only_the_removed_or_truncated_output(reduced, campaign, t
     assert proc.returncode == 2 and "other options" in proc.stderr and "weighting" in proc.stderr
 
 
+def test_verify_finds_a_product_damaged_in_place(reduced, campaign, tmp_path):
+    """Same size, other bytes: found only by the checksum (verify=True / --verify)."""
+    from slicersim.reduction.campaign import reduce_dataset
+    out = _linked_copy(reduced, tmp_path / "red")
+    path = out / "products/t0000000/rates.h5"
+    data = bytearray(path.read_bytes())
+    data[-100:] = bytes(100)
+    _replace(path, bytes(data))
+    assert reduce_dataset(campaign, out, workers=1, progress=False)["computed"] == 0
+    proc = _cli("reduce", campaign, "--out", out, "--workers", "1", "--quiet", "--verify")
+    assert proc.returncode == 0 and "(1 reduced now" in proc.stdout, proc.stderr
+    assert _record(out, 0)["products"] == _record(reduced, 0)["products"]
+
+
 def test_a_failing_target_is_recorded_and_the_others_go_on(campaign, reduced, tmp_path):
     """Target 1's ramps get an NGROUPS keyword their data contradict (the campaign's record updated
     to match): only target 1 is reduced again (its source changed), it fails with one clear line,
@@ -217,7 +231,9 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
              ((campaign, tmp_path / "r8"), {"spectra": True, "ncol": 10**9}, ParameterError, "ncol"),
              ((campaign, tmp_path / "r9"), {"spectra": True, "aperture": float("nan")}, ParameterError, "aperture"),
              ((campaign, tmp_path / "r10"), {"spectra": True, "lbda_edges": [20000, 30000]}, ParameterError,
-              "leaves the traces")]
+              "leaves the traces"),
+             ((123, tmp_path / "r2"), {}, ParameterError, "dataset must be a path"),
+             ((campaign, None), {}, ParameterError, "out must be a path")]
     for args, kwargs, error, message in cases:
         with pytest.raises(error, match=message):
             reduce_dataset(*args, progress=False, **kwargs)
@@ -250,6 +266,8 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
     (["--spectra", "--lbda-edges", "9000,8000,10"], "START < STOP"),
     (["--spectra", "--extraction", "gls", "--rectify", "drizzle"], "needs an lsq cube"),
     (["--scheduler", "nowhere"], "tcp://host:port"),
+    (["--workers", "100000"], "workers must be ≤"),
+    (["--show", "-1"], "--show must be ≥ 0"),
 ])
 def test_cli_dataset_flags_are_checked(campaign, tmp_path, argv, message):
     out = tmp_path / "red"

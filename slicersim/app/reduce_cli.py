@@ -119,6 +119,8 @@ def _check_flags(args, dataset):
                              "(--force starts it again when its options changed)")
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
+    if args.show < 0:
+        raise ParameterError(f"--show must be ≥ 0, got {args.show}")
     if args.jump_threshold is not None and not args.jump_threshold >= 0:
         raise ParameterError(f"--jump-threshold must be ≥ 0 (0: no jump detection), got {args.jump_threshold}")
     for flag, val, lo in (("--gain", args.gain, 0.0), ("--read-noise", args.read_noise, None)):
@@ -146,6 +148,8 @@ def cmd_reduce(args) -> int:
     _check_flags(args, dataset)
     if not dataset and not os.path.isfile(args.raw):
         raise ParameterError(f"{args.raw}: no such ramp file or dataset directory")
+    if not dataset and os.path.exists(args.out) and os.path.samefile(args.raw, args.out):
+        raise ParameterError(f"--out is RAW itself ({args.raw}): the ramps would be lost")
     fit_options = {"refpix": False if args.no_refpix else None, "linearity": False if args.no_linearity else None,
                    "jump_threshold": args.jump_threshold, "weighting": args.weighting, "gain": args.gain,
                    "read_noise": args.read_noise, "with_truth": args.with_truth}
@@ -176,7 +180,7 @@ def _reduce_dataset(args, fit_options, options):
           f"in {res['seconds']:.1f} s)")
     for tid, error in res["failed_targets"][:args.show]:
         print(f"  failed {tid}: {error}")
-    return 0 if res["failed"] == 0 and res["missing"] == 0 else 1
+    return 0 if res["done"] == res["targets"] else 1
 
 
 def add_parsers(sub, fmt):

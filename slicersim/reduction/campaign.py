@@ -61,6 +61,11 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
     reduce_exposure's dict (``rates``, ``cubes``, ``spectra`` and ``path`` with ``out``).
     """
     from slicersim.reduction.checks import check_fit_options, check_ramp_file, check_spectra_options
+    _check_path(raw, "raw")
+    if out is not None:
+        _check_path(out, "out")
+        if os.path.exists(out) and os.path.exists(raw) and os.path.samefile(raw, out):
+            raise ParameterError(f"out is the raw file itself ({raw}): the ramps would be lost")
     fit = check_fit_options(fit_options)
     if not spectra and options:
         raise ParameterError(f"option(s) {', '.join(sorted(options))} apply only with spectra=True")
@@ -82,6 +87,22 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
         path = product.write(out, overwrite=overwrite) if writer is not None else None
         return {"rates": product, "path": path}
     return _reduce_spectra(raw, out, overwrite, fit, opts, mapper)
+
+
+def _check_path(path, name):
+    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
+        raise ParameterError(f"{name} must be a path, got {path!r}")
+
+
+def _check_workers(workers):
+    """Workers of the embedded cluster: an integer from 1 to 4 × the CPU count."""
+    from slicersim.campaign.runner import _check_positive_int
+    _check_positive_int(workers, "workers")
+    most = 4 * (os.cpu_count() or 1)
+    if workers > most:
+        raise ParameterError(f"workers must be ≤ {most} (4 × the CPU count) for the embedded LocalCluster, got "
+                             f"{workers}; connect to a scheduler for more")
+    return workers
 
 
 def _check_out_file(out, overwrite):
@@ -256,8 +277,10 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     if not spectra and (options or mapper is not None):
         raise ParameterError(f"option(s) {', '.join(sorted(options) or ['mapper'])} apply only with spectra=True")
     opts = check_spectra_options(mapper=mapper, **options) if spectra else {}
-    if workers is not None:
-        _check_positive_int(workers, "workers")
+    _check_path(dataset, "dataset")
+    _check_path(out, "out")
+    if workers is not None and scheduler is None:
+        _check_workers(workers)
     if window is not None:
         _check_positive_int(window, "window")
     src, _, source_digest, catalog = _source(dataset)

@@ -303,7 +303,13 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
             pos = ()
         if len(pos) != 2:
             raise ParameterError(f"position must be (x, y) [cells from the field centre], got {position!r}")
-        out["position"] = tuple(_real(v, "position [cells]") for v in pos)
+        x, y = (_real(v, "position [cells]") for v in pos)
+        ncol = out.get("ncol", inspect.signature(_reduce_exposure()).parameters["ncol"].default)
+        rows = min(len(FIELDS[name]) for name in (FIELDS if out.get("field") in (None, "both") else [out["field"]]))
+        if abs(x) > ncol / 2 or abs(y) > rows / 2:
+            raise ParameterError(f"position ({x:g}, {y:g}) lies outside the field: |x| ≤ {ncol / 2:g} (columns), "
+                                 f"|y| ≤ {rows / 2:g} (slices) [cells from the centre]")
+        out["position"] = (x, y)
     for key, val in (("background", background), ("propagate", propagate)):
         if val is not None:
             if not isinstance(val, (bool, np.bool_)):
