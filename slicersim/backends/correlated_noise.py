@@ -312,8 +312,10 @@ class CorrelatedNoise:
         streams = np.array([_stream("low_common")] + [_stream("low_own", o) for o in range(nout)]
                            + [_stream("low_alternating", o) for o in range(nout)])
         reads = np.flatnonzero(self.frames_group >= 0).reshape(n, m)
-        rows_at = np.arange(rows_total + 1) / q                   # row starts in low-sample units
-        at_read_rows = reads[:, :, None] * g.frame_rows + np.arange(g.ny + 1)      # (n, m, ny + 1)
+        # linear interpolation at the row starts of every read, in low-sample units: sample i, weight w
+        at = (reads[:, :, None] * g.frame_rows + np.arange(g.ny + 1)).astype(np.int64)   # (n, m, ny + 1)
+        i0 = (at // q).astype(np.int32)
+        w = ((at - i0.astype(np.int64) * q) / q).astype(np.float32)
         nst = kind.size
         A = np.empty((nst, n, g.ny + 1), np.float32)
         batch = max(1, int(2**26 // (length * 4)))
@@ -322,8 +324,8 @@ class CorrelatedNoise:
             low = self._synthesize(amp, length, kind[s0:s1], np.full(s1 - s0, ramp), streams[s0:s1],
                                    np.zeros(s1 - s0))
             for i, row in enumerate(low):
-                at_rows = np.interp(rows_at, np.arange(nlow), row[:nlow])
-                A[s0 + i] = at_rows[at_read_rows].mean(axis=1)
+                a = row[i0]
+                A[s0 + i] = ((row[i0 + 1] - a) * w + a).mean(axis=1, dtype=np.float64)
         return A
 
     # ------------------------------------------------------------------ multirate / group: segments
