@@ -222,6 +222,7 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
     cases = [((campaign, afile), {}, DatasetError, "is a file"),
              ((campaign, campaign), {}, DatasetError, "must not be the dataset"),
              ((campaign, campaign / "products" / "red"), {}, DatasetError, "must not be the dataset"),
+             ((campaign, tmp_path / "alias" / "products" / "red"), {}, DatasetError, "must not be the dataset"),
              ((reduced, tmp_path / "r2"), {}, DatasetError, "is a reduction directory"),
              ((tmp_path, tmp_path / "r3"), {}, DatasetError, "not a slicersim campaign dataset"),
              ((campaign, tmp_path / "r4"), {"workers": 0}, Exception, "workers"),
@@ -234,6 +235,7 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
               "leaves the traces"),
              ((123, tmp_path / "r2"), {}, ParameterError, "dataset must be a path"),
              ((campaign, None), {}, ParameterError, "out must be a path")]
+    os.symlink(campaign, tmp_path / "alias")
     for args, kwargs, error, message in cases:
         with pytest.raises(error, match=message):
             reduce_dataset(*args, progress=False, **kwargs)

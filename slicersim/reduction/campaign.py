@@ -285,8 +285,9 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
         _check_positive_int(window, "window")
     src, _, source_digest, catalog = _source(dataset)
     out_path = os.path.abspath(os.fspath(out))
-    if out_path == src.path or out_path.startswith(os.path.join(src.path, "products") + os.sep) \
-            or out_path.startswith(os.path.join(src.path, "records") + os.sep) or src.path.startswith(out_path + os.sep):
+    real_out, real_src = os.path.realpath(out_path), os.path.realpath(src.path)
+    if real_out == real_src or real_out.startswith(os.path.join(real_src, "products") + os.sep) \
+            or real_out.startswith(os.path.join(real_src, "records") + os.sep) or real_src.startswith(real_out + os.sep):
         raise DatasetError(f"the reduction directory {out_path} must not be the dataset {src.path}, contain it "
                            "or lie in its products or records")
     identity = _identity("spectra" if spectra else "rates", opts, fit, source_digest, mapper)
@@ -322,7 +323,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
         ds.write_catalog(_catalog(base, records, sources, src))
         try:
             if todo:
-                tasks = {tid: _task(src, ds, tid, sources[tid], digest, spectra, opts, fit, mapper, catalog)
+                tasks = {tid: _task(ds, tid, sources[tid], digest, spectra, opts, fit, mapper)
                          for tid in todo}
                 _dispatch(ds, tasks, records, workers, scheduler, progress, window, connection,
                           lambda: ds.write_catalog(_catalog(base, records, sources, src)))
@@ -403,7 +404,7 @@ def _catalog(base, records, sources, src):
     return cat
 
 
-def _task(src, ds, tid, info, digest, spectra, opts, fit, mapper, catalog):
+def _task(ds, tid, info, digest, spectra, opts, fit, mapper):
     opts = dict(opts)
     if spectra and "field" not in opts:            # each target in its own field
         opts["field"] = info.get("field") or "narrow"
