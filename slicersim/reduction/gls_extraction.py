@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from slicersim.errors import ParameterError
+from slicersim.reduction.spectrum_product import SpectrumProduct, _check, _gaussian_field, _moments, fit_gaussian_psf
 
 __all__ = ["extract_gls", "gls_normal_equations"]
 
@@ -99,7 +100,6 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
     cell of the field is used); ``enclosed_energy``
     Σ_field P; ``diagnostics``: ``covariance`` (nλ, nλ) of F̂, ``chi2`` (per image), ``dof``.
     """
-    from slicersim.reduction.spectra import SpectrumProduct, _check, _gaussian_field, _moments, fit_gaussian_psf
     _inverse_covariance(cube_product)
     flux, var, psf, position = _check(cube_product, "optimal", psf, 3.0, 6.0, position)
     shape = flux.shape[-3:]
