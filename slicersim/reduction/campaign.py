@@ -114,26 +114,12 @@ def _check_out_file(out, overwrite):
 
 
 def _reduce_spectra(raw, out, overwrite, fit, opts, mapper):
-    """reduce_exposure; with the truth, its file gets rates/TRUTH_RATE before it is published."""
-    from slicersim.io.atomic import publish, temporary_path
+    """reduce_exposure (with the truth, its file holds rates/TRUTH_RATE)."""
     from slicersim.reduction.pipeline import reduce_exposure
     kwargs = dict(opts, fit_options=fit or None)
     if mapper is not None:
         kwargs["mapper"] = mapper
-    if out is None or not fit.get("with_truth"):
-        return reduce_exposure(raw, out=out, overwrite=overwrite, **kwargs)
-    import h5py
-    tmp = temporary_path(out)                 # a hidden temporary: removed as stale if we are killed
-    try:
-        result = reduce_exposure(raw, out=tmp, **kwargs)
-        with h5py.File(tmp, "r+") as fh:
-            fh.create_dataset("rates/TRUTH_RATE", data=result["rates"].truth_rate)
-        publish(tmp, os.path.abspath(out), overwrite, RampFileError)
-    finally:
-        if os.path.lexists(tmp):
-            os.remove(tmp)
-    result["path"] = os.path.abspath(out)
-    return result
+    return reduce_exposure(raw, out=out, overwrite=overwrite, **kwargs)
 
 
 # ----------------------------------------------------------------------------- datasets

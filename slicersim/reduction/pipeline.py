@@ -8,7 +8,7 @@ file (atomic) when ``out`` is given:
 
 | group | datasets |
 |---|---|
-| ``rates/`` | RATE, VAR, VAR_POISSON, VAR_RNOISE [e-/s, e-²/s²], DQ, NJUMPS |
+| ``rates/`` | RATE, VAR, VAR_POISSON, VAR_RNOISE [e-/s, e-²/s²], DQ, NJUMPS (TRUTH_RATE with the truth) |
 | ``cubes/<field>/`` | FLUX, VAR (nλ, slices, columns) [e-/s per cell per bin], LBDA, LBDA_EDGES [Å] |
 | ``spectra/<field>/`` | FLUX, VAR [e-/s per bin], LBDA, LBDA_EDGES, PSF_SIGMA, BACKGROUND, ... |
 """
@@ -126,6 +126,8 @@ def _write(writer, result):
         for name, data in (("RATE", rates.rate), ("VAR", rates.variance), ("VAR_POISSON", rates.var_poisson),
                            ("VAR_RNOISE", rates.var_rnoise), ("DQ", rates.dq), ("NJUMPS", rates.njumps)):
             w.write(f"rates/{name}", data)
+        if rates.truth_rate is not None:                          # fit_options with_truth=True
+            w.write("rates/TRUTH_RATE", rates.truth_rate)
         for name, cube in result["cubes"].items():
             w.write(f"cubes/{name}/FLUX", cube.flux, attrs={"BUNIT": f"{cube.unit} per cell per bin",
                                                             "METHOD": cube.method})

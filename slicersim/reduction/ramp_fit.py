@@ -144,6 +144,10 @@ class _HDF5Ramps(_Ramps):
 
     def __init__(self, path):
         import h5py
+        try:
+            import hdf5plugin  # noqa: F401  (registers lz4/zstd/bitshuffle: the campaigns' ramp compressions)
+        except ImportError:
+            pass
         self.name = path
         try:
             self.fh = h5py.File(path, "r")
