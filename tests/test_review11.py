@@ -56,3 +56,23 @@ def test_reduce_exposure_writes_the_truth_rate(small_raw, tmp_path):
                     fit_options={"progress": False}, out=out2)
     with h5py.File(out2, "r") as fh:
         assert "TRUTH_RATE" not in fh["rates"]
+
+
+def test_truncated_fits_ramps_are_named_in_one_line(tmp_path, capsys):
+    """A level-1b FITS cut inside an extension gave 'mmap length is greater than file size' (no file
+    name) after an astropy WARNING line."""
+    from slicersim.app.cli import main
+    from slicersim.errors import RampFileError
+    from slicersim.reduction.ramp_fit import fit_ramps
+    path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, progress=False, out=tmp_path / "raw.fits")
+    cut = tmp_path / "cut.fits"
+    with open(path, "rb") as fh:
+        cut.write_bytes(fh.read()[:10000])                  # SCI's data start at byte 8640
+    with pytest.raises(RampFileError, match="cut.fits: truncated file: extension SCI ends at byte"):
+        fit_ramps(cut, progress=False)
+    capsys.readouterr()
+    assert main(["reduce", str(cut), "--out", str(tmp_path / "r.h5"), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    err = (captured.err + captured.out).strip().splitlines()
+    assert len(err) == 1 and "truncated file" in err[0], err
+    assert not (tmp_path / "r.h5").exists()

@@ -203,6 +203,11 @@ class _FitsImage:
         self.bzero, bscale = hdr.get("BZERO", 0), hdr.get("BSCALE", 1)
         if bitpix not in self._TYPES or bscale != 1:
             raise RampFileError(f"{path}: extension {hdr.get('EXTNAME')} has BITPIX {bitpix}, BSCALE {bscale}")
+        end = hdul.fileinfo(index)["datLoc"] + math.prod(self.shape) * abs(bitpix) // 8
+        size = os.path.getsize(path)
+        if end > size:
+            raise RampFileError(f"{path}: truncated file: extension {hdr.get('EXTNAME')} ends at byte {end}, the "
+                                f"file has {size}")
         self.raw = np.memmap(path, dtype=self._TYPES[bitpix], mode="r", offset=hdul.fileinfo(index)["datLoc"],
                              shape=self.shape)
         unsigned = {(16, 32768): np.uint16, (32, 2**31): np.uint32, (8, 0): np.uint8}
@@ -225,17 +230,24 @@ class _FitsRamps(_Ramps):
     def __init__(self, path):
         from astropy.io import fits
         self.name = path
+        import warnings
         try:
-            self.hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
+            with warnings.catch_warnings():               # a truncated file: named below, in one line
+                warnings.filterwarnings("ignore", message="File may have been truncated")
+                self.hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
         except OSError as exc:
             raise RampFileError(f"{path}: not a readable FITS file ({one_line(exc)})") from exc
         names = [h.name for h in self.hdul]
         if "SCI" not in names:
             self.close()
             raise RampFileError(f"{path}: not a level-1b ramp file (no SCI extension)")
-        self.images = {n: _FitsImage(path, self.hdul, names.index(n)) for n in names
-                       if n in ("SCI", "GROUPDQ", "PIXELDQ") or n.startswith("TRUTH_")
-                       and self.hdul[n].header.get("XTENSION") == "IMAGE"}
+        try:
+            self.images = {n: _FitsImage(path, self.hdul, names.index(n)) for n in names
+                           if n in ("SCI", "GROUPDQ", "PIXELDQ") or n.startswith("TRUTH_")
+                           and self.hdul[n].header.get("XTENSION") == "IMAGE"}
+        except BaseException:
+            self.hdul.close()
+            raise
         sci = self.images["SCI"]
         if sci.ndim != 4 or sci.dtype != np.uint16:
             self.close()
