@@ -351,6 +351,8 @@ def _check_psf(psf, mapper, opts, fields):
     if len(rows) == 1 and arr.shape != (nbins, rows.pop(), ncol):
         raise ParameterError(f"psf has shape {arr.shape}; the cube will be ({nbins}, {len(fields[names[0]])}, "
                              f"{ncol}) (λ bins, slices, columns)")
+    from slicersim.reduction.spectrum_product import _check_psf_sum
+    _check_psf_sum(arr)
     return arr
 
 

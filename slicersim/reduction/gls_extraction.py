@@ -101,7 +101,7 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
     Σ_field P; ``diagnostics``: ``covariance`` (nλ, nλ) of F̂, ``chi2`` (per image), ``dof``.
     """
     _inverse_covariance(cube_product)
-    flux, var, psf, position = _check(cube_product, "optimal", psf, 3.0, 6.0, position)
+    flux, var, psf, position = _check(cube_product, "optimal", psf, 3.0, 6.0, position, background, nchunks)
     shape = flux.shape[-3:]
     stack = flux.ndim == 4
     diag, sigma = {}, None

@@ -68,7 +68,8 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
     """
     if method == "gls":
         return extract_gls(cube_product, psf=psf, position=position, background=background, nchunks=nchunks)
-    flux, var, psf, position = _check(cube_product, method, psf, aperture, background_radius, position)
+    flux, var, psf, position = _check(cube_product, method, psf, aperture, background_radius, position, background,
+                                      nchunks)
     shape = flux.shape[-3:]
     stack = flux.ndim == 4
     images = flux if stack else flux[None]

@@ -173,7 +173,21 @@ def psf_from_cube(point_source_cube):
 
 
 # --------------------------------------------------------------------------- extraction
-def _check(cube_product, method, psf, aperture, background_radius, position):
+#: tolerance on Σ_field P ≤ 1 per bin (PSF fractions)
+_PSF_SUM_TOLERANCE = 1e-6
+
+
+def _check_psf_sum(psf):
+    """PSF fractions: the light of a bin in the field cannot exceed the source's (Σ_field P ≤ 1)."""
+    total = psf.reshape(psf.shape[0], -1).sum(axis=1)
+    if total.size and total.max() > 1.0 + _PSF_SUM_TOLERANCE:
+        raise ParameterError(f"psf must hold fractions of the point source's light per cell (Σ over the field "
+                             f"≤ 1 in every bin), got a bin summing to {total.max():.6g}: normalise it "
+                             "(psf_from_cube)")
+
+
+def _check(cube_product, method, psf, aperture, background_radius, position, background=True,
+           nchunks=_MAX_CHUNKS):
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     flux = getattr(cube_product, "flux", None)
@@ -199,6 +213,11 @@ def _check(cube_product, method, psf, aperture, background_radius, position):
         psf = np.asarray(psf, float)
         if psf.shape != shape or not np.all(np.isfinite(psf)) or (psf < 0).any():
             raise ParameterError(f"psf array must be finite, ≥ 0, of shape {shape}, got {psf.shape}")
+        _check_psf_sum(psf)
+    if not isinstance(background, (bool, np.bool_)):
+        raise ParameterError(f"background must be True or False, got {background!r}")
+    if isinstance(nchunks, (bool, np.bool_)) or not isinstance(nchunks, (int, np.integer)) or nchunks < 1:
+        raise ParameterError(f"nchunks must be a positive integer (λ chunks of the PSF fit), got {nchunks!r}")
     if position is not None:
         try:
             position = tuple(float(v) for v in position)
