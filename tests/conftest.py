@@ -119,6 +119,17 @@ def _temporary_table_cache(tmp_path_factory):
         os.environ["SLICERSIM_CACHE"] = saved
 
 
+def wide_spot_mapper(sigma_px=1.2, **kwargs):
+    """The default Lazuli layout with Gaussian spots of ``sigma_px`` applied in full
+    (``cube_blur_px=0``): slices share tail pixels and a cell's light is smooth on the pixel grid,
+    for tests of that geometry (the default spots, 0.2–0.53 px, sit within the aberration the
+    cubes already carry, so its projection adds no blur)."""
+    from slicersim.instrument.mapper import SlicerMapper
+    m = SlicerMapper.default(cube_blur_px=0.0, **kwargs)
+    m.values[..., 2:] = float(sigma_px)
+    return m
+
+
 def small_slicer_mapper():
     """116 straight, slightly tilted and sheared traces (8 tiers of 15) on a 660 × 600 detector,
     λ 9000–10000 Å over 60 px, spot σ 0.6–1.2 px growing with λ; neighbouring slices share their

@@ -110,6 +110,20 @@ def _default_table(path):
     return read_spot_table(path)
 
 
+def aberration_sigma_px(dispersion_resolution):
+    """σ [px] of the optics' aberration inside a monochromatic slice image of full width
+    ``dispersion_resolution`` (dr) px: √(dr² − 2²)/2, the 2-px image of the slice width removed
+    (reference physics §2.5; the cube's LSF σ = dr/2 and spatial σ_inst carry it already)."""
+    dr = float(dispersion_resolution)
+    return 0.5 * float(np.sqrt(max(dr * dr - 4.0, 0.0)))
+
+
+@functools.lru_cache(maxsize=1)
+def _cbe_dispersion_resolution():
+    from slicersim.io.config import load_config
+    return float(load_config("cbe")["spectrograph"]["dispersion_resolution"])
+
+
 class SlicerMapper:
     """Forward/inverse optical map of a slicer spectrograph and cube projection.
 
@@ -132,7 +146,7 @@ class SlicerMapper:
 
     def __init__(self, slice_ids, fieldpos_nodes, lbda_nodes, values, *, pixel_size_um=10.0,
                  detector_shape=(4096, 4096), interpolation="bilinear", face_diagonal=None, cache_size=4,
-                 table_cache="default"):
+                 table_cache="default", cube_blur_px=0.0):
         self.slice_ids = np.asarray(slice_ids, dtype=np.int64)
         self.fieldpos_nodes = np.asarray(fieldpos_nodes, dtype=np.float64)
         self.lbda_nodes = np.asarray(lbda_nodes, dtype=np.float64)
@@ -155,6 +169,10 @@ class SlicerMapper:
             raise ValueError(f"face_diagonal must have shape {(S, J - 1, M - 1)} with values 0/1")
         self.face_diagonal = diag.astype(np.int8)
         self.pixel_size_um = float(pixel_size_um)
+        blur = np.broadcast_to(np.asarray(cube_blur_px, dtype=np.float64), (2,))
+        if not np.all(np.isfinite(blur)) or np.any(blur < 0):
+            raise ValueError(f"cube_blur_px must be finite and >= 0 [px], got {cube_blur_px!r}")
+        self.cube_blur_px = tuple(float(v) for v in blur)
         self.detector_shape = tuple(int(v) for v in detector_shape)
         self._lookup = np.full(self.slice_ids.max() + 1, -1, np.int64)
         self._lookup[self.slice_ids] = np.arange(S)
@@ -174,7 +192,9 @@ class SlicerMapper:
 
     @classmethod
     def default(cls, **kwargs):
-        """slicersim's own Lazuli layout (``data/lazuli/lazuli_spots.csv``)."""
+        """slicersim's own Lazuli layout (``data/lazuli/lazuli_spots.csv``), for cubes of the CBE
+        configuration: ``cube_blur_px`` = :func:`aberration_sigma_px` of its dispersion resolution."""
+        kwargs.setdefault("cube_blur_px", aberration_sigma_px(_cbe_dispersion_resolution()))
         return cls._from_columns(_default_table(str(DEFAULT_SPOT_TABLE)), 10.0, (4096, 4096), **kwargs)
 
     @classmethod
@@ -387,7 +407,9 @@ class SlicerMapper:
         x-extent: between the mean x of the cell's two corners at each fieldpos
         edge; y-extent: between the mean y at each λ edge (neighbouring cells
         share their edges exactly).  The cross terms (x change along λ, y change
-        along fieldpos, w) widen the spot: σ² = rms² + w²/12.
+        along fieldpos, w) widen the spot: σ² = max(0, rms² − b²) + w²/12, b = ``cube_blur_px``
+        (the aberration the projected cube already carries in its LSF and spatial blur: the
+        table's spot is the total aberration, counted once).
         """
         ne, nq = (int(v) for v in oversample)
         edges = np.asarray(lbda_edges, np.float64)
@@ -402,14 +424,16 @@ class SlicerMapper:
         x_q1 = 0.5 * (X[:, :-1, 1:] + X[:, 1:, 1:])           # ... and q + 1
         np.minimum(x_q0, x_q1, out=box[..., 0])
         np.maximum(x_q0, x_q1, out=box[..., 1])
+        # the spot's aberration already in the cube (its LSF and spatial blur) is not applied twice
+        extra = [np.maximum(rms[:, k] ** 2 - self.cube_blur_px[k] ** 2, 0.0) for k in (0, 1)]
         shear = 0.5 * ((X[:, 1:, :-1] - X[:, :-1, :-1]) + (X[:, 1:, 1:] - X[:, :-1, 1:]))
-        box[..., 2] = np.sqrt(rms[:, 0] ** 2 + shear ** 2 / 12.0)
+        box[..., 2] = np.sqrt(extra[0] + shear ** 2 / 12.0)
         y_e0 = 0.5 * (Y[:, :-1, :-1] + Y[:, :-1, 1:])         # mean y at λ edge e
         y_e1 = 0.5 * (Y[:, 1:, :-1] + Y[:, 1:, 1:])           # ... and e + 1
         np.minimum(y_e0, y_e1, out=box[..., 3])
         np.maximum(y_e0, y_e1, out=box[..., 4])
         shear = 0.5 * ((Y[:, :-1, 1:] - Y[:, :-1, :-1]) + (Y[:, 1:, 1:] - Y[:, 1:, :-1]))
-        box[..., 5] = np.sqrt(rms[:, 1] ** 2 + shear ** 2 / 12.0)
+        box[..., 5] = np.sqrt(extra[1] + shear ** 2 / 12.0)
         return box.reshape(-1, 6)
 
     def projection_tables(self, slices, ncol, lbda_edges, *, oversample=(1, 1), truncate=4.0,
@@ -465,7 +489,8 @@ class SlicerMapper:
         module's code (which computes the boxes)."""
         return {"slice_ids": self.slice_ids, "fieldpos": self.fieldpos_nodes, "lbda": self.lbda_nodes,
                 "values": self.values, "interpolation": self.interpolation, "diagonal": self.face_diagonal,
-                "pixel_size_um": self.pixel_size_um, "slices": tuple(slices), "ncol": int(ncol),
+                "pixel_size_um": self.pixel_size_um, "cube_blur_px": self.cube_blur_px,
+                "slices": tuple(slices), "ncol": int(ncol),
                 "edges": np.asarray(edges, np.float64), "code": _code_digest()}
 
     def release_tables(self):

@@ -30,9 +30,13 @@ instrument:
 * Distortions: the slice centre drifts towards the detector centre with λ
   (x_c = 2048 + (x_c0 − 2048)(1 − 0.008 (τ − ½)), ≤ 14 px over the trace at
   the edges), smile p_y += 1.5 px (1 + 0.3 ρ²) φ² and tilt p_y += 1.2 px ρ φ.
-* Spot rms (µm) growing with λ and towards the slice ends / field edges:
-  rmsx = 8.0 + 5.2 w + 0.8 φ² + 0.6 ρ², rmsy = 8.0 + 5.8 w + 0.5 φ² + 0.5 ρ²,
-  w = (λ − 0.39)/(1.72 − 0.39): 8–15 µm (0.8–1.5 px).
+* Spot rms (µm): the optics' aberration, growing with λ and towards the slice ends / field
+  edges: rmsx = 2.0 + 2.4 w + 0.4 φ² + 0.3 ρ², rmsy = 2.0 + 2.7 w + 0.3 φ² + 0.3 ρ²,
+  w = (λ − 0.39)/(1.72 − 0.39): 2.0–5.3 µm (0.2–0.53 px), within the aberration budget of the
+  CBE dispersion resolution dr = 2.3 px, σ_ab = √(dr² − 2²)/2 = 0.568 px (the monochromatic slice
+  image is the 2-px slice width blurred by the aberration: the cube's LSF carries it, and the
+  projection adds only a spot's excess over it, ``SlicerMapper.cube_blur_px``).  The reference's
+  ray-traced narrow-field medians are 1.1–4.5 µm.
 * Nodes: fieldpos −1, −0.5, 0, 0.5, 1; λ from 0.39 to 1.72 µm (beyond the
   4000–17000 Å grid and its bin edges), placed so that the piecewise-linear
   interpolation between nodes follows the dispersion spline to ≤ 0.05 px
@@ -108,8 +112,8 @@ def layout(disp, lam):
             px = xc - 0.5 * length * (phi + BARREL * phi**3) / (1 + BARREL)
             py = (TIER_Y[tier] + d_span / 2 - disp(lam) + SMILE * (1 + 0.3 * rho**2) * phi**2
                   + TILT * rho * phi)
-            rmsx = 8.0 + 5.2 * w + 0.8 * phi**2 + 0.6 * rho**2
-            rmsy = 8.0 + 5.8 * w + 0.5 * phi**2 + 0.5 * rho**2
+            rmsx = 2.0 + 2.4 * w + 0.4 * phi**2 + 0.3 * rho**2
+            rmsy = 2.0 + 2.7 * w + 0.3 * phi**2 + 0.3 * rho**2
             to_mm = PIX_UM / 1000.0
             rows.append(np.stack([np.full_like(lam, s), np.full_like(lam, phi), lam,
                                   (px - NPIX / 2) * to_mm, (py - NPIX / 2) * to_mm, rmsx, rmsy], axis=1))
