@@ -63,6 +63,9 @@ METHODS = ("lsq", "drizzle")
 #: (beyond, float64 cannot resolve the cube: the grid is finer than the detector samples it)
 MAX_CONDITION = 1e14
 _ENTRY_CHUNK = 1 << 13           # sub-cells per matrix_entries call
+#: largest |rate| and variance accepted (and 1/_MAX_VALUE the smallest variance > 0): beyond, the
+#: weights and sums overflow float64
+_MAX_VALUE = 1e100
 
 
 @dataclass
@@ -145,10 +148,15 @@ def _check_images(rate_image, variance, shape):
     if len(got) not in (2, 3) or got[-2:] != tuple(shape):
         raise ParameterError(f"rate_image must have shape {tuple(shape)} (the mapper's detector) or "
                              f"(N, {shape[0]}, {shape[1]}) for a stack, got {got}")
+    if np.iscomplexobj(rate_image) or np.iscomplexobj(variance):
+        raise ParameterError("rate_image and variance must be real numbers, got complex values")
     try:
         d = np.asarray(rate_image, dtype=np.float64)
     except (TypeError, ValueError):
         raise ParameterError("rate_image must be a numeric array") from None
+    if (np.abs(d) > _MAX_VALUE).any():                 # NaN / ±inf pass: refused or left out per pixel
+        raise ParameterError(f"rate_image has finite values beyond ±{_MAX_VALUE:.0e} (absurd: the sums of the "
+                             "rectification overflow)")
     if variance is None:
         return d, None
     try:
@@ -159,6 +167,9 @@ def _check_images(rate_image, variance, shape):
         raise ParameterError(f"variance must have shape {tuple(shape)} (one image for the stack), got {v.shape}")
     if np.isnan(v).any() or (v < 0).any():
         raise ParameterError("variance must be ≥ 0 (+inf marks an unusable pixel), got NaN or negative values")
+    if ((v > _MAX_VALUE) & np.isfinite(v)).any() or ((v > 0) & (v < 1.0 / _MAX_VALUE)).any():
+        raise ParameterError(f"variance has values outside [{1 / _MAX_VALUE:.0e}, {_MAX_VALUE:.0e}] (other than 0 "
+                             "and +inf): absurd, their weights overflow")
     return d, v
 
 
@@ -530,6 +541,8 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
         raise ParameterError("drizzle variances need oversample (1, 1)")
     centres, edges = _check_grid(lbda, lbda_edges, mapper)
     images, var = _check_images(rate_image, variance, mapper.detector_shape)
+    if images.size == 0:
+        raise ParameterError(f"rate_image is an empty stack {images.shape}: give at least one image")
     stack = images.ndim == 3
     images = images if stack else images[None]
     ncol = int(ncol)
