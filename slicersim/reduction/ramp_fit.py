@@ -470,6 +470,11 @@ def fit_ramps(source, *, refpix=None, linearity=None, superbias=None, jump_thres
         if saturation is None:
             saturation = _number(src.attrs, "SATURATION", where) if "SATURATION" in src.attrs else (
                 65535.0 if src.integer else math.inf)
+            if not saturation > 0:
+                raise RampFileError(f"{where}: keyword SATURATION = {saturation} DN must be > 0")
+        elif isinstance(saturation, (bool, np.bool_, str, bytes)) or not (
+                isinstance(saturation, (int, float, np.integer, np.floating)) and saturation > 0):
+            raise ParameterError(f"saturation must be a number of DN > 0 (or None: the file's), got {saturation!r}")
         consts = fit_constants(nmd, tframe, gain, read_noise, 1.0 / 12.0 if src.integer else 0.0, saturation,
                                jump_threshold, weighting)
         refpix_kw, coeffs, bias, labels = _plan_corrections(src, refpix, linearity, superbias, where)
