@@ -11,8 +11,9 @@ estimators of the cube on a grid (λ edges, ``ncol`` columns per slice):
   w_p = 1/var_p (1 without a variance).  Noiseless data d = P x give x back (to κ(P)·ε);
   unbiased, flux-conserving (Σ x̂ = Σ P x̂: the model image carries the cube's flux) and
   its covariance is (PᵀWP)⁻¹, whose diagonal is the variance returned.  Neighbouring slices
-  share a few pixels (the ±``truncate``·σ tails of their spots meet between the traces:
-  ~1.4 % of a Lazuli field's footprint pixels).  Those pixels are left out of the fit, so
+  may share a few pixels (the ±``truncate``·σ tails of their spots meet between the traces
+  when a layout's spots blur beyond the cube's own: none on the default layout, ~1.4 % of a
+  field's footprint pixels with 1.2-px spots).  Those pixels are left out of the fit, so
   every slice is an independent problem, solved exactly (the price: the two end columns of a
   slice lose up to ~60 % of their flux to left-out pixels in the red, where the traces come
   closest, and their variance grows accordingly).  A slice's normal matrix PᵀWP (cells
@@ -32,10 +33,11 @@ estimators of the cube on a grid (λ edges, ``ncol`` columns per slice):
   diagonal is returned).
 
 Conditioning: on the native Lazuli grid (510 bins ~1 px, 116 columns of ~0.9 px per
-~105 px long slice, spot σ 0.9–1.4 px) P is numerically singular (κ(P) ~ 1e12–1e13: more
-cells than pixels across a slice), so ``lsq`` refuses it; 58 columns give κ ~ 4e2–2e5
-(blue–red), 58 columns and 2-px bins κ ~ 13–220 (``benchmarks/rectify_speed_accuracy.py``).
-Noise is amplified as the conditioning says: the variance returned shows it.
+~105 px long slice) P is singular (more cells than pixels across a slice), so ``lsq`` refuses
+it; with the default layout (the projection adds no blur to the cube's own) 58 columns and
+1-px bins give κ₁(PᵀP) ≈ 43, 58 columns and 2-px bins ≈ 4 (with the spots applied a second time,
+as before the projection fix, these were 4e2–2e5 and 13–220).  Noise is amplified as the
+conditioning says: the variance returned shows it.
 """
 from __future__ import annotations
 
