@@ -177,8 +177,8 @@ def test_flux_conservation_total_and_per_slice(mapper, backend):
 
 
 def test_delta_cube_lands_on_forward_map(spot_mapper):
-    mapper = spot_mapper
     """One cell, one bin of the real grid (one slice projected): position and spread."""
+    mapper = spot_mapper
     lbda, edges = _LBDA, _EDGES
     i, k, s = 300, 40, 38
     cube = np.zeros((lbda.size, 1, 116))
@@ -333,3 +333,31 @@ def test_project_cube_opencl_vs_numpy():
     img_o = SlicerMapper.default().project_cube(cube, lbda, edges, slices, backend="opencl")
     assert img_n.sum() == pytest.approx(cube.sum(), rel=1e-12)
     np.testing.assert_allclose(img_o, img_n, rtol=0, atol=1e-12 * img_n.max())
+
+
+@pytest.mark.parametrize("i", [5, 150, 300, 505])
+def test_projection_does_not_blur_the_cube_twice(i):
+    """The cubes' LSF and spatial blur already hold the optics' aberration (σ_ab = √(dr² − 4)/2 =
+    0.568 px for the CBE dr = 2.3), and the default table's spots (≤ 0.53 px) lie within it: its
+    projection of one cell of one bin is exactly that of a layout without spots (only the cell
+    box and the pixels), while the table's spots applied in full (cube_blur_px=0, the double
+    count this guards against) widen the line along the dispersion."""
+    from slicersim.instrument.mapper import aberration_sigma_px
+    lbda, edges = _LBDA, _EDGES
+    k, s = 58, 38
+    cube = np.zeros((lbda.size, 1, 116))
+    cube[i, 0, k] = 1.0
+    single = SlicerMapper.default(table_cache=None)
+    assert single.cube_blur_px[1] == pytest.approx(aberration_sigma_px(2.3)) == pytest.approx(0.5679, abs=1e-4)
+    nospot = SlicerMapper.default(table_cache=None, cube_blur_px=10.0)
+    twice = SlicerMapper.default(table_cache=None, cube_blur_px=0.0)
+
+    def rms_along_dispersion(img):
+        yy, xx = np.nonzero(img)
+        w = img[yy, xx] / img.sum()
+        cy = (w * yy).sum()
+        return float(np.sqrt((w * (yy - cy) ** 2).sum()))
+    img = single.project_cube(cube, lbda, edges, [s])
+    np.testing.assert_array_equal(img, nospot.project_cube(cube, lbda, edges, [s]))
+    wider = rms_along_dispersion(twice.project_cube(cube, lbda, edges, [s])) - rms_along_dispersion(img)
+    assert wider > 0.02, wider
