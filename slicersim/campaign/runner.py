@@ -264,45 +264,70 @@ def _row_dict(row):
 
 def _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes, threads,
               window, connection=None):
-    from distributed import as_completed
-    from tqdm.auto import tqdm
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
     quiet = _QuietDask()
     client, cluster = connection or _client(workers, scheduler, threads)
     try:
+        spec_future = client.scatter(spec, broadcast=True)
+    except BaseException:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+        quiet.restore()
+        raise
+    rows = {int(r["target_id"]): _row_dict(r) for r in catalog}
+
+    def submit(tid):
+        return client.submit(run_target, spec_future, rows[tid], ds.path, digest, max_bytes, threads,
+                             key=f"slicersim-target-{digest[:12]}-{tid}", pure=False, retries=0)
+
+    def lost(tid, exc):
+        return {"target_id": tid, "status": "failed", "spec_sha256": digest,
+                "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
+    run_task_window(client, cluster, quiet, todo, submit, records, ds, window=window, workers=workers,
+                    progress=progress, desc="campaign", lost_record=lost,
+                    checkpoint=lambda: ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted)))
+
+
+def run_task_window(client, cluster, quiet, ids, submit, records, ds, *, window, workers, progress, desc,
+                    lost_record, checkpoint):
+    """One Dask task per id (``submit(id)`` → future of its record), at most ``window`` in flight
+    (default 2 per worker): ``records[id]`` gets each record as it completes, or
+    ``lost_record(id, exc)`` (written to ``ds``) when the worker died or the task was lost; a tqdm
+    bar counts the failures; ``checkpoint()`` runs every CATALOG_INTERVAL s.  Closes the client
+    (and an embedded cluster) and restores the Dask loggers (``quiet``) at the end."""
+    from distributed import as_completed
+    from tqdm.auto import tqdm
+    try:
         nworkers = max(1, len(client.scheduler_info().get("workers", {})) or workers)
         window = window or 2 * nworkers
-        spec_future = client.scatter(spec, broadcast=True)
-        rows = {int(r["target_id"]): _row_dict(r) for r in catalog}
-        pending = list(todo)
+        pending = list(ids)
         futures = {}
 
-        def submit(tid):
-            fut = client.submit(run_target, spec_future, rows[tid], ds.path, digest, max_bytes, threads,
-                                key=f"slicersim-target-{digest[:12]}-{tid}", pure=False, retries=0)
+        def start(tid):
+            fut = submit(tid)
             futures[fut] = tid
             return fut
 
-        queue = as_completed([submit(pending.pop(0)) for _ in range(min(window, len(pending)))])
+        queue = as_completed([start(pending.pop(0)) for _ in range(min(window, len(pending)))])
         last = time.monotonic()
-        with tqdm(total=len(todo), desc="campaign", unit="target", disable=not progress) as bar:
+        with tqdm(total=len(ids), desc=desc, unit="target", disable=not progress) as bar:
             for fut in queue:
                 tid = futures.pop(fut)
                 try:
                     rec = fut.result()
                 except Exception as exc:           # the worker died (KilledWorker) or the task was lost
-                    rec = {"target_id": tid, "status": "failed", "spec_sha256": digest,
-                           "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
+                    rec = lost_record(tid, exc)
                     ds.write_record(tid, rec)
                 records[tid] = rec
                 bar.update(1)
-                if rec.get("status") == "failed":
-                    bar.set_postfix(failed=sum(1 for r in records.values()
-                                               if r.get("status") == "failed"))
+                nfail = sum(1 for r in records.values() if r.get("status") == "failed")
+                if nfail:
+                    bar.set_postfix(failed=nfail)
                 if pending:
-                    queue.add(submit(pending.pop(0)))
+                    queue.add(start(pending.pop(0)))
                 if time.monotonic() - last > CATALOG_INTERVAL:
-                    ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted))
+                    checkpoint()
                     last = time.monotonic()
     finally:
         client.close()

@@ -442,50 +442,19 @@ def reduce_target(task, threads=None):
 
 def _dispatch(ds, tasks, records, workers, scheduler, progress, window, connection, checkpoint):
     """Submit one task per target (at most ``window`` in flight), collect the records."""
-    from distributed import as_completed
-    from tqdm.auto import tqdm
-
-    from slicersim.campaign.runner import _QuietDask, _check_workers
+    from slicersim.campaign.runner import _QuietDask, _check_workers, run_task_window
     quiet = _QuietDask()
     nw = _check_workers(workers)
     threads = max(1, (os.cpu_count() or 1) // nw)
     client, cluster = connection or reduction_client(nw, scheduler, threads)
-    try:
-        nworkers = max(1, len(client.scheduler_info().get("workers", {})) or nw)
-        window = window or 2 * nworkers
-        pending = list(tasks)
-        futures = {}
 
-        def submit(tid):
-            fut = client.submit(reduce_target, tasks[tid], threads, pure=False, retries=0,
-                                key=f"slicersim-reduce-{tasks[tid]['digest'][:12]}-{tid}")
-            futures[fut] = tid
-            return fut
+    def submit(tid):
+        return client.submit(reduce_target, tasks[tid], threads, pure=False, retries=0,
+                             key=f"slicersim-reduce-{tasks[tid]['digest'][:12]}-{tid}")
 
-        queue = as_completed([submit(pending.pop(0)) for _ in range(min(window, len(pending)))])
-        last = time.monotonic()
-        with tqdm(total=len(tasks), desc="reduce", unit="target", disable=not progress) as bar:
-            for fut in queue:
-                tid = futures.pop(fut)
-                try:
-                    rec = fut.result()
-                except Exception as exc:           # the worker died (KilledWorker) or the task was lost
-                    rec = {"target_id": tid, "status": "failed", "spec_sha256": tasks[tid]["digest"],
-                           "source_sha256": tasks[tid]["source"]["sha256"],
-                           "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
-                    ds.write_record(tid, rec)
-                records[tid] = rec
-                bar.update(1)
-                nfail = sum(1 for r in records.values() if r.get("status") == "failed")
-                if nfail:
-                    bar.set_postfix(failed=nfail)
-                if pending:
-                    queue.add(submit(pending.pop(0)))
-                if time.monotonic() - last > CATALOG_INTERVAL:
-                    checkpoint()
-                    last = time.monotonic()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-        quiet.restore()
+    def lost(tid, exc):
+        return {"target_id": tid, "status": "failed", "spec_sha256": tasks[tid]["digest"],
+                "source_sha256": tasks[tid]["source"]["sha256"],
+                "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
+    run_task_window(client, cluster, quiet, list(tasks), submit, records, ds, window=window, workers=nw,
+                    progress=progress, desc="reduce", lost_record=lost, checkpoint=checkpoint)
