@@ -29,14 +29,13 @@ import os
 import numpy as np
 
 from slicersim.errors import ParameterError, RampFileError
-from slicersim.io.atomic import is_temporary, one_line
+from slicersim.io.atomic import one_line
 
 __all__ = ["check_ramp_file", "check_spectra_options", "check_fit_options", "register_hdf5_filters",
            "MAX_NCOL"]
 
 #: largest number of columns per slice accepted (a slice is 58 cells wide in the Lazuli design)
 MAX_NCOL = 1024
-_HDF5_MAGIC, _FITS_MAGIC = b"\x89HDF\r\n\x1a\n", b"SIMPLE  ="
 _READOUT_KEYS = ("NINTS", "NGROUPS", "NFRAMES", "GROUPGAP", "TFRAME", "TGROUP")
 _TIMING_KEYS = ("FRMDIVSR", "EFFINTTM", "TMEASURE", "EFFEXPTM", "XPOSURE", "DURATION", "TELAPSE", "DRPFRMS1")
 
@@ -61,7 +60,7 @@ def check_ramp_file(path, with_truth=False, gain=None, read_noise=None, detector
 
     Returns {"kind", "shape" (nints, ngroups, ny, nx), "nmd", "tframe"}.
     """
-    from slicersim.reduction.ramp_fit import _readout, open_ramps
+    from slicersim.reduction.ramp_fit import _readout, open_ramps, ramp_file_kind
     register_hdf5_filters()
     path = os.fspath(path)
     if os.path.isdir(path):
@@ -69,17 +68,11 @@ def check_ramp_file(path, with_truth=False, gain=None, read_noise=None, detector
                             "and catalog.ecsv)")
     if not os.path.lexists(path):
         raise RampFileError(f"{path}: no such ramp file")
-    if is_temporary(path):
-        raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
-    try:
-        with open(path, "rb") as fh:
-            magic = fh.read(9)
-    except OSError as exc:
-        raise RampFileError(f"{path}: cannot read ({one_line(exc)})") from exc
+    kind = ramp_file_kind(path)
     header = None
-    if magic.startswith(_HDF5_MAGIC):
+    if kind == "hdf5":
         _check_hdf5_layout(path, with_truth)
-    elif magic.startswith(_FITS_MAGIC):
+    elif kind == "fits":
         header = _fits_primary_header(path)
     with open_ramps(path) as src:                    # its own layout checks (SCI, shapes, completeness)
         shape = tuple(int(s) for s in src.shape)

@@ -283,21 +283,33 @@ class _FitsRamps(_Ramps):
         self.hdul.close()
 
 
+def ramp_file_kind(path):
+    """"hdf5", "fits" (by content) or None for a readable file; RampFileError for a writer's
+    temporary or an unreadable file."""
+    path = os.fspath(path)
+    if is_temporary(path):
+        raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(9)
+    except OSError as exc:
+        raise RampFileError(f"{path}: cannot read ({one_line(exc)})") from exc
+    if magic.startswith(_HDF5_MAGIC):
+        return "hdf5"
+    if magic.startswith(_FITS_MAGIC):
+        return "fits"
+    return None
+
+
 def open_ramps(source):
     """A raw ramp reader for a path (HDF5 or level-1b FITS, by content) or arrays
     (SCI, GROUPDQ, PIXELDQ, attrs); RampFileError for anything else."""
     if isinstance(source, (str, os.PathLike)):
         path = os.fspath(source)
-        if is_temporary(path):
-            raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
-        try:
-            with open(path, "rb") as fh:
-                magic = fh.read(9)
-        except OSError as exc:
-            raise RampFileError(f"{path}: cannot read ({one_line(exc)})") from exc
-        if magic.startswith(_HDF5_MAGIC):
+        kind = ramp_file_kind(path)
+        if kind == "hdf5":
             return _HDF5Ramps(path)
-        if magic.startswith(_FITS_MAGIC):
+        if kind == "fits":
             return _FitsRamps(path)
         raise RampFileError(f"{path}: neither an HDF5 ramp file nor a JWST level-1b FITS file")
     return _ArrayRamps(source)
