@@ -25,6 +25,13 @@ The returned ``variance`` is diag(Mᵀ N M)⁻¹ (exact for Gaussian pixel noise
 cube was rectified with); ``diagnostics["covariance"]`` holds the full (nλ × nλ) covariance of
 F̂ (neighbouring bins are correlated), ``chi2`` / ``dof`` the fit's χ² = (x̂ − Mθ̂)ᵀ N (x̂ − Mθ̂)
 per image and its degrees of freedom (cells seen − unknowns).
+
+Forward-modelled templates: ``psf`` may also be a 4-D array T (K, nλ, ny, nx), the expected LSQ
+cube per unit flux of each of K unknowns (:func:`~slicersim.reduction.templates.point_source_template`:
+a native-resolution point source projected and rectified exactly as the data), so that
+M[cell(λ, row, col), k] = T[k, λ, row, col] (one column spans every bin the light of unknown k
+reaches) and E[x̂] = Σ_k F_k T_k + B exactly: no model error from the coarse grid.  The flux,
+variance and covariance are then those of the K unknowns.
 """
 from __future__ import annotations
 
@@ -50,7 +57,8 @@ def _inverse_covariance(cube_product):
 def gls_normal_equations(cube_product, psf, background=True):
     """(G = Mᵀ N M (K, K), b = Mᵀ N x̂ (K, N), xᵀNx (N,), number of cells seen) of the model
     F_λ P + B_λ (K = 2 nλ unknowns, F first; nλ without ``background``) for the cube's images
-    (N = 1 for a single cube).  ``psf``: (nλ, ny, nx) cell fractions."""
+    (N = 1 for a single cube).  ``psf``: (nλ, ny, nx) cell fractions, or a template
+    (K_F, nλ, ny, nx): the model Σ_k F_k T_k + B_λ (K = K_F + nλ unknowns, F first)."""
     info = _inverse_covariance(cube_product)
     flux = np.asarray(cube_product.flux, float)
     images = flux if flux.ndim == 4 else flux[None]
@@ -58,7 +66,15 @@ def gls_normal_equations(cube_product, psf, background=True):
     if info.shape != (nl, ny, nx):
         raise ParameterError(f"the inverse covariance is for cubes {info.shape}, the cube is {(nl, ny, nx)}")
     nc = nl * nx
-    K = 2 * nl if background else nl
+    psf = np.asarray(psf, float)
+    template = psf.ndim == 4
+    if template:
+        if psf.shape[1:] != (nl, ny, nx) or psf.shape[0] < 1:
+            raise ParameterError(f"a template psf must have shape (K, {nl}, {ny}, {nx}), got {psf.shape}")
+    elif psf.shape != (nl, ny, nx):
+        raise ParameterError(f"psf must have shape {(nl, ny, nx)} or (K, {nl}, {ny}, {nx}), got {psf.shape}")
+    nk = psf.shape[0] if template else nl                  # flux unknowns
+    K = nk + nl if background else nk
     lam = np.repeat(np.arange(nl), nx)                     # cell λ·ncol + col → its bin
     cells = np.arange(nc)
     G = np.zeros((K, K))
@@ -71,12 +87,17 @@ def gls_normal_equations(cube_product, psf, background=True):
             continue
         seen = N.diagonal() > 0
         seen_total += int(seen.sum())
-        p = psf[:, row, :].ravel()
-        if background:
+        if template:
+            T = psf[:, :, row, :].reshape(nk, nc).T                     # (cells, K) dense
+            if background:
+                T = np.concatenate([T, (lam[:, None] == np.arange(nl)[None]).astype(float)], axis=1)
+            M = sp.csr_matrix(T)
+        elif background:
+            p = psf[:, row, :].ravel()
             M = sp.csr_matrix((np.concatenate([p, np.ones(nc)]), (np.concatenate([cells, cells]),
                                                                   np.concatenate([lam, nl + lam]))), shape=(nc, K))
         else:
-            M = sp.csr_matrix((p, (cells, lam)), shape=(nc, K))
+            M = sp.csr_matrix((psf[:, row, :].ravel(), (cells, lam)), shape=(nc, K))
         x = images[:, :, row, :].reshape(images.shape[0], nc).T
         x = np.where(seen[:, None], np.nan_to_num(x), 0.0)           # unseen cells: zero rows of N
         Nx = N @ x
@@ -89,8 +110,10 @@ def gls_normal_equations(cube_product, psf, background=True):
 def extract_gls(cube_product, *, psf=None, position=None, background=True, nchunks=512):
     """GLS spectrum of a point source in an LSQ cube with its inverse covariance (module docstring).
 
-    psf : None / "fit" (Gaussian fitted on the cube, as ``extract_spectrum``) or an (nλ, ny, nx)
-        array of the point source's fractions per cell
+    psf : None / "fit" (Gaussian fitted on the cube, as ``extract_spectrum``), an (nλ, ny, nx)
+        array of the point source's fractions per cell, or an (nλ, nλ, ny, nx) template: the
+        expected cube per unit flux of each bin
+        (:func:`~slicersim.reduction.templates.point_source_template`, module docstring)
     position : (x, y) [cells] for the PSF fit (None: fitted)
     background : fit a uniform B_λ per bin jointly with F_λ
 
@@ -98,14 +121,21 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
     F̂_λ (total flux), ``variance`` from (Mᵀ N M)⁻¹, ``background`` B̂_λ and its variance;
     ``cell_weights`` None (F̂_λ uses the cells of neighbouring bins too); ``aperture`` NaN (every
     cell of the field is used); ``enclosed_energy``
-    Σ_field P; ``diagnostics``: ``covariance`` (nλ, nλ) of F̂, ``chi2`` (per image), ``dof``.
+    Σ_field P (a template: Σ over the cube of T_k); ``diagnostics``: ``covariance`` (nλ, nλ) of F̂,
+    ``chi2`` (per image), ``dof``.
     """
     _inverse_covariance(cube_product)
+    template = None
+    if psf is not None and not isinstance(psf, str) and np.ndim(psf) == 4:
+        template, psf = _check_template(cube_product, psf), None
     flux, var, psf, position = _check(cube_product, "optimal", psf, 3.0, 6.0, position, background, nchunks)
     shape = flux.shape[-3:]
     stack = flux.ndim == 4
     diag, sigma = {}, None
-    if psf is None or isinstance(psf, str):
+    if template is not None:
+        P = template
+        position = _moments(np.clip(P.sum(axis=0), 0, None))[0] if position is None else position
+    elif psf is None or isinstance(psf, str):
         mean = np.nanmean(flux, axis=0) if stack else flux
         position, sx, sy, diag = fit_gaussian_psf(mean, var, cube_product.lbda, position, nchunks)
         P = _gaussian_field(shape[1:], sx, sy, position)
@@ -114,7 +144,7 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
         P = psf
         position = _moments(P)[0] if position is None else position
     G, b, q, seen = gls_normal_equations(cube_product, P, background)
-    nl = shape[0]
+    nl = shape[0]                                           # F unknowns (= K of a template, checked)
     try:
         fac = cho_factor(G, lower=True, check_finite=True)
         cov = cho_solve(fac, np.eye(G.shape[0]))
@@ -134,4 +164,21 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
         unit=getattr(cube_product, "unit", "e-/s"), position=tuple(float(v) for v in position), aperture=float("nan"),
         psf_sigma=sigma, background=None if bg is None else (bg if stack else bg[0]),
         background_variance=np.diag(cov)[nl:].copy() if background else None,
-        enclosed_energy=P.sum(axis=(1, 2)), cell_weights=None, diagnostics=diag)
+        enclosed_energy=P.reshape(nl, -1).sum(axis=1), cell_weights=None, diagnostics=diag)
+
+
+def _check_template(cube_product, psf):
+    """A (K = nλ, nλ, ny, nx) finite template for the cube."""
+    flux = getattr(cube_product, "flux", None)
+    if flux is None:
+        raise ParameterError("cube_product must be a CubeProduct (from slicersim.reduction.rectify)")
+    shape = np.shape(flux)[-3:]
+    try:
+        t = np.asarray(psf, float)
+    except (TypeError, ValueError):
+        raise ParameterError("a template psf must be a numeric (K, nλ, ny, nx) array") from None
+    if t.shape != (shape[0],) + tuple(shape) or not np.all(np.isfinite(t)):
+        want = (shape[0],) + tuple(shape)
+        raise ParameterError(f"a template psf must be finite, of shape (nλ, nλ, ny, nx) = {want} (one unknown "
+                             f"flux per bin of the cube), got {t.shape}")
+    return t
