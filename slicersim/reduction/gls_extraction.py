@@ -54,11 +54,13 @@ def _inverse_covariance(cube_product):
     return info
 
 
-def gls_normal_equations(cube_product, psf, background=True):
+def gls_normal_equations(cube_product, psf, background=True, background_template=None):
     """(G = Mᵀ N M (K, K), b = Mᵀ N x̂ (K, N), xᵀNx (N,), number of cells seen) of the model
     F_λ P + B_λ (K = 2 nλ unknowns, F first; nλ without ``background``) for the cube's images
     (N = 1 for a single cube).  ``psf``: (nλ, ny, nx) cell fractions, or a template
-    (K_F, nλ, ny, nx): the model Σ_k F_k T_k + B_λ (K = K_F + nλ unknowns, F first)."""
+    (K_F, nλ, ny, nx): the model Σ_k F_k T_k + B_λ (K = K_F + nλ unknowns, F first).
+    ``background_template`` (nλ, nλ, ny, nx): the background's expected cube per unit B_b
+    (:func:`~slicersim.reduction.templates.background_template`) instead of a uniform B_λ."""
     info = _inverse_covariance(cube_product)
     flux = np.asarray(cube_product.flux, float)
     images = flux if flux.ndim == 4 else flux[None]
@@ -73,6 +75,13 @@ def gls_normal_equations(cube_product, psf, background=True):
             raise ParameterError(f"a template psf must have shape (K, {nl}, {ny}, {nx}), got {psf.shape}")
     elif psf.shape != (nl, ny, nx):
         raise ParameterError(f"psf must have shape {(nl, ny, nx)} or (K, {nl}, {ny}, {nx}), got {psf.shape}")
+    if background_template is not None:
+        background_template = np.asarray(background_template, float)
+        if not background:
+            raise ParameterError("background_template needs background=True")
+        if background_template.shape != (nl, nl, ny, nx) or not np.all(np.isfinite(background_template)):
+            raise ParameterError(f"background_template must be a finite ({nl}, {nl}, {ny}, {nx}) array, "
+                                 f"got shape {background_template.shape}")
     nk = psf.shape[0] if template else nl                  # flux unknowns
     K = nk + nl if background else nk
     lam = np.repeat(np.arange(nl), nx)                     # cell λ·ncol + col → its bin
@@ -87,9 +96,14 @@ def gls_normal_equations(cube_product, psf, background=True):
             continue
         seen = N.diagonal() > 0
         seen_total += int(seen.sum())
-        if template:
-            T = psf[:, :, row, :].reshape(nk, nc).T                     # (cells, K) dense
-            if background:
+        if template or background_template is not None:
+            if template:
+                T = psf[:, :, row, :].reshape(nk, nc).T                 # (cells, K) dense
+            else:
+                T = (lam[:, None] == np.arange(nl)[None]) * psf[:, row, :].ravel()[:, None]
+            if background_template is not None:
+                T = np.concatenate([T, background_template[:, :, row, :].reshape(nl, nc).T], axis=1)
+            elif background:
                 T = np.concatenate([T, (lam[:, None] == np.arange(nl)[None]).astype(float)], axis=1)
             M = sp.csr_matrix(T)
         elif background:
@@ -107,7 +121,8 @@ def gls_normal_equations(cube_product, psf, background=True):
     return 0.5 * (G + G.T), b, q, seen_total
 
 
-def extract_gls(cube_product, *, psf=None, position=None, background=True, nchunks=512):
+def extract_gls(cube_product, *, psf=None, position=None, background=True, nchunks=512,
+                background_template=None):
     """GLS spectrum of a point source in an LSQ cube with its inverse covariance (module docstring).
 
     psf : None / "fit" (Gaussian fitted on the cube, as ``extract_spectrum``), an (nλ, ny, nx)
@@ -116,6 +131,9 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
         (:func:`~slicersim.reduction.templates.point_source_template`, module docstring)
     position : (x, y) [cells] for the PSF fit (None: fitted)
     background : fit a uniform B_λ per bin jointly with F_λ
+    background_template : (nλ, nλ, ny, nx) the background's expected cube per unit B_b
+        (:func:`~slicersim.reduction.templates.background_template`: a sky uniform at native
+        resolution) instead of a uniform B_λ
 
     Returns a :class:`~slicersim.reduction.spectra.SpectrumProduct` (``method="gls"``): ``flux``
     F̂_λ (total flux), ``variance`` from (Mᵀ N M)⁻¹, ``background`` B̂_λ and its variance;
@@ -143,7 +161,7 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
     else:
         P = psf
         position = _moments(P)[0] if position is None else position
-    G, b, q, seen = gls_normal_equations(cube_product, P, background)
+    G, b, q, seen = gls_normal_equations(cube_product, P, background, background_template)
     nl = shape[0]                                           # F unknowns (= K of a template, checked)
     try:
         fac = cho_factor(G, lower=True, check_finite=True)

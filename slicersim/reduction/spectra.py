@@ -49,7 +49,7 @@ __all__ = ["extract_spectrum", "SpectrumProduct", "fit_gaussian_psf", "psf_from_
 
 
 def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None, aperture=3.0,
-                     background=True, background_radius=6.0, nchunks=_MAX_CHUNKS):
+                     background=True, background_radius=6.0, nchunks=_MAX_CHUNKS, background_template=None):
     """Spectrum of a point source in a rectified cube (see the module docstring).
 
     method : "optimal" (PSF-weighted: total flux), "aperture" (sum: light in the aperture) — cells
@@ -67,7 +67,10 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
     Returns a :class:`SpectrumProduct` in the cube's unit per bin.
     """
     if method == "gls":
-        return extract_gls(cube_product, psf=psf, position=position, background=background, nchunks=nchunks)
+        return extract_gls(cube_product, psf=psf, position=position, background=background, nchunks=nchunks,
+                           background_template=background_template)
+    if background_template is not None:
+        raise ParameterError("background_template is for method='gls' only")
     flux, var, psf, position = _check(cube_product, method, psf, aperture, background_radius, position, background,
                                       nchunks)
     shape = flux.shape[-3:]

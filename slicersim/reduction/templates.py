@@ -113,3 +113,29 @@ def point_source_template(native_cube, native_lbda_edges, lbda_edges, *, mapper,
     cp = rectify(images, variance, mapper=mapper, field=field, lbda_edges=ce, ncol=ncol, oversample=oversample,
                  truncate=truncate)
     return np.asarray(cp.flux, float)
+
+
+def background_template(native_shape, native_lbda_edges, lbda_edges, *, mapper, field, ncol, variance=None,
+                        oversample=(1, 1), truncate=4.0):
+    """Expected LSQ cube of a background uniform at native resolution, per unit of the coarse cell
+    value B_b of each coarse bin (e-/s per coarse cell per coarse bin, as the GLS's uniform B_λ).
+
+    A uniform native sky is not exactly uniform once projected and rectified on a coarse grid
+    (the coarse cells' boxes do not reproduce the native footprint at the slice ends and band
+    edges), so fitting it with a uniform B_λ biases the point source's flux; this template,
+    ``extract_gls(cube, psf=T, background_template=Tb)``, removes that model error.
+
+    native_shape : (ny, nx_native) of the native cube (the field's slices × native columns);
+    other arguments as :func:`point_source_template`.  Returns (nλ, nλ, ny, ncol).
+    """
+    try:
+        ny, nxn = (int(v) for v in native_shape)
+    except (TypeError, ValueError):
+        raise ParameterError(f"native_shape must be (ny, nx_native), got {native_shape!r}") from None
+    if ny < 1 or nxn < 1:
+        raise ParameterError(f"native_shape must be positive, got {native_shape!r}")
+    n_native = np.asarray(native_lbda_edges, float).size - 1
+    uniform = np.ones((max(n_native, 1), ny, nxn))
+    T = point_source_template(uniform, native_lbda_edges, lbda_edges, mapper=mapper, field=field, ncol=ncol,
+                              variance=variance, oversample=oversample, truncate=truncate)
+    return T * float(ny * ncol)            # per unit flux of the bin → per unit value of a coarse cell
