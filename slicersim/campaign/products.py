@@ -155,14 +155,20 @@ def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, thre
             products[name] = product_info(path)
         record.update(status="done", products=products, device=_device_name())
     except Exception as exc:                       # recorded, the campaign goes on
-        record.update(status="failed", error=f"{type(exc).__name__}: {' '.join(str(exc).split())}",
-                      traceback=traceback.format_exc(limit=8))
-        try:
-            ds.clean_target(tid)
-        except OSError:
-            pass
+        mark_failed(ds, tid, record, exc)
     ds.write_record(tid, record)
     return record
+
+
+def mark_failed(ds, tid, record, exc):
+    """Record a target's failure (one-line error and a short traceback) and remove its partial
+    products, so that a rerun starts it afresh."""
+    record.update(status="failed", error=f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+                  traceback=traceback.format_exc(limit=8))
+    try:
+        ds.clean_target(tid)
+    except OSError:
+        pass
 
 
 def _device_name():

@@ -402,9 +402,7 @@ def reduce_target(task, threads=None):
     """The unit of work of a worker: reduce one target's ramps (checked against the campaign's
     record: size and sha256), write its product atomically and its record last; returns the
     record.  Errors are recorded (status "failed"), never raised."""
-    import traceback
-
-    from slicersim.campaign.products import _limit_threads
+    from slicersim.campaign.products import _limit_threads, mark_failed
     from slicersim.io.atomic import sha256_file
     from slicersim.io.dataset import Dataset, product_info
     _limit_threads(threads)
@@ -430,12 +428,7 @@ def reduce_target(task, threads=None):
                     fit_options=task["fit_options"], mapper=task["mapper"], **task["options"])
         record.update(status="done", products={"reduced": product_info(out)})
     except Exception as exc:
-        record.update(status="failed", error=f"{type(exc).__name__}: {' '.join(str(exc).split())}",
-                      traceback=traceback.format_exc(limit=8))
-        try:
-            ds.clean_target(tid)
-        except OSError:
-            pass
+        mark_failed(ds, tid, record, exc)
     ds.write_record(tid, record)
     return record
 
