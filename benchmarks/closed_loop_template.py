@@ -26,7 +26,7 @@ import closed_loop as cl  # noqa: E402
 from _common import cpu_model, loadavg  # noqa: E402
 
 from slicersim.instrument.mapper import SlicerMapper  # noqa: E402
-from slicersim.reduction.pipeline import rate_variance, reduce_exposure  # noqa: E402
+from slicersim.reduction.pipeline import reduce_exposure  # noqa: E402
 from slicersim.reduction.spectra import extract_spectrum  # noqa: E402
 from slicersim.reduction.templates import point_source_template  # noqa: E402
 
@@ -38,7 +38,7 @@ def realisation(t, mapper, raw, seed, native, native_edges):
     r = reduce_exposure(raw, mapper=mapper, lbda_edges=t.edges, ncol=cl.NCOL)
     cube = r["cubes"]["narrow"]
     T = point_source_template(native, native_edges, t.edges, mapper=mapper, field="narrow", ncol=cl.NCOL,
-                              variance=rate_variance(r["rates"]))
+                              variance=r["variance"])           # the weights the data were rectified with
     sp = extract_spectrum(cube, method="gls", psf=T)
     tmpl = cl.metrics(sp.flux, sp.variance, t.truth, t.etc_snr)
     fitted = cl.extractions(cube, t.psf, t.truth, t.etc_snr)["gls"]

@@ -106,7 +106,8 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     fit_options : keyword arguments of ``fit_ramps`` (refpix, linearity, jump_threshold, weighting, ...)
     out : HDF5 path written atomically with all three products (module docstring)
 
-    Returns ``{"rates": RateProduct, "cubes": {field: CubeProduct}, "spectra": {field: SpectrumProduct}}``
+    Returns ``{"rates": RateProduct, "cubes": {field: CubeProduct}, "spectra": {field: SpectrumProduct},
+    "variance": the pixel variance the cubes were rectified with}``
     (and ``"path"``, the absolute path written, with ``out``).
     """
     from slicersim.reduction.ramp_fit import fit_ramps
@@ -147,7 +148,7 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
             spec.diagnostics["variance_diagonal"] = spec.variance
             spec.variance = propagate_variance(spec, cubes[name])
             spec.diagnostics["variance_model"] = "full LSQ cube covariance (propagate_variance)"
-    result = {"rates": rates, "cubes": cubes, "spectra": spectra}
+    result = {"rates": rates, "cubes": cubes, "spectra": spectra, "variance": var}
     if writer is not None:
         result["path"] = _write(writer, result)
     return result
