@@ -5,7 +5,7 @@
 # the packages its image lacks in .whl/ (pyopencl, astropy, sncosmo, dask, distributed and their
 # pure-Python needs) and $OUT set:
 #
-#     bash benchmarks/device_suite.sh [STEP ...]     # steps: tests ramp_effects reduce_speed each
+#     bash benchmarks/device_suite.sh [STEP ...]     # steps: diag tests ramp_effects reduce_speed each
 #
 # Every step has its own time limit and writes into /tmp/res, packed after each step into
 # $OUT/results.tgz (so a step cut short still returns the earlier ones); the log is $OUT/log.txt.
@@ -14,7 +14,7 @@ set -u
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT" /tmp/res
 exec > >(tee -a "$OUT/log.txt") 2>&1
-STEPS=${*:-tests ramp_effects reduce_speed each}
+STEPS=${*:-diag tests ramp_effects reduce_speed each}
 T0=$(date +%s)
 stamp() { echo "== [$(( $(date +%s) - T0 )) s] $*"; }
 pack() { tar czf "$OUT/results.tgz" -C /tmp res; }
@@ -42,13 +42,16 @@ pack
 
 for step in $STEPS; do
   case $step in
+  diag)    # the random streams against the twin: where they differ, and the Poisson counts
+    stamp "diag (random streams, GPU vs twin)"
+    PYOPENCL_COMPILER_OUTPUT=1 timeout 60 python3 benchmarks/_device_diag.py 2>&1 | tail -30 | tee /tmp/res/diag.txt ;;
   tests)   # every kernel against its NumPy twin, on the GPU
     stamp "tests (kernel twins on the GPU)"
-    timeout 120 python3 -m pytest -q -p no:cacheprovider --maxfail=10 --timeout 120 -o addopts="" \
+    timeout 170 python3 -m pytest -q -p no:cacheprovider --maxfail=25 --timeout 120 -o addopts="" \
       tests/test_opencl_runtime.py tests/test_rng_noise.py tests/test_band_variance_kernel.py \
       tests/test_lsf_convolution.py tests/test_psf.py tests/test_cube_builder.py tests/test_ramps.py \
       tests/test_ramp_effects_kernels.py tests/test_correlated_noise.py tests/test_mapper.py \
-      tests/test_etc_exact.py 2>&1 | tail -40 | tee /tmp/res/tests.txt ;;
+      tests/test_etc_exact.py tests/test_rectify.py tests/test_projection_cache.py tests/test_gls_extraction.py 2>&1 | tail -40 | tee /tmp/res/tests.txt ;;
   ramp_effects)   # issue 9: full-detector (64,8,0) ramp, plain vs --effects lazuli
     stamp "ramp_effects 4096 (64,8,0)"
     timeout 200 python3 benchmarks/ramp_effects.py --side 4096 --nmd 64 8 0 --out /tmp/res/ramp_effects ;;

@@ -80,9 +80,16 @@ typedef RNG_PASTE(double, RNG_SUFFIX) rng_double;
 #define rng_convert_long RNG_PASTE(convert_long, RNG_SUFFIX)
 #define rng_convert_double RNG_PASTE(convert_double, RNG_SUFFIX)
 #define rng_as_long RNG_PASTE(as_long, RNG_SUFFIX)
+#define rng_as_ulong RNG_PASTE(as_ulong, RNG_SUFFIX)
 #define rng_as_double RNG_PASTE(as_double, RNG_SUFFIX)
-/* b where cond holds, else a (cond: a comparison, int for scalars, long-N for vectors) */
+/* b where cond holds, else a (cond: a comparison, int for scalars, long-N for vectors).  Scalars use
+ * the conditional operator: NVIDIA's OpenCL evaluates a scalar select(a, b, 1L) by the condition's most
+ * significant bit (as for vectors) and returned a, so every Poisson count stayed 0 on its GPUs. */
+#if RNG_VW == 1
+#define RNG_SELECT(a, b, cond) ((cond) ? (b) : (a))
+#else
 #define RNG_SELECT(a, b, cond) select((a), (b), rng_convert_long(cond))
+#endif
 
 #define PHILOX_M0 0xD2511F53ul
 #define PHILOX_M1 0xCD9E8D57ul
@@ -202,8 +209,11 @@ RNG_INLINE rng_double rng_sincos_2pi(const rng_double u, rng_double *sin_out)
     const rng_long sbits = rng_as_long(t + t * (t2 * ps));
     /* q mod 4 = 0: (c, s); 1: (-s, c); 2: (-c, -s); 3: (s, -c) */
     const rng_long swap = -(q & 1L);                                 /* all ones for odd q */
-    *sin_out = rng_as_double(((sbits & ~swap) | (cbits & swap)) ^ ((q & 2L) << 62));
-    return rng_as_double(((cbits & ~swap) | (sbits & swap)) ^ (((q + 1L) & 2L) << 62));
+    /* sign bits shifted as unsigned: (2L << 62) overflows a signed long (undefined behaviour) */
+    const rng_long sflip = rng_as_long(rng_as_ulong(q & 2L) << 62);
+    const rng_long cflip = rng_as_long(rng_as_ulong((q + 1L) & 2L) << 62);
+    *sin_out = rng_as_double(((sbits & ~swap) | (cbits & swap)) ^ sflip);
+    return rng_as_double(((cbits & ~swap) | (sbits & swap)) ^ cflip);
 }
 
 /* exp(x) for |x| < 700, any width: Cody–Waite reduction and a degree-13 Taylor series
