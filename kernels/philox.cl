@@ -83,8 +83,8 @@ typedef RNG_PASTE(double, RNG_SUFFIX) rng_double;
 #define rng_as_ulong RNG_PASTE(as_ulong, RNG_SUFFIX)
 #define rng_as_double RNG_PASTE(as_double, RNG_SUFFIX)
 /* b where cond holds, else a (cond: a comparison, int for scalars, long-N for vectors).  Scalars use
- * the conditional operator: NVIDIA's OpenCL evaluates a scalar select(a, b, 1L) by the condition's most
- * significant bit (as for vectors) and returned a, so every Poisson count stayed 0 on its GPUs. */
+ * the conditional operator: its meaning does not hang on how a driver reads a scalar select's
+ * 64-bit condition (the spec: non-zero; vectors: the most significant bit). */
 #if RNG_VW == 1
 #define RNG_SELECT(a, b, cond) ((cond) ? (b) : (a))
 #else

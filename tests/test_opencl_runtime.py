@@ -137,3 +137,57 @@ def test_fork_guard_real_fork(fresh):
     os.kill(pid, 9)
     os.waitpid(pid, 0)
     pytest.fail("forked child hung instead of raising OpenCLForkError")
+
+
+@pytest.mark.skipif(not __import__("slicersim.backends.opencl", fromlist=["x"]).is_available(),
+                    reason="no OpenCL device")
+def test_sync_to_host_copies_a_map_that_is_not_the_array():
+    """A driver may map a USE_HOST_PTR buffer at memory of its own (NVIDIA does): sync_to_host then
+    copies the map into the array.  Exercised with a buffer that does not wrap the array."""
+    import numpy as np
+    from slicersim.backends import opencl
+    src = np.arange(1000, dtype=np.float64)
+    buf = opencl.to_device(src)                      # COPY_HOST_PTR: its own memory
+    dst = np.full(1000, -1.0)
+    opencl.sync_to_host(buf, dst)
+    np.testing.assert_array_equal(dst, src)
+
+
+def test_device_failing_the_selfcheck_is_never_used_silently(monkeypatch):
+    """A device whose random draws differ from the twin: "auto" falls back to NumPy with a warning
+    naming it, an explicit backend="opencl" raises; the real device passes the check."""
+    import warnings
+    import numpy as np
+    from slicersim.backends import dispatch, noise, opencl
+    from slicersim.errors import OpenCLUnavailableError
+    if not (opencl.is_available() and opencl.device_supports_fp64()):
+        pytest.skip("no fp64 OpenCL device")
+    ok, msg = dispatch.device_validated()
+    assert ok, msg
+    key = opencl.device_fingerprint()
+    monkeypatch.setitem(dispatch._SELFCHECK, key, (False, "OpenCL device 'X' fails the random-stream self-check"))
+    monkeypatch.setattr(dispatch._checking, "warned", False, raising=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert dispatch.resolve_backend("auto") == "numpy"
+    assert any("self-check" in str(w.message) and "NumPy" in str(w.message) for w in caught)
+    with pytest.raises(OpenCLUnavailableError, match="self-check"):
+        noise.poisson_draw(np.ones(10), 1, backend="opencl")
+    monkeypatch.setenv("SLICERSIM_TRUST_DEVICE", "1")
+    assert dispatch.resolve_backend("auto") == "opencl"
+
+
+def test_selfcheck_detects_wrong_draws(monkeypatch):
+    """device_selfcheck itself fails when the kernels' uniforms come back wrong."""
+    import numpy as np
+    from slicersim.backends import noise, opencl
+    if not (opencl.is_available() and opencl.device_supports_fp64()):
+        pytest.skip("no fp64 OpenCL device")
+    real = noise.uniform_normal_draw
+
+    def broken(n, seed, stream=0, draw=0, backend="auto", *a, **k):
+        u, z = real(n, seed, stream, draw, backend, *a, **k)
+        return (u * 0.5, z) if backend == "opencl" else (u, z)
+    monkeypatch.setattr(noise, "uniform_normal_draw", broken)
+    ok, msg = noise.device_selfcheck()
+    assert not ok and "uniforms differ" in msg

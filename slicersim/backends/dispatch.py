@@ -6,7 +6,12 @@ Every kernel-backed function takes ``backend="auto" | "opencl" | "numpy"``:
 """
 from __future__ import annotations
 
+import os
+import threading
+import warnings
+
 from slicersim.backends import opencl
+from slicersim.errors import OpenCLUnavailableError
 
 __all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges", "check_vector_width"]
 
@@ -16,15 +21,56 @@ BACKENDS = ("auto", "opencl", "numpy")
 VECTOR_WIDTHS = (1, 2, 4, 8, 16)
 
 
+#: device fingerprint → (passed, message) of the self-check (:func:`device_validated`)
+_SELFCHECK = {}
+_checking = threading.local()
+
+
+def device_validated() -> tuple:
+    """(passed, message): whether the selected OpenCL device gives the NumPy twin's random
+    draws (:func:`slicersim.backends.noise.device_selfcheck`), checked once per device and
+    process.  Every noisy product goes through these kernels: a driver that computes or returns
+    them wrongly (seen on an NVIDIA H200: uniforms, Gaussians and Poisson counts never reached the
+    host arrays) must not be used silently.  ``SLICERSIM_TRUST_DEVICE=1`` skips the check."""
+    if os.environ.get("SLICERSIM_TRUST_DEVICE", "").strip() in ("1", "true", "yes"):
+        return True, "not checked (SLICERSIM_TRUST_DEVICE)"
+    if getattr(_checking, "on", False):           # the check's own launches
+        return True, "checking"
+    key = opencl.device_fingerprint()
+    if key not in _SELFCHECK:
+        from slicersim.backends.noise import device_selfcheck    # noise imports this module
+        _checking.on = True
+        try:
+            _SELFCHECK[key] = device_selfcheck()
+        finally:
+            _checking.on = False
+    return _SELFCHECK[key]
+
+
 def resolve_backend(backend: str = "auto") -> str:
-    """Return "opencl" or "numpy" for *backend* (raises on unknown names)."""
+    """Return "opencl" or "numpy" for *backend* (raises on unknown names).
+
+    "auto" uses OpenCL only on a device with fp64 that passes the self-check
+    (:func:`device_validated`; a warning names a device that fails it); an explicit "opencl"
+    on a device that fails it raises :class:`OpenCLUnavailableError`."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if backend != "auto":
+    if backend == "numpy":
+        return backend
+    if backend == "opencl":
+        if opencl.is_available() and opencl.device_supports_fp64():
+            ok, msg = device_validated()
+            if not ok:
+                raise OpenCLUnavailableError(msg)
         return backend
     opencl.check_process()  # a forked child must not silently change backend
     if opencl.is_available() and opencl.device_supports_fp64():
-        return "opencl"
+        ok, msg = device_validated()
+        if ok:
+            return "opencl"
+        if not getattr(_checking, "warned", False):
+            _checking.warned = True
+            warnings.warn(f"{msg}; using the NumPy twins", RuntimeWarning, stacklevel=2)
     return "numpy"
 
 

@@ -439,13 +439,22 @@ def host_buffer(array):
 
 def sync_to_host(buffer, array) -> None:
     """Make the kernels' writes to a :func:`host_buffer` visible in *array* (blocking map/unmap;
-    no copy where the device uses the host memory, as PoCL does)."""
+    no copy where the device uses the host memory, as PoCL does).
+
+    The map is copied into *array* when it is not *array*'s own memory: NVIDIA's OpenCL maps a
+    ``USE_HOST_PTR`` buffer at a pinned copy of its own, so the kernels' results never reached the
+    array (an H200 returned whatever the freed memory held: half the uniforms and every Poisson
+    count wrong, ramps 1e5 σ off)."""
     cl = _cl()
     queue = get_queue()
     mapped, _ = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape, array.dtype,
                                       is_blocking=True)
-    mapped.base.release(queue)
-    del mapped
+    try:
+        if mapped.__array_interface__["data"][0] != array.__array_interface__["data"][0]:
+            np.copyto(array, mapped)
+    finally:
+        mapped.base.release(queue)
+        del mapped
 
 
 def workspace_buffer(workspace, name, nbytes):
