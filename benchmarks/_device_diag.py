@@ -54,3 +54,6 @@ for opts in ((), ("-cl-opt-disable",)):
                float(rng.rng_log(np.array(0.3 + 0.1 * i))), float(a), float(a << 20), 2.0 ** (-3 - i),
                float(np.floor(-0.94 - i)), float(np.cos(2 * np.pi * (0.3 + 0.1 * i)))]
         print(f"  i={i} got {np.array2string(d[8 * i:8 * i + 8], precision=6)}\n      want {np.array2string(np.array(exp), precision=6)}")
+
+from slicersim.backends import dispatch  # noqa: E402
+print("self-check:", dispatch.device_validated())
