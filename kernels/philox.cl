@@ -145,11 +145,14 @@ RNG_INLINE void philox_counter(const rng_ulong index, const uint stream, const u
     *d = (rng_uint)draw;
 }
 
-/* u = (2x + 1) 2^-53 with the 52-bit x = hi * 2^20 + (lo >> 12): exact, in (0, 1) */
+/* u = (2x + 1) 2^-53 with the 52-bit x = hi * 2^20 + (lo >> 12): exact, in (0, 1).  The words are
+ * widened with convert_ulong (zero extension, as in the Philox rounds) and the < 2^54 integer is
+ * reinterpreted, not converted, as signed: no uint -> long conversion whose extension a driver
+ * could get wrong (on an NVIDIA H200 about half of the uniforms differed from the twin). */
 RNG_INLINE rng_double philox_u01(const rng_uint hi, const rng_uint lo)
 {
-    const rng_long x = (rng_convert_long(hi) << 20) | rng_convert_long(lo >> 12);
-    return rng_convert_double(2L * x + 1L) * 0x1.0p-53;
+    const rng_ulong x = (RNG_PASTE(convert_ulong, RNG_SUFFIX)(hi) << 20) | RNG_PASTE(convert_ulong, RNG_SUFFIX)(lo >> 12);
+    return rng_convert_double(rng_as_long(2UL * x + 1UL)) * 0x1.0p-53;
 }
 
 /* ln u for positive normal u: u = m 2^e, m in [sqrt(1/2), sqrt(2)), ln m = 2 atanh s. */
