@@ -166,7 +166,7 @@ def test_device_failing_the_selfcheck_is_never_used_silently(monkeypatch):
     assert ok, msg
     key = opencl.device_fingerprint()
     monkeypatch.setitem(dispatch._SELFCHECK, key, (False, "OpenCL device 'X' fails the random-stream self-check"))
-    monkeypatch.setattr(dispatch._checking, "warned", False, raising=False)
+    monkeypatch.setattr(dispatch._warned, "done", False, raising=False)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         assert dispatch.resolve_backend("auto") == "numpy"
@@ -178,16 +178,22 @@ def test_device_failing_the_selfcheck_is_never_used_silently(monkeypatch):
 
 
 def test_selfcheck_detects_wrong_draws(monkeypatch):
-    """device_selfcheck itself fails when the kernels' uniforms come back wrong."""
+    """device_selfcheck fails when the kernels' uniforms, Gaussians or counts come back wrong, and
+    passes on the real device; it uses the same launches as the products (bit-identical here)."""
     import numpy as np
-    from slicersim.backends import noise, opencl
+    from slicersim.backends import opencl, selfcheck
     if not (opencl.is_available() and opencl.device_supports_fp64()):
         pytest.skip("no fp64 OpenCL device")
-    real = noise.uniform_normal_draw
-
-    def broken(n, seed, stream=0, draw=0, backend="auto", *a, **k):
-        u, z = real(n, seed, stream, draw, backend, *a, **k)
-        return (u * 0.5, z) if backend == "opencl" else (u, z)
-    monkeypatch.setattr(noise, "uniform_normal_draw", broken)
-    ok, msg = noise.device_selfcheck()
-    assert not ok and "uniforms differ" in msg
+    assert selfcheck.device_selfcheck()[0]
+    real = selfcheck._opencl_draws
+    for i, what in ((0, "uniforms differ"), (1, "Gaussians differ"), (2, "Poisson counts differ")):
+        def broken(i=i):
+            draws = list(real())
+            draws[i] = draws[i] * 0.5 + 1.0
+            return tuple(draws)
+        monkeypatch.setattr(selfcheck, "_opencl_draws", broken)
+        ok, msg = selfcheck.device_selfcheck()
+        assert not ok and what in msg, msg
+    monkeypatch.setattr(selfcheck, "_opencl_draws", lambda: 1 / 0)
+    ok, msg = selfcheck.device_selfcheck()
+    assert not ok and "could not run" in msg

@@ -11,6 +11,7 @@ import threading
 import warnings
 
 from slicersim.backends import opencl
+from slicersim.backends.selfcheck import device_selfcheck
 from slicersim.errors import OpenCLUnavailableError
 
 __all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges", "check_vector_width"]
@@ -23,27 +24,20 @@ VECTOR_WIDTHS = (1, 2, 4, 8, 16)
 
 #: device fingerprint → (passed, message) of the self-check (:func:`device_validated`)
 _SELFCHECK = {}
-_checking = threading.local()
+_warned = threading.local()
 
 
 def device_validated() -> tuple:
     """(passed, message): whether the selected OpenCL device gives the NumPy twin's random
-    draws (:func:`slicersim.backends.noise.device_selfcheck`), checked once per device and
+    draws (:func:`slicersim.backends.selfcheck.device_selfcheck`), checked once per device and
     process.  Every noisy product goes through these kernels: a driver that computes or returns
-    them wrongly (seen on an NVIDIA H200: uniforms, Gaussians and Poisson counts never reached the
-    host arrays) must not be used silently.  ``SLICERSIM_TRUST_DEVICE=1`` skips the check."""
+    them wrongly (seen on an NVIDIA H200: uniforms, Gaussians and Poisson counts differed from the
+    twin) must not be used silently.  ``SLICERSIM_TRUST_DEVICE=1`` skips the check."""
     if os.environ.get("SLICERSIM_TRUST_DEVICE", "").strip() in ("1", "true", "yes"):
         return True, "not checked (SLICERSIM_TRUST_DEVICE)"
-    if getattr(_checking, "on", False):           # the check's own launches
-        return True, "checking"
     key = opencl.device_fingerprint()
     if key not in _SELFCHECK:
-        from slicersim.backends.noise import device_selfcheck    # noise imports this module
-        _checking.on = True
-        try:
-            _SELFCHECK[key] = device_selfcheck()
-        finally:
-            _checking.on = False
+        _SELFCHECK[key] = device_selfcheck()
     return _SELFCHECK[key]
 
 
@@ -68,8 +62,8 @@ def resolve_backend(backend: str = "auto") -> str:
         ok, msg = device_validated()
         if ok:
             return "opencl"
-        if not getattr(_checking, "warned", False):
-            _checking.warned = True
+        if not getattr(_warned, "done", False):
+            _warned.done = True
             warnings.warn(f"{msg}; using the NumPy twins", RuntimeWarning, stacklevel=2)
     return "numpy"
 
