@@ -57,7 +57,8 @@ import numpy as np
 from slicersim.errors import EffectsError
 
 __all__ = ["CorrelatedNoiseParameters", "ReadoutGeometry", "pink_psd", "acn_psd", "model_psd",
-           "group_mean_variance", "picture_frame_template", "crossover_low",
+           "group_mean_variance", "group_combination_variance", "ols_slope_weights",
+           "picture_frame_template", "crossover_low",
            "METHODS"]
 
 #: generators of :class:`slicersim.backends.correlated_noise.CorrelatedNoise`
@@ -298,6 +299,55 @@ def group_mean_variance(m, params, geometry, component="output", include_frame_t
     var += _integral(slow, max(fm, f2), fn, 4000, True) / m
     if include_frame_terms and component == "output":
         var += (params.pedestal**2 + params.picture_frame**2) / m
+    return var
+
+
+def ols_slope_weights(nmd, tframe):
+    """w_g [1/s] of the least-squares slope Σ w_g ḡ_g of the n group means of MACC(n, m, d)
+    against their mean read times t_g = (g(m + d) + (m − 1)/2)·tframe."""
+    n, m, d = (int(v) for v in nmd)
+    t = (np.arange(n) * (m + d) + 0.5 * (m - 1)) * float(tframe)
+    dt = t - t.mean()
+    return dt / np.sum(dt**2) if n > 1 else np.zeros(1)
+
+
+def group_combination_variance(weights, nmd, params, geometry, picture_frame_ms=1.0, cells=32):
+    """Variance of Σ_g w_g·(group mean g) of one pixel for MACC(n, m, d), e.g. the slope of
+    :func:`ols_slope_weights` [e-²·w²].
+
+    ∫ S_slow(f) F_m(f) |Σ_g w_g e^{2πi f g (m+d) tframe}|² df (S_slow, F_m as in
+    :func:`group_mean_variance`): log cells below 1/(n(m+d)tframe), linear cells of 1/``cells``
+    of that width up to 64/tframe, above it the transfer's period mean Σ w_g²/m; frame terms
+    (pedestal² + picture_frame²·``picture_frame_ms``)·Σ w_g²/m, with ``picture_frame_ms`` the
+    template's mean square over the pixels considered (1 over the whole detector).  With w = (1,)
+    this is the group-mean variance (finer cells than :func:`group_mean_variance`: 5.7012 vs
+    5.6979 e-² at m = 8, NGHXRG amplitudes, 4096²)."""
+    n, m, d = (int(v) for v in nmd)
+    w = np.asarray(weights, dtype=float)
+    if w.shape != (n,):
+        raise EffectsError(f"correlated noise: {w.size} weights for {n} groups")
+    fm, t, fn = params.f_min, geometry.tframe, geometry.f_nyquist
+    period = (m + d) * t
+
+    def slow(f):
+        return (pink_psd(f, params.c_pink, geometry, fm) + pink_psd(f, params.u_pink, geometry, fm)
+                + 2.0 * _acn_half(f, params.acn, geometry, fm))
+
+    def transfer(f):
+        out = np.empty(f.size)
+        for i in range(0, f.size, 8192):
+            fi = f[i:i + 8192]
+            out[i:i + 8192] = np.abs(np.exp(2j * np.pi * np.outer(fi, np.arange(n) * period)) @ w) ** 2
+        return out * _fejer(f, m, t)
+
+    f1 = min(1.0 / (n * period), fn)
+    f2 = min(64.0 / t, fn)
+    var = _integral(lambda f: slow(f) * transfer(f), fm, f1, 4000, True)
+    var += _integral(lambda f: slow(f) * transfer(f), max(fm, f1), f2,
+                     max(1, int(math.ceil((f2 - max(fm, f1)) * n * period * cells))), False)
+    white = float(np.sum(w**2)) / m
+    var += _integral(slow, max(fm, f2), fn, 4000, True) * white
+    var += (params.pedestal**2 + params.picture_frame**2 * picture_frame_ms) * white
     return var
 
 
