@@ -289,3 +289,54 @@ def test_reduce_exposure_subtracts_the_files_dark_rate(small, tmp_path):
                      (np.zeros((3, 3)), "detector's shape"), ([1, "x"], "dark")):
         with pytest.raises(ParameterError, match=msg):
             reduce_exposure(str(tmp_path / "missing.h5"), dark=bad, **kw)      # refused before reading
+
+
+def test_dark_review_findings(small, tmp_path):
+    """Review findings on dark subtraction: the file's DARK is the detector's dark (hot/warm pixels'
+    extra dark is truth, was in the mean: 7× over-subtraction); a file without DARK_RATE warns and
+    subtracts nothing ("none available"); a bad DARK_RATE in the file is refused like a bad value;
+    bool/complex/masked darks are refused; an image dark is written with the products; reduce_file
+    takes dark and weights (dark=None: nothing subtracted) and they are part of a campaign
+    reduction's identity."""
+    import h5py
+    from slicersim.products.ramps import simulate
+    from slicersim.reduction.campaign import _identity, reduce_file
+    from slicersim.reduction.checks import check_spectra_options
+    from slicersim.reduction.pipeline import dark_rate_of, reduce_exposure
+    from types import SimpleNamespace
+    lbda, cube, psf, F, B = _scene()
+    img = small.project_fields(lbda, EDGES, narrow=cube * 20)
+    bp = tmp_path / "bp.h5"
+    simulate(img, (4, 2, 0), seed=9, out=str(bp), dark=0.01, roic_glow=0.0, effects="bad_pixels")
+    with h5py.File(bp) as f:
+        assert f.attrs["DARK"] == pytest.approx(0.01)
+    shape = small.detector_shape
+    R = lambda **a: SimpleNamespace(attrs=a)                                   # noqa: E731
+    with pytest.warns(RuntimeWarning, match="no DARK_RATE"):
+        assert dark_rate_of("auto", R(SOURCE="x.fits"), shape) == (0.0, "none available")
+    for bad in (-0.5, float("nan"), 1e9, "abc"):
+        with pytest.raises(ParameterError, match="DARK_RATE"):
+            dark_rate_of("auto", R(DARK_RATE=bad), shape)
+    for bad in (np.True_, np.full(shape, True), np.full(shape, 1 + 2j), 1j,
+                np.ma.masked_array(np.zeros(shape), mask=np.zeros(shape, bool))):
+        with pytest.raises(ParameterError, match="not bool, complex or masked"):
+            dark_rate_of(bad, None, shape)
+    assert dark_rate_of(np.float32(0.2), None, shape) == (pytest.approx(0.2), "value")
+    raw = tmp_path / "raw.h5"
+    simulate(img, (4, 2, 0), seed=3, out=str(raw), ron=5.0, dark=0.05, roic_glow=0.0)
+    kw = dict(mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf)
+    dark_img = np.full(shape, 0.05)
+    r = reduce_exposure(str(raw), dark=dark_img, out=str(tmp_path / "red.h5"), **kw)
+    with h5py.File(tmp_path / "red.h5") as f:
+        np.testing.assert_array_equal(f["rates/DARK_SUBTRACTED"][...], dark_img)
+        assert f.attrs["DARK_SUBTRACTED_KIND"] == "image" and f.attrs["DARK_SUBTRACTED"] == pytest.approx(0.05)
+    assert r["dark_kind"] == "image"
+    none = reduce_file(str(raw), spectra=True, dark=None, weights="data", **kw)
+    assert none["dark_rate"] == 0.0 and none["dark_kind"] == "none"
+    auto = reduce_file(str(raw), spectra=True, **kw)
+    assert auto["dark_kind"] == "file DARK_RATE" and auto["dark_rate"] >= 0.05
+    with pytest.raises(ParameterError, match="weights"):
+        check_spectra_options(mapper=small, weights="smooth")
+    a = _identity("spectra", check_spectra_options(mapper=small, dark=None), {}, "d", None)
+    b = _identity("spectra", check_spectra_options(mapper=small), {}, "d", None)
+    assert a["options"]["dark"] is None and b["options"]["dark"] == "auto" and b["options"]["weights"] == "model"

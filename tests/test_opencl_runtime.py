@@ -166,7 +166,7 @@ def test_device_failing_the_selfcheck_is_never_used_silently(monkeypatch):
     assert ok, msg
     key = opencl.device_fingerprint()
     monkeypatch.setitem(dispatch._SELFCHECK, key, (False, "OpenCL device 'X' fails the random-stream self-check"))
-    monkeypatch.setattr(dispatch._warned, "done", False, raising=False)
+    monkeypatch.setattr(dispatch, "_warned", set())
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         assert dispatch.resolve_backend("auto") == "numpy"
@@ -197,3 +197,56 @@ def test_selfcheck_detects_wrong_draws(monkeypatch):
     monkeypatch.setattr(selfcheck, "_opencl_draws", lambda: 1 / 0)
     ok, msg = selfcheck.device_selfcheck()
     assert not ok and "could not run" in msg
+
+
+def test_selfcheck_review_findings(monkeypatch):
+    """Review findings: the check runs once for concurrent first calls (a lock), warns once per
+    process, reads SLICERSIM_TRUST_DEVICE case-insensitively (unknown values warn and check), and a
+    check that could not run is not cached."""
+    import threading
+    import warnings
+    import numpy as np
+    from slicersim.backends import dispatch, opencl, selfcheck
+    if not (opencl.is_available() and opencl.device_supports_fp64()):
+        pytest.skip("no fp64 OpenCL device")
+    key = opencl.device_fingerprint()
+    calls = []
+    real = selfcheck.device_selfcheck
+
+    def counted():
+        calls.append(1)
+        return real()
+    monkeypatch.setattr(dispatch, "device_selfcheck", counted)
+    monkeypatch.setattr(dispatch, "_SELFCHECK", {})
+    threads = [threading.Thread(target=dispatch.device_validated) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1
+    # a failing device warns once per process, whatever the thread
+    monkeypatch.setattr(dispatch, "_SELFCHECK", {key: (False, "OpenCL device 'X' fails the self-check")})
+    monkeypatch.setattr(dispatch, "_warned", set())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        th = [threading.Thread(target=dispatch.resolve_backend) for _ in range(4)]
+        for t in th:
+            t.start()
+        for t in th:
+            t.join()
+        dispatch.resolve_backend("auto")
+    assert sum("fails the self-check" in str(w.message) for w in caught) == 1
+    for value, trusted in (("TRUE", True), (" On ", True), ("0", False), ("False", False)):
+        monkeypatch.setenv("SLICERSIM_TRUST_DEVICE", value)
+        assert (dispatch.resolve_backend("auto") == "opencl") is trusted, value
+    monkeypatch.setenv("SLICERSIM_TRUST_DEVICE", "maybe")
+    with pytest.warns(RuntimeWarning, match="SLICERSIM_TRUST_DEVICE"):
+        assert dispatch.resolve_backend("auto") == "numpy"
+    monkeypatch.delenv("SLICERSIM_TRUST_DEVICE")
+    # a check that could not run is retried
+    monkeypatch.setattr(dispatch, "_SELFCHECK", {})
+    monkeypatch.setattr(dispatch, "device_selfcheck", lambda: (False, "OpenCL device self-check could not run (X)"))
+    assert not dispatch.device_validated()[0] and key not in dispatch._SELFCHECK
+    monkeypatch.setattr(dispatch, "device_selfcheck", real)
+    assert dispatch.device_validated()[0]
+    assert np.array_equal(*[selfcheck._uniform_normal(w)[0] for w in (1, opencl.preferred_vector_width())])

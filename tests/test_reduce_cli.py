@@ -160,6 +160,11 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     (["--out-is-dir"], "is a directory"),
     (["--spectra", "--position", "1e300,0"], "lies outside the field"),
     (["--spectra", "--position", "0,29.5"], "|y| ≤ 29"),
+    (["--dark", "none"], "--dark applies only with --spectra"),
+    (["--weights", "data"], "--weights applies only with --spectra"),
+    (["--spectra", "--dark", "-1"], "dark rates must be finite, ≥ 0"),
+    (["--spectra", "--dark", "nope.npy"], "--dark must be 'auto', 'none', a rate"),
+    (["--spectra", "--dark", "BADPSF"], "detector's shape"),
 ])
 def test_reduce_spectra_bad_options_are_one_line_and_write_nothing(small_layout, tmp_path, capsys, extra, message):
     path, _, _ = small_layout

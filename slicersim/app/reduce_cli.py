@@ -18,7 +18,7 @@ __all__ = ["add_parsers", "cmd_reduce", "parse_lbda_edges"]
 _SPECTRA_FLAGS = (("--field", "field"), ("--lbda-edges", "lbda_edges"), ("--ncol", "ncol"),
                   ("--rectify", "rectify"), ("--extraction", "extraction"), ("--psf", "psf"),
                   ("--position", "position"), ("--aperture", "aperture"), ("--no-background", "no_background"),
-                  ("--no-propagate", "no_propagate"))
+                  ("--no-propagate", "no_propagate"), ("--dark", "dark"), ("--weights", "weights"))
 #: flags of a dataset directory
 _DATASET_FLAGS = (("--workers", "workers"), ("--scheduler", "scheduler"), ("--retry-failed", "retry_failed"),
                   ("--force", "force"), ("--verify", "verify"))
@@ -99,6 +99,25 @@ def _load_psf(text):
         raise ParameterError(f"--psf: cannot read {text} as a .npy array: {' '.join(str(exc).split())}") from None
 
 
+def _parse_dark(text):
+    """--dark: 'auto', 'none', a rate [e-/s] or a .npy image [e-/s]."""
+    import numpy as np
+
+    from slicersim.errors import ParameterError
+    if text in ("auto", "none"):
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    if not os.path.isfile(text):
+        raise ParameterError(f"--dark must be 'auto', 'none', a rate [e-/s] or an existing .npy image, got {text!r}")
+    try:
+        return np.load(text, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ParameterError(f"--dark: cannot read {text} as a .npy array: {' '.join(str(exc).split())}") from None
+
+
 def _given(args, flags):
     return [flag for flag, attr in flags if getattr(args, attr) not in (None, False)]
 
@@ -136,8 +155,9 @@ def _spectra_options(args):
             "propagate": False if args.no_propagate else None,
             "lbda_edges": parse_lbda_edges(args.lbda_edges) if args.lbda_edges is not None else None,
             "position": _parse_position(args.position) if args.position is not None else None,
-            "psf": _load_psf(args.psf) if args.psf is not None else None}
-    opts = {k: v for k, v in opts.items() if v is not None}
+            "psf": _load_psf(args.psf) if args.psf is not None else None,
+            "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights}
+    opts = {k: v for k, v in opts.items() if v is not None}       # --dark none: "none" (kept, not None)
     check_spectra_options(**opts)                  # every value, before any data are read
     return opts
 
@@ -234,6 +254,13 @@ def add_parsers(sub, fmt):
     g.add_argument("--aperture", type=float, metavar="SIGMA", help="aperture radius [white-light PSF σ] "
                    "(default: 3)")
     g.add_argument("--no-background", action="store_true", help="no background subtraction")
+    g.add_argument("--dark", metavar="auto|none|E/S|FILE.npy",
+                   help="dark rate subtracted before rectification: 'auto' (default) the file's DARK_RATE "
+                        "(dark + thermal dark + glow; nothing, with a warning, if the file has none), "
+                        "'none', a rate [e-/s] or a .npy detector image [e-/s]")
+    g.add_argument("--weights", choices=("model", "data"),
+                   help="lsq weights: 'model' (default) the variance of the first cubes' model image, "
+                        "'data' the ramp fit's own variance")
     g.add_argument("--no-propagate", action="store_true",
                    help="optimal/aperture on an lsq cube: cells-independent variance instead of the full "
                         "cube covariance")

@@ -24,21 +24,36 @@ VECTOR_WIDTHS = (1, 2, 4, 8, 16)
 
 #: device fingerprint → (passed, message) of the self-check (:func:`device_validated`)
 _SELFCHECK = {}
-_warned = threading.local()
+_selfcheck_lock = threading.Lock()
+_warned = set()                                   # devices already warned about (once per process)
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("", "0", "false", "no", "off")
+
+
+def _trust_device() -> bool:
+    value = os.environ.get("SLICERSIM_TRUST_DEVICE", "").strip().lower()
+    if value not in _TRUE + _FALSE:
+        warnings.warn(f"SLICERSIM_TRUST_DEVICE={value!r} is not one of {_TRUE + _FALSE[1:]}: the device "
+                      "self-check runs", RuntimeWarning, stacklevel=3)
+    return value in _TRUE
 
 
 def device_validated() -> tuple:
     """(passed, message): whether the selected OpenCL device gives the NumPy twin's random
     draws (:func:`slicersim.backends.selfcheck.device_selfcheck`), checked once per device and
-    process.  Every noisy product goes through these kernels: a driver that computes or returns
-    them wrongly (seen on an NVIDIA H200: uniforms, Gaussians and Poisson counts differed from the
-    twin) must not be used silently.  ``SLICERSIM_TRUST_DEVICE=1`` skips the check."""
-    if os.environ.get("SLICERSIM_TRUST_DEVICE", "").strip() in ("1", "true", "yes"):
+    process (a check that could not run is not kept: the next call tries again).  Every noisy
+    product goes through these kernels: a driver that computes or returns them wrongly (seen on an
+    NVIDIA H200: uniforms, Gaussians and Poisson counts differed from the twin) must not be used
+    silently.  ``SLICERSIM_TRUST_DEVICE=1`` skips the check."""
+    if _trust_device():
         return True, "not checked (SLICERSIM_TRUST_DEVICE)"
     key = opencl.device_fingerprint()
-    if key not in _SELFCHECK:
-        _SELFCHECK[key] = device_selfcheck()
-    return _SELFCHECK[key]
+    with _selfcheck_lock:
+        if key not in _SELFCHECK:
+            result = device_selfcheck()
+            if not result[0] and "could not run" in result[1]:
+                return result
+            _SELFCHECK[key] = result
+        return _SELFCHECK[key]
 
 
 def resolve_backend(backend: str = "auto") -> str:
@@ -62,8 +77,11 @@ def resolve_backend(backend: str = "auto") -> str:
         ok, msg = device_validated()
         if ok:
             return "opencl"
-        if not getattr(_warned, "done", False):
-            _warned.done = True
+        key = opencl.device_fingerprint()
+        with _selfcheck_lock:
+            first = key not in _warned
+            _warned.add(key)
+        if first:
             warnings.warn(f"{msg}; using the NumPy twins", RuntimeWarning, stacklevel=2)
     return "numpy"
 

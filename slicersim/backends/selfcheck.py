@@ -22,17 +22,31 @@ _POISSON_MEANS = np.tile([1e-3, 0.5, 3.0, 9.5, 30.0, 1e4], 50)    # inversion an
 _SEED, _STREAM, _DRAW = 11, 3, 1
 
 
-def _opencl_draws():
-    """(uniforms (n, 2), Gaussians (n, 2), Poisson counts) from the device's noise.cl kernels."""
+def _uniform_normal(vw):
+    """(uniforms, Gaussians) of the uniform_normal kernel at vector width ``vw`` (host-mapped buffers)."""
     key = rng.seed_to_key(_SEED)
-    planes = np.zeros((4, 1, _N_UNIFORM))
+    npad = -(-_N_UNIFORM // vw) * vw
+    planes = np.zeros((4, 1, npad))
     bufs = [opencl.host_buffer(plane) for plane in planes]
-    kern = opencl.cached_kernel("noise.cl", "uniform_normal", ("-DRNG_VW=1",))
-    opencl.launch(kern, (_N_UNIFORM, 1), None, *bufs, np.uint64(0), np.uint64(_N_UNIFORM), np.uint32(_N_UNIFORM),
+    kern = opencl.cached_kernel("noise.cl", "uniform_normal", (f"-DRNG_VW={vw}",))
+    opencl.launch(kern, (npad // vw, 1), None, *bufs, np.uint64(0), np.uint64(npad), np.uint32(npad),
                   np.uint32(key[0]), np.uint32(key[1]), np.uint32(_STREAM), np.uint32(_DRAW))
     for plane, buf in zip(planes, bufs):
         opencl.sync_to_host(buf, plane)
-    u, z = np.moveaxis(planes[:, 0], 0, -1)[:, :2], np.moveaxis(planes[:, 0], 0, -1)[:, 2:]
+    grid = np.moveaxis(planes[:, 0, :_N_UNIFORM], 0, -1)
+    return grid[:, :2], grid[:, 2:]
+
+
+def _opencl_draws():
+    """(uniforms (n, 2), Gaussians (n, 2), Poisson counts) from the device's noise.cl kernels: the
+    uniform/normal grid at width 1 and at the device's preferred width (the products' on CPUs) —
+    the second must equal the first — and Poisson counts."""
+    u, z = _uniform_normal(1)
+    vw = opencl.preferred_vector_width()
+    if vw > 1:
+        uv, zv = _uniform_normal(vw)
+        if not (np.array_equal(uv, u) and np.array_equal(zv, z)):
+            u, z = uv, zv                          # reported against the twin below
     mu = np.ascontiguousarray(_POISSON_MEANS)
     counts = np.zeros_like(mu)
     d_m, d_o = opencl.to_device(mu), opencl.device_buffer(counts.nbytes)

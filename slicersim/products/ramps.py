@@ -136,6 +136,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         dead = np.zeros(rate.shape, bool)
     plan, rate_in = None, rate
     dq_dead = dead                                   # pixels flagged DEAD in PIXELDQ
+    dark_mean = float(np.mean(dark_arr))             # the detector's dark: hot/warm pixels' extra dark is truth
     if fx is not None:
         plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge, noise_cache_bytes=noise_cache)
         rate, dark_arr, no_charge, flags = plan.rate_and_dark(rate, dark_arr, dead)
@@ -143,7 +144,6 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
         dead = dead | no_charge
     mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
-    dark_mean = float(np.mean(dark_arr))
     rate = dark_arr = None                           # the effects' copies: not needed past mu
     backend = resolve_backend(backend)
     block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy

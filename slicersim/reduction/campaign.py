@@ -188,7 +188,7 @@ def _identity(mode, opts, fit, source_digest, mapper):
            **{k: v for k, v in fit.items() if k not in _RUNTIME and v is not None}}
     if mode == "spectra":
         keys = {"field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
-                "background", "propagate"}
+                "background", "propagate", "dark", "weights"}
         opts = {**_defaults(reduce_exposure, keys), **opts}
         opts.setdefault("field", "(each target's)")
     canon = {}

@@ -256,7 +256,7 @@ def check_fit_options(fit_options):
 
 def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, rectify_method=None,
                           extraction=None, psf=None, position=None, aperture=None, background=None,
-                          propagate=None):
+                          propagate=None, dark="unset", weights=None):
     """Validate :func:`~slicersim.reduction.pipeline.reduce_exposure` options before any data are
     read; returns the dict of those given (None: the pipeline's default), the λ edges as an array.
 
@@ -308,8 +308,19 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
             if not isinstance(val, (bool, np.bool_)):
                 raise ParameterError(f"{key} must be True or False, got {val!r}")
             out[key] = bool(val)
-    if lbda_edges is not None or (psf is not None and not isinstance(psf, str)):
+    if weights is not None:
+        from slicersim.reduction.pipeline import WEIGHTS
+        if weights not in WEIGHTS:
+            raise ParameterError(f"weights must be one of {WEIGHTS}, got {weights!r}")
+        out["weights"] = weights
+    given_dark = not (isinstance(dark, str) and dark == "unset")   # None given: subtract nothing
+    if lbda_edges is not None or (psf is not None and not isinstance(psf, str)) or given_dark:
         mapper = _default_mapper() if mapper is None else mapper
+    if given_dark:
+        from slicersim.reduction.pipeline import dark_rate_of
+        if not (isinstance(dark, str) and dark in ("auto", "none")):
+            dark_rate_of(dark, None, mapper.detector_shape)
+        out["dark"] = None if isinstance(dark, str) and dark == "none" else dark
     if lbda_edges is not None:
         try:
             edges = np.asarray(lbda_edges, np.float64)
