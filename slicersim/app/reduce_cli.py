@@ -85,37 +85,33 @@ def _parse_position(text):
     return x, y
 
 
-def _load_psf(text):
+def _load_npy(text, flag, expected):
+    """The .npy array of a file option (one-line ParameterError when missing or unreadable)."""
     import numpy as np
 
     from slicersim.errors import ParameterError
-    if text == "fit":
-        return "fit"
     if not os.path.isfile(text):
-        raise ParameterError(f"--psf must be 'fit' or an existing .npy file (nλ, slices, columns), got {text!r}")
+        raise ParameterError(f"{flag} must be {expected}, got {text!r}")
     try:
         return np.load(text, allow_pickle=False)
     except (OSError, ValueError) as exc:
-        raise ParameterError(f"--psf: cannot read {text} as a .npy array: {' '.join(str(exc).split())}") from None
+        raise ParameterError(f"{flag}: cannot read {text} as a .npy array: {' '.join(str(exc).split())}") from None
+
+
+def _load_psf(text):
+    if text == "fit":
+        return "fit"
+    return _load_npy(text, "--psf", "'fit' or an existing .npy file (nλ, slices, columns)")
 
 
 def _parse_dark(text):
     """--dark: 'auto', 'none', a rate [e-/s] or a .npy image [e-/s]."""
-    import numpy as np
-
-    from slicersim.errors import ParameterError
     if text in ("auto", "none"):
         return text
     try:
         return float(text)
     except ValueError:
-        pass
-    if not os.path.isfile(text):
-        raise ParameterError(f"--dark must be 'auto', 'none', a rate [e-/s] or an existing .npy image, got {text!r}")
-    try:
-        return np.load(text, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ParameterError(f"--dark: cannot read {text} as a .npy array: {' '.join(str(exc).split())}") from None
+        return _load_npy(text, "--dark", "'auto', 'none', a rate [e-/s] or an existing .npy image")
 
 
 def _given(args, flags):
