@@ -39,7 +39,7 @@ def realisation(t, mapper, raw, seed, native, native_edges):
     cube = r["cubes"]["narrow"]
     T = point_source_template(native, native_edges, t.edges, mapper=mapper, field="narrow", ncol=cl.NCOL,
                               variance=r["variance"])           # the weights the data were rectified with
-    sp = extract_spectrum(cube, method="gls", psf=T)
+    sp = extract_spectrum(cube, method="gls", psf=T, noise_information=r["noise_information"].get("narrow"))
     tmpl = cl.metrics(sp.flux, sp.variance, t.truth, t.etc_snr)
     fitted = cl.extractions(cube, t.psf, t.truth, t.etc_snr)["gls"]
     return {"template": {k: tmpl[k] for k in KEYS}, "fitted": {k: fitted[k] for k in KEYS}}

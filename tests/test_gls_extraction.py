@@ -129,3 +129,34 @@ def test_gls_on_the_cube_is_gls_on_the_pixels(setup):
         assert rel.max() < 1e-10
     np.testing.assert_allclose(g.variance, np.diag(cov)[:nl], rtol=1e-10)
     np.testing.assert_allclose(g.background_variance, np.diag(cov)[nl:], rtol=1e-10)
+
+
+def test_sandwich_variance_for_weights_that_are_not_the_inverse_variance(setup):
+    """Weights W ≠ Σ⁻¹ (the core pixels' variance under-estimated 40 %, as a smooth model image
+    misses a sharp core): (MᵀNM)⁻¹ under-reports, the sandwich (MᵀNM)⁻¹ MᵀBM (MᵀNM)⁻¹ with
+    B = PᵀWΣWP (rectify.noise_information) is the estimator's exact covariance.  Compared with the
+    scatter of 400 Gaussian realisations (one factorisation for the stack): every bin within 4 σ
+    of the variance's Monte Carlo error √(2/399) = 7 %, the band mean within 4 σ / √nλ; the naive
+    variance is ~1.5× too small."""
+    from slicersim.reduction.rectify import noise_information
+    small, cp, var, psf, F, B, noisy, img = setup
+    core = img > 0.3 * img.max()
+    used = np.where(core, 0.6 * var, var)                      # wrong weights on the core
+    rng = np.random.default_rng(11)
+    n = 400
+    stack = img[None] + rng.standard_normal((n,) + img.shape) * np.sqrt(var)[None]
+    cw = rectify(stack, used, mapper=small, field="narrow", lbda_edges=EDGES, ncol=NCOL)
+    naive = extract_spectrum(cw, psf=psf, method="gls")
+    sw = extract_spectrum(cw, psf=psf, method="gls", noise_information=noise_information(cw.inverse_covariance, var))
+    np.testing.assert_array_equal(sw.flux, naive.flux)          # same estimator, other variance
+    emp = sw.flux.var(axis=0, ddof=1)
+    err = np.sqrt(2 / (n - 1))                                  # relative MC error of a variance
+    r_sw, r_naive = emp / sw.variance, emp / naive.variance
+    print(f"empirical / sandwich {np.round(r_sw, 3)}; empirical / naive {np.round(r_naive, 3)} (± {err:.3f})")
+    assert np.all(np.abs(r_sw - 1) < 4 * err) and abs(r_sw.mean() - 1) < 4 * err / np.sqrt(r_sw.size)
+    assert r_naive.mean() > 1 + 4 * err / np.sqrt(r_naive.size)  # the naive variance under-reports
+    assert "sandwich" in sw.diagnostics["variance_model"]
+    with pytest.raises(ParameterError, match="gls"):
+        extract_spectrum(cw, psf=psf, method="optimal", noise_information=noise_information(cw.inverse_covariance, var))
+    with pytest.raises(ParameterError, match="pixels"):
+        noise_information(cw.inverse_covariance, var[:10])

@@ -122,7 +122,7 @@ def gls_normal_equations(cube_product, psf, background=True, background_template
 
 
 def extract_gls(cube_product, *, psf=None, position=None, background=True, nchunks=512,
-                background_template=None):
+                background_template=None, noise_information=None):
     """GLS spectrum of a point source in an LSQ cube with its inverse covariance (module docstring).
 
     psf : None / "fit" (Gaussian fitted on the cube, as ``extract_spectrum``), an (nλ, ny, nx)
@@ -134,6 +134,12 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
     background_template : (nλ, nλ, ny, nx) the background's expected cube per unit B_b
         (:func:`~slicersim.reduction.templates.background_template`: a sky uniform at native
         resolution) instead of a uniform B_λ
+
+    noise_information : B = PᵀWΣWP (:func:`~slicersim.reduction.rectify.noise_information`) when the
+        cube's weights W are not the pixels' inverse variance Σ⁻¹ (e.g. weights from a model image
+        that misses the point source's sharp core): the variance is then the sandwich
+        (MᵀNM)⁻¹ MᵀBM (MᵀNM)⁻¹, exact for the estimator used (with Σ estimated from the data, whose
+        expectation is the truth); None: (MᵀNM)⁻¹
 
     Returns a :class:`~slicersim.reduction.spectra.SpectrumProduct` (``method="gls"``): ``flux``
     F̂_λ (total flux), ``variance`` from (Mᵀ N M)⁻¹, ``background`` B̂_λ and its variance;
@@ -171,11 +177,21 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
                              "(or no cell at all)") from None
     theta = cov @ b                                         # (K, N)
     chi2 = q - np.einsum("kn,kn->n", theta, b)              # (x̂ − Mθ̂)ᵀN(x̂ − Mθ̂) = x̂ᵀNx̂ − θ̂ᵀb
+    variance_model = "GLS: (Mᵀ N M)⁻¹ with the full inverse covariance N = PᵀWP of the LSQ cube"
+    if noise_information is not None:
+        if tuple(getattr(noise_information, "shape", ())) != tuple(cube_product.inverse_covariance.shape):
+            raise ParameterError("noise_information is not for this cube (shape "
+                                 f"{getattr(noise_information, 'shape', None)})")
+        from types import SimpleNamespace
+        H, *_ = gls_normal_equations(SimpleNamespace(flux=cube_product.flux, inverse_covariance=noise_information),
+                                     P, background, background_template)
+        cov = cov @ H @ cov
+        variance_model = "GLS sandwich: (MᵀNM)⁻¹ MᵀBM (MᵀNM)⁻¹, B = PᵀWΣWP with the pixels' variance Σ"
     cov = 0.5 * (cov + cov.T)
     f = theta[:nl].T
     bg = theta[nl:].T if background else None
     diag.update(covariance=cov[:nl, :nl], chi2=chi2, dof=int(seen - G.shape[0]), cells_seen=int(seen),
-                variance_model="GLS: (Mᵀ N M)⁻¹ with the full inverse covariance N = PᵀWP of the LSQ cube")
+                variance_model=variance_model)
     return SpectrumProduct(
         lbda=np.asarray(cube_product.lbda), lbda_edges=np.asarray(cube_product.lbda_edges),
         flux=f if stack else f[0], variance=np.diag(cov)[:nl].copy(), method="gls",

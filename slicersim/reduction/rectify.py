@@ -363,6 +363,25 @@ class InverseCovariance:
         return int(self._pix.nbytes + self._w.nbytes + kept)
 
 
+def noise_information(info, variance):
+    """B = PᵀW Σ W P for an LSQ cube whose inverse covariance is ``info`` (N = PᵀWP, W the weights
+    it was rectified with) and pixels of true variance Σ = diag(``variance``) [unit²]: the cube's
+    covariance is then N⁻¹ B N⁻¹ (the sandwich), N⁻¹ only when W = Σ⁻¹.  Pixels used by the cube
+    whose ``variance`` is not finite and > 0 keep 1/W.  An :class:`InverseCovariance` of the same
+    tables (``matrix(row)`` gives B's blocks), for :func:`~slicersim.reduction.gls_extraction.extract_gls`'s
+    ``noise_information``."""
+    var = np.asarray(variance, np.float64)
+    size = int(np.prod(var.shape))
+    if info._pix.size and int(info._pix.max()) >= size:
+        raise ParameterError(f"variance has {size} pixels, the cube's weights reach pixel {int(info._pix.max())}")
+    s2 = var.ravel()[info._pix]
+    w = info._w
+    s2 = np.where(np.isfinite(s2) & (s2 > 0), s2, 1.0 / w)
+    flat = np.zeros(size)
+    flat[info._pix] = w * w * s2
+    return InverseCovariance(info._tables, flat, info.slices, info.shape)
+
+
 def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A):
     """Weighted LSQ of one slice (A = PᵀWP): (x (nc, N), variance (nc,) or None, κ₁(A))."""
     nc = P.shape[1]

@@ -49,7 +49,8 @@ __all__ = ["extract_spectrum", "SpectrumProduct", "fit_gaussian_psf", "psf_from_
 
 
 def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None, aperture=3.0,
-                     background=True, background_radius=6.0, nchunks=_MAX_CHUNKS, background_template=None):
+                     background=True, background_radius=6.0, nchunks=_MAX_CHUNKS, background_template=None,
+                     noise_information=None):
     """Spectrum of a point source in a rectified cube (see the module docstring).
 
     method : "optimal" (PSF-weighted: total flux), "aperture" (sum: light in the aperture) — cells
@@ -63,12 +64,16 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
     aperture : radius of the elliptical aperture [white-light PSF σ along each axis]
     background : estimate B(λ) from the cells beyond ``background_radius`` σ and subtract it
         (with its variance and the exact correction for the PSF light there)
+    noise_information : "gls" only: the sandwich variance for weights that are not the pixels'
+        inverse variance (:func:`~slicersim.reduction.gls_extraction.extract_gls`)
 
     Returns a :class:`SpectrumProduct` in the cube's unit per bin.
     """
     if method == "gls":
         return extract_gls(cube_product, psf=psf, position=position, background=background, nchunks=nchunks,
-                           background_template=background_template)
+                           background_template=background_template, noise_information=noise_information)
+    if noise_information is not None:
+        raise ParameterError("noise_information is for method='gls' only")
     if background_template is not None:
         raise ParameterError("background_template is for method='gls' only")
     flux, var, psf, position = _check(cube_product, method, psf, aperture, background_radius, position, background,
