@@ -7,6 +7,15 @@
 #
 #     bash benchmarks/device_suite.sh [STEP ...]     # steps: diag tests ramp_effects reduce_speed each
 #
+# The wheels (cp312, manylinux; the device image has numpy, scipy, h5py, matplotlib, pytest):
+#     echo /.whl/ >> .git/info/exclude
+#     python3 -m pip download -q --only-binary=:all: --python-version 3.12 --implementation cp \
+#       --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+#       --platform any -d /tmp/whl pyopencl astropy sncosmo dask distributed
+#     then copy into .whl/: pyopencl pytools platformdirs siphash24 astropy astropy_iers_data pyerfa
+#     sncosmo extinction dask distributed partd locket tblib zict tornado lazy_importer looseversion
+#     importlib_metadata (18 MB; carry [".whl"] in the device call).
+#
 # Every step has its own time limit and writes into /tmp/res, packed after each step into
 # $OUT/results.tgz (so a step cut short still returns the earlier ones); the log is $OUT/log.txt.
 # Exits 3 without running anything when pyopencl finds no GPU (no NVIDIA OpenCL ICD).
