@@ -11,7 +11,7 @@ import threading
 import warnings
 
 from slicersim.backends import opencl
-from slicersim.backends.selfcheck import device_selfcheck
+from slicersim.backends.selfcheck import NOT_RUN, device_selfcheck
 from slicersim.errors import OpenCLUnavailableError
 
 __all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges", "check_vector_width"]
@@ -50,7 +50,7 @@ def device_validated() -> tuple:
     with _selfcheck_lock:
         if key not in _SELFCHECK:
             result = device_selfcheck()
-            if not result[0] and "could not run" in result[1]:
+            if not result[0] and result[1].startswith(NOT_RUN):
                 return result
             _SELFCHECK[key] = result
         return _SELFCHECK[key]

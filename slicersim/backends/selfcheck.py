@@ -15,7 +15,10 @@ import numpy as np
 
 from slicersim.backends import opencl, rng
 
-__all__ = ["device_selfcheck"]
+__all__ = ["device_selfcheck", "NOT_RUN"]
+
+#: start of the message of a check that could not run (a build or launch failure): not a verdict
+NOT_RUN = "OpenCL device self-check could not run"
 
 _N_UNIFORM = 257                                  # odd: a partial work group
 _POISSON_MEANS = np.tile([1e-3, 0.5, 3.0, 9.5, 30.0, 1e4], 50)    # inversion and PTRS branches
@@ -73,7 +76,7 @@ def device_selfcheck():
         dev = opencl.get_device().name.strip()
         uc, zc, kc = _opencl_draws()
     except Exception as exc:                        # a build or launch failure is a failed check
-        return False, f"OpenCL device self-check could not run ({type(exc).__name__}: {exc})"
+        return False, f"{NOT_RUN} ({type(exc).__name__}: {exc})"
     un, zn, kn = _numpy_draws()
     bad = []
     if not np.array_equal(uc, un):

@@ -254,9 +254,12 @@ def check_fit_options(fit_options):
     return opts
 
 
+_UNSET = object()       # dark not given (None given: subtract nothing)
+
+
 def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, rectify_method=None,
                           extraction=None, psf=None, position=None, aperture=None, background=None,
-                          propagate=None, dark="unset", weights=None):
+                          propagate=None, dark=_UNSET, weights=None):
     """Validate :func:`~slicersim.reduction.pipeline.reduce_exposure` options before any data are
     read; returns the dict of those given (None: the pipeline's default), the λ edges as an array.
 
@@ -313,7 +316,7 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
         if weights not in WEIGHTS:
             raise ParameterError(f"weights must be one of {WEIGHTS}, got {weights!r}")
         out["weights"] = weights
-    given_dark = not (isinstance(dark, str) and dark == "unset")   # None given: subtract nothing
+    given_dark = dark is not _UNSET
     if lbda_edges is not None or (psf is not None and not isinstance(psf, str)) or given_dark:
         mapper = _default_mapper() if mapper is None else mapper
     if given_dark:
