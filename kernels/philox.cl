@@ -16,6 +16,7 @@
  *   philox_counter(index, stream, draw, &a, &b, &c, &d)
  *                                        counter (index lo, index hi, stream, draw)
  *   philox_u01(hi, lo)                   52-bit uniform (2x+1)*2^-53 in (0, 1), never 0 or 1
+ *   philox_x52(hi, lo)                   its 52-bit integer x = hi*2^20 + (lo >> 12)
  *   rng_log(u)                           natural log of a positive normal double
  *   rng_sincos_2pi(u, &sin)              cos 2 pi u (returned) and sin 2 pi u
  *   box_muller_lanes(a, b, c, d, &z1)    two N(0,1) draws from one block (z0 returned)
@@ -145,14 +146,24 @@ RNG_INLINE void philox_counter(const rng_ulong index, const uint stream, const u
     *d = (rng_uint)draw;
 }
 
-/* u = (2x + 1) 2^-53 with the 52-bit x = hi * 2^20 + (lo >> 12): exact, in (0, 1).  The words are
- * widened with convert_ulong (zero extension, as in the Philox rounds) and the < 2^54 integer is
- * reinterpreted, not converted, as signed: no uint -> long conversion whose extension a driver
- * could get wrong (on an NVIDIA H200 about half of the uniforms differed from the twin). */
+/* u = (2x + 1) 2^-53 with the 52-bit x = hi * 2^20 + (lo >> 12): exact, in (0, 1).
+ * No 32-bit word with its top bit set is ever widened to 64 bits: NVIDIA's OpenCL (H200, driver
+ * 580.159) sign-extended hi in (ulong)hi << 20, so every u >= 0.5 came out as u - 1 (half the
+ * uniforms, Poisson means 0.134 at mu = 1).  Here 2x + 1 = (hi >> 1) 2^22 + r with
+ * r = (hi & 1) 2^21 + (lo >> 11 | 1) < 2^22, both parts below 2^31 (signed and unsigned readings
+ * agree) and converted exactly; the two terms share no bit, so the sum is exact (FMA or not). */
 RNG_INLINE rng_double philox_u01(const rng_uint hi, const rng_uint lo)
 {
-    const rng_ulong x = (RNG_PASTE(convert_ulong, RNG_SUFFIX)(hi) << 20) | RNG_PASTE(convert_ulong, RNG_SUFFIX)(lo >> 12);
-    return rng_convert_double(rng_as_long(2UL * x + 1UL)) * 0x1.0p-53;
+    const rng_uint r = ((hi & 1u) << 21) | (lo >> 11) | 1u;
+    return rng_convert_double(hi >> 1) * 0x1.0p-31 + rng_convert_double(r) * 0x1.0p-53;
+}
+
+/* The 52-bit x = hi * 2^20 + (lo >> 12) of philox_u01 as an integer, built from two parts below
+ * 2^31 (no widening of a word with its top bit set, see philox_u01). */
+RNG_INLINE rng_ulong philox_x52(const rng_uint hi, const rng_uint lo)
+{
+    return (RNG_PASTE(convert_ulong, RNG_SUFFIX)(hi >> 1) << 21)
+         | RNG_PASTE(convert_ulong, RNG_SUFFIX)(((hi & 1u) << 20) | (lo >> 12));
 }
 
 /* ln u for positive normal u: u = m 2^e, m in [sqrt(1/2), sqrt(2)), ln m = 2 atanh s. */

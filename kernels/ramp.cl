@@ -52,7 +52,6 @@
 #define RAMP_SPARSE_TABLE 3         /* tabulated CDF terms of a full sparse window */
 
 #define RAMP_INLINE inline __attribute__((always_inline))
-#define RAMP_CONVERT_ULONG RNG_PASTE(convert_ulong, RNG_SUFFIX)
 #define RAMP_CONVERT_INT RNG_PASTE(convert_int, RNG_SUFFIX)
 /* masks: comparisons and ! && || give 1/0 for scalars, -1/0 per lane for vectors */
 #if RNG_VW == 1
@@ -130,7 +129,7 @@ RAMP_INLINE rng_double ramp_log_factorial(const rng_double k)
  * (x * w) >> 52, exact integer arithmetic (w <= 4096), uniform to a relative 2^-40. */
 RAMP_INLINE rng_double frame_position(const rng_uint hi, const rng_uint lo, const int w)
 {
-    const rng_ulong x = (RAMP_CONVERT_ULONG(hi) << 20) | RAMP_CONVERT_ULONG(lo >> 12);
+    const rng_ulong x = philox_x52(hi, lo);
     return rng_convert_double(rng_as_long((x * (ulong)w) >> 52));   /* < 2^12: signed conversion is exact */
 }
 
