@@ -10,6 +10,7 @@
  *   mean = v + read_sigma * z_g + extra[g, y, x]          white read noise (the same
  *          Philox counters as the plain ramp) + correlated read noise [e-]
  *   adu  = rint(bias[y, x] + gain * (reset + mean)),  clipped to [0, 65535]
+ *          (rint as (x + 2^52) - 2^52: the same clipped values, see ro_round)
  * reset = kTC noise (plain ramp's counters).  GROUPDQ bit 2 (SATURATED) is sticky
  * from the first group flagged by the charge sampler or reaching `saturation`.
  * Build with -I<kernels dir> -DRNG_VW=N.  NumPy twin: slicersim/backends/ramp_effects.py
@@ -67,6 +68,14 @@ RO_INLINE rng_double ro_load_q(__global const uchar *p, const int nl)
     for (int l = 0; l < RNG_VW; ++l)
         v[l] = (double)p[l < nl ? l : nl - 1];
     return ro_lanes(v);
+}
+
+/* rint(x) where the result is then clipped to [0, 65535]: (x + 2^52) - 2^52 rounds half to even
+ * like rint for 0 <= x < 2^52 (FP_CONTRACT is off), gives a value <= 0 for x < 0 and >= 2^52 for
+ * x >= 2^52, so the clipped results are rint's (PoCL calls rint lane by lane: ~20 % of the kernel) */
+RO_INLINE rng_double ro_round(const rng_double x)
+{
+    return (x + 0x1.0p52) - 0x1.0p52;
 }
 
 /* store the lanes inside the row (one vector store when all are) */
@@ -185,7 +194,7 @@ __kernel void ramp_readout(
     rng_double mean = v + read_sigma * z;
     if (use_extra)
         mean = mean + ro_load_f(extra + (size_t)g * plane + o_row, nl);
-    rng_double adu = rint(b0 + gain * (reset + mean));
+    rng_double adu = ro_round(b0 + gain * (reset + mean));
     adu = RNG_SELECT(adu, (rng_double)0.0, adu < 0.0);
     adu = RNG_SELECT(adu, (rng_double)65535.0, adu > 65535.0);
     sat = RNG_SELECT(sat, (rng_double)1.0, (ro_load_q(qsat + (size_t)g * plane_in + i_row, nl) > 0.0)
@@ -195,9 +204,12 @@ __kernel void ramp_readout(
     __global uchar *ss = sat_state + o_row;
 #if RNG_VW > 1
     if (nl == RNG_VW) {
-        RNG_PASTE(vstore, RNG_SUFFIX)(RNG_PASTE(convert_ushort, RNG_SUFFIX)(adu), 0, so);
-        RNG_PASTE(vstore, RNG_SUFFIX)(RNG_PASTE(convert_uchar, RNG_SUFFIX)(sat * 2.0), 0, go);
-        RNG_PASTE(vstore, RNG_SUFFIX)(RNG_PASTE(convert_uchar, RNG_SUFFIX)(sat), 0, ss);
+        /* via int: PoCL converts double vectors to 8/16-bit lanes one by one */
+        const RNG_PASTE(int, RNG_SUFFIX) si = RNG_PASTE(convert_int, RNG_SUFFIX)(sat);
+        RNG_PASTE(vstore, RNG_SUFFIX)(RNG_PASTE(convert_ushort, RNG_SUFFIX)(RNG_PASTE(convert_int, RNG_SUFFIX)(adu)),
+                                      0, so);
+        RNG_PASTE(vstore, RNG_SUFFIX)(RNG_PASTE(convert_uchar, RNG_SUFFIX)(si * 2), 0, go);
+        RNG_PASTE(vstore, RNG_SUFFIX)(RNG_PASTE(convert_uchar, RNG_SUFFIX)(si), 0, ss);
         return;
     }
 #endif

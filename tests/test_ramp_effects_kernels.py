@@ -111,6 +111,23 @@ def test_readout_twins_with_ipc_noise_and_bias_map():
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
 
 
+def test_readout_rounding_and_clipping_match_rint():
+    """ramp_readout rounds as (x + 2^52) - 2^52 (PoCL's rint is scalar): ties to even, negative
+    values, the uint16 ends and values past 2^52 give numpy's clipped rint bit for bit."""
+    p = RampParameters(nmd=(2, 1, 0), ron=0.0, bias=0.0, gain=1.0, full_well=1e300)
+    vals = np.array([0.5, 1.5, 2.5, 2.4999999999999996, 2.5000000000000004, -0.4, -0.5, -0.6, -1.5, -3e9,
+                     65534.5, 65535.5, 65535.49999999999, 65536.0, 1e6, 2.0**52 - 0.5, 2.0**52 + 1, 2.0**53 + 2,
+                     1e300, 0.0, 12345.5, 12346.5, 7.49999999999999, 99.5])
+    nx = vals.size
+    gmean = np.stack([vals, vals[::-1]])[:, None, :].copy()
+    q = np.zeros(gmean.shape, np.uint8)
+    a = rfx.readout_numpy(gmean, q, 1, 0, 0, 1, 0, 1, p)
+    b = rfx.readout_opencl(gmean, q, 1, 0, 0, 1, 0, 1, p, workspace={})
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert np.array_equal(a[0][0, 0], np.clip(np.rint(vals), 0, 65535).astype(np.uint16))
+    assert nx == a[0].shape[2]
+
+
 def test_ipc_conserves_flux_away_from_edges():
     p = RampParameters(nmd=(2, 1, 0), ron=0.0, bias=0.0, gain=1.0)
     gmean = np.zeros((2, 9, 9))
