@@ -53,6 +53,63 @@ def test_keying_and_uniform_mapping():
         rng.seed_to_key(1.5)
 
 
+# words whose top bit is set (the high word of every u >= 0.5): NVIDIA's OpenCL (H200, driver
+# 580.159) computed convert_long(uint h) << 20 as if h were signed, so each such u came out as u - 1
+TOP_BIT_HI = np.array([0, 1, 0x7FFFFFFF, 0x80000000, 0x80000001, 0xFFFFFFFF, 0x9E3779B9, 0xDEADBEEF,
+                       0x12345678, 0xC0000000, 0xFFFFF000, 0x80000FFF, 0xBB67AE85, 0x3, 0xF0F0F0F0, 0xAAAAAAAA],
+                      np.uint32)
+TOP_BIT_LO = TOP_BIT_HI[::-1].copy()
+
+
+def _sign_extended_uniform(hi, lo):
+    """philox_u01 as the H200 computed it (high word sign-extended before the shift)."""
+    x = (np.asarray(hi, np.uint32).astype(np.int32).astype(np.int64) << 20) \
+        | (np.asarray(lo, np.uint32) >> np.uint32(12)).astype(np.int64)
+    return (2 * x + 1).astype(np.float64) * 2.0**-53
+
+
+def test_sign_extended_high_word_is_the_h200_signature(monkeypatch):
+    """The twin with a sign-extended high word reproduces the H200's wrong draws of run 2
+    (benchmarks/results/gpu_h200.md) exactly: u - 1 for every u >= 0.5, Poisson mean 0.134 at mu = 1."""
+    seed, index = 2**63 + 12345, np.arange(100001, dtype=np.uint64)
+    good = rng.uniform(seed, index, 5, 2)
+    monkeypatch.setattr(rng, "words_to_uniform", _sign_extended_uniform)
+    bad = rng.uniform(seed, index, 5, 2)
+    assert int((bad != good).sum()) == 100116
+    assert np.array_equal(bad[good >= 0.5], good[good >= 0.5] - 1.0)
+    assert np.array_equal(bad[good < 0.5], good[good < 0.5])
+    assert rng.poisson(np.full(100000, 1.0), 7, np.arange(100000, dtype=np.uint64), 0).mean() == 0.13353
+
+
+@needs_cl
+@pytest.mark.parametrize("vw", [1, 4])
+def test_uniform_mapping_of_top_bit_words_in_the_kernel(vw):
+    """philox_u01 and philox_x52 (kernels/philox.cl) on words with and without the top bit set,
+    scalar and vector: exactly rng.words_to_uniform and its 52-bit integer."""
+    src = f"""
+#define RNG_INLINE inline __attribute__((always_inline))
+#include "philox.cl"
+__kernel void probe(__global const uint *hi, __global const uint *lo, __global double *u, __global ulong *x)
+{{
+    const size_t i = get_global_id(0);
+    const rng_uint h = RNG_VLOAD(i, hi), l = RNG_VLOAD(i, lo);
+    RNG_VSTORE(philox_u01(h, l), i, u);
+    RNG_VSTORE(philox_x52(h, l), i, x);
+}}"""
+    cl = opencl._cl()
+    prg = cl.Program(opencl.get_context(), src).build(options=[f"-DRNG_VW={vw}", *opencl._include_options()])
+    u, x = np.zeros(TOP_BIT_HI.size), np.zeros(TOP_BIT_HI.size, np.uint64)
+    d_u, d_x = opencl.device_buffer(u.nbytes), opencl.device_buffer(x.nbytes)
+    prg.probe(opencl.get_queue(), (TOP_BIT_HI.size // vw,), None, opencl.to_device(TOP_BIT_HI),
+              opencl.to_device(TOP_BIT_LO), d_u, d_x)
+    opencl.from_device(u, d_u)
+    opencl.from_device(x, d_x)
+    want_x = (TOP_BIT_HI.astype(np.uint64) << np.uint64(20)) | (TOP_BIT_LO.astype(np.uint64) >> np.uint64(12))
+    assert np.array_equal(x, want_x)
+    assert np.array_equal(u.view(np.uint64), rng.words_to_uniform(TOP_BIT_HI, TOP_BIT_LO).view(np.uint64))
+    assert not np.array_equal(u, _sign_extended_uniform(TOP_BIT_HI, TOP_BIT_LO))
+
+
 def test_elementary_functions_accuracy():
     u = rng.uniform(11, np.arange(200_000))[:, 0]
     u = np.concatenate([u, [2.0**-53, 1.0 - 2.0**-53, 0.5, np.sqrt(0.5), 1.0]])
