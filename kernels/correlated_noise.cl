@@ -74,6 +74,21 @@ __kernel void spectral_coefficients(__global const float *restrict amp, __global
     const ffloat r0 = sqrt(-2.0f * log(ua)), r1 = sqrt(-2.0f * log(uc));
     const ffloat c0 = cospi(2.0f * ub), s0 = sinpi(2.0f * ub);
     const ffloat c1 = cospi(2.0f * ud), s1 = sinpi(2.0f * ud);
+    __global const float *w = amp + (size_t)kind[r] * nbins + 2 * (size_t)b0;
+    __global float *o = out + 2 * ((size_t)r * nbins + 2 * (size_t)b0);
+#if FVW == 16
+    /* the same products as the loop below, interleaved by swizzles into four float16 stores
+     * (PoCL turns the loop's 64 scalar stores into most of the kernel's time) */
+    const float16 wa = vload16(0, w), wb = vload16(1, w);
+    const float16 w0 = (float16)(wa.even, wb.even), w1 = (float16)(wa.odd, wb.odd);
+    const float16 p = w0 * (r0 * c0), q = w0 * (r0 * s0), u = w1 * (r1 * c1), v = w1 * (r1 * s1);
+#define CN_QUAD(i) p.s##i, q.s##i, u.s##i, v.s##i
+    vstore16((float16)(CN_QUAD(0), CN_QUAD(1), CN_QUAD(2), CN_QUAD(3)), 0, o);
+    vstore16((float16)(CN_QUAD(4), CN_QUAD(5), CN_QUAD(6), CN_QUAD(7)), 1, o);
+    vstore16((float16)(CN_QUAD(8), CN_QUAD(9), CN_QUAD(a), CN_QUAD(b)), 2, o);
+    vstore16((float16)(CN_QUAD(c), CN_QUAD(d), CN_QUAD(e), CN_QUAD(f)), 3, o);
+#undef CN_QUAD
+#else
     float x0[FVW], y0[FVW], x1[FVW], y1[FVW];
 #if FVW == 1
     x0[0] = r0 * c0; y0[0] = r0 * s0; x1[0] = r1 * c1; y1[0] = r1 * s1;
@@ -83,8 +98,6 @@ __kernel void spectral_coefficients(__global const float *restrict amp, __global
     RNG_PASTE(vstore, FSUF)(r1 * c1, 0, x1);
     RNG_PASTE(vstore, FSUF)(r1 * s1, 0, y1);
 #endif
-    __global const float *w = amp + (size_t)kind[r] * nbins + 2 * (size_t)b0;
-    __global float *o = out + 2 * ((size_t)r * nbins + 2 * (size_t)b0);
     for (int l = 0; l < FVW; l++) {
         const float w0 = w[2 * l], w1 = w[2 * l + 1];
         o[4 * l] = w0 * x0[l];
@@ -92,6 +105,7 @@ __kernel void spectral_coefficients(__global const float *restrict amp, __global
         o[4 * l + 2] = w1 * x1[l];
         o[4 * l + 3] = w1 * y1[l];
     }
+#endif
 }
 
 /*

@@ -129,6 +129,20 @@ def test_spectral_draws_twin():
 
 
 @needs_cl
+def test_spectral_draws_identical_for_every_vector_width():
+    """The float16 build interleaves its products by swizzles, the others by a loop: the same
+    float operations per bin, so every width gives the same bits."""
+    rng = np.random.default_rng(1)
+    amp = rng.uniform(0.5, 2.0, (2, 777)).astype(np.float32)
+    kind, hi = np.array([0, 1, 1, 0]), np.array([0, 7, 2**31, 3])
+    stream, draw = np.array([0x12000000, 0x12030001, 5, 9]), np.array([0, 3, 2**20, 1])
+    ref = spectral_coefficients_opencl(amp, kind, hi, stream, draw, 99, vector_width=16)[:, :777]
+    for vw in (1, 4, 8):
+        got = spectral_coefficients_opencl(amp, kind, hi, stream, draw, 99, vector_width=vw)[:, :777]
+        assert np.array_equal(got.view(np.uint32), ref.view(np.uint32)), vw
+
+
+@needs_cl
 def test_generator_backends_agree():
     """multirate block on OpenCL vs NumPy (draws + assembly twins): within 1e-4 e- (float32
     rounding of the draws propagated through the FFT; the noise rms is ~5 e-)."""
