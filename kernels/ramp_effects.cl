@@ -92,6 +92,18 @@ RAMP_INLINE rng_double window_read_sum(const rng_double before, const rng_double
                                        const rng_double a3, const int use_nl)
 {
     rng_double total = 0.0;
+    if (!any_dep && !RAMP_ANY(K > 1.0)) {
+        /* no deposit and at most one event per lane (most dark windows): the read values take two
+         * levels, R(clip(before + 0)) before the event and R(clip(before + 1)) from it on: the same
+         * values and sums as the loop below, with R evaluated twice instead of m times */
+        rng_double q0 = before + 0.0, q1 = before + 1.0;
+        q0 = RNG_SELECT(q0, (rng_double)full_well, q0 >= full_well);
+        q1 = RNG_SELECT(q1, (rng_double)full_well, q1 >= full_well);
+        const rng_double r0 = use_nl ? nl_read(q0, a2, a3) : q0, r1 = use_nl ? nl_read(q1, a2, a3) : q1;
+        for (int j = 0; j < m; ++j)
+            total = total + RNG_SELECT(r0, r1, (K > 0.0) && (pos0 <= (double)j));
+        return total;
+    }
     for (int j = 0; j < m; ++j) {
         rng_double cj = RNG_SELECT((rng_double)0.0, (rng_double)1.0, (K > 0.0) && (pos0 <= (double)j));
         for (int k = 1; RAMP_ANY((double)k < K); ++k) {

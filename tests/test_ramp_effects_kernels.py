@@ -44,6 +44,33 @@ def test_charge_stage_twins_bit_identical(use_nl):
         assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
 
 
+@pytest.mark.parametrize("near_full_well", [False, True])
+def test_charge_stage_twins_dark_windows_with_nonlinearity(near_full_well):
+    """Dark pixels (most windows: no deposit, at most one event per lane, the kernel's two-level
+    shortcut of the read-by-read sum) mixed with a few brighter ones and deposits: bit for bit.
+    near_full_well: the two levels straddle the full well (clipping inside the shortcut)."""
+    r = np.random.default_rng(7)
+    p = RampParameters(nmd=(8, 8, 0), ron=10.0, full_well=30000.0)
+    npix = 4096
+    mu = r.uniform(0.0, 0.03, npix)
+    mu[r.integers(0, npix, 40)] = r.uniform(0.1, 0.6, 40)          # a few windows with K ≥ 2
+    if near_full_well:
+        mu[:] = 0.0
+        mu[::3] = 0.05
+    dead = np.zeros(npix, bool)
+    k = 30
+    dep = rfx.deposits_csr(npix, r.integers(0, npix, k), r.integers(0, p.nframes, k), r.uniform(10, 3000, k))
+    if near_full_well:
+        dep = rfx.deposits_csr(npix, np.arange(0, npix, 5), np.zeros(npix // 5 + 1, int),
+                               np.full(npix // 5 + 1, 29999.5))
+    a2, a3 = r.normal(-2e-6, 2e-7, npix), r.normal(1e-12, 1e-13, npix)
+    fx = rfx.ChargeEffects(*dep, a2, a3)
+    ref = rfx.charge_block_numpy(mu, dead, 100, 1, 42, p, fx)
+    for vw in (1, 16):
+        got = rfx.charge_block_opencl(mu, dead, 100, 1, 42, p, fx, vector_width=vw, workspace={})
+        assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
+
+
 def test_neutral_effects_equal_the_plain_ramp():
     """No deposits, no nonlinearity, identity readout: the plain ramp bit for bit (same draws)."""
     p, mu, dead, *_ = _scene()
