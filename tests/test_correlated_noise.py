@@ -196,3 +196,27 @@ def test_fft_length_is_the_smallest_5_smooth():
     for n in list(range(1, 400)) + [23100, 23101, 65537]:
         m = fft_length(n)
         assert m >= n and smooth(m) and not any(smooth(k) for k in range(n, m)), n
+
+
+@pytest.mark.parametrize("shape, nmd, nfoh", [((64, 32), (5, 3, 2), 1), ((40, 16), (4, 1, 3), 0)])
+def test_low_part_equals_interpolation_at_every_read(shape, nmd, nfoh):
+    """The low part's group means (rows interpolated in bulk, read frames as strided slices) equal
+    the direct formula: gather the two neighbouring low samples of each read's row starts."""
+    gen = CorrelatedNoise(CorrelatedNoiseParameters(n_outputs=4, nfoh=nfoh), shape, nmd, 2.83, 3,
+                          backend="numpy", low_rows=3)
+    got = gen._low_coefficients(2)
+    captured = []
+    synth = gen._synthesize
+    gen._synthesize = lambda *a: captured.append(synth(*a)) or captured[-1]
+    gen._low_coefficients(2)
+    low = np.concatenate(captured)
+    g, q = gen.geometry, gen.low_rows
+    n, m, _ = nmd
+    reads = np.flatnonzero(gen.frames_group >= 0).reshape(n, m)
+    at = (reads[:, :, None] * g.frame_rows + np.arange(g.ny + 1)).astype(np.int64)
+    i0 = at // q
+    w = ((at - i0 * q) / q).astype(np.float32)
+    for s, row in enumerate(low):
+        a = row[i0]
+        expected = ((row[i0 + 1] - a) * w + a).mean(axis=1, dtype=np.float64).astype(np.float32)
+        assert np.array_equal(got[s], expected)

@@ -312,10 +312,12 @@ class CorrelatedNoise:
         streams = np.array([_stream("low_common")] + [_stream("low_own", o) for o in range(nout)]
                            + [_stream("low_alternating", o) for o in range(nout)])
         reads = np.flatnonzero(self.frames_group >= 0).reshape(n, m)
-        # linear interpolation at the row starts of every read, in low-sample units: sample i, weight w
-        at = (reads[:, :, None] * g.frame_rows + np.arange(g.ny + 1)).astype(np.int64)   # (n, m, ny + 1)
-        i0 = (at // q).astype(np.int32)
-        w = ((at - i0.astype(np.int64) * q) / q).astype(np.float32)
+        # linear interpolation at the start of every row r of the ramp (r = frame·frame_rows + y):
+        # sample i = r // q, weight (r mod q)/q, evaluated row after row for all rows up to the last
+        # read's row ny, then the read frames' rows taken as strided slices (no gathers)
+        nrows = int(reads.max()) * g.frame_rows + g.ny + 1
+        nint = -(-nrows // q)
+        wq = (np.arange(q) / q).astype(np.float32)
         nst = kind.size
         A = np.empty((nst, n, g.ny + 1), np.float32)
         batch = max(1, int(2**26 // (length * 4)))
@@ -324,8 +326,11 @@ class CorrelatedNoise:
             low = self._synthesize(amp, length, kind[s0:s1], np.full(s1 - s0, ramp), streams[s0:s1],
                                    np.zeros(s1 - s0))
             for i, row in enumerate(low):
-                a = row[i0]
-                A[s0 + i] = ((row[i0 + 1] - a) * w + a).mean(axis=1, dtype=np.float64)
+                a = row[:nint]
+                at_rows = ((row[1:nint + 1] - a)[:, None] * wq[None, :] + a[:, None]).reshape(-1)
+                frames = np.lib.stride_tricks.as_strided(at_rows, (int(reads.max()) + 1, g.ny + 1),
+                                                         (g.frame_rows * 4, 4), writeable=False)
+                A[s0 + i] = frames[reads].mean(axis=1, dtype=np.float64)
         return A
 
     # ------------------------------------------------------------------ multirate / group: segments
