@@ -259,7 +259,7 @@ def main():
                     "7000 + 100 z + k): runs of several calls can be merged with --from-json")
     ap.add_argument("--from-json", metavar="JSON", nargs="+",
                     help="only re-derive the summaries of earlier runs' JSON files, merged per redshift "
-                         "((a) from the first, (b) weighted by realisations)")
+                         "((a) from the first, (b) weighted by realisations), against today's ETC")
     ap.add_argument("--recompute-ramp-fit", action="store_true",
                     help="with --from-json: measure (b) again by the flat-field curve")
     args = ap.parse_args()
@@ -274,9 +274,10 @@ def main():
             r["ramp_fit"] = float(np.average([r["ramp_fit"]] + [x["ramp_fit"] for x in more], weights=weights))
             for x in more:
                 r["runs"] = r["runs"] + x["runs"]
-            if "etc_snr_sum" not in r or args.recompute_ramp_fit:
-                t = cl.Target(r["z"], 8)
-                r["etc_snr_sum"] = float(t.etc_snr_sum)
+            t = cl.Target(r["z"], 8)            # the ETC of today's code (its conventions may have changed)
+            if "etc_snr_sum" in r:
+                r["snr_oracle_band_sum_over_etc"] *= r["etc_snr_sum"] / float(t.etc_snr_sum)
+            r["snr_etc"], r["etc_snr_sum"] = float(t.etc_snr), float(t.etc_snr_sum)
             if args.recompute_ramp_fit:                  # (b) by the flat-field curve
                 with tempfile.TemporaryDirectory() as tmp:
                     r["ramp_fit"], r["ramp_fit_err"] = _ramp_fit_only(t, mapper, tmp)

@@ -9,7 +9,8 @@ import numpy as np
 
 from slicersim.constants import HC_ERG_AA
 from slicersim.errors import ETCError, ParameterError, ReadoutError, SpectrumError
-from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, instrumental_blur_sigma
+from slicersim.physics.conventions import (DEFAULT_CONVENTIONS, check_conventions, detector_pixels_per_cell,
+                                          instrumental_blur_sigma)
 from slicersim.physics.psf import aperture_cells, gaussian_psf_fractions, gaussian_psf_sigmas
 from slicersim.physics.readout import check_readout, readout_times
 from slicersim.physics.thermal import thermal_dark_rate
@@ -308,10 +309,16 @@ class Simulation(Versioned):
         """Read noise per read [e-]: the detector's, 0 when ``"ron"`` is switched off."""
         return 0.0 if "ron" in as_switched_off(off) else self.detector.ron
 
+    @property
+    def detector_pixels_per_cell(self):
+        """Pixels whose read noise, dark and full well a cell carries under this simulation's
+        conventions (:func:`slicersim.physics.conventions.detector_pixels_per_cell`)."""
+        return detector_pixels_per_cell(self.spectrograph, self._conventions)
+
     def cell_variance(self, cell_rate, nmd, off=None):
         """Per-cell variance [ADU²] over one ramp for a cell electron rate [e-/s/cell], with the
         detector terms ``off`` removed; saturated cells get +inf."""
-        det, ppc = self.detector, self.spectrograph.pixels_per_cell
+        det, ppc = self.detector, self.detector_pixels_per_cell
         dark = self.effective_dark(off)
         ron = self.read_noise(off)
         pixel_rate = cell_rate / ppc

@@ -108,8 +108,24 @@ def test_qth_flat_is_uniform_before_and_after_the_ideal_instrument(qth, qth_cube
     for cube in (signal, variance):
         assert np.all(np.isfinite(cube))
         assert np.max(np.abs(cube / cube[:, :1, :1] - 1)) < 1e-12
-    wide = qth.get_cube(which="wide")[0]
+    wide = qth.get_cube(which="wide", nmd=(8, 8, 0))[0]      # (16, 8, 0) saturates the wide field's red end
+    assert np.all(np.isfinite(wide))
     assert np.max(np.abs(wide / wide[:, :1, :1] - 1)) < 1e-12
+
+
+def test_qth_cube_saturates_where_the_detector_does(qth):
+    """A cell owns one pixel row (physical conventions): a flat's pixel rate is its cell rate, so the
+    cube saturates where the projected detector image does — at (16, 8, 0) the wide field's red end
+    (slicersim 1.0's 2 px per cell halved the pixel rate and kept that cube finite)."""
+    sim = qth.simulation
+    tint = sim.get_times()["integration_time_per_ramp"]
+    cube, fsim = qth.get_field_rate_cubes()["wide"]                       # e-/s per cell
+    image = qth.get_detector_image()                                       # e-/s per pixel
+    assert 0.95 < image.max() / np.nanmax(cube) < 1.3                      # 1.11 measured; 2 px per cell: 0.5
+    charge = (image.max() + sim.effective_dark()) * tint * sim.detector.gain
+    assert charge > sim.detector.saturation
+    wide = qth.get_cube(which="wide")[0]
+    assert np.isnan(wide).any() and np.isfinite(wide[:, 0, 0]).sum() > 0.5 * wide.shape[0]
 
 
 def test_qth_cube_is_the_lamp_through_the_instrument(qth, qth_cube):

@@ -66,9 +66,11 @@ def test_switch_off_removes_exactly_that_component(sim, components, name, backen
 
 
 def test_switch_off_detector_terms_closed_form(sim):
-    """ron: ΔV = r · 2 px · g² · 12(n−1)/(m n (n+1)) σ_r²; dark: ΔV = r · 2 px · g² · b · dark with
-    b = 6(n²+1)(n−1) t_g / (5n(n+1)) − 2(m²−1)(n−1) t_f / (m n (n+1)); the signal is unchanged."""
-    det, ppc = sim.detector, sim.spectrograph.pixels_per_cell
+    """ron: ΔV = r · p · g² · 12(n−1)/(m n (n+1)) σ_r²; dark: ΔV = r · p · g² · b · dark with
+    b = 6(n²+1)(n−1) t_g / (5n(n+1)) − 2(m²−1)(n−1) t_f / (m n (n+1)); the signal is unchanged.
+    p = the detector pixels a cell owns: 1 for the slicer (physical conventions)."""
+    det, ppc = sim.detector, sim.detector_pixels_per_cell
+    assert ppc == 1
     (n, m, d), r = READOUT["nmd"], READOUT["nramps"]
     signal, variance = sim.get_cube(**READOUT)
     s_ron, v_ron = sim.get_cube(**READOUT, switch_off="ron")

@@ -27,7 +27,7 @@ def readout_variance_coefficients(sim, n, m, d):
     Qsat [e-/s/cell] of a simulation's detector (:func:`slicersim.physics.readout.cell_variance_coefficients`)."""
     det = sim.detector
     return cell_variance_coefficients((n, m, d), det.tframe, det.ron, sim.effective_dark(), det.gain,
-                                      det.saturation, sim.spectrograph.pixels_per_cell, sim.conventions)
+                                      det.saturation, sim.detector_pixels_per_cell, sim.conventions)
 
 
 def band_snr_table_for_models(sim, models, band, candidates, backend="auto", psf2=None):
@@ -64,7 +64,7 @@ def band_snr_table_for_models(sim, models, band, candidates, backend="auto", psf
 
 
 def _generic_band_variance(sim, Q, psf2, band, n, m, d):
-    det, ppc = sim.detector, sim.spectrograph.pixels_per_cell
+    det, ppc = sim.detector, sim.detector_pixels_per_cell
     model = VARIANCE_MODELS[det.variance_model.lower()]
     dark = sim.effective_dark()
     var_sum = np.zeros((Q.shape[0], n.size))

@@ -174,7 +174,11 @@ class Spectrograph(Versioned):
     """
 
     anamorphosis = (1, 1)
+    #: pixels a cell's monochromatic image covers (slicer: its 2-px slit image)
     pixels_per_cell = 1
+    #: pixels a cell owns per native bin (one row along the dispersion; see
+    #: :func:`slicersim.physics.conventions.detector_pixels_per_cell`)
+    pixels_per_bin = 1
     kind = "generic"
     mutable_parameters = ("spectral_range", "dispersion_law", "dispersion_scale", "dispersion_resolution",
                           "spatial_scale", "spatial_shape", "resolving_power", "optics",
@@ -439,9 +443,11 @@ class Spectrograph(Versioned):
 
 
 class SlicerSpectrograph(Spectrograph):
-    """Image slicer: 1×2 anamorphosis, each cell imaged on 2 detector pixels."""
+    """Image slicer: 1×2 anamorphosis, each cell imaged on 2 detector pixels (along the
+    dispersion: the slit image, shared by consecutive bins, so 1 pixel per cell and bin)."""
     anamorphosis = (1, 2)
     pixels_per_cell = 2
+    pixels_per_bin = 1
     kind = "slicer"
 
 
@@ -465,6 +471,11 @@ class MLASpectrograph(Spectrograph):
     def xdisp_sigma_at(self, lbda):
         """Cross-dispersion σ [px] at λ [Å]."""
         return np.hypot(self.xdisp_sigma_spectral * np.asarray(lbda) / 1e4, self.xdisp_sigma)
+
+    @property
+    def pixels_per_bin(self):
+        """Pixels a spaxel owns per native bin: its cross-dispersion strip (= pixels_per_cell)."""
+        return self.pixels_per_cell
 
     @property
     def pixels_per_cell(self):

@@ -200,11 +200,11 @@ def readout_constants(sim, nmd, nramps, off=frozenset()):
     det = sim.detector
     dark = sim.effective_dark(off)
     var_a, var_b, _ = cell_variance_coefficients(nmd, det.tframe, sim.read_noise(off), dark, det.gain,
-                                                 det.saturation, sim.spectrograph.pixels_per_cell,
+                                                 det.saturation, sim.detector_pixels_per_cell,
                                                  sim.conventions)
     tint = sim.get_times(nmd, nramps)["integration_time_per_ramp"]
     return ReadoutConstants(tint=float(tint), gain=det.gain, nramps=int(nramps), var_a=float(var_a),
-                            var_b=float(var_b), pixels_per_cell=float(sim.spectrograph.pixels_per_cell),
+                            var_b=float(var_b), pixels_per_cell=float(sim.detector_pixels_per_cell),
                             dark=float(dark), saturation=float(det.saturation))
 
 
