@@ -3,8 +3,21 @@ NumPy twins, and physics (flux, analytic limits, symmetry, scaling).
 
 Tolerances
 ----------
-* Gaussian, OpenCL vs NumPy: 1e-12 of the peak.  Both evaluate the same erf
-  differences in float64 (the OpenCL erf and scipy's erf agree to a few ulp).
+* Gaussian, OpenCL vs NumPy: 1e-12 of the peak.  Both evaluate the same cell
+  fractions in float64 from identical arguments z: ½[erf(b) − erf(a)] where an
+  edge is within |z| < ½, erfc differences in the tails (no cancellation).  A
+  cell's error is then ≲ 2 ulp of ½ near the centre (erf ≤ 2 ulp on the GPU,
+  scipy's measured ≤ 1.2e-16 on |z| < ½) and r·erfc(a) in the tails, with r the
+  relative error of erfc: scipy's grows like z² ulp for inexact z (measured ≤ 12
+  ulp below z = 4, 130 below 16, 515 below 27; NVIDIA documents 4 ulp).
+  Summed over both axes relative to the peak this bounds the difference at
+  ≤ 1.1e-14 for the four cases (seed 3, a source off the field, peak 9e-6),
+  measured ≤ 7.5e-16 on PoCL: 1e-12 leaves ~100× margin.  The former plain erf
+  difference had 2.3e-12 of the peak against the exact value for seed 3 (both
+  backends; 5.5e-12 between an H200 and NumPy), through cancellation near ±1.
+* Gaussian tails (exact dyadic z, erfcx reference): 1e-14 relative per cell —
+  erfc to a few ulp at exact arguments and a difference amplified ≤ 1.09×
+  (measured 6.4e-16 NumPy, 3.9e-16 PoCL); the plain erf difference was 100 % off.
 * Airy, OpenCL vs NumPy: 1e-11 of the peak.  The NumPy twin uses scipy's J1,
   the kernel its own J1 (series below 12, Hankel expansion above), measured
   |ΔJ1| <= 2e-12 on [0, 500]; intensities are g² with g <= 1, so the
@@ -16,11 +29,11 @@ Tolerances
 import numpy as np
 import pytest
 from scipy.integrate import quad
-from scipy.special import erf, j1
+from scipy.special import erf, erfcx, j1
 
 from conftest import reference_target
 from slicersim.backends import opencl
-from slicersim.backends.psf import bessel_j1, psf_cells, psf_cube
+from slicersim.backends.psf import _gaussian_opencl, bessel_j1, psf_cells, psf_cube
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
                            airy_wavenumber, aperture_cells, blur_bin_taps, gaussian_psf_fractions,
                            gaussian_psf_sigmas)
@@ -62,6 +75,32 @@ def test_gaussian_kernel_matches_numpy(seed):
                               kw["instrumental_sigma"])
     assert np.array_equal(want, gaussian_psf_fractions(*sig, (ny, nx), pos))
     assert peak_err(got, want) <= 1e-12
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gaussian_tail_fractions_relative_accuracy(backend):
+    """Cells from 16 σ below to 32 σ above the source: each fraction to 1e-14 of itself (the
+    plain ½[erf(b) − erf(a)] gives 0 or rounding noise beyond |z| ≈ 6).  √2σ = 1 exactly and
+    the edges sit at quarters, so z = e − x0 and z² are exact; reference
+    ½ e^{−a²} [erfcx(a) − e^{−(b−a)(b+a)} erfcx(b)] (mirrored below), erf difference in the middle."""
+    sig = np.array([0.7071067811865475])
+    assert np.sqrt(2.0) * sig[0] == 1.0
+    n, x0 = 48, -8.25
+    z = np.arange(n + 1) - n / 2 - x0
+    a, b = z[:-1], z[1:]
+    def tail(a, b):
+        return 0.5 * np.exp(-a * a) * (erfcx(a) - np.exp(-(b - a) * (b + a)) * erfcx(b))
+    with np.errstate(over="ignore", invalid="ignore"):
+        ref = np.where(a >= 0.5, tail(a, b), np.where(b <= -0.5, tail(-b, -a), 0.5 * (erf(b) - erf(a))))
+    ref = ref * erf(0.5)                       # the y factor of a 1-cell row centred on the source
+    if backend == "opencl":
+        got = _gaussian_opencl(sig, sig, (1, n), (x0, 0.0), 2**20)[0, 0]
+    else:
+        got = gaussian_psf_fractions(sig, sig, (1, n), (x0, 0.0))[0, 0]
+    normal = ref > 1e-290                      # beyond z ≈ 26.5 erfc is subnormal, then 0
+    assert normal.sum() == 42
+    assert np.max(np.abs(got[normal] - ref[normal]) / ref[normal]) <= 1e-14
+    assert np.all((got[~normal] >= 0) & (got[~normal] < 1e-290))
 
 
 @needs_opencl

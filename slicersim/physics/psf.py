@@ -12,7 +12,7 @@ builder of :mod:`slicersim.backends.psf`.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import erf, j0, j1, roots_legendre
+from scipy.special import erf, erfc, j0, j1, roots_legendre
 
 from slicersim.constants import ARCSEC
 from slicersim.errors import ParameterError
@@ -51,11 +51,41 @@ def gaussian_psf_sigmas(lbda, sigma_ref_arcsec, spatial_scale, guiding_sigma, in
     return sig_y, sig_x
 
 
+#: |z| below which a cell fraction uses erf; cells with both edges beyond it on one side use erfc
+ERF_SPLIT = 0.5
+#: erfc(|z|) underflows to 0 beyond this (erfc(27.3) < 2^-1074): not evaluated there
+_ERFC_ZERO = 27.5
+
+
 def _erf_cell_fractions(edges, centre, sigma):
-    """(nλ, ncell) fraction of a 1-D Gaussian in each cell: ½[erf((e_{k+1}−c)/√2σ) − erf((e_k−c)/√2σ)]."""
+    """(nλ, ncell) fraction of a 1-D Gaussian in each cell, ½[Φ(z_{k+1}) − Φ(z_k)] in erf units with
+    z = (e − c)/(√2σ), evaluated without cancellation in the tails (twin of psf.cl's
+    ``gaussian_cell_fractions``, same operations):
+
+    * both edges at z ≥ ½:   ½[erfc(z_k) − erfc(z_{k+1})]
+    * both edges at z ≤ −½:  ½[erfc(−z_{k+1}) − erfc(−z_k)]
+    * otherwise:             ½[E(z_{k+1}) − E(z_k)],  E(z) = erf(z) for |z| < ½, else ±(1 − erfc(|z|))
+
+    ½[erf(b) − erf(a)] with both erf near ±1 loses everything below 1 ulp of 1: a source off
+    the field (seed 3 of tests/test_psf.py, peak fraction 9e-6) had errors of 2.3e-12 of the peak
+    against the exact value in both NumPy and OpenCL, and 5.5e-12 between an H200 and NumPy.  With
+    erfc the error of a tail cell is a few ulp of erfc(z_k) relative, i.e. of the fraction itself
+    up to the factor 1/(1 − erfc(z_{k+1})/erfc(z_k)) ≤ 1 + 1/(2·½·Δz), Δz = 1/(√2σ)."""
     z = (edges[None, :] - centre) / (np.sqrt(2.0) * np.asarray(sigma, dtype=float)[:, None])
-    cdf = erf(z)
-    return 0.5 * (cdf[:, 1:] - cdf[:, :-1])
+    az = np.abs(z)
+    q = np.zeros_like(z)                                   # erfc(|z|); 0 beyond underflow, NaN kept
+    live = ~(az >= _ERFC_ZERO)
+    q[live] = erfc(az[live])
+    inner = az < ERF_SPLIT
+    e = np.copysign(1.0 - q, z)                            # E(z) (±1 - 0 beyond underflow)
+    e[inner] = erf(z[inner])
+    a, b = z[:, :-1], z[:, 1:]
+    qa, qb = q[:, :-1], q[:, 1:]
+    out = 0.5 * (e[:, 1:] - e[:, :-1])
+    upper, lower = a >= ERF_SPLIT, b <= -ERF_SPLIT
+    out[upper] = 0.5 * (qa[upper] - qb[upper])
+    out[lower] = 0.5 * (qb[lower] - qa[lower])
+    return out
 
 
 def gaussian_psf_fractions(sig_y, sig_x, shape, position=(0.0, 0.0)):
