@@ -5,6 +5,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import numpy as np
@@ -303,8 +304,12 @@ def test_sigint_held_back_while_hdf5_writes(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         with RampWriter(out, 1, 3, (8, 8)) as w:
             w._busy += 1
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)                                      # handler runs: held back
+            # to the main thread: a process-directed signal may land on a worker thread (PoCL, h5py), and
+            # the handler then runs only at the main thread's next check, which a loaded machine delays
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+            deadline = time.monotonic() + 10.0
+            while w._pending_signal is None and time.monotonic() < deadline:
+                time.sleep(0.01)                                  # handler runs: held back
             w._busy -= 1
             assert w._pending_signal is not None
             w.write_block(0, 0, np.zeros((3, 8, 8), np.uint16))   # delivered after the write
