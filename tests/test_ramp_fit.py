@@ -121,6 +121,44 @@ def test_kernel_matches_numpy_twin_at_several_chunkings(weighting):
         assert np.array_equal(p.dq, products[0].dq) and np.array_equal(p.groupdq, products[0].groupdq)
 
 
+def test_pipelined_blocks_keep_their_own_results_on_the_device_copy_path(monkeypatch):
+    """fit_ramps launches block k+1's kernel before it fetches block k's results (wait=False).  On a
+    GPU (device buffers reused between blocks, no zero copy) the results were read after the next
+    kernel had overwritten the buffers: every block but the last got the next block's rates (H200
+    runs 6-7: a 4096² reduction's pulls -945 +- 60780, while a one-block 16-row strip was exact).
+    PoCL takes that path with read-only inputs, and fit_ramps takes it everywhere when the device
+    reads as a GPU: pipelined blocks sharing a workspace each give their own twin results."""
+    from slicersim.backends import opencl
+    from slicersim.backends import ramp_fit as backend_fit
+    k = fit_constants((14, 4, 1), TF, 1.0, 12.0, 1 / 12, 40000, 4.0, "gls")
+    blocks = [_messy_block(seed=s, npix=1000) for s in (1, 2, 3)]
+    for block in blocks:
+        for a in block:
+            a.setflags(write=False)                       # not zero-copy: the GPU's device-copy path
+    workspace = {}
+    pending = [fit_block_opencl(*b, k, workspace=workspace, wait=False) for b in blocks]
+    for finish, block in zip(pending, blocks):
+        got, ref = finish(), fit_block_numpy(*block, k)
+        assert np.array_equal(got[0], ref[0], equal_nan=True) or np.nanmax(
+            np.abs(got[0] - ref[0]) / np.abs(ref[0]).clip(1e-300)) < 1e-12
+        for a, b in zip(got[1:], ref[1:]):
+            assert np.array_equal(a, b)
+    sci, gdq, pdq = _messy_block()
+    attrs = dict(NFRAMES=4, GROUPGAP=1, TFRAME=TF, GAIN=1.0, READNOISE=12.0, SATURATION=40000.0)
+    arrays = (sci.reshape(3, 14, 60, 50), gdq.reshape(3, 14, 60, 50), pdq.reshape(60, 50), attrs)
+    per_row = 50 * (3 * 14 * 8 + 96)
+    ref = fit_ramps(arrays, backend="numpy", return_groupdq=True)
+    monkeypatch.setattr(backend_fit.opencl, "device_type", lambda dev=None: "GPU")
+    assert backend_fit.opencl is opencl
+    for rows in (1, 7):
+        got = fit_ramps(arrays, backend="opencl", memory_budget=per_row * rows, return_groupdq=True)
+        ok = np.isfinite(ref.rate)
+        assert np.array_equal(np.isfinite(got.rate), ok)
+        assert np.max(np.abs(got.rate[ok] - ref.rate[ok]) / np.abs(ref.rate[ok]).clip(1e-300)) < 1e-12
+        assert np.array_equal(got.dq, ref.dq) and np.array_equal(got.groupdq, ref.groupdq)
+        assert np.array_equal(got.njumps, ref.njumps)
+
+
 # ----------------------------------------------------------------------------- noisy ramps
 def test_white_noise_slopes_are_unbiased_with_unit_pulls(tmp_path):
     """Poisson + white read noise, MACC(24,4,1), 4 rates × 8192 pixels, jump detection on: for each

@@ -371,6 +371,12 @@ def from_device(array, buffer) -> None:
     _cl().enqueue_copy(get_queue(), array, buffer, is_blocking=True)
 
 
+def from_device_nowait(array, buffer):
+    """Enqueue a copy of *buffer* into the C-contiguous *array*, behind the kernels already queued
+    (in-order queue); returns its event: wait on it before reading *array*, and keep *array* alive."""
+    return _cl().enqueue_copy(get_queue(), array, buffer, is_blocking=False)
+
+
 def launch(kernel, global_size, local_size, *args):
     """Enqueue *kernel* on the process queue; returns the event."""
     return kernel(get_queue(), tuple(global_size), None if local_size is None else tuple(local_size), *args)

@@ -277,15 +277,25 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
                   np.float64(k.ccorr), np.float64(min(k.satlim, 1e300)), np.float64(k.jump_thr))
 
     inputs = (sci, gdq, pixeldq)                 # alive until the kernel is done with them
+    # Device copies (GPUs): the results are read back by copies enqueued now, right behind this kernel.
+    # The output buffers belong to ``workspace``: the next block's kernel, launched before this
+    # block's finish() (wait=False, as fit_ramps pipelines its blocks), overwrites them, and a copy
+    # enqueued in finish() would read that block's results (seen on an H200: every row block but
+    # the last got the rates of the next one; pulls -945 +- 60780 on a 4096² ramp).
+    reads = []
+    if not zero_copy:
+        reads = [opencl.from_device_nowait(host, d_buf)
+                 for d_buf, host in zip((d_fit, d_dq, d_nj, d_gout), outputs) if want_gdq or host is not gdq_out]
 
     def finish():
         assert inputs
+        if not zero_copy:
+            for event in reads:
+                event.wait()
+            return fit, dq, njump, (gdq_out if want_gdq else None)
         for d_buf, host in zip((d_fit, d_dq, d_nj, d_gout), outputs):
             if host is gdq_out and not want_gdq:
                 continue
-            if zero_copy:
-                opencl.sync_to_host(d_buf, host)
-            else:
-                opencl.from_device(host, d_buf)
+            opencl.sync_to_host(d_buf, host)
         return fit, dq, njump, (gdq_out if want_gdq else None)
     return finish() if wait else finish
