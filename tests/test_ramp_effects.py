@@ -288,3 +288,29 @@ def test_disk_check_counts_the_effects_truth(tmp_path, monkeypatch):
     with pytest.raises(RampFileError, match="not enough disk space"):
         simulate(_rate(), NMD, seed=1, progress=False, out=tmp_path / "fx.h5", effects="nonlinearity")
     assert not (tmp_path / "fx.h5").exists()
+
+
+def test_background_writes_equal_the_in_memory_ramp(tmp_path):
+    """HDF5 with effects: truth and block writes run in background threads; many small blocks give
+    the in-memory ramp's integers and the truth of a file written without threads (FITS)."""
+    rate = _rate(ny=40)
+    kw = dict(seed=5, effects="lazuli", progress=False, memory_budget=128 * 200 * 50)
+    ref = simulate(rate, NMD, return_dq=True, **kw)
+    path = simulate(rate, NMD, out=tmp_path / "b.h5", **kw)
+    sci, gdq = read_ramps(path)[:2]
+    assert np.array_equal(sci, ref[0]) and np.array_equal(gdq, ref[1])
+
+
+def test_background_write_error_reaches_the_caller(tmp_path, monkeypatch):
+    from slicersim.io.rampfile import RampWriter
+    calls = []
+
+    def failing(self, ramp, row0, sci, groupdq=None):
+        calls.append(row0)
+        if len(calls) == 2:
+            raise OSError("disk full (test)")
+    monkeypatch.setattr(RampWriter, "write_block", failing)
+    with pytest.raises(OSError, match="disk full"):
+        simulate(_rate(), NMD, seed=5, effects="lazuli", progress=False, memory_budget=128 * 200 * 50,
+                 out=tmp_path / "c.h5")
+    assert not (tmp_path / "c.h5").exists()

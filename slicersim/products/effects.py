@@ -153,10 +153,12 @@ class EffectsPlan:
         return rate, dark, dead, flags
 
     def drop_photo_maps(self):
-        """Free the extra-dark and QE maps (2 × 4 B per pixel) once the rates and the truth have them."""
+        """Free the extra-dark and QE maps and the bad pixels' PIXELDQ (3 × 4 B per pixel) once the
+        rates, the flags and the truth have them."""
         if self.bad is not None:
             self.bad.pop("extra_dark", None)
             self.bad.pop("qe_factor", None)
+            self.bad.pop("pixeldq", None)
 
     # ------------------------------------------------------------------ charge deposits
     def deposits(self, ramp):

@@ -142,7 +142,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         rate, dark_arr, no_charge, flags = plan.rate_and_dark(rate, dark_arr, dead)
         flags[dead] |= np.uint32(DQ["DEAD"] | DQ["DO_NOT_USE"])              # the user's dead pixels
         pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
-        dead = dead | no_charge
+        dead, flags, no_charge = dead | no_charge, None, None
     mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
     rate = dark_arr = None                           # the effects' copies: not needed past mu
     backend = resolve_backend(backend)
@@ -178,19 +178,42 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         return buffers
 
     def run(w):
+        nonlocal pixeldq
         if w is not None:
             w.write_pixeldq(_pixeldq(pixeldq, dq_dead, rate_in.shape))
             if truth:
                 w.write_truth(rate_in)
-                if plan is not None:
-                    plan.write_truth(w, p.nramps)
+        pixeldq = None                                   # written: 4 B per pixel less in the blocks
+        # effects into an HDF5 file: their truth (mostly single-threaded NumPy) and the HDF5 writes of
+        # the blocks run in two background threads while this one computes the next blocks
+        background = _Background() if (plan is not None and isinstance(w, RampWriter)) else None
+        try:
+            run_blocks(w, background)
+        except BaseException:
+            if background is not None:
+                background.finish(raise_error=False)         # the file is aborted after the lanes stop
+            raise
+        if background is not None:
+            background.finish()
+
+    def write_truth_then_drop(w):
+        if w is not None and truth:
+            plan.write_truth(w, p.nramps)
+        plan.drop_photo_maps()                       # used by rate_and_dark and the truth only
+
+    def run_blocks(w, background):
         if plan is not None:
-            plan.drop_photo_maps()                   # used by rate_and_dark and the truth only
+            if background is not None:
+                background.submit("truth", write_truth_then_drop, w)
+            else:
+                write_truth_then_drop(w)
         for ramp, y0 in iterator:
             y1 = min(ny, y0 + rows)
             if plan is not None:
                 sci, gdq = _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs)
-                if w is not None:
+                if background is not None:               # fresh arrays each block: handed over
+                    background.submit("write", w.write_block, ramp, y0, sci, gdq)
+                elif w is not None:
                     w.write_block(ramp, y0, sci, gdq)
                 else:
                     result[ramp, :, y0:y1] = sci
@@ -226,6 +249,40 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     with writer as w:
         run(w)
     return os.path.abspath(out)
+
+
+class _Background:
+    """Named single-thread lanes for the effects path of :func:`simulate` ("truth", "write"): each
+    lane runs its jobs in order, at most one queued behind the running one (a block's SCI waits for
+    the previous block's write, bounding memory to two blocks); the first error is raised by
+    :meth:`submit` or :meth:`finish`, which waits for every lane.  h5py serialises the lanes' HDF5
+    calls; NumPy, pocketfft, OpenCL waits and the file writes release the GIL meanwhile."""
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+        self._pools = {name: ThreadPoolExecutor(1, thread_name_prefix=f"slicersim-{name}")
+                       for name in ("truth", "write")}
+        self._pending = {name: None for name in self._pools}
+
+    def submit(self, lane, func, *args):
+        previous = self._pending[lane]
+        if previous is not None:
+            previous.result()
+        self._pending[lane] = self._pools[lane].submit(func, *args)
+
+    def finish(self, raise_error=True):
+        error = None
+        for lane, pool in self._pools.items():
+            future, self._pending[lane] = self._pending[lane], None
+            try:
+                if future is not None:
+                    future.result()
+            except BaseException as exc:             # noqa: BLE001 - first error re-raised below
+                error = error or exc
+            finally:
+                pool.shutdown(wait=True)
+        if error is not None and raise_error:
+            raise error
 
 
 def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs):
