@@ -6,6 +6,7 @@
 # pure-Python needs) and $OUT set:
 #
 #     bash benchmarks/device_suite.sh [STEP ...]     # steps: diag tests ramp_effects reduce_speed each
+#                                                    #        ramp_paths (not run by default)
 #
 # The wheels (cp312, manylinux; the device image has numpy, scipy, h5py, matplotlib, pytest):
 #     echo /.whl/ >> .git/info/exclude
@@ -67,6 +68,10 @@ for step in $STEPS; do
   reduce_speed)   # issue 11: reducing a full-detector ramp vs simulating it
     stamp "reduce_speed 4096 (64,8,0)"
     timeout 150 python3 benchmarks/reduce_speed.py --size 4096 --nmd 64 8 0 --out /tmp/res/reduce_speed ;;
+  ramp_paths)   # run 7: the ramp kernel vs its twin by rate class and row offset, the extended self-check
+    stamp "ramp_paths (ramp kernel vs twin, path by path)"
+    SLICERSIM_TRUST_DEVICE=1 timeout ${RAMP_PATHS_TIMEOUT:-120} python3 benchmarks/_device_ramp_paths.py 2>&1 \
+      | grep -v 'CompilerWarning\|lambda: self._prg\|^$' | tee /tmp/res/ramp_paths.txt ;;
   each)    # where the time goes: each effect alone, 2048²
     stamp "ramp_effects 2048 --each"
     timeout 120 python3 benchmarks/ramp_effects.py --side 2048 --nmd 64 8 0 --each --out /tmp/res/ramp_effects_each ;;

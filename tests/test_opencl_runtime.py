@@ -250,3 +250,103 @@ def test_selfcheck_review_findings(monkeypatch):
     monkeypatch.setattr(dispatch, "device_selfcheck", real)
     assert dispatch.device_validated()[0]
     assert np.array_equal(*[selfcheck._uniform_normal(w)[0] for w in (1, opencl.preferred_vector_width())])
+
+
+def test_selfcheck_catches_a_wrong_ramp_kernel(monkeypatch):
+    """The random streams alone passed on the H200 while its 4096² reduction was wrong: the self-check
+    also runs the ramp sampler (both kernels) on two small blocks against the twin, bit for bit.  One SCI
+    value off by 1 ADU, one GROUPDQ flag lost, or a ramp launch that fails makes the device fail the
+    check; through dispatch, "auto" then falls back to NumPy with one warning and an explicit
+    backend="opencl" raises."""
+    import re
+    import warnings
+    import numpy as np
+    from slicersim.backends import dispatch, opencl, selfcheck
+    from slicersim.backends import ramp as ramp_backend
+    from slicersim.errors import OpenCLUnavailableError
+    if not (opencl.is_available() and opencl.device_supports_fp64()):
+        pytest.skip("no fp64 OpenCL device")
+    ok, msg = selfcheck.device_selfcheck()
+    assert ok and "ramp" in msg, msg
+    real = ramp_backend.simulate_block_opencl
+
+    def corrupt(which):
+        def broken(mu, dead, pixel0, *args, **kw):
+            sci, gdq = real(mu, dead, pixel0, *args, **kw)
+            if pixel0 >= 2**31 or which == "sci":     # block B (pixel indices above 2^31), or SCI of A
+                if which == "sci":
+                    sci[1, 7] ^= 1
+                else:
+                    gdq[-1, np.flatnonzero(gdq[-1])[0]] = 0
+            return sci, gdq
+        return broken
+    for which, what in (("sci", "SCI"), ("gdq", "GROUPDQ")):
+        monkeypatch.setattr(ramp_backend, "simulate_block_opencl", corrupt(which))
+        ok, msg = selfcheck.device_selfcheck()
+        assert not ok and re.search(rf"ramp block [AB]: [^;]*\b1/\d+ {what}", msg), msg
+    # through dispatch: a fresh check of this device fails
+    monkeypatch.delenv("SLICERSIM_TRUST_DEVICE", raising=False)
+    monkeypatch.setattr(dispatch, "_SELFCHECK", {})
+    monkeypatch.setattr(dispatch, "_warned", set())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert dispatch.resolve_backend("auto") == "numpy"
+        assert dispatch.resolve_backend("auto") == "numpy"
+    assert sum("ramp block" in str(w.message) and "NumPy" in str(w.message) for w in caught) == 1
+    with pytest.raises(OpenCLUnavailableError, match="ramp block"):
+        dispatch.resolve_backend("opencl")
+
+    def failing(*args, **kw):
+        raise RuntimeError("clBuildProgram failed")
+    monkeypatch.setattr(ramp_backend, "simulate_block_opencl", failing)
+    ok, msg = selfcheck.device_selfcheck()
+    assert not ok and msg.startswith(selfcheck.NOT_RUN), msg
+
+
+def test_selfcheck_ramp_blocks_take_every_kernel_path(monkeypatch):
+    """The self-check's ramp blocks keep covering what they claim (selfcheck._ramp_cases): sparse
+    windows with several events and windows crossing the full well (the clipped read sum), dense
+    inversion, PTRS and the Gaussian approximation unsaturated, charge saturating at the full well,
+    ADU clipped at 0 and 65535, saturation flags, dead pixels, pixel indices of a 4096² detector's
+    last rows and above 2^31 — and they are small: a few hundred pixels, MACC(4,2,1)."""
+    import numpy as np
+    from slicersim.backends import rng, selfcheck
+    from slicersim.backends import ramp as ramp_backend
+    from slicersim.physics.ramp import sparse_threshold
+    clipped = []
+    real_clip = ramp_backend._clipped_read_sum
+
+    def counting(before, *args):
+        clipped.append(before.size)
+        return real_clip(before, *args)
+    monkeypatch.setattr(ramp_backend, "_clipped_read_sum", counting)
+    cases = selfcheck._ramp_cases()
+    blocks = selfcheck._ramp_blocks(ramp_backend.simulate_block_numpy)
+    assert sum(c[0].size for c in cases) < 200 and all(c[4].nmd == (4, 2, 1) for c in cases)
+    assert sum(clipped) > 0, "no sparse window crossed the full well"
+    paths = set()
+    for (mu, dead, pixel0, ramp, p), (sci, gdq) in zip(cases, blocks):
+        n, m, d = p.nmd
+        live = mu[~dead]
+        sparse = live * (m + d) < sparse_threshold(p)
+        paths |= {"sparse" if s else ("gauss" if x >= p.gauss_min_mean else "ptrs" if x >= rng.PTRS_MIN_MEAN
+                                      else "inversion") for s, x in zip(sparse, live)}
+        if (live * (m + d) > 4).any() and sparse.any():
+            paths.add("sparse, many events")
+        assert dead.any() and (gdq != 0).any()
+        if (sci == 65535).any():
+            paths.add("ADU 65535")
+        if (sci == 0).any():
+            paths.add("ADU 0")
+        if (live * (n * (m + d)) >= p.full_well).any():
+            paths.add("full well")
+        if pixel0 >= 2**31:
+            paths.add("pixel >= 2^31")
+        elif pixel0 >= 4000 * 4096:
+            paths.add("last rows of 4096²")
+    # unsaturated PTRS and Gaussian pixels (their values are not hidden by the full well)
+    mu_a, _, _, _, p_a = cases[0]
+    assert ((mu_a >= 10) & (mu_a < p_a.gauss_min_mean) & (mu_a * 11 < p_a.full_well)).any()
+    assert ((mu_a >= p_a.gauss_min_mean) & (mu_a * 2 < p_a.full_well)).any()
+    assert paths == {"sparse", "sparse, many events", "inversion", "ptrs", "gauss", "ADU 65535", "ADU 0",
+                     "full well", "pixel >= 2^31", "last rows of 4096²"}, paths

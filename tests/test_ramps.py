@@ -45,6 +45,26 @@ def test_gaussian_approximation_twin():
 
 
 @needs_opencl
+@pytest.mark.parametrize("row", [4000, 4095])
+def test_bright_paths_at_the_end_of_a_4096_detector_bit_for_bit(row):
+    """Bright pixels (PTRS 10 … 3e3 e-/frame, rounded Gaussian ≥ 3e3, full well reached in the first
+    frames) mixed with dark and lit ones, at the pixel indices of a 4096² detector's last rows (the
+    H200's wrong 4096² reduction was first suspected there; run 7: the kernel was right, the fit's
+    read-back was not): kernel = twin, SCI and GROUPDQ."""
+    gen = np.random.default_rng(row)
+    rate = np.concatenate([10 ** gen.uniform(0.6, 5.0, 700), gen.choice([0.0, 0.005, 0.1, 1.0], 300)])
+    rate = rate[gen.permutation(rate.size)]
+    p = RampParameters(nmd=(8, 4, 1), ktc_noise=20.0, roic_glow=0.003, gauss_min_mean=3e3)
+    mu = _mu(rate, p)
+    assert ((mu >= 10) & (mu < 3e3)).sum() > 200 and (mu >= 3e3).sum() > 200 and (mu * 4 > p.full_well).any()
+    dead = gen.random(rate.size) < 0.01
+    a = simulate_block_numpy(mu, dead, row * 4096 + 3096, 2, 2**64 - 5, p)
+    b = simulate_block_opencl(mu, dead, row * 4096 + 3096, 2, 2**64 - 5, p)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert a[1][0].any() and (a[1][-1] != 0).mean() > 0.1     # saturated from the first group on
+
+
+@needs_opencl
 @pytest.mark.parametrize("work_group", [None, 1, 7, 64])
 def test_identical_for_any_work_group_and_chunking(work_group):
     rate = np.random.default_rng(2).uniform(0, 50, (37, 41))

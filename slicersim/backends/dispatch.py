@@ -39,7 +39,7 @@ def _trust_device() -> bool:
 
 def device_validated() -> tuple:
     """(passed, message): whether the selected OpenCL device gives the NumPy twin's random
-    draws (:func:`slicersim.backends.selfcheck.device_selfcheck`), checked once per device and
+    draws and ramps (:func:`slicersim.backends.selfcheck.device_selfcheck`), checked once per device and
     process (a check that could not run is not kept: the next call tries again).  Every noisy
     product goes through these kernels: a driver that computes or returns them wrongly (seen on an
     NVIDIA H200: uniforms, Gaussians and Poisson counts differed from the twin) must not be used

@@ -5,9 +5,17 @@ Every noisy product (cubes, ramps, detector effects) draws through ``kernels/noi
 (seen on an NVIDIA H200, driver 580.159: uniforms, Gaussians and Poisson counts differed from the
 twin and ramps came out 1e5 σ off).  :func:`device_selfcheck` launches the kernels the products
 use, through the same kinds of buffers (host-mapped for the uniform/normal grid, device buffers for
-Poisson), on a few hundred draws; :func:`slicersim.backends.dispatch.device_validated` runs it once
-per device and process.  This module imports only :mod:`opencl` and :mod:`rng` (no cycle with
-:mod:`dispatch`).
+Poisson), on a few hundred draws, and then the ramp sampler (``kernels/ramp.cl``, both kernels) on
+two small blocks whose mean charges take every path of the kernels (see :func:`_ramp_cases`), bit for
+bit against its twin (SCI and GROUPDQ): the streams alone do not vouch for the kernels built on them
+(on the H200 they passed while a 4096² reduction was still wrong — there the ramp kernel turned out
+right and the fit's read-back wrong, see gpu_h200.md run 7 — but a ramp-kernel miscompilation is
+exactly what such a check must catch).  Cost on PoCL (2 cores, kernels built): ≈ 0.15 s for the
+streams, + 0.15–0.2 s for the ramp blocks (kernel ≈ 0.07 s, twin ≈ 0.1–0.15 s); building ramp.cl
+without a binary cache adds ≈ 4 s once (a ramp product builds it anyway); H200: 2.2 s with builds.
+:func:`slicersim.backends.dispatch.device_validated` runs it once per device and process.  This
+module imports only :mod:`opencl` and :mod:`rng` at import time (the ramp backend, which imports
+:mod:`dispatch`, is imported when the check runs).
 """
 from __future__ import annotations
 
@@ -23,6 +31,57 @@ NOT_RUN = "OpenCL device self-check could not run"
 _N_UNIFORM = 257                                  # odd: a partial work group
 _POISSON_MEANS = np.tile([1e-3, 0.5, 3.0, 9.5, 30.0, 1e4], 50)    # inversion and PTRS branches
 _SEED, _STREAM, _DRAW = 11, 3, 1
+
+# Ramp blocks of the self-check: mean charge per frame [e-/frame] of each pixel class (0 = dead).
+# Block A (default sparse threshold: sparse below 0.57 e-/frame for m + d = 3; gauss_min_mean 5e3):
+# sparse windows with 0, 1 and several events (past the 3 tabulated CDF terms), dense inversion
+# (< 10; 9.99 and 10 on either side of the switch), PTRS (10 … 3e3, unsaturated), the rounded
+# Gaussian (≥ 5e3), ADU clipped at 65535 from frame 6 … 1 (9e3 … 1e6), the full well (8e4 e-, above
+# the ADU range) reached by 3e4 … 1e6; kTC noise, gain ≠ 1; pixel indices of the last rows of a
+# 4096² detector, ramp 3.  Block B (sparse_max_group 64: sparse up to
+# 21 e-/frame; full well 150 e-): sparse windows crossing the full well (the clipped read sum), many
+# events per window, ADU clipped at 0 (bias 5 ADU), saturation flags by ADU; pixel indices above
+# 2³¹ (64-bit counters with the top bit of the low word set).  Classes are shuffled (dense lists
+# sorted by charge, sparse lanes not contiguous); 97 + 61 pixels: partial vectors and work groups.
+_RAMP_MU_A = [0.0, 1e-3, 0.02, 0.3, 0.55, 0.6, 1.0, 3.0, 9.99, 10.0, 30.0, 300.0, 3e3, 5e3, 9e3, 3e4,
+              3e5, 1e6]
+_RAMP_MU_B = [0.0, 1e-3, 0.3, 2.0, 7.0, 15.0, 21.0, 25.0, 300.0, 2e4, 3e5]
+_RAMP_NMD = (4, 2, 1)
+_RAMP_SEED = 2**63 + 977
+
+
+def _ramp_cases():
+    """[(mu (npix,), dead (npix,), pixel0, ramp, RampParameters)] of the two ramp blocks."""
+    from slicersim.physics.ramp import RampParameters
+    gen = np.random.default_rng(5)
+    cases = []
+    for mu_classes, npix, pixel0, ramp, kw in (
+            (_RAMP_MU_A, 97, 4090 * 4096 + 37, 3,
+             dict(ron=12.0, ktc_noise=25.0, gain=1.3, bias=2000.0, saturation=65535.0, full_well=80000.0,
+                  gauss_min_mean=5e3)),
+            (_RAMP_MU_B, 61, 2**31 + 4093, 0,
+             dict(ron=12.0, gain=1.0, bias=5.0, saturation=120.0, full_well=150.0, sparse_max_group=64.0))):
+        mu = np.resize(np.asarray(mu_classes, float), npix)[gen.permutation(npix)]
+        dead = np.zeros(npix, bool)
+        dead[gen.choice(npix, 3, replace=False)] = True
+        cases.append((mu, dead, pixel0, ramp, RampParameters(nmd=_RAMP_NMD, **kw)))
+    return cases
+
+
+def _ramp_blocks(simulate_block):
+    """[(SCI, GROUPDQ)] of the ramp blocks by ``simulate_block`` (the kernel or its twin)."""
+    return [simulate_block(mu, dead, pixel0, ramp, _RAMP_SEED, p) for mu, dead, pixel0, ramp, p in _ramp_cases()]
+
+
+def _ramp_mismatch(got, want):
+    """'' when the ramp blocks are identical, else what differs."""
+    bad = []
+    for name, (sc, qc), (sn, qn) in zip("AB", got, want):
+        nsci = int(np.count_nonzero(sc != sn)) if sc.shape == sn.shape else sn.size
+        ndq = int(np.count_nonzero(qc != qn)) if qc.shape == qn.shape else qn.size
+        if nsci or ndq:
+            bad.append(f"ramp block {name}: {nsci}/{sn.size} SCI and {ndq}/{qn.size} GROUPDQ values differ")
+    return "; ".join(bad)
 
 
 def _uniform_normal(vw):
@@ -70,14 +129,18 @@ def _numpy_draws():
 
 def device_selfcheck():
     """(passed, message) for the selected device: uniforms exactly (integer arithmetic), Gaussians
-    to 1e-12 (a driver that contracts a·b + c into an FMA moves their last bits) and Poisson counts
-    of means 1e-3 … 1e4 (≥ 98 % identical: a last-bit change moves a count only at a CDF step)."""
+    to 1e-12 (a driver that contracts a·b + c into an FMA moves their last bits), Poisson counts
+    of means 1e-3 … 1e4 (≥ 98 % identical: a last-bit change moves a count only at a CDF step),
+    and two small ramp blocks through every path of ``ramp.cl``, bit for bit (SCI and GROUPDQ)."""
+    from slicersim.backends import ramp as ramp_backend
     try:
         dev = opencl.get_device().name.strip()
         uc, zc, kc = _opencl_draws()
+        rc = _ramp_blocks(ramp_backend.simulate_block_opencl)
     except Exception as exc:                        # a build or launch failure is a failed check
         return False, f"{NOT_RUN} ({type(exc).__name__}: {exc})"
     un, zn, kn = _numpy_draws()
+    rn = _ramp_blocks(ramp_backend.simulate_block_numpy)
     bad = []
     if not np.array_equal(uc, un):
         bad.append(f"{int(np.count_nonzero(uc != un))}/{un.size} uniforms differ")
@@ -86,7 +149,10 @@ def device_selfcheck():
         bad.append(f"{int(np.count_nonzero(~close))}/{zn.size} Gaussians differ")
     if np.count_nonzero(kc != kn) > 0.02 * kn.size:
         bad.append(f"{int(np.count_nonzero(kc != kn))}/{kn.size} Poisson counts differ")
+    ramp_bad = _ramp_mismatch(rc, rn)
+    if ramp_bad:
+        bad.append(ramp_bad)
     if bad:
-        return False, (f"OpenCL device {dev!r} fails the random-stream self-check against the NumPy twin "
-                       f"({'; '.join(bad)}): its noisy products would be wrong")
-    return True, f"OpenCL device {dev!r} passes the random-stream self-check"
+        return False, (f"OpenCL device {dev!r} fails the random-stream and ramp self-check against the NumPy "
+                       f"twin ({'; '.join(bad)}): its noisy products would be wrong")
+    return True, f"OpenCL device {dev!r} passes the random-stream and ramp self-check"
