@@ -57,15 +57,35 @@ API differences handled here:
 * ``iotools.PACKAGE_PATH`` is ``slicersim/config`` in 1.0.0 and ``slicersim``
   in 1.4.2; the packaged config is located from ``slicersim.__file__``.
 
-BLUR_MODES (instrumental blur sigma along the slice, in cells; the release's
-``Spectrograph.get_instrumental_psf`` is replaced on the instance):
+BLUR_MODES.  A mode sets the instrumental blur sigma along the slice (in cells; the release's
+``Spectrograph.get_instrumental_psf`` is replaced on the instance) and, optionally, the detector
+pixels per cell:
 
-* ``native``   - the release's own formula (nothing replaced);
-* ``none``     - no instrumental blur;
-* ``v100``     - sqrt(dr**2 - 2**2)            (1.0.0 formula, 1.136 for dr = 2.3);
-* ``v142``     - sqrt(dr**2 - 2**2) / 2 / 2    (1.4.2 formula, 0.284);
-* ``physical`` - sqrt(dr**2 - 2**2) / 2        (0.568; see /tmp/blur_derivation.md);
-* a number     - that sigma in cells.
+* ``native``        - the release's own blur formula (nothing replaced), 2 px per cell;
+* ``none``          - no instrumental blur;
+* ``v100``          - sqrt(dr**2 - 2**2)            (1.0.0 formula, 1.136 for dr = 2.3);
+* ``v142``          - sqrt(dr**2 - 2**2) / 2 / 2    (1.4.2 formula, 0.284);
+* ``physical_blur`` - sqrt(dr**2 - 2**2) / 2        (0.568, our blur), the release's 2 px per cell;
+* ``physical``      - our physical conventions: the blur of ``physical_blur`` AND 1 detector
+  pixel per cell (= ``physical_blur+1px``);
+* a number          - that sigma in cells;
+* ``<mode>+1px``    - any of the above with 1 detector pixel per cell (e.g. ``native+1px``).
+
+Pixels per cell.  Both releases count read noise, dark and full well of 2 detector pixels per
+cell (spaxel x native bin): ``Simulation._get_slicer_cube_`` calls
+``detector.estimate_pixel_signal(cube, ..., npix_per_spaxel=self.spectrograph._ANAMORPHOSE)``
+(= 2), which spreads the flux over that many pixels, computes signal, variance (read noise, dark,
+Poisson) and the saturation test per pixel, then multiplies back.  Our physical default counts 1
+(``slicersim.physics.conventions.detector_pixels_per_cell``).  The ``+1px`` modes patch exactly
+that argument: ``Detector.estimate_pixel_signal`` is wrapped (class level, only while that row is
+solved) so that an explicitly passed ``npix_per_spaxel`` becomes 1.  ``_ANAMORPHOSE`` itself is
+not touched (1.4.2's blur, ``extra_pixels /= self._ANAMORPHOSE``, keeps its value), nor are the
+spectrograph shape or calls that use the default ``npix_per_spaxel=1``.  In every mode the
+wrapper records the values passed (``npix_per_spaxel_passed``) and used; without ``+1px`` it
+passes the arguments through unchanged.
+
+``_blur_sigma`` and ``_override_blur`` are also used by ``_sources_142_runner.py`` and
+``_scenes_142_runner.py``, which apply the blur only: there ``"physical"`` means the blur part.
 
 Output (stdout): one JSON document with the release, versions, config
 provenance and one row per (target, field, blur mode): readout (n, m, d),
@@ -233,9 +253,18 @@ def _blur_sigma(mode, dr):
         return width
     if mode == "v142":
         return width / 2.0 / 2.0
-    if mode == "physical":
+    if mode in ("physical", "physical_blur"):
         return width / 2.0
     return float(mode)
+
+
+def _parse_mode(mode):
+    """(blur mode, detector pixels per cell or None = the release's own count)."""
+    if mode == "physical":
+        return "physical_blur", 1
+    if isinstance(mode, str) and mode.endswith("+1px"):
+        return mode[:-len("+1px")], 1
+    return mode, None
 
 
 def _override_blur(spectrograph, sigma_cells):
@@ -245,6 +274,43 @@ def _override_blur(spectrograph, sigma_cells):
             return None
         return sigma_cells if in_spaxels else sigma_cells * spectrograph.spx_spatial_scale
     spectrograph.get_instrumental_psf = get_instrumental_psf
+
+
+# --------------------------------------------------------------------------- #
+#  detector pixels per cell                                                   #
+# --------------------------------------------------------------------------- #
+@contextlib.contextmanager
+def _pixels_per_cell(slicersim, npix):
+    """Wrap ``Detector.estimate_pixel_signal`` while the block runs.
+
+    Records every explicitly passed ``npix_per_spaxel`` (the slicer cube passes
+    ``spectrograph._ANAMORPHOSE``); with ``npix`` not None it is replaced by ``npix``.
+    Nothing else changes.  Yields the record: {"passed": [...], "used": [...]}.
+    """
+    import inspect
+    from slicersim import detector as detmod
+    cls = detmod.Detector
+    original = cls.__dict__["estimate_pixel_signal"]
+    sig = inspect.signature(original)
+    record = {"passed": [], "used": []}
+
+    def estimate_pixel_signal(self, *args, **kwargs):
+        bound = sig.bind(self, *args, **kwargs)
+        if "npix_per_spaxel" in bound.arguments:
+            passed = bound.arguments["npix_per_spaxel"]
+            used = passed if npix is None else npix
+            bound.arguments["npix_per_spaxel"] = used
+            if passed not in record["passed"]:
+                record["passed"].append(passed)
+            if used not in record["used"]:
+                record["used"].append(used)
+        return original(*bound.args, **bound.kwargs)
+
+    cls.estimate_pixel_signal = estimate_pixel_signal
+    try:
+        yield record
+    finally:
+        cls.estimate_pixel_signal = original
 
 
 # --------------------------------------------------------------------------- #
@@ -260,7 +326,8 @@ def _solve_one(slicersim, lbda, flux, mag, band, field, obs_range, cfg, blur_mod
     sp = sim.spectrograph
     dr = float(sp.dispersion_resolution)
     native_sigma = sp.get_instrumental_psf(in_spaxels=True)
-    sigma = _blur_sigma(blur_mode, dr)
+    blur_part, _ = _parse_mode(blur_mode)
+    sigma = _blur_sigma(blur_part, dr)
     if sigma is not None:
         _override_blur(sp, sigma)
     t1 = time.perf_counter()
@@ -289,6 +356,7 @@ def _solve_one(slicersim, lbda, flux, mag, band, field, obs_range, cfg, blur_mod
         "inst_sigma_cells_used": _num(sp_after.get_instrumental_psf(in_spaxels=True)),
         "effective_scatter_cells_axes(-2,-1)": _num(sp_after.get_additonal_spatial_scatter(in_spaxels=True)),
         "spectrograph_replaced_during_solve": sp_after is not sp,
+        "spectrograph_anamorphose": _num(getattr(sp_after, "_ANAMORPHOSE", None)),
         "spx_shape": [int(v) for v in sp_after.spx_shape],
         "spx_scale_arcsec": _num(np.atleast_1d(sp_after.spx_spatial_scale)[0]),
         "nsaturated_detpx": _num(getattr(sim.detector, "nsaturated_detpx", None)),
@@ -332,8 +400,13 @@ def run(cfg):
                             warnings.catch_warnings(record=True) as wlist:
                         warnings.simplefilter("always")
                         warnings.simplefilter("ignore", ResourceWarning)
-                        row.update(_solve_one(slicersim, lbda, flux, mag, band, field, obs_range,
-                                              cfg, blur_mode, cfg["gain_check"]))
+                        _, npix = _parse_mode(blur_mode)
+                        with _pixels_per_cell(slicersim, npix) as npix_record:
+                            row.update(_solve_one(slicersim, lbda, flux, mag, band, field, obs_range,
+                                                  cfg, blur_mode, cfg["gain_check"]))
+                        row["pixels_per_cell_override"] = npix
+                        row["npix_per_spaxel_passed"] = npix_record["passed"]
+                        row["npix_per_spaxel_used"] = npix_record["used"]
                     row["ok"] = True
                     row["warnings"] = sorted({f"{w.category.__name__}: {w.message}"[:160]
                                               for w in wlist})

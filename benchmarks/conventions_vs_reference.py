@@ -22,8 +22,15 @@ Columns:
 5. ours, ``conventions="physical"``, ``search="exact"`` (our default).
 
 The releases run through ``benchmarks/_blur_reference_runner.py`` (JSON on
-stdin/stdout), with blur modes ``native`` (the columns) and ``physical`` (the
-release's own walk with our blur: isolates the blur part of every difference).
+stdin/stdout) in four modes: ``native`` (the columns), ``physical_blur`` (the
+release's own walk with our blur, sigma_x = 0.568 cells, still 2 detector pixels
+per cell: the blur part of every difference), ``physical`` (our blur AND 1
+detector pixel per cell, i.e. our physical conventions in the release's walk:
+the pixel-count part is ``physical_blur`` -> ``physical``) and ``native+1px``
+(the release's blur with 1 px per cell: the pixel count alone, other order).
+The pixel count is changed at one point only, the ``npix_per_spaxel`` argument
+(= ``spectrograph._ANAMORPHOSE`` = 2) that both releases pass to
+``Detector.estimate_pixel_signal`` (read noise, dark and full well per pixel).
 Both venvs are created on demand (``python -m venv`` + ``pip install``).  All
 use the same configuration: our side ``config=<reference dir>/config/lazuli_cbe.toml``
 (``SLICERSIM_REFERENCE_DIR`` overrides the reference dir, default
@@ -32,8 +39,9 @@ packaged ``lazuli_cbe.toml``, whose equality with the shared one (data files
 included) is checked and recorded.
 
 Every difference > 2 % between ours (physical) and a release is split into
-(a) the blur, (b) reference walk vs exact search, (c) integer ramp steps (see
-``EXPLANATIONS``), plus any residual.
+(a) the blur, (d) detector pixels per cell, (b) reference walk vs exact search,
+(c) integer ramp steps (see ``EXPLANATIONS``), plus any residual (release with
+our blur and 1 px per cell -> ours physical reference walk, expected x1).
 
 Survey line: N SNe with z ~ U[0.05, 1.5] (``default_rng(seed)``), narrow below
 z = 0.8, wide above, SNR 20 per resolution element rest 4000-6800 Å, total
@@ -91,6 +99,7 @@ TARGETS = [
     ("flat_B22", "flat", None, "narrow", "obs"),
     ("flat_B22", "flat", None, "wide", "obs"),
 ]
+RELEASE_MODES = ("native", "physical_blur", "physical", "native+1px")  # runner modes per release
 COLUMNS = [  # key, short label, long label
     ("v100", "1.0.0", "slicersim 1.0.0 (blur 1.136 cells)"),
     ("v142", "1.4.2", "slicersim 1.4.2 (blur 0.284 cells)"),
@@ -108,7 +117,13 @@ EXPLANATIONS = {
           "sigma (2x too large: the point source is spread over more cells, more background/dark/read "
           "noise per resolution element, longer exposures); 1.4.2 divides that once more by the "
           "anamorphosis, sqrt(dr²-4)/4 = 0.284 cells (2x too small: shorter exposures). Measured by "
-          "re-running each release's own walk with sigma_x = 0.568 cells (runner blur mode 'physical')."),
+          "re-running each release's own walk with sigma_x = 0.568 cells (runner mode 'physical_blur', "
+          "still 2 px per cell)."),
+    "d": ("(d) detector pixels per cell: both releases count the read noise, dark and full well of 2 "
+          "detector pixels per cell (npix_per_spaxel = the anamorphosis 2); our physical default counts 1 "
+          "(consecutive bins share the 2-px slit image, which the LSF already holds). Less read noise and "
+          "dark per resolution element: shorter exposures wherever they matter. Measured by re-running each "
+          "release with our blur and npix_per_spaxel = 1 (runner mode 'physical') against 'physical_blur'."),
     "b": ("(b) reference walk vs exact search: the releases' walk (our search='reference') steps through "
           "the readout ladder and stops when the band SNR per bin is within +-0.5 of the target, so it "
           "can end below SNR 20 (shorter than needed) or above it (longer than needed); search='exact' "
@@ -252,7 +267,7 @@ def runner_input(snr):
         elif targets[tid]["field"] != field:
             targets[tid]["field"] = "both"
     return {"snr": float(snr), "per_resolution": True, "z_switch": Z_SWITCH, "lbda_in": list(LBDA_IN),
-            "blur_modes": ["native", "physical"], "gain_check": False, "instrument": None,
+            "blur_modes": list(RELEASE_MODES), "gain_check": False, "instrument": None,
             "targets": list(targets.values())}
 
 
@@ -429,10 +444,21 @@ def run_survey(slicersim, config, n, seed, snr, scale_to, searches=("exact", "re
            "n_narrow": int((z < Z_SWITCH).sum()), "n_wide": int((z >= Z_SWITCH).sum()),
            "scale": (scale_to / n) if scale_to and scale_to != n else 1.0, "conventions": {}}
     out["by_search"] = {}
+    out["failed_searches"] = {}
     for search in searches:
         convs = out["by_search"].setdefault(search, {})
         for conv in ("physical", "slicersim-1.0"):
-            convs[conv] = _survey_block(solve_many, lbda, fluxes, z, config, snr, conv, search, out["scale"])
+            try:
+                convs[conv] = _survey_block(solve_many, lbda, fluxes, z, config, snr, conv, search,
+                                            out["scale"])
+            except Exception as exc:
+                if search == "exact":
+                    raise
+                # context only: the 1.0 walk can end far below the target (e.g. 1.0.0 itself stops
+                # at SNR/res 12.1 for a z = 0.114 SN Ia), which our reference search refuses
+                msg = f"{exc.__class__.__name__}: {exc}"
+                out["failed_searches"].setdefault(search, {})[conv] = msg
+                print(f"[survey] {search:9s} {conv:13s} failed: {msg}", flush=True)
     out["conventions"] = out["by_search"]["exact"]
     out["ratio_physical_over_v10"] = (out["conventions"]["physical"]["exposure_time_s"]
                                       / out["conventions"]["slicersim-1.0"]["exposure_time_s"])
@@ -444,7 +470,16 @@ def run_survey(slicersim, config, n, seed, snr, scale_to, searches=("exact", "re
 # --------------------------------------------------------------------------- #
 #  table and explanations                                                     #
 # --------------------------------------------------------------------------- #
-def build_rows(refs, ours):
+def _effect(a, b, snr_goal):
+    """Exposure-time factor a -> b: as solved (integer steps) and sqrt(T)-smooth."""
+    ta, tb = _t(a), _t(b)
+    sa, sb = _t_smooth(a, snr_goal), _t_smooth(b, snr_goal)
+    return {"factor": tb / ta if ta and tb else None,
+            "smooth_factor": sb / sa if sa and sb else None,
+            "from": _readout(a) if a else None, "to": _readout(b) if b else None}
+
+
+def build_rows(refs, ours, snr_goal):
     rel = {label: release_rows(doc) for label, doc in refs.items()}
     rows = []
     for tid, kind, z, field, frame in TARGETS:
@@ -455,8 +490,18 @@ def build_rows(refs, ours):
         r["cols"]["v142"] = rel["1.4.2"].get((tid, field, "native"))
         for key in OURS_RUNS:
             r["cols"][key] = ours.get((tid, field, key))
-        r["v100_physical_blur"] = rel["1.0.0"].get((tid, field, "physical"))
-        r["v142_physical_blur"] = rel["1.4.2"].get((tid, field, "physical"))
+        for lab, key in (("1.0.0", "v100"), ("1.4.2", "v142")):
+            r[f"{key}_physical_blur"] = rel[lab].get((tid, field, "physical_blur"))  # our blur, 2 px/cell
+            r[f"{key}_physical"] = rel[lab].get((tid, field, "physical"))  # our blur + 1 px/cell
+            r[f"{key}_native_1px"] = rel[lab].get((tid, field, "native+1px"))  # own blur, 1 px/cell
+        r["effects"] = {}
+        for key in ("v100", "v142"):
+            chain = {"blur": (r["cols"][key], r[f"{key}_physical_blur"]),
+                     "pixels": (r[f"{key}_physical_blur"], r[f"{key}_physical"]),
+                     "pixels_at_native_blur": (r["cols"][key], r[f"{key}_native_1px"]),
+                     "blur_at_1px": (r[f"{key}_native_1px"], r[f"{key}_physical"]),
+                     "both": (r["cols"][key], r[f"{key}_physical"])}
+            r["effects"][key] = {name: _effect(a, b, snr_goal) for name, (a, b) in chain.items()}
         t = {k: _t(v) for k, v in r["cols"].items()}
         r["ratios"] = {}
         for ours_key in ("ours_phys_exact", "ours_phys_ref"):
@@ -493,15 +538,15 @@ def explain(rows, snr_goal):
     for r in rows:
         for ours_key, ours_label in (("ours_phys_exact", "ours physical exact"),
                                      ("ours_phys_ref", "ours physical ref-walk")):
-            for ref_key, ref_label, blur_key in (("v100", "1.0.0", "v100_physical_blur"),
-                                                 ("v142", "1.4.2", "v142_physical_blur")):
+            for ref_key, ref_label in (("v100", "1.0.0"), ("v142", "1.4.2")):
                 ratio = r["ratios"].get(f"{ours_key}/{ref_key}")
                 if ratio is None or abs(ratio - 1) <= THRESHOLD:
                     continue
-                ref, refb = r["cols"][ref_key], r[blur_key]
+                ref, refb, refp = r["cols"][ref_key], r[f"{ref_key}_physical_blur"], r[f"{ref_key}_physical"]
                 walk, mine = r["cols"]["ours_phys_ref"], r["cols"][ours_key]
                 steps = [_step("blur", ref, refb, snr_goal),
-                         _step("residual", refb, walk, snr_goal)]
+                         _step("pixels", refb, refp, snr_goal),
+                         _step("residual", refp, walk, snr_goal)]
                 if ours_key == "ours_phys_exact":
                     steps.append(_step("search", walk, mine, snr_goal))
                 steps = [s for s in steps if s is not None]
@@ -516,13 +561,19 @@ def explain(rows, snr_goal):
                                       if s["smooth_factor"] else "")
                         parts.append(f"(a) blur {ref_label} ({direction}) -> physical: {s['from']} -> "
                                      f"{s['to']}, {_pct(s['factor'])}{smooth_txt}")
+                    elif s["step"] == "pixels":
+                        codes.append("d")
+                        smooth_txt = (f" (sqrt(T)-smooth {_pct(s['smooth_factor'])})"
+                                      if s["smooth_factor"] else "")
+                        parts.append(f"(d) 2 -> 1 detector px per cell: {s['from']} -> {s['to']}, "
+                                     f"{_pct(s['factor'])}{smooth_txt}")
                     elif s["step"] == "search":
                         codes.append("b")
                         side = ("below" if (s["snr_from"] or 0) < snr_goal else "above")
                         parts.append(f"(b) walk ended {side} target (SNR {s['snr_from']:.2f}) -> exact "
                                      f"(SNR {s['snr_to']:.2f}): {s['from']} -> {s['to']}, {_pct(s['factor'])}")
                     else:
-                        parts.append(f"residual {ref_label} with physical blur -> ours physical walk: "
+                        parts.append(f"residual {ref_label} with our blur and 1 px/cell -> ours physical walk: "
                                      f"{s['from']} -> {s['to']}, {_pct(s['factor'])}")
                     if s["step_factor"] and abs(s["step_factor"] - 1) > THRESHOLD:
                         codes.append("c")
@@ -571,13 +622,28 @@ def markdown(rows, expl, survey, meta):
           "Ratios are exposure-time ratios.", ""]
     md += lines
     md += ["", meta["identity_line"], "",
-           "## Differences > 2 % (ours physical vs the releases)", ""]
-    for k in ("a", "b", "c"):
+           "## Blur and detector pixels per cell, one at a time", "",
+           "Each release rerun in its own walk: `physical_blur` = our blur σ_x = 0.568 cells, still 2 px per "
+           "cell; `physical` = our blur and 1 px per cell (our physical conventions); `native+1px` = the "
+           "release's blur with 1 px per cell. Factors are exposure-time ratios as solved (integer ladder "
+           "steps) and, in brackets, √T-smooth (T (20/SNR)², the step-free size of the effect).", ""]
+    md += effects_table(rows)
+    summ = effects_summary(rows)
+    md += [""]
+    for key, lab in (("v100", "1.0.0"), ("v142", "1.4.2")):
+        e = summ.get(key, {})
+        if not e:
+            continue
+        md.append(f"* {lab}: " + "; ".join(
+            f"{name} {_range_pct(e[name]['factor'])} as solved, {_range_pct(e[name]['smooth_factor'])} √T-smooth"
+            for name in ("blur", "pixels", "both") if name in e) + ".")
+    md += ["", "## Differences > 2 % (ours physical vs the releases)", ""]
+    for k in ("a", "d", "b", "c"):
         md.append(f"* {EXPLANATIONS[k]}")
     md += [f"* {EXPLANATIONS['gain']}", "",
-           "Each ratio is split into the chain release → release with σ_x = 0.568 (a) → ours physical "
-           "walk (residual, expected ×1) → ours physical exact (b); (c) is flagged where a link's factor "
-           "differs by more than 2 % from its √T-smooth value.", ""]
+           "Each ratio is split into the chain release → release with σ_x = 0.568 (a) → and 1 px per cell (d) "
+           "→ ours physical walk (residual, expected ×1) → ours physical exact (b); (c) is flagged where a "
+           "link's factor differs by more than 2 % from its √T-smooth value.", ""]
     if expl:
         md += ["| target | field | ours | release | ratio | explained by | details |",
                "|---|---|---|---|---:|---|---|"]
@@ -597,6 +663,52 @@ def markdown(rows, expl, survey, meta):
     return "\n".join(md) + "\n"
 
 
+def _range_pct(vals):
+    vals = [v for v in vals if v is not None]
+    if not vals:
+        return "n/a"
+    lo, hi = min(vals), max(vals)
+    return _pct(lo) if abs(hi - lo) < 5e-4 else f"{_pct(lo)} to {_pct(hi)}"
+
+
+def effects_summary(rows):
+    """release key -> effect name -> {"factor": [...], "smooth_factor": [...]} over the targets."""
+    out = {}
+    for r in rows:
+        for key, eff in r.get("effects", {}).items():
+            for name, e in eff.items():
+                d = out.setdefault(key, {}).setdefault(name, {"factor": [], "smooth_factor": []})
+                d["factor"].append(e["factor"])
+                d["smooth_factor"].append(e["smooth_factor"])
+    return out
+
+
+def effects_table(rows):
+    hdr = ["target", "field"]
+    for lab in ("1.0.0", "1.4.2"):
+        hdr += [f"{lab} our blur", f"{lab} our blur + 1 px", f"{lab} blur", f"{lab} 1 px",
+                f"{lab} 1 px at own blur"]
+    lines = ["| " + " | ".join(hdr) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(hdr) - 2)) + "|"]
+
+    def f(e):
+        if not e or e["factor"] is None:
+            return "n/a"
+        return f"×{e['factor']:.3f} ({e['smooth_factor']:.3f})" if e["smooth_factor"] else f"×{e['factor']:.3f}"
+
+    def ro(x):
+        return "n/a" if not x else ("error" if not x.get("ok") else f"{_readout(x)} {x['exposure_time']:.0f} s")
+
+    for r in rows:
+        tgt = "flat f_λ B=22" if r["kind"] == "flat" else f"SN Ia z={r['z']}"
+        vals = [tgt, r["field"]]
+        for key in ("v100", "v142"):
+            eff = r["effects"][key]
+            vals += [ro(r[f"{key}_physical_blur"]), ro(r[f"{key}_physical"]), f(eff["blur"]), f(eff["pixels"]),
+                     f(eff["pixels_at_native_blur"])]
+        lines.append("| " + " | ".join(vals) + " |")
+    return lines
+
+
 def survey_line(s):
     p = s["conventions"]["physical"]
     v = s["conventions"]["slicersim-1.0"]
@@ -613,7 +725,13 @@ def survey_line(s):
         txt += (f" Scaled to {s['n'] * scale:.0f} SNe (×{scale:g}): {p['exposure_time_yr_scaled']:.3f} yr "
                 f"vs {v['exposure_time_yr_scaled']:.3f} yr.")
     ref = s.get("by_search", {}).get("reference")
-    if ref:
+    failed = s.get("failed_searches", {}).get("reference")
+    if failed:
+        done = ", ".join(f"{ref[c]['exposure_time_yr']:.3f} yr {c}" for c in (ref or {}))
+        txt += (f" search='reference' ({done or 'none'}) not compared: " + "; ".join(f"{c}: {m}" for c, m in failed.items())
+                + " (the 1.0 walk can end far below the target, e.g. slicersim 1.0.0 itself stops at SNR/res 12.1 "
+                "after 90.6 s for the z = 0.114 SN Ia of seed 1; our reference search refuses such ends).")
+    if ref and not failed:
         txt += (f" With search='reference' (the releases' walk; {ref['physical']['fields']['narrow']['n_below_target'] + ref['physical']['fields']['wide']['n_below_target']}"
                 f" resp. {ref['slicersim-1.0']['fields']['narrow']['n_below_target'] + ref['slicersim-1.0']['fields']['wide']['n_below_target']}"
                 f" SNe end below SNR {s['snr']:g}): {ref['physical']['exposure_time_yr']:.3f} yr physical vs "
@@ -709,16 +827,21 @@ def main(argv=None):
             for line in doc.get("stderr_tail", []):
                 print(f"    {line}")
 
-    rows = build_rows(refs, ours)
+    rows = build_rows(refs, ours, args.snr)
     expl = explain(rows, args.snr)
     n_ident = sum(r["ours_v10_identical_to_v100"] for r in rows)
     identity_line = (f"ours with conventions='slicersim-1.0', search='reference' gives the same readout as "
                      f"slicersim 1.0.0 for {n_ident}/{len(rows)} targets.")
+    n_phys = {lab: sum(_same_readout(r[key], r["cols"]["ours_phys_ref"]) for r in rows)
+              for lab, key in (("1.0.0", "v100_physical"), ("1.4.2", "v142_physical"))}
     n_blur = {lab: sum(_same_readout(r[key], r["cols"]["ours_phys_ref"]) for r in rows)
               for lab, key in (("1.0.0", "v100_physical_blur"), ("1.4.2", "v142_physical_blur"))}
-    identity_line += (f" With their blur replaced by σ_x = 0.568 cells, slicersim 1.0.0 and 1.4.2 give the readout of "
-                      f"ours (physical, search='reference') for {n_blur['1.0.0']}/{len(rows)} and "
-                      f"{n_blur['1.4.2']}/{len(rows)} targets: the blur is the only model difference (gain = 1).")
+    identity_line += (f" With their blur replaced by σ_x = 0.568 cells AND 1 detector pixel per cell, slicersim "
+                      f"1.0.0 and 1.4.2 give the readout of ours (physical, search='reference') for "
+                      f"{n_phys['1.0.0']}/{len(rows)} and {n_phys['1.4.2']}/{len(rows)} targets "
+                      f"(with our blur alone, 2 px per cell: {n_blur['1.0.0']}/{len(rows)} and "
+                      f"{n_blur['1.4.2']}/{len(rows)}); blur and pixels per cell are the model differences "
+                      f"(gain = 1).")
     cfg_eq = config_equality(cfg_file)
     for label, doc in refs.items():
         eq = cfg_eq.get(label, {}).get("files_byte_identical", {})
@@ -759,7 +882,9 @@ def main(argv=None):
                      for label, doc in refs.items()},
         "explanations": EXPLANATIONS,
         "identity": {"ours_v10_identical_to_v100": n_ident, "n": len(rows),
-                     "release_with_physical_blur_identical_to_ours_phys_ref": n_blur},
+                     "release_with_physical_blur_and_1px_identical_to_ours_phys_ref": n_phys,
+                     "release_with_physical_blur_only_identical_to_ours_phys_ref": n_blur},
+        "effects_summary": effects_summary(rows),
         "rows": rows,
         "differences": expl,
         "survey": survey,
