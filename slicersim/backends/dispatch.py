@@ -11,6 +11,7 @@ import threading
 import warnings
 
 from slicersim.backends import opencl
+from slicersim.backends.opencl import VECTOR_WIDTHS, check_vector_width  # noqa: F401  (re-exported)
 from slicersim.backends.selfcheck import NOT_RUN, device_selfcheck
 from slicersim.errors import OpenCLUnavailableError
 
@@ -19,7 +20,6 @@ __all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges", "
 #: memory budget [bytes] of the temporaries of one call, unless the caller gives max_bytes
 DEFAULT_MAX_BYTES = 256 * 2**20
 BACKENDS = ("auto", "opencl", "numpy")
-VECTOR_WIDTHS = (1, 2, 4, 8, 16)
 
 
 #: device fingerprint → (passed, message) of the self-check (:func:`device_validated`)
@@ -94,10 +94,3 @@ def chunk_ranges(n, bytes_per_item, max_bytes=DEFAULT_MAX_BYTES, multiple=1):
         yield i0, min(n, i0 + step)
 
 
-def check_vector_width(vector_width, default_cap=16, scale=1):
-    """Validated elements per work item: the device's preferred width when None."""
-    if vector_width is None:
-        return opencl.preferred_vector_width(default_cap, scale)
-    if vector_width not in VECTOR_WIDTHS:
-        raise ValueError(f"vector_width must be 1, 2, 4, 8 or 16, got {vector_width}")
-    return int(vector_width)

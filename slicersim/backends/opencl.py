@@ -382,6 +382,19 @@ def launch(kernel, global_size, local_size, *args):
     return kernel(get_queue(), tuple(global_size), None if local_size is None else tuple(local_size), *args)
 
 
+#: elements per work item the vectorised kernels accept
+VECTOR_WIDTHS = (1, 2, 4, 8, 16)
+
+
+def check_vector_width(vector_width, default_cap=16, scale=1):
+    """Validated elements per work item: the device's preferred width when None."""
+    if vector_width is None:
+        return preferred_vector_width(default_cap, scale)
+    if vector_width not in VECTOR_WIDTHS:
+        raise ValueError(f"vector_width must be 1, 2, 4, 8 or 16, got {vector_width}")
+    return int(vector_width)
+
+
 def preferred_vector_width(cap: int = 16, scale: int = 1) -> int:
     """Doubles per vector for kernels that vectorise along a row: 1 on GPUs (one element
     per work item coalesces), else the largest power of two ≤ min(``scale`` × the device's

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from slicersim.backends import opencl, rng
-from slicersim.backends.dispatch import check_vector_width
+from slicersim.backends.opencl import check_vector_width
 from slicersim.io.rampfile import DQ
 from slicersim.physics.ramp import (MAX_SPARSE_WINDOW, P_KTC, P_POISSON, P_READ, P_SPARSE,  # noqa: F401
                                     frame_mean_charge, macc_frame_schedule, sparse_threshold, to_adu)
