@@ -160,6 +160,15 @@ def fmt_delta(delta, flag=None):
     return f"**{text}**" if flag is not None and abs(delta) > flag else text
 
 
+def fmt_span(values, fmt, tol, sep=" … ", empty="–"):
+    """``fmt(v)`` when the non-None ``values`` agree within ``tol``, else "fmt(lo) sep fmt(hi)"."""
+    values = [v for v in values if v is not None]
+    if not values:
+        return empty
+    lo, hi = min(values), max(values)
+    return fmt(lo) if abs(hi - lo) < tol else f"{fmt(lo)}{sep}{fmt(hi)}"
+
+
 def markdown_table(header, rows, align=None):
     """Markdown table lines; ``align`` per column: "l" or "r" (default: first left, others right)."""
     align = align or ["l"] + ["r"] * (len(header) - 1)

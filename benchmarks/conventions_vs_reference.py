@@ -74,7 +74,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, fmt_span, jsonable, loadavg  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -664,11 +664,7 @@ def markdown(rows, expl, survey, meta):
 
 
 def _range_pct(vals):
-    vals = [v for v in vals if v is not None]
-    if not vals:
-        return "n/a"
-    lo, hi = min(vals), max(vals)
-    return _pct(lo) if abs(hi - lo) < 5e-4 else f"{_pct(lo)} to {_pct(hi)}"
+    return fmt_span(vals, _pct, 5e-4, sep=" to ", empty="n/a")
 
 
 def effects_summary(rows):

@@ -33,7 +33,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import (cpu_model, fmt, fmt_delta, loadavg, markdown_table, reference_config,  # noqa: E402
+from _common import (cpu_model, fmt, fmt_delta, fmt_span, loadavg, markdown_table, reference_config,  # noqa: E402
                      rel_diff, start_runner, write_results)
 
 REDSHIFTS = [0.1, 0.5, 1.0]
@@ -248,11 +248,7 @@ def summary_lines(result):
     hv, gv, nv = result["host_values"], result["galaxy_values"], result["ngc_values"]
 
     def span(values):
-        values = [v for v in values if v is not None]
-        if not values:
-            return "–"
-        lo, hi = min(values), max(values)
-        return fmt_delta(lo) if abs(hi - lo) < 5e-5 else f"{fmt_delta(lo)} … {fmt_delta(hi)}"
+        return fmt_span(values, fmt_delta, 5e-5)
 
     def host(q, c):
         return span([rel_diff(v[q].get(c), v[q].get("142")) for v in hv.values()])
