@@ -248,9 +248,22 @@ class EffectsPlan:
         return None if self.bias is None else self.bias[y0:y1]
 
     # ------------------------------------------------------------------ truth
-    def write_truth(self, writer, nramps):
-        """Truth of every effect into ``writer`` (RampWriter or UncalWriter: ``write_dataset``)."""
+    def write_truth(self, writer, nramps, part="all"):
+        """Truth of every effect into ``writer`` (RampWriter or UncalWriter: ``write_dataset``).
+
+        part: "all"; "maps" (the bad-pixel maps only, so that :meth:`drop_photo_maps` can free them
+        before the rest is written) or "rest" (everything but those)."""
         attrs = {"EFFECTS": self.effects.to_config()}
+
+        def maps():
+            if self.bad is not None:
+                writer.write_dataset("bad_pixels/extra_dark", self.bad["extra_dark"], {"UNITS": "e-/s"})
+                writer.write_dataset("bad_pixels/qe_factor", self.bad["qe_factor"], {"UNITS": "dimensionless"})
+                writer.write_dataset("bad_pixels/telegraph", self.bad["telegraph"],
+                                     {"UNITS": "amplitude e- (read offset), dwell times s"})
+        if part == "maps":
+            maps()
+            return attrs
         if "cosmic_rays" in self.on:
             rows = np.concatenate([self._cosmic_rays(r) for r in range(nramps)])
             writer.write_dataset("cosmic_rays", rows, {"UNITS": "electrons", "FRAME": "from the reset, "
@@ -265,11 +278,8 @@ class EffectsPlan:
                                  {"CONVENTION": "JWST linearity: corrected DN = sum_k c_k DN^k (bias removed)"})
         if "persistence" in self.on:
             writer.write_dataset("persistence", np.concatenate([self._persistence(r) for r in range(nramps)]))
-        if self.bad is not None:
-            writer.write_dataset("bad_pixels/extra_dark", self.bad["extra_dark"], {"UNITS": "e-/s"})
-            writer.write_dataset("bad_pixels/qe_factor", self.bad["qe_factor"], {"UNITS": "dimensionless"})
-            writer.write_dataset("bad_pixels/telegraph", self.bad["telegraph"],
-                                 {"UNITS": "amplitude e- (read offset), dwell times s"})
+        if part == "all":
+            maps()
         if self.bias is not None:
             writer.write_dataset("bias", self.bias, {"UNITS": "ADU"})
         return attrs

@@ -196,17 +196,19 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         if background is not None:
             background.finish()
 
-    def write_truth_then_drop(w):
-        if w is not None and truth:
-            plan.write_truth(w, p.nramps)
-        plan.drop_photo_maps()                       # used by rate_and_dark and the truth only
-
     def run_blocks(w, background):
-        if plan is not None:
-            if background is not None:
-                background.submit("truth", write_truth_then_drop, w)
-            else:
-                write_truth_then_drop(w)
+        if plan is not None and background is not None:
+            # the bad-pixel maps first, here, then freed (3 × 4 B per pixel less while the blocks run);
+            # the rest of the truth in the background
+            if truth:
+                plan.write_truth(w, p.nramps, part="maps")
+            plan.drop_photo_maps()
+            if truth:
+                background.submit("truth", plan.write_truth, w, p.nramps, "rest")
+        elif plan is not None:
+            if w is not None and truth:
+                plan.write_truth(w, p.nramps)
+            plan.drop_photo_maps()                   # used by rate_and_dark and the truth only
         for ramp, y0 in iterator:
             y1 = min(ny, y0 + rows)
             if plan is not None:
