@@ -179,9 +179,7 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
     chi2 = q - np.einsum("kn,kn->n", theta, b)              # (x̂ − Mθ̂)ᵀN(x̂ − Mθ̂) = x̂ᵀNx̂ − θ̂ᵀb
     variance_model = "GLS: (Mᵀ N M)⁻¹ with the full inverse covariance N = PᵀWP of the LSQ cube"
     if noise_information is not None:
-        if tuple(getattr(noise_information, "shape", ())) != tuple(cube_product.inverse_covariance.shape):
-            raise ParameterError("noise_information is not for this cube (shape "
-                                 f"{getattr(noise_information, 'shape', None)})")
+        _check_noise_information(noise_information, cube_product.inverse_covariance)
         from types import SimpleNamespace
         H, *_ = gls_normal_equations(SimpleNamespace(flux=cube_product.flux, inverse_covariance=noise_information),
                                      P, background, background_template)
@@ -199,6 +197,19 @@ def extract_gls(cube_product, *, psf=None, position=None, background=True, nchun
         psf_sigma=sigma, background=None if bg is None else (bg if stack else bg[0]),
         background_variance=np.diag(cov)[nl:].copy() if background else None,
         enclosed_energy=P.reshape(nl, -1).sum(axis=1), cell_weights=None, diagnostics=diag)
+
+
+def _check_noise_information(noise, info):
+    """``noise`` must be B = PᵀWΣWP built for this cube's N = PᵀWP (same field, grid, pixels and weights W):
+    one of another field or λ grid of the same shape would give a wrong variance silently."""
+    from slicersim.reduction.rectify import InverseCovariance
+    if not isinstance(noise, InverseCovariance) or noise.weights_of is None:
+        raise ParameterError("noise_information must be rectify.noise_information(cube.inverse_covariance, variance), "
+                             f"got {type(noise).__name__}")
+    if noise.weights_of is not info:
+        shape = "" if noise.shape == info.shape else f" (cube {noise.shape}, this one {info.shape})"
+        raise ParameterError("noise_information is not for this cube: build it from this cube's inverse covariance, "
+                             f"noise_information(cube.inverse_covariance, variance){shape}")
 
 
 def _check_template(cube_product, psf):

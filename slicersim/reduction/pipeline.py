@@ -168,8 +168,8 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     Returns ``{"rates": RateProduct, "cubes": {field: CubeProduct}, "spectra": {field: SpectrumProduct},
     "variance": the pixel variance the cubes were rectified with, "dark_rate": the dark subtracted,
     "dark_kind": how it was chosen, "noise_information": {field: B} for the sandwich variance of a GLS
-    extraction on model-weighted cubes (:func:`~slicersim.reduction.rectify.noise_information`; empty
-    otherwise)}``
+    extraction or of :func:`propagate_variance` on model-weighted cubes
+    (:func:`~slicersim.reduction.rectify.noise_information`; empty otherwise)}``
     (and ``"path"``, the absolute path written, with ``out``).
     """
     from slicersim.reduction.ramp_fit import fit_ramps
@@ -208,21 +208,25 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
                         keep_information=bool(keep_information))
         cubes = cubes if field == "both" else {field: cubes}
     noise = {}
-    if var is not var_data and extraction == "gls":
+    if var is not var_data and (extraction == "gls" or (propagate and rectify_method == "lsq")):
         # the model image misses the point source's sharp core (the coarse cells smooth it): its
         # variance is ~16 % low on the brightest pixels (Lazuli SN Ia z = 0.3), so (MᵀNM)⁻¹ would
         # under-report; the sandwich with the data's own variance (unbiased) is exact for the
         # weights used
         from slicersim.reduction.rectify import noise_information
         noise = {name: noise_information(cube.inverse_covariance, var_data) for name, cube in cubes.items()}
+    gls_noise = noise if extraction == "gls" else {}
     spectra = {name: extract_spectrum(cube, method=extraction, psf=psf, position=position, aperture=aperture,
-                                      background=background, **({"noise_information": noise[name]} if noise else {}))
+                                      background=background,
+                                      **({"noise_information": gls_noise[name]} if gls_noise else {}))
                for name, cube in cubes.items()}
     if propagate and rectify_method == "lsq" and extraction != "gls":
         for name, spec in spectra.items():
             spec.diagnostics["variance_diagonal"] = spec.variance
-            spec.variance = propagate_variance(spec, cubes[name])
-            spec.diagnostics["variance_model"] = "full LSQ cube covariance (propagate_variance)"
+            spec.variance = propagate_variance(spec, cubes[name], noise_information=noise.get(name))
+            spec.diagnostics["variance_model"] = ("full LSQ cube covariance (propagate_variance)" if not noise else
+                                                  "full LSQ cube covariance, sandwich N⁻¹BN⁻¹ with the pixels' "
+                                                  "variance (propagate_variance)")
     result = {"rates": rates, "cubes": cubes, "spectra": spectra, "variance": var, "dark_rate": dark_rate,
               "dark_kind": dark_kind, "noise_information": noise}
     if writer is not None:

@@ -324,7 +324,9 @@ class InverseCovariance:
     width); ``nbytes()``).  Valid for every image of a stack (one variance)."""
 
     def __init__(self, tables, weight, slices, shape, keep=False):
-        flat = np.asarray(weight, np.float64).ravel()
+        flat = np.asarray(weight, np.float64)
+        self.image_shape = flat.shape                     # the detector's (H, W): the weights' image
+        flat = flat.ravel()
         usable = np.flatnonzero(flat > 0)
         self._pix = usable.astype(np.int32 if flat.size < 2**31 else np.int64)
         self._w = flat[usable]
@@ -333,6 +335,7 @@ class InverseCovariance:
         self.shape = tuple(int(v) for v in shape)         # (nλ, n_rows, ncol)
         self.keep = bool(keep)
         self._kept = {}
+        self.weights_of = None                             # noise_information: the N this B goes with
 
     def _weight_of(self, pix):
         if self._pix.size == 0:
@@ -369,17 +372,28 @@ def noise_information(info, variance):
     covariance is then N⁻¹ B N⁻¹ (the sandwich), N⁻¹ only when W = Σ⁻¹.  Pixels used by the cube
     whose ``variance`` is not finite and > 0 keep 1/W.  An :class:`InverseCovariance` of the same
     tables (``matrix(row)`` gives B's blocks), for :func:`~slicersim.reduction.gls_extraction.extract_gls`'s
-    ``noise_information``."""
-    var = np.asarray(variance, np.float64)
-    size = int(np.prod(var.shape))
-    if info._pix.size and int(info._pix.max()) >= size:
-        raise ParameterError(f"variance has {size} pixels, the cube's weights reach pixel {int(info._pix.max())}")
+    ``noise_information``.  ``variance`` must have the shape of the image the cube was rectified
+    from (the detector's)."""
+    if not isinstance(info, InverseCovariance):
+        raise ParameterError(f"info must be a cube's InverseCovariance (CubeProduct.inverse_covariance), "
+                             f"got {type(info).__name__}")
+    if np.iscomplexobj(variance):
+        raise ParameterError("variance must be real numbers, got complex values")
+    try:
+        var = np.asarray(variance, np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError("variance must be a numeric array") from None
+    if var.shape != info.image_shape:
+        raise ParameterError(f"variance has shape {var.shape}: the cube was rectified from {info.image_shape} "
+                             "pixels (one variance per detector pixel)")
     s2 = var.ravel()[info._pix]
     w = info._w
     s2 = np.where(np.isfinite(s2) & (s2 > 0), s2, 1.0 / w)
-    flat = np.zeros(size)
+    flat = np.zeros(var.size)
     flat[info._pix] = w * w * s2
-    return InverseCovariance(info._tables, flat, info.slices, info.shape)
+    out = InverseCovariance(info._tables, flat.reshape(info.image_shape), info.slices, info.shape)
+    out.weights_of = info
+    return out
 
 
 def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A):

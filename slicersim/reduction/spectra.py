@@ -166,7 +166,7 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
 
 # --------------------------------------------------------------------------- exact variance
 def propagate_variance(spectrum, cube_product, rate_variance=None, *, mapper=None, oversample=(1, 1),
-                       truncate=4.0, weights_dtype=np.float32, backend="auto"):
+                       truncate=4.0, weights_dtype=np.float32, backend="auto", noise_information=None):
     """Variance [unit²] of an extracted spectrum with the full covariance of an LSQ cube.
 
     The ``variance`` of :func:`extract_spectrum` ("optimal", "aperture") treats cells as
@@ -181,6 +181,11 @@ def propagate_variance(spectrum, cube_product, rate_variance=None, *, mapper=Non
     ``rate_variance`` (H, W) [unit²/px]: optional; given, N is rebuilt from it
     (:func:`~slicersim.reduction.rectify.inverse_covariance`, with ``mapper`` and the projection
     options, which must be those given to ``rectify``) — for a cube without its own.
+
+    ``noise_information``: B = PᵀWΣWP (:func:`~slicersim.reduction.rectify.noise_information` of the
+    cube's own inverse covariance) when the cube's weights W are not the pixels' inverse variance
+    (model weights): the cube's covariance is then N⁻¹BN⁻¹ and Var F̂_λ = Σ_slices zᵀ B_s z,
+    z = N_s⁻¹ u_λ (the sandwich; N⁻¹ alone under-reports as for ``method="gls"``).
     """
     from scipy.sparse.linalg import splu
 
@@ -193,6 +198,12 @@ def propagate_variance(spectrum, cube_product, rate_variance=None, *, mapper=Non
     if u is None or u.shape != np.shape(cube_product.flux)[-3:]:
         raise ParameterError("spectrum must come from extract_spectrum on this cube")
     nl, nrow, ncol = u.shape
+    if noise_information is not None:
+        from slicersim.reduction.gls_extraction import _check_noise_information
+        if rate_variance is not None:
+            raise ParameterError("noise_information goes with the cube's own inverse covariance, "
+                                 "not with rate_variance")
+        _check_noise_information(noise_information, getattr(cube_product, "inverse_covariance", None))
     if rate_variance is not None:
         info = inverse_covariance(rate_variance, mapper=mapper, field=cube_product.field,
                                   lbda_edges=cube_product.lbda_edges, ncol=ncol, oversample=oversample,
@@ -215,5 +226,9 @@ def propagate_variance(spectrum, cube_product, rate_variance=None, *, mapper=Non
         rhs[np.arange(nl * ncol), np.repeat(np.arange(nl), ncol)] = us.ravel()    # λ-major cells
         rhs = rhs[idx]
         z = splu(A[idx][:, idx].tocsc()).solve(rhs)
-        total += (rhs * z).sum(axis=0)
+        if noise_information is not None:                    # sandwich: zᵀ B z
+            Bs = noise_information.matrix(row)[idx][:, idx]
+            total += (z * (Bs @ z)).sum(axis=0)
+        else:
+            total += (rhs * z).sum(axis=0)
     return total
