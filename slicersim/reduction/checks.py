@@ -315,6 +315,8 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
         from slicersim.reduction.pipeline import WEIGHTS
         if weights not in WEIGHTS:
             raise ParameterError(f"weights must be one of {WEIGHTS}, got {weights!r}")
+        if rectify_method == "drizzle":
+            raise ParameterError("weights apply to rectify_method 'lsq' only (drizzle has no weights)")
         out["weights"] = weights
     given_dark = dark is not _UNSET
     if lbda_edges is not None or (psf is not None and not isinstance(psf, str)) or given_dark:
