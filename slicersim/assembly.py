@@ -7,6 +7,8 @@ here.
 """
 from __future__ import annotations
 
+import math
+
 from slicersim.errors import ConfigError
 from slicersim.instrument.detector import Detector
 from slicersim.instrument.mapper import SlicerMapper
@@ -61,6 +63,7 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
     if kind not in ("slicer", "mla"):
         raise ConfigError(f"unknown spectrograph kind {kind!r}: 'slicer' or 'mla'")
     cls = SlicerSpectrograph if kind == "slicer" else MLASpectrograph
+    extra = _mla_options(cfg.get("spectrograph.psf.detector", {}), ext) if kind == "mla" else {}
     if "dispersion_law" not in spc and "resolving_power" not in spc:
         raise ConfigError("configuration needs [spectrograph] dispersion_law or resolving_power")
     spectrograph = cls(spectral_range=spc.get("spectral_range", (4000.0, 17000.0)),
@@ -70,7 +73,7 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
                        throughput=thr.get("throughput", 1.0), noptics=thr.get("noptics"),
                        throughput_column=fieldpar.get("throughput_column"),
                        spatial_scale=fieldpar.get("spatial_scale", spc.get("spatial_scale", 0.04)),
-                       spatial_shape=spc.get("spatial_shape", (58, 58)), optics=optics)
+                       spatial_shape=spc.get("spatial_shape", (58, 58)), optics=optics, **extra)
     detector = Detector(qe=det.get("QE", 1.0), gain=det.get("gain", 1.0), dark=det.get("dark", 0.0),
                         roic_glow=det.get("roic_glow", 0.0), ron=det.get("ron", 0.0),
                         tframe=det.get("tframe", 2.83), pixel_size=det.get("pixel_size", 10.0),
@@ -90,6 +93,29 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
                      aperture_radius_insigma=ext.get("aperture_radius_insigma", 10.0), conventions=conventions)
     sim.config, sim.field = config, field
     return sim
+
+
+def _mla_options(xdisp, ext):
+    """The micro-lens-array spectrograph's cross-dispersion options of a configuration
+    (``[spectrograph.psf.detector]`` xdisp_sigma_spectral, xdisp_sigma [px]; ``[extraction]``
+    xdisp_width_insigma): they set the pixels a spaxel's spectrum spans (its read noise, dark and
+    full well, :func:`slicersim.physics.conventions.detector_pixels_per_cell`)."""
+    if xdisp.get("xdisp_profile", "normal") not in ("normal", None):
+        raise ConfigError(f"xdisp_profile {xdisp['xdisp_profile']!r}: only 'normal' is supported")
+    out = {}
+    for key, val, positive in (("xdisp_sigma_spectral", xdisp.get("xdisp_sigma_spectral"), False),
+                               ("xdisp_sigma", xdisp.get("xdisp_sigma"), False),
+                               ("xdisp_width_insigma", ext.get("xdisp_width_insigma"), True)):
+        if val is None:
+            continue
+        try:
+            num = float(val)
+        except (TypeError, ValueError):
+            num = math.nan
+        if isinstance(val, bool) or not math.isfinite(num) or num < 0 or (positive and num == 0):
+            raise ConfigError(f"{key} must be a finite number {'> 0' if positive else '≥ 0'}, got {val!r}")
+        out[key] = num
+    return out
 
 
 def _base_grid_range(config):
