@@ -343,3 +343,27 @@ def test_truth_compression_only_where_it_pays(tmp_path):
         assert f["truth/bias"].compression is None and f["truth/qe"].compression == "gzip"
         np.testing.assert_array_equal(f["truth/bias"][...], noisy)
         np.testing.assert_array_equal(f["truth/qe"][...], sparse)
+
+
+def test_hdf5_busy_count_is_exact_with_concurrent_writer_threads(tmp_path):
+    """The effects path writes blocks and truth from two background threads: the count of HDF5
+    calls in flight (SIGINT is held back while it is > 0) must come back to 0, never lose an
+    update, and a SIGINT held back meanwhile is delivered once the last call returns."""
+    from concurrent.futures import ThreadPoolExecutor
+    with RampWriter(tmp_path / "r.h5", 1, 2, (8, 8)) as w:
+        seen = []
+
+        def slow(i):
+            seen.append(w._busy)                    # at least this call is in flight
+            time.sleep(0.0005)
+        with ThreadPoolExecutor(4) as pool:
+            list(pool.map(lambda i: w._h5(slow, i), range(400)))
+        assert w._busy == 0 and min(seen) >= 1 and max(seen) <= 4
+        w.write_block(0, 0, np.zeros((2, 8, 8), np.uint16))
+    with pytest.raises(KeyboardInterrupt):
+        with RampWriter(tmp_path / "s.h5", 1, 2, (8, 8)) as w:
+            def interrupted():
+                w._pending_signal = (signal.SIGINT, None)        # as the handler does while busy
+            with ThreadPoolExecutor(1) as pool:
+                pool.submit(w._h5, interrupted).result()         # delivered in the worker, re-raised here
+    assert not (tmp_path / "s.h5").exists()

@@ -255,6 +255,7 @@ class AtomicH5File:
         self.overwrite = bool(overwrite)
         self._file = self._fh = self._fd = self._tmp = None
         self._busy = 0
+        self._busy_lock = threading.Lock()     # _h5 runs in background writer threads too
         self._pending_signal = self._old_handler = None
 
     @property
@@ -439,15 +440,22 @@ class AtomicH5File:
             (self._old_handler or signal.default_int_handler)(*pending)
 
     def _h5(self, func, *args):
-        self._busy += 1
+        """``func(*args)`` with SIGINT held back; callable from several threads at once (the count
+        of running HDF5 calls is updated under a lock; a held-back SIGINT is delivered when the
+        last of them returns, as KeyboardInterrupt in that thread)."""
+        with self._busy_lock:
+            self._busy += 1
         try:
             func(*args)
         except OSError as exc:
             raise self.error_class(f"writing {self.path} failed: {one_line(exc)}") from exc
         finally:
-            self._busy -= 1
+            with self._busy_lock:
+                self._busy -= 1
+                idle = self._busy == 0
         self._raise_io_error("cannot write")
-        self._deliver_pending()
+        if idle:
+            self._deliver_pending()
 
 
 # --------------------------------------------------------------------------- #
