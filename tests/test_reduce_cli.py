@@ -118,7 +118,7 @@ def test_reduce_spectra_writes_rates_cubes_and_spectra(small_layout, tmp_path, c
 
 def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     """λ edges from a text file, a given PSF (.npy), position, aperture, drizzle + optimal,
-    no background, no propagation, both fields."""
+    no background, both fields (--no-propagate, which drizzle has no use for, refused)."""
     path, _, psf = small_layout
     edges = tmp_path / "edges.txt"
     edges.write_text("# λ edges [Å]\n" + "\n".join(f"{v:.1f}" for v in np.arange(9050.0, 9951.0, 75.0)))
@@ -127,7 +127,11 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     assert main(["reduce", str(path), "--out", str(out), "--spectra", "--field", "both", "--lbda-edges", str(edges),
                  "--ncol", str(NCOL), "--rectify", "drizzle", "--extraction", "optimal", "--psf",
                  str(tmp_path / "psf.npy"), "--position", "0.7,-1.4", "--aperture", "2.5", "--no-background",
-                 "--no-propagate", "--quiet"]) == 0
+                 "--quiet"]) == 0
+    # --no-propagate concerns lsq cubes only: with drizzle it would do nothing, so it is refused
+    assert main(["reduce", str(path), "--out", str(tmp_path / "np.h5"), "--spectra", "--rectify", "drizzle",
+                 "--no-propagate", "--quiet"]) == 2
+    assert "propagate applies" in capsys.readouterr().err and not (tmp_path / "np.h5").exists()
     with h5py.File(out, "r") as fh:
         assert sorted(fh["cubes"]) == ["narrow", "wide"] and fh["cubes/narrow/FLUX"].attrs["METHOD"] == "drizzle"
         info = json.loads(fh.attrs["SPECTRUM_NARROW"])

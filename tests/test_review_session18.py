@@ -171,3 +171,22 @@ def test_mla_configuration_sets_its_cross_dispersion_strip(tmp_path):
         toml.write_text(f'[spectrograph]\nkind = "mla"\n[spectrograph.psf.detector]\n{bad}\n')
         with pytest.raises(ConfigError, match="xdisp"):
             build_simulation(["cbe", str(toml)], "narrow")
+
+
+@pytest.mark.parametrize("options, match", [
+    (dict(aperture=2.0), "aperture applies to the 'optimal' and 'aperture' extractions"),
+    (dict(aperture=2.0, extraction="gls"), "aperture applies"),
+    (dict(propagate=False), "propagate applies"),
+    (dict(propagate=True, rectify_method="drizzle"), "propagate applies"),
+    (dict(propagate=False, rectify_method="drizzle", extraction="aperture"), "propagate applies"),
+])
+def test_options_that_would_do_nothing_are_refused(options, match):
+    """Review finding: --aperture with the gls extraction (every cell is fitted) and --no-propagate with
+    gls or drizzle did nothing, silently (the CLI refuses options that do not apply)."""
+    from slicersim.reduction.checks import check_spectra_options
+    with pytest.raises(ParameterError, match=match):
+        check_spectra_options(**options)
+    # where they apply they pass
+    assert check_spectra_options(aperture=2.0, extraction="aperture")["aperture"] == 2.0
+    assert check_spectra_options(aperture=2.0, rectify_method="drizzle")["aperture"] == 2.0    # optimal
+    assert check_spectra_options(propagate=False, extraction="optimal")["propagate"] is False

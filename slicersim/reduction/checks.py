@@ -318,6 +318,15 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
         if rectify_method == "drizzle":
             raise ParameterError("weights apply to rectify_method 'lsq' only (drizzle has no weights)")
         out["weights"] = weights
+    # options that would do nothing in this reduction are refused, not ignored
+    method = out.get("rectify_method", "lsq")
+    extracted = out.get("extraction") or ("gls" if method == "lsq" else "optimal")
+    if "aperture" in out and extracted == "gls":
+        raise ParameterError("aperture applies to the 'optimal' and 'aperture' extractions (the cells they use), "
+                             "not to 'gls' (every cell of the field)")
+    if "propagate" in out and (method != "lsq" or extracted == "gls"):
+        raise ParameterError(f"propagate applies to 'optimal' or 'aperture' extraction of an lsq cube only (this "
+                             f"reduction: {extracted!r} on a {method!r} cube)")
     given_dark = dark is not _UNSET
     if lbda_edges is not None or (psf is not None and not isinstance(psf, str)) or given_dark:
         mapper = _default_mapper() if mapper is None else mapper
