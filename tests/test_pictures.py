@@ -142,6 +142,9 @@ def test_show_fields_of_a_flat():
     assert not any("aperture" in t for t in texts)
     title = fig.get_suptitle()
     assert "Lazuli3DFlat" in title and "narrow and wide" in title and "both" not in title
+    # at (16, 8, 0) the wide field's red end saturates (as the detector does): NaN cells, said in the title
+    assert any("cells saturated" in t for t in texts if t.startswith("wide"))
+    assert not any("cells saturated" in t for t in texts if t.startswith("narrow"))
     lines = [ln for ax in fig.axes for ln in ax.get_lines()]
     for field, sim in (("narrow", flat.simulation), ("wide", None)):
         if sim is None:

@@ -124,7 +124,10 @@ def _image_norm(img):
     point source: min < 10 % of max); linear for a low contrast; ±0.5 % around the value
     for a uniform image (a flat), whose rounding noise would else fill the colour bar."""
     from matplotlib.colors import AsinhNorm, Normalize
-    lo, hi = float(img.min()), float(img.max())
+    finite = np.asarray(img, float)[np.isfinite(img)]               # saturated cells are NaN
+    if finite.size == 0:
+        return Normalize(vmin=0.0, vmax=1.0)
+    lo, hi = float(finite.min()), float(finite.max())
     peak = max(abs(lo), abs(hi))
     if peak == 0 or hi - lo <= 1e-6 * peak:
         mid = 0.5 * (lo + hi)
@@ -203,12 +206,14 @@ def show_fields(target_or_sim, lbda_range=None, seed=None, savefile=None):
         for row, (data, unit, what) in enumerate(((scene, "ph/s/cell", "projected scene"),
                                                   (cube, "ADU", "noisy cube" if noisy else "signal cube"))):
             ax = axes[row, k]
-            img = data[sel].sum(axis=0)
-            im = ax.imshow(img, origin="lower", extent=extent, cmap="cividis", interpolation="nearest",
-                           aspect="equal", norm=_image_norm(img))
+            img = data[sel].sum(axis=0)                                # NaN where a bin saturates
+            saturated = int(np.count_nonzero(~np.isfinite(img)))
+            im = ax.imshow(img, origin="lower", extent=extent, interpolation="nearest", aspect="equal",
+                           cmap=plt.get_cmap("cividis").with_extremes(bad="crimson"), norm=_image_norm(img))
             im.set_gid(f"{field}:{'scene' if row == 0 else 'cube'}")
             _colorbar(fig, im, ax, f"Σλ [{unit}]")
-            ax.set_title(f"{field} field ({sim.spectrograph.spatial_scale:g}″ cells): {what}\n"
+            note = f", {saturated} cells saturated (red)" if saturated else ""
+            ax.set_title(f"{field} field ({sim.spectrograph.spatial_scale:g}″ cells): {what}{note}\n"
                          f"{lo:.0f}–{hi:.0f} Å", fontsize="medium")
             ax.set_xlabel("x along the slices [arcsec]")
             ax.set_ylabel("y across the slices [arcsec]")
