@@ -190,3 +190,27 @@ def test_options_that_would_do_nothing_are_refused(options, match):
     assert check_spectra_options(aperture=2.0, extraction="aperture")["aperture"] == 2.0
     assert check_spectra_options(aperture=2.0, rectify_method="drizzle")["aperture"] == 2.0    # optimal
     assert check_spectra_options(propagate=False, extraction="optimal")["propagate"] is False
+
+
+def test_psf_fit_starts_from_the_matched_filter_peak():
+    """A faint point source on a fine grid (58 × 116 cells, the closed loop at z = 0.8 and 116 columns per
+    slice): starting the white-light fit at the brightest single cell often starts on noise and ends
+    at a negative amplitude ("no point source found") or elsewhere; the start is now the peak of the
+    PSF-smoothed image.  Fixed seed: 18/20 fits within 0.5 cell (14/20 from the brightest cell)."""
+    from slicersim.physics.psf import cell_centres
+    from slicersim.reduction.spectrum_product import fit_gaussian_psf
+    rng = np.random.default_rng(5)
+    nl, ny, nx = 4, 58, 116
+    yy, xx = cell_centres((ny, nx))
+    x0, y0, s = 3.3, -2.1, 1.2
+    g = np.exp(-0.5 * (((xx - x0) / s) ** 2 + ((yy - y0) / s) ** 2))
+    g /= g.sum()
+    found = 0
+    for _ in range(20):
+        flux = np.stack([15.0 * g + rng.normal(0.0, 1.0, (ny, nx)) for _ in range(nl)])
+        try:
+            pos = fit_gaussian_psf(flux, np.ones_like(flux))[0]
+        except ParameterError:
+            continue
+        found += abs(pos[0] - x0) < 0.5 and abs(pos[1] - y0) < 0.5
+    assert found >= 17
