@@ -37,13 +37,19 @@ def _scene():
     return lbda, F[:, None, None] * psf + B[:, None, None], psf, F, B
 
 
-@pytest.fixture(scope="module")
-def setup():
+def noisy_scene():
+    """The small layout, :func:`_scene` projected (img), its pixel variance and one noisy draw."""
     small = small_slicer_mapper()
     lbda, cube, psf, F, B = _scene()
     img = small.project_fields(lbda, EDGES, narrow=cube)
     var = np.where(img > 0, 2e-3 + 0.01 * img, 2e-3)
     noisy = img + np.random.default_rng(5).standard_normal(img.shape) * np.sqrt(var)
+    return small, psf, F, B, img, var, noisy
+
+
+@pytest.fixture(scope="module")
+def setup():
+    small, psf, F, B, img, var, noisy = noisy_scene()
     cp = rectify(np.stack([img, noisy]), var, mapper=small, field="narrow", lbda_edges=EDGES, ncol=NCOL,
                  keep_information=True)
     return small, cp, var, psf, F, B, noisy, img

@@ -64,9 +64,9 @@ EDGES = "9050,9950,75"                      # 12 bins on the small test layout
 NCOL = 24
 
 
-@pytest.fixture(scope="module")
-def small_raw(tmp_path_factory):
-    """Raw ramps of a point source (400 e-/s per bin) in the narrow field of the small test layout."""
+def small_point_source():
+    """(mapper, λ edges [Å], PSF cube, detector image [e-/s]) of a point source (400 e-/s per bin) in the
+    narrow field of the small test layout."""
     from conftest import small_slicer_mapper
 
     from slicersim.physics.psf import gaussian_psf_cells
@@ -76,7 +76,13 @@ def small_raw(tmp_path_factory):
     sig = np.linspace(1.2, 1.8, lbda.size)
     iy, ix = np.indices((58, NCOL)).reshape(2, -1)
     psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
-    image = mapper.project_fields(lbda, edges, narrow=400.0 * psf)
+    return mapper, edges, psf, mapper.project_fields(lbda, edges, narrow=400.0 * psf)
+
+
+@pytest.fixture(scope="module")
+def small_raw(tmp_path_factory):
+    """Raw ramps of :func:`small_point_source`."""
+    mapper, edges, psf, image = small_point_source()
     path = tmp_path_factory.mktemp("small") / "raw.h5"
     simulate(image, (8, 4, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
     return path, mapper, psf

@@ -14,8 +14,7 @@ error √(2/399) = 7 %: every bin within 4 σ, the band mean within 4 σ/√nλ.
 """
 import numpy as np
 import pytest
-from conftest import small_slicer_mapper
-from test_gls_extraction import EDGES, NCOL, _scene
+from test_gls_extraction import EDGES, NCOL, noisy_scene
 
 from slicersim.errors import ParameterError
 from slicersim.reduction.rectify import noise_information, rectify
@@ -24,11 +23,7 @@ from slicersim.reduction.spectra import extract_spectrum, propagate_variance
 
 @pytest.fixture(scope="module")
 def layout():
-    small = small_slicer_mapper()
-    lbda, cube, psf, F, B = _scene()
-    img = small.project_fields(lbda, EDGES, narrow=cube)
-    var = np.where(img > 0, 2e-3 + 0.01 * img, 2e-3)
-    noisy = img + np.random.default_rng(5).standard_normal(img.shape) * np.sqrt(var)
+    small, psf, _, _, img, var, noisy = noisy_scene()
     cp = rectify(noisy, var, mapper=small, field="narrow", lbda_edges=EDGES, ncol=NCOL)
     return small, cp, var, psf, img, noisy
 
@@ -108,17 +103,12 @@ def test_reduce_exposure_propagates_the_sandwich_for_optimal_extraction(tmp_path
     """reduce_exposure(weights="model", extraction="optimal"): the propagated variance is the
     sandwich with the ramp fit's variance (it was N⁻¹ of the model weights); with weights="data"
     (W = Σ⁻¹) there is nothing to correct."""
-    from slicersim.physics.psf import gaussian_psf_cells
+    from test_reduce_cli import small_point_source
+
     from slicersim.products.ramps import simulate
     from slicersim.reduction.pipeline import reduce_exposure
-    mapper = small_slicer_mapper()
-    edges = np.arange(9050.0, 9951.0, 75.0)
-    lbda = 0.5 * (edges[1:] + edges[:-1])
-    sig = np.linspace(1.2, 1.8, lbda.size)
-    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
-    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
-    path = simulate(mapper.project_fields(lbda, edges, narrow=400.0 * psf), (8, 4, 0), seed=2, out=tmp_path / "r.h5",
-                    ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
+    mapper, edges, psf, image = small_point_source()
+    path = simulate(image, (8, 4, 0), seed=2, out=tmp_path / "r.h5", ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
     opts = dict(mapper=mapper, lbda_edges=edges, ncol=NCOL, psf=psf, extraction="optimal")
     res = reduce_exposure(path, **opts)
     spec, cube, B = res["spectra"]["narrow"], res["cubes"]["narrow"], res["noise_information"]["narrow"]
