@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import cell_centres, gaussian_psf_cells
@@ -122,11 +123,9 @@ def fit_gaussian_psf(flux, variance=None, lbda=None, position=None, nchunks=_MAX
     # start at the peak of the matched-filtered image (smoothed by a PSF-sized Gaussian, σ = 1 cell),
     # not of single cells: a faint source on a fine grid (e.g. a z = 0.8 SN Ia at 116 columns per slice)
     # loses to a noise cell, from which the fit ends at a negative amplitude
-    from scipy.ndimage import gaussian_filter
     excess = np.where(weight > 0, (white - bg) * weight, 0.0)
-    norm = gaussian_filter(weight, 1.0, mode="constant")
-    score = np.where(norm > 0, gaussian_filter(excess, 1.0, mode="constant") / np.sqrt(np.where(norm > 0, norm, 1.0)),
-                     -np.inf)
+    norm = np.sqrt(gaussian_filter(weight, 1.0, mode="constant"))                # > 0 at every used cell
+    score = gaussian_filter(excess, 1.0, mode="constant") / np.where(weight > 0, norm, 1.0)
     peak = np.unravel_index(np.argmax(np.where(weight > 0, score, -np.inf)), white.shape)
     yc, xc = cell_centres((ny, nx))
     start = [xc[peak], yc[peak], 1.0, 1.0] if position is None else [*position, 1.0, 1.0]
