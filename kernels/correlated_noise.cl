@@ -109,14 +109,16 @@ __kernel void spectral_coefficients(__global const float *restrict amp, __global
 }
 
 /*
- * assemble_group: one group's averaged correlated noise of a block of rows (twin: assemble_numpy).
+ * assemble_group: group grp's averaged correlated noise of a block of rows (twin: assemble_numpy).
  * Pixel (y, x) of the block (row y0 + y of the detector, output o = x / ncol, scan position j):
  *     sum over the (at most two) segments s whose span holds row y0 + y of
  *         win[s, p_s] * (seg[s, 0, p_s] + seg[s, 1 + o, p_s]),   p_s = (y0 + y - s*S + h)*row_len + j
  *   + lowA[y, o] + (j / row_len) * (lowA2[y, o] - lowA[y, o])          (low part, common + own)
  *   + (-1)^j * (altA[y, o] + (j / row_len) * (altA2[y, o] - altA[y, o]))  (alternating ACN, low part)
  *   + ped[o] + pf * (ey[y] + ex[x])
- * seg: (nsg, nout + 1, length) streams of segments s_first ... s_first + nsg - 1, win: (nsg, span).
+ * seg: (nsg, nout + 1, length) streams of segments s_first ... s_first + nsg - 1, win: (nsg, span);
+ * the block's arrays hold every group: lowA ... altA2 (groups, rows, nout), ped (groups, nout),
+ * pf (groups), out (groups, rows, nx); this launch fills group grp.
  */
 __kernel void assemble_group(__global const float *restrict seg, __global const float *restrict win,
                              const int s_first, const int nsg, const int nseg, const int S, const int h,
@@ -124,9 +126,9 @@ __kernel void assemble_group(__global const float *restrict seg, __global const 
                              const int ncol, const int nout, const int nx,
                              __global const float *restrict lowA, __global const float *restrict lowA2,
                              __global const float *restrict altA, __global const float *restrict altA2,
-                             __global const float *restrict ped, const float pf,
+                             __global const float *restrict ped_all, __global const float *restrict pf_all,
                              __global const float *restrict ey, __global const float *restrict ex,
-                             __global float *restrict out)
+                             __global float *restrict out_all, const int grp, const int rows)
 {
     /* work item (v, y): pixels x = v*FVW ... v*FVW + FVW - 1 of block row y, all in one output
      * (ncol % FVW == 0).  Lanes are evaluated in ascending scan position j (one vector load
@@ -136,6 +138,9 @@ __kernel void assemble_group(__global const float *restrict seg, __global const 
     const int y = get_global_id(1);
     if (x0 >= nx)
         return;
+    __global const float *restrict ped = ped_all + (size_t)grp * nout;
+    const float pf = pf_all[grp];
+    __global float *restrict out = out_all + (size_t)grp * rows * nx;
     const int o = x0 / ncol, xl0 = x0 - o * ncol;
     const int odd = o & 1;
     const int jlo = odd ? ncol - FVW - xl0 : xl0;          /* smallest scan position of the lanes */
@@ -163,7 +168,7 @@ __kernel void assemble_group(__global const float *restrict seg, __global const 
     }
     const fuint j = (fuint)(uint)jlo + FLANES;
     const ffloat t = RNG_PASTE(convert_float, FSUF)(j) / (ffloat)(float)row_len;
-    const int lo = y * nout + o;
+    const int lo = (grp * rows + y) * nout + o;
     const float a = lowA[lo], a2 = lowA2[lo], c = altA[lo], c2 = altA2[lo];
     const ffloat low = (ffloat)a + t * (ffloat)(a2 - a);
     const ffloat alt = (ffloat)c + t * (ffloat)(c2 - c);

@@ -426,10 +426,16 @@ class CorrelatedNoise:
         return s_first, x, self._windows(s_first, nsg, nseg, S, h, span)
 
     def _work_buffer(self, shape):
-        """Reusable float32 array of ``shape`` (no fresh pages, hence no page faults, per call)."""
+        """Reusable float32 array of ``shape`` (no fresh pages, hence no page faults, per call);
+        first waits for the kernel still reading it (:meth:`_assemble_block_opencl`)."""
         size = int(np.prod(shape))
+        pending = getattr(self, "_work_event", None)
+        if pending is not None:
+            pending.wait()
+            self._work_event = None
         if getattr(self, "_work", None) is None or self._work.size < size:
             self._work = np.empty(size, np.float32)
+            self._work_buffers = {}
         return self._work[:size].reshape(shape)
 
     def _windows(self, s_first, nsg, nseg, S, h, span):
@@ -471,6 +477,8 @@ class CorrelatedNoise:
         ped, pf = state["frame"]
         zeros = np.zeros((rows, nout), np.float32)
         ey, ex = np.ascontiguousarray(self._ey[y0:y1]), self._ex
+        if self.backend == "opencl":
+            return self._assemble_block_opencl(ramp, y0, y1, low, ped, pf, out)
         for grp in range(n):
             s_first, seg, win = self._segments(ramp, grp, y0, y1)
             if low is None:
@@ -481,11 +489,64 @@ class CorrelatedNoise:
                 la2 = np.ascontiguousarray((A2[1:1 + nout] + A2[0]).T)
                 aa = np.ascontiguousarray(A[1 + nout:].T)
                 aa2 = np.ascontiguousarray(A2[1 + nout:].T)
-            args = (seg, win, s_first, y0, la, la2, aa, aa2, ped[grp], float(pf[grp]), ey, ex)
-            if self.backend == "opencl":
-                assemble_opencl(self, *args, out=out[grp])
-            else:
-                assemble_numpy(self, *args, out=out[grp])
+            assemble_numpy(self, seg, win, s_first, y0, la, la2, aa, aa2, ped[grp], float(pf[grp]), ey, ex,
+                           out=out[grp])
+
+    def _assemble_block_opencl(self, ramp, y0, y1, low, ped, pf, out):
+        """OpenCL ``assemble_group`` of every group of rows y0:y1 into ``out`` (n, rows, nx): the
+        block's low-part, pedestal and picture-frame terms of all groups uploaded once, one launch
+        per group changing only its segment streams and index, one read-back at the end."""
+        g = self.geometry
+        n = self.nmd[0]
+        nout, rows = g.n_outputs, y1 - y0
+        if low is None:
+            terms = np.zeros((4, n, rows, nout), np.float32)
+        else:
+            A, A2 = low[:, :, y0:y1], low[:, :, y0 + 1:y1 + 1]                  # (streams, n, rows)
+            terms = np.stack([np.moveaxis(A[1:1 + nout] + A[0], 0, -1), np.moveaxis(A2[1:1 + nout] + A2[0], 0, -1),
+                              np.moveaxis(A[1 + nout:], 0, -1), np.moveaxis(A2[1 + nout:], 0, -1)])
+        gpu = "GPU" in opencl.device_type(opencl.get_device())
+        vw = 1 if gpu else next(v for v in (16, 8, 4, 1) if g.ncol % v == 0)      # explicit lanes on CPUs
+        kern = opencl.cached_kernel("correlated_noise.cl", "assemble_group", (f"-DFVW={vw}",))
+        small = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in
+                 (*terms, ped, pf, self._ey[y0:y1], self._ex)]
+        d_out = opencl.scratch_buffer("cn_block", out.nbytes) if gpu else opencl.host_buffer(out)
+        S, h, nseg, span, length = self._segment_geometry()
+        kern.set_args(None, None, np.int32(0), np.int32(0), np.int32(nseg), np.int32(S), np.int32(h), np.int32(span),
+                      np.int32(length), np.int32(y0), np.int32(g.row_len), np.int32(g.ncol), np.int32(nout),
+                      np.int32(g.nx), *small[:4], small[4], small[5], small[6], small[7], d_out, np.int32(0),
+                      np.int32(rows))
+        try:
+            for grp in range(n):
+                s_first, seg, win = self._segments(ramp, grp, y0, y1)
+                kern.set_arg(0, self._device_array(seg, "seg", gpu))
+                kern.set_arg(1, self._device_array(win, "win", gpu))
+                kern.set_arg(2, np.int32(s_first))
+                kern.set_arg(3, np.int32(seg.shape[0]))
+                kern.set_arg(23, np.int32(grp))
+                self._work_event = opencl.launch_prepared(kern, (g.nx // vw, rows))
+        finally:
+            if getattr(self, "_work_event", None) is not None:
+                self._work_event.wait()
+                self._work_event = None
+        if gpu:
+            opencl.from_device(out, d_out)
+        else:
+            opencl.sync_to_host(d_out, out)
+        return out
+
+    def _device_array(self, array, tag, gpu):
+        """Buffer of a segment work array or window stack: on CPUs the array itself (zero copy; one
+        buffer per array kept while the array lives), on GPUs a copy in a reused device buffer."""
+        if gpu:
+            return opencl.to_device(np.ascontiguousarray(array), opencl.scratch_buffer(f"cn_{tag}", array.nbytes))
+        cache = self.__dict__.setdefault("_work_buffers", {})
+        key = (array.__array_interface__["data"][0], array.nbytes)
+        if key not in cache:
+            if len(cache) > 64:
+                cache.clear()
+            cache[key] = (array, opencl.host_buffer(array))
+        return cache[key][1]
 
     # ------------------------------------------------------------------ public
     def block(self, ramp, y0, y1):
@@ -560,21 +621,20 @@ def assemble_numpy(gen, seg, win, s_first, y0, la, la2, aa, aa2, ped, pf, ey, ex
 
 
 def assemble_opencl(gen, seg, win, s_first, y0, la, la2, aa, aa2, ped, pf, ey, ex, out):
-    """OpenCL ``assemble_group`` into ``out`` (C-contiguous float32 (rows, nx)), zero-copy on CPUs."""
+    """OpenCL ``assemble_group`` of one group into ``out`` (C-contiguous float32 (rows, nx)), with the
+    arguments of :func:`assemble_numpy` (the kernel's group-indexed arrays holding one group)."""
     g = gen.geometry
     S, h, nseg, span, length = gen._segment_geometry()
     rows = out.shape[0]
-    vw = 1
-    if "GPU" not in opencl.device_type(opencl.get_device()):     # explicit lanes on CPUs
-        vw = next(v for v in (16, 8, 4, 1) if g.ncol % v == 0)
+    gpu = "GPU" in opencl.device_type(opencl.get_device())
+    vw = 1 if gpu else next(v for v in (16, 8, 4, 1) if g.ncol % v == 0)
     kern = opencl.cached_kernel("correlated_noise.cl", "assemble_group", (f"-DFVW={vw}",))
-    bufs = [opencl.host_buffer(np.ascontiguousarray(a, np.float32)) for a in (seg, win)]
-    small = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in (la, la2, aa, aa2, ped)]
-    d_ey, d_ex = opencl.to_device(np.ascontiguousarray(ey, np.float32)), opencl.to_device(ex)
-    d_out = opencl.host_buffer(out)
+    bufs = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in (seg, win)]
+    small = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in
+             (la, la2, aa, aa2, ped, np.array([pf], np.float32), ey, ex)]
+    d_out = opencl.workspace_buffer(None, "cn_out", out.nbytes)
     opencl.launch(kern, (g.nx // vw, rows), None, *bufs, np.int32(s_first), np.int32(seg.shape[0]), np.int32(nseg),
                   np.int32(S), np.int32(h), np.int32(span), np.int32(length), np.int32(y0), np.int32(g.row_len),
-                  np.int32(g.ncol), np.int32(g.n_outputs), np.int32(g.nx), *small, np.float32(pf), d_ey, d_ex,
-                  d_out)
-    opencl.sync_to_host(d_out, out)
+                  np.int32(g.ncol), np.int32(g.n_outputs), np.int32(g.nx), *small, d_out, np.int32(0), np.int32(rows))
+    opencl.from_device(out, d_out)
     return out

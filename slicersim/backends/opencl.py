@@ -408,6 +408,14 @@ def from_device_nowait(array, buffer):
     return _cl().enqueue_copy(get_queue(), array, buffer, is_blocking=False)
 
 
+def launch_prepared(kernel, global_size, local_size=None):
+    """Enqueue *kernel* with the arguments already set on it (``kernel.set_args`` / ``set_arg``:
+    a launch that changes a few of many arguments skips pyopencl's per-call argument set-up);
+    returns the event."""
+    return _cl().enqueue_nd_range_kernel(get_queue(), kernel, tuple(global_size),
+                                         None if local_size is None else tuple(local_size))
+
+
 def launch(kernel, global_size, local_size, *args):
     """Enqueue *kernel* on the process queue; returns the event."""
     return kernel(get_queue(), tuple(global_size), None if local_size is None else tuple(local_size), *args)
