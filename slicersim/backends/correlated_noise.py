@@ -65,6 +65,9 @@ FFT_WORKERS = 2
 #: bytes of synthesised segments kept between row blocks (a segment spans several blocks of the
 #: ramp driver: each is synthesised once when the blocks come in order)
 CACHE_BYTES = 2**28
+#: bytes of segment streams synthesised together (spectral draws of several groups in one launch and
+#: one FFT call over all their rows)
+SYNTH_BYTES = 2**25
 _VW = 16                    # Philox blocks per work item on CPUs (AVX-512 lanes of floats)
 
 
@@ -381,39 +384,84 @@ class CorrelatedNoise:
                 w *= np.cos(0.25 * np.pi * (1.0 + u))
         return w.astype(np.float32)
 
-    def _segments(self, ramp, group, y0, y1):
+    def _segment_span(self, y0, y1):
+        """(first, last) segment whose spans overlap rows y0:y1."""
+        S, h, nseg, span, length = self._segment_geometry()
+        return max(0, (y0 - h) // S), min(nseg - 1, (y1 - 1 + h) // S)
+
+    def _first_sample(self, s, y):
+        """First sample of segment s that rows ≥ y use."""
+        return max(0, (y - int(s) * self.segment_rows + self.taper_rows) * self.geometry.row_len)
+
+    def _missing_segments(self, ramp, group, y0, y1):
+        """Segments of rows y0:y1 of ``group`` not in the cache (from the samples those rows use)."""
+        s_first, s_last = self._segment_span(y0, y1)
+        cache = self._segment_cache
+        return np.array([s for s in range(s_first, s_last + 1)
+                         if (ramp, group, s) not in cache or cache[(ramp, group, s)][0] > self._first_sample(s, y0)],
+                        dtype=np.int64)
+
+    def _synthesize_segments(self, ramp, todo):
+        """{group: float32 (len(missing), n_out + 1, length)} streams of the segments ``missing`` of each
+        (group, missing) in ``todo``, from one batch of spectral draws and one batched FFT."""
+        g = self.geometry
+        nout = g.n_outputs
+        length = self._segment_geometry()[4]
+        one = np.array([0] + [1] * nout)
+        one_streams = np.array([_stream("high_common")] + [_stream("high_own", o) for o in range(nout)])
+        count = sum(m.size for _, m in todo)
+        kind = np.tile(one, count)
+        streams = np.tile(one_streams, count)
+        draw = np.concatenate([np.repeat((int(grp) << 16) | m, nout + 1) for grp, m in todo])
+        new = self._synthesize(self._high_amplitudes(length), length, kind, np.full(kind.size, ramp), streams, draw)
+        new = new.reshape(count, nout + 1, length)
+        out, i = {}, 0
+        for grp, m in todo:
+            out[grp] = new[i:i + m.size]
+            i += m.size
+        return out
+
+    def _group_batches(self, ramp, y0, y1):
+        """Yield (group, synthesised missing segments or None) for every group, the missing segments of
+        up to ``SYNTH_BYTES`` of streams drawn and transformed together (one launch, one FFT call
+        over many rows: the FFT's threads share the work)."""
+        n = self.nmd[0]
+        nout = self.geometry.n_outputs
+        length = self._segment_geometry()[4]
+        per_group = 2 * (nout + 1) * length * 4
+        batch = int(max(1, SYNTH_BYTES // per_group))
+        for b0 in range(0, n, batch):
+            groups = range(b0, min(n, b0 + batch))
+            todo = [(grp, self._missing_segments(ramp, grp, y0, y1)) for grp in groups]
+            todo = [(grp, m) for grp, m in todo if m.size]
+            fresh = self._synthesize_segments(ramp, todo) if todo else {}
+            for grp in groups:
+                yield grp, fresh.get(grp)
+
+    def _segments(self, ramp, group, y0, y1, new=None):
         """(first segment, segment streams float32 (nsg, n_out + 1, length), windows (nsg, span))
         of the segments whose spans overlap rows y0:y1 (stream 0 common, 1 + o output o's own).
 
-        Only the samples of rows y0:y1 are filled in (the assembly reads no others); the array
-        is this generator's reusable work buffer, valid until the next call."""
+        ``new``: the streams of this group's missing segments (:meth:`_synthesize_segments`), or
+        None to synthesise them here.  Only the samples of rows y0:y1 are filled in (the assembly
+        reads no others); the array is this generator's reusable work buffer, valid until the
+        next call."""
         g = self.geometry
         S, h, nseg, span, length = self._segment_geometry()
         nout = g.n_outputs
-        s_first = max(0, (y0 - h) // S)
-        s_last = min(nseg - 1, (y1 - 1 + h) // S)
-        segs = np.arange(s_first, s_last + 1)
-        nsg = segs.size
-        rl = g.row_len
+        s_first, s_last = self._segment_span(y0, y1)
+        nsg = s_last - s_first + 1
         cache = self._segment_cache
-
-        def first_sample(s, y):                      # first sample of segment s that rows ≥ y use
-            return max(0, (y - int(s) * S + h) * rl)
+        first_sample = self._first_sample
 
         def used(s):                                 # samples of segment s that rows y0:y1 use
-            return first_sample(s, y0), min(span, (y1 - int(s) * S + h) * rl)
-        hit = {int(s): cache[(ramp, group, int(s))] for s in segs if (ramp, group, int(s)) in cache
-               and cache[(ramp, group, int(s))][0] <= first_sample(s, y0)}
-        missing = np.array([s for s in segs if int(s) not in hit], dtype=np.int64)
+            return first_sample(s, y0), min(span, (y1 - int(s) * S + h) * g.row_len)
+        missing = self._missing_segments(ramp, group, y0, y1)
+        hit = {s: cache[(ramp, group, s)] for s in range(s_first, s_last + 1) if s not in set(missing.tolist())}
         x = self._work_buffer((nsg, nout + 1, length))
         if missing.size:
-            kind = np.tile(np.array([0] + [1] * nout), missing.size)
-            streams = np.tile(np.array([_stream("high_common")] + [_stream("high_own", o) for o in range(nout)]),
-                              missing.size)
-            draw = np.repeat((int(group) << 16) | missing, nout + 1)
-            amp = self._high_amplitudes(length)
-            new = self._synthesize(amp, length, kind, np.full(kind.size, ramp), streams, draw)
-            new = new.reshape(missing.size, nout + 1, length)
+            if new is None:
+                new = self._synthesize_segments(ramp, [(group, missing)])[group]
             for s, streams_s in zip(missing, new):
                 lo, hi = used(s)
                 x[s - s_first, :, lo:hi] = streams_s[:, lo:hi]
@@ -479,8 +527,8 @@ class CorrelatedNoise:
         ey, ex = np.ascontiguousarray(self._ey[y0:y1]), self._ex
         if self.backend == "opencl":
             return self._assemble_block_opencl(ramp, y0, y1, low, ped, pf, out)
-        for grp in range(n):
-            s_first, seg, win = self._segments(ramp, grp, y0, y1)
+        for grp, new in self._group_batches(ramp, y0, y1):
+            s_first, seg, win = self._segments(ramp, grp, y0, y1, new)
             if low is None:
                 la = la2 = aa = aa2 = zeros
             else:
@@ -517,8 +565,8 @@ class CorrelatedNoise:
                       np.int32(g.nx), *small[:4], small[4], small[5], small[6], small[7], d_out, np.int32(0),
                       np.int32(rows))
         try:
-            for grp in range(n):
-                s_first, seg, win = self._segments(ramp, grp, y0, y1)
+            for grp, new in self._group_batches(ramp, y0, y1):
+                s_first, seg, win = self._segments(ramp, grp, y0, y1, new)
                 kern.set_arg(0, self._device_array(seg, "seg", gpu))
                 kern.set_arg(1, self._device_array(win, "win", gpu))
                 kern.set_arg(2, np.int32(s_first))

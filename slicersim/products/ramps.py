@@ -141,9 +141,10 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     noise_ahead = None
     try:
         if fx is not None:
-            plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge, noise_cache_bytes=noise_cache)
-            if plan.noise is not None:       # the first row block's correlated noise starts now, beside the set-up
-                noise_ahead = _NoiseAhead(plan, rows, ny)
+            # the correlated noise of the first row block starts in the plan, beside the rest of the set-up
+            plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge, noise_cache_bytes=noise_cache,
+                               noise_rows=rows)
+            noise_ahead = plan.noise_ahead
             rate, dark_arr, no_charge, flags = plan.rate_and_dark(rate, dark_arr, dead)
             flags[dead] |= np.uint32(DQ["DEAD"] | DQ["DO_NOT_USE"])              # the user's dead pixels
             pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
@@ -298,63 +299,6 @@ class _Background:
                 pool.shutdown(wait=True)
         if error is not None and raise_error:
             raise error
-
-
-class _NoiseAhead:
-    """The read-domain noise of the effects path (:meth:`EffectsPlan.read_noise_block`) computed
-    ``depth`` row blocks ahead, in a thread with its own OpenCL queue: the next blocks' correlated
-    noise (spectral draws, FFTs, assembly) is synthesised while this block's charge and readout
-    kernels run.  Blocks must be taken in the driver's order (ramp by ramp, rows ascending)."""
-
-    def __init__(self, plan, rows, ny, depth=1):
-        from concurrent.futures import ThreadPoolExecutor
-        self.plan, self.rows, self.ny, self.depth = plan, rows, ny, int(depth)
-        self.nramps = plan.p.nramps
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="slicersim-noise")
-        self._ahead = []                                   # [((ramp, y0, y1), future)] in order
-
-    def _compute(self, ramp, y0, y1):
-        from slicersim.backends import opencl
-        if self.plan.noise.backend != "opencl":
-            return self.plan.read_noise_block(ramp, y0, y1)
-        with opencl.private_queue():
-            return self.plan.read_noise_block(ramp, y0, y1)
-
-    def _next(self, ramp, y0, y1):
-        if y1 < self.ny:
-            return ramp, y1, min(self.ny, y1 + self.rows)
-        return (ramp + 1, 0, min(self.ny, self.rows)) if ramp + 1 < self.nramps else None
-
-    def take(self, ramp, y0, y1):
-        """Noise of rows [y0, y1) of ``ramp`` (n, y1 − y0, nx) float32 or None; starts the following
-        blocks'."""
-        key = (ramp, y0, y1)
-        if not self._ahead or self._ahead[0][0] != key:
-            self._drain()
-            self._ahead = [(key, self._pool.submit(self._compute, *key))]
-        out = self._ahead.pop(0)[1].result()
-        last = self._ahead[-1][0] if self._ahead else key
-        while len(self._ahead) < self.depth:
-            last = self._next(*last)
-            if last is None:
-                break
-            self._ahead.append((last, self._pool.submit(self._compute, *last)))
-        return out
-
-    def _drain(self):
-        for _, future in self._ahead:
-            future.cancel()
-        for _, future in self._ahead:
-            try:
-                if not future.cancelled():
-                    future.result()
-            except BaseException:                  # noqa: BLE001 - a failure ahead of a stop is moot
-                pass
-        self._ahead = []
-
-    def close(self):
-        self._drain()
-        self._pool.shutdown(wait=True)
 
 
 def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs, noise):
