@@ -316,62 +316,12 @@ def test_background_write_error_reaches_the_caller(tmp_path, monkeypatch):
     assert not (tmp_path / "c.h5").exists()
 
 
-def _noise_threads():
-    import threading
-    return [t for t in threading.enumerate() if t.name.startswith("slicersim-noise") and t.is_alive()]
-
-
-def test_noise_computed_ahead_crosses_ramps_and_blocks():
-    """The correlated noise is synthesised one row block ahead in its own thread (and OpenCL queue):
-    two ramps in many small blocks give the NumPy backend's integers, and no noise thread survives."""
+def test_correlated_noise_across_ramps_and_small_blocks():
+    """The correlated noise's segment cache across row blocks and ramps: two ramps in many small
+    blocks give the NumPy backend's integers (one block per call there)."""
     rate = _rate(ny=40)
     kw = dict(seed=9, effects="lazuli", progress=False, nramps=2, return_dq=True)
     ref = simulate(rate, NMD, backend="numpy", **kw)
     got = simulate(rate, NMD, backend="opencl", memory_budget=128 * 200 * 50, **kw)
     assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
     assert not np.array_equal(got[0][0], got[0][1])                       # the two ramps differ
-    assert not _noise_threads()
-
-
-def test_noise_thread_error_reaches_the_caller(tmp_path, monkeypatch):
-    """An error in the noise computed ahead (third block) is raised by simulate; the file is not
-    published and the noise thread is stopped."""
-    from slicersim.backends.correlated_noise import CorrelatedNoise
-    calls = []
-    block = CorrelatedNoise.block
-
-    def failing(self, ramp, y0, y1):
-        calls.append(y0)
-        if len(calls) == 3:
-            raise MemoryError("noise buffer (test)")
-        return block(self, ramp, y0, y1)
-    monkeypatch.setattr(CorrelatedNoise, "block", failing)
-    with pytest.raises(MemoryError, match="noise buffer"):
-        simulate(_rate(), NMD, seed=5, effects="lazuli", progress=False, memory_budget=128 * 200 * 20,
-                 out=tmp_path / "n.h5")                                  # 10-row blocks
-    assert not (tmp_path / "n.h5").exists() and len(calls) == 3
-    assert not _noise_threads()
-
-
-def test_private_queue_runs_beside_the_process_queue():
-    """opencl.private_queue: a thread's kernels go to its own queue (same results), the process queue
-    is unchanged for other threads and restored on exit."""
-    import threading
-    from slicersim.backends import opencl
-    from slicersim.backends.noise import uniform_normal_grid
-    main_queue = opencl.get_queue()
-    ref = uniform_normal_grid(8, 64, 3, 1)[1].copy()
-    seen = {}
-
-    def worker():
-        with opencl.private_queue() as q:
-            seen["inside"] = opencl.get_queue()
-            seen["queue"] = q
-            seen["normals"] = uniform_normal_grid(8, 64, 3, 1)[1].copy()
-        seen["after"] = opencl.get_queue()
-    t = threading.Thread(target=worker)
-    t.start()
-    t.join()
-    assert seen["inside"] is seen["queue"] and seen["queue"] is not main_queue
-    assert seen["after"] is main_queue and opencl.get_queue() is main_queue
-    assert np.array_equal(seen["normals"], ref)

@@ -207,40 +207,9 @@ def get_context():
     return _ensure()["ctx"]
 
 
-_thread = threading.local()
-
-
 def get_queue():
-    """The in-order command queue of this thread: the process-wide one, or inside
-    :func:`private_queue` this thread's own."""
-    state = _ensure()
-    own = getattr(_thread, "queue", None)
-    if own is not None and own[0] is state["ctx"]:
-        return own[1]
-    return state["queue"]
-
-
-class private_queue:
-    """Context manager: this thread's kernels and copies go to a queue of its own (same context
-    and device), so that they run beside the other threads' work instead of behind it in the
-    process-wide in-order queue.  Buffers are shared; a host array written by this thread's
-    kernels is complete once its :func:`sync_to_host` returns (in this thread)."""
-
-    def __enter__(self):
-        state = _ensure()
-        own = getattr(_thread, "queue", None)
-        if own is None or own[0] is not state["ctx"]:
-            _thread.queue = (state["ctx"], _cl().CommandQueue(state["ctx"], state["device"]))
-        self._previous = getattr(_thread, "active", False)
-        _thread.active = True
-        return _thread.queue[1]
-
-    def __exit__(self, *exc):
-        _thread.queue[1].finish()
-        _thread.active = self._previous
-        if not self._previous:
-            _thread.queue = None
-        return False
+    """The process-wide in-order command queue."""
+    return _ensure()["queue"]
 
 
 def get_device():

@@ -23,7 +23,7 @@ import numpy as np
 
 from slicersim.errors import EffectsError
 
-__all__ = ["EffectsPlan", "NoiseAhead", "CR_DTYPE", "resolve_effects"]
+__all__ = ["EffectsPlan", "CR_DTYPE", "resolve_effects"]
 
 #: one row per pixel crossed (or per persistence release): full-detector y, x; frame from the reset
 CR_DTYPE = np.dtype([("ramp", "<u4"), ("frame", "<u4"), ("y", "<u2"), ("x", "<u2"), ("electrons", "<f4")])
@@ -60,12 +60,9 @@ class EffectsPlan:
     effects : DetectorEffects;  p : RampParameters;  seed : int;  shape : (ny, nx)
     previous_charge : (ny, nx) [e-] charge of the previous exposure (persistence), or None
     noise_cache_bytes : bytes the correlated noise may keep between row blocks (None: its default)
-    noise_rows : rows per block of the ramp driver: the correlated noise is then computed a block
-        ahead by :attr:`noise_ahead` (a :class:`NoiseAhead`, started here, before the bad-pixel maps;
-        the caller closes it), else None
     """
 
-    def __init__(self, effects, p, seed, shape, previous_charge=None, noise_cache_bytes=None, noise_rows=None):
+    def __init__(self, effects, p, seed, shape, previous_charge=None, noise_cache_bytes=None):
         self.effects, self.p, self.seed, self.shape = effects, p, int(seed), tuple(shape)
         self.on = set(effects.enabled)
         ny, nx = self.shape
@@ -93,6 +90,10 @@ class EffectsPlan:
         if "reference_pixels" in self.on:
             from slicersim.physics.reference_pixels import reference_pixel_mask
             self.reference = reference_pixel_mask(self.shape, effects.params("reference_pixels").border)
+        self.bad = None
+        if "bad_pixels" in self.on:
+            from slicersim.physics.bad_pixels import bad_pixel_maps
+            self.bad = bad_pixel_maps(self.seed, self.shape, effects.params("bad_pixels"))
         self.bias = None
         if "reference_pixels" in self.on:
             from slicersim.physics.reference_pixels import bias_map
@@ -111,18 +112,6 @@ class EffectsPlan:
         self._deposits = {}
         self._telegraph = {}
         self.nx = nx
-        self.noise_ahead = None
-        if self.noise is not None and noise_rows is not None:
-            self.noise_ahead = NoiseAhead(self, int(noise_rows), ny)
-        self.bad = None
-        if "bad_pixels" in self.on:
-            from slicersim.physics.bad_pixels import bad_pixel_maps
-            try:
-                self.bad = bad_pixel_maps(self.seed, self.shape, effects.params("bad_pixels"))
-            except BaseException:
-                if self.noise_ahead is not None:
-                    self.noise_ahead.close()
-                raise
 
     @staticmethod
     def truth_nbytes(effects, p, shape):
@@ -221,12 +210,11 @@ class EffectsPlan:
         return deposits_csr((y1 - y0) * self.nx, local, sel["frame"], sel["electrons"].astype(np.float64))
 
     # ------------------------------------------------------------------ voltage domain
-    def read_noise_block(self, ramp, y0, y1, correlated=None):
-        """Group-averaged read-domain noise [e-] (n, y1−y0, nx) float32 (correlated + telegraph), or None;
-        ``correlated``: the correlated noise of those rows when already computed (:class:`NoiseAhead`)."""
+    def read_noise_block(self, ramp, y0, y1):
+        """Group-averaged read-domain noise [e-] (n, y1−y0, nx) float32 (correlated + telegraph), or None."""
         out = None
         if self.noise is not None:
-            out = np.asarray(self.noise.block(ramp, y0, y1) if correlated is None else correlated, np.float32)
+            out = np.asarray(self.noise.block(ramp, y0, y1), np.float32)
         if self.bad is not None and len(self.bad.get("telegraph", ())):
             offsets, ys, xs = self._telegraph_offsets(ramp)
             sel = (ys >= y0) & (ys < y1)
@@ -335,61 +323,3 @@ class _RowBlocks:
         rows = key[1] if isinstance(key, tuple) and len(key) >= 2 else slice(None)
         y0, y1, _ = rows.indices(self.shape[1])
         return self.rows(y0, y1)
-
-
-class NoiseAhead:
-    """The correlated read noise of an :class:`EffectsPlan` computed ``depth`` row blocks ahead, in a
-    thread with its own OpenCL queue: the next blocks' noise (spectral draws, FFTs, assembly) is
-    synthesised while this block's charge and readout kernels run.  :meth:`take` returns
-    :meth:`EffectsPlan.read_noise_block` (telegraph offsets added in the caller's thread).  Blocks
-    must be taken in the driver's order (ramp by ramp, rows ascending)."""
-
-    def __init__(self, plan, rows, ny, depth=1):
-        from concurrent.futures import ThreadPoolExecutor
-        self.plan, self.rows, self.ny, self.depth = plan, rows, ny, int(depth)
-        self.nramps = plan.p.nramps
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="slicersim-noise")
-        self._ahead = []                                   # [((ramp, y0, y1), future)] in order
-
-    def _compute(self, ramp, y0, y1):
-        from slicersim.backends import opencl
-        if self.plan.noise.backend != "opencl":
-            return self.plan.noise.block(ramp, y0, y1)
-        with opencl.private_queue():
-            return self.plan.noise.block(ramp, y0, y1)
-
-    def _next(self, ramp, y0, y1):
-        if y1 < self.ny:
-            return ramp, y1, min(self.ny, y1 + self.rows)
-        return (ramp + 1, 0, min(self.ny, self.rows)) if ramp + 1 < self.nramps else None
-
-    def take(self, ramp, y0, y1):
-        """Noise of rows [y0, y1) of ``ramp`` (n, y1 − y0, nx) float32 or None; starts the following
-        blocks'."""
-        key = (ramp, y0, y1)
-        if not self._ahead or self._ahead[0][0] != key:
-            self._drain()
-            self._ahead = [(key, self._pool.submit(self._compute, *key))]
-        out = self.plan.read_noise_block(ramp, y0, y1, correlated=self._ahead.pop(0)[1].result())
-        last = self._ahead[-1][0] if self._ahead else key
-        while len(self._ahead) < self.depth:
-            last = self._next(*last)
-            if last is None:
-                break
-            self._ahead.append((last, self._pool.submit(self._compute, *last)))
-        return out
-
-    def _drain(self):
-        for _, future in self._ahead:
-            future.cancel()
-        for _, future in self._ahead:
-            try:
-                if not future.cancelled():
-                    future.result()
-            except BaseException:                  # noqa: BLE001 - a failure ahead of a stop is moot
-                pass
-        self._ahead = []
-
-    def close(self):
-        self._drain()
-        self._pool.shutdown(wait=True)

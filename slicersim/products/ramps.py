@@ -21,7 +21,6 @@ count.  The OpenCL kernels are in ``kernels/ramp.cl``;
 """
 from __future__ import annotations
 
-import functools
 import math
 import os
 
@@ -138,133 +137,120 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     plan, rate_in = None, rate
     dq_dead = dead                                   # pixels flagged DEAD in PIXELDQ
     dark_mean = float(np.mean(dark_arr))             # the detector's dark: hot/warm pixels' extra dark is truth
-    noise_ahead = None
-    try:
-        if fx is not None:
-            # the correlated noise of the first row block starts in the plan, beside the rest of the set-up
-            plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge, noise_cache_bytes=noise_cache,
-                               noise_rows=rows)
-            noise_ahead = plan.noise_ahead
-            rate, dark_arr, no_charge, flags = plan.rate_and_dark(rate, dark_arr, dead)
-            flags[dead] |= np.uint32(DQ["DEAD"] | DQ["DO_NOT_USE"])              # the user's dead pixels
-            pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
-            dead, flags, no_charge = dead | no_charge, None, None
-        mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
-        rate = dark_arr = None                           # the effects' copies: not needed past mu
-        backend = resolve_backend(backend)
-        block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
-        kwargs = {}
-        if backend == "opencl":
-            kwargs = {"work_group": work_group, "want_dq": out is not None or return_dq, "workspace": {}}
-        nsteps = p.nramps * -(-ny // rows)
-        steps = ((r, y0) for r in range(p.nramps) for y0 in range(0, ny, rows))     # lazy: nramps may be huge
-        if progress is None:
-            progress = nsteps > 4
-        iterator = steps
-        if progress:
-            from tqdm.auto import tqdm
-            iterator = tqdm(steps, desc="ramps", unit="block", total=nsteps)
-        attrs = p.attrs(seed)
-        attrs.update({"SOFTWARE": "slicersim", "VERSION": _version(), "BACKEND": backend,
-                      "CONFIG": config if config is not None else {}, "DARK": dark_mean,
-                      "THERMAL_DARK": thermal_dark, "ROIC_GLOW": roic_glow, "KTC_NOISE": ktc_noise})
-        result = None if out is not None else np.empty((p.nramps, n, ny, nx), np.uint16)
-        result_dq = np.empty((p.nramps, n, ny, nx), np.uint8) if (out is None and return_dq) else None
-        if writer is not None:
-            writer.attrs = attrs
+    if fx is not None:
+        plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge, noise_cache_bytes=noise_cache)
+        rate, dark_arr, no_charge, flags = plan.rate_and_dark(rate, dark_arr, dead)
+        flags[dead] |= np.uint32(DQ["DEAD"] | DQ["DO_NOT_USE"])              # the user's dead pixels
+        pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
+        dead, flags, no_charge = dead | no_charge, None, None
+    mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
+    rate = dark_arr = None                           # the effects' copies: not needed past mu
+    backend = resolve_backend(backend)
+    block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
+    kwargs = {}
+    if backend == "opencl":
+        kwargs = {"work_group": work_group, "want_dq": out is not None or return_dq, "workspace": {}}
+    nsteps = p.nramps * -(-ny // rows)
+    steps = ((r, y0) for r in range(p.nramps) for y0 in range(0, ny, rows))     # lazy: nramps may be huge
+    if progress is None:
+        progress = nsteps > 4
+    iterator = steps
+    if progress:
+        from tqdm.auto import tqdm
+        iterator = tqdm(steps, desc="ramps", unit="block", total=nsteps)
+    attrs = p.attrs(seed)
+    attrs.update({"SOFTWARE": "slicersim", "VERSION": _version(), "BACKEND": backend,
+                  "CONFIG": config if config is not None else {}, "DARK": dark_mean,
+                  "THERMAL_DARK": thermal_dark, "ROIC_GLOW": roic_glow, "KTC_NOISE": ktc_noise})
+    result = None if out is not None else np.empty((p.nramps, n, ny, nx), np.uint16)
+    result_dq = np.empty((p.nramps, n, ny, nx), np.uint8) if (out is None and return_dq) else None
+    if writer is not None:
+        writer.attrs = attrs
 
-        if plan is not None:
-            attrs["EFFECTS"] = fx.to_config()
+    if plan is not None:
+        attrs["EFFECTS"] = fx.to_config()
 
-        buffers = []
+    buffers = []
 
-        def block_buffers(size):
-            if not buffers:
-                buffers.extend([np.empty(size, np.uint16), np.empty(size, np.uint8)])
-            return buffers
+    def block_buffers(size):
+        if not buffers:
+            buffers.extend([np.empty(size, np.uint16), np.empty(size, np.uint8)])
+        return buffers
 
-        def run(w):
-            nonlocal pixeldq
-            if w is not None:
-                w.write_pixeldq(_pixeldq(pixeldq, dq_dead, rate_in.shape))
-                if truth:
-                    w.write_truth(rate_in)
-            pixeldq = None                                   # written: 4 B per pixel less in the blocks
-            # effects into an HDF5 file: their truth (mostly single-threaded NumPy) and the HDF5 writes of
-            # the blocks run in two background threads while this one computes the next blocks
-            background = _Background() if (plan is not None and isinstance(w, RampWriter)) else None
-            try:
-                run_blocks(w, background)
-            except BaseException:
-                if background is not None:
-                    background.finish(raise_error=False)         # the file is aborted after the lanes stop
-                raise
+    def run(w):
+        nonlocal pixeldq
+        if w is not None:
+            w.write_pixeldq(_pixeldq(pixeldq, dq_dead, rate_in.shape))
+            if truth:
+                w.write_truth(rate_in)
+        pixeldq = None                                   # written: 4 B per pixel less in the blocks
+        # effects into an HDF5 file: their truth (mostly single-threaded NumPy) and the HDF5 writes of
+        # the blocks run in two background threads while this one computes the next blocks
+        background = _Background() if (plan is not None and isinstance(w, RampWriter)) else None
+        try:
+            run_blocks(w, background)
+        except BaseException:
             if background is not None:
-                background.finish()
+                background.finish(raise_error=False)         # the file is aborted after the lanes stop
+            raise
+        if background is not None:
+            background.finish()
 
-        def run_blocks(w, background):
-            if plan is not None and background is not None:
-                # the bad-pixel maps first, here, then freed (3 × 4 B per pixel less while the blocks run);
-                # the rest of the truth in the background
-                if truth:
-                    plan.write_truth(w, p.nramps, part="maps")
-                plan.drop_photo_maps()
-                if truth:
-                    background.submit("truth", plan.write_truth, w, p.nramps, "rest")
-            elif plan is not None:
-                if w is not None and truth:
-                    plan.write_truth(w, p.nramps)
-                plan.drop_photo_maps()                   # used by rate_and_dark and the truth only
-            loop_blocks(w, background, noise_ahead)
-
-        def loop_blocks(w, background, noise):
-            for ramp, y0 in iterator:
-                y1 = min(ny, y0 + rows)
-                if plan is not None:
-                    extra = (functools.partial(noise.take, ramp, y0, y1) if noise is not None
-                             else plan.read_noise_block(ramp, y0, y1))
-                    sci, gdq = _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs, extra)
-                    if background is not None:               # fresh arrays each block: handed over
-                        background.submit("write", w.write_block, ramp, y0, sci, gdq)
-                    elif w is not None:
-                        w.write_block(ramp, y0, sci, gdq)
-                    else:
-                        result[ramp, :, y0:y1] = sci
-                        if result_dq is not None:
-                            result_dq[ramp, :, y0:y1] = gdq
-                    continue
-                direct = {}
-                if w is None and backend == "opencl" and y0 == 0 and y1 == ny:     # whole ramp: no copy
-                    direct = {"sci_out": result[ramp].reshape(n, -1)}
-                    if result_dq is not None:
-                        direct["gdq_out"] = result_dq[ramp].reshape(n, -1)
-                elif w is not None and backend == "opencl":      # one pair of host buffers for every block
-                    npix = (y1 - y0) * nx
-                    sci_buf, gdq_buf = block_buffers(n * rows * nx)
-                    reused = {"sci_out": sci_buf[:n * npix].reshape(n, npix),
-                              "gdq_out": gdq_buf[:n * npix].reshape(n, npix)}
-                    sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **reused)
-                    w.write_block(ramp, y0, sci.reshape(n, y1 - y0, nx), gdq.reshape(n, y1 - y0, nx))
-                    continue
-                sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **direct)
-                if direct:
-                    continue
-                sci = sci.reshape(n, y1 - y0, nx)
-                if w is not None:
-                    w.write_block(ramp, y0, sci, gdq.reshape(n, y1 - y0, nx))
+    def run_blocks(w, background):
+        if plan is not None and background is not None:
+            # the bad-pixel maps first, here, then freed (3 × 4 B per pixel less while the blocks run);
+            # the rest of the truth in the background
+            if truth:
+                plan.write_truth(w, p.nramps, part="maps")
+            plan.drop_photo_maps()
+            if truth:
+                background.submit("truth", plan.write_truth, w, p.nramps, "rest")
+        elif plan is not None:
+            if w is not None and truth:
+                plan.write_truth(w, p.nramps)
+            plan.drop_photo_maps()                   # used by rate_and_dark and the truth only
+        for ramp, y0 in iterator:
+            y1 = min(ny, y0 + rows)
+            if plan is not None:
+                sci, gdq = _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs)
+                if background is not None:               # fresh arrays each block: handed over
+                    background.submit("write", w.write_block, ramp, y0, sci, gdq)
+                elif w is not None:
+                    w.write_block(ramp, y0, sci, gdq)
                 else:
                     result[ramp, :, y0:y1] = sci
                     if result_dq is not None:
-                        result_dq[ramp, :, y0:y1] = gdq.reshape(n, y1 - y0, nx)
-        if writer is None:
-            run(None)
-            return (result, result_dq) if return_dq else result
-        with writer as w:
-            run(w)
-        return os.path.abspath(out)
-    finally:
-        if noise_ahead is not None:
-            noise_ahead.close()
+                        result_dq[ramp, :, y0:y1] = gdq
+                continue
+            direct = {}
+            if w is None and backend == "opencl" and y0 == 0 and y1 == ny:     # whole ramp: no copy
+                direct = {"sci_out": result[ramp].reshape(n, -1)}
+                if result_dq is not None:
+                    direct["gdq_out"] = result_dq[ramp].reshape(n, -1)
+            elif w is not None and backend == "opencl":      # one pair of host buffers for every block
+                npix = (y1 - y0) * nx
+                sci_buf, gdq_buf = block_buffers(n * rows * nx)
+                reused = {"sci_out": sci_buf[:n * npix].reshape(n, npix),
+                          "gdq_out": gdq_buf[:n * npix].reshape(n, npix)}
+                sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **reused)
+                w.write_block(ramp, y0, sci.reshape(n, y1 - y0, nx), gdq.reshape(n, y1 - y0, nx))
+                continue
+            sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **direct)
+            if direct:
+                continue
+            sci = sci.reshape(n, y1 - y0, nx)
+            if w is not None:
+                w.write_block(ramp, y0, sci, gdq.reshape(n, y1 - y0, nx))
+            else:
+                result[ramp, :, y0:y1] = sci
+                if result_dq is not None:
+                    result_dq[ramp, :, y0:y1] = gdq.reshape(n, y1 - y0, nx)
+    if writer is None:
+        run(None)
+        return (result, result_dq) if return_dq else result
+    with writer as w:
+        run(w)
+    return os.path.abspath(out)
 
 
 class _Background:
@@ -301,10 +287,9 @@ class _Background:
             raise error
 
 
-def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs, noise):
+def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs):
     """SCI, GROUPDQ (n, y1 − y0, nx) of rows [y0, y1) with detector effects (charge on the rows ± the
-    IPC halo, then the readout); ``noise``: the read-domain noise of those rows (or None), or a
-    callable returning it (called once the charge kernels are queued)."""
+    IPC halo, then the readout)."""
     from slicersim.backends import ramp_effects as rfx
     ny, nx = mu.shape
     n = p.nmd[0]
@@ -314,17 +299,14 @@ def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs, noise
     charge_fx = rfx.ChargeEffects(start, frame, electrons, a2, a3)
     args = (mu[yi0:yi1].ravel(), dead[yi0:yi1].ravel(), yi0 * nx, ramp, seed, p, charge_fx)
     shape_in = (n, yi1 - yi0, nx)
-    common = dict(ipc=plan.ipc, bias_map=plan.bias_block(y0, y1))
+    noise = plan.read_noise_block(ramp, y0, y1)
+    common = dict(ipc=plan.ipc, extra=noise, bias_map=plan.bias_block(y0, y1))
     if backend == "opencl":               # group means stay on the device between the two kernels
         d_gmean, d_flags = rfx.charge_block_opencl(*args, work_group=kwargs.get("work_group"),
                                                    workspace=kwargs.get("workspace"), to_host=False)
-        # the charge kernels are queued: the noise (computed ahead in another thread) is awaited
-        # while they run
-        common["extra"] = noise() if callable(noise) else noise
         return rfx.readout_opencl(d_gmean, d_flags, y1 - y0, y0 - yi0, y0, ny, ramp, seed, p,
                                   workspace=kwargs.get("workspace"), shape_in=shape_in, **common)
     gmean, qsat = rfx.charge_block_numpy(*args)
-    common["extra"] = noise() if callable(noise) else noise
     return rfx.readout_numpy(gmean.reshape(shape_in), qsat.reshape(shape_in), y1 - y0, y0 - yi0, y0, ny, ramp,
                              seed, p, **common)
 
