@@ -220,3 +220,24 @@ def test_low_part_equals_interpolation_at_every_read(shape, nmd, nfoh):
         a = row[i0]
         expected = ((row[i0 + 1] - a) * w + a).mean(axis=1, dtype=np.float64).astype(np.float32)
         assert np.array_equal(got[s], expected)
+
+
+@needs_cl
+def test_device_copy_path_equals_zero_copy(monkeypatch):
+    """Batching the groups' segment draws and FFTs changes no bit; the GPU branch of the block
+    assembly and of the spectral draws (device copies, scratch buffers, one work item per column)
+    forced on the CPU device gives the zero-copy path's noise: several row blocks, segments cached
+    across them."""
+    from slicersim.backends import correlated_noise as cn
+    p = CorrelatedNoiseParameters(n_outputs=4)
+    kw = dict(segment_rows=16, taper_rows=4, backend="opencl")
+
+    def blocks(gen):
+        return np.concatenate([gen.block(0, y0, min(64, y0 + 11)) for y0 in range(0, 64, 11)], axis=1)
+    ref = blocks(CorrelatedNoise(p, (64, 64), (5, 2, 0), 2.83, 4, **kw))       # all groups in one batch
+    monkeypatch.setattr(cn, "SYNTH_BYTES", 1)                      # one group per synthesis batch
+    assert np.array_equal(blocks(CorrelatedNoise(p, (64, 64), (5, 2, 0), 2.83, 4, **kw)), ref)
+    monkeypatch.setattr(opencl, "device_type", lambda device=None: "GPU")
+    got = blocks(CorrelatedNoise(p, (64, 64), (5, 2, 0), 2.83, 4, **kw))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-6 * np.abs(ref).max())
+    assert np.abs(ref).max() > 0 and not np.array_equal(ref[0], ref[1])
