@@ -70,7 +70,9 @@ def resolve_backend(backend: str = "auto") -> str:
         if opencl.is_available() and opencl.device_supports_fp64():
             ok, msg = device_validated()
             if not ok:
-                raise OpenCLUnavailableError(msg)
+                raise OpenCLUnavailableError(
+                    f"{msg}; use backend='numpy' (--backend numpy) or 'auto' (falls back to NumPy), or pick "
+                    f"another device with {opencl.ENV_VAR}; SLICERSIM_TRUST_DEVICE=1 skips the check (diagnosis only)")
         return backend
     opencl.check_process()  # a forked child must not silently change backend
     if opencl.is_available() and opencl.device_supports_fp64():

@@ -239,8 +239,23 @@ def device_supports_fp64() -> bool:
     return _fp64(get_device())
 
 
+def _local_kernel_dir():
+    """The kernel directory beside the imported package (``slicersim/kernels`` of an installed wheel,
+    ``kernels/`` of the checkout it was imported from), or None.  Preferred to the
+    ``slicersim.kernels`` resource, which an editable install of *another* checkout maps to its own
+    ``kernels/`` when this package is imported through PYTHONPATH."""
+    here = Path(__file__).resolve()
+    for directory in (here.parents[1] / "kernels", here.parents[2] / "kernels"):
+        if (directory / "philox.cl").is_file():
+            return directory
+    return None
+
+
 def kernel_source(name: str) -> str:
-    """Text of ``kernels/<name>`` (installed package data, else the repo directory)."""
+    """Text of ``kernels/<name>`` (beside the imported package, else installed package data)."""
+    local = _local_kernel_dir()
+    if local is not None and (local / name).is_file():
+        return (local / name).read_text(encoding="utf-8")
     try:
         res = importlib.resources.files("slicersim.kernels").joinpath(name)
         if res.is_file():
@@ -255,6 +270,9 @@ def kernel_source(name: str) -> str:
 
 def kernel_dir() -> str:
     """Filesystem directory of the kernel sources (the ``-I`` path for ``#include``)."""
+    local = _local_kernel_dir()
+    if local is not None:
+        return str(local)
     try:
         res = importlib.resources.files("slicersim.kernels")
         if res.joinpath("philox.cl").is_file():

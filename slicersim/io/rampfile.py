@@ -111,6 +111,7 @@ class RampWriter(AtomicH5File):
         existing file without ``overwrite``, not enough free disk space for an uncompressed file."""
         super().check()
         directory = os.path.dirname(self.path) or "."
+        remove_stale_temporaries(directory)          # a killed writer's temporary holds disk space
         if not self.compression:
             need = self.expected_bytes() + _HDF5_MARGIN
             free = shutil.disk_usage(directory).free

@@ -289,6 +289,7 @@ class UncalWriter:
         if not self.overwrite and os.path.lexists(self.path):
             raise RampFileError(f"output file exists: {self.path} (pass overwrite=True / --overwrite "
                                 "to replace it)")
+        remove_stale_temporaries(directory)          # a killed writer's temporary holds disk space
         need = self.expected_bytes() + _HDF5_MARGIN
         free = shutil.disk_usage(directory).free
         if need > free:

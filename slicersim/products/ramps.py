@@ -267,10 +267,19 @@ class _Background:
         self._pending = {name: None for name in self._pools}
 
     def submit(self, lane, func, *args):
+        self.raise_failed()
         previous = self._pending[lane]
         if previous is not None:
             previous.result()
         self._pending[lane] = self._pools[lane].submit(func, *args)
+
+    def raise_failed(self):
+        """Raise the error of any lane's job that has already failed (the truth lane's one job is
+        otherwise looked at only in :meth:`finish`, after every block; a SIGINT held back while
+        that lane was inside HDF5 is raised there as KeyboardInterrupt)."""
+        for future in self._pending.values():
+            if future is not None and future.done() and future.exception() is not None:
+                raise future.exception()
 
     def finish(self, raise_error=True):
         error = None
