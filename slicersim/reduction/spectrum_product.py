@@ -130,6 +130,16 @@ def fit_gaussian_psf(flux, variance=None, lbda=None, position=None, nchunks=_MAX
     yc, xc = cell_centres((ny, nx))
     start = [xc[peak], yc[peak], 1.0, 1.0] if position is None else [*position, 1.0, 1.0]
     par, ok = _fit_image(white, weight, (ny, nx), start, fix_position=None if position is None else position)
+    # a noise-led fit can end on a broad blob outside the field (a z = 0.8 SN Ia at 116 columns: centre
+    # 10 rows beyond the edge, σ_y = 14 cells, then σ_y(λ) = 7e4 cells and a singular GLS): no source
+    # was found, and a PSF from such a fit would give a wrong spectrum without a word
+    sigma_max = max(1.0, 0.25 * max(ny, nx))
+    inside = xc.min() - 0.5 <= par[0] <= xc.max() + 0.5 and yc.min() - 0.5 <= par[1] <= yc.max() + 0.5
+    if (position is None and not inside) or max(par[2], par[3]) > sigma_max:
+        raise ParameterError(f"PSF fit: no point source found in the white-light image (the fit ended at "
+                             f"x, y = {par[0]:.1f}, {par[1]:.1f} cells with σ = {par[2]:.1f}, {par[3]:.1f} cells, "
+                             f"{'outside the field' if not inside else 'wider than a quarter of it'}); give "
+                             "position= or psf=")
     if not par[4] > 0:
         raise ParameterError("PSF fit: no point source found in the white-light image (fitted amplitude ≤ 0)")
     pos = (float(par[0]), float(par[1]))
@@ -147,7 +157,7 @@ def fit_gaussian_psf(flux, variance=None, lbda=None, position=None, nchunks=_MAX
         if (w > 0).sum() < 7:
             continue
         p, ok_c = _fit_image(img, w, (ny, nx), [*pos, par[2], par[3]], fix_position=pos)
-        if ok_c and p[4] > 0:
+        if ok_c and p[4] > 0 and max(p[2], p[3]) <= sigma_max:
             mids.append(lbda[i0:i1].mean())
             sx.append(p[2])
             sy.append(p[3])
@@ -161,7 +171,7 @@ def fit_gaussian_psf(flux, variance=None, lbda=None, position=None, nchunks=_MAX
         sig_y = np.polyval(np.polyfit(tm, sy, deg, w=amp), t)
     else:
         sig_x, sig_y = np.full(nl, par[2]), np.full(nl, par[3])
-    sig_x, sig_y = np.clip(sig_x, 0.05, None), np.clip(sig_y, 0.05, None)
+    sig_x, sig_y = np.clip(sig_x, 0.05, sigma_max), np.clip(sig_y, 0.05, sigma_max)
     diag = {"white_sigma": (float(par[2]), float(par[3])), "white_amplitude": float(par[4]),
             "white_background": float(par[5]), "white_fit_converged": ok, "chunks_fitted": len(mids)}
     return pos, sig_x, sig_y, diag
