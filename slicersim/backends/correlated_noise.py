@@ -123,6 +123,9 @@ class CorrelatedNoise:
         self.cache_bytes = int(cache_bytes)
         self._segment_cache = {}          # (ramp, group, segment) -> (first sample, float32 streams[:, first:])
         self._cache_nbytes = 0
+        self._work = None                 # reusable segment work array (_work_buffer)
+        self._work_event = None           # the assembly launch still reading it
+        self._work_buffers = {}           # zero-copy buffers of work arrays and window stacks (_device_array)
 
     # ------------------------------------------------------------------ helpers
     def _coefficients(self, amp, kind, hi, stream, draw):
@@ -362,7 +365,8 @@ class CorrelatedNoise:
         def used(s):                                 # samples of segment s that rows y0:y1 use
             return first_sample(s, y0), min(span, (y1 - int(s) * S + h) * g.row_len)
         missing = self._missing_segments(ramp, group, y0, y1)
-        hit = {s: cache[(ramp, group, s)] for s in range(s_first, s_last + 1) if s not in set(missing.tolist())}
+        absent = set(missing.tolist())
+        hit = {s: cache[(ramp, group, s)] for s in range(s_first, s_last + 1) if s not in absent}
         x = self._work_buffer((nsg, nout + 1, length))
         if missing.size:
             if new is None:
@@ -382,11 +386,10 @@ class CorrelatedNoise:
         """Reusable float32 array of ``shape`` (no fresh pages, hence no page faults, per call);
         first waits for the kernel still reading it (:meth:`_assemble_block_opencl`)."""
         size = int(np.prod(shape))
-        pending = getattr(self, "_work_event", None)
-        if pending is not None:
-            pending.wait()
+        if self._work_event is not None:
+            self._work_event.wait()
             self._work_event = None
-        if getattr(self, "_work", None) is None or self._work.size < size:
+        if self._work is None or self._work.size < size:
             self._work = np.empty(size, np.float32)
             self._work_buffers = {}
         return self._work[:size].reshape(shape)
@@ -458,9 +461,7 @@ class CorrelatedNoise:
             A, A2 = low[:, :, y0:y1], low[:, :, y0 + 1:y1 + 1]                  # (streams, n, rows)
             terms = np.stack([np.moveaxis(A[1:1 + nout] + A[0], 0, -1), np.moveaxis(A2[1:1 + nout] + A2[0], 0, -1),
                               np.moveaxis(A[1 + nout:], 0, -1), np.moveaxis(A2[1 + nout:], 0, -1)])
-        gpu = "GPU" in opencl.device_type(opencl.get_device())
-        vw = 1 if gpu else next(v for v in (16, 8, 4, 1) if g.ncol % v == 0)      # explicit lanes on CPUs
-        kern = opencl.cached_kernel("correlated_noise.cl", "assemble_group", (f"-DFVW={vw}",))
+        kern, vw, gpu = _assembly_kernel(g.ncol)
         small = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in
                  (*terms, ped, pf, self._ey[y0:y1], self._ex)]
         d_out = opencl.scratch_buffer("cn_block", out.nbytes) if gpu else opencl.host_buffer(out)
@@ -479,7 +480,7 @@ class CorrelatedNoise:
                 kern.set_arg(23, np.int32(grp))
                 self._work_event = opencl.launch_prepared(kern, (g.nx // vw, rows))
         finally:
-            if getattr(self, "_work_event", None) is not None:
+            if self._work_event is not None:
                 self._work_event.wait()
                 self._work_event = None
         if gpu:
@@ -493,7 +494,7 @@ class CorrelatedNoise:
         buffer per array kept while the array lives), on GPUs a copy in a reused device buffer."""
         if gpu:
             return opencl.to_device(np.ascontiguousarray(array), opencl.scratch_buffer(f"cn_{tag}", array.nbytes))
-        cache = self.__dict__.setdefault("_work_buffers", {})
+        cache = self._work_buffers
         key = (array.__array_interface__["data"][0], array.nbytes)
         if key not in cache:
             if len(cache) > 64:
@@ -573,15 +574,21 @@ def assemble_numpy(gen, seg, win, s_first, y0, la, la2, aa, aa2, ped, pf, ey, ex
     return out
 
 
+def _assembly_kernel(ncol):
+    """(``assemble_group`` kernel, columns per work item, device is a GPU): explicit float lanes on
+    CPUs (the largest of 16, 8, 4, 1 dividing an output's ``ncol`` columns), one column on GPUs."""
+    gpu = "GPU" in opencl.device_type(opencl.get_device())
+    vw = 1 if gpu else next(v for v in (16, 8, 4, 1) if ncol % v == 0)
+    return opencl.cached_kernel("correlated_noise.cl", "assemble_group", (f"-DFVW={vw}",)), vw, gpu
+
+
 def assemble_opencl(gen, seg, win, s_first, y0, la, la2, aa, aa2, ped, pf, ey, ex, out):
     """OpenCL ``assemble_group`` of one group into ``out`` (C-contiguous float32 (rows, nx)), with the
     arguments of :func:`assemble_numpy` (the kernel's group-indexed arrays holding one group)."""
     g = gen.geometry
     S, h, nseg, span, length = gen._segment_geometry()
     rows = out.shape[0]
-    gpu = "GPU" in opencl.device_type(opencl.get_device())
-    vw = 1 if gpu else next(v for v in (16, 8, 4, 1) if g.ncol % v == 0)
-    kern = opencl.cached_kernel("correlated_noise.cl", "assemble_group", (f"-DFVW={vw}",))
+    kern, vw, gpu = _assembly_kernel(g.ncol)
     bufs = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in (seg, win)]
     small = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in
              (la, la2, aa, aa2, ped, np.array([pf], np.float32), ey, ex)]
