@@ -43,6 +43,7 @@ from slicersim.reduction.spectra import extract_spectrum  # noqa: E402
 from slicersim.reduction.templates import point_source_template  # noqa: E402
 
 K = cl.K
+WEIGHTS = "model"                                  # reduce_exposure's weights (--weights)
 
 
 class OraclePath:
@@ -132,7 +133,7 @@ def one_redshift(z, seeds, mapper, tmp, first_seed=0):
         t0 = time.perf_counter()
         cl.simulate(t, mapper, raw, 7000 + int(100 * z) + k)
         r = reduce_exposure(raw, mapper=mapper, lbda_edges=t.edges, ncol=cl.NCOL, fit_options={"with_truth": True},
-                            psf=T_true)
+                            psf=T_true, weights=WEIGHTS)
         rates, dark = r["rates"], float(r["dark_rate"])
         T = point_source_template(native, native_edges, t.edges, mapper=mapper, field="narrow", ncol=cl.NCOL,
                                   variance=r["variance"])
@@ -243,7 +244,8 @@ def _long_band(r):
 
 def markdown(res):
     lines = ["# Closed-loop bias, decomposed (`benchmarks/closed_loop_bias.py`)", "",
-             f"Lazuli SNe Ia, 8 bins × 2 native bins, {res.get('ncol', 58)} columns per slice, MACC(16,8,0), "
+             f"Lazuli SNe Ia, 8 bins × 2 native bins, {res.get('ncol', 58)} columns per slice, "
+             f"`reduce_exposure(weights=\"{res.get('weights', 'model')}\")`, MACC(16,8,0), "
              f"white noise, 4096²; {res['cpu']}; "
              f"load {res['load_before']} → {res['load_after']}.  Bias = mean over the band of (F̂ − F)/mean F.", "",
              "| z | seeds | (a) deterministic | (b) ramp fit | (c) weights (paired) | (a)+(b)+(c) | "
@@ -287,7 +289,11 @@ def main():
                          "((a) from the first, (b) weighted by realisations), against today's ETC")
     ap.add_argument("--recompute-ramp-fit", action="store_true",
                     help="with --from-json: measure (b) again by the flat-field curve")
+    ap.add_argument("--weights", choices=("model", "forward", "data"), default="model",
+                    help="reduce_exposure's lsq weights (default: model)")
     args = ap.parse_args()
+    global WEIGHTS
+    WEIGHTS = args.weights
     cl.NCOL = args.ncol
     mapper = SlicerMapper.default()
     if args.from_json:
@@ -314,7 +320,7 @@ def main():
         (out / "closed_loop_bias.md").write_text(markdown(res))
         print(markdown(res))
         return
-    res = {"benchmark": "closed_loop_bias", "ncol": cl.NCOL, "cpu": cpu_model(), "load_before": loadavg(),
+    res = {"benchmark": "closed_loop_bias", "ncol": cl.NCOL, "weights": WEIGHTS, "cpu": cpu_model(), "load_before": loadavg(),
            "redshifts": []}
     with tempfile.TemporaryDirectory() as tmp:
         for z in args.redshifts:

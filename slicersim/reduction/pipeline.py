@@ -55,7 +55,7 @@ def rate_variance(rates):
     return var
 
 
-WEIGHTS = ("model", "data")
+WEIGHTS = ("model", "forward", "data")
 
 
 _DARK_MAX = 1e6          # e-/s: far above any H4RG dark current, glow or thermal dark
@@ -142,6 +142,32 @@ def model_variance(rates, var, cubes, mapper, lbda_edges, dark_rate=0.0):
     return np.where(keep, var, out)
 
 
+def forward_model_cubes(cubes, spectra, psf=None):
+    """The extraction's own model of each cube, F̂_λ P_λ + B̂_λ [the cube's unit]: the point source
+    (a template's Σ_k F̂_k T_k, a given PSF, or the Gaussian fitted on the cube: ``spectrum.psf_sigma``
+    at ``spectrum.position``) on its uniform background.  Its noise is that of 2 nλ fitted numbers,
+    not of every cell.  Returns {field: SimpleNamespace(lbda, flux)} for :func:`model_variance`."""
+    from types import SimpleNamespace
+
+    from slicersim.reduction.spectrum_product import _gaussian_field
+    out = {}
+    for name, cube in cubes.items():
+        sp = spectra[name]
+        shape = np.shape(cube.flux)[-3:]
+        f = np.asarray(sp.flux, float)
+        given = None if psf is None or isinstance(psf, str) else np.asarray(psf, float)
+        if given is not None and given.ndim == 4:                      # template: Σ_k F_k T_k
+            model = np.tensordot(f, given, axes=1)
+        else:
+            P = given if given is not None else _gaussian_field(shape[1:], sp.psf_sigma[:, 0], sp.psf_sigma[:, 1],
+                                                                sp.position)
+            model = f[:, None, None] * P
+        if sp.background is not None:
+            model = model + np.asarray(sp.background, float)[:, None, None]
+        out[name] = SimpleNamespace(lbda=np.asarray(cube.lbda), flux=model)
+    return out
+
+
 def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, ncol=58, rectify_method="lsq",
                     extraction=None, psf="fit", position=None, aperture=3.0, background=True,
                     propagate=True, fit_options=None, out=None, overwrite=False, keep_information=False,
@@ -154,7 +180,11 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     ncol : columns per slice;  rectify_method : "lsq" or "drizzle"
     weights : "model" (default, lsq): rectify a second time with the pixel variance of the first
         cubes' model image (:func:`model_variance`: no Poisson-weighting bias; the first cubes on
-        min(ncol, MODEL_NCOL) columns); "data": the ramp fit's own per-pixel variance only
+        min(ncol, MODEL_NCOL) columns); "forward" (lsq): the same with the image of the first
+        extraction's model F̂_λ P_λ + B̂_λ (:func:`forward_model_cubes`, GLS on first cubes of ``ncol``
+        columns: weights nearly free of noise; for a point source on a uniform background — light the
+        model lacks, e.g. a host galaxy, is underweighted, which costs SNR but adds no bias);
+        "data": the ramp fit's own per-pixel variance only
     dark : dark rate subtracted from the rates before rectification (:func:`dark_rate_of`): "auto"
         (default) the file's DARK_RATE, a number or an image [e-/s], None for none (written:
         DARK_SUBTRACTED [e-/s], DARK_SUBTRACTED_KIND, and an image as rates/DARK_SUBTRACTED).  A pedestal that
@@ -206,15 +236,21 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     rate = np.where(np.isfinite(var), rates.rate - dark_rate, 0.0)
     if extraction is None:
         extraction = "gls" if rectify_method == "lsq" else "optimal"
-    model_pass = weights == "model" and rectify_method == "lsq"
+    model_pass = weights in ("model", "forward") and rectify_method == "lsq"
+    forward = model_pass and weights == "forward"
     # the model weights' first pass on at most MODEL_NCOL columns: on a finer grid a cell holds about
     # one pixel, its model image follows the pixels' noise and the Poisson-weighting bias returns
-    ncol_first = min(ncol, MODEL_NCOL) if model_pass else ncol
+    # (the forward model is fitted, not cell by cell: its first pass keeps ncol)
+    ncol_first = min(ncol, MODEL_NCOL) if model_pass and not forward else ncol
     cubes = rectify(rate, var, mapper=mapper, field=field, lbda_edges=edges, ncol=ncol_first, method=rectify_method,
                     keep_information=bool(keep_information) and ncol_first == ncol)
     cubes = cubes if field == "both" else {field: cubes}
     var_data = var
     if model_pass:                                                 # once more, weighted by the model
+        if forward:
+            first = {name: extract_spectrum(cube, method="gls", psf=psf, position=position, background=background)
+                     for name, cube in cubes.items()}
+            cubes = forward_model_cubes(cubes, first, psf)
         var = model_variance(rates, var, cubes, mapper, edges, dark_rate)
         cubes = rectify(rate, var, mapper=mapper, field=field, lbda_edges=edges, ncol=ncol, method=rectify_method,
                         keep_information=bool(keep_information))
