@@ -20,20 +20,21 @@
  *
  * NDRange (ceil(nvec_row / nvec), ny, planes of the launch), nvec_row = ceil(nx / VW):
  * a work item does nvec consecutive vectors of VW cells of row (y, i) with
- * explicit vector types.  CPUs (PoCL): VW = preferred double width and a
+ * explicit vector types.  CPUs (PoCL): VW = preferred real width and a
  * whole row per work item, so the per-row tap factors are computed once and
  * the inner loop is NTAPS vector FMAs.  GPUs: VW = 1, nvec = 1, consecutive
  * work items write consecutive cells.  The last vector of a row may be
  * partial (nx % VW): fx rows are zero-padded to nxp = whole vectors by the
  * host; P and H rows are loaded lane by lane there, and outputs stored so.
- * Arithmetic in double precision; OUT (double or float) is only the storage
- * type of signal and variance.
+ * Arithmetic in real (real; float with -DSINGLE, then every input is
+ * float too); OUT (real or float) is only the storage type of signal and
+ * variance.
  */
 
 #include "vector_types.cl"
 
 #ifndef OUT
-#define OUT double
+#define OUT real
 #endif
 #ifndef SEPARABLE
 #define SEPARABLE 1
@@ -67,29 +68,29 @@ inline int reflect_index(int j, const int n)
 }
 
 /* VW cells row[x0 .. x0 + VW - 1]; lanes at x >= nx read as 0. */
-inline realv load_cells(__global const double *restrict row, const int x0, const int nx)
+inline realv load_cells(__global const real *restrict row, const int x0, const int nx)
 {
     if (x0 + VW <= nx)
         return VLOAD(0, row + x0);
-    double lanes[VW];
+    real lanes[VW];
     for (int t = 0; t < VW; ++t)
         lanes[t] = (x0 + t < nx) ? row[x0 + t] : 0.0;
     return VLOAD(0, lanes);
 }
 
 __kernel void pointsource_cube(
-    __global const double *restrict psf_a,    /* SEPARABLE: fy (nb, ny); else P (nb, ny, nx) */
-    __global const double *restrict psf_b,    /* SEPARABLE: fx (nb, nxp), rows zero-padded    */
-    __global const double *restrict host,     /* HAS_HOST: H (nb, ny, nx) [ph/s/cell]         */
-    __global const double *restrict rate,     /* (nb,) G = F f2p [ph/s]                       */
-    __global const double *restrict uniform,  /* (nc,) U of the output bins [ph/s/cell]        */
-    __global const double *restrict qe,       /* (nc,) [e-/ph]                                 */
-    __global const double *restrict taps,     /* (NTAPS,) LSF weights, offsets -h .. h         */
+    __global const real *restrict psf_a,    /* SEPARABLE: fy (nb, ny); else P (nb, ny, nx) */
+    __global const real *restrict psf_b,    /* SEPARABLE: fx (nb, nxp), rows zero-padded    */
+    __global const real *restrict host,     /* HAS_HOST: H (nb, ny, nx) [ph/s/cell]         */
+    __global const real *restrict rate,     /* (nb,) G = F f2p [ph/s]                       */
+    __global const real *restrict uniform,  /* (nc,) U of the output bins [ph/s/cell]        */
+    __global const real *restrict qe,       /* (nc,) [e-/ph]                                 */
+    __global const real *restrict taps,     /* (NTAPS,) LSF weights, offsets -h .. h         */
     const int nl, const int lo, const int i0, const int c0, const int ny, const int nx, const int nxp,
     const int nvec,
-    const double signal_scale,                /* t_int g r [ADU per e-/s]                      */
-    const double var_a, const double var_b,   /* r A [ADU^2], r B [ADU^2 per e-/s]             */
-    const double e_sat,                       /* saturation rate [e-/s/cell]                   */
+    const real signal_scale,                /* t_int g r [ADU per e-/s]                      */
+    const real var_a, const real var_b,   /* r A [ADU^2], r B [ADU^2 per e-/s]             */
+    const real e_sat,                       /* saturation rate [e-/s/cell]                   */
     __global OUT *restrict signal,            /* planes c0 .. c0 + nplanes - 1 [ADU]           */
     __global OUT *restrict variance)          /* same planes [ADU^2]                           */
 {
@@ -98,7 +99,7 @@ __kernel void pointsource_cube(
     const int i = i0 + c;
     /* per tap: offset of the input row and the row's scalar factor */
     size_t row[NTAPS];
-    double coef[NTAPS];
+    real coef[NTAPS];
 #if HAS_HOST
     size_t cells[NTAPS];
 #endif
@@ -122,11 +123,11 @@ __kernel void pointsource_cube(
 #endif
     }
 #if HAS_POINT && SEPARABLE
-    __global const double *restrict prow = psf_b;
+    __global const real *restrict prow = psf_b;
 #else
-    __global const double *restrict prow = psf_a;
+    __global const real *restrict prow = psf_a;
 #endif
-    const double qe_c = qe[c], u_c = uniform[c];
+    const real qe_c = qe[c], u_c = uniform[c];
     const size_t plane = ((size_t)get_global_id(2) * (size_t)ny + (size_t)y) * (size_t)nx;
     for (int v = 0; v < nvec; ++v) {
         const int x0 = ((int)get_global_id(0) * nvec + v) * VW;

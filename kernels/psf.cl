@@ -3,7 +3,9 @@
  *
  * Cell coordinates are in cell units relative to the field centre (cell
  * edges X_k = k - nx/2, Y_j = j - ny/2).  Flux outside the field is lost.
- * Double precision throughout; no fast-math build options.
+ * Precision: real = real by default; -DSINGLE builds every kernel in float
+ * (slicersim.backends.opencl.precision_options; tolerances in slicersim/backends/psf.py).
+ * No fast-math build options.
  *
  * gaussian_cell_fractions, outer_product
  *                   Gaussian integrated exactly over each cell (erf product).
@@ -38,10 +40,14 @@
 #define JR 1
 #endif
 
+#ifdef SINGLE
+#define JINC_SWITCH 7.0      /* float: the series' cancellation costs ~1e-6 of the peak near v = 12 */
+#else
 #define JINC_SWITCH 12.0
+#endif
 
 /* (-1)^k / (k! (k+1)!), k = 0..27 */
-__constant double JINC_SERIES[28] = {
+__constant real JINC_SERIES[28] = {
     1.0, -0.5, 0.08333333333333333, -0.006944444444444444, 0.00034722222222222224,
     -1.1574074074074073e-05, 2.755731922398589e-07, -4.920949861426052e-09,
     6.834652585313961e-11, -7.594058428126623e-13, 6.903689480115112e-15,
@@ -53,11 +59,11 @@ __constant double JINC_SERIES[28] = {
     2.2771843068882885e-55, -3.0121485540850376e-58};
 
 /* Hankel expansion of J1 (mu = 4): P = sum_m P_m v^-2m, Q = sum_m Q_m v^-(2m+1) */
-__constant double HANKEL_P[10] = {
+__constant real HANKEL_P[10] = {
     1.0, 0.1171875, -0.144195556640625, 0.6765925884246826, -6.883914268109947,
     121.59789187653587, -3302.2722944808525, 127641.2726461746, -6656367.718817687,
     450278600.3050392};
-__constant double HANKEL_Q[10] = {
+__constant real HANKEL_Q[10] = {
     0.375, -0.1025390625, 0.2775764465332031, -1.993531733751297, 27.248827311268542,
     -603.8440767050702, 19718.37591223663, -890297.8767070678, 53104110.10968522,
     -4043620325.1077538};
@@ -75,28 +81,36 @@ inline realv jinc_series(const realv v)
 /*
  * sin and cos of x (|x| < 2^50), vectorised: x = n pi/2 + r, |r| <= pi/4,
  * with n and n mod 4 read from the bits of 2x/pi + 1.5 2^52 (PoCL lowers
- * rint/floor on double vectors to scalar calls: this alone made the Airy
+ * rint/floor on real vectors to scalar calls: this alone made the Airy
  * kernel 1.75x faster, and its built-in sincos was no faster than the
  * polynomials), a two-constant Cody-Waite reduction through fma, Taylor
  * polynomials of sin r (9 terms) and cos r (10 terms; truncation < 1e-17).
  */
+#ifdef SINGLE
+#define PIO2_HI 1.5707963705062866            /* (float)(pi / 2) */
+#define PIO2_LO -4.371139000186243e-08        /* pi / 2 - PIO2_HI */
+#define ROUND_MAGIC 12582912.0                /* 1.5 2^23: rint through the float bits */
+#else
 #define PIO2_HI 1.5707963267948966
 #define PIO2_LO 6.123233995736766e-17
-__constant double SIN_TAYLOR[9] = {
+#define ROUND_MAGIC 6755399441055744.0        /* 1.5 2^52 */
+#endif
+__constant real SIN_TAYLOR[9] = {
     1.0, -0.16666666666666666, 0.008333333333333333, -0.0001984126984126984,
     2.7557319223985893e-06, -2.505210838544172e-08, 1.6059043836821613e-10,
     -7.647163731819816e-13, 2.8114572543455206e-15};
-__constant double COS_TAYLOR[10] = {
+__constant real COS_TAYLOR[10] = {
     1.0, -0.5, 0.041666666666666664, -0.001388888888888889, 2.48015873015873e-05,
     -2.755731922398589e-07, 2.08767569878681e-09, -1.1470745597729725e-11,
     4.779477332387385e-14, -1.5619206968586225e-16};
 
 inline realv sin_cos(const realv x, realv *cosx)
 {
-    /* n = rint(2x/pi) and n mod 4 from the bits of 2x/pi + 1.5 2^52 (|x| < 2^50) */
-    const realv t = fma(x, (realv)(0.6366197723675814), (realv)(6755399441055744.0));
+    /* n = rint(2x/pi) and n mod 4 from the bits of 2x/pi + 1.5 2^52 (|x| < 2^50;
+       float: 1.5 2^23, |x| < 2^21) */
+    const realv t = fma(x, (realv)(0.6366197723675814), (realv)(ROUND_MAGIC));
     const longv q = AS_LONGV(t) & 3;
-    const realv n = t - 6755399441055744.0;
+    const realv n = t - ROUND_MAGIC;
     const realv r = fma(-n, (realv)(PIO2_LO), fma(-n, (realv)(PIO2_HI), x));
     const realv r2 = r * r;
     realv sp = (realv)(SIN_TAYLOR[8]);
@@ -182,7 +196,7 @@ inline realv jinc_squared_hankel(const realv v2)
 
 inline realv jinc_squared(const realv v2)
 {
-    const double sw2 = JINC_SWITCH * JINC_SWITCH;
+    const real sw2 = JINC_SWITCH * JINC_SWITCH;
     if (!ANY(v2 >= sw2)) {
         const realv g = jinc_series_t(0.25 * v2);
         return g * g;
@@ -195,7 +209,7 @@ inline realv jinc_squared(const realv v2)
     return big;
 }
 
-__kernel void bessel_j1_values(__global const double *restrict x, __global double *restrict out)
+__kernel void bessel_j1_values(__global const real *restrict x, __global real *restrict out)
 {
     const int i = get_global_id(0);
     const realv v = VLOAD(i, x);
@@ -214,25 +228,25 @@ __kernel void bessel_j1_values(__global const double *restrict x, __global doubl
  * stride nxs is a multiple of VW (the host pads dx).
  */
 __kernel void airy_subsamples(
-    __global const double *restrict dx,     /* (nxs,) */
-    __global const double *restrict dy,     /* (nys,) */
-    __global const double *restrict kwave,  /* (nl,)  */
-    __global const double *restrict pref,   /* (nl,)  */
-    const double eps,
+    __global const real *restrict dx,     /* (nxs,) */
+    __global const real *restrict dy,     /* (nys,) */
+    __global const real *restrict kwave,  /* (nl,)  */
+    __global const real *restrict pref,   /* (nl,)  */
+    const real eps,
     const int nxs,
-    __global double *restrict S)            /* (nl, nys, nxs) */
+    __global real *restrict S)            /* (nl, nys, nxs) */
 {
     const int uv = get_global_id(0);
     const int v = get_global_id(1);
     const int l = get_global_id(2);
     const int nys = get_global_size(1);
-    const double k = kwave[l];
-    const double y = dy[v];
+    const real k = kwave[l];
+    const real y = dy[v];
     const realv x = VLOAD(uv, dx);
     const realv w = k * sqrt(fma(x, x, (realv)(y * y)));
     realv g = jinc(w);
     if (eps > 0.0) {
-        const double e2 = eps * eps;
+        const real e2 = eps * eps;
         g = (g - e2 * jinc(eps * w)) / (1.0 - e2);
     }
     const size_t row = ((size_t)l * (size_t)nys + (size_t)v) * (size_t)nxs;
@@ -270,37 +284,37 @@ __kernel void airy_subsamples(
  *      (rows are walked in order, so a slot is written before it is read).
  */
 __kernel void airy_rows(
-    __global const double *restrict dx,     /* (nxs,) */
-    __global const double *restrict dy,     /* (o * (nyo + NA - 1),) */
-    __global const double *restrict kwave,  /* (nl,) */
-    __global const double *restrict pref,   /* (nl,) */
-    __global const double *restrict ky,     /* (o * NA,) */
+    __global const real *restrict dx,     /* (nxs,) */
+    __global const real *restrict dy,     /* (o * (nyo + NA - 1),) */
+    __global const real *restrict kwave,  /* (nl,) */
+    __global const real *restrict pref,   /* (nl,) */
+    __global const real *restrict ky,     /* (o * NA,) */
     __global const int *restrict xblocks,   /* (nw, 2) */
     __global const int *restrict yslot,     /* (o * (nyo + NA - 1),) */
-    const double eps,
+    const real eps,
     const int o,
     const int nyo,
     const int nxs,
     const int nslot,
-    __global double *restrict T,            /* scratch (nl, nslot, nw VW) */
-    __global double *restrict U)            /* (nl, nyo, nxs) */
+    __global real *restrict T,            /* scratch (nl, nslot, nw VW) */
+    __global real *restrict U)            /* (nl, nyo, nxs) */
 {
     const int w = get_global_id(0);
     const int l = get_global_id(1);
     const int nw = get_global_size(0);
     const int blk = xblocks[2 * w];
     const int mir = xblocks[2 * w + 1];
-    const double k = kwave[l];
-    const double pf = pref[l];
-    const double e2 = eps * eps;
-    const double k2 = k * k;
+    const real k = kwave[l];
+    const real pf = pref[l];
+    const real e2 = eps * eps;
+    const real k2 = k * k;
     const realv x = VLOAD(blk, dx);
     const realv x2 = x * x;
     realv acc[NA];
     for (int a = 0; a < NA; ++a)
         acc[a] = (realv)(0.0);
-    __global double *dst = U + (size_t)l * (size_t)nyo * (size_t)nxs;
-    __global double *scr = T + ((size_t)l * (size_t)nslot * (size_t)nw + (size_t)w) * VW;
+    __global real *dst = U + (size_t)l * (size_t)nyo * (size_t)nxs;
+    __global real *scr = T + ((size_t)l * (size_t)nslot * (size_t)nw + (size_t)w) * VW;
     const size_t slot_stride = (size_t)nw * VW;
     const int ncy = nyo + NA - 1;
     for (int c = 0; c < ncy; ++c) {
@@ -310,7 +324,7 @@ __kernel void airy_rows(
             if (code >= 0 && (code & 1)) {
                 sv = VLOAD(0, scr + (size_t)(code >> 1) * slot_stride);
             } else {
-                const double y = dy[c * o + b];
+                const real y = dy[c * o + b];
                 if (eps > 0.0) {
                     const realv wv = k * sqrt(x2 + y * y);
                     const realv g = (jinc(wv) - e2 * jinc(eps * wv)) / (1.0 - e2);
@@ -345,19 +359,19 @@ __kernel void airy_rows(
  * into the output row, times the quadrature weight.  Global (nxs / VW, nyo, nl).
  */
 __kernel void blur_bin_rows(
-    __global const double *restrict S,      /* (nl, nys, nxs) */
-    __global const double *restrict ky,     /* (wy,) */
+    __global const real *restrict S,      /* (nl, nys, nxs) */
+    __global const real *restrict ky,     /* (wy,) */
     const int wy,
     const int o,
     const int nys,
     const int nxs,
-    __global double *restrict U)            /* (nl, nyo, nxs) */
+    __global real *restrict U)            /* (nl, nyo, nxs) */
 {
     const int uv = get_global_id(0);
     const int j = get_global_id(1);
     const int l = get_global_id(2);
     const int nyo = get_global_size(1);
-    __global const double *src = S + ((size_t)l * (size_t)nys + (size_t)(o * j)) * (size_t)nxs
+    __global const real *src = S + ((size_t)l * (size_t)nys + (size_t)(o * j)) * (size_t)nxs
                                  + (size_t)uv * VW;
     realv acc = (realv)(0.0);
     for (int e = 0; e < wy; ++e)
@@ -382,12 +396,12 @@ __kernel void blur_bin_rows(
  * inside get_cube.
  */
 /* VW values for cells [k, k + VW) of a row of n cells; lanes outside [0, n) are dropped */
-inline void store_cells(const realv v, const int k, const int n, __global double *row)
+inline void store_cells(const realv v, const int k, const int n, __global real *row)
 {
     if (k >= 0 && k + VW <= n) {
         VSTORE(v, 0, row + k);
     } else {
-        double lanes[VW];
+        real lanes[VW];
         VSTORE(v, 0, lanes);
         for (int i = 0; i < VW; ++i)
             if (k + i >= 0 && k + i < n)
@@ -396,8 +410,8 @@ inline void store_cells(const realv v, const int k, const int n, __global double
 }
 
 __kernel void blur_bin_cols(
-    __global const double *restrict U,      /* (nl, nyo, nxs), nxs = o * ncx */
-    __global const double *restrict kx,     /* (o * na,) */
+    __global const real *restrict U,      /* (nl, nyo, nxs), nxs = o * ncx */
+    __global const real *restrict kx,     /* (o * na,) */
     __global const int *restrict oblocks,   /* (nwo, 2) */
     const int na,                           /* 2 m + 1 cells of taps */
     const int o,
@@ -407,7 +421,7 @@ __kernel void blur_bin_cols(
     const int nxo,
     const int lout,                         /* first output plane of the launch */
     const int nyo,
-    __global double *restrict P)            /* (lout + nl, nyo, nxo) */
+    __global real *restrict P)            /* (lout + nl, nyo, nxo) */
 {
     const int w = get_global_id(0);
     const int j0 = get_global_id(1) * JR;
@@ -415,7 +429,7 @@ __kernel void blur_bin_cols(
     const int kv = oblocks[2 * w];
     const int mir = oblocks[2 * w + 1];
     const size_t nxs = (size_t)(o * ncx);
-    __global const double *src[JR];
+    __global const real *src[JR];
     realv acc[JR];
 #pragma unroll
     for (int r = 0; r < JR; ++r) {            /* rows past the last are clamped, not stored */
@@ -435,7 +449,7 @@ __kernel void blur_bin_cols(
     for (int r = 0; r < JR; ++r) {
         const int j = j0 + r;
         if (j < nyo) {
-            __global double *dst = P + ((size_t)(lout + l) * (size_t)nyo + (size_t)j) * (size_t)nxo;
+            __global real *dst = P + ((size_t)(lout + l) * (size_t)nyo + (size_t)j) * (size_t)nxo;
             store_cells(acc[r], kv * VW - pad, nxo, dst);
             if (mir >= 0)
                 store_cells(REVERSE(acc[r]), mir * VW - pad, nxo, dst);
@@ -456,23 +470,23 @@ __kernel void blur_bin_cols(
  */
 #define ERF_SPLIT 0.5
 
-inline double erf_split(const double z)
+inline real erf_split(const real z)
 {
     return fabs(z) < ERF_SPLIT ? erf(z) : copysign(1.0 - erfc(fabs(z)), z);
 }
 
 __kernel void gaussian_cell_fractions(
-    __global const double *restrict sigma,  /* (nl,) [cells] */
-    const double c,
-    __global double *restrict f)            /* (nl, n) */
+    __global const real *restrict sigma,  /* (nl,) [cells] */
+    const real c,
+    __global real *restrict f)            /* (nl, n) */
 {
     const int k = get_global_id(0);
     const int l = get_global_id(1);
     const int n = get_global_size(0);
-    const double z = M_SQRT2 * sigma[l];
-    const double e = (double)k - 0.5 * (double)n;
-    const double a = (e - c) / z, b = (e + 1.0 - c) / z;
-    double v;
+    const real z = M_SQRT2 * sigma[l];
+    const real e = (real)k - 0.5 * (real)n;
+    const real a = (e - c) / z, b = (e + 1.0 - c) / z;
+    real v;
     if (a >= ERF_SPLIT)
         v = erfc(a) - erfc(b);
     else if (b <= -ERF_SPLIT)
@@ -484,9 +498,9 @@ __kernel void gaussian_cell_fractions(
 
 /* P[l, j, k] = fy[l, j] fx[l, k] (Gaussian PSF: erf product).  Global (nx, ny, nl). */
 __kernel void outer_product(
-    __global const double *restrict fy,     /* (nl, ny) */
-    __global const double *restrict fx,     /* (nl, nx) */
-    __global double *restrict P)            /* (nl, ny, nx) */
+    __global const real *restrict fy,     /* (nl, ny) */
+    __global const real *restrict fx,     /* (nl, nx) */
+    __global real *restrict P)            /* (nl, ny, nx) */
 {
     const int k = get_global_id(0);
     const int j = get_global_id(1);

@@ -1,9 +1,16 @@
 /*
  * vector_types.cl: explicit vector types for kernels that process VW consecutive
- * doubles per work item (build option -DVW=1|2|4|8|16, default 1).  PoCL does not
+ * reals per work item (build option -DVW=1|2|4|8|16, default 1).  PoCL does not
  * vectorise scalar kernels with inner loops; GPUs use VW = 1.
  *
- *   realv / longv / intv   double, long, int vectors of width VW (maskv = longv)
+ * Precision: double by default; -DSINGLE (with -cl-single-precision-constant, so
+ * that literals are float too: slicersim.backends.opencl.precision_options) makes
+ * real = float, and longv the 32-bit integer of the same width (the bit tricks
+ * that read a real's bits as an integer keep working).  A kernel file written in
+ * real / realv compiles in both; kernels that stay double use double explicitly.
+ *
+ *   real                   the scalar floating type (double, or float with -DSINGLE)
+ *   realv / longv / intv   real, same-width integer, int vectors of width VW (maskv = longv)
  *   VLOAD(o, p)            vector o of p (vloadVW), VSTORE(x, o, p) the store
  *   CONVERT_INTV(x)        convert_intVW;  CONVERT_REALV(x) convert_doubleVW
  *   CONVERT_V(type, x)     convert_<type>VW;  AS_LONGV(x) as_longVW
@@ -27,41 +34,30 @@
 #define CAT_(a, b) a##b
 #define CAT(a, b) CAT_(a, b)
 
+#ifdef SINGLE
+typedef float real;
+#define REAL_NAME float
+#define LONG_NAME int
+#else
+typedef double real;
+#define REAL_NAME double
+#define LONG_NAME long
+#endif
+
 #if VW == 1
-typedef double realv;
-typedef long longv;
+typedef real realv;
+typedef LONG_NAME longv;
 typedef int intv;
 #define VLOAD(o, p) ((p)[o])
 #define VSTORE(x, o, p) ((p)[o] = (x))
 #define CONVERT_INTV convert_int
-#elif VW == 2
-typedef double2 realv;
-typedef long2 longv;
-typedef int2 intv;
-#define VLOAD(o, p) vload2((o), (p))
-#define VSTORE(x, o, p) vstore2((x), (o), (p))
-#define CONVERT_INTV convert_int2
-#elif VW == 4
-typedef double4 realv;
-typedef long4 longv;
-typedef int4 intv;
-#define VLOAD(o, p) vload4((o), (p))
-#define VSTORE(x, o, p) vstore4((x), (o), (p))
-#define CONVERT_INTV convert_int4
-#elif VW == 8
-typedef double8 realv;
-typedef long8 longv;
-typedef int8 intv;
-#define VLOAD(o, p) vload8((o), (p))
-#define VSTORE(x, o, p) vstore8((x), (o), (p))
-#define CONVERT_INTV convert_int8
-#elif VW == 16
-typedef double16 realv;
-typedef long16 longv;
-typedef int16 intv;
-#define VLOAD(o, p) vload16((o), (p))
-#define VSTORE(x, o, p) vstore16((x), (o), (p))
-#define CONVERT_INTV convert_int16
+#elif VW == 2 || VW == 4 || VW == 8 || VW == 16
+typedef CAT(REAL_NAME, VW) realv;
+typedef CAT(LONG_NAME, VW) longv;
+typedef CAT(int, VW) intv;
+#define VLOAD(o, p) CAT(vload, VW)((o), (p))
+#define VSTORE(x, o, p) CAT(vstore, VW)((x), (o), (p))
+#define CONVERT_INTV CAT(convert_int, VW)
 #else
 #error "VW must be 1, 2, 4, 8 or 16"
 #endif
@@ -69,18 +65,18 @@ typedef int16 intv;
 typedef longv maskv;
 
 #if VW == 1
-#define AS_LONGV as_long
+#define AS_LONGV CAT(as_, LONG_NAME)
 #define ANY(c) (c)
 #define SELECT(a, b, m) ((m) ? (b) : (a))
-#define GREATER(a, b) ((long)((a) > (b)))
-#define CONVERT_REALV(x) ((double)(x))
+#define GREATER(a, b) ((LONG_NAME)((a) > (b)))
+#define CONVERT_REALV(x) ((real)(x))
 #define CONVERT_V(type, x) ((type)(x))
 #else
-#define AS_LONGV CAT(as_long, VW)
+#define AS_LONGV CAT(as_, CAT(LONG_NAME, VW))
 #define ANY(c) any(c)
 #define SELECT(a, b, m) select((a), (b), (m))
 #define GREATER(a, b) isgreater((a), (b))
-#define CONVERT_REALV(x) CAT(convert_double, VW)(x)
+#define CONVERT_REALV(x) CAT(convert_, CAT(REAL_NAME, VW))(x)
 #define CONVERT_V(type, x) CAT(convert_, CAT(type, VW))(x)
 #endif
 

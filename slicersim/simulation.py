@@ -376,9 +376,10 @@ class Simulation(Versioned):
         |Δ| ≤ 1e-13 · (|signal| + √variance) per voxel, not bit for bit.
 
         ``psf_profile`` is ``"gaussian"`` (reference default) or ``"airy"``; see
-        :func:`slicersim.cube.build_cube` for the chunked OpenCL builder, the
+        :func:`slicersim.products.cube.build_cube` for the chunked OpenCL builder, the
         computation path of each scene component and the options
-        (``max_bytes``, ``progress``, ``psf_options``).
+        (``max_bytes``, ``progress``, ``psf_options``, ``precision``: "auto", "double" or
+        "single" kernels, :mod:`slicersim.backends.precision`).
         """
         seed = check_seed(seed)
         return tuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,

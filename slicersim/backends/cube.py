@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.backends import opencl
-from slicersim.backends.dispatch import resolve_backend
+from slicersim.backends.precision import real_dtype, resolve_precision
 from slicersim.backends.psf import DevicePSF
 from slicersim.physics.psf import _erf_cell_fractions, cell_edges
 
@@ -164,7 +164,7 @@ def _check(taps, rate, uniform, qe, bins, nl, lo, psf, host):
 
 
 def detector_block(taps, rate, uniform, qe, readout, *, bins, nl, lo, psf=None, host=None, out=None,
-                   dtype=np.float64, backend="auto", vector_width=None, row_per_item=None):
+                   dtype=np.float64, backend="auto", vector_width=None, row_per_item=None, precision="double"):
     """Signal [ADU] and variance [ADU²] of output bins ``bins`` = (i0, i1); saturated ⇔ variance = +inf.
 
     Parameters
@@ -178,8 +178,11 @@ def detector_block(taps, rate, uniform, qe, readout, *, bins, nl, lo, psf=None, 
         device (:class:`slicersim.backends.psf.DevicePSF`); None without rate
     host : (nb, ny, nx) extended-source photons before the LSF [ph/s/cell], or None
     out : optional (signal, variance) C-contiguous arrays (i1 − i0, ny, nx) of ``dtype``
-    dtype : float64 or float32 storage (arithmetic is float64)
+    dtype : float64 or float32 storage (arithmetic is float64 unless ``precision`` is "single")
     backend : "auto" | "opencl" | "numpy"
+    precision : "double", "single" (OpenCL: every input and operation in float32: ≤ 1e-5 of the
+        signal peak against double, measured ~2e-7; voxels within that of the saturation rate may
+        flip) or "auto" (:mod:`slicersim.backends.precision`; NumPy computes in float64)
     vector_width, row_per_item : OpenCL layout, no effect on the result: cells per vector (1, 2, 4,
         8, 16) and whole rows per work item (default: the device's preferred double width and rows
         on CPUs; 1 and one cell per work item on GPUs)
@@ -194,10 +197,11 @@ def detector_block(taps, rate, uniform, qe, readout, *, bins, nl, lo, psf=None, 
         out = (np.empty(shape, dtype), np.empty(shape, dtype))
     if any(a.shape != shape or a.dtype != dtype or not a.flags.c_contiguous for a in out):
         raise ValueError(f"out arrays must be C-contiguous {shape} of {dtype}")
+    backend, precision = resolve_precision(precision, backend, "cube")
     if shape[0] and ny and nx:
         args = (taps, rate, uniform, qe, readout, bins, nl, lo, kind, psf, host, out)
-        if resolve_backend(backend) == "opencl":
-            _detector_block_opencl(*args, vw=vector_width, rows=row_per_item)
+        if backend == "opencl":
+            _detector_block_opencl(*args, vw=vector_width, rows=row_per_item, precision=precision)
         else:
             _detector_block_numpy(*args)
     return out
@@ -255,44 +259,58 @@ def _host_memory_device():
     return opencl.device_type() == "CPU"
 
 
-def _psf_on_device(kind, psf, nxp):
-    """(buffer a, buffer b) for the kernel's psf_a, psf_b arguments; fx rows padded with zeros to
-    nxp cells (whole vectors).  Gaussian erf factors are computed on the host: scipy's erf takes
-    ~1 ms for the Lazuli cube, PoCL's double erf ~10 ms."""
+def _psf_on_device(kind, psf, nxp, real=np.dtype(np.float64)):
+    """(buffer a, buffer b) for the kernel's psf_a, psf_b arguments, in the kernel's ``real``; fx
+    rows padded with zeros to nxp cells (whole vectors).  Gaussian erf factors are computed on the
+    host: scipy's erf takes ~1 ms for the Lazuli cube, PoCL's double erf ~10 ms."""
     if kind == "full":
-        if isinstance(psf, DevicePSF):                  # already on the device: no round trip
-            return psf.buffer, _buffer("unused", 8)
+        if isinstance(psf, DevicePSF):
+            if np.dtype(psf.dtype) == real:            # already on the device: no round trip
+                return psf.buffer, _buffer("unused", 8)
+            psf = psf.to_host()
+        psf = np.ascontiguousarray(psf, real)
         return opencl.to_device(psf, _buffer("psf", psf.nbytes)), _buffer("unused", 8)
     fy, fx = psf.factors() if kind == "gaussian" else psf
-    fx_padded = np.zeros((fx.shape[0], nxp))
+    fx_padded = np.zeros((fx.shape[0], nxp), real)
     fx_padded[:, :fx.shape[1]] = fx
-    return opencl.to_device(fy), opencl.to_device(fx_padded)
+    return opencl.to_device(np.ascontiguousarray(fy, real)), opencl.to_device(fx_padded)
 
 
-def _detector_block_opencl(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, host, out, vw=None, rows=None):
+def _detector_block_opencl(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, host, out, vw=None, rows=None,
+                           precision="double"):
     signal, variance = out
+    real = real_dtype(precision)
+    if signal.dtype == np.float64 and real == np.float32 and not opencl.device_supports_fp64():
+        tmp = (np.empty(signal.shape, np.float32), np.empty(signal.shape, np.float32))   # no double stores
+        _detector_block_opencl(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, host, tmp, vw, rows,
+                               precision)
+        signal[...], variance[...] = tmp
+        return
     nc, ny, nx = signal.shape
     rows = "GPU" not in opencl.device_type() if rows is None else bool(rows)
-    vw = default_vector_width() if vw is None else int(vw)
+    vw = (default_vector_width() * (2 if real.itemsize == 4 else 1) if vw is None else int(vw))
+    vw = min(vw, 16)
     if vw not in (1, 2, 4, 8, 16):
         raise ValueError(f"vector_width must be 1, 2, 4, 8 or 16, got {vw}")
     options = (f"-DVW={vw}", f"-DOUT={'double' if signal.dtype == np.float64 else 'float'}",
                f"-DSEPARABLE={int(kind != 'full')}", f"-DHAS_POINT={int(kind is not None)}",
-               f"-DHAS_HOST={int(host is not None)}", f"-DNTAPS={taps.size}")
+               f"-DHAS_HOST={int(host is not None)}", f"-DNTAPS={taps.size}") + opencl.precision_options(precision)
     kern = _kernel(_KERNEL_FILE, "pointsource_cube", options)
     unused = _buffer("unused", 8)
     nvec = -(-nx // vw)                   # vectors per row
-    d_a, d_b = (unused, unused) if kind is None else _psf_on_device(kind, psf, nvec * vw)
+    d_a, d_b = (unused, unused) if kind is None else _psf_on_device(kind, psf, nvec * vw, real)
+    if host is not None:
+        host = np.ascontiguousarray(host, real)
     d_host = unused if host is None else opencl.to_device(host, _buffer("host", host.nbytes))
-    d_rate = unused if rate is None else opencl.to_device(rate)
-    d_u, d_qe, d_w = opencl.to_device(uniform), opencl.to_device(qe), opencl.to_device(taps)
+    d_rate = unused if rate is None else opencl.to_device(rate.astype(real))
+    d_u, d_qe, d_w = (opencl.to_device(a.astype(real)) for a in (uniform, qe, taps))
     plane_bytes = signal.itemsize * ny * nx
     step = max(1, min(nc, _LAUNCH_BYTES // (2 * plane_bytes)))    # output planes per launch
     zero_copy = _host_memory_device()
     if not zero_copy:
         d_s, d_v = _buffer("signal", step * plane_bytes), _buffer("variance", step * plane_bytes)
     per_item = nvec if rows else 1        # CPU: a whole row per work item; GPU: one vector (cell)
-    i32, f64 = np.int32, np.float64
+    i32, f64 = np.int32, real.type
     for c0 in range(0, nc, step):
         c1 = min(nc, c0 + step)
         if zero_copy:     # the kernel writes (and first-touches) the output arrays themselves

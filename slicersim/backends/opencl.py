@@ -435,6 +435,17 @@ def preferred_vector_width(cap: int = 16, scale: int = 1) -> int:
     return width
 
 
+def precision_options(precision: str) -> tuple:
+    """Build options of a precision-generic kernel (``real`` in ``kernels/vector_types.cl``):
+    () for "double"; "single" adds -DSINGLE and makes literals float
+    (-cl-single-precision-constant), so the program contains no double at all."""
+    if precision == "double":
+        return ()
+    if precision == "single":
+        return ("-DSINGLE", "-cl-single-precision-constant")
+    raise ValueError(f"precision must be 'double' or 'single' here, got {precision!r}")
+
+
 def require_fp64() -> None:
     """Raise :class:`OpenCLUnavailableError` when the selected device lacks double precision."""
     if not device_supports_fp64():

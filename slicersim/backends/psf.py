@@ -65,6 +65,7 @@ from scipy.special import j1
 
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, chunk_ranges, resolve_backend
+from slicersim.backends.precision import check_precision, real_dtype, resolve_precision
 from slicersim.constants import AIRY_RHO, ARCSEC
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_wavenumber, blur_bin_taps,
@@ -88,7 +89,8 @@ _CHUNK_LBDA = 16          # wavelengths per OpenCL launch: the intermediate rows
 # --------------------------------------------------------------------------- #
 def psf_cube(lbda, shape, position=(0.0, 0.0), profile="gaussian", *, sigma_ref_arcsec=None,
              spatial_scale, guiding_sigma, instrumental_sigma, diameter=3.0, obscuration=0.0,
-             oversampling=DEFAULT_OVERSAMPLING, grid="exact", backend="auto", max_bytes=DEFAULT_MAX_BYTES):
+             oversampling=DEFAULT_OVERSAMPLING, grid="exact", backend="auto", max_bytes=DEFAULT_MAX_BYTES,
+             precision="auto"):
     """PSF cube P[λ, y, x] (nλ, ny, nx) float64: fraction of the flux in each cell.
 
     Parameters
@@ -106,71 +108,80 @@ def psf_cube(lbda, shape, position=(0.0, 0.0), profile="gaussian", *, sigma_ref_
     grid : sub-sample rule, "exact", "gauss" or "reference" (Airy; see module doc)
     backend : "auto", "opencl" or "numpy" (grid="reference": NumPy only)
     max_bytes : memory budget of the temporaries; wavelengths go in chunks
+    precision : "auto", "double" or "single" kernels (:mod:`slicersim.backends.precision`; single:
+        ≤ 1e-5 of the peak against double, measured ~2e-7; the result is float64 either way)
     """
     lbda, shape, position = _check(lbda, shape, position, profile, grid)
     ny, nx = shape
+    name, precision = _backend(backend, grid, precision)
     if profile == "gaussian":
         sig_y, sig_x = _gaussian_sigmas(lbda, sigma_ref_arcsec, spatial_scale, guiding_sigma,
                                         instrumental_sigma)
-        if _backend(backend, grid) == "opencl":
-            return _gaussian_opencl(sig_y, sig_x, shape, position, max_bytes)
+        if name == "opencl":
+            return _gaussian_opencl(sig_y, sig_x, shape, position, max_bytes, precision)
         return gaussian_psf_fractions(sig_y, sig_x, shape, position)
     airy = _AiryParams(lbda, spatial_scale, guiding_sigma, instrumental_sigma, diameter,
                        obscuration, oversampling, grid)
     if grid == "reference":
-        _backend(backend, grid)
         return _airy_reference_numpy(airy, shape, position, max_bytes)
     window = (0, ny, 0, nx)
-    if _backend(backend, grid) == "opencl":
-        return _airy_window_opencl(airy, shape, position, window, max_bytes)
+    if name == "opencl":
+        return _airy_window_opencl(airy, shape, position, window, max_bytes, precision=precision)
     return _airy_window_numpy(airy, shape, position, window, max_bytes)
 
 
 @dataclass(frozen=True)
 class DevicePSF:
-    """A PSF cube P[λ, y, x] (float64, C order) left in an OpenCL device buffer."""
+    """A PSF cube P[λ, y, x] (C order, float64 or float32: ``dtype``) left in an OpenCL device buffer."""
     buffer: object
     shape: tuple
+    dtype: np.dtype = np.dtype(np.float64)
+
+    @property
+    def nbytes(self):
+        return int(np.prod(self.shape)) * np.dtype(self.dtype).itemsize
 
     def to_host(self):
-        """The cube as a NumPy array (nλ, ny, nx) (one device → host copy)."""
-        out = np.empty(self.shape)
+        """The cube as a float64 NumPy array (nλ, ny, nx) (one device → host copy)."""
+        out = np.empty(self.shape, self.dtype)
         if out.size:
             opencl.from_device(out, self.buffer)
-        return out
+        return out.astype(np.float64, copy=False)
 
 
 def psf_cube_device(lbda, shape, position=(0.0, 0.0), profile="airy", *, sigma_ref_arcsec=None,
                     spatial_scale, guiding_sigma, instrumental_sigma, diameter=3.0, obscuration=0.0,
                     oversampling=DEFAULT_OVERSAMPLING, grid="exact", backend="auto",
-                    max_bytes=DEFAULT_MAX_BYTES, out_buffer=None):
+                    max_bytes=DEFAULT_MAX_BYTES, out_buffer=None, precision="auto"):
     """:func:`psf_cube` left on the OpenCL device when it is computed there: a :class:`DevicePSF`
     (Airy, grid "exact"/"gauss", OpenCL backend), else the NumPy array of :func:`psf_cube`.
 
     Saves the device → host → device round trip of the cube (28 MB for the Lazuli narrow field)
     for device consumers such as :func:`slicersim.backends.cube.detector_block`.  ``out_buffer``:
-    a device buffer of at least 8 nλ ny nx bytes to reuse (None: a new one); other parameters
-    as :func:`psf_cube`.
+    a device buffer of at least 8 nλ ny nx bytes (single precision: 4) to reuse (None: a new one);
+    other parameters as :func:`psf_cube` (``precision`` "single" leaves a float32 block).
     """
     common = dict(sigma_ref_arcsec=sigma_ref_arcsec, spatial_scale=spatial_scale, guiding_sigma=guiding_sigma,
                   instrumental_sigma=instrumental_sigma, diameter=diameter, obscuration=obscuration,
-                  oversampling=oversampling, grid=grid, backend=backend, max_bytes=max_bytes)
-    if profile != "airy" or grid == "reference" or _backend(backend, grid) != "opencl":
+                  oversampling=oversampling, grid=grid, backend=backend, max_bytes=max_bytes, precision=precision)
+    name, precision = _backend(backend, grid, precision)
+    if profile != "airy" or grid == "reference" or name != "opencl":
         return psf_cube(lbda, shape, position, profile, **common)
     lbda, shape, position = _check(lbda, shape, position, profile, grid)
     ny, nx = shape
     airy = _AiryParams(lbda, spatial_scale, guiding_sigma, instrumental_sigma, diameter, obscuration,
                        oversampling, grid)
+    dtype = real_dtype(precision)
     if out_buffer is None:
-        out_buffer = opencl.device_buffer(8 * lbda.size * ny * nx)
-    _airy_window_opencl(airy, shape, position, (0, ny, 0, nx), max_bytes, out_buffer=out_buffer)
-    return DevicePSF(out_buffer, (lbda.size, ny, nx))
+        out_buffer = opencl.device_buffer(dtype.itemsize * lbda.size * ny * nx)
+    _airy_window_opencl(airy, shape, position, (0, ny, 0, nx), max_bytes, out_buffer=out_buffer, precision=precision)
+    return DevicePSF(out_buffer, (lbda.size, ny, nx), dtype)
 
 
 def psf_cells(lbda, shape, position=(0.0, 0.0), cells=None, profile="gaussian", *,
               sigma_ref_arcsec=None, spatial_scale, guiding_sigma, instrumental_sigma, diameter=3.0,
               obscuration=0.0, oversampling=DEFAULT_OVERSAMPLING, grid="exact", backend="auto",
-              max_bytes=DEFAULT_MAX_BYTES):
+              max_bytes=DEFAULT_MAX_BYTES, precision="auto"):
     """P restricted to ``cells`` = (iy, ix) index arrays: (nλ, ncell) float64.
 
     Same parameters as :func:`psf_cube`.  Airy: only the bounding box of the
@@ -188,6 +199,7 @@ def psf_cells(lbda, shape, position=(0.0, 0.0), cells=None, profile="gaussian", 
     iy, ix = iy.astype(int), ix.astype(int)
     if iy.size and (iy.min() < 0 or iy.max() >= ny or ix.min() < 0 or ix.max() >= nx):
         raise ValueError(f"cells must lie within the field {shape}")
+    check_precision(precision)
     if iy.size == 0:
         return np.zeros((lbda.size, 0))
     if profile == "gaussian":
@@ -196,13 +208,13 @@ def psf_cells(lbda, shape, position=(0.0, 0.0), cells=None, profile="gaussian", 
         return gaussian_psf_cells(sig_y, sig_x, shape, position, (iy, ix))
     airy = _AiryParams(lbda, spatial_scale, guiding_sigma, instrumental_sigma, diameter, obscuration,
                        oversampling, grid)
+    name, precision = _backend(backend, grid, precision)
     if grid == "reference":
-        _backend(backend, grid)
         return _airy_reference_numpy(airy, shape, position, max_bytes)[:, iy, ix]
     j0, k0 = int(iy.min()), int(ix.min())
     window = (j0, int(iy.max()) + 1, k0, int(ix.max()) + 1)
-    if _backend(backend, grid) == "opencl":
-        box = _airy_window_opencl(airy, shape, position, window, max_bytes)
+    if name == "opencl":
+        box = _airy_window_opencl(airy, shape, position, window, max_bytes, precision=precision)
     else:
         box = _airy_window_numpy(airy, shape, position, window, max_bytes)
     return box[:, iy - j0, ix - k0]
@@ -264,13 +276,17 @@ def _check(lbda, shape, position, profile, grid):
     return lbda, (ny, nx), (x0, y0)
 
 
-def _backend(backend, grid):
-    name = resolve_backend(backend)
+def _backend(backend, grid, precision="double"):
+    """(backend, precision) of a PSF computation (:func:`~slicersim.backends.precision.resolve_precision`)."""
     if grid == "reference":
         if backend == "opencl":
             raise ValueError("grid='reference' is implemented in NumPy only (backend='numpy' or 'auto')")
-        return "numpy"
-    return name
+        if precision == "single":
+            raise ParameterError("grid='reference' is NumPy only, in double precision: precision='single' "
+                                 "is not available for it")
+        resolve_precision(precision, "numpy", "psf")      # validates the name
+        return "numpy", "double"
+    return resolve_precision(precision, backend, "psf")
 
 
 def _gaussian_sigmas(lbda, sigma_ref_arcsec, spatial_scale, guiding_sigma, instrumental_sigma):
@@ -476,30 +492,32 @@ def _airy_reference_numpy(airy, shape, position, max_bytes):
 # --------------------------------------------------------------------------- #
 #  OpenCL                                                                      #
 # --------------------------------------------------------------------------- #
-def _gaussian_opencl(sig_y, sig_x, shape, position, max_bytes):
+def _gaussian_opencl(sig_y, sig_x, shape, position, max_bytes, precision="double"):
     """Two kernels: 1-D erf cell fractions per axis, then their outer product."""
     ny, nx = shape
     nl = sig_y.size
-    out = np.empty((nl, ny, nx))
-    k_frac = opencl.get_kernel(_KERNELS, "gaussian_cell_fractions")
-    k_outer = opencl.get_kernel(_KERNELS, "outer_product")
-    per = 8 * (ny * nx + ny + nx + 2)
+    real = real_dtype(precision)
+    out = np.empty((nl, ny, nx), real)
+    opts = opencl.precision_options(precision)
+    k_frac = opencl.get_kernel(_KERNELS, "gaussian_cell_fractions", opts)
+    k_outer = opencl.get_kernel(_KERNELS, "outer_product", opts)
+    size = real.itemsize
+    per = size * (ny * nx + ny + nx + 2)
     step = max(1, min(nl, int(max_bytes // per)))
-    d_fy, d_fx = opencl.device_buffer(8 * step * ny), opencl.device_buffer(8 * step * nx)
-    d_out = opencl.device_buffer(8 * step * ny * nx)
-    f64, i32 = np.float64, np.int32
+    d_fy, d_fx = opencl.device_buffer(size * step * ny), opencl.device_buffer(size * step * nx)
+    d_out = opencl.device_buffer(size * step * ny * nx)
     for l0, l1 in chunk_ranges(nl, per, max_bytes):
         n = l1 - l0
-        d_sy = opencl.to_device(np.ascontiguousarray(sig_y[l0:l1]))
-        d_sx = opencl.to_device(np.ascontiguousarray(sig_x[l0:l1]))
-        opencl.launch(k_frac, (ny, n), None, d_sy, f64(position[1]), d_fy)
-        opencl.launch(k_frac, (nx, n), None, d_sx, f64(position[0]), d_fx)
+        d_sy = opencl.to_device(np.ascontiguousarray(sig_y[l0:l1], real))
+        d_sx = opencl.to_device(np.ascontiguousarray(sig_x[l0:l1], real))
+        opencl.launch(k_frac, (ny, n), None, d_sy, real.type(position[1]), d_fy)
+        opencl.launch(k_frac, (nx, n), None, d_sx, real.type(position[0]), d_fx)
         opencl.launch(k_outer, (nx, ny, n), None, d_fy, d_fx, d_out)
         opencl.from_device(out[l0:l1], d_out)
-    return out
+    return out.astype(np.float64, copy=False)
 
 
-def _airy_window_opencl(airy, shape, position, window, max_bytes, out_buffer=None):
+def _airy_window_opencl(airy, shape, position, window, max_bytes, out_buffer=None, precision="double"):
     """OpenCL twin of :func:`_airy_window_numpy`.
 
     y: ``airy_rows`` evaluates the Airy sub-samples of VW columns walking down
@@ -512,13 +530,18 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes, out_buffer=Non
     with the same offsets, and output blocks that mirror each other about the
     source, are computed once (a source at the centre of the narrow field:
     ¼ of the J1 evaluations, ~½ of the column contractions; 2.7× faster).
-    ``out_buffer``: device buffer of ≥ 8 nλ nyo nxo bytes to receive the whole
-    window (returned, nothing is copied to the host); None: a NumPy array.
+    ``out_buffer``: device buffer of ≥ 8 nλ nyo nxo bytes (single: 4) to receive the
+    whole window (returned, nothing is copied to the host); None: a float64 NumPy array.
+    ``precision`` "single": every kernel in float32 (sub-sample offsets, tap weights,
+    accumulators), the host geometry in float64 rounded once to float32.
     """
     ny, nx = shape
     x0, y0 = position
     j0, j1_, k0, k1 = window
-    oy, ox, vw = airy.o_y, airy.o_x, opencl.preferred_vector_width(8)
+    real = real_dtype(precision)
+    size = real.itemsize
+    # the same number of lanes per vector register: twice as many floats as doubles
+    oy, ox, vw = airy.o_y, airy.o_x, opencl.preferred_vector_width(16 if size == 4 else 8, 8 // size)
     dy, ky = airy.axis(j0, j1_, ny, y0, airy.sigma_y, oy)
     nyo, nxo, nys = j1_ - j0, k1 - k0, dy.size
     mx = blur_margin(airy.sigma_x)
@@ -534,32 +557,32 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes, out_buffer=Non
     yslot = _shared_rows(dy)
     nslot = int(np.count_nonzero((yslot >= 0) & (yslot % 2 == 0))) if fused else 0
     nw = xblocks.shape[0]
-    per_lbda = 8 * ((nslot * nw * vw) if fused else nys * nxs) + 8 * (nyo * nxs + nyo * nxo_p) + 16
+    per_lbda = size * ((nslot * nw * vw) if fused else nys * nxs) + size * (nyo * nxs + nyo * nxo_p) + 2 * size
     step = max(1, min(nl, int(max_bytes // per_lbda), _CHUNK_LBDA))
     jr = 1 if vw == 1 else _COL_ROWS_CPU       # rows per blur_bin_cols work item (GPUs: 1)
-    opts = (f"-DVW={vw}", f"-DJR={jr}") + ((f"-DNA={na_y}",) if fused else ())
+    opts = (f"-DVW={vw}", f"-DJR={jr}") + ((f"-DNA={na_y}",) if fused else ()) + opencl.precision_options(precision)
     if fused:
         k_rows = opencl.get_kernel(_KERNELS, "airy_rows", opts)
         d_xb, d_ys = opencl.to_device(xblocks), opencl.to_device(yslot)
-        d_t = opencl.device_buffer(8 * step * nslot * nw * vw)
+        d_t = opencl.device_buffer(size * step * nslot * nw * vw)
     else:
         k_sub = opencl.get_kernel(_KERNELS, "airy_subsamples", opts)
         k_rows = opencl.get_kernel(_KERNELS, "blur_bin_rows", opts)
-        d_s = opencl.device_buffer(8 * step * nys * nxs)
+        d_s = opencl.device_buffer(size * step * nys * nxs)
     k_cols = opencl.get_kernel(_KERNELS, "blur_bin_cols", opts)
-    d_dx, d_dy = opencl.to_device(dx), opencl.to_device(np.ascontiguousarray(dy))
-    d_ky, d_kx = opencl.to_device(ky), opencl.to_device(kx)
+    d_dx, d_dy = opencl.to_device(dx.astype(real)), opencl.to_device(np.ascontiguousarray(dy, real))
+    d_ky, d_kx = opencl.to_device(ky.astype(real)), opencl.to_device(kx.astype(real))
     d_ob = opencl.to_device(oblocks)
-    d_u = opencl.device_buffer(8 * step * nyo * nxs)
+    d_u = opencl.device_buffer(size * step * nyo * nxs)
     on_device = out_buffer is not None
-    d_out = out_buffer if on_device else opencl.device_buffer(8 * step * nyo * nxo)
-    out = None if on_device else np.empty((nl, nyo, nxo))
-    i32, f64 = np.int32, np.float64
+    d_out = out_buffer if on_device else opencl.device_buffer(size * step * nyo * nxo)
+    out = None if on_device else np.empty((nl, nyo, nxo), real)
+    i32, f64 = np.int32, real.type
     for l0 in range(0, nl, step):
         l1 = min(nl, l0 + step)
         n = l1 - l0
-        d_k = opencl.to_device(np.ascontiguousarray(airy.kwave[l0:l1]))
-        d_p = opencl.to_device(np.ascontiguousarray(airy.pref[l0:l1]))
+        d_k = opencl.to_device(np.ascontiguousarray(airy.kwave[l0:l1], real))
+        d_p = opencl.to_device(np.ascontiguousarray(airy.pref[l0:l1], real))
         if fused:
             opencl.launch(k_rows, (nw, n), None, d_dx, d_dy, d_k, d_p, d_ky, d_xb, d_ys, f64(airy.eps),
                           i32(oy), i32(nyo), i32(nxs), i32(nslot), d_t, d_u)
@@ -573,4 +596,4 @@ def _airy_window_opencl(airy, shape, position, window, max_bytes, out_buffer=Non
                       i32(nyo), d_out)
         if not on_device:
             opencl.from_device(out[l0:l1], d_out)
-    return out_buffer if on_device else out
+    return out_buffer if on_device else out.astype(np.float64, copy=False)

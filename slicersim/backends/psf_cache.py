@@ -7,7 +7,7 @@ depends on the instrument only, so every draw after the first reuses the same bl
 is the content of *every* input of the computation (:func:`slicersim.memo.content_key`): the
 wavelengths' bytes, the field shape, the source position, the profile, σ_ref, the spatial
 scale, guiding and instrumental σ, diameter and obscuration, the oversampling, the grid, the
-memory budget, the cells (``psf_cells``), the resolved backend and, on OpenCL, the device
+memory budget, the cells (``psf_cells``), the resolved backend and precision and, on OpenCL, the device
 (platform, name, driver) and the kernel sources' digest.  Any change gives another key: a
 cached block is the uncached one, bit for bit.
 
@@ -27,6 +27,7 @@ import numpy as np
 
 from slicersim.backends import opencl, psf as _psf
 from slicersim.backends.dispatch import resolve_backend
+from slicersim.backends.precision import resolve_precision
 from slicersim.errors import SlicersimError
 from slicersim.memo import ByteLRU, content_key, read_only
 
@@ -94,15 +95,16 @@ def _key(func, args, kwargs):
     bound.apply_defaults()
     params = dict(bound.arguments)
     params.pop("out_buffer", None)
-    backend = resolve_backend(params["backend"])
+    if params.get("grid") == "reference":          # NumPy, double, whatever was asked
+        backend = resolve_backend(params["backend"])
+    else:
+        backend, params["precision"] = resolve_precision(params["precision"], params["backend"], "psf")
     params["backend"] = backend
     device = _device_identity() if backend == "opencl" else None
     return (func, content_key(params), device)
 
 
 def _nbytes(value):
-    if isinstance(value, _psf.DevicePSF):
-        return 8 * int(np.prod(value.shape))
     return value.nbytes
 
 

@@ -27,13 +27,16 @@ class PSFProfile:
 
     name = ""
 
-    def block(self, sim, lo, hi, shape, position, backend="auto", options=None, on_device=False):
-        """P[λ, y, x] for bins lo … hi − 1 on a (ny, nx) field, source at ``position`` [cells]."""
+    def block(self, sim, lo, hi, shape, position, backend="auto", options=None, on_device=False,
+              precision="auto"):
+        """P[λ, y, x] for bins lo … hi − 1 on a (ny, nx) field, source at ``position`` [cells]
+        (``precision``: of the kernels, :mod:`slicersim.backends.precision`)."""
         raise NotImplementedError
 
-    def fused(self, sim, lo, hi, backend="auto", options=None):
+    def fused(self, sim, lo, hi, backend="auto", options=None, precision="auto"):
         """The PSF of bins lo … hi − 1 in the form the fused cube kernel takes."""
-        return self.block(sim, lo, hi, sim.spectrograph.shape, sim.position, backend, options, on_device=True)
+        return self.block(sim, lo, hi, sim.spectrograph.shape, sim.position, backend, options, on_device=True,
+                          precision=precision)
 
     def cells(self, sim, cells, backend="auto"):
         """P restricted to ``cells`` = (iy, ix) of the field: (nλ, ncell)."""
@@ -53,11 +56,12 @@ class GaussianProfile(PSFProfile):
 
     name = "gaussian"
 
-    def block(self, sim, lo, hi, shape, position, backend="auto", options=None, on_device=False):
+    def block(self, sim, lo, hi, shape, position, backend="auto", options=None, on_device=False,
+              precision="auto"):
         sig_y, sig_x = sim.psf_sigmas
         return gaussian_psf_fractions(sig_y[lo:hi], sig_x[lo:hi], shape, position)
 
-    def fused(self, sim, lo, hi, backend="auto", options=None):
+    def fused(self, sim, lo, hi, backend="auto", options=None, precision="auto"):
         sig_y, sig_x = sim.psf_sigmas
         return GaussianPSF(sig_y[lo:hi], sig_x[lo:hi], sim.position, sim.spectrograph.shape)
 
@@ -85,13 +89,16 @@ class AiryProfile(PSFProfile):
         return dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
                     instrumental_sigma=sim.instrumental_sigma, diameter=tel.diameter_ext)
 
-    def block(self, sim, lo, hi, shape, position, backend="auto", options=None, on_device=False):
+    def block(self, sim, lo, hi, shape, position, backend="auto", options=None, on_device=False,
+              precision="auto"):
         tel, common = sim.telescope, self._common(sim)
         # one oversampling for the whole grid (set by its bluest, most undersampled bin), so every
         # wavelength block is computed alike; error < 1e-4 of the peak (benchmarks/psf_speed_accuracy.py)
         oversampling = 3 if (options or {}).get("grid") == "reference" else auto_oversampling(sim.lbda, **common)
         kwargs = dict(sigma_ref_arcsec=tel.psf_sigma_ref, obscuration=tel.obscuration,
                       oversampling=oversampling, backend=backend, **common)
+        # slicersim 1.0's grid is NumPy-only, in double: the cube kernels may still run in single
+        kwargs["precision"] = "auto" if (options or {}).get("grid") == "reference" else precision
         kwargs.update(options or {})
         return (psf_cube_device if on_device else psf_cube)(sim.lbda[lo:hi], shape, position, profile="airy",
                                                            **kwargs)

@@ -1,0 +1,151 @@
+"""Precision as a dial: which floating type a kernel family runs in on the selected device.
+
+Every kernel-backed entry point that has single-precision kernels takes
+``precision="auto" | "double" | "single"``:
+
+* ``"double"``: float64 kernels (or the NumPy twin).  On an OpenCL device without fp64 this is
+  refused with one clear error (the NumPy twin is still reached with ``backend="numpy"``).
+* ``"single"``: float32 kernels, built from the same sources with ``-DSINGLE``
+  (:func:`slicersim.backends.opencl.precision_options`).  Their error against the float64 twin is
+  measured and bounded per product (:data:`SINGLE_PRECISION_ERRORS`, tested).  The NumPy backend
+  has no single-precision twin: ``backend="numpy"`` computes in float64 whatever is asked.
+* ``"auto"`` (default): single where the product's measured error stays below its documented
+  tolerance *and* the device lacks fast fp64 (no fp64 at all, or fp64 FMA throughput below
+  1/:data:`FAST_FP64_RATIO` of fp32, measured once per device: :func:`fp64_throughput_ratio`);
+  double otherwise.  CPUs (fp64 at ½ the fp32 rate) and data-centre GPUs keep double, so their
+  results do not change; consumer and integrated GPUs (1/16–1/64) get single.
+
+The ETC, the reference reproduction and everything compared at 1e-6 stay double: they do not take
+this argument.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from slicersim.backends import opencl
+from slicersim.backends.dispatch import BACKENDS, resolve_backend
+from slicersim.errors import OpenCLUnavailableError, ParameterError
+
+__all__ = ["PRECISIONS", "SINGLE_PRECISION_ERRORS", "FAST_FP64_RATIO", "check_precision", "resolve_precision",
+           "fp64_throughput_ratio", "real_dtype"]
+
+PRECISIONS = ("auto", "double", "single")
+#: fp64 counts as fast when its FMA throughput is at least 1/FAST_FP64_RATIO of fp32's
+FAST_FP64_RATIO = 4.0
+
+
+@dataclass(frozen=True)
+class SingleError:
+    """Measured max error of a product in single precision against its float64 twin, and the
+    tolerance that ``precision="auto"`` requires (both in ``unit``)."""
+    measured: float
+    tolerance: float
+    unit: str
+    measured_on: str
+
+    @property
+    def acceptable(self) -> bool:
+        return self.measured <= self.tolerance
+
+
+#: products with single-precision kernels: measured error (``benchmarks/precision.py`` and the
+#: tests that bound it) and tolerance
+SINGLE_PRECISION_ERRORS = {
+    "psf": SingleError(2.0e-7, 1e-5, "of the PSF peak", "Lazuli narrow field, Airy, jitter, blur; PoCL CPU"),
+    "cube": SingleError(2.0e-7, 1e-5, "of the signal peak",
+                        "Lazuli narrow-field Airy cube (jitter, blur, LSF); PoCL CPU"),
+}
+
+
+def check_precision(precision) -> str:
+    """``precision`` if it is one of :data:`PRECISIONS`, else one clear ParameterError."""
+    if not isinstance(precision, str) or precision not in PRECISIONS:
+        raise ParameterError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
+    return precision
+
+
+def real_dtype(precision: str):
+    """NumPy dtype of a resolved precision ("double" → float64, "single" → float32)."""
+    return np.dtype(np.float32 if precision == "single" else np.float64)
+
+
+_ratios: dict = {}
+_ratio_lock = threading.Lock()
+
+
+def fp64_throughput_ratio() -> float:
+    """fp32 / fp64 FMA throughput of the selected device, measured once per device and process
+    (``kernels/precision.cl``: independent FMA chains, best of 3 launches each); inf without fp64."""
+    if not opencl.device_supports_fp64():
+        return float("inf")
+    key = opencl.device_fingerprint()
+    with _ratio_lock:
+        if key not in _ratios:
+            _ratios[key] = _measure_ratio()
+        return _ratios[key]
+
+
+def _measure_ratio() -> float:
+    dev = opencl.get_device()
+    gpu = "GPU" in opencl.device_type()
+    # GPUs: scalar work items (SIMT), enough of them and of steps to last ~1 ms; CPUs: 8-lane
+    # vectors (a scalar chain is latency-bound and hides the SIMD width: ratio 1 on PoCL)
+    items, steps, vw = int(dev.max_compute_units) * (2048 if gpu else 1024), (4096 if gpu else 256), (1 if gpu else 8)
+    times = {}
+    for name, dtype in (("single", np.float32), ("double", np.float64)):
+        kern = opencl.get_kernel("precision.cl", "fma_chains", opencl.precision_options(name) + (f"-DVW={vw}",))
+        buf = opencl.device_buffer(np.dtype(dtype).itemsize * items)
+        best = float("inf")
+        for _ in range(4):                              # the first launch also compiles/warms up
+            t0 = time.perf_counter()
+            opencl.launch(kern, (items,), None, np.int32(steps), buf)
+            opencl.get_queue().finish()
+            best = min(best, time.perf_counter() - t0)
+        times[name] = best
+    return times["double"] / max(times["single"], 1e-9)
+
+
+def resolve_precision(precision, backend="auto", product="cube"):
+    """(backend, precision) resolved for ``product`` (a key of :data:`SINGLE_PRECISION_ERRORS`, or
+    a product without single-precision kernels): backend "opencl" or "numpy", precision "double"
+    or "single" (always "double" on NumPy).  Raises one clear error for an unknown name, for
+    ``"double"`` on an OpenCL device without fp64, and for ``"single"`` on a product that has no
+    single-precision kernels."""
+    check_precision(precision)
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    single_ok = product in SINGLE_PRECISION_ERRORS
+    if precision == "single" and not single_ok:
+        raise ParameterError(f"precision='single' is not available for {product!r} (single-precision kernels: "
+                             f"{', '.join(SINGLE_PRECISION_ERRORS)}); use 'auto' or 'double'")
+    if backend == "numpy":
+        return "numpy", "double"
+    device = opencl.is_available()
+    if not device:
+        if backend == "opencl":
+            resolve_backend("opencl")                    # raises its own clear error
+        return "numpy", "double"
+    fp64 = opencl.device_supports_fp64()
+    name = opencl.get_device().name.strip()
+    if precision == "double":
+        if not fp64:
+            raise OpenCLUnavailableError(
+                f"precision='double' needs fp64, which OpenCL device {name!r} lacks: use precision='single' or "
+                "'auto', backend='numpy', or another device (SLICERSIM_DEVICE)")
+        return resolve_backend(backend), "double"
+    if precision == "single" or (single_ok and SINGLE_PRECISION_ERRORS[product].acceptable
+                                 and (not fp64 or fp64_throughput_ratio() > FAST_FP64_RATIO)):
+        if not fp64:                 # the device self-check runs fp64 kernels: nothing to check with
+            return "opencl", "single"
+        chosen = resolve_backend(backend)              # the self-check decides, as for double
+        return chosen, ("single" if chosen == "opencl" else "double")
+    if not fp64:
+        if backend == "opencl":
+            raise OpenCLUnavailableError(f"OpenCL device {name!r} lacks fp64 and {product!r} has no "
+                                         "single-precision kernels: use backend='numpy' or 'auto'")
+        return "numpy", "double"
+    return resolve_backend(backend), "double"

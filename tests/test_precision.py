@@ -1,0 +1,142 @@
+"""Precision as a dial (slicersim.backends.precision): single-precision kernels against their
+float64 twins, the "auto" rule, devices without fp64, and bad input.
+
+Tolerances
+----------
+* PSF (Airy and Gaussian) and the fused cube in single precision: ≤ 1e-5 of the peak against
+  double (the documented tolerance of :data:`SINGLE_PRECISION_ERRORS`).  float32 rounds each
+  operation to 6e-8; the Airy kernel's J1 series cancels to ~30× its result near its switch to the
+  Hankel expansion (7 in float, 12 in double), and the contractions sum ≤ 100 terms, so a few 1e-7
+  of the peak are expected: measured 3.7e-7 (Airy PSF, Lazuli narrow field), 2.0e-7 (Airy cube).
+  The tests also assert the errors stay below 2e-6, so that a regression to the 3.3e-6 of the
+  double-precision switch (v = 12) in float is caught.
+"""
+import re
+
+import numpy as np
+import pytest
+
+from slicersim.backends import opencl
+from slicersim.backends import precision as prec
+from slicersim.backends.opencl import kernel_source
+from slicersim.backends.psf import psf_cube
+from slicersim.errors import OpenCLUnavailableError, ParameterError
+
+HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
+needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
+NARROW = dict(spatial_scale=0.04, guiding_sigma=0.010, instrumental_sigma=np.sqrt(2.3**2 - 4))
+TOL, TIGHT = 1e-5, 2e-6
+
+
+def peak_err(a, b):
+    return float(np.nanmax(np.abs(a - b)) / np.nanmax(np.abs(b)))
+
+
+def test_unknown_precision_is_one_clear_error():
+    for bad in ("half", "float32", None, 32, "Single"):
+        with pytest.raises(ParameterError, match="precision must be one of"):
+            prec.check_precision(bad)
+        with pytest.raises(ParameterError, match="precision must be one of"):
+            prec.resolve_precision(bad, "numpy", "cube")
+    with pytest.raises(ParameterError, match="not available for 'ramps'"):
+        prec.resolve_precision("single", "auto", "ramps")
+    assert prec.resolve_precision("single", "numpy", "cube") == ("numpy", "double")   # NumPy: float64
+
+
+def test_single_precision_sources_hold_no_double():
+    """A device without fp64 must compile the single-precision programs: psf.cl, cube.cl and
+    precision.cl are written in ``real`` only (comments aside)."""
+    for name in ("psf.cl", "cube.cl", "precision.cl"):
+        code = re.sub(r"/\*.*?\*/", "", kernel_source(name), flags=re.S)
+        code = re.sub(r"//[^\n]*", "", code)
+        assert not re.search(r"\bdouble\d*\b", code), name
+
+
+@needs_opencl
+@pytest.mark.parametrize("case", range(5))
+def test_airy_psf_single_matches_double(case):
+    shape = [(58, 116), (9, 31), (13, 7), (58, 116), (6, 10)][case]
+    pos = [(0.3, -0.2), (0.0, 0.0), (2.5, -1.0), (30.0, 4.0), (-1.2, 0.7)][case]
+    kw = dict(NARROW, obscuration=[0.0, 0.3, 0.0, 0.2, 0.45][case], grid=["exact", "gauss"][case % 2],
+              oversampling=["auto", 3, (2, 3), (4, 3), 4][case])
+    if case == 2:
+        kw["guiding_sigma"] = 0.08                            # 2 cells: the unfused row path
+    lbda = np.linspace(3700.0, 17000.0, [40, 7, 5, 9, 3][case])
+    d = psf_cube(lbda, shape, pos, "airy", backend="opencl", precision="double", **kw)
+    s = psf_cube(lbda, shape, pos, "airy", backend="opencl", precision="single", **kw)
+    assert s.dtype == np.float64 and s.shape == d.shape
+    err = peak_err(s, d)
+    print(f"case {case}: {err:.2e} of the peak")
+    assert 0 < err <= TIGHT <= TOL
+    # flux conservation holds to the same order
+    assert np.max(np.abs(s.sum(axis=(1, 2)) - d.sum(axis=(1, 2)))) <= 10 * TIGHT
+
+
+@needs_opencl
+def test_gaussian_psf_single_matches_double():
+    lbda = np.linspace(3700.0, 17000.0, 11)
+    kw = dict(NARROW, sigma_ref_arcsec=0.0286)
+    d = psf_cube(lbda, (58, 116), (1.3, -0.4), "gaussian", backend="opencl", precision="double", **kw)
+    s = psf_cube(lbda, (58, 116), (1.3, -0.4), "gaussian", backend="opencl", precision="single", **kw)
+    assert 0 < peak_err(s, d) <= TIGHT
+
+
+@pytest.fixture(scope="module")
+def sim():
+    from slicersim import LazuliSupernova
+    return LazuliSupernova(0.5).simulation
+
+
+@needs_opencl
+def test_airy_cube_single_matches_double(sim):
+    """The acceptance cube: Lazuli narrow field, Airy, jitter, blur, LSF; signal and variance."""
+    d = sim.get_cube(psf_profile="airy", precision="double")
+    s = sim.get_cube(psf_profile="airy", precision="single")
+    a = sim.get_cube(psf_profile="airy")                       # auto: double on a CPU (fast fp64)
+    assert np.array_equal(a[0], d[0], equal_nan=True)
+    for k in (0, 1):
+        err = peak_err(s[k], d[k])
+        print(f"{'signal' if k == 0 else 'variance'}: {err:.2e} of the peak")
+        assert 0 < err <= TIGHT
+    assert np.array_equal(np.isnan(s[0]), np.isnan(d[0]))
+
+
+@needs_opencl
+def test_auto_picks_single_only_without_fast_fp64(monkeypatch):
+    ratio = prec.fp64_throughput_ratio()
+    if opencl.device_type() == "CPU":
+        assert 1.0 < ratio < prec.FAST_FP64_RATIO, ratio      # CPUs: fp64 at ~½ the fp32 rate
+    assert prec.resolve_precision("auto", "auto", "cube")[1] == ("single" if ratio > prec.FAST_FP64_RATIO
+                                                                 else "double")
+    monkeypatch.setattr(prec, "fp64_throughput_ratio", lambda: 32.0)     # a consumer GPU
+    assert prec.resolve_precision("auto", "auto", "cube") == ("opencl", "single")
+    assert prec.resolve_precision("auto", "auto", "ramps")[1] == "double"   # no single kernels
+    monkeypatch.setitem(prec.SINGLE_PRECISION_ERRORS, "cube",
+                        prec.SingleError(3e-5, 1e-5, "of the peak", "test"))  # above its tolerance
+    assert prec.resolve_precision("auto", "auto", "cube")[1] == "double"
+
+
+@needs_opencl
+def test_device_without_fp64_runs_single_kernels(sim, monkeypatch):
+    """Forcing the fp64 flag off: "auto" runs the single-precision kernels (not the NumPy
+    fallback), bit for bit what "single" gives on the real device; "double" is one clear error;
+    products without single kernels fall back to NumPy as before."""
+    from slicersim.backends.psf_cache import clear_psf_cache
+    from slicersim.products.cube import FUSED_KERNEL, build_cube
+    single = sim.get_cube(psf_profile="airy", precision="single")
+    clear_psf_cache()
+    monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
+    got = build_cube(sim, psf_profile="airy")
+    assert got.paths["detector"] == FUSED_KERNEL
+    assert np.array_equal(got.signal, single[0], equal_nan=True) and np.array_equal(got.variance, single[1])
+    with pytest.raises(OpenCLUnavailableError, match="precision='double' needs fp64"):
+        sim.get_cube(psf_profile="airy", precision="double")
+    assert prec.resolve_precision("auto", "auto", "ramps") == ("numpy", "double")
+    with pytest.raises(OpenCLUnavailableError, match="lacks fp64"):
+        prec.resolve_precision("auto", "opencl", "ramps")
+    clear_psf_cache()
+
+
+def test_bad_precision_in_get_cube_refused_before_work(sim):
+    with pytest.raises(ParameterError, match="precision must be one of"):
+        sim.get_cube(psf_profile="airy", precision="quad")
