@@ -284,6 +284,7 @@ def test_failing_target_is_recorded_and_does_not_stop_the_campaign(spec_path, tm
     (lambda s: s.replace('psf_profile = "airy"', 'psf_profile = "moffat"'), "psf_profile"),
     (lambda s: s + "\n[survey]\nefficiency = 1.5\n", "survey.efficiency"),
     (lambda s: s.replace("[products]", "[products"), "TOML"),
+    (lambda s: s.replace("cube = true", 'cube = true\nprecision = "half"'), "products.precision"),
 ])
 def test_bad_specs_give_one_clear_error_and_write_nothing(tmp_path, edit, message):
     spec = tmp_path / "bad.toml"

@@ -140,3 +140,15 @@ def test_device_without_fp64_runs_single_kernels(sim, monkeypatch):
 def test_bad_precision_in_get_cube_refused_before_work(sim):
     with pytest.raises(ParameterError, match="precision must be one of"):
         sim.get_cube(psf_profile="airy", precision="quad")
+
+
+def test_campaign_spec_precision(tmp_path):
+    """products.precision: validated, passed to the cubes, and left out of the dataset identity
+    when it is the default (datasets made before it keep resuming)."""
+    from slicersim.campaign.spec import parse_spec
+    doc = {"seed": 1, "population": {"kind": "snia", "n": 2}, "products": {"cube": True}}
+    default = parse_spec(doc)
+    assert default.products["precision"] == "auto" and "precision" not in default.canonical()["products"]
+    single = parse_spec({**doc, "products": {"cube": True, "precision": "single"}})
+    assert single.canonical()["products"]["precision"] == "single"
+    assert single.canonical() != default.canonical()

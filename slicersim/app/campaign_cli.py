@@ -83,7 +83,12 @@ def cmd_campaign_run(args) -> int:
     from slicersim.errors import ParameterError
     if not (math.isfinite(args.memory_per_task) and 1 <= args.memory_per_task <= 2**20):
         raise ParameterError(f"--memory-per-task must be in [1, 1048576] MiB, got {args.memory_per_task}")
-    res = run_campaign(args.spec, args.out, workers=args.workers, scheduler=args.scheduler, force=args.force,
+    spec = args.spec
+    if args.precision is not None:             # overrides products.precision (part of the dataset's identity)
+        from slicersim.campaign.spec import load_spec
+        spec = load_spec(args.spec)
+        spec.products["precision"] = args.precision
+    res = run_campaign(spec, args.out, workers=args.workers, scheduler=args.scheduler, force=args.force,
                        retry_failed=args.retry_failed, progress=not args.no_progress,
                        threads_per_worker=args.threads_per_worker,
                        max_bytes=int(args.memory_per_task * 2**20))
@@ -149,6 +154,9 @@ def add_parsers(sub, fmt):
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
     p.add_argument("--threads-per-worker", type=int, help="OpenCL CPU threads per worker (default: CPUs/workers)")
     p.add_argument("--memory-per-task", type=float, default=256.0, help="memory budget of a task's chunks [MiB]")
+    p.add_argument("--precision", choices=("auto", "double", "single"),
+                   help="precision of the cube kernels (overrides the spec's products.precision; default auto: "
+                        "single only on devices without fast fp64)")
     p.add_argument("--force", action="store_true", help="start again in a dataset made from another spec")
     p.add_argument("--retry-failed", action="store_true", help="run failed targets again")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

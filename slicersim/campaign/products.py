@@ -103,7 +103,8 @@ def _write_cube(path, target, row, seed, spec, max_bytes):
     obs, prod = spec.observation, spec.products
     dtype = np.dtype(prod["cube_dtype"])
     signal, variance, noisy = target.simulation.get_cube(seed=int(seed), psf_profile=obs["psf_profile"],
-                                                         max_bytes=max_bytes, progress=False, dtype=dtype)
+                                                         max_bytes=max_bytes, progress=False, dtype=dtype,
+                                                         precision=prod.get("precision", "auto"))
     with ProductFile(path, overwrite=True) as f:
         f.set_attrs({**_attrs(row, seed, "cube"), "psf_profile": obs["psf_profile"]})
         f.write("lbda", target.simulation.lbda, {"unit": "Angstrom"})

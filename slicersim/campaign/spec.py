@@ -23,6 +23,7 @@
     detector_image = false                    # photo-electron rate on the H4RG
     ramps = false                             # raw MACC ramps (HDF5)
     cube_dtype = "float32"                    # or "float64"
+    precision = "auto"                        # of the cube kernels: "auto", "double" or "single"
     compression = "none"                      # of the ramps: none, gzip[:level], lz4, zstd, bitshuffle-lz4
     [survey]                                  # totals of the plan
     overhead = 0.0                            # s per target (slew, settle, acquisition)
@@ -54,7 +55,7 @@ _OBSERVATION = {"snr": 20.0, "lbda_range": [4000.0, 6800.0], "frame": "rest", "c
                 "field": None, "field_switch_redshift": None, "psf_profile": "airy",
                 "conventions": "physical", "search": "exact", "per_resolution": True}
 _PRODUCTS = {"spectrum": True, "cube": False, "detector_image": False, "ramps": False,
-             "cube_dtype": "float32", "compression": "none"}
+             "cube_dtype": "float32", "compression": "none", "precision": "auto"}
 _SURVEY = {"overhead": 0.0, "efficiency": 1.0, "compression_ratio": 1.0}
 DEFAULT_Z_SWITCH = 0.8
 
@@ -115,6 +116,8 @@ class CampaignSpec:
         out = {"seed": self.seed, "name": self.name, "population": self.population.to_spec(),
                "observation": dict(self.observation), "products": dict(self.products),
                "survey": dict(self.survey)}
+        if out["products"].get("precision") == "auto":   # the default: datasets made before it keep their identity
+            del out["products"]["precision"]
         if self.config_digests:
             out["observation"]["config_sha256"] = dict(sorted(self.config_digests.items()))
         return out
@@ -174,6 +177,7 @@ def _products(section):
         if not isinstance(prod[name], bool):
             raise ConfigError(f"products.{name} must be true or false, got {prod[name]!r}")
     _choice(prod["cube_dtype"], "products.cube_dtype", ("float32", "float64"))
+    _choice(prod["precision"], "products.precision", ("auto", "double", "single"))
     try:
         compression_options(None if prod["compression"] == "none" else prod["compression"])
     except (SlicersimError, ValueError) as exc:
