@@ -1,0 +1,141 @@
+#!/usr/bin/env python
+"""Single vs double precision kernels, per kernel family: time and max error, in one run.
+
+For each family with single-precision kernels (:data:`slicersim.backends.precision.SINGLE_PRECISION_ERRORS`)
+the same call is timed in both precisions (best of ``--repeat``, alternating, PSF cache bypassed)
+and the single result compared with the double one: max |Δ| over the peak (and, for the cube,
+over the noise σ of the brightest voxel's neighbourhood: max |Δ| / √variance).  Families still
+double-only are listed as such.  Writes ``results/precision[_<device>].{json,md,png}`` (the
+speed–accuracy chart) with the device, CPU model and load.
+
+    .venv/bin/python benchmarks/precision.py [--repeat 5]
+"""
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+
+from _common import cpu_model, jsonable, loadavg  # noqa: E402
+
+from slicersim import LazuliSupernova  # noqa: E402
+from slicersim.backends import opencl  # noqa: E402
+from slicersim.backends.precision import SINGLE_PRECISION_ERRORS, fp64_throughput_ratio  # noqa: E402
+from slicersim.backends.psf import psf_cube  # noqa: E402
+from slicersim.backends.psf_cache import bypass  # noqa: E402
+
+#: kernel families of the issue still computed in double only
+DOUBLE_ONLY = ("lsf", "convolution (host)", "noise", "ramps", "ramp effects", "ramp fit", "detector projection",
+               "batch ETC (band variance)")
+
+
+def _timed(fn, repeat):
+    """Best time of each precision, alternating (drifts of a shared machine hit both alike)."""
+    out, best = {}, {"double": float("inf"), "single": float("inf")}
+    for p in ("double", "single"):
+        out[p] = fn(p)                                  # warm: kernels built, buffers allocated
+    for _ in range(repeat):
+        for p in ("double", "single"):
+            t0 = time.perf_counter()
+            out[p] = fn(p)
+            best[p] = min(best[p], time.perf_counter() - t0)
+    return out, best
+
+
+def _row(name, what, out, best, noise=None):
+    d, s = out["double"], out["single"]
+    err = float(np.nanmax(np.abs(s - d)) / np.nanmax(np.abs(d)))
+    row = {"family": name, "case": what, "t_double_s": best["double"], "t_single_s": best["single"],
+           "speedup": best["double"] / best["single"], "max_err_of_peak": err}
+    if noise is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            row["max_err_in_sigma"] = float(np.nanmax(np.abs(s - d) / np.sqrt(noise)))
+    print(f"{name:14s} {what:52s} ×{row['speedup']:.2f}  {err:.2e} of peak"
+          + (f", {row['max_err_in_sigma']:.1e} σ" if noise is not None else ""), flush=True)
+    return row
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--out", default=str(HERE / "results"))
+    args = ap.parse_args()
+    dev = opencl.get_device()
+    device = f"{dev.name.strip()} ({opencl.device_type()}, {dev.platform.name.strip()})"
+    res = {"benchmark": "precision", "device": device, "cpu": cpu_model(), "load_before": loadavg(),
+           "fp64_throughput_ratio": fp64_throughput_ratio(), "rows": [], "double_only": list(DOUBLE_ONLY)}
+    print(f"{device}; fp32/fp64 FMA throughput ratio {res['fp64_throughput_ratio']:.2f}")
+    sim = LazuliSupernova(0.5).simulation
+    lbda = sim.lbda
+    tel, spec = sim.telescope, sim.spectrograph
+    common = dict(spatial_scale=spec.spatial_scale, guiding_sigma=tel.guiding_sigma,
+                  instrumental_sigma=sim.instrumental_sigma, diameter=tel.diameter_ext, backend="opencl")
+    with bypass():
+        for name, kw, what in (
+                ("psf", dict(profile="airy", obscuration=tel.obscuration, oversampling="auto"),
+                 f"Airy, Lazuli narrow field, {lbda.size} λ, source off-centre"),
+                ("psf", dict(profile="gaussian", sigma_ref_arcsec=tel.psf_sigma_ref),
+                 f"Gaussian (erf), Lazuli narrow field, {lbda.size} λ")):
+            out, best = _timed(lambda p: psf_cube(lbda, spec.shape, (0.3, -0.2), precision=p, **kw, **common),
+                               args.repeat)
+            res["rows"].append(_row(name, what, out, best))
+        cubes = {}
+
+        def cube(p):
+            cubes[p] = sim.get_cube(psf_profile="airy", precision=p)
+            return cubes[p][0]
+        out, best = _timed(cube, args.repeat)
+        res["rows"].append(_row("cube", "Airy cube, Lazuli narrow field (jitter, blur, LSF): signal", out, best,
+                                noise=cubes["double"][1]))
+        res["rows"].append(_row("cube", "the same: variance", {p: cubes[p][1] for p in cubes}, best))
+    res["load_after"] = loadavg()
+    for key, e in SINGLE_PRECISION_ERRORS.items():
+        res.setdefault("documented", {})[key] = {"measured": e.measured, "tolerance": e.tolerance, "unit": e.unit}
+    tag = "" if opencl.device_type() == "CPU" else "_" + "".join(c if c.isalnum() else "_" for c in dev.name.strip())
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"precision{tag}.json").write_text(json.dumps(jsonable(res), indent=1))
+    lines = [f"# Single vs double precision kernels (`benchmarks/precision.py`)", "",
+             f"{device}; CPU {res['cpu']}; load {res['load_before']} → {res['load_after']}; "
+             f"fp32/fp64 FMA throughput {res['fp64_throughput_ratio']:.2f} (auto picks single above 4).", "",
+             "| family | case | double [s] | single [s] | speed-up | max error / peak | max error / σ |",
+             "|---|---|---:|---:|---:|---:|---:|"]
+    for r in res["rows"]:
+        sig = f"{r['max_err_in_sigma']:.1e}" if "max_err_in_sigma" in r else "—"
+        lines.append(f"| {r['family']} | {r['case']} | {r['t_double_s']:.3f} | {r['t_single_s']:.3f} | "
+                     f"{r['speedup']:.2f} | {r['max_err_of_peak']:.1e} | {sig} |")
+    lines += ["", "Double only so far (no single-precision kernels): " + ", ".join(DOUBLE_ONLY) + "."]
+    (out / f"precision{tag}.md").write_text("\n".join(lines) + "\n")
+    _plot(res, out / f"precision{tag}.png")
+    print("\n".join(lines))
+
+
+def _plot(res, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for r in res["rows"]:
+        ax.scatter(r["speedup"], r["max_err_of_peak"], s=40)
+        ax.annotate(f"{r['family']}: {r['case'].split(',')[0]}", (r["speedup"], r["max_err_of_peak"]),
+                    fontsize=7, xytext=(4, 3), textcoords="offset points")
+    ax.axhline(1e-5, color="k", ls="--", lw=0.8)
+    ax.text(1.0, 1.1e-5, "tolerance 1e-5 of peak", fontsize=7)
+    ax.axvline(1.5, color="grey", ls=":", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_ylim(1e-8, 1e-4)
+    ax.set_xlabel("speed-up of single over double (same run)")
+    ax.set_ylabel("max |single − double| / peak")
+    ax.set_title(f"Precision: speed vs accuracy — {res['device']}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    main()
