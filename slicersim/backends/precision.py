@@ -56,6 +56,7 @@ class SingleError:
 #: tests that bound it) and tolerance
 SINGLE_PRECISION_ERRORS = {
     "psf": SingleError(2.0e-7, 1e-5, "of the PSF peak", "Lazuli narrow field, Airy, jitter, blur; PoCL CPU"),
+    "lsf": SingleError(1.5e-7, 1e-5, "of the peak", "Lazuli point-source cube (photons), its LSF; PoCL CPU"),
     "cube": SingleError(2.0e-7, 1e-5, "of the signal peak",
                         "Lazuli narrow-field Airy cube (jitter, blur, LSF); PoCL CPU"),
 }
