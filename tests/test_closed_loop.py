@@ -342,18 +342,15 @@ def test_dark_review_findings(small, tmp_path):
     assert a["options"]["dark"] is None and b["options"]["dark"] == "auto" and b["options"]["weights"] == "model"
 
 
-def test_model_weights_come_from_a_coarser_first_pass(small, tmp_path, monkeypatch):
-    """On a grid finer than MODEL_NCOL columns a cell holds about one pixel and the first cubes'
-    model image follows the pixels' noise (a Lazuli SN Ia at 116 columns: −2.9 ± 0.7 % against exact
-    weights): the first pass of weights="model" then runs on MODEL_NCOL columns, the final cubes on
-    ncol; at or below MODEL_NCOL both passes use ncol.  The weights still come from the model image
-    (variance within the ramp fit's, not the data's own)."""
+def _recorded_ramp(small, tmp_path, monkeypatch, nmd, seed):
+    """A ramp of the bright small-layout scene (× 20) and the list that records the ``ncol`` of
+    every rectify call: (path, ncols, scene, image)."""
     from slicersim.products.ramps import simulate
-    from slicersim.reduction import pipeline, rectify as rectify_module
-    lbda, cube, psf, F, B = _scene()
-    img = small.project_fields(lbda, EDGES, narrow=cube * 20)
+    from slicersim.reduction import rectify as rectify_module
+    scene = _scene()
+    img = small.project_fields(scene[0], EDGES, narrow=scene[1] * 20)
     raw = tmp_path / "raw.h5"
-    simulate(img, (8, 4, 0), seed=7, out=str(raw), ron=5.0, dark=0.0, roic_glow=0.0)
+    simulate(img, nmd, seed=seed, out=str(raw), ron=5.0, dark=0.0, roic_glow=0.0)
     seen = []
     real = rectify_module.rectify
 
@@ -361,11 +358,22 @@ def test_model_weights_come_from_a_coarser_first_pass(small, tmp_path, monkeypat
         seen.append(kw["ncol"])
         return real(*args, **kw)
     monkeypatch.setattr(rectify_module, "rectify", recording)
-    same = pipeline.reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf)
+    return str(raw), seen, scene, img
+
+
+def test_model_weights_come_from_a_coarser_first_pass(small, tmp_path, monkeypatch):
+    """On a grid finer than MODEL_NCOL columns a cell holds about one pixel and the first cubes'
+    model image follows the pixels' noise (a Lazuli SN Ia at 116 columns: −2.9 ± 0.7 % against exact
+    weights): the first pass of weights="model" then runs on MODEL_NCOL columns, the final cubes on
+    ncol; at or below MODEL_NCOL both passes use ncol.  The weights still come from the model image
+    (variance within the ramp fit's, not the data's own)."""
+    from slicersim.reduction import pipeline
+    raw, seen, (lbda, cube, psf, F, B), img = _recorded_ramp(small, tmp_path, monkeypatch, (8, 4, 0), 7)
+    same = pipeline.reduce_exposure(raw, mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf)
     assert seen == [NCOL, NCOL]
     seen.clear()
     monkeypatch.setattr(pipeline, "MODEL_NCOL", NCOL // 2)
-    coarse = pipeline.reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf)
+    coarse = pipeline.reduce_exposure(raw, mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf)
     assert seen == [NCOL // 2, NCOL]
     assert coarse["cubes"]["narrow"].flux.shape == same["cubes"]["narrow"].flux.shape
     a, b = coarse["spectra"]["narrow"].flux, same["spectra"]["narrow"].flux
@@ -380,24 +388,13 @@ def test_forward_weights_follow_the_fitted_model_not_the_noise(small, tmp_path, 
     exact ones (var_rnoise + k·true image) than weights="model"'s; the band sum stays within 3 σ."""
     from types import SimpleNamespace
 
-    from slicersim.products.ramps import simulate
-    from slicersim.reduction import pipeline, rectify as rectify_module
+    from slicersim.reduction import pipeline
     from slicersim.reduction.spectrum_product import _gaussian_field
-    lbda, cube, psf, F, B = _scene()
-    img = small.project_fields(lbda, EDGES, narrow=cube * 20)
-    raw = tmp_path / "raw.h5"
-    simulate(img, (16, 8, 0), seed=11, out=str(raw), ron=5.0, dark=0.0, roic_glow=0.0)
-    seen = []
-    real = rectify_module.rectify
-
-    def recording(*args, **kw):
-        seen.append(kw["ncol"])
-        return real(*args, **kw)
-    monkeypatch.setattr(rectify_module, "rectify", recording)
+    raw, seen, (lbda, cube, psf, F, B), img = _recorded_ramp(small, tmp_path, monkeypatch, (16, 8, 0), 11)
     monkeypatch.setattr(pipeline, "MODEL_NCOL", NCOL // 2)
-    rf = pipeline.reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, weights="forward")
+    rf = pipeline.reduce_exposure(raw, mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, weights="forward")
     assert seen == [NCOL, NCOL]
-    rm = pipeline.reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, weights="model")
+    rm = pipeline.reduce_exposure(raw, mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, weights="model")
     rates = rf["rates"]
     var = pipeline.rate_variance(rates)
     reach = np.isfinite(var) & (img > 0.2 * img.max()) & (rates.rate > 0) & (rates.var_poisson > 0)
