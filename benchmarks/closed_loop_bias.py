@@ -298,7 +298,11 @@ def main():
     mapper = SlicerMapper.default()
     if args.from_json:
         runs = [json.loads(Path(f).read_text()) for f in args.from_json]
+        used = {r.get("weights", "model") for r in runs}             # runs before --weights: model
+        if len(used) > 1:
+            raise SystemExit(f"--from-json: these runs used different weights {sorted(used)}: not merged")
         res = runs[0]
+        res["weights"] = used.pop()
         for r in res["redshifts"]:
             more = [x for other in runs[1:] for x in other["redshifts"] if x["z"] == r["z"]]
             n0 = len(r["runs"])
