@@ -43,7 +43,7 @@ from slicersim.reduction.spectra import extract_spectrum  # noqa: E402
 from slicersim.reduction.templates import point_source_template  # noqa: E402
 
 K = cl.K
-WEIGHTS = "model"                                  # reduce_exposure's weights (--weights)
+WEIGHTS = "forward"                                # reduce_exposure's weights (--weights)
 
 
 class OraclePath:
@@ -289,8 +289,8 @@ def main():
                          "((a) from the first, (b) weighted by realisations), against today's ETC")
     ap.add_argument("--recompute-ramp-fit", action="store_true",
                     help="with --from-json: measure (b) again by the flat-field curve")
-    ap.add_argument("--weights", choices=("model", "forward", "data"), default="model",
-                    help="reduce_exposure's lsq weights (default: model)")
+    ap.add_argument("--weights", choices=("model", "forward", "data"), default="forward",
+                    help="reduce_exposure's lsq weights (default: forward, the pipeline's)")
     args = ap.parse_args()
     global WEIGHTS
     WEIGHTS = args.weights

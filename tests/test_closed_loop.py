@@ -224,7 +224,7 @@ def test_model_weights_remove_the_poisson_weighting_bias(small, tmp_path):
     img = small.project_fields(lbda, EDGES, narrow=cube * 20)
     raw = tmp_path / "raw.h5"
     simulate(img, (16, 8, 0), seed=5, out=str(raw), ron=5.0, dark=0.0, roic_glow=0.0)
-    rm = reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf)
+    rm = reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, weights="model")
     rd = reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, weights="data")
     rates = rm["rates"]
     var = rate_variance(rates)
@@ -339,7 +339,7 @@ def test_dark_review_findings(small, tmp_path):
         check_spectra_options(mapper=small, weights="smooth")
     a = _identity("spectra", check_spectra_options(mapper=small, dark=None), {}, "d", None)
     b = _identity("spectra", check_spectra_options(mapper=small), {}, "d", None)
-    assert a["options"]["dark"] is None and b["options"]["dark"] == "auto" and b["options"]["weights"] == "model"
+    assert a["options"]["dark"] is None and b["options"]["dark"] == "auto" and b["options"]["weights"] == "forward"
 
 
 def _recorded_ramp(small, tmp_path, monkeypatch, nmd, seed):
@@ -369,11 +369,11 @@ def test_model_weights_come_from_a_coarser_first_pass(small, tmp_path, monkeypat
     (variance within the ramp fit's, not the data's own)."""
     from slicersim.reduction import pipeline
     raw, seen, (lbda, cube, psf, F, B), img = _recorded_ramp(small, tmp_path, monkeypatch, (8, 4, 0), 7)
-    same = pipeline.reduce_exposure(raw, mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf)
+    same = pipeline.reduce_exposure(raw, mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, weights="model")
     assert seen == [NCOL, NCOL]
     seen.clear()
     monkeypatch.setattr(pipeline, "MODEL_NCOL", NCOL // 2)
-    coarse = pipeline.reduce_exposure(raw, mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf)
+    coarse = pipeline.reduce_exposure(raw, mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, weights="model")
     assert seen == [NCOL // 2, NCOL]
     assert coarse["cubes"]["narrow"].flux.shape == same["cubes"]["narrow"].flux.shape
     a, b = coarse["spectra"]["narrow"].flux, same["spectra"]["narrow"].flux

@@ -255,9 +255,9 @@ def add_parsers(sub, fmt):
                         "(dark + thermal dark + glow; nothing, with a warning, if the file has none), "
                         "'none', a rate [e-/s] or a .npy detector image [e-/s]")
     g.add_argument("--weights", choices=("model", "forward", "data"),
-                   help="lsq weights: 'model' (default) the variance of the first cubes' model image, "
-                        "'forward' that of the first extraction's point source + background model, "
-                        "'data' the ramp fit's own variance")
+                   help="lsq weights: 'forward' (default) the variance of the first extraction's point source + "
+                        "background model, 'model' that of the first cubes' image, 'data' the ramp fit's own "
+                        "variance")
     g.add_argument("--no-propagate", action="store_true",
                    help="optimal/aperture on an lsq cube: cells-independent variance instead of the full "
                         "cube covariance")

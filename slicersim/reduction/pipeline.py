@@ -171,20 +171,23 @@ def forward_model_cubes(cubes, spectra, psf=None):
 def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, ncol=58, rectify_method="lsq",
                     extraction=None, psf="fit", position=None, aperture=3.0, background=True,
                     propagate=True, fit_options=None, out=None, overwrite=False, keep_information=False,
-                    weights="model", dark="auto"):
+                    weights="forward", dark="auto"):
     """Reduce one raw exposure to rates, cube(s) and spectra.
 
     raw_path : ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts
     mapper : SlicerMapper (default ``SlicerMapper.default()``);  field : "narrow", "wide" or "both"
     lbda_edges : rectification λ edges [Å] (default :func:`default_lbda_edges`: 2 native bins)
     ncol : columns per slice;  rectify_method : "lsq" or "drizzle"
-    weights : "model" (default, lsq): rectify a second time with the pixel variance of the first
-        cubes' model image (:func:`model_variance`: no Poisson-weighting bias; the first cubes on
-        min(ncol, MODEL_NCOL) columns); "forward" (lsq): the same with the image of the first
-        extraction's model F̂_λ P_λ + B̂_λ (:func:`forward_model_cubes`, GLS on first cubes of ``ncol``
-        columns: weights nearly free of noise; for a point source on a uniform background — light the
-        model lacks, e.g. a host galaxy, is underweighted, which costs SNR but adds no bias);
-        "data": the ramp fit's own per-pixel variance only
+    weights : "forward" (default, lsq): rectify a second time with the pixel variance
+        (:func:`model_variance`) of the image of the first extraction's own model F̂_λ P_λ + B̂_λ
+        (:func:`forward_model_cubes`; GLS on first cubes of ``ncol`` columns): weights almost free of
+        noise — a Lazuli SN Ia at z = 0.8 on 116 columns: pipeline − exact weights 0.20 % per
+        realisation (0.88 % with "model"), bias −0.08 ± 0.06 %, long-band SNR 1.007 ± 0.008 of the ETC.
+        It models a point source on a uniform background, as the extraction does: light it lacks
+        (e.g. a host galaxy) is underweighted, which costs SNR but adds no bias.
+        "model": the same with the image of the first cubes themselves (first pass on
+        min(ncol, MODEL_NCOL) columns; follows any scene, noisier);
+        "data": the ramp fit's own per-pixel variance only (Poisson-weighting bias)
     dark : dark rate subtracted from the rates before rectification (:func:`dark_rate_of`): "auto"
         (default) the file's DARK_RATE, a number or an image [e-/s], None for none (written:
         DARK_SUBTRACTED [e-/s], DARK_SUBTRACTED_KIND, and an image as rates/DARK_SUBTRACTED).  A pedestal that
