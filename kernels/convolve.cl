@@ -32,24 +32,24 @@
 #include "vector_types.cl"
 
 __kernel void convolve_direct(
-    __global const double *restrict P,    /* (B, PY, PX) zero-padded planes   */
-    __global const double *restrict Kf,   /* (B or 1, ky, kx) flipped kernels */
+    __global const real *restrict P,    /* (B, PY, PX) zero-padded planes   */
+    __global const real *restrict Kf,   /* (B or 1, ky, kx) flipped kernels */
     const int ky, const int kx,
     const int PY, const int PX,
     const int kstride,                    /* ky * kx, or 0 for a shared kernel */
     const int nyo, const int nxo,         /* output plane, nxo % VW == 0      */
-    __global double *restrict out)        /* (B, nyo, nxo)                    */
+    __global real *restrict out)        /* (B, nyo, nxo)                    */
 {
     const int xv = get_global_id(0);
     const int y = get_global_id(1);
     const int b = get_global_id(2);
-    __global const double *Pb = P + (size_t)b * (size_t)PY * (size_t)PX
+    __global const real *Pb = P + (size_t)b * (size_t)PY * (size_t)PX
                                   + (size_t)y * (size_t)PX + (size_t)xv * VW;
-    __global const double *K = Kf + (size_t)b * (size_t)kstride;
+    __global const real *K = Kf + (size_t)b * (size_t)kstride;
     realv acc = (realv)(0.0);
     for (int a = 0; a < ky; ++a) {
-        __global const double *row = Pb + (size_t)a * (size_t)PX;
-        __global const double *krow = K + a * kx;
+        __global const real *row = Pb + (size_t)a * (size_t)PX;
+        __global const real *krow = K + a * kx;
         for (int c = 0; c < kx; ++c)
             acc += krow[c] * VLOAD(0, row + c);
     }
@@ -61,25 +61,25 @@ __kernel void convolve_direct(
 #define TH (TY + KY - 1)
 __kernel __attribute__((reqd_work_group_size(TX, TY, 1)))
 void convolve_direct_tiled(
-    __global const double *restrict P,    /* (B, PY, PX), PY >= nyo + KY - 1  */
-    __global const double *restrict Kf,   /* (B or 1, KY, KX) flipped kernels  */
+    __global const real *restrict P,    /* (B, PY, PX), PY >= nyo + KY - 1  */
+    __global const real *restrict Kf,   /* (B or 1, KY, KX) flipped kernels  */
     const int PY, const int PX,
     const int kstride,
     const int nyo, const int nxo,         /* multiples of TY, TX               */
-    __global double *restrict out)        /* (B, nyo, nxo)                     */
+    __global real *restrict out)        /* (B, nyo, nxo)                     */
 {
-    __local double tile[TH * TW];
+    __local real tile[TH * TW];
     const int lx = get_local_id(0), ly = get_local_id(1);
     const int x0 = get_group_id(0) * TX, y0 = get_group_id(1) * TY;
     const int b = get_global_id(2);
-    __global const double *Pb = P + (size_t)b * (size_t)PY * (size_t)PX;
+    __global const real *Pb = P + (size_t)b * (size_t)PY * (size_t)PX;
     for (int idx = ly * TX + lx; idx < TH * TW; idx += TX * TY) {
         const int ty = idx / TW, tx = idx - ty * TW;
         tile[idx] = Pb[(size_t)(y0 + ty) * (size_t)PX + (size_t)(x0 + tx)];
     }
     barrier(CLK_LOCAL_MEM_FENCE);
-    __global const double *K = Kf + (size_t)b * (size_t)kstride;
-    double acc = 0.0;
+    __global const real *K = Kf + (size_t)b * (size_t)kstride;
+    real acc = 0.0;
     for (int a = 0; a < KY; ++a)
         for (int c = 0; c < KX; ++c)
             acc += K[a * KX + c] * tile[(ly + a) * TW + lx + c];
@@ -88,55 +88,55 @@ void convolve_direct_tiled(
 #endif
 
 __kernel void pack_planes(
-    __global const double *restrict img,  /* (B, ny, nx); planes b >= nb are zero */
-    __global const double *restrict kern, /* (B or 1, ky, kx)                      */
-    __global const double *restrict inv,  /* (nb, 2): 1/max|img_b|, 1/max|kern_b|  */
+    __global const real *restrict img,  /* (B, ny, nx); planes b >= nb are zero */
+    __global const real *restrict kern, /* (B or 1, ky, kx)                      */
+    __global const real *restrict inv,  /* (nb, 2): 1/max|img_b|, 1/max|kern_b|  */
     const int nb, const int ny, const int nx,
     const int ky, const int kx, const int kstride,
     const int Ny, const int Nx,
-    __global double2 *restrict Z)         /* (B, Ny, Nx)                           */
+    __global real2 *restrict Z)         /* (B, Ny, Nx)                           */
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
-    double re = 0.0, im = 0.0;
+    real re = 0.0, im = 0.0;
     if (b < nb) {
         if (y < ny && x < nx)
             re = img[((size_t)b * ny + y) * nx + x] * inv[2 * b];
         if (y < ky && x < kx)
             im = kern[(size_t)b * kstride + y * kx + x] * inv[2 * b + 1];
     }
-    Z[((size_t)b * Ny + y) * Nx + x] = (double2)(re, im);
+    Z[((size_t)b * Ny + y) * Nx + x] = (real2)(re, im);
 }
 
 __kernel void multiply_pairs(
-    __global const double2 *restrict Z,   /* (2 B2, Ny, Nx) forward transforms */
+    __global const real2 *restrict Z,   /* (2 B2, Ny, Nx) forward transforms */
     const int Ny, const int Nx,
-    __global double2 *restrict W)         /* (B2, Ny, Nx)                      */
+    __global real2 *restrict W)         /* (B2, Ny, Nx)                      */
 {
     const int x = get_global_id(0), y = get_global_id(1), q = get_global_id(2);
     const int xm = (x == 0) ? 0 : Nx - x, ym = (y == 0) ? 0 : Ny - y;
-    double2 prod[2];
+    real2 prod[2];
     for (int h = 0; h < 2; ++h) {
         const size_t plane = (size_t)(2 * q + h) * Ny;
-        const double2 z = Z[(plane + y) * Nx + x];
-        const double2 zm = Z[(plane + ym) * Nx + xm];
+        const real2 z = Z[(plane + y) * Nx + x];
+        const real2 zm = Z[(plane + ym) * Nx + xm];
         /* Z^2 - conj(Zm)^2, then times -i/4 */
-        const double2 d = (double2)(z.x * z.x - z.y * z.y - zm.x * zm.x + zm.y * zm.y,
+        const real2 d = (real2)(z.x * z.x - z.y * z.y - zm.x * zm.x + zm.y * zm.y,
                                     2.0 * (z.x * z.y + zm.x * zm.y));
-        prod[h] = (double2)(0.25 * d.y, -0.25 * d.x);
+        prod[h] = (real2)(0.25 * d.y, -0.25 * d.x);
     }
-    W[((size_t)q * Ny + y) * Nx + x] = (double2)(prod[0].x - prod[1].y, prod[0].y + prod[1].x);
+    W[((size_t)q * Ny + y) * Nx + x] = (real2)(prod[0].x - prod[1].y, prod[0].y + prod[1].x);
 }
 
 __kernel void crop_pairs(
-    __global const double2 *restrict W,   /* (B2, Ny, Nx) inverse transforms */
+    __global const real2 *restrict W,   /* (B2, Ny, Nx) inverse transforms */
     const int nb, const int ny, const int nx,
     const int oy, const int ox,           /* ky/2, kx/2                     */
     const int Ny, const int Nx,
-    __global const double *restrict scale,/* (nb,) max|img| max|kern| / (Ny Nx) */
-    __global double *restrict out)        /* (nb, ny, nx)                   */
+    __global const real *restrict scale,/* (nb,) max|img| max|kern| / (Ny Nx) */
+    __global real *restrict out)        /* (nb, ny, nx)                   */
 {
     const int x = get_global_id(0), y = get_global_id(1), q = get_global_id(2);
-    const double2 w = W[((size_t)q * Ny + y + oy) * Nx + x + ox];
+    const real2 w = W[((size_t)q * Ny + y + oy) * Nx + x + ox];
     out[((size_t)(2 * q) * ny + y) * nx + x] = w.x * scale[2 * q];
     if (2 * q + 1 < nb)
         out[((size_t)(2 * q + 1) * ny + y) * nx + x] = w.y * scale[2 * q + 1];

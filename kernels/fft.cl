@@ -1,5 +1,5 @@
 /*
- * Mixed-radix (2, 3, 4, 5) Stockham autosort FFT passes, complex double.
+ * Mixed-radix (2, 3, 4, 5) Stockham autosort FFT passes, complex real.
  *
  * One pass of radix R on a transform of length N, with p = product of the
  * radices of the previous passes (p = 1 for the first pass), T = N / R
@@ -26,9 +26,9 @@
 
 #include "vector_types.cl"
 
-#define CMUL(a, b) ((double2)((a).x * (b).x - (a).y * (b).y, (a).x * (b).y + (a).y * (b).x))
+#define CMUL(a, b) ((real2)((a).x * (b).x - (a).y * (b).y, (a).x * (b).y + (a).y * (b).x))
 /* multiply by s*i: (x + iy)(s i) = -s y + i s x */
-#define MUL_SI(a, s) ((double2)(-(s) * (a).y, (s) * (a).x))
+#define MUL_SI(a, s) ((real2)(-(s) * (a).y, (s) * (a).x))
 
 #define SQRT3_2 0.86602540378443864676
 #define C5_1 0.30901699437494742410   /* cos(2 pi / 5) */
@@ -38,16 +38,16 @@
 
 #define BUTTERFLY_2(u, s)                                                   \
     {                                                                       \
-        const double2 a = u[0], b = u[1];                                   \
+        const real2 a = u[0], b = u[1];                                   \
         u[0] = a + b;                                                       \
         u[1] = a - b;                                                       \
     }
 
 #define BUTTERFLY_3(u, s)                                                   \
     {                                                                       \
-        const double2 t = u[1] + u[2];                                      \
-        const double2 d = MUL_SI(u[1] - u[2], (s) * SQRT3_2);               \
-        const double2 m = u[0] - 0.5 * t;                                   \
+        const real2 t = u[1] + u[2];                                      \
+        const real2 d = MUL_SI(u[1] - u[2], (s) * SQRT3_2);               \
+        const real2 m = u[0] - 0.5 * t;                                   \
         u[0] = u[0] + t;                                                    \
         u[1] = m + d;                                                       \
         u[2] = m - d;                                                       \
@@ -55,8 +55,8 @@
 
 #define BUTTERFLY_4(u, s)                                                   \
     {                                                                       \
-        const double2 a = u[0] + u[2], b = u[0] - u[2];                     \
-        const double2 c = u[1] + u[3], d = MUL_SI(u[1] - u[3], s);          \
+        const real2 a = u[0] + u[2], b = u[0] - u[2];                     \
+        const real2 c = u[1] + u[3], d = MUL_SI(u[1] - u[3], s);          \
         u[0] = a + c;                                                       \
         u[2] = a - c;                                                       \
         u[1] = b + d;                                                       \
@@ -65,12 +65,12 @@
 
 #define BUTTERFLY_5(u, s)                                                   \
     {                                                                       \
-        const double2 t1 = u[1] + u[4], t2 = u[2] + u[3];                   \
-        const double2 d1 = u[1] - u[4], d2 = u[2] - u[3];                   \
-        const double2 a1 = u[0] + C5_1 * t1 + C5_2 * t2;                    \
-        const double2 a2 = u[0] + C5_2 * t1 + C5_1 * t2;                    \
-        const double2 b1 = MUL_SI(S5_1 * d1 + S5_2 * d2, s);                \
-        const double2 b2 = MUL_SI(S5_2 * d1 - S5_1 * d2, s);                \
+        const real2 t1 = u[1] + u[4], t2 = u[2] + u[3];                   \
+        const real2 d1 = u[1] - u[4], d2 = u[2] - u[3];                   \
+        const real2 a1 = u[0] + C5_1 * t1 + C5_2 * t2;                    \
+        const real2 a2 = u[0] + C5_2 * t1 + C5_1 * t2;                    \
+        const real2 b1 = MUL_SI(S5_1 * d1 + S5_2 * d2, s);                \
+        const real2 b2 = MUL_SI(S5_2 * d1 - S5_1 * d2, s);                \
         u[0] = u[0] + t1 + t2;                                              \
         u[1] = a1 + b1;                                                     \
         u[4] = a1 - b1;                                                     \
@@ -79,11 +79,11 @@
     }
 
 #define DEFINE_PASS(R)                                                      \
-__kernel void fft_pass_##R(__global const double2 *restrict src,            \
-                           __global double2 *restrict dst,                  \
-                           __global const double2 *restrict tw,             \
+__kernel void fft_pass_##R(__global const real2 *restrict src,            \
+                           __global real2 *restrict dst,                  \
+                           __global const real2 *restrict tw,             \
                            const int N, const int p, const int twstep,      \
-                           const double s, const int M)                     \
+                           const real s, const int M)                     \
 {                                                                           \
     const int i = get_global_id(1);                                         \
     const size_t base = (size_t)get_global_id(2) * (size_t)N * (size_t)M    \
@@ -91,13 +91,13 @@ __kernel void fft_pass_##R(__global const double2 *restrict src,            \
     const size_t es = (size_t)M;                                            \
     const int T = N / R;                                                    \
     const int k = i % p;                                                    \
-    double2 u[R];                                                           \
+    real2 u[R];                                                           \
     _Pragma("unroll")                                                       \
     for (int r = 0; r < R; ++r)                                             \
         u[r] = src[base + (size_t)(i + r * T) * es];                        \
     _Pragma("unroll")                                                       \
     for (int r = 1; r < R; ++r) {                                           \
-        double2 w = tw[r * k * twstep];                                     \
+        real2 w = tw[r * k * twstep];                                     \
         w.y *= s;                                                           \
         u[r] = CMUL(u[r], w);                                               \
     }                                                                       \
@@ -114,7 +114,7 @@ DEFINE_PASS(4)
 DEFINE_PASS(5)
 
 /* (B, N, M) -> (B, M, N); NDRange (M, N, B) */
-__kernel void transpose(__global const double2 *restrict src, __global double2 *restrict dst,
+__kernel void transpose(__global const real2 *restrict src, __global real2 *restrict dst,
                         const int N, const int M)
 {
     const int c = get_global_id(0), n = get_global_id(1), b = get_global_id(2);
@@ -124,10 +124,10 @@ __kernel void transpose(__global const double2 *restrict src, __global double2 *
 /* same, 16 x 16 tiles through local memory; NDRange (ceil16(M), ceil16(N), B), local (16, 16, 1) */
 #define TT 16
 __kernel __attribute__((reqd_work_group_size(TT, TT, 1)))
-void transpose_tiled(__global const double2 *restrict src, __global double2 *restrict dst,
+void transpose_tiled(__global const real2 *restrict src, __global real2 *restrict dst,
                      const int N, const int M)
 {
-    __local double2 tile[TT][TT + 1];
+    __local real2 tile[TT][TT + 1];
     const int lx = get_local_id(0), ly = get_local_id(1), b = get_global_id(2);
     const int c = get_group_id(0) * TT + lx, n = get_group_id(1) * TT + ly;
     if (c < M && n < N)

@@ -9,7 +9,7 @@
  * that read a real's bits as an integer keep working).  A kernel file written in
  * real / realv compiles in both; kernels that stay double use double explicitly.
  *
- *   real                   the scalar floating type (double, or float with -DSINGLE)
+ *   real, real2            the scalar floating type (double, or float with -DSINGLE), its pair
  *   realv / longv / intv   real, same-width integer, int vectors of width VW (maskv = longv)
  *   VLOAD(o, p)            vector o of p (vloadVW), VSTORE(x, o, p) the store
  *   CONVERT_INTV(x)        convert_intVW;  CONVERT_REALV(x) convert_doubleVW
@@ -36,10 +36,12 @@
 
 #ifdef SINGLE
 typedef float real;
+typedef float2 real2;
 #define REAL_NAME float
 #define LONG_NAME int
 #else
 typedef double real;
+typedef double2 real2;
 #define REAL_NAME double
 #define LONG_NAME long
 #endif

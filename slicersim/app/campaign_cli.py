@@ -84,10 +84,9 @@ def cmd_campaign_run(args) -> int:
     if not (math.isfinite(args.memory_per_task) and 1 <= args.memory_per_task <= 2**20):
         raise ParameterError(f"--memory-per-task must be in [1, 1048576] MiB, got {args.memory_per_task}")
     spec = args.spec
-    if args.precision is not None:             # overrides products.precision (part of the dataset's identity)
-        from slicersim.campaign.spec import load_spec
-        spec = load_spec(args.spec)
-        spec.products["precision"] = args.precision
+    if args.precision is not None:             # overrides products.precision, written into the stored spec
+        from slicersim.campaign.spec import load_spec, with_products
+        spec = with_products(load_spec(args.spec), precision=args.precision)
     res = run_campaign(spec, args.out, workers=args.workers, scheduler=args.scheduler, force=args.force,
                        retry_failed=args.retry_failed, progress=not args.no_progress,
                        threads_per_worker=args.threads_per_worker,

@@ -183,13 +183,15 @@ def _check_conv_inputs(cube, kernels):
     return cube, kernels
 
 
-def convolve_cube(cube, kernels, method="auto", backend="auto", *, max_bytes=DEFAULT_MAX_BYTES):
+def convolve_cube(cube, kernels, method="auto", backend="auto", *, max_bytes=DEFAULT_MAX_BYTES, precision="auto"):
     """Linear 2-D convolution of each λ-plane of ``cube`` with its PSF kernel.
 
     cube : (nλ, ny, nx) array (any units per cell).
     kernels : (nλ, ky, kx) per-plane kernels or one (ky, kx) kernel; odd sizes, centre
         at (ky//2, kx//2) (as scipy.ndimage.convolve and fftconvolve(mode="same")).
     method : "auto" (:func:`choose_convolution_method`), "direct" or "fft".
+    precision : "auto", "double" or "single" kernels (:mod:`slicersim.backends.precision`; single:
+        ≤ 1e-5 of each plane's peak against double); the result is float64 either way.
     Returns (nλ, ny, nx): out[l, y, x] = Σ_ab K[l, a, b] cube[l, y + ky//2 − a,
     x + kx//2 − b], zero outside the field (flux leaving the field is lost; a
     normalised kernel conserves the flux of sources far enough from the edges).
@@ -197,15 +199,16 @@ def convolve_cube(cube, kernels, method="auto", backend="auto", *, max_bytes=DEF
     cube, kernels = _check_conv_inputs(cube, kernels)
     if method not in ("auto", "direct", "fft"):
         raise ValueError(f"method must be 'auto', 'direct' or 'fft', got {method!r}")
-    backend = resolve_backend(backend)
+    backend, precision = resolve_precision(precision, backend, "convolution")
     if method == "auto":
         method = choose_convolution_method(cube.shape[1:], kernels.shape[-2:], backend)
     if cube.size == 0:
         return cube.copy()
     if backend == "numpy":
         return (_direct_numpy if method == "direct" else _fft_numpy)(cube, kernels)
-    opencl.require_fp64()
-    return (_direct_opencl if method == "direct" else _fft_opencl)(cube, kernels, max_bytes)
+    if precision == "double":
+        opencl.require_fp64()
+    return (_direct_opencl if method == "direct" else _fft_opencl)(cube, kernels, max_bytes, precision=precision)
 
 
 def _direct_numpy(cube, kernels):
@@ -220,53 +223,65 @@ def _fft_numpy(cube, kernels):
     return scipy.signal.fftconvolve(cube, k, mode="same", axes=(1, 2))
 
 
-def _direct_opencl(cube, kernels, max_bytes, tiled=None):
+def _direct_opencl(cube, kernels, max_bytes, tiled=None, precision="double"):
     nl, ny, nx = cube.shape
+    real = real_dtype(precision)
+    size, opts = real.itemsize, opencl.precision_options(precision)
     ky, kx = kernels.shape[-2:]
     cy, cx = ky // 2, kx // 2
-    kf = np.ascontiguousarray(kernels[..., ::-1, ::-1])
+    kf = np.ascontiguousarray(kernels[..., ::-1, ::-1], real)
     kstride = ky * kx if kernels.ndim == 3 else 0
     dev = opencl.get_device()
     gpu = "GPU" in opencl.device_type(dev)
     TX = TY = 16
-    fits = (TY + ky - 1) * (TX + kx - 1) * 8 <= int(dev.local_mem_size) - 1024
+    fits = (TY + ky - 1) * (TX + kx - 1) * size <= int(dev.local_mem_size) - 1024
     tiled = (gpu if tiled is None else tiled) and fits   # local-memory tiles: GPUs only by default
     if tiled:
         VW = 1
         nyo, nxo = -(-ny // TY) * TY, -(-nx // TX) * TX
         kern = opencl.get_kernel("convolve.cl", "convolve_direct_tiled",
-                                 (f"-DTX={TX}", f"-DTY={TY}", f"-DKY={ky}", f"-DKX={kx}"))
+                                 (f"-DTX={TX}", f"-DTY={TY}", f"-DKY={ky}", f"-DKX={kx}") + opts)
     else:
-        VW = 1 if gpu else opencl.preferred_vector_width(8)
+        VW = 1 if gpu else opencl.preferred_vector_width(16 if size == 4 else 8, 8 // size)
         nyo, nxo = ny, -(-nx // VW) * VW
-        kern = opencl.get_kernel("convolve.cl", "convolve_direct", (f"-DVW={VW}",))
+        kern = opencl.get_kernel("convolve.cl", "convolve_direct", (f"-DVW={VW}",) + opts)
     PY, PX = nyo + ky - 1, nxo + kx - 1
-    per_plane = 8 * (2 * PY * PX + 2 * nyo * nxo + kstride)
+    per_plane = size * (2 * PY * PX + 2 * nyo * nxo + kstride)
     out = np.empty_like(cube)
     d_k = opencl.to_device(kf) if kstride == 0 else None
     for l0, l1 in chunk_ranges(nl, per_plane, max_bytes):
         b = l1 - l0
-        P = np.zeros((b, PY, PX))
-        P[:, cy:cy + ny, cx:cx + nx] = cube[l0:l1]
+        P = np.zeros((b, PY, PX), real)
+        # float32: each plane scaled to its peak first (fluxes of 1e-40 would underflow), undone below
+        peak = np.ones(b) if size == 8 else _plane_peaks(cube[l0:l1])
+        P[:, cy:cy + ny, cx:cx + nx] = cube[l0:l1] / peak[:, None, None]
         d_P = opencl.to_device(P)
         if kstride:
             d_k = opencl.to_device(np.ascontiguousarray(kf[l0:l1]))
-        d_out = opencl.device_buffer(8 * b * nyo * nxo)
+        d_out = opencl.device_buffer(size * b * nyo * nxo)
         if tiled:
             opencl.launch(kern, (nxo, nyo, b), (TX, TY, 1), d_P, d_k, np.int32(PY), np.int32(PX),
                           np.int32(kstride), np.int32(nyo), np.int32(nxo), d_out)
         else:
             opencl.launch(kern, (nxo // VW, nyo, b), None, d_P, d_k, np.int32(ky), np.int32(kx),
                           np.int32(PY), np.int32(PX), np.int32(kstride), np.int32(nyo), np.int32(nxo), d_out)
-        h = np.empty((b, nyo, nxo))
+        h = np.empty((b, nyo, nxo), real)
         opencl.from_device(h, d_out)
-        out[l0:l1] = h[:, :ny, :nx]
+        out[l0:l1] = h[:, :ny, :nx] * peak[:, None, None] if size == 4 else h[:, :ny, :nx]
     return out
 
 
-def _twiddles(n):
-    """(cos 2πm/n, sin 2πm/n), m < n, as interleaved float64 (double2)."""
-    return np.ascontiguousarray(np.exp(2j * np.pi * np.arange(n) / n).astype(np.complex128))
+def _plane_peaks(planes):
+    """max |plane| per plane (1 for an all-zero plane)."""
+    peak = np.abs(planes).max(axis=(1, 2)) if planes.size else np.ones(len(planes))
+    return np.where(peak > 0, peak, 1.0)
+
+
+def _twiddles(n, precision="double"):
+    """(cos 2πm/n, sin 2πm/n), m < n, computed in float64 and stored interleaved as real2
+    (float64, or rounded once to float32 in single precision)."""
+    twiddles = np.exp(2j * np.pi * np.arange(n) / n)
+    return np.ascontiguousarray(twiddles.astype(np.complex64 if precision == "single" else np.complex128))
 
 
 class _FFT2:
@@ -276,15 +291,17 @@ class _FFT2:
     forward: (B, Ny, Nx) natural layout -> spectrum in transposed layout (B, Nx, Ny);
     inverse: transposed layout -> (B, Ny, Nx).  Both unnormalised."""
 
-    def __init__(self, Ny, Nx, tiled_transpose=None):
+    def __init__(self, Ny, Nx, tiled_transpose=None, precision="double"):
         self.Ny, self.Nx = Ny, Nx
+        self.sign = real_dtype(precision).type
+        opts = opencl.precision_options(precision)
         self.plan_y, self.plan_x = fft_radix_plan(Ny), fft_radix_plan(Nx)
-        self.tw_y, self.tw_x = opencl.to_device(_twiddles(Ny)), opencl.to_device(_twiddles(Nx))
-        self.passes = {r: opencl.get_kernel("fft.cl", f"fft_pass_{r}") for r in set(self.plan_y + self.plan_x)}
+        self.tw_y, self.tw_x = (opencl.to_device(_twiddles(n, precision)) for n in (Ny, Nx))
+        self.passes = {r: opencl.get_kernel("fft.cl", f"fft_pass_{r}", opts) for r in set(self.plan_y + self.plan_x)}
         if tiled_transpose is None:
             tiled_transpose = "GPU" in opencl.device_type()
         self.tiled = bool(tiled_transpose)
-        self.tr = opencl.get_kernel("fft.cl", "transpose_tiled" if self.tiled else "transpose")
+        self.tr = opencl.get_kernel("fft.cl", "transpose_tiled" if self.tiled else "transpose", opts)
 
     def _axis(self, src, dst, nplanes, N, M, plan, tw, s):
         p = 1
@@ -304,28 +321,30 @@ class _FFT2:
 
     def forward(self, src, dst, nplanes):
         """Returns (buffer holding the spectrum, other buffer)."""
-        s = np.float64(-1.0)
+        s = self.sign(-1.0)
         src, dst = self._axis(src, dst, nplanes, self.Ny, self.Nx, self.plan_y, self.tw_y, s)
         src, dst = self._transpose(src, dst, nplanes, self.Ny, self.Nx)
         return self._axis(src, dst, nplanes, self.Nx, self.Ny, self.plan_x, self.tw_x, s)
 
     def inverse(self, src, dst, nplanes):
-        s = np.float64(1.0)
+        s = self.sign(1.0)
         src, dst = self._axis(src, dst, nplanes, self.Nx, self.Ny, self.plan_x, self.tw_x, s)
         src, dst = self._transpose(src, dst, nplanes, self.Nx, self.Ny)
         return self._axis(src, dst, nplanes, self.Ny, self.Nx, self.plan_y, self.tw_y, s)
 
 
-def _fft_opencl(cube, kernels, max_bytes, tiled_transpose=None):
+def _fft_opencl(cube, kernels, max_bytes, tiled_transpose=None, precision="double"):
     nl, ny, nx = cube.shape
+    real = real_dtype(precision)
+    size, opts = real.itemsize, opencl.precision_options(precision)
     ky, kx = kernels.shape[-2:]
     Ny, Nx = fft_good_size(ny + ky - 1), fft_good_size(nx + kx - 1)
     kstride = ky * kx if kernels.ndim == 3 else 0
-    fft = _FFT2(Ny, Nx, tiled_transpose)
-    pack = opencl.get_kernel("convolve.cl", "pack_planes")
-    mult = opencl.get_kernel("convolve.cl", "multiply_pairs")
-    crop = opencl.get_kernel("convolve.cl", "crop_pairs")
-    per_plane = 2 * 16 * Ny * Nx + 2 * 8 * ny * nx + 8 * kstride
+    fft = _FFT2(Ny, Nx, tiled_transpose, precision)
+    pack = opencl.get_kernel("convolve.cl", "pack_planes", opts)
+    mult = opencl.get_kernel("convolve.cl", "multiply_pairs", opts)
+    crop = opencl.get_kernel("convolve.cl", "crop_pairs", opts)
+    per_plane = 2 * 2 * size * Ny * Nx + 2 * size * ny * nx + size * kstride
     if "GPU" not in opencl.device_type():
         max_bytes = min(max_bytes, CPU_FFT_CHUNK_BYTES)
     chunks = list(chunk_ranges(nl, per_plane, max_bytes, multiple=2))
@@ -333,25 +352,29 @@ def _fft_opencl(cube, kernels, max_bytes, tiled_transpose=None):
     Bmax += Bmax % 2
     i32 = np.int32
     out = np.empty_like(cube)
-    d_k = opencl.to_device(np.ascontiguousarray(kernels)) if kstride == 0 else None
+    d_k = opencl.to_device(np.ascontiguousarray(kernels, real)) if kstride == 0 else None
     # device buffers allocated once for the largest chunk (first touch is costly on CPUs)
-    buf_a, buf_b = opencl.device_buffer(16 * Bmax * Ny * Nx), opencl.device_buffer(16 * Bmax * Ny * Nx)
-    d_img, d_out = opencl.device_buffer(8 * Bmax * ny * nx), opencl.device_buffer(8 * Bmax * ny * nx)
+    cbytes = 2 * size * Bmax * Ny * Nx
+    buf_a, buf_b = opencl.device_buffer(cbytes), opencl.device_buffer(cbytes)
+    d_img, d_out = opencl.device_buffer(size * Bmax * ny * nx), opencl.device_buffer(size * Bmax * ny * nx)
     kmax = np.abs(kernels).max(axis=(-2, -1)) if kernels.size else np.zeros(1)
     for l0, l1 in chunks:
         nb = l1 - l0
         B = nb + (nb % 2)
         img = np.ascontiguousarray(cube[l0:l1])
-        opencl.to_device(img, d_img)
+        opencl.to_device(np.ascontiguousarray(img / _plane_peaks(img)[:, None, None], real) if size == 4 else img,
+                         d_img)
         if kstride:
-            d_k = opencl.to_device(np.ascontiguousarray(kernels[l0:l1]))
+            d_k = opencl.to_device(np.ascontiguousarray(kernels[l0:l1], real))
         # per-plane normalisation of both halves of the packed transform (see convolve.cl)
         amax = np.abs(img).max(axis=(1, 2))
         km = kmax[l0:l1] if kstride else np.full(nb, kmax)
         zero = (amax == 0) | (km == 0)                    # exact zeros out, not rounding noise
         amax, km = np.where(amax > 0, amax, 1.0), np.where(km > 0, km, 1.0)
-        d_inv = opencl.to_device(np.ascontiguousarray(np.stack([1.0 / amax, 1.0 / km], axis=1)))
-        d_scale = opencl.to_device(np.where(zero, 0.0, amax * km / (Ny * Nx)))
+        inv_img = np.ones_like(amax) if size == 4 else 1.0 / amax   # float32: the image was scaled already
+        d_inv = opencl.to_device(np.ascontiguousarray(np.stack([inv_img, 1.0 / km], axis=1), real))
+        # float32: the image's scale is applied on the host (a 1e-40 plane must not underflow)
+        d_scale = opencl.to_device(np.where(zero, 0.0, (amax if size == 8 else 1.0) * km / (Ny * Nx)).astype(real))
         opencl.launch(pack, (Nx, Ny, B), None, d_img, d_k, d_inv, i32(nb), i32(ny), i32(nx), i32(ky), i32(kx),
                       i32(kstride), i32(Ny), i32(Nx), buf_a)
         a, b = fft.forward(buf_a, buf_b, B)                  # spectra in (B, Nx, Ny) layout
@@ -359,5 +382,10 @@ def _fft_opencl(cube, kernels, max_bytes, tiled_transpose=None):
         a, b = fft.inverse(b, a, B // 2)
         opencl.launch(crop, (nx, ny, B // 2), None, a, i32(nb), i32(ny), i32(nx), i32(ky // 2), i32(kx // 2),
                       i32(Ny), i32(Nx), d_scale, d_out)
-        opencl.from_device(out[l0:l1], d_out)
+        if real == np.float64:
+            opencl.from_device(out[l0:l1], d_out)
+        else:
+            h = np.empty((nb, ny, nx), real)
+            opencl.from_device(h, d_out)
+            out[l0:l1] = h * amax[:, None, None]
     return out

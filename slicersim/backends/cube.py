@@ -164,7 +164,7 @@ def _check(taps, rate, uniform, qe, bins, nl, lo, psf, host):
 
 
 def detector_block(taps, rate, uniform, qe, readout, *, bins, nl, lo, psf=None, host=None, out=None,
-                   dtype=np.float64, backend="auto", vector_width=None, row_per_item=None, precision="double"):
+                   dtype=np.float64, backend="auto", vector_width=None, row_per_item=None, precision="auto"):
     """Signal [ADU] and variance [ADU²] of output bins ``bins`` = (i0, i1); saturated ⇔ variance = +inf.
 
     Parameters

@@ -113,7 +113,10 @@ def _cached(func, args, kwargs):
         return getattr(_psf, func)(*args, **kwargs)
     try:
         key = _key(func, args, kwargs)
-    except TypeError:              # an argument without content key (or a bad call): computed, not cached
+    except (TypeError, SlicersimError):
+        # an argument without content key, a bad call, or a backend/precision that cannot be resolved
+        # for the key (e.g. "double" without fp64 for a NumPy-only Gaussian psf_cells): computed (or
+        # refused) exactly as uncached, not cached
         return getattr(_psf, func)(*args, **kwargs)
     hit = PSF_CACHE.get(key)
     if hit is not None:

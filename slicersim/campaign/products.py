@@ -102,11 +102,14 @@ def _write_spectrum(path, target, row, seed, source):
 def _write_cube(path, target, row, seed, spec, max_bytes):
     obs, prod = spec.observation, spec.products
     dtype = np.dtype(prod["cube_dtype"])
-    signal, variance, noisy = target.simulation.get_cube(seed=int(seed), psf_profile=obs["psf_profile"],
-                                                         max_bytes=max_bytes, progress=False, dtype=dtype,
-                                                         precision=prod.get("precision", "auto"))
+    from slicersim.products.cube import build_cube
+    cube = build_cube(target.simulation, seed=int(seed), psf_profile=obs["psf_profile"], max_bytes=max_bytes,
+                      progress=False, dtype=dtype, precision=prod.get("precision", "auto"))
+    signal, variance, noisy = cube.signal, cube.variance, cube.noisy
     with ProductFile(path, overwrite=True) as f:
-        f.set_attrs({**_attrs(row, seed, "cube"), "psf_profile": obs["psf_profile"]})
+        # the precision the kernels ran in ("auto" resolves per device): recorded with the product
+        f.set_attrs({**_attrs(row, seed, "cube"), "psf_profile": obs["psf_profile"],
+                     "precision": cube.paths["precision"]})
         f.write("lbda", target.simulation.lbda, {"unit": "Angstrom"})
         for name, cube, unit in (("signal", signal, "adu"), ("variance", variance, "adu2"), ("noisy", noisy, "adu")):
             f.write(name, cube, {"unit": unit})      # stored as computed (cube_dtype); contiguous: one write each

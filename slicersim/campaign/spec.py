@@ -45,7 +45,7 @@ from dataclasses import dataclass, field as dc_field
 from slicersim.errors import ConfigError, SlicersimError
 from slicersim.io.tables import file_digest, read_file_bytes
 
-__all__ = ["CampaignSpec", "load_spec", "parse_spec", "PRODUCTS"]
+__all__ = ["CampaignSpec", "load_spec", "parse_spec", "with_products", "PRODUCTS"]
 
 #: products a campaign can write per target
 PRODUCTS = ("spectrum", "cube", "detector_image", "ramps")
@@ -116,11 +116,52 @@ class CampaignSpec:
         out = {"seed": self.seed, "name": self.name, "population": self.population.to_spec(),
                "observation": dict(self.observation), "products": dict(self.products),
                "survey": dict(self.survey)}
-        if out["products"].get("precision") == "auto":   # the default: datasets made before it keep their identity
-            del out["products"]["precision"]
+        # precision changes the cubes only: left out when it is the default "auto" (datasets made before
+        # the key keep their identity) or when no cube is written
+        if out["products"].get("precision") == "auto" or not out["products"].get("cube"):
+            out["products"].pop("precision", None)
         if self.config_digests:
             out["observation"]["config_sha256"] = dict(sorted(self.config_digests.items()))
         return out
+
+
+def with_products(spec, **changes):
+    """A copy of ``spec`` with ``products.<key> = value`` for each change, written into its TOML text
+    as well (the dataset stores the text: ``DIR/spec.toml`` must resume the same dataset), e.g. the
+    CLI's ``--precision``.  ConfigError when the text cannot be edited safely."""
+    import re
+    lines = spec.text.splitlines()
+    header = next((i for i, line in enumerate(lines) if re.match(r"\s*\[products\]\s*(#.*)?$", line)), None)
+    keys = "|".join(map(re.escape, changes))
+    new_lines = [f"{key} = {_toml_value(value)}" for key, value in changes.items()]
+    if header is None:
+        lines += ["", "[products]"] + new_lines
+    else:
+        end = next((i for i in range(header + 1, len(lines)) if re.match(r"\s*\[", lines[i])), len(lines))
+        body = [line for line in lines[header + 1:end] if not re.match(rf"\s*({keys})\s*=", line)]
+        lines = lines[:header + 1] + new_lines + body + lines[end:]
+    text = "\n".join(lines) + "\n"
+    try:
+        edited = parse_spec(tomllib.loads(text), text=text, base_dir=spec.base_dir)
+    except (tomllib.TOMLDecodeError, ConfigError) as exc:
+        raise ConfigError(f"could not write {', '.join(changes)} into the campaign spec ({exc}); set it in the "
+                          "spec's [products] table instead") from None
+    want = spec.canonical()
+    want["products"] = {**dict(spec.products), **changes}
+    edited_products = dict(edited.products)
+    if edited_products != want["products"] or {k: v for k, v in edited.canonical().items() if k != "products"} \
+            != {k: v for k, v in want.items() if k != "products"}:
+        raise ConfigError(f"could not write {', '.join(changes)} into the campaign spec safely; set it in the "
+                          "spec's [products] table instead")
+    return edited
+
+
+def _toml_value(value):
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(value)
 
 
 def _check_config(config, base_dir):

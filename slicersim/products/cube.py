@@ -47,6 +47,7 @@ from functools import cached_property
 
 import numpy as np
 
+from slicersim.backends import opencl
 from slicersim.backends.convolution import choose_convolution_method, convolve_cube
 from slicersim.backends.cube import ReadoutConstants, detector_block
 from slicersim.backends.dispatch import resolve_backend
@@ -91,7 +92,7 @@ class CubeResult:
 
     signal [ADU] (NaN where saturated), variance [ADU²] (+inf where saturated, and only there),
     noisy [ADU] (None without seed; NaN where saturated), paths: component →
-    computation path, chunks: number of λ chunks; ``saturated``: bool cube (variance = +inf).
+    computation path (and "precision": "double" or "single", of the kernels that ran), chunks: number of λ chunks; ``saturated``: bool cube (variance = +inf).
     """
     signal: np.ndarray
     variance: np.ndarray
@@ -137,14 +138,16 @@ def lsf_halo(sim):
     return int(lsf_weights(sim.spectrograph.lsf_sigma)[0][-1])
 
 
-def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", options=None, on_device=False):
+def psf_block(sim, profile, lo, hi, shape=None, position=None, backend="auto", options=None, on_device=False,
+              precision="auto"):
     """PSF fractions P[λ, y, x] for bins lo … hi − 1 of a registered profile (name or
     :class:`~slicersim.products.psf_profiles.PSFProfile`; shape/position default to the field's;
     ``options``: extra keywords of ``backends.psf.psf_cube``, e.g. {"grid": "reference"}).
     ``on_device``: leave a block computed by OpenCL on the device (``backends.psf.DevicePSF``)."""
     shape = sim.spectrograph.shape if shape is None else shape
     position = sim.position if position is None else position
-    return get_psf_profile(profile).block(sim, lo, hi, shape, position, backend, options, on_device)
+    return get_psf_profile(profile).block(sim, lo, hi, shape, position, backend, options, on_device,
+                                          precision=precision)
 
 
 def host_kernel_shape(sim, profile):
@@ -152,7 +155,8 @@ def host_kernel_shape(sim, profile):
     return get_psf_profile(profile).kernel_shape(sim)
 
 
-def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_options=None, groups=None):
+def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_options=None, groups=None,
+                       precision="auto"):
     """Host photons per cell before LSF, f2p · (F_host ⊛ PSF) [ph/s/cell], for bins lo … hi − 1.
 
     Needs ``host.flux_cube(lbda, shape, spatial_scale)`` → F_host [erg/s/cm²/Å per cell]
@@ -161,7 +165,7 @@ def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_
     (the batched FFT's rounding depends on the planes transformed together: so a plane is always
     convolved with the same ones, whatever ``lo`` / ``hi``).  ``groups``: a dict kept by the caller
     across consecutive blocks (the cube builder's chunks): convolved groups are reused from it,
-    and groups ending before ``lo`` dropped.
+    and groups ending before ``lo`` dropped.  ``precision``: of the PSF and convolution kernels.
     """
     host, spec = sim.scene.host, sim.spectrograph
     if not callable(getattr(host, "flux_cube", None)):
@@ -176,7 +180,7 @@ def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_
     if missing:
         m0, m1 = missing[0], min(nl, missing[-1] + g)
         kernels = psf_block(sim, profile, m0, m1, shape=host_kernel_shape(sim, profile), position=(0.0, 0.0),
-                            backend=backend, options=psf_options)
+                            backend=backend, options=psf_options, precision=precision)
         flux = np.asarray(host.flux_cube(sim.lbda[m0:m1], spec.shape, spec.spatial_scale), dtype=float)
         for a in missing:
             b = min(m1, a + g)
@@ -184,7 +188,8 @@ def host_photons_block(sim, profile, lo, hi, method="auto", backend="auto", psf_
             # convolve O(1) numbers (erg units are ~1e-17): scale by an exact power of two
             peak = float(np.max(np.abs(part))) if part.size else 0.0
             scale = np.ldexp(1.0, int(np.frexp(peak)[1])) if np.isfinite(peak) and peak > 0 else 1.0
-            conv = convolve_cube(part / scale, kernels[a - m0:b - m0], method=method, backend=backend) * scale
+            conv = convolve_cube(part / scale, kernels[a - m0:b - m0], method=method, backend=backend,
+                                 precision=precision) * scale
             if part.size and part.min() >= 0:       # light ⊛ PSF ≥ 0: FFT round-off (~1e-17 of the peak) clipped
                 np.maximum(conv, 0.0, out=conv)
             groups[a] = conv
@@ -254,14 +259,16 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         (computed in float64 either way; the noise is drawn from the stored values)
     switch_off : None, a name or names (:mod:`slicersim.products.components`): scene components
         leave signal and variance, detector terms (dark, roic_glow, thermal_dark, ron) the variance
-    precision : "auto" (default), "double" or "single": of the PSF and fused cube kernels
-        (:mod:`slicersim.backends.precision`; single: ≤ 1e-5 of the signal peak against double,
-        measured ~4e-7 on the Lazuli Airy cube).  "auto" is double on CPUs and GPUs with fast fp64
-        (results unchanged), single on devices without (fast) fp64.  The noise draw, the host
-        convolution and the NumPy path stay double.
+    precision : "auto" (default), "double" or "single": of the PSF, host convolution and fused cube
+        kernels (:mod:`slicersim.backends.precision`; single: ≤ 1e-5 of the signal peak against
+        double, measured 2e-7 on the Lazuli Airy cube).  "auto" is double on CPUs and GPUs with fast
+        fp64 (results unchanged), single on devices without (fast) fp64.  The noise draw and the
+        NumPy path stay double.
     """
     off = check_switch_off(switch_off)
     fused_backend, precision = resolve_precision(precision, backend, "cube")
+    if seed is not None and resolve_backend(backend) == "opencl":
+        opencl.require_fp64()             # the noise draw is double: refused now, not after the cube
     profile = get_psf_profile(psf_profile)
     dtype = np.dtype(dtype)
     if dtype not in (np.float64, np.float32):
@@ -287,6 +294,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
              "thermal": PATH_UNIFORM,
              "host": PATH_ABSENT}
     paths.update({name: PATH_OFF for name in SCENE_COMPONENTS if name in off})
+    paths["precision"] = "double"             # of the arithmetic; "single" below when the kernels run so
     host_method = None
     if has_host:
         host_method = HOST_CONV_METHOD
@@ -325,6 +333,7 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         readout = readout_constants(sim, nmd, nramps, off)
         taps = lsf_weights(spec.lsf_sigma)[1]
     paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
+    paths["precision"] = precision if fused else "double"
     bar = _progress_bar(progress, len(starts))
     host_groups = {}                    # convolved host planes shared by consecutive chunks
     try:
@@ -334,8 +343,8 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
             out = (signal[i0:i1], variance[i0:i1])
             if fused:
                 psf = profile.fused(sim, lo, hi, backend, psf_options, precision) if has_point else None
-                host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options, host_groups)
-                        if has_host else None)
+                host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options, host_groups,
+                                           precision) if has_host else None)
                 detector_block(taps, flux_ph[lo:hi] if has_point else None, uniform_ph[i0:i1], qe[i0:i1],
                                readout, bins=(i0, i1), nl=nl, lo=lo, psf=psf, host=host, out=out, dtype=dtype,
                                backend="opencl", precision=precision)
