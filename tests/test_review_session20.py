@@ -143,3 +143,71 @@ def test_noise_backend_refused_before_the_cube(monkeypatch):
     with pytest.raises(OpenCLUnavailableError):
         cube_module.build_cube(sim, psf_profile="airy", seed=3, backend="opencl")
     assert not called
+
+
+# --------------------------------------------------------------------------- forward weights review
+EDGES = np.linspace(9050.0, 9950.0, 13)
+NCOL = 24
+
+
+@pytest.fixture(scope="module")
+def small():
+    from conftest import small_slicer_mapper
+    return small_slicer_mapper()
+
+
+@pytest.fixture
+def no_ramp_fit(monkeypatch):
+    """Fail loudly if reduce_exposure reads any data."""
+    from slicersim.reduction import ramp_fit
+
+    def boom(*a, **k):
+        raise AssertionError("fit_ramps called: options must be refused before any data are read")
+    monkeypatch.setattr(ramp_fit, "fit_ramps", boom)
+
+
+@pytest.mark.parametrize("bad", [
+    dict(extraction="bogus"),
+    dict(extraction="optimal", aperture=-1.0),
+    dict(extraction="optimal", psf=np.ones((12, 12, 58, NCOL))),      # a template: GLS only
+    dict(psf=np.ones((5, 58, NCOL))),                                  # wrong nλ
+    dict(psf=np.zeros((12, 58, NCOL))),                                # no PSF light at all
+    dict(position=(1e9, 0.0)),
+    dict(rectify_method="drizzle", weights="forward"),                 # drizzle has no weights
+])
+def test_options_refused_before_any_data_are_read(small, no_ramp_fit, bad):
+    """F1, F6: reduce_exposure checked extraction options only after the ramp fit and two
+    rectifications (20–26 s on the small layout, minutes on the detector); drizzle silently ignored
+    explicit weights."""
+    from slicersim.errors import ParameterError
+    from slicersim.reduction import pipeline
+    with pytest.raises(ParameterError):
+        pipeline.reduce_exposure("unused.h5", mapper=small, lbda_edges=EDGES, ncol=NCOL, **bad)
+
+
+@pytest.mark.parametrize("weights", [np.array(["model", "forward"]), np.array(["forward"]), ("forward",)])
+def test_array_weights_are_a_parameter_error(small, no_ramp_fit, weights):
+    """F2: an array of weights gave NumPy's ambiguous-truth error or was accepted."""
+    from slicersim.errors import ParameterError
+    from slicersim.reduction import pipeline
+    with pytest.raises(ParameterError, match="weights"):
+        pipeline.reduce_exposure("unused.h5", mapper=small, lbda_edges=EDGES, ncol=NCOL, weights=weights)
+
+
+def test_reduced_file_records_the_weights(small, tmp_path):
+    """F3: a reduced exposure did not say how its cubes were weighted, nor keep the pixel variance
+    a template must be built with."""
+    import h5py
+
+    from slicersim.products.ramps import simulate
+    from slicersim.reduction import pipeline
+    from test_closed_loop import _scene
+    lbda, cube, psf, F, B = _scene()
+    img = small.project_fields(lbda, EDGES, narrow=cube * 20)
+    raw = tmp_path / "raw.h5"
+    simulate(img, (4, 2, 0), seed=1, out=str(raw), ron=5.0, dark=0.0, roic_glow=0.0)
+    out = tmp_path / "red.h5"
+    res = pipeline.reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, psf=psf, out=str(out))
+    with h5py.File(out) as f:
+        assert f.attrs["WEIGHTS"] == "forward" and f.attrs["RECTIFY_METHOD"] == "lsq"
+        np.testing.assert_allclose(f["rates/RECTIFY_VAR"][()], res["variance"].astype(np.float32))

@@ -191,6 +191,8 @@ def _identity(mode, opts, fit, source_digest, mapper):
                 "background", "propagate", "dark", "weights"}
         opts = {**_defaults(reduce_exposure, keys), **opts}
         opts.setdefault("field", "(each target's)")
+        if opts.get("weights") is None:                      # the default, as reduce_exposure resolves it
+            opts["weights"] = "forward" if opts.get("rectify_method", "lsq") == "lsq" else "data"
     canon = {}
     for key, val in sorted(opts.items()):
         if isinstance(val, np.ndarray):

@@ -313,7 +313,7 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
             out[key] = bool(val)
     if weights is not None:
         from slicersim.reduction.pipeline import WEIGHTS
-        if weights not in WEIGHTS:
+        if not isinstance(weights, str) or weights not in WEIGHTS:
             raise ParameterError(f"weights must be one of {WEIGHTS}, got {weights!r}")
         if rectify_method == "drizzle":
             raise ParameterError("weights apply to rectify_method 'lsq' only (drizzle has no weights)")
@@ -345,11 +345,11 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
         _, edges = _check_grid(None, edges, mapper)
         out["lbda_edges"] = edges
     if psf is not None:
-        out["psf"] = _check_psf(psf, mapper, out, FIELDS)
+        out["psf"] = _check_psf(psf, mapper, out, FIELDS, extracted)
     return out
 
 
-def _check_psf(psf, mapper, opts, fields):
+def _check_psf(psf, mapper, opts, fields, extraction="gls"):
     if isinstance(psf, str):
         if psf != "fit":
             raise ParameterError(f"psf must be 'fit' or an (nλ, ny, nx) array of PSF fractions, got {psf!r}")
@@ -358,20 +358,36 @@ def _check_psf(psf, mapper, opts, fields):
         arr = np.asarray(psf, np.float64)
     except (TypeError, ValueError):
         raise ParameterError("psf must be 'fit' or a numeric (nλ, ny, nx) array") from None
+    if arr.ndim == 4:                       # a forward-modelled template (K, nλ, ny, nx): GLS only
+        if extraction != "gls":
+            raise ParameterError(f"a template psf (K, nλ, ny, nx) is for extraction 'gls' only, not {extraction!r}")
+        if not np.all(np.isfinite(arr)) or arr.shape[0] != arr.shape[1]:
+            raise ParameterError(f"a template psf must be finite, of shape (nλ, nλ, ny, nx), got {arr.shape}")
+        _check_cube_shape(arr.shape[1:], mapper, opts, fields)
+        if not (arr.reshape(arr.shape[0], -1) > 0).any(axis=1).all():
+            raise ParameterError("a template psf has an unknown with no positive value (no light to fit)")
+        return arr
     if arr.ndim != 3 or not np.all(np.isfinite(arr)) or (arr < 0).any():
         raise ParameterError(f"psf must be a finite (nλ, ny, nx) array of fractions ≥ 0, got shape {arr.shape}")
+    if not (arr.reshape(arr.shape[0], -1) > 0).any(axis=1).all():
+        raise ParameterError("psf has a λ bin with no positive fraction (no light to extract there)")
+    _check_cube_shape(arr.shape, mapper, opts, fields)
+    from slicersim.reduction.spectrum_product import _check_psf_sum
+    _check_psf_sum(arr)
+    return arr
+
+
+def _check_cube_shape(shape, mapper, opts, fields):
+    """A PSF (or template plane set) must have the shape of the cube it will be applied to."""
     from slicersim.reduction.pipeline import default_lbda_edges
     edges = opts.get("lbda_edges")
     nbins = (edges.size if edges is not None else default_lbda_edges(mapper).size) - 1
     ncol = opts.get("ncol", inspect.signature(_reduce_exposure()).parameters["ncol"].default)
     names = list(fields) if opts.get("field") in (None, "both") else [opts["field"]]
     rows = {len(fields[name]) for name in names}
-    if len(rows) == 1 and arr.shape != (nbins, rows.pop(), ncol):
-        raise ParameterError(f"psf has shape {arr.shape}; the cube will be ({nbins}, {len(fields[names[0]])}, "
+    if len(rows) == 1 and tuple(shape) != (nbins, rows.pop(), ncol):
+        raise ParameterError(f"psf has shape {tuple(shape)}; the cube will be ({nbins}, {len(fields[names[0]])}, "
                              f"{ncol}) (λ bins, slices, columns)")
-    from slicersim.reduction.spectrum_product import _check_psf_sum
-    _check_psf_sum(arr)
-    return arr
 
 
 def _reduce_exposure():

@@ -171,20 +171,23 @@ def forward_model_cubes(cubes, spectra, psf=None):
 def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, ncol=58, rectify_method="lsq",
                     extraction=None, psf="fit", position=None, aperture=3.0, background=True,
                     propagate=True, fit_options=None, out=None, overwrite=False, keep_information=False,
-                    weights="forward", dark="auto"):
+                    weights=None, dark="auto"):
     """Reduce one raw exposure to rates, cube(s) and spectra.
 
     raw_path : ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts
     mapper : SlicerMapper (default ``SlicerMapper.default()``);  field : "narrow", "wide" or "both"
     lbda_edges : rectification λ edges [Å] (default :func:`default_lbda_edges`: 2 native bins)
     ncol : columns per slice;  rectify_method : "lsq" or "drizzle"
-    weights : "forward" (default, lsq): rectify a second time with the pixel variance
+    weights : None (default): "forward" for an lsq cube, "data" for drizzle (which has no other);
+        "forward" (lsq): rectify a second time with the pixel variance
         (:func:`model_variance`) of the image of the first extraction's own model F̂_λ P_λ + B̂_λ
         (:func:`forward_model_cubes`; GLS on first cubes of ``ncol`` columns): weights almost free of
         noise — a Lazuli SN Ia at z = 0.8 on 116 columns: pipeline − exact weights 0.20 % per
         realisation (0.88 % with "model"), bias −0.08 ± 0.06 %, long-band SNR 1.007 ± 0.008 of the ETC.
-        It models a point source on a uniform background, as the extraction does: light it lacks
-        (e.g. a host galaxy) is underweighted, which costs SNR but adds no bias.
+        It models a point source on a uniform background, as the extraction does.  With light it
+        lacks (e.g. a host galaxy) the extraction's own model is wrong anyway, and its result then
+        depends on the weights: +0.2–0.4 % against exact weights on the test layout with a host of
+        half the point source's flux (model weights: < 0.1 %); use "model" for such scenes.
         "model": the same with the image of the first cubes themselves (first pass on
         min(ncol, MODEL_NCOL) columns; follows any scene, noisier);
         "data": the ramp fit's own per-pixel variance only (Poisson-weighting bias)
@@ -220,8 +223,17 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
         raise ParameterError(f"unknown field {field!r}: 'narrow', 'wide' or 'both'")
     if fit_options is not None and not isinstance(fit_options, dict):
         raise ParameterError("fit_options must be a dict of fit_ramps keyword arguments")
-    if weights not in WEIGHTS:
-        raise ParameterError(f"weights must be one of {WEIGHTS}, got {weights!r}")
+    if weights is not None and (not isinstance(weights, str) or weights not in WEIGHTS):
+        raise ParameterError(f"weights must be one of {WEIGHTS} (or None: the default), got {weights!r}")
+    from slicersim.reduction.checks import check_spectra_options
+    # every option checked before any data are read (the forward weights add a whole pass before the
+    # final extraction would refuse them)
+    extracted = extraction if extraction is not None else ("gls" if rectify_method == "lsq" else "optimal")
+    check_spectra_options(mapper=mapper, field=field, lbda_edges=lbda_edges, ncol=ncol, rectify_method=rectify_method,
+                          extraction=extraction, psf=None if isinstance(psf, str) else psf, position=position,
+                          aperture=None if extracted == "gls" else aperture, background=background, weights=weights)
+    if weights is None:
+        weights = "forward" if rectify_method == "lsq" else "data"
     writer = None
     if out is not None:                                           # refuse before any work
         writer = _Writer(out, overwrite=overwrite)
@@ -279,7 +291,7 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
                                                   "full LSQ cube covariance, sandwich N⁻¹BN⁻¹ with the pixels' "
                                                   "variance (propagate_variance)")
     result = {"rates": rates, "cubes": cubes, "spectra": spectra, "variance": var, "dark_rate": dark_rate,
-              "dark_kind": dark_kind, "noise_information": noise}
+              "dark_kind": dark_kind, "noise_information": noise, "weights": weights}
     if writer is not None:
         result["path"] = _write(writer, result)
     return result
@@ -319,5 +331,11 @@ def _write(writer, result):
         attrs.update({f"SPECTRUM_{n.upper()}": json.dumps({"method": s.method, "position": list(s.position),
                                                           "aperture_sigma": s.aperture})
                       for n, s in result["spectra"].items()})
+        # how the cubes were weighted, and the pixel variance they were rectified with (a template
+        # must be built with the same: point_source_template(..., variance=))
+        attrs["WEIGHTS"] = result.get("weights", "data")
+        attrs["RECTIFY_METHOD"] = next(iter(result["cubes"].values())).method if result["cubes"] else "none"
+        var = np.asarray(result["variance"], np.float32)
+        w.write("rates/RECTIFY_VAR", var, attrs={"BUNIT": "(e-/s)^2", "WEIGHTS": attrs["WEIGHTS"]})
         w.set_attrs(attrs)
     return os.path.abspath(os.fspath(writer.path))
