@@ -139,19 +139,20 @@ def _plot(res, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    fig, ax = plt.subplots(figsize=(8.5, 4.5))
+    markers = {"psf": "o", "lsf": "s", "convolution": "^", "cube": "D"}
     for r in res["rows"]:
-        ax.scatter(r["speedup"], r["max_err_of_peak"], s=40)
-        ax.annotate(f"{r['family']}: {r['case'].split(',')[0]}", (r["speedup"], r["max_err_of_peak"]),
-                    fontsize=7, xytext=(4, 3), textcoords="offset points")
-    ax.axhline(1e-5, color="k", ls="--", lw=0.8)
-    ax.text(1.0, 1.1e-5, "tolerance 1e-5 of peak", fontsize=7)
+        short = ", ".join(r["case"].split(", ")[:2])[:48]
+        ax.scatter(r["speedup"], r["max_err_of_peak"], s=45, marker=markers.get(r["family"], "o"),
+                   label=f"{r['family']}: {short}")
+    ax.axhline(1e-5, color="k", ls="--", lw=0.8, label="tolerance: 1e-5 of the peak")
     ax.axvline(1.5, color="grey", ls=":", lw=0.8)
     ax.set_yscale("log")
     ax.set_ylim(1e-8, 1e-4)
     ax.set_xlabel("speed-up of single over double (same run)")
     ax.set_ylabel("max |single − double| / peak")
-    ax.set_title(f"Precision: speed vs accuracy — {res['device']}", fontsize=8)
+    ax.set_title(f"Precision: speed vs accuracy\n{res['device'][:80]}", fontsize=8)
+    ax.legend(fontsize=6.5, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
