@@ -32,10 +32,14 @@ from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import one_line
 
 __all__ = ["check_ramp_file", "check_spectra_options", "check_fit_options", "register_hdf5_filters",
-           "MAX_NCOL"]
+           "MAX_NCOL", "DEFAULT_NCOL", "WEIGHTS", "default_lbda_edges", "dark_rate_of"]
 
 #: largest number of columns per slice accepted (a slice is 58 cells wide in the Lazuli design)
 MAX_NCOL = 1024
+#: columns per slice of reduce_exposure's cubes by default
+DEFAULT_NCOL = 58
+#: reduce_exposure's lsq weights (see its docstring)
+WEIGHTS = ("model", "forward", "data")
 _READOUT_KEYS = ("NINTS", "NGROUPS", "NFRAMES", "GROUPGAP", "TFRAME", "TGROUP")
 _TIMING_KEYS = ("FRMDIVSR", "EFFINTTM", "TMEASURE", "EFFEXPTM", "XPOSURE", "DURATION", "TELAPSE", "DRPFRMS1")
 
@@ -300,7 +304,7 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
         if len(pos) != 2:
             raise ParameterError(f"position must be (x, y) [cells from the field centre], got {position!r}")
         x, y = (_real(v, "position [cells]") for v in pos)
-        ncol = out.get("ncol", inspect.signature(_reduce_exposure()).parameters["ncol"].default)
+        ncol = out.get("ncol", DEFAULT_NCOL)
         rows = min(len(FIELDS[name]) for name in (FIELDS if out.get("field") in (None, "both") else [out["field"]]))
         if abs(x) > ncol / 2 or abs(y) > rows / 2:
             raise ParameterError(f"position ({x:g}, {y:g}) lies outside the field: |x| ≤ {ncol / 2:g} (columns), "
@@ -312,7 +316,6 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
                 raise ParameterError(f"{key} must be True or False, got {val!r}")
             out[key] = bool(val)
     if weights is not None:
-        from slicersim.reduction.pipeline import WEIGHTS
         if not isinstance(weights, str) or weights not in WEIGHTS:
             raise ParameterError(f"weights must be one of {WEIGHTS}, got {weights!r}")
         if rectify_method == "drizzle":
@@ -331,7 +334,6 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
     if lbda_edges is not None or (psf is not None and not isinstance(psf, str)) or given_dark:
         mapper = _default_mapper() if mapper is None else mapper
     if given_dark:
-        from slicersim.reduction.pipeline import dark_rate_of
         if not (isinstance(dark, str) and dark in ("auto", "none")):
             dark_rate_of(dark, None, mapper.detector_shape)
         out["dark"] = None if isinstance(dark, str) and dark == "none" else dark
@@ -379,10 +381,9 @@ def _check_psf(psf, mapper, opts, fields, extraction="gls"):
 
 def _check_cube_shape(shape, mapper, opts, fields):
     """A PSF (or template plane set) must have the shape of the cube it will be applied to."""
-    from slicersim.reduction.pipeline import default_lbda_edges
     edges = opts.get("lbda_edges")
     nbins = (edges.size if edges is not None else default_lbda_edges(mapper).size) - 1
-    ncol = opts.get("ncol", inspect.signature(_reduce_exposure()).parameters["ncol"].default)
+    ncol = opts.get("ncol", DEFAULT_NCOL)
     names = list(fields) if opts.get("field") in (None, "both") else [opts["field"]]
     rows = {len(fields[name]) for name in names}
     if len(rows) == 1 and tuple(shape) != (nbins, rows.pop(), ncol):
@@ -390,6 +391,72 @@ def _check_cube_shape(shape, mapper, opts, fields):
                              f"{ncol}) (λ bins, slices, columns)")
 
 
-def _reduce_exposure():
-    from slicersim.reduction.pipeline import reduce_exposure
-    return reduce_exposure
+def default_lbda_edges(mapper, step=2, lbda_range=None):
+    """λ edges [Å]: the CBE native grid (~1 px per bin) taken every ``step`` bins, inside the mapper's
+    traces (and ``lbda_range`` [Å] when given)."""
+    from slicersim.instrument.spectrograph import wavelength_grid_from_dispersion
+    from slicersim.io.config import builtin_config_dir
+    from slicersim.io.curves import read_curve
+    if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
+        raise ParameterError(f"step must be a positive integer number of native bins, got {step!r}")
+    lam, cols = read_curve(f"{builtin_config_dir()}/dispersion_prism.ecsv")
+    _, edges = wavelength_grid_from_dispersion(lam, next(iter(cols.values())), (4000, 17000), 1.3, 2.3)
+    lo, hi = mapper.lbda_nodes[0], mapper.lbda_nodes[-1]
+    if lbda_range is not None:
+        lo, hi = max(lo, float(lbda_range[0])), min(hi, float(lbda_range[1]))
+    edges = edges[(edges >= lo) & (edges <= hi)][::step]
+    if edges.size < 2:
+        raise ParameterError(f"no λ bin lies in {lo:.0f}–{hi:.0f} Å")
+    return edges
+
+
+_DARK_MAX = 1e6          # e-/s: far above any H4RG dark current, glow or thermal dark
+
+
+def _check_dark_value(arr, what):
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0) or np.any(arr > _DARK_MAX):
+        raise ParameterError(f"{what} must be finite, ≥ 0 and ≤ {_DARK_MAX:g} e-/s")
+
+
+def dark_rate_of(dark, rates, shape):
+    """The dark rate [e-/s] to subtract before rectification and how it was chosen:
+    ``(float or (ny, nx) array, kind)``, kind "file DARK_RATE", "none available", "none", "value" or
+    "image".
+
+    ``"auto"``: the file's DARK_RATE (dark + thermal dark + ROIC glow / t_frame, the detector's
+    expectation the simulator records; hot and warm pixels' extra dark is truth, not part of it);
+    a file without it (e.g. a JWST level-1b file) gets nothing subtracted, with a warning.  A number
+    or a detector-shaped float image [e-/s]; None: nothing."""
+    if dark is None:
+        return 0.0, "none"
+    if isinstance(dark, str):
+        if dark != "auto":
+            raise ParameterError(f"dark must be 'auto', None, a rate [e-/s] or an image, got {dark!r}")
+        value = None if rates is None else rates.attrs.get("DARK_RATE")
+        if value is None:
+            if rates is not None:
+                import warnings
+                warnings.warn(f"{rates.attrs.get('SOURCE', 'the ramp file')}: no DARK_RATE (dark, thermal dark and "
+                              "ROIC glow not all recorded): no dark subtracted — pass dark=<e-/s> or an image",
+                              RuntimeWarning, stacklevel=3)
+            return 0.0, "none available"
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            raise ParameterError(f"the file's DARK_RATE must be a number [e-/s], got {value!r}") from None
+        _check_dark_value(value, "the file's DARK_RATE")
+        return value, "file DARK_RATE"
+    bad = isinstance(dark, (bool, np.bool_, complex, np.complexfloating)) or np.ma.isMaskedArray(dark)
+    try:
+        arr = np.asarray(dark)
+    except (TypeError, ValueError):
+        arr = None
+    if bad or arr is None or arr.dtype.kind not in "iuf":
+        raise ParameterError("dark must be 'auto', None, a real rate [e-/s] or a real image (not bool, complex "
+                             f"or masked), got {type(dark).__name__}"
+                             + (f" of {arr.dtype}" if arr is not None and arr.dtype != object else ""))
+    arr = arr.astype(np.float64)
+    if arr.ndim not in (0, 2) or (arr.ndim == 2 and arr.shape != tuple(shape)):
+        raise ParameterError(f"a dark image must have the detector's shape {tuple(shape)}, got {arr.shape}")
+    _check_dark_value(arr, "dark rates")
+    return (float(arr), "value") if arr.ndim == 0 else (arr, "image")

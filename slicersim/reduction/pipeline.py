@@ -21,29 +21,13 @@ import numpy as np
 
 from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import AtomicH5File
+# re-exported here (their documented home): WEIGHTS, dark_rate_of, default_lbda_edges
+from slicersim.reduction.checks import (DEFAULT_NCOL, WEIGHTS, check_spectra_options, dark_rate_of,  # noqa: F401
+                                        default_lbda_edges)
 
 __all__ = ["reduce_exposure", "default_lbda_edges"]
 
 _DO_NOT_USE = 1
-
-
-def default_lbda_edges(mapper, step=2, lbda_range=None):
-    """λ edges [Å]: the CBE native grid (~1 px per bin) taken every ``step`` bins, inside the mapper's
-    traces (and ``lbda_range`` [Å] when given)."""
-    from slicersim.instrument.spectrograph import wavelength_grid_from_dispersion
-    from slicersim.io.config import builtin_config_dir
-    from slicersim.io.curves import read_curve
-    if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
-        raise ParameterError(f"step must be a positive integer number of native bins, got {step!r}")
-    lam, cols = read_curve(f"{builtin_config_dir()}/dispersion_prism.ecsv")
-    _, edges = wavelength_grid_from_dispersion(lam, next(iter(cols.values())), (4000, 17000), 1.3, 2.3)
-    lo, hi = mapper.lbda_nodes[0], mapper.lbda_nodes[-1]
-    if lbda_range is not None:
-        lo, hi = max(lo, float(lbda_range[0])), min(hi, float(lbda_range[1]))
-    edges = edges[(edges >= lo) & (edges <= hi)][::step]
-    if edges.size < 2:
-        raise ParameterError(f"no λ bin lies in {lo:.0f}–{hi:.0f} Å")
-    return edges
 
 
 def rate_variance(rates):
@@ -53,61 +37,6 @@ def rate_variance(rates):
     bad = ((np.asarray(rates.dq) & _DO_NOT_USE) != 0) | ~np.isfinite(var) | ~(var > 0) | ~np.isfinite(rates.rate)
     var[bad] = np.inf
     return var
-
-
-WEIGHTS = ("model", "forward", "data")
-
-
-_DARK_MAX = 1e6          # e-/s: far above any H4RG dark current, glow or thermal dark
-
-
-def _check_dark_value(arr, what):
-    if not np.all(np.isfinite(arr)) or np.any(arr < 0) or np.any(arr > _DARK_MAX):
-        raise ParameterError(f"{what} must be finite, ≥ 0 and ≤ {_DARK_MAX:g} e-/s")
-
-
-def dark_rate_of(dark, rates, shape):
-    """The dark rate [e-/s] to subtract before rectification and how it was chosen:
-    ``(float or (ny, nx) array, kind)``, kind "file DARK_RATE", "none available", "none", "value" or
-    "image".
-
-    ``"auto"``: the file's DARK_RATE (dark + thermal dark + ROIC glow / t_frame, the detector's
-    expectation the simulator records; hot and warm pixels' extra dark is truth, not part of it);
-    a file without it (e.g. a JWST level-1b file) gets nothing subtracted, with a warning.  A number
-    or a detector-shaped float image [e-/s]; None: nothing."""
-    if dark is None:
-        return 0.0, "none"
-    if isinstance(dark, str):
-        if dark != "auto":
-            raise ParameterError(f"dark must be 'auto', None, a rate [e-/s] or an image, got {dark!r}")
-        value = None if rates is None else rates.attrs.get("DARK_RATE")
-        if value is None:
-            if rates is not None:
-                import warnings
-                warnings.warn(f"{rates.attrs.get('SOURCE', 'the ramp file')}: no DARK_RATE (dark, thermal dark and "
-                              "ROIC glow not all recorded): no dark subtracted — pass dark=<e-/s> or an image",
-                              RuntimeWarning, stacklevel=3)
-            return 0.0, "none available"
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            raise ParameterError(f"the file's DARK_RATE must be a number [e-/s], got {value!r}") from None
-        _check_dark_value(value, "the file's DARK_RATE")
-        return value, "file DARK_RATE"
-    bad = isinstance(dark, (bool, np.bool_, complex, np.complexfloating)) or np.ma.isMaskedArray(dark)
-    try:
-        arr = np.asarray(dark)
-    except (TypeError, ValueError):
-        arr = None
-    if bad or arr is None or arr.dtype.kind not in "iuf":
-        raise ParameterError("dark must be 'auto', None, a real rate [e-/s] or a real image (not bool, complex "
-                             f"or masked), got {type(dark).__name__}"
-                             + (f" of {arr.dtype}" if arr is not None and arr.dtype != object else ""))
-    arr = arr.astype(np.float64)
-    if arr.ndim not in (0, 2) or (arr.ndim == 2 and arr.shape != tuple(shape)):
-        raise ParameterError(f"a dark image must have the detector's shape {tuple(shape)}, got {arr.shape}")
-    _check_dark_value(arr, "dark rates")
-    return (float(arr), "value") if arr.ndim == 0 else (arr, "image")
 
 
 #: most columns per slice of the cubes whose model image gives the "model" weights (reduce_exposure):
@@ -168,7 +97,7 @@ def forward_model_cubes(cubes, spectra, psf=None):
     return out
 
 
-def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, ncol=58, rectify_method="lsq",
+def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, ncol=DEFAULT_NCOL, rectify_method="lsq",
                     extraction=None, psf="fit", position=None, aperture=3.0, background=True,
                     propagate=True, fit_options=None, out=None, overwrite=False, keep_information=False,
                     weights=None, dark="auto"):
@@ -225,7 +154,6 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
         raise ParameterError("fit_options must be a dict of fit_ramps keyword arguments")
     if weights is not None and (not isinstance(weights, str) or weights not in WEIGHTS):
         raise ParameterError(f"weights must be one of {WEIGHTS} (or None: the default), got {weights!r}")
-    from slicersim.reduction.checks import check_spectra_options
     # every option checked before any data are read (the forward weights add a whole pass before the
     # final extraction would refuse them)
     extracted = extraction if extraction is not None else ("gls" if rectify_method == "lsq" else "optimal")
