@@ -174,6 +174,7 @@ def no_ramp_fit(monkeypatch):
     dict(psf=np.zeros((12, 58, NCOL))),                                # no PSF light at all
     dict(position=(1e9, 0.0)),
     dict(rectify_method="drizzle", weights="forward"),                 # drizzle has no weights
+    dict(psf="bogus"),
 ])
 def test_options_refused_before_any_data_are_read(small, no_ramp_fit, bad):
     """F1, F6: reduce_exposure checked extraction options only after the ramp fit and two

@@ -158,7 +158,7 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     # final extraction would refuse them)
     extracted = extraction if extraction is not None else ("gls" if rectify_method == "lsq" else "optimal")
     check_spectra_options(mapper=mapper, field=field, lbda_edges=lbda_edges, ncol=ncol, rectify_method=rectify_method,
-                          extraction=extraction, psf=None if isinstance(psf, str) else psf, position=position,
+                          extraction=extraction, psf=psf, position=position,
                           aperture=None if extracted == "gls" else aperture, background=background, weights=weights)
     if weights is None:
         weights = "forward" if rectify_method == "lsq" else "data"
