@@ -362,15 +362,14 @@ def _fft_opencl(cube, kernels, max_bytes, tiled_transpose=None, precision="doubl
         nb = l1 - l0
         B = nb + (nb % 2)
         img = np.ascontiguousarray(cube[l0:l1])
-        opencl.to_device(np.ascontiguousarray(img / _plane_peaks(img)[:, None, None], real) if size == 4 else img,
-                         d_img)
-        if kstride:
-            d_k = opencl.to_device(np.ascontiguousarray(kernels[l0:l1], real))
         # per-plane normalisation of both halves of the packed transform (see convolve.cl)
         amax = np.abs(img).max(axis=(1, 2))
         km = kmax[l0:l1] if kstride else np.full(nb, kmax)
         zero = (amax == 0) | (km == 0)                    # exact zeros out, not rounding noise
         amax, km = np.where(amax > 0, amax, 1.0), np.where(km > 0, km, 1.0)
+        opencl.to_device(np.ascontiguousarray(img / amax[:, None, None], real) if size == 4 else img, d_img)
+        if kstride:
+            d_k = opencl.to_device(np.ascontiguousarray(kernels[l0:l1], real))
         inv_img = np.ones_like(amax) if size == 4 else 1.0 / amax   # float32: the image was scaled already
         d_inv = opencl.to_device(np.ascontiguousarray(np.stack([inv_img, 1.0 / km], axis=1), real))
         # float32: the image's scale is applied on the host (a 1e-40 plane must not underflow)

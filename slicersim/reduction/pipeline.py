@@ -156,10 +156,11 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
         raise ParameterError(f"weights must be one of {WEIGHTS} (or None: the default), got {weights!r}")
     # every option checked before any data are read (the forward weights add a whole pass before the
     # final extraction would refuse them)
-    extracted = extraction if extraction is not None else ("gls" if rectify_method == "lsq" else "optimal")
+    if extraction is None:
+        extraction = "gls" if rectify_method == "lsq" else "optimal"
     check_spectra_options(mapper=mapper, field=field, lbda_edges=lbda_edges, ncol=ncol, rectify_method=rectify_method,
                           extraction=extraction, psf=psf, position=position,
-                          aperture=None if extracted == "gls" else aperture, background=background, weights=weights)
+                          aperture=None if extraction == "gls" else aperture, background=background, weights=weights)
     if weights is None:
         weights = "forward" if rectify_method == "lsq" else "data"
     writer = None
@@ -177,8 +178,6 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     dark_rate, dark_kind = dark_rate_of(dark, rates, mapper.detector_shape)
     var = rate_variance(rates)
     rate = np.where(np.isfinite(var), rates.rate - dark_rate, 0.0)
-    if extraction is None:
-        extraction = "gls" if rectify_method == "lsq" else "optimal"
     model_pass = weights in ("model", "forward") and rectify_method == "lsq"
     forward = model_pass and weights == "forward"
     # the model weights' first pass on at most MODEL_NCOL columns: on a finer grid a cell holds about
