@@ -5,6 +5,12 @@
  * its text to another kernel source.  It defines only types, macros and inline
  * functions (no kernels), guarded against double inclusion.
  *
+ * Precision: double by default (bit for bit the NumPy twin, below); with -DSINGLE
+ * (and -cl-single-precision-constant) rng_real is float, philox_u01 takes 24 bits
+ * of its first word, and log/exp/sin/cos are the device's float functions: no
+ * double anywhere, so a device without fp64 builds it; the results match the
+ * float64 twin only statistically (checked in tests/test_ramp_precision.py).
+ *
  * Vector width: build with -DRNG_VW=1|2|4|8|16 (default 1).  The types
  * rng_uint, rng_ulong, rng_long, rng_double are then uint, ..., double (VW = 1)
  * or their N-vectors, one lane per random element: explicit vectors make PoCL
@@ -76,7 +82,9 @@
 typedef RNG_PASTE(uint, RNG_SUFFIX) rng_uint;
 typedef RNG_PASTE(ulong, RNG_SUFFIX) rng_ulong;
 typedef RNG_PASTE(long, RNG_SUFFIX) rng_long;
+#ifndef SINGLE
 typedef RNG_PASTE(double, RNG_SUFFIX) rng_double;
+#endif
 #define rng_convert_uint RNG_PASTE(convert_uint, RNG_SUFFIX)
 #define rng_convert_long RNG_PASTE(convert_long, RNG_SUFFIX)
 #define rng_convert_double RNG_PASTE(convert_double, RNG_SUFFIX)
@@ -86,10 +94,25 @@ typedef RNG_PASTE(double, RNG_SUFFIX) rng_double;
 /* b where cond holds, else a (cond: a comparison, int for scalars, long-N for vectors).  Scalars use
  * the conditional operator: its meaning does not hang on how a driver reads a scalar select's
  * 64-bit condition (the spec: non-zero; vectors: the most significant bit). */
+/* rng_real: the floating type of the draws' transforms (double; float with -DSINGLE, see below), rng_rmask
+ * the integer of the same width that its comparisons give (long / int lanes) */
+#ifdef SINGLE
+typedef RNG_PASTE(float, RNG_SUFFIX) rng_real;
+typedef RNG_PASTE(int, RNG_SUFFIX) rng_rmask;
+#define RNG_RMASK_NAME int
+#define rng_convert_real RNG_PASTE(convert_float, RNG_SUFFIX)
+#define rng_convert_rmask RNG_PASTE(convert_int, RNG_SUFFIX)
+#else
+typedef rng_double rng_real;
+typedef rng_long rng_rmask;
+#define RNG_RMASK_NAME long
+#define rng_convert_real rng_convert_double
+#define rng_convert_rmask rng_convert_long
+#endif
 #if RNG_VW == 1
 #define RNG_SELECT(a, b, cond) ((cond) ? (b) : (a))
 #else
-#define RNG_SELECT(a, b, cond) select((a), (b), rng_convert_long(cond))
+#define RNG_SELECT(a, b, cond) select((a), (b), rng_convert_rmask(cond))
 #endif
 
 #define PHILOX_M0 0xD2511F53ul
@@ -146,6 +169,7 @@ RNG_INLINE void philox_counter(const rng_ulong index, const uint stream, const u
     *d = (rng_uint)draw;
 }
 
+#ifndef SINGLE
 /* u = (2x + 1) 2^-53 with the 52-bit x = hi * 2^20 + (lo >> 12): exact, in (0, 1).
  * No 32-bit word with its top bit set is ever widened to 64 bits: NVIDIA's OpenCL (H200, driver
  * 580.159) sign-extended hi in (ulong)hi << 20, so every u >= 0.5 came out as u - 1 (half the
@@ -158,6 +182,8 @@ RNG_INLINE rng_double philox_u01(const rng_uint hi, const rng_uint lo)
     return rng_convert_double(hi >> 1) * 0x1.0p-31 + rng_convert_double(r) * 0x1.0p-53;
 }
 
+#endif
+
 /* The 52-bit x = hi * 2^20 + (lo >> 12) of philox_u01 as an integer, built from two parts below
  * 2^31 (no widening of a word with its top bit set, see philox_u01). */
 RNG_INLINE rng_ulong philox_x52(const rng_uint hi, const rng_uint lo)
@@ -166,6 +192,7 @@ RNG_INLINE rng_ulong philox_x52(const rng_uint hi, const rng_uint lo)
          | RNG_PASTE(convert_ulong, RNG_SUFFIX)(((hi & 1u) << 20) | (lo >> 12));
 }
 
+#ifndef SINGLE
 /* ln u for positive normal u: u = m 2^e, m in [sqrt(1/2), sqrt(2)), ln m = 2 atanh s. */
 RNG_INLINE rng_double rng_log(const rng_double u)
 {
@@ -280,5 +307,38 @@ inline double2 box_muller(const uint4 w)
     return (double2)(z0, z1);
 }
 #endif
+
+#else /* SINGLE: float transforms of the same words (no bit twin: compared with the float64 twin, whose
+        * outputs they reproduce up to the last float bit; see kernels/ramp.cl) */
+
+/* u in (0, 1) from the 32-bit word hi (lo unused): (hi | 1) 2^-32 rounded toward zero to 24 bits, so
+ * never 0 or 1; within 2^-24 (relative) of the double philox_u01(hi, lo); down to 2^-32 near 0
+ * (Box-Muller tails to 6.66 sigma). */
+RNG_INLINE rng_real philox_u01(const rng_uint hi, const rng_uint lo)
+{
+    (void)lo;
+    return RNG_PASTE(RNG_PASTE(convert_float, RNG_SUFFIX), _rtz)(hi | 1u) * 0x1.0p-32f;
+}
+
+#define rng_log log
+#define rng_exp exp
+
+/* cos 2 pi u (returned) and sin 2 pi u (*sin_out): cospi/sinpi reduce the argument exactly */
+RNG_INLINE rng_real rng_sincos_2pi(const rng_real u, rng_real *sin_out)
+{
+    *sin_out = sinpi(2.0f * u);
+    return cospi(2.0f * u);
+}
+
+RNG_INLINE rng_real box_muller_lanes(const rng_uint a, const rng_uint b, const rng_uint c, const rng_uint d,
+                                     rng_real *z1)
+{
+    const rng_real radius = sqrt(-2.0f * log(philox_u01(a, b)));
+    rng_real s;
+    const rng_real cs = rng_sincos_2pi(philox_u01(c, d), &s);
+    *z1 = radius * s;
+    return radius * cs;
+}
+#endif /* SINGLE */
 
 #endif /* SLICERSIM_PHILOX_CL */

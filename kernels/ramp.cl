@@ -61,37 +61,37 @@ typedef int ramp_mask;
 #define RAMP_U16(x) ((ushort)(x))
 #define RAMP_VSTORE(x, p) (*(p) = (x))
 #else
-typedef rng_long ramp_mask;
+typedef rng_rmask ramp_mask;
 #define RAMP_ANY(c) ramp_any(c)
-#define RAMP_FLAG(sat) RNG_PASTE(convert_uchar, RNG_SUFFIX)((sat) & 2L)
+#define RAMP_FLAG(sat) RNG_PASTE(convert_uchar, RNG_SUFFIX)((sat) & 2)
 #define RAMP_U16(x) RNG_PASTE(convert_ushort, RNG_SUFFIX)(x)
 #define RAMP_VSTORE(x, p) RNG_PASTE(vstore, RNG_SUFFIX)((x), 0, (p))
 #endif
 
 #if RNG_VW > 1
 /* any lane set: an OR tree (PoCL's any() extracts and branches lane by lane) */
-RAMP_INLINE int ramp_any(const rng_long c)
+RAMP_INLINE int ramp_any(const rng_rmask c)
 {
 #if RNG_VW == 16
-    const long8 c8 = c.lo | c.hi;
+    const RNG_PASTE(RNG_RMASK_NAME, 8) c8 = c.lo | c.hi;
 #elif RNG_VW == 8
-    const long8 c8 = c;
+    const RNG_PASTE(RNG_RMASK_NAME, 8) c8 = c;
 #endif
 #if RNG_VW >= 8
-    const long4 c4 = c8.lo | c8.hi;
+    const RNG_PASTE(RNG_RMASK_NAME, 4) c4 = c8.lo | c8.hi;
 #elif RNG_VW == 4
-    const long4 c4 = c;
+    const RNG_PASTE(RNG_RMASK_NAME, 4) c4 = c;
 #endif
 #if RNG_VW >= 4
-    const long2 c2 = c4.lo | c4.hi;
+    const RNG_PASTE(RNG_RMASK_NAME, 2) c2 = c4.lo | c4.hi;
 #else
-    const long2 c2 = c;
+    const RNG_PASTE(RNG_RMASK_NAME, 2) c2 = c;
 #endif
     return (c2.x | c2.y) < 0;
 }
 #endif
 
-__constant double RAMP_LOG_FACTORIAL[10] = {
+__constant real RAMP_LOG_FACTORIAL[10] = {
     0x0.0p+0, 0x0.0p+0, 0x1.62e42fefa39ecp-1, 0x1.cab0bfa2a2004p+0, 0x1.96ca77c922cf7p+1,
     0x1.326643c4479cap+2, 0x1.a51273acf01cbp+2, 0x1.10ce1f32dcc30p+3, 0x1.5358e82fcb70cp+3,
     0x1.99a8921a7f7cep+3};
@@ -107,35 +107,65 @@ RAMP_INLINE void ramp_block(const rng_ulong index, const uint stream, const uint
 #define ramp_box_muller box_muller_lanes
 #define ramp_exp rng_exp
 
-RAMP_INLINE rng_double ramp_log_factorial(const rng_double k)
+#ifndef SINGLE
+RAMP_INLINE rng_real ramp_log_factorial(const rng_real k)
 {
-    const rng_double x = k + 1.0;
-    const rng_double r = 1.0 / x;
-    const rng_double z = r * r;
-    rng_double p = 0x1.a41a41a41a41ap-8;
+    const rng_real x = k + 1.0;
+    const rng_real r = 1.0 / x;
+    const rng_real z = r * r;
+    rng_real p = 0x1.a41a41a41a41ap-8;
     p = p * z - 0x1.f6ab0d9993c7dp-10;
     p = p * z + 0x1.b951e2b18ff23p-11;
     p = p * z - 0x1.3813813813814p-11;
     p = p * z + 0x1.a01a01a01a01ap-11;
     p = p * z - 0x1.6c16c16c16c17p-9;
     p = p * z + 0x1.5555555555555p-4;
-    rng_double out = ((x - 0.5) * rng_log(x) - x) + (0x1.d67f1c864beb4p-1 + r * p);
+    rng_real out = ((x - 0.5) * rng_log(x) - x) + (0x1.d67f1c864beb4p-1 + r * p);
     for (int t = 0; t < 10; ++t)
-        out = RNG_SELECT(out, (rng_double)RAMP_LOG_FACTORIAL[t], k == (double)t);
+        out = RNG_SELECT(out, (rng_real)RAMP_LOG_FACTORIAL[t], k == (real)t);
     return out;
 }
+#else
+/* ln P(k; mu) = k ln mu - mu - ln k! in float without the cancellation of its large terms: for k >= 10,
+ * Stirling's series, -mu h((k - mu)/mu) - ln(2 pi k)/2 - 1/(12k) + 1/(360k^3), h(x) = (1+x) ln(1+x) - x
+ * (error a few float ulps of the result); below 10 the direct sum with the tabulated ln k!. */
+RAMP_INLINE rng_real ramp_log_poisson(const rng_real k, const rng_real mu, const rng_real log_mu)
+{
+    const rng_real kk = fmax(k, 10.0f);
+    const rng_real x = (kk - mu) / mu;
+    /* |x| < 1/4: the series sum_(n>=2) (-x)^n / (n(n-1)) (no cancellation; 11 terms: 4e-8 relative) */
+    rng_real hs = 1.0f / 132.0f;
+    hs = 1.0f / 110.0f - x * hs;
+    hs = 1.0f / 90.0f - x * hs;
+    hs = 1.0f / 72.0f - x * hs;
+    hs = 1.0f / 56.0f - x * hs;
+    hs = 1.0f / 42.0f - x * hs;
+    hs = 1.0f / 30.0f - x * hs;
+    hs = 1.0f / 20.0f - x * hs;
+    hs = 1.0f / 12.0f - x * hs;
+    hs = 1.0f / 6.0f - x * hs;
+    hs = 0.5f - x * hs;
+    const rng_real h = RNG_SELECT((1.0f + x) * log1p(x) - x, (x * x) * hs, fabs(x) < 0.25f);
+    const rng_real r = 1.0f / kk;
+    const rng_real big = (-mu * h - 0.5f * log(0x1.921fb6p+2f * kk)) - r * (0x1.555556p-4f - (r * r) * 0x1.6c16c2p-9f);
+    rng_real lf = 0.0f;
+    for (int t = 0; t < 10; ++t)
+        lf = RNG_SELECT(lf, (rng_real)RAMP_LOG_FACTORIAL[t], k == (real)t);
+    return RNG_SELECT(big, (k * log_mu - mu) - lf, k < 10.0f);
+}
+#endif
 
 /* 52-bit integer of a uniform (as philox_u01) mapped to a frame position in [0, w):
  * (x * w) >> 52, exact integer arithmetic (w <= 4096), uniform to a relative 2^-40. */
-RAMP_INLINE rng_double frame_position(const rng_uint hi, const rng_uint lo, const int w)
+RAMP_INLINE rng_real frame_position(const rng_uint hi, const rng_uint lo, const int w)
 {
     const rng_ulong x = philox_x52(hi, lo);
-    return rng_convert_double(rng_as_long((x * (ulong)w) >> 52));   /* < 2^12: signed conversion is exact */
+    return rng_convert_real(rng_as_long((x * (ulong)w) >> 52));   /* < 2^12: signed conversion is exact */
 }
 
 /* Position of event k >= 1 of group g: block (g << 32 | pixel, P_SPARSE, 1 + (k-1)/2),
  * words x,y for odd k, z,w for even k (event 0 uses words z,w of draw 0). */
-RAMP_INLINE rng_double event_position(const int g, const int k, const int w, const rng_ulong pixv, const uint stream,
+RAMP_INLINE rng_real event_position(const int g, const int k, const int w, const rng_ulong pixv, const uint stream,
                                  const uint k0, const uint k1)
 {
     rng_uint a, b, c, d;
@@ -145,34 +175,34 @@ RAMP_INLINE rng_double event_position(const int g, const int k, const int w, con
 
 /* Sum over reads j of min(full_well, before + #{events at positions <= j}) for the lanes whose
  * window crosses the full well (rare; O(m K) Philox blocks). */
-RAMP_INLINE rng_double clipped_read_sum(const rng_double before, const rng_double K, const rng_double pos0,
-                                   const int g, const int w, const int m, const double full_well,
+RAMP_INLINE rng_real clipped_read_sum(const rng_real before, const rng_real K, const rng_real pos0,
+                                   const int g, const int w, const int m, const real full_well,
                                    const rng_ulong pixv, const uint stream, const uint k0, const uint k1)
 {
-    rng_double total = 0.0;
+    rng_real total = 0.0;
     for (int j = 0; j < m; ++j) {
-        rng_double cj = RNG_SELECT((rng_double)0.0, (rng_double)1.0, (K > 0.0) && (pos0 <= (double)j));
-        for (int k = 1; RAMP_ANY((double)k < K); ++k) {
-            const rng_double pos = event_position(g, k, w, pixv, stream, k0, k1);
-            cj = RNG_SELECT(cj, cj + 1.0, ((double)k < K) && (pos <= (double)j));
+        rng_real cj = RNG_SELECT((rng_real)0.0, (rng_real)1.0, (K > 0.0) && (pos0 <= (real)j));
+        for (int k = 1; RAMP_ANY((real)k < K); ++k) {
+            const rng_real pos = event_position(g, k, w, pixv, stream, k0, k1);
+            cj = RNG_SELECT(cj, cj + 1.0, ((real)k < K) && (pos <= (real)j));
         }
-        const rng_double charge = before + cj;
-        total = total + RNG_SELECT(charge, (rng_double)full_well, charge >= full_well);
+        const rng_real charge = before + cj;
+        total = total + RNG_SELECT(charge, (rng_real)full_well, charge >= full_well);
     }
     return total;
 }
 
 /* Read noise, rounding, clipping to uint16, flags; stores group g of the lanes. */
-RAMP_INLINE void store_group(const int g, const rng_double sum, const rng_double z, const rng_double reset,
-                        ramp_mask *sat, const int m, const double read_sigma, const double gain,
-                        const double bias, const double saturation, __global ushort *restrict sci,
+RAMP_INLINE void store_group(const int g, const rng_real sum, const rng_real z, const rng_real reset,
+                        ramp_mask *sat, const int m, const real read_sigma, const real gain,
+                        const real bias, const real saturation, __global ushort *restrict sci,
                         __global uchar *restrict gdq, const int write_dq, const uint *idx, const int contiguous,
                         const size_t npix)
 {
-    const rng_double mean = sum / (double)m + read_sigma * z;
-    rng_double adu = rint(bias + gain * (reset + mean));
-    adu = RNG_SELECT(adu, (rng_double)0.0, adu < 0.0);
-    adu = RNG_SELECT(adu, (rng_double)65535.0, adu > 65535.0);
+    const rng_real mean = sum / (real)m + read_sigma * z;
+    rng_real adu = rint(bias + gain * (reset + mean));
+    adu = RNG_SELECT(adu, (rng_real)0.0, adu < 0.0);
+    adu = RNG_SELECT(adu, (rng_real)65535.0, adu > 65535.0);
     *sat = *sat | (adu >= saturation);
     __global ushort *s = sci + (size_t)g * npix;
     __global uchar *q = gdq + (size_t)g * npix;
@@ -194,10 +224,10 @@ RAMP_INLINE void store_group(const int g, const rng_double sum, const rng_double
 }
 
 /* lanes of work item t: mu (0 for dead pixels), pixel numbers, whether they are consecutive */
-RAMP_INLINE int gather_lanes(__global const double *restrict mu_frame, __global const uint *restrict list,
-                        const size_t t, const uint pixel0, uint *idx, rng_double *mu, rng_ulong *pixv)
+RAMP_INLINE int gather_lanes(__global const real *restrict mu_frame, __global const uint *restrict list,
+                        const size_t t, const uint pixel0, uint *idx, rng_real *mu, rng_ulong *pixv)
 {
-    double m[RNG_VW];
+    real m[RNG_VW];
     int contiguous = 1;
     for (int l = 0; l < RNG_VW; ++l) {
         idx[l] = list[t * RNG_VW + l];
@@ -232,26 +262,29 @@ RAMP_INLINE int gather_lanes(__global const double *restrict mu_frame, __global 
     return contiguous;
 }
 
-RAMP_INLINE rng_double ktc_reset(const double ktc, const rng_ulong pixv, const uint sbase, const uint k0, const uint k1)
+RAMP_INLINE rng_real ktc_reset(const real ktc, const rng_ulong pixv, const uint sbase, const uint k0, const uint k1)
 {
     if (!(ktc > 0.0))
         return 0.0;
     rng_uint a, b, c, d;
-    rng_double unused;
+    rng_real unused;
     ramp_block(pixv, sbase + P_KTC, 0u, k0, k1, &a, &b, &c, &d);
     return ktc * ramp_box_muller(a, b, c, d, &unused);
 }
 
 #define RAMP_KERNEL_ARGS                                                                            \
-    __global const double *restrict mu_frame, /* e-/frame, 0 for dead pixels */                     \
+    __global const real *restrict mu_frame, /* e-/frame, 0 for dead pixels */                     \
     __global const uint *restrict list, const uint nitems, /* RNG_VW pixel indices per item */      \
     __global ushort *restrict sci, __global uchar *restrict gdq, /* (n, npix) */                    \
     const uint npix, const uint pixel0, const uint ramp, const uint k0, const uint k1, const int n,  \
-    const int m, const int d, const double read_sigma, const double gain, const double bias,        \
-    const double ktc, const double full_well, const double saturation,                            \
+    const int m, const int d, const real read_sigma, const real gain, const real bias,        \
+    const real ktc, const real full_well, const real saturation,                            \
     const int write_dq /* 0: GROUPDQ not wanted */ RAMP_EFFECT_ARGS
 
 #ifdef RAMP_EFFECTS
+#ifdef SINGLE
+#error "the effects build (RAMP_EFFECTS) is double only"
+#endif
 #include "ramp_effects.cl"
 #define RAMP_EFFECT_ARGS ,                                                                           \
     __global const uint *restrict dep_start, /* (npix + 1) CSR of each pixel's deposits */          \
@@ -268,30 +301,30 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
     if (t >= nitems)
         return;
     uint idx[RNG_VW];
-    rng_double mu;
+    rng_real mu;
     rng_ulong pixv;
     const int contiguous = gather_lanes(mu_frame, list, t, pixel0, idx, &mu, &pixv);
     const uint sbase = 4u * ramp, stream = sbase + P_SPARSE;
     const int W = m + d;
-    const rng_double reset = ktc_reset(ktc, pixv, sbase, k0, k1);
+    const rng_real reset = ktc_reset(ktc, pixv, sbase, k0, k1);
     /* CDF of Poisson(mu W) for full windows: first terms tabulated (the recurrence's values) */
-    const rng_double lam_full = mu * (double)W, lam_last = mu * (double)m;
-    rng_double tab_p[RAMP_SPARSE_TABLE], tab_cdf[RAMP_SPARSE_TABLE];
+    const rng_real lam_full = mu * (real)W, lam_last = mu * (real)m;
+    rng_real tab_p[RAMP_SPARSE_TABLE], tab_cdf[RAMP_SPARSE_TABLE];
     tab_p[0] = ramp_exp(-lam_full);
     tab_cdf[0] = tab_p[0];
     for (int k = 1; k < RAMP_SPARSE_TABLE; ++k) {
-        tab_p[k] = tab_p[k - 1] * lam_full / (double)k;
+        tab_p[k] = tab_p[k - 1] * lam_full / (real)k;
         tab_cdf[k] = tab_cdf[k - 1] + tab_p[k];
     }
-    const rng_double p_last = ramp_exp(-lam_last);
+    const rng_real p_last = ramp_exp(-lam_last);
     const int any_charge = RAMP_ANY(mu > 0.0);
-    rng_double before = 0.0;                                     /* clipped charge before the window */
+    rng_real before = 0.0;                                     /* clipped charge before the window */
     ramp_mask sat = (ramp_mask)0;
-    rng_double z_even = 0.0, z_odd = 0.0;
+    rng_real z_even = 0.0, z_odd = 0.0;
 #ifdef RAMP_EFFECTS
     uint dp[RNG_VW], de[RNG_VW], ws[RNG_VW];
-    rng_double next_dep = deposit_cursor(dep_start, dep_frame, idx, dp, de);
-    const rng_double a2 = use_nl ? load_lanes(nl_a2, idx) : 0.0, a3 = use_nl ? load_lanes(nl_a3, idx) : 0.0;
+    rng_real next_dep = deposit_cursor(dep_start, dep_frame, idx, dp, de);
+    const rng_real a2 = use_nl ? load_lanes(nl_a2, idx) : 0.0, a3 = use_nl ? load_lanes(nl_a3, idx) : 0.0;
     int f0 = 0;                                                  /* first frame of the window */
 #endif
     for (int g = 0; g < n; ++g) {
@@ -305,7 +338,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
         }
 #endif
         /* K ~ Poisson(mu w) by inversion of one uniform (words x,y); words z,w place event 0 */
-        rng_double K = 0.0, p, cdf, u = 0.0;
+        rng_real K = 0.0, p, cdf, u = 0.0;
         ramp_mask act;
         if (!any_charge) {
             a = 0u; b = 0u; c = 0u; e = 0u;     /* no lane collects charge: K = 0 without a draw */
@@ -331,7 +364,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
             act = (u > cdf) && (p > 0.0);
             K = RNG_SELECT(K, K + 1.0, act);
         }
-        const rng_double lam = last ? lam_last : lam_full;
+        const rng_real lam = last ? lam_last : lam_full;
         while (RAMP_ANY(act)) {                   /* the recurrence p_k = p_(k-1) lam / k */
             p = RNG_SELECT(p, p * lam / K, act);
             cdf = RNG_SELECT(cdf, cdf + p, act);
@@ -339,25 +372,25 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
             K = RNG_SELECT(K, K + 1.0, act);
         }
         /* reads that see each event: m - position */
-        const rng_double pos0 = frame_position(c, e, w);
-        rng_double seen = RNG_SELECT((rng_double)0.0, (double)m - pos0, (K > 0.0) && (pos0 < (double)m));
+        const rng_real pos0 = frame_position(c, e, w);
+        rng_real seen = RNG_SELECT((rng_real)0.0, (real)m - pos0, (K > 0.0) && (pos0 < (real)m));
 #ifdef RAMP_EFFECTS
-        rng_double posk[RAMP_POS_MAX];
+        rng_real posk[RAMP_POS_MAX];
 #endif
-        for (int k = 1; RAMP_ANY((double)k < K); ++k) {
+        for (int k = 1; RAMP_ANY((real)k < K); ++k) {
             if (k & 1)                           /* events 2i+1 and 2i+2 share draw 1 + i */
                 ramp_block(((ulong)g << 32) | pixv, stream, 1u + (uint)((k - 1) >> 1), k0, k1, &a, &b, &c, &e);
-            const rng_double pos = (k & 1) ? frame_position(a, b, w) : frame_position(c, e, w);
-            seen = RNG_SELECT(seen, seen + ((double)m - pos), ((double)k < K) && (pos < (double)m));
+            const rng_real pos = (k & 1) ? frame_position(a, b, w) : frame_position(c, e, w);
+            seen = RNG_SELECT(seen, seen + ((real)m - pos), ((real)k < K) && (pos < (real)m));
 #ifdef RAMP_EFFECTS
             if (k < RAMP_POS_MAX)
                 posk[k] = pos;
 #endif
         }
 #ifdef RAMP_EFFECTS
-        rng_double dsum = 0.0;                   /* deposits of the window */
+        rng_real dsum = 0.0;                   /* deposits of the window */
         ramp_mask has_dep = (ramp_mask)0;
-        const int any_dep = RAMP_ANY(next_dep < (double)(f0 + w));
+        const int any_dep = RAMP_ANY(next_dep < (real)(f0 + w));
         if (any_dep) {
             dsum = take_deposits(dep_frame, dep_e, f0 + w, dp, de, ws, &next_dep);
             double hd[RNG_VW];
@@ -365,18 +398,18 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
                 hd[l] = dp[l] > ws[l] ? 1.0 : 0.0;
             has_dep = lanes_from(hd) > 0.0;
         }
-        const rng_double total = (before + K) + dsum;
+        const rng_real total = (before + K) + dsum;
 #else
-        const rng_double total = before + K;
+        const rng_real total = before + K;
 #endif
-        rng_double sum = (double)m * before + seen;
+        rng_real sum = (real)m * before + seen;
         const ramp_mask over = total > full_well;
         if (RAMP_ANY(over))
             sum = RNG_SELECT(sum, clipped_read_sum(before, K, pos0, g, w, m, full_well, pixv, stream, k0, k1),
                              over);
 #ifdef RAMP_EFFECTS
         if (use_nl || any_dep) {                 /* read by read where a deposit or R(Q) needs it */
-            const rng_double by_read = window_read_sum(before, K, pos0, posk, g, w, m, f0, full_well, pixv, stream,
+            const rng_real by_read = window_read_sum(before, K, pos0, posk, g, w, m, f0, full_well, pixv, stream,
                                                        k0, k1, any_dep, ws, dp, dep_frame, dep_e, a2, a3, use_nl);
             sum = use_nl ? by_read : RNG_SELECT(sum, by_read, has_dep);
         }
@@ -384,7 +417,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
 #endif
         const ramp_mask full = total >= full_well;
         sat = sat || full;
-        before = RNG_SELECT(total, (rng_double)full_well, full);
+        before = RNG_SELECT(total, (rng_real)full_well, full);
 #ifdef RAMP_EFFECTS
         store_mean(g, sum, sat, m, gmean, gdq, idx, contiguous, npix);
 #else
@@ -395,96 +428,100 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
 }
 
 /* PTRS (Hoermann 1993) for the lanes in `lanes`, attempt a keyed by draw a (as noise.cl). */
-RAMP_INLINE rng_double ptrs_lanes(const rng_double mu, const ramp_mask lanes, const rng_double log_mu,
-                             const rng_double a, const rng_double b, const rng_double log_inv_alpha,
-                             const rng_double vr, const rng_ulong index, const uint stream, const uint k0,
+RAMP_INLINE rng_real ptrs_lanes(const rng_real mu, const ramp_mask lanes, const rng_real log_mu,
+                             const rng_real a, const rng_real b, const rng_real log_inv_alpha,
+                             const rng_real vr, const rng_ulong index, const uint stream, const uint k0,
                              const uint k1)
 {
-    rng_double res = 0.0;
+    rng_real res = 0.0;
     ramp_mask todo = lanes;
     for (uint attempt = 0u; attempt < RAMP_PTRS_MAX_ATTEMPTS && RAMP_ANY(todo); ++attempt) {
         rng_uint wa, wb, wc, wd;
         ramp_block(index, stream, attempt, k0, k1, &wa, &wb, &wc, &wd);
-        const rng_double U = philox_u01(wa, wb) - 0.5;
-        const rng_double V = philox_u01(wc, wd);
-        const rng_double us = 0.5 - fabs(U);
-        const rng_double k = floor((2.0 * a / us + b) * U + mu + 0.43);
+        const rng_real U = philox_u01(wa, wb) - 0.5;
+        const rng_real V = philox_u01(wc, wd);
+        const rng_real us = 0.5 - fabs(U);
+        const rng_real k = floor((2.0 * a / us + b) * U + mu + 0.43);
         ramp_mask accept = (us >= 0.07) && (V <= vr);
         const ramp_mask test = todo && !accept && !((k < 0.0) || ((us < 0.013) && (V > us)));
         if (RAMP_ANY(test)) {
-            const rng_double lhs = (rng_log(V) + log_inv_alpha) - rng_log(a / (us * us) + b);
-            const rng_double rhs = (k * log_mu - mu) - ramp_log_factorial(fmax(k, 0.0));
+            const rng_real lhs = (rng_log(V) + log_inv_alpha) - rng_log(a / (us * us) + b);
+#ifdef SINGLE
+            const rng_real rhs = ramp_log_poisson(fmax(k, 0.0f), mu, log_mu);
+#else
+            const rng_real rhs = (k * log_mu - mu) - ramp_log_factorial(fmax(k, 0.0));
+#endif
             accept = accept || (test && (lhs <= rhs));
         }
         accept = accept && todo;
         res = RNG_SELECT(res, k, accept);
         todo = todo && !accept;
     }
-    return RNG_SELECT(res, (rng_double)NAN, todo);
+    return RNG_SELECT(res, (rng_real)NAN, todo);
 }
 
-__kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
+__kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const real gauss_min_mean)
 {
     const size_t t = get_global_id(0);
     if (t >= nitems)
         return;
     uint idx[RNG_VW];
-    rng_double mu;
+    rng_real mu;
     rng_ulong pixv;
     const int contiguous = gather_lanes(mu_frame, list, t, pixel0, idx, &mu, &pixv);
     const uint sbase = 4u * ramp, stream = sbase + P_POISSON;
-    const rng_double reset = ktc_reset(ktc, pixv, sbase, k0, k1);
+    const rng_real reset = ktc_reset(ktc, pixv, sbase, k0, k1);
     const ramp_mask gauss = mu >= gauss_min_mean;
     const ramp_mask ptrs = !gauss && (mu >= RAMP_PTRS_MIN_MEAN);
     const ramp_mask inv = !gauss && !ptrs;
     const int any_gauss = RAMP_ANY(gauss), any_ptrs = RAMP_ANY(ptrs), any_inv = RAMP_ANY(inv);
-    const rng_double sqrt_mu = sqrt(mu);
+    const rng_real sqrt_mu = sqrt(mu);
     /* inversion: CDF terms 0..RAMP_INV_TABLE-1 (a term with p = 0 ends the search: +inf) */
-    rng_double tab[RAMP_INV_TABLE];
-    rng_double p_end = ramp_exp(-mu), cdf_end = p_end;
+    rng_real tab[RAMP_INV_TABLE];
+    rng_real p_end = ramp_exp(-mu), cdf_end = p_end;
     if (any_inv) {
-        tab[0] = RNG_SELECT(cdf_end, (rng_double)INFINITY, !(p_end > 0.0));
+        tab[0] = RNG_SELECT(cdf_end, (rng_real)INFINITY, !(p_end > 0.0));
         for (int k = 1; k < RAMP_INV_TABLE; ++k) {
-            p_end = p_end * mu / (double)k;
+            p_end = p_end * mu / (real)k;
             cdf_end = cdf_end + p_end;
-            tab[k] = RNG_SELECT(cdf_end, (rng_double)INFINITY, !(p_end > 0.0));
+            tab[k] = RNG_SELECT(cdf_end, (rng_real)INFINITY, !(p_end > 0.0));
         }
     }
     /* PTRS constants */
-    const rng_double log_mu = rng_log(mu);
-    const rng_double pb = 0.931 + 2.53 * sqrt_mu;
-    const rng_double pa = -0.059 + 0.02483 * pb;
-    const rng_double log_inv_alpha = rng_log(1.1239 + 1.1328 / (pb - 3.4));
-    const rng_double vr = 0.9277 - 3.6224 / (pb - 2.0);
+    const rng_real log_mu = rng_log(mu);
+    const rng_real pb = 0.931 + 2.53 * sqrt_mu;
+    const rng_real pa = -0.059 + 0.02483 * pb;
+    const rng_real log_inv_alpha = rng_log(1.1239 + 1.1328 / (pb - 3.4));
+    const rng_real vr = 0.9277 - 3.6224 / (pb - 2.0);
 
-    rng_double charge = 0.0;
+    rng_real charge = 0.0;
     ramp_mask sat = (ramp_mask)0;
     int frame = 0;
     rng_uint wa = 0, wb = 0, wc = 0, wd = 0;
-    rng_double zf_even = 0.0, zf_odd = 0.0, z_even = 0.0, z_odd = 0.0;
+    rng_real zf_even = 0.0, zf_odd = 0.0, z_even = 0.0, z_odd = 0.0;
 #ifdef RAMP_EFFECTS
     uint dp[RNG_VW], de[RNG_VW], ws[RNG_VW];
-    rng_double next_dep = deposit_cursor(dep_start, dep_frame, idx, dp, de);
-    const rng_double a2 = use_nl ? load_lanes(nl_a2, idx) : 0.0, a3 = use_nl ? load_lanes(nl_a3, idx) : 0.0;
+    rng_real next_dep = deposit_cursor(dep_start, dep_frame, idx, dp, de);
+    const rng_real a2 = use_nl ? load_lanes(nl_a2, idx) : 0.0, a3 = use_nl ? load_lanes(nl_a3, idx) : 0.0;
 #endif
     for (int g = 0; g < n; ++g) {
-        rng_double sum = 0.0;
+        rng_real sum = 0.0;
         const int w = (g == n - 1) ? m : m + d;
         for (int j = 0; j < w; ++j, ++frame) {
-            rng_double inc = 0.0;
+            rng_real inc = 0.0;
             const rng_ulong pair = ((ulong)(frame >> 1) << 32) | pixv;
             if (any_inv) {
                 if ((frame & 1) == 0)
                     ramp_block(pair, stream, 0u, k0, k1, &wa, &wb, &wc, &wd);
-                const rng_double u = (frame & 1) ? philox_u01(wc, wd) : philox_u01(wa, wb);
-                rng_double K = 0.0;
+                const rng_real u = (frame & 1) ? philox_u01(wc, wd) : philox_u01(wa, wb);
+                rng_real K = 0.0;
                 ramp_mask act = inv;
                 for (int k = 0; k < RAMP_INV_TABLE && RAMP_ANY(act); ++k) {
                     act = act && (u > tab[k]);
                     K = RNG_SELECT(K, K + 1.0, act);
                 }
                 if (RAMP_ANY(act)) {              /* beyond the table: the recurrence goes on */
-                    rng_double p = p_end, cdf = cdf_end;
+                    rng_real p = p_end, cdf = cdf_end;
                     while (RAMP_ANY(act)) {
                         p = RNG_SELECT(p, p * mu / K, act);
                         cdf = RNG_SELECT(cdf, cdf + p, act);
@@ -500,8 +537,8 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
                     ramp_block(pair, stream, 1u, k0, k1, &a, &b, &c, &e);
                     zf_even = ramp_box_muller(a, b, c, e, &zf_odd);
                 }
-                const rng_double k = rint(mu + sqrt_mu * ((frame & 1) ? zf_odd : zf_even));
-                inc = RNG_SELECT(inc, RNG_SELECT(k, (rng_double)0.0, !(k > 0.0)), gauss);
+                const rng_real k = rint(mu + sqrt_mu * ((frame & 1) ? zf_odd : zf_even));
+                inc = RNG_SELECT(inc, RNG_SELECT(k, (rng_real)0.0, !(k > 0.0)), gauss);
             }
             if (any_ptrs)
                 inc = RNG_SELECT(inc, ptrs_lanes(mu, ptrs, log_mu, pa, pb, log_inv_alpha, vr,
@@ -509,11 +546,11 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const double gauss_min_mean)
                                  ptrs);
             charge = charge + inc;
 #ifdef RAMP_EFFECTS
-            if (RAMP_ANY(next_dep == (double)frame))
+            if (RAMP_ANY(next_dep == (real)frame))
                 charge = charge + take_deposits(dep_frame, dep_e, frame + 1, dp, de, ws, &next_dep);
 #endif
             const ramp_mask full = charge >= full_well;
-            charge = RNG_SELECT(charge, (rng_double)full_well, full);
+            charge = RNG_SELECT(charge, (rng_real)full_well, full);
             sat = sat || full;
 #ifdef RAMP_EFFECTS
             if (j < m)

@@ -14,6 +14,9 @@ from slicersim.io.rampfile import RampFileError, read_ramps
 
 needs_opencl = pytest.mark.skipif(not (opencl.is_available() and opencl.device_supports_fp64()),
                                   reason="no OpenCL device with fp64")
+#: the statistical tests run for both precisions of the samplers (issue 12); single needs OpenCL
+BOTH_PRECISIONS = ["double", pytest.param("single", marks=pytest.mark.skipif(
+    not opencl.is_available(), reason="single-precision samplers need an OpenCL device"))]
 
 
 def _mu(rate, p):
@@ -133,13 +136,14 @@ def test_group_means_follow_the_poisson_process(sparse_max_group):
     assert abs(np.cov(sci[1], sci[3])[0, 1] - cov) < 4 * math.sqrt((v1 * v3 + cov**2) / npix)
 
 
+@pytest.mark.parametrize("precision", BOTH_PRECISIONS)
 @pytest.mark.parametrize("nmd", [(16, 8, 0), (8, 4, 2)])
-def test_sparse_sampler_slope_variance_matches_rauscher07(nmd):
+def test_sparse_sampler_slope_variance_matches_rauscher07(nmd, precision):
     """2 e-/s forced onto the sparse sampler (≈ 45 and 34 e- per window): Rauscher07 within 3 σ."""
     npix, rate, ron, tf = 22500, 2.0, 12.0, 2.83
     n, m, d = nmd
     sci = simulate(np.full((150, 150), rate), nmd, seed=12, ron=ron, dark=0.0, roic_glow=0.0,
-                   sparse_max_group=64.0)[0]
+                   sparse_max_group=64.0, precision=precision)[0]
     tint = (n - 1) * (m + d) * tf
     est = fit_slopes(sci.reshape(n, -1), nmd, tf) * tint
     expected = variance_rauscher07(rate, nmd, tf, math.sqrt(ron**2 + m / 12.0), 0.0)
@@ -166,8 +170,9 @@ def test_seed_changes_output_and_same_seed_repeats():
 READOUTS = [(16, 8, 0), (8, 4, 2), (12, 1, 0), (5, 8, 4), (32, 1, 3)]
 
 
+@pytest.mark.parametrize("precision", BOTH_PRECISIONS)
 @pytest.mark.parametrize("nmd", READOUTS)
-def test_slope_variance_matches_rauscher07(nmd):
+def test_slope_variance_matches_rauscher07(nmd, precision):
     """Empirical variance of least-squares slopes × t_int = Rauscher07 within 3 σ of its MC error.
 
     The 1/12 ADU² rounding noise of each group mean is added to the read noise
@@ -175,7 +180,7 @@ def test_slope_variance_matches_rauscher07(nmd):
     tests/test_coverage_gaps.py::test_ramp_slope_variance_matches_kubik16_for_few_groups.
     """
     npix, rate, ron, tf = 40000, 2.0, 12.0, 2.83
-    sci = simulate(np.full((200, 200), rate), nmd, seed=11, ron=ron, dark=0.0, roic_glow=0.0)[0]
+    sci = simulate(np.full((200, 200), rate), nmd, seed=11, ron=ron, dark=0.0, roic_glow=0.0, precision=precision)[0]
     n, m, d = nmd
     tint = (n - 1) * (m + d) * tf
     est = fit_slopes(sci.reshape(n, -1), nmd, tf) * tint
@@ -187,10 +192,11 @@ def test_slope_variance_matches_rauscher07(nmd):
     assert abs(est.mean() / tint - rate) < 4 * math.sqrt(var / npix) / tint
 
 
+@pytest.mark.parametrize("precision", BOTH_PRECISIONS)
 @pytest.mark.parametrize("rate", [0.01, 0.1, 1.0, 10.0, 100.0, 1000.0])
-def test_slopes_unbiased_over_five_decades(rate):
+def test_slopes_unbiased_over_five_decades(rate, precision):
     nmd, tf = ((10, 4, 0) if rate < 100 else (10, 1, 0)), 2.83      # below the full well
-    sci = simulate(np.full((100, 100), rate), nmd, seed=5, ron=5.0, dark=0.0, roic_glow=0.0)[0]
+    sci = simulate(np.full((100, 100), rate), nmd, seed=5, ron=5.0, dark=0.0, roic_glow=0.0, precision=precision)[0]
     est = fit_slopes(sci.reshape(nmd[0], -1), nmd, tf)
     err = est.std(ddof=1) / math.sqrt(est.size)
     assert abs(est.mean() - rate) < 4 * err, f"rate {rate}: {est.mean()} ± {err}"

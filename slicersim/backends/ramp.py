@@ -210,17 +210,18 @@ def _launch_geometry(vector_width, work_group):
     return vector_width, (int(work_group) if work_group else None)
 
 
-def block_arguments(npix, pixel0, ramp, key, p, want_dq):
-    """Scalar arguments of the two samplers after the output buffers (RAMP_KERNEL_ARGS)."""
+def block_arguments(npix, pixel0, ramp, key, p, want_dq, real=np.float64):
+    """Scalar arguments of the two samplers after the output buffers (RAMP_KERNEL_ARGS); ``real``:
+    the kernels' floating type (float32 for the ``-DSINGLE`` build)."""
     n, m, d = p.nmd
     return (np.uint32(npix), np.uint32(pixel0), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]),
-            np.int32(n), np.int32(m), np.int32(d), np.float64(p.ron / math.sqrt(m)), np.float64(p.gain),
-            np.float64(p.bias), np.float64(p.ktc_noise), np.float64(p.full_well), np.float64(p.saturation),
+            np.int32(n), np.int32(m), np.int32(d), real(p.ron / math.sqrt(m)), real(p.gain),
+            real(p.bias), real(p.ktc_noise), real(p.full_well), real(p.saturation),
             np.int32(bool(want_dq)))
 
 
 def launch_samplers(kernel_of, lists, vw, work_group, workspace, head, outputs, scalars, gauss_min_mean,
-                    tail=()):
+                    tail=(), real=np.float64):
     """Launch ``macc_ramp_sparse`` then ``macc_ramp_dense`` (``kernel_of(name, vw)``) on their pixel
     lists; arguments: ``head`` (mu), the list and its item count, ``outputs``, ``scalars``
     (:func:`block_arguments`), ``tail`` (the effects build's), then gauss_min_mean (dense only)."""
@@ -232,13 +233,13 @@ def launch_samplers(kernel_of, lists, vw, work_group, workspace, head, outputs, 
         if work_group:
             gsize, lsize = (-(-items // work_group) * work_group,), (work_group,)
         d_idx = opencl.to_device(idx, opencl.workspace_buffer(workspace, name, idx.nbytes))
-        extra = (np.float64(gauss_min_mean),) if name == "macc_ramp_dense" else ()
+        extra = (real(gauss_min_mean),) if name == "macc_ramp_dense" else ()
         opencl.launch(kernel_of(name, vw), gsize, lsize, *head, d_idx, np.uint32(items), *outputs, *scalars,
                       *tail, *extra)
 
 
-def _ramp_kernel(name, vector_width):
-    return opencl.get_kernel("ramp.cl", name, (f"-DRNG_VW={int(vector_width)}",))
+def _ramp_kernel(name, vector_width, precision="double"):
+    return opencl.get_kernel("ramp.cl", name, (f"-DRNG_VW={int(vector_width)}",) + opencl.precision_options(precision))
 
 
 def _pixel_lists(mu, p, vector_width):
@@ -258,31 +259,38 @@ def _pixel_lists(mu, p, vector_width):
 
 
 
-def device_block(mu_frame, dead, p, vector_width, work_group, workspace):
+def device_block(mu_frame, dead, p, vector_width, work_group, workspace, real=np.float64):
     """Setup shared by the OpenCL samplers of a flat pixel block: (vw, work_group, pixel lists,
-    device buffer of μ [e-/frame] with 0 for dead pixels)."""
+    device buffer of μ [e-/frame] with 0 for dead pixels, as ``real``).  The lists (which pixel takes
+    which path) are chosen from the float64 μ whatever the kernels' precision."""
     vw, work_group = _launch_geometry(vector_width, work_group)
-    mu = np.ascontiguousarray(np.where(dead, 0.0, mu_frame), dtype=np.float64)
+    mu = np.where(dead, 0.0, mu_frame)
     lists = _pixel_lists(mu, p, vw)
+    mu = np.ascontiguousarray(mu, dtype=real)
     return vw, work_group, lists, opencl.to_device(mu, opencl.workspace_buffer(workspace, "mu", mu.nbytes))
 
 
 def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None, vector_width=None, *,
-                           want_dq=True, sci_out=None, gdq_out=None, workspace=None):
+                           want_dq=True, sci_out=None, gdq_out=None, workspace=None, precision="double"):
     """OpenCL twin of :func:`simulate_block_numpy`: sparse then dense pixels, ``vector_width``
     pixels per work item (see :func:`_launch_geometry`); the result does not depend on either.
 
     want_dq=False skips GROUPDQ (returned as None); sci_out / gdq_out: C-contiguous (n, npix)
     arrays to fill (default: new ones); workspace: dict reusing device buffers between blocks.
+    precision="single": the float build (same Philox words; equal to the twin's integers except
+    where a float rounding moves a decision, see ``kernels/philox.cl`` and
+    :data:`slicersim.backends.precision.SINGLE_PRECISION_ERRORS`).
     """
     n = p.nmd[0]
     npix = mu_frame.size
-    vw, work_group, lists, d_mu = device_block(mu_frame, dead, p, vector_width, work_group, workspace)
+    real = np.float32 if precision == "single" else np.float64
+    vw, work_group, lists, d_mu = device_block(mu_frame, dead, p, vector_width, work_group, workspace, real)
     key = rng.seed_to_key(seed)
     d_sci = opencl.workspace_buffer(workspace, "sci", 2 * n * npix)
     d_gdq = opencl.workspace_buffer(workspace, "gdq", n * npix if want_dq else 1)
-    launch_samplers(_ramp_kernel, lists, vw, work_group, workspace, (d_mu,), (d_sci, d_gdq),
-                    block_arguments(npix, pixel0, ramp, key, p, want_dq), p.gauss_min_mean)
+    launch_samplers(lambda name, width: _ramp_kernel(name, width, precision), lists, vw, work_group, workspace,
+                    (d_mu,), (d_sci, d_gdq), block_arguments(npix, pixel0, ramp, key, p, want_dq, real),
+                    p.gauss_min_mean, real=real)
     sci = np.empty((n, npix), np.uint16) if sci_out is None else sci_out
     opencl.from_device(sci, d_sci)
     gdq = None
