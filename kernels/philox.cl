@@ -28,6 +28,8 @@
  *   box_muller_lanes(a, b, c, d, &z1)    two N(0,1) draws from one block (z0 returned)
  *   philox_block(key, index, stream, draw)   uint4 block (VW = 1 only)
  *   box_muller(w)                        (z0, z1) as a double2 from a uint4 block (VW = 1 only)
+ *   rng_log_poisson(k, mu, ln mu)        -DSINGLE only: ln P(k; mu) without float cancellation
+ *                                        (the PTRS acceptance test at large means)
  *
  * Bit-identity with the NumPy twin (slicersim/rng.py): only IEEE +, -, *, /,
  * sqrt and exact integer/bit operations are used (no libm log/cos, whose last
@@ -338,6 +340,38 @@ RNG_INLINE rng_real box_muller_lanes(const rng_uint a, const rng_uint b, const r
     const rng_real cs = rng_sincos_2pi(philox_u01(c, d), &s);
     *z1 = radius * s;
     return radius * cs;
+}
+/* ln k! for k = 0..9 */
+__constant float RNG_LOG_FACTORIAL_F[10] = {
+    0.0f, 0.0f, 0x1.62e430p-1f, 0x1.cab0c0p+0f, 0x1.96ca78p+1f, 0x1.326644p+2f, 0x1.a51274p+2f, 0x1.10ce20p+3f,
+    0x1.5358e8p+3f, 0x1.99a892p+3f};
+
+/* ln P(k; mu) = k ln mu - mu - ln k! in float without the cancellation of its large terms: for k >= 10,
+ * Stirling's series, -mu h((k - mu)/mu) - ln(2 pi k)/2 - 1/(12k) + 1/(360k^3), h(x) = (1+x) ln(1+x) - x
+ * (error a few float ulps of the result); below 10 the direct sum with the tabulated ln k!. */
+RNG_INLINE rng_real rng_log_poisson(const rng_real k, const rng_real mu, const rng_real log_mu)
+{
+    const rng_real kk = fmax(k, 10.0f);
+    const rng_real x = (kk - mu) / mu;
+    /* |x| < 1/4: the series sum_(n>=2) (-x)^n / (n(n-1)) (no cancellation; 11 terms: 4e-8 relative) */
+    rng_real hs = 1.0f / 132.0f;
+    hs = 1.0f / 110.0f - x * hs;
+    hs = 1.0f / 90.0f - x * hs;
+    hs = 1.0f / 72.0f - x * hs;
+    hs = 1.0f / 56.0f - x * hs;
+    hs = 1.0f / 42.0f - x * hs;
+    hs = 1.0f / 30.0f - x * hs;
+    hs = 1.0f / 20.0f - x * hs;
+    hs = 1.0f / 12.0f - x * hs;
+    hs = 1.0f / 6.0f - x * hs;
+    hs = 0.5f - x * hs;
+    const rng_real h = RNG_SELECT((1.0f + x) * log1p(x) - x, (x * x) * hs, fabs(x) < 0.25f);
+    const rng_real r = 1.0f / kk;
+    const rng_real big = (-mu * h - 0.5f * log(0x1.921fb6p+2f * kk)) - r * (0x1.555556p-4f - (r * r) * 0x1.6c16c2p-9f);
+    rng_real lf = 0.0f;
+    for (int t = 0; t < 10; ++t)
+        lf = RNG_SELECT(lf, (rng_real)RNG_LOG_FACTORIAL_F[t], k == (real)t);
+    return RNG_SELECT(big, (k * log_mu - mu) - lf, k < 10.0f);
 }
 #endif /* SINGLE */
 

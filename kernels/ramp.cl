@@ -125,34 +125,6 @@ RAMP_INLINE rng_real ramp_log_factorial(const rng_real k)
         out = RNG_SELECT(out, (rng_real)RAMP_LOG_FACTORIAL[t], k == (real)t);
     return out;
 }
-#else
-/* ln P(k; mu) = k ln mu - mu - ln k! in float without the cancellation of its large terms: for k >= 10,
- * Stirling's series, -mu h((k - mu)/mu) - ln(2 pi k)/2 - 1/(12k) + 1/(360k^3), h(x) = (1+x) ln(1+x) - x
- * (error a few float ulps of the result); below 10 the direct sum with the tabulated ln k!. */
-RAMP_INLINE rng_real ramp_log_poisson(const rng_real k, const rng_real mu, const rng_real log_mu)
-{
-    const rng_real kk = fmax(k, 10.0f);
-    const rng_real x = (kk - mu) / mu;
-    /* |x| < 1/4: the series sum_(n>=2) (-x)^n / (n(n-1)) (no cancellation; 11 terms: 4e-8 relative) */
-    rng_real hs = 1.0f / 132.0f;
-    hs = 1.0f / 110.0f - x * hs;
-    hs = 1.0f / 90.0f - x * hs;
-    hs = 1.0f / 72.0f - x * hs;
-    hs = 1.0f / 56.0f - x * hs;
-    hs = 1.0f / 42.0f - x * hs;
-    hs = 1.0f / 30.0f - x * hs;
-    hs = 1.0f / 20.0f - x * hs;
-    hs = 1.0f / 12.0f - x * hs;
-    hs = 1.0f / 6.0f - x * hs;
-    hs = 0.5f - x * hs;
-    const rng_real h = RNG_SELECT((1.0f + x) * log1p(x) - x, (x * x) * hs, fabs(x) < 0.25f);
-    const rng_real r = 1.0f / kk;
-    const rng_real big = (-mu * h - 0.5f * log(0x1.921fb6p+2f * kk)) - r * (0x1.555556p-4f - (r * r) * 0x1.6c16c2p-9f);
-    rng_real lf = 0.0f;
-    for (int t = 0; t < 10; ++t)
-        lf = RNG_SELECT(lf, (rng_real)RAMP_LOG_FACTORIAL[t], k == (real)t);
-    return RNG_SELECT(big, (k * log_mu - mu) - lf, k < 10.0f);
-}
 #endif
 
 /* 52-bit integer of a uniform (as philox_u01) mapped to a frame position in [0, w):
@@ -447,7 +419,7 @@ RAMP_INLINE rng_real ptrs_lanes(const rng_real mu, const ramp_mask lanes, const 
         if (RAMP_ANY(test)) {
             const rng_real lhs = (rng_log(V) + log_inv_alpha) - rng_log(a / (us * us) + b);
 #ifdef SINGLE
-            const rng_real rhs = ramp_log_poisson(fmax(k, 0.0f), mu, log_mu);
+            const rng_real rhs = rng_log_poisson(fmax(k, 0.0f), mu, log_mu);
 #else
             const rng_real rhs = (k * log_mu - mu) - ramp_log_factorial(fmax(k, 0.0));
 #endif

@@ -133,13 +133,13 @@ def test_file_records_the_precision(tmp_path):
 
 @needs_opencl
 def test_single_ptrs_log_acceptance_has_no_cancellation():
-    """The PTRS acceptance ln P(k; μ) of the single build (``ramp_log_poisson``) against SciPy's
+    """The PTRS acceptance ln P(k; μ) of the single build (``rng_log_poisson``) against SciPy's
     float64 logpmf: error ≤ 2e-6 + 2e-7 (|ln P| + |k − μ|) up to μ = 3e5 (measured 3e-6 there), where the direct float sum
     k ln μ − μ − ln k! would be off by ~2^-24 · 4e6 ≈ 0.2 (the acceptance biased by 20 %)."""
     import pyopencl as cl
     src = ('#include "ramp.cl"\n'
            "__kernel void logp(__global const float *k, __global const float *mu, __global float *out)\n"
-           "{ const size_t i = get_global_id(0); out[i] = ramp_log_poisson(k[i], mu[i], log(mu[i])); }\n")
+           "{ const size_t i = get_global_id(0); out[i] = rng_log_poisson(k[i], mu[i], log(mu[i])); }\n")
     opts = [f"-I{opencl.kernel_dir()}", "-DRNG_VW=1", *opencl.precision_options("single")]
     logp = cl.Kernel(cl.Program(opencl.get_context(), src).build(options=opts), "logp")
     mus, ks = [], []
