@@ -254,15 +254,12 @@ RAMP_INLINE rng_real ktc_reset(const real ktc, const rng_ulong pixv, const uint 
     const int write_dq /* 0: GROUPDQ not wanted */ RAMP_EFFECT_ARGS
 
 #ifdef RAMP_EFFECTS
-#ifdef SINGLE
-#error "the effects build (RAMP_EFFECTS) is double only"
-#endif
 #include "ramp_effects.cl"
 #define RAMP_EFFECT_ARGS ,                                                                           \
     __global const uint *restrict dep_start, /* (npix + 1) CSR of each pixel's deposits */          \
-    __global const int *restrict dep_frame, __global const double *restrict dep_e, /* frame, e- */  \
-    __global const double *restrict nl_a2, __global const double *restrict nl_a3, const int use_nl,  \
-    __global double *restrict gmean /* (n, npix) group mean of the read values [e-] */
+    __global const int *restrict dep_frame, __global const real *restrict dep_e, /* frame, e- */      \
+    __global const real *restrict nl_a2, __global const real *restrict nl_a3, const int use_nl,      \
+    __global real *restrict gmean /* (n, npix) group mean of the read values [e-] */
 #else
 #define RAMP_EFFECT_ARGS
 #endif
@@ -365,7 +362,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
         const int any_dep = RAMP_ANY(next_dep < (real)(f0 + w));
         if (any_dep) {
             dsum = take_deposits(dep_frame, dep_e, f0 + w, dp, de, ws, &next_dep);
-            double hd[RNG_VW];
+            real hd[RNG_VW];
             for (int l = 0; l < RNG_VW; ++l)
                 hd[l] = dp[l] > ws[l] ? 1.0 : 0.0;
             has_dep = lanes_from(hd) > 0.0;

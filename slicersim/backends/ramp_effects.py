@@ -133,39 +133,44 @@ def charge_block_numpy(mu_frame, dead, pixel0, ramp, seed, p, fx):
     return gmean, qsat
 
 
-def _charge_kernel(name, vector_width):
-    return opencl.get_kernel("ramp.cl", name, (f"-DRNG_VW={int(vector_width)}", "-DRAMP_EFFECTS=1"))
+def _charge_kernel(name, vector_width, precision="double"):
+    return opencl.get_kernel("ramp.cl", name, (f"-DRNG_VW={int(vector_width)}", "-DRAMP_EFFECTS=1")
+                             + opencl.precision_options(precision))
 
 
 def charge_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, fx, work_group=None, vector_width=None, *,
-                        workspace=None, to_host=True):
+                        workspace=None, to_host=True, precision="double"):
     """OpenCL twin of :func:`charge_block_numpy` (same lists and launch geometry as the plain ramp).
 
-    to_host=False returns the device buffers (gmean, flags) instead, for :func:`readout_opencl`."""
+    to_host=False returns the device buffers (gmean, flags) instead, for :func:`readout_opencl`;
+    precision="single": the float build (group means as float32, see ``simulate_block_opencl``)."""
     n = p.nmd[0]
     npix = mu_frame.size
-    vw, work_group, lists, d_mu = device_block(mu_frame, dead, p, vector_width, work_group, workspace)
+    real = np.float32 if precision == "single" else np.float64
+    size = np.dtype(real).itemsize
+    vw, work_group, lists, d_mu = device_block(mu_frame, dead, p, vector_width, work_group, workspace, real)
     key = rng.seed_to_key(seed)
     d_gdq = opencl.workspace_buffer(workspace, "gdq", n * npix)
-    d_gmean = opencl.workspace_buffer(workspace, "gmean", 8 * n * npix)
+    d_gmean = opencl.workspace_buffer(workspace, "gmean", size * n * npix)
     d_sci = opencl.workspace_buffer(workspace, "sci_unused", 8)
     ndep = max(1, fx.frame.size)
     d_start = opencl.to_device(np.ascontiguousarray(fx.start, np.uint32), opencl.workspace_buffer(workspace, "dep_start", 4 * (npix + 1)))
     d_frame = opencl.to_device(np.resize(np.ascontiguousarray(fx.frame, np.int32), ndep),
                                opencl.workspace_buffer(workspace, "dep_frame", 4 * ndep))
-    d_e = opencl.to_device(np.resize(np.ascontiguousarray(fx.electrons, np.float64), ndep),
-                           opencl.workspace_buffer(workspace, "dep_e", 8 * ndep))
+    d_e = opencl.to_device(np.resize(np.ascontiguousarray(fx.electrons, real), ndep),
+                           opencl.workspace_buffer(workspace, "dep_e", size * ndep))
     if fx.use_nl:
-        d_a2 = opencl.to_device(np.ascontiguousarray(fx.a2, np.float64), opencl.workspace_buffer(workspace, "nl_a2", 8 * npix))
-        d_a3 = opencl.to_device(np.ascontiguousarray(fx.a3, np.float64), opencl.workspace_buffer(workspace, "nl_a3", 8 * npix))
+        d_a2 = opencl.to_device(np.ascontiguousarray(fx.a2, real), opencl.workspace_buffer(workspace, "nl_a2", size * npix))
+        d_a3 = opencl.to_device(np.ascontiguousarray(fx.a3, real), opencl.workspace_buffer(workspace, "nl_a3", size * npix))
     else:
         d_a2 = d_a3 = opencl.workspace_buffer(workspace, "nl_unused", 8)
     effect_args = (d_start, d_frame, d_e, d_a2, d_a3, np.int32(bool(fx.use_nl)), d_gmean)
-    launch_samplers(_charge_kernel, lists, vw, work_group, workspace, (d_mu,), (d_sci, d_gdq),
-                    block_arguments(npix, pixel0, ramp, key, p, True), p.gauss_min_mean, effect_args)
+    launch_samplers(lambda name, width: _charge_kernel(name, width, precision), lists, vw, work_group, workspace,
+                    (d_mu,), (d_sci, d_gdq), block_arguments(npix, pixel0, ramp, key, p, True, real),
+                    p.gauss_min_mean, effect_args, real=real)
     if not to_host:
         return d_gmean, d_gdq
-    gmean = np.empty((n, npix))
+    gmean = np.empty((n, npix), real)
     qsat = np.empty((n, npix), np.uint8)
     opencl.from_device(gmean, d_gmean)
     opencl.from_device(qsat, d_gdq)
@@ -225,13 +230,16 @@ def readout_numpy(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None, 
 
 
 def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None, extra=None, bias_map=None,
-                   workspace=None, vector_width=None, shape_in=None):
+                   workspace=None, vector_width=None, shape_in=None, precision="double"):
     """OpenCL twin of :func:`readout_numpy`; ``gmean``, ``qsat`` may be device buffers of
-    :func:`charge_block_opencl` (``to_host=False``), then ``shape_in`` = (n, rows_in, nx)."""
+    :func:`charge_block_opencl` (``to_host=False``, the same ``precision``), then ``shape_in`` =
+    (n, rows_in, nx)."""
+    real = np.float32 if precision == "single" else np.float64
+    size = np.dtype(real).itemsize
     if shape_in is None:
         n, rows_in, nx = _check_readout_inputs(gmean, rows, halo_top)
-        d_gm = opencl.to_device(np.ascontiguousarray(gmean, np.float64),
-                                opencl.workspace_buffer(workspace, "ro_gmean", gmean.size * 8))
+        d_gm = opencl.to_device(np.ascontiguousarray(gmean, real),
+                                opencl.workspace_buffer(workspace, "ro_gmean", gmean.size * size))
         d_q = opencl.to_device(np.ascontiguousarray(qsat, np.uint8), opencl.workspace_buffer(workspace, "ro_qsat", qsat.size))
     else:
         n, rows_in, nx = _check_readout_inputs(np.empty((0,) + tuple(shape_in[1:])), rows, halo_top)
@@ -254,7 +262,7 @@ def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None,
             opencl.to_device(bias_map, opencl.workspace_buffer(workspace, "ro_bias", 4 * plane))
     else:
         d_b = opencl.workspace_buffer(workspace, "ro_unused_b", 8)
-    kern = np.zeros(9) if ipc is None else np.ascontiguousarray(ipc, np.float64).ravel()
+    kern = np.zeros(9, real) if ipc is None else np.ascontiguousarray(ipc, real).ravel()
     d_k = opencl.to_device(kern, opencl.workspace_buffer(workspace, "ro_ipc", 72))
     sci = np.empty((n, rows, nx), np.uint16)
     gdq = np.empty((n, rows, nx), np.uint8)
@@ -264,15 +272,15 @@ def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None,
         d_sci = opencl.workspace_buffer(workspace, "ro_sci", 2 * n * plane)
         d_gdq = opencl.workspace_buffer(workspace, "ro_gdq", n * plane)
     vw = opencl.preferred_vector_width(16, 2) if vector_width is None else int(vector_width)
-    kernel = opencl.get_kernel("ramp_readout.cl", "ramp_readout", (f"-DRNG_VW={vw}",))
+    kernel = opencl.get_kernel("ramp_readout.cl", "ramp_readout", (f"-DRNG_VW={vw}",) + opencl.precision_options(precision))
     m = p.nmd[1]
     items = rows * -(-nx // vw)
-    state = [opencl.workspace_buffer(workspace, name, size * plane) for name, size in
-             (("ro_reset", 8), ("ro_z", 8), ("ro_sat", 1))]
+    state = [opencl.workspace_buffer(workspace, name, nbytes * plane) for name, nbytes in
+             (("ro_reset", size), ("ro_z", size), ("ro_sat", 1))]
     head = (d_gm, d_q, d_x, d_b, d_k, d_sci, d_gdq, *state, np.uint32(rows), np.uint32(nx), np.uint32(rows_in),
             np.uint32(halo_top), np.uint32(y0), np.uint32(ny), np.uint32(ramp), np.uint32(key[0]), np.uint32(key[1]))
-    tail = (np.float64(p.ron / math.sqrt(m)), np.float64(p.gain), np.float64(p.bias), np.float64(p.ktc_noise),
-            np.float64(p.saturation), np.int32(ipc is not None), np.int32(extra is not None),
+    tail = (real(p.ron / math.sqrt(m)), real(p.gain), real(p.bias), real(p.ktc_noise),
+            real(p.saturation), np.int32(ipc is not None), np.int32(extra is not None),
             np.int32(bias_map is not None))
     for g in range(n):                       # one launch per group: each streams through one plane
         opencl.launch(kernel, (items,), None, *head, np.int32(g), *tail)

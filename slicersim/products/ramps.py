@@ -74,7 +74,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     precision : ``"auto"`` (default), ``"double"`` or ``"single"`` floating type of the samplers
         (:mod:`slicersim.backends.precision`).  Single draws from the same Philox words: its SCI equal
         double's except where a float rounding moves a decision (measured: ~1e-3 of the values, mostly
-        by 1 ADU; not bit-identical), with the same statistics.  Ramps with ``effects`` are double only.
+        by 1 ADU; not bit-identical), with the same statistics; with ``effects`` the charge sampler and
+        the readout (IPC, noise, digitisation) run in float too (the effects' maps and draws stay float64).
 
     The output size is checked against the free disk space (``out``) or memory (``out`` None)
     before anything is allocated.
@@ -105,7 +106,7 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         raise EffectsError("previous_charge is given but the persistence effect is not enabled "
                            "(add 'persistence' to effects)")
     from slicersim.backends.precision import resolve_precision
-    backend, precision = resolve_precision(precision, backend, "ramp" if fx is None else "ramp_effects")
+    backend, precision = resolve_precision(precision, backend, "ramp")
     ny, nx = rate.shape
     if ny * nx >= 2**32:
         raise ValueError("image too large: pixel indices must fit in 32 bits")
@@ -153,9 +154,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
     block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
     kwargs = {}
     if backend == "opencl":
-        kwargs = {"work_group": work_group, "want_dq": out is not None or return_dq, "workspace": {}}
-        if plan is None:
-            kwargs["precision"] = precision
+        kwargs = {"work_group": work_group, "want_dq": out is not None or return_dq, "workspace": {},
+                  "precision": precision}
     nsteps = p.nramps * -(-ny // rows)
     steps = ((r, y0) for r in range(p.nramps) for y0 in range(0, ny, rows))     # lazy: nramps may be huge
     if progress is None:
@@ -318,9 +318,11 @@ def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs):
     common = dict(ipc=plan.ipc, extra=noise, bias_map=plan.bias_block(y0, y1))
     if backend == "opencl":               # group means stay on the device between the two kernels
         d_gmean, d_flags = rfx.charge_block_opencl(*args, work_group=kwargs.get("work_group"),
-                                                   workspace=kwargs.get("workspace"), to_host=False)
+                                                   workspace=kwargs.get("workspace"), to_host=False,
+                                                   precision=kwargs["precision"])
         return rfx.readout_opencl(d_gmean, d_flags, y1 - y0, y0 - yi0, y0, ny, ramp, seed, p,
-                                  workspace=kwargs.get("workspace"), shape_in=shape_in, **common)
+                                  workspace=kwargs.get("workspace"), shape_in=shape_in,
+                                  precision=kwargs["precision"], **common)
     gmean, qsat = rfx.charge_block_numpy(*args)
     return rfx.readout_numpy(gmean.reshape(shape_in), qsat.reshape(shape_in), y1 - y0, y0 - yi0, y0, ny, ramp,
                              seed, p, **common)
