@@ -4,7 +4,8 @@
 For each family with single-precision kernels (:data:`slicersim.backends.precision.SINGLE_PRECISION_ERRORS`)
 the same call is timed in both precisions (best of ``--repeat``, alternating, PSF cache bypassed)
 and the single result compared with the double one: max |Δ| over the peak (and, for the cube,
-over the noise σ of the brightest voxel's neighbourhood: max |Δ| / √variance).  Families still
+over the noise σ of the brightest voxel's neighbourhood: max |Δ| / √variance); for the raw ramps
+(integers) the fraction of values that differ and the slope shift in units of the slope σ.  Families still
 double-only are listed as such.  Writes ``results/precision[_<device>].{json,md,png}`` (the
 speed–accuracy chart) with the device, CPU model and load.
 
@@ -32,8 +33,7 @@ from slicersim.backends.psf import psf_cube  # noqa: E402
 from slicersim.backends.psf_cache import bypass  # noqa: E402
 
 #: kernel families of the issue still computed in double only
-DOUBLE_ONLY = ("noise", "ramps", "ramp effects", "ramp fit", "detector projection",
-               "batch ETC (band variance)")
+DOUBLE_ONLY = ("noise", "ramp fit (reduction)", "detector projection", "batch ETC (band variance: the ETC stays double)")
 
 
 def _timed(fn, repeat):
@@ -62,10 +62,46 @@ def _row(name, what, out, best, noise=None):
     return row
 
 
+def ramp_rows(repeat, side=1024, nmd=(16, 8, 0)):
+    """Raw ramps (integers): time of ``simulate`` in each precision on the Lazuli-like rate image of
+    ``ramp_throughput.py`` (``side``², MACC ``nmd``), plain and with every effect; error as the
+    fraction of SCI values that differ, the largest difference [ADU], and the rms slope shift in
+    units of each pixel's Rauscher07 slope σ."""
+    import math
+
+    from ramp_throughput import DETECTOR, lazuli_rate_image
+
+    from slicersim.physics.readout import variance_rauscher07
+    from slicersim.products.ramps import fit_slopes, simulate
+    rate = lazuli_rate_image(side, side)
+    n, m, d = nmd
+    tf = DETECTOR["tframe"]
+    sigma = np.sqrt(variance_rauscher07(rate + DETECTOR["dark"], nmd, tf, math.hypot(DETECTOR["ron"], math.sqrt(m / 12)),
+                                        0.0)) / ((n - 1) * (m + d) * tf)
+    rows = []
+    for effects, label in ((None, "plain"), ("all", "every effect (lazuli set)")):
+        what = f"ramp {side}² Lazuli-like, MACC{nmd}, {label}"
+        out, best = _timed(lambda p: simulate(rate, nmd, seed=4, precision=p, effects=effects, progress=False,
+                                              **DETECTOR)[0], max(1, repeat // 2))
+        ds, ss = (out[p].astype(np.int64) for p in ("double", "single"))
+        diff = ss - ds
+        shift = (fit_slopes(ss, nmd, tf) - fit_slopes(ds, nmd, tf)) / sigma
+        row = {"family": "ramp", "case": what, "t_double_s": best["double"], "t_single_s": best["single"],
+               "speedup": best["double"] / best["single"], "frac_values_differing": float(np.mean(diff != 0)),
+               "max_abs_diff_adu": int(np.abs(diff).max()),
+               "rms_slope_shift_in_sigma": float(np.sqrt(np.nanmean(shift ** 2)))}
+        print(f"ramp           {what:52s} ×{row['speedup']:.2f}  {row['frac_values_differing']:.1e} of values "
+              f"differ (max {row['max_abs_diff_adu']} ADU), slope shift rms {row['rms_slope_shift_in_sigma']:.1e} σ",
+              flush=True)
+        rows.append(row)
+    return rows
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--out", default=str(HERE / "results"))
+    ap.add_argument("--ramp-side", type=int, default=1024, help="side of the ramp rows' rate image [px]")
     args = ap.parse_args()
     dev = opencl.get_device()
     device = f"{dev.name.strip()} ({opencl.device_type()}, {dev.platform.name.strip()})"
@@ -112,6 +148,7 @@ def main():
         res["rows"].append(_row("cube", "Airy cube, Lazuli narrow field (jitter, blur, LSF): signal", out, best,
                                 noise=cubes["double"][1]))
         res["rows"].append(_row("cube", "the same: variance", {p: cubes[p][1] for p in cubes}, best))
+    res["rows"] += ramp_rows(args.repeat, side=args.ramp_side)
     res["load_after"] = loadavg()
     for key, e in SINGLE_PRECISION_ERRORS.items():
         res.setdefault("documented", {})[key] = {"measured": e.measured, "tolerance": e.tolerance, "unit": e.unit}
@@ -126,9 +163,19 @@ def main():
              "| family | case | double [s] | single [s] | speed-up | max error / peak | max error / σ |",
              "|---|---|---:|---:|---:|---:|---:|"]
     for r in res["rows"]:
+        if "max_err_of_peak" not in r:
+            continue
         sig = f"{r['max_err_in_sigma']:.1e}" if "max_err_in_sigma" in r else "—"
         lines.append(f"| {r['family']} | {r['case']} | {r['t_double_s']:.3f} | {r['t_single_s']:.3f} | "
                      f"{r['speedup']:.2f} | {r['max_err_of_peak']:.1e} | {sig} |")
+    lines += ["", "Integer outputs (same Philox words in both precisions; not bit-identical):", "",
+              "| family | case | double [s] | single [s] | speed-up | values differing | max |Δ| [ADU] | "
+              "rms slope shift / σ |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in res["rows"]:
+        if "frac_values_differing" in r:
+            lines.append(f"| {r['family']} | {r['case']} | {r['t_double_s']:.3f} | {r['t_single_s']:.3f} | "
+                         f"{r['speedup']:.2f} | {r['frac_values_differing']:.1e} | {r['max_abs_diff_adu']} | "
+                         f"{r['rms_slope_shift_in_sigma']:.1e} |")
     lines += ["", "Double only so far (no single-precision kernels): " + ", ".join(DOUBLE_ONLY) + "."]
     (out / f"precision{tag}.md").write_text("\n".join(lines) + "\n")
     _plot(res, out / f"precision{tag}.png")
@@ -139,9 +186,12 @@ def _plot(res, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(8.5, 4.5))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"width_ratios": [1.6, 1]})
     markers = {"psf": "o", "lsf": "s", "convolution": "^", "cube": "D"}
     for r in res["rows"]:
+        if "frac_values_differing" in r:
+            ax2.scatter(r["speedup"], r["frac_values_differing"], s=45, label=r["case"][:48])
+            continue
         short = ", ".join(r["case"].split(", ")[:2])[:48]
         ax.scatter(r["speedup"], r["max_err_of_peak"], s=45, marker=markers.get(r["family"], "o"),
                    label=f"{r['family']}: {short}")
@@ -152,7 +202,13 @@ def _plot(res, path):
     ax.set_xlabel("speed-up of single over double (same run)")
     ax.set_ylabel("max |single − double| / peak")
     ax.set_title(f"Precision: speed vs accuracy\n{res['device'][:80]}", fontsize=8)
-    ax.legend(fontsize=6.5, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    ax.legend(fontsize=6.5, loc="upper left")
+    ax2.set_yscale("log")
+    ax2.set_xlabel("speed-up of single over double (same run)")
+    ax2.set_ylabel("fraction of integer values differing")
+    ax2.set_title("raw ramps (same Philox words)", fontsize=8)
+    if ax2.collections:
+        ax2.legend(fontsize=6.5, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 

@@ -336,8 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto", help="compute backend")
     p.add_argument("--precision", choices=("auto", "double", "single"), default="auto",
                    help="floating type of the ramp samplers (auto: single only on a device without fast fp64; "
-                        "single is not bit-identical to double: ~1e-3 of the values differ, same statistics; "
-                        "ramps with --effects are double only)")
+                        "single is not bit-identical to double: ~1e-3 of the values differ by 1 ADU, same "
+                        "statistics)")
     p.add_argument("--effects", metavar="NAME[,NAME...]",
                    help="detector systematics (off by default): cosmic_rays, ipc, nonlinearity, correlated_noise, "
                         "reference_pixels, bad_pixels, persistence, all, or the preset 'lazuli'; parameters from "
