@@ -12,7 +12,7 @@ import warnings
 
 from slicersim.backends import opencl
 from slicersim.backends.opencl import VECTOR_WIDTHS, check_vector_width  # noqa: F401  (re-exported)
-from slicersim.backends.selfcheck import NOT_RUN, device_selfcheck
+from slicersim.backends.selfcheck import NOT_RUN, device_selfcheck, device_selfcheck_single
 from slicersim.errors import OpenCLUnavailableError
 
 __all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges", "check_vector_width"]
@@ -37,19 +37,23 @@ def _trust_device() -> bool:
     return value in _TRUE
 
 
-def device_validated() -> tuple:
+def device_validated(precision: str = "double") -> tuple:
     """(passed, message): whether the selected OpenCL device gives the NumPy twin's random
-    draws and ramps (:func:`slicersim.backends.selfcheck.device_selfcheck`), checked once per device and
-    process (a check that could not run is not kept: the next call tries again).  Every noisy
-    product goes through these kernels: a driver that computes or returns them wrongly (seen on an
-    NVIDIA H200: uniforms, Gaussians and Poisson counts differed from the twin) must not be used
-    silently.  ``SLICERSIM_TRUST_DEVICE=1`` skips the check."""
+    draws and ramps (:func:`slicersim.backends.selfcheck.device_selfcheck`; with
+    ``precision="single"`` the float builds' ramps within their documented deviation,
+    :func:`~slicersim.backends.selfcheck.device_selfcheck_single`), checked once per device,
+    precision and process (a check that could not run is not kept: the next call tries again).
+    Every noisy product goes through these kernels: a driver that computes or returns them wrongly
+    (seen on an NVIDIA H200: uniforms, Gaussians and Poisson counts differed from the twin) must not
+    be used silently.  ``SLICERSIM_TRUST_DEVICE=1`` skips the check."""
     if _trust_device():
         return True, "not checked (SLICERSIM_TRUST_DEVICE)"
     key = opencl.device_fingerprint()
+    if precision == "single":
+        key = (key, "single")
     with _selfcheck_lock:
         if key not in _SELFCHECK:
-            result = device_selfcheck()
+            result = device_selfcheck_single() if precision == "single" else device_selfcheck()
             if not result[0] and result[1].startswith(NOT_RUN):
                 return result
             _SELFCHECK[key] = result

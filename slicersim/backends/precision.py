@@ -14,8 +14,12 @@ Every kernel-backed entry point that has single-precision kernels takes
   below 1/:data:`FAST_FP64_RATIO` of fp32, measured once per device: :func:`fp64_throughput_ratio`);
   double otherwise.  CPUs (fp64 at ½ the fp32 rate: half the SIMD lanes; not timed, since shared
   cores make such timings unreliable) and data-centre GPUs keep double, so their results do not
-  change; consumer and integrated GPUs (1/16–1/64) get single.  On a device without fp64 the
-  single kernels run without the device self-check (its kernels are fp64).
+  change; consumer and integrated GPUs (1/16–1/64) get single.
+
+Before single kernels run, the device passes a single-precision self-check
+(:func:`~slicersim.backends.selfcheck.device_selfcheck_single`: the self-check's ramp blocks through
+the float samplers, no fp64 needed), once per device and process; on failure ``backend="auto"``
+falls back to NumPy with a warning and ``backend="opencl"`` raises.
 
 The ETC, the reference reproduction and everything compared at 1e-6 stay double: they do not take
 this argument.
@@ -24,12 +28,13 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from slicersim.backends import opencl
-from slicersim.backends.dispatch import BACKENDS, resolve_backend
+from slicersim.backends.dispatch import BACKENDS, device_validated, resolve_backend
 from slicersim.errors import OpenCLUnavailableError, ParameterError
 
 __all__ = ["PRECISIONS", "SINGLE_PRECISION_ERRORS", "FAST_FP64_RATIO", "check_precision", "resolve_precision",
@@ -85,6 +90,7 @@ def real_dtype(precision: str):
 
 
 _ratios: dict = {}
+_warned_single: set = set()             # devices that failed the single-precision self-check (warned once)
 _ratio_lock = threading.Lock()
 
 
@@ -162,10 +168,20 @@ def resolve_precision(precision, backend="auto", product="cube"):
         return resolve_backend(backend), "double"
     if precision == "single" or (single_ok and SINGLE_PRECISION_ERRORS[product].acceptable
                                  and (not fp64 or fp64_throughput_ratio() > FAST_FP64_RATIO)):
-        if not fp64:                 # the device self-check runs fp64 kernels: nothing to check with
+        if fp64:
+            chosen = resolve_backend(backend)          # the fp64 self-check decides, as for double
+            if chosen != "opencl":
+                return chosen, "double"
+        ok, msg = device_validated("single")           # the float builds' own check (no fp64 needed)
+        if ok:
             return "opencl", "single"
-        chosen = resolve_backend(backend)              # the self-check decides, as for double
-        return chosen, ("single" if chosen == "opencl" else "double")
+        if backend == "opencl":
+            raise OpenCLUnavailableError(f"{msg}; use backend='numpy' or 'auto' (falls back to NumPy), or pick "
+                                         "another device (SLICERSIM_DEVICE)")
+        if opencl.device_fingerprint() not in _warned_single:
+            _warned_single.add(opencl.device_fingerprint())
+            warnings.warn(f"{msg}; using the NumPy twins (float64)", RuntimeWarning, stacklevel=2)
+        return "numpy", "double"
     if not fp64:
         if backend == "opencl":
             raise OpenCLUnavailableError(f"OpenCL device {name!r} lacks fp64 and {product!r} has no "
