@@ -173,3 +173,39 @@ def test_single_ptrs_log_acceptance_has_no_cancellation():
     exact = stats.poisson.logpmf(k.astype(np.float64), mu.astype(np.float64))
     err = np.abs(out - exact)
     assert np.all(err <= 2e-6 + 2e-7 * (np.abs(exact) + np.abs(k - mu))), err.max()
+
+
+@needs_opencl
+def test_single_precision_selfcheck_guards_the_float_kernels(monkeypatch):
+    """The single builds run only on a device that passes their own self-check (no fp64 needed):
+    it passes here; a device whose float samplers are wrong makes "single" with backend="opencl"
+    one clear error and "auto" fall back to NumPy with one warning, with or without fp64."""
+    import warnings
+
+    from slicersim.backends import dispatch, selfcheck
+    from slicersim.backends import ramp as ramp_backend
+    monkeypatch.delenv("SLICERSIM_TRUST_DEVICE", raising=False)
+    monkeypatch.setattr(dispatch, "_SELFCHECK", {})
+    ok, msg = selfcheck.device_selfcheck_single()
+    assert ok, msg
+    real = ramp_backend.simulate_block_opencl
+
+    def broken(*args, precision="double", **kw):
+        sci, gdq = real(*args, precision=precision, **kw)
+        return (sci // 2 if precision == "single" else sci), gdq      # a miscompiled float path
+    monkeypatch.setattr(ramp_backend, "simulate_block_opencl", broken)
+    ok, msg = selfcheck.device_selfcheck_single()
+    assert not ok and "single-precision ramp self-check" in msg and "SCI" in msg
+    assert selfcheck.device_selfcheck()[0]                      # the fp64 check does not see it
+    monkeypatch.setattr(prec, "_warned_single", set())
+    for fp64 in (True, False):
+        monkeypatch.setattr(dispatch, "_SELFCHECK", {})
+        monkeypatch.setattr(opencl, "device_supports_fp64", lambda fp64=fp64: fp64)
+        with pytest.raises(OpenCLUnavailableError, match="single-precision ramp self-check"):
+            prec.resolve_precision("single", "opencl", "ramp")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert prec.resolve_precision("single", "auto", "ramp") == ("numpy", "double")
+            if not fp64:
+                assert prec.resolve_precision("auto", "auto", "cube") == ("numpy", "double")
+        assert sum("single-precision ramp self-check" in str(w.message) for w in caught) == (1 if fp64 else 0)
