@@ -24,26 +24,37 @@
  * index cell[] and weight[]).  Skipping is exact: A + B*Q > 0, so each
  * skipped term is +0.0 and w + 0.0 == w; the order of the other terms is kept.
  * (A NaN Q is NaN in every cell of its bin, so the bin is still skipped.)
- * Double precision throughout; no fast-math build options are used, so the
- * division is IEEE correctly rounded and 1/0 = +inf, NaN propagates.
+ * Double precision by default; no fast-math build options are used, so the
+ * division is IEEE correctly rounded and 1/0 = +inf, NaN propagates.  With
+ * -DSINGLE (opencl.precision_options) every real is float and both sums (over
+ * a bin's cells, over the band's bins) are compensated (Kahan), so their error
+ * stays a few float ulps whatever the number of terms.
  */
 
 #include "vector_types.cl"
 
+#ifdef SINGLE
+/* s += x with the running compensation c (Kahan); an infinite sum keeps c = 0 (inf - inf is NaN) */
+#define KAHAN_ADD(s, c, x) { const realv y_ = (x) - (c); const realv t_ = (s) + y_;                    \
+                             (c) = SELECT((realv)(0.0), (t_ - (s)) - y_, isfinite(t_)); (s) = t_; }
+#else
+#define KAHAN_ADD(s, c, x) { (s) += (x); }
+#endif
+
 __kernel void band_variance(
-    __global const double *restrict Q,     /* (nt, nb, ncell), bins lo..lo+nb-1 */
-    __global const double *restrict weight,   /* non-zero P2 values, bin-major   */
+    __global const real *restrict Q,       /* (nt, nb, ncell), bins lo..lo+nb-1 */
+    __global const real *restrict weight,     /* non-zero P2 values, bin-major   */
     __global const int *restrict cell,        /* their cell indices              */
     __global const int *restrict row_start,   /* (nlbda + 1,) CSR row pointers    */
-    __global const double *restrict A,     /* (Kp,)                             */
-    __global const double *restrict B,     /* (Kp,)                             */
-    __global const double *restrict Qsat,  /* (Kp,)                             */
+    __global const real *restrict A,       /* (Kp,)                             */
+    __global const real *restrict B,       /* (Kp,)                             */
+    __global const real *restrict Qsat,    /* (Kp,)                             */
     __global const int *restrict band,     /* (nt, 2) absolute [i0, i1)         */
     const int Kp,                          /* padded candidate count, % VW == 0 */
     const int nb,
     const int ncell,
     const int lo,
-    __global double *restrict var_sum,     /* (nt, Kp)                          */
+    __global real *restrict var_sum,       /* (nt, Kp)                          */
     __global int *restrict nvalid)         /* (nt, Kp)                          */
 {
     const int kv = get_global_id(0);       /* group of VW candidates */
@@ -55,23 +66,25 @@ __kernel void band_variance(
     const int i0 = band[2 * t];
     const int i1 = band[2 * t + 1];
 
-    __global const double *Qt = Q + (size_t)t * (size_t)nb * (size_t)ncell;
-    realv acc = (realv)(0.0);
+    __global const real *Qt = Q + (size_t)t * (size_t)nb * (size_t)ncell;
+    realv acc = (realv)(0.0), acc_c = (realv)(0.0);
     longv cnt = (longv)(0);
 
     for (int i = i0; i < i1; ++i) {
-        __global const double *q = Qt + (size_t)(i - lo) * (size_t)ncell;
-        realv w = (realv)(0.0);
+        __global const real *q = Qt + (size_t)(i - lo) * (size_t)ncell;
+        realv w = (realv)(0.0), w_c = (realv)(0.0);
         const int j1 = row_start[i + 1];
         for (int j = row_start[i]; j < j1; ++j) {
-            const double qc = q[cell[j]];
+            const real qc = q[cell[j]];
             const realv term = weight[j] / (a + b * qc);
-            w += (qc > qs) ? (realv)(0.0) : term;   /* saturated: weight 0 */
+            KAHAN_ADD(w, w_c, (qc > qs) ? (realv)(0.0) : term)   /* saturated: weight 0 */
         }
+        (void)w_c;
         const realv v = 1.0 / w;                      /* +inf if w == 0 */
-        acc += isnan(v) ? (realv)(0.0) : v;           /* NaN Q: skip the bin */
+        KAHAN_ADD(acc, acc_c, isnan(v) ? (realv)(0.0) : v)       /* NaN Q: skip the bin */
         cnt += isnan(v) ? (longv)(0) : (longv)(1);
     }
+    (void)acc_c;
 
     const size_t o = (size_t)t * (size_t)(Kp / VW) + (size_t)kv;
     VSTORE(acc, o, var_sum);

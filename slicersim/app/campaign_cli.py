@@ -35,6 +35,8 @@ def cmd_survey_plan(args) -> int:
             raise ParameterError(f"{flag}: directory {parent} does not exist or is not writable")
     if args.n < 1:
         raise ParameterError(f"--n must be ≥ 1 (an empty population has nothing to plan), got {args.n}")
+    from slicersim.backends.precision import resolve_precision
+    resolve_precision(args.precision, "auto", "batch_etc")         # e.g. double without fp64: before the draws
     if not args.seed >= 0:
         raise ParameterError(f"--seed must be ≥ 0, got {args.seed}")
     lbda = spectrum_grid()
@@ -47,7 +49,7 @@ def cmd_survey_plan(args) -> int:
                        frame="rest", z_switch=args.z_switch, config=args.config, search=args.search,
                        conventions=args.conventions, overhead=args.overhead, efficiency=args.efficiency,
                        compression_ratio=args.compression_ratio, target_ids=np.asarray(table["target_id"]),
-                       progress=True)
+                       progress=True, precision=args.precision)
     if args.out:
         _write_table(plan.table, args.out, args.overwrite)
     print(plan.summary())
@@ -138,6 +140,9 @@ def add_parsers(sub, fmt):
     p.add_argument("--out", metavar="FILE.ecsv", help="per-target table (ECSV or CSV)")
     p.add_argument("--figure", metavar="FILE.png", help="time and volume vs redshift figure")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.add_argument("--precision", choices=("auto", "double", "single"), default="auto",
+                   help="precision of the batch ETC's band-variance kernel (auto: single only on a device "
+                        "without fast fp64)")
     p.set_defaults(func=cmd_survey_plan)
 
     camp = sub.add_parser("campaign", help="mock datasets on Dask: run a campaign spec, report its status",

@@ -45,7 +45,7 @@ def _bin_range(band):
 
 
 def band_variance_table(Q, P2, A, B, Qsat, band, backend="auto", *,
-                        max_bytes=DEFAULT_MAX_BYTES, vector_width=None):
+                        max_bytes=DEFAULT_MAX_BYTES, vector_width=None, precision=None):
     """Band-summed optimal-extraction variance for N targets x K candidate readouts.
 
     Parameters
@@ -67,6 +67,9 @@ def band_variance_table(Q, P2, A, B, Qsat, band, backend="auto", *,
     vector_width : int, optional
         OpenCL only: candidates per work item (1, 2, 4, 8, 16); default
         from the device (1 on GPUs).
+    precision : None (the ETC's: float64, the NumPy twin on a device without fp64), or
+        "auto" | "double" | "single" (the batch ETC's dial, :mod:`slicersim.backends.precision`,
+        product ``"batch_etc"``; single: float kernel with compensated sums, float64 results)
 
     Returns
     -------
@@ -77,13 +80,18 @@ def band_variance_table(Q, P2, A, B, Qsat, band, backend="auto", *,
         Number of valid (non-NaN) bins; the band-mean variance is
         ``var_sum / nvalid``.
     """
+    if precision is None:
+        backend, precision = resolve_backend(backend), "double"
+    else:
+        from slicersim.backends.precision import resolve_precision
+        backend, precision = resolve_precision(precision, backend, "batch_etc")
     Q, P2, A, B, Qsat, band = _check_inputs(Q, P2, A, B, Qsat, band)
     var_sum = np.zeros((Q.shape[0], A.size), np.float64)     # accumulated in place by either backend
     nvalid = np.zeros((Q.shape[0], A.size), np.int32)
     if var_sum.size == 0:
         return var_sum, nvalid
-    if resolve_backend(backend) == "opencl":
-        _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_sum, nvalid)
+    if backend == "opencl":
+        _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_sum, nvalid, precision)
     else:
         _band_variance_numpy(Q, P2, A, B, Qsat, band, max_bytes, var_sum, nvalid)
     return var_sum, nvalid
@@ -138,10 +146,13 @@ def _pow2_at_most(n, cap):
     return w
 
 
-def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_sum, nvalid):
+def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_sum, nvalid, precision="double"):
     N, nlbda, ncell = Q.shape
     K = A.size
-    opencl.require_fp64()
+    real = np.float32 if precision == "single" else np.float64
+    size = np.dtype(real).itemsize
+    if precision == "double":
+        opencl.require_fp64()
     dev = opencl.get_device()
     is_gpu = "GPU" in opencl.device_type(dev)
     if vector_width is None:
@@ -157,19 +168,20 @@ def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_
         L = _pow2_at_most(-(-K // VW), min(64, int(dev.max_work_group_size)))
         local, mult = (L, 1), VW * L
     Kp = -(-K // mult) * mult
-    pad = lambda x: np.ascontiguousarray(np.concatenate([x, np.full(Kp - K, x[-1])]))
+    pad = lambda x: np.ascontiguousarray(np.concatenate([x, np.full(Kp - K, x[-1])]), dtype=real)
     Ap, Bp, Sp = pad(A), pad(B), pad(Qsat)
 
-    per_target = 2 * 8 * nlbda * ncell + 2 * 12 * Kp + 16
+    per_target = 2 * size * nlbda * ncell + 2 * 12 * Kp + 16
     nt_max = max(1, min(N, int(max_bytes // per_target)))
-    kern = opencl.get_kernel("band_variance.cl", "band_variance", (f"-DVW={VW}",))
+    kern = opencl.get_kernel("band_variance.cl", "band_variance", (f"-DVW={VW}",) + opencl.precision_options(precision))
     weight, cell, row_start = nonzero_weights(P2)
+    weight = np.ascontiguousarray(weight, dtype=real)
     d_w, d_c, d_r, d_A, d_B, d_S = (opencl.to_device(x) for x in (weight, cell, row_start, Ap, Bp, Sp))
-    d_Q = opencl.device_buffer(8 * nt_max * nlbda * ncell)
+    d_Q = opencl.device_buffer(size * nt_max * nlbda * ncell)
     d_band = opencl.device_buffer(8 * nt_max)
-    d_vs = opencl.device_buffer(8 * nt_max * Kp)
+    d_vs = opencl.device_buffer(size * nt_max * Kp)
     d_nv = opencl.device_buffer(4 * nt_max * Kp)
-    h_vs = np.empty((nt_max, Kp), np.float64)
+    h_vs = np.empty((nt_max, Kp), real)
     h_nv = np.empty((nt_max, Kp), np.int32)
     i32 = np.int32
     for t0, t1 in chunk_ranges(N, per_target, max_bytes):
@@ -178,7 +190,7 @@ def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_
         lo, hi = _bin_range(bd)
         nb = hi - lo
         if nb:
-            opencl.to_device(np.ascontiguousarray(Q[t0:t1, lo:hi], dtype=np.float64), d_Q)
+            opencl.to_device(np.ascontiguousarray(Q[t0:t1, lo:hi], dtype=real), d_Q)
         opencl.to_device(bd, d_band)
         opencl.launch(kern, (Kp // VW, nt), local, d_Q, d_w, d_c, d_r, d_A, d_B, d_S, d_band,
                       i32(Kp), i32(nb), i32(ncell), i32(lo), d_vs, d_nv)

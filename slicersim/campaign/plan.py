@@ -123,17 +123,20 @@ def _solve(lbda, fluxes, idx, errors, out, kwargs):
 def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), frame="rest", z_switch=0.8,
                 fields=("narrow", "wide"), config="cbe", search="exact", conventions="physical", overhead=0.0,
                 efficiency=1.0, compression_ratio=1.0, target_ids=None, per_resolution=True, progress=False,
-                detector_shape=None):
+                detector_shape=None, precision="auto"):
     """Plan a survey of targets with spectra ``fluxes`` (N, k) [erg/s/cm²/Å] on ``lbda`` [Å].
 
     snr : SNR per resolution element (``per_resolution``) in ``lbda_range`` [Å] of ``frame``
     z_switch : ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field)
     overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1 : see the module docstring
+    precision : of the batch ETC's band-variance kernel (:func:`slicersim.etc.solve.solve_many`)
     Returns a :class:`SurveyPlan`.
     """
     from astropy.table import Table
 
     from slicersim.assembly import build_simulation
+    from slicersim.backends.precision import resolve_precision
+    precision = resolve_precision(precision, "auto", "batch_etc")[1]        # bad names: before any work
     z = _check(snr, lbda_range, z_switch, overhead, efficiency, compression_ratio, redshift, fluxes, lbda)
     fluxes = np.asarray(fluxes, dtype=float)
     ntarget = z.size
@@ -143,7 +146,7 @@ def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), f
     out.update(exposure_time=np.zeros(ntarget), snr=np.zeros(ntarget))
     errors = {}
     etc = dict(snr=snr, lbda_ranges=lbda_range, frame=frame, config=config, search=search,
-               conventions=conventions, per_resolution=per_resolution, progress=progress)
+               conventions=conventions, per_resolution=per_resolution, progress=progress, precision=precision)
     shapes = {}
     for f in dict.fromkeys(field):
         sel = np.nonzero(field == f)[0]
@@ -173,7 +176,7 @@ def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), f
     totals = {"targets": ntarget, "overhead": float(overhead), "efficiency": float(efficiency),
               "compression_ratio": float(compression_ratio), "snr": float(snr),
               "lbda_range": [float(v) for v in lbda_range], "frame": frame, "z_switch": float(z_switch),
-              "config": str(config), "search": search, "conventions": conventions}
+              "config": str(config), "search": search, "conventions": conventions, "precision": precision}
     totals.update(survey_totals(table, overhead, efficiency, compression_ratio))
     table.meta["totals"] = totals
     return SurveyPlan(table, totals)

@@ -30,7 +30,7 @@ def readout_variance_coefficients(sim, n, m, d):
                                       det.saturation, sim.detector_pixels_per_cell, sim.conventions)
 
 
-def band_snr_table_for_models(sim, models, band, candidates, backend="auto", psf2=None):
+def band_snr_table_for_models(sim, models, band, candidates, backend="auto", psf2=None, precision=None):
     """Single-ramp band SNR per bin, shape (N, K), for N extraction models and K readouts.
 
     Parameters
@@ -39,6 +39,8 @@ def band_snr_table_for_models(sim, models, band, candidates, backend="auto", psf
     models : list of ExtractionModel, or a tuple (Q (N, nλ, nc), signal_rate (N, nλ))
     band : (N, 2) int  [i0, i1) bin ranges
     candidates : (n, m, d) arrays of length K
+    precision : None (float64: the ETC) or the batch ETC's "auto" | "double" | "single"
+        (:func:`slicersim.backends.band_variance.band_variance_table`)
     """
     n, m, d = (np.asarray(c) for c in candidates)
     if isinstance(models, tuple):
@@ -52,7 +54,7 @@ def band_snr_table_for_models(sim, models, band, candidates, backend="auto", psf
     band = np.asarray(band, dtype=np.int64)
     if sim.detector.variance_model.lower().startswith("rauscher"):
         A, B, qsat = readout_variance_coefficients(sim, n, m, d)
-        var_sum, nvalid = band_variance_table(Q, psf2, A, B, qsat, band, backend=backend)
+        var_sum, nvalid = band_variance_table(Q, psf2, A, B, qsat, band, backend=backend, precision=precision)
     else:  # non-linear variance model: NumPy evaluation per candidate
         var_sum, nvalid = _generic_band_variance(sim, Q, psf2, band, n, m, d)
     mean_signal = np.empty(Q.shape[0])

@@ -58,7 +58,7 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
 def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field="narrow",
                search="exact", redshifts=None, per_resolution=True, backend="auto",
                max_bytes=DEFAULT_MAX_BYTES, progress=False, conventions=DEFAULT_CONVENTIONS,
-               allow_partial=True):
+               allow_partial=True, precision="auto"):
     """Solve the ETC for many point sources at once.
 
     Parameters
@@ -74,6 +74,9 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
         spectrum are answered on the covered part with one BandCoverageWarning naming the
         targets (default, batch); False raises SpectrumError as the single-target calls do
         (:mod:`slicersim.etc.bands`)
+    precision : "auto" (default), "double" or "single" for the band-variance kernel
+        (:mod:`slicersim.backends.precision`, product ``"batch_etc"``; "auto" is double on CPUs and
+        fast-fp64 GPUs); the single-target ETC is always float64
 
     Returns
     -------
@@ -83,6 +86,8 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     from astropy.table import Table
 
     from slicersim.assembly import build_simulation
+    from slicersim.backends.precision import resolve_precision
+    backend, precision = resolve_precision(precision, backend, "batch_etc")     # bad names: before any work
     lbda, fluxes, ranges = _validate_batch(lbda, fluxes, lbda_ranges)
     ntarget = fluxes.shape[0]
     snr = np.broadcast_to(np.asarray(snr, dtype=float), (ntarget,))
@@ -148,7 +153,7 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
         signal_rate = lsf(photons * qe[s0:s1], 1)[:, keep] * gain                  # ADU/s
         sub_band = band[t0:t1] - lo
         snr1 = band_snr_table_for_models(sim, (Q, signal_rate), sub_band, cand, backend=backend,
-                                         psf2=psf2[lo:hi])
+                                         psf2=psf2[lo:hi], precision=precision)
         if search == "exact":
             choice = exact_choice(snr1, *cand, target[t0:t1], max_frames=max_frames_for(det.tframe))
             if choice["limited"].any():
@@ -196,5 +201,6 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     table["snr_per_bin"] = reached
     table["data_volume"] = rows["nramps"] * rows["n"] * det.shape[0] * det.shape[1] * 16 / 8e9
     table["data_volume"].unit = "GB"
-    table.meta.update(config=str(config), field=field, search=search, frame=frame, conventions=conventions)
+    table.meta.update(config=str(config), field=field, search=search, frame=frame, conventions=conventions,
+                      precision=precision)
     return table
