@@ -26,6 +26,12 @@
  * Compile options: -DVW=1|2|4|8|16 (x vector width of the deposit),
  * -DWTYPE=float|double (weight storage), -DTMAX, -DTINV (table range and
  * density, must match the host table).
+ *
+ * Precision: cell_weights is double only (box coordinates up to 4096 px; the
+ * tables are built once and cached) and is left out of a -DSINGLE build.
+ * deposit_cells is written in `real` (vector_types.cl): with -DSINGLE
+ * (and WTYPE=float) value, scale and the image are float and the program
+ * holds no double, so a device without fp64 builds it.
  */
 
 #ifndef VW
@@ -53,6 +59,8 @@
 #ifndef TINV
 #define TINV 128.0
 #endif
+
+#ifndef SINGLE            /* the tables: double only (see the header) */
 
 /* Table evaluation for |t| < TMAX: col 0 -> Ht(t), col 1 -> Phi(t). */
 inline double herm1(double t, __global const double *tab, int col)
@@ -124,6 +132,8 @@ __kernel void cell_weights(
     scale[c] = (sx > 0.0 && sy > 0.0) ? factor / (sx * sy) : 0.0;
 }
 
+#endif /* SINGLE */
+
 /*
  * Deposit: one work item per "item", a contiguous range of cells of one
  * slice (a block of wavelength rows).  The host colours the items so that
@@ -136,16 +146,16 @@ __kernel void cell_weights(
  * img holds detector rows row0 .. row0 + nrows - 1 (width W).
  */
 __kernel void deposit_cells(
-    __global const double *restrict value,
+    __global const real *restrict value,
     __global const int *restrict meta,
     __global const long *restrict offset,
     __global const WTYPE *restrict pool,
-    __global const double *restrict scale,
+    __global const real *restrict scale,
     __global const long *restrict item_first,
     __global const long *restrict item_last,
     const int nitems,
     const int E, const int Q, const int ne, const int nq,
-    __global double *restrict img,
+    __global real *restrict img,
     const int W, const int row0, const int nrows)
 {
     int it = get_global_id(0);
@@ -158,8 +168,8 @@ __kernel void deposit_cells(
         long rem = c - s * EQ;
         int e = (int)(rem / Q);
         int q = (int)(rem - (long)e * Q);
-        double v = value[(s * Ep + e / ne) * Qp + q / nq];
-        if (v == 0.0)
+        real v = value[(s * Ep + e / ne) * Qp + q / nq];
+        if (v == 0)
             continue;
         v *= scale[c];
         int x0 = meta[4 * c], y0 = meta[4 * c + 1], nx = meta[4 * c + 2], ny = meta[4 * c + 3];
@@ -171,8 +181,8 @@ __kernel void deposit_cells(
             int row = y0 + r - row0;
             if (row < 0 || row >= nrows)
                 continue;
-            double f = v * (double)wy[r];
-            __global double *p = img + (long)row * W + x0;
+            real f = v * (real)wy[r];
+            __global real *p = img + (long)row * W + x0;
             if (inside) {
                 for (int ch = 0; ch < nch; ++ch) {
                     realv acc = VLOADD(p + ch * VW);
@@ -183,7 +193,7 @@ __kernel void deposit_cells(
                 for (int j = 0; j < nch * VW; ++j) {
                     int col = x0 + j;
                     if (col >= 0 && col < W)
-                        p[j] += f * (double)wx[j];
+                        p[j] += f * (real)wx[j];
                 }
             }
         }

@@ -20,6 +20,11 @@ and deposit any number of cubes.  Weights are stored as float32 by default
 float64 from the *stored* weights, so flux conservation is exact to float64
 rounding whatever the storage type.
 
+Precision (``deposit(..., precision=)``, :mod:`slicersim.backends.precision`): the tables are
+always built in double (box coordinates up to 4096 px); the deposit, which runs for every cube,
+can run in single (:mod:`slicersim.backends.projection_deposit`).  On an OpenCL device without
+fp64 the NumPy twin builds the tables and the deposit runs in single on the device.
+
 Tables on disk (:func:`table_key`, :func:`store_tables`, :func:`load_tables`): a full Lazuli
 field's tables take ~0.46 GB, so :class:`~slicersim.instrument.mapper.SlicerMapper` keeps them
 in an :class:`~slicersim.io.table_cache.ArrayCache` (``$SLICERSIM_CACHE/projection``) under a
@@ -42,17 +47,18 @@ from scipy.special import erfc
 
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import resolve_backend
+from slicersim.backends.precision import resolve_precision
+from slicersim.backends.projection_deposit import deposit_numpy, deposit_opencl
 from slicersim.io.table_cache import ArrayCache, Chunks, TableCacheWarning, default_directory
 from slicersim.memo import content_key
 
 __all__ = ["DepositTables", "build_tables", "deposit", "table_key", "load_tables", "store_tables",
-           "default_table_cache", "resolve_table_cache", "backend_tag", "TABLE_FORMAT"]
+           "default_table_cache", "resolve_table_cache", "backend_tag", "table_builder", "TABLE_FORMAT"]
 
 _KERNEL = "project.cl"
 _INV_SQRT_2PI = 0.3989422804014327
 TMAX, TINV = 8.5, 128.0          # Hermite table of the Gaussian integrals: range, nodes per unit
 _NUMPY_CHUNK = 1 << 15          # cells per NumPy chunk (weights)
-_DEPOSIT_CHUNK = 1 << 15        # cells per NumPy chunk (deposit: ~ny*nxp temporaries each)
 #: version of the on-disk table layout (part of every cache key, with this module's source)
 TABLE_FORMAT = 1
 _STREAM_BYTES = 8 << 20         # bytes per piece when streaming device tables to disk
@@ -116,9 +122,21 @@ def _windows(lo, hi, sigma, truncate):
     return start.astype(np.int32), n.astype(np.int32)
 
 
+def table_builder(backend="auto"):
+    """Who builds the weight tables: "opencl" (``cell_weights``, double only) where
+    :func:`~slicersim.backends.dispatch.resolve_backend` picks OpenCL on a device with fp64, else
+    "numpy" (the twin, also on an OpenCL device without fp64, whose deposit then runs in single)."""
+    if resolve_backend(backend) == "opencl" and opencl.device_supports_fp64():
+        return "opencl"
+    return "numpy"
+
+
 def default_block(backend="auto"):
-    """Bins per deposit item: 16 on CPUs (few long work items), 2 on GPUs (many short ones)."""
-    if resolve_backend(backend) == "opencl" and "GPU" in opencl.device_type():
+    """Bins per deposit item: 16 on CPUs (few long work items), 2 on GPUs (many short ones;
+    also on a GPU without fp64, where the deposit runs in single precision)."""
+    on_device = resolve_backend(backend) == "opencl" or (
+        backend != "numpy" and opencl.is_available() and not opencl.device_supports_fp64())
+    if on_device and "GPU" in opencl.device_type():
         return 2
     return 16
 
@@ -168,6 +186,9 @@ def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), t
     block : int, optional
         cube wavelength bins per deposit item (a work item loops over them);
         default :func:`default_block`.
+    backend : "auto" | "opencl" | "numpy"
+        the weights are computed in double by ``cell_weights`` or the NumPy twin
+        (:func:`table_builder`: the twin on an OpenCL device without fp64).
     """
     box = np.ascontiguousarray(box, dtype=np.float64)
     S, E, Q = (int(v) for v in grid)
@@ -199,7 +220,7 @@ def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), t
     tables = DepositTables((S, E, Q), (ne, nq), vw, weights_dtype, tuple(detector_shape), meta,
                            offset, pool_size, (r0, r1), phases)
     factor = 1.0 / (ne * nq)
-    if resolve_backend(backend) == "opencl":
+    if table_builder(backend) == "opencl":
         _weights_opencl(tables, box, factor)
     else:
         _weights_numpy(tables, box, factor)
@@ -293,8 +314,11 @@ def _weights_numpy(t, box, factor):
     t.pool, t.scale = pool, scale
 
 
-def _options(t):
-    wtype = "float" if t.weights_dtype == np.dtype(np.float32) else "double"
+def _options(t, wtype=None):
+    """Build options of project.cl for tables ``t`` (``wtype``: the weight type the kernel reads,
+    default the tables' own)."""
+    if wtype is None:
+        wtype = "float" if t.weights_dtype == np.dtype(np.float32) else "double"
     return (f"-DVW={t.vw}", f"-DWTYPE={wtype}", f"-DTMAX={TMAX!r}", f"-DTINV={TINV!r}")
 
 
@@ -380,9 +404,9 @@ def _code_version():
 
 
 def backend_tag(backend="auto"):
-    """(resolved backend, OpenCL device fingerprint or None): what built tables depend on
-    besides their arguments and the code."""
-    backend = resolve_backend(backend)
+    """(table builder, OpenCL device fingerprint or None): what built tables depend on
+    besides their arguments and the code (:func:`table_builder`: NumPy on a device without fp64)."""
+    backend = table_builder(backend)
     # platform, device, vendor, driver; not the digest of every kernel source (other kernels
     # change independently: the deposit kernel's own sources are in _code_version)
     return backend, (tuple(opencl.device_fingerprint()[:4]) if backend == "opencl" else None)
@@ -477,7 +501,7 @@ def load_tables(cache, key):
 # --------------------------------------------------------------------------- #
 #  deposit                                                                     #
 # --------------------------------------------------------------------------- #
-def deposit(value, tables, out=None, backend="auto"):
+def deposit(value, tables, out=None, backend="auto", precision="auto"):
     """Deposit cube values into a detector image.
 
     Parameters
@@ -488,13 +512,20 @@ def deposit(value, tables, out=None, backend="auto"):
     tables : DepositTables
     out : (H, W) float64 array, optional
         accumulated into in place (a new zero image when None).
+    backend : "auto" | "opencl" | "numpy"
+    precision : "auto" (default), "double" or "single" (:mod:`slicersim.backends.precision`):
+        single deposits value × scale × weights into a float32 image band (≤ 1e-5 of the image
+        peak against double, :data:`~slicersim.backends.precision.SINGLE_PRECISION_ERRORS`
+        ["projection"]), then adds it to ``out`` in float64; the tables are the same.  Checked
+        before any work.
 
     Returns the (H, W) float64 image.
     """
+    backend, precision = resolve_precision(precision, backend, "projection")
     t = tables
     S, E, Q = t.grid
     ne, nq = t.oversample
-    value = np.ascontiguousarray(value, dtype=np.float64)
+    value = np.asarray(value)
     if value.shape != (S, E // ne, Q // nq):
         raise ValueError(f"value must have shape {(S, E // ne, Q // nq)}, got {value.shape}")
     H, W = t.detector_shape
@@ -505,86 +536,9 @@ def deposit(value, tables, out=None, backend="auto"):
     r0, r1 = t.row_range
     if r1 <= r0 or t.ncell == 0:
         return out
-    if resolve_backend(backend) == "opencl":
-        _deposit_opencl(value, t, out)
+    if backend == "opencl":
+        single = precision == "single"
+        deposit_opencl(value, t, out, _options(t, "float" if single else None), precision)
     else:
-        _deposit_numpy(value, t, out)
+        deposit_numpy(np.ascontiguousarray(value, dtype=np.float64), t, out)
     return out
-
-
-def _parent_index(t, c):
-    S, E, Q = t.grid
-    ne, nq = t.oversample
-    s, rem = np.divmod(c, E * Q)
-    e, q = np.divmod(rem, Q)
-    return (s * (E // ne) + e // ne) * (Q // nq) + q // nq
-
-
-def _deposit_numpy(value, t, out):
-    """Twin of ``deposit_cells``: per chunk of cells, one bincount on the chunk's bounding box."""
-    t.host()
-    H, W = t.detector_shape
-    flat = value.ravel()
-    for c0 in range(0, t.ncell, _DEPOSIT_CHUNK):
-        c = np.arange(c0, min(c0 + _DEPOSIT_CHUNK, t.ncell))
-        v = flat[_parent_index(t, c)]
-        keep = v != 0
-        c, v = c[keep], v[keep] * t.scale[c[keep]]
-        if c.size == 0:
-            continue
-        x0, y0, nx, ny = (t.meta[c, i].astype(np.int64) for i in range(4))
-        nxp = -(-nx // t.vw) * t.vw
-        NX, NY = int(nx.max()), int(ny.max())
-        jx, jy = np.arange(NX)[None], np.arange(NY)[None]
-        off = t.offset[c][:, None]
-        wx = np.where(jx < nx[:, None], t.pool[np.minimum(off + jx, t.pool_size - 1)], 0).astype(np.float64)
-        wy = np.where(jy < ny[:, None], t.pool[np.minimum(off + nxp[:, None] + jy, t.pool_size - 1)], 0)
-        f = v[:, None] * wy.astype(np.float64)                         # (n, NY)
-        rlo, rhi = int(y0.min()), int(y0.max()) + NY
-        clo, chi = int(x0.min()), int(x0.max()) + NX
-        width = chi - clo
-        idx = ((y0 - rlo) * width + (x0 - clo))[:, None, None] + (jy * width)[:, :, None] + jx[:, None, :]
-        contrib = f[:, :, None] * wx[:, None, :]
-        acc = np.bincount(idx.ravel(), weights=contrib.ravel(), minlength=(rhi - rlo) * width)
-        acc = acc.reshape(rhi - rlo, width)
-        r_a, r_b, c_a, c_b = max(rlo, 0), min(rhi, H), max(clo, 0), min(chi, W)
-        if r_a < r_b and c_a < c_b:                     # what falls off the detector is lost
-            out[r_a:r_b, c_a:c_b] += acc[r_a - rlo:r_b - rlo, c_a - clo:c_b - clo]
-
-
-def _table_buffer(array):
-    """Device buffer of a table array.  On CPU devices a memory-mapped table (read from the
-    cache) is used in place: a copy-on-write mapping of its file (the kernels only read it),
-    so no copy of the tables is made in host memory."""
-    if (isinstance(array, np.memmap) and array.size and array.filename is not None
-            and "CPU" in opencl.device_type()):
-        private = np.memmap(array.filename, dtype=array.dtype, mode="c", offset=array.offset, shape=array.shape)
-        return opencl.host_buffer(private)
-    return opencl.to_device(np.ascontiguousarray(array))
-
-
-def _deposit_opencl(value, t, out):
-    opencl.require_fp64()
-    dev = t.device
-    if "pool" not in dev:
-        for name in ("meta", "offset", "pool", "scale"):
-            dev[name] = _table_buffer(getattr(t, name))
-    if "phases" not in dev:
-        dev["phases"] = [(opencl.to_device(f), opencl.to_device(l), f.size) for f, l in t.phases]
-    is_gpu = "GPU" in opencl.device_type()
-    S, E, Q = t.grid
-    ne, nq = t.oversample
-    H, W = t.detector_shape
-    r0, r1 = t.row_range
-    band = out[r0:r1]                                   # contiguous rows of a C array
-    d_img = opencl.to_device(band, opencl.device_buffer(band.nbytes))
-    d_val = opencl.to_device(value)
-    kern = opencl.get_kernel(_KERNEL, "deposit_cells", _options(t))
-    i32 = np.int32
-    for d_first, d_last, n in dev["phases"]:
-        lsize = 32 if is_gpu else 1
-        gsize = -(-n // lsize) * lsize
-        opencl.launch(kern, (gsize,), (lsize,), d_val, dev["meta"], dev["offset"], dev["pool"],
-                      dev["scale"], d_first, d_last, i32(n), i32(E), i32(Q), i32(ne), i32(nq),
-                      d_img, i32(W), i32(r0), i32(r1 - r0))
-    opencl.from_device(band, d_img)

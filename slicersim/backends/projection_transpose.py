@@ -22,7 +22,8 @@ import numpy as np
 
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import resolve_backend
-from slicersim.backends.projection import _options, _parent_index, _table_buffer
+from slicersim.backends.projection import _options
+from slicersim.backends.projection_deposit import parent_index as _parent_index, table_buffer as _table_buffer
 
 __all__ = ["gather", "matrix_entries"]
 

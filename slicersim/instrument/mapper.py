@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from slicersim.io.config import builtin_config_dir
+from slicersim.backends.precision import resolve_precision
 from slicersim.backends.projection import (backend_tag, build_tables, default_block, deposit, load_tables,
                                           resolve_table_cache, store_tables, table_key)
 
@@ -504,7 +505,7 @@ class SlicerMapper:
         self._trees = None
 
     def project_cube(self, cube, lbda, lbda_edges, slices=NARROW_SLICES, out=None, *, backend="auto",
-                     oversample=(1, 1), truncate=4.0, weights_dtype=np.float32, block=None):
+                     oversample=(1, 1), truncate=4.0, weights_dtype=np.float32, block=None, precision="auto"):
         """Flux-conserving detector image of one field's cube.
 
         Parameters
@@ -517,7 +518,11 @@ class SlicerMapper:
             cube row r ↔ slice ``slices[n_rows − 1 − r]``.
         out : (rows, cols) float64 array, optional
             accumulated into in place.
+        precision : "auto" (default), "double" or "single": of the deposit
+            (:func:`~slicersim.backends.projection.deposit`; the tables are built in double),
+            checked before any work.
         """
+        precision = resolve_precision(precision, backend, "projection")[1]
         if isinstance(slices, str):
             slices = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}[slices]
         slices = [int(s) for s in slices]
@@ -537,10 +542,12 @@ class SlicerMapper:
                                         truncate=truncate, weights_dtype=weights_dtype, block=block,
                                         backend=backend)
         value = cube[:, ::-1, :].transpose(1, 0, 2)                         # (slice, bin, column)
-        return deposit(value, tables, out=out, backend=backend)
+        return deposit(value, tables, out=out, backend=backend, precision=precision)
 
     def project_fields(self, lbda, lbda_edges, narrow=None, wide=None, out=None, **kwargs):
-        """Image of the narrow (slices 1–58) and wide (59–116) cubes together."""
+        """Image of the narrow (slices 1–58) and wide (59–116) cubes together (``kwargs``: of
+        :meth:`project_cube`; ``precision`` checked before the image is allocated)."""
+        resolve_precision(kwargs.get("precision", "auto"), kwargs.get("backend", "auto"), "projection")
         if out is None:
             out = np.zeros(self.detector_shape)
         for cube, slices in ((narrow, NARROW_SLICES), (wide, WIDE_SLICES)):
@@ -559,7 +566,8 @@ def detector_rate_image(mapper, lbda, lbda_edges, narrow=None, wide=None, *, dar
     painted or not.  ROIC glow is a charge per frame read [e-/px/frame]: it is
     added as the rate ``roic_glow / tframe`` only when both are given (the
     same D_eff = dark + glow/t_f + thermal dark as the noise model); a ramp
-    simulator that adds glow per read should leave it out here.
+    simulator that adds glow per read should leave it out here.  ``kwargs``: of
+    :meth:`SlicerMapper.project_cube` (``backend``, ``precision`` of the deposit, ...).
     """
     img = mapper.project_fields(lbda, lbda_edges, narrow=narrow, wide=wide, **kwargs)
     img += dark

@@ -32,6 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.assembly import check_field, default_mapper
+from slicersim.backends.precision import resolve_precision
 from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
@@ -403,15 +404,17 @@ class Flat3DCalibration(Target):
                                                                                  *sim.spectrograph.shape))), sim)
                 for f in ("narrow", "wide") for sim in [self._simulation_for(f)]}
 
-    def get_detector_image(self, mapper=None, backend="auto"):
+    def get_detector_image(self, mapper=None, backend="auto", precision="auto"):
         """Photo-electron rate on the H4RG [e-/s/px] with both fields lit (flux-conserving
         projection), times the pixel response when ``structure`` has one.  Dark current, thermal
-        dark and ROIC glow are added by :meth:`get_ramps`."""
+        dark and ROIC glow are added by :meth:`get_ramps`.  ``precision``: of the projection's
+        deposit, checked first (as :meth:`DetectorProducts.get_detector_image`)."""
+        precision = resolve_precision(precision, backend, "projection")[1]
         mapper = default_mapper() if mapper is None else mapper
         image = np.zeros(mapper.detector_shape)
         for field, (cube, sim) in self.get_field_rate_cubes().items():
             mapper.project_fields(sim.lbda, sim.spectrograph.lbda_edges, out=image, backend=backend,
-                                  **{field: cube})
+                                  precision=precision, **{field: cube})
         if self.structure.pixel_scatter:
             image *= self.structure.pixel_response(image.shape, backend)
         return image
