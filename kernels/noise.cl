@@ -16,6 +16,14 @@
  * The host builds this file with -I<kernels dir> and -DRNG_VW=N: uniform_normal and
  * gaussian_noise handle N consecutive elements per work item (explicit vectors;
  * buffers padded to a multiple of N); the other kernels exist only for N = 1.
+ *
+ * Precision: double by default (the bit-identical twins above); with -DSINGLE (and
+ * -cl-single-precision-constant) the buffers and transforms are float (rng_real), from
+ * the same Philox words (philox.cl's float philox_u01, log/exp, sincospi), no double
+ * anywhere: equal to the float64 twin only statistically (measured in
+ * tests/test_noise_precision.py and slicersim.backends.precision.SINGLE_PRECISION_ERRORS).
+ * The float inversion stops where the float CDF stops growing (no run-away to p = 0 for
+ * a u above the rounded total); the float PTRS acceptance uses rng_log_poisson.
  */
 #include "philox.cl"
 
@@ -23,6 +31,8 @@
 
 #define PTRS_MIN_MEAN 10.0
 #define PTRS_MAX_ATTEMPTS 1000u
+
+#ifndef SINGLE
 #define RNG_INV_LN2 0x1.71547652b82fep+0
 #define RNG_HALF_LOG_2PI 0x1.d67f1c864beb4p-1
 
@@ -66,27 +76,72 @@ inline double poisson_inversion(const double mu, const uint2 key, const ulong in
     }
     return k;
 }
-
-inline double poisson_ptrs(const double mu, const uint2 key, const ulong index, const uint stream)
+#else /* SINGLE */
+/* philox.cl defines philox_block (integers only) in its double section: the same block for the float build */
+inline uint4 noise_philox_block(const uint2 key, const ulong index, const uint stream, const uint draw)
 {
-    const double smu = sqrt(mu);
-    const double log_mu = rng_log(mu);
-    const double b = 0.931 + 2.53 * smu;
-    const double a = -0.059 + 0.02483 * b;
-    const double log_inv_alpha = rng_log(1.1239 + 1.1328 / (b - 3.4));
-    const double vr = 0.9277 - 3.6224 / (b - 2.0);
+    uint a, b, c, d;
+    philox_counter(index, stream, draw, &a, &b, &c, &d);
+    philox4x32_10(&a, &b, &c, &d, key.x, key.y);
+    return (uint4)(a, b, c, d);
+}
+#define philox_block noise_philox_block
+
+/* float inversion: the same recurrence; it ends where the float CDF stops growing (the tail left is
+ * below its rounding, ~1e-7), not where p underflows: a u above the rounded total CDF would otherwise
+ * run on to k ~ 50 at mu = 5 */
+inline float poisson_inversion(const float mu, const uint2 key, const ulong index, const uint stream)
+{
+    const uint4 w = philox_block(key, index, stream, 0u);
+    const float u = philox_u01(w.x, w.y);
+    float p = rng_exp(-mu);
+    float cdf = p;
+    float k = 0.0f;
+    while (u > cdf) {
+        k = k + 1.0f;
+        p = p * mu / k;
+        const float next = cdf + p;
+        if (!(next > cdf))
+            break;
+        cdf = next;
+    }
+    return k;
+}
+#endif
+
+inline rng_real poisson_ptrs(const rng_real mu, const uint2 key, const ulong index, const uint stream)
+{
+    const rng_real smu = sqrt(mu);
+    const rng_real log_mu = rng_log(mu);
+    const rng_real b = 0.931 + 2.53 * smu;
+    const rng_real a = -0.059 + 0.02483 * b;
+    const rng_real log_inv_alpha = rng_log(1.1239 + 1.1328 / (b - 3.4));
+    const rng_real vr = 0.9277 - 3.6224 / (b - 2.0);
+#ifdef SINGLE
+    /* floor(X + mu + 0.43) as floor(X + (mu - floor mu + 0.43)) + floor mu: exact split, so the float
+     * sum loses ulp(X), not ulp(mu) (mu + 0.43 alone rounds to 2^-25 mu: 2 % of the draws moved at 3e5) */
+    const rng_real mu_int = floor(mu), mu_frac = (mu - mu_int) + 0.43;
+#endif
     for (uint attempt = 0u; attempt < PTRS_MAX_ATTEMPTS; ++attempt) {
         const uint4 w = philox_block(key, index, stream, attempt);
-        const double U = philox_u01(w.x, w.y) - 0.5;
-        const double V = philox_u01(w.z, w.w);
-        const double us = 0.5 - fabs(U);
-        const double k = floor((2.0 * a / us + b) * U + mu + 0.43);
+        const rng_real U = philox_u01(w.x, w.y) - 0.5;
+        const rng_real V = philox_u01(w.z, w.w);
+        const rng_real us = 0.5 - fabs(U);
+#ifdef SINGLE
+        const rng_real k = floor((2.0 * a / us + b) * U + mu_frac) + mu_int;
+#else
+        const rng_real k = floor((2.0 * a / us + b) * U + mu + 0.43);
+#endif
         if (us >= 0.07 && V <= vr)
             return k;
         if (k < 0.0 || (us < 0.013 && V > us))
             continue;
-        const double lhs = (rng_log(V) + log_inv_alpha) - rng_log(a / (us * us) + b);
-        const double rhs = (k * log_mu - mu) - log_factorial(k);
+        const rng_real lhs = (rng_log(V) + log_inv_alpha) - rng_log(a / (us * us) + b);
+#ifdef SINGLE
+        const rng_real rhs = rng_log_poisson(k, mu, log_mu);     /* no float cancellation (philox.cl) */
+#else
+        const rng_real rhs = (k * log_mu - mu) - log_factorial(k);
+#endif
         if (lhs <= rhs)
             return k;
     }
@@ -104,17 +159,17 @@ __kernel void philox_words(__global const uint4 *restrict counter, __global cons
     out[i] = (uint4)(a, b, c, d);
 }
 
-__kernel void poisson_draw(__global const double *restrict mean, __global double *restrict out,
+__kernel void poisson_draw(__global const real *restrict mean, __global real *restrict out,
                            const ulong first_index, const uint n, const uint key_lo, const uint key_hi,
                            const uint stream)
 {
     const size_t i = get_global_id(0);
     if (i >= n)
         return;
-    const double mu = mean[i];
+    const real mu = mean[i];
     const uint2 key = (uint2)(key_lo, key_hi);
     const ulong index = first_index + i;
-    double k;
+    real k;
     if (!isfinite(mu))
         k = NAN;
     else if (mu < PTRS_MIN_MEAN)
@@ -128,8 +183,8 @@ __kernel void poisson_draw(__global const double *restrict mean, __global double
 /* Grid of rows x ncols elements (ncols a multiple of RNG_VW; the host pads): work item (g, row)
  * draws elements g*RNG_VW ... g*RNG_VW + RNG_VW - 1 of its row, element (row, col) keyed by
  * index = first_index + row*row_stride + col, stored at row*ncols + col of each plane. */
-__kernel void uniform_normal(__global double *restrict u1, __global double *restrict u2,
-                             __global double *restrict z1, __global double *restrict z2,
+__kernel void uniform_normal(__global real *restrict u1, __global real *restrict u2,
+                             __global real *restrict z1, __global real *restrict z2,
                              const ulong first_index, const ulong row_stride, const uint ncols,
                              const uint key_lo, const uint key_hi, const uint stream, const uint draw)
 {
@@ -144,15 +199,15 @@ __kernel void uniform_normal(__global double *restrict u1, __global double *rest
     philox4x32_10(&a, &b, &c, &d, key_lo, key_hi);
     RNG_VSTORE(philox_u01(a, b), o, u1);
     RNG_VSTORE(philox_u01(c, d), o, u2);
-    rng_double zs;
-    const rng_double zc = box_muller_lanes(a, b, c, d, &zs);
+    rng_real zs;
+    const rng_real zc = box_muller_lanes(a, b, c, d, &zs);
     RNG_VSTORE(zc, o, z1);
     RNG_VSTORE(zs, o, z2);
 }
 
 /* out = expectation + sqrt(variance) N(0,1); NaN for non-finite variance, the expectation for 0 */
-__kernel void gaussian_noise(__global const double *restrict expectation,
-                             __global const double *restrict variance, __global double *restrict out,
+__kernel void gaussian_noise(__global const real *restrict expectation,
+                             __global const real *restrict variance, __global real *restrict out,
                              const ulong first_index, const uint n, const uint key_lo, const uint key_hi,
                              const uint stream)
 {
@@ -162,10 +217,10 @@ __kernel void gaussian_noise(__global const double *restrict expectation,
     rng_uint a, b, c, d;
     philox_counter((rng_ulong)(first_index + g * RNG_VW) + RNG_LANES, stream, 0u, &a, &b, &c, &d);
     philox4x32_10(&a, &b, &c, &d, key_lo, key_hi);
-    rng_double unused;
-    const rng_double z = box_muller_lanes(a, b, c, d, &unused);
-    const rng_double e = RNG_VLOAD(g, expectation), v = RNG_VLOAD(g, variance);
-    rng_double r = RNG_SELECT(e + sqrt(v) * z, e, v == 0.0);
-    r = RNG_SELECT(r, (rng_double)NAN, !isfinite(v));
+    rng_real unused;
+    const rng_real z = box_muller_lanes(a, b, c, d, &unused);
+    const rng_real e = RNG_VLOAD(g, expectation), v = RNG_VLOAD(g, variance);
+    rng_real r = RNG_SELECT(e + sqrt(v) * z, e, v == 0.0);
+    r = RNG_SELECT(r, (rng_real)NAN, !isfinite(v));
     RNG_VSTORE(r, g, out);
 }

@@ -132,12 +132,15 @@ def test_precision_leaves_the_identity_when_no_cube_is_written():
 @needs_opencl
 def test_noise_backend_refused_before_the_cube(monkeypatch):
     """P7: without fp64, build_cube(seed=…, backend="opencl") built the single-precision cube and only
-    then refused the (double) noise draw."""
+    then refused the (double) noise draw.  The noise draw has single kernels now (runs without fp64:
+    tests/test_noise_precision.py); a noise draw without them must still be refused before the cube."""
     from slicersim import LazuliSupernova
+    from slicersim.backends import precision as prec
     from slicersim.errors import OpenCLUnavailableError
     from slicersim.products import cube as cube_module
     sim = LazuliSupernova(0.5).simulation
     monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
+    monkeypatch.delitem(prec.SINGLE_PRECISION_ERRORS, "noise")
     called = []
     monkeypatch.setattr(cube_module, "detector_block", lambda *a, **k: called.append(1))
     with pytest.raises(OpenCLUnavailableError):

@@ -7,6 +7,13 @@ are identical — bit for bit — whatever the backend, the chunking
 * :func:`noisy_cube` — expectation + √variance · N(0, 1) per voxel (ADU).
 * :func:`poisson_draw` — Poisson counts (inversion below mean 10, PTRS above).
 * :func:`uniform_normal_draw`, :func:`uniform_normal_grid`, :func:`philox_blocks` — raw streams (tests, other kernels).
+
+Precision (:mod:`slicersim.backends.precision`, product ``"noise"``): :func:`noisy_cube` and
+:func:`poisson_draw` take ``precision="auto" | "double" | "single"``.  Single runs the ``-DSINGLE``
+build of ``noise.cl`` on float32 copies of the inputs, from the same Philox words: not bit-identical
+to the twin but within a bounded fraction of σ (Gaussian) or mostly the same integers (Poisson),
+with the same distribution (``tests/test_noise_precision.py``).  The raw streams stay double
+(their users compare them bit for bit).
 """
 from __future__ import annotations
 
@@ -15,11 +22,16 @@ import numpy as np
 
 from slicersim.backends import opencl, rng
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, resolve_backend
+from slicersim.backends.precision import real_dtype, resolve_precision
+from slicersim.errors import ParameterError
 
 __all__ = ["noisy_cube", "poisson_draw", "uniform_normal_draw", "uniform_normal_grid", "philox_blocks", "seed_from",
            "DEFAULT_MAX_BYTES"]
 
 MIN_CHUNK = 256          # elements: floor of a chunk whatever max_bytes (avoids absurd launch counts)
+#: largest Poisson mean drawn in single precision: counts stay exact float integers (< 2^24 with 6σ to
+#: spare) and the PTRS offset mu + 0.43 keeps a resolution of 2^-1 or finer
+POISSON_SINGLE_MAX_MEAN = 2.0**22
 
 
 def seed_from(seed):
@@ -30,10 +42,11 @@ def seed_from(seed):
     return int(seed)
 
 
-def _kernel(name, vector_width=1):
-    """Kernel of noise.cl (which #includes philox.cl) for ``vector_width`` elements per work item
-    (reused by this thread between calls)."""
-    return opencl.cached_kernel("noise.cl", name, (f"-DRNG_VW={int(vector_width)}",))
+def _kernel(name, vector_width=1, precision="double"):
+    """Kernel of noise.cl (which #includes philox.cl) for ``vector_width`` elements per work item,
+    built for ``precision`` (reused by this thread between calls)."""
+    return opencl.cached_kernel("noise.cl", name,
+                                (f"-DRNG_VW={int(vector_width)}",) + opencl.precision_options(precision))
 
 
 def _chunk_len(n, bytes_per_item, max_bytes, multiple):
@@ -61,12 +74,15 @@ def _stream(stream):
 
 
 # --------------------------------------------------------------------------- Gaussian noise
-def _check_out(out, shape):
+def _check_out(out, shape, precision="double"):
+    """``out`` checked (float64, or float32 for a single-precision draw), or a new float64 array."""
     if out is None:
         return np.empty(shape)
-    if not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float64 \
+    dtypes = (np.float64, np.float32) if precision == "single" else (np.float64,)
+    if not isinstance(out, np.ndarray) or out.shape != shape or out.dtype not in dtypes \
             or not out.flags.c_contiguous or not out.flags.writeable:
-        raise ValueError(f"out must be a writeable C-contiguous float64 array of shape {shape}")
+        kinds = "float64 or float32" if precision == "single" else "float64"
+        raise ValueError(f"out must be a writeable C-contiguous {kinds} array of shape {shape}")
     return out
 
 
@@ -77,7 +93,7 @@ def _any_negative(v):
 
 
 def noisy_cube(expectation, variance, seed, backend="auto", max_bytes=DEFAULT_MAX_BYTES,
-               work_group=None, *, stream=0, first_index=0, vector_width=None, out=None):
+               work_group=None, *, stream=0, first_index=0, vector_width=None, out=None, precision="auto"):
     """One Gaussian realisation: expectation + √variance · N(0, 1) per element.
 
     expectation, variance : arrays of the same shape (e.g. ADU, ADU²); variance ≥ 0,
@@ -88,26 +104,35 @@ def noisy_cube(expectation, variance, seed, backend="auto", max_bytes=DEFAULT_MA
     OpenCL: max_bytes bounds the device buffers (3 float64 per element; on CPU devices the
     kernel reads and writes the arrays in place, no buffer); work_group is the local size
     (None: the runtime's); vector_width elements per work item (None: 1 on GPUs, the preferred
-    double width on CPUs).  None of them changes the result.
-    out : optional writeable C-contiguous float64 array of the same shape receiving the result
+    double width on CPUs, twice it in single).  None of them changes the result.
+    out : optional writeable C-contiguous array of the same shape receiving the result: float64, or
+        float32 when the draw runs in single precision (no float64 temporary); default a new float64 array
+    precision : "auto" (default), "double" or "single" (:mod:`slicersim.backends.precision`, product
+        "noise"; resolved before any work).  Single draws in float32 from the same Philox words: within
+        a few 1e-5 σ of the double draw (plus 2⁻²⁴ of the expectation, rounded to float32; variance 0
+        still gives the float32 expectation exactly, non-finite variance NaN).  NumPy: always float64.
     """
-    e = np.ascontiguousarray(expectation, dtype=np.float64)
-    v = np.ascontiguousarray(variance, dtype=np.float64)
+    backend, precision = resolve_precision(precision, backend, "noise")
+    real = real_dtype(precision)
+    e, v = (_as_float(a, precision) for a in (expectation, variance))
     if e.shape != v.shape:
         raise ValueError(f"expectation {e.shape} and variance {v.shape} must have the same shape")
     ef, vf = e.reshape(-1), v.reshape(-1)
     if _any_negative(vf):
         raise ValueError(f"variance must be ≥ 0 ({np.count_nonzero(v < 0)} negative value(s))")
     seed, stream = seed_from(seed), _stream(stream)
-    out = _check_out(out, e.shape)
+    out = _check_out(out, e.shape, precision)
     of = out.reshape(-1)
     n = ef.size
     if n == 0:
         return out
-    if resolve_backend(backend) == "opencl":
-        opencl.require_fp64()
-        _gaussian_noise_opencl(ef, vf, of, seed, stream, first_index, max_bytes, work_group,
-                               check_vector_width(vector_width))
+    if backend == "opencl":
+        vw = check_vector_width(vector_width, scale=2) if precision == "single" else check_vector_width(vector_width)
+        args = (seed, stream, max_bytes, work_group, vw, precision)
+        if ef.dtype == vf.dtype == of.dtype == real:
+            _gaussian_noise_opencl(ef, vf, of, first_index, *args)
+        else:
+            _staged_single(ef, vf, of, first_index, *args)
         return out
     step = _chunk_len(n, 160, max_bytes, 1)       # ~20 float64 temporaries per element
     with np.errstate(invalid="ignore"):
@@ -121,16 +146,42 @@ def noisy_cube(expectation, variance, seed, backend="auto", max_bytes=DEFAULT_MA
 
 
 _ZERO_COPY_LAUNCH = 2**26      # elements per launch when the kernel works on the arrays in place
+_STAGE = 2**18                 # elements per float32 staging chunk of a single draw on float64 arrays
 
 
-def _gaussian_noise_opencl(ef, vf, of, seed, stream, first_index, max_bytes, work_group, vw):
-    """The draw on the device.  CPU devices (host memory): the kernel reads ``ef``, ``vf`` and
-    writes ``of`` in place (``opencl.host_buffer``), whole vectors only, the last n mod vw
-    elements through a small padded scratch; other devices: chunks through scratch buffers
-    reused between calls.  Each element's draw depends on its global index only."""
+def _as_float(a, precision):
+    """C-contiguous float array of ``a``: float64 for double; for single a float32 or float64 array
+    as given (float64 ones are converted chunk by chunk while drawing, :func:`_staged_single`)."""
+    a = np.asarray(a)
+    if precision == "single" and a.dtype in (np.float32, np.float64):
+        return np.ascontiguousarray(a)
+    return np.ascontiguousarray(a, dtype=real_dtype(precision))
+
+
+def _staged_single(ef, vf, of, first_index, *args):
+    """Single-precision draw with float64 inputs or output: chunks converted through float32 staging
+    arrays small enough to stay in cache (no full-size float32 copies, whose first touch costs as much
+    as the draw on a CPU), each drawn at its global index, so the result does not depend on them."""
+    n = ef.size
+    stage = min(n, _STAGE)
+    e32, v32, o32 = (np.empty(stage, np.float32) for _ in range(3))
+    for i0 in range(0, n, stage):
+        k = min(n, i0 + stage) - i0
+        e32[:k], v32[:k] = ef[i0:i0 + k], vf[i0:i0 + k]
+        _gaussian_noise_opencl(e32[:k], v32[:k], o32[:k], first_index + i0, *args)
+        of[i0:i0 + k] = o32[:k]
+
+
+def _gaussian_noise_opencl(ef, vf, of, first_index, seed, stream, max_bytes, work_group, vw, precision):
+    """The draw on the device (``ef``, ``vf``, ``of`` of the precision's float type).  CPU devices
+    (host memory): the kernel reads ``ef``, ``vf`` and writes ``of`` in place
+    (``opencl.host_buffer``), whole vectors only, the last n mod vw elements through a small padded
+    scratch; other devices: chunks through scratch buffers reused between calls.  Each element's
+    draw depends on its global index only."""
     n = ef.size
     key = rng.seed_to_key(seed)
-    kern = opencl.cached_kernel("noise.cl", "gaussian_noise", (f"-DRNG_VW={int(vw)}",))
+    kern = _kernel("gaussian_noise", vw, precision)
+    size = ef.itemsize
     args = (np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream))
 
     def launch(d_e, d_v, d_o, i0, count):
@@ -147,8 +198,8 @@ def _gaussian_noise_opencl(ef, vf, of, seed, stream, first_index, max_bytes, wor
             opencl.sync_to_host(d_o, of[i0:i1])
     if bulk == n:
         return
-    step = _chunk_len(n - bulk, 24, max_bytes, vw)       # buffers hold whole vectors
-    d_e, d_v, d_o = (opencl.scratch_buffer(f"noise.{name}", 8 * step) for name in "evo")
+    step = _chunk_len(n - bulk, 3 * size, max_bytes, vw)       # buffers hold whole vectors
+    d_e, d_v, d_o = (opencl.scratch_buffer(f"noise.{name}", size * step) for name in "evo")
     for i0 in range(bulk, n, step):
         i1 = min(n, i0 + step)
         opencl.to_device(ef[i0:i1], d_e)
@@ -159,35 +210,54 @@ def _gaussian_noise_opencl(ef, vf, of, seed, stream, first_index, max_bytes, wor
 
 # --------------------------------------------------------------------------- Poisson
 def poisson_draw(mean, seed, stream=0, backend="auto", max_bytes=DEFAULT_MAX_BYTES, work_group=None,
-                 *, first_index=0):
+                 *, first_index=0, precision="auto"):
     """Poisson counts of expectation ``mean`` (≥ 0) as float64 (exact integers, NaN for non-finite mean).
 
     Same algorithm and keys as :func:`slicersim.backends.rng.poisson` (element i: index first_index + i).
+    precision : "auto" (default), "double" or "single" (:mod:`slicersim.backends.precision`, product
+        "noise").  Single: the float build on float32 means, the same Philox words; most counts equal
+        the double ones (a float rounding moves a CDF or floor decision, more often at large means:
+        float32(mean) itself is within 2⁻²⁴ of the mean), the distribution is the same.  Means above
+        :data:`POISSON_SINGLE_MAX_MEAN` are drawn in double under "auto" (ParameterError for "single",
+        or for "auto" on a device without fp64).
     """
+    requested = precision
+    backend, precision = resolve_precision(precision, backend, "noise")
     m = np.ascontiguousarray(mean, dtype=np.float64)
     if np.any(m < 0):
         raise ValueError(f"Poisson mean must be ≥ 0 ({np.count_nonzero(m < 0)} negative value(s))")
     seed, stream = seed_from(seed), _stream(stream)
-    if resolve_backend(backend) != "opencl":
+    if backend != "opencl":
         index = np.arange(first_index, first_index + m.size, dtype=np.uint64).reshape(m.shape)
         return rng.poisson(m, seed, index, stream)
-    opencl.require_fp64()
+    if precision == "single" and np.any((m > POISSON_SINGLE_MAX_MEAN) & np.isfinite(m)):
+        if requested != "auto" or not opencl.device_supports_fp64():
+            raise ParameterError(f"Poisson means above {POISSON_SINGLE_MAX_MEAN:.4g} cannot be drawn in single "
+                                 "precision (float counts): use precision='double' or backend='numpy'")
+        precision = "double"
+    real = real_dtype(precision)
     out = np.empty_like(m)
     mf, of = m.reshape(-1), out.reshape(-1)
     n = mf.size
     if n == 0:
         return out
-    step = _chunk_len(n, 16, max_bytes, 1)
-    kern = _kernel("poisson_draw")
-    d_m, d_o = opencl.device_buffer(8 * step), opencl.device_buffer(8 * step)
+    size = real.itemsize
+    step = _chunk_len(n, 2 * size, max_bytes, 1)
+    kern = _kernel("poisson_draw", 1, precision)
+    d_m, d_o = opencl.device_buffer(size * step), opencl.device_buffer(size * step)
+    o_real = of if real == np.float64 else np.empty(min(n, step), real)
     key = rng.seed_to_key(seed)
     for i0 in range(0, n, step):
         i1 = min(n, i0 + step)
-        opencl.to_device(mf[i0:i1], d_m)
+        opencl.to_device(np.ascontiguousarray(mf[i0:i1], dtype=real), d_m)
         gsize, lsize = _sizes(i1 - i0, work_group)
         opencl.launch(kern, gsize, lsize, d_m, d_o, np.uint64(first_index + i0), np.uint32(i1 - i0),
                       np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream))
-        opencl.from_device(of[i0:i1], d_o)
+        if o_real is of:
+            opencl.from_device(of[i0:i1], d_o)
+        else:
+            opencl.from_device(o_real[:i1 - i0], d_o)
+            of[i0:i1] = o_real[:i1 - i0]
     return out
 
 

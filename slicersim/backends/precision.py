@@ -74,6 +74,11 @@ SINGLE_PRECISION_ERRORS = {
                         "μ from 0 to 3e4 e-/frame, MACC(16, 8, 2), kTC and read noise; PoCL CPU (values differ by "
                         "1 ADU where a float rounding moves rint, by more where it moves a Poisson decision: "
                         "5e-5 of the values with 10-3000 e-/frame)"),
+    "noise": SingleError(8.1e-5, 1e-3, "of σ (max |Δ| of a Gaussian draw, voxels with variance > 0)",
+                         "noisy_cube of the Lazuli narrow-field Airy cube (3.4e6 voxels, seed 12345); PoCL CPU.  Same "
+                         "Philox words, float uniform of 24 bits ≥ 2^-32: the max grows with the draws (radii near 0, "
+                         "tails: above 1e-3 only beyond 5.8 σ, ~2e-8 of them), plus 2^-24 |expectation|.  Poisson: "
+                         "1.1e-4 of the counts differ (by 1), means log-uniform in [1e-3, 1e5]; same distribution"),
     "projection": SingleError(1.7e-7, 1e-5, "of the detector image peak",
                               "Lazuli SN z = 0.5 detector image, both fields (510 λ, 6.9e6 cells, ≤ 9 cell windows "
                               "per pixel), float accumulation in a fixed order; image sum vs cube sum 3e-9; PoCL CPU"),

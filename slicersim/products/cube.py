@@ -47,10 +47,8 @@ from functools import cached_property
 
 import numpy as np
 
-from slicersim.backends import opencl
 from slicersim.backends.convolution import choose_convolution_method, convolve_cube
 from slicersim.backends.cube import ReadoutConstants, detector_block
-from slicersim.backends.dispatch import resolve_backend
 from slicersim.backends.precision import resolve_precision
 from slicersim.backends.noise import noisy_cube, seed_from
 from slicersim.physics.lsf import lsf_weights
@@ -261,14 +259,18 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         leave signal and variance, detector terms (dark, roic_glow, thermal_dark, ron) the variance
     precision : "auto" (default), "double" or "single": of the PSF, host convolution and fused cube
         kernels (:mod:`slicersim.backends.precision`; single: ≤ 1e-5 of the signal peak against
-        double, measured 2e-7 on the Lazuli Airy cube).  "auto" is double on CPUs and GPUs with fast
-        fp64 (results unchanged), single on devices without (fast) fp64.  The noise draw and the
-        NumPy path stay double.
+        double, measured 2e-7 on the Lazuli Airy cube) and of the noise draw (product "noise": within
+        1e-3 σ of the double draw, measured 8e-5 σ on the Lazuli cube).  "auto" is double on CPUs and
+        GPUs with fast fp64 (results unchanged), single on devices without (fast) fp64.  The NumPy
+        path stays double.  ``paths["precision"]`` records the cube kernels', ``paths["noise_precision"]``
+        (with a seed) the noise draw's.
     """
     off = check_switch_off(switch_off)
+    # the noise draw's backend and precision, from the precision asked for: refused now (e.g. "double"
+    # without fp64), not after the cube
+    noise_backend, noise_precision = (resolve_precision(precision, backend, "noise") if seed is not None
+                                      else (None, None))
     fused_backend, precision = resolve_precision(precision, backend, "cube")
-    if seed is not None and resolve_backend(backend) == "opencl":
-        opencl.require_fp64()             # the noise draw is double: refused now, not after the cube
     profile = get_psf_profile(psf_profile)
     dtype = np.dtype(dtype)
     if dtype not in (np.float64, np.float32):
@@ -295,6 +297,10 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
              "host": PATH_ABSENT}
     paths.update({name: PATH_OFF for name in SCENE_COMPONENTS if name in off})
     paths["precision"] = "double"             # of the arithmetic; "single" below when the kernels run so
+    if seed is not None:
+        paths["noise_precision"] = noise_precision
+    noise_kw = {"backend": noise_backend, "precision": noise_precision}
+    noise_out = (np.float64, np.float32) if noise_precision == "single" else (np.float64,)   # drawn in place
     host_method = None
     if has_host:
         host_method = HOST_CONV_METHOD
@@ -319,8 +325,10 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         variance[...] = (var1 * nramps)[:, None, None]
         paths["detector"] = "1-D spectrum, broadcast"
         if seed is not None:
-            noisy[...] = noisy_cube(signal, variance, seed, backend=backend,
-                                    max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx))
+            drawn = noisy_cube(signal, variance, seed, max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx),
+                               out=noisy if dtype in noise_out else None, **noise_kw)
+            if drawn is not noisy:
+                noisy[...] = drawn
         return CubeResult(signal, variance, noisy, paths, 1, lbda.copy(), profile.name, seed)
 
     flux_ph = sim.pointsource_flambda * sim.flambda_to_photon if has_point else None    # ph/s
@@ -352,11 +360,11 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
             else:
                 _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
                              psf_options, nmd, tint, nramps, out, host_groups if has_host else None, off)
-            if seed is not None:        # float64: drawn straight into the output (no temporary)
-                drawn = noisy_cube(signal[i0:i1], variance[i0:i1], seed, backend=backend,
+            if seed is not None:        # drawn straight into the output where its dtype allows (no temporary)
+                drawn = noisy_cube(signal[i0:i1], variance[i0:i1], seed,
                                    max_bytes=max(max_bytes, noise_bytes_per_bin), first_index=i0 * ny * nx,
-                                   out=noisy[i0:i1] if dtype == np.float64 else None)
-                if dtype != np.float64:
+                                   out=noisy[i0:i1] if dtype in noise_out else None, **noise_kw)
+                if dtype not in noise_out:
                     noisy[i0:i1] = drawn
                 del drawn
             if bar is not None:

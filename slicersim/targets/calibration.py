@@ -335,27 +335,34 @@ class Flat3DCalibration(Target):
         One computation with or without flat-field structure: QE · (t_row LSF[lamp] + LSF[thermal])
         per row, × the cell response with pixel structure, then ``Simulation.cell_variance``
         (saturated cells NaN / +inf); noise as every cube (Philox, stream 0, voxel index).
-        ``options``: ``dtype`` (float64 / float32); ``psf_profile``, ``max_bytes``, ``progress``,
-        ``psf_options`` are accepted as for any cube and unused (a uniform scene needs no PSF)."""
+        ``options``: ``dtype`` (float64 / float32); ``precision`` ("auto", "double" or "single": of the
+        noise draw, :func:`slicersim.backends.noise.noisy_cube`; the cubes themselves are NumPy, double);
+        ``psf_profile``, ``max_bytes``, ``progress``, ``psf_options`` are accepted as for any cube and
+        unused (a uniform scene needs no PSF)."""
+        from slicersim.backends.precision import check_precision, resolve_precision
         from slicersim.products.components import check_switch_off
         from slicersim.simulation import check_seed
         seed = check_seed(seed)
         off = check_switch_off(switch_off)
         fields = self._which(which)
-        unknown = sorted(set(options) - {"dtype", "psf_profile", "max_bytes", "progress", "psf_options"})
+        unknown = sorted(set(options) - {"dtype", "psf_profile", "max_bytes", "progress", "psf_options",
+                                         "precision"})
         if unknown:
             raise ParameterError(f"unknown cube option(s) {unknown}")
+        precision = check_precision(options.get("precision", "auto"))
+        noise = None if seed is None else resolve_precision(precision, backend, "noise")   # before any work
         dtype = np.dtype(options.get("dtype", np.float64))
         if dtype not in (np.float64, np.float32):
             raise ParameterError(f"dtype must be float64 or float32, got {dtype}")
         if "psf_profile" in options:
             from slicersim.products.psf_profiles import get_psf_profile
             get_psf_profile(options["psf_profile"])
-        out = tuple(self._field_cube(self._simulation_for(f), f, nmd, nramps, seed, backend, dtype, off)
+        out = tuple(self._field_cube(self._simulation_for(f), f, nmd, nramps, seed, backend, dtype, off, noise)
                     for f in fields)
         return out if which == "both" else out[0]
 
-    def _field_cube(self, sim, field, nmd, nramps, seed, backend, dtype, off):
+    def _field_cube(self, sim, field, nmd, nramps, seed, backend, dtype, off, noise):
+        """One field's CubeResult; ``noise``: the noise draw's resolved (backend, precision) (with a seed)."""
         from slicersim.backends.noise import noisy_cube, seed_from
         from slicersim.products.cube import PATH_ABSENT, PATH_OFF, CubeResult
         times = sim.get_times(nmd, nramps)
@@ -375,7 +382,10 @@ class Flat3DCalibration(Target):
         noisy = None
         if seed is not None:
             seed = seed_from(seed)
-            noisy = noisy_cube(signal, variance, seed, backend=backend).astype(dtype, copy=False)
+            noise_backend, noise_precision = noise
+            noisy = noisy_cube(signal, variance, seed, backend=noise_backend, precision=noise_precision,
+                               out=np.empty(shape, dtype) if noise_precision == "single" else None
+                               ).astype(dtype, copy=False)
         lamp = "lamp: uniform" + ("" if self.structure.is_ideal else ", × flat-field structure")
         paths = {"pointsource": PATH_OFF if "pointsource" in off else PATH_ABSENT,
                  "host": PATH_OFF if "host" in off else PATH_ABSENT,
