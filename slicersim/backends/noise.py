@@ -158,17 +158,32 @@ def _as_float(a, precision):
     return np.ascontiguousarray(a, dtype=real_dtype(precision))
 
 
-def _staged_single(ef, vf, of, first_index, *args):
+def _staged_single(ef, vf, of, first_index, seed, stream, max_bytes, work_group, vw, precision):
     """Single-precision draw with float64 inputs or output: chunks converted through float32 staging
     arrays small enough to stay in cache (no full-size float32 copies, whose first touch costs as much
-    as the draw on a CPU), each drawn at its global index, so the result does not depend on them."""
+    as the draw on a CPU), each drawn at its global index, so the result does not depend on them.  CPU
+    devices: the kernel works in the staging arrays themselves (one host buffer each for all chunks;
+    whole vectors, the padding lanes drawn and dropped); other devices: the device path per chunk."""
     n = ef.size
-    stage = min(n, _STAGE)
+    stage = -(-min(n, _STAGE) // vw) * vw
     e32, v32, o32 = (np.empty(stage, np.float32) for _ in range(3))
+    cpu = opencl.device_type() == "CPU"
+    if cpu:
+        key = rng.seed_to_key(seed)
+        kern = _kernel("gaussian_noise", vw, precision)
+        bufs = [opencl.host_buffer(a) for a in (e32, v32, o32)]
     for i0 in range(0, n, stage):
         k = min(n, i0 + stage) - i0
         e32[:k], v32[:k] = ef[i0:i0 + k], vf[i0:i0 + k]
-        _gaussian_noise_opencl(e32[:k], v32[:k], o32[:k], first_index + i0, *args)
+        if not cpu:
+            _gaussian_noise_opencl(e32[:k], v32[:k], o32[:k], first_index + i0, seed, stream, max_bytes,
+                                   work_group, vw, precision)
+        else:
+            e32[k:], v32[k:] = 0.0, 0.0                     # padding lanes of the last vector
+            gsize, lsize = _sizes(-(-k // vw), work_group)
+            opencl.launch(kern, gsize, lsize, *bufs, np.uint64(first_index + i0), np.uint32(k),
+                          np.uint32(key[0]), np.uint32(key[1]), np.uint32(stream))
+            opencl.sync_to_host(bufs[2], o32)
         of[i0:i0 + k] = o32[:k]
 
 
