@@ -98,7 +98,8 @@ def _table_buffers(t, single):
         if name.endswith("32"):
             source, dtype, n = (("pool", t.weights_dtype, t.pool_size) if name == "pool32"
                                 else ("scale", np.dtype(np.float64), t.ncell))
-            dev[name] = opencl.to_device(np.ascontiguousarray(_host_table(t, source, dtype, n), np.float32))
+            copy = np.array(_host_table(t, source, dtype, n), np.float32)        # own, writeable memory
+            dev[name] = opencl.host_buffer(copy) if "CPU" in opencl.device_type() else opencl.to_device(copy)
         else:
             dev[name] = table_buffer(getattr(t, name))
     return dev["meta"], dev["offset"], dev[pool_name], dev[scale_name]
