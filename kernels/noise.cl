@@ -77,16 +77,6 @@ inline double poisson_inversion(const double mu, const uint2 key, const ulong in
     return k;
 }
 #else /* SINGLE */
-/* philox.cl defines philox_block (integers only) in its double section: the same block for the float build */
-inline uint4 noise_philox_block(const uint2 key, const ulong index, const uint stream, const uint draw)
-{
-    uint a, b, c, d;
-    philox_counter(index, stream, draw, &a, &b, &c, &d);
-    philox4x32_10(&a, &b, &c, &d, key.x, key.y);
-    return (uint4)(a, b, c, d);
-}
-#define philox_block noise_philox_block
-
 /* float inversion: the same recurrence; it ends where the float CDF stops growing (the tail left is
  * below its rounding, ~1e-7), not where p underflows: a u above the rounded total CDF would otherwise
  * run on to k ~ 50 at mu = 5 */

@@ -171,6 +171,18 @@ RNG_INLINE void philox_counter(const rng_ulong index, const uint stream, const u
     *d = (rng_uint)draw;
 }
 
+#if RNG_VW == 1
+/* Scalar convenience (both precisions: integers only): the block for counter (index lo, index hi,
+ * stream, draw) and key. */
+inline uint4 philox_block(const uint2 key, const ulong index, const uint stream, const uint draw)
+{
+    uint a, b, c, d;
+    philox_counter(index, stream, draw, &a, &b, &c, &d);
+    philox4x32_10(&a, &b, &c, &d, key.x, key.y);
+    return (uint4)(a, b, c, d);
+}
+#endif
+
 #ifndef SINGLE
 /* u = (2x + 1) 2^-53 with the 52-bit x = hi * 2^20 + (lo >> 12): exact, in (0, 1).
  * No 32-bit word with its top bit set is ever widened to 64 bits: NVIDIA's OpenCL (H200, driver
@@ -292,15 +304,6 @@ RNG_INLINE rng_double box_muller_lanes(const rng_uint a, const rng_uint b, const
 }
 
 #if RNG_VW == 1
-/* Scalar convenience: the block for counter (index lo, index hi, stream, draw) and key. */
-inline uint4 philox_block(const uint2 key, const ulong index, const uint stream, const uint draw)
-{
-    uint a, b, c, d;
-    philox_counter(index, stream, draw, &a, &b, &c, &d);
-    philox4x32_10(&a, &b, &c, &d, key.x, key.y);
-    return (uint4)(a, b, c, d);
-}
-
 /* Scalar convenience: (cos, sin) Box-Muller pair of a block. */
 inline double2 box_muller(const uint4 w)
 {

@@ -104,6 +104,15 @@ RAMP_INLINE void ramp_block(const rng_ulong index, const uint stream, const uint
     philox4x32_10(pa, pb, pc, pd, k0, k1);
 }
 
+/* The CDF recurrences end where the CDF stops growing in float: a u above the rounded total (its tail
+ * below the rounding, ~1e-7) would otherwise run on until p underflows (k ~ 50 at mu = 5).  Double:
+ * unchanged (bit for bit the twin's loop, which ends at p = 0). */
+#ifdef SINGLE
+#define RAMP_CDF_GROWS(cdf, before) && ((cdf) > (before))
+#else
+#define RAMP_CDF_GROWS(cdf, before)
+#endif
+
 #define ramp_box_muller box_muller_lanes
 #define ramp_exp rng_exp
 
@@ -336,8 +345,9 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
         const rng_real lam = last ? lam_last : lam_full;
         while (RAMP_ANY(act)) {                   /* the recurrence p_k = p_(k-1) lam / k */
             p = RNG_SELECT(p, p * lam / K, act);
+            const rng_real cdf_before = cdf;
             cdf = RNG_SELECT(cdf, cdf + p, act);
-            act = act && (u > cdf) && (p > 0.0);
+            act = act && (u > cdf) && (p > 0.0) RAMP_CDF_GROWS(cdf, cdf_before);
             K = RNG_SELECT(K, K + 1.0, act);
         }
         /* reads that see each event: m - position */
@@ -493,8 +503,9 @@ __kernel void macc_ramp_dense(RAMP_KERNEL_ARGS, const real gauss_min_mean)
                     rng_real p = p_end, cdf = cdf_end;
                     while (RAMP_ANY(act)) {
                         p = RNG_SELECT(p, p * mu / K, act);
+                        const rng_real cdf_before = cdf;
                         cdf = RNG_SELECT(cdf, cdf + p, act);
-                        act = act && (u > cdf) && (p > 0.0);
+                        act = act && (u > cdf) && (p > 0.0) RAMP_CDF_GROWS(cdf, cdf_before);
                         K = RNG_SELECT(K, K + 1.0, act);
                     }
                 }
