@@ -188,6 +188,16 @@ def test_single_precision_selfcheck_guards_the_float_kernels(monkeypatch):
     monkeypatch.setattr(dispatch, "_SELFCHECK", {})
     ok, msg = selfcheck.device_selfcheck_single()
     assert ok, msg
+    from slicersim.backends import noise
+    real_gauss = noise._gaussian_noise_opencl
+
+    def biased(ef, vf, of, *args):
+        real_gauss(ef, vf, of, *args)
+        of += np.float32(2e-3)                                  # 2e-3 σ: beyond the noise tolerance
+    monkeypatch.setattr(noise, "_gaussian_noise_opencl", biased)
+    ok, msg = selfcheck.device_selfcheck_single()
+    assert not ok and "Gaussians off by up to 0.002 σ" in msg
+    monkeypatch.setattr(noise, "_gaussian_noise_opencl", real_gauss)
     real = ramp_backend.simulate_block_opencl
 
     def broken(*args, precision="double", **kw):
@@ -195,17 +205,17 @@ def test_single_precision_selfcheck_guards_the_float_kernels(monkeypatch):
         return (sci // 2 if precision == "single" else sci), gdq      # a miscompiled float path
     monkeypatch.setattr(ramp_backend, "simulate_block_opencl", broken)
     ok, msg = selfcheck.device_selfcheck_single()
-    assert not ok and "single-precision ramp self-check" in msg and "SCI" in msg
+    assert not ok and "single-precision noise and ramp self-check" in msg and "SCI" in msg
     assert selfcheck.device_selfcheck()[0]                      # the fp64 check does not see it
     monkeypatch.setattr(prec, "_warned_single", set())
     for fp64 in (True, False):
         monkeypatch.setattr(dispatch, "_SELFCHECK", {})
         monkeypatch.setattr(opencl, "device_supports_fp64", lambda fp64=fp64: fp64)
-        with pytest.raises(OpenCLUnavailableError, match="single-precision ramp self-check"):
+        with pytest.raises(OpenCLUnavailableError, match="single-precision noise and ramp self-check"):
             prec.resolve_precision("single", "opencl", "ramp")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             assert prec.resolve_precision("single", "auto", "ramp") == ("numpy", "double")
             if not fp64:
                 assert prec.resolve_precision("auto", "auto", "cube") == ("numpy", "double")
-        assert sum("single-precision ramp self-check" in str(w.message) for w in caught) == (1 if fp64 else 0)
+        assert sum("single-precision noise and ramp self-check" in str(w.message) for w in caught) == (1 if fp64 else 0)

@@ -17,8 +17,8 @@ Every kernel-backed entry point that has single-precision kernels takes
   change; consumer and integrated GPUs (1/16–1/64) get single.
 
 Before single kernels run, the device passes a single-precision self-check
-(:func:`~slicersim.backends.selfcheck.device_selfcheck_single`: the self-check's ramp blocks through
-the float samplers, no fp64 needed), once per device and process; on failure ``backend="auto"``
+(:func:`~slicersim.backends.selfcheck.device_selfcheck_single`: float noise draws and the
+self-check's ramp blocks through the float samplers, no fp64 needed), once per device and process; on failure ``backend="auto"``
 falls back to NumPy with a warning and ``backend="opencl"`` raises.
 
 The ETC, the reference reproduction and everything compared at 1e-6 stay double: they do not take

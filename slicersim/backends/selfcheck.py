@@ -164,26 +164,63 @@ def device_selfcheck():
 SINGLE_MAX_FRACTION = 0.02
 
 
+#: largest |Δ| [σ] of a single-precision Gaussian draw against the twin's (the "noise" tolerance)
+SINGLE_MAX_GAUSS_SIGMA = 1e-3
+
+
+def _single_noise_draws():
+    """(Gaussians, Poisson counts) of noise.cl's float builds: ``gaussian_noise`` of (0, 1) at width 1
+    and at the device's preferred width through the noisy cube's own host path, ``poisson_draw`` of
+    the self-check's means (kernels launched directly: no precision resolution, hence no re-entry)."""
+    from slicersim.backends import noise
+    z = []
+    for vw in dict.fromkeys((1, opencl.preferred_vector_width())):
+        e, v, o = np.zeros(_N_UNIFORM, np.float32), np.ones(_N_UNIFORM, np.float32), np.empty(_N_UNIFORM, np.float32)
+        noise._gaussian_noise_opencl(e, v, o, 0, _SEED, noise._stream(_STREAM), 1 << 20, None, vw, "single")
+        z.append(o.astype(np.float64))
+    mu = np.ascontiguousarray(_POISSON_MEANS, np.float32)
+    counts = np.zeros_like(mu)
+    d_m, d_o = opencl.to_device(mu), opencl.device_buffer(counts.nbytes)
+    pkey = rng.seed_to_key(_SEED + 2)
+    opencl.launch(noise._kernel("poisson_draw", 1, "single"), (mu.size,), None, d_m, d_o, np.uint64(0),
+                  np.uint32(mu.size), np.uint32(pkey[0]), np.uint32(pkey[1]), np.uint32(_STREAM))
+    opencl.from_device(counts, d_o)
+    return z, counts.astype(np.float64)
+
+
 def device_selfcheck_single():
     """(passed, message) for the single-precision builds (``-DSINGLE``), which a device without fp64
-    runs unchecked by :func:`device_selfcheck` (its kernels are fp64): the same two ramp blocks
-    through the float samplers (Philox words, float uniforms, log/exp/sin/cos, PTRS with
-    ``rng_log_poisson``) against the float64 twin, allowed to differ in ≤ :data:`SINGLE_MAX_FRACTION`
-    of the SCI and of the GROUPDQ values (float roundings, not bit-identical by design)."""
+    runs unchecked by :func:`device_selfcheck` (its kernels are fp64): Gaussian draws of
+    ``noise.cl`` within :data:`SINGLE_MAX_GAUSS_SIGMA` of the twin's, Poisson counts (≤
+    :data:`SINGLE_MAX_FRACTION` differ), and the same two ramp blocks through the float samplers
+    (Philox words, float uniforms, log/exp/sin/cos, PTRS with ``rng_log_poisson``) against the
+    float64 twin, allowed to differ in ≤ :data:`SINGLE_MAX_FRACTION` of the SCI and of the GROUPDQ
+    values (float roundings, not bit-identical by design)."""
+    from slicersim.backends import noise
     from slicersim.backends import ramp as ramp_backend
     try:
         dev = opencl.get_device().name.strip()
+        zc, kc = _single_noise_draws()
         got = _ramp_blocks(lambda *a: ramp_backend.simulate_block_opencl(*a, precision="single"))
     except Exception as exc:                        # a build or launch failure is a failed check
         return False, f"{NOT_RUN} ({type(exc).__name__}: {exc})"
     want = _ramp_blocks(ramp_backend.simulate_block_numpy)
+    zn = noise.noisy_cube(np.zeros(_N_UNIFORM), np.ones(_N_UNIFORM), _SEED, backend="numpy", stream=_STREAM)
+    kn = _numpy_draws()[2]
     bad = []
+    for vw_z in zc:
+        err = float(np.max(np.abs(vw_z - zn)))
+        if not err <= SINGLE_MAX_GAUSS_SIGMA:
+            bad.append(f"Gaussians off by up to {err:.2g} σ")
+            break
+    if np.count_nonzero(kc != kn) > SINGLE_MAX_FRACTION * kn.size:
+        bad.append(f"{int(np.count_nonzero(kc != kn))}/{kn.size} Poisson counts differ")
     for name, (sc, qc), (sn, qn) in zip("AB", got, want):
         nsci = int(np.count_nonzero(sc != sn)) if sc.shape == sn.shape else sn.size
         ndq = int(np.count_nonzero(qc != qn)) if qc.shape == qn.shape else qn.size
         if max(nsci, ndq) > SINGLE_MAX_FRACTION * sn.size:
             bad.append(f"ramp block {name}: {nsci}/{sn.size} SCI and {ndq}/{qn.size} GROUPDQ values differ")
     if bad:
-        return False, (f"OpenCL device {dev!r} fails the single-precision ramp self-check against the float64 "
-                       f"twin ({'; '.join(bad)}): its single-precision products would be wrong")
-    return True, f"OpenCL device {dev!r} passes the single-precision ramp self-check"
+        return False, (f"OpenCL device {dev!r} fails the single-precision noise and ramp self-check against the "
+                       f"float64 twin ({'; '.join(bad)}): its single-precision products would be wrong")
+    return True, f"OpenCL device {dev!r} passes the single-precision noise and ramp self-check"
