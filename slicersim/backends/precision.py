@@ -76,7 +76,7 @@ SINGLE_PRECISION_ERRORS = {
                         "5e-5 of the values with 10-3000 e-/frame)"),
     "batch_etc": SingleError(1.2e-7, 1e-5, "relative, of the band variance (SNR: half of it)",
                              "random tables, 400 targets × 256 readouts, saturated cells and NaN bins (1.1e-7), "
-                             "a 300-SN survey plan z = 0.05-1.5 (SNR 4.6e-8, same readouts); PoCL CPU"),
+                             "a 300-SN survey plan z = 0.05-1.5 (SNR 5.5e-8, same readouts); PoCL CPU"),
     "noise": SingleError(8.1e-5, 1e-3, "of σ (max |Δ| of a Gaussian draw, voxels with variance > 0)",
                          "noisy_cube of the Lazuli narrow-field Airy cube (3.4e6 voxels, seed 12345); PoCL CPU.  Same "
                          "Philox words, float uniform of 24 bits ≥ 2^-32: the max grows with the draws (radii near 0, "

@@ -109,16 +109,18 @@ def _write_cube(path, target, row, seed, spec, max_bytes):
     with ProductFile(path, overwrite=True) as f:
         # the precision the kernels ran in ("auto" resolves per device): recorded with the product
         f.set_attrs({**_attrs(row, seed, "cube"), "psf_profile": obs["psf_profile"],
-                     "precision": cube.paths["precision"]})
+                     "precision": cube.paths["precision"], "noise_precision": cube.paths["noise_precision"]})
         f.write("lbda", target.simulation.lbda, {"unit": "Angstrom"})
         for name, cube, unit in (("signal", signal, "adu"), ("variance", variance, "adu2"), ("noisy", noisy, "adu")):
             f.write(name, cube, {"unit": unit})      # stored as computed (cube_dtype); contiguous: one write each
 
 
 def _write_image(path, target, row, seed):
-    image = target.get_detector_image()
+    from slicersim.backends.precision import resolve_precision
+    precision = resolve_precision("auto", "auto", "projection")[1]      # the deposit's, as "auto" picks it
+    image = target.get_detector_image(precision=precision)
     with ProductFile(path, overwrite=True) as f:
-        f.set_attrs(_attrs(row, seed, "detector_image"))
+        f.set_attrs({**_attrs(row, seed, "detector_image"), "precision": precision})
         f.write("rate", np.asarray(image, dtype=np.float32), {"unit": "electron/s"}, chunks=(256, 4096),
                 compression="gzip", compression_opts=1, shuffle=True)     # mostly dark: ~10× smaller
 
