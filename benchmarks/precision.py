@@ -282,7 +282,7 @@ def _plot(res, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"width_ratios": [1.6, 1]})
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 7), gridspec_kw={"width_ratios": [1.6, 1]})
     markers = {"psf": "o", "lsf": "s", "convolution": "^", "cube": "D", "noise": "v", "projection": "P",
                "batch_etc": "X"}
     for r in res["rows"]:
@@ -299,13 +299,15 @@ def _plot(res, path):
     ax.set_xlabel("speed-up of single over double (same run)")
     ax.set_ylabel("max |single − double| / peak")
     ax.set_title(f"Precision: speed vs accuracy\n{res['device'][:80]}", fontsize=8)
-    ax.legend(fontsize=6.5, loc="upper left")
+    ax.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     ax2.set_yscale("log")
     ax2.set_xlabel("speed-up of single over double (same run)")
     ax2.set_ylabel("fraction of integer values differing")
     ax2.set_title("raw ramps (same Philox words)", fontsize=8)
-    if ax2.collections:
-        ax2.legend(fontsize=6.5, loc="best")
+    ax2.set_xlim(0.5, 2.5)
+    ax2.set_ylim(1e-6, 1e-1)
+    ax2.axhline(1e-2, color="k", ls="--", lw=0.8, label="tolerance: 1e-2 of the values")
+    ax2.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.14))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
