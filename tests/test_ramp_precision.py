@@ -188,16 +188,15 @@ def test_single_precision_selfcheck_guards_the_float_kernels(monkeypatch):
     monkeypatch.setattr(dispatch, "_SELFCHECK", {})
     ok, msg = selfcheck.device_selfcheck_single()
     assert ok, msg
-    from slicersim.backends import noise
-    real_gauss = noise._gaussian_noise_opencl
+    real_draws = selfcheck._single_noise_draws
 
-    def biased(ef, vf, of, *args):
-        real_gauss(ef, vf, of, *args)
-        of += np.float32(2e-3)                                  # 2e-3 σ: beyond the noise tolerance
-    monkeypatch.setattr(noise, "_gaussian_noise_opencl", biased)
+    def biased():
+        z, counts = real_draws()
+        return [zz + 2e-3 for zz in z], counts                  # 2e-3 σ: beyond the noise tolerance
+    monkeypatch.setattr(selfcheck, "_single_noise_draws", biased)
     ok, msg = selfcheck.device_selfcheck_single()
     assert not ok and "Gaussians off by up to 0.002 σ" in msg
-    monkeypatch.setattr(noise, "_gaussian_noise_opencl", real_gauss)
+    monkeypatch.setattr(selfcheck, "_single_noise_draws", real_draws)
     real = ramp_backend.simulate_block_opencl
 
     def broken(*args, precision="double", **kw):

@@ -166,24 +166,31 @@ SINGLE_MAX_FRACTION = 0.02
 
 #: largest |Δ| [σ] of a single-precision Gaussian draw against the twin's (the "noise" tolerance)
 SINGLE_MAX_GAUSS_SIGMA = 1e-3
+_N_GAUSS_SINGLE = 256                             # a multiple of every vector width
 
 
 def _single_noise_draws():
     """(Gaussians, Poisson counts) of noise.cl's float builds: ``gaussian_noise`` of (0, 1) at width 1
-    and at the device's preferred width through the noisy cube's own host path, ``poisson_draw`` of
-    the self-check's means (kernels launched directly: no precision resolution, hence no re-entry)."""
-    from slicersim.backends import noise
+    and at the device's preferred width, ``poisson_draw`` of the self-check's means (kernels launched
+    here: no precision resolution, hence no re-entry into the check)."""
+    n, key = _N_GAUSS_SINGLE, rng.seed_to_key(_SEED)
+    options = opencl.precision_options("single")
     z = []
     for vw in dict.fromkeys((1, opencl.preferred_vector_width())):
-        e, v, o = np.zeros(_N_UNIFORM, np.float32), np.ones(_N_UNIFORM, np.float32), np.empty(_N_UNIFORM, np.float32)
-        noise._gaussian_noise_opencl(e, v, o, 0, _SEED, noise._stream(_STREAM), 1 << 20, None, vw, "single")
-        z.append(o.astype(np.float64))
+        kern = opencl.cached_kernel("noise.cl", "gaussian_noise", (f"-DRNG_VW={vw}",) + options)
+        d_e, d_v = opencl.to_device(np.zeros(n, np.float32)), opencl.to_device(np.ones(n, np.float32))
+        d_o, out = opencl.device_buffer(4 * n), np.empty(n, np.float32)
+        opencl.launch(kern, (n // vw,), None, d_e, d_v, d_o, np.uint64(0), np.uint32(n), np.uint32(key[0]),
+                      np.uint32(key[1]), np.uint32(_STREAM))
+        opencl.from_device(out, d_o)
+        z.append(out.astype(np.float64))
     mu = np.ascontiguousarray(_POISSON_MEANS, np.float32)
     counts = np.zeros_like(mu)
     d_m, d_o = opencl.to_device(mu), opencl.device_buffer(counts.nbytes)
     pkey = rng.seed_to_key(_SEED + 2)
-    opencl.launch(noise._kernel("poisson_draw", 1, "single"), (mu.size,), None, d_m, d_o, np.uint64(0),
-                  np.uint32(mu.size), np.uint32(pkey[0]), np.uint32(pkey[1]), np.uint32(_STREAM))
+    opencl.launch(opencl.cached_kernel("noise.cl", "poisson_draw", ("-DRNG_VW=1",) + options), (mu.size,), None,
+                  d_m, d_o, np.uint64(0), np.uint32(mu.size), np.uint32(pkey[0]), np.uint32(pkey[1]),
+                  np.uint32(_STREAM))
     opencl.from_device(counts, d_o)
     return z, counts.astype(np.float64)
 
@@ -196,7 +203,6 @@ def device_selfcheck_single():
     (Philox words, float uniforms, log/exp/sin/cos, PTRS with ``rng_log_poisson``) against the
     float64 twin, allowed to differ in ≤ :data:`SINGLE_MAX_FRACTION` of the SCI and of the GROUPDQ
     values (float roundings, not bit-identical by design)."""
-    from slicersim.backends import noise
     from slicersim.backends import ramp as ramp_backend
     try:
         dev = opencl.get_device().name.strip()
@@ -205,7 +211,7 @@ def device_selfcheck_single():
     except Exception as exc:                        # a build or launch failure is a failed check
         return False, f"{NOT_RUN} ({type(exc).__name__}: {exc})"
     want = _ramp_blocks(ramp_backend.simulate_block_numpy)
-    zn = noise.noisy_cube(np.zeros(_N_UNIFORM), np.ones(_N_UNIFORM), _SEED, backend="numpy", stream=_STREAM)
+    zn = rng.normal(_SEED, np.arange(_N_GAUSS_SINGLE, dtype=np.uint64), _STREAM)[:, 0]
     kn = _numpy_draws()[2]
     bad = []
     for vw_z in zc:
