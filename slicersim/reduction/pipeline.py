@@ -23,7 +23,7 @@ from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import AtomicH5File
 # re-exported here (their documented home): WEIGHTS, dark_rate_of, default_lbda_edges
 from slicersim.reduction.checks import (DEFAULT_NCOL, WEIGHTS, check_spectra_options, dark_rate_of,  # noqa: F401
-                                        default_lbda_edges)
+                                        default_lbda_edges, float64_kwargs)
 
 __all__ = ["reduce_exposure", "default_lbda_edges"]
 
@@ -59,7 +59,8 @@ def model_variance(rates, var, cubes, mapper, lbda_edges, dark_rate=0.0):
     (the median k where the rate is ≤ 0); pixels no cube reaches and unusable ones keep ``var``."""
     m = np.zeros(tuple(mapper.detector_shape))
     for name, cube in cubes.items():
-        mapper.project_fields(np.asarray(cube.lbda), lbda_edges, out=m, **{name: np.nan_to_num(np.asarray(cube.flux))})
+        mapper.project_fields(np.asarray(cube.lbda), lbda_edges, out=m, **{name: np.nan_to_num(np.asarray(cube.flux))},
+                              **float64_kwargs())
     rate = np.asarray(rates.rate, float)
     vp = np.asarray(rates.var_poisson, float)
     ok = np.isfinite(var) & np.isfinite(vp) & (vp > 0) & (rate > 0)

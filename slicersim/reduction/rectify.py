@@ -55,6 +55,7 @@ from slicersim.backends.projection import _windows, deposit
 from slicersim.backends.projection_transpose import gather, matrix_entries
 from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES, SlicerMapper
+from slicersim.reduction.checks import float64_kwargs
 
 __all__ = ["rectify", "CubeProduct", "InverseCovariance", "inverse_covariance", "FIELDS", "METHODS",
            "MAX_CONDITION"]
@@ -469,7 +470,7 @@ def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend
     flux = flux.reshape((N,) + shape)
     chi2, grad = [], []
     for n in range(N):                                                  # model image P x̂ on the device
-        resid = np.where(usable, images[n] - deposit(np.nan_to_num(flux[n]), tables, backend=backend), 0.0)
+        resid = np.where(usable, images[n] - deposit(np.nan_to_num(flux[n]), tables, **float64_kwargs(backend)), 0.0)
         chi2.append(float((weight * resid * resid).sum()))
         g = gather(weight * resid, tables, backend=backend)
         grad.append(float(np.linalg.norm(g) / max(np.linalg.norm(rhs[n]), 1e-300)))
@@ -533,7 +534,7 @@ def _field_tables(mapper, name, edges, ncol, ov, truncate, weights_dtype, backen
     slices = [int(s) for s in FIELDS[name]]
     tables = mapper.projection_tables(slices, ncol, edges, oversample=ov, truncate=truncate,
                                       weights_dtype=weights_dtype, backend=backend)
-    cover = deposit(np.ones((len(slices), edges.size - 1, ncol)), tables, backend=backend)
+    cover = deposit(np.ones((len(slices), edges.size - 1, ncol)), tables, **float64_kwargs(backend))
     return slices, tables, cover
 
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.errors import ParameterError
+from slicersim.reduction.checks import float64_kwargs
 from slicersim.reduction.rectify import rectify
 
 __all__ = ["point_source_template"]
@@ -107,7 +108,8 @@ def point_source_template(native_cube, native_lbda_edges, lbda_edges, *, mapper,
         cb = np.where((group == b)[:, None, None], cube / totals[b], 0.0)
         images[b] = 0.0
         try:
-            mapper.project_cube(cb, nlbda, ne, field, out=images[b], oversample=oversample, truncate=truncate)
+            mapper.project_cube(cb, nlbda, ne, field, out=images[b], oversample=oversample, truncate=truncate,
+                                **float64_kwargs())
         except ValueError as err:
             raise ParameterError(f"native_cube cannot be projected on the {field} field: {err}") from None
     cp = rectify(images, variance, mapper=mapper, field=field, lbda_edges=ce, ncol=ncol, oversample=oversample,
