@@ -197,9 +197,8 @@ def test_reduction_projections_stay_float64_on_every_device(monkeypatch):
     use float64: OpenCL where the device has fp64, the NumPy twin where it has none — never the
     single deposit that "auto" picks on a device without fast fp64."""
     from slicersim.backends import dispatch
-    from slicersim.reduction.checks import float64_kwargs
-    assert float64_kwargs("numpy") == {"backend": "numpy", "precision": "double"}
+    assert prec.float64_kwargs("numpy") == {"backend": "numpy", "precision": "double"}
     if opencl.is_available() and opencl.device_supports_fp64() and dispatch.device_validated()[0]:
-        assert float64_kwargs() == {"backend": "opencl", "precision": "double"}
+        assert prec.float64_kwargs() == {"backend": "opencl", "precision": "double"}
     monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
-    assert float64_kwargs() == {"backend": "numpy", "precision": "double"}
+    assert prec.float64_kwargs() == {"backend": "numpy", "precision": "double"}

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.backends import opencl
-from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, chunk_ranges, resolve_backend
+from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, chunk_ranges, resolve_backend  # noqa: F401
 
 __all__ = ["band_variance_table"]
 
@@ -80,10 +80,10 @@ def band_variance_table(Q, P2, A, B, Qsat, band, backend="auto", *,
         Number of valid (non-NaN) bins; the band-mean variance is
         ``var_sum / nvalid``.
     """
-    if precision is None:
-        backend, precision = resolve_backend(backend), "double"
+    from slicersim.backends.precision import float64_kwargs, resolve_precision
+    if precision is None:                                   # the single-target ETC: float64 on every device
+        backend, precision = float64_kwargs(backend).values()
     else:
-        from slicersim.backends.precision import resolve_precision
         backend, precision = resolve_precision(precision, backend, "batch_etc")
     Q, P2, A, B, Qsat, band = _check_inputs(Q, P2, A, B, Qsat, band)
     var_sum = np.zeros((Q.shape[0], A.size), np.float64)     # accumulated in place by either backend

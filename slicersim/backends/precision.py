@@ -38,6 +38,7 @@ from slicersim.backends.dispatch import BACKENDS, device_validated, resolve_back
 from slicersim.errors import OpenCLUnavailableError, ParameterError
 
 __all__ = ["PRECISIONS", "SINGLE_PRECISION_ERRORS", "FAST_FP64_RATIO", "check_precision", "resolve_precision",
+           "float64_kwargs",
            "fp64_throughput_ratio", "real_dtype"]
 
 PRECISIONS = ("auto", "double", "single")
@@ -199,3 +200,11 @@ def resolve_precision(precision, backend="auto", product="cube"):
                                          "single-precision kernels: use backend='numpy' or 'auto'")
         return "numpy", "double"
     return resolve_backend(backend), "double"
+
+
+def float64_kwargs(backend="auto"):
+    """``backend`` and ``precision`` keywords for computations that stay float64 on every device (the
+    reduction's projections, whose noiseless round trips are checked to ~1e-15): OpenCL where the
+    device has fp64 (and passes its self-check), else the NumPy twin — never the single kernels that
+    "auto" may pick on a device without fast fp64."""
+    return {"backend": resolve_backend(backend), "precision": "double"}

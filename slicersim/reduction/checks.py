@@ -460,13 +460,3 @@ def dark_rate_of(dark, rates, shape):
         raise ParameterError(f"a dark image must have the detector's shape {tuple(shape)}, got {arr.shape}")
     _check_dark_value(arr, "dark rates")
     return (float(arr), "value") if arr.ndim == 0 else (arr, "image")
-
-
-def float64_kwargs(backend="auto"):
-    """``backend`` and ``precision`` keywords that keep the reduction's projections in float64 on
-    every device (its noiseless round trips are checked to ~1e-15): OpenCL where the device has fp64
-    (and passes its self-check), else the NumPy twin — never the single kernels that "auto" may pick
-    on a device without fast fp64."""
-    from slicersim.backends.dispatch import resolve_backend
-    return {"backend": resolve_backend(backend), "precision": "double"}
-

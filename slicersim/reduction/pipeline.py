@@ -19,11 +19,12 @@ import os
 
 import numpy as np
 
+from slicersim.backends.precision import float64_kwargs
 from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import AtomicH5File
 # re-exported here (their documented home): WEIGHTS, dark_rate_of, default_lbda_edges
 from slicersim.reduction.checks import (DEFAULT_NCOL, WEIGHTS, check_spectra_options, dark_rate_of,  # noqa: F401
-                                        default_lbda_edges, float64_kwargs)
+                                        default_lbda_edges)
 
 __all__ = ["reduce_exposure", "default_lbda_edges"]
 

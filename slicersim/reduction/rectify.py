@@ -55,7 +55,7 @@ from slicersim.backends.projection import _windows, deposit
 from slicersim.backends.projection_transpose import gather, matrix_entries
 from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES, SlicerMapper
-from slicersim.reduction.checks import float64_kwargs
+from slicersim.backends.precision import float64_kwargs
 
 __all__ = ["rectify", "CubeProduct", "InverseCovariance", "inverse_covariance", "FIELDS", "METHODS",
            "MAX_CONDITION"]

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.errors import ParameterError
-from slicersim.reduction.checks import float64_kwargs
+from slicersim.backends.precision import float64_kwargs
 from slicersim.reduction.rectify import rectify
 
 __all__ = ["point_source_template"]
