@@ -211,7 +211,7 @@ def test_device_without_fp64_runs_single_noise(monkeypatch, flat):
     assert np.array_equal(cn.poisson_draw(mean, 3, backend="opencl"), ksingle)
     for call in (lambda: cn.noisy_cube(e, v, 3, precision="double"),
                  lambda: cn.poisson_draw(mean, 3, precision="double")):
-        with pytest.raises(OpenCLUnavailableError, match="precision='double' needs fp64"):
+        with pytest.raises(OpenCLUnavailableError, match="precision 'double' needs fp64"):
             call()
     with pytest.raises(ParameterError, match="cannot be drawn in single"):         # no double to fall back to
         cn.poisson_draw(np.array([1.0, 5e6]), 3)

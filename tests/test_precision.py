@@ -129,7 +129,7 @@ def test_device_without_fp64_runs_single_kernels(sim, monkeypatch):
     got = build_cube(sim, psf_profile="airy")
     assert got.paths["detector"] == FUSED_KERNEL
     assert np.array_equal(got.signal, single[0], equal_nan=True) and np.array_equal(got.variance, single[1])
-    with pytest.raises(OpenCLUnavailableError, match="precision='double' needs fp64"):
+    with pytest.raises(OpenCLUnavailableError, match="precision 'double' needs fp64"):
         sim.get_cube(psf_profile="airy", precision="double")
     assert prec.resolve_precision("auto", "auto", "ramps") == ("numpy", "double")
     with pytest.raises(OpenCLUnavailableError, match="lacks fp64"):
@@ -206,3 +206,23 @@ def test_host_cube_single_matches_double():
     s = build_cube(sim, psf_profile="airy", precision="single")
     assert "2-D convolution" in d.paths["host"]
     assert 0 < peak_err(s.signal, d.signal) <= TIGHT
+
+
+@needs_opencl
+def test_numpy_cube_path_runs_and_records_the_precision(monkeypatch):
+    """Review finding: with a non-Rauscher variance model the cube takes the NumPy path (LSF, QE,
+    variance in float64), whose PSF kernels ignored ``precision`` and whose record said "double" while
+    a device without fp64 ran them in single.  Now they follow it and ``paths["precision"]`` says so."""
+    from slicersim import LazuliSupernova
+    from slicersim.products.cube import build_cube
+    sim = LazuliSupernova(0.5).simulation
+    sim.detector.variance_model = "Kubik16"
+    double = build_cube(sim, psf_profile="airy", precision="double")
+    single = build_cube(sim, psf_profile="airy", precision="single")
+    assert double.paths["precision"] == "double" and single.paths["precision"] == "single"
+    assert "NumPy" in single.paths["detector"]
+    err = np.nanmax(np.abs(single.signal - double.signal)) / np.nanmax(double.signal)
+    assert 0 < err <= prec.SINGLE_PRECISION_ERRORS["cube"].tolerance
+    monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
+    auto = build_cube(sim, psf_profile="airy")
+    assert auto.paths["precision"] == "single" and np.array_equal(auto.signal, single.signal, equal_nan=True)

@@ -160,9 +160,9 @@ def test_device_without_fp64_runs_single_deposit(case, monkeypatch):
     got = m.project_cube(cube, lbda, edges)
     assert np.array_equal(got, single)
     assert np.array_equal(cp.deposit(case["value"], t_np), single)
-    with pytest.raises(OpenCLUnavailableError, match="precision='double' needs fp64"):
+    with pytest.raises(OpenCLUnavailableError, match="precision 'double' needs fp64"):
         m.project_cube(cube, lbda, edges, precision="double")
-    with pytest.raises(OpenCLUnavailableError, match="precision='double' needs fp64"):
+    with pytest.raises(OpenCLUnavailableError, match="precision 'double' needs fp64"):
         cp.deposit(case["value"], t_np, precision="double")
 
 

@@ -109,7 +109,7 @@ def test_device_without_fp64_runs_single_ramps(monkeypatch):
     assert not np.array_equal(single, double)
     monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
     assert np.array_equal(simulate(rate, (6, 2, 1), seed=3, ktc_noise=10.0), single)
-    with pytest.raises(OpenCLUnavailableError, match="precision='double' needs fp64"):
+    with pytest.raises(OpenCLUnavailableError, match="precision 'double' needs fp64"):
         simulate(rate, (6, 2, 1), seed=3, precision="double")
     fx = dict(seed=3, effects="cosmic_rays,ipc,nonlinearity")
     assert np.array_equal(simulate(rate, (6, 2, 1), **fx), simulate(rate, (6, 2, 1), precision="single", **fx))
@@ -218,3 +218,32 @@ def test_single_precision_selfcheck_guards_the_float_kernels(monkeypatch):
             if not fp64:
                 assert prec.resolve_precision("auto", "auto", "cube") == ("numpy", "double")
         assert sum("single-precision noise and ramp self-check" in str(w.message) for w in caught) == (1 if fp64 else 0)
+
+
+def test_opencl_backend_without_a_device_is_refused(monkeypatch):
+    """Review finding: backend="opencl" with no usable OpenCL device (e.g. SLICERSIM_DEVICE=none) ran
+    NumPy silently; it is one clear OpenCLUnavailableError again, "auto" still falls back."""
+    def no_device():
+        raise OpenCLUnavailableError("OpenCL disabled by SLICERSIM_DEVICE='none'.")
+    monkeypatch.setattr(opencl, "is_available", lambda: False)
+    monkeypatch.setattr(opencl, "get_device", no_device)
+    for product in ("cube", "ramp", "noise", "projection", "batch_etc", "ramps"):
+        for precision in ("auto", "double", "single") if product != "ramps" else ("auto", "double"):
+            with pytest.raises(OpenCLUnavailableError, match="SLICERSIM_DEVICE"):
+                prec.resolve_precision(precision, "opencl", product)
+            assert prec.resolve_precision(precision, "auto", product) == ("numpy", "double")
+    with pytest.raises(OpenCLUnavailableError, match="SLICERSIM_DEVICE"):
+        simulate(np.ones((4, 4)), (3, 1, 0), backend="opencl")
+
+
+@needs_opencl
+def test_single_ramp_of_an_absurdly_bright_pixel_saturates():
+    """Review finding: μ beyond float32's range (rate 3e38 e-/s) came out at bias level, unflagged, in
+    single; μ is now capped 64 σ above the full well (filled in the first frame either way): the same
+    SCI and flags as double.  A full well above 2^22 e- with such means is refused in single."""
+    for rate in (3e38, 1e100, 1e7):
+        s, q = simulate(np.full((2, 3), rate), (3, 1, 0), precision="single", return_dq=True)
+        d, qd = simulate(np.full((2, 3), rate), (3, 1, 0), precision="double", return_dq=True)
+        assert np.array_equal(s, d) and np.array_equal(q, qd) and np.all(q == 2), rate
+    with pytest.raises(ParameterError, match="at most 4.194e\\+06 e- per frame"):
+        simulate(np.full((2, 2), 1e9), (3, 1, 0), precision="single", gain=0.001)

@@ -247,8 +247,10 @@ def poisson_draw(mean, seed, stream=0, backend="auto", max_bytes=DEFAULT_MAX_BYT
         return rng.poisson(m, seed, index, stream)
     if precision == "single" and np.any((m > POISSON_SINGLE_MAX_MEAN) & np.isfinite(m)):
         if requested != "auto" or not opencl.device_supports_fp64():
+            way_out = "precision='double' or backend='numpy'" if opencl.device_supports_fp64() else \
+                "backend='numpy' (this device has no fp64)"
             raise ParameterError(f"Poisson means above {POISSON_SINGLE_MAX_MEAN:.4g} cannot be drawn in single "
-                                 "precision (float counts): use precision='double' or backend='numpy'")
+                                 f"precision (float counts): use {way_out}")
         precision = "double"
     real = real_dtype(precision)
     out = np.empty_like(m)

@@ -168,15 +168,23 @@ def resolve_precision(precision, backend="auto", product="cube"):
     device = opencl.is_available()
     if not device:
         if backend == "opencl":
-            resolve_backend("opencl")                    # raises its own clear error
+            try:
+                opencl.get_device()                      # its own clear error (disabled, no platform…)
+            except OpenCLUnavailableError:
+                raise
+            except Exception as exc:
+                raise OpenCLUnavailableError(f"backend='opencl' asked for, but no OpenCL device is usable: {exc}") \
+                    from None
+            raise OpenCLUnavailableError("backend='opencl' asked for, but no OpenCL device is usable")
         return "numpy", "double"
     fp64 = opencl.device_supports_fp64()
     name = opencl.get_device().name.strip()
     if precision == "double":
         if not fp64:
             raise OpenCLUnavailableError(
-                f"precision='double' needs fp64, which OpenCL device {name!r} lacks: use precision='single' or "
-                "'auto', backend='numpy', or another device (SLICERSIM_DEVICE)")
+                f"precision 'double' needs fp64, which OpenCL device {name!r} lacks: use precision 'single' or "
+                "'auto' (--precision), the NumPy backend (backend='numpy', --backend numpy where the command has "
+                "it), or another device (SLICERSIM_DEVICE)")
         return resolve_backend(backend), "double"
     if precision == "single" or (single_ok and SINGLE_PRECISION_ERRORS[product].acceptable
                                  and (not fp64 or fp64_throughput_ratio() > FAST_FP64_RATIO)):

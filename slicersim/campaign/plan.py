@@ -53,6 +53,8 @@ class SurveyPlan:
                  f"{t['data_volume_compressed'] / 1e12:,.3f} TB at compression ratio {t['compression_ratio']:g}",
                  f"per target         : median {t['median_exposure_time'] / 3600:.2f} h, "
                  f"{t['median_data_volume'] / 1e9:.2f} GB"]
+        if "precision" in t:
+            lines.append(f"batch ETC precision: {t['precision']}")
         return "\n".join(lines)
 
 

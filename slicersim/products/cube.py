@@ -341,7 +341,8 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         readout = readout_constants(sim, nmd, nramps, off)
         taps = lsf_weights(spec.lsf_sigma)[1]
     paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
-    paths["precision"] = precision if fused else "double"
+    paths["precision"] = precision          # of the kernels (fused, or the PSF and host convolution of the
+                                            # NumPy path, whose LSF, QE and variance are float64)
     bar = _progress_bar(progress, len(starts))
     host_groups = {}                    # convolved host planes shared by consecutive chunks
     try:
@@ -359,7 +360,8 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
                 del psf, host
             else:
                 _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
-                             psf_options, nmd, tint, nramps, out, host_groups if has_host else None, off)
+                             psf_options, nmd, tint, nramps, out, host_groups if has_host else None, off,
+                             precision)
             if seed is not None:        # drawn straight into the output where its dtype allows (no temporary)
                 drawn = noisy_cube(signal[i0:i1], variance[i0:i1], seed,
                                    max_bytes=max(max_bytes, noise_bytes_per_bin), first_index=i0 * ny * nx,
@@ -376,16 +378,17 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
 
 
 def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, backend, psf_options, nmd, tint,
-                 nramps, out, host_groups, off):
-    """NumPy oracle of one chunk: photon block, LSF (scipy), QE, ``Simulation.cell_variance``."""
+                 nramps, out, host_groups, off, precision="double"):
+    """NumPy oracle of one chunk: photon block (PSF and host kernels in ``precision``), LSF (scipy), QE,
+    ``Simulation.cell_variance``."""
     (i0, i1), (lo, hi) = bins, block
     photons = 0.0                                                                    # ph/s/cell
     if flux_ph is not None:
         photons = flux_ph[lo:hi, None, None] * psf_block(sim, profile, lo, hi, backend=backend,
-                                                         options=psf_options)
+                                                         options=psf_options, precision=precision)
     if host_groups is not None:         # the builder's dict of convolved host groups (None: no host)
         photons = photons + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options,
-                                               host_groups)
+                                               host_groups, precision)
     photons = sim.spectrograph.apply_lsf(photons, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
     electrons = photons * sim.qe[i0:i1, None, None]                                 # e-/s/cell
     var1, sat = sim.cell_variance(electrons, nmd, off)                               # ADU² per ramp

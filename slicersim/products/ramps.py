@@ -150,6 +150,8 @@ def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=
         pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
         dead, flags, no_charge = dead | no_charge, None, None
     mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
+    if precision == "single":
+        mu = _single_frame_means(mu, p)
     rate = dark_arr = None                           # the effects' copies: not needed past mu
     block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
     kwargs = {}
@@ -326,6 +328,25 @@ def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs):
     gmean, qsat = rfx.charge_block_numpy(*args)
     return rfx.readout_numpy(gmean.reshape(shape_in), qsat.reshape(shape_in), y1 - y0, y0 - yi0, y0, ny, ramp,
                              seed, p, **common)
+
+
+#: largest mean charge per frame [e-] the float samplers draw (float32 Poisson counts, as noise.cl)
+SINGLE_MAX_FRAME_MEAN = float(2**22)
+
+
+def _single_frame_means(mu, p):
+    """μ [e-/frame] for the float samplers: a pixel whose μ exceeds the full well by 64 σ fills it in its
+    first frame whatever μ (otherwise with probability < e⁻²⁰⁰⁰), so μ is capped there — float32
+    would turn 1e39 into inf, and lose the draw's accuracy far below that.  Means above
+    :data:`SINGLE_MAX_FRAME_MEAN` that the cap leaves (a full well above it) are refused."""
+    cap = p.full_well + 64.0 * math.sqrt(p.full_well) + 64.0
+    mu = np.minimum(mu, cap)
+    if cap > SINGLE_MAX_FRAME_MEAN and float(np.max(mu, initial=0.0)) > SINGLE_MAX_FRAME_MEAN:
+        from slicersim.errors import ParameterError
+        raise ParameterError(f"precision 'single' draws at most {SINGLE_MAX_FRAME_MEAN:.4g} e- per frame; this ramp "
+                             f"has pixels up to {float(np.max(mu)):.4g} e- per frame with a full well of "
+                             f"{p.full_well:.4g} e-: use precision 'double'")
+    return mu
 
 
 FILE_FORMATS = ("hdf5", "jwst-uncal")

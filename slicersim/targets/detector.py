@@ -115,6 +115,9 @@ class DetectorProducts:
         nmd = det.nmd if nmd is None else nmd
         nramps = sim.nramps if nramps is None else _check_nramps(nramps)
         nmd, nramps = check_readout(nmd, nramps, det.min_group, det.max_group)
+        if "precision" in kwargs:                    # the samplers' precision: refused before the image is built
+            from slicersim.backends.precision import resolve_precision
+            resolve_precision(kwargs["precision"], backend, "ramp")
         mapper = default_mapper() if mapper is None else mapper
         image = self.get_detector_image(mapper, backend=backend)
         release = getattr(mapper, "release_tables", None)
