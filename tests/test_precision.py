@@ -226,3 +226,18 @@ def test_numpy_cube_path_runs_and_records_the_precision(monkeypatch):
     monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
     auto = build_cube(sim, psf_profile="airy")
     assert auto.paths["precision"] == "single" and np.array_equal(auto.signal, single.signal, equal_nan=True)
+
+
+@needs_opencl
+def test_campaign_precision_the_local_device_cannot_run_is_refused_up_front(tmp_path, monkeypatch):
+    """Review finding: products.precision = "double" on a device without fp64 failed every target one
+    by one; with the embedded cluster (this machine's device) it is one error before anything is
+    written (a remote scheduler's workers may have other devices: checked there per target)."""
+    from slicersim.campaign.runner import run_campaign
+    from slicersim.campaign.spec import parse_spec
+    spec = parse_spec({"seed": 1, "population": {"kind": "snia", "n": 2},
+                       "products": {"cube": True, "precision": "double"}})
+    monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
+    with pytest.raises(OpenCLUnavailableError, match="needs fp64"):
+        run_campaign(spec, tmp_path / "ds", workers=1, progress=False)
+    assert not (tmp_path / "ds").exists()

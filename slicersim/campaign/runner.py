@@ -209,6 +209,11 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
         _check_positive_int(threads_per_worker, "threads per worker")
     if window is not None:
         _check_positive_int(window, "window")
+    if scheduler is None and spec.products.get("cube"):
+        # the embedded cluster's workers share this machine's device: a precision it cannot run (e.g.
+        # "double" without fp64) is one error here, not one failure per target
+        from slicersim.backends.precision import resolve_precision
+        resolve_precision(spec.products.get("precision", "auto"), "auto", "cube")
     ds = Dataset(Dataset.check_path(out, force=force))
     t0 = time.perf_counter()
     ds.check_spec(spec.canonical(), force)            # refuse early, before planning
