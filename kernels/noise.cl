@@ -61,43 +61,30 @@ inline double log_factorial(const double k)
     p = p * z + 0x1.5555555555555p-4;            /* 1/12 */
     return ((x - 0.5) * rng_log(x) - x) + (RNG_HALF_LOG_2PI + r * p);
 }
+#endif
 
-inline double poisson_inversion(const double mu, const uint2 key, const ulong index, const uint stream)
+/* Poisson(mu) by inversion: the CDF recurrence from p = e^-mu.  In float it also ends where the CDF
+ * stops growing (the tail left is below its rounding, ~1e-7), not only where p underflows: a u above
+ * the rounded total CDF would otherwise run on to k ~ 50 at mu = 5. */
+inline rng_real poisson_inversion(const rng_real mu, const uint2 key, const ulong index, const uint stream)
 {
     const uint4 w = philox_block(key, index, stream, 0u);
-    const double u = philox_u01(w.x, w.y);
-    double p = rng_exp(-mu);
-    double cdf = p;
-    double k = 0.0;
+    const rng_real u = philox_u01(w.x, w.y);
+    rng_real p = rng_exp(-mu);
+    rng_real cdf = p;
+    rng_real k = 0.0;
     while (u > cdf && p > 0.0) {
         k = k + 1.0;
         p = p * mu / k;
-        cdf = cdf + p;
-    }
-    return k;
-}
-#else /* SINGLE */
-/* float inversion: the same recurrence; it ends where the float CDF stops growing (the tail left is
- * below its rounding, ~1e-7), not where p underflows: a u above the rounded total CDF would otherwise
- * run on to k ~ 50 at mu = 5 */
-inline float poisson_inversion(const float mu, const uint2 key, const ulong index, const uint stream)
-{
-    const uint4 w = philox_block(key, index, stream, 0u);
-    const float u = philox_u01(w.x, w.y);
-    float p = rng_exp(-mu);
-    float cdf = p;
-    float k = 0.0f;
-    while (u > cdf) {
-        k = k + 1.0f;
-        p = p * mu / k;
-        const float next = cdf + p;
+        const rng_real next = cdf + p;
+#ifdef SINGLE
         if (!(next > cdf))
             break;
+#endif
         cdf = next;
     }
     return k;
 }
-#endif
 
 inline rng_real poisson_ptrs(const rng_real mu, const uint2 key, const ulong index, const uint stream)
 {

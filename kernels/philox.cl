@@ -292,27 +292,6 @@ RNG_INLINE rng_double rng_exp(const rng_double x)
     return ldexp(1.0 + r * (1.0 + r * p), RNG_PASTE(convert_int, RNG_SUFFIX)(n));
 }
 
-/* Two independent N(0, 1) draws from one block: cos branch returned, sin branch in *z1. */
-RNG_INLINE rng_double box_muller_lanes(const rng_uint a, const rng_uint b, const rng_uint c, const rng_uint d,
-                             rng_double *z1)
-{
-    const rng_double radius = sqrt(-2.0 * rng_log(philox_u01(a, b)));
-    rng_double s;
-    const rng_double cs = rng_sincos_2pi(philox_u01(c, d), &s);
-    *z1 = radius * s;
-    return radius * cs;
-}
-
-#if RNG_VW == 1
-/* Scalar convenience: (cos, sin) Box-Muller pair of a block. */
-inline double2 box_muller(const uint4 w)
-{
-    double z1;
-    const double z0 = box_muller_lanes(w.x, w.y, w.z, w.w, &z1);
-    return (double2)(z0, z1);
-}
-#endif
-
 #else /* SINGLE: float transforms of the same words (no bit twin: compared with the float64 twin, whose
         * outputs they reproduce up to the last float bit; see kernels/ramp.cl) */
 
@@ -335,15 +314,6 @@ RNG_INLINE rng_real rng_sincos_2pi(const rng_real u, rng_real *sin_out)
     return cospi(2.0f * u);
 }
 
-RNG_INLINE rng_real box_muller_lanes(const rng_uint a, const rng_uint b, const rng_uint c, const rng_uint d,
-                                     rng_real *z1)
-{
-    const rng_real radius = sqrt(-2.0f * log(philox_u01(a, b)));
-    rng_real s;
-    const rng_real cs = rng_sincos_2pi(philox_u01(c, d), &s);
-    *z1 = radius * s;
-    return radius * cs;
-}
 /* ln k! for k = 0..9 */
 __constant float RNG_LOG_FACTORIAL_F[10] = {
     0.0f, 0.0f, 0x1.62e430p-1f, 0x1.cab0c0p+0f, 0x1.96ca78p+1f, 0x1.326644p+2f, 0x1.a51274p+2f, 0x1.10ce20p+3f,
@@ -377,5 +347,26 @@ RNG_INLINE rng_real rng_log_poisson(const rng_real k, const rng_real mu, const r
     return RNG_SELECT(big, (k * log_mu - mu) - lf, k < 10.0f);
 }
 #endif /* SINGLE */
+
+/* Two independent N(0, 1) draws from one block (either precision): cos branch returned, sin in *z1. */
+RNG_INLINE rng_real box_muller_lanes(const rng_uint a, const rng_uint b, const rng_uint c, const rng_uint d,
+                                     rng_real *z1)
+{
+    const rng_real radius = sqrt(-2.0 * rng_log(philox_u01(a, b)));
+    rng_real s;
+    const rng_real cs = rng_sincos_2pi(philox_u01(c, d), &s);
+    *z1 = radius * s;
+    return radius * cs;
+}
+
+#if RNG_VW == 1 && !defined(SINGLE)
+/* Scalar convenience: (cos, sin) Box-Muller pair of a block. */
+inline double2 box_muller(const uint4 w)
+{
+    double z1;
+    const double z0 = box_muller_lanes(w.x, w.y, w.z, w.w, &z1);
+    return (double2)(z0, z1);
+}
+#endif
 
 #endif /* SLICERSIM_PHILOX_CL */

@@ -74,7 +74,7 @@ SINGLE_PRECISION_ERRORS = {
     "ramp": SingleError(1.2e-3, 1e-2, "of the SCI values differing from double (integers: same Philox words)",
                         "μ from 0 to 3e4 e-/frame, MACC(16, 8, 2), kTC and read noise; PoCL CPU (values differ by "
                         "1 ADU where a float rounding moves rint, by more where it moves a Poisson decision: "
-                        "5e-5 of the values with 10-3000 e-/frame)"),
+                        "6e-5 of the values with 10-3000 e-/frame)"),
     "batch_etc": SingleError(1.2e-7, 1e-5, "relative, of the band variance (SNR: half of it)",
                              "random tables, 400 targets × 256 readouts, saturated cells and NaN bins (1.1e-7), "
                              "a 300-SN survey plan z = 0.05-1.5 (SNR 5.5e-8, same readouts); PoCL CPU"),
