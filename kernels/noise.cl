@@ -94,21 +94,13 @@ inline rng_real poisson_ptrs(const rng_real mu, const uint2 key, const ulong ind
     const rng_real a = -0.059 + 0.02483 * b;
     const rng_real log_inv_alpha = rng_log(1.1239 + 1.1328 / (b - 3.4));
     const rng_real vr = 0.9277 - 3.6224 / (b - 2.0);
-#ifdef SINGLE
-    /* floor(X + mu + 0.43) as floor(X + (mu - floor mu + 0.43)) + floor mu: exact split, so the float
-     * sum loses ulp(X), not ulp(mu) (mu + 0.43 alone rounds to 2^-25 mu: 2 % of the draws moved at 3e5) */
-    const rng_real mu_int = floor(mu), mu_frac = (mu - mu_int) + 0.43;
-#endif
+    RNG_PTRS_SPLIT(mu)
     for (uint attempt = 0u; attempt < PTRS_MAX_ATTEMPTS; ++attempt) {
         const uint4 w = philox_block(key, index, stream, attempt);
         const rng_real U = philox_u01(w.x, w.y) - 0.5;
         const rng_real V = philox_u01(w.z, w.w);
         const rng_real us = 0.5 - fabs(U);
-#ifdef SINGLE
-        const rng_real k = floor((2.0 * a / us + b) * U + mu_frac) + mu_int;
-#else
-        const rng_real k = floor((2.0 * a / us + b) * U + mu + 0.43);
-#endif
+        const rng_real k = RNG_PTRS_K(a, b, us, U, mu);
         if (us >= 0.07 && V <= vr)
             return k;
         if (k < 0.0 || (us < 0.013 && V > us))

@@ -359,6 +359,18 @@ RNG_INLINE rng_real box_muller_lanes(const rng_uint a, const rng_uint b, const r
     return radius * cs;
 }
 
+/* PTRS (Hoermann 1993) proposal k = floor((2a/us + b) U + mu + 0.43), shared by noise.cl and ramp.cl:
+ * RNG_PTRS_SPLIT(mu) once before the attempts, then RNG_PTRS_K(...) per attempt.  In float mu is split
+ * exactly into floor(mu) + frac, so the sum rounds at ulp(X), not ulp(mu) (mu + 0.43 alone rounds to
+ * 2^-25 mu: 2 % of the draws moved at mu = 3e5). */
+#ifdef SINGLE
+#define RNG_PTRS_SPLIT(mu) const rng_real ptrs_whole_ = floor(mu), ptrs_frac_ = ((mu) - ptrs_whole_) + 0.43;
+#define RNG_PTRS_K(a, b, us, U, mu) (floor((2.0 * (a) / (us) + (b)) * (U) + ptrs_frac_) + ptrs_whole_)
+#else
+#define RNG_PTRS_SPLIT(mu)
+#define RNG_PTRS_K(a, b, us, U, mu) floor((2.0 * (a) / (us) + (b)) * (U) + (mu) + 0.43)
+#endif
+
 #if RNG_VW == 1 && !defined(SINGLE)
 /* Scalar convenience: (cos, sin) Box-Muller pair of a block. */
 inline double2 box_muller(const uint4 w)

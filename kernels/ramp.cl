@@ -414,22 +414,14 @@ RAMP_INLINE rng_real ptrs_lanes(const rng_real mu, const ramp_mask lanes, const 
 {
     rng_real res = 0.0;
     ramp_mask todo = lanes;
-#ifdef SINGLE
-    /* floor(X + mu + 0.43) as floor(X + (mu - floor mu + 0.43)) + floor mu: an exact split, so the float
-     * sum rounds at ulp(X), not ulp(mu) (as noise.cl) */
-    const rng_real mu_int = floor(mu), mu_frac = (mu - mu_int) + 0.43;
-#endif
+    RNG_PTRS_SPLIT(mu)
     for (uint attempt = 0u; attempt < RAMP_PTRS_MAX_ATTEMPTS && RAMP_ANY(todo); ++attempt) {
         rng_uint wa, wb, wc, wd;
         ramp_block(index, stream, attempt, k0, k1, &wa, &wb, &wc, &wd);
         const rng_real U = philox_u01(wa, wb) - 0.5;
         const rng_real V = philox_u01(wc, wd);
         const rng_real us = 0.5 - fabs(U);
-#ifdef SINGLE
-        const rng_real k = floor((2.0 * a / us + b) * U + mu_frac) + mu_int;
-#else
-        const rng_real k = floor((2.0 * a / us + b) * U + mu + 0.43);
-#endif
+        const rng_real k = RNG_PTRS_K(a, b, us, U, mu);
         ramp_mask accept = (us >= 0.07) && (V <= vr);
         const ramp_mask test = todo && !accept && !((k < 0.0) || ((us < 0.013) && (V > us)));
         if (RAMP_ANY(test)) {
