@@ -50,6 +50,9 @@ def test_truth_lane_error_stops_the_blocks_promptly(tmp_path, monkeypatch):
 
 _SIGINT_SCRIPT = textwrap.dedent("""
     import os, signal, sys, threading, time
+    # a parent that ignores SIGINT (a background job of a non-interactive shell) passes SIG_IGN on,
+    # and Python then installs no KeyboardInterrupt handler: give this process Python's default one
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     import numpy as np
     from slicersim.products import effects, ramps
     calls, sent = [], []
