@@ -40,7 +40,7 @@ def _trust_device() -> bool:
 def device_validated(precision: str = "double") -> tuple:
     """(passed, message): whether the selected OpenCL device gives the NumPy twin's random
     draws and ramps (:func:`slicersim.backends.selfcheck.device_selfcheck`; with
-    ``precision="single"`` the float builds' ramps within their documented deviation,
+    ``precision="single"`` the float builds' noise draws and ramps within their documented deviation,
     :func:`~slicersim.backends.selfcheck.device_selfcheck_single`), checked once per device,
     precision and process (a check that could not run is not kept: the next call tries again).
     Every noisy product goes through these kernels: a driver that computes or returns them wrongly
