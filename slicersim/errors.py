@@ -7,7 +7,8 @@ CLI) can catch them in one place; each is also a ``ValueError``, ``OSError`` or
 from __future__ import annotations
 
 __all__ = ["SlicersimError", "ConfigError", "ReadoutError", "SpectrumError", "ETCError",
-           "ParameterError", "RampFileError", "OpenCLUnavailableError", "OpenCLForkError", "DatasetError", "EffectsError"]
+           "ParameterError", "RampFileError", "OpenCLUnavailableError", "OpenCLForkError", "DatasetError", "EffectsError",
+           "ReductionError"]
 
 
 class SlicersimError(Exception):
@@ -53,3 +54,8 @@ class DatasetError(SlicersimError, OSError):
 class EffectsError(SlicersimError, ValueError):
     """Invalid detector-systematics request: unknown effect name, negative rate or fraction,
     IPC kernel summing to more than 1, non-invertible nonlinearity."""
+
+
+class ReductionError(SlicersimError, RuntimeError):
+    """A reduction step that cannot give a trustworthy result on these data: a point-source fit that
+    does not converge, lands on the field edge, or finds no source near the light's centroid."""

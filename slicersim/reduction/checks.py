@@ -32,12 +32,14 @@ from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import one_line
 
 __all__ = ["check_ramp_file", "check_spectra_options", "check_fit_options", "register_hdf5_filters",
-           "MAX_NCOL", "DEFAULT_NCOL", "WEIGHTS", "default_lbda_edges", "dark_rate_of"]
+           "MAX_NCOL", "DEFAULT_NCOL", "WEIGHTS", "FORWARD", "default_lbda_edges", "dark_rate_of"]
 
 #: largest number of columns per slice accepted (a slice is 58 cells wide in the Lazuli design)
 MAX_NCOL = 1024
 #: columns per slice of reduce_exposure's cubes by default
 DEFAULT_NCOL = 58
+#: reduce_exposure's extraction on the detector pixels with the instrument's forward model
+FORWARD = "forward"
 #: reduce_exposure's lsq weights (see its docstring)
 WEIGHTS = ("model", "forward", "data")
 _READOUT_KEYS = ("NINTS", "NGROUPS", "NFRAMES", "GROUPGAP", "TFRAME", "TGROUP")
@@ -285,8 +287,8 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
             raise ParameterError(f"rectify_method must be one of {RECTIFY_METHODS}, got {rectify_method!r}")
         out["rectify_method"] = rectify_method
     if extraction is not None:
-        if extraction not in METHODS:
-            raise ParameterError(f"extraction must be one of {METHODS}, got {extraction!r}")
+        if extraction not in (FORWARD, *METHODS):
+            raise ParameterError(f"extraction must be one of {(FORWARD, *METHODS)}, got {extraction!r}")
         if extraction == "gls" and rectify_method == "drizzle":
             raise ParameterError("extraction 'gls' needs an lsq cube (its inverse covariance): not with "
                                  "rectify_method 'drizzle'")
@@ -324,10 +326,13 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
     # options that would do nothing in this reduction are refused, not ignored
     method = out.get("rectify_method", "lsq")
     extracted = out.get("extraction") or ("gls" if method == "lsq" else "optimal")
+    if "aperture" in out and extracted == FORWARD:
+        raise ParameterError("aperture applies to the 'optimal' and 'aperture' extractions (the cells they use), "
+                             "not to 'forward' (every pixel the source reaches)")
     if "aperture" in out and extracted == "gls":
         raise ParameterError("aperture applies to the 'optimal' and 'aperture' extractions (the cells they use), "
                              "not to 'gls' (every cell of the field)")
-    if "propagate" in out and (method != "lsq" or extracted == "gls"):
+    if "propagate" in out and (method != "lsq" or extracted in ("gls", FORWARD)):
         raise ParameterError(f"propagate applies to 'optimal' or 'aperture' extraction of an lsq cube only (this "
                              f"reduction: {extracted!r} on a {method!r} cube)")
     given_dark = dark is not _UNSET
