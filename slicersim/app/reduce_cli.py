@@ -17,7 +17,8 @@ __all__ = ["add_parsers", "cmd_reduce", "parse_lbda_edges"]
 #: flags of --spectra (name on the command line, attribute)
 _SPECTRA_FLAGS = (("--field", "field"), ("--lbda-edges", "lbda_edges"), ("--ncol", "ncol"),
                   ("--rectify", "rectify"), ("--extraction", "extraction"), ("--psf", "psf"),
-                  ("--position", "position"), ("--aperture", "aperture"), ("--no-background", "no_background"),
+                  ("--position", "position"), ("--aperture", "aperture"), ("--config", "config"),
+                  ("--no-background", "no_background"),
                   ("--no-propagate", "no_propagate"), ("--dark", "dark"), ("--weights", "weights"))
 #: flags of a dataset directory
 _DATASET_FLAGS = (("--workers", "workers"), ("--scheduler", "scheduler"), ("--retry-failed", "retry_failed"),
@@ -152,7 +153,8 @@ def _spectra_options(args):
             "lbda_edges": parse_lbda_edges(args.lbda_edges) if args.lbda_edges is not None else None,
             "position": _parse_position(args.position) if args.position is not None else None,
             "psf": _load_psf(args.psf) if args.psf is not None else None,
-            "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights}
+            "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights,
+            "config": args.config}
     opts = {k: v for k, v in opts.items() if v is not None}       # --dark none: "none" (kept, not None)
     check_spectra_options(**opts)                  # every value, before any data are read
     return opts
@@ -241,10 +243,16 @@ def add_parsers(sub, fmt):
     g.add_argument("--ncol", type=int, metavar="N", help=f"columns per slice, 1 to {MAX_NCOL} (default: 58)")
     g.add_argument("--rectify", choices=RECTIFY_METHODS, help="lsq: exact weighted least squares (default); "
                    "drizzle: fast pixel-to-cell sharing, biased")
-    g.add_argument("--extraction", choices=EXTRACTION_METHODS,
-                   help="spectrum extraction (default: the pipeline's choice for the --rectify method)")
-    g.add_argument("--psf", metavar="fit|FILE.npy", help="'fit': Gaussian fitted on the cube (default); or a "
-                   ".npy array (nλ, slices, columns) of PSF fractions")
+    g.add_argument("--extraction", choices=("forward", *EXTRACTION_METHODS),
+                   help="spectrum extraction: 'forward' (default when the file records its instrument "
+                        "configuration) fits the point source on the detector pixels with the configuration's "
+                        "PSF, LSF and projection (unbiased for any --ncol/--rectify); 'gls', 'optimal', "
+                        "'aperture' extract from the cube and need --psf FILE.npy when the instrument is known "
+                        "(a PSF fitted on the coarse cells biases them)")
+    g.add_argument("--config", metavar="cbe|eol|PATH",
+                   help="instrument configuration of the forward model (default: the one the file records)")
+    g.add_argument("--psf", metavar="fit|FILE.npy", help="cube extractions: 'fit' a Gaussian fitted on the cube; "
+                   "or a .npy array (nλ, slices, columns) of PSF fractions or a forward-modelled template")
     g.add_argument("--position", metavar="X,Y", help="source position [cells from the field centre] "
                    "(default: fitted)")
     g.add_argument("--aperture", type=float, metavar="SIGMA", help="aperture radius [white-light PSF σ] "
@@ -255,7 +263,7 @@ def add_parsers(sub, fmt):
                         "(dark + thermal dark + glow; nothing, with a warning, if the file has none), "
                         "'none', a rate [e-/s] or a .npy detector image [e-/s]")
     g.add_argument("--weights", choices=("model", "forward", "data"),
-                   help="lsq weights: 'forward' (default) the variance of the first extraction's point source + "
+                   help="lsq weights of the cube: 'forward' (default) the variance of the fitted point source + "
                         "background model, 'model' that of the first cubes' image, 'data' the ramp fit's own "
                         "variance")
     g.add_argument("--no-propagate", action="store_true",

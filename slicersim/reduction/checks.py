@@ -265,7 +265,7 @@ _UNSET = object()       # dark not given (None given: subtract nothing)
 
 def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, rectify_method=None,
                           extraction=None, psf=None, position=None, aperture=None, background=None,
-                          propagate=None, dark=_UNSET, weights=None):
+                          propagate=None, dark=_UNSET, weights=None, config=None):
     """Validate :func:`~slicersim.reduction.pipeline.reduce_exposure` options before any data are
     read; returns the dict of those given (None: the pipeline's default), the λ edges as an array.
 
@@ -317,6 +317,14 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
             if not isinstance(val, (bool, np.bool_)):
                 raise ParameterError(f"{key} must be True or False, got {val!r}")
             out[key] = bool(val)
+    if config is not None:
+        if isinstance(config, (list, tuple)):
+            bad = not config or not all(isinstance(c, (str, os.PathLike)) for c in config)
+        else:
+            bad = not isinstance(config, (str, os.PathLike)) or not str(config)
+        if bad:
+            raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
+        out["config"] = config
     if weights is not None:
         if not isinstance(weights, str) or weights not in WEIGHTS:
             raise ParameterError(f"weights must be one of {WEIGHTS}, got {weights!r}")

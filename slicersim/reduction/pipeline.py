@@ -247,11 +247,15 @@ def _instrument(raw_path, config, extraction, psf):
     this file, or None; refuses the combinations that cannot give an unbiased spectrum."""
     from slicersim.reduction.forward_extraction import model_config
     attrs = {}
-    if config is None and extraction in (None, FORWARD):
-        if isinstance(raw_path, (str, os.PathLike)):
+    if config is None:
+        if isinstance(raw_path, (str, os.PathLike)) and os.path.isfile(raw_path):
+            from slicersim.errors import SlicersimError
             from slicersim.reduction.ramp_fit import open_ramps
-            with open_ramps(raw_path) as src:
-                attrs = dict(src.attrs)
+            try:                                    # a file that cannot be read is refused by fit_ramps
+                with open_ramps(raw_path) as src:
+                    attrs = dict(src.attrs)
+            except (SlicersimError, OSError):
+                attrs = {}
         elif isinstance(raw_path, (tuple, list)) and len(raw_path) == 4 and isinstance(raw_path[3], dict):
             attrs = raw_path[3]
     model = model_config(attrs, config)
@@ -271,7 +275,7 @@ def _instrument(raw_path, config, extraction, psf):
                           "config= (CLI: --config) for the forward-model extraction", RuntimeWarning, stacklevel=3)
         elif given_psf:
             return None                                  # the user's PSF: the cube extraction it was made for
-    elif model is not None and not given_psf and config is None:
+    elif model is not None and not given_psf:
         raise ParameterError(f"extraction {extraction!r} with a Gaussian PSF fitted on the cube is biased by the "
                              "coarse cells (−3 % on a noiseless Lazuli SN Ia at z = 0.5 even with the true PSF): "
                              "use the default extraction 'forward' (fitted on the pixels), or give psf= a "

@@ -443,6 +443,16 @@ def _cube_axes(values):
     return np.ascontiguousarray(np.swapaxes(values, -3, -2)[..., ::-1, :])
 
 
+def _slice_threads():
+    """Threads of the per-slice LSQ: the usable CPU cores, at most 4."""
+    import os
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:
+        n = os.cpu_count() or 1
+    return max(1, min(4, n))
+
+
 def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend, info):
     """Weighted LSQ of one field: ((N, S, nλ, ncol) flux, (S, nλ, ncol) variance or None, diagnostics);
     the slices' normal matrices go to ``info`` (an :class:`InverseCovariance`, kept if it keeps them)."""
@@ -458,15 +468,23 @@ def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend
     flux = np.empty((N, S, nc))
     var = np.empty((S, nc)) if want_variance else None
     cond, lost = 0.0, 0.0
-    for s in range(S):
+
+    def one_slice(s):
         P, upix, w, lost_s = _slice_matrix(tables, s, flat_w.__getitem__)
         A = _normal_matrix(P, w)
-        info._store(s, A)
         x, v, c = _solve_slice(P, w, rhs[:, s].T, flat_d[:, upix].T, want_variance, max_bytes, slices[s], A)
-        flux[:, s] = x.T
-        if want_variance:
-            var[s] = v
-        cond, lost = max(cond, c), max(lost, float(lost_s.max()))
+        return A, x, v, c, float(lost_s.max())
+
+    # slices are independent: the BLAS/LAPACK and sparse work of two slices overlaps in threads
+    # (the same arithmetic per slice: results do not depend on the thread count)
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(max_workers=_slice_threads()) as pool:
+        for s, (A, x, v, c, lost_s) in enumerate(pool.map(one_slice, range(S))):
+            info._store(s, A)
+            flux[:, s] = x.T
+            if want_variance:
+                var[s] = v
+            cond, lost = max(cond, c), max(lost, lost_s)
     flux = flux.reshape((N,) + shape)
     chi2, grad = [], []
     for n in range(N):                                                  # model image P x̂ on the device

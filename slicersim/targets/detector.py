@@ -127,9 +127,19 @@ class DetectorProducts:
         params = dict(tframe=det.tframe, ron=det.ron, dark=det.dark, thermal_dark=sim.thermal_dark,
                       roic_glow=det.roic_glow, gain=det.gain,
                       saturation=min(det.saturation, 65535.0), backend=backend,
-                      config={"config": str(self.config), "field": self.field})
+                      config={"config": _recorded_config(self.config), "field": self.field,
+                              "conventions": sim.conventions, "psf_profile": "gaussian"})
         params.update(kwargs)
         return simulate(image, nmd, nramps, seed=seed, out=out, **params)
+
+
+def _recorded_config(config):
+    """The configuration as the ramp file records it (CONFIG): built-in names as they are, TOML paths
+    absolute (so that the reduction finds them from any directory); a list stays a list."""
+    import os
+    items = config if isinstance(config, (list, tuple)) else [config]
+    out = [c if isinstance(c, str) and c in ("cbe", "eol") else os.path.abspath(os.fspath(c)) for c in items]
+    return out if isinstance(config, (list, tuple)) else out[0]
 
 
 def _return_free_memory():
