@@ -246,6 +246,8 @@ def _instrument(raw_path, config, extraction, psf):
     """The forward model's instrument (:func:`~slicersim.reduction.forward_extraction.model_config`) of
     this file, or None; refuses the combinations that cannot give an unbiased spectrum."""
     from slicersim.reduction.forward_extraction import model_config
+    if config is not None:
+        check_spectra_options(config=config)
     attrs = {}
     if config is None:
         if isinstance(raw_path, (str, os.PathLike)) and os.path.isfile(raw_path):
