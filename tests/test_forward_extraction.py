@@ -145,3 +145,21 @@ def test_cube_extractions_with_a_cube_fitted_psf_are_refused_when_the_instrument
         reduce_exposure((sci, None, None, bare), extraction="forward")
     with pytest.raises(ParameterError, match="config must be"):
         reduce_exposure((sci, None, None, bare), extraction="forward", config=3)
+
+
+def test_rate_unit_is_the_slope_the_reduction_measures(scene):
+    """get_spectrum(unit="rate") divides by the integration time (the slope a ramp fit measures), as the
+    reduced spectra do: with gain 1 it equals the forward extraction's e-/s per bin; F_λ of the fit is the
+    input F_λ (LSF-convolved) within the spectral shape across a bin."""
+    sn, sim = scene["sn"], scene["sn"].simulation
+    _, rate, _ = sn.get_spectrum(unit="rate")
+    _, adu, _ = sn.get_spectrum()
+    assert np.allclose(rate * sim.get_times()["integration_time"], adu, rtol=1e-12)
+    s = extract_forward(scene["image"], scene["var"], sim=scene["sim"], mapper=scene["mapper"], position=(0.0, 0.0))
+    F = s.diagnostics["native_flux"]
+    band = _band(scene["edges"])
+    assert abs(F[band].sum() / (rate[band] / sim.detector.gain).sum() - 1) < 1e-4
+    flam = s.diagnostics["flambda"]
+    true_flam = sim.spectrograph.apply_lsf(sim.pointsource_flambda)
+    assert np.abs(flam[band] / true_flam[band] - 1).max() < 0.03     # QE and f2p vary within the LSF
+    assert abs(np.sum(flam[band]) / np.sum(true_flam[band]) - 1) < 2e-3

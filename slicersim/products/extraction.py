@@ -18,7 +18,8 @@ aperture sum is F × EE, EE = Σ_c P_c the enclosed-energy fraction.
 is built): the extracted component (point source or host light), and the variance of the whole
 scene from ``Simulation.cell_variance``.  Units (:func:`unit_factors`): ``adu`` (all ramps),
 ``flambda`` [erg/s/cm²/Å] = ADU / (f2p QE g t_int r), ``fphoton`` [ph/s] = ADU / (QE g t_int r),
-``rate`` [ADU/s] = ADU / exposure time (all ramps), ``framerate`` [ADU/frame] = rate × t_frame.
+``rate`` [ADU/s] = ADU / integration time (all ramps: the slope a ramp fit measures, the time the
+reduced rates and spectra use), ``framerate`` [ADU/frame] = rate × t_frame.
 """
 from __future__ import annotations
 
@@ -127,7 +128,7 @@ def unit_factors(sim, unit, nmd=None, nramps=None):
         return np.ones_like(sim.lbda)
     if name in ("rate", "framerate"):
         frame = sim.detector.tframe if name == "framerate" else 1.0
-        return np.full_like(sim.lbda, frame / times["exposure_time"])
+        return np.full_like(sim.lbda, frame / times["integration_time"])
     ph_to_adu = sim.qe * sim.detector.gain * times["integration_time"]      # ADU per ph/s (all ramps)
     if name == "fphoton":
         return 1.0 / ph_to_adu

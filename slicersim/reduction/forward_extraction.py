@@ -353,12 +353,18 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
         psf_sigma = np.stack([M @ sig_x, M @ sig_y], axis=1) / wsum[:, None]
     P = _psf(sim, psf_profile, pos)
     ee = M @ P.sum(axis=(1, 2)) / np.where(wsum > 0, wsum, 1.0)
+    # F_λ [erg/s/cm²/Å]: the rate over the response R_j = QE_j f2p_j [e-/s per erg/s/cm²/Å] (telescope
+    # area, throughput, bin width, QE), F_λ(b) = Σ_j M_bj F_j / Σ_j M_bj R_j (exact for F_λ flat in b)
+    response = M @ (qe * np.asarray(sim.flambda_to_photon, float))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        to_flambda = np.where(response > 0, 1.0 / response, np.nan)
     diag = {"position_native_cells": tuple(float(p) for p in pos), "start": tuple(float(p) for p in start_pos),
             "iterations": it, "converged": converged, "chi2": chi2, "dof": dof, "chi2_dof": chi2 / dof,
             "pixels": int(fp.pixels.size), "native_flux": Fn, "native_covariance": Cn,
             "covariance": cbin, "rows": rows.tolist(),
             "variance_model": "(AᵀWA)⁻¹, W the model variance" if var_rnoise is not None else "(AᵀWA)⁻¹",
-            "pixel_index": fp.pixels, "pixel_variance": v}
+            "pixel_index": fp.pixels, "pixel_variance": v, "flambda_per_rate": to_flambda,
+            "flambda": flux * to_flambda, "flambda_variance": cvar * to_flambda ** 2}
     lb = 0.5 * (edges[1:] + edges[:-1])
     scale = np.asarray(cell_scale, float)
     return SpectrumProduct(lbda=lb, lbda_edges=edges, flux=flux, variance=cvar, method="forward", unit="e-/s",

@@ -327,6 +327,17 @@ def _reduce_forward(rates, rate, var, model, writer, *, mapper, field, edges, nc
     return result
 
 
+#: units of the written datasets (attribute BUNIT on every dataset; e- are photo-electrons, rates are
+#: slopes: charge per second of integration time)
+UNITS = {"RATE": "e-/s", "VAR": "(e-/s)^2", "LBDA": "Angstrom", "FLAMBDA": "erg/s/cm^2/Angstrom",
+         "VAR_FLAMBDA": "(erg/s/cm^2/Angstrom)^2"}
+RATE_UNITS = {"RATE": "e-/s", "VAR": "(e-/s)^2", "VAR_POISSON": "(e-/s)^2", "VAR_RNOISE": "(e-/s)^2",
+              "DQ": "flags", "NJUMPS": "count"}
+SPECTRUM_UNITS = {"LBDA": "Angstrom", "LBDA_EDGES": "Angstrom", "FLUX": "e-/s per bin", "VAR": "(e-/s per bin)^2",
+                  "PSF_SIGMA": "cell", "BACKGROUND": "e-/s per cell per bin", "BACKGROUND_VAR": "(e-/s per cell per bin)^2",
+                  "ENCLOSED_ENERGY": "fraction"}
+
+
 def _fit_summary(spec):
     """The forward fit's convergence and goodness of fit, for the file's attributes."""
     d = spec.diagnostics
@@ -345,23 +356,26 @@ def _write(writer, result):
     with writer as w:
         for name, data in (("RATE", rates.rate), ("VAR", rates.variance), ("VAR_POISSON", rates.var_poisson),
                            ("VAR_RNOISE", rates.var_rnoise), ("DQ", rates.dq), ("NJUMPS", rates.njumps)):
-            w.write(f"rates/{name}", data)
+            w.write(f"rates/{name}", data, attrs={"BUNIT": RATE_UNITS[name]})
         if rates.truth_rate is not None:                          # fit_options with_truth=True
-            w.write("rates/TRUTH_RATE", rates.truth_rate)
+            w.write("rates/TRUTH_RATE", rates.truth_rate, attrs={"BUNIT": UNITS["RATE"]})
         for name, cube in result["cubes"].items():
             w.write(f"cubes/{name}/FLUX", cube.flux, attrs={"BUNIT": f"{cube.unit} per cell per bin",
                                                             "METHOD": cube.method})
             if cube.variance is not None:
-                w.write(f"cubes/{name}/VAR", cube.variance)
-            w.write(f"cubes/{name}/LBDA", cube.lbda)
-            w.write(f"cubes/{name}/LBDA_EDGES", cube.lbda_edges)
-            w.write(f"cubes/{name}/SLICE_OF_ROW", np.asarray(cube.slices))
+                w.write(f"cubes/{name}/VAR", cube.variance, attrs={"BUNIT": f"({cube.unit})^2 per cell per bin"})
+            w.write(f"cubes/{name}/LBDA", cube.lbda, attrs={"BUNIT": UNITS["LBDA"]})
+            w.write(f"cubes/{name}/LBDA_EDGES", cube.lbda_edges, attrs={"BUNIT": UNITS["LBDA"]})
+            w.write(f"cubes/{name}/SLICE_OF_ROW", np.asarray(cube.slices), attrs={"BUNIT": "slice number"})
         for name, spec in result["spectra"].items():
             for key, arr in spec.arrays().items():
-                w.write(f"spectra/{name}/{key}", arr)
+                w.write(f"spectra/{name}/{key}", arr, attrs={"BUNIT": SPECTRUM_UNITS[key]})
             if spec.method == FORWARD:                  # neighbouring bins share pixels: their covariance
-                w.write(f"spectra/{name}/COVARIANCE", np.asarray(spec.diagnostics["covariance"]),
-                        attrs={"BUNIT": "(e-/s)^2"})
+                d = spec.diagnostics
+                w.write(f"spectra/{name}/COVARIANCE", np.asarray(d["covariance"]), attrs={"BUNIT": UNITS["VAR"]})
+                w.write(f"spectra/{name}/FLUX_FLAMBDA", np.asarray(d["flambda"]), attrs={"BUNIT": UNITS["FLAMBDA"]})
+                w.write(f"spectra/{name}/VAR_FLAMBDA", np.asarray(d["flambda_variance"]),
+                        attrs={"BUNIT": UNITS["VAR_FLAMBDA"]})
         attrs = {k: (json.dumps(v) if isinstance(v, (dict, list, tuple)) else v)
                  for k, v in rates.attrs.items() if v is not None}
         attrs.update(PRODUCTS="rates,cubes,spectra", SPECTRUM_UNIT="e-/s per bin")
@@ -381,6 +395,6 @@ def _write(writer, result):
         attrs["WEIGHTS"] = result.get("weights", "data")
         attrs["RECTIFY_METHOD"] = next(iter(result["cubes"].values())).method if result["cubes"] else "none"
         var = np.asarray(result["variance"], np.float32)
-        w.write("rates/RECTIFY_VAR", var, attrs={"BUNIT": "(e-/s)^2", "WEIGHTS": attrs["WEIGHTS"]})
+        w.write("rates/RECTIFY_VAR", var, attrs={"BUNIT": UNITS["VAR"], "WEIGHTS": attrs["WEIGHTS"]})
         w.set_attrs(attrs)
     return os.path.abspath(os.fspath(writer.path))

@@ -411,8 +411,8 @@ class Target(DetectorProducts):
         aperture : "core" (the point-source extraction radius), "<x>-arcsec" or "<x>-kpc"
             (:mod:`slicersim.products.extraction`); None: "core", or "1-arcsec" (1.4.2's) for
             the host (``of_host``) and for ``method="aperture"``.
-        unit : "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s] or
-            "framerate" [ADU/frame] (1.4.2 names accepted: :data:`~slicersim.products.extraction.UNITS`);
+        unit : "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s of integration
+            time: the slope, as the reduced rates and spectra] or "framerate" [ADU/frame] (1.4.2 names accepted: :data:`~slicersim.products.extraction.UNITS`);
             the variance is in unit².
         switch_off : components left out of the signal and variance (a name or names:
             :func:`~slicersim.products.components.check_switch_off`, the rule of cubes and spectra;
