@@ -166,21 +166,25 @@ class _Footprint:
         fitted = fitted[usable(fitted)]
         keep = np.isin(pix, fitted)
         self.pixels = fitted                                   # flat detector indices
-        self.row = np.searchsorted(fitted, pix[keep])
+        row = np.searchsorted(fitted, pix[keep])
         cell = cell[keep]
-        self.weight = wgt[keep]
-        self.bin = (cell // Q) % E
-        self.cube_row = S - 1 - cell // (E * Q)
-        self.col = cell % Q
+        nbin = (cell // Q) % E
+        order = np.lexsort((nbin, row))                         # CSR order, built once (values change)
+        self.weight = wgt[keep][order]
+        self.bin = nbin[order].astype(np.int32)
+        self.cube_row = (S - 1 - cell // (E * Q))[order]
+        self.col = (cell % Q)[order]
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(row, minlength=fitted.size))])
         self.nbin = E
 
     def matrix(self, values):
-        """Sparse (pixels × native bins) 𝒫 applied to per-cell values (nλ, ny, nx) bin by bin."""
+        """Sparse (pixels × native bins) 𝒫 applied to per-cell values (nλ, ny, nx) bin by bin (CSR with
+        the duplicates of cells sharing a pixel and a bin, which products sum)."""
         data = self.weight * values[self.bin, self.cube_row, self.col]
-        return sp.csr_matrix((data, (self.row, self.bin)), shape=(self.pixels.size, self.nbin))
+        return sp.csr_matrix((data, self.bin, self.indptr), shape=(self.pixels.size, self.nbin))
 
     def background(self):
-        return sp.csr_matrix((self.weight, (self.row, self.bin)), shape=(self.pixels.size, self.nbin))
+        return sp.csr_matrix((self.weight, self.bin, self.indptr), shape=(self.pixels.size, self.nbin))
 
 
 def _psf(sim, profile, position, rows=None):
@@ -201,7 +205,7 @@ def _lsf_averaged(sim, P, phi):
 def _solve(A, d, v):
     """Weighted LS: (θ̂, covariance) over the columns the data constrain (others NaN / 0)."""
     w = 1.0 / v
-    G = (A.T @ sp.csr_matrix(A.multiply(w[:, None]))).toarray()
+    G = (A.T @ (sp.diags(w) @ A)).toarray()
     b = A.T @ (w * d)
     ok = np.diag(G) > 0
     theta = np.full(G.shape[0], np.nan)
