@@ -163,3 +163,28 @@ def test_rate_unit_is_the_slope_the_reduction_measures(scene):
     true_flam = sim.spectrograph.apply_lsf(sim.pointsource_flambda)
     assert np.abs(flam[band] / true_flam[band] - 1).max() < 0.03     # QE and f2p vary within the LSF
     assert abs(np.sum(flam[band]) / np.sum(true_flam[band]) - 1) < 2e-3
+
+
+def test_ipc_is_deconvolved_before_the_fit(scene):
+    """A rate image with IPC (the Lazuli kernel): left in, the band flux is ~1 % low; deconvolved
+    (:func:`deconvolve_ipc`, as reduce_exposure does when the file records IPC), the input returns to
+    1e-4."""
+    from scipy.ndimage import convolve
+
+    from slicersim.physics.ipc import ipc_kernel
+    from slicersim.reduction.ipc_correction import deconvolve_ipc, ipc_kernel_of
+    K = ipc_kernel()
+    img = convolve(scene["image"], K, mode="constant")
+    band = _band(scene["edges"])
+    T = scene["truth"][band].sum()
+    kw = dict(sim=scene["sim"], mapper=scene["mapper"], position=(0.0, 0.0))
+    left = extract_forward(img, scene["var"], **kw).diagnostics["native_flux"][band].sum() / T
+    usable = np.ones(img.shape, bool)
+    corrected = deconvolve_ipc(img, usable, K)
+    assert np.abs(corrected - scene["image"])[8:-8, 8:-8].max() < 1e-10 * scene["image"].max()
+    fixed = extract_forward(corrected, scene["var"], **kw).diagnostics["native_flux"][band].sum() / T
+    assert left < 0.995 and abs(fixed - 1) < 1e-4
+    attrs = {"EFFECTS": json.dumps({"effects": {"enabled": ["ipc"], "ipc": {"alpha": 0.016, "alpha_diag": 0.002}}})}
+    np.testing.assert_allclose(ipc_kernel_of(attrs), K)
+    assert ipc_kernel_of({"EFFECTS": json.dumps({"effects": {"enabled": ["cosmic_rays"]}})}) is None
+    assert ipc_kernel_of({}) is None

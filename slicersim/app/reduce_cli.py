@@ -18,7 +18,7 @@ __all__ = ["add_parsers", "cmd_reduce", "parse_lbda_edges"]
 _SPECTRA_FLAGS = (("--field", "field"), ("--lbda-edges", "lbda_edges"), ("--ncol", "ncol"),
                   ("--rectify", "rectify"), ("--extraction", "extraction"), ("--psf", "psf"),
                   ("--position", "position"), ("--aperture", "aperture"), ("--config", "config"),
-                  ("--no-background", "no_background"),
+                  ("--no-background", "no_background"), ("--no-ipc", "no_ipc"),
                   ("--no-propagate", "no_propagate"), ("--dark", "dark"), ("--weights", "weights"))
 #: flags of a dataset directory
 _DATASET_FLAGS = (("--workers", "workers"), ("--scheduler", "scheduler"), ("--retry-failed", "retry_failed"),
@@ -154,7 +154,7 @@ def _spectra_options(args):
             "position": _parse_position(args.position) if args.position is not None else None,
             "psf": _load_psf(args.psf) if args.psf is not None else None,
             "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights,
-            "config": args.config}
+            "config": args.config, "ipc": False if args.no_ipc else None}
     opts = {k: v for k, v in opts.items() if v is not None}       # --dark none: "none" (kept, not None)
     check_spectra_options(**opts)                  # every value, before any data are read
     return opts
@@ -249,6 +249,9 @@ def add_parsers(sub, fmt):
                         "PSF, LSF and projection (unbiased for any --ncol/--rectify); 'gls', 'optimal', "
                         "'aperture' extract from the cube and need --psf FILE.npy when the instrument is known "
                         "(a PSF fitted on the coarse cells biases them)")
+    g.add_argument("--no-ipc", action="store_true",
+                   help="do not deconvolve the rates by the file's inter-pixel capacitance kernel (done by "
+                        "default when the file records the IPC effect)")
     g.add_argument("--config", metavar="cbe|eol|PATH",
                    help="instrument configuration of the forward model (default: the one the file records)")
     g.add_argument("--psf", metavar="fit|FILE.npy", help="cube extractions: 'fit' a Gaussian fitted on the cube; "

@@ -265,7 +265,7 @@ _UNSET = object()       # dark not given (None given: subtract nothing)
 
 def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, rectify_method=None,
                           extraction=None, psf=None, position=None, aperture=None, background=None,
-                          propagate=None, dark=_UNSET, weights=None, config=None):
+                          propagate=None, dark=_UNSET, weights=None, config=None, ipc=None):
     """Validate :func:`~slicersim.reduction.pipeline.reduce_exposure` options before any data are
     read; returns the dict of those given (None: the pipeline's default), the λ edges as an array.
 
@@ -317,6 +317,10 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
             if not isinstance(val, (bool, np.bool_)):
                 raise ParameterError(f"{key} must be True or False, got {val!r}")
             out[key] = bool(val)
+    if ipc is not None:
+        if ipc is not False:
+            raise ParameterError(f"ipc must be None (the file's IPC, when it records one) or False, got {ipc!r}")
+        out["ipc"] = False
     if config is not None:
         if isinstance(config, (list, tuple)):
             bad = not config or not all(isinstance(c, (str, os.PathLike)) for c in config)

@@ -102,7 +102,7 @@ def forward_model_cubes(cubes, spectra, psf=None):
 def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, ncol=DEFAULT_NCOL, rectify_method="lsq",
                     extraction=None, psf="fit", position=None, aperture=3.0, background=True,
                     propagate=True, fit_options=None, out=None, overwrite=False, keep_information=False,
-                    weights=None, dark="auto", config=None):
+                    weights=None, dark="auto", config=None, ipc=None):
     """Reduce one raw exposure to rates, cube(s) and spectra.
 
     raw_path : ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts
@@ -139,6 +139,9 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
         forward-modelled template (:func:`~slicersim.reduction.templates.point_source_template`)
     config : instrument configuration of the forward model (a name, TOML path or list, as
         :func:`~slicersim.io.config.load_config`); None: the one the file records
+    ipc : deconvolve the rates by the file's inter-pixel capacitance kernel before rectification and
+        extraction (:mod:`~slicersim.reduction.ipc_correction`): None (default) when the file records
+        the IPC effect, False never
     psf, position, aperture, background : :func:`extract_spectrum` options
     propagate : "optimal" / "aperture" on an LSQ cube: spectrum variance with the full cube
         covariance (:func:`propagate_variance`; the cells-independent sum is kept as
@@ -161,6 +164,8 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     from slicersim.reduction.spectra import extract_spectrum, propagate_variance
     if field not in (*FIELDS, "both"):
         raise ParameterError(f"unknown field {field!r}: 'narrow', 'wide' or 'both'")
+    if ipc is not None and ipc is not False:
+        raise ParameterError(f"ipc must be None (the file's IPC, when it records one) or False, got {ipc!r}")
     if fit_options is not None and not isinstance(fit_options, dict):
         raise ParameterError("fit_options must be a dict of fit_ramps keyword arguments")
     if weights is not None and (not isinstance(weights, str) or weights not in WEIGHTS):
@@ -191,6 +196,13 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     dark_rate, dark_kind = dark_rate_of(dark, rates, mapper.detector_shape)
     var = rate_variance(rates)
     rate = np.where(np.isfinite(var), rates.rate - dark_rate, 0.0)
+    kernel = None
+    if ipc is None:
+        from slicersim.reduction.ipc_correction import deconvolve_ipc, ipc_kernel_of
+        kernel = ipc_kernel_of(rates.attrs)
+        if kernel is not None:
+            rate = deconvolve_ipc(rate, np.isfinite(var), kernel)
+    rates.attrs["IPC_CORRECTED"] = kernel is not None
     if extraction == FORWARD:
         return _reduce_forward(rates, rate, var, model, writer, mapper=mapper, field=field, edges=edges, ncol=ncol,
                                rectify_method=rectify_method, position=position, background=background,
