@@ -51,6 +51,8 @@ _MAX_ITER = 12
 _CENTROID_TOL_CELLS = 3.0
 #: least significance [σ] of the white-light peak for a point source to be fitted
 MIN_DETECTION = 5.0
+#: pixels whose residual exceeds this many σ of the model variance are left out of the fit
+_REJECT_SIGMA = 5.0
 
 
 def instrument_model(config="cbe", field="narrow", conventions=None):
@@ -283,6 +285,7 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
     U = fp.background() if background else None
     qe = np.asarray(sim.qe, float)
     phi = None
+    rejected = np.zeros(d.size, bool)
     converged, it = fixed, 0
     h = 0.02
     for it in range(1, _MAX_ITER + 1):
@@ -292,9 +295,13 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
         A = sp.hstack(cols).tocsr()
         theta, cov = _solve(A, d, v)
         F = np.nan_to_num(theta[:nl])
+        model = A @ np.nan_to_num(theta)
         if var_rnoise is not None:                   # model variance from this pass
-            v = _model_variance(A @ np.nan_to_num(theta), fp.pixels, var_rnoise, var_poisson, raw_rate,
-                                dark_rate, usable_var)
+            v = _model_variance(model, fp.pixels, var_rnoise, var_poisson, raw_rate, dark_rate, usable_var)
+        # pixels the model cannot explain (an unflagged cosmic ray or hot pixel) leave the fit
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rejected |= np.abs(d - model) > _REJECT_SIGMA * np.sqrt(np.where(np.isfinite(v), v, usable_var[fp.pixels]))
+        v = np.where(rejected, np.inf, v)
         phi = np.maximum(F, 0.0) / np.where(qe > 0, qe, 1.0) + 1e-30
         if fixed:
             if it >= 2:
@@ -332,8 +339,8 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
                                  "point source (give position=)")
     model = A @ np.nan_to_num(theta)
     resid = d - model
-    dof = max(fp.pixels.size - int(np.sum(np.diag(cov) > 0)) - (0 if fixed else 2), 1)
-    chi2 = float(np.sum(resid ** 2 / v))
+    dof = max(fp.pixels.size - int(rejected.sum()) - int(np.sum(np.diag(cov) > 0)) - (0 if fixed else 2), 1)
+    chi2 = float(np.sum(np.where(rejected, 0.0, resid ** 2 / np.where(rejected, 1.0, v))))
     M = aggregate_bins(ne, edges)
     Fn, Cn = theta[:nl], cov[:nl, :nl]
     seen = np.diag(Cn) > 0
@@ -364,7 +371,7 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
         to_flambda = np.where(response > 0, 1.0 / response, np.nan)
     diag = {"position_native_cells": tuple(float(p) for p in pos), "start": tuple(float(p) for p in start_pos),
             "iterations": it, "converged": converged, "chi2": chi2, "dof": dof, "chi2_dof": chi2 / dof,
-            "pixels": int(fp.pixels.size), "native_flux": Fn, "native_covariance": Cn,
+            "pixels": int(fp.pixels.size), "rejected_pixels": int(rejected.sum()), "native_flux": Fn, "native_covariance": Cn,
             "covariance": cbin, "rows": rows.tolist(),
             "variance_model": "(AᵀWA)⁻¹, W the model variance" if var_rnoise is not None else "(AᵀWA)⁻¹",
             "pixel_index": fp.pixels, "pixel_variance": v, "flambda_per_rate": to_flambda,

@@ -356,7 +356,8 @@ def _fit_summary(spec):
     if spec.method != FORWARD:
         return {}
     return {"position_native_cells": list(d["position_native_cells"]), "iterations": d["iterations"],
-            "converged": bool(d["converged"]), "chi2_dof_pixels": d["chi2_dof"], "pixels": d["pixels"]}
+            "converged": bool(d["converged"]), "chi2_dof_pixels": d["chi2_dof"], "pixels": d["pixels"],
+            "rejected_pixels": d.get("rejected_pixels", 0)}
 
 
 class _Writer(AtomicH5File):
