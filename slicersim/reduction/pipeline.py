@@ -152,7 +152,8 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     fit_options : keyword arguments of ``fit_ramps`` (refpix, linearity, jump_threshold, weighting, ...)
     out : HDF5 path written atomically with all three products (module docstring)
 
-    Returns ``{"rates": RateProduct, "cubes": {field: CubeProduct}, "spectra": {field: SpectrumProduct},
+    Returns ``{"rates": RateProduct, "rate": the rate image rectified and extracted [e-/s] (dark
+    subtracted, IPC deconvolved, 0 where unusable), "cubes": {field: CubeProduct}, "spectra": {field: SpectrumProduct},
     "variance": the pixel variance the cubes were rectified with, "dark_rate": the dark subtracted,
     "dark_kind": how it was chosen, "noise_information": {field: B} for the sandwich variance of a GLS
     extraction or of :func:`propagate_variance` on model-weighted cubes
@@ -172,7 +173,8 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
         raise ParameterError(f"weights must be one of {WEIGHTS} (or None: the default), got {weights!r}")
     # every option checked before any data are read (the forward weights add a whole pass before the
     # final extraction would refuse them)
-    model = _instrument(raw_path, config, extraction, psf)
+    raw_attrs = _raw_attrs(raw_path)
+    model = _instrument(raw_attrs, config, extraction, psf)
     if extraction is None:
         extraction = FORWARD if model is not None else ("gls" if rectify_method == "lsq" else "optimal")
     check_spectra_options(mapper=mapper, field=field, lbda_edges=lbda_edges, ncol=ncol, rectify_method=rectify_method,
@@ -199,7 +201,7 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
     kernel = None
     if ipc is None:
         from slicersim.reduction.ipc_correction import deconvolve_ipc, ipc_kernel_of
-        kernel = ipc_kernel_of(rates.attrs)
+        kernel = ipc_kernel_of(raw_attrs)
         if kernel is not None:
             rate = deconvolve_ipc(rate, np.isfinite(var), kernel)
     rates.attrs["IPC_CORRECTED"] = kernel is not None
@@ -247,32 +249,35 @@ def reduce_exposure(raw_path, *, mapper=None, field="narrow", lbda_edges=None, n
             spec.diagnostics["variance_model"] = ("full LSQ cube covariance (propagate_variance)" if not noise else
                                                   "full LSQ cube covariance, sandwich N⁻¹BN⁻¹ with the pixels' "
                                                   "variance (propagate_variance)")
-    result = {"rates": rates, "cubes": cubes, "spectra": spectra, "variance": var, "dark_rate": dark_rate,
+    result = {"rates": rates, "rate": rate, "cubes": cubes, "spectra": spectra, "variance": var, "dark_rate": dark_rate,
               "dark_kind": dark_kind, "noise_information": noise, "weights": weights}
     if writer is not None:
         result["path"] = _write(writer, result)
     return result
 
 
-def _instrument(raw_path, config, extraction, psf):
+def _raw_attrs(raw_path):
+    """The raw file's keywords (CONFIG, EFFECTS, ...), {} when it cannot be read (fit_ramps then says why)."""
+    if isinstance(raw_path, (str, os.PathLike)) and os.path.isfile(raw_path):
+        from slicersim.errors import SlicersimError
+        from slicersim.reduction.ramp_fit import open_ramps
+        try:
+            with open_ramps(raw_path) as src:
+                return dict(src.attrs)
+        except (SlicersimError, OSError):
+            return {}
+    if isinstance(raw_path, (tuple, list)) and len(raw_path) == 4 and isinstance(raw_path[3], dict):
+        return dict(raw_path[3])
+    return {}
+
+
+def _instrument(attrs, config, extraction, psf):
     """The forward model's instrument (:func:`~slicersim.reduction.forward_extraction.model_config`) of
     this file, or None; refuses the combinations that cannot give an unbiased spectrum."""
     from slicersim.reduction.forward_extraction import model_config
     if config is not None:
         check_spectra_options(config=config)
-    attrs = {}
-    if config is None:
-        if isinstance(raw_path, (str, os.PathLike)) and os.path.isfile(raw_path):
-            from slicersim.errors import SlicersimError
-            from slicersim.reduction.ramp_fit import open_ramps
-            try:                                    # a file that cannot be read is refused by fit_ramps
-                with open_ramps(raw_path) as src:
-                    attrs = dict(src.attrs)
-            except (SlicersimError, OSError):
-                attrs = {}
-        elif isinstance(raw_path, (tuple, list)) and len(raw_path) == 4 and isinstance(raw_path[3], dict):
-            attrs = raw_path[3]
-    model = model_config(attrs, config)
+    model = model_config(attrs if config is None else {}, config)
     given_psf = psf is not None and not isinstance(psf, str)
     if extraction == FORWARD:
         if model is None:
@@ -332,7 +337,8 @@ def _reduce_forward(rates, rate, var, model, writer, *, mapper, field, edges, nc
     cubes = rectify(rate, cube_var, mapper=mapper, field=field, lbda_edges=edges, ncol=ncol, method=rectify_method,
                     keep_information=bool(keep_information))
     cubes = cubes if field == "both" else {field: cubes}
-    result = {"rates": rates, "cubes": cubes, "spectra": spectra, "variance": cube_var, "dark_rate": dark_rate,
+    result = {"rates": rates, "rate": rate, "cubes": cubes, "spectra": spectra, "variance": cube_var,
+              "dark_rate": dark_rate,
               "dark_kind": dark_kind, "noise_information": {}, "weights": weights, "instrument": model}
     if writer is not None:
         result["path"] = _write(writer, result)
