@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pytest
 
-from slicersim.errors import ParameterError, ReductionError
+from slicersim.errors import ParameterError, RampFileError, ReductionError
 from slicersim.reduction.forward_extraction import (aggregate_bins, extract_forward, instrument_model,
                                                     locate_source, model_config, white_light_start)
 
@@ -123,11 +123,17 @@ def test_model_config_reads_what_the_ramp_file_records():
     attrs = {"CONFIG": json.dumps({"config": "eol", "field": "wide", "conventions": "physical",
                                    "psf_profile": "gaussian"})}
     assert model_config(attrs) == {"config": "eol", "field": "wide", "conventions": "physical",
-                                   "psf_profile": "gaussian"}
+                                   "psf_profile": "gaussian", "recorded": "eol"}
     assert model_config({}) is None and model_config({"CONFIG": "{}"}) is None
     assert model_config({}, config="cbe")["config"] == "cbe"
-    with pytest.raises(ParameterError, match="no forward model"):
-        model_config({"CONFIG": json.dumps({"config": "cbe", "psf_profile": "moffat"})})
+    # config= replaces the configuration only: the file's conventions and field are kept (review: a
+    # slicersim-1.0 file reduced with --config lost its conventions, −14 %)
+    old = {"CONFIG": json.dumps({"config": "cbe", "field": "narrow", "conventions": "slicersim-1.0"})}
+    assert model_config(old, config="cbe")["conventions"] == "slicersim-1.0"
+    # a CONFIG keyword that is not an object naming a configuration is an error, not "none recorded"
+    for bad in ("{not json", '["cbe"]', json.dumps({"config": 3})):
+        with pytest.raises(RampFileError, match="CONFIG"):
+            model_config({"CONFIG": bad})
 
 
 def test_cube_extractions_with_a_cube_fitted_psf_are_refused_when_the_instrument_is_known(tmp_path):
@@ -205,3 +211,22 @@ def test_unflagged_outliers_on_the_source_are_rejected(scene):
     noisy = scene["image"] + np.sqrt(scene["var"]) * np.random.default_rng(5).standard_normal(img.shape)
     s = extract_forward(noisy, scene["var"], sim=scene["sim"], mapper=scene["mapper"], position=(0.0, 0.0))
     assert s.diagnostics["rejected_pixels"] < 10
+
+
+def test_a_second_source_is_flagged(scene):
+    """Review finding: a second point source 10 cells away was fitted as one (−2.5 %, silently).  The fit
+    now flags light left in its residual's white light (warning + SPECTRUM_<FIELD> "warnings")."""
+    from slicersim.instrument.mapper import NARROW_SLICES
+    from slicersim.reduction.pipeline import check_forward_fit
+    from slicersim.targets import LazuliSupernova
+    other = LazuliSupernova(Z, position=(10.0, 3.0)).get_detector_image(scene["mapper"])
+    img = scene["image"] + 0.5 * other
+    s = extract_forward(img, scene["var"], sim=scene["sim"], mapper=scene["mapper"], start=(0.1, 0.1))
+    sim = scene["sim"]
+    tables = scene["mapper"].projection_tables(NARROW_SLICES, sim.spectrograph.shape[1], scene["edges"])
+    with pytest.warns(RuntimeWarning, match="second source"):
+        check_forward_fit(s, img, scene["var"], tables, "narrow")
+    assert any("second source" in w for w in s.diagnostics["warnings"])
+    clean = extract_forward(scene["image"], scene["var"], sim=sim, mapper=scene["mapper"], position=(0.0, 0.0))
+    check_forward_fit(clean, scene["image"], scene["var"], tables, "narrow")
+    assert clean.diagnostics["warnings"] == []

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from slicersim.errors import ParameterError, ReductionError
+from slicersim.errors import ParameterError, RampFileError, ReductionError
 from slicersim.reduction.spectrum_product import SpectrumProduct
 
 __all__ = ["extract_forward", "instrument_model", "model_config", "locate_source", "white_light_start",
@@ -57,43 +57,79 @@ _REJECT_SIGMA = 5.0
 
 def instrument_model(config="cbe", field="narrow", conventions=None):
     """The :class:`~slicersim.simulation.Simulation` whose PSF, LSF, QE and native λ grid the forward
-    model uses (``config`` as :func:`slicersim.assembly.build_simulation`)."""
-    from slicersim.assembly import build_simulation
-    from slicersim.physics.conventions import DEFAULT_CONVENTIONS
-    return build_simulation(config, field, conventions=conventions or DEFAULT_CONVENTIONS)
+    model uses (``config`` as :func:`slicersim.assembly.build_simulation`; the last four built are
+    kept: a reduction checks the configuration before reading data, then uses it)."""
+    import json
+    key = json.dumps([config, field, conventions], default=str)
+    sim = _MODELS.get(key)
+    if sim is None:
+        from slicersim.assembly import build_simulation
+        from slicersim.physics.conventions import DEFAULT_CONVENTIONS
+        sim = build_simulation(config, field, conventions=conventions or DEFAULT_CONVENTIONS)
+        _MODELS[key] = sim
+        while len(_MODELS) > 4:
+            _MODELS.pop(next(iter(_MODELS)))
+    return sim
+
+
+_MODELS = {}
 
 
 def model_config(attrs, config=None):
     """The instrument model a raw file was simulated with: ``{"config", "field", "conventions",
-    "psf_profile"}`` from its ``CONFIG`` keyword (JSON, written by ``Target.get_ramps``), with ``config``
-    (a name, TOML path or list, as :func:`slicersim.io.config.load_config`) overriding it; None when
-    neither names a configuration (e.g. ramps of a bare rate image, or a foreign level-1b file)."""
+    "psf_profile", "recorded"}`` from its ``CONFIG`` keyword (a JSON object, written by
+    ``Target.get_ramps``); ``config`` (a name, TOML path or list, as
+    :func:`slicersim.io.config.load_config`) replaces the recorded configuration only (the file's field,
+    conventions and PSF profile are kept; ``recorded`` is the file's own).  None when neither names a
+    configuration (ramps of a bare rate image, a foreign level-1b file).  A CONFIG keyword that is
+    present but not such an object is a :class:`~slicersim.errors.RampFileError`."""
     import json
-    raw = (attrs or {}).get("CONFIG")
+    raw = (attrs or {}).get("CONFIG", {})
     if isinstance(raw, bytes):
         raw = raw.decode(errors="replace")
     if isinstance(raw, str):
         try:
             raw = json.loads(raw) if raw.strip() else {}
         except ValueError:
-            raw = {}
-    found = dict(raw) if isinstance(raw, dict) else {}
-    if config is not None:
-        found["config"] = config
-    if not found.get("config"):
+            raw = None
+    hint = "give the configuration explicitly (config=, CLI --config cbe|eol|PATH)"
+    if raw is None or not isinstance(raw, dict):
+        raise RampFileError(f"the file's CONFIG keyword is not a JSON object naming the configuration: {hint}")
+    recorded = raw.get("config")
+    if recorded not in (None, "") and not _config_like(recorded):
+        raise RampFileError(f"the file's CONFIG names the configuration {recorded!r}, not a name, a TOML path or "
+                            f"a list of them: {hint}")
+    chosen = config if config is not None else recorded
+    if chosen in (None, "", []):
         return None
-    profile = found.get("psf_profile") or "gaussian"
-    if profile not in FORWARD_PSF_PROFILES:
-        raise ParameterError(f"the file's PSF profile {profile!r} has no forward model "
-                             f"({', '.join(FORWARD_PSF_PROFILES)}): use an extraction on the cube")
-    return {"config": found["config"], "field": found.get("field") or "narrow",
-            "conventions": found.get("conventions"), "psf_profile": profile}
+    for key in ("field", "conventions", "psf_profile"):
+        if raw.get(key) is not None and not isinstance(raw.get(key), str):
+            raise RampFileError(f"the file's CONFIG has {key} = {raw[key]!r}, not a name: {hint}")
+    return {"config": chosen, "field": raw.get("field") or None, "conventions": raw.get("conventions"),
+            "psf_profile": raw.get("psf_profile") or "gaussian", "recorded": recorded}
 
 
-def white_light_start(rate, variance, tables):
+def _config_like(value):
+    items = value if isinstance(value, list) else [value]
+    return bool(items) and all(isinstance(c, str) and c for c in items)
+
+
+def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
     """Where the light is, from the pixels alone: the native cells' white light Σ_λ Pᵀd / Σ_λ Pᵀ1
-    (transpose of the projection, no rectification), then :func:`locate_source`.  Returns
-    ((x, y) [native cells from the field centre], significance [σ])."""
+    (transpose of the projection, no rectification), then :func:`locate_source` (over the cube
+    ``rows`` only, when given).  ``noise_floor``: the scatter the significance is measured against is
+    at least that of white noise of ``variance`` through the same statistic (for residual images,
+    whose own scatter can be far below the noise).  Returns ((x, y) [native cells from the field
+    centre], significance [σ])."""
+    floor = 0.0
+    if noise_floor:
+        noise = np.sqrt(np.where(np.isfinite(variance) & (variance > 0), variance, 0.0))
+        noise = noise * np.random.default_rng(0).standard_normal(noise.shape)
+        floor = locate_source(_white_light_cube(noise, variance, tables, rows), scatter=True)
+    return locate_source(_white_light_cube(rate, variance, tables, rows), floor=floor)
+
+
+def _white_light_cube(rate, variance, tables, rows):
     from slicersim.backends.projection_transpose import gather
     usable = np.isfinite(variance) & (variance > 0)
     d = np.where(usable, rate, 0.0)
@@ -102,14 +138,19 @@ def white_light_start(rate, variance, tables):
     with np.errstate(invalid="ignore", divide="ignore"):
         cells = np.where(den > 0.5 * np.median(den[den > 0]) if (den > 0).any() else den > 0, num / den, np.nan)
     cube = np.swapaxes(cells, 0, 1)[:, ::-1, :]              # (E, rows, Q): row r ↔ slice S − 1 − r
-    return locate_source(cube)
+    if rows is not None:
+        keep = np.zeros(cube.shape[1], bool)
+        keep[np.asarray(rows, int)] = True
+        cube = np.where(keep[None, :, None], cube, np.nan)
+    return cube
 
 
-def locate_source(cube_flux, cube_variance=None):
+def locate_source(cube_flux, floor=0.0, scatter=False):
     """Centre of the brightest compact light in a cube (nλ, ny, nx): white light (each plane minus its
     median), 3×3 box smoothing, peak cell, centroid over the 5×5 cells around it.
 
-    Returns ((x, y) [cube cells from the field centre], significance of the peak [σ]).
+    Returns ((x, y) [cube cells from the field centre], significance of the peak [σ]: over the robust
+    scatter of the smoothed white light, at least ``floor``); ``scatter=True``: that scatter only.
     """
     from scipy.ndimage import uniform_filter
     flux = np.asarray(cube_flux, float)
@@ -119,11 +160,18 @@ def locate_source(cube_flux, cube_variance=None):
     with np.errstate(all="ignore"):
         med = np.nanmedian(np.where(good, flux, np.nan), axis=(1, 2))
     white = np.where(good, flux - np.nan_to_num(med)[:, None, None], 0.0).sum(axis=0)
+    seen = good.any(axis=0)                                  # cells with data: the statistics' sample
+    if not seen.any():
+        return 0.0 if scatter else ((0.0, 0.0), 0.0)
     smooth = uniform_filter(white, 3, mode="constant")
     ny, nx = white.shape
-    iy, ix = np.unravel_index(int(np.argmax(smooth)), smooth.shape)
-    mad = np.median(np.abs(smooth - np.median(smooth))) * 1.4826
-    signif = float((smooth[iy, ix] - np.median(smooth)) / mad) if mad > 0 else np.inf
+    iy, ix = np.unravel_index(int(np.argmax(np.where(seen, smooth, -np.inf))), smooth.shape)
+    level = np.median(smooth[seen])
+    mad = np.median(np.abs(smooth[seen] - level)) * 1.4826
+    if scatter:
+        return float(mad)
+    mad = max(mad, float(floor))
+    signif = float((smooth[iy, ix] - level) / mad) if mad > 0 else 0.0
     y0, y1, x0, x1 = max(iy - 2, 0), min(iy + 3, ny), max(ix - 2, 0), min(ix + 3, nx)
     w = np.clip(white[y0:y1, x0:x1], 0, None)
     yy, xx = np.mgrid[y0:y1, x0:x1]
@@ -281,7 +329,7 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
     edges = ne if lbda_edges is None else np.asarray(lbda_edges, float)
     fixed = position is not None
     pos = np.array(position if fixed else (start if start is not None else (0.0, 0.0)), float)
-    _check_position(pos, (ny, nx), "the start" if not fixed else "position")
+    _check_position(pos, (ny, nx), "the light's centroid" if not fixed else "position", cell_scale, fixed)
     start_pos = pos.copy()
     tables = mapper.projection_tables(slices, nx, ne).host()
     P = _psf(sim, psf_profile, pos)
@@ -336,7 +384,7 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
         delta = np.nan_to_num(theta_j[-2:])
         delta = np.clip(delta, -1.0, 1.0)                       # at most a cell per step
         pos = pos + delta
-        _check_position(pos, (ny, nx), "the fitted position")
+        _check_position(pos, (ny, nx), "the fitted position", cell_scale)
         if np.all(np.abs(delta) < _POSITION_TOL) and it >= 2:
             converged = True
             P = _psf(sim, psf_profile, pos)
@@ -346,14 +394,14 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
             break
     if not converged:
         raise ReductionError(f"the point-source fit in the {field} field did not converge in {_MAX_ITER} "
-                             f"iterations (position {tuple(np.round(pos, 3))} cells): give position=")
+                             f"iterations (position ({pos[0] / cell_scale[0]:.3f}, {pos[1]:.3f}) cells): give position=")
     if not fixed:
         sig = np.asarray(sim.psf_sigmas, float)          # (σ_y, σ_x) per bin [cells]
         tol = max(_CENTROID_TOL_CELLS, 3.0 * float(np.median(sig)))
         if np.hypot(*(pos - start_pos)) > tol:
-            raise ReductionError(f"the fitted position {tuple(np.round(pos, 2))} is {np.hypot(*(pos - start_pos)):.1f} "
-                                 f"cells from the light's centroid {tuple(np.round(start_pos, 2))}: no reliable "
-                                 "point source (give position=)")
+            raise ReductionError(f"the fitted position ({pos[0]:.2f}, {pos[1]:.2f}) is {np.hypot(*(pos - start_pos)):.1f} "
+                                 f"native cells from the light's centroid ({start_pos[0]:.2f}, {start_pos[1]:.2f}): "
+                                 "no reliable point source (give position=)")
     model = A @ np.nan_to_num(theta)
     resid = d - model
     dof = max(fp.pixels.size - int(rejected.sum()) - int(np.sum(np.diag(cov) > 0)) - (0 if fixed else 2), 1)
@@ -391,7 +439,7 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
             "pixels": int(fp.pixels.size), "rejected_pixels": int(rejected.sum()), "native_flux": Fn, "native_covariance": Cn,
             "covariance": cbin, "rows": rows.tolist(),
             "variance_model": "(AᵀWA)⁻¹, W the model variance" if var_rnoise is not None else "(AᵀWA)⁻¹",
-            "pixel_index": fp.pixels, "pixel_variance": v, "flambda_per_rate": to_flambda,
+            "pixel_index": fp.pixels, "pixel_variance": v, "residual": np.where(rejected, 0.0, resid), "flambda_per_rate": to_flambda,
             "flambda": flux * to_flambda, "flambda_variance": cvar * to_flambda ** 2}
     lb = 0.5 * (edges[1:] + edges[:-1])
     scale = np.asarray(cell_scale, float)
@@ -401,14 +449,18 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
                            diagnostics=diag)
 
 
-def _check_position(pos, shape, what):
+def _check_position(pos, shape, what, scale=(1.0, 1.0), given=False):
+    """A position [native cells] the fit can use: finite and at least half a cell inside the field
+    (messages in the caller's cells: native cells ÷ ``scale``)."""
     ny, nx = shape
+    sx, sy = (float(v) for v in scale)
     if not np.all(np.isfinite(pos)):
-        raise ReductionError(f"{what} is not finite: {tuple(pos)}")
+        raise ReductionError(f"{what} is not finite: ({float(pos[0])}, {float(pos[1])})")
     hx, hy = nx / 2.0 - 0.5, ny / 2.0 - 0.5
     if abs(pos[0]) > hx or abs(pos[1]) > hy:
-        raise ReductionError(f"{what} ({pos[0]:.2f}, {pos[1]:.2f}) native cells is on or beyond the field edge "
-                             f"(|x| ≤ {hx}, |y| ≤ {hy}): no point source there to fit (give position=)")
+        advice = "" if given else " (give position= to extract elsewhere)"
+        raise ReductionError(f"{what} ({pos[0] / sx:.2f}, {pos[1] / sy:.2f}) cells is too close to the field edge "
+                             f"to fit a point source (|x| ≤ {hx / sx:.2f}, |y| ≤ {hy / sy:.2f}){advice}")
 
 
 def _model_variance(model, pixels, var_rnoise, var_poisson, raw_rate, dark_rate, data_var):
