@@ -364,8 +364,21 @@ def _user_errors():
     return (SlicersimError, ValueError, OSError, MemoryError, KeyboardInterrupt)
 
 
+_PYTHON_SHOWWARNING = __import__("warnings").showwarning
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings as one line ``slicersim: warning: ...`` (no source file and code line)."""
+    print(f"slicersim: warning: {_one_line(message)}", file=sys.stderr if file is None else file)
+
+
 def main(argv=None) -> int:
+    import warnings
     args = build_parser().parse_args(argv)
+    # one line per warning, unless someone (a test harness, an application) already shows them its way
+    ours = warnings.showwarning is _PYTHON_SHOWWARNING
+    if ours:
+        warnings.showwarning = _show_warning
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:  # e.g. `slicersim info | head`
@@ -385,6 +398,9 @@ def main(argv=None) -> int:
         sys.stdout.flush()
         print(f"slicersim: error: {_one_line(message)}", file=sys.stderr)
         return 2
+    finally:
+        if ours:
+            warnings.showwarning = _PYTHON_SHOWWARNING
 
 
 if __name__ == "__main__":  # pragma: no cover
