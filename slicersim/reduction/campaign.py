@@ -44,6 +44,11 @@ _KIND = "slicersim reduction"
 
 
 # ----------------------------------------------------------------------------- one file
+#: the reduction's point-source model, part of a dataset reduction's identity (a reduction made with an
+#: earlier default is refused, not mixed, when resumed)
+SPECTRUM_MODEL = "forward-model extraction on the pixels (v1)"
+
+
 def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=None, progress=None, mapper=None,
                 **options):
     """Reduce one raw ramp file (our HDF5 or a level-1b FITS), every input checked before any data
@@ -188,9 +193,12 @@ def _identity(mode, opts, fit, source_digest, mapper):
            **{k: v for k, v in fit.items() if k not in _RUNTIME and v is not None}}
     if mode == "spectra":
         keys = {"field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
-                "background", "propagate", "dark", "weights"}
+                "background", "propagate", "dark", "weights", "config", "ipc"}
         opts = {**_defaults(reduce_exposure, keys), **opts}
-        opts.setdefault("field", "(each target's)")
+        if opts.get("field") is None:
+            opts["field"] = "(each target's)"
+        # what the default extraction is: reductions made before the forward model are not resumed into it
+        opts["spectrum_model"] = SPECTRUM_MODEL
         if opts.get("weights") is None:                      # the default, as reduce_exposure resolves it
             opts["weights"] = "forward" if opts.get("rectify_method", "lsq") == "lsq" else "data"
     canon = {}
