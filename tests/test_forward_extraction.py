@@ -230,3 +230,19 @@ def test_a_second_source_is_flagged(scene):
     clean = extract_forward(scene["image"], scene["var"], sim=sim, mapper=scene["mapper"], position=(0.0, 0.0))
     check_forward_fit(clean, scene["image"], scene["var"], tables, "narrow")
     assert clean.diagnostics["warnings"] == []
+
+
+def test_the_instrument_is_checked_before_any_data_are_read():
+    """Review findings: --config other than the recorded one warns (it changes flux and F_λ); a CONFIG
+    naming a TOML that does not exist is refused, naming the file's CONFIG, before the ramp fit (here the
+    8×8 arrays would otherwise be refused for their size, after the fit)."""
+    from slicersim.reduction.pipeline import reduce_exposure
+    base = {"NFRAMES": 1, "GROUPGAP": 0, "TFRAME": 1.0, "GAIN": 1.0, "READNOISE": 1.0}
+    sci = np.zeros((1, 3, 8, 8), np.uint16)
+    cbe = {**base, "CONFIG": json.dumps({"config": "cbe", "field": "narrow"})}
+    with pytest.warns(RuntimeWarning, match="simulated with the configuration 'cbe'"):
+        with pytest.raises(ParameterError, match="not the mapper's detector"):
+            reduce_exposure((sci, None, None, cbe), config="eol")
+    missing = {**base, "CONFIG": json.dumps({"config": "/nonexistent/lazuli.toml", "field": "narrow"})}
+    with pytest.raises(ParameterError, match="the file's CONFIG .* cannot be loaded.*--config"):
+        reduce_exposure((sci, None, None, missing))
