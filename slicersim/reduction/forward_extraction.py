@@ -237,7 +237,9 @@ class _Footprint:
         return sp.csr_matrix((self.weight, self.bin, self.indptr), shape=(self.pixels.size, self.nbin))
 
 
-def _psf(sim, profile, position, rows=None):
+def _psf(sim, profile, position):
+    """P[λ, y, x] of the configuration's PSF profile at ``position`` [native cells] (NumPy: the fit's
+    finite differences need the same arithmetic at every call)."""
     from slicersim.products.cube import psf_block
     return np.asarray(psf_block(sim, profile, 0, sim.lbda.size, position=tuple(position), backend="numpy"), float)
 
