@@ -322,3 +322,43 @@ def test_reduce_file_wrong_types(call, message):
     from slicersim.reduction.campaign import reduce_file
     with pytest.raises((ParameterError, TypeError), match=message):
         call(reduce_file)
+
+
+@pytest.mark.slow
+def test_reduce_spectra_defaults_on_a_full_detector_ramp(tmp_path, capsys):
+    """`slicersim ramp --redshift 0.5` then `slicersim reduce RAW --out RED --spectra` with every default:
+    the forward extraction in the recorded field, the band flux within 4 σ of the input, units on every
+    dataset, valid JSON; `--field both` extracts the field with the source and warns (one line) for the
+    other (review: it failed on every single-source ramp); `--extraction gls` is refused with the reason."""
+    from slicersim.targets import LazuliSupernova
+    raw, red, both = tmp_path / "raw.h5", tmp_path / "red.h5", tmp_path / "both.h5"
+    assert main(["ramp", "--redshift", "0.5", "--seed", "3", "--out", str(raw)]) == 0
+    assert main(["reduce", str(raw), "--out", str(red), "--spectra", "--quiet"]) == 0
+    assert "narrow cube" in capsys.readouterr().out
+    sn = LazuliSupernova(0.5)
+    _, rate, _ = sn.get_spectrum(unit="rate")
+    ne = sn.simulation.spectrograph.lbda_edges
+    with h5py.File(red, "r") as fh:
+        sp = fh["spectra/narrow"]
+        edges, flux, cov = sp["LBDA_EDGES"][...], sp["FLUX"][...], sp["COVARIANCE"][...]
+        info = json.loads(fh.attrs["SPECTRUM_NARROW"])                 # strict JSON: no NaN
+        units = {}
+        fh.visititems(lambda n, o: units.setdefault(n, o.attrs.get("BUNIT")) if isinstance(o, h5py.Dataset)
+                      else None)
+        assert json.loads(fh.attrs["RAW_CONFIG"])["field"] == "narrow"
+    assert info["method"] == "forward" and info["converged"] and info["warnings"] == []
+    assert all(u for u in units.values()), [n for n, u in units.items() if not u]
+    centre = 0.5 * (edges[1:] + edges[:-1]) / 1.5
+    band = (centre >= 4000) & (centre <= 6800)
+    from slicersim.reduction.forward_extraction import aggregate_bins
+    truth = (aggregate_bins(ne, edges) @ (rate / sn.simulation.detector.gain))[band].sum()
+    ratio, sigma = flux[band].sum() / truth, np.sqrt(cov[np.ix_(band, band)].sum()) / truth
+    print(f"band flux / input {ratio:.4f} ± {sigma:.4f}")
+    assert abs(ratio - 1) < 4 * sigma
+    assert main(["reduce", str(raw), "--out", str(both), "--spectra", "--field", "both", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "slicersim: warning: no point source in the wide field" in err and "Warning" not in err
+    with h5py.File(both, "r") as fh:
+        assert "spectra/narrow" in fh and "spectra/wide" not in fh
+    assert main(["reduce", str(raw), "--out", str(tmp_path / "gls.h5"), "--spectra", "--extraction", "gls"]) == 2
+    assert "biased by the coarse cells" in capsys.readouterr().err

@@ -182,8 +182,10 @@ def cmd_reduce(args) -> int:
     line = (f"{result['path']}: rates {rate.shape[-2]}×{rate.shape[-1]} of {rate.shape[0] if rate.ndim == 3 else 1} "
             f"integration(s), {int((result['rates'].njumps > 0).sum())} pixel(s) with jumps")
     if args.spectra:
-        line += "; " + ", ".join(f"{name} cube {'×'.join(map(str, cube.flux.shape[-3:]))}, spectrum "
-                                 f"({result['spectra'][name].method})" for name, cube in result["cubes"].items())
+        spectra = result["spectra"]
+        line += "; " + ", ".join(f"{name} cube {'×'.join(map(str, cube.flux.shape[-3:]))}, "
+                                 + (f"spectrum ({spectra[name].method})" if name in spectra else "no spectrum (no source)")
+                                 for name, cube in result["cubes"].items())
     print(line)
     return 0
 
