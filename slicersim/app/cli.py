@@ -364,21 +364,22 @@ def _user_errors():
     return (SlicersimError, ValueError, OSError, MemoryError, KeyboardInterrupt)
 
 
-_PYTHON_SHOWWARNING = __import__("warnings").showwarning
+_PYTHON_FORMATWARNING = __import__("warnings").formatwarning
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None):
+def _format_warning(message, category, filename, lineno, line=None):
     """Warnings as one line ``slicersim: warning: ...`` (no source file and code line)."""
-    print(f"slicersim: warning: {_one_line(message)}", file=sys.stderr if file is None else file)
+    return f"slicersim: warning: {_one_line(message)}\n"
 
 
 def main(argv=None) -> int:
     import warnings
     args = build_parser().parse_args(argv)
-    # one line per warning, unless someone (a test harness, an application) already shows them its way
-    ours = warnings.showwarning is _PYTHON_SHOWWARNING
+    # one line per warning where Python would print it (recorders such as catch_warnings(record=True)
+    # still get the warning objects), unless an application already formats them its own way
+    ours = warnings.formatwarning is _PYTHON_FORMATWARNING
     if ours:
-        warnings.showwarning = _show_warning
+        warnings.formatwarning = _format_warning
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:  # e.g. `slicersim info | head`
@@ -400,7 +401,7 @@ def main(argv=None) -> int:
         return 2
     finally:
         if ours:
-            warnings.showwarning = _PYTHON_SHOWWARNING
+            warnings.formatwarning = _PYTHON_FORMATWARNING
 
 
 if __name__ == "__main__":  # pragma: no cover
