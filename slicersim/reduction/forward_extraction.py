@@ -426,8 +426,8 @@ def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=N
             bkg = (M @ np.nan_to_num(Bn)) / wsum
             bvar = (M ** 2 @ Bc) / wsum ** 2
     sig_y, sig_x = (np.asarray(s, float) for s in sim.psf_sigmas)
+    wsum = M.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        wsum = M.sum(axis=1)
         psf_sigma = np.stack([M @ sig_x, M @ sig_y], axis=1) / wsum[:, None]
     P = _psf(sim, psf_profile, pos)
     ee = M @ P.sum(axis=(1, 2)) / np.where(wsum > 0, wsum, 1.0)

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 
 import numpy as np
 
 from slicersim.backends.precision import float64_kwargs
-from slicersim.errors import ParameterError, RampFileError, SlicersimError
+from slicersim.errors import ParameterError, RampFileError, ReductionError, SlicersimError
 from slicersim.io.atomic import AtomicH5File
 # re-exported here (their documented home): WEIGHTS, dark_rate_of, default_lbda_edges
 from slicersim.reduction.checks import (DEFAULT_NCOL, FORWARD, WEIGHTS, check_spectra_options, dark_rate_of,  # noqa: F401
@@ -264,7 +265,6 @@ def _raw_attrs(raw_path):
     if isinstance(raw_path, (str, os.PathLike)):
         if not os.path.isfile(raw_path):
             return None
-        from slicersim.errors import SlicersimError
         from slicersim.reduction.ramp_fit import open_ramps
         try:
             with open_ramps(raw_path) as src:
@@ -289,7 +289,6 @@ def _instrument(attrs, config, extraction, psf):
     """The forward model's instrument (:func:`~slicersim.reduction.forward_extraction.model_config`) of
     this file, loaded (a bad configuration is refused before any data are read), or None; refuses the
     combinations that cannot give an unbiased spectrum."""
-    import warnings
     from slicersim.reduction.forward_extraction import FORWARD_PSF_PROFILES, instrument_model, model_config
     if extraction is not None:
         check_spectra_options(extraction=extraction)
@@ -350,8 +349,6 @@ def _reduce_forward(rates, rate, var, model, writer, *, mapper, field, edges, nc
     from slicersim.reduction.forward_extraction import (MIN_DETECTION, extract_forward, instrument_model,
                                                         white_light_start)
     from slicersim.reduction.rectify import FIELDS, rectify
-    from slicersim.errors import ReductionError
-    import warnings
     names = list(FIELDS) if field == "both" else [field]
     spectra, var_cube, missing = {}, np.array(var, copy=True), []
     for name in names:
@@ -415,7 +412,6 @@ def check_forward_fit(spec, rate, var, tables, name):
     """Warn and flag (``diagnostics["warnings"]``, written in SPECTRUM_<FIELD>) a forward fit whose
     pixels are not explained: χ²/dof above :data:`SUSPECT_CHI2_DOF`, or light left in its residual
     image (a second source ≥ 5 σ in white light)."""
-    import warnings
     from slicersim.reduction.forward_extraction import MIN_DETECTION, white_light_start
     d = spec.diagnostics
     flags = []
