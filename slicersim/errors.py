@@ -8,7 +8,7 @@ from __future__ import annotations
 
 __all__ = ["SlicersimError", "ConfigError", "ReadoutError", "SpectrumError", "ETCError",
            "ParameterError", "RampFileError", "OpenCLUnavailableError", "OpenCLForkError", "DatasetError", "EffectsError",
-           "ReductionError"]
+           "ReductionError", "CurveError", "GalaxyDataUnavailable"]
 
 
 class SlicersimError(Exception):
@@ -59,3 +59,11 @@ class EffectsError(SlicersimError, ValueError):
 class ReductionError(SlicersimError, RuntimeError):
     """A reduction step that cannot give a trustworthy result on these data: a point-source fit that
     does not converge, lands on the field edge, or finds no source near the light's centroid."""
+
+
+class CurveError(ConfigError):
+    """A throughput, QE or spectrum curve file cannot be read: missing, malformed, unknown unit."""
+
+
+class GalaxyDataUnavailable(SlicersimError, ImportError):
+    """A named real galaxy was asked for without the optional ``lazuli-astrosim-data`` package."""

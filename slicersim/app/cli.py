@@ -360,8 +360,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _user_errors():
+    """What the user can cause and act on: slicersim's own errors, the file system's, memory, ^C.
+    Anything else is a defect of slicersim and is printed as an internal error (traceback kept)."""
     from slicersim.errors import SlicersimError
-    return (SlicersimError, ValueError, OSError, MemoryError, KeyboardInterrupt)
+    return (SlicersimError, OSError, MemoryError, KeyboardInterrupt)
+
+
+#: where internal errors are reported
+ISSUE_TRACKER = "the slicersim issue tracker"
 
 
 _PYTHON_FORMATWARNING = __import__("warnings").formatwarning
@@ -399,6 +405,14 @@ def main(argv=None) -> int:
         sys.stdout.flush()
         print(f"slicersim: error: {_one_line(message)}", file=sys.stderr)
         return 2
+    except Exception as exc:  # a defect, not a user error: keep the traceback
+        import traceback
+        sys.stdout.flush()
+        traceback.print_exc()
+        print(f"slicersim: internal error ({type(exc).__name__}): {_one_line(str(exc))} -- this is a bug in "
+              f"slicersim, please report it with the command and the traceback above to {ISSUE_TRACKER}",
+              file=sys.stderr)
+        return 3
     finally:
         if ours:
             warnings.formatwarning = _PYTHON_FORMATWARNING

@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 
-from slicersim.errors import ConfigError
+from slicersim.errors import CurveError
 from slicersim.io.tables import read_file_bytes
 from slicersim.memo import ByteLRU
 
@@ -25,11 +25,6 @@ CURVE_CACHE = ByteLRU("curves", 16 * 2**20)
 
 _UNIT_TO_AA = {"angstrom": 1.0, "aa": 1.0, "a": 1.0, "nm": 10.0, "nanometer": 10.0,
                "micron": 1e4, "um": 1e4, "µm": 1e4, "micrometer": 1e4, "m": 1e10}
-
-
-class CurveError(ConfigError):
-    """A curve file is missing, unreadable or malformed (a :class:`ConfigError`, hence a
-    ``ValueError`` and a :class:`~slicersim.errors.SlicersimError`)."""
 
 
 def _to_angstrom(values, unit, default_unit):

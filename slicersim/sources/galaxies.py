@@ -32,7 +32,7 @@ import re
 
 import numpy as np
 
-from slicersim.errors import ParameterError, SlicersimError
+from slicersim.errors import GalaxyDataUnavailable, ParameterError
 from slicersim.sources.cosmology import (angular_diameter_distance_kpc, arcsec_per_kpc, check_source_redshift,
                                          get_cosmology, redshift_scalings, restframe_to_observed)
 from slicersim.sources.extended import CubeSource, Host, ImageProfile, SersicProfile, host_field_fraction
@@ -62,10 +62,6 @@ CONFLICTS = (("mag", "magabs", "mag (observed) or magabs (rest frame)"),
 HOST_MIN_FIELD_FRACTION = 1e-6
 _NGC = re.compile(r"^ngc[\s_]*0*(\d{1,4})(?:[\s_]*([a-z]))?$")
 _REST_BB_LBDA = np.geomspace(100.0, 1.0e5, 8000)          # rest-frame black-body grid [Å]
-
-
-class GalaxyDataUnavailable(SlicersimError, ImportError):
-    """A named real galaxy was asked for without the optional ``lazuli-astrosim-data`` package."""
 
 
 def _data_dir():

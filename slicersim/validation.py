@@ -1,0 +1,250 @@
+"""Validation of user input, in one place: numbers, integers, ranges, choices, readouts,
+seeds, arrays and paths.
+
+Every checker takes the parameter's ``name`` first and raises a :class:`~slicersim.errors.SlicersimError`
+subclass (``ParameterError`` unless told otherwise with ``error=``) whose message names the
+parameter, states the rule and shows the value (arrays and long values summarised).  Checkers
+return the value converted (``float``, ``int``, tuple, array), so a call site reads
+``gain = validation.number("gain", gain, low=0, low_open=True, unit="ADU/e-")``.
+
+A number given as an astropy ``Quantity`` is converted to the unit the parameter is documented
+in (``unit=``); a plain number is taken to be in that unit already.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import numbers
+import os
+import secrets
+import stat
+import warnings
+
+import numpy as np
+
+from slicersim.errors import ParameterError, ReadoutError
+
+__all__ = ["short_repr", "number", "integer", "positive_int", "fraction", "flag", "choice", "readout", "nramps",
+           "seed", "new_seed", "array", "shape", "regular_file", "renamed_keyword", "MAX_GROUPS", "MAX_DROPS",
+           "MAX_FRAMES"]
+
+#: the largest readout this package accepts: groups per ramp, dropped frames between groups and
+#: frames per ramp (an H4RG ramp of 512 groups of 16 frames at 2.83 s is 6.4 h, longer than any
+#: exposure the ETC plans; 65 536 frames bounds the run time and memory of a per-frame sampler)
+MAX_GROUPS = 4096
+MAX_DROPS = 4096
+MAX_FRAMES = 65536
+
+
+def short_repr(value, limit=60) -> str:
+    """``repr(value)`` short enough for one line of an error message: arrays as their shape and
+    dtype, long representations cut with an ellipsis."""
+    if isinstance(value, np.ndarray):
+        return f"an array of shape {value.shape} and dtype {value.dtype}"
+    try:
+        text = repr(value)
+    except Exception:  # a broken __repr__ must not hide the real error
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _quantity_value(name, value, unit, error):
+    """A plain number from an astropy Quantity in ``unit`` (anything else unchanged)."""
+    if not hasattr(value, "unit") or not hasattr(value, "to_value"):
+        return value
+    if unit is None:
+        raise error(f"{name} is a plain number, got the quantity {short_repr(value)}")
+    try:
+        return value.to_value(unit)
+    except Exception:
+        raise error(f"{name} must be in units convertible to {unit}, got {short_repr(value)}") from None
+
+
+def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_open=False, unit=None,
+           error=ParameterError) -> float:
+    """``value`` as a finite float in [low, high] (a bound excluded where ``*_open``); an astropy
+    Quantity is converted to ``unit`` first."""
+    value = _quantity_value(name, value, unit, error)
+    in_unit = f" [{unit}]" if unit else ""
+    if isinstance(value, (bool, np.bool_, str, bytes)) or not isinstance(value, (numbers.Real, np.ndarray)) \
+            or (isinstance(value, np.ndarray) and value.shape != ()):
+        raise error(f"{name}{in_unit} must be a number, got {short_repr(value)}")
+    val = float(value)
+    if not math.isfinite(val) or val < low or val > high or (low_open and val == low) \
+            or (high_open and val == high):
+        raise error(f"{name}{in_unit} must be {_interval(low, high, low_open, high_open)}, got {short_repr(value)}")
+    return val
+
+
+def _interval(low, high, low_open, high_open):
+    if low == -math.inf and high == math.inf:
+        return "finite"
+    if high == math.inf:
+        return f"{'>' if low_open else '≥'} {low:g}"
+    if low == -math.inf:
+        return f"{'<' if high_open else '≤'} {high:g}"
+    return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+
+
+def integer(name, value, *, low=None, high=None, error=ParameterError) -> int:
+    """``value`` as an int in [low, high]; integral floats (``3.0``) are accepted, ``2.7``, NaN,
+    bools and strings are refused."""
+    bounds = (f" ≥ {low}" if high is None else f" in [{low}, {high}]") if low is not None else \
+        (f" ≤ {high}" if high is not None else "")
+    if isinstance(value, (bool, np.bool_, str, bytes)) or not isinstance(value, numbers.Real):
+        raise error(f"{name} must be an integer{bounds}, got {short_repr(value)}")
+    if isinstance(value, numbers.Integral):
+        val = int(value)
+    else:
+        fval = float(value)
+        if not math.isfinite(fval) or fval != int(fval):
+            raise error(f"{name} must be an integer{bounds}, got {short_repr(value)}")
+        val = int(fval)
+    if (low is not None and val < low) or (high is not None and val > high):
+        raise error(f"{name} must be an integer{bounds}, got {short_repr(value)}")
+    return val
+
+
+def positive_int(name, value, low=1, *, high=None, error=ParameterError) -> int:
+    """An integer ≥ ``low`` (default 1)."""
+    return integer(name, value, low=low, high=high, error=error)
+
+
+def fraction(name, value, *, error=ParameterError) -> float:
+    """A number in [0, 1]."""
+    return number(name, value, low=0.0, high=1.0, error=error)
+
+
+def flag(name, value, *, error=ParameterError) -> bool:
+    """A bool (``True``/``False`` or NumPy's); 0, 1 and strings are refused so a misplaced
+    positional argument is not read as a switch."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise error(f"{name} must be True or False, got {short_repr(value)}")
+    return bool(value)
+
+
+def choice(name, value, valid, *, error=ParameterError, what=None):
+    """``value`` if it is one of ``valid`` (compared as given; strings case-sensitively), else an
+    error listing the valid ones, with a "did you mean" for a near miss."""
+    valid = list(valid)
+    try:
+        if value in valid:
+            return value
+    except TypeError:  # unhashable/uncomparable value
+        pass
+    listed = ", ".join(repr(v) for v in valid)
+    hint = ""
+    if isinstance(value, str):
+        close = difflib.get_close_matches(value, [v for v in valid if isinstance(v, str)], n=1, cutoff=0.6)
+        if not close:
+            close = [v for v in valid if isinstance(v, str) and v.lower() == value.lower()]
+        if close:
+            hint = f" (did you mean {close[0]!r}?)"
+    raise error(f"unknown {what or name} {short_repr(value)}{hint}; valid: {listed}")
+
+
+def readout(nmd, *, name="nmd", min_group=2, max_group=None, error=ReadoutError) -> tuple[int, int, int]:
+    """A MACC readout (n groups, m frames per group, d dropped frames) as three ints:
+    2 ≤ n ≤ ``max_group`` (≤ :data:`MAX_GROUPS`), 1 ≤ m, 0 ≤ d ≤ :data:`MAX_DROPS`, and at most
+    :data:`MAX_FRAMES` frames per ramp.  Non-integers (``2.7``) are refused, not truncated."""
+    if isinstance(nmd, (str, bytes)) or not hasattr(nmd, "__len__") or len(nmd) != 3:
+        raise error(f"{name} must be a triple (n, m, d) of integers, got {short_repr(nmd)}")
+    n_low = max(2, int(min_group or 2))
+    n_high = MAX_GROUPS if max_group is None else min(int(max_group), MAX_GROUPS)
+    n = integer(f"{name}[0] (n, groups per ramp)", nmd[0], low=n_low, high=n_high, error=error)
+    m = integer(f"{name}[1] (m, frames per group)", nmd[1], low=1, high=MAX_FRAMES, error=error)
+    d = integer(f"{name}[2] (d, dropped frames between groups)", nmd[2], low=0, high=MAX_DROPS, error=error)
+    nframes = n * (m + d) - d
+    if nframes > MAX_FRAMES:
+        raise error(f"{name} = ({n}, {m}, {d}) reads {nframes} frames per ramp; at most {MAX_FRAMES} are "
+                    "supported")
+    return n, m, d
+
+
+def nramps(value, *, name="nramps", error=ReadoutError) -> int:
+    """A number of ramps: an integer ≥ 1."""
+    return integer(name, value, low=1, high=2**31 - 1, error=error)
+
+
+def seed(value, *, name="seed", allow_none=True, error=ParameterError):
+    """A noise seed: an integer in [0, 2⁶⁴), or None where a fresh seed is drawn (see
+    :func:`new_seed`).  A NumPy ``Generator`` is accepted for one release with a
+    DeprecationWarning: an integer seed is drawn from it (counter-based noise needs an integer key)."""
+    if value is None:
+        if allow_none:
+            return None
+        raise error(f"{name} must be an integer in [0, 2**64), got None")
+    if isinstance(value, np.random.Generator):
+        warnings.warn(f"{name} as a numpy Generator is deprecated: pass an integer seed (an integer was drawn "
+                      "from the Generator)", DeprecationWarning, stacklevel=3)
+        return int(value.integers(0, 2**63))
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise error(f"{name} must be an integer in [0, 2**64){' or None' if allow_none else ''}, "
+                    f"got {short_repr(value)}")
+    if not 0 <= int(value) < 2**64:
+        raise error(f"{name} must be in [0, 2**64), got {short_repr(value)}")
+    return int(value)
+
+
+def new_seed() -> int:
+    """A fresh seed in [0, 2⁶³) from the operating system's entropy (record it to reproduce)."""
+    return secrets.randbits(63)
+
+
+def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, error=ParameterError) -> np.ndarray:
+    """``value`` as a NumPy array of real numbers converted to ``dtype``; refuses object,
+    structured, complex and string arrays, a wrong number of dimensions, non-finite values
+    (``finite``) and values below ``low``."""
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:
+        raise error(f"{name} must be an array of numbers, got {short_repr(value)} ({exc})") from None
+    if arr.dtype.kind not in "biuf":
+        raise error(f"{name} must be an array of real numbers, got dtype {arr.dtype}")
+    if ndim is not None and arr.ndim not in np.atleast_1d(ndim):
+        raise error(f"{name} must have {ndim} dimension(s), got shape {arr.shape}")
+    arr = arr.astype(dtype, copy=False)
+    if finite and arr.size and not np.isfinite(arr).all():
+        raise error(f"{name} has {int(np.size(arr) - np.isfinite(arr).sum())} non-finite value(s)")
+    if low is not None and arr.size and float(arr.min()) < low:
+        raise error(f"{name} must be ≥ {low:g}, its minimum is {float(arr.min()):g}")
+    return arr
+
+
+def shape(name, value, *, ndim=2, max_side=65536, error=ParameterError) -> tuple[int, ...]:
+    """A shape of ``ndim`` integers in [1, max_side]."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != ndim:
+        raise error(f"{name} must be {ndim} integers, got {short_repr(value)}")
+    return tuple(integer(f"{name}[{i}]", v, low=1, high=max_side, error=error) for i, v in enumerate(value))
+
+
+def regular_file(name, path, *, error=ParameterError, max_bytes=None) -> str:
+    """``path`` (str or os.PathLike) of an existing regular file (not a directory, FIFO or
+    device), at most ``max_bytes`` long when given; returned as a str."""
+    try:
+        path = os.fspath(path)
+    except TypeError:
+        raise error(f"{name} must be a file path, got {short_repr(path)}") from None
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise error(f"{name}: {path}: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file"
+        raise error(f"{name}: {path} is {kind}")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise error(f"{name}: {path} is {st.st_size} bytes, more than the {max_bytes} accepted")
+    return path
+
+
+def renamed_keyword(kwargs, old, new, where, *, stacklevel=3):
+    """Move a deprecated keyword ``old`` to ``new`` in ``kwargs`` (in place) with a
+    DeprecationWarning; both given is an error."""
+    if old not in kwargs:
+        return kwargs
+    if new in kwargs:
+        raise ParameterError(f"{where}: give {new!r} only ({old!r} is its deprecated name)")
+    warnings.warn(f"{where}: keyword {old!r} is deprecated, use {new!r}", DeprecationWarning,
+                  stacklevel=stacklevel)
+    kwargs[new] = kwargs.pop(old)
+    return kwargs
