@@ -39,6 +39,8 @@ MAX_FRAMES = 65536
 def short_repr(value, limit=60) -> str:
     """``repr(value)`` short enough for one line of an error message: arrays as their shape and
     dtype, long representations cut with an ellipsis."""
+    if isinstance(value, np.ndarray) and hasattr(value, "unit") and value.shape == ():
+        return str(value)                  # an astropy Quantity scalar, e.g. "3.0 m"
     if isinstance(value, np.ndarray):
         return f"an array of shape {value.shape} and dtype {value.dtype}"
     try:

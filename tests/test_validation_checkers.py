@@ -1,0 +1,143 @@
+"""slicersim.validation: each checker converts what it accepts and refuses the rest with a
+SlicersimError subclass whose message names the parameter."""
+import math
+import os
+import warnings
+
+import numpy as np
+import pytest
+
+from slicersim import validation as V
+from slicersim.errors import EffectsError, ParameterError, ReadoutError, SlicersimError
+
+
+def test_number_accepts_reals_and_quantities():
+    assert V.number("gain", 2) == 2.0 and isinstance(V.number("gain", np.float32(1.5)), float)
+    assert V.number("x", np.array(3.0)) == 3.0
+    u = pytest.importorskip("astropy.units")
+    assert V.number("tframe", 2830 * u.ms, unit="s") == pytest.approx(2.83)
+    with pytest.raises(ParameterError, match=r"tframe must be in units convertible to s, got 3.0 m"):
+        V.number("tframe", 3 * u.m, unit="s")
+    with pytest.raises(ParameterError, match="gain is a plain number"):
+        V.number("gain", 3 * u.m)
+
+
+@pytest.mark.parametrize("bad", [True, "3", None, [1.0], np.array([1.0, 2.0]), math.nan, math.inf, 1 + 2j])
+def test_number_refuses_non_numbers(bad):
+    with pytest.raises(ParameterError, match="dark"):
+        V.number("dark", bad)
+
+
+def test_number_bounds_open_and_closed():
+    assert V.number("f", 0.0, low=0.0) == 0.0
+    with pytest.raises(ParameterError, match=r"gain must be > 0, got 0"):
+        V.number("gain", 0, low=0.0, low_open=True)
+    with pytest.raises(ParameterError, match=r"in \[0, 1\]"):
+        V.number("f", 1.5, low=0, high=1)
+    with pytest.raises(EffectsError, match="rate"):
+        V.number("rate", -1, low=0, error=EffectsError)
+
+
+def test_integer_refuses_fractions_instead_of_truncating():
+    assert V.integer("n", 3.0) == 3 and V.integer("n", np.int16(4)) == 4
+    for bad in (2.7, "2", True, math.nan, None):
+        with pytest.raises(ParameterError, match="n must be an integer"):
+            V.integer("n", bad)
+    with pytest.raises(ParameterError, match=r"workers must be an integer ≥ 1, got 0"):
+        V.positive_int("workers", 0)
+
+
+def test_readout_refuses_non_integer_groups_and_bounds_frames():
+    assert V.readout((16, 8, 0)) == (16, 8, 0)
+    assert V.readout(np.array([4.0, 1.0, 2.0])) == (4, 1, 2)
+    with pytest.raises(ReadoutError, match=r"nmd\[0\] \(n, groups per ramp\) must be an integer.*2\.7"):
+        V.readout((2.7, 1, 0))
+    with pytest.raises(ReadoutError, match=r"nmd\[2\]"):
+        V.readout((4, 1, 1e9))
+    with pytest.raises(ReadoutError, match=r"≤ 10|in \[2, 10\]"):
+        V.readout((11, 1, 0), max_group=10)
+    with pytest.raises(ReadoutError, match="frames per ramp"):
+        V.readout((4000, 16, 16))
+    for bad in ("16,8,0", (16, 8), None, 5):
+        with pytest.raises(ReadoutError, match="nmd must be a triple"):
+            V.readout(bad)
+
+
+def test_seed_types_and_generator_deprecation():
+    assert V.seed(None) is None and V.seed(np.uint64(2**64 - 1)) == 2**64 - 1
+    for bad in (1.5, "1", True, -1, 2**64):
+        with pytest.raises(ParameterError, match="seed"):
+            V.seed(bad)
+    with pytest.raises(ParameterError, match="seed must be an integer"):
+        V.seed(None, allow_none=False)
+    with pytest.warns(DeprecationWarning, match="Generator is deprecated"):
+        s = V.seed(np.random.default_rng(3))
+    assert s == np.random.default_rng(3).integers(0, 2**63)
+    draws = {V.new_seed() for _ in range(8)}
+    assert len(draws) == 8 and all(0 <= s < 2**63 for s in draws)
+
+
+def test_choice_lists_valid_names_and_suggests():
+    assert V.choice("backend", "numpy", ("auto", "numpy", "opencl")) == "numpy"
+    with pytest.raises(ParameterError, match=r"unknown backend 'numpi' \(did you mean 'numpy'\?\); "
+                                             r"valid: 'auto', 'numpy', 'opencl'"):
+        V.choice("backend", "numpi", ("auto", "numpy", "opencl"))
+    with pytest.raises(ParameterError, match=r"did you mean 'silver'"):
+        V.choice("noptics key", "Silver", ("silver", "gold"))
+    with pytest.raises(ParameterError, match=r"unknown backend \[1\]; valid"):
+        V.choice("backend", [1], ("numpy",))
+
+
+def test_short_repr_summarises_arrays_and_long_values():
+    assert V.short_repr(np.zeros((300, 2))) == "an array of shape (300, 2) and dtype float64"
+    long = V.short_repr("x" * 500)
+    assert len(long) == 60 and long.endswith("…")
+    with pytest.raises(ParameterError) as err:
+        V.number("qe", np.linspace(0, 1, 1000))
+    assert len(str(err.value)) < 120 and "shape (1000,)" in str(err.value)
+
+
+def test_array_refuses_complex_structured_and_nonfinite():
+    assert V.array("rate", [[1, 2], [3, 4]], ndim=2).dtype == np.float64
+    for bad, pattern in ((np.zeros(3, complex), "real numbers"), (np.zeros(3, [("a", "f8")]), "real numbers"),
+                         (np.array(["a"]), "real numbers"), (np.array([1.0, np.nan]), "1 non-finite"),
+                         (np.zeros((2, 2, 2)), "dimension")):
+        with pytest.raises(ParameterError, match=f"rate.*{pattern}|rate must have"):
+            V.array("rate", bad, ndim=2 if pattern == "dimension" else None)
+    with pytest.raises(ParameterError, match="rate must be ≥ 0"):
+        V.array("rate", [-1.0, 2.0], low=0)
+
+
+def test_regular_file_refuses_directories_fifos_and_missing(tmp_path):
+    f = tmp_path / "a.npy"
+    f.write_bytes(b"12345")
+    assert V.regular_file("rate", f) == str(f)
+    with pytest.raises(ParameterError, match="is a directory"):
+        V.regular_file("rate", tmp_path)
+    with pytest.raises(ParameterError, match="No such file"):
+        V.regular_file("rate", tmp_path / "missing")
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(ParameterError, match="not a regular file"):
+        V.regular_file("rate", fifo)
+    with pytest.raises(ParameterError, match="more than the 4"):
+        V.regular_file("rate", f, max_bytes=4)
+
+
+def test_renamed_keyword_warns_and_refuses_both():
+    kw = {"memory_budget": 10}
+    with pytest.warns(DeprecationWarning, match="'memory_budget' is deprecated, use 'max_bytes'"):
+        V.renamed_keyword(kw, "memory_budget", "max_bytes", "fit_ramps")
+    assert kw == {"max_bytes": 10}
+    with pytest.raises(ParameterError, match="give 'max_bytes' only"):
+        V.renamed_keyword({"memory_budget": 1, "max_bytes": 2}, "memory_budget", "max_bytes", "fit_ramps")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert V.renamed_keyword({"max_bytes": 1}, "memory_budget", "max_bytes", "x") == {"max_bytes": 1}
+
+
+def test_every_checker_error_is_a_slicersim_error():
+    for call in (lambda: V.flag("overwrite", 1), lambda: V.shape("shape", (0, 4)), lambda: V.fraction("f", 2),
+                 lambda: V.nramps(0)):
+        with pytest.raises(SlicersimError):
+            call()
