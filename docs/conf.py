@@ -1,0 +1,63 @@
+"""Sphinx configuration of the slicersim documentation (``make docs``)."""
+import os
+import sys
+from pathlib import Path
+
+DOCS = Path(__file__).resolve().parent
+ROOT = DOCS.parent
+sys.path.insert(0, str(DOCS / "_ext"))
+sys.path.insert(0, str(ROOT))
+# the gallery and autodoc import slicersim: keep its progress bars and Dask dashboards quiet
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+import slicersim  # noqa: E402
+
+project = "slicersim"
+author = "the slicersim developers"
+copyright = "the slicersim developers"
+release = version = slicersim.__version__
+
+extensions = [
+    "myst_parser",
+    "sphinx.ext.autodoc",
+    "sphinx.ext.napoleon",
+    "sphinx.ext.mathjax",
+    "sphinx_gallery.gen_gallery",
+    "cli_reference",        # docs/_ext: the CLI reference from argparse
+    "benchmark_pages",      # docs/_ext: one page per benchmark family from benchmarks/results
+    "api_pages",            # docs/_ext: the API reference pages of slicersim.__all__
+]
+
+source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
+root_doc = "index"
+exclude_patterns = ["_build", "examples", "Thumbs.db", ".DS_Store"]
+
+myst_enable_extensions = ["dollarmath", "colon_fence", "deflist"]
+myst_heading_anchors = 3
+
+# numpy-style docstrings (the package's convention: "name : type  description [unit]")
+napoleon_google_docstring = False
+napoleon_numpy_docstring = True
+napoleon_use_rtype = False
+autodoc_member_order = "bysource"
+autodoc_typehints = "none"
+autodoc_default_options = {"members": True, "undoc-members": False, "show-inheritance": True}
+
+sphinx_gallery_conf = {
+    "examples_dirs": "examples",
+    "gallery_dirs": "_generated/gallery",
+    "filename_pattern": r"/plot_",
+    "download_all_examples": False,
+    "remove_config_comments": True,
+    "within_subsection_order": "FileNameSortKey",
+    "matplotlib_animations": False,
+    "image_scrapers": ("matplotlib",),
+    "abort_on_example_error": True,
+    "show_memory": False,
+}
+
+html_theme = "alabaster"
+html_title = f"slicersim {release}"
+html_theme_options = {"description": "Image-slicer IFS simulator (Lazuli)", "fixed_sidebar": True,
+                      "page_width": "1100px", "sidebar_width": "230px"}
+html_static_path = []
