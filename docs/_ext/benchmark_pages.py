@@ -122,7 +122,7 @@ def page(family, paths, outdir, about):
             shutil.copy2(path, outdir / path.name)
             parts += [f"## Figure `{path.name}`", "", f"![{path.stem}]({path.name})", ""]
         elif path.stem not in stems:
-            parts += [f"## `{path.name}` (summary)", "", "```json", json_summary(path), "```", ""]
+            parts += [f"## `{path.name}` (summary)", "", "```text", json_summary(path), "```", ""]
     return "\n".join(parts).rstrip() + "\n"
 
 

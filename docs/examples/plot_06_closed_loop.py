@@ -16,11 +16,21 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-try:
-    HERE = Path(__file__).resolve().parent
-except NameError:                      # run in an interactive session from the repository root
-    HERE = Path("docs/examples").resolve()
-RESULTS = HERE.parents[1] / "benchmarks" / "results"
+import slicersim
+
+
+def results_folder():
+    """``benchmarks/results`` of the repository: above the working directory, else beside the
+    package (an editable install, as ``make`` makes)."""
+    starts = [Path.cwd(), Path(slicersim.__file__).resolve().parent]
+    for start in starts:
+        for folder in (start, *start.parents):
+            if (folder / "benchmarks" / "results" / "closed_loop_defaults.json").is_file():
+                return folder / "benchmarks" / "results"
+    raise FileNotFoundError("benchmarks/results/closed_loop_defaults.json: run from the repository")
+
+
+RESULTS = results_folder()
 
 defaults = json.loads((RESULTS / "closed_loop_defaults.json").read_text())
 rows = sorted(defaults["summary"], key=lambda r: r["z"])

@@ -1,0 +1,128 @@
+"""Sphinx extension: the API reference pages, generated from ``slicersim.__all__``.
+
+Writes ``docs/_generated/api/*.rst`` when the documentation is built: one page for the names
+exported by ``import slicersim`` (grouped by the subpackage that defines them, so a name added to
+``__all__`` appears without editing the docs), and one per main entry point of the subpackages.
+The text of every entry is the object's own docstring (``sphinx.ext.autodoc`` with napoleon's
+numpy style).  Also runnable as a script.
+"""
+import importlib
+import inspect
+from pathlib import Path
+
+from _write import write_if_changed
+
+#: entry points of the subpackages: (page, title, intro, [(directive, dotted name)])
+ENTRY_POINTS = [
+    ("etc", "Exposure-time calculator", "The batch ETC; the single-target ETC is a method of every target "
+     "(`setup_to_snr`, see the top-level page).",
+     [("autofunction", "slicersim.etc.solve_many")]),
+    ("ramps", "Raw ramps", "Raw MACC ramps of a rate image, with or without detector effects.",
+     [("autofunction", "slicersim.products.ramps.simulate"),
+      ("autofunction", "slicersim.io.rampfile.read_ramps")]),
+    ("campaign", "Survey plans and campaigns", "Survey planning (batch ETC of a population) and campaigns on Dask.",
+     [("autofunction", "slicersim.campaign.plan.plan_survey"),
+      ("autoclass", "slicersim.campaign.plan.SurveyPlan"),
+      ("autofunction", "slicersim.campaign.plan.plot_time_and_volume"),
+      ("autofunction", "slicersim.campaign.runner.run_campaign"),
+      ("autofunction", "slicersim.campaign.runner.campaign_status")]),
+    ("reduction", "Reduction", "Raw ramps back to rates, cubes and spectra.",
+     [("autofunction", "slicersim.reduction.pipeline.reduce_exposure"),
+      ("autofunction", "slicersim.reduction.ramp_fit.fit_ramps"),
+      ("autoclass", "slicersim.reduction.ramp_fit.RateProduct")]),
+    ("validation", "Validation", "`slicersim.validation` is the one module that checks user input: "
+     "every checker raises a `slicersim.errors.SlicersimError` subclass whose message names the parameter.",
+     [("automodule", "slicersim.validation")]),
+    ("errors", "Errors", "Every error a user can cause is a subclass of `SlicersimError`; the subclasses "
+     "also derive from `ValueError`, `OSError` or `RuntimeError`, so `except ValueError` keeps working.",
+     [("automodule", "slicersim.errors")]),
+]
+
+#: objects whose docstring autodoc cannot render cleanly: {dotted name: hand-written reST}
+HANDWRITTEN = {}
+
+
+def _exists(dotted):
+    module, _, name = dotted.rpartition(".")
+    try:
+        return hasattr(importlib.import_module(module), name)
+    except ImportError:
+        try:
+            importlib.import_module(dotted)
+            return True
+        except ImportError:
+            return False
+
+
+def _entry(directive, dotted, options=()):
+    if dotted in HANDWRITTEN:
+        return HANDWRITTEN[dotted].rstrip() + "\n\n"
+    lines = [f".. {directive}:: {dotted}"]
+    lines += [f"   :{o}:" for o in options]
+    return "\n".join(lines) + "\n\n"
+
+
+def _title(text, char="="):
+    return f"{text}\n{char * len(text)}\n\n"
+
+
+def top_level_page():
+    """reST of the names of ``slicersim.__all__``, grouped by defining subpackage."""
+    import slicersim
+    groups = {}
+    for name in slicersim.__all__:
+        if name.startswith("__"):
+            continue
+        obj = getattr(slicersim, name)
+        module = getattr(obj, "__module__", "slicersim") or "slicersim"
+        part = module.split(".")[1] if module.count(".") else "slicersim"
+        groups.setdefault(part, []).append((name, obj))
+    text = _title("Top-level API (``import slicersim``)")
+    text += ("The names exported by ``slicersim`` (``slicersim.__all__``), grouped by the subpackage that "
+             "defines them.  Units are given in each docstring; see also :doc:`../../units` and "
+             ":doc:`../../api_conventions`.\n\n.. currentmodule:: slicersim\n\n")
+    for part in sorted(groups):
+        text += _title(f"slicersim.{part}" if part != "slicersim" else "slicersim", "-")
+        for name, obj in groups[part]:
+            if inspect.isclass(obj):
+                text += _entry("autoclass", f"slicersim.{name}", ("members",))
+            elif callable(obj):
+                text += _entry("autofunction", f"slicersim.{name}")
+            else:
+                text += _entry("autodata", f"slicersim.{name}")
+    return text
+
+
+def entry_page(title, intro, entries):
+    text = _title(title) + intro + "\n\n"
+    for directive, dotted in entries:
+        if not _exists(dotted):
+            continue                       # renamed by a refactoring: the page keeps building
+        options = ("members",) if directive in ("autoclass", "automodule") else ()
+        text += _entry(directive, dotted, options)
+    return text
+
+
+def generate(outdir):
+    outdir = Path(outdir)
+    write_if_changed(outdir / "slicersim.rst", top_level_page())
+    for page, title, intro, entries in ENTRY_POINTS:
+        write_if_changed(outdir / f"{page}.rst", entry_page(title, intro, entries))
+    index = (_title("API reference") + "Generated from the docstrings (numpy style).\n\n"
+             ".. toctree::\n   :maxdepth: 1\n\n   slicersim\n"
+             + "".join(f"   {page}\n" for page, *_ in ENTRY_POINTS))
+    write_if_changed(outdir / "index.rst", index)
+    return outdir / "index.rst"
+
+
+def _on_builder_inited(app):
+    generate(Path(app.srcdir) / "_generated" / "api")
+
+
+def setup(app):
+    app.connect("builder-inited", _on_builder_inited)
+    return {"parallel_read_safe": True, "parallel_write_safe": True}
+
+
+if __name__ == "__main__":
+    print(generate(Path(__file__).resolve().parents[1] / "_generated" / "api"))
