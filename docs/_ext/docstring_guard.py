@@ -55,6 +55,8 @@ def _guard(app, what, name, obj, options, lines):
 
 
 def _write_report(app, exception):
+    if not FALLBACKS:                     # an incremental build read no docstring: keep the last list
+        return
     path = Path(app.srcdir) / "_generated" / "docstring_fallbacks.txt"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(sorted(set(FALLBACKS))) + ("\n" if FALLBACKS else ""), encoding="utf-8")
