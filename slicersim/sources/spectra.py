@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
 from slicersim.errors import ParameterError, SpectrumError
 from slicersim.versioning import Versioned
@@ -37,8 +38,8 @@ def default_lbda():
 
 def validate_spectrum(lbda, flux, name="spectrum"):
     """Check and return (λ, F) as float arrays; λ strictly increasing, F finite and ≥ 0."""
-    lbda = np.asarray(lbda, dtype=float)
-    flux = np.asarray(flux, dtype=float)
+    lbda = validation.array(f"{name}: wavelengths", lbda, finite=False, error=SpectrumError)
+    flux = validation.array(f"{name}: flux", flux, finite=False, error=SpectrumError)
     if lbda.ndim != 1 or lbda.size == 0:
         raise SpectrumError(f"{name}: empty wavelength array")
     if flux.shape != lbda.shape:
@@ -56,8 +57,8 @@ def validate_spectrum(lbda, flux, name="spectrum"):
 
 def blackbody_flambda(lbda, temperature):
     """Black-body spectral shape B_λ(T) [erg/s/cm²/Å/sr] at λ [Å]."""
-    if not temperature > 0:
-        raise SpectrumError(f"blackbody temperature must be > 0 K, got {temperature}")
+    temperature = validation.number("blackbody temperature [K]", temperature, low=0.0, low_open=True, unit="K",
+                                    error=SpectrumError)
     lbda_m = np.asarray(lbda, dtype=float) * 1e-10
     x = H_PLANCK * C_LIGHT / (lbda_m * K_BOLTZMANN * temperature)
     with np.errstate(over="ignore"):            # x ≫ 700 (cold body, short λ): exp overflows to inf → B = 0
@@ -68,9 +69,7 @@ def blackbody_flambda(lbda, temperature):
 def powerlaw_flambda(lbda, alpha, lambda_ref=POWERLAW_LAMBDA_REF):
     """Power-law shape (λ / λ_ref)^α at λ [Å] (dimensionless): F_λ ∝ λ^α, i.e. F_ν ∝ λ^(α+2)
     (slicersim 1.4.2's convention: α is the F_λ index)."""
-    if isinstance(alpha, (bool, np.bool_)) or not isinstance(alpha, (int, float, np.number)) \
-            or not np.isfinite(alpha):
-        raise SpectrumError(f"power-law index alpha must be a finite number, got {alpha!r}")
+    alpha = validation.number("power-law index alpha", alpha, error=SpectrumError)
     with np.errstate(over="ignore", under="ignore", divide="ignore"):
         return (np.asarray(lbda, dtype=float) / lambda_ref) ** float(alpha)   # overflow: inf, refused by callers
 
