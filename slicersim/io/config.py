@@ -8,6 +8,7 @@ that names them and stored as absolute paths.
 """
 from __future__ import annotations
 
+from slicersim import validation
 from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
 
 import copy
@@ -77,7 +78,7 @@ def _read_toml(path):
     try:
         with open(path, "rb") as fh:
             doc = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:   # a binary file: not UTF-8
         raise ConfigError(f"cannot parse TOML {path}: {exc}") from exc
     tables = _flatten_tables(doc)
     here = os.path.dirname(os.path.abspath(path))
@@ -147,14 +148,14 @@ def load_config(config="cbe"):
 #  physical validation of the merged configuration                            #
 # --------------------------------------------------------------------------- #
 def _bad(table, key, value, reason):
-    return ConfigError(f"[{table}] {key} = {value!r}: {reason}")
+    return ConfigError(f"[{table}] {key} = {validation.short_repr(value)}: {reason}")
 
 
 def _numbers(table, key, value):
     """Flat float array of a scalar or (nested) list value; ConfigError if not numeric."""
     try:
-        arr = np.asarray(value, dtype=float).ravel()
-    except (TypeError, ValueError):
+        arr = validation.array(f"[{table}] {key}", value, finite=False, error=ConfigError).ravel()
+    except ConfigError:
         raise _bad(table, key, value, "must be a number or a list of numbers") from None
     if arr.size == 0:
         raise _bad(table, key, value, "must not be empty")
@@ -262,6 +263,7 @@ def validate_config(cfg):
                 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
                            for v in shape)):
             raise _bad("detector", "shape", shape, "must be two integers ≥ 1 (ny, nx)")
+    _check_range(cfg, "detector", "bias")
     if det.get("bias") is not None:
         sat = det.get("saturation", 65535)
         if float(det["bias"]) >= float(sat):
@@ -274,9 +276,9 @@ def validate_config(cfg):
     mode = det.get("readout_mode")
     if mode is not None and max_group:
         try:
-            n = int(list(mode)[0])
-        except (TypeError, ValueError, IndexError):
-            raise _bad("detector", "readout_mode", mode, "must be (n, m, d) integers") from None
+            n, _, _ = validation.readout(mode, name="[detector] readout_mode", error=ConfigError)
+        except ConfigError as exc:
+            raise _bad("detector", "readout_mode", mode, f"must be (n, m, d) integers ({exc})") from None
         if n > max_group:
             raise _bad("detector", "readout_mode", mode, f"n = {n} exceeds max_group = {max_group!r}")
     _check_range(cfg, "extraction", "aperture_radius_insigma", 0.0, lo_open=True)
