@@ -47,10 +47,13 @@ def test_keying_and_uniform_mapping():
     # extreme words map strictly inside (0, 1), exactly
     u = rng.words_to_uniform(np.array([0, 0xFFFFFFFF], np.uint32), np.array([0, 0xFFFFFFFF], np.uint32))
     assert u[0] == 2.0**-53 and u[1] == 1.0 - 2.0**-53
-    with pytest.raises(ValueError):
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match="seed"):
         rng.seed_to_key(-1)
-    with pytest.raises(TypeError):
+    with pytest.raises(ParameterError, match="seed must be an integer"):
         rng.seed_to_key(1.5)
+    with pytest.raises(ParameterError, match="seed must be an integer.*Generator"):
+        rng.seed_to_key(np.random.default_rng(1))
 
 
 # words whose top bit is set (the high word of every u >= 0.5): NVIDIA's OpenCL (H200, driver

@@ -119,8 +119,8 @@ def check_position(position):
     """(x0, y0) as finite floats, else :class:`~slicersim.errors.ParameterError`."""
     if isinstance(position, (str, bytes)) or not hasattr(position, "__len__") or len(position) != 2:
         raise ParameterError(f"point-source position must be (x, y) in cells, got {validation.short_repr(position)}")
-    return (validation.number("point-source position x [cells]", position[0]),
-            validation.number("point-source position y [cells]", position[1]))
+    return (validation.number("point-source position", position[0]),     # x [cells]
+            validation.number("point-source position", position[1]))     # y [cells]
 
 
 def check_aperture(shape, position, radius):

@@ -177,7 +177,10 @@ def parse_host_model(model):
 
 
 def _check_conflicts(params):
-    """ParameterError when two given parameters name the same thing (:data:`CONFLICTS`)."""
+    """ParameterError for an unknown parameter name (with the valid ones and a "did you mean"), or
+    when two given parameters name the same thing (:data:`CONFLICTS`)."""
+    for key in sorted(set(params) - set(PARAMETERS)):
+        validation.choice(key, key, PARAMETERS, what="host parameter")
     for a, b, what in CONFLICTS:
         if a in params and b in params:
             raise ParameterError(f"give {what}, not both (got {a}={params[a]!r} and {b}={params[b]!r})")
@@ -213,9 +216,6 @@ class GalaxyModel:
     """
 
     def __init__(self, model="sersic:bb-5000", **params):
-        unknown = sorted(set(params) - set(PARAMETERS))
-        if unknown:
-            raise ParameterError(f"unknown host parameter(s) {unknown}; accepted: {', '.join(PARAMETERS)}")
         _check_conflicts(params)
         params = {ALIASES.get(k, k): v for k, v in params.items()}
         if "refmodel" in params:
@@ -265,7 +265,8 @@ class GalaxyModel:
                 xy = p[key]
                 if isinstance(xy, (str, bytes)) or not hasattr(xy, "__len__") or len(xy) != 2:
                     raise ParameterError(f"host {key} must be (x, y), got {validation.short_repr(xy)}")
-                p[key] = (validation.number(f"host {key}[0] (x)", xy[0]), validation.number(f"host {key}[1] (y)", xy[1]))
+                p[key] = (validation.number(f"host {key}[0] (x)", xy[0]),
+                          validation.number(f"host {key}[1] (y)", xy[1]))
         p["cosmology"] = get_cosmology(p.get("cosmology"))
         self.params = p
         # real-galaxy data checked now (unknown names and a missing package fail at once)
@@ -290,9 +291,6 @@ class GalaxyModel:
     def updated(self, **params):
         """A new model with some parameters changed (validated; conflicting pairs such as
         ``mag`` + ``magabs`` given together raise ParameterError)."""
-        unknown = sorted(set(params) - set(PARAMETERS))
-        if unknown:
-            raise ParameterError(f"unknown host parameter(s) {unknown}; accepted: {', '.join(PARAMETERS)}")
         _check_conflicts(params)
         params = {ALIASES.get(k, k): v for k, v in params.items()}
         current = {**self.params, **params}

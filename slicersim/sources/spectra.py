@@ -275,9 +275,8 @@ class PointSource(Versioned):
         self.lbda_in, self.flux_in = validate_spectrum(lbda, flux, name)
         self.position = position
         self.name = name
-        if mag is not None and (isinstance(mag, (bool, np.bool_)) or not isinstance(mag, (int, float, np.number))
-                                or not np.isfinite(mag)):
-            raise SpectrumError(f"mag must be a finite AB magnitude or None, got {mag!r}")
+        if mag is not None:
+            mag = validation.number("mag [AB]", mag, error=SpectrumError)
         self.mag, self.band = mag, band
         self.flux_ratio, self.native_mag = 1.0, None
         if mag is not None:
@@ -300,6 +299,8 @@ class PointSource(Versioned):
         """Replace the spectrum in place (validated first; renormalised to ``mag`` when set,
         unless ``flux_ratio`` is given)."""
         lbda, flux = validate_spectrum(lbda, flux, self.name)
+        if flux_ratio is not None:
+            flux_ratio = validation.number("flux_ratio", flux_ratio, low=0.0, error=SpectrumError)
         if flux_ratio is None:
             flux_ratio, native_mag = (1.0, None) if self.mag is None else \
                 normalise_to_mag(lbda, flux, self.mag, self.band)
@@ -313,13 +314,10 @@ class PointSource(Versioned):
 
     @position.setter
     def position(self, position):
-        try:
-            pos = tuple(float(p) for p in position)
-        except (TypeError, ValueError) as exc:
-            raise ParameterError(f"position must be (x, y) [cells], got {position!r}") from exc
-        if len(pos) != 2 or not all(np.isfinite(pos)):
-            raise ParameterError(f"position must be finite: two numbers (x, y) [cells], got {position!r}")
-        self._position = pos
+        if isinstance(position, (str, bytes)) or not hasattr(position, "__len__") or len(position) != 2:
+            raise ParameterError(f"position must be (x, y) [cells], got {validation.short_repr(position)}")
+        self._position = (validation.number("position", position[0]),     # x [cells]
+                          validation.number("position", position[1]))     # y [cells]
 
     def flambda(self, lbda):
         """F(λ) [erg/s/cm²/Å] at λ [Å]."""
