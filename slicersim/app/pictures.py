@@ -298,7 +298,7 @@ def show_psf_profiles(target_or_sim, lbda=(5000.0, 10000.0, 15000.0), rmax=None,
     lbdas = check_wavelengths(sim, lbda)
     if rmax is None:
         rmax = 3.0 * float(sim.telescope.airy_radius(lbdas.max()))
-    rmax = validation.number("rmax [arcsec]", rmax, low=0.0, low_open=True, unit="arcsec")
+    rmax = validation.number("rmax", rmax, low=0.0, low_open=True, unit="arcsec")
     npoints = validation.integer("npoints", npoints, low=2, high=1 << 20)
     r = np.linspace(0.0, rmax, npoints)
     fig, (ax_p, ax_e) = plt.subplots(1, 2, figsize=(11, 4.6), layout="constrained")

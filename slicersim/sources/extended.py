@@ -178,7 +178,7 @@ def integrate_radial_cells(geometry, radial_funcs, shape, spatial_scale, oversam
     ``oversampling=o``: plain midpoint rule on o × o sub-cells (cross-checks).
     """
     ny, nx = validation.shape("shape", shape)
-    s = validation.number("spatial_scale [arcsec]", spatial_scale, low=0.0, low_open=True, unit="arcsec")
+    s = validation.number("spatial_scale", spatial_scale, low=0.0, low_open=True, unit="arcsec")
     x0, y0, pa, q = geometry
     c, sn = math.cos(math.radians(pa)), math.sin(math.radians(pa))
     xe, ye = _cell_edges(nx, s) - x0, _cell_edges(ny, s) - y0

@@ -294,8 +294,8 @@ class CubeSource(Versioned):
         lbda_in = validation.array("lbda_in [Å]", lbda_in, ndim=1)
         if lbda_in.shape != tuple(cube.shape[:1]) or lbda_in.size < 2 or np.any(np.diff(lbda_in) <= 0):
             raise ParameterError("lbda_in must be strictly increasing with one value per cube plane (≥ 2)")
-        pixel_scale = validation.number("pixel_scale [arcsec]", pixel_scale, low=0.0, low_open=True, unit="arcsec")
-        rotation = validation.number("rotation [deg]", rotation, unit="deg")
+        pixel_scale = validation.number("pixel_scale", pixel_scale, low=0.0, low_open=True, unit="arcsec")
+        rotation = validation.number("rotation", rotation, unit="deg")
         self.max_bytes = max_bytes
         budget = HOST_MAX_BYTES if max_bytes is None else int(max_bytes)
         plane = 8 * int(cube.shape[1]) * int(cube.shape[2])

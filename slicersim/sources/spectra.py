@@ -57,7 +57,7 @@ def validate_spectrum(lbda, flux, name="spectrum"):
 
 def blackbody_flambda(lbda, temperature):
     """Black-body spectral shape B_λ(T) [erg/s/cm²/Å/sr] at λ [Å]."""
-    temperature = validation.number("blackbody temperature [K]", temperature, low=0.0, low_open=True, unit="K",
+    temperature = validation.number("blackbody temperature", temperature, low=0.0, low_open=True, unit="K",
                                     error=SpectrumError)
     lbda_m = np.asarray(lbda, dtype=float) * 1e-10
     x = H_PLANCK * C_LIGHT / (lbda_m * K_BOLTZMANN * temperature)
