@@ -1,9 +1,11 @@
 """Command-line interface: ``slicersim {info,demo,etc,ramp,survey,campaign,footprints,plot}`` (also
 ``python -m slicersim``).
 
-User errors (bad values, impossible requests, unwritable or existing outputs,
-Ctrl-C) are reported as one line ``slicersim: error: ...`` on stderr with exit
-status 2.  Set ``SLICERSIM_DEBUG=1`` to get the full traceback instead.
+User errors (a :class:`~slicersim.errors.SlicersimError`: bad values, impossible requests,
+unreadable input files, unwritable or existing outputs; an ``OSError``; out of memory; Ctrl-C)
+are reported as one line ``slicersim: error: ...`` on stderr with exit status 2.  Set
+``SLICERSIM_DEBUG=1`` to get the full traceback instead.  Anything else is a defect of slicersim:
+its traceback is printed with a "please report" line, exit status 3.
 """
 
 from __future__ import annotations

@@ -129,7 +129,7 @@ def ipc_alpha_from_autocorrelation(flat, noise_variance=0.0, border=1, iteration
     darkens the edge, a structure that would bias the lags).  The normalised lag-1 correlations
     (averaged over the four directions of each kind) are matched to :func:`kernel_autocorrelation` of the symmetric kernel by Newton steps.
     """
-    img = np.asarray(flat, dtype=np.float64)
+    img = validation.array("flat", flat, finite=False, error=EffectsError)
     if img.ndim == 2:
         img = img[None]
     border = validation.integer("border", border, low=0, error=EffectsError)
