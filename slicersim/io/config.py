@@ -148,7 +148,8 @@ def load_config(config="cbe"):
 #  physical validation of the merged configuration                            #
 # --------------------------------------------------------------------------- #
 def _bad(table, key, value, reason):
-    return ConfigError(f"[{table}] {key} = {validation.short_repr(value)}: {reason}")
+    shown = repr(os.fspath(value)) if isinstance(value, (str, os.PathLike)) else validation.short_repr(value)
+    return ConfigError(f"[{table}] {key} = {shown}: {reason}")      # a curve path in full, arrays summarised
 
 
 def _numbers(table, key, value):
