@@ -296,3 +296,15 @@ def test_config_file_and_values_that_are_not_what_they_say(tmp_path):
         bad.write_text(text)
         with pytest.raises(ConfigError, match=key):
             load_config(["cbe", str(bad)])
+
+
+def test_unknown_config_key_or_table_suggests_the_near_one(tmp_path):
+    from slicersim.errors import ConfigError
+    from slicersim.io.config import load_config
+    bad = tmp_path / "typo.toml"
+    bad.write_text("[detector]\ngian = 2.0\n")
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['gian'\] in \[detector\] \(did you mean 'gain'\?\); allowed:"):
+        load_config(["cbe", str(bad)])
+    bad.write_text("[detecter]\ngain = 2.0\n")
+    with pytest.raises(ConfigError, match=r"unknown configuration table \[detecter\] \(did you mean 'detector'\?\)"):
+        load_config(["cbe", str(bad)])

@@ -8,16 +8,17 @@ that names them and stored as absolute paths.
 """
 from __future__ import annotations
 
-from slicersim import validation
-from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
-
 import copy
+import difflib
 import os
 import tomllib
 from functools import lru_cache
 from importlib import resources
 
 import numpy as np
+
+from slicersim import validation
+from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
 
 __all__ = ["load_config", "validate_config", "ConfigError", "builtin_config_dir", "SCHEMA"]
 
@@ -72,6 +73,15 @@ def _flatten_tables(doc, prefix=""):
     return out
 
 
+def _did_you_mean(names, valid):
+    """" (did you mean 'x'?)" for the first of ``names`` close to a ``valid`` one, else ""."""
+    for name in names:
+        close = difflib.get_close_matches(name, sorted(valid), n=1, cutoff=0.6)
+        if close:
+            return f" (did you mean {close[0]!r}?)"
+    return ""
+
+
 def _read_toml(path):
     if not os.path.isfile(path):
         raise ConfigError(f"configuration file not found: {path}")
@@ -84,12 +94,12 @@ def _read_toml(path):
     here = os.path.dirname(os.path.abspath(path))
     for table, entries in tables.items():
         if table not in SCHEMA:
-            raise ConfigError(f"{path}: unknown configuration table [{table}]; "
+            raise ConfigError(f"{path}: unknown configuration table [{table}]{_did_you_mean([table], SCHEMA)}; "
                               f"known tables: {sorted(SCHEMA)}")
         unknown = set(entries) - SCHEMA[table]
         if unknown:
-            raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)} in [{table}]; "
-                              f"allowed: {sorted(SCHEMA[table])}")
+            raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)} in [{table}]"
+                              f"{_did_you_mean(sorted(unknown), SCHEMA[table])}; allowed: {sorted(SCHEMA[table])}")
         for key in list(entries):
             if (table, key) in FILE_KEYS and isinstance(entries[key], str):
                 fpath = entries[key] if os.path.isabs(entries[key]) else os.path.join(here, entries[key])
