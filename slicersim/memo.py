@@ -21,6 +21,8 @@ from collections import OrderedDict
 
 import numpy as np
 
+from slicersim import validation
+
 __all__ = ["ByteLRU", "content_key", "read_only", "clear_caches", "cache_info"]
 
 _REGISTRY: dict = {}
@@ -50,9 +52,7 @@ class ByteLRU:
 
     @max_bytes.setter
     def max_bytes(self, value):
-        value = int(value)
-        if value < 0:
-            raise ValueError(f"max_bytes must be >= 0, got {value}")
+        value = validation.integer(f"max_bytes ({self.name} cache)", value, low=0)
         with self._lock:
             self._max_bytes = value
             self._evict(0)
@@ -130,7 +130,7 @@ def cache_info():
 def _array_key(a):
     a = np.ascontiguousarray(a)
     if a.dtype.hasobject:
-        raise TypeError("content_key cannot hash object arrays")
+        raise TypeError("content_key cannot hash object arrays")  # internal: the caller keyed an unkeyable input
     digest = hashlib.blake2b(a.view(np.uint8).reshape(-1) if a.size else b"", digest_size=20).hexdigest()
     return ("array", a.dtype.str, a.shape, digest)
 
@@ -156,7 +156,7 @@ def content_key(value):
         return ("seq", tuple(content_key(v) for v in value))
     if isinstance(value, dict):
         return ("dict", tuple(sorted((str(k), content_key(v)) for k, v in value.items())))
-    raise TypeError(f"content_key: cannot key a {type(value).__name__} by content")
+    raise TypeError(f"content_key: cannot key a {type(value).__name__} by content")  # internal: protocol of content_key
 
 
 def read_only(array):

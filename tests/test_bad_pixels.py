@@ -115,3 +115,12 @@ def test_bad_parameters_rejected():
             bp.BadPixelParameters(**kw)
     with pytest.raises(EffectsError, match="rows"):
         bp.bad_pixel_maps(1, (10, 10), bp.BadPixelParameters(), rows=(5, 20))
+
+
+def test_telegraph_arguments_are_integers_not_truncated():
+    with pytest.raises(EffectsError, match=r"^ramp must be an integer"):
+        bp.telegraph_states(1, 0.5, 4, 2.83, np.zeros(0, bp.TELEGRAPH_DTYPE))
+    with pytest.raises(EffectsError, match=r"nmd\[0\] \(n, groups\) must be an integer"):
+        bp.telegraph_offsets(1, 0, (2.7, 1, 0), 2.83, np.zeros(0, bp.TELEGRAPH_DTYPE))
+    with pytest.raises(EffectsError, match=r"bad_pixels.hot_dark \[e-/s\] must be a \(min, max\) pair"):
+        bp.BadPixelParameters(hot_dark=5.0)

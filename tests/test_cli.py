@@ -201,3 +201,76 @@ def test_ctrl_c_during_ramp_is_one_line_and_leaves_nothing(tmp_path):
     assert one_error_line(subprocess.CompletedProcess(proc.args, proc.returncode, "", err)) == \
         "slicersim: error: interrupted"
     assert os.listdir(out_dir) == []
+
+
+# --------------------------------------------------------------------------- in-process: user vs internal errors
+def _main_error(capsys, argv, monkeypatch):
+    """(exit status, stderr) of ``main(argv)`` run in this process, without SLICERSIM_DEBUG."""
+    from slicersim.app.cli import main
+    monkeypatch.delenv("SLICERSIM_DEBUG", raising=False)
+    status = main([str(a) for a in argv])
+    return status, capsys.readouterr().err
+
+
+def _one_line(status, err):
+    assert status == 2, err
+    assert "Traceback" not in err and err.count("\n") == 1 and err.startswith("slicersim: error: "), err
+    return err
+
+
+@pytest.fixture
+def user_files(tmp_path):
+    """Files a user may give by mistake: binary data, a text file named .npy, a bad spectrum row."""
+    files = {"binary": tmp_path / "data.bin", "text_npy": tmp_path / "image.npy", "bad_row": tmp_path / "sp.txt",
+             "negative": tmp_path / "neg.txt", "strings_npy": tmp_path / "s.npy"}
+    files["binary"].write_bytes(bytes(range(128, 256)) * 4)
+    files["text_npy"].write_text("1 2\n3 4\n")
+    files["bad_row"].write_text("# wavelength flux\n4000 1e-17\n5000 1e-17\n6000 oops\n")
+    files["negative"].write_text("4000 1e-17\n5000 -1e-17\n")
+    np.save(files["strings_npy"], np.array(["a", "b"]))
+    return files
+
+
+@pytest.mark.parametrize("argv, needles", [
+    (["etc", "--spectrum", "{binary}"], ["--spectrum", "data.bin", "not a text file"]),
+    (["etc", "--spectrum", "{bad_row}"], ["--spectrum", "sp.txt", "line 4", "'6000 oops'"]),
+    (["etc", "--spectrum", "{negative}"], ["--spectrum", "neg.txt", "negative"]),
+    (["etc", "--redshift", "1", "--config", "{binary}"], ["data.bin", "cannot parse TOML"]),
+    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{bad_row}"], ["--spot-table", "sp.txt", "not a spot table"]),
+    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{binary}"], ["--spot-table", "data.bin"]),
+    (["footprints", "--out", "{tmp}/fp", "--truncate", "nan"], ["--truncate"]),
+    (["plot", "fields", "--out", "{tmp}/f.png", "--seed", "-1"], ["--seed"]),
+    (["ramp", "--rate", "{text_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["image.npy", "not a NumPy .npy"]),
+    (["ramp", "--rate", "{strings_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["s.npy", "real numbers"]),
+    (["ramp", "--rate", "{binary}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["data.bin", "not a text file"]),
+])
+def test_files_given_by_mistake_are_one_line_user_errors_naming_them(tmp_path, user_files, capsys, monkeypatch,
+                                                                      argv, needles):
+    subst = {k: str(v) for k, v in user_files.items()} | {"tmp": str(tmp_path)}
+    err = _one_line(*_main_error(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    for needle in needles:
+        assert needle in err, (needle, err)
+    assert not (tmp_path / "r.h5").exists() and not (tmp_path / "fp").exists()
+
+
+def test_a_user_error_is_exit_2_and_one_line(capsys, monkeypatch):
+    err = _one_line(*_main_error(capsys, ["etc", "--redshift", "-1"], monkeypatch))
+    assert "redshift" in err and "please report" not in err
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("boom in a kernel"), ValueError("operands could not be broadcast"),
+                                 TypeError("unsupported operand"), KeyError("lbda")])
+def test_an_internal_error_is_exit_3_with_traceback_and_please_report(capsys, monkeypatch, exc):
+    """Only SlicersimError, OSError, MemoryError and ^C are user errors: a bare ValueError or
+    TypeError (NumPy's, say) is a defect, shown with its traceback and a please-report line."""
+    from slicersim.app import cli
+
+    def broken(args):
+        raise exc
+    monkeypatch.setattr(cli, "cmd_info", broken)
+    status, err = _main_error(capsys, ["info"], monkeypatch)
+    assert status == 3, err
+    assert "Traceback (most recent call last)" in err and "in broken" in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"slicersim: internal error ({type(exc).__name__})") and "please report" in last
+    assert "slicersim: error:" not in err

@@ -277,3 +277,34 @@ def test_band_snr_scales_as_sqrt_ramps():
     # per resolution element: × √dispersion_resolution
     per_res = sim.get_band_snr(BAND, nmd=(64, 8, 0), nramps=4, per_resolution=True)
     assert per_res == pytest.approx(four * math.sqrt(2.3), rel=1e-12)
+
+
+def test_config_file_and_values_that_are_not_what_they_say(tmp_path):
+    """A binary file given as --config, a non-numeric bias and a fractional readout n are
+    ConfigErrors naming the key (not a UnicodeDecodeError, a ValueError or n truncated)."""
+    from slicersim.errors import ConfigError
+    from slicersim.io.config import load_config
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(bytes(range(128, 256)))
+    with pytest.raises(ConfigError, match="cannot parse TOML .*binary.toml"):
+        load_config(str(binary))
+    with pytest.raises(ConfigError, match=r"\[detector\] bias = 'high': must be a number"):
+        load_config({"detector": {"bias": "high"}})
+    for text, key in (("[detector]\nreadout_mode = [2.7, 1, 0]\n", r"\[detector\] readout_mode = .*must be \(n, m, d\)"),
+                      ("[detector]\nQE = " + str([1.5] * 500) + "\n", r"\[detector\] QE = \[1.5, 1.5[^\]]*…: QE must lie in")):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text)
+        with pytest.raises(ConfigError, match=key):
+            load_config(["cbe", str(bad)])
+
+
+def test_unknown_config_key_or_table_suggests_the_near_one(tmp_path):
+    from slicersim.errors import ConfigError
+    from slicersim.io.config import load_config
+    bad = tmp_path / "typo.toml"
+    bad.write_text("[detector]\ngian = 2.0\n")
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['gian'\] in \[detector\] \(did you mean 'gain'\?\); allowed:"):
+        load_config(["cbe", str(bad)])
+    bad.write_text("[detecter]\ngain = 2.0\n")
+    with pytest.raises(ConfigError, match=r"unknown configuration table \[detecter\] \(did you mean 'detector'\?\)"):
+        load_config(["cbe", str(bad)])

@@ -151,3 +151,15 @@ def test_bad_parameters_rejected():
         cr.cosmic_ray_deposits(1, 0, 10, 2.83, (0, 10), P)
     with pytest.raises(EffectsError, match="tframe"):
         cr.cosmic_ray_deposits(1, 0, 10, -1.0, FULL, P)
+
+
+def test_species_charges_and_call_arguments_are_integers_not_truncated():
+    """A charge z = 2.5 was read as helium (int()); ramp 1.5 as ramp 1: both are refused now."""
+    with pytest.raises(EffectsError, match=r"cosmic_rays.species charge z must be an integer in \[1, 92\]"):
+        cr.CosmicRayParameters(species=[(1, 0.9), (2.5, 0.1)])
+    with pytest.raises(EffectsError, match="cosmic_rays.species must be a list of"):
+        cr.CosmicRayParameters(species="proton")
+    with pytest.raises(EffectsError, match=r"^ramp must be an integer"):
+        cr._check_call(1, 1.5, 4, 2.83, (32, 32))
+    with pytest.raises(EffectsError, match=r"shape \(detector\)\[0\] must be an integer"):
+        cr._check_call(1, 0, 4, 2.83, (0, 32))

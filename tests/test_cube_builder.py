@@ -211,7 +211,8 @@ def test_airy_profile_hook(sim, cube):
 def test_options_and_hooks(sim):
     with pytest.raises(ValueError, match="psf_profile"):
         build_cube(sim, psf_profile="moffat")
-    with pytest.raises(TypeError, match="flux_cube"):
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match="host must provide flux_cube"):
         Scene(sim.scene.pointsource, sim.scene.background, object())
     with pytest.raises(ValueError):
         build_cube(sim, nmd=(1, 8, 0))

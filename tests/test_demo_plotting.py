@@ -122,5 +122,6 @@ def test_plot_instrument(target, tmp_path):
 
 
 def test_rejects_other_objects():
-    with pytest.raises(TypeError):
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match="target_or_sim must be a Target or a Simulation"):
         plotting.plot_spectrum(object())

@@ -19,7 +19,7 @@ def test_from_names():
     assert all_.enabled == tuple(n for n in EFFECT_NAMES if n != "persistence")
     assert "persistence" in DetectorEffects.from_names("all", has_previous_charge=True)
     assert "persistence" in DetectorEffects.from_names("persistence")
-    with pytest.raises(EffectsError, match="known effects: cosmic_rays, ipc"):
+    with pytest.raises(EffectsError, match=r"unknown effect 'cosmic_ray' \(did you mean 'cosmic_rays'\?\); valid: 'cosmic_rays', 'ipc'"):
         DetectorEffects.from_names("cosmic_ray")
     with pytest.raises(EffectsError, match="not enabled"):
         e.params("nonlinearity")

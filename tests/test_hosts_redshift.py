@@ -216,3 +216,20 @@ def test_named_real_galaxies_forms_and_image_size():
     assert t.host.profile.pixel_scale == pytest.approx(pixscale * d_a_kpc(z_gal) / d_a_kpc(1.5), rel=1e-12)
     with pytest.raises(ParameterError, match="larger"):
         GalaxyModel("ngc0628").host(z_gal / 2)
+
+
+def test_host_parameter_names_and_values_name_the_parameter():
+    """An unknown parameter lists the valid ones with a "did you mean"; ellip, offsets and angles
+    are checked numbers; a failed update leaves the model as it was."""
+    with pytest.raises(ParameterError, match=r"unknown host parameter 'magabss' \(did you mean 'magabs'\?\); valid:"):
+        GalaxyModel("sersic", magabss=-20)
+    with pytest.raises(ParameterError, match=r"ellip \(= 1 − b/a\) must be in \[0, 1\)"):
+        GalaxyModel("sersic", ellip=1.0)
+    with pytest.raises(ParameterError, match=r"host offset\[1\] \(y\) must be finite"):
+        GalaxyModel("sersic", offset=(0.0, float("inf")))
+    with pytest.raises(ParameterError, match="host position_angle must be a number"):
+        GalaxyModel("sersic", position_angle="north")
+    model = GalaxyModel("sersic", r_kpc=3.0)
+    with pytest.raises(ParameterError, match="unknown host parameter 'radius'"):
+        model.updated(radius=4.0)
+    assert model.params["r_kpc"] == 3.0

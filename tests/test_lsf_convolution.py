@@ -253,3 +253,17 @@ def test_convolution_rejects_bad_input():
         cc.convolve_cube(cube, np.ones((3, 3, 3)))
     with pytest.raises(ValueError, match="method"):
         cc.convolve_cube(cube, np.ones((3, 3)), method="spline")
+
+
+def test_convolution_arguments_are_parameter_errors_naming_them():
+    from slicersim.backends.convolution import apply_lsf as lsf_backend, convolve_cube
+    from slicersim.errors import ParameterError
+    cube = np.ones((2, 5, 5))
+    with pytest.raises(ParameterError, match=r"unknown method 'fftw' \(did you mean 'fft'\?\); valid: 'auto', 'direct', 'fft'"):
+        convolve_cube(cube, np.ones((3, 3)), method="fftw", backend="numpy")
+    with pytest.raises(ParameterError, match="kernel sizes must be odd"):
+        convolve_cube(cube, np.ones((2, 2)), backend="numpy")
+    with pytest.raises(ParameterError, match="cube contains 1 NaN/inf"):
+        convolve_cube(np.where(np.arange(50).reshape(2, 5, 5) == 7, np.nan, 1.0), np.ones((3, 3)), backend="numpy")
+    with pytest.raises(ParameterError, match="axis must be an integer"):
+        lsf_backend(np.ones(8), 1.0, axis=0.5, backend="numpy")

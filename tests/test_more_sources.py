@@ -255,3 +255,24 @@ def test_calspec_missing_or_bad_file(tmp_path, monkeypatch):
     _write_calspec(tmp_path / "gd71_nm.fits", 1.0, wave_unit="nm")
     with pytest.raises(SpectrumError, match="Angstroms"):
         LazuliCalSpec("gd71", calspec_dir=tmp_path)
+
+
+def test_spectrum_arguments_name_the_parameter():
+    """Strings or a bad temperature are SpectrumErrors naming the argument (were NumPy's ValueError
+    or a TypeError from the comparison)."""
+    from slicersim.sources.cosmology import redshift_scalings
+    from slicersim.sources.spectra import PointSource, blackbody_flambda, validate_spectrum
+    with pytest.raises(SpectrumError, match="spectrum: wavelengths must be an array of real numbers"):
+        validate_spectrum(["a", "b"], [1.0, 2.0])
+    with pytest.raises(SpectrumError, match=r"blackbody temperature \[K\] must be a number"):
+        blackbody_flambda([5000.0], "hot")
+    with pytest.raises(SpectrumError, match=r"blackbody temperature \[K\] must be > 0"):
+        blackbody_flambda([5000.0], -5.0)
+    with pytest.raises(SpectrumError, match=r"mag \[AB\] must be finite"):
+        PointSource([4000.0, 5000.0], [1.0, 1.0], mag=float("nan"))
+    src = PointSource([4000.0, 5000.0], [1.0, 1.0])
+    with pytest.raises(SpectrumError, match="flux_ratio must be"):
+        src.set_spectrum([4000.0, 6000.0], [1.0, 1.0], flux_ratio=-1.0)
+    assert src.lbda_in[-1] == 5000.0                       # a failed change changes nothing
+    with pytest.raises(ParameterError, match="from_redshift must be a number"):
+        redshift_scalings("0.5", 1.0)

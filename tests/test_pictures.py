@@ -341,3 +341,26 @@ def test_cli_figures_are_written_atomically(tmp_path, monkeypatch, capsys):
     open(stale, "wb").write(b"\x89PNG killed")
     assert main(["plot", "psf", "--lbda", "8000", "--out", str(tmp_path / "q.png")]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.png", "q.png"]
+
+
+def test_picture_arguments_are_parameter_errors_naming_them(target):
+    from slicersim.app.pictures import check_region
+    with pytest.raises(ParameterError, match=r"region\[1\] \(row1\) \[px\] must be an integer"):
+        check_region((0, 10.5, 0, 10), (4096, 4096))
+    with pytest.raises(ParameterError, match=r"region must be \(row0, row1, col0, col1\)"):
+        check_region("0 10 0 10", (4096, 4096))
+    with pytest.raises(ParameterError, match="npoints must be an integer"):
+        plotting.show_psf_profiles(target, lbda=8000.0, npoints=2.5)
+    with pytest.raises(ParameterError, match=r"lbda \[AA\] must be an array of real numbers"):
+        plotting.show_psf_profiles(target, lbda="red")
+    with pytest.raises(ParameterError, match="target_or_sim must be a Target or a Simulation"):
+        plotting.plot_spectrum("sn")
+    plt.close("all")
+
+
+def test_read_outlines_names_a_file_that_is_not_outlines_json(tmp_path):
+    from slicersim.errors import DatasetError
+    bad = tmp_path / "fp_outlines.json"
+    bad.write_bytes(b"\x89PNG\r\n")
+    with pytest.raises(DatasetError, match="fp_outlines.json: not a footprint outlines JSON file"):
+        read_outlines(bad)

@@ -272,7 +272,8 @@ def test_cache_off_and_explicit_directory(tmp_path, monkeypatch):
     explicit = SlicerMapper.default(table_cache=tmp_path / "mine")
     _image(explicit, "numpy")
     assert len(_entries(tmp_path / "mine")) == 1 and not explicit._cache
-    with pytest.raises(TypeError):
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match="table cache must be"):
         SlicerMapper.default(table_cache=3)
 
 

@@ -424,3 +424,24 @@ def test_reference_airy_cube(case, refdir, reference_case):
     assert np.abs(cube.sum(axis=(1, 2)) - ref_sum[idx]).max() <= 1e-6 * ref_sum.max()
     # the reference Airy PSF holds more than 100 % of the flux (its sub-sample grid)
     assert np.all(psf[idx].sum(axis=(1, 2)) > 1.002)
+
+
+def test_quadrature_thermal_and_lsf_arguments_are_parameter_errors():
+    from slicersim.errors import ParameterError
+    from slicersim.physics.lsf import check_sigma
+    from slicersim.physics.psf import cell_quadrature
+    from slicersim.physics.thermal import solid_angle_from_fratio
+    with pytest.raises(ParameterError, match=r"unknown grid 'gaus' \(did you mean 'gauss'\?\); valid: 'exact', 'gauss'"):
+        cell_quadrature(3, "gaus")
+    with pytest.raises(ParameterError, match="oversampling must be an integer"):
+        cell_quadrature(2.5)
+    with pytest.raises(ParameterError, match=r"unknown optics geometry 'round'; valid: 'square', 'circular'"):
+        solid_angle_from_fratio(3.0, "round")
+    with pytest.raises(ParameterError, match="fratio"):
+        solid_angle_from_fratio((0.0, 3.0))
+    with pytest.raises(ParameterError, match="truncate must be"):
+        check_sigma(1.0, 4, -1.0)
+    with pytest.raises(ParameterError, match=r"sigma_bins \[bins\] must be ≥ 0"):
+        check_sigma([1.0, -1.0], 2, 4.0)
+    with pytest.raises(ParameterError, match="sigma_bins .*must be an array of real numbers"):
+        check_sigma("wide", 2, 4.0)

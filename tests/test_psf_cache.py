@@ -463,3 +463,17 @@ def test_curve_files_are_cached_by_content(tmp_path):
     np.testing.assert_array_equal(read_curve(str(path))[1]["t"], [0.5, 0.9, 0.7])
     path.write_text("wavelength,t\r\n4000,0.1\r\n5000,0.2\r\n")           # CRLF as open() reads it
     np.testing.assert_array_equal(read_curve(str(path))[1]["t"], [0.1, 0.2])
+
+
+def test_cache_limits_are_checked_integers():
+    from slicersim.backends.psf_cache import PSF_CACHE, set_psf_cache_limit
+    from slicersim.errors import ParameterError
+    from slicersim.io.table_cache import ArrayCache
+    before = PSF_CACHE.max_bytes
+    with pytest.raises(ParameterError, match=r"max_bytes \(.* cache\) must be an integer ≥ 0"):
+        set_psf_cache_limit(-1)
+    with pytest.raises(ParameterError, match=r"max_bytes \(.* cache\) must be an integer"):
+        set_psf_cache_limit(1.5e3 + 0.5)
+    assert PSF_CACHE.max_bytes == before                       # a failed change changes nothing
+    with pytest.raises(ParameterError, match=r"max_bytes \(table cache\) must be an integer ≥ 0"):
+        ArrayCache("/tmp/unused", max_bytes=-5)

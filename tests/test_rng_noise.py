@@ -47,10 +47,13 @@ def test_keying_and_uniform_mapping():
     # extreme words map strictly inside (0, 1), exactly
     u = rng.words_to_uniform(np.array([0, 0xFFFFFFFF], np.uint32), np.array([0, 0xFFFFFFFF], np.uint32))
     assert u[0] == 2.0**-53 and u[1] == 1.0 - 2.0**-53
-    with pytest.raises(ValueError):
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match="seed"):
         rng.seed_to_key(-1)
-    with pytest.raises(TypeError):
+    with pytest.raises(ParameterError, match="seed must be an integer"):
         rng.seed_to_key(1.5)
+    with pytest.raises(ParameterError, match="seed must be an integer.*Generator"):
+        rng.seed_to_key(np.random.default_rng(1))
 
 
 # words whose top bit is set (the high word of every u >= 0.5): NVIDIA's OpenCL (H200, driver
@@ -291,3 +294,17 @@ def test_poisson_edge_cases(backend):
 def test_philox_header_is_included_by_noise_kernel():
     assert '#include "philox.cl"' in opencl.kernel_source("noise.cl")
     assert "__kernel" not in opencl.kernel_source("philox.cl")   # header-like: functions only
+
+
+def test_noise_arguments_are_parameter_errors_naming_them():
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match=r"stream must be an integer in \[0, 4294967295\]"):
+        cn.noisy_cube(np.zeros(4), np.ones(4), 1, backend="numpy", stream=2**32)
+    with pytest.raises(ParameterError, match="variance must be ≥ 0"):
+        cn.noisy_cube(np.zeros(4), -np.ones(4), 1, backend="numpy")
+    with pytest.raises(ParameterError, match="Poisson mean must be an array of real numbers"):
+        rng.poisson(["a"], 1)
+    with pytest.raises(ParameterError, match=r"unknown backend 'numpyy' \(did you mean 'numpy'\?\)"):
+        resolve_backend("numpyy")
+    with pytest.raises(ParameterError, match="rows must be an integer"):
+        cn.uniform_normal_grid(1.5, 4, 1, backend="numpy")

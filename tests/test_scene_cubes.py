@@ -142,3 +142,23 @@ def test_bad_unit_and_readout(sim):
         sim.get_scene_cubes(unit="jansky")
     with pytest.raises(Exception, match="nramps"):
         sim.get_scene_cubes(nramps=0)
+
+
+def test_scene_background_and_cube_arguments_are_parameter_errors():
+    from slicersim.sources.pixels import CubeSource
+    from slicersim.sources.scene import Background, Scene
+    with pytest.raises(ParameterError, match=r"unknown background model 'zodiacal' \(did you mean 'zodi'\?\); valid: 'zodi'"):
+        Background("zodiacal")
+    with pytest.raises(ParameterError, match="background scale must be ≥ 0"):
+        Background(scale=-1.0)
+    with pytest.raises(ParameterError, match="host must provide flux_cube"):
+        Scene(host="a galaxy")
+    cube = np.ones((3, 4, 4))
+    with pytest.raises(ParameterError, match=r"lbda_in \[Å\] must be an array of real numbers"):
+        CubeSource(cube, ["a", "b", "c"], 0.1)
+    with pytest.raises(ParameterError, match=r"pixel_scale \[arcsec\] must be > 0"):
+        CubeSource(cube, [4000.0, 5000.0, 6000.0], 0.0)
+    src = CubeSource(cube, [4000.0, 5000.0, 6000.0], 0.1)
+    from slicersim.errors import SpectrumError
+    with pytest.raises(SpectrumError, match="lbda: wavelength grid .* extends beyond"):
+        src.flux_cube(np.array([3000.0, 4500.0]), (4, 4), 0.1)

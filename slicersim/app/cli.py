@@ -1,9 +1,11 @@
 """Command-line interface: ``slicersim {info,demo,etc,ramp,survey,campaign,footprints,plot}`` (also
 ``python -m slicersim``).
 
-User errors (bad values, impossible requests, unwritable or existing outputs,
-Ctrl-C) are reported as one line ``slicersim: error: ...`` on stderr with exit
-status 2.  Set ``SLICERSIM_DEBUG=1`` to get the full traceback instead.
+User errors (a :class:`~slicersim.errors.SlicersimError`: bad values, impossible requests,
+unreadable input files, unwritable or existing outputs; an ``OSError``; out of memory; Ctrl-C)
+are reported as one line ``slicersim: error: ...`` on stderr with exit status 2.  Set
+``SLICERSIM_DEBUG=1`` to get the full traceback instead.  Anything else is a defect of slicersim:
+its traceback is printed with a "please report" line, exit status 3.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import platform
 import sys
 from importlib import metadata
 
+from slicersim import validation
 from slicersim.physics.conventions import CONVENTIONS, DEFAULT_CONVENTIONS
 
 
@@ -74,28 +77,49 @@ def cmd_demo(args) -> int:
 
 
 def _read_spectrum(path):
-    """Two-column text/CSV file: wavelength [Angstrom], flux [erg/s/cm2/Angstrom]."""
+    """Two-column text/CSV file: wavelength [Angstrom], flux [erg/s/cm2/Angstrom].
+
+    Lines before the first numeric row are a header; after it, a row that is not two numbers is
+    an error naming the file and the line (SpectrumError), as is a file that is not UTF-8 text
+    (e.g. a binary or .npy file given by mistake)."""
     import numpy as np
 
+    from slicersim.errors import SpectrumError
+    path = validation.regular_file("--spectrum", path, error=SpectrumError)
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SpectrumError(f"--spectrum: {path} is not a text file (byte {exc.start} is not UTF-8); "
+                            "give a two-column text/CSV file: wavelength [Angstrom], flux") from None
     lbda, flux = [], []
-    with open(path, encoding="utf-8") as fh:
-        for line in fh:
-            line = line.split("#", 1)[0].replace(",", " ").replace(";", " ").strip()
-            if not line:
-                continue
-            fields = line.split()
-            try:
-                x, y = float(fields[0]), float(fields[1])
-            except (ValueError, IndexError):
-                continue  # header or malformed line
-            lbda.append(x)
-            flux.append(y)
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].replace(",", " ").replace(";", " ").split()
+        if not fields:
+            continue
+        row = _two_numbers(fields)
+        if row is None:
+            if not lbda:
+                continue                # header
+            raise SpectrumError(f"--spectrum: {path}, line {number}: expected two numbers 'wavelength flux', "
+                                f"got {validation.short_repr(line.strip())}")
+        lbda.append(row[0])
+        flux.append(row[1])
     if len(lbda) < 2:
-        from slicersim.errors import SpectrumError
         raise SpectrumError(f"{path}: need at least two numeric 'wavelength flux' rows")
     lbda, flux = np.asarray(lbda), np.asarray(flux)
     order = np.argsort(lbda, kind="stable")
-    return lbda[order], flux[order]
+    from slicersim.sources.spectra import validate_spectrum
+    return validate_spectrum(lbda[order], flux[order], name=f"--spectrum {path}")
+
+
+def _two_numbers(fields):
+    """(x, y) from the first two fields of a row, or None when they are not two numbers."""
+    try:
+        return float(fields[0]), float(fields[1])
+    except (ValueError, IndexError):
+        return None
 
 
 def _fmt_value(v) -> str:
@@ -183,16 +207,30 @@ def _check_output(path, overwrite):
 
 
 def _load_rate(path):
+    """An image from a .npy file (NumPy's format) or a text file of numbers, as a float64 array;
+    ParameterError naming the file when it is neither (a text file named .npy, a binary file
+    given as text, a non-numeric entry)."""
     import numpy as np
 
     from slicersim.errors import ParameterError
-    try:
-        rate = np.load(path) if path.endswith(".npy") else np.loadtxt(path, ndmin=2)
-    except OSError:
-        raise
-    except ValueError as exc:
-        raise ParameterError(f"{path}: cannot read a rate image: {exc}") from exc
-    return rate
+    path = validation.regular_file("image file", path)
+    if path.endswith(".npy"):
+        try:
+            rate = np.load(path, allow_pickle=False)
+        except ValueError:       # NumPy's "pickled data" message: not an .npy file (text, or object array)
+            raise ParameterError(f"{path}: not a NumPy .npy file of numbers (a text image must not be named "
+                                 ".npy)") from None
+        if not isinstance(rate, np.ndarray):
+            raise ParameterError(f"{path}: an .npz archive, not a single .npy image")
+    else:
+        try:
+            rate = np.loadtxt(path, ndmin=2)
+        except UnicodeDecodeError:
+            raise ParameterError(f"{path}: not a text file of numbers (save a binary image with numpy.save "
+                                 "and name it .npy)") from None
+        except ValueError as exc:
+            raise ParameterError(f"{path}: cannot read a text image of numbers: {_one_line(exc)}") from None
+    return validation.array(f"image {path}", rate, finite=False)
 
 
 def _ramp_effects(args):

@@ -11,6 +11,7 @@ import os
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ParameterError
 
 __all__ = ["show_fields", "show_psf_profiles", "show_slice_map", "field_simulations", "save_figure", "figure_writer",
@@ -248,13 +249,18 @@ def show_fields(target_or_sim, lbda_range=None, seed=None, savefile=None):
 #  PSF                                                                         #
 # --------------------------------------------------------------------------- #
 def check_wavelengths(sim, lbda, what="lbda"):
-    """Refuse (ParameterError) wavelengths [Å] outside the simulation's spectral range."""
+    """Refuse (ParameterError naming ``what``) wavelengths [Å] that are not numbers or lie outside the
+    simulation's spectral range; returns them as a 1-D float array."""
+    lbdas = validation.array(f"{what} [AA]", np.atleast_1d(lbda), ndim=1)
+    if lbdas.size == 0:
+        raise ParameterError(f"{what} must be one or more wavelengths [AA], got none")
     edges = sim.spectrograph.lbda_edges
     lo, hi = float(edges[0]), float(edges[-1])
-    bad = [float(v) for v in np.ravel(lbda) if not lo <= v <= hi]
+    bad = [float(v) for v in lbdas if not lo <= v <= hi]
     if bad:
         raise ParameterError(f"{what} must lie within the instrument's range {lo:.0f}-{hi:.0f} AA, got "
                              f"{', '.join(f'{v:g}' for v in bad)}")
+    return lbdas
 
 
 def psf_profile_curves(sim, lbda, radius):
@@ -289,15 +295,12 @@ def show_psf_profiles(target_or_sim, lbda=(5000.0, 10000.0, 15000.0), rmax=None,
     import matplotlib.pyplot as plt
 
     sim = _simulation(target_or_sim)
-    lbdas = np.atleast_1d(np.asarray(lbda, np.float64))
-    if lbdas.ndim != 1 or lbdas.size == 0 or not np.all(np.isfinite(lbdas) & (lbdas > 0)):
-        raise ParameterError(f"lbda must be one or more wavelengths > 0 [AA], got {lbda!r}")
-    check_wavelengths(sim, lbdas)
+    lbdas = check_wavelengths(sim, lbda)
     if rmax is None:
         rmax = 3.0 * float(sim.telescope.airy_radius(lbdas.max()))
-    if not (np.isfinite(rmax) and rmax > 0) or int(npoints) < 2:
-        raise ParameterError(f"rmax must be > 0 [arcsec] and npoints >= 2, got {rmax!r}, {npoints!r}")
-    r = np.linspace(0.0, float(rmax), int(npoints))
+    rmax = validation.number("rmax", rmax, low=0.0, low_open=True, unit="arcsec")
+    npoints = validation.integer("npoints", npoints, low=2, high=1 << 20)
+    r = np.linspace(0.0, rmax, npoints)
     fig, (ax_p, ax_e) = plt.subplots(1, 2, figsize=(11, 4.6), layout="constrained")
     colours = plt.get_cmap("plasma")(np.linspace(0.1, 0.85, lbdas.size))
     for lam, col in zip(lbdas, colours):
@@ -346,12 +349,10 @@ def _field_footprints(mapper, fields, config, lbda_edges, ncol, truncate):
 
 def check_region(region, shape):
     """(row0, row1, col0, col1) [px] of a zoom, checked to lie within a detector of ``shape``."""
-    try:
-        if len(region) != 4 or not all(float(v).is_integer() for v in region):
-            raise TypeError
-        r0, r1, c0, c1 = (int(v) for v in region)
-    except (TypeError, ValueError, OverflowError):
-        raise ParameterError(f"region must be (row0, row1, col0, col1) [px], got {region!r}") from None
+    if isinstance(region, (str, bytes)) or not hasattr(region, "__len__") or len(region) != 4:
+        raise ParameterError(f"region must be (row0, row1, col0, col1) [px], got {validation.short_repr(region)}")
+    r0, r1, c0, c1 = (validation.integer(f"region[{i}] ({what}) [px]", v)
+                      for i, (v, what) in enumerate(zip(region, ("row0", "row1", "col0", "col1"))))
     if not (0 <= r0 < r1 <= shape[0] and 0 <= c0 < c1 <= shape[1]):
         raise ParameterError(f"region (row0, row1, col0, col1) must satisfy 0 <= row0 < row1 <= {shape[0]} "
                              f"and 0 <= col0 < col1 <= {shape[1]} (the detector) [px], got {tuple(region)}")

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import os
 
-from slicersim.errors import ParameterError
+from slicersim import validation
+from slicersim.errors import ConfigError, ParameterError, SlicersimError
 
 __all__ = ["add_parsers"]
 
@@ -42,7 +43,13 @@ def _mapper(args):
     from slicersim.instrument.mapper import SlicerMapper
     if not os.path.isfile(args.spot_table):
         raise ParameterError(f"--spot-table: no such file: {args.spot_table}")
-    return SlicerMapper.from_table(args.spot_table)
+    try:
+        return SlicerMapper.from_table(args.spot_table)
+    except SlicersimError:
+        raise
+    except (ValueError, KeyError, IndexError) as exc:     # the table reader's own parse errors (text file)
+        raise ConfigError(f"--spot-table: {args.spot_table}: not a spot table: {' '.join(str(exc).split())}") \
+            from None
 
 
 def _footprints(args, mapper):
@@ -54,8 +61,8 @@ def _footprints(args, mapper):
 
 
 def _check_truncate(args):
-    if not (args.truncate >= 0 and args.truncate < float("inf")):
-        raise ParameterError(f"--truncate must be finite and >= 0 [spot rms], got {args.truncate}")
+    """--truncate: finite and ≥ 0 [spot rms]."""
+    validation.number("--truncate [spot rms]", args.truncate, low=0.0)
 
 
 def cmd_footprints(args) -> int:
@@ -140,8 +147,7 @@ def cmd_plot(args) -> int:
         target = _target(args)
         if args.lbda_range is not None:
             pictures.check_wavelengths(target.simulation, args.lbda_range, "--lbda-range")
-        if args.seed is not None and args.seed < 0:
-            raise ParameterError(f"--seed must be >= 0, got {args.seed}")
+        validation.seed(args.seed, name="--seed")
         pictures.show_fields(target, lbda_range=args.lbda_range, seed=args.seed, savefile=args.out)
     else:
         target = _target(args)

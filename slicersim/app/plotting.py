@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.app.pictures import save_figure, show_fields, show_psf_profiles, show_slice_map
+from slicersim.errors import ParameterError
 
 __all__ = ["plot_spectrum", "plot_variance_budget", "plot_instrument", "SOURCE_STYLES", "show_fields",
            "show_psf_profiles", "show_slice_map"]
@@ -40,7 +41,7 @@ def _split(target_or_sim):
         return target_or_sim, sim
     if hasattr(target_or_sim, "get_spectrum") and hasattr(target_or_sim, "spectrograph"):
         return None, target_or_sim
-    raise TypeError(f"expected a Target or a Simulation, got {type(target_or_sim).__name__}")
+    raise ParameterError(f"target_or_sim must be a Target or a Simulation, got {type(target_or_sim).__name__}")
 
 
 def _last_etc(target):

@@ -10,29 +10,34 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, chunk_ranges, resolve_backend  # noqa: F401
+from slicersim.errors import ParameterError
 
 __all__ = ["band_variance_table"]
 
 
 def _check_inputs(Q, P2, A, B, Qsat, band):
-    Q = np.asarray(Q)
-    if Q.ndim != 3:
-        raise ValueError(f"Q must have shape (N, nlbda, ncell), got {Q.shape}")
+    """The inputs of :func:`band_variance_table` as contiguous arrays of the kernel's types, their
+    shapes consistent (ParameterError naming the array otherwise)."""
+    Q = np.asarray(Q)                 # kept in its own dtype (read chunk by chunk: no copy of the whole)
+    if Q.ndim != 3 or Q.dtype.kind not in "biuf":
+        raise ParameterError(f"Q must be a real array of shape (N, nlbda, ncell), got {Q.dtype} {Q.shape}")
     N, nlbda, ncell = Q.shape
-    P2 = np.ascontiguousarray(P2, dtype=np.float64)
+    P2 = np.ascontiguousarray(validation.array("P2", P2, ndim=2, finite=False))
     if P2.shape != (nlbda, ncell):
-        raise ValueError(f"P2 must have shape {(nlbda, ncell)}, got {P2.shape}")
-    A, B, Qsat = (np.ascontiguousarray(np.ravel(x), dtype=np.float64) for x in (A, B, Qsat))
+        raise ParameterError(f"P2 must have shape {(nlbda, ncell)}, got {P2.shape}")
+    A, B, Qsat = (np.ascontiguousarray(np.ravel(validation.array(name, x, finite=False)))
+                  for name, x in (("A", A), ("B", B), ("Qsat", Qsat)))
     if not A.shape == B.shape == Qsat.shape:
-        raise ValueError(f"A, B, Qsat must have the same length, got {A.shape}, {B.shape}, {Qsat.shape}")
+        raise ParameterError(f"A, B, Qsat must have the same length, got {A.shape}, {B.shape}, {Qsat.shape}")
     band = np.asarray(band)
     if band.shape != (N, 2) or not np.issubdtype(band.dtype, np.integer):
-        raise ValueError(f"band must be an integer array of shape {(N, 2)}, got {band.dtype} {band.shape}")
+        raise ParameterError(f"band must be an integer array of shape {(N, 2)}, got {band.dtype} {band.shape}")
     band = np.ascontiguousarray(band, dtype=np.int32)
     if N and (band[:, 0].min() < 0 or band[:, 1].max() > nlbda or np.any(band[:, 1] < band[:, 0])):
-        raise ValueError(f"band ranges must satisfy 0 <= i0 <= i1 <= nlbda={nlbda}")
+        raise ParameterError(f"band ranges must satisfy 0 <= i0 <= i1 <= nlbda={nlbda}")
     return Q, P2, A, B, Qsat, band
 
 

@@ -18,9 +18,11 @@ import scipy.ndimage
 import scipy.signal
 import scipy.sparse
 
+from slicersim import validation
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, chunk_ranges, resolve_backend
 from slicersim.backends.precision import check_precision, real_dtype, resolve_precision
+from slicersim.errors import ParameterError
 from slicersim.physics import lsf
 
 __all__ = ["apply_lsf", "convolve_cube", "choose_convolution_method",
@@ -32,10 +34,12 @@ CPU_FFT_CHUNK_BYTES = 8 * 2**20
 
 
 def _finite_array(values, name):
-    a = np.asarray(values, dtype=np.float64)
+    """``values`` as a float64 array with no NaN/inf (ParameterError naming ``name``: a NaN would
+    spread over the convolution footprint)."""
+    a = validation.array(name, values, finite=False)
     if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains {np.count_nonzero(~np.isfinite(a))} NaN/inf value(s); "
-                         "validate the input first (NaN would spread over the convolution footprint)")
+        raise ParameterError(f"{name} contains {np.count_nonzero(~np.isfinite(a))} NaN/inf value(s); "
+                             "validate the input first (NaN would spread over the convolution footprint)")
     return a
 
 
@@ -71,13 +75,13 @@ def apply_lsf(values, sigma_bins, axis=0, truncate=4.0, backend="auto", *, max_b
         flat spectrum with the same total.
     precision : "auto", "double" or "single" (OpenCL kernel in float32: ≤ 1e-5 of the peak against
         double, :mod:`slicersim.backends.precision`); the result is float64 either way.
-    Raises ValueError on NaN/inf values and negative or non-finite σ.
+    Raises ParameterError (a ValueError) on NaN/inf values and negative or non-finite σ.
     """
     check_precision(precision)
     x = _finite_array(values, "values")
     if x.ndim == 0:
-        raise ValueError("values must have at least one dimension")
-    axis = int(axis) % x.ndim
+        raise ParameterError("values must have at least one dimension")
+    axis = validation.integer("axis", axis, low=-x.ndim, high=x.ndim - 1) % x.ndim
     n = x.shape[axis]
     sig = lsf.check_sigma(sigma_bins, n, truncate)
     constant = np.ndim(sigma_bins) == 0
@@ -147,7 +151,7 @@ def fft_radix_plan(n):
             plan.append(r)
             n //= r
     if n != 1:
-        raise ValueError("FFT length must have only the prime factors 2, 3, 5")
+        raise ValueError("FFT length must have only the prime factors 2, 3, 5")  # internal: n from fft_good_size
     return plan
 
 
@@ -174,12 +178,12 @@ def _check_conv_inputs(cube, kernels):
     cube = _finite_array(cube, "cube")
     kernels = _finite_array(kernels, "kernels")
     if cube.ndim != 3:
-        raise ValueError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
+        raise ParameterError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
     if kernels.ndim not in (2, 3) or (kernels.ndim == 3 and kernels.shape[0] != cube.shape[0]):
-        raise ValueError(f"kernels must have shape (ky, kx) or ({cube.shape[0]}, ky, kx), got {kernels.shape}")
+        raise ParameterError(f"kernels must have shape (ky, kx) or ({cube.shape[0]}, ky, kx), got {kernels.shape}")
     ky, kx = kernels.shape[-2:]
     if ky % 2 == 0 or kx % 2 == 0:
-        raise ValueError(f"kernel sizes must be odd (centre at (ky//2, kx//2)), got {(ky, kx)}")
+        raise ParameterError(f"kernel sizes must be odd (centre at (ky//2, kx//2)), got {(ky, kx)}")
     return cube, kernels
 
 
@@ -197,8 +201,7 @@ def convolve_cube(cube, kernels, method="auto", backend="auto", *, max_bytes=DEF
     normalised kernel conserves the flux of sources far enough from the edges).
     """
     cube, kernels = _check_conv_inputs(cube, kernels)
-    if method not in ("auto", "direct", "fft"):
-        raise ValueError(f"method must be 'auto', 'direct' or 'fft', got {method!r}")
+    validation.choice("method", method, ("auto", "direct", "fft"))
     backend, precision = resolve_precision(precision, backend, "convolution")
     if method == "auto":
         method = choose_convolution_method(cube.shape[1:], kernels.shape[-2:], backend)

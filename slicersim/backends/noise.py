@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.backends import opencl, rng
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, resolve_backend
 from slicersim.backends.precision import real_dtype, resolve_precision
@@ -60,17 +61,12 @@ def _sizes(nitems, work_group):
     """(global, local) sizes for nitems work items, padded to whole work groups."""
     if work_group is None:
         return (nitems,), None
-    wg = int(work_group)
-    if wg < 1 or wg > int(opencl.get_device().max_work_group_size):
-        raise ValueError(f"work_group must be in [1, {opencl.get_device().max_work_group_size}], got {wg}")
+    wg = validation.integer("work_group", work_group, low=1, high=int(opencl.get_device().max_work_group_size))
     return (-(-nitems // wg) * wg,), (wg,)
 
 
 def _stream(stream):
-    stream = int(stream)
-    if not 0 <= stream < 2**32:
-        raise ValueError(f"stream must be in [0, 2**32), got {stream}")
-    return stream
+    return validation.integer("stream", stream, low=0, high=2**32 - 1)
 
 
 # --------------------------------------------------------------------------- Gaussian noise
@@ -82,7 +78,7 @@ def _check_out(out, shape, precision="double"):
     if not isinstance(out, np.ndarray) or out.shape != shape or out.dtype not in dtypes \
             or not out.flags.c_contiguous or not out.flags.writeable:
         kinds = "float64 or float32" if precision == "single" else "float64"
-        raise ValueError(f"out must be a writeable C-contiguous {kinds} array of shape {shape}")
+        raise ParameterError(f"out must be a writeable C-contiguous {kinds} array of shape {shape}")
     return out
 
 
@@ -116,10 +112,10 @@ def noisy_cube(expectation, variance, seed, backend="auto", max_bytes=DEFAULT_MA
     real = real_dtype(precision)
     e, v = (_as_float(a, precision) for a in (expectation, variance))
     if e.shape != v.shape:
-        raise ValueError(f"expectation {e.shape} and variance {v.shape} must have the same shape")
+        raise ParameterError(f"expectation {e.shape} and variance {v.shape} must have the same shape")
     ef, vf = e.reshape(-1), v.reshape(-1)
     if _any_negative(vf):
-        raise ValueError(f"variance must be ≥ 0 ({np.count_nonzero(v < 0)} negative value(s))")
+        raise ParameterError(f"variance must be ≥ 0 ({np.count_nonzero(v < 0)} negative value(s))")
     seed, stream = seed_from(seed), _stream(stream)
     out = _check_out(out, e.shape, precision)
     of = out.reshape(-1)
@@ -238,9 +234,9 @@ def poisson_draw(mean, seed, stream=0, backend="auto", max_bytes=DEFAULT_MAX_BYT
     """
     requested = precision
     backend, precision = resolve_precision(precision, backend, "noise")
-    m = np.ascontiguousarray(mean, dtype=np.float64)
+    m = np.ascontiguousarray(validation.array("Poisson mean", mean, finite=False))
     if np.any(m < 0):
-        raise ValueError(f"Poisson mean must be ≥ 0 ({np.count_nonzero(m < 0)} negative value(s))")
+        raise ParameterError(f"Poisson mean must be ≥ 0 ({np.count_nonzero(m < 0)} negative value(s))")
     seed, stream = seed_from(seed), _stream(stream)
     if backend != "opencl":
         index = np.arange(first_index, first_index + m.size, dtype=np.uint64).reshape(m.shape)
@@ -295,11 +291,11 @@ def uniform_normal_grid(rows, ncols, seed, stream=0, draw=0, backend="auto", wor
     keyed ``y << 16 | x`` with first_index = y0 << 16 and row_stride = 2¹⁶.  Bit-identical to
     :func:`slicersim.backends.rng.uniform` / :func:`~slicersim.backends.rng.normal` of those indices."""
     seed, stream = seed_from(seed), _stream(stream)
-    rows, ncols = int(rows), int(ncols)
-    row_stride = ncols if row_stride is None else int(row_stride)
-    if rows < 0 or ncols < 0 or row_stride < 0 or int(first_index) < 0 \
-            or int(first_index) + max(rows - 1, 0) * row_stride + ncols > 2**64:
-        raise ValueError(f"uniform_normal_grid: rows = {rows}, ncols = {ncols}, row_stride = {row_stride} "
+    rows, ncols = validation.integer("rows", rows, low=0), validation.integer("ncols", ncols, low=0)
+    row_stride = ncols if row_stride is None else validation.integer("row_stride", row_stride, low=0)
+    first_index = validation.integer("first_index", first_index, low=0)
+    if first_index + max(rows - 1, 0) * row_stride + ncols > 2**64:
+        raise ParameterError(f"uniform_normal_grid: rows = {rows}, ncols = {ncols}, row_stride = {row_stride} "
                          f"and first_index = {first_index} must be ≥ 0 with indices below 2**64")
     if resolve_backend(backend) != "opencl" or rows * ncols == 0:
         index = (np.uint64(first_index) + np.arange(rows, dtype=np.uint64)[:, None] * np.uint64(row_stride)

@@ -20,10 +20,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import resolve_backend
 from slicersim.backends.projection import _options
 from slicersim.backends.projection_deposit import parent_index as _parent_index, table_buffer as _table_buffer
+from slicersim.errors import ParameterError
 
 __all__ = ["gather", "matrix_entries"]
 
@@ -32,14 +34,17 @@ _GATHER_CHUNK = 1 << 13          # sub-cells per NumPy chunk (~ny·nx·8 bytes o
 
 
 def _check_image(image, tables):
+    """The rows of ``image`` the tables reach, as contiguous float64 (ParameterError naming ``image``
+    for a wrong shape or a NaN/inf pixel there)."""
     H, W = tables.detector_shape
     image = np.asarray(image)
-    if image.shape != (H, W):
-        raise ValueError(f"image must have shape {(H, W)} (the tables' detector), got {image.shape}")
+    if image.shape != (H, W) or image.dtype.kind not in "biuf":
+        raise ParameterError(f"image must be a real array of shape {(H, W)} (the tables' detector), "
+                             f"got {image.dtype} {image.shape}")
     r0, r1 = tables.row_range
     band = np.ascontiguousarray(image[r0:r1], dtype=np.float64)
     if not np.all(np.isfinite(band)):
-        raise ValueError("image must be finite where the tables reach (replace NaN pixels first)")
+        raise ParameterError("image must be finite where the tables reach (replace NaN pixels first)")
     return band
 
 
@@ -56,10 +61,9 @@ def gather(image, tables, power=1, backend="auto"):
     Pixels off the detector count as zero.  ⟨deposit(v), img⟩ = ⟨v, gather(img)⟩ to rounding.
     """
     t = tables
-    if power not in (1, 2):
-        raise ValueError(f"power must be 1 or 2, got {power!r}")
+    validation.choice("power", power, (1, 2))
     if power == 2 and tuple(t.oversample) != (1, 1):
-        raise ValueError("power=2 (squared weights) needs tables without sub-cells (oversample (1, 1))")
+        raise ParameterError("power=2 (squared weights) needs tables without sub-cells (oversample (1, 1))")
     band = _check_image(image, t)
     S, E, Q = t.grid
     ne, nq = t.oversample
@@ -148,9 +152,8 @@ def matrix_entries(tables, first, last):
     """
     t = tables.host()
     H, W = t.detector_shape
-    first, last = int(first), int(last)
-    if not 0 <= first <= last <= t.ncell:
-        raise ValueError(f"sub-cell range [{first}, {last}) outside 0 … {t.ncell}")
+    first = validation.integer("first (sub-cell)", first, low=0, high=t.ncell)
+    last = validation.integer("last (sub-cell)", last, low=first, high=t.ncell)
     c = np.arange(first, last)
     c = c[t.scale[c] != 0]
     if c.size == 0:

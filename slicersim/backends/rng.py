@@ -22,6 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
+from slicersim.errors import ParameterError
+
 __all__ = ["PHILOX_M0", "PHILOX_M1", "PHILOX_W0", "PHILOX_W1", "PTRS_MIN_MEAN",
            "philox4x32", "seed_to_key", "random_words", "words_to_uniform", "uniform", "normal",
            "poisson", "rng_log", "rng_exp", "sincos_2pi", "log_factorial"]
@@ -92,20 +95,16 @@ def philox4x32(counter, key, rounds=10):
 
 
 def seed_to_key(seed):
-    """(key0, key1) uint32 of an integer seed in [0, 2⁶⁴)."""
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
-        raise TypeError(f"seed must be an integer in [0, 2**64), got {seed!r}")
-    seed = int(seed)
-    if not 0 <= seed < 2**64:
-        raise ValueError(f"seed must be in [0, 2**64), got {seed}")
+    """(key0, key1) uint32 of an integer seed in [0, 2⁶⁴) (ParameterError naming ``seed`` otherwise)."""
+    if isinstance(seed, np.random.Generator):
+        raise ParameterError("seed must be an integer in [0, 2**64) here, got a numpy Generator")
+    seed = validation.seed(seed, allow_none=False)
     return np.array([seed & 0xFFFFFFFF, seed >> 32], dtype=np.uint32)
 
 
 def _check_word(value, name):
-    value = int(value)
-    if not 0 <= value < 2**32:
-        raise ValueError(f"{name} must be in [0, 2**32), got {value}")
-    return value
+    """An integer in [0, 2³²) (a Philox stream or draw number)."""
+    return validation.integer(name, value, low=0, high=2**32 - 1)
 
 
 def random_words(seed, index, stream=0, draw=0):
@@ -212,9 +211,9 @@ def poisson(mean, seed, index=None, stream=0):
     mean ≥ 10: PTRS transformed rejection (Hörmann 1993), attempt a uses draw a.
     ``index`` (default ``arange(mean.size)`` in C order) keys each element.
     """
-    mean = np.asarray(mean, dtype=np.float64)
+    mean = validation.array("Poisson mean", mean, finite=False)
     if np.any(mean < 0):
-        raise ValueError(f"Poisson mean must be ≥ 0 ({np.count_nonzero(mean < 0)} negative value(s))")
+        raise ParameterError(f"Poisson mean must be ≥ 0 ({np.count_nonzero(mean < 0)} negative value(s))")
     flat = mean.ravel()
     index = np.arange(flat.size, dtype=np.uint64) if index is None else \
         np.broadcast_to(np.asarray(index, np.uint64), mean.shape).ravel()

@@ -8,15 +8,17 @@ that names them and stored as absolute paths.
 """
 from __future__ import annotations
 
-from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
-
 import copy
+import difflib
 import os
 import tomllib
 from functools import lru_cache
 from importlib import resources
 
 import numpy as np
+
+from slicersim import validation
+from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
 
 __all__ = ["load_config", "validate_config", "ConfigError", "builtin_config_dir", "SCHEMA"]
 
@@ -71,24 +73,33 @@ def _flatten_tables(doc, prefix=""):
     return out
 
 
+def _did_you_mean(names, valid):
+    """" (did you mean 'x'?)" for the first of ``names`` close to a ``valid`` one, else ""."""
+    for name in names:
+        close = difflib.get_close_matches(name, sorted(valid), n=1, cutoff=0.6)
+        if close:
+            return f" (did you mean {close[0]!r}?)"
+    return ""
+
+
 def _read_toml(path):
     if not os.path.isfile(path):
         raise ConfigError(f"configuration file not found: {path}")
     try:
         with open(path, "rb") as fh:
             doc = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:   # a binary file: not UTF-8
         raise ConfigError(f"cannot parse TOML {path}: {exc}") from exc
     tables = _flatten_tables(doc)
     here = os.path.dirname(os.path.abspath(path))
     for table, entries in tables.items():
         if table not in SCHEMA:
-            raise ConfigError(f"{path}: unknown configuration table [{table}]; "
+            raise ConfigError(f"{path}: unknown configuration table [{table}]{_did_you_mean([table], SCHEMA)}; "
                               f"known tables: {sorted(SCHEMA)}")
         unknown = set(entries) - SCHEMA[table]
         if unknown:
-            raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)} in [{table}]; "
-                              f"allowed: {sorted(SCHEMA[table])}")
+            raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)} in [{table}]"
+                              f"{_did_you_mean(sorted(unknown), SCHEMA[table])}; allowed: {sorted(SCHEMA[table])}")
         for key in list(entries):
             if (table, key) in FILE_KEYS and isinstance(entries[key], str):
                 fpath = entries[key] if os.path.isabs(entries[key]) else os.path.join(here, entries[key])
@@ -147,14 +158,15 @@ def load_config(config="cbe"):
 #  physical validation of the merged configuration                            #
 # --------------------------------------------------------------------------- #
 def _bad(table, key, value, reason):
-    return ConfigError(f"[{table}] {key} = {value!r}: {reason}")
+    shown = repr(os.fspath(value)) if isinstance(value, (str, os.PathLike)) else validation.short_repr(value)
+    return ConfigError(f"[{table}] {key} = {shown}: {reason}")      # a curve path in full, arrays summarised
 
 
 def _numbers(table, key, value):
     """Flat float array of a scalar or (nested) list value; ConfigError if not numeric."""
     try:
-        arr = np.asarray(value, dtype=float).ravel()
-    except (TypeError, ValueError):
+        arr = validation.array(f"[{table}] {key}", value, finite=False, error=ConfigError).ravel()
+    except ConfigError:
         raise _bad(table, key, value, "must be a number or a list of numbers") from None
     if arr.size == 0:
         raise _bad(table, key, value, "must not be empty")
@@ -262,6 +274,7 @@ def validate_config(cfg):
                 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
                            for v in shape)):
             raise _bad("detector", "shape", shape, "must be two integers ≥ 1 (ny, nx)")
+    _check_range(cfg, "detector", "bias")
     if det.get("bias") is not None:
         sat = det.get("saturation", 65535)
         if float(det["bias"]) >= float(sat):
@@ -274,9 +287,9 @@ def validate_config(cfg):
     mode = det.get("readout_mode")
     if mode is not None and max_group:
         try:
-            n = int(list(mode)[0])
-        except (TypeError, ValueError, IndexError):
-            raise _bad("detector", "readout_mode", mode, "must be (n, m, d) integers") from None
+            n, _, _ = validation.readout(mode, name="[detector] readout_mode", error=ConfigError)
+        except ConfigError as exc:
+            raise _bad("detector", "readout_mode", mode, f"must be (n, m, d) integers ({exc})") from None
         if n > max_group:
             raise _bad("detector", "readout_mode", mode, f"n = {n} exceeds max_group = {max_group!r}")
     _check_range(cfg, "extraction", "aperture_radius_insigma", 0.0, lo_open=True)

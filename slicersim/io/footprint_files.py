@@ -127,6 +127,11 @@ def write_footprint_set(paths, image, header, description, overwrite=False, also
 
 
 def read_outlines(path):
-    """The mapping written by :func:`write_outlines`."""
-    with open(path, encoding="utf-8") as fh:
-        return json.load(fh)
+    """The mapping written by :func:`write_outlines` (DatasetError naming ``path`` when the file is
+    not UTF-8 JSON)."""
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    try:
+        return json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"{os.fspath(path)}: not a footprint outlines JSON file ({exc})") from None

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.io.atomic import _TMP_RE, _host_tag, _pid_alive, temporary_path
 
 __all__ = ["ArrayCache", "Chunks", "TableCacheWarning", "cache_root", "default_directory", "CACHE_ENV",
@@ -131,8 +132,8 @@ class ArrayCache:
     """
 
     def __init__(self, directory, *, max_bytes=DEFAULT_MAX_BYTES, verify=True):
-        if max_bytes is not None and (not isinstance(max_bytes, (int, np.integer)) or max_bytes < 0):
-            raise ValueError(f"max_bytes must be an integer >= 0 or None, got {max_bytes!r}")
+        if max_bytes is not None:
+            max_bytes = validation.integer("max_bytes (table cache)", max_bytes, low=0)
         self.directory = Path(directory).expanduser().absolute()
         self.max_bytes = None if max_bytes is None else int(max_bytes)
         self.verify = bool(verify)
@@ -144,7 +145,7 @@ class ArrayCache:
         """Directory of entry ``key`` (hex digest: letters, digits, '-' and '_' only)."""
         key = str(key)
         if not key or not all(c.isalnum() or c in "-_" for c in key):
-            raise ValueError(f"cache key must be a non-empty hex/alphanumeric string, got {key!r}")
+            raise ValueError(f"cache key must be hex/alphanumeric, got {key!r}")  # internal: keys are digests
         return self.directory / key
 
     # ------------------------------------------------------------------ read
@@ -214,7 +215,7 @@ class ArrayCache:
         entry = self.path(key)
         for name in arrays:
             if not name.isidentifier():
-                raise ValueError(f"array name {name!r} must be an identifier")
+                raise ValueError(f"array name {name!r} must be an identifier")  # internal: names set by the package
         nbytes = sum(int(a.nbytes) for a in arrays.values())
         tmp = None
         try:
@@ -334,7 +335,7 @@ def _write_npy(path, arr):
         dtype, shape = arr.dtype, arr.shape
         pieces = (np.ascontiguousarray(arr),)
     if dtype.hasobject:
-        raise ValueError("object arrays cannot be cached")
+        raise ValueError("object arrays cannot be cached")  # internal: the package caches numeric tables only
     header = _npy_header(dtype, shape)
     digest = hashlib.sha256(header)
     expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
@@ -348,7 +349,7 @@ def _write_npy(path, arr):
             fh.write(view)
             written += len(view)
     if written != expected:
-        raise ValueError(f"{path.name}: {written} bytes of data given, {expected} expected")
+        raise ValueError(f"{path.name}: {written} bytes given, {expected} expected")  # internal: bad Chunks
     return {"file": path.name, "dtype": dtype.str, "shape": list(shape),
             "file_bytes": len(header) + written, "sha256": digest.hexdigest()}
 

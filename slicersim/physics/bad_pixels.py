@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.backends import rng
 from slicersim.backends.noise import uniform_normal_grid
 from slicersim.errors import EffectsError
@@ -46,14 +47,13 @@ ROWS_PER_CHUNK = 256
 
 
 def _check_range(name, value, low, high):
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise EffectsError(f"{name} must be a (min, max) pair, got {value!r}") from None
-    check_number(f"{name} min", lo, low, high)
-    check_number(f"{name} max", hi, low, high)
+    """A (min, max) pair of numbers in [low, high] with min ≤ max, else EffectsError naming it."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise EffectsError(f"{name} must be a (min, max) pair, got {validation.short_repr(value)}")
+    lo = check_number(f"{name} min", value[0], low, high)
+    hi = check_number(f"{name} max", value[1], low, high)
     if hi < lo:
-        raise EffectsError(f"{name} must have min ≤ max, got {value!r}")
+        raise EffectsError(f"{name} must have min ≤ max, got {validation.short_repr(value)}")
     return (lo, hi)
 
 
@@ -153,9 +153,8 @@ def telegraph_states(seed, ramp, nframes, tframe, pixels):
     Two-state continuous-time Markov chain with leaving rates a = 1/τ_low, b = 1/τ_high, sampled
     exactly every t_frame: P(low→high) = a/λ (1 − e^{−λ t_f}), P(high→low) = b/λ (1 − e^{−λ t_f}),
     λ = a + b; frame 0 from the stationary law P(high) = τ_high/(τ_low + τ_high)."""
-    ramp, nframes = int(ramp), int(nframes)
-    if not 0 <= ramp < 2 ** 32 or not 0 <= nframes < 2 ** 32:
-        raise EffectsError(f"ramp and nframes must be in [0, 2**32), got {ramp}, {nframes}")
+    ramp = validation.integer("ramp", ramp, low=0, high=2 ** 32 - 1, error=EffectsError)
+    nframes = validation.integer("nframes", nframes, low=0, high=2 ** 32 - 1, error=EffectsError)
     tframe = check_number("tframe [s]", tframe, 0.0, low_open=True)
     pixels = np.asarray(pixels)
     a = 1.0 / pixels["tau_low"].astype(np.float64)
@@ -181,12 +180,11 @@ def telegraph_offsets(seed, ramp, nmd, tframe, pixels, params=None):
     """Group-averaged telegraph read offsets [e-]: float32 (ngroups, npix) = amplitude × the mean
     state over the m read frames of each group of MACC (n, m, d) (dropped frames evolve the state
     but are not read).  ``pixels``: the ``telegraph`` array of :func:`bad_pixel_maps`."""
-    try:
-        n, m, d = (int(v) for v in nmd)
-    except (TypeError, ValueError):
-        raise EffectsError(f"nmd must be (n, m, d) integers, got {nmd!r}") from None
-    if n < 1 or m < 1 or d < 0:
-        raise EffectsError(f"nmd must have n ≥ 1, m ≥ 1, d ≥ 0, got {nmd!r}")
+    if isinstance(nmd, (str, bytes)) or not hasattr(nmd, "__len__") or len(nmd) != 3:
+        raise EffectsError(f"nmd must be (n, m, d) integers, got {validation.short_repr(nmd)}")
+    n = validation.integer("nmd[0] (n, groups)", nmd[0], low=1, error=EffectsError)
+    m = validation.integer("nmd[1] (m, frames per group)", nmd[1], low=1, error=EffectsError)
+    d = validation.integer("nmd[2] (d, dropped frames)", nmd[2], low=0, error=EffectsError)
     nframes = n * (m + d) - d
     states = telegraph_states(seed, ramp, nframes, tframe, pixels)
     starts = np.arange(n) * (m + d)

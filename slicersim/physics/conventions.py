@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from slicersim.errors import ParameterError
+from slicersim import validation
 
 __all__ = ["CONVENTIONS", "DEFAULT_CONVENTIONS", "check_conventions", "variance_gain_factor",
            "instrumental_blur_sigma", "physical_blur_sigma", "detector_pixels_per_cell"]
@@ -30,10 +30,8 @@ CONVENTIONS = ("physical", "slicersim-1.0")
 
 
 def check_conventions(conventions):
-    """The validated convention name (raises ParameterError listing the known ones)."""
-    if conventions not in CONVENTIONS:
-        raise ParameterError(f"unknown conventions {conventions!r}: one of {', '.join(map(repr, CONVENTIONS))}")
-    return conventions
+    """The validated convention name (ParameterError listing the known ones, with a "did you mean")."""
+    return validation.choice("conventions", conventions, CONVENTIONS)
 
 
 def variance_gain_factor(gain, conventions=DEFAULT_CONVENTIONS):

@@ -54,6 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import EffectsError
 
 __all__ = ["CorrelatedNoiseParameters", "ReadoutGeometry", "pink_psd", "acn_psd", "model_psd",
@@ -70,23 +71,13 @@ MAX_COUNT = 1 << 16            # outputs, overhead pixels or rows
 
 
 def _nonneg(name, value):
-    if isinstance(value, (bool, str, bytes)):
-        raise EffectsError(f"correlated noise: {name} must be a number ≥ 0, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise EffectsError(f"correlated noise: {name} must be a number ≥ 0, got {value!r}") from exc
-    if not (math.isfinite(v) and 0 <= v <= MAX_AMPLITUDE):
-        raise EffectsError(f"correlated noise: {name} must be finite, ≥ 0 and ≤ {MAX_AMPLITUDE:g}, got {value!r}")
-    return v
+    """A number in [0, MAX_AMPLITUDE], else EffectsError naming ``correlated_noise.<name>``."""
+    return validation.number(f"correlated_noise.{name}", value, low=0.0, high=MAX_AMPLITUDE, error=EffectsError)
 
 
 def _posint(name, value, minimum=1):
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
-        and math.isfinite(value) and int(value) == value and minimum <= int(value) <= MAX_COUNT
-    if not ok:
-        raise EffectsError(f"correlated noise: {name} must be an integer in [{minimum}, {MAX_COUNT}], got {value!r}")
-    return int(value)
+    """An integer in [minimum, MAX_COUNT], else EffectsError naming ``correlated_noise.<name>``."""
+    return validation.integer(f"correlated_noise.{name}", value, low=minimum, high=MAX_COUNT, error=EffectsError)
 
 
 @dataclass(kw_only=True)

@@ -48,6 +48,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.backends import rng
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import STREAMS, check_number
@@ -101,14 +102,14 @@ class CosmicRayParameters:
         self.temperature = check_number("cosmic_rays.temperature [K]", self.temperature, 4.0, 300.0)
         self.beta_gamma = check_number("cosmic_rays.beta_gamma", self.beta_gamma, 0.3, 1e5)
         try:
-            species = tuple((int(z), float(f)) for z, f in self.species)
-        except (TypeError, ValueError):
+            pairs = [tuple(p) for p in self.species]
+        except TypeError:
+            pairs = None
+        if not pairs or any(len(p) != 2 for p in pairs):
             raise EffectsError(f"cosmic_rays.species must be a list of (charge z, fraction) pairs, "
-                               f"got {self.species!r}") from None
-        if not species or any(not 1 <= z <= 92 for z, _ in species):
-            raise EffectsError(f"cosmic_rays.species charges must be integers in [1, 92], got {self.species!r}")
-        for z, f in species:
-            check_number(f"cosmic_rays.species fraction of z={z}", f, 0.0, 1.0)
+                               f"got {validation.short_repr(self.species)}")
+        species = tuple((validation.integer("cosmic_rays.species charge z", z, low=1, high=92, error=EffectsError),
+                         check_number(f"cosmic_rays.species fraction of z={z}", f, 0.0, 1.0)) for z, f in pairs)
         if abs(sum(f for _, f in species) - 1.0) > 1e-9:
             raise EffectsError(f"cosmic_rays.species fractions must sum to 1, got "
                                f"{sum(f for _, f in species):.12g}")
@@ -195,18 +196,11 @@ def most_probable_loss(path_um, z, params):
 # --------------------------------------------------------------------------- events
 def _check_call(seed, ramp, nframes, tframe, shape):
     rng.seed_to_key(seed)
-    if int(ramp) != ramp or not 0 <= int(ramp) < 2 ** 32:
-        raise EffectsError(f"ramp must be an integer in [0, 2**32), got {ramp!r}")
-    if int(nframes) != nframes or not 0 <= int(nframes) < 2 ** 32:
-        raise EffectsError(f"nframes must be an integer in [0, 2**32), got {nframes!r}")
+    ramp = validation.integer("ramp", ramp, low=0, high=2 ** 32 - 1, error=EffectsError)
+    nframes = validation.integer("nframes", nframes, low=0, high=2 ** 32 - 1, error=EffectsError)
     tframe = check_number("tframe [s]", tframe, 0.0, low_open=True)
-    try:
-        ny, nx = (int(v) for v in shape)
-    except (TypeError, ValueError):
-        raise EffectsError(f"shape must be (ny, nx), got {shape!r}") from None
-    if not (1 <= ny <= 8192 and 1 <= nx <= 8192):
-        raise EffectsError(f"detector shape must be within 1…8192 pixels per side, got {shape!r}")
-    return int(ramp), int(nframes), tframe, (ny, nx)
+    shape = validation.shape("shape (detector)", shape, max_side=8192, error=EffectsError)
+    return ramp, nframes, tframe, shape
 
 
 def _frame_index(ramp, frames):

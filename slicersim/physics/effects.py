@@ -15,6 +15,7 @@ import dataclasses
 import importlib
 import math
 
+from slicersim import validation
 from slicersim.errors import EffectsError
 
 __all__ = ["EFFECT_NAMES", "STREAMS", "PRESETS", "DetectorEffects", "parameter_class", "check_number", "check_shape_rows",
@@ -36,36 +37,28 @@ STREAMS = {
 
 
 # --------------------------------------------------------------------------- validation helpers
+# thin wrappers around slicersim.validation with EffectsError (the effects modules import them)
 def check_number(name, value, low=0.0, high=math.inf, *, low_open=False, high_open=False):
     """``value`` as a float in [low, high] (bounds open where asked), else EffectsError naming it."""
-    try:
-        val = float(value)
-    except (TypeError, ValueError):
-        raise EffectsError(f"{name} must be a number, got {value!r}") from None
-    if isinstance(value, bool) or not math.isfinite(val) or val < low or val > high \
-            or (low_open and val == low) or (high_open and val == high):
-        lo, hi = "(" if low_open else "[", ")" if high_open or high == math.inf else "]"
-        raise EffectsError(f"{name} must be in {lo}{low:g}, {high:g}{hi}, got {value!r}")
-    return val
+    return validation.number(name, value, low=low, high=high, low_open=low_open, high_open=high_open,
+                             error=EffectsError)
 
 
 def check_shape_rows(shape, rows=None, max_side=65536):
     """((ny, nx), (r0, r1)) of a detector ``shape`` and an optional row range ``rows`` = (r0, r1)."""
-    try:
-        ny, nx = (int(v) for v in shape)
-    except (TypeError, ValueError):
-        raise EffectsError(f"shape must be (ny, nx), got {shape!r}") from None
-    if not (1 <= ny <= max_side and 1 <= nx <= max_side):
-        raise EffectsError(f"shape must be within 1…{max_side} pixels per side, got {shape!r}")
-    r0, r1 = (0, ny) if rows is None else (int(rows[0]), int(rows[1]))
-    if not 0 <= r0 < r1 <= ny:
-        raise EffectsError(f"rows must satisfy 0 ≤ r0 < r1 ≤ {ny}, got {rows!r}")
+    ny, nx = validation.shape("shape", shape, max_side=max_side, error=EffectsError)
+    if rows is None:
+        return (ny, nx), (0, ny)
+    if isinstance(rows, (str, bytes)) or not hasattr(rows, "__len__") or len(rows) != 2:
+        raise EffectsError(f"rows must be a pair (r0, r1), got {validation.short_repr(rows)}")
+    r0 = validation.integer("rows[0]", rows[0], low=0, high=ny - 1, error=EffectsError)
+    r1 = validation.integer("rows[1]", rows[1], low=r0 + 1, high=ny, error=EffectsError)
     return (ny, nx), (r0, r1)
 
 
 def check_fraction(name, value):
-    """A fraction in [0, 1]."""
-    return check_number(name, value, 0.0, 1.0)
+    """A fraction in [0, 1], else EffectsError naming it."""
+    return validation.fraction(name, value, error=EffectsError)
 
 
 # --------------------------------------------------------------------------- configuration
@@ -92,16 +85,13 @@ class _PlaceholderReferencePixelParameters:
     width: int = 4
 
     def __post_init__(self):
-        w = check_number("reference_pixels.width [pixels]", self.width, 0, 64)
-        if w != int(w):
-            raise EffectsError(f"reference_pixels.width must be an integer in [0, 64], got {self.width!r}")
-        self.width = int(w)
+        self.width = validation.integer("reference_pixels.width [pixels]", self.width, low=0, high=64,
+                                        error=EffectsError)
 
 
 def parameter_class(name):
     """The parameter dataclass of effect ``name``."""
-    if name not in PARAMETER_CLASSES:
-        raise EffectsError(f"unknown effect {name!r}; known effects: {', '.join(EFFECT_NAMES)} (or 'all')")
+    validation.choice("effect", name, EFFECT_NAMES, error=EffectsError)
     module, cls = PARAMETER_CLASSES[name]
     try:
         return getattr(importlib.import_module(module), cls)
@@ -158,10 +148,8 @@ def _parse_names(names, has_previous_charge):
         raise EffectsError(f"effect names must be a string or a list of strings, got {names!r}") from None
     out = []
     for n in names:
-        if n == "all":
+        if validation.choice("effect", n, EFFECT_NAMES + ("all",), error=EffectsError) == "all":
             out += [e for e in EFFECT_NAMES if e != "persistence" or has_previous_charge]
-        elif n not in EFFECT_NAMES:
-            raise EffectsError(f"unknown effect {n!r}; known effects: {', '.join(EFFECT_NAMES)} (or 'all')")
         else:
             out.append(n)
     return tuple(e for e in EFFECT_NAMES if e in out)
@@ -201,8 +189,7 @@ class DetectorEffects:
         image) at the default values of each module — CR 5 cm⁻² s⁻¹ through 6 µm of HgCdTe, IPC
         α = 1.6 %, α_d = 0.2 %, 5 % nonlinearity at the full well, NGHXRG-like correlated noise,
         4-pixel reference border, JWST-like bad-pixel fractions."""
-        if name not in PRESETS:
-            raise EffectsError(f"unknown effects preset {name!r}; known: {', '.join(PRESETS)}")
+        validation.choice("preset", name, PRESETS, error=EffectsError, what="effects preset")
         return cls({n: _params_from_dict(n, dict(over)) for n, over in PRESETS[name].items()
                     if n != "persistence" or has_previous_charge})
 
@@ -278,8 +265,7 @@ class DetectorEffects:
     def params(self, name):
         """Parameter dataclass of an enabled effect."""
         if name not in self._params:
-            if name not in EFFECT_NAMES:
-                raise EffectsError(f"unknown effect {name!r}; known effects: {', '.join(EFFECT_NAMES)}")
+            validation.choice("effect", name, EFFECT_NAMES, error=EffectsError)
             raise EffectsError(f"effect {name!r} is not enabled (enabled: {', '.join(self.enabled) or 'none'})")
         return self._params[name]
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import check_number
 
@@ -68,16 +69,9 @@ def ipc_kernel(alpha=0.016, alpha_diag=0.002, kernel=None):
             raise EffectsError(f"ipc.alpha + ipc.alpha_diag must be ≤ 0.25 (centre 1 − 4α − 4α_d ≥ 0), "
                                f"got α = {alpha}, α_d = {alpha_diag}")
         return np.array([[alpha_diag, alpha, alpha_diag], [alpha, centre, alpha], [alpha_diag, alpha, alpha_diag]])
-    try:
-        k = np.array(kernel, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise EffectsError(f"ipc.kernel must be a 3×3 array of numbers, got {kernel!r}") from None
+    k = validation.array("ipc.kernel", kernel, ndim=2, low=0.0, error=EffectsError)
     if k.shape != (3, 3):
         raise EffectsError(f"ipc.kernel must be 3×3, got shape {k.shape}")
-    if not np.all(np.isfinite(k)):
-        raise EffectsError("ipc.kernel entries must be finite")
-    if np.any(k < 0):
-        raise EffectsError(f"ipc.kernel entries must be ≥ 0, got minimum {k.min():g}")
     if k.sum() > 1.0 + 1e-12:
         raise EffectsError(f"ipc.kernel must sum to ≤ 1 (charge cannot be created), got {k.sum():.15g}")
     return k
@@ -135,10 +129,10 @@ def ipc_alpha_from_autocorrelation(flat, noise_variance=0.0, border=1, iteration
     darkens the edge, a structure that would bias the lags).  The normalised lag-1 correlations
     (averaged over the four directions of each kind) are matched to :func:`kernel_autocorrelation` of the symmetric kernel by Newton steps.
     """
-    img = np.asarray(flat, dtype=np.float64)
+    img = validation.array("flat", flat, finite=False, error=EffectsError)
     if img.ndim == 2:
         img = img[None]
-    border = int(border)
+    border = validation.integer("border", border, low=0, error=EffectsError)
     if img.ndim != 3 or min(img.shape[-2:]) < 3 + 2 * border or border < 0:
         raise EffectsError(f"flat must be (ny, nx) or (nimg, ny, nx) with ny, nx ≥ 3 + 2·border "
                            f"(border = {border} ≥ 0), got {np.shape(flat)}")

@@ -13,6 +13,9 @@ import numpy as np
 import scipy.sparse
 from scipy.ndimage import correlate1d
 
+from slicersim import validation
+from slicersim.errors import ParameterError
+
 __all__ = ["lsf_weights", "lsf_index_weights", "reflect_index", "lsf_matrix", "apply_lsf",
            "check_sigma"]
 
@@ -43,15 +46,15 @@ def lsf_index_weights(nbins, sigma_bins, truncate=4.0):
 
 
 def check_sigma(sigma_bins, n, truncate):
-    if not (np.isfinite(truncate) and truncate >= 0):
-        raise ValueError(f"truncate must be finite and ≥ 0, got {truncate}")
-    sig = np.asarray(sigma_bins, dtype=np.float64)
+    """σ [bins] per bin as a float64 array of length ``n`` (a scalar is broadcast), finite and
+    ≥ 0, after checking ``truncate`` (finite, ≥ 0); else :class:`~slicersim.errors.ParameterError`."""
+    validation.number("truncate", truncate, low=0.0)
+    sig = validation.array("sigma_bins [bins]", sigma_bins, ndim=(0, 1), low=0.0)
     if sig.ndim == 0:
-        sig = np.full(n, float(sig))
-    elif sig.shape != (n,):
-        raise ValueError(f"sigma_bins must be a float or an array of length {n} (the λ axis), got shape {sig.shape}")
-    if not np.all(np.isfinite(sig)) or np.any(sig < 0):
-        raise ValueError("sigma_bins must be finite and ≥ 0 [bins]")
+        return np.full(n, float(sig))
+    if sig.shape != (n,):
+        raise ParameterError(f"sigma_bins must be a float or an array of length {n} (the λ axis), "
+                             f"got shape {sig.shape}")
     return sig
 
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from slicersim.backends import rng
 from slicersim.backends.noise import uniform_normal_grid
+from slicersim import validation
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import STREAMS, check_number, check_shape_rows
 
@@ -69,10 +70,7 @@ class NonlinearityParameters:
         self.cubic_share = check_number("nonlinearity.cubic_share", self.cubic_share, 0.0, 1.0)
         self.cubic_share_scatter = check_number("nonlinearity.cubic_share_scatter", self.cubic_share_scatter,
                                                 0.0, 1.0)
-        degree = check_number("nonlinearity.degree", self.degree, 2, 12)
-        if degree != int(degree):
-            raise EffectsError(f"nonlinearity.degree must be an integer in [2, 12], got {self.degree!r}")
-        self.degree = int(degree)
+        self.degree = validation.integer("nonlinearity.degree", self.degree, low=2, high=12, error=EffectsError)
         self.tolerance = check_number("nonlinearity.tolerance", self.tolerance, 0.0, 0.1, low_open=True)
         self._check_invertible()
 
@@ -223,7 +221,7 @@ def inverse_coefficients(a2, a3, full_well, gain, degree=5, tolerance=1e-4):
     a2, a3 = np.asarray(a2, np.float64), np.asarray(a3, np.float64)
     full_well = check_number("full_well [e-]", full_well, 0.0, low_open=True)
     gain = check_number("gain [ADU/e-]", gain, 0.0, low_open=True)
-    degree = int(check_number("nonlinearity.degree", degree, 2, 12))
+    degree = validation.integer("nonlinearity.degree", degree, low=2, high=12, error=EffectsError)
     if a2.shape != a3.shape:
         raise EffectsError(f"a2 and a3 must have the same shape, got {a2.shape} and {a3.shape}")
     check_invertible(a2, a3, full_well)

@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.backends import rng
 from slicersim.errors import EffectsError
 from slicersim.physics.cosmic_rays import DEPOSIT_DTYPE
@@ -52,12 +53,11 @@ class PersistenceParameters:
         self.fluence_half = check_number("persistence.fluence_half [e-]", self.fluence_half, 0.0, 1e8)
         self.fluence_width = check_number("persistence.fluence_width [e-]", self.fluence_width, 0.0, 1e8,
                                           low_open=True)
-        try:
-            taus = tuple(float(v) for v in self.time_constants)
-            weights = tuple(float(v) for v in self.weights)
-        except (TypeError, ValueError):
-            raise EffectsError("persistence.time_constants and persistence.weights must be lists of numbers") from None
-        if not taus or len(taus) != len(weights):
+        taus, weights = self.time_constants, self.weights
+        for name, values in (("time_constants", taus), ("weights", weights)):
+            if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
+                raise EffectsError(f"persistence.{name} must be a list of numbers, got {validation.short_repr(values)}")
+        if len(taus) == 0 or len(taus) != len(weights):
             raise EffectsError(f"persistence.time_constants and weights must be non-empty and of equal length, "
                                f"got {len(taus)} and {len(weights)}")
         self.time_constants = tuple(check_number("persistence.time_constants [s]", t, 0.0, 1e9, low_open=True)
@@ -96,17 +96,14 @@ def persistence_deposits(seed, ramp, nframes, tframe, prev_charge, params):
     :data:`~slicersim.physics.cosmic_rays.DEPOSIT_DTYPE` (rows with ≥ 1 e- only), sorted by
     (y, x, frame).  ``prev_charge``: the previous exposure's charge image [e-], full detector."""
     rng.seed_to_key(seed)
-    ramp, nframes = int(ramp), int(nframes)
-    if not 0 <= ramp < 2 ** 12:
-        raise EffectsError(f"persistence supports ramps 0 … 4095, got {ramp}")
-    if not 0 <= nframes < 2 ** 20:
-        raise EffectsError(f"persistence supports up to 2**20 frames per ramp, got {nframes}")
+    ramp = validation.integer("ramp (persistence supports ramps 0 … 4095)", ramp, low=0, high=2 ** 12 - 1,
+                              error=EffectsError)
+    nframes = validation.integer("nframes (persistence: frames per ramp)", nframes, low=0, high=2 ** 20 - 1,
+                                 error=EffectsError)
     tframe = check_number("tframe [s]", tframe, 0.0, low_open=True)
-    prev = np.asarray(prev_charge, dtype=np.float64)
-    if prev.ndim != 2 or max(prev.shape) > 65536:
+    prev = validation.array("prev_charge [e-]", prev_charge, ndim=2, low=0.0, error=EffectsError)
+    if max(prev.shape) > 65536:
         raise EffectsError(f"prev_charge must be a 2-D image (ny, nx ≤ 65536), got shape {prev.shape}")
-    if not np.all(np.isfinite(prev)) or np.any(prev < 0):
-        raise EffectsError("prev_charge must be finite and ≥ 0 e-")
     trapped = trapped_charge(prev, params)
     y, x = np.nonzero(trapped > params.min_trapped)
     if y.size == 0 or nframes == 0:

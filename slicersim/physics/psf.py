@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import erf, erfc, j0, j1, roots_legendre
 
+from slicersim import validation
 from slicersim.constants import ARCSEC
 from slicersim.errors import ParameterError
 
@@ -116,13 +117,10 @@ def gaussian_psf_cells(sig_y, sig_x, shape, position, cells):
 
 def check_position(position):
     """(x0, y0) as finite floats, else :class:`~slicersim.errors.ParameterError`."""
-    try:
-        x0, y0 = (float(v) for v in position)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(f"point-source position must be (x, y) in cells, got {position!r}") from exc
-    if not (np.isfinite(x0) and np.isfinite(y0)):
-        raise ParameterError(f"point-source position must be finite, got ({x0}, {y0}) cells")
-    return x0, y0
+    if isinstance(position, (str, bytes)) or not hasattr(position, "__len__") or len(position) != 2:
+        raise ParameterError(f"point-source position must be (x, y) in cells, got {validation.short_repr(position)}")
+    return (validation.number("point-source position", position[0]),     # x [cells]
+            validation.number("point-source position", position[1]))     # y [cells]
 
 
 def check_aperture(shape, position, radius):
@@ -132,18 +130,13 @@ def check_aperture(shape, position, radius):
 
     Raises :class:`~slicersim.errors.ParameterError`.
     """
-    ny, nx = (int(v) for v in shape)
+    ny, nx = validation.shape("shape", shape)
     x0, y0 = check_position(position)
     if abs(x0) > nx / 2 or abs(y0) > ny / 2:
         raise ParameterError(f"point-source position ({x0:g}, {y0:g}) cells lies outside the field "
                              f"(|x| ≤ {nx / 2:g}, |y| ≤ {ny / 2:g} cells; shape {ny}×{nx})")
-    try:
-        radius = float(radius)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(f"aperture radius must be a number, got {radius!r}") from exc
-    if not (np.isfinite(radius) and radius > 0):
-        raise ParameterError(f"aperture radius must be finite and > 0 (aperture_radius_insigma > 0), "
-                             f"got {radius!r} cells")
+    radius = validation.number("aperture radius [cells] (aperture_radius_insigma > 0)", radius, low=0.0,
+                               low_open=True)
     return (x0, y0), radius
 
 
@@ -268,15 +261,13 @@ def cell_quadrature(oversampling, grid="exact"):
     "exact": the o sub-cell centres (j + ½)/o, weights 1/o (midpoint rule);
     "gauss": o-point Gauss–Legendre (exact for polynomials of degree 2o − 1).
     """
-    o = int(oversampling)
-    if o < 1:
-        raise ValueError(f"oversampling must be >= 1, got {oversampling}")
+    o = validation.positive_int("oversampling", oversampling)
+    validation.choice("grid", grid, ("exact", "gauss"))
     if grid == "exact":
         return (np.arange(o) + 0.5) / o, np.full(o, 1.0 / o)
     if grid == "gauss":
         t, w = roots_legendre(o)
-        return 0.5 * (t + 1.0), 0.5 * w
-    raise ValueError(f"grid must be 'exact' or 'gauss' here, got {grid!r}")
+    return 0.5 * (t + 1.0), 0.5 * w
 
 
 def midpoint_oversampling(sigma, kwave, tol=1e-4, o_max=8):

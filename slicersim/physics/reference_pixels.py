@@ -15,11 +15,11 @@ scaled here to stay clear of 0 and 65535 ADU around the ramp's 2000 ADU pedestal
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.backends import rng
 from slicersim.backends.noise import uniform_normal_draw
 from slicersim.errors import EffectsError
@@ -42,22 +42,18 @@ class ReferencePixelParameters:
     pixel_offset: float = 50.0
 
     def __post_init__(self):
-        for name in ("border", "n_outputs"):
-            v = getattr(self, name)
-            if isinstance(v, (bool, str, bytes)) or not isinstance(v, (int, float, np.integer, np.floating)) \
-                    or not math.isfinite(v) or int(v) != v or not (0 if name == "border" else 1) <= int(v) <= 1 << 16:
-                raise EffectsError(f"reference pixels: {name} must be an integer ≥ "
-                                   f"{0 if name == 'border' else 1}, got {v!r}")
-            setattr(self, name, int(v))
+        self.border = validation.integer("reference_pixels.border", self.border, low=0, high=1 << 16,
+                                         error=EffectsError)
+        self.n_outputs = validation.integer("reference_pixels.n_outputs", self.n_outputs, low=1, high=1 << 16,
+                                            error=EffectsError)
         for name in ("output_offset", "pixel_offset"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float, np.floating, np.integer)) and math.isfinite(v) and v >= 0):
-                raise EffectsError(f"reference pixels: {name} must be finite and ≥ 0 ADU, got {v!r}")
-            setattr(self, name, float(v))
+            setattr(self, name, validation.number(f"reference_pixels.{name} [ADU]", getattr(self, name), low=0.0,
+                                                  error=EffectsError))
 
 
 def _check_shape(shape, border):
-    ny, nx = (int(v) for v in shape)
+    """(ny, nx) of a detector ``shape`` wide enough for a ``border``-pixel reference frame."""
+    ny, nx = validation.shape("shape", shape, error=EffectsError)
     if ny <= 2 * border or nx <= 2 * border:
         raise EffectsError(f"reference pixels: detector {ny}×{nx} too small for a {border}-pixel border")
     return ny, nx

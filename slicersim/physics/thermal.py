@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
+from slicersim.errors import ParameterError
 
 __all__ = ["photon_radiance", "solid_angle_from_fratio", "thermal_dark_rate"]
 
@@ -28,13 +30,14 @@ def solid_angle_from_fratio(fratio, geometry="square"):
 
     ``square`` gives 1/(f_y f_x); ``circular`` gives π/4/(f_y f_x) (small-angle limit).
     """
-    f = np.atleast_1d(np.asarray(fratio, dtype=float))
+    validation.choice("geometry", geometry, ("square", "circular"), what="optics geometry")
+    f = validation.array("fratio", np.atleast_1d(fratio), ndim=1, low=0.0)
+    if f.size not in (1, 2) or np.any(f == 0):
+        raise ParameterError(f"fratio must be f or (f_y, f_x), each > 0, got {validation.short_repr(fratio)}")
     fy, fx = (f[0], f[0]) if f.size == 1 else (f[0], f[1])
     if geometry == "square":
         return 1.0 / (fy * fx)
-    if geometry == "circular":
-        return np.pi / 4.0 / (fy * fx)
-    raise ValueError(f"unknown optics geometry {geometry!r}: 'square' or 'circular'")
+    return np.pi / 4.0 / (fy * fx)                   # circular
 
 
 def thermal_dark_rate(temperatures, emissivities, nelements, solid_angles, pixel_area_m2,

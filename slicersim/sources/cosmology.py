@@ -15,10 +15,8 @@ multiplies its angles by D_A(z₀)/D_A(z), its wavelengths by (1+z)/(1+z₀) and
 from __future__ import annotations
 
 import math
-import numbers
 
-import numpy as np
-
+from slicersim import validation
 from slicersim.errors import ParameterError, SpectrumError
 
 __all__ = ["get_cosmology", "check_source_redshift", "angular_diameter_distance_kpc", "luminosity_distance_cm",
@@ -44,11 +42,8 @@ def get_cosmology(cosmology=None):
 
 
 def check_source_redshift(redshift, name="redshift"):
-    """A finite redshift > 0 as float (ParameterError otherwise)."""
-    if isinstance(redshift, (bool, np.bool_)) or not isinstance(redshift, numbers.Real) \
-            or not (math.isfinite(redshift) and redshift > 0):
-        raise ParameterError(f"{name} must be a finite number > 0, got {redshift!r}")
-    return float(redshift)
+    """A finite redshift > 0 as float (ParameterError naming ``name`` otherwise)."""
+    return validation.number(name, redshift, low=0.0, low_open=True)
 
 
 def angular_diameter_distance_kpc(redshift, cosmology=None):
@@ -74,7 +69,8 @@ def surface_brightness_dimming(redshift):
 def redshift_scalings(from_redshift, to_redshift, cosmology=None):
     """(angle, wavelength, F_λ) factors moving a source from ``from_redshift`` to ``to_redshift``
     at fixed proper size and luminosity (see the module docstring)."""
-    z0, z1 = float(from_redshift), float(to_redshift)
+    z0 = validation.number("from_redshift", from_redshift, low=0.0, low_open=True)
+    z1 = validation.number("to_redshift", to_redshift, low=0.0, low_open=True)
     if z0 == z1:
         return 1.0, 1.0, 1.0
     cosmo = get_cosmology(cosmology)
@@ -103,9 +99,8 @@ def restframe_to_observed(rest_lbda, rest_flux, redshift, cosmology=None, absmag
         raise ParameterError("give exactly one of absmag (rest-frame) or mag (observed), "
                              f"got absmag={absmag!r}, mag={mag!r}")
     for name, value in (("absmag", absmag), ("mag", mag)):
-        if value is not None and (isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real)
-                                  or not math.isfinite(value)):
-            raise ParameterError(f"{name} must be a finite AB magnitude, got {value!r}")
+        if value is not None:
+            validation.number(f"{name} [AB mag]", value)
     lbda_obs = lbda * (1.0 + z)
     try:
         if absmag is not None:

@@ -21,7 +21,8 @@ import math
 import numpy as np
 from scipy.special import gammainc, gammaincc, gammaincinv, gammaln
 
-from slicersim.errors import ParameterError
+from slicersim import validation
+from slicersim.errors import ParameterError, SpectrumError
 from slicersim.sources.cosmology import check_source_redshift, get_cosmology, redshift_scalings
 from slicersim.sources.pixels import (HOST_MAX_BYTES, CubeSource, _cell_edges, _field_columns,  # noqa: F401
                                       _from_redshift, _number, _pair, overlap_matrix, resample_pixels)
@@ -176,10 +177,8 @@ def integrate_radial_cells(geometry, radial_funcs, shape, spatial_scale, oversam
     whatever r_eff / cell or the offset.  Cost ~0.2 s for 58 × 116 cells.
     ``oversampling=o``: plain midpoint rule on o × o sub-cells (cross-checks).
     """
-    ny, nx = (int(v) for v in shape)
-    s = float(spatial_scale)
-    if not (ny > 0 and nx > 0 and s > 0):
-        raise ValueError("shape must be positive and spatial_scale > 0 [arcsec]")
+    ny, nx = validation.shape("shape", shape)
+    s = validation.number("spatial_scale", spatial_scale, low=0.0, low_open=True, unit="arcsec")
     x0, y0, pa, q = geometry
     c, sn = math.cos(math.radians(pa)), math.sin(math.radians(pa))
     xe, ye = _cell_edges(nx, s) - x0, _cell_edges(ny, s) - y0
@@ -209,7 +208,7 @@ def integrate_radial_cells(geometry, radial_funcs, shape, spatial_scale, oversam
 def _interp_spectrum(lbda_in, flux_in, lbda_grid, name):
     lbda_grid = np.asarray(lbda_grid, dtype=float)
     if lbda_grid.size and (lbda_grid.min() < lbda_in[0] or lbda_grid.max() > lbda_in[-1]):
-        raise ValueError(f"{name}: wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends "
+        raise SpectrumError(f"{name}: wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends "
                          f"beyond the input spectrum [{lbda_in[0]:g}, {lbda_in[-1]:g}] Å")
     return np.interp(lbda_grid, lbda_in, flux_in)
 

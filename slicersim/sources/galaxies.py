@@ -32,6 +32,7 @@ import re
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import GalaxyDataUnavailable, ParameterError
 from slicersim.sources.cosmology import (angular_diameter_distance_kpc, arcsec_per_kpc, check_source_redshift,
                                          get_cosmology, redshift_scalings, restframe_to_observed)
@@ -176,19 +177,18 @@ def parse_host_model(model):
 
 
 def _check_conflicts(params):
-    """ParameterError when two given parameters name the same thing (:data:`CONFLICTS`)."""
+    """ParameterError for an unknown parameter name (with the valid ones and a "did you mean"), or
+    when two given parameters name the same thing (:data:`CONFLICTS`)."""
+    for key in sorted(set(params) - set(PARAMETERS)):
+        validation.choice(key, key, PARAMETERS, what="host parameter")
     for a, b, what in CONFLICTS:
         if a in params and b in params:
             raise ParameterError(f"give {what}, not both (got {a}={params[a]!r} and {b}={params[b]!r})")
 
 
 def _positive(value, name, upper=None):
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ParameterError(f"{name} must be a finite number, got {value!r}")
-    if not value > 0 or (upper is not None and value > upper):
-        bound = f"in (0, {upper}]" if upper is not None else "> 0"
-        raise ParameterError(f"{name} must be {bound}, got {value!r}")
-    return float(value)
+    """A finite number in (0, upper] (upper None: > 0), else ParameterError naming it."""
+    return validation.number(name, value, low=0.0, high=math.inf if upper is None else upper, low_open=True)
 
 
 class GalaxyModel:
@@ -216,9 +216,6 @@ class GalaxyModel:
     """
 
     def __init__(self, model="sersic:bb-5000", **params):
-        unknown = sorted(set(params) - set(PARAMETERS))
-        if unknown:
-            raise ParameterError(f"unknown host parameter(s) {unknown}; accepted: {', '.join(PARAMETERS)}")
         _check_conflicts(params)
         params = {ALIASES.get(k, k): v for k, v in params.items()}
         if "refmodel" in params:
@@ -228,11 +225,8 @@ class GalaxyModel:
         #: redshift the model was given with (None: its target's); a target refuses a different one
         self.redshift = None if z is None else check_source_redshift(z, "host redshift")
         if "ellip" in params:
-            ellip = params.pop("ellip")
-            if isinstance(ellip, (bool, np.bool_)) or not isinstance(ellip, numbers.Real) \
-                    or not (0 <= ellip < 1):
-                raise ParameterError(f"ellip = 1 − b/a must be in [0, 1), got {ellip!r}")
-            params["axis_ratio"] = 1.0 - float(ellip)
+            ellip = validation.number("ellip (= 1 − b/a)", params.pop("ellip"), low=0.0, high=1.0, high_open=True)
+            params["axis_ratio"] = 1.0 - ellip
         p = dict(HOST_DEFAULTS)
         if "mag" in params:
             p.pop("magabs")
@@ -261,21 +255,18 @@ class GalaxyModel:
                 p[key] = _positive(p[key], f"Sersic half-light radius {key}")
         p["axis_ratio"] = _positive(p["axis_ratio"], "axis ratio b/a", 1.0)
         for key in ("position_angle", "rotation", "magabs", "mag"):
-            if key in p and (isinstance(p[key], (bool, np.bool_)) or not isinstance(p[key], numbers.Real)
-                             or not math.isfinite(p[key])):
-                raise ParameterError(f"host {key} must be a finite number, got {p[key]!r}")
+            if key in p:
+                p[key] = validation.number(f"host {key}", p[key])
         p["temperature"] = _positive(p["temperature"], "black-body temperature [K]")
         if not isinstance(p["band"], str):
             raise ParameterError(f"band must be an sncosmo band name, got {p['band']!r}")
         for key in ("offset", "position"):
             if key in p:
-                try:
-                    x, y = (float(v) for v in p[key])
-                except (TypeError, ValueError):
-                    raise ParameterError(f"host {key} must be (x, y), got {p[key]!r}") from None
-                if not (math.isfinite(x) and math.isfinite(y)):
-                    raise ParameterError(f"host {key} must be finite, got {p[key]!r}")
-                p[key] = (x, y)
+                xy = p[key]
+                if isinstance(xy, (str, bytes)) or not hasattr(xy, "__len__") or len(xy) != 2:
+                    raise ParameterError(f"host {key} must be (x, y), got {validation.short_repr(xy)}")
+                p[key] = (validation.number(f"host {key}[0] (x)", xy[0]),
+                          validation.number(f"host {key}[1] (y)", xy[1]))
         p["cosmology"] = get_cosmology(p.get("cosmology"))
         self.params = p
         # real-galaxy data checked now (unknown names and a missing package fail at once)
@@ -300,9 +291,6 @@ class GalaxyModel:
     def updated(self, **params):
         """A new model with some parameters changed (validated; conflicting pairs such as
         ``mag`` + ``magabs`` given together raise ParameterError)."""
-        unknown = sorted(set(params) - set(PARAMETERS))
-        if unknown:
-            raise ParameterError(f"unknown host parameter(s) {unknown}; accepted: {', '.join(PARAMETERS)}")
         _check_conflicts(params)
         params = {ALIASES.get(k, k): v for k, v in params.items()}
         current = {**self.params, **params}
@@ -426,8 +414,8 @@ class HostPlacement:
                                                      p["position"][1] * spatial_scale), False)
             return cls(origin, float(z), model, p.get("offset", (0.0, 0.0)), relative)
         if not callable(getattr(host, "flux_cube", None)):
-            raise TypeError("host must be a model name, a dict with 'refmodel', a GalaxyModel or provide "
-                            "flux_cube(lbda, shape, spatial_scale) (slicersim.Host or slicersim.CubeSource)")
+            raise ParameterError("host must be a model name, a dict with 'refmodel', a GalaxyModel or provide "
+                                 "flux_cube(lbda, shape, spatial_scale) (slicersim.Host or slicersim.CubeSource)")
         origin_z = getattr(host, "redshift", None)
         return cls(_own_copy(host), redshift if origin_z is None else origin_z, None, host_offset(host), relative)
 

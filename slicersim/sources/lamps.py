@@ -22,10 +22,10 @@ Surface brightnesses S(λ) are in erg/s/cm²/Å/arcsec², wavelengths λ in Å, 
 from __future__ import annotations
 
 import math
-import numbers
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ParameterError, SpectrumError
 from slicersim.sources.scene import Background
 from slicersim.sources.spectra import blackbody_flambda, normalise_to_mag, validate_spectrum
@@ -52,17 +52,10 @@ _NODES_PER_CHUNK = 1 << 20
 
 def _number(name, value, *, positive=True, allow_zero=False, upper=None):
     """``value`` as a finite float (> 0, or ≥ 0 with ``allow_zero``; ≤ ``upper``), else ParameterError."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise ParameterError(f"{name} must be a number, got {value!r}")
-    val = float(value)
-    bad = not math.isfinite(val) or (positive and (val < 0 or (val == 0 and not allow_zero))) \
-        or (upper is not None and val > upper)
-    if bad:
-        if not positive:
-            raise ParameterError(f"{name} must be a finite number (negative values allowed), got {value!r}")
-        rng = f"in {'[0' if allow_zero else '(0'}, {upper:g}]" if upper is not None else \
-            ("≥ 0" if allow_zero else "> 0")
-        raise ParameterError(f"{name} must be finite and {rng}, got {value!r}")
+    if not positive:
+        return validation.number(name, value)
+    return validation.number(name, value, low=0.0, low_open=not allow_zero,
+                             high=math.inf if upper is None else upper)
     return val
 
 

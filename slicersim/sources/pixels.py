@@ -18,7 +18,8 @@ from collections import OrderedDict
 import numpy as np
 import scipy.sparse
 
-from slicersim.errors import ParameterError
+from slicersim import validation
+from slicersim.errors import ParameterError, SpectrumError
 from slicersim.sources.cosmology import check_source_redshift, get_cosmology, redshift_scalings
 from slicersim.versioning import Versioned
 
@@ -38,19 +39,15 @@ def _cell_edges(n, scale):
 
 
 def _number(value, name):
-    """A finite real number as float (ParameterError otherwise)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(value):
-        raise ParameterError(f"{name} must be a finite number, got {value!r}")
-    return float(value)
+    """A finite real number as float (ParameterError naming ``name`` otherwise)."""
+    return validation.number(name, value)
 
 
 def _pair(value, name):
     """(x, y) [arcsec] as two finite floats (ParameterError otherwise)."""
-    try:
-        x, y = value
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be (x, y) [arcsec], got {value!r}") from None
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ParameterError(f"{name} must be (x, y) [arcsec], got {validation.short_repr(value)}")
+    x, y = value
     return _number(x, f"{name}[0]"), _number(y, f"{name}[1]")
 
 
@@ -72,11 +69,9 @@ def overlap_matrix(edges_out, edges_in):
 
 def _lambda_matrix(lbda_in, lbda_grid):
     """Sparse (nλ_out, nλ_in) linear-interpolation matrix (ValueError outside the range)."""
-    lbda_grid = np.asarray(lbda_grid, dtype=float)
-    if lbda_grid.ndim != 1:
-        raise ValueError("lbda_grid must be 1-D [Å]")
+    lbda_grid = validation.array("lbda (wavelength grid) [Å]", lbda_grid, ndim=1, error=SpectrumError)
     if lbda_grid.size and (lbda_grid.min() < lbda_in[0] or lbda_grid.max() > lbda_in[-1]):
-        raise ValueError(f"wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends beyond "
+        raise SpectrumError(f"lbda: wavelength grid [{lbda_grid.min():g}, {lbda_grid.max():g}] Å extends beyond "
                          f"the cube's [{lbda_in[0]:g}, {lbda_in[-1]:g}] Å")
     i = np.clip(np.searchsorted(lbda_in, lbda_grid, side="right") - 1, 0, lbda_in.size - 2)
     t = (lbda_grid - lbda_in[i]) / (lbda_in[i + 1] - lbda_in[i])
@@ -285,7 +280,7 @@ class CubeSource(Versioned):
     cells in proportion to the exact overlap areas (:func:`resample_pixels`), in groups of
     output planes of a fixed size (so each plane's result does not depend on the grid it is
     asked with).  Wavelength: F_λ linearly interpolated in λ (flux density, not integrated
-    over bins); grids beyond [lbda_in[0], lbda_in[-1]] raise ValueError; only the input
+    over bins); grids beyond [lbda_in[0], lbda_in[-1]] raise SpectrumError; only the input
     planes the grid needs are read.  Results are cached per (grid, placement, redshift)
     (:class:`ResampleCache`, ``cache``): the cube's values must not change in place afterwards.
     """
@@ -295,19 +290,19 @@ class CubeSource(Versioned):
         if not hasattr(cube, "shape") or not hasattr(cube, "__getitem__"):
             cube = np.asarray(cube, dtype=np.float64)
         if len(cube.shape) != 3 or min(cube.shape) == 0:
-            raise ValueError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
-        lbda_in = np.asarray(lbda_in, dtype=np.float64)
+            raise ParameterError(f"cube must have shape (nλ, ny, nx), got {cube.shape}")
+        lbda_in = validation.array("lbda_in [Å]", lbda_in, ndim=1)
         if lbda_in.shape != tuple(cube.shape[:1]) or lbda_in.size < 2 or np.any(np.diff(lbda_in) <= 0):
-            raise ValueError("lbda_in must be strictly increasing with one value per cube plane (≥ 2)")
-        if not (np.isfinite(pixel_scale) and pixel_scale > 0 and np.isfinite(rotation)):
-            raise ValueError("pixel_scale must be > 0 [arcsec] and rotation finite [deg]")
+            raise ParameterError("lbda_in must be strictly increasing with one value per cube plane (≥ 2)")
+        pixel_scale = validation.number("pixel_scale", pixel_scale, low=0.0, low_open=True, unit="arcsec")
+        rotation = validation.number("rotation", rotation, unit="deg")
         self.max_bytes = max_bytes
         budget = HOST_MAX_BYTES if max_bytes is None else int(max_bytes)
         plane = 8 * int(cube.shape[1]) * int(cube.shape[2])
         step = max(1, budget // max(1, plane))
         for k in range(0, cube.shape[0], step):            # validated block by block
             if not np.all(np.isfinite(np.asarray(cube[k:k + step], dtype=np.float64))):
-                raise ValueError("cube contains NaN/inf values")
+                raise ParameterError("cube contains NaN/inf values")
         self.cube, self.lbda_in, self.pixel_scale = cube, lbda_in, float(pixel_scale)
         self.centre = _pair(centre, "centre")
         self.rotation = float(rotation)

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from slicersim.errors import SpectrumError  # noqa: F401  (re-exported)
+from slicersim import validation
+from slicersim.errors import ParameterError, SpectrumError  # noqa: F401  (SpectrumError re-exported)
 from slicersim.sources.extended import CubeSource, Host, SersicProfile  # noqa: F401  (re-exported)
 from slicersim.sources.spectra import (SNCOSMO_SNIA_MODELS, PointSource, blackbody_flambda,  # noqa: F401
                                        snia_spectrum, validate_spectrum)
@@ -25,11 +26,10 @@ class Background(Versioned):
     """Spatially uniform background (zodiacal light by default) [erg/s/cm²/Å/arcsec²]."""
 
     def __init__(self, model="zodi", scale=2.0, name="zodi"):
-        if model not in ("zodi", "Aldering01.BB5800") and not callable(model):
-            raise ValueError(f"unknown background model {model!r}")
-        if not (np.isfinite(scale) and scale >= 0):
-            raise ValueError(f"background scale must be ≥ 0, got {scale}")
-        self.model, self.scale, self.name = model, float(scale), name
+        if not callable(model):
+            validation.choice("model", model, ("zodi", "Aldering01.BB5800"), what="background model")
+        self.model, self.name = model, name
+        self.scale = validation.number("background scale", scale, low=0.0)
 
     def flambda(self, lbda):
         if callable(self.model):
@@ -53,7 +53,7 @@ class Scene(Versioned):
     @host.setter
     def host(self, host):
         if host is not None and not callable(getattr(host, "flux_cube", None)):
-            raise TypeError("host must provide flux_cube(lbda, shape, spatial_scale) "
+            raise ParameterError("host must provide flux_cube(lbda, shape, spatial_scale) "
                             "(slicersim.Host or slicersim.CubeSource)")
         self._host = host
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
 from slicersim.errors import ParameterError, SpectrumError
 from slicersim.versioning import Versioned
@@ -37,8 +38,8 @@ def default_lbda():
 
 def validate_spectrum(lbda, flux, name="spectrum"):
     """Check and return (λ, F) as float arrays; λ strictly increasing, F finite and ≥ 0."""
-    lbda = np.asarray(lbda, dtype=float)
-    flux = np.asarray(flux, dtype=float)
+    lbda = validation.array(f"{name}: wavelengths", lbda, finite=False, error=SpectrumError)
+    flux = validation.array(f"{name}: flux", flux, finite=False, error=SpectrumError)
     if lbda.ndim != 1 or lbda.size == 0:
         raise SpectrumError(f"{name}: empty wavelength array")
     if flux.shape != lbda.shape:
@@ -56,8 +57,8 @@ def validate_spectrum(lbda, flux, name="spectrum"):
 
 def blackbody_flambda(lbda, temperature):
     """Black-body spectral shape B_λ(T) [erg/s/cm²/Å/sr] at λ [Å]."""
-    if not temperature > 0:
-        raise SpectrumError(f"blackbody temperature must be > 0 K, got {temperature}")
+    temperature = validation.number("blackbody temperature", temperature, low=0.0, low_open=True, unit="K",
+                                    error=SpectrumError)
     lbda_m = np.asarray(lbda, dtype=float) * 1e-10
     x = H_PLANCK * C_LIGHT / (lbda_m * K_BOLTZMANN * temperature)
     with np.errstate(over="ignore"):            # x ≫ 700 (cold body, short λ): exp overflows to inf → B = 0
@@ -68,9 +69,7 @@ def blackbody_flambda(lbda, temperature):
 def powerlaw_flambda(lbda, alpha, lambda_ref=POWERLAW_LAMBDA_REF):
     """Power-law shape (λ / λ_ref)^α at λ [Å] (dimensionless): F_λ ∝ λ^α, i.e. F_ν ∝ λ^(α+2)
     (slicersim 1.4.2's convention: α is the F_λ index)."""
-    if isinstance(alpha, (bool, np.bool_)) or not isinstance(alpha, (int, float, np.number)) \
-            or not np.isfinite(alpha):
-        raise SpectrumError(f"power-law index alpha must be a finite number, got {alpha!r}")
+    alpha = validation.number("power-law index alpha", alpha, error=SpectrumError)
     with np.errstate(over="ignore", under="ignore", divide="ignore"):
         return (np.asarray(lbda, dtype=float) / lambda_ref) ** float(alpha)   # overflow: inf, refused by callers
 
@@ -276,9 +275,8 @@ class PointSource(Versioned):
         self.lbda_in, self.flux_in = validate_spectrum(lbda, flux, name)
         self.position = position
         self.name = name
-        if mag is not None and (isinstance(mag, (bool, np.bool_)) or not isinstance(mag, (int, float, np.number))
-                                or not np.isfinite(mag)):
-            raise SpectrumError(f"mag must be a finite AB magnitude or None, got {mag!r}")
+        if mag is not None:
+            mag = validation.number("mag [AB]", mag, error=SpectrumError)
         self.mag, self.band = mag, band
         self.flux_ratio, self.native_mag = 1.0, None
         if mag is not None:
@@ -301,6 +299,8 @@ class PointSource(Versioned):
         """Replace the spectrum in place (validated first; renormalised to ``mag`` when set,
         unless ``flux_ratio`` is given)."""
         lbda, flux = validate_spectrum(lbda, flux, self.name)
+        if flux_ratio is not None:
+            flux_ratio = validation.number("flux_ratio", flux_ratio, low=0.0, error=SpectrumError)
         if flux_ratio is None:
             flux_ratio, native_mag = (1.0, None) if self.mag is None else \
                 normalise_to_mag(lbda, flux, self.mag, self.band)
@@ -314,13 +314,10 @@ class PointSource(Versioned):
 
     @position.setter
     def position(self, position):
-        try:
-            pos = tuple(float(p) for p in position)
-        except (TypeError, ValueError) as exc:
-            raise ParameterError(f"position must be (x, y) [cells], got {position!r}") from exc
-        if len(pos) != 2 or not all(np.isfinite(pos)):
-            raise ParameterError(f"position must be finite: two numbers (x, y) [cells], got {position!r}")
-        self._position = pos
+        if isinstance(position, (str, bytes)) or not hasattr(position, "__len__") or len(position) != 2:
+            raise ParameterError(f"position must be (x, y) [cells], got {validation.short_repr(position)}")
+        self._position = (validation.number("position", position[0]),     # x [cells]
+                          validation.number("position", position[1]))     # y [cells]
 
     def flambda(self, lbda):
         """F(λ) [erg/s/cm²/Å] at λ [Å]."""
