@@ -14,6 +14,7 @@ from slicersim.backends import opencl
 from slicersim.backends.opencl import VECTOR_WIDTHS, check_vector_width  # noqa: F401  (re-exported)
 from slicersim.backends.selfcheck import NOT_RUN, device_selfcheck, device_selfcheck_single
 from slicersim.errors import OpenCLUnavailableError
+from slicersim.validation import choice
 
 __all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges", "check_vector_width"]
 
@@ -66,8 +67,7 @@ def resolve_backend(backend: str = "auto") -> str:
     "auto" uses OpenCL only on a device with fp64 that passes the self-check
     (:func:`device_validated`; a warning names a device that fails it); an explicit "opencl"
     on a device that fails it raises :class:`OpenCLUnavailableError`."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    choice("backend", backend, BACKENDS)
     if backend == "numpy":
         return backend
     if backend == "opencl":
