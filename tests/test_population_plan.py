@@ -75,7 +75,7 @@ def test_table_redshift_distribution(tmp_path):
     ({"distribution": "gauss", "min": 0.1, "max": 1}, "distribution"),
     ({"distribution": "uniform", "min": 0.1, "mx": 1}, "'mx'"),
     ({"distribution": "uniform", "min": float("nan"), "max": 1}, "finite"),
-    ({"distribution": "uniform", "min": True, "max": 1}, "finite"),
+    ({"distribution": "uniform", "min": True, "max": 1}, "a number"),
     ({"distribution": "volumetric", "min": 0.1, "max": 1, "rate_index": 50}, "rate_index"),
     (0.0, "> 0"),
 ])

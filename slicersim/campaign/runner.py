@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.campaign.products import build_target, run_target, spectrum_grid, target_seeds
-from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec
+from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec, seed_was_drawn, with_seed
 from slicersim.errors import ConfigError, DatasetError
-from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset
+from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, spec_digest
 from slicersim.validation import positive_int
 
 __all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions", "RunOptions", "TaskWindow",
@@ -240,6 +240,22 @@ def _check_cube_precision(spec, scheduler):
         resolve_precision(spec.products.get("precision", "auto"), "auto", "cube")
 
 
+def _resumed_seed(spec, ds, force):
+    """A spec without a seed (one was drawn) resumes the dataset it made: the stored seed replaces
+    the drawn one when the rest of the spec is the same (otherwise the drawn seed stands, and a
+    dataset of another spec is refused as usual)."""
+    if force or not seed_was_drawn(spec):
+        return spec
+    try:
+        stored = ds.stored_spec()
+    except DatasetError:                    # damaged: check_spec says so
+        return spec
+    if stored is None or not isinstance(stored[0].get("seed"), int):
+        return spec
+    resumed = with_seed(spec, stored[0]["seed"])
+    return resumed if spec_digest(resumed.canonical()) == stored[1] else spec
+
+
 def _plan_and_connect(spec, scheduler):
     """(catalog, plan, connection or None): a remote scheduler is reached before anything is
     written, and nothing is written before the plan succeeds."""
@@ -271,6 +287,7 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     run = RunOptions.checked(workers, scheduler, progress, max_bytes, threads_per_worker, window)
     _check_cube_precision(spec, scheduler)
     ds = Dataset(Dataset.check_path(out, force=force))
+    spec = _resumed_seed(spec, ds, force)
     t0 = time.perf_counter()
     ds.check_spec(spec.canonical(), force)            # refuse early, before planning
     catalog, plan, connection = _plan_and_connect(spec, scheduler)
