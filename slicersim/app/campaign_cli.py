@@ -69,11 +69,12 @@ def cmd_survey_plan(args) -> int:
 def _write_table(table, path, overwrite):
     import io
 
+    from slicersim.errors import ParameterError
     from slicersim.io.atomic import atomic_bytes
     buf = io.StringIO()
     fmt = "ascii.ecsv" if path.endswith(".ecsv") else "ascii.csv"
     if not path.endswith((".ecsv", ".csv")):
-        raise ValueError(f"--out must end with .ecsv or .csv, got {path}")
+        raise ParameterError(f"--out must end with .ecsv or .csv, got {path}")
     table.write(buf, format=fmt)
     atomic_bytes(path, buf.getvalue().encode(), overwrite=overwrite)
 

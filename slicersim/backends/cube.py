@@ -28,11 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.backends import opencl
-from slicersim.backends.precision import real_dtype, resolve_precision
+from slicersim.backends.precision import real_dtype, resolve_precision, storage_dtype
 from slicersim.backends.psf import DevicePSF
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import _erf_cell_fractions, cell_edges
-from slicersim.validation import short_repr
 
 __all__ = ["ReadoutConstants", "GaussianPSF", "DetectorChunk", "detector_block", "detector_chunk", "storage_dtype",
            "reflect_indices", "release_buffers", "default_vector_width"]
@@ -112,18 +111,6 @@ def _reflect(j, nl):
 
 def _as_f64(x):
     return np.ascontiguousarray(x, dtype=np.float64)
-
-
-def storage_dtype(dtype, *, name="dtype"):
-    """``dtype`` as ``np.dtype``: float64 or float32 (the storage of the cube's outputs), else
-    ParameterError naming ``name``."""
-    try:
-        dtype = np.dtype(dtype)
-    except TypeError:
-        raise ParameterError(f"{name} must be float64 or float32, got {short_repr(dtype)}") from None
-    if dtype not in (np.float64, np.float32):
-        raise ParameterError(f"{name} must be float64 or float32, got {dtype}")
-    return dtype
 
 
 @dataclass(frozen=True)

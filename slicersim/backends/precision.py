@@ -41,7 +41,7 @@ from slicersim.validation import choice, short_repr
 
 __all__ = ["PRECISIONS", "SINGLE_PRECISION_ERRORS", "DOUBLE_ONLY_PRODUCTS", "FAST_FP64_RATIO", "products",
            "check_product", "check_precision", "resolve_precision",
-           "float64_kwargs",
+           "float64_kwargs", "storage_dtype",
            "fp64_throughput_ratio", "real_dtype"]
 
 PRECISIONS = ("auto", "double", "single")
@@ -127,6 +127,18 @@ def check_precision(precision):
 def real_dtype(precision: str):
     """NumPy dtype of a resolved precision ("double" → float64, "single" → float32)."""
     return np.dtype(np.float32 if precision == "single" else np.float64)
+
+
+def storage_dtype(dtype, *, name="dtype"):
+    """``dtype`` as ``np.dtype``: float64 or float32 (the storage of the cube's outputs), else
+    ParameterError naming ``name``."""
+    try:
+        dtype = np.dtype(dtype)
+    except TypeError:
+        raise ParameterError(f"{name} must be float64 or float32, got {short_repr(dtype)}") from None
+    if dtype not in (np.float64, np.float32):
+        raise ParameterError(f"{name} must be float64 or float32, got {dtype}")
+    return dtype
 
 
 _ratios: dict = {}

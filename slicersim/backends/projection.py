@@ -47,10 +47,12 @@ from scipy.special import erfc
 
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import resolve_backend
-from slicersim.backends.precision import resolve_precision
+from slicersim.backends.precision import resolve_precision, storage_dtype
 from slicersim.backends.projection_deposit import deposit_numpy, deposit_opencl
 from slicersim.io.table_cache import ArrayCache, Chunks, TableCacheWarning, default_directory
+from slicersim.errors import ParameterError
 from slicersim.memo import content_key
+from slicersim.validation import short_repr
 
 __all__ = ["DepositTables", "build_tables", "deposit", "table_key", "load_tables", "store_tables",
            "default_table_cache", "resolve_table_cache", "backend_tag", "table_builder", "TABLE_FORMAT"]
@@ -118,7 +120,7 @@ def _windows(lo, hi, sigma, truncate):
     stop = np.floor(hi + truncate * sigma)
     n = stop - start + 1
     if n.size and (not np.all(np.isfinite(n)) or n.max() > 4096):
-        raise ValueError("cell footprint or spot rms is not finite or spans more than 4096 px")
+        raise ParameterError("box: a cell footprint or spot rms is not finite or spans more than 4096 px")
     return start.astype(np.int32), n.astype(np.int32)
 
 
@@ -194,18 +196,17 @@ def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), t
     S, E, Q = (int(v) for v in grid)
     ne, nq = (int(v) for v in oversample)
     if box.shape != (S * E * Q, 6) or E % ne or Q % nq or box.shape[0] == 0:
-        raise ValueError(f"box must have shape ({S * E * Q}, 6) and grid {grid} be divisible by {oversample}")
+        raise ParameterError(f"box must have shape ({S * E * Q}, 6) and grid {grid} be divisible by oversample "
+                             f"{oversample}, got box shape {box.shape}")
     if np.any(box[:, [2, 5]] < 0) or np.any(box[:, 1] < box[:, 0]) or np.any(box[:, 4] < box[:, 3]):
-        raise ValueError("boxes need lo <= hi and rms >= 0")
-    weights_dtype = np.dtype(weights_dtype)
-    if weights_dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
-        raise ValueError("weights_dtype must be float32 or float64")
+        raise ParameterError("box: boxes need lo <= hi and rms >= 0")
+    weights_dtype = storage_dtype(weights_dtype, name="weights_dtype")
     x0, nx = _windows(box[:, 0], box[:, 1], box[:, 2], truncate)
     y0, ny = _windows(box[:, 3], box[:, 4], box[:, 5], truncate)
     if vw is None:
         vw = 4 if np.median(nx) <= 4 else 8
     if vw not in (1, 2, 4, 8, 16):
-        raise ValueError(f"vw must be 1, 2, 4, 8 or 16, got {vw}")
+        raise ParameterError(f"vw (weights per vector) must be 1, 2, 4, 8 or 16, got {short_repr(vw)}")
     meta = np.ascontiguousarray(np.stack([x0, y0, nx, ny], axis=1), dtype=np.int32)
     size = -(-nx.astype(np.int64) // vw) * vw + ny
     offset = np.zeros(size.size, np.int64)
@@ -386,7 +387,7 @@ def resolve_table_cache(cache):
         if key not in _CACHES:
             _CACHES[key] = ArrayCache(key)
         return _CACHES[key]
-    raise TypeError(f"table cache must be 'default', None, a path or an ArrayCache, got {cache!r}")
+    raise ParameterError(f"table cache must be 'default', None, a path or an ArrayCache, got {short_repr(cache)}")
 
 
 @functools.lru_cache(maxsize=1)
@@ -489,7 +490,7 @@ def load_tables(cache, key):
         if (t.meta.shape != (t.ncell, 4) or t.offset.shape != (t.ncell,) or t.scale.shape != (t.ncell,)
                 or t.pool.shape != (t.pool_size,) or t.pool.dtype != t.weights_dtype
                 or int(np.prod(t.grid)) != t.ncell):
-            raise ValueError("array shapes do not match the metadata")
+            raise ValueError("array shapes do not match the metadata")  # internal: caught below, the entry rebuilt
     except (KeyError, TypeError, ValueError) as exc:
         warnings.warn(f"projection tables {key} in {cache.directory} are inconsistent ({exc}); rebuilt",
                       TableCacheWarning, stacklevel=2)
@@ -527,12 +528,12 @@ def deposit(value, tables, out=None, backend="auto", precision="auto"):
     ne, nq = t.oversample
     value = np.asarray(value)
     if value.shape != (S, E // ne, Q // nq):
-        raise ValueError(f"value must have shape {(S, E // ne, Q // nq)}, got {value.shape}")
+        raise ParameterError(f"value must have shape {(S, E // ne, Q // nq)}, got {value.shape}")
     H, W = t.detector_shape
     if out is None:
         out = np.zeros((H, W), np.float64)
     elif out.shape != (H, W) or out.dtype != np.float64 or not out.flags.c_contiguous:
-        raise ValueError(f"out must be a C-contiguous float64 array of shape {(H, W)}")
+        raise ParameterError(f"out must be a C-contiguous float64 array of shape {(H, W)}")
     r0, r1 = t.row_range
     if r1 <= r0 or t.ncell == 0:
         return out

@@ -24,6 +24,8 @@ from slicersim.backends import opencl
 from slicersim.backends.dispatch import resolve_backend
 from slicersim.backends.projection import _options
 from slicersim.backends.projection_deposit import parent_index as _parent_index, table_buffer as _table_buffer
+from slicersim.errors import ParameterError
+from slicersim.validation import choice
 
 __all__ = ["gather", "matrix_entries"]
 
@@ -35,11 +37,11 @@ def _check_image(image, tables):
     H, W = tables.detector_shape
     image = np.asarray(image)
     if image.shape != (H, W):
-        raise ValueError(f"image must have shape {(H, W)} (the tables' detector), got {image.shape}")
+        raise ParameterError(f"image must have shape {(H, W)} (the tables' detector), got {image.shape}")
     r0, r1 = tables.row_range
     band = np.ascontiguousarray(image[r0:r1], dtype=np.float64)
     if not np.all(np.isfinite(band)):
-        raise ValueError("image must be finite where the tables reach (replace NaN pixels first)")
+        raise ParameterError("image must be finite where the tables reach (replace NaN pixels first)")
     return band
 
 
@@ -56,10 +58,9 @@ def gather(image, tables, power=1, backend="auto"):
     Pixels off the detector count as zero.  ⟨deposit(v), img⟩ = ⟨v, gather(img)⟩ to rounding.
     """
     t = tables
-    if power not in (1, 2):
-        raise ValueError(f"power must be 1 or 2, got {power!r}")
+    choice("power", power, (1, 2))
     if power == 2 and tuple(t.oversample) != (1, 1):
-        raise ValueError("power=2 (squared weights) needs tables without sub-cells (oversample (1, 1))")
+        raise ParameterError("power=2 (squared weights) needs tables without sub-cells (oversample (1, 1))")
     band = _check_image(image, t)
     S, E, Q = t.grid
     ne, nq = t.oversample
@@ -150,7 +151,7 @@ def matrix_entries(tables, first, last):
     H, W = t.detector_shape
     first, last = int(first), int(last)
     if not 0 <= first <= last <= t.ncell:
-        raise ValueError(f"sub-cell range [{first}, {last}) outside 0 … {t.ncell}")
+        raise ParameterError(f"first, last: sub-cell range [{first}, {last}) outside 0 … {t.ncell}")
     c = np.arange(first, last)
     c = c[t.scale[c] != 0]
     if c.size == 0:
