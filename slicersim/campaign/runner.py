@@ -34,7 +34,7 @@ from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, spec
 from slicersim.validation import positive_int
 
 __all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions", "RunOptions", "TaskWindow",
-           "run_task_window", "WORKERS_PER_CPU"]
+           "run_task_window", "WORKERS_PER_CPU", "check_workers", "QuietDask"]
 
 #: seconds between two catalog writes while a campaign runs
 CATALOG_INTERVAL = 10.0
@@ -189,7 +189,7 @@ def _client(workers, scheduler, threads):
 WORKERS_PER_CPU = 4
 
 
-def _check_workers(workers):
+def check_workers(workers):
     """Workers of the embedded cluster: None (the CPU count) or an integer from 1 to
     :data:`WORKERS_PER_CPU` × the CPU count (ParameterError naming ``workers`` otherwise)."""
     if workers is None:
@@ -197,6 +197,10 @@ def _check_workers(workers):
     most = WORKERS_PER_CPU * (os.cpu_count() or 1)
     return positive_int(f"workers (--workers; at most {WORKERS_PER_CPU} × the CPU count for the embedded "
                         "LocalCluster: connect to a scheduler for more)", workers, high=most)
+
+
+#: the former private name (reduction.campaign imports it)
+_check_workers = check_workers
 
 
 def _check_positive_int(value, name, lo=1):
@@ -221,7 +225,7 @@ class RunOptions:
     def checked(cls, workers=None, scheduler=None, progress=True, max_bytes=256 * 2**20, threads_per_worker=None,
                 window=None):
         """Options with every value checked (ParameterError naming the keyword)."""
-        return cls(_check_workers(workers), scheduler, progress, positive_int("max_bytes", max_bytes, 2**20),
+        return cls(check_workers(workers), scheduler, progress, positive_int("max_bytes", max_bytes, 2**20),
                    None if threads_per_worker is None else positive_int("threads_per_worker (--threads-per-worker)",
                                                                          threads_per_worker),
                    None if window is None else positive_int("window", window))
@@ -338,7 +342,7 @@ def _dispatch(spec, ds, catalog, work, run, connection=None):
     Dask with :class:`RunOptions` ``run``."""
     todo, records, digest = work
     threads = run.threads
-    quiet = _QuietDask()
+    quiet = QuietDask()
     client, cluster = connection or _client(run.workers, run.scheduler, threads)
     try:
         spec_future = client.scatter(spec, broadcast=True)
@@ -427,7 +431,7 @@ def _collect(ids, submit, records, ds, opts, window):
                 last = time.monotonic()
 
 
-class _QuietDask:
+class QuietDask:
     """Silence distributed's loggers on the client while a campaign runs: worker deaths and
     task errors are recorded per target and summarised; their tracebacks would bury the one
     line the CLI prints."""
@@ -445,6 +449,10 @@ class _QuietDask:
     def restore(self):
         for name, level in self.levels.items():
             logging.getLogger(name).setLevel(level)
+
+
+#: the former private name (reduction.campaign imports it)
+_QuietDask = QuietDask
 
 
 def campaign_status(out, verify=True):
