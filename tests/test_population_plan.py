@@ -376,13 +376,20 @@ def test_cli_survey_plan_writes_the_table_and_prints_totals(tmp_path):
     assert str(t["exposure_time"].unit) == "s" and str(t["data_volume"].unit) == "byte"
     assert set(t["field"]) == {"narrow", "wide"}
     assert "yr at 75 % observing efficiency" in proc.stdout and "TB" in proc.stdout
+    assert t.meta["population_seed"] == 1 and "population seed    : 1\n" in proc.stdout
+    drawn = subprocess.run([str(BIN / "slicersim"), "survey", "plan", "--n", "2", "--zmin", "0.3", "--zmax", "0.5",
+                            "--out", str(tmp_path / "drawn.ecsv")], capture_output=True, text=True, timeout=300)
+    assert drawn.returncode == 0, drawn.stderr                 # no --seed: a seed is drawn, printed and recorded
+    seed = Table.read(tmp_path / "drawn.ecsv", format="ascii.ecsv").meta["population_seed"]
+    assert f"population seed    : {seed} (drawn" in drawn.stdout
     again = subprocess.run([str(BIN / "slicersim"), "survey", "plan", "--n", "3", "--out", str(out)],
                            capture_output=True, text=True, timeout=300)
     assert again.returncode == 2 and "exists" in again.stderr
 
 
 @pytest.mark.parametrize("args, message", [(["--n", "0"], "n"), (["--zmin", "1.2", "--zmax", "0.3"], "min"),
-                                           (["--zmin", "-0.5"], "negative"), (["--efficiency", "2"], "efficiency")])
+                                           (["--zmin", "-0.5"], "negative"), (["--efficiency", "2"], "efficiency"),
+                                           (["--seed", "-1"], "--seed")])
 def test_cli_survey_plan_bad_input(tmp_path, args, message):
     out = tmp_path / "p.ecsv"
     proc = subprocess.run([str(BIN / "slicersim"), "survey", "plan", "--n", "5", *args, "--out", str(out)],
