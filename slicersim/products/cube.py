@@ -21,9 +21,10 @@ V = A + B e), LSF, QE, signal and variance of a chunk are one fused kernel
 (:func:`slicersim.backends.cube.detector_block`) fed with small inputs: the
 Gaussian PSF as its two erf factors (nλ × (ny + nx) values), or the Airy PSF
 block, the spectrum G = F f2p, the host block if any, U, QE and the LSF taps;
-the product cube G·P is never stored.  Its NumPy twin and, for Kubik16 or
-``backend="numpy"``, the NumPy path below (scipy LSF + ``cell_variance``) are
-the oracles; they agree to ~1e-15 of the peak.
+the product cube G·P is never stored.  ``backend="numpy"`` and a non-linear variance
+(Kubik16, through :class:`CellVarianceReadout`) run the kernel's NumPy twin, the one NumPy
+cube path; the two agree to ~1e-15 of the peak.  The independent oracle of the tests
+(``tests/cube_oracle.py``: the whole photon cube, scipy LSF, ``cell_variance``) agrees to 1e-12.
 
 ``switch_off`` (:mod:`slicersim.products.components`) drops scene components from the photon
 cube and detector terms from the variance.  :func:`build_scene_cubes` returns the noise-free
