@@ -321,6 +321,8 @@ def test_plan_bad_parameters(kw, message):
 @pytest.mark.parametrize("kw, message", [({"frame": "observed"}, "frame.*'rest', 'obs'"),
                                          ({"lbda_range": (6800, 4000)}, "lbda_range"),
                                          ({"snr": 0}, "snr"), ({"z_switch": -1}, "z_switch"),
+                                         ({"z_switch": "high"}, "z_switch"),
+                                         ({"fields": ("narrow", "wdie")}, r"fields\[1\].*did you mean 'wide'"),
                                          ({"fieldz": ("wide", "wide")}, "unknown keyword.*'fieldz'"),
                                          ({"target_ids": [7]}, "target_ids")])
 def test_plan_bad_options_name_the_keyword(kw, message):

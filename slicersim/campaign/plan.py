@@ -99,6 +99,8 @@ def _solve(lbda, fluxes, idx, errors, out, kwargs):
 
 #: values of ``frame`` (None: "rest", a survey's targets having redshifts)
 FRAMES = ("rest", "obs")
+#: the fields a survey can use
+FIELDS = ("narrow", "wide")
 
 
 @dataclass(frozen=True)
@@ -135,13 +137,22 @@ class SurveyOptions:
         from slicersim.backends.precision import resolve_precision
         precision = resolve_precision(self.precision, "auto", "batch_etc")[1]
         lo, hi = _wavelength_range(self.lbda_range)
-        z_switch = self.z_switch if np.isposinf(self.z_switch) else number("z_switch", self.z_switch, low=0)
-        return replace(self, snr=number("snr", self.snr, low=0, low_open=True), lbda_range=(lo, hi),
+        z_switch = self.z_switch if _is_inf(self.z_switch) else number("z_switch", self.z_switch, low=0)
+        if isinstance(self.fields, (str, bytes)) or np.size(self.fields) != 2:
+            raise ParameterError(f"fields must be two field names (below, at and above z_switch), got "
+                                 f"{short_repr(self.fields)}")
+        fields = tuple(choice(f"fields[{i}]", f, FIELDS) for i, f in enumerate(self.fields))
+        return replace(self, fields=fields, snr=number("snr", self.snr, low=0, low_open=True), lbda_range=(lo, hi),
                        frame=choice("frame", self.frame, FRAMES + (None,)) or "rest", z_switch=float(z_switch),
                        overhead=number("overhead", self.overhead, low=0, unit="s"),
                        efficiency=number("efficiency", self.efficiency, low=0, low_open=True, high=1),
                        compression_ratio=number("compression_ratio", self.compression_ratio, low=1),
                        precision=precision)
+
+
+def _is_inf(value):
+    """True for +inf (one field for every redshift)."""
+    return isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) and value == np.inf
 
 
 def _wavelength_range(lbda_range):
