@@ -33,7 +33,7 @@ from slicersim.backends.psf import DevicePSF
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import _erf_cell_fractions, cell_edges
 
-__all__ = ["ReadoutConstants", "GaussianPSF", "DetectorChunk", "detector_block", "detector_chunk", "storage_dtype",
+__all__ = ["ReadoutConstants", "GaussianPSF", "DetectorChunk", "detector_block", "detector_chunk",
            "reflect_indices", "release_buffers", "default_vector_width"]
 
 _KERNEL_FILE = "cube.cl"

@@ -37,8 +37,6 @@ catalog files replaced by their content digests too) identifies a dataset.
 """
 from __future__ import annotations
 
-import math
-import numbers
 import os
 import tomllib
 from dataclasses import dataclass, field as dc_field
@@ -200,11 +198,12 @@ def _observation(section):
     obs = {**_OBSERVATION, **section}
     obs["snr"] = number("observation.snr", obs["snr"], low=0, low_open=True, error=ConfigError)
     rng = obs["lbda_range"]
-    if (not isinstance(rng, list) or len(rng) != 2
-            or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in rng)
-            or not all(math.isfinite(v) and v > 0 for v in rng) or not rng[0] < rng[1]):
+    if not isinstance(rng, list) or len(rng) != 2:
         raise ConfigError(f"observation.lbda_range must be [lo, hi] in Å with 0 < lo < hi, got {rng!r}")
-    obs["lbda_range"] = [float(rng[0]), float(rng[1])]
+    obs["lbda_range"] = [number(f"observation.lbda_range[{i}] [Å]", v, low=0, low_open=True, error=ConfigError)
+                         for i, v in enumerate(rng)]
+    if not obs["lbda_range"][0] < obs["lbda_range"][1]:
+        raise ConfigError(f"observation.lbda_range must be [lo, hi] in Å with 0 < lo < hi, got {rng!r}")
     choice("observation.frame", obs["frame"], ("rest", "obs"), error=ConfigError)
     choice("observation.conventions", obs["conventions"], CONVENTIONS, error=ConfigError)
     choice("observation.search", obs["search"], ("exact", "reference"), error=ConfigError)

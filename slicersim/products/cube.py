@@ -50,8 +50,8 @@ from functools import cached_property
 import numpy as np
 
 from slicersim.backends.convolution import choose_convolution_method, convolve_cube
-from slicersim.backends.cube import DetectorChunk, ReadoutConstants, detector_chunk, storage_dtype
-from slicersim.backends.precision import resolve_precision
+from slicersim.backends.cube import DetectorChunk, ReadoutConstants, detector_chunk
+from slicersim.backends.precision import resolve_precision, storage_dtype
 from slicersim.backends.noise import noisy_cube, seed_from
 from slicersim.physics.lsf import lsf_weights
 from slicersim.errors import ParameterError
