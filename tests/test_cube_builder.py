@@ -469,3 +469,20 @@ def test_zero_and_partial_spectra():
     with pytest.warns(RuntimeWarning, match="NaN"):
         res = build_cube(part.simulation, **READOUT, progress=False)
     assert np.isnan(res.signal[-1]).all() and np.isfinite(res.signal[0]).all()
+
+
+def test_one_numpy_cube_path(sim, monkeypatch):
+    """build_cube's NumPy backend (linear Rauscher07 variance) and any non-linear variance model (Kubik16, on
+    every backend) run the fused kernel's NumPy twin: there is one NumPy cube path, whose detector stage is
+    ReadoutConstants (the kernel's) or CellVarianceReadout (Simulation.cell_variance)."""
+    import slicersim.backends.cube as backend_cube
+    from slicersim.products.cube import CellVarianceReadout
+    seen = []
+    twin = backend_cube._detector_block_numpy
+    monkeypatch.setattr(backend_cube, "_detector_block_numpy",
+                        lambda chunk, kind, readout, out: seen.append(type(readout)) or twin(chunk, kind, readout, out))
+    build_cube(sim, **READOUT, progress=False, backend="numpy")
+    detector = copy.deepcopy(sim.detector)
+    detector.update(variance_model="Kubik16")
+    build_cube(Simulation(sim.scene, sim.telescope, sim.spectrograph, detector), **READOUT, progress=False)
+    assert seen == [backend_cube.ReadoutConstants, CellVarianceReadout]
