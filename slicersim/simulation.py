@@ -385,17 +385,6 @@ class Simulation(Versioned):
         return tuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,
                                 switch_off=switch_off, **options))
 
-    def get_cube_numpy(self, nmd=None, nramps=None, switch_off=None):
-        """NumPy oracle of the Gaussian cube: (signal [ADU], variance [ADU²])."""
-        off = check_switch_off(switch_off)
-        nmd, nramps = self._readout(nmd, nramps)
-        tint = readout_times(nmd, self.detector.tframe)["integration_time_per_ramp"]
-        photons = self.get_projected_scene(off, backend="numpy")     # ph/s/cell
-        electrons = photons * self.qe[:, None, None]                 # e-/s/cell
-        variance, saturated = self.cell_variance(electrons, nmd, off)  # ADU² per ramp
-        signal = np.where(saturated, np.nan, electrons * tint * self.detector.gain) * nramps
-        return signal, variance * nramps
-
     # ------------------------------------------------------------------ extraction
     @property
     def extraction_model(self):

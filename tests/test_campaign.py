@@ -370,3 +370,32 @@ def test_ramps_and_detector_image_products(tmp_path):
     with h5py.File(pdir / "detector_image.h5", "r") as f:
         rate = f["rate"][...]
     assert rate.dtype == np.float32 and rate.shape == (4096, 4096) and rate.max() > 0
+
+
+def test_spec_without_seed_draws_one_records_it_and_resumes_with_it(tmp_path):
+    """seed follows the package rule: an integer, or none given → a fresh seed drawn and written into the
+    spec's text (the dataset's spec.toml repeats the campaign); the same seedless spec resumes the dataset
+    it made with the recorded seed (each load draws another one)."""
+    import tomllib
+
+    from slicersim.campaign.runner import _resumed_seed
+    from slicersim.campaign.spec import load_spec, parse_spec, seed_was_drawn, with_seed
+    from slicersim.io.dataset import Dataset
+    path = tmp_path / "noseed.toml"
+    path.write_text(SPEC.replace("seed = 11\n", ""))
+    first, second = load_spec(path), load_spec(path)
+    assert seed_was_drawn(first) and first.seed != second.seed and 0 <= first.seed < 2**64
+    assert first.text.startswith(f"seed = {first.seed}")
+    stored = parse_spec(tomllib.loads(first.text), text=first.text)        # the dataset's spec.toml
+    assert stored.seed == first.seed and stored.canonical() == first.canonical()
+    assert with_seed(second, first.seed).canonical() == first.canonical()
+    ds = Dataset(Dataset.check_path(tmp_path / "d"))
+    with ds:
+        ds.initialise(first.text, first.canonical(), {})
+    assert _resumed_seed(second, ds, force=False).seed == first.seed
+    assert _resumed_seed(second, ds, force=True).seed == second.seed       # --force: a new campaign
+    path.write_text(SPEC.replace("seed = 11\n", "").replace("snr = 8", "snr = 9"))
+    other = load_spec(path)
+    assert _resumed_seed(other, ds, force=False).seed == other.seed        # another spec: refused later
+    with pytest.raises(ConfigError, match="seed"):
+        parse_spec(tomllib.loads(SPEC.replace("seed = 11", "seed = -1")))

@@ -176,7 +176,9 @@ def test_malformed_records_and_lost_spec_json(tmp_path):
 @pytest.mark.parametrize("args, message", [(["--memory-per-task", "inf"], "memory-per-task"),
                                            (["--memory-per-task", "nan"], "memory-per-task"),
                                            (["--memory-per-task", "0"], "memory-per-task"),
-                                           (["--threads-per-worker", "-2"], "threads per worker"),
+                                           (["--threads-per-worker", "-2"], "threads_per_worker"),
+                                           (["--workers", "0"], "workers"),
+                                           (["--workers", "100000"], "at most 4"),
                                            (["--scheduler", "garbage"], "tcp://host:port"),
                                            (["--scheduler", "tcp://127.0.0.1:1"], "cannot connect")])
 def test_bad_run_arguments_write_nothing(tmp_path, args, message):

@@ -167,6 +167,9 @@ def test_assembly_twin(nout, nx):
     a = assemble_numpy(gen, *args, out=np.empty((30, nx), np.float32))
     b = assemble_opencl(gen, *args, out=np.empty((30, nx), np.float32))
     np.testing.assert_allclose(a, b, atol=1e-5, rtol=1e-6)
+    from slicersim.backends.correlated_noise import GroupInputs
+    grouped = assemble_numpy(gen, GroupInputs(*args), out=np.empty((30, nx), np.float32))
+    assert np.array_equal(grouped, a)                                  # one inputs object = its fields
 
 
 def test_bad_input():

@@ -14,7 +14,9 @@ import pytest
 from scipy import stats
 
 from conftest import reference_case_ids, reference_target
+from cube_oracle import cube_numpy
 from slicersim.backends.band_variance import resolve_backend
+from slicersim.errors import ParameterError
 from slicersim.products.cube import PATH_ABSENT, PATH_POINT, PATH_UNIFORM, build_cube, lsf_halo
 from slicersim.sources.scene import Host, PointSource, Scene, SpectrumError
 from slicersim.simulation import Simulation
@@ -56,7 +58,7 @@ def _peak_err(got, ref):
 
 
 def test_equals_simulation_get_cube(sim, cube):
-    signal, variance = sim.get_cube_numpy(**READOUT)
+    signal, variance = cube_numpy(sim, **READOUT)
     assert cube.signal.shape == (sim.lbda.size, *sim.spectrograph.shape)
     assert _peak_err(cube.signal, signal) < 1e-12
     assert _peak_err(cube.variance, variance) < 1e-12
@@ -126,7 +128,7 @@ def test_uniform_scene_needs_no_spatial_work(sim):
     assert res.paths["pointsource"] == PATH_ABSENT and res.paths["background"] == PATH_UNIFORM
     assert res.chunks == 1
     assert np.all(res.signal == res.signal[:, :1, :1])         # flat over the field
-    signal, variance = bare.get_cube_numpy(**READOUT)
+    signal, variance = cube_numpy(bare, **READOUT)
     assert _peak_err(res.signal, signal) < 1e-12 and _peak_err(res.variance, variance) < 1e-12
 
 
@@ -429,15 +431,17 @@ def test_paths_kubik_and_float32(sim, cube):
     kubik = Simulation(sim.scene, sim.telescope, sim.spectrograph, detector)
     res = build_cube(kubik, **READOUT, progress=False)
     assert res.paths["detector"].startswith("NumPy")
-    signal, variance = kubik.get_cube_numpy(**READOUT)
+    signal, variance = cube_numpy(kubik, **READOUT)
     assert _peak_err(res.signal, signal) < 1e-12 and _peak_err(res.variance, variance) < 1e-12
     assert _peak_err(res.variance, cube.variance) > 1e-3                  # a different variance model
     single = build_cube(sim, **READOUT, progress=False, dtype=np.float32, seed=2024)
     assert single.signal.dtype == single.variance.dtype == single.noisy.dtype == np.float32
     assert np.allclose(single.signal, cube.signal, rtol=1e-7, atol=0)
     assert np.allclose(single.variance, cube.variance, rtol=1e-7, atol=0)
-    with pytest.raises(ValueError, match="dtype"):
+    with pytest.raises(ParameterError, match="dtype"):
         build_cube(sim, dtype=np.int32)
+    with pytest.raises(ParameterError, match="dtype"):
+        build_cube(sim, dtype="not a dtype")
 
 
 def test_gaussian_factors_bit_identical_to_psf_module():
@@ -466,3 +470,20 @@ def test_zero_and_partial_spectra():
     with pytest.warns(RuntimeWarning, match="NaN"):
         res = build_cube(part.simulation, **READOUT, progress=False)
     assert np.isnan(res.signal[-1]).all() and np.isfinite(res.signal[0]).all()
+
+
+def test_one_numpy_cube_path(sim, monkeypatch):
+    """build_cube's NumPy backend (linear Rauscher07 variance) and any non-linear variance model (Kubik16, on
+    every backend) run the fused kernel's NumPy twin: there is one NumPy cube path, whose detector stage is
+    ReadoutConstants (the kernel's) or CellVarianceReadout (Simulation.cell_variance)."""
+    import slicersim.backends.cube as backend_cube
+    from slicersim.products.cube import CellVarianceReadout
+    seen = []
+    twin = backend_cube._detector_block_numpy
+    monkeypatch.setattr(backend_cube, "_detector_block_numpy",
+                        lambda chunk, kind, readout, out: seen.append(type(readout)) or twin(chunk, kind, readout, out))
+    build_cube(sim, **READOUT, progress=False, backend="numpy")
+    detector = copy.deepcopy(sim.detector)
+    detector.update(variance_model="Kubik16")
+    build_cube(Simulation(sim.scene, sim.telescope, sim.spectrograph, detector), **READOUT, progress=False)
+    assert seen == [backend_cube.ReadoutConstants, CellVarianceReadout]

@@ -226,6 +226,28 @@ def test_exact_area_overlap_without_blur():
     np.testing.assert_allclose(img[10, 2:4], [0.5, 0.5], rtol=0, atol=1e-15)
 
 
+def test_projection_tables_refuse_bad_arguments_naming_them():
+    """Bad arguments of the projection backend are ParameterErrors naming the argument (they were bare
+    ValueError / TypeError)."""
+    from slicersim.backends.projection_transpose import gather, matrix_entries
+    from slicersim.errors import ParameterError
+    box = np.array([[2.25, 3.75, 0.0, 10.5, 10.5, 0.0]])
+    t = cp.build_tables(box, (1, 1, 1), detector_shape=(32, 32), weights_dtype=np.float64, backend="numpy")
+    cases = [(lambda: cp.build_tables(box[:, :5], (1, 1, 1), detector_shape=(32, 32), backend="numpy"), "box"),
+             (lambda: cp.build_tables(box[:, [1, 0, 2, 3, 4, 5]], (1, 1, 1), detector_shape=(32, 32),
+                                      backend="numpy"), "box"),
+             (lambda: cp.build_tables(box, (1, 1, 1), detector_shape=(32, 32), weights_dtype=np.int16,
+                                      backend="numpy"), "weights_dtype"),
+             (lambda: cp.deposit(np.ones((2, 1, 1)), t, backend="numpy"), "value must have shape"),
+             (lambda: cp.deposit(np.ones((1, 1, 1)), t, out=np.zeros((3, 3)), backend="numpy"), "out must be"),
+             (lambda: gather(np.zeros((31, 32)), t, backend="numpy"), "image must have shape"),
+             (lambda: gather(np.zeros((32, 32)), t, power=3, backend="numpy"), "unknown power 3"),
+             (lambda: matrix_entries(t, 0, 5), "sub-cell range")]
+    for call, message in cases:
+        with pytest.raises(ParameterError, match=message):
+            call()
+
+
 def test_blurred_box_weights_against_quadrature():
     from scipy.integrate import quad
     from scipy.special import erf

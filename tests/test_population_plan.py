@@ -75,7 +75,7 @@ def test_table_redshift_distribution(tmp_path):
     ({"distribution": "gauss", "min": 0.1, "max": 1}, "distribution"),
     ({"distribution": "uniform", "min": 0.1, "mx": 1}, "'mx'"),
     ({"distribution": "uniform", "min": float("nan"), "max": 1}, "finite"),
-    ({"distribution": "uniform", "min": True, "max": 1}, "finite"),
+    ({"distribution": "uniform", "min": True, "max": 1}, "a number"),
     ({"distribution": "volumetric", "min": 0.1, "max": 1, "rate_index": 50}, "rate_index"),
     (0.0, "> 0"),
 ])
@@ -318,6 +318,47 @@ def test_plan_bad_parameters(kw, message):
         plan_survey(np.array([0.5]), LBDA, np.ones((1, LBDA.size)) * 1e-17, **kw)
 
 
+@pytest.mark.parametrize("kw, message", [({"frame": "observed"}, "frame.*'rest', 'obs'"),
+                                         ({"lbda_range": (6800, 4000)}, "lbda_range"),
+                                         ({"snr": 0}, "snr"), ({"z_switch": -1}, "z_switch"),
+                                         ({"z_switch": "high"}, "z_switch"),
+                                         ({"fields": ("narrow", "wdie")}, r"fields\[1\].*did you mean 'wide'"),
+                                         ({"fieldz": ("wide", "wide")}, "unknown keyword.*'fieldz'"),
+                                         ({"target_ids": [7]}, "target_ids")])
+def test_plan_bad_options_name_the_keyword(kw, message):
+    from slicersim.campaign.plan import plan_survey
+    with pytest.raises(ParameterError, match=message):
+        plan_survey(np.array([0.5, 0.6]), LBDA, np.ones((2, LBDA.size)) * 1e-17, **kw)
+
+
+def test_plan_refuses_duplicate_target_ids():
+    """Duplicate ids made two plan rows (and later two campaign records) one target: refused, naming them."""
+    from slicersim.campaign.plan import plan_survey
+    z = np.array([0.3, 0.5, 0.7, 0.9])
+    with pytest.raises(ParameterError, match=r"target_ids must be unique.*\(3, 8\)"):
+        plan_survey(z, LBDA, np.ones((4, LBDA.size)) * 1e-17, target_ids=[3, 8, 3, 8])
+
+
+def test_plan_options_object_and_frame_default(small_plan, monkeypatch):
+    """plan_survey(..., options=SurveyOptions(...)) is the keyword form; frame None means "rest"
+    (a survey's targets have redshifts) and is recorded as such."""
+    from slicersim.campaign import plan as plan_module
+    tab, flux, plan = small_plan
+    assert plan.totals["frame"] == "rest"
+    seen = []
+    monkeypatch.setattr(plan_module, "_solve_fields", lambda lbda, fluxes, z, ids, opts: seen.append(opts) or
+                        ({k: np.zeros(z.size, dtype=np.int64) for k in ("n", "m", "d", "nramps", "exposure_time",
+                                                                         "snr")}, {}, np.full(z.size, "narrow"),
+                         {"narrow": (8, 8)}))
+    opts = plan_module.SurveyOptions(snr=15, overhead=10.0, frame="obs")
+    got = plan_module.plan_survey(np.array([0.5]), LBDA, np.ones((1, LBDA.size)), options=opts)
+    assert seen[0].snr == 15.0 and seen[0].frame == "obs" and got.totals["overhead"] == 10.0
+    assert plan_module.plan_survey(np.array([0.5]), LBDA, np.ones((1, LBDA.size)), snr=15, overhead=10.0,
+                                   frame="obs").totals == got.totals
+    with pytest.raises(ParameterError, match="not both"):
+        plan_module.plan_survey(np.array([0.5]), LBDA, np.ones((1, LBDA.size)), options=opts, overhead=1.0)
+
+
 def test_plan_figure(small_plan, tmp_path):
     from slicersim.campaign.plan import plot_time_and_volume
     path = plot_time_and_volume({"SNR 20": small_plan[2]}, tmp_path / "f.png")
@@ -337,13 +378,20 @@ def test_cli_survey_plan_writes_the_table_and_prints_totals(tmp_path):
     assert str(t["exposure_time"].unit) == "s" and str(t["data_volume"].unit) == "byte"
     assert set(t["field"]) == {"narrow", "wide"}
     assert "yr at 75 % observing efficiency" in proc.stdout and "TB" in proc.stdout
+    assert t.meta["population_seed"] == 1 and "population seed    : 1\n" in proc.stdout
+    drawn = subprocess.run([str(BIN / "slicersim"), "survey", "plan", "--n", "2", "--zmin", "0.3", "--zmax", "0.5",
+                            "--out", str(tmp_path / "drawn.ecsv")], capture_output=True, text=True, timeout=300)
+    assert drawn.returncode == 0, drawn.stderr                 # no --seed: a seed is drawn, printed and recorded
+    seed = Table.read(tmp_path / "drawn.ecsv", format="ascii.ecsv").meta["population_seed"]
+    assert f"population seed    : {seed} (drawn" in drawn.stdout
     again = subprocess.run([str(BIN / "slicersim"), "survey", "plan", "--n", "3", "--out", str(out)],
                            capture_output=True, text=True, timeout=300)
     assert again.returncode == 2 and "exists" in again.stderr
 
 
 @pytest.mark.parametrize("args, message", [(["--n", "0"], "n"), (["--zmin", "1.2", "--zmax", "0.3"], "min"),
-                                           (["--zmin", "-0.5"], "negative"), (["--efficiency", "2"], "efficiency")])
+                                           (["--zmin", "-0.5"], "negative"), (["--efficiency", "2"], "efficiency"),
+                                           (["--seed", "-1"], "--seed")])
 def test_cli_survey_plan_bad_input(tmp_path, args, message):
     out = tmp_path / "p.ecsv"
     proc = subprocess.run([str(BIN / "slicersim"), "survey", "plan", "--n", "5", *args, "--out", str(out)],

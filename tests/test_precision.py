@@ -34,13 +34,34 @@ def peak_err(a, b):
 
 def test_unknown_precision_is_one_clear_error():
     for bad in ("half", "float32", None, 32, "Single"):
-        with pytest.raises(ParameterError, match="precision must be one of"):
+        with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
             prec.check_precision(bad)
-        with pytest.raises(ParameterError, match="precision must be one of"):
+        with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
             prec.resolve_precision(bad, "numpy", "cube")
-    with pytest.raises(ParameterError, match="not available for 'ramps'"):
-        prec.resolve_precision("single", "auto", "ramps")
+    with pytest.raises(ParameterError, match="did you mean 'single'"):
+        prec.check_precision("singel")
     assert prec.resolve_precision("single", "numpy", "cube") == ("numpy", "double")   # NumPy: float64
+
+
+def test_precision_product_names_are_checked(monkeypatch):
+    """A typo in a product name was read as "a product without single kernels", silently; now it is a
+    ParameterError naming the product, with a did-you-mean and the registered names."""
+    with pytest.raises(ParameterError, match=r"unknown precision product 'ramps' \(did you mean 'ramp'\?\)"):
+        prec.resolve_precision("single", "auto", "ramps")
+    with pytest.raises(ParameterError, match="precision product 'cueb'.*'cube'"):
+        prec.check_precision({"cueb": "single"})
+    with pytest.raises(ParameterError, match=r"precision\['cube'\]|precision of 'cube'"):
+        prec.check_precision({"cube": "half"})
+    for product in prec.products():                              # every registered name works
+        assert prec.check_product(product) == product
+        assert prec.resolve_precision("auto", "numpy", product) == ("numpy", "double")
+    assert prec.check_precision({"cube": "single", "noise": "double"}) == {"cube": "single", "noise": "double"}
+    assert prec.resolve_precision({"cube": "single"}, "numpy", "noise") == ("numpy", "double")
+    monkeypatch.setattr(prec, "DOUBLE_ONLY_PRODUCTS", ("etc",))     # a product without single kernels
+    with pytest.raises(ParameterError, match="not available for 'etc'"):
+        prec.resolve_precision("single", "auto", "etc")
+    with pytest.raises(ParameterError, match="unknown backend 'gpu'"):
+        prec.resolve_precision("auto", "gpu", "cube")
 
 
 def test_single_precision_sources_hold_no_double():
@@ -110,7 +131,8 @@ def test_auto_picks_single_only_without_fast_fp64(monkeypatch):
                                                                  else "double")
     monkeypatch.setattr(prec, "fp64_throughput_ratio", lambda: 32.0)     # a consumer GPU
     assert prec.resolve_precision("auto", "auto", "cube") == ("opencl", "single")
-    assert prec.resolve_precision("auto", "auto", "ramps")[1] == "double"   # no single kernels
+    monkeypatch.setattr(prec, "DOUBLE_ONLY_PRODUCTS", ("double_only",))     # a product without single kernels
+    assert prec.resolve_precision("auto", "auto", "double_only")[1] == "double"
     monkeypatch.setitem(prec.SINGLE_PRECISION_ERRORS, "cube",
                         prec.SingleError(3e-5, 1e-5, "of the peak", "test"))  # above its tolerance
     assert prec.resolve_precision("auto", "auto", "cube")[1] == "double"
@@ -131,14 +153,15 @@ def test_device_without_fp64_runs_single_kernels(sim, monkeypatch):
     assert np.array_equal(got.signal, single[0], equal_nan=True) and np.array_equal(got.variance, single[1])
     with pytest.raises(OpenCLUnavailableError, match="precision 'double' needs fp64"):
         sim.get_cube(psf_profile="airy", precision="double")
-    assert prec.resolve_precision("auto", "auto", "ramps") == ("numpy", "double")
+    monkeypatch.setattr(prec, "DOUBLE_ONLY_PRODUCTS", ("double_only",))     # a product without single kernels
+    assert prec.resolve_precision("auto", "auto", "double_only") == ("numpy", "double")
     with pytest.raises(OpenCLUnavailableError, match="lacks fp64"):
-        prec.resolve_precision("auto", "opencl", "ramps")
+        prec.resolve_precision("auto", "opencl", "double_only")
     clear_psf_cache()
 
 
 def test_bad_precision_in_get_cube_refused_before_work(sim):
-    with pytest.raises(ParameterError, match="precision must be one of"):
+    with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
         sim.get_cube(psf_profile="airy", precision="quad")
 
 
@@ -167,7 +190,7 @@ def test_lsf_single_matches_double(varying):
     s = apply_lsf(cube, sigma, backend="opencl", precision="single")
     assert 0 < peak_err(s, d) <= TIGHT
     assert np.max(np.abs(s.sum(0) - d.sum(0)) / d.sum(0)) <= TIGHT
-    with pytest.raises(ParameterError, match="precision must be one of"):
+    with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
         apply_lsf(cube, sigma, precision="fp16")
 
 

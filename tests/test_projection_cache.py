@@ -20,6 +20,7 @@ import pytest
 
 from slicersim.backends import projection
 from slicersim.backends.dispatch import resolve_backend
+from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import SlicerMapper
 from slicersim.io import table_cache
 from slicersim.io.table_cache import ArrayCache, Chunks, TableCacheWarning
@@ -272,7 +273,6 @@ def test_cache_off_and_explicit_directory(tmp_path, monkeypatch):
     explicit = SlicerMapper.default(table_cache=tmp_path / "mine")
     _image(explicit, "numpy")
     assert len(_entries(tmp_path / "mine")) == 1 and not explicit._cache
-    from slicersim.errors import ParameterError
     with pytest.raises(ParameterError, match="table cache must be"):
         SlicerMapper.default(table_cache=3)
 

@@ -173,7 +173,7 @@ def test_bad_precision_refused_before_work(case, bad, monkeypatch):
     t = cp.build_tables(np.array([[10.2, 11.0, 0.3, 5.5, 6.1, 0.4]]), (1, 1, 1), detector_shape=(20, 20),
                         backend="numpy")
     out = np.zeros((20, 20))
-    with pytest.raises(ParameterError, match="precision must be one of"):
+    with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
         cp.deposit(np.ones((2, 2, 2)), t, out=out, precision=bad)      # before the shape check
     assert not out.any()
 
@@ -182,13 +182,13 @@ def test_bad_precision_refused_before_work(case, bad, monkeypatch):
     monkeypatch.setattr(mapper_module, "build_tables", no_work)
     monkeypatch.setattr(mapper_module, "deposit", no_work)
     m = SlicerMapper.default(table_cache=None)
-    with pytest.raises(ParameterError, match="precision must be one of"):
+    with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
         m.project_cube(case["cube"], case["lbda"], case["edges"], precision=bad)
-    with pytest.raises(ParameterError, match="precision must be one of"):
+    with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
         m.project_fields(case["lbda"], case["edges"], precision=bad)          # no cube at all
     target = LazuliSupernova(0.5)
     monkeypatch.setattr(target, "get_field_rate_cubes", no_work)
-    with pytest.raises(ParameterError, match="precision must be one of"):
+    with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
         target.get_detector_image(m, precision=bad)
 
 

@@ -34,6 +34,7 @@ from scipy.special import erf, erfcx, j1
 from conftest import reference_target
 from slicersim.backends import opencl
 from slicersim.backends.psf import _gaussian_opencl, bessel_j1, psf_cells, psf_cube
+from slicersim.errors import ParameterError
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
                            airy_wavenumber, aperture_cells, blur_bin_taps, gaussian_psf_fractions,
                            gaussian_psf_sigmas)
@@ -374,22 +375,43 @@ def test_psf_width_scales_with_wavelength(profile, backend):
 
 def test_bad_input():
     kw = dict(NARROW, sigma_ref_arcsec=SIGMA_REF)
-    with pytest.raises(ValueError):
-        psf_cube([5000.0], (4, 4), (0, 0), "moffat", **kw)
-    with pytest.raises(ValueError):
-        psf_cube([5000.0], (4, 4), (0, 0), "airy", grid="nearest", **kw)
-    with pytest.raises(ValueError):
-        psf_cube([5000.0], (4, 4), (0, 0), "airy", grid="reference", obscuration=0.3, **kw)
-    with pytest.raises(ValueError):
-        psf_cube([5000.0], (4, 4), (0, 0), "airy", grid="reference", backend="opencl", **kw)
-    with pytest.raises(ValueError):
-        psf_cube([5000.0], (4, 4), (0, 0), "airy", oversampling=0, **kw)
-    with pytest.raises(ValueError):
+    cases = [("moffat", {}, r"unknown profile 'moffat'"), ("airy", {"grid": "nearest"}, r"unknown grid 'nearest'"),
+             ("airy", {"grid": "reference", "obscuration": 0.3}, "obscuration"),
+             ("airy", {"grid": "reference", "backend": "opencl"}, "NumPy only"),
+             ("airy", {"oversampling": 0}, "oversampling"), ("airy", {"obscuration": 1.0}, "obscuration"),
+             ("airy", {"diameter": -3.0}, "diameter"), ("airy", {"spatial_scale": 0.0}, "spatial_scale"),
+             ("airy", {"guiding_sigma": -0.1}, "guiding_sigma"), ("airy", {"oversampling": "many"}, "oversampling"),
+             ("airy", {"diamter": 3.0}, "unknown PSF keyword.*'diamter'")]
+    for profile, extra, message in cases:
+        with pytest.raises(ParameterError, match=message):
+            psf_cube([5000.0], (4, 4), (0, 0), profile, **{**kw, **extra})
+    with pytest.raises(ParameterError, match="lbda"):
         psf_cube([-5000.0], (4, 4), (0, 0), "airy", **kw)
-    with pytest.raises(ValueError):
+    with pytest.raises(ParameterError, match="shape"):
+        psf_cube([5000.0], (4, 0), (0, 0), "airy", **kw)
+    with pytest.raises(ParameterError, match="position"):
+        psf_cube([5000.0], (4, 4), (0, float("nan")), "airy", **kw)
+    with pytest.raises(ParameterError, match="sigma_ref_arcsec"):
         psf_cube([5000.0], (4, 4), (0, 0), "gaussian", **NARROW)        # no sigma_ref
-    with pytest.raises(ValueError):
+    with pytest.raises(ParameterError, match="needs spatial_scale"):
+        psf_cube([5000.0], (4, 4), (0, 0), "airy", guiding_sigma=0.0, instrumental_sigma=0.0)
+    with pytest.raises(ParameterError, match="cells must lie within"):
         psf_cells([5000.0], (4, 4), (0, 0), ([0, 4], [0, 0]), "airy", **kw)
+    with pytest.raises(ParameterError, match="cells="):
+        psf_cells([5000.0], (4, 4), (0, 0), None, "airy", **kw)
+
+
+def test_optics_object_equals_keywords():
+    """psf_cube(optics=PSFOptics(...)) is the keyword form; both forms at once are refused."""
+    from slicersim.backends.psf import PSFOptics
+    kw = dict(NARROW, sigma_ref_arcsec=SIGMA_REF)
+    optics = PSFOptics(**kw)
+    for profile in ("gaussian", "airy"):
+        np.testing.assert_array_equal(psf_cube([5000.0, 9000.0], (6, 5), (0.3, -0.2), profile, optics=optics,
+                                               backend="numpy"),
+                                      psf_cube([5000.0, 9000.0], (6, 5), (0.3, -0.2), profile, backend="numpy", **kw))
+    with pytest.raises(ParameterError, match="not both"):
+        psf_cube([5000.0], (4, 4), (0, 0), "airy", optics=optics, diameter=2.0)
 
 
 # --------------------------------------------------------------------------- slicersim 1.0 grid

@@ -119,7 +119,7 @@ def test_bad_precision_refused_before_any_file(tmp_path):
     out = tmp_path / "r.h5"
     for bad in ("half", None, 32, "SINGLE"):
         for effects in (None, "ipc"):
-            with pytest.raises(ParameterError, match="precision must be one of"):
+            with pytest.raises(ParameterError, match="precision.*'auto', 'double', 'single'"):
                 simulate(np.ones((4, 4)), (3, 1, 0), out=str(out), precision=bad, effects=effects)
     assert not out.exists() and not list(tmp_path.iterdir())
 
@@ -227,8 +227,9 @@ def test_opencl_backend_without_a_device_is_refused(monkeypatch):
         raise OpenCLUnavailableError("OpenCL disabled by SLICERSIM_DEVICE='none'.")
     monkeypatch.setattr(opencl, "is_available", lambda: False)
     monkeypatch.setattr(opencl, "get_device", no_device)
-    for product in ("cube", "ramp", "noise", "projection", "batch_etc", "ramps"):
-        for precision in ("auto", "double", "single") if product != "ramps" else ("auto", "double"):
+    monkeypatch.setattr(prec, "DOUBLE_ONLY_PRODUCTS", ("double_only",))     # a product without single kernels
+    for product in ("cube", "ramp", "noise", "projection", "batch_etc", "double_only"):
+        for precision in ("auto", "double", "single") if product != "double_only" else ("auto", "double"):
             with pytest.raises(OpenCLUnavailableError, match="SLICERSIM_DEVICE"):
                 prec.resolve_precision(precision, "opencl", product)
             assert prec.resolve_precision(precision, "auto", product) == ("numpy", "double")

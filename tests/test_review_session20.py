@@ -142,7 +142,7 @@ def test_noise_backend_refused_before_the_cube(monkeypatch):
     monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
     monkeypatch.delitem(prec.SINGLE_PRECISION_ERRORS, "noise")
     called = []
-    monkeypatch.setattr(cube_module, "detector_block", lambda *a, **k: called.append(1))
+    monkeypatch.setattr(cube_module, "detector_chunk", lambda *a, **k: called.append(1))
     with pytest.raises(OpenCLUnavailableError):
         cube_module.build_cube(sim, psf_profile="airy", seed=3, backend="opencl")
     assert not called

@@ -37,12 +37,13 @@ def cmd_survey_plan(args) -> int:
         raise ParameterError(f"--n must be ≥ 1 (an empty population has nothing to plan), got {args.n}")
     from slicersim.backends.precision import resolve_precision
     resolve_precision(args.precision, "auto", "batch_etc")         # e.g. double without fp64: before the draws
-    if not args.seed >= 0:
-        raise ParameterError(f"--seed must be ≥ 0, got {args.seed}")
+    from slicersim import validation
+    seed = validation.seed(args.seed, name="--seed")
+    seed = validation.new_seed() if seed is None else seed      # recorded in the table and printed
     lbda = spectrum_grid()
     check_client_memory(args.n, lbda.size)
     pop = SNIaPopulation(args.n, redshift={"distribution": args.distribution, "min": args.zmin, "max": args.zmax})
-    table = pop.draw(args.seed)
+    table = pop.draw(seed)
     fluxes = pop.spectra(table, lbda)
     fluxes = np.where(np.isfinite(fluxes), fluxes, 0.0)
     plan = plan_survey(np.asarray(table["redshift"]), lbda, fluxes, snr=args.snr, lbda_range=tuple(args.lbda_range),
@@ -50,9 +51,11 @@ def cmd_survey_plan(args) -> int:
                        conventions=args.conventions, overhead=args.overhead, efficiency=args.efficiency,
                        compression_ratio=args.compression_ratio, target_ids=np.asarray(table["target_id"]),
                        progress=True, precision=args.precision)
+    plan.table.meta["population_seed"] = seed
     if args.out:
         _write_table(plan.table, args.out, args.overwrite)
     print(plan.summary())
+    print(f"population seed    : {seed}{'' if args.seed is not None else ' (drawn: --seed repeats it)'}")
     if args.figure:
         from slicersim.campaign.plan import plot_time_and_volume
         plot_time_and_volume({f"SNR {args.snr:g}": plan}, args.figure)
@@ -69,11 +72,12 @@ def cmd_survey_plan(args) -> int:
 def _write_table(table, path, overwrite):
     import io
 
+    from slicersim.errors import ParameterError
     from slicersim.io.atomic import atomic_bytes
     buf = io.StringIO()
     fmt = "ascii.ecsv" if path.endswith(".ecsv") else "ascii.csv"
     if not path.endswith((".ecsv", ".csv")):
-        raise ValueError(f"--out must end with .ecsv or .csv, got {path}")
+        raise ParameterError(f"--out must end with .ecsv or .csv, got {path}")
     table.write(buf, format=fmt)
     atomic_bytes(path, buf.getvalue().encode(), overwrite=overwrite)
 
@@ -136,7 +140,9 @@ def add_parsers(sub, fmt):
     p.add_argument("--overhead", type=float, default=0.0, help="per-target overhead (slew, settle) [s]")
     p.add_argument("--efficiency", type=float, default=1.0, help="observing efficiency (fraction of time on sky)")
     p.add_argument("--compression-ratio", type=float, default=1.0, help="raw data compression ratio")
-    p.add_argument("--seed", type=int, default=1, help="population seed")
+    p.add_argument("--seed", type=int, default=None,
+                   help="population seed, an integer in [0, 2**64) (default: drawn, printed and recorded in the "
+                        "table's metadata)")
     p.add_argument("--out", metavar="FILE.ecsv", help="per-target table (ECSV or CSV)")
     p.add_argument("--figure", metavar="FILE.png", help="time and volume vs redshift figure")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")

@@ -28,12 +28,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.backends import opencl
-from slicersim.backends.precision import real_dtype, resolve_precision
+from slicersim.backends.precision import real_dtype, resolve_precision, storage_dtype
 from slicersim.backends.psf import DevicePSF
+from slicersim.errors import ParameterError
 from slicersim.physics.psf import _erf_cell_fractions, cell_edges
 
-__all__ = ["ReadoutConstants", "GaussianPSF", "detector_block", "reflect_indices", "release_buffers",
-           "default_vector_width"]
+__all__ = ["ReadoutConstants", "GaussianPSF", "DetectorChunk", "detector_block", "detector_chunk",
+           "reflect_indices", "release_buffers", "default_vector_width"]
 
 _KERNEL_FILE = "cube.cl"
 _LAUNCH_BYTES = 1 << 30        # output bytes per kernel launch (cache-sized launches were not faster)
@@ -65,6 +66,13 @@ class ReadoutConstants:
         """Cell electron rate above which a cell saturates, p (saturation/(t_int g) − D_eff) [e-/s/cell]:
         the test (e/p + D_eff) t_int g > saturation of ``Simulation.cell_variance`` solved for e."""
         return self.pixels_per_cell * (self.saturation / (self.tint * self.gain) - self.dark)
+
+    def signal_variance(self, electrons):
+        """(signal [ADU], variance [ADU²]) of r ramps for cell electron rates e [e-/s/cell]: e t_int g r
+        and r (A + B e), NaN and +inf where e exceeds :attr:`saturation_rate` (the kernel's test)."""
+        saturated = electrons > self.saturation_rate
+        return (np.where(saturated, np.nan, electrons * self.signal_scale),
+                np.where(saturated, np.inf, self.var_a * self.nramps + self.var_b * self.nramps * electrons))
 
 
 @dataclass(frozen=True)
@@ -105,81 +113,121 @@ def _as_f64(x):
     return np.ascontiguousarray(x, dtype=np.float64)
 
 
+@dataclass(frozen=True)
+class DetectorChunk:
+    """The inputs of one λ chunk of the fused detector cube: output bins ``bins`` = (i0, i1) of a
+    grid of ``nl`` bins computed from input bins lo … lo + nb − 1.
+
+    taps (2h + 1,) LSF weights; rate (nb,) point-source photons G = F f2p [ph/s] or None;
+    uniform (i1 − i0,) LSF'd uniform photons U [ph/s/cell]; qe (i1 − i0,) [e-/ph]; psf: a
+    :class:`GaussianPSF`, factors (fy (nb, ny), fx (nb, nx)), P (nb, ny, nx) or a
+    :class:`~slicersim.backends.psf.DevicePSF` (None without rate); host (nb, ny, nx) extended
+    photons before the LSF [ph/s/cell] or None."""
+    taps: np.ndarray
+    rate: np.ndarray | None
+    uniform: np.ndarray
+    qe: np.ndarray
+    bins: tuple
+    nl: int
+    lo: int
+    psf: object = None
+    host: np.ndarray | None = None
+
+
 def _check_psf(psf):
     """→ (kind, payload, (nb, ny, nx)); kind "gaussian" | "factors" | "full"."""
     if isinstance(psf, GaussianPSF):
         sig_y, sig_x = _as_f64(psf.sig_y).ravel(), _as_f64(psf.sig_x).ravel()
         if sig_y.shape != sig_x.shape:
-            raise ValueError(f"sig_y and sig_x must have the same length, got {sig_y.shape}, {sig_x.shape}")
+            raise ValueError(f"sig_y and sig_x must have the same length, got {sig_y.shape}, {sig_x.shape}")  # internal: built by a PSF profile
         ny, nx = (int(n) for n in psf.shape)
         gauss = GaussianPSF(sig_y, sig_x, tuple(float(p) for p in psf.position), (ny, nx))
         return "gaussian", gauss, (sig_y.size, ny, nx)
     if isinstance(psf, tuple):
         fy, fx = (_as_f64(f) for f in psf)
         if fy.ndim != 2 or fx.ndim != 2 or fy.shape[0] != fx.shape[0]:
-            raise ValueError(f"PSF factors must be fy (nb, ny) and fx (nb, nx), got {fy.shape}, {fx.shape}")
+            raise ValueError(f"PSF factors must be fy (nb, ny) and fx (nb, nx), got {fy.shape}, {fx.shape}")  # internal: built by a PSF profile
         return "factors", (fy, fx), (fy.shape[0], fy.shape[1], fx.shape[1])
     if isinstance(psf, DevicePSF):
         if len(psf.shape) != 3:
-            raise ValueError(f"a DevicePSF must be (nb, ny, nx), got shape {psf.shape}")
+            raise ValueError(f"a DevicePSF must be (nb, ny, nx), got shape {psf.shape}")  # internal: built by backends.psf
         return "full", psf, tuple(int(n) for n in psf.shape)
     psf = _as_f64(psf)
     if psf.ndim != 3:
-        raise ValueError(f"psf must be (nb, ny, nx), (fy, fx) or a GaussianPSF, got shape {psf.shape}")
+        raise ValueError(f"psf must be (nb, ny, nx), (fy, fx) or a GaussianPSF, got shape {psf.shape}")  # internal: built by a PSF profile
     return "full", psf, psf.shape
 
 
-def _check(taps, rate, uniform, qe, bins, nl, lo, psf, host):
-    taps = _as_f64(taps).ravel()
+def _check_spectra(chunk):
+    """taps, bins, uniform and qe of ``chunk`` as float64 arrays and ints (internal consistency)."""
+    taps = _as_f64(chunk.taps).ravel()
     if taps.size % 2 != 1:
-        raise ValueError(f"taps must have an odd length 2h + 1, got {taps.size}")
-    i0, i1 = (int(b) for b in bins)
-    if not 0 <= i0 <= i1 <= nl:
-        raise ValueError(f"bins {bins} must satisfy 0 <= i0 <= i1 <= nl = {nl}")
-    nc = i1 - i0
-    uniform, qe = _as_f64(uniform).ravel(), _as_f64(qe).ravel()
-    if uniform.shape != (nc,) or qe.shape != (nc,):
-        raise ValueError(f"uniform and qe must have {nc} values, got {uniform.shape}, {qe.shape}")
+        raise ValueError(f"taps must have an odd length 2h + 1, got {taps.size}")  # internal: from lsf_weights
+    i0, i1 = (int(b) for b in chunk.bins)
+    if not 0 <= i0 <= i1 <= chunk.nl:
+        raise ValueError(f"bins {chunk.bins} must satisfy 0 <= i0 <= i1 <= nl = {chunk.nl}")  # internal: the builder's chunks
+    uniform, qe = _as_f64(chunk.uniform).ravel(), _as_f64(chunk.qe).ravel()
+    if uniform.shape != (i1 - i0,) or qe.shape != (i1 - i0,):
+        raise ValueError(f"uniform and qe must have {i1 - i0} values, got {uniform.shape}, {qe.shape}")  # internal: the builder's slices
+    return taps, (i0, i1), uniform, qe
+
+
+def _check_sources(chunk):
+    """(kind, psf, rate, host, (nb, ny, nx)) of the point source and host blocks of ``chunk``."""
+    rate, psf, host = chunk.rate, chunk.psf, chunk.host
     if (rate is None) != (psf is None):
-        raise ValueError("a point source needs both rate and psf (or neither, with a host block)")
+        raise ValueError("a point source needs both rate and psf (or neither, with a host block)")  # internal: the builder pairs them
     if rate is None and host is None:
-        raise ValueError("give a point source (rate and psf), a host block, or both")
+        raise ValueError("give a point source (rate and psf), a host block, or both")  # internal: uniform scenes need no block
     kind, shape = None, None
     if psf is not None:
         kind, psf, shape = _check_psf(psf)
         rate = _as_f64(rate).ravel()
         if rate.shape != shape[:1]:
-            raise ValueError(f"rate must have nb = {shape[0]} values, got {rate.shape}")
+            raise ValueError(f"rate must have nb = {shape[0]} values, got {rate.shape}")  # internal: the builder's slices
     if host is not None:
         host = _as_f64(host)
         if host.ndim != 3 or (shape is not None and host.shape != shape):
-            raise ValueError(f"host must be (nb, ny, nx) = {shape or '(nb, ny, nx)'}, got {host.shape}")
+            raise ValueError(f"host must be (nb, ny, nx) = {shape or '(nb, ny, nx)'}, got {host.shape}")  # internal: the builder's blocks
         shape = host.shape
-    if nc:
-        j = _reflect(np.arange(i0 - taps.size // 2, i1 + taps.size // 2), nl)   # every bin a tap reaches
-        if j.min() < lo or j.max() >= lo + shape[0]:
-            raise ValueError(f"input blocks hold bins {lo}…{lo + shape[0] - 1} but the LSF of bins "
+    return kind, psf, rate, host, shape
+
+
+def _checked(chunk):
+    """(chunk with float64 arrays, PSF kind, (nb, ny, nx)); the LSF of the output bins must stay
+    within the input bins."""
+    taps, (i0, i1), uniform, qe = _check_spectra(chunk)
+    kind, psf, rate, host, shape = _check_sources(chunk)
+    if i1 > i0:
+        j = _reflect(np.arange(i0 - taps.size // 2, i1 + taps.size // 2), chunk.nl)   # every bin a tap reaches
+        if j.min() < chunk.lo or j.max() >= chunk.lo + shape[0]:
+            raise ValueError(f"input blocks hold bins {chunk.lo}…{chunk.lo + shape[0] - 1} but the LSF of bins "  # internal: the builder's halo
                              f"{i0}…{i1 - 1} reaches {j.min()}…{j.max()}")
-    return taps, rate, uniform, qe, (i0, i1), kind, psf, host, shape
+    return DetectorChunk(taps, rate, uniform, qe, (i0, i1), int(chunk.nl), int(chunk.lo), psf, host), kind, shape
 
 
-def detector_block(taps, rate, uniform, qe, readout, *, bins, nl, lo, psf=None, host=None, out=None,
-                   dtype=np.float64, backend="auto", vector_width=None, row_per_item=None, precision="auto"):
+def detector_block(taps, rate, uniform, qe, readout, *, bins, nl, lo, psf=None, host=None, **options):
     """Signal [ADU] and variance [ADU²] of output bins ``bins`` = (i0, i1); saturated ⇔ variance = +inf.
+
+    The keyword form of :func:`detector_chunk`: ``taps, rate, uniform, qe, bins, nl, lo, psf, host``
+    are the fields of :class:`DetectorChunk`; ``options`` (``out``, ``dtype``, ``backend``,
+    ``precision``, ``vector_width``, ``row_per_item``) those of :func:`detector_chunk`.
+    """
+    return detector_chunk(DetectorChunk(taps, rate, uniform, qe, bins, nl, lo, psf, host), readout, **options)
+
+
+def detector_chunk(chunk, readout, *, out=None, dtype=np.float64, backend="auto", precision="auto",
+                   vector_width=None, row_per_item=None):
+    """Signal [ADU] and variance [ADU²] of one :class:`DetectorChunk`; saturated ⇔ variance = +inf.
 
     Parameters
     ----------
-    taps : (2h + 1,) LSF weights for offsets −h … h
-    rate : (nb,) point-source photon rate G = F f2p [ph/s] of input bins lo … lo + nb − 1, or None
-    uniform : (i1 − i0,) LSF'd uniform photons U [ph/s/cell];  qe : (i1 − i0,) [e-/ph]
-    readout : :class:`ReadoutConstants`
-    bins, nl, lo : output bin range, grid size, first input bin
-    psf : :class:`GaussianPSF`, factors (fy (nb, ny), fx (nb, nx)), P (nb, ny, nx) or P left on the
-        device (:class:`slicersim.backends.psf.DevicePSF`); None without rate
-    host : (nb, ny, nx) extended-source photons before the LSF [ph/s/cell], or None
+    chunk : :class:`DetectorChunk` (the LSF of the output bins must stay within the input bins)
+    readout : :class:`ReadoutConstants` (linear variance, both backends) or, NumPy only, any object
+        with ``signal_variance(e) -> (signal, variance)`` of r ramps (e.g. a non-linear model)
     out : optional (signal, variance) C-contiguous arrays (i1 − i0, ny, nx) of ``dtype``
     dtype : float64 or float32 storage (arithmetic is float64 unless ``precision`` is "single")
-    backend : "auto" | "opencl" | "numpy"
+    backend : "auto" | "opencl" | "numpy" (the NumPy twin: the same steps in float64)
     precision : "double", "single" (OpenCL: every input and operation in float32: ≤ 1e-5 of the
         signal peak against double, measured ~2e-7; voxels within that of the saturation rate may
         flip) or "auto" (:mod:`slicersim.backends.precision`; NumPy computes in float64)
@@ -187,31 +235,29 @@ def detector_block(taps, rate, uniform, qe, readout, *, bins, nl, lo, psf=None, 
         8, 16) and whole rows per work item (default: the device's preferred double width and rows
         on CPUs; 1 and one cell per work item on GPUs)
     """
-    taps, rate, uniform, qe, bins, kind, psf, host, (nb, ny, nx) = _check(taps, rate, uniform, qe, bins,
-                                                                           nl, lo, psf, host)
-    dtype = np.dtype(dtype)
-    if dtype not in (np.float64, np.float32):
-        raise ValueError(f"dtype must be float64 or float32, got {dtype}")
-    shape = (bins[1] - bins[0], ny, nx)
+    chunk, kind, (nb, ny, nx) = _checked(chunk)
+    dtype = storage_dtype(dtype)
+    shape = (chunk.bins[1] - chunk.bins[0], ny, nx)
     if out is None:
         out = (np.empty(shape, dtype), np.empty(shape, dtype))
     if any(a.shape != shape or a.dtype != dtype or not a.flags.c_contiguous for a in out):
-        raise ValueError(f"out arrays must be C-contiguous {shape} of {dtype}")
+        raise ValueError(f"out arrays must be C-contiguous {shape} of {dtype}")  # internal: the builder's slices
     backend, precision = resolve_precision(precision, backend, "cube")
-    if shape[0] and ny and nx:
-        args = (taps, rate, uniform, qe, readout, bins, nl, lo, kind, psf, host, out)
-        if backend == "opencl":
-            _detector_block_opencl(*args, vw=vector_width, rows=row_per_item, precision=precision)
-        else:
-            _detector_block_numpy(*args)
+    if not (shape[0] and ny and nx):
+        return out
+    if backend == "opencl":
+        if not isinstance(readout, ReadoutConstants):
+            raise ValueError("the OpenCL kernel needs ReadoutConstants (a linear variance)")  # internal: builder picks NumPy
+        _detector_block_opencl(chunk, kind, readout, out, (vector_width, row_per_item), precision)
+    else:
+        _detector_block_numpy(chunk, kind, readout, out)
     return out
 
 
 # --------------------------------------------------------------------------- NumPy twin
-def _detector_block_numpy(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, host, out):
-    signal, variance = out
-    j = reflect_indices(bins, nl, taps.size // 2) - lo
-    photons_in = 0.0
+def _photons_in(chunk, kind):
+    """Photons of the input bins before the LSF, G P + H [ph/s/cell] (nb, ny, nx) (or 0.0)."""
+    photons, psf = 0.0, chunk.psf
     if kind is not None:
         if kind == "gaussian":
             psf = psf.factors()
@@ -219,16 +265,26 @@ def _detector_block_numpy(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, 
             psf = psf[0][:, :, None] * psf[1][:, None, :]
         elif isinstance(psf, DevicePSF):
             psf = psf.to_host()
-        photons_in = rate[:, None, None] * psf
-    if host is not None:
-        photons_in = photons_in + host
-    scale, e_sat = ro.signal_scale, ro.saturation_rate
-    var_a, var_b = ro.var_a * ro.nramps, ro.var_b * ro.nramps
+        photons = chunk.rate[:, None, None] * psf
+    if chunk.host is not None:
+        photons = photons + chunk.host
+    return photons
+
+
+def _lsf_electrons(chunk, photons_in, ny, nx):
+    """e = QE_i (Σ_t w_t photons_in[j] + U_i) [e-/s/cell] of the output bins, j = reflect(i + t − h)."""
+    j = reflect_indices(chunk.bins, chunk.nl, chunk.taps.size // 2) - chunk.lo
+    electrons = np.empty((j.shape[0], ny, nx))
     for c in range(j.shape[0]):                                        # one output plane at a time
-        e = (np.tensordot(taps, photons_in[j[c]], axes=1) + uniform[c]) * qe[c]     # e-/s/cell
-        sat = e > e_sat
-        signal[c] = np.where(sat, np.nan, e * scale)
-        variance[c] = np.where(sat, np.inf, var_a + var_b * e)
+        electrons[c] = (np.tensordot(chunk.taps, photons_in[j[c]], axes=1) + chunk.uniform[c]) * chunk.qe[c]
+    return electrons
+
+
+def _detector_block_numpy(chunk, kind, readout, out):
+    """The NumPy twin of the kernel: photons, LSF, QE, then ``readout.signal_variance``."""
+    signal, variance = out
+    electrons = _lsf_electrons(chunk, _photons_in(chunk, kind), signal.shape[1], signal.shape[2])
+    signal[...], variance[...] = readout.signal_variance(electrons)
 
 
 # --------------------------------------------------------------------------- OpenCL
@@ -276,34 +332,40 @@ def _psf_on_device(kind, psf, nxp, real=np.dtype(np.float64)):
     return opencl.to_device(np.ascontiguousarray(fy, real)), opencl.to_device(fx_padded)
 
 
-def _detector_block_opencl(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, host, out, vw=None, rows=None,
-                           precision="double"):
+def _kernel_layout(layout, real):
+    """(vector width, whole rows per work item) of the kernel launch; ``layout`` = (vector_width,
+    row_per_item), None for the device's defaults."""
+    vw, rows = layout
+    rows = "GPU" not in opencl.device_type() if rows is None else bool(rows)
+    vw = min(16, default_vector_width() * (2 if real.itemsize == 4 else 1) if vw is None else int(vw))
+    if vw not in (1, 2, 4, 8, 16):
+        raise ParameterError(f"vector_width must be 1, 2, 4, 8 or 16, got {vw}")
+    return vw, rows
+
+
+def _detector_block_opencl(chunk, kind, ro, out, layout=(None, None), precision="double"):
+    """The fused kernel over ``out`` = (signal, variance), in launches of ≤ :data:`_LAUNCH_BYTES`."""
     signal, variance = out
     real = real_dtype(precision)
     if signal.dtype == np.float64 and real == np.float32 and not opencl.device_supports_fp64():
         tmp = (np.empty(signal.shape, np.float32), np.empty(signal.shape, np.float32))   # no double stores
-        _detector_block_opencl(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf, host, tmp, vw, rows,
-                               precision)
+        _detector_block_opencl(chunk, kind, ro, tmp, layout, precision)
         signal[...], variance[...] = tmp
         return
     nc, ny, nx = signal.shape
-    rows = "GPU" not in opencl.device_type() if rows is None else bool(rows)
-    vw = (default_vector_width() * (2 if real.itemsize == 4 else 1) if vw is None else int(vw))
-    vw = min(vw, 16)
-    if vw not in (1, 2, 4, 8, 16):
-        raise ValueError(f"vector_width must be 1, 2, 4, 8 or 16, got {vw}")
+    vw, rows = _kernel_layout(layout, real)
     options = (f"-DVW={vw}", f"-DOUT={'double' if signal.dtype == np.float64 else 'float'}",
                f"-DSEPARABLE={int(kind != 'full')}", f"-DHAS_POINT={int(kind is not None)}",
-               f"-DHAS_HOST={int(host is not None)}", f"-DNTAPS={taps.size}") + opencl.precision_options(precision)
+               f"-DHAS_HOST={int(chunk.host is not None)}", f"-DNTAPS={chunk.taps.size}") \
+        + opencl.precision_options(precision)
     kern = _kernel(_KERNEL_FILE, "pointsource_cube", options)
     unused = _buffer("unused", 8)
     nvec = -(-nx // vw)                   # vectors per row
-    d_a, d_b = (unused, unused) if kind is None else _psf_on_device(kind, psf, nvec * vw, real)
-    if host is not None:
-        host = np.ascontiguousarray(host, real)
+    d_a, d_b = (unused, unused) if kind is None else _psf_on_device(kind, chunk.psf, nvec * vw, real)
+    host = None if chunk.host is None else np.ascontiguousarray(chunk.host, real)
     d_host = unused if host is None else opencl.to_device(host, _buffer("host", host.nbytes))
-    d_rate = unused if rate is None else opencl.to_device(rate.astype(real))
-    d_u, d_qe, d_w = (opencl.to_device(a.astype(real)) for a in (uniform, qe, taps))
+    d_rate = unused if chunk.rate is None else opencl.to_device(chunk.rate.astype(real))
+    d_u, d_qe, d_w = (opencl.to_device(a.astype(real)) for a in (chunk.uniform, chunk.qe, chunk.taps))
     plane_bytes = signal.itemsize * ny * nx
     step = max(1, min(nc, _LAUNCH_BYTES // (2 * plane_bytes)))    # output planes per launch
     zero_copy = _host_memory_device()
@@ -316,7 +378,7 @@ def _detector_block_opencl(taps, rate, uniform, qe, ro, bins, nl, lo, kind, psf,
         if zero_copy:     # the kernel writes (and first-touches) the output arrays themselves
             d_s, d_v = opencl.host_buffer(signal[c0:c1]), opencl.host_buffer(variance[c0:c1])
         opencl.launch(kern, (-(-nvec // per_item), ny, c1 - c0), None, d_a, d_b, d_host, d_rate, d_u, d_qe,
-                      d_w, i32(nl), i32(lo), i32(bins[0]), i32(c0), i32(ny), i32(nx),
+                      d_w, i32(chunk.nl), i32(chunk.lo), i32(chunk.bins[0]), i32(c0), i32(ny), i32(nx),
                       i32(nvec * vw), i32(per_item),
                       f64(ro.signal_scale), f64(ro.var_a * ro.nramps), f64(ro.var_b * ro.nramps),
                       f64(ro.saturation_rate), d_s, d_v)

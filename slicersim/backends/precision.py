@@ -29,6 +29,7 @@ from __future__ import annotations
 import threading
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,9 +37,11 @@ import numpy as np
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import BACKENDS, device_validated, resolve_backend
 from slicersim.errors import OpenCLUnavailableError, ParameterError
+from slicersim.validation import choice, short_repr
 
-__all__ = ["PRECISIONS", "SINGLE_PRECISION_ERRORS", "FAST_FP64_RATIO", "check_precision", "resolve_precision",
-           "float64_kwargs",
+__all__ = ["PRECISIONS", "SINGLE_PRECISION_ERRORS", "DOUBLE_ONLY_PRODUCTS", "FAST_FP64_RATIO", "products",
+           "check_product", "check_precision", "resolve_precision",
+           "float64_kwargs", "storage_dtype",
            "fp64_throughput_ratio", "real_dtype"]
 
 PRECISIONS = ("auto", "double", "single")
@@ -89,16 +92,53 @@ SINGLE_PRECISION_ERRORS = {
 }
 
 
-def check_precision(precision) -> str:
-    """``precision`` if it is one of :data:`PRECISIONS`, else one clear ParameterError."""
-    if not isinstance(precision, str) or precision not in PRECISIONS:
-        raise ParameterError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
-    return precision
+#: products without single-precision kernels (always double; "single" is refused for them)
+DOUBLE_ONLY_PRODUCTS: tuple = ()
+
+
+def products() -> tuple:
+    """The registered product names of the precision dial: those with single-precision kernels
+    (:data:`SINGLE_PRECISION_ERRORS`) and :data:`DOUBLE_ONLY_PRODUCTS`."""
+    return tuple(SINGLE_PRECISION_ERRORS) + tuple(p for p in DOUBLE_ONLY_PRODUCTS if p not in SINGLE_PRECISION_ERRORS)
+
+
+def check_product(product) -> str:
+    """``product`` if it is a registered product name (:func:`products`), else a ParameterError
+    naming it, with a "did you mean" and the valid names (a typo must not silently mean "no single
+    kernels")."""
+    return choice("product", product, products(), what="precision product")
+
+
+def check_precision(precision):
+    """``precision``: one of :data:`PRECISIONS`, or a mapping product → one of them whose product
+    names are registered (:func:`check_product`); else one clear ParameterError."""
+    if isinstance(precision, Mapping):
+        checked = {}
+        for product, value in precision.items():
+            checked[check_product(product)] = choice(f"precision[{product!r}]", value, PRECISIONS,
+                                                     what=f"precision of {product!r}")
+        return checked
+    if not isinstance(precision, str):
+        raise ParameterError(f"precision must be one of {', '.join(map(repr, PRECISIONS))} or a mapping "
+                             f"product → precision, got {short_repr(precision)}")
+    return choice("precision", precision, PRECISIONS)
 
 
 def real_dtype(precision: str):
     """NumPy dtype of a resolved precision ("double" → float64, "single" → float32)."""
     return np.dtype(np.float32 if precision == "single" else np.float64)
+
+
+def storage_dtype(dtype, *, name="dtype"):
+    """``dtype`` as ``np.dtype``: float64 or float32 (the storage of the cube's outputs), else
+    ParameterError naming ``name``."""
+    try:
+        dtype = np.dtype(dtype)
+    except TypeError:
+        raise ParameterError(f"{name} must be float64 or float32, got {short_repr(dtype)}") from None
+    if dtype not in (np.float64, np.float32):
+        raise ParameterError(f"{name} must be float64 or float32, got {dtype}")
+    return dtype
 
 
 _ratios: dict = {}
@@ -150,14 +190,17 @@ def _measure_ratio() -> float:
 
 
 def resolve_precision(precision, backend="auto", product="cube"):
-    """(backend, precision) resolved for ``product`` (a key of :data:`SINGLE_PRECISION_ERRORS`, or
-    a product without single-precision kernels): backend "opencl" or "numpy", precision "double"
-    or "single" (always "double" on NumPy).  Raises one clear error for an unknown name, for
+    """(backend, precision) resolved for ``product`` (a registered name, :func:`products`; a
+    mapping ``precision`` gives that product's entry, "auto" if absent): backend "opencl" or
+    "numpy", precision "double" or "single" (always "double" on NumPy).  Raises one clear error
+    (ParameterError) for an unknown precision, product or backend name, for
     ``"double"`` on an OpenCL device without fp64, and for ``"single"`` on a product that has no
     single-precision kernels."""
-    check_precision(precision)
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    product = check_product(product)
+    precision = check_precision(precision)
+    if isinstance(precision, dict):                     # per product; the others "auto"
+        precision = precision.get(product, "auto")
+    choice("backend", backend, BACKENDS)
     single_ok = product in SINGLE_PRECISION_ERRORS
     if precision == "single" and not single_ok:
         raise ParameterError(f"precision='single' is not available for {product!r} (single-precision kernels: "

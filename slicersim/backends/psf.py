@@ -68,11 +68,12 @@ from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, chunk_ranges, resolve
 from slicersim.backends.precision import check_precision, real_dtype, resolve_precision
 from slicersim.constants import AIRY_RHO, ARCSEC
 from slicersim.errors import ParameterError
+from slicersim.validation import array as validation_array, choice, number, shape as validation_shape, short_repr
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_wavenumber, blur_bin_taps,
                            blur_margin, cell_quadrature, gaussian_psf_cells, gaussian_psf_fractions,
                            gaussian_psf_sigmas, jinc, midpoint_oversampling)
 
-__all__ = ["psf_cube", "psf_cube_device", "DevicePSF", "psf_cells", "auto_oversampling", "bessel_j1",
+__all__ = ["psf_cube", "psf_cube_device", "DevicePSF", "psf_cells", "PSFOptics", "psf_optics", "auto_oversampling", "bessel_j1",
            "airy_encircled_energy", "PROFILES", "GRIDS", "DEFAULT_OVERSAMPLING"]
 
 PROFILES = ("gaussian", "airy")
@@ -87,10 +88,53 @@ _CHUNK_LBDA = 16          # wavelengths per OpenCL launch: the intermediate rows
 # --------------------------------------------------------------------------- #
 #  public API                                                                  #
 # --------------------------------------------------------------------------- #
-def psf_cube(lbda, shape, position=(0.0, 0.0), profile="gaussian", *, sigma_ref_arcsec=None,
-             spatial_scale, guiding_sigma, instrumental_sigma, diameter=3.0, obscuration=0.0,
-             oversampling=DEFAULT_OVERSAMPLING, grid="exact", backend="auto", max_bytes=DEFAULT_MAX_BYTES,
-             precision="auto"):
+@dataclass(frozen=True)
+class PSFOptics:
+    """The optics a PSF cube is computed for (keywords of :func:`psf_cube`).
+
+    sigma_ref_arcsec : Gaussian σ at 1 µm [arcsec] (Gaussian profile only)
+    spatial_scale : cell size s [arcsec];  guiding_sigma : achromatic Gaussian jitter [arcsec] (both
+        axes);  instrumental_sigma : spectrograph blur along x [cells] (these three required)
+    diameter, obscuration : outer pupil diameter D [m], ε = D_int/D_ext (Airy)
+    oversampling : "auto", o, or (o_y, o_x) sub-samples per cell (Airy; see module doc)
+    grid : sub-sample rule, "exact", "gauss" or "reference" (Airy; see module doc)
+    """
+    sigma_ref_arcsec: float | None = None
+    spatial_scale: float | None = None
+    guiding_sigma: float | None = None
+    instrumental_sigma: float | None = None
+    diameter: float = 3.0
+    obscuration: float = 0.0
+    oversampling: object = DEFAULT_OVERSAMPLING
+    grid: str = "exact"
+
+
+_REQUIRED_OPTICS = ("spatial_scale", "guiding_sigma", "instrumental_sigma")
+
+
+def psf_optics(optics=None, **keywords):
+    """A :class:`PSFOptics` from ``optics`` or from its fields as keywords (not both); the grid
+    checked and the required fields present (ParameterError naming them)."""
+    fields = PSFOptics.__dataclass_fields__
+    unknown = sorted(set(keywords) - set(fields))
+    if unknown:
+        raise ParameterError(f"unknown PSF keyword(s) {', '.join(map(repr, unknown))}; valid: {', '.join(fields)}")
+    if optics is not None:
+        if keywords:
+            raise ParameterError(f"give optics= or its keywords ({', '.join(sorted(keywords))}), not both")
+        if not isinstance(optics, PSFOptics):
+            raise ParameterError(f"optics must be a PSFOptics, got {short_repr(optics)}")
+    else:
+        optics = PSFOptics(**keywords)
+    missing = [name for name in _REQUIRED_OPTICS if getattr(optics, name) is None]
+    if missing:
+        raise ParameterError(f"the PSF needs {', '.join(missing)}")
+    choice("grid", optics.grid, GRIDS)
+    return optics
+
+
+def psf_cube(lbda, shape, position=(0.0, 0.0), profile="gaussian", *, optics=None, backend="auto",
+             max_bytes=DEFAULT_MAX_BYTES, precision="auto", **optics_keywords):
     """PSF cube P[λ, y, x] (nλ, ny, nx) float64: fraction of the flux in each cell.
 
     Parameters
@@ -99,31 +143,26 @@ def psf_cube(lbda, shape, position=(0.0, 0.0), profile="gaussian", *, sigma_ref_
     shape : (ny, nx) cells
     position : (x0, y0) source position [cells] from the field centre
     profile : "gaussian" or "airy"
-    sigma_ref_arcsec : Gaussian σ at 1 µm [arcsec] (Gaussian profile only)
-    spatial_scale : cell size s [arcsec]
-    guiding_sigma : achromatic Gaussian jitter [arcsec] (both axes)
-    instrumental_sigma : spectrograph blur along x [cells]
-    diameter, obscuration : outer pupil diameter D [m], ε = D_int/D_ext (Airy)
-    oversampling : "auto", o, or (o_y, o_x) sub-samples per cell (Airy; see module doc)
-    grid : sub-sample rule, "exact", "gauss" or "reference" (Airy; see module doc)
+    optics : a :class:`PSFOptics`, or its fields as keywords (``sigma_ref_arcsec``,
+        ``spatial_scale``, ``guiding_sigma``, ``instrumental_sigma``, ``diameter``, ``obscuration``,
+        ``oversampling``, ``grid``)
     backend : "auto", "opencl" or "numpy" (grid="reference": NumPy only)
-    max_bytes : memory budget of the temporaries; wavelengths go in chunks
+    max_bytes : memory budget of the temporaries [bytes]; wavelengths go in chunks
     precision : "auto", "double" or "single" kernels (:mod:`slicersim.backends.precision`; single:
         ≤ 1e-5 of the peak against double, measured 3.9e-7 for a source in the field; the result is
         float64 either way)
     """
-    lbda, shape, position = _check(lbda, shape, position, profile, grid)
+    optics = psf_optics(optics, **optics_keywords)
+    lbda, shape, position = _check(lbda, shape, position, profile)
     ny, nx = shape
-    name, precision = _backend(backend, grid, precision)
+    name, precision = _backend(backend, optics.grid, precision)
     if profile == "gaussian":
-        sig_y, sig_x = _gaussian_sigmas(lbda, sigma_ref_arcsec, spatial_scale, guiding_sigma,
-                                        instrumental_sigma)
+        sig_y, sig_x = _gaussian_sigmas(lbda, optics)
         if name == "opencl":
             return _gaussian_opencl(sig_y, sig_x, shape, position, max_bytes, precision)
         return gaussian_psf_fractions(sig_y, sig_x, shape, position)
-    airy = _AiryParams(lbda, spatial_scale, guiding_sigma, instrumental_sigma, diameter,
-                       obscuration, oversampling, grid)
-    if grid == "reference":
+    airy = _AiryParams(lbda, optics)
+    if optics.grid == "reference":
         return _airy_reference_numpy(airy, shape, position, max_bytes)
     window = (0, ny, 0, nx)
     if name == "opencl":
@@ -150,10 +189,8 @@ class DevicePSF:
         return out.astype(np.float64, copy=False)
 
 
-def psf_cube_device(lbda, shape, position=(0.0, 0.0), profile="airy", *, sigma_ref_arcsec=None,
-                    spatial_scale, guiding_sigma, instrumental_sigma, diameter=3.0, obscuration=0.0,
-                    oversampling=DEFAULT_OVERSAMPLING, grid="exact", backend="auto",
-                    max_bytes=DEFAULT_MAX_BYTES, out_buffer=None, precision="auto"):
+def psf_cube_device(lbda, shape, position=(0.0, 0.0), profile="airy", *, optics=None, backend="auto",
+                    max_bytes=DEFAULT_MAX_BYTES, out_buffer=None, precision="auto", **optics_keywords):
     """:func:`psf_cube` left on the OpenCL device when it is computed there: a :class:`DevicePSF`
     (Airy, grid "exact"/"gauss", OpenCL backend), else the NumPy array of :func:`psf_cube`.
 
@@ -162,55 +199,60 @@ def psf_cube_device(lbda, shape, position=(0.0, 0.0), profile="airy", *, sigma_r
     a device buffer of at least 8 nλ ny nx bytes (single precision: 4) to reuse (None: a new one);
     other parameters as :func:`psf_cube` (``precision`` "single" leaves a float32 block).
     """
-    common = dict(sigma_ref_arcsec=sigma_ref_arcsec, spatial_scale=spatial_scale, guiding_sigma=guiding_sigma,
-                  instrumental_sigma=instrumental_sigma, diameter=diameter, obscuration=obscuration,
-                  oversampling=oversampling, grid=grid, backend=backend, max_bytes=max_bytes, precision=precision)
-    name, precision = _backend(backend, grid, precision)
-    if profile != "airy" or grid == "reference" or name != "opencl":
-        return psf_cube(lbda, shape, position, profile, **common)
-    lbda, shape, position = _check(lbda, shape, position, profile, grid)
+    optics = psf_optics(optics, **optics_keywords)
+    name, precision_used = _backend(backend, optics.grid, precision)
+    if profile != "airy" or optics.grid == "reference" or name != "opencl":
+        return psf_cube(lbda, shape, position, profile, optics=optics, backend=backend, max_bytes=max_bytes,
+                        precision=precision)
+    lbda, shape, position = _check(lbda, shape, position, profile)
     ny, nx = shape
-    airy = _AiryParams(lbda, spatial_scale, guiding_sigma, instrumental_sigma, diameter, obscuration,
-                       oversampling, grid)
-    dtype = real_dtype(precision)
+    airy = _AiryParams(lbda, optics)
+    dtype = real_dtype(precision_used)
     if out_buffer is None:
         out_buffer = opencl.device_buffer(dtype.itemsize * lbda.size * ny * nx)
-    _airy_window_opencl(airy, shape, position, (0, ny, 0, nx), max_bytes, out_buffer=out_buffer, precision=precision)
+    _airy_window_opencl(airy, shape, position, (0, ny, 0, nx), max_bytes, out_buffer=out_buffer,
+                        precision=precision_used)
     return DevicePSF(out_buffer, (lbda.size, ny, nx), dtype)
 
 
-def psf_cells(lbda, shape, position=(0.0, 0.0), cells=None, profile="gaussian", *,
-              sigma_ref_arcsec=None, spatial_scale, guiding_sigma, instrumental_sigma, diameter=3.0,
-              obscuration=0.0, oversampling=DEFAULT_OVERSAMPLING, grid="exact", backend="auto",
-              max_bytes=DEFAULT_MAX_BYTES, precision="auto"):
+def _check_cells(cells, shape):
+    """(iy, ix) int index arrays of cells within the field ``shape``."""
+    if cells is None:
+        raise ParameterError("psf_cells needs cells=(iy, ix)")
+    try:
+        iy, ix = (np.asarray(c).ravel() for c in cells)
+    except (TypeError, ValueError):
+        raise ParameterError(f"cells must be two integer index arrays (iy, ix), got {short_repr(cells)}") from None
+    if iy.shape != ix.shape or not (np.issubdtype(iy.dtype, np.integer) or iy.size == 0) \
+            or not (np.issubdtype(ix.dtype, np.integer) or ix.size == 0):
+        raise ParameterError("cells must be two integer index arrays of the same length")
+    iy, ix = iy.astype(int), ix.astype(int)
+    ny, nx = shape
+    if iy.size and (iy.min() < 0 or iy.max() >= ny or ix.min() < 0 or ix.max() >= nx):
+        raise ParameterError(f"cells must lie within the field {shape}")
+    return iy, ix
+
+
+def psf_cells(lbda, shape, position=(0.0, 0.0), cells=None, profile="gaussian", *, optics=None, backend="auto",
+              max_bytes=DEFAULT_MAX_BYTES, precision="auto", **optics_keywords):
     """P restricted to ``cells`` = (iy, ix) index arrays: (nλ, ncell) float64.
 
     Same parameters as :func:`psf_cube`.  Airy: only the bounding box of the
     cells plus the blur margin is computed (an extraction aperture of ~160
     cells costs a few % of the cube); Gaussian: erf products (NumPy, cheap).
     """
-    if cells is None:
-        raise ValueError("psf_cells needs cells=(iy, ix)")
-    iy, ix = (np.asarray(c).ravel() for c in cells)
-    lbda, shape, position = _check(lbda, shape, position, profile, grid)
-    ny, nx = shape
-    if iy.shape != ix.shape or not (np.issubdtype(iy.dtype, np.integer) or iy.size == 0) \
-            or not (np.issubdtype(ix.dtype, np.integer) or ix.size == 0):
-        raise ValueError("cells must be two integer index arrays of the same length")
-    iy, ix = iy.astype(int), ix.astype(int)
-    if iy.size and (iy.min() < 0 or iy.max() >= ny or ix.min() < 0 or ix.max() >= nx):
-        raise ValueError(f"cells must lie within the field {shape}")
+    optics = psf_optics(optics, **optics_keywords)
+    lbda, shape, position = _check(lbda, shape, position, profile)
+    iy, ix = _check_cells(cells, shape)
     check_precision(precision)
     if iy.size == 0:
         return np.zeros((lbda.size, 0))
     if profile == "gaussian":
-        sig_y, sig_x = _gaussian_sigmas(lbda, sigma_ref_arcsec, spatial_scale, guiding_sigma,
-                                        instrumental_sigma)
+        sig_y, sig_x = _gaussian_sigmas(lbda, optics)
         return gaussian_psf_cells(sig_y, sig_x, shape, position, (iy, ix))
-    airy = _AiryParams(lbda, spatial_scale, guiding_sigma, instrumental_sigma, diameter, obscuration,
-                       oversampling, grid)
-    name, precision = _backend(backend, grid, precision)
-    if grid == "reference":
+    airy = _AiryParams(lbda, optics)
+    name, precision = _backend(backend, optics.grid, precision)
+    if optics.grid == "reference":
         return _airy_reference_numpy(airy, shape, position, max_bytes)[:, iy, ix]
     j0, k0 = int(iy.min()), int(ix.min())
     window = (j0, int(iy.max()) + 1, k0, int(ix.max()) + 1)
@@ -244,7 +286,7 @@ def bessel_j1(x, backend="auto"):
     if resolve_backend(backend) == "numpy":
         return j1(x)
     if np.any(x < 0):
-        raise ValueError("bessel_j1 (OpenCL) is defined for x >= 0")
+        raise ParameterError("x: bessel_j1 (OpenCL) is defined for x >= 0")
     vw = opencl.preferred_vector_width(8)
     n = -(-x.size // vw) * vw
     xp = np.concatenate([x, np.zeros(n - x.size)])
@@ -260,20 +302,16 @@ def bessel_j1(x, backend="auto"):
 # --------------------------------------------------------------------------- #
 #  helpers                                                                     #
 # --------------------------------------------------------------------------- #
-def _check(lbda, shape, position, profile, grid):
-    if profile not in PROFILES:
-        raise ValueError(f"profile must be one of {PROFILES}, got {profile!r}")
-    if grid not in GRIDS:
-        raise ValueError(f"grid must be one of {GRIDS}, got {grid!r}")
-    lbda = np.ascontiguousarray(np.atleast_1d(np.asarray(lbda, dtype=np.float64)))
-    if lbda.ndim != 1 or not np.all(np.isfinite(lbda)) or np.any(lbda <= 0):
-        raise ValueError("lbda must be a 1-D array of positive wavelengths [Å]")
-    ny, nx = (int(n) for n in shape)
-    if ny < 1 or nx < 1:
-        raise ValueError(f"shape must be two positive integers, got {shape}")
-    x0, y0 = (float(p) for p in position)
-    if not (np.isfinite(x0) and np.isfinite(y0)):
-        raise ParameterError(f"point-source position must be finite, got {position}")
+def _check(lbda, shape, position, profile):
+    """(λ (nλ,) [Å] float64, (ny, nx), (x0, y0) [cells]) checked; ``profile`` one of :data:`PROFILES`."""
+    choice("profile", profile, PROFILES)
+    lbda = np.ascontiguousarray(np.atleast_1d(validation_array("lbda [Å]", lbda)))
+    if lbda.ndim != 1 or np.any(lbda <= 0):
+        raise ParameterError("lbda must be a 1-D array of positive wavelengths [Å]")
+    ny, nx = validation_shape("shape", shape)
+    if isinstance(position, (str, bytes)) or np.size(position) != 2:
+        raise ParameterError(f"point-source position must be (x0, y0) [cells], got {short_repr(position)}")
+    x0, y0 = (number(f"point-source position {axis}", p) for axis, p in zip(("x0", "y0"), position))
     return lbda, (ny, nx), (x0, y0)
 
 
@@ -281,7 +319,7 @@ def _backend(backend, grid, precision="double"):
     """(backend, precision) of a PSF computation (:func:`~slicersim.backends.precision.resolve_precision`)."""
     if grid == "reference":
         if backend == "opencl":
-            raise ValueError("grid='reference' is implemented in NumPy only (backend='numpy' or 'auto')")
+            raise ParameterError("grid='reference' is implemented in NumPy only (backend='numpy' or 'auto')")
         if precision == "single":
             raise ParameterError("grid='reference' is NumPy only, in double precision: precision='single' "
                                  "is not available for it")
@@ -290,50 +328,50 @@ def _backend(backend, grid, precision="double"):
     return resolve_precision(precision, backend, "psf")
 
 
-def _gaussian_sigmas(lbda, sigma_ref_arcsec, spatial_scale, guiding_sigma, instrumental_sigma):
-    if sigma_ref_arcsec is None:
-        raise ValueError("the Gaussian profile needs sigma_ref_arcsec")
-    return gaussian_psf_sigmas(lbda, sigma_ref_arcsec, spatial_scale, guiding_sigma, instrumental_sigma)
+def _gaussian_sigmas(lbda, optics):
+    """(σ_y, σ_x) (nλ,) [cells] of the Gaussian profile."""
+    if optics.sigma_ref_arcsec is None:
+        raise ParameterError("the Gaussian profile needs sigma_ref_arcsec")
+    return gaussian_psf_sigmas(lbda, optics.sigma_ref_arcsec, optics.spatial_scale, optics.guiding_sigma,
+                               optics.instrumental_sigma)
 
 
 class _AiryParams:
     """Validated Airy-cube parameters; k = π D s/λ [rad/cell], γ, σ_x [cells], (o_y, o_x)."""
 
-    def __init__(self, lbda, spatial_scale, guiding_sigma, instrumental_sigma, diameter, obscuration,
-                 oversampling, grid):
+    def __init__(self, lbda, optics):
         self.lbda = lbda
-        self.scale = float(spatial_scale)
-        self.diameter = float(diameter)
-        self.eps = float(obscuration)
-        self.grid = grid
-        if not self.scale > 0 or not self.diameter > 0:
-            raise ValueError("spatial_scale and diameter must be > 0")
-        if not 0.0 <= self.eps < 1.0:
-            raise ValueError(f"obscuration must be in [0, 1), got {obscuration}")
-        if guiding_sigma < 0 or instrumental_sigma < 0:
-            raise ValueError("guiding_sigma and instrumental_sigma must be >= 0")
-        if grid == "reference" and self.eps > 0:
-            raise ValueError("grid='reference' reproduces slicersim 1.0, which has no central obscuration")
-        self.gamma = float(guiding_sigma) / self.scale
-        self.sigma_inst = float(instrumental_sigma)
+        self.scale = number("spatial_scale [arcsec]", optics.spatial_scale, low=0, low_open=True)
+        self.diameter = number("diameter [m]", optics.diameter, low=0, low_open=True)
+        self.eps = number("obscuration", optics.obscuration, low=0, high=1, high_open=True)
+        self.grid = optics.grid
+        guiding = number("guiding_sigma [arcsec]", optics.guiding_sigma, low=0)
+        self.sigma_inst = number("instrumental_sigma [cells]", optics.instrumental_sigma, low=0)
+        if self.grid == "reference" and self.eps > 0:
+            raise ParameterError("grid='reference' reproduces slicersim 1.0, which has no central obscuration")
+        self.gamma = guiding / self.scale
         self.sigma_y = self.gamma
         self.sigma_x = float(np.hypot(self.gamma, self.sigma_inst))
         self.kwave = airy_wavenumber(lbda, self.diameter, self.scale)
         self.pref = (1.0 - self.eps**2) * self.kwave**2 / (4.0 * np.pi)
-        self.o_y, self.o_x = self._oversampling(oversampling)
-        if grid == "reference" and self.o_y != self.o_x:
-            raise ValueError("grid='reference' needs one oversampling factor for both axes")
+        self.o_y, self.o_x = self._oversampling(optics.oversampling)
+        if self.grid == "reference" and self.o_y != self.o_x:
+            raise ParameterError("grid='reference' needs one oversampling factor for both axes")
 
     def _oversampling(self, oversampling):
         if isinstance(oversampling, str):
             if oversampling != "auto":
-                raise ValueError(f"oversampling must be 'auto', an integer or (o_y, o_x), got {oversampling!r}")
+                raise ParameterError(f"oversampling must be 'auto', an integer or (o_y, o_x), got {oversampling!r}")
             if self.grid == "reference":
                 return 3, 3
             return _auto_pair(float(self.kwave.max()), self.sigma_y, self.sigma_x)
-        pair = np.broadcast_to(np.asarray(oversampling), (2,))
+        try:
+            pair = np.broadcast_to(np.asarray(oversampling, dtype=float), (2,))
+        except (TypeError, ValueError):
+            raise ParameterError(f"oversampling must be 'auto', an integer or (o_y, o_x), got "
+                                 f"{short_repr(oversampling)}") from None
         if not np.all(pair == np.round(pair)) or np.any(pair < 1):
-            raise ValueError(f"oversampling must be positive integers, got {oversampling!r}")
+            raise ParameterError(f"oversampling must be positive integers, got {oversampling!r}")
         return int(pair[0]), int(pair[1])
 
     def axis(self, c0, c1, n, centre, sigma, o):

@@ -19,6 +19,7 @@ context (a context created later, e.g. after ``opencl.reset()``, computes its ow
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import inspect
 import os
 import threading
@@ -95,6 +96,8 @@ def _key(func, args, kwargs):
     bound.apply_defaults()
     params = dict(bound.arguments)
     params.pop("out_buffer", None)
+    optics = _psf.psf_optics(params.pop("optics"), **params.pop("optics_keywords"))   # one key per optics
+    params.update(dataclasses.asdict(optics))
     if params.get("grid") == "reference":          # NumPy, double, whatever was asked
         backend = resolve_backend(params["backend"])
     else:

@@ -16,25 +16,18 @@ population's cosmology, the observed-frame time dilation included) and ``table``
 """
 from __future__ import annotations
 
-import math
-import numbers
 import os
 
 import numpy as np
 
 from slicersim.errors import ConfigError
+from slicersim.validation import number
 
 __all__ = ["Distribution", "RedshiftDistribution"]
 
 _KEYS = {"fixed": {"value"}, "uniform": {"min", "max"}, "normal": {"mean", "sigma", "min", "max"},
          "exponential": {"scale", "max"}}
 _REQUIRED = {"fixed": {"value"}, "uniform": {"min", "max"}, "normal": {"mean", "sigma"}, "exponential": {"scale"}}
-
-
-def _num(value, name):
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ConfigError(f"{name} must be a finite number, got {value!r}")
-    return float(value)
 
 
 def _first(u):
@@ -64,7 +57,7 @@ class Distribution:
         missing = _REQUIRED[kind] - set(spec)
         if missing:
             raise ConfigError(f"{name}: a {kind} distribution needs {', '.join(sorted(missing))}")
-        p = {k: _num(v, f"{name}.{k}") for k, v in spec.items()}
+        p = {k: number(f"{name}.{k}", v, error=ConfigError) for k, v in spec.items()}
         if kind in ("normal", "exponential") and p.get("sigma", p.get("scale", 1)) <= 0:
             raise ConfigError(f"{name}: sigma / scale must be > 0")
         if "min" in p and "max" in p and not p["min"] <= p["max"]:
@@ -131,7 +124,7 @@ class RedshiftDistribution:
         need = cls.KINDS[kind] - {"rate_index"}
         if need - set(spec):
             raise ConfigError(f"{name}: a {kind} distribution needs {', '.join(sorted(need - set(spec)))}")
-        p = {k: _num(v, f"{name}.{k}") for k, v in spec.items()}
+        p = {k: number(f"{name}.{k}", v, error=ConfigError) for k, v in spec.items()}
         values = [p[k] for k in ("min", "max", "value") if k in p]
         if any(v < 0 for v in values):
             raise ConfigError(f"{name}: redshifts cannot be negative, got {p}")

@@ -18,13 +18,14 @@ reported with ``status = "failed"`` and its error; the others are planned.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from slicersim.errors import ETCError, ParameterError, SpectrumError
+from slicersim.validation import array as validation_array, choice, number, short_repr
 
-__all__ = ["SurveyPlan", "plan_survey", "plot_time_and_volume", "check_client_memory", "survey_totals", "YEAR_S", "PLAN_COLUMNS"]
+__all__ = ["SurveyPlan", "SurveyOptions", "plan_survey", "plan_survey_with", "plot_time_and_volume", "check_client_memory", "survey_totals", "YEAR_S", "PLAN_COLUMNS"]
 
 YEAR_S = 365.25 * 86400.0
 BYTES_PER_READ = 2
@@ -56,32 +57,6 @@ class SurveyPlan:
         if "precision" in t:
             lines.append(f"batch ETC precision: {t['precision']}")
         return "\n".join(lines)
-
-
-def _check(snr, lbda_range, z_switch, overhead, efficiency, compression_ratio, redshift, fluxes, lbda):
-    def finite(v, name, lo=None, lo_open=False, hi=None):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
-            raise ParameterError(f"{name} must be a finite number, got {v!r}")
-        if lo is not None and (v < lo or (lo_open and v == lo)) or hi is not None and v > hi:
-            raise ParameterError(f"{name} must be {'>' if lo_open else '≥'} {lo}"
-                                 + (f" and ≤ {hi}" if hi is not None else "") + f", got {v!r}")
-    finite(snr, "snr", 0, True)
-    rng_ = np.asarray(lbda_range, dtype=float) if np.size(lbda_range) == 2 else None
-    if rng_ is None or not np.all(np.isfinite(rng_)) or not 0 < rng_[0] < rng_[1]:
-        raise ParameterError(f"lbda_range must be (lo, hi) in Å with 0 < lo < hi, got {lbda_range!r}")
-    finite(overhead, "overhead", 0)
-    finite(efficiency, "efficiency", 0, True, 1)
-    finite(compression_ratio, "compression_ratio", 1)
-    if not (np.isinf(z_switch) and z_switch > 0):
-        finite(z_switch, "z_switch", 0)
-    z = np.asarray(redshift, dtype=float)
-    if z.ndim != 1 or z.size == 0:
-        raise ParameterError("the population is empty: nothing to plan")
-    if np.any(~np.isfinite(z)) or np.any(z < 0):
-        raise ParameterError("redshifts must be finite and not negative")
-    if np.shape(fluxes) != (z.size, np.size(lbda)):
-        raise ParameterError(f"fluxes must have shape ({z.size}, {np.size(lbda)}), got {np.shape(fluxes)}")
-    return z
 
 
 def _target_error(exc, target_id):
@@ -122,45 +97,121 @@ def _solve(lbda, fluxes, idx, errors, out, kwargs):
         out[key][idx] = np.asarray(tab[key])
 
 
-def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), frame="rest", z_switch=0.8,
-                fields=("narrow", "wide"), config="cbe", search="exact", conventions="physical", overhead=0.0,
-                efficiency=1.0, compression_ratio=1.0, target_ids=None, per_resolution=True, progress=False,
-                detector_shape=None, precision="auto"):
-    """Plan a survey of targets with spectra ``fluxes`` (N, k) [erg/s/cm²/Å] on ``lbda`` [Å].
+#: values of ``frame`` (None: "rest", a survey's targets having redshifts)
+FRAMES = ("rest", "obs")
+#: the fields a survey can use
+FIELDS = ("narrow", "wide")
 
-    snr : SNR per resolution element (``per_resolution``) in ``lbda_range`` [Å] of ``frame``
+
+@dataclass(frozen=True)
+class SurveyOptions:
+    """How a survey is observed and planned (:func:`plan_survey`).
+
+    snr : SNR per resolution element (``per_resolution``, else per bin) in ``lbda_range`` [Å] of
+        ``frame`` ("rest", "obs" or None = "rest": a survey's targets always have redshifts)
     z_switch : ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field)
-    overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1 : see the module docstring
-    precision : of the batch ETC's band-variance kernel (:func:`slicersim.etc.solve.solve_many`)
-    Returns a :class:`SurveyPlan`.
+    config, search, conventions : of the batch ETC (:func:`slicersim.etc.solve.solve_many`)
+    overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1 : of the totals (module docstring)
+    progress : the batch ETC's bar;  detector_shape : (ny, nx) of the volume (default: the field's)
+    precision : of the batch ETC's band-variance kernel
     """
-    from astropy.table import Table
+    snr: float = 20.0
+    lbda_range: tuple = (4000.0, 6800.0)
+    frame: str | None = None
+    z_switch: float = 0.8
+    fields: tuple = ("narrow", "wide")
+    config: object = "cbe"
+    search: str = "exact"
+    conventions: str = "physical"
+    overhead: float = 0.0
+    efficiency: float = 1.0
+    compression_ratio: float = 1.0
+    per_resolution: bool = True
+    progress: bool = False
+    detector_shape: tuple | None = None
+    precision: object = "auto"
 
+    def checked(self):
+        """A copy with every value checked and converted (ParameterError naming the keyword); the
+        precision's names first, before any work."""
+        from slicersim.backends.precision import resolve_precision
+        precision = resolve_precision(self.precision, "auto", "batch_etc")[1]
+        lo, hi = _wavelength_range(self.lbda_range)
+        z_switch = self.z_switch if _is_inf(self.z_switch) else number("z_switch", self.z_switch, low=0)
+        if isinstance(self.fields, (str, bytes)) or np.size(self.fields) != 2:
+            raise ParameterError(f"fields must be two field names (below, at and above z_switch), got "
+                                 f"{short_repr(self.fields)}")
+        fields = tuple(choice(f"fields[{i}]", f, FIELDS) for i, f in enumerate(self.fields))
+        return replace(self, fields=fields, snr=number("snr", self.snr, low=0, low_open=True), lbda_range=(lo, hi),
+                       frame=choice("frame", self.frame, FRAMES + (None,)) or "rest", z_switch=float(z_switch),
+                       overhead=number("overhead", self.overhead, low=0, unit="s"),
+                       efficiency=number("efficiency", self.efficiency, low=0, low_open=True, high=1),
+                       compression_ratio=number("compression_ratio", self.compression_ratio, low=1),
+                       precision=precision)
+
+
+def _is_inf(value):
+    """True for +inf (one field for every redshift)."""
+    return isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) and value == np.inf
+
+
+def _wavelength_range(lbda_range):
+    """(lo, hi) [Å] with 0 < lo < hi."""
+    if isinstance(lbda_range, (str, bytes)) or np.size(lbda_range) != 2:
+        raise ParameterError(f"lbda_range must be (lo, hi) in Å with 0 < lo < hi, got {short_repr(lbda_range)}")
+    lo, hi = (number(f"lbda_range[{i}]", v, low=0, low_open=True, unit="Angstrom") for i, v in enumerate(lbda_range))
+    if not lo < hi:
+        raise ParameterError(f"lbda_range must be (lo, hi) in Å with 0 < lo < hi, got {short_repr(lbda_range)}")
+    return lo, hi
+
+
+def _check_population(redshift, lbda, fluxes, target_ids):
+    """(z (N,), fluxes (N, k) float64, ids (N,)): redshifts finite and ≥ 0, one spectrum per target
+    on ``lbda``, target ids unique (default 0 … N − 1)."""
+    z = validation_array("redshift", redshift, ndim=1, low=0)
+    if z.size == 0:
+        raise ParameterError("redshift: the population is empty: nothing to plan")
+    if np.shape(fluxes) != (z.size, np.size(lbda)):
+        raise ParameterError(f"fluxes must have shape ({z.size}, {np.size(lbda)}), got {np.shape(fluxes)}")
+    ids = np.arange(z.size) if target_ids is None else np.asarray(target_ids)
+    if ids.shape != z.shape:
+        raise ParameterError(f"target_ids must have one id per redshift ({z.size}), got shape {ids.shape}")
+    values, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        dups = values[counts > 1]
+        listed = ", ".join(str(v) for v in dups[:10]) + (", …" if dups.size > 10 else "")
+        raise ParameterError(f"target_ids must be unique: {dups.size} id(s) repeated ({listed})")
+    return z, np.asarray(fluxes, dtype=float), ids
+
+
+def _solve_fields(lbda, fluxes, z, ids, opts):
+    """Batch ETC per field: (out: readout, exposure time and SNR per target, errors: {index:
+    message} of the targets it cannot serve, field per target, detector shape per field)."""
     from slicersim.assembly import build_simulation
-    from slicersim.backends.precision import resolve_precision
-    precision = resolve_precision(precision, "auto", "batch_etc")[1]        # bad names: before any work
-    z = _check(snr, lbda_range, z_switch, overhead, efficiency, compression_ratio, redshift, fluxes, lbda)
-    fluxes = np.asarray(fluxes, dtype=float)
     ntarget = z.size
-    ids = np.arange(ntarget) if target_ids is None else np.asarray(target_ids)
-    field = np.where(z < z_switch, fields[0], fields[1])
+    field = np.where(z < opts.z_switch, opts.fields[0], opts.fields[1])
     out = {k: np.zeros(ntarget, dtype=np.int64) for k in ("n", "m", "d", "nramps")}
     out.update(exposure_time=np.zeros(ntarget), snr=np.zeros(ntarget))
-    errors = {}
-    etc = dict(snr=snr, lbda_ranges=lbda_range, frame=frame, config=config, search=search,
-               conventions=conventions, per_resolution=per_resolution, progress=progress, precision=precision)
-    shapes = {}
+    errors, shapes = {}, {}
+    etc = dict(snr=opts.snr, lbda_ranges=opts.lbda_range, frame=opts.frame, config=opts.config, search=opts.search,
+               conventions=opts.conventions, per_resolution=opts.per_resolution, progress=opts.progress,
+               precision=opts.precision)
     for f in dict.fromkeys(field):
         sel = np.nonzero(field == f)[0]
         # chunks of neighbouring redshifts share their bands: the ETC's per-chunk LSF and
         # transfers then cover ~1 band instead of the union of all (same numbers per target)
         sel = sel[np.argsort(z[sel], kind="stable")]
-        shapes[f] = tuple(build_simulation(config, f, pointsource=None, conventions=conventions).detector.shape)
+        shapes[f] = tuple(build_simulation(opts.config, f, pointsource=None,
+                                           conventions=opts.conventions).detector.shape)
         _solve(lbda, fluxes, sel, errors, out, {"z": z, "ids": ids, "etc": {**etc, "field": f}})
-    shape = detector_shape or next(iter(shapes.values()))
-    failed = np.zeros(ntarget, dtype=bool)
+    return out, errors, field, shapes
+
+
+def _plan_table(ids, z, field, out, errors, volume, opts):
+    """The plan's per-target table (:data:`PLAN_COLUMNS`); ``volume`` raw bytes per target."""
+    from astropy.table import Table
+    failed = np.zeros(z.size, dtype=bool)
     failed[list(errors)] = True
-    volume = out["nramps"] * out["n"] * int(shape[0]) * int(shape[1]) * BYTES_PER_READ       # bytes
     table = Table()
     table["target_id"], table["redshift"], table["field"] = ids, z, field
     for key in ("n", "m", "d", "nramps"):
@@ -168,20 +219,57 @@ def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), f
     table["exposure_time"] = out["exposure_time"]
     table["exposure_time"].unit = "s"
     table["snr"] = out["snr"]
-    table["snr"].description = "band SNR per resolution element" if per_resolution else "band SNR per bin"
+    table["snr"].description = "band SNR per resolution element" if opts.per_resolution else "band SNR per bin"
     table["data_volume"] = volume.astype(np.int64)
     table["data_volume"].unit = "byte"
-    table["data_volume_compressed"] = np.round(volume / compression_ratio).astype(np.int64)
+    table["data_volume_compressed"] = np.round(volume / opts.compression_ratio).astype(np.int64)
     table["data_volume_compressed"].unit = "byte"
     table["status"] = np.where(failed, "failed", "planned")
-    table["error"] = [errors.get(i, "") for i in range(ntarget)]
-    totals = {"targets": ntarget, "overhead": float(overhead), "efficiency": float(efficiency),
-              "compression_ratio": float(compression_ratio), "snr": float(snr),
-              "lbda_range": [float(v) for v in lbda_range], "frame": frame, "z_switch": float(z_switch),
-              "config": str(config), "search": search, "conventions": conventions, "precision": precision}
-    totals.update(survey_totals(table, overhead, efficiency, compression_ratio))
+    table["error"] = [errors.get(i, "") for i in range(z.size)]
+    return table
+
+
+def plan_survey_with(redshift, lbda, fluxes, options, target_ids=None):
+    """:func:`plan_survey` with its options as one :class:`SurveyOptions`; returns a :class:`SurveyPlan`."""
+    opts = options.checked()
+    z, fluxes, ids = _check_population(redshift, lbda, fluxes, target_ids)
+    out, errors, field, shapes = _solve_fields(lbda, fluxes, z, ids, opts)
+    shape = opts.detector_shape or next(iter(shapes.values()))
+    volume = out["nramps"] * out["n"] * int(shape[0]) * int(shape[1]) * BYTES_PER_READ       # bytes
+    table = _plan_table(ids, z, field, out, errors, volume, opts)
+    totals = {"targets": z.size, "overhead": opts.overhead, "efficiency": opts.efficiency,
+              "compression_ratio": opts.compression_ratio, "snr": opts.snr,
+              "lbda_range": list(opts.lbda_range), "frame": opts.frame, "z_switch": opts.z_switch,
+              "config": str(opts.config), "search": opts.search, "conventions": opts.conventions,
+              "precision": opts.precision}
+    totals.update(survey_totals(table, opts.overhead, opts.efficiency, opts.compression_ratio))
     table.meta["totals"] = totals
     return SurveyPlan(table, totals)
+
+
+def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), frame=None, z_switch=0.8, *,
+                target_ids=None, options=None, **keywords):
+    """Plan a survey of targets with spectra ``fluxes`` (N, k) [erg/s/cm²/Å] on ``lbda`` [Å] at
+    ``redshift`` (N,), ``target_ids`` (N,) unique (default 0 … N − 1).
+
+    snr : SNR per resolution element (``per_resolution``) in ``lbda_range`` [Å] of ``frame``
+        ("rest", "obs"; None = "rest")
+    z_switch : ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field)
+    keywords : the other fields of :class:`SurveyOptions` (fields, config, search, conventions,
+        overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1, per_resolution,
+        progress, detector_shape, precision); or ``options`` = a whole :class:`SurveyOptions`
+        (then no other option keyword)
+    Returns a :class:`SurveyPlan`.
+    """
+    if options is None:
+        unknown = sorted(set(keywords) - set(SurveyOptions.__dataclass_fields__))
+        if unknown:
+            raise ParameterError(f"plan_survey: unknown keyword(s) {', '.join(map(repr, unknown))}; valid: "
+                                 f"{', '.join(SurveyOptions.__dataclass_fields__)}")
+        options = SurveyOptions(snr=snr, lbda_range=lbda_range, frame=frame, z_switch=z_switch, **keywords)
+    elif keywords or (snr, tuple(np.ravel(lbda_range)), frame, z_switch) != (20.0, (4000.0, 6800.0), None, 0.8):
+        raise ParameterError("plan_survey: give options= or option keywords, not both")
+    return plan_survey_with(redshift, lbda, fluxes, options, target_ids)
 
 
 def survey_totals(table, overhead, efficiency, compression_ratio):

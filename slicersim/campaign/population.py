@@ -30,16 +30,20 @@ or a user rest-frame spectrum file.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
 from slicersim.backends import rng
 from slicersim.campaign.distributions import Distribution, RedshiftDistribution
-from slicersim.errors import ConfigError, SpectrumError
+from slicersim import validation
+from slicersim.errors import ConfigError, ParameterError, SpectrumError
+from slicersim.validation import number
 from slicersim.io.tables import file_digest, read_spectrum_table as _read_spectrum_table, read_table, resolve_path
 from slicersim.sources.spectra import SNCOSMO_SNIA_MODELS, blackbody_flambda
 
-__all__ = ["SNIaPopulation", "CatalogPopulation", "population_from_spec", "POPULATIONS", "snia_fluxes"]
+__all__ = ["SNIaPopulation", "CatalogPopulation", "population_from_spec", "POPULATIONS", "snia_fluxes", "SNIaModel",
+           "model_fluxes"]
 
 #: Philox streams of the population parameters (one per parameter)
 STREAMS = {"redshift": 0x5A01, "phase": 0x5A02, "x1": 0x5A03, "c": 0x5A04, "mag": 0x5A05,
@@ -110,39 +114,64 @@ def _dust_curve(law, wave, r_v):
     return out
 
 
+@dataclass(frozen=True)
+class SNIaModel:
+    """The SN Ia model shared by a population: sncosmo ``source``, the rest-frame ``band`` and
+    ``magsys`` of the peak magnitude, the SALT standardisation ``alpha``, ``beta``, the
+    ``cosmology`` (astropy name) and R_V of the Milky-Way (``mw_rv``, F99) and host (``host_rv``,
+    CCM89) dust laws."""
+    source: str = "hsiao-subsampled"
+    band: str = "bessellb"
+    magsys: str = "ab"
+    alpha: float = 0.14
+    beta: float = 3.1
+    cosmology: str = "Planck18"
+    mw_rv: float = 3.1
+    host_rv: float = 3.1
+
+
 def snia_fluxes(lbda, redshift, phase, peak_absmag, source="hsiao-subsampled", band="bessellb", magsys="ab",
-                x1=None, c=None, alpha=0.14, beta=3.1, cosmology="Planck18", mwebv=None, mw_rv=3.1,
-                hostebv=None, host_rv=3.1):
+                x1=None, c=None, mwebv=None, hostebv=None, **model):
     """Observer-frame SN Ia F_λ [erg/s/cm²/Å] (N, k) on ``lbda`` [Å]; NaN outside the model.
 
     redshift, phase (rest-frame days), peak_absmag: (N,) arrays; x1, c for SALT sources;
     mwebv / hostebv: E(B−V) of the Milky-Way (F99, observer frame) and host (CCM89, rest
-    frame) dust.  Equal to sncosmo.Model(source, effects).flux to rounding (tested)."""
-    lbda = np.asarray(lbda, dtype=float)
-    z = np.atleast_1d(np.asarray(redshift, dtype=float))
-    n = z.size
-    if np.any(~(z > 0)):
-        raise SpectrumError("SN Ia redshifts must be > 0")
-    phase = np.broadcast_to(np.asarray(phase, dtype=float), (n,))
-    absmag = np.broadcast_to(np.asarray(peak_absmag, dtype=float), (n,))
-    src = _source(source)
-    salt = "x1" in src.param_names
-    if not salt and (x1 is not None or c is not None):
-        raise ConfigError(f"x1 / c are SALT parameters: sncosmo source {source!r} has none")
-    x1 = np.broadcast_to(np.asarray(0.0 if x1 is None else x1, dtype=float), (n,))
-    c = np.broadcast_to(np.asarray(0.0 if c is None else c, dtype=float), (n,))
-    mu = np.asarray(_cosmology(cosmology).distmod(z).value, dtype=float)
-    m0 = _rest_peak_mag(src, band, magsys)
-    standardised = absmag - alpha * x1 + beta * c if salt else absmag
-    amplitude = 10.0 ** (-0.4 * (standardised + mu - m0))            # x0 (SALT) or amplitude
+    frame) dust; ``source``, ``band``, ``magsys`` and ``model`` (alpha, beta, cosmology, mw_rv,
+    host_rv): the fields of :class:`SNIaModel`.  Equal to sncosmo.Model(source, effects).flux to
+    rounding (tested)."""
+    unknown = sorted(set(model) - set(SNIaModel.__dataclass_fields__))
+    if unknown:
+        raise ParameterError(f"snia_fluxes: unknown keyword(s) {', '.join(map(repr, unknown))}; valid: "
+                             f"{', '.join(SNIaModel.__dataclass_fields__)}")
+    return model_fluxes(lbda, SNIaModel(source, band, magsys, **model), redshift, phase, peak_absmag,
+                        x1=x1, c=c, mwebv=mwebv, hostebv=hostebv)
+
+
+def _amplitudes(src, model, z, absmag, x1, c):
+    """Model amplitude per target (x0 for SALT sources): the peak magnitude, standardised
+    (M − α x1 + β c) for SALT, moved to redshift z by the distance modulus."""
+    mu = np.asarray(_cosmology(model.cosmology).distmod(z).value, dtype=float)
+    m0 = _rest_peak_mag(src, model.band, model.magsys)
+    standardised = absmag - model.alpha * x1 + model.beta * c if "x1" in src.param_names else absmag
+    return 10.0 ** (-0.4 * (standardised + mu - m0))
+
+
+def _per_target(value, n, default=0.0):
+    """(n,) float array of a per-target value (scalar broadcast; None → ``default``)."""
+    return np.broadcast_to(np.asarray(default if value is None else value, dtype=float), (n,))
+
+
+def _target_fluxes(src, lbda, z, phase, amplitude, salt_params, host_dust):
+    """F_λ of each target in the observer frame on ``lbda`` (NaN outside the model's wavelengths
+    or phases), before Milky-Way dust; ``host_dust`` = (E(B−V) per target or None, R_V)."""
+    x1, c = salt_params
+    hostebv, host_rv = host_dust
     a = 1.0 / (1.0 + z)
-    out = np.full((n, lbda.size), np.nan)
-    mw = None
-    if mwebv is not None and np.any(np.asarray(mwebv) != 0):
-        mw = _dust_curve("f99", lbda, mw_rv)[None, :] * np.broadcast_to(np.asarray(mwebv, float), (n,))[:, None]
+    out = np.full((z.size, lbda.size), np.nan)
+    salt = "x1" in src.param_names
     params = src._parameters.copy()
     try:
-        for i in range(n):
+        for i in range(z.size):
             rest = lbda * a[i]
             ok = (rest >= src.minwave()) & (rest <= src.maxwave())
             if not (src.minphase() <= phase[i] <= src.maxphase()) or np.count_nonzero(ok) < 2:
@@ -156,7 +185,24 @@ def snia_fluxes(lbda, redshift, phase, peak_absmag, source="hsiao-subsampled", b
             out[i, ok] = f
     finally:
         src._parameters[:] = params
-    if mw is not None:
+    return out
+
+
+def model_fluxes(lbda, model, redshift, phase, peak_absmag, x1=None, c=None, mwebv=None, hostebv=None):
+    """:func:`snia_fluxes` of an :class:`SNIaModel`: observer-frame F_λ [erg/s/cm²/Å] (N, k)."""
+    lbda = np.asarray(lbda, dtype=float)
+    z = np.atleast_1d(np.asarray(redshift, dtype=float))
+    n = z.size
+    if np.any(~(z > 0)):
+        raise SpectrumError("redshift: SN Ia redshifts must be > 0")
+    src = _source(model.source)
+    if "x1" not in src.param_names and (x1 is not None or c is not None):
+        raise ConfigError(f"x1 / c are SALT parameters: sncosmo source {model.source!r} has none")
+    x1, c = _per_target(x1, n), _per_target(c, n)
+    amplitude = _amplitudes(src, model, z, _per_target(peak_absmag, n), x1, c)
+    out = _target_fluxes(src, lbda, z, _per_target(phase, n), amplitude, (x1, c), (hostebv, model.host_rv))
+    if mwebv is not None and np.any(np.asarray(mwebv) != 0):
+        mw = _dust_curve("f99", lbda, model.mw_rv)[None, :] * _per_target(mwebv, n)[:, None]
         out *= 10.0 ** (-0.4 * mw)
     return out
 
@@ -205,8 +251,10 @@ class HostModel:
         self.absmag = Distribution.parse(cfg["absmag"], "population.hosts.absmag")
         self.sersic_index = Distribution.parse(cfg["sersic_index"], "population.hosts.sersic_index", lo=0.3, hi=8)
         self.axis_ratio = Distribution.parse(cfg["axis_ratio"], "population.hosts.axis_ratio", lo=0.05, hi=1)
-        self.young_fraction = float(_check_range(cfg["young_fraction"], "population.hosts.young_fraction", 0, 1))
-        self.max_radius = float(_check_range(cfg["max_radius"], "population.hosts.max_radius", 0.5, 20))
+        self.young_fraction = number("population.hosts.young_fraction", cfg["young_fraction"], low=0, high=1,
+                                     error=ConfigError)
+        self.max_radius = number("population.hosts.max_radius", cfg["max_radius"], low=0.5, high=20,
+                                 error=ConfigError)
         self.spectrum_file = cfg["spectrum"]
         self.spectrum_digest = None
         if self.spectrum_file is not None:
@@ -279,12 +327,6 @@ def read_spectrum_table(path, name):
         raise ConfigError(str(exc)) from None
 
 
-def _check_range(value, name, lo, hi):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (lo <= value <= hi):
-        raise ConfigError(f"{name} must be a number in [{lo}, {hi}], got {value!r}")
-    return value
-
-
 # ---------------------------------------------------------------------------- populations
 class _SNParameters:
     """SN Ia parameters shared by the drawn and the catalog populations."""
@@ -300,16 +342,17 @@ class _SNParameters:
                 raise ConfigError(f"population.{key}: x1 / c are SALT parameters; source {src!r} has none "
                                   "(use source = \"salt2\" or \"salt3\", with sncosmo's data available)")
         self.phase = Distribution.parse(cfg["phase"], "population.phase", lo=-20, hi=85)
-        self.peak_absmag = float(_check_range(cfg["peak_absmag"], "population.peak_absmag", -25, -10))
-        self.mag_scatter = float(_check_range(cfg["mag_scatter"], "population.mag_scatter", 0, 2))
+        self.peak_absmag = number("population.peak_absmag", cfg["peak_absmag"], low=-25, high=-10,
+                                  error=ConfigError)
+        self.mag_scatter = number("population.mag_scatter", cfg["mag_scatter"], low=0, high=2, error=ConfigError)
         self.x1 = Distribution.parse(cfg["x1"] if cfg["x1"] is not None else
                                      ({"distribution": "normal", "mean": 0.0, "sigma": 1.0, "min": -3, "max": 3}
                                       if self.salt else 0.0), "population.x1", lo=-5, hi=5)
         self.c = Distribution.parse(cfg["c"] if cfg["c"] is not None else
                                     ({"distribution": "normal", "mean": 0.0, "sigma": 0.1, "min": -0.3, "max": 0.5}
                                      if self.salt else 0.0), "population.c", lo=-1, hi=2)
-        self.alpha = float(_check_range(cfg["alpha"], "population.alpha", -5, 5))
-        self.beta = float(_check_range(cfg["beta"], "population.beta", -10, 10))
+        self.alpha = number("population.alpha", cfg["alpha"], low=-5, high=5, error=ConfigError)
+        self.beta = number("population.beta", cfg["beta"], low=-10, high=10, error=ConfigError)
         import sncosmo
         for key, reg in (("band", sncosmo.get_bandpass), ("magsys", sncosmo.get_magsystem)):
             try:
@@ -332,7 +375,7 @@ class _SNParameters:
         _unknown(section, _DUST_KEYS, f"{name}.")
         cfg = {**_DUST_KEYS, **section}
         return {"ebv": Distribution.parse(cfg["ebv"], f"{name}.ebv", lo=0, hi=5),
-                "r_v": float(_check_range(cfg["r_v"], f"{name}.r_v", 1, 8))}
+                "r_v": number(f"{name}.r_v", cfg["r_v"], low=1, high=8, error=ConfigError)}
 
     @property
     def cosmology(self):
@@ -375,11 +418,11 @@ class _SNParameters:
     def _sn_fluxes(self, table, lbda):
         def col(name):
             return np.asarray(table[name], dtype=float) if name in table.colnames else None
-        return snia_fluxes(lbda, col("redshift"), col("phase"), col("peak_absmag"), self.source, self.band,
-                           self.magsys, x1=col("x1"), c=col("c"), alpha=self.alpha, beta=self.beta,
-                           cosmology=self.cosmology_name, mwebv=col("mwebv"),
-                           mw_rv=(self.mw_dust or _DUST_KEYS)["r_v"], hostebv=col("hostebv"),
-                           host_rv=(self.host_dust or _DUST_KEYS)["r_v"])
+        model = SNIaModel(self.source, self.band, self.magsys, alpha=self.alpha, beta=self.beta,
+                          cosmology=self.cosmology_name, mw_rv=(self.mw_dust or _DUST_KEYS)["r_v"],
+                          host_rv=(self.host_dust or _DUST_KEYS)["r_v"])
+        return model_fluxes(lbda, model, col("redshift"), col("phase"), col("peak_absmag"), x1=col("x1"), c=col("c"),
+                            mwebv=col("mwebv"), hostebv=col("hostebv"))
 
     def host(self, row):
         """The host of a catalog row, or None."""
@@ -405,12 +448,8 @@ class SNIaPopulation(_SNParameters):
     kind = "snia"
 
     def __init__(self, n, redshift=None, base_dir=".", **sn):
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
-            raise ConfigError(f"population.n must be an integer, got {n!r}")
-        if not 1 <= n <= MAX_TARGETS:
-            raise ConfigError(f"population.n must be in [1, {MAX_TARGETS}] (an empty population has nothing "
-                              f"to simulate), got {n}")
-        self.n = int(n)
+        self.n = validation.integer("population.n (an empty population has nothing to simulate)", n, low=1,
+                                    high=MAX_TARGETS, error=ConfigError)
         self.redshift = RedshiftDistribution.parse(
             redshift if redshift is not None else {"distribution": "uniform", "min": 0.05, "max": 1.5},
             base_dir=base_dir)

@@ -23,15 +23,18 @@ import logging
 import os
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from slicersim.campaign.products import build_target, run_target, spectrum_grid, target_seeds
-from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec
+from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec, seed_was_drawn, with_seed
 from slicersim.errors import ConfigError, DatasetError
-from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset
+from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, spec_digest
+from slicersim.validation import positive_int
 
-__all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions"]
+__all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions", "RunOptions", "TaskWindow",
+           "run_task_window", "WORKERS_PER_CPU", "check_workers", "QuietDask"]
 
 #: seconds between two catalog writes while a campaign runs
 CATALOG_INTERVAL = 10.0
@@ -182,11 +185,92 @@ def _client(workers, scheduler, threads):
     return Client(cluster), cluster
 
 
-def _check_workers(workers):
+#: most workers of an embedded LocalCluster per CPU (more only thrash; connect to a scheduler instead)
+WORKERS_PER_CPU = 4
+
+
+def check_workers(workers):
+    """Workers of the embedded cluster: None (the CPU count) or an integer from 1 to
+    :data:`WORKERS_PER_CPU` × the CPU count (ParameterError naming ``workers`` otherwise)."""
     if workers is None:
         return max(1, os.cpu_count() or 1)
-    _check_positive_int(workers, "workers")
-    return workers
+    most = WORKERS_PER_CPU * (os.cpu_count() or 1)
+    return positive_int(f"workers (--workers; at most {WORKERS_PER_CPU} × the CPU count for the embedded "
+                        "LocalCluster: connect to a scheduler for more)", workers, high=most)
+
+
+#: the former private name (reduction.campaign imports it)
+_check_workers = check_workers
+
+
+def _check_positive_int(value, name, lo=1):
+    """An integer ≥ ``lo`` (ParameterError naming ``name``); :func:`slicersim.validation.positive_int`."""
+    return positive_int(name, value, lo)
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a campaign runs (none of it changes the products): ``workers`` of the embedded cluster,
+    ``scheduler`` address or None, ``progress`` bar, ``max_bytes`` memory budget of one task's cube
+    chunks / ramp blocks [bytes], ``threads_per_worker`` (OpenCL CPU threads; None: CPUs / workers),
+    ``window`` tasks in flight (None: 2 per worker)."""
+    workers: int
+    scheduler: str | None = None
+    progress: bool = True
+    max_bytes: int = 256 * 2**20
+    threads_per_worker: int | None = None
+    window: int | None = None
+
+    @classmethod
+    def checked(cls, workers=None, scheduler=None, progress=True, max_bytes=256 * 2**20, threads_per_worker=None,
+                window=None):
+        """Options with every value checked (ParameterError naming the keyword)."""
+        return cls(check_workers(workers), scheduler, progress, positive_int("max_bytes", max_bytes, 2**20),
+                   None if threads_per_worker is None else positive_int("threads_per_worker (--threads-per-worker)",
+                                                                         threads_per_worker),
+                   None if window is None else positive_int("window", window))
+
+    @property
+    def threads(self):
+        """OpenCL CPU threads per worker."""
+        return self.threads_per_worker or max(1, (os.cpu_count() or 1) // self.workers)
+
+
+def _check_cube_precision(spec, scheduler):
+    """The embedded cluster's workers share this machine's device: a precision it cannot run (e.g.
+    "double" without fp64) is one error here, not one failure per target."""
+    if scheduler is None and spec.products.get("cube"):
+        from slicersim.backends.precision import resolve_precision
+        resolve_precision(spec.products.get("precision", "auto"), "auto", "cube")
+
+
+def _resumed_seed(spec, ds, force):
+    """A spec without a seed (one was drawn) resumes the dataset it made: the stored seed replaces
+    the drawn one when the rest of the spec is the same (otherwise the drawn seed stands, and a
+    dataset of another spec is refused as usual)."""
+    if force or not seed_was_drawn(spec):
+        return spec
+    try:
+        stored = ds.stored_spec()
+    except DatasetError:                    # damaged: check_spec says so
+        return spec
+    if stored is None or not isinstance(stored[0].get("seed"), int):
+        return spec
+    resumed = with_seed(spec, stored[0]["seed"])
+    return resumed if spec_digest(resumed.canonical()) == stored[1] else spec
+
+
+def _plan_and_connect(spec, scheduler):
+    """(catalog, plan, connection or None): a remote scheduler is reached before anything is
+    written, and nothing is written before the plan succeeds."""
+    connection = _client(1, scheduler, 1) if scheduler else None
+    try:
+        catalog, plan = plan_campaign(spec)
+    except BaseException:
+        if connection:
+            connection[0].close()
+        raise
+    return catalog, plan, connection
 
 
 def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_failed=False, progress=True,
@@ -194,7 +278,8 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     """Run (or resume) a campaign into dataset directory ``out``; returns a summary dict.
 
     spec : a :class:`CampaignSpec` or the path of its TOML file
-    workers : embedded LocalCluster size (default: the CPU count); ignored with ``scheduler``
+    workers : embedded LocalCluster size (default: the CPU count; at most
+        :data:`WORKERS_PER_CPU` × the CPU count); ignored with ``scheduler``
     scheduler : address of an existing Dask scheduler ("tcp://host:port")
     force : start again in a directory made from another spec (its products are discarded)
     retry_failed : run the targets recorded as failed again
@@ -203,27 +288,13 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     window : tasks in flight at once (default 2 per worker): bounds the client's memory
     """
     spec = spec if isinstance(spec, CampaignSpec) else load_spec(spec)
-    workers = _check_workers(workers)
-    _check_positive_int(max_bytes, "memory per task [bytes]", lo=2**20)
-    if threads_per_worker is not None:
-        _check_positive_int(threads_per_worker, "threads per worker")
-    if window is not None:
-        _check_positive_int(window, "window")
-    if scheduler is None and spec.products.get("cube"):
-        # the embedded cluster's workers share this machine's device: a precision it cannot run (e.g.
-        # "double" without fp64) is one error here, not one failure per target
-        from slicersim.backends.precision import resolve_precision
-        resolve_precision(spec.products.get("precision", "auto"), "auto", "cube")
+    run = RunOptions.checked(workers, scheduler, progress, max_bytes, threads_per_worker, window)
+    _check_cube_precision(spec, scheduler)
     ds = Dataset(Dataset.check_path(out, force=force))
+    spec = _resumed_seed(spec, ds, force)
     t0 = time.perf_counter()
     ds.check_spec(spec.canonical(), force)            # refuse early, before planning
-    connection = _client(workers, scheduler, 1) if scheduler else None   # reachable before anything is written
-    try:
-        catalog, plan = plan_campaign(spec)            # nothing is written before the plan succeeds
-    except BaseException:
-        if connection:
-            connection[0].close()
-        raise
+    catalog, plan, connection = _plan_and_connect(spec, scheduler)
     with ds:
         digest = ds.initialise(spec.text, spec.canonical(), software_versions(), force=force)
         ids = [int(t) for t in catalog["target_id"]]
@@ -235,8 +306,7 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
         ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted))
         try:
             if todo:
-                _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes,
-                          threads_per_worker, window, connection)
+                _dispatch(spec, ds, catalog, (todo, records, digest), run, connection)
             elif connection:
                 connection[0].close()
         finally:                                   # also on Ctrl-C: the catalog says what is done
@@ -267,11 +337,13 @@ def _row_dict(row):
     return {name: (row[name].item() if hasattr(row[name], "item") else row[name]) for name in row.colnames}
 
 
-def _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes, threads,
-              window, connection=None):
-    threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    quiet = _QuietDask()
-    client, cluster = connection or _client(workers, scheduler, threads)
+def _dispatch(spec, ds, catalog, work, run, connection=None):
+    """Simulate the targets ``work`` = (todo ids, records dict filled in place, spec digest) on
+    Dask with :class:`RunOptions` ``run``."""
+    todo, records, digest = work
+    threads = run.threads
+    quiet = QuietDask()
+    client, cluster = connection or _client(run.workers, run.scheduler, threads)
     try:
         spec_future = client.scatter(spec, broadcast=True)
     except BaseException:
@@ -283,57 +355,41 @@ def _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, prog
     rows = {int(r["target_id"]): _row_dict(r) for r in catalog}
 
     def submit(tid):
-        return client.submit(run_target, spec_future, rows[tid], ds.path, digest, max_bytes, threads,
+        return client.submit(run_target, spec_future, rows[tid], ds.path, digest, run.max_bytes, threads,
                              key=f"slicersim-target-{digest[:12]}-{tid}", pure=False, retries=0)
 
     def lost(tid, exc):
         return {"target_id": tid, "status": "failed", "spec_sha256": digest,
                 "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
-    run_task_window(client, cluster, quiet, todo, submit, records, ds, window=window, workers=workers,
-                    progress=progress, desc="campaign", lost_record=lost,
+    run_task_window(client, cluster, quiet, todo, submit, records, ds, window=run.window, workers=run.workers,
+                    progress=run.progress, desc="campaign", lost_record=lost,
                     checkpoint=lambda: ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted)))
 
 
-def run_task_window(client, cluster, quiet, ids, submit, records, ds, *, window, workers, progress, desc,
-                    lost_record, checkpoint):
+@dataclass(frozen=True)
+class TaskWindow:
+    """How :func:`run_task_window` feeds Dask: ``window`` tasks in flight (None: 2 per worker),
+    ``workers`` expected (when the scheduler reports none yet), a tqdm bar (``progress``, ``desc``),
+    ``lost_record(id, exc)`` → the record of a task whose worker died, ``checkpoint()`` run every
+    :data:`CATALOG_INTERVAL` s."""
+    window: int | None
+    workers: int
+    progress: bool
+    desc: str
+    lost_record: object
+    checkpoint: object
+
+
+def run_task_window(client, cluster, quiet, ids, submit, records, ds, **options):
     """One Dask task per id (``submit(id)`` → future of its record), at most ``window`` in flight
-    (default 2 per worker): ``records[id]`` gets each record as it completes, or
-    ``lost_record(id, exc)`` (written to ``ds``) when the worker died or the task was lost; a tqdm
-    bar counts the failures; ``checkpoint()`` runs every CATALOG_INTERVAL s.  Closes the client
-    (and an embedded cluster) and restores the Dask loggers (``quiet``) at the end."""
-    from distributed import as_completed
-    from tqdm.auto import tqdm
+    (``options``: the fields of :class:`TaskWindow`): ``records[id]`` gets each record as it
+    completes, or ``lost_record(id, exc)`` (written to ``ds``) when the worker died or the task was
+    lost; a tqdm bar counts the failures.  Closes the client (and an embedded cluster) and
+    restores the Dask loggers (``quiet``) at the end."""
+    opts = TaskWindow(**options)
     try:
-        nworkers = max(1, len(client.scheduler_info().get("workers", {})) or workers)
-        window = window or 2 * nworkers
-        pending = list(ids)
-        futures = {}
-
-        def start(tid):
-            fut = submit(tid)
-            futures[fut] = tid
-            return fut
-
-        queue = as_completed([start(pending.pop(0)) for _ in range(min(window, len(pending)))])
-        last = time.monotonic()
-        with tqdm(total=len(ids), desc=desc, unit="target", disable=not progress) as bar:
-            for fut in queue:
-                tid = futures.pop(fut)
-                try:
-                    rec = fut.result()
-                except Exception as exc:           # the worker died (KilledWorker) or the task was lost
-                    rec = lost_record(tid, exc)
-                    ds.write_record(tid, rec)
-                records[tid] = rec
-                bar.update(1)
-                nfail = sum(1 for r in records.values() if r.get("status") == "failed")
-                if nfail:
-                    bar.set_postfix(failed=nfail)
-                if pending:
-                    queue.add(start(pending.pop(0)))
-                if time.monotonic() - last > CATALOG_INTERVAL:
-                    checkpoint()
-                    last = time.monotonic()
+        nworkers = max(1, len(client.scheduler_info().get("workers", {})) or opts.workers)
+        _collect(ids, submit, records, ds, opts, opts.window or 2 * nworkers)
     finally:
         client.close()
         if cluster is not None:
@@ -341,7 +397,41 @@ def run_task_window(client, cluster, quiet, ids, submit, records, ds, *, window,
         quiet.restore()
 
 
-class _QuietDask:
+def _collect(ids, submit, records, ds, opts, window):
+    """Submit ``ids`` keeping ``window`` futures in flight; collect each record as it completes."""
+    from distributed import as_completed
+    from tqdm.auto import tqdm
+    pending = list(ids)
+    futures = {}
+
+    def start(tid):
+        fut = submit(tid)
+        futures[fut] = tid
+        return fut
+
+    queue = as_completed([start(pending.pop(0)) for _ in range(min(window, len(pending)))])
+    last = time.monotonic()
+    with tqdm(total=len(ids), desc=opts.desc, unit="target", disable=not opts.progress) as bar:
+        for fut in queue:
+            tid = futures.pop(fut)
+            try:
+                rec = fut.result()
+            except Exception as exc:           # the worker died (KilledWorker) or the task was lost
+                rec = opts.lost_record(tid, exc)
+                ds.write_record(tid, rec)
+            records[tid] = rec
+            bar.update(1)
+            nfail = sum(1 for r in records.values() if r.get("status") == "failed")
+            if nfail:
+                bar.set_postfix(failed=nfail)
+            if pending:
+                queue.add(start(pending.pop(0)))
+            if time.monotonic() - last > CATALOG_INTERVAL:
+                opts.checkpoint()
+                last = time.monotonic()
+
+
+class QuietDask:
     """Silence distributed's loggers on the client while a campaign runs: worker deaths and
     task errors are recorded per target and summarised; their tracebacks would bury the one
     line the CLI prints."""
@@ -361,9 +451,8 @@ class _QuietDask:
             logging.getLogger(name).setLevel(level)
 
 
-def _check_positive_int(value, name, lo=1):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-        raise ConfigError(f"{name} must be an integer ≥ {lo}, got {value!r}")
+#: the former private name (reduction.campaign imports it)
+_QuietDask = QuietDask
 
 
 def campaign_status(out, verify=True):

@@ -2,7 +2,8 @@
 
 ::
 
-    seed = 1                                  # campaign seed, int in [0, 2⁶⁴)
+    seed = 1                                  # campaign seed, int in [0, 2⁶⁴); without it a seed is
+                                              # drawn and written into the dataset's spec.toml
     name = "snia-mock"                        # optional label
     [population]                              # see slicersim.campaign.population
     kind = "snia"
@@ -36,16 +37,16 @@ catalog files replaced by their content digests too) identifies a dataset.
 """
 from __future__ import annotations
 
-import math
-import numbers
 import os
 import tomllib
 from dataclasses import dataclass, field as dc_field
 
+from slicersim import validation
 from slicersim.errors import ConfigError, SlicersimError
 from slicersim.io.tables import file_digest, read_file_bytes
+from slicersim.validation import choice, number
 
-__all__ = ["CampaignSpec", "load_spec", "parse_spec", "with_products", "PRODUCTS"]
+__all__ = ["CampaignSpec", "load_spec", "parse_spec", "with_products", "with_seed", "seed_was_drawn", "PRODUCTS"]
 
 #: products a campaign can write per target
 PRODUCTS = ("spectrum", "cube", "detector_image", "ramps")
@@ -65,24 +66,6 @@ def _unknown(section, allowed, where):
         if key not in allowed:
             raise ConfigError(f"unknown key {where}{key!r} in the campaign spec; known: "
                               f"{', '.join(sorted(allowed))}")
-
-
-def _number(value, name, lo=None, hi=None, lo_open=False, integer=False):
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or (integer and not isinstance(value, int)):
-        raise ConfigError(f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}")
-    if not math.isfinite(value):
-        raise ConfigError(f"{name} must be finite, got {value!r}")
-    if lo is not None and (value < lo or (lo_open and value == lo)):
-        raise ConfigError(f"{name} must be {'>' if lo_open else '≥'} {lo}, got {value!r}")
-    if hi is not None and value > hi:
-        raise ConfigError(f"{name} must be ≤ {hi}, got {value!r}")
-    return value
-
-
-def _choice(value, name, choices):
-    if value not in choices:
-        raise ConfigError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
-    return value
 
 
 @dataclass
@@ -156,6 +139,32 @@ def with_products(spec, **changes):
     return edited
 
 
+#: the line :func:`parse_spec` puts at the top of a spec's text when it drew the seed
+DRAWN_SEED_COMMENT = "# drawn by slicersim: the spec gave no seed"
+
+
+def _with_seed_line(text, seed):
+    """``text`` with ``seed = <seed>`` as its first line (top-level keys precede the tables), so
+    the dataset's stored spec.toml repeats the campaign."""
+    return f"seed = {int(seed)}  {DRAWN_SEED_COMMENT}\n" + text
+
+
+def seed_was_drawn(spec):
+    """True when the spec's file gave no seed (:func:`parse_spec` drew one)."""
+    first = spec.text.split("\n", 1)[0]
+    return first.startswith("seed = ") and first.rstrip().endswith(DRAWN_SEED_COMMENT)
+
+
+def with_seed(spec, seed):
+    """A copy of a spec whose seed was drawn (no ``seed`` key in its file) with ``seed`` instead,
+    e.g. the seed recorded in the dataset being resumed."""
+    from dataclasses import replace
+    lines = spec.text.splitlines(keepends=True)
+    body = "".join(lines[1:]) if seed_was_drawn(spec) else spec.text
+    return replace(spec, seed=validation.seed(seed, allow_none=False, error=ConfigError),
+                   text=_with_seed_line(body, seed))
+
+
 def _toml_value(value):
     if isinstance(value, bool):
         return "true" if value else "false"
@@ -187,26 +196,27 @@ def _observation(section):
     from slicersim.products.psf_profiles import PSF_PROFILES
     _unknown(section, _OBSERVATION, "observation.")
     obs = {**_OBSERVATION, **section}
-    obs["snr"] = float(_number(obs["snr"], "observation.snr", lo=0, lo_open=True))
+    obs["snr"] = number("observation.snr", obs["snr"], low=0, low_open=True, error=ConfigError)
     rng = obs["lbda_range"]
-    if (not isinstance(rng, list) or len(rng) != 2
-            or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in rng)
-            or not all(math.isfinite(v) and v > 0 for v in rng) or not rng[0] < rng[1]):
+    if not isinstance(rng, list) or len(rng) != 2:
         raise ConfigError(f"observation.lbda_range must be [lo, hi] in Å with 0 < lo < hi, got {rng!r}")
-    obs["lbda_range"] = [float(rng[0]), float(rng[1])]
-    _choice(obs["frame"], "observation.frame", ("rest", "obs"))
-    _choice(obs["conventions"], "observation.conventions", CONVENTIONS)
-    _choice(obs["search"], "observation.search", ("exact", "reference"))
-    _choice(obs["psf_profile"], "observation.psf_profile", tuple(PSF_PROFILES))
+    obs["lbda_range"] = [number(f"observation.lbda_range[{i}] [Å]", v, low=0, low_open=True, error=ConfigError)
+                         for i, v in enumerate(rng)]
+    if not obs["lbda_range"][0] < obs["lbda_range"][1]:
+        raise ConfigError(f"observation.lbda_range must be [lo, hi] in Å with 0 < lo < hi, got {rng!r}")
+    choice("observation.frame", obs["frame"], ("rest", "obs"), error=ConfigError)
+    choice("observation.conventions", obs["conventions"], CONVENTIONS, error=ConfigError)
+    choice("observation.search", obs["search"], ("exact", "reference"), error=ConfigError)
+    choice("observation.psf_profile", obs["psf_profile"], tuple(PSF_PROFILES), error=ConfigError)
     if not isinstance(obs["per_resolution"], bool):
         raise ConfigError(f"observation.per_resolution must be true or false, got {obs['per_resolution']!r}")
     if obs["field"] is not None and obs["field_switch_redshift"] is not None:
         raise ConfigError("observation: give field or field_switch_redshift, not both")
     if obs["field"] is not None:
-        _choice(obs["field"], "observation.field", ("narrow", "wide"))
+        choice("observation.field", obs["field"], ("narrow", "wide"), error=ConfigError)
     else:
         zs = DEFAULT_Z_SWITCH if obs["field_switch_redshift"] is None else obs["field_switch_redshift"]
-        obs["field_switch_redshift"] = float(_number(zs, "observation.field_switch_redshift", lo=0))
+        obs["field_switch_redshift"] = number("observation.field_switch_redshift", zs, low=0, error=ConfigError)
     return obs
 
 
@@ -217,8 +227,8 @@ def _products(section):
     for name in PRODUCTS:
         if not isinstance(prod[name], bool):
             raise ConfigError(f"products.{name} must be true or false, got {prod[name]!r}")
-    _choice(prod["cube_dtype"], "products.cube_dtype", ("float32", "float64"))
-    _choice(prod["precision"], "products.precision", ("auto", "double", "single"))
+    choice("products.cube_dtype", prod["cube_dtype"], ("float32", "float64"), error=ConfigError)
+    choice("products.precision", prod["precision"], ("auto", "double", "single"), error=ConfigError)
     try:
         compression_options(None if prod["compression"] == "none" else prod["compression"])
     except (SlicersimError, ValueError) as exc:
@@ -229,9 +239,9 @@ def _products(section):
 def _survey(section):
     _unknown(section, _SURVEY, "survey.")
     sv = {**_SURVEY, **section}
-    sv["overhead"] = float(_number(sv["overhead"], "survey.overhead", lo=0))
-    sv["efficiency"] = float(_number(sv["efficiency"], "survey.efficiency", lo=0, lo_open=True, hi=1))
-    sv["compression_ratio"] = float(_number(sv["compression_ratio"], "survey.compression_ratio", lo=1))
+    sv["overhead"] = number("survey.overhead", sv["overhead"], low=0, unit="s", error=ConfigError)
+    sv["efficiency"] = number("survey.efficiency", sv["efficiency"], low=0, low_open=True, high=1, error=ConfigError)
+    sv["compression_ratio"] = number("survey.compression_ratio", sv["compression_ratio"], low=1, error=ConfigError)
     return sv
 
 
@@ -246,9 +256,10 @@ def parse_spec(doc, text="", base_dir="."):
             raise ConfigError(f"{name} must be a TOML table [{name}], got {doc[name]!r}")
     if "population" not in doc:
         raise ConfigError("the campaign spec has no [population] table")
-    if "seed" not in doc:
-        raise ConfigError("the campaign spec has no seed (seed = <integer>)")
-    seed = _number(doc["seed"], "seed", lo=0, hi=2**64 - 1, integer=True)
+    seed = validation.seed(doc.get("seed"), error=ConfigError)
+    if seed is None:                                  # drawn, and written into the stored spec's text
+        seed = validation.new_seed()
+        text = _with_seed_line(text, seed)
     name = doc.get("name", "")
     if not isinstance(name, str):
         raise ConfigError(f"name must be a string, got {name!r}")
@@ -262,7 +273,7 @@ def parse_spec(doc, text="", base_dir="."):
         population = population_from_spec(doc["population"], base_dir=base_dir)
     except (TypeError, AttributeError) as exc:       # a value of the wrong kind the checks did not name
         raise ConfigError(f"[population]: a value has the wrong type ({exc})") from None
-    return CampaignSpec(seed=int(seed), population=population, observation=obs, products=products,
+    return CampaignSpec(seed=seed, population=population, observation=obs, products=products,
                         survey=survey, name=name, text=text, base_dir=base_dir, config_digests=digests)
 
 

@@ -21,9 +21,10 @@ V = A + B e), LSF, QE, signal and variance of a chunk are one fused kernel
 (:func:`slicersim.backends.cube.detector_block`) fed with small inputs: the
 Gaussian PSF as its two erf factors (nλ × (ny + nx) values), or the Airy PSF
 block, the spectrum G = F f2p, the host block if any, U, QE and the LSF taps;
-the product cube G·P is never stored.  Its NumPy twin and, for Kubik16 or
-``backend="numpy"``, the NumPy path below (scipy LSF + ``cell_variance``) are
-the oracles; they agree to ~1e-15 of the peak.
+the product cube G·P is never stored.  ``backend="numpy"`` and a non-linear variance
+(Kubik16, through :class:`CellVarianceReadout`) run the kernel's NumPy twin, the one NumPy
+cube path; the two agree to ~1e-15 of the peak.  The independent oracle of the tests
+(``tests/cube_oracle.py``: the whole photon cube, scipy LSF, ``cell_variance``) agrees to 1e-12.
 
 ``switch_off`` (:mod:`slicersim.products.components`) drops scene components from the photon
 cube and detector terms from the variance.  :func:`build_scene_cubes` returns the noise-free
@@ -42,14 +43,15 @@ chunking either.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 
 from slicersim.backends.convolution import choose_convolution_method, convolve_cube
-from slicersim.backends.cube import ReadoutConstants, detector_block
-from slicersim.backends.precision import resolve_precision
+from slicersim.backends.cube import DetectorChunk, ReadoutConstants, detector_chunk
+from slicersim.backends.precision import resolve_precision, storage_dtype
 from slicersim.backends.noise import noisy_cube, seed_from
 from slicersim.physics.lsf import lsf_weights
 from slicersim.errors import ParameterError
@@ -212,11 +214,15 @@ def readout_constants(sim, nmd, nramps, off=frozenset()):
                             dark=float(dark), saturation=float(det.saturation))
 
 
+def _linear_variance(sim):
+    """True for the Rauscher07 variance, linear in the electron rate (V = A + B e)."""
+    return sim.detector.variance_model.lower().startswith("rauscher")
+
+
 def _use_fused_kernel(sim, backend):
     """The fused kernel serves the Rauscher07 (linear) variance on an OpenCL backend (``backend``
     as resolved with the precision: a device without fp64 runs it in single precision)."""
-    return (backend == "opencl"
-            and sim.detector.variance_model.lower().startswith("rauscher"))
+    return backend == "opencl" and _linear_variance(sim)
 
 
 def _chunk_bins(nl, ny, nx, halo, max_bytes):
@@ -234,6 +240,179 @@ def _progress_bar(progress, nchunks):
                 delay=0.0 if progress else PROGRESS_DELAY_S)
 
 
+@dataclass(frozen=True)
+class CellVarianceReadout:
+    """Detector stage of the NumPy cube for any variance model (e.g. Kubik16, not linear in the
+    electron rate): ``Simulation.cell_variance`` of readout ``nmd``, r = ``nramps`` ramps summed,
+    integration time ``tint`` [s] per ramp, detector terms in ``off`` removed."""
+    sim: object
+    nmd: tuple
+    nramps: int
+    tint: float
+    off: frozenset = frozenset()
+
+    def signal_variance(self, electrons):
+        """(signal [ADU] (NaN where saturated), variance [ADU²]) of r ramps for e [e-/s/cell]."""
+        var1, sat = self.sim.cell_variance(electrons, self.nmd, self.off)              # ADU² per ramp
+        signal = np.where(sat, np.nan, electrons * self.tint * self.sim.detector.gain) * self.nramps
+        return signal, var1 * self.nramps
+
+
+@dataclass
+class _CubePlan:
+    """What :func:`build_cube` computes, resolved once: readout, scene components, kernels, paths."""
+    nmd: tuple
+    nramps: int
+    tint: float
+    off: frozenset
+    profile: object
+    dtype: np.dtype
+    seed: int | None
+    backend: str                       # as asked ("auto", "opencl", "numpy"): PSF, host and noise hooks
+    fused_backend: str                 # the cube kernel's, resolved with the precision
+    precision: str
+    noise_kw: dict
+    has_point: bool
+    has_host: bool
+    host_method: str | None
+    psf_options: dict | None
+    paths: dict
+
+
+def _check_uncovered(sim):
+    """Warn when the point-source spectrum does not cover the grid (those bins are NaN)."""
+    uncovered = np.isnan(sim.pointsource_flambda)
+    if uncovered.any():
+        ps = sim.scene.pointsource
+        warnings.warn(f"the point-source spectrum covers {ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å only: "
+                      f"{int(uncovered.sum())} of {uncovered.size} bins (and their LSF neighbours) are NaN "
+                      "in the cube", RuntimeWarning, stacklevel=3)
+
+
+def _component_paths(sim, plan):
+    """Computation path of each scene component (and the precision of the arithmetic)."""
+    scene = sim.scene
+    paths = {"pointsource": PATH_POINT if plan.has_point else PATH_ABSENT,
+             "background": PATH_UNIFORM if scene.background is not None else PATH_ABSENT,
+             "thermal": PATH_UNIFORM,
+             "host": f"2-D convolution ({plan.host_method})" if plan.has_host else PATH_ABSENT}
+    if plan.has_point and plan.profile.name != "gaussian":
+        paths["pointsource"] = f"{PATH_POINT}, {plan.profile.name} PSF"
+    paths.update({name: PATH_OFF for name in SCENE_COMPONENTS if name in plan.off})
+    paths["precision"] = "double"             # of the arithmetic; the kernels' below when they run
+    if plan.seed is not None:
+        paths["noise_precision"] = plan.noise_kw["precision"]
+    return paths
+
+
+def _plan_cube(sim, nmd, nramps, psf_profile, seed, backend, dtype, switch_off, precision, psf_options):
+    """Check the arguments of :func:`build_cube` and resolve its readout, backends and paths
+    (the noise draw's precision is refused now, e.g. "double" without fp64, not after the cube)."""
+    off = check_switch_off(switch_off)
+    noise_backend, noise_precision = (resolve_precision(precision, backend, "noise") if seed is not None
+                                      else (None, None))
+    fused_backend, precision = resolve_precision(precision, backend, "cube")
+    profile = get_psf_profile(psf_profile)
+    dtype = storage_dtype(dtype)
+    times = sim.get_times(nmd, nramps)
+    scene = sim.scene
+    has_point = scene.pointsource is not None and "pointsource" not in off
+    has_host = scene.host is not None and "host" not in off
+    if has_point:
+        _check_uncovered(sim)
+    host_method = HOST_CONV_METHOD if has_host else None
+    if host_method == "auto":
+        host_method = choose_convolution_method(sim.spectrograph.shape, host_kernel_shape(sim, profile), backend)
+    plan = _CubePlan(times["nmd"], times["nramps"], times["integration_time_per_ramp"], off, profile, dtype,
+                     None if seed is None else seed_from(seed), backend, fused_backend, precision,
+                     {"backend": noise_backend, "precision": noise_precision}, has_point, has_host, host_method,
+                     psf_options, {})
+    plan.paths.update(_component_paths(sim, plan))
+    return plan
+
+
+def _detector_readout(sim, plan, fused):
+    """The detector stage: :class:`ReadoutConstants` (linear Rauscher07 variance: the fused kernel
+    and its NumPy twin) or :class:`CellVarianceReadout` (any other model, NumPy)."""
+    if fused or _linear_variance(sim):
+        return readout_constants(sim, plan.nmd, plan.nramps, plan.off)
+    return CellVarianceReadout(sim, plan.nmd, plan.nramps, float(plan.tint), plan.off)
+
+
+def _draw_noise(plan, cube, bins, max_bytes):
+    """Noisy planes i0 … i1 − 1 of ``cube`` = (signal, variance, noisy), keyed by the seed and the
+    voxel's flat index in the full cube; drawn straight into ``noisy`` where its dtype allows."""
+    signal, variance, noisy = cube
+    (i0, i1), (ny, nx) = bins, signal.shape[1:]
+    in_place = plan.dtype in ((np.float64, np.float32) if plan.noise_kw["precision"] == "single" else (np.float64,))
+    drawn = noisy_cube(signal[i0:i1], variance[i0:i1], plan.seed,
+                       max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx), first_index=i0 * ny * nx,
+                       out=noisy[i0:i1] if in_place else None, **plan.noise_kw)
+    if not in_place:
+        noisy[i0:i1] = drawn
+
+
+def _uniform_cube(sim, plan, uniform_ph, cube):
+    """A scene without point source or host: one 1-D spectrum [ph/s/cell] broadcast over the field."""
+    signal, variance, _ = cube
+    electrons = uniform_ph * sim.qe
+    var1, sat1 = sim.cell_variance(electrons, plan.nmd, plan.off)
+    signal[...] = (np.where(sat1, np.nan, electrons * plan.tint * sim.detector.gain) * plan.nramps)[:, None, None]
+    variance[...] = (var1 * plan.nramps)[:, None, None]
+    plan.paths["detector"] = "1-D spectrum, broadcast"
+
+
+def _chunk_inputs(sim, plan, spectra, bins, host_groups, fused):
+    """:class:`~slicersim.backends.cube.DetectorChunk` of output bins ``bins`` = (i0, i1): the PSF
+    (the kernel's form when ``fused``, else the full block) and host photons of the input bins
+    lo … hi − 1 (the LSF halo, clipped to the grid)."""
+    taps, flux_ph, uniform_ph = spectra
+    (i0, i1), nl, halo = bins, sim.lbda.size, taps.size // 2
+    lo, hi = max(0, i0 - halo), min(nl, i1 + halo)
+    psf, host = None, None
+    if plan.has_point:
+        psf = (plan.profile.fused(sim, lo, hi, plan.backend, plan.psf_options, plan.precision) if fused else
+               psf_block(sim, plan.profile, lo, hi, backend=plan.backend, options=plan.psf_options,
+                         precision=plan.precision))
+    if plan.has_host:
+        host = host_photons_block(sim, plan.profile, lo, hi, plan.host_method, plan.backend, plan.psf_options,
+                                  host_groups, plan.precision)
+    return DetectorChunk(taps, flux_ph[lo:hi] if plan.has_point else None, uniform_ph[i0:i1], sim.qe[i0:i1],
+                         (i0, i1), nl, lo, psf, host)
+
+
+def _chunked_cube(sim, plan, uniform_ph, cube, max_bytes, progress):
+    """Point source and host: λ chunks within ``max_bytes``, each through the fused kernel (OpenCL,
+    linear variance) or its NumPy twin; → the number of chunks."""
+    nl, (ny, nx) = sim.lbda.size, sim.spectrograph.shape
+    taps = lsf_weights(sim.spectrograph.lsf_sigma)[1]
+    flux_ph = sim.pointsource_flambda * sim.flambda_to_photon if plan.has_point else None    # ph/s
+    step = _chunk_bins(nl, ny, nx, taps.size // 2, max_bytes)
+    starts = range(0, nl, step)
+    fused = _use_fused_kernel(sim, plan.fused_backend)
+    readout = _detector_readout(sim, plan, fused)
+    plan.paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
+    plan.paths["precision"] = plan.precision     # of the kernels (fused, or the PSF and host convolution of
+                                                 # the NumPy path, whose LSF, QE and variance are float64)
+    bar = _progress_bar(progress, len(starts))
+    host_groups = {}                    # convolved host planes shared by consecutive chunks
+    try:
+        for i0 in starts:
+            i1 = min(nl, i0 + step)
+            chunk = _chunk_inputs(sim, plan, (taps, flux_ph, uniform_ph), (i0, i1), host_groups, fused)
+            detector_chunk(chunk, readout, out=(cube[0][i0:i1], cube[1][i0:i1]), dtype=plan.dtype,
+                           backend="opencl" if fused else "numpy", precision=plan.precision)
+            del chunk
+            if plan.seed is not None:
+                _draw_noise(plan, cube, (i0, i1), max_bytes)
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return len(starts)
+
+
 def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, max_bytes=300 * 2**20,
                progress=None, backend="auto", psf_options=None, dtype=np.float64, switch_off=None,
                precision="auto"):
@@ -245,12 +424,12 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     nmd, nramps : readout (n, m, d) and ramps (default: the simulation's)
     psf_profile : "gaussian" (erf-integrated, = Simulation.get_psf) or "airy" (slicersim.backends.psf)
     seed : None (no noisy cube), int in [0, 2⁶⁴) or numpy Generator
-    max_bytes : working-memory budget of one λ chunk (the three output cubes come on top)
+    max_bytes : working-memory budget of one λ chunk [bytes] (the three output cubes come on top)
     progress : None (a tqdm bar for long runs only: shown once the cube has taken
         :data:`PROGRESS_DELAY_S`), True (at once) or False
     backend : "auto" | "opencl" | "numpy".  OpenCL with the Rauscher07 variance: LSF, QE, signal,
-        variance and saturation in one fused kernel (:mod:`slicersim.backends.cube`); also the
-        backend of the noise draw and the Airy/host hooks
+        variance and saturation in one fused kernel (:mod:`slicersim.backends.cube`), else its NumPy
+        twin (any variance model); also the backend of the noise draw and the Airy/host hooks
     psf_options : dict of extra ``compute_psf.psf_cube`` keywords for non-Gaussian profiles
         (e.g. {"grid": "reference", "oversampling": 3} for slicersim 1.0's Airy sampling)
     dtype : float64 (default) or float32 storage of the signal, variance and noisy cubes
@@ -265,136 +444,20 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
         path stays double.  ``paths["precision"]`` records the cube kernels', ``paths["noise_precision"]``
         (with a seed) the noise draw's.
     """
-    off = check_switch_off(switch_off)
-    # the noise draw's backend and precision, from the precision asked for: refused now (e.g. "double"
-    # without fp64), not after the cube
-    noise_backend, noise_precision = (resolve_precision(precision, backend, "noise") if seed is not None
-                                      else (None, None))
-    fused_backend, precision = resolve_precision(precision, backend, "cube")
-    profile = get_psf_profile(psf_profile)
-    dtype = np.dtype(dtype)
-    if dtype not in (np.float64, np.float32):
-        raise ValueError(f"dtype must be float64 or float32, got {dtype}")
-    times = sim.get_times(nmd, nramps)
-    nmd, nramps, tint = times["nmd"], times["nramps"], times["integration_time_per_ramp"]
-    seed = None if seed is None else seed_from(seed)
-    spec, scene = sim.spectrograph, sim.scene
-    lbda = sim.lbda
-    nl, (ny, nx) = lbda.size, spec.shape
-    has_point = scene.pointsource is not None and "pointsource" not in off
-    has_host = scene.host is not None and "host" not in off
-    if has_point:
-        uncovered = np.isnan(sim.pointsource_flambda)
-        if uncovered.any():
-            import warnings
-            ps = scene.pointsource
-            warnings.warn(f"the point-source spectrum covers {ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å only: "
-                          f"{int(uncovered.sum())} of {uncovered.size} bins (and their LSF neighbours) are NaN "
-                          "in the cube", RuntimeWarning, stacklevel=2)
-    paths = {"pointsource": PATH_POINT if has_point else PATH_ABSENT,
-             "background": PATH_UNIFORM if scene.background is not None else PATH_ABSENT,
-             "thermal": PATH_UNIFORM,
-             "host": PATH_ABSENT}
-    paths.update({name: PATH_OFF for name in SCENE_COMPONENTS if name in off})
-    paths["precision"] = "double"             # of the arithmetic; "single" below when the kernels run so
-    if seed is not None:
-        paths["noise_precision"] = noise_precision
-    noise_kw = {"backend": noise_backend, "precision": noise_precision}
-    noise_out = (np.float64, np.float32) if noise_precision == "single" else (np.float64,)   # drawn in place
-    host_method = None
-    if has_host:
-        host_method = HOST_CONV_METHOD
-        if host_method == "auto":
-            host_method = choose_convolution_method((ny, nx), host_kernel_shape(sim, profile),
-                                                                   backend)
-        paths["host"] = f"2-D convolution ({host_method})"
-    if has_point and profile.name != "gaussian":
-        paths["pointsource"] = f"{PATH_POINT}, {profile.name} PSF"
-
-    gain, qe = sim.detector.gain, sim.qe
-    background_ph, thermal_ph = sim.uniform_photons(off)
-    uniform_ph = spec.apply_lsf(background_ph + thermal_ph)                         # ph/s/cell, (nλ,)
-    shape = (nl, ny, nx)
-    signal, variance = np.empty(shape, dtype), np.empty(shape, dtype)
-    noisy = None if seed is None else np.empty(shape, dtype)
-
-    if not (has_point or has_host):        # uniform scene: everything is a 1-D spectrum
-        electrons = uniform_ph * qe
-        var1, sat1 = sim.cell_variance(electrons, nmd, off)
-        signal[...] = (np.where(sat1, np.nan, electrons * tint * gain) * nramps)[:, None, None]
-        variance[...] = (var1 * nramps)[:, None, None]
-        paths["detector"] = "1-D spectrum, broadcast"
-        if seed is not None:
-            drawn = noisy_cube(signal, variance, seed, max_bytes=max(max_bytes, _NOISE_BYTES_PER_VOXEL * ny * nx),
-                               out=noisy if dtype in noise_out else None, **noise_kw)
-            if drawn is not noisy:
-                noisy[...] = drawn
-        return CubeResult(signal, variance, noisy, paths, 1, lbda.copy(), profile.name, seed)
-
-    flux_ph = sim.pointsource_flambda * sim.flambda_to_photon if has_point else None    # ph/s
-    halo = lsf_halo(sim)
-    step = _chunk_bins(nl, ny, nx, halo, max_bytes)
-    starts = range(0, nl, step)
-    noise_bytes_per_bin = _NOISE_BYTES_PER_VOXEL * ny * nx          # at least one λ plane per noise call
-    fused = _use_fused_kernel(sim, fused_backend)
-    if fused:
-        readout = readout_constants(sim, nmd, nramps, off)
-        taps = lsf_weights(spec.lsf_sigma)[1]
-    paths["detector"] = FUSED_KERNEL if fused else "NumPy (LSF, QE, signal, variance)"
-    paths["precision"] = precision          # of the kernels (fused, or the PSF and host convolution of the
-                                            # NumPy path, whose LSF, QE and variance are float64)
-    bar = _progress_bar(progress, len(starts))
-    host_groups = {}                    # convolved host planes shared by consecutive chunks
-    try:
-        for i0 in starts:
-            i1 = min(nl, i0 + step)
-            lo, hi = max(0, i0 - halo), min(nl, i1 + halo)
-            out = (signal[i0:i1], variance[i0:i1])
-            if fused:
-                psf = profile.fused(sim, lo, hi, backend, psf_options, precision) if has_point else None
-                host = (host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options, host_groups,
-                                           precision) if has_host else None)
-                detector_block(taps, flux_ph[lo:hi] if has_point else None, uniform_ph[i0:i1], qe[i0:i1],
-                               readout, bins=(i0, i1), nl=nl, lo=lo, psf=psf, host=host, out=out, dtype=dtype,
-                               backend="opencl", precision=precision)
-                del psf, host
-            else:
-                _numpy_chunk(sim, profile, flux_ph, uniform_ph, (i0, i1), (lo, hi), host_method, backend,
-                             psf_options, nmd, tint, nramps, out, host_groups if has_host else None, off,
-                             precision)
-            if seed is not None:        # drawn straight into the output where its dtype allows (no temporary)
-                drawn = noisy_cube(signal[i0:i1], variance[i0:i1], seed,
-                                   max_bytes=max(max_bytes, noise_bytes_per_bin), first_index=i0 * ny * nx,
-                                   out=noisy[i0:i1] if dtype in noise_out else None, **noise_kw)
-                if dtype not in noise_out:
-                    noisy[i0:i1] = drawn
-                del drawn
-            if bar is not None:
-                bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
-    return CubeResult(signal, variance, noisy, paths, len(starts), lbda.copy(), profile.name, seed)
-
-
-def _numpy_chunk(sim, profile, flux_ph, uniform_ph, bins, block, host_method, backend, psf_options, nmd, tint,
-                 nramps, out, host_groups, off, precision="double"):
-    """NumPy oracle of one chunk: photon block (PSF and host kernels in ``precision``), LSF (scipy), QE,
-    ``Simulation.cell_variance``."""
-    (i0, i1), (lo, hi) = bins, block
-    photons = 0.0                                                                    # ph/s/cell
-    if flux_ph is not None:
-        photons = flux_ph[lo:hi, None, None] * psf_block(sim, profile, lo, hi, backend=backend,
-                                                         options=psf_options, precision=precision)
-    if host_groups is not None:         # the builder's dict of convolved host groups (None: no host)
-        photons = photons + host_photons_block(sim, profile, lo, hi, host_method, backend, psf_options,
-                                               host_groups, precision)
-    photons = sim.spectrograph.apply_lsf(photons, axis=0)[i0 - lo:i1 - lo] + uniform_ph[i0:i1, None, None]
-    electrons = photons * sim.qe[i0:i1, None, None]                                 # e-/s/cell
-    var1, sat = sim.cell_variance(electrons, nmd, off)                               # ADU² per ramp
-    signal, variance = out
-    signal[...] = np.where(sat, np.nan, electrons * tint * sim.detector.gain) * nramps
-    variance[...] = var1 * nramps
+    plan = _plan_cube(sim, nmd, nramps, psf_profile, seed, backend, dtype, switch_off, precision, psf_options)
+    shape = (sim.lbda.size, *sim.spectrograph.shape)
+    cube = (np.empty(shape, plan.dtype), np.empty(shape, plan.dtype),
+            None if plan.seed is None else np.empty(shape, plan.dtype))
+    background_ph, thermal_ph = sim.uniform_photons(plan.off)
+    uniform_ph = sim.spectrograph.apply_lsf(background_ph + thermal_ph)              # ph/s/cell, (nλ,)
+    if plan.has_point or plan.has_host:
+        nchunks = _chunked_cube(sim, plan, uniform_ph, cube, max_bytes, progress)
+    else:
+        _uniform_cube(sim, plan, uniform_ph, cube)
+        nchunks = 1
+        if plan.seed is not None:
+            _draw_noise(plan, cube, (0, shape[0]), max_bytes)
+    return CubeResult(*cube, plan.paths, nchunks, sim.lbda.copy(), plan.profile.name, plan.seed)
 
 
 def scene_photon_rates(sim, off=frozenset(), psf_profile="gaussian", backend="auto", psf_options=None):

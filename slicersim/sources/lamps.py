@@ -56,7 +56,6 @@ def _number(name, value, *, positive=True, allow_zero=False, upper=None):
         return validation.number(name, value)
     return validation.number(name, value, low=0.0, low_open=not allow_zero,
                              high=math.inf if upper is None else upper)
-    return val
 
 
 def bin_edges_from_centres(lbda):
