@@ -151,13 +151,13 @@ def test_snr_does_not_depend_on_gain(gain):
     from slicersim import LazuliSupernova
     sn = LazuliSupernova(1.0)
     band = (8000.0, 13600.0)
-    ref = sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4)
+    ref = sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4, frame="obs")
     sn.simulation.update(gain=gain)
-    assert sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4) == pytest.approx(ref, rel=1e-12)
+    assert sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4, frame="obs") == pytest.approx(ref, rel=1e-12)
     old = LazuliSupernova(1.0, conventions="slicersim-1.0")
-    ref_old = old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4)
+    ref_old = old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4, frame="obs")
     old.simulation.update(gain=gain)
-    assert old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4) == pytest.approx(ref_old * gain**2,
+    assert old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4, frame="obs") == pytest.approx(ref_old * gain**2,
                                                                                          rel=1e-12)
 
 

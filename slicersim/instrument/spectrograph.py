@@ -12,6 +12,7 @@ from scipy.interpolate import CubicSpline
 
 from slicersim.constants import ARCSEC
 from slicersim.errors import ParameterError
+from slicersim.instrument.names import check_parameter_names
 from slicersim.io.curves import read_curve
 from slicersim.physics.lsf import apply_lsf
 from slicersim.physics.thermal import photon_radiance, solid_angle_from_fratio
@@ -318,10 +319,7 @@ class Spectrograph(Versioned):
     def updated(self, **kwargs):
         """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
         import copy
-        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
-        if unknown:
-            raise ParameterError(f"unknown spectrograph parameter(s) {unknown}; accepted: "
-                                 f"{', '.join(self.mutable_parameters)}")
+        check_parameter_names("spectrograph", kwargs, self.mutable_parameters)
         params = dict(self._params)
         kwargs = dict(kwargs)
         if "optics" in kwargs:

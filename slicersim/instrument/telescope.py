@@ -5,6 +5,7 @@ import numpy as np
 
 from slicersim.constants import AIRY_SIGMA_FACTOR, ARCSEC, LBDA_REF_AA
 from slicersim.errors import ParameterError
+from slicersim.instrument.names import check_parameter_names
 from slicersim.physics.thermal import photon_radiance
 from slicersim.versioning import Versioned
 
@@ -84,10 +85,7 @@ class Telescope(Versioned):
 
     def updated(self, **kwargs):
         """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
-        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
-        if unknown:
-            raise ParameterError(f"unknown telescope parameter(s) {unknown}; accepted: "
-                                 f"{', '.join(self.mutable_parameters)}")
+        check_parameter_names("telescope", kwargs, self.mutable_parameters)
         # the mirror set is redefined only when emissivity and nelements change together
         redefine = "emissivity" in kwargs and "nelements" in kwargs
         nexp = len(np.atleast_1d(kwargs["emissivity"])) if redefine else self.nmirrors
