@@ -9,7 +9,7 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.constants import HC_ERG_AA
-from slicersim.errors import ETCError, SpectrumError
+from slicersim.errors import ETCError, ParameterError, SpectrumError
 from slicersim.instrument.names import check_parameter_names
 from slicersim.physics.conventions import (DEFAULT_CONVENTIONS, check_conventions, detector_pixels_per_cell,
                                           instrumental_blur_sigma)
@@ -234,6 +234,11 @@ class Simulation(Versioned):
         radiance = (self.telescope.thermal_radiance(lbda_mid) if which == "telescope"
                     else self.spectrograph.dispersed_thermal_radiance(lbda_mid))
         return self.telescope.area * self.spectrograph.cell_solid_angle * self.spectrograph.dlbda * radiance
+
+    def thermal_photons_of(self, which):
+        """Thermal photons per cell [ph/s/cell] (before LSF) of ``which``: "telescope" (mirrors)
+        or "optics" (the dispersed internal optics)."""
+        return self._thermal_photons(validation.choice("which", which, ("telescope", "optics")))
 
     @property
     def thermal_photons(self):
@@ -572,10 +577,14 @@ def _check_aperture(value):
 
 def check_snr(snr, name="snr"):
     """A target SNR as a float: a finite number > 0.  ParameterError for what is not a number
-    (strings, bools, lists), ETCError for an impossible value (NaN, inf, ≤ 0)."""
-    if isinstance(snr, (bool, np.bool_)) or not isinstance(snr, (int, float, np.integer, np.floating)):
-        return validation.number(name, snr)        # raises ParameterError: not a number
-    return validation.number(name, snr, low=0.0, low_open=True, error=ETCError)
+    (strings, bools, lists), ETCError for an impossible value (NaN, inf, ≤ 0); both name ``name``."""
+    is_number = isinstance(snr, (int, float, np.integer, np.floating)) and not isinstance(snr, (bool, np.bool_))
+    error = ETCError if is_number else ParameterError
+    try:
+        return validation.number(name, snr, low=0.0, low_open=True, error=error)
+    except error:
+        raise error(f"{name}: the target SNR must be a finite number > 0, got "
+                    f"{validation.short_repr(snr)}") from None
 
 
 def check_band(lbda_range, name="lbda_range"):

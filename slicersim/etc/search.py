@@ -17,6 +17,7 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.errors import ETCError  # noqa: F401  (re-exported)
+from slicersim.simulation import check_snr
 from slicersim.etc.snr_table import band_snr_table_for_models, sim_band_indices
 from slicersim.physics.readout import readout_times
 
@@ -40,8 +41,9 @@ REFERENCE_SHORTFALL = 0.10
 
 
 def check_snr_target(snr, name="snr"):
-    """A target SNR: a finite number > 0 (ETCError naming ``name`` otherwise)."""
-    return validation.number(name, snr, low=0.0, low_open=True, error=ETCError)
+    """A target SNR: a finite number > 0 (:func:`slicersim.simulation.check_snr`: ETCError for an
+    impossible value, ParameterError for what is not a number)."""
+    return check_snr(snr, name)
 
 
 def check_search(search):
