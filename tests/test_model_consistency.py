@@ -313,3 +313,36 @@ def test_partial_optics_update_keeps_other_keys(sn):
     finally:
         sim.update(optics={"temperature": optics["temperature"]})
     np.testing.assert_array_equal(sim.thermal_photons, th)
+
+
+# --------------------------------------------------------------------------- messages (issue 24)
+def test_update_errors_name_the_parameter_and_change_nothing(sn):
+    """update(): an array value is summarised (not printed whole), unknown names get a did-you-mean
+    and the accepted list, unknown noptics components list the valid ones; nothing changes."""
+    sim = sn.simulation
+    before = _snapshot(sim)
+    with pytest.raises(ParameterError, match=r"qe must be a number, a \(λ, QE\) pair of arrays or a curve file, got an array of shape \(1000,\)") as info:
+        sim.update(qe=np.linspace(0.1, 0.9, 1000), ron=3.0)
+    assert len(str(info.value)) < 300
+    components = list(sim.spectrograph.throughput_model.components)
+    with pytest.raises(ParameterError, match=rf"unknown noptics component .*'silver'; valid: '{components[0]}'"):
+        sim.update(noptics={"silver": 10})
+    with pytest.raises(ParameterError, match=r"unknown simulation parameter\(s\) \['gian'\] \(did you mean 'gain'\?\); "
+                                             r"accepted: nramps"):
+        sim.update(gian=2.0)
+    with pytest.raises(ParameterError, match=r"unknown target parameter\(s\) \['redshfit'\] \(did you mean 'redshift'\?\)"):
+        sn.update(redshfit=2.0)
+    with pytest.raises(ParameterError, match=r"gain \[adu / electron\] must be > 0"):
+        sim.update(gain=0.0, nramps=4)
+    with pytest.raises(ParameterError, match=r"guiding_sigma \[arcsec\] must be ≥ 0"):
+        sim.update(guiding_sigma=-1.0, ron=1.0)
+    with pytest.raises(ParameterError, match=r"spatial_scale \[arcsec\] must be > 0"):
+        sim.update(spatial_scale=0.0)
+    _assert_same(before, _snapshot(sim))
+
+
+def test_partial_band_error_names_keyword_and_flag(sn):
+    """A partly covered band: the message names the Python keyword and the CLI flag."""
+    from slicersim.errors import SpectrumError
+    with pytest.raises(SpectrumError, match=r"allow_partial=True in Python, --allow-partial on the command line"):
+        sn.get_band_snr((7000, 9000))
