@@ -553,15 +553,17 @@ def _result(target, etc):
 
 
 def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame=None,
-               config="cbe", field="narrow", search="exact", redshift=None, conventions=DEFAULT_CONVENTIONS,
-               allow_partial=False):
+               config="cbe", field="narrow", search="exact", redshift=None, **options):
     """Exposure time for any spectrum with the Lazuli IFS; returns a dict
     (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target).
-    ``frame`` (None: "rest" with a ``redshift``, else "obs") and ``allow_partial`` (band coverage
-    rule) as :meth:`Target.setup_to_snr`."""
+    ``frame`` (None: "rest" with a ``redshift``, else "obs") as :meth:`Target.setup_to_snr`;
+    keywords ``conventions`` (default "physical") and ``allow_partial`` (band coverage rule of
+    :meth:`Target.setup_to_snr`, default False)."""
+    check_parameter_names("lazuli_etc", options, ("conventions", "allow_partial"))
     target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift,
-                          conventions=conventions)
-    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))
+                          conventions=options.get("conventions", DEFAULT_CONVENTIONS))
+    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search,
+                                               allow_partial=options.get("allow_partial", False)))
 
 
 def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame=None, config="cbe", field="narrow",
