@@ -13,6 +13,7 @@ from astropy.cosmology import Planck18
 from conftest import reference_case_ids, reference_config
 from slicersim.etc.solve import solve_many
 from slicersim.etc.search import candidate_readouts, exact_choice
+from slicersim.errors import ETCError
 from slicersim.targets import LazuliTarget
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
@@ -166,6 +167,12 @@ def test_frame_default_is_rest_when_a_redshift_is_known():
     target = LazuliTarget(LBDA, np.full(LBDA.size, 1e-17))
     assert target.simulation.band_range(band) == (4000.0, 6800.0)
     assert target.get_band_snr(band) == target.get_band_snr(band, frame="obs")
+    with pytest.raises(ETCError, match=r"frame='rest' needs a target redshift"):
+        target.get_band_snr(band, frame="rest")
+    # a user spectrum labelled with a redshift: its bands are read in the rest frame by default
+    labelled = LazuliTarget(LBDA, np.full(LBDA.size, 1e-17), redshift=0.5)
+    assert labelled.simulation.band_range(band) == (6000.0, 10200.0)
+    assert labelled.get_band_snr(band) == labelled.get_band_snr((6000.0, 10200.0), frame="obs")
 
 
 def test_fetch_snr_in_the_rest_frame_matches_the_target():

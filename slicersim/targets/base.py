@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import inspect
 
-import numpy as np
-
 from slicersim import validation
 from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field  # noqa: F401
 from slicersim.errors import ETCError, ParameterError, SlicersimError
