@@ -43,8 +43,6 @@ class CubeTuple(tuple):
     """(signal, variance[, noisy]) of :meth:`Simulation.get_cube`, a plain tuple that also
     records the noise ``seed`` (int; None without a noisy cube) so a draw can be repeated."""
 
-    seed = None
-
     def __new__(cls, items, seed=None):
         obj = super().__new__(cls, items)
         obj.seed = seed
@@ -599,9 +597,8 @@ def check_band(lbda_range, name="lbda_range"):
     return lo, hi
 
 
-def _check_nramps(value):
-    """nramps as an int ≥ 1 (:func:`slicersim.validation.nramps`; kept for targets/detector.py)."""
-    return validation.nramps(value)
+#: nramps as an int ≥ 1 (kept for targets/detector.py; use :func:`slicersim.validation.nramps`)
+_check_nramps = validation.nramps
 
 
 def _band_snr(signal, variance):
