@@ -210,6 +210,10 @@ def test_solve_many_options_object_and_frame_default(random_batch):
     options = solve_batch(LBDA, fluxes, 20.0, ranges, options=SolveOptions(search="exact"))
     for key in ("n", "m", "d", "nramps", "exposure_time"):
         np.testing.assert_array_equal(keyword[key], options[key])
+    mixed = solve_many(LBDA, fluxes, 20.0, ranges, options=SolveOptions(search="reference", per_resolution=False),
+                       per_resolution=True)
+    assert mixed.meta["search"] == "reference"
+    np.testing.assert_allclose(mixed["snr"], mixed["snr_per_bin"] * np.sqrt(2.3))       # per_resolution=True won
     with pytest.raises(ParameterError, match=r"unknown solve_many parameter\(s\) \['per_resolutoin'\] "
                                              r"\(did you mean 'per_resolution'\?\)"):
         solve_many(LBDA, fluxes, 20.0, ranges, per_resolutoin=False)

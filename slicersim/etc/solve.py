@@ -119,7 +119,8 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame=None, config="cbe", field="
     redshifts : None, float or (N,)  the targets' redshifts (``frame="rest"``)
     frame, config, field, search and the keywords ``per_resolution``, ``backend``, ``max_bytes``,
     ``progress``, ``conventions``, ``allow_partial``, ``precision``: :class:`SolveOptions`
-    (or ``options=SolveOptions(...)``, the keywords then override it).
+    (or ``options=SolveOptions(...)``: the keywords given, and frame/config/field/search when not
+    left at their defaults, override it).
 
     Returns
     -------
@@ -130,7 +131,11 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame=None, config="cbe", field="
     base = SolveOptions() if options is None else options
     if not isinstance(base, SolveOptions):
         raise ParameterError(f"options must be a SolveOptions, got {validation.short_repr(options)}")
-    opts = replace(base, frame=frame, config=config, field=field, search=search, **kwargs)
+    named = {"frame": frame, "config": config, "field": field, "search": search}
+    default = SolveOptions()
+    # with options=, a named argument left at its default keeps the options' value
+    named = {k: v for k, v in named.items() if options is None or v is not getattr(default, k)}
+    opts = replace(base, **named, **kwargs)
     return solve_batch(lbda, fluxes, snr, lbda_ranges, redshifts, opts)
 
 
