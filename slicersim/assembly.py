@@ -7,8 +7,7 @@ here.
 """
 from __future__ import annotations
 
-import math
-
+from slicersim import validation
 from slicersim.errors import ConfigError
 from slicersim.instrument.detector import Detector
 from slicersim.instrument.mapper import SlicerMapper
@@ -30,9 +29,9 @@ IFU_OPTICS_INDEX = 1
 
 
 def check_field(field):
-    if field is not None and field not in LAZULI_FIELDS:
-        raise ConfigError(f"unknown field {field!r}: 'narrow' or 'wide'")
-    return field
+    """A Lazuli field name ("narrow", "wide") or None (the configuration as written); ConfigError
+    listing the valid ones (with a did-you-mean) otherwise."""
+    return validation.choice("field", field, (*LAZULI_FIELDS, None), error=ConfigError)
 
 
 def build_simulation(config="cbe", field="narrow", pointsource=None, background="zodi",
@@ -59,9 +58,8 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
                           guiding_sigma=psf.get("guiding_sigma", 0.0))
     if psf.get("psf_sigma_spectral", "default") not in ("default", None):
         raise ConfigError("psf_sigma_spectral other than 'default' is not supported yet")
-    kind = spc.get("kind", "slicer")
-    if kind not in ("slicer", "mla"):
-        raise ConfigError(f"unknown spectrograph kind {kind!r}: 'slicer' or 'mla'")
+    kind = validation.choice("kind", spc.get("kind", "slicer"), ("slicer", "mla"), error=ConfigError,
+                             what="spectrograph kind")
     cls = SlicerSpectrograph if kind == "slicer" else MLASpectrograph
     extra = _mla_options(cfg.get("spectrograph.psf.detector", {}), ext) if kind == "mla" else {}
     if "dispersion_law" not in spc and "resolving_power" not in spc:
@@ -106,15 +104,8 @@ def _mla_options(xdisp, ext):
     for key, val, positive in (("xdisp_sigma_spectral", xdisp.get("xdisp_sigma_spectral"), False),
                                ("xdisp_sigma", xdisp.get("xdisp_sigma"), False),
                                ("xdisp_width_insigma", ext.get("xdisp_width_insigma"), True)):
-        if val is None:
-            continue
-        try:
-            num = float(val)
-        except (TypeError, ValueError):
-            num = math.nan
-        if isinstance(val, bool) or not math.isfinite(num) or num < 0 or (positive and num == 0):
-            raise ConfigError(f"{key} must be a finite number {'> 0' if positive else '≥ 0'}, got {val!r}")
-        out[key] = num
+        if val is not None:
+            out[key] = validation.number(key, val, low=0.0, low_open=positive, error=ConfigError)
     return out
 
 

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.constants import HC_ERG_AA
-from slicersim.errors import ETCError, ParameterError, ReadoutError, SpectrumError
+from slicersim.errors import ETCError, ParameterError, SpectrumError
+from slicersim.instrument.names import check_parameter_names
 from slicersim.physics.conventions import (DEFAULT_CONVENTIONS, check_conventions, detector_pixels_per_cell,
                                           instrumental_blur_sigma)
 from slicersim.physics.psf import aperture_cells, gaussian_psf_fractions, gaussian_psf_sigmas
@@ -21,7 +23,30 @@ from slicersim.products.extraction import ExtractionModel
 from slicersim.products.psf_profiles import get_psf_profile
 from slicersim.versioning import Versioned, state_token
 
-__all__ = ["Simulation", "SimulationUpdate", "VARIANCE_SOURCES", "SCENE_COMPONENTS", "ExtractionModel", "check_snr"]
+__all__ = ["Simulation", "SimulationUpdate", "VARIANCE_SOURCES", "SCENE_COMPONENTS", "ExtractionModel", "CubeTuple",
+           "check_snr", "check_band", "resolve_frame", "FRAMES"]
+
+#: the frames a band can be given in (``frame=None``: "rest" when the object knows a redshift, else "obs")
+FRAMES = ("rest", "obs", None)
+
+
+def resolve_frame(frame, redshift):
+    """``"rest"`` or ``"obs"``: ``frame`` checked (ParameterError listing the valid values);
+    None is "rest" when ``redshift`` is known (not None), else "obs"."""
+    frame = validation.choice("frame", frame, FRAMES)
+    if frame is None:
+        return "obs" if redshift is None else "rest"
+    return frame
+
+
+class CubeTuple(tuple):
+    """(signal, variance[, noisy]) of :meth:`Simulation.get_cube`, a plain tuple that also
+    records the noise ``seed`` (int; None without a noisy cube) so a draw can be repeated."""
+
+    def __new__(cls, items, seed=None):
+        obj = super().__new__(cls, items)
+        obj.seed = seed
+        return obj
 
 
 class SimulationUpdate:
@@ -113,10 +138,7 @@ class Simulation(Versioned):
     def plan_update(self, _position=None, **kwargs):
         """The validated new state of :meth:`update` (:class:`SimulationUpdate`), nothing changed:
         targets validate their own parts against it before :meth:`apply_update`."""
-        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
-        if unknown:
-            raise ParameterError(f"unknown simulation parameter(s) {unknown}; accepted: "
-                                 f"{', '.join(self.mutable_parameters)}")
+        check_parameter_names("simulation", kwargs, self.mutable_parameters)
         groups = {"detector": {}, "spectrograph": {}, "telescope": {}}
         own = {}
         for key, val in kwargs.items():
@@ -139,7 +161,7 @@ class Simulation(Versioned):
     def apply_update(self, plan):
         """Apply a :meth:`plan_update` result of this simulation (nothing here can fail)."""
         if plan.simulation is not self:
-            raise ValueError("this update was planned for another simulation")
+            raise ValueError("this update was planned for another simulation")  # internal: a plan of another object
         for name, obj in plan.components.items():
             getattr(self, name)._adopt(obj)
         self.nramps, self.aperture_radius_insigma = plan.nramps, plan.aperture_radius_insigma
@@ -210,6 +232,11 @@ class Simulation(Versioned):
         radiance = (self.telescope.thermal_radiance(lbda_mid) if which == "telescope"
                     else self.spectrograph.dispersed_thermal_radiance(lbda_mid))
         return self.telescope.area * self.spectrograph.cell_solid_angle * self.spectrograph.dlbda * radiance
+
+    def thermal_photons_of(self, which):
+        """Thermal photons per cell [ph/s/cell] (before LSF) of ``which``: "telescope" (mirrors)
+        or "optics" (the dispersed internal optics)."""
+        return self._thermal_photons(validation.choice("which", which, ("telescope", "optics")))
 
     @property
     def thermal_photons(self):
@@ -351,8 +378,7 @@ class Simulation(Versioned):
         (4, nλ, ny, nx) array in that order (1.4.2).
         In ADU their sum is the signal of :meth:`get_cube` (same readout, PSF and
         ``switch_off``), to rounding, where no cell saturates (the cube is NaN there)."""
-        if not isinstance(as_dict, (bool, np.bool_)):
-            raise ParameterError(f"as_dict must be True or False, got {as_dict!r}")
+        validation.flag("as_dict", as_dict)
         cubes = build_scene_cubes(self, unit=unit, nmd=nmd, nramps=nramps, per_ramp=per_ramp,
                                   psf_profile=psf_profile, switch_off=switch_off, backend=backend)
         return cubes if as_dict else cubes.stack()
@@ -360,7 +386,10 @@ class Simulation(Versioned):
     def get_cube(self, nmd=None, nramps=None, seed=None, psf_profile="gaussian", backend="auto",
                  switch_off=None, **options):
         """Signal [ADU] and variance [ADU²] cubes summed over the ramps, plus a noisy
-        realisation when ``seed`` (int or numpy Generator) is given.
+        realisation when ``seed`` (an int in [0, 2⁶⁴)) is given: a :class:`CubeTuple`
+        whose ``.seed`` records it.  ``seed=None`` (default) gives the noiseless pair only
+        (the seed is the noise switch of cubes); a numpy Generator is deprecated (an integer seed
+        is drawn from it, with a DeprecationWarning, and recorded in ``.seed``).
 
         ``switch_off`` (a name or names of :data:`VARIANCE_SOURCES`, or ``"effective_dark"``)
         removes scene components from the signal and variance and detector terms from the
@@ -381,9 +410,9 @@ class Simulation(Versioned):
         (``max_bytes``, ``progress``, ``psf_options``, ``precision``: "auto", "double" or
         "single" kernels, :mod:`slicersim.backends.precision`).
         """
-        seed = check_seed(seed)
-        return tuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,
-                                switch_off=switch_off, **options))
+        seed = validation.seed(seed)
+        return CubeTuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,
+                                    switch_off=switch_off, **options), seed)
 
     # ------------------------------------------------------------------ extraction
     @property
@@ -453,23 +482,24 @@ class Simulation(Versioned):
         check_band_coverage(self, (lo, hi), allow_partial=allow_partial)
         return mask
 
-    def band_range(self, lbda_range, frame="obs"):
+    def band_range(self, lbda_range, frame=None):
         """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame
-        (rest: ×(1 + redshift); needs :attr:`redshift`)."""
+        (rest: ×(1 + redshift); needs :attr:`redshift`); ``frame=None`` (default) is "rest" when
+        :attr:`redshift` is known, else "obs" (:func:`resolve_frame`).  Bounds may be astropy
+        Quantities (converted to Å)."""
         lo, hi = check_band(lbda_range)
-        if frame == "rest":
+        if resolve_frame(frame, self.redshift) == "rest":
             if self.redshift is None:
                 raise ETCError("frame='rest' needs a redshift (Simulation.redshift is None)")
             return lo * (1 + self.redshift), hi * (1 + self.redshift)
-        if frame != "obs":
-            raise ETCError(f"frame must be 'obs' or 'rest', got {frame!r}")
         return lo, hi
 
-    def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False, frame="obs",
+    def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False, frame=None,
                      allow_partial=False, switch_off=None):
         """Band SNR = mean(signal) / √mean(variance) over the bins in ``lbda_range``
-        (per bin; ×√dispersion_resolution when ``per_resolution``); ``frame="rest"``
-        reads ``lbda_range`` in the source rest frame (needs :attr:`redshift`).
+        (per bin; ×√dispersion_resolution when ``per_resolution``); ``frame``: the frame
+        ``lbda_range`` is given in, "rest" (needs :attr:`redshift`), "obs", or None (default:
+        "rest" when :attr:`redshift` is known, else "obs"; :meth:`band_range`).
 
         A band not entirely inside the grid and the source spectrum raises SpectrumError
         unless ``allow_partial=True`` (then a BandCoverageWarning, and the means run over
@@ -494,11 +524,11 @@ class Simulation(Versioned):
             out[src] = total - var_off
         return out
 
-    def get_band_variance_contribution(self, lbda_range, nmd=None, nramps=None, allow_partial=False):
+    def get_band_variance_contribution(self, lbda_range, nmd=None, nramps=None, allow_partial=False, frame=None):
         """Band-mean variance contributions: absolute [ADU²] and fractions ``frac_<src>``
-        (band coverage rule: :meth:`band_mask`)."""
+        (band coverage rule: :meth:`band_mask`; ``frame`` as :meth:`get_band_snr`)."""
         nmd, nramps = self._readout(nmd, nramps)
-        mask = self.band_mask(lbda_range, allow_partial=allow_partial)
+        mask = self.band_mask(self.band_range(lbda_range, frame), allow_partial=allow_partial)
         signal, total = self._spectrum(nmd, nramps)
         mean_total = np.nanmean(total[mask])
         times = self.get_times(nmd, nramps)
@@ -517,67 +547,47 @@ class Simulation(Versioned):
         return out
 
     # ------------------------------------------------------------------ ETC
-    def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", allow_partial=False, **kwargs):
+    def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", allow_partial=False, frame=None,
+                  backend="auto"):
         """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.etc.search`);
+        ``frame`` as :meth:`get_band_snr` (None: "rest" when :attr:`redshift` is known);
         band coverage rule (``allow_partial``): :meth:`band_mask`."""
         from slicersim.etc.search import solve_readout  # etc/ sits above: its solve_many builds Simulations
         return solve_readout(self, check_snr(snr), lbda_range, per_resolution=per_resolution, search=search,
-                             allow_partial=allow_partial, **kwargs)
+                             allow_partial=allow_partial, frame=frame, backend=backend)
 
 
 def _check_aperture(value):
-    try:
-        value = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(f"aperture_radius_insigma must be a number, got {value!r}") from exc
-    if not (np.isfinite(value) and value > 0):
-        raise ParameterError(f"aperture_radius_insigma must be finite and > 0, got {value}")
-    return value
+    """aperture_radius_insigma: a finite number > 0 [σ_ref / cell]."""
+    return validation.number("aperture_radius_insigma", value, low=0.0, low_open=True)
 
 
-def check_snr(snr):
+def check_snr(snr, name="snr"):
     """A target SNR as a float: a finite number > 0.  ParameterError for what is not a number
-    (strings, bools, lists), ETCError for an impossible value (NaN, inf, ≤ 0)."""
-    if isinstance(snr, (bool, np.bool_)) or not isinstance(snr, (int, float, np.integer, np.floating)):
-        raise ParameterError(f"the target SNR must be a finite number > 0, got {snr!r}")
-    if not (np.isfinite(snr) and snr > 0):
-        raise ETCError(f"the target SNR must be a finite number > 0, got {snr!r}")
-    return float(snr)
-
-
-def check_band(lbda_range):
-    """(lo, hi) [Å] as finite floats with lo < hi (ETCError otherwise)."""
+    (strings, bools, lists), ETCError for an impossible value (NaN, inf, ≤ 0); both name ``name``."""
+    is_number = isinstance(snr, (int, float, np.integer, np.floating)) and not isinstance(snr, (bool, np.bool_))
+    error = ETCError if is_number else ParameterError
     try:
-        lo, hi = (float(v) for v in lbda_range)
-    except (TypeError, ValueError) as exc:
-        raise ETCError(f"lbda_range must be (lo, hi) in Å, got {lbda_range!r}") from exc
-    if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
-        raise ETCError(f"lbda_range must be finite (lo, hi) with lo < hi, got {lbda_range!r}")
+        return validation.number(name, snr, low=0.0, low_open=True, error=error)
+    except error:
+        raise error(f"{name}: the target SNR must be a finite number > 0, got "
+                    f"{validation.short_repr(snr)}") from None
+
+
+def check_band(lbda_range, name="lbda_range"):
+    """(lo, hi) [Å] as finite floats with lo < hi (ETCError otherwise); astropy Quantities
+    (a Quantity pair or two Quantities) are converted to Å."""
+    if isinstance(lbda_range, (str, bytes)) or not hasattr(lbda_range, "__len__") or len(lbda_range) != 2:
+        raise ETCError(f"{name} must be (lo, hi) in Å, got {validation.short_repr(lbda_range)}")
+    lo, hi = (validation.number(f"{name}[{i}]", v, unit="Angstrom", error=ETCError)
+              for i, v in enumerate(lbda_range))
+    if not hi > lo:
+        raise ETCError(f"{name} must be (lo, hi) in Å with lo < hi, got {validation.short_repr(lbda_range)}")
     return lo, hi
 
 
-def _check_nramps(value):
-    """nramps as an int ≥ 1 (ReadoutError for None, NaN, inf, non-integers, strings, bools)."""
-    if isinstance(value, (bool, np.bool_)) or isinstance(value, str) or value is None:
-        raise ReadoutError(f"nramps must be an integer ≥ 1, got {value!r}")
-    try:
-        fval = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ReadoutError(f"nramps must be an integer ≥ 1, got {value!r}") from exc
-    if not np.isfinite(fval) or fval != int(fval) or fval < 1:
-        raise ReadoutError(f"nramps must be an integer ≥ 1, got {value!r}")
-    return int(fval)
-
-
-def check_seed(seed):
-    """A noise seed: None, a numpy Generator or an int in [0, 2⁶⁴) (ParameterError otherwise)."""
-    if seed is None or isinstance(seed, np.random.Generator):
-        return seed
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
-        raise ParameterError(f"seed must be an integer in [0, 2**64) or a numpy Generator, got {seed!r}")
-    if not 0 <= int(seed) < 2**64:
-        raise ParameterError(f"seed must be in [0, 2**64), got {seed}")
-    return int(seed)
+#: nramps as an int ≥ 1 (kept for targets/detector.py; use :func:`slicersim.validation.nramps`)
+_check_nramps = validation.nramps
 
 
 def _band_snr(signal, variance):

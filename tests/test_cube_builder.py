@@ -487,3 +487,23 @@ def test_one_numpy_cube_path(sim, monkeypatch):
     detector.update(variance_model="Kubik16")
     build_cube(Simulation(sim.scene, sim.telescope, sim.spectrograph, detector), **READOUT, progress=False)
     assert seen == [backend_cube.ReadoutConstants, CellVarianceReadout]
+
+
+def test_get_cube_seed_is_recorded_and_generator_deprecated(narrow_band_sim):
+    """seed: an int in [0, 2**64) or None (noiseless pair); the seed is recorded on the result
+    (CubeTuple.seed); a numpy Generator still works for one release, with a DeprecationWarning,
+    and the integer drawn from it is recorded so the draw can be repeated."""
+    from slicersim.errors import ParameterError
+    sim = narrow_band_sim
+    plain = sim.get_cube(nmd=(4, 1, 0), backend="numpy")
+    assert len(plain) == 2 and plain.seed is None
+    noisy = sim.get_cube(nmd=(4, 1, 0), seed=7, backend="numpy")
+    assert len(noisy) == 3 and noisy.seed == 7
+    with pytest.warns(DeprecationWarning, match="seed"):
+        drawn = sim.get_cube(nmd=(4, 1, 0), seed=np.random.default_rng(3), backend="numpy")
+    assert isinstance(drawn.seed, int)
+    again = sim.get_cube(nmd=(4, 1, 0), seed=drawn.seed, backend="numpy")
+    np.testing.assert_array_equal(again[2], drawn[2])
+    for bad in (1.5, -1, "3", True):
+        with pytest.raises(ParameterError, match="seed"):
+            sim.get_cube(nmd=(4, 1, 0), seed=bad, backend="numpy")

@@ -151,13 +151,13 @@ def test_snr_does_not_depend_on_gain(gain):
     from slicersim import LazuliSupernova
     sn = LazuliSupernova(1.0)
     band = (8000.0, 13600.0)
-    ref = sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4)
+    ref = sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4, frame="obs")
     sn.simulation.update(gain=gain)
-    assert sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4) == pytest.approx(ref, rel=1e-12)
+    assert sn.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4, frame="obs") == pytest.approx(ref, rel=1e-12)
     old = LazuliSupernova(1.0, conventions="slicersim-1.0")
-    ref_old = old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4)
+    ref_old = old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4, frame="obs")
     old.simulation.update(gain=gain)
-    assert old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4) == pytest.approx(ref_old * gain**2,
+    assert old.simulation.get_band_snr(band, nmd=(56, 8, 0), nramps=4, frame="obs") == pytest.approx(ref_old * gain**2,
                                                                                          rel=1e-12)
 
 
@@ -309,3 +309,25 @@ def test_rauscher07_monte_carlo(nmd, flux, sigma):
     # unbiased: the mean estimate is the expected integrated charge
     assert abs(estimate.mean() - flux * t_int) < 5 * math.sqrt(var_model / nramps)
     assert abs(var_mc - var_model) < 4 * sigma_var, (var_mc, var_model, sigma_var)
+
+
+def test_detector_scalars_accept_quantities():
+    """Detector tframe [s], dark [e-/s], ron [e-], gain [ADU/e-], pixel size [µm], saturation [ADU]:
+    a Quantity gives the same detector as the plain number in the documented unit; a wrong
+    unit is a ParameterError naming the parameter."""
+    import astropy.units as u
+    from slicersim.errors import ParameterError
+    from slicersim.instrument.detector import Detector
+    plain = Detector(tframe=2.83, dark=0.01, ron=12.0, gain=1.5, pixel_size=10.0)
+    quant = Detector(tframe=2830 * u.ms, dark=36.0 * u.electron / u.hour, ron=12 * u.electron,
+                     gain=1.5 * u.adu / u.electron, pixel_size=0.01 * u.mm)
+    for name in ("tframe", "dark", "ron", "gain", "pixel_size"):
+        assert getattr(quant, name) == pytest.approx(getattr(plain, name), rel=1e-12)
+    np.testing.assert_allclose(quant.pixel_variance(np.array([0.5, 5.0])), plain.pixel_variance(np.array([0.5, 5.0])),
+                               rtol=1e-12)
+    with pytest.raises(ParameterError, match=r"tframe must be in units convertible to s"):
+        Detector(tframe=3 * u.m)
+    with pytest.raises(ParameterError, match=r"ron \[electron\] must be ≥ 0"):
+        Detector(ron=-1.0)
+    with pytest.raises(ParameterError, match="max_group"):
+        Detector(max_group=2.5)

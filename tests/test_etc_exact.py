@@ -13,6 +13,7 @@ from astropy.cosmology import Planck18
 from conftest import reference_case_ids, reference_config
 from slicersim.etc.solve import solve_many
 from slicersim.etc.search import candidate_readouts, exact_choice
+from slicersim.errors import ETCError
 from slicersim.targets import LazuliTarget
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
@@ -144,3 +145,81 @@ def test_unreachable_target_raises():
     flux = np.where(LBDA < 5000, 1e-17, 0.0)
     with pytest.raises(ETCError, match="cannot reach"):
         solve_many(LBDA, flux[None], 20.0, [(9000.0, 12000.0)])
+
+
+# --------------------------------------------------------------------------- frame (issue 24)
+def test_frame_default_is_rest_when_a_redshift_is_known():
+    """frame=None everywhere: "rest" when the object knows a redshift, else "obs".  The
+    simulation of a supernova reads a band as the supernova does (it used to read it in the
+    observer frame: 0.296 instead of the SN's rest-frame SNR 20)."""
+    from slicersim.targets import LazuliSupernova
+    sn = LazuliSupernova(1.0)
+    sn.setup_to_snr(20)
+    band = (4000, 6800)
+    assert sn.simulation.get_band_snr(band) == sn.get_band_snr(band)
+    assert sn.simulation.get_band_snr(band, per_resolution=True) == pytest.approx(sn.last_etc["snr_per_resolution"])
+    # explicit frames still work and agree
+    assert sn.simulation.get_band_snr(band, frame="rest") == sn.get_band_snr(band, frame="rest")
+    assert sn.get_band_snr(band, frame="obs") == sn.simulation.get_band_snr(band, frame="obs")
+    assert sn.get_band_snr((8000, 13600), frame="obs") == sn.get_band_snr(band)
+    assert sn.simulation.band_range(band) == (8000.0, 13600.0)
+    # no redshift: the observer frame
+    target = LazuliTarget(LBDA, np.full(LBDA.size, 1e-17))
+    assert target.simulation.band_range(band) == (4000.0, 6800.0)
+    assert target.get_band_snr(band) == target.get_band_snr(band, frame="obs")
+    with pytest.raises(ETCError, match=r"frame='rest' needs a target redshift"):
+        target.get_band_snr(band, frame="rest")
+    # a user spectrum labelled with a redshift: its bands are read in the rest frame by default
+    labelled = LazuliTarget(LBDA, np.full(LBDA.size, 1e-17), redshift=0.5)
+    assert labelled.simulation.band_range(band) == (6000.0, 10200.0)
+    assert labelled.get_band_snr(band) == labelled.get_band_snr((6000.0, 10200.0), frame="obs")
+
+
+def test_fetch_snr_in_the_rest_frame_matches_the_target():
+    """Simulation.fetch_snr(frame="rest") used to fail with an internal TypeError; it gives the
+    readout of the target-level call."""
+    from slicersim.targets import LazuliSupernova
+    sn = LazuliSupernova(1.0)
+    sim_result = sn.simulation.fetch_snr(20, (4000, 6800), frame="rest")
+    assert sim_result["lbda_range_obs"] == (8000.0, 13600.0)
+    assert sn.simulation.fetch_snr(20, (4000, 6800))["nmd"] == sim_result["nmd"]       # None: rest (z known)
+    target_result = sn.setup_to_snr(20, (4000, 6800), frame="rest")
+    assert (sim_result["nmd"], sim_result["nramps"]) == (target_result["nmd"], target_result["nramps"])
+    assert sim_result["exposure_time"] == target_result["exposure_time"]
+    obs = sn.simulation.fetch_snr(20, (8000, 13600), frame="obs")
+    assert (obs["nmd"], obs["nramps"]) == (sim_result["nmd"], sim_result["nramps"])
+
+
+def test_band_bounds_accept_quantities():
+    """Band bounds [Å] may be astropy Quantities (any length unit): same SNR as plain Å."""
+    import astropy.units as u
+    target = LazuliTarget(LBDA, np.full(LBDA.size, 1e-17))
+    plain = target.get_band_snr((5000.0, 9000.0))
+    assert target.get_band_snr((500 * u.nm, 0.9 * u.um)) == pytest.approx(plain, rel=1e-12)
+    assert target.get_band_snr([5000, 9000] * u.AA) == pytest.approx(plain, rel=1e-12)
+
+
+def test_solve_many_options_object_and_frame_default(random_batch):
+    """solve_batch(options=SolveOptions(...)) is solve_many's keyword form; an unknown keyword is a
+    ParameterError naming it; frame=None with redshifts reads the bands in the rest frame."""
+    from slicersim.errors import ParameterError
+    from slicersim.etc.solve import SolveOptions, solve_batch
+    fluxes, ranges, _ = random_batch
+    fluxes, ranges = fluxes[:5], ranges[:5]
+    keyword = solve_many(LBDA, fluxes, 20.0, ranges, config="cbe", field="narrow", search="exact")
+    options = solve_batch(LBDA, fluxes, 20.0, ranges, options=SolveOptions(search="exact"))
+    for key in ("n", "m", "d", "nramps", "exposure_time"):
+        np.testing.assert_array_equal(keyword[key], options[key])
+    mixed = solve_many(LBDA, fluxes, 20.0, ranges, options=SolveOptions(search="reference", per_resolution=False),
+                       per_resolution=True)
+    assert mixed.meta["search"] == "reference"
+    np.testing.assert_allclose(mixed["snr"], mixed["snr_per_bin"] * np.sqrt(2.3))       # per_resolution=True won
+    with pytest.raises(ParameterError, match=r"unknown solve_many parameter\(s\) \['per_resolutoin'\] "
+                                             r"\(did you mean 'per_resolution'\?\)"):
+        solve_many(LBDA, fluxes, 20.0, ranges, per_resolutoin=False)
+    z = 0.5
+    rest = solve_many(LBDA, fluxes, 20.0, (4000, 6000), redshifts=z)
+    obs = solve_many(LBDA, fluxes, 20.0, (6000, 9000), frame="obs", redshifts=z)
+    np.testing.assert_array_equal(rest["exposure_time"], obs["exposure_time"])
+    with pytest.raises(ParameterError, match=r"unknown frame 'Rest' \(did you mean 'rest'\?\)"):
+        solve_many(LBDA, fluxes, 20.0, ranges, frame="Rest")

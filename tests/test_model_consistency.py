@@ -26,7 +26,7 @@ def _snapshot(sim):
             "nmd": det.nmd, "nramps": sim.nramps, "lbda": lbda, "signal": signal, "variance": variance,
             "throughput": spec.throughput.copy(), "f2p": sim.flambda_to_photon.copy(),
             "thermal": sim.thermal_photons.copy(), "thermal_dark": sim.thermal_dark,
-            "snr": sim.get_band_snr(BAND), "times": sim.get_times(),
+            "snr": sim.get_band_snr(BAND, frame="obs"), "times": sim.get_times(),
             "aperture": sim.aperture_radius_insigma, "optics": {k: list(v) for k, v in spec.optics.items()}}
 
 
@@ -59,7 +59,7 @@ def test_failed_simulation_update_changes_nothing(sn, bad, match):
     _assert_same(before, _snapshot(sim))
     # and it still works: a valid per-mirror update takes effect, then is undone exactly
     sim.update(temperature=[350.0, 293.0, 293.0, 293.0])
-    assert sim.get_band_snr(BAND) < before["snr"]
+    assert sim.get_band_snr(BAND, frame="obs") < before["snr"]
     sim.update(temperature=293.0)
     _assert_same(before, _snapshot(sim))
 
@@ -103,38 +103,38 @@ def test_component_updates_are_atomic(sn):
 def test_component_changes_take_effect_at_once():
     t = LazuliSupernova(1.0)
     sim = t.simulation
-    snr0, f2p0 = sim.get_band_snr(BAND), sim.flambda_to_photon.copy()
+    snr0, f2p0 = sim.get_band_snr(BAND, frame="obs"), sim.flambda_to_photon.copy()
     sim.spectrograph.set_throughput(0.25)                     # directly on the component
     np.testing.assert_array_equal(sim.spectrograph.throughput, 0.25)
     assert not np.array_equal(sim.flambda_to_photon, f2p0)
-    assert sim.get_band_snr(BAND) < snr0
+    assert sim.get_band_snr(BAND, frame="obs") < snr0
     t.set_throughput(1.0)
-    assert sim.get_band_snr(BAND) > snr0
+    assert sim.get_band_snr(BAND, frame="obs") > snr0
     # noptics applies to the file throughput of the Lazuli configuration
     t2 = LazuliSupernova(1.0)
     thr = t2.simulation.spectrograph.throughput.copy()
-    snr = t2.simulation.get_band_snr(BAND)
+    snr = t2.simulation.get_band_snr(BAND, frame="obs")
     t2.simulation.update(noptics={"narrow": 2})
     np.testing.assert_allclose(t2.simulation.spectrograph.throughput, thr**2, rtol=1e-14)
-    assert t2.simulation.get_band_snr(BAND) < snr
+    assert t2.simulation.get_band_snr(BAND, frame="obs") < snr
     # direct attribute assignment is seen too
-    ron_snr = t2.simulation.get_band_snr(BAND)
+    ron_snr = t2.simulation.get_band_snr(BAND, frame="obs")
     t2.simulation.detector.ron = 100.0
-    assert t2.simulation.get_band_snr(BAND) < ron_snr
+    assert t2.simulation.get_band_snr(BAND, frame="obs") < ron_snr
 
 
 def test_host_assignment_takes_effect():
     t = LazuliSupernova(1.0)
     sim = t.simulation
-    snr0 = sim.get_band_snr(BAND)
+    snr0 = sim.get_band_snr(BAND, frame="obs")
     lbda = np.arange(3000.0, 20000.0, 10.0)
     sim.scene.host = Host(SersicProfile(1.0, 0.3, 0.7, 20.0), lbda, np.full(lbda.size, 5e-16))
-    snr_host = sim.get_band_snr(BAND)
+    snr_host = sim.get_band_snr(BAND, frame="obs")
     assert snr_host < snr0
     sim.scene.host.profile.offset = (0.5, 0.0)                 # moving the host far out is seen
-    assert sim.get_band_snr(BAND) > snr_host
+    assert sim.get_band_snr(BAND, frame="obs") > snr_host
     sim.scene.host = None
-    assert sim.get_band_snr(BAND) == snr0
+    assert sim.get_band_snr(BAND, frame="obs") == snr0
 
 
 def test_resolving_power_and_dispersion_law():
@@ -188,8 +188,8 @@ def test_paper_names_and_rest_frame():
     assert t.get_exptime() == t.get_exposure_time() == pytest.approx(5071.36)
     sim = t.simulation
     assert sim.redshift == 1.0
-    assert sim.get_band_snr((4000, 6800), frame="rest") == sim.get_band_snr((8000, 13600))
-    assert t.get_band_snr((4000, 6800), frame="rest") == sim.get_band_snr((8000, 13600))
+    assert sim.get_band_snr((4000, 6800), frame="rest") == sim.get_band_snr((8000, 13600), frame="obs")
+    assert t.get_band_snr((4000, 6800), frame="rest") == sim.get_band_snr((8000, 13600), frame="obs")
     sim.redshift = None
     with pytest.raises(ETCError, match="redshift"):
         sim.get_band_snr((4000, 6800), frame="rest")
@@ -313,3 +313,36 @@ def test_partial_optics_update_keeps_other_keys(sn):
     finally:
         sim.update(optics={"temperature": optics["temperature"]})
     np.testing.assert_array_equal(sim.thermal_photons, th)
+
+
+# --------------------------------------------------------------------------- messages (issue 24)
+def test_update_errors_name_the_parameter_and_change_nothing(sn):
+    """update(): an array value is summarised (not printed whole), unknown names get a did-you-mean
+    and the accepted list, unknown noptics components list the valid ones; nothing changes."""
+    sim = sn.simulation
+    before = _snapshot(sim)
+    with pytest.raises(ParameterError, match=r"qe must be a number, a \(λ, QE\) pair of arrays or a curve file, got an array of shape \(1000,\)") as info:
+        sim.update(qe=np.linspace(0.1, 0.9, 1000), ron=3.0)
+    assert len(str(info.value)) < 300
+    components = list(sim.spectrograph.throughput_model.components)
+    with pytest.raises(ParameterError, match=rf"unknown noptics component .*'silver'; valid: '{components[0]}'"):
+        sim.update(noptics={"silver": 10})
+    with pytest.raises(ParameterError, match=r"unknown simulation parameter\(s\) \['gian'\] \(did you mean 'gain'\?\); "
+                                             r"accepted: nramps"):
+        sim.update(gian=2.0)
+    with pytest.raises(ParameterError, match=r"unknown target parameter\(s\) \['redshfit'\] \(did you mean 'redshift'\?\)"):
+        sn.update(redshfit=2.0)
+    with pytest.raises(ParameterError, match=r"gain \[adu / electron\] must be > 0"):
+        sim.update(gain=0.0, nramps=4)
+    with pytest.raises(ParameterError, match=r"guiding_sigma \[arcsec\] must be ≥ 0"):
+        sim.update(guiding_sigma=-1.0, ron=1.0)
+    with pytest.raises(ParameterError, match=r"spatial_scale \[arcsec\] must be > 0"):
+        sim.update(spatial_scale=0.0)
+    _assert_same(before, _snapshot(sim))
+
+
+def test_partial_band_error_names_keyword_and_flag(sn):
+    """A partly covered band: the message names the Python keyword and the CLI flag."""
+    from slicersim.errors import SpectrumError
+    with pytest.raises(SpectrumError, match=r"allow_partial=True in Python, --allow-partial on the command line"):
+        sn.get_band_snr((7000, 9000))

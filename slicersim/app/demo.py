@@ -99,51 +99,19 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     result under ``"reference"`` and the written ``files``.
     """
     from slicersim import __version__
-    from slicersim.app.plotting import plot_instrument, plot_ramp_group, plot_spectrum, plot_variance_budget
     from slicersim.targets import LazuliSupernova
 
     t0 = time.perf_counter()
     out = print if verbose else (lambda *a, **k: None)
-    if not overwrite:
-        for name in DEMO_FILES[:None if ramp_nmd else 4]:
-            path = os.path.join(outdir, name)
-            if os.path.lexists(path):
-                raise FileExistsError(errno.EEXIST, "output file exists (use --overwrite / overwrite=True "
-                                      "to replace it)", path)
+    _refuse_existing(outdir, ramp_nmd, overwrite)
     os.makedirs(outdir, exist_ok=True)
-
-    # --- exact search (default) -------------------------------------------------
     target = LazuliSupernova(redshift, config=config, field=field)
-    res = target.setup_to_snr(snr, lbda_range=DEMO_BAND, frame="rest")
-    exact = _etc_summary(target, res, snr, "exact")
-    budget = target.get_band_variance_contribution(lbda_range=DEMO_BAND, frame="rest")
-    fractions = {k[len("frac_"):]: float(v) for k, v in budget.items() if k.startswith("frac_")}
-    exact["variance_budget"] = fractions
-    exact["band_signal_adu"] = float(budget["signal"])
-    exact["band_variance_adu2"] = float(budget["variance"])
-
-    # --- slicersim 1.0 reference walk, for comparison --------------------------------
+    exact = _exact_etc(target, snr)
+    # slicersim 1.0 reference walk, for comparison
     ref_target = LazuliSupernova(redshift, config=config, field=field)
-    ref_res = ref_target.setup_to_snr(snr, lbda_range=DEMO_BAND, frame="rest", search="reference")
-    reference = _etc_summary(ref_target, ref_res, snr, "reference")
-
-    # --- figures ----------------------------------------------------------------------
-    files = {"spectrum": os.path.join(outdir, "spectrum.png"),
-             "variance_budget": os.path.join(outdir, "variance_budget.png"),
-             "instrument": os.path.join(outdir, "instrument.png"),
-             "etc_result": os.path.join(outdir, "etc_result.json")}
-    plot_spectrum(target, seed=1, savefile=files["spectrum"])
-    plot_variance_budget(target, savefile=files["variance_budget"])
-    plot_instrument(target.simulation, savefile=files["instrument"])
-
-    # --- raw ramp of the full detector (short readout so the demo stays quick) ---------
-    if ramp_nmd:
-        files["ramp"] = os.path.join(outdir, "raw_ramp.h5")
-        files["ramp_group"] = os.path.join(outdir, "raw_ramp_group.png")
-        target.get_ramps(out=files["ramp"], nmd=tuple(ramp_nmd), nramps=1, seed=2026, progress=False,
-                         overwrite=overwrite)
-        plot_ramp_group(files["ramp"], savefile=files["ramp_group"])
-
+    reference = _etc_summary(ref_target, ref_target.setup_to_snr(snr, lbda_range=DEMO_BAND, frame="rest",
+                                                                 search="reference"), snr, "reference")
+    files = _write_figures(target, outdir, ramp_nmd, overwrite)
     lo, hi = DEMO_BAND
     summary = {"slicersim_version": __version__,
                "target": {"kind": "SN Ia (hsiao-subsampled, peak, M_B = -19.3)", "redshift": float(redshift),
@@ -158,8 +126,58 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
         json.dump(summary, fh, indent=2)
         fh.write("\n")
     summary["elapsed_s"] = time.perf_counter() - t0
+    _print_report(out, summary, exact, reference, (redshift, snr, config, field, outdir))
+    return summary
 
-    # --- report ------------------------------------------------------------------------
+
+def _refuse_existing(outdir, ramp_nmd, overwrite):
+    """FileExistsError (before any work) for an output file already in ``outdir``, unless ``overwrite``."""
+    if overwrite:
+        return
+    for name in DEMO_FILES[:None if ramp_nmd else 4]:
+        path = os.path.join(outdir, name)
+        if os.path.lexists(path):
+            raise FileExistsError(errno.EEXIST, "output file exists (use --overwrite / overwrite=True "
+                                  "to replace it)", path)
+
+
+def _exact_etc(target, snr):
+    """The exact search (default) on ``target`` and its band variance budget (fractions)."""
+    res = target.setup_to_snr(snr, lbda_range=DEMO_BAND, frame="rest")
+    exact = _etc_summary(target, res, snr, "exact")
+    budget = target.get_band_variance_contribution(lbda_range=DEMO_BAND, frame="rest")
+    exact["variance_budget"] = {k[len("frac_"):]: float(v) for k, v in budget.items() if k.startswith("frac_")}
+    exact["band_signal_adu"] = float(budget["signal"])
+    exact["band_variance_adu2"] = float(budget["variance"])
+    return exact
+
+
+def _write_figures(target, outdir, ramp_nmd, overwrite):
+    """Spectrum, variance budget and instrument figures, and (with ``ramp_nmd``) a short raw ramp of
+    the full detector and one of its groups; returns the paths (with the JSON summary's)."""
+    from slicersim.app.plotting import plot_instrument, plot_ramp_group, plot_spectrum, plot_variance_budget
+    files = {"spectrum": os.path.join(outdir, "spectrum.png"),
+             "variance_budget": os.path.join(outdir, "variance_budget.png"),
+             "instrument": os.path.join(outdir, "instrument.png"),
+             "etc_result": os.path.join(outdir, "etc_result.json")}
+    plot_spectrum(target, seed=1, savefile=files["spectrum"])
+    plot_variance_budget(target, savefile=files["variance_budget"])
+    plot_instrument(target.simulation, savefile=files["instrument"])
+    if ramp_nmd:
+        files["ramp"] = os.path.join(outdir, "raw_ramp.h5")
+        files["ramp_group"] = os.path.join(outdir, "raw_ramp_group.png")
+        target.get_ramps(out=files["ramp"], nmd=tuple(ramp_nmd), nramps=1, seed=2026, progress=False,
+                         overwrite=overwrite)
+        plot_ramp_group(files["ramp"], savefile=files["ramp_group"])
+    return files
+
+
+def _print_report(out, summary, exact, reference, run):
+    """The demo's text report through ``out`` (print or a no-op); ``run``: (redshift, snr, config,
+    field, outdir)."""
+    from slicersim import __version__
+    redshift, snr, config, field, outdir = run
+    lo, hi = DEMO_BAND
     cfg = config if isinstance(config, str) else "+".join(map(str, config))
     out(f"slicersim {__version__} demo: SN Ia at z = {redshift:g} with the Lazuli IFS "
         f"({cfg}, {field} field)")
@@ -169,7 +187,7 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     for line in _report_lines("exact search (default):", exact):
         out(line)
     out("  band variance budget      : " + ", ".join(
-        _pct(k, v) for k, v in sorted(fractions.items(), key=lambda kv: -kv[1]) if v != 0.0))
+        _pct(k, v) for k, v in sorted(exact["variance_budget"].items(), key=lambda kv: -kv[1]) if v != 0.0))
     out("")
     for line in _report_lines("reference search (slicersim 1.0 walk, tolerance 0.5 per bin):", reference):
         out(line)
@@ -177,6 +195,5 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     out(f"  vs exact                  : {dt:+.1f} s exposure, "
         f"{reference['snr_per_resolution'] - exact['snr_per_resolution']:+.2f} SNR per resolution element")
     out("")
-    out(f"wrote {', '.join(os.path.basename(p) for p in files.values())} in {os.path.abspath(outdir)}")
+    out(f"wrote {', '.join(os.path.basename(p) for p in summary['files'].values())} in {os.path.abspath(outdir)}")
     out(f"({summary['elapsed_s']:.1f} s)")
-    return summary

@@ -27,10 +27,12 @@ import numpy as np
 
 from slicersim.errors import SpectrumError
 
-__all__ = ["MIN_GRID_COVERAGE", "BandCoverageWarning", "covered_fraction", "check_band_in_grid", "warn_partial_spectrum",
+__all__ = ["ALLOW_PARTIAL_HINT", "MIN_GRID_COVERAGE", "BandCoverageWarning", "covered_fraction", "check_band_in_grid", "warn_partial_spectrum",
            "check_band_coverage"]
 
 
+#: how a message names the switch that accepts a partly covered band (Python keyword and CLI flag)
+ALLOW_PARTIAL_HINT = "allow_partial=True in Python, --allow-partial on the command line"
 #: smallest fraction of a band that must lie inside the instrument grid (else SpectrumError)
 MIN_GRID_COVERAGE = 0.5
 
@@ -69,7 +71,7 @@ def check_band_in_grid(ranges, grid_edges, who=None, allow_partial=True):
     if part.size and not allow_partial:
         raise SpectrumError(f"{head(part)} is only {100 * frac[part[0]]:.1f} % inside the instrument grid "
                             f"{g0:.0f}–{g1:.0f} Å: the SNR would be that of a narrower band; choose a band "
-                            "inside the grid or pass allow_partial=True to use the covered part")
+                            f"inside the grid or use the covered part ({ALLOW_PARTIAL_HINT})")
     if part.size:
         warnings.warn(f"{head(part)} is only {100 * frac[part[0]]:.1f} % inside the instrument grid "
                       f"{g0:.0f}–{g1:.0f} Å: the SNR is computed on the covered part",
@@ -93,7 +95,7 @@ def warn_partial_spectrum(ranges, spec_lo, spec_hi, who=None, allow_partial=True
                f"{100 * frac[i]:.1f} % of the {head}")
         if not allow_partial:
             raise SpectrumError(f"{msg}: the SNR would be that of a narrower band; choose a band the "
-                                "spectrum covers or pass allow_partial=True to use the covered part")
+                                f"spectrum covers or use the covered part ({ALLOW_PARTIAL_HINT})")
         warnings.warn(f"the source spectrum ({float(spec_lo):.0f}–{float(spec_hi):.0f} Å) covers only "
                       f"{100 * frac[i]:.1f} % of the {head}: the SNR is computed on the covered part",
                       BandCoverageWarning, stacklevel=3)

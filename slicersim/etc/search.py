@@ -11,16 +11,18 @@ Two strategies:
 """
 from __future__ import annotations
 
-from slicersim.errors import ETCError  # noqa: F401  (re-exported)
-
 import math
 
 import numpy as np
 
+from slicersim import validation
+from slicersim.errors import ETCError  # noqa: F401  (re-exported)
+from slicersim.simulation import check_snr
 from slicersim.etc.snr_table import band_snr_table_for_models, sim_band_indices
 from slicersim.physics.readout import readout_times
 
-__all__ = ["solve_readout", "reference_walk", "exact_choice", "ETCError", "FRAMES_PER_GROUP",
+__all__ = ["solve_readout", "reference_walk", "exact_choice", "ETCError", "FRAMES_PER_GROUP", "SEARCHES",
+           "check_snr_target", "check_search",
            "MAX_TOTAL_EXPOSURE", "MAX_RAMPS"]
 
 #: frames per group allowed by the exact search (MACC modes of the H4RG ROIC)
@@ -29,6 +31,8 @@ FRAMES_PER_GROUP = (8, 4, 1)
 MAX_TOTAL_EXPOSURE = 365.25 * 86400.0
 #: most ramps the ETC returns (keeps ramps × frames exact in int64); more raise ETCError
 MAX_RAMPS = 10**9
+#: the search strategies of :func:`solve_readout`
+SEARCHES = ("exact", "reference")
 #: relative shortfall (beyond the walk's absolute tolerance 0.5) accepted at the end of the
 #: reference walk; a walk ending lower raises ETCError
 REFERENCE_SHORTFALL = 0.10
@@ -36,10 +40,15 @@ REFERENCE_SHORTFALL = 0.10
 
 
 
-def check_snr_target(snr):
-    if not (np.isfinite(snr) and snr > 0):
-        raise ETCError(f"target SNR must be a finite number > 0, got {snr!r}")
-    return float(snr)
+def check_snr_target(snr, name="snr"):
+    """A target SNR: a finite number > 0 (:func:`slicersim.simulation.check_snr`: ETCError for an
+    impossible value, ParameterError for what is not a number)."""
+    return check_snr(snr, name)
+
+
+def check_search(search):
+    """``search`` one of :data:`SEARCHES` (ETCError listing them otherwise)."""
+    return validation.choice("search", search, SEARCHES, error=ETCError)
 
 
 # --------------------------------------------------------------------------- #
@@ -302,16 +311,21 @@ def check_reference_result(snr, lbda_range, target, reached, exposure_time, tfra
 #  single-target driver                                                        #
 # --------------------------------------------------------------------------- #
 def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", backend="auto",
-                  allow_partial=False):
+                  allow_partial=False, frame=None):
     """Solve the ETC for a :class:`~slicersim.simulation.Simulation`.
 
-    ``allow_partial``: band coverage rule of :meth:`Simulation.band_mask
-    <slicersim.simulation.Simulation.band_mask>` (:mod:`slicersim.etc.bands`).
+    ``lbda_range`` [Å] is read in ``frame``: "rest", "obs" or None (default: "rest" when the
+    simulation knows a redshift, else "obs"; :meth:`Simulation.band_range
+    <slicersim.simulation.Simulation.band_range>`).  ``allow_partial``: band coverage rule of
+    :meth:`Simulation.band_mask <slicersim.simulation.Simulation.band_mask>` (:mod:`slicersim.etc.bands`).
 
     Returns a dict: nmd, nramps, snr (band SNR per bin reached), snr_target (per bin),
-    exposure_time (total, s), trace (reference search only).
+    exposure_time (total, s), trace (reference search only), lbda_range_obs (the band [Å]
+    in the observer frame).
     """
     snr = check_snr_target(snr)
+    search = check_search(search)
+    lbda_range = sim.band_range(lbda_range, frame)          # observer frame from here on
     dr = sim.spectrograph.dispersion_resolution
     target = snr / math.sqrt(dr) if per_resolution else snr
     det = sim.detector
@@ -325,12 +339,13 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
                 if det.max_group and n > det.max_group:   # the 1.0 walk on n has no upper bound
                     check_reference_result(snr, lbda_range, target, np.inf, 0.0, det.tframe,
                                            nmd=key, max_group=det.max_group)
-                memo[key] = sim.get_band_snr(lbda_range, nmd=key, nramps=1, allow_partial=allow_partial)
+                memo[key] = sim.get_band_snr(lbda_range, nmd=key, nramps=1, allow_partial=allow_partial,
+                                             frame="obs")
             return memo[key] * math.sqrt(r)
         nmd, nramps, reached, trace = reference_walk(snr_of, target, det.max_group or 64, det.nmd[2])
         check_reference_result(snr, lbda_range, target, reached,
                                nramps * readout_times(nmd, det.tframe)["exposure_time_per_ramp"], det.tframe)
-    elif search == "exact":
+    else:
         n, m, d = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
         band = sim_band_indices(mask)[None, :]
         snr1 = band_snr_table_for_models(sim, [sim.extraction_model], band, (n, m, d), backend=backend)
@@ -342,8 +357,7 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
                            "(no signal in the band?)")
         nmd = (int(choice["n"][0]), int(choice["m"][0]), int(choice["d"][0]))
         nramps, reached, trace = int(choice["nramps"][0]), float(choice["snr"][0]), None
-    else:
-        raise ETCError(f"unknown search {search!r}: 'exact' or 'reference'")
     exptime = nramps * readout_times(nmd, det.tframe)["exposure_time_per_ramp"]
     return {"nmd": nmd, "nramps": nramps, "snr": reached, "snr_target": target,
-            "snr_per_resolution": reached * math.sqrt(dr), "exposure_time": exptime, "trace": trace}
+            "snr_per_resolution": reached * math.sqrt(dr), "exposure_time": exptime, "trace": trace,
+            "lbda_range_obs": lbda_range}

@@ -9,19 +9,25 @@ kernel ``band_variance.cl`` or its NumPy twin), then the readout is chosen with
 from __future__ import annotations
 
 import math
+import sys
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from slicersim import validation
+from slicersim.assembly import check_field
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES
-from slicersim.errors import ETCError, SpectrumError
-from slicersim.physics.conventions import DEFAULT_CONVENTIONS
+from slicersim.errors import ETCError, ParameterError, SpectrumError
 from slicersim.etc.bands import check_band_in_grid, warn_partial_spectrum
-from slicersim.etc.search import (candidate_readouts, check_reference_result,
+from slicersim.etc.search import (candidate_readouts, check_reference_result, check_search,
                                   check_snr_target, exact_choice, limit_error, max_frames_for,
                                   reference_walk)
 from slicersim.etc.snr_table import band_snr_table_for_models, template_psf
+from slicersim.instrument.names import check_parameter_names
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
+from slicersim.simulation import FRAMES, resolve_frame
 
-__all__ = ["solve_many"]
+__all__ = ["solve_many", "solve_batch", "SolveOptions", "SOLVE_OPTIONS"]
 
 
 def _interp_matrix(lbda_in, lbda_out):
@@ -55,152 +61,273 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
     return lbda, fluxes, ranges
 
 
-def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field="narrow",
-               search="exact", redshifts=None, per_resolution=True, backend="auto",
-               max_bytes=DEFAULT_MAX_BYTES, progress=False, conventions=DEFAULT_CONVENTIONS,
-               allow_partial=True, precision="auto"):
-    """Solve the ETC for many point sources at once.
+@dataclass(frozen=True)
+class SolveOptions:
+    """How :func:`solve_batch` solves: every option of :func:`solve_many` except the per-target data.
+
+    frame : "rest", "obs" or None (default: "rest" when ``redshifts`` are given, else "obs"): the
+        frame ``lbda_ranges`` are given in
+    config, field : instrument (see :func:`slicersim.targets.build_simulation`)
+    search : "exact" or "reference"
+    per_resolution : the target SNR is per resolution element (default) or per bin
+    backend : "auto", "opencl" or "numpy";  precision : "auto", "double" or "single" for the
+        band-variance kernel (:mod:`slicersim.backends.precision`, product ``"batch_etc"``)
+    max_bytes : memory budget [bytes] of one chunk of targets
+    progress : None (a bar only when stderr is a terminal), True or False
+    conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
+    allow_partial : bands partly outside the grid (≥ 50 % inside) or the input spectrum are
+        answered on the covered part with one BandCoverageWarning naming the targets (default,
+        batch); False raises SpectrumError (:mod:`slicersim.etc.bands`)
+    """
+
+    frame: str | None = None
+    config: object = "cbe"
+    field: str | None = "narrow"
+    search: str = "exact"
+    per_resolution: bool = True
+    backend: str = "auto"
+    max_bytes: int = DEFAULT_MAX_BYTES
+    progress: bool | None = None
+    conventions: str = DEFAULT_CONVENTIONS
+    allow_partial: bool = True
+    precision: object = "auto"
+
+    def checked(self):
+        """A copy with every option validated (ParameterError / ETCError naming the option)."""
+        return replace(self, frame=validation.choice("frame", self.frame, FRAMES),
+                       search=check_search(self.search), field=check_field(self.field),
+                       per_resolution=validation.flag("per_resolution", self.per_resolution),
+                       max_bytes=validation.integer("max_bytes", self.max_bytes, low=1),
+                       progress=None if self.progress is None else validation.flag("progress", self.progress),
+                       conventions=check_conventions(self.conventions),
+                       allow_partial=validation.flag("allow_partial", self.allow_partial))
+
+
+#: the option names :func:`solve_many` accepts as keywords
+SOLVE_OPTIONS = tuple(f.name for f in fields(SolveOptions))
+
+
+def solve_many(lbda, fluxes, snr, lbda_ranges, frame=None, config="cbe", field="narrow", search="exact",
+               redshifts=None, *, options=None, **kwargs):
+    """Solve the ETC for many point sources at once (keyword form of :func:`solve_batch`).
 
     Parameters
     ----------
     lbda : (k,) [Å];  fluxes : (N, k) [erg/s/cm²/Å]
     snr : float or (N,)  target SNR (per resolution element when ``per_resolution``)
     lbda_ranges : (N, 2) or (2,) band [Å] in ``frame``
-    frame : "obs" or "rest" (needs ``redshifts``)
-    config, field : instrument (see :func:`slicersim.targets.build_simulation`)
-    search : "exact" or "reference"
-    conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
-    allow_partial : bands partly outside the grid (≥ 50 % inside) or partly outside the input
-        spectrum are answered on the covered part with one BandCoverageWarning naming the
-        targets (default, batch); False raises SpectrumError as the single-target calls do
-        (:mod:`slicersim.etc.bands`)
-    precision : "auto" (default), "double" or "single" for the band-variance kernel
-        (:mod:`slicersim.backends.precision`, product ``"batch_etc"``; "auto" is double on CPUs and
-        fast-fp64 GPUs); the single-target ETC is always float64
+    redshifts : None, float or (N,)  the targets' redshifts (``frame="rest"``)
+    frame, config, field, search and the keywords ``per_resolution``, ``backend``, ``max_bytes``,
+    ``progress``, ``conventions``, ``allow_partial``, ``precision``: :class:`SolveOptions`
+    (or ``options=SolveOptions(...)``: the keywords given, and frame/config/field/search when not
+    left at their defaults, override it).
 
     Returns
     -------
     astropy Table, one row per target: n, m, d, nramps, exposure_time [s], snr
     (band SNR per resolution element reached), snr_per_bin, data_volume [GB].
     """
-    from astropy.table import Table
+    check_parameter_names("solve_many", kwargs, SOLVE_OPTIONS)
+    base = SolveOptions() if options is None else options
+    if not isinstance(base, SolveOptions):
+        raise ParameterError(f"options must be a SolveOptions, got {validation.short_repr(options)}")
+    named = {"frame": frame, "config": config, "field": field, "search": search}
+    default = SolveOptions()
+    # with options=, a named argument left at its default keeps the options' value
+    named = {k: v for k, v in named.items() if options is None or v is not getattr(default, k)}
+    opts = replace(base, **named, **kwargs)
+    return solve_batch(lbda, fluxes, snr, lbda_ranges, redshifts, opts)
 
-    from slicersim.assembly import build_simulation
+
+def solve_batch(lbda, fluxes, snr, lbda_ranges, redshifts=None, options=None):
+    """Solve the ETC for many point sources at once: :func:`solve_many` with its options in one
+    :class:`SolveOptions` (default ``SolveOptions()``).
+
+    Steps: check the input (:func:`_validate_batch`, :func:`_check_snrs`), read the bands in the
+    observer frame (:func:`_observer_ranges`), build the instrument once (:class:`_BatchInstrument`),
+    then per chunk of targets tabulate the single-ramp band SNR of every candidate readout and
+    choose (:func:`_solve_chunk`); the table is assembled by :func:`_result_table`."""
     from slicersim.backends.precision import resolve_precision
-    backend, precision = resolve_precision(precision, backend, "batch_etc")     # bad names: before any work
+    opts = (SolveOptions() if options is None else options).checked()
+    backend, precision = resolve_precision(opts.precision, opts.backend, "batch_etc")  # bad names: before any work
     lbda, fluxes, ranges = _validate_batch(lbda, fluxes, lbda_ranges)
-    ntarget = fluxes.shape[0]
+    snr = _check_snrs(snr, fluxes.shape[0])
+    ranges = _observer_ranges(ranges, opts.frame, redshifts)
+    inst = _BatchInstrument.build(opts, lbda, ranges)
+    target = snr / math.sqrt(inst.spec.dispersion_resolution) if opts.per_resolution else snr.copy()
+    rows = {k: np.zeros(fluxes.shape[0], dtype=int) for k in ("n", "m", "d", "nramps")}
+    reached = np.full(fluxes.shape[0], np.nan)
+    for t0, t1 in _chunks(fluxes.shape[0], inst, opts):
+        _solve_chunk(inst, fluxes, ranges, snr, target, (t0, t1), opts.search, (backend, precision), rows, reached)
+    return _result_table(inst, rows, reached, opts, precision)
+
+
+def _check_snrs(snr, ntarget):
+    """(N,) target SNRs, each finite > 0 (ETCError otherwise)."""
     snr = np.broadcast_to(np.asarray(snr, dtype=float), (ntarget,))
-    for s in np.unique(snr):
-        check_snr_target(s)
-    if frame == "rest":
-        if redshifts is None:
-            raise ETCError("frame='rest' needs the redshifts of the targets")
-        z = np.broadcast_to(np.asarray(redshifts, dtype=float), (ntarget,))
-        ranges = ranges * (1 + z)[:, None]
-    elif frame != "obs":
-        raise ETCError(f"frame must be 'obs' or 'rest', got {frame!r}")
-    if search not in ("exact", "reference"):
-        raise ETCError(f"unknown search {search!r}: 'exact' or 'reference'")
+    for value in np.unique(snr):
+        check_snr_target(value)
+    return snr
 
-    sim = build_simulation(config, field, pointsource=None, conventions=conventions)
-    spec, det = sim.spectrograph, sim.detector
-    grid = sim.lbda
-    if lbda[0] >= grid[-1] or lbda[-1] <= grid[0]:
-        raise SpectrumError(f"input wavelengths {lbda[0]:.0f}–{lbda[-1]:.0f} Å do not overlap the "
-                            f"instrument range {grid[0]:.0f}–{grid[-1]:.0f} Å")
-    band = np.stack([np.searchsorted(grid, ranges[:, 0], side="left"),
-                     np.searchsorted(grid, ranges[:, 1], side="right")], axis=1)
-    empty = band[:, 1] <= band[:, 0]
-    if empty.any():
-        raise ETCError(f"band of target(s) {np.nonzero(empty)[0][:10].tolist()} contains no "
-                       f"instrument bin ({grid[0]:.0f}–{grid[-1]:.0f} Å)")
-    check_band_in_grid(ranges, spec.lbda_edges, who="batch", allow_partial=allow_partial)
-    warn_partial_spectrum(ranges, lbda[0], lbda[-1], who="batch", allow_partial=allow_partial)
-    target = snr / math.sqrt(spec.dispersion_resolution) if per_resolution else snr.copy()
 
-    psf = template_psf(sim)
-    psf2 = psf**2
-    half = int(4.0 * spec.lsf_sigma + 0.5)
-    f2p, qe, gain = sim.flambda_to_photon, sim.qe, det.gain
-    uniform = sum(spec.apply_lsf(arr) for arr in (sim.background_photons, sim._thermal_photons("telescope"),
-                                                  sim._thermal_photons("optics")))
-    idx, w, outside = _interp_matrix(lbda, grid)
-    cand = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
-    per_target_bytes = grid.size * psf.shape[1] * 8 * 3
-    step = max(1, int(max_bytes // per_target_bytes))
-    rows = {k: np.zeros(ntarget, dtype=int) for k in ("n", "m", "d", "nramps")}
-    reached = np.full(ntarget, np.nan)
-    chunks = range(0, ntarget, step)
+def _observer_ranges(ranges, frame, redshifts):
+    """Bands (N, 2) [Å] in the observer frame: ``frame`` None is "rest" with ``redshifts``, else "obs"."""
+    if resolve_frame(frame, redshifts) == "obs":
+        return ranges
+    if redshifts is None:
+        raise ETCError("frame='rest' needs the redshifts of the targets")
+    z = np.asarray(redshifts, dtype=float)
+    try:
+        z = np.broadcast_to(z, (ranges.shape[0],))
+    except ValueError:
+        raise ETCError(f"redshifts must be one value or one per target ({ranges.shape[0]}), got shape "
+                       f"{z.shape}") from None
+    if not np.all(np.isfinite(z) & (z > -1)):
+        raise ETCError("redshifts must be finite and > -1")
+    return ranges * (1 + z)[:, None]
+
+
+@dataclass
+class _BatchInstrument:
+    """The instrument of a batch, computed once: simulation, PSF template, LSF-convolved uniform
+    light [ph/s/cell], f2p, QE, gain, the interpolation input → grid and the candidate readouts;
+    ``band``: (N, 2) first/last+1 grid bin of each target's band."""
+
+    sim: object
+    psf: np.ndarray
+    uniform: np.ndarray
+    interp: tuple
+    cand: tuple
+    band: np.ndarray
+
+    @property
+    def spec(self):
+        return self.sim.spectrograph
+
+    @property
+    def det(self):
+        return self.sim.detector
+
+    @classmethod
+    def build(cls, opts, lbda, ranges):
+        from slicersim.assembly import build_simulation
+        sim = build_simulation(opts.config, opts.field, pointsource=None, conventions=opts.conventions)
+        spec, det, grid = sim.spectrograph, sim.detector, sim.lbda
+        if lbda[0] >= grid[-1] or lbda[-1] <= grid[0]:
+            raise SpectrumError(f"input wavelengths {lbda[0]:.0f}–{lbda[-1]:.0f} Å do not overlap the "
+                                f"instrument range {grid[0]:.0f}–{grid[-1]:.0f} Å")
+        band = np.stack([np.searchsorted(grid, ranges[:, 0], side="left"),
+                         np.searchsorted(grid, ranges[:, 1], side="right")], axis=1)
+        empty = band[:, 1] <= band[:, 0]
+        if empty.any():
+            raise ETCError(f"band of target(s) {np.nonzero(empty)[0][:10].tolist()} contains no "
+                           f"instrument bin ({grid[0]:.0f}–{grid[-1]:.0f} Å)")
+        check_band_in_grid(ranges, spec.lbda_edges, who="batch", allow_partial=opts.allow_partial)
+        warn_partial_spectrum(ranges, lbda[0], lbda[-1], who="batch", allow_partial=opts.allow_partial)
+        uniform = sum(spec.apply_lsf(arr) for arr in (sim.background_photons, sim.thermal_photons_of("telescope"),
+                                                      sim.thermal_photons_of("optics")))
+        cand = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
+        return cls(sim, template_psf(sim), uniform, _interp_matrix(lbda, grid), cand, band)
+
+    def tables(self, fluxes, band, backend, precision):
+        """(Q [e-/s/cell] (n, nb, ncell), signal rate [ADU/s] (n, nb), band − lo, lo, hi, snr1) of
+        targets ``fluxes`` (n, k) [erg/s/cm²/Å] over the bins [lo, hi) their bands need; ``snr1``:
+        the single-ramp band SNR per bin of every candidate readout."""
+        sim, spec, grid = self.sim, self.spec, self.sim.lbda
+        idx, w, outside = self.interp
+        half = int(4.0 * spec.lsf_sigma + 0.5)
+        lo, hi = int(band[:, 0].min()), int(band[:, 1].max())
+        s0, s1 = max(0, lo - half), min(grid.size, hi + half)     # + the LSF half-width margins
+        flux_grid = fluxes[:, idx[s0:s1]] * (1 - w[s0:s1]) + fluxes[:, idx[s0:s1] + 1] * w[s0:s1]
+        flux_grid[:, outside[s0:s1]] = np.nan                                      # erg/s/cm²/Å
+        photons = flux_grid * sim.flambda_to_photon[s0:s1]                         # ph/s
+        keep, qe = slice(lo - s0, hi - s0), sim.qe
+        # LSF with reflect ends: at a window edge inside the grid only the discarded margin bins change
+        point = spec.apply_lsf(photons[:, :, None] * self.psf[None, s0:s1], axis=1)[:, keep]   # ph/s/cell
+        q = qe[None, lo:hi, None] * (point + self.uniform[None, lo:hi, None])                  # e-/s/cell
+        signal_rate = spec.apply_lsf(photons * qe[s0:s1], axis=1)[:, keep] * self.det.gain     # ADU/s
+        sub_band = band - lo
+        snr1 = band_snr_table_for_models(sim, (q, signal_rate), sub_band, self.cand, backend=backend,
+                                         psf2=self.psf[lo:hi]**2, precision=precision)
+        return q, signal_rate, sub_band, lo, hi, snr1
+
+
+def _chunks(ntarget, inst, opts):
+    """(t0, t1) target chunks of at most ``opts.max_bytes`` of working arrays (with a progress bar)."""
+    per_target_bytes = inst.sim.lbda.size * inst.psf.shape[1] * 8 * 3
+    step = max(1, int(opts.max_bytes // per_target_bytes))
+    starts = range(0, ntarget, step)
+    progress = sys.stderr.isatty() if opts.progress is None else opts.progress
     if progress:
         from tqdm.auto import tqdm
-        chunks = tqdm(chunks, total=len(chunks), desc="ETC", unit="chunk")
-    for t0 in chunks:
-        t1 = min(ntarget, t0 + step)
-        # only the bins of this chunk's bands (plus the LSF half-width) are needed
-        lo, hi = int(band[t0:t1, 0].min()), int(band[t0:t1, 1].max())
-        s0, s1 = max(0, lo - half), min(grid.size, hi + half)
-        flux_grid = fluxes[t0:t1, idx[s0:s1]] * (1 - w[s0:s1]) + fluxes[t0:t1, idx[s0:s1] + 1] * w[s0:s1]
-        flux_grid[:, outside[s0:s1]] = np.nan                                      # erg/s/cm²/Å
-        photons = flux_grid * f2p[s0:s1]                                           # ph/s
-        # LSF with reflect ends: at a window edge inside the grid only the discarded
-        # margin bins are affected (the margin is the LSF half-width)
-        def lsf(a, ax):
-            return spec.apply_lsf(a, axis=ax)
-        keep = slice(lo - s0, hi - s0)
-        point = lsf(photons[:, :, None] * psf[None, s0:s1], 1)[:, keep]            # ph/s/cell
-        Q = qe[None, lo:hi, None] * (point + uniform[None, lo:hi, None])           # e-/s/cell
-        signal_rate = lsf(photons * qe[s0:s1], 1)[:, keep] * gain                  # ADU/s
-        sub_band = band[t0:t1] - lo
-        snr1 = band_snr_table_for_models(sim, (Q, signal_rate), sub_band, cand, backend=backend,
-                                         psf2=psf2[lo:hi], precision=precision)
-        if search == "exact":
-            choice = exact_choice(snr1, *cand, target[t0:t1], max_frames=max_frames_for(det.tframe))
-            if choice["limited"].any():
-                t = t0 + int(np.nonzero(choice["limited"])[0][0])
-                err = limit_error(snr[t], ranges[t], det.tframe)
-                raise ETCError(f"target {t}: {err}")
-            for key in rows:
-                rows[key][t0:t1] = choice[key]
-            reached[t0:t1] = choice["snr"]
-            continue
-        # reference walk: look the single-ramp SNR up in the table, evaluate off-table readouts
-        lookup = {(int(a), int(b), int(c)): k for k, (a, b, c) in enumerate(zip(*cand))}
-        for t in range(t0, t1):
-            local = t - t0
-            extra = {}
+        starts = tqdm(starts, total=len(starts), desc="ETC", unit="chunk")
+    return ((t0, min(ntarget, t0 + step)) for t0 in starts)
 
-            def snr_of(n, m, d, r, local=local, extra=extra):
-                key = (n, m, d)
-                if key in lookup:
-                    return snr1[local, lookup[key]] * math.sqrt(r)
-                if key not in extra:
-                    one = (np.array([n]), np.array([m]), np.array([d]))
-                    extra[key] = band_snr_table_for_models(
-                        sim, (Q[local:local + 1], signal_rate[local:local + 1]), sub_band[local:local + 1],
-                        one, backend="numpy", psf2=psf2[lo:hi])[0, 0]
-                return extra[key] * math.sqrt(r)
-            nmd, r, s, _ = reference_walk(snr_of, target[t], det.max_group or 64, det.nmd[2])
-            try:
-                check_reference_result(snr[t], ranges[t], target[t], s,
-                                       r * (nmd[0] * (nmd[1] + nmd[2]) - nmd[2]) * det.tframe, det.tframe,
-                                       nmd=nmd, max_group=det.max_group)
-            except ETCError as exc:
-                raise ETCError(f"target {t}: {exc}") from None
-            rows["n"][t], rows["m"][t], rows["d"][t] = nmd
-            rows["nramps"][t], reached[t] = r, s
+
+def _solve_chunk(inst, fluxes, ranges, snr, target, chunk, search, kernel, rows, reached):
+    """Fill ``rows`` / ``reached`` for the targets [t0, t1) of ``chunk``."""
+    t0, t1 = chunk
+    det = inst.det
+    q, signal_rate, sub_band, lo, hi, snr1 = inst.tables(fluxes[t0:t1], inst.band[t0:t1], *kernel)
+    if search == "exact":
+        choice = exact_choice(snr1, *inst.cand, target[t0:t1], max_frames=max_frames_for(det.tframe))
+        if choice["limited"].any():
+            t = t0 + int(np.nonzero(choice["limited"])[0][0])
+            raise ETCError(f"target {t}: {limit_error(snr[t], ranges[t], det.tframe)}")
+        for key in rows:
+            rows[key][t0:t1] = choice[key]
+        reached[t0:t1] = choice["snr"]
+        return
+    lookup = {(int(a), int(b), int(c)): k for k, (a, b, c) in enumerate(zip(*inst.cand))}
+    for t in range(t0, t1):
+        local = t - t0
+        model = (q[local:local + 1], signal_rate[local:local + 1], sub_band[local:local + 1], lo, hi)
+        nmd, r, s = _reference_one(inst, snr1[local], lookup, model, snr[t], ranges[t], target[t], t)
+        rows["n"][t], rows["m"][t], rows["d"][t] = nmd
+        rows["nramps"][t], reached[t] = r, s
+
+
+def _reference_one(inst, snr1, lookup, model, snr, band, target, t):
+    """The reference walk of one target: the single-ramp SNR is read in its table row ``snr1``,
+    readouts off the table are evaluated on ``model`` (NumPy); returns (nmd, nramps, snr reached)."""
+    det = inst.det
+    q, signal_rate, sub_band, lo, hi = model
+    extra = {}
+
+    def snr_of(n, m, d, r):
+        key = (n, m, d)
+        if key in lookup:
+            return snr1[lookup[key]] * math.sqrt(r)
+        if key not in extra:
+            one = (np.array([n]), np.array([m]), np.array([d]))
+            extra[key] = band_snr_table_for_models(inst.sim, (q, signal_rate), sub_band, one, backend="numpy",
+                                                   psf2=inst.psf[lo:hi]**2)[0, 0]
+        return extra[key] * math.sqrt(r)
+    nmd, r, s, _ = reference_walk(snr_of, target, det.max_group or 64, det.nmd[2])
+    try:
+        check_reference_result(snr, band, target, s, r * (nmd[0] * (nmd[1] + nmd[2]) - nmd[2]) * det.tframe,
+                               det.tframe, nmd=nmd, max_group=det.max_group)
+    except ETCError as exc:
+        raise ETCError(f"target {t}: {exc}") from None
+    return nmd, r, s
+
+
+def _result_table(inst, rows, reached, opts, precision):
+    """The astropy Table of :func:`solve_many` (ETCError for targets no readout reaches)."""
+    from astropy.table import Table
     failed = rows["n"] == 0
     if failed.any():
         raise ETCError(f"target(s) {np.nonzero(failed)[0][:10].tolist()} cannot reach their SNR "
                        "(no signal in the band)")
+    det, spec = inst.det, inst.spec
     frames = rows["n"] * (rows["m"] + rows["d"]) - rows["d"]
     table = Table(rows)
     table["exposure_time"] = rows["nramps"] * frames * det.tframe
     table["exposure_time"].unit = "s"
-    table["snr"] = reached * (math.sqrt(spec.dispersion_resolution) if per_resolution else 1.0)
+    table["snr"] = reached * (math.sqrt(spec.dispersion_resolution) if opts.per_resolution else 1.0)
     table["snr_per_bin"] = reached
     table["data_volume"] = rows["nramps"] * rows["n"] * det.shape[0] * det.shape[1] * 16 / 8e9
     table["data_volume"].unit = "GB"
-    table.meta.update(config=str(config), field=field, search=search, frame=frame, conventions=conventions,
-                      precision=precision)
+    table.meta.update(config=str(opts.config), field=opts.field, search=opts.search, frame=opts.frame,
+                      conventions=opts.conventions, precision=precision)
     return table

@@ -4,9 +4,11 @@ The readout physics (MACC times, variance models) lives in :mod:`slicersim.physi
 """
 from __future__ import annotations
 
-from slicersim.errors import ParameterError, ReadoutError  # noqa: F401  (re-exported)
-
 import numpy as np
+
+from slicersim import validation
+from slicersim.errors import ParameterError, ReadoutError  # noqa: F401  (re-exported)
+from slicersim.instrument.names import check_parameter_names
 
 from slicersim.io.curves import read_curve
 from slicersim.physics.readout import (VARIANCE_MODELS, check_readout, rauscher07_coefficients,  # noqa: F401
@@ -25,7 +27,8 @@ class Detector(Versioned):
     ----------
     qe : float, (λ[Å], QE) arrays or ECSV/CSV path — QE [e-/ph], 0 outside the table
     gain : ADU/e-;  dark : e-/s/px;  roic_glow : e-/px/frame;  ron : e-/frame
-    tframe : s;  pixel_size : µm (gain, tframe, pixel_size finite > 0)
+    tframe : s;  pixel_size : µm (gain, tframe, pixel_size finite > 0; dark, roic_glow, ron ≥ 0)
+        each a plain number in that unit or an astropy Quantity (converted)
     saturation : ADU, finite > 0 (0, None or inf: no saturation)
     thermal_dark_range : None or (min, max) [Å], 0 < min < max: range of the undispersed thermal dark
     nmd : (n, m, d);  min_group, max_group : allowed n range (max_group an integer ≥ min_group,
@@ -40,84 +43,71 @@ class Detector(Versioned):
     def __init__(self, qe=0.8, gain=1.0, dark=2.8e-3, roic_glow=3e-3, ron=12.0, tframe=2.83,
                  pixel_size=10.0, saturation=65535.0, nmd=(16, 8, 0), min_group=2, max_group=64,
                  variance_model="Rauscher07", shape=(4096, 4096), thermal_dark_range=None):
+        # 14 parameters: the paper's documented constructor (every one a detector property)
+        num = validation.number
+        self.qe = qe
+        self.gain = num("gain", gain, low=0.0, low_open=True, unit="adu / electron")
+        self.dark = num("dark", dark, low=0.0, unit="electron / s")
+        self.roic_glow = num("roic_glow", roic_glow, low=0.0, unit="electron")
+        self.ron = num("ron", ron, low=0.0, unit="electron")
+        self.tframe = num("tframe", tframe, low=0.0, low_open=True, unit="s")
+        self.pixel_size = num("pixel_size", pixel_size, low=0.0, low_open=True, unit="um")
+        self.saturation = self._check_saturation(saturation)
+        self.min_group = validation.integer("min_group", min_group, low=2)
+        self.max_group = self._check_max_group(max_group, self.min_group)
+        self.variance_model = self._check_variance_model(variance_model)
+        self.shape = validation.shape("shape", shape)
+        self.thermal_dark_range = self._check_thermal_dark_range(thermal_dark_range)
+        self.nmd, _ = check_readout(nmd, 1, self.min_group, None)
         try:
-            self.qe = qe
-            self.gain = float(gain)
-            self.dark = float(dark)
-            self.roic_glow = float(roic_glow)
-            self.ron = float(ron)
-            self.tframe = float(tframe)
-            self.pixel_size = float(pixel_size)
-            self.saturation = self._check_saturation(saturation)
-            self.min_group = int(min_group)
-            self.max_group = self._check_max_group(max_group, self.min_group)
-            self.variance_model = str(variance_model)
-            self.shape = tuple(int(s) for s in shape)
-            self.thermal_dark_range = self._check_thermal_dark_range(thermal_dark_range)
-            self._check()
-            self.nmd, _ = check_readout(nmd, 1, self.min_group, None)
             self._qe_table = self._load_qe(qe)
         except (ParameterError, ReadoutError):
             raise
         except (TypeError, ValueError, OSError) as exc:
-            raise ParameterError(f"invalid detector parameter: {exc}") from exc
+            raise ParameterError(f"qe: invalid QE {validation.short_repr(qe)}: {exc}") from exc
+
+    @staticmethod
+    def _check_variance_model(model):
+        """"Rauscher07" or "Kubik16" (any case; kept as given)."""
+        if isinstance(model, str) and model.lower() in VARIANCE_MODELS:
+            return model
+        return validation.choice("variance_model", model, ("Rauscher07", "Rauscher10", "Kubik16"))
 
     @staticmethod
     def _check_saturation(saturation):
         """Saturation [ADU]: finite > 0; None, 0 or +inf mean no saturation (stored as inf)."""
         if saturation is None:
             return np.inf
-        sat = float(saturation)
-        if sat == 0 or sat == np.inf:
+        try:
+            unlimited = not isinstance(saturation, (str, bytes)) and \
+                float(getattr(saturation, "value", saturation)) == np.inf
+        except (TypeError, ValueError):
+            unlimited = False
+        if unlimited:
             return np.inf
-        if not (np.isfinite(sat) and sat > 0):
-            raise ParameterError(f"detector saturation must be finite and > 0 ADU (0 or None: no saturation), "
-                                 f"got {saturation!r}")
-        return sat
+        sat = validation.number("saturation", saturation, low=0.0, unit="adu")
+        return np.inf if sat == 0 else sat
 
     @staticmethod
     def _check_max_group(max_group, min_group):
         """max_group: None (no limit) or an integer ≥ min_group."""
         if max_group is None:
             return None
-        try:
-            ok = not isinstance(max_group, (bool, np.bool_, str)) and float(max_group) == int(max_group)
-        except (TypeError, ValueError, OverflowError):
-            ok = False
-        if not ok or int(max_group) < min_group:
-            raise ParameterError(f"max_group must be an integer ≥ min_group = {min_group} (None: no limit), "
-                                 f"got {max_group!r}")
-        return int(max_group)
+        return validation.integer("max_group", max_group, low=min_group)
 
     @staticmethod
     def _check_thermal_dark_range(rng):
         """None (the simulation's own grid) or (lo, hi) [Å], finite with 0 < lo < hi."""
         if rng is None:
             return None
-        try:
-            if isinstance(rng, (str, bytes)):
-                raise TypeError
-            lo, hi = (float(v) for v in rng)
-        except (TypeError, ValueError):
-            raise ParameterError(f"thermal_dark_range must be None or (min, max) in Å, got {rng!r}") from None
-        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
-            raise ParameterError(f"thermal_dark_range must be finite with 0 < min < max, got {rng!r}")
+        if isinstance(rng, (str, bytes)) or not hasattr(rng, "__len__") or len(rng) != 2:
+            raise ParameterError(f"thermal_dark_range must be None or (min, max) in Å, got "
+                                 f"{validation.short_repr(rng)}")
+        lo, hi = (validation.number(f"thermal_dark_range[{i}]", v, low=0.0, low_open=True, unit="Angstrom")
+                  for i, v in enumerate(rng))
+        if not lo < hi:
+            raise ParameterError(f"thermal_dark_range must have min < max, got {validation.short_repr(rng)}")
         return lo, hi
-
-    def _check(self):
-        for name in ("gain", "tframe", "pixel_size"):
-            val = getattr(self, name)
-            if not (np.isfinite(val) and val > 0):
-                raise ParameterError(f"detector {name} must be finite and > 0, got {val}")
-        for name in ("dark", "roic_glow", "ron"):
-            val = getattr(self, name)
-            if not (np.isfinite(val) and val >= 0):
-                raise ParameterError(f"detector {name} must be finite and ≥ 0, got {val}")
-        if self.variance_model.lower() not in VARIANCE_MODELS:
-            raise ParameterError(f"unknown variance model {self.variance_model!r}: "
-                             "use 'Rauscher07' or 'Kubik16'")
-        if self.min_group < 2:
-            raise ParameterError("min_group must be ≥ 2")
 
     @staticmethod
     def _load_qe(qe):
@@ -127,31 +117,27 @@ class Detector(Versioned):
             lbda, cols = read_curve(qe)
             val = next(iter(cols.values()))
         elif np.isscalar(qe):
-            if isinstance(qe, bytes) or not 0 <= float(qe) <= 1:
-                raise ParameterError(f"QE must be within [0, 1] e-/ph, got {qe!r}")
+            validation.fraction("qe", qe)
             return None
         else:
             try:
                 lbda, val = (np.asarray(v, dtype=float) for v in qe)
             except (TypeError, ValueError):
-                raise ParameterError(f"QE must be a number, a (λ, QE) pair of arrays or a curve file, "
-                                     f"got {qe!r}") from None
+                raise ParameterError(f"qe must be a number, a (λ, QE) pair of arrays or a curve file, "
+                                     f"got {validation.short_repr(qe)}") from None
         if lbda.ndim != 1 or lbda.shape != val.shape or lbda.size < 2:
-            raise ParameterError(f"QE curve: need matching 1-D λ and QE arrays (≥ 2 points), got shapes "
+            raise ParameterError(f"qe curve: need matching 1-D λ and QE arrays (≥ 2 points), got shapes "
                                  f"{lbda.shape} and {val.shape}")
         if not (np.all(np.isfinite(lbda)) and np.all(np.diff(lbda) > 0)):
-            raise ParameterError("QE curve: wavelengths must be finite and strictly increasing")
+            raise ParameterError("qe curve: wavelengths must be finite and strictly increasing")
         if not (np.all(np.isfinite(val)) and np.all((val >= 0) & (val <= 1))):
-            raise ParameterError(f"QE curve: values must be finite and within [0, 1] e-/ph "
+            raise ParameterError(f"qe curve: values must be finite and within [0, 1] e-/ph "
                                  f"(got {np.nanmin(val):g} to {np.nanmax(val):g})")
         return lbda, val
 
     def updated(self, **kwargs):
         """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
-        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
-        if unknown:
-            raise ParameterError(f"unknown detector parameter(s) {unknown}; accepted: "
-                                 f"{', '.join(self.mutable_parameters)}")
+        check_parameter_names("detector", kwargs, self.mutable_parameters)
         params = {k: getattr(self, k) for k in self.mutable_parameters}
         params["saturation"] = 0 if not np.isfinite(self.saturation) else self.saturation
         params.update(kwargs)

@@ -45,6 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
+from slicersim import validation
+from slicersim.errors import ConfigError, ParameterError
 from slicersim.io.config import builtin_config_dir
 from slicersim.backends.precision import resolve_precision
 from slicersim.backends.projection import (backend_tag, build_tables, default_block, deposit, load_tables,
@@ -73,7 +75,7 @@ def read_spot_table(table_or_path):
         with open(path, encoding="utf-8") as fh:
             header = fh.readline().split()
         if header != list(COLUMNS):
-            raise ValueError(f"{path}: header must be {' '.join(COLUMNS)!r}, got {' '.join(header)!r}")
+            raise ConfigError(f"{path}: header must be {' '.join(COLUMNS)!r}, got {' '.join(header)!r}")
         data = np.loadtxt(path, skiprows=1, ndmin=2)
         return {name: data[:, i] for i, name in enumerate(COLUMNS)}
     try:
@@ -81,7 +83,7 @@ def read_spot_table(table_or_path):
     except (KeyError, IndexError, ValueError, TypeError):
         arr = np.asarray(table_or_path, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != len(COLUMNS):
-            raise ValueError(f"spot table needs the columns {COLUMNS}") from None
+            raise ConfigError(f"spot table needs the columns {COLUMNS}") from None
         return {name: arr[:, i] for i, name in enumerate(COLUMNS)}
 
 
@@ -154,25 +156,25 @@ class SlicerMapper:
         self.values = np.ascontiguousarray(values, dtype=np.float64)
         S, J, M = self.slice_ids.size, self.fieldpos_nodes.size, self.lbda_nodes.size
         if self.values.shape != (S, J, M, 4) or J < 2 or M < 2:
-            raise ValueError(f"values must have shape ({S}, {J}, {M}, 4) with >= 2 nodes per axis")
+            raise ParameterError(f"values must have shape ({S}, {J}, {M}, 4) with >= 2 nodes per axis")
         for name, nodes in (("fieldpos", self.fieldpos_nodes), ("lbda", self.lbda_nodes)):
             if np.any(np.diff(nodes) <= 0):
-                raise ValueError(f"{name} nodes must be strictly increasing")
+                raise ParameterError(f"{name}_nodes must be strictly increasing")
         if not np.all(np.isfinite(self.values)) or np.any(self.values[..., 2:] < 0):
-            raise ValueError("spot positions must be finite and rms sizes >= 0")
+            raise ParameterError("values: spot positions must be finite and rms sizes >= 0")
         if np.unique(self.slice_ids).size != S or np.any(self.slice_ids < 0):
-            raise ValueError("slice ids must be distinct non-negative integers")
-        if interpolation not in ("bilinear", "triangles"):
-            raise ValueError(f"interpolation must be 'bilinear' or 'triangles', got {interpolation!r}")
+            raise ParameterError("slice_ids must be distinct non-negative integers")
+        validation.choice("interpolation", interpolation, ("bilinear", "triangles"))
         self.interpolation = interpolation
         diag = np.zeros((S, J - 1, M - 1), np.int8) if face_diagonal is None else np.asarray(face_diagonal)
         if diag.shape != (S, J - 1, M - 1) or not np.isin(diag, (0, 1)).all():
-            raise ValueError(f"face_diagonal must have shape {(S, J - 1, M - 1)} with values 0/1")
+            raise ParameterError(f"face_diagonal must have shape {(S, J - 1, M - 1)} with values 0/1")
         self.face_diagonal = diag.astype(np.int8)
         self.pixel_size_um = float(pixel_size_um)
         blur = np.broadcast_to(np.asarray(cube_blur_px, dtype=np.float64), (2,))
         if not np.all(np.isfinite(blur)) or np.any(blur < 0):
-            raise ValueError(f"cube_blur_px must be finite and >= 0 [px], got {cube_blur_px!r}")
+            raise ParameterError(f"cube_blur_px must be finite and >= 0 [px], got "
+                                 f"{validation.short_repr(cube_blur_px)}")
         self.cube_blur_px = tuple(float(v) for v in blur)
         self.detector_shape = tuple(int(v) for v in detector_shape)
         self._lookup = np.full(self.slice_ids.max() + 1, -1, np.int64)
@@ -202,7 +204,7 @@ class SlicerMapper:
     def _from_columns(cls, t, pixel_size_um, detector_shape, **kwargs):
         sid = np.rint(t["slice"]).astype(np.int64)
         if np.any(np.abs(sid - t["slice"]) > 1e-9):
-            raise ValueError("slice ids must be integers")
+            raise ConfigError("spot table: slice ids must be integers")
         ids, s = np.unique(sid, return_inverse=True)
         fp, j = np.unique(t["fieldpos"], return_inverse=True)
         lb, m = np.unique(t["lbda"], return_inverse=True)
@@ -210,7 +212,7 @@ class SlicerMapper:
         count = np.zeros((S, J, M), np.int64)
         np.add.at(count, (s, j, m), 1)
         if not np.all(count == 1):
-            raise ValueError(f"spot table must hold every (slice, fieldpos, lbda) node exactly once on a "
+            raise ConfigError(f"spot table must hold every (slice, fieldpos, lbda) node exactly once on a "
                              f"rectilinear grid ({S} slices x {J} fieldpos x {M} lbda; "
                              f"{int((count == 0).sum())} missing, {int((count > 1).sum())} repeated)")
         rows, cols = (int(v) for v in detector_shape)
@@ -234,12 +236,12 @@ class SlicerMapper:
         sid = np.asarray(slice_id)
         if not np.issubdtype(sid.dtype, np.integer):
             if np.any(sid != np.rint(sid)):
-                raise ValueError("slice ids must be integers")
+                raise ParameterError("slice_ids must be integers")
             sid = np.rint(sid).astype(np.int64)
         bad = (sid < 0) | (sid >= self._lookup.size)
         idx = np.where(bad, -1, self._lookup[np.where(bad, 0, sid)])
         if np.any(idx < 0):
-            raise ValueError(f"unknown slice id(s): {np.unique(sid[idx < 0])[:10]}")
+            raise ParameterError(f"slices: unknown slice id(s): {np.unique(sid[idx < 0])[:10]}")
         return idx
 
     def _interp(self, sidx, phi, lam, ch, jacobian=False):
@@ -530,13 +532,13 @@ class SlicerMapper:
         lbda = np.asarray(lbda, np.float64)
         edges = np.asarray(lbda_edges, np.float64)
         if cube.ndim != 3 or cube.shape[1] != len(slices):
-            raise ValueError(f"cube must have shape (nlbda, {len(slices)}, ncol), got {cube.shape}")
+            raise ParameterError(f"cube must have shape (nlbda, {len(slices)}, ncol), got {cube.shape}")
         if not np.all(np.isfinite(cube)):
-            raise ValueError("cube values must be finite (replace NaN, e.g. saturated cells, first)")
+            raise ParameterError("cube: values must be finite (replace NaN, e.g. saturated cells, first)")
         if lbda.shape != (cube.shape[0],) or edges.shape != (cube.shape[0] + 1,):
-            raise ValueError(f"lbda must have shape ({cube.shape[0]},) and lbda_edges ({cube.shape[0] + 1},)")
+            raise ParameterError(f"lbda must have shape ({cube.shape[0]},) and lbda_edges ({cube.shape[0] + 1},)")
         if np.any(np.diff(edges) <= 0) or np.any(lbda < edges[:-1]) or np.any(lbda > edges[1:]):
-            raise ValueError("lbda_edges must increase and bracket the bin centres lbda")
+            raise ParameterError("lbda_edges must increase and bracket the bin centres lbda")
         self.slice_index(slices)
         tables = self.projection_tables(slices, cube.shape[2], edges, oversample=oversample,
                                         truncate=truncate, weights_dtype=weights_dtype, block=block,
@@ -574,6 +576,6 @@ def detector_rate_image(mapper, lbda, lbda_edges, narrow=None, wide=None, *, dar
     img += thermal_dark
     if roic_glow is not None:
         if tframe is None or not tframe > 0:
-            raise ValueError("roic_glow [e-/px/frame] needs the frame time tframe [s] > 0")
+            raise ParameterError("roic_glow [e-/px/frame] needs the frame time tframe [s] > 0")
         img += roic_glow / tframe
     return img

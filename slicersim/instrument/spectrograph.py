@@ -11,7 +11,9 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from slicersim.constants import ARCSEC
+from slicersim import validation
 from slicersim.errors import ParameterError
+from slicersim.instrument.names import check_parameter_names
 from slicersim.io.curves import read_curve
 from slicersim.physics.lsf import apply_lsf
 from slicersim.physics.thermal import photon_radiance, solid_angle_from_fratio
@@ -47,7 +49,7 @@ def wavelength_grid_from_dispersion(law_lbda, law_offset, spectral_range, disper
     law_lbda = np.asarray(law_lbda, dtype=float)
     scaled = np.asarray(law_offset, dtype=float) * dispersion_scale * dispersion_resolution / 2.0
     if np.any(np.diff(law_lbda) <= 0) or np.any(np.diff(scaled) <= 0):
-        raise ValueError("dispersion law must be strictly increasing in wavelength and offset")
+        raise ParameterError("dispersion_law must be strictly increasing in wavelength and offset")
     lbda_to_offset = CubicSpline(law_lbda, scaled, bc_type="not-a-knot", extrapolate=True)
     offset_to_lbda = CubicSpline(scaled, law_lbda, bc_type="not-a-knot", extrapolate=True)
     lo, hi = spectral_range
@@ -59,7 +61,7 @@ def wavelength_grid_from_dispersion(law_lbda, law_offset, spectral_range, disper
     if nbins > MAX_BINS:
         raise ParameterError(f"spectral range {tuple(spectral_range)} gives {nbins} bins (more than {MAX_BINS})")
     if nbins < 2:
-        raise ValueError(f"spectral range {spectral_range} gives fewer than 2 bins")
+        raise ParameterError(f"spectral_range {tuple(spectral_range)} gives fewer than 2 bins")
     first = float(round(float(lbda_to_offset(lo))))
     lbda = offset_to_lbda(first + np.arange(nbins, dtype=float))
     edges = offset_to_lbda(first + np.arange(nbins + 1, dtype=float) - 0.5)
@@ -75,7 +77,7 @@ def wavelength_grid_from_resolving_power(resolving_power, spectral_range, disper
     fine = np.geomspace(lo, hi, 4097)
     rpow = resolving_power(fine) if callable(resolving_power) else np.full_like(fine, resolving_power)
     if np.any(~(rpow > 0)) or not np.all(np.isfinite(rpow)):
-        raise ValueError("resolving power must be finite and > 0")
+        raise ParameterError("resolving_power must be finite and > 0")
     # offset [bins] = ∫ R dr / λ dλ (trapezoid in ln λ)
     dln = np.diff(np.log(fine))
     offset = np.concatenate([[0.0], np.cumsum(0.5 * (rpow[1:] + rpow[:-1]) * dispersion_resolution * dln)])
@@ -103,9 +105,9 @@ class OpticalThroughput:
         if noptics is not None and np.ndim(noptics) == 0 and not isinstance(noptics, dict):
             noptics = {k: noptics for k in self.components}    # one count for every component
         if noptics:
-            unknown = set(noptics) - set(self.components)
-            if unknown:
-                raise ValueError(f"noptics names unknown components {sorted(unknown)}")
+            for name in sorted(set(noptics) - set(self.components), key=str):
+                validation.choice("noptics", name, list(self.components),
+                                  what="noptics component (a throughput component)")
             self.noptics.update({k: self._check_noptics(k, v) for k, v in noptics.items()})
         for name, comp in self.components.items():
             if np.isscalar(comp):
@@ -158,6 +160,22 @@ class OpticalThroughput:
 # --------------------------------------------------------------------------- #
 #  spectrographs                                                               #
 # --------------------------------------------------------------------------- #
+def _checked_scalars(params):
+    """``params`` with the spectrograph's scalar parameters checked and converted: spectral_range
+    (lo, hi) [Å], dispersion_scale, dispersion_resolution [px] and spatial_scale [arcsec] finite > 0
+    (astropy Quantities converted), spatial_shape two integers ≥ 1 (ParameterError naming each)."""
+    params = dict(params)
+    rng = params["spectral_range"]
+    if isinstance(rng, (str, bytes)) or not hasattr(rng, "__len__") or len(rng) != 2:
+        raise ParameterError(f"spectral_range must be (min, max) in Å, got {validation.short_repr(rng)}")
+    params["spectral_range"] = tuple(validation.number(f"spectral_range[{i}]", v, low=0.0, low_open=True,
+                                                       unit="Angstrom") for i, v in enumerate(rng))
+    for key, unit in (("dispersion_scale", None), ("dispersion_resolution", None), ("spatial_scale", "arcsec")):
+        params[key] = validation.number(key, params[key], low=0.0, low_open=True, unit=unit)
+    params["spatial_shape"] = validation.shape("spatial_shape", params["spatial_shape"])
+    return params
+
+
 class Spectrograph(Versioned):
     """Generic IFS: wavelength grid, throughput, spatial sampling, LSF and thermal optics.
 
@@ -190,14 +208,11 @@ class Spectrograph(Versioned):
                  dispersion_scale=1.0, dispersion_resolution=2.0, throughput=1.0,
                  throughput_column=None, spatial_scale=0.04, spatial_shape=(58, 58), optics=None,
                  noptics=None):
-        self._params = dict(spectral_range=tuple(float(v) for v in spectral_range),
-                            dispersion_law=dispersion_law, resolving_power=resolving_power,
-                            dispersion_scale=float(dispersion_scale),
-                            dispersion_resolution=float(dispersion_resolution),
-                            throughput=throughput, throughput_column=throughput_column,
-                            spatial_scale=float(spatial_scale),
-                            spatial_shape=tuple(int(v) for v in spatial_shape),
-                            optics=optics, noptics=noptics)
+        self._params = _checked_scalars(dict(
+            spectral_range=spectral_range, dispersion_law=dispersion_law, resolving_power=resolving_power,
+            dispersion_scale=dispersion_scale, dispersion_resolution=dispersion_resolution,
+            throughput=throughput, throughput_column=throughput_column, spatial_scale=spatial_scale,
+            spatial_shape=spatial_shape, optics=optics, noptics=noptics))
         try:
             self._build()
         except ParameterError:
@@ -210,7 +225,7 @@ class Spectrograph(Versioned):
         p = self._params
         lo, hi = p["spectral_range"]
         if not (0 < lo < hi) or not np.isfinite(hi):
-            raise ValueError(f"spectral_range must satisfy 0 < min < max, got {p['spectral_range']}")
+            raise ParameterError(f"spectral_range must satisfy 0 < min < max, got {p['spectral_range']}")
         if not (np.isfinite(p["dispersion_resolution"]) and p["dispersion_resolution"] > 0
                 and np.isfinite(p["dispersion_scale"]) and p["dispersion_scale"] > 0):
             raise ParameterError("dispersion_resolution and dispersion_scale must be finite and > 0")
@@ -232,7 +247,7 @@ class Spectrograph(Versioned):
             self.lbda, self.lbda_edges = wavelength_grid_from_resolving_power(
                 p["resolving_power"], p["spectral_range"], p["dispersion_resolution"])
         else:
-            raise ValueError("a spectrograph needs a dispersion_law or a resolving_power")
+            raise ParameterError("a spectrograph needs a dispersion_law or a resolving_power")
         self.throughput_model = self._make_throughput(p["throughput"], p["throughput_column"], p["noptics"])
         self.throughput = self.throughput_model(self.lbda)
         self.optics = self._make_optics(p["optics"])
@@ -279,7 +294,7 @@ class Spectrograph(Versioned):
                "geometry": list(optics.get("geometry", ["square"] * nopt)),
                "dispersed": [bool(d) for d in optics.get("dispersed", [False] * nopt)]}
         if any(len(v) != nopt for v in out.values()):
-            raise ValueError("spectrograph optics lists must all have the same length")
+            raise ParameterError("optics: the spectrograph optics lists must all have the same length")
         temps, eps = np.asarray(out["temperature"]), np.asarray(out["emissivity"])
         if not (np.all(np.isfinite(temps)) and np.all(temps >= 0)):
             raise ParameterError(f"optics temperature must be finite and ≥ 0 K, got {out['temperature']}")
@@ -318,10 +333,7 @@ class Spectrograph(Versioned):
     def updated(self, **kwargs):
         """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
         import copy
-        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
-        if unknown:
-            raise ParameterError(f"unknown spectrograph parameter(s) {unknown}; accepted: "
-                                 f"{', '.join(self.mutable_parameters)}")
+        check_parameter_names("spectrograph", kwargs, self.mutable_parameters)
         params = dict(self._params)
         kwargs = dict(kwargs)
         if "optics" in kwargs:
@@ -334,10 +346,7 @@ class Spectrograph(Versioned):
         if kwargs.get("dispersion_law") is not None and "resolving_power" not in kwargs:
             params["resolving_power"] = None          # the new law defines the grid
         params.update(kwargs)
-        for key in ("spectral_range", "spatial_shape"):
-            params[key] = tuple(float(v) if key == "spectral_range" else int(v) for v in params[key])
-        for key in ("dispersion_scale", "dispersion_resolution", "spatial_scale"):
-            params[key] = float(params[key])
+        params = _checked_scalars(params)
         new = copy.copy(self)
         object.__setattr__(new, "_params", params)
         try:

@@ -4,7 +4,9 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.constants import AIRY_SIGMA_FACTOR, ARCSEC, LBDA_REF_AA
+from slicersim import validation
 from slicersim.errors import ParameterError
+from slicersim.instrument.names import check_parameter_names
 from slicersim.physics.thermal import photon_radiance
 from slicersim.versioning import Versioned
 
@@ -16,11 +18,11 @@ class Telescope(Versioned):
 
     Parameters
     ----------
-    diameter_ext, diameter_int : float  outer / central-obscuration diameter [m]
+    diameter_ext, diameter_int : float  outer / central-obscuration diameter [m] (or astropy Quantities)
     temperature : float, or one value per mirror group  mirror temperature [K]
     emissivity, nelements : sequence  per mirror group emissivity and count (a scalar
         applies to every group)
-    guiding_sigma : float  achromatic Gaussian jitter [arcsec]
+    guiding_sigma : float  achromatic Gaussian jitter [arcsec] (or an astropy Quantity)
     """
 
     mutable_parameters = ("diameter_ext", "diameter_int", "temperature", "emissivity",
@@ -29,15 +31,15 @@ class Telescope(Versioned):
     def __init__(self, diameter_ext=3.0, diameter_int=0.0, temperature=293.0,
                  emissivity=(0.05, 0.02, 0.02, 0.02), nelements=(1, 1, 1, 1), guiding_sigma=0.010):
         try:
-            self.diameter_ext = float(diameter_ext)
-            self.diameter_int = float(diameter_int)
+            self.diameter_ext = validation.number("diameter_ext", diameter_ext, low=0.0, low_open=True, unit="m")
+            self.diameter_int = validation.number("diameter_int", diameter_int, low=0.0, unit="m")
             emissivity = np.atleast_1d(np.asarray(emissivity, dtype=float))
             nelements = np.atleast_1d(np.asarray(nelements, dtype=float))
             if not np.all(np.isfinite(nelements)) or np.any(nelements != np.round(nelements)):
                 raise ParameterError(f"telescope nelements must be integers, got {nelements.tolist()}")
             nelements = nelements.astype(int)
             if emissivity.ndim != 1 or nelements.ndim != 1:
-                raise ValueError("telescope emissivity and nelements must be scalars or 1-D lists")
+                raise ParameterError("telescope emissivity and nelements must be scalars or 1-D lists")
             if emissivity.size == 1 and nelements.size > 1:
                 emissivity = np.full(nelements.size, emissivity[0])
             elif nelements.size == 1 and emissivity.size > 1:
@@ -52,7 +54,7 @@ class Telescope(Versioned):
                     raise ParameterError(f"telescope temperature needs one value per mirror group: "
                                          f"expected length {len(self.emissivity)}, got {len(temps)}")
                 self.temperature = temps
-            self.guiding_sigma = float(guiding_sigma)
+            self.guiding_sigma = validation.number("guiding_sigma", guiding_sigma, low=0.0, unit="arcsec")
         except ParameterError:
             raise
         except (TypeError, ValueError) as exc:
@@ -84,10 +86,7 @@ class Telescope(Versioned):
 
     def updated(self, **kwargs):
         """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
-        unknown = sorted(set(kwargs) - set(self.mutable_parameters))
-        if unknown:
-            raise ParameterError(f"unknown telescope parameter(s) {unknown}; accepted: "
-                                 f"{', '.join(self.mutable_parameters)}")
+        check_parameter_names("telescope", kwargs, self.mutable_parameters)
         # the mirror set is redefined only when emissivity and nelements change together
         redefine = "emissivity" in kwargs and "nelements" in kwargs
         nexp = len(np.atleast_1d(kwargs["emissivity"])) if redefine else self.nmirrors

@@ -7,11 +7,8 @@ result as a dict.
 from __future__ import annotations
 
 import inspect
-import math
-import numbers
 
-import numpy as np
-
+from slicersim import validation
 from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field  # noqa: F401
 from slicersim.errors import ETCError, ParameterError, SlicersimError
 from slicersim.io.config import load_config
@@ -21,18 +18,21 @@ from slicersim.physics.readout import check_readout
 from slicersim.products.extraction import (EXTRACTION_METHODS, ExtractionSetup, aperture_radius,
                                            check_aperture_in_field, extract_model, unit_factors)
 from slicersim.products.components import check_switch_off
-from slicersim.simulation import check_band
+from slicersim.instrument.names import check_parameter_names
+from slicersim.simulation import resolve_frame
 from slicersim.sources.galaxies import (HOST_PARAMETERS, HostPlacement, check_host_covers, check_host_in_field,
                                         host_offset)
 from slicersim.sources.scene import PointSource, snia_spectrum
 from slicersim.targets.detector import DetectorProducts
-from slicersim.targets.state import (_check_config, _check_flag, _check_redshift, _host_centre,  # noqa: F401
+from slicersim.targets.state import (check_config, check_redshift, _host_centre,  # noqa: F401
                                      _move_host, _TargetUpdate)
 
 __all__ = ["LAZULI_FIELDS", "build_simulation", "config_default_field", "SPECTRUM_NOISE_STREAM", "Target", "lazuli_doc",
            "Supernova", "BlackBody", "LazuliTarget", "LazuliSupernova", "LazuliBlackBody", "lazuli_etc",
            "lazuli_sn_etc"]
 
+#: band [Å] of the ETC and band SNRs when none is given (read in the target's ``frame``)
+DEFAULT_BAND = (4000.0, 6800.0)
 #: Philox stream of the noise drawn by :meth:`Target.get_spectrum` (cube noise uses stream 0)
 SPECTRUM_NOISE_STREAM = 0x53504543
 
@@ -67,7 +67,9 @@ class Target(DetectorProducts):
     position : (x, y) [cells] relative to the field centre
     conventions : "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly
         (gain in the variance, instrumental blur; :mod:`slicersim.physics.conventions`)
-    redshift : optional; used by ``frame="rest"`` (the spectrum is in the observer frame)
+    redshift : optional; used by ``frame="rest"`` (the spectrum is in the observer frame).  A
+        band (``lbda_range``) is read in the rest frame by default when the target has a
+        redshift, else in the observer frame (``frame=None``; ``"rest"`` / ``"obs"`` explicit)
     host : optional host galaxy (see :meth:`set_host`): a model name ("sersic:bb-5000",
         "ngc0628", "sersic:ngc2403", ...), a dict with ``refmodel`` and parameters (1.4.2), a
         :class:`~slicersim.sources.galaxies.GalaxyModel`, a ``Host`` or a ``CubeSource``
@@ -82,7 +84,7 @@ class Target(DetectorProducts):
     def __init__(self, lbda, flux, mag=None, band="bessellb", config=None, field="default",
                  position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS, host=None):
         self._conventions = check_conventions(conventions)
-        self._redshift = _check_redshift(redshift)
+        self._redshift = check_redshift(redshift)
         self._source_args = dict(lbda=lbda, flux=flux, mag=mag, band=band, position=position)
         self.pointsource = PointSource(lbda, flux, position=position, mag=mag, band=band)
         self._setup(config, field, host)
@@ -90,7 +92,7 @@ class Target(DetectorProducts):
     def _setup(self, config, field, host):
         """Configuration, field, simulation and host (shared by every target kind)."""
         self._host, self._host_state = None, None
-        self.config = self.default_config if config is None else _check_config(config)
+        self.config = self.default_config if config is None else check_config(config)
         if field == "default":
             field = config_default_field(self.config) if self.default_field == "auto" else self.default_field
         self._field = check_field(field)
@@ -192,7 +194,7 @@ class Target(DetectorProducts):
             self._host, self._host_state = None, None
             self.simulation.scene.host = None
             return
-        relative = _check_flag(relative, "relative")
+        relative = validation.flag("relative", relative)
         sim = self.simulation
         state = HostPlacement.resolve(host, self._redshift, relative, sim.spectrograph.spatial_scale)
         placed = state.at(self._redshift)
@@ -229,18 +231,16 @@ class Target(DetectorProducts):
     def _plan_update(self, params):
         """Validate an :meth:`update` off to the side: a :class:`_TargetUpdate` (nothing changed)."""
         accepted = self.mutable_parameters
-        unknown = sorted(set(params) - set(accepted))
-        if unknown:
-            hint = ("; host__<name> needs a host given by name (set_host('sersic:bb-5000', ...))"
-                    if any(k.startswith("host__") for k in unknown) else "")
-            raise ParameterError(f"unknown target parameter(s) {unknown}{hint}; accepted: {', '.join(accepted)}")
+        hint = ("; host__<name> needs a host given by name (set_host('sersic:bb-5000', ...))"
+                if any(k.startswith("host__") and k not in accepted for k in params) else "")
+        check_parameter_names("target", params, accepted, hint)
         plan = _TargetUpdate()
         host_params = {k[len("host__"):]: v for k, v in params.items() if k.startswith("host__")}
         sim_params = {k: v for k, v in params.items() if k not in self.own_parameters and not k.startswith("host__")}
         spectrum = None
         redshift = self._redshift
         if "redshift" in params:
-            redshift = _check_redshift(params["redshift"])
+            redshift = check_redshift(params["redshift"])
             spectrum = self._spectrum_at(redshift) if redshift is not None else None
             if spectrum is None and redshift is None and self._spectrum_at(1.0) is not None:
                 raise ParameterError("this target's spectrum needs a redshift")
@@ -251,7 +251,7 @@ class Target(DetectorProducts):
         position = self.position
         if "position" in params:
             position = PointSource([1.0, 2.0], [0.0, 0.0], position=params["position"]).position
-        config = _check_config(params["config"]) if "config" in params else self.config
+        config = check_config(params["config"]) if "config" in params else self.config
         field = check_field(params["field"]) if "field" in params else self._field
         if "config" in params or "field" in params:
             saved = self.pointsource
@@ -318,7 +318,7 @@ class Target(DetectorProducts):
         except SlicersimError:
             raise
         except (ValueError, TypeError, OSError, KeyError) as exc:
-            raise ParameterError(f"invalid throughput {throughput!r}: {exc}") from exc
+            raise ParameterError(f"throughput: invalid throughput {validation.short_repr(throughput)}: {exc}") from exc
 
     def change_configuration(self, config):
         """Switch to another configuration (``"cbe"``, ``"eol"``, TOML path(s)); keeps the readout."""
@@ -338,10 +338,7 @@ class Target(DetectorProducts):
         """Set the readout (n, m, d), number of ramps, max_group or other detector parameters."""
         params = dict(kwargs)
         if max_group is not None:
-            if isinstance(max_group, bool) or not isinstance(max_group, numbers.Real) \
-                    or not math.isfinite(max_group) or int(max_group) != max_group or max_group < 1:
-                raise ParameterError(f"max_group must be an integer ≥ 1 (None: no limit), got {max_group!r}")
-            params["max_group"] = int(max_group)
+            params["max_group"] = validation.integer("max_group", max_group, low=1)
         if nmd is not None:
             check_readout(nmd, self.simulation.nramps if nramps is None else nramps,
                           self.simulation.detector.min_group,
@@ -353,24 +350,26 @@ class Target(DetectorProducts):
 
     # ------------------------------------------------------------------ ETC
     def _band(self, lbda_range, frame):
+        """(lo, hi) [Å, observer frame] of ``lbda_range`` (default 4000–6800 Å) read in ``frame``
+        (None: "rest" when the target has a redshift, else "obs")."""
         if lbda_range is None:
-            lbda_range = (4000.0, 6800.0)
-        lo, hi = check_band(lbda_range)
-        if frame == "rest" and self.redshift is None:
+            lbda_range = DEFAULT_BAND
+        if resolve_frame(frame, self.redshift) == "rest" and self.redshift is None:
             raise ETCError("frame='rest' needs a target redshift")
-        return self.simulation.band_range((lo, hi), frame)
+        return self.simulation.band_range(lbda_range, resolve_frame(frame, self.redshift))
 
-    def setup_to_snr(self, snr, lbda_range=None, frame="obs", search="exact", per_resolution=True,
+    def setup_to_snr(self, snr, lbda_range=None, frame=None, search="exact", per_resolution=True,
                      backend="auto", allow_partial=False):
         """Find and apply the readout reaching ``snr`` (per resolution element by default)
-        in ``lbda_range``; returns the ETC result dict.
+        in ``lbda_range`` [Å] (default 4000–6800 Å) read in ``frame`` ("rest", "obs", or None: "rest"
+        when the target has a redshift, else "obs"); returns the ETC result dict.
 
         The band must lie inside the instrument grid and the source spectrum, else
         SpectrumError naming the covered fraction; ``allow_partial=True`` solves on the
         covered part with a BandCoverageWarning (:mod:`slicersim.etc.bands`)."""
         band = self._band(lbda_range, frame)
         result = self.simulation.fetch_snr(snr, band, per_resolution=per_resolution, search=search,
-                                           backend=backend, allow_partial=allow_partial)
+                                           backend=backend, allow_partial=allow_partial, frame="obs")
         self.simulation.update(nmd=result["nmd"], nramps=result["nramps"])
         result["lbda_range_obs"] = band
         self.last_etc = result
@@ -393,11 +392,11 @@ class Target(DetectorProducts):
     def get_data_volume(self):
         return self.simulation.get_data_volume()
 
-    def get_band_snr(self, lbda_range=None, frame="obs", per_resolution=False, allow_partial=False):
-        """Band SNR (per bin; per resolution element when ``per_resolution``); band coverage
-        rule (``allow_partial``) as :meth:`setup_to_snr`."""
+    def get_band_snr(self, lbda_range=None, frame=None, per_resolution=False, allow_partial=False):
+        """Band SNR (per bin; per resolution element when ``per_resolution``); ``frame`` and the
+        band coverage rule (``allow_partial``) as :meth:`setup_to_snr`."""
         return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution,
-                                            allow_partial=allow_partial)
+                                            allow_partial=allow_partial, frame="obs")
 
     def get_spectrum(self, incl_error=False, seed=None, method="default", of_host=False, aperture=None,
                      unit="adu", switch_off=None):
@@ -423,18 +422,19 @@ class Target(DetectorProducts):
             stream :data:`SPECTRUM_NOISE_STREAM`) — the same generator and arithmetic as the
             noisy cubes (:func:`slicersim.backends.noise.noisy_cube`): the same seed (int in
             [0, 2⁶⁴)) gives the same draw on every machine and backend; bins with zero variance
-            keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed."""
-        from slicersim.simulation import check_seed
-        seed = check_seed(seed)
-        incl_error = _check_flag(incl_error, "incl_error")
-        of_host = _check_flag(of_host, "of_host")
+            keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed
+            (:func:`slicersim.validation.new_seed`), recorded in ``last_spectrum_seed``."""
+        seed = validation.seed(seed)
+        incl_error = validation.flag("incl_error", incl_error)
+        of_host = validation.flag("of_host", of_host)
         off = check_switch_off(switch_off)
         factor = unit_factors(self.simulation, unit)                  # validates the unit first
         method, aperture = _default_extraction(method, of_host, aperture)
         lbda, signal, variance = self._extract(method, of_host, aperture, off=off)
         if incl_error:
             from slicersim.backends.noise import noisy_cube
-            seed = np.random.default_rng() if seed is None else seed
+            seed = validation.new_seed() if seed is None else seed
+            self.last_spectrum_seed = seed          # recorded: get_spectrum(seed=...) repeats the draw
             signal = noisy_cube(signal, variance, seed, backend="numpy", stream=SPECTRUM_NOISE_STREAM)
         return lbda, signal * factor, variance * factor**2
 
@@ -477,9 +477,11 @@ class Target(DetectorProducts):
     def get_variance_contribution(self):
         return self.simulation.get_variance_contribution()
 
-    def get_band_variance_contribution(self, lbda_range=None, frame="obs", allow_partial=False):
+    def get_band_variance_contribution(self, lbda_range=None, frame=None, allow_partial=False):
+        """Band-mean variance contributions (:meth:`Simulation.get_band_variance_contribution
+        <slicersim.simulation.Simulation.get_band_variance_contribution>`); ``frame`` as :meth:`setup_to_snr`."""
         return self.simulation.get_band_variance_contribution(self._band(lbda_range, frame),
-                                                              allow_partial=allow_partial)
+                                                              allow_partial=allow_partial, frame="obs")
 
 
 class Supernova(Target):
@@ -489,7 +491,7 @@ class Supernova(Target):
     def __init__(self, redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3, config=None,
                  field="default", position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, host=None, **kwargs):
         self.phase, self.source, self.peak_absmag, self._sn_kwargs = phase, source, peak_absmag, dict(kwargs)
-        redshift = _check_redshift(redshift)
+        redshift = check_redshift(redshift)
         if redshift is None:
             raise ParameterError("a supernova needs a redshift")
         lbda, flux = snia_spectrum(redshift, phase, source, peak_absmag, **kwargs)
@@ -499,19 +501,10 @@ class Supernova(Target):
     def _spectrum_at(self, redshift):
         return snia_spectrum(redshift, self.phase, self.source, self.peak_absmag, **self._sn_kwargs)
 
-    # A supernova's bands are read in the rest frame by default (4000–6800 Å rest), in
-    # setup_to_snr, get_band_snr and get_band_variance_contribution alike, so that
-    # ``get_band_snr(per_resolution=True)`` after ``setup_to_snr(snr)`` reports the SNR the
-    # ETC reached (the ETC works per resolution element by default; get_band_snr per bin
-    # unless ``per_resolution=True``, as for every target).
-    def setup_to_snr(self, snr, lbda_range=None, frame="rest", **kwargs):
-        return super().setup_to_snr(snr, lbda_range, frame, **kwargs)
-
-    def get_band_snr(self, lbda_range=None, frame="rest", per_resolution=False, allow_partial=False):
-        return super().get_band_snr(lbda_range, frame, per_resolution, allow_partial)
-
-    def get_band_variance_contribution(self, lbda_range=None, frame="rest", allow_partial=False):
-        return super().get_band_variance_contribution(lbda_range, frame, allow_partial)
+    # A supernova has a redshift: its bands are read in the rest frame by default (frame=None,
+    # 4000–6800 Å rest), in setup_to_snr, get_band_snr and get_band_variance_contribution alike,
+    # and so are those of its simulation (Simulation.get_band_snr), so that
+    # ``get_band_snr(per_resolution=True)`` after ``setup_to_snr(snr)`` reports the SNR the ETC reached.
 
 
 class BlackBody(Target):
@@ -557,18 +550,21 @@ def _result(target, etc):
             "config": target.config, "field": target.field, "conventions": target.conventions, "target": target}
 
 
-def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame="obs",
-               config="cbe", field="narrow", search="exact", redshift=None, conventions=DEFAULT_CONVENTIONS,
-               allow_partial=False):
+def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame=None,
+               config="cbe", field="narrow", search="exact", redshift=None, **options):
     """Exposure time for any spectrum with the Lazuli IFS; returns a dict
     (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target).
-    ``allow_partial``: band coverage rule of :meth:`Target.setup_to_snr`."""
+    ``frame`` (None: "rest" with a ``redshift``, else "obs") as :meth:`Target.setup_to_snr`;
+    keywords ``conventions`` (default "physical") and ``allow_partial`` (band coverage rule of
+    :meth:`Target.setup_to_snr`, default False)."""
+    check_parameter_names("lazuli_etc", options, ("conventions", "allow_partial"))
     target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift,
-                          conventions=conventions)
-    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))
+                          conventions=options.get("conventions", DEFAULT_CONVENTIONS))
+    return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search,
+                                               allow_partial=options.get("allow_partial", False)))
 
 
-def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame="rest", config="cbe", field="narrow",
+def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame=None, config="cbe", field="narrow",
                   search="exact", phase=0.0, source="hsiao-subsampled", conventions=DEFAULT_CONVENTIONS,
                   allow_partial=False):
     """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default;

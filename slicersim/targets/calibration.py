@@ -33,13 +33,15 @@ import numpy as np
 
 from slicersim.assembly import check_field, default_mapper
 from slicersim.backends.precision import resolve_precision
+from slicersim import validation
 from slicersim.errors import ParameterError
+from slicersim.instrument.names import check_parameter_names
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.sources.lamps import (DEFAULT_LAMP_BAND, QTH_TEMPERATURE, BlackBodyContinuum, CalibrationLamp,
-                                     FabryPerotEtalon, LampIllumination, TabulatedContinuum, as_etalon, _number)
+                                     FabryPerotEtalon, LampIllumination, TabulatedContinuum, as_etalon)
 from slicersim.targets.base import Target, build_simulation, config_default_field, lazuli_doc
-from slicersim.targets.state import _check_config
+from slicersim.targets.state import check_config
 
 __all__ = ["FLAT_SLICE_STREAM", "FLAT_PIXEL_STREAM", "DEFAULT_ETALON_FSR", "DEFAULT_ETALON_FINESSE",
            "FlatFieldStructure", "Flat3DCalibration", "Lazuli3DFlat", "locate_peaks"]
@@ -68,12 +70,11 @@ class FlatFieldStructure:
     """
 
     def __init__(self, slice_scatter=0.0, pixel_scatter=0.0, seed=0):
-        from slicersim.simulation import check_seed
-        self.slice_scatter = _number("slice_scatter", slice_scatter, allow_zero=True, upper=MAX_SCATTER)
-        self.pixel_scatter = _number("pixel_scatter", pixel_scatter, allow_zero=True, upper=MAX_SCATTER)
+        self.slice_scatter = validation.number("slice_scatter", slice_scatter, low=0.0, high=MAX_SCATTER)
+        self.pixel_scatter = validation.number("pixel_scatter", pixel_scatter, low=0.0, high=MAX_SCATTER)
         if seed is None or isinstance(seed, np.random.Generator):
-            raise ParameterError("the flat-field structure needs an integer seed in [0, 2**64)")
-        self.seed = check_seed(seed)
+            raise ParameterError("seed: the flat-field structure needs an integer seed in [0, 2**64)")
+        self.seed = validation.seed(seed)
 
     @property
     def is_ideal(self):
@@ -175,7 +176,7 @@ class Flat3DCalibration(Target):
         if not isinstance(lamp, CalibrationLamp):
             raise ParameterError(f"lamp must be a slicersim.sources.lamps.CalibrationLamp, got {lamp!r}")
         self.structure = _check_structure(structure)
-        self.config = self.default_config if config is None else _check_config(config)
+        self.config = self.default_config if config is None else check_config(config)
         self._redshift, self.pointsource, self._host, self._host_offset = None, None, None, None
         self._lamp = lamp
         if field == "default":
@@ -272,12 +273,9 @@ class Flat3DCalibration(Target):
     def update(self, **params):
         """Change ``field``, ``config`` or any simulation parameter (``Simulation.mutable_parameters``)
         atomically; the readout is kept."""
-        accepted = self.mutable_parameters
-        unknown = sorted(set(params) - set(accepted))
-        if unknown:
-            raise ParameterError(f"unknown calibration parameter(s) {unknown}; accepted: {', '.join(accepted)}")
+        check_parameter_names("calibration", params, self.mutable_parameters)
         sim_params = {k: v for k, v in params.items() if k not in self.own_parameters}
-        config = _check_config(params["config"]) if "config" in params else self.config
+        config = check_config(params["config"]) if "config" in params else self.config
         field = check_field(params["field"]) if "field" in params else self._field
         if "config" in params or "field" in params:
             new_sim = self._new_simulation(config, field, params=sim_params)
@@ -341,8 +339,8 @@ class Flat3DCalibration(Target):
         unused (a uniform scene needs no PSF)."""
         from slicersim.backends.precision import check_precision, resolve_precision
         from slicersim.products.components import check_switch_off
-        from slicersim.simulation import check_seed
-        seed = check_seed(seed)
+        from slicersim.simulation import CubeTuple
+        seed = validation.seed(seed)
         off = check_switch_off(switch_off)
         fields = self._which(which)
         unknown = sorted(set(options) - {"dtype", "psf_profile", "max_bytes", "progress", "psf_options",
@@ -357,8 +355,8 @@ class Flat3DCalibration(Target):
         if "psf_profile" in options:
             from slicersim.products.psf_profiles import get_psf_profile
             get_psf_profile(options["psf_profile"])
-        out = tuple(self._field_cube(self._simulation_for(f), f, nmd, nramps, seed, backend, dtype, off, noise)
-                    for f in fields)
+        out = tuple(CubeTuple(self._field_cube(self._simulation_for(f), f, nmd, nramps, seed, backend, dtype, off,
+                                               noise), seed) for f in fields)
         return out if which == "both" else out[0]
 
     def _field_cube(self, sim, field, nmd, nramps, seed, backend, dtype, off, noise):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ETCError, ParameterError
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.readout import readout_times
@@ -17,7 +18,8 @@ from slicersim.products.extraction import (EXTRACTION_METHODS, aperture_radius, 
 from slicersim.simulation import VARIANCE_SOURCES, check_snr
 from slicersim.sources.galaxies import GalaxyModel
 from slicersim.sources.scene import PointSource
-from slicersim.targets.base import Target, _check_flag, _check_redshift, _Lazuli, lazuli_doc
+from slicersim.targets.base import Target, _Lazuli, lazuli_doc
+from slicersim.targets.state import check_redshift
 
 __all__ = ["Galaxy", "LazuliGalaxy"]
 
@@ -46,7 +48,7 @@ class Galaxy(Target):
                  method="default", config=None, field="default", position=(0.0, 0.0),
                  conventions=DEFAULT_CONVENTIONS, **host_params):
         self._conventions = check_conventions(conventions)
-        self._redshift = _check_redshift(redshift)
+        self._redshift = check_redshift(redshift)
         if self._redshift is None:
             raise ParameterError("a galaxy needs a redshift")
         self._aperture = _check_aperture_name(aperture)
@@ -142,7 +144,7 @@ class Galaxy(Target):
         target's) by ``method`` ("default": the target's), in ``unit``; see
         :meth:`Target.get_spectrum` for ``incl_error`` / ``seed`` / ``unit`` / ``switch_off``.  A
         galaxy target has no point source: ``of_host`` must stay True."""
-        if _check_flag(of_host, "of_host") is False:
+        if validation.flag("of_host", of_host) is False:
             raise ParameterError("a galaxy target has no point source: its spectrum is that of the galaxy "
                                  "(of_host=True)")
         if aperture is None:               # the target's own aperture and method (not Target's defaults)
@@ -153,8 +155,9 @@ class Galaxy(Target):
         return super().get_spectrum(incl_error, seed, method, True, aperture, unit, switch_off)
 
     # ------------------------------------------------------------------ SNR and ETC
-    # bands are read in the rest frame by default (4000–6800 Å rest), as for supernovae and 1.4.2
-    def get_band_snr(self, lbda_range=None, frame="rest", per_resolution=False, allow_partial=False):
+    # a galaxy has a redshift: bands are read in the rest frame by default (frame=None, 4000–6800 Å
+    # rest), as for supernovae and 1.4.2; frame="obs" reads them in the observer frame
+    def get_band_snr(self, lbda_range=None, frame=None, per_resolution=False, allow_partial=False):
         """Band SNR of the extracted galaxy spectrum: mean(signal) / √mean(variance) over the bins
         of ``lbda_range`` (per resolution element with ``per_resolution``)."""
         sim = self.simulation
@@ -164,15 +167,14 @@ class Galaxy(Target):
             snr = float(np.nanmean(signal[mask]) / np.sqrt(np.nanmean(variance[mask])))
         return snr * np.sqrt(sim.spectrograph.dispersion_resolution) if per_resolution else snr
 
-    def setup_to_snr(self, snr, lbda_range=None, frame="rest", search="exact", per_resolution=True,
+    def setup_to_snr(self, snr, lbda_range=None, frame=None, search="exact", per_resolution=True,
                      backend="auto", allow_partial=False):
         """Find and apply the readout with the shortest total exposure reaching ``snr`` in the
         extracted galaxy spectrum (per resolution element by default); returns the ETC result dict.
         Every candidate (n, m, d) × ramps of ``etc.search.candidate_readouts`` is evaluated."""
         from slicersim.etc.search import candidate_readouts, exact_choice, limit_error, max_frames_for
         snr = check_snr(snr)
-        if search != "exact":
-            raise ETCError(f"galaxy targets support search='exact' only, got {search!r}")
+        validation.choice("search", search, ("exact",), error=ETCError, what="search (galaxy targets: 'exact' only)")
         sim, det = self.simulation, self.simulation.detector
         band = self._band(lbda_range, frame)
         idx = np.nonzero(sim.band_mask(band, allow_partial=allow_partial))[0]
@@ -205,7 +207,7 @@ class Galaxy(Target):
             out[src] = total - self._extract(None, off=src)[2]
         return out
 
-    def get_band_variance_contribution(self, lbda_range=None, frame="rest", allow_partial=False):
+    def get_band_variance_contribution(self, lbda_range=None, frame=None, allow_partial=False):
         """Band means of :meth:`get_variance_contribution` (absolute [ADU²] and ``frac_<src>``)."""
         mask = self.simulation.band_mask(self._band(lbda_range, frame), allow_partial=allow_partial)
         _, signal, total = self._extract(None)
@@ -243,9 +245,8 @@ def _check_aperture_name(aperture):
 
 def _check_aperture_position(position):
     if isinstance(position, str):
-        if position != "host":
-            raise ParameterError(f"aperture__position must be 'host' or (x, y) [cells], got {position!r}")
-        return position
+        return validation.choice("aperture__position", position, ("host",),
+                                 what="aperture__position ('host' or (x, y) [cells])")
     return _check_position(position)
 
 
@@ -254,6 +255,4 @@ def _check_position(position):
 
 
 def _check_method(method):
-    if method != "default" and method not in EXTRACTION_METHODS:
-        raise ParameterError(f"method must be 'default', 'optimal' or 'aperture', got {method!r}")
-    return method
+    return validation.choice("method", method, ("default", *EXTRACTION_METHODS))

@@ -13,19 +13,19 @@ Each has a ``Lazuli*`` variant (Lazuli IFS, CBE configuration, narrow field by d
 """
 from __future__ import annotations
 
-import math
-import numbers
-
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ParameterError
+from slicersim.instrument.names import check_parameter_names
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS
 from slicersim.sources.spectra import (find_calspec_file, load_sncosmo_source, normalise_to_mag,
                                        powerlaw_flambda, read_calspec, sncosmo_spectrum, validate_spectrum)
-from slicersim.targets.base import Target, _check_redshift, _Lazuli, lazuli_doc
+from slicersim.targets.base import Target, _Lazuli, lazuli_doc
+from slicersim.targets.state import check_redshift
 
 __all__ = ["PowerLaw", "SncosmoTarget", "Kilonova", "CalSpec", "LazuliPowerLaw", "LazuliSncosmoTarget",
-           "LazuliKilonova", "LazuliCalSpec", "powerlaw_grid"]
+           "LazuliKilonova", "LazuliCalSpec", "powerlaw_grid", "check_mag", "TARGET_OPTIONS"]
 
 
 def powerlaw_grid():
@@ -33,12 +33,23 @@ def powerlaw_grid():
     return np.arange(1000.0, 30000.0 + 2.5, 5.0)
 
 
-def _check_mag(mag, name="mag", required=False):
+def check_mag(mag, name="mag", required=False):
+    """A magnitude: a finite number (None allowed unless ``required``); ParameterError naming ``name``."""
     if mag is None and not required:
         return None
-    if isinstance(mag, bool) or not isinstance(mag, numbers.Real) or not math.isfinite(mag):
-        raise ParameterError(f"{name} must be a finite magnitude{'' if required else ' or None'}, got {mag!r}")
-    return float(mag)
+    return validation.number(name, mag)
+
+
+#: the keywords every target passes on to :class:`~slicersim.targets.base.Target` (``**target``)
+TARGET_OPTIONS = ("config", "field", "position", "conventions", "host")
+
+
+def _target_options(target):
+    """``**target`` of a source constructor, checked: only :data:`TARGET_OPTIONS` (ParameterError
+    naming the unknown keyword otherwise), with the Target defaults for the missing ones."""
+    check_parameter_names("target", target, TARGET_OPTIONS)
+    return {"config": None, "field": "default", "position": (0.0, 0.0), "conventions": DEFAULT_CONVENTIONS,
+            "host": None, **target}
 
 
 class PowerLaw(Target):
@@ -52,7 +63,7 @@ class PowerLaw(Target):
 
     def __init__(self, alpha, mag, band="bessellr", magsys="ab", lbda=None, config=None, field="default",
                  position=(0.0, 0.0), redshift=None, conventions=DEFAULT_CONVENTIONS, host=None):
-        mag = _check_mag(mag, required=True)
+        mag = check_mag(mag, required=True)
         lbda = powerlaw_grid() if lbda is None else lbda
         lbda, shape = validate_spectrum(lbda, powerlaw_flambda(lbda, alpha), "power law")
         ratio, _ = normalise_to_mag(lbda, shape, mag, band, magsys)
@@ -73,26 +84,26 @@ class SncosmoTarget(Target):
     mag : apparent magnitude of the observed spectrum at ``phase`` in observer-frame ``band``;
         exactly one of the two
     ``update(redshift=...)`` recomputes the spectrum with the same normalisation rule.
+    ``**target``: ``config``, ``field``, ``position``, ``conventions``, ``host`` as
+    :class:`~slicersim.targets.base.Target` (keywords).
     """
 
     def __init__(self, source, redshift, phase=0.0, peak_absmag=None, mag=None, band="bessellb", magsys="ab",
-                 params=None, cosmology=None, config=None, field="default", position=(0.0, 0.0),
-                 conventions=DEFAULT_CONVENTIONS, host=None):
-        peak_absmag, mag = _check_mag(peak_absmag, "peak_absmag"), _check_mag(mag)
+                 params=None, cosmology=None, **target):
+        peak_absmag, mag = check_mag(peak_absmag, "peak_absmag"), check_mag(mag)
         if (peak_absmag is None) == (mag is None):
             raise ParameterError("give exactly one normalisation: peak_absmag (rest-frame peak absolute "
                                  f"magnitude) or mag (observed magnitude at this phase), got {peak_absmag=}, {mag=}")
-        redshift = _check_redshift(redshift)
+        redshift = check_redshift(redshift)
         if redshift is None:
             raise ParameterError("an sncosmo source needs a redshift > 0")
         if params is not None and not isinstance(params, dict):
-            raise ParameterError(f"params must be a dict of source parameters, got {params!r}")
+            raise ParameterError(f"params must be a dict of source parameters, got {validation.short_repr(params)}")
         self.source = load_sncosmo_source(source)
         self.phase, self.peak_absmag, self.mag, self.band, self.magsys = phase, peak_absmag, mag, band, magsys
         self.params, self.cosmology = dict(params or {}), cosmology
         lbda, flux = self._spectrum_at(redshift)
-        super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift,
-                         conventions=conventions, host=host)
+        super().__init__(lbda, flux, redshift=redshift, **_target_options(target))
 
     def _spectrum_at(self, redshift):
         lbda, flux = sncosmo_spectrum(self.source, redshift, self.phase, peak_absmag=self.peak_absmag,
@@ -112,18 +123,18 @@ class Kilonova(SncosmoTarget):
     (default ``"bessellr"``; 1.4.2's ``"sdssr"`` needs a download), or to the observed ``mag``
     at ``phase`` when given (1.4.2's ``mag`` is instead a rest-frame peak magnitude).
     No model ships with slicersim: a missing file raises SpectrumError saying where to get one.
+    ``theta`` may be an astropy Quantity (converted to degrees).  ``**target``: ``config``, ``field``,
+    ``position``, ``conventions``, ``host`` as :class:`~slicersim.targets.base.Target` (keywords).
     """
 
     def __init__(self, model, redshift=0.2, phase=1.4, theta=0.0, peak_absmag=-15.8, mag=None, band="bessellr",
-                 magsys="ab", cosmology=None, config=None, field="default", position=(0.0, 0.0),
-                 conventions=DEFAULT_CONVENTIONS, host=None):
-        if isinstance(theta, bool) or not isinstance(theta, numbers.Real) or not 0 <= theta <= 180:
-            raise ParameterError(f"theta must be a viewing angle in [0, 180] degrees, got {theta!r}")
+                 magsys="ab", cosmology=None, **target):
+        theta = validation.number("theta", theta, low=0.0, high=180.0, unit="deg")
         from slicersim.sources.kilonova import kilonova_source
-        self.model, self.theta = model, float(theta)
+        self.model, self.theta = model, theta
         super().__init__(kilonova_source(model), redshift, phase, peak_absmag=None if mag is not None else peak_absmag,
-                         mag=mag, band=band, magsys=magsys, params={"theta": float(theta)}, cosmology=cosmology,
-                         config=config, field=field, position=position, conventions=conventions, host=host)
+                         mag=mag, band=band, magsys=magsys, params={"theta": theta}, cosmology=cosmology,
+                         **_target_options(target))
 
 
 class CalSpec(Target):
@@ -140,7 +151,7 @@ class CalSpec(Target):
         self.path = find_calspec_file(name, calspec_dir)
         lbda, flux = read_calspec(self.path)
         self.star = str(name)
-        super().__init__(lbda, flux, mag=_check_mag(mag), band=band, config=config, field=field,
+        super().__init__(lbda, flux, mag=check_mag(mag), band=band, config=config, field=field,
                          position=position, conventions=conventions, redshift=redshift, host=host)
 
 

@@ -6,12 +6,9 @@ the side (:class:`_TargetUpdate`) and only then applies it; the host centre foll
 """
 from __future__ import annotations
 
-import math
-import numbers
 import os
 
-import numpy as np
-
+from slicersim import validation
 from slicersim.errors import ParameterError
 
 
@@ -53,27 +50,17 @@ def _move_host(host, centre):
         host.centre = centre
 
 
-def _check_flag(value, name):
-    """A bool (numpy bools included); ParameterError for anything else ("no", 1, None, ...)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise ParameterError(f"{name} must be True or False, got {value!r}")
-    return bool(value)
-
-
-def _check_redshift(redshift):
-    """None or a finite number > 0 (ParameterError otherwise: strings, lists, NaN, ≤ 0)."""
+def check_redshift(redshift, name="redshift"):
+    """None or a finite number > 0 (ParameterError naming ``name`` otherwise: strings, lists, NaN, ≤ 0)."""
     if redshift is None:
         return None
-    if isinstance(redshift, (bool, np.bool_)) or not isinstance(redshift, numbers.Real):
-        raise ParameterError(f"redshift must be a number > 0 or None, got {redshift!r}")
-    if not (math.isfinite(redshift) and redshift > 0):
-        raise ParameterError(f"redshift must be finite and > 0, got {redshift!r}")
-    return float(redshift)
+    return validation.number(name, redshift, low=0.0, low_open=True)
 
 
-def _check_config(config):
+def check_config(config):
     """A configuration name / TOML path or a non-empty list of them (ParameterError otherwise)."""
     items = config if isinstance(config, (list, tuple)) else [config]
     if not items or not all(isinstance(c, (str, os.PathLike)) for c in items):
-        raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
+        raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got "
+                             f"{validation.short_repr(config)}")
     return config
