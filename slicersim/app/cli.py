@@ -222,7 +222,9 @@ def cmd_ramp(args) -> int:
     nmd = tuple(args.nmd)
     effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
     _check_output(args.out, args.overwrite)
-    common = dict(seed=args.seed, out=args.out, compression=args.compression, progress=True,
+    from slicersim import validation
+    seed = validation.new_seed() if args.seed is None else args.seed       # printed and recorded (SEED)
+    common = dict(seed=seed, out=args.out, compression=args.compression, progress=True,
                   backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format,
                   precision=args.precision)
     if args.previous_charge is not None:
@@ -241,7 +243,7 @@ def cmd_ramp(args) -> int:
         target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field or "narrow",
                                  conventions=args.conventions or DEFAULT_CONVENTIONS)
         path = target.get_ramps(nmd=nmd, nramps=args.nramps, **detector, **common)
-    print(f"wrote {path} (seed {path.seed})")       # the seed repeats the run: --seed {path.seed}
+    print(f"wrote {path} (seed {seed})")            # --seed SEED repeats the run
     return 0
 
 

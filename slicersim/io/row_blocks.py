@@ -26,13 +26,14 @@ import numpy as np
 __all__ = ["rows_per_block", "RowBlocks", "BufferRing", "pipelined", "BackgroundLanes", "show_progress"]
 
 
-def rows_per_block(max_bytes, bytes_per_row, nrows, *, reserve=0, what="one detector row", chunk=1):
+def rows_per_block(max_bytes, bytes_per_row, nrows, *, reserve=0, what="one detector row", chunk=1,
+                   name="max_bytes"):
     """Rows per block: as many as ``max_bytes − reserve`` bytes hold at ``bytes_per_row`` each
     (at least 1, at most ``nrows``), rounded down to a multiple of ``chunk`` when above it (the
-    rows of a file's chunk).  MemoryError when not even one row fits."""
+    rows of a file's chunk).  MemoryError when not even one row fits (``name``: the caller's keyword)."""
     budget = int(max_bytes) - int(reserve)
     if budget < bytes_per_row:
-        raise MemoryError(f"max_bytes {int(max_bytes)} B is smaller than {what} ({int(bytes_per_row)} B"
+        raise MemoryError(f"{name} {int(max_bytes)} B is below {what} ({int(bytes_per_row)} B"
                           f"{f' plus {int(reserve)} B reserved' if reserve else ''})")
     rows = int(max(1, min(nrows, budget // bytes_per_row)))
     if chunk > 1 and rows > chunk:

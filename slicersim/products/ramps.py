@@ -41,7 +41,7 @@ from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, frame_mean_cha
                                     macc_frame_schedule, readpatt)
 from slicersim.physics.readout import readout_times  # noqa: F401
 
-__all__ = ["simulate", "RampParameters", "RampIO", "RunOptions", "DetectorMaps", "RampResult", "RampPath",
+__all__ = ["simulate", "RampParameters", "RampIO", "RunOptions", "DetectorMaps", "RampResult",
            "check_rate", "expected_frame_charge", "realize_ramps", "frame_mean_charge", "macc_frame_schedule",
            "readpatt", "fit_slopes", "DEFAULT_BIAS", "DEFAULT_MAX_BYTES"]
 
@@ -122,18 +122,6 @@ class RampResult:
     attrs: dict = field(default_factory=dict)
 
 
-class RampPath(str):
-    """The absolute path returned by the keyword form of :func:`simulate`, a ``str`` that also carries
-    the ``seed`` used (also in the file's SEED attribute)."""
-
-    seed: int | None = None
-
-    def __new__(cls, path, seed=None):
-        obj = super().__new__(cls, path)
-        obj.seed = seed
-        return obj
-
-
 #: the keyword form of :func:`simulate`, in its historical positional order after ``rate``
 _LEGACY_ORDER = ("nmd", "nramps", "seed", "out", "tframe", "ron", "dark", "thermal_dark", "roic_glow", "gain",
                  "saturation", "bias", "ktc_noise", "full_well", "dead_pixels", "pixeldq", "sparse_max_group",
@@ -179,8 +167,8 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
     out=None, tframe=2.83, ron=12.0, dark=2.8e-3, ..., memory_budget=2**29, file_format=None, ...)``:
     every keyword of :class:`RampParameters`, :class:`RampIO` (``file_format`` for ``format``),
     :class:`RunOptions` (``memory_budget`` is the deprecated name of ``max_bytes``) and
-    :class:`DetectorMaps`, loose; it returns, as before, the path written (a :class:`RampPath`, a str
-    with ``.seed``) or SCI (and GROUPDQ with ``return_dq``).  The same seed gives the same ramps in
+    :class:`DetectorMaps`, loose; it returns, as before, the absolute path written (a str; the seed is
+    its SEED attribute) or SCI (and GROUPDQ with ``return_dq``).  The same seed gives the same ramps in
     both forms.
     """
     named = {"seed": seed, "effects": effects, "out": out, "backend": backend, "precision": precision}
@@ -195,7 +183,7 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
 
 def _simulate_keywords(rate, nmd, args, kwargs, named, objects):
     """The keyword form of :func:`simulate`: loose keywords → RampParameters, RampIO, RunOptions,
-    DetectorMaps; returns the path (RampPath) or SCI [, GROUPDQ] as slicersim 0.1 did."""
+    DetectorMaps; returns the path or SCI [, GROUPDQ] as slicersim 0.1 did."""
     if any(o is not None for o in objects):
         raise ParameterError("io=, run= and maps= go with readout=RampParameters(...); with nmd= give their "
                              "fields as keywords")
@@ -224,7 +212,7 @@ def _simulate_keywords(rate, nmd, args, kwargs, named, objects):
     maps = DetectorMaps(**{k: given[k] for k in _MAP_KEYS if k in given})
     result = _simulate(rate, readout, named, io, run, maps)
     if result.path is not None:
-        return RampPath(result.path, result.seed)
+        return result.path
     return (result.sci, result.groupdq) if io.return_dq else result.sci
 
 

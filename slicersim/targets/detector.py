@@ -109,7 +109,7 @@ class DetectorProducts:
         ``nramps`` must be an integer ≥ 1, ReadoutError otherwise); the detector
         parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
         saturation) come from the configuration.  ``seed``: an integer in [0, 2⁶⁴) or None (default:
-        a fresh seed, recorded in the file's SEED attribute and in the returned path's ``.seed``).
+        a fresh seed, recorded in the file's SEED attribute).
         Returns SCI or writes ``out`` (HDF5 or level-1b FITS) and returns its path."""
         from slicersim import validation
         from slicersim.products.ramps import simulate
