@@ -326,7 +326,7 @@ def _number(attrs, key, where, kind=float):
     try:
         num = kind(val) if kind is float else int(val)
         if kind is int and num != float(val):
-            raise ValueError
+            raise ValueError  # internal: caught just below, becomes a RampFileError naming the keyword
     except (TypeError, ValueError) as exc:
         raise RampFileError(f"{where}: keyword {key} = {val!r} is not {'an integer' if kind is int else 'a number'}") from exc
     return num
