@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim import validation
+from slicersim.errors import ReadoutError
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, variance_gain_factor
 
 __all__ = ["check_readout", "readout_times", "rauscher07_coefficients", "variance_rauscher07",
@@ -22,7 +23,11 @@ __all__ = ["check_readout", "readout_times", "rauscher07_coefficients", "varianc
 def check_readout(nmd, nramps=1, min_group=2, max_group=None):
     """Validate a MACC readout (n, m, d) and a number of ramps; return ((n, m, d), nramps) as ints
     (:func:`slicersim.validation.readout` and :func:`~slicersim.validation.nramps`: ReadoutError)."""
-    return validation.readout(nmd, min_group=min_group, max_group=max_group), validation.nramps(nramps)
+    n, m, d = validation.readout(nmd, min_group=min_group)
+    if max_group is not None and n > max_group:
+        raise ReadoutError(f"readout mode nmd = ({n}, {m}, {d}): n = {n} exceeds max_group = {max_group} "
+                           "(the detector's largest number of groups)")
+    return (n, m, d), validation.nramps(nramps)
 
 
 def readout_times(nmd, tframe):
