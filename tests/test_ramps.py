@@ -476,3 +476,21 @@ def test_memory_budget_is_the_deprecated_name_of_max_bytes():
     from slicersim.errors import ParameterError
     with pytest.raises(ParameterError, match="max_bytes"):
         simulate(rate, (3, 1, 0), seed=1, memory_budget=2**20, max_bytes=2**20)
+
+
+def test_get_ramps_checks_the_seed_before_the_detector_image(monkeypatch):
+    """Target.get_ramps: seed defaults to None (fresh, recorded); a bad seed is a ParameterError naming
+    it, raised before the (slow) full-detector image is built."""
+    import inspect
+
+    from slicersim.errors import ParameterError
+    from slicersim.targets import LazuliSupernova
+    tgt = LazuliSupernova(1.0)
+    assert inspect.signature(tgt.get_ramps).parameters["seed"].default is None
+
+    def no_image(*args, **kwargs):
+        raise AssertionError("the detector image was built before the seed was checked")
+    monkeypatch.setattr(type(tgt), "get_detector_image", no_image)
+    for bad in (1.5, -2, "7"):
+        with pytest.raises(ParameterError, match="seed"):
+            tgt.get_ramps(nmd=(4, 2, 0), seed=bad)
