@@ -462,6 +462,10 @@ def test_readout_form_refuses_loose_keywords_and_accepts_quantities():
     assert p.tframe == pytest.approx(2.83) and p.ron == 12.0
     with pytest.raises(ParameterError, match="ron.*readout"):
         simulate(np.ones((4, 4)), p, ron=3.0)
+    with pytest.raises(ParameterError, match="io must be a RampIO"):
+        simulate(np.ones((4, 4)), p, io={"overwrite": True})
+    with pytest.raises(ParameterError, match="io=, run= and maps= go with readout=RampParameters"):
+        simulate(np.ones((4, 4)), (4, 2, 0), run=None, io=None, maps=object())
     with pytest.raises(ParameterError, match="tframe"):
         RampParameters(nmd=(4, 2, 0), tframe=3 * u.m)
     ref = simulate(np.ones((4, 4)), p, seed=3).sci

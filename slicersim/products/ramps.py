@@ -173,10 +173,13 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
     """
     named = {"seed": seed, "effects": effects, "out": out, "backend": backend, "precision": precision}
     if isinstance(readout, RampParameters):
-        if args or kwargs or any(isinstance(o, dict) for o in (io, run, maps)):
+        if args or kwargs:
             extra = list(kwargs) or [f"{len(args)} positional argument(s)"]
             raise ParameterError(f"simulate(rate, readout=RampParameters(...)): put {', '.join(extra)} in "
                                  "readout, io=RampIO(...), run=RunOptions(...) or maps=DetectorMaps(...)")
+        for name, obj, cls in (("io", io, RampIO), ("run", run, RunOptions), ("maps", maps, DetectorMaps)):
+            if obj is not None and not isinstance(obj, cls):
+                raise ParameterError(f"{name} must be a {cls.__name__} or None, got {validation.short_repr(obj)}")
         return _simulate(rate, readout, named, io or RampIO(), run or RunOptions(), maps or DetectorMaps())
     return _simulate_keywords(rate, readout, args, kwargs, named, (io, run, maps))
 
