@@ -77,12 +77,6 @@ class RampParameters:
         t = readout_times(self.nmd, self.tframe)
         self.nframes, self.tgroup = t["nframes"], t["group_time"]
 
-    @classmethod
-    def from_keywords(cls, **kwargs):
-        """RampParameters from keywords (``read_noise`` is the deprecated name of ``ron``)."""
-        validation.renamed_keyword(kwargs, "read_noise", "ron", "RampParameters")
-        return cls(**kwargs)
-
     def attrs(self, seed):
         """Root attributes of the raw file (JWST-like names)."""
         n, m, d = self.nmd
