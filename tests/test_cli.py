@@ -1,5 +1,6 @@
 """The ``slicersim`` command line, run as a real subprocess (``python -m slicersim``)."""
 import os
+import re
 import subprocess
 import sys
 
@@ -91,7 +92,7 @@ def test_ramp_rate_file_writes_the_simulated_ramp(tmp_path, rate_file):
     proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--tframe", "3",
                "--out", out)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == f"wrote {out}"
+    assert proc.stdout.strip() == f"wrote {out} (seed 4)"
     sci, gdq, pdq, attrs = read_ramps(out)
     expect = simulate(np.load(rate_file), (3, 1, 0), seed=4, tframe=3.0)      # CLI flags honoured
     assert np.array_equal(sci, expect) and attrs["TFRAME"] == 3.0
@@ -103,6 +104,46 @@ def test_ramp_rate_file_writes_the_simulated_ramp(tmp_path, rate_file):
     assert proc.returncode == 0, proc.stderr
     assert np.array_equal(read_ramps(out)[0], simulate(np.load(rate_file), (3, 1, 0), seed=5))
     assert os.listdir(tmp_path) == ["r.h5"]
+
+
+def test_ramp_default_seed_is_fresh_printed_and_recorded(tmp_path, rate_file):
+    """Without --seed each run draws a new seed, printed in the summary and recorded in SEED; passing it
+    back with --seed repeats the run."""
+    seeds = []
+    for name in ("a.h5", "b.h5"):
+        proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", tmp_path / name)
+        assert proc.returncode == 0, proc.stderr
+        match = re.fullmatch(rf"wrote {re.escape(str(tmp_path / name))} \(seed (\d+)\)", proc.stdout.strip())
+        assert match, proc.stdout
+        seeds.append(int(match.group(1)))
+        assert int(read_ramps(tmp_path / name)[3]["SEED"]) == seeds[-1]
+    assert seeds[0] != seeds[1]
+    assert np.array_equal(read_ramps(tmp_path / "a.h5")[0], simulate(np.load(rate_file), (3, 1, 0), seed=seeds[0]))
+
+
+def test_ramp_help_says_what_effects_all_contains():
+    """'--effects all' leaves persistence out unless --previous-charge is given: the help says so and
+    lists every effect 'all' contains."""
+    from slicersim.physics.effects import EFFECT_NAMES
+    text = " ".join(run("ramp", "--help").stdout.split())
+    contents = text.split("'all' (and 'lazuli') =", 1)[1].split(")", 1)[0]
+    for name in EFFECT_NAMES:
+        assert name in contents, name
+    assert "persistence only when --previous-charge is given" in contents
+
+
+def test_ramp_effects_all_includes_persistence_with_previous_charge(tmp_path):
+    import h5py
+    rate, prev = tmp_path / "rate.npy", tmp_path / "prev.npy"
+    np.save(rate, np.full((64, 64), 3.0))                 # 64 columns: the 32 outputs of reference pixels
+    np.save(prev, np.full((64, 64), 5e4))
+    for extra, expect in (([], False), (["--previous-charge", prev], True)):
+        out = tmp_path / f"r{len(extra)}.h5"
+        proc = run("ramp", "--rate", rate, "--nmd", "3", "1", "0", "--seed", "1", "--effects", "all",
+                   "--out", out, *extra)
+        assert proc.returncode == 0, proc.stderr
+        with h5py.File(out) as fh:
+            assert ("persistence" in fh.attrs["EFFECTS"]) is expect
 
 
 def test_ramp_redshift_full_detector(tmp_path):
@@ -124,7 +165,8 @@ def test_ramp_redshift_full_detector(tmp_path):
     (["etc", "--spectrum", "/no/such/spectrum.csv"], "No such file"),
     (["etc", "--redshift", "1", "--snr", "abc"], "invalid float"),
     (["etc"], "required"),
-    (["ramp", "--rate", "RATE", "--nmd", "1", "1", "0", "--out", "OUT"], "n must be"),
+    (["ramp", "--rate", "RATE", "--nmd", "1", "1", "0", "--out", "OUT"], "nmd[0] (n, groups per ramp) must be"),
+    (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--seed", "-3", "--out", "OUT"], "seed must be in"),
     (["ramp", "--rate", "RATE", "--nramps", "0", "--nmd", "3", "1", "0", "--out", "OUT"], "nramps"),
     (["ramp", "--rate", "RATE", "--config", "eol", "--out", "OUT"], "--config applies only with --redshift"),
     (["ramp", "--rate", "RATE", "--field", "wide", "--out", "OUT"], "--field applies only with --redshift"),
@@ -132,7 +174,7 @@ def test_ramp_redshift_full_detector(tmp_path):
     (["etc", "--redshift", "1", "--conventions", "slicersim-2"], "invalid choice"),
     (["ramp", "--rate", "/no/such/rate.npy", "--out", "OUT"], "No such file"),
     (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--out", "/no/such/dir/r.h5"], "directory does not exist"),
-    (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "negative"),
+    (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "rate must be ≥ 0"),
     (["nosuchcommand"], "invalid choice"),
 ])
 def test_user_errors_are_one_line_exit_2(tmp_path, rate_file, args, match):
@@ -158,7 +200,7 @@ def test_debug_env_shows_the_traceback():
 
 @pytest.mark.parametrize("command, expected", [
     ("etc", ["(default: 20.0)", "(default: 4000 6800)"]),
-    ("ramp", ["(default: (16, 8, 0))", "(default: 1)", "(default: 0)", "(default: 2.83", "(default: auto)",
+    ("ramp", ["(default: (16, 8, 0))", "(default: 1)", "default: a fresh seed", "(default: 2.83", "(default: auto)",
               "--overwrite"]),
     ("demo", ["(default: demo_output)", "--overwrite"]),
     ("info", []),

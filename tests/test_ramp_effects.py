@@ -28,7 +28,7 @@ def test_backends_and_chunking_give_the_same_integers(effects):
     rate = _rate()
     kw = dict(seed=3, effects=effects, progress=False, return_dq=True)
     ref = simulate(rate, NMD, backend="numpy", **kw)
-    for extra in ({}, {"memory_budget": 128 * 200 * 50}):                  # one block, ~7-row blocks
+    for extra in ({}, {"max_bytes": 128 * 200 * 50}):                  # one block, ~7-row blocks
         got = simulate(rate, NMD, backend="opencl", **extra, **kw)
         assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
 
@@ -294,7 +294,7 @@ def test_background_writes_equal_the_in_memory_ramp(tmp_path):
     """HDF5 with effects: truth and block writes run in background threads; many small blocks give
     the in-memory ramp's integers and the truth of a file written without threads (FITS)."""
     rate = _rate(ny=40)
-    kw = dict(seed=5, effects="lazuli", progress=False, memory_budget=128 * 200 * 50)
+    kw = dict(seed=5, effects="lazuli", progress=False, max_bytes=128 * 200 * 50)
     ref = simulate(rate, NMD, return_dq=True, **kw)
     path = simulate(rate, NMD, out=tmp_path / "b.h5", **kw)
     sci, gdq = read_ramps(path)[:2]
@@ -311,7 +311,7 @@ def test_background_write_error_reaches_the_caller(tmp_path, monkeypatch):
             raise OSError("disk full (test)")
     monkeypatch.setattr(RampWriter, "write_block", failing)
     with pytest.raises(OSError, match="disk full"):
-        simulate(_rate(), NMD, seed=5, effects="lazuli", progress=False, memory_budget=128 * 200 * 50,
+        simulate(_rate(), NMD, seed=5, effects="lazuli", progress=False, max_bytes=128 * 200 * 50,
                  out=tmp_path / "c.h5")
     assert not (tmp_path / "c.h5").exists()
 
@@ -322,6 +322,6 @@ def test_correlated_noise_across_ramps_and_small_blocks():
     rate = _rate(ny=40)
     kw = dict(seed=9, effects="lazuli", progress=False, nramps=2, return_dq=True)
     ref = simulate(rate, NMD, backend="numpy", **kw)
-    got = simulate(rate, NMD, backend="opencl", memory_budget=128 * 200 * 50, **kw)
+    got = simulate(rate, NMD, backend="opencl", max_bytes=128 * 200 * 50, **kw)
     assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
     assert not np.array_equal(got[0][0], got[0][1])                       # the two ramps differ

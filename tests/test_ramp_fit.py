@@ -413,3 +413,30 @@ def test_bad_input_gives_one_clear_error(tmp_path):
         fit_ramps(path, refpix=True, superbias="2000")
     with pytest.raises(MemoryError, match="below one detector row"):
         fit_ramps(path, memory_budget=100)
+
+
+def test_fit_options_object_equals_the_keyword_form(tmp_path):
+    """fit_ramps(path, FitOptions(...)) is fit_ramps(path, **keywords); unknown keywords, bad values and
+    options mixed with keywords are ParameterErrors naming the parameter; the signature still lists
+    every keyword (the campaign identity of a reduction reads it)."""
+    import inspect
+
+    from slicersim.reduction.ramp_fit import FitOptions
+    rate = np.full((16, 12), 30.0)
+    path = simulate(rate, (6, 2, 0), seed=2, out=tmp_path / "r.h5", ron=8.0, **QUIET)
+    for backend in ("numpy", "opencl"):
+        a = fit_ramps(path, weighting="ols", jump_threshold=5.0, backend=backend, memory_budget=4096)
+        b = fit_ramps(path, FitOptions(weighting="ols", jump_threshold=5.0, backend=backend, memory_budget=4096))
+        for name in ("rate", "variance", "dq", "njumps"):
+            assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=name in ("rate", "variance"))
+        assert a.attrs == b.attrs
+    with pytest.raises(ParameterError, match="weightng.*did you mean 'weighting'"):
+        fit_ramps(path, weightng="ols")
+    with pytest.raises(ParameterError, match="backend"):
+        fit_ramps(path, backend="cuda")
+    with pytest.raises(ParameterError, match="read_noise"):
+        fit_ramps(path, read_noise=-1.0)
+    with pytest.raises(ParameterError, match="options=FitOptions"):
+        fit_ramps(path, FitOptions(), weighting="ols")
+    params = inspect.signature(fit_ramps).parameters
+    assert params["weighting"].default == "gls" and params["memory_budget"].default == 256 << 20

@@ -43,7 +43,7 @@ WRITE_NOISY = """
     rate = np.random.default_rng(0).uniform(0, 100, (256, 256))
     try:
         simulate(rate, (16, 1, 0), out=sys.argv[1], backend="numpy", compression="gzip",
-                 memory_budget=256 * 8 * 60, progress=False)
+                 max_bytes=256 * 8 * 60, progress=False)
     except Exception as exc:
         print(type(exc).__name__ + ": " + str(exc), file=sys.stderr)
         sys.exit(3)
@@ -243,7 +243,7 @@ SLOW_WRITER = """
     rate = np.random.default_rng(0).uniform(0, 100, (256, 64))
     print("start", flush=True)
     ramps.simulate(rate, (4, 1, 0), nramps=50, out=sys.argv[1], backend="numpy", progress=False,
-                   memory_budget=64 * 8 * 40)
+                   max_bytes=64 * 8 * 40)
     print("done", flush=True)
 """
 

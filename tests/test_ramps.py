@@ -79,7 +79,7 @@ def test_identical_for_any_work_group_and_chunking(work_group):
     rate = np.random.default_rng(2).uniform(0, 50, (37, 41))
     ref = simulate(rate, (6, 4, 1), nramps=2, seed=77, backend="numpy")
     got = simulate(rate, (6, 4, 1), nramps=2, seed=77, backend="opencl", work_group=work_group,
-                   memory_budget=41 * 8 * (9 + 3 * 6) * 2)    # ~8 rows per block
+                   max_bytes=41 * 8 * (9 + 3 * 6) * 2)    # ~8 rows per block
     assert np.array_equal(ref, got)
 
 
@@ -300,14 +300,15 @@ def test_interrupted_writer_leaves_no_complete_file(tmp_path, monkeypatch):
     monkeypatch.setattr(ramps, "simulate_block_numpy", dying)
     out = tmp_path / "ramp.h5"
     with pytest.raises(KeyboardInterrupt):
-        ramps.simulate(np.ones((16, 8)), (3, 1, 0), out=out, backend="numpy", memory_budget=8 * 8 * 40)
+        ramps.simulate(np.ones((16, 8)), (3, 1, 0), out=out, backend="numpy", max_bytes=8 * 8 * 40)
     assert not out.exists()
     assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("kwargs, err", [
-    (dict(nmd=(1, 8, 0)), "n must be"), (dict(nmd=(4, 0, 0)), "m \\(frames"),
+    (dict(nmd=(1, 8, 0)), "n, groups per ramp"), (dict(nmd=(4, 0, 0)), "m, frames"),
     (dict(nmd=(4, 2, -1)), "dropped"), (dict(nramps=0), "nramps"),
+    (dict(nmd=(2.7, 1, 0)), r"nmd\[0\].*2\.7"), (dict(nramps=1.5), "nramps"),
 ])
 def test_invalid_readouts(kwargs, err):
     from slicersim.instrument.detector import ReadoutError
@@ -316,16 +317,20 @@ def test_invalid_readouts(kwargs, err):
         simulate(np.ones((2, 2)), **args)
 
 
-@pytest.mark.parametrize("rate, err", [(np.full((2, 2), np.nan), "NaN"), (-np.ones((2, 2)), "negative"),
-                                       (np.ones(4), "2-D")])
+@pytest.mark.parametrize("rate, err", [
+    (np.full((2, 2), np.nan), "rate has 4 non-finite"), (-np.ones((2, 2)), "rate must be ≥ 0"),
+    (np.ones(4), "rate must have 2 dimension"), (np.ones((2, 2), complex), "rate must be an array of real"),
+    (np.zeros((2, 2), [("a", float)]), "rate must be an array of real"), (np.empty((0, 3)), "rate must be a non-empty"),
+    ([["a", "b"]], "rate must be an array of real")])
 def test_invalid_rates(rate, err):
-    with pytest.raises(ValueError, match=err):
-        simulate(rate, (3, 1, 0))
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match=err):
+        simulate(rate, (3, 1, 0), seed=0)
 
 
 def test_memory_busting_request_is_refused():
     with pytest.raises(MemoryError):
-        simulate(np.ones((64, 64)), (64, 8, 0), nramps=100, memory_budget=10_000)
+        simulate(np.ones((64, 64)), (64, 8, 0), nramps=100, max_bytes=10_000)
 
 
 def test_full_disk_is_refused_before_writing(tmp_path, monkeypatch):
@@ -352,5 +357,144 @@ def test_write_error_mid_file_leaves_nothing(tmp_path, monkeypatch):
         return real(self, *args, **kw)
     monkeypatch.setattr(rampio.RampWriter, "write_block", failing)
     with pytest.raises(RampFileError, match="No space"):
-        simulate(np.ones((16, 8)), (3, 1, 0), out=tmp_path / "r.h5", memory_budget=8 * 8 * 40)
+        simulate(np.ones((16, 8)), (3, 1, 0), out=tmp_path / "r.h5", max_bytes=8 * 8 * 40)
     assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------- issue 24: one call form, validation, seeds
+def _small_rate(n=32):
+    y, x = np.mgrid[:n, :n]
+    return 0.01 * (x + 1) * (y % 5) + 50.0 * ((x == 7) & (y == 9))
+
+
+@pytest.mark.parametrize("effects, digest", [(None, "8c8130cf60878e7ce722"),
+                                             ("cosmic_rays,ipc,nonlinearity", "cd6190bc9798d82cb67b")])
+@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+def test_seed_0_gives_the_ramps_of_slicersim_0_1(backend, effects, digest):
+    """seed=0 (the old default, now explicit) reproduces the ramps of the code before the refactor."""
+    import hashlib
+    sci, dq = simulate(_small_rate(), (5, 2, 1), nramps=2, seed=0, backend=backend, return_dq=True,
+                       progress=False, ktc_noise=3.0, effects=effects)
+    assert hashlib.sha256(sci.tobytes() + dq.tobytes()).hexdigest()[:20] == digest
+
+
+@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("effects", [None, "cosmic_rays,ipc,nonlinearity,bad_pixels", "all"])
+def test_keyword_form_is_bit_identical_to_readout_form(tmp_path, backend, effects):
+    """simulate(rate, nmd=..., tframe=..., ...) and simulate(rate, RampParameters(...), io=..., run=...)
+    give the same SCI, GROUPDQ, PIXELDQ and attributes for several seeds, in memory and in files."""
+    import h5py
+
+    from slicersim.products.ramps import RampIO, RampParameters, RampResult, RunOptions
+    rate = np.random.default_rng(3).gamma(0.5, 2.0, (64, 64))
+    rate[5, 5] = 5e3
+    loose = dict(nmd=(5, 2, 1), nramps=2, tframe=3.0, ron=9.0, ktc_noise=4.0, dark=1e-2, gain=1.5)
+    readout = RampParameters(**loose)
+    for seed in (0, 7, 2**63 + 11):
+        old = simulate(rate, seed=seed, backend=backend, effects=effects, return_dq=True, progress=False,
+                       max_bytes=150_000, **loose)
+        new = simulate(rate, readout, seed=seed, backend=backend, effects=effects, io=RampIO(return_dq=True),
+                       run=RunOptions(progress=False, max_bytes=150_000))
+        assert isinstance(new, RampResult) and new.seed == seed
+        assert np.array_equal(old[0], new.sci) and np.array_equal(old[1], new.groupdq)
+    paths = [simulate(rate, seed=5, backend=backend, effects=effects, out=tmp_path / "old.h5", progress=False,
+                      **loose),
+             simulate(rate, readout, seed=5, backend=backend, effects=effects, out=tmp_path / "new.h5",
+                      run=RunOptions(progress=False)).path]
+    with h5py.File(paths[0]) as a, h5py.File(paths[1]) as b:
+        for name in ("SCI", "GROUPDQ", "PIXELDQ", "truth/rate"):
+            assert np.array_equal(a[name][...], b[name][...]), name
+        assert {k: str(v) for k, v in a.attrs.items()} == {k: str(v) for k, v in b.attrs.items()}
+
+
+def test_default_seed_is_fresh_and_recorded(tmp_path):
+    """seed=None (the default) draws a new seed per call, recorded in SEED and returned: two default
+    calls differ, and each is reproduced from its file's SEED."""
+    import h5py
+
+    from slicersim.products.ramps import RampParameters
+    rate = np.full((8, 8), 2.0)
+    a = simulate(rate, (4, 2, 0), out=tmp_path / "a.h5", progress=False)
+    b = simulate(rate, (4, 2, 0), out=tmp_path / "b.h5", progress=False)
+    assert type(a) is str
+    with h5py.File(a) as fa, h5py.File(b) as fb:
+        seed_a, seed_b = int(fa.attrs["SEED"]), int(fb.attrs["SEED"])
+        sci_a = fa["SCI"][...]
+        assert seed_a != seed_b and not np.array_equal(sci_a, fb["SCI"][...])
+    assert np.array_equal(sci_a, simulate(rate, (4, 2, 0), seed=seed_a))
+    result = simulate(rate, RampParameters(nmd=(4, 2, 0)))
+    assert result.attrs["SEED"] == result.seed
+    assert np.array_equal(result.sci, simulate(rate, (4, 2, 0), seed=result.seed))
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(nmd=(2.7, 1, 0)), "ReadoutError", r"nmd\[0\]"),
+    (dict(seed=1.5), "ParameterError", "seed"),
+    (dict(seed=-1), "ParameterError", "seed"),
+    (dict(backend="cuda"), "ParameterError", "backend"),
+    (dict(precision="quad"), "ParameterError", "precision"),
+    (dict(tframe=-2.0), "ParameterError", "tframe"),
+    (dict(ron=float("nan")), "ParameterError", "ron"),
+    (dict(gain="1"), "ParameterError", "gain"),
+    (dict(saturation=70000), "ParameterError", "saturation"),
+    (dict(dark=-1e-3), "ParameterError", "dark"),
+    (dict(dark=np.full((3, 3), 1e-3)), "ParameterError", "dark"),
+    (dict(file_format="fits", out="x.fits"), "ParameterError", "file_format"),
+    (dict(max_bytes=0), "ParameterError", "max_bytes"),
+    (dict(return_dq="yes"), "ParameterError", "return_dq"),
+    (dict(dead_pixels=np.zeros((3, 3), bool)), "ParameterError", "dead_pixels"),
+    (dict(nmdd=(4, 2, 0)), "ParameterError", "nmdd.*did you mean 'nmd'"),
+])
+def test_bad_arguments_are_slicersim_errors_naming_the_parameter(kwargs, error, match):
+    from slicersim import errors
+    args = dict(nmd=(4, 2, 0)) | kwargs
+    with pytest.raises(getattr(errors, error), match=match) as info:
+        simulate(np.ones((4, 4)), **args)
+    assert isinstance(info.value, errors.SlicersimError)
+
+
+def test_readout_form_refuses_loose_keywords_and_accepts_quantities():
+    import astropy.units as u
+
+    from slicersim.errors import ParameterError
+    from slicersim.products.ramps import RampParameters
+    p = RampParameters(nmd=(4, 2, 0), tframe=2830 * u.ms, ron=12 * u.electron, dark=2.8e-3 * u.electron / u.s)
+    assert p.tframe == pytest.approx(2.83) and p.ron == 12.0
+    with pytest.raises(ParameterError, match="ron.*readout"):
+        simulate(np.ones((4, 4)), p, ron=3.0)
+    with pytest.raises(ParameterError, match="io must be a RampIO"):
+        simulate(np.ones((4, 4)), p, io={"overwrite": True})
+    with pytest.raises(ParameterError, match="io=, run= and maps= go with readout=RampParameters"):
+        simulate(np.ones((4, 4)), (4, 2, 0), run=None, io=None, maps=object())
+    with pytest.raises(ParameterError, match="tframe"):
+        RampParameters(nmd=(4, 2, 0), tframe=3 * u.m)
+    ref = simulate(np.ones((4, 4)), p, seed=3).sci
+    assert np.array_equal(ref, simulate(np.ones((4, 4)), (4, 2, 0), seed=3))
+
+
+def test_memory_budget_is_the_deprecated_name_of_max_bytes():
+    rate = np.ones((4, 4))
+    with pytest.warns(DeprecationWarning, match="memory_budget.*max_bytes"):
+        old = simulate(rate, (3, 1, 0), seed=1, memory_budget=2**20)
+    assert np.array_equal(old, simulate(rate, (3, 1, 0), seed=1, max_bytes=2**20))
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match="max_bytes"):
+        simulate(rate, (3, 1, 0), seed=1, memory_budget=2**20, max_bytes=2**20)
+
+
+def test_get_ramps_checks_the_seed_before_the_detector_image(monkeypatch):
+    """Target.get_ramps: seed defaults to None (fresh, recorded); a bad seed is a ParameterError naming
+    it, raised before the (slow) full-detector image is built."""
+    import inspect
+
+    from slicersim.errors import ParameterError
+    from slicersim.targets import LazuliSupernova
+    tgt = LazuliSupernova(1.0)
+    assert inspect.signature(tgt.get_ramps).parameters["seed"].default is None
+
+    def no_image(*args, **kwargs):
+        raise AssertionError("the detector image was built before the seed was checked")
+    monkeypatch.setattr(type(tgt), "get_detector_image", no_image)
+    for bad in (1.5, -2, "7"):
+        with pytest.raises(ParameterError, match="seed"):
+            tgt.get_ramps(nmd=(4, 2, 0), seed=bad)

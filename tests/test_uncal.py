@@ -269,7 +269,7 @@ def test_conversion_streams_in_blocks(tmp_path):
     del w
     write_uncal_from_hdf5(h5, tmp_path / "warm.fits")             # imports (astropy) outside the trace
     tracemalloc.start()
-    write_uncal_from_hdf5(h5, tmp_path / "big.fits", memory_budget=1 << 20)
+    write_uncal_from_hdf5(h5, tmp_path / "big.fits", max_bytes=1 << 20)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     print(f"peak traced memory {peak / 2**20:.2f} MiB for a {2 * 2 * n * ny * nx / 2**20:.0f} MiB SCI")
@@ -296,3 +296,16 @@ def test_simulate_through_the_writer_interface(tmp_path, monkeypatch, exported):
     assert json.loads(header["SLICERSIM CONFIG"]) == config
     assert header["SLICERSIM READPATT"] == "MACC(4,2,1)" and header["SLICERSIM GAIN"] == 1.0
     np.testing.assert_array_equal(read_uncal_truth(out)["truth/rate"], rate.astype(np.float32))
+
+
+def test_memory_budget_is_the_deprecated_name_of_max_bytes(tmp_path):
+    """write_uncal_from_hdf5(memory_budget=) still works, with a DeprecationWarning; the same file as
+    max_bytes=; a bad budget or an unknown writer option is a ParameterError naming it."""
+    from slicersim.errors import ParameterError
+    h5 = simulate(np.full((12, 10), 3.0), (3, 1, 0), seed=1, out=tmp_path / "r.h5", progress=False)
+    with pytest.warns(DeprecationWarning, match="memory_budget.*max_bytes"):
+        old = write_uncal_from_hdf5(h5, tmp_path / "old.fits", memory_budget=400)
+    new = write_uncal_from_hdf5(h5, tmp_path / "new.fits", max_bytes=400)
+    assert np.array_equal(read_uncal(old)[0], read_uncal(new)[0])
+    with pytest.raises(ParameterError, match="max_bytes"):
+        write_uncal_from_hdf5(h5, tmp_path / "bad.fits", max_bytes=0)

@@ -260,7 +260,9 @@ def cmd_ramp(args) -> int:
     nmd = tuple(args.nmd)
     effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
     _check_output(args.out, args.overwrite)
-    common = dict(seed=args.seed, out=args.out, compression=args.compression, progress=True,
+    from slicersim import validation
+    seed = validation.new_seed() if args.seed is None else args.seed       # printed and recorded (SEED)
+    common = dict(seed=seed, out=args.out, compression=args.compression, progress=True,
                   backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format,
                   precision=args.precision)
     if args.previous_charge is not None:
@@ -269,8 +271,9 @@ def cmd_ramp(args) -> int:
     if args.rate is not None:
         given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None]
         if given:
-            raise ValueError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} only with --redshift (with --rate the "
-                             "detector is set by --tframe/--ron/--dark/--roic-glow/--gain)")
+            from slicersim.errors import ParameterError
+            raise ParameterError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} only with --redshift "
+                                 "(with --rate the detector is set by --tframe/--ron/--dark/--roic-glow/--gain)")
         rate = _load_rate(args.rate)
         path = ramps.simulate(rate, nmd, args.nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
     else:
@@ -278,7 +281,7 @@ def cmd_ramp(args) -> int:
         target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field or "narrow",
                                  conventions=args.conventions or DEFAULT_CONVENTIONS)
         path = target.get_ramps(nmd=nmd, nramps=args.nramps, **detector, **common)
-    print(f"wrote {path}")
+    print(f"wrote {path} (seed {seed})")            # --seed SEED repeats the run
     return 0
 
 
@@ -351,7 +354,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nmd", type=int, nargs=3, default=(16, 8, 0), metavar=("N", "M", "D"),
                    help="MACC readout: groups, frames per group, dropped frames")
     p.add_argument("--nramps", type=int, default=1, help="ramps between resets")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--seed", type=int, default=None,
+                   help="noise seed, an integer in [0, 2**64) (default: a fresh seed, printed and recorded in the "
+                        "file's SEED attribute: pass it again to repeat the run)")
     p.add_argument("--out", required=True, metavar="FILE", help="output file (HDF5, or JWST uncal FITS with "
                    "--format jwst-uncal)")
     p.add_argument("--format", choices=("hdf5", "jwst-uncal"),
@@ -379,7 +384,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--effects", metavar="NAME[,NAME...]",
                    help="detector systematics (off by default): cosmic_rays, ipc, nonlinearity, correlated_noise, "
                         "reference_pixels, bad_pixels, persistence, all, or the preset 'lazuli'; parameters from "
-                        "--effects-config")
+                        "--effects-config.  'all' (and 'lazuli') = cosmic_rays, ipc, nonlinearity, correlated_noise, "
+                        "reference_pixels, bad_pixels, plus persistence only when --previous-charge is given "
+                        "(persistence needs the previous exposure's charge)")
     p.add_argument("--effects-config", metavar="FILE", help="TOML or JSON file with an [effects] section: "
                    "enabled = [...] and one table per effect (every parameter; see the README)")
     p.add_argument("--previous-charge", metavar="FILE",

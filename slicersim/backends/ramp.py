@@ -16,6 +16,7 @@ import numpy as np
 
 from slicersim.backends import opencl, rng
 from slicersim.backends.opencl import check_vector_width
+from slicersim.errors import ParameterError
 from slicersim.io.rampfile import DQ
 from slicersim.physics.ramp import (MAX_SPARSE_WINDOW, P_KTC, P_POISSON, P_READ, P_SPARSE,  # noqa: F401
                                     frame_mean_charge, macc_frame_schedule, sparse_threshold, to_adu)
@@ -206,7 +207,7 @@ def _launch_geometry(vector_width, work_group):
     if work_group is None:
         work_group = None if gpu else CPU_WORK_GROUP
     elif not 1 <= int(work_group) <= limit:
-        raise ValueError(f"work_group must be in [1, {limit}] on this device, got {work_group}")
+        raise ParameterError(f"work_group must be in [1, {limit}] on this device, got {work_group}")
     return vector_width, (int(work_group) if work_group else None)
 
 
@@ -271,12 +272,12 @@ def device_block(mu_frame, dead, p, vector_width, work_group, workspace, real=np
 
 
 def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None, vector_width=None, *,
-                           want_dq=True, sci_out=None, gdq_out=None, workspace=None, precision="double"):
+                          want_dq=True, out=None, workspace=None, precision="double"):
     """OpenCL twin of :func:`simulate_block_numpy`: sparse then dense pixels, ``vector_width``
     pixels per work item (see :func:`_launch_geometry`); the result does not depend on either.
 
-    want_dq=False skips GROUPDQ (returned as None); sci_out / gdq_out: C-contiguous (n, npix)
-    arrays to fill (default: new ones); workspace: dict reusing device buffers between blocks.
+    want_dq=False skips GROUPDQ (returned as None); out: (sci, gdq) C-contiguous (n, npix) arrays to
+    fill (either may be None: a new one); workspace: dict reusing device buffers between blocks.
     precision="single": the float build (same Philox words; equal to the twin's integers except
     where a float rounding moves a decision, see ``kernels/philox.cl`` and
     :data:`slicersim.backends.precision.SINGLE_PRECISION_ERRORS`).
@@ -291,6 +292,7 @@ def simulate_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, work_group=None
     launch_samplers(lambda name, width: _ramp_kernel(name, width, precision), lists, vw, work_group, workspace,
                     (d_mu,), (d_sci, d_gdq), block_arguments(npix, pixel0, ramp, key, p, want_dq, real),
                     p.gauss_min_mean, real=real)
+    sci_out, gdq_out = (None, None) if out is None else out
     sci = np.empty((n, npix), np.uint16) if sci_out is None else sci_out
     opencl.from_device(sci, d_sci)
     gdq = None

@@ -12,6 +12,7 @@ value of accumulated charge Q [e-] is R(Q) = Q + Q²(a2 + a3 Q) when nonlinearit
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,7 +21,7 @@ from slicersim.backends.ramp import (P_KTC, P_READ, _event_position, _event_word
                                      charge_groups, device_block, launch_samplers)
 from slicersim.io.rampfile import DQ
 
-__all__ = ["ChargeEffects", "charge_block_numpy", "charge_block_opencl", "readout_numpy", "readout_opencl",
+__all__ = ["ChargeEffects", "charge_block_numpy", "charge_block_opencl", "readout_numpy", "readout_opencl", "ReadoutOptions",
            "deposits_csr"]
 
 
@@ -181,7 +182,7 @@ def charge_block_opencl(mu_frame, dead, pixel0, ramp, seed, p, fx, work_group=No
 def _check_readout_inputs(gmean, rows, halo_top):
     n, rows_in, nx = gmean.shape
     if not 0 <= halo_top <= rows_in - rows:
-        raise ValueError(f"halo_top {halo_top} and rows {rows} do not fit the {rows_in} input rows")
+        raise ValueError(f"halo_top {halo_top} and rows {rows} do not fit the {rows_in} input rows")  # internal: block geometry from products.ramps
     return n, rows_in, nx
 
 
@@ -229,11 +230,29 @@ def readout_numpy(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None, 
     return sci, gdq
 
 
-def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, ipc=None, extra=None, bias_map=None,
-                   workspace=None, vector_width=None, shape_in=None, precision="double"):
-    """OpenCL twin of :func:`readout_numpy`; ``gmean``, ``qsat`` may be device buffers of
-    :func:`charge_block_opencl` (``to_host=False``, the same ``precision``), then ``shape_in`` =
-    (n, rows_in, nx)."""
+@dataclass(frozen=True, kw_only=True)
+class ReadoutOptions:
+    """Keywords of :func:`readout_opencl` after the block: the readout maps ``ipc`` (3×3 gather weights),
+    ``extra`` (n, rows, nx) read-domain noise [e-], ``bias_map`` (rows, nx) [ADU] (as :func:`readout_numpy`),
+    and the device's ``workspace`` (dict of reused buffers), ``vector_width``, ``shape_in`` = (n, rows_in,
+    nx) when ``gmean``/``qsat`` are device buffers, ``precision`` ("double" or "single")."""
+
+    ipc: object = None
+    extra: object = None
+    bias_map: object = None
+    workspace: dict | None = None
+    vector_width: int | None = None
+    shape_in: tuple | None = None
+    precision: str = "double"
+
+
+def readout_opencl(gmean, qsat, rows, halo_top, y0, ny, ramp, seed, p, **options):
+    """OpenCL twin of :func:`readout_numpy`; ``options``: the fields of :class:`ReadoutOptions`.
+    ``gmean``, ``qsat`` may be device buffers of :func:`charge_block_opencl` (``to_host=False``, the
+    same ``precision``), then ``shape_in`` = (n, rows_in, nx)."""
+    o = ReadoutOptions(**options)
+    ipc, extra, bias_map, workspace, precision = o.ipc, o.extra, o.bias_map, o.workspace, o.precision
+    shape_in, vector_width = o.shape_in, o.vector_width
     real = np.float32 if precision == "single" else np.float64
     size = np.dtype(real).itemsize
     if shape_in is None:

@@ -86,11 +86,11 @@ def fit_constants(nmd, tframe, gain, read_noise, quantization=0.0, saturation=ma
 
 def _check_block(sci, gdq, pixeldq, k):
     if sci.ndim != 3 or sci.shape[1] != k.ngroups or gdq.shape != sci.shape:
-        raise ValueError(f"sci and gdq must be (nints, {k.ngroups}, npix) alike, got {sci.shape} and {gdq.shape}")
+        raise ValueError(f"sci and gdq must be (nints, {k.ngroups}, npix) alike, got {sci.shape} and {gdq.shape}")  # internal: blocks of fit_ramps
     if sci.dtype not in (np.uint16, np.float64) or gdq.dtype != np.uint8:
-        raise ValueError(f"sci must be uint16 or float64 and gdq uint8, got {sci.dtype} and {gdq.dtype}")
+        raise ValueError(f"sci must be uint16 or float64 and gdq uint8, got {sci.dtype} and {gdq.dtype}")  # internal: blocks of fit_ramps
     if pixeldq.shape != (sci.shape[2],) or pixeldq.dtype != np.uint32:
-        raise ValueError(f"pixeldq must be uint32 ({sci.shape[2]},), got {pixeldq.dtype} {pixeldq.shape}")
+        raise ValueError(f"pixeldq must be uint32 ({sci.shape[2]},), got {pixeldq.dtype} {pixeldq.shape}")  # internal: blocks of fit_ramps
 
 
 # ----------------------------------------------------------------------------- NumPy twin
@@ -253,7 +253,7 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
     if work_group is None:
         work_group = None if gpu else CPU_WORK_GROUP
     elif not 1 <= int(work_group) <= int(dev.max_work_group_size):
-        raise ValueError(f"work_group must be in [1, {int(dev.max_work_group_size)}], got {work_group}")
+        raise ParameterError(f"work_group must be in [1, {int(dev.max_work_group_size)}] on this device, got {work_group}")
     fit, dq, njump = np.empty((4, npix)), np.empty(npix, np.uint32), np.empty(npix, np.int32)
     gdq_out = np.empty_like(gdq) if want_gdq else np.empty(1, np.uint8)
     outputs = (fit, dq, njump, gdq_out)

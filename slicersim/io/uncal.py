@@ -50,13 +50,16 @@ import json
 import math
 import os
 import shutil
+from dataclasses import dataclass
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import RampFileError
 from slicersim.io.atomic import _HDF5_MARGIN, one_line, publish, remove_stale_temporaries, temporary_path
+from slicersim.io.row_blocks import RowBlocks, rows_per_block
 
-__all__ = ["UncalWriter", "write_uncal_from_hdf5", "read_uncal", "read_uncal_truth", "truth_extname",
+__all__ = ["UncalWriter", "UncalOptions", "write_uncal_from_hdf5", "read_uncal", "read_uncal_truth", "truth_extname",
            "DEFAULT_KEYWORDS"]
 
 _BLOCK = 2880
@@ -179,6 +182,19 @@ def _table_bytes(array, extname, extra=()):
     return buf.getvalue()[len(fits.PrimaryHDU().header.tostring()):]
 
 
+@dataclass(frozen=True, kw_only=True)
+class UncalOptions:
+    """Keywords of :class:`UncalWriter` beyond those it shares with the HDF5 RampWriter: ``keywords``
+    (primary keywords overriding :data:`DEFAULT_KEYWORDS`), ``start_mjd`` [MJD UTC], ``detector_shape``
+    (ny, nx), ``substrt`` 1-based (y, x) of the first pixel, ``extra_bytes`` for the disk-space check."""
+
+    keywords: dict | None = None
+    start_mjd: float | None = None
+    detector_shape: tuple | None = None
+    substrt: tuple = (1, 1)
+    extra_bytes: int = 0
+
+
 class UncalWriter:
     """Stream a raw ramp to a JWST level-1b FITS file in row blocks (context manager).
 
@@ -208,10 +224,11 @@ class UncalWriter:
     durable = True
 
     def __init__(self, path, nramps, ngroups, shape, attrs=None, row_block=64, compression=None,
-                 truth_rate=False, pixeldq=True, groupdq=True, overwrite=False, keywords=None,
-                 start_mjd=None, detector_shape=None, substrt=(1, 1), extra_bytes=0):
+                 truth_rate=False, pixeldq=True, groupdq=True, overwrite=False, **options):
+        opts = UncalOptions(**options)
+        keywords, start_mjd, detector_shape, substrt = opts.keywords, opts.start_mjd, opts.detector_shape, opts.substrt
         self.path = os.path.abspath(os.fspath(path))
-        self.extra_bytes = int(extra_bytes)
+        self.extra_bytes = int(opts.extra_bytes)
         self.overwrite = bool(overwrite)
         self.nramps, self.ngroups = int(nramps), int(ngroups)
         self.shape = tuple(int(s) for s in shape)
@@ -552,14 +569,19 @@ class UncalWriter:
         self._extnames.add(extname)
 
 
-def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, memory_budget=64 << 20, **writer_options):
+def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 20, **writer_options):
     """Convert a slicersim HDF5 ramp file (:mod:`slicersim.io.rampfile`) into a JWST level-1b
-    FITS file, block by block (at most ``memory_budget`` bytes of SCI + GROUPDQ at a time).
+    FITS file, block by block (at most ``max_bytes`` bytes of SCI + GROUPDQ at a time, at least one
+    row; ``memory_budget`` is its deprecated name).  ``writer_options``: :class:`UncalOptions` fields.
 
     Root attributes become keywords; /SCI, /GROUPDQ, /PIXELDQ the extensions of those names;
     every other dataset (``truth/rate``, ``truth/cosmic_rays``, ...) a TRUTH_* extension.
     Returns the absolute path of the FITS file."""
     import h5py
+    if "memory_budget" in writer_options:
+        validation.renamed_keyword(writer_options, "memory_budget", "max_bytes", "write_uncal_from_hdf5")
+        max_bytes = writer_options.pop("max_bytes")
+    max_bytes = validation.positive_int("max_bytes", max_bytes)
     h5_path = os.fspath(h5_path)
     try:
         fh = h5py.File(h5_path, "r")
@@ -576,7 +598,8 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, memory_budget=64 
         others = []
         fh.visititems(lambda name, obj: others.append(name) if isinstance(obj, h5py.Dataset)
                       and name not in ("SCI", "GROUPDQ", "PIXELDQ") else None)
-        rows = int(max(1, min(ny, memory_budget // max(1, ngroups * nx * 3))))
+        per_row = max(1, ngroups * nx * 3)
+        rows = rows_per_block(max(max_bytes, per_row), per_row, ny)
         truth_rate = "truth/rate" in others
         writer = UncalWriter(fits_path, nints, ngroups, (ny, nx), attrs=attrs, row_block=rows,
                              truth_rate=truth_rate, pixeldq="PIXELDQ" in fh, groupdq=gdq is not None,
@@ -586,11 +609,8 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, memory_budget=64 
                 w.write_pixeldq(fh["PIXELDQ"])
             for name in others:
                 w.write_dataset(name, fh[name])
-            for ramp in range(nints):
-                for y0 in range(0, ny, rows):
-                    y1 = min(ny, y0 + rows)
-                    w.write_block(ramp, y0, sci[ramp, :, y0:y1, :],
-                                  None if gdq is None else gdq[ramp, :, y0:y1, :])
+            for ramp, y0, y1 in RowBlocks(ny, rows, nouter=nints, progress=False):
+                w.write_block(ramp, y0, sci[ramp, :, y0:y1, :], None if gdq is None else gdq[ramp, :, y0:y1, :])
     return writer.path
 
 

@@ -6,11 +6,13 @@ the driver writing raw files is :func:`slicersim.products.ramps.simulate`.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from slicersim.errors import ReadoutError
+from slicersim import validation
+from slicersim.errors import ParameterError
 from slicersim.physics.readout import readout_times
 
 __all__ = ["RampParameters", "DEFAULT_BIAS", "readpatt", "macc_frame_schedule", "frame_mean_charge",
@@ -23,6 +25,12 @@ P_POISSON, P_READ, P_KTC, P_SPARSE = 0, 1, 2, 3
 @dataclass(kw_only=True)
 class RampParameters:
     """Validated readout and detector parameters of a ramp simulation (keyword-only).
+
+    Each value is checked with :mod:`slicersim.validation` (a non-integer readout such as
+    ``(2.7, 1, 0)`` is refused, not truncated); a bad one raises a
+    :class:`~slicersim.errors.ReadoutError` (``nmd``, ``nramps``) or
+    :class:`~slicersim.errors.ParameterError` naming it.  Physical values accept an astropy
+    Quantity, converted to the unit given here.
 
     nmd : (n, m, d) MACC readout;  nramps : ramps (integrations);  tframe : s;
     ron : e-/read;  dark, thermal_dark : e-/s/px (dark may be a per-pixel array);
@@ -49,39 +57,23 @@ class RampParameters:
     tgroup: float = field(init=False)
 
     def __post_init__(self):
-        nmd = self.nmd
-        try:
-            n, m, d = (int(v) for v in nmd)
-        except Exception as exc:
-            raise ReadoutError(f"readout mode must be (n, m, d) integers, got {nmd!r}") from exc
-        if m < 1:
-            raise ReadoutError(f"readout mode {nmd}: m (frames per group) must be ≥ 1")
-        if d < 0:
-            raise ReadoutError(f"readout mode {nmd}: d (dropped frames) must be ≥ 0")
-        if n < 2:
-            raise ReadoutError(f"readout mode {nmd}: n must be ≥ 2 groups to measure a slope")
-        if int(self.nramps) != self.nramps or self.nramps < 1:
-            raise ReadoutError(f"nramps must be an integer ≥ 1, got {self.nramps!r}")
-        for name in ("tframe", "gain"):
-            val = getattr(self, name)
-            if not (np.isfinite(val) and val > 0):
-                raise ValueError(f"{name} must be > 0, got {val}")
-        for name in ("ron", "roic_glow", "ktc_noise", "thermal_dark", "bias"):
-            val = getattr(self, name)
-            if not (np.isfinite(val) and val >= 0):
-                raise ValueError(f"{name} must be finite and ≥ 0, got {val}")
-        if not 0 < self.saturation <= 65535:
-            raise ValueError(f"saturation must be in (0, 65535] ADU, got {self.saturation}")
-        self.nmd, self.nramps = (n, m, d), int(self.nramps)
-        self.tframe, self.ron, self.gain = float(self.tframe), float(self.ron), float(self.gain)
-        self.thermal_dark, self.roic_glow = float(self.thermal_dark), float(self.roic_glow)
-        self.saturation, self.bias, self.ktc_noise = float(self.saturation), float(self.bias), float(self.ktc_noise)
-        self.full_well = float((self.saturation - self.bias) / self.gain if self.full_well is None
-                               else self.full_well)
-        if self.sparse_max_group is not None and not float(self.sparse_max_group) >= 0:
-            raise ValueError(f"sparse_max_group must be ≥ 0 e-/group (or None), got {self.sparse_max_group}")
-        self.sparse_max_group = None if self.sparse_max_group is None else float(self.sparse_max_group)
-        self.gauss_min_mean = float(self.gauss_min_mean)
+        self.nmd = validation.readout(self.nmd, name="nmd")
+        self.nramps = validation.nramps(self.nramps)
+        self.tframe = validation.number("tframe", self.tframe, low=0, low_open=True, unit="s")
+        self.gain = validation.number("gain", self.gain, low=0, low_open=True, unit="adu / electron")
+        self.ron = validation.number("ron", self.ron, low=0, unit="electron")
+        self.dark = _dark(self.dark)
+        for name, unit in (("roic_glow", "electron"), ("ktc_noise", "electron"), ("thermal_dark", "electron / s"),
+                           ("bias", "adu")):
+            setattr(self, name, validation.number(name, getattr(self, name), low=0, unit=unit))
+        self.saturation = validation.number("saturation", self.saturation, low=0, low_open=True, high=65535,
+                                            unit="adu")
+        self.full_well = float((self.saturation - self.bias) / self.gain) if self.full_well is None else \
+            validation.number("full_well", self.full_well, low=0, low_open=True, unit="electron")
+        if self.sparse_max_group is not None:
+            self.sparse_max_group = validation.number("sparse_max_group", self.sparse_max_group, low=0,
+                                                      unit="electron")
+        self.gauss_min_mean = _number_or_inf("gauss_min_mean", self.gauss_min_mean)
         t = readout_times(self.nmd, self.tframe)
         self.nframes, self.tgroup = t["nframes"], t["group_time"]
 
@@ -92,6 +84,25 @@ class RampParameters:
                 "TGROUP": self.tgroup, "READPATT": readpatt(self.nmd), "GAIN": self.gain,
                 "READNOISE": self.ron, "SEED": int(seed), "BUNIT": "ADU", "BIAS": self.bias,
                 "SATURATION": self.saturation, "FULLWELL": self.full_well}
+
+
+def _dark(dark):
+    """Dark current [e-/s]: a number ≥ 0 (a Quantity in 1/s is converted) or a per-pixel array ≥ 0."""
+    if np.ndim(dark) == 0 or hasattr(dark, "unit"):
+        if np.ndim(dark) == 0:
+            return validation.number("dark", dark, low=0, unit="electron / s")
+        try:
+            dark = dark.to_value("electron / s")
+        except Exception:
+            raise ParameterError(f"dark must be in units convertible to electron / s, got {dark.unit}") from None
+    return validation.array("dark", dark, low=0.0)
+
+
+def _number_or_inf(name, value):
+    """A number ≥ 0 where +inf is allowed (a threshold that is never reached)."""
+    if isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) and value == math.inf:
+        return math.inf
+    return validation.number(name, value, low=0)
 
 
 def readpatt(nmd):

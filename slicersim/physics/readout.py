@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ReadoutError
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, variance_gain_factor
 
@@ -20,25 +21,13 @@ __all__ = ["check_readout", "readout_times", "rauscher07_coefficients", "varianc
 
 
 def check_readout(nmd, nramps=1, min_group=2, max_group=None):
-    """Validate a MACC readout (n, m, d) and a number of ramps; return ints."""
-    try:
-        n, m, d = (int(v) for v in nmd)
-    except Exception as exc:
-        raise ReadoutError(f"readout mode must be a triple (n, m, d) of integers, got {nmd!r}") from exc
-    if any(int(v) != v for v in nmd):
-        raise ReadoutError(f"readout mode values must be integers, got {nmd!r}")
-    if m < 1:
-        raise ReadoutError(f"readout mode {nmd}: m (frames per group) must be ≥ 1")
-    if d < 0:
-        raise ReadoutError(f"readout mode {nmd}: d (dropped frames) must be ≥ 0")
-    if n < max(2, min_group or 2):
-        raise ReadoutError(f"readout mode {nmd}: n (groups) must be ≥ {max(2, min_group or 2)} "
-                           "(a slope needs at least two groups)")
+    """Validate a MACC readout (n, m, d) and a number of ramps; return ((n, m, d), nramps) as ints
+    (:func:`slicersim.validation.readout` and :func:`~slicersim.validation.nramps`: ReadoutError)."""
+    n, m, d = validation.readout(nmd, min_group=min_group)
     if max_group is not None and n > max_group:
-        raise ReadoutError(f"readout mode {nmd}: n = {n} exceeds max_group = {max_group}")
-    if int(nramps) != nramps or nramps < 1:
-        raise ReadoutError(f"nramps must be an integer ≥ 1, got {nramps!r}")
-    return (n, m, d), int(nramps)
+        raise ReadoutError(f"readout mode nmd = ({n}, {m}, {d}): n = {n} exceeds max_group = {max_group} "
+                           "(the detector's largest number of groups)")
+    return (n, m, d), validation.nramps(nramps)
 
 
 def readout_times(nmd, tframe):

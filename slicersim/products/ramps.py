@@ -1,307 +1,486 @@
 """Raw up-the-ramp H4RG reads: exact sampling of MACC(n, m, d) ramps.
 
-Readout physics in small documented steps (cf. romanisim ``l1``):
+Readout physics in small documented steps (cf. romanisim ``l1``), run by :func:`simulate`:
 
-1. :func:`frame_mean_charge` — mean charge collected per frame μ = (rate + dark
-   + thermal dark)·t_f + ROIC glow  [e-/frame];
-2. charge accumulation, a Poisson process sampled exactly by one of two paths
-   chosen from μ only: *dense* — a Poisson increment in every frame; *sparse*
-   (μ·(m+d) < ``sparse_max_group``, default ≈ μ < 0.75 e-/frame) — per group window
-   (m reads + d dropped frames) a Poisson count and a uniform frame for each
-   event, so a dark pixel costs one uniform and one Gaussian per group;
-3. full-well clipping; group averaging of the m reads with read noise
-   σ_r/√m per group; kTC reset noise once per ramp;
-4. :func:`to_adu` — bias pedestal + gain, rounding and uint16 saturation;
-   GROUPDQ flags (JWST SATURATED = 2).
+1. inputs checked (:func:`check_rate`), effects resolved, sizes planned (row blocks of the shared
+   engine :mod:`slicersim.io.row_blocks`) and the output checked before anything is allocated;
+2. *expected counts* — :func:`expected_frame_charge`: the mean charge collected per frame
+   μ = (rate + dark + thermal dark)·t_f + ROIC glow [e-/frame] (:func:`frame_mean_charge`), after
+   the detector effects' photo-response (bad pixels' QE and dark, reference pixels);
+3. *noise realization* — :func:`realize_ramps`: per row block, charge accumulation as a Poisson
+   process sampled exactly by one of two paths chosen from μ only (*dense*: a Poisson increment
+   in every frame; *sparse*, μ·(m+d) < ``sparse_max_group``: per group window a Poisson count and
+   a uniform frame for each event), full-well clipping, group averaging of the m reads with read
+   noise σ_r/√m per group, kTC reset noise once per ramp, then :func:`to_adu` (bias + gain,
+   rounding, uint16 saturation) and the GROUPDQ flags (JWST SATURATED = 2).
 
-Randomness is Philox4x32-10 keyed by (seed, ramp, pixel, frame or group): the
-output is identical for any chunking, work-group size, vector width or device
-count.  The OpenCL kernels are in ``kernels/ramp.cl``;
-:func:`simulate_block_numpy` is their bit-exact NumPy twin.
+Randomness is Philox4x32-10 keyed by (seed, ramp, pixel, frame or group): the output is identical
+for any chunking, work-group size, vector width or device count.  The OpenCL kernels are in
+``kernels/ramp.cl``; :func:`simulate_block_numpy` is their bit-exact NumPy twin.
+
+Two call forms give the same ramps for the same seed::
+
+    simulate(rate, RampParameters(nmd=(16, 8, 0), ron=12.0), seed=1, out="raw.h5")   # -> RampResult
+    simulate(rate, nmd=(16, 8, 0), ron=12.0, seed=1, out="raw.h5")                   # -> path (as before)
 """
 from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from slicersim.backends import rng
+from slicersim import validation
+from slicersim.backends.dispatch import BACKENDS
 from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
+from slicersim.errors import EffectsError, ParameterError, RampFileError
 from slicersim.io.rampfile import DQ, RampWriter
+from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, rows_per_block
 from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, frame_mean_charge,  # noqa: F401
                                     macc_frame_schedule, readpatt)
-from slicersim.physics.readout import readout_times
+from slicersim.physics.readout import readout_times  # noqa: F401
 
-__all__ = ["simulate", "RampParameters", "frame_mean_charge", "macc_frame_schedule", "readpatt",
-           "fit_slopes", "DEFAULT_BIAS"]
+__all__ = ["simulate", "RampParameters", "RampIO", "RunOptions", "DetectorMaps", "RampResult",
+           "check_rate", "expected_frame_charge", "realize_ramps", "frame_mean_charge", "macc_frame_schedule",
+           "readpatt", "fit_slopes", "DEFAULT_BIAS", "DEFAULT_MAX_BYTES"]
+
+#: default memory budget of :func:`simulate` [bytes] (a full-detector ramp peaks below 1.5 GB)
+DEFAULT_MAX_BYTES = 2**29
 
 
-def simulate(rate, nmd=(16, 8, 0), nramps=1, seed=0, out=None, tframe=2.83, ron=12.0, dark=2.8e-3,
-             thermal_dark=0.0, roic_glow=3e-3, gain=1.0, saturation=65535, bias=DEFAULT_BIAS,
-             ktc_noise=0.0, full_well=None, dead_pixels=None, pixeldq=None, sparse_max_group=None,
-             gauss_min_mean=np.inf, compression=None, memory_budget=2**29, truth=True,
-             config=None, backend="auto", progress=None, work_group=None, return_dq=False, overwrite=False,
-             effects=None, previous_charge=None, file_format=None, precision="auto"):
+@dataclass(frozen=True, kw_only=True)
+class RampIO:
+    """What :func:`simulate` writes, and how (the ``io`` options).
+
+    format : ``"hdf5"`` (group-level file, :mod:`slicersim.io.rampfile`) or ``"jwst-uncal"`` (JWST
+        level-1b FITS, :mod:`slicersim.io.uncal`); None: ``jwst-uncal`` for a ``.fits`` name, else hdf5
+    overwrite : replace an existing output (default: refuse with RampFileError)
+    compression : HDF5 compression (:func:`slicersim.io.rampfile.compression_options`), None: none
+    truth : write ``truth/rate`` (and the effects' truth) to the file
+    config : configuration recorded in the CONFIG attribute
+    return_dq : with ``out=None``, also return GROUPDQ in memory
+    """
+
+    format: str | None = None
+    overwrite: bool = False
+    compression: object = None
+    truth: bool = True
+    config: dict | None = None
+    return_dq: bool = False
+
+    def __post_init__(self):
+        if self.format is not None:
+            validation.choice("file_format", self.format, FILE_FORMATS)
+        for name in ("overwrite", "truth", "return_dq"):              # 0/1 accepted as before, not "yes"
+            value = getattr(self, name)
+            value = bool(value) if isinstance(value, (int, np.integer)) else value
+            object.__setattr__(self, name, validation.flag(name, value))
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunOptions:
+    """How :func:`simulate` computes: ``max_bytes`` [bytes] of host memory for the row blocks (and,
+    with correlated noise, a third of it for its cached segments); ``progress`` (None: a bar only
+    when stderr is a terminal); ``work_group``: OpenCL local size (None: 64 on CPUs, the runtime's
+    on GPUs; never changes the result)."""
+
+    max_bytes: int = DEFAULT_MAX_BYTES
+    progress: bool | None = None
+    work_group: int | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "max_bytes", validation.positive_int("max_bytes", self.max_bytes))
+        if self.progress is not None:
+            value = bool(self.progress) if isinstance(self.progress, (int, np.integer)) else self.progress
+            object.__setattr__(self, "progress", validation.flag("progress", value))
+        if self.work_group is not None:
+            object.__setattr__(self, "work_group", validation.positive_int("work_group", self.work_group))
+
+
+@dataclass(frozen=True, kw_only=True)
+class DetectorMaps:
+    """Per-pixel inputs of :func:`simulate`, each (ny, nx) or None: ``dead_pixels`` (bool, collecting
+    no charge), ``pixeldq`` (uint32 JWST flags), ``previous_charge`` [e-] of the previous exposure
+    (for the ``persistence`` effect)."""
+
+    dead_pixels: object = None
+    pixeldq: object = None
+    previous_charge: object = None
+
+
+@dataclass(frozen=True)
+class RampResult:
+    """What :func:`simulate` made: ``seed`` (the one used: record it to repeat the run), ``path`` of the
+    file (None in memory), ``sci`` (nramps, ngroups, ny, nx) uint16 and ``groupdq`` uint8 in memory
+    (None with a file; GROUPDQ only with ``io.return_dq``), ``attrs`` (the file's root attributes)."""
+
+    seed: int
+    path: str | None = None
+    sci: np.ndarray | None = None
+    groupdq: np.ndarray | None = None
+    attrs: dict = field(default_factory=dict)
+
+
+#: the keyword form of :func:`simulate`, in its historical positional order after ``rate``
+_LEGACY_ORDER = ("nmd", "nramps", "seed", "out", "tframe", "ron", "dark", "thermal_dark", "roic_glow", "gain",
+                 "saturation", "bias", "ktc_noise", "full_well", "dead_pixels", "pixeldq", "sparse_max_group",
+                 "gauss_min_mean", "compression", "max_bytes", "truth", "config", "backend", "progress",
+                 "work_group", "return_dq", "overwrite", "effects", "previous_charge", "file_format", "precision")
+_READOUT_KEYS = ("nmd", "nramps", "tframe", "ron", "dark", "thermal_dark", "roic_glow", "gain", "saturation",
+                 "bias", "ktc_noise", "full_well", "sparse_max_group", "gauss_min_mean")
+_LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron": 12.0, "dark": 2.8e-3,
+                            "thermal_dark": 0.0, "roic_glow": 3e-3, "gain": 1.0, "saturation": 65535,
+                            "bias": DEFAULT_BIAS, "ktc_noise": 0.0, "full_well": None, "sparse_max_group": None,
+                            "gauss_min_mean": np.inf}
+_IO_KEYS = {"file_format": "format", "overwrite": "overwrite", "compression": "compression", "truth": "truth",
+            "config": "config", "return_dq": "return_dq"}
+_RUN_KEYS = ("max_bytes", "progress", "work_group")
+_MAP_KEYS = ("dead_pixels", "pixeldq", "previous_charge")
+_NAMED = ("seed", "out", "backend", "effects", "precision")
+
+
+def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backend="auto", precision="auto",
+             io=None, run=None, maps=None, **kwargs):
     """Simulate raw MACC ramps of a rate image.
 
-    Parameters
-    ----------
     rate : (ny, nx) photo-electron rate [e-/s] (detector terms are added here)
-    nmd : (n, m, d) readout;  nramps : ramps between resets;  seed : int in [0, 2⁶⁴)
-    out : HDF5 path (group-level file, see :mod:`slicersim.io.rampfile`) or None
-    tframe [s], ron [e-/read], dark [e-/s, scalar or image], thermal_dark [e-/s],
-    roic_glow [e-/frame], gain [ADU/e-], saturation [ADU], bias [ADU], ktc_noise [e-],
-    full_well [e-] (default (saturation − bias)/gain)
-    dead_pixels : bool (ny, nx) pixels collecting no charge;  pixeldq : uint32 (ny, nx) flags
-    sparse_max_group : expected e- per group below which the sparse sampler is used (None:
-        0.9·(m+d) − 1, see :func:`sparse_threshold`; capped at 64).  Both samplers are exact:
-        this only trades speed.
-    gauss_min_mean : Poisson mean above which a rounded Gaussian replaces the exact draw
-    memory_budget : bytes of host memory for the row blocks and, with correlated noise, a third of it
-        for its cached segments (default 512 MiB: a full-detector ramp
-        peaks below 1.5 GB; larger blocks are not faster)
-    work_group : OpenCL local size (None: 64 on CPUs, the runtime's on GPUs); never changes the result
-    overwrite : replace an existing ``out`` (default: refuse with :class:`~slicersim.errors.RampFileError`)
+    readout : :class:`RampParameters` (readout and detector: nmd, nramps, tframe [s], ron [e-/read],
+        dark [e-/s, scalar or image], thermal_dark [e-/s], roic_glow [e-/frame], gain [ADU/e-],
+        saturation [ADU], bias [ADU], ktc_noise [e-], full_well [e-], sparse_max_group, gauss_min_mean)
+    seed : int in [0, 2⁶⁴), or None (default): a fresh seed (:func:`slicersim.validation.new_seed`),
+        recorded in the file's SEED attribute and returned
     effects : detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a preset
-        (``"lazuli"``), a config dict or a :class:`~slicersim.physics.effects.DetectorEffects`; see
-        :mod:`slicersim.products.effects`.  Their truth is written to ``truth/<name>``
-        of ``out`` (with ``out=None`` only SCI is returned: write a file to keep the truth).
-    previous_charge : (ny, nx) charge [e-] of the previous exposure, for ``persistence``
-    file_format : ``"hdf5"`` (group-level file, :mod:`slicersim.io.rampfile`) or ``"jwst-uncal"`` (JWST
-        level-1b FITS, :mod:`slicersim.io.uncal`); None: ``jwst-uncal`` for a ``.fits`` name, else hdf5.
-        The same seed gives the same SCI in both formats.
-    precision : ``"auto"`` (default), ``"double"`` or ``"single"`` floating type of the samplers
-        (:mod:`slicersim.backends.precision`).  Single draws from the same Philox words: its SCI equal
-        double's except where a float rounding moves a decision (measured: ~1e-3 of the values, mostly
-        by 1 ADU; not bit-identical), with the same statistics; with ``effects`` the charge sampler and
-        the readout (IPC, noise, digitisation) run in float too (the effects' maps and draws stay float64).
+        (``"lazuli"``), a config dict or a :class:`~slicersim.physics.effects.DetectorEffects`
+        (:mod:`slicersim.products.effects`); their truth goes to ``truth/<name>`` of ``out``.  ``"all"``
+        includes ``persistence`` only with ``maps.previous_charge``.
+    out : output path (HDF5 or JWST level-1b FITS, see :class:`RampIO`) or None (SCI in memory)
+    backend : "auto", "opencl" or "numpy";  precision : "auto", "double" or "single" (single: the
+        same Philox words, ~1e-3 of the values differ by 1 ADU, same statistics)
+    io : :class:`RampIO` (format, overwrite, compression, truth, config, return_dq)
+    run : :class:`RunOptions` (max_bytes, progress, work_group);  maps : :class:`DetectorMaps`
 
-    The output size is checked against the free disk space (``out``) or memory (``out`` None)
-    before anything is allocated.
+    Returns a :class:`RampResult`.  The output size is checked against the free disk space (``out``)
+    or memory (``out`` None) before anything is allocated.
 
-    Returns
-    -------
-    SCI (nramps, ngroups, ny, nx) uint16 when ``out`` is None (and GROUPDQ with
-    ``return_dq``), else the path written.
+    **Keyword form** (kept from slicersim 0.1): ``simulate(rate, nmd=(16, 8, 0), nramps=1, seed=None,
+    out=None, tframe=2.83, ron=12.0, dark=2.8e-3, ..., memory_budget=2**29, file_format=None, ...)``:
+    every keyword of :class:`RampParameters`, :class:`RampIO` (``file_format`` for ``format``),
+    :class:`RunOptions` (``memory_budget`` is the deprecated name of ``max_bytes``) and
+    :class:`DetectorMaps`, loose; it returns, as before, the absolute path written (a str; the seed is
+    its SEED attribute) or SCI (and GROUPDQ with ``return_dq``).  The same seed gives the same ramps in
+    both forms.
     """
-    rate = np.asarray(rate, dtype=float)
-    if rate.ndim != 2 or rate.size == 0:
-        raise ValueError(f"rate must be a non-empty 2-D image (ny, nx), got shape {rate.shape}")
-    if not np.all(np.isfinite(rate)):
-        raise ValueError(f"rate contains {np.count_nonzero(~np.isfinite(rate))} NaN/inf pixel(s)")
-    if np.any(rate < 0):
-        raise ValueError(f"rate contains {np.count_nonzero(rate < 0)} negative pixel(s) [e-/s]")
-    dark_arr = np.asarray(dark, dtype=float)
-    if np.any(~np.isfinite(dark_arr)) or np.any(dark_arr < 0):
-        raise ValueError("dark must be finite and ≥ 0")
-    seed = int(rng.seed_to_key(seed).astype(np.uint64)[0] | (rng.seed_to_key(seed).astype(np.uint64)[1] << np.uint64(32)))
-    p = RampParameters(nmd=nmd, nramps=nramps, tframe=tframe, ron=ron, dark=0.0, thermal_dark=thermal_dark,
-                       roic_glow=roic_glow, gain=gain, saturation=saturation, bias=bias, ktc_noise=ktc_noise,
-                       full_well=full_well, sparse_max_group=sparse_max_group, gauss_min_mean=gauss_min_mean)
-    from slicersim.products.effects import EffectsPlan, resolve_effects
+    named = {"seed": seed, "effects": effects, "out": out, "backend": backend, "precision": precision}
+    if isinstance(readout, RampParameters):
+        if args or kwargs:
+            extra = list(kwargs) or [f"{len(args)} positional argument(s)"]
+            raise ParameterError(f"simulate(rate, readout=RampParameters(...)): put {', '.join(extra)} in "
+                                 "readout, io=RampIO(...), run=RunOptions(...) or maps=DetectorMaps(...)")
+        for name, obj, cls in (("io", io, RampIO), ("run", run, RunOptions), ("maps", maps, DetectorMaps)):
+            if obj is not None and not isinstance(obj, cls):
+                raise ParameterError(f"{name} must be a {cls.__name__} or None, got {validation.short_repr(obj)}")
+        return _simulate(rate, readout, named, io or RampIO(), run or RunOptions(), maps or DetectorMaps())
+    return _simulate_keywords(rate, readout, args, kwargs, named, (io, run, maps))
+
+
+def _simulate_keywords(rate, nmd, args, kwargs, named, objects):
+    """The keyword form of :func:`simulate`: loose keywords → RampParameters, RampIO, RunOptions,
+    DetectorMaps; returns the path or SCI [, GROUPDQ] as slicersim 0.1 did."""
+    if any(o is not None for o in objects):
+        raise ParameterError("io=, run= and maps= go with readout=RampParameters(...); with nmd= give their "
+                             "fields as keywords")
+    validation.renamed_keyword(kwargs, "memory_budget", "max_bytes", "simulate", stacklevel=4)
+    validation.renamed_keyword(kwargs, "read_noise", "ron", "simulate", stacklevel=4)
+    if len(args) > len(_LEGACY_ORDER) - 1:
+        raise ParameterError(f"simulate takes at most {len(_LEGACY_ORDER)} positional arguments after rate")
+    given = dict(zip(_LEGACY_ORDER[1:], args))
+    if nmd is not None:
+        given["nmd"] = nmd
+    for key, val in kwargs.items():
+        if key not in _LEGACY_ORDER:
+            valid = [k for k in _LEGACY_ORDER if k not in _NAMED]
+            validation.choice("keyword", key, valid, what="keyword of simulate")
+        if key in given:
+            raise ParameterError(f"simulate: {key} given twice (positionally and as a keyword)")
+        given[key] = val
+    for key in _NAMED:
+        if key in given:
+            if named[key] not in (None, "auto"):
+                raise ParameterError(f"simulate: {key} given twice (positionally and as a keyword)")
+            named[key] = given.pop(key)
+    readout = RampParameters(**(_LEGACY_READOUT_DEFAULTS | {k: given[k] for k in _READOUT_KEYS if k in given}))
+    io = RampIO(**{_IO_KEYS[k]: given[k] for k in _IO_KEYS if k in given})
+    run = RunOptions(**{k: given[k] for k in _RUN_KEYS if k in given})
+    maps = DetectorMaps(**{k: given[k] for k in _MAP_KEYS if k in given})
+    result = _simulate(rate, readout, named, io, run, maps)
+    if result.path is not None:
+        return result.path
+    return (result.sci, result.groupdq) if io.return_dq else result.sci
+
+
+def check_rate(rate):
+    """The rate image [e-/s] as a finite, non-negative (ny, nx) float64 array (ParameterError naming
+    ``rate`` for NaN, negative, complex, structured, object or non-2-D input)."""
+    rate = validation.array("rate", rate, ndim=2, low=0.0)
+    if rate.size == 0:
+        raise ParameterError(f"rate must be a non-empty 2-D image (ny, nx), got shape {rate.shape}")
+    if rate.size >= 2**32:
+        raise ParameterError(f"rate has {rate.size} pixels: pixel indices must fit in 32 bits")
+    return rate
+
+
+def _check_maps(maps, shape):
+    """(dead mask (ny, nx) bool, pixeldq or None, previous charge or None) checked against ``shape``."""
+    dead = None
+    if maps.dead_pixels is not None:
+        dead = np.asarray(maps.dead_pixels, bool)
+        if dead.shape != shape:
+            raise ParameterError(f"dead_pixels must have the shape of rate {shape}, got {dead.shape}")
+    pixeldq = None
+    if maps.pixeldq is not None:
+        pixeldq = validation.array("pixeldq", maps.pixeldq, ndim=2, dtype=np.uint32, low=0)
+        if pixeldq.shape != shape:
+            raise ParameterError(f"pixeldq must have the shape of rate {shape}, got {pixeldq.shape}")
+    return dead, pixeldq, maps.previous_charge
+
+
+def _simulate(rate, p, named, io, run, maps):
+    """The steps of :func:`simulate` (see the module docstring); returns a :class:`RampResult`."""
+    rate = check_rate(rate)
+    if np.ndim(p.dark) and np.shape(p.dark) != rate.shape:
+        raise ParameterError(f"dark must be a number or an image of the shape of rate {rate.shape}, "
+                             f"got shape {np.shape(p.dark)}")
+    seed = validation.seed(named["seed"])
+    seed = validation.new_seed() if seed is None else seed
+    dead, pixeldq, previous_charge = _check_maps(maps, rate.shape)
+    fx = _resolve_effects(named["effects"], previous_charge)
+    backend, precision = _resolve_backend(named["backend"], named["precision"])
+    out = named["out"]
+    rows, noise_cache = _block_rows(p, fx, rate.shape, run.max_bytes)
+    writer = _open_writer(out, io, p, fx, rate.shape, rows) if out is not None else None
+    if writer is None:
+        _check_memory(p, rate.shape, io.return_dq, run.max_bytes)
+    expected = expected_frame_charge(rate, p, seed, fx, dead, pixeldq, previous_charge, noise_cache, precision)
+    attrs = _file_attrs(p, seed, backend, precision, io.config, fx)
+    sampler = _Sampler(p, seed, backend, precision, run.work_group, want_dq=out is not None or io.return_dq)
+    blocks = RowBlocks(rate.shape[0], rows, nouter=p.nramps, progress=run.progress, desc="ramps")
+    if writer is None:
+        sci, gdq = realize_ramps(expected, sampler, blocks, None, io)
+        return RampResult(seed=seed, sci=sci, groupdq=gdq, attrs=attrs)
+    writer.attrs = attrs
+    with writer as w:
+        realize_ramps(expected, sampler, blocks, w, io)
+    return RampResult(seed=seed, path=os.path.abspath(out), attrs=attrs)
+
+
+def _resolve_effects(effects, previous_charge):
+    from slicersim.products.effects import resolve_effects
     fx = resolve_effects(effects, has_previous_charge=previous_charge is not None)
     if previous_charge is not None and (fx is None or "persistence" not in fx.enabled):
-        from slicersim.errors import EffectsError
         raise EffectsError("previous_charge is given but the persistence effect is not enabled "
                            "(add 'persistence' to effects)")
-    from slicersim.backends.precision import resolve_precision
-    backend, precision = resolve_precision(precision, backend, "ramp")
-    ny, nx = rate.shape
-    if ny * nx >= 2**32:
-        raise ValueError("image too large: pixel indices must fit in 32 bits")
+    return fx
+
+
+def _resolve_backend(backend, precision):
+    """(backend, precision) resolved for the ramp samplers; ParameterError naming a bad one."""
+    from slicersim.backends.precision import check_precision, resolve_precision
+    validation.choice("backend", backend, BACKENDS)
+    check_precision(precision)
+    return resolve_precision(precision, backend, "ramp")
+
+
+def _block_rows(p, fx, shape, max_bytes):
+    """(rows per block, bytes kept for the correlated-noise cache) for ``max_bytes``."""
+    ny, nx = shape
     n = p.nmd[0]
-    dead = None if dead_pixels is None else np.asarray(dead_pixels, bool)
-    if dead is not None and dead.shape != rate.shape:
-        raise ValueError("dead_pixels must have the shape of rate")
     # bytes per pixel in flight: mu + dead + index list + SCI + GDQ (host and device copies); with
     # effects also the group means (8 B), flags, read-domain noise (4 B) and deposits
     per_row = nx * (8 + 1 + 4 + 3 * n) * 2 if fx is None else nx * (8 + 1 + 4 + 16 + 16 * n) * 2
     # a third of the budget (with correlated noise) keeps the noise segments that span row blocks
-    noise_cache = memory_budget // 3 if fx is not None and "correlated_noise" in fx.enabled else 0
-    rows = int(max(1, min(ny, (memory_budget - noise_cache) // per_row)))
-    if memory_budget - noise_cache < per_row:
-        raise MemoryError(f"memory budget {memory_budget} B is smaller than one detector row "
-                          f"({per_row} B for {n} groups{' plus the noise cache' if noise_cache else ''})")
-    # sizes first: nothing below is allocated before the output is known to fit
-    writer = None
-    if out is not None:
-        writer_class = _writer_class(out, file_format)
-        truth_bytes = EffectsPlan.truth_nbytes(fx, p, (ny, nx)) if (fx is not None and truth) else 0
-        writer = writer_class(out, p.nramps, n, (ny, nx), row_block=min(rows, 256), compression=compression,
-                              truth_rate=truth, overwrite=overwrite, extra_bytes=truth_bytes).check()
-    else:
-        full_bytes = p.nramps * n * ny * nx * (3 if return_dq else 2)
-        if full_bytes > 16 * memory_budget:
-            raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
-        avail = _available_memory()
-        if avail is not None and full_bytes > avail:
-            raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB, "
-                              f"{avail / 2**30:.1f} GiB available: pass out=<file.h5>")
-    if dead is None:
-        dead = np.zeros(rate.shape, bool)
-    plan, rate_in = None, rate
-    dq_dead = dead                                   # pixels flagged DEAD in PIXELDQ
-    dark_mean = float(np.mean(dark_arr))             # the detector's dark: hot/warm pixels' extra dark is truth
+    noise_cache = max_bytes // 3 if fx is not None and "correlated_noise" in fx.enabled else 0
+    what = f"one detector row for {n} groups"
+    return rows_per_block(max_bytes, per_row, ny, reserve=noise_cache, what=what), noise_cache
+
+
+def _open_writer(out, io, p, fx, shape, rows):
+    """The checked (not yet opened) writer of ``out``: nothing is simulated before it is known to fit."""
+    from slicersim.products.effects import EffectsPlan
+    writer_class = _writer_class(out, io.format)
+    truth_bytes = EffectsPlan.truth_nbytes(fx, p, shape) if (fx is not None and io.truth) else 0
+    return writer_class(out, p.nramps, p.nmd[0], shape, row_block=min(rows, 256), compression=io.compression,
+                        truth_rate=io.truth, overwrite=io.overwrite, extra_bytes=truth_bytes).check()
+
+
+def _check_memory(p, shape, return_dq, max_bytes):
+    """MemoryError when SCI (and GROUPDQ) in memory would exceed 16 × max_bytes or the memory available."""
+    full_bytes = p.nramps * p.nmd[0] * shape[0] * shape[1] * (3 if return_dq else 2)
+    if full_bytes > 16 * max_bytes:
+        raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
+    avail = _available_memory()
+    if avail is not None and full_bytes > avail:
+        raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB, "
+                          f"{avail / 2**30:.1f} GiB available: pass out=<file.h5>")
+
+
+@dataclass
+class ExpectedCharge:
+    """The expected-counts step's result: ``mu`` (ny, nx) mean charge per frame [e-]; ``dead`` pixels
+    collecting no charge; ``dq_dead`` the user's dead pixels (flagged DEAD); ``pixeldq`` flags;
+    ``rate`` the input rate (truth); ``plan`` the effects plan or None."""
+
+    mu: np.ndarray
+    dead: np.ndarray
+    dq_dead: np.ndarray
+    pixeldq: np.ndarray | None
+    rate: np.ndarray
+    plan: object = None
+
+
+def expected_frame_charge(rate, p, seed, fx, dead, pixeldq, previous_charge, noise_cache, precision):
+    """Expected counts: μ [e-/frame] per pixel (no noise drawn here), after the effects' photo-response
+    (their maps are drawn from ``seed``); returns an :class:`ExpectedCharge`."""
+    dead = np.zeros(rate.shape, bool) if dead is None else dead
+    dq_dead, plan, rate_in = dead, None, rate
+    dark = np.asarray(p.dark, dtype=float)
     if fx is not None:
+        from slicersim.products.effects import EffectsPlan
         plan = EffectsPlan(fx, p, seed, rate.shape, previous_charge, noise_cache_bytes=noise_cache)
-        rate, dark_arr, no_charge, flags = plan.rate_and_dark(rate, dark_arr, dead)
+        rate, dark, no_charge, flags = plan.rate_and_dark(rate, dark, dead)
         flags[dead] |= np.uint32(DQ["DEAD"] | DQ["DO_NOT_USE"])              # the user's dead pixels
-        pixeldq = flags if pixeldq is None else (np.asarray(pixeldq, np.uint32) | flags)
-        dead, flags, no_charge = dead | no_charge, None, None
-    mu = frame_mean_charge(rate, dark_arr, thermal_dark, roic_glow, tframe)
+        pixeldq = flags if pixeldq is None else (pixeldq | flags)
+        dead = dead | no_charge
+    mu = frame_mean_charge(rate, dark, p.thermal_dark, p.roic_glow, p.tframe)
     if precision == "single":
         mu = _single_frame_means(mu, p)
-    rate = dark_arr = None                           # the effects' copies: not needed past mu
-    block = simulate_block_opencl if backend == "opencl" else simulate_block_numpy
-    kwargs = {}
-    if backend == "opencl":
-        kwargs = {"work_group": work_group, "want_dq": out is not None or return_dq, "workspace": {},
-                  "precision": precision}
-    nsteps = p.nramps * -(-ny // rows)
-    steps = ((r, y0) for r in range(p.nramps) for y0 in range(0, ny, rows))     # lazy: nramps may be huge
-    if progress is None:
-        progress = nsteps > 4
-    iterator = steps
-    if progress:
-        from tqdm.auto import tqdm
-        iterator = tqdm(steps, desc="ramps", unit="block", total=nsteps)
+    return ExpectedCharge(mu, dead, dq_dead, pixeldq, rate_in, plan)
+
+
+def _file_attrs(p, seed, backend, precision, config, fx):
+    """Root attributes of the raw file (JWST-like names, the seed, the detector terms)."""
     attrs = p.attrs(seed)
     attrs.update({"SOFTWARE": "slicersim", "VERSION": _version(), "BACKEND": backend, "PRECISION": precision,
-                  "CONFIG": config if config is not None else {}, "DARK": dark_mean,
-                  "THERMAL_DARK": thermal_dark, "ROIC_GLOW": roic_glow, "KTC_NOISE": ktc_noise})
-    result = None if out is not None else np.empty((p.nramps, n, ny, nx), np.uint16)
-    result_dq = np.empty((p.nramps, n, ny, nx), np.uint8) if (out is None and return_dq) else None
-    if writer is not None:
-        writer.attrs = attrs
-
-    if plan is not None:
+                  "CONFIG": config if config is not None else {}, "DARK": float(np.mean(p.dark)),
+                  "THERMAL_DARK": p.thermal_dark, "ROIC_GLOW": p.roic_glow, "KTC_NOISE": p.ktc_noise})
+    if fx is not None:
         attrs["EFFECTS"] = fx.to_config()
+    return attrs
 
-    buffers = []
 
-    def block_buffers(size):
-        if not buffers:
-            buffers.extend([np.empty(size, np.uint16), np.empty(size, np.uint8)])
-        return buffers
+class _Sampler:
+    """The noise realization of one row block: SCI, GROUPDQ (n, rows, nx) of one ramp, by the plain
+    samplers or, with effects, the charge sampler and the readout (:func:`_effects_block`)."""
 
-    def run(w):
-        nonlocal pixeldq
-        if w is not None:
-            w.write_pixeldq(_pixeldq(pixeldq, dq_dead, rate_in.shape))
-            if truth:
-                w.write_truth(rate_in)
-        pixeldq = None                                   # written: 4 B per pixel less in the blocks
-        # effects into an HDF5 file: their truth (mostly single-threaded NumPy) and the HDF5 writes of
-        # the blocks run in two background threads while this one computes the next blocks
-        background = _Background() if (plan is not None and isinstance(w, RampWriter)) else None
-        try:
-            run_blocks(w, background)
-        except BaseException:
-            if background is not None:
-                background.finish(raise_error=False)         # the file is aborted after the lanes stop
-            raise
-        if background is not None:
-            background.finish()
+    def __init__(self, p, seed, backend, precision, work_group, want_dq):
+        self.p, self.seed, self.backend, self.precision = p, seed, backend, precision
+        self.opencl = backend == "opencl"
+        self.kwargs = {"work_group": work_group, "want_dq": want_dq, "workspace": {}, "precision": precision} \
+            if self.opencl else {}
+        self.ring = None
 
-    def run_blocks(w, background):
-        if plan is not None and background is not None:
-            # the bad-pixel maps first, here, then freed (3 × 4 B per pixel less while the blocks run);
-            # the rest of the truth in the background
-            if truth:
-                plan.write_truth(w, p.nramps, part="maps")
-            plan.drop_photo_maps()
-            if truth:
-                background.submit("truth", plan.write_truth, w, p.nramps, "rest")
-        elif plan is not None:
-            if w is not None and truth:
-                plan.write_truth(w, p.nramps)
-            plan.drop_photo_maps()                   # used by rate_and_dark and the truth only
-        for ramp, y0 in iterator:
-            y1 = min(ny, y0 + rows)
-            if plan is not None:
-                sci, gdq = _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs)
-                if background is not None:               # fresh arrays each block: handed over
-                    background.submit("write", w.write_block, ramp, y0, sci, gdq)
-                elif w is not None:
-                    w.write_block(ramp, y0, sci, gdq)
-                else:
-                    result[ramp, :, y0:y1] = sci
-                    if result_dq is not None:
-                        result_dq[ramp, :, y0:y1] = gdq
-                continue
-            direct = {}
-            if w is None and backend == "opencl" and y0 == 0 and y1 == ny:     # whole ramp: no copy
-                direct = {"sci_out": result[ramp].reshape(n, -1)}
-                if result_dq is not None:
-                    direct["gdq_out"] = result_dq[ramp].reshape(n, -1)
-            elif w is not None and backend == "opencl":      # one pair of host buffers for every block
-                npix = (y1 - y0) * nx
-                sci_buf, gdq_buf = block_buffers(n * rows * nx)
-                reused = {"sci_out": sci_buf[:n * npix].reshape(n, npix),
-                          "gdq_out": gdq_buf[:n * npix].reshape(n, npix)}
-                sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **reused)
-                w.write_block(ramp, y0, sci.reshape(n, y1 - y0, nx), gdq.reshape(n, y1 - y0, nx))
-                continue
-            sci, gdq = block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, seed, p, **kwargs, **direct)
-            if direct:
-                continue
-            sci = sci.reshape(n, y1 - y0, nx)
-            if w is not None:
-                w.write_block(ramp, y0, sci, gdq.reshape(n, y1 - y0, nx))
-            else:
-                result[ramp, :, y0:y1] = sci
-                if result_dq is not None:
-                    result_dq[ramp, :, y0:y1] = gdq.reshape(n, y1 - y0, nx)
+    def effects(self, expected, ramp, y0, y1):
+        return _effects_block(expected.plan, expected.mu, expected.dead, ramp, y0, y1, self.seed, self.p,
+                              self.backend, self.kwargs)
+
+    def plain(self, expected, ramp, y0, y1, out=None):
+        """SCI, GROUPDQ (n, rows·nx) of rows [y0, y1); ``out``: (sci, gdq) host buffers to fill (OpenCL)."""
+        mu, dead, nx = expected.mu, expected.dead, expected.mu.shape[1]
+        block = simulate_block_opencl if self.opencl else simulate_block_numpy
+        extra = {} if out is None else {"out": out}
+        return block(mu[y0:y1].ravel(), dead[y0:y1].ravel(), y0 * nx, ramp, self.seed, self.p,
+                     **self.kwargs, **extra)
+
+    def reused(self, rows, nx, npix):
+        """One pair of host buffers for every block of a file (OpenCL), cut to ``npix`` pixels."""
+        n = self.p.nmd[0]
+        if self.ring is None:
+            self.ring = BufferRing(n * rows * nx, (np.uint16, np.uint8))
+        sci, gdq = self.ring.sets[0]
+        return sci[:n * npix].reshape(n, npix), gdq[:n * npix].reshape(n, npix)
+
+
+def realize_ramps(expected, sampler, blocks, writer, io):
+    """Noise realization of every ramp, block by block: to ``writer`` (with the PIXELDQ and truth), or
+    in memory; returns (SCI, GROUPDQ or None) in memory, else (None, None)."""
+    p, plan = sampler.p, expected.plan
+    ny, nx = expected.mu.shape
+    n = p.nmd[0]
     if writer is None:
-        run(None)
-        return (result, result_dq) if return_dq else result
-    with writer as w:
-        run(w)
-    return os.path.abspath(out)
+        sci = np.empty((p.nramps, n, ny, nx), np.uint16)
+        gdq = np.empty((p.nramps, n, ny, nx), np.uint8) if io.return_dq else None
+        sink = _MemorySink(sci, gdq)
+    else:
+        writer.write_pixeldq(_pixeldq(expected.pixeldq, expected.dq_dead, expected.rate.shape))
+        if io.truth:
+            writer.write_truth(expected.rate)
+        sink = writer
+    expected.pixeldq = None                            # written: 4 B per pixel less in the blocks
+    # effects into an HDF5 file: their truth (mostly single-threaded NumPy) and the HDF5 writes of
+    # the blocks run in two background threads while this one computes the next blocks
+    lanes = BackgroundLanes() if (plan is not None and isinstance(writer, RampWriter)) else None
+    try:
+        _write_effects_truth(plan, writer, lanes, p.nramps, io.truth)
+        for ramp, y0, y1 in blocks:
+            _realize_block(expected, sampler, sink, lanes, ramp, y0, y1, blocks.rows)
+    except BaseException:
+        if lanes is not None:
+            lanes.finish(raise_error=False)            # the file is aborted after the lanes stop
+        raise
+    if lanes is not None:
+        lanes.finish()
+    return (sink.sci, sink.gdq) if writer is None else (None, None)
 
 
-class _Background:
-    """Named single-thread lanes for the effects path of :func:`simulate` ("truth", "write"): each
-    lane runs its jobs in order, at most one queued behind the running one (a block's SCI waits for
-    the previous block's write, bounding memory to two blocks); the first error is raised by
-    :meth:`submit` or :meth:`finish`, which waits for every lane.  h5py serialises the lanes' HDF5
-    calls; NumPy, pocketfft, OpenCL waits and the file writes release the GIL meanwhile."""
+def _write_effects_truth(plan, writer, lanes, nramps, truth):
+    """The effects' truth: with lanes, the bad-pixel maps first, here, then freed (3 × 4 B per pixel
+    less while the blocks run) and the rest in the background; else all of it now."""
+    if plan is None:
+        return
+    if lanes is not None:
+        if truth:
+            plan.write_truth(writer, nramps, part="maps")
+        plan.drop_photo_maps()
+        if truth:
+            lanes.submit("truth", plan.write_truth, writer, nramps, "rest")
+        return
+    if writer is not None and truth:
+        plan.write_truth(writer, nramps)
+    plan.drop_photo_maps()                             # used by rate_and_dark and the truth only
 
-    def __init__(self):
-        from concurrent.futures import ThreadPoolExecutor
-        self._pools = {name: ThreadPoolExecutor(1, thread_name_prefix=f"slicersim-{name}")
-                       for name in ("truth", "write")}
-        self._pending = {name: None for name in self._pools}
 
-    def submit(self, lane, func, *args):
-        self.raise_failed()
-        previous = self._pending[lane]
-        if previous is not None:
-            previous.result()
-        self._pending[lane] = self._pools[lane].submit(func, *args)
+class _MemorySink:
+    """SCI (and GROUPDQ) in memory, written like a file by row blocks."""
 
-    def raise_failed(self):
-        """Raise the error of any lane's job that has already failed (the truth lane's one job is
-        otherwise looked at only in :meth:`finish`, after every block; a SIGINT held back while
-        that lane was inside HDF5 is raised there as KeyboardInterrupt)."""
-        for future in self._pending.values():
-            if future is not None and future.done() and future.exception() is not None:
-                raise future.exception()
+    def __init__(self, sci, gdq):
+        self.sci, self.gdq = sci, gdq
 
-    def finish(self, raise_error=True):
-        error = None
-        for lane, pool in self._pools.items():
-            future, self._pending[lane] = self._pending[lane], None
-            try:
-                if future is not None:
-                    future.result()
-            except BaseException as exc:             # noqa: BLE001 - first error re-raised below
-                error = error or exc
-            finally:
-                pool.shutdown(wait=True)
-        if error is not None and raise_error:
-            raise error
+    def write_block(self, ramp, y0, sci, gdq):
+        self.sci[ramp, :, y0:y0 + sci.shape[1]] = sci
+        if self.gdq is not None:
+            self.gdq[ramp, :, y0:y0 + sci.shape[1]] = gdq
+
+
+def _realize_block(expected, sampler, sink, lanes, ramp, y0, y1, rows):
+    """One row block of one ramp into ``sink`` (a writer, or memory)."""
+    ny, nx = expected.mu.shape
+    n = sampler.p.nmd[0]
+    shape = (n, y1 - y0, nx)
+    if expected.plan is not None:
+        sci, gdq = sampler.effects(expected, ramp, y0, y1)
+        if lanes is not None:                          # fresh arrays each block: handed over
+            lanes.submit("write", sink.write_block, ramp, y0, sci, gdq)
+        else:
+            sink.write_block(ramp, y0, sci, gdq)
+        return
+    if isinstance(sink, _MemorySink) and sampler.opencl and y0 == 0 and y1 == ny:     # whole ramp: no copy
+        gdq = None if sink.gdq is None else sink.gdq[ramp].reshape(n, -1)
+        sampler.plain(expected, ramp, y0, y1, out=(sink.sci[ramp].reshape(n, -1), gdq))
+        return
+    out = sampler.reused(rows, nx, (y1 - y0) * nx) if (sampler.opencl and not isinstance(sink, _MemorySink)) \
+        else None
+    sci, gdq = sampler.plain(expected, ramp, y0, y1, out=out)
+    sink.write_block(ramp, y0, sci.reshape(shape), None if gdq is None else gdq.reshape(shape))
 
 
 def _effects_block(plan, mu, dead, ramp, y0, y1, seed, p, backend, kwargs):
@@ -355,8 +534,8 @@ FILE_FORMATS = ("hdf5", "jwst-uncal")
 def _writer_class(out, file_format):
     """RampWriter or UncalWriter for ``file_format`` (None: from the extension of ``out``)."""
     if str(out).lower().endswith((".gz", ".bz2", ".xz", ".zip")):
-        raise ValueError(f"{out}: ramp files are not written compressed by a file suffix; use a plain .h5/.fits "
-                         "name (HDF5 compresses internally with compression=)")
+        raise ParameterError(f"out: {out}: ramp files are not written compressed by a file suffix; use a plain "
+                             ".h5/.fits name (HDF5 compresses internally with compression=)")
     if file_format is None:
         file_format = "jwst-uncal" if str(out).lower().endswith((".fits", ".fit")) else "hdf5"
     if file_format == "hdf5":
@@ -364,7 +543,7 @@ def _writer_class(out, file_format):
     if file_format == "jwst-uncal":
         from slicersim.io.uncal import UncalWriter
         return UncalWriter
-    raise ValueError(f"file_format must be one of {', '.join(FILE_FORMATS)} (or None), got {file_format!r}")
+    validation.choice("file_format", file_format, FILE_FORMATS)
 
 
 def _available_memory():

@@ -26,20 +26,23 @@ The rate is the total charge rate measured: photo-current plus dark, thermal dar
 """
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from slicersim.backends.dispatch import resolve_backend
+from slicersim import validation
+from slicersim.backends.dispatch import BACKENDS, resolve_backend
 from slicersim.backends.ramp_fit import (DQ_DO_NOT_USE, DQ_SATURATED, WEIGHTINGS, fit_block_numpy,
                                          fit_block_opencl, fit_constants)
 from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import AtomicH5File, is_temporary, one_line
+from slicersim.io.row_blocks import BufferRing, RowBlocks, pipelined, rows_per_block
 
-__all__ = ["fit_ramps", "RateProduct", "DEFAULT_JUMP_THRESHOLD", "open_ramps"]
+__all__ = ["fit_ramps", "FitOptions", "RateProduct", "DEFAULT_JUMP_THRESHOLD", "open_ramps"]
 
 DEFAULT_JUMP_THRESHOLD = 4.0          # σ (stcal's default rejection threshold)
 _HDF5_MAGIC, _FITS_MAGIC = b"\x89HDF\r\n\x1a\n", b"SIMPLE  ="
@@ -323,7 +326,7 @@ def _number(attrs, key, where, kind=float):
     try:
         num = kind(val) if kind is float else int(val)
         if kind is int and num != float(val):
-            raise ValueError
+            raise ValueError  # internal: caught just below, becomes a RampFileError naming the keyword
     except (TypeError, ValueError) as exc:
         raise RampFileError(f"{where}: keyword {key} = {val!r} is not {'an integer' if kind is int else 'a number'}") from exc
     return num
@@ -447,15 +450,10 @@ def _refpix_terms(src, bias, kw):
 
 
 # ----------------------------------------------------------------------------- driver
-def fit_ramps(source, *, refpix=None, linearity=None, superbias=None, jump_threshold=DEFAULT_JUMP_THRESHOLD,
-              weighting="gls", gain=None, read_noise=None, saturation=None, with_truth=False,
-              return_groupdq=False, memory_budget=256 << 20, backend="auto", progress=None, work_group=None):
-    """Fit the rates of a raw ramp.
+@dataclass(frozen=True, kw_only=True)
+class FitOptions:
+    """Options of :func:`fit_ramps` (every keyword of its keyword form).
 
-    source : path of a ramp file (our HDF5 or a JWST level-1b FITS, recognised by content) or arrays
-        (SCI (nints, ngroups, ny, nx) [DN], GROUPDQ or None, PIXELDQ or None, attrs) as ``read_ramps``
-        returns them (attrs: NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE; NINTS, NGROUPS, TGROUP,
-        READPATT are checked when present)
     refpix : None (when the file's EFFECTS has reference_pixels), True, False, or refpix_correct options
     linearity : None (the file's truth coefficients when present), False, "truth" (required), or
         coefficients (k, ny, nx) of the JWST convention (corrected DN = Σ c_k DN^k, bias removed)
@@ -468,94 +466,149 @@ def fit_ramps(source, *, refpix=None, linearity=None, superbias=None, jump_thres
     with_truth : also load ``truth/rate`` [e-/s] (RampFileError if the file has none)
     return_groupdq : keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx)
     memory_budget : bytes for the row blocks in flight;  backend : "auto", "opencl", "numpy"
-    progress : progress bar (None: when there are more than 8 row blocks);  work_group : OpenCL local size
+    progress : progress bar (None: when stderr is a terminal and there are more than 8 row blocks)
+    work_group : OpenCL local size
+    """
+
+    refpix: object = None
+    linearity: object = None
+    superbias: object = None
+    jump_threshold: float | None = DEFAULT_JUMP_THRESHOLD
+    weighting: str = "gls"
+    gain: float | None = None
+    read_noise: float | None = None
+    saturation: float | None = None
+    with_truth: bool = False
+    return_groupdq: bool = False
+    memory_budget: int = 256 << 20
+    backend: str = "auto"
+    progress: bool | None = None
+    work_group: int | None = None
+
+    def __post_init__(self):
+        validation.choice("weighting", self.weighting, WEIGHTINGS)
+        validation.choice("backend", self.backend, BACKENDS)
+        validation.positive_int("memory_budget", self.memory_budget)
+        for name in ("gain", "read_noise"):
+            if getattr(self, name) is not None:
+                low_open = name == "gain"
+                unit = "adu / electron" if name == "gain" else "electron"
+                object.__setattr__(self, name, validation.number(name, getattr(self, name), low=0, low_open=low_open,
+                                                                 unit=unit))
+        if self.saturation is not None and (isinstance(self.saturation, (bool, np.bool_, str, bytes)) or not (
+                isinstance(self.saturation, (int, float, np.integer, np.floating)) and self.saturation > 0)):
+            raise ParameterError(f"saturation must be a number of DN > 0 (or None: the file's), got "
+                                 f"{validation.short_repr(self.saturation)}")
+
+
+def fit_ramps(source, options=None, **kwargs):
+    """Fit the rates of a raw ramp.
+
+    source : path of a ramp file (our HDF5 or a JWST level-1b FITS, recognised by content) or arrays
+        (SCI (nints, ngroups, ny, nx) [DN], GROUPDQ or None, PIXELDQ or None, attrs) as ``read_ramps``
+        returns them (attrs: NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE; NINTS, NGROUPS, TGROUP,
+        READPATT are checked when present)
+    options : :class:`FitOptions`, or its fields as keywords (``fit_ramps(path, weighting="ols")``)
 
     Returns a :class:`RateProduct`.  Everything is checked before data are read.
     """
-    if weighting not in WEIGHTINGS:
-        raise ParameterError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
-    backend = resolve_backend(backend)
+    if options is None:
+        valid = [f.name for f in fields(FitOptions)]
+        for key in kwargs:
+            validation.choice("keyword", key, valid, what="keyword of fit_ramps")
+        options = FitOptions(**kwargs)
+    elif kwargs or not isinstance(options, FitOptions):
+        raise ParameterError("fit_ramps: give options=FitOptions(...) or keywords, not both "
+                             f"(got {validation.short_repr(options)} and {sorted(kwargs)})")
+    backend = resolve_backend(options.backend)
     with open_ramps(source) as src:
+        setup = _FitSetup(src, options)
+        out = {"rate": np.empty(src.shape[2:]), "variance": np.empty(src.shape[2:]),
+               "var_poisson": np.empty(src.shape[2:]), "var_rnoise": np.empty(src.shape[2:]),
+               "dq": np.empty(src.shape[2:], np.uint32), "njumps": np.empty(src.shape[2:], np.int32)}
+        groupdq = np.empty(src.shape, np.uint8) if options.return_groupdq else None
+        _fit_blocks(src, setup, options, backend, out, groupdq)
+        attrs = _attrs(src, setup.nmd, setup.tframe, setup.gain, setup.read_noise, setup.saturation,
+                       options.jump_threshold, options.weighting, backend, setup.labels)
+    return RateProduct(**out, attrs=attrs, groupdq=groupdq, truth_rate=setup.truth_rate)
+
+
+fit_ramps.__signature__ = inspect.Signature(
+    [inspect.Parameter("source", inspect.Parameter.POSITIONAL_OR_KEYWORD),
+     inspect.Parameter("options", inspect.Parameter.POSITIONAL_OR_KEYWORD, default=None)]
+    + [inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default) for f in fields(FitOptions)])
+
+
+class _FitSetup:
+    """Everything :func:`fit_ramps` decides before reading data: readout, saturation, fit constants,
+    corrections (refpix terms, linearity, bias), truth rate, rows per block."""
+
+    def __init__(self, src, options):
         where = src.name
         nints, n, ny, nx = src.shape
-        nmd, tframe, gain, read_noise = _readout(src.attrs, src.shape, gain, read_noise, where)
-        if saturation is None:
-            saturation = _number(src.attrs, "SATURATION", where) if "SATURATION" in src.attrs else (
+        self.nmd, self.tframe, self.gain, self.read_noise = _readout(src.attrs, src.shape, options.gain,
+                                                                     options.read_noise, where)
+        self.saturation = options.saturation
+        if self.saturation is None:
+            self.saturation = _number(src.attrs, "SATURATION", where) if "SATURATION" in src.attrs else (
                 65535.0 if src.integer else math.inf)
-            if not saturation > 0:
-                raise RampFileError(f"{where}: keyword SATURATION = {saturation} DN must be > 0")
-        elif isinstance(saturation, (bool, np.bool_, str, bytes)) or not (
-                isinstance(saturation, (int, float, np.integer, np.floating)) and saturation > 0):
-            raise ParameterError(f"saturation must be a number of DN > 0 (or None: the file's), got {saturation!r}")
-        consts = fit_constants(nmd, tframe, gain, read_noise, 1.0 / 12.0 if src.integer else 0.0, saturation,
-                               jump_threshold, weighting)
-        refpix_kw, coeffs, bias, labels = _plan_corrections(src, refpix, linearity, superbias, where)
-        truth_rate = None
-        if with_truth:
+            if not self.saturation > 0:
+                raise RampFileError(f"{where}: keyword SATURATION = {self.saturation} DN must be > 0")
+        self.consts = fit_constants(self.nmd, self.tframe, self.gain, self.read_noise,
+                                    1.0 / 12.0 if src.integer else 0.0, self.saturation, options.jump_threshold,
+                                    options.weighting)
+        refpix_kw, self.coeffs, self.bias, self.labels = _plan_corrections(src, options.refpix, options.linearity,
+                                                                           options.superbias, where)
+        self.truth_rate = None
+        if options.with_truth:
             truth = src.truth("rate")
             if truth is None:
                 raise RampFileError(f"{where}: with_truth=True but the file has no truth/rate")
-            truth_rate = np.asarray(truth[...], np.float64)
-        corrected = refpix_kw is not None or coeffs is not None or not src.integer
+            self.truth_rate = np.asarray(truth[...], np.float64)
+        self.corrected = refpix_kw is not None or self.coeffs is not None or not src.integer
         # bytes per pixel-group: SCI + GROUPDQ on the host and the device (+ GROUPDQ out, + float DN, its
         # temporary and device copy with corrections); per pixel: the outputs of a block, twice
-        per_row = nx * (nints * n * (6 + (2 if return_groupdq else 0) + (24 if corrected else 0)) + 96)
-        if per_row > memory_budget:
-            raise MemoryError(f"memory_budget {memory_budget} B is below one detector row ({per_row} B)")
-        rows = int(min(ny, memory_budget // per_row))
-        chunk = getattr(src, "chunk_rows", 1)
-        if rows > chunk:
-            rows -= rows % chunk
-        terms = _refpix_terms(src, bias, refpix_kw) if refpix_kw is not None else None
-        out = {"rate": np.empty((ny, nx)), "variance": np.empty((ny, nx)), "var_poisson": np.empty((ny, nx)),
-               "var_rnoise": np.empty((ny, nx)), "dq": np.empty((ny, nx), np.uint32),
-               "njumps": np.empty((ny, nx), np.int32)}
-        groupdq = np.empty(src.shape, np.uint8) if return_groupdq else None
-        blocks = range(0, ny, rows)
-        if progress is None:
-            progress = len(blocks) > 8
-        if progress:
-            from tqdm.auto import tqdm
-            blocks = tqdm(blocks, desc="ramp fit", unit="block")
-        # two sets of block buffers: the next block is read while the kernel works on the last one
-        sets = [(np.empty(nints * n * rows * nx, np.uint16 if src.integer else np.float64),
-                 np.empty(nints * n * rows * nx, np.uint8)) for _ in range(2 if backend == "opencl" else 1)]
-        workspace, pending = {}, None
+        per_row = nx * (nints * n * (6 + (2 if options.return_groupdq else 0) + (24 if self.corrected else 0)) + 96)
+        self.rows = rows_per_block(options.memory_budget, per_row, ny, chunk=getattr(src, "chunk_rows", 1),
+                                   what="one detector row", name="memory_budget")
+        self.terms = _refpix_terms(src, self.bias, refpix_kw) if refpix_kw is not None else None
 
-        def store(y0, y1, results):
-            fit, dq, nj, gout = results
-            for key, val in zip(("rate", "variance", "var_poisson", "var_rnoise"), fit):
-                out[key][y0:y1] = val.reshape(y1 - y0, nx)
-            out["dq"][y0:y1] = dq.reshape(y1 - y0, nx)
-            out["njumps"][y0:y1] = nj.reshape(y1 - y0, nx)
-            if return_groupdq:
-                groupdq[:, :, y0:y1] = gout.reshape(nints, n, y1 - y0, nx)
 
-        for count, y0 in enumerate(blocks):
-            y1 = min(ny, y0 + rows)
-            shape = (nints, n, y1 - y0, nx)
-            sci_buf, gdq_buf = sets[count % len(sets)]
-            sci = sci_buf[:np.prod(shape)].reshape(shape)
-            gdq = gdq_buf[:np.prod(shape)].reshape(shape)
-            src.read(y0, y1, sci, gdq)
-            block_consts = consts
-            if corrected:
-                sci, block_consts = _correct(sci, gdq, y0, y1, consts, bias, terms, coeffs)
-            npix = (y1 - y0) * nx
-            flat = (sci.reshape(nints, n, npix), gdq.reshape(nints, n, npix),
-                    src.pixeldq(y0, y1).reshape(npix), block_consts)
-            if backend == "opencl":
-                launched = fit_block_opencl(*flat, workspace=workspace, work_group=work_group,
-                                            want_gdq=return_groupdq, wait=False)
-                if pending is not None:
-                    store(*pending[0], pending[1]())
-                pending = ((y0, y1), launched)
-            else:
-                store(y0, y1, fit_block_numpy(*flat))
-        if pending is not None:
-            store(*pending[0], pending[1]())
-        attrs = _attrs(src, nmd, tframe, gain, read_noise, saturation, jump_threshold, weighting, backend, labels)
-    return RateProduct(**out, attrs=attrs, groupdq=groupdq, truth_rate=truth_rate)
+def _fit_blocks(src, setup, options, backend, out, groupdq):
+    """Read, correct and fit every row block into ``out`` (and ``groupdq``); on OpenCL the next block is
+    read while the device fits the last one (two host buffer sets, :func:`pipelined`)."""
+    nints, n, ny, nx = src.shape
+    blocks = RowBlocks(ny, setup.rows, progress=options.progress, desc="ramp fit", auto_min=8)
+    ring = BufferRing(nints * n * setup.rows * nx, (np.uint16 if src.integer else np.float64, np.uint8),
+                      nsets=2 if backend == "opencl" else 1)
+    workspace = {}
+
+    def launch(step):
+        _, y0, y1 = step
+        shape = (nints, n, y1 - y0, nx)
+        sci, gdq = ring.next(shape)
+        src.read(y0, y1, sci, gdq)
+        consts = setup.consts
+        if setup.corrected:
+            sci, consts = _correct(sci, gdq, y0, y1, setup.consts, setup.bias, setup.terms, setup.coeffs)
+        npix = (y1 - y0) * nx
+        flat = (sci.reshape(nints, n, npix), gdq.reshape(nints, n, npix), src.pixeldq(y0, y1).reshape(npix), consts)
+        if backend == "opencl":
+            return fit_block_opencl(*flat, workspace=workspace, work_group=options.work_group,
+                                    want_gdq=options.return_groupdq, wait=False)
+        return fit_block_numpy(*flat)
+
+    def store(step, results):
+        _, y0, y1 = step
+        fit, dq, nj, gout = results
+        for key, val in zip(("rate", "variance", "var_poisson", "var_rnoise"), fit):
+            out[key][y0:y1] = val.reshape(y1 - y0, nx)
+        out["dq"][y0:y1] = dq.reshape(y1 - y0, nx)
+        out["njumps"][y0:y1] = nj.reshape(y1 - y0, nx)
+        if groupdq is not None:
+            groupdq[:, :, y0:y1] = gout.reshape(nints, n, y1 - y0, nx)
+
+    pipelined(blocks, launch, store)
 
 
 def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):

@@ -102,18 +102,21 @@ class DetectorProducts:
                                   precision=precision, **{field: cube})
         return image
 
-    def get_ramps(self, out=None, nmd=None, nramps=None, seed=0, mapper=None, backend="auto", **kwargs):
+    def get_ramps(self, out=None, nmd=None, nramps=None, seed=None, mapper=None, backend="auto", **kwargs):
         """Raw MACC ramps of the full detector (see :func:`slicersim.ramps.simulate`).
 
         Uses the current readout unless ``nmd`` / ``nramps`` are given (validated first:
         ``nramps`` must be an integer ≥ 1, ReadoutError otherwise); the detector
         parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
-        saturation) come from the configuration.  Returns SCI or writes ``out`` (HDF5)."""
+        saturation) come from the configuration.  ``seed``: an integer in [0, 2⁶⁴) or None (default:
+        a fresh seed, recorded in the file's SEED attribute).
+        Returns SCI or writes ``out`` (HDF5 or level-1b FITS) and returns its path."""
+        from slicersim import validation
         from slicersim.products.ramps import simulate
-        from slicersim.simulation import _check_nramps
+        seed = validation.seed(seed)                 # checked before the (slow) detector image
         sim, det = self.simulation, self.simulation.detector
         nmd = det.nmd if nmd is None else nmd
-        nramps = sim.nramps if nramps is None else _check_nramps(nramps)
+        nramps = sim.nramps if nramps is None else validation.nramps(nramps)
         nmd, nramps = check_readout(nmd, nramps, det.min_group, det.max_group)
         if "precision" in kwargs:                    # the samplers' precision: refused before the image is built
             from slicersim.backends.precision import resolve_precision

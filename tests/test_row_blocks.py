@@ -1,0 +1,48 @@
+"""The row-block engine shared by simulate, fit_ramps and the level-1b writer (slicersim.io.row_blocks)."""
+import numpy as np
+import pytest
+
+from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, pipelined, rows_per_block, show_progress
+
+
+def test_rows_per_block_from_the_memory_budget():
+    assert rows_per_block(1000, 100, 50) == 10
+    assert rows_per_block(10**9, 100, 50) == 50                       # never more than the rows
+    assert rows_per_block(1000, 100, 50, reserve=500) == 5
+    assert rows_per_block(1000, 100, 50, chunk=4) == 8                # a multiple of the file's chunk rows
+    with pytest.raises(MemoryError, match="max_bytes 99 B is below one detector row"):
+        rows_per_block(99, 100, 50)
+    with pytest.raises(MemoryError, match="memory_budget"):
+        rows_per_block(99, 100, 50, name="memory_budget")
+
+
+def test_row_blocks_cover_every_row_of_every_ramp_once():
+    blocks = RowBlocks(10, 4, nouter=3, progress=False)
+    steps = list(blocks)
+    assert len(blocks) == len(steps) == 9
+    assert steps[:3] == [(0, 0, 4), (0, 4, 8), (0, 8, 10)] and steps[-1] == (2, 8, 10)
+    assert show_progress(True, 1) and not show_progress(False, 100)
+
+
+def test_pipelined_stores_each_result_once_in_order():
+    stored = []
+    launched = []
+
+    def launch(step):
+        launched.append(step)
+        return (lambda: step * 10) if step % 2 else step * 10     # device (callable) and host results mixed
+
+    pipelined(range(5), launch, lambda step, result: stored.append((step, result)))
+    assert sorted(stored) == [(i, 10 * i) for i in range(5)] and launched == list(range(5))
+
+
+def test_buffer_ring_alternates_and_lanes_raise_the_first_error():
+    ring = BufferRing(12, (np.uint16, np.uint8), nsets=2)
+    a, b, c = ring.next((2, 3)), ring.next((3, 4)), ring.next()
+    assert a[0].shape == (2, 3) and b[1].shape == (3, 4) and c[0] is ring.sets[0][0]
+    assert not np.shares_memory(a[0], b[0])
+    lanes = BackgroundLanes(("write",))
+    lanes.submit("write", lambda: None)
+    lanes.submit("write", lambda: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        lanes.finish()
