@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 
 from slicersim import validation
-from slicersim.errors import ConfigError, ParameterError, SlicersimError
+from slicersim.errors import ConfigError, ParameterError
 
 __all__ = ["add_parsers"]
 
@@ -45,9 +45,7 @@ def _mapper(args):
         raise ParameterError(f"--spot-table: no such file: {args.spot_table}")
     try:
         return SlicerMapper.from_table(args.spot_table)
-    except SlicersimError:
-        raise
-    except (ValueError, KeyError, IndexError) as exc:     # the table reader's own parse errors (text file)
+    except (ValueError, KeyError, IndexError) as exc:     # the table reader's errors (ConfigError, or a parse error)
         raise ConfigError(f"--spot-table: {args.spot_table}: not a spot table: {' '.join(str(exc).split())}") \
             from None
 
