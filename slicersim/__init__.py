@@ -6,7 +6,7 @@ Layers, each importing only the ones above it in this list:
 ``products`` (cubes, ramps) → ``simulation`` → ``assembly`` (configuration → model) →
 ``etc`` (exposure-time searches) → ``targets`` → ``app`` (CLI, demo, plots).
 """
-__version__ = "0.1.0"
+from slicersim.versioning import __version__
 
 from slicersim.io.config import ConfigError, load_config
 from slicersim.instrument.detector import Detector, ReadoutError

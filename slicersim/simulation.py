@@ -454,13 +454,13 @@ class Simulation(Versioned):
         the point-source spectrum, else SpectrumError naming the covered fraction;
         ``allow_partial=True`` accepts a partly covered band (≥ 50 % inside the grid) with
         a BandCoverageWarning, the SNR being that of the covered part
-        (:mod:`slicersim.etc.bands`)."""
+        (:mod:`slicersim.snr.bands`)."""
         lo, hi = check_band(lbda_range)
         mask = (self.lbda >= lo) & (self.lbda <= hi)
         if not mask.any():
             raise SpectrumError(f"band ({lo}, {hi}) Å contains no bin of the instrument grid "
                                 f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
-        from slicersim.etc.bands import check_band_coverage  # validation helper (etc/ sits above)
+        from slicersim.snr.bands import check_band_coverage
         check_band_coverage(self, (lo, hi), allow_partial=allow_partial)
         return mask
 
@@ -529,9 +529,9 @@ class Simulation(Versioned):
 
     # ------------------------------------------------------------------ ETC
     def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", allow_partial=False, **kwargs):
-        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.etc.search`);
+        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.snr.search`);
         band coverage rule (``allow_partial``): :meth:`band_mask`."""
-        from slicersim.etc.search import solve_readout  # etc/ sits above: its solve_many builds Simulations
+        from slicersim.snr.search import solve_readout
         return solve_readout(self, check_snr(snr), lbda_range, per_resolution=per_resolution, search=search,
                              allow_partial=allow_partial, **kwargs)
 

@@ -14,7 +14,7 @@ from slicersim.io.config import ConfigError, builtin_config_dir, load_config
 from slicersim.instrument.detector import ReadoutError
 from slicersim.etc.solve import solve_many
 from slicersim.sources.scene import SpectrumError
-from slicersim.etc.search import ETCError
+from slicersim.errors import ETCError
 from slicersim.targets import LazuliTarget, build_simulation
 
 BAND = (8000.0, 13600.0)

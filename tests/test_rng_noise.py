@@ -1,4 +1,4 @@
-"""Philox4x32-10 RNG (slicersim.backends.rng) and its OpenCL twin (kernels/philox.cl, noise.cl).
+"""Philox4x32-10 RNG (slicersim.rng) and its OpenCL twin (kernels/philox.cl, noise.cl).
 
 * Known-answer vectors of Random123 for both implementations.
 * OpenCL and NumPy streams are bit-identical (uniforms, Gaussians, noisy
@@ -16,7 +16,8 @@ from scipy import stats
 from scipy.special import gammaln
 
 from slicersim.backends import noise as cn
-from slicersim.backends import opencl, rng
+from slicersim import rng
+from slicersim.backends import opencl
 from slicersim.backends.band_variance import resolve_backend
 
 HAS_CL = resolve_backend("auto") == "opencl"

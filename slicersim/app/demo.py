@@ -98,7 +98,7 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     data_volume_gb, variance_budget fractions in the band), the reference-search
     result under ``"reference"`` and the written ``files``.
     """
-    from slicersim import __version__
+    from slicersim.versioning import __version__
     from slicersim.app.plotting import plot_instrument, plot_ramp_group, plot_spectrum, plot_variance_budget
     from slicersim.targets import LazuliSupernova
 

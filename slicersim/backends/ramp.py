@@ -14,7 +14,8 @@ import math
 
 import numpy as np
 
-from slicersim.backends import opencl, rng
+from slicersim import rng
+from slicersim.backends import opencl
 from slicersim.backends.opencl import check_vector_width
 from slicersim.io.rampfile import DQ
 from slicersim.physics.ramp import (MAX_SPARSE_WINDOW, P_KTC, P_POISSON, P_READ, P_SPARSE,  # noqa: F401

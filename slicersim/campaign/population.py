@@ -33,7 +33,7 @@ import os
 
 import numpy as np
 
-from slicersim.backends import rng
+from slicersim import rng
 from slicersim.campaign.distributions import Distribution, RedshiftDistribution
 from slicersim.errors import ConfigError, SpectrumError
 from slicersim.io.tables import file_digest, read_spectrum_table as _read_spectrum_table, read_table, resolve_path

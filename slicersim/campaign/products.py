@@ -22,10 +22,10 @@ import traceback
 
 import numpy as np
 
-from slicersim.backends import rng
+from slicersim import rng
 from slicersim.io.dataset import Dataset, ProductFile, product_info
 
-__all__ = ["target_seeds", "run_target", "SEED_STREAM", "SPECTRUM_GRID"]
+__all__ = ["target_seeds", "run_target", "SEED_STREAM", "SPECTRUM_GRID", "limit_threads", "mark_failed"]
 
 #: Philox stream deriving a target's seeds from (campaign seed, target id)
 SEED_STREAM = 0x43414D50          # "CAMP"
@@ -48,7 +48,7 @@ def target_seeds(campaign_seed, target_ids):
     return noise, ramps
 
 
-def _limit_threads(threads):
+def limit_threads(threads):
     """Restrict this process's OpenCL CPU threads (before its context exists)."""
     if not threads:
         return
@@ -134,7 +134,7 @@ def _write_ramps(path, target, row, seed, spec, memory):
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None):
     """Simulate and write the products of one target; returns its record (also written to
     ``records/``).  Any error is caught and recorded (status "failed") so a campaign goes on."""
-    _limit_threads(threads)
+    limit_threads(threads)
     row = dict(row)
     tid = int(row["target_id"])
     ds = Dataset(dataset_path)

@@ -31,7 +31,8 @@ from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec
 from slicersim.errors import ConfigError, DatasetError
 from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset
 
-__all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions"]
+__all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions", "check_workers", "dask_client",
+           "QuietDask", "run_task_window"]
 
 #: seconds between two catalog writes while a campaign runs
 CATALOG_INTERVAL = 10.0
@@ -165,7 +166,7 @@ def _key(tid):
     return target_key(tid)
 
 
-def _client(workers, scheduler, threads):
+def dask_client(workers, scheduler, threads):
     """(client, cluster or None): an existing scheduler or an embedded LocalCluster."""
     from distributed import Client, LocalCluster
     if scheduler:
@@ -182,7 +183,7 @@ def _client(workers, scheduler, threads):
     return Client(cluster), cluster
 
 
-def _check_workers(workers):
+def check_workers(workers):
     if workers is None:
         return max(1, os.cpu_count() or 1)
     _check_positive_int(workers, "workers")
@@ -203,7 +204,7 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     window : tasks in flight at once (default 2 per worker): bounds the client's memory
     """
     spec = spec if isinstance(spec, CampaignSpec) else load_spec(spec)
-    workers = _check_workers(workers)
+    workers = check_workers(workers)
     _check_positive_int(max_bytes, "memory per task [bytes]", lo=2**20)
     if threads_per_worker is not None:
         _check_positive_int(threads_per_worker, "threads per worker")
@@ -217,7 +218,7 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     ds = Dataset(Dataset.check_path(out, force=force))
     t0 = time.perf_counter()
     ds.check_spec(spec.canonical(), force)            # refuse early, before planning
-    connection = _client(workers, scheduler, 1) if scheduler else None   # reachable before anything is written
+    connection = dask_client(workers, scheduler, 1) if scheduler else None   # reachable before anything is written
     try:
         catalog, plan = plan_campaign(spec)            # nothing is written before the plan succeeds
     except BaseException:
@@ -270,8 +271,8 @@ def _row_dict(row):
 def _dispatch(spec, ds, catalog, todo, records, digest, workers, scheduler, progress, max_bytes, threads,
               window, connection=None):
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    quiet = _QuietDask()
-    client, cluster = connection or _client(workers, scheduler, threads)
+    quiet = QuietDask()
+    client, cluster = connection or dask_client(workers, scheduler, threads)
     try:
         spec_future = client.scatter(spec, broadcast=True)
     except BaseException:
@@ -341,7 +342,7 @@ def run_task_window(client, cluster, quiet, ids, submit, records, ds, *, window,
         quiet.restore()
 
 
-class _QuietDask:
+class QuietDask:
     """Silence distributed's loggers on the client while a campaign runs: worker deaths and
     task errors are recorded per target and summarised; their tracebacks would bury the one
     line the CLI prints."""

@@ -4,7 +4,7 @@ The instrument (PSF, throughput, QE, background, thermal terms) is computed
 once; each target only changes the point-source spectrum.  For every target the
 single-ramp band SNR of every candidate readout is evaluated at once (OpenCL
 kernel ``band_variance.cl`` or its NumPy twin), then the readout is chosen with
-:func:`slicersim.etc.search.exact_choice` (or the reference walk).
+:func:`slicersim.snr.search.exact_choice` (or the reference walk).
 """
 from __future__ import annotations
 
@@ -15,11 +15,11 @@ import numpy as np
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES
 from slicersim.errors import ETCError, SpectrumError
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS
-from slicersim.etc.bands import check_band_in_grid, warn_partial_spectrum
-from slicersim.etc.search import (candidate_readouts, check_reference_result,
+from slicersim.snr.bands import check_band_in_grid, warn_partial_spectrum
+from slicersim.snr.search import (candidate_readouts, check_reference_result,
                                   check_snr_target, exact_choice, limit_error, max_frames_for,
                                   reference_walk)
-from slicersim.etc.snr_table import band_snr_table_for_models, template_psf
+from slicersim.snr.snr_table import band_snr_table_for_models, template_psf
 
 __all__ = ["solve_many"]
 
@@ -73,7 +73,7 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame="obs", config="cbe", field=
     allow_partial : bands partly outside the grid (≥ 50 % inside) or partly outside the input
         spectrum are answered on the covered part with one BandCoverageWarning naming the
         targets (default, batch); False raises SpectrumError as the single-target calls do
-        (:mod:`slicersim.etc.bands`)
+        (:mod:`slicersim.snr.bands`)
     precision : "auto" (default), "double" or "single" for the band-variance kernel
         (:mod:`slicersim.backends.precision`, product ``"batch_etc"``; "auto" is double on CPUs and
         fast-fp64 GPUs); the single-target ETC is always float64

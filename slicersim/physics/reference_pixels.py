@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slicersim.backends import rng
-from slicersim.backends.noise import uniform_normal_draw
+from slicersim import rng
+from slicersim.rng import uniform_normal_draw
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import STREAMS
 

@@ -26,7 +26,7 @@ import os
 
 import numpy as np
 
-from slicersim.backends import rng
+from slicersim import rng
 from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
 from slicersim.io.rampfile import DQ, RampWriter
 from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, frame_mean_charge,  # noqa: F401
@@ -389,7 +389,7 @@ def _pixeldq(pixeldq, dead, shape):
 
 
 def _version():
-    from slicersim import __version__
+    from slicersim.versioning import __version__
     return __version__
 
 

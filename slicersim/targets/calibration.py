@@ -32,12 +32,13 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.assembly import check_field, default_mapper
+from slicersim import validation
 from slicersim.backends.precision import resolve_precision
 from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.sources.lamps import (DEFAULT_LAMP_BAND, QTH_TEMPERATURE, BlackBodyContinuum, CalibrationLamp,
-                                     FabryPerotEtalon, LampIllumination, TabulatedContinuum, as_etalon, _number)
+                                     FabryPerotEtalon, LampIllumination, TabulatedContinuum, as_etalon)
 from slicersim.targets.base import Target, build_simulation, config_default_field, lazuli_doc
 from slicersim.targets.state import _check_config
 
@@ -69,7 +70,7 @@ class FlatFieldStructure:
 
     def __init__(self, slice_scatter=0.0, pixel_scatter=0.0, seed=0):
         from slicersim.simulation import check_seed
-        self.slice_scatter = _number("slice_scatter", slice_scatter, allow_zero=True, upper=MAX_SCATTER)
+        self.slice_scatter = validation.number("slice_scatter", slice_scatter, low=0.0, high=MAX_SCATTER)
         self.pixel_scatter = _number("pixel_scatter", pixel_scatter, allow_zero=True, upper=MAX_SCATTER)
         if seed is None or isinstance(seed, np.random.Generator):
             raise ParameterError("the flat-field structure needs an integer seed in [0, 2**64)")
@@ -89,7 +90,7 @@ class FlatFieldStructure:
 
     def slice_throughput(self, slice_ids):
         """Throughput t_s (mean 1) of each slice id."""
-        from slicersim.backends import rng
+        from slicersim import rng
         ids = np.asarray(slice_ids, dtype=np.uint64)
         if self.slice_scatter == 0.0:
             return np.ones(ids.shape)

@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.assembly import build_simulation, default_mapper
 from slicersim.backends.precision import resolve_precision
 from slicersim.physics.readout import check_readout
@@ -62,8 +63,8 @@ class DetectorProducts:
                 sim.scene.pointsource = moved
         host = own.scene.host
         if host is not None:
-            from slicersim.sources.galaxies import _own_copy, host_offset
-            moved = _own_copy(host)
+            from slicersim.sources.galaxies import host_offset, own_copy
+            moved = own_copy(host)
             hx, hy = host_offset(host)
             centre = (hx + sign * dx, hy + sign * dy)
             if moved is host:                          # a user object (not Host / CubeSource): left out
@@ -110,10 +111,9 @@ class DetectorProducts:
         parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
         saturation) come from the configuration.  Returns SCI or writes ``out`` (HDF5)."""
         from slicersim.products.ramps import simulate
-        from slicersim.simulation import _check_nramps
         sim, det = self.simulation, self.simulation.detector
         nmd = det.nmd if nmd is None else nmd
-        nramps = sim.nramps if nramps is None else _check_nramps(nramps)
+        nramps = sim.nramps if nramps is None else validation.nramps(nramps)
         nmd, nramps = check_readout(nmd, nramps, det.min_group, det.max_group)
         if "precision" in kwargs:                    # the samplers' precision: refused before the image is built
             from slicersim.backends.precision import resolve_precision

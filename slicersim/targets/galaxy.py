@@ -168,8 +168,8 @@ class Galaxy(Target):
                      backend="auto", allow_partial=False):
         """Find and apply the readout with the shortest total exposure reaching ``snr`` in the
         extracted galaxy spectrum (per resolution element by default); returns the ETC result dict.
-        Every candidate (n, m, d) × ramps of ``etc.search.candidate_readouts`` is evaluated."""
-        from slicersim.etc.search import candidate_readouts, exact_choice, limit_error, max_frames_for
+        Every candidate (n, m, d) × ramps of ``snr.search.candidate_readouts`` is evaluated."""
+        from slicersim.snr.search import candidate_readouts, exact_choice, limit_error, max_frames_for
         snr = check_snr(snr)
         if search != "exact":
             raise ETCError(f"galaxy targets support search='exact' only, got {search!r}")

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from slicersim.etc.snr_table import band_snr_table_for_models, sim_band_indices
+from slicersim.snr.snr_table import band_snr_table_for_models, sim_band_indices
 from slicersim.physics.readout import readout_times
 
 __all__ = ["solve_readout", "reference_walk", "exact_choice", "ETCError", "FRAMES_PER_GROUP",
@@ -306,7 +306,7 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
     """Solve the ETC for a :class:`~slicersim.simulation.Simulation`.
 
     ``allow_partial``: band coverage rule of :meth:`Simulation.band_mask
-    <slicersim.simulation.Simulation.band_mask>` (:mod:`slicersim.etc.bands`).
+    <slicersim.simulation.Simulation.band_mask>` (:mod:`slicersim.snr.bands`).
 
     Returns a dict: nmd, nramps, snr (band SNR per bin reached), snr_target (per bin),
     exposure_time (total, s), trace (reference search only).
