@@ -1,10 +1,11 @@
 """slicersim: simulate image-slicer integral-field spectrograph observations (Lazuli IFS).
 
-Layers, each importing only the ones above it in this list:
-``errors``/``constants`` → ``io`` (files) → ``physics`` (readout, LSF, PSF, thermal) →
-``backends`` (OpenCL kernels and NumPy twins) → ``instrument`` → ``sources`` →
-``products`` (cubes, ramps) → ``simulation`` → ``assembly`` (configuration → model) →
-``etc`` (exposure-time searches) → ``targets`` → ``app`` (CLI, demo, plots).
+Layers (:data:`slicersim.layers.LAYERS`, lowest first), each importing only the ones before it,
+never a private (``_``) name of another, nor this package root (the facade above them all):
+``layers`` → ``errors`` → ``constants`` → ``validation`` → ``versioning`` → ``memo`` → ``data`` →
+``rng`` → ``io`` → ``physics`` → ``kernels`` → ``backends`` → ``instrument`` → ``sources`` →
+``products`` → ``ramps`` → ``cube`` → ``snr`` → ``simulation`` → ``assembly`` → ``etc`` →
+``targets`` → ``campaign`` → ``reduction`` → ``app`` → ``__main__``.
 """
 from slicersim.versioning import __version__
 
