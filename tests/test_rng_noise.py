@@ -18,7 +18,7 @@ from scipy.special import gammaln
 from slicersim.backends import noise as cn
 from slicersim import rng
 from slicersim.backends import opencl
-from slicersim.backends.band_variance import resolve_backend
+from slicersim.backends.dispatch import resolve_backend
 
 HAS_CL = resolve_backend("auto") == "opencl"
 needs_cl = pytest.mark.skipif(not HAS_CL, reason="no OpenCL device with fp64: NumPy-only run")

@@ -24,7 +24,8 @@ import numpy as np
 
 from slicersim import rng
 from slicersim.backends import opencl
-from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, resolve_backend
+from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, resolve_backend
+from slicersim.backends.opencl import check_vector_width
 from slicersim.backends.precision import real_dtype, resolve_precision
 from slicersim.errors import ParameterError
 

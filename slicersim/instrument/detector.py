@@ -4,13 +4,12 @@ The readout physics (MACC times, variance models) lives in :mod:`slicersim.physi
 """
 from __future__ import annotations
 
-from slicersim.errors import ParameterError, ReadoutError  # noqa: F401  (re-exported)
+from slicersim.errors import ParameterError, ReadoutError
 
 import numpy as np
 
 from slicersim.io.curves import read_curve
-from slicersim.physics.readout import (VARIANCE_MODELS, check_readout, rauscher07_coefficients,  # noqa: F401
-                                       readout_times, variance_kubik16, variance_rauscher07)
+from slicersim.physics.readout import VARIANCE_MODELS, check_readout, readout_times
 from slicersim.versioning import Versioned
 
 __all__ = ["Detector"]

@@ -8,7 +8,7 @@ that names them and stored as absolute paths.
 """
 from __future__ import annotations
 
-from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
+from slicersim.errors import ConfigError
 
 import copy
 import os

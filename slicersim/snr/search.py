@@ -11,7 +11,7 @@ Two strategies:
 """
 from __future__ import annotations
 
-from slicersim.errors import ETCError  # noqa: F401  (re-exported)
+from slicersim.errors import ETCError
 
 import math
 
@@ -20,7 +20,7 @@ import numpy as np
 from slicersim.snr.snr_table import band_snr_table_for_models, sim_band_indices
 from slicersim.physics.readout import readout_times
 
-__all__ = ["solve_readout", "reference_walk", "exact_choice", "ETCError", "FRAMES_PER_GROUP",
+__all__ = ["solve_readout", "reference_walk", "exact_choice", "FRAMES_PER_GROUP",
            "MAX_TOTAL_EXPOSURE", "MAX_RAMPS"]
 
 #: frames per group allowed by the exact search (MACC modes of the H4RG ROIC)

@@ -24,7 +24,7 @@ from slicersim.products.components import check_switch_off
 from slicersim.simulation import check_band
 from slicersim.sources.galaxies import (HOST_PARAMETERS, HostPlacement, check_host_covers, check_host_in_field,
                                         host_offset)
-from slicersim.sources.scene import PointSource, snia_spectrum
+from slicersim.sources.spectra import PointSource, snia_spectrum
 from slicersim.targets.detector import DetectorProducts
 from slicersim.targets.state import (_check_config, _check_flag, _check_redshift, _host_centre,  # noqa: F401
                                      _move_host, _TargetUpdate)

@@ -16,7 +16,7 @@ from slicersim.products.extraction import (EXTRACTION_METHODS, aperture_radius, 
                                            check_aperture_in_field, extract_model, parse_aperture)
 from slicersim.simulation import VARIANCE_SOURCES, check_snr
 from slicersim.sources.galaxies import GalaxyModel
-from slicersim.sources.scene import PointSource
+from slicersim.sources.spectra import PointSource
 from slicersim.targets.base import Target, _check_flag, _check_redshift, _Lazuli, lazuli_doc
 
 __all__ = ["Galaxy", "LazuliGalaxy"]
