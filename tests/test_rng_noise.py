@@ -154,6 +154,33 @@ def test_grid_streams_bit_identical_to_rng(rows, ncols, first, stride):
 def test_grid_rejects_indices_past_64_bits():
     with pytest.raises(ValueError, match="2\\*\\*64"):
         cn.uniform_normal_grid(2, 10, 1, first_index=2**64 - 5, row_stride=1, backend="numpy")
+    with pytest.raises(ValueError, match="2\\*\\*64"):
+        rng.uniform_normal_grid(2, 10, 1, first_index=2**64 - 5, row_stride=1)
+
+
+def test_physics_grids_use_the_registered_engine_with_the_same_numbers():
+    """slicersim.rng (below physics) computes the detector-effect grids; backends.noise registers its
+    device grid as their engine on import.  Engine or not, the numbers are rng.uniform/normal's."""
+    assert rng._grid_engine is not None                 # registered by importing backends.noise
+    index = (3 << 16) + np.arange(2, dtype=np.uint64)[:, None] * np.uint64(1 << 16) + np.arange(5, dtype=np.uint64)
+    want = rng.uniform(11, index, 4, 1), rng.normal(11, index, 4, 1)
+    calls = []
+
+    def engine(*args):
+        calls.append(args)
+        return cn.uniform_normal_grid(*args[:5], backend="numpy", first_index=args[5], row_stride=args[6])
+    previous = rng.register_grid_engine(engine)
+    try:
+        got = rng.uniform_normal_grid(2, 5, 11, 4, 1, first_index=3 << 16, row_stride=1 << 16)
+        assert calls == [(2, 5, 11, 4, 1, 3 << 16, 1 << 16)]
+        rng.register_grid_engine(None)
+        plain = rng.uniform_normal_grid(2, 5, 11, 4, 1, first_index=3 << 16, row_stride=1 << 16)
+        u1, z1 = rng.uniform_normal_draw(5, 11, 4, 1, first_index=3 << 16)
+    finally:
+        rng.register_grid_engine(previous)
+    for u, z in (got, plain):
+        assert np.array_equal(u, want[0]) and np.array_equal(z, want[1])
+    assert np.array_equal(u1, want[0][0]) and np.array_equal(z1, want[1][0])
 
 
 def test_uniform_and_normal_statistics():

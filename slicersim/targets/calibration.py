@@ -71,7 +71,7 @@ class FlatFieldStructure:
     def __init__(self, slice_scatter=0.0, pixel_scatter=0.0, seed=0):
         from slicersim.simulation import check_seed
         self.slice_scatter = validation.number("slice_scatter", slice_scatter, low=0.0, high=MAX_SCATTER)
-        self.pixel_scatter = _number("pixel_scatter", pixel_scatter, allow_zero=True, upper=MAX_SCATTER)
+        self.pixel_scatter = validation.number("pixel_scatter", pixel_scatter, low=0.0, high=MAX_SCATTER)
         if seed is None or isinstance(seed, np.random.Generator):
             raise ParameterError("the flat-field structure needs an integer seed in [0, 2**64)")
         self.seed = check_seed(seed)
