@@ -6,7 +6,8 @@ relies on (words from a buffer, top bit set or not), and a probe of the Philox h
 import numpy as np
 
 from slicersim.backends import noise as cn
-from slicersim.backends import opencl, rng
+from slicersim import rng
+from slicersim.backends import opencl
 
 un, zn = cn.uniform_normal_draw(100001, 2**63 + 12345, 5, 2, backend="numpy")
 for wg, vw in ((None, 1), (64, 1), (1000, 1), (None, 2), (None, 4)):

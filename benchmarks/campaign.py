@@ -85,10 +85,13 @@ def run_loop(pythonpath, n, kw="{}", threads=None):
 
 def base_checkout(rev, dest):
     """The package at git revision ``rev`` exported to ``dest`` (no .git)."""
-    arch = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "slicersim", "kernels"], capture_output=True,
+    top = subprocess.run(["git", "-C", str(ROOT), "ls-tree", "--name-only", rev], capture_output=True, text=True,
+                         check=True).stdout.split()
+    paths = ["slicersim"] + (["kernels"] if "kernels" in top else [])   # kernels/ at the root before 0.1.0
+    arch = subprocess.run(["git", "-C", str(ROOT), "archive", rev, *paths], capture_output=True,
                           check=True).stdout
     subprocess.run(["tar", "-x", "-C", str(dest)], input=arch, check=True)
-    return dest                      # the kernels are found in <dest>/kernels (repo layout)
+    return dest                      # kernels in <dest>/slicersim/kernels (older revisions: <dest>/kernels)
 
 
 def disk_write_rate(directory, nbytes=512 * 2**20):

@@ -131,7 +131,7 @@ def label(o, lbda, kw):
 
 def run(args):
     from slicersim.backends import opencl
-    from slicersim.backends.band_variance import resolve_backend
+    from slicersim.backends.dispatch import resolve_backend
     from slicersim.backends.psf import psf_cube
 
     lbda, shape, kw, source = lazuli_narrow()

@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from slicersim.backends import opencl  # noqa: E402
-from slicersim.instrument.detector import variance_rauscher07  # noqa: E402
+from slicersim.physics.readout import variance_rauscher07  # noqa: E402
 from slicersim.products.ramps import DEFAULT_BIAS, fit_slopes, simulate  # noqa: E402
 
 TF, RON, GAIN = 2.83, 12.0, 1.0

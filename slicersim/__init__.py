@@ -1,17 +1,20 @@
 """slicersim: simulate image-slicer integral-field spectrograph observations (Lazuli IFS).
 
-Layers, each importing only the ones above it in this list:
-``errors``/``constants`` → ``io`` (files) → ``physics`` (readout, LSF, PSF, thermal) →
-``backends`` (OpenCL kernels and NumPy twins) → ``instrument`` → ``sources`` →
-``products`` (cubes, ramps) → ``simulation`` → ``assembly`` (configuration → model) →
-``etc`` (exposure-time searches) → ``targets`` → ``app`` (CLI, demo, plots).
+Layers (:data:`slicersim.layers.LAYERS`, lowest first), each importing only the ones before it,
+never a private (``_``) name of another, nor this package root (the facade above them all):
+``layers`` → ``errors`` → ``constants`` → ``validation`` → ``versioning`` → ``memo`` → ``data`` →
+``rng`` → ``io`` → ``physics`` → ``kernels`` → ``backends`` → ``instrument`` → ``sources`` →
+``products`` → ``ramps`` → ``cube`` → ``snr`` → ``simulation`` → ``assembly`` → ``etc`` →
+``targets`` → ``campaign`` → ``reduction`` → ``app`` → ``__main__``.
 """
-__version__ = "0.1.0"
+from slicersim.versioning import __version__
 
-from slicersim.io.config import ConfigError, load_config
-from slicersim.instrument.detector import Detector, ReadoutError
-from slicersim.sources.scene import Background, CubeSource, Host, PointSource, Scene, SersicProfile, SpectrumError
-from slicersim.errors import ETCError, ParameterError, RampFileError, SlicersimError
+from slicersim.io.config import load_config
+from slicersim.instrument.detector import Detector
+from slicersim.sources.scene import Background, Scene
+from slicersim.sources.spectra import PointSource
+from slicersim.errors import (ConfigError, ETCError, GalaxyDataUnavailable, ParameterError, RampFileError, ReadoutError,
+                              SlicersimError, SpectrumError)
 from slicersim.simulation import Simulation
 from slicersim.instrument.spectrograph import MLASpectrograph, OpticalThroughput, SlicerSpectrograph, Spectrograph
 from slicersim.targets import (BlackBody, LazuliBlackBody, LazuliSupernova, LazuliTarget, Supernova, Target,
@@ -20,8 +23,8 @@ from slicersim.instrument.telescope import Telescope
 from slicersim.instrument.mapper import SlicerMapper, detector_rate_image
 from slicersim.instrument.footprints import (FieldFootprints, SliceFootprint, detector_label_image, field_footprints,
                                              save_footprints)
-from slicersim.sources.extended import ImageProfile
-from slicersim.sources.galaxies import GalaxyDataUnavailable, GalaxyModel, known_galaxies
+from slicersim.sources.extended import CubeSource, Host, ImageProfile, SersicProfile
+from slicersim.sources.galaxies import GalaxyModel, known_galaxies
 from slicersim.sources.lamps import CalibrationLamp, FabryPerotEtalon, TabulatedEtalon, fabry_perot_lamp, qth_lamp
 from slicersim.targets import (CalSpec, Flat3DCalibration, FlatFieldStructure, Galaxy, Kilonova, Lazuli3DFlat,
                                LazuliCalSpec, LazuliGalaxy, LazuliKilonova, LazuliPowerLaw, LazuliSncosmoTarget,

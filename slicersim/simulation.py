@@ -9,7 +9,7 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.constants import HC_ERG_AA
-from slicersim.errors import ETCError, ParameterError, SpectrumError
+from slicersim.errors import ETCError, SpectrumError
 from slicersim.instrument.names import check_parameter_names
 from slicersim.physics.conventions import (DEFAULT_CONVENTIONS, check_conventions, detector_pixels_per_cell,
                                           instrumental_blur_sigma)
@@ -24,7 +24,7 @@ from slicersim.products.psf_profiles import get_psf_profile
 from slicersim.versioning import Versioned, state_token
 
 __all__ = ["Simulation", "SimulationUpdate", "VARIANCE_SOURCES", "SCENE_COMPONENTS", "ExtractionModel", "CubeTuple",
-           "check_snr", "check_band", "resolve_frame", "FRAMES"]
+           "check_band", "resolve_frame", "FRAMES"]
 
 #: the frames a band can be given in (``frame=None``: "rest" when the object knows a redshift, else "obs")
 FRAMES = ("rest", "obs", None)
@@ -472,13 +472,13 @@ class Simulation(Versioned):
         the point-source spectrum, else SpectrumError naming the covered fraction;
         ``allow_partial=True`` accepts a partly covered band (≥ 50 % inside the grid) with
         a BandCoverageWarning, the SNR being that of the covered part
-        (:mod:`slicersim.etc.bands`)."""
+        (:mod:`slicersim.snr.bands`)."""
         lo, hi = check_band(lbda_range)
         mask = (self.lbda >= lo) & (self.lbda <= hi)
         if not mask.any():
             raise SpectrumError(f"band ({lo}, {hi}) Å contains no bin of the instrument grid "
                                 f"({self.lbda[0]:.0f}–{self.lbda[-1]:.0f} Å)")
-        from slicersim.etc.bands import check_band_coverage  # validation helper (etc/ sits above)
+        from slicersim.snr.bands import check_band_coverage
         check_band_coverage(self, (lo, hi), allow_partial=allow_partial)
         return mask
 
@@ -549,10 +549,10 @@ class Simulation(Versioned):
     # ------------------------------------------------------------------ ETC
     def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", allow_partial=False, frame=None,
                   backend="auto"):
-        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.etc.search`);
+        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.snr.search`);
         ``frame`` as :meth:`get_band_snr` (None: "rest" when :attr:`redshift` is known);
         band coverage rule (``allow_partial``): :meth:`band_mask`."""
-        from slicersim.etc.search import solve_readout  # etc/ sits above: its solve_many builds Simulations
+        from slicersim.snr.search import check_snr, solve_readout
         return solve_readout(self, check_snr(snr), lbda_range, per_resolution=per_resolution, search=search,
                              allow_partial=allow_partial, frame=frame, backend=backend)
 
@@ -560,18 +560,6 @@ class Simulation(Versioned):
 def _check_aperture(value):
     """aperture_radius_insigma: a finite number > 0 [σ_ref / cell]."""
     return validation.number("aperture_radius_insigma", value, low=0.0, low_open=True)
-
-
-def check_snr(snr, name="snr"):
-    """A target SNR as a float: a finite number > 0.  ParameterError for what is not a number
-    (strings, bools, lists), ETCError for an impossible value (NaN, inf, ≤ 0); both name ``name``."""
-    is_number = isinstance(snr, (int, float, np.integer, np.floating)) and not isinstance(snr, (bool, np.bool_))
-    error = ETCError if is_number else ParameterError
-    try:
-        return validation.number(name, snr, low=0.0, low_open=True, error=error)
-    except error:
-        raise error(f"{name}: the target SNR must be a finite number > 0, got "
-                    f"{validation.short_repr(snr)}") from None
 
 
 def check_band(lbda_range, name="lbda_range"):

@@ -1,4 +1,5 @@
-"""Change tracking of model objects (no slicersim imports: every layer may use it).
+"""Versions: the package release ``__version__`` and the change tracking of model objects
+(no slicersim imports: every layer may use it).
 
 Every :class:`Versioned` object carries ``_version``, a number drawn from one
 process-wide counter each time any of its attributes is assigned.  Versions are
@@ -12,7 +13,10 @@ from __future__ import annotations
 
 import itertools
 
-__all__ = ["Versioned", "state_token"]
+__all__ = ["__version__", "Versioned", "state_token"]
+
+#: release of the package (pyproject.toml reads it from here; ``slicersim.__version__`` re-exports it)
+__version__ = "0.1.0"
 
 _COUNTER = itertools.count(1)
 

@@ -10,12 +10,9 @@ import shutil
 import numpy as np
 import pytest
 
-from slicersim.io.config import ConfigError, builtin_config_dir, load_config
-from slicersim.instrument.detector import ReadoutError
+from slicersim.io.config import builtin_config_dir, load_config
 from slicersim.etc.solve import solve_many
-from slicersim.sources.scene import SpectrumError
-from slicersim.etc.search import ETCError
-from slicersim.errors import ParameterError
+from slicersim.errors import ConfigError, ETCError, ParameterError, ReadoutError, SpectrumError
 from slicersim.targets import LazuliTarget, build_simulation
 
 BAND = (8000.0, 13600.0)

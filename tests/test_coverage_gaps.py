@@ -13,7 +13,7 @@ import pytest
 
 from slicersim.backends import opencl
 from slicersim.etc.solve import solve_many
-from slicersim.instrument.detector import readout_times, variance_kubik16, variance_rauscher07
+from slicersim.physics.readout import readout_times, variance_kubik16, variance_rauscher07
 from slicersim.instrument.spectrograph import (MLASpectrograph, SlicerSpectrograph, Spectrograph,
                                                wavelength_grid_from_resolving_power)
 from slicersim.simulation import Simulation

@@ -15,10 +15,13 @@ from scipy import stats
 
 from conftest import reference_case_ids, reference_target
 from cube_oracle import cube_numpy
-from slicersim.backends.band_variance import resolve_backend
+from slicersim.backends.dispatch import resolve_backend
 from slicersim.errors import ParameterError
 from slicersim.products.cube import PATH_ABSENT, PATH_POINT, PATH_UNIFORM, build_cube, lsf_halo
-from slicersim.sources.scene import Host, PointSource, Scene, SpectrumError
+from slicersim.errors import SpectrumError
+from slicersim.sources.extended import Host
+from slicersim.sources.scene import Scene
+from slicersim.sources.spectra import PointSource
 from slicersim.simulation import Simulation
 from slicersim.targets import LazuliTarget
 

@@ -9,8 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from slicersim.instrument.detector import (Detector, ReadoutError, check_readout, rauscher07_coefficients,
-                                readout_times, variance_kubik16, variance_rauscher07)
+from slicersim.errors import ReadoutError
+from slicersim.instrument.detector import Detector
+from slicersim.physics.readout import (check_readout, rauscher07_coefficients, readout_times, variance_kubik16,
+                                       variance_rauscher07)
 
 TF = 2.83   # s, Lazuli frame time
 

@@ -12,7 +12,7 @@ from astropy.cosmology import Planck18
 
 from conftest import reference_case_ids, reference_config
 from slicersim.etc.solve import solve_many
-from slicersim.etc.search import candidate_readouts, exact_choice
+from slicersim.snr.search import candidate_readouts, exact_choice
 from slicersim.errors import ETCError
 from slicersim.targets import LazuliTarget
 
@@ -141,7 +141,7 @@ def test_exact_choice_prefers_fewer_ramps_on_ties():
 
 
 def test_unreachable_target_raises():
-    from slicersim.etc.search import ETCError
+    from slicersim.errors import ETCError
     flux = np.where(LBDA < 5000, 1e-17, 0.0)
     with pytest.raises(ETCError, match="cannot reach"):
         solve_many(LBDA, flux[None], 20.0, [(9000.0, 12000.0)])

@@ -250,7 +250,7 @@ def test_default_field_is_narrow_not_a_product():
 
 # --------------------------------------------------------------------------- 5. noise
 def test_noisy_spectrum_uses_philox(sn):
-    from slicersim.backends import rng
+    from slicersim import rng
     lbda, s1, var = sn.get_spectrum(incl_error=True, seed=12345)
     _, s2, _ = sn.get_spectrum(incl_error=True, seed=12345)
     _, s3, _ = sn.get_spectrum(incl_error=True, seed=12346)

@@ -310,7 +310,8 @@ def test_selfcheck_ramp_blocks_take_every_kernel_path(monkeypatch):
     ADU clipped at 0 and 65535, saturation flags, dead pixels, pixel indices of a 4096² detector's
     last rows and above 2^31 — and they are small: a few hundred pixels, MACC(4,2,1)."""
     import numpy as np
-    from slicersim.backends import rng, selfcheck
+    from slicersim import rng
+    from slicersim.backends import selfcheck
     from slicersim.backends import ramp as ramp_backend
     from slicersim.physics.ramp import sparse_threshold
     clipped = []

@@ -96,7 +96,7 @@ def test_bad_population_values():
 
 
 def test_truncated_normal_and_exponential_draws():
-    from slicersim.backends import rng
+    from slicersim import rng
     from slicersim.campaign.distributions import Distribution
     u = rng.uniform(3, np.arange(40000, dtype=np.uint64), stream=9)
     x = Distribution.parse({"distribution": "normal", "mean": 0, "sigma": 1, "min": 0}, "x").draw(u)

@@ -272,7 +272,7 @@ def test_killed_writer_temporary_is_incomplete_and_cleaned_by_next_write(tmp_pat
     with pytest.raises(RampFileError, match="incomplete file"):
         read_ramps(out_dir / tmp_name)
     # a temporary of a running process (ours), or of another host, is left alone
-    from slicersim.io.rampfile import _host_tag
+    from slicersim.io.atomic import _host_tag
     mine = out_dir / f".x.h5.tmp-{os.getpid()}-{_host_tag()}abcd"
     other_host = out_dir / f".y.h5.tmp-{2**22 + 12345}-{'0' if _host_tag()[0] != '0' else '1'}{_host_tag()[1:]}abcd"
     for keep in (mine, other_host):

@@ -10,7 +10,8 @@ from slicersim.physics.readout import variance_rauscher07
 from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
 from slicersim.products.ramps import (RampParameters, fit_slopes,
                              frame_mean_charge, simulate)
-from slicersim.io.rampfile import RampFileError, read_ramps
+from slicersim.errors import RampFileError
+from slicersim.io.rampfile import read_ramps
 
 needs_opencl = pytest.mark.skipif(not (opencl.is_available() and opencl.device_supports_fp64()),
                                   reason="no OpenCL device with fp64")
@@ -311,7 +312,7 @@ def test_interrupted_writer_leaves_no_complete_file(tmp_path, monkeypatch):
     (dict(nmd=(2.7, 1, 0)), r"nmd\[0\].*2\.7"), (dict(nramps=1.5), "nramps"),
 ])
 def test_invalid_readouts(kwargs, err):
-    from slicersim.instrument.detector import ReadoutError
+    from slicersim.errors import ReadoutError
     args = dict(nmd=(4, 2, 0), nramps=1) | kwargs
     with pytest.raises(ReadoutError, match=err):
         simulate(np.ones((2, 2)), **args)

@@ -1,4 +1,4 @@
-"""Philox4x32-10 RNG (slicersim.backends.rng) and its OpenCL twin (kernels/philox.cl, noise.cl).
+"""Philox4x32-10 RNG (slicersim.rng) and its OpenCL twin (kernels/philox.cl, noise.cl).
 
 * Known-answer vectors of Random123 for both implementations.
 * OpenCL and NumPy streams are bit-identical (uniforms, Gaussians, noisy
@@ -16,8 +16,9 @@ from scipy import stats
 from scipy.special import gammaln
 
 from slicersim.backends import noise as cn
-from slicersim.backends import opencl, rng
-from slicersim.backends.band_variance import resolve_backend
+from slicersim import rng
+from slicersim.backends import opencl
+from slicersim.backends.dispatch import resolve_backend
 
 HAS_CL = resolve_backend("auto") == "opencl"
 needs_cl = pytest.mark.skipif(not HAS_CL, reason="no OpenCL device with fp64: NumPy-only run")
@@ -156,6 +157,33 @@ def test_grid_streams_bit_identical_to_rng(rows, ncols, first, stride):
 def test_grid_rejects_indices_past_64_bits():
     with pytest.raises(ValueError, match="2\\*\\*64"):
         cn.uniform_normal_grid(2, 10, 1, first_index=2**64 - 5, row_stride=1, backend="numpy")
+    with pytest.raises(ValueError, match="2\\*\\*64"):
+        rng.uniform_normal_grid(2, 10, 1, first_index=2**64 - 5, row_stride=1)
+
+
+def test_physics_grids_use_the_registered_engine_with_the_same_numbers():
+    """slicersim.rng (below physics) computes the detector-effect grids; backends.noise registers its
+    device grid as their engine on import.  Engine or not, the numbers are rng.uniform/normal's."""
+    assert rng._grid_engine is not None                 # registered by importing backends.noise
+    index = (3 << 16) + np.arange(2, dtype=np.uint64)[:, None] * np.uint64(1 << 16) + np.arange(5, dtype=np.uint64)
+    want = rng.uniform(11, index, 4, 1), rng.normal(11, index, 4, 1)
+    calls = []
+
+    def engine(*args):
+        calls.append(args)
+        return cn.uniform_normal_grid(*args[:5], backend="numpy", first_index=args[5], row_stride=args[6])
+    previous = rng.register_grid_engine(engine)
+    try:
+        got = rng.uniform_normal_grid(2, 5, 11, 4, 1, first_index=3 << 16, row_stride=1 << 16)
+        assert calls == [(2, 5, 11, 4, 1, 3 << 16, 1 << 16)]
+        rng.register_grid_engine(None)
+        plain = rng.uniform_normal_grid(2, 5, 11, 4, 1, first_index=3 << 16, row_stride=1 << 16)
+        u1, z1 = rng.uniform_normal_draw(5, 11, 4, 1, first_index=3 << 16)
+    finally:
+        rng.register_grid_engine(previous)
+    for u, z in (got, plain):
+        assert np.array_equal(u, want[0]) and np.array_equal(z, want[1])
+    assert np.array_equal(u1, want[0][0]) and np.array_equal(z1, want[1][0])
 
 
 def test_uniform_and_normal_statistics():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slicersim import Host, LazuliTarget, SersicProfile
-from slicersim.backends.band_variance import resolve_backend
+from slicersim.backends.dispatch import resolve_backend
 from cube_oracle import cube_numpy
 from slicersim.errors import ParameterError
 from slicersim.products.components import SCENE_COMPONENTS, SWITCH_OFF_NAMES, VARIANCE_SOURCES

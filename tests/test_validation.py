@@ -10,9 +10,9 @@ import pytest
 
 from slicersim.backends import opencl
 from slicersim.errors import ConfigError, ETCError, ParameterError, ReadoutError, SpectrumError
-from slicersim.etc import search as S
+from slicersim.snr import search as S
 from slicersim.etc import solve_many
-from slicersim.etc.bands import BandCoverageWarning
+from slicersim.snr.bands import BandCoverageWarning
 from slicersim.io.config import builtin_config_dir, load_config
 from slicersim.targets import LazuliSupernova, LazuliTarget
 
@@ -212,7 +212,7 @@ def test_band_mostly_outside_grid_refused(sn):
 
 
 def test_band_partly_outside_grid_warns(sn):
-    # single-target calls refuse a partly covered band unless allow_partial=True (etc/bands.py)
+    # single-target calls refuse a partly covered band unless allow_partial=True (snr/bands.py)
     with pytest.raises(SpectrumError, match=r"only 66\.9 % inside the instrument grid"):
         sn.setup_to_snr(20, lbda_range=(15000, 18000), frame="obs")
     with pytest.warns(BandCoverageWarning, match=r"only 66\.9 % inside the instrument grid"):

@@ -25,8 +25,8 @@ def _version(dist: str) -> str:
         return metadata.version(dist)
     except metadata.PackageNotFoundError:
         if dist == "slicersim":
-            import slicersim
-            return getattr(slicersim, "__version__", "unknown (not installed)")
+            from slicersim.versioning import __version__
+            return __version__
         return "not installed"
 
 

@@ -98,7 +98,7 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     data_volume_gb, variance_budget fractions in the band), the reference-search
     result under ``"reference"`` and the written ``files``.
     """
-    from slicersim import __version__
+    from slicersim.versioning import __version__
     from slicersim.targets import LazuliSupernova
 
     t0 = time.perf_counter()
@@ -175,7 +175,7 @@ def _write_figures(target, outdir, ramp_nmd, overwrite):
 def _print_report(out, summary, exact, reference, run):
     """The demo's text report through ``out`` (print or a no-op); ``run``: (redshift, snr, config,
     field, outdir)."""
-    from slicersim import __version__
+    from slicersim.versioning import __version__
     redshift, snr, config, field, outdir = run
     lo, hi = DEMO_BAND
     cfg = config if isinstance(config, str) else "+".join(map(str, config))

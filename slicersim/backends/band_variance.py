@@ -12,7 +12,8 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.backends import opencl
-from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, chunk_ranges, resolve_backend  # noqa: F401
+from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, chunk_ranges
+from slicersim.backends.opencl import check_vector_width
 from slicersim.errors import ParameterError
 
 __all__ = ["band_variance_table"]

@@ -46,12 +46,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
-from slicersim.backends import opencl, rng
+from slicersim import rng
+from slicersim.backends import opencl
 from slicersim.backends.dispatch import resolve_backend
 from slicersim.backends.spectral_draws import (fft_length, spectral_coefficients_numpy,  # noqa: F401 (re-exported)
                                                spectral_coefficients_opencl, stream_amplitudes)
 from slicersim.errors import EffectsError
-from slicersim.physics.correlated_noise import (METHODS, CorrelatedNoiseParameters, ReadoutGeometry, _acn_half,
+from slicersim.physics.correlated_noise import (METHODS, CorrelatedNoiseParameters, ReadoutGeometry, acn_half,
                                                 crossover_low, group_mean_variance, model_psd, pink_psd,
                                                 picture_frame_template)
 from slicersim.physics.effects import STREAMS
@@ -203,8 +204,8 @@ class CorrelatedNoise:
         def comp(f):
             return crossover_low(f, nu) / np.sinc(f * dl) ** 4
         return ({"c": lambda f: comp(f) * pink_psd(f, p.c_pink, g, fm),
-                 "u": lambda f: comp(f) * (pink_psd(f, p.u_pink, g, fm) + _acn_half(f, p.acn, g, fm)),
-                 "d": lambda f: comp(f) * _acn_half(f, p.acn, g, fm)}, dl)
+                 "u": lambda f: comp(f) * (pink_psd(f, p.u_pink, g, fm) + acn_half(f, p.acn, g, fm)),
+                 "d": lambda f: comp(f) * acn_half(f, p.acn, g, fm)}, dl)
 
     def _low_coefficients(self, ramp):
         """float32 (streams, n, ny + 1): group means of the low part, interpolated linearly between
@@ -267,8 +268,8 @@ class CorrelatedNoise:
                 def wh(f):
                     return np.ones_like(f)
             c = lambda f: wh(f) * pink_psd(f, p.c_pink, g, fm) / m                       # noqa: E731
-            u = lambda f: (wh(f) * (pink_psd(f, p.u_pink, g, fm) + _acn_half(f, p.acn, g, fm))   # noqa: E731
-                           + wh(fn - f) * _acn_half(fn - f, p.acn, g, fm)) / m
+            u = lambda f: (wh(f) * (pink_psd(f, p.u_pink, g, fm) + acn_half(f, p.acn, g, fm))   # noqa: E731
+                           + wh(fn - f) * acn_half(fn - f, p.acn, g, fm)) / m
             self._amp[key] = np.stack([stream_amplitudes(c, length, g.dwell), stream_amplitudes(u, length, g.dwell)])
         return self._amp[key]
 

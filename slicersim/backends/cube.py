@@ -31,7 +31,7 @@ from slicersim.backends import opencl
 from slicersim.backends.precision import real_dtype, resolve_precision, storage_dtype
 from slicersim.backends.psf import DevicePSF
 from slicersim.errors import ParameterError
-from slicersim.physics.psf import _erf_cell_fractions, cell_edges
+from slicersim.physics.psf import cell_edges, erf_cell_fractions
 
 __all__ = ["ReadoutConstants", "GaussianPSF", "DetectorChunk", "detector_block", "detector_chunk",
            "reflect_indices", "release_buffers", "default_vector_width"]
@@ -92,9 +92,9 @@ class GaussianPSF:
 
 
 def _cell_fractions(edges, centre, sigma):
-    """``slicersim.physics.psf._erf_cell_fractions`` (erf near the centre, erfc differences in the
+    """``slicersim.physics.psf.erf_cell_fractions`` (erf near the centre, erfc differences in the
     tails; erfc is not evaluated where it underflows to 0)."""
-    return _erf_cell_fractions(edges, centre, sigma)
+    return erf_cell_fractions(edges, centre, sigma)
 
 
 def reflect_indices(bins, nl, halo):

@@ -12,11 +12,10 @@ import warnings
 
 from slicersim import validation
 from slicersim.backends import opencl
-from slicersim.backends.opencl import VECTOR_WIDTHS, check_vector_width  # noqa: F401  (re-exported)
 from slicersim.backends.selfcheck import NOT_RUN, device_selfcheck, device_selfcheck_single
 from slicersim.errors import OpenCLUnavailableError
 
-__all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges", "check_vector_width"]
+__all__ = ["BACKENDS", "DEFAULT_MAX_BYTES", "resolve_backend", "chunk_ranges"]
 
 #: memory budget [bytes] of the temporaries of one call, unless the caller gives max_bytes
 DEFAULT_MAX_BYTES = 256 * 2**20

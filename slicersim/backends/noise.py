@@ -1,4 +1,4 @@
-"""Random draws on the device (``kernels/noise.cl``) with their NumPy twins (:mod:`slicersim.backends.rng`).
+"""Random draws on the device (``kernels/noise.cl``) with their NumPy twins (:mod:`slicersim.rng`).
 
 Every element is keyed by (seed, stream, global element index), so results
 are identical — bit for bit — whatever the backend, the chunking
@@ -6,7 +6,9 @@ are identical — bit for bit — whatever the backend, the chunking
 
 * :func:`noisy_cube` — expectation + √variance · N(0, 1) per voxel (ADU).
 * :func:`poisson_draw` — Poisson counts (inversion below mean 10, PTRS above).
-* :func:`uniform_normal_draw`, :func:`uniform_normal_grid`, :func:`philox_blocks` — raw streams (tests, other kernels).
+* :func:`uniform_normal_draw`, :func:`uniform_normal_grid`, :func:`philox_blocks` — raw streams (tests, other kernels);
+  importing this module registers :func:`uniform_normal_grid` as the engine of
+  :func:`slicersim.rng.uniform_normal_grid` (the draws of ``physics``).
 
 Precision (:mod:`slicersim.backends.precision`, product ``"noise"``): :func:`noisy_cube` and
 :func:`poisson_draw` take ``precision="auto" | "double" | "single"``.  Single runs the ``-DSINGLE``
@@ -20,9 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from slicersim import validation
-from slicersim.backends import opencl, rng
-from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, check_vector_width, resolve_backend
+from slicersim import rng, validation
+from slicersim.backends import opencl
+from slicersim.backends.dispatch import DEFAULT_MAX_BYTES, resolve_backend
+from slicersim.backends.opencl import check_vector_width
 from slicersim.backends.precision import real_dtype, resolve_precision
 from slicersim.errors import ParameterError
 
@@ -66,7 +69,7 @@ def _sizes(nitems, work_group):
 
 
 def _stream(stream):
-    return validation.integer("stream", stream, low=0, high=2**32 - 1)
+    return rng.check_stream(stream)
 
 
 # --------------------------------------------------------------------------- Gaussian noise
@@ -224,7 +227,7 @@ def poisson_draw(mean, seed, stream=0, backend="auto", max_bytes=DEFAULT_MAX_BYT
                  *, first_index=0, precision="auto"):
     """Poisson counts of expectation ``mean`` (≥ 0) as float64 (exact integers, NaN for non-finite mean).
 
-    Same algorithm and keys as :func:`slicersim.backends.rng.poisson` (element i: index first_index + i).
+    Same algorithm and keys as :func:`slicersim.rng.poisson` (element i: index first_index + i).
     precision : "auto" (default), "double" or "single" (:mod:`slicersim.backends.precision`, product
         "noise").  Single: the float build on float32 means, the same Philox words; most counts equal
         the double ones (a float rounding moves a CDF or floor decision, more often at large means:
@@ -289,17 +292,11 @@ def uniform_normal_grid(rows, ncols, seed, stream=0, draw=0, backend="auto", wor
     """(uniforms, normals), each (rows, ncols, 2) float64: element (r, c) keyed by Philox index
     ``first_index + r·row_stride + c`` (row_stride default ncols) — e.g. a block of detector rows
     keyed ``y << 16 | x`` with first_index = y0 << 16 and row_stride = 2¹⁶.  Bit-identical to
-    :func:`slicersim.backends.rng.uniform` / :func:`~slicersim.backends.rng.normal` of those indices."""
+    :func:`slicersim.rng.uniform` / :func:`~slicersim.rng.normal` of those indices."""
     seed, stream = seed_from(seed), _stream(stream)
-    rows, ncols = validation.integer("rows", rows, low=0), validation.integer("ncols", ncols, low=0)
-    row_stride = ncols if row_stride is None else validation.integer("row_stride", row_stride, low=0)
-    first_index = validation.integer("first_index", first_index, low=0)
-    if first_index + max(rows - 1, 0) * row_stride + ncols > 2**64:
-        raise ParameterError(f"uniform_normal_grid: rows = {rows}, ncols = {ncols}, row_stride = {row_stride} "
-                         f"and first_index = {first_index} must be ≥ 0 with indices below 2**64")
+    rows, ncols, first_index, row_stride = rng.check_grid(rows, ncols, first_index, row_stride)
     if resolve_backend(backend) != "opencl" or rows * ncols == 0:
-        index = (np.uint64(first_index) + np.arange(rows, dtype=np.uint64)[:, None] * np.uint64(row_stride)
-                 + np.arange(ncols, dtype=np.uint64)[None, :])
+        index = rng.grid_indices(rows, ncols, first_index, row_stride)
         return rng.uniform(seed, index, stream, draw), rng.normal(seed, index, stream, draw)
     opencl.require_fp64()
     vw = check_vector_width(vector_width)
@@ -333,3 +330,10 @@ def philox_blocks(counter, key, backend="auto"):
     opencl.from_device(out, d_o)
     return out
 
+
+def _device_grid(rows, ncols, seed, stream, draw, first_index, row_stride):
+    """Engine of :func:`slicersim.rng.uniform_normal_grid`: this module's grid on the chosen backend."""
+    return uniform_normal_grid(rows, ncols, seed, stream, draw, first_index=first_index, row_stride=row_stride)
+
+
+rng.register_grid_engine(_device_grid)

@@ -31,7 +31,6 @@ from slicersim.errors import OpenCLUnavailableError, OpenCLForkError  # noqa: F4
 from slicersim.errors import ParameterError, SlicersimError
 
 import hashlib
-import importlib.resources
 import os
 import re
 import threading
@@ -239,47 +238,22 @@ def device_supports_fp64() -> bool:
     return _fp64(get_device())
 
 
-def _local_kernel_dir():
-    """The kernel directory beside the imported package (``slicersim/kernels`` of an installed wheel,
-    ``kernels/`` of the checkout it was imported from), or None.  Preferred to the
-    ``slicersim.kernels`` resource, which an editable install of *another* checkout maps to its own
-    ``kernels/`` when this package is imported through PYTHONPATH."""
-    here = Path(__file__).resolve()
-    for directory in (here.parents[1] / "kernels", here.parents[2] / "kernels"):
-        if (directory / "philox.cl").is_file():
-            return directory
-    return None
+#: the OpenCL C sources: ``slicersim/kernels`` beside this package (checkout, editable install or
+#: wheel alike), the one place they are looked up
+KERNEL_DIR = Path(__file__).resolve().parents[1] / "kernels"
 
 
 def kernel_source(name: str) -> str:
-    """Text of ``kernels/<name>`` (beside the imported package, else installed package data)."""
-    local = _local_kernel_dir()
-    if local is not None and (local / name).is_file():
-        return (local / name).read_text(encoding="utf-8")
-    try:
-        res = importlib.resources.files("slicersim.kernels").joinpath(name)
-        if res.is_file():
-            return res.read_text(encoding="utf-8")
-    except (ModuleNotFoundError, FileNotFoundError, NotADirectoryError):
-        pass
-    path = Path(__file__).resolve().parents[2] / "kernels" / name
+    """Text of ``slicersim/kernels/<name>``."""
+    path = KERNEL_DIR / name
     if not path.is_file():
-        raise FileNotFoundError(f"OpenCL kernel source {name!r} not found (looked in slicersim.kernels and {path.parent})")
+        raise FileNotFoundError(f"OpenCL kernel source {name!r} not found in {KERNEL_DIR}")
     return path.read_text(encoding="utf-8")
 
 
 def kernel_dir() -> str:
     """Filesystem directory of the kernel sources (the ``-I`` path for ``#include``)."""
-    local = _local_kernel_dir()
-    if local is not None:
-        return str(local)
-    try:
-        res = importlib.resources.files("slicersim.kernels")
-        if res.joinpath("philox.cl").is_file():
-            return str(res)
-    except (ModuleNotFoundError, TypeError):
-        pass
-    return str(Path(__file__).resolve().parents[2] / "kernels")
+    return str(KERNEL_DIR)
 
 
 _digest: list = []

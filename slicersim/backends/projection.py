@@ -55,7 +55,7 @@ from slicersim.io.table_cache import ArrayCache, Chunks, TableCacheWarning, defa
 from slicersim.memo import content_key
 
 __all__ = ["DepositTables", "build_tables", "deposit", "table_key", "load_tables", "store_tables",
-           "default_table_cache", "resolve_table_cache", "backend_tag", "table_builder", "TABLE_FORMAT"]
+           "default_table_cache", "resolve_table_cache", "backend_tag", "table_builder", "TABLE_FORMAT", "footprint_windows"]
 
 _KERNEL = "project.cl"
 _INV_SQRT_2PI = 0.3989422804014327
@@ -115,7 +115,8 @@ class DepositTables:
 # --------------------------------------------------------------------------- #
 #  tables                                                                      #
 # --------------------------------------------------------------------------- #
-def _windows(lo, hi, sigma, truncate):
+def footprint_windows(lo, hi, sigma, truncate):
+    """(start, n) int32 [px]: the pixel windows of cell footprints [lo, hi] widened by ``truncate`` × ``sigma``."""
     start = np.floor(lo - truncate * sigma)
     stop = np.floor(hi + truncate * sigma)
     n = stop - start + 1
@@ -200,8 +201,8 @@ def build_tables(box, grid, oversample=(1, 1), *, detector_shape=(4096, 4096), t
     if np.any(box[:, [2, 5]] < 0) or np.any(box[:, 1] < box[:, 0]) or np.any(box[:, 4] < box[:, 3]):
         raise ParameterError("box: boxes need lo <= hi and rms >= 0")
     weights_dtype = np.dtype(validation.choice("weights_dtype", np.dtype(weights_dtype).name, ("float32", "float64")))
-    x0, nx = _windows(box[:, 0], box[:, 1], box[:, 2], truncate)
-    y0, ny = _windows(box[:, 3], box[:, 4], box[:, 5], truncate)
+    x0, nx = footprint_windows(box[:, 0], box[:, 1], box[:, 2], truncate)
+    y0, ny = footprint_windows(box[:, 3], box[:, 4], box[:, 5], truncate)
     if vw is None:
         vw = 4 if np.median(nx) <= 4 else 8
     vw = validation.choice("vw", vw, (1, 2, 4, 8, 16))

@@ -14,12 +14,12 @@ import math
 
 import numpy as np
 
-from slicersim.backends import opencl, rng
+from slicersim import rng
+from slicersim.backends import opencl
 from slicersim.backends.opencl import check_vector_width
 from slicersim.errors import ParameterError
 from slicersim.io.rampfile import DQ
-from slicersim.physics.ramp import (MAX_SPARSE_WINDOW, P_KTC, P_POISSON, P_READ, P_SPARSE,  # noqa: F401
-                                    frame_mean_charge, macc_frame_schedule, sparse_threshold, to_adu)
+from slicersim.physics.ramp import P_KTC, P_POISSON, P_READ, P_SPARSE, sparse_threshold, to_adu
 
 __all__ = ["simulate_block_numpy", "simulate_block_opencl", "charge_groups", "CPU_WORK_GROUP", "MAX_CPU_WORK_GROUP"]
 

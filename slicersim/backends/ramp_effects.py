@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slicersim.backends import opencl, rng
+from slicersim import rng
+from slicersim.backends import opencl
 from slicersim.backends.ramp import (P_KTC, P_READ, _event_position, _event_words, block_arguments,
                                      charge_groups, device_block, launch_samplers)
 from slicersim.io.rampfile import DQ

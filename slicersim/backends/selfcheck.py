@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from slicersim.backends import opencl, rng
+from slicersim import rng
+from slicersim.backends import opencl
 
 __all__ = ["device_selfcheck", "device_selfcheck_single", "NOT_RUN"]
 

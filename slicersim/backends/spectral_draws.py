@@ -11,7 +11,8 @@ import functools
 
 import numpy as np
 
-from slicersim.backends import opencl, rng
+from slicersim import rng
+from slicersim.backends import opencl
 
 __all__ = ["stream_amplitudes", "fft_length", "spectral_coefficients_numpy", "spectral_coefficients_opencl"]
 

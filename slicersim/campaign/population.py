@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slicersim.backends import rng
+from slicersim import rng
 from slicersim.campaign.distributions import Distribution, RedshiftDistribution
 from slicersim import validation
 from slicersim.errors import ConfigError, ParameterError, SpectrumError

@@ -22,7 +22,7 @@ import traceback
 
 import numpy as np
 
-from slicersim.backends import rng
+from slicersim import rng
 from slicersim.io.dataset import Dataset, ProductFile, product_info
 
 __all__ = ["target_seeds", "run_target", "SEED_STREAM", "SPECTRUM_GRID", "limit_threads", "mark_failed"]

@@ -34,7 +34,7 @@ from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, spec
 from slicersim.validation import positive_int
 
 __all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions", "RunOptions", "TaskWindow",
-           "run_task_window", "WORKERS_PER_CPU", "check_workers", "QuietDask"]
+           "run_task_window", "WORKERS_PER_CPU", "check_workers", "dask_client", "QuietDask"]
 
 #: seconds between two catalog writes while a campaign runs
 CATALOG_INTERVAL = 10.0
@@ -168,7 +168,7 @@ def _key(tid):
     return target_key(tid)
 
 
-def _client(workers, scheduler, threads):
+def dask_client(workers, scheduler, threads):
     """(client, cluster or None): an existing scheduler or an embedded LocalCluster."""
     from distributed import Client, LocalCluster
     if scheduler:
@@ -263,7 +263,7 @@ def _resumed_seed(spec, ds, force):
 def _plan_and_connect(spec, scheduler):
     """(catalog, plan, connection or None): a remote scheduler is reached before anything is
     written, and nothing is written before the plan succeeds."""
-    connection = _client(1, scheduler, 1) if scheduler else None
+    connection = dask_client(1, scheduler, 1) if scheduler else None
     try:
         catalog, plan = plan_campaign(spec)
     except BaseException:
@@ -343,7 +343,7 @@ def _dispatch(spec, ds, catalog, work, run, connection=None):
     todo, records, digest = work
     threads = run.threads
     quiet = QuietDask()
-    client, cluster = connection or _client(run.workers, run.scheduler, threads)
+    client, cluster = connection or dask_client(run.workers, run.scheduler, threads)
     try:
         spec_future = client.scatter(spec, broadcast=True)
     except BaseException:

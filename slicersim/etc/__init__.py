@@ -1,5 +1,4 @@
-"""Exposure-time calculation: readout searches (:mod:`~slicersim.etc.search`), the band-SNR
-table of many targets × readouts (:mod:`~slicersim.etc.snr_table`) and the batch solver
+"""Batch exposure-time calculation over configurations: the batch solver
 :func:`solve_many` (:mod:`~slicersim.etc.solve`)."""
 from slicersim.etc.solve import solve_many
 

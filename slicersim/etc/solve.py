@@ -4,7 +4,7 @@ The instrument (PSF, throughput, QE, background, thermal terms) is computed
 once; each target only changes the point-source spectrum.  For every target the
 single-ramp band SNR of every candidate readout is evaluated at once (OpenCL
 kernel ``band_variance.cl`` or its NumPy twin), then the readout is chosen with
-:func:`slicersim.etc.search.exact_choice` (or the reference walk).
+:func:`slicersim.snr.search.exact_choice` (or the reference walk).
 """
 from __future__ import annotations
 
@@ -18,14 +18,14 @@ from slicersim import validation
 from slicersim.assembly import check_field
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES
 from slicersim.errors import ETCError, ParameterError, SpectrumError
-from slicersim.etc.bands import check_band_in_grid, warn_partial_spectrum
-from slicersim.etc.search import (candidate_readouts, check_reference_result, check_search,
-                                  check_snr_target, exact_choice, limit_error, max_frames_for,
-                                  reference_walk)
-from slicersim.etc.snr_table import band_snr_table_for_models, template_psf
 from slicersim.instrument.names import check_parameter_names
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.simulation import FRAMES, resolve_frame
+from slicersim.snr.bands import check_band_in_grid, warn_partial_spectrum
+from slicersim.snr.search import (candidate_readouts, check_reference_result, check_search,
+                                  check_snr_target, exact_choice, limit_error, max_frames_for,
+                                  reference_walk)
+from slicersim.snr.snr_table import band_snr_table_for_models, template_psf
 
 __all__ = ["solve_many", "solve_batch", "SolveOptions", "SOLVE_OPTIONS"]
 
@@ -77,7 +77,7 @@ class SolveOptions:
     conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
     allow_partial : bands partly outside the grid (≥ 50 % inside) or the input spectrum are
         answered on the covered part with one BandCoverageWarning naming the targets (default,
-        batch); False raises SpectrumError (:mod:`slicersim.etc.bands`)
+        batch); False raises SpectrumError (:mod:`slicersim.snr.bands`)
     """
 
     frame: str | None = None

@@ -11,8 +11,7 @@ from slicersim.errors import ParameterError, ReadoutError  # noqa: F401  (re-exp
 from slicersim.instrument.names import check_parameter_names
 
 from slicersim.io.curves import read_curve
-from slicersim.physics.readout import (VARIANCE_MODELS, check_readout, rauscher07_coefficients,  # noqa: F401
-                                       readout_times, variance_kubik16, variance_rauscher07)
+from slicersim.physics.readout import VARIANCE_MODELS, check_readout, readout_times
 from slicersim.versioning import Versioned
 
 __all__ = ["Detector"]

@@ -26,7 +26,7 @@ import os
 from slicersim.errors import DatasetError
 from slicersim.io.atomic import AtomicH5File, atomic_bytes, one_line, remove_stale_temporaries, sha256_file
 
-__all__ = ["Dataset", "ProductFile", "canonical_json", "spec_digest", "target_key"]
+__all__ = ["Dataset", "ProductFile", "canonical_json", "spec_digest", "target_key", "changed_keys"]
 
 SPEC_TOML, SPEC_JSON, VERSIONS, CATALOG, LOCK = "spec.toml", "spec.json", "versions.json", "catalog.ecsv", ".lock"
 PRODUCTS, RECORDS = "products", "records"
@@ -125,7 +125,7 @@ class Dataset:
         digest = spec_digest(spec_dict)
         stored = self.stored_spec()
         if stored is not None and stored[1] != digest and not force:
-            changed = sorted(_changed_keys(stored[0], spec_dict))
+            changed = sorted(changed_keys(stored[0], spec_dict))
             raise DatasetError(f"{self.path} was made from a different spec (changed: "
                                f"{', '.join(changed[:6]) or 'content'}); use a new directory, or "
                                "--force to discard its products and start again")
@@ -293,7 +293,7 @@ def product_info(path):
     return {"file": os.path.basename(path), "bytes": os.path.getsize(path), "sha256": sha256_file(path)}
 
 
-def _changed_keys(old, new, prefix=""):
+def changed_keys(old, new, prefix=""):
     """Dotted keys whose values differ between two nested dicts."""
     keys = set(old) | set(new) if isinstance(old, dict) and isinstance(new, dict) else set()
     if not keys:
@@ -304,5 +304,5 @@ def _changed_keys(old, new, prefix=""):
         if key not in old or key not in new:
             out.add(name)
         elif old[key] != new[key]:
-            out |= _changed_keys(old[key], new[key], name)
+            out |= changed_keys(old[key], new[key], name)
     return out

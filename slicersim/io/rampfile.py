@@ -20,7 +20,7 @@ its temporary is removed by the next writer in that directory.
 """
 from __future__ import annotations
 
-from slicersim.errors import RampFileError  # noqa: F401  (re-exported)
+from slicersim.errors import RampFileError
 
 import json
 import os
@@ -28,8 +28,7 @@ import shutil
 
 import numpy as np
 
-from slicersim.io.atomic import (_HDF5_MARGIN, AtomicH5File, _host_tag, is_temporary,  # noqa: F401
-                                 one_line, remove_stale_temporaries)
+from slicersim.io.atomic import _HDF5_MARGIN, AtomicH5File, is_temporary, one_line, remove_stale_temporaries
 
 __all__ = ["RampWriter", "RampFileError", "compression_options", "read_ramps", "DQ", "is_temporary",
            "remove_stale_temporaries"]

@@ -60,7 +60,7 @@ from slicersim.errors import EffectsError
 __all__ = ["CorrelatedNoiseParameters", "ReadoutGeometry", "pink_psd", "acn_psd", "model_psd",
            "group_mean_variance", "group_combination_variance", "ols_slope_weights",
            "picture_frame_template", "crossover_low",
-           "METHODS"]
+           "acn_half", "METHODS"]
 
 #: generators of :class:`slicersim.backends.correlated_noise.CorrelatedNoise`
 METHODS = ("exact", "multirate", "group", "white")
@@ -201,7 +201,7 @@ def pink_psd(f, sigma, geometry, f_min):
     return np.where(inside, norm / np.where(f > 0, f, 1.0), 0.0)
 
 
-def _acn_half(f, sigma, geometry, f_min):
+def acn_half(f, sigma, geometry, f_min):
     """P_a(f)/2: half the PSD of one of ACN's even/odd streams (cadence 2τ) [e-²/Hz]."""
     f = np.asarray(f, dtype=float)
     fa = 0.5 * geometry.f_nyquist
@@ -214,7 +214,7 @@ def acn_psd(f, sigma, geometry, f_min):
     """Stationary PSD of alternating column noise in the pixel-time stream [e-²/Hz]:
     ½[P_a(f) + P_a(f_N − f)] (the sum of the even/odd streams near 0, their difference near f_N)."""
     f = np.asarray(f, dtype=float)
-    return _acn_half(f, sigma, geometry, f_min) + _acn_half(geometry.f_nyquist - f, sigma, geometry, f_min)
+    return acn_half(f, sigma, geometry, f_min) + acn_half(geometry.f_nyquist - f, sigma, geometry, f_min)
 
 
 def model_psd(f, params, geometry, component="output"):
@@ -276,12 +276,12 @@ def group_mean_variance(m, params, geometry, component="output", include_frame_t
     if component == "output":
         def slow(f):
             return (pink_psd(f, params.c_pink, geometry, fm) + pink_psd(f, params.u_pink, geometry, fm)
-                    + 2.0 * _acn_half(f, params.acn, geometry, fm))
+                    + 2.0 * acn_half(f, params.acn, geometry, fm))
     else:
         def slow(f):
             psd = model_psd(f, params, geometry, component)
             if component in ("acn", "own"):
-                psd = psd - _acn_half(fn - f, params.acn, geometry, fm) + _acn_half(f, params.acn, geometry, fm)
+                psd = psd - acn_half(fn - f, params.acn, geometry, fm) + acn_half(f, params.acn, geometry, fm)
             return psd
     f1 = min(0.05 / (m * t), fn)
     f2 = min(64.0 / t, fn)
@@ -322,7 +322,7 @@ def group_combination_variance(weights, nmd, params, geometry, picture_frame_ms=
 
     def slow(f):
         return (pink_psd(f, params.c_pink, geometry, fm) + pink_psd(f, params.u_pink, geometry, fm)
-                + 2.0 * _acn_half(f, params.acn, geometry, fm))
+                + 2.0 * acn_half(f, params.acn, geometry, fm))
 
     def transfer(f):
         out = np.empty(f.size)

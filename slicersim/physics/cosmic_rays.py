@@ -35,7 +35,7 @@ Model (every quantity a parameter of :class:`CosmicRayParameters`):
 * **Charge**: electrons = Δ / ε, with the e–h pair creation energy ε = 2.8 E_g + 0.6 eV (Klein
   1968, J. Appl. Phys. 39, 2029), E_g(x, T) of Hansen et al. (1982).
 
-Randomness is counter-based (:mod:`slicersim.backends.rng`), stream ``STREAMS["cosmic_rays"] +
+Randomness is counter-based (:mod:`slicersim.rng`), stream ``STREAMS["cosmic_rays"] +
 sub``, index ``ramp << 32 | frame``: the number of events of a frame is a Poisson draw (sub 0);
 event k's entry point (sub 1), direction (sub 2) and ion (sub 3) use draw k; the Moyal variate of
 its j-th pixel uses sub 4, draw ``k << 13 | j >> 1`` (Box–Muller branch j & 1).  The deposits of a
@@ -48,8 +48,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from slicersim import validation
-from slicersim.backends import rng
+from slicersim import rng, validation
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import STREAMS, check_number
 

@@ -33,9 +33,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from slicersim.backends import rng
-from slicersim.backends.noise import uniform_normal_grid
-from slicersim import validation
+from slicersim import rng, validation
+from slicersim.rng import uniform_normal_grid
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import STREAMS, check_number, check_shape_rows
 

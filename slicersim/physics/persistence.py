@@ -25,8 +25,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from slicersim import validation
-from slicersim.backends import rng
+from slicersim import rng, validation
 from slicersim.errors import EffectsError
 from slicersim.physics.cosmic_rays import DEPOSIT_DTYPE
 from slicersim.physics.effects import STREAMS, check_number

@@ -21,7 +21,7 @@ from slicersim.errors import ParameterError
 __all__ = ["gaussian_psf_sigmas", "gaussian_psf_fractions", "cell_centres", "aperture_cells", "check_aperture",
            "airy_wavenumber", "jinc", "airy_intensity", "airy_encircled_energy",
            "airy_rectangle_fraction", "cell_quadrature", "blur_margin", "blur_bin_taps",
-           "midpoint_oversampling"]
+           "midpoint_oversampling", "erf_cell_fractions"]
 
 #: Gaussian blur kernels are truncated at this many σ (dropped tail < 1e-15)
 BLUR_TRUNCATE = 8.0
@@ -58,7 +58,7 @@ ERF_SPLIT = 0.5
 _ERFC_ZERO = 27.5
 
 
-def _erf_cell_fractions(edges, centre, sigma):
+def erf_cell_fractions(edges, centre, sigma):
     """(nλ, ncell) fraction of a 1-D Gaussian in each cell, ½[Φ(z_{k+1}) − Φ(z_k)] in erf units with
     z = (e − c)/(√2σ), evaluated without cancellation in the tails (twin of psf.cl's
     ``gaussian_cell_fractions``, same operations):
@@ -100,8 +100,8 @@ def gaussian_psf_fractions(sig_y, sig_x, shape, position=(0.0, 0.0)):
     """
     ny, nx = shape
     x0, y0 = check_position(position)
-    fy = _erf_cell_fractions(cell_edges(ny), y0, sig_y)
-    fx = _erf_cell_fractions(cell_edges(nx), x0, sig_x)
+    fy = erf_cell_fractions(cell_edges(ny), y0, sig_y)
+    fx = erf_cell_fractions(cell_edges(nx), x0, sig_x)
     return fy[:, :, None] * fx[:, None, :]
 
 
@@ -109,8 +109,8 @@ def gaussian_psf_cells(sig_y, sig_x, shape, position, cells):
     """P restricted to a list of cells: (nλ, ncell) for ``cells`` = (iy, ix) index arrays."""
     ny, nx = shape
     x0, y0 = check_position(position)
-    fy = _erf_cell_fractions(cell_edges(ny), y0, sig_y)
-    fx = _erf_cell_fractions(cell_edges(nx), x0, sig_x)
+    fy = erf_cell_fractions(cell_edges(ny), y0, sig_y)
+    fx = erf_cell_fractions(cell_edges(nx), x0, sig_x)
     iy, ix = cells
     return fy[:, iy] * fx[:, ix]
 

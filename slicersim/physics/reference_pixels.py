@@ -19,9 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slicersim import validation
-from slicersim.backends import rng
-from slicersim.backends.noise import uniform_normal_draw
+from slicersim import rng, validation
+from slicersim.rng import uniform_normal_draw
 from slicersim.errors import EffectsError
 from slicersim.physics.effects import STREAMS
 

@@ -251,7 +251,7 @@ def _extract_rates(sim, setup, method, nmd, tint, off=None):
 
 def band_snr_table(sim, setup, method, band, candidates):
     """Single-ramp band SNR per bin (mean S / √mean Var over the bins ``band`` = [i0, i1)) of
-    every candidate readout (n, m, d arrays): the input of ``etc.search.exact_choice``."""
+    every candidate readout (n, m, d arrays): the input of ``snr.search.exact_choice``."""
     if method not in EXTRACTION_METHODS:
         raise ParameterError(f"method must be one of {EXTRACTION_METHODS}, got {method!r}")
     i0, i1 = (int(v) for v in band)

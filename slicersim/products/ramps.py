@@ -34,7 +34,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.backends.dispatch import BACKENDS
 from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
-from slicersim.errors import EffectsError, ParameterError, RampFileError
+from slicersim.errors import EffectsError, ParameterError
 from slicersim.io.rampfile import DQ, RampWriter
 from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, rows_per_block
 from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, frame_mean_charge,  # noqa: F401
@@ -568,7 +568,7 @@ def _pixeldq(pixeldq, dead, shape):
 
 
 def _version():
-    from slicersim import __version__
+    from slicersim.versioning import __version__
     return __version__
 
 

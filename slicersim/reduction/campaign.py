@@ -32,6 +32,7 @@ import time
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import DatasetError, ParameterError, RampFileError
 
 __all__ = ["reduce_dataset", "reduce_file", "reduce_target", "is_dataset", "reduction_client"]
@@ -101,8 +102,7 @@ def _check_path(path, name):
 
 def _check_workers(workers):
     """Workers of the embedded cluster: an integer from 1 to 4 × the CPU count."""
-    from slicersim.campaign.runner import _check_positive_int
-    _check_positive_int(workers, "workers")
+    validation.positive_int("workers", workers)
     most = 4 * (os.cpu_count() or 1)
     if workers > most:
         raise ParameterError(f"workers must be ≤ {most} (4 × the CPU count) for the embedded LocalCluster, got "
@@ -138,9 +138,9 @@ def reduction_client(workers=None, scheduler=None, threads=None):
     """(client, cluster or None) from the campaign runner: an embedded LocalCluster of ``workers``
     processes (one task each at a time) or the scheduler at ``scheduler``."""
     from slicersim.campaign import runner
-    workers = runner._check_workers(workers)
+    workers = runner.check_workers(workers)
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    return runner._client(workers, scheduler, threads)
+    return runner.dask_client(workers, scheduler, threads)
 
 
 def _source(dataset):
@@ -216,10 +216,10 @@ def _identity(mode, opts, fit, source_digest, mapper):
 
 
 def _check_identity(ds, identity, force):
-    from slicersim.io.dataset import _changed_keys, spec_digest
+    from slicersim.io.dataset import changed_keys, spec_digest
     stored = ds.stored_spec()
     if stored is not None and stored[1] != spec_digest(identity) and not force:
-        changed = sorted(_changed_keys(stored[0], identity))
+        changed = sorted(changed_keys(stored[0], identity))
         raise DatasetError(f"{ds.path} was reduced with other options or from another dataset (changed: "
                            f"{', '.join(changed[:6]) or 'content'}); use a new directory, or --force to discard "
                            "its products and start again")
@@ -264,7 +264,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     the campaign has no ramps for: failed or not yet simulated), "computed", "seconds",
     "failed_targets": [(id, error)]}.
     """
-    from slicersim.campaign.runner import _check_positive_int, software_versions
+    from slicersim.campaign.runner import software_versions
     from slicersim.io.dataset import Dataset
     from slicersim.reduction.checks import check_fit_options, check_spectra_options
     t0 = time.perf_counter()
@@ -278,7 +278,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     if workers is not None and scheduler is None:
         _check_workers(workers)
     if window is not None:
-        _check_positive_int(window, "window")
+        validation.positive_int("window", window)
     src, _, source_digest, catalog = _source(dataset)
     out_path = os.path.abspath(os.fspath(out))
     real_out, real_src = os.path.realpath(out_path), os.path.realpath(src.path)
@@ -412,10 +412,10 @@ def reduce_target(task, threads=None):
     """The unit of work of a worker: reduce one target's ramps (checked against the campaign's
     record: size and sha256), write its product atomically and its record last; returns the
     record.  Errors are recorded (status "failed"), never raised."""
-    from slicersim.campaign.products import _limit_threads, mark_failed
+    from slicersim.campaign.products import limit_threads, mark_failed
     from slicersim.io.atomic import sha256_file
     from slicersim.io.dataset import Dataset, product_info
-    _limit_threads(threads)
+    limit_threads(threads)
     tid, info = int(task["target_id"]), task["source"]
     ds = Dataset(task["out"])
     record = {"target_id": tid, "spec_sha256": task["digest"], "source": info["path"],
@@ -445,9 +445,9 @@ def reduce_target(task, threads=None):
 
 def _dispatch(ds, tasks, records, workers, scheduler, progress, window, connection, checkpoint):
     """Submit one task per target (at most ``window`` in flight), collect the records."""
-    from slicersim.campaign.runner import _QuietDask, _check_workers, run_task_window
-    quiet = _QuietDask()
-    nw = _check_workers(workers)
+    from slicersim.campaign.runner import QuietDask, check_workers, run_task_window
+    quiet = QuietDask()
+    nw = check_workers(workers)
     threads = max(1, (os.cpu_count() or 1) // nw)
     client, cluster = connection or reduction_client(nw, scheduler, threads)
 

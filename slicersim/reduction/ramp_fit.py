@@ -632,7 +632,7 @@ def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):
 
 
 def _attrs(src, nmd, tframe, gain, read_noise, saturation, jump_threshold, weighting, backend, labels):
-    from slicersim import __version__
+    from slicersim.versioning import __version__
     n, m, d = nmd
     attrs = {"BUNIT": "e-/s", "VARUNIT": "e-2/s2", "SOURCE": src.name, "FORMAT": src.kind,
              "NINTS": src.shape[0], "NGROUPS": n, "NFRAMES": m, "GROUPGAP": d, "TFRAME": tframe,

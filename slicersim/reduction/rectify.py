@@ -52,7 +52,7 @@ from scipy.linalg.lapack import dtrtri
 from scipy.sparse.linalg import LinearOperator, onenormest
 
 from slicersim.backends.dispatch import BACKENDS
-from slicersim.backends.projection import _windows, deposit
+from slicersim.backends.projection import deposit, footprint_windows
 from slicersim.backends.projection_transpose import gather, matrix_entries
 from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES, SlicerMapper
@@ -203,8 +203,8 @@ def _slice_coverage(mapper, ncol, edges, oversample, truncate):
     count = np.zeros((H, W), np.int16)
     for sid in mapper.slice_ids:
         box = mapper.cell_boxes([int(sid)], ncol, edges, oversample)
-        x0, nx = _windows(box[:, 0], box[:, 1], box[:, 2], truncate)
-        y0, ny = _windows(box[:, 3], box[:, 4], box[:, 5], truncate)
+        x0, nx = footprint_windows(box[:, 0], box[:, 1], box[:, 2], truncate)
+        y0, ny = footprint_windows(box[:, 3], box[:, 4], box[:, 5], truncate)
         xa, xb = np.clip(x0, 0, W), np.clip(x0.astype(np.int64) + nx, 0, W)
         ya, yb = np.clip(y0, 0, H), np.clip(y0.astype(np.int64) + ny, 0, H)
         ok = (xa < xb) & (ya < yb)

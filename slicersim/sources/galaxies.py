@@ -41,7 +41,7 @@ from slicersim.sources.spectra import blackbody_flambda, validate_spectrum
 
 __all__ = ["GALAXY_PACKAGE", "GalaxyDataUnavailable", "known_galaxies", "galaxy_name", "load_galaxy_spectrum",
            "load_galaxy_image", "parse_host_model", "GalaxyModel", "HOST_DEFAULTS", "HOST_PARAMETERS", "HostPlacement",
-           "check_host_covers", "host_offset", "check_host_in_field", "HOST_MIN_FIELD_FRACTION"]
+           "check_host_covers", "host_offset", "check_host_in_field", "HOST_MIN_FIELD_FRACTION", "own_copy"]
 
 GALAXY_PACKAGE = "lazuli-astrosim-data"
 #: slicersim 1.4.2 defaults (``band`` is Bessell R here: sncosmo's SDSS r needs a download)
@@ -417,7 +417,7 @@ class HostPlacement:
             raise ParameterError("host must be a model name, a dict with 'refmodel', a GalaxyModel or provide "
                                  "flux_cube(lbda, shape, spatial_scale) (slicersim.Host or slicersim.CubeSource)")
         origin_z = getattr(host, "redshift", None)
-        return cls(_own_copy(host), redshift if origin_z is None else origin_z, None, host_offset(host), relative)
+        return cls(own_copy(host), redshift if origin_z is None else origin_z, None, host_offset(host), relative)
 
     def _angle(self, redshift):
         if redshift is None or self.origin_z is None or redshift == self.origin_z:
@@ -449,7 +449,7 @@ class HostPlacement:
         return new
 
 
-def _own_copy(host):
+def own_copy(host):
     """A copy of a Host / CubeSource the target may place (profile copied; arrays shared)."""
     if not isinstance(host, (Host, CubeSource)):
         return host                     # a user object with flux_cube: used as given

@@ -8,10 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim import validation
-from slicersim.errors import ParameterError, SpectrumError  # noqa: F401  (SpectrumError re-exported)
-from slicersim.sources.extended import CubeSource, Host, SersicProfile  # noqa: F401  (re-exported)
-from slicersim.sources.spectra import (SNCOSMO_SNIA_MODELS, PointSource, blackbody_flambda,  # noqa: F401
-                                       snia_spectrum, validate_spectrum)
+from slicersim.errors import ParameterError
 from slicersim.versioning import Versioned
 
 __all__ = ["Background", "Scene", "zodiacal_light"]

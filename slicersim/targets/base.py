@@ -22,7 +22,7 @@ from slicersim.instrument.names import check_parameter_names
 from slicersim.simulation import resolve_frame
 from slicersim.sources.galaxies import (HOST_PARAMETERS, HostPlacement, check_host_covers, check_host_in_field,
                                         host_offset)
-from slicersim.sources.scene import PointSource, snia_spectrum
+from slicersim.sources.spectra import PointSource, snia_spectrum
 from slicersim.targets.detector import DetectorProducts
 from slicersim.targets.state import (check_config, check_redshift, _host_centre,  # noqa: F401
                                      _move_host, _TargetUpdate)
@@ -366,7 +366,7 @@ class Target(DetectorProducts):
 
         The band must lie inside the instrument grid and the source spectrum, else
         SpectrumError naming the covered fraction; ``allow_partial=True`` solves on the
-        covered part with a BandCoverageWarning (:mod:`slicersim.etc.bands`)."""
+        covered part with a BandCoverageWarning (:mod:`slicersim.snr.bands`)."""
         band = self._band(lbda_range, frame)
         result = self.simulation.fetch_snr(snr, band, per_resolution=per_resolution, search=search,
                                            backend=backend, allow_partial=allow_partial, frame="obs")
@@ -418,7 +418,7 @@ class Target(DetectorProducts):
             switching off the extracted component gives zero signal).
         incl_error : add a Gaussian noise draw (in ADU, before the unit conversion):
             signal + √variance · z with z the counter-based Philox / Box–Muller
-            normal of :mod:`slicersim.backends.rng` keyed by (seed, bin index,
+            normal of :mod:`slicersim.rng` keyed by (seed, bin index,
             stream :data:`SPECTRUM_NOISE_STREAM`) — the same generator and arithmetic as the
             noisy cubes (:func:`slicersim.backends.noise.noisy_cube`): the same seed (int in
             [0, 2⁶⁴)) gives the same draw on every machine and backend; bins with zero variance

@@ -32,8 +32,8 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.assembly import check_field, default_mapper
-from slicersim.backends.precision import resolve_precision
 from slicersim import validation
+from slicersim.backends.precision import resolve_precision
 from slicersim.errors import ParameterError
 from slicersim.instrument.names import check_parameter_names
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
@@ -90,7 +90,7 @@ class FlatFieldStructure:
 
     def slice_throughput(self, slice_ids):
         """Throughput t_s (mean 1) of each slice id."""
-        from slicersim.backends import rng
+        from slicersim import rng
         ids = np.asarray(slice_ids, dtype=np.uint64)
         if self.slice_scatter == 0.0:
             return np.ones(ids.shape)

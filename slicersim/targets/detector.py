@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.assembly import build_simulation, default_mapper
 from slicersim.backends.precision import resolve_precision
 from slicersim.physics.readout import check_readout
@@ -62,8 +63,8 @@ class DetectorProducts:
                 sim.scene.pointsource = moved
         host = own.scene.host
         if host is not None:
-            from slicersim.sources.galaxies import _own_copy, host_offset
-            moved = _own_copy(host)
+            from slicersim.sources.galaxies import host_offset, own_copy
+            moved = own_copy(host)
             hx, hy = host_offset(host)
             centre = (hx + sign * dx, hy + sign * dy)
             if moved is host:                          # a user object (not Host / CubeSource): left out
@@ -111,7 +112,6 @@ class DetectorProducts:
         saturation) come from the configuration.  ``seed``: an integer in [0, 2⁶⁴) or None (default:
         a fresh seed, recorded in the file's SEED attribute).
         Returns SCI or writes ``out`` (HDF5 or level-1b FITS) and returns its path."""
-        from slicersim import validation
         from slicersim.products.ramps import simulate
         seed = validation.seed(seed)                 # checked before the (slow) detector image
         sim, det = self.simulation, self.simulation.detector

@@ -15,9 +15,10 @@ from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.physics.readout import readout_times
 from slicersim.products.extraction import (EXTRACTION_METHODS, aperture_radius, band_snr_table,
                                            check_aperture_in_field, extract_model, parse_aperture)
-from slicersim.simulation import VARIANCE_SOURCES, check_snr
+from slicersim.simulation import VARIANCE_SOURCES
+from slicersim.snr.search import check_snr
 from slicersim.sources.galaxies import GalaxyModel
-from slicersim.sources.scene import PointSource
+from slicersim.sources.spectra import PointSource
 from slicersim.targets.base import Target, _Lazuli, lazuli_doc
 from slicersim.targets.state import check_redshift
 
@@ -171,8 +172,8 @@ class Galaxy(Target):
                      backend="auto", allow_partial=False):
         """Find and apply the readout with the shortest total exposure reaching ``snr`` in the
         extracted galaxy spectrum (per resolution element by default); returns the ETC result dict.
-        Every candidate (n, m, d) × ramps of ``etc.search.candidate_readouts`` is evaluated."""
-        from slicersim.etc.search import candidate_readouts, exact_choice, limit_error, max_frames_for
+        Every candidate (n, m, d) × ramps of ``snr.search.candidate_readouts`` is evaluated."""
+        from slicersim.snr.search import candidate_readouts, exact_choice, limit_error, max_frames_for
         snr = check_snr(snr)
         validation.choice("search", search, ("exact",), error=ETCError, what="search (galaxy targets: 'exact' only)")
         sim, det = self.simulation, self.simulation.detector

@@ -466,7 +466,7 @@ __kernel void blur_bin_cols(
  *   otherwise:   f = 1/2 [E(b) - E(a)],  E(z) = erf(z) for |z| < 1/2, else +-(1 - erfc(|z|))
  * (erf(b) - erf(a) with both near +-1 lost everything below 1 ulp of 1: 5.5e-12
  * of the peak between an H200 and NumPy for a source off the field).
- * Global (n, nl).  NumPy twin: slicersim.physics.psf._erf_cell_fractions.
+ * Global (n, nl).  NumPy twin: slicersim.physics.psf.erf_cell_fractions.
  */
 #define ERF_SPLIT 0.5
 

@@ -17,6 +17,12 @@ Keying (Salmon et al. 2011, Random123):
 One Philox block (4 × 32 bits) gives two uniforms (words 0–1 and 2–3, 52
 bits each, u = (2x + 1)·2⁻⁵³ ∈ (0, 1) exactly, never 0 or 1), and hence two
 Box–Muller Gaussians.
+
+This module sits low in the layers (below ``physics``): it imports only NumPy.  The grids of
+draws that physics needs (:func:`uniform_normal_grid`, :func:`uniform_normal_draw`) are computed
+here in NumPy unless a faster engine with the same keys is registered with
+:func:`register_grid_engine`; :mod:`slicersim.backends.noise` registers its OpenCL kernel on
+import (bit-identical, so the engine changes the speed, never the numbers).
 """
 from __future__ import annotations
 
@@ -27,7 +33,8 @@ from slicersim.errors import ParameterError
 
 __all__ = ["PHILOX_M0", "PHILOX_M1", "PHILOX_W0", "PHILOX_W1", "PTRS_MIN_MEAN",
            "philox4x32", "seed_to_key", "random_words", "words_to_uniform", "uniform", "normal",
-           "poisson", "rng_log", "rng_exp", "sincos_2pi", "log_factorial"]
+           "poisson", "rng_log", "rng_exp", "sincos_2pi", "log_factorial", "check_stream", "check_grid", "grid_indices",
+           "uniform_normal_grid", "uniform_normal_draw", "register_grid_engine"]
 
 PHILOX_M0, PHILOX_M1 = 0xD2511F53, 0xCD9E8D57      # round multipliers
 PHILOX_W0, PHILOX_W1 = 0x9E3779B9, 0xBB67AE85      # Weyl key increments
@@ -272,3 +279,61 @@ def _poisson_ptrs(mu, seed, index, stream):
         out[todo[accept]] = k[accept]
         todo = todo[~accept]
     return out
+
+
+# --------------------------------------------------------------------------- grids of draws
+#: engine(rows, ncols, seed, stream, draw, first_index, row_stride) -> (uniforms, normals), or None
+_grid_engine = None
+
+
+def register_grid_engine(engine):
+    """Compute :func:`uniform_normal_grid` with ``engine`` (None: NumPy here) and return the previous
+    engine.  ``engine(rows, ncols, seed, stream, draw, first_index, row_stride)`` must return the
+    same (uniforms, normals) arrays as the NumPy path, bit for bit: it is called with checked
+    arguments.  :mod:`slicersim.backends.noise` registers its device kernel on import."""
+    global _grid_engine
+    previous, _grid_engine = _grid_engine, engine
+    return previous
+
+
+def check_stream(stream):
+    """``stream`` as an int in [0, 2³²)."""
+    return _check_word(stream, "stream")
+
+
+def check_grid(rows, ncols, first_index=0, row_stride=None):
+    """(rows, ncols, first_index, row_stride) as ints (row_stride default ncols) whose Philox
+    indices ``first_index + r·row_stride + c`` stay in [0, 2⁶⁴)."""
+    rows, ncols, first_index = int(rows), int(ncols), int(first_index)
+    row_stride = ncols if row_stride is None else int(row_stride)
+    if rows < 0 or ncols < 0 or row_stride < 0 or first_index < 0 \
+            or first_index + max(rows - 1, 0) * row_stride + ncols > 2**64:
+        raise ValueError(f"uniform_normal_grid: rows = {rows}, ncols = {ncols}, row_stride = {row_stride} "  # internal: callers pass detector geometry
+                         f"and first_index = {first_index} must be ≥ 0 with indices below 2**64")
+    return rows, ncols, first_index, row_stride
+
+
+def grid_indices(rows, ncols, first_index, row_stride):
+    """(rows, ncols) uint64 Philox indices ``first_index + r·row_stride + c`` (checked arguments)."""
+    return (np.uint64(first_index) + np.arange(rows, dtype=np.uint64)[:, None] * np.uint64(row_stride)
+            + np.arange(ncols, dtype=np.uint64)[None, :])
+
+
+def uniform_normal_grid(rows, ncols, seed, stream=0, draw=0, *, first_index=0, row_stride=None):
+    """(uniforms, normals), each (rows, ncols, 2) float64: element (r, c) keyed by Philox index
+    ``first_index + r·row_stride + c`` (row_stride default ncols), e.g. a block of detector rows
+    keyed ``y << 16 | x`` with first_index = y0 << 16 and row_stride = 2¹⁶.  Equal to
+    :func:`uniform` / :func:`normal` of those indices (on the registered engine when there is one)."""
+    seed_to_key(seed)
+    stream = check_stream(stream)
+    rows, ncols, first_index, row_stride = check_grid(rows, ncols, first_index, row_stride)
+    if _grid_engine is not None and rows * ncols > 0:
+        return _grid_engine(rows, ncols, int(seed), stream, draw, first_index, row_stride)
+    index = grid_indices(rows, ncols, first_index, row_stride)
+    return uniform(seed, index, stream, draw), normal(seed, index, stream, draw)
+
+
+def uniform_normal_draw(n, seed, stream=0, draw=0, *, first_index=0):
+    """(uniforms, normals), each (n, 2) float64, for indices first_index … first_index + n − 1."""
+    u, z = uniform_normal_grid(1, n, seed, stream, draw, first_index=first_index)
+    return u[0], z[0]

@@ -16,13 +16,12 @@ import math
 import numpy as np
 
 from slicersim import validation
-from slicersim.errors import ETCError  # noqa: F401  (re-exported)
-from slicersim.simulation import check_snr
-from slicersim.etc.snr_table import band_snr_table_for_models, sim_band_indices
+from slicersim.errors import ETCError, ParameterError
+from slicersim.snr.snr_table import band_snr_table_for_models, sim_band_indices
 from slicersim.physics.readout import readout_times
 
-__all__ = ["solve_readout", "reference_walk", "exact_choice", "ETCError", "FRAMES_PER_GROUP", "SEARCHES",
-           "check_snr_target", "check_search",
+__all__ = ["solve_readout", "reference_walk", "exact_choice", "FRAMES_PER_GROUP", "SEARCHES",
+           "check_snr", "check_snr_target", "check_search",
            "MAX_TOTAL_EXPOSURE", "MAX_RAMPS"]
 
 #: frames per group allowed by the exact search (MACC modes of the H4RG ROIC)
@@ -38,10 +37,20 @@ SEARCHES = ("exact", "reference")
 REFERENCE_SHORTFALL = 0.10
 
 
+def check_snr(snr, name="snr"):
+    """A target SNR as a float: a finite number > 0.  ParameterError for what is not a number
+    (strings, bools, lists), ETCError for an impossible value (NaN, inf, ≤ 0); both name ``name``."""
+    is_number = isinstance(snr, (int, float, np.integer, np.floating)) and not isinstance(snr, (bool, np.bool_))
+    error = ETCError if is_number else ParameterError
+    try:
+        return validation.number(name, snr, low=0.0, low_open=True, error=error)
+    except error:
+        raise error(f"{name}: the target SNR must be a finite number > 0, got "
+                    f"{validation.short_repr(snr)}") from None
 
 
 def check_snr_target(snr, name="snr"):
-    """A target SNR: a finite number > 0 (:func:`slicersim.simulation.check_snr`: ETCError for an
+    """A target SNR: a finite number > 0 (:func:`check_snr`: ETCError for an
     impossible value, ParameterError for what is not a number)."""
     return check_snr(snr, name)
 
@@ -317,7 +326,7 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
     ``lbda_range`` [Å] is read in ``frame``: "rest", "obs" or None (default: "rest" when the
     simulation knows a redshift, else "obs"; :meth:`Simulation.band_range
     <slicersim.simulation.Simulation.band_range>`).  ``allow_partial``: band coverage rule of
-    :meth:`Simulation.band_mask <slicersim.simulation.Simulation.band_mask>` (:mod:`slicersim.etc.bands`).
+    :meth:`Simulation.band_mask <slicersim.simulation.Simulation.band_mask>` (:mod:`slicersim.snr.bands`).
 
     Returns a dict: nmd, nramps, snr (band SNR per bin reached), snr_target (per bin),
     exposure_time (total, s), trace (reference search only), lbda_range_obs (the band [Å]
