@@ -28,6 +28,7 @@ oversubscribe its cores).
 from __future__ import annotations
 
 from slicersim.errors import OpenCLUnavailableError, OpenCLForkError  # noqa: F401  (re-exported)
+from slicersim import validation
 from slicersim.errors import ParameterError, SlicersimError
 
 import hashlib
@@ -390,9 +391,7 @@ def check_vector_width(vector_width, default_cap=16, scale=1):
     """Validated elements per work item: the device's preferred width when None."""
     if vector_width is None:
         return preferred_vector_width(default_cap, scale)
-    if vector_width not in VECTOR_WIDTHS:
-        raise ValueError(f"vector_width must be 1, 2, 4, 8 or 16, got {vector_width}")
-    return int(vector_width)
+    return int(validation.choice("vector_width", vector_width, VECTOR_WIDTHS))
 
 
 def preferred_vector_width(cap: int = 16, scale: int = 1) -> int:
@@ -417,7 +416,7 @@ def precision_options(precision: str) -> tuple:
         return ()
     if precision == "single":
         return ("-DSINGLE", "-cl-single-precision-constant")
-    raise ValueError(f"precision must be 'double' or 'single' here, got {precision!r}")
+    raise ValueError(f"precision must be 'double' or 'single' here, got {precision!r}")  # internal: resolved by callers
 
 
 def require_fp64() -> None:
@@ -463,7 +462,7 @@ def host_buffer(array):
     """
     cl = _cl()
     if not array.flags.c_contiguous or not array.flags.writeable:
-        raise ValueError("host_buffer needs a writeable C-contiguous array")
+        raise ValueError("host_buffer needs a writeable C-contiguous array")  # internal: package-made arrays
     return cl.Buffer(get_context(), cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
 
 
