@@ -69,11 +69,11 @@ def test_spectrum_outside_instrument_range():
 #  readout                                                                     #
 # --------------------------------------------------------------------------- #
 @pytest.mark.parametrize("kwargs, match", [
-    (dict(nmd=(1, 8, 0)), r"\(1, 8, 0\): n \(groups\) must be ≥ 2"),
-    (dict(nmd=(0, 8, 0)), r"n \(groups\) must be ≥ 2"),
-    (dict(nmd=(16, 0, 0)), r"\(16, 0, 0\): m \(frames per group\) must be ≥ 1"),
-    (dict(nmd=(16, 8, -1)), r"d \(dropped frames\) must be ≥ 0"),
-    (dict(nmd=(16.5, 8, 0)), r"must be integers"),
+    (dict(nmd=(1, 8, 0)), r"nmd\[0\] \(n, groups per ramp\) must be an integer in \[2, \d+\], got 1$"),
+    (dict(nmd=(0, 8, 0)), r"nmd\[0\] \(n, groups per ramp\) must be an integer in \[2, \d+\], got 0$"),
+    (dict(nmd=(16, 0, 0)), r"nmd\[1\] \(m, frames per group\) must be an integer in \[1, \d+\], got 0$"),
+    (dict(nmd=(16, 8, -1)), r"nmd\[2\] \(d, dropped frames between groups\) must be an integer in \[0, \d+\], got -1$"),
+    (dict(nmd=(16.5, 8, 0)), r"nmd\[0\] \(n, groups per ramp\) must be an integer.*got 16.5$"),
     (dict(nmd=(16, 8)), r"triple \(n, m, d\)"),
     (dict(nmd=(70, 8, 0), max_group=64), r"n = 70 exceeds max_group = 64"),
     (dict(nramps=0), r"nramps must be an integer.*, got 0"),
