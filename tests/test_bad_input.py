@@ -92,11 +92,11 @@ def test_bad_readout(kwargs, match):
 
 def test_bad_readout_on_simulation_queries(target):
     sim = target.simulation
-    with pytest.raises(ReadoutError, match=r"m \(frames per group\)"):
+    with pytest.raises(ReadoutError, match=r"nmd\[1\] \(m, frames per group\)"):
         sim.get_band_snr(BAND, nmd=(16, 0, 0))
     with pytest.raises(ReadoutError, match=r"nramps"):
         sim.get_spectrum(nmd=(16, 8, 0), nramps=0)
-    with pytest.raises(ReadoutError, match=r"n \(groups\)"):
+    with pytest.raises(ReadoutError, match=r"nmd\[0\] \(n, groups per ramp\)"):
         sim.get_times(nmd=(1, 1, 0))
 
 
