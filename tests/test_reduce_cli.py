@@ -153,11 +153,11 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     (["--spectra", "--lbda-edges", "9050,9950,7"], "multiple of STEP"),
     (["--spectra", "--lbda-edges", "0,1e12,1e-3"], "bins (at most"),
     (["--spectra", "--lbda-edges", "5000,6000,50"], "leaves the traces"),
-    (["--spectra", "--ncol", "0"], "ncol must be an integer in [1, 1024]"),
-    (["--spectra", "--ncol", "100000"], "ncol must be an integer in [1, 1024]"),
+    (["--spectra", "--ncol", "0"], "--ncol must be an integer in [1, 1024]"),
+    (["--spectra", "--ncol", "100000"], "--ncol must be an integer in [1, 1024]"),
     (["--spectra", "--aperture", "-1"], "aperture"),
     (["--spectra", "--aperture", "nan"], "aperture"),
-    (["--spectra", "--aperture", "7"], "aperture [PSF σ] must be < 6"),
+    (["--spectra", "--aperture", "7"], "--aperture [PSF σ] must be in (0, 6)"),
     (["--spectra", "--position", "1"], "--position must be X,Y"),
     (["--spectra", "--position", "nan,1"], "finite"),
     (["--spectra", "--psf", "nope.npy"], "--psf must be 'fit' or an existing .npy"),
@@ -316,7 +316,7 @@ def test_out_that_is_the_raw_file_is_refused_even_with_overwrite(raw, tmp_path, 
     (lambda f: f("raw.h5", spectra=True, psf=np.full((12, 58, 58), np.nan)), "finite"),
     (lambda f: f("raw.h5", spectra=True, background="no"), "background must be True or False"),
     (lambda f: f("raw.h5", spectra=True, position=(1, 2, 3)), "position must be"),
-    (lambda f: f("raw.h5", spectra=True, wavelength=3), "unexpected keyword"),
+    (lambda f: f("raw.h5", spectra=True, wavelength=3), "unknown reduction option 'wavelength'"),
 ])
 def test_reduce_file_wrong_types(call, message):
     from slicersim.reduction.campaign import reduce_file

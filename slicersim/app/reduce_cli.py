@@ -25,6 +25,49 @@ _DATASET_FLAGS = (("--workers", "workers"), ("--scheduler", "scheduler"), ("--re
                   ("--force", "force"), ("--verify", "verify"))
 #: most λ bins accepted from START,STOP,STEP
 MAX_BINS = 100_000
+#: the command-line flag of each Python keyword a reduction error may name
+FLAG_OF = {"field": "--field", "lbda_edges": "--lbda-edges", "ncol": "--ncol", "rectify_method": "--rectify",
+           "extraction": "--extraction", "psf": "--psf", "position": "--position", "aperture": "--aperture",
+           "config": "--config", "background": "--no-background", "ipc": "--no-ipc", "propagate": "--no-propagate",
+           "dark": "--dark", "weights": "--weights", "weighting": "--weighting", "jump_threshold": "--jump-threshold",
+           "gain": "--gain", "read_noise": "--read-noise", "ron": "--read-noise", "with_truth": "--with-truth",
+           "refpix": "--no-refpix", "linearity": "--no-linearity", "workers": "--workers",
+           "scheduler": "--scheduler", "allow_partial": "--allow-partial"}
+
+
+def cli_message(text):
+    """A reduction error's message with the Python keywords it names written as command-line flags:
+    a leading ``name`` ("ncol must be ...", "unknown weights ..."), ``name=VALUE`` and ``name=``
+    (a hint "give position= (CLI --position)" keeps only the flag)."""
+    import re
+    names = "|".join(sorted(FLAG_OF, key=len, reverse=True))
+    text = re.sub(rf"\b({names})=\S* in Python, (--[\w-]+) on the command line", lambda m: m.group(2), text)
+    text = re.sub(rf"\b({names})=\S*\s*\((?:CLI:?|on the command line:?)\s*(--[\w-]+)[^)]*\)",
+                  lambda m: m.group(2), text)
+    text = re.sub(rf"\b({names})=(?:True|False|None|'[^']*'|\S+\b)?", lambda m: FLAG_OF[m.group(1)], text)
+    text = re.sub(rf"^(unknown )?({names})\b(?= \(| \[| must| has| applies| apply|:| [\'\"])",
+                  lambda m: (m.group(1) or "") + FLAG_OF[m.group(2)], text)
+    return text
+
+
+class _FlagNames:
+    """Context: a SlicersimError raised inside is raised again, same class, with :func:`cli_message`."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        from slicersim.errors import SlicersimError
+        if exc is None or not isinstance(exc, SlicersimError) or not exc.args or not isinstance(exc.args[0], str):
+            return False
+        text = cli_message(exc.args[0])
+        if text == exc.args[0]:
+            return False
+        try:
+            new = type(exc)(text)
+        except Exception:                       # a subclass with another constructor: leave it
+            return False
+        raise new.with_traceback(tb) from exc.__cause__
 
 
 def _check_out(path, overwrite):
@@ -156,7 +199,8 @@ def _spectra_options(args):
             "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights,
             "config": args.config, "ipc": False if args.no_ipc else None}
     opts = {k: v for k, v in opts.items() if v is not None}       # --dark none: "none" (kept, not None)
-    check_spectra_options(**opts)                  # every value, before any data are read
+    with _FlagNames():
+        check_spectra_options(**opts)              # every value, before any data are read
     return opts
 
 
@@ -176,8 +220,9 @@ def cmd_reduce(args) -> int:
         return _reduce_dataset(args, fit_options, options)
     _check_out(args.out, args.overwrite)
     from slicersim.reduction.campaign import reduce_file
-    result = reduce_file(args.raw, args.out, spectra=args.spectra, overwrite=args.overwrite,
-                         fit_options=fit_options, progress=not args.quiet and None, **options)
+    with _FlagNames():
+        result = reduce_file(args.raw, args.out, spectra=args.spectra, overwrite=args.overwrite,
+                             fit_options=fit_options, progress=not args.quiet and None, **options)
     rate = result["rates"].rate
     line = (f"{result['path']}: rates {rate.shape[-2]}×{rate.shape[-1]} of {rate.shape[0] if rate.ndim == 3 else 1} "
             f"integration(s), {int((result['rates'].njumps > 0).sum())} pixel(s) with jumps")
@@ -192,9 +237,11 @@ def cmd_reduce(args) -> int:
 
 def _reduce_dataset(args, fit_options, options):
     from slicersim.reduction.campaign import reduce_dataset
-    res = reduce_dataset(args.raw, args.out, workers=args.workers, scheduler=args.scheduler, spectra=args.spectra,
-                         retry_failed=args.retry_failed, force=args.force, verify=args.verify,
-                         progress=not args.quiet, fit_options=fit_options, **options)
+    with _FlagNames():
+        res = reduce_dataset(args.raw, args.out, workers=args.workers, scheduler=args.scheduler,
+                             spectra=args.spectra, retry_failed=args.retry_failed, force=args.force,
+                             verify=args.verify, progress=False if args.quiet else None, fit_options=fit_options,
+                             **options)
     print(f"{res['out']}: {res['targets']} targets, {res['done']} reduced, {res['failed']} failed, "
           f"{res['missing']} missing, {res['unavailable']} without ramps ({res['computed']} reduced now "
           f"in {res['seconds']:.1f} s)")

@@ -32,6 +32,7 @@ import time
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import DatasetError, ParameterError, RampFileError
 
 __all__ = ["reduce_dataset", "reduce_file", "reduce_target", "is_dataset", "reduction_client"]
@@ -173,7 +174,7 @@ def _source(dataset):
 
 
 #: fit_ramps keywords that do not change the rates (left out of a reduction's identity)
-_RUNTIME = {"progress", "memory_budget", "backend", "work_group", "return_groupdq"}
+_RUNTIME = {"progress", "memory_budget", "max_bytes", "backend", "work_group", "return_groupdq"}
 
 
 def _defaults(func, keys=None):
@@ -187,14 +188,14 @@ def _identity(mode, opts, fit, source_digest, mapper):
     defaults filled in (options as JSON; arrays by value or digest)."""
     import hashlib
 
-    from slicersim.reduction.pipeline import reduce_exposure
+    from slicersim.reduction.options import ReduceOptions
     from slicersim.reduction.ramp_fit import fit_ramps
     fit = {**{k: v for k, v in _defaults(fit_ramps).items() if k not in _RUNTIME},
            **{k: v for k, v in fit.items() if k not in _RUNTIME and v is not None}}
     if mode == "spectra":
         keys = {"field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
                 "background", "propagate", "dark", "weights", "config", "ipc"}
-        opts = {**_defaults(reduce_exposure, keys), **opts}
+        opts = {**{k: v for k, v in ReduceOptions.defaults().items() if k in keys}, **opts}
         if opts.get("field") is None:
             opts["field"] = "(each target's)"
         # what the default extraction is: reductions made before the forward model are not resumed into it
@@ -247,14 +248,16 @@ def _lock(ds):
 
 
 def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False, retry_failed=False, force=False,
-                   verify=False, progress=True, window=None, fit_options=None, mapper=None, **options):
+                   verify=False, progress=None, window=None, fit_options=None, **options):
     """Reduce (or resume reducing) every target's ramps of campaign dataset ``dataset`` into the
     reduction directory ``out`` (module docstring), one Dask task per target.
 
     workers : embedded LocalCluster size (default: the CPU count); scheduler : "tcp://host:port"
-    spectra : rates, cubes and spectra (reduce_exposure) instead of rates only; ``field`` defaults
-        to each target's own field (the campaign's), the other ``options`` to reduce_exposure's
-    fit_options : fit_ramps keywords;  mapper : SlicerMapper of the ramps' detector (spectra)
+    spectra : rates, cubes and spectra (reduce_exposure) instead of rates only; ``options`` are
+        reduce_exposure's (:class:`~slicersim.reduction.options.ReduceOptions` fields: ``mapper``, the
+        SlicerMapper of the ramps' detector, ``field``, which defaults to each target's own field, ...)
+    fit_options : fit_ramps keywords
+    progress : None (a progress bar when stderr is a terminal), True or False
     retry_failed : reduce the targets recorded as failed again
     force : start again in a directory made with other options or from another dataset
     verify : check every reduced product's sha256 when resuming (default: its size)
@@ -270,9 +273,11 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     t0 = time.perf_counter()
     fit = check_fit_options(fit_options)
     fit.pop("progress", None)                      # no progress bars on the workers
-    if not spectra and (options or mapper is not None):
-        raise ParameterError(f"option(s) {', '.join(sorted(options) or ['mapper'])} apply only with spectra=True")
+    if not spectra and options:
+        raise ParameterError(f"option(s) {', '.join(sorted(options))} apply only with spectra=True")
+    mapper = options.pop("mapper", None)
     opts = check_spectra_options(mapper=mapper, **options) if spectra else {}
+    progress = _progress(progress)
     _check_path(dataset, "dataset")
     _check_path(out, "out")
     if workers is not None and scheduler is None:
@@ -335,6 +340,14 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
             "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
             "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed}
+
+
+def _progress(progress):
+    """progress as True/False: None means a bar only when stderr is a terminal."""
+    import sys
+    if progress is None:
+        return bool(getattr(sys.stderr, "isatty", lambda: False)())
+    return validation.flag("progress", progress)
 
 
 def _portable(mapper):
