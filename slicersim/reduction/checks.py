@@ -262,7 +262,7 @@ def check_fit_options(fit_options):
                                                                                if o in known}
         for key in fit_options:
             validation.choice("fit_options key", key, sorted(valid), what="fit_ramps option")
-    opts = _fit_ramps_names(dict(fit_options), known)
+    opts = dict(fit_options)
     if "weighting" in opts:
         validation.choice("weighting", opts["weighting"], WEIGHTINGS)
     if opts.get("jump_threshold") is not None:
@@ -275,7 +275,7 @@ def check_fit_options(fit_options):
     for key in ("with_truth", "return_groupdq"):
         if key in opts:
             validation.flag(key, opts[key])
-    return opts
+    return _fit_ramps_names(opts, known)
 
 
 _UNSET = object()       # dark not given (None given: subtract nothing)
