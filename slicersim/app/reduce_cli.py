@@ -30,7 +30,7 @@ FLAG_OF = {"field": "--field", "lbda_edges": "--lbda-edges", "ncol": "--ncol", "
            "extraction": "--extraction", "psf": "--psf", "position": "--position", "aperture": "--aperture",
            "config": "--config", "background": "--no-background", "ipc": "--no-ipc", "propagate": "--no-propagate",
            "dark": "--dark", "weights": "--weights", "weighting": "--weighting", "jump_threshold": "--jump-threshold",
-           "gain": "--gain", "read_noise": "--read-noise", "ron": "--read-noise", "with_truth": "--with-truth",
+           "gain": "--gain", "read_noise": "--ron", "ron": "--ron", "with_truth": "--with-truth",
            "refpix": "--no-refpix", "linearity": "--no-linearity", "workers": "--workers",
            "scheduler": "--scheduler", "allow_partial": "--allow-partial"}
 
@@ -167,6 +167,7 @@ def _apply(flags):
 
 
 def _check_flags(args, dataset):
+    from slicersim import validation
     from slicersim.errors import ParameterError
     if not args.spectra and _given(args, _SPECTRA_FLAGS):
         raise ParameterError(f"{_apply(_given(args, _SPECTRA_FLAGS))} only with --spectra")
@@ -176,15 +177,15 @@ def _check_flags(args, dataset):
     if dataset and args.overwrite:
         raise ParameterError("--overwrite applies to a single ramp file; a reduction directory is resumed "
                              "(--force starts it again when its options changed)")
-    if args.workers is not None and args.workers < 1:
-        raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
-    if args.show < 0:
-        raise ParameterError(f"--show must be ≥ 0, got {args.show}")
-    if args.jump_threshold is not None and not args.jump_threshold >= 0:
-        raise ParameterError(f"--jump-threshold must be ≥ 0 (0: no jump detection), got {args.jump_threshold}")
-    for flag, val, lo in (("--gain", args.gain, 0.0), ("--read-noise", args.read_noise, None)):
-        if val is not None and not (math.isfinite(val) and (val > lo if lo is not None else val >= 0)):
-            raise ParameterError(f"{flag} must be a finite number {'> 0' if lo is not None else '≥ 0'}, got {val}")
+    if args.workers is not None:
+        validation.integer("--workers", args.workers, low=1)
+    validation.integer("--show", args.show, low=0)
+    if args.jump_threshold is not None:
+        validation.number("--jump-threshold [σ] (0: no jump detection)", args.jump_threshold, low=0.0)
+    if args.gain is not None:
+        validation.number("--gain [DN/e-]", args.gain, low=0.0, low_open=True)
+    if args.ron is not None:
+        validation.number("--ron (read noise [e-])", args.ron, low=0.0)
 
 
 def _spectra_options(args):
@@ -214,7 +215,7 @@ def cmd_reduce(args) -> int:
         raise ParameterError(f"--out is RAW itself ({args.raw}): the ramps would be lost")
     fit_options = {"refpix": False if args.no_refpix else None, "linearity": False if args.no_linearity else None,
                    "jump_threshold": args.jump_threshold, "weighting": args.weighting, "gain": args.gain,
-                   "read_noise": args.read_noise, "with_truth": args.with_truth}
+                   "ron": args.ron, "with_truth": args.with_truth}
     options = _spectra_options(args) if args.spectra else {}
     if dataset:
         return _reduce_dataset(args, fit_options, options)
@@ -277,7 +278,8 @@ def add_parsers(sub, fmt):
     p.add_argument("--no-refpix", action="store_true", help="skip the reference-pixel correction")
     p.add_argument("--no-linearity", action="store_true", help="skip the nonlinearity correction")
     p.add_argument("--gain", type=float, metavar="DN/e-", help="override the file's GAIN")
-    p.add_argument("--read-noise", type=float, metavar="e-", help="override the file's read noise per frame")
+    p.add_argument("--ron", "--read-noise", dest="ron", type=float, metavar="e-",
+                   help="override the file's read noise per frame [e-] (--read-noise: its earlier name)")
     p.add_argument("--with-truth", action="store_true", help="copy truth/rate beside the fitted rates "
                    "(TRUTH_RATE; rates/TRUTH_RATE with --spectra)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -60,7 +60,7 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
         (:func:`~slicersim.reduction.pipeline.reduce_exposure` with ``options``: field, lbda_edges,
         ncol, rectify_method, extraction, psf, position, aperture, background, propagate)
     fit_options : ``fit_ramps`` keywords (weighting, jump_threshold, refpix, linearity, gain,
-        read_noise, with_truth: the truth rate is written as TRUTH_RATE / rates/TRUTH_RATE)
+        ron (read_noise: its earlier name), with_truth: the truth rate is written as TRUTH_RATE / rates/TRUTH_RATE)
     out : HDF5 path written atomically (None: nothing written)
 
     Returns ``{"rates": RateProduct, "path": absolute path or None}`` (rates only) or
@@ -84,7 +84,7 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
         from slicersim.reduction.rectify import _default_mapper
         shape = tuple((mapper or _default_mapper()).detector_shape)
     check_ramp_file(raw, with_truth=bool(fit.get("with_truth")), gain=fit.get("gain"),
-                    read_noise=fit.get("read_noise"), detector_shape=shape)
+                    ron=fit.get("ron", fit.get("read_noise")), detector_shape=shape)
     if progress is not None:
         fit["progress"] = progress
     if not spectra:
@@ -192,6 +192,8 @@ def _identity(mode, opts, fit, source_digest, mapper):
     from slicersim.reduction.ramp_fit import fit_ramps
     fit = {**{k: v for k, v in _defaults(fit_ramps).items() if k not in _RUNTIME},
            **{k: v for k, v in fit.items() if k not in _RUNTIME and v is not None}}
+    if "ron" in fit:                                 # one name in the identity whatever fit_ramps calls it
+        fit["read_noise"] = fit.pop("ron")
     if mode == "spectra":
         keys = {"field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
                 "background", "propagate", "dark", "weights", "config", "ipc"}

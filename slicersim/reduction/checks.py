@@ -57,16 +57,21 @@ def register_hdf5_filters():
 
 
 # ----------------------------------------------------------------------------- the raw file
-def check_ramp_file(path, with_truth=False, gain=None, read_noise=None, detector_shape=None):
+def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=None, **renamed):
     """Refuse (RampFileError) a raw ramp file the reduction cannot use; headers only.
 
     with_truth : ``truth/rate`` must exist with the detector's shape
-    gain, read_noise : overrides of the file's GAIN / READNOISE (as ``fit_ramps``)
+    gain, ron : overrides of the file's GAIN [DN/e-] / READNOISE [e-] (as ``fit_ramps``; ``read_noise``:
+        the deprecated name of ``ron``)
     detector_shape : (ny, nx) the data must have (the mapper's detector, for spectra)
 
     Returns {"kind", "shape" (nints, ngroups, ny, nx), "nmd", "tframe"}.
     """
     from slicersim.reduction.ramp_fit import _readout, open_ramps, ramp_file_kind
+    validation.renamed_keyword(renamed, "read_noise", "ron", "check_ramp_file")
+    for key in renamed:
+        validation.choice("keyword", key, ("ron",), what="check_ramp_file keyword")
+    ron = renamed.get("ron", ron)
     register_hdf5_filters()
     path = os.fspath(path)
     if os.path.isdir(path):
@@ -84,7 +89,7 @@ def check_ramp_file(path, with_truth=False, gain=None, read_noise=None, detector
         shape = tuple(int(s) for s in src.shape)
         if 0 in shape:
             raise RampFileError(f"{path}: SCI is empty {shape}")
-        nmd, tframe, _, _ = _readout(src.attrs, src.shape, gain, read_noise, path)
+        nmd, tframe, _, _ = _readout(src.attrs, src.shape, gain, ron, path)
         if header is not None:
             _check_fits_duplicates(header, path)
         if _made_by_slicersim(src.attrs, header):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.backends.precision import float64_kwargs
 from slicersim.reduction.rectify import rectify
@@ -83,10 +84,10 @@ def point_source_template(native_cube, native_lbda_edges, lbda_edges, *, mapper,
     """
     if mapper is None:
         raise ParameterError("point_source_template needs the mapper the data were rectified with")
-    if not isinstance(field, str) or field not in ("narrow", "wide"):
-        raise ParameterError(f"field must be 'narrow' or 'wide' (one cube per template), got {field!r}")
-    if isinstance(ncol, (bool, np.bool_)) or not isinstance(ncol, (int, np.integer)) or ncol < 1:
-        raise ParameterError(f"ncol must be a positive integer (columns of the coarse cube), got {ncol!r}")
+    validation.choice("field", field, ("narrow", "wide"), what="field (one cube per template)")
+    if isinstance(ncol, (float, np.floating)):
+        raise ParameterError(f"ncol (columns of the coarse cube) must be an integer ≥ 1, got {ncol!r}")
+    ncol = validation.integer("ncol (columns of the coarse cube)", ncol, low=1)
     try:
         cube = np.asarray(native_cube, float)
     except (TypeError, ValueError):
