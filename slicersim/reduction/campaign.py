@@ -96,8 +96,9 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
 
 
 def _check_path(path, name):
+    """A path (str or os.PathLike, not empty): existence is checked where it is read or written."""
     if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
-        raise ParameterError(f"{name} must be a path, got {path!r}")
+        raise ParameterError(f"{name} must be a path, got {validation.short_repr(path)}")
 
 
 def _check_workers(workers):
@@ -287,12 +288,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     if window is not None:
         _check_positive_int(window, "window")
     src, _, source_digest, catalog = _source(dataset)
-    out_path = os.path.abspath(os.fspath(out))
-    real_out, real_src = os.path.realpath(out_path), os.path.realpath(src.path)
-    if real_out == real_src or real_out.startswith(os.path.join(real_src, "products") + os.sep) \
-            or real_out.startswith(os.path.join(real_src, "records") + os.sep) or real_src.startswith(real_out + os.sep):
-        raise DatasetError(f"the reduction directory {out_path} must not be the dataset {src.path}, contain it "
-                           "or lie in its products or records")
+    out_path = _check_out_dir(out, src)
     identity = _identity("spectra" if spectra else "rates", opts, fit, source_digest, mapper)
     ds = Dataset(Dataset.check_path(out_path, force=force))
     stored = ds.stored_spec()
@@ -312,16 +308,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     try:
         digest = ds.initialise(_toml(identity, src.path), identity, software_versions(), force=force)
         sources = _sources(src, ids)
-        state = ds.state(ids, deep=verify)
-        records, todo = {}, []
-        for tid in ids:
-            st, rec, _ = state[tid]
-            info = sources.get(tid)
-            same = rec is not None and info is not None and rec.get("source_sha256") == info["sha256"]
-            if st in ("done", "failed") and same:
-                records[tid] = rec
-            if info is not None and (not same or st == "missing" or (st == "failed" and retry_failed)):
-                todo.append(tid)
+        records, todo = _todo(ds.state(ids, deep=verify), sources, ids, retry_failed)
         base = _base_catalog(catalog)
         ds.write_catalog(_catalog(base, records, sources, src))
         try:
@@ -342,6 +329,33 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
             "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
             "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed}
+
+
+def _check_out_dir(out, src):
+    """The reduction directory's absolute path; refused where it is the dataset, contains it or lies in
+    its products or records."""
+    out_path = os.path.abspath(os.fspath(out))
+    real_out, real_src = os.path.realpath(out_path), os.path.realpath(src.path)
+    if real_out == real_src or real_out.startswith(os.path.join(real_src, "products") + os.sep) \
+            or real_out.startswith(os.path.join(real_src, "records") + os.sep) or real_src.startswith(real_out + os.sep):
+        raise DatasetError(f"the reduction directory {out_path} must not be the dataset {src.path}, contain it "
+                           "or lie in its products or records")
+    return out_path
+
+
+def _todo(state, sources, ids, retry_failed):
+    """({target id: record} of the targets done or failed from their current ramps, [targets to reduce]):
+    those not reduced yet, reduced from other ramps, or failed (with ``retry_failed``)."""
+    records, todo = {}, []
+    for tid in ids:
+        st, rec, _ = state[tid]
+        info = sources.get(tid)
+        same = rec is not None and info is not None and rec.get("source_sha256") == info["sha256"]
+        if st in ("done", "failed") and same:
+            records[tid] = rec
+        if info is not None and (not same or st == "missing" or (st == "failed" and retry_failed)):
+            todo.append(tid)
+    return records, todo
 
 
 def _progress(progress):

@@ -340,12 +340,9 @@ def _recorded_field(attrs):
 def _instrument(attrs, config, extraction, psf):
     """The forward model's instrument (:func:`~slicersim.reduction.forward_extraction.model_config`) of
     this file, loaded (a bad configuration is refused before any data are read), or None; refuses the
-    combinations that cannot give an unbiased spectrum."""
+    combinations that cannot give an unbiased spectrum (``config`` and ``extraction`` are checked
+    values: :class:`~slicersim.reduction.options.ReduceOptions`)."""
     from slicersim.reduction.forward_extraction import FORWARD_PSF_PROFILES, instrument_model, model_config
-    if extraction is not None:
-        check_spectra_options(extraction=extraction)
-    if config is not None:
-        check_spectra_options(config=config)
     if attrs is None:                                 # unreadable: fit_ramps will say why
         attrs, unreadable = {}, True
     else:
