@@ -54,6 +54,7 @@ from scipy.sparse.linalg import LinearOperator, onenormest
 from slicersim.backends.projection import _windows, deposit
 from slicersim.backends.projection_transpose import gather, matrix_entries
 from slicersim.errors import ParameterError
+from slicersim import validation
 from slicersim.backends.precision import float64_kwargs
 from slicersim.instrument.mapper import SlicerMapper
 from slicersim.reduction.options import RectifyOptions, build_options
@@ -266,9 +267,8 @@ class InverseCovariance:
     def matrix(self, row):
         """N of cube row ``row`` (CSR, (nλ·ncol)²) [unit⁻²]."""
         nrow = self.shape[1]
-        if not 0 <= int(row) < nrow:
-            raise ParameterError(f"row must be in 0 … {nrow - 1}, got {row!r}")
-        s = nrow - 1 - int(row)
+        row = validation.integer("row (cube row)", row, low=0, high=nrow - 1)
+        s = nrow - 1 - row
         if s in self._kept:
             return self._kept[s]
         P, _, w, _ = _slice_matrix(self._tables, s, self._weight_of)

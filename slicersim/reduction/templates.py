@@ -44,7 +44,7 @@ def _native_groups(native_shape, native_lbda_edges, lbda_edges):
         raise ParameterError(f"native_lbda_edges must be {native_shape[0] + 1} finite increasing edges [Å] "
                              f"(the native cube has {native_shape[0]} bins), got shape {ne.shape}")
     if ce.ndim != 1 or ce.size < 2 or not np.all(np.isfinite(ce)) or np.any(np.diff(ce) <= 0):
-        raise ParameterError(f"lbda_edges must be at least 2 finite increasing edges [Å], got {ce!r}")
+        raise ParameterError(f"lbda_edges must be at least 2 finite increasing edges [Å], got {validation.short_repr(ce)}")
     if ce[0] < ne[0] or ce[-1] > ne[-1]:
         raise ParameterError(f"the coarse grid {ce[0]:.6g}–{ce[-1]:.6g} Å must lie within the native grid "
                              f"{ne[0]:.6g}–{ne[-1]:.6g} Å")
@@ -131,12 +131,7 @@ def background_template(native_shape, native_lbda_edges, lbda_edges, *, mapper, 
     native_shape : (ny, nx_native) of the native cube (the field's slices × native columns);
     other arguments as :func:`point_source_template`.  Returns (nλ, nλ, ny, ncol).
     """
-    try:
-        ny, nxn = (int(v) for v in native_shape)
-    except (TypeError, ValueError):
-        raise ParameterError(f"native_shape must be (ny, nx_native), got {native_shape!r}") from None
-    if ny < 1 or nxn < 1:
-        raise ParameterError(f"native_shape must be positive, got {native_shape!r}")
+    ny, nxn = validation.shape("native_shape (ny, nx_native)", native_shape)
     n_native = np.asarray(native_lbda_edges, float).size - 1
     uniform = np.ones((max(n_native, 1), ny, nxn))
     T = point_source_template(uniform, native_lbda_edges, lbda_edges, mapper=mapper, field=field, ncol=ncol,
