@@ -267,13 +267,13 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
 
 @pytest.mark.parametrize("argv, message", [
     (["--overwrite"], "--overwrite applies to a single ramp file"),
-    (["--workers", "0"], "--workers must be ≥ 1"),
+    (["--workers", "0"], "--workers must be an integer ≥ 1, got 0"),
     (["--ncol", "20"], "--ncol applies only with --spectra"),
     (["--spectra", "--lbda-edges", "9000,8000,10"], "START < STOP"),
     (["--spectra", "--extraction", "gls", "--rectify", "drizzle"], "needs an lsq cube"),
     (["--scheduler", "nowhere"], "tcp://host:port"),
     (["--workers", "100000"], "workers must be ≤"),
-    (["--show", "-1"], "--show must be ≥ 0"),
+    (["--show", "-1"], "--show must be an integer ≥ 0, got -1"),
 ])
 def test_cli_dataset_flags_are_checked(campaign, tmp_path, argv, message):
     out = tmp_path / "red"

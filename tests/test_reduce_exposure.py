@@ -3,6 +3,7 @@ same products; bad option values are refused, naming the option, when the object
 any data are read); the other reduction option objects (RectifyOptions, ForwardOptions) likewise."""
 import warnings
 
+import astropy.units as u
 import numpy as np
 import pytest
 from conftest import small_slicer_mapper
@@ -48,6 +49,11 @@ def test_keyword_and_options_forms_give_the_same_products(small, raw, tmp_path):
         # keywords replace fields of a given options object
         c = reduce_exposure(path, ReduceOptions(mapper=small, lbda_edges=EDGES, ncol=58, psf=psf), ncol=NCOL,
                             weights="data")
+        # λ edges as an astropy Quantity in another length unit
+        d = reduce_exposure(path, **dict(kw, lbda_edges=(EDGES / 10.0) * u.nm))
+    # (nm → Å through astropy is exact to ~2e-16: the products agree to float precision)
+    np.testing.assert_allclose(d["spectra"]["narrow"].flux, a["spectra"]["narrow"].flux, rtol=1e-9)
+    np.testing.assert_allclose(d["cubes"]["narrow"].lbda_edges, EDGES, rtol=1e-15)
     for other in (b, c):
         np.testing.assert_array_equal(a["spectra"]["narrow"].flux, other["spectra"]["narrow"].flux)
         np.testing.assert_array_equal(a["spectra"]["narrow"].variance, other["spectra"]["narrow"].variance)
@@ -77,6 +83,7 @@ def test_keyword_and_options_forms_give_the_same_products(small, raw, tmp_path):
     (dict(psf="gauss"), ParameterError, r"unknown psf 'gauss'"),
     (dict(dark=-1.0), ParameterError, "dark rates must be finite, ≥ 0"),
     (dict(dark="dark"), ParameterError, "dark must be 'auto', None"),
+    (dict(lbda_edges=[1.0, 2.0] * u.s), ParameterError, r"lbda_edges must be wavelengths \[Å\]"),
     (dict(fit_options=[("gain", 1)]), ParameterError, "fit_options must be a dict"),
     (dict(fit_options={"weightng": "ols"}), ParameterError, r"unknown fit_ramps option 'weightng' \(did you mean "),
     (dict(fit_options={"weighting": "best"}), ParameterError, "unknown weighting 'best'"),
@@ -121,6 +128,7 @@ def test_fit_options_renamed_keywords():
 def test_rectify_and_forward_options():
     from slicersim.reduction.rectify import rectify
     assert RectifyOptions(ncol=30).ncol == 30 and RectifyOptions(oversample=[2, 1]).oversample == (2, 1)
+    np.testing.assert_allclose(RectifyOptions(lbda_edges=[0.905, 0.995] * u.um).lbda_edges, [9050.0, 9950.0])
     for options, match in ((dict(field="wid"), r"unknown field 'wid' \(did you mean 'wide'\?\)"),
                            (dict(method="psf"), "unknown method 'psf'"),
                            (dict(ncol=0), "ncol must be an integer ≥ 1"),
@@ -168,3 +176,13 @@ def test_deconvolve_ipc_bad_kernel_is_a_parameter_error():
     with pytest.raises(ParameterError, match="kernel"):
         deconvolve_ipc(img, img > 0, np.ones((2, 2)) / 4)
     assert issubclass(ParameterError, SlicersimError) and issubclass(ParameterError, ValueError)
+
+
+def test_check_spectra_options_names_and_units():
+    """check_spectra_options (reduce_file, reduce_dataset and the CLI check with it): an unknown option is
+    refused with a "did you mean"; λ edges given as a Quantity are taken in Å."""
+    from slicersim.reduction.checks import check_spectra_options
+    with pytest.raises(ParameterError, match=r"unknown reduction option 'ncols' \(did you mean 'ncol'\?\)"):
+        check_spectra_options(ncols=3)
+    edges = check_spectra_options(lbda_edges=np.linspace(905.0, 995.0, 13) * u.nm)["lbda_edges"]
+    np.testing.assert_allclose(edges, np.linspace(9050.0, 9950.0, 13), rtol=1e-15)

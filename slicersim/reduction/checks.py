@@ -414,10 +414,10 @@ def _refuse_unused(out):
 
 
 def _check_edges(lbda_edges, mapper):
-    """λ edges [Å] as a 1-D float array inside the mapper's traces."""
-    from slicersim.reduction.rectify_checks import _check_grid
+    """λ edges [Å] (or a Quantity) as a 1-D float array [Å] inside the mapper's traces."""
+    from slicersim.reduction.rectify_checks import _check_grid, angstrom
     try:
-        edges = np.asarray(lbda_edges, np.float64)
+        edges = np.asarray(angstrom("lbda_edges", lbda_edges), np.float64)
     except (TypeError, ValueError):
         raise ParameterError("lbda_edges must be numbers [Å]") from None
     if edges.ndim != 1 or edges.size < 2:

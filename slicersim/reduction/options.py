@@ -47,7 +47,7 @@ class ReduceOptions:
 
     mapper : SlicerMapper of the detector (None: ``SlicerMapper.default()``)
     field : "narrow", "wide", "both" or None (the field the file records, else "narrow")
-    lbda_edges : rectification λ edges [Å] (None: 2 native bins per bin)
+    lbda_edges : rectification λ edges [Å] (or a Quantity; None: 2 native bins per bin)
     ncol : columns per slice of the cubes;  rectify_method : "lsq" or "drizzle"
     extraction : None (forward when the instrument is known), "forward", "gls", "optimal", "aperture"
     psf : "fit" or an (nλ, slices, columns) array / (K, nλ, slices, columns) template
@@ -79,6 +79,8 @@ class ReduceOptions:
     ipc: bool | None = None
 
     def __post_init__(self):
+        from slicersim.reduction.rectify_checks import angstrom
+        _set(self, "lbda_edges", angstrom("lbda_edges", self.lbda_edges))
         given = {name: getattr(self, name) for name in ("field", "ncol", "rectify_method", "extraction", "position",
                                                         "background", "weights", "config", "ipc")}
         checked = check_spectra_options(**{k: v for k, v in given.items() if v is not None})
@@ -145,8 +147,10 @@ class RectifyOptions:
     keep_information: bool = False
 
     def __post_init__(self):
-        from slicersim.reduction.rectify_checks import _check_options, _check_projection
+        from slicersim.reduction.rectify_checks import _check_options, _check_projection, angstrom
         _check_options(self.field, self.method, self.ncol, self.backend, None)
+        for name in ("lbda", "lbda_edges"):
+            _set(self, name, angstrom(name, getattr(self, name)))
         _set(self, "ncol", int(self.ncol))
         _set(self, "oversample", _check_projection(self.oversample, self.truncate, self.weights_dtype))
         _set(self, "truncate", float(self.truncate))
@@ -176,7 +180,9 @@ class ForwardOptions:
     cell_scale: tuple = (1.0, 1.0)
 
     def __post_init__(self):
+        from slicersim.reduction.rectify_checks import angstrom
         validation.choice("field", self.field, ("narrow", "wide"))
+        _set(self, "lbda_edges", angstrom("lbda_edges", self.lbda_edges))
         _set(self, "background", validation.flag("background", self.background))
         for name in ("position", "start"):
             value = getattr(self, name)

@@ -116,3 +116,15 @@ def _check_projection(oversample, truncate, weights_dtype):
     return ov
 
 
+
+
+def angstrom(name, value):
+    """``value`` [Å] unchanged, or an astropy Quantity of wavelengths converted to Å (as an array);
+    ParameterError naming ``name`` for another unit."""
+    if value is None or not hasattr(value, "to_value"):
+        return value
+    try:
+        return np.asarray(value.to_value("Angstrom"), np.float64)
+    except Exception:
+        raise ParameterError(f"{name} must be wavelengths [Å] (or a Quantity in a length unit), got "
+                             f"{validation.short_repr(value)}") from None
