@@ -9,7 +9,8 @@ import pytest
 from conftest import small_slicer_mapper
 
 from slicersim.errors import ParameterError, SlicersimError
-from slicersim.reduction.options import ForwardOptions, PixelNoise, RectifyOptions, ReduceOptions
+from slicersim.reduction.options import ForwardOptions, PixelNoise, ReduceOptions
+from slicersim.reduction.rectify_checks import RectifyOptions
 
 EDGES = np.linspace(9050.0, 9950.0, 13)      # 12 bins of 5 px on the small layout
 NCOL = 24

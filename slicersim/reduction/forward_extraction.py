@@ -328,7 +328,8 @@ _NOISE_KEYWORDS = ("var_rnoise", "var_poisson", "raw_rate", "dark_rate")
 
 def _forward_options(options, noise, keywords):
     """(ForwardOptions, PixelNoise or None) from the arguments of :func:`extract_forward`."""
-    from slicersim.reduction.options import ForwardOptions, PixelNoise, build_options
+    from slicersim.reduction.option_forms import build_options
+    from slicersim.reduction.options import ForwardOptions, PixelNoise
     terms = {k: keywords.pop(k) for k in _NOISE_KEYWORDS if k in keywords}
     opts = build_options(ForwardOptions, options, keywords, "extract_forward")
     if terms and noise is not None:

@@ -1,7 +1,6 @@
-"""Option objects of the reduction: what :func:`~slicersim.reduction.pipeline.reduce_exposure`,
-:func:`~slicersim.reduction.rectify.rectify` and
+"""Option objects of the reduction: what :func:`~slicersim.reduction.pipeline.reduce_exposure` and
 :func:`~slicersim.reduction.forward_extraction.extract_forward` are asked to do, in one frozen,
-checked value each.
+checked value each (:class:`~slicersim.reduction.rectify_checks.RectifyOptions` is rectify's).
 
 Every function taking one accepts it as ``options=`` and the same names as keywords (the keyword
 form of earlier releases keeps working: the keywords build the object, or replace fields of a
@@ -11,34 +10,15 @@ naming the field), so a bad option is refused before any data are read.
 from __future__ import annotations
 
 import dataclasses
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from slicersim import validation
-from slicersim.errors import ParameterError
 from slicersim.reduction.checks import DEFAULT_NCOL, FORWARD, check_fit_options, check_spectra_options, dark_rate_of
+from slicersim.reduction.option_forms import pair, set_field
 
-__all__ = ["ReduceOptions", "RectifyOptions", "ForwardOptions", "PixelNoise", "build_options"]
-
-
-def build_options(cls, options, keywords, where):
-    """An instance of the options dataclass ``cls`` from ``options`` (an instance, or None for the
-    defaults) with the fields named in ``keywords`` replaced; an unknown keyword is a
-    ParameterError with the valid names (and a "did you mean")."""
-    names = [f.name for f in dataclasses.fields(cls)]
-    for key in keywords:
-        validation.choice("keyword", key, names, what=f"{where} keyword")
-    if options is None:
-        return cls(**keywords)
-    if not isinstance(options, cls):
-        raise ParameterError(f"{where}: options must be a {cls.__name__}, got {validation.short_repr(options)}")
-    return dataclasses.replace(options, **keywords) if keywords else options
-
-
-def _set(obj, name, value):
-    object.__setattr__(obj, name, value)          # normalising a frozen dataclass in __post_init__
+__all__ = ["ReduceOptions", "ForwardOptions", "PixelNoise"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,18 +60,18 @@ class ReduceOptions:
 
     def __post_init__(self):
         from slicersim.reduction.rectify_checks import angstrom
-        _set(self, "lbda_edges", angstrom("lbda_edges", self.lbda_edges))
+        set_field(self, "lbda_edges", angstrom("lbda_edges", self.lbda_edges))
         given = {name: getattr(self, name) for name in ("field", "ncol", "rectify_method", "extraction", "position",
                                                         "background", "weights", "config", "ipc")}
         checked = check_spectra_options(**{k: v for k, v in given.items() if v is not None})
         for name in ("ncol", "position", "background"):
             if name in checked:
-                _set(self, name, checked[name])
-        _set(self, "propagate", validation.flag("propagate", self.propagate))
-        _set(self, "keep_information", validation.flag("keep_information", self.keep_information))
-        _set(self, "aperture", validation.number("aperture [PSF σ]", self.aperture, low=0.0, low_open=True))
+                set_field(self, name, checked[name])
+        set_field(self, "propagate", validation.flag("propagate", self.propagate))
+        set_field(self, "keep_information", validation.flag("keep_information", self.keep_information))
+        set_field(self, "aperture", validation.number("aperture [PSF σ]", self.aperture, low=0.0, low_open=True))
         if self.fit_options is not None:
-            _set(self, "fit_options", check_fit_options(self.fit_options))
+            set_field(self, "fit_options", check_fit_options(self.fit_options))
         if isinstance(self.psf, str):
             validation.choice("psf", self.psf, ("fit",))
         if not (isinstance(self.dark, str) and self.dark == "auto") and self.dark is not None:
@@ -122,45 +102,6 @@ class ReduceOptions:
 
 
 @dataclass(frozen=True, eq=False)
-class RectifyOptions:
-    """Options of :func:`~slicersim.reduction.rectify.rectify` (see its docstring).
-
-    mapper : SlicerMapper (None: the default layout);  field : "narrow", "wide" or "both"
-    lbda, lbda_edges : output bin centres and/or edges [Å];  ncol : columns per slice
-    method : "lsq" or "drizzle";  oversample, truncate, weights_dtype : the projection's options
-    unit : the image's unit (e.g. "e-/s");  max_bytes : memory for one slice's factorisation [bytes]
-    backend : "auto", "numpy" or "opencl";  keep_information : keep the cube's inverse covariance
-    """
-
-    mapper: object = None
-    field: str = "narrow"
-    lbda: object = None
-    lbda_edges: object = None
-    ncol: int = 116
-    method: str = "lsq"
-    oversample: tuple = (1, 1)
-    truncate: float = 4.0
-    weights_dtype: object = np.float32
-    unit: str = "e-/s"
-    max_bytes: int = 2**30
-    backend: str = "auto"
-    keep_information: bool = False
-
-    def __post_init__(self):
-        from slicersim.reduction.rectify_checks import _check_options, _check_projection, angstrom
-        _check_options(self.field, self.method, self.ncol, self.backend, None)
-        for name in ("lbda", "lbda_edges"):
-            _set(self, name, angstrom(name, getattr(self, name)))
-        _set(self, "ncol", int(self.ncol))
-        _set(self, "oversample", _check_projection(self.oversample, self.truncate, self.weights_dtype))
-        _set(self, "truncate", float(self.truncate))
-        _set(self, "max_bytes", validation.integer("max_bytes [bytes]", self.max_bytes, low=1))
-        _set(self, "keep_information", validation.flag("keep_information", self.keep_information))
-        if not isinstance(self.unit, str):
-            raise ParameterError(f"unit must be a str (e.g. 'e-/s'), got {validation.short_repr(self.unit)}")
-
-
-@dataclass(frozen=True, eq=False)
 class ForwardOptions:
     """Options of :func:`~slicersim.reduction.forward_extraction.extract_forward` (see its docstring).
 
@@ -182,13 +123,13 @@ class ForwardOptions:
     def __post_init__(self):
         from slicersim.reduction.rectify_checks import angstrom
         validation.choice("field", self.field, ("narrow", "wide"))
-        _set(self, "lbda_edges", angstrom("lbda_edges", self.lbda_edges))
-        _set(self, "background", validation.flag("background", self.background))
+        set_field(self, "lbda_edges", angstrom("lbda_edges", self.lbda_edges))
+        set_field(self, "background", validation.flag("background", self.background))
         for name in ("position", "start"):
             value = getattr(self, name)
             if value is not None:
-                _set(self, name, _pair(name, value))
-        _set(self, "cell_scale", _pair("cell_scale", self.cell_scale, positive=True))
+                set_field(self, name, pair(name, value))
+        set_field(self, "cell_scale", pair("cell_scale", self.cell_scale, positive=True))
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,11 +142,3 @@ class PixelNoise:
     var_poisson: object
     raw_rate: object
     dark_rate: object = 0.0
-
-
-def _pair(name, value, positive=False):
-    """(x, y) as two finite floats (> 0 with ``positive``)."""
-    if isinstance(value, (str, bytes, os.PathLike)) or np.ndim(value) != 1 or np.size(value) != 2:
-        raise ParameterError(f"{name} must be a pair (x, y) of numbers, got {validation.short_repr(value)}")
-    low = 0.0 if positive else -np.inf
-    return tuple(validation.number(f"{name}[{i}]", v, low=low, low_open=positive) for i, v in enumerate(value))

@@ -25,7 +25,8 @@ from slicersim.backends.precision import float64_kwargs
 from slicersim.errors import ParameterError, RampFileError, ReductionError, SlicersimError
 from slicersim.io.atomic import AtomicH5File
 from slicersim.reduction.checks import FORWARD, check_spectra_options, dark_rate_of, default_lbda_edges
-from slicersim.reduction.options import ReduceOptions, build_options
+from slicersim.reduction.option_forms import build_options
+from slicersim.reduction.options import ReduceOptions
 
 __all__ = ["reduce_exposure", "ReduceOptions", "default_lbda_edges", "check_forward_fit", "SUSPECT_CHI2_DOF"]
 

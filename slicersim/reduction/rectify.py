@@ -57,9 +57,9 @@ from slicersim.errors import ParameterError
 from slicersim import validation
 from slicersim.backends.precision import float64_kwargs
 from slicersim.instrument.mapper import SlicerMapper
-from slicersim.reduction.options import RectifyOptions, build_options
-from slicersim.reduction.rectify_checks import (FIELDS, METHODS, _check_grid, _check_images, _check_options,
-                                                _check_projection)
+from slicersim.reduction.option_forms import build_options
+from slicersim.reduction.rectify_checks import (FIELDS, METHODS, RectifyOptions, _check_grid, _check_images,
+                                                _check_options, _check_projection)
 
 __all__ = ["rectify", "CubeProduct", "InverseCovariance", "inverse_covariance", "FIELDS", "METHODS",
            "MAX_CONDITION"]
@@ -447,7 +447,7 @@ def _field_tables(mapper, name, edges, ncol, ov, truncate, weights_dtype, backen
 def rectify(rate_image, variance=None, options=None, **keywords):
     """Rectify a detector rate image into the cube(s) of a field: see the module docstring.
 
-    ``options`` is a :class:`~slicersim.reduction.options.RectifyOptions` (None: its defaults); its
+    ``options`` is a :class:`~slicersim.reduction.rectify_checks.RectifyOptions` (None: its defaults); its
     fields, given as keywords, replace those of ``options`` (the keyword form of earlier releases):
 
     Parameters

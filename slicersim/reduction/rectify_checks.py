@@ -1,12 +1,18 @@
 """Checks of :func:`~slicersim.reduction.rectify.rectify`'s inputs: the λ grid, the images and the options
-(each a :class:`~slicersim.errors.ParameterError` naming the parameter, before any work)."""
+(each a :class:`~slicersim.errors.ParameterError` naming the parameter, before any work), and
+:class:`RectifyOptions`, its options object."""
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
+from slicersim.reduction.option_forms import set_field
+
+__all__ = ["RectifyOptions", "angstrom", "FIELDS", "METHODS"]
 
 FIELDS = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}
 METHODS = ("lsq", "drizzle")
@@ -128,3 +134,41 @@ def angstrom(name, value):
     except Exception:
         raise ParameterError(f"{name} must be wavelengths [Å] (or a Quantity in a length unit), got "
                              f"{validation.short_repr(value)}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class RectifyOptions:
+    """Options of :func:`~slicersim.reduction.rectify.rectify` (see its docstring).
+
+    mapper : SlicerMapper (None: the default layout);  field : "narrow", "wide" or "both"
+    lbda, lbda_edges : output bin centres and/or edges [Å];  ncol : columns per slice
+    method : "lsq" or "drizzle";  oversample, truncate, weights_dtype : the projection's options
+    unit : the image's unit (e.g. "e-/s");  max_bytes : memory for one slice's factorisation [bytes]
+    backend : "auto", "numpy" or "opencl";  keep_information : keep the cube's inverse covariance
+    """
+
+    mapper: object = None
+    field: str = "narrow"
+    lbda: object = None
+    lbda_edges: object = None
+    ncol: int = 116
+    method: str = "lsq"
+    oversample: tuple = (1, 1)
+    truncate: float = 4.0
+    weights_dtype: object = np.float32
+    unit: str = "e-/s"
+    max_bytes: int = 2**30
+    backend: str = "auto"
+    keep_information: bool = False
+
+    def __post_init__(self):
+        _check_options(self.field, self.method, self.ncol, self.backend, None)
+        for name in ("lbda", "lbda_edges"):
+            set_field(self, name, angstrom(name, getattr(self, name)))
+        set_field(self, "ncol", int(self.ncol))
+        set_field(self, "oversample", _check_projection(self.oversample, self.truncate, self.weights_dtype))
+        set_field(self, "truncate", float(self.truncate))
+        set_field(self, "max_bytes", validation.integer("max_bytes [bytes]", self.max_bytes, low=1))
+        set_field(self, "keep_information", validation.flag("keep_information", self.keep_information))
+        if not isinstance(self.unit, str):
+            raise ParameterError(f"unit must be a str (e.g. 'e-/s'), got {validation.short_repr(self.unit)}")

@@ -44,7 +44,8 @@ def _native_groups(native_shape, native_lbda_edges, lbda_edges):
         raise ParameterError(f"native_lbda_edges must be {native_shape[0] + 1} finite increasing edges [Å] "
                              f"(the native cube has {native_shape[0]} bins), got shape {ne.shape}")
     if ce.ndim != 1 or ce.size < 2 or not np.all(np.isfinite(ce)) or np.any(np.diff(ce) <= 0):
-        raise ParameterError(f"lbda_edges must be at least 2 finite increasing edges [Å], got {validation.short_repr(ce)}")
+        raise ParameterError(f"lbda_edges must be at least 2 finite increasing edges [Å], got "
+                             f"{validation.short_repr(ce)}")
     if ce[0] < ne[0] or ce[-1] > ne[-1]:
         raise ParameterError(f"the coarse grid {ce[0]:.6g}–{ce[-1]:.6g} Å must lie within the native grid "
                              f"{ne[0]:.6g}–{ne[-1]:.6g} Å")
