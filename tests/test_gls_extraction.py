@@ -81,7 +81,7 @@ def test_gls_needs_the_inverse_covariance(setup):
     unweighted = rectify(noisy, mapper=small, lbda_edges=EDGES, ncol=NCOL)       # no variance: no N
     with pytest.raises(ParameterError, match="gls"):
         extract_spectrum(unweighted, psf=psf, method="gls")
-    with pytest.raises(ParameterError, match="method must be one of"):
+    with pytest.raises(ParameterError, match=r"unknown method 'GLS'.*valid: 'optimal', 'aperture', 'gls'"):
         extract_spectrum(cp, psf=psf, method="GLS")
 
 
@@ -103,6 +103,8 @@ def test_inverse_covariance_kept_lazy_and_rebuilt_agree(setup):
         np.testing.assert_allclose(np.diag(C), cp.variance[:, row, :].ravel()[seen], rtol=1e-9)
     with pytest.raises(ParameterError, match="row"):
         kept.matrix(58)
+    with pytest.raises(ParameterError, match=r"row \(cube row\) must be an integer in \[0, 57\], got 2.5"):
+        kept.matrix(2.5)                                      # was truncated to row 2
 
 
 def test_gls_on_the_cube_is_gls_on_the_pixels(setup):

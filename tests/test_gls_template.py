@@ -120,8 +120,18 @@ def test_template_inputs_are_checked(setup):
         point_source_template(np.where(np.arange(20)[:, None, None] < 2, 0.0, ps), NATIVE, EDGES, **kw)
     with pytest.raises(ParameterError, match="field"):
         point_source_template(ps, NATIVE, EDGES, mapper=small, field="both", ncol=NCOL)
-    with pytest.raises(ParameterError, match="ncol"):
+    with pytest.raises(ParameterError, match=r"unknown field \(one cube per template\) 'both'"):
+        point_source_template(ps, NATIVE, EDGES, mapper=small, field="both", ncol=NCOL)
+    with pytest.raises(ParameterError, match=r"ncol \(columns of the coarse cube\) must be an integer ≥ 1"):
         point_source_template(ps, NATIVE, EDGES, mapper=small, field="narrow", ncol=0)
+    with pytest.raises(ParameterError, match=r"ncol \(columns of the coarse cube\) must be an integer ≥ 1, got 24.5"):
+        point_source_template(ps, NATIVE, EDGES, mapper=small, field="narrow", ncol=24.5)
+    from slicersim.reduction.templates import background_template
+    for bad, match in (((58,), r"native_shape \(ny, nx_native\) must be 2 integers"),
+                       ((58, 2.5), r"native_shape \(ny, nx_native\)\[1\] must be an integer"),
+                       ((0, 10), r"native_shape \(ny, nx_native\)\[0\] must be an integer in \[1, 65536\]")):
+        with pytest.raises(ParameterError, match=match):                   # 2.5 was truncated to 2
+            background_template(bad, NATIVE, EDGES, **kw)
     with pytest.raises(ParameterError, match="mapper"):
         point_source_template(ps, NATIVE, EDGES, mapper=None, field="narrow", ncol=NCOL)
     with pytest.raises(ParameterError, match="template psf"):

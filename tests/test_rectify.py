@@ -265,7 +265,7 @@ def test_bad_input_is_refused_before_any_work(mapper, monkeypatch):
         (dict(variance=np.ones((10, 10))), "variance must have shape"),
         (dict(variance=np.full(mapper.detector_shape, -1.0)), "variance must be ≥ 0"),
         (dict(method="psf"), "unknown method"),
-        (dict(ncol=0), "ncol must be a positive integer"),
+        (dict(ncol=0), "ncol must be an integer ≥ 1"),
     ]
     for change, message in cases:
         kw = dict(rate_image=good, variance=None, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges,

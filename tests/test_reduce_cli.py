@@ -153,11 +153,11 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     (["--spectra", "--lbda-edges", "9050,9950,7"], "multiple of STEP"),
     (["--spectra", "--lbda-edges", "0,1e12,1e-3"], "bins (at most"),
     (["--spectra", "--lbda-edges", "5000,6000,50"], "leaves the traces"),
-    (["--spectra", "--ncol", "0"], "ncol must be an integer in [1, 1024]"),
-    (["--spectra", "--ncol", "100000"], "ncol must be an integer in [1, 1024]"),
+    (["--spectra", "--ncol", "0"], "--ncol must be an integer in [1, 1024]"),
+    (["--spectra", "--ncol", "100000"], "--ncol must be an integer in [1, 1024]"),
     (["--spectra", "--aperture", "-1"], "aperture"),
     (["--spectra", "--aperture", "nan"], "aperture"),
-    (["--spectra", "--aperture", "7"], "aperture [PSF σ] must be < 6"),
+    (["--spectra", "--aperture", "7"], "--aperture [PSF σ] must be in (0, 6)"),
     (["--spectra", "--position", "1"], "--position must be X,Y"),
     (["--spectra", "--position", "nan,1"], "finite"),
     (["--spectra", "--psf", "nope.npy"], "--psf must be 'fit' or an existing .npy"),
@@ -165,8 +165,11 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     (["--spectra", "--extraction", "gls", "--rectify", "drizzle"], "needs an lsq cube"),
     (["--workers", "2"], "--workers applies only to a campaign dataset"),
     (["--retry-failed"], "--retry-failed applies only to a campaign dataset"),
-    (["--gain", "0"], "--gain must be a finite number > 0"),
-    (["--read-noise", "-1"], "--read-noise must be a finite number ≥ 0"),
+    (["--gain", "0"], "--gain [DN/e-] must be > 0"),
+    (["--read-noise", "-1"], "--ron (read noise [e-]) must be ≥ 0"),
+    (["--ron", "nan"], "--ron (read noise [e-]) must be ≥ 0, got nan"),
+    (["--jump-threshold", "-1"], "--jump-threshold [σ] (0: no jump detection) must be ≥ 0"),
+    (["--show", "-1"], "--show must be an integer ≥ 0"),
     (["--out-is-dir"], "is a directory"),
     (["--spectra", "--position", "1e300,0"], "lies outside the field"),
     (["--spectra", "--position", "0,29.5"], "|y| ≤ 29"),
@@ -316,7 +319,7 @@ def test_out_that_is_the_raw_file_is_refused_even_with_overwrite(raw, tmp_path, 
     (lambda f: f("raw.h5", spectra=True, psf=np.full((12, 58, 58), np.nan)), "finite"),
     (lambda f: f("raw.h5", spectra=True, background="no"), "background must be True or False"),
     (lambda f: f("raw.h5", spectra=True, position=(1, 2, 3)), "position must be"),
-    (lambda f: f("raw.h5", spectra=True, wavelength=3), "unexpected keyword"),
+    (lambda f: f("raw.h5", spectra=True, wavelength=3), "unknown reduction option 'wavelength'"),
 ])
 def test_reduce_file_wrong_types(call, message):
     from slicersim.reduction.campaign import reduce_file
@@ -374,3 +377,39 @@ def test_cli_warnings_are_one_line():
                                "campaign.py", 122)
     assert text == "slicersim: warning: no instrument configuration: the spectrum ...\n"
     assert cli.main(["info"]) == 0 and warnings.formatwarning is not cli._format_warning     # restored
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("ncol must be an integer in [1, 1024], got 0", "--ncol must be an integer in [1, 1024], got 0"),
+    ("unknown rectify_method 'lsqr' (did you mean 'lsq'?)", "unknown --rectify 'lsqr' (did you mean 'lsq'?)"),
+    ("aperture [PSF σ] must be in (0, 6), got 7.0", "--aperture [PSF σ] must be in (0, 6), got 7.0"),
+    ("propagate applies to 'optimal' or 'aperture' extraction", "--no-propagate applies to 'optimal' or 'aperture' "
+     "extraction"),
+    ("no point source in the wide field; give position= (CLI --position) to extract there anyway, or field= "
+     "(CLI --field) for the other field", "no point source in the wide field; give --position to extract there "
+     "anyway, or --field for the other field"),
+    ("the file records none (its CONFIG keyword); give config= (CLI: --config cbe|eol|PATH)",
+     "the file records none (its CONFIG keyword); give --config"),
+    ("a partial band (allow_partial=True in Python, --allow-partial on the command line)",
+     "a partial band (--allow-partial)"),
+    ("partial: pass allow_partial=True", "partial: pass --allow-partial"),
+    ("unknown fit_ramps option 'jump'", "unknown fit_ramps option 'jump'"),      # no keyword named: unchanged
+    ("dark rates must be finite, ≥ 0 and ≤ 1e+06 e-/s", "dark rates must be finite, ≥ 0 and ≤ 1e+06 e-/s"),
+])
+def test_errors_name_the_command_line_flags(text, expected):
+    """Issue 24: an error of the reduction reaching the CLI names the flag to change (--allow-partial, not
+    allow_partial=True; --rectify, not rectify_method)."""
+    from slicersim.app.reduce_cli import cli_message
+    assert cli_message(text) == expected
+
+
+def test_a_reduction_error_reaching_the_cli_is_reworded_with_its_class(tmp_path):
+    """The flag wording keeps the error's class (ReductionError stays a ReductionError, a SlicersimError)."""
+    from slicersim.app.reduce_cli import _FlagNames
+    from slicersim.errors import ReductionError
+    with pytest.raises(ReductionError, match=r"^no source; give --position$"):
+        with _FlagNames():
+            raise ReductionError("no source; give position= (CLI --position)")
+    with pytest.raises(KeyError):                                     # not ours: untouched
+        with _FlagNames():
+            raise KeyError("position=")

@@ -230,6 +230,10 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
              ((campaign, tmp_path / "r6"), {"fit_options": {"weighting": "best"}}, ParameterError, "weighting"),
              ((campaign, tmp_path / "r7"), {"fit_options": {"jump": 3}}, ParameterError, "unknown fit_ramps"),
              ((campaign, tmp_path / "r8"), {"spectra": True, "ncol": 10**9}, ParameterError, "ncol"),
+             ((campaign, tmp_path / "r12"), {"mapper": object()}, ParameterError,
+              r"option\(s\) mapper apply only with spectra"),
+             ((campaign, tmp_path / "r13"), {"spectra": True, "ncols": 5}, ParameterError,
+              r"unknown reduction option 'ncols' \(did you mean 'ncol'\?\)"),
              ((campaign, tmp_path / "r9"), {"spectra": True, "aperture": float("nan")}, ParameterError, "aperture"),
              ((campaign, tmp_path / "r10"), {"spectra": True, "lbda_edges": [20000, 30000]}, ParameterError,
               "leaves the traces"),
@@ -239,7 +243,7 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
     for args, kwargs, error, message in cases:
         with pytest.raises(error, match=message):
             reduce_dataset(*args, progress=False, **kwargs)
-    assert afile.read_text() == "keep" and not any((tmp_path / f"r{i}").exists() for i in range(2, 11))
+    assert afile.read_text() == "keep" and not any((tmp_path / f"r{i}").exists() for i in range(2, 14))
     # a campaign dataset is never an output, even with force
     other = _linked_copy(campaign, tmp_path / "other")
     with pytest.raises(DatasetError, match="is a campaign dataset"):
@@ -263,13 +267,13 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
 
 @pytest.mark.parametrize("argv, message", [
     (["--overwrite"], "--overwrite applies to a single ramp file"),
-    (["--workers", "0"], "--workers must be ≥ 1"),
+    (["--workers", "0"], "--workers must be an integer ≥ 1, got 0"),
     (["--ncol", "20"], "--ncol applies only with --spectra"),
     (["--spectra", "--lbda-edges", "9000,8000,10"], "START < STOP"),
     (["--spectra", "--extraction", "gls", "--rectify", "drizzle"], "needs an lsq cube"),
     (["--scheduler", "nowhere"], "tcp://host:port"),
     (["--workers", "100000"], "workers must be ≤"),
-    (["--show", "-1"], "--show must be ≥ 0"),
+    (["--show", "-1"], "--show must be an integer ≥ 0, got -1"),
 ])
 def test_cli_dataset_flags_are_checked(campaign, tmp_path, argv, message):
     out = tmp_path / "red"
@@ -339,3 +343,16 @@ def test_spectra_of_every_target_in_its_own_field(small_dataset, tmp_path):
     assert again["computed"] == 0
     with pytest.raises(DatasetError, match="other options"):
         reduce_dataset(path, tmp_path / "red", workers=1, progress=False)
+
+
+def test_progress_follows_the_keyword_convention(monkeypatch):
+    """progress: None (the default) draws a bar only when stderr is a terminal; True/False as given;
+    anything else is a ParameterError naming progress."""
+    import io
+    import sys
+
+    from slicersim.reduction.campaign import _progress
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    assert _progress(None) is False and _progress(True) is True and _progress(False) is False
+    with pytest.raises(ParameterError, match="progress must be True or False"):
+        _progress("yes")

@@ -117,9 +117,9 @@ def test_a_psf_that_is_not_fractions_is_refused(small_cubes, method, tmp_path, s
     assert "Σ over the field ≤ 1" in capsys.readouterr().err and not (tmp_path / "r.h5").exists()
 
 
-@pytest.mark.parametrize("kwargs, message", [({"nchunks": 0}, "nchunks must be a positive integer"),
-                                             ({"nchunks": -3}, "nchunks must be a positive integer"),
-                                             ({"nchunks": 2.5}, "nchunks must be a positive integer"),
+@pytest.mark.parametrize("kwargs, message", [({"nchunks": 0}, r"nchunks \(λ chunks of the PSF fit\) must be an integer ≥ 1"),
+                                             ({"nchunks": -3}, r"nchunks \(λ chunks of the PSF fit\) must be an integer ≥ 1"),
+                                             ({"nchunks": 2.5}, r"nchunks \(λ chunks of the PSF fit\) must be an integer ≥ 1"),
                                              ({"background": "no"}, "background must be True or False")])
 @pytest.mark.parametrize("method", ["optimal", "aperture", "gls"])
 def test_extraction_options_of_the_wrong_kind_are_refused(small_cubes, method, kwargs, message):

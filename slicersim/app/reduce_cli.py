@@ -25,6 +25,49 @@ _DATASET_FLAGS = (("--workers", "workers"), ("--scheduler", "scheduler"), ("--re
                   ("--force", "force"), ("--verify", "verify"))
 #: most λ bins accepted from START,STOP,STEP
 MAX_BINS = 100_000
+#: the command-line flag of each Python keyword a reduction error may name
+FLAG_OF = {"field": "--field", "lbda_edges": "--lbda-edges", "ncol": "--ncol", "rectify_method": "--rectify",
+           "extraction": "--extraction", "psf": "--psf", "position": "--position", "aperture": "--aperture",
+           "config": "--config", "background": "--no-background", "ipc": "--no-ipc", "propagate": "--no-propagate",
+           "dark": "--dark", "weights": "--weights", "weighting": "--weighting", "jump_threshold": "--jump-threshold",
+           "gain": "--gain", "read_noise": "--ron", "ron": "--ron", "with_truth": "--with-truth",
+           "refpix": "--no-refpix", "linearity": "--no-linearity", "workers": "--workers",
+           "scheduler": "--scheduler", "allow_partial": "--allow-partial"}
+
+
+def cli_message(text):
+    """A reduction error's message with the Python keywords it names written as command-line flags:
+    a leading ``name`` ("ncol must be ...", "unknown weights ..."), ``name=VALUE`` and ``name=``
+    (a hint "give position= (CLI --position)" keeps only the flag)."""
+    import re
+    names = "|".join(sorted(FLAG_OF, key=len, reverse=True))
+    text = re.sub(rf"\b({names})=\S* in Python, (--[\w-]+) on the command line", lambda m: m.group(2), text)
+    text = re.sub(rf"\b({names})=\S*\s*\((?:CLI:?|on the command line:?)\s*(--[\w-]+)[^)]*\)",
+                  lambda m: m.group(2), text)
+    text = re.sub(rf"\b({names})=(?:True|False|None|'[^']*'|\S+\b)?", lambda m: FLAG_OF[m.group(1)], text)
+    text = re.sub(rf"^(unknown )?({names})\b(?= \(| \[| must| has| applies| apply|:| [\'\"])",
+                  lambda m: (m.group(1) or "") + FLAG_OF[m.group(2)], text)
+    return text
+
+
+class _FlagNames:
+    """Context: a SlicersimError raised inside is raised again, same class, with :func:`cli_message`."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        from slicersim.errors import SlicersimError
+        if exc is None or not isinstance(exc, SlicersimError) or not exc.args or not isinstance(exc.args[0], str):
+            return False
+        text = cli_message(exc.args[0])
+        if text == exc.args[0]:
+            return False
+        try:
+            new = type(exc)(text)
+        except Exception:                       # a subclass with another constructor: leave it
+            return False
+        raise new.with_traceback(tb) from exc.__cause__
 
 
 def _check_out(path, overwrite):
@@ -124,6 +167,7 @@ def _apply(flags):
 
 
 def _check_flags(args, dataset):
+    from slicersim import validation
     from slicersim.errors import ParameterError
     if not args.spectra and _given(args, _SPECTRA_FLAGS):
         raise ParameterError(f"{_apply(_given(args, _SPECTRA_FLAGS))} only with --spectra")
@@ -133,15 +177,15 @@ def _check_flags(args, dataset):
     if dataset and args.overwrite:
         raise ParameterError("--overwrite applies to a single ramp file; a reduction directory is resumed "
                              "(--force starts it again when its options changed)")
-    if args.workers is not None and args.workers < 1:
-        raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
-    if args.show < 0:
-        raise ParameterError(f"--show must be ≥ 0, got {args.show}")
-    if args.jump_threshold is not None and not args.jump_threshold >= 0:
-        raise ParameterError(f"--jump-threshold must be ≥ 0 (0: no jump detection), got {args.jump_threshold}")
-    for flag, val, lo in (("--gain", args.gain, 0.0), ("--read-noise", args.read_noise, None)):
-        if val is not None and not (math.isfinite(val) and (val > lo if lo is not None else val >= 0)):
-            raise ParameterError(f"{flag} must be a finite number {'> 0' if lo is not None else '≥ 0'}, got {val}")
+    if args.workers is not None:
+        validation.integer("--workers", args.workers, low=1)
+    validation.integer("--show", args.show, low=0)
+    if args.jump_threshold is not None:
+        validation.number("--jump-threshold [σ] (0: no jump detection)", args.jump_threshold, low=0.0)
+    if args.gain is not None:
+        validation.number("--gain [DN/e-]", args.gain, low=0.0, low_open=True)
+    if args.ron is not None:
+        validation.number("--ron (read noise [e-])", args.ron, low=0.0)
 
 
 def _spectra_options(args):
@@ -156,7 +200,8 @@ def _spectra_options(args):
             "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights,
             "config": args.config, "ipc": False if args.no_ipc else None}
     opts = {k: v for k, v in opts.items() if v is not None}       # --dark none: "none" (kept, not None)
-    check_spectra_options(**opts)                  # every value, before any data are read
+    with _FlagNames():
+        check_spectra_options(**opts)              # every value, before any data are read
     return opts
 
 
@@ -170,14 +215,15 @@ def cmd_reduce(args) -> int:
         raise ParameterError(f"--out is RAW itself ({args.raw}): the ramps would be lost")
     fit_options = {"refpix": False if args.no_refpix else None, "linearity": False if args.no_linearity else None,
                    "jump_threshold": args.jump_threshold, "weighting": args.weighting, "gain": args.gain,
-                   "read_noise": args.read_noise, "with_truth": args.with_truth}
+                   "ron": args.ron, "with_truth": args.with_truth}
     options = _spectra_options(args) if args.spectra else {}
     if dataset:
         return _reduce_dataset(args, fit_options, options)
     _check_out(args.out, args.overwrite)
     from slicersim.reduction.campaign import reduce_file
-    result = reduce_file(args.raw, args.out, spectra=args.spectra, overwrite=args.overwrite,
-                         fit_options=fit_options, progress=not args.quiet and None, **options)
+    with _FlagNames():
+        result = reduce_file(args.raw, args.out, spectra=args.spectra, overwrite=args.overwrite,
+                             fit_options=fit_options, progress=not args.quiet and None, **options)
     rate = result["rates"].rate
     line = (f"{result['path']}: rates {rate.shape[-2]}×{rate.shape[-1]} of {rate.shape[0] if rate.ndim == 3 else 1} "
             f"integration(s), {int((result['rates'].njumps > 0).sum())} pixel(s) with jumps")
@@ -192,9 +238,11 @@ def cmd_reduce(args) -> int:
 
 def _reduce_dataset(args, fit_options, options):
     from slicersim.reduction.campaign import reduce_dataset
-    res = reduce_dataset(args.raw, args.out, workers=args.workers, scheduler=args.scheduler, spectra=args.spectra,
-                         retry_failed=args.retry_failed, force=args.force, verify=args.verify,
-                         progress=not args.quiet, fit_options=fit_options, **options)
+    with _FlagNames():
+        res = reduce_dataset(args.raw, args.out, workers=args.workers, scheduler=args.scheduler,
+                             spectra=args.spectra, retry_failed=args.retry_failed, force=args.force,
+                             verify=args.verify, progress=False if args.quiet else None, fit_options=fit_options,
+                             **options)
     print(f"{res['out']}: {res['targets']} targets, {res['done']} reduced, {res['failed']} failed, "
           f"{res['missing']} missing, {res['unavailable']} without ramps ({res['computed']} reduced now "
           f"in {res['seconds']:.1f} s)")
@@ -230,7 +278,8 @@ def add_parsers(sub, fmt):
     p.add_argument("--no-refpix", action="store_true", help="skip the reference-pixel correction")
     p.add_argument("--no-linearity", action="store_true", help="skip the nonlinearity correction")
     p.add_argument("--gain", type=float, metavar="DN/e-", help="override the file's GAIN")
-    p.add_argument("--read-noise", type=float, metavar="e-", help="override the file's read noise per frame")
+    p.add_argument("--ron", "--read-noise", dest="ron", type=float, metavar="e-",
+                   help="override the file's read noise per frame [e-] (--read-noise: its earlier name)")
     p.add_argument("--with-truth", action="store_true", help="copy truth/rate beside the fitted rates "
                    "(TRUTH_RATE; rates/TRUTH_RATE with --spectra)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

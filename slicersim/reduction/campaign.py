@@ -60,7 +60,7 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
         (:func:`~slicersim.reduction.pipeline.reduce_exposure` with ``options``: field, lbda_edges,
         ncol, rectify_method, extraction, psf, position, aperture, background, propagate)
     fit_options : ``fit_ramps`` keywords (weighting, jump_threshold, refpix, linearity, gain,
-        read_noise, with_truth: the truth rate is written as TRUTH_RATE / rates/TRUTH_RATE)
+        ron (read_noise: its earlier name), with_truth: the truth rate is written as TRUTH_RATE / rates/TRUTH_RATE)
     out : HDF5 path written atomically (None: nothing written)
 
     Returns ``{"rates": RateProduct, "path": absolute path or None}`` (rates only) or
@@ -84,7 +84,7 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
         from slicersim.reduction.rectify import _default_mapper
         shape = tuple((mapper or _default_mapper()).detector_shape)
     check_ramp_file(raw, with_truth=bool(fit.get("with_truth")), gain=fit.get("gain"),
-                    read_noise=fit.get("read_noise"), detector_shape=shape)
+                    ron=fit.get("ron", fit.get("read_noise")), detector_shape=shape)
     if progress is not None:
         fit["progress"] = progress
     if not spectra:
@@ -96,8 +96,9 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
 
 
 def _check_path(path, name):
+    """A path (str or os.PathLike, not empty): existence is checked where it is read or written."""
     if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
-        raise ParameterError(f"{name} must be a path, got {path!r}")
+        raise ParameterError(f"{name} must be a path, got {validation.short_repr(path)}")
 
 
 def _check_workers(workers):
@@ -173,7 +174,7 @@ def _source(dataset):
 
 
 #: fit_ramps keywords that do not change the rates (left out of a reduction's identity)
-_RUNTIME = {"progress", "memory_budget", "backend", "work_group", "return_groupdq"}
+_RUNTIME = {"progress", "memory_budget", "max_bytes", "backend", "work_group", "return_groupdq"}
 
 
 def _defaults(func, keys=None):
@@ -187,14 +188,16 @@ def _identity(mode, opts, fit, source_digest, mapper):
     defaults filled in (options as JSON; arrays by value or digest)."""
     import hashlib
 
-    from slicersim.reduction.pipeline import reduce_exposure
+    from slicersim.reduction.options import ReduceOptions
     from slicersim.reduction.ramp_fit import fit_ramps
     fit = {**{k: v for k, v in _defaults(fit_ramps).items() if k not in _RUNTIME},
            **{k: v for k, v in fit.items() if k not in _RUNTIME and v is not None}}
+    if "ron" in fit:                                 # one name in the identity whatever fit_ramps calls it
+        fit["read_noise"] = fit.pop("ron")
     if mode == "spectra":
         keys = {"field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
                 "background", "propagate", "dark", "weights", "config", "ipc"}
-        opts = {**_defaults(reduce_exposure, keys), **opts}
+        opts = {**{k: v for k, v in ReduceOptions.defaults().items() if k in keys}, **opts}
         if opts.get("field") is None:
             opts["field"] = "(each target's)"
         # what the default extraction is: reductions made before the forward model are not resumed into it
@@ -247,14 +250,16 @@ def _lock(ds):
 
 
 def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False, retry_failed=False, force=False,
-                   verify=False, progress=True, window=None, fit_options=None, mapper=None, **options):
+                   verify=False, progress=None, window=None, fit_options=None, **options):
     """Reduce (or resume reducing) every target's ramps of campaign dataset ``dataset`` into the
     reduction directory ``out`` (module docstring), one Dask task per target.
 
     workers : embedded LocalCluster size (default: the CPU count); scheduler : "tcp://host:port"
-    spectra : rates, cubes and spectra (reduce_exposure) instead of rates only; ``field`` defaults
-        to each target's own field (the campaign's), the other ``options`` to reduce_exposure's
-    fit_options : fit_ramps keywords;  mapper : SlicerMapper of the ramps' detector (spectra)
+    spectra : rates, cubes and spectra (reduce_exposure) instead of rates only; ``options`` are
+        reduce_exposure's (:class:`~slicersim.reduction.options.ReduceOptions` fields: ``mapper``, the
+        SlicerMapper of the ramps' detector, ``field``, which defaults to each target's own field, ...)
+    fit_options : fit_ramps keywords
+    progress : None (a progress bar when stderr is a terminal), True or False
     retry_failed : reduce the targets recorded as failed again
     force : start again in a directory made with other options or from another dataset
     verify : check every reduced product's sha256 when resuming (default: its size)
@@ -270,9 +275,11 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     t0 = time.perf_counter()
     fit = check_fit_options(fit_options)
     fit.pop("progress", None)                      # no progress bars on the workers
-    if not spectra and (options or mapper is not None):
-        raise ParameterError(f"option(s) {', '.join(sorted(options) or ['mapper'])} apply only with spectra=True")
+    if not spectra and options:
+        raise ParameterError(f"option(s) {', '.join(sorted(options))} apply only with spectra=True")
+    mapper = options.pop("mapper", None)
     opts = check_spectra_options(mapper=mapper, **options) if spectra else {}
+    progress = _progress(progress)
     _check_path(dataset, "dataset")
     _check_path(out, "out")
     if workers is not None and scheduler is None:
@@ -280,12 +287,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     if window is not None:
         validation.positive_int("window", window)
     src, _, source_digest, catalog = _source(dataset)
-    out_path = os.path.abspath(os.fspath(out))
-    real_out, real_src = os.path.realpath(out_path), os.path.realpath(src.path)
-    if real_out == real_src or real_out.startswith(os.path.join(real_src, "products") + os.sep) \
-            or real_out.startswith(os.path.join(real_src, "records") + os.sep) or real_src.startswith(real_out + os.sep):
-        raise DatasetError(f"the reduction directory {out_path} must not be the dataset {src.path}, contain it "
-                           "or lie in its products or records")
+    out_path = _check_out_dir(out, src)
     identity = _identity("spectra" if spectra else "rates", opts, fit, source_digest, mapper)
     ds = Dataset(Dataset.check_path(out_path, force=force))
     stored = ds.stored_spec()
@@ -305,16 +307,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     try:
         digest = ds.initialise(_toml(identity, src.path), identity, software_versions(), force=force)
         sources = _sources(src, ids)
-        state = ds.state(ids, deep=verify)
-        records, todo = {}, []
-        for tid in ids:
-            st, rec, _ = state[tid]
-            info = sources.get(tid)
-            same = rec is not None and info is not None and rec.get("source_sha256") == info["sha256"]
-            if st in ("done", "failed") and same:
-                records[tid] = rec
-            if info is not None and (not same or st == "missing" or (st == "failed" and retry_failed)):
-                todo.append(tid)
+        records, todo = _todo(ds.state(ids, deep=verify), sources, ids, retry_failed)
         base = _base_catalog(catalog)
         ds.write_catalog(_catalog(base, records, sources, src))
         try:
@@ -335,6 +328,41 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
             "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
             "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed}
+
+
+def _check_out_dir(out, src):
+    """The reduction directory's absolute path; refused where it is the dataset, contains it or lies in
+    its products or records."""
+    out_path = os.path.abspath(os.fspath(out))
+    real_out, real_src = os.path.realpath(out_path), os.path.realpath(src.path)
+    if real_out == real_src or real_out.startswith(os.path.join(real_src, "products") + os.sep) \
+            or real_out.startswith(os.path.join(real_src, "records") + os.sep) or real_src.startswith(real_out + os.sep):
+        raise DatasetError(f"the reduction directory {out_path} must not be the dataset {src.path}, contain it "
+                           "or lie in its products or records")
+    return out_path
+
+
+def _todo(state, sources, ids, retry_failed):
+    """({target id: record} of the targets done or failed from their current ramps, [targets to reduce]):
+    those not reduced yet, reduced from other ramps, or failed (with ``retry_failed``)."""
+    records, todo = {}, []
+    for tid in ids:
+        st, rec, _ = state[tid]
+        info = sources.get(tid)
+        same = rec is not None and info is not None and rec.get("source_sha256") == info["sha256"]
+        if st in ("done", "failed") and same:
+            records[tid] = rec
+        if info is not None and (not same or st == "missing" or (st == "failed" and retry_failed)):
+            todo.append(tid)
+    return records, todo
+
+
+def _progress(progress):
+    """progress as True/False: None means a bar only when stderr is a terminal."""
+    import sys
+    if progress is None:
+        return bool(getattr(sys.stderr, "isatty", lambda: False)())
+    return validation.flag("progress", progress)
 
 
 def _portable(mapper):

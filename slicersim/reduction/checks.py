@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import inspect
 import math
-import numbers
 import os
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import one_line
 
@@ -57,16 +57,21 @@ def register_hdf5_filters():
 
 
 # ----------------------------------------------------------------------------- the raw file
-def check_ramp_file(path, with_truth=False, gain=None, read_noise=None, detector_shape=None):
+def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=None, **renamed):
     """Refuse (RampFileError) a raw ramp file the reduction cannot use; headers only.
 
     with_truth : ``truth/rate`` must exist with the detector's shape
-    gain, read_noise : overrides of the file's GAIN / READNOISE (as ``fit_ramps``)
+    gain, ron : overrides of the file's GAIN [DN/e-] / READNOISE [e-] (as ``fit_ramps``; ``read_noise``:
+        the deprecated name of ``ron``)
     detector_shape : (ny, nx) the data must have (the mapper's detector, for spectra)
 
     Returns {"kind", "shape" (nints, ngroups, ny, nx), "nmd", "tframe"}.
     """
     from slicersim.reduction.ramp_fit import _readout, open_ramps, ramp_file_kind
+    validation.renamed_keyword(renamed, "read_noise", "ron", "check_ramp_file")
+    for key in renamed:
+        validation.choice("keyword", key, ("ron",), what="check_ramp_file keyword")
+    ron = renamed.get("ron", ron)
     register_hdf5_filters()
     path = os.fspath(path)
     if os.path.isdir(path):
@@ -84,7 +89,7 @@ def check_ramp_file(path, with_truth=False, gain=None, read_noise=None, detector
         shape = tuple(int(s) for s in src.shape)
         if 0 in shape:
             raise RampFileError(f"{path}: SCI is empty {shape}")
-        nmd, tframe, _, _ = _readout(src.attrs, src.shape, gain, read_noise, path)
+        nmd, tframe, _, _ = _readout(src.attrs, src.shape, gain, ron, path)
         if header is not None:
             _check_fits_duplicates(header, path)
         if _made_by_slicersim(src.attrs, header):
@@ -222,120 +227,179 @@ def _check_timing(attrs, shape, nmd, tframe, path):
 
 
 # ----------------------------------------------------------------------------- options
-def _real(value, name, lo=None, lo_open=False, hi=None):
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ParameterError(f"{name} must be a finite number, got {value!r}")
-    if lo is not None and (value < lo or (lo_open and value == lo)):
-        raise ParameterError(f"{name} must be {'>' if lo_open else '≥'} {lo:g}, got {value!r}")
-    if hi is not None and value >= hi:
-        raise ParameterError(f"{name} must be < {hi:g}, got {value!r}")
-    return float(value)
+#: fit_ramps keywords renamed by the package's keyword conventions (old name → new name); both are accepted
+_FIT_ALIASES = {"read_noise": "ron", "memory_budget": "max_bytes"}
+
+
+def _fit_ramps_keywords():
+    """The keyword names fit_ramps accepts (None when it takes arbitrary keywords: it checks them)."""
+    from slicersim.reduction.ramp_fit import fit_ramps
+    params = inspect.signature(fit_ramps).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return None
+    return set(params) - {"source"}
+
+
+def _fit_ramps_names(opts, known):
+    """The renamed keywords (``_FIT_ALIASES``) under the name this fit_ramps takes: an old name is
+    deprecated where fit_ramps has the new one; a new name is passed under the old one where it has not."""
+    for old, new in _FIT_ALIASES.items():
+        if known is None or new in known:
+            validation.renamed_keyword(opts, old, new, "fit_options", stacklevel=5)
+        elif new in opts:
+            if old in opts:
+                raise ParameterError(f"fit_options: give {new!r} only ({old!r} is its deprecated name)")
+            opts[old] = opts.pop(new)
+    return opts
 
 
 def check_fit_options(fit_options):
     """A dict of ``fit_ramps`` keyword arguments, checked (names and the simple values)."""
     from slicersim.backends.ramp_fit import WEIGHTINGS
-    from slicersim.reduction.ramp_fit import fit_ramps
     if fit_options is None:
         return {}
     if not isinstance(fit_options, dict):
-        raise ParameterError("fit_options must be a dict of fit_ramps keyword arguments")
-    known = set(inspect.signature(fit_ramps).parameters) - {"source"}
-    unknown = sorted(set(fit_options) - known)
-    if unknown:
-        raise ParameterError(f"unknown fit_ramps option(s) {', '.join(map(repr, unknown))}; known: "
-                             f"{', '.join(sorted(known))}")
+        raise ParameterError(f"fit_options must be a dict of fit_ramps keyword arguments, got "
+                             f"{validation.short_repr(fit_options)}")
+    known = _fit_ramps_keywords()
+    if known is not None:                     # either name of a renamed keyword is accepted
+        valid = known | {o for o, n in _FIT_ALIASES.items() if n in known} | {n for o, n in _FIT_ALIASES.items()
+                                                                               if o in known}
+        for key in fit_options:
+            validation.choice("fit_options key", key, sorted(valid), what="fit_ramps option")
     opts = dict(fit_options)
-    if "weighting" in opts and opts["weighting"] not in WEIGHTINGS:
-        raise ParameterError(f"weighting must be one of {WEIGHTINGS}, got {opts['weighting']!r}")
+    if "weighting" in opts:
+        validation.choice("weighting", opts["weighting"], WEIGHTINGS)
     if opts.get("jump_threshold") is not None:
-        _real(opts["jump_threshold"], "jump_threshold [σ] (0: no jump detection)", lo=0.0)
+        validation.number("jump_threshold [σ] (0: no jump detection)", opts["jump_threshold"], low=0.0)
     if opts.get("gain") is not None:
-        _real(opts["gain"], "gain [DN/e-]", lo=0.0, lo_open=True)
-    if opts.get("read_noise") is not None:
-        _real(opts["read_noise"], "read noise [e-]", lo=0.0)
+        validation.number("gain [DN/e-]", opts["gain"], low=0.0, low_open=True)
+    for key in ("ron", "read_noise"):
+        if opts.get(key) is not None:
+            validation.number(f"{key} (read noise [e-])", opts[key], low=0.0)
     for key in ("with_truth", "return_groupdq"):
-        if key in opts and not isinstance(opts[key], (bool, np.bool_)):
-            raise ParameterError(f"{key} must be True or False, got {opts[key]!r}")
-    return opts
+        if key in opts:
+            validation.flag(key, opts[key])
+    return _fit_ramps_names(opts, known)
 
 
 _UNSET = object()       # dark not given (None given: subtract nothing)
+#: the options check_spectra_options knows (reduce_exposure's, with dark)
+_SPECTRA_OPTIONS = ("field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
+                    "background", "propagate", "dark", "weights", "config", "ipc")
 
 
-def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, rectify_method=None,
-                          extraction=None, psf=None, position=None, aperture=None, background=None,
-                          propagate=None, dark=_UNSET, weights=None, config=None, ipc=None):
+def check_spectra_options(mapper=None, **options):
     """Validate :func:`~slicersim.reduction.pipeline.reduce_exposure` options before any data are
     read; returns the dict of those given (None: the pipeline's default), the λ edges as an array.
 
-    The λ grid is checked against ``mapper`` (default: the built-in layout) and a PSF array
-    against the cube it will be applied to ((nλ, 58, ncol) for the Lazuli fields)."""
-    from slicersim.reduction.rectify import FIELDS, METHODS as RECTIFY_METHODS, _check_grid, _default_mapper
-    from slicersim.reduction.spectra import METHODS, extract_spectrum
+    Options: field, lbda_edges, ncol, rectify_method, extraction, psf, position, aperture,
+    background, propagate, dark, weights, config, ipc (an unknown name is a ParameterError).  The λ
+    grid is checked against ``mapper`` (default: the built-in layout) and a PSF array against the
+    cube it will be applied to ((nλ, 58, ncol) for the Lazuli fields)."""
+    for key in options:
+        validation.choice("option", key, _SPECTRA_OPTIONS, what="reduction option")
+    given = {k: v for k, v in options.items() if v is not None or k == "dark"}
+    out = _check_grid_options(given)
+    _check_extraction_options(given, out)
+    _check_switches(given, out)
+    _refuse_unused(out)
+    dark = given.get("dark", _UNSET)
+    if "lbda_edges" in given or not isinstance(given.get("psf", ""), str) or dark is not _UNSET:
+        from slicersim.reduction.rectify import _default_mapper
+        mapper = _default_mapper() if mapper is None else mapper
+    if dark is not _UNSET:
+        if not (isinstance(dark, str) and dark in ("auto", "none")):
+            dark_rate_of(dark, None, mapper.detector_shape)
+        out["dark"] = None if isinstance(dark, str) and dark == "none" else dark
+    if "lbda_edges" in given:
+        out["lbda_edges"] = _check_edges(given["lbda_edges"], mapper)
+    if "psf" in given:
+        from slicersim.reduction.rectify import FIELDS
+        method = out.get("rectify_method", "lsq")
+        extracted = out.get("extraction") or ("gls" if method == "lsq" else "optimal")
+        out["psf"] = _check_psf(given["psf"], mapper, out, FIELDS, extracted)
+    return out
+
+
+def _check_grid_options(given):
+    """field, ncol, rectify_method and position (inside the field of ``ncol`` columns)."""
+    from slicersim.reduction.rectify import FIELDS, METHODS as RECTIFY_METHODS
     out = {}
-    if field is not None:
-        if field not in (*FIELDS, "both"):
-            raise ParameterError(f"field must be one of {(*FIELDS, 'both')}, got {field!r}")
-        out["field"] = field
-    if ncol is not None:
-        if isinstance(ncol, bool) or not isinstance(ncol, (int, np.integer)) or not 1 <= ncol <= MAX_NCOL:
-            raise ParameterError(f"ncol must be an integer in [1, {MAX_NCOL}] (columns per slice), got {ncol!r}")
-        out["ncol"] = int(ncol)
-    if rectify_method is not None:
-        if rectify_method not in RECTIFY_METHODS:
-            raise ParameterError(f"rectify_method must be one of {RECTIFY_METHODS}, got {rectify_method!r}")
-        out["rectify_method"] = rectify_method
-    if extraction is not None:
-        if extraction not in (FORWARD, *METHODS):
-            raise ParameterError(f"extraction must be one of {(FORWARD, *METHODS)}, got {extraction!r}")
-        if extraction == "gls" and rectify_method == "drizzle":
-            raise ParameterError("extraction 'gls' needs an lsq cube (its inverse covariance): not with "
-                                 "rectify_method 'drizzle'")
-        out["extraction"] = extraction
-    params = inspect.signature(extract_spectrum).parameters
-    if aperture is not None:
-        radius = params["background_radius"].default
-        out["aperture"] = _real(aperture, "aperture [PSF σ]", lo=0.0, lo_open=True,
-                                hi=radius if isinstance(radius, (int, float)) else None)
-    if position is not None:
+    if "field" in given:
+        out["field"] = validation.choice("field", given["field"], (*FIELDS, "both"))
+    if "ncol" in given:
+        if isinstance(given["ncol"], (float, np.floating)):      # 58.0 is a float: columns are counted
+            raise ParameterError(f"ncol must be an integer in [1, {MAX_NCOL}] (columns per slice), got "
+                                 f"{validation.short_repr(given['ncol'])}")
+        out["ncol"] = validation.integer("ncol", given["ncol"], low=1, high=MAX_NCOL)
+    if "rectify_method" in given:
+        out["rectify_method"] = validation.choice("rectify_method", given["rectify_method"], RECTIFY_METHODS)
+    if "position" in given:
+        position = given["position"]
         try:
             pos = tuple(position)
         except TypeError:
             pos = ()
-        if len(pos) != 2:
-            raise ParameterError(f"position must be (x, y) [cells from the field centre], got {position!r}")
-        x, y = (_real(v, "position [cells]") for v in pos)
+        if len(pos) != 2 or isinstance(position, (str, bytes)):
+            raise ParameterError(f"position must be (x, y) [cells from the field centre], got "
+                                 f"{validation.short_repr(position)}")
+        x, y = (validation.number("position [cells]", v) for v in pos)
         ncol = out.get("ncol", DEFAULT_NCOL)
         rows = min(len(FIELDS[name]) for name in (FIELDS if out.get("field") in (None, "both") else [out["field"]]))
         if abs(x) > ncol / 2 or abs(y) > rows / 2:
             raise ParameterError(f"position ({x:g}, {y:g}) lies outside the field: |x| ≤ {ncol / 2:g} (columns), "
                                  f"|y| ≤ {rows / 2:g} (slices) [cells from the centre]")
         out["position"] = (x, y)
-    for key, val in (("background", background), ("propagate", propagate)):
-        if val is not None:
-            if not isinstance(val, (bool, np.bool_)):
-                raise ParameterError(f"{key} must be True or False, got {val!r}")
-            out[key] = bool(val)
-    if ipc is not None:
-        if ipc is not False:
-            raise ParameterError(f"ipc must be None (the file's IPC, when it records one) or False, got {ipc!r}")
+    return out
+
+
+def _check_extraction_options(given, out):
+    """extraction, weights and aperture (and their combinations with the rectification)."""
+    from slicersim.reduction.spectra import METHODS, extract_spectrum
+    method = out.get("rectify_method")
+    if "extraction" in given:
+        out["extraction"] = validation.choice("extraction", given["extraction"], (FORWARD, *METHODS))
+        if out["extraction"] == "gls" and method == "drizzle":
+            raise ParameterError("extraction 'gls' needs an lsq cube (its inverse covariance): not with "
+                                 "rectify_method 'drizzle'")
+    if "weights" in given:
+        if not isinstance(given["weights"], str):
+            raise ParameterError(f"weights must be one of {WEIGHTS}, got {validation.short_repr(given['weights'])}")
+        out["weights"] = validation.choice("weights", given["weights"], WEIGHTS)
+        if method == "drizzle":
+            raise ParameterError("weights apply to rectify_method 'lsq' only (drizzle has no weights)")
+    if "aperture" in given:
+        radius = inspect.signature(extract_spectrum).parameters["background_radius"].default
+        out["aperture"] = validation.number("aperture [PSF σ]", given["aperture"], low=0.0, low_open=True,
+                                            high=radius if isinstance(radius, (int, float)) else math.inf,
+                                            high_open=True)
+
+
+def _check_switches(given, out):
+    """background, propagate, ipc and config."""
+    for key in ("background", "propagate"):
+        if key in given:
+            out[key] = validation.flag(key, given[key])
+    if "ipc" in given:
+        if given["ipc"] is not False:
+            raise ParameterError(f"ipc must be None (the file's IPC, when it records one) or False, got "
+                                 f"{validation.short_repr(given['ipc'])}")
         out["ipc"] = False
-    if config is not None:
+    if "config" in given:
+        config = given["config"]
         if isinstance(config, (list, tuple)):
             bad = not config or not all(isinstance(c, (str, os.PathLike)) for c in config)
         else:
             bad = not isinstance(config, (str, os.PathLike)) or not str(config)
         if bad:
-            raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got {config!r}")
+            raise ParameterError(f"config must be 'cbe', 'eol', a TOML path or a list of them, got "
+                                 f"{validation.short_repr(config)}")
         out["config"] = config
-    if weights is not None:
-        if not isinstance(weights, str) or weights not in WEIGHTS:
-            raise ParameterError(f"weights must be one of {WEIGHTS}, got {weights!r}")
-        if rectify_method == "drizzle":
-            raise ParameterError("weights apply to rectify_method 'lsq' only (drizzle has no weights)")
-        out["weights"] = weights
-    # options that would do nothing in this reduction are refused, not ignored
+
+
+def _refuse_unused(out):
+    """Options that would do nothing in this reduction are refused, not ignored."""
     method = out.get("rectify_method", "lsq")
     extracted = out.get("extraction") or ("gls" if method == "lsq" else "optimal")
     if "aperture" in out and extracted == FORWARD:
@@ -347,31 +411,25 @@ def check_spectra_options(mapper=None, field=None, lbda_edges=None, ncol=None, r
     if "propagate" in out and (method != "lsq" or extracted in ("gls", FORWARD)):
         raise ParameterError(f"propagate applies to 'optimal' or 'aperture' extraction of an lsq cube only (this "
                              f"reduction: {extracted!r} on a {method!r} cube)")
-    given_dark = dark is not _UNSET
-    if lbda_edges is not None or (psf is not None and not isinstance(psf, str)) or given_dark:
-        mapper = _default_mapper() if mapper is None else mapper
-    if given_dark:
-        if not (isinstance(dark, str) and dark in ("auto", "none")):
-            dark_rate_of(dark, None, mapper.detector_shape)
-        out["dark"] = None if isinstance(dark, str) and dark == "none" else dark
-    if lbda_edges is not None:
-        try:
-            edges = np.asarray(lbda_edges, np.float64)
-        except (TypeError, ValueError):
-            raise ParameterError("lbda_edges must be numbers [Å]") from None
-        if edges.ndim != 1 or edges.size < 2:
-            raise ParameterError(f"lbda_edges must be a 1-D array of ≥ 2 edges [Å], got shape {edges.shape}")
-        _, edges = _check_grid(None, edges, mapper)
-        out["lbda_edges"] = edges
-    if psf is not None:
-        out["psf"] = _check_psf(psf, mapper, out, FIELDS, extracted)
-    return out
+
+
+def _check_edges(lbda_edges, mapper):
+    """λ edges [Å] (or a Quantity) as a 1-D float array [Å] inside the mapper's traces."""
+    from slicersim.reduction.rectify_checks import _check_grid, angstrom
+    try:
+        edges = np.asarray(angstrom("lbda_edges", lbda_edges), np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError("lbda_edges must be numbers [Å]") from None
+    if edges.ndim != 1 or edges.size < 2:
+        raise ParameterError(f"lbda_edges must be a 1-D array of ≥ 2 edges [Å], got shape {edges.shape}")
+    return _check_grid(None, edges, mapper)[1]
 
 
 def _check_psf(psf, mapper, opts, fields, extraction="gls"):
     if isinstance(psf, str):
         if psf != "fit":
-            raise ParameterError(f"psf must be 'fit' or an (nλ, ny, nx) array of PSF fractions, got {psf!r}")
+            raise ParameterError(f"psf must be 'fit' or an (nλ, ny, nx) array of PSF fractions, got "
+                                 f"{validation.short_repr(psf)}")
         return psf
     try:
         arr = np.asarray(psf, np.float64)
@@ -414,8 +472,7 @@ def default_lbda_edges(mapper, step=2, lbda_range=None):
     from slicersim.instrument.spectrograph import wavelength_grid_from_dispersion
     from slicersim.io.config import builtin_config_dir
     from slicersim.io.curves import read_curve
-    if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
-        raise ParameterError(f"step must be a positive integer number of native bins, got {step!r}")
+    step = validation.integer("step (native bins per bin)", step, low=1)
     lam, cols = read_curve(f"{builtin_config_dir()}/dispersion_prism.ecsv")
     _, edges = wavelength_grid_from_dispersion(lam, next(iter(cols.values())), (4000, 17000), 1.3, 2.3)
     lo, hi = mapper.lbda_nodes[0], mapper.lbda_nodes[-1]
@@ -448,7 +505,8 @@ def dark_rate_of(dark, rates, shape):
         return 0.0, "none"
     if isinstance(dark, str):
         if dark != "auto":
-            raise ParameterError(f"dark must be 'auto', None, a rate [e-/s] or an image, got {dark!r}")
+            raise ParameterError(f"dark must be 'auto', None, a rate [e-/s] or an image, got "
+                                 f"{validation.short_repr(dark)}")
         value = None if rates is None else rates.attrs.get("DARK_RATE")
         if value is None:
             if rates is not None:

@@ -294,161 +294,226 @@ def _solve(A, d, v):
     return theta, cov
 
 
-def extract_forward(rate, variance, *, sim, mapper, field="narrow", lbda_edges=None, position=None, start=None,
-                    background=True, var_rnoise=None, var_poisson=None, raw_rate=None, dark_rate=0.0,
-                    psf_profile="gaussian", cell_scale=(1.0, 1.0)):
+def extract_forward(rate, variance, options=None, *, sim, mapper, noise=None, **keywords):
     """Spectrum of a point source fitted on the detector pixels (module docstring).
 
     rate : (H, W) [e-/s] dark-subtracted rates (0 where unusable);  variance : (H, W) [(e-/s)²], +inf
         where unusable (the ramp fit's)
+    options : a :class:`~slicersim.reduction.options.ForwardOptions` (None: its defaults); its fields as
+        keywords replace those of ``options``:
+        field : "narrow" or "wide";  lbda_edges : output bin edges [Å] (default: the native grid);
+        native fluxes are summed into them;  position : (x, y) [native cells from the field centre],
+        fixed; None: fitted, starting from ``start`` (same units; e.g. :func:`locate_source` on a
+        cube, times ``cell_scale``);  background : fit a uniform background;  psf_profile : the
+        simulation's PSF profile (:func:`slicersim.products.psf_profiles.get_psf_profile`)
     sim : the instrument model (:func:`instrument_model`) of ``field``;  mapper : its detector mapper
-    lbda_edges : output bin edges [Å] (default: the native grid); native fluxes are summed into them
-    position : (x, y) [native cells from the field centre], fixed; None: fitted, starting from
-        ``start`` (same units; e.g. :func:`locate_source` on a cube, times ``cell_scale``)
-    var_rnoise, var_poisson, raw_rate : the ramp fit's read-noise and Poisson variances and its rate
-        (before the dark was subtracted): the model variance var_rnoise + k·max(model + dark, 0)
-        with k = var_poisson / raw_rate (median over the fitted pixels); None: the data variance
-    psf_profile : the simulation's PSF profile (:func:`slicersim.products.psf_profiles.get_psf_profile`)
+    noise : a :class:`~slicersim.reduction.options.PixelNoise` (the ramp fit's read-noise and Poisson
+        variances, its rate before the dark was subtracted, the dark [e-/s]): the model variance
+        var_rnoise + k·max(model + dark, 0) with k = var_poisson / raw_rate (median over the fitted
+        pixels); None: the data variance.  The keywords var_rnoise, var_poisson, raw_rate and
+        dark_rate build it (the earlier form).
 
     Returns a :class:`SpectrumProduct` [e-/s per output bin] with ``method="forward"``,
     ``background`` [e-/s per native cell per bin, mean over each output bin], ``diagnostics``:
     position, iterations, chi2 / dof of the pixels, the native flux and its covariance, pixels fitted.
     """
-    from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
-    slices = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}.get(field)
-    if slices is None:
-        raise ParameterError(f"field must be 'narrow' or 'wide', got {field!r}")
-    rate = np.asarray(rate, float)
-    variance = np.asarray(variance, float)
-    if rate.shape != tuple(mapper.detector_shape) or variance.shape != rate.shape:
-        raise ParameterError(f"rate and variance must be the mapper's detector {tuple(mapper.detector_shape)}, "
-                             f"got {rate.shape} and {variance.shape}")
-    ne = np.asarray(sim.spectrograph.lbda_edges, float)
-    nl = ne.size - 1
-    ny, nx = sim.spectrograph.shape
-    if len(slices) != ny:
-        raise ParameterError(f"the instrument model has {ny} slices, the {field} field {len(slices)}")
-    edges = ne if lbda_edges is None else np.asarray(lbda_edges, float)
-    fixed = position is not None
-    pos = np.array(position if fixed else (start if start is not None else (0.0, 0.0)), float)
-    _check_position(pos, (ny, nx), "the light's centroid" if not fixed else "position", cell_scale, fixed)
-    start_pos = pos.copy()
-    tables = mapper.projection_tables(slices, nx, ne).host()
-    P = _psf(sim, psf_profile, pos)
-    reach = P.sum(axis=2).max(axis=0)
-    rows = np.flatnonzero(reach > _ROW_REACH * reach.max())
-    rows = np.arange(max(rows.min() - 2, 0), min(rows.max() + 3, ny))    # margin for the position's moves
-    usable_var = variance.ravel()
+    opts, noise = _forward_options(options, noise, keywords)
+    prob = _Problem(rate, variance, sim, mapper, opts)
+    fit = _fit(prob, noise)
+    return _spectrum(prob, fit, noise is not None)
 
-    def usable(pix):
-        v = usable_var[pix]
+
+_NOISE_KEYWORDS = ("var_rnoise", "var_poisson", "raw_rate", "dark_rate")
+
+
+def _forward_options(options, noise, keywords):
+    """(ForwardOptions, PixelNoise or None) from the arguments of :func:`extract_forward`."""
+    from slicersim.reduction.option_forms import build_options
+    from slicersim.reduction.options import ForwardOptions, PixelNoise
+    terms = {k: keywords.pop(k) for k in _NOISE_KEYWORDS if k in keywords}
+    opts = build_options(ForwardOptions, options, keywords, "extract_forward")
+    if terms and noise is not None:
+        raise ParameterError(f"extract_forward: give noise= or {', '.join(terms)}, not both")
+    if terms.get("var_rnoise") is not None:
+        missing = [k for k in _NOISE_KEYWORDS[:3] if terms.get(k) is None]
+        if missing:
+            raise ParameterError(f"extract_forward: var_rnoise needs {' and '.join(missing)} too")
+        noise = PixelNoise(terms["var_rnoise"], terms["var_poisson"], terms["raw_rate"], terms.get("dark_rate", 0.0))
+    if noise is not None and not isinstance(noise, PixelNoise):
+        raise ParameterError(f"noise must be a PixelNoise or None, got {type(noise).__name__}")
+    return opts, noise
+
+
+class _Problem:
+    """The fixed part of a forward fit: the data on the pixels the source's slices reach, the
+    footprint of the projection there, the native grid and the output bins."""
+
+    def __init__(self, rate, variance, sim, mapper, opts):
+        from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
+        slices = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}[opts.field]
+        rate = np.asarray(rate, float)
+        variance = np.asarray(variance, float)
+        if rate.shape != tuple(mapper.detector_shape) or variance.shape != rate.shape:
+            raise ParameterError(f"rate and variance must be the mapper's detector {tuple(mapper.detector_shape)}, "
+                                 f"got {rate.shape} and {variance.shape}")
+        self.sim, self.profile, self.opts, self.field = sim, opts.psf_profile, opts, opts.field
+        self.ne = np.asarray(sim.spectrograph.lbda_edges, float)
+        self.nl = self.ne.size - 1
+        self.shape = ny, nx = sim.spectrograph.shape
+        if len(slices) != ny:
+            raise ParameterError(f"the instrument model has {ny} slices, the {opts.field} field {len(slices)}")
+        self.edges = self.ne if opts.lbda_edges is None else np.asarray(opts.lbda_edges, float)
+        self.fixed = opts.position is not None
+        pos = opts.position if self.fixed else (opts.start if opts.start is not None else (0.0, 0.0))
+        self.start = np.array(pos, float)
+        _check_position(self.start, self.shape, "the light's centroid" if not self.fixed else "position",
+                        opts.cell_scale, self.fixed)
+        tables = mapper.projection_tables(slices, nx, self.ne).host()
+        P = self.psf(self.start)
+        reach = P.sum(axis=2).max(axis=0)
+        rows = np.flatnonzero(reach > _ROW_REACH * reach.max())
+        self.rows = np.arange(max(rows.min() - 2, 0), min(rows.max() + 3, ny))   # margin for the position's moves
+        self.pixel_var = variance.ravel()
+        self.fp = _Footprint(tables, self.rows, self.usable)
+        if self.fp.pixels.size == 0:
+            raise ReductionError(f"no usable pixel in the {opts.field} field around the source")
+        self.d = rate.ravel()[self.fp.pixels]
+        self.v = self.pixel_var[self.fp.pixels]
+        self.U = self.fp.background() if opts.background else None
+        self.qe = np.asarray(sim.qe, float)
+
+    def usable(self, pix):
+        v = self.pixel_var[pix]
         return np.isfinite(v) & (v > 0)
 
-    fp = _Footprint(tables, rows, usable)
-    if fp.pixels.size == 0:
-        raise ReductionError(f"no usable pixel in the {field} field around the source")
-    d = rate.ravel()[fp.pixels]
-    v = usable_var[fp.pixels]
-    U = fp.background() if background else None
-    qe = np.asarray(sim.qe, float)
-    phi = None
-    rejected = np.zeros(d.size, bool)
-    converged, it = fixed, 0
-    h = 0.02
+    def psf(self, pos):
+        return _psf(self.sim, self.profile, pos)
+
+    def design(self, pos, phi):
+        """The sparse design matrix A = [𝒫(P̃ δ_j) | 𝒫(1 δ_j)] at ``pos`` (P̃ LSF-averaged with ``phi``)."""
+        P = self.psf(pos)
+        Pt = P if phi is None else _lsf_averaged(self.sim, P, phi)
+        return sp.hstack([self.fp.matrix(Pt)] + ([self.U] if self.U is not None else [])).tocsr()
+
+
+class _Fit:
+    """The state of the iterative fit: position [native cells], θ̂ and its covariance, the design
+    matrix, the pixel variance, the rejected pixels, the photon spectrum φ."""
+
+    def __init__(self, prob):
+        self.pos = prob.start.copy()
+        self.v = prob.v
+        self.rejected = np.zeros(prob.d.size, bool)
+        self.phi = None
+        self.converged, self.iterations = prob.fixed, 0
+        self.A = self.theta = self.cov = None
+
+
+def _fit(prob, noise):
+    """Weighted least squares of the flux (and background), model variance, pixel rejection and
+    Gauss–Newton steps of the position until it moves less than ``_POSITION_TOL``; ReductionError
+    when it does not converge or lands far from the light's centroid."""
+    fit = _Fit(prob)
     for it in range(1, _MAX_ITER + 1):
-        P = _psf(sim, psf_profile, pos)
-        Pt = P if phi is None else _lsf_averaged(sim, P, phi)
-        cols = [fp.matrix(Pt)] + ([U] if U is not None else [])
-        A = sp.hstack(cols).tocsr()
-        theta, cov = _solve(A, d, v)
-        F = np.nan_to_num(theta[:nl])
-        model = A @ np.nan_to_num(theta)
-        if var_rnoise is not None:                   # model variance from this pass
-            v = _model_variance(model, fp.pixels, var_rnoise, var_poisson, raw_rate, dark_rate, usable_var)
+        fit.iterations = it
+        fit.A = prob.design(fit.pos, fit.phi)
+        fit.theta, fit.cov = _solve(fit.A, prob.d, fit.v)
+        F = np.nan_to_num(fit.theta[:prob.nl])
+        model = fit.A @ np.nan_to_num(fit.theta)
+        v = fit.v
+        if noise is not None:                                  # model variance from this pass
+            v = _model_variance(model, prob.fp.pixels, noise, prob.pixel_var)
         # pixels the model cannot explain (an unflagged cosmic ray or hot pixel) leave the fit
         with np.errstate(invalid="ignore", divide="ignore"):
-            rejected |= np.abs(d - model) > _REJECT_SIGMA * np.sqrt(np.where(np.isfinite(v), v, usable_var[fp.pixels]))
-        v = np.where(rejected, np.inf, v)
-        phi = _photon_spectrum(sim, F, qe)
-        if fixed:
+            fit.rejected |= np.abs(prob.d - model) > _REJECT_SIGMA * np.sqrt(
+                np.where(np.isfinite(v), v, prob.pixel_var[prob.fp.pixels]))
+        fit.v = np.where(fit.rejected, np.inf, v)
+        fit.phi = _photon_spectrum(prob.sim, F, prob.qe)
+        if prob.fixed:
             if it >= 2:
                 break
             continue
-        # Gauss–Newton step in (x, y): ∂(Σ F_j A_j)/∂x by central differences of the PSF
-        dcols = []
-        for axis in (0, 1):
-            step = np.zeros(2)
-            step[axis] = h
-            dP = (_psf(sim, psf_profile, pos + step) - _psf(sim, psf_profile, pos - step)) / (2 * h)
-            dcols.append(fp.matrix(dP) @ F)
-        J = sp.hstack([A, sp.csr_matrix(np.stack(dcols, axis=1))]).tocsr()
-        theta_j, _ = _solve(J, d - A @ np.nan_to_num(theta), v)
-        delta = np.nan_to_num(theta_j[-2:])
-        delta = np.clip(delta, -1.0, 1.0)                       # at most a cell per step
-        pos = pos + delta
-        _check_position(pos, (ny, nx), "the fitted position", cell_scale)
+        delta = _position_step(prob, fit, F)
+        fit.pos = fit.pos + delta
+        _check_position(fit.pos, prob.shape, "the fitted position", prob.opts.cell_scale)
         if np.all(np.abs(delta) < _POSITION_TOL) and it >= 2:
-            converged = True
-            P = _psf(sim, psf_profile, pos)
-            Pt = _lsf_averaged(sim, P, phi)
-            A = sp.hstack([fp.matrix(Pt)] + ([U] if U is not None else [])).tocsr()
-            theta, cov = _solve(A, d, v)
+            fit.converged = True
+            fit.A = prob.design(fit.pos, fit.phi)
+            fit.theta, fit.cov = _solve(fit.A, prob.d, fit.v)
             break
-    if not converged:
-        raise ReductionError(f"the point-source fit in the {field} field did not converge in {_MAX_ITER} "
-                             f"iterations (position ({pos[0] / cell_scale[0]:.3f}, {pos[1]:.3f}) cells): give position=")
-    if not fixed:
-        sig = np.asarray(sim.psf_sigmas, float)          # (σ_y, σ_x) per bin [cells]
-        tol = max(_CENTROID_TOL_CELLS, 3.0 * float(np.median(sig)))
-        if np.hypot(*(pos - start_pos)) > tol:
-            raise ReductionError(f"the fitted position ({pos[0]:.2f}, {pos[1]:.2f}) is {np.hypot(*(pos - start_pos)):.1f} "
-                                 f"native cells from the light's centroid ({start_pos[0]:.2f}, {start_pos[1]:.2f}): "
-                                 "no reliable point source (give position=)")
-    model = A @ np.nan_to_num(theta)
-    resid = d - model
-    dof = max(fp.pixels.size - int(rejected.sum()) - int(np.sum(np.diag(cov) > 0)) - (0 if fixed else 2), 1)
-    chi2 = float(np.sum(np.where(rejected, 0.0, resid ** 2 / np.where(rejected, 1.0, v))))
-    M = aggregate_bins(ne, edges)
+    _check_fit(prob, fit)
+    return fit
+
+
+def _position_step(prob, fit, F, h=0.02):
+    """Gauss–Newton step in (x, y) [native cells, at most 1 per axis]: ∂(Σ F_j A_j)/∂x by central
+    differences of the PSF (step ``h``)."""
+    dcols = []
+    for axis in (0, 1):
+        step = np.zeros(2)
+        step[axis] = h
+        dP = (prob.psf(fit.pos + step) - prob.psf(fit.pos - step)) / (2 * h)
+        dcols.append(prob.fp.matrix(dP) @ F)
+    J = sp.hstack([fit.A, sp.csr_matrix(np.stack(dcols, axis=1))]).tocsr()
+    theta_j, _ = _solve(J, prob.d - fit.A @ np.nan_to_num(fit.theta), fit.v)
+    return np.clip(np.nan_to_num(theta_j[-2:]), -1.0, 1.0)
+
+
+def _check_fit(prob, fit):
+    """Refuse a fit that did not converge, or whose position is far from the light's centroid."""
+    pos, start = fit.pos, prob.start
+    if not fit.converged:
+        raise ReductionError(f"the point-source fit in the {prob.field} field did not converge in {_MAX_ITER} "
+                             f"iterations (position ({pos[0] / prob.opts.cell_scale[0]:.3f}, {pos[1]:.3f}) cells): "
+                             "give position=")
+    if prob.fixed:
+        return
+    sig = np.asarray(prob.sim.psf_sigmas, float)                 # (σ_y, σ_x) per bin [cells]
+    tol = max(_CENTROID_TOL_CELLS, 3.0 * float(np.median(sig)))
+    if np.hypot(*(pos - start)) > tol:
+        raise ReductionError(f"the fitted position ({pos[0]:.2f}, {pos[1]:.2f}) is {np.hypot(*(pos - start)):.1f} "
+                             f"native cells from the light's centroid ({start[0]:.2f}, {start[1]:.2f}): "
+                             "no reliable point source (give position=)")
+
+
+def _spectrum(prob, fit, model_variance):
+    """The native fit summed into the output bins: a SpectrumProduct with its diagnostics."""
+    sim, M, nl, theta, cov = prob.sim, aggregate_bins(prob.ne, prob.edges), prob.nl, fit.theta, fit.cov
+    resid = prob.d - fit.A @ np.nan_to_num(theta)
+    npix, nrej = prob.fp.pixels.size, int(fit.rejected.sum())
+    dof = max(npix - nrej - int(np.sum(np.diag(cov) > 0)) - (0 if prob.fixed else 2), 1)
+    chi2 = float(np.sum(np.where(fit.rejected, 0.0, resid ** 2 / np.where(fit.rejected, 1.0, fit.v))))
     Fn, Cn = theta[:nl], cov[:nl, :nl]
     seen = np.diag(Cn) > 0
-    Fz = np.where(seen, Fn, 0.0)
-    flux = M @ Fz
-    cbin = M @ Cn @ M.T
-    cvar = np.diag(cbin).copy()
-    covered = (M * seen[None]).sum(axis=1) >= 0.999 * M.sum(axis=1)
-    flux = np.where(covered & (M.sum(axis=1) > 0), flux, np.nan)
-    cvar = np.where(np.isfinite(flux), cvar, np.inf)
-    bkg = bvar = None
-    if background:
-        Bn, Bc = theta[nl:2 * nl], np.diag(cov[nl:2 * nl, nl:2 * nl])
-        wsum = M.sum(axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            bkg = (M @ np.nan_to_num(Bn)) / wsum
-            bvar = (M ** 2 @ Bc) / wsum ** 2
-    sig_y, sig_x = (np.asarray(s, float) for s in sim.psf_sigmas)
+    flux, cbin = M @ np.where(seen, Fn, 0.0), M @ Cn @ M.T
     wsum = M.sum(axis=1)
+    flux = np.where(((M * seen[None]).sum(axis=1) >= 0.999 * wsum) & (wsum > 0), flux, np.nan)
+    cvar = np.where(np.isfinite(flux), np.diag(cbin), np.inf)
+    bkg = bvar = None
     with np.errstate(invalid="ignore", divide="ignore"):
+        if prob.opts.background:
+            bkg = (M @ np.nan_to_num(theta[nl:2 * nl])) / wsum
+            bvar = (M ** 2 @ np.diag(cov[nl:2 * nl, nl:2 * nl])) / wsum ** 2
+        sig_y, sig_x = (np.asarray(s, float) for s in sim.psf_sigmas)
         psf_sigma = np.stack([M @ sig_x, M @ sig_y], axis=1) / wsum[:, None]
-    P = _psf(sim, psf_profile, pos)
-    ee = M @ P.sum(axis=(1, 2)) / np.where(wsum > 0, wsum, 1.0)
-    # F_λ [erg/s/cm²/Å]: the rate over the response R_j = QE_j f2p_j [e-/s per erg/s/cm²/Å] (telescope
-    # area, throughput, bin width, QE), F_λ(b) = Σ_j M_bj F_j / Σ_j M_bj R_j (exact for F_λ flat in b)
-    response = M @ (qe * np.asarray(sim.flambda_to_photon, float))
-    with np.errstate(invalid="ignore", divide="ignore"):
+        # F_λ [erg/s/cm²/Å]: the rate over the response R_j = QE_j f2p_j [e-/s per erg/s/cm²/Å] (telescope
+        # area, throughput, bin width, QE), F_λ(b) = Σ_j M_bj F_j / Σ_j M_bj R_j (exact for F_λ flat in b)
+        response = M @ (prob.qe * np.asarray(sim.flambda_to_photon, float))
         to_flambda = np.where(response > 0, 1.0 / response, np.nan)
-    diag = {"position_native_cells": tuple(float(p) for p in pos), "start": tuple(float(p) for p in start_pos),
-            "iterations": it, "converged": converged, "chi2": chi2, "dof": dof, "chi2_dof": chi2 / dof,
-            "pixels": int(fp.pixels.size), "rejected_pixels": int(rejected.sum()), "native_flux": Fn, "native_covariance": Cn,
-            "covariance": cbin, "rows": rows.tolist(),
-            "variance_model": "(AᵀWA)⁻¹, W the model variance" if var_rnoise is not None else "(AᵀWA)⁻¹",
-            "pixel_index": fp.pixels, "pixel_variance": v, "residual": np.where(rejected, 0.0, resid), "flambda_per_rate": to_flambda,
-            "flambda": flux * to_flambda, "flambda_variance": cvar * to_flambda ** 2}
-    lb = 0.5 * (edges[1:] + edges[:-1])
-    scale = np.asarray(cell_scale, float)
-    return SpectrumProduct(lbda=lb, lbda_edges=edges, flux=flux, variance=cvar, method="forward", unit="e-/s",
-                           position=tuple(float(p) for p in pos / scale), aperture=float("nan"),
-                           psf_sigma=psf_sigma, background=bkg, background_variance=bvar, enclosed_energy=ee,
-                           diagnostics=diag)
+    ee = M @ prob.psf(fit.pos).sum(axis=(1, 2)) / np.where(wsum > 0, wsum, 1.0)
+    diag = {"position_native_cells": tuple(float(p) for p in fit.pos), "start": tuple(float(p) for p in prob.start),
+            "iterations": fit.iterations, "converged": fit.converged, "chi2": chi2, "dof": dof, "chi2_dof": chi2 / dof,
+            "pixels": int(npix), "rejected_pixels": nrej, "native_flux": Fn, "native_covariance": Cn,
+            "covariance": cbin, "rows": prob.rows.tolist(),
+            "variance_model": "(AᵀWA)⁻¹, W the model variance" if model_variance else "(AᵀWA)⁻¹",
+            "pixel_index": prob.fp.pixels, "pixel_variance": fit.v, "residual": np.where(fit.rejected, 0.0, resid),
+            "flambda_per_rate": to_flambda, "flambda": flux * to_flambda, "flambda_variance": cvar * to_flambda ** 2}
+    edges = prob.edges
+    return SpectrumProduct(lbda=0.5 * (edges[1:] + edges[:-1]), lbda_edges=edges, flux=flux, variance=cvar,
+                           method="forward", unit="e-/s",
+                           position=tuple(float(p) for p in fit.pos / np.asarray(prob.opts.cell_scale, float)),
+                           aperture=float("nan"), psf_sigma=psf_sigma, background=bkg, background_variance=bvar,
+                           enclosed_energy=ee, diagnostics=diag)
 
 
 def _check_position(pos, shape, what, scale=(1.0, 1.0), given=False):
@@ -465,14 +530,14 @@ def _check_position(pos, shape, what, scale=(1.0, 1.0), given=False):
                              f"to fit a point source (|x| ≤ {hx / sx:.2f}, |y| ≤ {hy / sy:.2f}){advice}")
 
 
-def _model_variance(model, pixels, var_rnoise, var_poisson, raw_rate, dark_rate, data_var):
+def _model_variance(model, pixels, noise, data_var):
     """var_rnoise + k·max(model + dark, 0) on the fitted pixels; k = var_poisson / rate (median)."""
-    vr = np.asarray(var_rnoise, float).ravel()[pixels]
-    vp = np.asarray(var_poisson, float).ravel()[pixels]
-    rr = np.asarray(raw_rate, float).ravel()[pixels]
+    vr = np.asarray(noise.var_rnoise, float).ravel()[pixels]
+    vp = np.asarray(noise.var_poisson, float).ravel()[pixels]
+    rr = np.asarray(noise.raw_rate, float).ravel()[pixels]
     ok = np.isfinite(vp) & (vp > 0) & (rr > 0)
     k = float(np.median(vp[ok] / rr[ok])) if ok.any() else 0.0
-    dark = np.asarray(dark_rate, float)
+    dark = np.asarray(noise.dark_rate, float)
     dark = dark.ravel()[pixels] if dark.ndim == 2 else float(dark)
     out = vr + k * np.maximum(model + dark, 0.0)
     bad = ~np.isfinite(out) | ~(out > 0)

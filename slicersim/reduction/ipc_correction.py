@@ -19,7 +19,8 @@ import json
 
 import numpy as np
 
-from slicersim.errors import RampFileError
+from slicersim import validation
+from slicersim.errors import ParameterError, RampFileError
 
 __all__ = ["ipc_kernel_of", "deconvolve_ipc"]
 
@@ -46,9 +47,10 @@ def deconvolve_ipc(rate, usable, kernel):
     is valid (the others are filled from their neighbours before, and set to 0 after).  Returns float64."""
     from scipy import fft
     from scipy.ndimage import median_filter
-    k = np.asarray(kernel, float)
+    k = validation.array("kernel", kernel)
     if k.shape != (3, 3) or not np.isclose(k.sum(), 1.0, atol=1e-9):
-        raise ValueError(f"the IPC kernel must be a 3×3 array summing to 1, got {k!r}")
+        raise ParameterError(f"kernel (the IPC kernel) must be a 3×3 array summing to 1, got "
+                             f"{validation.short_repr(k) if k.shape != (3, 3) else k.tolist()}")
     img = np.where(usable, np.asarray(rate, float), np.nan)
     if not usable.all():
         fill = median_filter(np.where(usable, img, 0.0), size=3, mode="nearest")

@@ -17,17 +17,18 @@ from __future__ import annotations
 import json
 import os
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
 from slicersim.backends.precision import float64_kwargs
 from slicersim.errors import ParameterError, RampFileError, ReductionError, SlicersimError
 from slicersim.io.atomic import AtomicH5File
-# re-exported here (their documented home): WEIGHTS, dark_rate_of, default_lbda_edges
-from slicersim.reduction.checks import (DEFAULT_NCOL, FORWARD, WEIGHTS, check_spectra_options, dark_rate_of,  # noqa: F401
-                                        default_lbda_edges)
+from slicersim.reduction.checks import FORWARD, check_spectra_options, dark_rate_of, default_lbda_edges
+from slicersim.reduction.option_forms import build_options
+from slicersim.reduction.options import ReduceOptions
 
-__all__ = ["reduce_exposure", "default_lbda_edges", "check_forward_fit", "SUSPECT_CHI2_DOF"]
+__all__ = ["reduce_exposure", "ReduceOptions", "default_lbda_edges", "check_forward_fit", "SUSPECT_CHI2_DOF"]
 
 _DO_NOT_USE = 1
 
@@ -100,13 +101,13 @@ def forward_model_cubes(cubes, spectra, psf=None):
     return out
 
 
-def reduce_exposure(raw_path, *, mapper=None, field=None, lbda_edges=None, ncol=DEFAULT_NCOL, rectify_method="lsq",
-                    extraction=None, psf="fit", position=None, aperture=3.0, background=True,
-                    propagate=True, fit_options=None, out=None, overwrite=False, keep_information=False,
-                    weights=None, dark="auto", config=None, ipc=None):
+def reduce_exposure(raw_path, options=None, *, out=None, overwrite=False, **keywords):
     """Reduce one raw exposure to rates, cube(s) and spectra.
 
     raw_path : ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts
+    options : a :class:`~slicersim.reduction.options.ReduceOptions` (None: its defaults); the keywords
+        below are its fields and replace those of ``options`` (``reduce_exposure(raw, ncol=116)`` is
+        ``reduce_exposure(raw, ReduceOptions(ncol=116))``)
     mapper : SlicerMapper (default ``SlicerMapper.default()``);  field : "narrow", "wide" or "both"
     lbda_edges : rectification λ edges [Å] (default :func:`default_lbda_edges`: 2 native bins)
     ncol : columns per slice;  rectify_method : "lsq" or "drizzle"
@@ -151,7 +152,7 @@ def reduce_exposure(raw_path, *, mapper=None, field=None, lbda_edges=None, ncol=
         ``keep_information``: faster GLS, memory :meth:`InverseCovariance.nbytes`) instead of
         rebuilding it for the extraction
     fit_options : keyword arguments of ``fit_ramps`` (refpix, linearity, jump_threshold, weighting, ...)
-    out : HDF5 path written atomically with all three products (module docstring)
+    out : HDF5 path written atomically with all three products (module docstring);  overwrite : replace it
 
     Returns ``{"rates": RateProduct, "rate": the rate image rectified and extracted [e-/s] (dark
     subtracted, IPC deconvolved, 0 where unusable), "cubes": {field: CubeProduct}, "spectra": {field: SpectrumProduct},
@@ -161,80 +162,136 @@ def reduce_exposure(raw_path, *, mapper=None, field=None, lbda_edges=None, ncol=
     (:func:`~slicersim.reduction.rectify.noise_information`; empty otherwise)}``
     (and ``"path"``, the absolute path written, with ``out``).
     """
-    from slicersim.reduction.ramp_fit import fit_ramps
-    from slicersim.reduction.rectify import FIELDS, _default_mapper, rectify
-    from slicersim.reduction.spectra import extract_spectrum, propagate_variance
-    if field is not None and field not in (*FIELDS, "both"):
-        raise ParameterError(f"unknown field {field!r}: 'narrow', 'wide' or 'both'")
-    if ipc is not None and ipc is not False:
-        raise ParameterError(f"ipc must be None (the file's IPC, when it records one) or False, got {ipc!r}")
-    if fit_options is not None and not isinstance(fit_options, dict):
-        raise ParameterError("fit_options must be a dict of fit_ramps keyword arguments")
-    if weights is not None and (not isinstance(weights, str) or weights not in WEIGHTS):
-        raise ParameterError(f"weights must be one of {WEIGHTS} (or None: the default), got {weights!r}")
-    # every option checked before any data are read (the forward weights add a whole pass before the
-    # final extraction would refuse them)
+    opts = build_options(ReduceOptions, options, keywords, "reduce_exposure")
+    plan = _plan(raw_path, opts, out, overwrite)            # every option checked before any data are read
+    rates, rate, var = _fit_rates(raw_path, plan)
+    if plan.extraction == FORWARD:
+        result = _reduce_forward(rates, rate, var, plan)
+    else:
+        result = _reduce_cube(rates, rate, var, plan)
+    if plan.writer is not None:
+        result["path"] = _write(plan.writer, result)
+    return result
+
+
+@dataclass
+class _Plan:
+    """What :func:`reduce_exposure` decides before reading the ramps (and the dark it subtracts)."""
+
+    opts: ReduceOptions
+    raw_attrs: dict | None
+    model: dict | None            # the forward model's instrument (None: unknown)
+    field: str                    # "narrow", "wide" or "both"
+    extraction: str
+    weights: str
+    mapper: object
+    edges: np.ndarray             # rectification λ edges [Å]
+    writer: object = None
+    dark_rate: object = 0.0       # [e-/s]: a number or an image
+    dark_kind: str = "none"
+
+
+def _plan(raw_path, opts, out, overwrite):
+    """Read the raw file's keywords and its instrument; resolve field, extraction and weights; check
+    every option against them and refuse the output file before any work."""
+    from slicersim.reduction.rectify import FIELDS, _default_mapper
     raw_attrs = _raw_attrs(raw_path)
-    model = _instrument(raw_attrs, config, extraction, psf)
+    model = _instrument(raw_attrs, opts.config, opts.extraction, opts.psf)
+    field = opts.field
     if field is None:                                  # the field the file was simulated in
         recorded = (model or {}).get("field") or _recorded_field(raw_attrs)
         field = recorded if recorded in FIELDS else "narrow"
-    if extraction is None:
-        extraction = FORWARD if model is not None else ("gls" if rectify_method == "lsq" else "optimal")
-    check_spectra_options(mapper=mapper, field=field, lbda_edges=lbda_edges, ncol=ncol, rectify_method=rectify_method,
-                          extraction=extraction, psf=psf, position=position,
-                          aperture=None if extraction in ("gls", FORWARD) else aperture, background=background,
-                          weights=weights)
-    if weights is None:
-        weights = "forward" if rectify_method == "lsq" else "data"
+    extraction = opts.default_extraction(model)
+    check_spectra_options(mapper=opts.mapper, field=field, lbda_edges=opts.lbda_edges, ncol=opts.ncol,
+                          rectify_method=opts.rectify_method, extraction=extraction, psf=opts.psf,
+                          position=opts.position, aperture=None if extraction in ("gls", FORWARD) else opts.aperture,
+                          background=opts.background, weights=opts.weights)
     writer = None
     if out is not None:                                           # refuse before any work
         writer = _Writer(out, overwrite=overwrite)
         writer.check()
-    mapper = _default_mapper() if mapper is None else mapper
-    if not (isinstance(dark, str) and dark == "auto"):           # checked before the ramps are read
-        dark_rate_of(dark, None, mapper.detector_shape)
-    edges = default_lbda_edges(mapper) if lbda_edges is None else np.asarray(lbda_edges, float)
-    rates = fit_ramps(raw_path, **(fit_options or {}))
-    if rates.rate.shape != tuple(mapper.detector_shape):
-        raise ParameterError(f"the rate image {rates.rate.shape} is not the mapper's detector "
-                             f"{tuple(mapper.detector_shape)}")
-    dark_rate, dark_kind = dark_rate_of(dark, rates, mapper.detector_shape)
+    mapper = _default_mapper() if opts.mapper is None else opts.mapper
+    if not (isinstance(opts.dark, str) and opts.dark == "auto"):           # checked before the ramps are read
+        dark_rate_of(opts.dark, None, mapper.detector_shape)
+    edges = default_lbda_edges(mapper) if opts.lbda_edges is None else np.asarray(opts.lbda_edges, float)
+    return _Plan(opts, raw_attrs, model, field, extraction, opts.resolved_weights(), mapper, edges, writer)
+
+
+def _fit_rates(raw_path, plan):
+    """Ramps → (RateProduct, rate, var): the fitted rates, the rate image rectified and extracted
+    [e-/s] (dark subtracted, IPC deconvolved when the file records it, 0 where unusable) and the
+    pixel variance [(e-/s)²] (+inf where unusable); the dark subtracted is kept in ``plan``."""
+    from slicersim.reduction.ramp_fit import fit_ramps
+    shape = tuple(plan.mapper.detector_shape)
+    rates = fit_ramps(raw_path, **(plan.opts.fit_options or {}))
+    if rates.rate.shape != shape:
+        raise ParameterError(f"mapper: the rate image {rates.rate.shape} is not the mapper's detector {shape}")
+    plan.dark_rate, plan.dark_kind = dark_rate_of(plan.opts.dark, rates, shape)
     var = rate_variance(rates)
-    rate = np.where(np.isfinite(var), rates.rate - dark_rate, 0.0)
+    rate = np.where(np.isfinite(var), rates.rate - plan.dark_rate, 0.0)
     kernel = None
-    if ipc is None:
+    if plan.opts.ipc is None:
         from slicersim.reduction.ipc_correction import deconvolve_ipc, ipc_kernel_of
-        kernel = ipc_kernel_of(raw_attrs)
+        kernel = ipc_kernel_of(plan.raw_attrs)
         if kernel is not None:
             rate = deconvolve_ipc(rate, np.isfinite(var), kernel)
     rates.attrs["IPC_CORRECTED"] = kernel is not None
-    if extraction == FORWARD:
-        return _reduce_forward(rates, rate, var, model, writer, mapper=mapper, field=field, edges=edges, ncol=ncol,
-                               rectify_method=rectify_method, position=position, background=background,
-                               weights=weights, dark_rate=dark_rate, dark_kind=dark_kind,
-                               keep_information=keep_information, raw_config=(raw_attrs or {}).get("CONFIG"))
-    model_pass = weights in ("model", "forward") and rectify_method == "lsq"
-    forward = model_pass and weights == "forward"
+    return rates, rate, var
+
+
+def _rectify(rate, var, plan, ncol, keep_information):
+    """rectify() into {field: CubeProduct} on the plan's grid (looked up at each call: tests record it)."""
+    from slicersim.reduction.rectify import rectify
+    cubes = rectify(rate, var, mapper=plan.mapper, field=plan.field, lbda_edges=plan.edges, ncol=ncol,
+                    method=plan.opts.rectify_method, keep_information=bool(keep_information))
+    return cubes if plan.field == "both" else {plan.field: cubes}
+
+
+def _result(rates, rate, cubes, spectra, var, noise, plan):
+    return {"rates": rates, "rate": rate, "cubes": cubes, "spectra": spectra, "variance": var,
+            "dark_rate": plan.dark_rate, "dark_kind": plan.dark_kind, "noise_information": noise,
+            "weights": plan.weights}
+
+
+def _reduce_cube(rates, rate, var, plan):
+    """reduce_exposure with a cube extraction: cubes weighted as asked, then spectra from them."""
+    cubes, var_cube = _weighted_cubes(rates, rate, var, plan)
+    spectra, noise = _cube_spectra(cubes, var_cube, var, plan)
+    return _result(rates, rate, cubes, spectra, var_cube, noise, plan)
+
+
+def _weighted_cubes(rates, rate, var, plan):
+    """The cubes and the pixel variance they were rectified with: the data's own (weights "data",
+    drizzle), or a second pass weighted by the image of the first cubes ("model") or of the first
+    extraction's own model ("forward")."""
+    opts = plan.opts
+    model_pass = plan.weights in ("model", "forward") and opts.lsq
+    forward = model_pass and plan.weights == "forward"
     # the model weights' first pass on at most MODEL_NCOL columns: on a finer grid a cell holds about
     # one pixel, its model image follows the pixels' noise and the Poisson-weighting bias returns
     # (the forward model is fitted, not cell by cell: its first pass keeps ncol)
-    ncol_first = min(ncol, MODEL_NCOL) if model_pass and not forward else ncol
-    cubes = rectify(rate, var, mapper=mapper, field=field, lbda_edges=edges, ncol=ncol_first, method=rectify_method,
-                    keep_information=bool(keep_information) and ncol_first == ncol)
-    cubes = cubes if field == "both" else {field: cubes}
-    var_data = var
-    if model_pass:                                                 # once more, weighted by the model
-        if forward:
-            first = {name: extract_spectrum(cube, method="gls", psf=psf, position=position, background=background)
-                     for name, cube in cubes.items()}
-            cubes = forward_model_cubes(cubes, first, psf)
-        var = model_variance(rates, var, cubes, mapper, edges, dark_rate)
-        cubes = rectify(rate, var, mapper=mapper, field=field, lbda_edges=edges, ncol=ncol, method=rectify_method,
-                        keep_information=bool(keep_information))
-        cubes = cubes if field == "both" else {field: cubes}
+    ncol_first = min(opts.ncol, MODEL_NCOL) if model_pass and not forward else opts.ncol
+    cubes = _rectify(rate, var, plan, ncol_first, opts.keep_information and ncol_first == opts.ncol)
+    if not model_pass:
+        return cubes, var
+    if forward:
+        from slicersim.reduction.spectra import extract_spectrum
+        first = {name: extract_spectrum(cube, method="gls", psf=opts.psf, position=opts.position,
+                                        background=opts.background) for name, cube in cubes.items()}
+        cubes = forward_model_cubes(cubes, first, opts.psf)
+    var = model_variance(rates, var, cubes, plan.mapper, plan.edges, plan.dark_rate)
+    return _rectify(rate, var, plan, opts.ncol, opts.keep_information), var
+
+
+def _cube_spectra(cubes, var, var_data, plan):
+    """Spectra of the cubes ({field: SpectrumProduct}) and the noise information of model-weighted
+    cubes ({field: B}, for the sandwich variance); "optimal" / "aperture" on an lsq cube get the full
+    cube covariance (``propagate``)."""
+    from slicersim.reduction.spectra import extract_spectrum, propagate_variance
+    opts, extraction = plan.opts, plan.extraction
+    propagate = opts.propagate and opts.lsq
     noise = {}
-    if var is not var_data and (extraction == "gls" or (propagate and rectify_method == "lsq")):
+    if var is not var_data and (extraction == "gls" or propagate):
         # the model image misses the point source's sharp core (the coarse cells smooth it): its
         # variance is ~16 % low on the brightest pixels (Lazuli SN Ia z = 0.3), so (MᵀNM)⁻¹ would
         # under-report; the sandwich with the data's own variance (unbiased) is exact for the
@@ -242,22 +299,18 @@ def reduce_exposure(raw_path, *, mapper=None, field=None, lbda_edges=None, ncol=
         from slicersim.reduction.rectify import noise_information
         noise = {name: noise_information(cube.inverse_covariance, var_data) for name, cube in cubes.items()}
     gls_noise = noise if extraction == "gls" else {}
-    spectra = {name: extract_spectrum(cube, method=extraction, psf=psf, position=position, aperture=aperture,
-                                      background=background,
+    spectra = {name: extract_spectrum(cube, method=extraction, psf=opts.psf, position=opts.position,
+                                      aperture=opts.aperture, background=opts.background,
                                       **({"noise_information": gls_noise[name]} if gls_noise else {}))
                for name, cube in cubes.items()}
-    if propagate and rectify_method == "lsq" and extraction != "gls":
+    if propagate and extraction != "gls":
         for name, spec in spectra.items():
             spec.diagnostics["variance_diagonal"] = spec.variance
             spec.variance = propagate_variance(spec, cubes[name], noise_information=noise.get(name))
             spec.diagnostics["variance_model"] = ("full LSQ cube covariance (propagate_variance)" if not noise else
                                                   "full LSQ cube covariance, sandwich N⁻¹BN⁻¹ with the pixels' "
                                                   "variance (propagate_variance)")
-    result = {"rates": rates, "rate": rate, "cubes": cubes, "spectra": spectra, "variance": var, "dark_rate": dark_rate,
-              "dark_kind": dark_kind, "noise_information": noise, "weights": weights}
-    if writer is not None:
-        result["path"] = _write(writer, result)
-    return result
+    return spectra, noise
 
 
 def _raw_attrs(raw_path):
@@ -288,12 +341,9 @@ def _recorded_field(attrs):
 def _instrument(attrs, config, extraction, psf):
     """The forward model's instrument (:func:`~slicersim.reduction.forward_extraction.model_config`) of
     this file, loaded (a bad configuration is refused before any data are read), or None; refuses the
-    combinations that cannot give an unbiased spectrum."""
+    combinations that cannot give an unbiased spectrum (``config`` and ``extraction`` are checked
+    values: :class:`~slicersim.reduction.options.ReduceOptions`)."""
     from slicersim.reduction.forward_extraction import FORWARD_PSF_PROFILES, instrument_model, model_config
-    if extraction is not None:
-        check_spectra_options(extraction=extraction)
-    if config is not None:
-        check_spectra_options(config=config)
     if attrs is None:                                 # unreadable: fit_ramps will say why
         attrs, unreadable = {}, True
     else:
@@ -318,7 +368,7 @@ def _instrument(attrs, config, extraction, psf):
             warnings.warn("no instrument configuration (the file records none): the spectrum is extracted from the "
                           "cube with a PSF fitted on its coarse cells, which biases it (+5 to +8 % on a Lazuli SN Ia "
                           "at z = 0.5); give config= (CLI: --config) for the forward-model extraction",
-                          RuntimeWarning, stacklevel=3)
+                          RuntimeWarning, stacklevel=4)
         elif given_psf:
             return None                                  # the user's PSF: the cube extraction it was made for
     elif model is not None and not given_psf:
@@ -331,7 +381,7 @@ def _instrument(attrs, config, extraction, psf):
     if config is not None and model["recorded"] not in (None, "") and str(config) != str(model["recorded"]):
         warnings.warn(f"the file was simulated with the configuration {model['recorded']!r}; its spectrum is fitted "
                       f"with {config!r} as asked (throughput, QE and PSF differ: so do flux and F_λ)",
-                      RuntimeWarning, stacklevel=3)
+                      RuntimeWarning, stacklevel=4)
     where = "the configuration given" if config is not None else "the file's CONFIG"
     try:
         instrument_model(model["config"], model["field"] or "narrow", model["conventions"])
@@ -342,54 +392,60 @@ def _instrument(attrs, config, extraction, psf):
     return model
 
 
-def _reduce_forward(rates, rate, var, model, writer, *, mapper, field, edges, ncol, rectify_method, position,
-                    background, weights, dark_rate, dark_kind, keep_information, raw_config=None):
+def _reduce_forward(rates, rate, var, plan):
     """reduce_exposure with the forward-model extraction: spectra from the pixels, then the cube(s),
     weighted (lsq, ``weights="forward"``) by the fitted model's pixel variance."""
-    from slicersim.reduction.forward_extraction import (MIN_DETECTION, extract_forward, instrument_model,
-                                                        white_light_start)
-    from slicersim.reduction.rectify import FIELDS, rectify
-    names = list(FIELDS) if field == "both" else [field]
+    from slicersim.reduction.rectify import FIELDS
+    names = list(FIELDS) if plan.field == "both" else [plan.field]
     spectra, var_cube, missing = {}, np.array(var, copy=True), []
+    forward_weights = plan.weights == "forward" and plan.opts.lsq
     for name in names:
-        sim = instrument_model(model["config"], name, model["conventions"])
-        ny, nx = sim.spectrograph.shape
-        scale = (nx / ncol, 1.0)                                     # native cells per cube cell (x, y)
-        fixed = None if position is None else (position[0] * scale[0], position[1] * scale[1])
-        start = None
-        tables = mapper.projection_tables(FIELDS[name], nx, sim.spectrograph.lbda_edges)
-        if fixed is None:
-            start, signif = white_light_start(rate, var, tables)
-            if not signif >= MIN_DETECTION:
-                missing.append(f"no point source in the {name} field: the brightest white light is "
-                               f"{signif:.1f} σ above the field's scatter (< {MIN_DETECTION:g} σ)")
-                continue
-        spec = extract_forward(rate, var, sim=sim, mapper=mapper, field=name, lbda_edges=edges, position=fixed,
-                               start=start, background=background, var_rnoise=rates.var_rnoise,
-                               var_poisson=rates.var_poisson, raw_rate=rates.rate, dark_rate=dark_rate,
-                               psf_profile=model["psf_profile"], cell_scale=scale)
-        check_forward_fit(spec, rate, var, tables, name)
-        if weights == "forward" and rectify_method == "lsq":
+        spec = _forward_field(name, rates, rate, var, plan)
+        if isinstance(spec, str):
+            missing.append(spec)
+            continue
+        if forward_weights:
             d = spec.diagnostics
             var_cube.ravel()[d["pixel_index"]] = d["pixel_variance"]
         spectra[name] = spec
     if missing and not spectra:
         raise ReductionError("; ".join(missing) + " (recorded field: "
-                             f"{model.get('field') or 'none'}); give position= (CLI --position) to extract there "
-                             "anyway, or field= (CLI --field) for the other field")
+                             f"{plan.model.get('field') or 'none'}); give position= (CLI --position) to extract "
+                             "there anyway, or field= (CLI --field) for the other field")
     for text in missing:                                          # field="both": the other field is empty
         warnings.warn(text + ": no spectrum for it", RuntimeWarning, stacklevel=3)
-    cube_var = var_cube if rectify_method == "lsq" and weights == "forward" else var
-    cubes = rectify(rate, cube_var, mapper=mapper, field=field, lbda_edges=edges, ncol=ncol, method=rectify_method,
-                    keep_information=bool(keep_information))
-    cubes = cubes if field == "both" else {field: cubes}
-    result = {"rates": rates, "rate": rate, "cubes": cubes, "spectra": spectra, "variance": cube_var,
-              "dark_rate": dark_rate,
-              "dark_kind": dark_kind, "noise_information": {}, "weights": weights, "instrument": model,
-              "raw_config": raw_config}
-    if writer is not None:
-        result["path"] = _write(writer, result)
+    cube_var = var_cube if forward_weights else var
+    cubes = _rectify(rate, cube_var, plan, plan.opts.ncol, plan.opts.keep_information)
+    result = _result(rates, rate, cubes, spectra, cube_var, {}, plan)
+    result.update(instrument=plan.model, raw_config=(plan.raw_attrs or {}).get("CONFIG"))
     return result
+
+
+def _forward_field(name, rates, rate, var, plan):
+    """The forward fit of one field (a SpectrumProduct, checked by :func:`check_forward_fit`), or the
+    reason there is none (a str: no significant point source and no ``position`` given)."""
+    from slicersim.reduction.forward_extraction import (MIN_DETECTION, extract_forward, instrument_model,
+                                                        white_light_start)
+    from slicersim.reduction.options import ForwardOptions, PixelNoise
+    from slicersim.reduction.rectify import FIELDS
+    model, position = plan.model, plan.opts.position
+    sim = instrument_model(model["config"], name, model["conventions"])
+    ny, nx = sim.spectrograph.shape
+    scale = (nx / plan.opts.ncol, 1.0)                                 # native cells per cube cell (x, y)
+    fixed = None if position is None else (position[0] * scale[0], position[1] * scale[1])
+    start = None
+    tables = plan.mapper.projection_tables(FIELDS[name], nx, sim.spectrograph.lbda_edges)
+    if fixed is None:
+        start, signif = white_light_start(rate, var, tables)
+        if not signif >= MIN_DETECTION:
+            return (f"no point source in the {name} field: the brightest white light is "
+                    f"{signif:.1f} σ above the field's scatter (< {MIN_DETECTION:g} σ)")
+    options = ForwardOptions(field=name, lbda_edges=plan.edges, position=fixed, start=start,
+                             background=plan.opts.background, psf_profile=model["psf_profile"], cell_scale=scale)
+    noise = PixelNoise(rates.var_rnoise, rates.var_poisson, rates.rate, plan.dark_rate)
+    spec = extract_forward(rate, var, options, sim=sim, mapper=plan.mapper, noise=noise)
+    check_forward_fit(spec, rate, var, tables, name)
+    return spec
 
 
 #: units of the written datasets (attribute BUNIT on every dataset; e- are photo-electrons, rates are
@@ -426,7 +482,7 @@ def check_forward_fit(spec, rate, var, tables, name):
                      "light (a second source?)")
     d["warnings"] = flags
     for text in flags:
-        warnings.warn(f"{name} field: {text}", RuntimeWarning, stacklevel=4)
+        warnings.warn(f"{name} field: {text}", RuntimeWarning, stacklevel=5)
 
 
 def _fit_summary(spec):

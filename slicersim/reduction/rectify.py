@@ -55,21 +55,20 @@ from slicersim.backends.dispatch import BACKENDS
 from slicersim.backends.projection import deposit, footprint_windows
 from slicersim.backends.projection_transpose import gather, matrix_entries
 from slicersim.errors import ParameterError
-from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES, SlicerMapper
+from slicersim import validation
 from slicersim.backends.precision import float64_kwargs
+from slicersim.instrument.mapper import SlicerMapper
+from slicersim.reduction.option_forms import build_options
+from slicersim.reduction.rectify_checks import (FIELDS, METHODS, RectifyOptions, _check_grid, _check_images,
+                                                _check_options, _check_projection)
 
 __all__ = ["rectify", "CubeProduct", "InverseCovariance", "inverse_covariance", "FIELDS", "METHODS",
            "MAX_CONDITION"]
 
-FIELDS = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}
-METHODS = ("lsq", "drizzle")
 #: largest 1-norm condition number of a slice's normal matrix PᵀWP that ``lsq`` accepts
 #: (beyond, float64 cannot resolve the cube: the grid is finer than the detector samples it)
 MAX_CONDITION = 1e14
 _ENTRY_CHUNK = 1 << 13           # sub-cells per matrix_entries call
-#: largest |rate| and variance accepted (and 1/_MAX_VALUE the smallest variance > 0): beyond, the
-#: weights and sums overflow float64
-_MAX_VALUE = 1e100
 
 
 @dataclass
@@ -109,91 +108,6 @@ class CubeProduct:
 @functools.lru_cache(maxsize=1)
 def _default_mapper():
     return SlicerMapper.default()
-
-
-# --------------------------------------------------------------------------- validation
-def _check_grid(lbda, lbda_edges, mapper):
-    """(centres, edges) [Å] of the output λ grid, or ParameterError."""
-    if lbda is None and lbda_edges is None:
-        raise ParameterError("the λ grid is missing: give lbda (bin centres [Å]) and/or lbda_edges")
-    try:
-        c = None if lbda is None else np.asarray(lbda, np.float64)
-        e = None if lbda_edges is None else np.asarray(lbda_edges, np.float64)
-    except (TypeError, ValueError):
-        raise ParameterError("inconsistent λ grid: lbda and lbda_edges must be numbers [Å]") from None
-    for name, a in (("lbda", c), ("lbda_edges", e)):
-        if a is not None and (a.ndim != 1 or a.size < (1 if name == "lbda" else 2) or not np.all(np.isfinite(a))):
-            raise ParameterError(f"inconsistent λ grid: {name} must be a finite 1-D array, got shape "
-                                 f"{a.shape}")
-    if e is None:
-        if c.size < 2:
-            raise ParameterError("inconsistent λ grid: give lbda_edges for a single bin")
-        mid = 0.5 * (c[1:] + c[:-1])
-        e = np.concatenate([[1.5 * c[0] - 0.5 * c[1]], mid, [1.5 * c[-1] - 0.5 * c[-2]]])
-    if np.any(np.diff(e) <= 0):
-        raise ParameterError("inconsistent λ grid: lbda_edges must increase strictly")
-    if c is None:
-        c = 0.5 * (e[1:] + e[:-1])
-    if c.shape != (e.size - 1,):
-        raise ParameterError(f"inconsistent λ grid: {c.size} bin centres for {e.size} edges "
-                             f"(need {e.size - 1})")
-    if np.any(c < e[:-1]) or np.any(c > e[1:]):
-        raise ParameterError("inconsistent λ grid: every centre lbda[i] must lie in [lbda_edges[i], "
-                             "lbda_edges[i+1]]")
-    lo, hi = mapper.lbda_nodes[0], mapper.lbda_nodes[-1]
-    if e[0] < lo or e[-1] > hi:
-        raise ParameterError(f"inconsistent λ grid: {e[0]:.1f}–{e[-1]:.1f} Å leaves the traces of the "
-                             f"mapper ({lo:.1f}–{hi:.1f} Å)")
-    return c, e
-
-
-def _check_images(rate_image, variance, shape):
-    got = np.shape(rate_image)                         # before any conversion (no copy of a bad input)
-    if len(got) not in (2, 3) or got[-2:] != tuple(shape):
-        raise ParameterError(f"rate_image must have shape {tuple(shape)} (the mapper's detector) or "
-                             f"(N, {shape[0]}, {shape[1]}) for a stack, got {got}")
-    if np.iscomplexobj(rate_image) or np.iscomplexobj(variance):
-        raise ParameterError("rate_image and variance must be real numbers, got complex values")
-    try:
-        d = np.asarray(rate_image, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ParameterError("rate_image must be a numeric array") from None
-    if (np.abs(d) > _MAX_VALUE).any():                 # NaN / ±inf pass: refused or left out per pixel
-        raise ParameterError(f"rate_image has finite values beyond ±{_MAX_VALUE:.0e} (absurd: the sums of the "
-                             "rectification overflow)")
-    if variance is None:
-        return d, None
-    try:
-        v = np.asarray(variance, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ParameterError("variance must be a numeric array") from None
-    if v.shape != tuple(shape):
-        raise ParameterError(f"variance must have shape {tuple(shape)} (one image for the stack), got {v.shape}")
-    if np.isnan(v).any() or (v < 0).any():
-        raise ParameterError("variance must be ≥ 0 (+inf marks an unusable pixel), got NaN or negative values")
-    if ((v > _MAX_VALUE) & np.isfinite(v)).any() or ((v > 0) & (v < 1.0 / _MAX_VALUE)).any():
-        raise ParameterError(f"variance has values outside [{1 / _MAX_VALUE:.0e}, {_MAX_VALUE:.0e}] (other than 0 "
-                             "and +inf): absurd, their weights overflow")
-    return d, v
-
-
-def _check_options(field_name, method, ncol, backend, mapper):
-    if field_name not in (*FIELDS, "both"):
-        raise ParameterError(f"unknown field {field_name!r}: 'narrow', 'wide' or 'both'")
-    if method not in METHODS:
-        raise ParameterError(f"unknown method {method!r}: one of {METHODS}")
-    if backend not in BACKENDS:
-        raise ParameterError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if isinstance(ncol, bool) or not isinstance(ncol, (int, np.integer)) or ncol < 1:
-        raise ParameterError(f"ncol must be a positive integer, got {ncol!r}")
-    names = list(FIELDS) if field_name == "both" else [field_name]
-    for name in names:
-        try:
-            mapper.slice_index(FIELDS[name])
-        except ValueError:
-            raise ParameterError(f"the mapper has no {name} field (slices {FIELDS[name][0]}–"
-                                 f"{FIELDS[name][-1]})") from None
-    return names
 
 
 # --------------------------------------------------------------------------- pixels
@@ -354,9 +268,8 @@ class InverseCovariance:
     def matrix(self, row):
         """N of cube row ``row`` (CSR, (nλ·ncol)²) [unit⁻²]."""
         nrow = self.shape[1]
-        if not 0 <= int(row) < nrow:
-            raise ParameterError(f"row must be in 0 … {nrow - 1}, got {row!r}")
-        s = nrow - 1 - int(row)
+        row = validation.integer("row (cube row)", row, low=0, high=nrow - 1)
+        s = nrow - 1 - row
         if s in self._kept:
             return self._kept[s]
         P, _, w, _ = _slice_matrix(self._tables, s, self._weight_of)
@@ -523,17 +436,6 @@ def _usable_pixels(images, variance, owner_ok, field_name, weighted):
     return usable, weight
 
 
-def _check_projection(oversample, truncate, weights_dtype):
-    ov = tuple(int(v) for v in np.ravel(oversample))
-    if len(ov) != 2 or min(ov) < 1:
-        raise ParameterError(f"oversample must be two positive integers, got {oversample!r}")
-    if not (np.isfinite(truncate) and truncate > 0):
-        raise ParameterError(f"truncate must be a positive number of spot rms, got {truncate!r}")
-    if np.dtype(weights_dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
-        raise ParameterError(f"weights_dtype must be float32 or float64, got {weights_dtype!r}")
-    return ov
-
-
 def _field_tables(mapper, name, edges, ncol, ov, truncate, weights_dtype, backend):
     """(slices in gather order, projection tables, P·1 image) of a field."""
     slices = [int(s) for s in FIELDS[name]]
@@ -543,10 +445,11 @@ def _field_tables(mapper, name, edges, ncol, ov, truncate, weights_dtype, backen
     return slices, tables, cover
 
 
-def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None, lbda_edges=None, ncol=116,
-            method="lsq", oversample=(1, 1), truncate=4.0, weights_dtype=np.float32, unit="e-/s",
-            max_bytes=2**30, backend="auto", keep_information=False):
+def rectify(rate_image, variance=None, options=None, **keywords):
     """Rectify a detector rate image into the cube(s) of a field: see the module docstring.
+
+    ``options`` is a :class:`~slicersim.reduction.rectify_checks.RectifyOptions` (None: its defaults); its
+    fields, given as keywords, replace those of ``options`` (the keyword form of earlier releases):
 
     Parameters
     ----------
@@ -563,7 +466,8 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
     method : "lsq" (exact weighted least squares) or "drizzle" (pixel-to-cell).
     oversample, truncate, weights_dtype : the projection's options (as ``project_cube``: the
         same values give the same P, hence exact recovery of a cube projected with them).
-    max_bytes : memory allowed for one slice's factorisation (``lsq``).
+    max_bytes : memory allowed for one slice's factorisation (``lsq``) [bytes].
+    unit : the image's unit;  backend : "auto", "numpy" or "opencl".
     keep_information : ``lsq`` with a variance: keep every slice's normal matrix PᵀWP (the cube's
         inverse covariance, :class:`InverseCovariance`) instead of rebuilding it when asked.
 
@@ -575,44 +479,51 @@ def rectify(rate_image, variance=None, *, mapper=None, field="narrow", lbda=None
     slice, left out), ``pixels_shared``; drizzle: ``flux_image`` and ``flux_cube`` (equal:
     flux conserved), ``coverage_min``; both: ``pixels_used``, ``time_s``.
     """
-    mapper = _default_mapper() if mapper is None else mapper
-    names = _check_options(field, method, ncol, backend, mapper)
-    ov = _check_projection(oversample, truncate, weights_dtype)
-    if method == "drizzle" and variance is not None and ov != (1, 1):
+    opts = build_options(RectifyOptions, options, keywords, "rectify")
+    mapper = _default_mapper() if opts.mapper is None else opts.mapper
+    names = _check_options(opts.field, opts.method, opts.ncol, opts.backend, mapper)
+    if opts.method == "drizzle" and variance is not None and opts.oversample != (1, 1):
         raise ParameterError("drizzle variances need oversample (1, 1)")
-    centres, edges = _check_grid(lbda, lbda_edges, mapper)
+    centres, edges = _check_grid(opts.lbda, opts.lbda_edges, mapper)
     images, var = _check_images(rate_image, variance, mapper.detector_shape)
     if images.size == 0:
         raise ParameterError(f"rate_image is an empty stack {images.shape}: give at least one image")
     stack = images.ndim == 3
     images = images if stack else images[None]
-    ncol = int(ncol)
-    count = _slice_coverage(mapper, ncol, edges, ov, truncate) if method == "lsq" else None
+    lsq = opts.method == "lsq"
+    count = _slice_coverage(mapper, opts.ncol, edges, opts.oversample, opts.truncate) if lsq else None
     out = {}
     for name in names:
-        t0 = time.perf_counter()
-        slices, tables, cover = _field_tables(mapper, name, edges, ncol, ov, truncate, weights_dtype, backend)
-        reach = cover > 0
-        info = None
-        if method == "lsq":
-            usable, weight = _usable_pixels(images, var, reach & (count == 1), name, True)
-            shape = (edges.size - 1, len(slices), ncol)
-            info = InverseCovariance(tables, weight, slices, shape, keep_information and var is not None)
-            flux, fvar, diag = _field_lsq(images, weight, tables, slices, var is not None, max_bytes, backend,
-                                          info)
-            diag["pixels_shared"] = int((reach & (count > 1)).sum())
-            info = info if var is not None else None
-        else:
-            usable, _ = _usable_pixels(images, var, reach, name, False)
-            flux, fvar, diag = _field_drizzle(images, usable, var, cover, tables, backend)
-        diag.update(pixels_used=int(usable.sum()), time_s=time.perf_counter() - t0)
-        flux = _cube_axes(flux)
+        flux, fvar, slices, diag, info = _rectify_field(images, var, mapper, name, edges, count, opts)
         wcs = {"axes": ("lbda", "slice", "fieldpos"), "lbda": centres, "lbda_edges": edges, "lbda_unit": "Angstrom",
-               "slice_of_row": tuple(slices[::-1]), "fieldpos_edges": np.linspace(-1.0, 1.0, ncol + 1),
-               "unit": f"{unit} per cell per bin"}
-        out[name] = CubeProduct(name, method, flux if stack else flux[0], None if fvar is None else
-                                _cube_axes(fvar), centres, edges, tuple(slices[::-1]), unit, wcs, diag, info)
-    return out if field == "both" else out[field]
+               "slice_of_row": tuple(slices[::-1]), "fieldpos_edges": np.linspace(-1.0, 1.0, opts.ncol + 1),
+               "unit": f"{opts.unit} per cell per bin"}
+        out[name] = CubeProduct(name, opts.method, flux if stack else flux[0], fvar, centres, edges,
+                                tuple(slices[::-1]), opts.unit, wcs, diag, info)
+    return out if opts.field == "both" else out[opts.field]
+
+
+def _rectify_field(images, var, mapper, name, edges, count, opts):
+    """One field: (flux, variance or None in cube order, slices, diagnostics, InverseCovariance or None)."""
+    t0 = time.perf_counter()
+    ncol = opts.ncol
+    slices, tables, cover = _field_tables(mapper, name, edges, ncol, opts.oversample, opts.truncate,
+                                          opts.weights_dtype, opts.backend)
+    reach = cover > 0
+    info = None
+    if opts.method == "lsq":
+        usable, weight = _usable_pixels(images, var, reach & (count == 1), name, True)
+        shape = (edges.size - 1, len(slices), ncol)
+        info = InverseCovariance(tables, weight, slices, shape, opts.keep_information and var is not None)
+        flux, fvar, diag = _field_lsq(images, weight, tables, slices, var is not None, opts.max_bytes,
+                                      opts.backend, info)
+        diag["pixels_shared"] = int((reach & (count > 1)).sum())
+        info = info if var is not None else None
+    else:
+        usable, _ = _usable_pixels(images, var, reach, name, False)
+        flux, fvar, diag = _field_drizzle(images, usable, var, cover, tables, opts.backend)
+    diag.update(pixels_used=int(usable.sum()), time_s=time.perf_counter() - t0)
+    return _cube_axes(flux), None if fvar is None else _cube_axes(fvar), slices, diag, info
 
 
 def inverse_covariance(variance, *, mapper=None, field="narrow", lbda_edges, ncol, oversample=(1, 1), truncate=4.0,

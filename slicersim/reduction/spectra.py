@@ -81,71 +81,13 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
     shape = flux.shape[-3:]
     stack = flux.ndim == 4
     images = flux if stack else flux[None]
-    diag, sigma = {}, None
-    if psf is None or isinstance(psf, str):
-        mean = np.nanmean(images, axis=0) if stack else images[0]
-        position, sx, sy, diag = fit_gaussian_psf(mean, var, cube_product.lbda, position, nchunks)
-        P = _gaussian_field(shape[1:], sx, sy, position)
-        sigma = np.stack([sx, sy], axis=1)
-        white_sigma = diag["white_sigma"]
-    else:
-        P = psf
-        centroid, white_sigma = _moments(P)
-        position = centroid if position is None else position
-    # cells: aperture and outer (background) ellipses in white-light σ
-    yc, xc = cell_centres(shape[1:])
-    r = np.hypot((xc - position[0]) / white_sigma[0], (yc - position[1]) / white_sigma[1])
-    iy, ix = np.nonzero(r <= aperture)
-    if iy.size == 0:
-        raise ParameterError(f"the aperture ({aperture} σ around {position}) contains no cell centre")
-    outer = r >= background_radius
-    if background and outer.sum() < 4:
-        raise ParameterError(f"fewer than 4 cells lie beyond background_radius={background_radius} σ: lower it "
-                             "or use background=False")
+    P, position, white_sigma, sigma, diag = _psf_model(images, var, psf, position, cube_product.lbda, nchunks)
+    iy, ix, outer = _cells(shape, position, white_sigma, aperture, background_radius, background)
     v0 = np.ones(shape) if var is None else var
-    nl = shape[0]
-    out_f, out_b, out_bv = [], [], []
+    out_f, out_b, out_bv, cell_weights = [], [], [], None
     for img in images:
-        good = np.isfinite(img) & np.isfinite(v0) & (v0 > 0)
-        c = np.where(good, img, 0.0)
-        v = np.where(good, v0, np.inf)
-        if background:
-            wo = np.where(outer[None] & good, 1.0 / np.where(good, v, 1.0), 0.0)
-            norm = wo.sum(axis=(1, 2))
-            with np.errstate(invalid="ignore", divide="ignore"):
-                b = (wo * c).sum(axis=(1, 2)) / norm
-                bvar = 1.0 / norm
-                pbar = (wo * P).sum(axis=(1, 2)) / norm
-        else:
-            b, bvar, pbar = np.zeros(nl), np.zeros(nl), np.zeros(nl)
-        sub = c - b[:, None, None]
-        u = np.zeros(shape)                          # F̂_λ = Σ_c u_λc C_c (cells of bin λ)
-        if method == "optimal":
-            weights = P[:, iy, ix]
-            s0, var0 = extract_optimal(sub, v, weights, (iy, ix))
-            with np.errstate(invalid="ignore", divide="ignore"):
-                a = weights / v[:, iy, ix] * var0[:, None]                 # optimal weights a_c
-                suma = a.sum(axis=1)
-                k = 1.0 - pbar * suma
-                f = s0 / k
-                fv = (var0 + suma ** 2 * bvar) / k ** 2
-                u[:, iy, ix] = a / k[:, None]
-                if background:
-                    u -= (suma / k / norm)[:, None, None] * wo
-        else:
-            gsel = good[:, iy, ix]
-            s0, var0 = extract_aperture(np.where(good, sub, 0.0), np.where(good, v, 0.0), (iy, ix))
-            ee_full = P[:, iy, ix].sum(axis=1)
-            ee_used = (P[:, iy, ix] * gsel).sum(axis=1)
-            nused = gsel.sum(axis=1)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                k = (ee_used - nused * pbar) / ee_full
-                f = s0 / k
-                fv = (var0 + nused ** 2 * bvar) / k ** 2
-                u[:, iy, ix] = gsel / k[:, None]
-                if background:
-                    u -= (nused / k / norm)[:, None, None] * wo
-        if not out_f:
+        f, fv, b, bvar, u = _extract_image(img, v0, P, (iy, ix), outer if background else None, method)
+        if cell_weights is None:
             cell_weights = np.nan_to_num(u)
         out_f.append(f)
         out_b.append(b)
@@ -162,6 +104,74 @@ def extract_spectrum(cube_product, *, method="optimal", psf=None, position=None,
         background=(np.array(out_b) if stack else out_b[0]) if background else None,
         background_variance=(out_bv[0] if var is not None else None) if background else None,
         enclosed_energy=ee, cell_weights=cell_weights, diagnostics=diag)
+
+
+def _psf_model(images, var, psf, position, lbda, nchunks):
+    """(P (nλ, ny, nx), position, white-light σ (x, y) [cells], σ per bin or None, diagnostics): the
+    given PSF (position: its centroid unless given) or a Gaussian fitted on the (mean) cube."""
+    if psf is None or isinstance(psf, str):
+        mean = np.nanmean(images, axis=0) if images.shape[0] > 1 else images[0]
+        position, sx, sy, diag = fit_gaussian_psf(mean, var, lbda, position, nchunks)
+        P = _gaussian_field(images.shape[-2:], sx, sy, position)
+        return P, position, diag["white_sigma"], np.stack([sx, sy], axis=1), diag
+    centroid, white_sigma = _moments(psf)
+    return psf, centroid if position is None else position, white_sigma, None, {}
+
+
+def _cells(shape, position, white_sigma, aperture, background_radius, background):
+    """(iy, ix) of the aperture cells (within ``aperture`` white-light σ) and the outer (background)
+    cells mask (beyond ``background_radius`` σ; at least 4 when ``background``)."""
+    yc, xc = cell_centres(shape[1:])
+    r = np.hypot((xc - position[0]) / white_sigma[0], (yc - position[1]) / white_sigma[1])
+    iy, ix = np.nonzero(r <= aperture)
+    if iy.size == 0:
+        raise ParameterError(f"aperture: the aperture ({aperture} σ around {position}) contains no cell centre")
+    outer = r >= background_radius
+    if background and outer.sum() < 4:
+        raise ParameterError(f"fewer than 4 cells lie beyond background_radius={background_radius} σ: lower it "
+                             "or use background=False")
+    return iy, ix, outer
+
+
+def _extract_image(img, v0, P, cells, outer, method):
+    """One cube image: (F̂, Var F̂, B̂, Var B̂ per bin, the weights u with F̂_λ = Σ_c u_λc C_c) of the
+    optimal or aperture estimator, the background (``outer`` cells; None: no background) subtracted
+    with the exact correction for the PSF light there (module docstring)."""
+    iy, ix = cells
+    nl = P.shape[0]
+    good = np.isfinite(img) & np.isfinite(v0) & (v0 > 0)
+    c = np.where(good, img, 0.0)
+    v = np.where(good, v0, np.inf)
+    if outer is not None:
+        wo = np.where(outer[None] & good, 1.0 / np.where(good, v, 1.0), 0.0)
+        norm = wo.sum(axis=(1, 2))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            b = (wo * c).sum(axis=(1, 2)) / norm
+            bvar = 1.0 / norm
+            pbar = (wo * P).sum(axis=(1, 2)) / norm
+    else:
+        b, bvar, pbar = np.zeros(nl), np.zeros(nl), np.zeros(nl)
+    sub = c - b[:, None, None]
+    u = np.zeros(P.shape)                            # F̂_λ = Σ_c u_λc C_c (cells of bin λ)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if method == "optimal":
+            weights = P[:, iy, ix]
+            s0, var0 = extract_optimal(sub, v, weights, (iy, ix))
+            a = weights / v[:, iy, ix] * var0[:, None]                     # optimal weights a_c
+            n_used = a.sum(axis=1)
+            k = 1.0 - pbar * n_used
+            u[:, iy, ix] = a / k[:, None]
+        else:
+            gsel = good[:, iy, ix]
+            s0, var0 = extract_aperture(np.where(good, sub, 0.0), np.where(good, v, 0.0), (iy, ix))
+            n_used = gsel.sum(axis=1)
+            k = ((P[:, iy, ix] * gsel).sum(axis=1) - n_used * pbar) / P[:, iy, ix].sum(axis=1)
+            u[:, iy, ix] = gsel / k[:, None]
+        f = s0 / k
+        fv = (var0 + n_used ** 2 * bvar) / k ** 2
+        if outer is not None:
+            u -= (n_used / k / norm)[:, None, None] * wo
+    return f, fv, b, bvar, u
 
 
 # --------------------------------------------------------------------------- exact variance

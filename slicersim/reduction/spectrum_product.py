@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import cell_centres, gaussian_psf_cells
 from slicersim.products.extraction import EXTRACTION_METHODS
@@ -205,8 +206,7 @@ def _check_psf_sum(psf):
 
 def _check(cube_product, method, psf, aperture, background_radius, position, background=True,
            nchunks=_MAX_CHUNKS):
-    if method not in METHODS:
-        raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
+    validation.choice("method", method, METHODS)
     flux = getattr(cube_product, "flux", None)
     if flux is None:
         raise ParameterError("cube_product must be a CubeProduct (from slicersim.reduction.rectify)")
@@ -219,22 +219,21 @@ def _check(cube_product, method, psf, aperture, background_radius, position, bac
         var = np.asarray(var, float)
         if var.shape != shape:
             raise ParameterError(f"cube variance must have shape {shape}, got {var.shape}")
-    for name, val in (("aperture", aperture), ("background_radius", background_radius)):
-        if not (isinstance(val, (int, float, np.number)) and np.isfinite(val) and val > 0):
-            raise ParameterError(f"{name} must be a positive number of PSF σ, got {val!r}")
+    aperture = validation.number("aperture [PSF σ]", aperture, low=0.0, low_open=True)
+    background_radius = validation.number("background_radius [PSF σ]", background_radius, low=0.0, low_open=True)
     if background_radius <= aperture:
         raise ParameterError(f"background_radius ({background_radius}) must exceed aperture ({aperture})")
-    if isinstance(psf, str) and psf != "fit":
-        raise ParameterError(f"psf must be None, 'fit' or an (nλ, ny, nx) array, got {psf!r}")
+    if isinstance(psf, str):
+        validation.choice("psf", psf, ("fit",))
     if psf is not None and not isinstance(psf, str):
         psf = np.asarray(psf, float)
         if psf.shape != shape or not np.all(np.isfinite(psf)) or (psf < 0).any():
             raise ParameterError(f"psf array must be finite, ≥ 0, of shape {shape}, got {psf.shape}")
         _check_psf_sum(psf)
-    if not isinstance(background, (bool, np.bool_)):
-        raise ParameterError(f"background must be True or False, got {background!r}")
-    if isinstance(nchunks, (bool, np.bool_)) or not isinstance(nchunks, (int, np.integer)) or nchunks < 1:
-        raise ParameterError(f"nchunks must be a positive integer (λ chunks of the PSF fit), got {nchunks!r}")
+    validation.flag("background", background)
+    if isinstance(nchunks, (float, np.floating)):                 # 2.0 is not a count of chunks either
+        raise ParameterError(f"nchunks (λ chunks of the PSF fit) must be an integer ≥ 1, got {nchunks!r}")
+    validation.integer("nchunks (λ chunks of the PSF fit)", nchunks, low=1)
     if position is not None:
         try:
             position = tuple(float(v) for v in position)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.backends.precision import float64_kwargs
 from slicersim.reduction.rectify import rectify
@@ -43,7 +44,8 @@ def _native_groups(native_shape, native_lbda_edges, lbda_edges):
         raise ParameterError(f"native_lbda_edges must be {native_shape[0] + 1} finite increasing edges [Å] "
                              f"(the native cube has {native_shape[0]} bins), got shape {ne.shape}")
     if ce.ndim != 1 or ce.size < 2 or not np.all(np.isfinite(ce)) or np.any(np.diff(ce) <= 0):
-        raise ParameterError(f"lbda_edges must be at least 2 finite increasing edges [Å], got {ce!r}")
+        raise ParameterError(f"lbda_edges must be at least 2 finite increasing edges [Å], got "
+                             f"{validation.short_repr(ce)}")
     if ce[0] < ne[0] or ce[-1] > ne[-1]:
         raise ParameterError(f"the coarse grid {ce[0]:.6g}–{ce[-1]:.6g} Å must lie within the native grid "
                              f"{ne[0]:.6g}–{ne[-1]:.6g} Å")
@@ -83,10 +85,10 @@ def point_source_template(native_cube, native_lbda_edges, lbda_edges, *, mapper,
     """
     if mapper is None:
         raise ParameterError("point_source_template needs the mapper the data were rectified with")
-    if not isinstance(field, str) or field not in ("narrow", "wide"):
-        raise ParameterError(f"field must be 'narrow' or 'wide' (one cube per template), got {field!r}")
-    if isinstance(ncol, (bool, np.bool_)) or not isinstance(ncol, (int, np.integer)) or ncol < 1:
-        raise ParameterError(f"ncol must be a positive integer (columns of the coarse cube), got {ncol!r}")
+    validation.choice("field", field, ("narrow", "wide"), what="field (one cube per template)")
+    if isinstance(ncol, (float, np.floating)):
+        raise ParameterError(f"ncol (columns of the coarse cube) must be an integer ≥ 1, got {ncol!r}")
+    ncol = validation.integer("ncol (columns of the coarse cube)", ncol, low=1)
     try:
         cube = np.asarray(native_cube, float)
     except (TypeError, ValueError):
@@ -130,12 +132,7 @@ def background_template(native_shape, native_lbda_edges, lbda_edges, *, mapper, 
     native_shape : (ny, nx_native) of the native cube (the field's slices × native columns);
     other arguments as :func:`point_source_template`.  Returns (nλ, nλ, ny, ncol).
     """
-    try:
-        ny, nxn = (int(v) for v in native_shape)
-    except (TypeError, ValueError):
-        raise ParameterError(f"native_shape must be (ny, nx_native), got {native_shape!r}") from None
-    if ny < 1 or nxn < 1:
-        raise ParameterError(f"native_shape must be positive, got {native_shape!r}")
+    ny, nxn = validation.shape("native_shape (ny, nx_native)", native_shape)
     n_native = np.asarray(native_lbda_edges, float).size - 1
     uniform = np.ones((max(n_native, 1), ny, nxn))
     T = point_source_template(uniform, native_lbda_edges, lbda_edges, mapper=mapper, field=field, ncol=ncol,
