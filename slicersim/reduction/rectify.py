@@ -51,7 +51,6 @@ from scipy.linalg import LinAlgError, cholesky
 from scipy.linalg.lapack import dtrtri
 from scipy.sparse.linalg import LinearOperator, onenormest
 
-from slicersim.backends.dispatch import BACKENDS
 from slicersim.backends.projection import deposit, footprint_windows
 from slicersim.backends.projection_transpose import gather, matrix_entries
 from slicersim.errors import ParameterError
