@@ -37,6 +37,7 @@ LAYERS = (
     ("data", "instrument data files"),
     ("rng", "counter-based Philox draws (NumPy)"),
     ("io", "file formats, no physics"),
+    ("plotting", "figures from arrays and duck-typed models (NumPy, matplotlib)"),
     ("physics", "readout, ramps, detector effects, LSF, PSF, thermal emission"),
     ("kernels", "OpenCL C sources (package data)"),
     ("backends", "OpenCL kernels and their NumPy twins"),

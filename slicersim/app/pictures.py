@@ -7,59 +7,17 @@ from pyplot), imports pyplot lazily and never calls ``plt.show``, so it works wi
 from __future__ import annotations
 
 import copy
-import os
 
 import numpy as np
 
 from slicersim import validation
 from slicersim.errors import ParameterError
+from slicersim.plotting import colorbar, draw_slices, figure_writer, finish, image_norm, save_figure, sky_extent
 
 __all__ = ["show_fields", "show_psf_profiles", "show_slice_map", "field_simulations", "save_figure", "figure_writer",
            "check_region", "check_wavelengths", "FIELDS"]
 
 FIELDS = ("narrow", "wide")
-
-
-def figure_writer(fig, path, **options):
-    """(path, writer) for :func:`slicersim.io.atomic.write_files`: ``writer(file)`` draws ``fig``
-    (``savefig`` ``options``) in the format of the path's suffix (none: matplotlib's
-    default, appended to the path as ``savefig`` does)."""
-    import matplotlib
-    path = os.fspath(path)
-    fmt = os.path.splitext(path)[1][1:].lower()
-    if not fmt:
-        fmt = matplotlib.rcParams["savefig.format"]
-        path = f"{path}.{fmt}"
-    supported = fig.canvas.get_supported_filetypes()
-    if fmt not in supported:
-        raise ParameterError(f"unsupported figure format {fmt!r} ({path}); use {', '.join(sorted(supported))}")
-    return path, lambda fh: fig.savefig(fh, format=fmt, **options)
-
-
-def save_figure(fig, savefile, **options):
-    """Write ``fig`` (``savefig`` ``options``) and release it from pyplot; returns the path.
-
-    A path is written atomically (:func:`slicersim.io.atomic.write_files`: a temporary in its
-    directory, renamed in when complete, replacing an existing file; on any error, e.g. a full
-    disk, nothing is left; temporaries of killed writers there are removed), see
-    :func:`figure_writer` for the format.  A binary file object is written directly."""
-    import matplotlib.pyplot as plt
-    from slicersim.errors import DatasetError
-    from slicersim.io.atomic import write_files
-    if hasattr(savefile, "write"):
-        fig.savefig(savefile, **options)
-        plt.close(fig)
-        return savefile
-    path, writer = figure_writer(fig, savefile, **options)
-    write_files({path: writer}, overwrite=True, error_class=DatasetError)
-    plt.close(fig)
-    return path
-
-
-def _finish(fig, savefile):
-    if savefile is not None:
-        save_figure(fig, savefile, dpi=120, bbox_inches="tight")
-    return fig
 
 
 def _simulation(obj):
@@ -109,52 +67,6 @@ def _band(lbda, lbda_range):
     return sel
 
 
-def _extent(sim):
-    """Field extent [arcsec] of the cube image (x along the slices, y across them): the
-    simulation's cells are squares of side ``spatial_scale`` (Lazuli: 58 × 116 cells of
-    0.04″ or 0.08″), so a round source is drawn round."""
-    spec = sim.spectrograph
-    ny, nx = spec.shape
-    half_y = 0.5 * ny * spec.spatial_scale
-    half_x = 0.5 * nx * spec.spatial_scale
-    return (-half_x, half_x, -half_y, half_y)
-
-
-def _image_norm(img):
-    """Colour scale of an image: asinh (linear below 1 % of the peak) for a high contrast (a
-    point source: min < 10 % of max); linear for a low contrast; ±0.5 % around the value
-    for a uniform image (a flat), whose rounding noise would else fill the colour bar."""
-    from matplotlib.colors import AsinhNorm, Normalize
-    finite = np.asarray(img, float)[np.isfinite(img)]               # saturated cells are NaN
-    if finite.size == 0:
-        return Normalize(vmin=0.0, vmax=1.0)
-    lo, hi = float(finite.min()), float(finite.max())
-    peak = max(abs(lo), abs(hi))
-    if peak == 0 or hi - lo <= 1e-6 * peak:
-        mid = 0.5 * (lo + hi)
-        half = 0.005 * abs(mid) or 1.0
-        return Normalize(vmin=mid - half, vmax=mid + half)
-    if lo >= 0.1 * hi:
-        return Normalize(vmin=lo, vmax=hi)
-    return AsinhNorm(linear_width=0.01 * peak, vmin=lo, vmax=hi)
-
-
-def _colorbar(fig, im, ax, label, min_gap=0.09):
-    """Colour bar whose tick labels do not overlap: ticks closer than ``min_gap`` (fraction
-    of the bar) to a kept one are dropped (asinh scales crowd ticks around 0)."""
-    cb = fig.colorbar(im, ax=ax, fraction=0.046, label=label)
-    norm = im.norm
-    ticks = [t for t in cb.get_ticks() if norm.vmin <= t <= norm.vmax]
-    if len(ticks) > 2:
-        pos = np.asarray(norm(ticks), float)
-        kept = []
-        for i in np.argsort(-np.abs(np.asarray(ticks))):         # the largest |value| first
-            if all(abs(pos[i] - pos[j]) >= min_gap for j in kept):
-                kept.append(i)
-        cb.set_ticks(sorted(ticks[i] for i in kept))
-    return cb
-
-
 def _has_compact_source(sim):
     """False for a field-filling illumination (a flat: no point source, no host)."""
     scene = getattr(sim, "scene", None)
@@ -202,7 +114,7 @@ def show_fields(target_or_sim, lbda_range=None, seed=None, savefile=None):
         scene = sim.get_projected_scene()
         signal, _, *noisy = sim.get_cube(seed=seed)
         cube = noisy[0] if noisy else signal
-        extent = _extent(sim)
+        extent = sky_extent(sim.spectrograph)
         lo, hi = lbda[sel][0], lbda[sel][-1]
         for row, (data, unit, what) in enumerate(((scene, "ph/s/cell", "projected scene"),
                                                   (cube, "ADU", "noisy cube" if noisy else "signal cube"))):
@@ -210,9 +122,9 @@ def show_fields(target_or_sim, lbda_range=None, seed=None, savefile=None):
             img = data[sel].sum(axis=0)                                # NaN where a bin saturates
             saturated = int(np.count_nonzero(~np.isfinite(img)))
             im = ax.imshow(img, origin="lower", extent=extent, interpolation="nearest", aspect="equal",
-                           cmap=plt.get_cmap("cividis").with_extremes(bad="crimson"), norm=_image_norm(img))
+                           cmap=plt.get_cmap("cividis").with_extremes(bad="crimson"), norm=image_norm(img))
             im.set_gid(f"{field}:{'scene' if row == 0 else 'cube'}")
-            _colorbar(fig, im, ax, f"Σλ [{unit}]")
+            colorbar(fig, im, ax, f"Σλ [{unit}]")
             note = f", {saturated} cells saturated (red)" if saturated else ""
             ax.set_title(f"{field} field ({sim.spectrograph.spatial_scale:g}″ cells): {what}{note}\n"
                          f"{lo:.0f}–{hi:.0f} Å", fontsize="medium")
@@ -242,7 +154,7 @@ def show_fields(target_or_sim, lbda_range=None, seed=None, savefile=None):
     fig.suptitle(f"{_subject(target_or_sim, sims)}: Lazuli {which}, readout "
                  f"{tuple(int(v) for v in t['nmd'])} × {int(t['nramps'])} ramp(s), "
                  f"{float(t['exposure_time']):.0f} s", fontsize="medium")
-    return _finish(fig, savefile)
+    return finish(fig, savefile)
 
 
 # --------------------------------------------------------------------------- #
@@ -328,7 +240,7 @@ def show_psf_profiles(target_or_sim, lbda=(5000.0, 10000.0, 15000.0), rmax=None,
     tel = sim.telescope
     fig.suptitle(f"PSF: D = {tel.diameter_ext:g} m, obscuration {tel.obscuration:.2f}, guiding σ "
                  f"{tel.guiding_sigma:g}″; cells 0.04″ / 0.08″ (dash-dot)", fontsize="medium")
-    return _finish(fig, savefile)
+    return finish(fig, savefile)
 
 
 # --------------------------------------------------------------------------- #
@@ -360,7 +272,8 @@ def check_region(region, shape):
 
 
 def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, config="cbe", lbda_edges=None,
-                   ncol=116, truncate=4.0, labels=True, region=None, ax=None, savefile=None):
+                   ncol=116, truncate=4.0, labels=True, region=None, ax=None, savefile=None,
+                   image_label="detector image [e-/s/px]"):
     """The detector with every slice's footprint outlined and labelled.
 
     Background: ``image`` (e.g. ``target.get_detector_image()`` [e-/s/px], log scale), else
@@ -370,12 +283,9 @@ def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, c
     (:class:`~slicersim.instrument.footprints.FieldFootprints`, one or a list), else from
     ``mapper`` (default: the built-in Lazuli layout) for ``fields`` on the grid of
     ``config`` (or ``lbda_edges`` [Å] and ``ncol``).  ``region`` (row0, row1, col0, col1)
-    [px], within the detector, zooms in.
+    [px], within the detector, zooms in.  ``image_label``: the colour bar's label, with the
+    image's unit.  Drawn by :func:`slicersim.plotting.draw_slices`.
     """
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
-    from matplotlib.patches import Polygon
-
     from slicersim.instrument.footprints import FieldFootprints, detector_label_image
     if footprints is None:
         if mapper is None:
@@ -389,45 +299,7 @@ def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, c
     if not footprints or not all(isinstance(f, FieldFootprints) for f in footprints):
         raise ParameterError("footprints must be FieldFootprints (one or a list)")
     shape = footprints[0].detector_shape
-    if ax is None:
-        fig, ax = plt.subplots(figsize=(9, 8.5), layout="constrained")
-    else:
-        fig = ax.figure
-    r0, r1, c0, c1 = (0, shape[0], 0, shape[1]) if region is None else check_region(region, shape)
-    view = dict(origin="lower", interpolation="nearest", interpolation_stage="data", extent=(c0, c1, r0, r1))
-    if image is not None:
-        data = np.asarray(image, np.float64)
-        if data.shape != shape:
-            raise ParameterError(f"image must have the detector shape {shape}, got {data.shape}")
-        data = data[r0:r1, c0:c1]
-        pos = data[data > 0]
-        norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-6), vmax=pos.max()) if pos.size else None
-        im = ax.imshow(np.where(data > 0, data, np.nan), norm=norm, cmap="magma", **view)
-        fig.colorbar(im, ax=ax, fraction=0.046, label="detector image")
-        edge = "cyan"
-    else:
-        label = detector_label_image(*footprints)[r0:r1, c0:c1]
-        im = ax.imshow(np.ma.masked_equal(label, -1), cmap="tab20", **view)
-        fig.colorbar(im, ax=ax, fraction=0.046, label="slice id (label image)")
-        edge = "k"
-    im.set_gid("background")
-    nslices = 0
-    for fp in footprints:
-        for s in fp:
-            ax.add_patch(Polygon(s.contour, closed=True, fill=False, ec=edge, lw=0.6, gid=f"slice {s.slice_id}"))
-            if labels:
-                x, y = s.trace_x[0], s.trace_y[0]
-                ax.text(x, y + 6, str(s.slice_id), fontsize=5 if region is None else 8, ha="center",
-                        va="bottom", color=edge, gid=f"label {s.slice_id}", clip_on=True)
-            nslices += 1
-    ax.set_xlim(c0, c1)
-    ax.set_ylim(r0, r1)
-    ax.set_aspect("equal")
-    ax.set_xlabel("detector column x [px]")
-    ax.set_ylabel("detector row y [px]")
-    shared = sum(n for f in footprints for *_, n in f.overlaps())
-    fp0 = footprints[0]
-    ax.set_title(f"slice footprints: {nslices} slices ({', '.join(f.field for f in footprints)}), "
-                 f"{fp0.lbda_edges[0]:.0f}–{fp0.lbda_edges[-1]:.0f} Å, windows ±{fp0.truncate:g} σ; "
-                 f"{shared} px shared by neighbours", fontsize="medium")
-    return _finish(fig, savefile)
+    region = None if region is None else check_region(region, shape)
+    label_image = detector_label_image(*footprints) if image is None else None
+    return draw_slices(footprints, image, label_image, region=region, labels=labels, ax=ax, savefile=savefile,
+                       image_label=image_label)

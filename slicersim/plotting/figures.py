@@ -1,0 +1,103 @@
+"""Figure plumbing shared by every plot: axes, colour bars, colour scales, atomic saving.
+
+Only NumPy and matplotlib (imported lazily, inside the functions) and the layers below
+(``errors``, ``io.atomic``); ``plt.show`` is never called, so everything works with Agg.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from slicersim.errors import ParameterError
+
+__all__ = ["figure_writer", "save_figure", "finish", "new_axes", "colorbar", "image_norm"]
+
+
+def figure_writer(fig, path, **options):
+    """(path, writer) for :func:`slicersim.io.atomic.write_files`: ``writer(file)`` draws ``fig``
+    (``savefig`` ``options``) in the format of the path's suffix (none: matplotlib's
+    default, appended to the path as ``savefig`` does)."""
+    import matplotlib
+    path = os.fspath(path)
+    fmt = os.path.splitext(path)[1][1:].lower()
+    if not fmt:
+        fmt = matplotlib.rcParams["savefig.format"]
+        path = f"{path}.{fmt}"
+    supported = fig.canvas.get_supported_filetypes()
+    if fmt not in supported:
+        raise ParameterError(f"unsupported figure format {fmt!r} ({path}); use {', '.join(sorted(supported))}")
+    return path, lambda fh: fig.savefig(fh, format=fmt, **options)
+
+
+def save_figure(fig, savefile, **options):
+    """Write ``fig`` (``savefig`` ``options``) and release it from pyplot; returns the path.
+
+    A path is written atomically (:func:`slicersim.io.atomic.write_files`: a temporary in its
+    directory, renamed in when complete, replacing an existing file; on any error, e.g. a full
+    disk, nothing is left; temporaries of killed writers there are removed), see
+    :func:`figure_writer` for the format.  A binary file object is written directly."""
+    import matplotlib.pyplot as plt
+    from slicersim.errors import DatasetError
+    from slicersim.io.atomic import write_files
+    if hasattr(savefile, "write"):
+        fig.savefig(savefile, **options)
+        plt.close(fig)
+        return savefile
+    path, writer = figure_writer(fig, savefile, **options)
+    write_files({path: writer}, overwrite=True, error_class=DatasetError)
+    plt.close(fig)
+    return path
+
+
+def finish(fig, savefile, dpi=120):
+    """Save ``fig`` to ``savefile`` when given (:func:`save_figure`, tight box); returns ``fig``."""
+    if savefile is not None:
+        save_figure(fig, savefile, dpi=dpi, bbox_inches="tight")
+    return fig
+
+
+def new_axes(ax=None, **subplots):
+    """(figure, axes): ``ax``'s figure and ``ax`` when given, else a new figure
+    (``plt.subplots(**subplots)``, constrained layout)."""
+    if ax is not None:
+        return ax.figure, ax
+    import matplotlib.pyplot as plt
+    subplots.setdefault("layout", "constrained")
+    return plt.subplots(**subplots)
+
+
+def image_norm(img):
+    """Colour scale of an image: asinh (linear below 1 % of the peak) for a high contrast (a
+    point source: min < 10 % of max); linear for a low contrast; ±0.5 % around the value
+    for a uniform image (a flat), whose rounding noise would else fill the colour bar."""
+    from matplotlib.colors import AsinhNorm, Normalize
+    finite = np.asarray(img, float)[np.isfinite(img)]               # saturated cells are NaN
+    if finite.size == 0:
+        return Normalize(vmin=0.0, vmax=1.0)
+    lo, hi = float(finite.min()), float(finite.max())
+    peak = max(abs(lo), abs(hi))
+    if peak == 0 or hi - lo <= 1e-6 * peak:
+        mid = 0.5 * (lo + hi)
+        half = 0.005 * abs(mid) or 1.0
+        return Normalize(vmin=mid - half, vmax=mid + half)
+    if lo >= 0.1 * hi:
+        return Normalize(vmin=lo, vmax=hi)
+    return AsinhNorm(linear_width=0.01 * peak, vmin=lo, vmax=hi)
+
+
+def colorbar(fig, im, ax, label, min_gap=0.09):
+    """Colour bar labelled ``label`` (with its unit) whose tick labels do not overlap: ticks
+    closer than ``min_gap`` (fraction of the bar) to a kept one are dropped (asinh scales
+    crowd ticks around 0)."""
+    cb = fig.colorbar(im, ax=ax, fraction=0.046, label=label)
+    norm = im.norm
+    ticks = [t for t in cb.get_ticks() if norm.vmin <= t <= norm.vmax]
+    if len(ticks) > 2:
+        pos = np.asarray(norm(ticks), float)
+        kept = []
+        for i in np.argsort(-np.abs(np.asarray(ticks))):         # the largest |value| first
+            if all(abs(pos[i] - pos[j]) >= min_gap for j in kept):
+                kept.append(i)
+        cb.set_ticks(sorted(ticks[i] for i in kept))
+    return cb

@@ -1,0 +1,234 @@
+"""Images: cube slices at a few wavelengths, the detector with its slice footprints, raw-ramp
+groups and group differences.
+
+Like :mod:`slicersim.plotting.spectra`: duck-typed models or arrays in, a matplotlib Figure
+out (``savefile`` writes it atomically and releases it); pyplot is imported lazily.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from slicersim.errors import ParameterError
+from slicersim.plotting.figures import colorbar, finish, image_norm, new_axes
+
+__all__ = ["plot_cube_slices", "draw_slices", "plot_ramp_group", "source_zoom", "sky_extent"]
+
+
+def sky_extent(spectrograph):
+    """Field extent [arcsec] (x along the slices, y across them) of a cube image: cells are
+    squares of side ``spatial_scale`` [arcsec], so a round source is drawn round."""
+    ny, nx = spectrograph.shape
+    half_y, half_x = 0.5 * ny * spectrograph.spatial_scale, 0.5 * nx * spectrograph.spatial_scale
+    return (-half_x, half_x, -half_y, half_y)
+
+
+def _cube_wavelengths(lbda, wanted):
+    """Indices of the bins nearest to ``wanted`` [Å] (default: four spread over the grid)."""
+    if wanted is None:
+        return np.unique(np.linspace(0, lbda.size - 1, 6).round().astype(int)[1:-1])
+    wanted = np.atleast_1d(np.asarray(wanted, dtype=float))
+    if wanted.ndim != 1 or wanted.size == 0 or not np.all(np.isfinite(wanted)):
+        raise ParameterError(f"lbda must be one or more finite wavelengths [AA], got {wanted!r}")
+    outside = wanted[(wanted < lbda[0]) | (wanted > lbda[-1])]
+    if outside.size:
+        raise ParameterError(f"lbda must lie within the cube's grid {lbda[0]:.0f}-{lbda[-1]:.0f} AA, got "
+                             f"{', '.join(f'{v:g}' for v in outside)}")
+    return np.abs(lbda[None, :] - wanted[:, None]).argmin(axis=1)
+
+
+def plot_cube_slices(sim, cube=None, lbda=None, ax=None, savefile=None, unit="ADU"):
+    """Images of a cube at a few wavelengths (one panel per λ, the nearest bin).
+
+    Parameters
+    ----------
+    sim : Simulation (its ``lbda`` [Å] and ``spectrograph``: shape, ``spatial_scale`` [arcsec])
+    cube : (nλ, ny, nx) values [``unit``]; default: the simulation's signal cube
+        (``sim.get_cube()[0]``, all ramps) [ADU]
+    lbda : wavelengths [Å] of the panels (default: four spread over the grid)
+    ax : None (new figure) or a sequence of Axes, one per wavelength
+    unit : unit of the cube (colour bars)
+    """
+    lbda_grid = np.asarray(sim.lbda, dtype=float)
+    if cube is None:
+        cube = sim.get_cube()[0]
+    cube = np.asarray(cube, dtype=float)
+    if cube.ndim != 3 or cube.shape[0] != lbda_grid.size:
+        raise ParameterError(f"cube must have shape ({lbda_grid.size}, ny, nx), got {cube.shape}")
+    index = _cube_wavelengths(lbda_grid, lbda)
+    if ax is None:
+        import matplotlib.pyplot as plt
+        fig, axes = plt.subplots(1, index.size, figsize=(3.6 * index.size + 1, 4.2), squeeze=False,
+                                 layout="constrained")
+        axes = list(axes[0])
+    else:
+        axes = list(np.atleast_1d(ax))
+        if len(axes) != index.size:
+            raise ParameterError(f"ax must hold one Axes per wavelength ({index.size}), got {len(axes)}")
+        fig = axes[0].figure
+    extent = sky_extent(sim.spectrograph)
+    for a, k in zip(axes, index):
+        img = cube[k]
+        im = a.imshow(img, origin="lower", extent=extent, interpolation="nearest", aspect="equal",
+                      cmap="cividis", norm=image_norm(img))
+        colorbar(fig, im, a, f"signal [{unit}]")
+        a.set_title(f"λ = {lbda_grid[k]:.0f} Å", fontsize="medium")
+        a.set_xlabel("x along the slices [arcsec]")
+        a.set_ylabel("y across the slices [arcsec]")
+    if ax is None:
+        fig.suptitle(f"cube slices ({cube.shape[1]} × {cube.shape[2]} cells of "
+                     f"{sim.spectrograph.spatial_scale:g}″)", fontsize="medium")
+    return finish(fig, savefile)
+
+
+def _slice_background(ax, fig, image, label_image, view, image_label):
+    """Detector image (log scale) or label image behind the outlines; returns the outline colour."""
+    from matplotlib.colors import LogNorm
+    if image is not None:
+        pos = image[image > 0]
+        norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-6), vmax=pos.max()) if pos.size else None
+        im = ax.imshow(np.where(image > 0, image, np.nan), norm=norm, cmap="magma", **view)
+        fig.colorbar(im, ax=ax, fraction=0.046, label=image_label)
+        edge = "cyan"
+    else:
+        im = ax.imshow(np.ma.masked_equal(label_image, -1), cmap="tab20", **view)
+        fig.colorbar(im, ax=ax, fraction=0.046, label="slice id (label image)")
+        edge = "k"
+    im.set_gid("background")
+    return edge
+
+
+def draw_slices(footprints, image=None, label_image=None, *, region=None, labels=True, ax=None, savefile=None,
+                image_label="detector image [e-/s/px]"):
+    """The detector with every slice's footprint outlined and labelled.
+
+    Parameters
+    ----------
+    footprints : list of field footprints (``FieldFootprints``: iterable of slices with
+        ``contour`` [px], ``slice_id``, ``trace_x``/``trace_y`` [px]; ``field``,
+        ``detector_shape``, ``lbda_edges`` [Å], ``truncate``, ``overlaps()``)
+    image : (rows, cols) detector image (log scale, colour bar ``image_label`` with its unit),
+        or ``label_image``: slice id per pixel (−1 outside)
+    region : (row0, row1, col0, col1) [px] zoom, already checked; default the whole detector
+    labels : write each slice id at the blue end of its trace
+    """
+    from matplotlib.patches import Polygon
+    shape = tuple(footprints[0].detector_shape)
+    fig, ax = new_axes(ax, figsize=(9, 8.5))
+    r0, r1, c0, c1 = (0, shape[0], 0, shape[1]) if region is None else region
+    view = dict(origin="lower", interpolation="nearest", interpolation_stage="data", extent=(c0, c1, r0, r1))
+    if image is not None:
+        image = np.asarray(image, np.float64)
+        if image.shape != shape:
+            raise ParameterError(f"image must have the detector shape {shape}, got {image.shape}")
+        image = image[r0:r1, c0:c1]
+    elif label_image is not None:
+        label_image = np.asarray(label_image)[r0:r1, c0:c1]
+    else:
+        raise ParameterError("draw_slices needs an image or a label_image")
+    edge = _slice_background(ax, fig, image, label_image, view, image_label)
+    nslices = 0
+    for fp in footprints:
+        for s in fp:
+            ax.add_patch(Polygon(s.contour, closed=True, fill=False, ec=edge, lw=0.6, gid=f"slice {s.slice_id}"))
+            if labels:
+                ax.text(s.trace_x[0], s.trace_y[0] + 6, str(s.slice_id), fontsize=5 if region is None else 8,
+                        ha="center", va="bottom", color=edge, gid=f"label {s.slice_id}", clip_on=True)
+            nslices += 1
+    ax.set_xlim(c0, c1)
+    ax.set_ylim(r0, r1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("detector column x [px]")
+    ax.set_ylabel("detector row y [px]")
+    shared = sum(n for f in footprints for *_, n in f.overlaps())
+    fp0 = footprints[0]
+    ax.set_title(f"slice footprints: {nslices} slices ({', '.join(f.field for f in footprints)}), "
+                 f"{fp0.lbda_edges[0]:.0f}–{fp0.lbda_edges[-1]:.0f} Å, windows ±{fp0.truncate:g} σ; "
+                 f"{shared} px shared by neighbours", fontsize="medium")
+    return finish(fig, savefile)
+
+
+# --------------------------------------------------------------------------- #
+#  raw ramps                                                                   #
+# --------------------------------------------------------------------------- #
+def source_zoom(rate, half=(100, 300)):
+    """(row0, row1, col0, col1) [px]: a box of half-sizes ``half`` (rows, cols) around the
+    brightest pixel of ``rate`` once each row's median (the slices' smooth light: background,
+    thermal) is removed, i.e. around the source's trace; clipped to the image."""
+    rate = np.nan_to_num(np.asarray(rate, dtype=float))
+    excess = rate - np.median(rate, axis=1, keepdims=True)
+    r, c = np.unravel_index(np.argmax(excess), rate.shape)
+    hr, hc = min(half[0], rate.shape[0] // 2), min(half[1], rate.shape[1] // 2)
+    r0 = int(np.clip(r - hr, 0, rate.shape[0] - 2 * hr))
+    c0 = int(np.clip(c - hc, 0, rate.shape[1] - 2 * hc))
+    return r0, r0 + 2 * hr, c0, c0 + 2 * hc
+
+
+def _read_groups(path, ramp, first, group):
+    """(first group, chosen group [ADU, float], their indices, time between them [s], attributes)."""
+    import h5py
+    with h5py.File(path, "r") as fh:
+        ngroups = fh["SCI"].shape[1]
+        g0, g1 = first % ngroups, group % ngroups
+        a = fh["SCI"][ramp, g0].astype(float)
+        b = fh["SCI"][ramp, g1].astype(float)
+        attrs = {k: fh.attrs[k] for k in ("READPATT", "TGROUP", "NGROUPS", "NFRAMES", "GROUPGAP", "NINTS")
+                 if k in fh.attrs}
+    dt = (g1 - g0) * float(attrs.get("TGROUP", np.nan))
+    return a, b, (g0, g1), dt, attrs
+
+
+def _block_mean(img, factor):
+    """``img`` averaged over ``factor`` × ``factor`` blocks (a light full-detector view)."""
+    ny, nx = (s // factor * factor for s in img.shape)
+    return img[:ny, :nx].reshape(ny // factor, factor, nx // factor, factor).mean(axis=(1, 3))
+
+
+def _ramp_panel(fig, ax, img, extent, title, label, cmap="magma"):
+    lo, hi = np.nanpercentile(img, (1, 99.8))
+    im = ax.imshow(img, origin="lower", extent=extent, cmap=cmap, interpolation="nearest", aspect="auto",
+                   vmin=lo, vmax=hi if hi > lo else lo + 1)
+    ax.set_title(title, fontsize="medium")
+    fig.colorbar(im, ax=ax, fraction=0.046, label=label)
+    ax.set_xlabel("detector column x [px]")
+    ax.set_ylabel("detector row y [px]")
+
+
+def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None, *, first=0, title=None):
+    """A raw ramp's source: the group difference as a slope next to a raw group.
+
+    Panels: the slope (group ``group`` − group ``first``) / Δt [ADU/s] of the whole detector
+    (4 × 4 block means) with the zoom outlined; the same slope in the zoom; the raw group
+    ``group`` [ADU] (bias pedestal + charge, under the read noise) in the zoom.  ``zoom``
+    (row0, row1, col0, col1) [px] defaults to :func:`source_zoom` of the file's input rate
+    (``truth/rate``), else of the slope.  ``title``: first line(s) of the title (e.g. the
+    target and the readout the ETC chose); the file's readout pattern follows.
+    """
+    import h5py
+    import matplotlib.pyplot as plt
+    a, b, (g0, g1), dt, attrs = _read_groups(path, ramp, first, group)
+    if g1 == g0:
+        raise ParameterError(f"group and first must name different groups, got group {g1} twice")
+    slope = (b - a) / dt if np.isfinite(dt) and dt > 0 else b - a
+    unit = "ADU/s" if np.isfinite(dt) and dt > 0 else "ADU"
+    if zoom is None:
+        with h5py.File(path, "r") as fh:
+            rate = fh["truth/rate"][...] if "truth/rate" in fh else None
+        zoom = source_zoom(slope if rate is None else rate)
+    r0, r1, c0, c1 = zoom
+    fig, axes = plt.subplots(1, 3, figsize=(18, 5.6), layout="constrained",
+                             gridspec_kw={"width_ratios": [1, 1.2, 1.2]})
+    factor = max(1, min(slope.shape) // 1024)
+    _ramp_panel(fig, axes[0], _block_mean(slope, factor), (0, slope.shape[1], 0, slope.shape[0]),
+                f"slope (group {g1} − group {g0}) / {dt:.0f} s, whole detector", f"slope [{unit}]", "viridis")
+    axes[0].set_aspect("equal")
+    axes[0].add_patch(plt.Rectangle((c0, r0), c1 - c0, r1 - r0, fill=False, color="r", lw=1.2, gid="zoom"))
+    _ramp_panel(fig, axes[1], slope[r0:r1, c0:c1], (c0, c1, r0, r1), "slope around the source (zoom)",
+                f"slope [{unit}]", "viridis")
+    _ramp_panel(fig, axes[2], b[r0:r1, c0:c1], (c0, c1, r0, r1), f"raw group {g1} (zoom)", "raw group [ADU]")
+    patt = attrs.get("READPATT", "")
+    patt = patt.decode() if isinstance(patt, bytes) else str(patt)
+    readout = (f"file: {patt} ramp {ramp} of {int(attrs.get('NINTS', 1))}, "
+               f"{int(attrs.get('NGROUPS', 0))} groups of {int(attrs.get('NFRAMES', 0))} frames, "
+               f"gap {int(attrs.get('GROUPGAP', 0))}")
+    fig.suptitle((f"{title}\n" if title else "") + readout, fontsize="medium")
+    return finish(fig, savefile, dpi=100)
