@@ -556,6 +556,14 @@ class Simulation(Versioned):
         return solve_readout(self, check_snr(snr), lbda_range, per_resolution=per_resolution, search=search,
                              allow_partial=allow_partial, frame=frame, backend=backend)
 
+    def show_cube(self, lbda=None, seed=None, ax=None, savefile=None):
+        """Figure of the cube [ADU, all ramps] at a few wavelengths ``lbda`` [Å] (default: four
+        spread over the grid): the signal cube, or a noisy one drawn with ``seed``; see
+        :func:`slicersim.plotting.plot_cube_slices`.  Returns the Figure."""
+        from slicersim.plotting import plot_cube_slices
+        signal, _, *noisy = self.get_cube(seed=seed)
+        return plot_cube_slices(self, noisy[0] if noisy else signal, lbda=lbda, ax=ax, savefile=savefile)
+
 
 def _check_aperture(value):
     """aperture_radius_insigma: a finite number > 0 [σ_ref / cell]."""

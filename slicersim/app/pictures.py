@@ -12,7 +12,8 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.errors import ParameterError
-from slicersim.plotting import colorbar, draw_slices, figure_writer, finish, image_norm, save_figure, sky_extent
+from slicersim.plotting import (check_region, colorbar, draw_slices, figure_writer, finish, image_norm,  # noqa: F401
+                                save_figure, sky_extent)
 
 __all__ = ["show_fields", "show_psf_profiles", "show_slice_map", "field_simulations", "save_figure", "figure_writer",
            "check_region", "check_wavelengths", "FIELDS"]
@@ -257,18 +258,6 @@ def _field_footprints(mapper, fields, config, lbda_edges, ncol, truncate):
         else:
             out.append(field_footprints(mapper, field, lbda_edges, ncol, truncate=truncate))
     return out
-
-
-def check_region(region, shape):
-    """(row0, row1, col0, col1) [px] of a zoom, checked to lie within a detector of ``shape``."""
-    if isinstance(region, (str, bytes)) or not hasattr(region, "__len__") or len(region) != 4:
-        raise ParameterError(f"region must be (row0, row1, col0, col1) [px], got {validation.short_repr(region)}")
-    r0, r1, c0, c1 = (validation.integer(f"region[{i}] ({what}) [px]", v)
-                      for i, (v, what) in enumerate(zip(region, ("row0", "row1", "col0", "col1"))))
-    if not (0 <= r0 < r1 <= shape[0] and 0 <= c0 < c1 <= shape[1]):
-        raise ParameterError(f"region (row0, row1, col0, col1) must satisfy 0 <= row0 < row1 <= {shape[0]} "
-                             f"and 0 <= col0 < col1 <= {shape[1]} (the detector) [px], got {tuple(region)}")
-    return r0, r1, c0, c1
 
 
 def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, config="cbe", lbda_edges=None,

@@ -156,6 +156,17 @@ class Detector(Versioned):
         tl, tv = self._qe_table
         return np.interp(lbda, tl, tv, left=0.0, right=0.0)
 
+    def show_qe(self, lbda=None, ax=None, savefile=None):
+        """Figure of the QE [e-/ph] versus λ [Å] (default: the table's range, else 4000–17000 Å);
+        see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        from slicersim.plotting import plot_curves
+        if lbda is None:
+            lo, hi = (self._qe_table[0][0], self._qe_table[0][-1]) if self._qe_table is not None else (4e3, 1.7e4)
+            lbda = np.linspace(lo, hi, 500)
+        lbda = validation.array("lbda [AA]", lbda, ndim=1)
+        return plot_curves(lbda, {"QE": self.get_qe(lbda)}, "quantum efficiency [e-/ph]", title="detector QE",
+                           ax=ax, savefile=savefile, ylim=(0, 1.02))
+
     # -- readout ------------------------------------------------------------------
     @property
     def pixel_area(self):

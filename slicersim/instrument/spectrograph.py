@@ -450,6 +450,20 @@ class Spectrograph(Versioned):
         """Apply this spectrograph's LSF along ``axis`` (see :func:`apply_lsf`)."""
         return apply_lsf(values, self.lsf_sigma, axis=axis)
 
+    def show_throughput(self, ax=None, savefile=None):
+        """Figure of the throughput [fraction of photons] on the grid (λ [Å]) and of each of its
+        components; see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        from slicersim.plotting import plot_curves
+        model = self.throughput_model
+        curves = {"total": self.throughput}
+        if len(model.components) > 1:
+            for name, comp in model.components.items():
+                power = model.noptics[name]
+                curves[f"{name}" + (f" (× {power})" if power != 1 else "")] = \
+                    OpticalThroughput({name: comp}, {name: power})(self.lbda)
+        return plot_curves(self.lbda, curves, "throughput [fraction of photons]",
+                           title=f"{type(self).__name__} throughput", ax=ax, savefile=savefile, ylim=(0, 1.02))
+
 
 class SlicerSpectrograph(Spectrograph):
     """Image slicer: 1×2 anamorphosis, each cell imaged on 2 detector pixels (along the

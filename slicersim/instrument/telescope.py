@@ -141,3 +141,14 @@ class Telescope(Versioned):
             if eps * n:
                 total = total + eps * n * photon_radiance(lbda, temp)
         return total
+
+    def show_thermal_radiance(self, lbda=None, ax=None, savefile=None):
+        """Figure of the mirrors' photon radiance [ph/s/m²/sr/Å] versus λ [Å] (default
+        4000–17000 Å; log scale); see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        from slicersim.plotting import plot_curves
+        lbda = validation.array("lbda [AA]", np.linspace(4e3, 1.7e4, 500) if lbda is None else lbda, ndim=1)
+        fig = plot_curves(lbda, {"mirrors": self.thermal_radiance(lbda)}, "thermal radiance [ph/s/m²/sr/Å]",
+                          title=f"telescope thermal emission (T = {self.temperature} K, ε_eff = "
+                                f"{self.effective_emissivity:.3g})", ax=ax, savefile=savefile, yscale="log")
+        return fig
+

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.plotting.figures import colorbar, finish, image_norm, new_axes
 
-__all__ = ["plot_cube_slices", "draw_slices", "plot_ramp_group", "source_zoom", "sky_extent"]
+__all__ = ["plot_cube_slices", "draw_slices", "check_region", "plot_ramp_group", "source_zoom", "sky_extent"]
 
 
 def sky_extent(spectrograph):
@@ -57,7 +58,7 @@ def plot_cube_slices(sim, cube=None, lbda=None, ax=None, savefile=None, unit="AD
     index = _cube_wavelengths(lbda_grid, lbda)
     if ax is None:
         import matplotlib.pyplot as plt
-        fig, axes = plt.subplots(1, index.size, figsize=(3.6 * index.size + 1, 4.2), squeeze=False,
+        fig, axes = plt.subplots(1, index.size, figsize=(3.6 * index.size + 1, 3.0), squeeze=False,
                                  layout="constrained")
         axes = list(axes[0])
     else:
@@ -78,6 +79,18 @@ def plot_cube_slices(sim, cube=None, lbda=None, ax=None, savefile=None, unit="AD
         fig.suptitle(f"cube slices ({cube.shape[1]} × {cube.shape[2]} cells of "
                      f"{sim.spectrograph.spatial_scale:g}″)", fontsize="medium")
     return finish(fig, savefile)
+
+
+def check_region(region, shape):
+    """(row0, row1, col0, col1) [px] of a zoom, checked to lie within a detector of ``shape``."""
+    if isinstance(region, (str, bytes)) or not hasattr(region, "__len__") or len(region) != 4:
+        raise ParameterError(f"region must be (row0, row1, col0, col1) [px], got {validation.short_repr(region)}")
+    r0, r1, c0, c1 = (validation.integer(f"region[{i}] ({what}) [px]", v)
+                      for i, (v, what) in enumerate(zip(region, ("row0", "row1", "col0", "col1"))))
+    if not (0 <= r0 < r1 <= shape[0] and 0 <= c0 < c1 <= shape[1]):
+        raise ParameterError(f"region (row0, row1, col0, col1) must satisfy 0 <= row0 < row1 <= {shape[0]} "
+                             f"and 0 <= col0 < col1 <= {shape[1]} (the detector) [px], got {tuple(region)}")
+    return r0, r1, c0, c1
 
 
 def _slice_background(ax, fig, image, label_image, view, image_label):
@@ -150,7 +163,7 @@ def draw_slices(footprints, image=None, label_image=None, *, region=None, labels
 # --------------------------------------------------------------------------- #
 #  raw ramps                                                                   #
 # --------------------------------------------------------------------------- #
-def source_zoom(rate, half=(100, 300)):
+def source_zoom(rate, half=(300, 250)):
     """(row0, row1, col0, col1) [px]: a box of half-sizes ``half`` (rows, cols) around the
     brightest pixel of ``rate`` once each row's median (the slices' smooth light: background,
     thermal) is removed, i.e. around the source's trace; clipped to the image."""

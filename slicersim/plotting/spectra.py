@@ -279,7 +279,8 @@ def plot_instrument(sim, savefile=None):
     return finish(fig, savefile)
 
 
-def plot_curves(lbda, curves, ylabel, title=None, ax=None, savefile=None, ylim=None, xlabel="wavelength [Å]"):
+def plot_curves(lbda, curves, ylabel, title=None, ax=None, savefile=None, ylim=None, xlabel="wavelength [Å]",
+                yscale="linear"):
     """Curves versus wavelength on one Axes.
 
     Parameters
@@ -287,7 +288,7 @@ def plot_curves(lbda, curves, ylabel, title=None, ax=None, savefile=None, ylim=N
     lbda : (nλ,) wavelengths [Å]
     curves : {label: values (scalar or (nλ,))}
     ylabel : y label, with its unit (e.g. "throughput [fraction of photons]")
-    title, ylim : optional title and y limits
+    title, ylim : optional title and y limits; ``yscale``: "linear" or "log"
     ax : None (new figure) or an Axes
     savefile : path; if given the figure is saved there
     """
@@ -297,6 +298,7 @@ def plot_curves(lbda, curves, ylabel, title=None, ax=None, savefile=None, ylim=N
         ax.plot(lbda, _as_curve(values, lbda), lw=1.4, label=label)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
+    ax.set_yscale(yscale)
     if ylim is not None:
         ax.set_ylim(*ylim)
     if lbda.size:

@@ -135,6 +135,23 @@ class DetectorProducts:
         params.update(kwargs)
         return simulate(image, nmd, nramps, seed=seed, out=out, **params)
 
+    # -- figures (thin calls of slicersim.plotting) -----------------------------
+    def show_spectrum(self, ax=None, seed=None, savefile=None):
+        """Figure of the extracted spectrum [ADU] with its ±1σ band and its SNR per bin (the ETC band
+        shaded); see :func:`slicersim.plotting.plot_spectrum`.  Returns the Figure."""
+        from slicersim.plotting import plot_spectrum
+        return plot_spectrum(self, ax=ax, seed=seed, savefile=savefile)
+
+    def show_variance_contribution(self, ax=None, savefile=None):
+        """Figure of the variance budget: each source's contribution [ADU²] and fraction of the
+        total versus λ (the paper's figure); see :func:`slicersim.plotting.plot_variance_budget`."""
+        from slicersim.plotting import plot_variance_budget
+        return plot_variance_budget(self, ax=ax, savefile=savefile)
+
+    def show_cube(self, lbda=None, seed=None, ax=None, savefile=None):
+        """Figure of the target's cube at a few wavelengths [Å] (:meth:`Simulation.show_cube`)."""
+        return self.simulation.show_cube(lbda=lbda, seed=seed, ax=ax, savefile=savefile)
+
 
 def _recorded_config(config):
     """The configuration as the ramp file records it (CONFIG): built-in names as they are, TOML paths
