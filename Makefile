@@ -59,7 +59,7 @@ test: venv opencl
 	"$(PY)" -m pytest -q -rs
 
 demo: venv opencl
-	"$(VENV)/bin/slicersim" demo --outdir demo_output
+	"$(VENV)/bin/slicersim" demo --outdir demo_output --overwrite
 
 bench: venv opencl
 	@set -e; found=0; for f in benchmarks/*.py; do \

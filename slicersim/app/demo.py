@@ -4,7 +4,15 @@
 at peak (SNR 20 per resolution element in the rest-frame 4000–6800 Å band),
 prints a short report, compares the exact readout search with the slicersim 1.0
 reference walk and writes ``spectrum.png``, ``variance_budget.png``,
-``instrument.png`` and ``etc_result.json`` in the output directory.
+``instrument.png`` and ``etc_result.json`` in the output directory, and a short raw ramp of
+the full detector (``raw_ramp.h5``) with its figure (``raw_ramp_group.png``: the group difference
+as a slope next to a raw group, zoomed on the source, titled with the target and the readout
+the ETC chose).
+
+Running it again: with ``overwrite=True`` (``slicersim demo --overwrite``; ``make demo`` passes
+it) the demo replaces its own files, :data:`DEMO_FILES`, each written to a temporary and renamed
+in; it never touches any other file of the directory.  Without it, an existing demo file is
+refused before any work (FileExistsError).
 """
 from __future__ import annotations
 
@@ -16,7 +24,7 @@ import time
 
 import numpy as np
 
-__all__ = ["run_demo", "DEMO_BAND"]
+__all__ = ["run_demo", "DEMO_BAND", "DEMO_FILES"]
 
 #: rest-frame band [Å] in which the SNR is required
 DEMO_BAND = (4000.0, 6800.0)
@@ -79,7 +87,7 @@ DEMO_FILES = ("spectrum.png", "variance_budget.png", "instrument.png", "etc_resu
 
 
 def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="narrow", verbose=True,
-             ramp_nmd=(3, 2, 0), overwrite=False):
+             ramp_nmd="etc", overwrite=False, ramp_window=(600, 500)):
     """Run the demonstration ETC and write its figures and JSON summary into ``outdir``.
 
     Parameters
@@ -89,7 +97,12 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     snr : target band SNR per resolution element in the rest-frame band :data:`DEMO_BAND`
     config, field : Lazuli configuration ("cbe", "eol", TOML path(s)) and field ("narrow", "wide")
     verbose : print the report
-    overwrite : replace existing output files (default: refuse with FileExistsError before any work)
+    ramp_nmd : readout of the raw ramp: "etc" (default: the (n, m, d) the ETC chose, one of its
+        ramps), an (n, m, d) triple, or None (no ramp)
+    ramp_window : (rows, cols) [px] of the detector window around the source that the ramp
+        covers (None: the full detector)
+    overwrite : replace the demo's own output files (:data:`DEMO_FILES`; no other file of
+        ``outdir`` is touched); default: refuse with FileExistsError before any work
 
     Returns
     -------
@@ -111,7 +124,9 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
     ref_target = LazuliSupernova(redshift, config=config, field=field)
     reference = _etc_summary(ref_target, ref_target.setup_to_snr(snr, lbda_range=DEMO_BAND, frame="rest",
                                                                  search="reference"), snr, "reference")
-    files = _write_figures(target, outdir, ramp_nmd, overwrite)
+    ramp = None if not ramp_nmd else (tuple(exact["nmd"]) if isinstance(ramp_nmd, str) and ramp_nmd == "etc"
+                                      else tuple(ramp_nmd), ramp_window)
+    files = _write_figures(target, outdir, ramp, overwrite, _ramp_title(target, exact, redshift, snr))
     lo, hi = DEMO_BAND
     summary = {"slicersim_version": __version__,
                "target": {"kind": "SN Ia (hsiao-subsampled, peak, M_B = -19.3)", "redshift": float(redshift),
@@ -122,9 +137,8 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
                "reference": reference,
                "files": files}
     summary = _plain(summary)
-    with open(files["etc_result"], "w", encoding="utf-8") as fh:
-        json.dump(summary, fh, indent=2)
-        fh.write("\n")
+    from slicersim.io.atomic import atomic_bytes     # a temporary renamed in: a rerun replaces it whole
+    atomic_bytes(files["etc_result"], (json.dumps(summary, indent=2) + "\n").encode("utf-8"), overwrite=True)
     summary["elapsed_s"] = time.perf_counter() - t0
     _print_report(out, summary, exact, reference, (redshift, snr, config, field, outdir))
     return summary
@@ -152,9 +166,20 @@ def _exact_etc(target, snr):
     return exact
 
 
-def _write_figures(target, outdir, ramp_nmd, overwrite):
-    """Spectrum, variance budget and instrument figures, and (with ``ramp_nmd``) a short raw ramp of
-    the full detector and one of its groups; returns the paths (with the JSON summary's)."""
+def _ramp_title(target, exact, redshift, snr):
+    """Title of the raw-ramp figure: the target (type, redshift) and the readout the ETC chose."""
+    n, m, d = exact["nmd"]
+    lo, hi = DEMO_BAND
+    return (f"{type(target).__name__}: SN Ia at peak, z = {redshift:g}; ETC readout for SNR {snr:g} per resolution "
+            f"element in rest {lo:.0f}–{hi:.0f} Å: (n, m, d) = ({n}, {m}, {d}) × {exact['nramps']} ramp(s), "
+            f"{exact['exposure_time']:.0f} s")
+
+
+def _write_figures(target, outdir, ramp, overwrite, ramp_title=None):
+    """Spectrum, variance budget and instrument figures, and (with ``ramp``: (nmd, window)) a raw
+    ramp and its figure (titled ``ramp_title``); returns the paths (with the JSON summary's).
+    Figures are written atomically (a temporary renamed in, replacing a previous run's); the
+    ramp replaces a previous one with ``overwrite``."""
     from slicersim.app.plotting import plot_instrument, plot_ramp_group, plot_spectrum, plot_variance_budget
     files = {"spectrum": os.path.join(outdir, "spectrum.png"),
              "variance_budget": os.path.join(outdir, "variance_budget.png"),
@@ -163,13 +188,37 @@ def _write_figures(target, outdir, ramp_nmd, overwrite):
     plot_spectrum(target, seed=1, savefile=files["spectrum"])
     plot_variance_budget(target, savefile=files["variance_budget"])
     plot_instrument(target.simulation, savefile=files["instrument"])
-    if ramp_nmd:
+    if ramp:
         files["ramp"] = os.path.join(outdir, "raw_ramp.h5")
         files["ramp_group"] = os.path.join(outdir, "raw_ramp_group.png")
-        target.get_ramps(out=files["ramp"], nmd=tuple(ramp_nmd), nramps=1, seed=2026, progress=False,
-                         overwrite=overwrite)
-        plot_ramp_group(files["ramp"], savefile=files["ramp_group"])
+        nmd, window = ramp
+        origin = _write_ramp(target, nmd, window, files["ramp"], overwrite)
+        chosen = tuple(int(v) for v in target.get_readout_config()["nmd"])
+        title = ramp_title + ("\nshown: one of these ramps" if tuple(nmd) == chosen
+                              else f"\nshown: one ramp of readout (n, m, d) = {tuple(nmd)}")
+        if window is not None:
+            title += f", on a {window[0]} × {window[1]} px detector window around the source"
+        plot_ramp_group(files["ramp"], savefile=files["ramp_group"], title=title, origin=origin)
     return files
+
+
+def _write_ramp(target, nmd, window, path, overwrite):
+    """One raw ramp of readout ``nmd`` (seed 2026) written to ``path``: of the full detector
+    (``window`` None) or of a (rows, cols) [px] window around the source (the detector terms of
+    the target's configuration, as :meth:`~slicersim.targets.Target.get_ramps`); returns the
+    window's first pixel (row, col) on the detector."""
+    if window is None:
+        target.get_ramps(out=path, nmd=nmd, nramps=1, seed=2026, progress=False, overwrite=overwrite)
+        return 0, 0
+    from slicersim.plotting import source_zoom
+    from slicersim.products.ramps import simulate
+    image = target.get_detector_image()
+    r0, r1, c0, c1 = source_zoom(image, half=(window[0] // 2, window[1] // 2))
+    sim, det = target.simulation, target.simulation.detector
+    simulate(image[r0:r1, c0:c1], nmd=nmd, nramps=1, seed=2026, out=path, overwrite=overwrite, progress=False,
+             tframe=det.tframe, ron=det.ron, dark=det.dark, thermal_dark=sim.thermal_dark, roic_glow=det.roic_glow,
+             gain=det.gain, saturation=min(det.saturation, 65535.0))
+    return r0, c0
 
 
 def _print_report(out, summary, exact, reference, run):

@@ -206,42 +206,50 @@ def _ramp_panel(fig, ax, img, extent, title, label, cmap="magma"):
     ax.set_ylabel("detector row y [px]")
 
 
-def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None, *, first=0, title=None):
+def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None, *, first=0, title=None, origin=(0, 0)):
     """A raw ramp's source: the group difference as a slope next to a raw group.
 
-    Panels: the slope (group ``group`` − group ``first``) / Δt [ADU/s] of the whole detector
-    (4 × 4 block means) with the zoom outlined; the same slope in the zoom; the raw group
-    ``group`` [ADU] (bias pedestal + charge, under the read noise) in the zoom.  ``zoom``
-    (row0, row1, col0, col1) [px] defaults to :func:`source_zoom` of the file's input rate
-    (``truth/rate``), else of the slope.  ``title``: first line(s) of the title (e.g. the
-    target and the readout the ETC chose); the file's readout pattern follows.
+    Panels: the slope (group ``group`` − group ``first``) / Δt [ADU/s] of the whole file
+    (block means above 1024 px) with the zoom outlined, when the zoom is smaller than the file;
+    the same slope in the zoom; the raw group ``group`` [ADU] (bias pedestal + charge, under
+    the read noise) in the zoom.  ``zoom`` (row0, row1, col0, col1) [px of the file] defaults
+    to :func:`source_zoom` of the file's input rate (``truth/rate``), else of the slope.
+    ``origin`` (row, col) [px]: the file's first pixel on the detector (a window's ramp), so
+    that axes read detector pixels.  ``title``: first line(s) of the title (e.g. the target and
+    the readout the ETC chose); the file's readout pattern follows.
     """
     import h5py
     import matplotlib.pyplot as plt
     a, b, (g0, g1), dt, attrs = _read_groups(path, ramp, first, group)
     if g1 == g0:
         raise ParameterError(f"group and first must name different groups, got group {g1} twice")
-    slope = (b - a) / dt if np.isfinite(dt) and dt > 0 else b - a
-    unit = "ADU/s" if np.isfinite(dt) and dt > 0 else "ADU"
+    timed = bool(np.isfinite(dt) and dt > 0)
+    slope, unit = ((b - a) / dt, "ADU/s") if timed else (b - a, "ADU")
     if zoom is None:
         with h5py.File(path, "r") as fh:
             rate = fh["truth/rate"][...] if "truth/rate" in fh else None
         zoom = source_zoom(slope if rate is None else rate)
-    r0, r1, c0, c1 = zoom
-    fig, axes = plt.subplots(1, 3, figsize=(18, 5.6), layout="constrained",
-                             gridspec_kw={"width_ratios": [1, 1.2, 1.2]})
-    factor = max(1, min(slope.shape) // 1024)
-    _ramp_panel(fig, axes[0], _block_mean(slope, factor), (0, slope.shape[1], 0, slope.shape[0]),
-                f"slope (group {g1} − group {g0}) / {dt:.0f} s, whole detector", f"slope [{unit}]", "viridis")
-    axes[0].set_aspect("equal")
-    axes[0].add_patch(plt.Rectangle((c0, r0), c1 - c0, r1 - r0, fill=False, color="r", lw=1.2, gid="zoom"))
-    _ramp_panel(fig, axes[1], slope[r0:r1, c0:c1], (c0, c1, r0, r1), "slope around the source (zoom)",
-                f"slope [{unit}]", "viridis")
-    _ramp_panel(fig, axes[2], b[r0:r1, c0:c1], (c0, c1, r0, r1), f"raw group {g1} (zoom)", "raw group [ADU]")
+    r0, r1, c0, c1 = check_region(zoom, slope.shape)
+    oy, ox = (int(v) for v in origin)
+    overview = (r1 - r0, c1 - c0) != slope.shape
+    fig, axes = plt.subplots(1, 2 + overview, figsize=(6 * (2 + overview), 5.6), layout="constrained",
+                             squeeze=False)
+    axes = list(axes[0])
+    box = (c0 + ox, c1 + ox, r0 + oy, r1 + oy)
+    if overview:
+        factor = max(1, -(-max(slope.shape) // 1024))
+        ax0 = axes.pop(0)
+        _ramp_panel(fig, ax0, _block_mean(slope, factor), (ox, ox + slope.shape[1], oy, oy + slope.shape[0]),
+                    f"slope (group {g1} − group {g0}) / {dt:.0f} s, whole file", f"slope [{unit}]", "viridis")
+        ax0.set_aspect("equal")
+        ax0.add_patch(plt.Rectangle((box[0], box[2]), c1 - c0, r1 - r0, fill=False, color="r", lw=1.2, gid="zoom"))
+    _ramp_panel(fig, axes[0], slope[r0:r1, c0:c1], box,
+                f"slope (group {g1} − group {g0}) / {dt:.0f} s around the source", f"slope [{unit}]", "viridis")
+    _ramp_panel(fig, axes[1], b[r0:r1, c0:c1], box, f"raw group {g1} around the source", "raw group [ADU]")
     patt = attrs.get("READPATT", "")
     patt = patt.decode() if isinstance(patt, bytes) else str(patt)
-    readout = (f"file: {patt} ramp {ramp} of {int(attrs.get('NINTS', 1))}, "
+    readout = (f"file: {patt}, ramp {ramp} of {int(attrs.get('NINTS', 1))}, "
                f"{int(attrs.get('NGROUPS', 0))} groups of {int(attrs.get('NFRAMES', 0))} frames, "
-               f"gap {int(attrs.get('GROUPGAP', 0))}")
+               f"gap {int(attrs.get('GROUPGAP', 0))}; {slope.shape[0]} × {slope.shape[1]} px")
     fig.suptitle((f"{title}\n" if title else "") + readout, fontsize="medium")
     return finish(fig, savefile, dpi=100)
