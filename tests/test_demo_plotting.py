@@ -125,3 +125,90 @@ def test_rejects_other_objects():
     from slicersim.errors import ParameterError
     with pytest.raises(ParameterError, match="target_or_sim must be a Target or a Simulation"):
         plotting.plot_spectrum(object())
+
+
+# --------------------------------------------------------------------------- show_* methods (1.4.2)
+def test_target_show_spectrum_is_plot_spectrum(target, tmp_path):
+    out = tmp_path / "spectrum.png"
+    fig = target.show_spectrum(seed=1, savefile=out)
+    assert_png(out)
+    top, bottom = fig.axes[:2]
+    assert top.get_ylabel().startswith("extracted signal [ADU]") and bottom.get_ylabel() == "SNR per bin"
+    assert bottom.get_xlabel() == "observed wavelength [Å]"
+    fig2, ax = plt.subplots()
+    assert target.show_spectrum(ax=ax) is fig2
+
+
+def test_target_show_variance_contribution(target):
+    fig = target.show_variance_contribution()
+    top, bottom = fig.axes[:2]
+    assert top.get_ylabel().startswith("variance [ADU²]") and bottom.get_ylabel() == "fraction of total variance"
+    assert "read noise" in [t.get_text() for t in bottom.get_legend().get_texts()]
+    fig2, axes = plt.subplots(2, 1)
+    assert target.show_variance_contribution(ax=axes) is fig2
+
+
+def test_simulation_show_cube_draws_the_cube_at_the_wavelengths_asked(target):
+    sim = target.simulation
+    fig = sim.show_cube(lbda=(9000.0, 11000.0))
+    images = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(images) == 2 and [b.get_ylabel() for b in bars] == ["signal [ADU]"] * 2
+    k = int(np.abs(sim.lbda - 9000.0).argmin())
+    assert images[0].get_title() == f"λ = {sim.lbda[k]:.0f} Å"
+    assert np.allclose(images[0].get_images()[0].get_array(), sim.get_cube()[0][k])
+    assert images[0].get_xlabel() == "x along the slices [arcsec]"
+    noisy = target.show_cube(lbda=9000.0, seed=3)                     # Target → its simulation, a noisy draw
+    assert np.allclose(noisy.axes[0].get_images()[0].get_array(), sim.get_cube(seed=3)[2][k])
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match="lbda"):
+        sim.show_cube(lbda=100.0)
+
+
+# --------------------------------------------------------------------------- demo reruns, raw-ramp figure
+def test_demo_reruns_replace_only_its_own_files(demo):
+    from slicersim.app.demo import DEMO_FILES, run_demo
+    outdir, _ = demo
+    mine = outdir / "notes.txt"
+    mine.write_text("mine")
+    before = {name: (outdir / name).stat().st_ino for name in DEMO_FILES}
+    with pytest.raises(FileExistsError, match="spectrum.png.*|overwrite"):
+        run_demo(str(outdir), verbose=False)                           # refused before any work
+    assert {name: (outdir / name).stat().st_ino for name in DEMO_FILES} == before
+    run_demo(str(outdir), verbose=False, overwrite=True)               # what `make demo` does
+    after = {name: (outdir / name).stat().st_ino for name in DEMO_FILES}
+    assert all(after[name] != before[name] for name in DEMO_FILES)    # each replaced (renamed in)
+    assert mine.read_text() == "mine"
+    assert sorted(p.name for p in outdir.iterdir()) == sorted(DEMO_FILES + ("notes.txt",))
+
+
+def test_make_demo_passes_overwrite():
+    from pathlib import Path
+    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    recipe = makefile.split("\ndemo:", 1)[1].split("\n\n", 1)[0]
+    assert "slicersim\" demo" in recipe and "--overwrite" in recipe
+
+
+def test_demo_ramp_figure_shows_the_source(demo):
+    """The demo's ramp has the ETC's readout on a window around the source; its figure is the
+    slope (last − first group) next to a raw group, titled with the target and the readout."""
+    import h5py
+    outdir, summary = demo
+    n, m, d = summary["nmd"]
+    with h5py.File(outdir / "raw_ramp.h5") as fh:
+        assert fh["SCI"].shape[:2] == (1, n) and fh.attrs["NFRAMES"] == m
+        sci = fh["SCI"][0].astype(float)
+        rate = fh["truth/rate"][...]
+    diff = sci[-1] - sci[0]                                          # [ADU]
+    r, c = np.unravel_index(np.argmax(rate - np.median(rate, axis=1, keepdims=True)), rate.shape)
+    # the source stands out of the group difference: its 5 × 5 px mean is > 2σ of a pixel above the median
+    assert diff[r - 2:r + 3, c - 2:c + 3].mean() > np.median(diff) + 2 * diff.std()
+    fig = plotting.plot_ramp_group(outdir / "raw_ramp.h5", title="SN Ia, z = 1")
+    images = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    bars = [ax.get_ylabel() for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert "slope" in images[0].get_title() and "raw group" in images[1].get_title()
+    assert bars == ["slope [ADU/s]", "raw group [ADU]"]
+    assert fig.get_suptitle().startswith("SN Ia, z = 1") and f"{n} groups of {m} frames" in fig.get_suptitle()
+    from slicersim.app.demo import _ramp_title
+    assert f"(n, m, d) = ({n}, {m}, {d}) × {summary['nramps']}" in _ramp_title(
+        type("LazuliSupernova", (), {})(), summary, 1.0, 20.0)

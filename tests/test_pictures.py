@@ -229,6 +229,31 @@ def test_show_slice_map_over_a_detector_image(small_fields):
             plotting.show_slice_map(footprints=fields, region=region)
 
 
+def test_mapper_show_slices_is_the_slice_map_of_its_fields(small_fields):
+    """SlicerMapper.show_slices (slicersim 1.4.2's show_slices): the detector with the outlines of the
+    fields asked for, on the grid of the spectrograph given; axes in detector pixels."""
+    from types import SimpleNamespace
+    mapper, edges, fields = small_fields
+    fig = mapper.show_slices("narrow", spectrograph=SimpleNamespace(lbda_edges=edges, shape=(58, 116)),
+                             region=(2200, 3900, 200, 3900))
+    ax = fig.axes[0]
+    outlines = [p for p in ax.patches if isinstance(p, Polygon) and str(p.get_gid()).startswith("slice ")]
+    assert sorted(int(p.get_gid().split()[1]) for p in outlines) == list(range(1, 59))
+    seven = next(fp for fp in fields[0] if fp.slice_id == 7)
+    assert np.array_equal(_by_gid(outlines, "slice 7").get_xy()[:-1], seven.contour)
+    assert ax.get_xlabel() == "detector column x [px]" and ax.get_ylabel() == "detector row y [px]"
+    assert fig.axes[1].get_ylabel() == "slice id (label image)"
+    image = np.ones(mapper.detector_shape)
+    fig = mapper.show_slices(("narrow", "wide"), spectrograph=SimpleNamespace(lbda_edges=edges, shape=(58, 116)),
+                             image=image, labels=False)
+    assert fig.axes[1].get_ylabel() == "detector image [e-/s/px]"
+    with pytest.raises(ParameterError, match="fields"):
+        mapper.show_slices("middle")
+    with pytest.raises(ParameterError, match="region"):
+        mapper.show_slices("narrow", spectrograph=SimpleNamespace(lbda_edges=edges, shape=(58, 116)),
+                           region=(0, 99999, 0, 10))
+
+
 # --------------------------------------------------------------------------- CLI
 def test_cli_footprints_writes_label_image_and_outlines(tmp_path, capsys):
     out = tmp_path / "fp"

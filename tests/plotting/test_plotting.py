@@ -1,0 +1,108 @@
+"""The low-level plotting layer (slicersim.plotting): what it imports, the figures it builds from
+arrays (cube slices, raw-ramp groups) and its argument errors."""
+import ast
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import slicersim  # noqa: E402
+from slicersim import layers, plotting  # noqa: E402
+from slicersim.errors import ParameterError  # noqa: E402
+
+THIRD_PARTY = {"numpy", "matplotlib", "h5py", "__future__", "os"}
+
+
+@pytest.fixture(autouse=True)
+def close_figures():
+    yield
+    plt.close("all")
+
+
+def test_plotting_imports_only_numpy_matplotlib_and_lower_layers():
+    """Model objects (instrument, simulation, targets) call it: it must sit below them and above
+    nothing it imports (the rest of the layer rules: tests/test_layers.py)."""
+    assert layers.rank("io") < layers.rank("plotting") < layers.rank("instrument")
+    root = Path(slicersim.__file__).parent / "plotting"
+    for path in root.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module == "slicersim":    # from slicersim import x
+                names = [f"slicersim.{a.name}" for a in node.names]
+            else:
+                names = [node.module] if isinstance(node, ast.ImportFrom) and node.module else []
+            for name in names:
+                top = name.split(".")
+                if top[0] == "slicersim":
+                    assert len(top) > 1 and layers.rank(top[1]) <= layers.rank("plotting"), (path.name, name)
+                else:
+                    assert top[0] in THIRD_PARTY, (path.name, name)
+
+
+def test_app_plotting_keeps_its_names():
+    from slicersim.app import plotting as app_plotting
+    for name in ("plot_spectrum", "plot_variance_budget", "plot_instrument", "plot_ramp_group", "SOURCE_STYLES",
+                 "show_fields", "show_psf_profiles", "show_slice_map", "save_figure"):
+        assert hasattr(app_plotting, name), name
+    assert app_plotting.plot_spectrum is plotting.plot_spectrum
+
+
+def _ramp_file(path, ngroups=4, shape=(64, 80)):
+    from slicersim.products.ramps import simulate
+    rate = np.full(shape, 0.5)
+    rate[30:34, 40:44] = 200.0                                          # the source [e-/s]
+    return simulate(rate, nmd=(ngroups, 2, 0), nramps=1, seed=5, out=str(path), overwrite=True, progress=False)
+
+
+def test_plot_ramp_group_slope_and_raw_group(tmp_path):
+    path = _ramp_file(tmp_path / "r.h5")
+    fig = plotting.plot_ramp_group(path, zoom=(20, 44, 30, 54), title="test target", origin=(1000, 2000))
+    images = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    bars = [ax.get_ylabel() for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(images) == 3 and bars == ["slope [ADU/s]"] * 2 + ["raw group [ADU]"]
+    assert [ax.get_xlabel() for ax in images] == ["detector column x [px]"] * 3
+    import h5py
+    with h5py.File(path) as fh:
+        sci, tgroup = fh["SCI"][0].astype(float), float(fh.attrs["TGROUP"])
+    zoomed = images[1].get_images()[0]
+    assert np.allclose(zoomed.get_array(), (sci[-1] - sci[0])[20:44, 30:54] / (3 * tgroup))
+    assert zoomed.get_extent() == [2030, 2054, 1020, 1044]              # detector pixels (origin)
+    assert np.array_equal(images[2].get_images()[0].get_array(), sci[-1][20:44, 30:54])
+    assert fig.get_suptitle().startswith("test target\n") and "4 groups of 2 frames" in fig.get_suptitle()
+    whole = plotting.plot_ramp_group(path, zoom=(0, 64, 0, 80))          # zoom = file: no overview panel
+    assert len([ax for ax in whole.axes if ax.get_label() != "<colorbar>"]) == 2
+    with pytest.raises(ParameterError, match="group"):
+        plotting.plot_ramp_group(path, group=0)
+    with pytest.raises(ParameterError, match="region"):
+        plotting.plot_ramp_group(path, zoom=(0, 999, 0, 10))
+
+
+def test_source_zoom_centres_on_the_source_not_the_bright_rows():
+    rate = np.ones((400, 600))
+    rate[:, 500:] = 50.0                                                # bright, smooth columns (thermal)
+    rate[:50] = 80.0                                                    # a bright band of rows
+    rate[200, 100] = 500.0
+    r0, r1, c0, c1 = plotting.source_zoom(rate, half=(20, 30))
+    assert (r0, r1, c0, c1) == (180, 220, 70, 130)
+
+
+def test_plot_cube_slices_errors():
+    class Sim:
+        lbda = np.linspace(5000.0, 6000.0, 5)
+        spectrograph = type("S", (), {"shape": (3, 4), "spatial_scale": 0.1})()
+    cube = np.arange(60.0).reshape(5, 3, 4)
+    fig = plotting.plot_cube_slices(Sim(), cube, lbda=[5500.0], unit="e-/s")
+    assert fig.axes[1].get_ylabel() == "signal [e-/s]"
+    assert np.allclose(fig.axes[0].get_images()[0].get_extent(), [-0.2, 0.2, -0.15, 0.15])
+    with pytest.raises(ParameterError, match="cube"):
+        plotting.plot_cube_slices(Sim(), cube[:, :, :, None])
+    with pytest.raises(ParameterError, match="lbda"):
+        plotting.plot_cube_slices(Sim(), cube, lbda=[9000.0])
+    with pytest.raises(ParameterError, match="ax"):
+        plotting.plot_cube_slices(Sim(), cube, lbda=[5500.0, 5600.0], ax=plt.subplots()[1])
