@@ -261,8 +261,7 @@ def _field_footprints(mapper, fields, config, lbda_edges, ncol, truncate):
 
 
 def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, config="cbe", lbda_edges=None,
-                   ncol=116, truncate=4.0, labels=True, region=None, ax=None, savefile=None,
-                   image_label="detector image [e-/s/px]"):
+                   ncol=116, truncate=4.0, labels=True, region=None, ax=None, savefile=None):
     """The detector with every slice's footprint outlined and labelled.
 
     Background: ``image`` (e.g. ``target.get_detector_image()`` [e-/s/px], log scale), else
@@ -272,8 +271,8 @@ def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, c
     (:class:`~slicersim.instrument.footprints.FieldFootprints`, one or a list), else from
     ``mapper`` (default: the built-in Lazuli layout) for ``fields`` on the grid of
     ``config`` (or ``lbda_edges`` [Å] and ``ncol``).  ``region`` (row0, row1, col0, col1)
-    [px], within the detector, zooms in.  ``image_label``: the colour bar's label, with the
-    image's unit.  Drawn by :func:`slicersim.plotting.draw_slices`.
+    [px], within the detector, zooms in.  The colour bar reads "detector image
+    [e-/s/px]".  Drawn by :func:`slicersim.plotting.draw_slices`.
     """
     from slicersim.instrument.footprints import FieldFootprints, detector_label_image
     if footprints is None:
@@ -290,5 +289,4 @@ def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, c
     shape = footprints[0].detector_shape
     region = None if region is None else check_region(region, shape)
     label_image = detector_label_image(*footprints) if image is None else None
-    return draw_slices(footprints, image, label_image, region=region, labels=labels, ax=ax, savefile=savefile,
-                       image_label=image_label)
+    return draw_slices(footprints, image, label_image, region=region, labels=labels, ax=ax, savefile=savefile)
