@@ -500,18 +500,17 @@ class SlicerMapper:
                     ax=None, savefile=None):
         """Figure of the detector with every slice's footprint outlined and labelled.
 
-        ``fields``: "narrow" (slices 1–58) and/or "wide" (59–116); ``spectrograph``: the cube grid
-        (a spectrograph, Simulation or Target; default: 200 bins over the map's λ nodes [Å] and
-        116 columns); ``image``: a detector image [e-/s/px] behind the outlines (default: the
-        label image); ``region`` (row0, row1, col0, col1) [px] zooms in.  Drawn by
-        :func:`slicersim.plotting.draw_slices`; returns the Figure."""
+        ``fields``: "narrow" (slices 1–58) and/or "wide" (59–116); ``spectrograph``: the cube grid (a
+        spectrograph, Simulation or Target; default: 200 bins over the λ nodes [Å], 116 columns);
+        ``image``: a detector image [e-/s/px] behind the outlines (default: the label image);
+        ``region`` (row0, row1, col0, col1) [px] zooms in (:func:`slicersim.plotting.draw_slices`)."""
         from slicersim.instrument.footprints import detector_label_image, field_footprints
         from slicersim.plotting import check_region, draw_slices
         fields = (fields,) if isinstance(fields, str) else tuple(fields)
         for field in fields:
             validation.choice("fields", field, ("narrow", "wide"))
-        grid = ({"spectrograph": spectrograph} if spectrograph is not None else
-                {"lbda_edges": np.linspace(self.lbda_nodes[0], self.lbda_nodes[-1], 201), "ncol": 116})
+        grid = {"spectrograph": spectrograph} if spectrograph is not None else {
+            "lbda_edges": np.linspace(self.lbda_nodes[0], self.lbda_nodes[-1], 201), "ncol": 116}
         footprints = [field_footprints(self, field, **grid) for field in fields]
         region = None if region is None else check_region(region, self.detector_shape)
         label_image = detector_label_image(*footprints) if image is None else None

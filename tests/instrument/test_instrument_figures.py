@@ -26,8 +26,8 @@ def _curves(ax):
 
 def test_spectrograph_show_throughput_total_and_components(tmp_path):
     lbda = np.linspace(3000.0, 18000.0, 50)
-    spec = Spectrograph(resolving_power=500, throughput={"mirror": 0.9, "grating": (lbda, np.linspace(0.5, 0.8, lbda.size))},
-                        noptics={"mirror": 3})
+    grating = (lbda, np.linspace(0.5, 0.8, lbda.size))
+    spec = Spectrograph(resolving_power=500, throughput={"mirror": 0.9, "grating": grating}, noptics={"mirror": 3})
     out = tmp_path / "throughput.png"
     fig = spec.show_throughput(savefile=out)
     assert out.stat().st_size > 1000
