@@ -4,10 +4,10 @@
 at peak (SNR 20 per resolution element in the rest-frame 4000–6800 Å band),
 prints a short report, compares the exact readout search with the slicersim 1.0
 reference walk and writes ``spectrum.png``, ``variance_budget.png``,
-``instrument.png`` and ``etc_result.json`` in the output directory, and a short raw ramp of
-the full detector (``raw_ramp.h5``) with its figure (``raw_ramp_group.png``: the group difference
-as a slope next to a raw group, zoomed on the source, titled with the target and the readout
-the ETC chose).
+``instrument.png`` and ``etc_result.json`` in the output directory, and one raw ramp of the
+readout the ETC chose on a 600 × 500 px detector window around the source (``raw_ramp.h5``)
+with its figure (``raw_ramp_group.png``: the group difference as a slope [ADU/s] next to a raw
+group [ADU], titled with the target and the readout).
 
 Running it again: with ``overwrite=True`` (``slicersim demo --overwrite``; ``make demo`` passes
 it) the demo replaces its own files, :data:`DEMO_FILES`, each written to a temporary and renamed
