@@ -42,7 +42,7 @@ from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import AtomicH5File, is_temporary, one_line
 from slicersim.io.row_blocks import BufferRing, RowBlocks, pipelined, rows_per_block
 
-__all__ = ["fit_ramps", "FitOptions", "RateProduct", "DEFAULT_JUMP_THRESHOLD", "open_ramps"]
+__all__ = ["fit_ramps", "FitOptions", "FIT_DEFAULTS", "FIT_RENAMED", "RateProduct", "DEFAULT_JUMP_THRESHOLD", "open_ramps"]
 
 DEFAULT_JUMP_THRESHOLD = 4.0          # σ (stcal's default rejection threshold)
 _HDF5_MAGIC, _FITS_MAGIC = b"\x89HDF\r\n\x1a\n", b"SIMPLE  ="
@@ -332,13 +332,13 @@ def _number(attrs, key, where, kind=float):
     return num
 
 
-def _readout(attrs, shape, gain, read_noise, where):
+def _readout(attrs, shape, gain, ron, where):
     """Validated (n, m, d), tframe [s], gain [DN/e-], read noise [e-/frame] of a ramp's keywords."""
     missing = [k for k in ("NFRAMES", "GROUPGAP", "TFRAME") if k not in attrs]
     if gain is None and "GAIN" not in attrs:
         missing.append("GAIN (or pass gain=)")
-    if read_noise is None and "READNOISE" not in attrs:
-        missing.append("READNOISE (or pass read_noise=)")
+    if ron is None and "READNOISE" not in attrs:
+        missing.append("READNOISE (or pass ron=)")
     if missing:
         raise RampFileError(f"{where}: readout keyword(s) missing: {', '.join(missing)}")
     nints, n = shape[:2]
@@ -361,10 +361,10 @@ def _readout(attrs, shape, gain, read_noise, where):
     if n < 2:
         raise RampFileError(f"{where}: {n} group(s) per integration: a slope needs at least 2")
     gain = _number(attrs, "GAIN", where) if gain is None else float(gain)
-    read_noise = _number(attrs, "READNOISE", where) if read_noise is None else float(read_noise)
-    if not (math.isfinite(gain) and gain > 0) or not (math.isfinite(read_noise) and read_noise >= 0):
-        raise RampFileError(f"{where}: gain {gain} DN/e- must be > 0 and read noise {read_noise} e- ≥ 0")
-    return (n, m, d), tframe, gain, read_noise
+    ron = _number(attrs, "READNOISE", where) if ron is None else float(ron)
+    if not (math.isfinite(gain) and gain > 0) or not (math.isfinite(ron) and ron >= 0):
+        raise RampFileError(f"{where}: gain {gain} DN/e- must be > 0 and read noise {ron} e- ≥ 0")
+    return (n, m, d), tframe, gain, ron
 
 
 def _effects(attrs):
@@ -461,12 +461,15 @@ class FitOptions:
         a number or an (ny, nx) map
     jump_threshold : σ of the two-point-difference jump test (None or 0: no detection)
     weighting : "gls" (exact MACC covariance) or "ols" (unweighted; its variance is Rauscher07's)
-    gain [DN/e-], read_noise [e- per frame], saturation [DN]: override the file's GAIN, READNOISE,
-        SATURATION (default 65535 for integer data)
+    gain [DN/e-], ron [e- per frame] (read-out noise), saturation [DN]: override the file's GAIN,
+        READNOISE, SATURATION (default 65535 for integer data); an astropy Quantity is converted
     with_truth : also load ``truth/rate`` [e-/s] (RampFileError if the file has none)
     return_groupdq : keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx)
-    memory_budget : bytes for the row blocks in flight;  backend : "auto", "opencl", "numpy"
+    max_bytes : bytes for the row blocks in flight;  backend : "auto", "opencl", "numpy"
     progress : progress bar (None: when stderr is a terminal and there are more than 8 row blocks)
+
+    The keyword form also takes the deprecated names ``read_noise`` (→ ``ron``) and
+    ``memory_budget`` (→ ``max_bytes``) with a DeprecationWarning (:meth:`from_keywords`).
     work_group : OpenCL local size
     """
 
@@ -476,11 +479,11 @@ class FitOptions:
     jump_threshold: float | None = DEFAULT_JUMP_THRESHOLD
     weighting: str = "gls"
     gain: float | None = None
-    read_noise: float | None = None
+    ron: float | None = None
     saturation: float | None = None
     with_truth: bool = False
     return_groupdq: bool = False
-    memory_budget: int = 256 << 20
+    max_bytes: int = 256 << 20
     backend: str = "auto"
     progress: bool | None = None
     work_group: int | None = None
@@ -488,8 +491,8 @@ class FitOptions:
     def __post_init__(self):
         validation.choice("weighting", self.weighting, WEIGHTINGS)
         validation.choice("backend", self.backend, BACKENDS)
-        validation.positive_int("memory_budget", self.memory_budget)
-        for name in ("gain", "read_noise"):
+        validation.positive_int("max_bytes", self.max_bytes)
+        for name in ("gain", "ron"):
             if getattr(self, name) is not None:
                 low_open = name == "gain"
                 unit = "adu / electron" if name == "gain" else "electron"
@@ -499,6 +502,23 @@ class FitOptions:
                 isinstance(self.saturation, (int, float, np.integer, np.floating)) and self.saturation > 0)):
             raise ParameterError(f"saturation must be a number of DN > 0 (or None: the file's), got "
                                  f"{validation.short_repr(self.saturation)}")
+
+    @classmethod
+    def from_keywords(cls, where="fit_ramps", **kwargs):
+        """Options from keywords: each name checked (did-you-mean), the deprecated names
+        (:data:`FIT_RENAMED`) moved to their new ones with a DeprecationWarning."""
+        for old, new in FIT_RENAMED.items():
+            validation.renamed_keyword(kwargs, old, new, where, stacklevel=4)
+        for key in kwargs:
+            validation.choice("keyword", key, tuple(FIT_DEFAULTS), what=f"keyword of {where}")
+        return cls(**kwargs)
+
+
+#: every option of :func:`fit_ramps` and its default, as data (the reduction identity of a campaign
+#: reduction is built from it)
+FIT_DEFAULTS = {f.name: f.default for f in fields(FitOptions)}
+#: deprecated keyword names of :func:`fit_ramps` → their names now (accepted with a DeprecationWarning)
+FIT_RENAMED = {"read_noise": "ron", "memory_budget": "max_bytes"}
 
 
 def fit_ramps(source, options=None, **kwargs):
@@ -513,10 +533,7 @@ def fit_ramps(source, options=None, **kwargs):
     Returns a :class:`RateProduct`.  Everything is checked before data are read.
     """
     if options is None:
-        valid = [f.name for f in fields(FitOptions)]
-        for key in kwargs:
-            validation.choice("keyword", key, valid, what="keyword of fit_ramps")
-        options = FitOptions(**kwargs)
+        options = FitOptions.from_keywords(**kwargs)
     elif kwargs or not isinstance(options, FitOptions):
         raise ParameterError("fit_ramps: give options=FitOptions(...) or keywords, not both "
                              f"(got {validation.short_repr(options)} and {sorted(kwargs)})")
@@ -528,7 +545,7 @@ def fit_ramps(source, options=None, **kwargs):
                "dq": np.empty(src.shape[2:], np.uint32), "njumps": np.empty(src.shape[2:], np.int32)}
         groupdq = np.empty(src.shape, np.uint8) if options.return_groupdq else None
         _fit_blocks(src, setup, options, backend, out, groupdq)
-        attrs = _attrs(src, setup.nmd, setup.tframe, setup.gain, setup.read_noise, setup.saturation,
+        attrs = _attrs(src, setup.nmd, setup.tframe, setup.gain, setup.ron, setup.saturation,
                        options.jump_threshold, options.weighting, backend, setup.labels)
     return RateProduct(**out, attrs=attrs, groupdq=groupdq, truth_rate=setup.truth_rate)
 
@@ -546,15 +563,15 @@ class _FitSetup:
     def __init__(self, src, options):
         where = src.name
         nints, n, ny, nx = src.shape
-        self.nmd, self.tframe, self.gain, self.read_noise = _readout(src.attrs, src.shape, options.gain,
-                                                                     options.read_noise, where)
+        self.nmd, self.tframe, self.gain, self.ron = _readout(src.attrs, src.shape, options.gain, options.ron,
+                                                              where)
         self.saturation = options.saturation
         if self.saturation is None:
             self.saturation = _number(src.attrs, "SATURATION", where) if "SATURATION" in src.attrs else (
                 65535.0 if src.integer else math.inf)
             if not self.saturation > 0:
                 raise RampFileError(f"{where}: keyword SATURATION = {self.saturation} DN must be > 0")
-        self.consts = fit_constants(self.nmd, self.tframe, self.gain, self.read_noise,
+        self.consts = fit_constants(self.nmd, self.tframe, self.gain, self.ron,
                                     1.0 / 12.0 if src.integer else 0.0, self.saturation, options.jump_threshold,
                                     options.weighting)
         refpix_kw, self.coeffs, self.bias, self.labels = _plan_corrections(src, options.refpix, options.linearity,
@@ -569,8 +586,8 @@ class _FitSetup:
         # bytes per pixel-group: SCI + GROUPDQ on the host and the device (+ GROUPDQ out, + float DN, its
         # temporary and device copy with corrections); per pixel: the outputs of a block, twice
         per_row = nx * (nints * n * (6 + (2 if options.return_groupdq else 0) + (24 if self.corrected else 0)) + 96)
-        self.rows = rows_per_block(options.memory_budget, per_row, ny, chunk=getattr(src, "chunk_rows", 1),
-                                   what="one detector row", name="memory_budget")
+        self.rows = rows_per_block(options.max_bytes, per_row, ny, chunk=getattr(src, "chunk_rows", 1),
+                                   what="one detector row", name="max_bytes")
         self.terms = _refpix_terms(src, self.bias, refpix_kw) if refpix_kw is not None else None
 
 
@@ -631,12 +648,12 @@ def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):
     return dn, replace(consts, satlim=math.inf) if raw.dtype == np.uint16 else consts
 
 
-def _attrs(src, nmd, tframe, gain, read_noise, saturation, jump_threshold, weighting, backend, labels):
+def _attrs(src, nmd, tframe, gain, ron, saturation, jump_threshold, weighting, backend, labels):
     from slicersim.versioning import __version__
     n, m, d = nmd
     attrs = {"BUNIT": "e-/s", "VARUNIT": "e-2/s2", "SOURCE": src.name, "FORMAT": src.kind,
              "NINTS": src.shape[0], "NGROUPS": n, "NFRAMES": m, "GROUPGAP": d, "TFRAME": tframe,
-             "TGROUP": (m + d) * tframe, "GAIN": gain, "READNOISE": read_noise, "SATURATION": saturation,
+             "TGROUP": (m + d) * tframe, "GAIN": gain, "READNOISE": ron, "SATURATION": saturation,
              "WEIGHTING": weighting, "JUMP_THRESHOLD": float(jump_threshold or 0.0), "BACKEND": backend,
              "SOFTWARE": "slicersim", "VERSION": __version__, **labels}
     keys = ("DARK", "THERMAL_DARK", "ROIC_GLOW")
