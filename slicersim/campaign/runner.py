@@ -213,8 +213,8 @@ def _check_positive_int(value, name, lo=1):
 @dataclass(frozen=True)
 class RunOptions:
     """How a campaign runs (none of it changes the products): ``workers`` of the embedded cluster,
-    ``scheduler`` address or None, ``progress`` bar (True/False; ``checked`` resolves None), ``max_bytes`` memory budget of one task's cube
-    chunks / ramp blocks [bytes], ``threads_per_worker`` (OpenCL CPU threads; None: CPUs / workers),
+    ``scheduler`` address or None, ``progress`` bar (True/False; :meth:`checked` resolves None),
+    ``max_bytes`` memory budget of one task's cube chunks / ramp blocks [bytes], ``threads_per_worker`` (OpenCL CPU threads; None: CPUs / workers),
     ``window`` tasks in flight (None: 2 per worker)."""
     workers: int
     scheduler: str | None = None
