@@ -114,7 +114,7 @@ def test_kernel_matches_numpy_twin_at_several_chunkings(weighting):
     attrs = dict(NFRAMES=4, GROUPGAP=1, TFRAME=TF, GAIN=1.0, READNOISE=12.0, SATURATION=40000.0)
     arrays = (sci.reshape(3, 14, 60, 50), gdq.reshape(3, 14, 60, 50), pdq.reshape(60, 50), attrs)
     per_row = 50 * (3 * 14 * 8 + 96)                                 # uint16 SCI, GROUPDQ returned
-    products = [fit_ramps(arrays, weighting=weighting, backend=be, memory_budget=per_row * rows, return_groupdq=True)
+    products = [fit_ramps(arrays, weighting=weighting, backend=be, max_bytes=per_row * rows, return_groupdq=True)
                 for be, rows in (("numpy", 60), ("opencl", 1), ("opencl", 7), ("opencl", 60))]
     for p in products[1:]:
         assert np.array_equal(p.rate, products[0].rate, equal_nan=True)
@@ -151,7 +151,7 @@ def test_pipelined_blocks_keep_their_own_results_on_the_device_copy_path(monkeyp
     monkeypatch.setattr(backend_fit.opencl, "device_type", lambda dev=None: "GPU")
     assert backend_fit.opencl is opencl
     for rows in (1, 7):
-        got = fit_ramps(arrays, backend="opencl", memory_budget=per_row * rows, return_groupdq=True)
+        got = fit_ramps(arrays, backend="opencl", max_bytes=per_row * rows, return_groupdq=True)
         ok = np.isfinite(ref.rate)
         assert np.array_equal(np.isfinite(got.rate), ok)
         assert np.max(np.abs(got.rate[ok] - ref.rate[ok]) / np.abs(ref.rate[ok]).clip(1e-300)) < 1e-12

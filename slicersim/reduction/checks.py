@@ -67,7 +67,7 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
 
     Returns {"kind", "shape" (nints, ngroups, ny, nx), "nmd", "tframe"}.
     """
-    from slicersim.reduction.ramp_fit import _readout, open_ramps, ramp_file_kind
+    from slicersim.reduction.ramp_sources import open_ramps, ramp_file_kind, ramp_readout
     validation.renamed_keyword(renamed, "read_noise", "ron", "check_ramp_file")
     for key in renamed:
         validation.choice("keyword", key, ("ron",), what="check_ramp_file keyword")
@@ -89,7 +89,7 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
         shape = tuple(int(s) for s in src.shape)
         if 0 in shape:
             raise RampFileError(f"{path}: SCI is empty {shape}")
-        nmd, tframe, _, _ = _readout(src.attrs, src.shape, gain, ron, path)
+        nmd, tframe, _, _ = ramp_readout(src.attrs, src.shape, gain, ron, path)
         if header is not None:
             _check_fits_duplicates(header, path)
         if _made_by_slicersim(src.attrs, header):
