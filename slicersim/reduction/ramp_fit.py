@@ -227,7 +227,7 @@ class FitOptions:
                                  f"{validation.short_repr(self.saturation)}")
 
     @classmethod
-    def from_keywords(cls, where="fit_ramps", **kwargs):
+    def from_keywords(cls, where="fit_ramps", /, **kwargs):
         """Options from keywords: each name checked (did-you-mean), the deprecated names
         (:data:`FIT_RENAMED`) moved to their new ones with a DeprecationWarning."""
         for old, new in FIT_RENAMED.items():
