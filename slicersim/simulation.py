@@ -9,7 +9,7 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.constants import HC_ERG_AA
-from slicersim.errors import ETCError, SpectrumError
+from slicersim.errors import ETCError, ParameterError, SpectrumError
 from slicersim.instrument.names import check_parameter_names
 from slicersim.physics.conventions import (DEFAULT_CONVENTIONS, check_conventions, detector_pixels_per_cell,
                                           instrumental_blur_sigma)
@@ -161,7 +161,8 @@ class Simulation(Versioned):
     def apply_update(self, plan):
         """Apply a :meth:`plan_update` result of this simulation (nothing here can fail)."""
         if plan.simulation is not self:
-            raise ValueError("this update was planned for another simulation")  # internal: a plan of another object
+            raise ParameterError("plan: this update was planned for another simulation (apply_update takes the "
+                                 "plan_update result of the same simulation)")
         for name, obj in plan.components.items():
             getattr(self, name)._adopt(obj)
         self.nramps, self.aperture_radius_insigma = plan.nramps, plan.aperture_radius_insigma

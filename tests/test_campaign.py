@@ -399,3 +399,24 @@ def test_spec_without_seed_draws_one_records_it_and_resumes_with_it(tmp_path):
     assert _resumed_seed(other, ds, force=False).seed == other.seed        # another spec: refused later
     with pytest.raises(ConfigError, match="seed"):
         parse_spec(tomllib.loads(SPEC.replace("seed = 11", "seed = -1")))
+
+
+@pytest.mark.parametrize("no_progress,expected", [(True, False), (False, None)])
+def test_campaign_run_progress_flag(monkeypatch, tmp_path, no_progress, expected):
+    """``campaign run --no-progress`` passes progress=False; without it progress=None (the package's
+    default: a bar only when stderr is a terminal), no longer always True."""
+    import argparse
+
+    from slicersim.app import campaign_cli
+    from slicersim.campaign import runner
+    seen = {}
+
+    def fake_run(spec, out, **kw):
+        seen.update(kw)
+        return dict(dataset=out, targets=1, done=1, failed=0, missing=0, computed=0, seconds=0.0)
+    monkeypatch.setattr(runner, "run_campaign", fake_run)
+    args = argparse.Namespace(spec=str(tmp_path / "spec.toml"), out=str(tmp_path / "ds"), precision=None, workers=1,
+                              scheduler=None, force=False, retry_failed=False, no_progress=no_progress,
+                              threads_per_worker=None, memory_per_task=256.0)
+    assert campaign_cli.cmd_campaign_run(args) == 0
+    assert seen["progress"] is expected

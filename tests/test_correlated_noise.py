@@ -4,8 +4,8 @@ import pytest
 from scipy import signal
 
 from slicersim.backends import opencl
-from slicersim.backends.correlated_noise import (CorrelatedNoise, assemble_numpy, assemble_opencl,
-                                                 spectral_coefficients_numpy, spectral_coefficients_opencl)
+from slicersim.backends.correlated_assembly import GroupInputs, assemble_numpy, assemble_opencl
+from slicersim.backends.correlated_noise import CorrelatedNoise, spectral_coefficients_numpy, spectral_coefficients_opencl
 from slicersim.errors import EffectsError
 from slicersim.physics.correlated_noise import (CorrelatedNoiseParameters, ReadoutGeometry, group_mean_variance,
                                                 model_psd)
@@ -167,7 +167,6 @@ def test_assembly_twin(nout, nx):
     a = assemble_numpy(gen, *args, out=np.empty((30, nx), np.float32))
     b = assemble_opencl(gen, *args, out=np.empty((30, nx), np.float32))
     np.testing.assert_allclose(a, b, atol=1e-5, rtol=1e-6)
-    from slicersim.backends.correlated_noise import GroupInputs
     grouped = assemble_numpy(gen, GroupInputs(*args), out=np.empty((30, nx), np.float32))
     assert np.array_equal(grouped, a)                                  # one inputs object = its fields
 

@@ -64,6 +64,17 @@ def test_failed_simulation_update_changes_nothing(sn, bad, match):
     _assert_same(before, _snapshot(sim))
 
 
+def test_apply_update_refuses_a_plan_of_another_simulation(sn):
+    """apply_update takes the plan_update result of the same simulation: another one's plan is a
+    ParameterError naming the plan (it was a bare ValueError), and nothing changes."""
+    other = LazuliSupernova(redshift=0.5)
+    plan = other.simulation.plan_update(ron=3.0)
+    before = _snapshot(sn.simulation)
+    with pytest.raises(ParameterError, match="plan: this update was planned for another simulation"):
+        sn.simulation.apply_update(plan)
+    _assert_same(before, _snapshot(sn.simulation))
+
+
 def test_per_mirror_temperature_list(sn):
     sim = sn.simulation
     ref = sim.thermal_photons.copy()

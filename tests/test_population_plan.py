@@ -151,12 +151,12 @@ def test_population_spectrum_of_a_row_equals_the_batch():
 
 
 def test_salt_offline_error_names_what_is_missing(monkeypatch, tmp_path):
-    from slicersim.campaign import population
+    from slicersim.campaign import snia_model
     from slicersim.errors import SpectrumError
     monkeypatch.setenv("SNCOSMO_DATA_DIR", str(tmp_path))
-    population._SOURCES.pop("salt3-nonexistent", None)
+    snia_model._SOURCES.pop("salt3-nonexistent", None)
     with pytest.raises(SpectrumError, match="salt3-nonexistent.*available offline: hsiao-subsampled"):
-        population._source("salt3-nonexistent")
+        snia_model._source("salt3-nonexistent")
 
 
 # --------------------------------------------------------------------------- hosts

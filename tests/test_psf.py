@@ -33,7 +33,8 @@ from scipy.special import erf, erfcx, j1
 
 from conftest import reference_target
 from slicersim.backends import opencl
-from slicersim.backends.psf import _gaussian_opencl, bessel_j1, psf_cells, psf_cube
+from slicersim.backends.psf import bessel_j1, psf_cells, psf_cube
+from slicersim.backends.psf_opencl import gaussian_opencl
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
                            airy_wavenumber, aperture_cells, blur_bin_taps, gaussian_psf_fractions,
@@ -95,7 +96,7 @@ def test_gaussian_tail_fractions_relative_accuracy(backend):
         ref = np.where(a >= 0.5, tail(a, b), np.where(b <= -0.5, tail(-b, -a), 0.5 * (erf(b) - erf(a))))
     ref = ref * erf(0.5)                       # the y factor of a 1-cell row centred on the source
     if backend == "opencl":
-        got = _gaussian_opencl(sig, sig, (1, n), (x0, 0.0), 2**20)[0, 0]
+        got = gaussian_opencl(sig, sig, (1, n), (x0, 0.0), 2**20)[0, 0]
     else:
         got = gaussian_psf_fractions(sig, sig, (1, n), (x0, 0.0))[0, 0]
     normal = ref > 1e-290                      # beyond z ≈ 26.5 erfc is subnormal, then 0
@@ -140,17 +141,17 @@ def test_airy_kernel_symmetric_sources_match_numpy(case):
 
 
 def test_mirror_and_shared_offset_maps():
-    from slicersim.backends.psf import _mirror_blocks, _output_mirror_blocks, _shared_rows
+    from slicersim.backends.psf_opencl import mirror_blocks, output_mirror_blocks, shared_rows
     d = np.arange(-8.0, 8.0) + 0.5                        # symmetric about 0: 4 blocks of 4
-    blocks = _mirror_blocks(d, 4)
+    blocks = mirror_blocks(d, 4)
     assert blocks.tolist() == [[0, 3], [1, 2]]
     assert np.array_equal(np.abs(d[4 * 3:4 * 4]), np.abs(d[0:4])[::-1])
-    assert _mirror_blocks(d + 0.1, 4)[:, 1].tolist() == [-1] * 4       # nothing mirrors
-    code = _shared_rows(np.array([-1.5, -0.5, 0.5, 1.5, 2.5]))
+    assert mirror_blocks(d + 0.1, 4)[:, 1].tolist() == [-1] * 4       # nothing mirrors
+    code = shared_rows(np.array([-1.5, -0.5, 0.5, 1.5, 2.5]))
     assert code.tolist() == [0, 2, 3, 1, -1]              # rows 2, 3 read slots 1, 0
     taps = np.array([0.1, 0.4, 0.4, 0.1])
-    assert _output_mirror_blocks(0, 16, 16, 0.0, taps, 4).tolist() == [[0, 3], [1, 2]]
-    assert _output_mirror_blocks(0, 16, 16, 0.0, taps + [0, 0, 0, 1e-3], 4)[:, 1].tolist() == [-1] * 4
+    assert output_mirror_blocks(0, 16, 16, 0.0, taps, 4).tolist() == [[0, 3], [1, 2]]
+    assert output_mirror_blocks(0, 16, 16, 0.0, taps + [0, 0, 0, 1e-3], 4)[:, 1].tolist() == [-1] * 4
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -114,7 +114,7 @@ def test_kernel_matches_numpy_twin_at_several_chunkings(weighting):
     attrs = dict(NFRAMES=4, GROUPGAP=1, TFRAME=TF, GAIN=1.0, READNOISE=12.0, SATURATION=40000.0)
     arrays = (sci.reshape(3, 14, 60, 50), gdq.reshape(3, 14, 60, 50), pdq.reshape(60, 50), attrs)
     per_row = 50 * (3 * 14 * 8 + 96)                                 # uint16 SCI, GROUPDQ returned
-    products = [fit_ramps(arrays, weighting=weighting, backend=be, memory_budget=per_row * rows, return_groupdq=True)
+    products = [fit_ramps(arrays, weighting=weighting, backend=be, max_bytes=per_row * rows, return_groupdq=True)
                 for be, rows in (("numpy", 60), ("opencl", 1), ("opencl", 7), ("opencl", 60))]
     for p in products[1:]:
         assert np.array_equal(p.rate, products[0].rate, equal_nan=True)
@@ -151,7 +151,7 @@ def test_pipelined_blocks_keep_their_own_results_on_the_device_copy_path(monkeyp
     monkeypatch.setattr(backend_fit.opencl, "device_type", lambda dev=None: "GPU")
     assert backend_fit.opencl is opencl
     for rows in (1, 7):
-        got = fit_ramps(arrays, backend="opencl", memory_budget=per_row * rows, return_groupdq=True)
+        got = fit_ramps(arrays, backend="opencl", max_bytes=per_row * rows, return_groupdq=True)
         ok = np.isfinite(ref.rate)
         assert np.array_equal(np.isfinite(got.rate), ok)
         assert np.max(np.abs(got.rate[ok] - ref.rate[ok]) / np.abs(ref.rate[ok]).clip(1e-300)) < 1e-12
@@ -412,21 +412,21 @@ def test_bad_input_gives_one_clear_error(tmp_path):
     with pytest.raises(ParameterError, match="superbias"):
         fit_ramps(path, refpix=True, superbias="2000")
     with pytest.raises(MemoryError, match="below one detector row"):
-        fit_ramps(path, memory_budget=100)
+        fit_ramps(path, max_bytes=100)
 
 
 def test_fit_options_object_equals_the_keyword_form(tmp_path):
     """fit_ramps(path, FitOptions(...)) is fit_ramps(path, **keywords); unknown keywords, bad values and
     options mixed with keywords are ParameterErrors naming the parameter; the signature still lists
-    every keyword (the campaign identity of a reduction reads it)."""
+    every keyword and FIT_DEFAULTS holds the defaults as data."""
     import inspect
 
-    from slicersim.reduction.ramp_fit import FitOptions
+    from slicersim.reduction.ramp_fit import FIT_DEFAULTS, FitOptions
     rate = np.full((16, 12), 30.0)
     path = simulate(rate, (6, 2, 0), seed=2, out=tmp_path / "r.h5", ron=8.0, **QUIET)
     for backend in ("numpy", "opencl"):
-        a = fit_ramps(path, weighting="ols", jump_threshold=5.0, backend=backend, memory_budget=4096)
-        b = fit_ramps(path, FitOptions(weighting="ols", jump_threshold=5.0, backend=backend, memory_budget=4096))
+        a = fit_ramps(path, weighting="ols", jump_threshold=5.0, backend=backend, max_bytes=4096)
+        b = fit_ramps(path, FitOptions(weighting="ols", jump_threshold=5.0, backend=backend, max_bytes=4096))
         for name in ("rate", "variance", "dq", "njumps"):
             assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=name in ("rate", "variance"))
         assert a.attrs == b.attrs
@@ -434,9 +434,32 @@ def test_fit_options_object_equals_the_keyword_form(tmp_path):
         fit_ramps(path, weightng="ols")
     with pytest.raises(ParameterError, match="backend"):
         fit_ramps(path, backend="cuda")
-    with pytest.raises(ParameterError, match="read_noise"):
-        fit_ramps(path, read_noise=-1.0)
+    with pytest.raises(ParameterError, match="ron"):
+        fit_ramps(path, ron=-1.0)
     with pytest.raises(ParameterError, match="options=FitOptions"):
         fit_ramps(path, FitOptions(), weighting="ols")
     params = inspect.signature(fit_ramps).parameters
-    assert params["weighting"].default == "gls" and params["memory_budget"].default == 256 << 20
+    assert params["weighting"].default == "gls" and params["max_bytes"].default == 256 << 20
+    assert FIT_DEFAULTS["max_bytes"] == 256 << 20 and FIT_DEFAULTS["ron"] is None
+    assert set(FIT_DEFAULTS) == set(params) - {"source", "options"}
+
+
+def test_fit_ramps_renamed_keywords(tmp_path):
+    """read_noise and memory_budget (the earlier names of ron and max_bytes) still work, with a
+    DeprecationWarning, and give the same fit; both names at once are a ParameterError; ron takes a
+    Quantity."""
+    import astropy.units as u
+    rate = np.full((16, 12), 30.0)
+    path = simulate(rate, (6, 2, 0), seed=2, out=tmp_path / "r.h5", ron=8.0, **QUIET)
+    new = fit_ramps(path, ron=5.0, max_bytes=4096, backend="numpy")
+    with pytest.warns(DeprecationWarning, match="'read_noise' is deprecated, use 'ron'"):
+        old = fit_ramps(path, read_noise=5.0, backend="numpy")
+    assert np.array_equal(old.variance, new.variance) and old.attrs["READNOISE"] == 5.0
+    with pytest.warns(DeprecationWarning, match="'memory_budget' is deprecated, use 'max_bytes'"):
+        fit_ramps(path, memory_budget=4096, backend="numpy")
+    with pytest.raises(ParameterError, match="'ron'"):
+        fit_ramps(path, ron=5.0, read_noise=5.0)
+    with pytest.raises(MemoryError, match="max_bytes"):
+        fit_ramps(path, max_bytes=100)
+    quantity = fit_ramps(path, ron=5.0 * u.electron, backend="numpy")
+    assert np.array_equal(quantity.variance, new.variance)

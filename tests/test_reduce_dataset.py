@@ -356,3 +356,39 @@ def test_progress_follows_the_keyword_convention(monkeypatch):
     assert _progress(None) is False and _progress(True) is True and _progress(False) is False
     with pytest.raises(ParameterError, match="progress must be True or False"):
         _progress("yes")
+
+
+#: the fit options of a rates reduction's identity as the release before the ``ron`` / ``max_bytes``
+#: keywords wrote them (spec.json of an existing reduction directory)
+PREVIOUS_FIT_IDENTITY = {"gain": None, "jump_threshold": 4.0, "linearity": None, "read_noise": None,
+                         "refpix": None, "saturation": None, "superbias": None, "weighting": "gls",
+                         "with_truth": False}
+
+
+def test_identity_of_an_earlier_release_is_resumed(tmp_path):
+    """The identity is built from FIT_DEFAULTS with ``ron`` under the key ``read_noise``, the name the
+    earlier release wrote: a reduction directory it made is recognised (same digest, no DatasetError)
+    whether the options are given as ron/max_bytes or under their deprecated names.  Fails if the
+    key mapping (reduction.campaign._IDENTITY_KEYS) is removed."""
+    import warnings
+
+    from slicersim.io.dataset import Dataset
+    from slicersim.reduction.campaign import _check_identity, _identity
+    from slicersim.reduction.checks import check_fit_options
+    old = {"kind": "slicersim-reduction", "mode": "rates", "options": {},
+           "fit_options": {**PREVIOUS_FIT_IDENTITY, "read_noise": 3.0},
+           "mapper": None, "source_spec_sha256": "0" * 64}
+    new = _identity("rates", {}, check_fit_options({"ron": 3.0, "max_bytes": 2**20}), "0" * 64, None)
+    old["kind"] = new["kind"]
+    assert new == old
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        deprecated = check_fit_options({"read_noise": 3.0, "memory_budget": 2**20})
+    assert _identity("rates", {}, deprecated, "0" * 64, None) == old
+    ds = Dataset(tmp_path / "red")
+    digest = ds.initialise("# previous release\n", old, {})
+    _check_identity(ds, new, force=False)                       # resumed: no DatasetError
+    assert ds.initialise("# this release\n", new, {}) == digest
+    other = _identity("rates", {}, check_fit_options({"ron": 4.0}), "0" * 64, None)
+    with pytest.raises(DatasetError, match="fit_options.read_noise"):
+        _check_identity(ds, other, force=False)

@@ -24,6 +24,57 @@ def test_row_blocks_cover_every_row_of_every_ramp_once():
     assert show_progress(True, 1) and not show_progress(False, 100)
 
 
+class _Stderr:
+    def __init__(self, tty):
+        self.tty = tty
+
+    def isatty(self):
+        return self.tty
+
+    def write(self, text):
+        return len(text)
+
+    def flush(self):
+        pass
+
+
+@pytest.mark.parametrize("tty", [True, False])
+def test_show_progress_is_the_one_meaning_of_progress(monkeypatch, tty):
+    """progress=None (every default) draws a bar only when stderr is a terminal (and the pass has
+    more than auto_min blocks when it is counted); True/False as given; anything else is a
+    ParameterError naming progress."""
+    import sys
+
+    from slicersim.errors import ParameterError
+    monkeypatch.setattr(sys, "stderr", _Stderr(tty))
+    assert show_progress(None) is tty
+    assert show_progress(None, 100) is tty and show_progress(None, 3) is False
+    assert show_progress(True) is True and show_progress(False) is False
+    assert show_progress(np.bool_(True)) is True
+    for bad in ("yes", 1, 0.0):
+        with pytest.raises(ParameterError, match="progress must be True or False"):
+            show_progress(bad)
+
+
+def test_progress_defaults_are_none_everywhere():
+    """Every public progress keyword defaults to None (resolved by show_progress)."""
+    import dataclasses
+    import inspect
+
+    from slicersim.campaign.plan import SurveyOptions
+    from slicersim.campaign.runner import RunOptions, run_campaign
+    from slicersim.etc.solve import SolveOptions
+    from slicersim.products.cube import build_cube
+    from slicersim.products.ramps import RunOptions as RampRunOptions
+    from slicersim.reduction.campaign import reduce_dataset, reduce_file
+    from slicersim.reduction.ramp_fit import FIT_DEFAULTS
+    for func in (run_campaign, RunOptions.checked, build_cube, reduce_dataset, reduce_file):
+        assert inspect.signature(func).parameters["progress"].default is None, func
+    for cls in (SurveyOptions, SolveOptions, RampRunOptions):
+        assert {f.name: f.default for f in dataclasses.fields(cls)}["progress"] is None, cls
+    assert FIT_DEFAULTS["progress"] is None
+
+
 def test_pipelined_stores_each_result_once_in_order():
     stored = []
     launched = []

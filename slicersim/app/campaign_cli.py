@@ -50,7 +50,7 @@ def cmd_survey_plan(args) -> int:
                        frame="rest", z_switch=args.z_switch, config=args.config, search=args.search,
                        conventions=args.conventions, overhead=args.overhead, efficiency=args.efficiency,
                        compression_ratio=args.compression_ratio, target_ids=np.asarray(table["target_id"]),
-                       progress=True, precision=args.precision)
+                       progress=None, precision=args.precision)
     plan.table.meta["population_seed"] = seed
     if args.out:
         _write_table(plan.table, args.out, args.overwrite)
@@ -94,7 +94,7 @@ def cmd_campaign_run(args) -> int:
         from slicersim.campaign.spec import load_spec, with_products
         spec = with_products(load_spec(args.spec), precision=args.precision)
     res = run_campaign(spec, args.out, workers=args.workers, scheduler=args.scheduler, force=args.force,
-                       retry_failed=args.retry_failed, progress=not args.no_progress,
+                       retry_failed=args.retry_failed, progress=False if args.no_progress else None,
                        threads_per_worker=args.threads_per_worker,
                        max_bytes=int(args.memory_per_task * 2**20))
     print(f"{res['dataset']}: {res['targets']} targets, {res['done']} done, {res['failed']} failed, "

@@ -262,7 +262,7 @@ def cmd_ramp(args) -> int:
     _check_output(args.out, args.overwrite)
     from slicersim import validation
     seed = validation.new_seed() if args.seed is None else args.seed       # printed and recorded (SEED)
-    common = dict(seed=seed, out=args.out, compression=args.compression, progress=True,
+    common = dict(seed=seed, out=args.out, compression=args.compression, progress=None,
                   backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format,
                   precision=args.precision)
     if args.previous_charge is not None:

@@ -112,7 +112,7 @@ class SurveyOptions:
     z_switch : ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field)
     config, search, conventions : of the batch ETC (:func:`slicersim.etc.solve.solve_many`)
     overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1 : of the totals (module docstring)
-    progress : the batch ETC's bar;  detector_shape : (ny, nx) of the volume (default: the field's)
+    progress : the batch ETC's bar (None: when stderr is a terminal);  detector_shape : (ny, nx) of the volume (default: the field's)
     precision : of the batch ETC's band-variance kernel
     """
     snr: float = 20.0
@@ -127,7 +127,7 @@ class SurveyOptions:
     efficiency: float = 1.0
     compression_ratio: float = 1.0
     per_resolution: bool = True
-    progress: bool = False
+    progress: bool | None = None
     detector_shape: tuple | None = None
     precision: object = "auto"
 

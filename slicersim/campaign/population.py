@@ -7,16 +7,8 @@ drawn from its own Philox stream keyed by (population seed, target id), so a tar
 parameters depend on nothing else: not on ``n``, the order, nor on which other parameters
 are switched on.
 
-SN Ia spectra follow sncosmo's model exactly (``Model._flux``)::
-
-    F_obs(t, λ) = A · a · F_src(t_rest, a λ) · 10^(−0.4 A_host(a λ)) · 10^(−0.4 A_MW(λ)),  a = 1/(1+z)
-
-with ``phase`` = t_rest the *rest-frame* days from B-band peak, and the amplitude A set
-from the rest-frame peak magnitude in ``band``: m = M + μ(z) with μ the distance modulus of
-``cosmology`` (``set_source_peakabsmag``).  M = ``peak_absmag`` + N(0, ``mag_scatter``),
-and for SALT sources the Tripp relation M − α x1 + β c (x0 from the standardised m_B, the
-SALT convention; x1, c only exist for SALT).  Dust (sncosmo effects): host CCM89 in the
-rest frame, Milky Way F99 in the observer frame, each with E(B−V) and R_V.
+SN Ia spectra: :mod:`slicersim.campaign.snia_model` (sncosmo's model exactly), with
+M = ``peak_absmag`` + N(0, ``mag_scatter``) drawn here.
 
 Hosts (optional): an elliptical Sersic profile whose effective radius follows the
 Shen et al. (2003, MNRAS 343, 978, eq. 18, late types, SDSS r, h = 0.7) size–luminosity
@@ -30,27 +22,25 @@ or a user rest-frame spectrum file.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
-
 import numpy as np
 
 from slicersim import rng
 from slicersim.campaign.distributions import Distribution, RedshiftDistribution
+from slicersim.campaign.snia_model import SNIaModel, cosmology, model_fluxes, restframe_to_observed
+from slicersim.campaign.snia_model import snia_fluxes  # noqa: F401  (documented path: docs/guide/campaigns.md)
 from slicersim import validation
-from slicersim.errors import ConfigError, ParameterError, SpectrumError
+from slicersim.errors import ConfigError, SpectrumError
 from slicersim.validation import number
 from slicersim.io.tables import file_digest, read_spectrum_table as _read_spectrum_table, read_table, resolve_path
-from slicersim.sources.spectra import SNCOSMO_SNIA_MODELS, blackbody_flambda
+from slicersim.sources.spectra import blackbody_flambda
 
-__all__ = ["SNIaPopulation", "CatalogPopulation", "population_from_spec", "POPULATIONS", "snia_fluxes", "SNIaModel",
-           "model_fluxes"]
+__all__ = ["SNIaPopulation", "CatalogPopulation", "population_from_spec", "POPULATIONS", "snia_fluxes"]
 
 #: Philox streams of the population parameters (one per parameter)
 STREAMS = {"redshift": 0x5A01, "phase": 0x5A02, "x1": 0x5A03, "c": 0x5A04, "mag": 0x5A05,
            "mwebv": 0x5A06, "hostebv": 0x5A07, "host_absmag": 0x5A08, "host_size": 0x5A09,
            "host_shape": 0x5A0A, "host_position": 0x5A0B}
 MAX_TARGETS = 10_000_000
-PC10_CM = 10 * 3.0856775814913673e18          # 10 pc [cm]
 
 _SN_KEYS = {"source": "hsiao-subsampled", "phase": 0.0, "peak_absmag": -19.3, "mag_scatter": 0.0,
             "band": "bessellb", "magsys": "ab", "x1": None, "c": None, "alpha": 0.14, "beta": 3.1,
@@ -66,156 +56,6 @@ def _unknown(section, allowed, where):
     for key in section:
         if key not in allowed:
             raise ConfigError(f"unknown key {where}{key!r} in the campaign spec; known: {', '.join(sorted(allowed))}")
-
-
-def _cosmology(name):
-    """The astropy cosmology realisation ``name`` (e.g. "Planck18")."""
-    from astropy.cosmology import realizations
-    if not isinstance(name, str) or name not in realizations.available:
-        raise ConfigError(f"population.cosmology: unknown cosmology {name!r}; known: "
-                          f"{', '.join(realizations.available)}")
-    return getattr(realizations, name)
-
-
-_SOURCES = {}
-
-
-def _source(name):
-    """The sncosmo source ``name`` (loaded once per process; SALT needs sncosmo's data)."""
-    if name not in _SOURCES:
-        from slicersim.sources.spectra import load_sncosmo_source
-        try:
-            _SOURCES[name] = load_sncosmo_source(name)
-        except SpectrumError as exc:
-            offline = ", ".join(k for k, v in SNCOSMO_SNIA_MODELS.items() if v)
-            raise SpectrumError(f"{exc} — available offline: {offline}") from None
-    return _SOURCES[name]
-
-
-def _rest_peak_mag(source, band, magsys, x1=0.0, c=0.0):
-    """Rest-frame peak magnitude of ``source`` at unit amplitude (x0 = 1, x1, c for SALT)."""
-    src = source.__class__.__new__(source.__class__)
-    src.__dict__.update(source.__dict__)
-    src._parameters = source._parameters.copy()
-    src._parameters[0] = 1.0
-    if "x1" in src.param_names:
-        src.set(x1=x1, c=c)
-    return src.peakmag(band, magsys)
-
-
-def _dust_curve(law, wave, r_v):
-    """A_λ / E(B−V) of a sncosmo dust law at ``wave`` [Å] (linear in E(B−V) at fixed R_V)."""
-    import sncosmo
-    effect = {"ccm89": sncosmo.CCM89Dust, "f99": sncosmo.F99Dust}[law]()
-    effect.set(ebv=1.0, r_v=r_v) if "r_v" in effect.param_names else effect.set(ebv=1.0)
-    ok = (wave >= effect.minwave()) & (wave <= effect.maxwave())
-    out = np.full(wave.shape, np.nan)
-    out[ok] = -2.5 * np.log10(effect.propagate(wave[ok], np.ones(np.count_nonzero(ok))))
-    return out
-
-
-@dataclass(frozen=True)
-class SNIaModel:
-    """The SN Ia model shared by a population: sncosmo ``source``, the rest-frame ``band`` and
-    ``magsys`` of the peak magnitude, the SALT standardisation ``alpha``, ``beta``, the
-    ``cosmology`` (astropy name) and R_V of the Milky-Way (``mw_rv``, F99) and host (``host_rv``,
-    CCM89) dust laws."""
-    source: str = "hsiao-subsampled"
-    band: str = "bessellb"
-    magsys: str = "ab"
-    alpha: float = 0.14
-    beta: float = 3.1
-    cosmology: str = "Planck18"
-    mw_rv: float = 3.1
-    host_rv: float = 3.1
-
-
-def snia_fluxes(lbda, redshift, phase, peak_absmag, source="hsiao-subsampled", band="bessellb", magsys="ab",
-                x1=None, c=None, mwebv=None, hostebv=None, **model):
-    """Observer-frame SN Ia F_λ [erg/s/cm²/Å] (N, k) on ``lbda`` [Å]; NaN outside the model.
-
-    redshift, phase (rest-frame days), peak_absmag: (N,) arrays; x1, c for SALT sources;
-    mwebv / hostebv: E(B−V) of the Milky-Way (F99, observer frame) and host (CCM89, rest
-    frame) dust; ``source``, ``band``, ``magsys`` and ``model`` (alpha, beta, cosmology, mw_rv,
-    host_rv): the fields of :class:`SNIaModel`.  Equal to sncosmo.Model(source, effects).flux to
-    rounding (tested)."""
-    unknown = sorted(set(model) - set(SNIaModel.__dataclass_fields__))
-    if unknown:
-        raise ParameterError(f"snia_fluxes: unknown keyword(s) {', '.join(map(repr, unknown))}; valid: "
-                             f"{', '.join(SNIaModel.__dataclass_fields__)}")
-    return model_fluxes(lbda, SNIaModel(source, band, magsys, **model), redshift, phase, peak_absmag,
-                        x1=x1, c=c, mwebv=mwebv, hostebv=hostebv)
-
-
-def _amplitudes(src, model, z, absmag, x1, c):
-    """Model amplitude per target (x0 for SALT sources): the peak magnitude, standardised
-    (M − α x1 + β c) for SALT, moved to redshift z by the distance modulus."""
-    mu = np.asarray(_cosmology(model.cosmology).distmod(z).value, dtype=float)
-    m0 = _rest_peak_mag(src, model.band, model.magsys)
-    standardised = absmag - model.alpha * x1 + model.beta * c if "x1" in src.param_names else absmag
-    return 10.0 ** (-0.4 * (standardised + mu - m0))
-
-
-def _per_target(value, n, default=0.0):
-    """(n,) float array of a per-target value (scalar broadcast; None → ``default``)."""
-    return np.broadcast_to(np.asarray(default if value is None else value, dtype=float), (n,))
-
-
-def _target_fluxes(src, lbda, z, phase, amplitude, salt_params, host_dust):
-    """F_λ of each target in the observer frame on ``lbda`` (NaN outside the model's wavelengths
-    or phases), before Milky-Way dust; ``host_dust`` = (E(B−V) per target or None, R_V)."""
-    x1, c = salt_params
-    hostebv, host_rv = host_dust
-    a = 1.0 / (1.0 + z)
-    out = np.full((z.size, lbda.size), np.nan)
-    salt = "x1" in src.param_names
-    params = src._parameters.copy()
-    try:
-        for i in range(z.size):
-            rest = lbda * a[i]
-            ok = (rest >= src.minwave()) & (rest <= src.maxwave())
-            if not (src.minphase() <= phase[i] <= src.maxphase()) or np.count_nonzero(ok) < 2:
-                continue
-            src._parameters[0] = 1.0
-            if salt:
-                src.set(x1=x1[i], c=c[i])
-            f = amplitude[i] * a[i] * src._flux(np.array([phase[i]]), rest[ok])[0]
-            if hostebv is not None and hostebv[i] != 0:
-                f = f * 10.0 ** (-0.4 * hostebv[i] * _dust_curve("ccm89", rest[ok], host_rv))
-            out[i, ok] = f
-    finally:
-        src._parameters[:] = params
-    return out
-
-
-def model_fluxes(lbda, model, redshift, phase, peak_absmag, x1=None, c=None, mwebv=None, hostebv=None):
-    """:func:`snia_fluxes` of an :class:`SNIaModel`: observer-frame F_λ [erg/s/cm²/Å] (N, k)."""
-    lbda = np.asarray(lbda, dtype=float)
-    z = np.atleast_1d(np.asarray(redshift, dtype=float))
-    n = z.size
-    if np.any(~(z > 0)):
-        raise SpectrumError("redshift: SN Ia redshifts must be > 0")
-    src = _source(model.source)
-    if "x1" not in src.param_names and (x1 is not None or c is not None):
-        raise ConfigError(f"x1 / c are SALT parameters: sncosmo source {model.source!r} has none")
-    x1, c = _per_target(x1, n), _per_target(c, n)
-    amplitude = _amplitudes(src, model, z, _per_target(peak_absmag, n), x1, c)
-    out = _target_fluxes(src, lbda, z, _per_target(phase, n), amplitude, (x1, c), (hostebv, model.host_rv))
-    if mwebv is not None and np.any(np.asarray(mwebv) != 0):
-        mw = _dust_curve("f99", lbda, model.mw_rv)[None, :] * _per_target(mwebv, n)[:, None]
-        out *= 10.0 ** (-0.4 * mw)
-    return out
-
-
-def _restframe_to_observed(lbda, rest_lbda, rest_flux, absmag, z, band, cosmo):
-    """F_λ on ``lbda`` of a rest-frame SED scaled to ``absmag`` (AB) in rest-frame ``band``
-    at redshift z: F_obs(λ) = F_10pc(λ/(1+z)) (10 pc / D_L)² / (1+z)."""
-    import sncosmo
-    m_in = sncosmo.Spectrum(rest_lbda, rest_flux).bandmag(band, "ab")
-    scale = 10 ** (-0.4 * (absmag - m_in))
-    dl_cm = cosmo.luminosity_distance(z).to_value("cm")
-    flux = np.interp(lbda / (1 + z), rest_lbda, rest_flux * scale, left=np.nan, right=np.nan)
-    return flux * (PC10_CM / dl_cm) ** 2 / (1 + z)
 
 
 # ---------------------------------------------------------------------------- hosts
@@ -309,7 +149,7 @@ class HostModel:
         from slicersim.sources.extended import Host, SersicProfile
         z = float(row["redshift"])
         lbda = np.arange(3000.0, 20001.0, 10.0)
-        flux = _restframe_to_observed(lbda, self.rest_lbda, self.rest_flux, float(row["host_absmag"]), z,
+        flux = restframe_to_observed(lbda, self.rest_lbda, self.rest_flux, float(row["host_absmag"]), z,
                                       "bessellr", cosmo)
         ok = np.isfinite(flux)
         profile = SersicProfile(float(row["host_sersic_index"]), float(row["host_r_eff"]),
@@ -361,7 +201,7 @@ class _SNParameters:
                 raise ConfigError(f"population.{key}: unknown sncosmo {key} {cfg[key]!r}") from None
         self.band, self.magsys = cfg["band"], cfg["magsys"]
         self.cosmology_name = cfg["cosmology"]
-        _cosmology(self.cosmology_name)
+        cosmology(self.cosmology_name)
         self.mw_dust = self._dust(cfg["mw_dust"], "population.mw_dust")
         self.host_dust = self._dust(cfg["host_dust"], "population.host_dust")
         self.hosts = None if cfg["hosts"] in (None, False) else HostModel(cfg["hosts"], base_dir)
@@ -379,7 +219,7 @@ class _SNParameters:
 
     @property
     def cosmology(self):
-        return _cosmology(self.cosmology_name)
+        return cosmology(self.cosmology_name)
 
     def _sn_spec(self):
         dust = {k: (None if d is None else {"ebv": d["ebv"].to_spec(), "r_v": d["r_v"]})

@@ -31,6 +31,7 @@ from slicersim.campaign.products import build_target, run_target, spectrum_grid,
 from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec, seed_was_drawn, with_seed
 from slicersim.errors import ConfigError, DatasetError
 from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, spec_digest
+from slicersim.io.row_blocks import show_progress
 from slicersim.validation import positive_int
 
 __all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions", "RunOptions", "TaskWindow",
@@ -95,7 +96,7 @@ def plan_campaign(spec):
     return cat, plan
 
 
-def _host_aware_readouts(spec, cat, plan, progress=True):
+def _host_aware_readouts(spec, cat, plan, progress=None):
     """Readouts with each target's host in the scene (its light adds photon noise the batch
     ETC, which knows point sources only, does not see): the single-target ETC per target,
     ~0.1 s each.  Updates ``cat`` and ``plan.totals`` in place."""
@@ -106,7 +107,8 @@ def _host_aware_readouts(spec, cat, plan, progress=True):
     rows = [i for i in range(len(cat)) if str(cat["status"][i]) != "failed"]
     status, error = [str(v) for v in cat["status"]], [str(v) for v in cat["error"]]   # no fixed-width truncation
     shape = None
-    for i in tqdm(rows, desc="ETC with hosts", unit="target", disable=not progress or len(rows) < 20):
+    bar = show_progress(progress) and len(rows) >= 20
+    for i in tqdm(rows, desc="ETC with hosts", unit="target", disable=not bar):
         row = _row_dict(cat[i])
         try:
             target, _ = build_target(spec, row, readout=False)
@@ -211,21 +213,22 @@ def _check_positive_int(value, name, lo=1):
 @dataclass(frozen=True)
 class RunOptions:
     """How a campaign runs (none of it changes the products): ``workers`` of the embedded cluster,
-    ``scheduler`` address or None, ``progress`` bar, ``max_bytes`` memory budget of one task's cube
-    chunks / ramp blocks [bytes], ``threads_per_worker`` (OpenCL CPU threads; None: CPUs / workers),
+    ``scheduler`` address or None, ``progress`` bar (True/False; :meth:`checked` resolves None),
+    ``max_bytes`` memory budget of one task's cube chunks / ramp blocks [bytes], ``threads_per_worker`` (OpenCL CPU threads; None: CPUs / workers),
     ``window`` tasks in flight (None: 2 per worker)."""
     workers: int
     scheduler: str | None = None
-    progress: bool = True
+    progress: bool = False
     max_bytes: int = 256 * 2**20
     threads_per_worker: int | None = None
     window: int | None = None
 
     @classmethod
-    def checked(cls, workers=None, scheduler=None, progress=True, max_bytes=256 * 2**20, threads_per_worker=None,
+    def checked(cls, workers=None, scheduler=None, progress=None, max_bytes=256 * 2**20, threads_per_worker=None,
                 window=None):
         """Options with every value checked (ParameterError naming the keyword)."""
-        return cls(check_workers(workers), scheduler, progress, positive_int("max_bytes", max_bytes, 2**20),
+        return cls(check_workers(workers), scheduler, show_progress(progress),
+                   positive_int("max_bytes", max_bytes, 2**20),
                    None if threads_per_worker is None else positive_int("threads_per_worker (--threads-per-worker)",
                                                                          threads_per_worker),
                    None if window is None else positive_int("window", window))
@@ -273,7 +276,7 @@ def _plan_and_connect(spec, scheduler):
     return catalog, plan, connection
 
 
-def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_failed=False, progress=True,
+def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_failed=False, progress=None,
                  max_bytes=256 * 2**20, threads_per_worker=None, window=None):
     """Run (or resume) a campaign into dataset directory ``out``; returns a summary dict.
 
@@ -283,6 +286,7 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     scheduler : address of an existing Dask scheduler ("tcp://host:port")
     force : start again in a directory made from another spec (its products are discarded)
     retry_failed : run the targets recorded as failed again
+    progress : None (a bar only when stderr is a terminal), True or False
     max_bytes : memory budget of one task's cube chunks / ramp blocks [bytes]
     threads_per_worker : OpenCL CPU threads per worker (default: CPUs / workers)
     window : tasks in flight at once (default 2 per worker): bounds the client's memory

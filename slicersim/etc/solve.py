@@ -9,7 +9,6 @@ kernel ``band_variance.cl`` or its NumPy twin), then the readout is chosen with
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -19,6 +18,7 @@ from slicersim.assembly import check_field
 from slicersim.backends.dispatch import DEFAULT_MAX_BYTES
 from slicersim.errors import ETCError, ParameterError, SpectrumError
 from slicersim.instrument.names import check_parameter_names
+from slicersim.io.row_blocks import show_progress
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
 from slicersim.simulation import FRAMES, resolve_frame
 from slicersim.snr.bands import check_band_in_grid, warn_partial_spectrum
@@ -257,7 +257,7 @@ def _chunks(ntarget, inst, opts):
     per_target_bytes = inst.sim.lbda.size * inst.psf.shape[1] * 8 * 3
     step = max(1, int(opts.max_bytes // per_target_bytes))
     starts = range(0, ntarget, step)
-    progress = sys.stderr.isatty() if opts.progress is None else opts.progress
+    progress = show_progress(opts.progress)
     if progress:
         from tqdm.auto import tqdm
         starts = tqdm(starts, total=len(starts), desc="ETC", unit="chunk")

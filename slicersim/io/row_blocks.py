@@ -23,6 +23,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from slicersim import validation
+
 __all__ = ["rows_per_block", "RowBlocks", "BufferRing", "pipelined", "BackgroundLanes", "show_progress"]
 
 
@@ -41,13 +43,14 @@ def rows_per_block(max_bytes, bytes_per_row, nrows, *, reserve=0, what="one dete
     return rows
 
 
-def show_progress(progress, nblocks, auto_min=4):
-    """Whether to show a progress bar: ``progress`` True/False as given; None: only when stderr is a
-    terminal and there are more than ``auto_min`` blocks."""
+def show_progress(progress, nblocks=None, auto_min=4):
+    """Whether to show a progress bar, the package's one meaning of ``progress``: True/False as
+    given; None (every default) only when stderr is a terminal (and, when ``nblocks`` is given, there
+    are more than ``auto_min`` steps).  Anything else: ParameterError naming progress."""
     if progress is None:
         isatty = getattr(sys.stderr, "isatty", None)
-        return bool(isatty and isatty()) and nblocks > auto_min
-    return bool(progress)
+        return bool(isatty and isatty()) and (nblocks is None or nblocks > auto_min)
+    return validation.flag("progress", progress)
 
 
 class RowBlocks:

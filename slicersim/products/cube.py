@@ -231,9 +231,11 @@ def _chunk_bins(nl, ny, nx, halo, max_bytes):
 
 
 def _progress_bar(progress, nchunks):
-    """tqdm bar of the chunks: ``progress=True`` shows it at once, None (default) only for a long
-    run (it appears after :data:`PROGRESS_DELAY_S` seconds; a short cube prints nothing), False never."""
-    if progress is False or nchunks < 2:
+    """tqdm bar of the chunks: ``progress=True`` shows it at once, None (default) only when stderr is
+    a terminal (:func:`~slicersim.io.row_blocks.show_progress`) and for a long run (it appears after
+    :data:`PROGRESS_DELAY_S` seconds; a short cube prints nothing), False never."""
+    from slicersim.io.row_blocks import show_progress
+    if not show_progress(progress) or nchunks < 2:
         return None
     from tqdm import tqdm
     return tqdm(total=nchunks, desc="cube", unit="chunk", leave=False,
@@ -425,8 +427,8 @@ def build_cube(sim, nmd=None, nramps=None, psf_profile="gaussian", seed=None, ma
     psf_profile : "gaussian" (erf-integrated, = Simulation.get_psf) or "airy" (slicersim.backends.psf)
     seed : None (no noisy cube), int in [0, 2⁶⁴) or numpy Generator
     max_bytes : working-memory budget of one λ chunk [bytes] (the three output cubes come on top)
-    progress : None (a tqdm bar for long runs only: shown once the cube has taken
-        :data:`PROGRESS_DELAY_S`), True (at once) or False
+    progress : None (a tqdm bar when stderr is a terminal, for long runs only: shown once the cube has
+        taken :data:`PROGRESS_DELAY_S`), True (at once) or False
     backend : "auto" | "opencl" | "numpy".  OpenCL with the Rauscher07 variance: LSF, QE, signal,
         variance and saturation in one fused kernel (:mod:`slicersim.backends.cube`), else its NumPy
         twin (any variance model); also the backend of the noise draw and the Airy/host hooks

@@ -84,7 +84,7 @@ def reduce_file(raw, out=None, *, spectra=False, overwrite=False, fit_options=No
         from slicersim.reduction.rectify import _default_mapper
         shape = tuple((mapper or _default_mapper()).detector_shape)
     check_ramp_file(raw, with_truth=bool(fit.get("with_truth")), gain=fit.get("gain"),
-                    ron=fit.get("ron", fit.get("read_noise")), detector_shape=shape)
+                    ron=fit.get("ron"), detector_shape=shape)
     if progress is not None:
         fit["progress"] = progress
     if not spectra:
@@ -173,14 +173,22 @@ def _source(dataset):
     return src, spec, digest, catalog
 
 
-#: fit_ramps keywords that do not change the rates (left out of a reduction's identity)
-_RUNTIME = {"progress", "memory_budget", "max_bytes", "backend", "work_group", "return_groupdq"}
+#: fit_ramps options that do not change the rates (left out of a reduction's identity)
+_RUNTIME = {"progress", "max_bytes", "backend", "work_group", "return_groupdq"}
+#: fit_ramps option → its key in a reduction's identity: the name the identities were first written
+#: with (``read_noise``, before the option became ``ron``), so that a reduction directory made by an
+#: earlier release keeps its identity digest and is resumed
+_IDENTITY_KEYS = {"ron": "read_noise"}
 
 
-def _defaults(func, keys=None):
-    import inspect
-    return {name: p.default for name, p in inspect.signature(func).parameters.items()
-            if p.default is not inspect.Parameter.empty and (keys is None or name in keys)}
+def _fit_identity(fit):
+    """The fit options of a reduction's identity: every rate-shaping option of
+    :data:`~slicersim.reduction.ramp_fit.FIT_DEFAULTS` (given value, else default), runtime options
+    left out, under their identity keys (:data:`_IDENTITY_KEYS`)."""
+    from slicersim.reduction.ramp_fit import FIT_DEFAULTS, FIT_RENAMED
+    given = {FIT_RENAMED.get(k, k): v for k, v in fit.items() if v is not None}
+    merged = {**FIT_DEFAULTS, **given}
+    return {_IDENTITY_KEYS.get(k, k): v for k, v in merged.items() if k not in _RUNTIME}
 
 
 def _identity(mode, opts, fit, source_digest, mapper):
@@ -189,11 +197,7 @@ def _identity(mode, opts, fit, source_digest, mapper):
     import hashlib
 
     from slicersim.reduction.options import ReduceOptions
-    from slicersim.reduction.ramp_fit import fit_ramps
-    fit = {**{k: v for k, v in _defaults(fit_ramps).items() if k not in _RUNTIME},
-           **{k: v for k, v in fit.items() if k not in _RUNTIME and v is not None}}
-    if "ron" in fit:                                 # one name in the identity whatever fit_ramps calls it
-        fit["read_noise"] = fit.pop("ron")
+    fit = _fit_identity(fit)
     if mode == "spectra":
         keys = {"field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
                 "background", "propagate", "dark", "weights", "config", "ipc"}
@@ -359,10 +363,8 @@ def _todo(state, sources, ids, retry_failed):
 
 def _progress(progress):
     """progress as True/False: None means a bar only when stderr is a terminal."""
-    import sys
-    if progress is None:
-        return bool(getattr(sys.stderr, "isatty", lambda: False)())
-    return validation.flag("progress", progress)
+    from slicersim.io.row_blocks import show_progress
+    return show_progress(progress)
 
 
 def _portable(mapper):

@@ -67,7 +67,7 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
 
     Returns {"kind", "shape" (nints, ngroups, ny, nx), "nmd", "tframe"}.
     """
-    from slicersim.reduction.ramp_fit import _readout, open_ramps, ramp_file_kind
+    from slicersim.reduction.ramp_sources import open_ramps, ramp_file_kind, ramp_readout
     validation.renamed_keyword(renamed, "read_noise", "ron", "check_ramp_file")
     for key in renamed:
         validation.choice("keyword", key, ("ron",), what="check_ramp_file keyword")
@@ -89,7 +89,7 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
         shape = tuple(int(s) for s in src.shape)
         if 0 in shape:
             raise RampFileError(f"{path}: SCI is empty {shape}")
-        nmd, tframe, _, _ = _readout(src.attrs, src.shape, gain, ron, path)
+        nmd, tframe, _, _ = ramp_readout(src.attrs, src.shape, gain, ron, path)
         if header is not None:
             _check_fits_duplicates(header, path)
         if _made_by_slicersim(src.attrs, header):
@@ -227,30 +227,11 @@ def _check_timing(attrs, shape, nmd, tframe, path):
 
 
 # ----------------------------------------------------------------------------- options
-#: fit_ramps keywords renamed by the package's keyword conventions (old name → new name); both are accepted
-_FIT_ALIASES = {"read_noise": "ron", "memory_budget": "max_bytes"}
-
-
 def _fit_ramps_keywords():
-    """The keyword names fit_ramps accepts (None when it takes arbitrary keywords: it checks them)."""
-    from slicersim.reduction.ramp_fit import fit_ramps
-    params = inspect.signature(fit_ramps).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        return None
-    return set(params) - {"source"}
-
-
-def _fit_ramps_names(opts, known):
-    """The renamed keywords (``_FIT_ALIASES``) under the name this fit_ramps takes: an old name is
-    deprecated where fit_ramps has the new one; a new name is passed under the old one where it has not."""
-    for old, new in _FIT_ALIASES.items():
-        if known is None or new in known:
-            validation.renamed_keyword(opts, old, new, "fit_options", stacklevel=5)
-        elif new in opts:
-            if old in opts:
-                raise ParameterError(f"fit_options: give {new!r} only ({old!r} is its deprecated name)")
-            opts[old] = opts.pop(new)
-    return opts
+    """The option names fit_ramps takes (:data:`~slicersim.reduction.ramp_fit.FIT_DEFAULTS`) and its
+    deprecated names (:data:`~slicersim.reduction.ramp_fit.FIT_RENAMED`, old → new)."""
+    from slicersim.reduction.ramp_fit import FIT_DEFAULTS, FIT_RENAMED
+    return set(FIT_DEFAULTS), dict(FIT_RENAMED)
 
 
 def check_fit_options(fit_options):
@@ -261,26 +242,24 @@ def check_fit_options(fit_options):
     if not isinstance(fit_options, dict):
         raise ParameterError(f"fit_options must be a dict of fit_ramps keyword arguments, got "
                              f"{validation.short_repr(fit_options)}")
-    known = _fit_ramps_keywords()
-    if known is not None:                     # either name of a renamed keyword is accepted
-        valid = known | {o for o, n in _FIT_ALIASES.items() if n in known} | {n for o, n in _FIT_ALIASES.items()
-                                                                               if o in known}
-        for key in fit_options:
-            validation.choice("fit_options key", key, sorted(valid), what="fit_ramps option")
+    known, renamed = _fit_ramps_keywords()
+    for key in fit_options:                   # a deprecated name is accepted (and moved below)
+        validation.choice("fit_options key", key, sorted(known | set(renamed)), what="fit_ramps option")
     opts = dict(fit_options)
+    for old, new in renamed.items():
+        validation.renamed_keyword(opts, old, new, "fit_options", stacklevel=4)
     if "weighting" in opts:
         validation.choice("weighting", opts["weighting"], WEIGHTINGS)
     if opts.get("jump_threshold") is not None:
         validation.number("jump_threshold [σ] (0: no jump detection)", opts["jump_threshold"], low=0.0)
     if opts.get("gain") is not None:
-        validation.number("gain [DN/e-]", opts["gain"], low=0.0, low_open=True)
-    for key in ("ron", "read_noise"):
-        if opts.get(key) is not None:
-            validation.number(f"{key} (read noise [e-])", opts[key], low=0.0)
+        opts["gain"] = validation.number("gain", opts["gain"], low=0.0, low_open=True, unit="adu / electron")
+    if opts.get("ron") is not None:
+        opts["ron"] = validation.number("ron (read noise)", opts["ron"], low=0.0, unit="electron")
     for key in ("with_truth", "return_groupdq"):
         if key in opts:
             validation.flag(key, opts[key])
-    return _fit_ramps_names(opts, known)
+    return opts
 
 
 _UNSET = object()       # dark not given (None given: subtract nothing)

@@ -39,13 +39,13 @@ from slicersim.backends.dispatch import BACKENDS, resolve_backend
 from slicersim.backends.ramp_fit import (DQ_DO_NOT_USE, DQ_SATURATED, WEIGHTINGS, fit_block_numpy,
                                          fit_block_opencl, fit_constants)
 from slicersim.errors import ParameterError, RampFileError
-from slicersim.io.atomic import AtomicH5File, is_temporary, one_line
+from slicersim.io.atomic import AtomicH5File
 from slicersim.io.row_blocks import BufferRing, RowBlocks, pipelined, rows_per_block
+from slicersim.reduction.ramp_sources import keyword_number, open_ramps, ramp_readout
 
-__all__ = ["fit_ramps", "FitOptions", "RateProduct", "DEFAULT_JUMP_THRESHOLD", "open_ramps"]
+__all__ = ["fit_ramps", "FitOptions", "FIT_DEFAULTS", "FIT_RENAMED", "RateProduct", "DEFAULT_JUMP_THRESHOLD"]
 
 DEFAULT_JUMP_THRESHOLD = 4.0          # σ (stcal's default rejection threshold)
-_HDF5_MAGIC, _FITS_MAGIC = b"\x89HDF\r\n\x1a\n", b"SIMPLE  ="
 _LINEARITY_TRUTH = "nonlinearity/inverse_coefficients"
 
 
@@ -90,283 +90,7 @@ class RateProduct:
         return os.path.abspath(os.fspath(path))
 
 
-# ----------------------------------------------------------------------------- sources
-class _Ramps:
-    """A raw ramp to read by row blocks: ``shape`` (nints, ngroups, ny, nx), ``attrs`` (keywords),
-    ``integer`` (uint16 SCI), ``read(y0, y1, sci, gdq)``, ``pixeldq(y0, y1)``, ``frame(i, g)``,
-    ``truth(name)`` (row-sliceable array or None), ``name``, ``kind``."""
-
-    kind, name = "arrays", "<arrays>"
-
-    def close(self):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-
-class _ArrayRamps(_Ramps):
-    def __init__(self, arrays):
-        if not isinstance(arrays, (tuple, list)) or len(arrays) != 4:
-            raise RampFileError("arrays must be (SCI, GROUPDQ or None, PIXELDQ or None, attrs), as read_ramps returns")
-        sci, gdq, pdq, attrs = arrays
-        sci = np.asarray(sci)
-        if sci.ndim != 4 or sci.dtype.kind not in "uif" or 0 in sci.shape:
-            raise RampFileError(f"SCI must be a non-empty 4-D numeric array (nints, ngroups, ny, nx), got "
-                                f"{sci.dtype} {sci.shape}")
-        self.integer = sci.dtype == np.uint16
-        self.sci = sci if self.integer else sci.astype(np.float64, copy=False)
-        self.shape = sci.shape
-        self.gdq = np.zeros(sci.shape, np.uint8) if gdq is None else np.asarray(gdq)
-        self.pdq = np.zeros(sci.shape[2:], np.uint32) if pdq is None else np.asarray(pdq)
-        if self.gdq.shape != sci.shape or self.pdq.shape != sci.shape[2:]:
-            raise RampFileError(f"GROUPDQ {self.gdq.shape} and PIXELDQ {self.pdq.shape} do not match SCI {sci.shape}")
-        if not isinstance(attrs, dict):
-            raise RampFileError("attrs must be a dict of readout keywords (NFRAMES, GROUPGAP, TFRAME, ...)")
-        self.attrs = dict(attrs)
-
-    def read(self, y0, y1, sci, gdq):
-        sci[...] = self.sci[:, :, y0:y1]
-        gdq[...] = self.gdq[:, :, y0:y1]
-
-    def pixeldq(self, y0, y1):
-        return self.pdq[y0:y1].astype(np.uint32)
-
-    def frame(self, i, g):
-        return self.sci[i, g]
-
-    def truth(self, name):
-        return None
-
-
-class _HDF5Ramps(_Ramps):
-    kind = "hdf5"
-
-    def __init__(self, path):
-        import h5py
-        try:
-            import hdf5plugin  # noqa: F401  (registers lz4/zstd/bitshuffle: the campaigns' ramp compressions)
-        except ImportError:
-            pass
-        self.name = path
-        try:
-            self.fh = h5py.File(path, "r")
-        except OSError as exc:
-            raise RampFileError(f"{path}: not a readable HDF5 ramp file ({one_line(exc)})") from exc
-        fh = self.fh
-        if not fh.attrs.get("COMPLETE", False):
-            self.close()
-            raise RampFileError(f"{path}: incomplete file (no completion marker)")
-        sci = fh.get("SCI")
-        if sci is None or sci.ndim != 4 or sci.dtype != np.uint16:
-            self.close()
-            raise RampFileError(f"{path}: not a slicersim ramp file (needs SCI uint16 (nints, ngroups, ny, nx))")
-        self.sci, self.gdq, self.shape, self.integer = sci, fh.get("GROUPDQ"), sci.shape, True
-        pdq = fh.get("PIXELDQ")
-        if (self.gdq is not None and self.gdq.shape != sci.shape) or (pdq is not None and pdq.shape != sci.shape[2:]):
-            self.close()
-            raise RampFileError(f"{path}: GROUPDQ/PIXELDQ shapes do not match SCI {sci.shape}")
-        self.pdq = pdq
-        self.attrs = {k: fh.attrs[k] for k in fh.attrs}
-        self.chunk_rows = sci.chunks[2] if sci.chunks else 1
-
-    def read(self, y0, y1, sci, gdq):
-        self.sci.read_direct(sci, np.s_[:, :, y0:y1, :])
-        if self.gdq is None:
-            gdq[...] = 0
-        else:
-            self.gdq.read_direct(gdq, np.s_[:, :, y0:y1, :])
-
-    def pixeldq(self, y0, y1):
-        nx = self.shape[3]
-        return np.zeros((y1 - y0, nx), np.uint32) if self.pdq is None else self.pdq[y0:y1].astype(np.uint32)
-
-    def frame(self, i, g):
-        return self.sci[i, g]
-
-    def truth(self, name):
-        return self.fh.get(f"truth/{name}")
-
-    def close(self):
-        self.fh.close()
-
-
-class _FitsImage:
-    """Row-sliceable view of a FITS image extension (memory-mapped, BZERO applied)."""
-
-    _TYPES = {8: ">u1", 16: ">i2", 32: ">i4", 64: ">i8", -32: ">f4", -64: ">f8"}
-
-    def __init__(self, path, hdul, index):
-        hdr = hdul[index].header
-        bitpix, naxis = hdr["BITPIX"], hdr["NAXIS"]
-        self.shape = tuple(int(hdr[f"NAXIS{naxis - a}"]) for a in range(naxis))
-        self.bzero, bscale = hdr.get("BZERO", 0), hdr.get("BSCALE", 1)
-        if bitpix not in self._TYPES or bscale != 1:
-            raise RampFileError(f"{path}: extension {hdr.get('EXTNAME')} has BITPIX {bitpix}, BSCALE {bscale}")
-        end = hdul.fileinfo(index)["datLoc"] + math.prod(self.shape) * abs(bitpix) // 8
-        size = os.path.getsize(path)
-        if end > size:
-            raise RampFileError(f"{path}: truncated file: extension {hdr.get('EXTNAME')} ends at byte {end}, the "
-                                f"file has {size}")
-        self.raw = np.memmap(path, dtype=self._TYPES[bitpix], mode="r", offset=hdul.fileinfo(index)["datLoc"],
-                             shape=self.shape)
-        unsigned = {(16, 32768): np.uint16, (32, 2**31): np.uint32, (8, 0): np.uint8}
-        self.dtype = unsigned.get((bitpix, self.bzero), np.dtype(self._TYPES[bitpix]).newbyteorder("="))
-        self.flip = bitpix in (16, 32) and self.dtype in (np.uint16, np.uint32)
-        self.ndim = naxis
-
-    def __getitem__(self, key):
-        raw = np.asarray(self.raw[key])
-        if self.flip:                               # v − BZERO stored in two's complement: flip the top bit
-            u = raw.view(raw.dtype.str.replace("i", "u"))
-            return (u ^ u.dtype.type(1 << (8 * u.dtype.itemsize - 1))).astype(self.dtype)
-        out = raw.astype(self.dtype)
-        return out + self.bzero if self.bzero else out
-
-
-class _FitsRamps(_Ramps):
-    kind = "jwst-uncal"
-
-    def __init__(self, path):
-        from astropy.io import fits
-        self.name = path
-        import warnings
-        try:
-            with warnings.catch_warnings():               # a truncated file: named below, in one line
-                warnings.filterwarnings("ignore", message="File may have been truncated")
-                self.hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
-        except OSError as exc:
-            raise RampFileError(f"{path}: not a readable FITS file ({one_line(exc)})") from exc
-        names = [h.name for h in self.hdul]
-        if "SCI" not in names:
-            self.close()
-            raise RampFileError(f"{path}: not a level-1b ramp file (no SCI extension)")
-        try:
-            self.images = {n: _FitsImage(path, self.hdul, names.index(n)) for n in names
-                           if n in ("SCI", "GROUPDQ", "PIXELDQ") or n.startswith("TRUTH_")
-                           and self.hdul[n].header.get("XTENSION") == "IMAGE"}
-        except BaseException:
-            self.hdul.close()
-            raise
-        sci = self.images["SCI"]
-        if sci.ndim != 4 or sci.dtype != np.uint16:
-            self.close()
-            raise RampFileError(f"{path}: SCI must be uint16 (nints, ngroups, ny, nx), got {sci.dtype} {sci.shape}")
-        self.shape, self.integer = sci.shape, True
-        gdq, pdq = self.images.get("GROUPDQ"), self.images.get("PIXELDQ")
-        if (gdq is not None and gdq.shape != sci.shape) or (pdq is not None and pdq.shape != sci.shape[2:]):
-            self.close()
-            raise RampFileError(f"{path}: GROUPDQ/PIXELDQ shapes do not match SCI {sci.shape}")
-        header = self.hdul[0].header
-        attrs = {k[len("SLICERSIM "):]: v for k, v in header.items() if k.startswith("SLICERSIM ")}
-        attrs.update({k: header[k] for k in ("NINTS", "NGROUPS", "NFRAMES", "GROUPGAP", "TFRAME", "TGROUP")
-                      if k in header})
-        self.attrs = attrs
-
-    def read(self, y0, y1, sci, gdq):
-        sci[...] = self.images["SCI"][:, :, y0:y1]
-        gdq[...] = self.images["GROUPDQ"][:, :, y0:y1] if "GROUPDQ" in self.images else 0
-
-    def pixeldq(self, y0, y1):
-        pdq = self.images.get("PIXELDQ")
-        return np.zeros((y1 - y0, self.shape[3]), np.uint32) if pdq is None else pdq[y0:y1].astype(np.uint32)
-
-    def frame(self, i, g):
-        return self.images["SCI"][i, g]
-
-    def truth(self, name):
-        from slicersim.io.uncal import truth_extname
-        return self.images.get(truth_extname(name))
-
-    def close(self):
-        self.images = {}
-        self.hdul.close()
-
-
-def ramp_file_kind(path):
-    """"hdf5", "fits" (by content) or None for a readable file; RampFileError for a writer's
-    temporary or an unreadable file."""
-    path = os.fspath(path)
-    if is_temporary(path):
-        raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
-    try:
-        with open(path, "rb") as fh:
-            magic = fh.read(9)
-    except OSError as exc:
-        raise RampFileError(f"{path}: cannot read ({one_line(exc)})") from exc
-    if magic.startswith(_HDF5_MAGIC):
-        return "hdf5"
-    if magic.startswith(_FITS_MAGIC):
-        return "fits"
-    return None
-
-
-def open_ramps(source):
-    """A raw ramp reader for a path (HDF5 or level-1b FITS, by content) or arrays
-    (SCI, GROUPDQ, PIXELDQ, attrs); RampFileError for anything else."""
-    if isinstance(source, (str, os.PathLike)):
-        path = os.fspath(source)
-        kind = ramp_file_kind(path)
-        if kind == "hdf5":
-            return _HDF5Ramps(path)
-        if kind == "fits":
-            return _FitsRamps(path)
-        raise RampFileError(f"{path}: neither an HDF5 ramp file nor a JWST level-1b FITS file")
-    return _ArrayRamps(source)
-
-
-# ----------------------------------------------------------------------------- readout
-def _number(attrs, key, where, kind=float):
-    val = attrs[key]
-    if isinstance(val, bytes):
-        val = val.decode()
-    try:
-        num = kind(val) if kind is float else int(val)
-        if kind is int and num != float(val):
-            raise ValueError  # internal: caught just below, becomes a RampFileError naming the keyword
-    except (TypeError, ValueError) as exc:
-        raise RampFileError(f"{where}: keyword {key} = {val!r} is not {'an integer' if kind is int else 'a number'}") from exc
-    return num
-
-
-def _readout(attrs, shape, gain, read_noise, where):
-    """Validated (n, m, d), tframe [s], gain [DN/e-], read noise [e-/frame] of a ramp's keywords."""
-    missing = [k for k in ("NFRAMES", "GROUPGAP", "TFRAME") if k not in attrs]
-    if gain is None and "GAIN" not in attrs:
-        missing.append("GAIN (or pass gain=)")
-    if read_noise is None and "READNOISE" not in attrs:
-        missing.append("READNOISE (or pass read_noise=)")
-    if missing:
-        raise RampFileError(f"{where}: readout keyword(s) missing: {', '.join(missing)}")
-    nints, n = shape[:2]
-    m, d = _number(attrs, "NFRAMES", where, int), _number(attrs, "GROUPGAP", where, int)
-    tframe = _number(attrs, "TFRAME", where)
-    if m < 1 or d < 0 or not (math.isfinite(tframe) and tframe > 0):
-        raise RampFileError(f"{where}: inconsistent readout keywords: NFRAMES = {m} (≥ 1), GROUPGAP = {d} (≥ 0), "
-                            f"TFRAME = {tframe} s (> 0)")
-    for key, val in (("NGROUPS", n), ("NINTS", nints)):
-        if key in attrs and _number(attrs, key, where, int) != val:
-            raise RampFileError(f"{where}: inconsistent readout keywords: {key} = {attrs[key]} but SCI has {val}")
-    if "TGROUP" in attrs and not math.isclose(_number(attrs, "TGROUP", where), (m + d) * tframe, rel_tol=1e-6):
-        raise RampFileError(f"{where}: inconsistent readout keywords: TGROUP = {attrs['TGROUP']} s but "
-                            f"(NFRAMES + GROUPGAP)·TFRAME = {(m + d) * tframe:g} s")
-    patt = attrs.get("READPATT", "")
-    patt = patt.decode() if isinstance(patt, bytes) else str(patt)
-    if patt.startswith("MACC(") and patt != f"MACC({n},{m},{d})":
-        raise RampFileError(f"{where}: inconsistent readout keywords: READPATT = {patt} but NGROUPS, NFRAMES, "
-                            f"GROUPGAP = {n}, {m}, {d}")
-    if n < 2:
-        raise RampFileError(f"{where}: {n} group(s) per integration: a slope needs at least 2")
-    gain = _number(attrs, "GAIN", where) if gain is None else float(gain)
-    read_noise = _number(attrs, "READNOISE", where) if read_noise is None else float(read_noise)
-    if not (math.isfinite(gain) and gain > 0) or not (math.isfinite(read_noise) and read_noise >= 0):
-        raise RampFileError(f"{where}: gain {gain} DN/e- must be > 0 and read noise {read_noise} e- ≥ 0")
-    return (n, m, d), tframe, gain, read_noise
-
-
+# ----------------------------------------------------------------------------- corrections
 def _effects(attrs):
     text = attrs.get("EFFECTS")
     if text is None:
@@ -377,7 +101,6 @@ def _effects(attrs):
         return {}
 
 
-# ----------------------------------------------------------------------------- corrections
 def _plan_corrections(src, refpix, linearity, superbias, where):
     """(refpix kwargs or None, linearity coefficients or None, superbias, labels) before any reading."""
     effects = _effects(src.attrs)
@@ -414,7 +137,7 @@ def _plan_corrections(src, refpix, linearity, superbias, where):
             bias = src.truth("bias")
             bias_label = "truth/bias"
             if bias is None and "BIAS" in src.attrs:
-                bias, bias_label = _number(src.attrs, "BIAS", where), "BIAS keyword"
+                bias, bias_label = keyword_number(src.attrs, "BIAS", where), "BIAS keyword"
             if bias is None and coeffs is not None:
                 raise RampFileError(f"{where}: the linearity correction needs the bias: no truth/bias, no BIAS "
                                     "keyword (pass superbias=)")
@@ -461,12 +184,15 @@ class FitOptions:
         a number or an (ny, nx) map
     jump_threshold : σ of the two-point-difference jump test (None or 0: no detection)
     weighting : "gls" (exact MACC covariance) or "ols" (unweighted; its variance is Rauscher07's)
-    gain [DN/e-], read_noise [e- per frame], saturation [DN]: override the file's GAIN, READNOISE,
-        SATURATION (default 65535 for integer data)
+    gain [DN/e-], ron [e- per frame] (read-out noise), saturation [DN]: override the file's GAIN,
+        READNOISE, SATURATION (default 65535 for integer data); an astropy Quantity is converted
     with_truth : also load ``truth/rate`` [e-/s] (RampFileError if the file has none)
     return_groupdq : keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx)
-    memory_budget : bytes for the row blocks in flight;  backend : "auto", "opencl", "numpy"
+    max_bytes : bytes for the row blocks in flight;  backend : "auto", "opencl", "numpy"
     progress : progress bar (None: when stderr is a terminal and there are more than 8 row blocks)
+
+    The keyword form also takes the deprecated names ``read_noise`` (→ ``ron``) and
+    ``memory_budget`` (→ ``max_bytes``) with a DeprecationWarning (:meth:`from_keywords`).
     work_group : OpenCL local size
     """
 
@@ -476,11 +202,11 @@ class FitOptions:
     jump_threshold: float | None = DEFAULT_JUMP_THRESHOLD
     weighting: str = "gls"
     gain: float | None = None
-    read_noise: float | None = None
+    ron: float | None = None
     saturation: float | None = None
     with_truth: bool = False
     return_groupdq: bool = False
-    memory_budget: int = 256 << 20
+    max_bytes: int = 256 << 20
     backend: str = "auto"
     progress: bool | None = None
     work_group: int | None = None
@@ -488,8 +214,8 @@ class FitOptions:
     def __post_init__(self):
         validation.choice("weighting", self.weighting, WEIGHTINGS)
         validation.choice("backend", self.backend, BACKENDS)
-        validation.positive_int("memory_budget", self.memory_budget)
-        for name in ("gain", "read_noise"):
+        validation.positive_int("max_bytes", self.max_bytes)
+        for name in ("gain", "ron"):
             if getattr(self, name) is not None:
                 low_open = name == "gain"
                 unit = "adu / electron" if name == "gain" else "electron"
@@ -499,6 +225,23 @@ class FitOptions:
                 isinstance(self.saturation, (int, float, np.integer, np.floating)) and self.saturation > 0)):
             raise ParameterError(f"saturation must be a number of DN > 0 (or None: the file's), got "
                                  f"{validation.short_repr(self.saturation)}")
+
+    @classmethod
+    def from_keywords(cls, where="fit_ramps", /, **kwargs):
+        """Options from keywords: each name checked (did-you-mean), the deprecated names
+        (:data:`FIT_RENAMED`) moved to their new ones with a DeprecationWarning."""
+        for old, new in FIT_RENAMED.items():
+            validation.renamed_keyword(kwargs, old, new, where, stacklevel=4)
+        for key in kwargs:
+            validation.choice("keyword", key, tuple(FIT_DEFAULTS), what=f"keyword of {where}")
+        return cls(**kwargs)
+
+
+#: every option of :func:`fit_ramps` and its default, as data (the reduction identity of a campaign
+#: reduction is built from it)
+FIT_DEFAULTS = {f.name: f.default for f in fields(FitOptions)}
+#: deprecated keyword names of :func:`fit_ramps` → their names now (accepted with a DeprecationWarning)
+FIT_RENAMED = {"read_noise": "ron", "memory_budget": "max_bytes"}
 
 
 def fit_ramps(source, options=None, **kwargs):
@@ -513,10 +256,7 @@ def fit_ramps(source, options=None, **kwargs):
     Returns a :class:`RateProduct`.  Everything is checked before data are read.
     """
     if options is None:
-        valid = [f.name for f in fields(FitOptions)]
-        for key in kwargs:
-            validation.choice("keyword", key, valid, what="keyword of fit_ramps")
-        options = FitOptions(**kwargs)
+        options = FitOptions.from_keywords(**kwargs)
     elif kwargs or not isinstance(options, FitOptions):
         raise ParameterError("fit_ramps: give options=FitOptions(...) or keywords, not both "
                              f"(got {validation.short_repr(options)} and {sorted(kwargs)})")
@@ -528,7 +268,7 @@ def fit_ramps(source, options=None, **kwargs):
                "dq": np.empty(src.shape[2:], np.uint32), "njumps": np.empty(src.shape[2:], np.int32)}
         groupdq = np.empty(src.shape, np.uint8) if options.return_groupdq else None
         _fit_blocks(src, setup, options, backend, out, groupdq)
-        attrs = _attrs(src, setup.nmd, setup.tframe, setup.gain, setup.read_noise, setup.saturation,
+        attrs = _attrs(src, setup.nmd, setup.tframe, setup.gain, setup.ron, setup.saturation,
                        options.jump_threshold, options.weighting, backend, setup.labels)
     return RateProduct(**out, attrs=attrs, groupdq=groupdq, truth_rate=setup.truth_rate)
 
@@ -546,15 +286,15 @@ class _FitSetup:
     def __init__(self, src, options):
         where = src.name
         nints, n, ny, nx = src.shape
-        self.nmd, self.tframe, self.gain, self.read_noise = _readout(src.attrs, src.shape, options.gain,
-                                                                     options.read_noise, where)
+        self.nmd, self.tframe, self.gain, self.ron = ramp_readout(src.attrs, src.shape, options.gain, options.ron,
+                                                              where)
         self.saturation = options.saturation
         if self.saturation is None:
-            self.saturation = _number(src.attrs, "SATURATION", where) if "SATURATION" in src.attrs else (
+            self.saturation = keyword_number(src.attrs, "SATURATION", where) if "SATURATION" in src.attrs else (
                 65535.0 if src.integer else math.inf)
             if not self.saturation > 0:
                 raise RampFileError(f"{where}: keyword SATURATION = {self.saturation} DN must be > 0")
-        self.consts = fit_constants(self.nmd, self.tframe, self.gain, self.read_noise,
+        self.consts = fit_constants(self.nmd, self.tframe, self.gain, self.ron,
                                     1.0 / 12.0 if src.integer else 0.0, self.saturation, options.jump_threshold,
                                     options.weighting)
         refpix_kw, self.coeffs, self.bias, self.labels = _plan_corrections(src, options.refpix, options.linearity,
@@ -569,8 +309,8 @@ class _FitSetup:
         # bytes per pixel-group: SCI + GROUPDQ on the host and the device (+ GROUPDQ out, + float DN, its
         # temporary and device copy with corrections); per pixel: the outputs of a block, twice
         per_row = nx * (nints * n * (6 + (2 if options.return_groupdq else 0) + (24 if self.corrected else 0)) + 96)
-        self.rows = rows_per_block(options.memory_budget, per_row, ny, chunk=getattr(src, "chunk_rows", 1),
-                                   what="one detector row", name="memory_budget")
+        self.rows = rows_per_block(options.max_bytes, per_row, ny, chunk=getattr(src, "chunk_rows", 1),
+                                   what="one detector row", name="max_bytes")
         self.terms = _refpix_terms(src, self.bias, refpix_kw) if refpix_kw is not None else None
 
 
@@ -631,16 +371,16 @@ def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):
     return dn, replace(consts, satlim=math.inf) if raw.dtype == np.uint16 else consts
 
 
-def _attrs(src, nmd, tframe, gain, read_noise, saturation, jump_threshold, weighting, backend, labels):
+def _attrs(src, nmd, tframe, gain, ron, saturation, jump_threshold, weighting, backend, labels):
     from slicersim.versioning import __version__
     n, m, d = nmd
     attrs = {"BUNIT": "e-/s", "VARUNIT": "e-2/s2", "SOURCE": src.name, "FORMAT": src.kind,
              "NINTS": src.shape[0], "NGROUPS": n, "NFRAMES": m, "GROUPGAP": d, "TFRAME": tframe,
-             "TGROUP": (m + d) * tframe, "GAIN": gain, "READNOISE": read_noise, "SATURATION": saturation,
+             "TGROUP": (m + d) * tframe, "GAIN": gain, "READNOISE": ron, "SATURATION": saturation,
              "WEIGHTING": weighting, "JUMP_THRESHOLD": float(jump_threshold or 0.0), "BACKEND": backend,
              "SOFTWARE": "slicersim", "VERSION": __version__, **labels}
     keys = ("DARK", "THERMAL_DARK", "ROIC_GLOW")
     if all(k in src.attrs for k in keys):
-        attrs["DARK_RATE"] = (_number(src.attrs, "DARK", src.name) + _number(src.attrs, "THERMAL_DARK", src.name)
-                              + _number(src.attrs, "ROIC_GLOW", src.name) / tframe)
+        attrs["DARK_RATE"] = (keyword_number(src.attrs, "DARK", src.name) + keyword_number(src.attrs, "THERMAL_DARK", src.name)
+                              + keyword_number(src.attrs, "ROIC_GLOW", src.name) / tframe)
     return attrs
