@@ -30,6 +30,11 @@ ENTRY_POINTS = [
      [("autofunction", "slicersim.reduction.pipeline.reduce_exposure"),
       ("autofunction", "slicersim.reduction.ramp_fit.fit_ramps"),
       ("autoclass", "slicersim.reduction.ramp_fit.RateProduct")]),
+    ("plotting", "Figures", "The figures of the `show_*` methods and of the demo, from arrays and models "
+     "(matplotlib; colour bars and axes carry units).",
+     [("automodule", "slicersim.plotting.figures"),
+      ("automodule", "slicersim.plotting.spectra"),
+      ("automodule", "slicersim.plotting.images")]),
     ("validation", "Validation", "`slicersim.validation` is the one module that checks user input: "
      "every checker raises a `slicersim.errors.SlicersimError` subclass whose message names the parameter.",
      [("automodule", "slicersim.validation")]),

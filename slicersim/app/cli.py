@@ -317,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("demo", help="run the demonstration simulation",
-                       description="Demonstration: ETC of a z = 1 SN Ia, figures, a short raw ramp.", **fmt)
+                       description="Demonstration: ETC of a z = 1 SN Ia, figures, a raw ramp of the ETC's readout around the source.", **fmt)
     p.add_argument("--outdir", default="demo_output", metavar="DIR", help="output directory")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=cmd_demo)
