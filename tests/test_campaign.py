@@ -520,3 +520,31 @@ def test_failed_new_campaign_leaves_no_dataset_folder(spec_path, tmp_path, monke
     with pytest.raises(DatasetError, match=r"cannot write .*new/spec\.json: \[Errno 28\]"):
         runner.run_campaign(spec_path, out, workers=1, progress=False)
     assert not out.exists()
+
+
+def test_tls_scheduler_is_reached_with_the_tls_files(tmp_path):
+    """`--scheduler tls://...` with --tls-ca-file/--tls-cert/--tls-key: the Client gets them as a Security;
+    without them the connection is refused, with a hint naming the flags."""
+    import operator
+
+    from distributed import LocalCluster, Security
+
+    from slicersim.campaign.runner import dask_client, tls_security
+    creds = Security.temporary()
+    files = {}
+    for name, pem in (("ca", creds.tls_ca_file), ("cert", creds.tls_client_cert), ("key", creds.tls_client_key)):
+        files[name] = tmp_path / f"{name}.pem"
+        files[name].write_text(pem)
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, host="127.0.0.1", protocol="tls",
+                           security=creds, dashboard_address=None)
+    try:
+        client, none = dask_client(1, cluster.scheduler_address, 1,
+                                   tls_security(files["ca"], files["cert"], files["key"]))
+        try:
+            assert none is None and client.submit(operator.add, 1, 2).result(timeout=60) == 3
+        finally:
+            client.close()
+        with pytest.raises(DatasetError, match="cannot connect to the Dask scheduler .*--tls-ca-file"):
+            dask_client(1, cluster.scheduler_address, 1)
+    finally:
+        cluster.close()

@@ -132,7 +132,7 @@ def _write_image(path, target, row, seed):
 def _write_ramps(path, target, row, seed, spec, memory):
     comp = spec.products["compression"]
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
-                     overwrite=True, memory_budget=memory, progress=False)
+                     overwrite=True, max_bytes=memory, progress=False)
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None):

@@ -140,7 +140,9 @@ class Dataset:
     def check_folders(self, make=False):
         """Refuse (:class:`DatasetError` naming it) a ``products/``, ``records/`` or
         ``products/tNNNNNNN`` that is a symbolic link or not a folder; ``make`` creates the two
-        top folders when missing."""
+        top folders (and the dataset's own) when missing."""
+        if make:
+            os.makedirs(self.path, exist_ok=True)
         real_dir(self.file(PRODUCTS), make=make)
         self.records_dir(make=make)
         for name in sorted(os.listdir(self.file(PRODUCTS))):
