@@ -25,9 +25,11 @@ def cmd_survey_plan(args) -> int:
                                                                        "--figure")):
         if not path:
             continue
+        if os.path.isdir(path) or path.endswith(os.sep):
+            check_output_path(path, args.overwrite, ParameterError, flag)    # refused: a directory
         if not path.endswith(exts):
             raise ParameterError(f"{flag} must end with {' or '.join(exts)}, got {path}")
-        check_output_path(path, args.overwrite, ParameterError, flag)    # a directory, FIFO, device, existing file
+        check_output_path(path, args.overwrite, ParameterError, flag)        # a FIFO, device, existing file
     if args.n < 1:
         raise ParameterError(f"--n must be ≥ 1 (an empty population has nothing to plan), got {args.n}")
     from slicersim.backends.precision import resolve_precision

@@ -80,7 +80,7 @@ def check_output_path(path, overwrite=False, error_class=DatasetError, name=""):
         raise error_class(f"{_who(name)}output file exists: {full} (pass {hint} to replace it)")
     directory = os.path.dirname(full)
     if not os.path.isdir(directory):
-        raise error_class(f"{_who(name)}output directory does not exist: {directory}")
+        raise error_class(f"{_who(name)}output directory does not exist (or is not writable): {directory}")
     if not os.access(directory, os.W_OK):
         raise error_class(f"{_who(name)}output directory is not writable: {directory}")
     return full
