@@ -420,7 +420,6 @@ def _http_sockets(server):
     return [s.getsockname() for s in server._sockets.values()]
 
 
-@pytest.mark.slow
 def test_embedded_cluster_uses_tls_refuses_other_processes_and_has_no_dashboard(tmp_path):
     """Adversarial finding: the embedded cluster listened on TCP without authentication (a task submitted
     from another process ran as the campaign's user) and served its dashboard on :8787.  Now: TLS with

@@ -356,3 +356,19 @@ def test_progress_follows_the_keyword_convention(monkeypatch):
     assert _progress(None) is False and _progress(True) is True and _progress(False) is False
     with pytest.raises(ParameterError, match="progress must be True or False"):
         _progress("yes")
+
+
+def test_symlinked_folders_of_a_reduction_directory_are_refused_and_untouched(reduced, campaign, tmp_path):
+    """A reduction directory's records/ or products/tNNNNNNN as a link is refused (the link named) before any
+    target runs; the link's target is untouched."""
+    from slicersim.reduction.campaign import reduce_dataset
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "rates.h5").write_bytes(b"not yours")
+    for sub in ("records", "products/t0000000"):
+        out = _linked_copy(reduced, tmp_path / sub.replace("/", "-"))
+        shutil.rmtree(out / sub)
+        (out / sub).symlink_to(outside)
+        with pytest.raises(DatasetError, match=f"{sub} is a symbolic link"):
+            reduce_dataset(campaign, out, workers=1, progress=False)
+        assert os.listdir(outside) == ["rates.h5"] and (outside / "rates.h5").read_bytes() == b"not yours"
