@@ -125,15 +125,16 @@ def cmd_campaign_status(args) -> int:
 
 
 def add_dask_arguments(parser, scheduler=True):
-    """``--dashboard`` (and with ``scheduler``: ``--scheduler`` and its TLS files) on ``parser``."""
+    """``--dashboard``, ``--tls-ca-file``, ``--tls-cert``, ``--tls-key`` (and, with ``scheduler``,
+    ``--scheduler``) on ``parser`` (a parser or an argument group); :func:`dask_keywords` reads them."""
     parser.add_argument("--dashboard", action="store_true",
                         help="serve the embedded cluster's Dask dashboard on 127.0.0.1:8787 (this machine only; "
                              "default: off)")
-    if not scheduler:
-        return
-    parser.add_argument("--scheduler", metavar="ADDRESS",
-                        help="existing Dask scheduler, e.g. tls://host:8786 (with --tls-* files) or tcp://host:8786 "
-                             "(unencrypted, anyone who reaches it runs code as its workers: trusted networks only)")
+    if scheduler:
+        parser.add_argument("--scheduler", metavar="ADDRESS",
+                            help="existing Dask scheduler, e.g. tls://host:8786 (with --tls-* files) or "
+                                 "tcp://host:8786 (unencrypted: anyone who reaches it runs code as its workers; "
+                                 "trusted networks only)")
     parser.add_argument("--tls-ca-file", metavar="CA.pem", help="CA certificate of the --scheduler's TLS (or Dask's "
                                                                 "distributed.comm.tls configuration)")
     parser.add_argument("--tls-cert", metavar="CERT.pem", help="this client's TLS certificate for --scheduler")
