@@ -420,3 +420,151 @@ def test_campaign_run_progress_flag(monkeypatch, tmp_path, no_progress, expected
                               threads_per_worker=None, memory_per_task=256.0)
     assert campaign_cli.cmd_campaign_run(args) == 0
     assert seen["progress"] is expected
+
+
+INTRUDER = """\
+import sys
+from distributed import Client, Security
+kw = {"security": Security.temporary()} if sys.argv[2] == "own-credentials" else {}
+try:
+    client = Client(sys.argv[1], timeout="3s", **kw)
+    client.submit(open, sys.argv[3], "w").result(timeout=10)     # would write a file as the campaign's user
+except Exception as exc:
+    print("refused", type(exc).__name__)
+    sys.exit(0)
+print("ACCEPTED")
+sys.exit(1)
+"""
+
+
+def _http_sockets(server):
+    return [s.getsockname() for s in server._sockets.values()]
+
+
+def test_embedded_cluster_uses_tls_refuses_other_processes_and_has_no_dashboard(tmp_path):
+    """Adversarial finding: the embedded cluster listened on TCP without authentication (a task submitted
+    from another process ran as the campaign's user) and served its dashboard on :8787.  Now: TLS with
+    temporary credentials on 127.0.0.1; a client without them (plain TCP, or TLS with its own credentials)
+    is refused; the HTTP server serves nothing unless the dashboard is asked for, on 127.0.0.1."""
+    import operator
+    import urllib.error
+    import urllib.request
+
+    from slicersim.campaign.runner import dask_client
+    client, cluster = dask_client(1, None, 1)
+    try:
+        address = cluster.scheduler_address
+        assert address.startswith("tls://127.0.0.1:")
+        assert all(w.startswith("tls://127.0.0.1:") for w in cluster.scheduler.workers)
+        assert client.submit(operator.add, 40, 2).result(timeout=60) == 42       # our own client works
+        script = tmp_path / "intruder.py"
+        script.write_text(INTRUDER)
+        for target, how in ((address, "no-credentials"), (address.replace("tls://", "tcp://"), "plain-tcp"),
+                            (address, "own-credentials")):
+            victim = tmp_path / f"written-by-{how}"
+            t0 = time.monotonic()
+            proc = subprocess.run([sys.executable, str(script), target, how, str(victim)], capture_output=True,
+                                  text=True, timeout=120)
+            assert proc.returncode == 0 and "refused" in proc.stdout, (how, proc.stdout, proc.stderr[-2000:])
+            assert time.monotonic() - t0 < 60 and not victim.exists()
+        socks = _http_sockets(cluster.scheduler.http_server)
+        assert socks and all(host == "127.0.0.1" and port != 8787 for host, port in socks)
+        for path in ("/status", "/health", "/info/main/workers.html", "/json/identity.json"):
+            with pytest.raises(urllib.error.HTTPError, match="404"):
+                urllib.request.urlopen(f"http://127.0.0.1:{socks[0][1]}{path}", timeout=10)
+    finally:
+        client.close()
+        cluster.close()
+    client, cluster = dask_client(1, None, 1, dashboard="127.0.0.1:0")          # asked for: this machine only
+    try:
+        socks = _http_sockets(cluster.scheduler.http_server)
+        assert socks and all(host == "127.0.0.1" for host, _ in socks)
+        assert urllib.request.urlopen(f"http://127.0.0.1:{socks[0][1]}/health", timeout=10).status == 200
+    finally:
+        client.close()
+        cluster.close()
+
+
+def test_dashboard_and_tls_flags_are_checked(tmp_path):
+    from slicersim.campaign.runner import _dashboard_address, tls_security
+    from slicersim.errors import ParameterError
+    assert _dashboard_address(False) is None and _dashboard_address(True) == "127.0.0.1:8787"
+    assert _dashboard_address("localhost:9000") == "127.0.0.1:9000"
+    with pytest.raises(ParameterError, match="dashboard must be True or an address 127.0.0.1:PORT"):
+        _dashboard_address("0.0.0.0:8787")
+    assert tls_security() is None
+    with pytest.raises(ParameterError, match="--tls-ca-file"):
+        tls_security(tmp_path / "missing-ca.pem", tmp_path / "missing-cert.pem")
+    ca = tmp_path / "ca.pem"
+    ca.write_text("x")
+    with pytest.raises(ParameterError, match="--tls-ca-file and --tls-cert are both needed"):
+        tls_security(ca)
+    proc = _cli("campaign", "run", "x.toml", "--out", str(tmp_path / "d"), "--tls-ca-file", str(ca))
+    assert proc.returncode == 2 and "apply to --scheduler only" in proc.stderr, proc.stderr
+
+
+def test_symlinked_target_folder_refuses_the_campaign_and_its_target_is_untouched(reference, spec_path, tmp_path):
+    """Adversarial finding: products/tNNNNNNN as a link → the rerun deleted the link target's files and wrote
+    there.  Now the campaign is refused (the link named) before any target runs; the target is untouched."""
+    from slicersim.campaign.runner import run_campaign
+    d = tmp_path / "linked"
+    shutil.copytree(reference, d)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "spectrum.h5").write_bytes(b"not yours")
+    (outside / "precious.txt").write_bytes(b"keep")
+    shutil.rmtree(d / "products" / "t0000002")
+    (d / "products" / "t0000002").symlink_to(outside)
+    (d / "records" / "t0000002.json").unlink()
+    with pytest.raises(DatasetError, match="t0000002 is a symbolic link"):
+        run_campaign(spec_path, d, workers=1, progress=False)
+    assert sorted(os.listdir(outside)) == ["precious.txt", "spectrum.h5"]
+    assert (outside / "spectrum.h5").read_bytes() == b"not yours"
+
+
+def test_failed_new_campaign_leaves_no_dataset_folder(spec_path, tmp_path, monkeypatch):
+    """Adversarial finding: a full disk gave `[Errno 28]` without the path and left an empty dataset folder."""
+    import errno
+
+    from slicersim.campaign import runner
+    from slicersim.io import dataset as dataset_module
+    real = dataset_module.atomic_bytes
+
+    def full(path, *args, **kwargs):
+        if str(path).endswith("spec.json"):
+            raise DatasetError(f"cannot write {path}: {dataset_module.one_line(OSError(errno.ENOSPC, 'No space'))}")
+        return real(path, *args, **kwargs)
+    monkeypatch.setattr(dataset_module, "atomic_bytes", full)
+    monkeypatch.setattr(runner, "_plan_and_connect", lambda spec, run: (None, None, None))     # no planning
+    out = tmp_path / "new"
+    with pytest.raises(DatasetError, match=r"cannot write .*new/spec\.json: \[Errno 28\]"):
+        runner.run_campaign(spec_path, out, workers=1, progress=False)
+    assert not out.exists()
+
+
+def test_tls_scheduler_is_reached_with_the_tls_files(tmp_path):
+    """`--scheduler tls://...` with --tls-ca-file/--tls-cert/--tls-key: the Client gets them as a Security;
+    without them the connection is refused, with a hint naming the flags."""
+    import operator
+
+    from distributed import LocalCluster, Security
+
+    from slicersim.campaign.runner import dask_client, tls_security
+    creds = Security.temporary()
+    files = {}
+    for name, pem in (("ca", creds.tls_ca_file), ("cert", creds.tls_client_cert), ("key", creds.tls_client_key)):
+        files[name] = tmp_path / f"{name}.pem"
+        files[name].write_text(pem)
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, host="127.0.0.1", protocol="tls",
+                           security=creds, dashboard_address=None)
+    try:
+        client, none = dask_client(1, cluster.scheduler_address, 1,
+                                   tls_security(files["ca"], files["cert"], files["key"]))
+        try:
+            assert none is None and client.submit(operator.add, 1, 2).result(timeout=60) == 3
+        finally:
+            client.close()
+        with pytest.raises(DatasetError, match="cannot connect to the Dask scheduler .*--tls-ca-file"):
+            dask_client(1, cluster.scheduler_address, 1)
+    finally:
+        cluster.close()

@@ -217,3 +217,14 @@ def test_population_too_large_for_memory_is_refused_before_drawing():
     with pytest.raises(ParameterError, match="split the population"):
         check_client_memory(10_000_000, 1700)
     check_client_memory(8000, 1700)
+
+
+def test_survey_plan_out_fifo_is_refused_even_with_overwrite(tmp_path):
+    """--overwrite replaces only regular files: a FIFO (or a link to one) given as --out is refused, untouched."""
+    import stat
+    os.mkfifo(tmp_path / "p.ecsv")
+    (tmp_path / "f.png").symlink_to(tmp_path / "p.ecsv")
+    for args, words in ((["--out", "p.ecsv"], ("--out:", "p.ecsv is a FIFO")),
+                        (["--figure", "f.png"], ("--figure:", "FIFO", "symbolic link"))):
+        _one_line_error(_cli("survey", "plan", "--n", "3", "--overwrite", *args, cwd=tmp_path), *words)
+    assert stat.S_ISFIFO(os.lstat(tmp_path / "p.ecsv").st_mode) and sorted(os.listdir(tmp_path)) == ["f.png", "p.ecsv"]

@@ -316,3 +316,17 @@ def test_an_internal_error_is_exit_3_with_traceback_and_please_report(capsys, mo
     last = err.strip().splitlines()[-1]
     assert last.startswith(f"slicersim: internal error ({type(exc).__name__})") and "please report" in last
     assert "slicersim: error:" not in err
+
+
+def test_ramp_out_fifo_link_and_new_directory_are_refused(tmp_path, rate_file):
+    """`--overwrite` replaces only regular files (a FIFO, a link to one: refused, untouched); `--out newdir/`
+    is a directory, never written as a file named newdir."""
+    import stat
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    (tmp_path / "link.h5").symlink_to(fifo)
+    for out, message in ((fifo, "FIFO"), (tmp_path / "link.h5", "FIFO .*symbolic link"),
+                         (f"{tmp_path / 'newdir'}/", "names a directory")):
+        line = one_error_line(run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", out, "--overwrite"))
+        assert "--out" in line and re.search(message, line), line
+    assert sorted(os.listdir(tmp_path)) == ["link.h5", "pipe"] and stat.S_ISFIFO(os.lstat(fifo).st_mode)

@@ -1,5 +1,8 @@
 """`slicersim reduce`: raw ramp file → rates file, and one-line errors that write nothing."""
 import json
+import os
+import re
+import stat
 
 import h5py
 import numpy as np
@@ -413,3 +416,19 @@ def test_a_reduction_error_reaching_the_cli_is_reworded_with_its_class(tmp_path)
     with pytest.raises(KeyError):                                     # not ours: untouched
         with _FlagNames():
             raise KeyError("position=")
+
+
+def test_out_fifo_link_and_directory_are_refused_and_untouched(raw, tmp_path, capsys):
+    """Adversarial findings: `--overwrite` replaced a FIFO (and, as root, /dev/null); `--out newdir/` wrote a
+    file named newdir.  A link to a FIFO is refused too; nothing is written."""
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    link = tmp_path / "link.h5"
+    link.symlink_to(fifo)
+    for out, message in ((fifo, "FIFO"), (link, "FIFO .* symbolic link"), (f"{tmp_path / 'newdir'}/", "names a directory"),
+                         (tmp_path, "is a directory")):
+        assert main(["reduce", str(raw[0]), "--out", str(out), "--overwrite", "--quiet"]) == 2
+        line = _one_line_error(capsys)
+        assert "--out" in line and re.search(message, line), line
+    assert sorted(os.listdir(tmp_path)) == ["link.h5", "pipe"]
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and os.path.islink(link)

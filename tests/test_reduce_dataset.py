@@ -392,3 +392,19 @@ def test_identity_of_an_earlier_release_is_resumed(tmp_path):
     other = _identity("rates", {}, check_fit_options({"ron": 4.0}), "0" * 64, None)
     with pytest.raises(DatasetError, match="fit_options.read_noise"):
         _check_identity(ds, other, force=False)
+
+
+def test_symlinked_folders_of_a_reduction_directory_are_refused_and_untouched(reduced, campaign, tmp_path):
+    """A reduction directory's records/ or products/tNNNNNNN as a link is refused (the link named) before any
+    target runs; the link's target is untouched."""
+    from slicersim.reduction.campaign import reduce_dataset
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "rates.h5").write_bytes(b"not yours")
+    for sub in ("records", "products/t0000000"):
+        out = _linked_copy(reduced, tmp_path / sub.replace("/", "-"))
+        shutil.rmtree(out / sub)
+        (out / sub).symlink_to(outside)
+        with pytest.raises(DatasetError, match=f"{sub} is a symbolic link"):
+            reduce_dataset(campaign, out, workers=1, progress=False)
+        assert os.listdir(outside) == ["rates.h5"] and (outside / "rates.h5").read_bytes() == b"not yours"

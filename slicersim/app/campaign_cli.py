@@ -5,7 +5,7 @@ import os
 
 import numpy as np
 
-__all__ = ["add_parsers"]
+__all__ = ["add_parsers", "add_dask_arguments", "dask_keywords"]
 
 YEAR_S = 365.25 * 86400.0
 
@@ -18,21 +18,18 @@ def cmd_survey_plan(args) -> int:
     from slicersim.campaign.plan import plan_survey
     from slicersim.campaign.population import SNIaPopulation
     from slicersim.campaign.products import spectrum_grid
-    from slicersim.errors import ParameterError
     from slicersim.campaign.plan import check_client_memory
+    from slicersim.errors import ParameterError
+    from slicersim.io.atomic import check_output_path
     for path, exts, flag in ((args.out, (".ecsv", ".csv"), "--out"), (args.figure, (".png", ".pdf", ".svg"),
                                                                        "--figure")):
         if not path:
             continue
-        if os.path.isdir(path):
-            raise ParameterError(f"{flag} is a directory: {path}")
+        if os.path.isdir(path) or path.endswith(os.sep):
+            check_output_path(path, args.overwrite, ParameterError, flag)    # refused: a directory
         if not path.endswith(exts):
             raise ParameterError(f"{flag} must end with {' or '.join(exts)}, got {path}")
-        if os.path.lexists(path) and not args.overwrite:
-            raise ParameterError(f"output file exists: {path} (pass --overwrite to replace it)")
-        parent = os.path.dirname(os.path.abspath(path))
-        if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
-            raise ParameterError(f"{flag}: directory {parent} does not exist or is not writable")
+        check_output_path(path, args.overwrite, ParameterError, flag)        # a FIFO, device, existing file
     if args.n < 1:
         raise ParameterError(f"--n must be ≥ 1 (an empty population has nothing to plan), got {args.n}")
     from slicersim.backends.precision import resolve_precision
@@ -57,8 +54,7 @@ def cmd_survey_plan(args) -> int:
     print(plan.summary())
     print(f"population seed    : {seed}{'' if args.seed is not None else ' (drawn: --seed repeats it)'}")
     if args.figure:
-        from slicersim.campaign.plan import plot_time_and_volume
-        plot_time_and_volume({f"SNR {args.snr:g}": plan}, args.figure)
+        _write_figure({f"SNR {args.snr:g}": plan}, args.figure, args.overwrite)
         print(f"wrote {args.figure}")
     if args.out:
         print(f"wrote {args.out}")
@@ -82,6 +78,20 @@ def _write_table(table, path, overwrite):
     atomic_bytes(path, buf.getvalue().encode(), overwrite=overwrite)
 
 
+def _write_figure(plans, path, overwrite):
+    """The time and volume figure, written atomically (a temporary renamed in when complete)."""
+    import matplotlib
+
+    from slicersim.campaign.plan import plot_time_and_volume
+    from slicersim.errors import ParameterError
+    from slicersim.io.atomic import write_files
+
+    def draw(fh):
+        with matplotlib.rc_context({"savefig.format": os.path.splitext(path)[1][1:].lower()}):
+            plot_time_and_volume(plans, fh)
+    write_files({path: draw}, overwrite=overwrite, error_class=ParameterError)
+
+
 def cmd_campaign_run(args) -> int:
     import math
 
@@ -93,10 +103,10 @@ def cmd_campaign_run(args) -> int:
     if args.precision is not None:             # overrides products.precision, written into the stored spec
         from slicersim.campaign.spec import load_spec, with_products
         spec = with_products(load_spec(args.spec), precision=args.precision)
-    res = run_campaign(spec, args.out, workers=args.workers, scheduler=args.scheduler, force=args.force,
+    res = run_campaign(spec, args.out, workers=args.workers, force=args.force,
                        retry_failed=args.retry_failed, progress=False if args.no_progress else None,
                        threads_per_worker=args.threads_per_worker,
-                       max_bytes=int(args.memory_per_task * 2**20))
+                       max_bytes=int(args.memory_per_task * 2**20), **dask_keywords(args))
     print(f"{res['dataset']}: {res['targets']} targets, {res['done']} done, {res['failed']} failed, "
           f"{res['missing']} missing ({res['computed']} computed in {res['seconds']:.1f} s)")
     return 0 if res["failed"] == 0 and res["missing"] == 0 else 1
@@ -112,6 +122,40 @@ def cmd_campaign_status(args) -> int:
     for tid, why in st["missing_targets"][:args.show]:
         print(f"  missing {tid}: {why}")
     return 0 if st["missing"] == 0 and st["failed"] == 0 else 1
+
+
+def add_dask_arguments(parser, scheduler=True):
+    """``--dashboard``, ``--tls-ca-file``, ``--tls-cert``, ``--tls-key`` (and, with ``scheduler``,
+    ``--scheduler``) on ``parser`` (a parser or an argument group); :func:`dask_keywords` reads them."""
+    parser.add_argument("--dashboard", action="store_true",
+                        help="serve the embedded cluster's Dask dashboard on 127.0.0.1:8787 (this machine only; "
+                             "default: off)")
+    if scheduler:
+        parser.add_argument("--scheduler", metavar="ADDRESS",
+                            help="existing Dask scheduler, e.g. tls://host:8786 (with --tls-* files) or "
+                                 "tcp://host:8786 (unencrypted: anyone who reaches it runs code as its workers; "
+                                 "trusted networks only)")
+    parser.add_argument("--tls-ca-file", metavar="CA.pem", help="CA certificate of the --scheduler's TLS (or Dask's "
+                                                                "distributed.comm.tls configuration)")
+    parser.add_argument("--tls-cert", metavar="CERT.pem", help="this client's TLS certificate for --scheduler")
+    parser.add_argument("--tls-key", metavar="KEY.pem", help="this client's TLS private key for --scheduler")
+
+
+def dask_keywords(args):
+    """{"scheduler", "security", "dashboard"} keywords of run_campaign / reduce_dataset from the flags
+    of :func:`add_dask_arguments`; the --tls-* files apply only with --scheduler."""
+    from slicersim.campaign.runner import tls_security
+    from slicersim.errors import ParameterError
+    files = [getattr(args, name, None) for name in ("tls_ca_file", "tls_cert", "tls_key")]
+    scheduler = getattr(args, "scheduler", None)
+    if any(f is not None for f in files) and not scheduler:
+        raise ParameterError("--tls-ca-file/--tls-cert/--tls-key apply to --scheduler only (the embedded cluster "
+                             "makes its own temporary TLS credentials)")
+    if scheduler and getattr(args, "dashboard", False):
+        raise ParameterError("--dashboard applies to the embedded cluster only (an existing --scheduler serves "
+                             "its own dashboard)")
+    return {"scheduler": scheduler, "security": tls_security(*files) if scheduler else None,
+            "dashboard": bool(getattr(args, "dashboard", False))}
 
 
 def add_parsers(sub, fmt):
@@ -161,7 +205,7 @@ def add_parsers(sub, fmt):
     p.add_argument("spec", metavar="SPEC.toml", help="campaign spec")
     p.add_argument("--out", required=True, metavar="DIR", help="dataset directory")
     p.add_argument("--workers", type=int, help="workers of the embedded LocalCluster (default: CPU count)")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
+    add_dask_arguments(p)
     p.add_argument("--threads-per-worker", type=int, help="OpenCL CPU threads per worker (default: CPUs/workers)")
     p.add_argument("--memory-per-task", type=float, default=256.0, help="memory budget of a task's chunks [MiB]")
     p.add_argument("--precision", choices=("auto", "double", "single"),

@@ -195,15 +195,12 @@ RAMP_DETECTOR_DEFAULTS = {"tframe": 2.83, "ron": 12.0, "dark": 2.8e-3, "roic_glo
 
 
 def _check_output(path, overwrite):
-    """Refuse an existing output before any (slow) simulation."""
+    """Refuse a bad output before any (slow) simulation (:func:`slicersim.io.atomic.check_output_path`):
+    a directory (or a path ending with '/'), a FIFO, device or socket (never replaced, even with
+    --overwrite), an existing file without --overwrite, a missing or read-only directory."""
     from slicersim.errors import RampFileError
-    if os.path.isdir(path):
-        raise RampFileError(f"output path is a directory: {path}")
-    if os.path.lexists(path) and not overwrite:
-        raise RampFileError(f"output file exists: {path} (use --overwrite to replace it)")
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise RampFileError(f"output directory does not exist: {directory}")
+    from slicersim.io.atomic import check_output_path
+    check_output_path(path, overwrite, RampFileError, "--out")
 
 
 def _load_rate(path):

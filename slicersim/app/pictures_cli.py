@@ -23,17 +23,13 @@ def _fields(choice):
 def _check_figure(path, overwrite, flag="--out", created=None):
     """Refuse a bad figure path before anything is computed; its directory may be ``created``
     (the footprints' --out, made when missing)."""
+    from slicersim.io.atomic import check_output_path, output_path
     if not path.lower().endswith(FIGURE_SUFFIXES):
         raise ParameterError(f"{flag} must end with {', '.join(FIGURE_SUFFIXES)}, got {path}")
-    if os.path.isdir(path):
-        raise ParameterError(f"{flag} is a directory: {path}")
-    if os.path.lexists(path) and not overwrite:
-        raise ParameterError(f"output file exists: {path} (pass --overwrite to replace it)")
-    parent = os.path.dirname(os.path.abspath(path))
+    parent = os.path.dirname(output_path(path, ParameterError, flag))
     if parent == created and not os.path.exists(parent):
         return
-    if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
-        raise ParameterError(f"{flag}: directory {parent} does not exist or is not writable")
+    check_output_path(path, overwrite, ParameterError, flag)    # a directory, FIFO, device, existing file
 
 
 def _mapper(args):

@@ -71,14 +71,11 @@ class _FlagNames:
 
 
 def _check_out(path, overwrite):
+    """Refuse a bad --out file before any work (:func:`slicersim.io.atomic.check_output_path`); a
+    single ramp file is reduced to one HDF5 file, so a directory is refused."""
     from slicersim.errors import ParameterError
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise ParameterError(f"--out: directory {directory} does not exist")
-    if os.path.isdir(path):
-        raise ParameterError(f"--out: {path} is a directory (a single ramp file is reduced to one HDF5 file)")
-    if os.path.lexists(path) and not overwrite:
-        raise ParameterError(f"--out: {path} exists (pass --overwrite to replace it)")
+    from slicersim.io.atomic import check_output_path
+    check_output_path(path, overwrite, ParameterError, "--out")
 
 
 def parse_lbda_edges(text):

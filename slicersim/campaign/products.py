@@ -132,7 +132,7 @@ def _write_image(path, target, row, seed):
 def _write_ramps(path, target, row, seed, spec, memory):
     comp = spec.products["compression"]
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
-                     overwrite=True, memory_budget=memory, progress=False)
+                     overwrite=True, max_bytes=memory, progress=False)
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None):
@@ -148,8 +148,7 @@ def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, thre
               "field": str(row["field"])}
     try:
         ds.clean_target(tid)
-        pdir = ds.product_dir(tid)
-        os.makedirs(pdir, exist_ok=True)
+        pdir = ds.target_dir(tid, make=True)           # a real folder inside the dataset
         target, source = build_target(spec, row)
         products = {}
         for name in spec.wanted:
@@ -177,7 +176,7 @@ def mark_failed(ds, tid, record, exc):
                   traceback=traceback.format_exc(limit=8))
     try:
         ds.clean_target(tid)
-    except OSError:
+    except OSError:                 # DatasetError included (a link in the dataset): nothing removed
         pass
 
 

@@ -35,7 +35,8 @@ from slicersim.io.row_blocks import show_progress
 from slicersim.validation import positive_int
 
 __all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions", "RunOptions", "TaskWindow",
-           "run_task_window", "WORKERS_PER_CPU", "check_workers", "dask_client", "QuietDask"]
+           "run_task_window", "WORKERS_PER_CPU", "check_workers", "dask_client", "QuietDask", "tls_security",
+           "DASHBOARD_ADDRESS"]
 
 #: seconds between two catalog writes while a campaign runs
 CATALOG_INTERVAL = 10.0
@@ -170,21 +171,94 @@ def _key(tid):
     return target_key(tid)
 
 
-def dask_client(workers, scheduler, threads):
-    """(client, cluster or None): an existing scheduler or an embedded LocalCluster."""
-    from distributed import Client, LocalCluster
+#: the embedded cluster's dashboard when asked for: this machine only (a busy port: distributed picks another)
+DASHBOARD_ADDRESS = "127.0.0.1:8787"
+
+
+def tls_security(ca_file=None, cert=None, key=None):
+    """A :class:`distributed.Security` for a TLS scheduler from PEM files: ``ca_file`` (the CA that
+    signed the scheduler's certificate), ``cert`` and ``key`` (this client's certificate and
+    private key; ``key`` may be omitted when ``cert`` holds both).  None when no file is given
+    (then Dask's configuration, ``distributed.comm.tls.*``, applies).  ParameterError naming the
+    flag of a missing or unreadable file."""
+    from distributed import Security
+
+    from slicersim.validation import regular_file
+    files = {"--tls-ca-file": ca_file, "--tls-cert": cert, "--tls-key": key}
+    if all(v is None for v in files.values()):
+        return None
+    for flag, value in files.items():
+        if value is not None:
+            files[flag] = regular_file(f"{flag} (TLS {flag[6:]} file of the Dask scheduler)", value)
+    if files["--tls-ca-file"] is None or files["--tls-cert"] is None:
+        from slicersim.errors import ParameterError
+        raise ParameterError("--tls-ca-file and --tls-cert are both needed for a TLS scheduler "
+                             "(--tls-key too unless the certificate file holds the key)")
+    return Security(tls_ca_file=files["--tls-ca-file"], tls_client_cert=files["--tls-cert"],
+                    tls_client_key=files["--tls-key"], require_encryption=True)
+
+
+def _connect(scheduler, security):
+    """A Client of the existing scheduler at ``scheduler`` (``security``: a distributed.Security,
+    or None for Dask's configuration)."""
+    from distributed import Client
+    if not isinstance(scheduler, str) or "://" not in scheduler:
+        raise ConfigError(f"scheduler address must look like tls://host:port (or tcp://host:port), got {scheduler!r}")
+    try:
+        return Client(scheduler, timeout="10s", **({} if security is None else {"security": security}))
+    except (OSError, TimeoutError, ValueError, TypeError) as exc:
+        hint = ""
+        if scheduler.startswith("tls://") and security is None:
+            hint = (" (a tls:// scheduler needs the client's certificates: --tls-ca-file, --tls-cert, --tls-key, "
+                    "security=tls_security(...) in Python, or Dask's distributed.comm.tls configuration)")
+        raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: "
+                           f"{' '.join(str(exc).split())[:200]}{hint}") from None
+
+
+def dask_client(workers, scheduler, threads, security=None, dashboard=False):
+    """(client, cluster or None): an existing scheduler or an embedded LocalCluster.
+
+    The embedded cluster listens on 127.0.0.1 only, over TLS with temporary credentials
+    (``distributed.Security.temporary()``: a key pair and self-signed certificate made for this
+    run and held in memory, required by the scheduler and workers), so no other process, local
+    user included, can submit work to it.  Its dashboard is off unless ``dashboard`` (then on
+    :data:`DASHBOARD_ADDRESS`, this machine only; an address "127.0.0.1:PORT" picks the port).
+    ``security`` (a :class:`distributed.Security`, e.g. :func:`tls_security`) is used to reach
+    an existing ``scheduler``; None takes Dask's configuration (``distributed.comm.tls.*``)."""
+    import dask
+    from distributed import LocalCluster, Security
     if scheduler:
-        if not isinstance(scheduler, str) or "://" not in scheduler:
-            raise ConfigError(f"scheduler address must look like tcp://host:port, got {scheduler!r}")
-        try:
-            return Client(scheduler, timeout="10s"), None
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: "
-                               f"{' '.join(str(exc).split())[:200]}") from None
+        return _connect(scheduler, security), None
     env = {"POCL_MAX_PTHREAD_COUNT": str(threads), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.CRITICAL, env=env)
-    return Client(cluster), cluster
+    try:
+        credentials = Security.temporary()
+    except ImportError as exc:                   # distributed needs the cryptography package for it
+        raise ConfigError(f"the embedded Dask cluster needs the 'cryptography' package for its TLS credentials "
+                          f"({exc}); install it (pip install cryptography)") from None
+    address = _dashboard_address(dashboard)
+    # distributed starts an HTTP server even without a dashboard (health, metrics, JSON, proxy routes):
+    # off, it serves none of them, on a free port of 127.0.0.1
+    http = {} if address else {"distributed.scheduler.http.routes": [], "distributed.worker.http.routes": []}
+    with dask.config.set(http):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               protocol="tls", security=credentials, dashboard_address=address or "127.0.0.1:0",
+                               scheduler_kwargs={"dashboard": bool(address)}, silence_logs=logging.CRITICAL, env=env)
+    from distributed import Client
+    return Client(cluster, security=credentials), cluster
+
+
+def _dashboard_address(dashboard):
+    """None (no dashboard), or the dashboard's address: on 127.0.0.1 only."""
+    if dashboard is None or dashboard is False:
+        return None
+    if dashboard is True:
+        return DASHBOARD_ADDRESS
+    text = str(dashboard)
+    host, _, port = text.rpartition(":")
+    if host not in ("127.0.0.1", "localhost", "") or not port.isdigit() or int(port) > 65535:
+        from slicersim.errors import ParameterError
+        raise ParameterError(f"dashboard must be True or an address 127.0.0.1:PORT (this machine only), got {text!r}")
+    return f"127.0.0.1:{int(port)}"
 
 
 #: most workers of an embedded LocalCluster per CPU (more only thrash; connect to a scheduler instead)
@@ -222,6 +296,10 @@ class RunOptions:
     max_bytes: int = 256 * 2**20
     threads_per_worker: int | None = None
     window: int | None = None
+    #: a distributed.Security for ``scheduler`` (None: Dask's configuration)
+    security: object = None
+    #: the embedded cluster's dashboard: False, True (127.0.0.1:8787) or "127.0.0.1:PORT"
+    dashboard: object = False
 
     @classmethod
     def checked(cls, workers=None, scheduler=None, progress=None, max_bytes=256 * 2**20, threads_per_worker=None,
@@ -263,10 +341,10 @@ def _resumed_seed(spec, ds, force):
     return resumed if spec_digest(resumed.canonical()) == stored[1] else spec
 
 
-def _plan_and_connect(spec, scheduler):
-    """(catalog, plan, connection or None): a remote scheduler is reached before anything is
-    written, and nothing is written before the plan succeeds."""
-    connection = dask_client(1, scheduler, 1) if scheduler else None
+def _plan_and_connect(spec, run):
+    """(catalog, plan, connection or None): a remote scheduler (:class:`RunOptions` ``run``) is
+    reached before anything is written, and nothing is written before the plan succeeds."""
+    connection = dask_client(1, run.scheduler, 1, run.security) if run.scheduler else None
     try:
         catalog, plan = plan_campaign(spec)
     except BaseException:
@@ -277,7 +355,7 @@ def _plan_and_connect(spec, scheduler):
 
 
 def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_failed=False, progress=None,
-                 max_bytes=256 * 2**20, threads_per_worker=None, window=None):
+                 max_bytes=256 * 2**20, threads_per_worker=None, window=None, security=None, dashboard=False):
     """Run (or resume) a campaign into dataset directory ``out``; returns a summary dict.
 
     spec : a :class:`CampaignSpec` or the path of its TOML file
@@ -290,15 +368,37 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     max_bytes : memory budget of one task's cube chunks / ramp blocks [bytes]
     threads_per_worker : OpenCL CPU threads per worker (default: CPUs / workers)
     window : tasks in flight at once (default 2 per worker): bounds the client's memory
+    security : a :class:`distributed.Security` to reach ``scheduler`` (e.g. :func:`tls_security`;
+        None: Dask's configuration); the embedded cluster always uses TLS with temporary credentials
+    dashboard : the embedded cluster's dashboard: False (default), True (on 127.0.0.1:8787) or
+        "127.0.0.1:PORT"
     """
+    from dataclasses import replace
     spec = spec if isinstance(spec, CampaignSpec) else load_spec(spec)
-    run = RunOptions.checked(workers, scheduler, progress, max_bytes, threads_per_worker, window)
+    run = replace(RunOptions.checked(workers, scheduler, progress, max_bytes, threads_per_worker, window),
+                  security=security, dashboard=_dashboard_address(dashboard) or False)
     _check_cube_precision(spec, scheduler)
     ds = Dataset(Dataset.check_path(out, force=force))
+    created = not os.path.lexists(ds.path)
     spec = _resumed_seed(spec, ds, force)
     t0 = time.perf_counter()
     ds.check_spec(spec.canonical(), force)            # refuse early, before planning
-    catalog, plan, connection = _plan_and_connect(spec, scheduler)
+    catalog, plan, connection = _plan_and_connect(spec, run)
+    try:
+        return _run(spec, ds, (catalog, plan, connection), run, (force, retry_failed, t0))
+    except BaseException:
+        if connection:
+            connection[0].close()                   # closing twice is harmless
+        if created:                                 # a failed run leaves nothing new behind
+            ds.remove_new()
+        raise
+
+
+def _run(spec, ds, planned, run, flags):
+    """Initialise (or resume) dataset ``ds`` and simulate what is missing (``planned``: catalog,
+    plan, connection or None; ``flags``: force, retry_failed, start time); the summary dict."""
+    catalog, plan, connection = planned
+    force, retry_failed, t0 = flags
     with ds:
         digest = ds.initialise(spec.text, spec.canonical(), software_versions(), force=force)
         ids = [int(t) for t in catalog["target_id"]]
@@ -347,7 +447,9 @@ def _dispatch(spec, ds, catalog, work, run, connection=None):
     todo, records, digest = work
     threads = run.threads
     quiet = QuietDask()
-    client, cluster = connection or dask_client(run.workers, run.scheduler, threads)
+    client, cluster = connection or dask_client(run.workers, run.scheduler, threads, run.security, run.dashboard)
+    if cluster is not None and run.dashboard:
+        print(f"Dask dashboard: {client.dashboard_link} (this machine only)", file=sys.stderr)
     try:
         spec_future = client.scatter(spec, broadcast=True)
     except BaseException:

@@ -18,9 +18,11 @@ import signal
 import threading
 
 from slicersim.errors import DatasetError
+from slicersim.io.output_paths import check_output_path, output_path, refuse_special
 
 __all__ = ["AtomicH5File", "GuardedFile", "is_temporary", "remove_stale_temporaries", "atomic_bytes", "write_files",
-           "recover_interrupted", "publish", "sha256_file", "one_line"]
+           "recover_interrupted", "publish", "sha256_file", "one_line", "check_output_path", "output_path",
+           "refuse_special"]
 
 #: temporaries are ``.<final name>.tmp-<pid>-<host tag><random>`` (the host tag keeps a writer from
 #: removing the temporary of a live process on another machine sharing the directory)
@@ -74,9 +76,10 @@ def remove_stale_temporaries(directory):
 
 
 def one_line(exc):
-    """Short one-line text of an OSError (HDF5 messages span lines)."""
+    """Short one-line text of an OSError (HDF5 messages span lines), with the file it names."""
     if isinstance(exc, OSError) and exc.strerror:
-        return f"[Errno {exc.errno}] {exc.strerror}" if exc.errno else exc.strerror
+        text = f"[Errno {exc.errno}] {exc.strerror}" if exc.errno else exc.strerror
+        return f"{text}: {exc.filename}" if exc.filename is not None else text
     return " ".join(str(exc).split())
 
 
@@ -177,8 +180,10 @@ class GuardedFile:
 
 def publish(tmp, path, overwrite=False, error_class=DatasetError):
     """Give the complete temporary ``tmp`` its final name ``path``: replaced when ``overwrite``,
-    else a hard link that fails if ``path`` appeared meanwhile (two writers: one wins)."""
+    else a hard link that fails if ``path`` appeared meanwhile (two writers: one wins).  Only a
+    regular file (or a link to one) is ever replaced (:func:`refuse_special`)."""
     if overwrite:
+        refuse_special(path, error_class)
         os.replace(tmp, path)
         return
     try:
@@ -205,8 +210,10 @@ def temporary_path(path):
 
 
 def atomic_bytes(path, data, overwrite=False, error_class=DatasetError):
-    """Write ``data`` (bytes) to ``path`` atomically (temporary, fsync, publish)."""
-    path = os.path.abspath(os.fspath(path))
+    """Write ``data`` (bytes) to ``path`` atomically (temporary, fsync, publish); ``path`` must
+    be a file path (:func:`output_path`), an existing one a regular file (:func:`refuse_special`)."""
+    path = output_path(path, error_class)
+    refuse_special(path, error_class)
     tmp = temporary_path(path)
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
@@ -251,7 +258,7 @@ class AtomicH5File:
     durable = True
 
     def __init__(self, path, overwrite=False):
-        self.path = os.path.abspath(os.fspath(path))
+        self.path = output_path(path, self.error_class)
         self.overwrite = bool(overwrite)
         self._file = self._fh = self._fd = self._tmp = None
         self._busy = 0
@@ -263,18 +270,9 @@ class AtomicH5File:
         return self._file
 
     def check(self):
-        """Refuse early: missing or read-only directory, a directory at ``path``, an existing
-        file without ``overwrite``."""
-        directory = os.path.dirname(self.path) or "."
-        if not os.path.isdir(directory):
-            raise self.error_class(f"output directory does not exist: {directory}")
-        if not os.access(directory, os.W_OK):
-            raise self.error_class(f"output directory is not writable: {directory}")
-        if os.path.isdir(self.path):
-            raise self.error_class(f"output path is a directory: {self.path}")
-        if not self.overwrite and os.path.lexists(self.path):
-            raise self.error_class(f"output file exists: {self.path} (pass overwrite=True / --overwrite "
-                                   "to replace it)")
+        """Refuse early (:func:`check_output_path`): missing or read-only directory, a directory,
+        FIFO, device or socket at ``path`` (or a link to one), an existing file without ``overwrite``."""
+        check_output_path(self.path, self.overwrite, self.error_class)
         return self
 
     def _populate(self, file):
@@ -578,7 +576,9 @@ def write_files(files, overwrite=False, error_class=DatasetError, lock_name=None
     temporary and every file already renamed in is removed (neither, never a mixture: with
     ``overwrite`` the set's previous files are then gone) and ``error_class`` is raised.
     """
-    paths = [os.path.abspath(os.fspath(p)) for p in files]
+    paths = [output_path(p, error_class) for p in files]
+    for path in paths:
+        refuse_special(path, error_class)
     if len(set(paths)) != len(paths) or not paths:
         raise error_class(f"write_files needs distinct paths, got {paths}")
     temps = []

@@ -15,6 +15,13 @@ A target is *done* when its record says so and every product listed there exists
 recorded size and sha256; anything else (no record, a missing, truncated or corrupted
 product) is *missing* and is computed again.  Every file is written under a temporary name
 and published complete (:mod:`slicersim.io.atomic`).
+
+Nothing outside the directory is touched: ``products/``, ``records/`` and every
+``products/tNNNNNNN/`` must be real directories inside it (a symbolic link, or anything but a
+directory, is refused with :class:`DatasetError` naming it), the lock is opened without
+following a link, and removing a target's or the dataset's files (a rerun, ``force``) removes
+only files its records name or that have the dataset's own names (``tNNNNNNN.json``,
+``products/tNNNNNNN/NAME.h5``) inside those verified directories.
 """
 from __future__ import annotations
 
@@ -22,14 +29,67 @@ import fcntl
 import hashlib
 import json
 import os
+import re
+import stat
 
 from slicersim.errors import DatasetError
-from slicersim.io.atomic import AtomicH5File, atomic_bytes, one_line, remove_stale_temporaries, sha256_file
+from slicersim.io.atomic import (AtomicH5File, atomic_bytes, is_temporary, one_line, remove_stale_temporaries,
+                                 sha256_file)
 
-__all__ = ["Dataset", "ProductFile", "canonical_json", "spec_digest", "target_key", "changed_keys"]
+__all__ = ["Dataset", "ProductFile", "canonical_json", "spec_digest", "target_key", "changed_keys", "real_dir"]
 
 SPEC_TOML, SPEC_JSON, VERSIONS, CATALOG, LOCK = "spec.toml", "spec.json", "versions.json", "catalog.ecsv", ".lock"
 PRODUCTS, RECORDS = "products", "records"
+#: names the dataset gives its own files and folders (nothing else is ever removed)
+_TARGET_RE = re.compile(r"^t\d{7,}$")
+_RECORD_RE = re.compile(r"^t\d{7,}\.json$")
+_PRODUCT_RE = re.compile(r"^[a-z][a-z0-9_]*\.h5$")
+_NOTHING = re.compile(r"(?!)")
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
+def real_dir(path, make=False):
+    """``path`` when it is a real directory (not a symbolic link); created (one level) when
+    missing and ``make``; :class:`DatasetError` naming it otherwise."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        if not make:
+            raise DatasetError(f"dataset folder {path} is missing") from None
+        try:
+            os.mkdir(path)
+        except FileExistsError:
+            pass
+        except OSError as exc:
+            raise DatasetError(f"cannot create the dataset folder {path}: {one_line(exc)}") from None
+        st = os.lstat(path)
+    if stat.S_ISLNK(st.st_mode):
+        raise DatasetError(f"{path} is a symbolic link: a dataset's folders must be real folders inside it "
+                           "(nothing outside the dataset is written or removed); replace the link by a folder")
+    if not stat.S_ISDIR(st.st_mode):
+        raise DatasetError(f"{path} is not a folder: a dataset's folders must be real folders inside it")
+    return path
+
+
+def _unlink_own(directory, pattern, names=(), follow=False):
+    """Remove from the real directory ``directory`` the entries (regular files or links, never
+    folders) whose names match ``pattern`` or are in ``names``, and dead writers' temporaries;
+    returns the names removed.  The directory is opened without following a link (unless
+    ``follow``: the dataset's own root may be a link)."""
+    fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | (0 if follow else _NOFOLLOW))
+    removed = []
+    try:
+        for name in os.listdir(fd):
+            if not (pattern.match(name) or name in names):
+                continue
+            st = os.lstat(name, dir_fd=fd)
+            if stat.S_ISREG(st.st_mode) or stat.S_ISLNK(st.st_mode):
+                os.unlink(name, dir_fd=fd)
+                removed.append(name)
+    finally:
+        os.close(fd)
+    remove_stale_temporaries(directory)
+    return removed
 
 
 def canonical_json(obj):
@@ -71,6 +131,28 @@ class Dataset:
     def product_dir(self, target_id):
         return os.path.join(self.path, PRODUCTS, target_key(target_id))
 
+    def target_dir(self, target_id, make=False):
+        """The target's products folder, checked to be a real folder inside the dataset (as are
+        ``products/``); created when missing and ``make``."""
+        real_dir(self.file(PRODUCTS), make=make)
+        return real_dir(self.product_dir(target_id), make=make)
+
+    def check_folders(self, make=False):
+        """Refuse (:class:`DatasetError` naming it) a ``products/``, ``records/`` or
+        ``products/tNNNNNNN`` that is a symbolic link or not a folder; ``make`` creates the two
+        top folders (and the dataset's own) when missing."""
+        if make:
+            os.makedirs(self.path, exist_ok=True)
+        real_dir(self.file(PRODUCTS), make=make)
+        self.records_dir(make=make)
+        for name in sorted(os.listdir(self.file(PRODUCTS))):
+            if _TARGET_RE.match(name):
+                real_dir(os.path.join(self.file(PRODUCTS), name))
+
+    def records_dir(self, make=False):
+        """``records/``, checked to be a real folder inside the dataset."""
+        return real_dir(self.file(RECORDS), make=make)
+
     def record_path(self, target_id):
         return os.path.join(self.path, RECORDS, target_key(target_id) + ".json")
 
@@ -96,7 +178,7 @@ class Dataset:
             if os.listdir(path) and not os.path.isfile(os.path.join(path, SPEC_JSON)):
                 names = [n for n in os.listdir(path) if n != LOCK]
                 damaged = set(names) <= {SPEC_TOML, VERSIONS, CATALOG, PRODUCTS, RECORDS} and \
-                    bool(set(names) & {SPEC_TOML, PRODUCTS, RECORDS})
+                    bool(set(names) & {SPEC_TOML, PRODUCTS, RECORDS}) and _only_own(path)
                 if damaged and not force:
                     raise DatasetError(f"{path} is a damaged slicersim dataset ({SPEC_JSON} is missing); "
                                        "--force discards its products and starts it again")
@@ -106,6 +188,21 @@ class Dataset:
         elif not os.access(parent, os.W_OK):
             raise DatasetError(f"directory is not writable: {parent}")
         return path
+
+    def remove_new(self):
+        """Remove a dataset folder this run created when it failed before any target was recorded
+        (a failed run leaves nothing new behind): only the dataset's own files and empty folders;
+        anything else keeps the folder."""
+        try:
+            for sub in (RECORDS, PRODUCTS):
+                path = self.file(sub)
+                if os.path.lexists(path):
+                    real_dir(path)
+                    os.rmdir(path)                   # only when empty: nothing computed
+            _unlink_own(self.path, _NOTHING, (SPEC_TOML, SPEC_JSON, VERSIONS, CATALOG, LOCK), follow=True)
+            os.rmdir(self.path)
+        except (OSError, DatasetError):
+            pass
 
     def stored_spec(self):
         """(canonical spec dict, digest) stored in the dataset, or None."""
@@ -140,8 +237,7 @@ class Dataset:
         stored = self.stored_spec()
         if (stored is not None and stored[1] != digest) or (stored is None and force):
             self.discard()
-        os.makedirs(self.file(PRODUCTS), exist_ok=True)
-        os.makedirs(self.file(RECORDS), exist_ok=True)
+        self.check_folders(make=True)
         for directory in (self.path, self.file(RECORDS)):   # left by a killed client or worker
             remove_stale_temporaries(directory)
         if stored is None or stored[1] != digest:
@@ -171,21 +267,37 @@ class Dataset:
                           stacklevel=3)
 
     def discard(self):
-        """Remove records, products, catalog and spec (``--force``)."""
-        import shutil
+        """Remove the dataset's own records, products, catalog and spec (``--force``): the files
+        its records name and the files with its own names inside its verified folders; anything
+        else (an unrelated file or folder in ``products/``) stays."""
         for name in (RECORDS, PRODUCTS):
-            shutil.rmtree(self.file(name), ignore_errors=True)
-        for name in (CATALOG, SPEC_JSON, SPEC_TOML, VERSIONS):
+            if os.path.lexists(self.file(name)):
+                real_dir(self.file(name))          # a link: refused, its target untouched
+        if os.path.isdir(self.file(PRODUCTS)):
+            for name in os.listdir(self.file(PRODUCTS)):
+                if _TARGET_RE.match(name):
+                    self.clean_target(int(name[1:]))
+        if os.path.isdir(self.file(RECORDS)):
+            _unlink_own(self.file(RECORDS), _RECORD_RE)
+        for name in (RECORDS, PRODUCTS):
             try:
-                os.remove(self.file(name))
-            except FileNotFoundError:
+                os.rmdir(self.file(name))          # only when nothing else is left in it
+            except OSError:
                 pass
+        _unlink_own(self.path, _NOTHING, (CATALOG, SPEC_JSON, SPEC_TOML, VERSIONS), follow=True)
 
     # ------------------------------------------------------------------ lock
     def lock(self):
         """Hold the dataset's lock (one running client per dataset); released on exit or death."""
         os.makedirs(self.path, exist_ok=True)
-        fd = os.open(self.file(LOCK), os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+        try:                                        # never through a link: the lock is truncated
+            fd = os.open(self.file(LOCK), os.O_RDWR | os.O_CREAT | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0), 0o666)
+        except OSError as exc:
+            raise DatasetError(f"cannot open the dataset lock {self.file(LOCK)} ({one_line(exc)}; a symbolic "
+                               "link is refused)") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise DatasetError(f"the dataset lock {self.file(LOCK)} is not a regular file")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -218,6 +330,8 @@ class Dataset:
 
     # ------------------------------------------------------------------ records
     def write_record(self, target_id, record):
+        """Write the target's record atomically into the verified ``records/``."""
+        self.records_dir()
         atomic_bytes(self.record_path(target_id),
                      (json.dumps(record, indent=1, sort_keys=True) + "\n").encode(), overwrite=True)
 
@@ -241,9 +355,13 @@ class Dataset:
         for name, info in sorted(products.items()):
             path = os.path.join(self.product_dir(record["target_id"]), info["file"])
             try:
-                size = os.path.getsize(path)
-            except OSError:
+                self.target_dir(record["target_id"])
+                st = os.lstat(path)
+            except (OSError, DatasetError):
                 return f"{name}: missing"
+            if not stat.S_ISREG(st.st_mode):
+                return f"{name}: not a regular file"
+            size = st.st_size
             if size != info["bytes"]:
                 return f"{name}: {size} bytes, expected {info['bytes']} (truncated?)"
             if deep and sha256_file(path) != info["sha256"]:
@@ -253,6 +371,8 @@ class Dataset:
     def state(self, target_ids, deep=True):
         """{target_id: ("done" | "failed" | "missing", record or None, reason)}."""
         out = {}
+        if os.path.lexists(self.file(RECORDS)):
+            self.records_dir()                    # a link: refused, never read
         for tid in target_ids:
             tid = int(tid)
             rec = self.read_record(tid)
@@ -268,17 +388,27 @@ class Dataset:
         return out
 
     def clean_target(self, target_id):
-        """Remove a target's record and products before it is computed again."""
-        try:
-            os.remove(self.record_path(target_id))
-        except FileNotFoundError:
-            pass
+        """Remove a target's record and products before it is computed again: the files its
+        record names and those with the dataset's own product names (``NAME.h5``, temporaries),
+        in its verified folder; a link there is refused (:class:`DatasetError`), its target
+        untouched."""
+        rec = self.read_record(target_id) if os.path.isdir(self.file(RECORDS)) else None
+        if os.path.lexists(self.file(RECORDS)):
+            self.records_dir()
+            try:
+                os.remove(self.record_path(target_id))
+            except FileNotFoundError:
+                pass
         pdir = self.product_dir(target_id)
-        if os.path.isdir(pdir):
-            remove_stale_temporaries(pdir)
-            for name in os.listdir(pdir):
-                if not name.startswith("."):
-                    os.remove(os.path.join(pdir, name))
+        if not os.path.lexists(pdir):
+            return
+        self.target_dir(target_id)
+        named = [i.get("file") for i in ((rec or {}).get("products") or {}).values() if isinstance(i, dict)]
+        _unlink_own(pdir, _PRODUCT_RE, {n for n in named if isinstance(n, str) and os.path.basename(n) == n})
+        try:
+            os.rmdir(pdir)                          # recreated by the writer; kept when not empty
+        except OSError:
+            pass
 
     def write_catalog(self, table):
         """Write ``catalog.ecsv`` atomically (astropy Table)."""
@@ -286,6 +416,20 @@ class Dataset:
         buf = io.StringIO()
         table.write(buf, format="ascii.ecsv")
         atomic_bytes(self.file(CATALOG), buf.getvalue().encode(), overwrite=True)
+
+
+def _only_own(path):
+    """True when ``products/`` and ``records/`` of ``path`` (where present, real folders) hold only
+    the dataset's own names: a folder holding an unrelated ``products/`` is not a damaged dataset."""
+    for sub, pattern in ((PRODUCTS, _TARGET_RE), (RECORDS, _RECORD_RE)):
+        full = os.path.join(path, sub)
+        if not os.path.lexists(full):
+            continue
+        if os.path.islink(full) or not os.path.isdir(full):
+            return False
+        if any(not (pattern.match(n) or is_temporary(n)) for n in os.listdir(full)):
+            return False
+    return True
 
 
 def product_info(path):

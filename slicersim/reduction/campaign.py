@@ -135,13 +135,15 @@ def is_dataset(path):
     return os.path.isdir(path) and os.path.isfile(os.path.join(path, SPEC_JSON))
 
 
-def reduction_client(workers=None, scheduler=None, threads=None):
-    """(client, cluster or None) from the campaign runner: an embedded LocalCluster of ``workers``
-    processes (one task each at a time) or the scheduler at ``scheduler``."""
+def reduction_client(workers=None, scheduler=None, threads=None, security=None, dashboard=False):
+    """(client, cluster or None) from the campaign runner (:func:`slicersim.campaign.runner.dask_client`):
+    an embedded LocalCluster of ``workers`` processes (one task each at a time; 127.0.0.1, TLS with
+    temporary credentials, dashboard only when ``dashboard``) or the scheduler at ``scheduler``
+    (reached with ``security``, a distributed.Security, or Dask's configuration)."""
     from slicersim.campaign import runner
     workers = runner.check_workers(workers)
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    return runner.dask_client(workers, scheduler, threads)
+    return runner.dask_client(workers, scheduler, threads, security, dashboard)
 
 
 def _source(dataset):
@@ -249,6 +251,8 @@ def _lock(ds):
     try:
         return ds.lock()
     except DatasetError as exc:
+        if "in use" not in str(exc):              # e.g. a lock that is a symbolic link
+            raise
         raise DatasetError(f"reduction directory {ds.path} is in use by another process "
                            f"({str(exc).rsplit('(', 1)[-1].split(')')[0]}); wait for it or stop it") from None
 
@@ -268,6 +272,9 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     force : start again in a directory made with other options or from another dataset
     verify : check every reduced product's sha256 when resuming (default: its size)
     window : tasks in flight at once (default 2 per worker)
+    security : (keyword) a distributed.Security to reach ``scheduler`` (None: Dask's configuration); the
+        embedded cluster always uses TLS with temporary credentials on 127.0.0.1
+    dashboard : (keyword) the embedded cluster's dashboard, on 127.0.0.1 (default False)
 
     Returns {"dataset", "out", "targets", "done", "failed", "missing", "unavailable" (targets
     the campaign has no ramps for: failed or not yet simulated), "computed", "seconds",
@@ -279,6 +286,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     t0 = time.perf_counter()
     fit = check_fit_options(fit_options)
     fit.pop("progress", None)                      # no progress bars on the workers
+    dask = {"security": options.pop("security", None), "dashboard": options.pop("dashboard", False)}
     if not spectra and options:
         raise ParameterError(f"option(s) {', '.join(sorted(options))} apply only with spectra=True")
     mapper = options.pop("mapper", None)
@@ -301,7 +309,8 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     _check_identity(ds, identity, force)            # refuse early: other options or another source
     mapper = _portable(mapper)
     ids = [int(t) for t in catalog["target_id"]]
-    connection = reduction_client(workers, scheduler) if scheduler else None
+    connection = reduction_client(workers, scheduler, security=dask["security"]) if scheduler else None
+    created = not os.path.lexists(ds.path)
     try:
         _lock(ds)
     except BaseException:
@@ -318,15 +327,21 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
             if todo:
                 tasks = {tid: _task(ds, tid, sources[tid], digest, spectra, opts, fit, mapper)
                          for tid in todo}
-                _dispatch(ds, tasks, records, workers, scheduler, progress, window, connection,
+                _dispatch(ds, tasks, records, (workers, scheduler, dask), progress, window, connection,
                           lambda: ds.write_catalog(_catalog(base, records, sources, src)))
             elif connection:
                 connection[0].close()
         finally:                                    # also on Ctrl-C: the catalog says what is done
             final = _catalog(base, records, sources, src)
             ds.write_catalog(final)
-    finally:
+    except BaseException:
         ds.unlock()
+        if connection:
+            connection[0].close()                  # closing twice is harmless
+        if created:                                # a failed run leaves nothing new behind
+            ds.remove_new()
+        raise
+    ds.unlock()
     status = [str(s) for s in final["status"]]
     failed = [(int(t), str(e)) for t, s, e in zip(final["target_id"], status, final["error"]) if s == "failed"]
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
@@ -461,8 +476,7 @@ def reduce_target(task, threads=None):
             raise RampFileError(f"{path}: {size} bytes, the campaign recorded {info['bytes']} (truncated or replaced)")
         if sha256_file(path) != info["sha256"]:
             raise RampFileError(f"{path}: checksum differs from the campaign's record (corrupted or replaced)")
-        pdir = ds.product_dir(tid)
-        os.makedirs(pdir, exist_ok=True)
+        pdir = ds.target_dir(tid, make=True)           # a real folder inside the reduction directory
         out = os.path.join(pdir, REDUCED_FILE if task["spectra"] else RATES_FILE)
         reduce_file(path, out, spectra=task["spectra"], overwrite=True, progress=False,
                     fit_options=task["fit_options"], mapper=task["mapper"], **task["options"])
@@ -473,13 +487,19 @@ def reduce_target(task, threads=None):
     return record
 
 
-def _dispatch(ds, tasks, records, workers, scheduler, progress, window, connection, checkpoint):
-    """Submit one task per target (at most ``window`` in flight), collect the records."""
+def _dispatch(ds, tasks, records, cluster_options, progress, window, connection, checkpoint):
+    """Submit one task per target (at most ``window`` in flight), collect the records;
+    ``cluster_options``: (workers, scheduler, {"security", "dashboard"})."""
+    import sys
+
     from slicersim.campaign.runner import QuietDask, check_workers, run_task_window
+    workers, scheduler, dask = cluster_options
     quiet = QuietDask()
     nw = check_workers(workers)
     threads = max(1, (os.cpu_count() or 1) // nw)
-    client, cluster = connection or reduction_client(nw, scheduler, threads)
+    client, cluster = connection or reduction_client(nw, scheduler, threads, **dask)
+    if cluster is not None and dask["dashboard"]:
+        print(f"Dask dashboard: {client.dashboard_link} (this machine only)", file=sys.stderr)
 
     def submit(tid):
         return client.submit(reduce_target, tasks[tid], threads, pure=False, retries=0,
