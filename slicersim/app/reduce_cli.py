@@ -22,7 +22,8 @@ _SPECTRA_FLAGS = (("--field", "field"), ("--lbda-edges", "lbda_edges"), ("--ncol
                   ("--no-propagate", "no_propagate"), ("--dark", "dark"), ("--weights", "weights"))
 #: flags of a dataset directory
 _DATASET_FLAGS = (("--workers", "workers"), ("--scheduler", "scheduler"), ("--retry-failed", "retry_failed"),
-                  ("--force", "force"), ("--verify", "verify"))
+                  ("--force", "force"), ("--verify", "verify"), ("--dashboard", "dashboard"),
+                  ("--tls-ca-file", "tls_ca_file"), ("--tls-cert", "tls_cert"), ("--tls-key", "tls_key"))
 #: most λ bins accepted from START,STOP,STEP
 MAX_BINS = 100_000
 #: the command-line flag of each Python keyword a reduction error may name
@@ -234,9 +235,10 @@ def cmd_reduce(args) -> int:
 
 
 def _reduce_dataset(args, fit_options, options):
+    from slicersim.app.campaign_cli import dask_keywords
     from slicersim.reduction.campaign import reduce_dataset
     with _FlagNames():
-        res = reduce_dataset(args.raw, args.out, workers=args.workers, scheduler=args.scheduler,
+        res = reduce_dataset(args.raw, args.out, workers=args.workers, **dask_keywords(args),
                              spectra=args.spectra, retry_failed=args.retry_failed, force=args.force,
                              verify=args.verify, progress=False if args.quiet else None, fit_options=fit_options,
                              **options)
@@ -324,8 +326,10 @@ def add_parsers(sub, fmt):
     w = g.add_mutually_exclusive_group()
     w.add_argument("--workers", type=int, metavar="N", help="workers of the embedded Dask LocalCluster "
                    "(default: CPU count)")
-    w.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786 (every "
-                   "worker must see both directories)")
+    w.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tls://host:8786 with the "
+                   "--tls-* files (every worker must see both directories; tcp:// only on a trusted network)")
+    from slicersim.app.campaign_cli import add_dask_arguments
+    add_dask_arguments(g, scheduler=False)
     g.add_argument("--retry-failed", action="store_true", help="reduce the targets recorded as failed again")
     g.add_argument("--force", action="store_true", help="start again in a reduction directory made with other "
                    "options or from another dataset")
