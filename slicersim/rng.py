@@ -304,12 +304,12 @@ def check_stream(stream):
 def check_grid(rows, ncols, first_index=0, row_stride=None):
     """(rows, ncols, first_index, row_stride) as ints (row_stride default ncols) whose Philox
     indices ``first_index + r·row_stride + c`` stay in [0, 2⁶⁴)."""
-    rows, ncols, first_index = int(rows), int(ncols), int(first_index)
-    row_stride = ncols if row_stride is None else int(row_stride)
-    if rows < 0 or ncols < 0 or row_stride < 0 or first_index < 0 \
-            or first_index + max(rows - 1, 0) * row_stride + ncols > 2**64:
-        raise ValueError(f"uniform_normal_grid: rows = {rows}, ncols = {ncols}, row_stride = {row_stride} "  # internal: callers pass detector geometry
-                         f"and first_index = {first_index} must be ≥ 0 with indices below 2**64")
+    rows, ncols = validation.integer("rows", rows, low=0), validation.integer("ncols", ncols, low=0)
+    first_index = validation.integer("first_index", first_index, low=0)
+    row_stride = ncols if row_stride is None else validation.integer("row_stride", row_stride, low=0)
+    if first_index + max(rows - 1, 0) * row_stride + ncols > 2**64:
+        raise ParameterError(f"uniform_normal_grid: rows = {rows}, ncols = {ncols}, row_stride = {row_stride} "
+                             f"and first_index = {first_index} reach Philox indices beyond 2**64")
     return rows, ncols, first_index, row_stride
 
 

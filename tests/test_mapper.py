@@ -240,7 +240,7 @@ def test_projection_tables_refuse_bad_arguments_naming_them():
                                       backend="numpy"), "weights_dtype"),
              (lambda: cp.deposit(np.ones((2, 1, 1)), t, backend="numpy"), "value must have shape"),
              (lambda: cp.deposit(np.ones((1, 1, 1)), t, out=np.zeros((3, 3)), backend="numpy"), "out must be"),
-             (lambda: gather(np.zeros((31, 32)), t, backend="numpy"), "image must have shape"),
+             (lambda: gather(np.zeros((31, 32)), t, backend="numpy"), "image must be a real array of shape"),
              (lambda: gather(np.zeros((32, 32)), t, power=3, backend="numpy"), "unknown power 3"),
              (lambda: matrix_entries(t, 0, 5), "sub-cell range")]
     for call, message in cases:

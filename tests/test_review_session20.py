@@ -141,6 +141,7 @@ def test_noise_backend_refused_before_the_cube(monkeypatch):
     sim = LazuliSupernova(0.5).simulation
     monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
     monkeypatch.delitem(prec.SINGLE_PRECISION_ERRORS, "noise")
+    monkeypatch.setattr(prec, "DOUBLE_ONLY_PRODUCTS", ("noise",))   # still a product, without single kernels
     called = []
     monkeypatch.setattr(cube_module, "detector_chunk", lambda *a, **k: called.append(1))
     with pytest.raises(OpenCLUnavailableError):
