@@ -242,7 +242,7 @@ def test_projection_tables_refuse_bad_arguments_naming_them():
              (lambda: cp.deposit(np.ones((1, 1, 1)), t, out=np.zeros((3, 3)), backend="numpy"), "out must be"),
              (lambda: gather(np.zeros((31, 32)), t, backend="numpy"), "image must be a real array of shape"),
              (lambda: gather(np.zeros((32, 32)), t, power=3, backend="numpy"), "unknown power 3"),
-             (lambda: matrix_entries(t, 0, 5), "sub-cell range")]
+             (lambda: matrix_entries(t, 0, 5), r"last \(sub-cell\) must be an integer in \[0, 1\], got 5")]
     for call, message in cases:
         with pytest.raises(ParameterError, match=message):
             call()
