@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.errors import ParameterError
-from slicersim.instrument.mapper import NARROW_SLICES, WIDE_SLICES
+from slicersim.instrument.slices import NARROW_SLICES, WIDE_SLICES
 from slicersim.io import footprint_files
 
 __all__ = ["SliceFootprint", "FieldFootprints", "field_footprints", "detector_label_image", "save_footprints",

@@ -51,13 +51,12 @@ from slicersim.io.config import builtin_config_dir
 from slicersim.backends.precision import resolve_precision
 from slicersim.backends.projection import (backend_tag, build_tables, default_block, deposit, load_tables,
                                           resolve_table_cache, store_tables, table_key)
+from slicersim.instrument.slices import NARROW_SLICES, WIDE_SLICES
 
 __all__ = ["SlicerMapper", "read_spot_table", "detector_rate_image", "NARROW_SLICES", "WIDE_SLICES",
            "DEFAULT_SPOT_TABLE"]
 
 DEFAULT_SPOT_TABLE = Path(builtin_config_dir()) / "lazuli_spots.csv"
-NARROW_SLICES = tuple(range(1, 59))
-WIDE_SLICES = tuple(range(59, 117))
 COLUMNS = ("slice", "fieldpos", "lbda", "x", "y", "rmsx_um", "rmsy_um")
 _CHUNK = 1 << 20
 
