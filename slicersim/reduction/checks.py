@@ -254,6 +254,8 @@ def _num(attrs, key, path):
     val = attrs[key]
     if isinstance(val, bytes):
         val = val.decode(errors="replace")
+    if isinstance(val, np.generic):
+        val = val.item()
     try:
         out = float(val)
     except (TypeError, ValueError):
