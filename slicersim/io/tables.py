@@ -56,10 +56,10 @@ def file_digest(path):
 def read_table(path, name):
     """astropy Table from an .ecsv, .csv or .parquet file (one ConfigError naming ``name``)."""
     from astropy.table import Table
+    path = validation.regular_file(name, path, error=ConfigError, max_bytes=MAX_TABLE_BYTES)
     fmt = TABLE_FORMATS.get(os.path.splitext(path)[1].lower())
     if fmt is None:
         raise ConfigError(f"{name}: {path} must be an .ecsv, .csv or .parquet file")
-    path = validation.regular_file(name, path, error=ConfigError, max_bytes=MAX_TABLE_BYTES)
     try:
         if fmt == "parquet":                    # pyarrow directly (astropy's reader needs pandas)
             import pyarrow.parquet as pq
