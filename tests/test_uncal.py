@@ -219,6 +219,12 @@ def test_every_hdu_carries_a_valid_checksum(tmp_path, exported):
     raw[offset] ^= 0x01
     odd.write_bytes(bytes(raw))
     assert any("SCI" in m or "Checksum" in m or "checksum" in m for m in _checksum_warnings(odd)[1])
+    with pytest.raises(RampFileError, match=r"odd.fits: checksum mismatch"):
+        read_uncal(odd)
+    fifo = tmp_path / "fifo.fits"
+    os.mkfifo(fifo)
+    with pytest.raises(RampFileError, match=r"fifo.fits is not a regular file"):
+        read_uncal(fifo)
 
 
 def test_checksum_encoding_is_the_fits_one():

@@ -632,14 +632,28 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 2
 
 
 def _open(path):
+    """The HDUList of a regular file (a FIFO or device refused before opening), its CHECKSUM /
+    DATASUM verified where present (a mismatch is a RampFileError naming the extension)."""
+    import warnings
+
     from astropy.io import fits
     path = os.fspath(path)
-    if not os.path.exists(path):
+    if not os.path.lexists(path):
         raise RampFileError(f"{path}: no such file")
+    path = validation.regular_file("level-1b file", path, error=RampFileError)
     try:
-        return fits.open(path, memmap=False)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            hdul = fits.open(path, memmap=False, checksum=True, lazy_load_hdus=False)
+            for hdu in hdul:
+                hdu.data                                 # noqa: B018 (loaded: DATASUM verified)
     except OSError as exc:
         raise RampFileError(f"{path}: not a FITS file ({one_line(exc)})") from exc
+    bad = [one_line(w.message) for w in caught if "checksum" in str(w.message).lower()]
+    if bad:
+        hdul.close()
+        raise RampFileError(f"{path}: checksum mismatch ({bad[0]}): the file is corrupt")
+    return hdul
 
 
 def read_uncal(path):
