@@ -59,3 +59,13 @@ def test_spectrum_tables_name_the_line_of_a_bad_value(tmp_path, text, match):
     good.write_text("lbda,flux\n4000,1e-17\n5000,2e-17\n")
     lbda, flux = read_spectrum_table(str(good), "population.spectrum")
     assert np.array_equal(lbda, [4000, 5000]) and np.array_equal(flux, [1e-17, 2e-17])
+
+
+def test_curve_files_that_are_not_regular_files_are_named(tmp_path):
+    from slicersim.io.curves import CurveError, read_curve
+    fifo = tmp_path / "curve.csv"
+    os.mkfifo(fifo)
+    exc = _no_hang(lambda: read_curve(str(fifo)))
+    assert isinstance(exc, CurveError) and "curve.csv is not a regular file" in str(exc)
+    with pytest.raises(CurveError, match="curve file not found"):
+        read_curve(str(tmp_path / "missing.csv"))
