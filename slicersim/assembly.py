@@ -61,6 +61,7 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
     kind = validation.choice("kind", spc.get("kind", "slicer"), ("slicer", "mla"), error=ConfigError,
                              what="spectrograph kind")
     cls = SlicerSpectrograph if kind == "slicer" else MLASpectrograph
+    _check_anamorphosis(spc, cls, kind)
     extra = _mla_options(cfg.get("spectrograph.psf.detector", {}), ext) if kind == "mla" else {}
     if "dispersion_law" not in spc and "resolving_power" not in spc:
         raise ConfigError("configuration needs [spectrograph] dispersion_law or resolving_power")
@@ -70,7 +71,7 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
                        dispersion_resolution=spc.get("dispersion_resolution", 2.0),
                        throughput=thr.get("throughput", 1.0), noptics=thr.get("noptics"),
                        throughput_column=fieldpar.get("throughput_column"),
-                       spatial_scale=fieldpar.get("spatial_scale", spc.get("spatial_scale", 0.04)),
+                       spatial_scale=_spatial_scale(spc, field, fieldpar),
                        spatial_shape=spc.get("spatial_shape", (58, 58)), optics=optics, **extra)
     detector = Detector(qe=det.get("QE", 1.0), gain=det.get("gain", 1.0), dark=det.get("dark", 0.0),
                         roic_glow=det.get("roic_glow", 0.0), ron=det.get("ron", 0.0),
@@ -91,6 +92,40 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
                      aperture_radius_insigma=ext.get("aperture_radius_insigma", 10.0), conventions=conventions)
     sim.config, sim.field = config, field
     return sim
+
+
+#: [spectrograph] spatial_scale of the built-in configurations [arcsec]: a field replaces it
+_BUILTIN_SPATIAL_SCALE = 0.04
+
+
+def _spatial_scale(spc, field, fieldpar):
+    """The cell size [arcsec]: the field's, or the configuration's with ``field=None``.  A
+    configuration value other than the built-in default and the field's own would be silently
+    replaced: refused (ConfigError naming the key)."""
+    given = spc.get("spatial_scale")
+    if not fieldpar:
+        return 0.04 if given is None else given
+    if given is not None and not any(abs(float(given) - v) <= 1e-9 * v
+                                     for v in (_BUILTIN_SPATIAL_SCALE, fieldpar["spatial_scale"])):
+        raise ConfigError(f"[spectrograph] spatial_scale = {validation.short_repr(given)}: the {field} field's cells "
+                          f"are {fieldpar['spatial_scale']:g} arcsec and replace it; build with field=None to use "
+                          "the configuration's spatial_scale, or remove the key")
+    return fieldpar["spatial_scale"]
+
+
+def _check_anamorphosis(spc, cls, kind):
+    """[spectrograph] anamorphosis is fixed by the spectrograph kind (slicer 1×2, micro-lens array
+    1×1): a different value is refused (ConfigError naming the key), not ignored."""
+    value = spc.get("anamorphosis")
+    if value is None:
+        return
+    fixed = tuple(cls.anamorphosis)
+    given = (1, value) if not isinstance(value, (list, tuple)) else tuple(value)
+    if len(given) == 1:
+        given = (1, given[0])
+    if tuple(float(v) for v in given) != tuple(float(v) for v in fixed):
+        raise ConfigError(f"[spectrograph] anamorphosis = {validation.short_repr(value)}: the {kind} spectrograph's "
+                          f"anamorphosis is {list(fixed)} (y, x); remove the key or give {list(fixed)}")
 
 
 def _mla_options(xdisp, ext):

@@ -330,3 +330,74 @@ def test_ramp_out_fifo_link_and_new_directory_are_refused(tmp_path, rate_file):
         line = one_error_line(run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", out, "--overwrite"))
         assert "--out" in line and re.search(message, line), line
     assert sorted(os.listdir(tmp_path)) == ["link.h5", "pipe"] and stat.S_ISFIFO(os.lstat(fifo).st_mode)
+
+
+# --------------------------------------------------------------------------- issue 26: inputs are regular files
+def _main_no_hang(capsys, argv, monkeypatch, timeout=60):
+    """(status, stderr) of main(argv) in a thread that must finish (a FIFO read would block forever)."""
+    import threading
+
+    from slicersim.app.cli import main
+    monkeypatch.delenv("SLICERSIM_DEBUG", raising=False)
+    result = []
+    thread = threading.Thread(target=lambda: result.append(main([str(a) for a in argv])), daemon=True)
+    thread.start()
+    thread.join(timeout)
+    assert not thread.is_alive(), f"{argv} blocked"
+    return result[0], capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["fifo", "zero", "dir"])
+@pytest.mark.parametrize("argv", [
+    ["etc", "--spectrum", "{input}"],
+    ["etc", "--redshift", "1", "--config", "{input}"],
+    ["ramp", "--rate", "{input}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"],
+    ["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "all", "--effects-config", "{input}",
+     "--out", "{tmp}/r.h5"],
+    ["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "persistence", "--previous-charge", "{input}",
+     "--out", "{tmp}/r.h5"],
+    ["campaign", "run", "{input}", "--out", "{tmp}/ds"],
+])
+def test_fifos_devices_and_directories_are_refused_before_reading(tmp_path, capsys, monkeypatch, kind, argv):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    if kind == "fifo":
+        path = tmp_path / "input.toml"
+        os.mkfifo(path)
+    elif kind == "zero":
+        path = "/dev/zero"
+    else:
+        path = tmp_path / "folder.toml"
+        path.mkdir()
+    subst = {"input": str(path), "tmp": str(tmp_path), "rate": str(rate)}
+    err = _one_line(*_main_no_hang(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    assert str(path) in err and ("not a regular file" in err or "directory" in err), err
+    assert not (tmp_path / "r.h5").exists() and not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize("text, needles", [
+    ("lbda,flux\n4000,1e-17\n5000,x\n6000,1e-17\n", ["sp.csv", "line 3", "5000,x"]),
+    ("lbda;flux\n4000,5;1,2e-17\n5000,5;1,3e-17\n", ["sp.csv", "line 2", "decimal"]),
+    ("4000 1,5e-17\n5000 1,6e-17\n", ["sp.csv", "line 1", "decimal"]),
+])
+def test_malformed_and_decimal_comma_spectra_name_the_line(tmp_path, capsys, monkeypatch, text, needles):
+    path = tmp_path / "sp.csv"
+    path.write_text(text)
+    err = _one_line(*_main_error(capsys, ["etc", "--spectrum", path, "--snr", "10"], monkeypatch))
+    for needle in needles:
+        assert needle in err, (needle, err)
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--nmd", "4", "1", "1000000000"], "--nmd[2] (d, dropped frames between groups)"),
+    (["--nmd", "5000", "1", "0"], "--nmd[0] (n, groups per ramp)"),
+    (["--nmd", "3", "1", "0", "--ron", "1e300"], "--ron [e-/read]"),
+    (["--nmd", "3", "1", "0", "--ron", "9000"], "more than 1/8 of the 16-bit ADC range"),
+    (["--nmd", "3", "1", "0", "--gain", "1e-300"], "--gain [ADU/e-]"),
+    (["--nmd", "3", "1", "0", "--tframe", "1e300"], "--tframe [s]"),
+])
+def test_ramp_detector_options_out_of_their_physical_range_are_refused(tmp_path, capsys, monkeypatch, argv, needle):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    err = _one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--out", tmp_path / "r.h5", *argv], monkeypatch))
+    assert needle in err and not (tmp_path / "r.h5").exists()

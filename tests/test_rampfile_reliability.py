@@ -107,7 +107,9 @@ def test_full_disk_cli_one_line_exit_2(tmp_path, tiny_tmpfs):
     assert proc.returncode == 2, proc.stderr[-2000:]
     errors = [ln for ln in proc.stderr.splitlines() if "error" in ln.lower()]
     assert errors == [ln for ln in errors if ln.startswith("slicersim: error: ")] and len(errors) == 1
-    assert "No space left on device" in errors[0] and "Traceback" not in proc.stderr
+    # 16 groups × 512² × 3 B = 12.6 MB uncompressed, ≥ 3.1 MB compressed at most 4×: refused before writing
+    assert "not enough disk space" in errors[0] and "compressed at most 4×" in errors[0]
+    assert "r.h5" in errors[0] and "Traceback" not in proc.stderr
     assert os.listdir(tiny_tmpfs) == []
 
 
@@ -341,9 +343,10 @@ def test_truth_compression_only_where_it_pays(tmp_path):
     assert _compression_for(bias)["shuffle"]
     sparse = np.ones((256, 256), np.float32)
     sparse[rng.random((256, 256)) < 0.01] = 0.5
-    assert _compression_for(noisy) == {}
+    assert _compression_for(noisy) == {"chunks": True, "fletcher32": True}      # checksummed, not compressed
     assert _compression_for(sparse)["compression"] == "gzip" and _compression_for(sparse)["shuffle"]
-    assert _compression_for(np.zeros(10)) == {}                       # small: never
+    assert "compression" not in _compression_for(np.zeros(10))            # small: never
+    assert _compression_for(np.zeros(0)) == {} and _compression_for(np.float32(1)) == {}   # no chunks possible
     path = tmp_path / "t.h5"
     with RampWriter(path, 1, 2, (256, 256)) as w:
         w.write_block(0, 0, np.zeros((2, 256, 256), np.uint16), np.zeros((2, 256, 256), np.uint8))
@@ -351,6 +354,7 @@ def test_truth_compression_only_where_it_pays(tmp_path):
         w.write_dataset("qe", sparse)
     with h5py.File(path) as f:
         assert f["truth/bias"].compression is None and f["truth/qe"].compression == "gzip"
+        assert f["truth/bias"].fletcher32 and f["truth/qe"].fletcher32
         np.testing.assert_array_equal(f["truth/bias"][...], noisy)
         np.testing.assert_array_equal(f["truth/qe"][...], sparse)
 
@@ -377,3 +381,158 @@ def test_hdf5_busy_count_is_exact_with_concurrent_writer_threads(tmp_path):
             with ThreadPoolExecutor(1) as pool:
                 pool.submit(w._h5, interrupted).result()         # delivered in the worker, re-raised here
     assert not (tmp_path / "s.h5").exists()
+
+
+# --------------------------------------------------------------------------- inputs we did not write
+def _small_ramp(path, compression=None, truth=True):
+    """A complete 2-ramp file written by RampWriter (SCI 2×3×8×16)."""
+    sci = (np.arange(2 * 3 * 8 * 16).reshape(2, 3, 8, 16) % 1000 + 1000).astype(np.uint16)
+    with RampWriter(path, 2, 3, (8, 16), attrs={"NFRAMES": 1, "GROUPGAP": 0, "TFRAME": 1.0, "GAIN": 1.0,
+                                                "READNOISE": 5.0}, row_block=4, compression=compression,
+                    truth_rate=truth) as w:
+        for ramp in range(2):
+            w.write_block(ramp, 0, sci[ramp])
+        w.write_pixeldq(np.zeros((8, 16), np.uint32))
+        if truth:
+            w.write_truth(np.full((8, 16), 3.0))
+    return sci
+
+
+def _rewrite(src, dst, edit):
+    """Copy the ramp file ``src`` to ``dst`` (h5py) and apply ``edit(fh)`` to the copy."""
+    import h5py
+    with h5py.File(src, "r") as a, h5py.File(dst, "w") as b:
+        for key in a.attrs:
+            b.attrs[key] = a.attrs[key]
+        for name in ("SCI", "GROUPDQ", "PIXELDQ"):
+            b.create_dataset(name, data=a[name][...])
+        b.create_dataset("truth/rate", data=a["truth/rate"][...])
+        edit(b)
+    return dst
+
+
+def test_written_datasets_carry_fletcher32_and_read_back_compressed(tmp_path):
+    import h5py
+    for comp in (None, "gzip:1", "lz4"):
+        path = tmp_path / f"r_{comp}.h5"
+        sci = _small_ramp(path, compression=comp)
+        with h5py.File(path, "r") as fh:
+            assert all(fh[n].fletcher32 for n in ("SCI", "GROUPDQ", "PIXELDQ", "truth/rate"))
+            assert (fh["SCI"].compression is not None) == (comp is not None)
+        assert np.array_equal(read_ramps(path)[0], sci)
+
+
+def _flip_sci_byte(path):
+    """Flip one byte inside the first stored chunk of SCI."""
+    import h5py
+    with h5py.File(path, "r") as fh:
+        info = fh["SCI"].id.get_chunk_info(0)
+        offset = info.byte_offset + 5
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        byte = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([byte[0] ^ 0xFF]))
+
+
+def test_a_flipped_data_byte_is_a_checksum_error(tmp_path):
+    path = tmp_path / "r.h5"
+    _small_ramp(path)
+    _flip_sci_byte(path)
+    with pytest.raises(RampFileError, match=r"checksum mismatch in dataset SCI of .*r\.h5"):
+        read_ramps(path)
+
+
+@pytest.mark.parametrize("case", ["external_storage", "virtual", "external_link_sci", "external_link_truth",
+                                  "sci_group"])
+def test_hdf5_inputs_reading_outside_the_file_are_refused(tmp_path, case):
+    import h5py
+
+    from slicersim.io.uncal import write_uncal_from_hdf5
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(b"SECRET!!" * 16 * 8 * 16)
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as fh:
+        fh["x"] = np.zeros((8, 16), np.float32)
+    good = tmp_path / "good.h5"
+    _small_ramp(good)
+
+    def edit(fh):
+        if case == "external_storage":
+            del fh["truth/rate"]
+            fh.create_dataset("truth/rate", (8, 16), dtype="f4", external=[(str(secret), 0, 8 * 16 * 4)])
+        elif case == "virtual":
+            del fh["truth/rate"]
+            layout = h5py.VirtualLayout(shape=(8, 16), dtype="f4")
+            layout[:] = h5py.VirtualSource(str(other), "x", shape=(8, 16))
+            fh["truth"].create_virtual_dataset("rate", layout)
+        elif case == "external_link_sci":
+            del fh["SCI"]
+            fh["SCI"] = h5py.ExternalLink(str(other), "x")
+        elif case == "external_link_truth":
+            del fh["truth/rate"]
+            fh["truth/rate"] = h5py.ExternalLink(str(other), "x")
+        else:
+            del fh["SCI"]
+            fh.create_group("SCI")
+    bad = _rewrite(good, tmp_path / "bad.h5", edit)
+    what = {"external_storage": r"dataset truth/rate has external storage", "virtual": r"truth/rate is a virtual",
+            "external_link_sci": r"SCI is an external link", "external_link_truth": r"truth/rate is an external link",
+            "sci_group": r"SCI is a group, not a dataset"}[case]
+    with pytest.raises(RampFileError, match=what):
+        read_ramps(bad)
+    with pytest.raises(RampFileError, match=what):
+        write_uncal_from_hdf5(bad, tmp_path / "out.fits")
+    assert not (tmp_path / "out.fits").exists()
+
+
+def test_inputs_that_are_not_regular_files_are_refused_without_opening(tmp_path):
+    fifo = tmp_path / "fifo.h5"
+    os.mkfifo(fifo)
+    result = {}
+
+    def call():
+        for path in (fifo, "/dev/zero", tmp_path):
+            try:
+                read_ramps(path)
+            except RampFileError as exc:
+                result[str(path)] = str(exc)
+    thread = threading.Thread(target=call, daemon=True)
+    thread.start()
+    thread.join(30)
+    assert not thread.is_alive(), "reading a FIFO blocked"
+    assert "not a regular file" in result[str(fifo)] and "fifo.h5" in result[str(fifo)]
+    assert "/dev/zero is not a regular file" in result["/dev/zero"]
+    assert "is a directory" in result[str(tmp_path)]
+
+
+def test_compressed_output_is_checked_against_the_free_space(tmp_path, monkeypatch):
+    import shutil
+
+    from slicersim.io import rampfile
+    real = shutil.disk_usage
+
+    def tiny(path):
+        usage = real(path)
+        return usage._replace(free=10 << 20)              # 10 MB free
+    monkeypatch.setattr(rampfile.shutil, "disk_usage", tiny)
+    # 64 ramps × 4 groups × 1024² × 3 B = 805 MB uncompressed: at most 4× compression → 201 MB > 10 MB
+    with pytest.raises(RampFileError, match=r"not enough disk space .*compressed at most 4×"):
+        RampWriter(tmp_path / "big.h5", 64, 4, (1024, 1024), compression="gzip").check()
+    assert not os.listdir(tmp_path)
+
+
+def test_compressed_output_measured_after_the_first_ramp(tmp_path, monkeypatch):
+    import shutil
+
+    from slicersim.io import rampfile
+    real = shutil.disk_usage
+    free = {"bytes": 1 << 40}
+    monkeypatch.setattr(rampfile.shutil, "disk_usage", lambda p: real(p)._replace(free=free["bytes"]))
+    rng = np.random.default_rng(1)
+    block = rng.integers(0, 65535, (2, 64, 64), dtype=np.uint16)        # incompressible
+    with pytest.raises(RampFileError, match=r"not enough disk space .*measured compression on the first of 1000"):
+        with RampWriter(tmp_path / "big.h5", 1000, 2, (64, 64), compression="gzip:1", pixeldq=False) as w:
+            free["bytes"] = 2 << 20               # room for ~ a hundred ramps, not 1000
+            w.write_block(0, 0, block)
+    assert not os.listdir(tmp_path)

@@ -432,3 +432,93 @@ def test_out_fifo_link_and_directory_are_refused_and_untouched(raw, tmp_path, ca
         assert "--out" in line and re.search(message, line), line
     assert sorted(os.listdir(tmp_path)) == ["link.h5", "pipe"]
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and os.path.islink(link)
+
+
+# --------------------------------------------------------------------------- inputs we did not write
+def _flip_sci_byte(path):
+    with h5py.File(path, "r") as fh:
+        offset = fh["SCI"].id.get_chunk_info(0).byte_offset + 3
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        byte = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([byte[0] ^ 0x10]))
+
+
+def test_external_truth_is_refused_and_its_bytes_never_copied(raw, tmp_path, capsys):
+    path, rate = raw
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(np.full(rate.shape, 12345.0, np.float32).tobytes())
+
+    def external(fh):
+        del fh["truth/rate"]
+        fh.create_dataset("truth/rate", rate.shape, dtype="f4", external=[(str(secret), 0, rate.size * 4)])
+    bad = _h5_copy(path, tmp_path / "external.h5", external)
+    out = tmp_path / "out.h5"
+    assert main(["reduce", str(bad), "--out", str(out), "--with-truth", "--quiet"]) == 2
+    assert "dataset truth/rate has external storage" in _one_line_error(capsys) and not out.exists()
+    link = _h5_copy(path, tmp_path / "link.h5", lambda fh: (fh.__delitem__("truth/rate"),
+                                                            fh.__setitem__("truth/rate", h5py.ExternalLink(str(bad), "SCI"))))
+    assert main(["reduce", str(link), "--out", str(out), "--with-truth", "--quiet"]) == 2
+    assert "truth/rate is an external link" in _one_line_error(capsys) and not out.exists()
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("GAIN", 1e-300, "keyword GAIN = 1e-300 is outside the physical range"),
+    ("READNOISE", 1e300, "keyword READNOISE = 1e+300 is outside the physical range"),
+    ("DARK", float("nan"), "keyword DARK = nan is not finite"),
+    ("EFFECTS", "{not json", "keyword EFFECTS = '{not json' is not the JSON object"),
+    ("NFRAMES", 10**9, "NFRAMES"),
+])
+def test_raw_keywords_out_of_their_physical_range_are_named(raw, tmp_path, capsys, key, value, message):
+    path, _ = raw
+    bad = _h5_copy(path, tmp_path / "bad.h5", lambda fh: fh.attrs.__setitem__(key, value))
+    out = tmp_path / "out.h5"
+    assert main(["reduce", str(bad), "--out", str(out), "--quiet"]) == 2
+    assert message in _one_line_error(capsys) and not out.exists()
+
+
+def test_nan_linearity_truth_is_refused(raw, tmp_path, capsys):
+    path, rate = raw
+    coeffs = np.zeros((3,) + rate.shape)
+    coeffs[1] = 1.0
+    coeffs[1, 5, 5] = np.nan
+    bad = _h5_copy(path, tmp_path / "bad.h5",
+                   lambda fh: fh.create_dataset("truth/nonlinearity/inverse_coefficients", data=coeffs))
+    out = tmp_path / "out.h5"
+    assert main(["reduce", str(bad), "--out", str(out), "--quiet"]) == 2
+    assert "truth/nonlinearity/inverse_coefficients has non-finite values" in _one_line_error(capsys)
+    assert not out.exists()
+
+
+def test_ramp_inputs_that_are_not_regular_files_are_refused(tmp_path, capsys):
+    import os
+    import threading
+    fifo = tmp_path / "fifo.h5"
+    os.mkfifo(fifo)
+    codes = []
+    thread = threading.Thread(target=lambda: codes.append(main(["reduce", str(fifo), "--out",
+                                                                str(tmp_path / "o.h5"), "--quiet"])), daemon=True)
+    thread.start()
+    thread.join(60)
+    assert not thread.is_alive() and codes == [2]
+    assert "fifo.h5" in _one_line_error(capsys)
+    assert main(["reduce", "/dev/zero", "--out", str(tmp_path / "o.h5"), "--quiet"]) == 2
+    assert "/dev/zero" in _one_line_error(capsys)
+    from slicersim.errors import RampFileError
+    from slicersim.reduction.checks import check_ramp_file
+    with pytest.raises(RampFileError, match="fifo.h5 is not a regular file"):
+        check_ramp_file(fifo)
+
+
+def test_a_flipped_data_byte_fails_with_a_checksum_error(raw, tmp_path, capsys):
+    """Acceptance (issue 26): one flipped byte of SCI makes reduce fail (exit 2) naming the checksum."""
+    import shutil
+    path, _ = raw
+    bad = tmp_path / "flipped.h5"
+    shutil.copy(path, bad)
+    _flip_sci_byte(bad)
+    out = tmp_path / "out.h5"
+    assert main(["reduce", str(bad), "--out", str(out), "--quiet"]) == 2
+    error = _one_line_error(capsys)
+    assert "checksum mismatch in dataset SCI" in error and "flipped.h5" in error and not out.exists()

@@ -187,3 +187,28 @@ def test_check_spectra_options_names_and_units():
         check_spectra_options(ncols=3)
     edges = check_spectra_options(lbda_edges=np.linspace(905.0, 995.0, 13) * u.nm)["lbda_edges"]
     np.testing.assert_allclose(edges, np.linspace(9050.0, 9950.0, 13), rtol=1e-15)
+
+
+@pytest.mark.parametrize("key, value, match", [("GAIN", 1e-300, "keyword GAIN = 1e-300 is outside"),
+                                               ("DARK", float("nan"), "keyword DARK = nan is not finite"),
+                                               ("EFFECTS", "{oops", "keyword EFFECTS")])
+def test_raw_keywords_out_of_range_are_refused_before_the_fit(small, raw, tmp_path, key, value, match):
+    """Issue 26: reduce_exposure on a file (the Python API, no check_ramp_file before it) names
+    the keyword; a gain given by the caller replaces the file's."""
+    import shutil
+
+    import h5py
+
+    from slicersim.errors import RampFileError
+    from slicersim.reduction.pipeline import reduce_exposure
+    bad = tmp_path / "bad.h5"
+    shutil.copy(raw[0], bad)
+    with h5py.File(bad, "r+") as fh:
+        fh.attrs[key] = value
+    with pytest.raises(RampFileError, match=match):
+        reduce_exposure(str(bad), mapper=small, lbda_edges=EDGES, ncol=NCOL)
+    if key == "GAIN":
+        from slicersim.reduction.pipeline import _plan
+        plan = _plan(str(bad), ReduceOptions(mapper=small, lbda_edges=EDGES, ncol=NCOL, fit_options={"gain": 1.0}),
+                     None, False)
+        assert plan.raw_attrs["GAIN"] == 1e-300

@@ -160,7 +160,32 @@ BAD_CONFIG = [
     ("[telescope]\ndiameter_int = 3.5", r"\[telescope\] diameter_int"),
     ("[detector]\nreadout_mode = [70, 8, 0]", r"\[detector\] readout_mode = \[70, 8, 0\]: n = 70 exceeds max_group"),
     ("[extraction]\naperture_radius_insigma = 0", r"\[extraction\] aperture_radius_insigma = 0"),
+    # issue 26: bounded by the readout (validation.MAX_GROUPS), used or refused
+    ("[detector]\nmax_group = 1e9", r"\[detector\] max_group = 1000000000.0: must be ≤ 4096"),
+    ("[detector]\nmin_group = 5000", r"\[detector\] min_group = 5000: must be ≤ 4096"),
+    ("[detector]\nreadout_mode = [4, 1, 1000000000]", r"\[detector\] readout_mode = .*d, dropped frames"),
+    ("[spectrograph]\nanamorphosis = 0", r"\[spectrograph\] anamorphosis = 0: must be one or two integers ≥ 1"),
+    ("[spectrograph]\nspatial_shape = [58.5, 58]", r"\[spectrograph\] spatial_shape\[0\]"),
+    ("[spectrograph.psf.spatial]\npsf_profile = \"foo\"",
+     r"\[spectrograph.psf.spatial\] psf_profile 'foo'; valid: 'normal', 'gaussian'"),
+    ("[spectrograph.psf.spatial]\nguiding_profile = \"airy\"", r"\[spectrograph.psf.spatial\] guiding_profile"),
 ]
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[spectrograph]\nspatial_scale = 0.1", r"\[spectrograph\] spatial_scale = 0.1: the narrow field's cells are 0.04"),
+    ("[spectrograph]\nanamorphosis = [1, 1]", r"\[spectrograph\] anamorphosis = \[1, 1\]: the slicer spectrograph's "
+                                             r"anamorphosis is \[1, 2\]"),
+])
+def test_config_keys_a_field_or_the_spectrograph_would_ignore_are_refused(tmp_path, text, match):
+    """Issue 26: a key replaced by the field (spatial_scale) or fixed by the spectrograph kind
+    (anamorphosis) is refused, not silently ignored; the values they would take are accepted."""
+    from slicersim.assembly import build_simulation
+    cfg = _layer(tmp_path, text)
+    with pytest.raises(ConfigError, match=match):
+        build_simulation(cfg, "narrow")
+    ok = _layer(tmp_path, "[spectrograph]\nspatial_scale = 0.08\nanamorphosis = [1, 2]")
+    assert build_simulation(ok, "wide").spectrograph.spatial_scale == 0.08
 
 
 @pytest.mark.parametrize("text, match", BAD_CONFIG)

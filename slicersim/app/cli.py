@@ -79,8 +79,9 @@ def cmd_demo(args) -> int:
 def _read_spectrum(path):
     """Two-column text/CSV file: wavelength [Angstrom], flux [erg/s/cm2/Angstrom].
 
-    Lines before the first numeric row are a header; after it, a row that is not two numbers is
-    an error naming the file and the line (SpectrumError), as is a file that is not UTF-8 text
+    Lines before the first numeric row are a header; after it, a row that is not two numbers (or
+    has more fields, as decimal commas give) is an error naming the file and the line
+    (SpectrumError), as is a file that is not UTF-8 text
     (e.g. a binary or .npy file given by mistake)."""
     import numpy as np
 
@@ -98,6 +99,10 @@ def _read_spectrum(path):
         fields = line.split("#", 1)[0].replace(",", " ").replace(";", " ").split()
         if not fields:
             continue
+        if len(fields) > 2 and _two_numbers(fields) is not None:
+            raise SpectrumError(f"--spectrum: {path}, line {number}: {len(fields)} fields "
+                                f"{validation.short_repr(line.strip())}, expected two numbers 'wavelength flux' "
+                                "(decimal commas? write numbers with a decimal point)")
         row = _two_numbers(fields)
         if row is None:
             if not lbda:
@@ -252,9 +257,36 @@ def _ramp_effects(args):
     return effects
 
 
+#: physical range of the ramp command's detector options: (low, high, unit) (the same bounds as a
+#: raw file's keywords, :data:`slicersim.reduction.checks.ATTR_RANGES`)
+RAMP_DETECTOR_RANGES = {"tframe": (1e-6, 1e4, "s"), "ron": (0.0, 1e4, "e-/read"), "dark": (0.0, 1e6, "e-/s"),
+                        "roic_glow": (0.0, 1e6, "e-/frame"), "gain": (1e-3, 1e3, "ADU/e-")}
+#: the 16-bit ADC's range [ADU]: a read noise above 1/8 of it would fill the file with 0 and 65535
+ADC_MAX = 65535
+
+
+def _check_ramp_detector(args):
+    """The readout (--nmd, :func:`~slicersim.validation.readout`'s bounds) and the detector options
+    in their physical range (ParameterError naming the flag); a read noise that alone would
+    saturate the ADC (--ron × --gain > ADC_MAX / 8) is refused."""
+    from slicersim.errors import ParameterError
+    nmd = validation.readout(tuple(args.nmd), name="--nmd", error=ParameterError)
+    for key, (low, high, unit) in RAMP_DETECTOR_RANGES.items():
+        value = getattr(args, key, None)
+        if value is not None:
+            validation.number(f"--{key.replace('_', '-')} [{unit}]", value, low=low, high=high)
+    if args.ron is not None:
+        gain = args.gain if args.gain is not None else RAMP_DETECTOR_DEFAULTS["gain"]
+        if args.ron * gain > ADC_MAX / 8:
+            raise ParameterError(f"--ron {args.ron:g} e- × gain {gain:g} ADU/e- = {args.ron * gain:.3g} ADU of read "
+                                 f"noise per read: more than 1/8 of the 16-bit ADC range ({ADC_MAX} ADU), the "
+                                 "ramps would be 0 and 65535 only")
+    return nmd
+
+
 def cmd_ramp(args) -> int:
     from slicersim.products import ramps
-    nmd = tuple(args.nmd)
+    nmd = _check_ramp_detector(args)
     effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
     _check_output(args.out, args.overwrite)
     from slicersim import validation

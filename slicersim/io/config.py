@@ -19,8 +19,9 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
+from slicersim.io.tables import read_file_bytes
 
-__all__ = ["load_config", "validate_config", "ConfigError", "builtin_config_dir", "SCHEMA"]
+__all__ = ["load_config", "validate_config", "ConfigError", "builtin_config_dir", "SCHEMA", "PROFILES"]
 
 
 
@@ -83,13 +84,15 @@ def _did_you_mean(names, valid):
 
 
 def _read_toml(path):
-    if not os.path.isfile(path):
+    if not os.path.lexists(path):
         raise ConfigError(f"configuration file not found: {path}")
+    raw = read_file_bytes(path, ConfigError, "configuration file")
     try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:   # a binary file: not UTF-8
-        raise ConfigError(f"cannot parse TOML {path}: {exc}") from exc
+        doc = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:                              # a binary file: not UTF-8
+        raise ConfigError(f"cannot parse TOML {path}: not UTF-8 text (byte {exc.start})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"cannot parse TOML {path}: {exc}") from None
     tables = _flatten_tables(doc)
     here = os.path.dirname(os.path.abspath(path))
     for table, entries in tables.items():
@@ -232,6 +235,28 @@ def _check_fraction(cfg, table, key, what):
         raise _bad(table, key, value, f"{what} must lie in [0, 1]")
 
 
+#: the PSF / guiding profiles a configuration may name: the simulator's chromatic PSF and guiding
+#: are Gaussian ("normal"); the Airy profile of cubes is chosen per product (``psf_profile=`` of
+#: ``get_cube``, the campaign's ``observation.psf_profile``), not in the instrument configuration
+PROFILES = ("normal", "gaussian")
+
+
+def _check_spectrograph_keys(cfg):
+    """spatial_shape, anamorphosis and the PSF profiles: used as written or refused."""
+    spc = cfg.get("spectrograph", {})
+    if isinstance(spc, dict) and spc.get("spatial_shape") is not None:
+        validation.shape("[spectrograph] spatial_shape", spc["spatial_shape"], error=ConfigError)
+    if isinstance(spc, dict) and spc.get("anamorphosis") is not None:
+        value = spc["anamorphosis"]
+        arr = _numbers("spectrograph", "anamorphosis", value)
+        if arr.size not in (1, 2) or not np.all(np.isfinite(arr)) or np.any(arr < 1) or np.any(arr != np.round(arr)):
+            raise _bad("spectrograph", "anamorphosis", value, "must be one or two integers ≥ 1 (y, x)")
+    psf = cfg.get("spectrograph.psf.spatial", {})
+    for key in ("psf_profile", "guiding_profile"):
+        if isinstance(psf, dict) and psf.get(key) is not None:
+            validation.choice(f"[spectrograph.psf.spatial] {key}", psf[key], PROFILES, error=ConfigError)
+
+
 def validate_config(cfg):
     """Refuse physically invalid values of a merged configuration (returned unchanged).
 
@@ -241,7 +266,10 @@ def validate_config(cfg):
     detector shape that is not two integers ≥ 1; negative dark, ron, roic_glow (or
     full_well, when given); gain ≤ 0; bias ≥ saturation (when given); diameter_ext ≤ 0;
     diameter_int < 0 or ≥ diameter_ext; aperture_radius_insigma ≤ 0; nramps < 1;
-    min_group < 2, max_group < min_group, readout_mode n > max_group.
+    min_group < 2, max_group < min_group, max_group or min_group > :data:`~slicersim.validation.MAX_GROUPS`,
+    readout_mode out of :func:`~slicersim.validation.readout`'s bounds or n > max_group;
+    spatial_shape not two integers ≥ 1, anamorphosis not two numbers ≥ 1, a PSF or guiding
+    profile other than "normal" (see :data:`PROFILES`).
     """
     for table, key in (("telescope", "emissivity"), ("spectrograph.optics", "emissivity")):
         _check_range(cfg, table, key, 0.0, 1.0)
@@ -279,8 +307,9 @@ def validate_config(cfg):
         sat = det.get("saturation", 65535)
         if float(det["bias"]) >= float(sat):
             raise _bad("detector", "bias", det["bias"], f"must be below saturation = {sat!r}")
-    _check_range(cfg, "detector", "min_group", 2.0, integer=True)
-    _check_range(cfg, "detector", "max_group", 2.0, integer=True)
+    _check_range(cfg, "detector", "min_group", 2.0, validation.MAX_GROUPS, integer=True)
+    _check_range(cfg, "detector", "max_group", 2.0, validation.MAX_GROUPS, integer=True)
+    _check_spectrograph_keys(cfg)
     min_group, max_group = det.get("min_group", 2), det.get("max_group", 64)
     if max_group and min_group and max_group < min_group:
         raise _bad("detector", "max_group", max_group, f"must be ≥ min_group = {min_group!r}")

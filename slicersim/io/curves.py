@@ -53,7 +53,7 @@ def read_curve(path, columns=None, wavelength_unit=None):
     lbda : ndarray  [AA], strictly increasing
     values : dict  column name -> ndarray
     """
-    if not os.path.isfile(path):
+    if not os.path.lexists(path):
         raise CurveError(f"curve file not found: {path}")
     raw = read_file_bytes(path, CurveError, "curve file")
     try:

@@ -12,7 +12,11 @@ Layout (one file per exposure)::
     root attributes NINTS NGROUPS NFRAMES GROUPGAP TFRAME TGROUP READPATT GAIN READNOISE
                     SEED BUNIT SOFTWARE VERSION CONFIG (JSON) COMPLETE
 
-SCI and GROUPDQ are chunked one group × a row block.  The file is written
+SCI and GROUPDQ are chunked one group × a row block.  Every dataset carries HDF5's Fletcher-32
+checksum (verified by HDF5 on each read: a flipped byte is a :class:`RampFileError` "checksum
+mismatch", :func:`read_error`).  Files read here are inputs we did not write: external storage,
+virtual datasets and external links are refused before any data are read (:func:`check_hdf5_input`).
+The file is written
 under a temporary name ``.NAME.tmp-PID-xxxx`` in the target directory and
 linked to ``NAME`` only when complete (never replacing an existing file
 unless asked); an interrupted writer leaves no file with the final name, and
@@ -20,6 +24,7 @@ its temporary is removed by the next writer in that directory.
 """
 from __future__ import annotations
 
+from slicersim import validation
 from slicersim.errors import RampFileError
 
 import json
@@ -31,12 +36,16 @@ import numpy as np
 from slicersim.io.atomic import _HDF5_MARGIN, AtomicH5File, is_temporary, one_line, remove_stale_temporaries
 
 __all__ = ["RampWriter", "RampFileError", "compression_options", "read_ramps", "DQ", "is_temporary",
-           "remove_stale_temporaries"]
+           "remove_stale_temporaries", "check_hdf5_input", "read_error", "open_hdf5_input", "MAX_COMPRESSION"]
 
 #: JWST data-quality bit values
 DQ = {"GOOD": 0, "DO_NOT_USE": 1, "SATURATED": 2, "JUMP_DET": 4, "DEAD": 1024, "HOT": 2048}
 
-
+#: largest compression ratio assumed by the free-space check of a compressed ramp: noisy uint16
+#: ramps compress ~2-3× losslessly (bit-shuffle + LZ4/Zstd); the check needs uncompressed / this
+MAX_COMPRESSION = 4.0
+#: most objects (groups, datasets) :func:`check_hdf5_input` visits in one input file
+MAX_HDF5_OBJECTS = 100_000
 
 
 def compression_options(compression):
@@ -45,12 +54,19 @@ def compression_options(compression):
     None (default, uncompressed), ``"gzip"`` or ``"gzip:<level>"``, ``"lz4"``
     (Blosc2/LZ4 with bit-shuffle, via hdf5plugin), ``"zstd"`` (Blosc2/Zstd with
     bit-shuffle), ``"bitshuffle-lz4"`` (bitshuffle filter with LZ4).
+    Every option set carries ``fletcher32=True`` (a checksum per chunk, verified on read).
     """
+    return {**_compression_filters(compression), "fletcher32": True}
+
+
+def _compression_filters(compression):
     if compression in (None, "none", False):
         return {}
     if str(compression).startswith("gzip"):
-        level = int(str(compression).split(":")[1]) if ":" in str(compression) else 4
-        return {"compression": "gzip", "compression_opts": level, "shuffle": True}
+        level = str(compression).split(":")[1] if ":" in str(compression) else "4"
+        if not level.isdigit() or not 0 <= int(level) <= 9:
+            raise RampFileError(f"compression {compression!r}: the gzip level must be an integer 0-9")
+        return {"compression": "gzip", "compression_opts": int(level), "shuffle": True}
     try:
         import hdf5plugin
     except ImportError as exc:
@@ -107,17 +123,37 @@ class RampWriter(AtomicH5File):
 
     def check(self):
         """Refuse early (before any simulation or allocation): missing or read-only directory,
-        existing file without ``overwrite``, not enough free disk space for an uncompressed file."""
+        existing file without ``overwrite``, not enough free disk space: for the uncompressed file,
+        or for a compressed one its uncompressed size / :data:`MAX_COMPRESSION` (the compression
+        reached is measured on the first ramp written, :meth:`write_block`)."""
         super().check()
         directory = os.path.dirname(self.path) or "."
         remove_stale_temporaries(directory)          # a killed writer's temporary holds disk space
-        if not self.compression:
-            need = self.expected_bytes() + _HDF5_MARGIN
-            free = shutil.disk_usage(directory).free
-            if need > free:
-                raise RampFileError(f"not enough disk space in {directory}: need {need / 1e9:.3g} GB "
-                                    f"for {self.path}, {free / 1e9:.3g} GB free")
+        self._check_space(self.expected_bytes() / (MAX_COMPRESSION if self._compressed else 1.0),
+                          "" if not self._compressed else f" (compressed at most {MAX_COMPRESSION:g}×)")
         return self
+
+    @property
+    def _compressed(self):
+        return "compression" in self.compression
+
+    def _check_space(self, need, how="", held=0):
+        """RampFileError when ``need`` bytes (+ margin) exceed the free space plus ``held`` bytes
+        (those already written by this writer) of the output directory."""
+        directory = os.path.dirname(self.path) or "."
+        need = need + _HDF5_MARGIN
+        free = shutil.disk_usage(directory).free + held
+        if need > free:
+            raise RampFileError(f"not enough disk space in {directory}: need {need / 1e9:.3g} GB{how} "
+                                f"for {self.path}, {free / 1e9:.3g} GB free")
+
+    def _check_measured_space(self):
+        """After the first ramp of a compressed file: its size on disk projected to every ramp
+        must fit (the compression of noisy ramps is measured, not assumed)."""
+        self._h5(self.file.flush)
+        written = os.fstat(self._fd).st_size if self._fd is not None else 0
+        self._check_space(written * self.nramps + self.extra_bytes,
+                          f" (measured compression on the first of {self.nramps} ramps)", held=written)
 
     def _populate(self, file):
         dims = (self.nramps, self.ngroups) + self.shape
@@ -130,7 +166,7 @@ class RampWriter(AtomicH5File):
                                                    chunks=(self.row_block, self.shape[1]), **self.compression)
         if self.truth_rate:
             self.truth = file.create_dataset("truth/rate", self.shape, dtype="f4",
-                                                   chunks=(self.row_block, self.shape[1]))
+                                                   chunks=(self.row_block, self.shape[1]), fletcher32=True)
         for key, val in self.attrs.items():
             file.attrs[key] = val if not isinstance(val, (dict, list, tuple)) else json.dumps(val)
         file.attrs["COMPLETE"] = False
@@ -145,6 +181,8 @@ class RampWriter(AtomicH5File):
             if groupdq is not None:
                 self.groupdq[ramp, :, rows, :] = groupdq
         self._h5(put)
+        if self._compressed and self.nramps > 1 and ramp == 0 and rows.stop >= self.shape[0]:
+            self._check_measured_space()
 
     def write_pixeldq(self, pixeldq):
         self._h5(self.pixdq.__setitem__, Ellipsis, np.asarray(pixeldq, dtype=np.uint32))
@@ -166,7 +204,7 @@ class RampWriter(AtomicH5File):
                 k, ny, nx = array.shape
                 rows = max(1, min(ny, (16 << 20) // max(1, k * nx * np.dtype(array.dtype).itemsize)))
                 ds = self.file.create_dataset(f"truth/{name}", array.shape, dtype=array.dtype,
-                                              chunks=(1, rows, nx))
+                                              chunks=(1, rows, nx), fletcher32=0 not in array.shape)
                 for y0 in range(0, ny, rows):
                     ds[:, y0:y0 + rows] = array[:, y0:y0 + rows]
             else:
@@ -178,38 +216,129 @@ class RampWriter(AtomicH5File):
 
 
 def _compression_for(array, probe_bytes=1 << 20, worth=0.75):
-    """h5py options for a truth array: byte-shuffled gzip-1 when a zlib probe of its first
+    """h5py options for a truth array (chunked with a Fletcher-32 checksum): byte-shuffled gzip-1 when a zlib probe of its first
     ``probe_bytes`` (shuffled) compresses below ``worth`` of its size, else none (noise-like
     float maps barely compress and gzip would cost ~1 s per 64 MB)."""
-    if array.size <= 4096 or array.dtype.kind not in "biufV":
+    if array.ndim == 0 or array.size == 0:                  # no chunks: no checksum either
         return {}
+    if array.size <= 4096 or array.dtype.kind not in "biufV":
+        return {"chunks": True, "fletcher32": True}
     import zlib
     flat = np.ascontiguousarray(array).reshape(-1)
     head = flat[:max(1, probe_bytes // flat.itemsize)]
     shuffled = head.view(np.uint8).reshape(-1, flat.itemsize).T.tobytes()
     if len(zlib.compress(shuffled, 1)) >= worth * len(shuffled):
-        return {}
-    return {"chunks": True, "compression": "gzip", "compression_opts": 1, "shuffle": True}
+        return {"chunks": True, "fletcher32": True}
+    return {"chunks": True, "compression": "gzip", "compression_opts": 1, "shuffle": True, "fletcher32": True}
 
 
-def read_ramps(path):
-    """(SCI, GROUPDQ, PIXELDQ or None, attrs) of a complete ramp file."""
+def read_error(exc, path, dset):
+    """The :class:`RampFileError` for an h5py ``exc`` (OSError) raised while reading the h5py dataset
+    ``dset`` of ``path``: "checksum mismatch in dataset NAME of PATH" when a filter failed on a
+    dataset with Fletcher-32 checksums (HDF5 reports a failed checksum as "filter returned failure
+    during read": the bytes on disk are not those written), else "cannot read dataset NAME of PATH"."""
+    text = one_line(exc)
+    name = dset.name.lstrip("/") if hasattr(dset, "name") else str(dset)
+    failed_filter = "fletcher" in text.lower() or "checksum" in text.lower() or "filter" in text.lower()
+    if failed_filter and getattr(dset, "fletcher32", False):
+        return RampFileError(f"checksum mismatch in dataset {name} of {path}: the file is corrupt "
+                             f"(HDF5: {text})")
+    return RampFileError(f"cannot read dataset {name} of {path} ({text})")
+
+
+def read_dataset(dset, path, key=Ellipsis):
+    """``dset[key]`` with h5py's read errors (a failed checksum) as one :func:`read_error`."""
+    try:
+        return dset[key]
+    except OSError as exc:
+        raise read_error(exc, path, dset) from None
+
+
+def check_hdf5_input(fh, path, datasets=("SCI",)):
+    """Refuse (RampFileError naming ``path`` and the object) an HDF5 input that would read bytes
+    from outside itself or is not the layout asked for, before any data are read:
+
+    * an external link anywhere in the file (soft links stay inside the file and are followed);
+    * a dataset with external storage (its bytes in another file) or a virtual dataset (a view
+      of other files' datasets);
+    * an object of ``datasets`` that exists but is not a dataset (a group named SCI).
+    """
     import h5py
-    path = os.fspath(path)
+    for name in datasets:
+        obj = fh.get(name, getlink=True)
+        if obj is not None and not isinstance(obj, h5py.ExternalLink) and \
+                not isinstance(fh.get(name), h5py.Dataset):
+            raise RampFileError(f"{path}: {name} is {_kind_of(fh.get(name))}, not a dataset")
+    seen, todo = set(), [fh]
+    while todo:
+        group = todo.pop()
+        for key in group:
+            where = f"{group.name.rstrip('/')}/{key}".lstrip("/")
+            link = group.get(key, getlink=True)
+            if isinstance(link, h5py.ExternalLink):
+                raise RampFileError(f"{path}: {where} is an external link to {link.filename}:{link.path} "
+                                    "(inputs must hold their own data)")
+            if isinstance(link, h5py.SoftLink):
+                continue                         # inside the file: its target is visited as itself
+            obj = group.get(key)
+            if obj is None or obj.id in seen:
+                continue
+            seen.add(obj.id)
+            if len(seen) > MAX_HDF5_OBJECTS:
+                raise RampFileError(f"{path}: more than {MAX_HDF5_OBJECTS} HDF5 objects: not a ramp file")
+            if isinstance(obj, h5py.Group):
+                todo.append(obj)
+            elif isinstance(obj, h5py.Dataset):
+                _check_storage(obj, path, where)
+
+
+def _kind_of(obj):
+    import h5py
+    return "a group" if isinstance(obj, h5py.Group) else "a dangling link" if obj is None else \
+        f"a {type(obj).__name__}"
+
+
+def _check_storage(dset, path, where):
+    """A dataset's bytes must be in this file: no external storage, no virtual dataset."""
+    if dset.is_virtual:
+        raise RampFileError(f"{path}: dataset {where} is a virtual dataset (its data are in other files); "
+                            "inputs must hold their own data")
+    if dset.id.get_create_plist().get_external_count() > 0:
+        raise RampFileError(f"{path}: dataset {where} has external storage (its bytes are in another file); "
+                            "inputs must hold their own data")
+
+
+def open_hdf5_input(path, what="an HDF5 ramp file", datasets=("SCI",)):
+    """The h5py File of an input we did not write, checked: a regular file (not a FIFO, device or
+    directory; no size bound: ramps are large) and :func:`check_hdf5_input`.  RampFileError naming ``path`` otherwise."""
+    import h5py
+    if isinstance(path, (str, os.PathLike)) and not os.path.lexists(path):
+        raise RampFileError(f"{os.fspath(path)}: no such file")
+    path = validation.regular_file("ramp file", path, error=RampFileError)
     if is_temporary(path):
         raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
     try:
         fh = h5py.File(path, "r")
-    except FileNotFoundError as exc:
-        raise RampFileError(f"{path}: no such file") from exc
     except OSError as exc:
-        raise RampFileError(f"{path}: incomplete file or not an HDF5 ramp file "
-                            f"({one_line(exc)})") from exc
-    with fh:
+        raise RampFileError(f"{path}: not {what} ({one_line(exc)})") from exc
+    try:
+        check_hdf5_input(fh, path, datasets)
+    except BaseException:
+        fh.close()
+        raise
+    return fh
+
+
+def read_ramps(path):
+    """(SCI, GROUPDQ, PIXELDQ or None, attrs) of a complete ramp file (checked by
+    :func:`open_hdf5_input`; a failed checksum is a RampFileError)."""
+    path = os.fspath(path)
+    with open_hdf5_input(path, "an HDF5 ramp file (incomplete file?)") as fh:
         if not fh.attrs.get("COMPLETE", False):
             raise RampFileError(f"{path}: incomplete file (no completion marker)")
         if "SCI" not in fh or "GROUPDQ" not in fh:
             raise RampFileError(f"{path}: not a slicersim ramp file (no SCI/GROUPDQ)")
+        check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ"))
         attrs = {k: fh.attrs[k] for k in fh.attrs}
-        pix = fh["PIXELDQ"][...] if "PIXELDQ" in fh else None
-        return fh["SCI"][...], fh["GROUPDQ"][...], pix, attrs
+        pix = read_dataset(fh["PIXELDQ"], path) if "PIXELDQ" in fh else None
+        return read_dataset(fh["SCI"], path), read_dataset(fh["GROUPDQ"], path), pix, attrs

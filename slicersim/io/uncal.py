@@ -18,6 +18,9 @@ it as ``extra_fits`` (and GROUPDQ/PIXELDQ are read by ``RampModel``).  SCI, GROU
 PIXELDQ are preallocated (sizes are known) and written in place, one group of a row block
 at a time, so a 2 GB SCI is never held in memory; truth extensions are appended.
 
+Every HDU carries CHECKSUM and DATASUM (FITS standard 4.0, as JWST files do), summed as the
+blocks are written (:mod:`slicersim.io.fits_checksum`): ``fits.open(path, checksum=True)`` verifies them.
+
 Keyword choices (the schema's enumerations decide; see ``core.schema.yaml`` of stdatamodels):
 INSTRUME, DETECTOR, EXP_TYPE and READPATT are enumerated JWST names that all admit "N/A";
 ours is not a JWST instrument and MACC(n, m, d) is not a named JWST pattern, so they are
@@ -57,6 +60,8 @@ import numpy as np
 from slicersim import validation
 from slicersim.errors import RampFileError
 from slicersim.io.atomic import _HDF5_MARGIN, one_line, publish, remove_stale_temporaries, temporary_path
+from slicersim.io.fits_checksum import StreamedChecksums, checksum_cards
+from slicersim.io.rampfile import open_hdf5_input, read_dataset
 from slicersim.io.row_blocks import RowBlocks, rows_per_block
 
 __all__ = ["UncalWriter", "UncalOptions", "write_uncal_from_hdf5", "read_uncal", "read_uncal_truth", "truth_extname",
@@ -136,7 +141,7 @@ def _from_mjd(mjd):
 def _header(cards):
     from astropy.io import fits
     hdr = fits.Header()
-    for key, val, *comment in cards:
+    for key, val, *comment in list(cards) + checksum_cards():     # values set when the file is complete
         if len(key) > 8 and not key.startswith("HIERARCH "):
             key = "HIERARCH " + key
         hdr.append(fits.Card(key, val, comment[0] if comment else None), end=True)
@@ -178,8 +183,10 @@ def _table_bytes(array, extname, extra=()):
     for key, val in extra:
         hdu.header[key] = val
     buf = io.BytesIO()
-    fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(buf)
-    return buf.getvalue()[len(fits.PrimaryHDU().header.tostring()):]
+    fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(buf, checksum=True)
+    primary = fits.PrimaryHDU()
+    primary.add_checksum()
+    return buf.getvalue()[len(primary.header.tostring()):]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -249,6 +256,7 @@ class UncalWriter:
         self._offsets = {}
         self._end = 0
         self._extnames = set()
+        self._sums, self._hdu_of = StreamedChecksums(), {}     # CHECKSUM / DATASUM of every HDU
 
     # ------------------------------------------------------------------ sizes and checks
     def _pixels(self):
@@ -346,6 +354,7 @@ class UncalWriter:
             self._abort()
             return False
         try:
+            self._sums.finish(self._pwrite)
             if self.durable:
                 os.fsync(self._fd)
             os.close(self._fd)
@@ -386,6 +395,7 @@ class UncalWriter:
 
     def _reserve(self, name, header, nbytes):
         """Write an extension header at the end and reserve its (zero) data area."""
+        self._hdu_of[name] = self._sums.add_hdu(self._end, header)
         self._append(header)
         self._offsets[name] = self._end
         self._end += _padded(nbytes)
@@ -434,7 +444,9 @@ class UncalWriter:
         t0 = self._start_mjd()
         ny, nx = self.shape
         dims = (self.nramps, self.ngroups, ny, nx)
-        self._append(_header(self._primary_cards(timing, t0)))
+        primary = _header(self._primary_cards(timing, t0))
+        self._sums.add_hdu(self._end, primary)
+        self._append(primary)
         bunit = str(self.attrs.get("BUNIT", "DN"))
         sci_cards = [("BUNIT", "DN" if bunit.upper() in ("ADU", "DN") else _ascii(bunit)),
                      ("MJD-BEG", t0), ("MJD-AVG", t0 + timing["DURATION"] / 172800.0),
@@ -501,9 +513,14 @@ class UncalWriter:
                 raise RampFileError(f"{self.path}: no GROUPDQ extension (groupdq=False)")
         for g in range(self.ngroups):
             pix = ((int(ramp) * self.ngroups + g) * ny + int(row0)) * nx
-            self._pwrite(_to_storage(sci[g]), self._offsets["SCI"] + 2 * pix)
+            self._data("SCI", _to_storage(sci[g]), 2 * pix)
             if groupdq is not None:
-                self._pwrite(_to_storage(groupdq[g]), self._offsets["GROUPDQ"] + pix)
+                self._data("GROUPDQ", _to_storage(groupdq[g]), pix)
+
+    def _data(self, name, data, offset):
+        """Write ``data`` ``offset`` bytes into the data unit of extension ``name`` (summed for DATASUM)."""
+        self._pwrite(data, self._offsets[name] + offset)
+        self._sums.add_data(self._hdu_of[name], data, offset)
 
     def _as(self, arr, dtype, what):
         if arr.dtype == dtype:
@@ -525,7 +542,7 @@ class UncalWriter:
         step = max(1, (256 << 10) // (4 * self.shape[1]))        # rows per 256 KiB (h5py datasets too)
         for y0 in range(0, self.shape[0], step):
             flags = self._as(np.asarray(pixeldq[y0:y0 + step]), np.uint32, "PIXELDQ")
-            self._pwrite(_to_storage(flags), self._offsets["PIXELDQ"] + 4 * y0 * self.shape[1])
+            self._data("PIXELDQ", _to_storage(flags), 4 * y0 * self.shape[1])
 
     def write_truth(self, rate):
         """Append the input rate image (ny, nx) as TRUTH_RATE (float32, e-/s)."""
@@ -556,15 +573,16 @@ class UncalWriter:
                 raise RampFileError(f"{self.path}: dataset {name!r} of dtype {dtype} cannot be written "
                                     "to FITS (integers, floats 32/64, booleans or structured arrays)")
             nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-            self._append(_image_header(extname, dtype, shape, extra))
+            header = _image_header(extname, dtype, shape, extra)
+            hdu = self._sums.add_hdu(self._end, header)
+            self._append(header)
             start = self._end
-            if shape:
-                row = max(1, (16 << 20) // max(1, nbytes // max(1, shape[0])))
-                for i in range(0, shape[0], row):
-                    data = _to_storage(np.asarray(array[i:i + row]).astype(dtype, copy=False))
-                    self._append(data)
-            else:
-                self._append(_to_storage(np.asarray(array[()], dtype=dtype)))
+            row = max(1, (16 << 20) // max(1, nbytes // max(1, shape[0]))) if shape else 1
+            blocks = (array[i:i + row] for i in range(0, shape[0], row)) if shape else [array[()]]
+            for block in blocks:
+                data = _to_storage(np.asarray(block).astype(dtype, copy=False))
+                self._sums.add_data(hdu, data, self._end - start)
+                self._append(data)
             self._append(bytes(_padded(self._end - start) - (self._end - start)))
         self._extnames.add(extname)
 
@@ -583,11 +601,7 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 2
         max_bytes = writer_options.pop("max_bytes")
     max_bytes = validation.positive_int("max_bytes", max_bytes)
     h5_path = os.fspath(h5_path)
-    try:
-        fh = h5py.File(h5_path, "r")
-    except (FileNotFoundError, OSError) as exc:
-        raise RampFileError(f"{h5_path}: cannot open as an HDF5 ramp file ({one_line(exc)})") from exc
-    with fh:
+    with open_hdf5_input(h5_path, "an HDF5 ramp file", ("SCI", "GROUPDQ", "PIXELDQ")) as fh:
         if not fh.attrs.get("COMPLETE", False):
             raise RampFileError(f"{h5_path}: incomplete file (no completion marker)")
         if "SCI" not in fh:
@@ -606,23 +620,40 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 2
                              overwrite=overwrite, **writer_options)
         with writer as w:
             if "PIXELDQ" in fh:
-                w.write_pixeldq(fh["PIXELDQ"])
+                w.write_pixeldq(read_dataset(fh["PIXELDQ"], h5_path))
             for name in others:
-                w.write_dataset(name, fh[name])
+                dset = fh[name]
+                w.write_dataset(name, dset if dset.ndim == 3 else read_dataset(dset, h5_path))
             for ramp, y0, y1 in RowBlocks(ny, rows, nouter=nints, progress=False):
-                w.write_block(ramp, y0, sci[ramp, :, y0:y1, :], None if gdq is None else gdq[ramp, :, y0:y1, :])
+                block = np.s_[ramp, :, y0:y1, :]
+                w.write_block(ramp, y0, read_dataset(sci, h5_path, block),
+                              None if gdq is None else read_dataset(gdq, h5_path, block))
     return writer.path
 
 
 def _open(path):
+    """The HDUList of a regular file (a FIFO or device refused before opening), its CHECKSUM /
+    DATASUM verified where present (a mismatch is a RampFileError naming the extension)."""
+    import warnings
+
     from astropy.io import fits
     path = os.fspath(path)
-    if not os.path.exists(path):
+    if not os.path.lexists(path):
         raise RampFileError(f"{path}: no such file")
+    path = validation.regular_file("level-1b file", path, error=RampFileError)
     try:
-        return fits.open(path, memmap=False)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            hdul = fits.open(path, memmap=False, checksum=True, lazy_load_hdus=False)
+            for hdu in hdul:
+                hdu.data                                 # noqa: B018 (loaded: DATASUM verified)
     except OSError as exc:
         raise RampFileError(f"{path}: not a FITS file ({one_line(exc)})") from exc
+    bad = [one_line(w.message) for w in caught if "checksum" in str(w.message).lower()]
+    if bad:
+        hdul.close()
+        raise RampFileError(f"{path}: checksum mismatch ({bad[0]}): the file is corrupt")
+    return hdul
 
 
 def read_uncal(path):

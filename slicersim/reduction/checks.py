@@ -31,7 +31,7 @@ from slicersim import validation
 from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import one_line
 
-__all__ = ["check_ramp_file", "check_spectra_options", "check_fit_options", "register_hdf5_filters",
+__all__ = ["check_ramp_file", "check_raw_attrs", "ATTR_RANGES", "check_spectra_options", "check_fit_options", "register_hdf5_filters",
            "MAX_NCOL", "DEFAULT_NCOL", "WEIGHTS", "FORWARD", "default_lbda_edges", "dark_rate_of"]
 
 #: largest number of columns per slice accepted (a slice is 58 cells wide in the Lazuli design)
@@ -79,6 +79,7 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
                             "and catalog.ecsv)")
     if not os.path.lexists(path):
         raise RampFileError(f"{path}: no such ramp file")
+    validation.regular_file("ramp file", path, error=RampFileError)     # no FIFO, device: never opened
     kind = ramp_file_kind(path)
     header = None
     if kind == "hdf5":
@@ -89,12 +90,14 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
         shape = tuple(int(s) for s in src.shape)
         if 0 in shape:
             raise RampFileError(f"{path}: SCI is empty {shape}")
+        check_raw_attrs(src.attrs, path, gain=gain, ron=ron)
         nmd, tframe, _, _ = ramp_readout(src.attrs, src.shape, gain, ron, path)
         if header is not None:
             _check_fits_duplicates(header, path)
         if _made_by_slicersim(src.attrs, header):
             timing = {k: header[k] for k in _TIMING_KEYS if k in header} if header is not None else {}
             _check_timing({**src.attrs, **timing}, shape, nmd, tframe, path)
+        _check_linearity_truth(src, path)
         if with_truth:
             truth = src.truth("rate")
             if truth is None:
@@ -108,9 +111,66 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
     return {"kind": "jwst-uncal" if header is not None else "hdf5", "shape": shape, "nmd": nmd, "tframe": tframe}
 
 
+#: physical range of a raw file's numeric keywords: (low, high, unit); outside it the file is refused
+#: (GAIN = 1e-300 divided to inf, READNOISE = 1e300 overflowed, DARK = NaN gave DARK_RATE = NaN)
+ATTR_RANGES = {"GAIN": (1e-3, 1e3, "DN/e-"), "READNOISE": (0.0, 1e4, "e-/frame"), "TFRAME": (1e-6, 1e4, "s"),
+               "DARK": (0.0, 1e6, "e-/s"), "THERMAL_DARK": (0.0, 1e6, "e-/s"), "ROIC_GLOW": (0.0, 1e6, "e-/frame"),
+               "DARK_RATE": (0.0, 1e6, "e-/s")}
+#: the truth coefficients of the linearity correction (``fit_ramps(linearity=None)`` applies them)
+_LINEARITY_TRUTH = "nonlinearity/inverse_coefficients"
+
+
+def check_raw_attrs(attrs, path, gain=None, ron=None):
+    """Refuse (RampFileError naming the keyword) a raw file's keywords outside their physical range
+    (:data:`ATTR_RANGES`; GAIN and READNOISE not when ``gain`` / ``ron`` override them), a readout
+    (NGROUPS, NFRAMES, GROUPGAP) beyond :func:`~slicersim.validation.readout`'s bounds, and an
+    EFFECTS keyword that is not a JSON object (the corrections it enables would be skipped)."""
+    import json
+    for key, (low, high, unit) in ATTR_RANGES.items():
+        if key not in attrs or (key == "GAIN" and gain is not None) or (key == "READNOISE" and ron is not None):
+            continue
+        value = _num(attrs, key, path)
+        if not low <= value <= high:
+            raise RampFileError(f"{path}: keyword {key} = {value!r} is outside the physical range "
+                                f"[{low:g}, {high:g}] {unit}")
+    if all(k in attrs for k in ("NGROUPS", "NFRAMES", "GROUPGAP")):
+        nmd = tuple(_num(attrs, k, path) for k in ("NGROUPS", "NFRAMES", "GROUPGAP"))
+        validation.readout(nmd, name=f"{path}: keywords (NGROUPS, NFRAMES, GROUPGAP)", error=RampFileError)
+    text = attrs.get("EFFECTS")
+    if text is not None:
+        try:
+            doc = json.loads(text.decode() if isinstance(text, bytes) else str(text))
+        except (ValueError, UnicodeDecodeError):
+            doc = None
+        if not isinstance(doc, dict) or not isinstance(doc.get("effects", {}), dict):
+            raise RampFileError(f"{path}: keyword EFFECTS = {validation.short_repr(text)} is not the JSON object of "
+                                "the detector effects simulated: cannot tell which corrections the ramps need")
+
+
+def _check_linearity_truth(src, path, block_bytes=64 << 20):
+    """The file's linearity truth coefficients, when present, must be finite (NaN coefficients made
+    every rate NaN); read in blocks of rows."""
+    coeffs = src.truth(_LINEARITY_TRUTH)
+    if coeffs is None or getattr(coeffs, "ndim", 0) != 3:
+        return
+    from slicersim.io.rampfile import read_dataset
+    k, ny, nx = coeffs.shape
+    rows = max(1, block_bytes // max(1, 8 * k * nx))
+    for y0 in range(0, ny, rows):
+        block = read_dataset(coeffs, path, np.s_[:, y0:y0 + rows]) if hasattr(coeffs, "id") else \
+            np.asarray(coeffs[:, y0:y0 + rows])
+        if not np.all(np.isfinite(block)):
+            raise RampFileError(f"{path}: truth/{_LINEARITY_TRUTH} has non-finite values (rows from {y0}): the "
+                                "linearity correction would make the rates NaN (fit_ramps(linearity=False) skips it)")
+
+
 def _check_hdf5_layout(path, with_truth):
-    """Name what a foreign HDF5 file is; types and filters of the ramp datasets."""
+    """Name what a foreign HDF5 file is; no data from outside the file (external storage or
+    links, virtual datasets: :func:`~slicersim.io.rampfile.check_hdf5_input`); types and filters
+    of the ramp datasets."""
     import h5py
+
+    from slicersim.io.rampfile import check_hdf5_input
     try:
         fh = h5py.File(path, "r")
     except OSError as exc:
@@ -119,6 +179,7 @@ def _check_hdf5_layout(path, with_truth):
         what = _foreign_product(fh)
         if what:
             raise RampFileError(f"{path} is {what}, not a raw ramp file")
+        check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ", "truth/rate"))
         for name, kinds in (("SCI", "u"), ("GROUPDQ", "u"), ("PIXELDQ", "ui")):
             dset = fh.get(name)
             if not isinstance(dset, h5py.Dataset):
@@ -193,6 +254,8 @@ def _num(attrs, key, path):
     val = attrs[key]
     if isinstance(val, bytes):
         val = val.decode(errors="replace")
+    if isinstance(val, np.generic):
+        val = val.item()
     try:
         out = float(val)
     except (TypeError, ValueError):

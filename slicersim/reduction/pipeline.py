@@ -24,7 +24,8 @@ import numpy as np
 from slicersim.backends.precision import float64_kwargs
 from slicersim.errors import ParameterError, RampFileError, ReductionError, SlicersimError
 from slicersim.io.atomic import AtomicH5File
-from slicersim.reduction.checks import FORWARD, check_spectra_options, dark_rate_of, default_lbda_edges
+from slicersim.reduction.checks import (FORWARD, check_raw_attrs, check_spectra_options, dark_rate_of,
+                                        default_lbda_edges)
 from slicersim.reduction.option_forms import build_options
 from slicersim.reduction.options import ReduceOptions
 
@@ -196,6 +197,10 @@ def _plan(raw_path, opts, out, overwrite):
     every option against them and refuse the output file before any work."""
     from slicersim.reduction.rectify import FIELDS, _default_mapper
     raw_attrs = _raw_attrs(raw_path)
+    if raw_attrs is not None:                     # GAIN = 1e-300, DARK = NaN, a corrupt EFFECTS: named here
+        fit = opts.fit_options or {}
+        check_raw_attrs(raw_attrs, raw_path if isinstance(raw_path, (str, os.PathLike)) else "the ramps' attrs",
+                        gain=fit.get("gain"), ron=fit.get("ron", fit.get("read_noise")))
     model = _instrument(raw_attrs, opts.config, opts.extraction, opts.psf)
     field = opts.field
     if field is None:                                  # the field the file was simulated in

@@ -105,11 +105,15 @@ class _HDF5Ramps(_Ramps):
         self.chunk_rows = sci.chunks[2] if sci.chunks else 1
 
     def read(self, y0, y1, sci, gdq):
-        self.sci.read_direct(sci, np.s_[:, :, y0:y1, :])
-        if self.gdq is None:
-            gdq[...] = 0
-        else:
-            self.gdq.read_direct(gdq, np.s_[:, :, y0:y1, :])
+        from slicersim.io.rampfile import read_error
+        for dset, out in ((self.sci, sci), (self.gdq, gdq)):
+            if dset is None:
+                out[...] = 0
+                continue
+            try:                              # a failed Fletcher-32 checksum: "checksum mismatch in dataset SCI of FILE"
+                dset.read_direct(out, np.s_[:, :, y0:y1, :])
+            except OSError as exc:
+                raise read_error(exc, self.name, dset) from None
 
     def pixeldq(self, y0, y1):
         nx = self.shape[3]
