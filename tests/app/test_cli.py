@@ -10,7 +10,7 @@ import pytest
 from slicersim.io.rampfile import read_ramps
 from slicersim.products.ramps import simulate
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # tests/app/ → repo
 
 
 def run(*args, cwd=None, debug=False, timeout=600):

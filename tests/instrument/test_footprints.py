@@ -249,7 +249,7 @@ def test_save_and_read_back(fields, tmp_path):
 
 
 # --------------------------------------------------------------------------- published together (review 10 #5, #6)
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CHILD = r"""
 import os, sys, time
 ctl, out, field, mode = sys.argv[1:5]

@@ -15,7 +15,7 @@ from slicersim.errors import RampFileError
 from slicersim.io.rampfile import RampWriter, is_temporary, read_ramps
 from slicersim.products.ramps import simulate
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # tests/io/ → repo
 
 
 def _env():
