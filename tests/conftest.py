@@ -12,6 +12,13 @@ One loader for everything under the reference folder:
 Tests that use ``refdir`` (directly or through ``reference_case``) get the ``reference``
 marker automatically.  Without the material they are skipped, except with ``CI=true`` in
 the environment, where a missing reference is a failure (CI must never silently skip them).
+
+Markers ``needs_opencl`` (an OpenCL device with fp64) and ``needs_opencl_device`` (any OpenCL
+device: single-precision kernels) follow the same rule: skipped without the device, a failure with
+``CI=true``.  :func:`have_opencl` is the one probe (for tests that branch on the device rather than
+needing it).  Tests live in ``tests/<subpackage>/test_<feature>.py`` mirroring ``slicersim/``
+(``tests/core/`` for the top-level modules); this folder is on ``sys.path``, so tests import
+``conftest`` and ``cube_oracle`` from any subfolder.
 """
 import json
 import os
@@ -105,6 +112,35 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "refdir" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.reference)
+
+
+_OPENCL = {}
+
+
+def have_opencl(fp64=True):
+    """Whether an OpenCL device is available (with fp64 unless ``fp64=False``); probed once.
+
+    The one place the suite asks; tests mark themselves ``@pytest.mark.needs_opencl`` (fp64) or
+    ``@pytest.mark.needs_opencl_device`` (any OpenCL device, single-precision kernels) instead of
+    writing their own guard."""
+    if not _OPENCL:
+        from slicersim.backends import opencl
+        device = bool(opencl.is_available())
+        _OPENCL["device"] = device
+        _OPENCL["fp64"] = device and bool(opencl.device_supports_fp64())
+    return _OPENCL["fp64" if fp64 else "device"]
+
+
+def pytest_runtest_setup(item):
+    """``needs_opencl`` / ``needs_opencl_device``: skip without such a device, except with CI=true
+    in the environment, where it is a failure (CI must never silently skip the OpenCL tests)."""
+    for marker, fp64, what in (("needs_opencl", True, "an OpenCL device with fp64"),
+                               ("needs_opencl_device", False, "an OpenCL device")):
+        if item.get_closest_marker(marker) is not None and not have_opencl(fp64):
+            msg = f"no {what[3:] if what.startswith('an ') else what} (run `make opencl`): this test needs {what}"
+            if _ci():
+                pytest.fail(f"CI=true: {msg}", pytrace=False)
+            pytest.skip(msg)
 
 
 @pytest.fixture(autouse=True, scope="session")

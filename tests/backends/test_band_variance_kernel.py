@@ -22,14 +22,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from slicersim.backends import band_variance as compute, opencl
+from slicersim.backends import band_variance as compute
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(
-    not HAVE_OPENCL,
-    reason="no OpenCL device with fp64 (install pocl-opencl-icd, or run `make opencl`)",
-)
-BACKENDS = ["numpy", pytest.param("opencl", marks=needs_opencl)]
+from conftest import have_opencl
+
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 
 def reference(Q, P2, A, B, Qsat, band):
@@ -94,7 +91,7 @@ def test_hand_computed_case():
     # bin 1 has a NaN cell -> skipped for both candidates.
     # k=0, bin 0: V = (2, 4) -> w = 0.5/2 + 0.25/4 = 0.3125 -> v = 3.2
     # k=1, bin 0: V = (2.5, -) , cell 1 saturated (3 > 2) -> w = 0.5/2.5 = 0.2 -> v = 5
-    for backend in ("numpy", "opencl") if HAVE_OPENCL else ("numpy",):
+    for backend in ("numpy", "opencl") if have_opencl() else ("numpy",):
         vs, nv = compute.band_variance_table(Q, P2, A, B, Qsat, band, backend=backend)
         np.testing.assert_allclose(vs, [[3.2, 5.0]], rtol=1e-15)
         np.testing.assert_array_equal(nv, [[1, 1]])
@@ -116,7 +113,7 @@ def test_matches_reference(backend, seed):
     assert (nv[0] == Q.shape[1] - 1).all()  # one NaN bin skipped
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("vector_width", [None, 1, 2, 4, 8, 16])
 def test_opencl_matches_numpy(vector_width):
     Q, P2, A, B, Qsat, band = random_case(7, N=53, nlbda=41, ncell=9, K=37)
@@ -157,7 +154,7 @@ def test_auto_backend_and_validation():
     auto = compute.band_variance_table(Q, P2, A, B, Qsat, band)  # backend="auto"
     ref = compute.band_variance_table(Q, P2, A, B, Qsat, band, backend="numpy")
     assert_same(auto, ref, rtol=1e-12)
-    assert compute.resolve_backend("auto") == ("opencl" if HAVE_OPENCL else "numpy")
+    assert compute.resolve_backend("auto") == ("opencl" if have_opencl() else "numpy")
     with pytest.raises(ValueError, match="backend"):
         compute.band_variance_table(Q, P2, A, B, Qsat, band, backend="cuda")
     with pytest.raises(ValueError, match="P2"):
@@ -187,11 +184,11 @@ def test_numpy_twin_property(N, nlbda, ncell, K, seed, nan_frac):
     band = np.sort(rng.integers(0, nlbda + 1, (N, 2)), axis=1)
     want = reference(Q, P2, A, B, Qsat, band)
     assert_same(compute.band_variance_table(Q, P2, A, B, Qsat, band, backend="numpy"), want, rtol=1e-13)
-    if HAVE_OPENCL:
+    if have_opencl():
         assert_same(compute.band_variance_table(Q, P2, A, B, Qsat, band, backend="opencl"), want, rtol=1e-12)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_zero_weight_cells_are_skipped_exactly():
     """The kernel skips cells of weight exactly 0 (CSR of the non-zero weights): adding
     zero-weight cells with any Q (huge, saturated) changes no bit of the result."""

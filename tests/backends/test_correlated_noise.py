@@ -10,9 +10,6 @@ from slicersim.errors import EffectsError
 from slicersim.physics.correlated_noise import (CorrelatedNoiseParameters, ReadoutGeometry, group_mean_variance,
                                                 model_psd)
 
-HAS_CL = opencl.is_available()
-needs_cl = pytest.mark.skipif(not HAS_CL, reason="no OpenCL device")
-
 
 def test_lazuli_dwell_time():
     """tframe 2.83 s over 32 outputs × (128 + 12) × (4096 + 1) pixel times: τ ≈ 4.93 µs, ≈ 203 kHz."""
@@ -112,7 +109,7 @@ def test_segment_cache_changes_nothing(method):
         assert gen._cache_nbytes == sum(a.nbytes for _, a in gen._segment_cache.values()) <= gen.cache_bytes
 
 
-@needs_cl
+@pytest.mark.needs_opencl_device
 def test_spectral_draws_twin():
     """Kernel vs NumPy twin: the same Philox words; float32 Box–Muller with libm differences
     (OpenCL log/cospi/sinpi ≤ 4 ulp, NumPy's within 1 ulp): |Δ| ≤ 1e-5·amp (radius ≤ 5.8)."""
@@ -128,7 +125,7 @@ def test_spectral_draws_twin():
     assert abs(np.mean(np.abs(z[:, 1:]) ** 2) - 2.0) < 0.1          # E|z₀ + i z₁|² = 2
 
 
-@needs_cl
+@pytest.mark.needs_opencl_device
 def test_spectral_draws_identical_for_every_vector_width():
     """The float16 build interleaves its products by swizzles, the others by a loop: the same
     float operations per bin, so every width gives the same bits."""
@@ -142,7 +139,7 @@ def test_spectral_draws_identical_for_every_vector_width():
         assert np.array_equal(got.view(np.uint32), ref.view(np.uint32)), vw
 
 
-@needs_cl
+@pytest.mark.needs_opencl_device
 def test_generator_backends_agree():
     """multirate block on OpenCL vs NumPy (draws + assembly twins): within 1e-4 e- (float32
     rounding of the draws propagated through the FFT; the noise rms is ~5 e-)."""
@@ -152,7 +149,7 @@ def test_generator_backends_agree():
     np.testing.assert_allclose(a, b, atol=1e-4, rtol=0)
 
 
-@needs_cl
+@pytest.mark.needs_opencl_device
 @pytest.mark.parametrize("nout, nx", [(4, 64), (8, 64), (4, 48), (4, 56)])
 def test_assembly_twin(nout, nx):
     """The kernel's explicit lanes (16, 8, 4 or 1 columns per work item: the largest dividing
@@ -225,7 +222,7 @@ def test_low_part_equals_interpolation_at_every_read(shape, nmd, nfoh):
         assert np.array_equal(got[s], expected)
 
 
-@needs_cl
+@pytest.mark.needs_opencl_device
 def test_device_copy_path_equals_zero_copy(monkeypatch):
     """Batching the groups' segment draws and FFTs changes no bit; the GPU branch of the block
     assembly and of the spectral draws (device copies, scratch buffers, one work item per column)

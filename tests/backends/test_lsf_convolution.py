@@ -19,13 +19,9 @@ import pytest
 import scipy.ndimage
 
 from slicersim.backends import convolution as cc
-from slicersim.backends import opencl
 from slicersim.physics import lsf
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 "
-                                  "(install pocl-opencl-icd, or run `make opencl`)")
-BACKENDS = ["numpy", pytest.param("opencl", marks=needs_opencl)]
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 
 def peak_error(a, b):
@@ -157,7 +153,7 @@ def test_convolution_matches_oracle(backend, method, shape, kshape, shared):
     assert peak_error(out, oracle(cube, k)) <= 1e-12
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_convolution_chunks_and_local_memory_tiles():
     rng = np.random.default_rng(5)
     cube, k = rng.random((9, 23, 37)), rng.random((9, 7, 9))

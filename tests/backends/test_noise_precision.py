@@ -33,8 +33,6 @@ from slicersim.backends import noise as cn
 from slicersim.backends import precision as prec
 from slicersim.errors import OpenCLUnavailableError, ParameterError
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
 TOL = prec.SINGLE_PRECISION_ERRORS["noise"].tolerance        # 1e-3 σ
 TIGHT = 2e-4                                                   # σ, on the 2e5 draws below (measured ~3e-5)
 
@@ -56,7 +54,7 @@ def _inputs(n=200_000, seed=5):
     return e, v
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_single_gaussian_within_tolerance_of_the_float64_twin():
     e, v = _inputs()
     twin = cn.noisy_cube(e, v, 2**63 + 5, backend="numpy", first_index=77)
@@ -79,7 +77,7 @@ def test_single_gaussian_within_tolerance_of_the_float64_twin():
         cn.noisy_cube(e, v, 1, backend="opencl", precision="double", out=out32)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_single_gaussian_moments():
     """e = 0, σ = 1: mean, variance, skewness, excess kurtosis within 5 standard errors and a KS test
     (p > 1e-3); the largest |z| is where 4e5 normal draws put it (single's uniform floor 2^-32 caps
@@ -114,7 +112,7 @@ def _chi2_pvalue(k, mu):
     return stats.chi2.sf(np.sum((obs - exp) ** 2 / exp), obs.size - 1)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("mu", [0.02, 3.0, 9.99, 10.0, 40.0, 2500.0, 3e5, 4e6])
 def test_single_poisson_draws_follow_the_exact_distribution(mu):
     """Inversion (< 10) and PTRS (≥ 10, float acceptance by ``rng_log_poisson``) on either side of the
@@ -128,7 +126,7 @@ def test_single_poisson_draws_follow_the_exact_distribution(mu):
     assert abs(k.mean() - mu) < 4 * math.sqrt(mu / n)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_single_poisson_mostly_equals_the_float64_twin():
     g = np.random.default_rng(4)
     mean = np.concatenate([10 ** g.uniform(-3, 5, 200_000), [0.0, np.nan, np.inf, 9.999999, 10.0]])
@@ -149,7 +147,7 @@ def test_single_poisson_mostly_equals_the_float64_twin():
     assert moved <= 1e-3, moved
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_single_is_counter_based(monkeypatch):
     """Vector width, work group, chunking (max_bytes, the float32 staging of float64 arrays), the
     scratch path (read-only inputs) and slabs (first_index) leave the single draws unchanged, bit for bit."""
@@ -191,7 +189,7 @@ def test_single_noise_source_holds_no_double(vw):
     assert "double" not in out
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_device_without_fp64_runs_single_noise(monkeypatch, flat):
     """fp64 flag forced off: "auto" runs the single kernels (not NumPy, and without the fp64 device
     self-check: only the single builds' own), bit for bit what "single" gives; "double" is one clear
@@ -221,7 +219,7 @@ def test_device_without_fp64_runs_single_noise(monkeypatch, flat):
                           equal_nan=True)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_large_poisson_means_stay_double_under_auto(monkeypatch):
     """Above 2^22 a float count loses its PTRS resolution: "single" refuses, "auto" (single where the
     device lacks fast fp64) draws in double when fp64 exists."""
@@ -256,7 +254,7 @@ def test_bad_precision_refused_before_any_work(monkeypatch, flat):
             flat.get_cube(seed=seed, precision="quad")
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_cube_noise_follows_the_precision():
     """build_cube's precision is also the noise draw's (``paths["noise_precision"]``): the single cube's
     noisy realisation is the single draw of its own signal and variance, whatever the λ chunking and

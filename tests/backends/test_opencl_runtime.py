@@ -7,12 +7,6 @@ import pytest
 
 from slicersim.backends import opencl
 
-HAVE_OPENCL = opencl.is_available()
-needs_opencl = pytest.mark.skipif(
-    not HAVE_OPENCL,
-    reason="no OpenCL platform/device (install pocl-opencl-icd, or run `make opencl`)",
-)
-
 
 @pytest.fixture
 def fresh(monkeypatch):
@@ -41,7 +35,7 @@ def test_kernel_source_found():
         opencl.kernel_source("no_such_kernel.cl")
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_device_info_lists_devices(fresh):
     info = opencl.device_info()
     assert info
@@ -57,7 +51,7 @@ def test_device_info_lists_devices(fresh):
     assert isinstance(opencl.device_supports_fp64(), bool)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_context_and_program_are_cached(fresh):
     assert opencl.get_context() is opencl.get_context()
     assert opencl.get_queue() is opencl.get_queue()
@@ -68,7 +62,7 @@ def test_context_and_program_are_cached(fresh):
     assert p3 is not p1
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_select_by_index_and_name(fresh):
     info = opencl.device_info()
     first = info[0]
@@ -84,14 +78,14 @@ def test_select_by_index_and_name(fresh):
         assert opencl.device_type(opencl.select_device(typ.upper())) == first["type"]
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_env_change_switches_context(fresh):
     ctx = opencl.get_context()
     fresh.setenv(opencl.ENV_VAR, opencl.device_info()[0]["index"])
     assert opencl.get_context() is not ctx
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 @pytest.mark.parametrize("spec", ["no-such-device-xyz", "99:0", "0:99"])
 def test_bogus_selection_is_a_clear_error(fresh, spec):
     fresh.setenv(opencl.ENV_VAR, spec)
@@ -112,7 +106,7 @@ def test_fork_guard_simulated(fresh):
         opencl.device_info()
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_fork_guard_real_fork(fresh):
@@ -139,8 +133,7 @@ def test_fork_guard_real_fork(fresh):
     pytest.fail("forked child hung instead of raising OpenCLForkError")
 
 
-@pytest.mark.skipif(not __import__("slicersim.backends.opencl", fromlist=["x"]).is_available(),
-                    reason="no OpenCL device")
+@pytest.mark.needs_opencl_device
 def test_sync_to_host_copies_a_map_that_is_not_the_array():
     """A driver may map a USE_HOST_PTR buffer at memory of its own (NVIDIA does): sync_to_host then
     copies the map into the array.  Exercised with a buffer that does not wrap the array."""
@@ -153,6 +146,7 @@ def test_sync_to_host_copies_a_map_that_is_not_the_array():
     np.testing.assert_array_equal(dst, src)
 
 
+@pytest.mark.needs_opencl
 def test_device_failing_the_selfcheck_is_never_used_silently(monkeypatch):
     """A device whose random draws differ from the twin: "auto" falls back to NumPy with a warning
     naming it, an explicit backend="opencl" raises; the real device passes the check."""
@@ -160,8 +154,6 @@ def test_device_failing_the_selfcheck_is_never_used_silently(monkeypatch):
     import numpy as np
     from slicersim.backends import dispatch, noise, opencl
     from slicersim.errors import OpenCLUnavailableError
-    if not (opencl.is_available() and opencl.device_supports_fp64()):
-        pytest.skip("no fp64 OpenCL device")
     ok, msg = dispatch.device_validated()
     assert ok, msg
     key = opencl.device_fingerprint()
@@ -177,13 +169,12 @@ def test_device_failing_the_selfcheck_is_never_used_silently(monkeypatch):
     assert dispatch.resolve_backend("auto") == "opencl"
 
 
+@pytest.mark.needs_opencl
 def test_selfcheck_detects_wrong_draws(monkeypatch):
     """device_selfcheck fails when the kernels' uniforms, Gaussians or counts come back wrong, and
     passes on the real device; it uses the same launches as the products (bit-identical here)."""
     import numpy as np
     from slicersim.backends import opencl, selfcheck
-    if not (opencl.is_available() and opencl.device_supports_fp64()):
-        pytest.skip("no fp64 OpenCL device")
     assert selfcheck.device_selfcheck()[0]
     real = selfcheck._opencl_draws
     for i, what in ((0, "uniforms differ"), (1, "Gaussians differ"), (2, "Poisson counts differ")):
@@ -199,6 +190,7 @@ def test_selfcheck_detects_wrong_draws(monkeypatch):
     assert not ok and "could not run" in msg
 
 
+@pytest.mark.needs_opencl
 def test_selfcheck_review_findings(monkeypatch):
     """Review findings: the check runs once for concurrent first calls (a lock), warns once per
     process, reads SLICERSIM_TRUST_DEVICE case-insensitively (unknown values warn and check), and a
@@ -207,8 +199,6 @@ def test_selfcheck_review_findings(monkeypatch):
     import warnings
     import numpy as np
     from slicersim.backends import dispatch, opencl, selfcheck
-    if not (opencl.is_available() and opencl.device_supports_fp64()):
-        pytest.skip("no fp64 OpenCL device")
     key = opencl.device_fingerprint()
     calls = []
     real = selfcheck.device_selfcheck
@@ -252,6 +242,7 @@ def test_selfcheck_review_findings(monkeypatch):
     assert np.array_equal(*[selfcheck._uniform_normal(w)[0] for w in (1, opencl.preferred_vector_width())])
 
 
+@pytest.mark.needs_opencl
 def test_selfcheck_catches_a_wrong_ramp_kernel(monkeypatch):
     """The random streams alone passed on the H200 while its 4096² reduction was wrong: the self-check
     also runs the ramp sampler (both kernels) on two small blocks against the twin, bit for bit.  One SCI
@@ -264,8 +255,6 @@ def test_selfcheck_catches_a_wrong_ramp_kernel(monkeypatch):
     from slicersim.backends import dispatch, opencl, selfcheck
     from slicersim.backends import ramp as ramp_backend
     from slicersim.errors import OpenCLUnavailableError
-    if not (opencl.is_available() and opencl.device_supports_fp64()):
-        pytest.skip("no fp64 OpenCL device")
     ok, msg = selfcheck.device_selfcheck()
     assert ok and "ramp" in msg, msg
     real = ramp_backend.simulate_block_opencl

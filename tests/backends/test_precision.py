@@ -22,8 +22,6 @@ from slicersim.backends.opencl import kernel_source
 from slicersim.backends.psf import psf_cube
 from slicersim.errors import OpenCLUnavailableError, ParameterError
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
 NARROW = dict(spatial_scale=0.04, guiding_sigma=0.010, instrumental_sigma=np.sqrt(2.3**2 - 4))
 TOL, TIGHT = 1e-5, 2e-6
 
@@ -73,7 +71,7 @@ def test_single_precision_sources_hold_no_double():
         assert not re.search(r"\bdouble\d*\b", code), name
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("case", range(5))
 def test_airy_psf_single_matches_double(case):
     shape = [(58, 116), (9, 31), (13, 7), (58, 116), (6, 10)][case]
@@ -93,7 +91,7 @@ def test_airy_psf_single_matches_double(case):
     assert np.max(np.abs(s.sum(axis=(1, 2)) - d.sum(axis=(1, 2)))) <= 10 * TIGHT
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_gaussian_psf_single_matches_double():
     lbda = np.linspace(3700.0, 17000.0, 11)
     kw = dict(NARROW, sigma_ref_arcsec=0.0286)
@@ -108,7 +106,7 @@ def sim():
     return LazuliSupernova(0.5).simulation
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_airy_cube_single_matches_double(sim):
     """The acceptance cube: Lazuli narrow field, Airy, jitter, blur, LSF; signal and variance."""
     d = sim.get_cube(psf_profile="airy", precision="double")
@@ -122,7 +120,7 @@ def test_airy_cube_single_matches_double(sim):
     assert np.array_equal(np.isnan(s[0]), np.isnan(d[0]))
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_auto_picks_single_only_without_fast_fp64(monkeypatch):
     ratio = prec.fp64_throughput_ratio()
     if opencl.device_type() == "CPU":
@@ -138,7 +136,7 @@ def test_auto_picks_single_only_without_fast_fp64(monkeypatch):
     assert prec.resolve_precision("auto", "auto", "cube")[1] == "double"
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_device_without_fp64_runs_single_kernels(sim, monkeypatch):
     """Forcing the fp64 flag off: "auto" runs the single-precision kernels (not the NumPy
     fallback), bit for bit what "single" gives on the real device; "double" is one clear error;
@@ -177,7 +175,7 @@ def test_campaign_spec_precision(tmp_path):
     assert single.canonical() != default.canonical()
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("varying", [False, True])
 def test_lsf_single_matches_double(varying):
     """lsf.cl in float32 against float64: ≤ 2e-6 of the peak (measured 1.5e-7 on the Lazuli
@@ -194,7 +192,7 @@ def test_lsf_single_matches_double(varying):
         apply_lsf(cube, sigma, precision="fp16")
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("method", ["direct", "fft"])
 def test_convolution_single_matches_double(method):
     """convolve.cl / fft.cl in float32: ≤ 5e-6 of each plane's peak against double (measured 3e-7
@@ -216,7 +214,7 @@ def test_convolution_single_matches_double(method):
         assert 0 < err <= 5e-6
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_host_cube_single_matches_double():
     """A point source with a Sersic host (PSF ⊛ host convolution, fused cube) in single precision."""
     from slicersim import Host, LazuliTarget, SersicProfile
@@ -231,7 +229,7 @@ def test_host_cube_single_matches_double():
     assert 0 < peak_err(s.signal, d.signal) <= TIGHT
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_numpy_cube_path_runs_and_records_the_precision(monkeypatch):
     """Review finding: with a non-Rauscher variance model the cube takes the NumPy path (LSF, QE,
     variance in float64), whose PSF kernels ignored ``precision`` and whose record said "double" while
@@ -251,7 +249,7 @@ def test_numpy_cube_path_runs_and_records_the_precision(monkeypatch):
     assert auto.paths["precision"] == "single" and np.array_equal(auto.signal, single.signal, equal_nan=True)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_campaign_precision_the_local_device_cannot_run_is_refused_up_front(tmp_path, monkeypatch):
     """Review finding: products.precision = "double" on a device without fp64 failed every target one
     by one; with the embedded cluster (this machine's device) it is one error before anything is

@@ -19,15 +19,14 @@ import numpy as np
 import pytest
 
 from slicersim.backends import projection
-from slicersim.backends.dispatch import resolve_backend
 from slicersim.errors import ParameterError
 from slicersim.instrument.mapper import SlicerMapper
 from slicersim.io import table_cache
 from slicersim.io.table_cache import ArrayCache, Chunks, TableCacheWarning
 
-HAS_CL = resolve_backend("auto") == "opencl"
-needs_cl = pytest.mark.skipif(not HAS_CL, reason="no OpenCL device with fp64: NumPy-only run")
-BACKENDS = ["numpy", pytest.param("opencl", marks=needs_cl)]
+from conftest import have_opencl
+
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 SLICES = (20, 21, 22, 23)
 NCOL = 6
@@ -131,7 +130,7 @@ def test_key_changes_with_what_determines_the_tables():
     # the box array itself is a valid geometry too, and the backend is part of the key
     box = m.cell_boxes(SLICES, NCOL, EDGES)
     assert projection.table_key(box, grid, backend="numpy") != base
-    if HAS_CL:
+    if have_opencl():
         assert projection.table_key(box, grid, backend="opencl") != projection.table_key(box, grid, backend="numpy")
 
 

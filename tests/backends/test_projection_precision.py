@@ -31,8 +31,8 @@ from slicersim.backends import projection as cp
 from slicersim.errors import OpenCLUnavailableError, ParameterError
 from slicersim.instrument.mapper import NARROW_SLICES, SlicerMapper
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
+from conftest import have_opencl
+
 TOL, TIGHT, FLUX = 1e-5, 1e-6, 1e-6
 
 
@@ -59,12 +59,12 @@ def case():
     spectrum = 1.0 + 2.0 * np.sin(np.linspace(0, 3, lbda.size)) ** 2
     cube = spectrum[:, None, None] * psf[None] + 1e-3
     mapper = SlicerMapper.default(table_cache=None)
-    tables = mapper.projection_tables(NARROW_SLICES, 116, edges) if HAVE_OPENCL else None
+    tables = mapper.projection_tables(NARROW_SLICES, 116, edges) if have_opencl() else None
     value = np.ascontiguousarray(cube[:, ::-1, :].transpose(1, 0, 2))
     return dict(lbda=lbda, edges=edges, cube=cube, mapper=mapper, tables=tables, value=value)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_single_matches_double(case):
     t, v = case["tables"], case["value"]
     double = cp.deposit(v, t, precision="double")
@@ -83,7 +83,7 @@ def test_single_matches_double(case):
                           cp.deposit(small, t, backend="numpy", precision="double"))
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_single_flux_conservation(case):
     t, v = case["tables"], case["value"]
     single = cp.deposit(v, t, precision="single")
@@ -93,7 +93,7 @@ def test_single_flux_conservation(case):
     assert abs(cp.deposit(v, t, precision="double").sum() / v.sum() - 1) <= 1e-12   # all cells on the detector
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_single_reruns_and_accumulation_bit_identical(case):
     t, v = case["tables"], case["value"]
     first = cp.deposit(v, t, precision="single")
@@ -106,7 +106,7 @@ def test_single_reruns_and_accumulation_bit_identical(case):
     assert np.array_equal(out, before + first)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_single_with_device_tables_and_float64_weights():
     """Tables built on the device (weights not on the host), stored as float64, with 2 × 1
     sub-cells per cell (scale 1/2 per sub-cell): the single deposit downloads the scales and
@@ -141,7 +141,7 @@ def test_single_deposit_source_holds_no_double(vw):
     assert "cell_weights" in pre() and re.search(r"\bdouble\b", pre())
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_device_without_fp64_runs_single_deposit(case, monkeypatch):
     """fp64 flag forced off: the tables are built by the NumPy twin (keyed so), and "auto" runs
     the single deposit on the device (bit for bit "single" on the same NumPy-built tables, not
@@ -198,7 +198,7 @@ def test_reduction_projections_stay_float64_on_every_device(monkeypatch):
     single deposit that "auto" picks on a device without fast fp64."""
     from slicersim.backends import dispatch
     assert prec.float64_kwargs("numpy") == {"backend": "numpy", "precision": "double"}
-    if opencl.is_available() and opencl.device_supports_fp64() and dispatch.device_validated()[0]:
+    if have_opencl() and dispatch.device_validated()[0]:
         assert prec.float64_kwargs() == {"backend": "opencl", "precision": "double"}
     monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
     assert prec.float64_kwargs() == {"backend": "numpy", "precision": "double"}

@@ -32,16 +32,13 @@ from scipy.integrate import quad
 from scipy.special import erf, erfcx, j1
 
 from conftest import reference_target
-from slicersim.backends import opencl
 from slicersim.backends.psf import _gaussian_opencl, bessel_j1, psf_cells, psf_cube
 from slicersim.errors import ParameterError
 from slicersim.physics.psf import (airy_encircled_energy, airy_intensity, airy_rectangle_fraction,
                            airy_wavenumber, aperture_cells, blur_bin_taps, gaussian_psf_fractions,
                            gaussian_psf_sigmas)
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
-BACKENDS = ["numpy", pytest.param("opencl", marks=needs_opencl)]
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 NARROW = dict(spatial_scale=0.04, guiding_sigma=0.010, instrumental_sigma=np.sqrt(2.3**2 - 4))
 SHARP = dict(spatial_scale=0.04, guiding_sigma=0.0, instrumental_sigma=0.0)   # no jitter, no blur
@@ -53,7 +50,7 @@ def peak_err(a, b):
 
 
 # --------------------------------------------------------------------------- kernels vs twins
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_bessel_j1_kernel_matches_scipy():
     x = np.concatenate([[0.0, 1e-300, 11.999999, 12.0, 12.000001],
                         np.linspace(0, 40, 40001), np.geomspace(1e-8, 1e6, 40001)])
@@ -61,7 +58,7 @@ def test_bessel_j1_kernel_matches_scipy():
     assert err.max() <= 5e-12                      # measured 1.6e-12 (at x = 12)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("seed", range(4))
 def test_gaussian_kernel_matches_numpy(seed):
     rng = np.random.default_rng(seed)
@@ -104,7 +101,7 @@ def test_gaussian_tail_fractions_relative_accuracy(backend):
     assert np.all((got[~normal] >= 0) & (got[~normal] < 1e-290))
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("case", range(6))
 def test_airy_kernel_matches_numpy(case):
     rng = np.random.default_rng(100 + case)
@@ -123,7 +120,7 @@ def test_airy_kernel_matches_numpy(case):
     assert peak_err(got, want) <= 1e-11
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("case", range(5))
 def test_airy_kernel_symmetric_sources_match_numpy(case):
     """The kernels evaluate equal |dx|, |dy| once (mirror blocks, shared rows, mirrored
@@ -179,7 +176,7 @@ def test_chunking_does_not_change_the_cube(backend):
 
 
 # --------------------------------------------------------------------------- analytic Airy
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_device_resident_cube_equals_host_cube():
     """psf_cube_device leaves the Airy cube on the device: bit-identical to psf_cube's OpenCL
     result for one launch and for one wavelength per launch (planes placed at their offsets, odd

@@ -20,15 +20,14 @@ import slicersim
 from slicersim.backends import noise as cn
 from slicersim.backends import opencl, psf_cache
 from slicersim.backends import psf as bpsf
-from slicersim.backends.dispatch import resolve_backend
 from slicersim.errors import ParameterError, SlicersimError
 from slicersim.memo import ByteLRU, cache_info, clear_caches, content_key, read_only
 from slicersim.products.cube import psf_block
 from slicersim.products.psf_profiles import get_psf_profile
 
-HAS_CL = resolve_backend("auto") == "opencl"
-needs_cl = pytest.mark.skipif(not HAS_CL, reason="no OpenCL device with fp64: NumPy-only run")
-BACKENDS = ["numpy", pytest.param("opencl", marks=needs_cl)]
+from conftest import have_opencl
+
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 NB = 24                     # wavelength bins of the test blocks (the blue end: the hardest PSF)
 
 
@@ -83,7 +82,7 @@ def test_cached_block_equals_uncached_bit_for_bit(backend):
     np.testing.assert_array_equal(direct, ref)
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 def test_cached_device_block_equals_uncached():
     sim = _sn().simulation
     profile = get_psf_profile("airy")
@@ -239,11 +238,11 @@ def test_update_back_and_forth_hits_the_original_and_same_wavelengths_share_bloc
 def test_key_covers_backend_and_options():
     sim = _sn().simulation
     _block(sim, "numpy")
-    if HAS_CL:
+    if have_opencl():
         _block(sim, "opencl")
         assert psf_cache.psf_cache_info()["entries"] == 2
     ref = _block(sim, "numpy", options={"grid": "reference"})
-    assert psf_cache.psf_cache_info()["misses"] == (3 if HAS_CL else 2)
+    assert psf_cache.psf_cache_info()["misses"] == (3 if have_opencl() else 2)
     np.testing.assert_array_equal(ref, _uncached(_block, sim, "numpy", options={"grid": "reference"}))
 
 
@@ -346,7 +345,7 @@ def _noise_inputs(n, seed=3):
     return e, v
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("n", [1, 7, 8 * 97 + 5, 20000])
 def test_noisy_cube_identical_for_every_vector_width_and_path(n):
     e, v = _noise_inputs(n)
@@ -378,7 +377,7 @@ def test_noisy_cube_out_argument_is_checked():
         cn.noisy_cube(e, np.where(np.arange(10) == 0, np.nan, np.where(np.arange(10) == 9, -1.0, v)), 1)
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 def test_noisy_airy_cube_identical_for_every_vector_width_and_chunking(monkeypatch):
     """``get_cube`` draws the noise at the device's preferred width: the cube must not depend on
     it (nor on the λ chunking).  (The PSF kernels' own vector layout may move the expectation by
@@ -435,7 +434,7 @@ else:
 """
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 def test_limit_cpu_threads_before_and_after_the_context():
     env = {k: v for k, v in os.environ.items() if k != "POCL_MAX_PTHREAD_COUNT"}
     res = subprocess.run([sys.executable, "-c", _THREADS_CHILD], env=env, capture_output=True, text=True,

@@ -18,15 +18,13 @@ from slicersim.errors import OpenCLUnavailableError, ParameterError
 from slicersim.physics.ramp import RampParameters
 from slicersim.products.ramps import simulate
 
-needs_opencl = pytest.mark.skipif(not opencl.is_available(), reason="no OpenCL device")
-
 
 def _mixed_rates(seed, size):
     """μ [e-/frame] over sparse, inversion, PTRS, Gaussian and saturating pixels."""
     return 10 ** np.random.default_rng(seed).uniform(-3, 4.5, size)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_single_equals_float64_twin_but_for_float_roundings():
     """Same Philox words: SCI differs from the float64 twin only where a float rounding moves rint
     (by 1 ADU) or a Poisson decision; the fraction stays below the documented tolerance, and
@@ -47,7 +45,7 @@ def test_single_equals_float64_twin_but_for_float_roundings():
     assert np.abs(diff[:, dark]).max() <= 1
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 @pytest.mark.parametrize("mu", [0.3, 4.0, 25.0, 900.0, 2.2e4])
 def test_single_poisson_draws_follow_the_exact_distribution(mu):
     """One frame's charge (MACC(2, 1, 0), no read or kTC noise, gain 1, bias 0): χ² of the single
@@ -69,7 +67,7 @@ def test_single_poisson_draws_follow_the_exact_distribution(mu):
     assert abs(k.mean() - mu) < 4 * math.sqrt(mu / npix)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_single_is_counter_based():
     """Vector width, work-group size and chunking leave the single build's integers unchanged."""
     p = RampParameters(nmd=(8, 4, 1), ron=12.0, ktc_noise=20.0, gauss_min_mean=3e3)
@@ -99,7 +97,7 @@ def test_single_ramp_sources_hold_no_double(vw, source, options, kernel):
     assert "double" not in out
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_device_without_fp64_runs_single_ramps(monkeypatch):
     """fp64 flag forced off: "auto" runs the single samplers (not NumPy), the same integers as
     "single"; "double" is one clear error; ramps with effects (double only) fall back to NumPy."""
@@ -124,7 +122,7 @@ def test_bad_precision_refused_before_any_file(tmp_path):
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_single_with_effects_equals_float64_twin_but_for_float_roundings():
     """Every effect on (cosmic-ray deposits and nonlinearity in the charge sampler; IPC, correlated
     noise, bias map and digitisation in the readout): the single build differs from the float64
@@ -139,7 +137,7 @@ def test_single_with_effects_equals_float64_twin_but_for_float_roundings():
     assert np.mean(np.abs(diff) > 1) <= 2e-4                  # a moved Poisson (PTRS) decision: rarer
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_file_records_the_precision(tmp_path):
     out = simulate(np.full((8, 8), 2.0), (3, 1, 0), out=str(tmp_path / "r.h5"), precision="single")
     with h5py.File(out) as f:
@@ -149,7 +147,7 @@ def test_file_records_the_precision(tmp_path):
         assert f.attrs["PRECISION"] == "double"               # the NumPy twin computes in float64
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_single_ptrs_log_acceptance_has_no_cancellation():
     """The PTRS acceptance ln P(k; μ) of the single build (``rng_log_poisson``) against SciPy's
     float64 logpmf: error ≤ 2e-6 + 2e-7 (|ln P| + |k − μ|) up to μ = 3e5 (measured 3e-6 there), where the direct float sum
@@ -175,7 +173,7 @@ def test_single_ptrs_log_acceptance_has_no_cancellation():
     assert np.all(err <= 2e-6 + 2e-7 * (np.abs(exact) + np.abs(k - mu))), err.max()
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_single_precision_selfcheck_guards_the_float_kernels(monkeypatch):
     """The single builds run only on a device that passes their own self-check (no fp64 needed):
     it passes here; a device whose float samplers are wrong makes "single" with backend="opencl"
@@ -237,7 +235,7 @@ def test_opencl_backend_without_a_device_is_refused(monkeypatch):
         simulate(np.ones((4, 4)), (3, 1, 0), backend="opencl")
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_single_ramp_of_an_absurdly_bright_pixel_saturates():
     """Review finding: μ beyond float32's range (rate 3e38 e-/s) came out at bias level, unflagged, in
     single; μ is now capped 64 σ above the full well (filled in the first frame either way): the same

@@ -20,9 +20,7 @@ from slicersim import rng
 from slicersim.backends import opencl
 from slicersim.backends.dispatch import resolve_backend
 
-HAS_CL = resolve_backend("auto") == "opencl"
-needs_cl = pytest.mark.skipif(not HAS_CL, reason="no OpenCL device with fp64: NumPy-only run")
-BACKENDS = ["numpy", pytest.param("opencl", marks=needs_cl)]
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 # Random123 kat_vectors, philox4x32 with 10 rounds: (counter, key, expected output)
 KAT = [((0, 0, 0, 0), (0, 0), (0x6627E8D5, 0xE169C58D, 0xBC57AC4C, 0x9B00DBD8)),
@@ -85,7 +83,7 @@ def test_sign_extended_high_word_is_the_h200_signature(monkeypatch):
     assert rng.poisson(np.full(100000, 1.0), 7, np.arange(100000, dtype=np.uint64), 0).mean() == 0.13353
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("vw", [1, 4])
 def test_uniform_mapping_of_top_bit_words_in_the_kernel(vw):
     """philox_u01 and philox_x52 (kernels/philox.cl) on words with and without the top bit set,
@@ -129,7 +127,7 @@ def test_elementary_functions_accuracy():
     assert np.max(np.abs(rng.log_factorial(k) - gammaln(k + 1)) / np.maximum(gammaln(k + 1), 1)) < 1e-15
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("n, first, stream, draw", [(1, 0, 0, 0), (1001, 2**40 + 3, 7, 2), (4099, 17, 2**32 - 1, 5)])
 def test_streams_bit_identical(n, first, stream, draw):
     un, zn = cn.uniform_normal_draw(n, 2**63 + 12345, stream, draw, backend="numpy", first_index=first)
@@ -139,7 +137,7 @@ def test_streams_bit_identical(n, first, stream, draw):
         assert np.array_equal(uc, un) and np.array_equal(zc, zn), f"work_group={wg}, vector_width={vw}"
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("rows, ncols, first, stride", [(3, 37, 5 << 16, 1 << 16), (17, 4096, 0, 1 << 16),
                                                          (2, 1001, 2**40 + 3, 1001), (1, 9, 0, 0)])
 def test_grid_streams_bit_identical_to_rng(rows, ncols, first, stride):
@@ -235,7 +233,7 @@ def test_noisy_cube_semantics(backend):
     assert np.array_equal(slab, out[4:9], equal_nan=True)
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 def test_noisy_cube_identical_across_backends_workgroups_chunks_vector_widths():
     e, v = _cube((37, 5, 9))                          # 1665 voxels, odd sizes
     ref = cn.noisy_cube(e, v, 2**64 - 1, backend="numpy")
@@ -294,7 +292,7 @@ def test_poisson_statistics(backend, mu):
     assert nbins >= 2 and pvalue > 1e-3, f"chi2 p={pvalue:.2e} over {nbins} bins"
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 def test_poisson_bit_identical_and_chunk_independent():
     g = np.random.default_rng(3)
     mean = np.concatenate([g.uniform(0, 12, 2000), 10 ** g.uniform(1, 7, 1001),
@@ -318,7 +316,7 @@ def test_poisson_edge_cases(backend):
     assert not np.array_equal(cn.poisson_draw(mean, 9, stream=1, backend=backend), full)
 
 
-@needs_cl
+@pytest.mark.needs_opencl
 def test_philox_header_is_included_by_noise_kernel():
     assert '#include "philox.cl"' in opencl.kernel_source("noise.cl")
     assert "__kernel" not in opencl.kernel_source("philox.cl")   # header-like: functions only

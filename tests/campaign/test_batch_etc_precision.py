@@ -14,8 +14,6 @@ from slicersim.backends import precision as prec
 from slicersim.backends.band_variance import band_variance_table
 from slicersim.errors import ParameterError
 
-needs_opencl = pytest.mark.skipif(not opencl.is_available(), reason="no OpenCL device")
-
 
 def _tables(seed=1, N=60, nl=200, nc=40, K=70):
     g = np.random.default_rng(seed)
@@ -31,7 +29,7 @@ def _tables(seed=1, N=60, nl=200, nc=40, K=70):
     return Q, P2, A, B, S, band
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_single_band_variance_matches_the_float64_twin():
     """Relative error ≤ 5e-7 (measured 1.1e-7: float32 inputs, compensated sums), the same +inf
     (saturated) pattern and the same valid-bin counts."""
@@ -45,7 +43,7 @@ def test_single_band_variance_matches_the_float64_twin():
     assert np.max(np.abs(got[0][fin] / want[0][fin] - 1)) <= 5e-7
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_single_band_sum_is_compensated():
     """4000 bins of one cell each, variances spread over 1e-3 … 1e3: a plain float sum drifts by
     ~1e-5 (n ulps in the worst case), the compensated one stays within 3e-7."""
@@ -67,7 +65,7 @@ def test_single_band_variance_source_holds_no_double():
     assert "band_variance" in out and "double" not in out
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_survey_plan_in_both_precisions():
     """A 24-SN plan: the same readouts, SNR within 1e-6 relative; the totals record the precision."""
     from slicersim.campaign.plan import plan_survey
@@ -102,7 +100,7 @@ def test_bad_precision_refused_before_work():
                 band_variance_table(*_tables(N=2, nl=4, nc=2, K=2), precision=bad)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl_device
 def test_without_fp64_batch_runs_single_and_the_etc_stays_float64(monkeypatch):
     """fp64 forced off: the batch ETC's "auto" runs the float kernel; the single-target ETC
     (precision None) takes the float64 NumPy twin, as before."""

@@ -262,16 +262,7 @@ def test_noisy_spectrum_uses_philox(sn):
     np.testing.assert_array_equal(s1[ok], signal[ok] + np.sqrt(var[ok]) * z[ok])
 
 
-def _opencl_ok():
-    try:
-        from slicersim.backends import opencl
-        opencl.require_fp64()
-        return True
-    except Exception:
-        return False
-
-
-@pytest.mark.skipif(not _opencl_ok(), reason="no OpenCL fp64 device")
+@pytest.mark.needs_opencl
 def test_noisy_cube_numpy_vs_opencl():
     from slicersim.backends.noise import noisy_cube
     sim = LazuliSupernova(1.0).simulation

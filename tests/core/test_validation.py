@@ -8,7 +8,6 @@ import warnings
 import numpy as np
 import pytest
 
-from slicersim.backends import opencl
 from slicersim.errors import ConfigError, ETCError, ParameterError, ReadoutError, SpectrumError
 from slicersim.snr import search as S
 from slicersim.etc import solve_many
@@ -16,8 +15,7 @@ from slicersim.snr.bands import BandCoverageWarning
 from slicersim.io.config import builtin_config_dir, load_config
 from slicersim.targets import LazuliSupernova, LazuliTarget
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL fp64"))]
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 
 def within(seconds, func, *args, **kwargs):

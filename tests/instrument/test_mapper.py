@@ -28,12 +28,9 @@ import pytest
 
 from conftest import missing_reference
 from slicersim.backends import projection as cp
-from slicersim.backends import opencl
 from slicersim.instrument.mapper import SlicerMapper, detector_rate_image
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
-BACKENDS = ["numpy", pytest.param("opencl", marks=needs_opencl)]
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 def cbe_grid():
     """The built-in CBE wavelength grid (510 bins, ~1 px each on the default layout)."""
@@ -300,7 +297,7 @@ def _random_boxes(rng, n, shape):
     return box
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_tables_opencl_vs_numpy(dtype):
     rng = np.random.default_rng(7)
@@ -317,7 +314,7 @@ def test_tables_opencl_vs_numpy(dtype):
     assert np.all(np.array(sums_x) > 0.99)                         # ±4σ windows hold ≥ 99 % before renormalising
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("oversample,vw", [((1, 1), 8), ((2, 3), 4), ((3, 1), 1)])
 def test_deposit_opencl_vs_numpy(oversample, vw):
     rng = np.random.default_rng(8)
@@ -345,7 +342,7 @@ def test_deposit_opencl_vs_numpy(oversample, vw):
     np.testing.assert_allclose(out - 1.0, img_o, rtol=0, atol=1e-12 * np.abs(img_n).max())
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_project_cube_opencl_vs_numpy():
     """Whole path (tables + deposit) with each backend, on a few slices of the real grid."""
     lbda, edges = _LBDA, _EDGES

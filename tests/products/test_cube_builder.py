@@ -27,9 +27,7 @@ from slicersim.targets import LazuliTarget
 
 LBDA_IN = np.arange(3000.0, 20000.0, 10.0)
 READOUT = {"nmd": (16, 8, 0), "nramps": 2}
-HAVE_OPENCL = resolve_backend("auto") == "opencl"          # an OpenCL device with fp64
-BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.skipif(
-    not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)"))]
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 
 def _target(mag=21.0, position=(0.0, 0.0), field="narrow"):
@@ -275,8 +273,6 @@ from slicersim.backends.cube import (GaussianPSF, ReadoutConstants, default_vect
 from slicersim.products.cube import FUSED_KERNEL, readout_constants  # noqa: E402
 from slicersim.physics.lsf import lsf_index_weights, lsf_weights  # noqa: E402
 
-needs_opencl = pytest.mark.skipif(resolve_backend("auto") != "opencl",
-                                  reason="no OpenCL device with fp64: the fused-kernel tests need one")
 RO = ReadoutConstants(tint=181.1, gain=1.3, nramps=3, var_a=41.0, var_b=0.62, pixels_per_cell=2.0,
                       dark=0.011, saturation=3.0e5)
 
@@ -337,7 +333,7 @@ def test_twin_lsf_reflect_and_readout_physics():
     assert not np.isinf(variance[reach]).any()
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("psf_kind,with_host", [("gauss", False), ("factors", False), ("full", False),
                                                  ("factors", True), ("none", True)])
 def test_fused_kernel_matches_twin(psf_kind, with_host):
@@ -355,7 +351,7 @@ def test_fused_kernel_matches_twin(psf_kind, with_host):
         assert np.max(np.abs(variance[fin] - twin[1][fin])) < 1e-13 * np.max(twin[1][fin])
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_fused_kernel_chunking_float32_and_checks():
     """Chunks with their LSF halos (grid ends included) are bit-identical to one launch; float32
     storage is the float64 result rounded; inputs that miss the halo are refused."""
@@ -377,7 +373,7 @@ def test_fused_kernel_chunking_float32_and_checks():
         detector_block(np.ones(4), None, [1.0], [1.0], RO, bins=(0, 1), nl=1, lo=0, host=np.ones((1, 2, 2)))
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_fused_kernel_airy_block(narrow_band_sim):
     """A real Airy PSF block (non-separable) through the kernel and its twin; build_cube's fused
     path against its NumPy path (1e-12: compute_psf's two backends differ by ~1e-14)."""
@@ -398,7 +394,7 @@ def test_fused_kernel_airy_block(narrow_band_sim):
     assert _peak_err(fused.signal, oracle.signal) < 1e-12 and _peak_err(fused.variance, oracle.variance) < 1e-12
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_fused_kernel_device_resident_psf(narrow_band_sim):
     """The Airy block left on the device (no host round trip) gives the same cube, bit for bit, as
     the host block, in the kernel and in its twin; the zero-copy outputs are the caller's arrays."""

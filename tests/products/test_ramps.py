@@ -13,11 +13,10 @@ from slicersim.products.ramps import (RampParameters, fit_slopes,
 from slicersim.errors import RampFileError
 from slicersim.io.rampfile import read_ramps
 
-needs_opencl = pytest.mark.skipif(not (opencl.is_available() and opencl.device_supports_fp64()),
-                                  reason="no OpenCL device with fp64")
+from conftest import have_opencl
+
 #: the statistical tests run for both precisions of the samplers (issue 12); single needs OpenCL
-BOTH_PRECISIONS = ["double", pytest.param("single", marks=pytest.mark.skipif(
-    not opencl.is_available(), reason="single-precision samplers need an OpenCL device"))]
+BOTH_PRECISIONS = ["double", pytest.param("single", marks=pytest.mark.needs_opencl_device)]
 
 
 def _seed(seed, precision):
@@ -30,7 +29,7 @@ def _mu(rate, p):
     return frame_mean_charge(rate, 0.0, 0.0, p.roic_glow, p.tframe)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("nmd", [(5, 3, 2), (4, 1, 0), (7, 8, 1)])
 def test_kernel_equals_numpy_twin_bit_for_bit(nmd):
     """Same integers: both paths use the same Philox keys and the same IEEE operations."""
@@ -44,7 +43,7 @@ def test_kernel_equals_numpy_twin_bit_for_bit(nmd):
     assert a[1].any(), "some pixels must saturate in this test"
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_gaussian_approximation_twin():
     """Gaussian-path kernel = NumPy twin (its moments: test_coverage_gaps.py::test_ramp_gaussian_path_moments)."""
     p = RampParameters(nmd=(6, 2, 0), gauss_min_mean=50.0, ron=0.0, roic_glow=0.0, bias=0.0, full_well=1e9)
@@ -54,7 +53,7 @@ def test_gaussian_approximation_twin():
     assert np.array_equal(a[0], b[0])
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("row", [4000, 4095])
 def test_bright_paths_at_the_end_of_a_4096_detector_bit_for_bit(row):
     """Bright pixels (PTRS 10 … 3e3 e-/frame, rounded Gaussian ≥ 3e3, full well reached in the first
@@ -74,7 +73,7 @@ def test_bright_paths_at_the_end_of_a_4096_detector_bit_for_bit(row):
     assert a[1][0].any() and (a[1][-1] != 0).mean() > 0.1     # saturated from the first group on
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("work_group", [None, 1, 7, 64])
 def test_identical_for_any_work_group_and_chunking(work_group):
     rate = np.random.default_rng(2).uniform(0, 50, (37, 41))
@@ -84,7 +83,7 @@ def test_identical_for_any_work_group_and_chunking(work_group):
     assert np.array_equal(ref, got)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.parametrize("npix", [1, 13, 1001])
 def test_vector_lanes_any_width_and_odd_pixel_counts(npix):
     """Lane widths 1–16 and work groups 1/3/default give the twin's integers when the pixel count
@@ -101,7 +100,7 @@ def test_vector_lanes_any_width_and_odd_pixel_counts(npix):
         assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1]), (vw, wg)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_sparse_full_well_clipping_twin_and_statistics():
     """A 6 e- full well reached inside sparse windows (the rare clipped branch): kernel = twin, and
     the clipped group sums and flags have the dense sampler's mean, variance and flag rate."""
@@ -162,7 +161,7 @@ def test_sparse_sampler_slope_variance_matches_rauscher07(nmd, precision):
 def test_bad_tuning_parameters_are_refused():
     with pytest.raises(ValueError, match="sparse_max_group"):
         simulate(np.ones((2, 2)), (3, 1, 0), sparse_max_group=-1.0)
-    if opencl.is_available() and "GPU" not in opencl.device_type():
+    if have_opencl(fp64=False) and "GPU" not in opencl.device_type():
         with pytest.raises(ValueError, match="work_group"):
             simulate(np.ones((2, 2)), (3, 1, 0), backend="opencl", work_group=4096)
 

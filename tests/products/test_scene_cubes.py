@@ -9,15 +9,13 @@ import numpy as np
 import pytest
 
 from slicersim import Host, LazuliTarget, SersicProfile
-from slicersim.backends.dispatch import resolve_backend
 from cube_oracle import cube_numpy
 from slicersim.errors import ParameterError
 from slicersim.products.components import SCENE_COMPONENTS, SWITCH_OFF_NAMES, VARIANCE_SOURCES
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
 READOUT = {"nmd": (16, 8, 0), "nramps": 2}
-BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.skipif(
-    resolve_backend("auto") != "opencl", reason="no OpenCL device with fp64"))]
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
 
 
 @pytest.fixture(scope="module")

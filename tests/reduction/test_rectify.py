@@ -16,9 +16,8 @@ Tolerances
 """
 import numpy as np
 import pytest
-from conftest import small_slicer_mapper, wide_spot_mapper
+from conftest import have_opencl, small_slicer_mapper, wide_spot_mapper
 
-from slicersim.backends import opencl
 from slicersim.backends import projection as cp
 from slicersim.backends.projection_transpose import gather, matrix_entries
 from slicersim.errors import ParameterError
@@ -27,9 +26,6 @@ from slicersim.io.config import builtin_config_dir
 from slicersim.io.curves import read_curve
 from slicersim.instrument.spectrograph import wavelength_grid_from_dispersion
 from slicersim.reduction.rectify import rectify
-
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
 
 
 def _cbe_grid():
@@ -87,7 +83,7 @@ def test_gather_is_the_transpose(oversample, vw, dtype):
     t = _random_tables(rng, (3, 9 * ne, 13 * nq), oversample, shape, dtype, vw)
     v, img = rng.uniform(-1, 1, (3, 9, 13)), rng.uniform(-1, 1, shape)
     dep = cp.deposit(v, t, backend="numpy")
-    backends = ["numpy"] + (["opencl"] if HAVE_OPENCL else [])
+    backends = ["numpy"] + (["opencl"] if have_opencl() else [])
     for be in backends:
         g = gather(img, t, backend=be)
         assert (v * g).sum() == pytest.approx((dep * img).sum(), rel=1e-12, abs=1e-12)
@@ -102,7 +98,7 @@ def test_gather_is_the_transpose(oversample, vw, dtype):
             gather(img, t, power=2)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_gather_opencl_matches_numpy_twin(mapper):
     t = mapper.projection_tables([3, 4, 31], 58, BLUE)
     img = np.random.default_rng(4).uniform(0, 1, mapper.detector_shape)

@@ -9,15 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from slicersim.backends import opencl
 from slicersim.errors import ConfigError, ParameterError, SpectrumError
 from slicersim.sources.lamps import (CalibrationLamp, FabryPerotEtalon, TabulatedEtalon, fabry_perot_lamp,
                                      qth_lamp)
 from slicersim.targets.calibration import (DEFAULT_ETALON_FSR, FlatFieldStructure, Flat3DCalibration,
                                            Lazuli3DFlat, locate_peaks)
-
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64 (run `make opencl`)")
 
 
 @pytest.fixture(scope="module")
@@ -252,7 +248,7 @@ def test_detector_image_lights_both_fields_and_conserves_the_rate(short_range_to
     assert r.mean() == pytest.approx(1.0, abs=3e-3)
 
 
-@needs_opencl       # the NumPy ramp sampler needs minutes for 4096² pixels
+@pytest.mark.needs_opencl       # the NumPy ramp sampler needs minutes for 4096² pixels
 def test_ramps_accumulate_the_flat(short_range_toml):
     flat = Lazuli3DFlat.from_qth(config=["cbe", short_range_toml])
     det, sim = flat.simulation.detector, flat.simulation
