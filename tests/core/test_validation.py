@@ -249,16 +249,29 @@ def test_nmd_beyond_max_group_refused_everywhere():
 
 
 # --------------------------------------------------------------------------- 5. sncosmo offline
-def test_offline_sncosmo_source_named():
-    import sncosmo
-    try:
-        sncosmo.get_source("salt2")
-        pytest.skip("salt2 available here (online or cached)")
-    except Exception:
-        pass
+def test_offline_sncosmo_source_named(tmp_path, monkeypatch):
+    """salt2 needs files sncosmo downloads: with an empty data directory and the network cut (the
+    download raises at once: no real request, no timeout), the error names the source, what is
+    missing and where to put it."""
+    import urllib.error
+    import sncosmo.utils
+    from sncosmo.builtins import DATADIR
+    from sncosmo.models import _SOURCES
+
+    def no_network(*args, **kwargs):
+        raise urllib.error.URLError("network disabled in this test")
+    monkeypatch.setattr(DATADIR, "_checked_rootdir", str(tmp_path))      # an empty data directory
+    monkeypatch.setattr(DATADIR, "_get_url", no_network)
+    monkeypatch.setattr(sncosmo.utils, "_download_file", no_network)
+    monkeypatch.setattr(_SOURCES, "_instances", type(_SOURCES._instances)())  # nothing loaded before
     with pytest.raises(SpectrumError, match=r'sncosmo source "salt2" could not be loaded \(needs download; '
-                                            r'offline\?\) — available offline: hsiao-subsampled'):
+                                            r'offline\?\) — available offline: hsiao-subsampled') as err:
         LazuliSupernova(1.0, source="salt2")
+    msg = str(err.value)
+    assert "put sncosmo's 'models/salt2/" in msg                                 # the files it needs
+    assert str(tmp_path) in msg and "SNCOSMO_DATA_DIR" in msg                   # where to put them
+    assert "URLError" in msg and "network disabled in this test" in msg         # why it failed
+    assert not list(tmp_path.iterdir())                                         # nothing written
 
 
 def test_reference_walk_beyond_max_group_refused():
