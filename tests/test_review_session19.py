@@ -11,7 +11,7 @@ import pytest
 
 from slicersim.io import atomic
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # tests/io/ → repo
 
 
 def _dead_pid():
@@ -128,13 +128,12 @@ def test_stale_temporary_does_not_block_the_disk_space_check(tmp_path, monkeypat
     assert not stale.exists()
 
 
+@pytest.mark.needs_opencl
 def test_failed_selfcheck_error_says_what_to_do(monkeypatch):
     """backend="opencl" on a device failing the self-check raised the bare verdict ('its noisy products
     would be wrong') without the way out: the NumPy backend, another device, or the override."""
     from slicersim.backends import dispatch, opencl
     from slicersim.errors import OpenCLUnavailableError
-    if not (opencl.is_available() and opencl.device_supports_fp64()):
-        pytest.skip("no fp64 OpenCL device")
     monkeypatch.delenv("SLICERSIM_TRUST_DEVICE", raising=False)
     monkeypatch.setattr(dispatch, "_SELFCHECK", {})
     monkeypatch.setattr(dispatch, "device_selfcheck", lambda: (

@@ -9,11 +9,8 @@ from slicersim.backends import opencl
 from slicersim.backends import precision as prec
 from slicersim.errors import ConfigError, OpenCLForkError
 
-HAVE_OPENCL = opencl.is_available() and opencl.device_supports_fp64()
-needs_opencl = pytest.mark.skipif(not HAVE_OPENCL, reason="no OpenCL device with fp64")
 
-
-@needs_opencl
+@pytest.mark.needs_opencl
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="fork only")
 def test_forked_child_is_refused_not_silently_numpy():
     """P1: resolve_precision in a forked child silently returned NumPy (is_available swallowed the
@@ -45,7 +42,7 @@ def _readout():
                             dark=0.01, saturation=6e4)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_detector_block_default_runs_without_fp64(monkeypatch):
     """P4: detector_block's default precision was "double", refused on a device without fp64."""
     from slicersim.backends.cube import detector_block
@@ -55,7 +52,7 @@ def test_detector_block_default_runs_without_fp64(monkeypatch):
     assert s.shape == (4, 3, 5) and np.all(np.isfinite(s))
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_cached_psf_cells_behaves_like_uncached_without_fp64(monkeypatch):
     """P5: the cache key resolved precision="double" even for the NumPy-only Gaussian psf_cells and
     raised where the uncached call computes."""
@@ -68,7 +65,7 @@ def test_cached_psf_cells_behaves_like_uncached_without_fp64(monkeypatch):
     np.testing.assert_array_equal(pc.psf_cells(*args, **kw), raw)
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_auto_stays_double_on_cpu_whatever_the_timing(monkeypatch):
     """P2: a timing on shared cores measured 0.3 … 19 and could flip "auto" to single for the whole
     process; CPUs are not timed (fp64 at half the SIMD lanes)."""
@@ -79,7 +76,7 @@ def test_auto_stays_double_on_cpu_whatever_the_timing(monkeypatch):
     assert prec.resolve_precision("auto", "auto", "cube") == ("opencl", "double")
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_cube_records_the_precision_it_ran_in():
     """P2: nothing recorded which precision a cube was computed in."""
     from slicersim import LazuliSupernova
@@ -129,7 +126,7 @@ def test_precision_leaves_the_identity_when_no_cube_is_written():
         with_products(base, precision="half")
 
 
-@needs_opencl
+@pytest.mark.needs_opencl
 def test_noise_backend_refused_before_the_cube(monkeypatch):
     """P7: without fp64, build_cube(seed=…, backend="opencl") built the single-precision cube and only
     then refused the (double) noise draw.  The noise draw has single kernels now (runs without fp64:
