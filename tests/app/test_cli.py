@@ -316,3 +316,13 @@ def test_an_internal_error_is_exit_3_with_traceback_and_please_report(capsys, mo
     last = err.strip().splitlines()[-1]
     assert last.startswith(f"slicersim: internal error ({type(exc).__name__})") and "please report" in last
     assert "slicersim: error:" not in err
+
+
+def test_cli_etc_prints_units_and_no_object_repr():
+    """`slicersim etc --redshift 1 --snr 20` prints exposure_time / data_volume /
+    lbda_range_obs without units and 'target : <slicersim.targets.LazuliSupernova object at 0x..>'."""
+    out = subprocess.run([sys.executable, "-m", "slicersim", "etc", "--redshift", "1.0", "--snr", "20"],
+                         capture_output=True, text=True, timeout=30, check=True).stdout
+    assert "object at 0x" not in out
+    # the CLI now prints units in brackets after the key ("exposure_time [s]", "data_volume [GB]")
+    assert "[GB]" in out and "[s]" in out and "[Angstrom]" in out

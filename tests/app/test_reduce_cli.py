@@ -413,3 +413,19 @@ def test_a_reduction_error_reaching_the_cli_is_reworded_with_its_class(tmp_path)
     with pytest.raises(KeyError):                                     # not ours: untouched
         with _FlagNames():
             raise KeyError("position=")
+
+
+def test_weights_with_drizzle_are_refused(tmp_path, capsys):
+    """--weights is an option of the LSQ rectification: with --rectify drizzle it did nothing, silently
+    (the CLI refuses options that do not apply)."""
+    from slicersim.app.cli import main
+    from slicersim.reduction.checks import check_spectra_options
+    with pytest.raises(ParameterError, match="drizzle"):
+        check_spectra_options(weights="data", rectify_method="drizzle")
+    assert check_spectra_options(weights="data", rectify_method="lsq")["weights"] == "data"
+    raw = tmp_path / "raw.h5"
+    raw.write_bytes(b"")                                   # refused before any data are read
+    assert main(["reduce", str(raw), "--out", str(tmp_path / "o.h5"), "--quiet", "--spectra", "--rectify", "drizzle",
+                 "--weights", "model"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "drizzle" in err[0] and err[0].startswith("slicersim: error:")

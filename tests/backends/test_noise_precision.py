@@ -280,3 +280,23 @@ def test_cube_noise_follows_the_precision():
     double = build_cube(sim, seed=8, precision="double", progress=False)
     assert double.paths["noise_precision"] == "double" and "noise_precision" not in build_cube(sim).paths
     assert np.array_equal(double.noisy, cn.noisy_cube(double.signal, double.variance, 8, backend="numpy"))
+
+
+@pytest.mark.needs_opencl
+def test_noise_backend_refused_before_the_cube(monkeypatch):
+    """P7: without fp64, build_cube(seed=…, backend="opencl") built the single-precision cube and only
+    then refused the (double) noise draw.  The noise draw has single kernels now (runs without fp64:
+    the tests above); a noise draw without them must still be refused before the cube."""
+    from slicersim import LazuliSupernova
+    from slicersim.backends import precision as prec
+    from slicersim.errors import OpenCLUnavailableError
+    from slicersim.products import cube as cube_module
+    sim = LazuliSupernova(0.5).simulation
+    monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
+    monkeypatch.delitem(prec.SINGLE_PRECISION_ERRORS, "noise")
+    monkeypatch.setattr(prec, "DOUBLE_ONLY_PRODUCTS", ("noise",))      # registered, without single kernels
+    called = []
+    monkeypatch.setattr(cube_module, "detector_chunk", lambda *a, **k: called.append(1))
+    with pytest.raises(OpenCLUnavailableError):
+        cube_module.build_cube(sim, psf_profile="airy", seed=3, backend="opencl")
+    assert not called

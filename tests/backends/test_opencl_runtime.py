@@ -6,6 +6,8 @@ import time
 import pytest
 
 from slicersim.backends import opencl
+from slicersim.errors import OpenCLForkError
+from slicersim.backends import precision as prec
 
 
 @pytest.fixture
@@ -340,3 +342,62 @@ def test_selfcheck_ramp_blocks_take_every_kernel_path(monkeypatch):
     assert ((mu_a >= p_a.gauss_min_mean) & (mu_a * 2 < p_a.full_well)).any()
     assert paths == {"sparse", "sparse, many events", "inversion", "ptrs", "gauss", "ADU 65535", "ADU 0",
                      "full well", "pixel >= 2^31", "last rows of 4096²"}, paths
+
+
+@pytest.mark.needs_opencl
+def test_failed_selfcheck_error_says_what_to_do(monkeypatch):
+    """backend="opencl" on a device failing the self-check raised the bare verdict ('its noisy products
+    would be wrong') without the way out: the NumPy backend, another device, or the override."""
+    from slicersim.backends import dispatch, opencl
+    from slicersim.errors import OpenCLUnavailableError
+    monkeypatch.delenv("SLICERSIM_TRUST_DEVICE", raising=False)
+    monkeypatch.setattr(dispatch, "_SELFCHECK", {})
+    monkeypatch.setattr(dispatch, "device_selfcheck", lambda: (
+        False, "OpenCL device 'X' fails the random-stream and ramp self-check against the NumPy twin "
+               "(ramp block A: 1/388 SCI and 0/388 GROUPDQ values differ): its noisy products would be wrong"))
+    with pytest.raises(OpenCLUnavailableError) as info:
+        dispatch.resolve_backend("opencl")
+    text = str(info.value)
+    assert "ramp block A" in text
+    assert "numpy" in text.lower() and "SLICERSIM_DEVICE" in text and "SLICERSIM_TRUST_DEVICE" in text
+
+
+def test_kernels_come_from_the_imported_checkout():
+    """With an editable install of one checkout and another checkout on PYTHONPATH (the documented
+    way to review a clone with the main venv), ``slicersim.kernels`` resolved to the *installed*
+    checkout's kernels/: the clone's Python ran the other tree's OpenCL sources (a kernel whose
+    arguments changed fails with a TypeError; an edited kernel is silently not the one run)."""
+    from pathlib import Path
+    import slicersim
+    from slicersim.backends import opencl
+    pkg = Path(slicersim.__file__).resolve().parent
+    here = pkg / "kernels"                     # package data: the one place kernels are looked up
+    assert (here / "philox.cl").is_file()
+    assert Path(opencl.kernel_dir()).resolve() == here.resolve()
+    assert opencl.kernel_source("correlated_noise.cl") == (here / "correlated_noise.cl").read_text(encoding="utf-8")
+
+
+@pytest.mark.needs_opencl
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork only")
+def test_forked_child_is_refused_not_silently_numpy():
+    """P1: resolve_precision in a forked child silently returned NumPy (is_available swallowed the
+    fork error); it must raise OpenCLForkError like resolve_backend."""
+    prec.resolve_precision("auto", "auto", "cube")            # OpenCL live in this process
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(r)
+        out = []
+        for p in ("auto", "single", "double"):
+            try:
+                out.append(repr(prec.resolve_precision(p, "auto", "cube")))
+            except OpenCLForkError:
+                out.append("fork-error")
+            except BaseException as exc:                      # noqa: BLE001
+                out.append(type(exc).__name__)
+        os.write(w, ";".join(out).encode())
+        os._exit(0)
+    os.close(w)
+    got = os.read(r, 4096).decode().split(";")
+    os.waitpid(pid, 0)
+    assert got == ["fork-error"] * 3, got

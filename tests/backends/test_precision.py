@@ -305,3 +305,41 @@ def test_campaign_precision_the_local_device_cannot_run_is_refused_up_front(tmp_
     with pytest.raises(OpenCLUnavailableError, match="needs fp64"):
         run_campaign(spec, tmp_path / "ds", workers=1, progress=False)
     assert not (tmp_path / "ds").exists()
+
+
+def _readout():
+    from slicersim.backends.cube import ReadoutConstants
+    return ReadoutConstants(tint=100., gain=1.5, nramps=2, var_a=10., var_b=3., pixels_per_cell=2.,
+                            dark=0.01, saturation=6e4)
+
+
+@pytest.mark.needs_opencl
+def test_detector_block_default_runs_without_fp64(monkeypatch):
+    """P4: detector_block's default precision was "double", refused on a device without fp64."""
+    from slicersim.backends.cube import detector_block
+    monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
+    s, v = detector_block(np.array([1.0]), np.ones(4), np.ones(4), np.ones(4), _readout(), bins=(0, 4), nl=4,
+                          lo=0, psf=np.full((4, 3, 5), 0.01))
+    assert s.shape == (4, 3, 5) and np.all(np.isfinite(s))
+
+
+@pytest.mark.needs_opencl
+def test_auto_stays_double_on_cpu_whatever_the_timing(monkeypatch):
+    """P2: a timing on shared cores measured 0.3 … 19 and could flip "auto" to single for the whole
+    process; CPUs are not timed (fp64 at half the SIMD lanes)."""
+    if opencl.device_type() != "CPU":
+        pytest.skip("CPU device only")
+    monkeypatch.setattr(prec, "_ratios", {})
+    monkeypatch.setattr(prec, "_measure_ratio", lambda: 18.9)
+    assert prec.resolve_precision("auto", "auto", "cube") == ("opencl", "double")
+
+
+@pytest.mark.needs_opencl
+def test_cube_records_the_precision_it_ran_in():
+    """P2: nothing recorded which precision a cube was computed in."""
+    from slicersim import LazuliSupernova
+    from slicersim.products.cube import build_cube
+    sim = LazuliSupernova(0.5).simulation
+    assert build_cube(sim, precision="single").paths["precision"] == "single"
+    assert build_cube(sim, precision="double").paths["precision"] == "double"
+    assert build_cube(sim, backend="numpy", precision="single").paths["precision"] == "double"

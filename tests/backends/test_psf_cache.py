@@ -476,3 +476,16 @@ def test_cache_limits_are_checked_integers():
     assert PSF_CACHE.max_bytes == before                       # a failed change changes nothing
     with pytest.raises(ParameterError, match=r"max_bytes \(table cache\) must be an integer ≥ 0"):
         ArrayCache("/tmp/unused", max_bytes=-5)
+
+
+@pytest.mark.needs_opencl
+def test_cached_psf_cells_behaves_like_uncached_without_fp64(monkeypatch):
+    """P5: the cache key resolved precision="double" even for the NumPy-only Gaussian psf_cells and
+    raised where the uncached call computes."""
+    from slicersim.backends import psf as P, psf_cache as pc
+    monkeypatch.setattr(opencl, "device_supports_fp64", lambda: False)
+    kw = dict(spatial_scale=0.04, guiding_sigma=0.01, instrumental_sigma=1.0, sigma_ref_arcsec=0.03,
+              precision="double")
+    args = (np.linspace(3700, 17000, 4), (3, 5), (0, 0), (np.array([0]), np.array([1])), "gaussian")
+    raw = P.psf_cells(*args, **kw)
+    np.testing.assert_array_equal(pc.psf_cells(*args, **kw), raw)

@@ -20,6 +20,8 @@ import numpy as np
 import pytest
 
 from slicersim.errors import ConfigError, DatasetError
+import tomllib
+from astropy.table import Table
 
 SPEC = """\
 seed = 11
@@ -399,3 +401,185 @@ def test_spec_without_seed_draws_one_records_it_and_resumes_with_it(tmp_path):
     assert _resumed_seed(other, ds, force=False).seed == other.seed        # another spec: refused later
     with pytest.raises(ConfigError, match="seed"):
         parse_spec(tomllib.loads(SPEC.replace("seed = 11", "seed = -1")))
+
+
+def test_cli_precision_override_is_written_to_the_dataset_spec(monkeypatch, tmp_path):
+    """P3: `campaign run SPEC --precision single` stored the spec text without the override, so
+    DIR/spec.toml could not resume its own dataset."""
+    import argparse
+
+    from slicersim.app import campaign_cli
+    from slicersim.campaign import runner
+    from slicersim.campaign.spec import parse_spec
+    spec = tmp_path / "spec.toml"
+    spec.write_text('seed = 1\n[population]\nkind = "snia"\nn = 1\n[products]\nspectrum = true\ncube = true\n'
+                    'precision = "double"  # replaced\n[survey]\noverhead = 1.0\n')
+    seen = {}
+
+    def fake_run(spec, out, **kw):
+        seen["spec"] = spec
+        return dict(dataset=out, targets=1, done=1, failed=0, missing=0, computed=0, seconds=0.0)
+    monkeypatch.setattr(runner, "run_campaign", fake_run)
+    args = argparse.Namespace(spec=str(spec), out=str(tmp_path / "ds"), precision="single", workers=1,
+                              scheduler=None, force=False, retry_failed=False, no_progress=True,
+                              threads_per_worker=None, memory_per_task=256.0)
+    assert campaign_cli.cmd_campaign_run(args) == 0
+    used = seen["spec"]
+    stored = parse_spec(tomllib.loads(used.text), text=used.text, base_dir=str(tmp_path))
+    assert stored.canonical() == used.canonical()
+    assert used.products["precision"] == "single" and used.survey["overhead"] == 1.0
+
+
+def test_precision_leaves_the_identity_when_no_cube_is_written():
+    """P3: products.precision changed the dataset identity even with cube = false."""
+    from slicersim.campaign.spec import parse_spec, with_products
+    doc = {"seed": 1, "population": {"kind": "snia", "n": 2}, "products": {"spectrum": True}}
+    text = 'seed = 1\n[population]\nkind = "snia"\nn = 2\n[products]\nspectrum = true\n'
+    base = parse_spec(doc, text=text)
+    single = with_products(base, precision="single")
+    assert single.products["precision"] == "single" and single.canonical() == base.canonical()
+    with pytest.raises(ConfigError, match="products.precision"):
+        with_products(base, precision="half")
+
+
+BASE = """seed = 2
+[population]
+kind = "snia"
+n = 2
+redshift = {distribution = "uniform", min = 0.3, max = 0.6}
+[observation]
+snr = 5
+[products]
+spectrum = true
+"""
+
+
+def _run_cli(*args, timeout=300, **kw):
+    return subprocess.run([str(BIN / "slicersim"), *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, **kw)
+
+
+def _one_line_error(proc, *words):
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert len(lines) == 1 and lines[0].startswith("slicersim: error:"), proc.stderr
+    for w in words:
+        assert w.lower() in lines[0].lower(), lines[0]
+
+
+def _flat_catalog(tmp_path, flux=3e-18):
+    Table({"lbda": [3000.0, 20000.0], "flux": [flux, flux]}).write(tmp_path / "flat.ecsv", overwrite=True)
+    Table({"target_id": [1, 3], "redshift": [0.0, 0.2], "spectrum_file": ["flat.ecsv", "flat.ecsv"]}).write(
+        tmp_path / "cat.csv", overwrite=True)
+    text = BASE.replace('kind = "snia"\nn = 2\nredshift = {distribution = "uniform", min = 0.3, max = 0.6}',
+                        'kind = "catalog"\nfile = "cat.csv"').replace("snr = 5", 'snr = 5\nframe = "obs"\n'
+                                                                           "lbda_range = [6000, 9000]")
+    return text
+
+
+def _spec(text, base_dir="."):
+    from slicersim.campaign.spec import parse_spec
+    return parse_spec(tomllib.loads(text), text=text, base_dir=str(base_dir))
+
+
+# 1 -------------------------------------------------------------------------------------------
+def test_user_spectrum_file_column_survives_in_the_dataset_catalog(tmp_path):
+    from slicersim.campaign.runner import _catalog_with_records, plan_campaign
+    spec = _spec(_flat_catalog(tmp_path), tmp_path)
+    cat, _ = plan_campaign(spec)
+    rec = {1: {"status": "done", "products": {"spectrum": {"file": "spectrum.h5", "sha256": "ab", "bytes": 1}}}}
+    out = _catalog_with_records(cat, rec, spec.wanted)
+    assert list(out["spectrum_file"]) == ["flat.ecsv", "flat.ecsv"]              # the user's input, kept
+    assert out["spectrum_product"][0] == "products/t0000001/spectrum.h5" and out["spectrum_sha256"][0] == "ab"
+    with pytest.raises(ConfigError, match="computed by the campaign"):
+        Table({"redshift": [0.5], "cube_product": ["x"]}).write(tmp_path / "bad.ecsv")
+        _spec(BASE.replace('kind = "snia"\nn = 2\nredshift = {distribution = "uniform", min = 0.3, max = 0.6}',
+                           'kind = "catalog"\nfile = "bad.ecsv"'), tmp_path)
+
+
+# 2 -------------------------------------------------------------------------------------------
+def test_edited_user_spectrum_changes_the_identity_and_stale_records_are_redone(tmp_path):
+    from slicersim.campaign.runner import _consistent
+    from slicersim.io.dataset import spec_digest
+    text = _flat_catalog(tmp_path)
+    before = spec_digest(_spec(text, tmp_path).canonical())
+    _flat_catalog(tmp_path, flux=3e-17)
+    assert spec_digest(_spec(text, tmp_path).canonical()) != before
+    row = {"n": 7, "m": 1, "d": 0, "nramps": 1, "seed": 11, "ramp_seed": 12}
+    rec = {"readout": [31, 1, 0, 1], "seed": 11, "ramp_seed": 12}
+    state = _consistent({1: ("done", rec, "")}, {1: row})
+    assert state[1][0] == "missing" and "stale" in state[1][2]
+    rec["readout"] = [7, 1, 0, 1]
+    assert _consistent({1: ("done", rec, "")}, {1: row})[1][0] == "done"
+
+
+# 3 -------------------------------------------------------------------------------------------
+def test_readouts_of_targets_with_hosts_include_the_host_light():
+    from slicersim.campaign.products import build_target
+    from slicersim.campaign.runner import _row_dict, plan_campaign
+    text = BASE.replace("snr = 5", "snr = 5").replace("[observation]", "hosts = {absmag = -21.5}\n[observation]")
+    spec = _spec(text)
+    cat, plan = plan_campaign(spec)
+    assert plan.totals.get("hosts_in_etc") is True
+    plain, _ = plan_campaign(_spec(BASE))
+    for i in range(len(cat)):
+        row = _row_dict(cat[i])
+        target, _ = build_target(spec, row)                     # host in the scene, catalog readout
+        reached = target.get_band_snr((4000, 6800), frame="rest", per_resolution=True)
+        assert reached >= 5 * (1 - 1e-9)                          # the SNR is reached with the host
+        assert reached == pytest.approx(row["snr"], rel=1e-9)
+        assert row["exposure_time"] >= plain["exposure_time"][i]  # the host only adds noise
+
+
+# 6 -------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("edit, message", [
+    (lambda s: s.replace('kind = "snia"', 'kind = ["snia"]'), "kind"),
+    (lambda s: s.replace('distribution = "uniform"', 'distribution = ["uniform"]'), "distribution"),
+    (lambda s: s.replace("n = 2", "n = 2\nphase = {distribution = {a = 1}}"), "distribution"),
+    (lambda s: s.replace("n = 2", "n = 2\nhosts = 5"), "hosts"),
+    (lambda s: s.replace("n = 2", "n = 2\nhosts = [1, 2]"), "hosts"),
+    (lambda s: s.replace("n = 2", 'n = 2\nhosts = "yes"'), "hosts"),
+    (lambda s: s.replace("n = 2", "n = 2\nmw_dust = 0.1"), "mw_dust"),
+])
+def test_wrong_types_give_one_line(tmp_path, edit, message):
+    spec = tmp_path / "s.toml"
+    spec.write_text(edit(BASE))
+    _one_line_error(_run_cli("campaign", "run", spec, "--out", tmp_path / "o"), message)
+    assert not (tmp_path / "o").exists()
+
+
+# 7, 17 ---------------------------------------------------------------------------------------
+def test_malformed_records_and_lost_spec_json(tmp_path):
+    from slicersim.io.dataset import Dataset
+    ds = Dataset(tmp_path / "d")
+    ds.initialise("x", {"a": 1}, {})
+    for tid, rec in enumerate([{"target_id": 0, "status": "done", "products": {"spectrum": {"file": "s.h5"}}},
+                               {"target_id": 1, "status": "done", "products": ["x"]},
+                               {"target_id": 2, "status": "done", "products": 7},
+                               {"target_id": 3, "status": "done",
+                                "products": {"s": {"file": "../../x", "bytes": 1, "sha256": "a"}}}]):
+        ds.write_record(tid, rec)
+    state = ds.state(range(4))
+    assert all(st == "missing" and "malformed" in why for st, _, why in state.values())
+    os.remove(ds.file("spec.json"))
+    with pytest.raises(DatasetError, match="damaged.*--force"):
+        Dataset.check_path(ds.path)
+    assert Dataset.check_path(ds.path, force=True) == ds.path
+    ds.initialise("y", {"a": 2}, {}, force=True)
+    assert ds.stored_spec()[0] == {"a": 2} and not os.listdir(ds.file("records"))
+
+
+# 8, 9, 15 ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("args, message", [(["--memory-per-task", "inf"], "memory-per-task"),
+                                           (["--memory-per-task", "nan"], "memory-per-task"),
+                                           (["--memory-per-task", "0"], "memory-per-task"),
+                                           (["--threads-per-worker", "-2"], "threads_per_worker"),
+                                           (["--workers", "0"], "workers"),
+                                           (["--workers", "100000"], "at most 4"),
+                                           (["--scheduler", "garbage"], "tcp://host:port"),
+                                           (["--scheduler", "tcp://127.0.0.1:1"], "cannot connect")])
+def test_bad_run_arguments_write_nothing(tmp_path, args, message):
+    spec = tmp_path / "s.toml"
+    spec.write_text(BASE)
+    _one_line_error(_run_cli("campaign", "run", spec, "--out", tmp_path / "o", *args), message)
+    assert not (tmp_path / "o").exists()

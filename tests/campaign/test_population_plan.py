@@ -13,6 +13,8 @@ import pytest
 from astropy.table import Table
 
 from slicersim.errors import ConfigError, ParameterError
+import signal
+import time
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
 BIN = Path(sys.executable).parent
@@ -451,3 +453,74 @@ spectrum = true
     from slicersim.errors import DatasetError
     with pytest.raises(DatasetError, match="different spec.*population.file_sha256"):
         ds.check_spec(changed.canonical())
+
+
+def _cli(*args, timeout=300, **kw):
+    return subprocess.run([str(BIN / "slicersim"), *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, **kw)
+
+
+def _one_line_error(proc, *words):
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert len(lines) == 1 and lines[0].startswith("slicersim: error:"), proc.stderr
+    for w in words:
+        assert w.lower() in lines[0].lower(), lines[0]
+
+
+# 4, 13 ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("col, values, message", [("mwebv", [-2.0], "mwebv"), ("peak_absmag", [-40.0], "peak_absmag"),
+                                                  ("phase", ["abc"], "not numeric"), ("redshift", ["x"], "not numeric"),
+                                                  ("host_r_eff", [1.0], "all host columns")])
+def test_catalog_parameter_columns_are_checked(tmp_path, col, values, message):
+    from slicersim.campaign.population import population_from_spec
+    cols = {"redshift": [0.5], col: values} if col != "redshift" else {"redshift": values}
+    Table(cols).write(tmp_path / "t.ecsv")
+    kw = {"hosts": {}} if col.startswith("host_") else {}
+    with pytest.raises(ConfigError, match=message):
+        population_from_spec({"kind": "catalog", "file": "t.ecsv", **kw}, base_dir=str(tmp_path))
+
+
+# 5 -------------------------------------------------------------------------------------------
+def test_sigint_interrupts_a_survey_plan_with_one_line(tmp_path):
+    out = tmp_path / "p.ecsv"
+    proc = subprocess.Popen([str(BIN / "slicersim"), "survey", "plan", "--n", "3000", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    time.sleep(6)                                             # inside the batch ETC (kernels running)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    last = [l for l in err.replace("\r", "\n").splitlines() if l.strip()][-1]
+    assert proc.returncode == 2 and last == "slicersim: error: interrupted", err[-500:]
+    assert not out.exists()
+
+
+# 10, 22 --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("args, message", [(["--snr", "-5"], "snr"), (["--snr", "0"], "snr"), (["--snr", "nan"], "snr"),
+                                           (["--lbda-range", "6800", "4000"], "lbda_range"),
+                                           (["--lbda-range", "-5", "4000"], "lbda_range"),
+                                           (["--out", "plan.txt"], ".ecsv"), (["--out", "."], "directory"),
+                                           (["--figure", "/nonexistent/f.png"], "not writable")])
+def test_survey_plan_refuses_impossible_requests(tmp_path, args, message):
+    proc = _cli("survey", "plan", "--n", "3", *args, cwd=tmp_path)
+    _one_line_error(proc, message)
+    assert not list(tmp_path.iterdir())
+
+
+def test_survey_plan_exits_1_when_targets_cannot_be_planned(tmp_path):
+    proc = _cli("survey", "plan", "--n", "3", "--snr", "1e6", "--out", tmp_path / "p.ecsv")
+    assert proc.returncode == 1 and "could not be planned" in proc.stdout
+    t = Table.read(tmp_path / "p.ecsv")
+    assert set(t["status"]) == {"failed"}
+    # 11: each error names its own target id, not its position in the ETC batch
+    for tid, err in zip(t["target_id"], t["error"]):
+        assert f"target {tid}:" in err
+
+
+# 23 ------------------------------------------------------------------------------------------
+def test_population_too_large_for_memory_is_refused_before_drawing():
+    from slicersim.campaign.plan import check_client_memory
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match="split the population"):
+        check_client_memory(10_000_000, 1700)
+    check_client_memory(8000, 1700)

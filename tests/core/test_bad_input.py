@@ -14,6 +14,16 @@ from slicersim.io.config import builtin_config_dir, load_config
 from slicersim.etc.solve import solve_many
 from slicersim.errors import ConfigError, ETCError, ParameterError, ReadoutError, SpectrumError
 from slicersim.targets import LazuliTarget, build_simulation
+from slicersim.targets import Lazuli3DFlat
+from slicersim.targets.sources import LazuliCalSpec
+from slicersim.targets import LazuliGalaxy
+from slicersim.targets.sources import LazuliPowerLaw
+from slicersim.targets import LazuliSupernova
+from astropy.io import fits
+import warnings
+from slicersim.errors import SlicersimError
+import math
+import slicersim
 
 BAND = (8000.0, 13600.0)
 LBDA = np.linspace(3000.0, 20000.0, 400)
@@ -328,3 +338,92 @@ def test_batch_good_input_solves():
 def test_batch_bad_input(kwargs, cls, match):
     with pytest.raises(cls, match=match):
         _solve(**kwargs)
+
+
+@pytest.fixture(scope="module")
+def sn_host():
+    return LazuliSupernova(0.5, host="sersic")
+
+
+@pytest.fixture(scope="module")
+def qth():
+    return Lazuli3DFlat.from_qth()
+
+
+def test_types_and_error_messages(sn_host, qth, tmp_path):
+    for flag in ("no", 1, None):
+        with pytest.raises(ParameterError, match="of_host must be True or False"):
+            sn_host.get_spectrum(of_host=flag)
+    with pytest.raises(ParameterError, match="band and magsys must be sncosmo names"):
+        LazuliPowerLaw(-2, 20, band=["bessellr"])
+    galaxy = LazuliGalaxy(0.5)
+    with pytest.raises(ParameterError, match="target SNR must be a finite number"):
+        galaxy.setup_to_snr("10")
+    # CALSPEC stars take a host like every target
+    lbda = np.arange(2000.0, 25000.0, 5.0)
+    cols = [fits.Column("WAVELENGTH", "D", unit="ANGSTROMS", array=lbda),
+            fits.Column("FLUX", "E", unit="FLAM", array=1e-15 * (lbda / 5000.0) ** -2)]
+    fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(cols)]).writeto(tmp_path / "star_stis_001.fits")
+    star = LazuliCalSpec("star", calspec_dir=tmp_path, redshift=0.1, host="sersic")
+    assert star.host is not None and star.host.redshift == 0.1
+    with pytest.raises(ParameterError, match="takes no host"):
+        qth.set_host("sersic")
+    with pytest.raises(ParameterError, match="use a larger aperture") as err:
+        sn_host.get_spectrum(method="aperture", aperture="1e-9-arcsec")
+    assert "aperture_radius_insigma" not in str(err.value)
+
+
+@pytest.mark.parametrize("make", [lambda: LazuliPowerLaw(1000, 20), lambda: LazuliPowerLaw(-1000, 20),
+                                  lambda: Lazuli3DFlat.from_qth(1)], ids=["alpha=1000", "alpha=-1000", "1 K lamp"])
+def test_clean_errors_without_runtime_warnings(make):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(SpectrumError):
+            make()
+
+
+BAND_9_12 = (9000.0, 12000.0)
+
+
+LBDA_500 = np.linspace(3000.0, 20000.0, 500)
+
+
+FLUX_500 = np.full(500, 1e-18)
+
+
+def flat_target(**kw):
+    return slicersim.LazuliTarget(LBDA_500, FLUX_500, **kw)
+
+
+def state(t):
+    sim = t.simulation
+    _, sig, var = sim.get_spectrum()
+    return (sim.get_band_snr(BAND_9_12), float(np.sum(sig)), float(np.sum(var)),
+            sim.get_times()["exposure_time"], t.get_readout_config(), sim.lbda.size)
+
+
+def assert_rejected_unchanged(t, func, exc=SlicersimError, match=None):
+    before = state(t)
+    with pytest.raises(exc, match=match):
+        func()
+    assert repr(state(t)) == repr(before)
+
+
+@pytest.mark.parametrize("call", [
+    lambda t: t.update(nramps=math.nan),                     # ValueError: cannot convert float NaN
+    lambda t: t.update(nramps=math.inf),                     # OverflowError
+    lambda t: t.update(nramps=None),                         # TypeError
+    lambda t: t.change_detector(max_group="x"),              # ValueError: invalid literal for int()
+    lambda t: t.update(redshift="1"),                        # TypeError: ufunc 'isfinite'
+    lambda t: t.update(config=None),                         # TypeError: 'NoneType' not iterable
+    lambda t: t.setup_to_snr("x", (9000, 12000)),            # TypeError: ufunc 'isfinite'
+    lambda t: t.simulation.get_band_snr((100, 200)),         # ValueError (doc: SpectrumError)
+    lambda t: t.set_throughput("0.5"),                       # CurveError, not a SlicersimError
+    lambda t: t.get_spectrum(incl_error=True, seed=-1),      # ValueError
+    lambda t: t.simulation.get_cube(seed=1.5),               # TypeError
+])
+def test_bad_input_raises_slicersim_error(call):
+    """errors.py: 'All user-facing errors derive from SlicersimError'.  These raise bare
+    ValueError / TypeError / OverflowError / CurveError."""
+    t = flat_target()
+    assert_rejected_unchanged(t, lambda: call(t))

@@ -15,6 +15,13 @@ from slicersim.etc.solve import solve_many
 from slicersim.snr.search import candidate_readouts, exact_choice
 from slicersim.errors import ETCError
 from slicersim.targets import LazuliTarget
+from slicersim.targets import lazuli_etc
+from slicersim.targets import lazuli_sn_etc
+from slicersim.errors import SlicersimError
+import slicersim
+import subprocess
+import sys
+import textwrap
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
 
@@ -223,3 +230,102 @@ def test_solve_many_options_object_and_frame_default(random_batch):
     np.testing.assert_array_equal(rest["exposure_time"], obs["exposure_time"])
     with pytest.raises(ParameterError, match=r"unknown frame 'Rest' \(did you mean 'rest'\?\)"):
         solve_many(LBDA, fluxes, 20.0, ranges, frame="Rest")
+
+
+TFRAME = 2.83                                        # Lazuli frame time [s] (built-in TOML)
+
+
+def sloped(level=1e-17):
+    return level * (LBDA / 1e4) ** -1.5
+
+
+KEYS = {"nmd", "nramps", "exposure_time", "snr", "snr_per_bin", "snr_target_per_bin", "lbda_range_obs",
+        "data_volume", "config", "field", "target"}
+
+
+def _check_etc_result(res, snr, band_obs, dr=2.3):
+    assert KEYS <= set(res)
+    n, m, d = res["nmd"]
+    r = res["nramps"]
+    assert res["exposure_time"] == pytest.approx(r * (n * (m + d) - d) * TFRAME, rel=1e-12)
+    assert res["data_volume"] == pytest.approx(r * n * 4096**2 * 16 / 8e9, rel=1e-12)
+    assert res["snr_target_per_bin"] == pytest.approx(snr / math.sqrt(dr), rel=1e-12)
+    assert res["snr"] == pytest.approx(res["snr_per_bin"] * math.sqrt(dr), rel=1e-12)
+    assert res["snr"] >= snr * (1 - 1e-12)                      # the exact search reaches the target
+    assert tuple(res["lbda_range_obs"]) == pytest.approx(band_obs, rel=1e-12)
+    target = res["target"]
+    assert target.get_readout_config() == {"nmd": tuple(res["nmd"]), "nramps": r}
+    assert target.get_exposure_time() == pytest.approx(res["exposure_time"], rel=1e-12)
+    assert target.get_band_snr(band_obs, frame="obs") == pytest.approx(res["snr_per_bin"], rel=1e-9)
+
+
+def test_lazuli_etc_keys_and_self_consistency():
+    res = lazuli_etc(LBDA, sloped(1e-17), snr=15, lbda_range=(9000, 12000))
+    _check_etc_result(res, 15, (9000.0, 12000.0))
+    assert (res["config"], res["field"]) == ("cbe", "narrow")
+    # a source 4× fainter needs more time
+    faint = lazuli_etc(LBDA, sloped(2.5e-18), snr=15, lbda_range=(9000, 12000))
+    assert faint["exposure_time"] > res["exposure_time"]
+
+
+def test_lazuli_sn_etc_keys_and_self_consistency():
+    z = 0.5
+    res = lazuli_sn_etc(z, snr=10, config="eol", field="wide")
+    _check_etc_result(res, 10, (4000 * (1 + z), 6800 * (1 + z)), dr=2.5)
+    assert (res["config"], res["field"]) == ("eol", "wide")
+    assert res["target"].redshift == z
+
+
+BAND = (9000.0, 12000.0)
+
+
+LBDA_500 = np.linspace(3000.0, 20000.0, 500)
+
+
+FLUX = np.full(500, 1e-18)
+
+
+def target(**kw):
+    return slicersim.LazuliTarget(LBDA_500, FLUX, **kw)
+
+
+def state(t):
+    sim = t.simulation
+    _, sig, var = sim.get_spectrum()
+    return (sim.get_band_snr(BAND), float(np.sum(sig)), float(np.sum(var)),
+            sim.get_times()["exposure_time"], t.get_readout_config(), sim.lbda.size)
+
+
+def assert_rejected_unchanged(t, func, exc=SlicersimError, match=None):
+    before = state(t)
+    with pytest.raises(exc, match=match):
+        func()
+    assert repr(state(t)) == repr(before)
+
+
+def test_setup_to_snr_huge_target_does_not_hang():
+    """setup_to_snr(1e6) (exact search) loops in Python over every nramps from r_min to
+    2 r_min + 10 (~1e8 iterations): hangs for minutes.  Must answer (or raise ETCError) fast."""
+    code = textwrap.dedent("""
+        import numpy as np, slicersim
+        from slicersim.errors import ETCError
+        t = slicersim.LazuliTarget(np.linspace(3000, 20000, 500), np.full(500, 1e-18))
+        try:
+            print("ANSWERED", t.setup_to_snr(1e6, (9000, 12000)))
+        except ETCError as exc:
+            print(f"ETCError: {exc}")
+    """)
+    # the hang took minutes; 60 s leaves room for the import on a loaded 2-core machine (~2 s idle);
+    # the answer: one ETCError naming the exposure limit (SNR 1e6 needs far more than a year)
+    run = subprocess.run([sys.executable, "-c", code], timeout=60, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("ETCError: target SNR 1e+06 in the band 9000–12000 Å exceeds the exposure "
+                                 "limit: it needs more than MAX_TOTAL_EXPOSURE"), run.stdout
+
+
+def test_reference_search_far_below_target_is_flagged():
+    """search='reference' with snr=1e9 returns SNR 1.2e6 (1000x below) as a normal result."""
+    t = target()
+    assert_rejected_unchanged(t, lambda: t.setup_to_snr(1e9, BAND, search="reference"), ETCError,
+                              r"target SNR 1e\+09 in the band 9000–12000 Å cannot be reached within the "
+                              r"exposure limit: it needs more than MAX_TOTAL_EXPOSURE")

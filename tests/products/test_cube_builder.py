@@ -272,6 +272,8 @@ from slicersim.backends.cube import (GaussianPSF, ReadoutConstants, default_vect
                                     detector_block, reflect_indices)
 from slicersim.products.cube import FUSED_KERNEL, readout_constants  # noqa: E402
 from slicersim.physics.lsf import lsf_index_weights, lsf_weights  # noqa: E402
+from slicersim.targets import LazuliSupernova
+import slicersim.products.cube as cube_module
 
 RO = ReadoutConstants(tint=181.1, gain=1.3, nramps=3, var_a=41.0, var_b=0.62, pixels_per_cell=2.0,
                       dark=0.011, saturation=3.0e5)
@@ -506,3 +508,18 @@ def test_get_cube_seed_is_recorded_and_generator_deprecated(narrow_band_sim):
     for bad in (1.5, -1, "3", True):
         with pytest.raises(ParameterError, match="seed"):
             sim.get_cube(nmd=(4, 1, 0), seed=bad, backend="numpy")
+
+
+@pytest.fixture(scope="module")
+def sn_host():
+    return LazuliSupernova(0.5, host="sersic")
+
+
+def test_host_cubes_bit_identical_across_chunkings_no_bar_for_short_runs(sn_host, capfd, monkeypatch):
+    monkeypatch.setattr(cube_module, "PROGRESS_DELAY_S", 1e9)        # a "short" run on any machine
+    full = cube_module.build_cube(sn_host.simulation, progress=False)
+    chunked = cube_module.build_cube(sn_host.simulation, max_bytes=2 * 10**7)   # 15 chunks, progress=None
+    assert chunked.chunks > 4
+    assert "cube" not in capfd.readouterr().err
+    assert np.array_equal(chunked.signal, full.signal, equal_nan=True)
+    assert np.array_equal(chunked.variance, full.variance)

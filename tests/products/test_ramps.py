@@ -14,6 +14,11 @@ from slicersim.errors import RampFileError
 from slicersim.io.rampfile import read_ramps
 
 from conftest import have_opencl
+from slicersim.targets import Lazuli3DFlat
+from slicersim.errors import ReadoutError
+from slicersim.targets import LazuliTarget
+import h5py
+from slicersim.physics.readout import variance_kubik16
 
 #: the statistical tests run for both precisions of the samplers (issue 12); single needs OpenCL
 BOTH_PRECISIONS = ["double", pytest.param("single", marks=pytest.mark.needs_opencl_device)]
@@ -45,7 +50,7 @@ def test_kernel_equals_numpy_twin_bit_for_bit(nmd):
 
 @pytest.mark.needs_opencl
 def test_gaussian_approximation_twin():
-    """Gaussian-path kernel = NumPy twin (its moments: test_coverage_gaps.py::test_ramp_gaussian_path_moments)."""
+    """Gaussian-path kernel = NumPy twin (its moments: test_ramp_gaussian_path_moments below)."""
     p = RampParameters(nmd=(6, 2, 0), gauss_min_mean=50.0, ron=0.0, roic_glow=0.0, bias=0.0, full_well=1e9)
     rate = np.full(3001, 40.0)                           # mu = 113 e-/frame: Gaussian path
     a = simulate_block_numpy(_mu(rate, p), np.zeros(rate.size, bool), 0, 0, 9, p)
@@ -183,7 +188,7 @@ def test_slope_variance_matches_rauscher07(nmd, precision):
 
     The 1/12 ADU² rounding noise of each group mean is added to the read noise
     (σ_eff² = σ² + m/12 for gain 1).  Kubik16 against the same Monte Carlo:
-    tests/test_coverage_gaps.py::test_ramp_slope_variance_matches_kubik16_for_few_groups.
+    test_ramp_slope_variance_matches_kubik16_for_few_groups (below).
     """
     npix, rate, ron, tf = 40000, 2.0, 12.0, 2.83
     sci = simulate(np.full((200, 200), rate), nmd, seed=_seed(11, precision), ron=ron, dark=0.0, roic_glow=0.0,
@@ -498,3 +503,110 @@ def test_get_ramps_checks_the_seed_before_the_detector_image(monkeypatch):
     for bad in (1.5, -2, "7"):
         with pytest.raises(ParameterError, match="seed"):
             tgt.get_ramps(nmd=(4, 2, 0), seed=bad)
+
+
+@pytest.fixture(scope="module")
+def qth():
+    return Lazuli3DFlat.from_qth()
+
+
+@pytest.mark.parametrize("nramps", [0, -1, 1.5, "2", True])
+def test_get_ramps_refuses_bad_ramp_counts(qth, nramps):
+    with pytest.raises(ReadoutError, match="nramps must be an integer"):
+        qth.get_ramps(nramps=nramps)
+
+
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
+
+
+LBDA = np.arange(3000.0, 20000.0, 10.0)
+
+
+TFRAME = 2.83                                        # Lazuli frame time [s] (built-in TOML)
+
+
+def sloped(level=1e-17):
+    return level * (LBDA / 1e4) ** -1.5
+
+
+@pytest.fixture(scope="module")
+def short_range_toml(tmp_path_factory):
+    """Overlay TOML: the built-in CBE instrument on 9000–10000 Å only (fast detector products)."""
+    path = tmp_path_factory.mktemp("cfg") / "short_range.toml"
+    path.write_text("[spectrograph]\nspectral_range = [9000, 10000]\n", encoding="utf-8")
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def short_target(short_range_toml):
+    return LazuliTarget(LBDA, sloped(2e-17), config=["cbe", short_range_toml])
+
+
+@pytest.mark.needs_opencl      # the NumPy ramp sampler needs ~2 min for 4096² pixels
+def test_get_ramps_file_shapes_and_attributes(short_target, tmp_path):
+    det = short_target.simulation.detector
+    image = short_target.get_detector_image(backend="opencl")
+    path = short_target.get_ramps(out=str(tmp_path / "ramps.h5"), nmd=(3, 1, 0), nramps=1, seed=3,
+                                  backend="opencl")
+    with h5py.File(path, "r") as f:
+        assert f["SCI"].shape == f["GROUPDQ"].shape == (1, 3, 4096, 4096)
+        assert f["SCI"].dtype == np.uint16 and f["PIXELDQ"].shape == (4096, 4096)
+        a = f.attrs
+        assert (a["NGROUPS"], a["NFRAMES"], a["GROUPGAP"], a["NINTS"]) == (3, 1, 0, 1)
+        assert a["READPATT"] == "MACC(3,1,0)" and a["SEED"] == 3 and bool(a["COMPLETE"])
+        assert a["TFRAME"] == det.tframe and a["READNOISE"] == det.ron and a["GAIN"] == det.gain
+        assert a["DARK"] == det.dark and a["ROIC_GLOW"] == det.roic_glow
+        assert a["THERMAL_DARK"] == pytest.approx(short_target.simulation.thermal_dark, rel=1e-12)
+        truth = f["truth/rate"][...]
+        # the truth image is the detector image, stored at the file's precision (float32: 6e-8)
+        np.testing.assert_allclose(truth, image,
+                                   rtol=np.finfo(truth.dtype).eps, atol=0)
+        sci = f["SCI"][0].astype(float)
+    # mean charge accumulated between group 0 and 2 (two frames) over all pixels:
+    # (rate + dark + thermal dark + glow / t_f) · 2 t_f · gain, known to ±4 standard errors
+    diff = (sci[2] - sci[0]).ravel()
+    rate = image.mean()
+    d_eff = det.dark + short_target.simulation.thermal_dark + det.roic_glow / det.tframe
+    expected = (rate + d_eff) * 2 * det.tframe * det.gain
+    assert abs(diff.mean() - expected) < 4 * diff.std() / math.sqrt(diff.size)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_ramp_gaussian_path_moments(backend):
+    """Rounded-Gaussian frame increments (μ = 113 e-/frame > gauss_min_mean), no read noise, m = 2:
+    group-mean difference g1 − g0 = (x1 + 2 x2 + x3)/2 → mean 2μ, variance (1+4+1)/4 μ = 1.5 μ
+    (+ rounding ~1/6 ADU²); last − first = x1/2 + x2…x10 + x11/2 → mean 10 μ, variance 9.5 μ."""
+    from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
+    from slicersim.products.ramps import RampParameters, frame_mean_charge
+    p = RampParameters(nmd=(6, 2, 0), gauss_min_mean=50.0, ron=0.0, roic_glow=0.0, bias=0.0, full_well=1e9)
+    npix = 20001
+    mu_frame = frame_mean_charge(np.full(npix, 40.0), 0.0, 0.0, 0.0, p.tframe)
+    mu = 40.0 * p.tframe
+    assert mu_frame[0] == pytest.approx(mu, rel=1e-12) and mu > 50.0
+    run = simulate_block_numpy if backend == "numpy" else simulate_block_opencl
+    sci = run(mu_frame, np.zeros(npix, bool), 0, 0, 9, p)[0].astype(float)
+    for diff, k_mean, k_var in ((sci[1] - sci[0], 2.0, 1.5), (sci[5] - sci[0], 10.0, 9.5)):
+        mean_exp, var_exp = k_mean * mu, k_var * mu
+        var = diff.var(ddof=1)
+        assert abs(diff.mean() - mean_exp) < 4 * math.sqrt(var_exp / npix)
+        assert abs(var - var_exp) < 4 * var_exp * math.sqrt(2.0 / (npix - 1)) + 0.5    # + rounding
+
+
+@pytest.mark.parametrize("nmd", [(2, 8, 0), (3, 4, 1)])
+def test_ramp_slope_variance_matches_kubik16_for_few_groups(nmd):
+    """For n ≤ 3 groups least squares is the maximum-likelihood slope: the empirical variance of
+    simulated slopes × t_int equals Kubik16 (and Rauscher07) within 4 σ of its Monte Carlo error.
+    Group means are rounded to ADU: σ_eff² = σ² + m/12 (gain 1)."""
+    from slicersim.products.ramps import fit_slopes, simulate
+    npix, rate, ron, tf = 40000, 2.0, 12.0, TFRAME
+    sci = simulate(np.full((200, 200), rate), nmd, seed=17, ron=ron, dark=0.0, roic_glow=0.0,
+                   backend="numpy")[0]
+    n, m, d = nmd
+    tint = (n - 1) * (m + d) * tf
+    est = fit_slopes(sci.reshape(n, -1), nmd, tf) * tint
+    var = est.var(ddof=1)
+    ron_eff = math.sqrt(ron**2 + m / 12.0)
+    kubik = float(variance_kubik16(rate, nmd, tf, ron_eff, 0.0))
+    mc_err = kubik * math.sqrt(2.0 / (npix - 1))
+    assert abs(var - kubik) < 4 * mc_err, (var, kubik, mc_err)
+    assert kubik == pytest.approx(float(variance_rauscher07(rate, nmd, tf, ron_eff, 0.0)), rel=1e-3)

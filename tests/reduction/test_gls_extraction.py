@@ -21,6 +21,7 @@ from slicersim.errors import ParameterError
 from slicersim.physics.psf import gaussian_psf_cells
 from slicersim.reduction.rectify import inverse_covariance, rectify
 from slicersim.reduction.spectra import extract_spectrum, propagate_variance
+from slicersim.products.ramps import simulate
 
 EDGES = np.linspace(9050.0, 9950.0, 11)      # 10 bins of 6 px on the small layout
 NCOL = 24
@@ -168,3 +169,75 @@ def test_sandwich_variance_for_weights_that_are_not_the_inverse_variance(setup):
         extract_spectrum(cw, psf=psf, method="optimal", noise_information=noise_information(cw.inverse_covariance, var))
     with pytest.raises(ParameterError, match="pixels"):
         noise_information(cw.inverse_covariance, var[:10])
+
+
+EDGES_RAW = np.arange(9050.0, 9951.0, 75.0)     # 12 bins on the small test layout
+
+
+@pytest.fixture(scope="module")
+def small_raw(tmp_path_factory):
+    """Raw ramps of a point source in the narrow field of the small test layout (660 × 600)."""
+    from conftest import small_slicer_mapper
+
+    from slicersim.physics.psf import gaussian_psf_cells
+    mapper = small_slicer_mapper()
+    lbda = 0.5 * (EDGES_RAW[1:] + EDGES_RAW[:-1])
+    sig = np.linspace(1.2, 1.8, lbda.size)
+    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
+    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
+    image = mapper.project_fields(lbda, EDGES_RAW, narrow=400.0 * psf)
+    path = tmp_path_factory.mktemp("small") / "raw.h5"
+    simulate(image, (4, 2, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
+    return path, mapper
+
+
+@pytest.fixture(scope="module")
+def small_cubes(small_raw):
+    """(drizzle cube, lsq cube, PSF fractions) of the small layout's point source."""
+    from slicersim.physics.psf import gaussian_psf_cells
+    from slicersim.reduction.pipeline import rate_variance
+    from slicersim.reduction.ramp_fit import fit_ramps
+    from slicersim.reduction.rectify import rectify
+    path, mapper = small_raw
+    rates = fit_ramps(path, progress=False)
+    var = rate_variance(rates)
+    rate = np.where(np.isfinite(var), rates.rate, 0.0)
+    cubes = [rectify(rate, var, mapper=mapper, lbda_edges=EDGES_RAW, ncol=NCOL, method=m) for m in ("drizzle", "lsq")]
+    lbda = 0.5 * (EDGES_RAW[1:] + EDGES_RAW[:-1])
+    sig = np.linspace(1.2, 1.8, lbda.size)
+    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
+    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
+    return cubes[0], cubes[1], psf
+
+
+@pytest.mark.parametrize("method", ["optimal", "gls"])
+def test_a_psf_that_is_not_fractions_is_refused(small_cubes, method, tmp_path, small_raw, monkeypatch, capsys):
+    """A peak-normalised PSF (Σ ≫ 1) gave 'optimal' and 'gls' fluxes 1/Σ of the truth (0.0 ± 0.0
+    for a 1e6× PSF) without a word; the docstring says Σ over the field ≤ 1."""
+    from slicersim.app.cli import main
+    from slicersim.errors import ParameterError
+    from slicersim.reduction import rectify
+    from slicersim.reduction.spectra import extract_spectrum
+    drizzle, lsq, psf = small_cubes
+    cube = lsq if method == "gls" else drizzle
+    assert np.all(np.abs(extract_spectrum(cube, method=method, psf=psf).flux - 400.0) < 80.0)
+    with pytest.raises(ParameterError, match="Σ over the field ≤ 1"):
+        extract_spectrum(cube, method=method, psf=psf / psf.max(axis=(1, 2), keepdims=True))
+    np.save(tmp_path / "peak.npy", psf / psf.max())
+    monkeypatch.setattr(rectify, "_default_mapper", lambda: small_raw[1])
+    assert main(["reduce", str(small_raw[0]), "--out", str(tmp_path / "r.h5"), "--spectra", "--quiet",
+                 "--lbda-edges", "9050,9950,75", "--ncol", str(NCOL), "--psf", str(tmp_path / "peak.npy")]) == 2
+    assert "Σ over the field ≤ 1" in capsys.readouterr().err and not (tmp_path / "r.h5").exists()
+
+
+@pytest.mark.parametrize("kwargs, message", [({"nchunks": 0}, r"nchunks \(λ chunks of the PSF fit\) must be an integer ≥ 1"),
+                                             ({"nchunks": -3}, r"nchunks \(λ chunks of the PSF fit\) must be an integer ≥ 1"),
+                                             ({"nchunks": 2.5}, r"nchunks \(λ chunks of the PSF fit\) must be an integer ≥ 1"),
+                                             ({"background": "no"}, "background must be True or False")])
+@pytest.mark.parametrize("method", ["optimal", "aperture", "gls"])
+def test_extraction_options_of_the_wrong_kind_are_refused(small_cubes, method, kwargs, message):
+    """nchunks=0 was taken as 1 chunk (σ constant in λ: fluxes 8 % higher), background="no" as True."""
+    from slicersim.errors import ParameterError
+    from slicersim.reduction.spectra import extract_spectrum
+    with pytest.raises(ParameterError, match=message):
+        extract_spectrum(small_cubes[1], method=method, **kwargs)

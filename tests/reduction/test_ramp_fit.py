@@ -20,6 +20,8 @@ from slicersim.physics.nonlinearity import inverse_coefficients, measured_charge
 from slicersim.physics.readout import readout_times, variance_rauscher07
 from slicersim.products.ramps import simulate
 from slicersim.reduction.ramp_fit import fit_ramps
+import subprocess
+import sys
 
 TF = 2.83
 QUIET = dict(progress=False, dark=0.0, roic_glow=0.0)
@@ -440,3 +442,49 @@ def test_fit_options_object_equals_the_keyword_form(tmp_path):
         fit_ramps(path, FitOptions(), weighting="ols")
     params = inspect.signature(fit_ramps).parameters
     assert params["weighting"].default == "gls" and params["memory_budget"].default == 256 << 20
+
+
+def test_fit_ramps_reads_compressed_ramps_in_a_fresh_process(tmp_path):
+    """Known item (a): fit_ramps called directly (no check_ramp_file first) on lz4/zstd ramps
+    failed in a fresh process with h5py's 'can't open directory (/usr/local/lib/plugin)'."""
+    for comp in ("lz4", "zstd"):
+        path = simulate(np.full((8, 16), 5.0), (4, 2, 0), seed=1, progress=False, out=tmp_path / f"{comp}.h5",
+                        compression=comp)
+        code = ("import sys; from slicersim.reduction.ramp_fit import fit_ramps; "
+                "print(fit_ramps(sys.argv[1], progress=False).rate.shape)")
+        proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True)
+        assert proc.returncode == 0 and "(8, 16)" in proc.stdout, proc.stderr[-500:]
+
+
+def test_truncated_fits_ramps_are_named_in_one_line(tmp_path, capsys):
+    """A level-1b FITS cut inside an extension gave 'mmap length is greater than file size' (no file
+    name) after an astropy WARNING line."""
+    from slicersim.app.cli import main
+    from slicersim.errors import RampFileError
+    from slicersim.reduction.ramp_fit import fit_ramps
+    path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, progress=False, out=tmp_path / "raw.fits")
+    cut = tmp_path / "cut.fits"
+    with open(path, "rb") as fh:
+        cut.write_bytes(fh.read()[:10000])                  # SCI's data start at byte 8640
+    with pytest.raises(RampFileError, match="cut.fits: truncated file: extension SCI ends at byte"):
+        fit_ramps(cut, progress=False)
+    capsys.readouterr()
+    assert main(["reduce", str(cut), "--out", str(tmp_path / "r.h5"), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    err = (captured.err + captured.out).strip().splitlines()
+    assert len(err) == 1 and "truncated file" in err[0], err
+    assert not (tmp_path / "r.h5").exists()
+
+
+@pytest.mark.parametrize("value", [0, -1, "3", True])
+def test_fit_ramps_saturation_must_be_positive(value):
+    """saturation=0, -1, "3" or True flagged every group SATURATED: an all-NaN rate image, no error."""
+    from slicersim.errors import ParameterError
+    from slicersim.reduction.ramp_fit import fit_ramps
+    sci = np.full((1, 4, 4, 8), 1000, np.uint16) + np.arange(4, dtype=np.uint16)[None, :, None, None] * 10
+    attrs = {"NFRAMES": 1, "GROUPGAP": 0, "TFRAME": 1.0, "GAIN": 1.0, "READNOISE": 5.0}
+    assert np.allclose(fit_ramps((sci, None, None, attrs), progress=False).rate, 10.0)
+    with pytest.raises(ParameterError, match="saturation must be a number of DN > 0"):
+        fit_ramps((sci, None, None, attrs), saturation=value, progress=False)
+    with pytest.raises(Exception, match="SATURATION = 0.0 DN must be > 0"):
+        fit_ramps((sci, None, None, dict(attrs, SATURATION=0.0)), progress=False)

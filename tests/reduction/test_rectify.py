@@ -26,6 +26,11 @@ from slicersim.io.config import builtin_config_dir
 from slicersim.io.curves import read_curve
 from slicersim.instrument.spectrograph import wavelength_grid_from_dispersion
 from slicersim.reduction.rectify import rectify
+from slicersim.products.ramps import simulate
+from slicersim.reduction.spectra import extract_spectrum
+from slicersim.reduction.rectify import noise_information
+from test_gls_extraction import EDGES as EDGES_GLS, NCOL as NCOL_GLS, noisy_scene
+from slicersim.reduction.spectra import propagate_variance
 
 
 def _cbe_grid():
@@ -274,3 +279,130 @@ def test_bad_input_is_refused_before_any_work(mapper, monkeypatch):
                          table_cache=None)
     with pytest.raises(ParameterError, match="no wide field"):
         rectify(good, mapper=other, field="both", lbda=lbda, lbda_edges=edges, ncol=58)
+
+
+EDGES = np.arange(9050.0, 9951.0, 75.0)     # 12 bins on the small test layout
+
+
+NCOL = 24
+
+
+@pytest.fixture(scope="module")
+def small_raw(tmp_path_factory):
+    """Raw ramps of a point source in the narrow field of the small test layout (660 × 600)."""
+    from conftest import small_slicer_mapper
+
+    from slicersim.physics.psf import gaussian_psf_cells
+    mapper = small_slicer_mapper()
+    lbda = 0.5 * (EDGES[1:] + EDGES[:-1])
+    sig = np.linspace(1.2, 1.8, lbda.size)
+    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
+    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
+    image = mapper.project_fields(lbda, EDGES, narrow=400.0 * psf)
+    path = tmp_path_factory.mktemp("small") / "raw.h5"
+    simulate(image, (4, 2, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
+    return path, mapper
+
+
+@pytest.mark.parametrize("case, message", [
+    ("empty stack", "empty stack"), ("complex", "real numbers"), ("huge rate", "finite values beyond"),
+    ("huge variance", "variance has values outside"), ("tiny variance", "variance has values outside")])
+@pytest.mark.parametrize("method", ["drizzle", "lsq"])
+def test_rectify_absurd_images_are_refused_in_one_clear_line(small_raw, method, case, message):
+    """An empty stack raised numpy's 'need at least one array to stack'; complex images lost their
+    imaginary part silently; rates beyond 1e300 or variances of 1e300 / 1e-320 raised 'image must be
+    finite where the tables reach (replace NaN pixels first)' about finite inputs."""
+    from slicersim.errors import ParameterError
+    from slicersim.reduction.rectify import rectify
+    mapper = small_raw[1]
+    rate, var = np.ones((660, 600)), np.ones((660, 600))
+    if case == "empty stack":
+        rate = np.zeros((0, 660, 600))
+    elif case == "complex":
+        rate = rate + 1j
+    elif case == "huge rate":
+        rate[3, 3] = 1e300
+    elif case == "huge variance":
+        var[:] = 1e300
+    else:
+        var[:] = 1e-320
+    with pytest.raises(ParameterError, match=message):
+        rectify(rate, var, mapper=mapper, lbda_edges=EDGES, ncol=NCOL, method=method)
+
+
+@pytest.fixture(scope="module")
+def layout():
+    small, psf, _, _, img, var, noisy = noisy_scene()
+    cp = rectify(noisy, var, mapper=small, field="narrow", lbda_edges=EDGES_GLS, ncol=NCOL_GLS)
+    return small, cp, var, psf, img, noisy
+
+
+@pytest.mark.parametrize("bad", ["transposed", "padded", "flat", "scalar"])
+def test_noise_information_needs_the_detector_shaped_variance(layout, bad):
+    _, cp, var, *_ = layout
+    v = {"transposed": var.T.copy(), "padded": np.pad(var, 5), "flat": var.ravel(), "scalar": 1.0}[bad]
+    with pytest.raises(ParameterError, match="rectified from"):
+        noise_information(cp.inverse_covariance, v)
+
+
+@pytest.mark.parametrize("bad", ["text", "complex"])
+def test_noise_information_refuses_non_real_variances(layout, bad):
+    _, cp, var, *_ = layout
+    with pytest.raises(ParameterError, match="variance must be"):
+        noise_information(cp.inverse_covariance, "abc" if bad == "text" else var + 1j)
+
+
+@pytest.mark.parametrize("info", [None, "cube"])
+def test_noise_information_needs_an_inverse_covariance(layout, info):
+    _, cp, var, *_ = layout
+    with pytest.raises(ParameterError, match="InverseCovariance"):
+        noise_information(cp if info == "cube" else None, var)
+
+
+def test_noise_information_of_another_cube_is_refused(layout):
+    small, cp, var, psf, img, noisy = layout
+    wide = rectify(noisy, var, mapper=small, field="wide", lbda_edges=EDGES_GLS, ncol=NCOL_GLS)
+    shifted = rectify(noisy, var, mapper=small, field="narrow", lbda_edges=EDGES_GLS + 3.0, ncol=NCOL_GLS)
+    assert wide.flux.shape == shifted.flux.shape == cp.flux.shape            # the old shape check passed them
+    for other in (wide, shifted):
+        with pytest.raises(ParameterError, match="not for this cube"):
+            extract_spectrum(cp, psf=psf, method="gls",
+                             noise_information=noise_information(other.inverse_covariance, var))
+    for junk in (np.zeros(cp.flux.shape), cp.inverse_covariance):             # an array; N itself (not a B)
+        with pytest.raises(ParameterError, match="noise_information"):
+            extract_spectrum(cp, psf=psf, method="gls", noise_information=junk)
+    opt = extract_spectrum(cp, psf=psf, method="optimal")
+    with pytest.raises(ParameterError, match="not for this cube"):
+        propagate_variance(opt, cp, noise_information=noise_information(wide.inverse_covariance, var))
+    with pytest.raises(ParameterError, match="rate_variance"):
+        propagate_variance(opt, cp, var, mapper=small, noise_information=noise_information(cp.inverse_covariance, var))
+
+
+def test_sandwich_is_the_naive_variance_when_the_weights_are_the_inverse_variance(layout):
+    _, cp, var, psf, *_ = layout
+    B = noise_information(cp.inverse_covariance, var)
+    naive = extract_spectrum(cp, psf=psf, method="gls")
+    sw = extract_spectrum(cp, psf=psf, method="gls", noise_information=B)
+    np.testing.assert_allclose(sw.variance, naive.variance, rtol=1e-10)
+    opt = extract_spectrum(cp, psf=psf, method="optimal")
+    np.testing.assert_allclose(propagate_variance(opt, cp, noise_information=B), propagate_variance(opt, cp),
+                               rtol=1e-10)
+
+
+def test_propagated_variance_sandwich_matches_monte_carlo(layout):
+    """Optimal extraction from a cube rectified with wrong weights (core variance 0.6×): the
+    propagated N⁻¹ under-reports, the sandwich N⁻¹BN⁻¹ matches 400 realisations."""
+    small, _, var, psf, img, _ = layout
+    used = np.where(img > 0.3 * img.max(), 0.6 * var, var)
+    n = 400
+    stack = img[None] + np.random.default_rng(17).standard_normal((n,) + img.shape) * np.sqrt(var)[None]
+    cw = rectify(stack, used, mapper=small, field="narrow", lbda_edges=EDGES_GLS, ncol=NCOL_GLS)
+    opt = extract_spectrum(cw, psf=psf, method="optimal")
+    naive = propagate_variance(opt, cw)
+    sw = propagate_variance(opt, cw, noise_information=noise_information(cw.inverse_covariance, var))
+    emp = opt.flux.var(axis=0, ddof=1)
+    err = np.sqrt(2 / (n - 1))
+    r_sw, r_naive = emp / sw, emp / naive
+    print(f"empirical / sandwich {np.round(r_sw, 3)}; empirical / naive {np.round(r_naive, 3)} (± {err:.3f})")
+    assert np.all(np.abs(r_sw - 1) < 4 * err) and abs(r_sw.mean() - 1) < 4 * err / np.sqrt(r_sw.size)
+    assert r_naive.mean() > 1 + 4 * err / np.sqrt(r_naive.size)

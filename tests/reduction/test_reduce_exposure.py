@@ -11,6 +11,9 @@ from conftest import small_slicer_mapper
 from slicersim.errors import ParameterError, SlicersimError
 from slicersim.reduction.options import ForwardOptions, PixelNoise, ReduceOptions
 from slicersim.reduction.rectify_checks import RectifyOptions
+import h5py
+from slicersim.products.ramps import simulate
+from slicersim.reduction.spectra import propagate_variance
 
 EDGES = np.linspace(9050.0, 9950.0, 13)      # 12 bins of 5 px on the small layout
 NCOL = 24
@@ -187,3 +190,143 @@ def test_check_spectra_options_names_and_units():
         check_spectra_options(ncols=3)
     edges = check_spectra_options(lbda_edges=np.linspace(905.0, 995.0, 13) * u.nm)["lbda_edges"]
     np.testing.assert_allclose(edges, np.linspace(9050.0, 9950.0, 13), rtol=1e-15)
+
+
+EDGES_RAW = np.arange(9050.0, 9951.0, 75.0)     # 12 bins on the small test layout
+
+
+@pytest.fixture(scope="module")
+def small_raw(tmp_path_factory):
+    """Raw ramps of a point source in the narrow field of the small test layout (660 × 600)."""
+    from conftest import small_slicer_mapper
+
+    from slicersim.physics.psf import gaussian_psf_cells
+    mapper = small_slicer_mapper()
+    lbda = 0.5 * (EDGES_RAW[1:] + EDGES_RAW[:-1])
+    sig = np.linspace(1.2, 1.8, lbda.size)
+    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
+    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
+    image = mapper.project_fields(lbda, EDGES_RAW, narrow=400.0 * psf)
+    path = tmp_path_factory.mktemp("small") / "raw.h5"
+    simulate(image, (4, 2, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
+    return path, mapper
+
+
+def test_reduce_exposure_writes_the_truth_rate(small_raw, tmp_path):
+    """Known item (b): reduce_exposure(out=..., fit_options={"with_truth": True}) dropped the truth
+    (only reduce_file added it afterwards)."""
+    from slicersim.reduction.pipeline import reduce_exposure
+    path, mapper = small_raw
+    out = tmp_path / "red.h5"
+    res = reduce_exposure(path, mapper=mapper, lbda_edges=EDGES_RAW, ncol=NCOL, rectify_method="drizzle",
+                          fit_options={"with_truth": True, "progress": False}, out=out)
+    with h5py.File(out, "r") as fh:
+        assert np.array_equal(fh["rates/TRUTH_RATE"][...], res["rates"].truth_rate)
+    out2 = tmp_path / "red2.h5"
+    reduce_exposure(path, mapper=mapper, lbda_edges=EDGES_RAW, ncol=NCOL, rectify_method="drizzle",
+                    fit_options={"progress": False}, out=out2)
+    with h5py.File(out2, "r") as fh:
+        assert "TRUTH_RATE" not in fh["rates"]
+
+
+def test_reduce_exposure_propagates_the_sandwich_for_optimal_extraction(tmp_path):
+    """reduce_exposure(weights="model", extraction="optimal"): the propagated variance is the
+    sandwich with the ramp fit's variance (it was N⁻¹ of the model weights); with weights="data"
+    (W = Σ⁻¹) there is nothing to correct."""
+    from test_reduce_cli import small_point_source
+
+    from slicersim.products.ramps import simulate
+    from slicersim.reduction.pipeline import reduce_exposure
+    mapper, edges, psf, image = small_point_source()
+    path = simulate(image, (8, 4, 0), seed=2, out=tmp_path / "r.h5", ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
+    opts = dict(mapper=mapper, lbda_edges=edges, ncol=NCOL, psf=psf, extraction="optimal")
+    res = reduce_exposure(path, **opts)
+    spec, cube, B = res["spectra"]["narrow"], res["cubes"]["narrow"], res["noise_information"]["narrow"]
+    assert "sandwich" in spec.diagnostics["variance_model"]
+    np.testing.assert_array_equal(spec.variance, propagate_variance(spec, cube, noise_information=B))
+    assert not np.allclose(spec.variance, propagate_variance(spec, cube), rtol=1e-3)
+    data = reduce_exposure(path, weights="data", **opts)
+    assert data["noise_information"] == {} and "sandwich" not in data["spectra"]["narrow"].diagnostics["variance_model"]
+
+
+@pytest.mark.parametrize("options, match", [
+    (dict(aperture=2.0), "aperture applies to the 'optimal' and 'aperture' extractions"),
+    (dict(aperture=2.0, extraction="gls"), "aperture applies"),
+    (dict(propagate=False), "propagate applies"),
+    (dict(propagate=True, rectify_method="drizzle"), "propagate applies"),
+    (dict(propagate=False, rectify_method="drizzle", extraction="aperture"), "propagate applies"),
+])
+def test_options_that_would_do_nothing_are_refused(options, match):
+    """Review finding: --aperture with the gls extraction (every cell is fitted) and --no-propagate with
+    gls or drizzle did nothing, silently (the CLI refuses options that do not apply)."""
+    from slicersim.reduction.checks import check_spectra_options
+    with pytest.raises(ParameterError, match=match):
+        check_spectra_options(**options)
+    # where they apply they pass
+    assert check_spectra_options(aperture=2.0, extraction="aperture")["aperture"] == 2.0
+    assert check_spectra_options(aperture=2.0, rectify_method="drizzle")["aperture"] == 2.0    # optimal
+    assert check_spectra_options(propagate=False, extraction="optimal")["propagate"] is False
+
+
+@pytest.fixture(scope="module")
+def small_exposure():
+    from conftest import small_slicer_mapper
+    return small_slicer_mapper()
+
+
+@pytest.fixture
+def no_ramp_fit(monkeypatch):
+    """Fail loudly if reduce_exposure reads any data."""
+    from slicersim.reduction import ramp_fit
+
+    def boom(*a, **k):
+        raise AssertionError("fit_ramps called: options must be refused before any data are read")
+    monkeypatch.setattr(ramp_fit, "fit_ramps", boom)
+
+
+@pytest.mark.parametrize("bad", [
+    dict(extraction="bogus"),
+    dict(extraction="optimal", aperture=-1.0),
+    dict(extraction="optimal", psf=np.ones((12, 12, 58, NCOL))),      # a template: GLS only
+    dict(psf=np.ones((5, 58, NCOL))),                                  # wrong nλ
+    dict(psf=np.zeros((12, 58, NCOL))),                                # no PSF light at all
+    dict(position=(1e9, 0.0)),
+    dict(rectify_method="drizzle", weights="forward"),                 # drizzle has no weights
+    dict(psf="bogus"),
+])
+def test_options_refused_before_any_data_are_read(small_exposure, no_ramp_fit, bad):
+    """F1, F6: reduce_exposure checked extraction options only after the ramp fit and two
+    rectifications (20–26 s on the small_exposure layout, minutes on the detector); drizzle silently ignored
+    explicit weights."""
+    from slicersim.errors import ParameterError
+    from slicersim.reduction import pipeline
+    with pytest.raises(ParameterError):
+        pipeline.reduce_exposure("unused.h5", mapper=small_exposure, lbda_edges=EDGES, ncol=NCOL, **bad)
+
+
+@pytest.mark.parametrize("weights", [np.array(["model", "forward"]), np.array(["forward"]), ("forward",)])
+def test_array_weights_are_a_parameter_error(small_exposure, no_ramp_fit, weights):
+    """F2: an array of weights gave NumPy's ambiguous-truth error or was accepted."""
+    from slicersim.errors import ParameterError
+    from slicersim.reduction import pipeline
+    with pytest.raises(ParameterError, match="weights"):
+        pipeline.reduce_exposure("unused.h5", mapper=small_exposure, lbda_edges=EDGES, ncol=NCOL, weights=weights)
+
+
+def test_reduced_file_records_the_weights(small_exposure, tmp_path):
+    """F3: a reduced exposure did not say how its cubes were weighted, nor keep the pixel variance
+    a template must be built with."""
+    import h5py
+
+    from slicersim.products.ramps import simulate
+    from slicersim.reduction import pipeline
+    from test_closed_loop import _scene
+    lbda, cube, psf, F, B = _scene()
+    img = small_exposure.project_fields(lbda, EDGES, narrow=cube * 20)
+    raw = tmp_path / "raw.h5"
+    simulate(img, (4, 2, 0), seed=1, out=str(raw), ron=5.0, dark=0.0, roic_glow=0.0)
+    out = tmp_path / "red.h5"
+    res = pipeline.reduce_exposure(str(raw), mapper=small_exposure, lbda_edges=EDGES, ncol=NCOL, psf=psf, out=str(out))
+    with h5py.File(out) as f:
+        assert f.attrs["WEIGHTS"] == "forward" and f.attrs["RECTIFY_METHOD"] == "lsq"
+        np.testing.assert_allclose(f["rates/RECTIFY_VAR"][()], res["variance"].astype(np.float32))

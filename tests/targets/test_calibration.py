@@ -301,3 +301,25 @@ def test_field_switch_readout_and_generic_class(short_range_toml):
 def test_bad_input_is_one_clear_error(call, error, match):
     with pytest.raises(error, match=match):
         call()
+
+
+def test_flat_switch_off_with_and_without_structure(qth):
+    structured = Lazuli3DFlat.from_qth(structure={"slice_scatter": 0.05, "seed": 4})
+    for flat in (qth, structured):
+        signal, variance = flat.get_cube()
+        s_ron, v_ron = flat.get_cube(switch_off="ron")
+        np.testing.assert_array_equal(s_ron, signal)                 # a detector term leaves the variance only
+        assert np.all(v_ron < variance)
+        ron_var = variance - v_ron                                   # read noise: the same for any flux
+        np.testing.assert_allclose(ron_var, ron_var[0, 0, 0], rtol=1e-9)
+    # the lamp off: only the instrument's thermal light is left, not scaled by the slice throughputs
+    np.testing.assert_allclose(structured.get_cube(switch_off="background")[0],
+                               qth.get_cube(switch_off="background")[0], rtol=1e-12)
+    assert not np.allclose(structured.get_cube()[0], qth.get_cube()[0], rtol=1e-3)
+
+
+def test_lamp_magnitudes_are_finite_numbers_of_any_sign():
+    with pytest.raises(ParameterError, match=r"lamp magnitude .* must be finite, got nan") as err:
+        Lazuli3DFlat.from_qth(mag=float("nan"))
+    assert "> 0" not in str(err.value)
+    assert Lazuli3DFlat.from_qth(mag=-2.0).lamp.continuum.mag == -2.0
