@@ -20,8 +20,11 @@ needing it).  Tests live in ``tests/<subpackage>/test_<feature>.py`` mirroring `
 (``tests/core/`` for the top-level modules); this folder is on ``sys.path``, so tests import
 ``conftest`` and ``cube_oracle`` from any subfolder.
 """
+import contextlib
+import io
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -181,3 +184,41 @@ def small_slicer_mapper():
     values[..., 2] = 0.6 + 0.4 * u
     values[..., 3] = 0.7 + 0.5 * u
     return SlicerMapper(ids, phi, lam, values, detector_shape=(660, 600), table_cache=None)
+
+
+def run_cli(*args, cwd=None, debug=False, env=None, **_subprocess_only):
+    """``slicersim ARGS`` run in this process through :func:`slicersim.app.cli.main` (no interpreter
+    start-up): a :class:`subprocess.CompletedProcess` with the exit status and the captured text.
+
+    ``cwd`` and ``env`` (variables to set; None values unset) apply for the call only; ``debug``
+    sets SLICERSIM_DEBUG=1 (unset otherwise, as for a user).  Keyword arguments meant for
+    :func:`subprocess.run` (``timeout``, ``check``, ...) are ignored.  A few tests per command family
+    keep a real subprocess so that the console entry point stays tested."""
+    from slicersim.app.cli import main
+    argv = [str(a) for a in args]
+    changes = dict(env or {})
+    changes["SLICERSIM_DEBUG"] = "1" if debug else None
+    saved = {k: os.environ.get(k) for k in changes}
+    out, err = io.StringIO(), io.StringIO()
+    here = os.getcwd()
+    try:
+        for k, v in changes.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = str(v)
+        if cwd is not None:
+            os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(argv)
+            except SystemExit as exc:           # argparse: --help (0), a usage error (2)
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        os.chdir(here)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return subprocess.CompletedProcess(["slicersim", *argv], code, out.getvalue(), err.getvalue())

@@ -1,4 +1,6 @@
-"""The ``slicersim`` command line, run as a real subprocess (``python -m slicersim``)."""
+"""The ``slicersim`` command line.  Most cases run in this process through ``main(argv)``
+(:func:`conftest.run_cli`); a few per command family run as a real subprocess
+(``python -m slicersim``, :func:`run_subprocess`) so that the console entry point stays tested."""
 import os
 import re
 import subprocess
@@ -10,10 +12,12 @@ import pytest
 from slicersim.io.rampfile import read_ramps
 from slicersim.products.ramps import simulate
 
+from conftest import run_cli as run
+
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # tests/app/ → repo
 
 
-def run(*args, cwd=None, debug=False, timeout=600):
+def run_subprocess(*args, cwd=None, debug=False, timeout=600):
     env = dict(os.environ)
     env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
     env.pop("SLICERSIM_DEBUG", None)
@@ -40,13 +44,13 @@ def rate_file(tmp_path_factory):
 
 
 def test_info():
-    proc = run("info")
+    proc = run_subprocess("info")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("slicersim ") and "numpy" in proc.stdout and "pyopencl" in proc.stdout
 
 
 def test_version():
-    proc = run("--version")
+    proc = run_subprocess("--version")
     assert proc.returncode == 0 and proc.stdout.startswith("slicersim ")
 
 
@@ -89,8 +93,8 @@ def test_etc_spectrum_csv(tmp_path):
 
 def test_ramp_rate_file_writes_the_simulated_ramp(tmp_path, rate_file):
     out = tmp_path / "r.h5"
-    proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--tframe", "3",
-               "--out", out)
+    proc = run_subprocess("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--tframe", "3",
+                          "--out", out)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == f"wrote {out} (seed 4)"
     sci, gdq, pdq, attrs = read_ramps(out)
@@ -193,7 +197,7 @@ def test_spectrum_with_one_row_is_a_user_error(tmp_path):
 
 
 def test_debug_env_shows_the_traceback():
-    proc = run("etc", "--redshift", "-1", debug=True)
+    proc = run_subprocess("etc", "--redshift", "-1", debug=True)
     assert proc.returncode == 1 and "Traceback" in proc.stderr
     assert "redshift" in proc.stderr.splitlines()[-1]
 
