@@ -23,6 +23,8 @@ from slicersim.errors import ConfigError, DatasetError
 import tomllib
 from astropy.table import Table
 
+from conftest import run_cli
+
 SPEC = """\
 seed = 11
 name = "test campaign"
@@ -340,7 +342,7 @@ def test_unknown_population_key_is_named(tmp_path):
 
 
 def test_status_of_non_dataset(tmp_path):
-    proc = _cli("campaign", "status", str(tmp_path / "nope"))
+    proc = run_cli("campaign", "status", str(tmp_path / "nope"))
     assert proc.returncode == 2 and "no such dataset" in proc.stderr
 
 
@@ -454,9 +456,9 @@ spectrum = true
 """
 
 
-def _run_cli(*args, timeout=300, **kw):
-    return subprocess.run([str(BIN / "slicersim"), *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, **kw)
+def _run_cli(*args, **kw):
+    """`slicersim ARGS` in this process (error cases; the real command runs above)."""
+    return run_cli(*args, **kw)
 
 
 def _one_line_error(proc, *words):

@@ -16,6 +16,8 @@ from slicersim.errors import ConfigError, ParameterError
 import signal
 import time
 
+from conftest import run_cli
+
 LBDA = np.arange(3000.0, 20000.0, 10.0)
 BIN = Path(sys.executable).parent
 
@@ -455,9 +457,9 @@ spectrum = true
         ds.check_spec(changed.canonical())
 
 
-def _cli(*args, timeout=300, **kw):
-    return subprocess.run([str(BIN / "slicersim"), *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, **kw)
+def _cli(*args, **kw):
+    """`slicersim ARGS` in this process (the real `slicersim survey plan` runs above)."""
+    return run_cli(*args, **kw)
 
 
 def _one_line_error(proc, *words):

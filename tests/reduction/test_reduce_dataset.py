@@ -23,6 +23,8 @@ import pytest
 
 from slicersim.errors import DatasetError, ParameterError
 
+from conftest import run_cli
+
 BIN = Path(sys.executable).parent
 SPEC = """\
 seed = 11
@@ -128,7 +130,7 @@ def test_resume_redoes_only_the_removed_or_truncated_output(reduced, campaign, t
     assert _record(out, 1)["products"] == _record(reduced, 1)["products"]
     # complete: nothing to do, and another set of options is refused without --force
     assert reduce_dataset(campaign, out, workers=1, progress=False)["computed"] == 0
-    proc = _cli("reduce", campaign, "--out", out, "--weighting", "ols")
+    proc = run_cli("reduce", campaign, "--out", out, "--weighting", "ols")
     assert proc.returncode == 2 and "other options" in proc.stderr and "weighting" in proc.stderr
 
 
@@ -277,7 +279,7 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
 ])
 def test_cli_dataset_flags_are_checked(campaign, tmp_path, argv, message):
     out = tmp_path / "red"
-    proc = _cli("reduce", campaign, "--out", out, *argv, timeout=120)
+    proc = run_cli("reduce", campaign, "--out", out, *argv)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("slicersim: error:"), proc.stderr
     assert message in lines[0]
