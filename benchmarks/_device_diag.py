@@ -133,7 +133,7 @@ for opts in ((), ("-cl-opt-disable",)):
     print("helper probe", opts or "default", "words equal:", bool(np.array_equal(w.reshape(4, 4), words.astype(np.uint64))),
           "; ".join(f"{c} {'ok' if s else 'WRONG'}" for c, s in same), "; words[:,0] =", [hex(int(x)) for x in words[:, 0]])
 
-# ramps of tests/test_ramps.py::test_slope_variance_matches_rauscher07 (failed on the H200 in run 4): kernel vs twin
+# ramps of tests/products/test_ramps.py::test_slope_variance_matches_rauscher07 (failed on the H200 in run 4): kernel vs twin
 from slicersim.products.ramps import simulate  # noqa: E402
 for nmd in ((16, 8, 0), (8, 4, 2), (12, 1, 0), (5, 8, 4), (32, 1, 3)):
     kw = dict(seed=11, ron=12.0, dark=0.0, roic_glow=0.0)

@@ -129,7 +129,7 @@ def markdown(result):
         lines += ["", "Same convention (F_λ index α, λ_ref = 5500 Å) and normalisation.  The ≤ 2e-5 offsets: 1.4.2 "
                   "normalises and samples the power law on its 525-bin spectrograph grid (these values are linear "
                   "interpolations between its bins), ours on a 5 Å grid; 1.4.2's function on a dense 2 Å grid gives "
-                  "ours to < 5e-6 (tests/test_more_sources.py).", ""]
+                  "ours to < 5e-6 (tests/sources/test_more_sources.py).", ""]
     lines += ["| α | mag | " + " | ".join(v for _, v in names) + " |", "|---|---|" + "---:|" * len(names)]
     for i, (alpha, mag) in enumerate(CASES):
         lines.append(f"| {alpha:+d} | {mag} | " + " | ".join(readout(cols[k][i]) for k, _ in names) + " |")

@@ -12,9 +12,19 @@ One loader for everything under the reference folder:
 Tests that use ``refdir`` (directly or through ``reference_case``) get the ``reference``
 marker automatically.  Without the material they are skipped, except with ``CI=true`` in
 the environment, where a missing reference is a failure (CI must never silently skip them).
+
+Markers ``needs_opencl`` (an OpenCL device with fp64) and ``needs_opencl_device`` (any OpenCL
+device: single-precision kernels) follow the same rule: skipped without the device, a failure with
+``CI=true``.  :func:`have_opencl` is the one probe (for tests that branch on the device rather than
+needing it).  Tests live in ``tests/<subpackage>/test_<feature>.py`` mirroring ``slicersim/``
+(``tests/core/`` for the top-level modules); this folder is on ``sys.path``, so tests import
+``conftest`` and ``cube_oracle`` from any subfolder.
 """
+import contextlib
+import io
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -107,6 +117,35 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.reference)
 
 
+_OPENCL = {}
+
+
+def have_opencl(fp64=True):
+    """Whether an OpenCL device is available (with fp64 unless ``fp64=False``); probed once.
+
+    The one place the suite asks; tests mark themselves ``@pytest.mark.needs_opencl`` (fp64) or
+    ``@pytest.mark.needs_opencl_device`` (any OpenCL device, single-precision kernels) instead of
+    writing their own guard."""
+    if not _OPENCL:
+        from slicersim.backends import opencl
+        device = bool(opencl.is_available())
+        _OPENCL["device"] = device
+        _OPENCL["fp64"] = device and bool(opencl.device_supports_fp64())
+    return _OPENCL["fp64" if fp64 else "device"]
+
+
+def pytest_runtest_setup(item):
+    """``needs_opencl`` / ``needs_opencl_device``: skip without such a device, except with CI=true
+    in the environment, where it is a failure (CI must never silently skip the OpenCL tests)."""
+    for marker, fp64, what in (("needs_opencl", True, "an OpenCL device with fp64"),
+                               ("needs_opencl_device", False, "an OpenCL device")):
+        if item.get_closest_marker(marker) is not None and not have_opencl(fp64):
+            msg = f"no {what[3:] if what.startswith('an ') else what} (run `make opencl`): this test needs {what}"
+            if _ci():
+                pytest.fail(f"CI=true: {msg}", pytrace=False)
+            pytest.skip(msg)
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _temporary_table_cache(tmp_path_factory):
     """The whole suite caches projection tables in a temporary directory, never in ~/.cache."""
@@ -145,3 +184,41 @@ def small_slicer_mapper():
     values[..., 2] = 0.6 + 0.4 * u
     values[..., 3] = 0.7 + 0.5 * u
     return SlicerMapper(ids, phi, lam, values, detector_shape=(660, 600), table_cache=None)
+
+
+def run_cli(*args, cwd=None, debug=False, env=None, **_subprocess_only):
+    """``slicersim ARGS`` run in this process through :func:`slicersim.app.cli.main` (no interpreter
+    start-up): a :class:`subprocess.CompletedProcess` with the exit status and the captured text.
+
+    ``cwd`` and ``env`` (variables to set; None values unset) apply for the call only; ``debug``
+    sets SLICERSIM_DEBUG=1 (unset otherwise, as for a user).  Keyword arguments meant for
+    :func:`subprocess.run` (``timeout``, ``check``, ...) are ignored.  A few tests per command family
+    keep a real subprocess so that the console entry point stays tested."""
+    from slicersim.app.cli import main
+    argv = [str(a) for a in args]
+    changes = dict(env or {})
+    changes["SLICERSIM_DEBUG"] = "1" if debug else None
+    saved = {k: os.environ.get(k) for k in changes}
+    out, err = io.StringIO(), io.StringIO()
+    here = os.getcwd()
+    try:
+        for k, v in changes.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = str(v)
+        if cwd is not None:
+            os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(argv)
+            except SystemExit as exc:           # argparse: --help (0), a usage error (2)
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        os.chdir(here)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return subprocess.CompletedProcess(["slicersim", *argv], code, out.getvalue(), err.getvalue())

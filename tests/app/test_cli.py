@@ -1,0 +1,417 @@
+"""The ``slicersim`` command line.  Most cases run in this process through ``main(argv)``
+(:func:`conftest.run_cli`); a few per command family run as a real subprocess
+(``python -m slicersim``, :func:`run_subprocess`) so that the console entry point stays tested."""
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from slicersim.io.rampfile import read_ramps
+from slicersim.products.ramps import simulate
+
+from conftest import run_cli as run
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # tests/app/ → repo
+
+
+def run_subprocess(*args, cwd=None, debug=False, timeout=600):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    env.pop("SLICERSIM_DEBUG", None)
+    if debug:
+        env["SLICERSIM_DEBUG"] = "1"
+    return subprocess.run([sys.executable, "-m", "slicersim", *map(str, args)], env=env, capture_output=True,
+                          text=True, timeout=timeout, cwd=cwd)
+
+
+def one_error_line(proc):
+    """The single ``slicersim: error: ...`` line of a failed run (exit 2, no traceback)."""
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-3000:])
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and "block/s" not in ln]
+    assert len(lines) == 1 and lines[0].startswith("slicersim: error: "), proc.stderr
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def rate_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("rate") / "rate.npy"
+    np.save(path, np.random.default_rng(11).uniform(0, 80, (24, 20)))
+    return path
+
+
+def test_info():
+    proc = run_subprocess("info")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("slicersim ") and "numpy" in proc.stdout and "pyopencl" in proc.stdout
+
+
+def test_version():
+    proc = run_subprocess("--version")
+    assert proc.returncode == 0 and proc.stdout.startswith("slicersim ")
+
+
+def _etc_values(stdout):
+    rows = {}
+    for line in stdout.splitlines():
+        key, _, value = line.partition(" : ")
+        rows[key.strip()] = value.strip()
+    return rows
+
+
+def test_etc_redshift_states_units_and_no_object_line():
+    proc = run("etc", "--redshift", "1")
+    assert proc.returncode == 0, proc.stderr
+    rows = _etc_values(proc.stdout)
+    assert float(rows["exposure_time [s]"]) > 0 and float(rows["data_volume [GB]"]) > 0
+    assert "lbda_range_obs [Angstrom]" in rows and rows["config"] == "cbe"
+    assert "target" not in rows and "object at 0x" not in proc.stdout
+
+
+def test_etc_conventions_flag_reproduces_slicersim_1_0():
+    """--conventions slicersim-1.0 gives slicersim 1.0.0's readout (56,8,0)x4, 5071.36 s for a z=1
+    SN Ia (benchmarks/conventions_vs_reference.py); the physical default needs less time (smaller blur)."""
+    old = _etc_values(run("etc", "--redshift", "1", "--conventions", "slicersim-1.0").stdout)
+    new = _etc_values(run("etc", "--redshift", "1").stdout)
+    assert float(old["exposure_time [s]"]) == pytest.approx(56 * 8 * 4 * 2.83, rel=1e-9)
+    assert float(new["exposure_time [s]"]) < float(old["exposure_time [s]"])
+    assert old["conventions"] == "slicersim-1.0" and new["conventions"] == "physical"
+
+
+def test_etc_spectrum_csv(tmp_path):
+    csv = tmp_path / "spec.csv"
+    csv.write_text("wavelength,flux\n3000,1e-17\n8000,1e-17\n20000,1e-17\n")
+    proc = run("etc", "--spectrum", csv, "--snr", "10", "--lbda-range", "5000", "6000")
+    assert proc.returncode == 0, proc.stderr
+    rows = _etc_values(proc.stdout)
+    assert float(rows["exposure_time [s]"]) > 0
+    assert rows["lbda_range_obs [Angstrom]"] == "[5000, 6000]"
+
+
+def test_ramp_rate_file_writes_the_simulated_ramp(tmp_path, rate_file):
+    out = tmp_path / "r.h5"
+    proc = run_subprocess("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--tframe", "3",
+                          "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == f"wrote {out} (seed 4)"
+    sci, gdq, pdq, attrs = read_ramps(out)
+    expect = simulate(np.load(rate_file), (3, 1, 0), seed=4, tframe=3.0)      # CLI flags honoured
+    assert np.array_equal(sci, expect) and attrs["TFRAME"] == 3.0
+    # an existing file is kept unless --overwrite
+    mtime = os.stat(out).st_mtime_ns
+    line = one_error_line(run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", out))
+    assert "exists" in line and "--overwrite" in line and os.stat(out).st_mtime_ns == mtime
+    proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "5", "--out", out, "--overwrite")
+    assert proc.returncode == 0, proc.stderr
+    assert np.array_equal(read_ramps(out)[0], simulate(np.load(rate_file), (3, 1, 0), seed=5))
+    assert os.listdir(tmp_path) == ["r.h5"]
+
+
+def test_ramp_default_seed_is_fresh_printed_and_recorded(tmp_path, rate_file):
+    """Without --seed each run draws a new seed, printed in the summary and recorded in SEED; passing it
+    back with --seed repeats the run."""
+    seeds = []
+    for name in ("a.h5", "b.h5"):
+        proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", tmp_path / name)
+        assert proc.returncode == 0, proc.stderr
+        match = re.fullmatch(rf"wrote {re.escape(str(tmp_path / name))} \(seed (\d+)\)", proc.stdout.strip())
+        assert match, proc.stdout
+        seeds.append(int(match.group(1)))
+        assert int(read_ramps(tmp_path / name)[3]["SEED"]) == seeds[-1]
+    assert seeds[0] != seeds[1]
+    assert np.array_equal(read_ramps(tmp_path / "a.h5")[0], simulate(np.load(rate_file), (3, 1, 0), seed=seeds[0]))
+
+
+def test_ramp_help_says_what_effects_all_contains():
+    """'--effects all' leaves persistence out unless --previous-charge is given: the help says so and
+    lists every effect 'all' contains."""
+    from slicersim.physics.effects import EFFECT_NAMES
+    text = " ".join(run("ramp", "--help").stdout.split())
+    contents = text.split("'all' (and 'lazuli') =", 1)[1].split(")", 1)[0]
+    for name in EFFECT_NAMES:
+        assert name in contents, name
+    assert "persistence only when --previous-charge is given" in contents
+
+
+def test_ramp_effects_all_includes_persistence_with_previous_charge(tmp_path):
+    import h5py
+    rate, prev = tmp_path / "rate.npy", tmp_path / "prev.npy"
+    np.save(rate, np.full((64, 64), 3.0))                 # 64 columns: the 32 outputs of reference pixels
+    np.save(prev, np.full((64, 64), 5e4))
+    for extra, expect in (([], False), (["--previous-charge", prev], True)):
+        out = tmp_path / f"r{len(extra)}.h5"
+        proc = run("ramp", "--rate", rate, "--nmd", "3", "1", "0", "--seed", "1", "--effects", "all",
+                   "--out", out, *extra)
+        assert proc.returncode == 0, proc.stderr
+        with h5py.File(out) as fh:
+            assert ("persistence" in fh.attrs["EFFECTS"]) is expect
+
+
+def test_ramp_redshift_full_detector(tmp_path):
+    """The --redshift path (full 4096² detector) once, with the shortest readout."""
+    out = tmp_path / "sn.h5"
+    proc = run("ramp", "--redshift", "1", "--nmd", "2", "1", "0", "--tframe", "3", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    import h5py
+    with h5py.File(out, "r") as fh:
+        assert fh["SCI"].shape == (1, 2, 4096, 4096) and bool(fh.attrs["COMPLETE"])
+        assert fh.attrs["TFRAME"] == 3.0                                        # --tframe honoured
+
+
+@pytest.mark.parametrize("args, match", [
+    (["etc", "--redshift", "-1"], "redshift"),
+    (["etc", "--redshift", "1", "--snr", "0"], "SNR"),
+    (["etc", "--redshift", "1", "--lbda-range", "7000", "5000"], "lbda_range"),
+    (["etc", "--redshift", "1", "--config", "/no/such/config.toml"], "not found"),
+    (["etc", "--spectrum", "/no/such/spectrum.csv"], "No such file"),
+    (["etc", "--redshift", "1", "--snr", "abc"], "invalid float"),
+    (["etc"], "required"),
+    (["ramp", "--rate", "RATE", "--nmd", "1", "1", "0", "--out", "OUT"], "nmd[0] (n, groups per ramp) must be"),
+    (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--seed", "-3", "--out", "OUT"], "seed must be in"),
+    (["ramp", "--rate", "RATE", "--nramps", "0", "--nmd", "3", "1", "0", "--out", "OUT"], "nramps"),
+    (["ramp", "--rate", "RATE", "--config", "eol", "--out", "OUT"], "--config applies only with --redshift"),
+    (["ramp", "--rate", "RATE", "--field", "wide", "--out", "OUT"], "--field applies only with --redshift"),
+    (["ramp", "--rate", "RATE", "--conventions", "physical", "--out", "OUT"], "--conventions applies only"),
+    (["etc", "--redshift", "1", "--conventions", "slicersim-2"], "invalid choice"),
+    (["ramp", "--rate", "/no/such/rate.npy", "--out", "OUT"], "No such file"),
+    (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--out", "/no/such/dir/r.h5"], "directory does not exist"),
+    (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "rate must be ≥ 0"),
+    (["nosuchcommand"], "invalid choice"),
+])
+def test_user_errors_are_one_line_exit_2(tmp_path, rate_file, args, match):
+    bad = tmp_path / "bad.npy"
+    np.save(bad, -np.ones((4, 4)))
+    subst = {"RATE": str(rate_file), "BADRATE": str(bad), "OUT": str(tmp_path / "o.h5")}
+    line = one_error_line(run(*[subst.get(a, a) for a in args]))
+    assert match in line, line
+    assert not (tmp_path / "o.h5").exists()
+
+
+def test_spectrum_with_one_row_is_a_user_error(tmp_path):
+    csv = tmp_path / "one.csv"
+    csv.write_text("5000 1e-17\n")
+    assert "two numeric" in one_error_line(run("etc", "--spectrum", csv))
+
+
+def test_debug_env_shows_the_traceback():
+    proc = run_subprocess("etc", "--redshift", "-1", debug=True)
+    assert proc.returncode == 1 and "Traceback" in proc.stderr
+    assert "redshift" in proc.stderr.splitlines()[-1]
+
+
+@pytest.mark.parametrize("command, expected", [
+    ("etc", ["(default: 20.0)", "(default: 4000 6800)"]),
+    ("ramp", ["(default: (16, 8, 0))", "(default: 1)", "default: a fresh seed", "(default: 2.83", "(default: auto)",
+              "--overwrite"]),
+    ("demo", ["(default: demo_output)", "--overwrite"]),
+    ("info", []),
+])
+def test_help_shows_defaults(command, expected):
+    proc = run(command, "--help")
+    assert proc.returncode == 0, proc.stderr
+    text = " ".join(proc.stdout.split())
+    for item in expected:
+        assert item in text, (item, proc.stdout)
+
+
+def test_demo_refuses_existing_outputs(tmp_path):
+    (tmp_path / "spectrum.png").write_bytes(b"mine")
+    line = one_error_line(run("demo", "--outdir", tmp_path))
+    assert "spectrum.png" in line and "exists" in line and "--overwrite" in line
+    assert (tmp_path / "spectrum.png").read_bytes() == b"mine"
+
+
+def test_ctrl_c_during_ramp_is_one_line_and_leaves_nothing(tmp_path):
+    import signal
+    import time
+    from slicersim.io.rampfile import is_temporary
+    rate = tmp_path / "big.npy"
+    np.save(rate, np.random.default_rng(0).uniform(0, 100, (2048, 2048)))
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("SLICERSIM_DEBUG", None)
+    proc = subprocess.Popen([sys.executable, "-m", "slicersim", "ramp", "--rate", str(rate), "--nmd", "40", "1", "0",
+                             "--backend", "numpy", "--out", str(out_dir / "r.h5")], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while not any(is_temporary(f) for f in os.listdir(out_dir)):
+        assert proc.poll() is None and time.time() - t0 < 300, proc.communicate()
+        time.sleep(0.01)
+    time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert one_error_line(subprocess.CompletedProcess(proc.args, proc.returncode, "", err)) == \
+        "slicersim: error: interrupted"
+    assert os.listdir(out_dir) == []
+
+
+# --------------------------------------------------------------------------- in-process: user vs internal errors
+def _main_error(capsys, argv, monkeypatch):
+    """(exit status, stderr) of ``main(argv)`` run in this process, without SLICERSIM_DEBUG."""
+    from slicersim.app.cli import main
+    monkeypatch.delenv("SLICERSIM_DEBUG", raising=False)
+    status = main([str(a) for a in argv])
+    return status, capsys.readouterr().err
+
+
+def _one_line(status, err):
+    assert status == 2, err
+    assert "Traceback" not in err and err.count("\n") == 1 and err.startswith("slicersim: error: "), err
+    return err
+
+
+@pytest.fixture
+def user_files(tmp_path):
+    """Files a user may give by mistake: binary data, a text file named .npy, a bad spectrum row."""
+    files = {"binary": tmp_path / "data.bin", "text_npy": tmp_path / "image.npy", "bad_row": tmp_path / "sp.txt",
+             "negative": tmp_path / "neg.txt", "strings_npy": tmp_path / "s.npy"}
+    files["binary"].write_bytes(bytes(range(128, 256)) * 4)
+    files["text_npy"].write_text("1 2\n3 4\n")
+    files["bad_row"].write_text("# wavelength flux\n4000 1e-17\n5000 1e-17\n6000 oops\n")
+    files["negative"].write_text("4000 1e-17\n5000 -1e-17\n")
+    np.save(files["strings_npy"], np.array(["a", "b"]))
+    return files
+
+
+@pytest.mark.parametrize("argv, needles", [
+    (["etc", "--spectrum", "{binary}"], ["--spectrum", "data.bin", "not a text file"]),
+    (["etc", "--spectrum", "{bad_row}"], ["--spectrum", "sp.txt", "line 4", "'6000 oops'"]),
+    (["etc", "--spectrum", "{negative}"], ["--spectrum", "neg.txt", "negative"]),
+    (["etc", "--redshift", "1", "--config", "{binary}"], ["data.bin", "cannot parse TOML"]),
+    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{bad_row}"], ["--spot-table", "sp.txt", "not a spot table"]),
+    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{binary}"], ["--spot-table", "data.bin"]),
+    (["footprints", "--out", "{tmp}/fp", "--truncate", "nan"], ["--truncate"]),
+    (["plot", "fields", "--out", "{tmp}/f.png", "--seed", "-1"], ["--seed"]),
+    (["ramp", "--rate", "{text_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["image.npy", "not a NumPy .npy"]),
+    (["ramp", "--rate", "{strings_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["s.npy", "real numbers"]),
+    (["ramp", "--rate", "{binary}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["data.bin", "not a text file"]),
+])
+def test_files_given_by_mistake_are_one_line_user_errors_naming_them(tmp_path, user_files, capsys, monkeypatch,
+                                                                      argv, needles):
+    subst = {k: str(v) for k, v in user_files.items()} | {"tmp": str(tmp_path)}
+    err = _one_line(*_main_error(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    for needle in needles:
+        assert needle in err, (needle, err)
+    assert not (tmp_path / "r.h5").exists() and not (tmp_path / "fp").exists()
+
+
+def test_a_user_error_is_exit_2_and_one_line(capsys, monkeypatch):
+    err = _one_line(*_main_error(capsys, ["etc", "--redshift", "-1"], monkeypatch))
+    assert "redshift" in err and "please report" not in err
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("boom in a kernel"), ValueError("operands could not be broadcast"),
+                                 TypeError("unsupported operand"), KeyError("lbda")])
+def test_an_internal_error_is_exit_3_with_traceback_and_please_report(capsys, monkeypatch, exc):
+    """Only SlicersimError, OSError, MemoryError and ^C are user errors: a bare ValueError or
+    TypeError (NumPy's, say) is a defect, shown with its traceback and a please-report line."""
+    from slicersim.app import cli
+
+    def broken(args):
+        raise exc
+    monkeypatch.setattr(cli, "cmd_info", broken)
+    status, err = _main_error(capsys, ["info"], monkeypatch)
+    assert status == 3, err
+    assert "Traceback (most recent call last)" in err and "in broken" in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"slicersim: internal error ({type(exc).__name__})") and "please report" in last
+    assert "slicersim: error:" not in err
+
+
+def test_ramp_out_fifo_link_and_new_directory_are_refused(tmp_path, rate_file):
+    """`--overwrite` replaces only regular files (a FIFO, a link to one: refused, untouched); `--out newdir/`
+    is a directory, never written as a file named newdir."""
+    import stat
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    (tmp_path / "link.h5").symlink_to(fifo)
+    for out, message in ((fifo, "FIFO"), (tmp_path / "link.h5", "FIFO .*symbolic link"),
+                         (f"{tmp_path / 'newdir'}/", "names a directory")):
+        line = one_error_line(run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", out, "--overwrite"))
+        assert "--out" in line and re.search(message, line), line
+    assert sorted(os.listdir(tmp_path)) == ["link.h5", "pipe"] and stat.S_ISFIFO(os.lstat(fifo).st_mode)
+
+
+# --------------------------------------------------------------------------- issue 26: inputs are regular files
+def _main_no_hang(capsys, argv, monkeypatch, timeout=60):
+    """(status, stderr) of main(argv) in a thread that must finish (a FIFO read would block forever)."""
+    import threading
+
+    from slicersim.app.cli import main
+    monkeypatch.delenv("SLICERSIM_DEBUG", raising=False)
+    result = []
+    thread = threading.Thread(target=lambda: result.append(main([str(a) for a in argv])), daemon=True)
+    thread.start()
+    thread.join(timeout)
+    assert not thread.is_alive(), f"{argv} blocked"
+    return result[0], capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["fifo", "zero", "dir"])
+@pytest.mark.parametrize("argv", [
+    ["etc", "--spectrum", "{input}"],
+    ["etc", "--redshift", "1", "--config", "{input}"],
+    ["ramp", "--rate", "{input}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"],
+    ["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "all", "--effects-config", "{input}",
+     "--out", "{tmp}/r.h5"],
+    ["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "persistence", "--previous-charge", "{input}",
+     "--out", "{tmp}/r.h5"],
+    ["campaign", "run", "{input}", "--out", "{tmp}/ds"],
+])
+def test_fifos_devices_and_directories_are_refused_before_reading(tmp_path, capsys, monkeypatch, kind, argv):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    if kind == "fifo":
+        path = tmp_path / "input.toml"
+        os.mkfifo(path)
+    elif kind == "zero":
+        path = "/dev/zero"
+    else:
+        path = tmp_path / "folder.toml"
+        path.mkdir()
+    subst = {"input": str(path), "tmp": str(tmp_path), "rate": str(rate)}
+    err = _one_line(*_main_no_hang(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    assert str(path) in err and ("not a regular file" in err or "directory" in err), err
+    assert not (tmp_path / "r.h5").exists() and not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize("text, needles", [
+    ("lbda,flux\n4000,1e-17\n5000,x\n6000,1e-17\n", ["sp.csv", "line 3", "5000,x"]),
+    ("lbda;flux\n4000,5;1,2e-17\n5000,5;1,3e-17\n", ["sp.csv", "line 2", "decimal"]),
+    ("4000 1,5e-17\n5000 1,6e-17\n", ["sp.csv", "line 1", "decimal"]),
+])
+def test_malformed_and_decimal_comma_spectra_name_the_line(tmp_path, capsys, monkeypatch, text, needles):
+    path = tmp_path / "sp.csv"
+    path.write_text(text)
+    err = _one_line(*_main_error(capsys, ["etc", "--spectrum", path, "--snr", "10"], monkeypatch))
+    for needle in needles:
+        assert needle in err, (needle, err)
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--nmd", "4", "1", "1000000000"], "--nmd[2] (d, dropped frames between groups)"),
+    (["--nmd", "5000", "1", "0"], "--nmd[0] (n, groups per ramp)"),
+    (["--nmd", "3", "1", "0", "--ron", "1e300"], "--ron [e-/read]"),
+    (["--nmd", "3", "1", "0", "--ron", "9000"], "more than 1/8 of the 16-bit ADC range"),
+    (["--nmd", "3", "1", "0", "--gain", "1e-300"], "--gain [ADU/e-]"),
+    (["--nmd", "3", "1", "0", "--tframe", "1e300"], "--tframe [s]"),
+])
+def test_ramp_detector_options_out_of_their_physical_range_are_refused(tmp_path, capsys, monkeypatch, argv, needle):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    err = _one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--out", tmp_path / "r.h5", *argv], monkeypatch))
+    assert needle in err and not (tmp_path / "r.h5").exists()
+
+
+def test_cli_etc_prints_units_and_no_object_repr():
+    """`slicersim etc --redshift 1 --snr 20` prints exposure_time / data_volume /
+    lbda_range_obs without units and 'target : <slicersim.targets.LazuliSupernova object at 0x..>'."""
+    out = subprocess.run([sys.executable, "-m", "slicersim", "etc", "--redshift", "1.0", "--snr", "20"],
+                         capture_output=True, text=True, timeout=30, check=True).stdout
+    assert "object at 0x" not in out
+    # the CLI now prints units in brackets after the key ("exposure_time [s]", "data_volume [GB]")
+    assert "[GB]" in out and "[s]" in out and "[Angstrom]" in out

@@ -1,0 +1,77 @@
+"""The batch ETC (slicersim.etc.solve.solve_many) against the single-target ETC: reference
+search and the Kubik16 variance model."""
+import math
+
+import numpy as np
+import pytest
+
+from slicersim.etc.solve import solve_many
+from slicersim.targets import LazuliTarget
+
+
+LBDA = np.arange(3000.0, 20000.0, 10.0)
+
+
+def flat(level=1e-17):
+    return np.full(LBDA.size, level)
+
+
+def sloped(level=1e-17):
+    return level * (LBDA / 1e4) ** -1.5
+
+
+@pytest.fixture(scope="module")
+def kubik_toml(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cfg") / "kubik.toml"
+    path.write_text('[detector]\nvariance_model = "Kubik16"\n', encoding="utf-8")
+    return str(path)
+
+
+BATCH = [(flat(1e-17), (8000.0, 11000.0)), (flat(3e-18), (8000.0, 11000.0)),
+         (sloped(5e-17), (5000.0, 7000.0)), (sloped(2e-18), (12000.0, 15000.0))]
+
+
+def test_solve_many_reference_search_equals_single_target_reference_search():
+    fluxes = np.array([f for f, _ in BATCH])
+    ranges = np.array([r for _, r in BATCH])
+    table = solve_many(LBDA, fluxes, 20.0, ranges, search="reference")
+    assert table.meta["search"] == "reference" and len(table) == len(BATCH)
+    for i, (flux, band) in enumerate(BATCH):
+        target = LazuliTarget(LBDA, flux)
+        res = target.setup_to_snr(20.0, lbda_range=band, search="reference")
+        assert (table["n"][i], table["m"][i], table["d"][i]) == tuple(res["nmd"]), i
+        assert table["nramps"][i] == res["nramps"], i
+        assert table["exposure_time"][i] == pytest.approx(res["exposure_time"], rel=1e-12)
+        assert table["snr_per_bin"][i] == pytest.approx(res["snr"], rel=1e-9)
+        # the SNR reached, re-evaluated independently at the chosen readout
+        nmd = (int(table["n"][i]), int(table["m"][i]), int(table["d"][i]))
+        again = target.simulation.get_band_snr(band, nmd=nmd, nramps=int(table["nramps"][i]))
+        assert again == pytest.approx(table["snr_per_bin"][i], rel=1e-9)
+
+
+def test_solve_many_kubik16_equals_single_target_exact_search(kubik_toml):
+    cfg = ["cbe", kubik_toml]
+    fluxes = np.array([f for f, _ in BATCH])
+    ranges = np.array([r for _, r in BATCH])
+    table = solve_many(LBDA, fluxes, 20.0, ranges, config=cfg, search="exact")
+    rauscher = solve_many(LBDA, fluxes, 20.0, ranges, search="exact")
+    tau = 20.0 / math.sqrt(2.3)
+    differs = False
+    for i, (flux, band) in enumerate(BATCH):
+        target = LazuliTarget(LBDA, flux, config=cfg)
+        sim = target.simulation
+        assert sim.detector.variance_model == "Kubik16"
+        res = target.setup_to_snr(20.0, lbda_range=band, search="exact")
+        nmd = (int(table["n"][i]), int(table["m"][i]), int(table["d"][i]))
+        r = int(table["nramps"][i])
+        assert nmd == tuple(res["nmd"]) and r == res["nramps"], i
+        assert table["exposure_time"][i] == pytest.approx(res["exposure_time"], rel=1e-12)
+        # minimal: reaches the target, one group less / one ramp less does not
+        reached = sim.get_band_snr(band, nmd=nmd, nramps=r)
+        assert reached >= tau * (1 - 1e-12) and reached == pytest.approx(table["snr_per_bin"][i], rel=1e-9)
+        if nmd[0] > sim.detector.min_group:
+            assert sim.get_band_snr(band, nmd=(nmd[0] - 1, nmd[1], nmd[2]), nramps=r) < tau
+        if r > 1:
+            assert sim.get_band_snr(band, nmd=nmd, nramps=r - 1) < tau
+        differs |= (table["snr_per_bin"][i] != rauscher["snr_per_bin"][i])
+    assert differs                                # the variance model reached the batch ETC
