@@ -11,7 +11,7 @@ OPENCL_CHECK := "$(PY)" -c "import pyopencl; assert pyopencl.get_platforms()"
 OPENCL_PKGS  := pocl-opencl-icd ocl-icd-libopencl1
 OPENCL_VENDORS ?= /etc/OpenCL/vendors
 
-.PHONY: venv opencl test demo bench docs clean distclean
+.PHONY: venv opencl test test-all demo bench docs clean distclean
 
 venv: $(STAMP)
 
@@ -55,7 +55,12 @@ opencl: venv
 
 # -rs lists every skipped test and why (e.g. no ../shared/reference, no fp64 OpenCL device);
 # with CI=true a missing ../shared/reference fails the reference tests instead of skipping them.
+# The fast tier (a few minutes on 2 cores): every test not marked slow.
 test: venv opencl
+	"$(PY)" -m pytest -q -rs -m "not slow" --durations=20
+
+# Everything, slow tier included (Dask clusters, kill -9, full-detector ramps, Monte Carlo): what CI runs.
+test-all: venv opencl
 	"$(PY)" -m pytest -q -rs
 
 demo: venv opencl

@@ -43,6 +43,7 @@ def rate_file(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_info():
     proc = run_subprocess("info")
     assert proc.returncode == 0, proc.stderr
@@ -62,6 +63,7 @@ def _etc_values(stdout):
     return rows
 
 
+@pytest.mark.slow
 def test_etc_redshift_states_units_and_no_object_line():
     proc = run("etc", "--redshift", "1")
     assert proc.returncode == 0, proc.stderr
@@ -71,6 +73,7 @@ def test_etc_redshift_states_units_and_no_object_line():
     assert "target" not in rows and "object at 0x" not in proc.stdout
 
 
+@pytest.mark.slow
 def test_etc_conventions_flag_reproduces_slicersim_1_0():
     """--conventions slicersim-1.0 gives slicersim 1.0.0's readout (56,8,0)x4, 5071.36 s for a z=1
     SN Ia (benchmarks/conventions_vs_reference.py); the physical default needs less time (smaller blur)."""
@@ -81,6 +84,7 @@ def test_etc_conventions_flag_reproduces_slicersim_1_0():
     assert old["conventions"] == "slicersim-1.0" and new["conventions"] == "physical"
 
 
+@pytest.mark.slow
 def test_etc_spectrum_csv(tmp_path):
     csv = tmp_path / "spec.csv"
     csv.write_text("wavelength,flux\n3000,1e-17\n8000,1e-17\n20000,1e-17\n")
@@ -91,6 +95,7 @@ def test_etc_spectrum_csv(tmp_path):
     assert rows["lbda_range_obs [Angstrom]"] == "[5000, 6000]"
 
 
+@pytest.mark.slow
 def test_ramp_rate_file_writes_the_simulated_ramp(tmp_path, rate_file):
     out = tmp_path / "r.h5"
     proc = run_subprocess("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--tframe", "3",
@@ -136,6 +141,7 @@ def test_ramp_help_says_what_effects_all_contains():
     assert "persistence only when --previous-charge is given" in contents
 
 
+@pytest.mark.slow
 def test_ramp_effects_all_includes_persistence_with_previous_charge(tmp_path):
     import h5py
     rate, prev = tmp_path / "rate.npy", tmp_path / "prev.npy"
@@ -150,6 +156,7 @@ def test_ramp_effects_all_includes_persistence_with_previous_charge(tmp_path):
             assert ("persistence" in fh.attrs["EFFECTS"]) is expect
 
 
+@pytest.mark.slow
 def test_ramp_redshift_full_detector(tmp_path):
     """The --redshift path (full 4096² detector) once, with the shortest readout."""
     out = tmp_path / "sn.h5"
@@ -161,6 +168,7 @@ def test_ramp_redshift_full_detector(tmp_path):
         assert fh.attrs["TFRAME"] == 3.0                                        # --tframe honoured
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, match", [
     (["etc", "--redshift", "-1"], "redshift"),
     (["etc", "--redshift", "1", "--snr", "0"], "SNR"),
@@ -190,18 +198,21 @@ def test_user_errors_are_one_line_exit_2(tmp_path, rate_file, args, match):
     assert not (tmp_path / "o.h5").exists()
 
 
+@pytest.mark.slow
 def test_spectrum_with_one_row_is_a_user_error(tmp_path):
     csv = tmp_path / "one.csv"
     csv.write_text("5000 1e-17\n")
     assert "two numeric" in one_error_line(run("etc", "--spectrum", csv))
 
 
+@pytest.mark.slow
 def test_debug_env_shows_the_traceback():
     proc = run_subprocess("etc", "--redshift", "-1", debug=True)
     assert proc.returncode == 1 and "Traceback" in proc.stderr
     assert "redshift" in proc.stderr.splitlines()[-1]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command, expected", [
     ("etc", ["(default: 20.0)", "(default: 4000 6800)"]),
     ("ramp", ["(default: (16, 8, 0))", "(default: 1)", "default: a fresh seed", "(default: 2.83", "(default: auto)",
@@ -217,6 +228,7 @@ def test_help_shows_defaults(command, expected):
         assert item in text, (item, proc.stdout)
 
 
+@pytest.mark.slow
 def test_demo_refuses_existing_outputs(tmp_path):
     (tmp_path / "spectrum.png").write_bytes(b"mine")
     line = one_error_line(run("demo", "--outdir", tmp_path))
@@ -224,6 +236,7 @@ def test_demo_refuses_existing_outputs(tmp_path):
     assert (tmp_path / "spectrum.png").read_bytes() == b"mine"
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_ramp_is_one_line_and_leaves_nothing(tmp_path):
     import signal
     import time

@@ -39,6 +39,7 @@ def demo(tmp_path_factory):
     return outdir, run_demo(str(outdir), verbose=False)
 
 
+@pytest.mark.slow
 def test_demo_writes_figures(demo):
     outdir, _ = demo
     for name in ("spectrum.png", "variance_budget.png", "instrument.png"):

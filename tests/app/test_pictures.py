@@ -96,6 +96,7 @@ def test_show_fields_draws_both_fields_scene_and_cube(target):
     assert target.field == "narrow"                                        # the target itself is untouched
 
 
+@pytest.mark.slow
 def test_show_fields_from_a_simulation_and_a_noisy_cube(target, tmp_path):
     sim = build_simulation("cbe", "wide", pointsource=target.pointsource)
     fig = plotting.show_fields(sim, seed=7, savefile=tmp_path / "fields.png")
@@ -133,6 +134,7 @@ def test_round_galaxy_is_drawn_round():
     assert np.sqrt(vx / vy) == pytest.approx(1.0, abs=0.03)                # round on the plot (was 0.5)
 
 
+@pytest.mark.slow
 def test_show_fields_of_a_flat():
     """Review 10 #21: no aperture spectrum for a lamp, readable colour bars, a true title."""
     flat = Lazuli3DFlat.from_qth()
@@ -211,6 +213,7 @@ def test_show_slice_map_outlines_every_slice(small_fields):
     assert ax.get_xlim() == (200, 3900) and ax.get_ylim() == (2200, 3900)
 
 
+@pytest.mark.slow
 def test_show_slice_map_over_a_detector_image(small_fields):
     mapper, edges, fields = small_fields
     rng = np.random.default_rng(1)

@@ -105,6 +105,7 @@ def _one_line_error(capsys):
     return err[0]
 
 
+@pytest.mark.slow
 def test_reduce_spectra_writes_rates_cubes_and_spectra(small_layout, tmp_path, capsys):
     path, _, _ = small_layout
     out = tmp_path / "red.h5"
@@ -271,6 +272,7 @@ def test_files_of_other_layouts_and_inconsistent_keywords_are_named(raw, tmp_pat
     assert main(["reduce", str(uncal), "--out", str(tmp_path / "ok.h5"), "--quiet"]) == 0   # the FITS itself is fine
 
 
+@pytest.mark.slow
 def test_compressed_ramps_need_their_filter(tmp_path, monkeypatch):
     """lz4 ramps (the campaigns' compression) reduce in a fresh process (the filter is registered);
     without the filter the error names it."""

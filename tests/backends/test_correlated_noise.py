@@ -28,6 +28,7 @@ def _output_stream(block, geom, o):
     return s.ravel()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["exact", "multirate"])
 def test_psd_matches_model(method):
     """Welch PSD of output 1's reconstructed stream (odd output: reversed scan) vs the model in
@@ -52,6 +53,7 @@ def test_psd_matches_model(method):
         assert abs(r.mean() - 1) < 0.10, (method, lo, hi, r.mean(), err)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["exact", "multirate"])
 def test_group_mean_variance(method):
     """Mean square of the group-averaged noise (m = 4 and 8, defaults + dropped frames) vs

@@ -141,6 +141,7 @@ CASES = [((3, 7, 9), (3, 5), False), ((4, 13, 11), (7, 3), True), ((5, 29, 58), 
          ((2, 29, 47), (61, 59), True), ((5, 17, 19), (5, 5), False)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("method", ["direct", "fft"])
 @pytest.mark.parametrize("shape, kshape, shared", CASES)
@@ -153,6 +154,7 @@ def test_convolution_matches_oracle(backend, method, shape, kshape, shared):
     assert peak_error(out, oracle(cube, k)) <= 1e-12
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 def test_convolution_chunks_and_local_memory_tiles():
     rng = np.random.default_rng(5)

@@ -154,6 +154,7 @@ def test_single_poisson_mostly_equals_the_float64_twin():
     assert moved <= 1e-3, moved
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 def test_single_is_counter_based(monkeypatch):
     """Vector width, work group, chunking (max_bytes, the float32 staging of float64 arrays), the
@@ -261,6 +262,7 @@ def test_bad_precision_refused_before_any_work(monkeypatch, flat):
             flat.get_cube(seed=seed, precision="quad")
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 def test_cube_noise_follows_the_precision():
     """build_cube's precision is also the noise draw's (``paths["noise_precision"]``): the single cube's

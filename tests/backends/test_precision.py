@@ -71,6 +71,7 @@ def test_single_precision_sources_hold_no_double():
         assert not re.search(r"\bdouble\d*\b", code), name
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 @pytest.mark.parametrize("case", range(5))
 def test_airy_psf_single_matches_double(case):
@@ -106,6 +107,7 @@ def sim():
     return LazuliSupernova(0.5).simulation
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 def test_airy_cube_single_matches_double(sim):
     """The acceptance cube: Lazuli narrow field, Airy, jitter, blur, LSF; signal and variance."""
@@ -235,6 +237,7 @@ def test_lsf_single_matches_double(varying):
         apply_lsf(cube, sigma, precision="fp16")
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 @pytest.mark.parametrize("method", ["direct", "fft"])
 def test_convolution_single_matches_double(method):
@@ -257,6 +260,7 @@ def test_convolution_single_matches_double(method):
         assert 0 < err <= 5e-6
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 def test_host_cube_single_matches_double():
     """A point source with a Sersic host (PSF ⊛ host convolution, fused cube) in single precision."""

@@ -232,6 +232,7 @@ np.save(sys.argv[1], img)
 """
 
 
+@pytest.mark.slow
 def test_two_processes_build_the_same_tables(cache_dir, tmp_path):
     env = dict(os.environ, SLICERSIM_DEVICE="none")
     outs = [tmp_path / f"img{i}.npy" for i in range(2)]

@@ -102,6 +102,7 @@ def test_gaussian_tail_fractions_relative_accuracy(backend):
     assert np.all((got[~normal] >= 0) & (got[~normal] < 1e-290))
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 @pytest.mark.parametrize("case", range(6))
 def test_airy_kernel_matches_numpy(case):
@@ -121,6 +122,7 @@ def test_airy_kernel_matches_numpy(case):
     assert peak_err(got, want) <= 1e-11
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 @pytest.mark.parametrize("case", range(5))
 def test_airy_kernel_symmetric_sources_match_numpy(case):
@@ -223,6 +225,7 @@ def test_encircled_energy_analytic_and_numerical():
                                                                                  rel=1e-2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("eps", [0.0, 0.3])
 def test_airy_flux_in_big_field(eps, backend):
@@ -265,6 +268,7 @@ def test_psf_much_larger_than_field(backend):
         assert np.abs(got / want - 1).max() <= tol
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("profile", ["gaussian", "airy"])
 def test_source_on_the_field_edge_and_far_outside(profile, backend):
@@ -293,6 +297,7 @@ def test_source_on_the_field_edge_and_far_outside(profile, backend):
         assert np.all(np.isfinite(p)) and p.min() >= 0 and p.sum(axis=(1, 2)).max() < 1e-5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_oversampling_convergence_undersampled_psf(backend):
     """Narrow field at 4000 Å: R_Airy = 0.84 cells.  With the jitter the midpoint rule
@@ -310,6 +315,7 @@ def test_oversampling_convergence_undersampled_psf(backend):
         assert err[2] < 1e-3 and err[3] < 1e-6 and err[5] < 1e-12
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("field, scale, expected", [("narrow", 0.04, (4, 3)), ("wide", 0.08, (8, 4))])
 def test_auto_oversampling(field, scale, expected, backend):
@@ -357,6 +363,7 @@ def test_symmetry_of_a_centred_source(profile, backend):
     assert np.abs(q - q.transpose(0, 2, 1)).max() <= 1e-14 * q.max()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("profile", ["gaussian", "airy"])
 def test_psf_width_scales_with_wavelength(profile, backend):

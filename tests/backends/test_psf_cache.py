@@ -98,6 +98,7 @@ def test_cached_device_block_equals_uncached():
     np.testing.assert_array_equal(third.to_host(), ref)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_noisy_airy_cubes_of_new_targets_identical_with_and_without_cache(backend):
     """The Monte Carlo loop: a new target per draw; every cube equals its uncached twin."""
@@ -156,6 +157,7 @@ CHANGES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("options", [None, {"oversampling": (4, 3)}], ids=["auto-oversampling", "fixed-oversampling"])
 @pytest.mark.parametrize("change", list(CHANGES))
 def test_every_dependency_changes_the_key(change, options):
@@ -345,6 +347,7 @@ def _noise_inputs(n, seed=3):
     return e, v
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 @pytest.mark.parametrize("n", [1, 7, 8 * 97 + 5, 20000])
 def test_noisy_cube_identical_for_every_vector_width_and_path(n):
@@ -377,6 +380,7 @@ def test_noisy_cube_out_argument_is_checked():
         cn.noisy_cube(e, np.where(np.arange(10) == 0, np.nan, np.where(np.arange(10) == 9, -1.0, v)), 1)
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 def test_noisy_airy_cube_identical_for_every_vector_width_and_chunking(monkeypatch):
     """``get_cube`` draws the noise at the device's preferred width: the cube must not depend on

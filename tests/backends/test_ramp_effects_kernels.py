@@ -34,6 +34,7 @@ def _no_effects(npix):
     return rfx.ChargeEffects(np.zeros(npix + 1, np.uint32), np.zeros(0, np.int32), np.zeros(0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("use_nl", [False, True])
 def test_charge_stage_twins_bit_identical(use_nl):
     p, mu, dead, dep, a2, a3 = _scene()

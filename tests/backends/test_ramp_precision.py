@@ -71,6 +71,7 @@ def test_single_poisson_draws_follow_the_exact_distribution(mu):
     assert abs(k.mean() - mu) < 4 * math.sqrt(mu / npix)
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl_device
 def test_single_is_counter_based():
     """Vector width, work-group size and chunking leave the single build's integers unchanged."""

@@ -74,6 +74,7 @@ def reference(spec_path, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_reference_dataset_layout_and_catalog(reference, spec_path):
     from astropy.table import Table
     files = _files(reference)
@@ -108,6 +109,7 @@ def test_cube_products_are_float32_noisy_airy_cubes(reference):
     assert seed > 0
 
 
+@pytest.mark.slow
 def test_two_workers_give_identical_files(reference, spec_path, tmp_path):
     from slicersim.campaign.runner import run_campaign
     res = run_campaign(spec_path, tmp_path / "d2", workers=2, progress=False)
@@ -118,6 +120,7 @@ def test_two_workers_give_identical_files(reference, spec_path, tmp_path):
     assert res["computed"] == 0 and _files(tmp_path / "d2") == _files(reference)
 
 
+@pytest.mark.slow
 def test_damaged_dataset_is_detected_and_repaired(reference, spec_path, tmp_path):
     from slicersim.campaign.runner import campaign_status, run_campaign
     d = tmp_path / "damaged"
@@ -177,6 +180,7 @@ class _ExternalCluster:
                 os.killpg(p.pid, signal.SIGKILL)
 
 
+@pytest.mark.slow
 def test_external_scheduler_and_workers(reference, spec_path, tmp_path):
     """A real `dask scheduler` and two `dask worker` processes on 127.0.0.1, via --scheduler."""
     cluster = _ExternalCluster(tmp_path)
@@ -192,6 +196,7 @@ def test_external_scheduler_and_workers(reference, spec_path, tmp_path):
         cluster.close()
 
 
+@pytest.mark.slow
 def test_worker_killed_mid_campaign(reference, spec_path, tmp_path):
     """kill -9 of one worker (and its nanny) while it works: the other finishes the campaign."""
     cluster = _ExternalCluster(tmp_path)
@@ -214,6 +219,7 @@ def test_worker_killed_mid_campaign(reference, spec_path, tmp_path):
         cluster.close()
 
 
+@pytest.mark.slow
 def test_kill9_then_resume_equals_uninterrupted_run(reference, spec_path, tmp_path):
     out = tmp_path / "killed"
     proc = subprocess.Popen([str(BIN / "slicersim"), "campaign", "run", str(spec_path), "--out", str(out),
@@ -258,6 +264,7 @@ class _FailingPopulation:
         return self.inner.spectrum(row, lbda)
 
 
+@pytest.mark.slow
 def test_failing_target_is_recorded_and_does_not_stop_the_campaign(spec_path, tmp_path):
     import cloudpickle
 
@@ -275,6 +282,7 @@ def test_failing_target_is_recorded_and_does_not_stop_the_campaign(spec_path, tm
 
 
 # --------------------------------------------------------------------------- bad input
+@pytest.mark.slow
 @pytest.mark.parametrize("edit, message", [
     (lambda s: s.replace("snr = 8", "snr = 8\nsnrr = 3"), "observation.'snrr'"),
     (lambda s: s.replace("cube = true", "cube = true\nspectra = true"), "products.'spectra'"),
@@ -346,6 +354,7 @@ def test_status_of_non_dataset(tmp_path):
     assert proc.returncode == 2 and "no such dataset" in proc.stderr
 
 
+@pytest.mark.slow
 def test_ramps_and_detector_image_products(tmp_path):
     """One low-SNR target (short readout) with the full-detector products, in-process."""
     import h5py
@@ -703,6 +712,7 @@ def test_readouts_of_targets_with_hosts_include_the_host_light():
 
 
 # 6 -------------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("edit, message", [
     (lambda s: s.replace('kind = "snia"', 'kind = ["snia"]'), "kind"),
     (lambda s: s.replace('distribution = "uniform"', 'distribution = ["uniform"]'), "distribution"),
@@ -741,6 +751,7 @@ def test_malformed_records_and_lost_spec_json(tmp_path):
 
 
 # 8, 9, 15 ------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("args, message", [(["--memory-per-task", "inf"], "memory-per-task"),
                                            (["--memory-per-task", "nan"], "memory-per-task"),
                                            (["--memory-per-task", "0"], "memory-per-task"),

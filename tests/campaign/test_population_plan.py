@@ -370,6 +370,7 @@ def test_plan_figure(small_plan, tmp_path):
 
 
 # --------------------------------------------------------------------------- CLI
+@pytest.mark.slow
 def test_cli_survey_plan_writes_the_table_and_prints_totals(tmp_path):
     out = tmp_path / "plan.ecsv"
     proc = subprocess.run([str(BIN / "slicersim"), "survey", "plan", "--n", "30", "--zmin", "0.05", "--zmax", "1.5",
@@ -393,6 +394,7 @@ def test_cli_survey_plan_writes_the_table_and_prints_totals(tmp_path):
     assert again.returncode == 2 and "exists" in again.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, message", [(["--n", "0"], "n"), (["--zmin", "1.2", "--zmax", "0.3"], "min"),
                                            (["--zmin", "-0.5"], "negative"), (["--efficiency", "2"], "efficiency"),
                                            (["--seed", "-1"], "--seed")])
@@ -484,6 +486,7 @@ def test_catalog_parameter_columns_are_checked(tmp_path, col, values, message):
 
 
 # 5 -------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_sigint_interrupts_a_survey_plan_with_one_line(tmp_path):
     out = tmp_path / "p.ecsv"
     proc = subprocess.Popen([str(BIN / "slicersim"), "survey", "plan", "--n", "3000", "--out", str(out)],
@@ -498,6 +501,7 @@ def test_sigint_interrupts_a_survey_plan_with_one_line(tmp_path):
 
 
 # 10, 22 --------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("args, message", [(["--snr", "-5"], "snr"), (["--snr", "0"], "snr"), (["--snr", "nan"], "snr"),
                                            (["--lbda-range", "6800", "4000"], "lbda_range"),
                                            (["--lbda-range", "-5", "4000"], "lbda_range"),
@@ -509,6 +513,7 @@ def test_survey_plan_refuses_impossible_requests(tmp_path, args, message):
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_survey_plan_exits_1_when_targets_cannot_be_planned(tmp_path):
     proc = _cli("survey", "plan", "--n", "3", "--snr", "1e6", "--out", tmp_path / "p.ecsv")
     assert proc.returncode == 1 and "could not be planned" in proc.stdout

@@ -273,6 +273,7 @@ def test_noisy_spectrum_uses_philox(sn):
     np.testing.assert_array_equal(s1[ok], signal[ok] + np.sqrt(var[ok]) * z[ok])
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 def test_noisy_cube_numpy_vs_opencl():
     from slicersim.backends.noise import noisy_cube

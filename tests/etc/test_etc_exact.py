@@ -101,6 +101,7 @@ def random_batch():
     return fluxes, ranges, table
 
 
+@pytest.mark.slow
 def test_exact_minimal_on_200_random_targets(random_batch):
     fluxes, ranges, table = random_batch
     assert len(table) == 200

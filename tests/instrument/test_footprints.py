@@ -388,6 +388,7 @@ def test_full_disk_or_failed_rename_leaves_neither_file(tiny, tmp_path, monkeypa
     assert _fields_of_pair(tmp_path) == ("wide", "wide") and len(list(tmp_path.iterdir())) == 2
 
 
+@pytest.mark.slow
 def test_killed_writer_leaves_no_file_and_its_temporaries_are_removed(tiny, killed):
     out = killed["hang-second-fsync"]
     names = [p.name for p in out.iterdir()]
@@ -404,6 +405,7 @@ def test_writer_killed_between_renames_is_completed_by_the_next(tiny, killed):
     assert sorted(p.name for p in out.iterdir()) == ["footprints_labels.fits", "footprints_outlines.json"]
 
 
+@pytest.mark.slow
 def test_concurrent_writers_never_leave_a_mixed_pair(tmp_path):
     """The narrow writer pauses 0.5 s between its two renames; the wide writer starts 0.15 s
     later: without a lock the pair ends up half narrow, half wide."""

@@ -201,6 +201,7 @@ def test_delta_cube_lands_on_forward_map(spot_mapper):
     assert yy.min() >= np.floor(ay - 4 * sy) and yy.max() <= np.floor(by + 4 * sy)
 
 
+@pytest.mark.slow
 def test_box_model_matches_oversampled_cells(spot_mapper):
     mapper = spot_mapper
     """One box per cell vs 3×3 sub-cells on real 1-px bins: the box model needs no sub-sampling."""

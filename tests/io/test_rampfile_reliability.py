@@ -60,6 +60,7 @@ def _check_full_disk_run(proc, directory):
     assert os.listdir(directory) == []                                       # nothing left behind
 
 
+@pytest.mark.slow
 def test_file_size_limit_mid_write_is_a_clean_error(tmp_path):
     """RLIMIT_FSIZE makes HDF5's writes fail like a full disk (EFBIG): before the fix HDF5 crashed
     the process (SIGSEGV) when the failed file was released."""
@@ -91,6 +92,7 @@ def tiny_tmpfs(tmp_path):
         subprocess.run(["umount", str(mnt)], capture_output=True)
 
 
+@pytest.mark.slow
 def test_full_disk_mid_write_is_a_clean_error(tmp_path, tiny_tmpfs):
     """A real ENOSPC on a 2 MB tmpfs (compressed output, so the free-space check cannot know)."""
     proc = subprocess.run([sys.executable, _script(tmp_path, WRITE_NOISY), str(tiny_tmpfs / "r.h5")],
@@ -99,6 +101,7 @@ def test_full_disk_mid_write_is_a_clean_error(tmp_path, tiny_tmpfs):
     assert "No space left on device" in proc.stderr
 
 
+@pytest.mark.slow
 def test_full_disk_cli_one_line_exit_2(tmp_path, tiny_tmpfs):
     rate = tmp_path / "rate.npy"
     np.save(rate, np.random.default_rng(0).uniform(0, 100, (512, 512)))
@@ -178,6 +181,7 @@ def test_file_appearing_during_the_write_wins(tmp_path):
     assert out.read_bytes() == b"the other writer's file" and _hidden(tmp_path) == []
 
 
+@pytest.mark.slow
 def test_two_concurrent_writers_one_wins(tmp_path):
     body = """
         import sys, numpy as np
@@ -285,6 +289,7 @@ def test_killed_writer_temporary_is_incomplete_and_cleaned_by_next_write(tmp_pat
     assert sorted(os.listdir(out_dir)) == sorted(["next.h5", mine.name, other_host.name])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("delay", [0.0, 0.3, 1.0])
 def test_sigint_during_write_aborts_and_leaves_nothing(tmp_path, delay):
     out_dir = tmp_path / "out"

@@ -23,6 +23,7 @@ def _truth(path, name):
         return fh[f"truth/{name}"][...]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effects", ["lazuli", "cosmic_rays,ipc,nonlinearity"])
 def test_backends_and_chunking_give_the_same_integers(effects):
     rate = _rate()

@@ -88,6 +88,7 @@ def test_identical_for_any_work_group_and_chunking(work_group):
     assert np.array_equal(ref, got)
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl
 @pytest.mark.parametrize("npix", [1, 13, 1001])
 def test_vector_lanes_any_width_and_odd_pixel_counts(npix):
@@ -383,6 +384,7 @@ def test_seed_0_gives_the_ramps_of_slicersim_0_1(backend, effects, digest):
     assert hashlib.sha256(sci.tobytes() + dq.tobytes()).hexdigest()[:20] == digest
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["numpy", "opencl"])
 @pytest.mark.parametrize("effects", [None, "cosmic_rays,ipc,nonlinearity,bad_pixels", "all"])
 def test_keyword_form_is_bit_identical_to_readout_form(tmp_path, backend, effects):
@@ -542,6 +544,7 @@ def short_target(short_range_toml):
     return LazuliTarget(LBDA, sloped(2e-17), config=["cbe", short_range_toml])
 
 
+@pytest.mark.slow
 @pytest.mark.needs_opencl      # the NumPy ramp sampler needs ~2 min for 4096² pixels
 def test_get_ramps_file_shapes_and_attributes(short_target, tmp_path):
     det = short_target.simulation.detector

@@ -48,6 +48,7 @@ def test_components_sum_to_the_noiseless_cube(sim, components, backend):
     assert _peak_err(sim.get_projected_scene(), sum(photons.values())) < 1e-12
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("name", SCENE_COMPONENTS)
 def test_switch_off_removes_exactly_that_component(sim, components, name, backend):

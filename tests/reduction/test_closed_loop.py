@@ -45,6 +45,7 @@ def _scene():
     return lbda, F[:, None, None] * psf + B[:, None, None], psf, F, B
 
 
+@pytest.mark.slow
 def test_noiseless_rates_to_spectra_return_the_truth(small):
     lbda, cube, psf, F, B = _scene()
     img = small.project_fields(lbda, EDGES, narrow=cube)
@@ -86,6 +87,7 @@ def noisy(small):
     return _noisy_extraction(small)
 
 
+@pytest.mark.slow
 def test_white_noise_bias(noisy):
     """Unbiased within the Monte Carlo error (optimal, aperture, fitted PSF)."""
     cp, psf, F, n, _ = noisy
@@ -150,6 +152,7 @@ def test_diagonal_variance_overestimates_errors(noisy):
     assert chi2 < 0.5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("background", [True, False])
 def test_gls_variance_is_minimal(noisy, background):
     """GLS is the minimum-variance linear unbiased estimator: its exact variance is below the exact
@@ -167,6 +170,7 @@ def test_gls_variance_is_minimal(noisy, background):
     assert np.all(gls.variance < opt.variance)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["optimal", "aperture"])
 def test_white_noise_chi2_with_propagated_variance(noisy, small, method):
     """With the full cube covariance (propagate_variance) the reported errors match the scatter."""
@@ -183,6 +187,7 @@ def test_white_noise_chi2_with_propagated_variance(noisy, small, method):
     assert np.all(exact < sp.variance)                     # anti-correlated cells: the diagonal sum is too large
 
 
+@pytest.mark.slow
 def test_reduce_exposure_writes_all_products(small, tmp_path):
     """Raw ramps of the small layout → reduce_exposure → HDF5 with rates, cube and spectrum;
     the spectrum agrees with the truth within its propagated error; an existing file is refused."""
@@ -209,6 +214,7 @@ def test_reduce_exposure_writes_all_products(small, tmp_path):
         reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, out=str(out))
 
 
+@pytest.mark.slow
 def test_model_weights_remove_the_poisson_weighting_bias(small, tmp_path):
     """The ramp fit's Poisson variance follows each pixel's own noisy rate: weighting the
     rectification with it biases fluxes low.  reduce_exposure(weights="model") rectifies again
@@ -244,6 +250,7 @@ def test_model_weights_remove_the_poisson_weighting_bias(small, tmp_path):
         reduce_exposure(str(raw), mapper=small, lbda_edges=EDGES, ncol=NCOL, weights="smooth")
 
 
+@pytest.mark.slow
 def test_dark_pedestal_is_not_a_cube_background(small):
     """A rate uniform over the PIXELS (dark current, thermal dark, glow) is not uniform over the
     rectified CELLS (pixel coverage varies across a slice), so the GLS background B_λ cannot take
@@ -263,6 +270,7 @@ def test_dark_pedestal_is_not_a_cube_background(small):
     assert leak > 1e-4 and exact < 1e-9
 
 
+@pytest.mark.slow
 def test_reduce_exposure_subtracts_the_files_dark_rate(small, tmp_path):
     """dark="auto" subtracts the file's DARK_RATE (dark + glow / t_frame) before rectification: with
     the data's own weights (the same for both) the spectra differ by the GLS extraction of the
@@ -291,6 +299,7 @@ def test_reduce_exposure_subtracts_the_files_dark_rate(small, tmp_path):
             reduce_exposure(str(tmp_path / "missing.h5"), dark=bad, **kw)      # refused before reading
 
 
+@pytest.mark.slow
 def test_dark_review_findings(small, tmp_path):
     """Review findings on dark subtraction: the file's DARK is the detector's dark (hot/warm pixels'
     extra dark is truth, was in the mean: 7× over-subtraction); a file without DARK_RATE warns and
@@ -361,6 +370,7 @@ def _recorded_ramp(small, tmp_path, monkeypatch, nmd, seed):
     return str(raw), seen, scene, img
 
 
+@pytest.mark.slow
 def test_model_weights_come_from_a_coarser_first_pass(small, tmp_path, monkeypatch):
     """On a grid finer than MODEL_NCOL columns a cell holds about one pixel and the first cubes'
     model image follows the pixels' noise (a Lazuli SN Ia at 116 columns: −2.9 ± 0.7 % against exact
@@ -380,6 +390,7 @@ def test_model_weights_come_from_a_coarser_first_pass(small, tmp_path, monkeypat
     assert not np.array_equal(a, b) and np.allclose(a, b, rtol=0.05)
 
 
+@pytest.mark.slow
 def test_forward_weights_follow_the_fitted_model_not_the_noise(small, tmp_path, monkeypatch):
     """weights="forward": the second rectification is weighted by the image of the first GLS
     extraction's own model F̂_λ P_λ + B̂_λ (forward_model_cubes), whose noise is that of 2 nλ fitted
@@ -418,6 +429,7 @@ def test_forward_weights_follow_the_fitted_model_not_the_noise(small, tmp_path, 
                                F[:, None, None] * G + B[:, None, None], rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_reduce_exposure_deconvolves_the_files_ipc(small, tmp_path):
     """A ramp with the IPC effect: reduce_exposure deconvolves the rates by the kernel the file records
     (IPC_CORRECTED), which brings the extracted flux back to the input; ipc=False leaves the ~1 % loss."""

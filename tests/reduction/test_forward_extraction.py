@@ -43,6 +43,7 @@ def _band(edges, lo=4000.0, hi=6800.0):
     return (c >= lo) & (c <= hi)
 
 
+@pytest.mark.slow
 def test_noiseless_returns_the_input(scene):
     """Started 0.4 cell off, the fit finds the source at the centre and every native bin's flux."""
     s = extract_forward(scene["image"], scene["var"], sim=scene["sim"], mapper=scene["mapper"],
@@ -67,6 +68,7 @@ def test_noiseless_returns_the_input(scene):
     assert s2.diagnostics["chi2"] < 1e-3          # the model error, against χ² ≈ 1e6 with noise
 
 
+@pytest.mark.slow
 def test_white_noise_unbiased_and_variance_right(scene):
     """Three white-noise images of the pixel variance: band flux unbiased within 3 σ of the mean, and the
     reported variance right (χ²/dof per coarse bin 1 ± 0.25, its Monte Carlo range over 3 × 72
@@ -94,6 +96,7 @@ def test_white_noise_unbiased_and_variance_right(scene):
     assert abs(np.mean(chi2) - 1) < 0.25
 
 
+@pytest.mark.slow
 def test_a_fit_on_the_field_edge_or_without_a_source_raises(scene):
     """Loud failures: a start on the field edge, and a field without a point source (white light below
     5 σ of the field's scatter)."""
@@ -153,6 +156,7 @@ def test_cube_extractions_with_a_cube_fitted_psf_are_refused_when_the_instrument
         reduce_exposure((sci, None, None, bare), extraction="forward", config=3)
 
 
+@pytest.mark.slow
 def test_rate_unit_is_the_slope_the_reduction_measures(scene):
     """get_spectrum(unit="rate") divides by the integration time (the slope a ramp fit measures), as the
     reduced spectra do: with gain 1 it equals the forward extraction's e-/s per bin; F_λ of the fit is the
@@ -171,6 +175,7 @@ def test_rate_unit_is_the_slope_the_reduction_measures(scene):
     assert abs(np.sum(flam[band]) / np.sum(true_flam[band]) - 1) < 2e-3
 
 
+@pytest.mark.slow
 def test_ipc_is_deconvolved_before_the_fit(scene):
     """A rate image with IPC (the Lazuli kernel): left in, the band flux is ~1 % low; deconvolved
     (:func:`deconvolve_ipc`, as reduce_exposure does when the file records IPC), the input returns to
@@ -196,6 +201,7 @@ def test_ipc_is_deconvolved_before_the_fit(scene):
     assert ipc_kernel_of({}) is None
 
 
+@pytest.mark.slow
 def test_unflagged_outliers_on_the_source_are_rejected(scene):
     """Twenty unflagged hot pixels (+1 e-/s, ~100× the source's pixels) among the source's pixels: left
     out of the fit (> 5 σ), the band flux stays the input's to 1e-4; white noise alone rejects ~nothing."""
@@ -213,6 +219,7 @@ def test_unflagged_outliers_on_the_source_are_rejected(scene):
     assert s.diagnostics["rejected_pixels"] < 10
 
 
+@pytest.mark.slow
 def test_a_second_source_is_flagged(scene):
     """Review finding: a second point source 10 cells away was fitted as one (−2.5 %, silently).  The fit
     now flags light left in its residual's white light (warning + SPECTRUM_<FIELD> "warnings")."""

@@ -140,6 +140,7 @@ def test_gls_on_the_cube_is_gls_on_the_pixels(setup):
     np.testing.assert_allclose(g.background_variance, np.diag(cov)[nl:], rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_sandwich_variance_for_weights_that_are_not_the_inverse_variance(setup):
     """Weights W ≠ Σ⁻¹ (the core pixels' variance under-estimated 40 %, as a smooth model image
     misses a sharp core): (MᵀNM)⁻¹ under-reports, the sandwich (MᵀNM)⁻¹ MᵀBM (MᵀNM)⁻¹ with

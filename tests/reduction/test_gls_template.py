@@ -66,6 +66,7 @@ def setup():
     return small, cp, var, T, truth, psf_from_cube(_rebin(ps)), n
 
 
+@pytest.mark.slow
 def test_noiseless_template_is_exact_and_the_coarse_psf_is_biased(setup):
     small, cp, var, T, truth, coarse_psf, n = setup
     assert T.shape == (10, 10, NY, NCOL)
@@ -160,6 +161,7 @@ def test_a_diagonal_template_is_the_per_bin_psf(setup):
         gls_normal_equations(cp, diag[:, :3])
 
 
+@pytest.mark.slow
 def test_background_template_removes_the_native_sky_model_error():
     """A sky uniform at NATIVE resolution is not uniform once rectified on the coarse grid: fitted
     with a uniform B_λ it biases a faint point source's flux (4.4e-5 relative here, asserted

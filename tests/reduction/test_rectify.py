@@ -114,6 +114,7 @@ def test_gather_opencl_matches_numpy_twin(mapper):
 
 
 # --------------------------------------------------------------------------- exact LSQ
+@pytest.mark.slow
 @pytest.mark.parametrize("edges,ncol,spots", [(BLUE, 58, "default"), (RED, 58, "default"), (RED, 58, "wide")])
 def test_noiseless_lsq_returns_the_truth_both_fields(mapper, edges, ncol, spots):
     """Default layout (no projection blur beyond the cube's: slices share no pixel) and 1.2-px
@@ -141,6 +142,7 @@ def test_noiseless_lsq_returns_the_truth_both_fields(mapper, edges, ncol, spots)
         np.testing.assert_array_equal(p.lbda_edges, edges)
 
 
+@pytest.mark.slow
 def test_noiseless_lsq_weighted_with_bad_pixels_numpy(small):
     """Weights, unusable pixels (NaN rate, infinite variance) and the NumPy backend."""
     rng = np.random.default_rng(2)
@@ -160,6 +162,7 @@ def test_noiseless_lsq_weighted_with_bad_pixels_numpy(small):
         rectify(img, mapper=mapper, field="narrow", lbda=lbda, lbda_edges=edges, ncol=ncol)
 
 
+@pytest.mark.slow
 def test_oversampled_projection_and_stack(small):
     """Sub-cells (oversample) enter P as their sum; a stack gives each image's own answer."""
     rng = np.random.default_rng(5)
@@ -192,6 +195,7 @@ def _pull_width(pulls):
     return np.sqrt(mean), 0.5 * per.std(ddof=1) / np.sqrt(per.size) / np.sqrt(mean)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["lsq", "drizzle"])
 def test_variance_pulls(small, method):
     rng = np.random.default_rng(7)
@@ -216,6 +220,7 @@ def test_variance_pulls(small, method):
         assert abs(chi2.mean() / dof - 1) < 5 * np.sqrt(2 / dof / nreal)
 
 
+@pytest.mark.slow
 def test_variance_pulls_lazuli_layout(mapper):
     """A few realisations on the real layout (red end: the worst conditioning)."""
     rng = np.random.default_rng(8)
@@ -389,6 +394,7 @@ def test_sandwich_is_the_naive_variance_when_the_weights_are_the_inverse_varianc
                                rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_propagated_variance_sandwich_matches_monte_carlo(layout):
     """Optimal extraction from a cube rectified with wrong weights (core variance 0.6×): the
     propagated N⁻¹ under-reports, the sandwich N⁻¹BN⁻¹ matches 400 realisations."""

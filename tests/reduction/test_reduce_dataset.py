@@ -84,6 +84,7 @@ def _record(out, tid):
     return json.loads((out / "records" / f"t{tid:07d}.json").read_text())
 
 
+@pytest.mark.slow
 def test_every_target_is_reduced_to_rates(campaign, reduced):
     from astropy.table import Table
     cat = Table.read(reduced / "catalog.ecsv", format="ascii.ecsv")
@@ -110,6 +111,7 @@ def test_every_target_is_reduced_to_rates(campaign, reduced):
     assert proc.returncode == 0 and "2 done, 0 missing, 0 failed" in proc.stdout
 
 
+@pytest.mark.slow
 def test_resume_redoes_only_the_removed_or_truncated_output(reduced, campaign, tmp_path):
     from slicersim.reduction.campaign import reduce_dataset
     out = _linked_copy(reduced, tmp_path / "red")
@@ -134,6 +136,7 @@ def test_resume_redoes_only_the_removed_or_truncated_output(reduced, campaign, t
     assert proc.returncode == 2 and "other options" in proc.stderr and "weighting" in proc.stderr
 
 
+@pytest.mark.slow
 def test_verify_finds_a_product_damaged_in_place(reduced, campaign, tmp_path):
     """Same size, other bytes: found only by the checksum (verify=True / --verify)."""
     from slicersim.reduction.campaign import reduce_dataset
@@ -148,6 +151,7 @@ def test_verify_finds_a_product_damaged_in_place(reduced, campaign, tmp_path):
     assert _record(out, 0)["products"] == _record(reduced, 0)["products"]
 
 
+@pytest.mark.slow
 def test_a_failing_target_is_recorded_and_the_others_go_on(campaign, reduced, tmp_path):
     """Target 1's ramps get an NGROUPS keyword their data contradict (the campaign's record updated
     to match): only target 1 is reduced again (its source changed), it fails with one clear line,
@@ -186,6 +190,7 @@ def test_a_failing_target_is_recorded_and_the_others_go_on(campaign, reduced, tm
                                                                    equal_nan=True)
 
 
+@pytest.mark.slow
 def test_kill9_mid_write_leaves_no_partial_output(campaign, reduced, tmp_path):
     out = _linked_copy(reduced, tmp_path / "red")
     for tid in (0, 1):
@@ -216,6 +221,7 @@ def test_kill9_mid_write_leaves_no_partial_output(campaign, reduced, tmp_path):
         assert _record(out, tid)["products"] == _record(reduced, tid)["products"]
 
 
+@pytest.mark.slow
 def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
     from slicersim.io.dataset import Dataset
     from slicersim.reduction.campaign import reduce_dataset
@@ -267,6 +273,7 @@ def test_bad_requests_are_refused_before_any_work(campaign, reduced, tmp_path):
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("argv, message", [
     (["--overwrite"], "--overwrite applies to a single ramp file"),
     (["--workers", "0"], "--workers must be an integer ≥ 1, got 0"),
@@ -326,6 +333,7 @@ def small_dataset(tmp_path_factory):
     return Path(ds.path), mapper
 
 
+@pytest.mark.slow
 def test_spectra_of_every_target_in_its_own_field(small_dataset, tmp_path):
     from slicersim.reduction.campaign import reduce_dataset
     path, mapper = small_dataset

@@ -41,6 +41,7 @@ def raw(small, tmp_path_factory):
     return str(path), psf
 
 
+@pytest.mark.slow
 def test_keyword_and_options_forms_give_the_same_products(small, raw, tmp_path):
     from slicersim.reduction.pipeline import reduce_exposure
     path, psf = raw
@@ -254,6 +255,7 @@ def test_reduce_exposure_writes_the_truth_rate(small_raw, tmp_path):
         assert "TRUTH_RATE" not in fh["rates"]
 
 
+@pytest.mark.slow
 def test_reduce_exposure_propagates_the_sandwich_for_optimal_extraction(tmp_path):
     """reduce_exposure(weights="model", extraction="optimal"): the propagated variance is the
     sandwich with the ramp fit's variance (it was N⁻¹ of the model weights); with weights="data"
@@ -338,6 +340,7 @@ def test_array_weights_are_a_parameter_error(small_exposure, no_ramp_fit, weight
         pipeline.reduce_exposure("unused.h5", mapper=small_exposure, lbda_edges=EDGES, ncol=NCOL, weights=weights)
 
 
+@pytest.mark.slow
 def test_reduced_file_records_the_weights(small_exposure, tmp_path):
     """F3: a reduced exposure did not say how its cubes were weighted, nor keep the pixel variance
     a template must be built with."""

@@ -46,6 +46,7 @@ def test_pedestal_removed_exactly():
     assert np.abs(inner).max() < 1e-9
 
 
+@pytest.mark.slow
 def test_removes_correlated_noise():
     """Full H4RG-10 geometry (32 outputs, τ = 4.93 µs), NGHXRG default amplitudes, MACC(2,8,0)
     groups.  Expected removed fraction 1 − E[after]/E[before], E[before] from the model
@@ -81,6 +82,7 @@ def test_removes_correlated_noise():
     assert removed >= 0.97 * bound, (removed, bound, after)
 
 
+@pytest.mark.slow
 def test_removes_correlated_noise_in_slopes():
     """The same correction judged on what a pipeline delivers: the OLS slope of the group means
     against group time (the rate image), MACC(16,8,0), full H4RG-10 geometry, NGHXRG default
