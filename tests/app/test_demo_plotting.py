@@ -185,7 +185,7 @@ def test_demo_reruns_replace_only_its_own_files(demo):
 
 def test_make_demo_passes_overwrite():
     from pathlib import Path
-    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    makefile = (Path(__file__).resolve().parents[2] / "Makefile").read_text()
     recipe = makefile.split("\ndemo:", 1)[1].split("\n\n", 1)[0]
     assert "slicersim\" demo" in recipe and "--overwrite" in recipe
 

@@ -487,8 +487,11 @@ def test_truncated_fits_ramps_are_named_in_one_line(tmp_path, capsys):
     from slicersim.reduction.ramp_fit import fit_ramps
     path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, progress=False, out=tmp_path / "raw.fits")
     cut = tmp_path / "cut.fits"
+    from astropy.io import fits
+    with fits.open(path) as hdul:
+        start = hdul.fileinfo(hdul.index_of("SCI"))["datLoc"]  # first byte of SCI's data
     with open(path, "rb") as fh:
-        cut.write_bytes(fh.read()[:10000])                  # SCI's data start at byte 8640
+        cut.write_bytes(fh.read()[:start + 1360])            # cut inside SCI's data
     with pytest.raises(RampFileError, match="cut.fits: truncated file: extension SCI ends at byte"):
         fit_ramps(cut, progress=False)
     capsys.readouterr()
