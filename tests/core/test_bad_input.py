@@ -24,6 +24,8 @@ import warnings
 from slicersim.errors import SlicersimError
 import math
 import slicersim
+from model_state import (STATE_BAND as BAND_9_12, STATE_FLUX as FLUX_500,  # noqa: F401
+                         STATE_LBDA as LBDA_500, assert_rejected_unchanged, flat_target, model_state as state)
 
 BAND = (8000.0, 13600.0)
 LBDA = np.linspace(3000.0, 20000.0, 400)
@@ -380,33 +382,6 @@ def test_clean_errors_without_runtime_warnings(make):
         warnings.simplefilter("error", RuntimeWarning)
         with pytest.raises(SpectrumError):
             make()
-
-
-BAND_9_12 = (9000.0, 12000.0)
-
-
-LBDA_500 = np.linspace(3000.0, 20000.0, 500)
-
-
-FLUX_500 = np.full(500, 1e-18)
-
-
-def flat_target(**kw):
-    return slicersim.LazuliTarget(LBDA_500, FLUX_500, **kw)
-
-
-def state(t):
-    sim = t.simulation
-    _, sig, var = sim.get_spectrum()
-    return (sim.get_band_snr(BAND_9_12), float(np.sum(sig)), float(np.sum(var)),
-            sim.get_times()["exposure_time"], t.get_readout_config(), sim.lbda.size)
-
-
-def assert_rejected_unchanged(t, func, exc=SlicersimError, match=None):
-    before = state(t)
-    with pytest.raises(exc, match=match):
-        func()
-    assert repr(state(t)) == repr(before)
 
 
 @pytest.mark.parametrize("call", [

@@ -22,6 +22,8 @@ import slicersim
 import subprocess
 import sys
 import textwrap
+from model_state import (STATE_BAND as BAND, STATE_FLUX as FLUX, STATE_LBDA as LBDA_500,  # noqa: F401
+                         assert_rejected_unchanged, flat_target as target, model_state as state)
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
 
@@ -275,33 +277,6 @@ def test_lazuli_sn_etc_keys_and_self_consistency():
     _check_etc_result(res, 10, (4000 * (1 + z), 6800 * (1 + z)), dr=2.5)
     assert (res["config"], res["field"]) == ("eol", "wide")
     assert res["target"].redshift == z
-
-
-BAND = (9000.0, 12000.0)
-
-
-LBDA_500 = np.linspace(3000.0, 20000.0, 500)
-
-
-FLUX = np.full(500, 1e-18)
-
-
-def target(**kw):
-    return slicersim.LazuliTarget(LBDA_500, FLUX, **kw)
-
-
-def state(t):
-    sim = t.simulation
-    _, sig, var = sim.get_spectrum()
-    return (sim.get_band_snr(BAND), float(np.sum(sig)), float(np.sum(var)),
-            sim.get_times()["exposure_time"], t.get_readout_config(), sim.lbda.size)
-
-
-def assert_rejected_unchanged(t, func, exc=SlicersimError, match=None):
-    before = state(t)
-    with pytest.raises(exc, match=match):
-        func()
-    assert repr(state(t)) == repr(before)
 
 
 def test_setup_to_snr_huge_target_does_not_hang():

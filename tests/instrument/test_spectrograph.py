@@ -11,6 +11,8 @@ from slicersim.instrument.spectrograph import MLASpectrograph, SlicerSpectrograp
 from slicersim.physics.readout import readout_times
 from slicersim.simulation import Simulation
 from slicersim.targets import LazuliTarget
+from model_state import (STATE_BAND as BAND, STATE_FLUX as FLUX, STATE_LBDA as LBDA_500,  # noqa: F401
+                         assert_rejected_unchanged, flat_target as target, model_state as state)
 
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
@@ -95,33 +97,6 @@ def test_wavelength_grid_from_varying_resolving_power():
     assert abs((lbda.size - 1) - expected) <= 0.5 + 1e-9
     with pytest.raises(ValueError):
         wavelength_grid_from_resolving_power(lambda lam: 0 * lam, (4000.0, 17000.0))
-
-
-BAND = (9000.0, 12000.0)
-
-
-LBDA_500 = np.linspace(3000.0, 20000.0, 500)
-
-
-FLUX = np.full(500, 1e-18)
-
-
-def target(**kw):
-    return slicersim.LazuliTarget(LBDA_500, FLUX, **kw)
-
-
-def state(t):
-    sim = t.simulation
-    _, sig, var = sim.get_spectrum()
-    return (sim.get_band_snr(BAND), float(np.sum(sig)), float(np.sum(var)),
-            sim.get_times()["exposure_time"], t.get_readout_config(), sim.lbda.size)
-
-
-def assert_rejected_unchanged(t, func, exc=SlicersimError, match=None):
-    before = state(t)
-    with pytest.raises(exc, match=match):
-        func()
-    assert repr(state(t)) == repr(before)
 
 
 def test_spectral_range_huge_is_parameter_error():

@@ -10,6 +10,8 @@ import slicersim
 from slicersim.errors import ConfigError, ParameterError, ReadoutError, SlicersimError, SpectrumError
 from slicersim.products.components import SCENE_COMPONENTS
 from slicersim.targets import Lazuli3DFlat, LazuliGalaxy, LazuliSupernova, LazuliTarget
+from model_state import (STATE_BAND as BAND_9_12, STATE_FLUX as FLUX, STATE_LBDA as LBDA_500,  # noqa: F401
+                         assert_rejected_unchanged, flat_target as target, model_state as state)
 
 
 @pytest.fixture(scope="module")
@@ -158,33 +160,6 @@ def test_change_detector_readout_and_noise():
     assert target.get_band_snr(BAND) > snr1                                        # no read noise
     with pytest.raises(ReadoutError, match=r"nmd = \(65, 8, 0\): n = 65 exceeds max_group = 64"):
         target.change_detector(nmd=(65, 8, 0))                                     # > max_group 64
-
-
-BAND_9_12 = (9000.0, 12000.0)
-
-
-LBDA_500 = np.linspace(3000.0, 20000.0, 500)
-
-
-FLUX = np.full(500, 1e-18)
-
-
-def target(**kw):
-    return slicersim.LazuliTarget(LBDA_500, FLUX, **kw)
-
-
-def state(t):
-    sim = t.simulation
-    _, sig, var = sim.get_spectrum()
-    return (sim.get_band_snr(BAND_9_12), float(np.sum(sig)), float(np.sum(var)),
-            sim.get_times()["exposure_time"], t.get_readout_config(), sim.lbda.size)
-
-
-def assert_rejected_unchanged(t, func, exc=SlicersimError, match=None):
-    before = state(t)
-    with pytest.raises(exc, match=match):
-        func()
-    assert repr(state(t)) == repr(before)
 
 
 @pytest.mark.parametrize("params", [dict(config="eol", nramps=2), dict(field="wide", nmd=(20, 8, 0))])

@@ -1,0 +1,34 @@
+"""A flat, faint LazuliTarget and a summary of its model's state, for the tests that a refused
+change (``update``, ``set_*``, ``change_*``) changes nothing."""
+import numpy as np
+import pytest
+
+import slicersim
+from slicersim.errors import SlicersimError
+
+#: band [Å] whose SNR enters the state
+STATE_BAND = (9000.0, 12000.0)
+#: wavelengths [Å] and flux [erg/s/cm²/Å] of the flat target
+STATE_LBDA = np.linspace(3000.0, 20000.0, 500)
+STATE_FLUX = np.full(500, 1e-18)
+
+
+def flat_target(**kw):
+    """A LazuliTarget of the flat spectrum (keywords as LazuliTarget's)."""
+    return slicersim.LazuliTarget(STATE_LBDA, STATE_FLUX, **kw)
+
+
+def model_state(t):
+    """(band SNR, Σ signal, Σ variance, exposure time, readout, number of bins) of target ``t``."""
+    sim = t.simulation
+    _, sig, var = sim.get_spectrum()
+    return (sim.get_band_snr(STATE_BAND), float(np.sum(sig)), float(np.sum(var)),
+            sim.get_times()["exposure_time"], t.get_readout_config(), sim.lbda.size)
+
+
+def assert_rejected_unchanged(t, func, exc=SlicersimError, match=None):
+    """``func()`` raises ``exc`` (matching ``match``) and leaves the state of ``t`` as it was."""
+    before = model_state(t)
+    with pytest.raises(exc, match=match):
+        func()
+    assert repr(model_state(t)) == repr(before)
