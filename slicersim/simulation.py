@@ -412,6 +412,10 @@ class Simulation(Versioned):
         "single" kernels, :mod:`slicersim.backends.precision`).
         """
         seed = validation.seed(seed)
+        for key in options:
+            validation.choice("keyword", key, ("max_bytes", "progress", "psf_options", "dtype", "precision", "seed",
+                                               "nmd", "nramps", "psf_profile", "backend", "switch_off"),
+                              what="keyword of get_cube")
         return CubeTuple(build_cube(self, nmd, nramps, psf_profile=psf_profile, seed=seed, backend=backend,
                                     switch_off=switch_off, **options), seed)
 

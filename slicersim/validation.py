@@ -193,10 +193,19 @@ def new_seed() -> int:
     return secrets.randbits(63)
 
 
-def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, error=ParameterError) -> np.ndarray:
+def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, unit=None,
+          error=ParameterError) -> np.ndarray:
     """``value`` as a NumPy array of real numbers converted to ``dtype``; refuses object,
     structured, complex and string arrays, a wrong number of dimensions, non-finite values
-    (``finite``) and values below ``low``."""
+    (``finite``) and values below ``low``.  An astropy Quantity is converted to ``unit`` (refused
+    when ``unit`` is None or not convertible: its unit must never be dropped silently)."""
+    if hasattr(value, "unit") and hasattr(value, "to_value"):
+        if unit is None:
+            raise error(f"{name} is an array of plain numbers, got a quantity in {value.unit}")
+        try:
+            value = value.to_value(unit)
+        except Exception:
+            raise error(f"{name} must be in units convertible to {unit}, got {value.unit}") from None
     try:
         arr = np.asarray(value)
     except Exception as exc:

@@ -183,7 +183,7 @@ def _check_flags(args, dataset):
     if args.gain is not None:
         validation.number("--gain [DN/e-]", args.gain, low=0.0, low_open=True)
     if args.ron is not None:
-        validation.number("--ron (read noise [e-])", args.ron, low=0.0)
+        validation.number("--ron (read noise [e-/frame])", args.ron, low=0.0, high=1e4)
 
 
 def _spectra_options(args):
@@ -208,6 +208,8 @@ def cmd_reduce(args) -> int:
     dataset = os.path.isdir(args.raw)
     _check_flags(args, dataset)
     if not dataset and not os.path.isfile(args.raw):
+        if os.path.lexists(args.raw):       # a FIFO, device or socket: never opened
+            raise ParameterError(f"{args.raw} is not a regular file (nor a dataset directory)")
         raise ParameterError(f"{args.raw}: no such ramp file or dataset directory")
     if not dataset and os.path.exists(args.out) and os.path.samefile(args.raw, args.out):
         raise ParameterError(f"--out is RAW itself ({args.raw}): the ramps would be lost")

@@ -111,3 +111,27 @@ class StreamedChecksums:
             total = ones_add(ones_sum(header), datasum)
             header = _replace_card(header, "CHECKSUM", _card("CHECKSUM", encode_checksum(total), "HDU checksum"))
             pwrite(header, offset)
+
+
+def verify_datasums(path, hdul, error, chunk=1 << 26):
+    """Check the DATASUM of every HDU of ``hdul`` (opened from ``path``) that carries one, reading
+    its data from the file in blocks of ``chunk`` bytes (no copy of the data in memory); a mismatch
+    raises ``error`` naming the extension."""
+    with open(path, "rb") as fh:
+        for index, hdu in enumerate(hdul):
+            expected = hdu.header.get("DATASUM")
+            if expected is None:
+                continue
+            info = hdul.fileinfo(index)
+            fh.seek(info["datLoc"])
+            total, left = 0, int(info["datSpan"])
+            while left > 0:
+                block = fh.read(min(chunk, left))
+                if not block:
+                    break
+                total = ones_add(total, ones_sum(block))
+                left -= len(block)
+            if left > 0 or str(total) != str(expected).strip():
+                name = hdu.name or f"HDU {index}"
+                raise error(f"{path}: checksum mismatch in extension {name} (DATASUM {expected}, data sum "
+                            f"{total}): the file is corrupt")

@@ -199,6 +199,14 @@ class DetectorEffects:
         if not isinstance(config, dict):
             raise EffectsError(f"effects config must be a table, got {type(config).__name__}")
         section = config.get("effects", {}) if "effects" in config else config
+        if section is not config:                 # [ipc] beside [effects] was silently ignored
+            import difflib
+            stray = sorted(k for k in config if k != "effects" and (k in EFFECT_NAMES or difflib.get_close_matches(
+                str(k), EFFECT_NAMES, n=1, cutoff=0.8)))
+            if stray:
+                raise EffectsError(f"effect table(s) {', '.join(map(repr, stray))} outside [effects]: write them as "
+                                   f"[effects.NAME] (TOML) or inside \"effects\" (JSON); known effects: "
+                                   f"{', '.join(EFFECT_NAMES)}")
         if not isinstance(section, dict):
             raise EffectsError(f"effects config must be a table, got {type(section).__name__}")
         unknown = sorted(set(section) - {"enabled", *EFFECT_NAMES})

@@ -199,8 +199,7 @@ def _simulate_keywords(rate, nmd, args, kwargs, named, objects):
         given["nmd"] = nmd
     for key, val in kwargs.items():
         if key not in _LEGACY_ORDER:
-            valid = [k for k in _LEGACY_ORDER if k not in _NAMED]
-            validation.choice("keyword", key, valid, what="keyword of simulate")
+            validation.choice("keyword", key, list(_LEGACY_ORDER), what="keyword of simulate")
         if key in given:
             raise ParameterError(f"simulate: {key} given twice (positionally and as a keyword)")
         given[key] = val
@@ -222,7 +221,7 @@ def _simulate_keywords(rate, nmd, args, kwargs, named, objects):
 def check_rate(rate):
     """The rate image [e-/s] as a finite, non-negative (ny, nx) float64 array (ParameterError naming
     ``rate`` for NaN, negative, complex, structured, object or non-2-D input)."""
-    rate = validation.array("rate", rate, ndim=2, low=0.0)
+    rate = validation.array("rate", rate, ndim=2, low=0.0, unit="electron / s")
     if rate.size == 0:
         raise ParameterError(f"rate must be a non-empty 2-D image (ny, nx), got shape {rate.shape}")
     if rate.size >= 2**32:
@@ -257,6 +256,8 @@ def _simulate(rate, p, named, io, run, maps):
     fx = _resolve_effects(named["effects"], previous_charge)
     backend, precision = _resolve_backend(named["backend"], named["precision"])
     out = named["out"]
+    if out is not None and not isinstance(out, (str, bytes, os.PathLike)):
+        raise ParameterError(f"out must be a file path (str or os.PathLike) or None, got {validation.short_repr(out)}")
     rows, noise_cache = _block_rows(p, fx, rate.shape, run.max_bytes)
     writer = _open_writer(out, io, p, fx, rate.shape, rows) if out is not None else None
     if writer is None:

@@ -316,9 +316,12 @@ def check_fit_options(fit_options):
     if opts.get("jump_threshold") is not None:
         validation.number("jump_threshold [σ] (0: no jump detection)", opts["jump_threshold"], low=0.0)
     if opts.get("gain") is not None:
-        opts["gain"] = validation.number("gain", opts["gain"], low=0.0, low_open=True, unit="adu / electron")
-    if opts.get("ron") is not None:
-        opts["ron"] = validation.number("ron (read noise)", opts["ron"], low=0.0, unit="electron")
+        low, high, _ = ATTR_RANGES["GAIN"]
+        opts["gain"] = validation.number("gain", opts["gain"], low=low, high=high, unit="adu / electron")
+    if opts.get("ron") is not None:           # the raw file's READNOISE range (1e300 overflowed the variance)
+        low, high, _ = ATTR_RANGES["READNOISE"]
+        opts["ron"] = validation.number("ron (read noise [e-/frame])", opts["ron"], low=low, high=high,
+                                        unit="electron")
     for key in ("with_truth", "return_groupdq"):
         if key in opts:
             validation.flag(key, opts[key])

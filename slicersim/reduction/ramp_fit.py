@@ -304,7 +304,9 @@ class _FitSetup:
             truth = src.truth("rate")
             if truth is None:
                 raise RampFileError(f"{where}: with_truth=True but the file has no truth/rate")
-            self.truth_rate = np.asarray(truth[...], np.float64)
+            from slicersim.io.rampfile import read_dataset     # a failed checksum named, not h5py's words
+            self.truth_rate = np.asarray(read_dataset(truth, where) if hasattr(truth, "id") else truth[...],
+                                         np.float64)
         self.corrected = refpix_kw is not None or self.coeffs is not None or not src.integer
         # bytes per pixel-group: SCI + GROUPDQ on the host and the device (+ GROUPDQ out, + float DN, its
         # temporary and device copy with corrections); per pixel: the outputs of a block, twice

@@ -179,6 +179,12 @@ class _FitsRamps(_Ramps):
         if "SCI" not in names:
             self.close()
             raise RampFileError(f"{path}: not a level-1b ramp file (no SCI extension)")
+        from slicersim.io.fits_checksum import verify_datasums
+        try:
+            verify_datasums(path, self.hdul, RampFileError)   # the DATASUM the writer streamed
+        except BaseException:
+            self.close()
+            raise
         try:
             self.images = {n: _FitsImage(path, self.hdul, names.index(n)) for n in names
                            if n in ("SCI", "GROUPDQ", "PIXELDQ") or n.startswith("TRUTH_")

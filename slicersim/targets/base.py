@@ -490,6 +490,11 @@ class Supernova(Target):
 
     def __init__(self, redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3, config=None,
                  field="default", position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, host=None, **kwargs):
+        model_keywords = [k for k in inspect.signature(snia_spectrum).parameters
+                          if k not in ("redshift", "phase", "source", "peak_absmag")]
+        for key in kwargs:          # the SN model's keywords; a misspelt target keyword is named, with a did-you-mean
+            validation.choice("keyword", key, model_keywords + ["config", "field", "position", "conventions", "host"],
+                              what=f"keyword of {type(self).__name__}")
         self.phase, self.source, self.peak_absmag, self._sn_kwargs = phase, source, peak_absmag, dict(kwargs)
         redshift = check_redshift(redshift)
         if redshift is None:

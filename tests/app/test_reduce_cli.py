@@ -540,3 +540,68 @@ def test_weights_with_drizzle_are_refused(tmp_path, capsys):
                  "--weights", "model"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "drizzle" in err[0] and err[0].startswith("slicersim: error:")
+
+
+def test_absurd_read_noise_is_refused_naming_the_flag(raw, tmp_path, capsys):
+    """`reduce --ron 1e300` overflowed the variance (exit 3, internal error): the flag's physical
+    range is the raw keyword's, [0, 1e4] e-/frame."""
+    path, _ = raw
+    for value in ("1e300", "-1", "nan"):
+        assert main(["reduce", str(path), "--out", str(tmp_path / "r.h5"), "--ron", value, "--quiet"]) == 2
+        assert "--ron" in _one_line_error(capsys)
+    assert not (tmp_path / "r.h5").exists()
+
+
+def _flip_fits_byte(src, dst, extname, at=1000):
+    import shutil
+
+    from astropy.io import fits
+    shutil.copy(src, dst)
+    with fits.open(dst) as hdul:
+        offset = hdul.fileinfo(hdul.index_of(extname))["datLoc"] + at
+    with open(dst, "r+b") as fh:
+        fh.seek(offset)
+        byte = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([byte[0] ^ 0x10]))
+    return dst
+
+
+def test_a_flipped_byte_of_a_level1b_ramp_is_a_checksum_error(tmp_path, capsys):
+    """The FITS writer streams DATASUM/CHECKSUM; reduce verifies the DATASUM of every extension (SCI and
+    the truth): a flipped byte was reduced without complaint (one more jump found)."""
+    good = simulate(np.full((16, 32), 20.0), (6, 2, 0), seed=3, progress=False, out=tmp_path / "u.fits", truth=True)
+    assert main(["reduce", str(good), "--out", str(tmp_path / "ok.h5"), "--quiet", "--with-truth"]) == 0
+    capsys.readouterr()
+    for ext in ("SCI", "TRUTH_RATE"):
+        bad = _flip_fits_byte(good, tmp_path / f"flip_{ext}.fits", ext)
+        assert main(["reduce", str(bad), "--out", str(tmp_path / "r.h5"), "--quiet", "--with-truth"]) == 2
+        line = _one_line_error(capsys)
+        assert f"checksum mismatch in extension {ext}" in line and f"flip_{ext}.fits" in line, line
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_a_flipped_byte_of_the_truth_names_the_checksum(raw, tmp_path, capsys):
+    """A flipped byte of truth/rate said only "filter returned failure during read" (no file, no dataset)."""
+    path, _ = raw
+    bad = tmp_path / "flip_truth.h5"
+    import shutil
+    shutil.copy(path, bad)
+    with h5py.File(bad, "r") as fh:
+        dset = fh["truth/rate"]
+        offset = (dset.id.get_chunk_info(0).byte_offset if dset.chunks else dset.id.get_offset()) + 3
+    with open(bad, "r+b") as fh:
+        fh.seek(offset)
+        byte = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([byte[0] ^ 0x10]))
+    assert main(["reduce", str(bad), "--out", str(tmp_path / "r.h5"), "--quiet", "--with-truth"]) == 2
+    line = _one_line_error(capsys)
+    assert "checksum mismatch in dataset truth/rate" in line and "flip_truth.h5" in line, line
+
+
+def test_a_fifo_as_the_raw_input_is_named_as_not_a_regular_file(tmp_path, capsys):
+    fifo = tmp_path / "raw.h5"
+    os.mkfifo(fifo)
+    assert main(["reduce", str(fifo), "--out", str(tmp_path / "r.h5"), "--quiet"]) == 2
+    assert "is not a regular file" in _one_line_error(capsys)

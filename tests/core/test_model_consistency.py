@@ -349,3 +349,11 @@ def test_partial_band_error_names_keyword_and_flag(sn):
     from slicersim.errors import SpectrumError
     with pytest.raises(SpectrumError, match=r"allow_partial=True in Python, --allow-partial on the command line"):
         sn.get_band_snr((7000, 9000))
+
+
+def test_misspelt_get_cube_keyword_is_named():
+    """get_cube(sed=1) gave build_cube's TypeError."""
+    from slicersim import LazuliSupernova
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match=r"unknown keyword of get_cube 'sed' \(did you mean 'seed'\?\)"):
+        LazuliSupernova(0.5).simulation.get_cube(sed=1)

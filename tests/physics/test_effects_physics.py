@@ -96,3 +96,17 @@ def test_every_effect_has_a_validated_parameter_class():
         check_number("rate", -1)
     with pytest.raises(EffectsError):
         check_number("x", True)
+
+
+@pytest.mark.parametrize("config", [
+    {"effects": {"enabled": ["ipc"]}, "ipc": {"alpha": 0.2}},            # JSON with the table beside "effects"
+    {"effects": {"enabled": ["ipc"]}, "ipc": {"alpha": float("nan")}},   # TOML [ipc] after [effects]
+    {"effects": {"enabled": ["ipc"]}, "ipcc": {}},                       # a misspelt effect table
+    {"effects": {"enabled": ["cosmic_rays"]}, "cosmic_rays": {"rate": 1e300}},
+])
+def test_effect_tables_outside_the_effects_table_are_refused(config):
+    """[ipc] beside [effects] (instead of [effects.ipc]) was silently ignored: the defaults were used."""
+    with pytest.raises(EffectsError, match=r"outside \[effects\]: write them as \[effects.NAME\]"):
+        DetectorEffects.from_config(config)
+    inside = {"effects": {"enabled": ["ipc"], "ipc": {"alpha": 0.01}}, "detector": {}}
+    assert DetectorEffects.from_config(inside)     # other tables of a whole configuration stay allowed

@@ -613,3 +613,27 @@ def test_ramp_slope_variance_matches_kubik16_for_few_groups(nmd):
     mc_err = kubik * math.sqrt(2.0 / (npix - 1))
     assert abs(var - kubik) < 4 * mc_err, (var, kubik, mc_err)
     assert kubik == pytest.approx(float(variance_rauscher07(rate, nmd, tf, ron_eff, 0.0)), rel=1e-3)
+
+
+def test_rate_quantity_is_converted_or_refused_never_dropped():
+    """A rate in e-/ms was taken as e-/s (1000× too low) and one in metres accepted: a Quantity is
+    converted to e-/s or refused."""
+    import astropy.units as u
+
+    from slicersim.errors import ParameterError
+    rate = np.full((8, 8), 2.0)
+    plain = simulate(rate, nmd=(3, 1, 0), seed=1, progress=False)
+    assert np.array_equal(simulate(rate * u.electron / u.s, nmd=(3, 1, 0), seed=1, progress=False), plain)
+    assert np.array_equal(simulate(rate / 1000 * u.electron / u.ms, nmd=(3, 1, 0), seed=1, progress=False), plain)
+    with pytest.raises(ParameterError, match="rate must be in units convertible to electron / s, got m"):
+        simulate(rate * u.m, nmd=(3, 1, 0), seed=1)
+
+
+def test_out_and_keywords_are_named():
+    """out=5 gave a bare TypeError; a misspelt keyword listed only some keywords, without a did-you-mean."""
+    from slicersim.errors import ParameterError
+    rate = np.full((8, 8), 2.0)
+    with pytest.raises(ParameterError, match="out must be a file path"):
+        simulate(rate, nmd=(3, 1, 0), seed=1, out=5)
+    with pytest.raises(ParameterError, match=r"'sead' \(did you mean 'seed'\?\).*'effects'"):
+        simulate(rate, nmd=(3, 1, 0), sead=1)

@@ -283,3 +283,10 @@ def test_supernova_out_of_range_redshift_message():
     """LazuliSupernova(redshift=50) says 'pointsource: empty wavelength array'."""
     with pytest.raises(SlicersimError, match="redshift"):
         slicersim.LazuliSupernova(redshift=50)
+
+
+def test_misspelt_supernova_keyword_is_named():
+    """LazuliSupernova(redshift=1, feild="narrow") gave snia_spectrum's TypeError (an internal name)."""
+    from slicersim.errors import ParameterError
+    with pytest.raises(ParameterError, match=r"unknown keyword of LazuliSupernova 'feild' \(did you mean 'field'\?\)"):
+        slicersim.LazuliSupernova(redshift=1, feild="narrow")
