@@ -50,16 +50,18 @@ def short_repr(value, limit=60) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
-def _quantity_value(name, value, unit, error):
-    """A plain number from an astropy Quantity in ``unit`` (anything else unchanged)."""
+def _quantity_value(name, value, unit, error, plain="a plain number"):
+    """The plain value(s) of an astropy Quantity in ``unit`` (anything else unchanged); a Quantity
+    where ``unit`` is None, or in an inconvertible unit, is refused (never its unit dropped)."""
     if not hasattr(value, "unit") or not hasattr(value, "to_value"):
         return value
     if unit is None:
-        raise error(f"{name} is a plain number, got the quantity {short_repr(value)}")
+        raise error(f"{name} is {plain}, got a quantity in {value.unit}")
     try:
         return value.to_value(unit)
     except Exception:
-        raise error(f"{name} must be in units convertible to {unit}, got {short_repr(value)}") from None
+        shown = short_repr(value) if np.ndim(value) == 0 else str(value.unit)
+        raise error(f"{name} must be in units convertible to {unit}, got {shown}") from None
 
 
 def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_open=False, unit=None,
@@ -199,13 +201,7 @@ def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, un
     structured, complex and string arrays, a wrong number of dimensions, non-finite values
     (``finite``) and values below ``low``.  An astropy Quantity is converted to ``unit`` (refused
     when ``unit`` is None or not convertible: its unit must never be dropped silently)."""
-    if hasattr(value, "unit") and hasattr(value, "to_value"):
-        if unit is None:
-            raise error(f"{name} is an array of plain numbers, got a quantity in {value.unit}")
-        try:
-            value = value.to_value(unit)
-        except Exception:
-            raise error(f"{name} must be in units convertible to {unit}, got {value.unit}") from None
+    value = _quantity_value(name, value, unit, error, plain="an array of plain numbers")
     try:
         arr = np.asarray(value)
     except Exception as exc:
