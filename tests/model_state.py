@@ -32,3 +32,31 @@ def assert_rejected_unchanged(t, func, exc=SlicersimError, match=None):
     with pytest.raises(exc, match=match):
         func()
     assert repr(model_state(t)) == repr(before)
+
+
+# ----------------------------------------------------------------- a fast target for detector products
+#: both backends, OpenCL where a device with fp64 exists
+BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
+#: wavelengths [Å] of the sloped spectrum
+LBDA = np.arange(3000.0, 20000.0, 10.0)
+#: Lazuli frame time [s] (built-in TOML)
+TFRAME = 2.83
+
+
+def sloped(level=1e-17):
+    """A λ^-1.5 spectrum [erg/s/cm²/Å] on :data:`LBDA`, ``level`` at 1 µm."""
+    return level * (LBDA / 1e4) ** -1.5
+
+
+@pytest.fixture(scope="module")
+def short_range_toml(tmp_path_factory):
+    """Overlay TOML: the built-in CBE instrument on 9000–10000 Å only (fast detector products)."""
+    path = tmp_path_factory.mktemp("cfg") / "short_range.toml"
+    path.write_text("[spectrograph]\nspectral_range = [9000, 10000]\n", encoding="utf-8")
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def short_target(short_range_toml):
+    """A LazuliTarget of the sloped spectrum on the short range."""
+    return slicersim.LazuliTarget(LBDA, sloped(2e-17), config=["cbe", short_range_toml])

@@ -48,30 +48,8 @@ def test_help_shows_the_parameters(cls, names):
         assert f"{name} :" in head
 
 
-BACKENDS = ["numpy", pytest.param("opencl", marks=pytest.mark.needs_opencl)]
-
-
-LBDA = np.arange(3000.0, 20000.0, 10.0)
-
-
-TFRAME = 2.83                                        # Lazuli frame time [s] (built-in TOML)
-
-
-def sloped(level=1e-17):
-    return level * (LBDA / 1e4) ** -1.5
-
-
-@pytest.fixture(scope="module")
-def short_range_toml(tmp_path_factory):
-    """Overlay TOML: the built-in CBE instrument on 9000–10000 Å only (fast detector products)."""
-    path = tmp_path_factory.mktemp("cfg") / "short_range.toml"
-    path.write_text("[spectrograph]\nspectral_range = [9000, 10000]\n", encoding="utf-8")
-    return str(path)
-
-
-@pytest.fixture(scope="module")
-def short_target(short_range_toml):
-    return LazuliTarget(LBDA, sloped(2e-17), config=["cbe", short_range_toml])
+from model_state import (BACKENDS, LBDA, TFRAME, short_range_toml, short_target,  # noqa: E402,F401
+                         sloped)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
