@@ -22,7 +22,7 @@ import numpy as np
 from slicersim.errors import DatasetError
 from slicersim.io.output_paths import check_output_path, output_path, refuse_special
 
-__all__ = ["AtomicH5File", "GuardedFile", "is_temporary", "remove_stale_temporaries", "atomic_bytes", "write_files",
+__all__ = ["AtomicH5File", "flush_chunks", "GuardedFile", "is_temporary", "remove_stale_temporaries", "atomic_bytes", "write_files",
            "recover_interrupted", "publish", "sha256_file", "one_line", "check_output_path", "output_path",
            "refuse_special"]
 
@@ -243,6 +243,15 @@ def sha256_file(path, block=1 << 22):
     return digest.hexdigest()
 
 
+def flush_chunks(dset):
+    """Write ``dset``'s cached chunks to the file now (H5Dflush), so that where they land does
+    not depend on when the last handle to it is closed: a Dask worker's profiler, a traceback
+    or a debugger holding a frame would otherwise move them, and the same data would give a
+    file with different bytes."""
+    if dset.chunks is not None:
+        dset.flush()
+
+
 class AtomicH5File:
     """Write one HDF5 file atomically (context manager yielding itself; ``.file`` is the h5py File).
 
@@ -291,6 +300,7 @@ class AtomicH5File:
             dset = self._file.create_dataset(name, data=data, **options)
             for key, val in (attrs or {}).items():
                 dset.attrs[key] = val
+            flush_chunks(dset)
         self._h5(put)
 
     def set_attrs(self, attrs):

@@ -33,7 +33,7 @@ import shutil
 
 import numpy as np
 
-from slicersim.io.atomic import _HDF5_MARGIN, AtomicH5File, is_temporary, one_line, remove_stale_temporaries
+from slicersim.io.atomic import _HDF5_MARGIN, AtomicH5File, flush_chunks, is_temporary, one_line, remove_stale_temporaries
 
 __all__ = ["RampWriter", "RampFileError", "compression_options", "read_ramps", "DQ", "is_temporary",
            "remove_stale_temporaries", "check_hdf5_input", "read_error", "open_hdf5_input", "MAX_COMPRESSION"]
@@ -212,6 +212,7 @@ class RampWriter(AtomicH5File):
                 ds = self.file.create_dataset(f"truth/{name}", data=array, **kwargs)
             for key, val in (attrs or {}).items():
                 ds.attrs[key] = val if not isinstance(val, (dict, list, tuple)) else json.dumps(val)
+            flush_chunks(ds)
         self._h5(put)
 
 

@@ -174,3 +174,38 @@ def test_remove_new_leaves_nothing_of_a_failed_new_dataset(tmp_path):
     _done(ds, 1)                                    # something computed: kept
     ds.remove_new()
     assert json.loads(open(ds.record_path(1)).read())["status"] == "done"
+
+
+def test_product_file_bytes_do_not_depend_on_when_a_handle_is_released(tmp_path, monkeypatch):
+    """A Dask worker's profiler can hold a frame (and so a dataset handle) a moment longer: a
+    chunk written when its handle closes would then land elsewhere, giving the same data in a
+    file with other bytes (campaign products compared by sha256 differed between runs)."""
+    import h5py
+    import numpy as np
+    from slicersim.io.dataset import ProductFile
+    data = {name: np.arange(510.0) * (i + 1) for i, name in enumerate(("lbda", "flambda", "signal", "noisy"))}
+    create = h5py.Group.create_dataset
+
+    def write(path, hold):
+        held = []
+
+        def create_and_hold(group, name, **kw):
+            dset = create(group, name, **kw)
+            if name == hold:
+                held.append(dset)
+            return dset
+        monkeypatch.setattr(h5py.Group, "create_dataset", create_and_hold)
+        with ProductFile(path, overwrite=True) as f:
+            f.set_attrs({"target_id": 1})
+            for name, arr in data.items():
+                f.write(name, arr, {"unit": "adu"})
+                if name == "signal":
+                    held.clear()              # released two writes later
+        monkeypatch.setattr(h5py.Group, "create_dataset", create)
+        return (tmp_path / path).read_bytes()
+
+    monkeypatch.chdir(tmp_path)
+    plain, held = write("plain.h5", None), write("held.h5", "flambda")
+    assert plain == held
+    with h5py.File(tmp_path / "held.h5", "r") as f:
+        assert all(f[name].fletcher32 and np.array_equal(f[name][...], arr) for name, arr in data.items())
