@@ -84,7 +84,7 @@ def _write_figure(plans, path, overwrite):
 
     from slicersim.campaign.plan import plot_time_and_volume
     from slicersim.errors import ParameterError
-    from slicersim.io.atomic import write_files
+    from slicersim.io.file_set import write_files
 
     def draw(fh):
         with matplotlib.rc_context({"savefig.format": os.path.splitext(path)[1][1:].lower()}):

@@ -2,7 +2,7 @@
 
 No physics here: the writers take an integer image and a JSON-able mapping (built by
 :func:`slicersim.instrument.footprints.save_footprints`).  :func:`write_footprint_set`
-publishes both files together (:func:`slicersim.io.atomic.write_files`: temporaries in the
+publishes both files together (:func:`slicersim.io.file_set.write_files`: temporaries in the
 directory, renamed in under a lock only when both are complete; a full disk or a killed
 writer leaves neither, concurrent writers never a mixed pair); an existing file is refused
 unless ``overwrite``.
@@ -22,7 +22,8 @@ import os
 import numpy as np
 
 from slicersim.errors import DatasetError, ParameterError
-from slicersim.io.atomic import atomic_bytes, recover_interrupted, write_files
+from slicersim.io.atomic import atomic_bytes
+from slicersim.io.file_set import recover_interrupted, write_files
 
 __all__ = ["write_label_image", "read_label_image", "write_outlines", "read_outlines", "footprint_paths",
            "check_outputs", "write_footprint_set", "label_image_bytes", "outlines_bytes"]
@@ -114,7 +115,7 @@ def write_outlines(path, description, overwrite=False):
 def write_footprint_set(paths, image, header, description, overwrite=False, also=None):
     """Write the label image and the outlines (``paths`` from :func:`footprint_paths`) and the
     files ``also`` ({path: bytes or a callable writing to a binary file}, e.g. a figure),
-    published together: all of them or none (:func:`~slicersim.io.atomic.write_files`).
+    published together: all of them or none (:func:`~slicersim.io.file_set.write_files`).
     Everything is encoded before anything is written.  Returns the paths written."""
     absolute = [os.path.abspath(os.fspath(p)) for p in paths]
     files = {absolute[0]: label_image_bytes(image, header), absolute[1]: outlines_bytes(description)}

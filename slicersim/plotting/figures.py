@@ -15,7 +15,7 @@ __all__ = ["figure_writer", "save_figure", "finish", "new_axes", "colorbar", "im
 
 
 def figure_writer(fig, path, **options):
-    """(path, writer) for :func:`slicersim.io.atomic.write_files`: ``writer(file)`` draws ``fig``
+    """(path, writer) for :func:`slicersim.io.file_set.write_files`: ``writer(file)`` draws ``fig``
     (``savefig`` ``options``) in the format of the path's suffix (none: matplotlib's
     default, appended to the path as ``savefig`` does)."""
     import matplotlib
@@ -33,13 +33,13 @@ def figure_writer(fig, path, **options):
 def save_figure(fig, savefile, **options):
     """Write ``fig`` (``savefig`` ``options``) and release it from pyplot; returns the path.
 
-    A path is written atomically (:func:`slicersim.io.atomic.write_files`: a temporary in its
+    A path is written atomically (:func:`slicersim.io.file_set.write_files`: a temporary in its
     directory, renamed in when complete, replacing an existing file; on any error, e.g. a full
     disk, nothing is left; temporaries of killed writers there are removed), see
     :func:`figure_writer` for the format.  A binary file object is written directly."""
     import matplotlib.pyplot as plt
     from slicersim.errors import DatasetError
-    from slicersim.io.atomic import write_files
+    from slicersim.io.file_set import write_files
     if hasattr(savefile, "write"):
         fig.savefig(savefile, **options)
         plt.close(fig)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from slicersim.errors import DatasetError, ParameterError, RampFileError
-from slicersim.io.atomic import AtomicH5File, atomic_bytes, write_files
+from slicersim.io.atomic import AtomicH5File, atomic_bytes
+from slicersim.io.file_set import write_files
 from slicersim.io.output_paths import check_output_path
 from slicersim.io.rampfile import RampWriter
 
