@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import io
 import json
 import math
 import os
@@ -60,15 +59,15 @@ import numpy as np
 from slicersim import validation
 from slicersim.errors import RampFileError
 from slicersim.io.atomic import _HDF5_MARGIN, one_line, publish, remove_stale_temporaries, temporary_path
-from slicersim.io.fits_checksum import StreamedChecksums, checksum_cards
+from slicersim.io.fits_blocks import (BLOCK, IMAGE_TYPES, ascii_text, card_value, from_mjd, header_bytes,
+                                      image_header, mjd, padded, table_bytes, to_storage)
+from slicersim.io.fits_checksum import StreamedChecksums
 from slicersim.io.rampfile import open_hdf5_input, read_dataset
 from slicersim.io.row_blocks import RowBlocks, rows_per_block
 
 __all__ = ["UncalWriter", "UncalOptions", "write_uncal_from_hdf5", "read_uncal", "read_uncal_truth", "truth_extname",
            "DEFAULT_KEYWORDS"]
 
-_BLOCK = 2880
-_MJD0 = _dt.datetime(1858, 11, 17)
 _DAY0 = _dt.datetime(2000, 1, 1)                 # GROUP end_day counts days from here
 #: primary keywords written unless ``keywords=`` or a root attribute says otherwise
 DEFAULT_KEYWORDS = {"TELESCOP": "Lazuli", "INSTRUME": "N/A", "DETECTOR": "N/A", "EXP_TYPE": "N/A",
@@ -77,11 +76,6 @@ DEFAULT_KEYWORDS = {"TELESCOP": "Lazuli", "INSTRUME": "N/A", "DETECTOR": "N/A", 
                     "FASTAXIS": 1, "SLOWAXIS": 2}
 _TIMING_DEFAULTS = {"NRSTSTRT": 1, "NRESETS": 1, "DRPFRMS1": 0, "DRPFRMS3": 0}
 _ALIASES = {"rate": "TRUTH_RATE", "cosmic_rays": "TRUTH_CR"}
-#: (BITPIX, BZERO, storage dtype) of each image dtype; the stored value is value − BZERO
-_IMAGE_TYPES = {"u1": (8, None, ">u1"), "i1": (8, -128, ">u1"), "u2": (16, 32768, ">i2"),
-                "i2": (16, None, ">i2"), "u4": (32, 2**31, ">i4"), "i4": (32, None, ">i4"),
-                "u8": (64, 2**63, ">i8"), "i8": (64, None, ">i8"), "f4": (-32, None, ">f4"),
-                "f8": (-64, None, ">f8"), "b1": (8, None, ">u1")}
 _GROUP_DTYPE = [("integration_number", ">i4"), ("group_number", ">i2"), ("end_day", ">i2"),
                 ("end_milliseconds", ">i4"), ("end_submilliseconds", ">i2"), ("group_end_time", "S26"),
                 ("number_of_columns", ">i2"), ("number_of_rows", ">i2"), ("number_of_gaps", ">i2"),
@@ -89,10 +83,6 @@ _GROUP_DTYPE = [("integration_number", ">i4"), ("group_number", ">i2"), ("end_da
                 ("bary_end_time", ">f8"), ("helio_end_time", ">f8")]
 _INT_TIMES_DTYPE = [("integration_number", ">i4")] + [
     (f"int_{w}_{s}", ">f8") for s in ("MJD_UTC", "BJD_TDB") for w in ("start", "mid", "end")]
-
-
-def _padded(n):
-    return -(-int(n) // _BLOCK) * _BLOCK
 
 
 def truth_extname(name):
@@ -103,90 +93,6 @@ def truth_extname(name):
     if not key:
         raise RampFileError(f"dataset name {name!r} is empty")
     return _ALIASES.get(key, "TRUTH_" + key.upper().replace("/", "_"))
-
-
-def _ascii(text):
-    return str(text).encode("ascii", "backslashreplace").decode("ascii").translate(
-        {c: f"\\x{c:02x}" for c in range(32)})
-
-
-def _card_value(val):
-    """A root attribute as a FITS header value (str, int, float, bool)."""
-    if isinstance(val, bytes):
-        val = val.decode("utf-8", "replace")
-    if isinstance(val, np.ndarray):
-        val = val.tolist() if val.ndim else val.item()
-    if isinstance(val, np.generic):
-        val = val.item()
-    if isinstance(val, (dict, list, tuple)):
-        val = json.dumps(val)
-    if isinstance(val, bool):
-        return val
-    if isinstance(val, int):
-        return val if -2**63 <= val < 2**63 else str(val)
-    if isinstance(val, float):
-        return val if math.isfinite(val) else str(val)
-    return _ascii(val)
-
-
-def _mjd(when):
-    """MJD of a naive UTC datetime (calendar arithmetic, no leap seconds)."""
-    return (when - _MJD0).total_seconds() / 86400.0
-
-
-def _from_mjd(mjd):
-    return _MJD0 + _dt.timedelta(days=float(mjd))
-
-
-def _header(cards):
-    from astropy.io import fits
-    hdr = fits.Header()
-    for key, val, *comment in list(cards) + checksum_cards():     # values set when the file is complete
-        if len(key) > 8 and not key.startswith("HIERARCH "):
-            key = "HIERARCH " + key
-        hdr.append(fits.Card(key, val, comment[0] if comment else None), end=True)
-    return hdr.tostring().encode("ascii")
-
-
-def _image_header(extname, dtype, shape, extra=()):
-    """Header bytes of an IMAGE extension holding ``dtype`` values of ``shape`` (C order)."""
-    kind = np.dtype(dtype).str[1:]
-    if kind not in _IMAGE_TYPES:
-        raise RampFileError(f"{extname}: dtype {np.dtype(dtype)} cannot be stored in a FITS image")
-    bitpix, bzero, _ = _IMAGE_TYPES[kind]
-    cards = [("XTENSION", "IMAGE", "Image extension"), ("BITPIX", bitpix), ("NAXIS", len(shape))]
-    cards += [(f"NAXIS{i + 1}", int(n)) for i, n in enumerate(reversed(shape))]
-    cards += [("PCOUNT", 0), ("GCOUNT", 1)]
-    if bzero is not None:
-        cards += [("BSCALE", 1), ("BZERO", bzero)]
-    cards += [("EXTNAME", extname), ("EXTVER", 1)] + list(extra)
-    return _header(cards)
-
-
-def _to_storage(block):
-    """Big-endian FITS storage (contiguous array) of a block: value − BZERO in the storage type."""
-    block = np.ascontiguousarray(block)
-    bitpix, bzero, store = _IMAGE_TYPES[block.dtype.str[1:]]
-    if bzero is None:
-        return block.astype(store, copy=False)
-    unsigned = np.dtype(f"u{abs(bitpix) // 8}")
-    flip = unsigned.type(1 << (abs(bitpix) - 1))
-    # v − BZERO in two's complement is v with its top bit flipped (int8: v + 128 likewise)
-    out = np.bitwise_xor(block.view(unsigned), flip)
-    return out.byteswap(inplace=True).view(unsigned.newbyteorder(">")) if out.dtype.byteorder != ">" else out
-
-
-def _table_bytes(array, extname, extra=()):
-    """(header + data) bytes of a BINTABLE holding the structured ``array``."""
-    from astropy.io import fits
-    hdu = fits.BinTableHDU(data=np.asarray(array), name=extname)
-    for key, val in extra:
-        hdu.header[key] = val
-    buf = io.BytesIO()
-    fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(buf, checksum=True)
-    primary = fits.PrimaryHDU()
-    primary.add_checksum()
-    return buf.getvalue()[len(primary.header.tostring()):]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -266,9 +172,9 @@ class UncalWriter:
         """File size [bytes]: data, TRUTH_RATE when ``truth_rate``, and ``extra_bytes`` (other truth)."""
         plane = self.shape[0] * self.shape[1]
         rows = self.nramps * self.ngroups
-        size = 8 * _BLOCK + _padded(2 * self._pixels()) + self.groupdq * _padded(self._pixels())
-        size += self.pixeldq * _padded(4 * plane) + self.truth_rate * _padded(4 * plane)
-        return size + _padded(rows * 112) + _padded(self.nramps * 56) + self.extra_bytes
+        size = 8 * BLOCK + padded(2 * self._pixels()) + self.groupdq * padded(self._pixels())
+        size += self.pixeldq * padded(4 * plane) + self.truth_rate * padded(4 * plane)
+        return size + padded(rows * 112) + padded(self.nramps * 56) + self.extra_bytes
 
     def timing(self):
         """JWST timing keywords from the root attributes (see the module docstring) [s, frames]."""
@@ -398,7 +304,7 @@ class UncalWriter:
         self._hdu_of[name] = self._sums.add_hdu(self._end, header)
         self._append(header)
         self._offsets[name] = self._end
-        self._end += _padded(nbytes)
+        self._end += padded(nbytes)
         self._extnames.add(name)
         try:
             os.ftruncate(self._fd, self._end)
@@ -408,17 +314,17 @@ class UncalWriter:
     # ------------------------------------------------------------------ headers
     def _start_mjd(self):
         start = self.start_mjd if self.start_mjd is not None else self.attrs.get("EXPSTART")
-        return _mjd(_dt.datetime.now(_dt.timezone.utc).replace(tzinfo=None)) if start is None else float(start)
+        return mjd(_dt.datetime.now(_dt.timezone.utc).replace(tzinfo=None)) if start is None else float(start)
 
     def _primary_cards(self, timing, t0):
         ny, nx = self.shape
         y0, x0 = self.substrt
         full = self.shape == self.detector_shape and self.substrt == (1, 1)
         t_end = t0 + timing["DURATION"] / 86400.0
-        begin, end = _from_mjd(t0), _from_mjd(t_end)
+        begin, end = from_mjd(t0), from_mjd(t_end)
         cards = {"SIMPLE": True, "BITPIX": 8, "NAXIS": 0, "EXTEND": True,
                  "DATE": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:23],
-                 "FILENAME": _ascii(os.path.basename(self.path)), **DEFAULT_KEYWORDS,
+                 "FILENAME": ascii_text(os.path.basename(self.path)), **DEFAULT_KEYWORDS,
                  "DATE-OBS": begin.strftime("%Y-%m-%d"), "TIME-OBS": begin.strftime("%H:%M:%S.%f")[:12],
                  "DATE-BEG": begin.isoformat(timespec="milliseconds"),
                  "DATE-END": end.isoformat(timespec="milliseconds"),
@@ -435,31 +341,31 @@ class UncalWriter:
         cards.update({"SUBARRAY": "FULL" if full else "GENERIC", "SUBSTRT1": x0, "SUBSTRT2": y0,
                       "SUBSIZE1": nx, "SUBSIZE2": ny})
         for key, val in self.keywords.items():
-            cards[str(key).upper()] = _card_value(val)
+            cards[str(key).upper()] = card_value(val)
         out = list(cards.items())
-        out += [(f"HIERARCH SLICERSIM {_ascii(k).upper()}", _card_value(v)) for k, v in self.attrs.items()]
+        out += [(f"HIERARCH SLICERSIM {ascii_text(k).upper()}", card_value(v)) for k, v in self.attrs.items()]
         return out
 
     def _layout(self, timing):
         t0 = self._start_mjd()
         ny, nx = self.shape
         dims = (self.nramps, self.ngroups, ny, nx)
-        primary = _header(self._primary_cards(timing, t0))
+        primary = header_bytes(self._primary_cards(timing, t0))
         self._sums.add_hdu(self._end, primary)
         self._append(primary)
         bunit = str(self.attrs.get("BUNIT", "DN"))
-        sci_cards = [("BUNIT", "DN" if bunit.upper() in ("ADU", "DN") else _ascii(bunit)),
+        sci_cards = [("BUNIT", "DN" if bunit.upper() in ("ADU", "DN") else ascii_text(bunit)),
                      ("MJD-BEG", t0), ("MJD-AVG", t0 + timing["DURATION"] / 172800.0),
                      ("MJD-END", t0 + timing["DURATION"] / 86400.0),
                      ("XPOSURE", timing["XPOSURE"]), ("TELAPSE", timing["TELAPSE"])]
-        self._reserve("SCI", _image_header("SCI", np.uint16, dims, sci_cards), 2 * self._pixels())
+        self._reserve("SCI", image_header("SCI", np.uint16, dims, sci_cards), 2 * self._pixels())
         if self.groupdq:
-            self._reserve("GROUPDQ", _image_header("GROUPDQ", np.uint8, dims), self._pixels())
+            self._reserve("GROUPDQ", image_header("GROUPDQ", np.uint8, dims), self._pixels())
         if self.pixeldq:
-            self._reserve("PIXELDQ", _image_header("PIXELDQ", np.uint32, self.shape), 4 * ny * nx)
+            self._reserve("PIXELDQ", image_header("PIXELDQ", np.uint32, self.shape), 4 * ny * nx)
         group, int_times = self._time_tables(timing, t0)
-        self._append(_table_bytes(group, "GROUP"))
-        self._append(_table_bytes(int_times, "INT_TIMES"))
+        self._append(table_bytes(group, "GROUP"))
+        self._append(table_bytes(int_times, "INT_TIMES"))
         self._extnames.update({"GROUP", "INT_TIMES"})
 
     def _time_tables(self, timing, t0):
@@ -473,7 +379,7 @@ class UncalWriter:
         group = np.zeros(self.nramps * n, dtype=_GROUP_DTYPE)
         group["integration_number"] = np.repeat(np.arange(1, self.nramps + 1), n)
         group["group_number"] = np.tile(np.arange(1, n + 1), self.nramps)
-        ends = [_from_mjd(t0) + _dt.timedelta(seconds=float(f * tf)) for f in group_end.ravel()]
+        ends = [from_mjd(t0) + _dt.timedelta(seconds=float(f * tf)) for f in group_end.ravel()]
         since = [e - _DAY0 for e in ends]
         group["end_day"] = [s.days for s in since]
         group["end_milliseconds"] = [s.seconds * 1000 + s.microseconds // 1000 for s in since]
@@ -513,9 +419,9 @@ class UncalWriter:
                 raise RampFileError(f"{self.path}: no GROUPDQ extension (groupdq=False)")
         for g in range(self.ngroups):
             pix = ((int(ramp) * self.ngroups + g) * ny + int(row0)) * nx
-            self._data("SCI", _to_storage(sci[g]), 2 * pix)
+            self._data("SCI", to_storage(sci[g]), 2 * pix)
             if groupdq is not None:
-                self._data("GROUPDQ", _to_storage(groupdq[g]), pix)
+                self._data("GROUPDQ", to_storage(groupdq[g]), pix)
 
     def _data(self, name, data, offset):
         """Write ``data`` ``offset`` bytes into the data unit of extension ``name`` (summed for DATASUM)."""
@@ -542,7 +448,7 @@ class UncalWriter:
         step = max(1, (256 << 10) // (4 * self.shape[1]))        # rows per 256 KiB (h5py datasets too)
         for y0 in range(0, self.shape[0], step):
             flags = self._as(np.asarray(pixeldq[y0:y0 + step]), np.uint32, "PIXELDQ")
-            self._data("PIXELDQ", _to_storage(flags), 4 * y0 * self.shape[1])
+            self._data("PIXELDQ", to_storage(flags), 4 * y0 * self.shape[1])
 
     def write_truth(self, rate):
         """Append the input rate image (ny, nx) as TRUTH_RATE (float32, e-/s)."""
@@ -564,26 +470,26 @@ class UncalWriter:
         dtype, shape = np.dtype(array.dtype), tuple(array.shape)
         h5path = str(name).strip("/")
         h5path = h5path if h5path.startswith("truth/") else f"truth/{h5path}"    # as RampWriter.write_dataset
-        extra = [("H5PATH", _ascii(h5path)), ("H5DTYPE", json.dumps(dtype.descr) if dtype.names else str(dtype))]
-        extra += [(f"HIERARCH SLICERSIM {key}", _ascii(str(val))[:60]) for key, val in (attrs or {}).items()]
+        extra = [("H5PATH", ascii_text(h5path)), ("H5DTYPE", json.dumps(dtype.descr) if dtype.names else str(dtype))]
+        extra += [(f"HIERARCH SLICERSIM {key}", ascii_text(str(val))[:60]) for key, val in (attrs or {}).items()]
         if dtype.names:
-            self._append(_table_bytes(np.asarray(array[()]), extname, extra))
+            self._append(table_bytes(np.asarray(array[()]), extname, extra))
         else:
-            if dtype.str[1:] not in _IMAGE_TYPES:
+            if dtype.str[1:] not in IMAGE_TYPES:
                 raise RampFileError(f"{self.path}: dataset {name!r} of dtype {dtype} cannot be written "
                                     "to FITS (integers, floats 32/64, booleans or structured arrays)")
             nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-            header = _image_header(extname, dtype, shape, extra)
+            header = image_header(extname, dtype, shape, extra)
             hdu = self._sums.add_hdu(self._end, header)
             self._append(header)
             start = self._end
             row = max(1, (16 << 20) // max(1, nbytes // max(1, shape[0]))) if shape else 1
             blocks = (array[i:i + row] for i in range(0, shape[0], row)) if shape else [array[()]]
             for block in blocks:
-                data = _to_storage(np.asarray(block).astype(dtype, copy=False))
+                data = to_storage(np.asarray(block).astype(dtype, copy=False))
                 self._sums.add_data(hdu, data, self._end - start)
                 self._append(data)
-            self._append(bytes(_padded(self._end - start) - (self._end - start)))
+            self._append(bytes(padded(self._end - start) - (self._end - start)))
         self._extnames.add(extname)
 
 
