@@ -56,19 +56,12 @@ opencl: venv
 # -rs lists every skipped test and why (e.g. no ../shared/reference, no fp64 OpenCL device);
 # with CI=true a missing ../shared/reference fails the reference tests instead of skipping them.
 # The fast tier (a few minutes on 2 cores): every test not marked slow.
-# tests/campaign/test_campaign.py (bit-identical datasets across worker counts, interruptions and
-# clusters) runs in a pytest process of its own: after other test modules in the same session its
-# reference dataset differed from fresh runs (an order dependence seen only in the test session).
-CAMPAIGN_TESTS := tests/campaign/test_campaign.py
-
 test: venv opencl
-	"$(PY)" -m pytest -q -rs -m "not slow" --durations=20 --ignore=$(CAMPAIGN_TESTS)
-	"$(PY)" -m pytest -q -rs -m "not slow" $(CAMPAIGN_TESTS)
+	"$(PY)" -m pytest -q -rs -m "not slow" --durations=20
 
 # Everything, slow tier included (Dask clusters, kill -9, full-detector ramps, Monte Carlo): what CI runs.
 test-all: venv opencl
-	"$(PY)" -m pytest -q -rs --ignore=$(CAMPAIGN_TESTS)
-	"$(PY)" -m pytest -q -rs $(CAMPAIGN_TESTS)
+	"$(PY)" -m pytest -q -rs
 
 demo: venv opencl
 	"$(VENV)/bin/slicersim" demo --outdir demo_output --overwrite
