@@ -81,7 +81,8 @@ def _read_spectrum(path):
 
     Lines before the first numeric row are a header; after it, a row that is not two numbers (or
     has more fields, as decimal commas give) is an error naming the file and the line
-    (SpectrumError), as is a file that is not UTF-8 text
+    (SpectrumError), as are a wavelength not above the previous row's (rows out of order, a
+    duplicate: never sorted or dropped) and a file that is not UTF-8 text
     (e.g. a binary or .npy file given by mistake)."""
     import numpy as np
 
@@ -94,7 +95,7 @@ def _read_spectrum(path):
     except UnicodeDecodeError as exc:
         raise SpectrumError(f"--spectrum: {path} is not a text file (byte {exc.start} is not UTF-8); "
                             "give a two-column text/CSV file: wavelength [Angstrom], flux") from None
-    lbda, flux = [], []
+    lbda, flux, lines = [], [], []
     for number, line in enumerate(text.splitlines(), start=1):
         fields = line.split("#", 1)[0].replace(",", " ").replace(";", " ").split()
         if not fields:
@@ -111,12 +112,13 @@ def _read_spectrum(path):
                                 f"got {validation.short_repr(line.strip())}")
         lbda.append(row[0])
         flux.append(row[1])
+        lines.append(number)
     if len(lbda) < 2:
         raise SpectrumError(f"{path}: need at least two numeric 'wavelength flux' rows")
-    lbda, flux = np.asarray(lbda), np.asarray(flux)
-    order = np.argsort(lbda, kind="stable")
+    from slicersim.io.tables import check_increasing
+    check_increasing(lbda, f"--spectrum: {path}", error=SpectrumError, lines=lines)
     from slicersim.sources.spectra import validate_spectrum
-    return validate_spectrum(lbda[order], flux[order], name=f"--spectrum {path}")
+    return validate_spectrum(np.asarray(lbda), np.asarray(flux), name=f"--spectrum {path}")
 
 
 def _two_numbers(fields):

@@ -13,6 +13,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
 from slicersim.errors import ParameterError, SpectrumError
+from slicersim.io.tables import check_increasing
 from slicersim.versioning import Versioned
 
 __all__ = ["PointSource", "validate_spectrum", "snia_spectrum", "sncosmo_spectrum", "load_sncosmo_source",
@@ -37,7 +38,8 @@ def default_lbda():
 
 
 def validate_spectrum(lbda, flux, name="spectrum"):
-    """Check and return (λ, F) as float arrays; λ strictly increasing, F finite and ≥ 0."""
+    """Check and return (λ, F) as float arrays; λ strictly increasing (else an error naming the first
+    two samples out of order and their indices), F finite and ≥ 0."""
     lbda = validation.array(f"{name}: wavelengths", lbda, finite=False, error=SpectrumError)
     flux = validation.array(f"{name}: flux", flux, finite=False, error=SpectrumError)
     if lbda.ndim != 1 or lbda.size == 0:
@@ -46,7 +48,8 @@ def validate_spectrum(lbda, flux, name="spectrum"):
         raise SpectrumError(f"{name}: flux shape {flux.shape} differs from wavelength shape {lbda.shape}")
     if lbda.size < 2:
         raise SpectrumError(f"{name}: need at least 2 samples to interpolate")
-    if not np.all(np.isfinite(lbda)) or np.any(np.diff(lbda) <= 0):
+    check_increasing(lbda, name, error=SpectrumError, label="index", first=0)
+    if not np.all(np.isfinite(lbda)):
         raise SpectrumError(f"{name}: wavelengths must be finite and strictly increasing")
     if not np.all(np.isfinite(flux)):
         raise SpectrumError(f"{name}: flux contains {np.count_nonzero(~np.isfinite(flux))} NaN/inf value(s)")
