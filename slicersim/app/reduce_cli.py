@@ -84,8 +84,10 @@ def parse_lbda_edges(text):
     multiple of STEP) or the name of a file (.npy, or text: the edges, whitespace or comma separated)."""
     import numpy as np
 
+    from slicersim import validation
     from slicersim.errors import ParameterError
-    if os.path.isfile(text):
+    if os.path.lexists(text):
+        validation.regular_file("--lbda-edges", text)            # a FIFO, device, directory: refused
         try:
             if text.endswith(".npy"):
                 edges = np.load(text, allow_pickle=False)
@@ -131,9 +133,11 @@ def _load_npy(text, flag, expected):
     """The .npy array of a file option (one-line ParameterError when missing or unreadable)."""
     import numpy as np
 
+    from slicersim import validation
     from slicersim.errors import ParameterError
-    if not os.path.isfile(text):
+    if not os.path.lexists(text):
         raise ParameterError(f"{flag} must be {expected}, got {text!r}")
+    validation.regular_file(flag, text)                          # a FIFO, device, directory: refused
     try:
         return np.load(text, allow_pickle=False)
     except (OSError, ValueError) as exc:

@@ -106,10 +106,10 @@ def _read_toml(path):
         for key in list(entries):
             if (table, key) in FILE_KEYS and isinstance(entries[key], str):
                 fpath = entries[key] if os.path.isabs(entries[key]) else os.path.join(here, entries[key])
-                if not os.path.isfile(fpath):
-                    raise ConfigError(f"{path}: [{table}] {key} = {entries[key]!r}: "
-                                      f"curve file not found at {fpath}")
-                entries[key] = fpath
+                where = f"{path}: [{table}] {key} = {entries[key]!r}: curve file"
+                if not os.path.lexists(fpath):
+                    raise ConfigError(f"{where} not found at {fpath}")
+                entries[key] = validation.regular_file(where, fpath, error=ConfigError)   # a FIFO, device: refused
             if (table, key) in ALIASES:
                 entries[ALIASES[(table, key)]] = entries.pop(key)
     return tables
@@ -216,8 +216,9 @@ def _check_fraction(cfg, table, key, what):
     value = entries[key]
     if isinstance(value, (str, os.PathLike)):
         path = os.fspath(value)
-        if not os.path.isfile(path):
+        if not os.path.lexists(path):
             raise _bad(table, key, value, "curve file not found")
+        validation.regular_file(f"[{table}] {key} = {path!r}: curve file", path, error=ConfigError)
         for col, (vmin, vmax, finite) in _curve_values(path, os.path.getmtime(path)).items():
             if not finite:
                 raise _bad(table, key, value, f"{what} column {col!r} of the curve file has NaN/inf values")

@@ -211,8 +211,8 @@ def find_calspec_file(name, calspec_dir=None):
     prefix, e.g. ``"bd_17d4708"``).  SpectrumError, saying where to download it, when absent."""
     if not isinstance(name, (str, os.PathLike)) or not str(name).strip():
         raise SpectrumError(f"a CALSPEC star is a name (e.g. 'bd_17d4708') or a FITS path, got {name!r}")
-    if Path(name).is_file():
-        return Path(name)
+    if os.path.lexists(name) and not os.path.isdir(name):
+        return Path(validation.regular_file("CALSPEC file", name, error=SpectrumError))   # no FIFO, device
     folder = calspec_dir if calspec_dir is not None else os.environ.get("SLICERSIM_CALSPEC_DIR")
     how = (f"download it from {CALSPEC_URL} and pass its path, or calspec_dir= (or $SLICERSIM_CALSPEC_DIR) "
            "naming the folder that holds it")

@@ -374,6 +374,9 @@ def _main_no_hang(capsys, argv, monkeypatch, timeout=60):
     ["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "persistence", "--previous-charge", "{input}",
      "--out", "{tmp}/r.h5"],
     ["campaign", "run", "{input}", "--out", "{tmp}/ds"],
+    ["footprints", "--out", "{tmp}/fp", "--spot-table", "{input}"],
+    ["plot", "slice-map", "--out", "{tmp}/map.png", "--spot-table", "{input}"],
+    ["etc", "--redshift", "1", "--config", "{curve_config}"],
 ])
 def test_fifos_devices_and_directories_are_refused_before_reading(tmp_path, capsys, monkeypatch, kind, argv):
     rate = tmp_path / "rate.npy"
@@ -386,7 +389,9 @@ def test_fifos_devices_and_directories_are_refused_before_reading(tmp_path, caps
     else:
         path = tmp_path / "folder.toml"
         path.mkdir()
-    subst = {"input": str(path), "tmp": str(tmp_path), "rate": str(rate)}
+    curve_config = tmp_path / "curve.toml"                  # a curve file that is not a regular file
+    curve_config.write_text(f'[detector]\nQE = "{path}"\n')
+    subst = {"input": str(path), "tmp": str(tmp_path), "rate": str(rate), "curve_config": str(curve_config)}
     err = _one_line(*_main_no_hang(capsys, [a.format(**subst) for a in argv], monkeypatch))
     assert str(path) in err and ("not a regular file" in err or "directory" in err), err
     assert not (tmp_path / "r.h5").exists() and not (tmp_path / "ds").exists()
