@@ -210,6 +210,10 @@ def _spectra_options(args):
 def cmd_reduce(args) -> int:
     from slicersim.errors import ParameterError
     dataset = os.path.isdir(args.raw)
+    if os.path.isfile(args.raw) and args.raw.lower().endswith(".toml"):
+        raise ParameterError(f"{args.raw} is a TOML file, not a ramp file: 'slicersim reduce' takes a ramp file or a "
+                             f"campaign dataset directory (a campaign spec? run it first: 'slicersim campaign run "
+                             f"{args.raw} --out DIR' with products.ramps = true, then 'slicersim reduce DIR --out RED')")
     _check_flags(args, dataset)
     if not dataset and not os.path.isfile(args.raw):
         if os.path.lexists(args.raw):       # a FIFO, device or socket: never opened
