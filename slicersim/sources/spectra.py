@@ -114,7 +114,7 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
     from astropy.cosmology import Planck18
     if isinstance(redshift, (bool, np.bool_)) or not isinstance(redshift, (int, float, np.number)) \
             or not (np.isfinite(redshift) and redshift > 0):
-        raise SpectrumError(f"redshift must be > 0, got {redshift}")
+        raise SpectrumError(f"{validation.shown('redshift')} must be > 0, got {validation.short_repr(redshift)}")
     if isinstance(phase, (bool, np.bool_)) or not isinstance(phase, (int, float, np.number)) \
             or not np.isfinite(phase):
         raise SpectrumError(f"phase must be a finite number of days, got {phase!r}")
