@@ -39,12 +39,14 @@ def cmd_survey_plan(args) -> int:
     seed = validation.new_seed() if seed is None else seed      # recorded in the table and printed
     lbda = spectrum_grid()
     check_client_memory(args.n, lbda.size)
-    pop = SNIaPopulation(args.n, redshift={"distribution": args.distribution, "min": args.zmin, "max": args.zmax})
+    config = (args.config[0] if len(args.config) == 1 else list(args.config)) if args.config else "cbe"
+    with validation.flag_names({"population.redshift.min": "--zmin", "population.redshift.max": "--zmax"}):
+        pop = SNIaPopulation(args.n, redshift={"distribution": args.distribution, "min": args.zmin, "max": args.zmax})
     table = pop.draw(seed)
     fluxes = pop.spectra(table, lbda)
     fluxes = np.where(np.isfinite(fluxes), fluxes, 0.0)
     plan = plan_survey(np.asarray(table["redshift"]), lbda, fluxes, snr=args.snr, lbda_range=tuple(args.lbda_range),
-                       frame="rest", z_switch=args.z_switch, config=args.config, search=args.search,
+                       frame="rest", z_switch=args.z_switch, config=config, search=args.search,
                        conventions=args.conventions, overhead=args.overhead, efficiency=args.efficiency,
                        compression_ratio=args.compression_ratio, target_ids=np.asarray(table["target_id"]),
                        progress=None, precision=args.precision)
@@ -209,7 +211,8 @@ def add_parsers(sub, fmt):
     p.add_argument("--lbda-range", type=float, nargs=2, default=(4000.0, 6800.0), metavar=("LO", "HI"),
                    help="rest-frame band [Angstrom]")
     p.add_argument("--z-switch", type=float, default=0.8, help="narrow field below, wide field from this redshift")
-    p.add_argument("--config", default="cbe", metavar="cbe|eol|PATH", help="instrument configuration")
+    p.add_argument("--config", action="append", metavar="cbe|eol|PATH",
+                   help="instrument configuration; repeat to apply several in order (default: cbe)")
     p.add_argument("--search", choices=("exact", "reference"), default="exact", help="readout search")
     p.add_argument("--conventions", choices=CONVENTIONS, default=DEFAULT_CONVENTIONS, help="model conventions")
     p.add_argument("--overhead", type=float, default=0.0, help="per-target overhead (slew, settle) [s]")

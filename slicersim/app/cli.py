@@ -310,7 +310,8 @@ def cmd_ramp(args) -> int:
         path = ramps.simulate(rate, nmd, args.nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
     else:
         from slicersim.targets import LazuliSupernova
-        target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field or "narrow",
+        config = (args.config[0] if len(args.config) == 1 else list(args.config)) if args.config else "cbe"
+        target = LazuliSupernova(args.redshift, config=config, field=args.field or "narrow",
                                  conventions=args.conventions or DEFAULT_CONVENTIONS)
         path = target.get_ramps(nmd=nmd, nramps=args.nramps, **detector, **common)
     print(f"wrote {path} (seed {seed})")            # --seed SEED repeats the run
@@ -396,8 +397,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--compression", choices=("gzip", "lz4", "zstd", "bitshuffle-lz4"),
                    help="HDF5 compression (default: none)")
-    p.add_argument("--config", metavar="cbe|eol|PATH", help="instrument configuration, only with --redshift "
-                   "(default: cbe)")
+    p.add_argument("--config", action="append", metavar="cbe|eol|PATH", help="instrument configuration, only with "
+                   "--redshift; repeat to apply several in order (default: cbe)")
     p.add_argument("--field", choices=("narrow", "wide"), help="field of view, only with --redshift "
                    "(default: narrow)")
     p.add_argument("--tframe", type=float, help=f"frame time [s] (default: {d['tframe']}; {from_config})")

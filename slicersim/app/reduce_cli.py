@@ -200,7 +200,8 @@ def _spectra_options(args):
             "position": _parse_position(args.position) if args.position is not None else None,
             "psf": _load_psf(args.psf) if args.psf is not None else None,
             "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights,
-            "config": args.config, "ipc": False if args.no_ipc else None}
+            "config": (args.config[0] if len(args.config) == 1 else list(args.config)) if args.config else None,
+            "ipc": False if args.no_ipc else None}
     opts = {k: v for k, v in opts.items() if v is not None}       # --dark none: "none" (kept, not None)
     with _FlagNames():
         check_spectra_options(**opts)              # every value, before any data are read
@@ -312,8 +313,9 @@ def add_parsers(sub, fmt):
     g.add_argument("--no-ipc", action="store_true",
                    help="do not deconvolve the rates by the file's inter-pixel capacitance kernel (done by "
                         "default when the file records the IPC effect)")
-    g.add_argument("--config", metavar="cbe|eol|PATH",
-                   help="instrument configuration of the forward model (default: the one the file records)")
+    g.add_argument("--config", action="append", metavar="cbe|eol|PATH",
+                   help="instrument configuration of the forward model; repeat to apply several in order "
+                        "(default: the one the file records)")
     g.add_argument("--psf", metavar="fit|FILE.npy", help="cube extractions: 'fit' a Gaussian fitted on the cube; "
                    "or a .npy array (nλ, slices, columns) of PSF fractions or a forward-modelled template")
     g.add_argument("--position", metavar="X,Y", help="source position [cells from the field centre] "

@@ -434,3 +434,71 @@ def test_cli_etc_prints_units_and_no_object_repr():
     assert "object at 0x" not in out
     # the CLI now prints units in brackets after the key ("exposure_time [s]", "data_volume [GB]")
     assert "[GB]" in out and "[s]" in out and "[Angstrom]" in out
+
+
+# --------------------------------------------------------------------------- messages name the flags
+@pytest.mark.parametrize("argv, needle", [
+    (["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "cosmic_rays", "--cr-rate", "-1",
+      "--out", "{tmp}/r.h5"], "--cr-rate [cm⁻² s⁻¹] must be in [0, 1e+06], got -1"),
+    (["ramp", "--rate", "{tmp}/missing.npy", "--out", "{tmp}/r.h5"], "--rate: {tmp}/missing.npy: No such file"),
+    (["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "all", "--effects-config",
+      "{tmp}/missing.toml", "--out", "{tmp}/r.h5"], "--effects-config: {tmp}/missing.toml: No such file"),
+    (["ramp", "--redshift", "1", "--effects", "persistence", "--previous-charge", "{tmp}/missing.npy",
+      "--out", "{tmp}/r.h5"], "--previous-charge: {tmp}/missing.npy: No such file"),
+    (["ramp", "--redshift", "-1", "--out", "{tmp}/r.h5"], "--redshift must be > 0, got -1"),
+    (["plot", "fields", "--redshift", "-1", "--out", "{tmp}/f.png"], "--redshift must be > 0, got -1"),
+    (["etc", "--redshift", "1", "--lbda-range", "-5", "6000"], "use the covered part (--allow-partial)"),
+])
+def test_messages_name_the_command_line_flags_not_python_keywords(tmp_path, capsys, monkeypatch, argv, needle):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    subst = {"tmp": str(tmp_path), "rate": str(rate)}
+    err = _one_line(*_main_error(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    assert needle.format(**subst) in err, err
+    message = err.partition("error: ")[2]
+    assert not re.search(r"(?<![-\w.])(nramps|lbda_range|redshift|snr|cr_rate|cosmic_rays\.rate|image file|"
+                         r"effects config|allow_partial)\b", message), err
+    assert not (tmp_path / "r.h5").exists()
+
+
+# --------------------------------------------------------------------------- spectra: rows are never reordered
+@pytest.mark.parametrize("text, needle", [
+    ("wavelength,flux\n4000,1e-17\n5000,1e-17\n5010,1e-17\n5005,1e-17\n5020,1e-17\n9000,1e-17\n",
+     "sp.csv, line 5: wavelength 5005 is below 5010 on line 4"),
+    ("# my spectrum\nwavelength flux\n\n4000 1e-17\n5000 1e-17\n5000 2e-17\n9000 1e-17\n",
+     "sp.csv, line 6: wavelength 5000 equals 5000 on line 5 (a duplicate row)"),
+])
+def test_spectrum_rows_out_of_order_or_repeated_are_refused_naming_the_lines(tmp_path, capsys, monkeypatch, text,
+                                                                               needle):
+    path = tmp_path / "sp.csv"
+    path.write_text(text)
+    err = _one_line(*_main_error(capsys, ["etc", "--spectrum", path, "--snr", "10"], monkeypatch))
+    assert "--spectrum" in err and needle in err and "never sorted or dropped" in err, err
+
+
+# --------------------------------------------------------------------------- partial or misplaced configurations
+@pytest.mark.parametrize("argv", [
+    ["etc", "--redshift", "1", "--config", "{partial}"],
+    ["ramp", "--redshift", "1", "--config", "{partial}", "--out", "{tmp}/r.h5"],
+    ["survey", "plan", "--n", "2", "--config", "{partial}"],
+    ["footprints", "--out", "{tmp}/fp", "--config", "{partial}"],
+])
+def test_a_partial_configuration_names_the_missing_key_and_the_complete_default(tmp_path, capsys, monkeypatch,
+                                                                                 argv):
+    partial = tmp_path / "partial.toml"
+    partial.write_text("[detector]\ngain = 2.0\n")
+    subst = {"partial": str(partial), "tmp": str(tmp_path)}
+    err = _one_line(*_main_error(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    for needle in ("partial.toml", "[spectrograph] dispersion_law", "lazuli_cbe.toml",
+                   "--config cbe --config FILE"):
+        assert needle in err, (needle, err)
+
+
+def test_config_is_repeatable_on_ramp_and_survey_plan(tmp_path, capsys, monkeypatch):
+    """Layering (--config cbe --config FILE) applies every file: the last one is not the only one."""
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text("[telescope]\ngain = 2.0\n")
+    for argv in (["ramp", "--redshift", "1", "--config", wrong, "--config", "cbe", "--out", tmp_path / "r.h5"],
+                 ["survey", "plan", "--n", "2", "--config", wrong, "--config", "cbe"]):
+        err = _one_line(*_main_error(capsys, argv, monkeypatch))
+        assert "wrong.toml: [telescope] has no key(s) 'gain': 'gain' belongs in [detector]" in err, err

@@ -411,6 +411,29 @@ def test_cli_survey_plan_bad_input(tmp_path, args, message):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--zmin", "1.2", "--zmax", "0.3"], "--zmin (1.2) must be < --zmax (0.3)"),
+    (["--zmin", "0.5", "--zmax", "0.5"], "--zmin (0.5) must be < --zmax (0.5)"),
+    (["--zmin=-0.5"], "--zmin must be in [0, 10] (redshifts cannot be negative), got -0.5"),
+    (["--zmax", "12"], "--zmax must be in [0, 10] (redshifts above 10 are outside any SN Ia model), got 12"),
+    (["--zmin", "nan"], "--zmin must be finite, got nan"),
+    (["--zmax", "inf"], "--zmax must be finite, got inf"),
+    (["--zmin=-inf"], "--zmin must be finite, got -inf"),
+    (["--snr", "-1"], "--snr must be > 0, got -1"),
+    (["--z-switch", "-1"], "--z-switch must be ≥ 0, got -1"),
+    (["--compression-ratio", "0"], "--compression-ratio must be ≥ 1, got 0"),
+    (["--lbda-range", "6000", "4000"], "--lbda-range must be (lo, hi) in Å with 0 < lo < hi"),
+])
+def test_cli_survey_plan_messages_name_the_flags(tmp_path, args, message):
+    """The redshift range and the plan's options are named by their flags (--zmin, not population.redshift.min
+    or zmin), one line each."""
+    proc = run_cli("survey", "plan", "--n", "2", *args, "--out", tmp_path / "p.ecsv")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("slicersim: error: --"), proc.stderr
+    assert message in lines[0] and "population." not in lines[0] and "z_switch" not in lines[0], lines[0]
+    assert not (tmp_path / "p.ecsv").exists()
+
+
 # --------------------------------------------------------------------------- campaign targets
 def test_catalog_campaign_with_dust_hosts_and_user_spectrum(tmp_path):
     """A catalog campaign in-process: planned, simulated (host in the scene) and recorded;
