@@ -7,13 +7,15 @@ here.
 """
 from __future__ import annotations
 
+import os
+
 from slicersim import validation
 from slicersim.errors import ConfigError
 from slicersim.instrument.detector import Detector
 from slicersim.instrument.mapper import SlicerMapper
 from slicersim.instrument.spectrograph import MLASpectrograph, SlicerSpectrograph, wavelength_grid_from_dispersion
 from slicersim.instrument.telescope import Telescope
-from slicersim.io.config import expand_config, load_config
+from slicersim.io.config import complete_config_hint, expand_config, load_config
 from slicersim.io.curves import read_curve
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS
 from slicersim.simulation import Simulation
@@ -64,7 +66,10 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
     _check_anamorphosis(spc, cls, kind)
     extra = _mla_options(cfg.get("spectrograph.psf.detector", {}), ext) if kind == "mla" else {}
     if "dispersion_law" not in spc and "resolving_power" not in spc:
-        raise ConfigError("configuration needs [spectrograph] dispersion_law or resolving_power")
+        files = ", ".join(os.path.basename(p) for p in cfg.get("_sources", ())) or "given as a dict"
+        raise ConfigError(f"the configuration ({files}) sets neither [spectrograph] dispersion_law nor "
+                          "resolving_power, one of which the model needs (a configuration file replaces the built-in "
+                          f"one, it does not amend it); {complete_config_hint()}")
     spectrograph = cls(spectral_range=spc.get("spectral_range", (4000.0, 17000.0)),
                        dispersion_law=spc.get("dispersion_law"), resolving_power=spc.get("resolving_power"),
                        dispersion_scale=spc.get("dispersion_scale", 1.0),

@@ -9,9 +9,15 @@ return the value converted (``float``, ``int``, tuple, array), so a call site re
 
 A number given as an astropy ``Quantity`` is converted to the unit the parameter is documented
 in (``unit=``); a plain number is taken to be in that unit already.
+
+Inside :func:`flag_names` (the CLI runs every command in one), a checked parameter is shown by
+the command-line flag that gave it (``--nramps``, not ``nramps``): messages written without a
+checker name their parameter with :func:`shown`.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import difflib
 import math
 import numbers
@@ -25,7 +31,7 @@ import numpy as np
 from slicersim.errors import ParameterError, ReadoutError
 
 __all__ = ["short_repr", "number", "integer", "positive_int", "fraction", "flag", "choice", "readout", "nramps",
-           "seed", "new_seed", "array", "shape", "regular_file", "renamed_keyword", "MAX_GROUPS", "MAX_DROPS",
+           "seed", "new_seed", "array", "shape", "regular_file", "renamed_keyword", "flag_names", "shown", "MAX_GROUPS", "MAX_DROPS",
            "MAX_FRAMES"]
 
 #: the largest readout this package accepts: groups per ramp, dropped frames between groups and
@@ -34,6 +40,27 @@ __all__ = ["short_repr", "number", "integer", "positive_int", "fraction", "flag"
 MAX_GROUPS = 4096
 MAX_DROPS = 4096
 MAX_FRAMES = 65536
+
+
+#: Python parameter name → what the user typed it as (a CLI flag), set by :func:`flag_names`
+_SHOWN_NAMES = contextvars.ContextVar("slicersim_shown_names", default={})
+
+
+@contextlib.contextmanager
+def flag_names(names):
+    """Within the block, :func:`shown` (and so every checker here) names a parameter by ``names``
+    (``{"nramps": "--nramps", "population.redshift.min": "--zmin"}``); nested blocks add to the
+    outer one's names."""
+    token = _SHOWN_NAMES.set({**_SHOWN_NAMES.get(), **names})
+    try:
+        yield
+    finally:
+        _SHOWN_NAMES.reset(token)
+
+
+def shown(name) -> str:
+    """``name`` as the user gave the parameter: its flag inside :func:`flag_names`, else itself."""
+    return _SHOWN_NAMES.get().get(name, name) if isinstance(name, str) else name
 
 
 def short_repr(value, limit=60) -> str:
@@ -68,6 +95,7 @@ def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_op
            error=ParameterError) -> float:
     """``value`` as a finite float in [low, high] (a bound excluded where ``*_open``); an astropy
     Quantity is converted to ``unit`` first."""
+    name = shown(name)
     value = _quantity_value(name, value, unit, error)
     in_unit = f" [{unit}]" if unit else ""
     if isinstance(value, (bool, np.bool_, str, bytes)) or not isinstance(value, (numbers.Real, np.ndarray)) \
@@ -93,6 +121,7 @@ def _interval(low, high, low_open, high_open):
 def integer(name, value, *, low=None, high=None, error=ParameterError) -> int:
     """``value`` as an int in [low, high]; integral floats (``3.0``) are accepted, ``2.7``, NaN,
     bools and strings are refused."""
+    name = shown(name)
     bounds = (f" ≥ {low}" if high is None else f" in [{low}, {high}]") if low is not None else \
         (f" ≤ {high}" if high is not None else "")
     if isinstance(value, (bool, np.bool_, str, bytes)) or not isinstance(value, numbers.Real):
@@ -122,6 +151,7 @@ def fraction(name, value, *, error=ParameterError) -> float:
 def flag(name, value, *, error=ParameterError) -> bool:
     """A bool (``True``/``False`` or NumPy's); 0, 1 and strings are refused so a misplaced
     positional argument is not read as a switch."""
+    name = shown(name)
     if not isinstance(value, (bool, np.bool_)):
         raise error(f"{name} must be True or False, got {short_repr(value)}")
     return bool(value)
@@ -130,6 +160,7 @@ def flag(name, value, *, error=ParameterError) -> bool:
 def choice(name, value, valid, *, error=ParameterError, what=None):
     """``value`` if it is one of ``valid`` (compared as given; strings case-sensitively), else an
     error listing the valid ones, with a "did you mean" for a near miss."""
+    name = shown(name)
     valid = list(valid)
     try:
         if value in valid:
@@ -151,6 +182,7 @@ def readout(nmd, *, name="nmd", min_group=2, max_group=None, error=ReadoutError)
     """A MACC readout (n groups, m frames per group, d dropped frames) as three ints:
     2 ≤ n ≤ ``max_group`` (≤ :data:`MAX_GROUPS`), 1 ≤ m, 0 ≤ d ≤ :data:`MAX_DROPS`, and at most
     :data:`MAX_FRAMES` frames per ramp.  Non-integers (``2.7``) are refused, not truncated."""
+    name = shown(name)
     if isinstance(nmd, (str, bytes)) or not hasattr(nmd, "__len__") or len(nmd) != 3:
         raise error(f"{name} must be a triple (n, m, d) of integers, got {short_repr(nmd)}")
     n_low = max(2, int(min_group or 2))
@@ -174,6 +206,7 @@ def seed(value, *, name="seed", allow_none=True, error=ParameterError):
     """A noise seed: an integer in [0, 2⁶⁴), or None where a fresh seed is drawn (see
     :func:`new_seed`).  A NumPy ``Generator`` is accepted for one release with a
     DeprecationWarning: an integer seed is drawn from it (counter-based noise needs an integer key)."""
+    name = shown(name)
     if value is None:
         if allow_none:
             return None
@@ -201,6 +234,7 @@ def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, un
     structured, complex and string arrays, a wrong number of dimensions, non-finite values
     (``finite``) and values below ``low``.  An astropy Quantity is converted to ``unit`` (refused
     when ``unit`` is None or not convertible: its unit must never be dropped silently)."""
+    name = shown(name)
     value = _quantity_value(name, value, unit, error, plain="an array of plain numbers")
     try:
         arr = np.asarray(value)
@@ -220,6 +254,7 @@ def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, un
 
 def shape(name, value, *, ndim=2, max_side=65536, error=ParameterError) -> tuple[int, ...]:
     """A shape of ``ndim`` integers in [1, max_side]."""
+    name = shown(name)
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != ndim:
         raise error(f"{name} must be {ndim} integers, got {short_repr(value)}")
     return tuple(integer(f"{name}[{i}]", v, low=1, high=max_side, error=error) for i, v in enumerate(value))
@@ -228,6 +263,7 @@ def shape(name, value, *, ndim=2, max_side=65536, error=ParameterError) -> tuple
 def regular_file(name, path, *, error=ParameterError, max_bytes=None) -> str:
     """``path`` (str or os.PathLike) of an existing regular file (not a directory, FIFO or
     device), at most ``max_bytes`` long when given; returned as a str."""
+    name = shown(name)
     try:
         path = os.fspath(path)
     except TypeError:

@@ -39,12 +39,14 @@ def cmd_survey_plan(args) -> int:
     seed = validation.new_seed() if seed is None else seed      # recorded in the table and printed
     lbda = spectrum_grid()
     check_client_memory(args.n, lbda.size)
-    pop = SNIaPopulation(args.n, redshift={"distribution": args.distribution, "min": args.zmin, "max": args.zmax})
+    config = (args.config[0] if len(args.config) == 1 else list(args.config)) if args.config else "cbe"
+    with validation.flag_names({"population.redshift.min": "--zmin", "population.redshift.max": "--zmax"}):
+        pop = SNIaPopulation(args.n, redshift={"distribution": args.distribution, "min": args.zmin, "max": args.zmax})
     table = pop.draw(seed)
     fluxes = pop.spectra(table, lbda)
     fluxes = np.where(np.isfinite(fluxes), fluxes, 0.0)
     plan = plan_survey(np.asarray(table["redshift"]), lbda, fluxes, snr=args.snr, lbda_range=tuple(args.lbda_range),
-                       frame="rest", z_switch=args.z_switch, config=args.config, search=args.search,
+                       frame="rest", z_switch=args.z_switch, config=config, search=args.search,
                        conventions=args.conventions, overhead=args.overhead, efficiency=args.efficiency,
                        compression_ratio=args.compression_ratio, target_ids=np.asarray(table["target_id"]),
                        progress=None, precision=args.precision)
@@ -92,11 +94,41 @@ def _write_figure(plans, path, overwrite):
     write_files({path: draw}, overwrite=overwrite, error_class=ParameterError)
 
 
+def _check_dataset_argument(path):
+    """``campaign status DIR``: a file or FIFO is refused naming what the command takes (a campaign
+    spec given by mistake: the command that runs it)."""
+    from slicersim.errors import ParameterError
+    if os.path.isdir(path) or not os.path.lexists(path):
+        return                          # a directory, or missing: campaign_status says
+    kind = "a file" if os.path.isfile(path) else "not a directory (a FIFO, device or socket)"
+    hint = (f"; {path} looks like a campaign spec: run it with 'slicersim campaign run {path} --out DIR', then "
+            "'slicersim campaign status DIR'") if path.lower().endswith(".toml") else ""
+    raise ParameterError(f"{path} is {kind}: 'slicersim campaign status' takes a dataset directory (the --out DIR "
+                         f"of 'slicersim campaign run'){hint}")
+
+
+def _check_spec_argument(path):
+    """``campaign run SPEC.toml``: a directory (a dataset given where its spec goes) is refused naming
+    what the command takes."""
+    from slicersim.errors import ParameterError
+    if not os.path.isdir(path):
+        return                          # a file, or missing: load_spec says
+    from slicersim.io.dataset import SPEC_JSON
+    if os.path.isfile(os.path.join(path, SPEC_JSON)):
+        what = (f"{path} is a dataset directory, not a campaign spec: 'slicersim campaign run' takes SPEC.toml "
+                f"and --out DIR (to resume this dataset: 'slicersim campaign run SPEC.toml --out {path}' with "
+                f"the spec it was made from; its state: 'slicersim campaign status {path}')")
+    else:
+        what = f"{path} is a directory, not a campaign spec: 'slicersim campaign run' takes SPEC.toml --out DIR"
+    raise ParameterError(what)
+
+
 def cmd_campaign_run(args) -> int:
     import math
 
     from slicersim.campaign.runner import run_campaign
     from slicersim.errors import ParameterError
+    _check_spec_argument(args.spec)
     if not (math.isfinite(args.memory_per_task) and 1 <= args.memory_per_task <= 2**20):
         raise ParameterError(f"--memory-per-task must be in [1, 1048576] MiB, got {args.memory_per_task}")
     spec = args.spec
@@ -114,6 +146,7 @@ def cmd_campaign_run(args) -> int:
 
 def cmd_campaign_status(args) -> int:
     from slicersim.campaign.runner import campaign_status
+    _check_dataset_argument(args.dataset)
     st = campaign_status(args.dataset, verify=not args.no_verify)
     print(f"{st['dataset']}: {st['targets']} targets, {st['done']} done, {st['missing']} missing, "
           f"{st['failed']} failed")
@@ -178,7 +211,8 @@ def add_parsers(sub, fmt):
     p.add_argument("--lbda-range", type=float, nargs=2, default=(4000.0, 6800.0), metavar=("LO", "HI"),
                    help="rest-frame band [Angstrom]")
     p.add_argument("--z-switch", type=float, default=0.8, help="narrow field below, wide field from this redshift")
-    p.add_argument("--config", default="cbe", metavar="cbe|eol|PATH", help="instrument configuration")
+    p.add_argument("--config", action="append", metavar="cbe|eol|PATH",
+                   help="instrument configuration; repeat to apply several in order (default: cbe)")
     p.add_argument("--search", choices=("exact", "reference"), default="exact", help="readout search")
     p.add_argument("--conventions", choices=CONVENTIONS, default=DEFAULT_CONVENTIONS, help="model conventions")
     p.add_argument("--overhead", type=float, default=0.0, help="per-target overhead (slew, settle) [s]")

@@ -81,7 +81,8 @@ def _read_spectrum(path):
 
     Lines before the first numeric row are a header; after it, a row that is not two numbers (or
     has more fields, as decimal commas give) is an error naming the file and the line
-    (SpectrumError), as is a file that is not UTF-8 text
+    (SpectrumError), as are a wavelength not above the previous row's (rows out of order, a
+    duplicate: never sorted or dropped) and a file that is not UTF-8 text
     (e.g. a binary or .npy file given by mistake)."""
     import numpy as np
 
@@ -94,7 +95,7 @@ def _read_spectrum(path):
     except UnicodeDecodeError as exc:
         raise SpectrumError(f"--spectrum: {path} is not a text file (byte {exc.start} is not UTF-8); "
                             "give a two-column text/CSV file: wavelength [Angstrom], flux") from None
-    lbda, flux = [], []
+    lbda, flux, lines = [], [], []
     for number, line in enumerate(text.splitlines(), start=1):
         fields = line.split("#", 1)[0].replace(",", " ").replace(";", " ").split()
         if not fields:
@@ -111,12 +112,13 @@ def _read_spectrum(path):
                                 f"got {validation.short_repr(line.strip())}")
         lbda.append(row[0])
         flux.append(row[1])
+        lines.append(number)
     if len(lbda) < 2:
         raise SpectrumError(f"{path}: need at least two numeric 'wavelength flux' rows")
-    lbda, flux = np.asarray(lbda), np.asarray(flux)
-    order = np.argsort(lbda, kind="stable")
+    from slicersim.io.tables import check_increasing
+    check_increasing(lbda, f"--spectrum: {path}", error=SpectrumError, lines=lines)
     from slicersim.sources.spectra import validate_spectrum
-    return validate_spectrum(lbda[order], flux[order], name=f"--spectrum {path}")
+    return validate_spectrum(np.asarray(lbda), np.asarray(flux), name=f"--spectrum {path}")
 
 
 def _two_numbers(fields):
@@ -208,31 +210,31 @@ def _check_output(path, overwrite):
     check_output_path(path, overwrite, RampFileError, "--out")
 
 
-def _load_rate(path):
+def _load_rate(path, flag):
     """An image from a .npy file (NumPy's format) or a text file of numbers, as a float64 array;
-    ParameterError naming the file when it is neither (a text file named .npy, a binary file
+    ParameterError naming the flag and the file when it is neither (a text file named .npy, a binary file
     given as text, a non-numeric entry)."""
     import numpy as np
 
     from slicersim.errors import ParameterError
-    path = validation.regular_file("image file", path)
+    path = validation.regular_file(flag, path)
     if path.endswith(".npy"):
         try:
             rate = np.load(path, allow_pickle=False)
         except ValueError:       # NumPy's "pickled data" message: not an .npy file (text, or object array)
-            raise ParameterError(f"{path}: not a NumPy .npy file of numbers (a text image must not be named "
+            raise ParameterError(f"{flag}: {path}: not a NumPy .npy file of numbers (a text image must not be named "
                                  ".npy)") from None
         if not isinstance(rate, np.ndarray):
-            raise ParameterError(f"{path}: an .npz archive, not a single .npy image")
+            raise ParameterError(f"{flag}: {path}: an .npz archive, not a single .npy image")
     else:
         try:
             rate = np.loadtxt(path, ndmin=2)
         except UnicodeDecodeError:
-            raise ParameterError(f"{path}: not a text file of numbers (save a binary image with numpy.save "
+            raise ParameterError(f"{flag}: {path}: not a text file of numbers (save a binary image with numpy.save "
                                  "and name it .npy)") from None
         except ValueError as exc:
-            raise ParameterError(f"{path}: cannot read a text image of numbers: {_one_line(exc)}") from None
-    return validation.array(f"image {path}", rate, finite=False)
+            raise ParameterError(f"{flag}: {path}: cannot read a text image of numbers: {_one_line(exc)}") from None
+    return validation.array(f"{flag}: {path}", rate, finite=False)
 
 
 def _ramp_effects(args):
@@ -244,7 +246,7 @@ def _ramp_effects(args):
     effects = None
     prev = args.previous_charge is not None          # "all" and the presets then include persistence
     if args.effects_config is not None:
-        effects = DetectorEffects.from_file(args.effects_config, has_previous_charge=prev)
+        effects = DetectorEffects.from_file(args.effects_config, has_previous_charge=prev, name="--effects-config")
     if args.effects is not None:
         from slicersim.physics.effects import PRESETS
         name = args.effects.strip().lower()
@@ -253,7 +255,8 @@ def _ramp_effects(args):
     if args.cr_rate is not None:
         if effects is None or "cosmic_rays" not in effects.enabled:
             raise EffectsError("--cr-rate needs cosmic_rays in --effects (or in --effects-config)")
-        effects = effects.with_overrides(cr_rate=args.cr_rate)
+        with validation.flag_names({"cosmic_rays.rate [cm⁻² s⁻¹]": "--cr-rate [cm⁻² s⁻¹]"}):
+            effects = effects.with_overrides(cr_rate=args.cr_rate)
     return effects
 
 
@@ -295,7 +298,7 @@ def cmd_ramp(args) -> int:
                   backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format,
                   precision=args.precision)
     if args.previous_charge is not None:
-        common["previous_charge"] = _load_rate(args.previous_charge)
+        common["previous_charge"] = _load_rate(args.previous_charge, "--previous-charge")
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
     if args.rate is not None:
         given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None]
@@ -303,11 +306,12 @@ def cmd_ramp(args) -> int:
             from slicersim.errors import ParameterError
             raise ParameterError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} only with --redshift "
                                  "(with --rate the detector is set by --tframe/--ron/--dark/--roic-glow/--gain)")
-        rate = _load_rate(args.rate)
+        rate = _load_rate(args.rate, "--rate")
         path = ramps.simulate(rate, nmd, args.nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
     else:
         from slicersim.targets import LazuliSupernova
-        target = LazuliSupernova(args.redshift, config=args.config or "cbe", field=args.field or "narrow",
+        config = (args.config[0] if len(args.config) == 1 else list(args.config)) if args.config else "cbe"
+        target = LazuliSupernova(args.redshift, config=config, field=args.field or "narrow",
                                  conventions=args.conventions or DEFAULT_CONVENTIONS)
         path = target.get_ramps(nmd=nmd, nramps=args.nramps, **detector, **common)
     print(f"wrote {path} (seed {seed})")            # --seed SEED repeats the run
@@ -393,8 +397,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--compression", choices=("gzip", "lz4", "zstd", "bitshuffle-lz4"),
                    help="HDF5 compression (default: none)")
-    p.add_argument("--config", metavar="cbe|eol|PATH", help="instrument configuration, only with --redshift "
-                   "(default: cbe)")
+    p.add_argument("--config", action="append", metavar="cbe|eol|PATH", help="instrument configuration, only with "
+                   "--redshift; repeat to apply several in order (default: cbe)")
     p.add_argument("--field", choices=("narrow", "wide"), help="field of view, only with --redshift "
                    "(default: narrow)")
     p.add_argument("--tframe", type=float, help=f"frame time [s] (default: {d['tframe']}; {from_config})")
@@ -452,16 +456,28 @@ def _format_warning(message, category, filename, lineno, line=None):
     return f"slicersim: warning: {_one_line(message)}\n"
 
 
+def _command_flags(parser, args):
+    """{dest: --flag} of the (sub)command of ``parser`` that ``args`` runs, so that a message about a
+    parameter names the flag the user typed (:func:`slicersim.validation.flag_names`)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and getattr(args, action.dest, None) in action.choices:
+            return _command_flags(action.choices[getattr(args, action.dest)], args)
+    return {a.dest: next((o for o in a.option_strings if o.startswith("--")), a.option_strings[0])
+            for a in parser._actions if a.option_strings and a.dest not in ("help", "version")}
+
+
 def main(argv=None) -> int:
     import warnings
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     # one line per warning where Python would print it (recorders such as catch_warnings(record=True)
     # still get the warning objects), unless an application already formats them its own way
     ours = warnings.formatwarning is _PYTHON_FORMATWARNING
     if ours:
         warnings.formatwarning = _format_warning
     try:
-        return int(args.func(args) or 0)
+        with validation.flag_names(_command_flags(parser, args)):
+            return int(args.func(args) or 0)
     except BrokenPipeError:  # e.g. `slicersim info | head`
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0

@@ -37,8 +37,7 @@ def _mapper(args):
     if args.spot_table is None:
         return default_mapper()
     from slicersim.instrument.mapper import SlicerMapper
-    if not os.path.isfile(args.spot_table):
-        raise ParameterError(f"--spot-table: no such file: {args.spot_table}")
+    validation.regular_file("--spot-table", args.spot_table)   # missing, a directory, FIFO or device
     try:
         return SlicerMapper.from_table(args.spot_table)
     except (ValueError, KeyError, IndexError) as exc:     # the table reader's errors (ConfigError, or a parse error)

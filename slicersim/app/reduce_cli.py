@@ -84,8 +84,10 @@ def parse_lbda_edges(text):
     multiple of STEP) or the name of a file (.npy, or text: the edges, whitespace or comma separated)."""
     import numpy as np
 
+    from slicersim import validation
     from slicersim.errors import ParameterError
-    if os.path.isfile(text):
+    if os.path.lexists(text):
+        validation.regular_file("--lbda-edges", text)            # a FIFO, device, directory: refused
         try:
             if text.endswith(".npy"):
                 edges = np.load(text, allow_pickle=False)
@@ -131,9 +133,11 @@ def _load_npy(text, flag, expected):
     """The .npy array of a file option (one-line ParameterError when missing or unreadable)."""
     import numpy as np
 
+    from slicersim import validation
     from slicersim.errors import ParameterError
-    if not os.path.isfile(text):
+    if not os.path.lexists(text):
         raise ParameterError(f"{flag} must be {expected}, got {text!r}")
+    validation.regular_file(flag, text)                          # a FIFO, device, directory: refused
     try:
         return np.load(text, allow_pickle=False)
     except (OSError, ValueError) as exc:
@@ -196,7 +200,8 @@ def _spectra_options(args):
             "position": _parse_position(args.position) if args.position is not None else None,
             "psf": _load_psf(args.psf) if args.psf is not None else None,
             "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights,
-            "config": args.config, "ipc": False if args.no_ipc else None}
+            "config": (args.config[0] if len(args.config) == 1 else list(args.config)) if args.config else None,
+            "ipc": False if args.no_ipc else None}
     opts = {k: v for k, v in opts.items() if v is not None}       # --dark none: "none" (kept, not None)
     with _FlagNames():
         check_spectra_options(**opts)              # every value, before any data are read
@@ -206,6 +211,10 @@ def _spectra_options(args):
 def cmd_reduce(args) -> int:
     from slicersim.errors import ParameterError
     dataset = os.path.isdir(args.raw)
+    if os.path.isfile(args.raw) and args.raw.lower().endswith(".toml"):
+        raise ParameterError(f"{args.raw} is a TOML file, not a ramp file: 'slicersim reduce' takes a ramp file or a "
+                             f"campaign dataset directory (a campaign spec? run it first: 'slicersim campaign run "
+                             f"{args.raw} --out DIR' with products.ramps = true, then 'slicersim reduce DIR --out RED')")
     _check_flags(args, dataset)
     if not dataset and not os.path.isfile(args.raw):
         if os.path.lexists(args.raw):       # a FIFO, device or socket: never opened
@@ -304,8 +313,9 @@ def add_parsers(sub, fmt):
     g.add_argument("--no-ipc", action="store_true",
                    help="do not deconvolve the rates by the file's inter-pixel capacitance kernel (done by "
                         "default when the file records the IPC effect)")
-    g.add_argument("--config", metavar="cbe|eol|PATH",
-                   help="instrument configuration of the forward model (default: the one the file records)")
+    g.add_argument("--config", action="append", metavar="cbe|eol|PATH",
+                   help="instrument configuration of the forward model; repeat to apply several in order "
+                        "(default: the one the file records)")
     g.add_argument("--psf", metavar="fit|FILE.npy", help="cube extractions: 'fit' a Gaussian fitted on the cube; "
                    "or a .npy array (nλ, slices, columns) of PSF fractions or a forward-modelled template")
     g.add_argument("--position", metavar="X,Y", help="source position [cells from the field centre] "

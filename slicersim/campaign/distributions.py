@@ -21,7 +21,7 @@ import os
 import numpy as np
 
 from slicersim.errors import ConfigError
-from slicersim.validation import number
+from slicersim.validation import number, shown
 
 __all__ = ["Distribution", "RedshiftDistribution"]
 
@@ -125,15 +125,16 @@ class RedshiftDistribution:
         if need - set(spec):
             raise ConfigError(f"{name}: a {kind} distribution needs {', '.join(sorted(need - set(spec)))}")
         p = {k: number(f"{name}.{k}", v, error=ConfigError) for k, v in spec.items()}
-        values = [p[k] for k in ("min", "max", "value") if k in p]
-        if any(v < 0 for v in values):
-            raise ConfigError(f"{name}: redshifts cannot be negative, got {p}")
-        if any(v > cls.MAX_Z for v in values):
-            raise ConfigError(f"{name}: redshifts above {cls.MAX_Z} are outside any SN Ia model, got {p}")
+        for key in ("min", "max", "value"):
+            if key in p and not 0 <= p[key] <= cls.MAX_Z:
+                why = "redshifts cannot be negative" if p[key] < 0 else \
+                    f"redshifts above {cls.MAX_Z:g} are outside any SN Ia model"
+                raise ConfigError(f"{shown(f'{name}.{key}')} must be in [0, {cls.MAX_Z:g}] ({why}), got {p[key]:g}")
         if kind == "fixed" and p["value"] == 0:
-            raise ConfigError(f"{name}: a SN Ia needs a redshift > 0")
+            raise ConfigError(f"{shown(f'{name}.value')}: a SN Ia needs a redshift > 0")
         if kind != "fixed" and not p["min"] < p["max"]:
-            raise ConfigError(f"{name}: min ({p['min']}) must be < max ({p['max']})")
+            raise ConfigError(f"{shown(f'{name}.min')} ({p['min']:g}) must be < {shown(f'{name}.max')} "
+                              f"({p['max']:g})")
         if kind == "volumetric":
             p.setdefault("rate_index", 1.5)
             if not -5 <= p["rate_index"] <= 10:

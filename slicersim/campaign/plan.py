@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from slicersim.errors import ETCError, ParameterError, SpectrumError
-from slicersim.validation import array as validation_array, choice, number, short_repr
+from slicersim.validation import array as validation_array, choice, number, short_repr, shown
 
 __all__ = ["SurveyPlan", "SurveyOptions", "plan_survey", "plan_survey_with", "plot_time_and_volume", "check_client_memory", "survey_totals", "YEAR_S", "PLAN_COLUMNS"]
 
@@ -157,11 +157,12 @@ def _is_inf(value):
 
 def _wavelength_range(lbda_range):
     """(lo, hi) [Å] with 0 < lo < hi."""
+    name = shown("lbda_range")
     if isinstance(lbda_range, (str, bytes)) or np.size(lbda_range) != 2:
-        raise ParameterError(f"lbda_range must be (lo, hi) in Å with 0 < lo < hi, got {short_repr(lbda_range)}")
-    lo, hi = (number(f"lbda_range[{i}]", v, low=0, low_open=True, unit="Angstrom") for i, v in enumerate(lbda_range))
+        raise ParameterError(f"{name} must be (lo, hi) in Å with 0 < lo < hi, got {short_repr(lbda_range)}")
+    lo, hi = (number(f"{name}[{i}]", v, low=0, low_open=True, unit="Angstrom") for i, v in enumerate(lbda_range))
     if not lo < hi:
-        raise ParameterError(f"lbda_range must be (lo, hi) in Å with 0 < lo < hi, got {short_repr(lbda_range)}")
+        raise ParameterError(f"{name} must be (lo, hi) in Å with 0 < lo < hi, got {short_repr(lbda_range)}")
     return lo, hi
 
 

@@ -30,7 +30,7 @@ import numpy as np
 from slicersim.campaign.products import build_target, run_target, spectrum_grid, target_seeds
 from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec, seed_was_drawn, with_seed
 from slicersim.errors import ConfigError, DatasetError
-from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, spec_digest
+from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, not_a_dataset_directory, spec_digest
 from slicersim.io.row_blocks import show_progress
 from slicersim.validation import positive_int
 
@@ -567,7 +567,7 @@ def campaign_status(out, verify=True):
     from astropy.table import Table
     ds = Dataset(out)
     if not os.path.isdir(ds.path):
-        raise DatasetError(f"no such dataset directory: {ds.path}")
+        raise not_a_dataset_directory(ds.path, "run_campaign(spec, out) writes the dataset directory out")
     if ds.stored_spec() is None:
         raise DatasetError(f"{ds.path} is not a slicersim dataset (no spec.json)")
     try:

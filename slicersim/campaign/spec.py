@@ -184,8 +184,9 @@ def _check_config(config, base_dir):
             resolved.append(item)
             continue
         path = item if os.path.isabs(item) else os.path.normpath(os.path.join(base_dir, item))
-        if not os.path.isfile(path):
+        if not os.path.lexists(path):
             raise ConfigError(f"observation.config: no such configuration file {path}")
+        validation.regular_file("observation.config", path, error=ConfigError)     # a FIFO, device, directory
         resolved.append(path)
         digests[item] = file_digest(path)
     return (resolved if isinstance(config, list) else resolved[0]), digests

@@ -70,7 +70,7 @@ def read_spot_table(table_or_path):
     (n, 7) array in that column order.
     """
     if isinstance(table_or_path, (str, Path)):
-        path = Path(table_or_path)
+        path = Path(validation.regular_file("spot table", table_or_path, error=ConfigError))   # no FIFO, device
         with open(path, encoding="utf-8") as fh:
             header = fh.readline().split()
         if header != list(COLUMNS):

@@ -21,7 +21,8 @@ from slicersim import validation
 from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
 from slicersim.io.tables import read_file_bytes
 
-__all__ = ["load_config", "validate_config", "ConfigError", "builtin_config_dir", "SCHEMA", "PROFILES"]
+__all__ = ["load_config", "validate_config", "ConfigError", "builtin_config_dir", "complete_config_hint",
+           "tables_of", "SCHEMA", "PROFILES"]
 
 
 
@@ -44,6 +45,8 @@ SCHEMA = {
                           "redshift", "phase", "MBmax", "c", "x1"},
     "scene.host": {"name", "sersic_index", "r_eff", "axis_ratio", "position_angle", "offset", "mag", "band"},
 }
+#: every key of every table
+_ALL_KEYS = sorted(set().union(*SCHEMA.values()))
 #: keys whose (string) value names a curve file to resolve next to the TOML
 FILE_KEYS = {("spectrograph", "dispersion_law"), ("spectrograph.throughput", "throughput"),
              ("detector", "QE"), ("detector", "qe")}
@@ -59,6 +62,34 @@ def builtin_config_dir():
     return str(resources.files("slicersim.data") / "lazuli")
 
 
+def complete_config_hint():
+    """Where the complete default configuration is, and how to change only a few of its keys (the
+    end of a message about a key missing or in the wrong table)."""
+    return (f"start from the complete default configuration, the built-in 'cbe' ({builtin_config_dir()}/"
+            "lazuli_cbe.toml, every key commented, with its curve files beside it), or layer your file on it: "
+            "--config cbe --config FILE (Python: config=['cbe', FILE])")
+
+
+def tables_of(key):
+    """The configuration tables (of :data:`SCHEMA`) that have ``key``, sorted."""
+    return sorted(table for table, keys in SCHEMA.items() if key in keys)
+
+
+def _belongs(key):
+    """"'gain' belongs in [detector]" when some table has ``key``, else ""."""
+    homes = tables_of(key)
+    return f"{key!r} belongs in {' or '.join(f'[{t}]' for t in homes)}" if homes else ""
+
+
+def _elsewhere(names):
+    """" (did you mean 'gain' of [detector]?)" for the first of ``names`` close to a key of any table."""
+    for name in names:
+        close = difflib.get_close_matches(name, _ALL_KEYS, n=1, cutoff=0.6)
+        if close:
+            return f" (did you mean {close[0]!r} of {' or '.join(f'[{t}]' for t in tables_of(close[0]))}?)"
+    return ""
+
+
 def _flatten_tables(doc, prefix=""):
     """{'a': {'b': {'k': v}}} -> {'a.b': {'k': v}} (tables only; leaves stay)."""
     out = {}
@@ -69,8 +100,12 @@ def _flatten_tables(doc, prefix=""):
             if leaves or name in SCHEMA:
                 out[name] = leaves
             out.update(_flatten_tables({k: v for k, v in val.items() if isinstance(v, dict)}, name + "."))
+        elif tables_of(key):
+            raise ConfigError(f"top-level key {name!r} must live in its table: {_belongs(key)}; "
+                              f"{complete_config_hint()}")
         else:
-            raise ConfigError(f"top-level key {name!r} must live in a table such as [detector]")
+            raise ConfigError(f"unknown top-level key {name!r}{_elsewhere([key])}: keys live in "
+                              f"tables ({', '.join(f'[{t}]' for t in sorted(SCHEMA))}); {complete_config_hint()}")
     return out
 
 
@@ -93,7 +128,10 @@ def _read_toml(path):
         raise ConfigError(f"cannot parse TOML {path}: not UTF-8 text (byte {exc.start})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"cannot parse TOML {path}: {exc}") from None
-    tables = _flatten_tables(doc)
+    try:
+        tables = _flatten_tables(doc)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     here = os.path.dirname(os.path.abspath(path))
     for table, entries in tables.items():
         if table not in SCHEMA:
@@ -101,15 +139,21 @@ def _read_toml(path):
                               f"known tables: {sorted(SCHEMA)}")
         unknown = set(entries) - SCHEMA[table]
         if unknown:
-            raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)} in [{table}]"
-                              f"{_did_you_mean(sorted(unknown), SCHEMA[table])}; allowed: {sorted(SCHEMA[table])}")
+            if any(tables_of(k) for k in unknown):
+                where = "; ".join(_belongs(k) or f"{k!r} is unknown{_elsewhere([k])}"
+                                  for k in sorted(unknown))
+                raise ConfigError(f"{path}: [{table}] has no key(s) {', '.join(map(repr, sorted(unknown)))}: "
+                                  f"{where}; {complete_config_hint()}")
+            hint = _did_you_mean(sorted(unknown), SCHEMA[table]) or _elsewhere(sorted(unknown))
+            raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)} in [{table}]{hint}; allowed: "
+                              f"{sorted(SCHEMA[table])}")
         for key in list(entries):
             if (table, key) in FILE_KEYS and isinstance(entries[key], str):
                 fpath = entries[key] if os.path.isabs(entries[key]) else os.path.join(here, entries[key])
-                if not os.path.isfile(fpath):
-                    raise ConfigError(f"{path}: [{table}] {key} = {entries[key]!r}: "
-                                      f"curve file not found at {fpath}")
-                entries[key] = fpath
+                where = f"{path}: [{table}] {key} = {entries[key]!r}: curve file"
+                if not os.path.lexists(fpath):
+                    raise ConfigError(f"{where} not found at {fpath}")
+                entries[key] = validation.regular_file(where, fpath, error=ConfigError)   # a FIFO, device: refused
             if (table, key) in ALIASES:
                 entries[ALIASES[(table, key)]] = entries.pop(key)
     return tables
@@ -216,8 +260,9 @@ def _check_fraction(cfg, table, key, what):
     value = entries[key]
     if isinstance(value, (str, os.PathLike)):
         path = os.fspath(value)
-        if not os.path.isfile(path):
+        if not os.path.lexists(path):
             raise _bad(table, key, value, "curve file not found")
+        validation.regular_file(f"[{table}] {key} = {path!r}: curve file", path, error=ConfigError)
         for col, (vmin, vmax, finite) in _curve_values(path, os.path.getmtime(path)).items():
             if not finite:
                 raise _bad(table, key, value, f"{what} column {col!r} of the curve file has NaN/inf values")

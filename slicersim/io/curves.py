@@ -15,7 +15,7 @@ import os
 import numpy as np
 
 from slicersim.errors import CurveError
-from slicersim.io.tables import read_file_bytes
+from slicersim.io.tables import check_increasing, data_line_numbers, read_file_bytes
 from slicersim.memo import ByteLRU
 
 __all__ = ["read_curve", "CurveError", "CURVE_CACHE"]
@@ -100,4 +100,5 @@ def _parse(text, path, ecsv, wavelength_unit):
         raise
     except Exception as exc:  # pragma: no cover - message path
         raise CurveError(f"cannot read curve file {path}: {exc}") from exc
+    check_increasing(lbda, f"curve file {path}", error=CurveError, lines=lambda: data_line_numbers(text, lbda.size))
     return np.array(lbda, dtype=float), {n: np.array(a, dtype=float) for n, a in data.items()}

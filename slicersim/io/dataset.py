@@ -36,7 +36,8 @@ from slicersim.errors import DatasetError
 from slicersim.io.atomic import (AtomicH5File, atomic_bytes, is_temporary, one_line, remove_stale_temporaries,
                                  sha256_file)
 
-__all__ = ["Dataset", "ProductFile", "canonical_json", "spec_digest", "target_key", "changed_keys", "real_dir"]
+__all__ = ["Dataset", "ProductFile", "canonical_json", "spec_digest", "target_key", "changed_keys", "real_dir",
+           "not_a_dataset_directory"]
 
 SPEC_TOML, SPEC_JSON, VERSIONS, CATALOG, LOCK = "spec.toml", "spec.json", "versions.json", "catalog.ecsv", ".lock"
 PRODUCTS, RECORDS = "products", "records"
@@ -46,6 +47,18 @@ _RECORD_RE = re.compile(r"^t\d{7,}\.json$")
 _PRODUCT_RE = re.compile(r"^[a-z][a-z0-9_]*\.h5$")
 _NOTHING = re.compile(r"(?!)")
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
+def not_a_dataset_directory(path, hint=""):
+    """The :class:`DatasetError` for a dataset path that is not a directory: missing, a file (a campaign
+    spec, when it ends with .toml: ``hint`` says what to do with it), or a FIFO, device or socket."""
+    if not os.path.lexists(path):
+        return DatasetError(f"no such dataset directory: {path}")
+    if os.path.isfile(path):
+        spec = f" ({path} looks like a campaign spec{'; ' + hint if hint else ''})" \
+            if path.lower().endswith(".toml") else ""
+        return DatasetError(f"{path} is a file, not a dataset directory{spec}")
+    return DatasetError(f"{path} is not a directory (a FIFO, device or socket), not a dataset directory")
 
 
 def real_dir(path, make=False):

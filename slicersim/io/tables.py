@@ -10,7 +10,7 @@ from slicersim import validation
 from slicersim.errors import ConfigError
 
 __all__ = ["resolve_path", "file_digest", "read_file_bytes", "read_table", "read_spectrum_table",
-           "MAX_TEXT_BYTES", "MAX_TABLE_BYTES"]
+           "data_line_numbers", "check_increasing", "MAX_TEXT_BYTES", "MAX_TABLE_BYTES"]
 
 #: largest text input read whole (configuration, campaign spec, effects config, curve) [bytes]
 MAX_TEXT_BYTES = 64 << 20
@@ -31,6 +31,37 @@ def read_file_bytes(path, error_class, what, max_bytes=MAX_TEXT_BYTES):
             return fh.read()
     except OSError as exc:
         raise error_class(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+
+
+def data_line_numbers(text, nrows, comments="#"):
+    """Line numbers (1-based, as a text editor shows them) of the ``nrows`` data rows of a CSV, ECSV
+    or whitespace table's ``text``: the lines after the column-name line that are neither blank nor
+    ``comments`` (ECSV's header; None: a CSV file, where astropy reads ``#`` lines as rows); None
+    when the text does not have exactly that many."""
+    lines = [n for n, line in enumerate(text.splitlines(), start=1)
+             if line.strip() and not (comments and line.lstrip().startswith(comments))][1:]
+    return lines if len(lines) == nrows else None
+
+
+def check_increasing(values, where, *, error=ConfigError, lines=None, what="wavelength", label="row", first=1):
+    """Refuse the first of ``values`` that is not above the one before it (rows out of order, a
+    duplicate, NaN): one ``error`` line naming ``where`` (the file), the two rows and the two values.
+    ``lines``: the rows' line numbers in the file, or a callable returning them (computed only on a
+    refusal); without them, rows are named ``label`` and their position counted from ``first``."""
+    values = np.asarray(values, dtype=float)
+    bad = np.flatnonzero(~(np.diff(values) > 0))
+    if bad.size == 0:
+        return
+    k = int(bad[0])
+    lines = lines() if callable(lines) else lines
+    at = (lambda i: f"line {lines[i]}") if lines is not None else (lambda i: f"{label} {i + first}")
+    rule = f"{what}s must be finite and strictly increasing (rows are never sorted or dropped)"
+    a, b = values[k], values[k + 1]
+    if not np.isfinite(a) or not np.isfinite(b):
+        i = k if not np.isfinite(a) else k + 1
+        raise error(f"{where}, {at(i)}: {what} {values[i]:.10g} is not a finite number; {rule}")
+    how = f"equals {a:.10g} on {at(k)} (a duplicate row)" if a == b else f"is below {a:.10g} on {at(k)}"
+    raise error(f"{where}, {at(k + 1)}: {what} {b:.10g} {how}; {rule}")
 
 
 def resolve_path(path, base_dir, name):
@@ -79,7 +110,21 @@ def read_spectrum_table(path, name):
     fcol = next((cols[k] for k in ("flux", "flambda", "f_lambda") if k in cols), None)
     if lcol is None or fcol is None:
         raise ConfigError(f"{name}: {path} needs columns lbda (Å) and flux (erg/s/cm²/Å), has {tab.colnames}")
-    return _numeric(tab, lcol, path, name), _numeric(tab, fcol, path, name)
+    lbda = _numeric(tab, lcol, path, name)
+    check_increasing(lbda, f"{name}: {path}", what=lcol, lines=lambda: _text_lines(path, len(tab)))
+    return lbda, _numeric(tab, fcol, path, name)
+
+
+def _text_lines(path, nrows):
+    """:func:`data_line_numbers` of a CSV/ECSV file (None for Parquet or a file not UTF-8)."""
+    fmt = TABLE_FORMATS.get(os.path.splitext(path)[1].lower())
+    if fmt == "parquet":
+        return None
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return data_line_numbers(fh.read(), nrows, comments="#" if fmt == "ascii.ecsv" else None)
+    except (OSError, UnicodeDecodeError):
+        return None
 
 
 def _numeric(tab, col, path, name):
@@ -98,7 +143,8 @@ def _numeric(tab, col, path, name):
                 raise ValueError  # internal: an empty entry, reported just below
             float(value)
         except (TypeError, ValueError):
-            where = f"line {i + 2}" if path.lower().endswith(".csv") else f"data row {i + 1}"
+            lines = _text_lines(path, len(values))
+            where = f"line {lines[i]}" if lines is not None else f"data row {i + 1}"
             raise ConfigError(f"{name}: {path}, {where}: {col} = {validation.short_repr(str(value))} is not a number "
                               "(write numbers with a decimal point)") from None
     return np.asarray(values, dtype=float)

@@ -220,14 +220,15 @@ class DetectorEffects:
         return cls({n: built[n] for n in enabled})
 
     @classmethod
-    def from_file(cls, path, has_previous_charge=False):
-        """From a TOML (``.toml``) or JSON file holding an ``[effects]`` table (see :meth:`from_config`)."""
+    def from_file(cls, path, has_previous_charge=False, name="effects config"):
+        """From a TOML (``.toml``) or JSON file holding an ``[effects]`` table (see :meth:`from_config`);
+        errors about the file name it ``name`` (e.g. the CLI flag that gave it)."""
         import json
         import os
 
         from slicersim.io.tables import read_file_bytes
         path = os.fspath(path)
-        raw = read_file_bytes(path, EffectsError, "effects config")
+        raw = read_file_bytes(path, EffectsError, name)
         try:
             if path.lower().endswith(".json"):
                 config = json.loads(raw.decode("utf-8"))

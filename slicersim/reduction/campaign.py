@@ -150,10 +150,10 @@ def _source(dataset):
     """(Dataset, spec dict, spec sha256, catalog Table) of a campaign dataset with ramps."""
     from astropy.table import Table
 
-    from slicersim.io.dataset import CATALOG, Dataset
+    from slicersim.io.dataset import CATALOG, Dataset, not_a_dataset_directory
     src = Dataset(dataset)
     if not os.path.isdir(src.path):
-        raise DatasetError(f"no such dataset directory: {src.path}")
+        raise not_a_dataset_directory(src.path, "run it first: its dataset directory is reduced")
     stored = src.stored_spec()
     if stored is None:
         raise DatasetError(f"{src.path} is not a slicersim campaign dataset (no spec.json)")

@@ -25,6 +25,7 @@ import warnings
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import SpectrumError
 
 __all__ = ["ALLOW_PARTIAL_HINT", "MIN_GRID_COVERAGE", "BandCoverageWarning", "covered_fraction", "check_band_in_grid", "warn_partial_spectrum",
@@ -33,8 +34,15 @@ __all__ = ["ALLOW_PARTIAL_HINT", "MIN_GRID_COVERAGE", "BandCoverageWarning", "co
 
 #: how a message names the switch that accepts a partly covered band (Python keyword and CLI flag)
 ALLOW_PARTIAL_HINT = "allow_partial=True in Python, --allow-partial on the command line"
+
 #: smallest fraction of a band that must lie inside the instrument grid (else SpectrumError)
 MIN_GRID_COVERAGE = 0.5
+
+
+def _allow_partial_hint():
+    """``--allow-partial`` within the CLI (:func:`slicersim.validation.flag_names`), else both spellings."""
+    flag = validation.shown("allow_partial")
+    return flag if flag != "allow_partial" else ALLOW_PARTIAL_HINT
 
 
 class BandCoverageWarning(UserWarning):
@@ -71,7 +79,7 @@ def check_band_in_grid(ranges, grid_edges, who=None, allow_partial=True):
     if part.size and not allow_partial:
         raise SpectrumError(f"{head(part)} is only {100 * frac[part[0]]:.1f} % inside the instrument grid "
                             f"{g0:.0f}–{g1:.0f} Å: the SNR would be that of a narrower band; choose a band "
-                            f"inside the grid or use the covered part ({ALLOW_PARTIAL_HINT})")
+                            f"inside the grid or use the covered part ({_allow_partial_hint()})")
     if part.size:
         warnings.warn(f"{head(part)} is only {100 * frac[part[0]]:.1f} % inside the instrument grid "
                       f"{g0:.0f}–{g1:.0f} Å: the SNR is computed on the covered part",
@@ -95,7 +103,7 @@ def warn_partial_spectrum(ranges, spec_lo, spec_hi, who=None, allow_partial=True
                f"{100 * frac[i]:.1f} % of the {head}")
         if not allow_partial:
             raise SpectrumError(f"{msg}: the SNR would be that of a narrower band; choose a band the "
-                                f"spectrum covers or use the covered part ({ALLOW_PARTIAL_HINT})")
+                                f"spectrum covers or use the covered part ({_allow_partial_hint()})")
         warnings.warn(f"the source spectrum ({float(spec_lo):.0f}–{float(spec_hi):.0f} Å) covers only "
                       f"{100 * frac[i]:.1f} % of the {head}: the SNR is computed on the covered part",
                       BandCoverageWarning, stacklevel=3)

@@ -40,6 +40,7 @@ REFERENCE_SHORTFALL = 0.10
 def check_snr(snr, name="snr"):
     """A target SNR as a float: a finite number > 0.  ParameterError for what is not a number
     (strings, bools, lists), ETCError for an impossible value (NaN, inf, ≤ 0); both name ``name``."""
+    name = validation.shown(name)
     is_number = isinstance(snr, (int, float, np.integer, np.floating)) and not isinstance(snr, (bool, np.bool_))
     error = ETCError if is_number else ParameterError
     try:

@@ -15,12 +15,14 @@ through :func:`slicersim.sources.spectra.sncosmo_spectrum` like every sncosmo so
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 import sncosmo
 from scipy.interpolate import RegularGridInterpolator
 
+from slicersim import validation
 from slicersim.errors import SpectrumError
 
 __all__ = ["MODEL_URL", "read_possis", "AngularTimeSeriesSource", "kilonova_source"]
@@ -36,7 +38,9 @@ def read_possis(path):
     (``.txt``/``.dat`` text or ``.fits``/``.fits.gz``).  SpectrumError naming the file when it
     is missing or not in one of the two layouts."""
     path = Path(path)
-    if not path.is_file():
+    if os.path.lexists(path):
+        validation.regular_file("kilonova model file", path, error=SpectrumError)   # a FIFO, device, directory
+    else:
         raise SpectrumError(f"kilonova model file {str(path)!r} not found: kilonova models (POSSIS, Bulla 2019/2023) "
                             f"are not shipped with slicersim; download one (e.g. from {MODEL_URL}) and pass "
                             "its path (.txt POSSIS output or .fits with MODEL/PHASE/LBDA/COSTHETA)")

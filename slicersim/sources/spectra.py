@@ -13,6 +13,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
 from slicersim.errors import ParameterError, SpectrumError
+from slicersim.io.tables import check_increasing
 from slicersim.versioning import Versioned
 
 __all__ = ["PointSource", "validate_spectrum", "snia_spectrum", "sncosmo_spectrum", "load_sncosmo_source",
@@ -37,7 +38,8 @@ def default_lbda():
 
 
 def validate_spectrum(lbda, flux, name="spectrum"):
-    """Check and return (λ, F) as float arrays; λ strictly increasing, F finite and ≥ 0."""
+    """Check and return (λ, F) as float arrays; λ strictly increasing (else an error naming the first
+    two samples out of order and their indices), F finite and ≥ 0."""
     lbda = validation.array(f"{name}: wavelengths", lbda, finite=False, error=SpectrumError)
     flux = validation.array(f"{name}: flux", flux, finite=False, error=SpectrumError)
     if lbda.ndim != 1 or lbda.size == 0:
@@ -46,7 +48,8 @@ def validate_spectrum(lbda, flux, name="spectrum"):
         raise SpectrumError(f"{name}: flux shape {flux.shape} differs from wavelength shape {lbda.shape}")
     if lbda.size < 2:
         raise SpectrumError(f"{name}: need at least 2 samples to interpolate")
-    if not np.all(np.isfinite(lbda)) or np.any(np.diff(lbda) <= 0):
+    check_increasing(lbda, name, error=SpectrumError, label="index", first=0)
+    if not np.all(np.isfinite(lbda)):
         raise SpectrumError(f"{name}: wavelengths must be finite and strictly increasing")
     if not np.all(np.isfinite(flux)):
         raise SpectrumError(f"{name}: flux contains {np.count_nonzero(~np.isfinite(flux))} NaN/inf value(s)")
@@ -111,7 +114,7 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
     from astropy.cosmology import Planck18
     if isinstance(redshift, (bool, np.bool_)) or not isinstance(redshift, (int, float, np.number)) \
             or not (np.isfinite(redshift) and redshift > 0):
-        raise SpectrumError(f"redshift must be > 0, got {redshift}")
+        raise SpectrumError(f"{validation.shown('redshift')} must be > 0, got {validation.short_repr(redshift)}")
     if isinstance(phase, (bool, np.bool_)) or not isinstance(phase, (int, float, np.number)) \
             or not np.isfinite(phase):
         raise SpectrumError(f"phase must be a finite number of days, got {phase!r}")
@@ -208,8 +211,8 @@ def find_calspec_file(name, calspec_dir=None):
     prefix, e.g. ``"bd_17d4708"``).  SpectrumError, saying where to download it, when absent."""
     if not isinstance(name, (str, os.PathLike)) or not str(name).strip():
         raise SpectrumError(f"a CALSPEC star is a name (e.g. 'bd_17d4708') or a FITS path, got {name!r}")
-    if Path(name).is_file():
-        return Path(name)
+    if os.path.lexists(name) and not os.path.isdir(name):
+        return Path(validation.regular_file("CALSPEC file", name, error=SpectrumError))   # no FIFO, device
     folder = calspec_dir if calspec_dir is not None else os.environ.get("SLICERSIM_CALSPEC_DIR")
     how = (f"download it from {CALSPEC_URL} and pass its path, or calspec_dir= (or $SLICERSIM_CALSPEC_DIR) "
            "naming the folder that holds it")

@@ -170,23 +170,24 @@ def test_ramp_redshift_full_detector(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("args, match", [
-    (["etc", "--redshift", "-1"], "redshift"),
-    (["etc", "--redshift", "1", "--snr", "0"], "SNR"),
-    (["etc", "--redshift", "1", "--lbda-range", "7000", "5000"], "lbda_range"),
+    (["etc", "--redshift", "-1"], "--redshift must be > 0, got -1"),
+    (["etc", "--redshift", "1", "--snr", "0"], "--snr: the target SNR must be a finite number > 0"),
+    (["etc", "--redshift", "1", "--lbda-range", "7000", "5000"], "--lbda-range must be (lo, hi)"),
     (["etc", "--redshift", "1", "--config", "/no/such/config.toml"], "not found"),
     (["etc", "--spectrum", "/no/such/spectrum.csv"], "No such file"),
     (["etc", "--redshift", "1", "--snr", "abc"], "invalid float"),
     (["etc"], "required"),
     (["ramp", "--rate", "RATE", "--nmd", "1", "1", "0", "--out", "OUT"], "nmd[0] (n, groups per ramp) must be"),
     (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--seed", "-3", "--out", "OUT"], "seed must be in"),
-    (["ramp", "--rate", "RATE", "--nramps", "0", "--nmd", "3", "1", "0", "--out", "OUT"], "nramps"),
+    (["ramp", "--rate", "RATE", "--nramps", "0", "--nmd", "3", "1", "0", "--out", "OUT"],
+     "--nramps must be an integer in [1, 2147483647], got 0"),
     (["ramp", "--rate", "RATE", "--config", "eol", "--out", "OUT"], "--config applies only with --redshift"),
     (["ramp", "--rate", "RATE", "--field", "wide", "--out", "OUT"], "--field applies only with --redshift"),
     (["ramp", "--rate", "RATE", "--conventions", "physical", "--out", "OUT"], "--conventions applies only"),
     (["etc", "--redshift", "1", "--conventions", "slicersim-2"], "invalid choice"),
     (["ramp", "--rate", "/no/such/rate.npy", "--out", "OUT"], "No such file"),
     (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--out", "/no/such/dir/r.h5"], "directory does not exist"),
-    (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "rate must be ≥ 0"),
+    (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "--rate must be ≥ 0"),
     (["nosuchcommand"], "invalid choice"),
 ])
 def test_user_errors_are_one_line_exit_2(tmp_path, rate_file, args, match):
@@ -374,6 +375,9 @@ def _main_no_hang(capsys, argv, monkeypatch, timeout=60):
     ["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "persistence", "--previous-charge", "{input}",
      "--out", "{tmp}/r.h5"],
     ["campaign", "run", "{input}", "--out", "{tmp}/ds"],
+    ["footprints", "--out", "{tmp}/fp", "--spot-table", "{input}"],
+    ["plot", "slice-map", "--out", "{tmp}/map.png", "--spot-table", "{input}"],
+    ["etc", "--redshift", "1", "--config", "{curve_config}"],
 ])
 def test_fifos_devices_and_directories_are_refused_before_reading(tmp_path, capsys, monkeypatch, kind, argv):
     rate = tmp_path / "rate.npy"
@@ -386,7 +390,9 @@ def test_fifos_devices_and_directories_are_refused_before_reading(tmp_path, caps
     else:
         path = tmp_path / "folder.toml"
         path.mkdir()
-    subst = {"input": str(path), "tmp": str(tmp_path), "rate": str(rate)}
+    curve_config = tmp_path / "curve.toml"                  # a curve file that is not a regular file
+    curve_config.write_text(f'[detector]\nQE = "{path}"\n')
+    subst = {"input": str(path), "tmp": str(tmp_path), "rate": str(rate), "curve_config": str(curve_config)}
     err = _one_line(*_main_no_hang(capsys, [a.format(**subst) for a in argv], monkeypatch))
     assert str(path) in err and ("not a regular file" in err or "directory" in err), err
     assert not (tmp_path / "r.h5").exists() and not (tmp_path / "ds").exists()
@@ -428,3 +434,71 @@ def test_cli_etc_prints_units_and_no_object_repr():
     assert "object at 0x" not in out
     # the CLI now prints units in brackets after the key ("exposure_time [s]", "data_volume [GB]")
     assert "[GB]" in out and "[s]" in out and "[Angstrom]" in out
+
+
+# --------------------------------------------------------------------------- messages name the flags
+@pytest.mark.parametrize("argv, needle", [
+    (["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "cosmic_rays", "--cr-rate", "-1",
+      "--out", "{tmp}/r.h5"], "--cr-rate [cm⁻² s⁻¹] must be in [0, 1e+06], got -1"),
+    (["ramp", "--rate", "{tmp}/missing.npy", "--out", "{tmp}/r.h5"], "--rate: {tmp}/missing.npy: No such file"),
+    (["ramp", "--rate", "{rate}", "--nmd", "3", "1", "0", "--effects", "all", "--effects-config",
+      "{tmp}/missing.toml", "--out", "{tmp}/r.h5"], "--effects-config: {tmp}/missing.toml: No such file"),
+    (["ramp", "--redshift", "1", "--effects", "persistence", "--previous-charge", "{tmp}/missing.npy",
+      "--out", "{tmp}/r.h5"], "--previous-charge: {tmp}/missing.npy: No such file"),
+    (["ramp", "--redshift", "-1", "--out", "{tmp}/r.h5"], "--redshift must be > 0, got -1"),
+    (["plot", "fields", "--redshift", "-1", "--out", "{tmp}/f.png"], "--redshift must be > 0, got -1"),
+    (["etc", "--redshift", "1", "--lbda-range", "-5", "6000"], "use the covered part (--allow-partial)"),
+])
+def test_messages_name_the_command_line_flags_not_python_keywords(tmp_path, capsys, monkeypatch, argv, needle):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    subst = {"tmp": str(tmp_path), "rate": str(rate)}
+    err = _one_line(*_main_error(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    assert needle.format(**subst) in err, err
+    message = err.partition("error: ")[2]
+    assert not re.search(r"(?<![-\w.])(nramps|lbda_range|redshift|snr|cr_rate|cosmic_rays\.rate|image file|"
+                         r"effects config|allow_partial)\b", message), err
+    assert not (tmp_path / "r.h5").exists()
+
+
+# --------------------------------------------------------------------------- spectra: rows are never reordered
+@pytest.mark.parametrize("text, needle", [
+    ("wavelength,flux\n4000,1e-17\n5000,1e-17\n5010,1e-17\n5005,1e-17\n5020,1e-17\n9000,1e-17\n",
+     "sp.csv, line 5: wavelength 5005 is below 5010 on line 4"),
+    ("# my spectrum\nwavelength flux\n\n4000 1e-17\n5000 1e-17\n5000 2e-17\n9000 1e-17\n",
+     "sp.csv, line 6: wavelength 5000 equals 5000 on line 5 (a duplicate row)"),
+])
+def test_spectrum_rows_out_of_order_or_repeated_are_refused_naming_the_lines(tmp_path, capsys, monkeypatch, text,
+                                                                               needle):
+    path = tmp_path / "sp.csv"
+    path.write_text(text)
+    err = _one_line(*_main_error(capsys, ["etc", "--spectrum", path, "--snr", "10"], monkeypatch))
+    assert "--spectrum" in err and needle in err and "never sorted or dropped" in err, err
+
+
+# --------------------------------------------------------------------------- partial or misplaced configurations
+@pytest.mark.parametrize("argv", [
+    ["etc", "--redshift", "1", "--config", "{partial}"],
+    ["ramp", "--redshift", "1", "--config", "{partial}", "--out", "{tmp}/r.h5"],
+    ["survey", "plan", "--n", "2", "--config", "{partial}"],
+    ["footprints", "--out", "{tmp}/fp", "--config", "{partial}"],
+])
+def test_a_partial_configuration_names_the_missing_key_and_the_complete_default(tmp_path, capsys, monkeypatch,
+                                                                                 argv):
+    partial = tmp_path / "partial.toml"
+    partial.write_text("[detector]\ngain = 2.0\n")
+    subst = {"partial": str(partial), "tmp": str(tmp_path)}
+    err = _one_line(*_main_error(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    for needle in ("partial.toml", "[spectrograph] dispersion_law", "lazuli_cbe.toml",
+                   "--config cbe --config FILE"):
+        assert needle in err, (needle, err)
+
+
+def test_config_is_repeatable_on_ramp_and_survey_plan(tmp_path, capsys, monkeypatch):
+    """Layering (--config cbe --config FILE) applies every file: the last one is not the only one."""
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text("[telescope]\ngain = 2.0\n")
+    for argv in (["ramp", "--redshift", "1", "--config", wrong, "--config", "cbe", "--out", tmp_path / "r.h5"],
+                 ["survey", "plan", "--n", "2", "--config", wrong, "--config", "cbe"]):
+        err = _one_line(*_main_error(capsys, argv, monkeypatch))
+        assert "wrong.toml: [telescope] has no key(s) 'gain': 'gain' belongs in [detector]" in err, err

@@ -288,7 +288,7 @@ def test_cli_footprints_writes_label_image_and_outlines(tmp_path, capsys):
     (["plot", "slice-map", "--out", "m.png", "--region", "10", "5", "0", "100"], "--region"),
     (["plot", "fields", "--out", "f.png", "--lbda-range", "8000", "5000"], "LO < HI"),
     (["footprints", "--out", "fp", "--truncate", "-1"], "--truncate"),
-    (["footprints", "--out", "fp", "--spot-table", "missing.csv"], "no such file"),
+    (["footprints", "--out", "fp", "--spot-table", "missing.csv"], "--spot-table: missing.csv: No such file"),
     (["footprints", "--out", "missing/fp"], "parent directory"),
     (["plot", "psf", "--out", "p.png", "--lbda", "1e9"], "instrument's range"),            # review 10 #17
     (["plot", "slice-map", "--out", "m.png", "--region", "0", "99999", "0", "10"], "--region"),

@@ -605,3 +605,33 @@ def test_a_fifo_as_the_raw_input_is_named_as_not_a_regular_file(tmp_path, capsys
     os.mkfifo(fifo)
     assert main(["reduce", str(fifo), "--out", str(tmp_path / "r.h5"), "--quiet"]) == 2
     assert "is not a regular file" in _one_line_error(capsys)
+
+
+def test_a_campaign_spec_given_as_raw_says_what_reduce_takes(raw, tmp_path, capsys):
+    spec = tmp_path / "spec.toml"
+    spec.write_text("[population]\nn = 2\n")
+    assert main(["reduce", str(spec), "--out", str(tmp_path / "red"), "--workers", "2"]) == 2
+    err = _one_line_error(capsys)
+    for needle in (f"{spec} is a TOML file, not a ramp file", "takes a ramp file or a campaign dataset directory",
+                   f"'slicersim campaign run {spec} --out DIR'"):
+        assert needle in err, (needle, err)
+    from slicersim.errors import DatasetError
+    from slicersim.reduction.campaign import reduce_dataset
+    with pytest.raises(DatasetError, match=r"spec.toml is a file, not a dataset directory"):
+        reduce_dataset(spec, tmp_path / "red")
+    assert not (tmp_path / "red").exists()
+
+
+@pytest.mark.parametrize("flag", ["--lbda-edges", "--psf", "--dark"])
+def test_option_files_that_are_not_regular_files_are_named_so(raw, tmp_path, capsys, flag):
+    import os
+    import threading
+    fifo = tmp_path / "edges.npy"
+    os.mkfifo(fifo)
+    codes = []
+    argv = ["reduce", str(raw[0]), "--out", str(tmp_path / "o.h5"), "--quiet", "--spectra", flag, str(fifo)]
+    thread = threading.Thread(target=lambda: codes.append(main(argv)), daemon=True)
+    thread.start()
+    thread.join(60)
+    assert not thread.is_alive() and codes == [2]
+    assert f"{flag}: {fifo} is not a regular file" in _one_line_error(capsys)

@@ -354,6 +354,53 @@ def test_status_of_non_dataset(tmp_path):
     assert proc.returncode == 2 and "no such dataset" in proc.stderr
 
 
+def test_status_of_a_spec_file_says_what_status_takes_and_how_to_run_the_spec(tmp_path):
+    from slicersim.campaign.runner import campaign_status
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    proc = run_cli("campaign", "status", spec)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    for needle in (f"{spec} is a file", "'slicersim campaign status' takes a dataset directory",
+                   f"'slicersim campaign run {spec} --out DIR'"):
+        assert needle in lines[0], (needle, lines[0])
+    assert "no such" not in lines[0]
+    with pytest.raises(DatasetError, match=r"spec.toml is a file, not a dataset directory \(.*looks like a campaign "
+                                           r"spec; run_campaign\(spec, out\) writes the dataset directory out\)"):
+        campaign_status(spec)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    proc = run_cli("campaign", "status", fifo)
+    assert proc.returncode == 2 and "is not a directory (a FIFO, device or socket)" in proc.stderr, proc.stderr
+
+
+def test_run_of_a_dataset_directory_says_what_run_takes(tmp_path):
+    dataset = tmp_path / "ds"
+    dataset.mkdir()
+    (dataset / "spec.json").write_text("{}")
+    proc = run_cli("campaign", "run", dataset, "--out", tmp_path / "other")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    for needle in (f"{dataset} is a dataset directory, not a campaign spec", "takes SPEC.toml",
+                   f"'slicersim campaign run SPEC.toml --out {dataset}'", f"'slicersim campaign status {dataset}'"):
+        assert needle in lines[0], (needle, lines[0])
+    assert not (tmp_path / "other").exists()
+
+
+@pytest.mark.parametrize("kind", ["fifo", "zero"])
+def test_a_spec_configuration_that_is_not_a_regular_file_is_named_so(tmp_path, kind):
+    from slicersim.campaign.spec import parse_spec
+    path = tmp_path / "c.toml"
+    if kind == "fifo":
+        os.mkfifo(path)
+    else:
+        path.symlink_to("/dev/zero")
+    doc = tomllib.loads(SPEC)
+    doc["observation"]["config"] = str(path)
+    with pytest.raises(ConfigError, match=rf"observation.config: {path} is not a regular file"):
+        parse_spec(doc)
+
+
 @pytest.mark.slow
 def test_ramps_and_detector_image_products(tmp_path):
     """One low-SNR target (short readout) with the full-detector products, in-process."""

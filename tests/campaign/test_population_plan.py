@@ -72,10 +72,13 @@ def test_table_redshift_distribution(tmp_path):
 
 
 @pytest.mark.parametrize("spec, message", [
-    ({"distribution": "uniform", "min": 1.2, "max": 0.3}, "min"),
-    ({"distribution": "uniform", "min": -0.3, "max": 1.0}, "negative"),
+    ({"distribution": "uniform", "min": 1.2, "max": 0.3},
+     r"population.redshift.min \(1.2\) must be < population.redshift.max \(0.3\)$"),
+    ({"distribution": "uniform", "min": -0.3, "max": 1.0},
+     r"population.redshift.min must be in \[0, 10\] \(redshifts cannot be negative\), got -0.3$"),
     ({"distribution": "uniform", "min": 0.5, "max": 0.5}, "min"),
-    ({"distribution": "uniform", "min": 0.1, "max": 30}, "above"),
+    ({"distribution": "uniform", "min": 0.1, "max": 30}, r"population.redshift.max must be in \[0, 10\] \(redshifts "
+                                                          r"above 10 are outside any SN Ia model\), got 30$"),
     ({"distribution": "gauss", "min": 0.1, "max": 1}, "distribution"),
     ({"distribution": "uniform", "min": 0.1, "mx": 1}, "'mx'"),
     ({"distribution": "uniform", "min": float("nan"), "max": 1}, "finite"),
@@ -408,6 +411,29 @@ def test_cli_survey_plan_bad_input(tmp_path, args, message):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--zmin", "1.2", "--zmax", "0.3"], "--zmin (1.2) must be < --zmax (0.3)"),
+    (["--zmin", "0.5", "--zmax", "0.5"], "--zmin (0.5) must be < --zmax (0.5)"),
+    (["--zmin=-0.5"], "--zmin must be in [0, 10] (redshifts cannot be negative), got -0.5"),
+    (["--zmax", "12"], "--zmax must be in [0, 10] (redshifts above 10 are outside any SN Ia model), got 12"),
+    (["--zmin", "nan"], "--zmin must be finite, got nan"),
+    (["--zmax", "inf"], "--zmax must be finite, got inf"),
+    (["--zmin=-inf"], "--zmin must be finite, got -inf"),
+    (["--snr", "-1"], "--snr must be > 0, got -1"),
+    (["--z-switch", "-1"], "--z-switch must be ≥ 0, got -1"),
+    (["--compression-ratio", "0"], "--compression-ratio must be ≥ 1, got 0"),
+    (["--lbda-range", "6000", "4000"], "--lbda-range must be (lo, hi) in Å with 0 < lo < hi"),
+])
+def test_cli_survey_plan_messages_name_the_flags(tmp_path, args, message):
+    """The redshift range and the plan's options are named by their flags (--zmin, not population.redshift.min
+    or zmin), one line each."""
+    proc = run_cli("survey", "plan", "--n", "2", *args, "--out", tmp_path / "p.ecsv")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("slicersim: error: --"), proc.stderr
+    assert message in lines[0] and "population." not in lines[0] and "z_switch" not in lines[0], lines[0]
+    assert not (tmp_path / "p.ecsv").exists()
+
+
 # --------------------------------------------------------------------------- campaign targets
 def test_catalog_campaign_with_dust_hosts_and_user_spectrum(tmp_path):
     """A catalog campaign in-process: planned, simulated (host in the scene) and recorded;
@@ -502,9 +528,10 @@ def test_sigint_interrupts_a_survey_plan_with_one_line(tmp_path):
 
 # 10, 22 --------------------------------------------------------------------------------------
 @pytest.mark.slow
-@pytest.mark.parametrize("args, message", [(["--snr", "-5"], "snr"), (["--snr", "0"], "snr"), (["--snr", "nan"], "snr"),
-                                           (["--lbda-range", "6800", "4000"], "lbda_range"),
-                                           (["--lbda-range", "-5", "4000"], "lbda_range"),
+@pytest.mark.parametrize("args, message", [(["--snr", "-5"], "--snr"), (["--snr", "0"], "--snr"),
+                                           (["--snr", "nan"], "--snr"),
+                                           (["--lbda-range", "6800", "4000"], "--lbda-range"),
+                                           (["--lbda-range", "-5", "4000"], "--lbda-range"),
                                            (["--out", "plan.txt"], ".ecsv"), (["--out", "."], "directory"),
                                            (["--figure", "/nonexistent/f.png"], "not writable")])
 def test_survey_plan_refuses_impossible_requests(tmp_path, args, message):

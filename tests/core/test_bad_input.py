@@ -172,6 +172,53 @@ def test_missing_curve_file(cfgdir):
         load_config(str(path))
 
 
+@pytest.mark.parametrize("kind", ["fifo", "zero"])
+def test_a_curve_file_that_is_not_a_regular_file_is_named_so_not_missing(tmp_path, kind):
+    """A QE or throughput curve path that is a FIFO or a device exists: 'not a regular file', not 'not found'
+    (in a TOML file, and in a configuration given as a dict)."""
+    path = tmp_path / "qe.ecsv" if kind == "fifo" else "/dev/zero"
+    if kind == "fifo":
+        os.mkfifo(path)
+    toml = tmp_path / "qe.toml"
+    toml.write_text(f'[detector]\nQE = "{path}"\n', encoding="utf-8")
+    with pytest.raises(ConfigError, match=rf"\[detector\] QE = '{path}': curve file: {path} is not a regular file"):
+        load_config(str(toml))
+    with pytest.raises(ConfigError, match=rf"\[spectrograph.throughput\] throughput = '{path}': curve file: "
+                                          rf"{path} is not a regular file"):
+        load_config({"spectrograph.throughput": {"throughput": str(path)}})
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[telescope]\ngain = 2.0\n", r"\[telescope\] has no key\(s\) 'gain': 'gain' belongs in \[detector\]; "),
+    ("[spectrograph]\nnoptics = 3\n", r"'noptics' belongs in \[spectrograph.throughput\]; "),
+    ("[telescope]\ngain = 2.0\nfoo = 1\n", r"'foo' is unknown; 'gain' belongs in \[detector\]; "),
+    ("QE = 0.8\n", r"top-level key 'QE' must live in its table: 'QE' belongs in \[detector\]; "),
+    ("[telescope]\ngaine = 2.0\n", r"unknown key\(s\) \['gaine'\] in \[telescope\] \(did you mean 'gain' of "
+                                    r"\[detector\]\?\)"),
+])
+def test_a_key_in_the_wrong_table_names_its_table_and_the_complete_default(tmp_path, text, match):
+    path = tmp_path / "mine.toml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigError, match=match) as info:
+        load_config(str(path))
+    message = str(info.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message
+    if "belongs" in message:
+        assert f"{builtin_config_dir()}/lazuli_cbe.toml" in message and "--config cbe --config FILE" in message
+
+
+def test_a_partial_configuration_names_the_missing_key_and_the_complete_default(tmp_path):
+    """A configuration file replaces the built-in one: a file with a few keys lacks the dispersion; layered on
+    'cbe' it is the CBE with those keys changed."""
+    path = tmp_path / "partial.toml"
+    path.write_text("[detector]\ngain = 2.0\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"the configuration \(partial.toml\) sets neither \[spectrograph\] "
+                                          r"dispersion_law nor resolving_power.*does not amend it.*lazuli_cbe.toml.*"
+                                          r"config=\['cbe', FILE\]"):
+        build_simulation(str(path), "narrow")
+    assert build_simulation(["cbe", str(path)], "narrow").detector.gain == 2.0
+
+
 def test_missing_toml_file(tmp_path):
     with pytest.raises(ConfigError, match=r"configuration file not found"):
         load_config(str(tmp_path / "nope.toml"))

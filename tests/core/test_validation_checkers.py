@@ -141,3 +141,17 @@ def test_every_checker_error_is_a_slicersim_error():
                  lambda: V.nramps(0)):
         with pytest.raises(SlicersimError):
             call()
+
+
+def test_flag_names_show_a_parameter_by_its_flag_inside_the_block_only():
+    """The CLI runs each command inside flag_names({dest: --flag}): a checker then names the flag."""
+    with V.flag_names({"nramps": "--nramps", "lbda_range": "--lbda-range"}):
+        with pytest.raises(ReadoutError, match=r"^--nramps must be an integer in \[1, 2147483647\], got 0$"):
+            V.nramps(0)
+        with pytest.raises(ParameterError, match=r"^--lbda-range\[0\] must be finite"):
+            V.number(f"{V.shown('lbda_range')}[0]", math.nan)
+        with V.flag_names({"seed": "--seed"}):                # nested blocks add names
+            assert (V.shown("seed"), V.shown("nramps"), V.shown("other")) == ("--seed", "--nramps", "other")
+        assert V.shown("seed") == "seed"
+    with pytest.raises(ReadoutError, match=r"^nramps must be"):
+        V.nramps(0)

@@ -284,6 +284,27 @@ def test_bad_input(mapper):
                                           [1, -1, 0.5, 0, 0, 1, 1]]))
 
 
+def test_a_spot_table_that_is_not_a_regular_file_is_refused_before_opening(tmp_path):
+    import os
+    import threading
+
+    from slicersim.errors import ConfigError
+    fifo = tmp_path / "spots.txt"
+    os.mkfifo(fifo)
+    caught = []
+
+    def read():
+        try:
+            SlicerMapper.from_table(str(fifo))
+        except ConfigError as exc:
+            caught.append(str(exc))
+    thread = threading.Thread(target=read, daemon=True)
+    thread.start()
+    thread.join(30)
+    assert not thread.is_alive(), "blocked on a FIFO"
+    assert caught == [f"spot table: {fifo} is not a regular file"]
+
+
 # --------------------------------------------------------------------------- kernels vs NumPy twins
 def _random_boxes(rng, n, shape):
     """Odd-sized random boxes, some unblurred, some points, some across or beyond the detector edge."""

@@ -69,3 +69,31 @@ def test_curve_files_that_are_not_regular_files_are_named(tmp_path):
     assert isinstance(exc, CurveError) and "curve.csv is not a regular file" in str(exc)
     with pytest.raises(CurveError, match="curve file not found"):
         read_curve(str(tmp_path / "missing.csv"))
+
+
+ECSV_HEADER = ("# %ECSV 1.0\n# ---\n# datatype:\n# - {name: lbda, datatype: float64}\n"
+               "# - {name: flux, datatype: float64}\n# schema: astropy-2.0\nlbda flux\n")
+
+
+@pytest.mark.parametrize("name, text, match", [
+    ("sp.csv", "lbda,flux\n4000,1e-17\n5000,1e-17\n5010,1e-17\n5005,1e-17\n5020,1e-17\n",
+     r"population.spectrum: .*sp.csv, line 5: lbda 5005 is below 5010 on line 4; "),
+    ("sp.csv", "lbda,flux\n4000,1e-17\n\n5000,1e-17\n5000,2e-17\n",        # a blank line is not a row
+     r"sp.csv, line 5: lbda 5000 equals 5000 on line 4 \(a duplicate row\)"),
+    ("sp.ecsv", ECSV_HEADER + "4000 1e-17\n5000 1e-17\n\n5010 1e-17\n5005 1e-17\n",
+     r"sp.ecsv, line 12: lbda 5005 is below 5010 on line 11; lbdas must be finite and strictly increasing "
+     r"\(rows are never sorted or dropped\)$"),
+])
+def test_spectrum_table_rows_out_of_order_or_repeated_are_refused_naming_the_lines(tmp_path, name, text, match):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=match):
+        read_spectrum_table(str(path), "population.spectrum")
+
+
+def test_curve_rows_out_of_order_are_refused_naming_the_lines(tmp_path):
+    from slicersim.io.curves import CurveError, read_curve
+    path = tmp_path / "qe.csv"
+    path.write_text("wavelength,QE\n5000,0.5\n5010,0.6\n\n5005,0.7\n")
+    with pytest.raises(CurveError, match=r"qe.csv, line 5: wavelength 5005 is below 5010 on line 3"):
+        read_curve(str(path))

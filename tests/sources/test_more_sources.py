@@ -221,6 +221,19 @@ def test_kilonova_missing_or_bad_file(kn_files, tmp_path):
         LazuliKilonova(str(kn_files / "model.fits"), redshift=0.05, theta=200.0)
 
 
+def test_model_and_star_files_that_are_not_regular_files_are_named_so(tmp_path, monkeypatch):
+    """A FIFO or a device exists: 'not a regular file', not 'not found' (and never opened)."""
+    import os
+    monkeypatch.delenv("SLICERSIM_CALSPEC_DIR", raising=False)
+    fifo = tmp_path / "model.fits"
+    os.mkfifo(fifo)
+    for path in (str(fifo), "/dev/zero"):
+        with pytest.raises(SpectrumError, match=rf"^kilonova model file: {path} is not a regular file$"):
+            LazuliKilonova(path, redshift=0.05)
+        with pytest.raises(SpectrumError, match=rf"^CALSPEC file: {path} is not a regular file$"):
+            LazuliCalSpec(path)
+
+
 # --------------------------------------------------------------------------- CALSPEC
 def _write_calspec(path, scale, wave_unit="ANGSTROMS"):
     lbda = np.arange(1150.0, 25000.0, 5.0)
