@@ -21,9 +21,7 @@ from slicersim.targets.sources import LazuliPowerLaw
 from slicersim.targets import LazuliSupernova
 from astropy.io import fits
 import warnings
-from slicersim.errors import SlicersimError
 import math
-import slicersim
 from model_state import (STATE_BAND as BAND_9_12, STATE_FLUX as FLUX_500,  # noqa: F401
                          STATE_LBDA as LBDA_500, assert_rejected_unchanged, flat_target, model_state as state)
 
