@@ -182,6 +182,7 @@ def cmd_etc(args) -> int:
         kwargs["allow_partial"] = True
     kwargs["conventions"] = args.conventions
     if args.redshift is not None:
+        validation.redshift("--redshift", args.redshift)
         kwargs["frame"] = args.frame or "rest"
         result = targets.lazuli_sn_etc(args.redshift, **kwargs)
     else:
@@ -286,10 +287,11 @@ def _check_ramp_detector(args):
 
 def cmd_ramp(args) -> int:
     from slicersim.products import ramps
+    if args.redshift is not None:
+        validation.redshift("--redshift", args.redshift)
     nmd = _check_ramp_detector(args)
     effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
     _check_output(args.out, args.overwrite)
-    from slicersim import validation
     seed = validation.new_seed() if args.seed is None else args.seed       # printed and recorded (SEED)
     common = dict(seed=seed, out=args.out, compression=args.compression, progress=None,
                   backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format,

@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 import os
 
+from slicersim.validation import short_repr
+
 __all__ = ["add_parsers", "cmd_reduce", "parse_lbda_edges"]
 
 #: flags of --spectra (name on the command line, attribute)
@@ -105,14 +107,16 @@ def parse_lbda_edges(text):
     try:
         start, stop, step = (float(p) for p in parts)
     except ValueError:
-        raise ParameterError(f"--lbda-edges must be START,STOP,STEP [Å] or an existing file, got {text!r}") from None
+        raise ParameterError(f"--lbda-edges must be START,STOP,STEP [Å] or an existing file, got "
+                             f"{short_repr(text)}") from None
+    given = f"{start:g},{stop:g},{step:g}"
     if not all(math.isfinite(v) for v in (start, stop, step)) or step <= 0 or stop <= start:
-        raise ParameterError(f"--lbda-edges START,STOP,STEP needs finite START < STOP and STEP > 0, got {text!r}")
+        raise ParameterError(f"--lbda-edges START,STOP,STEP needs finite START < STOP and STEP > 0, got {given}")
     nbins = (stop - start) / step
     if nbins > MAX_BINS:
-        raise ParameterError(f"--lbda-edges {text!r} makes {nbins:.3g} bins (at most {MAX_BINS})")
+        raise ParameterError(f"--lbda-edges {given} makes {nbins:.3g} bins (at most {MAX_BINS})")
     if abs(nbins - round(nbins)) > 1e-6 * max(1.0, nbins):
-        raise ParameterError(f"--lbda-edges {text!r}: STOP − START must be a multiple of STEP")
+        raise ParameterError(f"--lbda-edges {given}: STOP − START must be a multiple of STEP")
     return start + step * np.arange(int(round(nbins)) + 1)
 
 
@@ -121,9 +125,10 @@ def _parse_position(text):
     try:
         x, y = (float(v) for v in text.split(","))
     except ValueError:
-        raise ParameterError(f"--position must be X,Y [cells from the field centre], got {text!r}") from None
+        raise ParameterError(f"--position must be X,Y [cells from the field centre], got {short_repr(text)}") \
+            from None
     if not (math.isfinite(x) and math.isfinite(y)):
-        raise ParameterError(f"--position must be finite, got {text!r}")
+        raise ParameterError(f"--position must be finite, got {x:g},{y:g}")
     return x, y
 
 
@@ -133,7 +138,7 @@ def _load_npy(text, flag, expected):
 
     from slicersim.errors import ParameterError
     if not os.path.isfile(text):
-        raise ParameterError(f"{flag} must be {expected}, got {text!r}")
+        raise ParameterError(f"{flag} must be {expected}, got {short_repr(text)}")
     try:
         return np.load(text, allow_pickle=False)
     except (OSError, ValueError) as exc:

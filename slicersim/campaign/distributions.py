@@ -125,11 +125,12 @@ class RedshiftDistribution:
         if need - set(spec):
             raise ConfigError(f"{name}: a {kind} distribution needs {', '.join(sorted(need - set(spec)))}")
         p = {k: number(f"{name}.{k}", v, error=ConfigError) for k, v in spec.items()}
-        values = [p[k] for k in ("min", "max", "value") if k in p]
-        if any(v < 0 for v in values):
-            raise ConfigError(f"{name}: redshifts cannot be negative, got {p}")
-        if any(v > cls.MAX_Z for v in values):
-            raise ConfigError(f"{name}: redshifts above {cls.MAX_Z} are outside any SN Ia model, got {p}")
+        for key in ("min", "max", "value"):
+            if key in p and p[key] < 0:
+                raise ConfigError(f"{name}.{key}: redshifts cannot be negative, got {p[key]:g}")
+            if key in p and p[key] > cls.MAX_Z:
+                raise ConfigError(f"{name}.{key}: redshifts above {cls.MAX_Z:g} are outside any SN Ia model, got "
+                                  f"{p[key]:g}")
         if kind == "fixed" and p["value"] == 0:
             raise ConfigError(f"{name}: a SN Ia needs a redshift > 0")
         if kind != "fixed" and not p["min"] < p["max"]:

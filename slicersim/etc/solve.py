@@ -184,6 +184,8 @@ def _observer_ranges(ranges, frame, redshifts):
                        f"{z.shape}") from None
     if not np.all(np.isfinite(z) & (z > -1)):
         raise ETCError("redshifts must be finite and > -1")
+    if np.any(z > validation.MAX_REDSHIFT):
+        raise ETCError(f"redshifts must be ≤ {validation.MAX_REDSHIFT:g}, the largest is {z.max():g}")
     return ranges * (1 + z)[:, None]
 
 
@@ -214,7 +216,7 @@ class _BatchInstrument:
         sim = build_simulation(opts.config, opts.field, pointsource=None, conventions=opts.conventions)
         spec, det, grid = sim.spectrograph, sim.detector, sim.lbda
         if lbda[0] >= grid[-1] or lbda[-1] <= grid[0]:
-            raise SpectrumError(f"input wavelengths {lbda[0]:.0f}–{lbda[-1]:.0f} Å do not overlap the "
+            raise SpectrumError(f"input wavelengths {lbda[0]:g}–{lbda[-1]:g} Å do not overlap the "
                                 f"instrument range {grid[0]:.0f}–{grid[-1]:.0f} Å")
         band = np.stack([np.searchsorted(grid, ranges[:, 0], side="left"),
                          np.searchsorted(grid, ranges[:, 1], side="right")], axis=1)

@@ -287,7 +287,7 @@ def limit_error(snr, lbda_range, tframe, what="exceeds", exposure=None):
     """ETCError for a target beyond :data:`MAX_TOTAL_EXPOSURE` / :data:`MAX_RAMPS`."""
     lo, hi = (float(v) for v in lbda_range)
     got = f" (the search ends at {exposure:.3g} s)" if exposure is not None else ""
-    return ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å {what} the exposure limit: "
+    return ETCError(f"target SNR {snr:g} in the band {lo:g}–{hi:g} Å {what} the exposure limit: "
                     f"it needs more than MAX_TOTAL_EXPOSURE = {MAX_TOTAL_EXPOSURE:.4g} s (1 year; "
                     f"{max_frames_for(tframe)} frames of {tframe} s) or more than MAX_RAMPS = "
                     f"{MAX_RAMPS} ramps{got}")
@@ -301,14 +301,14 @@ def check_reference_result(snr, lbda_range, target, reached, exposure_time, tfra
     must keep reproducing).  A walk ending at n > ``max_group`` raises too."""
     if nmd is not None and max_group and nmd[0] > max_group:
         lo, hi = (float(v) for v in lbda_range)
-        raise ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å: the reference walk ends at "
+        raise ETCError(f"target SNR {snr:g} in the band {lo:g}–{hi:g} Å: the reference walk ends at "
                        f"readout {tuple(int(v) for v in nmd)}, beyond max_group = {max_group} "
                        "(use search='exact')")
     if not np.isfinite(reached) or reached < target * (1 - REFERENCE_SHORTFALL) - tol:
         lo, hi = (float(v) for v in lbda_range)
         if exposure_time > MAX_TOTAL_EXPOSURE or not np.isfinite(reached):
             raise limit_error(snr, lbda_range, tframe, "cannot be reached within", exposure_time)
-        raise ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å: the reference walk ends "
+        raise ETCError(f"target SNR {snr:g} in the band {lo:g}–{hi:g} Å: the reference walk ends "
                        f"at SNR {reached:.6g} per bin, below the target {target:.6g} by more than its "
                        f"tolerance {tol} (after {exposure_time:.3g} s; limit MAX_TOTAL_EXPOSURE = "
                        f"{MAX_TOTAL_EXPOSURE:.4g} s)")

@@ -109,9 +109,7 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
     """
     import sncosmo
     from astropy.cosmology import Planck18
-    if isinstance(redshift, (bool, np.bool_)) or not isinstance(redshift, (int, float, np.number)) \
-            or not (np.isfinite(redshift) and redshift > 0):
-        raise SpectrumError(f"redshift must be > 0, got {redshift}")
+    redshift = validation.redshift("redshift", redshift, error=SpectrumError)
     if isinstance(phase, (bool, np.bool_)) or not isinstance(phase, (int, float, np.number)) \
             or not np.isfinite(phase):
         raise SpectrumError(f"phase must be a finite number of days, got {phase!r}")
@@ -137,9 +135,9 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
     lo, hi = model.minwave(), model.maxwave()
     keep = (lbda >= lo) & (lbda <= hi)
     if np.count_nonzero(keep) < 2:
-        raise SpectrumError(f"redshift {redshift}: the sncosmo model {_source_label(source)!r} covers "
-                            f"{lo:.0f}–{hi:.0f} Å (observer frame) at this redshift, outside the wavelength "
-                            f"range {lbda[0]:.0f}–{lbda[-1]:.0f} Å: the redshift is outside the model's range")
+        raise SpectrumError(f"redshift {redshift:g}: the sncosmo model {_source_label(source)!r} covers "
+                            f"{lo:g}–{hi:g} Å (observer frame) at this redshift, outside the wavelength "
+                            f"range {lbda[0]:g}–{lbda[-1]:g} Å: the redshift is outside the model's range")
     return lbda[keep], model.flux(phase, lbda[keep])
 
 

@@ -428,3 +428,22 @@ def test_cli_etc_prints_units_and_no_object_repr():
     assert "object at 0x" not in out
     # the CLI now prints units in brackets after the key ("exposure_time [s]", "data_volume [GB]")
     assert "[GB]" in out and "[s]" in out and "[Angstrom]" in out
+
+
+HUGE = "1" + "0" * 300
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["etc", "--redshift", HUGE], "--redshift must be ≤ 50, got 1e+300"),
+    (["ramp", "--redshift", HUGE, "--out", "{tmp}/r.h5"], "--redshift must be ≤ 50, got 1e+300"),
+    (["plot", "fields", "--redshift", HUGE, "--out", "{tmp}/f.png"], "--redshift must be ≤ 50, got 1e+300"),
+    (["survey", "plan", "--n", "3", "--zmax", HUGE], "--zmax must be in [0, 10], got 1e+300"),
+    (["survey", "plan", "--n", "3", "--z-switch", HUGE], "--z-switch must be ≤ 50, got 1e+300"),
+    (["etc", "--redshift", "1", "--frame", "obs", "--lbda-range", "4000", HUGE], "band 4000–1e+300 Å"),
+    (["reduce", "{tmp}/raw.h5", "--out", "{tmp}/o.h5", "--spectra", "--lbda-edges", f"{HUGE},1,1"],
+     "--lbda-edges START,STOP,STEP needs finite START < STOP and STEP > 0, got 1e+300,1,1"),
+])
+def test_a_300_digit_number_is_refused_and_printed_short(tmp_path, capsys, monkeypatch, argv, needle):
+    (tmp_path / "raw.h5").write_bytes(b"")
+    err = _one_line(*_main_error(capsys, [a.format(tmp=tmp_path) for a in argv], monkeypatch))
+    assert needle in err and "0000000000" not in err, err

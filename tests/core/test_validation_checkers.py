@@ -141,3 +141,26 @@ def test_every_checker_error_is_a_slicersim_error():
                  lambda: V.nramps(0)):
         with pytest.raises(SlicersimError):
             call()
+
+
+def test_redshift_has_a_physical_upper_bound_and_short_messages():
+    """A redshift of 1e300 (or a 301-digit integer) is refused by a range check, printed short."""
+    assert V.redshift("z", 0.05) == 0.05 and V.redshift("z", 1.5) == 1.5 and V.redshift("z", 20) == 20.0
+    assert V.redshift("z", V.MAX_REDSHIFT) == V.MAX_REDSHIFT and V.redshift("z", 0, allow_zero=True) == 0.0
+    for huge in (float("1" + "0" * 300), 10**300, 10**400, 51.0):
+        shown = r"(1e\+300|an integer of 401 digits|51.0)"
+        with pytest.raises(ParameterError, match=rf"^z must be ≤ 50, got {shown} \(beyond z ≈ 21") as info:
+            V.redshift("z", huge)
+        assert len(str(info.value)) < 200 and "0000000000" not in str(info.value)
+    with pytest.raises(ParameterError, match=r"z must be in \(0, 50\], got 0"):
+        V.redshift("z", 0)
+
+
+def test_short_repr_and_number_print_huge_integers_short():
+    assert V.short_repr(10**300) == "1e+300" and V.short_repr(-(10**20)) == "-1e+20"
+    assert V.short_repr(10**400) == "an integer of 401 digits" and V.short_repr(12345) == "12345"
+    with pytest.raises(ParameterError, match=r"^x must be ≤ 10, got an integer of 401 digits$"):
+        V.number("x", 10**400, high=10)
+    with pytest.raises(ParameterError, match=r"^z must be ≤ 50, its maximum is 1e\+300$"):
+        V.array("z", [0.5, 1e300], high=50)
+    assert V.array("z", [0.5, np.nan], high=50, finite=False).shape == (2,)
