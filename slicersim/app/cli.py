@@ -2,7 +2,8 @@
 ``python -m slicersim``).
 
 User errors (a :class:`~slicersim.errors.SlicersimError`: bad values, impossible requests,
-unreadable input files, unwritable or existing outputs; an ``OSError``; out of memory; Ctrl-C)
+unreadable input files, unwritable or existing outputs; an ``OSError``; out of memory, of the host
+or of the OpenCL device, with what was being allocated and the option that bounds memory; Ctrl-C)
 are reported as one line ``slicersim: error: ...`` on stderr with exit status 2.  Set
 ``SLICERSIM_DEBUG=1`` to get the full traceback instead.  Anything else is a defect of slicersim:
 its traceback is printed with a "please report" line, exit status 3.
@@ -285,17 +286,31 @@ def _check_ramp_detector(args):
     return nmd
 
 
+#: what bounds the memory of each command, named in an out-of-memory error
+MEMORY_HINTS = {
+    "ramp": "lower --max-bytes (the row blocks in flight) or give a smaller --rate image",
+    "reduce": "lower --max-bytes (the row blocks in flight); the rate images of the whole detector are held in "
+              "memory",
+    "campaign": "lower --memory-per-task (the chunks of one task) or use fewer --workers",
+    "survey": "plan fewer targets at once (--n)",
+}
+
+
 def cmd_ramp(args) -> int:
     from slicersim.products import ramps
     if args.redshift is not None:
         validation.redshift("--redshift", args.redshift)
     nmd = _check_ramp_detector(args)
+    if args.max_bytes is not None:
+        validation.integer("--max-bytes", args.max_bytes, low=1)
     effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
     _check_output(args.out, args.overwrite)
     seed = validation.new_seed() if args.seed is None else args.seed       # printed and recorded (SEED)
     common = dict(seed=seed, out=args.out, compression=args.compression, progress=None,
                   backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format,
                   precision=args.precision)
+    if args.max_bytes is not None:
+        common["max_bytes"] = args.max_bytes
     if args.previous_charge is not None:
         common["previous_charge"] = _load_rate(args.previous_charge)
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
@@ -408,6 +423,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--conventions", choices=CONVENTIONS,
                    help=f"model conventions of the scene, only with --redshift (default: {DEFAULT_CONVENTIONS})")
     p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto", help="compute backend")
+    p.add_argument("--max-bytes", type=int, metavar="BYTES", help="memory budget of the row blocks of ramps in "
+                   "flight [bytes] (default: 536870912 = 512 MiB; lower it when memory runs out)")
     p.add_argument("--precision", choices=("auto", "double", "single"), default="auto",
                    help="floating type of the ramp samplers (auto: single only on a device without fast fp64; "
                         "single is not bit-identical to double: ~1e-3 of the values differ by 1 ADU, same "
@@ -454,6 +471,37 @@ def _format_warning(message, category, filename, lineno, line=None):
     return f"slicersim: warning: {_one_line(message)}\n"
 
 
+#: OpenCL status codes of a device or host out of memory (MEM_OBJECT_ALLOCATION_FAILURE,
+#: OUT_OF_RESOURCES, OUT_OF_HOST_MEMORY, INVALID_BUFFER_SIZE)
+_CL_MEMORY_CODES = (-4, -5, -6, -61)
+
+
+def _out_of_memory(exc) -> str | None:
+    """"host" or "OpenCL device" when ``exc`` says memory ran out (Python's MemoryError, NumPy's,
+    pyopencl's MemoryError or a memory status code), else None."""
+    if isinstance(exc, MemoryError):
+        return "host"
+    cl = sys.modules.get("pyopencl")
+    if cl is not None and isinstance(exc, getattr(cl, "Error", ())):
+        try:
+            code = exc.code
+        except Exception:                 # an Error without a routine/code: not ours to read
+            code = None
+        if isinstance(exc, getattr(cl, "MemoryError", ())) or code in _CL_MEMORY_CODES:
+            return "OpenCL device"
+    return None
+
+
+def _memory_message(exc, where, command) -> str:
+    """One line for running out of memory: where, what was being allocated, what bounds memory."""
+    from slicersim.errors import SlicersimError
+    hint = MEMORY_HINTS.get(command, "free memory or use a smaller input")
+    text = _one_line(exc)
+    if isinstance(exc, SlicersimError):           # a ResourceError: says what already, with the API's names
+        return text.replace("max_bytes", "--max-bytes") if command in ("ramp", "reduce") else text
+    return f"out of memory ({where}){': ' + text if text else ''}; {hint}"
+
+
 def main(argv=None) -> int:
     import warnings
     args = build_parser().parse_args(argv)
@@ -473,7 +521,7 @@ def main(argv=None) -> int:
         if isinstance(exc, KeyboardInterrupt):
             message = "interrupted"
         elif isinstance(exc, MemoryError):
-            message = f"out of memory: {exc}" if str(exc) else "out of memory"
+            message = _memory_message(exc, "host", getattr(args, "command", None))
         elif isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
             message = f"{exc.filename}: {exc.strerror}"
         else:
@@ -482,6 +530,12 @@ def main(argv=None) -> int:
         print(f"slicersim: error: {_one_line(message)}", file=sys.stderr)
         return 2
     except Exception as exc:  # a defect, not a user error: keep the traceback
+        where = _out_of_memory(exc)
+        if where is not None and os.environ.get("SLICERSIM_DEBUG", "") in ("", "0"):
+            sys.stdout.flush()
+            print(f"slicersim: error: {_memory_message(exc, where, getattr(args, 'command', None))}",
+                  file=sys.stderr)
+            return 2
         import traceback
         sys.stdout.flush()
         traceback.print_exc()

@@ -35,7 +35,7 @@ FLAG_OF = {"field": "--field", "lbda_edges": "--lbda-edges", "ncol": "--ncol", "
            "dark": "--dark", "weights": "--weights", "weighting": "--weighting", "jump_threshold": "--jump-threshold",
            "gain": "--gain", "read_noise": "--ron", "ron": "--ron", "with_truth": "--with-truth",
            "refpix": "--no-refpix", "linearity": "--no-linearity", "workers": "--workers",
-           "scheduler": "--scheduler", "allow_partial": "--allow-partial"}
+           "scheduler": "--scheduler", "allow_partial": "--allow-partial", "max_bytes": "--max-bytes"}
 
 
 def cli_message(text):
@@ -189,6 +189,8 @@ def _check_flags(args, dataset):
         validation.number("--gain [DN/e-]", args.gain, low=0.0, low_open=True)
     if args.ron is not None:
         validation.number("--ron (read noise [e-/frame])", args.ron, low=0.0, high=1e4)
+    if args.max_bytes is not None:
+        validation.integer("--max-bytes", args.max_bytes, low=1)
 
 
 def _spectra_options(args):
@@ -221,6 +223,8 @@ def cmd_reduce(args) -> int:
     fit_options = {"refpix": False if args.no_refpix else None, "linearity": False if args.no_linearity else None,
                    "jump_threshold": args.jump_threshold, "weighting": args.weighting, "gain": args.gain,
                    "ron": args.ron, "with_truth": args.with_truth}
+    if args.max_bytes is not None:
+        fit_options["max_bytes"] = args.max_bytes
     options = _spectra_options(args) if args.spectra else {}
     if dataset:
         return _reduce_dataset(args, fit_options, options)
@@ -288,6 +292,8 @@ def add_parsers(sub, fmt):
                    help="override the file's read noise per frame [e-] (--read-noise: its earlier name)")
     p.add_argument("--with-truth", action="store_true", help="copy truth/rate beside the fitted rates "
                    "(TRUTH_RATE; rates/TRUTH_RATE with --spectra)")
+    p.add_argument("--max-bytes", type=int, metavar="BYTES", help="memory budget of the row blocks of the ramp fit "
+                   "in flight [bytes] (default: 268435456 = 256 MiB; lower it when memory runs out)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     g = p.add_argument_group("rates → cubes → spectra (with --spectra)")

@@ -34,7 +34,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.backends.dispatch import BACKENDS
 from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
-from slicersim.errors import EffectsError, ParameterError
+from slicersim.errors import EffectsError, ParameterError, ResourceError
 from slicersim.io.rampfile import DQ, RampWriter
 from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, rows_per_block
 from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, frame_mean_charge,  # noqa: F401
@@ -315,13 +315,15 @@ def _open_writer(out, io, p, fx, shape, rows):
 
 
 def _check_memory(p, shape, return_dq, max_bytes):
-    """MemoryError when SCI (and GROUPDQ) in memory would exceed 16 × max_bytes or the memory available."""
+    """ResourceError (a MemoryError) when SCI (and GROUPDQ) in memory would exceed 16 × max_bytes or the
+    memory available."""
     full_bytes = p.nramps * p.nmd[0] * shape[0] * shape[1] * (3 if return_dq else 2)
     if full_bytes > 16 * max_bytes:
-        raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
+        raise ResourceError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB (more than 16 × max_bytes): "
+                            "pass out=<file.h5>")
     avail = _available_memory()
     if avail is not None and full_bytes > avail:
-        raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB, "
+        raise ResourceError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB, "
                           f"{avail / 2**30:.1f} GiB available: pass out=<file.h5>")
 
 

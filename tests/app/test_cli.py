@@ -447,3 +447,45 @@ def test_a_300_digit_number_is_refused_and_printed_short(tmp_path, capsys, monke
     (tmp_path / "raw.h5").write_bytes(b"")
     err = _one_line(*_main_error(capsys, [a.format(tmp=tmp_path) for a in argv], monkeypatch))
     assert needle in err and "0000000000" not in err, err
+
+
+def _raising(exc):
+    def command(args):
+        raise exc
+    return command
+
+
+@pytest.mark.parametrize("command, argv, needles", [
+    ("reduce_cli.cmd_reduce", ["reduce", "raw.h5", "--out", "o.h5"],
+     ["out of memory (host): Unable to allocate 74.5 GiB for an array with shape (100000, 100000)", "--max-bytes"]),
+    ("cli.cmd_ramp", ["ramp", "--rate", "r.npy", "--out", "o.h5"], ["out of memory (host)", "--max-bytes"]),
+    ("campaign_cli.cmd_campaign_run", ["campaign", "run", "spec.toml", "--out", "d"], ["--memory-per-task"]),
+])
+def test_out_of_memory_is_one_line_naming_the_allocation_and_the_option(capsys, monkeypatch, command, argv, needles):
+    """A MemoryError (NumPy's) is a user error, exit 2, one line: what was allocated and which option bounds it."""
+    import importlib
+    module, name = command.split(".")
+    raised = MemoryError("Unable to allocate 74.5 GiB for an array with shape (100000, 100000) and data type float64")
+    monkeypatch.setattr(importlib.import_module(f"slicersim.app.{module}"), name, _raising(raised))
+    err = _one_line(*_main_error(capsys, argv, monkeypatch))
+    for needle in needles:
+        assert needle in err, (needle, err)
+
+
+def test_opencl_device_out_of_memory_is_a_user_error(capsys, monkeypatch):
+    """pyopencl's MemoryError is not Python's: it was an internal error with a traceback (exit 3)."""
+    cl = pytest.importorskip("pyopencl")
+    from slicersim.app import cli
+    monkeypatch.setattr(cli, "cmd_ramp", _raising(cl.MemoryError("clEnqueueNDRangeKernel failed: "
+                                                                   "MEM_OBJECT_ALLOCATION_FAILURE")))
+    err = _one_line(*_main_error(capsys, ["ramp", "--rate", "r.npy", "--out", "o.h5"], monkeypatch))
+    assert "out of memory (OpenCL device): clEnqueueNDRangeKernel failed: MEM_OBJECT_ALLOCATION_FAILURE" in err
+    assert "--max-bytes" in err
+
+
+def test_a_too_small_max_bytes_names_the_flag(tmp_path, capsys, monkeypatch):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    err = _one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--nmd", "3", "1", "0", "--max-bytes", "10",
+                                          "--out", tmp_path / "r.h5"], monkeypatch))
+    assert "--max-bytes 10 B is below" in err and not (tmp_path / "r.h5").exists()
