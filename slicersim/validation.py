@@ -302,7 +302,7 @@ def memory(what, nbytes, *, hint=""):
     when they exceed this machine's physical memory; ``hint`` says what bounds them."""
     total = physical_memory()
     if total is not None and nbytes > total:
-        raise ResourceError(f"{what} needs {nbytes / 2**30:.3g} GiB, more than this machine's "
+        raise ResourceError(f"{what} would take {nbytes / 2**30:.3g} GiB, more than this machine's "
                             f"{total / 2**30:.3g} GiB of memory{'; ' + hint if hint else ''}")
 
 

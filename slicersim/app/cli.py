@@ -210,17 +210,20 @@ def _check_output(path, overwrite):
     check_output_path(path, overwrite, RampFileError, "--out")
 
 
-def _load_rate(path):
+def _load_rate(path, flag="--rate"):
     """An image from a .npy file (NumPy's format) or a text file of numbers, as a float64 array;
     ParameterError naming the file when it is neither (a text file named .npy, a binary file
-    given as text, a non-numeric entry)."""
+    given as text, a non-numeric entry) or when its .npy header declares more data than it holds."""
     import numpy as np
 
     from slicersim.errors import ParameterError
-    path = validation.regular_file("image file", path)
+    from slicersim.io.npy import load_npy
+    path = validation.regular_file(f"{flag} image file", path)
     if path.endswith(".npy"):
         try:
-            rate = np.load(path, allow_pickle=False)
+            rate = load_npy(flag, path)
+        except ParameterError:
+            raise
         except ValueError:       # NumPy's "pickled data" message: not an .npy file (text, or object array)
             raise ParameterError(f"{path}: not a NumPy .npy file of numbers (a text image must not be named "
                                  ".npy)") from None
@@ -312,7 +315,7 @@ def cmd_ramp(args) -> int:
     if args.max_bytes is not None:
         common["max_bytes"] = args.max_bytes
     if args.previous_charge is not None:
-        common["previous_charge"] = _load_rate(args.previous_charge)
+        common["previous_charge"] = _load_rate(args.previous_charge, "--previous-charge")
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
     if args.rate is not None:
         given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None]

@@ -90,11 +90,14 @@ def parse_lbda_edges(text):
     if os.path.isfile(text):
         try:
             if text.endswith(".npy"):
-                edges = np.load(text, allow_pickle=False)
+                from slicersim.io.npy import load_npy
+                edges = load_npy("--lbda-edges", text)
             else:
                 import io
                 with open(text, encoding="utf-8") as fh:
                     edges = np.loadtxt(io.StringIO(fh.read().replace(",", " ")), ndmin=1)
+        except ParameterError:
+            raise
         except (OSError, ValueError, UnicodeDecodeError) as exc:
             raise ParameterError(f"--lbda-edges: cannot read λ edges from {text}: {' '.join(str(exc).split())}") \
                 from None
@@ -134,13 +137,14 @@ def _parse_position(text):
 
 def _load_npy(text, flag, expected):
     """The .npy array of a file option (one-line ParameterError when missing or unreadable)."""
-    import numpy as np
-
     from slicersim.errors import ParameterError
     if not os.path.isfile(text):
         raise ParameterError(f"{flag} must be {expected}, got {short_repr(text)}")
+    from slicersim.io.npy import load_npy
     try:
-        return np.load(text, allow_pickle=False)
+        return load_npy(flag, text)
+    except ParameterError:
+        raise
     except (OSError, ValueError) as exc:
         raise ParameterError(f"{flag}: cannot read {text} as a .npy array: {' '.join(str(exc).split())}") from None
 

@@ -262,6 +262,7 @@ def fit_ramps(source, options=None, **kwargs):
                              f"(got {validation.short_repr(options)} and {sorted(kwargs)})")
     backend = resolve_backend(options.backend)
     with open_ramps(source) as src:
+        _check_memory(src, options)
         setup = _FitSetup(src, options)
         out = {"rate": np.empty(src.shape[2:]), "variance": np.empty(src.shape[2:]),
                "var_poisson": np.empty(src.shape[2:]), "var_rnoise": np.empty(src.shape[2:]),
@@ -271,6 +272,16 @@ def fit_ramps(source, options=None, **kwargs):
         attrs = _attrs(src, setup.nmd, setup.tframe, setup.gain, setup.ron, setup.saturation,
                        options.jump_threshold, options.weighting, backend, setup.labels)
     return RateProduct(**out, attrs=attrs, groupdq=groupdq, truth_rate=setup.truth_rate)
+
+
+def _check_memory(src, options):
+    """ResourceError naming the file and SCI's declared shape when the whole-detector outputs (rates,
+    variances, DQ; GROUPDQ with ``return_groupdq``, the truth rate) exceed this machine's memory."""
+    nints, n, ny, nx = src.shape
+    nbytes = ny * nx * (40 + 8 * bool(options.with_truth)) + (nints * n * ny * nx if options.return_groupdq else 0)
+    validation.memory(f"{src.name}: the rates of dataset SCI {tuple(src.shape)}", nbytes,
+                      hint="the rate images of the whole detector are held in memory (max_bytes bounds only "
+                           "the row blocks)")
 
 
 fit_ramps.__signature__ = inspect.Signature(

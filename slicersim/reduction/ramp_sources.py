@@ -88,6 +88,12 @@ class _HDF5Ramps(_Ramps):
         except OSError as exc:
             raise RampFileError(f"{path}: not a readable HDF5 ramp file ({one_line(exc)})") from exc
         fh = self.fh
+        from slicersim.io.rampfile import check_hdf5_input
+        try:              # no data from outside the file, a SCI whose declared shape is stored
+            check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ"))
+        except BaseException:
+            self.close()
+            raise
         if not fh.attrs.get("COMPLETE", False):
             self.close()
             raise RampFileError(f"{path}: incomplete file (no completion marker)")
@@ -144,8 +150,8 @@ class _FitsImage:
         end = hdul.fileinfo(index)["datLoc"] + math.prod(self.shape) * abs(bitpix) // 8
         size = os.path.getsize(path)
         if end > size:
-            raise RampFileError(f"{path}: truncated file: extension {hdr.get('EXTNAME')} ends at byte {end}, the "
-                                f"file has {size}")
+            raise RampFileError(f"{path}: truncated file: extension {hdr.get('EXTNAME')} ends at byte {end} "
+                                f"(declared shape {self.shape}, BITPIX {bitpix}), the file has {size}")
         self.raw = np.memmap(path, dtype=self._TYPES[bitpix], mode="r", offset=hdul.fileinfo(index)["datLoc"],
                              shape=self.shape)
         unsigned = {(16, 32768): np.uint16, (32, 2**31): np.uint32, (8, 0): np.uint8}

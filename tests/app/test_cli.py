@@ -489,3 +489,38 @@ def test_a_too_small_max_bytes_names_the_flag(tmp_path, capsys, monkeypatch):
     err = _one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--nmd", "3", "1", "0", "--max-bytes", "10",
                                           "--out", tmp_path / "r.h5"], monkeypatch))
     assert "--max-bytes 10 B is below" in err and not (tmp_path / "r.h5").exists()
+
+
+def _forged_npy(path, shape=(100000, 100000)):
+    """A .npy file whose header declares ``shape`` float64 and which holds 64 bytes."""
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": shape})
+        fh.write(b"\0" * 64)
+    return path
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["ramp", "--rate", "{npy}", "--out", "{tmp}/r.h5"], "--rate"),
+    (["ramp", "--rate", "{ok}", "--effects", "persistence", "--previous-charge", "{npy}", "--out", "{tmp}/r.h5"],
+     "--previous-charge"),
+    (["reduce", "{h5}", "--out", "{tmp}/r.h5", "--spectra", "--dark", "{npy}"], "--dark"),
+    (["reduce", "{h5}", "--out", "{tmp}/r.h5", "--spectra", "--lbda-edges", "{npy}"], "--lbda-edges"),
+    (["reduce", "{h5}", "--out", "{tmp}/r.h5"], None),
+])
+def test_inputs_declaring_more_data_than_they_hold_are_named_before_allocating(tmp_path, capsys, monkeypatch, argv,
+                                                                                flag):
+    """A .npy header or an HDF5 SCI declaring 10⁵ × 10⁵ values in a few bytes was 'out of memory' (74.5 GiB)."""
+    import h5py
+    npy = _forged_npy(tmp_path / "forged.npy")
+    np.save(tmp_path / "ok.npy", np.ones((8, 8)))
+    with h5py.File(tmp_path / "forged.h5", "w") as fh:
+        fh.create_dataset("SCI", shape=(1, 4, 100000, 100000), dtype="u2", chunks=(1, 1, 64, 64))
+        fh.attrs["COMPLETE"] = True
+    subst = {"npy": npy, "ok": tmp_path / "ok.npy", "h5": tmp_path / "forged.h5", "tmp": tmp_path}
+    err = _one_line(*_main_error(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    if flag is None:
+        assert "forged.h5: dataset SCI declares shape (1, 4, 100000, 100000) uint16 (74.5 GiB)" in err, err
+    else:
+        assert f"{flag}: {npy} declares an array of shape (100000, 100000) float64 (74.5 GiB) but holds 64 bytes" \
+            in err, err
+    assert not (tmp_path / "r.h5").exists()
