@@ -25,7 +25,7 @@ import warnings
 
 import numpy as np
 
-from slicersim.errors import ParameterError, ReadoutError, ResourceError
+from slicersim.errors import ParameterError, ReadoutError, ResourceError, SlicersimError
 
 __all__ = ["short_repr", "number", "integer", "positive_int", "fraction", "flag", "choice", "readout", "nramps",
            "seed", "new_seed", "array", "shape", "regular_file", "renamed_keyword", "redshift", "checked_fields",
@@ -306,9 +306,12 @@ def memory(what, nbytes, *, hint=""):
                             f"{total / 2**30:.3g} GiB of memory{'; ' + hint if hint else ''}")
 
 
-#: atoms of a field annotation :func:`checked_fields` checks, and what a value of each must be
+#: atoms of a field annotation :func:`checked_fields` checks, and what a value of each must be: as
+#: lenient as the most lenient class (0/1 for a bool, 3.0 for an int, a Quantity for a float); the
+#: class's own checks then apply its rules
 _FIELD_TYPES = {
-    "bool": ("True or False", lambda v: isinstance(v, (bool, np.bool_))),
+    "bool": ("True or False", lambda v: isinstance(v, (bool, np.bool_)) or (
+        isinstance(v, numbers.Integral) and v in (0, 1))),
     "int": ("an integer", lambda v: not isinstance(v, (bool, np.bool_)) and (
         isinstance(v, numbers.Integral) or (isinstance(v, numbers.Real) and math.isfinite(v) and v == int(v)))),
     "float": ("a number", lambda v: not isinstance(v, (bool, np.bool_)) and (
@@ -318,7 +321,7 @@ _FIELD_TYPES = {
     "None": ("None", lambda v: v is None),
     "tuple": ("a sequence", lambda v: isinstance(v, (tuple, list, np.ndarray))),
     "list": ("a sequence", lambda v: isinstance(v, (tuple, list, np.ndarray))),
-    "dict": ("a dict", lambda v: isinstance(v, dict)),
+    "dict": ("a dict", lambda v: isinstance(v, dict) or hasattr(v, "keys") and hasattr(v, "__getitem__")),
 }
 
 
@@ -337,7 +340,8 @@ def checked_fields(cls=None, *, error=ParameterError):
     or extra argument, or a field of the wrong type (from its annotation: bool, int, float, str,
     None, tuple, list, dict and their unions) raises ``error`` naming the class and the field, with
     the valid field names and a did-you-mean, instead of Python's ``TypeError``.  The class's own
-    ``__post_init__`` checks the values (ranges, choices) afterwards."""
+    ``__post_init__`` runs first (its messages are the more precise); the type check names a field
+    it let through, or failed on with another exception than a SlicersimError."""
     if cls is None:
         return functools.partial(checked_fields, error=error)
     init = cls.__init__
@@ -355,11 +359,19 @@ def checked_fields(cls=None, *, error=ParameterError):
             bound = signature.bind(self, *args, **kwargs)
         except TypeError as exc:          # a missing argument, too many positional ones
             raise error(f"{cls.__name__}: {exc}; its fields: {', '.join(names)}") from None
-        for key, value in list(bound.arguments.items())[1:]:
-            rule = rules.get(key)
-            if rule is not None and not rule[1](value):
-                raise error(f"{cls.__name__}.{key} must be {rule[0]}, got {short_repr(value)}")
-        init(self, *args, **kwargs)
+        wrong = next((f"{cls.__name__}.{key} must be {rules[key][0]}, got {short_repr(value)}"
+                      for key, value in list(bound.arguments.items())[1:]
+                      if rules.get(key) is not None and not rules[key][1](value)), None)
+        try:                              # the class's own checks first: their words are the most precise
+            init(self, *args, **kwargs)
+        except SlicersimError:
+            raise
+        except Exception:                 # a TypeError deep inside: the wrong type is the reason
+            if wrong is None:
+                raise
+            raise error(wrong) from None
+        if wrong is not None:             # a field the class does not check
+            raise error(wrong)
 
     cls.__init__ = __init__
     return cls

@@ -23,8 +23,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from slicersim.errors import ETCError, ParameterError, SpectrumError
-from slicersim.validation import MAX_REDSHIFT, array as validation_array, choice, number, redshift as check_redshift, \
-    short_repr
+from slicersim.validation import MAX_REDSHIFT, array as validation_array, checked_fields, choice, number, \
+    redshift as check_redshift, short_repr
 
 __all__ = ["SurveyPlan", "SurveyOptions", "plan_survey", "plan_survey_with", "plot_time_and_volume", "check_client_memory", "survey_totals", "YEAR_S", "PLAN_COLUMNS"]
 
@@ -104,6 +104,7 @@ FRAMES = ("rest", "obs")
 FIELDS = ("narrow", "wide")
 
 
+@checked_fields
 @dataclass(frozen=True)
 class SurveyOptions:
     """How a survey is observed and planned (:func:`plan_survey`).

@@ -61,6 +61,7 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
     return lbda, fluxes, ranges
 
 
+@validation.checked_fields
 @dataclass(frozen=True)
 class SolveOptions:
     """How :func:`solve_batch` solves: every option of :func:`solve_many` except the per-target data.

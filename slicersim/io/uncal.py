@@ -189,6 +189,7 @@ def _table_bytes(array, extname, extra=()):
     return buf.getvalue()[len(primary.header.tostring()):]
 
 
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class UncalOptions:
     """Keywords of :class:`UncalWriter` beyond those it shares with the HDF5 RampWriter: ``keywords``

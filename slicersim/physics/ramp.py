@@ -22,6 +22,7 @@ DEFAULT_BIAS = 2000.0          # ADU pedestal: read noise never clips at 0
 P_POISSON, P_READ, P_KTC, P_SPARSE = 0, 1, 2, 3
 
 
+@validation.checked_fields
 @dataclass(kw_only=True)
 class RampParameters:
     """Validated readout and detector parameters of a ramp simulation (keyword-only).

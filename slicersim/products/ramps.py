@@ -49,6 +49,7 @@ __all__ = ["simulate", "RampParameters", "RampIO", "RunOptions", "DetectorMaps",
 DEFAULT_MAX_BYTES = 2**29
 
 
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class RampIO:
     """What :func:`simulate` writes, and how (the ``io`` options).
@@ -78,6 +79,7 @@ class RampIO:
             object.__setattr__(self, name, validation.flag(name, value))
 
 
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
     """How :func:`simulate` computes: ``max_bytes`` [bytes] of host memory for the row blocks (and,
@@ -98,6 +100,7 @@ class RunOptions:
             object.__setattr__(self, "work_group", validation.positive_int("work_group", self.work_group))
 
 
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class DetectorMaps:
     """Per-pixel inputs of :func:`simulate`, each (ny, nx) or None: ``dead_pixels`` (bool, collecting

@@ -173,6 +173,7 @@ def _refpix_terms(src, bias, kw):
 
 
 # ----------------------------------------------------------------------------- driver
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class FitOptions:
     """Options of :func:`fit_ramps` (every keyword of its keyword form).

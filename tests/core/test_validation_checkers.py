@@ -164,3 +164,60 @@ def test_short_repr_and_number_print_huge_integers_short():
     with pytest.raises(ParameterError, match=r"^z must be ≤ 50, its maximum is 1e\+300$"):
         V.array("z", [0.5, 1e300], high=50)
     assert V.array("z", [0.5, np.nan], high=50, finite=False).shape == (2,)
+
+
+OPTION_CLASSES = [
+    ("slicersim.physics.ramp", "RampParameters", {"nmd": (4, 1, 0)}, "tframe", ParameterError),
+    ("slicersim.products.ramps", "RampIO", {}, "overwrite", ParameterError),
+    ("slicersim.products.ramps", "RunOptions", {}, "max_bytes", ParameterError),
+    ("slicersim.products.ramps", "DetectorMaps", {}, "pixeldq", ParameterError),
+    ("slicersim.campaign.runner", "RunOptions", {"workers": 1}, "window", ParameterError),
+    ("slicersim.reduction.ramp_fit", "FitOptions", {}, "weighting", ParameterError),
+    ("slicersim.reduction.options", "ReduceOptions", {}, "ncol", ParameterError),
+    ("slicersim.reduction.options", "ForwardOptions", {}, "field", ParameterError),
+    ("slicersim.reduction.rectify_checks", "RectifyOptions", {}, "method", ParameterError),
+    ("slicersim.etc.solve", "SolveOptions", {}, "search", ParameterError),
+    ("slicersim.campaign.plan", "SurveyOptions", {}, "efficiency", ParameterError),
+    ("slicersim.io.uncal", "UncalOptions", {}, "substrt", ParameterError),
+    ("slicersim.physics.cosmic_rays", "CosmicRayParameters", {}, "rate", EffectsError),
+]
+
+
+@pytest.mark.parametrize("module, name, required, field, error", OPTION_CLASSES)
+def test_option_classes_name_an_unknown_field_with_did_you_mean(module, name, required, field, error):
+    """FitOptions(weightin=...) was Python's 'TypeError: __init__() got an unexpected keyword argument'."""
+    import dataclasses
+    import importlib
+    cls = getattr(importlib.import_module(module), name)
+    misspelt = field[:-1]
+    with pytest.raises(error, match=rf"unknown field of {name} '{misspelt}' \(did you mean '{field}'\?\); "
+                                    rf"valid: .*'{field}'") as info:
+        cls(**required, **{misspelt: 1})
+    for f in dataclasses.fields(cls):
+        if f.init:
+            assert repr(f.name) in str(info.value)
+    cls(**required)                                           # the defaults still build
+
+
+def test_option_classes_name_a_field_of_the_wrong_type():
+    from slicersim.physics.ramp import RampParameters
+    from slicersim.products.ramps import DetectorMaps, RunOptions
+    from slicersim.reduction.ramp_fit import FitOptions
+    from slicersim.reduction.rectify_checks import RectifyOptions
+    from slicersim.campaign.plan import SurveyOptions
+    cases = [(lambda: FitOptions(with_truth="yes"), r"FitOptions.with_truth must be True or False, got 'yes'"),
+             (lambda: FitOptions(jump_threshold="4"), r"FitOptions.jump_threshold must be a number or None"),
+             (lambda: FitOptions(work_group="64"), r"FitOptions.work_group must be an integer or None"),
+             (lambda: FitOptions(saturation="3"), r"saturation must be a number of DN > 0"),   # the class's words
+             (lambda: SurveyOptions(detector_shape=4096), r"SurveyOptions.detector_shape must be a sequence or None"),
+             (lambda: RectifyOptions(truncate="4"), r"truncate"),
+             (lambda: RectifyOptions(weights_dtype="zzz"), r"weights_dtype must be float32 or float64, got 'zzz'"),
+             (lambda: RunOptions(progress="no"), r"progress"),
+             (lambda: RampParameters(), r"RampParameters: missing a required argument: 'nmd'; its fields: nmd, "),
+             (lambda: DetectorMaps(dead_pixels=np.zeros(3), bogus=1), r"unknown field of DetectorMaps 'bogus'")]
+    for make, message in cases:
+        with pytest.raises(ParameterError, match=message):
+            make()
+    assert FitOptions(with_truth=np.bool_(True), jump_threshold=np.float32(4), work_group=np.int64(64)).with_truth
+    u = pytest.importorskip("astropy.units")
+    assert FitOptions(ron=5 * u.electron).ron == 5.0
