@@ -73,7 +73,10 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
         validation.choice("keyword", key, ("ron",), what="check_ramp_file keyword")
     ron = renamed.get("ron", ron)
     register_hdf5_filters()
-    path = os.fspath(path)
+    if not isinstance(path, (str, bytes, os.PathLike)):
+        raise ParameterError(f"check_ramp_file path must be a ramp file path (str or os.PathLike), got "
+                             f"{validation.short_repr(path)}")
+    path = os.fsdecode(path)
     if os.path.isdir(path):
         raise RampFileError(f"{path} is a directory, not a ramp file (a campaign dataset needs spec.json "
                             "and catalog.ecsv)")

@@ -262,7 +262,7 @@ def fit_ramps(source, options=None, **kwargs):
         raise ParameterError("fit_ramps: give options=FitOptions(...) or keywords, not both "
                              f"(got {validation.short_repr(options)} and {sorted(kwargs)})")
     backend = resolve_backend(options.backend)
-    with open_ramps(source) as src:
+    with open_ramps(source, "fit_ramps source") as src:
         _check_memory(src, options)
         setup = _FitSetup(src, options)
         out = {"rate": np.empty(src.shape[2:]), "variance": np.empty(src.shape[2:]),

@@ -14,10 +14,11 @@ import os
 
 import numpy as np
 
-from slicersim.errors import RampFileError
+from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import is_temporary, one_line
+from slicersim.validation import short_repr
 
-__all__ = ["open_ramps", "ramp_file_kind", "ramp_readout", "keyword_number"]
+__all__ = ["open_ramps", "check_source", "ramp_file_kind", "ramp_readout", "keyword_number"]
 
 _HDF5_MAGIC, _FITS_MAGIC = b"\x89HDF\r\n\x1a\n", b"SIMPLE  ="
 
@@ -251,9 +252,30 @@ def ramp_file_kind(path):
     return None
 
 
-def open_ramps(source):
+#: what :func:`open_ramps` accepts, said in its errors
+ACCEPTED = ("a ramp file path (str or os.PathLike: an HDF5 file from `slicersim ramp` or a JWST level-1b FITS) "
+            "or the arrays read_ramps returns: (SCI (nints, ngroups, ny, nx) [DN], GROUPDQ or None, PIXELDQ or "
+            "None, attrs: a dict of the readout keywords NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE)")
+
+
+def check_source(source, name="source"):
+    """``source`` if it is a path (str, bytes, os.PathLike) or a sequence of four items (the arrays);
+    else ParameterError naming ``name`` and saying what is accepted (:data:`ACCEPTED`)."""
+    if isinstance(source, (str, bytes, os.PathLike)) or (isinstance(source, (tuple, list)) and len(source) == 4):
+        return source
+    got = f"a {type(source).__name__} of {len(source)} item(s)" if isinstance(source, (tuple, list)) else \
+        short_repr(source)
+    raise ParameterError(f"{name} must be {ACCEPTED}; got {got}")
+
+
+def open_ramps(source, name="source"):
     """A raw ramp reader for a path (HDF5 or level-1b FITS, by content) or arrays
-    (SCI, GROUPDQ, PIXELDQ, attrs); RampFileError for anything else."""
+    (SCI, GROUPDQ, PIXELDQ, attrs); ParameterError naming ``name`` and what is accepted for another
+    kind of value (a number, a bare array: :func:`check_source`), RampFileError for a file or arrays
+    that are not ramps."""
+    source = check_source(source, name)
+    if isinstance(source, bytes):
+        source = os.fsdecode(source)
     if isinstance(source, (str, os.PathLike)):
         path = os.fspath(source)
         kind = ramp_file_kind(path)

@@ -553,3 +553,19 @@ def test_rates_larger_than_the_machine_memory_are_refused_naming_the_file(tmp_pa
     assert isinstance(info.value, SlicersimError) and isinstance(info.value, MemoryError)
     with pytest.raises(ResourceError, match=r"ok.h5: dataset SCI of shape \(1, 4, 16, 32\) read whole"):
         read_ramps(path)
+
+
+@pytest.mark.parametrize("source, got", [(123, "got 123"), (np.zeros((4, 8, 8)), "got an array of shape (4, 8, 8)"),
+                                         ([1, 2], "got a list of 2 item(s)"), (None, "got None")])
+def test_a_source_of_another_kind_says_what_is_accepted(source, got):
+    """fit_ramps(123) said only 'arrays must be (SCI, GROUPDQ or None, PIXELDQ or None, attrs)'."""
+    from slicersim.reduction.checks import check_ramp_file
+    from slicersim.reduction.pipeline import reduce_exposure
+    for call, name in ((fit_ramps, "fit_ramps source"), (reduce_exposure, "reduce_exposure raw_path")):
+        with pytest.raises(ParameterError) as info:
+            call(source)
+        text = str(info.value)
+        assert text.startswith(f"{name} must be a ramp file path (str or os.PathLike") and got in text, text
+        assert "SCI (nints, ngroups, ny, nx)" in text and "NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE" in text
+    with pytest.raises(ParameterError, match="check_ramp_file path must be a ramp file path"):
+        check_ramp_file(source)
