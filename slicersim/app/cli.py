@@ -324,6 +324,9 @@ def cmd_ramp(args) -> int:
             raise ParameterError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} only with --redshift "
                                  "(with --rate the detector is set by --tframe/--ron/--dark/--roic-glow/--gain)")
         rate = _load_rate(args.rate)
+        from slicersim.physics.ramp import RampParameters, check_frame_charge
+        check_frame_charge(rate, RampParameters(nmd=nmd, **(RAMP_DETECTOR_DEFAULTS | detector)),
+                           {"rate": "--rate image", "dark": "--dark", "roic_glow": "--roic-glow"})
         path = ramps.simulate(rate, nmd, args.nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
     else:
         from slicersim.targets import LazuliSupernova

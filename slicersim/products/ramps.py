@@ -37,7 +37,7 @@ from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
 from slicersim.errors import EffectsError, ParameterError, ResourceError
 from slicersim.io.rampfile import DQ, RampWriter
 from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, rows_per_block
-from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, frame_mean_charge,  # noqa: F401
+from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, check_frame_charge, frame_mean_charge,  # noqa: F401
                                     macc_frame_schedule, readpatt)
 from slicersim.physics.readout import readout_times  # noqa: F401
 
@@ -253,6 +253,7 @@ def _simulate(rate, p, named, io, run, maps):
     if np.ndim(p.dark) and np.shape(p.dark) != rate.shape:
         raise ParameterError(f"dark must be a number or an image of the shape of rate {rate.shape}, "
                              f"got shape {np.shape(p.dark)}")
+    check_frame_charge(rate, p)
     seed = validation.seed(named["seed"])
     seed = validation.new_seed() if seed is None else seed
     dead, pixeldq, previous_charge = _check_maps(maps, rate.shape)

@@ -524,3 +524,15 @@ def test_inputs_declaring_more_data_than_they_hold_are_named_before_allocating(t
         assert f"{flag}: {npy} declares an array of shape (100000, 100000) float64 (74.5 GiB) but holds 64 bytes" \
             in err, err
     assert not (tmp_path / "r.h5").exists()
+
+
+def test_absurd_rates_and_fluxes_are_one_line_range_errors(tmp_path, capsys, monkeypatch):
+    """--rate at 1e300 e-/s gave NumPy overflow warnings; --spectrum at 1e100 erg/s/cm²/Å 'no signal in the band?'."""
+    np.save(tmp_path / "hot.npy", np.full((8, 8), 1e300))
+    err = _one_line(*_main_error(capsys, ["ramp", "--rate", tmp_path / "hot.npy", "--nmd", "3", "1", "0", "--out",
+                                          tmp_path / "r.h5"], monkeypatch))
+    assert "--rate image reaches 1e+300 e-/s" in err and "more than the 1e+09 e- accepted" in err, err
+    assert "warning" not in err and not (tmp_path / "r.h5").exists()
+    (tmp_path / "sp.txt").write_text("".join(f"{w} 1e100\n" for w in range(3000, 20000, 100)))
+    err = _one_line(*_main_error(capsys, ["etc", "--spectrum", tmp_path / "sp.txt"], monkeypatch))
+    assert "F_λ reaches 1e+100 erg/s/cm²/Å, above 1000" in err, err
