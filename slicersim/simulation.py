@@ -334,7 +334,7 @@ class Simulation(Versioned):
         return dark + glow / det.tframe + dth
 
     def read_noise(self, off=None):
-        """Read noise per read [e-]: the detector's, 0 when ``"ron"`` is switched off."""
+        """Read noise per frame [electron]: the detector's, 0 when ``"ron"`` is switched off."""
         return 0.0 if "ron" in as_switched_off(off) else self.detector.ron
 
     @property

@@ -264,7 +264,7 @@ def _ramp_effects(args):
 
 #: physical range of the ramp command's detector options: (low, high, unit) (the same bounds as a
 #: raw file's keywords, :data:`slicersim.reduction.checks.ATTR_RANGES`)
-RAMP_DETECTOR_RANGES = {"tframe": (1e-6, 1e4, "s"), "ron": (0.0, 1e4, "e-/read"), "dark": (0.0, 1e6, "e-/s"),
+RAMP_DETECTOR_RANGES = {"tframe": (1e-6, 1e4, "s"), "ron": (0.0, 1e4, "electron"), "dark": (0.0, 1e6, "e-/s"),
                         "roic_glow": (0.0, 1e6, "e-/frame"), "gain": (1e-3, 1e3, "ADU/e-")}
 #: the 16-bit ADC's range [ADU]: a read noise above 1/8 of it would fill the file with 0 and 65535
 ADC_MAX = 65535
@@ -283,8 +283,8 @@ def _check_ramp_detector(args):
     if args.ron is not None:
         gain = args.gain if args.gain is not None else RAMP_DETECTOR_DEFAULTS["gain"]
         if args.ron * gain > ADC_MAX / 8:
-            raise ParameterError(f"--ron {args.ron:g} e- × gain {gain:g} ADU/e- = {args.ron * gain:.3g} ADU of read "
-                                 f"noise per read: more than 1/8 of the 16-bit ADC range ({ADC_MAX} ADU), the "
+            raise ParameterError(f"--ron {args.ron:g} electron × gain {gain:g} ADU/e- = {args.ron * gain:.3g} ADU of read "
+                                 f"noise per frame: more than 1/8 of the 16-bit ADC range ({ADC_MAX} ADU), the "
                                  "ramps would be 0 and 65535 only")
     return nmd
 
@@ -421,7 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--field", choices=("narrow", "wide"), help="field of view, only with --redshift "
                    "(default: narrow)")
     p.add_argument("--tframe", type=float, help=f"frame time [s] (default: {d['tframe']}; {from_config})")
-    p.add_argument("--ron", type=float, help=f"read noise [e-/read] (default: {d['ron']}; {from_config})")
+    p.add_argument("--ron", type=float, help=f"read noise per frame [electron] (default: {d['ron']}; {from_config})")
     p.add_argument("--dark", type=float, help=f"dark current [e-/s] (default: {d['dark']}; {from_config})")
     p.add_argument("--roic-glow", type=float,
                    help=f"ROIC glow [e-/frame] (default: {d['roic_glow']}; {from_config})")

@@ -192,7 +192,7 @@ def _check_flags(args, dataset):
     if args.gain is not None:
         validation.number("--gain [DN/e-]", args.gain, low=0.0, low_open=True)
     if args.ron is not None:
-        validation.number("--ron (read noise [e-/frame])", args.ron, low=0.0, high=1e4)
+        validation.number("--ron (read noise per frame)", args.ron, low=0.0, high=1e4, unit="electron")
     if args.max_bytes is not None:
         validation.integer("--max-bytes", args.max_bytes, low=1)
 
@@ -292,8 +292,8 @@ def add_parsers(sub, fmt):
     p.add_argument("--no-refpix", action="store_true", help="skip the reference-pixel correction")
     p.add_argument("--no-linearity", action="store_true", help="skip the nonlinearity correction")
     p.add_argument("--gain", type=float, metavar="DN/e-", help="override the file's GAIN")
-    p.add_argument("--ron", "--read-noise", dest="ron", type=float, metavar="e-",
-                   help="override the file's read noise per frame [e-] (--read-noise: its earlier name)")
+    p.add_argument("--ron", "--read-noise", dest="ron", type=float, metavar="RON",
+                   help="override the file's read noise per frame [electron] (--read-noise: its earlier name)")
     p.add_argument("--with-truth", action="store_true", help="copy truth/rate beside the fitted rates "
                    "(TRUTH_RATE; rates/TRUTH_RATE with --spectra)")
     p.add_argument("--max-bytes", type=int, metavar="BYTES", help="memory budget of the row blocks of the ramp fit "

@@ -38,7 +38,7 @@ class RampParameters:
     Quantity, converted to the unit given here.
 
     nmd : (n, m, d) MACC readout;  nramps : ramps (integrations);  tframe : s;
-    ron : e-/read;  dark, thermal_dark : e-/s/px (dark may be a per-pixel array);
+    ron : electron (read noise per frame);  dark, thermal_dark : e-/s/px (dark may be a per-pixel array);
     roic_glow : e-/px/frame;  gain : ADU/e-;  saturation, bias : ADU;  ktc_noise : e- per reset;
     full_well : e- (default (saturation − bias)/gain);  sparse_max_group : e-/group (None: auto);
     gauss_min_mean : e-/frame above which Poisson increments are drawn as Gaussians.

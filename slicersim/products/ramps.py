@@ -148,7 +148,7 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
     """Simulate raw MACC ramps of a rate image.
 
     rate : (ny, nx) photo-electron rate [e-/s] (detector terms are added here)
-    readout : :class:`RampParameters` (readout and detector: nmd, nramps, tframe [s], ron [e-/read],
+    readout : :class:`RampParameters` (readout and detector: nmd, nramps, tframe [s], ron [electron],
         dark [e-/s, scalar or image], thermal_dark [e-/s], roic_glow [e-/frame], gain [ADU/e-],
         saturation [ADU], bias [ADU], ktc_noise [e-], full_well [e-], sparse_max_group, gauss_min_mean)
     seed : int in [0, 2⁶⁴), or None (default): a fresh seed (:func:`slicersim.validation.new_seed`),

@@ -185,7 +185,7 @@ class FitOptions:
         a number or an (ny, nx) map
     jump_threshold : σ of the two-point-difference jump test (None or 0: no detection)
     weighting : "gls" (exact MACC covariance) or "ols" (unweighted; its variance is Rauscher07's)
-    gain [DN/e-], ron [e- per frame] (read-out noise), saturation [DN]: override the file's GAIN,
+    gain [DN/e-], ron [electron] (read noise per frame), saturation [DN]: override the file's GAIN,
         READNOISE, SATURATION (default 65535 for integer data); an astropy Quantity is converted
     with_truth : also load ``truth/rate`` [e-/s] (RampFileError if the file has none)
     return_groupdq : keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx)

@@ -304,7 +304,7 @@ def keyword_number(attrs, key, where, kind=float):
 
 
 def ramp_readout(attrs, shape, gain, ron, where):
-    """Validated (n, m, d), tframe [s], gain [DN/e-], read noise [e-/frame] of a ramp's keywords."""
+    """Validated (n, m, d), tframe [s], gain [DN/e-], read noise per frame [electron] of a ramp's keywords."""
     missing = [k for k in ("NFRAMES", "GROUPGAP", "TFRAME") if k not in attrs]
     if gain is None and "GAIN" not in attrs:
         missing.append("GAIN (or pass gain=)")
@@ -334,5 +334,5 @@ def ramp_readout(attrs, shape, gain, ron, where):
     gain = keyword_number(attrs, "GAIN", where) if gain is None else float(gain)
     ron = keyword_number(attrs, "READNOISE", where) if ron is None else float(ron)
     if not (math.isfinite(gain) and gain > 0) or not (math.isfinite(ron) and ron >= 0):
-        raise RampFileError(f"{where}: gain {gain} DN/e- must be > 0 and read noise {ron} e- ≥ 0")
+        raise RampFileError(f"{where}: gain {gain} DN/e- must be > 0 and read noise {ron} electron ≥ 0")
     return (n, m, d), tframe, gain, ron

@@ -408,7 +408,7 @@ def test_malformed_and_decimal_comma_spectra_name_the_line(tmp_path, capsys, mon
 @pytest.mark.parametrize("argv, needle", [
     (["--nmd", "4", "1", "1000000000"], "--nmd[2] (d, dropped frames between groups)"),
     (["--nmd", "5000", "1", "0"], "--nmd[0] (n, groups per ramp)"),
-    (["--nmd", "3", "1", "0", "--ron", "1e300"], "--ron [e-/read]"),
+    (["--nmd", "3", "1", "0", "--ron", "1e300"], "--ron [electron]"),
     (["--nmd", "3", "1", "0", "--ron", "9000"], "more than 1/8 of the 16-bit ADC range"),
     (["--nmd", "3", "1", "0", "--gain", "1e-300"], "--gain [ADU/e-]"),
     (["--nmd", "3", "1", "0", "--tframe", "1e300"], "--tframe [s]"),
@@ -536,3 +536,45 @@ def test_absurd_rates_and_fluxes_are_one_line_range_errors(tmp_path, capsys, mon
     (tmp_path / "sp.txt").write_text("".join(f"{w} 1e100\n" for w in range(3000, 20000, 100)))
     err = _one_line(*_main_error(capsys, ["etc", "--spectrum", tmp_path / "sp.txt"], monkeypatch))
     assert "F_λ reaches 1e+100 erg/s/cm²/Å, above 1000" in err, err
+
+
+def test_the_read_noise_unit_is_spelled_electron_everywhere_a_user_reads_it(tmp_path, capsys, monkeypatch):
+    """CLI help, messages and docs said e-/read, e-/frame, e- and e⁻: one astropy-readable spelling."""
+    from pathlib import Path
+
+    import astropy.units as u
+
+    from slicersim.app.cli import build_parser
+    from slicersim.errors import ParameterError
+    from slicersim.instrument.detector import Detector
+    from slicersim.physics.ramp import RampParameters
+    from slicersim.reduction.checks import check_fit_options
+    from slicersim.reduction.ramp_fit import FitOptions
+    assert u.Unit("electron") == u.electron
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices
+    for command in ("ramp", "reduce"):
+        ron = next(a for a in sub[command]._actions if a.dest == "ron")
+        assert "read noise per frame [electron]" in ron.help and "e-" not in ron.help, ron.help
+    messages = []
+    for make in (lambda: RampParameters(nmd=(3, 1, 0), ron=-1), lambda: Detector(ron=-1), lambda: FitOptions(ron=-1),
+                 lambda: check_fit_options({"ron": -1})):
+        with pytest.raises(ParameterError) as info:
+            make()
+        messages.append(str(info.value))
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    messages.append(_one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--ron", "-1", "--out", tmp_path / "r.h5"],
+                                           monkeypatch)))
+    messages.append(_one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--ron", "9000", "--out",
+                                                    tmp_path / "r.h5"], monkeypatch)))
+    (tmp_path / "raw.h5").write_bytes(b"")
+    messages.append(_one_line(*_main_error(capsys, ["reduce", tmp_path / "raw.h5", "--ron", "-1", "--out",
+                                                    tmp_path / "o.h5"], monkeypatch)))
+    root = Path(__file__).resolve().parents[2]
+    entries = [line.split("`ron`", 1)[1].split("`")[0] for doc in ("docs/units.md", "docs/api_conventions.md")
+               for line in (root / doc).read_text(encoding="utf-8").splitlines() if "`ron`" in line]
+    messages += [entry for entry in entries if "[" in entry]          # the entries giving its unit
+    assert len(messages) == 9
+    for text in messages:
+        assert "electron" in text and not re.search(r"e-/read|e-/frame|e⁻|\[e-\]|e- per frame", text), text
