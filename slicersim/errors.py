@@ -8,7 +8,7 @@ from __future__ import annotations
 
 __all__ = ["SlicersimError", "ConfigError", "ReadoutError", "SpectrumError", "ETCError",
            "ParameterError", "RampFileError", "OpenCLUnavailableError", "OpenCLForkError", "DatasetError", "EffectsError",
-           "ReductionError", "CurveError", "GalaxyDataUnavailable"]
+           "ReductionError", "CurveError", "GalaxyDataUnavailable", "ResourceError"]
 
 
 class SlicersimError(Exception):
@@ -67,3 +67,9 @@ class CurveError(ConfigError):
 
 class GalaxyDataUnavailable(SlicersimError, ImportError):
     """A named real galaxy was asked for without the optional ``lazuli-astrosim-data`` package."""
+
+
+class ResourceError(SlicersimError, MemoryError):
+    """Not enough memory (host or OpenCL device) for a request: names what was being allocated and
+    the option that bounds it (``max_bytes``, ``--max-bytes``, ``--memory-per-task``), or an input
+    whose declared size exceeds the machine's memory."""

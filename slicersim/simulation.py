@@ -93,7 +93,7 @@ class Simulation(Versioned):
         _, self.nramps = check_readout(detector.nmd, _check_nramps(nramps), detector.min_group,
                                        detector.max_group)
         self.aperture_radius_insigma = _check_aperture(aperture_radius_insigma)
-        self.redshift = redshift
+        self.redshift = None if redshift is None else validation.redshift("redshift", redshift)
         self._cache = {}
         object.__setattr__(self, "_cache_token", None)
         self._check_overlap()
@@ -173,7 +173,7 @@ class Simulation(Versioned):
         lbda = self.lbda if lbda is None else lbda
         lo, hi = lbda[0], lbda[-1]
         if ps is not None and not ps.overlap(lo, hi):
-            raise SpectrumError(f"point-source spectrum ({ps.lbda_in[0]:.0f}–{ps.lbda_in[-1]:.0f} Å) does "
+            raise SpectrumError(f"point-source spectrum ({ps.lbda_in[0]:g}–{ps.lbda_in[-1]:g} Å) does "
                                 f"not overlap the instrument range ({lo:.0f}–{hi:.0f} Å)")
 
     def _check_aperture_cells(self, spec, telescope, aperture_insigma, position):
@@ -334,7 +334,7 @@ class Simulation(Versioned):
         return dark + glow / det.tframe + dth
 
     def read_noise(self, off=None):
-        """Read noise per read [e-]: the detector's, 0 when ``"ron"`` is switched off."""
+        """Read noise per frame [electron]: the detector's, 0 when ``"ron"`` is switched off."""
         return 0.0 if "ron" in as_switched_off(off) else self.detector.ron
 
     @property

@@ -18,7 +18,10 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import dataclasses
 import difflib
+import functools
+import inspect
 import math
 import numbers
 import os
@@ -28,11 +31,11 @@ import warnings
 
 import numpy as np
 
-from slicersim.errors import ParameterError, ReadoutError
+from slicersim.errors import ParameterError, ReadoutError, ResourceError, SlicersimError
 
 __all__ = ["short_repr", "number", "integer", "positive_int", "fraction", "flag", "choice", "readout", "nramps",
-           "seed", "new_seed", "array", "shape", "regular_file", "renamed_keyword", "flag_names", "shown", "MAX_GROUPS", "MAX_DROPS",
-           "MAX_FRAMES"]
+           "seed", "new_seed", "array", "shape", "regular_file", "renamed_keyword", "flag_names", "shown", "redshift",
+           "checked_fields", "memory", "physical_memory", "MAX_GROUPS", "MAX_DROPS", "MAX_FRAMES", "MAX_REDSHIFT"]
 
 #: the largest readout this package accepts: groups per ramp, dropped frames between groups and
 #: frames per ramp (an H4RG ramp of 512 groups of 16 frames at 2.83 s is 6.4 h, longer than any
@@ -40,6 +43,11 @@ __all__ = ["short_repr", "number", "integer", "positive_int", "fraction", "flag"
 MAX_GROUPS = 4096
 MAX_DROPS = 4096
 MAX_FRAMES = 65536
+
+#: the highest redshift accepted: the model spectra end at 2 µm, so beyond z ≈ 21 every wavelength
+#: observed was emitted below the Lyman limit (912 Å), absorbed by intergalactic hydrogen, and no
+#: luminous source is expected before z ≈ 30 (the first stars); 50 leaves a margin for toy spectra
+MAX_REDSHIFT = 50.0
 
 
 #: Python parameter name → what the user typed it as (a CLI flag), set by :func:`flag_names`
@@ -70,6 +78,11 @@ def short_repr(value, limit=60) -> str:
         return str(value)                  # an astropy Quantity scalar, e.g. "3.0 m"
     if isinstance(value, np.ndarray):
         return f"an array of shape {value.shape} and dtype {value.dtype}"
+    if isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)) and abs(int(value)) >= 10**15:
+        try:
+            return f"{float(value):g}"                      # 10**300 as 1e+300, not 301 digits
+        except OverflowError:
+            return f"an integer of {len(str(abs(int(value))))} digits"
     try:
         text = repr(value)
     except Exception:  # a broken __repr__ must not hide the real error
@@ -101,7 +114,10 @@ def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_op
     if isinstance(value, (bool, np.bool_, str, bytes)) or not isinstance(value, (numbers.Real, np.ndarray)) \
             or (isinstance(value, np.ndarray) and value.shape != ()):
         raise error(f"{name}{in_unit} must be a number, got {short_repr(value)}")
-    val = float(value)
+    try:
+        val = float(value)
+    except OverflowError:                          # an int beyond the float range (10**400)
+        val = math.inf
     if not math.isfinite(val) or val < low or val > high or (low_open and val == low) \
             or (high_open and val == high):
         raise error(f"{name}{in_unit} must be {_interval(low, high, low_open, high_open)}, got {short_repr(value)}")
@@ -228,11 +244,11 @@ def new_seed() -> int:
     return secrets.randbits(63)
 
 
-def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, unit=None,
+def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, high=None, unit=None,
           error=ParameterError) -> np.ndarray:
     """``value`` as a NumPy array of real numbers converted to ``dtype``; refuses object,
     structured, complex and string arrays, a wrong number of dimensions, non-finite values
-    (``finite``) and values below ``low``.  An astropy Quantity is converted to ``unit`` (refused
+    (``finite``) and values below ``low`` or above ``high``.  An astropy Quantity is converted to ``unit`` (refused
     when ``unit`` is None or not convertible: its unit must never be dropped silently)."""
     name = shown(name)
     value = _quantity_value(name, value, unit, error, plain="an array of plain numbers")
@@ -249,6 +265,9 @@ def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, un
         raise error(f"{name} has {int(np.size(arr) - np.isfinite(arr).sum())} non-finite value(s)")
     if low is not None and arr.size and float(arr.min()) < low:
         raise error(f"{name} must be ≥ {low:g}, its minimum is {float(arr.min()):g}")
+    top = float(np.max(arr, initial=-np.inf, where=~np.isnan(arr))) if high is not None and arr.size else None
+    if top is not None and top > high:
+        raise error(f"{name} must be ≤ {high:g}, its maximum is {top:g}")
     return arr
 
 
@@ -291,3 +310,104 @@ def renamed_keyword(kwargs, old, new, where, *, stacklevel=3):
                   stacklevel=stacklevel)
     kwargs[new] = kwargs.pop(old)
     return kwargs
+
+
+def redshift(name, value, *, allow_zero=False, error=ParameterError) -> float:
+    """A redshift as a float in (0, :data:`MAX_REDSHIFT`] ([0, ...] with ``allow_zero``)."""
+    try:
+        beyond = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) \
+            and float(value) > MAX_REDSHIFT
+    except OverflowError:                          # an int beyond the float range
+        beyond = value > 0
+    if beyond:
+        raise error(f"{shown(name)} must be ≤ {MAX_REDSHIFT:g}, got {short_repr(value)} (beyond z ≈ 21 all the light "
+                    "reaching the 2 µm end of the model grid was emitted below the Lyman limit)")
+    return number(name, value, low=0.0, low_open=not allow_zero, high=MAX_REDSHIFT, error=error)
+
+
+def physical_memory() -> int | None:
+    """Bytes of physical memory of this machine (None where the system does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def memory(what, nbytes, *, hint=""):
+    """Refuse (:class:`~slicersim.errors.ResourceError`) before allocating ``nbytes`` for ``what``
+    when they exceed this machine's physical memory; ``hint`` says what bounds them."""
+    total = physical_memory()
+    if total is not None and nbytes > total:
+        raise ResourceError(f"{what} would take {nbytes / 2**30:.3g} GiB, more than this machine's "
+                            f"{total / 2**30:.3g} GiB of memory{'; ' + hint if hint else ''}")
+
+
+#: atoms of a field annotation :func:`checked_fields` checks, and what a value of each must be: as
+#: lenient as the most lenient class (0/1 for a bool, 3.0 for an int, a Quantity for a float); the
+#: class's own checks then apply its rules
+_FIELD_TYPES = {
+    "bool": ("True or False", lambda v: isinstance(v, (bool, np.bool_)) or (
+        isinstance(v, numbers.Integral) and v in (0, 1))),
+    "int": ("an integer", lambda v: not isinstance(v, (bool, np.bool_)) and (
+        isinstance(v, numbers.Integral) or (isinstance(v, numbers.Real) and math.isfinite(v) and v == int(v)))),
+    "float": ("a number", lambda v: not isinstance(v, (bool, np.bool_)) and (
+        isinstance(v, numbers.Real) or hasattr(v, "unit") and np.ndim(v) == 0
+        or isinstance(v, np.ndarray) and v.shape == () and v.dtype.kind in "iuf")),
+    "str": ("a string", lambda v: isinstance(v, str)),
+    "None": ("None", lambda v: v is None),
+    "tuple": ("a sequence", lambda v: isinstance(v, (tuple, list, np.ndarray))),
+    "list": ("a sequence", lambda v: isinstance(v, (tuple, list, np.ndarray))),
+    "dict": ("a dict", lambda v: isinstance(v, dict) or hasattr(v, "keys") and hasattr(v, "__getitem__")),
+}
+
+
+def _field_rule(annotation):
+    """(description, test) of a field annotation made of :data:`_FIELD_TYPES` atoms ("float | None"),
+    or None where it has another (``object``, a class): such a field is checked by its class only."""
+    atoms = [a.strip() for a in str(annotation).split("|")]
+    if not all(a in _FIELD_TYPES for a in atoms):
+        return None
+    rules = [_FIELD_TYPES[a] for a in atoms]
+    return " or ".join(r[0] for r in rules), (lambda v: any(r[1](v) for r in rules))
+
+
+def checked_fields(cls=None, *, error=ParameterError):
+    """Class decorator (after ``@dataclass``): building the class with an unknown keyword, a missing
+    or extra argument, or a field of the wrong type (from its annotation: bool, int, float, str,
+    None, tuple, list, dict and their unions) raises ``error`` naming the class and the field, with
+    the valid field names and a did-you-mean, instead of Python's ``TypeError``.  The class's own
+    ``__post_init__`` runs first (its messages are the more precise); the type check names a field
+    it let through, or failed on with another exception than a SlicersimError."""
+    if cls is None:
+        return functools.partial(checked_fields, error=error)
+    init = cls.__init__
+    signature = inspect.signature(init)
+    fields = [f for f in dataclasses.fields(cls) if f.init]
+    names = [f.name for f in fields]
+    rules = {f.name: _field_rule(f.type) for f in fields}
+
+    @functools.wraps(init)
+    def __init__(self, *args, **kwargs):
+        for key in kwargs:
+            if key not in names:
+                choice("keyword", key, names, error=error, what=f"field of {cls.__name__}")
+        try:
+            bound = signature.bind(self, *args, **kwargs)
+        except TypeError as exc:          # a missing argument, too many positional ones
+            raise error(f"{cls.__name__}: {exc}; its fields: {', '.join(names)}") from None
+        wrong = next((f"{cls.__name__}.{key} must be {rules[key][0]}, got {short_repr(value)}"
+                      for key, value in list(bound.arguments.items())[1:]
+                      if rules.get(key) is not None and not rules[key][1](value)), None)
+        try:                              # the class's own checks first: their words are the most precise
+            init(self, *args, **kwargs)
+        except SlicersimError:
+            raise
+        except Exception:                 # a TypeError deep inside: the wrong type is the reason
+            if wrong is None:
+                raise
+            raise error(wrong) from None
+        if wrong is not None:             # a field the class does not check
+            raise error(wrong)
+
+    cls.__init__ = __init__
+    return cls

@@ -32,9 +32,11 @@ def cmd_survey_plan(args) -> int:
         check_output_path(path, args.overwrite, ParameterError, flag)        # a FIFO, device, existing file
     if args.n < 1:
         raise ParameterError(f"--n must be ≥ 1 (an empty population has nothing to plan), got {args.n}")
+    from slicersim import validation
+    if args.z_switch != float("inf"):
+        validation.redshift("--z-switch", args.z_switch, allow_zero=True)
     from slicersim.backends.precision import resolve_precision
     resolve_precision(args.precision, "auto", "batch_etc")         # e.g. double without fp64: before the draws
-    from slicersim import validation
     seed = validation.seed(args.seed, name="--seed")
     seed = validation.new_seed() if seed is None else seed      # recorded in the table and printed
     lbda = spectrum_grid()

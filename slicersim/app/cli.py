@@ -2,7 +2,8 @@
 ``python -m slicersim``).
 
 User errors (a :class:`~slicersim.errors.SlicersimError`: bad values, impossible requests,
-unreadable input files, unwritable or existing outputs; an ``OSError``; out of memory; Ctrl-C)
+unreadable input files, unwritable or existing outputs; an ``OSError``; out of memory, of the host
+or of the OpenCL device, with what was being allocated and the option that bounds memory; Ctrl-C)
 are reported as one line ``slicersim: error: ...`` on stderr with exit status 2.  Set
 ``SLICERSIM_DEBUG=1`` to get the full traceback instead.  Anything else is a defect of slicersim:
 its traceback is printed with a "please report" line, exit status 3.
@@ -184,6 +185,7 @@ def cmd_etc(args) -> int:
         kwargs["allow_partial"] = True
     kwargs["conventions"] = args.conventions
     if args.redshift is not None:
+        validation.redshift("--redshift", args.redshift)
         kwargs["frame"] = args.frame or "rest"
         result = targets.lazuli_sn_etc(args.redshift, **kwargs)
     else:
@@ -213,14 +215,17 @@ def _check_output(path, overwrite):
 def _load_rate(path, flag):
     """An image from a .npy file (NumPy's format) or a text file of numbers, as a float64 array;
     ParameterError naming the flag and the file when it is neither (a text file named .npy, a binary file
-    given as text, a non-numeric entry)."""
+    given as text, a non-numeric entry) or when its .npy header declares more data than it holds."""
     import numpy as np
 
     from slicersim.errors import ParameterError
+    from slicersim.io.npy import load_npy
     path = validation.regular_file(flag, path)
     if path.endswith(".npy"):
         try:
-            rate = np.load(path, allow_pickle=False)
+            rate = load_npy(flag, path)
+        except ParameterError:
+            raise
         except ValueError:       # NumPy's "pickled data" message: not an .npy file (text, or object array)
             raise ParameterError(f"{flag}: {path}: not a NumPy .npy file of numbers (a text image must not be named "
                                  ".npy)") from None
@@ -262,7 +267,7 @@ def _ramp_effects(args):
 
 #: physical range of the ramp command's detector options: (low, high, unit) (the same bounds as a
 #: raw file's keywords, :data:`slicersim.reduction.checks.ATTR_RANGES`)
-RAMP_DETECTOR_RANGES = {"tframe": (1e-6, 1e4, "s"), "ron": (0.0, 1e4, "e-/read"), "dark": (0.0, 1e6, "e-/s"),
+RAMP_DETECTOR_RANGES = {"tframe": (1e-6, 1e4, "s"), "ron": (0.0, 1e4, "electron"), "dark": (0.0, 1e6, "e-/s"),
                         "roic_glow": (0.0, 1e6, "e-/frame"), "gain": (1e-3, 1e3, "ADU/e-")}
 #: the 16-bit ADC's range [ADU]: a read noise above 1/8 of it would fill the file with 0 and 65535
 ADC_MAX = 65535
@@ -281,22 +286,37 @@ def _check_ramp_detector(args):
     if args.ron is not None:
         gain = args.gain if args.gain is not None else RAMP_DETECTOR_DEFAULTS["gain"]
         if args.ron * gain > ADC_MAX / 8:
-            raise ParameterError(f"--ron {args.ron:g} e- × gain {gain:g} ADU/e- = {args.ron * gain:.3g} ADU of read "
-                                 f"noise per read: more than 1/8 of the 16-bit ADC range ({ADC_MAX} ADU), the "
+            raise ParameterError(f"--ron {args.ron:g} electron × gain {gain:g} ADU/e- = {args.ron * gain:.3g} ADU of read "
+                                 f"noise per frame: more than 1/8 of the 16-bit ADC range ({ADC_MAX} ADU), the "
                                  "ramps would be 0 and 65535 only")
     return nmd
 
 
+#: what bounds the memory of each command, named in an out-of-memory error
+MEMORY_HINTS = {
+    "ramp": "lower --max-bytes (the row blocks in flight) or give a smaller --rate image",
+    "reduce": "lower --max-bytes (the row blocks in flight); the rate images of the whole detector are held in "
+              "memory",
+    "campaign": "lower --memory-per-task (the chunks of one task) or use fewer --workers",
+    "survey": "plan fewer targets at once (--n)",
+}
+
+
 def cmd_ramp(args) -> int:
     from slicersim.products import ramps
+    if args.redshift is not None:
+        validation.redshift("--redshift", args.redshift)
     nmd = _check_ramp_detector(args)
+    if args.max_bytes is not None:
+        validation.integer("--max-bytes", args.max_bytes, low=1)
     effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
     _check_output(args.out, args.overwrite)
-    from slicersim import validation
     seed = validation.new_seed() if args.seed is None else args.seed       # printed and recorded (SEED)
     common = dict(seed=seed, out=args.out, compression=args.compression, progress=None,
                   backend=args.backend, overwrite=args.overwrite, effects=effects, file_format=args.format,
                   precision=args.precision)
+    if args.max_bytes is not None:
+        common["max_bytes"] = args.max_bytes
     if args.previous_charge is not None:
         common["previous_charge"] = _load_rate(args.previous_charge, "--previous-charge")
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
@@ -307,6 +327,9 @@ def cmd_ramp(args) -> int:
             raise ParameterError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} only with --redshift "
                                  "(with --rate the detector is set by --tframe/--ron/--dark/--roic-glow/--gain)")
         rate = _load_rate(args.rate, "--rate")
+        from slicersim.physics.ramp import RampParameters, check_frame_charge
+        check_frame_charge(rate, RampParameters(nmd=nmd, **(RAMP_DETECTOR_DEFAULTS | detector)),
+                           {"rate": "--rate image", "dark": "--dark", "roic_glow": "--roic-glow"})
         path = ramps.simulate(rate, nmd, args.nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
     else:
         from slicersim.targets import LazuliSupernova
@@ -402,7 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--field", choices=("narrow", "wide"), help="field of view, only with --redshift "
                    "(default: narrow)")
     p.add_argument("--tframe", type=float, help=f"frame time [s] (default: {d['tframe']}; {from_config})")
-    p.add_argument("--ron", type=float, help=f"read noise [e-/read] (default: {d['ron']}; {from_config})")
+    p.add_argument("--ron", type=float, help=f"read noise per frame [electron] (default: {d['ron']}; {from_config})")
     p.add_argument("--dark", type=float, help=f"dark current [e-/s] (default: {d['dark']}; {from_config})")
     p.add_argument("--roic-glow", type=float,
                    help=f"ROIC glow [e-/frame] (default: {d['roic_glow']}; {from_config})")
@@ -410,6 +433,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--conventions", choices=CONVENTIONS,
                    help=f"model conventions of the scene, only with --redshift (default: {DEFAULT_CONVENTIONS})")
     p.add_argument("--backend", choices=("auto", "opencl", "numpy"), default="auto", help="compute backend")
+    p.add_argument("--max-bytes", type=int, metavar="BYTES", help="memory budget of the row blocks of ramps in "
+                   "flight [bytes] (default: 536870912 = 512 MiB; lower it when memory runs out)")
     p.add_argument("--precision", choices=("auto", "double", "single"), default="auto",
                    help="floating type of the ramp samplers (auto: single only on a device without fast fp64; "
                         "single is not bit-identical to double: ~1e-3 of the values differ by 1 ADU, same "
@@ -466,6 +491,37 @@ def _command_flags(parser, args):
             for a in parser._actions if a.option_strings and a.dest not in ("help", "version")}
 
 
+#: OpenCL status codes of a device or host out of memory (MEM_OBJECT_ALLOCATION_FAILURE,
+#: OUT_OF_RESOURCES, OUT_OF_HOST_MEMORY, INVALID_BUFFER_SIZE)
+_CL_MEMORY_CODES = (-4, -5, -6, -61)
+
+
+def _out_of_memory(exc) -> str | None:
+    """"host" or "OpenCL device" when ``exc`` says memory ran out (Python's MemoryError, NumPy's,
+    pyopencl's MemoryError or a memory status code), else None."""
+    if isinstance(exc, MemoryError):
+        return "host"
+    cl = sys.modules.get("pyopencl")
+    if cl is not None and isinstance(exc, getattr(cl, "Error", ())):
+        try:
+            code = exc.code
+        except Exception:                 # an Error without a routine/code: not ours to read
+            code = None
+        if isinstance(exc, getattr(cl, "MemoryError", ())) or code in _CL_MEMORY_CODES:
+            return "OpenCL device"
+    return None
+
+
+def _memory_message(exc, where, command) -> str:
+    """One line for running out of memory: where, what was being allocated, what bounds memory."""
+    from slicersim.errors import SlicersimError
+    hint = MEMORY_HINTS.get(command, "free memory or use a smaller input")
+    text = _one_line(exc)
+    if isinstance(exc, SlicersimError):           # a ResourceError: says what already, with the API's names
+        return text.replace("max_bytes", "--max-bytes") if command in ("ramp", "reduce") else text
+    return f"out of memory ({where}){': ' + text if text else ''}; {hint}"
+
+
 def main(argv=None) -> int:
     import warnings
     parser = build_parser()
@@ -487,7 +543,7 @@ def main(argv=None) -> int:
         if isinstance(exc, KeyboardInterrupt):
             message = "interrupted"
         elif isinstance(exc, MemoryError):
-            message = f"out of memory: {exc}" if str(exc) else "out of memory"
+            message = _memory_message(exc, "host", getattr(args, "command", None))
         elif isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
             message = f"{exc.filename}: {exc.strerror}"
         else:
@@ -496,6 +552,12 @@ def main(argv=None) -> int:
         print(f"slicersim: error: {_one_line(message)}", file=sys.stderr)
         return 2
     except Exception as exc:  # a defect, not a user error: keep the traceback
+        where = _out_of_memory(exc)
+        if where is not None and os.environ.get("SLICERSIM_DEBUG", "") in ("", "0"):
+            sys.stdout.flush()
+            print(f"slicersim: error: {_memory_message(exc, where, getattr(args, 'command', None))}",
+                  file=sys.stderr)
+            return 2
         import traceback
         sys.stdout.flush()
         traceback.print_exc()

@@ -110,6 +110,7 @@ def cmd_footprints(args) -> int:
 
 def _target(args, field=None):
     from slicersim.targets import LazuliSupernova
+    validation.redshift("--redshift", args.redshift)
     return LazuliSupernova(args.redshift, config=_config(args), field=field or args.field)
 
 

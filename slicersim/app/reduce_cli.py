@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 import os
 
+from slicersim.validation import short_repr
+
 __all__ = ["add_parsers", "cmd_reduce", "parse_lbda_edges"]
 
 #: flags of --spectra (name on the command line, attribute)
@@ -33,7 +35,7 @@ FLAG_OF = {"field": "--field", "lbda_edges": "--lbda-edges", "ncol": "--ncol", "
            "dark": "--dark", "weights": "--weights", "weighting": "--weighting", "jump_threshold": "--jump-threshold",
            "gain": "--gain", "read_noise": "--ron", "ron": "--ron", "with_truth": "--with-truth",
            "refpix": "--no-refpix", "linearity": "--no-linearity", "workers": "--workers",
-           "scheduler": "--scheduler", "allow_partial": "--allow-partial"}
+           "scheduler": "--scheduler", "allow_partial": "--allow-partial", "max_bytes": "--max-bytes"}
 
 
 def cli_message(text):
@@ -90,11 +92,14 @@ def parse_lbda_edges(text):
         validation.regular_file("--lbda-edges", text)            # a FIFO, device, directory: refused
         try:
             if text.endswith(".npy"):
-                edges = np.load(text, allow_pickle=False)
+                from slicersim.io.npy import load_npy
+                edges = load_npy("--lbda-edges", text)
             else:
                 import io
                 with open(text, encoding="utf-8") as fh:
                     edges = np.loadtxt(io.StringIO(fh.read().replace(",", " ")), ndmin=1)
+        except ParameterError:
+            raise
         except (OSError, ValueError, UnicodeDecodeError) as exc:
             raise ParameterError(f"--lbda-edges: cannot read λ edges from {text}: {' '.join(str(exc).split())}") \
                 from None
@@ -107,14 +112,16 @@ def parse_lbda_edges(text):
     try:
         start, stop, step = (float(p) for p in parts)
     except ValueError:
-        raise ParameterError(f"--lbda-edges must be START,STOP,STEP [Å] or an existing file, got {text!r}") from None
+        raise ParameterError(f"--lbda-edges must be START,STOP,STEP [Å] or an existing file, got "
+                             f"{short_repr(text)}") from None
+    given = f"{start:g},{stop:g},{step:g}"
     if not all(math.isfinite(v) for v in (start, stop, step)) or step <= 0 or stop <= start:
-        raise ParameterError(f"--lbda-edges START,STOP,STEP needs finite START < STOP and STEP > 0, got {text!r}")
+        raise ParameterError(f"--lbda-edges START,STOP,STEP needs finite START < STOP and STEP > 0, got {given}")
     nbins = (stop - start) / step
     if nbins > MAX_BINS:
-        raise ParameterError(f"--lbda-edges {text!r} makes {nbins:.3g} bins (at most {MAX_BINS})")
+        raise ParameterError(f"--lbda-edges {given} makes {nbins:.3g} bins (at most {MAX_BINS})")
     if abs(nbins - round(nbins)) > 1e-6 * max(1.0, nbins):
-        raise ParameterError(f"--lbda-edges {text!r}: STOP − START must be a multiple of STEP")
+        raise ParameterError(f"--lbda-edges {given}: STOP − START must be a multiple of STEP")
     return start + step * np.arange(int(round(nbins)) + 1)
 
 
@@ -123,23 +130,25 @@ def _parse_position(text):
     try:
         x, y = (float(v) for v in text.split(","))
     except ValueError:
-        raise ParameterError(f"--position must be X,Y [cells from the field centre], got {text!r}") from None
+        raise ParameterError(f"--position must be X,Y [cells from the field centre], got {short_repr(text)}") \
+            from None
     if not (math.isfinite(x) and math.isfinite(y)):
-        raise ParameterError(f"--position must be finite, got {text!r}")
+        raise ParameterError(f"--position must be finite, got {x:g},{y:g}")
     return x, y
 
 
 def _load_npy(text, flag, expected):
     """The .npy array of a file option (one-line ParameterError when missing or unreadable)."""
-    import numpy as np
-
     from slicersim import validation
     from slicersim.errors import ParameterError
+    from slicersim.io.npy import load_npy
     if not os.path.lexists(text):
-        raise ParameterError(f"{flag} must be {expected}, got {text!r}")
+        raise ParameterError(f"{flag} must be {expected}, got {short_repr(text)}")
     validation.regular_file(flag, text)                          # a FIFO, device, directory: refused
     try:
-        return np.load(text, allow_pickle=False)
+        return load_npy(flag, text)
+    except ParameterError:
+        raise
     except (OSError, ValueError) as exc:
         raise ParameterError(f"{flag}: cannot read {text} as a .npy array: {' '.join(str(exc).split())}") from None
 
@@ -187,7 +196,9 @@ def _check_flags(args, dataset):
     if args.gain is not None:
         validation.number("--gain [DN/e-]", args.gain, low=0.0, low_open=True)
     if args.ron is not None:
-        validation.number("--ron (read noise [e-/frame])", args.ron, low=0.0, high=1e4)
+        validation.number("--ron (read noise per frame)", args.ron, low=0.0, high=1e4, unit="electron")
+    if args.max_bytes is not None:
+        validation.integer("--max-bytes", args.max_bytes, low=1)
 
 
 def _spectra_options(args):
@@ -225,6 +236,8 @@ def cmd_reduce(args) -> int:
     fit_options = {"refpix": False if args.no_refpix else None, "linearity": False if args.no_linearity else None,
                    "jump_threshold": args.jump_threshold, "weighting": args.weighting, "gain": args.gain,
                    "ron": args.ron, "with_truth": args.with_truth}
+    if args.max_bytes is not None:
+        fit_options["max_bytes"] = args.max_bytes
     options = _spectra_options(args) if args.spectra else {}
     if dataset:
         return _reduce_dataset(args, fit_options, options)
@@ -288,10 +301,12 @@ def add_parsers(sub, fmt):
     p.add_argument("--no-refpix", action="store_true", help="skip the reference-pixel correction")
     p.add_argument("--no-linearity", action="store_true", help="skip the nonlinearity correction")
     p.add_argument("--gain", type=float, metavar="DN/e-", help="override the file's GAIN")
-    p.add_argument("--ron", "--read-noise", dest="ron", type=float, metavar="e-",
-                   help="override the file's read noise per frame [e-] (--read-noise: its earlier name)")
+    p.add_argument("--ron", "--read-noise", dest="ron", type=float, metavar="RON",
+                   help="override the file's read noise per frame [electron] (--read-noise: its earlier name)")
     p.add_argument("--with-truth", action="store_true", help="copy truth/rate beside the fitted rates "
                    "(TRUTH_RATE; rates/TRUTH_RATE with --spectra)")
+    p.add_argument("--max-bytes", type=int, metavar="BYTES", help="memory budget of the row blocks of the ramp fit "
+                   "in flight [bytes] (default: 268435456 = 256 MiB; lower it when memory runs out)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     g = p.add_argument_group("rates → cubes → spectra (with --spectra)")

@@ -60,7 +60,7 @@ def fit_constants(nmd, tframe, gain, read_noise, quantization=0.0, saturation=ma
                   weighting="gls"):
     """FitConstants of a MACC(n, m, d) readout.
 
-    tframe [s]; gain [DN/e-]; read_noise [e-] per frame; quantization [DN²] added to the variance
+    tframe [s]; gain [DN/e-]; read_noise [electron] per frame; quantization [DN²] added to the variance
     of each group mean (1/12 for integer data); saturation [DN]; jump_threshold [σ] (None or 0:
     off); weighting ``"gls"`` or ``"ols"``."""
     n, m, d = (int(v) for v in nmd)

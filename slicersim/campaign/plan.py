@@ -23,7 +23,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from slicersim.errors import ETCError, ParameterError, SpectrumError
-from slicersim.validation import array as validation_array, choice, number, short_repr, shown
+from slicersim.validation import MAX_REDSHIFT, array as validation_array, checked_fields, choice, number, \
+    redshift as check_redshift, short_repr, shown
 
 __all__ = ["SurveyPlan", "SurveyOptions", "plan_survey", "plan_survey_with", "plot_time_and_volume", "check_client_memory", "survey_totals", "YEAR_S", "PLAN_COLUMNS"]
 
@@ -103,6 +104,7 @@ FRAMES = ("rest", "obs")
 FIELDS = ("narrow", "wide")
 
 
+@checked_fields
 @dataclass(frozen=True)
 class SurveyOptions:
     """How a survey is observed and planned (:func:`plan_survey`).
@@ -137,7 +139,8 @@ class SurveyOptions:
         from slicersim.backends.precision import resolve_precision
         precision = resolve_precision(self.precision, "auto", "batch_etc")[1]
         lo, hi = _wavelength_range(self.lbda_range)
-        z_switch = self.z_switch if _is_inf(self.z_switch) else number("z_switch", self.z_switch, low=0)
+        z_switch = self.z_switch if _is_inf(self.z_switch) else check_redshift("z_switch", self.z_switch,
+                                                                                allow_zero=True)
         if isinstance(self.fields, (str, bytes)) or np.size(self.fields) != 2:
             raise ParameterError(f"fields must be two field names (below, at and above z_switch), got "
                                  f"{short_repr(self.fields)}")
@@ -169,7 +172,7 @@ def _wavelength_range(lbda_range):
 def _check_population(redshift, lbda, fluxes, target_ids):
     """(z (N,), fluxes (N, k) float64, ids (N,)): redshifts finite and ≥ 0, one spectrum per target
     on ``lbda``, target ids unique (default 0 … N − 1)."""
-    z = validation_array("redshift", redshift, ndim=1, low=0)
+    z = validation_array("redshift", redshift, ndim=1, low=0, high=MAX_REDSHIFT)
     if z.size == 0:
         raise ParameterError("redshift: the population is empty: nothing to plan")
     if np.shape(fluxes) != (z.size, np.size(lbda)):

@@ -382,7 +382,7 @@ class CatalogPopulation(_SNParameters):
             bad = ~((values >= lo) & (values <= hi))
             if bad.any():
                 i = int(np.nonzero(bad)[0][0])
-                raise ConfigError(f"population.file: {name} = {values[i]!r} in row {i} is outside [{lo}, {hi}]"
+                raise ConfigError(f"population.file: {name} = {values[i]:g} in row {i} is outside [{lo}, {hi}]"
                                   + (" (redshifts cannot be negative)" if name == "redshift" and values[i] < 0 else ""))
         host_cols = [c for c in tab.colnames if c.startswith("host_")]
         if host_cols and self.hosts is not None and set(host_cols) != set(HostModel.COLUMNS):

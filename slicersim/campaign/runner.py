@@ -32,7 +32,7 @@ from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec, seed_was_
 from slicersim.errors import ConfigError, DatasetError
 from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, not_a_dataset_directory, spec_digest
 from slicersim.io.row_blocks import show_progress
-from slicersim.validation import positive_int
+from slicersim.validation import checked_fields, positive_int
 
 __all__ = ["run_campaign", "campaign_status", "plan_campaign", "software_versions", "RunOptions", "TaskWindow",
            "run_task_window", "WORKERS_PER_CPU", "check_workers", "dask_client", "QuietDask", "tls_security",
@@ -284,6 +284,7 @@ def _check_positive_int(value, name, lo=1):
     return positive_int(name, value, lo)
 
 
+@checked_fields
 @dataclass(frozen=True)
 class RunOptions:
     """How a campaign runs (none of it changes the products): ``workers`` of the embedded cluster,

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.errors import ConfigError, ParameterError, SpectrumError
+from slicersim.validation import MAX_REDSHIFT
 from slicersim.sources.spectra import SNCOSMO_SNIA_MODELS
 
 __all__ = ["SNIaModel", "snia_fluxes", "model_fluxes", "cosmology", "restframe_to_observed"]
@@ -152,6 +153,8 @@ def model_fluxes(lbda, model, redshift, phase, peak_absmag, x1=None, c=None, mwe
     n = z.size
     if np.any(~(z > 0)):
         raise SpectrumError("redshift: SN Ia redshifts must be > 0")
+    if np.any(z > MAX_REDSHIFT):
+        raise SpectrumError(f"redshift: SN Ia redshifts must be ≤ {MAX_REDSHIFT:g}, the largest is {z.max():g}")
     src = _source(model.source)
     if "x1" not in src.param_names and (x1 is not None or c is not None):
         raise ConfigError(f"x1 / c are SALT parameters: sncosmo source {model.source!r} has none")

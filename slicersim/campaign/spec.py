@@ -44,7 +44,7 @@ from dataclasses import dataclass, field as dc_field
 from slicersim import validation
 from slicersim.errors import ConfigError, SlicersimError
 from slicersim.io.tables import file_digest, read_file_bytes
-from slicersim.validation import choice, number
+from slicersim.validation import choice, number, redshift as check_redshift
 
 __all__ = ["CampaignSpec", "load_spec", "parse_spec", "with_products", "with_seed", "seed_was_drawn", "PRODUCTS"]
 
@@ -217,7 +217,8 @@ def _observation(section):
         choice("observation.field", obs["field"], ("narrow", "wide"), error=ConfigError)
     else:
         zs = DEFAULT_Z_SWITCH if obs["field_switch_redshift"] is None else obs["field_switch_redshift"]
-        obs["field_switch_redshift"] = number("observation.field_switch_redshift", zs, low=0, error=ConfigError)
+        obs["field_switch_redshift"] = check_redshift("observation.field_switch_redshift", zs, allow_zero=True,
+                                                      error=ConfigError)
     return obs
 
 

@@ -20,6 +20,7 @@ from slicersim.errors import ETCError, ParameterError, SpectrumError
 from slicersim.instrument.names import check_parameter_names
 from slicersim.io.row_blocks import show_progress
 from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
+from slicersim.sources.spectra import MAX_FLAMBDA, check_flambda
 from slicersim.simulation import FRAMES, resolve_frame
 from slicersim.snr.bands import check_band_in_grid, warn_partial_spectrum
 from slicersim.snr.search import (candidate_readouts, check_reference_result, check_search,
@@ -53,6 +54,9 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
     neg = np.any(fluxes < 0, axis=1)
     if neg.any():
         raise SpectrumError(f"fluxes of target(s) {np.nonzero(neg)[0][:10].tolist()} contain negative values")
+    bright = np.nonzero(fluxes.max(axis=1) > MAX_FLAMBDA)[0]
+    if bright.size:
+        check_flambda(f"fluxes of target(s) {bright[:10].tolist()} (first)", fluxes[bright[0]])
     ranges = np.asarray(lbda_ranges, dtype=float)
     if ranges.shape == (2,):
         ranges = np.broadcast_to(ranges, (fluxes.shape[0], 2))
@@ -61,6 +65,7 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
     return lbda, fluxes, ranges
 
 
+@validation.checked_fields
 @dataclass(frozen=True)
 class SolveOptions:
     """How :func:`solve_batch` solves: every option of :func:`solve_many` except the per-target data.
@@ -159,7 +164,21 @@ def solve_batch(lbda, fluxes, snr, lbda_ranges, redshifts=None, options=None):
     reached = np.full(fluxes.shape[0], np.nan)
     for t0, t1 in _chunks(fluxes.shape[0], inst, opts):
         _solve_chunk(inst, fluxes, ranges, snr, target, (t0, t1), opts.search, (backend, precision), rows, reached)
+    failed = np.nonzero(rows["n"] == 0)[0]
+    if failed.size:
+        raise ETCError(_no_signal(lbda, fluxes, ranges, failed))
     return _result_table(inst, rows, reached, opts, precision)
+
+
+def _no_signal(lbda, fluxes, ranges, failed):
+    """The message for targets no readout reaches: which, and what their spectra hold in the band."""
+    t = int(failed[0])
+    lo, hi = ranges[t]
+    inside = (lbda >= lo) & (lbda <= hi)
+    found = (f"its F_λ there is at most {float(fluxes[t, inside].max()):g} erg/s/cm²/Å" if inside.any() else
+             "its spectrum has no sample there")
+    return (f"target(s) {failed[:10].tolist()} cannot reach their SNR: no signal in the band (target {t}, band "
+            f"{lo:g}–{hi:g} Å observer frame: {found})")
 
 
 def _check_snrs(snr, ntarget):
@@ -184,6 +203,8 @@ def _observer_ranges(ranges, frame, redshifts):
                        f"{z.shape}") from None
     if not np.all(np.isfinite(z) & (z > -1)):
         raise ETCError("redshifts must be finite and > -1")
+    if np.any(z > validation.MAX_REDSHIFT):
+        raise ETCError(f"redshifts must be ≤ {validation.MAX_REDSHIFT:g}, the largest is {z.max():g}")
     return ranges * (1 + z)[:, None]
 
 
@@ -214,7 +235,7 @@ class _BatchInstrument:
         sim = build_simulation(opts.config, opts.field, pointsource=None, conventions=opts.conventions)
         spec, det, grid = sim.spectrograph, sim.detector, sim.lbda
         if lbda[0] >= grid[-1] or lbda[-1] <= grid[0]:
-            raise SpectrumError(f"input wavelengths {lbda[0]:.0f}–{lbda[-1]:.0f} Å do not overlap the "
+            raise SpectrumError(f"input wavelengths {lbda[0]:g}–{lbda[-1]:g} Å do not overlap the "
                                 f"instrument range {grid[0]:.0f}–{grid[-1]:.0f} Å")
         band = np.stack([np.searchsorted(grid, ranges[:, 0], side="left"),
                          np.searchsorted(grid, ranges[:, 1], side="right")], axis=1)
@@ -315,10 +336,6 @@ def _reference_one(inst, snr1, lookup, model, snr, band, target, t):
 def _result_table(inst, rows, reached, opts, precision):
     """The astropy Table of :func:`solve_many` (ETCError for targets no readout reaches)."""
     from astropy.table import Table
-    failed = rows["n"] == 0
-    if failed.any():
-        raise ETCError(f"target(s) {np.nonzero(failed)[0][:10].tolist()} cannot reach their SNR "
-                       "(no signal in the band)")
     det, spec = inst.det, inst.spec
     frames = rows["n"] * (rows["m"] + rows["d"]) - rows["d"]
     table = Table(rows)

@@ -25,7 +25,7 @@ class Detector(Versioned):
     Parameters
     ----------
     qe : float, (λ[Å], QE) arrays or ECSV/CSV path — QE [e-/ph], 0 outside the table
-    gain : ADU/e-;  dark : e-/s/px;  roic_glow : e-/px/frame;  ron : e-/frame
+    gain : ADU/e-;  dark : e-/s/px;  roic_glow : e-/px/frame;  ron : electron (read noise per frame)
     tframe : s;  pixel_size : µm (gain, tframe, pixel_size finite > 0; dark, roic_glow, ron ≥ 0)
         each a plain number in that unit or an astropy Quantity (converted)
     saturation : ADU, finite > 0 (0, None or inf: no saturation)

@@ -7,6 +7,8 @@ wavelength) or from a resolving power.
 """
 from __future__ import annotations
 
+import difflib
+
 import numpy as np
 from scipy.interpolate import CubicSpline
 
@@ -105,9 +107,7 @@ class OpticalThroughput:
         if noptics is not None and np.ndim(noptics) == 0 and not isinstance(noptics, dict):
             noptics = {k: noptics for k in self.components}    # one count for every component
         if noptics:
-            for name in sorted(set(noptics) - set(self.components), key=str):
-                validation.choice("noptics", name, list(self.components),
-                                  what="noptics component (a throughput component)")
+            self._check_noptics_keys(noptics)
             self.noptics.update({k: self._check_noptics(k, v) for k, v in noptics.items()})
         for name, comp in self.components.items():
             if np.isscalar(comp):
@@ -124,6 +124,23 @@ class OpticalThroughput:
                 if not (np.all(np.isfinite(val)) and np.all((val >= 0) & (val <= 1))):
                     raise ParameterError(f"throughput curve {name}: values must be finite and within [0, 1] "
                                          f"(got {np.nanmin(val):g} to {np.nanmax(val):g})")
+
+    def _check_noptics_keys(self, noptics):
+        """ParameterError listing every unknown key of ``noptics`` and every valid one (the components),
+        with a did-you-mean and what a single-curve throughput means."""
+        unknown = sorted(set(noptics) - set(self.components), key=str)
+        if not unknown:
+            return
+        valid = list(self.components)
+        close = [m for u in unknown if isinstance(u, str) for m in difflib.get_close_matches(u, valid, n=1)]
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        what = "1 component: one curve for the whole light path, e.g. a column of the configuration's " \
+            "throughput file" if len(valid) == 1 else f"{len(valid)} components"
+        raise ParameterError(
+            f"unknown noptics key(s) {', '.join(validation.short_repr(u) for u in unknown)}{hint}: noptics counts "
+            f"the elements of each throughput component, and this throughput has {what}; valid keys: "
+            f"{', '.join(map(repr, valid))}, or one integer for every component; components are named by "
+            "set_throughput({'name': curve, ...})")
 
     @staticmethod
     def _check_noptics(name, value):

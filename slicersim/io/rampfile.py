@@ -36,7 +36,8 @@ import numpy as np
 from slicersim.io.atomic import _HDF5_MARGIN, AtomicH5File, flush_chunks, is_temporary, one_line, remove_stale_temporaries
 
 __all__ = ["RampWriter", "RampFileError", "compression_options", "read_ramps", "DQ", "is_temporary",
-           "remove_stale_temporaries", "check_hdf5_input", "read_error", "open_hdf5_input", "MAX_COMPRESSION"]
+           "remove_stale_temporaries", "check_hdf5_input", "check_stored", "read_error", "open_hdf5_input",
+           "MAX_COMPRESSION"]
 
 #: JWST data-quality bit values
 DQ = {"GOOD": 0, "DO_NOT_USE": 1, "SATURATED": 2, "JUMP_DET": 4, "DEAD": 1024, "HOT": 2048}
@@ -262,7 +263,9 @@ def check_hdf5_input(fh, path, datasets=("SCI",)):
     * an external link anywhere in the file (soft links stay inside the file and are followed);
     * a dataset with external storage (its bytes in another file) or a virtual dataset (a view
       of other files' datasets);
-    * an object of ``datasets`` that exists but is not a dataset (a group named SCI).
+    * an object of ``datasets`` that exists but is not a dataset (a group named SCI);
+    * a SCI dataset whose declared shape is not stored in the file (:func:`check_stored`: a few
+      bytes declaring 10⁵ × 10⁵ pixels would be read as that many zeros).
     """
     import h5py
     for name in datasets:
@@ -270,6 +273,8 @@ def check_hdf5_input(fh, path, datasets=("SCI",)):
         if obj is not None and not isinstance(obj, h5py.ExternalLink) and \
                 not isinstance(fh.get(name), h5py.Dataset):
             raise RampFileError(f"{path}: {name} is {_kind_of(fh.get(name))}, not a dataset")
+    if "SCI" in datasets and isinstance(fh.get("SCI"), h5py.Dataset):
+        check_stored(fh["SCI"], path, "SCI")
     seen, todo = set(), [fh]
     while todo:
         group = todo.pop()
@@ -291,6 +296,29 @@ def check_hdf5_input(fh, path, datasets=("SCI",)):
                 todo.append(obj)
             elif isinstance(obj, h5py.Dataset):
                 _check_storage(obj, path, where)
+
+
+def check_stored(dset, path, where):
+    """Refuse (RampFileError naming ``path``, the dataset and its declared shape) a dataset whose data
+    were never written: chunks missing from a chunked dataset, no storage for a contiguous one.  HDF5
+    reads such a dataset as its fill value, so a file of a few bytes declaring (1, 4, 10⁵, 10⁵) would
+    allocate 80 GB of zeros before anything else could be said."""
+    if dset.size == 0 or dset.is_virtual:
+        return
+    nbytes = dset.size * dset.dtype.itemsize
+    if dset.chunks is None:
+        stored, total = int(dset.id.get_storage_size() > 0), 1
+        what = "has no storage for it"
+    else:
+        total = int(np.prod([-(-s // c) for s, c in zip(dset.shape, dset.chunks)], dtype=np.float64))
+        stored = int(dset.id.get_num_chunks())
+        what = f"stores {stored} of its {total} chunks"
+    if stored < total:
+        marker = dset.file.attrs.get("COMPLETE", None)
+        head = "incomplete file (no completion marker): " if marker is not None and not marker else ""
+        raise RampFileError(f"{path}: {head}dataset {where} declares shape {tuple(dset.shape)} {dset.dtype} "
+                            f"({nbytes / 2**30:.3g} GiB) but the file {what}: its data were never written "
+                            "(an incomplete or forged file)")
 
 
 def _kind_of(obj):
@@ -340,6 +368,10 @@ def read_ramps(path):
         if "SCI" not in fh or "GROUPDQ" not in fh:
             raise RampFileError(f"{path}: not a slicersim ramp file (no SCI/GROUPDQ)")
         check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ"))
+        sci = fh["SCI"]
+        validation.memory(f"{path}: dataset SCI of shape {tuple(sci.shape)} read whole (with GROUPDQ)",
+                          sci.size * 3 + (fh["PIXELDQ"].size * 4 if "PIXELDQ" in fh else 0),
+                          hint="read it by row blocks (fit_ramps, slicersim reduce)")
         attrs = {k: fh.attrs[k] for k in fh.attrs}
         pix = read_dataset(fh["PIXELDQ"], path) if "PIXELDQ" in fh else None
         return read_dataset(fh["SCI"], path), read_dataset(fh["GROUPDQ"], path), pix, attrs

@@ -24,6 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from slicersim import validation
+from slicersim.errors import ResourceError
 
 __all__ = ["rows_per_block", "RowBlocks", "BufferRing", "pipelined", "BackgroundLanes", "show_progress"]
 
@@ -32,11 +33,12 @@ def rows_per_block(max_bytes, bytes_per_row, nrows, *, reserve=0, what="one dete
                    name="max_bytes"):
     """Rows per block: as many as ``max_bytes − reserve`` bytes hold at ``bytes_per_row`` each
     (at least 1, at most ``nrows``), rounded down to a multiple of ``chunk`` when above it (the
-    rows of a file's chunk).  MemoryError when not even one row fits (``name``: the caller's keyword)."""
+    rows of a file's chunk).  ResourceError (a MemoryError) when not even one row fits (``name``: the
+    caller's keyword)."""
     budget = int(max_bytes) - int(reserve)
     if budget < bytes_per_row:
-        raise MemoryError(f"{name} {int(max_bytes)} B is below {what} ({int(bytes_per_row)} B"
-                          f"{f' plus {int(reserve)} B reserved' if reserve else ''})")
+        raise ResourceError(f"{name} {int(max_bytes)} B is below {what} ({int(bytes_per_row)} B"
+                            f"{f' plus {int(reserve)} B reserved' if reserve else ''})")
     rows = int(max(1, min(nrows, budget // bytes_per_row)))
     if chunk > 1 and rows > chunk:
         rows -= rows % chunk

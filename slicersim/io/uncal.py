@@ -95,6 +95,7 @@ def truth_extname(name):
     return _ALIASES.get(key, "TRUTH_" + key.upper().replace("/", "_"))
 
 
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class UncalOptions:
     """Keywords of :class:`UncalWriter` beyond those it shares with the HDF5 RampWriter: ``keywords``

@@ -56,6 +56,7 @@ def _check_range(name, value, low, high):
     return (lo, hi)
 
 
+@validation.checked_fields(error=EffectsError)
 @dataclass(kw_only=True)
 class BadPixelParameters:
     """Fractions of the array in each (exclusive) class and the ranges of their values:

@@ -80,6 +80,7 @@ def _posint(name, value, minimum=1):
     return validation.integer(f"correlated_noise.{name}", value, low=minimum, high=MAX_COUNT, error=EffectsError)
 
 
+@validation.checked_fields(error=EffectsError)
 @dataclass(kw_only=True)
 class CorrelatedNoiseParameters:
     """Amplitudes [e-] and readout clocking of the correlated read noise (keyword-only).

@@ -75,6 +75,7 @@ MAX_SEGMENT_BITS = 13          # j >> 1 < 2¹³: up to 16384 pixels per track
 MAX_EVENTS_PER_FRAME = 1 << 19  # k < 2¹⁹ (k << 13 fits in the 32-bit draw word)
 
 
+@validation.checked_fields(error=EffectsError)
 @dataclass(kw_only=True)
 class CosmicRayParameters:
     """Cosmic-ray model (see the module docstring for sources).

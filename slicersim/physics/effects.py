@@ -77,6 +77,7 @@ PARAMETER_CLASSES = {
 PRESETS = {"lazuli": {name: {} for name in EFFECT_NAMES}}
 
 
+@validation.checked_fields(error=EffectsError)
 @dataclasses.dataclass(kw_only=True)
 class _PlaceholderReferencePixelParameters:
     """Placeholder until slicersim.physics.reference_pixels exists: width of the reference border

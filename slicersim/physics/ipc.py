@@ -33,6 +33,7 @@ __all__ = ["IPCParameters", "ipc_kernel", "apply_ipc", "ipc_alpha_from_autocorre
            "kernel_autocorrelation"]
 
 
+@validation.checked_fields(error=EffectsError)
 @dataclass(kw_only=True)
 class IPCParameters:
     """alpha, alpha_diag : nearest and diagonal coupling (fractions);  kernel : optional 3×3 user

@@ -49,6 +49,7 @@ PIXELS_PER_CHUNK = 1 << 16     # pixels per cache-sized block of the per-pixel a
 CHECK_MAX_PIXELS = 1 << 13     # check_invertible: above, a strided subset plus the extreme pixels
 
 
+@validation.checked_fields(error=EffectsError)
 @dataclass(kw_only=True)
 class NonlinearityParameters:
     """deficit : 1 − M(Q_fw)/Q_fw (mean);  deficit_scatter : relative rms of the per-pixel deficit;

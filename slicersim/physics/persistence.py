@@ -33,6 +33,7 @@ from slicersim.physics.effects import STREAMS, check_number
 __all__ = ["PersistenceParameters", "trapped_charge", "released_mean", "persistence_deposits"]
 
 
+@validation.checked_fields(error=EffectsError)
 @dataclass(kw_only=True)
 class PersistenceParameters:
     """trap_capacity N_max [e-]; fluence_half Q_½, fluence_width W [e-]; time_constants τ_i [s];

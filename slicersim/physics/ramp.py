@@ -15,13 +15,18 @@ from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.physics.readout import readout_times
 
-__all__ = ["RampParameters", "DEFAULT_BIAS", "readpatt", "macc_frame_schedule", "frame_mean_charge",
-           "to_adu", "sparse_threshold", "SPARSE_GROUP_CAP", "MAX_SPARSE_WINDOW"]
+__all__ = ["RampParameters", "DEFAULT_BIAS", "MAX_FRAME_CHARGE", "check_frame_charge", "readpatt", "macc_frame_schedule",
+           "frame_mean_charge", "to_adu", "sparse_threshold", "SPARSE_GROUP_CAP", "MAX_SPARSE_WINDOW"]
 
 DEFAULT_BIAS = 2000.0          # ADU pedestal: read noise never clips at 0
+#: the largest mean charge per frame [e-] a pixel is simulated with: 10⁴ full wells of an H4RG
+#: (~1e5 e-), i.e. saturated in the first 1e-4 of the frame; beyond ~1.5e9 e- the samplers' exponent
+#: (exp(−μ) by 2^n, n an int32) overflows
+MAX_FRAME_CHARGE = 1e9
 P_POISSON, P_READ, P_KTC, P_SPARSE = 0, 1, 2, 3
 
 
+@validation.checked_fields
 @dataclass(kw_only=True)
 class RampParameters:
     """Validated readout and detector parameters of a ramp simulation (keyword-only).
@@ -33,7 +38,7 @@ class RampParameters:
     Quantity, converted to the unit given here.
 
     nmd : (n, m, d) MACC readout;  nramps : ramps (integrations);  tframe : s;
-    ron : e-/read;  dark, thermal_dark : e-/s/px (dark may be a per-pixel array);
+    ron : electron (read noise per frame);  dark, thermal_dark : e-/s/px (dark may be a per-pixel array);
     roic_glow : e-/px/frame;  gain : ADU/e-;  saturation, bias : ADU;  ktc_noise : e- per reset;
     full_well : e- (default (saturation − bias)/gain);  sparse_max_group : e-/group (None: auto);
     gauss_min_mean : e-/frame above which Poisson increments are drawn as Gaussians.
@@ -84,6 +89,23 @@ class RampParameters:
                 "TGROUP": self.tgroup, "READPATT": readpatt(self.nmd), "GAIN": self.gain,
                 "READNOISE": self.ron, "SEED": int(seed), "BUNIT": "ADU", "BIAS": self.bias,
                 "SATURATION": self.saturation, "FULLWELL": self.full_well}
+
+
+def check_frame_charge(rate, p, names=None):
+    """ParameterError naming the largest term (``names`` maps rate, dark, thermal_dark, roic_glow to
+    what the caller calls them) and the bound when the mean charge of a frame, (rate + dark + thermal
+    dark)·tframe + ROIC glow, exceeds :data:`MAX_FRAME_CHARGE` anywhere."""
+    terms = {"rate": (float(np.max(rate, initial=0.0)), "e-/s", p.tframe),
+             "dark": (float(np.max(p.dark, initial=0.0)), "e-/s", p.tframe),
+             "thermal_dark": (p.thermal_dark, "e-/s", p.tframe), "roic_glow": (p.roic_glow, "e-/frame", 1.0)}
+    mu = sum(value * per_frame for value, _, per_frame in terms.values())
+    if mu > MAX_FRAME_CHARGE:
+        key = max(terms, key=lambda k: terms[k][0] * terms[k][2])
+        value, unit, _ = terms[key]
+        raise ParameterError(f"{(names or {}).get(key, key)} reaches {value:g} {unit}: {mu:.3g} e- per frame of "
+                             f"{p.tframe:g} s, more than the {MAX_FRAME_CHARGE:g} e- accepted "
+                             f"({MAX_FRAME_CHARGE / p.full_well:.3g} full wells of {p.full_well:g} e-: the pixel "
+                             f"saturates within the first {p.full_well / mu * p.tframe:.2g} s)")
 
 
 def _dark(dark):

@@ -29,6 +29,7 @@ __all__ = ["ReferencePixelParameters", "reference_pixel_mask", "bias_map"]
 _SUB_OUTPUT, _SUB_PIXEL = 0, 1
 
 
+@validation.checked_fields(error=EffectsError)
 @dataclass(kw_only=True)
 class ReferencePixelParameters:
     """border : px width of the reference frame (4 for H2RG/H4RG); n_outputs : outputs;

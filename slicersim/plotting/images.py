@@ -178,8 +178,8 @@ def source_zoom(rate, half=(300, 250)):
 
 def _read_groups(path, ramp, first, group):
     """(first group, chosen group [ADU, float], their indices, time between them [s], attributes)."""
-    import h5py
-    with h5py.File(path, "r") as fh:
+    from slicersim.io.rampfile import open_hdf5_input
+    with open_hdf5_input(path, "an HDF5 ramp file", ("SCI", "truth/rate")) as fh:
         ngroups = fh["SCI"].shape[1]
         g0, g1 = first % ngroups, group % ngroups
         a = fh["SCI"][ramp, g0].astype(float)
@@ -218,15 +218,16 @@ def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None, *, first=0
     that axes read detector pixels.  ``title``: first line(s) of the title (e.g. the target and
     the readout the ETC chose); the file's readout pattern follows.
     """
-    import h5py
     import matplotlib.pyplot as plt
+
+    from slicersim.io.rampfile import open_hdf5_input
     a, b, (g0, g1), dt, attrs = _read_groups(path, ramp, first, group)
     if g1 == g0:
         raise ParameterError(f"group and first must name different groups, got group {g1} twice")
     timed = bool(np.isfinite(dt) and dt > 0)
     slope, unit = ((b - a) / dt, "ADU/s") if timed else (b - a, "ADU")
     if zoom is None:
-        with h5py.File(path, "r") as fh:
+        with open_hdf5_input(path, "an HDF5 ramp file", ("SCI", "truth/rate")) as fh:
             rate = fh["truth/rate"][...] if "truth/rate" in fh else None
         zoom = source_zoom(slope if rate is None else rate)
     r0, r1, c0, c1 = check_region(zoom, slope.shape)

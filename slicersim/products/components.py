@@ -10,7 +10,7 @@ Photon cube (reference §2.9) [ph/s/cell] = Σ of the scene components
 ``switch_off`` takes any of :data:`VARIANCE_SOURCES` (a name or a list; case-insensitive),
 plus ``"effective_dark"`` = dark + thermal_dark.  A scene component switched off leaves the
 photon cube, hence the signal and the variance; a detector term leaves the variance only:
-``dark`` and ``roic_glow`` → 0 e-/s, ``ron`` → 0 e-, ``thermal_dark`` → optics emissivity 0
+``dark`` and ``roic_glow`` → 0 e-/s, ``ron`` → 0 electron, ``thermal_dark`` → optics emissivity 0
 (the undispersed thermal dark *and* the dispersed optics emission, as slicersim 1.4.2 does).
 """
 from __future__ import annotations

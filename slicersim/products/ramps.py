@@ -34,10 +34,10 @@ import numpy as np
 from slicersim import validation
 from slicersim.backends.dispatch import BACKENDS
 from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
-from slicersim.errors import EffectsError, ParameterError
+from slicersim.errors import EffectsError, ParameterError, ResourceError
 from slicersim.io.rampfile import DQ, RampWriter
 from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, rows_per_block
-from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, frame_mean_charge,  # noqa: F401
+from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, check_frame_charge, frame_mean_charge,  # noqa: F401
                                     macc_frame_schedule, readpatt)
 from slicersim.physics.readout import readout_times  # noqa: F401
 
@@ -49,6 +49,7 @@ __all__ = ["simulate", "RampParameters", "RampIO", "RunOptions", "DetectorMaps",
 DEFAULT_MAX_BYTES = 2**29
 
 
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class RampIO:
     """What :func:`simulate` writes, and how (the ``io`` options).
@@ -78,6 +79,7 @@ class RampIO:
             object.__setattr__(self, name, validation.flag(name, value))
 
 
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
     """How :func:`simulate` computes: ``max_bytes`` [bytes] of host memory for the row blocks (and,
@@ -98,6 +100,7 @@ class RunOptions:
             object.__setattr__(self, "work_group", validation.positive_int("work_group", self.work_group))
 
 
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class DetectorMaps:
     """Per-pixel inputs of :func:`simulate`, each (ny, nx) or None: ``dead_pixels`` (bool, collecting
@@ -145,7 +148,7 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
     """Simulate raw MACC ramps of a rate image.
 
     rate : (ny, nx) photo-electron rate [e-/s] (detector terms are added here)
-    readout : :class:`RampParameters` (readout and detector: nmd, nramps, tframe [s], ron [e-/read],
+    readout : :class:`RampParameters` (readout and detector: nmd, nramps, tframe [s], ron [electron],
         dark [e-/s, scalar or image], thermal_dark [e-/s], roic_glow [e-/frame], gain [ADU/e-],
         saturation [ADU], bias [ADU], ktc_noise [e-], full_well [e-], sparse_max_group, gauss_min_mean)
     seed : int in [0, 2⁶⁴), or None (default): a fresh seed (:func:`slicersim.validation.new_seed`),
@@ -250,6 +253,7 @@ def _simulate(rate, p, named, io, run, maps):
     if np.ndim(p.dark) and np.shape(p.dark) != rate.shape:
         raise ParameterError(f"dark must be a number or an image of the shape of rate {rate.shape}, "
                              f"got shape {np.shape(p.dark)}")
+    check_frame_charge(rate, p)
     seed = validation.seed(named["seed"])
     seed = validation.new_seed() if seed is None else seed
     dead, pixeldq, previous_charge = _check_maps(maps, rate.shape)
@@ -315,13 +319,15 @@ def _open_writer(out, io, p, fx, shape, rows):
 
 
 def _check_memory(p, shape, return_dq, max_bytes):
-    """MemoryError when SCI (and GROUPDQ) in memory would exceed 16 × max_bytes or the memory available."""
+    """ResourceError (a MemoryError) when SCI (and GROUPDQ) in memory would exceed 16 × max_bytes or the
+    memory available."""
     full_bytes = p.nramps * p.nmd[0] * shape[0] * shape[1] * (3 if return_dq else 2)
     if full_bytes > 16 * max_bytes:
-        raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB: pass out=<file.h5>")
+        raise ResourceError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB (more than 16 × max_bytes): "
+                            "pass out=<file.h5>")
     avail = _available_memory()
     if avail is not None and full_bytes > avail:
-        raise MemoryError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB, "
+        raise ResourceError(f"returning SCI in memory needs {full_bytes / 2**30:.1f} GiB, "
                           f"{avail / 2**30:.1f} GiB available: pass out=<file.h5>")
 
 

@@ -61,7 +61,7 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
     """Refuse (RampFileError) a raw ramp file the reduction cannot use; headers only.
 
     with_truth : ``truth/rate`` must exist with the detector's shape
-    gain, ron : overrides of the file's GAIN [DN/e-] / READNOISE [e-] (as ``fit_ramps``; ``read_noise``:
+    gain, ron : overrides of the file's GAIN [DN/e-] / READNOISE [electron] (as ``fit_ramps``; ``read_noise``:
         the deprecated name of ``ron``)
     detector_shape : (ny, nx) the data must have (the mapper's detector, for spectra)
 
@@ -73,7 +73,10 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
         validation.choice("keyword", key, ("ron",), what="check_ramp_file keyword")
     ron = renamed.get("ron", ron)
     register_hdf5_filters()
-    path = os.fspath(path)
+    if not isinstance(path, (str, bytes, os.PathLike)):
+        raise ParameterError(f"check_ramp_file path must be a ramp file path (str or os.PathLike), got "
+                             f"{validation.short_repr(path)}")
+    path = os.fsdecode(path)
     if os.path.isdir(path):
         raise RampFileError(f"{path} is a directory, not a ramp file (a campaign dataset needs spec.json "
                             "and catalog.ecsv)")
@@ -113,7 +116,7 @@ def check_ramp_file(path, with_truth=False, gain=None, ron=None, detector_shape=
 
 #: physical range of a raw file's numeric keywords: (low, high, unit); outside it the file is refused
 #: (GAIN = 1e-300 divided to inf, READNOISE = 1e300 overflowed, DARK = NaN gave DARK_RATE = NaN)
-ATTR_RANGES = {"GAIN": (1e-3, 1e3, "DN/e-"), "READNOISE": (0.0, 1e4, "e-/frame"), "TFRAME": (1e-6, 1e4, "s"),
+ATTR_RANGES = {"GAIN": (1e-3, 1e3, "DN/e-"), "READNOISE": (0.0, 1e4, "electron"), "TFRAME": (1e-6, 1e4, "s"),
                "DARK": (0.0, 1e6, "e-/s"), "THERMAL_DARK": (0.0, 1e6, "e-/s"), "ROIC_GLOW": (0.0, 1e6, "e-/frame"),
                "DARK_RATE": (0.0, 1e6, "e-/s")}
 #: the truth coefficients of the linearity correction (``fit_ramps(linearity=None)`` applies them)
@@ -320,7 +323,7 @@ def check_fit_options(fit_options):
         opts["gain"] = validation.number("gain", opts["gain"], low=low, high=high, unit="adu / electron")
     if opts.get("ron") is not None:           # the raw file's READNOISE range (1e300 overflowed the variance)
         low, high, _ = ATTR_RANGES["READNOISE"]
-        opts["ron"] = validation.number("ron (read noise [e-/frame])", opts["ron"], low=low, high=high,
+        opts["ron"] = validation.number("ron (read noise per frame)", opts["ron"], low=low, high=high,
                                         unit="electron")
     for key in ("with_truth", "return_groupdq"):
         if key in opts:

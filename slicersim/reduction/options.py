@@ -21,6 +21,7 @@ from slicersim.reduction.option_forms import pair, set_field
 __all__ = ["ReduceOptions", "ForwardOptions", "PixelNoise"]
 
 
+@validation.checked_fields
 @dataclass(frozen=True, eq=False)
 class ReduceOptions:
     """Options of :func:`~slicersim.reduction.pipeline.reduce_exposure` (see its docstring for each).
@@ -101,6 +102,7 @@ class ReduceOptions:
         return {f.name: f.default for f in dataclasses.fields(cls)}
 
 
+@validation.checked_fields
 @dataclass(frozen=True, eq=False)
 class ForwardOptions:
     """Options of :func:`~slicersim.reduction.forward_extraction.extract_forward` (see its docstring).
@@ -132,6 +134,7 @@ class ForwardOptions:
         set_field(self, "cell_scale", pair("cell_scale", self.cell_scale, positive=True))
 
 
+@validation.checked_fields
 @dataclass(frozen=True, eq=False)
 class PixelNoise:
     """The ramp fit's noise terms for the forward fit's model variance var_rnoise + k·max(model + dark, 0):

@@ -28,6 +28,7 @@ from slicersim.reduction.checks import (FORWARD, check_raw_attrs, check_spectra_
                                         default_lbda_edges)
 from slicersim.reduction.option_forms import build_options
 from slicersim.reduction.options import ReduceOptions
+from slicersim.reduction.ramp_sources import check_source
 
 __all__ = ["reduce_exposure", "ReduceOptions", "default_lbda_edges", "check_forward_fit", "SUSPECT_CHI2_DOF"]
 
@@ -163,6 +164,7 @@ def reduce_exposure(raw_path, options=None, *, out=None, overwrite=False, **keyw
     (:func:`~slicersim.reduction.rectify.noise_information`; empty otherwise)}``
     (and ``"path"``, the absolute path written, with ``out``).
     """
+    check_source(raw_path, "reduce_exposure raw_path")
     opts = build_options(ReduceOptions, options, keywords, "reduce_exposure")
     plan = _plan(raw_path, opts, out, overwrite)            # every option checked before any data are read
     rates, rate, var = _fit_rates(raw_path, plan)

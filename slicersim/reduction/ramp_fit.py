@@ -173,6 +173,7 @@ def _refpix_terms(src, bias, kw):
 
 
 # ----------------------------------------------------------------------------- driver
+@validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class FitOptions:
     """Options of :func:`fit_ramps` (every keyword of its keyword form).
@@ -184,7 +185,7 @@ class FitOptions:
         a number or an (ny, nx) map
     jump_threshold : σ of the two-point-difference jump test (None or 0: no detection)
     weighting : "gls" (exact MACC covariance) or "ols" (unweighted; its variance is Rauscher07's)
-    gain [DN/e-], ron [e- per frame] (read-out noise), saturation [DN]: override the file's GAIN,
+    gain [DN/e-], ron [electron] (read noise per frame), saturation [DN]: override the file's GAIN,
         READNOISE, SATURATION (default 65535 for integer data); an astropy Quantity is converted
     with_truth : also load ``truth/rate`` [e-/s] (RampFileError if the file has none)
     return_groupdq : keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx)
@@ -261,7 +262,8 @@ def fit_ramps(source, options=None, **kwargs):
         raise ParameterError("fit_ramps: give options=FitOptions(...) or keywords, not both "
                              f"(got {validation.short_repr(options)} and {sorted(kwargs)})")
     backend = resolve_backend(options.backend)
-    with open_ramps(source) as src:
+    with open_ramps(source, "fit_ramps source") as src:
+        _check_memory(src, options)
         setup = _FitSetup(src, options)
         out = {"rate": np.empty(src.shape[2:]), "variance": np.empty(src.shape[2:]),
                "var_poisson": np.empty(src.shape[2:]), "var_rnoise": np.empty(src.shape[2:]),
@@ -271,6 +273,16 @@ def fit_ramps(source, options=None, **kwargs):
         attrs = _attrs(src, setup.nmd, setup.tframe, setup.gain, setup.ron, setup.saturation,
                        options.jump_threshold, options.weighting, backend, setup.labels)
     return RateProduct(**out, attrs=attrs, groupdq=groupdq, truth_rate=setup.truth_rate)
+
+
+def _check_memory(src, options):
+    """ResourceError naming the file and SCI's declared shape when the whole-detector outputs (rates,
+    variances, DQ; GROUPDQ with ``return_groupdq``, the truth rate) exceed this machine's memory."""
+    nints, n, ny, nx = src.shape
+    nbytes = ny * nx * (40 + 8 * bool(options.with_truth)) + (nints * n * ny * nx if options.return_groupdq else 0)
+    validation.memory(f"{src.name}: the rates of dataset SCI {tuple(src.shape)}", nbytes,
+                      hint="the rate images of the whole detector are held in memory (max_bytes bounds only "
+                           "the row blocks)")
 
 
 fit_ramps.__signature__ = inspect.Signature(

@@ -14,10 +14,11 @@ import os
 
 import numpy as np
 
-from slicersim.errors import RampFileError
+from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import is_temporary, one_line
+from slicersim.validation import short_repr
 
-__all__ = ["open_ramps", "ramp_file_kind", "ramp_readout", "keyword_number"]
+__all__ = ["open_ramps", "check_source", "ramp_file_kind", "ramp_readout", "keyword_number"]
 
 _HDF5_MAGIC, _FITS_MAGIC = b"\x89HDF\r\n\x1a\n", b"SIMPLE  ="
 
@@ -88,6 +89,12 @@ class _HDF5Ramps(_Ramps):
         except OSError as exc:
             raise RampFileError(f"{path}: not a readable HDF5 ramp file ({one_line(exc)})") from exc
         fh = self.fh
+        from slicersim.io.rampfile import check_hdf5_input
+        try:              # no data from outside the file, a SCI whose declared shape is stored
+            check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ"))
+        except BaseException:
+            self.close()
+            raise
         if not fh.attrs.get("COMPLETE", False):
             self.close()
             raise RampFileError(f"{path}: incomplete file (no completion marker)")
@@ -144,8 +151,8 @@ class _FitsImage:
         end = hdul.fileinfo(index)["datLoc"] + math.prod(self.shape) * abs(bitpix) // 8
         size = os.path.getsize(path)
         if end > size:
-            raise RampFileError(f"{path}: truncated file: extension {hdr.get('EXTNAME')} ends at byte {end}, the "
-                                f"file has {size}")
+            raise RampFileError(f"{path}: truncated file: extension {hdr.get('EXTNAME')} ends at byte {end} "
+                                f"(declared shape {self.shape}, BITPIX {bitpix}), the file has {size}")
         self.raw = np.memmap(path, dtype=self._TYPES[bitpix], mode="r", offset=hdul.fileinfo(index)["datLoc"],
                              shape=self.shape)
         unsigned = {(16, 32768): np.uint16, (32, 2**31): np.uint32, (8, 0): np.uint8}
@@ -245,9 +252,30 @@ def ramp_file_kind(path):
     return None
 
 
-def open_ramps(source):
+#: what :func:`open_ramps` accepts, said in its errors
+ACCEPTED = ("a ramp file path (str or os.PathLike: an HDF5 file from `slicersim ramp` or a JWST level-1b FITS) "
+            "or the arrays read_ramps returns: (SCI (nints, ngroups, ny, nx) [DN], GROUPDQ or None, PIXELDQ or "
+            "None, attrs: a dict of the readout keywords NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE)")
+
+
+def check_source(source, name="source"):
+    """``source`` if it is a path (str, bytes, os.PathLike) or a sequence of four items (the arrays);
+    else ParameterError naming ``name`` and saying what is accepted (:data:`ACCEPTED`)."""
+    if isinstance(source, (str, bytes, os.PathLike)) or (isinstance(source, (tuple, list)) and len(source) == 4):
+        return source
+    got = f"a {type(source).__name__} of {len(source)} item(s)" if isinstance(source, (tuple, list)) else \
+        short_repr(source)
+    raise ParameterError(f"{name} must be {ACCEPTED}; got {got}")
+
+
+def open_ramps(source, name="source"):
     """A raw ramp reader for a path (HDF5 or level-1b FITS, by content) or arrays
-    (SCI, GROUPDQ, PIXELDQ, attrs); RampFileError for anything else."""
+    (SCI, GROUPDQ, PIXELDQ, attrs); ParameterError naming ``name`` and what is accepted for another
+    kind of value (a number, a bare array: :func:`check_source`), RampFileError for a file or arrays
+    that are not ramps."""
+    source = check_source(source, name)
+    if isinstance(source, bytes):
+        source = os.fsdecode(source)
     if isinstance(source, (str, os.PathLike)):
         path = os.fspath(source)
         kind = ramp_file_kind(path)
@@ -276,7 +304,7 @@ def keyword_number(attrs, key, where, kind=float):
 
 
 def ramp_readout(attrs, shape, gain, ron, where):
-    """Validated (n, m, d), tframe [s], gain [DN/e-], read noise [e-/frame] of a ramp's keywords."""
+    """Validated (n, m, d), tframe [s], gain [DN/e-], read noise per frame [electron] of a ramp's keywords."""
     missing = [k for k in ("NFRAMES", "GROUPGAP", "TFRAME") if k not in attrs]
     if gain is None and "GAIN" not in attrs:
         missing.append("GAIN (or pass gain=)")
@@ -306,5 +334,5 @@ def ramp_readout(attrs, shape, gain, ron, where):
     gain = keyword_number(attrs, "GAIN", where) if gain is None else float(gain)
     ron = keyword_number(attrs, "READNOISE", where) if ron is None else float(ron)
     if not (math.isfinite(gain) and gain > 0) or not (math.isfinite(ron) and ron >= 0):
-        raise RampFileError(f"{where}: gain {gain} DN/e- must be > 0 and read noise {ron} e- ≥ 0")
+        raise RampFileError(f"{where}: gain {gain} DN/e- must be > 0 and read noise {ron} electron ≥ 0")
     return (n, m, d), tframe, gain, ron

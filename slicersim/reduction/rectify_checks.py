@@ -117,7 +117,7 @@ def _check_projection(oversample, truncate, weights_dtype):
         dtype = np.dtype(weights_dtype)
     except TypeError:
         dtype = None
-    if dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
+    if dtype is None or dtype not in (np.dtype(np.float32), np.dtype(np.float64)):  # None == float64 in NumPy
         raise ParameterError(f"weights_dtype must be float32 or float64, got {validation.short_repr(weights_dtype)}")
     return ov
 
@@ -136,6 +136,7 @@ def angstrom(name, value):
                              f"{validation.short_repr(value)}") from None
 
 
+@validation.checked_fields
 @dataclass(frozen=True, eq=False)
 class RectifyOptions:
     """Options of :func:`~slicersim.reduction.rectify.rectify` (see its docstring).

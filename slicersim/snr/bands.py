@@ -68,8 +68,8 @@ def check_band_in_grid(ranges, grid_edges, who=None, allow_partial=True):
 
     def head(idx):
         lo, hi = ranges[int(idx[0])]
-        return f"band {lo:.0f}–{hi:.0f} Å" if who is None else \
-            f"band of target(s) {idx[:10].tolist()} (first: {lo:.0f}–{hi:.0f} Å)"
+        return f"band {lo:g}–{hi:g} Å" if who is None else \
+            f"band of target(s) {idx[:10].tolist()} (first: {lo:g}–{hi:g} Å)"
     bad = np.nonzero(frac < MIN_GRID_COVERAGE)[0]
     if bad.size:
         raise SpectrumError(f"{head(bad)} is only {100 * frac[bad[0]]:.1f} % inside the instrument grid "
@@ -97,14 +97,14 @@ def warn_partial_spectrum(ranges, spec_lo, spec_hi, who=None, allow_partial=True
     if part.size:
         i = int(part[0])
         lo, hi = ranges[i]
-        head = f"band {lo:.0f}–{hi:.0f} Å" if who is None else \
-            f"band of target(s) {part[:10].tolist()} (first: {lo:.0f}–{hi:.0f} Å)"
-        msg = (f"the source spectrum ({float(spec_lo):.0f}–{float(spec_hi):.0f} Å) covers only "
+        head = f"band {lo:g}–{hi:g} Å" if who is None else \
+            f"band of target(s) {part[:10].tolist()} (first: {lo:g}–{hi:g} Å)"
+        msg = (f"the source spectrum ({float(spec_lo):g}–{float(spec_hi):g} Å) covers only "
                f"{100 * frac[i]:.1f} % of the {head}")
         if not allow_partial:
             raise SpectrumError(f"{msg}: the SNR would be that of a narrower band; choose a band the "
                                 f"spectrum covers or use the covered part ({_allow_partial_hint()})")
-        warnings.warn(f"the source spectrum ({float(spec_lo):.0f}–{float(spec_hi):.0f} Å) covers only "
+        warnings.warn(f"the source spectrum ({float(spec_lo):g}–{float(spec_hi):g} Å) covers only "
                       f"{100 * frac[i]:.1f} % of the {head}: the SNR is computed on the covered part",
                       BandCoverageWarning, stacklevel=3)
     return frac

@@ -284,11 +284,28 @@ def max_frames_for(tframe, max_exposure=None):
     return math.floor(max_exposure / tframe)
 
 
+def _no_signal(sim, snr, lbda_range, mask, snr1):
+    """The message for a band no readout reaches: the best single-ramp SNR found and, for a point
+    source, its F_λ in the band."""
+    lo, hi = (float(v) for v in lbda_range)
+    finite = np.asarray(snr1)[np.isfinite(snr1)]
+    best = f"{float(finite.max()):g}" if finite.size else "NaN"
+    ps = getattr(sim.scene, "pointsource", None)
+    flux = ""
+    if ps is not None:
+        f = ps.flambda(sim.lbda[mask])
+        f = f[np.isfinite(f)]
+        flux = f"; the point source's F_λ there is at most {float(f.max()):g} erg/s/cm²/Å" if f.size else \
+            "; the point-source spectrum has no sample there"
+    return (f"target SNR {snr:g} cannot be reached in the band {lo:g}–{hi:g} Å: no signal there (best SNR per "
+            f"bin of one ramp over the readouts tried: {best}{flux})")
+
+
 def limit_error(snr, lbda_range, tframe, what="exceeds", exposure=None):
     """ETCError for a target beyond :data:`MAX_TOTAL_EXPOSURE` / :data:`MAX_RAMPS`."""
     lo, hi = (float(v) for v in lbda_range)
     got = f" (the search ends at {exposure:.3g} s)" if exposure is not None else ""
-    return ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å {what} the exposure limit: "
+    return ETCError(f"target SNR {snr:g} in the band {lo:g}–{hi:g} Å {what} the exposure limit: "
                     f"it needs more than MAX_TOTAL_EXPOSURE = {MAX_TOTAL_EXPOSURE:.4g} s (1 year; "
                     f"{max_frames_for(tframe)} frames of {tframe} s) or more than MAX_RAMPS = "
                     f"{MAX_RAMPS} ramps{got}")
@@ -302,14 +319,14 @@ def check_reference_result(snr, lbda_range, target, reached, exposure_time, tfra
     must keep reproducing).  A walk ending at n > ``max_group`` raises too."""
     if nmd is not None and max_group and nmd[0] > max_group:
         lo, hi = (float(v) for v in lbda_range)
-        raise ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å: the reference walk ends at "
+        raise ETCError(f"target SNR {snr:g} in the band {lo:g}–{hi:g} Å: the reference walk ends at "
                        f"readout {tuple(int(v) for v in nmd)}, beyond max_group = {max_group} "
                        "(use search='exact')")
     if not np.isfinite(reached) or reached < target * (1 - REFERENCE_SHORTFALL) - tol:
         lo, hi = (float(v) for v in lbda_range)
         if exposure_time > MAX_TOTAL_EXPOSURE or not np.isfinite(reached):
             raise limit_error(snr, lbda_range, tframe, "cannot be reached within", exposure_time)
-        raise ETCError(f"target SNR {snr:g} in the band {lo:.0f}–{hi:.0f} Å: the reference walk ends "
+        raise ETCError(f"target SNR {snr:g} in the band {lo:g}–{hi:g} Å: the reference walk ends "
                        f"at SNR {reached:.6g} per bin, below the target {target:.6g} by more than its "
                        f"tolerance {tol} (after {exposure_time:.3g} s; limit MAX_TOTAL_EXPOSURE = "
                        f"{MAX_TOTAL_EXPOSURE:.4g} s)")
@@ -363,8 +380,7 @@ def solve_readout(sim, snr, lbda_range, per_resolution=True, search="exact", bac
         if choice["limited"][0]:
             raise limit_error(snr, lbda_range, det.tframe)
         if choice["n"][0] == 0:
-            raise ETCError(f"target SNR {snr} cannot be reached in {lbda_range} Å "
-                           "(no signal in the band?)")
+            raise ETCError(_no_signal(sim, snr, lbda_range, mask, snr1))
         nmd = (int(choice["n"][0]), int(choice["m"][0]), int(choice["d"][0]))
         nramps, reached, trace = int(choice["nramps"][0]), float(choice["snr"][0]), None
     exptime = nramps * readout_times(nmd, det.tframe)["exposure_time_per_ramp"]

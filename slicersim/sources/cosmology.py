@@ -42,8 +42,9 @@ def get_cosmology(cosmology=None):
 
 
 def check_source_redshift(redshift, name="redshift"):
-    """A finite redshift > 0 as float (ParameterError naming ``name`` otherwise)."""
-    return validation.number(name, redshift, low=0.0, low_open=True)
+    """A redshift in (0, :data:`~slicersim.validation.MAX_REDSHIFT`] as float (ParameterError naming
+    ``name`` otherwise)."""
+    return validation.redshift(name, redshift)
 
 
 def angular_diameter_distance_kpc(redshift, cosmology=None):
@@ -69,8 +70,8 @@ def surface_brightness_dimming(redshift):
 def redshift_scalings(from_redshift, to_redshift, cosmology=None):
     """(angle, wavelength, F_λ) factors moving a source from ``from_redshift`` to ``to_redshift``
     at fixed proper size and luminosity (see the module docstring)."""
-    z0 = validation.number("from_redshift", from_redshift, low=0.0, low_open=True)
-    z1 = validation.number("to_redshift", to_redshift, low=0.0, low_open=True)
+    z0 = validation.redshift("from_redshift", from_redshift)
+    z1 = validation.redshift("to_redshift", to_redshift)
     if z0 == z1:
         return 1.0, 1.0, 1.0
     cosmo = get_cosmology(cosmology)

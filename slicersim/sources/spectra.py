@@ -18,7 +18,15 @@ from slicersim.versioning import Versioned
 
 __all__ = ["PointSource", "validate_spectrum", "snia_spectrum", "sncosmo_spectrum", "load_sncosmo_source",
            "blackbody_flambda", "powerlaw_flambda", "normalise_to_mag", "find_calspec_file", "read_calspec",
-           "SNCOSMO_SNIA_MODELS", "SNCOSMO_OFFLINE", "POWERLAW_LAMBDA_REF", "CALSPEC_URL", "default_lbda"]
+           "SNCOSMO_SNIA_MODELS", "SNCOSMO_OFFLINE", "POWERLAW_LAMBDA_REF", "CALSPEC_URL", "default_lbda",
+           "MAX_FLAMBDA", "MIN_MAG", "check_flambda"]
+
+#: the brightest point-source F_λ accepted [erg/s/cm²/Å]: 5× the Sun's at Earth (≈ 2e2 near 5000 Å),
+#: so above any astronomical source; an H4RG pixel behind a 1-m telescope would fill its well
+#: (~1e5 e-) within a microsecond of a 2.83 s frame, the samplers' range ends far below
+MAX_FLAMBDA = 1e3
+#: the brightest AB magnitude accepted (the Sun is about −26.7 AB at Earth)
+MIN_MAG = -30.0
 
 #: sncosmo SN Ia sources and whether they work offline (built into sncosmo)
 SNCOSMO_SNIA_MODELS = {"hsiao-subsampled": True, "hsiao": False, "salt2": False,
@@ -56,6 +64,16 @@ def validate_spectrum(lbda, flux, name="spectrum"):
     if np.any(flux < 0):
         raise SpectrumError(f"{name}: flux contains {np.count_nonzero(flux < 0)} negative value(s)")
     return lbda, flux
+
+
+def check_flambda(name, flux):
+    """SpectrumError naming ``name`` when the F_λ [erg/s/cm²/Å] ``flux`` exceeds :data:`MAX_FLAMBDA`."""
+    peak = float(np.max(flux, initial=0.0))
+    if peak > MAX_FLAMBDA:
+        raise SpectrumError(f"{name}: F_λ reaches {peak:g} erg/s/cm²/Å, above {MAX_FLAMBDA:g} (5× the Sun's "
+                            "F_λ at Earth: no astronomical source is brighter); give F_λ in erg/s/cm²/Å or "
+                            "normalise the spectrum with mag=")
+    return flux
 
 
 def blackbody_flambda(lbda, temperature):
@@ -112,9 +130,7 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
     """
     import sncosmo
     from astropy.cosmology import Planck18
-    if isinstance(redshift, (bool, np.bool_)) or not isinstance(redshift, (int, float, np.number)) \
-            or not (np.isfinite(redshift) and redshift > 0):
-        raise SpectrumError(f"{validation.shown('redshift')} must be > 0, got {validation.short_repr(redshift)}")
+    redshift = validation.redshift("redshift", redshift, error=SpectrumError)
     if isinstance(phase, (bool, np.bool_)) or not isinstance(phase, (int, float, np.number)) \
             or not np.isfinite(phase):
         raise SpectrumError(f"phase must be a finite number of days, got {phase!r}")
@@ -140,9 +156,9 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
     lo, hi = model.minwave(), model.maxwave()
     keep = (lbda >= lo) & (lbda <= hi)
     if np.count_nonzero(keep) < 2:
-        raise SpectrumError(f"redshift {redshift}: the sncosmo model {_source_label(source)!r} covers "
-                            f"{lo:.0f}–{hi:.0f} Å (observer frame) at this redshift, outside the wavelength "
-                            f"range {lbda[0]:.0f}–{lbda[-1]:.0f} Å: the redshift is outside the model's range")
+        raise SpectrumError(f"redshift {redshift:g}: the sncosmo model {_source_label(source)!r} covers "
+                            f"{lo:g}–{hi:g} Å (observer frame) at this redshift, outside the wavelength "
+                            f"range {lbda[0]:g}–{lbda[-1]:g} Å: the redshift is outside the model's range")
     return lbda[keep], model.flux(phase, lbda[keep])
 
 
@@ -266,8 +282,15 @@ def normalise_to_mag(lbda, flux, mag, band="bessellb", magsys="ab"):
     except Exception as exc:
         raise SpectrumError(f"cannot compute the {band} {magsys} magnitude of the spectrum: {exc}") from exc
     if not np.isfinite(m_in):
-        raise SpectrumError(f"spectrum has no flux in band {band!r}: cannot normalise to mag {mag}")
-    return 10 ** (-0.4 * (mag - m_in)), m_in
+        found = (f"its flux overflows the integral (F_λ up to {float(np.max(flux)):g})" if m_in < 0 else
+                 "its flux in the band is 0")
+        raise SpectrumError(f"spectrum has no usable flux in band {band!r} ({found}): cannot normalise to mag "
+                            f"{mag:g}")
+    exponent = -0.4 * (mag - m_in)
+    if exponent > 300:
+        raise SpectrumError(f"normalising the spectrum (magnitude {m_in:g} in {band!r}) to mag {mag:g} needs a "
+                            f"factor 1e{exponent:.0f}: give F_λ in erg/s/cm²/Å")
+    return 10 ** exponent, m_in
 
 
 class PointSource(Versioned):
@@ -280,10 +303,13 @@ class PointSource(Versioned):
         self.name = name
         if mag is not None:
             mag = validation.number("mag [AB]", mag, error=SpectrumError)
+            if mag < MIN_MAG:
+                raise SpectrumError(f"mag [AB] must be ≥ {MIN_MAG:g} (the Sun is about −26.7 AB), got {mag:g}")
         self.mag, self.band = mag, band
         self.flux_ratio, self.native_mag = 1.0, None
         if mag is not None:
             self.flux_ratio, self.native_mag = normalise_to_mag(self.lbda_in, self.flux_in, mag, band, magsys)
+        check_flambda(f"{name} spectrum", self.flux_in * self.flux_ratio)
 
     @classmethod
     def from_snia(cls, redshift, phase=0.0, source="hsiao-subsampled", position=(0.0, 0.0), **kwargs):
@@ -307,6 +333,7 @@ class PointSource(Versioned):
         if flux_ratio is None:
             flux_ratio, native_mag = (1.0, None) if self.mag is None else \
                 normalise_to_mag(lbda, flux, self.mag, self.band)
+        check_flambda(f"{self.name} spectrum", flux * flux_ratio)
         self.lbda_in, self.flux_in = lbda, flux
         self.flux_ratio, self.native_mag = flux_ratio, native_mag
 

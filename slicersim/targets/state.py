@@ -51,10 +51,11 @@ def _move_host(host, centre):
 
 
 def check_redshift(redshift, name="redshift"):
-    """None or a finite number > 0 (ParameterError naming ``name`` otherwise: strings, lists, NaN, ≤ 0)."""
+    """None or a number in (0, :data:`~slicersim.validation.MAX_REDSHIFT`] (ParameterError naming
+    ``name`` otherwise: strings, lists, NaN, ≤ 0, 1e300)."""
     if redshift is None:
         return None
-    return validation.number(name, redshift, low=0.0, low_open=True)
+    return validation.redshift(name, redshift)
 
 
 def check_config(config):

@@ -170,7 +170,7 @@ def test_ramp_redshift_full_detector(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("args, match", [
-    (["etc", "--redshift", "-1"], "--redshift must be > 0, got -1"),
+    (["etc", "--redshift", "-1"], "--redshift must be in (0, 50], got -1"),
     (["etc", "--redshift", "1", "--snr", "0"], "--snr: the target SNR must be a finite number > 0"),
     (["etc", "--redshift", "1", "--lbda-range", "7000", "5000"], "--lbda-range must be (lo, hi)"),
     (["etc", "--redshift", "1", "--config", "/no/such/config.toml"], "not found"),
@@ -414,7 +414,7 @@ def test_malformed_and_decimal_comma_spectra_name_the_line(tmp_path, capsys, mon
 @pytest.mark.parametrize("argv, needle", [
     (["--nmd", "4", "1", "1000000000"], "--nmd[2] (d, dropped frames between groups)"),
     (["--nmd", "5000", "1", "0"], "--nmd[0] (n, groups per ramp)"),
-    (["--nmd", "3", "1", "0", "--ron", "1e300"], "--ron [e-/read]"),
+    (["--nmd", "3", "1", "0", "--ron", "1e300"], "--ron [electron]"),
     (["--nmd", "3", "1", "0", "--ron", "9000"], "more than 1/8 of the 16-bit ADC range"),
     (["--nmd", "3", "1", "0", "--gain", "1e-300"], "--gain [ADU/e-]"),
     (["--nmd", "3", "1", "0", "--tframe", "1e300"], "--tframe [s]"),
@@ -445,8 +445,8 @@ def test_cli_etc_prints_units_and_no_object_repr():
       "{tmp}/missing.toml", "--out", "{tmp}/r.h5"], "--effects-config: {tmp}/missing.toml: No such file"),
     (["ramp", "--redshift", "1", "--effects", "persistence", "--previous-charge", "{tmp}/missing.npy",
       "--out", "{tmp}/r.h5"], "--previous-charge: {tmp}/missing.npy: No such file"),
-    (["ramp", "--redshift", "-1", "--out", "{tmp}/r.h5"], "--redshift must be > 0, got -1"),
-    (["plot", "fields", "--redshift", "-1", "--out", "{tmp}/f.png"], "--redshift must be > 0, got -1"),
+    (["ramp", "--redshift", "-1", "--out", "{tmp}/r.h5"], "--redshift must be in (0, 50], got -1"),
+    (["plot", "fields", "--redshift", "-1", "--out", "{tmp}/f.png"], "--redshift must be in (0, 50], got -1"),
     (["etc", "--redshift", "1", "--lbda-range", "-5", "6000"], "use the covered part (--allow-partial)"),
 ])
 def test_messages_name_the_command_line_flags_not_python_keywords(tmp_path, capsys, monkeypatch, argv, needle):
@@ -502,3 +502,151 @@ def test_config_is_repeatable_on_ramp_and_survey_plan(tmp_path, capsys, monkeypa
                  ["survey", "plan", "--n", "2", "--config", wrong, "--config", "cbe"]):
         err = _one_line(*_main_error(capsys, argv, monkeypatch))
         assert "wrong.toml: [telescope] has no key(s) 'gain': 'gain' belongs in [detector]" in err, err
+HUGE = "1" + "0" * 300
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["etc", "--redshift", HUGE], "--redshift must be ≤ 50, got 1e+300"),
+    (["ramp", "--redshift", HUGE, "--out", "{tmp}/r.h5"], "--redshift must be ≤ 50, got 1e+300"),
+    (["plot", "fields", "--redshift", HUGE, "--out", "{tmp}/f.png"], "--redshift must be ≤ 50, got 1e+300"),
+    (["survey", "plan", "--n", "3", "--zmax", HUGE], "--zmax must be in [0, 10], got 1e+300"),
+    (["survey", "plan", "--n", "3", "--z-switch", HUGE], "--z-switch must be ≤ 50, got 1e+300"),
+    (["etc", "--redshift", "1", "--frame", "obs", "--lbda-range", "4000", HUGE], "band 4000–1e+300 Å"),
+    (["reduce", "{tmp}/raw.h5", "--out", "{tmp}/o.h5", "--spectra", "--lbda-edges", f"{HUGE},1,1"],
+     "--lbda-edges START,STOP,STEP needs finite START < STOP and STEP > 0, got 1e+300,1,1"),
+])
+def test_a_300_digit_number_is_refused_and_printed_short(tmp_path, capsys, monkeypatch, argv, needle):
+    (tmp_path / "raw.h5").write_bytes(b"")
+    err = _one_line(*_main_error(capsys, [a.format(tmp=tmp_path) for a in argv], monkeypatch))
+    assert needle in err and "0000000000" not in err, err
+
+
+def _raising(exc):
+    def command(args):
+        raise exc
+    return command
+
+
+@pytest.mark.parametrize("command, argv, needles", [
+    ("reduce_cli.cmd_reduce", ["reduce", "raw.h5", "--out", "o.h5"],
+     ["out of memory (host): Unable to allocate 74.5 GiB for an array with shape (100000, 100000)", "--max-bytes"]),
+    ("cli.cmd_ramp", ["ramp", "--rate", "r.npy", "--out", "o.h5"], ["out of memory (host)", "--max-bytes"]),
+    ("campaign_cli.cmd_campaign_run", ["campaign", "run", "spec.toml", "--out", "d"], ["--memory-per-task"]),
+])
+def test_out_of_memory_is_one_line_naming_the_allocation_and_the_option(capsys, monkeypatch, command, argv, needles):
+    """A MemoryError (NumPy's) is a user error, exit 2, one line: what was allocated and which option bounds it."""
+    import importlib
+    module, name = command.split(".")
+    raised = MemoryError("Unable to allocate 74.5 GiB for an array with shape (100000, 100000) and data type float64")
+    monkeypatch.setattr(importlib.import_module(f"slicersim.app.{module}"), name, _raising(raised))
+    err = _one_line(*_main_error(capsys, argv, monkeypatch))
+    for needle in needles:
+        assert needle in err, (needle, err)
+
+
+def test_opencl_device_out_of_memory_is_a_user_error(capsys, monkeypatch):
+    """pyopencl's MemoryError is not Python's: it was an internal error with a traceback (exit 3)."""
+    cl = pytest.importorskip("pyopencl")
+    from slicersim.app import cli
+    monkeypatch.setattr(cli, "cmd_ramp", _raising(cl.MemoryError("clEnqueueNDRangeKernel failed: "
+                                                                   "MEM_OBJECT_ALLOCATION_FAILURE")))
+    err = _one_line(*_main_error(capsys, ["ramp", "--rate", "r.npy", "--out", "o.h5"], monkeypatch))
+    assert "out of memory (OpenCL device): clEnqueueNDRangeKernel failed: MEM_OBJECT_ALLOCATION_FAILURE" in err
+    assert "--max-bytes" in err
+
+
+def test_a_too_small_max_bytes_names_the_flag(tmp_path, capsys, monkeypatch):
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    err = _one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--nmd", "3", "1", "0", "--max-bytes", "10",
+                                          "--out", tmp_path / "r.h5"], monkeypatch))
+    assert "--max-bytes 10 B is below" in err and not (tmp_path / "r.h5").exists()
+
+
+def _forged_npy(path, shape=(100000, 100000)):
+    """A .npy file whose header declares ``shape`` float64 and which holds 64 bytes."""
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": shape})
+        fh.write(b"\0" * 64)
+    return path
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["ramp", "--rate", "{npy}", "--out", "{tmp}/r.h5"], "--rate"),
+    (["ramp", "--rate", "{ok}", "--effects", "persistence", "--previous-charge", "{npy}", "--out", "{tmp}/r.h5"],
+     "--previous-charge"),
+    (["reduce", "{h5}", "--out", "{tmp}/r.h5", "--spectra", "--dark", "{npy}"], "--dark"),
+    (["reduce", "{h5}", "--out", "{tmp}/r.h5", "--spectra", "--lbda-edges", "{npy}"], "--lbda-edges"),
+    (["reduce", "{h5}", "--out", "{tmp}/r.h5"], None),
+])
+def test_inputs_declaring_more_data_than_they_hold_are_named_before_allocating(tmp_path, capsys, monkeypatch, argv,
+                                                                                flag):
+    """A .npy header or an HDF5 SCI declaring 10⁵ × 10⁵ values in a few bytes was 'out of memory' (74.5 GiB)."""
+    import h5py
+    npy = _forged_npy(tmp_path / "forged.npy")
+    np.save(tmp_path / "ok.npy", np.ones((8, 8)))
+    with h5py.File(tmp_path / "forged.h5", "w") as fh:
+        fh.create_dataset("SCI", shape=(1, 4, 100000, 100000), dtype="u2", chunks=(1, 1, 64, 64))
+        fh.attrs["COMPLETE"] = True
+    subst = {"npy": npy, "ok": tmp_path / "ok.npy", "h5": tmp_path / "forged.h5", "tmp": tmp_path}
+    err = _one_line(*_main_error(capsys, [a.format(**subst) for a in argv], monkeypatch))
+    if flag is None:
+        assert "forged.h5: dataset SCI declares shape (1, 4, 100000, 100000) uint16 (74.5 GiB)" in err, err
+    else:
+        assert f"{flag}: {npy} declares an array of shape (100000, 100000) float64 (74.5 GiB) but holds 64 bytes" \
+            in err, err
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_absurd_rates_and_fluxes_are_one_line_range_errors(tmp_path, capsys, monkeypatch):
+    """--rate at 1e300 e-/s gave NumPy overflow warnings; --spectrum at 1e100 erg/s/cm²/Å 'no signal in the band?'."""
+    np.save(tmp_path / "hot.npy", np.full((8, 8), 1e300))
+    err = _one_line(*_main_error(capsys, ["ramp", "--rate", tmp_path / "hot.npy", "--nmd", "3", "1", "0", "--out",
+                                          tmp_path / "r.h5"], monkeypatch))
+    assert "--rate image reaches 1e+300 e-/s" in err and "more than the 1e+09 e- accepted" in err, err
+    assert "warning" not in err and not (tmp_path / "r.h5").exists()
+    (tmp_path / "sp.txt").write_text("".join(f"{w} 1e100\n" for w in range(3000, 20000, 100)))
+    err = _one_line(*_main_error(capsys, ["etc", "--spectrum", tmp_path / "sp.txt"], monkeypatch))
+    assert "F_λ reaches 1e+100 erg/s/cm²/Å, above 1000" in err, err
+
+
+def test_the_read_noise_unit_is_spelled_electron_everywhere_a_user_reads_it(tmp_path, capsys, monkeypatch):
+    """CLI help, messages and docs said e-/read, e-/frame, e- and e⁻: one astropy-readable spelling."""
+    from pathlib import Path
+
+    import astropy.units as u
+
+    from slicersim.app.cli import build_parser
+    from slicersim.errors import ParameterError
+    from slicersim.instrument.detector import Detector
+    from slicersim.physics.ramp import RampParameters
+    from slicersim.reduction.checks import check_fit_options
+    from slicersim.reduction.ramp_fit import FitOptions
+    assert u.Unit("electron") == u.electron
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices
+    for command in ("ramp", "reduce"):
+        ron = next(a for a in sub[command]._actions if a.dest == "ron")
+        assert "read noise per frame [electron]" in ron.help and "e-" not in ron.help, ron.help
+    messages = []
+    for make in (lambda: RampParameters(nmd=(3, 1, 0), ron=-1), lambda: Detector(ron=-1), lambda: FitOptions(ron=-1),
+                 lambda: check_fit_options({"ron": -1})):
+        with pytest.raises(ParameterError) as info:
+            make()
+        messages.append(str(info.value))
+    rate = tmp_path / "rate.npy"
+    np.save(rate, np.full((8, 8), 5.0))
+    messages.append(_one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--ron", "-1", "--out", tmp_path / "r.h5"],
+                                           monkeypatch)))
+    messages.append(_one_line(*_main_error(capsys, ["ramp", "--rate", rate, "--ron", "9000", "--out",
+                                                    tmp_path / "r.h5"], monkeypatch)))
+    (tmp_path / "raw.h5").write_bytes(b"")
+    messages.append(_one_line(*_main_error(capsys, ["reduce", tmp_path / "raw.h5", "--ron", "-1", "--out",
+                                                    tmp_path / "o.h5"], monkeypatch)))
+    root = Path(__file__).resolve().parents[2]
+    entries = [line.split("`ron`", 1)[1].split("`")[0] for doc in ("docs/units.md", "docs/api_conventions.md")
+               for line in (root / doc).read_text(encoding="utf-8").splitlines() if "`ron`" in line]
+    messages += [entry for entry in entries if "[" in entry]          # the entries giving its unit
+    assert len(messages) == 9
+    for text in messages:
+        assert "electron" in text and not re.search(r"e-/read|e-/frame|e⁻|\[e-\]|e- per frame", text), text

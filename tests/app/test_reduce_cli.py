@@ -170,8 +170,8 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     (["--workers", "2"], "--workers applies only to a campaign dataset"),
     (["--retry-failed"], "--retry-failed applies only to a campaign dataset"),
     (["--gain", "0"], "--gain [DN/e-] must be > 0"),
-    (["--read-noise", "-1"], "--ron (read noise [e-/frame]) must be in [0, 10000], got -1"),
-    (["--ron", "nan"], "--ron (read noise [e-/frame]) must be in [0, 10000], got nan"),
+    (["--read-noise", "-1"], "--ron (read noise per frame) [electron] must be in [0, 10000], got -1"),
+    (["--ron", "nan"], "--ron (read noise per frame) [electron] must be in [0, 10000], got nan"),
     (["--jump-threshold", "-1"], "--jump-threshold [σ] (0: no jump detection) must be ≥ 0"),
     (["--show", "-1"], "--show must be an integer ≥ 0"),
     (["--out-is-dir"], "is a directory"),
@@ -544,7 +544,7 @@ def test_weights_with_drizzle_are_refused(tmp_path, capsys):
 
 def test_absurd_read_noise_is_refused_naming_the_flag(raw, tmp_path, capsys):
     """`reduce --ron 1e300` overflowed the variance (exit 3, internal error): the flag's physical
-    range is the raw keyword's, [0, 1e4] e-/frame."""
+    range is the raw keyword's, [0, 1e4] electron per frame."""
     path, _ = raw
     for value in ("1e300", "-1", "nan"):
         assert main(["reduce", str(path), "--out", str(tmp_path / "r.h5"), "--ron", value, "--quiet"]) == 2

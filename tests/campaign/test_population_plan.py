@@ -420,7 +420,7 @@ def test_cli_survey_plan_bad_input(tmp_path, args, message):
     (["--zmax", "inf"], "--zmax must be finite, got inf"),
     (["--zmin=-inf"], "--zmin must be finite, got -inf"),
     (["--snr", "-1"], "--snr must be > 0, got -1"),
-    (["--z-switch", "-1"], "--z-switch must be ≥ 0, got -1"),
+    (["--z-switch", "-1"], "--z-switch must be in [0, 50], got -1"),
     (["--compression-ratio", "0"], "--compression-ratio must be ≥ 1, got 0"),
     (["--lbda-range", "6000", "4000"], "--lbda-range must be (lo, hi) in Å with 0 < lo < hi"),
 ])
@@ -570,3 +570,14 @@ def test_survey_plan_out_fifo_is_refused_even_with_overwrite(tmp_path):
                         (["--figure", "f.png"], ("--figure:", "FIFO", "symbolic link"))):
         _one_line_error(_cli("survey", "plan", "--n", "3", "--overwrite", *args, cwd=tmp_path), *words)
     assert stat.S_ISFIFO(os.lstat(tmp_path / "p.ecsv").st_mode) and sorted(os.listdir(tmp_path)) == ["f.png", "p.ecsv"]
+
+
+def test_survey_redshifts_beyond_the_physical_bound_are_refused_short():
+    """Populations, plans and switch redshifts of 1e300 are range errors printed short."""
+    from slicersim.campaign.plan import plan_survey
+    with pytest.raises(ConfigError, match=r"population.redshift.max must be in \[0, 10\] \(redshifts above 10 .*got 1e\+300$"):
+        _pop(n=3, redshift={"distribution": "uniform", "min": 0.1, "max": 10**300})
+    with pytest.raises(ParameterError, match=r"redshift must be ≤ 50, its maximum is 1e\+300"):
+        plan_survey(np.array([0.5, 1e300]), LBDA, np.ones((2, LBDA.size)) * 1e-17)
+    with pytest.raises(ParameterError, match=r"z_switch must be ≤ 50, got 1e\+300"):
+        plan_survey(np.array([0.5]), LBDA, np.ones((1, LBDA.size)) * 1e-17, z_switch=10**300)

@@ -328,7 +328,9 @@ def test_update_errors_name_the_parameter_and_change_nothing(sn):
         sim.update(qe=np.linspace(0.1, 0.9, 1000), ron=3.0)
     assert len(str(info.value)) < 300
     components = list(sim.spectrograph.throughput_model.components)
-    with pytest.raises(ParameterError, match=rf"unknown noptics component .*'silver'; valid: '{components[0]}'"):
+    with pytest.raises(ParameterError, match=rf"unknown noptics key\(s\) 'silver': .*this throughput has 1 "
+                                             rf"component: one curve .*; valid keys: '{components[0]}', or one "
+                                             r"integer for every component; components are named by set_throughput"):
         sim.update(noptics={"silver": 10})
     with pytest.raises(ParameterError, match=r"unknown simulation parameter\(s\) \['gian'\] \(did you mean 'gain'\?\); "
                                              r"accepted: nramps"):

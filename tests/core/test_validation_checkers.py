@@ -155,3 +155,81 @@ def test_flag_names_show_a_parameter_by_its_flag_inside_the_block_only():
         assert V.shown("seed") == "seed"
     with pytest.raises(ReadoutError, match=r"^nramps must be"):
         V.nramps(0)
+def test_redshift_has_a_physical_upper_bound_and_short_messages():
+    """A redshift of 1e300 (or a 301-digit integer) is refused by a range check, printed short."""
+    assert V.redshift("z", 0.05) == 0.05 and V.redshift("z", 1.5) == 1.5 and V.redshift("z", 20) == 20.0
+    assert V.redshift("z", V.MAX_REDSHIFT) == V.MAX_REDSHIFT and V.redshift("z", 0, allow_zero=True) == 0.0
+    for huge in (float("1" + "0" * 300), 10**300, 10**400, 51.0):
+        shown = r"(1e\+300|an integer of 401 digits|51.0)"
+        with pytest.raises(ParameterError, match=rf"^z must be ≤ 50, got {shown} \(beyond z ≈ 21") as info:
+            V.redshift("z", huge)
+        assert len(str(info.value)) < 200 and "0000000000" not in str(info.value)
+    with pytest.raises(ParameterError, match=r"z must be in \(0, 50\], got 0"):
+        V.redshift("z", 0)
+
+
+def test_short_repr_and_number_print_huge_integers_short():
+    assert V.short_repr(10**300) == "1e+300" and V.short_repr(-(10**20)) == "-1e+20"
+    assert V.short_repr(10**400) == "an integer of 401 digits" and V.short_repr(12345) == "12345"
+    with pytest.raises(ParameterError, match=r"^x must be ≤ 10, got an integer of 401 digits$"):
+        V.number("x", 10**400, high=10)
+    with pytest.raises(ParameterError, match=r"^z must be ≤ 50, its maximum is 1e\+300$"):
+        V.array("z", [0.5, 1e300], high=50)
+    assert V.array("z", [0.5, np.nan], high=50, finite=False).shape == (2,)
+
+
+OPTION_CLASSES = [
+    ("slicersim.physics.ramp", "RampParameters", {"nmd": (4, 1, 0)}, "tframe", ParameterError),
+    ("slicersim.products.ramps", "RampIO", {}, "overwrite", ParameterError),
+    ("slicersim.products.ramps", "RunOptions", {}, "max_bytes", ParameterError),
+    ("slicersim.products.ramps", "DetectorMaps", {}, "pixeldq", ParameterError),
+    ("slicersim.campaign.runner", "RunOptions", {"workers": 1}, "window", ParameterError),
+    ("slicersim.reduction.ramp_fit", "FitOptions", {}, "weighting", ParameterError),
+    ("slicersim.reduction.options", "ReduceOptions", {}, "ncol", ParameterError),
+    ("slicersim.reduction.options", "ForwardOptions", {}, "field", ParameterError),
+    ("slicersim.reduction.rectify_checks", "RectifyOptions", {}, "method", ParameterError),
+    ("slicersim.etc.solve", "SolveOptions", {}, "search", ParameterError),
+    ("slicersim.campaign.plan", "SurveyOptions", {}, "efficiency", ParameterError),
+    ("slicersim.io.uncal", "UncalOptions", {}, "substrt", ParameterError),
+    ("slicersim.physics.cosmic_rays", "CosmicRayParameters", {}, "rate", EffectsError),
+]
+
+
+@pytest.mark.parametrize("module, name, required, field, error", OPTION_CLASSES)
+def test_option_classes_name_an_unknown_field_with_did_you_mean(module, name, required, field, error):
+    """FitOptions(weightin=...) was Python's 'TypeError: __init__() got an unexpected keyword argument'."""
+    import dataclasses
+    import importlib
+    cls = getattr(importlib.import_module(module), name)
+    misspelt = field[:-1]
+    with pytest.raises(error, match=rf"unknown field of {name} '{misspelt}' \(did you mean '{field}'\?\); "
+                                    rf"valid: .*'{field}'") as info:
+        cls(**required, **{misspelt: 1})
+    for f in dataclasses.fields(cls):
+        if f.init:
+            assert repr(f.name) in str(info.value)
+    cls(**required)                                           # the defaults still build
+
+
+def test_option_classes_name_a_field_of_the_wrong_type():
+    from slicersim.physics.ramp import RampParameters
+    from slicersim.products.ramps import DetectorMaps, RunOptions
+    from slicersim.reduction.ramp_fit import FitOptions
+    from slicersim.reduction.rectify_checks import RectifyOptions
+    from slicersim.campaign.plan import SurveyOptions
+    cases = [(lambda: FitOptions(with_truth="yes"), r"FitOptions.with_truth must be True or False, got 'yes'"),
+             (lambda: FitOptions(jump_threshold="4"), r"FitOptions.jump_threshold must be a number or None"),
+             (lambda: FitOptions(work_group="64"), r"FitOptions.work_group must be an integer or None"),
+             (lambda: FitOptions(saturation="3"), r"saturation must be a number of DN > 0"),   # the class's words
+             (lambda: SurveyOptions(detector_shape=4096), r"SurveyOptions.detector_shape must be a sequence or None"),
+             (lambda: RectifyOptions(truncate="4"), r"truncate"),
+             (lambda: RectifyOptions(weights_dtype="zzz"), r"weights_dtype must be float32 or float64, got 'zzz'"),
+             (lambda: RunOptions(progress="no"), r"progress"),
+             (lambda: RampParameters(), r"RampParameters: missing a required argument: 'nmd'; its fields: nmd, "),
+             (lambda: DetectorMaps(dead_pixels=np.zeros(3), bogus=1), r"unknown field of DetectorMaps 'bogus'")]
+    for make, message in cases:
+        with pytest.raises(ParameterError, match=message):
+            make()
+    assert FitOptions(with_truth=np.bool_(True), jump_threshold=np.float32(4), work_group=np.int64(64)).with_truth
+    u = pytest.importorskip("astropy.units")
+    assert FitOptions(ron=5 * u.electron).ron == 5.0

@@ -305,3 +305,21 @@ def test_reference_search_far_below_target_is_flagged():
     assert_rejected_unchanged(t, lambda: t.setup_to_snr(1e9, BAND, search="reference"), ETCError,
                               r"target SNR 1e\+09 in the band 9000–12000 Å cannot be reached within the "
                               r"exposure limit: it needs more than MAX_TOTAL_EXPOSURE")
+
+
+def test_absurd_point_source_fluxes_and_magnitudes_are_refused():
+    """A spectrum scaled to 1e100 erg/s/cm²/Å reported 'no signal in the band?'; mag=-1000 overflowed."""
+    from slicersim import lazuli_etc
+    from slicersim.errors import SpectrumError
+    lbda = np.linspace(3000.0, 20000.0, 200)
+    with pytest.raises(SpectrumError, match=r"pointsource spectrum: F_λ reaches 1e\+100 erg/s/cm²/Å, above 1000"):
+        lazuli_etc(lbda, np.full(200, 1e100), snr=10)
+    with pytest.raises(SpectrumError, match=r"mag \[AB\] must be ≥ -30 \(the Sun is about −26.7 AB\), got -1000"):
+        LazuliTarget(lbda, np.full(200, 1e-17), mag=-1000)
+    with pytest.raises(SpectrumError, match=r"F_λ reaches .* above 1000"):
+        LazuliTarget(lbda, np.full(200, 1e-17), mag=-29)
+    assert LazuliTarget(lbda, np.full(200, 1e-10)).pointsource.flambda(np.array([5000.0]))[0] == 1e-10
+    with pytest.raises(ETCError, match=r"target SNR 10 cannot be reached in the band 4000–6800 Å: no signal there "
+                                       r"\(best SNR per bin of one ramp over the readouts tried: 0; the point "
+                                       r"source's F_λ there is at most 0 erg/s/cm²/Å\)"):
+        lazuli_etc(lbda, np.zeros(200), snr=10)

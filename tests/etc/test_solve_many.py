@@ -75,3 +75,18 @@ def test_solve_many_kubik16_equals_single_target_exact_search(kubik_toml):
             assert sim.get_band_snr(band, nmd=nmd, nramps=r - 1) < tau
         differs |= (table["snr_per_bin"][i] != rauscher["snr_per_bin"][i])
     assert differs                                # the variance model reached the batch ETC
+
+
+def test_absurd_fluxes_are_refused_and_no_signal_says_what_was_found():
+    """Fluxes of 1e100 erg/s/cm²/Å reported 'no signal in the band'; a zero spectrum did not say what it held."""
+    from slicersim.errors import ETCError, SpectrumError
+    lbda = np.linspace(3000.0, 20000.0, 200)
+    fluxes = np.full((3, 200), 1e-17)
+    fluxes[2] = 1e100
+    with pytest.raises(SpectrumError, match=r"fluxes of target\(s\) \[2\] \(first\): F_λ reaches 1e\+100 "
+                                            r"erg/s/cm²/Å, above 1000 \(5× the Sun's F_λ at Earth"):
+        solve_many(lbda, fluxes, 10.0, (9000.0, 10000.0))
+    fluxes[2] = 0.0
+    with pytest.raises(ETCError, match=r"target\(s\) \[2\] cannot reach their SNR: no signal in the band \(target 2, "
+                                       r"band 9000–10000 Å observer frame: its F_λ there is at most 0 erg/s/cm²/Å\)"):
+        solve_many(lbda, fluxes, 10.0, (9000.0, 10000.0))

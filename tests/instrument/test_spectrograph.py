@@ -140,3 +140,18 @@ def test_partial_spectral_range_starts_at_its_own_wavelength():
     i = np.argmin(abs(full - part[0]))
     np.testing.assert_allclose(part, full[i:i + part.size], rtol=1e-12)
     np.testing.assert_allclose(edges, full_edges[i:i + part.size + 1], rtol=1e-12)
+
+
+def test_unknown_noptics_keys_list_every_valid_key_and_say_what_they_are():
+    """update(noptics={'silver': 10}) listed only 'narrow' (the single curve of the field), unexplained."""
+    from slicersim.instrument.spectrograph import OpticalThroughput
+    t = target()
+    with pytest.raises(ParameterError, match=r"unknown noptics key\(s\) 'silver': noptics counts the elements of each "
+                                             r"throughput component, and this throughput has 1 component: one curve "
+                                             r".*valid keys: 'narrow', or one integer for every component"):
+        t.update(noptics={"silver": 10})
+    curves = {"mirror": 0.9, "grating": 0.8, "silver_coating": 0.97}
+    with pytest.raises(ParameterError, match=r"unknown noptics key\(s\) 2, 'silver' \(did you mean 'silver_coating'\?\)"
+                                             r".*has 3 components; valid keys: 'mirror', 'grating', 'silver_coating'"):
+        OpticalThroughput(curves, {"silver": 2, 2: 1, "mirror": 3})
+    assert OpticalThroughput(curves, {"mirror": 3}).noptics == {"mirror": 3, "grating": 1, "silver_coating": 1}

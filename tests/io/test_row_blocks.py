@@ -16,6 +16,14 @@ def test_rows_per_block_from_the_memory_budget():
         rows_per_block(99, 100, 50, name="memory_budget")
 
 
+def test_a_budget_below_one_row_is_a_slicersim_error_and_a_memory_error():
+    """Scripts catching SlicersimError (or MemoryError) both see it."""
+    from slicersim.errors import ResourceError, SlicersimError
+    with pytest.raises(ResourceError) as info:
+        rows_per_block(99, 100, 50)
+    assert isinstance(info.value, SlicersimError) and isinstance(info.value, MemoryError)
+
+
 def test_row_blocks_cover_every_row_of_every_ramp_once():
     blocks = RowBlocks(10, 4, nouter=3, progress=False)
     steps = list(blocks)

@@ -106,3 +106,14 @@ def test_plot_cube_slices_errors():
         plotting.plot_cube_slices(Sim(), cube, lbda=[9000.0])
     with pytest.raises(ParameterError, match="ax"):
         plotting.plot_cube_slices(Sim(), cube, lbda=[5500.0, 5600.0], ax=plt.subplots()[1])
+
+
+def test_plot_ramp_group_refuses_a_file_declaring_data_it_does_not_hold(tmp_path):
+    """The ramp plot read SCI with h5py directly: a forged file was 'out of memory' without its name."""
+    import h5py
+
+    from slicersim.errors import RampFileError
+    with h5py.File(tmp_path / "forged.h5", "w") as fh:
+        fh.create_dataset("SCI", shape=(1, 4, 100000, 100000), dtype="u2", chunks=(1, 1, 64, 64))
+    with pytest.raises(RampFileError, match=r"forged.h5: dataset SCI declares shape \(1, 4, 100000, 100000\)"):
+        plotting.plot_ramp_group(tmp_path / "forged.h5")

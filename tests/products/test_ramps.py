@@ -1,6 +1,7 @@
 """Raw-ramp generator: kernel vs NumPy twin, reproducibility, closed-loop statistics, files."""
 import math
 import os
+import re
 
 import numpy as np
 import pytest
@@ -615,3 +616,20 @@ def test_out_and_keywords_are_named():
         simulate(rate, nmd=(3, 1, 0), seed=1, out=5)
     with pytest.raises(ParameterError, match=r"'sead' \(did you mean 'seed'\?\).*'effects'"):
         simulate(rate, nmd=(3, 1, 0), sead=1)
+
+
+def test_a_rate_beyond_the_samplers_range_is_refused_naming_it_and_the_bound():
+    """A rate of 1e300 e-/s gave NumPy overflow RuntimeWarnings (and 1e9 e-/s an invalid cast): refused with
+    the bound; a rate saturating a pixel many times within a frame but below the bound runs quietly."""
+    import warnings
+
+    from slicersim.errors import ParameterError
+    for rate, dark, name in ((1e300, 0.0, "rate reaches 1e+300 e-/s"), (1e9, 0.0, "rate reaches 1e+09 e-/s"),
+                             (1.0, np.full((8, 8), 1e300), "dark reaches 1e+300 e-/s")):
+        with pytest.raises(ParameterError, match=re.escape(name) + r": .* e- per frame of 2.83 s, more than the 1e\+09 e- "
+                                                 r"accepted \(1.57e\+04 full wells of 63535 e-"):
+            simulate(np.full((8, 8), rate), (3, 1, 0), seed=1, progress=False, backend="numpy", dark=dark)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sci = simulate(np.full((8, 8), 3e8), (3, 1, 0), seed=1, progress=False, backend="numpy")
+    assert sci.max() == 65535

@@ -6,6 +6,7 @@ dense linear algebra, jump detection on simulated cosmic rays, saturation, refer
 nonlinearity corrections, and agreement with stcal (the JWST pipeline's fitter) on the same files.
 """
 import logging
+import os
 import math
 
 import numpy as np
@@ -492,7 +493,8 @@ def test_truncated_fits_ramps_are_named_in_one_line(tmp_path, capsys):
         start = hdul.fileinfo(hdul.index_of("SCI"))["datLoc"]  # first byte of SCI's data
     with open(path, "rb") as fh:
         cut.write_bytes(fh.read()[:start + 1360])            # cut inside SCI's data
-    with pytest.raises(RampFileError, match="cut.fits: truncated file: extension SCI ends at byte"):
+    with pytest.raises(RampFileError, match=r"cut.fits: truncated file: extension SCI ends at byte \d+ "
+                                            r"\(declared shape \(1, 4, 16, 32\)"):
         fit_ramps(cut, progress=False)
     capsys.readouterr()
     assert main(["reduce", str(cut), "--out", str(tmp_path / "r.h5"), "--quiet"]) == 2
@@ -514,3 +516,56 @@ def test_fit_ramps_saturation_must_be_positive(value):
         fit_ramps((sci, None, None, attrs), saturation=value, progress=False)
     with pytest.raises(Exception, match="SATURATION = 0.0 DN must be > 0"):
         fit_ramps((sci, None, None, dict(attrs, SATURATION=0.0)), progress=False)
+
+
+def _forged(path, shape=(1, 4, 100000, 100000)):
+    """An HDF5 'ramp' of a few kB whose SCI declares ``shape`` (empty chunked datasets: never written)."""
+    import h5py
+    with h5py.File(path, "w") as fh:
+        fh.create_dataset("SCI", shape=shape, dtype="u2", chunks=(1, 1, 64, 64))
+        fh.create_dataset("GROUPDQ", shape=shape, dtype="u1", chunks=(1, 1, 64, 64))
+        fh.attrs.update(COMPLETE=True, NFRAMES=1, GROUPGAP=0, TFRAME=2.83, GAIN=1.0, READNOISE=12.0)
+    return path
+
+
+def test_a_declared_shape_the_file_does_not_hold_is_refused_before_allocating(tmp_path):
+    """A 2 kB file declaring SCI (1, 4, 10⁵, 10⁵) gave 'out of memory' (74.5 GiB) without naming the file."""
+    from slicersim.reduction.checks import check_ramp_file
+    path = _forged(tmp_path / "forged.h5")
+    assert os.path.getsize(path) < 100_000
+    needle = (r"forged.h5: dataset SCI declares shape \(1, 4, 100000, 100000\) uint16 \(74.5 GiB\) but the file "
+              r"stores 0 of its 9771876 chunks: its data were never written")
+    for call in (lambda: fit_ramps(path), lambda: read_ramps(path), lambda: check_ramp_file(path),
+                 lambda: write_uncal_from_hdf5(path, tmp_path / "u.fits")):
+        with pytest.raises(RampFileError, match=needle):
+            call()
+    assert not (tmp_path / "u.fits").exists()
+
+
+def test_rates_larger_than_the_machine_memory_are_refused_naming_the_file(tmp_path, monkeypatch):
+    from slicersim import validation
+    from slicersim.errors import ResourceError, SlicersimError
+    path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, out=tmp_path / "ok.h5", **QUIET)
+    monkeypatch.setattr(validation, "physical_memory", lambda: 5000)
+    with pytest.raises(ResourceError, match=r"ok.h5: the rates of dataset SCI \(1, 4, 16, 32\) would take .* GiB, more "
+                                            r"than this machine's .* GiB of memory") as info:
+        fit_ramps(path)
+    assert isinstance(info.value, SlicersimError) and isinstance(info.value, MemoryError)
+    with pytest.raises(ResourceError, match=r"ok.h5: dataset SCI of shape \(1, 4, 16, 32\) read whole"):
+        read_ramps(path)
+
+
+@pytest.mark.parametrize("source, got", [(123, "got 123"), (np.zeros((4, 8, 8)), "got an array of shape (4, 8, 8)"),
+                                         ([1, 2], "got a list of 2 item(s)"), (None, "got None")])
+def test_a_source_of_another_kind_says_what_is_accepted(source, got):
+    """fit_ramps(123) said only 'arrays must be (SCI, GROUPDQ or None, PIXELDQ or None, attrs)'."""
+    from slicersim.reduction.checks import check_ramp_file
+    from slicersim.reduction.pipeline import reduce_exposure
+    for call, name in ((fit_ramps, "fit_ramps source"), (reduce_exposure, "reduce_exposure raw_path")):
+        with pytest.raises(ParameterError) as info:
+            call(source)
+        text = str(info.value)
+        assert text.startswith(f"{name} must be a ramp file path (str or os.PathLike") and got in text, text
+        assert "SCI (nints, ngroups, ny, nx)" in text and "NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE" in text
+    with pytest.raises(ParameterError, match="check_ramp_file path must be a ramp file path"):
+        check_ramp_file(source)

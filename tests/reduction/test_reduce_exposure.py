@@ -126,7 +126,7 @@ def test_fit_options_renamed_keywords():
     assert a == b and len(a) == 1 and list(a.values()) == [3.0]
     with pytest.raises(ParameterError, match="'ron'"):
         check_fit_options({"ron": 3.0, "read_noise": 3.0})
-    with pytest.raises(ParameterError, match=r"ron \(read noise \[e-/frame\]\) \[electron\] must be in \[0, 10000\]"):
+    with pytest.raises(ParameterError, match=r"ron \(read noise per frame\) \[electron\] must be in \[0, 10000\]"):
         check_fit_options({"ron": -1.0})
 
 

@@ -268,3 +268,28 @@ def test_misspelt_supernova_keyword_is_named():
     from slicersim.errors import ParameterError
     with pytest.raises(ParameterError, match=r"unknown keyword of LazuliSupernova 'feild' \(did you mean 'field'\?\)"):
         slicersim.LazuliSupernova(redshift=1, feild="narrow")
+
+
+@pytest.mark.parametrize("make", [
+    lambda z: LazuliTarget(LBDA_500, FLUX, redshift=z),
+    lambda z: LazuliSupernova(z),
+    lambda z: target().update(redshift=z),
+])
+def test_absurd_redshift_is_a_short_range_error(make):
+    """A 300-digit redshift was printed back in full (the sncosmo coverage at z = 1e300): now a range
+    check naming the bound; redshifts a user may simulate still work."""
+    with pytest.raises(SlicersimError, match=r"redshift must be ≤ 50, got 1e\+300") as info:
+        make(float("1" + "0" * 300))
+    assert len(str(info.value)) < 200
+    assert LazuliTarget(LBDA_500, FLUX, redshift=20.0).redshift == 20.0
+
+
+def test_out_of_grid_wavelengths_are_printed_short():
+    """A band or spectrum at 1e300 Å was printed as 300 digits ({:.0f})."""
+    t = target()
+    with pytest.raises(SpectrumError, match=r"band 4000–1e\+300 Å") as info:
+        t.get_band_snr((4000, 1e300))
+    assert len(str(info.value)) < 300
+    with pytest.raises(SpectrumError, match=r"point-source spectrum \(3e\+299–2e\+300 Å\)") as info:
+        LazuliTarget(LBDA_500 * 1e296, FLUX)
+    assert len(str(info.value)) < 300
