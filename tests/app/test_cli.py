@@ -509,7 +509,7 @@ HUGE = "1" + "0" * 300
     (["etc", "--redshift", HUGE], "--redshift must be ≤ 50, got 1e+300"),
     (["ramp", "--redshift", HUGE, "--out", "{tmp}/r.h5"], "--redshift must be ≤ 50, got 1e+300"),
     (["plot", "fields", "--redshift", HUGE, "--out", "{tmp}/f.png"], "--redshift must be ≤ 50, got 1e+300"),
-    (["survey", "plan", "--n", "3", "--zmax", HUGE], "--zmax must be in [0, 10], got 1e+300"),
+    (["survey", "plan", "--n", "3", "--zmax", HUGE], "--zmax must be in [0, 10] (redshifts above 10 are outside any SN Ia model), got 1e+300"),
     (["survey", "plan", "--n", "3", "--z-switch", HUGE], "--z-switch must be ≤ 50, got 1e+300"),
     (["etc", "--redshift", "1", "--frame", "obs", "--lbda-range", "4000", HUGE], "band 4000–1e+300 Å"),
     (["reduce", "{tmp}/raw.h5", "--out", "{tmp}/o.h5", "--spectra", "--lbda-edges", f"{HUGE},1,1"],

@@ -242,12 +242,17 @@ def test_opencl_backend_without_a_device_is_refused(monkeypatch):
 
 @pytest.mark.needs_opencl_device
 def test_single_ramp_of_an_absurdly_bright_pixel_saturates():
-    """Review finding: μ beyond float32's range (rate 3e38 e-/s) came out at bias level, unflagged, in
-    single; μ is now capped 64 σ above the full well (filled in the first frame either way): the same
-    SCI and flags as double.  A full well above 2^22 e- with such means is refused in single."""
-    for rate in (3e38, 1e100, 1e7):
-        s, q = simulate(np.full((2, 3), rate), (3, 1, 0), seed=0, precision="single", return_dq=True)
-        d, qd = simulate(np.full((2, 3), rate), (3, 1, 0), seed=0, precision="double", return_dq=True)
-        assert np.array_equal(s, d) and np.array_equal(q, qd) and np.all(q == 2), rate
+    """μ beyond float32's range (rate 3e38 e-/s) came out at bias level, unflagged, in single: such
+    rates (more than 1e9 e- per frame, ~1.6e4 full wells) are refused in both precisions, naming the
+    rate; a bright but real pixel (1e7 e-/s) saturates in the first frame, with the same SCI and
+    flags in single as in double (μ capped 64 σ above the full well).  A full well above 2^22 e- is
+    refused in single."""
+    for rate in (3e38, 1e100):
+        for precision in ("single", "double"):
+            with pytest.raises(ParameterError, match=r"^rate reaches .* e- per frame .* more than the 1e\+09 e- accepted"):
+                simulate(np.full((2, 3), rate), (3, 1, 0), seed=0, precision=precision)
+    s, q = simulate(np.full((2, 3), 1e7), (3, 1, 0), seed=0, precision="single", return_dq=True)
+    d, qd = simulate(np.full((2, 3), 1e7), (3, 1, 0), seed=0, precision="double", return_dq=True)
+    assert np.array_equal(s, d) and np.array_equal(q, qd) and np.all(q == 2)
     with pytest.raises(ParameterError, match="at most 4.194e\\+06 e- per frame"):
-        simulate(np.full((2, 2), 1e9), (3, 1, 0), precision="single", gain=0.001)
+        simulate(np.full((2, 2), 1e8), (3, 1, 0), precision="single", gain=0.001)
