@@ -430,7 +430,6 @@ class CorrelatedNoise:
 
     def _block_segments(self, state, ramp, y0, y1, out):
         g = self.geometry
-        n = self.nmd[0]
         nout, rows = g.n_outputs, y1 - y0
         low = state.get("low")
         ped, pf = state["frame"]
