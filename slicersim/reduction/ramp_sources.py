@@ -184,10 +184,13 @@ class _FitsRamps(_Ramps):
         from astropy.io import fits
         self.name = path
         import warnings
+        from astropy.utils.exceptions import AstropyWarning
         try:
-            with warnings.catch_warnings():               # a truncated file: named below, in one line
-                warnings.filterwarnings("ignore", message="File may have been truncated")
+            with warnings.catch_warnings():     # a truncated file or a damaged header: named below, in one line
+                warnings.simplefilter("ignore", AstropyWarning)
                 self.hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
+                for hdu in self.hdul:
+                    hdu.header.tostring()                 # parsed here, where astropy's warnings are held back
         except OSError as exc:
             raise RampFileError(f"{path}: not a readable FITS file ({one_line(exc)})") from exc
         names = [h.name for h in self.hdul]

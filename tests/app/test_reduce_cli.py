@@ -250,7 +250,7 @@ def test_files_of_other_layouts_and_inconsistent_keywords_are_named(raw, tmp_pat
         bad = tmp_path / f"{name}.fits"
         with fits.open(uncal) as hdul:
             hdul[0].header[key] = val
-            hdul.writeto(bad)
+            hdul.writeto(bad, checksum=True)          # keywords changed by a tool that keeps CHECKSUM right
         fits_bad[name] = bad
     cases = [(rates, [], "is a rates file (from `slicersim reduce`), not a raw ramp file"),
              (reduced, [], "is a reduced exposure"),
