@@ -320,8 +320,12 @@ class Dataset:
                 os.close(fd)
             raise DatasetError(f"dataset {self.path} is in use by another slicersim campaign "
                                f"({holder or 'unknown process'}); wait for it or stop it") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid {os.getpid()} on {os.uname().nodename}\n".encode(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"pid {os.getpid()} on {os.uname().nodename}\n".encode(), 0)
+        except OSError as exc:                      # a full disk: name the file, not only errno 28
+            os.close(fd)
+            raise DatasetError(f"cannot write the dataset lock {self.file(LOCK)} ({one_line(exc)})") from None
         self._lock_fd = fd
         return self
 
