@@ -237,6 +237,14 @@ def test_demo_refuses_existing_outputs(tmp_path):
     assert (tmp_path / "spectrum.png").read_bytes() == b"mine"
 
 
+def test_demo_outdir_that_is_a_file_is_named(tmp_path):
+    """`demo --outdir FILE` said only "FILE: File exists"."""
+    (tmp_path / "notadir").write_bytes(b"mine")
+    line = one_error_line(run("demo", "--outdir", tmp_path / "notadir"))
+    assert "notadir: --outdir (outdir) must be a directory, not a file" in line, line
+    assert (tmp_path / "notadir").read_bytes() == b"mine"
+
+
 @pytest.mark.slow
 def test_ctrl_c_during_ramp_is_one_line_and_leaves_nothing(tmp_path):
     import signal
