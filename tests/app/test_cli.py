@@ -291,7 +291,8 @@ def user_files(tmp_path):
     """Files a user may give by mistake: binary data, a text file named .npy, a bad spectrum row."""
     files = {"binary": tmp_path / "data.bin", "text_npy": tmp_path / "image.npy", "bad_row": tmp_path / "sp.txt",
              "negative": tmp_path / "neg.txt", "strings_npy": tmp_path / "s.npy", "empty_npy": tmp_path / "e.npy",
-             "no_pixels_npy": tmp_path / "z.npy", "line_npy": tmp_path / "l.npy", "image_npy": tmp_path / "i.npy"}
+             "no_pixels_npy": tmp_path / "z.npy", "line_npy": tmp_path / "l.npy", "image_npy": tmp_path / "i.npy",
+             "spectrum": tmp_path / "flat.txt"}
     files["binary"].write_bytes(bytes(range(128, 256)) * 4)
     files["text_npy"].write_text("1 2\n3 4\n")
     files["bad_row"].write_text("# wavelength flux\n4000 1e-17\n5000 1e-17\n6000 oops\n")
@@ -301,6 +302,7 @@ def user_files(tmp_path):
     np.save(files["no_pixels_npy"], np.ones((0, 4)))
     np.save(files["line_npy"], np.ones(4))
     np.save(files["image_npy"], np.ones((4, 4)))
+    files["spectrum"].write_text("3000 1e-17\n20000 1e-17\n")
     return files
 
 
@@ -320,6 +322,7 @@ def user_files(tmp_path):
     (["ramp", "--rate", "{no_pixels_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["--rate must be a non-empty"]),
     (["ramp", "--rate", "{image_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5", "--effects", "persistence",
       "--previous-charge", "{line_npy}"], ["--previous-charge must be", "got shape (4,)"]),
+    (["etc", "--spectrum", "{spectrum}", "--frame", "rest"], ["--frame rest needs a target redshift", "(--frame obs)"]),
 ])
 def test_files_given_by_mistake_are_one_line_user_errors_naming_them(tmp_path, user_files, capsys, monkeypatch,
                                                                       argv, needles):
