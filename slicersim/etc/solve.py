@@ -182,7 +182,9 @@ def _no_signal(lbda, fluxes, ranges, failed):
     inside = (lbda >= lo) & (lbda <= hi)
     found = (f"its F_λ there is at most {float(fluxes[t, inside].max()):g} erg/s/cm²/Å" if inside.any() else
              "its spectrum has no sample there")
-    return (f"target(s) {failed[:10].tolist()} cannot reach their SNR: no signal in the band (target {t}, band "
+    why = ("a signal that saturates the detector even in the shortest readout (too bright, or not F_λ in "
+           "erg/s/cm²/Å)" if inside.any() and fluxes[t, inside].max() > 0 else "no signal in the band")
+    return (f"target(s) {failed[:10].tolist()} cannot reach their SNR: {why} (target {t}, band "
             f"{lo:g}–{hi:g} Å observer frame: {found})")
 
 

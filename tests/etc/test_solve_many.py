@@ -90,6 +90,10 @@ def test_absurd_fluxes_are_refused_and_no_signal_says_what_was_found():
     with pytest.raises(ETCError, match=r"target\(s\) \[2\] cannot reach their SNR: no signal in the band \(target 2, "
                                        r"band 9000–10000 Å observer frame: its F_λ there is at most 0 erg/s/cm²/Å\)"):
         solve_many(lbda, fluxes, 10.0, (9000.0, 10000.0))
+    fluxes[2] = 1.0                              # saturates every cell: it said "no signal in the band"
+    with pytest.raises(ETCError, match=r"target\(s\) \[2\] cannot reach their SNR: a signal that saturates the "
+                                       r"detector even in the shortest readout"):
+        solve_many(lbda, fluxes, 10.0, (8000.0, 13600.0))
 
 
 def test_quantities_are_converted_or_refused_never_their_unit_dropped():
