@@ -189,6 +189,10 @@ def test_ramp_redshift_full_detector(tmp_path):
     (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--out", "/no/such/dir/r.h5"], "directory does not exist"),
     (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "--rate must be ≥ 0"),
     (["nosuchcommand"], "invalid choice"),
+    # argparse took "-1e300" for a flag ("expected 2 arguments"); a negative wavelength was a band
+    (["etc", "--redshift", "1", "--lbda-range", "-1e300", "1e300"], "--lbda-range[0] [Angstrom] must be > 0"),
+    (["etc", "--redshift", "1", "--lbda-range", "-.5", "6800"], "--lbda-range[0] [Angstrom] must be > 0, got -0.5"),
+    (["etc", "--redshift", "-1e-3"], "--redshift must be in (0, 50], got -0.001"),
 ])
 def test_user_errors_are_one_line_exit_2(tmp_path, rate_file, args, match):
     bad = tmp_path / "bad.npy"
@@ -467,7 +471,7 @@ def test_cli_etc_prints_units_and_no_object_repr():
       "--out", "{tmp}/r.h5"], "--previous-charge: {tmp}/missing.npy: No such file"),
     (["ramp", "--redshift", "-1", "--out", "{tmp}/r.h5"], "--redshift must be in (0, 50], got -1"),
     (["plot", "fields", "--redshift", "-1", "--out", "{tmp}/f.png"], "--redshift must be in (0, 50], got -1"),
-    (["etc", "--redshift", "1", "--lbda-range", "-5", "6000"], "use the covered part (--allow-partial)"),
+    (["etc", "--redshift", "1", "--lbda-range", "1000", "6000"], "use the covered part (--allow-partial)"),
 ])
 def test_messages_name_the_command_line_flags_not_python_keywords(tmp_path, capsys, monkeypatch, argv, needle):
     rate = tmp_path / "rate.npy"
