@@ -830,3 +830,14 @@ def test_bad_run_arguments_write_nothing(tmp_path, args, message):
     spec.write_text(BASE)
     _one_line_error(_run_cli("campaign", "run", spec, "--out", tmp_path / "o", *args), message)
     assert not (tmp_path / "o").exists()
+
+
+def test_run_campaign_with_a_spec_or_an_out_of_the_wrong_kind_names_it(spec_path, tmp_path):
+    """run_campaign(5, out) and run_campaign(spec, None) were os.fspath's TypeError."""
+    from slicersim.campaign.runner import run_campaign
+    from slicersim.errors import ConfigError, DatasetError
+    with pytest.raises(ConfigError, match=r"campaign spec must be a CampaignSpec or the path of its TOML file, got 5"):
+        run_campaign(5, tmp_path / "ds")
+    with pytest.raises(DatasetError, match=r"the dataset directory must be a path \(str or os.PathLike\), got None"):
+        run_campaign(spec_path, None)
+    assert not (tmp_path / "ds").exists()
