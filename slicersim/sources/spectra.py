@@ -51,7 +51,7 @@ def validate_spectrum(lbda, flux, name="spectrum"):
     lbda = validation.array(f"{name}: wavelengths", lbda, finite=False, error=SpectrumError)
     flux = validation.array(f"{name}: flux", flux, finite=False, error=SpectrumError)
     if lbda.ndim != 1 or lbda.size == 0:
-        raise SpectrumError(f"{name}: empty wavelength array")
+        raise SpectrumError(f"{name}: wavelengths must be a non-empty 1-D array, got shape {lbda.shape}")
     if flux.shape != lbda.shape:
         raise SpectrumError(f"{name}: flux shape {flux.shape} differs from wavelength shape {lbda.shape}")
     if lbda.size < 2:
