@@ -54,8 +54,8 @@ def _footprints(args, mapper):
 
 
 def _check_truncate(args):
-    """--truncate: finite and ≥ 0 [spot rms]."""
-    validation.number("--truncate [spot rms]", args.truncate, low=0.0)
+    """--truncate: finite, in [0, MAX_TRUNCATE] [spot rms]."""
+    validation.number("--truncate [spot rms]", args.truncate, low=0.0, high=validation.MAX_TRUNCATE)
 
 
 def cmd_footprints(args) -> int:

@@ -318,6 +318,7 @@ def user_files(tmp_path):
     (["footprints", "--out", "{tmp}/fp", "--spot-table", "{bad_row}"], ["--spot-table", "sp.txt", "not a spot table"]),
     (["footprints", "--out", "{tmp}/fp", "--spot-table", "{binary}"], ["--spot-table", "data.bin"]),
     (["footprints", "--out", "{tmp}/fp", "--truncate", "nan"], ["--truncate"]),
+    (["footprints", "--out", "{tmp}/fp", "--truncate", "1e300"], ["--truncate [spot rms] must be in [0, 100]"]),  # ran for ever
     (["plot", "fields", "--out", "{tmp}/f.png", "--seed", "-1"], ["--seed"]),
     (["ramp", "--rate", "{text_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["image.npy", "not a NumPy .npy"]),
     (["ramp", "--rate", "{strings_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["s.npy", "real numbers"]),
