@@ -296,7 +296,7 @@ def user_files(tmp_path):
     files = {"binary": tmp_path / "data.bin", "text_npy": tmp_path / "image.npy", "bad_row": tmp_path / "sp.txt",
              "negative": tmp_path / "neg.txt", "strings_npy": tmp_path / "s.npy", "empty_npy": tmp_path / "e.npy",
              "no_pixels_npy": tmp_path / "z.npy", "line_npy": tmp_path / "l.npy", "image_npy": tmp_path / "i.npy",
-             "spectrum": tmp_path / "flat.txt"}
+             "spectrum": tmp_path / "flat.txt", "spot_header": tmp_path / "spots.csv"}
     files["binary"].write_bytes(bytes(range(128, 256)) * 4)
     files["text_npy"].write_text("1 2\n3 4\n")
     files["bad_row"].write_text("# wavelength flux\n4000 1e-17\n5000 1e-17\n6000 oops\n")
@@ -307,6 +307,7 @@ def user_files(tmp_path):
     np.save(files["line_npy"], np.ones(4))
     np.save(files["image_npy"], np.ones((4, 4)))
     files["spectrum"].write_text("3000 1e-17\n20000 1e-17\n")
+    files["spot_header"].write_text("slice fieldpos lbda x y rmsx_um rmsy_um\n")
     return files
 
 
@@ -317,14 +318,18 @@ def user_files(tmp_path):
     (["etc", "--redshift", "1", "--config", "{binary}"], ["data.bin", "cannot parse TOML"]),
     (["footprints", "--out", "{tmp}/fp", "--spot-table", "{bad_row}"], ["--spot-table", "sp.txt", "not a spot table"]),
     (["footprints", "--out", "{tmp}/fp", "--spot-table", "{binary}"], ["--spot-table", "data.bin"]),
+    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{spot_header}"],     # was "index 1 is out of bounds"
+     ["spots.csv", "no rows of 7 numbers under the header"]),
     (["footprints", "--out", "{tmp}/fp", "--truncate", "nan"], ["--truncate"]),
-    (["footprints", "--out", "{tmp}/fp", "--truncate", "1e300"], ["--truncate [spot rms] must be in [0, 100]"]),  # ran for ever
+    (["footprints", "--out", "{tmp}/fp", "--truncate", "1e300"],                # ran for ever
+     ["--truncate [spot rms] must be in [0, 100]"]),
     (["plot", "fields", "--out", "{tmp}/f.png", "--seed", "-1"], ["--seed"]),
     (["ramp", "--rate", "{text_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["image.npy", "not a NumPy .npy"]),
     (["ramp", "--rate", "{strings_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["s.npy", "real numbers"]),
     (["ramp", "--rate", "{binary}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["data.bin", "not a text file"]),
     (["ramp", "--rate", "{empty_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["--rate", "e.npy", "empty"]),
-    (["ramp", "--rate", "{no_pixels_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["--rate must be a non-empty"]),
+    (["ramp", "--rate", "{no_pixels_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"],
+     ["--rate must be a non-empty"]),
     (["ramp", "--rate", "{image_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5", "--effects", "persistence",
       "--previous-charge", "{line_npy}"], ["--previous-charge must be", "got shape (4,)"]),
     (["etc", "--spectrum", "{spectrum}", "--frame", "rest"], ["--frame rest needs a target redshift", "(--frame obs)"]),

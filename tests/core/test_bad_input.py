@@ -54,7 +54,8 @@ def _with(index, value):
     (LBDA, _with([3, 7], np.inf), r"flux contains 2 NaN/inf"),
     (LBDA, _with(5, -1e-18), r"flux contains 1 negative"),
     ([], [], r"wavelengths must be a non-empty 1-D array, got shape \(0,\)"),
-    (np.stack([LBDA, LBDA]), np.stack([FLUX, FLUX]), r"wavelengths must be a non-empty 1-D array, got shape \(2, 400\)"),
+    (np.stack([LBDA, LBDA]), np.stack([FLUX, FLUX]),
+     r"wavelengths must be a non-empty 1-D array, got shape \(2, 400\)"),
     (LBDA, FLUX[:-1], r"flux shape \(399,\) differs from wavelength shape \(400,\)"),
     (LBDA[::-1], FLUX, r"strictly increasing"),
     (np.r_[LBDA[:5], LBDA[4], LBDA[6:]], FLUX, r"strictly increasing"),   # repeated λ

@@ -488,7 +488,8 @@ def test_hdf5_inputs_reading_outside_the_file_are_refused(tmp_path, case):
     bad = _rewrite(good, tmp_path / "bad.h5", edit)
     what = {"external_storage": r"dataset truth/rate has external storage", "virtual": r"truth/rate is a virtual",
             "external_link_sci": r"SCI is an external link", "external_link_truth": r"truth/rate is an external link",
-            "sci_group": r"SCI is a group, not a dataset", "soft_link_loop_sci": r"SCI is a soft link that does not resolve",
+            "sci_group": r"SCI is a group, not a dataset",
+            "soft_link_loop_sci": r"SCI is a soft link that does not resolve",
             "soft_link_loop_truth": r"truth/rate is a soft link that does not resolve"}[case]
     if case == "soft_link_loop_truth":                        # read_ramps reads no truth: the ramp fit does
         from slicersim.reduction.ramp_fit import fit_ramps
