@@ -576,12 +576,12 @@ def _check_aperture(value):
 
 
 def check_band(lbda_range, name="lbda_range"):
-    """(lo, hi) [Å] as finite floats with lo < hi (ETCError otherwise); astropy Quantities
+    """(lo, hi) [Å] as finite floats with 0 < lo < hi (ETCError otherwise); astropy Quantities
     (a Quantity pair or two Quantities) are converted to Å."""
     name = validation.shown(name)
     if isinstance(lbda_range, (str, bytes)) or not hasattr(lbda_range, "__len__") or len(lbda_range) != 2:
         raise ETCError(f"{name} must be (lo, hi) in Å, got {validation.short_repr(lbda_range)}")
-    lo, hi = (validation.number(f"{name}[{i}]", v, unit="Angstrom", error=ETCError)
+    lo, hi = (validation.number(f"{name}[{i}]", v, low=0.0, low_open=True, unit="Angstrom", error=ETCError)
               for i, v in enumerate(lbda_range))
     if not hi > lo:
         raise ETCError(f"{name} must be (lo, hi) in Å with lo < hi, got {validation.short_repr(lbda_range)}")

@@ -35,7 +35,8 @@ from slicersim.errors import ParameterError, ReadoutError, ResourceError, Slicer
 
 __all__ = ["short_repr", "number", "integer", "positive_int", "fraction", "flag", "choice", "readout", "nramps",
            "seed", "new_seed", "array", "shape", "regular_file", "renamed_keyword", "flag_names", "shown", "redshift",
-           "checked_fields", "memory", "physical_memory", "MAX_GROUPS", "MAX_DROPS", "MAX_FRAMES", "MAX_REDSHIFT"]
+           "checked_fields", "memory", "physical_memory", "MAX_GROUPS", "MAX_DROPS", "MAX_FRAMES", "MAX_REDSHIFT",
+           "DETECTOR_MAX", "MAX_TRUNCATE"]
 
 #: the largest readout this package accepts: groups per ramp, dropped frames between groups and
 #: frames per ramp (an H4RG ramp of 512 groups of 16 frames at 2.83 s is 6.4 h, longer than any
@@ -48,6 +49,14 @@ MAX_FRAMES = 65536
 #: observed was emitted below the Lyman limit (912 Å), absorbed by intergalactic hydrogen, and no
 #: luminous source is expected before z ≈ 30 (the first stars); 50 leaves a margin for toy spectra
 MAX_REDSHIFT = 50.0
+#: upper physical bound of the detector numbers wherever they come from (arguments, options, configuration
+#: files; the raw-file keywords' ranges of :data:`slicersim.reduction.checks.ATTR_RANGES`): gain [ADU/e-], read
+#: noise per frame [electron], dark [e-/s], ROIC glow [e-/frame], frame time [s].  Beyond them the variance
+#: model overflows (ron = 1e300 squared) instead of giving an answer.
+DETECTOR_MAX = {"gain": 1e3, "ron": 1e4, "dark": 1e6, "roic_glow": 1e6, "tframe": 1e4}
+#: largest projection window half-width beyond a cell [spot rms] (``truncate``): a Gaussian is exactly 0 in
+#: float64 beyond ~38 rms, and 1e300 rms made every window the whole detector (footprints ran for ever)
+MAX_TRUNCATE = 100.0
 
 
 #: Python parameter name → what the user typed it as (a CLI flag), set by :func:`flag_names`

@@ -143,6 +143,9 @@ def cmd_campaign_run(args) -> int:
                        max_bytes=int(args.memory_per_task * 2**20), **dask_keywords(args))
     print(f"{res['dataset']}: {res['targets']} targets, {res['done']} done, {res['failed']} failed, "
           f"{res['missing']} missing ({res['computed']} computed in {res['seconds']:.1f} s)")
+    if res["failed"] and not args.retry_failed:    # a rerun does not recompute them: say how (disk full, ...)
+        print(f"{res['failed']} failed target(s) are kept as failed on a rerun: `slicersim campaign status "
+              f"{args.out}` lists why; --retry-failed runs them again")
     return 0 if res["failed"] == 0 and res["missing"] == 0 else 1
 
 

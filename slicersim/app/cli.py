@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import re
 import sys
 from importlib import metadata
 
@@ -351,7 +352,14 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 class _Parser(argparse.ArgumentParser):
-    """Usage errors as one line ``slicersim: error: ...`` (exit 2), like every other user error."""
+    """Usage errors as one line ``slicersim: error: ...`` (exit 2), like every other user error.
+    ``-1e300``, ``-.5`` and ``-inf`` are values, not options (argparse took ``--lbda-range -1e300 1e300``
+    for a flag and said "expected 2 arguments")."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$",
+                                                   re.IGNORECASE)
 
     def error(self, message):
         hint = f" (see '{self.prog} --help')"

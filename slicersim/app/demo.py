@@ -116,6 +116,8 @@ def run_demo(outdir="demo_output", redshift=1.0, snr=20.0, config="cbe", field="
 
     t0 = time.perf_counter()
     out = print if verbose else (lambda *a, **k: None)
+    if os.path.lexists(outdir) and not os.path.isdir(outdir):       # makedirs said only "File exists"
+        raise NotADirectoryError(errno.ENOTDIR, "--outdir (outdir) must be a directory, not a file", str(outdir))
     _refuse_existing(outdir, ramp_nmd, overwrite)
     os.makedirs(outdir, exist_ok=True)
     target = LazuliSupernova(redshift, config=config, field=field)

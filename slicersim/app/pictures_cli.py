@@ -38,8 +38,11 @@ def _mapper(args):
         return default_mapper()
     from slicersim.instrument.mapper import SlicerMapper
     validation.regular_file("--spot-table", args.spot_table)   # missing, a directory, FIFO or device
+    import warnings
     try:
-        return SlicerMapper.from_table(args.spot_table)
+        with warnings.catch_warnings():           # NumPy's "input contained no data": said below, in one line
+            warnings.filterwarnings("ignore", message="loadtxt: input contained no data", category=UserWarning)
+            return SlicerMapper.from_table(args.spot_table)
     except (ValueError, KeyError, IndexError) as exc:     # the table reader's errors (ConfigError, or a parse error)
         raise ConfigError(f"--spot-table: {args.spot_table}: not a spot table: {' '.join(str(exc).split())}") \
             from None
@@ -54,8 +57,8 @@ def _footprints(args, mapper):
 
 
 def _check_truncate(args):
-    """--truncate: finite and ≥ 0 [spot rms]."""
-    validation.number("--truncate [spot rms]", args.truncate, low=0.0)
+    """--truncate: finite, in [0, MAX_TRUNCATE] [spot rms]."""
+    validation.number("--truncate [spot rms]", args.truncate, low=0.0, high=validation.MAX_TRUNCATE)
 
 
 def cmd_footprints(args) -> int:

@@ -281,7 +281,11 @@ def parse_spec(doc, text="", base_dir="."):
 
 def load_spec(path):
     """Read and validate a campaign spec file (one :class:`~slicersim.errors.ConfigError` per problem)."""
-    path = os.fspath(path)
+    try:
+        path = os.fspath(path)
+    except TypeError:
+        raise ConfigError(f"campaign spec must be a CampaignSpec or the path of its TOML file, got "
+                          f"{validation.short_repr(path)}") from None
     if os.path.isdir(path):
         raise ConfigError(f"campaign spec {path} is a directory, not a TOML file")
     raw = read_file_bytes(path, ConfigError, "campaign spec")

@@ -28,6 +28,9 @@ from slicersim.snr.search import (candidate_readouts, check_reference_result, ch
                                   reference_walk)
 from slicersim.snr.snr_table import band_snr_table_for_models, template_psf
 
+#: the unit of the fluxes of `solve_many` (an astropy Quantity is converted to it)
+FLAMBDA_UNIT = "erg / (s cm2 Angstrom)"
+
 __all__ = ["solve_many", "solve_batch", "SolveOptions", "SOLVE_OPTIONS"]
 
 
@@ -40,8 +43,10 @@ def _interp_matrix(lbda_in, lbda_out):
 
 
 def _validate_batch(lbda, fluxes, lbda_ranges):
-    lbda = np.asarray(lbda, dtype=float)
-    fluxes = np.atleast_2d(np.asarray(fluxes, dtype=float))
+    # Quantities converted (an F_ν or a length never taken as F_λ or Å), strings and objects refused
+    lbda = validation.array("lbda", lbda, finite=False, unit="Angstrom", error=SpectrumError)
+    fluxes = np.atleast_2d(validation.array("fluxes", fluxes, finite=False, unit=FLAMBDA_UNIT, error=SpectrumError))
+    lbda_ranges = validation.array("lbda_ranges", lbda_ranges, finite=False, unit="Angstrom", error=ETCError)
     if lbda.ndim != 1 or lbda.size < 2:
         raise SpectrumError("lbda must be a 1-D array with at least 2 wavelengths")
     if not np.all(np.isfinite(lbda)) or np.any(np.diff(lbda) <= 0):
@@ -177,13 +182,18 @@ def _no_signal(lbda, fluxes, ranges, failed):
     inside = (lbda >= lo) & (lbda <= hi)
     found = (f"its F_λ there is at most {float(fluxes[t, inside].max()):g} erg/s/cm²/Å" if inside.any() else
              "its spectrum has no sample there")
-    return (f"target(s) {failed[:10].tolist()} cannot reach their SNR: no signal in the band (target {t}, band "
+    why = ("a signal that saturates the detector even in the shortest readout (too bright, or not F_λ in "
+           "erg/s/cm²/Å)" if inside.any() and fluxes[t, inside].max() > 0 else "no signal in the band")
+    return (f"target(s) {failed[:10].tolist()} cannot reach their SNR: {why} (target {t}, band "
             f"{lo:g}–{hi:g} Å observer frame: {found})")
 
 
 def _check_snrs(snr, ntarget):
     """(N,) target SNRs, each finite > 0 (ETCError otherwise)."""
-    snr = np.broadcast_to(np.asarray(snr, dtype=float), (ntarget,))
+    snr = validation.array("snr", snr, finite=False, error=ETCError)
+    if snr.ndim > 1 or snr.size not in (1, ntarget):
+        raise ETCError(f"snr must be one value or one per target ({ntarget}), got shape {snr.shape}")
+    snr = np.broadcast_to(snr.reshape(-1) if snr.ndim else snr, (ntarget,))
     for value in np.unique(snr):
         check_snr_target(value)
     return snr

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.instrument.slices import NARROW_SLICES, WIDE_SLICES
 from slicersim.io import footprint_files
@@ -388,8 +389,9 @@ def field_footprints(mapper, field="narrow", lbda_edges=None, ncol=None, *, spec
         raise ParameterError("lbda_edges must be >= 2 finite, strictly increasing wavelengths [AA]")
     if isinstance(ncol, bool) or not float(ncol).is_integer() or int(ncol) < 1:
         raise ParameterError(f"ncol must be a positive integer, got {ncol!r}")
-    if not (np.isfinite(truncate) and truncate >= 0):
-        raise ParameterError(f"truncate must be finite and >= 0 [spot rms], got {truncate!r}")
+    if not (np.isfinite(truncate) and 0 <= truncate <= validation.MAX_TRUNCATE):
+        raise ParameterError(f"truncate must be in [0, {validation.MAX_TRUNCATE:g}] [spot rms], got "
+                             f"{validation.short_repr(truncate)}")
     ov = tuple(int(v) for v in np.broadcast_to(oversample, (2,)))
     if min(ov) < 1:
         raise ParameterError(f"oversample must be >= 1 sub-cells per axis, got {oversample!r}")

@@ -76,6 +76,8 @@ def read_spot_table(table_or_path):
         if header != list(COLUMNS):
             raise ConfigError(f"{path}: header must be {' '.join(COLUMNS)!r}, got {' '.join(header)!r}")
         data = np.loadtxt(path, skiprows=1, ndmin=2)
+        if data.shape[1:] != (len(COLUMNS),):            # header only: NumPy's shape (1, 0), then an IndexError
+            raise ConfigError(f"{path}: no rows of {len(COLUMNS)} numbers under the header (got shape {data.shape})")
         return {name: data[:, i] for i, name in enumerate(COLUMNS)}
     try:
         return {name: np.asarray(table_or_path[name], dtype=np.float64).ravel() for name in COLUMNS}

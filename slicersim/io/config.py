@@ -336,17 +336,18 @@ def validate_config(cfg):
     _check_range(cfg, "spectrograph.psf.spatial", "guiding_sigma", 0.0)
     det = cfg.get("detector", {})
     _check_range(cfg, "detector", "saturation", 0.0, lo_open=True, finite=False)
-    _check_range(cfg, "detector", "tframe", 0.0, lo_open=True)
-    _check_range(cfg, "detector", "gain", 0.0, lo_open=True)
+    top = validation.DETECTOR_MAX
+    _check_range(cfg, "detector", "tframe", 0.0, top["tframe"], lo_open=True)
+    _check_range(cfg, "detector", "gain", 0.0, top["gain"], lo_open=True)
     _check_range(cfg, "detector", "pixel_size", 0.0, lo_open=True)
     for key in ("dark", "ron", "roic_glow", "full_well"):
-        _check_range(cfg, "detector", key, 0.0)
+        _check_range(cfg, "detector", key, 0.0, top.get(key))
     if "shape" in det:
         shape = det["shape"]
         if (not isinstance(shape, (list, tuple)) or len(shape) != 2
-                or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
+                or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 65536
                            for v in shape)):
-            raise _bad("detector", "shape", shape, "must be two integers ≥ 1 (ny, nx)")
+            raise _bad("detector", "shape", shape, "must be two integers in [1, 65536] (ny, nx)")
     _check_range(cfg, "detector", "bias")
     if det.get("bias") is not None:
         sat = det.get("saturation", 65535)

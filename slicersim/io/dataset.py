@@ -33,6 +33,7 @@ import re
 import stat
 
 from slicersim.errors import DatasetError
+from slicersim.validation import short_repr
 from slicersim.io.atomic import (AtomicH5File, atomic_bytes, is_temporary, one_line, remove_stale_temporaries,
                                  sha256_file)
 
@@ -179,7 +180,11 @@ class Dataset:
         """Refuse an output path that is a file, or whose parent does not exist or is read-only;
         a directory that is not a dataset is refused, a damaged one (records or products but
         no spec.json) only without ``force``."""
-        path = os.path.abspath(os.fspath(path))
+        try:
+            path = os.path.abspath(os.fspath(path))
+        except TypeError:
+            raise DatasetError(f"the dataset directory must be a path (str or os.PathLike), got "
+                               f"{short_repr(path)}") from None
         if os.path.exists(path) and not os.path.isdir(path):
             raise DatasetError(f"output path is a file, not a dataset directory: {path}")
         parent = os.path.dirname(path)
@@ -320,8 +325,12 @@ class Dataset:
                 os.close(fd)
             raise DatasetError(f"dataset {self.path} is in use by another slicersim campaign "
                                f"({holder or 'unknown process'}); wait for it or stop it") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid {os.getpid()} on {os.uname().nodename}\n".encode(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"pid {os.getpid()} on {os.uname().nodename}\n".encode(), 0)
+        except OSError as exc:                      # a full disk: name the file, not only errno 28
+            os.close(fd)
+            raise DatasetError(f"cannot write the dataset lock {self.file(LOCK)} ({one_line(exc)})") from None
         self._lock_fd = fd
         return self
 

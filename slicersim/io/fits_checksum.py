@@ -116,14 +116,24 @@ class StreamedChecksums:
 
 
 def verify_datasums(path, hdul, error, chunk=1 << 26):
-    """Check the DATASUM of every HDU of ``hdul`` (opened from ``path``) that carries one, reading
-    its data from the file in blocks of ``chunk`` bytes (no copy of the data in memory); a mismatch
-    raises ``error`` naming the extension."""
+    """Check the DATASUM and CHECKSUM of every HDU of ``hdul`` (opened from ``path``) that carries
+    them, reading its data from the file in blocks of ``chunk`` bytes (no copy of the data in
+    memory): a data sum other than DATASUM, or an HDU (header and data) whose sum is not −0 (a
+    header byte changed), raises ``error`` naming the extension.  So does a file with bytes after
+    its last complete HDU (a file cut inside a header: astropy drops that HDU with a warning)."""
     size = os.path.getsize(path)
+    if len(hdul):
+        last = hdul.fileinfo(len(hdul) - 1)
+        end = last["datLoc"] + int(last["datSpan"])
+        if end < size:
+            name = hdul[-1].name or f"HDU {len(hdul) - 1}"
+            raise error(f"{path}: truncated or damaged FITS file: it has {size} bytes but its last complete HDU "
+                        f"({name}) ends at byte {end}")
     with open(path, "rb") as fh:
         for index, hdu in enumerate(hdul):
             expected = hdu.header.get("DATASUM")
-            if expected is None:
+            checksum = hdu.header.get("CHECKSUM")
+            if expected is None and checksum is None:
                 continue
             info = hdul.fileinfo(index)
             if info["datLoc"] + int(info["datSpan"]) > size:
@@ -136,7 +146,13 @@ def verify_datasums(path, hdul, error, chunk=1 << 26):
                     break
                 total = ones_add(total, ones_sum(block))
                 left -= len(block)
-            if left > 0 or str(total) != str(expected).strip():
-                name = hdu.name or f"HDU {index}"
+            name = hdu.name or f"HDU {index}"
+            if expected is not None and (left > 0 or str(total) != str(expected).strip()):
                 raise error(f"{path}: checksum mismatch in extension {name} (DATASUM {expected}, data sum "
                             f"{total}): the file is corrupt")
+            if checksum is not None:
+                fh.seek(info["hdrLoc"])
+                header = fh.read(info["datLoc"] - info["hdrLoc"])
+                if ones_add(ones_sum(header), total) not in (0, 0xFFFFFFFF):     # −0: the HDU sums to zero
+                    raise error(f"{path}: checksum mismatch in the header of extension {name} (CHECKSUM "
+                                f"{str(checksum).strip()}): the file is corrupt")

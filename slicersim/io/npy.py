@@ -33,7 +33,7 @@ def load_npy(name, path, *, error=ParameterError):
     a declared shape whose bytes the file does not hold (a 200-byte file declaring 10⁵ × 10⁵ values)
     is ``error`` naming ``name``, the file and the shape; one larger than this machine's memory is a
     :class:`~slicersim.errors.ResourceError`.  A file without a ``.npy`` header is left to
-    ``np.load`` (its ``ValueError``)."""
+    ``np.load`` (its ``ValueError``); an empty file is ``error``."""
     with open(path, "rb") as fh:
         header = _header(fh)
         start = fh.tell()
@@ -45,4 +45,7 @@ def load_npy(name, path, *, error=ParameterError):
             raise error(f"{name}: {path} declares an array of shape {tuple(shape)} {dtype} ({nbytes / 2**30:.3g} "
                         f"GiB) but holds {held} bytes of data: a truncated or forged .npy file")
         validation.memory(f"{name}: {path} (shape {tuple(shape)} {dtype})", nbytes)
-    return np.load(path, allow_pickle=False)
+    try:
+        return np.load(path, allow_pickle=False)
+    except EOFError:                              # an empty file: NumPy's "No data left in file"
+        raise error(f"{name}: {path} is empty: not a NumPy .npy file") from None

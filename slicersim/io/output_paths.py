@@ -42,7 +42,9 @@ def output_path(path, error_class=DatasetError, name=""):
     text = os.fspath(path)
     if isinstance(text, bytes):
         text = os.fsdecode(text)
-    if not text or text.endswith(os.sep) or (os.altsep and text.endswith(os.altsep)):
+    if not text:
+        raise error_class(f"{_who(name)}the output path is empty; give the path of a file, e.g. out.h5")
+    if text.endswith(os.sep) or (os.altsep and text.endswith(os.altsep)):
         raise error_class(f"{_who(name)}{text!r} names a directory (it ends with {os.sep!r}); give the path of a "
                           "file, e.g. DIR/out.h5")
     return os.path.abspath(text)

@@ -270,9 +270,15 @@ def check_hdf5_input(fh, path, datasets=("SCI",)):
     import h5py
     for name in datasets:
         obj = fh.get(name, getlink=True)
-        if obj is not None and not isinstance(obj, h5py.ExternalLink) and \
-                not isinstance(fh.get(name), h5py.Dataset):
-            raise RampFileError(f"{path}: {name} is {_kind_of(fh.get(name))}, not a dataset")
+        if obj is None or isinstance(obj, h5py.ExternalLink):
+            continue
+        try:
+            target = fh.get(name)
+        except (RuntimeError, KeyError, OSError) as exc:      # a soft link to itself, or a loop of them
+            raise RampFileError(f"{path}: {name} is a soft link that does not resolve to an object "
+                                f"({one_line(exc)})") from None
+        if not isinstance(target, h5py.Dataset):
+            raise RampFileError(f"{path}: {name} is {_kind_of(target)}, not a dataset")
     if "SCI" in datasets and isinstance(fh.get("SCI"), h5py.Dataset):
         check_stored(fh["SCI"], path, "SCI")
     seen, todo = set(), [fh]

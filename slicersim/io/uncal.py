@@ -61,7 +61,7 @@ from slicersim.errors import RampFileError
 from slicersim.io.atomic import _HDF5_MARGIN, one_line, publish, remove_stale_temporaries, temporary_path
 from slicersim.io.fits_blocks import (BLOCK, IMAGE_TYPES, ascii_text, card_value, from_mjd, header_bytes,
                                       image_header, mjd, padded, table_bytes, to_storage)
-from slicersim.io.fits_checksum import StreamedChecksums
+from slicersim.io.fits_checksum import StreamedChecksums, verify_datasums
 from slicersim.io.rampfile import open_hdf5_input, read_dataset
 from slicersim.io.row_blocks import RowBlocks, rows_per_block
 
@@ -560,6 +560,11 @@ def _open(path):
     if bad:
         hdul.close()
         raise RampFileError(f"{path}: checksum mismatch ({bad[0]}): the file is corrupt")
+    try:                    # astropy keeps a file cut inside a header (its warning) and a changed header byte
+        verify_datasums(path, hdul, RampFileError)
+    except BaseException:
+        hdul.close()
+        raise
     return hdul
 
 

@@ -64,9 +64,10 @@ class RampParameters:
     def __post_init__(self):
         self.nmd = validation.readout(self.nmd, name="nmd")
         self.nramps = validation.nramps(self.nramps)
-        self.tframe = validation.number("tframe", self.tframe, low=0, low_open=True, unit="s")
-        self.gain = validation.number("gain", self.gain, low=0, low_open=True, unit="adu / electron")
-        self.ron = validation.number("ron", self.ron, low=0, unit="electron")
+        top = validation.DETECTOR_MAX
+        self.tframe = validation.number("tframe", self.tframe, low=0, low_open=True, high=top["tframe"], unit="s")
+        self.gain = validation.number("gain", self.gain, low=0, low_open=True, high=top["gain"], unit="adu / electron")
+        self.ron = validation.number("ron", self.ron, low=0, high=top["ron"], unit="electron")
         self.dark = _dark(self.dark)
         for name, unit in (("roic_glow", "electron"), ("ktc_noise", "electron"), ("thermal_dark", "electron / s"),
                            ("bias", "adu")):

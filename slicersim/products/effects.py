@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slicersim import validation
 from slicersim.errors import EffectsError
 
 __all__ = ["EffectsPlan", "CR_DTYPE", "resolve_effects"]
@@ -76,7 +77,8 @@ class EffectsPlan:
             previous_charge = np.asarray(previous_charge, float)
             if previous_charge.shape != self.shape or not np.all(np.isfinite(previous_charge)) \
                     or np.any(previous_charge < 0):
-                raise EffectsError(f"previous_charge must be a finite, non-negative {self.shape} image [e-]")
+                raise EffectsError(f"{validation.shown('previous_charge')} must be a finite, non-negative {self.shape} "
+                                   f"image [e-], got shape {previous_charge.shape}")
         self.previous_charge = previous_charge
         self.halo = 1 if "ipc" in self.on else 0
         self.ipc = None

@@ -226,7 +226,8 @@ def check_rate(rate):
     ``rate`` for NaN, negative, complex, structured, object or non-2-D input)."""
     rate = validation.array("rate", rate, ndim=2, low=0.0, unit="electron / s")
     if rate.size == 0:
-        raise ParameterError(f"rate must be a non-empty 2-D image (ny, nx), got shape {rate.shape}")
+        raise ParameterError(f"{validation.shown('rate')} must be a non-empty 2-D image (ny, nx), got shape "
+                             f"{rate.shape}")
     if rate.size >= 2**32:
         raise ParameterError(f"rate has {rate.size} pixels: pixel indices must fit in 32 bits")
     return rate

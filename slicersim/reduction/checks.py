@@ -537,7 +537,8 @@ _DARK_MAX = 1e6          # e-/s: far above any H4RG dark current, glow or therma
 
 def _check_dark_value(arr, what):
     if not np.all(np.isfinite(arr)) or np.any(arr < 0) or np.any(arr > _DARK_MAX):
-        raise ParameterError(f"{what} must be finite, ≥ 0 and ≤ {_DARK_MAX:g} e-/s")
+        bad = np.asarray(arr)[~(np.isfinite(arr) & (np.asarray(arr) >= 0) & (np.asarray(arr) <= _DARK_MAX))].flat[0]
+        raise ParameterError(f"{what} must be finite, ≥ 0 and ≤ {_DARK_MAX:g} e-/s, got {float(bad):g}")
 
 
 def dark_rate_of(dark, rates, shape):
@@ -580,6 +581,7 @@ def dark_rate_of(dark, rates, shape):
                              + (f" of {arr.dtype}" if arr is not None and arr.dtype != object else ""))
     arr = arr.astype(np.float64)
     if arr.ndim not in (0, 2) or (arr.ndim == 2 and arr.shape != tuple(shape)):
-        raise ParameterError(f"a dark image must have the detector's shape {tuple(shape)}, got {arr.shape}")
-    _check_dark_value(arr, "dark rates")
+        raise ParameterError(f"{validation.shown('dark')}: a dark image must have the detector's shape {tuple(shape)}, "
+                             f"got {arr.shape}")
+    _check_dark_value(arr, f"{validation.shown('dark')} (dark rates)")
     return (float(arr), "value") if arr.ndim == 0 else (arr, "image")

@@ -385,10 +385,6 @@ def _instrument(attrs, config, extraction, psf):
                              "forward-modelled template (psf=point_source_template(...); CLI --psf FILE.npy)")
     if model is None or extraction not in (None, FORWARD):
         return model
-    if config is not None and model["recorded"] not in (None, "") and str(config) != str(model["recorded"]):
-        warnings.warn(f"the file was simulated with the configuration {model['recorded']!r}; its spectrum is fitted "
-                      f"with {config!r} as asked (throughput, QE and PSF differ: so do flux and F_λ)",
-                      RuntimeWarning, stacklevel=4)
     where = "the configuration given" if config is not None else "the file's CONFIG"
     try:
         instrument_model(model["config"], model["field"] or "narrow", model["conventions"])
@@ -396,6 +392,10 @@ def _instrument(attrs, config, extraction, psf):
         from slicersim.io.atomic import one_line
         raise ParameterError(f"{where} ({model['config']!r}) cannot be loaded: {one_line(exc)}"
                              + ("" if config is not None else "; give config= (CLI --config cbe|eol|PATH)")) from None
+    if config is not None and model["recorded"] not in (None, "") and str(config) != str(model["recorded"]):
+        warnings.warn(f"the file was simulated with the configuration {model['recorded']!r}; its spectrum is fitted "
+                      f"with {config!r} as asked (throughput, QE and PSF differ: so do flux and F_λ)",
+                      RuntimeWarning, stacklevel=4)      # after the load: no warning before an error
     return model
 
 

@@ -221,7 +221,7 @@ class FitOptions:
                 low_open = name == "gain"
                 unit = "adu / electron" if name == "gain" else "electron"
                 object.__setattr__(self, name, validation.number(name, getattr(self, name), low=0, low_open=low_open,
-                                                                 unit=unit))
+                                                                 high=validation.DETECTOR_MAX[name], unit=unit))
         if self.saturation is not None and (isinstance(self.saturation, (bool, np.bool_, str, bytes)) or not (
                 isinstance(self.saturation, (int, float, np.integer, np.floating)) and self.saturation > 0)):
             raise ParameterError(f"saturation must be a number of DN > 0 (or None: the file's), got "

@@ -123,14 +123,22 @@ class _HDF5Ramps(_Ramps):
                 raise read_error(exc, self.name, dset) from None
 
     def pixeldq(self, y0, y1):
+        from slicersim.io.rampfile import read_dataset     # a failed checksum named, not h5py's words
         nx = self.shape[3]
-        return np.zeros((y1 - y0, nx), np.uint32) if self.pdq is None else self.pdq[y0:y1].astype(np.uint32)
+        if self.pdq is None:
+            return np.zeros((y1 - y0, nx), np.uint32)
+        return read_dataset(self.pdq, self.name, np.s_[y0:y1]).astype(np.uint32)
 
     def frame(self, i, g):
-        return self.sci[i, g]
+        from slicersim.io.rampfile import read_dataset
+        return read_dataset(self.sci, self.name, np.s_[i, g])
 
     def truth(self, name):
-        return self.fh.get(f"truth/{name}")
+        try:
+            return self.fh.get(f"truth/{name}")
+        except (RuntimeError, KeyError, OSError) as exc:     # a soft link looping on itself
+            raise RampFileError(f"{self.name}: truth/{name} is a soft link that does not resolve to an object "
+                                f"({one_line(exc)})") from None
 
     def close(self):
         self.fh.close()
@@ -176,10 +184,13 @@ class _FitsRamps(_Ramps):
         from astropy.io import fits
         self.name = path
         import warnings
+        from astropy.utils.exceptions import AstropyWarning
         try:
-            with warnings.catch_warnings():               # a truncated file: named below, in one line
-                warnings.filterwarnings("ignore", message="File may have been truncated")
+            with warnings.catch_warnings():     # a truncated file or a damaged header: named below, in one line
+                warnings.simplefilter("ignore", AstropyWarning)
                 self.hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
+                for hdu in self.hdul:
+                    hdu.header.tostring()                 # parsed here, where astropy's warnings are held back
         except OSError as exc:
             raise RampFileError(f"{path}: not a readable FITS file ({one_line(exc)})") from exc
         names = [h.name for h in self.hdul]

@@ -112,7 +112,7 @@ def _check_projection(oversample, truncate, weights_dtype):
     if isinstance(oversample, (str, bytes)) or np.size(oversample) != 2:
         raise ParameterError(f"oversample must be two positive integers, got {validation.short_repr(oversample)}")
     ov = tuple(validation.integer(f"oversample[{i}]", v, low=1) for i, v in enumerate(np.ravel(oversample)))
-    validation.number("truncate [spot rms]", truncate, low=0.0, low_open=True)
+    validation.number("truncate [spot rms]", truncate, low=0.0, low_open=True, high=validation.MAX_TRUNCATE)
     try:
         dtype = np.dtype(weights_dtype)
     except TypeError:

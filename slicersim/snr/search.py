@@ -291,13 +291,16 @@ def _no_signal(sim, snr, lbda_range, mask, snr1):
     finite = np.asarray(snr1)[np.isfinite(snr1)]
     best = f"{float(finite.max()):g}" if finite.size else "NaN"
     ps = getattr(sim.scene, "pointsource", None)
-    flux = ""
+    flux, why = "", "no signal there"
     if ps is not None:
         f = ps.flambda(sim.lbda[mask])
         f = f[np.isfinite(f)]
         flux = f"; the point source's F_λ there is at most {float(f.max()):g} erg/s/cm²/Å" if f.size else \
             "; the point-source spectrum has no sample there"
-    return (f"target SNR {snr:g} cannot be reached in the band {lo:g}–{hi:g} Å: no signal there (best SNR per "
+        if f.size and f.max() > 0 and finite.size and finite.max() == 0:   # a signal, but every cell saturated
+            why = ("the band saturates the detector even in the shortest readout (the source is too bright, or its "
+                   "F_λ is not in erg/s/cm²/Å)")
+    return (f"target SNR {snr:g} cannot be reached in the band {lo:g}–{hi:g} Å: {why} (best SNR per "
             f"bin of one ramp over the readouts tried: {best}{flux})")
 
 

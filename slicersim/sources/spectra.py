@@ -51,7 +51,7 @@ def validate_spectrum(lbda, flux, name="spectrum"):
     lbda = validation.array(f"{name}: wavelengths", lbda, finite=False, error=SpectrumError)
     flux = validation.array(f"{name}: flux", flux, finite=False, error=SpectrumError)
     if lbda.ndim != 1 or lbda.size == 0:
-        raise SpectrumError(f"{name}: empty wavelength array")
+        raise SpectrumError(f"{name}: wavelengths must be a non-empty 1-D array, got shape {lbda.shape}")
     if flux.shape != lbda.shape:
         raise SpectrumError(f"{name}: flux shape {flux.shape} differs from wavelength shape {lbda.shape}")
     if lbda.size < 2:
@@ -153,6 +153,10 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
         except Exception as exc:
             raise SpectrumError(f"cannot normalise {_source_label(source)!r} to peak absolute magnitude "
                                 f"{peak_absmag} in {band!r} ({magsys}): {type(exc).__name__}: {exc}") from exc
+    if not model.mintime() <= phase <= model.maxtime():        # sncosmo would repeat its first or last epoch
+        raise SpectrumError(f"phase {validation.short_repr(phase)} days is outside the range {model.mintime():g} to "
+                            f"{model.maxtime():g} days (observer frame at redshift {redshift:g}) of the sncosmo "
+                            f"model {_source_label(source)!r}")
     lo, hi = model.minwave(), model.maxwave()
     keep = (lbda >= lo) & (lbda <= hi)
     if np.count_nonzero(keep) < 2:

@@ -355,7 +355,10 @@ class Target(DetectorProducts):
         if lbda_range is None:
             lbda_range = DEFAULT_BAND
         if resolve_frame(frame, self.redshift) == "rest" and self.redshift is None:
-            raise ETCError("frame='rest' needs a target redshift")
+            shown = validation.shown("frame")          # --frame within the CLI
+            rest, obs = ("frame='rest'", "frame='obs'") if shown == "frame" else (f"{shown} rest", f"{shown} obs")
+            raise ETCError(f"{rest} needs a target redshift and this target has none; give the band in the "
+                           f"observer frame ({obs})")
         return self.simulation.band_range(lbda_range, resolve_frame(frame, self.redshift))
 
     def setup_to_snr(self, snr, lbda_range=None, frame=None, search="exact", per_resolution=True,

@@ -189,6 +189,10 @@ def test_ramp_redshift_full_detector(tmp_path):
     (["ramp", "--rate", "RATE", "--nmd", "3", "1", "0", "--out", "/no/such/dir/r.h5"], "directory does not exist"),
     (["ramp", "--rate", "BADRATE", "--nmd", "3", "1", "0", "--out", "OUT"], "--rate must be ≥ 0"),
     (["nosuchcommand"], "invalid choice"),
+    # argparse took "-1e300" for a flag ("expected 2 arguments"); a negative wavelength was a band
+    (["etc", "--redshift", "1", "--lbda-range", "-1e300", "1e300"], "--lbda-range[0] [Angstrom] must be > 0"),
+    (["etc", "--redshift", "1", "--lbda-range", "-.5", "6800"], "--lbda-range[0] [Angstrom] must be > 0, got -0.5"),
+    (["etc", "--redshift", "-1e-3"], "--redshift must be in (0, 50], got -0.001"),
 ])
 def test_user_errors_are_one_line_exit_2(tmp_path, rate_file, args, match):
     bad = tmp_path / "bad.npy"
@@ -237,6 +241,14 @@ def test_demo_refuses_existing_outputs(tmp_path):
     assert (tmp_path / "spectrum.png").read_bytes() == b"mine"
 
 
+def test_demo_outdir_that_is_a_file_is_named(tmp_path):
+    """`demo --outdir FILE` said only "FILE: File exists"."""
+    (tmp_path / "notadir").write_bytes(b"mine")
+    line = one_error_line(run("demo", "--outdir", tmp_path / "notadir"))
+    assert "notadir: --outdir (outdir) must be a directory, not a file" in line, line
+    assert (tmp_path / "notadir").read_bytes() == b"mine"
+
+
 @pytest.mark.slow
 def test_ctrl_c_during_ramp_is_one_line_and_leaves_nothing(tmp_path):
     import signal
@@ -282,12 +294,20 @@ def _one_line(status, err):
 def user_files(tmp_path):
     """Files a user may give by mistake: binary data, a text file named .npy, a bad spectrum row."""
     files = {"binary": tmp_path / "data.bin", "text_npy": tmp_path / "image.npy", "bad_row": tmp_path / "sp.txt",
-             "negative": tmp_path / "neg.txt", "strings_npy": tmp_path / "s.npy"}
+             "negative": tmp_path / "neg.txt", "strings_npy": tmp_path / "s.npy", "empty_npy": tmp_path / "e.npy",
+             "no_pixels_npy": tmp_path / "z.npy", "line_npy": tmp_path / "l.npy", "image_npy": tmp_path / "i.npy",
+             "spectrum": tmp_path / "flat.txt", "spot_header": tmp_path / "spots.csv"}
     files["binary"].write_bytes(bytes(range(128, 256)) * 4)
     files["text_npy"].write_text("1 2\n3 4\n")
     files["bad_row"].write_text("# wavelength flux\n4000 1e-17\n5000 1e-17\n6000 oops\n")
     files["negative"].write_text("4000 1e-17\n5000 -1e-17\n")
     np.save(files["strings_npy"], np.array(["a", "b"]))
+    files["empty_npy"].write_bytes(b"")
+    np.save(files["no_pixels_npy"], np.ones((0, 4)))
+    np.save(files["line_npy"], np.ones(4))
+    np.save(files["image_npy"], np.ones((4, 4)))
+    files["spectrum"].write_text("3000 1e-17\n20000 1e-17\n")
+    files["spot_header"].write_text("slice fieldpos lbda x y rmsx_um rmsy_um\n")
     return files
 
 
@@ -298,11 +318,21 @@ def user_files(tmp_path):
     (["etc", "--redshift", "1", "--config", "{binary}"], ["data.bin", "cannot parse TOML"]),
     (["footprints", "--out", "{tmp}/fp", "--spot-table", "{bad_row}"], ["--spot-table", "sp.txt", "not a spot table"]),
     (["footprints", "--out", "{tmp}/fp", "--spot-table", "{binary}"], ["--spot-table", "data.bin"]),
+    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{spot_header}"],     # was "index 1 is out of bounds"
+     ["spots.csv", "no rows of 7 numbers under the header"]),
     (["footprints", "--out", "{tmp}/fp", "--truncate", "nan"], ["--truncate"]),
+    (["footprints", "--out", "{tmp}/fp", "--truncate", "1e300"],                # ran for ever
+     ["--truncate [spot rms] must be in [0, 100]"]),
     (["plot", "fields", "--out", "{tmp}/f.png", "--seed", "-1"], ["--seed"]),
     (["ramp", "--rate", "{text_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["image.npy", "not a NumPy .npy"]),
     (["ramp", "--rate", "{strings_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["s.npy", "real numbers"]),
     (["ramp", "--rate", "{binary}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["data.bin", "not a text file"]),
+    (["ramp", "--rate", "{empty_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"], ["--rate", "e.npy", "empty"]),
+    (["ramp", "--rate", "{no_pixels_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5"],
+     ["--rate must be a non-empty"]),
+    (["ramp", "--rate", "{image_npy}", "--nmd", "3", "1", "0", "--out", "{tmp}/r.h5", "--effects", "persistence",
+      "--previous-charge", "{line_npy}"], ["--previous-charge must be", "got shape (4,)"]),
+    (["etc", "--spectrum", "{spectrum}", "--frame", "rest"], ["--frame rest needs a target redshift", "(--frame obs)"]),
 ])
 def test_files_given_by_mistake_are_one_line_user_errors_naming_them(tmp_path, user_files, capsys, monkeypatch,
                                                                       argv, needles):
@@ -447,7 +477,7 @@ def test_cli_etc_prints_units_and_no_object_repr():
       "--out", "{tmp}/r.h5"], "--previous-charge: {tmp}/missing.npy: No such file"),
     (["ramp", "--redshift", "-1", "--out", "{tmp}/r.h5"], "--redshift must be in (0, 50], got -1"),
     (["plot", "fields", "--redshift", "-1", "--out", "{tmp}/f.png"], "--redshift must be in (0, 50], got -1"),
-    (["etc", "--redshift", "1", "--lbda-range", "-5", "6000"], "use the covered part (--allow-partial)"),
+    (["etc", "--redshift", "1", "--lbda-range", "1000", "6000"], "use the covered part (--allow-partial)"),
 ])
 def test_messages_name_the_command_line_flags_not_python_keywords(tmp_path, capsys, monkeypatch, argv, needle):
     rate = tmp_path / "rate.npy"

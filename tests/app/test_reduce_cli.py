@@ -179,9 +179,9 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     (["--spectra", "--position", "0,29.5"], "|y| ≤ 29"),
     (["--dark", "none"], "--dark applies only with --spectra"),
     (["--weights", "data"], "--weights applies only with --spectra"),
-    (["--spectra", "--dark", "-1"], "dark rates must be finite, ≥ 0"),
+    (["--spectra", "--dark", "-1"], "--dark (dark rates) must be finite, ≥ 0 and ≤ 1e+06 e-/s, got -1"),
     (["--spectra", "--dark", "nope.npy"], "--dark must be 'auto', 'none', a rate"),
-    (["--spectra", "--dark", "BADPSF"], "detector's shape"),
+    (["--spectra", "--dark", "BADPSF"], "--dark: a dark image must have the detector's shape"),
 ])
 def test_reduce_spectra_bad_options_are_one_line_and_write_nothing(small_layout, tmp_path, capsys, extra, message):
     path, _, _ = small_layout
@@ -250,7 +250,7 @@ def test_files_of_other_layouts_and_inconsistent_keywords_are_named(raw, tmp_pat
         bad = tmp_path / f"{name}.fits"
         with fits.open(uncal) as hdul:
             hdul[0].header[key] = val
-            hdul.writeto(bad)
+            hdul.writeto(bad, checksum=True)          # keywords changed by a tool that keeps CHECKSUM right
         fits_bad[name] = bad
     cases = [(rates, [], "is a rates file (from `slicersim reduce`), not a raw ramp file"),
              (reduced, [], "is a reduced exposure"),

@@ -482,6 +482,24 @@ def test_campaign_run_progress_flag(monkeypatch, tmp_path, no_progress, expected
     assert seen["progress"] is expected
 
 
+@pytest.mark.parametrize("retry_failed", [False, True])
+def test_campaign_run_with_failures_says_how_to_run_them_again(monkeypatch, tmp_path, capsys, retry_failed):
+    """After a full disk, a rerun printed "0 computed ... 40 failed" and nothing about --retry-failed."""
+    import argparse
+
+    from slicersim.app import campaign_cli
+    from slicersim.campaign import runner
+    monkeypatch.setattr(runner, "run_campaign", lambda spec, out, **kw: dict(
+        dataset=out, targets=3, done=1, failed=2, missing=0, computed=0, seconds=0.0))
+    args = argparse.Namespace(spec=str(tmp_path / "spec.toml"), out=str(tmp_path / "ds"), precision=None, workers=1,
+                              scheduler=None, force=False, retry_failed=retry_failed, no_progress=True,
+                              threads_per_worker=None, memory_per_task=256.0)
+    assert campaign_cli.cmd_campaign_run(args) == 1
+    out = capsys.readouterr().out
+    assert ("2 failed target(s) are kept as failed on a rerun" in out and "--retry-failed runs them again" in out
+            and f"slicersim campaign status {tmp_path / 'ds'}" in out) != retry_failed, out
+
+
 INTRUDER = """\
 import sys
 from distributed import Client, Security
@@ -812,3 +830,14 @@ def test_bad_run_arguments_write_nothing(tmp_path, args, message):
     spec.write_text(BASE)
     _one_line_error(_run_cli("campaign", "run", spec, "--out", tmp_path / "o", *args), message)
     assert not (tmp_path / "o").exists()
+
+
+def test_run_campaign_with_a_spec_or_an_out_of_the_wrong_kind_names_it(spec_path, tmp_path):
+    """run_campaign(5, out) and run_campaign(spec, None) were os.fspath's TypeError."""
+    from slicersim.campaign.runner import run_campaign
+    from slicersim.errors import ConfigError, DatasetError
+    with pytest.raises(ConfigError, match=r"campaign spec must be a CampaignSpec or the path of its TOML file, got 5"):
+        run_campaign(5, tmp_path / "ds")
+    with pytest.raises(DatasetError, match=r"the dataset directory must be a path \(str or os.PathLike\), got None"):
+        run_campaign(spec_path, None)
+    assert not (tmp_path / "ds").exists()

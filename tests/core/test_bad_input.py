@@ -53,12 +53,14 @@ def _with(index, value):
     (LBDA, _with(10, np.nan), r"flux contains 1 NaN/inf"),
     (LBDA, _with([3, 7], np.inf), r"flux contains 2 NaN/inf"),
     (LBDA, _with(5, -1e-18), r"flux contains 1 negative"),
-    ([], [], r"empty wavelength"),
+    ([], [], r"wavelengths must be a non-empty 1-D array, got shape \(0,\)"),
+    (np.stack([LBDA, LBDA]), np.stack([FLUX, FLUX]),
+     r"wavelengths must be a non-empty 1-D array, got shape \(2, 400\)"),
     (LBDA, FLUX[:-1], r"flux shape \(399,\) differs from wavelength shape \(400,\)"),
     (LBDA[::-1], FLUX, r"strictly increasing"),
     (np.r_[LBDA[:5], LBDA[4], LBDA[6:]], FLUX, r"strictly increasing"),   # repeated λ
     (np.r_[np.nan, LBDA[1:]], FLUX, r"finite and strictly increasing"),
-], ids=["nan", "inf", "negative", "empty", "shape", "decreasing", "repeated", "nan-lbda"])
+], ids=["nan", "inf", "negative", "empty", "2-D", "shape", "decreasing", "repeated", "nan-lbda"])
 def test_bad_spectrum(lbda, flux, match):
     with pytest.raises(SpectrumError, match=match):
         LazuliTarget(lbda, flux)

@@ -337,7 +337,7 @@ def test_update_errors_name_the_parameter_and_change_nothing(sn):
         sim.update(gian=2.0)
     with pytest.raises(ParameterError, match=r"unknown target parameter\(s\) \['redshfit'\] \(did you mean 'redshift'\?\)"):
         sn.update(redshfit=2.0)
-    with pytest.raises(ParameterError, match=r"gain \[adu / electron\] must be > 0"):
+    with pytest.raises(ParameterError, match=r"gain \[adu / electron\] must be in \(0, 1000\], got 0"):
         sim.update(gain=0.0, nramps=4)
     with pytest.raises(ParameterError, match=r"guiding_sigma \[arcsec\] must be ≥ 0"):
         sim.update(guiding_sigma=-1.0, ron=1.0)

@@ -167,6 +167,12 @@ BAD_CONFIG = [
     ("[spectrograph.psf.spatial]\npsf_profile = \"foo\"",
      r"\[spectrograph.psf.spatial\] psf_profile 'foo'; valid: 'normal', 'gaussian'"),
     ("[spectrograph.psf.spatial]\nguiding_profile = \"airy\"", r"\[spectrograph.psf.spatial\] guiding_profile"),
+    # a read noise of 1e300 squared overflowed the variance model (OverflowError, exit 3)
+    ("[detector]\nron = 1e300", r"\[detector\] ron = 1e\+300: must be ≤ 10000"),
+    ("[detector]\ngain = 1e300", r"\[detector\] gain = 1e\+300: must be ≤ 1000"),
+    ("[detector]\ndark = 1e300", r"\[detector\] dark = 1e\+300: must be ≤ 1e\+06"),
+    ("[detector]\ntframe = 1e300", r"\[detector\] tframe = 1e\+300: must be ≤ 10000"),
+    ("[detector]\nshape = [100000000, 100000000]", r"\[detector\] shape = .*two integers in \[1, 65536\]"),
 ]
 
 

@@ -323,3 +323,6 @@ def test_absurd_point_source_fluxes_and_magnitudes_are_refused():
                                        r"\(best SNR per bin of one ramp over the readouts tried: 0; the point "
                                        r"source's F_λ there is at most 0 erg/s/cm²/Å\)"):
         lazuli_etc(lbda, np.zeros(200), snr=10)
+    with pytest.raises(ETCError, match=r"cannot be reached in the band 8000–13600 Å: the band saturates the "
+                                       r"detector even in the shortest readout .* at most 1 erg/s/cm²/Å\)"):
+        lazuli_etc(lbda, np.ones(200), snr=10, lbda_range=(8000, 13600))       # said "no signal there"

@@ -90,3 +90,31 @@ def test_absurd_fluxes_are_refused_and_no_signal_says_what_was_found():
     with pytest.raises(ETCError, match=r"target\(s\) \[2\] cannot reach their SNR: no signal in the band \(target 2, "
                                        r"band 9000–10000 Å observer frame: its F_λ there is at most 0 erg/s/cm²/Å\)"):
         solve_many(lbda, fluxes, 10.0, (9000.0, 10000.0))
+    fluxes[2] = 1.0                              # saturates every cell: it said "no signal in the band"
+    with pytest.raises(ETCError, match=r"target\(s\) \[2\] cannot reach their SNR: a signal that saturates the "
+                                       r"detector even in the shortest readout"):
+        solve_many(lbda, fluxes, 10.0, (8000.0, 13600.0))
+
+
+def test_quantities_are_converted_or_refused_never_their_unit_dropped():
+    """fluxes in Jy (an F_ν) or bands in µm were read as plain F_λ [erg/s/cm²/Å] and Å without a word."""
+    import astropy.units as u
+    from slicersim.errors import ETCError, SpectrumError
+    fluxes = np.stack([flat(1e-17), sloped(3e-18)])
+    plain = solve_many(LBDA, fluxes, 20, (8000.0, 11000.0))
+    flam = (fluxes * u.erg / u.s / u.cm**2 / u.AA).to(u.W / u.m**2 / u.um)
+    same = solve_many((LBDA * u.AA).to(u.um), flam, 20, (0.8, 1.1) * u.um)
+    assert list(same["exposure_time"]) == pytest.approx(list(plain["exposure_time"]))
+    with pytest.raises(SpectrumError, match=r"fluxes must be in units convertible to erg / \(s cm2 Angstrom\), got Jy"):
+        solve_many(LBDA, fluxes * u.Jy, 20, (8000.0, 11000.0))
+    with pytest.raises(ETCError, match=r"lbda_ranges must be in units convertible to Angstrom, got s"):
+        solve_many(LBDA, fluxes, 20, (8000.0, 11000.0) * u.s)
+
+
+def test_snr_of_another_length_than_the_targets_is_an_etc_error():
+    """snr=[20, 30] for 3 targets was NumPy's broadcast ValueError."""
+    from slicersim.errors import ETCError
+    fluxes = np.stack([flat(1e-17)] * 3)
+    with pytest.raises(ETCError, match=r"snr must be one value or one per target \(3\), got shape \(2,\)"):
+        solve_many(LBDA, fluxes, [20, 30], (8000.0, 11000.0))
+    assert list(solve_many(LBDA, fluxes, [20, 20, 20], (8000.0, 11000.0))["nramps"]) == [1, 1, 1]

@@ -329,7 +329,23 @@ def test_detector_scalars_accept_quantities():
                                rtol=1e-12)
     with pytest.raises(ParameterError, match=r"tframe must be in units convertible to s"):
         Detector(tframe=3 * u.m)
-    with pytest.raises(ParameterError, match=r"ron \[electron\] must be ≥ 0"):
+    with pytest.raises(ParameterError, match=r"ron \[electron\] must be in \[0, 10000\], got -1"):
         Detector(ron=-1.0)
     with pytest.raises(ParameterError, match="max_group"):
         Detector(max_group=2.5)
+
+
+@pytest.mark.parametrize("key, value, match", [("ron", 1e300, r"ron \[electron\] must be in \[0, 10000\]"),
+                                               ("gain", 1e300, r"gain \[adu / electron\] must be in \(0, 1000\]"),
+                                               ("dark", 1e300, r"dark \[electron / s\] must be in \[0, 1e\+06\]"),
+                                               ("tframe", 1e300, r"tframe \[s\] must be in \(0, 10000\]")])
+def test_detector_numbers_beyond_their_physical_range_are_refused(key, value, match):
+    """Detector(ron=1e300) was accepted; the ETC then overflowed squaring it (OverflowError)."""
+    from slicersim.errors import ParameterError
+    from slicersim.targets import LazuliSupernova
+    with pytest.raises(ParameterError, match=match):
+        Detector(**{key: value})
+    sn = LazuliSupernova(redshift=1.0)
+    with pytest.raises(ParameterError, match=match):
+        sn.update(**{key: value})
+    assert sn.setup_to_snr(20)["nmd"] == (49, 8, 0)              # unchanged and usable

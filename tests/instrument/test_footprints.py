@@ -424,3 +424,13 @@ def test_concurrent_writers_never_leave_a_mixed_pair(tmp_path):
     assert labels == outlines
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["footprints_labels.fits",
                                                                     "footprints_outlines.json"]
+
+
+def test_a_window_wider_than_any_spot_is_refused(mapper):
+    """truncate=1e300 made every projection window the whole detector: `footprints` ran for ever."""
+    from slicersim.errors import ParameterError
+    from slicersim.reduction.rectify_checks import RectifyOptions
+    with pytest.raises(ParameterError, match=r"truncate must be in \[0, 100\] \[spot rms\], got 1e\+300"):
+        field_footprints(mapper, "narrow", EDGES[:11], NCOL, truncate=1e300)
+    with pytest.raises(ParameterError, match=r"truncate \[spot rms\] must be in \(0, 100\], got 1e\+300"):
+        RectifyOptions(truncate=1e300)

@@ -209,3 +209,16 @@ def test_product_file_bytes_do_not_depend_on_when_a_handle_is_released(tmp_path,
     assert plain == held
     with h5py.File(tmp_path / "held.h5", "r") as f:
         assert all(f[name].fletcher32 and np.array_equal(f[name][...], arr) for name, arr in data.items())
+
+
+def test_a_full_disk_while_taking_the_lock_names_the_lock_file(tmp_path, monkeypatch):
+    """`campaign run` on a full disk said only "[Errno 28] No space left on device"."""
+    import errno
+
+    from slicersim.io import dataset as dataset_module
+
+    def full(fd, data, offset):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    monkeypatch.setattr(dataset_module.os, "pwrite", full)
+    with pytest.raises(DatasetError, match=r"cannot write the dataset lock .*ds/\.lock \(\[Errno 28\] No space"):
+        Dataset(tmp_path / "ds").lock()

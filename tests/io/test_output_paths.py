@@ -102,3 +102,9 @@ def test_existing_file_and_missing_directory_are_named(tmp_path):
     assert check_output_path(out, True, ParameterError, "--out") == str(out)
     with pytest.raises(ParameterError, match="--out: output directory does not exist"):
         check_output_path(tmp_path / "no" / "a.h5", True, ParameterError, "--out")
+
+
+def test_an_empty_output_path_is_named_as_empty():
+    """`--out ''` said "'' names a directory (it ends with '/')"."""
+    with pytest.raises(ParameterError, match=r"^--out: the output path is empty; give the path of a file"):
+        check_output_path("", True, ParameterError, "--out")

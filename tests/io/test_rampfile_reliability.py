@@ -450,7 +450,7 @@ def test_a_flipped_data_byte_is_a_checksum_error(tmp_path):
 
 
 @pytest.mark.parametrize("case", ["external_storage", "virtual", "external_link_sci", "external_link_truth",
-                                  "sci_group"])
+                                  "sci_group", "soft_link_loop_sci", "soft_link_loop_truth"])
 def test_hdf5_inputs_reading_outside_the_file_are_refused(tmp_path, case):
     import h5py
 
@@ -478,13 +478,24 @@ def test_hdf5_inputs_reading_outside_the_file_are_refused(tmp_path, case):
         elif case == "external_link_truth":
             del fh["truth/rate"]
             fh["truth/rate"] = h5py.ExternalLink(str(other), "x")
+        elif case.startswith("soft_link_loop"):                 # a soft link to itself: h5py's RuntimeError
+            name = "SCI" if case.endswith("sci") else "truth/rate"
+            del fh[name]
+            fh[name] = h5py.SoftLink("/" + name)
         else:
             del fh["SCI"]
             fh.create_group("SCI")
     bad = _rewrite(good, tmp_path / "bad.h5", edit)
     what = {"external_storage": r"dataset truth/rate has external storage", "virtual": r"truth/rate is a virtual",
             "external_link_sci": r"SCI is an external link", "external_link_truth": r"truth/rate is an external link",
-            "sci_group": r"SCI is a group, not a dataset"}[case]
+            "sci_group": r"SCI is a group, not a dataset",
+            "soft_link_loop_sci": r"SCI is a soft link that does not resolve",
+            "soft_link_loop_truth": r"truth/rate is a soft link that does not resolve"}[case]
+    if case == "soft_link_loop_truth":                        # read_ramps reads no truth: the ramp fit does
+        from slicersim.reduction.ramp_fit import fit_ramps
+        with pytest.raises(RampFileError, match=what):
+            fit_ramps(bad, with_truth=True)
+        return
     with pytest.raises(RampFileError, match=what):
         read_ramps(bad)
     with pytest.raises(RampFileError, match=what):

@@ -227,6 +227,32 @@ def test_every_hdu_carries_a_valid_checksum(tmp_path, exported):
         read_uncal(fifo)
 
 
+@pytest.mark.parametrize("damage", ["header_byte", "cut_in_a_header"])
+def test_a_changed_header_or_a_file_cut_inside_a_header_is_refused(tmp_path, exported, damage):
+    """A flipped header byte (only CHECKSUM covers it) and a file cut inside the PIXELDQ header (astropy
+    dropped that HDU and the rest with a multi-line warning) were reduced as if whole."""
+    from astropy.io import fits
+
+    from slicersim.reduction.checks import check_ramp_file
+    from slicersim.reduction.ramp_fit import fit_ramps
+    _, path, _ = exported
+    raw = bytearray(open(path, "rb").read())
+    with fits.open(path) as hdul:
+        names = [h.name for h in hdul]
+        pixeldq = hdul.fileinfo(names.index("PIXELDQ"))
+    bad = tmp_path / "bad.fits"
+    if damage == "header_byte":
+        raw[pixeldq["hdrLoc"] + 1500] ^= 0x40                     # a blank of the header becomes '`'
+        bad.write_bytes(bytes(raw))
+        match = r"bad.fits: checksum mismatch in the header of extension PIXELDQ \(CHECKSUM"
+    else:
+        bad.write_bytes(bytes(raw[:pixeldq["hdrLoc"] + 1440]))
+        match = r"bad.fits: truncated or damaged FITS file: it has \d+ bytes but its last complete HDU \(GROUPDQ\)"
+    for call in (read_uncal, check_ramp_file, lambda p: fit_ramps(p, progress=False)):
+        with pytest.raises(RampFileError, match=match):
+            call(bad)
+
+
 def test_checksum_encoding_is_the_fits_one():
     from astropy.io import fits
 

@@ -633,3 +633,15 @@ def test_a_rate_beyond_the_samplers_range_is_refused_naming_it_and_the_bound():
         warnings.simplefilter("error")
         sci = simulate(np.full((8, 8), 3e8), (3, 1, 0), seed=1, progress=False, backend="numpy")
     assert sci.max() == 65535
+
+
+@pytest.mark.parametrize("key, match", [("ron", r"ron \[electron\] must be in \[0, 10000\]"),
+                                        ("gain", r"gain \[adu / electron\] must be in \(0, 1000\]")])
+def test_ramp_read_noise_and_gain_beyond_their_range_are_refused(key, match):
+    """simulate(ron=1e300) wrote ramps of nothing but 0 and 65535 without a word."""
+    from slicersim.errors import ParameterError
+    from slicersim.products.ramps import simulate
+    with pytest.raises(ParameterError, match=match):
+        simulate(np.ones((8, 8)), (4, 1, 0), seed=1, out=None, progress=False, **{key: 1e300})
+    with pytest.raises(ParameterError, match=match):
+        RampParameters(nmd=(4, 1, 0), **{key: 1e300})

@@ -253,3 +253,18 @@ def test_the_instrument_is_checked_before_any_data_are_read():
     missing = {**base, "CONFIG": json.dumps({"config": "/nonexistent/lazuli.toml", "field": "narrow"})}
     with pytest.raises(ParameterError, match="the file's CONFIG .* cannot be loaded.*--config"):
         reduce_exposure((sci, None, None, missing))
+
+
+def test_a_config_that_cannot_be_loaded_is_an_error_without_a_warning_before_it(tmp_path):
+    """`reduce --spectra --config /dev/zero` warned that the spectrum would be fitted with '/dev/zero',
+    then refused it: two lines for one mistake."""
+    import warnings as _warnings
+
+    from slicersim.reduction.pipeline import reduce_exposure
+    attrs = {"NFRAMES": 1, "GROUPGAP": 0, "TFRAME": 1.0, "GAIN": 1.0, "READNOISE": 1.0,
+             "CONFIG": json.dumps({"config": "cbe", "field": "narrow"})}
+    sci = np.zeros((1, 3, 8, 8), np.uint16)
+    with _warnings.catch_warnings():
+        _warnings.simplefilter("error")
+        with pytest.raises(ParameterError, match=r"the configuration given \('/dev/zero'\) cannot be loaded"):
+            reduce_exposure((sci, None, None, attrs), config="/dev/zero")

@@ -569,3 +569,27 @@ def test_a_source_of_another_kind_says_what_is_accepted(source, got):
         assert "SCI (nints, ngroups, ny, nx)" in text and "NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE" in text
     with pytest.raises(ParameterError, match="check_ramp_file path must be a ramp file path"):
         check_ramp_file(source)
+
+
+def test_a_flipped_pixeldq_byte_is_a_checksum_error_naming_the_file(tmp_path):
+    """A corrupted PIXELDQ chunk gave h5py's bare "Can't synchronously read data" without the file."""
+    import h5py
+    path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, out=tmp_path / "r.h5", **QUIET)
+    with h5py.File(path, "r") as fh:
+        offset = fh["PIXELDQ"].id.get_chunk_info(0).byte_offset + 5
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        byte = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([byte[0] ^ 0xFF]))
+    with pytest.raises(RampFileError, match=r"checksum mismatch in dataset PIXELDQ of .*r\.h5"):
+        fit_ramps(path, progress=False)
+
+
+@pytest.mark.parametrize("key, match", [("gain", r"gain \[adu / electron\] must be in \(0, 1000\]"),
+                                        ("ron", r"ron \[electron\] must be in \[0, 10000\]")])
+def test_fit_gain_and_read_noise_beyond_their_range_are_refused(tmp_path, key, match):
+    """fit_ramps(path, gain=1e300) overflowed (OverflowError) instead of naming the option."""
+    path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, out=tmp_path / "r.h5", **QUIET)
+    with pytest.raises(ParameterError, match=match):
+        fit_ramps(path, progress=False, **{key: 1e300})

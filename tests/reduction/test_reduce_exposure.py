@@ -86,7 +86,7 @@ def test_keyword_and_options_forms_give_the_same_products(small, raw, tmp_path):
     (dict(ipc=True), ParameterError, "ipc must be None"),
     (dict(config=3), ParameterError, "config must be"),
     (dict(psf="gauss"), ParameterError, r"unknown psf 'gauss'"),
-    (dict(dark=-1.0), ParameterError, "dark rates must be finite, ≥ 0"),
+    (dict(dark=-1.0), ParameterError, r"dark \(dark rates\) must be finite, ≥ 0 and ≤ 1e\+06 e-/s, got -1"),
     (dict(dark="dark"), ParameterError, "dark must be 'auto', None"),
     (dict(lbda_edges=[1.0, 2.0] * u.s), ParameterError, r"lbda_edges must be wavelengths \[Å\]"),
     (dict(fit_options=[("gain", 1)]), ParameterError, "fit_options must be a dict"),

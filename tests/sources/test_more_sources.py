@@ -289,3 +289,12 @@ def test_spectrum_arguments_name_the_parameter():
     assert src.lbda_in[-1] == 5000.0                       # a failed change changes nothing
     with pytest.raises(ParameterError, match="from_redshift must be a number"):
         redshift_scalings("0.5", 1.0)
+
+
+@pytest.mark.parametrize("phase", [1e300, 171.0, -1e300])
+def test_a_phase_outside_the_sncosmo_model_is_refused(phase):
+    """LazuliSupernova(phase=1e300) was the model's last epoch (sncosmo repeats it) without a word."""
+    with pytest.raises(SpectrumError, match=r"phase .* days is outside the range -40 to 170 days \(observer frame "
+                                            r"at redshift 1\) of the sncosmo model 'hsiao-subsampled'"):
+        LazuliSupernova(1.0, phase=phase)
+    assert LazuliSupernova(1.0, phase=170.0).redshift == 1.0
