@@ -544,8 +544,14 @@ def _writer_class(out, file_format):
     if str(out).lower().endswith((".gz", ".bz2", ".xz", ".zip")):
         raise ParameterError(f"out: {out}: ramp files are not written compressed by a file suffix; use a plain "
                              ".h5/.fits name (HDF5 compresses internally with compression=)")
-    if file_format is None:
-        file_format = "jwst-uncal" if str(out).lower().endswith((".fits", ".fit")) else "hdf5"
+    lower = str(out).lower()
+    by_name = "jwst-uncal" if lower.endswith((".fits", ".fit")) else "hdf5" if lower.endswith((".h5", ".hdf5")) else None
+    file_format = file_format or by_name or "hdf5"
+    if by_name not in (None, file_format):                  # e.g. --format jwst-uncal --out x.h5: FITS named .h5
+        flag = "--format" if validation.shown("out") == "--out" else "file_format"
+        raise ParameterError(f"{validation.shown('out')}: {out}: {flag} {file_format!r} writes "
+                             f"{'FITS' if by_name == 'hdf5' else 'HDF5'}: name it .{'fits' if by_name == 'hdf5' else 'h5'}"
+                             " or leave the format to the extension")
     if file_format == "hdf5":
         return RampWriter
     if file_format == "jwst-uncal":

@@ -645,3 +645,23 @@ def test_ramp_read_noise_and_gain_beyond_their_range_are_refused(key, match):
         simulate(np.ones((8, 8)), (4, 1, 0), seed=1, out=None, progress=False, **{key: 1e300})
     with pytest.raises(ParameterError, match=match):
         RampParameters(nmd=(4, 1, 0), **{key: 1e300})
+
+
+@pytest.mark.parametrize("name, file_format, says", [("raw.h5", "jwst-uncal", "writes FITS: name it .fits"),
+                                                     ("raw.fits", "hdf5", "writes HDF5: name it .h5")])
+def test_a_format_the_output_name_contradicts_is_refused_before_writing(tmp_path, capsys, monkeypatch, name,
+                                                                       file_format, says):
+    """`--format jwst-uncal --out raw.h5` wrote FITS under an HDF5 name without a word."""
+    from slicersim.errors import ParameterError
+    out = tmp_path / name
+    with pytest.raises(ParameterError, match=rf"^out: .*{name}: file_format '{file_format}' {says}"):
+        simulate(np.ones((4, 4)), (3, 1, 0), seed=1, out=str(out), file_format=file_format)
+    assert not out.exists()
+    np.save(tmp_path / "rate.npy", np.ones((4, 4)))
+    from slicersim.app.cli import main
+    monkeypatch.chdir(tmp_path)
+    assert main(["ramp", "--rate", "rate.npy", "--nmd", "3", "1", "0", "--format", file_format, "--out", name]) == 2
+    assert f"--out: {name}: --format '{file_format}' {says}" in capsys.readouterr().err and not out.exists()
+    for name in ("raw.fits", "raw.h5"):                   # the extension alone still decides
+        simulate(np.ones((4, 4)), (3, 1, 0), seed=1, out=str(tmp_path / name))
+        assert (tmp_path / name).exists()
