@@ -78,6 +78,17 @@ def read_curve(path, columns=None, wavelength_unit=None):
     return lbda, data
 
 
+def _parse_error(exc):
+    """The first problem NumPy's table reader reports, as one short clause."""
+    import re
+    text = " ".join(str(exc).split())
+    bad = re.search(r"Line #(\d+) \(got (\d+) columns instead of (\d+)\)", text)
+    if bad:
+        line, got, want = bad.groups()
+        return f"line {line} has {got} columns where the header has {want}"
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
 def _parse(text, path, ecsv, wavelength_unit):
     """(lbda [Å], {column: values}) of a curve file's text (``path`` for messages only)."""
     try:
@@ -98,7 +109,8 @@ def _parse(text, path, ecsv, wavelength_unit):
             data = {n: np.asarray(raw[n], dtype=float) for n in names[1:]}
     except CurveError:
         raise
-    except Exception as exc:  # pragma: no cover - message path
-        raise CurveError(f"cannot read curve file {path}: {exc}") from exc
+    except Exception as exc:
+        raise CurveError(f"cannot read curve file {path}: {_parse_error(exc)} (a curve file is a header line of "
+                         "column names, then rows of numbers)") from None
     check_increasing(lbda, f"curve file {path}", error=CurveError, lines=lambda: data_line_numbers(text, lbda.size))
     return np.array(lbda, dtype=float), {n: np.array(a, dtype=float) for n, a in data.items()}

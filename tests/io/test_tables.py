@@ -97,3 +97,15 @@ def test_curve_rows_out_of_order_are_refused_naming_the_lines(tmp_path):
     path.write_text("wavelength,QE\n5000,0.5\n5010,0.6\n\n5005,0.7\n")
     with pytest.raises(CurveError, match=r"qe.csv, line 5: wavelength 5005 is below 5010 on line 3"):
         read_curve(str(path))
+
+
+def test_a_text_file_that_is_not_a_curve_names_the_first_bad_line(tmp_path):
+    """/etc/passwd as a QE curve gave NumPy's list of every bad line ("Some errors were detected ! ...")."""
+    from slicersim.errors import CurveError
+    from slicersim.io.curves import read_curve
+    path = tmp_path / "passwd"
+    path.write_text("root:x:0:0:root:/root:/bin/bash\n" + "".join(f"user{i} x {i}\n" for i in range(40)))
+    with pytest.raises(CurveError, match=r"^cannot read curve file .*passwd: line 2 has 3 columns where the header "
+                                         r"has 1 \(a curve file is a header line of column names") as info:
+        read_curve(str(path))
+    assert len(str(info.value)) < 250 and "Some errors" not in str(info.value)
