@@ -296,6 +296,11 @@ def _check_spectrograph_keys(cfg):
         arr = _numbers("spectrograph", "anamorphosis", value)
         if arr.size not in (1, 2) or not np.all(np.isfinite(arr)) or np.any(arr < 1) or np.any(arr != np.round(arr)):
             raise _bad("spectrograph", "anamorphosis", value, "must be one or two integers ≥ 1 (y, x)")
+    if isinstance(spc, dict) and spc.get("spectral_range") is not None:
+        value = spc["spectral_range"]
+        arr = _numbers("spectrograph", "spectral_range", value)
+        if arr.size != 2 or not np.all(np.isfinite(arr)) or not 0 < arr[0] < arr[1]:
+            raise _bad("spectrograph", "spectral_range", value, "must be [min, max] with 0 < min < max")
     psf = cfg.get("spectrograph.psf.spatial", {})
     for key in ("psf_profile", "guiding_profile"):
         if isinstance(psf, dict) and psf.get(key) is not None:
@@ -333,6 +338,7 @@ def validate_config(cfg):
     _check_fraction(cfg, "detector", "QE", "QE")
     _check_range(cfg, "spectrograph", "spatial_scale", 0.0, lo_open=True)
     _check_range(cfg, "spectrograph", "dispersion_resolution", 0.0, lo_open=True)
+    _check_range(cfg, "spectrograph", "dispersion_scale", 0.0, lo_open=True)
     _check_range(cfg, "spectrograph.psf.spatial", "guiding_sigma", 0.0)
     det = cfg.get("detector", {})
     _check_range(cfg, "detector", "saturation", 0.0, lo_open=True, finite=False)

@@ -173,6 +173,10 @@ BAD_CONFIG = [
     ("[detector]\ndark = 1e300", r"\[detector\] dark = 1e\+300: must be ≤ 1e\+06"),
     ("[detector]\ntframe = 1e300", r"\[detector\] tframe = 1e\+300: must be ≤ 10000"),
     ("[detector]\nshape = [100000000, 100000000]", r"\[detector\] shape = .*two integers in \[1, 65536\]"),
+    # the spectrograph's own check named neither the table nor the key's place ("dispersion_scale must be > 0")
+    ("[spectrograph]\ndispersion_scale = -1", r"\[spectrograph\] dispersion_scale = -1: must be > 0"),
+    ("[spectrograph]\nspectral_range = [9000, 4000]",
+     r"\[spectrograph\] spectral_range = \[9000, 4000\]: must be \[min, max\] with 0 < min < max"),
 ]
 
 
