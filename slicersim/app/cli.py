@@ -405,7 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="physical model, or every slicersim 1.0 behaviour (gain in the variance, blur)")
     p.add_argument("--allow-partial", action="store_true",
                    help="accept a band partly outside the instrument grid or the spectrum (warns; the SNR "
-                        "is that of the covered part; default: refuse)")
+                        "is that of the covered part; at least half the band must lie in the grid; default: refuse)")
     p.set_defaults(func=cmd_etc)
 
     d = RAMP_DETECTOR_DEFAULTS

@@ -73,8 +73,8 @@ def check_band_in_grid(ranges, grid_edges, who=None, allow_partial=True):
     bad = np.nonzero(frac < MIN_GRID_COVERAGE)[0]
     if bad.size:
         raise SpectrumError(f"{head(bad)} is only {100 * frac[bad[0]]:.1f} % inside the instrument grid "
-                            f"{g0:.0f}–{g1:.0f} Å (at least {100 * MIN_GRID_COVERAGE:.0f} % needed): "
-                            "choose a band inside the grid")
+                            f"{g0:.0f}–{g1:.0f} Å (at least {100 * MIN_GRID_COVERAGE:.0f} % needed, even with "
+                            f"{_allow_partial_hint()}): choose a band inside the grid")
     part = np.nonzero(frac < 1.0)[0]
     if part.size and not allow_partial:
         raise SpectrumError(f"{head(part)} is only {100 * frac[part[0]]:.1f} % inside the instrument grid "

@@ -237,6 +237,9 @@ def test_failed_change_configuration_keeps_old(tmp_path):
 def test_band_mostly_outside_grid_refused(sn):
     with pytest.raises(SpectrumError, match=r"only 25\.1 % inside the instrument grid"):
         sn.setup_to_snr(20, lbda_range=(16000, 20000), frame="obs")
+    # allow_partial cannot lower the floor, and the message says so
+    with pytest.raises(SpectrumError, match=r"at least 50 % needed, even with allow_partial=True"):
+        sn.setup_to_snr(20, lbda_range=(16000, 20000), frame="obs", allow_partial=True)
     with pytest.raises(SpectrumError, match=r"% inside the instrument grid"):
         sn.simulation.get_band_snr((1000, 4500))
     lb = np.linspace(3000, 20000, 300)
