@@ -43,7 +43,9 @@ def _mapper(args):
         with warnings.catch_warnings():           # NumPy's "input contained no data": said below, in one line
             warnings.filterwarnings("ignore", message="loadtxt: input contained no data", category=UserWarning)
             return SlicerMapper.from_table(args.spot_table)
-    except (ValueError, KeyError, IndexError) as exc:     # the table reader's errors (ConfigError, or a parse error)
+    except ConfigError as exc:                            # the table reader's own: it names the file (and line)
+        raise ConfigError(f"--spot-table: {exc}") from None
+    except (ValueError, KeyError, IndexError) as exc:     # a parse error
         raise ConfigError(f"--spot-table: {args.spot_table}: not a spot table: {' '.join(str(exc).split())}") \
             from None
 

@@ -48,6 +48,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.errors import ConfigError, ParameterError
 from slicersim.io.config import builtin_config_dir
+from slicersim.io.tables import numeric_rows
 from slicersim.backends.precision import resolve_precision
 from slicersim.backends.projection import (backend_tag, build_tables, default_block, deposit, load_tables,
                                           resolve_table_cache, store_tables, table_key)
@@ -75,9 +76,9 @@ def read_spot_table(table_or_path):
             header = fh.readline().split()
         if header != list(COLUMNS):
             raise ConfigError(f"{path}: header must be {' '.join(COLUMNS)!r}, got {' '.join(header)!r}")
-        data = np.loadtxt(path, skiprows=1, ndmin=2)
-        if data.shape[1:] != (len(COLUMNS),):            # header only: NumPy's shape (1, 0), then an IndexError
-            raise ConfigError(f"{path}: no rows of {len(COLUMNS)} numbers under the header (got shape {data.shape})")
+        data = numeric_rows(path, len(COLUMNS), skiprows=1, what="spot-table")     # a bad row: its line named
+        if not len(data):
+            raise ConfigError(f"{path}: no rows of {len(COLUMNS)} numbers under the header")
         return {name: data[:, i] for i, name in enumerate(COLUMNS)}
     try:
         return {name: np.asarray(table_or_path[name], dtype=np.float64).ravel() for name in COLUMNS}

@@ -9,7 +9,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.errors import ConfigError
 
-__all__ = ["resolve_path", "file_digest", "read_file_bytes", "read_table", "read_spectrum_table",
+__all__ = ["numeric_rows", "resolve_path", "file_digest", "read_file_bytes", "read_table", "read_spectrum_table",
            "data_line_numbers", "check_increasing", "MAX_TEXT_BYTES", "MAX_TABLE_BYTES"]
 
 #: largest text input read whole (configuration, campaign spec, effects config, curve) [bytes]
@@ -148,3 +148,24 @@ def _numeric(tab, col, path, name):
             raise ConfigError(f"{name}: {path}, {where}: {col} = {validation.short_repr(str(value))} is not a number "
                               "(write numbers with a decimal point)") from None
     return np.asarray(values, dtype=float)
+
+
+def numeric_rows(path, ncols, *, skiprows=0, error=ConfigError, what="table"):
+    """(n, ``ncols``) float array of a whitespace-separated text file after ``skiprows`` lines ('#'
+    comments and blank lines skipped); a row with another count of numbers, or a word, is one
+    ``error`` naming the file and its line (1-based, as an editor shows it)."""
+    rows = []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for number, line in enumerate(fh, start=1):
+            fields = line.split("#", 1)[0].split()
+            if number <= skiprows or not fields:
+                continue
+            try:
+                values = [float(v) for v in fields]
+            except ValueError:
+                values = None
+            if values is None or len(values) != ncols:
+                got = "a word" if values is None else f"{len(values)} numbers"
+                raise error(f"{path}, line {number}: {got} where a {what} row has {ncols} numbers")
+            rows.append(values)
+    return np.array(rows, dtype=float).reshape(-1, ncols)

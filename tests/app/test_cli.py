@@ -296,7 +296,8 @@ def user_files(tmp_path):
     files = {"binary": tmp_path / "data.bin", "text_npy": tmp_path / "image.npy", "bad_row": tmp_path / "sp.txt",
              "negative": tmp_path / "neg.txt", "strings_npy": tmp_path / "s.npy", "empty_npy": tmp_path / "e.npy",
              "no_pixels_npy": tmp_path / "z.npy", "line_npy": tmp_path / "l.npy", "image_npy": tmp_path / "i.npy",
-             "spectrum": tmp_path / "flat.txt", "spot_header": tmp_path / "spots.csv"}
+             "spectrum": tmp_path / "flat.txt", "spot_header": tmp_path / "spots.csv",
+             "spot_short_row": tmp_path / "short.txt"}
     files["binary"].write_bytes(bytes(range(128, 256)) * 4)
     files["text_npy"].write_text("1 2\n3 4\n")
     files["bad_row"].write_text("# wavelength flux\n4000 1e-17\n5000 1e-17\n6000 oops\n")
@@ -308,6 +309,7 @@ def user_files(tmp_path):
     np.save(files["image_npy"], np.ones((4, 4)))
     files["spectrum"].write_text("3000 1e-17\n20000 1e-17\n")
     files["spot_header"].write_text("slice fieldpos lbda x y rmsx_um rmsy_um\n")
+    files["spot_short_row"].write_text("slice fieldpos lbda x y rmsx_um rmsy_um\n1 0 4000 1 2 3 4\n\n2 0 4000 1 2\n")
     return files
 
 
@@ -316,7 +318,9 @@ def user_files(tmp_path):
     (["etc", "--spectrum", "{bad_row}"], ["--spectrum", "sp.txt", "line 4", "'6000 oops'"]),
     (["etc", "--spectrum", "{negative}"], ["--spectrum", "neg.txt", "negative"]),
     (["etc", "--redshift", "1", "--config", "{binary}"], ["data.bin", "cannot parse TOML"]),
-    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{bad_row}"], ["--spot-table", "sp.txt", "not a spot table"]),
+    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{bad_row}"], ["--spot-table", "sp.txt", "header must be"]),
+    (["footprints", "--out", "{tmp}/fp", "--spot-table", "{spot_short_row}"],   # was NumPy's "use `usecols`" advice
+     ["--spot-table: ", "short.txt, line 4: 5 numbers where a spot-table row has 7 numbers"]),
     (["footprints", "--out", "{tmp}/fp", "--spot-table", "{binary}"], ["--spot-table", "data.bin"]),
     (["footprints", "--out", "{tmp}/fp", "--spot-table", "{spot_header}"],     # was "index 1 is out of bounds"
      ["spots.csv", "no rows of 7 numbers under the header"]),
