@@ -97,10 +97,10 @@ def _read_spectrum(path):
     except UnicodeDecodeError as exc:
         raise SpectrumError(f"--spectrum: {path} is not a text file (byte {exc.start} is not UTF-8); "
                             "give a two-column text/CSV file: wavelength [Angstrom], flux") from None
-    lbda, flux, lines = [], [], []
+    lbda, flux, lines, skipped = [], [], [], []
     for number, line in enumerate(text.splitlines(), start=1):
-        fields = line.split("#", 1)[0].replace(",", " ").replace(";", " ").split()
-        if not fields:
+        fields = [f.strip("\"'") for f in line.split("#", 1)[0].replace(",", " ").replace(";", " ").split()]
+        if not fields:                  # quoted CSV numbers ("4000","1e-17") are numbers
             continue
         if len(fields) > 2 and _two_numbers(fields) is not None:
             raise SpectrumError(f"--spectrum: {path}, line {number}: {len(fields)} fields "
@@ -109,6 +109,7 @@ def _read_spectrum(path):
         row = _two_numbers(fields)
         if row is None:
             if not lbda:
+                skipped.append((number, line.strip()))
                 continue                # header
             raise SpectrumError(f"--spectrum: {path}, line {number}: expected two numbers 'wavelength flux', "
                                 f"got {validation.short_repr(line.strip())}")
@@ -116,7 +117,9 @@ def _read_spectrum(path):
         flux.append(row[1])
         lines.append(number)
     if len(lbda) < 2:
-        raise SpectrumError(f"{path}: need at least two numeric 'wavelength flux' rows")
+        where = f"; line {skipped[-1][0]} {validation.short_repr(skipped[-1][1])} is not two numbers" if skipped else ""
+        raise SpectrumError(f"--spectrum: {path}: need at least two rows of two numbers 'wavelength flux', found "
+                            f"{len(lbda)}{where}")
     from slicersim.io.tables import check_increasing
     check_increasing(lbda, f"--spectrum: {path}", error=SpectrumError, lines=lines)
     from slicersim.sources.spectra import validate_spectrum

@@ -313,6 +313,23 @@ def user_files(tmp_path):
     return files
 
 
+def test_spectrum_csv_with_quoted_numbers_is_read_and_too_few_rows_name_a_line(tmp_path, capsys, monkeypatch):
+    """Quoted CSV numbers ("4000","1e-17") were not numbers ("need at least two numeric rows", no line)."""
+    from slicersim.app.cli import main
+    quoted, plain = tmp_path / "q.csv", tmp_path / "p.csv"
+    quoted.write_text('wavelength,flux\n"4000","1e-17"\n"5000","1e-17"\n"9000","1e-17"\n')
+    plain.write_text("wavelength,flux\n4000,1e-17\n5000,1e-17\n9000,1e-17\n")
+    outs = []
+    for path in (quoted, plain):
+        assert main(["etc", "--spectrum", str(path), "--snr", "10"]) == 0
+        outs.append(capsys.readouterr().out.replace(str(path), ""))
+    assert outs[0] == outs[1]
+    words = tmp_path / "w.csv"
+    words.write_text("wavelength,flux\nabc,def\n4000,1e-17\n")
+    err = _one_line(*_main_error(capsys, ["etc", "--spectrum", str(words), "--snr", "10"], monkeypatch))
+    assert "w.csv: need at least two rows of two numbers 'wavelength flux', found 1; line 2 'abc,def'" in err, err
+
+
 @pytest.mark.parametrize("argv, needles", [
     (["etc", "--spectrum", "{binary}"], ["--spectrum", "data.bin", "not a text file"]),
     (["etc", "--spectrum", "{bad_row}"], ["--spectrum", "sp.txt", "line 4", "'6000 oops'"]),
