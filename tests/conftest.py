@@ -222,3 +222,16 @@ def run_cli(*args, cwd=None, debug=False, env=None, **_subprocess_only):
             else:
                 os.environ[k] = v
     return subprocess.CompletedProcess(["slicersim", *argv], code, out.getvalue(), err.getvalue())
+
+
+def flip_chunk_byte(path, dataset, offset=5, mask=0xFF):
+    """Damage an HDF5 file as a bad disk or transfer would: XOR ``mask`` into one byte at ``offset``
+    inside the first stored chunk of ``dataset`` (its Fletcher-32 checksum then fails)."""
+    import h5py
+    with h5py.File(path, "r") as fh:
+        where = fh[dataset].id.get_chunk_info(0).byte_offset + offset
+    with open(path, "r+b") as fh:
+        fh.seek(where)
+        byte = fh.read(1)
+        fh.seek(where)
+        fh.write(bytes([byte[0] ^ mask]))

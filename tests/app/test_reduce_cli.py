@@ -7,6 +7,7 @@ import stat
 import h5py
 import numpy as np
 import pytest
+from conftest import flip_chunk_byte
 
 from slicersim.app.cli import main
 from slicersim.errors import ParameterError
@@ -437,16 +438,6 @@ def test_out_fifo_link_and_directory_are_refused_and_untouched(raw, tmp_path, ca
 
 
 # --------------------------------------------------------------------------- inputs we did not write
-def _flip_sci_byte(path):
-    with h5py.File(path, "r") as fh:
-        offset = fh["SCI"].id.get_chunk_info(0).byte_offset + 3
-    with open(path, "r+b") as fh:
-        fh.seek(offset)
-        byte = fh.read(1)
-        fh.seek(offset)
-        fh.write(bytes([byte[0] ^ 0x10]))
-
-
 def test_external_truth_is_refused_and_its_bytes_never_copied(raw, tmp_path, capsys):
     path, rate = raw
     secret = tmp_path / "secret.bin"
@@ -519,7 +510,7 @@ def test_a_flipped_data_byte_fails_with_a_checksum_error(raw, tmp_path, capsys):
     path, _ = raw
     bad = tmp_path / "flipped.h5"
     shutil.copy(path, bad)
-    _flip_sci_byte(bad)
+    flip_chunk_byte(bad, "SCI", offset=3, mask=0x10)
     out = tmp_path / "out.h5"
     assert main(["reduce", str(bad), "--out", str(out), "--quiet"]) == 2
     error = _one_line_error(capsys)

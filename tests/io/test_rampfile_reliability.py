@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import flip_chunk_byte
 
 from slicersim.errors import RampFileError
 from slicersim.io.rampfile import RampWriter, is_temporary, read_ramps
@@ -428,23 +429,10 @@ def test_written_datasets_carry_fletcher32_and_read_back_compressed(tmp_path):
         assert np.array_equal(read_ramps(path)[0], sci)
 
 
-def _flip_sci_byte(path):
-    """Flip one byte inside the first stored chunk of SCI."""
-    import h5py
-    with h5py.File(path, "r") as fh:
-        info = fh["SCI"].id.get_chunk_info(0)
-        offset = info.byte_offset + 5
-    with open(path, "r+b") as fh:
-        fh.seek(offset)
-        byte = fh.read(1)
-        fh.seek(offset)
-        fh.write(bytes([byte[0] ^ 0xFF]))
-
-
 def test_a_flipped_data_byte_is_a_checksum_error(tmp_path):
     path = tmp_path / "r.h5"
     _small_ramp(path)
-    _flip_sci_byte(path)
+    flip_chunk_byte(path, "SCI")
     with pytest.raises(RampFileError, match=r"checksum mismatch in dataset SCI of .*r\.h5"):
         read_ramps(path)
 

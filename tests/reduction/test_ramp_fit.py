@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import flip_chunk_byte
 from scipy.special import erfc
 
 from slicersim.backends.ramp_fit import fit_block_numpy, fit_block_opencl, fit_constants
@@ -573,15 +574,8 @@ def test_a_source_of_another_kind_says_what_is_accepted(source, got):
 
 def test_a_flipped_pixeldq_byte_is_a_checksum_error_naming_the_file(tmp_path):
     """A corrupted PIXELDQ chunk gave h5py's bare "Can't synchronously read data" without the file."""
-    import h5py
     path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, out=tmp_path / "r.h5", **QUIET)
-    with h5py.File(path, "r") as fh:
-        offset = fh["PIXELDQ"].id.get_chunk_info(0).byte_offset + 5
-    with open(path, "r+b") as fh:
-        fh.seek(offset)
-        byte = fh.read(1)
-        fh.seek(offset)
-        fh.write(bytes([byte[0] ^ 0xFF]))
+    flip_chunk_byte(path, "PIXELDQ")
     with pytest.raises(RampFileError, match=r"checksum mismatch in dataset PIXELDQ of .*r\.h5"):
         fit_ramps(path, progress=False)
 
