@@ -36,7 +36,7 @@ import numpy as np
 from slicersim.io.atomic import _HDF5_MARGIN, AtomicH5File, flush_chunks, is_temporary, one_line, remove_stale_temporaries
 
 __all__ = ["RampWriter", "RampFileError", "compression_options", "read_ramps", "DQ", "is_temporary",
-           "remove_stale_temporaries", "check_hdf5_input", "check_stored", "read_error", "open_hdf5_input",
+           "remove_stale_temporaries", "check_hdf5_input", "check_stored", "read_error", "open_hdf5_input", "soft_links",
            "MAX_COMPRESSION"]
 
 #: JWST data-quality bit values
@@ -381,3 +381,15 @@ def read_ramps(path):
         attrs = {k: fh.attrs[k] for k in fh.attrs}
         pix = read_dataset(fh["PIXELDQ"], path) if "PIXELDQ" in fh else None
         return read_dataset(fh["SCI"], path), read_dataset(fh["GROUPDQ"], path), pix, attrs
+
+
+def soft_links(group, prefix=""):
+    """Paths of the soft links under an h5py ``group`` (``visititems`` does not follow them, so a
+    reader walking the file that way would miss what they point to)."""
+    import h5py
+    for name in group:
+        link = group.get(name, getlink=True)
+        if isinstance(link, h5py.SoftLink):
+            yield prefix + name
+        elif isinstance(link, h5py.HardLink) and isinstance(group[name], h5py.Group):
+            yield from soft_links(group[name], prefix + name + "/")

@@ -62,7 +62,7 @@ from slicersim.io.atomic import _HDF5_MARGIN, one_line, publish, remove_stale_te
 from slicersim.io.fits_blocks import (BLOCK, IMAGE_TYPES, ascii_text, card_value, from_mjd, header_bytes,
                                       image_header, mjd, padded, table_bytes, to_storage)
 from slicersim.io.fits_checksum import StreamedChecksums, verify_datasums
-from slicersim.io.rampfile import open_hdf5_input, read_dataset
+from slicersim.io.rampfile import open_hdf5_input, read_dataset, soft_links
 from slicersim.io.row_blocks import RowBlocks, rows_per_block
 
 __all__ = ["UncalWriter", "UncalOptions", "write_uncal_from_hdf5", "read_uncal", "read_uncal_truth", "truth_extname",
@@ -516,6 +516,10 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 2
         sci, gdq = fh["SCI"], fh.get("GROUPDQ")
         nints, ngroups, ny, nx = sci.shape
         attrs = {k: fh.attrs[k] for k in fh.attrs if k != "COMPLETE"}
+        links = list(soft_links(fh))
+        if links:                                   # never written by slicersim; visititems would skip them
+            raise RampFileError(f"{h5_path}: {links[0]} is a soft link: a ramp file to convert holds its datasets "
+                                "themselves (copy the data in place of the link)")
         others = []
         fh.visititems(lambda name, obj: others.append(name) if isinstance(obj, h5py.Dataset)
                       and name not in ("SCI", "GROUPDQ", "PIXELDQ") else None)

@@ -397,3 +397,20 @@ def test_memory_budget_is_the_deprecated_name_of_max_bytes(tmp_path):
     assert np.array_equal(read_uncal(old)[0], read_uncal(new)[0])
     with pytest.raises(ParameterError, match="max_bytes"):
         write_uncal_from_hdf5(h5, tmp_path / "bad.fits", max_bytes=0)
+
+
+def test_conversion_refuses_a_soft_link_it_would_not_follow(tmp_path):
+    """h5py's visititems skips soft links: a truth dataset reached through one was left out of the
+    FITS file (or written under its target's name) without a word."""
+    import h5py
+    src = simulate(np.full((8, 8), 5.0), (3, 1, 0), seed=1, out=str(tmp_path / "r.h5"), progress=False)
+    with h5py.File(src, "a") as fh:
+        fh["extra/cr"] = np.zeros((8, 8), np.float32)
+        fh["truth/cosmic_rays"] = h5py.SoftLink("/extra/cr")
+    out = tmp_path / "r.fits"
+    with pytest.raises(RampFileError, match=r"r\.h5: truth/cosmic_rays is a soft link: a ramp file to convert"):
+        write_uncal_from_hdf5(src, out)
+    assert not out.exists()
+    write_uncal_from_hdf5(simulate(np.full((8, 8), 5.0), (3, 1, 0), seed=1, out=str(tmp_path / "ok.h5"),
+                                   progress=False), tmp_path / "ok.fits")          # a file of ours converts
+    assert (tmp_path / "ok.fits").exists()
