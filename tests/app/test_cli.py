@@ -207,7 +207,7 @@ def test_user_errors_are_one_line_exit_2(tmp_path, rate_file, args, match):
 def test_spectrum_with_one_row_is_a_user_error(tmp_path):
     csv = tmp_path / "one.csv"
     csv.write_text("5000 1e-17\n")
-    assert "two numeric" in one_error_line(run("etc", "--spectrum", csv))
+    assert "need at least two rows of two numbers" in one_error_line(run("etc", "--spectrum", csv))
 
 
 @pytest.mark.slow
