@@ -8,6 +8,7 @@ here.
 from __future__ import annotations
 
 import os
+import warnings
 
 from slicersim import validation
 from slicersim.errors import ConfigError
@@ -34,6 +35,26 @@ def check_field(field):
     """A Lazuli field name ("narrow", "wide") or None (the configuration as written); ConfigError
     listing the valid ones (with a did-you-mean) otherwise."""
     return validation.choice("field", field, (*LAZULI_FIELDS, None), error=ConfigError)
+
+
+#: keys whose absence makes an ideal instrument (QE 1, no noise, no losses): warned, as a partial file
+#: meant to amend the built-in configuration replaces it
+IDEAL_DEFAULTS = {("detector", "QE"): "1", ("detector", "ron"): "0 electron", ("detector", "dark"): "0",
+                  ("detector", "gain"): "1", ("spectrograph.throughput", "throughput"): "1",
+                  ("telescope", "diameter_ext"): "3 m"}
+
+
+class IdealDefaultsWarning(UserWarning):
+    """A configuration leaves key instrument properties unset: ideal values are used."""
+
+
+def _warn_ideal_defaults(cfg):
+    missing = [f"[{t}] {k} ({v})" for (t, k), v in IDEAL_DEFAULTS.items() if k not in (cfg.get(t) or {})]
+    if missing:
+        files = ", ".join(os.path.basename(p) for p in cfg.get("_sources", ())) or "given as a dict"
+        warnings.warn(f"the configuration ({files}) leaves {', '.join(missing)} unset: these ideal values are "
+                      "used (a configuration file replaces the built-in one, it does not amend it); "
+                      f"{complete_config_hint()}", IdealDefaultsWarning, stacklevel=3)
 
 
 def build_simulation(config="cbe", field="narrow", pointsource=None, background="zodi",
@@ -70,6 +91,7 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
         raise ConfigError(f"the configuration ({files}) sets neither [spectrograph] dispersion_law nor "
                           "resolving_power, one of which the model needs (a configuration file replaces the built-in "
                           f"one, it does not amend it); {complete_config_hint()}")
+    _warn_ideal_defaults(cfg)
     spectrograph = cls(spectral_range=spc.get("spectral_range", (4000.0, 17000.0)),
                        dispersion_law=spc.get("dispersion_law"), resolving_power=spc.get("resolving_power"),
                        dispersion_scale=spc.get("dispersion_scale", 1.0),

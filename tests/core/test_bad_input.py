@@ -449,3 +449,23 @@ def test_bad_input_raises_slicersim_error(call):
     ValueError / TypeError / OverflowError / CurveError."""
     t = flat_target()
     assert_rejected_unchanged(t, lambda: call(t))
+
+
+def test_a_configuration_leaving_the_detector_and_throughput_unset_warns_of_the_ideal_values(tmp_path):
+    """A file with the dispersion but no QE, noise, throughput... ran as an ideal instrument (QE 1, no read
+    noise) without a word: a file meant to amend the CBE replaced it."""
+    import warnings
+    from slicersim.assembly import IdealDefaultsWarning
+    path = tmp_path / "mine.toml"
+    path.write_text("[spectrograph]\nresolving_power = 200\n[detector]\nron = 5.0\n", encoding="utf-8")
+    with pytest.warns(IdealDefaultsWarning, match=r"the configuration \(mine.toml\) leaves \[detector\] QE \(1\), "
+                                                  r"\[detector\] dark \(0\).*\[spectrograph.throughput\] throughput "
+                                                  r"\(1\).*does not amend it.*--config cbe --config FILE") as info:
+        sim = build_simulation(str(path), "narrow")
+    assert "[detector] ron" not in str(info[0].message) and sim.detector.ron == 5.0
+    amend = tmp_path / "amend.toml"
+    amend.write_text("[detector]\nron = 5.0\n", encoding="utf-8")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", IdealDefaultsWarning)
+        for config in ("cbe", "eol", ["cbe", str(amend)]):         # complete, or layered on a complete one
+            build_simulation(config, "narrow")
