@@ -235,3 +235,40 @@ def flip_chunk_byte(path, dataset, offset=5, mask=0xFF):
         byte = fh.read(1)
         fh.seek(where)
         fh.write(bytes([byte[0] ^ mask]))
+
+
+#: λ bin edges [Å] (12 bins) and cube width [cells] of the small test layout's reductions
+SMALL_EDGES = np.arange(9050.0, 9951.0, 75.0)
+SMALL_NCOL = 24
+
+
+def small_point_source():
+    """(mapper, λ edges [Å], PSF cube, detector image [e-/s]) of a point source (400 e-/s per bin) in the
+    narrow field of :func:`small_slicer_mapper`."""
+    from slicersim.physics.psf import gaussian_psf_cells
+    mapper = small_slicer_mapper()
+    lbda = 0.5 * (SMALL_EDGES[1:] + SMALL_EDGES[:-1])
+    sig = np.linspace(1.2, 1.8, lbda.size)
+    iy, ix = np.indices((58, SMALL_NCOL)).reshape(2, -1)
+    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, SMALL_NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58,
+                                                                                              SMALL_NCOL)
+    return mapper, SMALL_EDGES.copy(), psf, mapper.project_fields(lbda, SMALL_EDGES, narrow=400.0 * psf)
+
+
+def small_raw_ramps(path, nmd=(4, 2, 0)):
+    """Write the raw ramps of :func:`small_point_source` to ``path`` (seed 2, read noise 5 e-, no dark);
+    returns (path, mapper, PSF cube)."""
+    from slicersim.products.ramps import simulate
+    mapper, _, psf, image = small_point_source()
+    simulate(image, nmd, seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
+    return path, mapper, psf
+
+
+def one_line_error(proc, *words):
+    """Assert that a CLI run (:func:`run_cli`) failed as a user error (exit 2) with one line that
+    contains each of ``words`` (case-insensitive)."""
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert len(lines) == 1 and lines[0].startswith("slicersim: error:"), proc.stderr
+    for w in words:
+        assert w.lower() in lines[0].lower(), lines[0]

@@ -7,7 +7,7 @@ import stat
 import h5py
 import numpy as np
 import pytest
-from conftest import flip_chunk_byte
+from conftest import flip_chunk_byte, small_raw_ramps
 
 from slicersim.app.cli import main
 from slicersim.errors import ParameterError
@@ -68,28 +68,10 @@ EDGES = "9050,9950,75"                      # 12 bins on the small test layout
 NCOL = 24
 
 
-def small_point_source():
-    """(mapper, λ edges [Å], PSF cube, detector image [e-/s]) of a point source (400 e-/s per bin) in the
-    narrow field of the small test layout."""
-    from conftest import small_slicer_mapper
-
-    from slicersim.physics.psf import gaussian_psf_cells
-    mapper = small_slicer_mapper()
-    edges = np.arange(9050.0, 9951.0, 75.0)
-    lbda = 0.5 * (edges[1:] + edges[:-1])
-    sig = np.linspace(1.2, 1.8, lbda.size)
-    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
-    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
-    return mapper, edges, psf, mapper.project_fields(lbda, edges, narrow=400.0 * psf)
-
-
 @pytest.fixture(scope="module")
 def small_raw(tmp_path_factory):
-    """Raw ramps of :func:`small_point_source`."""
-    mapper, edges, psf, image = small_point_source()
-    path = tmp_path_factory.mktemp("small") / "raw.h5"
-    simulate(image, (8, 4, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
-    return path, mapper, psf
+    """Raw ramps of :func:`conftest.small_point_source`."""
+    return small_raw_ramps(tmp_path_factory.mktemp("small") / "raw.h5", (8, 4, 0))
 
 
 @pytest.fixture

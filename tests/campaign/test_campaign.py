@@ -23,7 +23,7 @@ from slicersim.errors import ConfigError, DatasetError
 import tomllib
 from astropy.table import Table
 
-from conftest import run_cli
+from conftest import one_line_error, run_cli
 
 SPEC = """\
 seed = 11
@@ -704,14 +704,6 @@ def _run_cli(*args, **kw):
     return run_cli(*args, **kw)
 
 
-def _one_line_error(proc, *words):
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2, (proc.returncode, proc.stderr)
-    assert len(lines) == 1 and lines[0].startswith("slicersim: error:"), proc.stderr
-    for w in words:
-        assert w.lower() in lines[0].lower(), lines[0]
-
-
 def _flat_catalog(tmp_path, flux=3e-18):
     Table({"lbda": [3000.0, 20000.0], "flux": [flux, flux]}).write(tmp_path / "flat.ecsv", overwrite=True)
     Table({"target_id": [1, 3], "redshift": [0.0, 0.2], "spectrum_file": ["flat.ecsv", "flat.ecsv"]}).write(
@@ -790,7 +782,7 @@ def test_readouts_of_targets_with_hosts_include_the_host_light():
 def test_wrong_types_give_one_line(tmp_path, edit, message):
     spec = tmp_path / "s.toml"
     spec.write_text(edit(BASE))
-    _one_line_error(_run_cli("campaign", "run", spec, "--out", tmp_path / "o"), message)
+    one_line_error(_run_cli("campaign", "run", spec, "--out", tmp_path / "o"), message)
     assert not (tmp_path / "o").exists()
 
 
@@ -828,7 +820,7 @@ def test_malformed_records_and_lost_spec_json(tmp_path):
 def test_bad_run_arguments_write_nothing(tmp_path, args, message):
     spec = tmp_path / "s.toml"
     spec.write_text(BASE)
-    _one_line_error(_run_cli("campaign", "run", spec, "--out", tmp_path / "o", *args), message)
+    one_line_error(_run_cli("campaign", "run", spec, "--out", tmp_path / "o", *args), message)
     assert not (tmp_path / "o").exists()
 
 

@@ -16,7 +16,7 @@ from slicersim.errors import ConfigError, ParameterError
 import signal
 import time
 
-from conftest import run_cli
+from conftest import one_line_error, run_cli
 
 LBDA = np.arange(3000.0, 20000.0, 10.0)
 BIN = Path(sys.executable).parent
@@ -490,14 +490,6 @@ def _cli(*args, **kw):
     return run_cli(*args, **kw)
 
 
-def _one_line_error(proc, *words):
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2, (proc.returncode, proc.stderr)
-    assert len(lines) == 1 and lines[0].startswith("slicersim: error:"), proc.stderr
-    for w in words:
-        assert w.lower() in lines[0].lower(), lines[0]
-
-
 # 4, 13 ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize("col, values, message", [("mwebv", [-2.0], "mwebv"), ("peak_absmag", [-40.0], "peak_absmag"),
                                                   ("phase", ["abc"], "not numeric"), ("redshift", ["x"], "not numeric"),
@@ -536,7 +528,7 @@ def test_sigint_interrupts_a_survey_plan_with_one_line(tmp_path):
                                            (["--figure", "/nonexistent/f.png"], "not writable")])
 def test_survey_plan_refuses_impossible_requests(tmp_path, args, message):
     proc = _cli("survey", "plan", "--n", "3", *args, cwd=tmp_path)
-    _one_line_error(proc, message)
+    one_line_error(proc, message)
     assert not list(tmp_path.iterdir())
 
 
@@ -568,7 +560,7 @@ def test_survey_plan_out_fifo_is_refused_even_with_overwrite(tmp_path):
     (tmp_path / "f.png").symlink_to(tmp_path / "p.ecsv")
     for args, words in ((["--out", "p.ecsv"], ("--out:", "p.ecsv is a FIFO")),
                         (["--figure", "f.png"], ("--figure:", "FIFO", "symbolic link"))):
-        _one_line_error(_cli("survey", "plan", "--n", "3", "--overwrite", *args, cwd=tmp_path), *words)
+        one_line_error(_cli("survey", "plan", "--n", "3", "--overwrite", *args, cwd=tmp_path), *words)
     assert stat.S_ISFIFO(os.lstat(tmp_path / "p.ecsv").st_mode) and sorted(os.listdir(tmp_path)) == ["f.png", "p.ecsv"]
 
 

@@ -8,16 +8,11 @@ import pytest
 from slicersim.etc.solve import solve_many
 from slicersim.targets import LazuliTarget
 
-
-LBDA = np.arange(3000.0, 20000.0, 10.0)
+from model_state import LBDA, sloped  # the λ grid [Å] and λ^-1.5 spectrum shared with other tests
 
 
 def flat(level=1e-17):
     return np.full(LBDA.size, level)
-
-
-def sloped(level=1e-17):
-    return level * (LBDA / 1e4) ** -1.5
 
 
 @pytest.fixture(scope="module")

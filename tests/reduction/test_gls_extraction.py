@@ -14,6 +14,7 @@ Tolerances
 """
 import numpy as np
 import pytest
+from conftest import SMALL_EDGES, small_raw_ramps
 import scipy.sparse as sp
 from conftest import small_slicer_mapper
 
@@ -21,7 +22,6 @@ from slicersim.errors import ParameterError
 from slicersim.physics.psf import gaussian_psf_cells
 from slicersim.reduction.rectify import inverse_covariance, rectify
 from slicersim.reduction.spectra import extract_spectrum, propagate_variance
-from slicersim.products.ramps import simulate
 
 EDGES = np.linspace(9050.0, 9950.0, 11)      # 10 bins of 6 px on the small layout
 NCOL = 24
@@ -172,24 +172,13 @@ def test_sandwich_variance_for_weights_that_are_not_the_inverse_variance(setup):
         noise_information(cw.inverse_covariance, var[:10])
 
 
-EDGES_RAW = np.arange(9050.0, 9951.0, 75.0)     # 12 bins on the small test layout
+EDGES_RAW = SMALL_EDGES                          # 12 bins on the small test layout
 
 
 @pytest.fixture(scope="module")
 def small_raw(tmp_path_factory):
     """Raw ramps of a point source in the narrow field of the small test layout (660 × 600)."""
-    from conftest import small_slicer_mapper
-
-    from slicersim.physics.psf import gaussian_psf_cells
-    mapper = small_slicer_mapper()
-    lbda = 0.5 * (EDGES_RAW[1:] + EDGES_RAW[:-1])
-    sig = np.linspace(1.2, 1.8, lbda.size)
-    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
-    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
-    image = mapper.project_fields(lbda, EDGES_RAW, narrow=400.0 * psf)
-    path = tmp_path_factory.mktemp("small") / "raw.h5"
-    simulate(image, (4, 2, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
-    return path, mapper
+    return small_raw_ramps(tmp_path_factory.mktemp("small") / "raw.h5")[:2]
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,7 @@ Tolerances
 """
 import numpy as np
 import pytest
+from conftest import SMALL_EDGES, small_raw_ramps
 from conftest import have_opencl, small_slicer_mapper, wide_spot_mapper
 
 from slicersim.backends import projection as cp
@@ -26,7 +27,6 @@ from slicersim.io.config import builtin_config_dir
 from slicersim.io.curves import read_curve
 from slicersim.instrument.spectrograph import wavelength_grid_from_dispersion
 from slicersim.reduction.rectify import rectify
-from slicersim.products.ramps import simulate
 from slicersim.reduction.spectra import extract_spectrum
 from slicersim.reduction.rectify import noise_information
 from test_gls_extraction import EDGES as EDGES_GLS, NCOL as NCOL_GLS, noisy_scene
@@ -286,7 +286,7 @@ def test_bad_input_is_refused_before_any_work(mapper, monkeypatch):
         rectify(good, mapper=other, field="both", lbda=lbda, lbda_edges=edges, ncol=58)
 
 
-EDGES = np.arange(9050.0, 9951.0, 75.0)     # 12 bins on the small test layout
+EDGES = SMALL_EDGES                          # 12 bins on the small test layout
 
 
 NCOL = 24
@@ -295,18 +295,7 @@ NCOL = 24
 @pytest.fixture(scope="module")
 def small_raw(tmp_path_factory):
     """Raw ramps of a point source in the narrow field of the small test layout (660 × 600)."""
-    from conftest import small_slicer_mapper
-
-    from slicersim.physics.psf import gaussian_psf_cells
-    mapper = small_slicer_mapper()
-    lbda = 0.5 * (EDGES[1:] + EDGES[:-1])
-    sig = np.linspace(1.2, 1.8, lbda.size)
-    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
-    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
-    image = mapper.project_fields(lbda, EDGES, narrow=400.0 * psf)
-    path = tmp_path_factory.mktemp("small") / "raw.h5"
-    simulate(image, (4, 2, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
-    return path, mapper
+    return small_raw_ramps(tmp_path_factory.mktemp("small") / "raw.h5")[:2]
 
 
 @pytest.mark.parametrize("case, message", [

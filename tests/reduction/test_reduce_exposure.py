@@ -6,13 +6,13 @@ import warnings
 import astropy.units as u
 import numpy as np
 import pytest
+from conftest import SMALL_EDGES, small_raw_ramps
 from conftest import small_slicer_mapper
 
 from slicersim.errors import ParameterError, SlicersimError
 from slicersim.reduction.options import ForwardOptions, PixelNoise, ReduceOptions
 from slicersim.reduction.rectify_checks import RectifyOptions
 import h5py
-from slicersim.products.ramps import simulate
 from slicersim.reduction.spectra import propagate_variance
 
 EDGES = np.linspace(9050.0, 9950.0, 13)      # 12 bins of 5 px on the small layout
@@ -218,24 +218,13 @@ def test_raw_keywords_out_of_range_are_refused_before_the_fit(small, raw, tmp_pa
         assert plan.raw_attrs["GAIN"] == 1e-300
 
 
-EDGES_RAW = np.arange(9050.0, 9951.0, 75.0)     # 12 bins on the small test layout
+EDGES_RAW = SMALL_EDGES                          # 12 bins on the small test layout
 
 
 @pytest.fixture(scope="module")
 def small_raw(tmp_path_factory):
     """Raw ramps of a point source in the narrow field of the small test layout (660 × 600)."""
-    from conftest import small_slicer_mapper
-
-    from slicersim.physics.psf import gaussian_psf_cells
-    mapper = small_slicer_mapper()
-    lbda = 0.5 * (EDGES_RAW[1:] + EDGES_RAW[:-1])
-    sig = np.linspace(1.2, 1.8, lbda.size)
-    iy, ix = np.indices((58, NCOL)).reshape(2, -1)
-    psf = gaussian_psf_cells(sig, 0.8 * sig, (58, NCOL), (0.7, -1.4), (iy, ix)).reshape(lbda.size, 58, NCOL)
-    image = mapper.project_fields(lbda, EDGES_RAW, narrow=400.0 * psf)
-    path = tmp_path_factory.mktemp("small") / "raw.h5"
-    simulate(image, (4, 2, 0), seed=2, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
-    return path, mapper
+    return small_raw_ramps(tmp_path_factory.mktemp("small") / "raw.h5")[:2]
 
 
 def test_reduce_exposure_writes_the_truth_rate(small_raw, tmp_path):
@@ -260,7 +249,7 @@ def test_reduce_exposure_propagates_the_sandwich_for_optimal_extraction(tmp_path
     """reduce_exposure(weights="model", extraction="optimal"): the propagated variance is the
     sandwich with the ramp fit's variance (it was N⁻¹ of the model weights); with weights="data"
     (W = Σ⁻¹) there is nothing to correct."""
-    from test_reduce_cli import small_point_source
+    from conftest import small_point_source
 
     from slicersim.products.ramps import simulate
     from slicersim.reduction.pipeline import reduce_exposure

@@ -8,20 +8,13 @@ import math
 
 import numpy as np
 import pytest
+from model_state import short_range_toml  # noqa: F401  (a fixture)
 
 from slicersim.errors import ConfigError, ParameterError, SpectrumError
 from slicersim.sources.lamps import (CalibrationLamp, FabryPerotEtalon, TabulatedEtalon, fabry_perot_lamp,
                                      qth_lamp)
 from slicersim.targets.calibration import (DEFAULT_ETALON_FSR, FlatFieldStructure, Flat3DCalibration,
                                            Lazuli3DFlat, locate_peaks)
-
-
-@pytest.fixture(scope="module")
-def short_range_toml(tmp_path_factory):
-    """Overlay TOML: the built-in CBE instrument on 9000–10000 Å only (fast detector products)."""
-    path = tmp_path_factory.mktemp("cfg") / "short_range.toml"
-    path.write_text("[spectrograph]\nspectral_range = [9000, 10000]\n", encoding="utf-8")
-    return str(path)
 
 
 @pytest.fixture(scope="module")
