@@ -6,6 +6,7 @@ PYTHON3 ?= python3
 PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.slicersim-installed
 UV      := $(shell command -v uv 2>/dev/null)
+SALT_DATA ?= jax-bandflux==1.0.0
 
 OPENCL_CHECK := "$(PY)" -c "import pyopencl; assert pyopencl.get_platforms()"
 OPENCL_PKGS  := pocl-opencl-icd ocl-icd-libopencl1
@@ -23,6 +24,9 @@ $(STAMP): pyproject.toml
 	fi
 	@if [ -n "$(UV)" ]; then uv pip install --python "$(PY)" -e ".[test,galaxies]"; \
 	else "$(PY)" -m pip install -e ".[test,galaxies]"; fi
+	@# SALT2/SALT3 templates offline: only the data files of jax-bandflux are read (never its JAX code)
+	@if [ -n "$(UV)" ]; then uv pip install --python "$(PY)" --no-deps "$(SALT_DATA)"; \
+	else "$(PY)" -m pip install --no-deps "$(SALT_DATA)"; fi
 	@touch "$@"
 
 # Make sure pyopencl sees at least one OpenCL platform; install PoCL otherwise.

@@ -19,7 +19,7 @@ import numpy as np
 
 from slicersim.errors import ConfigError, ParameterError, SpectrumError
 from slicersim.validation import MAX_REDSHIFT
-from slicersim.sources.spectra import SNCOSMO_SNIA_MODELS
+from slicersim.sources.spectra import SNCOSMO_SNIA_MODELS, offline_names
 
 __all__ = ["SNIaModel", "snia_fluxes", "model_fluxes", "cosmology", "restframe_to_observed"]
 
@@ -45,7 +45,7 @@ def _source(name):
         try:
             _SOURCES[name] = load_sncosmo_source(name)
         except SpectrumError as exc:
-            offline = ", ".join(k for k, v in SNCOSMO_SNIA_MODELS.items() if v)
+            offline = ", ".join(k for k in SNCOSMO_SNIA_MODELS if k in offline_names())
             raise SpectrumError(f"{exc} — available offline: {offline}") from None
     return _SOURCES[name]
 

@@ -14,6 +14,12 @@ detector pixels per    the pixel rows of one bin:           ``pixels_per_cell`` 
 cell (read noise,      1 for the slicer — consecutive bins  each bin's 2-px slit image counted
 dark, saturation)      share the slit image's rows          again for every bin (read noise and
                        (:func:`detector_pixels_per_cell`)   dark counted twice)
+``phase`` of SNe and   rest-frame days from the time of     observer-frame days: the sncosmo
+every sncosmo source   maximum (t0): the model is read at   model read at t = phase (1.0's
+                       t = phase (1 + z) observer days,     ``LazuliSupernova``); a campaign
+                       as SN light curves are fitted and    population at the same number was
+                       as populations, campaigns, survey    another epoch at every z > 0
+                       plans and the CLI read it            (:func:`phase_frame`)
 =====================  ===================================  =====================================
 """
 from __future__ import annotations
@@ -23,7 +29,11 @@ import math
 from slicersim import validation
 
 __all__ = ["CONVENTIONS", "DEFAULT_CONVENTIONS", "check_conventions", "variance_gain_factor",
-           "instrumental_blur_sigma", "physical_blur_sigma", "detector_pixels_per_cell"]
+           "instrumental_blur_sigma", "physical_blur_sigma", "detector_pixels_per_cell", "phase_frame",
+           "PHASE_FRAMES", "observer_days"]
+
+#: frames a transient's ``phase`` can be counted in
+PHASE_FRAMES = ("rest", "obs")
 
 DEFAULT_CONVENTIONS = "physical"
 CONVENTIONS = ("physical", "slicersim-1.0")
@@ -88,3 +98,43 @@ def detector_pixels_per_cell(spectrograph, conventions=DEFAULT_CONVENTIONS):
     if check_conventions(conventions) == "slicersim-1.0":
         return spectrograph.pixels_per_cell
     return spectrograph.pixels_per_bin
+
+
+def phase_frame(conventions=DEFAULT_CONVENTIONS):
+    """Frame of a transient's ``phase`` under ``conventions``.
+
+    Parameters
+    ----------
+    conventions : {"physical", "slicersim-1.0"}
+        The convention set (:data:`CONVENTIONS`).
+
+    Returns
+    -------
+    str
+        ``"rest"`` (physical: rest-frame days from maximum, the frame of SN light-curve fits,
+        populations, campaigns and survey plans) or ``"obs"`` (slicersim 1.0's
+        ``LazuliSupernova``: observer-frame days).
+    """
+    return "rest" if check_conventions(conventions) == "physical" else "obs"
+
+
+def observer_days(phase, redshift, frame="rest"):
+    """Observer-frame days since maximum of a ``phase`` counted in ``frame``.
+
+    Parameters
+    ----------
+    phase : float or array_like
+        Days since maximum light [d], in ``frame``.
+    redshift : float or array_like
+        Redshift z > 0 (broadcast against ``phase``).
+    frame : {"rest", "obs"}
+        The frame ``phase`` is counted in.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        t_obs = phase (1 + z) for a rest-frame phase (cosmological time dilation), ``phase``
+        itself for an observer-frame one [d].
+    """
+    frame = validation.choice("phase frame", frame, PHASE_FRAMES)
+    return phase * (1.0 + redshift) if frame == "rest" else phase

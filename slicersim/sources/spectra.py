@@ -14,11 +14,13 @@ from slicersim import validation
 from slicersim.constants import C_LIGHT, H_PLANCK, K_BOLTZMANN
 from slicersim.errors import ParameterError, SpectrumError
 from slicersim.io.tables import check_increasing
+from slicersim.physics.conventions import observer_days
+from slicersim.sources.salt_files import SALT_PACKAGE, offline_salt_names, offline_salt_source
 from slicersim.versioning import Versioned
 
 __all__ = ["PointSource", "validate_spectrum", "snia_spectrum", "sncosmo_spectrum", "load_sncosmo_source",
            "blackbody_flambda", "powerlaw_flambda", "normalise_to_mag", "find_calspec_file", "read_calspec",
-           "SNCOSMO_SNIA_MODELS", "SNCOSMO_OFFLINE", "POWERLAW_LAMBDA_REF", "CALSPEC_URL", "default_lbda",
+           "SNCOSMO_SNIA_MODELS", "SNCOSMO_OFFLINE", "offline_names", "POWERLAW_LAMBDA_REF", "CALSPEC_URL", "default_lbda",
            "MAX_FLAMBDA", "MIN_MAG", "check_flambda"]
 
 #: the brightest point-source F_λ accepted [erg/s/cm²/Å]: 5× the Sun's at Earth (≈ 2e2 near 5000 Å),
@@ -28,7 +30,8 @@ MAX_FLAMBDA = 1e3
 #: the brightest AB magnitude accepted (the Sun is about −26.7 AB at Earth)
 MIN_MAG = -30.0
 
-#: sncosmo SN Ia sources and whether they work offline (built into sncosmo)
+#: sncosmo SN Ia sources and whether they work offline without extra files (built into sncosmo);
+#: the SALT ones do where ``jax-bandflux`` is installed (:func:`offline_names`)
 SNCOSMO_SNIA_MODELS = {"hsiao-subsampled": True, "hsiao": False, "salt2": False,
                        "salt2-extended": False, "salt3": False, "salt3-nir": False}
 #: sncosmo sources whose files ship inside the sncosmo package (every other one needs its data files)
@@ -37,6 +40,18 @@ SNCOSMO_OFFLINE = ("hsiao-subsampled",)
 POWERLAW_LAMBDA_REF = 5500.0
 #: the CALSPEC archive (STScI): ``<star>_<instruments>_<version>.fits`` files
 CALSPEC_URL = "https://archive.stsci.edu/hlsps/reference-atlases/cdbs/current_calspec/"
+
+
+def offline_names():
+    """sncosmo sources that load without a download here.
+
+    Returns
+    -------
+    tuple of str
+        :data:`SNCOSMO_OFFLINE` plus the SALT models whose template files are installed
+        (:func:`slicersim.sources.salt_files.offline_salt_names`).
+    """
+    return SNCOSMO_OFFLINE + offline_salt_names()
 
 
 def default_lbda():
@@ -96,37 +111,90 @@ def powerlaw_flambda(lbda, alpha, lambda_ref=POWERLAW_LAMBDA_REF):
 
 
 def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3,
-                  band="bessellb", magsys="ab", lbda=None, x1=None, c=None, cosmology=None):
-    """SN Ia spectrum from sncosmo at ``phase`` days (observer frame) after peak
-    (:func:`sncosmo_spectrum` with the peak absolute magnitude ``peak_absmag`` in rest-frame ``band``).
+                  band="bessellb", magsys="ab", lbda=None, x1=None, c=None, cosmology=None, phase_frame="rest"):
+    """SN Ia spectrum from sncosmo at ``phase`` days from B-band maximum.
 
-    Returns (λ[Å], F[erg/s/cm²/Å]) on ``lbda`` (default 3000–19990 Å, 10 Å step).
-    ``hsiao-subsampled`` is built into sncosmo and works offline; SALT2/3 need
-    sncosmo's data download and raise a clear error when unavailable.
-    ``x1`` and ``c`` (default 0) exist only for SALT sources: given with any other
-    source (e.g. Hsiao) they would be ignored, so they raise :class:`ParameterError`.
+    :func:`sncosmo_spectrum` with the peak absolute magnitude ``peak_absmag`` in rest-frame
+    ``band``.  ``hsiao-subsampled`` is built into sncosmo and works offline; ``salt2``/``salt3``
+    work offline where their template files are installed
+    (:func:`~slicersim.sources.salt_files.offline_salt_source`), else raise a clear error.
+
+    Parameters
+    ----------
+    redshift : float
+        Redshift z, 0 < z ≤ 50.
+    phase : float
+        Days from B-band maximum [d], in ``phase_frame`` (default rest frame: the model is read
+        at t = phase (1 + z) observer days).
+    source : str, tuple or sncosmo.Source
+        sncosmo SN Ia source (:func:`load_sncosmo_source`).
+    peak_absmag : float
+        Peak absolute magnitude in rest-frame ``band`` / ``magsys`` [mag].
+    band, magsys : str
+        sncosmo bandpass and magnitude system of ``peak_absmag``.
+    lbda : array_like of shape (k,), optional
+        Wavelengths [Å] (default 3000–19990 Å, 10 Å step).
+    x1, c : float, optional
+        SALT stretch and colour (default 0); only for SALT sources (ParameterError otherwise).
+    cosmology : astropy.cosmology.Cosmology, optional
+        For the distance modulus (default Planck18).
+    phase_frame : {"rest", "obs"}
+        Frame of ``phase`` (:func:`slicersim.physics.conventions.phase_frame`: "rest" by default,
+        "obs" under ``conventions="slicersim-1.0"``).
+
+    Returns
+    -------
+    lbda : numpy.ndarray of shape (k',)
+        The part of ``lbda`` the model covers at this redshift [Å].
+    flux : numpy.ndarray of shape (k',)
+        Observer-frame F_λ [erg/s/cm²/Å].
     """
-    salt = "salt" in str(source).lower()
+    salt = "salt" in str(getattr(source, "name", source)).lower()
     if not salt and (x1 is not None or c is not None):
         raise ParameterError(f"x1 / c are SALT parameters: sncosmo source {source!r} has none "
                              "(use source='salt2' or 'salt3', or drop them)")
     params = {"x1": 0.0 if x1 is None else x1, "c": 0.0 if c is None else c} if salt else None
     return sncosmo_spectrum(source, redshift, phase, peak_absmag=peak_absmag, band=band, magsys=magsys,
-                            params=params, cosmology=cosmology, lbda=lbda)
+                            params=params, cosmology=cosmology, lbda=lbda, phase_frame=phase_frame)
 
 
 def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessellb", magsys="ab",
-                     params=None, cosmology=None, lbda=None):
-    """Observer-frame spectrum of any sncosmo source: ``sncosmo.Model(source)`` at ``redshift``,
-    t0 = 0, evaluated at ``phase`` [observer-frame days] on the part of ``lbda`` [Å] (default
-    3000–19990 Å, 10 Å) the model covers.  Returns (λ [Å], F_λ [erg/s/cm²/Å]).
+                     params=None, cosmology=None, lbda=None, phase_frame="rest"):
+    """Observer-frame spectrum of any sncosmo source at ``redshift`` and ``phase``.
 
-    source : a registry name, a (name, version) pair or a ``sncosmo.Source`` (your own files,
-        e.g. ``sncosmo.TimeSeriesSource``); see :func:`load_sncosmo_source`
-    params : the source's own parameters, e.g. {"x1": 1.0, "c": 0.1} (SALT), {"theta": 30} (kilonova)
-    peak_absmag : peak absolute magnitude in rest-frame ``band`` / ``magsys``
-        (``Model.set_source_peakabsmag``, distance modulus of ``cosmology``, default Planck18);
-        None keeps the source's own amplitude
+    ``sncosmo.Model(source)`` with t0 = 0, read at t = phase (1 + z) observer days for a
+    rest-frame ``phase`` (the default; t = phase for ``phase_frame="obs"``, slicersim 1.0's
+    reading), on the part of ``lbda`` the model covers.
+
+    Parameters
+    ----------
+    source : str, tuple or sncosmo.Source
+        A registry name, a (name, version) pair or a ``sncosmo.Source`` (your own files, e.g.
+        ``sncosmo.TimeSeriesSource``); see :func:`load_sncosmo_source`.
+    redshift : float
+        Redshift z, 0 < z ≤ 50.
+    phase : float
+        Days from the model's t0 (maximum light for SNe, merger for kilonovae) [d], in ``phase_frame``.
+    peak_absmag : float, optional
+        Peak absolute magnitude in rest-frame ``band`` / ``magsys`` (``Model.set_source_peakabsmag``,
+        distance modulus of ``cosmology``, default Planck18); None keeps the source's own amplitude.
+    band, magsys : str
+        sncosmo bandpass and magnitude system of ``peak_absmag``.
+    params : dict, optional
+        The source's own parameters, e.g. {"x1": 1.0, "c": 0.1} (SALT), {"theta": 30} (kilonova).
+    cosmology : astropy.cosmology.Cosmology, optional
+        Default Planck18.
+    lbda : array_like of shape (k,), optional
+        Wavelengths [Å] (default 3000–19990 Å, 10 Å).
+    phase_frame : {"rest", "obs"}
+        Frame of ``phase`` (:func:`slicersim.physics.conventions.phase_frame`).
+
+    Returns
+    -------
+    lbda : numpy.ndarray of shape (k',)
+        The covered part of ``lbda`` [Å].
+    flux : numpy.ndarray of shape (k',)
+        F_λ [erg/s/cm²/Å].
     """
     import sncosmo
     from astropy.cosmology import Planck18
@@ -153,17 +221,20 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
         except Exception as exc:
             raise SpectrumError(f"cannot normalise {_source_label(source)!r} to peak absolute magnitude "
                                 f"{peak_absmag} in {band!r} ({magsys}): {type(exc).__name__}: {exc}") from exc
-    if not model.mintime() <= phase <= model.maxtime():        # sncosmo would repeat its first or last epoch
-        raise SpectrumError(f"phase {validation.short_repr(phase)} days is outside the range {model.mintime():g} to "
-                            f"{model.maxtime():g} days (observer frame at redshift {redshift:g}) of the sncosmo "
-                            f"model {_source_label(source)!r}")
+    time = observer_days(float(phase), redshift, phase_frame)     # [observer-frame days from t0]
+    if not model.mintime() <= time <= model.maxtime():        # sncosmo would repeat its first or last epoch
+        scale, where = (1.0 + redshift, "rest frame") if phase_frame == "rest" else \
+            (1.0, f"observer frame at redshift {redshift:g}")
+        raise SpectrumError(f"phase {validation.short_repr(phase)} days is outside the range {model.mintime() / scale:g} "
+                            f"to {model.maxtime() / scale:g} days ({where}) of the sncosmo model "
+                            f"{_source_label(source)!r}")
     lo, hi = model.minwave(), model.maxwave()
     keep = (lbda >= lo) & (lbda <= hi)
     if np.count_nonzero(keep) < 2:
         raise SpectrumError(f"redshift {redshift:g}: the sncosmo model {_source_label(source)!r} covers "
                             f"{lo:g}–{hi:g} Å (observer frame) at this redshift, outside the wavelength "
                             f"range {lbda[0]:g}–{lbda[-1]:g} Å: the redshift is outside the model's range")
-    return lbda[keep], model.flux(phase, lbda[keep])
+    return lbda[keep], model.flux(time, lbda[keep])
 
 
 def _source_label(source):
@@ -174,8 +245,10 @@ def _source_label(source):
 def load_sncosmo_source(source):
     """A ``sncosmo.Source`` from a registry name, a (name, version) pair or a Source (returned as is).
 
-    Only the sources in :data:`SNCOSMO_OFFLINE` ship inside sncosmo; the others load from
-    sncosmo's data directory, which sncosmo fills by downloading.  When that fails, or the
+    Only the sources in :data:`SNCOSMO_OFFLINE` ship inside sncosmo; ``salt2``, ``salt3`` and
+    ``salt3-nir`` load offline from the template files of the ``jax-bandflux`` package where it is
+    installed (:mod:`slicersim.sources.salt_files`); the others load from sncosmo's data
+    directory, which sncosmo fills by downloading.  When that fails, or the
     name is unknown, SpectrumError says (in one line) which source and how to provide it."""
     import sncosmo
     if isinstance(source, sncosmo.Source):
@@ -184,6 +257,9 @@ def load_sncosmo_source(source):
     if not isinstance(name, str) or not name.strip() or not (version is None or isinstance(version, str)):
         raise SpectrumError(f"an sncosmo source is a name, a (name, version) pair or a sncosmo.Source, "
                             f"got {source!r}")
+    offline = offline_salt_source(name, version)      # SALT templates installed as package data
+    if offline is not None:
+        return offline
     try:
         return sncosmo.get_source(name, version=version)
     except Exception as exc:
@@ -198,15 +274,17 @@ def _missing_source_message(name, version, exc):
     known, relpath = _sncosmo_registry_entry(name, version)
     if known is False:
         return (f'sncosmo source "{label}" is not a name sncosmo knows (its list of built-in sources) — '
-                f"available offline: {', '.join(SNCOSMO_OFFLINE)}; for a model of your own, {own}")
+                f"available offline: {', '.join(offline_names())}; for a model of your own, {own}")
     where = relpath or "its files"
     try:
         from sncosmo.builtins import DATADIR
         datadir, remote = DATADIR.rootdir(), DATADIR._remote_root
     except Exception:  # noqa: BLE001  (sncosmo internals differ between versions)
         datadir, remote = "sncosmo's data directory", "https://sncosmo.github.io/data/"
+    salt = (f"; for SALT2/SALT3 offline, `pip install --no-deps {SALT_PACKAGE}` (its template files)"
+            if name.lower().startswith("salt") else "")
     return (f'sncosmo source "{label}" could not be loaded (needs download; offline?) — available offline: '
-            f"{', '.join(SNCOSMO_OFFLINE)}.  To provide it, put sncosmo's {where!r} (downloaded from "
+            f"{', '.join(offline_names())}{salt}.  To provide it, put sncosmo's {where!r} (downloaded from "
             f"{remote}, a folder comes as .tar.gz) under {datadir} or set SNCOSMO_DATA_DIR to a folder "
             f"holding it, or {own} ({cause})")
 

@@ -13,7 +13,7 @@ from slicersim.assembly import LAZULI_FIELDS, build_simulation, check_field  # n
 from slicersim.errors import ETCError, ParameterError, SlicersimError
 from slicersim.io.config import load_config
 from slicersim.io.curves import read_curve
-from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS, check_conventions, phase_frame
 from slicersim.physics.readout import check_readout
 from slicersim.products.extraction import (EXTRACTION_METHODS, ExtractionSetup, aperture_radius,
                                            check_aperture_in_field, extract_model, unit_factors)
@@ -489,20 +489,41 @@ class Target(DetectorProducts):
 
 class Supernova(Target):
     """SN Ia at ``redshift`` from sncosmo (default ``hsiao-subsampled``, offline), peak
-    absolute magnitude ``peak_absmag`` in Bessell B (AB, Planck18), at ``phase`` days."""
+    absolute magnitude ``peak_absmag`` in Bessell B (AB, Planck18), at ``phase`` days from
+    B-band maximum in the SN's rest frame (the frame of populations, campaigns, survey plans,
+    the CLI and every file that records it; observer-frame days under
+    ``conventions="slicersim-1.0"``, as in slicersim 1.0: :func:`~slicersim.physics.conventions.phase_frame`).
+
+    Parameters
+    ----------
+    redshift : float
+        Redshift z, 0 < z ≤ 50.
+    phase : float
+        Days from B-band maximum [d] (rest frame; see above).
+    source : str, tuple or sncosmo.Source
+        sncosmo SN Ia source (``"salt2"``/``"salt3"`` offline where their files are installed).
+    peak_absmag : float
+        Peak absolute magnitude in rest-frame Bessell B, AB [mag].
+    config, field, position, conventions, host
+        As :class:`Target`.
+    **kwargs
+        The SN model's keywords of :func:`~slicersim.sources.spectra.snia_spectrum` (``band``,
+        ``magsys``, ``lbda``, ``x1``, ``c``, ``cosmology``).
+    """
 
     def __init__(self, redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-19.3, config=None,
                  field="default", position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, host=None, **kwargs):
         model_keywords = [k for k in inspect.signature(snia_spectrum).parameters
-                          if k not in ("redshift", "phase", "source", "peak_absmag")]
+                          if k not in ("redshift", "phase", "source", "peak_absmag", "phase_frame")]
         for key in kwargs:          # the SN model's keywords; a misspelt target keyword is named, with a did-you-mean
             validation.choice("keyword", key, model_keywords + ["config", "field", "position", "conventions", "host"],
                               what=f"keyword of {type(self).__name__}")
-        self.phase, self.source, self.peak_absmag, self._sn_kwargs = phase, source, peak_absmag, dict(kwargs)
+        self.phase, self.source, self.peak_absmag = phase, source, peak_absmag
+        self._sn_kwargs = {**kwargs, "phase_frame": phase_frame(conventions)}
         redshift = check_redshift(redshift)
         if redshift is None:
             raise ParameterError("a supernova needs a redshift")
-        lbda, flux = snia_spectrum(redshift, phase, source, peak_absmag, **kwargs)
+        lbda, flux = snia_spectrum(redshift, phase, source, peak_absmag, **self._sn_kwargs)
         super().__init__(lbda, flux, config=config, field=field, position=position, redshift=redshift,
                          conventions=conventions, host=host)
 

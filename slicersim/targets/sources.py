@@ -18,7 +18,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.instrument.names import check_parameter_names
-from slicersim.physics.conventions import DEFAULT_CONVENTIONS
+from slicersim.physics.conventions import DEFAULT_CONVENTIONS, phase_frame
 from slicersim.sources.spectra import (find_calspec_file, load_sncosmo_source, normalise_to_mag,
                                        powerlaw_flambda, read_calspec, sncosmo_spectrum, validate_spectrum)
 from slicersim.targets.base import Target, _Lazuli, lazuli_doc
@@ -73,8 +73,9 @@ class PowerLaw(Target):
 
 
 class SncosmoTarget(Target):
-    """Any sncosmo source at ``redshift`` and ``phase`` [observer-frame days from t0 = 0]:
-    F_λ = ``sncosmo.Model(source).flux(phase, λ)`` (:func:`~slicersim.sources.spectra.sncosmo_spectrum`).
+    """Any sncosmo source at ``redshift`` and ``phase`` [rest-frame days from t0 = 0]:
+    F_λ = ``sncosmo.Model(source).flux(phase (1 + z), λ)`` (:func:`~slicersim.sources.spectra.sncosmo_spectrum`;
+    under ``conventions="slicersim-1.0"`` ``phase`` is observer-frame days, as in slicersim 1.0).
 
     source : a registry name (e.g. ``"hsiao-subsampled"``, ``"salt3"`` when its files are here),
         a (name, version) pair, or a ``sncosmo.Source`` built from your own files
@@ -102,13 +103,14 @@ class SncosmoTarget(Target):
         self.source = load_sncosmo_source(source)
         self.phase, self.peak_absmag, self.mag, self.band, self.magsys = phase, peak_absmag, mag, band, magsys
         self.params, self.cosmology = dict(params or {}), cosmology
+        self.phase_frame = phase_frame(_target_options(target)["conventions"])
         lbda, flux = self._spectrum_at(redshift)
         super().__init__(lbda, flux, redshift=redshift, **_target_options(target))
 
     def _spectrum_at(self, redshift):
         lbda, flux = sncosmo_spectrum(self.source, redshift, self.phase, peak_absmag=self.peak_absmag,
                                       band=self.band, magsys=self.magsys, params=self.params,
-                                      cosmology=self.cosmology)
+                                      cosmology=self.cosmology, phase_frame=self.phase_frame)
         if self.mag is not None:
             flux = flux * normalise_to_mag(lbda, flux, self.mag, self.band, self.magsys)[0]
         return lbda, flux
@@ -116,7 +118,8 @@ class SncosmoTarget(Target):
 
 class Kilonova(SncosmoTarget):
     """Kilonova from a POSSIS model file (``.txt`` or ``.fits``; :mod:`slicersim.sources.kilonova`)
-    at ``redshift``, ``phase`` [observer-frame days since merger] and viewing angle ``theta``
+    at ``redshift``, ``phase`` [rest-frame days since merger; observer-frame under
+    ``conventions="slicersim-1.0"``] and viewing angle ``theta``
     [deg, 0 pole-on … 90 edge-on].
 
     Normalised to ``peak_absmag`` (default −15.8, slicersim 1.4.2's) in rest-frame ``band``

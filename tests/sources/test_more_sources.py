@@ -76,10 +76,11 @@ def test_powerlaw_bad_input():
 
 # --------------------------------------------------------------------------- sncosmo by name
 def _sncosmo_direct(source, z, phase, peak_absmag, lbda):
+    """sncosmo itself at a rest-frame ``phase``: observer time t = phase (1 + z) from t0 = 0."""
     model = sncosmo.Model(source)
     model.set(z=z, t0=0.0)
     model.set_source_peakabsmag(peak_absmag, "bessellb", "ab", cosmo=Planck18)
-    return model.flux(phase, lbda)
+    return model.flux(phase * (1 + z), lbda)
 
 
 def test_sncosmo_source_by_name_equals_sncosmo():
@@ -173,15 +174,19 @@ def test_kilonova_spectrum_closed_form(kn_files):
     z, phase, theta = 0.05, 3.3, 37.0
     target = LazuliKilonova(str(kn_files / "model.fits"), redshift=z, phase=phase, theta=theta)
     lbda, flux = _table(target)
-    # observer frame: F(λ) ∝ exp(b λ / (1+z)), rest phase t / (1+z)
+    # observer frame: F(λ) ∝ exp(b λ / (1+z)); ``phase`` is rest-frame days: observer time phase (1+z)
     np.testing.assert_allclose(flux / flux[0], np.exp(KN_B * (lbda - lbda[0]) / (1 + z)), rtol=1e-9)
     model = sncosmo.Model(target.source)                             # the same as sncosmo directly
     model.set(z=z, t0=0.0, theta=theta)
     model.set_source_peakabsmag(-15.8, "bessellr", "ab", cosmo=Planck18)
-    np.testing.assert_allclose(flux, model.flux(phase, lbda), rtol=1e-12)
+    np.testing.assert_allclose(flux, model.flux(phase * (1 + z), lbda), rtol=1e-12)
+    # slicersim 1.0 read the phase in the observer frame
+    old = LazuliKilonova(str(kn_files / "model.fits"), redshift=z, phase=phase, theta=theta,
+                         conventions="slicersim-1.0")
+    np.testing.assert_allclose(_table(old)[1], model.flux(phase, lbda), rtol=1e-12)
     # normalisation: at the rest-frame peak (t = 0.5 d, the model fades) the rest-frame spectrum
     # (1+z) F(λ (1+z)) has m = M + μ(z) in bessellr (independent trapezoid integral)
-    peak = LazuliKilonova(str(kn_files / "model.fits"), redshift=z, phase=0.5 * (1 + z), theta=theta)
+    peak = LazuliKilonova(str(kn_files / "model.fits"), redshift=z, phase=0.5, theta=theta)
     lbda_obs, flux_obs = _table(peak)
     m_rest = _ab_mag_trapezoid(lbda_obs / (1 + z), flux_obs * (1 + z), "bessellr")
     assert m_rest == pytest.approx(-15.8 + Planck18.distmod(z).value, abs=2e-4)
@@ -291,10 +296,14 @@ def test_spectrum_arguments_name_the_parameter():
         redshift_scalings("0.5", 1.0)
 
 
-@pytest.mark.parametrize("phase", [1e300, 171.0, -1e300])
+@pytest.mark.parametrize("phase", [1e300, 85.5, -1e300])
 def test_a_phase_outside_the_sncosmo_model_is_refused(phase):
     """LazuliSupernova(phase=1e300) was the model's last epoch (sncosmo repeats it) without a word."""
-    with pytest.raises(SpectrumError, match=r"phase .* days is outside the range -40 to 170 days \(observer frame "
-                                            r"at redshift 1\) of the sncosmo model 'hsiao-subsampled'"):
+    with pytest.raises(SpectrumError, match=r"phase .* days is outside the range -20 to 85 days \(rest frame\) "
+                                            r"of the sncosmo model 'hsiao-subsampled'"):
         LazuliSupernova(1.0, phase=phase)
-    assert LazuliSupernova(1.0, phase=170.0).redshift == 1.0
+    assert LazuliSupernova(1.0, phase=85.0).redshift == 1.0
+    # slicersim 1.0 counted the phase in the observer frame: hsiao's 85 rest-frame days are 170 at z = 1
+    with pytest.raises(SpectrumError, match=r"outside the range -40 to 170 days \(observer frame at redshift 1\)"):
+        LazuliSupernova(1.0, phase=phase * 2 if abs(phase) < 1e3 else phase, conventions="slicersim-1.0")
+    assert LazuliSupernova(1.0, phase=170.0, conventions="slicersim-1.0").redshift == 1.0
