@@ -44,7 +44,9 @@ MAX_TARGETS = 10_000_000
 
 _SN_KEYS = {"source": "hsiao-subsampled", "phase": 0.0, "peak_absmag": -19.3, "mag_scatter": 0.0,
             "band": "bessellb", "magsys": "ab", "x1": None, "c": None, "alpha": 0.14, "beta": 3.1,
-            "cosmology": "Planck18", "mw_dust": None, "host_dust": None, "hosts": None}
+            "cosmology": "Planck18", "mw_dust": None, "host_dust": None, "hosts": None, "cadence": None}
+#: most visits of one SN (``cadence``)
+MAX_VISITS = 1000
 _DUST_KEYS = {"ebv": 0.0, "r_v": 3.1}
 _HOST_KEYS = {"absmag": {"distribution": "normal", "mean": -20.5, "sigma": 1.0, "min": -23.5, "max": -17.0},
               "sersic_index": 1.0, "axis_ratio": {"distribution": "uniform", "min": 0.3, "max": 1.0},
@@ -167,6 +169,59 @@ def read_spectrum_table(path, name):
         raise ConfigError(str(exc)) from None
 
 
+# ---------------------------------------------------------------------------- cadence
+def _cadence(value):
+    """The validated ``population.cadence``: None, or increasing observer-frame days ≥ 0 starting at 0."""
+    if value is None:
+        return None
+    if not isinstance(value, (list, tuple)) or not 1 <= len(value) <= MAX_VISITS:
+        raise ConfigError(f"population.cadence must be a list of 1 to {MAX_VISITS} observer-frame days of the visits "
+                          f"after the first (e.g. [0, 10, 20]), got {validation.short_repr(value)}")
+    days = [number(f"population.cadence[{i}] [observer-frame days]", v, low=0, high=3650, error=ConfigError)
+            for i, v in enumerate(value)]
+    if days[0] != 0 or any(b <= a for a, b in zip(days, days[1:])):
+        raise ConfigError(f"population.cadence must start at 0 (the first visit, at the drawn phase) and increase "
+                          f"strictly, got {days}")
+    return tuple(days)
+
+
+def visits(table, cadence):
+    """One row per visit of each SN of ``table``: the SN's parameters repeated, its phase advanced.
+
+    Parameters
+    ----------
+    table : astropy.table.Table
+        One row per SN, with ``target_id`` (unique integers ≥ 0), ``redshift`` and ``phase``
+        [rest-frame days at the first visit].
+    cadence : sequence of float
+        Observer-frame days of the visits after the first (starting at 0, increasing).
+
+    Returns
+    -------
+    astropy.table.Table
+        ``len(table) * len(cadence)`` rows, SN by SN: ``sn_id`` (the SN's ``target_id``),
+        ``visit`` (0, 1, …), ``visit_day`` [observer-frame days since the first visit],
+        ``phase`` = phase + visit_day / (1 + z) [rest-frame days] and a new unique
+        ``target_id`` = sn_id × len(cadence) + visit (each visit its own exposure and noise).
+    """
+    k = len(cadence)
+    clash = [c for c in ("sn_id", "visit", "visit_day") if c in table.colnames]
+    if clash:
+        raise ConfigError(f"population.cadence makes the columns {clash}: the catalog may not have them")
+    sn_id = np.asarray(table["target_id"]).astype(np.int64)
+    if sn_id.size and int(sn_id.max()) > (2**62) // k:
+        raise ConfigError(f"population.cadence: target_id up to {int(sn_id.max())} × {k} visits overflows the ids")
+    out = table[np.repeat(np.arange(len(table)), k)]
+    day = np.tile(np.asarray(cadence, dtype=float), len(table))
+    z = np.asarray(out["redshift"], dtype=float)
+    out["target_id"] = np.repeat(sn_id, k) * k + np.tile(np.arange(k), len(table))
+    out["phase"] = np.asarray(out["phase"], dtype=float) + day / (1.0 + z)
+    out.add_column(np.repeat(sn_id, k), name="sn_id", index=1)
+    out.add_column(np.tile(np.arange(k, dtype=np.int64), len(table)), name="visit", index=2)
+    out.add_column(day, name="visit_day", index=3)
+    return out
+
+
 # ---------------------------------------------------------------------------- populations
 class _SNParameters:
     """SN Ia parameters shared by the drawn and the catalog populations."""
@@ -205,6 +260,7 @@ class _SNParameters:
         self.mw_dust = self._dust(cfg["mw_dust"], "population.mw_dust")
         self.host_dust = self._dust(cfg["host_dust"], "population.host_dust")
         self.hosts = None if cfg["hosts"] in (None, False) else HostModel(cfg["hosts"], base_dir)
+        self.cadence = _cadence(cfg["cadence"])
 
     @staticmethod
     def _dust(section, name):
@@ -228,7 +284,8 @@ class _SNParameters:
                 "mag_scatter": self.mag_scatter, "x1": self.x1.to_spec(), "c": self.c.to_spec(),
                 "alpha": self.alpha, "beta": self.beta, "band": self.band, "magsys": self.magsys,
                 "cosmology": self.cosmology_name, **dust,
-                "hosts": None if self.hosts is None else self.hosts.to_spec()}
+                "hosts": None if self.hosts is None else self.hosts.to_spec(),
+                **({} if self.cadence is None else {"cadence": list(self.cadence)})}
 
     def _draw_sn(self, seed, ids, table):
         """Fill the SN columns of ``table`` that it does not have (catalog columns win)."""
@@ -253,7 +310,7 @@ class _SNParameters:
             for name, col in self.hosts.draw(seed, ids, np.asarray(table["redshift"], float),
                                              self.cosmology).items():
                 put(name, col)
-        return table
+        return table if self.cadence is None else visits(table, self.cadence)
 
     def _sn_fluxes(self, table, lbda):
         def col(name):
@@ -323,7 +380,7 @@ class CatalogPopulation(_SNParameters):
     columns are carried to the dataset catalog."""
 
     kind = "catalog"
-    RESERVED = ("field", "n", "m", "d", "nramps", "exposure_time", "snr", "data_volume", "data_volume_compressed",
+    RESERVED = ("sn_id", "visit", "visit_day", "field", "n", "m", "d", "nramps", "exposure_time", "snr", "data_volume", "data_volume_compressed",
                 "status", "error", "seed", "ramp_seed",
                 *(f"{p}_{s}" for p in ("spectrum", "cube", "detector_image", "ramps") for s in ("product", "sha256")))
     #: bounds of the catalog's parameter columns (the spec's bounds for the same parameters)

@@ -93,7 +93,9 @@ def plan_campaign(spec):
         cat["status"] = "planned"
     if "error" not in cat.colnames:
         cat["error"] = ""
-    cat.meta = {"name": spec.name, "seed": spec.seed, "totals": _jsonable(plan.totals)}
+    if "phase" in cat.colnames:
+        cat["phase"].unit, cat["phase"].description = "d", "rest-frame days from B-band maximum"
+    cat.meta = {"name": spec.name, "seed": spec.seed, "totals": _jsonable(plan.totals), "phase_frame": "rest"}
     return cat, plan
 
 

@@ -624,3 +624,54 @@ def test_salt_models_load_offline_from_the_installed_template_files():
     table = _pop(n=400, source="salt3").draw(3)
     x1, c = np.asarray(table["x1"]), np.asarray(table["c"])
     assert abs(x1.mean()) < 5 * 1.0 / 20 and 0.8 < x1.std() < 1.2 and abs(c.mean()) < 5 * 0.1 / 20
+
+
+def test_a_cadence_observes_each_sn_at_several_epochs():
+    """``population.cadence`` = observer-frame days of the visits: each SN becomes one exposure per visit,
+    the same SN (redshift, x1, c, magnitude, host) with its rest-frame phase advanced by Δt / (1 + z)."""
+    import tomllib
+
+    from slicersim.campaign.runner import plan_campaign
+    from slicersim.campaign.spec import parse_spec
+    text = """seed = 3
+[population]
+kind = "snia"
+n = 4
+redshift = {distribution = "uniform", min = 0.3, max = 0.9}
+phase = {distribution = "uniform", min = -8, max = 0}
+mag_scatter = 0.1
+cadence = [0, 6, 15]
+[observation]
+snr = 5
+field = "narrow"
+"""
+    spec = parse_spec(tomllib.loads(text), text=text)
+    cat, _ = plan_campaign(spec)
+    assert len(cat) == 12 and cat.meta["phase_frame"] == "rest" and str(cat["phase"].unit) == "d"
+    assert list(cat["target_id"]) == list(range(12)) and len(set(cat["seed"])) == 12
+    first = cat[cat["visit"] == 0]
+    no_cadence = parse_spec(tomllib.loads(text.replace("cadence = [0, 6, 15]\n", "")), text=text)
+    plain = no_cadence.population.draw(3)
+    for col in ("redshift", "phase", "peak_absmag"):         # visit 0 is the SN drawn without a cadence
+        np.testing.assert_array_equal(np.asarray(first[col]), np.asarray(plain[col]))
+    for visit, day in ((1, 6.0), (2, 15.0)):
+        later = cat[cat["visit"] == visit]
+        np.testing.assert_array_equal(later["sn_id"], first["sn_id"])
+        np.testing.assert_array_equal(later["peak_absmag"], first["peak_absmag"])
+        np.testing.assert_allclose(np.asarray(later["phase"]) - np.asarray(first["phase"]),
+                                   day / (1 + np.asarray(first["redshift"])), rtol=1e-12)
+    assert "cadence" in spec.canonical()["population"] and "cadence" not in no_cadence.canonical()["population"]
+    # each visit is the single-target SN at its own phase
+    from slicersim.targets import LazuliSupernova
+    row = cat[cat["visit"] == 2][0]
+    sn = LazuliSupernova(float(row["redshift"]), phase=float(row["phase"]), peak_absmag=float(row["peak_absmag"]))
+    flux = spec.population.spectra(cat[cat["visit"] == 2][:1], LBDA)[0]
+    np.testing.assert_allclose(np.interp(sn.pointsource.lbda_in, LBDA, flux), sn.pointsource.flux_in, rtol=1e-12)
+
+
+@pytest.mark.parametrize("cadence, message", [([5, 10], "start at 0"), ([0, 10, 10], "increase strictly"),
+                                              ("weekly", "list of 1 to"), ([0, -3], "cadence\\[1\\]"),
+                                              ([0, "x"], "cadence\\[1\\]")])
+def test_bad_cadences_are_refused_naming_the_key(cadence, message):
+    with pytest.raises(ConfigError, match=message):
+        _pop(n=3, cadence=cadence)
