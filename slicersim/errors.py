@@ -8,7 +8,8 @@ from __future__ import annotations
 
 __all__ = ["SlicersimError", "ConfigError", "ReadoutError", "SpectrumError", "ETCError",
            "ParameterError", "RampFileError", "OpenCLUnavailableError", "OpenCLForkError", "DatasetError", "EffectsError",
-           "ReductionError", "CurveError", "GalaxyDataUnavailable", "ResourceError"]
+           "ReductionError", "CurveError", "GalaxyDataUnavailable", "ResourceError",
+           "ImplausibleValueWarning"]
 
 
 class SlicersimError(Exception):
@@ -73,3 +74,8 @@ class ResourceError(SlicersimError, MemoryError):
     """Not enough memory (host or OpenCL device) for a request: names what was being allocated and
     the option that bounds it (``max_bytes``, ``--max-bytes``, ``--memory-per-task``), or an input
     whose declared size exceeds the machine's memory."""
+
+
+class ImplausibleValueWarning(UserWarning):
+    """A bare number far outside the plausible range of its documented unit (``guiding_sigma=10``
+    is 10 arcsec, not the paper's 10 mas): the value is used; pass an astropy Quantity to be explicit."""

@@ -36,7 +36,7 @@ from slicersim.errors import ParameterError, ReadoutError, ResourceError, Slicer
 __all__ = ["short_repr", "number", "integer", "positive_int", "fraction", "flag", "choice", "readout", "nramps",
            "seed", "new_seed", "array", "shape", "regular_file", "renamed_keyword", "flag_names", "shown", "redshift",
            "checked_fields", "memory", "physical_memory", "MAX_GROUPS", "MAX_DROPS", "MAX_FRAMES", "MAX_REDSHIFT",
-           "DETECTOR_MAX", "MAX_TRUNCATE"]
+           "DETECTOR_MAX", "MAX_TRUNCATE", "PLAUSIBLE", "warn_implausible"]
 
 #: the largest readout this package accepts: groups per ramp, dropped frames between groups and
 #: frames per ramp (an H4RG ramp of 512 groups of 16 frames at 2.83 s is 6.4 h, longer than any
@@ -54,6 +54,20 @@ MAX_REDSHIFT = 50.0
 #: noise per frame [electron], dark [e-/s], ROIC glow [e-/frame], frame time [s].  Beyond them the variance
 #: model overflows (ron = 1e300 squared) instead of giving an answer.
 DETECTOR_MAX = {"gain": 1e3, "ron": 1e4, "dark": 1e6, "roic_glow": 1e6, "tframe": 1e4}
+#: plausible ranges of the paper's parameters as bare numbers in their documented units: outside
+#: them :func:`number` warns (the value is kept) — e.g. ``guiding_sigma=10`` meant as 10 mas is
+#: 10 arcsec, 1000× the jitter of the paper's table
+PLAUSIBLE = {"guiding_sigma": (0.0, 1.0),            # arcsec (space: ~0.01; a very poor ground site ~1)
+             "spatial_scale": (0.003, 3.0),          # arcsec per slice / spaxel
+             "diameter_ext": (0.05, 50.0),           # m
+             "diameter_int": (0.0, 20.0),            # m
+             "pixel_size": (1.0, 100.0),             # µm
+             "gain": (0.05, 50.0),                   # ADU / e-
+             "ron": (0.5, 500.0),                    # e- per frame
+             "dark": (0.0, 100.0),                   # e- / s / pixel
+             "tframe": (1e-3, 100.0),                # s
+             "dispersion_resolution": (1.0, 20.0),   # px
+             "temperature": (2.0, 400.0)}            # K
 #: largest projection window half-width beyond a cell [spot rms] (``truncate``): a Gaussian is exactly 0 in
 #: float64 beyond ~38 rms, and 1e300 rms made every window the whole detector (footprints ran for ever)
 MAX_TRUNCATE = 100.0
@@ -101,23 +115,32 @@ def short_repr(value, limit=60) -> str:
 
 def _quantity_value(name, value, unit, error, plain="a plain number"):
     """The plain value(s) of an astropy Quantity in ``unit`` (anything else unchanged); a Quantity
-    where ``unit`` is None, or in an inconvertible unit, is refused (never its unit dropped)."""
+    where ``unit`` is None, or in an inconvertible unit, is refused (never its unit dropped).
+    A per-pixel quantity (the paper's e-/s/pix) is read per pixel: ``unit`` is already per pixel."""
     if not hasattr(value, "unit") or not hasattr(value, "to_value"):
         return value
     if unit is None:
         raise error(f"{name} is {plain}, got a quantity in {value.unit}")
-    try:
-        return value.to_value(unit)
+    import astropy.units as u
+    try:                        # temperatures: °C and °F convert to K
+        return value.to_value(unit, equivalencies=u.temperature())
+    except Exception:
+        pass
+    try:                        # e-/s/pix against e-/s: the documented unit is already per pixel
+        return (value * u.pix).to_value(unit)
     except Exception:
         shown = short_repr(value) if np.ndim(value) == 0 else str(value.unit)
         raise error(f"{name} must be in units convertible to {unit}, got {shown}") from None
 
 
 def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_open=False, unit=None,
-           error=ParameterError) -> float:
+           error=ParameterError, plausible=None) -> float:
     """``value`` as a finite float in [low, high] (a bound excluded where ``*_open``); an astropy
-    Quantity is converted to ``unit`` first."""
+    Quantity is converted to ``unit`` first.  ``plausible`` = (lo, hi): a *bare* number outside it
+    (not a Quantity, whose unit is explicit) warns :class:`~slicersim.errors.ImplausibleValueWarning`
+    naming the unit it is read in (10 of ``guiding_sigma`` is 10 arcsec, not the paper's 10 mas)."""
     name = shown(name)
+    bare = not hasattr(value, "unit")
     value = _quantity_value(name, value, unit, error)
     in_unit = f" [{unit}]" if unit else ""
     if isinstance(value, (bool, np.bool_, str, bytes)) or not isinstance(value, (numbers.Real, np.ndarray)) \
@@ -130,7 +153,21 @@ def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_op
     if not math.isfinite(val) or val < low or val > high or (low_open and val == low) \
             or (high_open and val == high):
         raise error(f"{name}{in_unit} must be {_interval(low, high, low_open, high_open)}, got {short_repr(value)}")
+    if plausible is not None and bare and not plausible[0] <= val <= plausible[1]:
+        warn_implausible(name, val, unit, plausible)
     return val
+
+
+def warn_implausible(name, value, unit, plausible):
+    """Warn (:class:`~slicersim.errors.ImplausibleValueWarning`) that a bare ``value`` of ``name`` is
+    outside the ``plausible`` (lo, hi) range of its documented ``unit``: a number meant in another unit."""
+    import warnings
+    from slicersim.errors import ImplausibleValueWarning
+    unit_text = f" {unit}" if unit else ""
+    hint = f"; give an astropy Quantity (e.g. 10 * u.mas) to say which unit you mean" if unit else ""
+    warnings.warn(f"{name} = {value:g}{unit_text} is implausible (expected {plausible[0]:g} to {plausible[1]:g}"
+                  f"{unit_text}): a bare number of {name} is read in{unit_text or ' its documented unit'}{hint}",
+                  ImplausibleValueWarning, stacklevel=4)
 
 
 def _interval(low, high, low_open, high_open):

@@ -43,14 +43,14 @@ class Detector(Versioned):
                  pixel_size=10.0, saturation=65535.0, nmd=(16, 8, 0), min_group=2, max_group=64,
                  variance_model="Rauscher07", shape=(4096, 4096), thermal_dark_range=None):
         # 14 parameters: the paper's documented constructor (every one a detector property)
-        num, top = validation.number, validation.DETECTOR_MAX
+        num, top, ok = validation.number, validation.DETECTOR_MAX, validation.PLAUSIBLE
         self.qe = qe
-        self.gain = num("gain", gain, low=0.0, low_open=True, high=top["gain"], unit="adu / electron")
-        self.dark = num("dark", dark, low=0.0, high=top["dark"], unit="electron / s")
+        self.gain = num("gain", gain, low=0.0, low_open=True, high=top["gain"], unit="adu / electron", plausible=ok["gain"])
+        self.dark = num("dark", dark, low=0.0, high=top["dark"], unit="electron / s", plausible=ok["dark"])
         self.roic_glow = num("roic_glow", roic_glow, low=0.0, high=top["roic_glow"], unit="electron")
-        self.ron = num("ron", ron, low=0.0, high=top["ron"], unit="electron")
-        self.tframe = num("tframe", tframe, low=0.0, low_open=True, high=top["tframe"], unit="s")
-        self.pixel_size = num("pixel_size", pixel_size, low=0.0, low_open=True, unit="um")
+        self.ron = num("ron", ron, low=0.0, high=top["ron"], unit="electron", plausible=ok["ron"])
+        self.tframe = num("tframe", tframe, low=0.0, low_open=True, high=top["tframe"], unit="s", plausible=ok["tframe"])
+        self.pixel_size = num("pixel_size", pixel_size, low=0.0, low_open=True, unit="um", plausible=ok["pixel_size"])
         self.saturation = self._check_saturation(saturation)
         self.min_group = validation.integer("min_group", min_group, low=2)
         self.max_group = self._check_max_group(max_group, self.min_group)

@@ -187,8 +187,9 @@ def _checked_scalars(params):
         raise ParameterError(f"spectral_range must be (min, max) in Å, got {validation.short_repr(rng)}")
     params["spectral_range"] = tuple(validation.number(f"spectral_range[{i}]", v, low=0.0, low_open=True,
                                                        unit="Angstrom") for i, v in enumerate(rng))
-    for key, unit in (("dispersion_scale", None), ("dispersion_resolution", None), ("spatial_scale", "arcsec")):
-        params[key] = validation.number(key, params[key], low=0.0, low_open=True, unit=unit)
+    for key, unit in (("dispersion_scale", None), ("dispersion_resolution", "pix"), ("spatial_scale", "arcsec")):
+        params[key] = validation.number(key, params[key], low=0.0, low_open=True, unit=unit,
+                                        plausible=validation.PLAUSIBLE.get(key))
     params["spatial_shape"] = validation.shape("spatial_shape", params["spatial_shape"])
     return params
 

@@ -31,8 +31,10 @@ class Telescope(Versioned):
     def __init__(self, diameter_ext=3.0, diameter_int=0.0, temperature=293.0,
                  emissivity=(0.05, 0.02, 0.02, 0.02), nelements=(1, 1, 1, 1), guiding_sigma=0.010):
         try:
-            self.diameter_ext = validation.number("diameter_ext", diameter_ext, low=0.0, low_open=True, unit="m")
-            self.diameter_int = validation.number("diameter_int", diameter_int, low=0.0, unit="m")
+            self.diameter_ext = validation.number("diameter_ext", diameter_ext, low=0.0, low_open=True, unit="m",
+                                                  plausible=validation.PLAUSIBLE["diameter_ext"])
+            self.diameter_int = validation.number("diameter_int", diameter_int, low=0.0, unit="m",
+                                                  plausible=validation.PLAUSIBLE["diameter_int"])
             emissivity = np.atleast_1d(np.asarray(emissivity, dtype=float))
             nelements = np.atleast_1d(np.asarray(nelements, dtype=float))
             if not np.all(np.isfinite(nelements)) or np.any(nelements != np.round(nelements)):
@@ -46,6 +48,7 @@ class Telescope(Versioned):
                 nelements = np.full(emissivity.size, nelements[0])
             self.emissivity = list(emissivity)
             self.nelements = list(nelements)
+            temperature = validation.array("temperature [K]", temperature, ndim=(0, 1), unit="K")
             if np.ndim(temperature) == 0:
                 self.temperature = float(temperature)
             else:
@@ -54,7 +57,8 @@ class Telescope(Versioned):
                     raise ParameterError(f"telescope temperature needs one value per mirror group: "
                                          f"expected length {len(self.emissivity)}, got {len(temps)}")
                 self.temperature = temps
-            self.guiding_sigma = validation.number("guiding_sigma", guiding_sigma, low=0.0, unit="arcsec")
+            self.guiding_sigma = validation.number("guiding_sigma", guiding_sigma, low=0.0, unit="arcsec",
+                                                   plausible=validation.PLAUSIBLE["guiding_sigma"])
         except ParameterError:
             raise
         except (TypeError, ValueError) as exc:

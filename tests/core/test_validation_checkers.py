@@ -233,3 +233,47 @@ def test_option_classes_name_a_field_of_the_wrong_type():
     assert FitOptions(with_truth=np.bool_(True), jump_threshold=np.float32(4), work_group=np.int64(64)).with_truth
     u = pytest.importorskip("astropy.units")
     assert FitOptions(ron=5 * u.electron).ron == 5.0
+
+
+# --------------------------------------------------------------------------- the paper's units
+def test_every_parameter_of_the_papers_table_accepts_the_papers_unit_as_a_quantity():
+    """dark in e-/s/pix, read noise in e-, frame time in s, gain in ADU/e-, saturation in ADU, slice width in mas,
+    dispersion resolution in px, diameters in m, guiding in mas, mirror temperatures in K (or °C): each gives
+    the simulation the bare number in the documented unit does."""
+    import astropy.units as u
+    from slicersim.targets import LazuliSupernova
+    plain, quantity = LazuliSupernova(0.5), LazuliSupernova(0.5)
+    plain.update(dark=2.8e-3, ron=10.0, tframe=2.83, gain=1.0, saturation=65535.0, spatial_scale=0.04,
+                 dispersion_resolution=2.3, diameter_ext=3.0, diameter_int=0.0, guiding_sigma=0.010,
+                 temperature=293.0)
+    quantity.update(dark=2.8e-3 * u.electron / u.s / u.pix, ron=10 * u.electron, tframe=2830 * u.ms,
+                    gain=1.0 * u.adu / u.electron, saturation=65535 * u.adu, spatial_scale=40 * u.mas,
+                    dispersion_resolution=2.3 * u.pix, diameter_ext=300 * u.cm, diameter_int=0 * u.m,
+                    guiding_sigma=10 * u.mas, temperature=(293.0 - 273.15) * u.deg_C)
+    assert quantity.simulation.telescope.temperature == pytest.approx(293.0, rel=1e-12)
+    assert quantity.get_band_snr() == pytest.approx(plain.get_band_snr(), rel=1e-9)
+    with pytest.raises(ParameterError, match="guiding_sigma must be in units convertible to arcsec"):
+        quantity.update(guiding_sigma=10 * u.s)
+
+
+@pytest.mark.parametrize("name, value, unit", [("guiding_sigma", 10, "arcsec"), ("spatial_scale", 40, "arcsec"),
+                                               ("diameter_ext", 300, "m"), ("pixel_size", 1e-5, "um"),
+                                               ("tframe", 2830, "s")])
+def test_a_bare_number_implausible_in_its_unit_warns_naming_the_unit(name, value, unit):
+    """update(guiding_sigma=10) (the paper's 10 mas typed as a number) gave SNR 0.002 silently."""
+    import astropy.units as u
+    from slicersim.errors import ImplausibleValueWarning
+    from slicersim.targets import LazuliSupernova
+    sn = LazuliSupernova(0.5)
+    with pytest.warns(ImplausibleValueWarning, match=rf"{name} = {value:g} {unit} is implausible.*read in {unit}"):
+        try:
+            sn.update(**{name: value})
+        except ParameterError as exc:   # 40″ slices, a 300 m mirror: no cell left in the aperture, refused
+            assert "aperture" in str(exc)
+    import warnings
+    meant = {"guiding_sigma": 10 * u.mas, "spatial_scale": 40 * u.mas, "diameter_ext": 300 * u.cm,
+             "pixel_size": 10 * u.um, "tframe": 2830 * u.ms}[name]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ImplausibleValueWarning)   # a Quantity is explicit: no warning
+        LazuliSupernova(0.5).update(**{name: meant})
+        LazuliSupernova(0.5, config="eol")                         # nor any built-in configuration
