@@ -85,7 +85,10 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
                              what="spectrograph kind")
     cls = SlicerSpectrograph if kind == "slicer" else MLASpectrograph
     _check_anamorphosis(spc, cls, kind)
-    extra = _mla_options(cfg.get("spectrograph.psf.detector", {}), ext) if kind == "mla" else {}
+    extra = _mla_options(cfg.get("spectrograph.psf.detector", {}), ext)
+    if kind == "slicer":
+        _check_slicer_ignores(extra)
+        extra = {}
     if "dispersion_law" not in spc and "resolving_power" not in spc:
         files = ", ".join(os.path.basename(p) for p in cfg.get("_sources", ())) or "given as a dict"
         raise ConfigError(f"the configuration ({files}) sets neither [spectrograph] dispersion_law nor "
@@ -169,6 +172,22 @@ def _mla_options(xdisp, ext):
         if val is not None:
             out[key] = validation.number(key, val, low=0.0, low_open=positive, error=ConfigError)
     return out
+
+
+#: the micro-lens-array cross-dispersion defaults (:class:`~slicersim.instrument.spectrograph.MLASpectrograph`):
+#: the built-in Lazuli files carry them, unused by the slicer
+_MLA_DEFAULTS = {"xdisp_sigma_spectral": 0.9, "xdisp_sigma": 0.3, "xdisp_width_insigma": 10.0}
+
+
+def _check_slicer_ignores(options):
+    """The cross-dispersion keys set the micro-lens array's pixels per spaxel; the slicer's are fixed by its
+    1×2 anamorphosis.  A value other than the MLA default would be ignored: refused, naming the key."""
+    for key, value in options.items():
+        if abs(value - _MLA_DEFAULTS[key]) > 1e-12 * _MLA_DEFAULTS[key]:
+            table = "extraction" if key == "xdisp_width_insigma" else "spectrograph.psf.detector"
+            raise ConfigError(f"[{table}] {key} = {value:g} is used only by the micro-lens-array spectrograph "
+                              f"([spectrograph] kind = \"mla\"); the slicer's cross-dispersion is fixed by its 1×2 "
+                              f"anamorphosis: remove the key (or give {_MLA_DEFAULTS[key]:g})")
 
 
 def _base_grid_range(config):

@@ -310,7 +310,8 @@ class Spectrograph(Versioned):
                "nelements": [int(n) for n in optics.get("nelements", [1] * nopt)],
                "fratio": list(optics.get("fratio", [[1.0, 1.0]] * nopt)),
                "geometry": list(optics.get("geometry", ["square"] * nopt)),
-               "dispersed": [bool(d) for d in optics.get("dispersed", [False] * nopt)]}
+               "dispersed": [validation.flag(f"optics dispersed[{i}]", d)
+                             for i, d in enumerate(optics.get("dispersed", [False] * nopt))]}
         if any(len(v) != nopt for v in out.values()):
             raise ParameterError("optics: the spectrograph optics lists must all have the same length")
         temps, eps = np.asarray(out["temperature"]), np.asarray(out["emissivity"])

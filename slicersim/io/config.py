@@ -319,7 +319,8 @@ def validate_config(cfg):
     min_group < 2, max_group < min_group, max_group or min_group > :data:`~slicersim.validation.MAX_GROUPS`,
     readout_mode out of :func:`~slicersim.validation.readout`'s bounds or n > max_group;
     spatial_shape not two integers ≥ 1, anamorphosis not two numbers ≥ 1, a PSF or guiding
-    profile other than "normal" (see :data:`PROFILES`).
+    profile other than "normal" (see :data:`PROFILES`); ``dispersed`` entries that are not TOML
+    booleans; negative ``xdisp_sigma`` / ``xdisp_sigma_spectral``, ``xdisp_width_insigma`` ≤ 0.
     """
     for table, key in (("telescope", "emissivity"), ("spectrograph.optics", "emissivity")):
         _check_range(cfg, table, key, 0.0, 1.0)
@@ -375,4 +376,20 @@ def validate_config(cfg):
             raise _bad("detector", "readout_mode", mode, f"n = {n} exceeds max_group = {max_group!r}")
     _check_range(cfg, "extraction", "aperture_radius_insigma", 0.0, lo_open=True)
     _check_range(cfg, "extraction", "nramps", 1.0, integer=True)
+    _check_range(cfg, "extraction", "xdisp_width_insigma", 0.0, lo_open=True)
+    _check_range(cfg, "spectrograph.psf.detector", "xdisp_sigma", 0.0)
+    _check_range(cfg, "spectrograph.psf.detector", "xdisp_sigma_spectral", 0.0)
+    _check_booleans(cfg, "spectrograph.optics", "dispersed")
     return cfg
+
+
+def _check_booleans(cfg, table, key):
+    """A TOML boolean or list of them (``true``/``false``): ``"no"``, 0 or 1 are refused, not read as truth values."""
+    entries = cfg.get(table, {})
+    if not isinstance(entries, dict) or entries.get(key) is None:
+        return
+    value = entries[key]
+    values = value if isinstance(value, (list, tuple)) else [value]
+    bad = [v for v in values if not isinstance(v, (bool, np.bool_))]
+    if bad:
+        raise _bad(table, key, value, f"must be booleans (true / false), got {validation.short_repr(bad[0])}")

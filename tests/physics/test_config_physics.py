@@ -308,3 +308,28 @@ def test_unknown_config_key_or_table_suggests_the_near_one(tmp_path):
     bad.write_text("[detecter]\ngain = 2.0\n")
     with pytest.raises(ConfigError, match=r"unknown configuration table \[detecter\] \(did you mean 'detector'\?\)"):
         load_config(["cbe", str(bad)])
+
+
+@pytest.mark.parametrize("text, message", [
+    ('[spectrograph.optics]\ndispersed = ["no", true, false, false, false]\n',
+     r"\[spectrograph.optics\] dispersed = .*must be booleans \(true / false\), got 'no'"),
+    ("[spectrograph.optics]\ndispersed = [1, 1, 0, 0, 0]\n", r"dispersed = .*must be booleans.*got 1"),
+    ("[spectrograph.psf.detector]\nxdisp_sigma = -5\n", r"\[spectrograph.psf.detector\] xdisp_sigma = -5: must be ≥ 0"),
+    ("[extraction]\nxdisp_width_insigma = -1\n", r"\[extraction\] xdisp_width_insigma = -1: must be > 0"),
+    ("[spectrograph.psf.detector]\nxdisp_sigma = 0.6\n",
+     r"xdisp_sigma = 0.6 is used only by the micro-lens-array spectrograph .*remove the key"),
+    ("[extraction]\nxdisp_width_insigma = 4\n", r"\[extraction\] xdisp_width_insigma = 4 is used only by the micro-lens"),
+])
+def test_configuration_booleans_are_booleans_and_every_key_is_used_or_refused(tmp_path, text, message):
+    """``dispersed = ["no", …]`` was read as true; ``xdisp_sigma = -5`` and ``xdisp_width_insigma = -1`` were
+    accepted and ignored by the slicer (the docs say every key is used or refused)."""
+    from slicersim.errors import ConfigError
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        build_simulation(["cbe", str(bad)])
+    # programmatic optics too: a string is not a truth value
+    from slicersim.errors import ParameterError
+    from slicersim.instrument.spectrograph import Spectrograph
+    with pytest.raises(ParameterError, match=r"optics dispersed\[0\] must be True or False, got 'no'"):
+        Spectrograph._make_optics({"temperature": [200.0], "dispersed": ["no"]})
