@@ -143,12 +143,12 @@ class RedshiftDistribution:
 
     @classmethod
     def _from_table(cls, spec, base_dir):
-        from slicersim.io.tables import file_digest, read_table, resolve_path
+        from slicersim.io.tables import file_digest, numeric_column, read_table, resolve_path
         path = resolve_path(spec.get("file"), base_dir, "population.redshift.file")
         tab = read_table(path, "population.redshift.file")
         if not {"z", "weight"} <= set(tab.colnames):
             raise ConfigError(f"population.redshift.file {path} needs columns z and weight, has {tab.colnames}")
-        z, w = np.asarray(tab["z"], float), np.asarray(tab["weight"], float)
+        z, w = (numeric_column(tab, col, path, "population.redshift.file") for col in ("z", "weight"))
         if (z.size < 2 or not np.all(np.isfinite(z)) or np.any(np.diff(z) <= 0) or z[0] < 0
                 or z[-1] > cls.MAX_Z):
             raise ConfigError(f"population.redshift.file: z must increase strictly within [0, {cls.MAX_Z}] "

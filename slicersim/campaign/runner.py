@@ -19,6 +19,8 @@ Reproducible and resumable:
 """
 from __future__ import annotations
 
+import contextlib
+
 import logging
 import os
 import sys
@@ -217,7 +219,33 @@ def _connect(scheduler, security):
                            f"{' '.join(str(exc).split())[:200]}{hint}") from None
 
 
+@contextlib.contextmanager
+def _dask_configuration_errors(scheduler):
+    """Dask's own configuration problems as one ConfigError line: a malformed file under DASK_CONFIG (or
+    ~/.config/dask), or encryption required by it while the scheduler address is plain tcp://."""
+    try:
+        yield
+    except ValueError as exc:
+        if "dask config" not in str(exc).lower():
+            raise
+        raise ConfigError(f"Dask configuration: {' '.join(str(exc).split())[:300]} (fix or remove the file; "
+                          "DASK_CONFIG names the folder Dask reads)") from None
+    except RuntimeError as exc:
+        if "encryption required" not in str(exc):
+            raise
+        raise ConfigError(f"the Dask configuration requires encryption (distributed.comm.require-encryption) but the "
+                          f"scheduler {scheduler} is plain tcp://: give a tls:// scheduler with --tls-ca-file, "
+                          "--tls-cert and --tls-key, or drop the requirement from the Dask configuration") from None
+
+
 def dask_client(workers, scheduler, threads, security=None, dashboard=False):
+    """(client, cluster or None): an existing scheduler or an embedded LocalCluster (see :func:`_dask_client`);
+    a broken Dask configuration is a :class:`~slicersim.errors.ConfigError`."""
+    with _dask_configuration_errors(scheduler):
+        return _dask_client(workers, scheduler, threads, security, dashboard)
+
+
+def _dask_client(workers, scheduler, threads, security=None, dashboard=False):
     """(client, cluster or None): an existing scheduler or an embedded LocalCluster.
 
     The embedded cluster listens on 127.0.0.1 only, over TLS with temporary credentials

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field as dc_field
 
 from slicersim import validation
 from slicersim.errors import ConfigError, SlicersimError
-from slicersim.io.tables import file_digest, read_file_bytes
+from slicersim.io.tables import file_digest, parse_toml, read_file_bytes
 from slicersim.validation import choice, number, redshift as check_redshift
 
 __all__ = ["CampaignSpec", "load_spec", "parse_spec", "with_products", "with_seed", "seed_was_drawn", "PRODUCTS"]
@@ -291,7 +291,7 @@ def load_spec(path):
     raw = read_file_bytes(path, ConfigError, "campaign spec")
     try:
         text = raw.decode("utf-8")
-        doc = tomllib.loads(text)
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+    except UnicodeDecodeError as exc:
         raise ConfigError(f"campaign spec {path} is not valid TOML: {exc}") from None
+    doc = parse_toml(text, f"campaign spec {path}")
     return parse_spec(doc, text=text, base_dir=os.path.dirname(os.path.abspath(path)))

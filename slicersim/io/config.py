@@ -11,7 +11,6 @@ from __future__ import annotations
 import copy
 import difflib
 import os
-import tomllib
 from functools import lru_cache
 from importlib import resources
 
@@ -19,7 +18,7 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.errors import ConfigError  # noqa: F401  (re-exported)
-from slicersim.io.tables import read_file_bytes
+from slicersim.io.tables import parse_toml, read_file_bytes
 
 __all__ = ["load_config", "validate_config", "ConfigError", "builtin_config_dir", "complete_config_hint",
            "tables_of", "SCHEMA", "PROFILES"]
@@ -123,11 +122,10 @@ def _read_toml(path):
         raise ConfigError(f"configuration file not found: {path}")
     raw = read_file_bytes(path, ConfigError, "configuration file")
     try:
-        doc = tomllib.loads(raw.decode("utf-8"))
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:                              # a binary file: not UTF-8
         raise ConfigError(f"cannot parse TOML {path}: not UTF-8 text (byte {exc.start})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"cannot parse TOML {path}: {exc}") from None
+    doc = parse_toml(text, f"configuration file {path}", ConfigError)
     try:
         tables = _flatten_tables(doc)
     except ConfigError as exc:

@@ -9,7 +9,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.errors import ConfigError
 
-__all__ = ["numeric_rows", "resolve_path", "file_digest", "read_file_bytes", "read_table", "read_spectrum_table",
+__all__ = ["numeric_rows", "numeric_column", "parse_toml", "resolve_path", "file_digest", "read_file_bytes", "read_table", "read_spectrum_table",
            "data_line_numbers", "check_increasing", "MAX_TEXT_BYTES", "MAX_TABLE_BYTES"]
 
 #: largest text input read whole (configuration, campaign spec, effects config, curve) [bytes]
@@ -84,6 +84,18 @@ def file_digest(path):
     return h.hexdigest()
 
 
+def parse_toml(text, what, error=ConfigError):
+    """The TOML document ``text`` (str) as a dict; one ``error`` line naming ``what`` for invalid TOML,
+    including nesting too deep for the parser (a 100 000-deep array was a RecursionError)."""
+    import tomllib
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{what} is not valid TOML: {exc}") from None
+    except RecursionError:
+        raise error(f"{what} is not valid TOML for slicersim: arrays or tables nested too deeply") from None
+
+
 def read_table(path, name):
     """astropy Table from an .ecsv, .csv or .parquet file (one ConfigError naming ``name``)."""
     from astropy.table import Table
@@ -94,11 +106,25 @@ def read_table(path, name):
     try:
         if fmt == "parquet":                    # pyarrow directly (astropy's reader needs pandas)
             import pyarrow.parquet as pq
-            return Table(pq.read_table(path).to_pydict())
+            arrow = pq.read_table(path)
+            nested = [f"{f.name} ({f.type})" for f in arrow.schema if not _flat_arrow_type(f.type)]
+            if nested:
+                raise ConfigError(f"{name}: {path}: column {nested[0]} is not a column of numbers or text: a "
+                                  "catalog holds one number or string per cell")
+            return Table(arrow.to_pydict())
         return Table.read(path, format=fmt)
+    except ConfigError:
+        raise
     except Exception as exc:
         raise ConfigError(f"{name}: cannot read {path} ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})") \
             from None
+
+
+def _flat_arrow_type(kind):
+    """Whether a pyarrow type holds one number, boolean or string per cell (not a list, struct or map)."""
+    import pyarrow as pa
+    return (pa.types.is_integer(kind) or pa.types.is_floating(kind) or pa.types.is_boolean(kind)
+            or pa.types.is_string(kind) or pa.types.is_large_string(kind) or pa.types.is_null(kind))
 
 
 def read_spectrum_table(path, name):
@@ -110,9 +136,9 @@ def read_spectrum_table(path, name):
     fcol = next((cols[k] for k in ("flux", "flambda", "f_lambda") if k in cols), None)
     if lcol is None or fcol is None:
         raise ConfigError(f"{name}: {path} needs columns lbda (Å) and flux (erg/s/cm²/Å), has {tab.colnames}")
-    lbda = _numeric(tab, lcol, path, name)
+    lbda = numeric_column(tab, lcol, path, name)
     check_increasing(lbda, f"{name}: {path}", what=lcol, lines=lambda: _text_lines(path, len(tab)))
-    return lbda, _numeric(tab, fcol, path, name)
+    return lbda, numeric_column(tab, fcol, path, name)
 
 
 def _text_lines(path, nrows):
@@ -127,7 +153,7 @@ def _text_lines(path, nrows):
         return None
 
 
-def _numeric(tab, col, path, name):
+def numeric_column(tab, col, path, name):
     """Column ``col`` as floats; ConfigError naming the file, the data row (its line in a CSV file)
     and the value of the first entry that is not a number (``5000,x``; a decimal comma ``1,5``)."""
     values = tab[col]

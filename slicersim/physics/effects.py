@@ -239,6 +239,9 @@ class DetectorEffects:
         except (ValueError, UnicodeDecodeError) as exc:
             raise EffectsError(f"{path}: not a valid {'JSON' if path.lower().endswith('.json') else 'TOML'} "
                                f"file ({exc})") from exc
+        except RecursionError:
+            raise EffectsError(f"{path}: not a valid {'JSON' if path.lower().endswith('.json') else 'TOML'} file "
+                               "for slicersim: arrays or tables nested too deeply") from None
         return cls.from_config(config, has_previous_charge)
 
     def restricted_to(self, names):

@@ -833,3 +833,22 @@ def test_run_campaign_with_a_spec_or_an_out_of_the_wrong_kind_names_it(spec_path
     with pytest.raises(DatasetError, match=r"the dataset directory must be a path \(str or os.PathLike\), got None"):
         run_campaign(spec_path, None)
     assert not (tmp_path / "ds").exists()
+
+
+def test_a_broken_dask_configuration_is_one_config_error(tmp_path):
+    """A malformed file under DASK_CONFIG and encryption required with a tcp:// scheduler were internal errors
+    (exit 3, 'this is a bug')."""
+    import dask
+
+    from slicersim.campaign.runner import dask_client
+    with dask.config.set({"distributed.comm.require-encryption": True}):
+        with pytest.raises(ConfigError, match=r"requires encryption .*scheduler tcp://127.0.0.1:9 is plain tcp://.*--tls-ca-file"):
+            dask_client(1, "tcp://127.0.0.1:9", 1)
+    folder = tmp_path / "dask"
+    folder.mkdir()
+    (folder / "bad.yaml").write_text("this: [is: not yaml\n")
+    spec = tmp_path / "s.toml"
+    spec.write_text('seed = 1\n[population]\nkind = "snia"\nn = 1\nredshift = 0.3\n[observation]\nsnr = 5\n')
+    proc = subprocess.run([sys.executable, "-m", "slicersim", "campaign", "run", str(spec), "--out", str(tmp_path / "d")],
+                          capture_output=True, text=True, env={**os.environ, "DASK_CONFIG": str(folder)}, timeout=300)
+    one_line_error(proc, "Dask configuration", "bad.yaml", "is malformed", "DASK_CONFIG")

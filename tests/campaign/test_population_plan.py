@@ -675,3 +675,20 @@ field = "narrow"
 def test_bad_cadences_are_refused_naming_the_key(cadence, message):
     with pytest.raises(ConfigError, match=message):
         _pop(n=3, cadence=cadence)
+
+
+def test_a_redshift_table_weight_that_is_not_a_number_names_its_line(tmp_path):
+    """A z-table weight "abc" was an internal error (NumPy's 'could not convert string to float')."""
+    (tmp_path / "zt.csv").write_text("z,weight\n0.1,1\n0.5,abc\n")
+    with pytest.raises(ConfigError, match=r"population.redshift.file: .*zt.csv, line 3: weight = 'abc' is not a number"):
+        _pop(n=3, redshift={"distribution": "table", "file": str(tmp_path / "zt.csv")})
+
+
+def test_a_parquet_catalog_with_a_list_column_is_refused_naming_it(tmp_path):
+    """A Parquet list column was an internal error further down."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from slicersim.campaign.population import population_from_spec
+    pq.write_table(pa.table({"redshift": [0.3, 0.5], "tags": [[1, 2], [3]]}), tmp_path / "cat.parquet")
+    with pytest.raises(ConfigError, match=r"cat.parquet: column tags \(list<.*\) is not a column of numbers or text"):
+        population_from_spec({"kind": "catalog", "file": str(tmp_path / "cat.parquet")})

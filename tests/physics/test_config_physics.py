@@ -333,3 +333,17 @@ def test_configuration_booleans_are_booleans_and_every_key_is_used_or_refused(tm
     from slicersim.instrument.spectrograph import Spectrograph
     with pytest.raises(ParameterError, match=r"optics dispersed\[0\] must be True or False, got 'no'"):
         Spectrograph._make_optics({"temperature": [200.0], "dispersed": ["no"]})
+
+
+def test_a_toml_nested_too_deeply_is_one_config_error(tmp_path):
+    """A 100 000-deep TOML array was a RecursionError (exit 3, 'this is a bug')."""
+    from slicersim.errors import ConfigError
+    deep = tmp_path / "deep.toml"
+    deep.write_text("[detector]\nshape = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(ConfigError, match=r"configuration file .*deep.toml is not valid TOML for slicersim: .*nested too deeply"):
+        build_simulation(str(deep))
+    from slicersim.campaign.spec import load_spec
+    spec = tmp_path / "spec.toml"
+    spec.write_text("seed = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(ConfigError, match=r"campaign spec .*spec.toml is not valid TOML for slicersim"):
+        load_spec(str(spec))
