@@ -10,6 +10,7 @@ import warnings
 
 import numpy as np
 import pytest
+from stdatamodels.jwst import datamodels          # a [test] dependency (pyproject): never skipped
 
 from slicersim.errors import RampFileError
 from slicersim.io import uncal
@@ -17,8 +18,6 @@ from slicersim.io.atomic import _host_tag
 from slicersim.io.rampfile import read_ramps
 from slicersim.io.uncal import UncalWriter, read_uncal, read_uncal_truth, truth_extname, write_uncal_from_hdf5
 from slicersim.products.ramps import simulate
-
-datamodels = pytest.importorskip("stdatamodels.jwst.datamodels")
 
 NMD, NINTS, TFRAME = (4, 2, 1), 2, 2.83
 CR_DTYPE = [("ramp", "<u4"), ("frame", "<u4"), ("y", "<u2"), ("x", "<u2"), ("electrons", "<f4")]
