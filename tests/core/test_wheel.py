@@ -49,6 +49,14 @@ def _can_build_wheels():
     return (major, minor) >= (70, 1) or importlib.util.find_spec("wheel") is not None
 
 
+def _pip_installs_elsewhere():
+    """pip ≥ 22.3 (``pip --python`` installs into another environment)."""
+    if importlib.util.find_spec("pip") is None:
+        return False
+    from importlib.metadata import version
+    return tuple(int(v) for v in version("pip").split(".")[:2]) >= (22, 3)
+
+
 def _clean_env(**extra):
     """This environment without what would put the checkout's slicersim on sys.path."""
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "PYTHONSTARTUP")}
@@ -109,10 +117,11 @@ def _fresh_venv(root, wheel_path):
     site = Path(_run([python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                      cwd=root, env=_clean_env()).strip())
     # installed before the .pth exists: pip sees an empty environment (and never touches this one)
-    if importlib.util.find_spec("pip") is not None:
+    if _pip_installs_elsewhere():
         _run([sys.executable, "-m", "pip", "--python", python, "install", "--no-deps", "--no-index",
               "--disable-pip-version-check", wheel_path], cwd=root)
     else:                                                  # (a uv-made environment has no pip)
+        # what an installer does with a pure-Python wheel: unpack it, write the console script
         with zipfile.ZipFile(wheel_path) as zf:
             zf.extractall(site)
         script = bindir / "slicersim"
