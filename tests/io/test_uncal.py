@@ -413,3 +413,15 @@ def test_conversion_refuses_a_soft_link_it_would_not_follow(tmp_path):
     write_uncal_from_hdf5(simulate(np.full((8, 8), 5.0), (3, 1, 0), seed=1, out=str(tmp_path / "ok.h5"),
                                    progress=False), tmp_path / "ok.fits")          # a file of ours converts
     assert (tmp_path / "ok.fits").exists()
+
+
+def test_conversion_refuses_a_ramp_file_without_its_completion_marker(tmp_path):
+    # every chunk stored (the storage check passes), COMPLETE false: a writer stopped before the marker
+    import h5py
+    src = simulate(np.full((8, 8), 5.0), (3, 1, 0), seed=1, out=str(tmp_path / "r.h5"), progress=False)
+    with h5py.File(src, "a") as fh:
+        fh.attrs["COMPLETE"] = False
+    out = tmp_path / "r.fits"
+    with pytest.raises(RampFileError, match=r"r\.h5: incomplete file \(no completion marker\)"):
+        write_uncal_from_hdf5(src, out)
+    assert not out.exists()
