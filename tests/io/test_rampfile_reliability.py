@@ -239,6 +239,22 @@ def test_incomplete_files_are_named_so(tmp_path):
         read_ramps(tmp_path / "missing.h5")
 
 
+@pytest.mark.parametrize("marker", [False, None])
+def test_fully_stored_file_without_completion_marker_is_incomplete(tmp_path, marker):
+    # every chunk written (so the per-dataset storage check passes) but COMPLETE false or absent, as
+    # left by a writer stopped between its last block and the marker: only the marker tells
+    import h5py
+    path = simulate(RATE, (3, 1, 0), out=tmp_path / "r.h5")
+    assert read_ramps(path)[0].shape == (1, 3) + RATE.shape
+    with h5py.File(path, "r+") as fh:
+        if marker is None:
+            del fh.attrs["COMPLETE"]
+        else:
+            fh.attrs["COMPLETE"] = marker
+    with pytest.raises(RampFileError, match=r"incomplete file \(no completion marker\)"):
+        read_ramps(path)
+
+
 SLOW_WRITER = """
     import os, sys, time
     import numpy as np

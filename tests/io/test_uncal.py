@@ -10,6 +10,7 @@ import warnings
 
 import numpy as np
 import pytest
+from stdatamodels.jwst import datamodels          # a [test] dependency (pyproject): never skipped
 
 from slicersim.errors import RampFileError
 from slicersim.io import uncal
@@ -17,8 +18,6 @@ from slicersim.io.atomic import _host_tag
 from slicersim.io.rampfile import read_ramps
 from slicersim.io.uncal import UncalWriter, read_uncal, read_uncal_truth, truth_extname, write_uncal_from_hdf5
 from slicersim.products.ramps import simulate
-
-datamodels = pytest.importorskip("stdatamodels.jwst.datamodels")
 
 NMD, NINTS, TFRAME = (4, 2, 1), 2, 2.83
 CR_DTYPE = [("ramp", "<u4"), ("frame", "<u4"), ("y", "<u2"), ("x", "<u2"), ("electrons", "<f4")]
@@ -414,3 +413,15 @@ def test_conversion_refuses_a_soft_link_it_would_not_follow(tmp_path):
     write_uncal_from_hdf5(simulate(np.full((8, 8), 5.0), (3, 1, 0), seed=1, out=str(tmp_path / "ok.h5"),
                                    progress=False), tmp_path / "ok.fits")          # a file of ours converts
     assert (tmp_path / "ok.fits").exists()
+
+
+def test_conversion_refuses_a_ramp_file_without_its_completion_marker(tmp_path):
+    # every chunk stored (the storage check passes), COMPLETE false: a writer stopped before the marker
+    import h5py
+    src = simulate(np.full((8, 8), 5.0), (3, 1, 0), seed=1, out=str(tmp_path / "r.h5"), progress=False)
+    with h5py.File(src, "a") as fh:
+        fh.attrs["COMPLETE"] = False
+    out = tmp_path / "r.fits"
+    with pytest.raises(RampFileError, match=r"r\.h5: incomplete file \(no completion marker\)"):
+        write_uncal_from_hdf5(src, out)
+    assert not out.exists()
