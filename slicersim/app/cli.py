@@ -533,8 +533,22 @@ def _memory_message(exc, where, command) -> str:
     return f"out of memory ({where}){': ' + text if text else ''}; {hint}"
 
 
+def _tolerant_streams():
+    """stdout / stderr that cannot fail on a character their encoding lacks: under ``LC_ALL=C`` without
+    Python's UTF-8 mode they are ASCII, and "≥", "σ" or "…" in a result line raised UnicodeEncodeError
+    after the work was done.  Such characters are written as backslash escapes instead."""
+    for stream in (sys.stdout, sys.stderr):
+        encoding = (getattr(stream, "encoding", None) or "").lower().replace("-", "")
+        if encoding != "utf8" and hasattr(stream, "reconfigure"):
+            try:
+                stream.reconfigure(errors="backslashreplace")
+            except (ValueError, OSError):   # a closed or foreign stream: leave it as it is
+                pass
+
+
 def main(argv=None) -> int:
     import warnings
+    _tolerant_streams()
     parser = build_parser()
     args = parser.parse_args(argv)
     # one line per warning where Python would print it (recorders such as catch_warnings(record=True)

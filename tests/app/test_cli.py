@@ -701,3 +701,23 @@ def test_the_read_noise_unit_is_spelled_electron_everywhere_a_user_reads_it(tmp_
     assert len(messages) == 9
     for text in messages:
         assert "electron" in text and not re.search(r"e-/read|e-/frame|e⁻|\[e-\]|e- per frame", text), text
+
+
+def test_an_ascii_terminal_gets_escapes_not_a_unicode_error(monkeypatch):
+    """Under LC_ALL=C without UTF-8 mode stdout is ASCII: a result line with "≥" or "σ" raised
+    UnicodeEncodeError (exit 3) after a successful reduce.  The CLI writes such characters as escapes."""
+    import io
+
+    from slicersim.app import cli
+    out = io.TextIOWrapper(io.BytesIO(), encoding="ascii")
+    monkeypatch.setattr(sys, "stdout", out)
+    cli._tolerant_streams()
+    print("SNR ≥ 20 σ")
+    out.flush()
+    assert out.buffer.getvalue() == b"SNR \\u2265 20 \\u03c3\n"
+    env = {**os.environ, "LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
+    proc = subprocess.run([sys.executable, "-c", "import sys; from slicersim.app.cli import main, _tolerant_streams;"
+                           "_tolerant_streams(); print('band 4000\\u20136800 \\u00c5'); sys.exit(main(['info']))"],
+                          capture_output=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert b"\\u2013" in proc.stdout
