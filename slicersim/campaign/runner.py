@@ -410,7 +410,7 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
                   security=security, dashboard=_dashboard_address(dashboard) or False)
     _check_cube_precision(spec, scheduler)
     ds = Dataset(Dataset.check_path(out, force=force))
-    created = not os.path.lexists(ds.path)
+    created = ds.create()                             # atomic: of two runs on one new folder, one creates it
     spec = _resumed_seed(spec, ds, force)
     t0 = time.perf_counter()
     ds.check_spec(spec.canonical(), force)            # refuse early, before planning

@@ -193,6 +193,10 @@ class Dataset:
         if os.path.isdir(path):
             if not os.access(path, os.W_OK):
                 raise DatasetError(f"dataset directory is not writable: {path}")
+            holder = _lock_holder(os.path.join(path, LOCK))
+            if holder is not None:                  # another run is creating or running it: not damaged
+                raise DatasetError(f"{path} is in use by another process ({holder or 'a slicersim run'}): "
+                                   "wait for it or stop it")
             if os.listdir(path) and not os.path.isfile(os.path.join(path, SPEC_JSON)):
                 names = [n for n in os.listdir(path) if n != LOCK]
                 damaged = set(names) <= {SPEC_TOML, VERSIONS, CATALOG, PRODUCTS, RECORDS} and \
@@ -207,10 +211,33 @@ class Dataset:
             raise DatasetError(f"directory is not writable: {parent}")
         return path
 
+    def create(self):
+        """Create the dataset folder if it does not exist; True when this call created it (an atomic
+        ``mkdir``: of two runs started on one new folder exactly one gets True, and only that one may
+        remove it again, :meth:`remove_new`)."""
+        try:
+            os.mkdir(self.path)
+            return True
+        except FileExistsError:
+            return False
+        except OSError as exc:
+            raise DatasetError(f"cannot create the dataset folder {self.path}: {one_line(exc)}") from None
+
     def remove_new(self):
-        """Remove a dataset folder this run created when it failed before any target was recorded
-        (a failed run leaves nothing new behind): only the dataset's own files and empty folders;
-        anything else keeps the folder."""
+        """Remove a dataset folder this run created (:meth:`create`) when it failed before any target was
+        recorded (a failed run leaves nothing new behind): only the dataset's own files and empty folders,
+        and only under the dataset's lock — a folder another run holds, or has filled, is left as it is."""
+        if self._lock_fd is None:
+            try:
+                self.lock()
+            except DatasetError:                     # in use by another run: it is theirs now
+                return
+        try:
+            self._remove_own_empty()
+        finally:
+            self.unlock()
+
+    def _remove_own_empty(self):
         try:
             for sub in (RECORDS, PRODUCTS):
                 path = self.file(sub)
@@ -438,6 +465,25 @@ class Dataset:
         buf = io.StringIO()
         table.write(buf, format="ascii.ecsv")
         atomic_bytes(self.file(CATALOG), buf.getvalue().encode(), overwrite=True)
+
+
+def _lock_holder(path):
+    """The text a running client wrote into the lock file ``path`` while it holds the lock ("" when it wrote
+    nothing yet); None when the lock is free, absent or not a regular file."""
+    try:
+        fd = os.open(path, os.O_RDONLY | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return os.pread(fd, 64, 0).decode(errors="replace").strip()
+        return None
+    finally:
+        os.close(fd)
 
 
 def _only_own(path):

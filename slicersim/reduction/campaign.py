@@ -310,8 +310,8 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     mapper = _portable(mapper)
     ids = [int(t) for t in catalog["target_id"]]
     connection = reduction_client(workers, scheduler, security=dask["security"]) if scheduler else None
-    created = not os.path.lexists(ds.path)
     try:
+        created = ds.create()                        # atomic: of two runs on one new folder, one creates it
         _lock(ds)
     except BaseException:
         if connection:

@@ -620,6 +620,34 @@ def test_failed_new_campaign_leaves_no_dataset_folder(spec_path, tmp_path, monke
     assert not out.exists()
 
 
+def test_a_refused_run_never_removes_what_another_run_created(spec_path, tmp_path, monkeypatch):
+    """Two `campaign run` on one new --out at the same time: the refused one deleted the folder, lock and spec
+    the other had just created (4 of 4 tries).  The folder is created atomically; only its creator may remove
+    it, and only under the dataset's lock."""
+    from slicersim.campaign import runner
+    from slicersim.io.dataset import Dataset
+    monkeypatch.setattr(runner, "_plan_and_connect", lambda spec, run: (None, None, None))     # no planning
+    out = tmp_path / "new"
+    winner = Dataset(out)
+    assert winner.create() and not Dataset(out).create()         # exactly one creator
+    winner.lock()
+    (out / "spec.toml").write_text("the winner's spec\n")
+    with pytest.raises(DatasetError, match=r"new is in use by another process \(pid \d+ on "):
+        runner.run_campaign(spec_path, out, workers=1, progress=False)
+    assert sorted(os.listdir(out)) == [".lock", "spec.toml"] and (out / "spec.toml").read_text() == "the winner's spec\n"
+    # the creator failing while another run holds the folder leaves it to that run
+    other = Dataset(tmp_path / "other")
+    assert other.create()
+    holder = Dataset(tmp_path / "other")
+    holder.lock()
+    other.remove_new()
+    assert (tmp_path / "other" / ".lock").exists()
+    holder.unlock()
+    other.remove_new()                                           # free now: the creator cleans up
+    assert not (tmp_path / "other").exists()
+    winner.unlock()
+
+
 def test_tls_scheduler_is_reached_with_the_tls_files(tmp_path):
     """`--scheduler tls://...` with --tls-ca-file/--tls-cert/--tls-key: the Client gets them as a Security;
     without them the connection is refused, with a hint naming the flags."""
