@@ -150,8 +150,10 @@ def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_op
         val = float(value)
     except OverflowError:                          # an int beyond the float range (10**400)
         val = math.inf
-    if not math.isfinite(val) or val < low or val > high or (low_open and val == low) \
-            or (high_open and val == high):
+    if not math.isfinite(val) and not isinstance(value, numbers.Integral):   # inf > 0 holds: say what is wrong
+        raise error(f"{name}{in_unit} must be finite{_finite_bounds(low, high, low_open, high_open)}, "
+                    f"got {short_repr(value)}")
+    if val < low or val > high or (low_open and val == low) or (high_open and val == high):
         raise error(f"{name}{in_unit} must be {_interval(low, high, low_open, high_open)}, got {short_repr(value)}")
     if plausible is not None and bare and not plausible[0] <= val <= plausible[1]:
         warn_implausible(name, val, unit, plausible)
@@ -168,6 +170,12 @@ def warn_implausible(name, value, unit, plausible):
     warnings.warn(f"{name} = {value:g}{unit_text} is implausible (expected {plausible[0]:g} to {plausible[1]:g}"
                   f"{unit_text}): a bare number of {name} is read in{unit_text or ' its documented unit'}{hint}",
                   ImplausibleValueWarning, stacklevel=4)
+
+
+def _finite_bounds(low, high, low_open, high_open):
+    """" and > 0"-style suffix of a finiteness message; "" without bounds."""
+    interval = _interval(low, high, low_open, high_open)
+    return "" if interval == "finite" else f" and {interval}"
 
 
 def _interval(low, high, low_open, high_open):
@@ -281,7 +289,9 @@ def seed(value, *, name="seed", allow_none=True, error=ParameterError):
         raise error(f"{name} must be an integer in [0, 2**64){' or None' if allow_none else ''}, "
                     f"got {short_repr(value)}")
     if not 0 <= int(value) < 2**64:
-        raise error(f"{name} must be in [0, 2**64), got {short_repr(value)}")
+        shown_value = f"{int(value)}" if abs(int(value)) < 10**30 else short_repr(value)   # 2**64 exactly, not 1.8e19
+        what = " (2**64 itself is one too many: the largest seed is 2**64 - 1)" if int(value) == 2**64 else ""
+        raise error(f"{name} must be in [0, 2**64), got {shown_value}{what}")
     return int(value)
 
 

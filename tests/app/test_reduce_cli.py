@@ -154,7 +154,7 @@ def test_reduce_spectra_options_from_files(small_layout, tmp_path, capsys):
     (["--retry-failed"], "--retry-failed applies only to a campaign dataset"),
     (["--gain", "0"], "--gain [DN/e-] must be > 0"),
     (["--read-noise", "-1"], "--ron (read noise per frame) [electron] must be in [0, 10000], got -1"),
-    (["--ron", "nan"], "--ron (read noise per frame) [electron] must be in [0, 10000], got nan"),
+    (["--ron", "nan"], "--ron (read noise per frame) [electron] must be finite and in [0, 10000], got nan"),
     (["--jump-threshold", "-1"], "--jump-threshold [σ] (0: no jump detection) must be ≥ 0"),
     (["--show", "-1"], "--show must be an integer ≥ 0"),
     (["--out-is-dir"], "is a directory"),

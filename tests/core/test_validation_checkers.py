@@ -277,3 +277,16 @@ def test_a_bare_number_implausible_in_its_unit_warns_naming_the_unit(name, value
         warnings.simplefilter("error", ImplausibleValueWarning)   # a Quantity is explicit: no warning
         LazuliSupernova(0.5).update(**{name: meant})
         LazuliSupernova(0.5, config="eol")                         # nor any built-in configuration
+
+
+def test_a_seed_of_exactly_2_to_the_64_and_an_infinite_number_are_named_as_such():
+    """A seed of 2**64 was shown as "got 1.84467e+19"; inf as "must be > 0, got inf" (inf is > 0)."""
+    from slicersim import validation
+    with pytest.raises(ParameterError, match=r"got 18446744073709551616 \(2\*\*64 itself is one too many: the largest "
+                                             r"seed is 2\*\*64 - 1\)"):
+        validation.seed(2**64)
+    assert validation.seed(2**64 - 1) == 2**64 - 1
+    with pytest.raises(ParameterError, match=r"^snr must be finite and > 0, got inf$"):
+        validation.number("snr", float("inf"), low=0, low_open=True)
+    with pytest.raises(ParameterError, match=r"^x must be finite, got nan$"):
+        validation.number("x", float("nan"))
