@@ -227,7 +227,7 @@ def test_missing_toml_file(tmp_path):
 def test_unparsable_toml(tmp_path):
     path = tmp_path / "broken.toml"
     path.write_text("[detector\nron = 3\n", encoding="utf-8")
-    with pytest.raises(ConfigError, match=r"cannot parse TOML"):
+    with pytest.raises(ConfigError, match=r"configuration file .*broken.toml is not valid TOML: Expected"):
         load_config(str(path))
 
 
