@@ -19,6 +19,7 @@ import sys
 from importlib import metadata
 
 from slicersim import validation
+from slicersim.app import etc_cli
 from slicersim.physics.conventions import CONVENTIONS, DEFAULT_CONVENTIONS
 
 
@@ -175,7 +176,6 @@ def _print_result(result, indent=0, units=None) -> None:
 
 def cmd_etc(args) -> int:
     from slicersim import targets
-    from slicersim.app import etc_cli
 
     etc_cli.check_etc_flags(args)
     if args.catalog is not None:
@@ -316,7 +316,6 @@ MEMORY_HINTS = {
 
 
 def cmd_ramp(args) -> int:
-    from slicersim.app import etc_cli
     from slicersim.products import ramps
     if args.redshift is not None:
         validation.redshift("--redshift", args.redshift)
@@ -408,7 +407,6 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--redshift", type=float, metavar="Z", help="SN Ia at redshift Z")
     src.add_argument("--spectrum", metavar="FILE",
                      help="two-column text/CSV: wavelength [Angstrom], flux [erg/s/cm^2/Angstrom]")
-    from slicersim.app import etc_cli
     etc_cli.add_etc_arguments(p, src)
     p.add_argument("--snr", type=float, default=20.0, help="target signal-to-noise ratio per resolution element")
     p.add_argument("--lbda-range", type=float, nargs=2, metavar=("LO", "HI"),

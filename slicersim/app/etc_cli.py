@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
-
 __all__ = ["add_etc_arguments", "cmd_etc_catalog", "check_etc_flags", "add_ramp_target_arguments",
            "check_ramp_target_flags", "ramp_supernova", "ETC_TABLE_COLUMNS", "DEFAULT_SOURCE"]
 
@@ -111,12 +109,16 @@ def _etc_options(args):
                          allow_partial=bool(args.allow_partial))
 
 
-def etc_table(catalog, plan, opts, source, path):
+def etc_table(catalog, plan, opts, source, path, digest=None):
     """The output table: the catalogue's columns, then :data:`ETC_TABLE_COLUMNS` (failed rows:
     readout 0, NaN times, SNR and volume), units and descriptions in the column metadata."""
+    import numpy as np
+
     from slicersim.versioning import __version__
+    from slicersim.campaign.population import CatalogPopulation
     ptab = plan.table
-    out = catalog.copy(copy_data=True)
+    first = [c for c in CatalogPopulation.SN_COLUMNS if c in catalog.colnames]
+    out = catalog[first + [c for c in catalog.colnames if c not in first]].copy(copy_data=True)
     out.meta = {}
     failed = np.asarray(ptab["status"]) == "failed"
     for name, unit, description in ETC_TABLE_COLUMNS:
@@ -136,10 +138,11 @@ def etc_table(catalog, plan, opts, source, path):
             if out[name].unit is None and unit is not None:
                 out[name].unit = unit
             out[name].description = out[name].description or description
-    out.meta.update({"catalog": path, "phase_frame": "rest", "source": source, "snr_goal": opts.snr,
-                     "lbda_range": list(opts.lbda_range), "frame": opts.frame, "field": opts.fields[0],
-                     "config": str(opts.config), "search": opts.search, "conventions": opts.conventions,
-                     "precision": plan.totals.get("precision"), "slicersim": __version__})
+    out.meta.update({"catalog": path, "catalog_sha256": digest, "phase_frame": "rest", "source": source,
+                     "snr_goal": opts.snr, "lbda_range": list(opts.lbda_range), "frame": opts.frame,
+                     "field": opts.fields[0], "config": str(opts.config), "search": opts.search,
+                     "conventions": opts.conventions, "precision": plan.totals.get("precision"),
+                     "slicersim": __version__})
     return out
 
 
@@ -156,6 +159,8 @@ def _write(table, path, overwrite):
 def cmd_etc_catalog(args) -> int:
     """``slicersim etc --catalog T --out R``: exit 0, or 1 when some targets cannot reach the SNR
     (their rows say why)."""
+    import numpy as np
+
     from slicersim.campaign.plan import check_client_memory, plan_survey_with
     from slicersim.campaign.products import spectrum_grid
     _check_out(args.out, args.overwrite)
@@ -168,7 +173,7 @@ def cmd_etc_catalog(args) -> int:
     fluxes = np.where(np.isfinite(fluxes), fluxes, 0.0)     # outside the model: no flux (as campaigns)
     plan = plan_survey_with(np.asarray(catalog["redshift"], dtype=float), lbda, fluxes, opts,
                             target_ids=np.asarray(catalog["target_id"]))
-    table = etc_table(catalog, plan, opts, source, args.catalog)
+    table = etc_table(catalog, plan, opts, source, args.catalog, pop.digest)
     _write(table, args.out, args.overwrite)
     ok = np.asarray(table["status"]) == "ok"
     hours = float(np.sum(np.asarray(table["exposure_time"])[ok])) / 3600

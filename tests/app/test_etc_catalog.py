@@ -116,6 +116,10 @@ def test_overwrite_replaces_the_out_with_the_table_of_the_options_given(tmp_path
     assert proc.returncode == 0, proc.stderr
     table = Table.read(out)
     assert len(table) == 1 and table["status"][0] == "ok" and table.meta["field"] == "wide"
+    # the SN parameters the table does not give: at peak, the default magnitude; first in the table
+    assert table.colnames[:4] == ["target_id", "redshift", "phase", "peak_absmag"]
+    assert (table["target_id"][0], table["phase"][0], table["peak_absmag"][0]) == (0, 0.0, -19.3)
+    assert len(table.meta["catalog_sha256"]) == 64
     assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]                # temp + rename
     assert etc_cli.DEFAULT_SOURCE == table.meta["source"]
 
