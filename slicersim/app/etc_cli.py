@@ -115,9 +115,8 @@ def etc_table(catalog, plan, opts, source, path, digest=None):
     import numpy as np
 
     from slicersim.versioning import __version__
-    from slicersim.campaign.population import CatalogPopulation
     ptab = plan.table
-    first = [c for c in CatalogPopulation.SN_COLUMNS if c in catalog.colnames]
+    first = [c for c in ("target_id", *PARAMETER_COLUMNS) if c in catalog.colnames]
     out = catalog[first + [c for c in catalog.colnames if c not in first]].copy(copy_data=True)
     out.meta = {}
     failed = np.asarray(ptab["status"]) == "failed"
