@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["add_etc_arguments", "cmd_etc_catalog", "check_etc_flags", "add_ramp_target_arguments",
+__all__ = ["add_etc_arguments", "cmd_etc_catalog", "check_etc_flags", "etc_table", "add_ramp_target_arguments",
            "check_ramp_target_flags", "ramp_supernova", "ETC_TABLE_COLUMNS", "DEFAULT_SOURCE"]
 
 #: the SN Ia model of ``--source`` when not given (offline, built into sncosmo)
@@ -91,7 +91,7 @@ def _read_catalog(path, source):
     not give at their fixed defaults (phase 0, peak_absmag −19.3, x1 = c = 0 for SALT, no dust)."""
     from slicersim import validation
     from slicersim.campaign.population import CatalogPopulation
-    with validation.flag_names({"population.file": "--catalog", "population.source": "--source"}):
+    with validation.flag_names({"population.file": "--catalog"}):
         salt = isinstance(source, str) and "salt" in source.lower()
         pop = CatalogPopulation(path, source=source, **({"x1": 0.0, "c": 0.0} if salt else {}))
         table = pop.draw(0)                        # constants only: the seed draws nothing
@@ -110,8 +110,27 @@ def _etc_options(args):
 
 
 def etc_table(catalog, plan, opts, source, path, digest=None):
-    """The output table: the catalogue's columns, then :data:`ETC_TABLE_COLUMNS` (failed rows:
-    readout 0, NaN times, SNR and volume), units and descriptions in the column metadata."""
+    """The output table of ``etc --catalog``.
+
+    Parameters
+    ----------
+    catalog : astropy Table (N rows)
+        the targets as drawn by :meth:`CatalogPopulation.draw
+        <slicersim.campaign.population.CatalogPopulation.draw>` (every SN parameter filled in)
+    plan : :class:`~slicersim.campaign.plan.SurveyPlan`
+        its batch ETC, one row per target in the same order
+    opts : :class:`~slicersim.campaign.plan.SurveyOptions`
+        the checked options it ran with (one field)
+    source : str
+        the sncosmo model;  ``path``, ``digest``: the catalogue file and its sha256, recorded
+
+    Returns
+    -------
+    astropy Table (N rows): target_id, redshift, phase [d, rest frame], peak_absmag [mag], the
+    catalogue's other columns, then :data:`ETC_TABLE_COLUMNS` (exposure_time [s], data_volume
+    [GB]; a failed row has readout 0 and NaN time, SNR and volume); units and descriptions in the
+    column metadata, the options and ``phase_frame = "rest"`` in ``meta``.
+    """
     import numpy as np
 
     from slicersim.versioning import __version__
@@ -211,9 +230,10 @@ RAMP_DETECTOR_FLAGS = {"tframe": "--tframe", "ron": "--ron", "dark": "--dark", "
 
 
 def check_ramp_target_flags(args):
-    """Refuse (ParameterError) the SN flags of ``ramp`` without --redshift, and --snr with an
-    explicit readout or detector flags; check --phase and --peak-absmag in the catalogues' bounds
-    and --snr > 0.  Before anything runs."""
+    """Check the SN flags of ``ramp`` before anything runs: --snr not with an explicit readout
+    (--nmd, --nramps) nor detector flags, and > 0; --phase and --peak-absmag in the catalogues'
+    bounds (ParameterError naming the flag).  Returns the SN flags given without --redshift (for
+    the caller's "apply only with --redshift" message), else []."""
     from slicersim import validation
     from slicersim.campaign.population import CatalogPopulation
     from slicersim.errors import ParameterError
@@ -225,7 +245,7 @@ def check_ramp_target_flags(args):
                     if getattr(args, dest) is not None]
         if explicit:
             raise ParameterError(f"--snr chooses the readout and ramps with the ETC: drop {' and '.join(explicit)} "
-                                 "(or --snr to give the readout yourself)")
+                                 "(or drop --snr to give the readout yourself)")
         detector = [flag for dest, flag in RAMP_DETECTOR_FLAGS.items() if getattr(args, dest) is not None]
         if detector:
             raise ParameterError(f"--snr: the ETC uses the configuration's detector, not {'/'.join(detector)}: "
@@ -241,8 +261,21 @@ def check_ramp_target_flags(args):
 
 
 def ramp_supernova(args, config, field, conventions):
-    """The :class:`~slicersim.targets.LazuliSupernova` of ``ramp --redshift``; with ``--snr`` its
-    readout set by the ETC (printed).  Returns (target, nmd, nramps): the readout to simulate."""
+    """The SN Ia of ``ramp --redshift``, with ``--snr`` its readout chosen by the ETC (printed).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        redshift, phase [rest-frame days from B-band maximum], peak_absmag [mag], source, snr
+        (None: the library's defaults, and no ETC)
+    config, field, conventions : of :class:`~slicersim.targets.LazuliSupernova`
+
+    Returns
+    -------
+    (target, nmd, nramps) : the :class:`~slicersim.targets.LazuliSupernova`, and the readout
+    (n, m, d) and number of ramps the ETC chose for SNR ``args.snr`` per resolution element in
+    4000–6800 Å rest frame (None, None without ``--snr``).
+    """
     from slicersim.targets import LazuliSupernova
     sn = {"phase": args.phase, "peak_absmag": args.peak_absmag, "source": args.source}
     target = LazuliSupernova(args.redshift, config=config, field=field, conventions=conventions,
