@@ -19,6 +19,7 @@ import sys
 from importlib import metadata
 
 from slicersim import validation
+from slicersim.app import etc_cli
 from slicersim.physics.conventions import CONVENTIONS, DEFAULT_CONVENTIONS
 
 
@@ -176,6 +177,9 @@ def _print_result(result, indent=0, units=None) -> None:
 def cmd_etc(args) -> int:
     from slicersim import targets
 
+    etc_cli.check_etc_flags(args)
+    if args.catalog is not None:
+        return etc_cli.cmd_etc_catalog(args)
     kwargs = {"snr": args.snr}
     if args.lbda_range is not None:
         kwargs["lbda_range"] = tuple(args.lbda_range)
@@ -191,6 +195,8 @@ def cmd_etc(args) -> int:
     if args.redshift is not None:
         validation.redshift("--redshift", args.redshift)
         kwargs["frame"] = args.frame or "rest"
+        if args.source is not None:
+            kwargs["source"] = args.source
         result = targets.lazuli_sn_etc(args.redshift, **kwargs)
     else:
         if args.frame is not None:
@@ -205,6 +211,8 @@ def cmd_etc(args) -> int:
 #: detector flags of ``ramp`` and their defaults with ``--rate`` (with ``--redshift`` the
 #: configuration supplies them; given flags override it)
 RAMP_DETECTOR_DEFAULTS = {"tframe": 2.83, "ron": 12.0, "dark": 2.8e-3, "roic_glow": 3e-3, "gain": 1.0}
+#: readout of ``ramp`` when neither --nmd nor --snr gives one
+RAMP_DEFAULT_NMD = (16, 8, 0)
 
 
 def _check_output(path, overwrite):
@@ -282,7 +290,8 @@ def _check_ramp_detector(args):
     in their physical range (ParameterError naming the flag); a read noise that alone would
     saturate the ADC (--ron × --gain > ADC_MAX / 8) is refused."""
     from slicersim.errors import ParameterError
-    nmd = validation.readout(tuple(args.nmd), name="--nmd", error=ParameterError)
+    nmd = validation.readout(tuple(args.nmd if args.nmd is not None else RAMP_DEFAULT_NMD), name="--nmd",
+                             error=ParameterError)
     for key, (low, high, unit) in RAMP_DETECTOR_RANGES.items():
         value = getattr(args, key, None)
         if value is not None:
@@ -310,7 +319,9 @@ def cmd_ramp(args) -> int:
     from slicersim.products import ramps
     if args.redshift is not None:
         validation.redshift("--redshift", args.redshift)
+    sn_flags = etc_cli.check_ramp_target_flags(args)        # --snr with --nmd, --phase out of range, ...
     nmd = _check_ramp_detector(args)
+    nramps = 1 if args.nramps is None else args.nramps
     if args.max_bytes is not None:
         validation.integer("--max-bytes", args.max_bytes, low=1)
     effects = _ramp_effects(args)              # bad names or values: one line, before anything runs
@@ -325,7 +336,7 @@ def cmd_ramp(args) -> int:
         common["previous_charge"] = _load_rate(args.previous_charge, "--previous-charge")
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
     if args.rate is not None:
-        given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None]
+        given = [f"--{k}" for k in ("config", "field", "conventions") if getattr(args, k) is not None] + sn_flags
         if given:
             from slicersim.errors import ParameterError
             raise ParameterError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} only with --redshift "
@@ -334,13 +345,14 @@ def cmd_ramp(args) -> int:
         from slicersim.physics.ramp import RampParameters, check_frame_charge
         check_frame_charge(rate, RampParameters(nmd=nmd, **(RAMP_DETECTOR_DEFAULTS | detector)),
                            {"rate": "--rate image", "dark": "--dark", "roic_glow": "--roic-glow"})
-        path = ramps.simulate(rate, nmd, args.nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
+        path = ramps.simulate(rate, nmd, nramps, **(RAMP_DETECTOR_DEFAULTS | detector), **common)
     else:
-        from slicersim.targets import LazuliSupernova
         config = (args.config[0] if len(args.config) == 1 else list(args.config)) if args.config else "cbe"
-        target = LazuliSupernova(args.redshift, config=config, field=args.field or "narrow",
-                                 conventions=args.conventions or DEFAULT_CONVENTIONS)
-        path = target.get_ramps(nmd=nmd, nramps=args.nramps, **detector, **common)
+        target, etc_nmd, etc_nramps = etc_cli.ramp_supernova(args, config, args.field or "narrow",
+                                                             args.conventions or DEFAULT_CONVENTIONS)
+        if etc_nmd is not None:
+            nmd, nramps = etc_nmd, etc_nramps
+        path = target.get_ramps(nmd=nmd, nramps=nramps, **detector, **common)
     print(f"wrote {path} (seed {seed})")            # --seed SEED repeats the run
     return 0
 
@@ -395,11 +407,12 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--redshift", type=float, metavar="Z", help="SN Ia at redshift Z")
     src.add_argument("--spectrum", metavar="FILE",
                      help="two-column text/CSV: wavelength [Angstrom], flux [erg/s/cm^2/Angstrom]")
+    etc_cli.add_etc_arguments(p, src)
     p.add_argument("--snr", type=float, default=20.0, help="target signal-to-noise ratio per resolution element")
     p.add_argument("--lbda-range", type=float, nargs=2, metavar=("LO", "HI"),
                    help="wavelength range [Angstrom] (default: 4000 6800)")
     p.add_argument("--frame", choices=("obs", "rest"),
-                   help="frame of --lbda-range (default: rest with --redshift, obs with --spectrum)")
+                   help="frame of --lbda-range (default: rest with --redshift and --catalog, obs with --spectrum)")
     p.add_argument("--config", action="append", metavar="cbe|eol|PATH",
                    help="instrument configuration; repeat to apply several in order (default: cbe)")
     p.add_argument("--field", choices=("narrow", "wide"), help="field of view (default: narrow)")
@@ -418,9 +431,11 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--redshift", type=float, metavar="Z", help="full detector image of a SN Ia at Z")
     src.add_argument("--rate", metavar="FILE", help="rate image [e-/s] (.npy or text)")
-    p.add_argument("--nmd", type=int, nargs=3, default=(16, 8, 0), metavar=("N", "M", "D"),
-                   help="MACC readout: groups, frames per group, dropped frames")
-    p.add_argument("--nramps", type=int, default=1, help="ramps between resets")
+    p.add_argument("--nmd", type=int, nargs=3, metavar=("N", "M", "D"),
+                   help=f"MACC readout: groups, frames per group, dropped frames (default: {RAMP_DEFAULT_NMD}); "
+                        "with --snr: the ETC's")
+    p.add_argument("--nramps", type=int, help="ramps between resets (default: 1); with --snr: the ETC's")
+    etc_cli.add_ramp_target_arguments(p)
     p.add_argument("--seed", type=int, default=None,
                    help="noise seed, an integer in [0, 2**64) (default: a fresh seed, printed and recorded in the "
                         "file's SEED attribute: pass it again to repeat the run)")

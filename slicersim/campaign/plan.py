@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from slicersim.errors import ETCError, ParameterError, SpectrumError
-from slicersim.validation import MAX_REDSHIFT, array as validation_array, checked_fields, choice, number, \
+from slicersim.validation import MAX_REDSHIFT, array as validation_array, checked_fields, choice, flag, number, \
     redshift as check_redshift, short_repr, shown
 
 __all__ = ["SurveyPlan", "SurveyOptions", "plan_survey", "plan_survey_with", "plot_time_and_volume", "check_client_memory", "survey_totals", "YEAR_S", "PLAN_COLUMNS"]
@@ -116,6 +116,8 @@ class SurveyOptions:
     overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1 : of the totals (module docstring)
     progress : the batch ETC's bar (None: when stderr is a terminal);  detector_shape : (ny, nx) of the volume (default: the field's)
     precision : of the batch ETC's band-variance kernel
+    allow_partial : a band partly outside the grid or the spectrum is answered on its covered part
+        (default); False: such a target fails with the coverage error (as the single-target ETC)
     """
     snr: float = 20.0
     lbda_range: tuple = (4000.0, 6800.0)
@@ -132,6 +134,7 @@ class SurveyOptions:
     progress: bool | None = None
     detector_shape: tuple | None = None
     precision: object = "auto"
+    allow_partial: bool = True
 
     def checked(self):
         """A copy with every value checked and converted (ParameterError naming the keyword); the
@@ -150,7 +153,7 @@ class SurveyOptions:
                        overhead=number("overhead", self.overhead, low=0, unit="s"),
                        efficiency=number("efficiency", self.efficiency, low=0, low_open=True, high=1),
                        compression_ratio=number("compression_ratio", self.compression_ratio, low=1),
-                       precision=precision)
+                       precision=precision, allow_partial=flag("allow_partial", self.allow_partial))
 
 
 def _is_inf(value):
@@ -199,7 +202,7 @@ def _solve_fields(lbda, fluxes, z, ids, opts):
     errors, shapes = {}, {}
     etc = dict(snr=opts.snr, lbda_ranges=opts.lbda_range, frame=opts.frame, config=opts.config, search=opts.search,
                conventions=opts.conventions, per_resolution=opts.per_resolution, progress=opts.progress,
-               precision=opts.precision)
+               precision=opts.precision, allow_partial=opts.allow_partial)
     for f in dict.fromkeys(field):
         sel = np.nonzero(field == f)[0]
         # chunks of neighbouring redshifts share their bands: the ETC's per-chunk LSF and

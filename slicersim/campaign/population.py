@@ -30,7 +30,7 @@ from slicersim.campaign.snia_model import SNIaModel, cosmology, model_fluxes, re
 from slicersim.campaign.snia_model import snia_fluxes  # noqa: F401  (documented path: docs/guide/campaigns.md)
 from slicersim import validation
 from slicersim.errors import ConfigError, SpectrumError
-from slicersim.validation import number
+from slicersim.validation import number, shown
 from slicersim.io.tables import file_digest, read_spectrum_table as _read_spectrum_table, read_table, resolve_path
 from slicersim.sources.spectra import blackbody_flambda
 
@@ -390,7 +390,7 @@ class CatalogPopulation(_SNParameters):
               "host_offset_x": (-600, 600), "host_offset_y": (-600, 600)}
 
     def __init__(self, file, base_dir=".", **sn):
-        self.file = resolve_path(file, base_dir, "population.file")
+        self.file = resolve_path(file, base_dir, shown("population.file"))
         self.digest = file_digest(self.file)
         _unknown(sn, _SN_KEYS, "population.")
         self._parse_sn({**_SN_KEYS, **sn}, base_dir)
@@ -399,62 +399,74 @@ class CatalogPopulation(_SNParameters):
 
     SN_COLUMNS = ("redshift", "target_id", "phase", "peak_absmag", "x1", "c", "mwebv", "hostebv")
 
+    @property
+    def _where(self):
+        """The table as messages name it: its key (or the flag, :func:`slicersim.validation.flag_names`)
+        and its path."""
+        return f"{shown('population.file')} {self.file}"
+
     def _read(self):
         """The user table with its empty cells filled: "" in text columns, NaN in other
         numeric columns; an empty redshift or SN parameter is an error naming the row."""
         from astropy.table import Table
-        tab = read_table(self.file, "population.file")
+        tab = read_table(self.file, shown("population.file"))
         for name in tab.colnames:
             col = tab[name]
             mask = np.asarray(getattr(col, "mask", np.zeros(len(col), bool)))
             if not mask.any():
                 continue
             if name in self.SN_COLUMNS or name.startswith("host_"):
-                raise ConfigError(f"population.file: column {name!r} is empty in row {int(np.nonzero(mask)[0][0])}")
+                raise ConfigError(f"{self._where}: column {name!r} is empty in row {int(np.nonzero(mask)[0][0])}")
             kind = np.asarray(col).dtype.kind
             if kind in "US":
                 tab[name] = col.filled("")
             elif kind in "iufcb":                 # integers become floats: an empty cell is NaN, not 0
                 tab[name] = np.where(mask, np.nan, np.asarray(col.filled(0), dtype=float))
             else:
-                raise ConfigError(f"population.file: column {name!r} has empty cells (row "
+                raise ConfigError(f"{self._where}: column {name!r} has empty cells (row "
                                   f"{int(np.nonzero(mask)[0][0])}) of an unsupported type")
         return Table(tab, masked=False)
 
     def _check(self, tab):
         if len(tab) == 0:
-            raise ConfigError(f"population.file {self.file} has no rows: an empty population has nothing to simulate")
+            raise ConfigError(f"{self._where} has no rows: an empty population has nothing to simulate")
         if "redshift" not in tab.colnames:
-            raise ConfigError(f"population.file {self.file} has no 'redshift' column (columns: {tab.colnames})")
+            raise ConfigError(f"{self._where} has no 'redshift' column (columns: {tab.colnames})")
         clash = [c for c in tab.colnames if c in self.RESERVED]
         if clash:
-            raise ConfigError(f"population.file: columns {clash} are computed by the campaign; rename them")
+            raise ConfigError(f"{self._where}: columns {clash} are computed by the campaign and the ETC; rename them")
+        salt_cols = [c for c in ("x1", "c") if c in tab.colnames]
+        if salt_cols and not self.salt:
+            raise ConfigError(f"{self._where}: columns {salt_cols} are SALT parameters; source {self.source!r} has "
+                              "none (use the source salt2 or salt3, with sncosmo's data available)")
         for name, (lo, hi) in self.BOUNDS.items():
             if name not in tab.colnames:
                 continue
             try:
                 values = np.asarray(tab[name], dtype=float)
             except (TypeError, ValueError):
-                raise ConfigError(f"population.file: column {name!r} of {self.file} is not numeric") from None
+                raise ConfigError(f"{self._where}: column {name!r} is not numeric{_first_not_number(tab[name])}") \
+                    from None
             bad = ~((values >= lo) & (values <= hi))
             if bad.any():
                 i = int(np.nonzero(bad)[0][0])
-                raise ConfigError(f"population.file: {name} = {values[i]:g} in row {i} is outside [{lo}, {hi}]"
+                raise ConfigError(f"{self._where}: {name} = {values[i]:g} in row {i} is outside [{lo}, {hi}]"
                                   + (" (redshifts cannot be negative)" if name == "redshift" and values[i] < 0 else ""))
         host_cols = [c for c in tab.colnames if c.startswith("host_")]
         if host_cols and self.hosts is not None and set(host_cols) != set(HostModel.COLUMNS):
-            raise ConfigError(f"population.file: give all host columns {list(HostModel.COLUMNS)} or none "
+            raise ConfigError(f"{self._where}: give all host columns {list(HostModel.COLUMNS)} or none "
                               f"(has {host_cols})")
         z = np.asarray(tab["redshift"], dtype=float)
         if np.any(~np.isfinite(z)) or np.any(z < 0):
-            raise ConfigError(f"population.file: redshifts must be finite and not negative (row "
+            raise ConfigError(f"{self._where}: redshifts must be finite and not negative (row "
                               f"{int(np.nonzero(~(z >= 0))[0][0])})")
         if "spectrum_file" not in tab.colnames and np.any(z == 0):
-            raise ConfigError("population.file: SN Ia redshifts must be > 0 (give a spectrum_file for z = 0)")
+            raise ConfigError(f"{self._where}: SN Ia redshifts must be > 0 (row {int(np.nonzero(z == 0)[0][0])}; "
+                              "give a spectrum_file for z = 0)")
         if "target_id" in tab.colnames:
             ids = np.asarray(tab["target_id"])
             if ids.dtype.kind not in "iu" or np.any(ids < 0) or len(np.unique(ids)) != len(ids):
-                raise ConfigError("population.file: target_id must be unique integers ≥ 0")
+                raise ConfigError(f"{self._where}: target_id must be unique integers ≥ 0{_first_bad_id(ids)}")
         return tab
 
     def draw(self, seed):
@@ -498,6 +510,30 @@ class CatalogPopulation(_SNParameters):
     def to_spec(self):
         return {"kind": self.kind, "file": self.file, "file_sha256": self.digest,
                 "spectrum_files_sha256": self.spectrum_files_digest(), **self._sn_spec()}
+
+
+def _first_not_number(column):
+    """" (row i: 'value')" naming the first cell of ``column`` that is not a number."""
+    for i, value in enumerate(column):
+        try:
+            float(value)
+        except (TypeError, ValueError):
+            return f" (row {i}: {validation.short_repr(str(value))})"
+    return ""
+
+
+def _first_bad_id(ids):
+    """" (row i: ...)" naming the first target_id that is not an integer ≥ 0 or repeats an earlier one."""
+    if ids.dtype.kind not in "iu":
+        return f" (the column holds {ids.dtype.name} values, e.g. {validation.short_repr(ids[0])} in row 0)"
+    seen = {}
+    for i, v in enumerate(ids.tolist()):
+        if v < 0:
+            return f" (row {i}: {v})"
+        if v in seen:
+            return f" (row {i}: {v}, as row {seen[v]})"
+        seen[v] = i
+    return ""
 
 
 POPULATIONS = {"snia": SNIaPopulation, "catalog": CatalogPopulation}
