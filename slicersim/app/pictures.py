@@ -12,8 +12,8 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.errors import ParameterError
-from slicersim.plotting import (check_region, colorbar, draw_slices, figure_writer, finish, image_norm,  # noqa: F401
-                                save_figure, sky_extent)
+from slicersim.plotting import (check_region, check_savefile, colorbar, draw_slices, figure_writer,  # noqa: F401
+                                finish, image_norm, save_figure, sky_extent)
 
 __all__ = ["show_fields", "show_psf_profiles", "show_slice_map", "field_simulations", "save_figure", "figure_writer",
            "check_region", "check_wavelengths", "FIELDS"]
@@ -101,6 +101,7 @@ def show_fields(target_or_sim, lbda_range=None, seed=None, savefile=None):
     Images in arcsec on the sky (x along the slices, square cells: equal scales on both
     axes).  See :func:`field_simulations` for what ``target_or_sim`` may be.
     """
+    check_savefile(savefile)
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MaxNLocator
 
@@ -205,6 +206,7 @@ def show_psf_profiles(target_or_sim, lbda=(5000.0, 10000.0, 15000.0), rmax=None,
     ``rmax`` [arcsec] defaults to 3 Airy radii at the largest λ.
     The cell sizes of both fields (0.04″, 0.08″ for Lazuli) are marked.
     """
+    check_savefile(savefile)
     import matplotlib.pyplot as plt
 
     sim = _simulation(target_or_sim)
@@ -274,6 +276,7 @@ def show_slice_map(mapper=None, fields=FIELDS, image=None, *, footprints=None, c
     [px], within the detector, zooms in.  The colour bar reads "detector image
     [e-/s/px]".  Drawn by :func:`slicersim.plotting.draw_slices`.
     """
+    check_savefile(savefile)
     from slicersim.instrument.footprints import FieldFootprints, detector_label_image
     if footprints is None:
         if mapper is None:

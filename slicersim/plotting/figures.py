@@ -11,7 +11,54 @@ import numpy as np
 
 from slicersim.errors import ParameterError
 
-__all__ = ["figure_writer", "save_figure", "finish", "new_axes", "colorbar", "image_norm"]
+__all__ = ["figure_writer", "save_figure", "finish", "new_axes", "colorbar", "image_norm", "check_axes",
+           "check_savefile", "MAX_PANELS"]
+
+#: the most panels one figure draws (one per wavelength of ``show_cube``): more is unreadable and slow
+MAX_PANELS = 12
+
+
+def check_savefile(savefile):
+    """``savefile`` checked before anything is drawn: None, a path naming a file (str or os.PathLike, its
+    folder existing) or a binary file object; ParameterError naming it otherwise (``savefile=3``, or
+    ``"."`` that wrote ``..png``)."""
+    if savefile is None or hasattr(savefile, "write"):
+        return savefile
+    if isinstance(savefile, bool) or not isinstance(savefile, (str, os.PathLike)):
+        raise ParameterError(f"savefile must be a file path (str or os.PathLike) or a binary file object, got "
+                             f"{_short(savefile)}")
+    path = os.fspath(savefile)
+    name = os.path.basename(path)
+    if not name or name in (".", "..") or os.path.isdir(path):
+        raise ParameterError(f"savefile {path!r} names a folder, not a file: give a file name such as "
+                             f"{os.path.join(path, 'figure.png')!r}")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise ParameterError(f"savefile {path!r}: the folder {folder!r} does not exist")
+    return savefile
+
+
+def check_axes(ax, count=None, what="Axes"):
+    """``ax`` as a list of matplotlib Axes: one Axes, or a sequence of ``count`` of them (any count when
+    None); ParameterError naming the argument otherwise (``ax='foo'`` was an AttributeError)."""
+    from matplotlib.axes import Axes
+    axes = [ax] if isinstance(ax, Axes) else None
+    if axes is None:
+        if isinstance(ax, (str, bytes)) or not hasattr(ax, "__len__"):
+            raise ParameterError(f"ax must be a matplotlib Axes or a sequence of them, got {_short(ax)}")
+        axes = list(np.ravel(np.asarray(ax, dtype=object)))
+        bad = [a for a in axes if not isinstance(a, Axes)]
+        if bad or not axes:
+            raise ParameterError(f"ax must be a matplotlib Axes or a sequence of them, got "
+                                 f"{_short(bad[0]) if bad else 'an empty sequence'} in it")
+    if count is not None and len(axes) != count:
+        raise ParameterError(f"ax must hold {count} {what}, got {len(axes)}")
+    return axes
+
+
+def _short(value):
+    from slicersim.validation import short_repr
+    return short_repr(value)
 
 
 def figure_writer(fig, path, **options):
@@ -52,6 +99,7 @@ def save_figure(fig, savefile, **options):
 
 def finish(fig, savefile, dpi=120):
     """Save ``fig`` to ``savefile`` when given (:func:`save_figure`, tight box); returns ``fig``."""
+    check_savefile(savefile)
     if savefile is not None:
         save_figure(fig, savefile, dpi=dpi, bbox_inches="tight")
     return fig
@@ -61,6 +109,7 @@ def new_axes(ax=None, **subplots):
     """(figure, axes): ``ax``'s figure and ``ax`` when given, else a new figure
     (``plt.subplots(**subplots)``, constrained layout)."""
     if ax is not None:
+        ax = check_axes(ax, 1)[0]
         return ax.figure, ax
     import matplotlib.pyplot as plt
     subplots.setdefault("layout", "constrained")

@@ -10,7 +10,7 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.errors import ParameterError
-from slicersim.plotting.figures import colorbar, finish, image_norm, new_axes
+from slicersim.plotting.figures import MAX_PANELS, check_axes, check_savefile, colorbar, finish, image_norm, new_axes
 
 __all__ = ["plot_cube_slices", "draw_slices", "check_region", "plot_ramp_group", "source_zoom", "sky_extent"]
 
@@ -49,22 +49,25 @@ def plot_cube_slices(sim, cube=None, lbda=None, ax=None, savefile=None, unit="AD
     ax : None (new figure) or a sequence of Axes, one per wavelength
     unit : unit of the cube (colour bars)
     """
+    check_savefile(savefile)
     lbda_grid = np.asarray(sim.lbda, dtype=float)
+    index = _cube_wavelengths(lbda_grid, lbda)            # checked before the cube is computed
+    if index.size > MAX_PANELS:
+        raise ParameterError(f"lbda: at most {MAX_PANELS} wavelengths (one panel each), got {index.size}")
+    if ax is not None:
+        check_axes(ax, index.size, "Axes, one per wavelength")
     if cube is None:
         cube = sim.get_cube()[0]
     cube = np.asarray(cube, dtype=float)
     if cube.ndim != 3 or cube.shape[0] != lbda_grid.size:
         raise ParameterError(f"cube must have shape ({lbda_grid.size}, ny, nx), got {cube.shape}")
-    index = _cube_wavelengths(lbda_grid, lbda)
     if ax is None:
         import matplotlib.pyplot as plt
         fig, axes = plt.subplots(1, index.size, figsize=(3.6 * index.size + 1, 3.0), squeeze=False,
                                  layout="constrained")
         axes = list(axes[0])
     else:
-        axes = list(np.atleast_1d(ax))
-        if len(axes) != index.size:
-            raise ParameterError(f"ax must hold one Axes per wavelength ({index.size}), got {len(axes)}")
+        axes = check_axes(ax, index.size, "Axes, one per wavelength")
         fig = axes[0].figure
     extent = sky_extent(sim.spectrograph)
     for a, k in zip(axes, index):
@@ -124,6 +127,7 @@ def draw_slices(footprints, image=None, label_image=None, *, region=None, labels
     region : (row0, row1, col0, col1) [px] zoom, already checked; default the whole detector
     labels : write each slice id at the blue end of its trace
     """
+    check_savefile(savefile)
     from matplotlib.patches import Polygon
     shape = tuple(footprints[0].detector_shape)
     fig, ax = new_axes(ax, figsize=(9, 8.5))
@@ -218,6 +222,7 @@ def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None, *, first=0
     that axes read detector pixels.  ``title``: first line(s) of the title (e.g. the target and
     the readout the ETC chose); the file's readout pattern follows.
     """
+    check_savefile(savefile)
     import matplotlib.pyplot as plt
 
     from slicersim.io.rampfile import open_hdf5_input

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from slicersim.errors import ParameterError
-from slicersim.plotting.figures import finish, new_axes
+from slicersim.plotting.figures import check_axes, check_savefile, finish, new_axes
 
 __all__ = ["SOURCE_STYLES", "plot_spectrum", "plot_variance_budget", "plot_instrument", "plot_curves",
            "readout_title"]
@@ -101,6 +101,7 @@ def plot_spectrum(target_or_sim, ax=None, seed=None, savefile=None):
     The ETC band of ``target.last_etc`` (if any) is shaded and its target SNR
     per bin drawn as a horizontal line.
     """
+    check_savefile(savefile)
     target, sim = _split(target_or_sim)
     lbda, signal, variance = sim.get_spectrum()
     finite = np.isfinite(variance) & (variance >= 0)
@@ -114,11 +115,11 @@ def plot_spectrum(target_or_sim, ax=None, seed=None, savefile=None):
         fig, (ax_spec, ax_snr) = plt.subplots(2, 1, sharex=True, figsize=(9, 7),
                                               gridspec_kw={"height_ratios": [3, 2]},
                                               layout="constrained")
-    elif np.ndim(ax) == 0:
-        ax_spec, ax_snr = ax, None
-        fig = ax_spec.figure
     else:
-        ax_spec, ax_snr = ax[0], ax[1]
+        axes = check_axes(ax)
+        if len(axes) not in (1, 2):
+            raise ParameterError(f"ax must be one Axes (spectrum) or two (spectrum, SNR), got {len(axes)}")
+        ax_spec, ax_snr = axes[0], (axes[1] if len(axes) == 2 else None)
         fig = ax_spec.figure
 
     # top: signal ± 1σ (+ a noisy draw)
@@ -179,6 +180,7 @@ def plot_variance_budget(target_or_sim, ax=None, savefile=None):
     Sources that are zero everywhere are listed in the legend as such.  ``ax``: None (new
     figure) or a pair of Axes (variance, fraction).
     """
+    check_savefile(savefile)
     target, sim = _split(target_or_sim)
     contrib = sim.get_variance_contribution()
     lbda = sim.lbda
@@ -189,7 +191,7 @@ def plot_variance_budget(target_or_sim, ax=None, savefile=None):
     if ax is None:
         fig, (ax_var, ax_frac) = new_axes(nrows=2, sharex=True, figsize=(9, 7.5))
     else:
-        ax_var, ax_frac = ax
+        ax_var, ax_frac = check_axes(ax, 2, "Axes (variance, fraction)")
         fig = ax_var.figure
     if etc is not None:
         _shade_band(ax_var, etc, label="ETC band")
@@ -241,6 +243,7 @@ def plot_variance_budget(target_or_sim, ax=None, savefile=None):
 # --------------------------------------------------------------------------- #
 def plot_instrument(sim, savefile=None):
     """Throughput, QE, throughput × QE (top) and resolving power (bottom) versus λ [Å]."""
+    check_savefile(savefile)
     import matplotlib.pyplot as plt
 
     _, sim = _split(sim)
@@ -292,6 +295,7 @@ def plot_curves(lbda, curves, ylabel, title=None, ax=None, savefile=None, ylim=N
     ax : None (new figure) or an Axes
     savefile : path; if given the figure is saved there
     """
+    check_savefile(savefile)
     fig, ax = new_axes(ax, figsize=(8, 4.5))
     lbda = np.asarray(lbda, dtype=float)
     for label, values in curves.items():

@@ -117,3 +117,32 @@ def test_plot_ramp_group_refuses_a_file_declaring_data_it_does_not_hold(tmp_path
         fh.create_dataset("SCI", shape=(1, 4, 100000, 100000), dtype="u2", chunks=(1, 1, 64, 64))
     with pytest.raises(RampFileError, match=r"forged.h5: dataset SCI declares shape \(1, 4, 100000, 100000\)"):
         plotting.plot_ramp_group(tmp_path / "forged.h5")
+
+
+def test_plotting_arguments_are_checked_before_anything_is_drawn(tmp_path, monkeypatch):
+    """ax='foo' was an AttributeError, savefile=3 a TypeError, savefile='.' wrote '..png', and show_cube with
+    400 wavelengths ran for more than 5 min (its cube computed first): each is now one ParameterError."""
+    class Sim:
+        lbda = np.linspace(5000.0, 6000.0, 400)
+        spectrograph = type("S", (), {"shape": (3, 4), "spatial_scale": 0.1})()
+
+        def get_cube(self):
+            raise AssertionError("the cube must not be computed for a refused request")
+    sim = Sim()
+    with pytest.raises(ParameterError, match=r"lbda: at most 12 wavelengths \(one panel each\), got 400"):
+        plotting.plot_cube_slices(sim, lbda=sim.lbda)
+    with pytest.raises(ParameterError, match=r"ax must be a matplotlib Axes or a sequence of them, got 'foo'"):
+        plotting.plot_cube_slices(sim, lbda=[5500.0], ax="foo")
+    with pytest.raises(ParameterError, match=r"ax must be a matplotlib Axes.*got 'foo'"):
+        plotting.plot_curves([1.0, 2.0], {"a": [1.0, 2.0]}, "y", ax="foo")
+    with pytest.raises(ParameterError, match=r"savefile must be a file path .* got 3"):
+        plotting.plot_cube_slices(sim, lbda=[5500.0], savefile=3)
+    monkeypatch.chdir(tmp_path)
+    for folder in (".", str(tmp_path), "sub/"):
+        with pytest.raises(ParameterError, match=r"savefile .* names a folder, not a file"):
+            plotting.plot_curves([1.0, 2.0], {"a": [1.0, 2.0]}, "y", savefile=folder)
+    with pytest.raises(ParameterError, match=r"the folder .*nowhere.* does not exist"):
+        plotting.plot_curves([1.0, 2.0], {"a": [1.0, 2.0]}, "y", savefile="nowhere/f.png")
+    assert list(tmp_path.iterdir()) == []                                  # nothing written, no '..png'
+    fig = plotting.plot_curves([1.0, 2.0], {"a": [1.0, 2.0]}, "y", savefile="ok.png")
+    assert (tmp_path / "ok.png").stat().st_size > 0 and fig is not None
