@@ -368,13 +368,14 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 class _Parser(argparse.ArgumentParser):
     """Usage errors as one line ``slicersim: error: ...`` (exit 2), like every other user error.
-    ``-1e300``, ``-.5`` and ``-inf`` are values, not options (argparse took ``--lbda-range -1e300 1e300``
-    for a flag and said "expected 2 arguments")."""
+    ``-1e300``, ``-.5``, ``-inf`` and ``-29.4,0`` are values, not options (argparse took ``--lbda-range -1e300
+    1e300`` or ``--position -29.4,0`` for a flag and said "expected 2 arguments" / "expected one argument")."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$",
-                                                   re.IGNORECASE)
+        number = r"(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|inf|infinity|nan)"
+        # also a pair such as --position -29.4,0 (X,Y) or -1,-2
+        self._negative_number_matcher = re.compile(rf"^-{number}(?:,\s*[-+]?{number})*$", re.IGNORECASE)
 
     def error(self, message):
         hint = f" (see '{self.prog} --help')"

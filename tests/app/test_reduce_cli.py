@@ -608,3 +608,13 @@ def test_option_files_that_are_not_regular_files_are_named_so(raw, tmp_path, cap
     thread.join(60)
     assert not thread.is_alive() and codes == [2]
     assert f"{flag}: {fifo} is not a regular file" in _one_line_error(capsys)
+
+
+def test_a_negative_position_is_a_value_not_a_flag(monkeypatch):
+    """`--position -29.4,0` was taken for a flag ("expected one argument")."""
+    from slicersim.app.cli import build_parser
+    from slicersim.app.reduce_cli import _parse_position
+    args = build_parser().parse_args(["reduce", "raw.h5", "--out", "r.h5", "--spectra", "--position", "-29.4,0"])
+    assert _parse_position(args.position) == (-29.4, 0.0)
+    args = build_parser().parse_args(["reduce", "raw.h5", "--out", "r.h5", "--spectra", "--position", "-1e1,-2"])
+    assert _parse_position(args.position) == (-10.0, -2.0)
