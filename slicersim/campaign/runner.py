@@ -198,8 +198,38 @@ def tls_security(ca_file=None, cert=None, key=None):
         from slicersim.errors import ParameterError
         raise ParameterError("--tls-ca-file and --tls-cert are both needed for a TLS scheduler "
                              "(--tls-key too unless the certificate file holds the key)")
+    _check_pem_files(files)
     return Security(tls_ca_file=files["--tls-ca-file"], tls_client_cert=files["--tls-cert"],
                     tls_client_key=files["--tls-key"], require_encryption=True)
+
+
+def _check_pem_files(files):
+    """Load the TLS files as the client will (Python's ssl): a file that is not PEM, a certificate without
+    its key or a key that is not the certificate's is a ParameterError naming the flag and the file (OpenSSL
+    said only "PEM lib")."""
+    import ssl
+
+    from slicersim.errors import ParameterError
+    for flag, path in files.items():
+        if path is None:
+            continue
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 20)
+        if b"-----BEGIN " not in head:
+            raise ParameterError(f"{flag} {path} is not a PEM file (no '-----BEGIN' line): give the "
+                                 f"{'CA certificate' if flag == '--tls-ca-file' else flag[6:]} in PEM format")
+    try:
+        ssl.create_default_context().load_verify_locations(cafile=files["--tls-ca-file"])
+    except (ssl.SSLError, ValueError) as exc:
+        raise ParameterError(f"--tls-ca-file {files['--tls-ca-file']} holds no usable CA certificate "
+                             f"({' '.join(str(exc).split())[:120]})") from None
+    try:
+        ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_cert_chain(files["--tls-cert"], files["--tls-key"])
+    except (ssl.SSLError, ValueError) as exc:
+        which = (f"--tls-cert {files['--tls-cert']} and --tls-key {files['--tls-key']}" if files["--tls-key"]
+                 else f"--tls-cert {files['--tls-cert']} (no --tls-key: the file must hold the key too)")
+        raise ParameterError(f"{which} do not load as a client certificate with its private key: a certificate "
+                             f"and the key it was made for are needed ({' '.join(str(exc).split())[:120]})") from None
 
 
 def _connect(scheduler, security):

@@ -880,3 +880,26 @@ def test_a_broken_dask_configuration_is_one_config_error(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "slicersim", "campaign", "run", str(spec), "--out", str(tmp_path / "d")],
                           capture_output=True, text=True, env={**os.environ, "DASK_CONFIG": str(folder)}, timeout=300)
     one_line_error(proc, "Dask configuration", "bad.yaml", "is malformed", "DASK_CONFIG")
+
+
+def test_bad_tls_files_are_named_not_pem_lib(tmp_path):
+    """Bad TLS files gave OpenSSL's "PEM lib" without saying which file."""
+    from distributed import Security
+
+    from slicersim.campaign.runner import tls_security
+    from slicersim.errors import ParameterError
+    creds = Security.temporary()
+    ca, cert, key, junk = (tmp_path / n for n in ("ca.pem", "cert.pem", "key.pem", "junk.pem"))
+    ca.write_text(creds.tls_ca_file)
+    cert.write_text(creds.tls_client_cert)
+    key.write_text(creds.tls_client_key)
+    junk.write_text("not a certificate\n")
+    assert tls_security(ca, cert, key) is not None
+    with pytest.raises(ParameterError, match=r"--tls-cert .*junk.pem is not a PEM file"):
+        tls_security(ca, junk, key)
+    with pytest.raises(ParameterError, match=r"--tls-ca-file .*key.pem holds no usable CA certificate"):
+        tls_security(key, cert, key)
+    other = Security.temporary()
+    (tmp_path / "other.pem").write_text(other.tls_client_key)
+    with pytest.raises(ParameterError, match=r"--tls-cert .*cert.pem and --tls-key .*other.pem do not load"):
+        tls_security(ca, cert, tmp_path / "other.pem")
