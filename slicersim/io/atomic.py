@@ -26,6 +26,12 @@ __all__ = ["AtomicH5File", "flush_chunks", "GuardedFile", "is_temporary", "remov
            "publish", "sha256_file", "one_line", "check_output_path", "output_path",
            "refuse_special"]
 
+#: HDF5 file-format versions of every file written here: the 1.8 format (readable by HDF5 ≥ 1.8) with
+#: version-2 object headers, which carry a checksum of their metadata — attributes (GAIN, READNOISE, CONFIG,
+#: truth parameters), dataset layouts and filters — verified by HDF5 on every read: one flipped bit in an
+#: attribute is a read error, not a silently different gain (the data chunks carry Fletcher-32)
+HDF5_LIBVER = ("v108", "v108")
+
 #: temporaries are ``.<final name>.tmp-<pid>-<host tag><random>`` (the host tag keeps a writer from
 #: removing the temporary of a live process on another machine sharing the directory)
 _TMP_TAG = ".tmp-"
@@ -344,7 +350,7 @@ class AtomicH5File:
             raise self.error_class(f"cannot create a temporary file in {directory}")
         try:
             self._fh = GuardedFile(self._fd)
-            self._file = h5py.File(self._fh, "w")
+            self._file = h5py.File(self._fh, "w", libver=HDF5_LIBVER)
             self._populate(self._file)
         except Exception as exc:
             raise self.error_class(f"cannot create {self.path}: {one_line(exc)}") from exc

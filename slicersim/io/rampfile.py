@@ -27,6 +27,7 @@ from __future__ import annotations
 from slicersim import validation
 from slicersim.errors import RampFileError
 
+import contextlib
 import json
 import os
 import shutil
@@ -36,7 +37,7 @@ import numpy as np
 from slicersim.io.atomic import _HDF5_MARGIN, AtomicH5File, flush_chunks, is_temporary, one_line, remove_stale_temporaries
 
 __all__ = ["RampWriter", "RampFileError", "compression_options", "read_ramps", "DQ", "is_temporary",
-           "remove_stale_temporaries", "check_hdf5_input", "check_stored", "read_error", "open_hdf5_input", "soft_links",
+           "remove_stale_temporaries", "check_hdf5_input", "metadata_errors", "check_stored", "read_error", "open_hdf5_input", "soft_links",
            "MAX_COMPRESSION"]
 
 #: JWST data-quality bit values
@@ -268,6 +269,29 @@ def check_hdf5_input(fh, path, datasets=("SCI",)):
       bytes declaring 10⁵ × 10⁵ pixels would be read as that many zeros).
     """
     import h5py
+    with metadata_errors(path):
+        _check_objects(fh, path, datasets)
+
+
+@contextlib.contextmanager
+def metadata_errors(path):
+    """HDF5's failed metadata checksum (a changed byte in an attribute, a dataset's layout or a group, in a
+    file written with checksummed object headers, :data:`slicersim.io.atomic.HDF5_LIBVER`) as one
+    :class:`RampFileError`, the same line as a failed data checksum; other errors pass."""
+    try:
+        yield
+    except (KeyError, OSError, RuntimeError) as exc:
+        if isinstance(exc, RampFileError) or "checksum" not in str(exc).lower():
+            raise
+        raise RampFileError(f"checksum mismatch in the metadata (attributes, layout) of {path}: the file is "
+                            f"corrupt (HDF5: {one_line(exc)})") from None
+
+
+def _check_objects(fh, path, datasets):
+    """:func:`check_hdf5_input`'s walk; every object's attributes are read once, so a failed metadata
+    checksum is found here, before any value is used."""
+    import h5py
+    dict(fh.attrs)
     for name in datasets:
         obj = fh.get(name, getlink=True)
         if obj is None or isinstance(obj, h5py.ExternalLink):
@@ -298,6 +322,7 @@ def check_hdf5_input(fh, path, datasets=("SCI",)):
             seen.add(obj.id)
             if len(seen) > MAX_HDF5_OBJECTS:
                 raise RampFileError(f"{path}: more than {MAX_HDF5_OBJECTS} HDF5 objects: not a ramp file")
+            dict(obj.attrs)                      # verifies the object header's checksum
             if isinstance(obj, h5py.Group):
                 todo.append(obj)
             elif isinstance(obj, h5py.Dataset):
@@ -353,7 +378,10 @@ def open_hdf5_input(path, what="an HDF5 ramp file", datasets=("SCI",)):
     if is_temporary(path):
         raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
     try:
-        fh = h5py.File(path, "r")
+        with metadata_errors(path):
+            fh = h5py.File(path, "r")
+    except RampFileError:
+        raise
     except OSError as exc:
         raise RampFileError(f"{path}: not {what} ({one_line(exc)})") from exc
     try:

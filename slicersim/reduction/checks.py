@@ -173,12 +173,17 @@ def _check_hdf5_layout(path, with_truth):
     of the ramp datasets."""
     import h5py
 
-    from slicersim.io.rampfile import check_hdf5_input
+    from slicersim.io.rampfile import check_hdf5_input, metadata_errors
     try:
-        fh = h5py.File(path, "r")
+        with metadata_errors(path):
+            fh = h5py.File(path, "r")
+    except RampFileError:
+        raise
     except OSError as exc:
         raise RampFileError(f"{path}: not a readable HDF5 ramp file ({one_line(exc)})") from exc
     with fh:
+        with metadata_errors(path):
+            dict(fh.attrs)
         what = _foreign_product(fh)
         if what:
             raise RampFileError(f"{path} is {what}, not a raw ramp file")

@@ -84,8 +84,12 @@ class _HDF5Ramps(_Ramps):
         except ImportError:
             pass
         self.name = path
+        from slicersim.io.rampfile import metadata_errors
         try:
-            self.fh = h5py.File(path, "r")
+            with metadata_errors(path):
+                self.fh = h5py.File(path, "r")
+        except RampFileError:
+            raise
         except OSError as exc:
             raise RampFileError(f"{path}: not a readable HDF5 ramp file ({one_line(exc)})") from exc
         fh = self.fh

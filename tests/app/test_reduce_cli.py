@@ -499,6 +499,26 @@ def test_a_flipped_data_byte_fails_with_a_checksum_error(raw, tmp_path, capsys):
     assert "checksum mismatch in dataset SCI" in error and "flipped.h5" in error and not out.exists()
 
 
+def test_a_flipped_gain_bit_fails_with_the_same_checksum_line(raw, tmp_path, capsys):
+    """Issue 33: one flipped bit in GAIN gave exit 0 and every rate × 0.667; it is now exit 2, one line, as a
+    flipped data byte."""
+    import shutil
+    path, _ = raw
+    bad = tmp_path / "gain.h5"
+    shutil.copy(path, bad)
+    import h5py
+    with h5py.File(path, "r") as fh:
+        gain = float(fh.attrs["GAIN"])
+    data = bytearray(bad.read_bytes())
+    where = data.find(np.float64(gain).tobytes())
+    data[where + 6] ^= 0x01
+    bad.write_bytes(bytes(data))
+    out = tmp_path / "out.h5"
+    assert main(["reduce", str(bad), "--out", str(out), "--quiet"]) == 2
+    error = _one_line_error(capsys)
+    assert "checksum mismatch in the metadata" in error and "gain.h5" in error and not out.exists()
+
+
 def test_weights_with_drizzle_are_refused(tmp_path, capsys):
     """--weights is an option of the LSQ rectification: with --rectify drizzle it did nothing, silently
     (the CLI refuses options that do not apply)."""

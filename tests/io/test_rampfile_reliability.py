@@ -453,6 +453,41 @@ def test_a_flipped_data_byte_is_a_checksum_error(tmp_path):
         read_ramps(path)
 
 
+def _flip_attribute_value(path, value):
+    """Flip one bit of the float64 attribute ``value`` where the file stores it."""
+    raw = bytearray(path.read_bytes())
+    where = raw.find(np.float64(value).tobytes())
+    assert where > 0
+    raw[where + 6] ^= 0x01
+    path.write_bytes(bytes(raw))
+
+
+@pytest.mark.parametrize("value", [5.0, 3.0])       # READNOISE (root attribute); the truth's fill as a check
+def test_a_flipped_bit_in_an_attribute_is_a_checksum_error(tmp_path, value):
+    """One flipped bit in the GAIN or READNOISE attribute changed every rate or variance with exit 0: the
+    object headers (attributes, layouts) carry HDF5's metadata checksum, verified before any value is used."""
+    import h5py
+
+    from slicersim.reduction.ramp_fit import fit_ramps
+    path = tmp_path / "r.h5"
+    _small_ramp(path)
+    with h5py.File(path, "r") as fh:                   # written in the checksummed format
+        assert fh.id.get_create_plist().get_version()[0] >= 2     # superblock v2+: checksummed object headers
+    if value == 5.0:
+        _flip_attribute_value(path, 5.0)
+        with pytest.raises(RampFileError, match=r"checksum mismatch in the metadata \(attributes, layout\) of "
+                                                r".*r\.h5: the file is corrupt"):
+            read_ramps(path)
+        with pytest.raises(RampFileError, match=r"checksum mismatch in the metadata"):
+            fit_ramps(path)
+    else:                                                # a data byte is still the data checksum's
+        flip_chunk_byte(path, "truth/rate")
+        with pytest.raises(RampFileError, match=r"checksum mismatch in dataset truth/rate"):
+            with h5py.File(path, "r") as fh:
+                from slicersim.io.rampfile import read_dataset
+                read_dataset(fh["truth/rate"], path)
+
+
 @pytest.mark.parametrize("case", ["external_storage", "virtual", "external_link_sci", "external_link_truth",
                                   "sci_group", "soft_link_loop_sci", "soft_link_loop_truth"])
 def test_hdf5_inputs_reading_outside_the_file_are_refused(tmp_path, case):
