@@ -48,7 +48,7 @@ class Telescope(Versioned):
                 nelements = np.full(emissivity.size, nelements[0])
             self.emissivity = list(emissivity)
             self.nelements = list(nelements)
-            temperature = validation.array("temperature [K]", temperature, ndim=(0, 1), unit="K")
+            temperature = validation.array("telescope temperature [K]", temperature, ndim=(0, 1), unit="K")
             if np.ndim(temperature) == 0:
                 self.temperature = float(temperature)
             else:
