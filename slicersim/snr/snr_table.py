@@ -13,7 +13,13 @@ from slicersim.backends.band_variance import band_variance_table
 from slicersim.physics.psf import gaussian_psf_cells
 from slicersim.physics.readout import VARIANCE_MODELS, cell_variance_coefficients, readout_times
 
-__all__ = ["band_snr_table_for_models", "sim_band_indices", "readout_variance_coefficients", "template_psf"]
+__all__ = ["band_snr_table_for_models", "sim_band_indices", "readout_variance_coefficients", "template_psf",
+           "extraction_weights", "WEIGHT_CUTOFF"]
+
+#: extraction weights below this fraction of their bin's largest are skipped by the batch ETC
+#: (:func:`extraction_weights`): each skipped term of the bin's inverse variance is below
+#: WEIGHT_CUTOFF × (its largest term) × (A + B·Q_max) / (A + B·Q_min) of the bin's cells
+WEIGHT_CUTOFF = 1e-16
 
 
 def sim_band_indices(mask):
@@ -90,6 +96,30 @@ def template_psf(sim):
     simulation's position (the extraction weights of the batch ETC)."""
     sig_y, sig_x = sim.psf_sigmas
     return gaussian_psf_cells(sig_y, sig_x, sim.spectrograph.shape, sim.position, sim.aperture)
+
+
+def extraction_weights(psf, rel_cutoff=WEIGHT_CUTOFF):
+    """Squared PSF fractions with the negligible ones set to exactly 0 (skipped by the band-variance
+    kernel, :func:`slicersim.backends.band_variance.nonzero_weights`).
+
+    Parameters
+    ----------
+    psf : (nλ, ncell) float array
+        PSF fractions of the aperture cells per bin (:func:`template_psf`).
+    rel_cutoff : float
+        Weights ``psf²`` below ``rel_cutoff`` × the largest of their bin are set to 0 (default
+        :data:`WEIGHT_CUTOFF`, 1e-16: the dropped part of a bin's inverse variance is at most
+        ncell × 1e-16 × the contrast (A + B·Q_max) / (A + B·Q_min) of its cells' variances).
+
+    Returns
+    -------
+    (nλ, ncell) float64 array
+        The extraction weights ``psf²``, 0 where negligible.
+    """
+    p2 = np.asarray(psf, dtype=np.float64) ** 2
+    small = p2 < rel_cutoff * p2.max(axis=1, keepdims=True)
+    p2[small] = 0.0
+    return p2
 
 
 def _template_psf2(sim):
