@@ -269,11 +269,10 @@ class _BatchInstrument:
         """Half-width [bins] of the LSF (the margin a window of bins needs on each side)."""
         return int(4.0 * self.spec.lsf_sigma + 0.5)
 
-    def tables(self, fluxes, band, backend, precision):
-        """(Q [e-/s/cell] (n, nb, nc), signal rate [ADU/s] (n, nb), band − lo, lo, hi, psf2 (nb, nc),
-        snr1) of targets ``fluxes`` (n, k) [erg/s/cm²/Å] over the bins [lo, hi) their bands need and
-        the nc cells with a non-zero extraction weight there (``psf2``: those weights); ``snr1``: the
-        single-ramp band SNR per bin of every candidate readout."""
+    def models(self, fluxes, band):
+        """(Q [e-/s/cell] (n, nb, nc), signal rate [ADU/s] (n, nb), band − lo, psf2 (nb, nc)) of
+        targets ``fluxes`` (n, k) [erg/s/cm²/Å] over the bins [lo, hi) their bands need and the nc
+        cells with a non-zero extraction weight there (``psf2``: those weights)."""
         sim, spec, grid = self.sim, self.spec, self.sim.lbda
         idx, w, outside = self.interp
         half = self.lsf_half
@@ -291,15 +290,22 @@ class _BatchInstrument:
         point = spec.apply_lsf(photons[:, :, None] * self.psf[None, s0:s1, cells], axis=1)[:, keep]  # ph/s/cell
         q = qe[None, lo:hi, None] * (point + self.uniform[None, lo:hi, None])                  # e-/s/cell
         signal_rate = spec.apply_lsf(photons * qe[s0:s1], axis=1)[:, keep] * self.det.gain     # ADU/s
-        sub_band = band - lo
-        snr1 = band_snr_table_for_models(sim, (q, signal_rate), sub_band, self.cand, backend=backend,
-                                         psf2=psf2, precision=precision)
-        return q, signal_rate, sub_band, lo, hi, psf2, snr1
+        return q, signal_rate, band - lo, psf2
+
+    def snr_table(self, model, kernel, targets=slice(None), columns=None):
+        """Single-ramp band SNR per bin (n, K) of the targets ``targets`` of ``model``
+        (:meth:`models`) for every candidate readout, or (n, J) for the candidates ``columns``
+        (n, J) of each (the same values)."""
+        q, signal_rate, sub_band, psf2 = model
+        backend, precision = kernel
+        return band_snr_table_for_models(self.sim, (q[targets], signal_rate[targets]), sub_band[targets],
+                                         self.cand, backend=backend, psf2=psf2, precision=precision,
+                                         columns=columns)
 
 
 #: a target joins a chunk while the chunk's window of bins stays within its widest band plus this
 #: fraction of it (bins outside a target's band are computed for nothing; each chunk costs a launch)
-CHUNK_SLACK = 0.25
+CHUNK_SLACK = 0.5
 
 
 def _chunks(inst, opts):
@@ -333,8 +339,9 @@ def _chunks(inst, opts):
 def _solve_chunk(inst, fluxes, ranges, snr, target, chunk, search, kernel, rows, reached):
     """Fill ``rows`` / ``reached`` for the targets ``chunk`` (index array)."""
     det = inst.det
-    q, signal_rate, sub_band, lo, hi, psf2, snr1 = inst.tables(fluxes[chunk], inst.band[chunk], *kernel)
+    model = inst.models(fluxes[chunk], inst.band[chunk])
     if search == "exact":
+        snr1 = inst.snr_table(model, kernel)
         choice = exact_choice(snr1, *inst.cand, target[chunk], max_frames=max_frames_for(det.tframe))
         if choice["limited"].any():
             t = int(chunk[choice["limited"]].min())
@@ -343,25 +350,75 @@ def _solve_chunk(inst, fluxes, ranges, snr, target, chunk, search, kernel, rows,
             rows[key][chunk] = choice[key]
         reached[chunk] = choice["snr"]
         return
-    lookup = {(int(a), int(b), int(c)): k for k, (a, b, c) in enumerate(zip(*inst.cand))}
-    for local, t in enumerate(chunk):
-        model = (q[local:local + 1], signal_rate[local:local + 1], sub_band[local:local + 1], psf2)
-        nmd, r, s = _reference_one(inst, snr1[local], lookup, model, snr[t], ranges[t], target[t], t)
-        rows["n"][t], rows["m"][t], rows["d"][t] = nmd
-        rows["nramps"][t], reached[t] = r, s
+    _reference_chunk(inst, model, chunk, kernel, (snr, ranges, target), rows, reached)
+
+
+class _Missing(Exception):
+    """A reference walk asked for a candidate readout whose single-ramp SNR is not computed yet."""
+
+    def __init__(self, key):
+        super().__init__(key)
+        self.key = key
+
+
+#: least number of columns of a lazy SNR table (keeps the kernel's vector width of the full table)
+_MIN_COLUMNS = 16
+
+
+def _reference_chunk(inst, model, chunk, kernel, goals, rows, reached):
+    """The reference walks of the targets ``chunk``, their single-ramp SNRs computed on demand: first
+    the walk's three opening readouts, then the n row (one m, d) a walk asks for (each value the same
+    as in the full table, :meth:`_BatchInstrument.snr_table`); a walk that reaches a readout not
+    computed yet stops (:class:`_Missing`) and runs again once its row is there."""
+    snr, ranges, target = goals
+    det = inst.det
+    n_c, m_c, d_c = inst.cand
+    lookup = {(int(a), int(b), int(c)): k for k, (a, b, c) in enumerate(zip(n_c, m_c, d_c))}
+    row_of = {}
+    for k, key in enumerate(zip(m_c.tolist(), d_c.tolist())):
+        row_of.setdefault(key, []).append(k)
+    nt = len(chunk)
+    table = np.full((nt, n_c.size), np.nan)
+    known = np.zeros((nt, n_c.size), dtype=bool)
+    extra = [{} for _ in range(nt)]                         # off-table readouts, NumPy, per target
+    opening = [lookup[k] for k in ((det.max_group or 64, 8, det.nmd[2]), (32, 4, 0), (8, 4, 0)) if k in lookup]
+    pending = {local: opening for local in range(nt)}
+    while pending:
+        targets = np.fromiter(pending, dtype=np.intp, count=len(pending))
+        width = max(_MIN_COLUMNS, max(len(c) for c in pending.values()))
+        columns = np.array([c + [c[-1]] * (width - len(c)) for c in pending.values()], dtype=np.intp)
+        table[targets[:, None], columns] = inst.snr_table(model, kernel, targets, columns)
+        known[targets[:, None], columns] = True
+        pending = {}
+        for local in targets.tolist():
+            t = int(chunk[local])
+            one = (model[0][local:local + 1], model[1][local:local + 1], model[2][local:local + 1], model[3])
+            try:
+                nmd, r, s = _reference_one(inst, (table[local], known[local]), lookup, (one, extra[local]),
+                                           snr[t], ranges[t], target[t], t)
+            except _Missing as miss:
+                pending[local] = row_of[tuple(miss.key[1:])]
+                continue
+            rows["n"][t], rows["m"][t], rows["d"][t] = nmd
+            rows["nramps"][t], reached[t] = r, s
 
 
 def _reference_one(inst, snr1, lookup, model, snr, band, target, t):
-    """The reference walk of one target: the single-ramp SNR is read in its table row ``snr1``,
-    readouts off the table are evaluated on ``model`` (NumPy); returns (nmd, nramps, snr reached)."""
+    """The reference walk of one target: the single-ramp SNR is read in its table row ``snr1`` =
+    (values, computed?), readouts off the table are evaluated on ``model`` = ((Q, signal rate,
+    band, psf2), cache) (NumPy); returns (nmd, nramps, snr reached).  :class:`_Missing` when the walk
+    reaches a table readout not computed yet."""
     det = inst.det
-    q, signal_rate, sub_band, psf2 = model
-    extra = {}
+    (q, signal_rate, sub_band, psf2), extra = model
+    values, known = snr1
 
     def snr_of(n, m, d, r):
         key = (n, m, d)
         if key in lookup:
-            return snr1[lookup[key]] * math.sqrt(r)
+            k = lookup[key]
+            if not known[k]:
+                raise _Missing(key)
+            return values[k] * math.sqrt(r)
         if key not in extra:
             one = (np.array([n]), np.array([m]), np.array([d]))
             extra[key] = band_snr_table_for_models(inst.sim, (q, signal_rate), sub_band, one, backend="numpy",
