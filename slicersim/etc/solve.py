@@ -363,6 +363,8 @@ class _Missing(Exception):
 
 #: least number of columns of a lazy SNR table (keeps the kernel's vector width of the full table)
 _MIN_COLUMNS = 16
+#: readouts of an n row computed when a reference walk reaches one not computed yet (around it)
+_ROW_WINDOW = 16
 
 
 def _reference_chunk(inst, model, chunk, kernel, goals, rows, reached):
@@ -396,8 +398,11 @@ def _reference_chunk(inst, model, chunk, kernel, goals, rows, reached):
             try:
                 nmd, r, s = _reference_one(inst, (table[local], known[local]), lookup, (one, extra[local]),
                                            snr[t], ranges[t], target[t], t)
-            except _Missing as miss:
-                pending[local] = row_of[tuple(miss.key[1:])]
+            except _Missing as miss:                         # a window of its n row around it
+                row = row_of[tuple(miss.key[1:])]
+                at = row.index(lookup[miss.key])
+                start = max(0, min(at - _ROW_WINDOW // 2, len(row) - _ROW_WINDOW))
+                pending[local] = row[start:start + _ROW_WINDOW]
                 continue
             rows["n"][t], rows["m"][t], rows["d"][t] = nmd
             rows["nramps"][t], reached[t] = r, s
