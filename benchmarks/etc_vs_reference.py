@@ -56,6 +56,9 @@ SNR_DEFAULT = 20.0
 LBDA_IN = np.arange(3000, 20000, 10.0)  # Å
 BAND_REST = (4000.0, 6800.0)  # Å, rest frame, shifted to the observer frame
 TFRAME = 2.83  # s, Lazuli CBE frame time (only for the sanity check T = r N_f t_f)
+#: our conventions that reproduce slicersim 1.0 (the default "physical" ones count read noise, dark and
+#: full well on 1 px per cell and give other readouts; :mod:`slicersim.physics.conventions`)
+REFERENCE_CONVENTIONS = "slicersim-1.0"
 #: speed-up goal of the batch solver (reference walk, warm) over slicersim 1.0.0 per target
 GOAL_SPEEDUP = 300.0
 
@@ -243,11 +246,12 @@ def _table_rows(table, n):
     return rows
 
 
-def run_ours_batch(solve_many, inputs, config, search, repeat, precision="auto"):
+def run_ours_batch(solve_many, inputs, config, search, repeat, precision="auto", conventions=None):
     """Time solve_many (wall and CPU of this process, PoCL's threads included); first call = cold,
     min of the others = warm."""
     args = dict(snr=inputs["snr"], lbda_ranges=inputs["lbda_ranges"], frame=inputs["frame"],
-                config=config, field=inputs["field"], search=search, precision=precision)
+                config=config, field=inputs["field"], search=search, precision=precision,
+                conventions=conventions or REFERENCE_CONVENTIONS)
     n = len(inputs["z"])
     times, cpu, table, err = [], [], None, None
     for _ in range(max(1, repeat)):
@@ -286,11 +290,12 @@ def run_ours_batch(solve_many, inputs, config, search, repeat, precision="auto")
     return res
 
 
-def run_ours_single(LazuliTarget, inputs, config, warmup=1):
+def run_ours_single(LazuliTarget, inputs, config, warmup=1, conventions=None):
     def solve(flux, lo, hi):
         t0 = time.perf_counter()
         target = LazuliTarget(inputs["lbda"], flux, mag=None, band=inputs["band"],
-                              config=config, field=inputs["field"])
+                              config=config, field=inputs["field"],
+                              conventions=conventions or REFERENCE_CONVENTIONS)
         t1 = time.perf_counter()
         target.setup_to_snr(inputs["snr"], lbda_range=(float(lo), float(hi)),
                             frame=inputs["frame"], search="reference")
@@ -558,7 +563,8 @@ def markdown_report(result):
     n = s["n_targets"]
     lines = ["# ETC: ours against slicersim 1.0.0 (same run)", "",
              f"`benchmarks/etc_vs_reference.py --n {result['settings']['n']} --precision "
-             f"{result['settings']['precision']}`, {result['created']}; commit `{result.get('commit')}`.", "",
+             f"{result['settings']['precision']} --conventions {result['settings']['conventions']}`, "
+             f"{result['created']}; commit `{result.get('commit')}`.", "",
              f"Machine: {m.get('cpu_model')} ({m.get('cpu_count')} CPUs), load average {m.get('loadavg_start')} "
              f"at the start and {m.get('loadavg_end')} at the end (other jobs share the machine: wall times "
              f"are inflated by them, CPU times of each process much less), niceness {m.get('niceness')}.", "",
@@ -662,6 +668,8 @@ def main(argv=None):
                         help="solve_many calls per search mode; 1st = cold, min of the rest = warm (default 2)")
     parser.add_argument("--precision", default="auto", choices=("auto", "double", "single"),
                         help="precision of solve_many's band-variance kernel (default auto: the dial's choice)")
+    parser.add_argument("--conventions", default=REFERENCE_CONVENTIONS, choices=("slicersim-1.0", "physical"),
+                        help="our conventions (default slicersim-1.0: the reference's, same readouts)")
     parser.add_argument("--out", default=str(HERE / "results"), help="output folder (default benchmarks/results)")
     args = parser.parse_args(argv)
     load_start = loadavg()
@@ -711,16 +719,18 @@ def main(argv=None):
     else:
         if "solve_many" in ours:
             print("[ours] solve_many(search='reference') ...", flush=True)
-            batch_ref = run_ours_batch(ours["solve_many"], inputs, config, "reference", args.repeat, args.precision)
+            batch_ref = run_ours_batch(ours["solve_many"], inputs, config, "reference", args.repeat, args.precision,
+                                       args.conventions)
             print("[ours] solve_many(search='exact') ...", flush=True)
-            batch_exact = run_ours_batch(ours["solve_many"], inputs, config, "exact", args.repeat, args.precision)
+            batch_exact = run_ours_batch(ours["solve_many"], inputs, config, "exact", args.repeat, args.precision,
+                                         args.conventions)
         else:
             batch_ref = batch_exact = {"available": False,
                                        "reason": f"slicersim.etc.solve_many: {ours['solve_many_error']}"}
             print(f"[ours] batch mode unavailable: {ours['solve_many_error']}", flush=True)
         if "LazuliTarget" in ours:
             print("[ours] single-target LazuliTarget ...", flush=True)
-            single = run_ours_single(ours["LazuliTarget"], inputs, config)
+            single = run_ours_single(ours["LazuliTarget"], inputs, config, conventions=args.conventions)
         else:
             single = {"available": False, "reason": f"slicersim.targets.LazuliTarget: {ours['LazuliTarget_error']}"}
             print(f"[ours] single-target mode unavailable: {ours['LazuliTarget_error']}", flush=True)
@@ -759,7 +769,7 @@ def main(argv=None):
                      "cosmology": "Planck18", "input_lbda": "numpy.arange(3000, 20000, 10.) AA",
                      "band_rest": list(BAND_REST), "frame": "obs", "field": "narrow",
                      "configuration": "cbe", "our_config": config, "repeat": args.repeat,
-                     "precision": args.precision, "fluxes_sha256": flux_hash},
+                     "precision": args.precision, "conventions": args.conventions, "fluxes_sha256": flux_hash},
         "commit": git_commit(),
         "machine": machine,
         "versions": {"ours": _versions_here(ours.get("slicersim")),

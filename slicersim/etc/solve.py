@@ -288,7 +288,8 @@ class _BatchInstrument:
         keep, qe = slice(lo - s0, hi - s0), sim.qe
         # LSF with reflect ends: at a window edge inside the grid only the discarded margin bins change
         point = spec.apply_lsf(photons[:, :, None] * self.psf[None, s0:s1, cells], axis=1)[:, keep]  # ph/s/cell
-        q = qe[None, lo:hi, None] * (point + self.uniform[None, lo:hi, None])                  # e-/s/cell
+        q = np.add(point, self.uniform[None, lo:hi, None], out=point)                           # in place
+        q = np.multiply(qe[None, lo:hi, None], q, out=q)                                        # e-/s/cell
         signal_rate = spec.apply_lsf(photons * qe[s0:s1], axis=1)[:, keep] * self.det.gain     # ADU/s
         return q, signal_rate, band - lo, psf2
 
