@@ -5,6 +5,13 @@ once; each target only changes the point-source spectrum.  For every target the
 single-ramp band SNR of every candidate readout is evaluated at once (OpenCL
 kernel ``band_variance.cl`` or its NumPy twin), then the readout is chosen with
 :func:`slicersim.snr.search.exact_choice` (or the reference walk).
+
+What keeps it fast: extraction weights below 1e-16 of their bin's largest are
+skipped (:func:`~slicersim.snr.snr_table.extraction_weights`; the band SNR moves
+by < 1e-13), and only the cells still weighted are modelled; targets are chunked
+by band, so a chunk's window of bins stays close to its bands (:func:`_chunks`);
+the reference walk asks the kernel only for the readouts it visits
+(:func:`_reference_chunk`: the same values as the full table).
 """
 from __future__ import annotations
 
