@@ -295,8 +295,7 @@ class _BatchInstrument:
         keep, qe = slice(lo - s0, hi - s0), sim.qe
         # LSF with reflect ends: at a window edge inside the grid only the discarded margin bins change
         point = spec.apply_lsf(photons[:, :, None] * self.psf[None, s0:s1, cells], axis=1)[:, keep]  # ph/s/cell
-        q = np.add(point, self.uniform[None, lo:hi, None], out=point)                           # in place
-        q = np.multiply(qe[None, lo:hi, None], q, out=q)                                        # e-/s/cell
+        q = qe[None, lo:hi, None] * (point + self.uniform[None, lo:hi, None])                  # e-/s/cell
         signal_rate = spec.apply_lsf(photons * qe[s0:s1], axis=1)[:, keep] * self.det.gain     # ADU/s
         return q, signal_rate, band - lo, psf2
 
@@ -316,6 +315,11 @@ class _BatchInstrument:
 CHUNK_SLACK = 0.5
 
 
+#: a chunk's working arrays (n, bins, cells) stay within this many bytes each (memory-bound steps run
+#: several times faster on arrays that fit the CPU caches than on tens of MB)
+CHUNK_CACHE_BYTES = 8 * 2**20
+
+
 def _chunks(inst, opts):
     """Chunks of targets (index arrays) with neighbouring bands: the targets sorted by band, a chunk
     closed when its window of bins would exceed its widest band by more than :data:`CHUNK_SLACK` or
@@ -330,8 +334,8 @@ def _chunks(inst, opts):
         if k > start:
             new_hi, new_widest = max(hi, b1), max(widest, b1 - b0)
             window = new_hi - lo
-            budget = (k + 1 - start) * (window + margin) * cells * 8 * 3
-            if window <= new_widest * (1 + CHUNK_SLACK) and budget <= opts.max_bytes:
+            one = (k + 1 - start) * (window + margin) * cells * 8       # bytes of one working array
+            if window <= new_widest * (1 + CHUNK_SLACK) and one <= CHUNK_CACHE_BYTES and 3 * one <= opts.max_bytes:
                 hi, widest = new_hi, new_widest
                 continue
             chunks.append(order[start:k])
