@@ -373,8 +373,9 @@ class _Missing(Exception):
         self.key = key
 
 
-#: least number of columns of a lazy SNR table (keeps the kernel's vector width of the full table)
-_MIN_COLUMNS = 16
+#: least number of columns of a lazy SNR table (the kernel keeps its vector width: 8 doubles on the
+#: AVX-512 CPUs of the VM; a lane computes the same values at any width)
+_MIN_COLUMNS = 8
 #: readouts of an n row computed when a reference walk reaches one not computed yet (around it)
 _ROW_WINDOW = 16
 
