@@ -15,7 +15,7 @@ band [4000(1+z), 6800(1+z)] Å (Lazuli CBE configuration, narrow field).
   reference; ``search="exact"``: shortest exposure reaching the target) and the
   single-target ``slicersim.targets.LazuliTarget`` path.
 
-Outputs ``<out>/etc_vs_reference.json`` and ``<out>/etc_vs_reference.png``.
+Outputs ``<out>/etc_vs_reference.json``, ``.md`` (commit, CPU, load, wall and CPU speed-ups) and ``.png``.
 
 Usage::
 
@@ -56,6 +56,11 @@ SNR_DEFAULT = 20.0
 LBDA_IN = np.arange(3000, 20000, 10.0)  # Å
 BAND_REST = (4000.0, 6800.0)  # Å, rest frame, shifted to the observer frame
 TFRAME = 2.83  # s, Lazuli CBE frame time (only for the sanity check T = r N_f t_f)
+#: our conventions that reproduce slicersim 1.0 (the default "physical" ones count read noise, dark and
+#: full well on 1 px per cell and give other readouts; :mod:`slicersim.physics.conventions`)
+REFERENCE_CONVENTIONS = "slicersim-1.0"
+#: speed-up goal of the batch solver (reference walk, warm) over slicersim 1.0.0 per target
+GOAL_SPEEDUP = 300.0
 
 
 # --------------------------------------------------------------------------- #
@@ -241,17 +246,21 @@ def _table_rows(table, n):
     return rows
 
 
-def run_ours_batch(solve_many, inputs, config, search, repeat):
-    """Time solve_many; first call = cold, min of the others = warm."""
+def run_ours_batch(solve_many, inputs, config, search, repeat, precision="auto", conventions=None):
+    """Time solve_many (wall and CPU of this process, PoCL's threads included); first call = cold,
+    min of the others = warm."""
     args = dict(snr=inputs["snr"], lbda_ranges=inputs["lbda_ranges"], frame=inputs["frame"],
-                config=config, field=inputs["field"], search=search)
+                config=config, field=inputs["field"], search=search, precision=precision,
+                conventions=conventions or REFERENCE_CONVENTIONS)
     n = len(inputs["z"])
-    times, table, err = [], None, None
+    times, cpu, table, err = [], [], None, None
     for _ in range(max(1, repeat)):
         try:
+            c0 = time.process_time()
             t0 = time.perf_counter()
             table = solve_many(inputs["lbda"], inputs["fluxes"], **args)
             times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         except Exception as exc:
             err = f"{exc.__class__.__name__}: {exc}"
             print(f"[ours] solve_many(search={search!r}) failed: {err}", flush=True)
@@ -260,12 +269,18 @@ def run_ours_batch(solve_many, inputs, config, search, repeat):
     if table is None:
         return {"available": False, "search": search, "error": err}
     res = {"available": True, "search": search, "config": str(config),
-           "call_seconds": times,
+           "precision": table.meta.get("precision"),
+           "call_seconds": times, "call_cpu_seconds": cpu,
            "cold_seconds": times[0],
-           "warm_seconds": min(times[1:]) if len(times) > 1 else None}
+           "warm_seconds": min(times[1:]) if len(times) > 1 else None,
+           "cold_cpu_seconds": cpu[0],
+           "warm_cpu_seconds": min(cpu[1:]) if len(cpu) > 1 else None}
     best = res["warm_seconds"] if res["warm_seconds"] is not None else res["cold_seconds"]
+    best_cpu = res["warm_cpu_seconds"] if res["warm_cpu_seconds"] is not None else res["cold_cpu_seconds"]
     res["cold_seconds_per_target"] = res["cold_seconds"] / n
     res["warm_seconds_per_target"] = best / n
+    res["cold_cpu_seconds_per_target"] = res["cold_cpu_seconds"] / n
+    res["warm_cpu_seconds_per_target"] = best_cpu / n
     try:
         res["rows"] = _table_rows(table, n)
     except Exception as exc:
@@ -275,11 +290,12 @@ def run_ours_batch(solve_many, inputs, config, search, repeat):
     return res
 
 
-def run_ours_single(LazuliTarget, inputs, config, warmup=1):
+def run_ours_single(LazuliTarget, inputs, config, warmup=1, conventions=None):
     def solve(flux, lo, hi):
         t0 = time.perf_counter()
         target = LazuliTarget(inputs["lbda"], flux, mag=None, band=inputs["band"],
-                              config=config, field=inputs["field"])
+                              config=config, field=inputs["field"],
+                              conventions=conventions or REFERENCE_CONVENTIONS)
         t1 = time.perf_counter()
         target.setup_to_snr(inputs["snr"], lbda_range=(float(lo), float(hi)),
                             frame=inputs["frame"], search="reference")
@@ -387,6 +403,7 @@ def build_report(inputs, ref, batch_ref, batch_exact, single, comparable):
         return sum(_same_readout(x, y) for x, y in pairs), len(pairs)
 
     if ref.get("available"):
+        summary["reference_cpu_seconds_per_target_mean"] = ref["summary"].get("mean_cpu_seconds_per_target")
         summary["reference_seconds_per_target_mean"] = ref["summary"]["mean_seconds_per_target"]
         summary["reference_seconds_per_target_median"] = ref["summary"]["median_seconds_per_target"]
         summary["reference_exposure_time_sum"] = float(sum(x["exposure_time"] for x in r_ref if x and x.get("ok")))
@@ -406,9 +423,15 @@ def build_report(inputs, ref, batch_ref, batch_exact, single, comparable):
         if block.get("available"):
             summary[f"ours_{key}_seconds_per_target_cold"] = block["cold_seconds_per_target"]
             summary[f"ours_{key}_seconds_per_target_warm"] = block["warm_seconds_per_target"]
+            summary[f"ours_{key}_cpu_seconds_per_target_warm"] = block["warm_cpu_seconds_per_target"]
+            summary[f"ours_{key}_cpu_seconds_per_target_cold"] = block["cold_cpu_seconds_per_target"]
             if t_ref:
                 summary[f"speedup_{key}_warm"] = t_ref / block["warm_seconds_per_target"]
                 summary[f"speedup_{key}_cold"] = t_ref / block["cold_seconds_per_target"]
+            c_ref = summary.get("reference_cpu_seconds_per_target_mean")
+            if c_ref:
+                summary[f"speedup_{key}_cpu_warm"] = c_ref / block["warm_cpu_seconds_per_target"]
+                summary[f"speedup_{key}_cpu_cold"] = c_ref / block["cold_cpu_seconds_per_target"]
             summary[f"ours_{key}_exposure_time_sum"] = float(
                 sum(x["exposure_time"] for x in block["rows"] if x.get("ok")))
     if single.get("available"):
@@ -472,7 +495,8 @@ def print_table(rows, summary, ref_note, ours_note):
 
     if "reference_seconds_per_target_mean" in summary:
         print(f"reference per target: mean {fmt_t(summary['reference_seconds_per_target_mean'])}, "
-              f"median {fmt_t(summary['reference_seconds_per_target_median'])}")
+              f"median {fmt_t(summary['reference_seconds_per_target_median'])}, "
+              f"CPU mean {fmt_t(summary.get('reference_cpu_seconds_per_target_mean'))}")
     for key, label in (("batch_reference", "batch ref-walk"), ("batch_exact", "batch exact")):
         if f"ours_{key}_seconds_per_target_warm" in summary:
             line = (f"ours {label:<15} per target: warm {fmt_t(summary[f'ours_{key}_seconds_per_target_warm'])}"
@@ -481,7 +505,11 @@ def print_table(rows, summary, ref_note, ours_note):
                 line += (f"  -> reference/ours = {summary[f'speedup_{key}_warm']:.1f}x warm, "
                          f"{summary[f'speedup_{key}_cold']:.1f}x cold")
                 if key == "batch_reference":
-                    line += " (goal >= 100x)"
+                    line += f" (goal >= {GOAL_SPEEDUP:g}x)"
+            if f"speedup_{key}_cpu_warm" in summary:
+                line += (f"\n     {'':<15} CPU per target: warm "
+                         f"{fmt_t(summary[f'ours_{key}_cpu_seconds_per_target_warm'])} -> reference/ours "
+                         f"(CPU-s) = {summary[f'speedup_{key}_cpu_warm']:.1f}x warm")
             print(line)
     if "ours_single_seconds_per_target_mean" in summary:
         line = f"ours single-target     per target: mean {fmt_t(summary['ours_single_seconds_per_target_mean'])}"
@@ -501,6 +529,77 @@ def print_table(rows, summary, ref_note, ours_note):
               f"(its 0.5-per-bin tolerance); exact search below target: {summary['n_exact_below_target']}/{n}; "
               f"exact longer although the walk reached the target: "
               f"{summary['n_exact_longer_and_walk_reached_target']} (must be 0)")
+
+
+def git_commit():
+    """HEAD of the repository (with "+dirty" when tracked files differ), or None."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                              timeout=30).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
+                               capture_output=True, text=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (head + ("+dirty" if dirty else "")) or None
+
+
+def write_text_atomic(path, text):
+    """Write ``text`` to ``path`` through a temporary name and a rename."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def markdown_report(result):
+    """The results as a markdown page: machine, timings (wall and CPU), speed-ups, readouts."""
+    s, m = result["summary"], result["machine"]
+
+    def ms(v):
+        return "–" if v is None else f"{v * 1e3:.3f} ms"
+
+    def x(v):
+        return "–" if v is None else f"{v:.0f}×"
+    n = s["n_targets"]
+    lines = ["# ETC: ours against slicersim 1.0.0 (same run)", "",
+             f"`benchmarks/etc_vs_reference.py --n {result['settings']['n']} --precision "
+             f"{result['settings']['precision']} --conventions {result['settings']['conventions']}`, "
+             f"{result['created']}; commit `{result.get('commit')}`.", "",
+             f"Machine: {m.get('cpu_model')} ({m.get('cpu_count')} CPUs), load average {m.get('loadavg_start')} "
+             f"at the start and {m.get('loadavg_end')} at the end (other jobs share the machine: wall times "
+             f"are inflated by them, CPU times of each process much less), niceness {m.get('niceness')}.", "",
+             f"{n} SNe Ia z = 0.1–1.5, SNR 20 per resolution element in [4000, 6800](1+z) Å, Lazuli CBE narrow "
+             "field.  Per target: the reference's mean over its targets; ours: a `solve_many` call over all "
+             "of them / N (warm: the best of the calls after the first).  CPU: `time.process_time` of the "
+             "process (ours includes PoCL's worker threads).", "",
+             "| solver | wall / target | CPU / target | reference / ours (wall) | reference / ours (CPU) |",
+             "|---|---:|---:|---:|---:|",
+             f"| slicersim 1.0.0 `setup_to_snr` | {ms(s.get('reference_seconds_per_target_mean'))} | "
+             f"{ms(s.get('reference_cpu_seconds_per_target_mean'))} | 1× | 1× |"]
+    ours = result["ours"]
+    for key, label in (("batch_reference", "ours `solve_many`, search='reference'"),
+                       ("batch_exact", "ours `solve_many`, search='exact'")):
+        if f"ours_{key}_seconds_per_target_warm" not in s:
+            continue
+        prec = ours.get(key, {}).get("precision")
+        for when in ("warm", "cold"):
+            lines.append(f"| {label} ({when}, {prec}) | {ms(s.get(f'ours_{key}_seconds_per_target_{when}'))} | "
+                         f"{ms(s.get(f'ours_{key}_cpu_seconds_per_target_{when}'))} | "
+                         f"{x(s.get(f'speedup_{key}_{when}'))} | {x(s.get(f'speedup_{key}_cpu_{when}'))} |")
+    if "ours_single_seconds_per_target_mean" in s:
+        lines.append(f"| ours `LazuliTarget.setup_to_snr` | {ms(s['ours_single_seconds_per_target_mean'])} | – | "
+                     f"{x(s.get('speedup_single'))} | – |")
+    lines += ["", f"Goal: reference / ours ≥ {GOAL_SPEEDUP:g}× (search='reference', warm).", ""]
+    if "identical_readouts_batch_reference_mode" in s:
+        lines.append(f"Identical readouts (n, m, d) × ramps, search='reference' vs the reference: "
+                     f"{s['identical_readouts_batch_reference_mode']}/{n} (batch), "
+                     f"{s.get('identical_readouts_single_reference_mode', '–')}/{n} (single target).")
+    if "n_walk_below_target" in s:
+        lines.append(f"The walk ends below the target SNR for {s['n_walk_below_target']}/{n} targets; the exact "
+                     f"search for {s['n_exact_below_target']}/{n}.")
+    if not s.get("readouts_comparable"):
+        lines.append("Readouts NOT comparable: the reference configuration files were not found.")
+    return "\n".join(lines) + "\n"
 
 
 def make_plot(path, rows, summary):
@@ -567,8 +666,13 @@ def main(argv=None):
     parser.add_argument("--skip-reference", action="store_true", help="do not run the reference")
     parser.add_argument("--repeat", type=int, default=2,
                         help="solve_many calls per search mode; 1st = cold, min of the rest = warm (default 2)")
+    parser.add_argument("--precision", default="auto", choices=("auto", "double", "single"),
+                        help="precision of solve_many's band-variance kernel (default auto: the dial's choice)")
+    parser.add_argument("--conventions", default=REFERENCE_CONVENTIONS, choices=("slicersim-1.0", "physical"),
+                        help="our conventions (default slicersim-1.0: the reference's, same readouts)")
     parser.add_argument("--out", default=str(HERE / "results"), help="output folder (default benchmarks/results)")
     args = parser.parse_args(argv)
+    load_start = loadavg()
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -615,16 +719,18 @@ def main(argv=None):
     else:
         if "solve_many" in ours:
             print("[ours] solve_many(search='reference') ...", flush=True)
-            batch_ref = run_ours_batch(ours["solve_many"], inputs, config, "reference", args.repeat)
+            batch_ref = run_ours_batch(ours["solve_many"], inputs, config, "reference", args.repeat, args.precision,
+                                       args.conventions)
             print("[ours] solve_many(search='exact') ...", flush=True)
-            batch_exact = run_ours_batch(ours["solve_many"], inputs, config, "exact", args.repeat)
+            batch_exact = run_ours_batch(ours["solve_many"], inputs, config, "exact", args.repeat, args.precision,
+                                         args.conventions)
         else:
             batch_ref = batch_exact = {"available": False,
                                        "reason": f"slicersim.etc.solve_many: {ours['solve_many_error']}"}
             print(f"[ours] batch mode unavailable: {ours['solve_many_error']}", flush=True)
         if "LazuliTarget" in ours:
             print("[ours] single-target LazuliTarget ...", flush=True)
-            single = run_ours_single(ours["LazuliTarget"], inputs, config)
+            single = run_ours_single(ours["LazuliTarget"], inputs, config, conventions=args.conventions)
         else:
             single = {"available": False, "reason": f"slicersim.targets.LazuliTarget: {ours['LazuliTarget_error']}"}
             print(f"[ours] single-target mode unavailable: {ours['LazuliTarget_error']}", flush=True)
@@ -646,6 +752,7 @@ def main(argv=None):
 
     machine = {"platform": platform.platform(), "machine": platform.machine(),
                "cpu_model": cpu_model(), "cpu_count": os.cpu_count(),
+               "loadavg_start": load_start, "loadavg_end": loadavg(), "niceness": os.nice(0),
                "python": sys.version.split()[0],
                "opencl": opencl_info() if "error" not in ours else {"available": False}}
     flux_hash = hashlib.sha256(np.ascontiguousarray(inputs["fluxes"]).tobytes()).hexdigest()
@@ -662,7 +769,8 @@ def main(argv=None):
                      "cosmology": "Planck18", "input_lbda": "numpy.arange(3000, 20000, 10.) AA",
                      "band_rest": list(BAND_REST), "frame": "obs", "field": "narrow",
                      "configuration": "cbe", "our_config": config, "repeat": args.repeat,
-                     "fluxes_sha256": flux_hash},
+                     "precision": args.precision, "conventions": args.conventions, "fluxes_sha256": flux_hash},
+        "commit": git_commit(),
         "machine": machine,
         "versions": {"ours": _versions_here(ours.get("slicersim")),
                      "reference": ref.get("versions") if ref.get("available") else None},
@@ -673,14 +781,16 @@ def main(argv=None):
         "rows": rows,
     }
     json_path = out / "etc_vs_reference.json"
-    json_path.write_text(json.dumps(jsonable(result), indent=1))
+    write_text_atomic(json_path, json.dumps(jsonable(result), indent=1))
+    md_path = out / "etc_vs_reference.md"
+    write_text_atomic(md_path, markdown_report(result))
     png_path = out / "etc_vs_reference.png"
     try:
         make_plot(png_path, rows, summary)
     except Exception as exc:
         print(f"plot failed: {exc.__class__.__name__}: {exc}")
         png_path = None
-    print(f"\nwrote {json_path}" + (f" and {png_path}" if png_path else ""))
+    print(f"\nwrote {json_path}, {md_path}" + (f" and {png_path}" if png_path else ""))
     return 0
 
 

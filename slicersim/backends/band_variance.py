@@ -29,10 +29,13 @@ def _check_inputs(Q, P2, A, B, Qsat, band):
     P2 = np.ascontiguousarray(validation.array("P2", P2, ndim=2, finite=False))
     if P2.shape != (nlbda, ncell):
         raise ParameterError(f"P2 must have shape {(nlbda, ncell)}, got {P2.shape}")
-    A, B, Qsat = (np.ascontiguousarray(np.ravel(validation.array(name, x, finite=False)))
-                  for name, x in (("A", A), ("B", B), ("Qsat", Qsat)))
+    A, B, Qsat = (np.asarray(validation.array(name, x, finite=False)) for name, x in (("A", A), ("B", B), ("Qsat", Qsat)))
     if not A.shape == B.shape == Qsat.shape:
-        raise ParameterError(f"A, B, Qsat must have the same length, got {A.shape}, {B.shape}, {Qsat.shape}")
+        raise ParameterError(f"A, B, Qsat must have the same length (shape), got {A.shape}, {B.shape}, {Qsat.shape}")
+    if A.ndim == 2 and A.shape[0] == N:            # per-target candidates (N, K)
+        A, B, Qsat = (np.ascontiguousarray(x) for x in (A, B, Qsat))
+    else:
+        A, B, Qsat = (np.ascontiguousarray(np.ravel(x)) for x in (A, B, Qsat))
     band = np.asarray(band)
     if band.shape != (N, 2) or not np.issubdtype(band.dtype, np.integer):
         raise ParameterError(f"band must be an integer array of shape {(N, 2)}, got {band.dtype} {band.shape}")
@@ -60,9 +63,9 @@ def band_variance_table(Q, P2, A, B, Qsat, band, backend="auto", *,
         Electron rate per aperture cell (e-/s); NaN marks an invalid bin.
     P2 : (nlbda, ncell) float array
         Squared PSF extraction weights.
-    A, B : (K,) float arrays
-        Cell variance of candidate k is ``A[k] + B[k] * Q`` (ADU^2).
-    Qsat : (K,) float array
+    A, B : (K,) float arrays, or (N, K): candidates of each target
+        Cell variance of candidate k is ``A[k] + B[k] * Q`` (ADU^2) (``A[t, k] + B[t, k] * Q`` per target).
+    Qsat : (K,) or (N, K) float array, as A
         Cells with ``Q > Qsat[k]`` are saturated (weight 0); +inf: none.
     band : (N, 2) int array
         Half-open bin range [i0, i1) of each target's band.
@@ -92,8 +95,9 @@ def band_variance_table(Q, P2, A, B, Qsat, band, backend="auto", *,
     else:
         backend, precision = resolve_precision(precision, backend, "batch_etc")
     Q, P2, A, B, Qsat, band = _check_inputs(Q, P2, A, B, Qsat, band)
-    var_sum = np.zeros((Q.shape[0], A.size), np.float64)     # accumulated in place by either backend
-    nvalid = np.zeros((Q.shape[0], A.size), np.int32)
+    K = A.shape[-1]
+    var_sum = np.zeros((Q.shape[0], K), np.float64)     # accumulated in place by either backend
+    nvalid = np.zeros((Q.shape[0], K), np.int32)
     if var_sum.size == 0:
         return var_sum, nvalid
     if backend == "opencl":
@@ -105,10 +109,11 @@ def band_variance_table(Q, P2, A, B, Qsat, band, backend="auto", *,
 
 def _band_variance_numpy(Q, P2, A, B, Qsat, band, max_bytes, var_sum, nvalid):
     N, nlbda, ncell = Q.shape
-    K = A.size
+    K = A.shape[-1]
+    per_target_cand = A.ndim == 2
     # per target: the float64 copy of its Q row plus ~4 (K, ncell) temporaries
     per_target = 8 * (nlbda * ncell + 4 * K * ncell + 2 * K)
-    Ak, Bk, Sk = A[:, None], B[:, None], Qsat[:, None]
+    Ak, Bk, Sk = A[..., None], B[..., None], Qsat[..., None]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for t0, t1 in chunk_ranges(N, per_target, max_bytes):
             bd = band[t0:t1]
@@ -124,8 +129,9 @@ def _band_variance_numpy(Q, P2, A, B, Qsat, band, max_bytes, var_sum, nvalid):
                 elif not inband.any():
                     continue
                 q = Qc[inband, i - lo][:, None, :]   # (n, 1, ncell)
-                term = P2[i] / (Ak + Bk * q)         # (n, K, ncell)
-                term[q > Sk] = 0.0                   # saturated cells: weight 0
+                a, b, qs = (x[t0:t1][inband] for x in (Ak, Bk, Sk)) if per_target_cand else (Ak, Bk, Sk)
+                term = P2[i] / (a + b * q)           # (n, K, ncell)
+                term[q > qs] = 0.0                   # saturated cells: weight 0
                 v = 1.0 / term.sum(axis=-1)          # (n, K); +inf if all saturated
                 ok = ~np.isnan(v)
                 vs[inband] += np.where(ok, v, 0.0)
@@ -154,7 +160,8 @@ def _pow2_at_most(n, cap):
 
 def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_sum, nvalid, precision="double"):
     N, nlbda, ncell = Q.shape
-    K = A.size
+    K = A.shape[-1]
+    per_target_cand = A.ndim == 2
     real = np.float32 if precision == "single" else np.float64
     size = np.dtype(real).itemsize
     if precision == "double":
@@ -174,19 +181,33 @@ def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_
         L = _pow2_at_most(-(-K // VW), min(64, int(dev.max_work_group_size)))
         local, mult = (L, 1), VW * L
     Kp = -(-K // mult) * mult
-    pad = lambda x: np.ascontiguousarray(np.concatenate([x, np.full(Kp - K, x[-1])]), dtype=real)
+    # padded with the last candidate (of each target's row)
+    pad = lambda x: np.ascontiguousarray(np.concatenate([x, np.repeat(x[..., -1:], Kp - K, axis=-1)], axis=-1),
+                                         dtype=real)
     Ap, Bp, Sp = pad(A), pad(B), pad(Qsat)
 
-    per_target = 2 * size * nlbda * ncell + 2 * 12 * Kp + 16
+    per_target = 2 * size * nlbda * ncell + 2 * 12 * Kp + 16 + (3 * size * Kp if per_target_cand else 0)
     nt_max = max(1, min(N, int(max_bytes // per_target)))
-    kern = opencl.get_kernel("band_variance.cl", "band_variance", (f"-DVW={VW}",) + opencl.precision_options(precision))
+    # one kernel object and scratch buffers per thread, reused between calls (the batch ETC makes
+    # several small calls per chunk of targets: creating them cost ~1 ms per call)
+    kern = opencl.cached_kernel("band_variance.cl", "band_variance", (f"-DVW={VW}",) + opencl.precision_options(precision))
     weight, cell, row_start = nonzero_weights(P2)
     weight = np.ascontiguousarray(weight, dtype=real)
-    d_w, d_c, d_r, d_A, d_B, d_S = (opencl.to_device(x) for x in (weight, cell, row_start, Ap, Bp, Sp))
-    d_Q = opencl.device_buffer(size * nt_max * nlbda * ncell)
-    d_band = opencl.device_buffer(8 * nt_max)
-    d_vs = opencl.device_buffer(size * nt_max * Kp)
-    d_nv = opencl.device_buffer(4 * nt_max * Kp)
+    # uploads are not blocking (in-order queue; every chunk ends with blocking reads, and the host
+    # arrays of a chunk are kept in `held` until then)
+    held = [weight, cell, row_start]
+    d_w, d_c, d_r = (opencl.scratch_buffer(f"bv_{tag}", x.nbytes) for tag, x in zip("wcr", held))
+    for x, d_x in zip(held, (d_w, d_c, d_r)):
+        opencl.to_device_nowait(x, d_x)
+    rows = nt_max if per_target_cand else 1                 # per target: uploaded chunk by chunk
+    d_A, d_B, d_S = (opencl.scratch_buffer(f"bv_{tag}", size * rows * Kp) for tag in "ABS")
+    if not per_target_cand:
+        for x, d_x in ((Ap, d_A), (Bp, d_B), (Sp, d_S)):
+            opencl.to_device_nowait(x, d_x)
+    d_Q = opencl.scratch_buffer("bv_Q", size * nt_max * nlbda * ncell)
+    d_band = opencl.scratch_buffer("bv_band", 8 * nt_max)
+    d_vs = opencl.scratch_buffer("bv_vs", size * nt_max * Kp)
+    d_nv = opencl.scratch_buffer("bv_nv", 4 * nt_max * Kp)
     h_vs = np.empty((nt_max, Kp), real)
     h_nv = np.empty((nt_max, Kp), np.int32)
     i32 = np.int32
@@ -195,13 +216,19 @@ def _band_variance_opencl(Q, P2, A, B, Qsat, band, max_bytes, vector_width, var_
         bd = band[t0:t1]
         lo, hi = _bin_range(bd)
         nb = hi - lo
+        chunk_held = [bd]
         if nb:
-            opencl.to_device(np.ascontiguousarray(Q[t0:t1, lo:hi], dtype=real), d_Q)
-        opencl.to_device(bd, d_band)
+            chunk_held.append(np.ascontiguousarray(Q[t0:t1, lo:hi], dtype=real))
+            opencl.to_device_nowait(chunk_held[-1], d_Q)
+        opencl.to_device_nowait(bd, d_band)
+        if per_target_cand:
+            for x, d_x in ((Ap, d_A), (Bp, d_B), (Sp, d_S)):
+                chunk_held.append(x[t0:t1])
+                opencl.to_device_nowait(chunk_held[-1], d_x)
         opencl.launch(kern, (Kp // VW, nt), local, d_Q, d_w, d_c, d_r, d_A, d_B, d_S, d_band,
-                      i32(Kp), i32(nb), i32(ncell), i32(lo), d_vs, d_nv)
-        opencl.from_device(h_vs[:nt], d_vs)
-        opencl.from_device(h_nv[:nt], d_nv)
+                      i32(Kp), i32(Kp if per_target_cand else 0), i32(nb), i32(ncell), i32(lo), d_vs, d_nv)
+        opencl.from_device_nowait(h_vs[:nt], d_vs)
+        opencl.from_device(h_nv[:nt], d_nv)         # blocking: the queue (in order) is done
         var_sum[t0:t1] = h_vs[:nt, :K]
         nvalid[t0:t1] = h_nv[:nt, :K]
     return var_sum, nvalid

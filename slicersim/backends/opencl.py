@@ -364,6 +364,13 @@ def from_device(array, buffer) -> None:
     _cl().enqueue_copy(get_queue(), array, buffer, is_blocking=True)
 
 
+def to_device_nowait(array, buffer):
+    """Enqueue a copy of the C-contiguous *array* into *buffer* (in-order queue: the kernels queued
+    after it see it); returns its event.  Keep *array* alive and unchanged until a later blocking
+    call on the queue returns."""
+    return _cl().enqueue_copy(get_queue(), buffer, array, is_blocking=False)
+
+
 def from_device_nowait(array, buffer):
     """Enqueue a copy of *buffer* into the C-contiguous *array*, behind the kernels already queued
     (in-order queue); returns its event: wait on it before reading *array*, and keep *array* alive."""

@@ -5,6 +5,13 @@ once; each target only changes the point-source spectrum.  For every target the
 single-ramp band SNR of every candidate readout is evaluated at once (OpenCL
 kernel ``band_variance.cl`` or its NumPy twin), then the readout is chosen with
 :func:`slicersim.snr.search.exact_choice` (or the reference walk).
+
+What keeps it fast: extraction weights below 1e-16 of their bin's largest are
+skipped (:func:`~slicersim.snr.snr_table.extraction_weights`; the band SNR moves
+by < 1e-13), and only the cells still weighted are modelled; targets are chunked
+by band, so a chunk's window of bins stays close to its bands (:func:`_chunks`);
+the reference walk asks the kernel only for the readouts it visits
+(:func:`_reference_chunk`: the same values as the full table).
 """
 from __future__ import annotations
 
@@ -26,7 +33,7 @@ from slicersim.snr.bands import check_band_in_grid, warn_partial_spectrum
 from slicersim.snr.search import (candidate_readouts, check_reference_result, check_search,
                                   check_snr_target, exact_choice, limit_error, max_frames_for,
                                   reference_walk)
-from slicersim.snr.snr_table import band_snr_table_for_models, template_psf
+from slicersim.snr.snr_table import band_snr_table_for_models, extraction_weights, template_psf
 
 #: the unit of the fluxes of `solve_many` (an astropy Quantity is converted to it)
 FLAMBDA_UNIT = "erg / (s cm2 Angstrom)"
@@ -155,8 +162,9 @@ def solve_batch(lbda, fluxes, snr, lbda_ranges, redshifts=None, options=None):
 
     Steps: check the input (:func:`_validate_batch`, :func:`_check_snrs`), read the bands in the
     observer frame (:func:`_observer_ranges`), build the instrument once (:class:`_BatchInstrument`),
-    then per chunk of targets tabulate the single-ramp band SNR of every candidate readout and
-    choose (:func:`_solve_chunk`); the table is assembled by :func:`_result_table`."""
+    then per chunk of targets with neighbouring bands (:func:`_chunks`) tabulate the single-ramp
+    band SNR of every candidate readout and choose (:func:`_solve_chunk`); the table is assembled
+    by :func:`_result_table`."""
     from slicersim.backends.precision import resolve_precision
     opts = (SolveOptions() if options is None else options).checked()
     backend, precision = resolve_precision(opts.precision, opts.backend, "batch_etc")  # bad names: before any work
@@ -167,8 +175,8 @@ def solve_batch(lbda, fluxes, snr, lbda_ranges, redshifts=None, options=None):
     target = snr / math.sqrt(inst.spec.dispersion_resolution) if opts.per_resolution else snr.copy()
     rows = {k: np.zeros(fluxes.shape[0], dtype=int) for k in ("n", "m", "d", "nramps")}
     reached = np.full(fluxes.shape[0], np.nan)
-    for t0, t1 in _chunks(fluxes.shape[0], inst, opts):
-        _solve_chunk(inst, fluxes, ranges, snr, target, (t0, t1), opts.search, (backend, precision), rows, reached)
+    for chunk in _chunks(inst, opts):
+        _solve_chunk(inst, fluxes, ranges, snr, target, chunk, opts.search, (backend, precision), rows, reached)
     failed = np.nonzero(rows["n"] == 0)[0]
     if failed.size:
         raise ETCError(_no_signal(lbda, fluxes, ranges, failed))
@@ -222,7 +230,8 @@ def _observer_ranges(ranges, frame, redshifts):
 class _BatchInstrument:
     """The instrument of a batch, computed once: simulation, PSF template, LSF-convolved uniform
     light [ph/s/cell], f2p, QE, gain, the interpolation input → grid and the candidate readouts;
-    ``band``: (N, 2) first/last+1 grid bin of each target's band."""
+    ``band``: (N, 2) first/last+1 grid bin of each target's band; ``psf2``: the extraction weights
+    (:func:`~slicersim.snr.snr_table.extraction_weights`: the negligible ones 0, skipped)."""
 
     sim: object
     psf: np.ndarray
@@ -230,6 +239,7 @@ class _BatchInstrument:
     interp: tuple
     cand: tuple
     band: np.ndarray
+    psf2: np.ndarray
 
     @property
     def spec(self):
@@ -258,81 +268,179 @@ class _BatchInstrument:
         uniform = sum(spec.apply_lsf(arr) for arr in (sim.background_photons, sim.thermal_photons_of("telescope"),
                                                       sim.thermal_photons_of("optics")))
         cand = candidate_readouts(det.min_group, det.max_group or 64, det.nmd[2])
-        return cls(sim, template_psf(sim), uniform, _interp_matrix(lbda, grid), cand, band)
+        psf = template_psf(sim)
+        return cls(sim, psf, uniform, _interp_matrix(lbda, grid), cand, band, extraction_weights(psf))
 
-    def tables(self, fluxes, band, backend, precision):
-        """(Q [e-/s/cell] (n, nb, ncell), signal rate [ADU/s] (n, nb), band − lo, lo, hi, snr1) of
-        targets ``fluxes`` (n, k) [erg/s/cm²/Å] over the bins [lo, hi) their bands need; ``snr1``:
-        the single-ramp band SNR per bin of every candidate readout."""
+    @property
+    def lsf_half(self):
+        """Half-width [bins] of the LSF (the margin a window of bins needs on each side)."""
+        return int(4.0 * self.spec.lsf_sigma + 0.5)
+
+    def models(self, fluxes, band):
+        """(Q [e-/s/cell] (n, nb, nc), signal rate [ADU/s] (n, nb), band − lo, psf2 (nb, nc)) of
+        targets ``fluxes`` (n, k) [erg/s/cm²/Å] over the bins [lo, hi) their bands need and the nc
+        cells with a non-zero extraction weight there (``psf2``: those weights)."""
         sim, spec, grid = self.sim, self.spec, self.sim.lbda
         idx, w, outside = self.interp
-        half = int(4.0 * spec.lsf_sigma + 0.5)
+        half = self.lsf_half
         lo, hi = int(band[:, 0].min()), int(band[:, 1].max())
         s0, s1 = max(0, lo - half), min(grid.size, hi + half)     # + the LSF half-width margins
+        # only the cells the extraction weighs in [lo, hi) (the LSF acts along λ, cell by cell)
+        cells = np.nonzero(self.psf2[lo:hi].any(axis=0))[0]
+        cells = slice(None) if cells.size == self.psf2.shape[1] else cells
+        psf2 = self.psf2[lo:hi, cells]
         flux_grid = fluxes[:, idx[s0:s1]] * (1 - w[s0:s1]) + fluxes[:, idx[s0:s1] + 1] * w[s0:s1]
         flux_grid[:, outside[s0:s1]] = np.nan                                      # erg/s/cm²/Å
         photons = flux_grid * sim.flambda_to_photon[s0:s1]                         # ph/s
         keep, qe = slice(lo - s0, hi - s0), sim.qe
         # LSF with reflect ends: at a window edge inside the grid only the discarded margin bins change
-        point = spec.apply_lsf(photons[:, :, None] * self.psf[None, s0:s1], axis=1)[:, keep]   # ph/s/cell
+        point = spec.apply_lsf(photons[:, :, None] * self.psf[None, s0:s1, cells], axis=1)[:, keep]  # ph/s/cell
         q = qe[None, lo:hi, None] * (point + self.uniform[None, lo:hi, None])                  # e-/s/cell
         signal_rate = spec.apply_lsf(photons * qe[s0:s1], axis=1)[:, keep] * self.det.gain     # ADU/s
-        sub_band = band - lo
-        snr1 = band_snr_table_for_models(sim, (q, signal_rate), sub_band, self.cand, backend=backend,
-                                         psf2=self.psf[lo:hi]**2, precision=precision)
-        return q, signal_rate, sub_band, lo, hi, snr1
+        return q, signal_rate, band - lo, psf2
+
+    def snr_table(self, model, kernel, targets=slice(None), columns=None):
+        """Single-ramp band SNR per bin (n, K) of the targets ``targets`` of ``model``
+        (:meth:`models`) for every candidate readout, or (n, J) for the candidates ``columns``
+        (n, J) of each (the same values)."""
+        q, signal_rate, sub_band, psf2 = model
+        backend, precision = kernel
+        return band_snr_table_for_models(self.sim, (q[targets], signal_rate[targets]), sub_band[targets],
+                                         self.cand, backend=backend, psf2=psf2, precision=precision,
+                                         columns=columns)
 
 
-def _chunks(ntarget, inst, opts):
-    """(t0, t1) target chunks of at most ``opts.max_bytes`` of working arrays (with a progress bar)."""
-    per_target_bytes = inst.sim.lbda.size * inst.psf.shape[1] * 8 * 3
-    step = max(1, int(opts.max_bytes // per_target_bytes))
-    starts = range(0, ntarget, step)
-    progress = show_progress(opts.progress)
-    if progress:
+#: a target joins a chunk while the chunk's window of bins stays within its widest band plus this
+#: fraction of it (bins outside a target's band are computed for nothing; each chunk costs a launch)
+CHUNK_SLACK = 0.5
+
+
+#: a chunk's working arrays (n, bins, cells) stay within this many bytes each (memory-bound steps run
+#: several times faster on arrays that fit the CPU caches than on tens of MB)
+CHUNK_CACHE_BYTES = 8 * 2**20
+
+
+def _chunks(inst, opts):
+    """Chunks of targets (index arrays) with neighbouring bands: the targets sorted by band, a chunk
+    closed when its window of bins would exceed its widest band by more than :data:`CHUNK_SLACK` or
+    its working arrays ``opts.max_bytes`` (with a progress bar)."""
+    band = inst.band
+    order = np.argsort(band[:, 0], kind="stable")
+    cells, margin = inst.psf.shape[1], 2 * inst.lsf_half
+    chunks, start = [], 0
+    lo = hi = widest = 0
+    for k, t in enumerate(order):
+        b0, b1 = int(band[t, 0]), int(band[t, 1])
+        if k > start:
+            new_hi, new_widest = max(hi, b1), max(widest, b1 - b0)
+            window = new_hi - lo
+            one = (k + 1 - start) * (window + margin) * cells * 8       # bytes of one working array
+            if window <= new_widest * (1 + CHUNK_SLACK) and one <= CHUNK_CACHE_BYTES and 3 * one <= opts.max_bytes:
+                hi, widest = new_hi, new_widest
+                continue
+            chunks.append(order[start:k])
+            start = k
+        lo, hi, widest = b0, b1, b1 - b0
+    chunks.append(order[start:])
+    if show_progress(opts.progress):
         from tqdm.auto import tqdm
-        starts = tqdm(starts, total=len(starts), desc="ETC", unit="chunk")
-    return ((t0, min(ntarget, t0 + step)) for t0 in starts)
+        return tqdm(chunks, total=len(chunks), desc="ETC", unit="chunk")
+    return chunks
 
 
 def _solve_chunk(inst, fluxes, ranges, snr, target, chunk, search, kernel, rows, reached):
-    """Fill ``rows`` / ``reached`` for the targets [t0, t1) of ``chunk``."""
-    t0, t1 = chunk
+    """Fill ``rows`` / ``reached`` for the targets ``chunk`` (index array)."""
     det = inst.det
-    q, signal_rate, sub_band, lo, hi, snr1 = inst.tables(fluxes[t0:t1], inst.band[t0:t1], *kernel)
+    model = inst.models(fluxes[chunk], inst.band[chunk])
     if search == "exact":
-        choice = exact_choice(snr1, *inst.cand, target[t0:t1], max_frames=max_frames_for(det.tframe))
+        snr1 = inst.snr_table(model, kernel)
+        choice = exact_choice(snr1, *inst.cand, target[chunk], max_frames=max_frames_for(det.tframe))
         if choice["limited"].any():
-            t = t0 + int(np.nonzero(choice["limited"])[0][0])
+            t = int(chunk[choice["limited"]].min())
             raise ETCError(f"target {t}: {limit_error(snr[t], ranges[t], det.tframe)}")
         for key in rows:
-            rows[key][t0:t1] = choice[key]
-        reached[t0:t1] = choice["snr"]
+            rows[key][chunk] = choice[key]
+        reached[chunk] = choice["snr"]
         return
-    lookup = {(int(a), int(b), int(c)): k for k, (a, b, c) in enumerate(zip(*inst.cand))}
-    for t in range(t0, t1):
-        local = t - t0
-        model = (q[local:local + 1], signal_rate[local:local + 1], sub_band[local:local + 1], lo, hi)
-        nmd, r, s = _reference_one(inst, snr1[local], lookup, model, snr[t], ranges[t], target[t], t)
-        rows["n"][t], rows["m"][t], rows["d"][t] = nmd
-        rows["nramps"][t], reached[t] = r, s
+    _reference_chunk(inst, model, chunk, kernel, (snr, ranges, target), rows, reached)
+
+
+class _Missing(Exception):
+    """A reference walk asked for a candidate readout whose single-ramp SNR is not computed yet."""
+
+    def __init__(self, key):
+        super().__init__(key)
+        self.key = key
+
+
+#: least number of columns of a lazy SNR table (the kernel keeps its vector width: 8 doubles on the
+#: AVX-512 CPUs of the VM; a lane computes the same values at any width)
+_MIN_COLUMNS = 8
+#: readouts of an n row computed when a reference walk reaches one not computed yet (around it)
+_ROW_WINDOW = 16
+
+
+def _reference_chunk(inst, model, chunk, kernel, goals, rows, reached):
+    """The reference walks of the targets ``chunk``, their single-ramp SNRs computed on demand: first
+    the walk's three opening readouts, then the n row (one m, d) a walk asks for (each value the same
+    as in the full table, :meth:`_BatchInstrument.snr_table`); a walk that reaches a readout not
+    computed yet stops (:class:`_Missing`) and runs again once its row is there."""
+    snr, ranges, target = goals
+    det = inst.det
+    n_c, m_c, d_c = inst.cand
+    lookup = {(int(a), int(b), int(c)): k for k, (a, b, c) in enumerate(zip(n_c, m_c, d_c))}
+    row_of = {}
+    for k, key in enumerate(zip(m_c.tolist(), d_c.tolist())):
+        row_of.setdefault(key, []).append(k)
+    nt = len(chunk)
+    table = np.full((nt, n_c.size), np.nan)
+    known = np.zeros((nt, n_c.size), dtype=bool)
+    extra = [{} for _ in range(nt)]                         # off-table readouts, NumPy, per target
+    opening = [lookup[k] for k in ((det.max_group or 64, 8, det.nmd[2]), (32, 4, 0), (8, 4, 0)) if k in lookup]
+    pending = {local: opening for local in range(nt)}
+    while pending:
+        targets = np.fromiter(pending, dtype=np.intp, count=len(pending))
+        width = max(_MIN_COLUMNS, max(len(c) for c in pending.values()))
+        columns = np.array([c + [c[-1]] * (width - len(c)) for c in pending.values()], dtype=np.intp)
+        table[targets[:, None], columns] = inst.snr_table(model, kernel, targets, columns)
+        known[targets[:, None], columns] = True
+        pending = {}
+        for local in targets.tolist():
+            t = int(chunk[local])
+            one = (model[0][local:local + 1], model[1][local:local + 1], model[2][local:local + 1], model[3])
+            try:
+                nmd, r, s = _reference_one(inst, (table[local], known[local]), lookup, (one, extra[local]),
+                                           snr[t], ranges[t], target[t], t)
+            except _Missing as miss:                         # a window of its n row around it
+                row = row_of[tuple(miss.key[1:])]
+                at = row.index(lookup[miss.key])
+                start = max(0, min(at - _ROW_WINDOW // 2, len(row) - _ROW_WINDOW))
+                pending[local] = row[start:start + _ROW_WINDOW]
+                continue
+            rows["n"][t], rows["m"][t], rows["d"][t] = nmd
+            rows["nramps"][t], reached[t] = r, s
 
 
 def _reference_one(inst, snr1, lookup, model, snr, band, target, t):
-    """The reference walk of one target: the single-ramp SNR is read in its table row ``snr1``,
-    readouts off the table are evaluated on ``model`` (NumPy); returns (nmd, nramps, snr reached)."""
+    """The reference walk of one target: the single-ramp SNR is read in its table row ``snr1`` =
+    (values, computed?), readouts off the table are evaluated on ``model`` = ((Q, signal rate,
+    band, psf2), cache) (NumPy); returns (nmd, nramps, snr reached).  :class:`_Missing` when the walk
+    reaches a table readout not computed yet."""
     det = inst.det
-    q, signal_rate, sub_band, lo, hi = model
-    extra = {}
+    (q, signal_rate, sub_band, psf2), extra = model
+    values, known = snr1
 
     def snr_of(n, m, d, r):
         key = (n, m, d)
         if key in lookup:
-            return snr1[lookup[key]] * math.sqrt(r)
+            k = lookup[key]
+            if not known[k]:
+                raise _Missing(key)
+            return values[k] * math.sqrt(r)
         if key not in extra:
             one = (np.array([n]), np.array([m]), np.array([d]))
             extra[key] = band_snr_table_for_models(inst.sim, (q, signal_rate), sub_band, one, backend="numpy",
-                                                   psf2=inst.psf[lo:hi]**2)[0, 0]
+                                                   psf2=psf2)[0, 0]
         return extra[key] * math.sqrt(r)
     nmd, r, s, _ = reference_walk(snr_of, target, det.max_group or 64, det.nmd[2])
     try:

@@ -15,7 +15,10 @@
  * CPU devices (PoCL) even though the kernel has inner loops; GPUs use VW=1.
  *
  * The host pads the candidate arrays to a multiple of VW (padding lanes
- * compute throw-away values), so there is no bounds branch.
+ * compute throw-away values), so there is no bounds branch.  The candidates
+ * are shared by the targets (cand_stride = 0) or each target has its own row
+ * of Kp candidates (cand_stride = Kp: A, B, Qsat are (nt, Kp)); a lane
+ * computes the same operations either way.
  *
  * Q of the chunk holds only bins [lo, lo + nb); band indices are absolute.
  *
@@ -48,11 +51,12 @@ __kernel void band_variance(
     __global const real *restrict weight,     /* non-zero P2 values, bin-major   */
     __global const int *restrict cell,        /* their cell indices              */
     __global const int *restrict row_start,   /* (nlbda + 1,) CSR row pointers    */
-    __global const real *restrict A,       /* (Kp,)                             */
-    __global const real *restrict B,       /* (Kp,)                             */
-    __global const real *restrict Qsat,    /* (Kp,)                             */
+    __global const real *restrict A,       /* (Kp,), or (nt, Kp) per target     */
+    __global const real *restrict B,       /* (Kp,), or (nt, Kp) per target     */
+    __global const real *restrict Qsat,    /* (Kp,), or (nt, Kp) per target     */
     __global const int *restrict band,     /* (nt, 2) absolute [i0, i1)         */
     const int Kp,                          /* padded candidate count, % VW == 0 */
+    const int cand_stride,                 /* 0 (shared candidates) or Kp       */
     const int nb,
     const int ncell,
     const int lo,
@@ -62,9 +66,10 @@ __kernel void band_variance(
     const int kv = get_global_id(0);       /* group of VW candidates */
     const int t = get_global_id(1);        /* target within the chunk */
 
-    const realv a = VLOAD(kv, A);
-    const realv b = VLOAD(kv, B);
-    const realv qs = VLOAD(kv, Qsat);
+    const size_t co = (size_t)t * (size_t)cand_stride;
+    const realv a = VLOAD(kv, A + co);
+    const realv b = VLOAD(kv, B + co);
+    const realv qs = VLOAD(kv, Qsat + co);
     const int i0 = band[2 * t];
     const int i1 = band[2 * t + 1];
 
