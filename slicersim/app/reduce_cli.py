@@ -271,6 +271,8 @@ def _reduce_dataset(args, fit_options, options):
           f"in {res['seconds']:.1f} s)")
     for tid, error in res["failed_targets"][:args.show]:
         print(f"  failed {tid}: {error}")
+    for tid, why in res.get("unavailable_targets", [])[:args.show]:
+        print(f"  without ramps {tid}: {why}")
     return 0 if res["done"] == res["targets"] else 1
 
 

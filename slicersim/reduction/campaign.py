@@ -344,9 +344,12 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     ds.unlock()
     status = [str(s) for s in final["status"]]
     failed = [(int(t), str(e)) for t, s, e in zip(final["target_id"], status, final["error"]) if s == "failed"]
+    unavailable = [(int(t), str(e)) for t, s, e in zip(final["target_id"], status, final["error"])
+                   if s == "unavailable"]
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
             "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
-            "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed}
+            "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed,
+            "unavailable_targets": unavailable}
 
 
 def _check_out_dir(out, src):
@@ -412,6 +415,20 @@ def _sources(src, ids):
     return out
 
 
+def _unavailable_reason(src, tid):
+    """Why target ``tid`` of campaign dataset ``src`` has no ramps to reduce: not simulated, failed, or its
+    ramps file missing or damaged (named, with the command that recomputes it)."""
+    st, rec, why = src.state([tid], deep=False)[tid]
+    if st == "failed":
+        return f"the campaign's simulation of this target failed ({why})"
+    if st == "done":
+        return "the campaign made no ramps for this target (products.ramps is false)"
+    if rec is not None and rec.get("status") == "done":
+        return (f"the campaign's ramps of this target are damaged ({why}): `slicersim campaign run` on the "
+                "dataset recomputes them")
+    return "no ramps in the campaign dataset (target not simulated yet)"
+
+
 def _base_catalog(catalog):
     cols = [c for c in ("target_id", "redshift", "field") if c in catalog.colnames]
     return catalog[cols].copy(copy_data=True)
@@ -426,7 +443,7 @@ def _catalog(base, records, sources, src):
     for tid in (int(t) for t in base["target_id"]):
         rec, info = records.get(tid), sources.get(tid)
         if info is None:
-            st, err = "unavailable", "no ramps in the campaign dataset (target failed or not simulated yet)"
+            st, err = "unavailable", _unavailable_reason(src, tid)
         elif rec is None:
             st, err = "missing", ""
         else:

@@ -191,6 +191,24 @@ def test_a_failing_target_is_recorded_and_the_others_go_on(campaign, reduced, tm
 
 
 @pytest.mark.slow
+def test_a_damaged_source_ramp_is_named_not_only_counted(campaign, reduced, tmp_path):
+    """A truncated campaign ramp file was reported only as "1 without ramps"; the catalogue and the CLI now
+    say which target, what is wrong with its file and the command that recomputes it."""
+    ds = _linked_copy(campaign, tmp_path / "ds")
+    ramps = ds / "products/t0000001/ramps.h5"
+    _replace(ramps, ramps.read_bytes()[:-100])
+    out = tmp_path / "red"
+    proc = _cli("reduce", ds, "--out", out, "--workers", "1", "--quiet")
+    assert proc.returncode == 1 and "1 without ramps" in proc.stdout, proc.stdout + proc.stderr
+    line = next(x for x in proc.stdout.splitlines() if x.strip().startswith("without ramps 1:"))
+    assert "damaged (ramps:" in line and "truncated" in line and "slicersim campaign run" in line
+    from astropy.table import Table
+    cat = Table.read(out / "catalog.ecsv")
+    row = cat[cat["target_id"] == 1][0]
+    assert row["status"] == "unavailable" and "damaged" in row["error"]
+
+
+@pytest.mark.slow
 def test_kill9_mid_write_leaves_no_partial_output(campaign, reduced, tmp_path):
     out = _linked_copy(reduced, tmp_path / "red")
     for tid in (0, 1):
