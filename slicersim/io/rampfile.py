@@ -207,9 +207,22 @@ class RampWriter(AtomicH5File):
 
     def write_pixeldq(self, pixeldq):
         self._h5(self.pixdq.__setitem__, Ellipsis, np.asarray(pixeldq, dtype=np.uint32))
+        self._h5(flush_chunks, self.pixdq)
 
     def write_truth(self, rate):
         self._h5(self.truth.__setitem__, Ellipsis, np.asarray(rate, dtype=np.float32))
+        self._h5(flush_chunks, self.truth)
+
+    def _close_file(self):
+        """Flush the chunks of SCI and GROUPDQ (then of every dataset, in a fixed order) before the
+        file closes: where compressed chunks land must not depend on when the last handle to a
+        dataset is released (:func:`~slicersim.io.atomic.flush_chunks`)."""
+        if self._file is not None and (self._fh is None or self._fh.error is None):
+            for name in self._dataset_names:
+                dset = self.__dict__.get(name)
+                if dset is not None:
+                    flush_chunks(dset)
+        super()._close_file()
 
     def write_dataset(self, name, array, attrs=None):
         """Write ``truth/<name>`` (any array, structured arrays as compound datasets) with attributes.

@@ -109,3 +109,22 @@ def test_a_ramp_without_flags_stores_no_groupdq_chunk(tmp_path):
     path = _write(tmp_path / "r.h5", sci, np.zeros_like(gdq), pixdq, rate)
     assert _stored(path, "GROUPDQ") == (0, 0)
     assert not read_ramps(path)[1].any()
+
+
+@pytest.mark.parametrize("hold", ["SCI", "GROUPDQ", "PIXELDQ", "truth/rate"])
+def test_file_bytes_do_not_depend_on_when_a_handle_is_released(tmp_path, monkeypatch, hold):
+    """A Dask worker's profiler holding a frame (and a dataset handle) past the end of the writer
+    must not move compressed chunks: the same ramp gives the same bytes."""
+    sci, gdq, pixdq, rate = _ramp()
+    create, held = h5py.Group.create_dataset, []
+
+    def create_and_hold(group, name, *args, **kw):
+        dset = create(group, name, *args, **kw)
+        if name == hold:
+            held.append(dset)
+        return dset
+    plain = _write(tmp_path / "plain.h5", sci, gdq, pixdq, rate).read_bytes()
+    monkeypatch.setattr(h5py.Group, "create_dataset", create_and_hold)
+    kept = _write(tmp_path / "held.h5", sci, gdq, pixdq, rate).read_bytes()
+    monkeypatch.setattr(h5py.Group, "create_dataset", create)
+    assert held and plain == kept
