@@ -152,3 +152,32 @@ def test_an_interrupted_target_is_redone_and_the_dataset_is_the_same(streamed):
     res = run_campaign(streamed / "spec.toml", ds, workers=1, progress=False)
     assert (res["done"], res["computed"]) == (2, 1), res
     assert _files(ds) == ref
+
+
+def test_a_target_task_reduces_its_ramps_in_its_field_and_deletes_them(tmp_path, monkeypatch):
+    """reduce = true: the reducer gets the target's ramps, "spectra", the target's field and
+    reduced.h5; keep_ramps = "none" deletes the ramps; the record lists the reduced product only.
+    (The ramps are a stand-in file here: the real reduction is compared above.)"""
+    from slicersim.campaign import products
+    from slicersim.campaign.runner import plan_campaign
+    from slicersim.io.dataset import Dataset
+    spec = _spec(PLAIN.replace("n = 2", "n = 1") + 'reduce = true\nkeep_ramps = "none"\n')
+    cat, _ = plan_campaign(spec)
+    row = {k: (cat[0][k].item() if hasattr(cat[0][k], "item") else cat[0][k]) for k in cat.colnames}
+    monkeypatch.setattr(products, "_write_ramps", lambda path, *a: Path(path).write_bytes(b"ramps"))
+    calls = []
+
+    def reducer(ramps, out, mode, field):
+        calls.append((os.path.basename(ramps), os.path.basename(out), mode, field, Path(ramps).read_bytes()))
+        Path(out).write_bytes(b"reduced")
+    ds = Dataset(tmp_path / "d")
+    digest = ds.initialise(spec.text, spec.canonical(), {}, False)
+    rec = products.run_target(spec, row, ds.path, digest, reducer=reducer)
+    assert rec["status"] == "done", rec.get("error")
+    assert calls == [("ramps.h5", "reduced.h5", "spectra", str(row["field"]), b"ramps")]
+    assert list(rec["products"]) == ["reduced"] and os.listdir(ds.product_dir(0)) == ["reduced.h5"]
+    assert ds.verify(rec) == ""
+    # a failing reduction: recorded, nothing left behind (the ramps included)
+    rec = products.run_target(spec, row, ds.path, digest, reducer=lambda *a: 1 / 0)
+    assert rec["status"] == "failed" and "ZeroDivisionError" in rec["error"]
+    assert not os.path.exists(ds.product_dir(0)) or os.listdir(ds.product_dir(0)) == []
