@@ -29,6 +29,9 @@ from slicersim.sources.lamps import CalibrationLamp, FabryPerotEtalon, Tabulated
 from slicersim.targets import (CalSpec, Flat3DCalibration, FlatFieldStructure, Galaxy, Kilonova, Lazuli3DFlat,
                                LazuliCalSpec, LazuliGalaxy, LazuliKilonova, LazuliPowerLaw, LazuliSncosmoTarget,
                                PowerLaw, SncosmoTarget)
+# registers the reduction of streaming campaigns (products.reduce) with the campaign layer below it
+from slicersim.reduction import streaming as _streaming  # noqa: E402
+del _streaming
 
 __all__ = ["ConfigError", "load_config", "Detector", "ReadoutError", "Background", "Host", "SersicProfile", "CubeSource", "PointSource",
            "Scene", "SpectrumError", "ETCError", "Simulation", "MLASpectrograph", "OpticalThroughput",

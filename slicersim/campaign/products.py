@@ -13,7 +13,16 @@ spectrum.h5         lbda [Å], flambda (input F_λ on lbda) [erg/s/cm²/Å], sig
 cube.h5             lbda [Å], signal [ADU], variance [ADU²], noisy [ADU] (nλ, ny, nx), cube_dtype
 detector_image.h5   rate [e-/s/px] (float32) on the full H4RG, both fields
 ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout)
+reduced.h5          with ``products.reduce = "spectra"`` (or true): the ramps reduced as
+                    ``slicersim reduce DATASET --spectra`` does (rates/, cubes/<field>/,
+                    spectra/<field>/); rates.h5 with ``"rates"`` (as ``slicersim reduce DATASET``)
 ==================  ===========================================================================
+
+Streaming (``products.reduce``): the ramps are reduced in the same task right after they are
+written, then deleted unless ``products.keep_ramps`` keeps them, so a worker holds at most one
+exposure's ramps on disk.  The record (written last) lists the products that exist: ``reduced``,
+and ``ramps`` only where kept.  The reduction is the reduction layer's, registered here by
+:mod:`slicersim.reduction.streaming` (:func:`register_reducer`; campaigns sit below reductions).
 """
 from __future__ import annotations
 
@@ -25,7 +34,12 @@ import numpy as np
 from slicersim import rng
 from slicersim.io.dataset import Dataset, ProductFile, product_info
 
-__all__ = ["target_seeds", "run_target", "SEED_STREAM", "SPECTRUM_GRID", "limit_threads", "mark_failed"]
+__all__ = ["target_seeds", "run_target", "SEED_STREAM", "SPECTRUM_GRID", "limit_threads", "mark_failed",
+           "register_reducer", "registered_reducer", "REDUCED_FILES"]
+
+#: the file of the reduced product per ``products.reduce`` mode (the names of ``slicersim reduce DATASET``)
+REDUCED_FILES = {"spectra": "reduced.h5", "rates": "rates.h5"}
+_REDUCER = []
 
 #: Philox stream deriving a target's seeds from (campaign seed, target id)
 SEED_STREAM = 0x43414D50          # "CAMP"
@@ -65,6 +79,21 @@ def limit_threads(threads):
 
 #: the former private name (reduction.campaign imports it)
 _limit_threads = limit_threads
+
+
+def register_reducer(reducer):
+    """Register the function reducing one target's ramps for streaming campaigns:
+    ``reducer(ramps_path, out_path, mode, field)`` writes ``out_path`` atomically (``mode``: "spectra" or
+    "rates"; ``field``: the target's).  :mod:`slicersim.reduction.streaming` registers it on import."""
+    if not callable(reducer):
+        from slicersim.errors import ParameterError
+        raise ParameterError(f"reducer must be callable, got {type(reducer).__name__}")
+    _REDUCER[:] = [reducer]
+
+
+def registered_reducer():
+    """The registered reducer (:func:`register_reducer`), or None."""
+    return _REDUCER[0] if _REDUCER else None
 
 
 def build_target(spec, row, readout=True):
@@ -135,9 +164,11 @@ def _write_ramps(path, target, row, seed, spec, memory):
                      overwrite=True, max_bytes=memory, progress=False)
 
 
-def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None):
+def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None, reducer=None):
     """Simulate and write the products of one target; returns its record (also written to
-    ``records/``).  Any error is caught and recorded (status "failed") so a campaign goes on."""
+    ``records/``).  Any error is caught and recorded (status "failed") so a campaign goes on.
+    With ``products.reduce`` the ramps are then reduced by ``reducer`` (None: the registered one,
+    :func:`register_reducer`) and deleted unless kept (``products.keep_ramps``)."""
     limit_threads(threads)
     row = dict(row)
     tid = int(row["target_id"])
@@ -162,11 +193,31 @@ def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, thre
             else:
                 _write_ramps(path, target, row, ramp_seed, spec, max(max_bytes, 64 * 2**20))
             products[name] = product_info(path)
+        if spec.products.get("reduce"):
+            _stream(spec, row, pdir, products, reducer)
         record.update(status="done", products=products, device=_device_name())
     except Exception as exc:                       # recorded, the campaign goes on
         mark_failed(ds, tid, record, exc)
     ds.write_record(tid, record)
     return record
+
+
+def _stream(spec, row, pdir, products, reducer):
+    """Reduce the target's ramps just written into ``products["reduced"]``; delete them (and their
+    entry) unless ``products.keep_ramps`` keeps them."""
+    from slicersim.errors import ConfigError
+    reducer = reducer or registered_reducer()
+    if reducer is None:
+        raise ConfigError("products.reduce needs the reduction: import slicersim.reduction.streaming "
+                          "(importing slicersim does)")
+    mode = spec.products["reduce"]
+    ramps = os.path.join(pdir, products["ramps"]["file"])
+    out = os.path.join(pdir, REDUCED_FILES[mode])
+    reducer(ramps, out, mode, str(row["field"]))
+    products["reduced"] = product_info(out)
+    if not spec.keeps_ramps(row["target_id"]):
+        os.remove(ramps)
+        del products["ramps"]
 
 
 def mark_failed(ds, tid, record, exc):

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slicersim.campaign.products import build_target, run_target, spectrum_grid, target_seeds
+from slicersim.campaign.products import build_target, registered_reducer, run_target, spectrum_grid, target_seeds
 from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec, seed_was_drawn, with_seed
 from slicersim.errors import ConfigError, DatasetError
 from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, not_a_dataset_directory, spec_digest
@@ -143,8 +143,9 @@ def _catalog_with_records(base, records, wanted):
     """The catalog: the plan plus, per target, its status, error and products (file, sha256)."""
     cat = base.copy(copy_data=True)
     status, error = [], []
-    files = {p: [] for p in PRODUCTS}
-    sums = {p: [] for p in PRODUCTS}
+    names = PRODUCTS + ("reduced",)              # reduced: a streaming campaign's (products.reduce)
+    files = {p: [] for p in names}
+    sums = {p: [] for p in names}
     for row in base:
         tid = int(row["target_id"])
         planned_fail = str(row["status"]) == "failed"
@@ -159,12 +160,12 @@ def _catalog_with_records(base, records, wanted):
             status.append(rec["status"])
             error.append(rec.get("error", ""))
         prods = (rec or {}).get("products", {}) if rec and rec.get("status") == "done" else {}
-        for p in PRODUCTS:
+        for p in names:
             info = prods.get(p)
             files[p].append(f"{PRODUCT_DIR}/{_key(tid)}/{info['file']}" if info else "")
             sums[p].append(info["sha256"] if info else "")
     cat["status"], cat["error"] = status, error
-    for p in PRODUCTS:
+    for p in names:
         if p in wanted or any(files[p]):
             cat[f"{p}_product"], cat[f"{p}_sha256"] = files[p], sums[p]
     return cat
@@ -468,14 +469,14 @@ def _run(spec, ds, planned, run, flags):
         records = {tid: rec for tid, (st, rec, _) in state.items() if st in ("done", "failed")}
         todo = [tid for tid, (st, _, _) in state.items()
                 if str(rows[tid]["status"]) != "failed" and (st == "missing" or (st == "failed" and retry_failed))]
-        ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted))
+        ds.write_catalog(_catalog_with_records(catalog, records, spec.recorded))
         try:
             if todo:
                 _dispatch(spec, ds, catalog, (todo, records, digest), run, connection)
             elif connection:
                 connection[0].close()
         finally:                                   # also on Ctrl-C: the catalog says what is done
-            final = _catalog_with_records(catalog, records, spec.wanted)
+            final = _catalog_with_records(catalog, records, spec.recorded)
             ds.write_catalog(final)
     counts = {s: int(np.count_nonzero(np.asarray(final["status"]) == s)) for s in ("done", "failed", "missing")}
     return {"dataset": ds.path, "targets": len(final), **counts, "computed": len(todo),
@@ -520,9 +521,10 @@ def _dispatch(spec, ds, catalog, work, run, connection=None):
         quiet.restore()
         raise
     rows = {int(r["target_id"]): _row_dict(r) for r in catalog}
+    reducer = registered_reducer() if spec.products.get("reduce") else None    # sent by reference
 
     def submit(tid):
-        return client.submit(run_target, spec_future, rows[tid], ds.path, digest, run.max_bytes, threads,
+        return client.submit(run_target, spec_future, rows[tid], ds.path, digest, run.max_bytes, threads, reducer,
                              key=f"slicersim-target-{digest[:12]}-{tid}", pure=False, retries=0)
 
     def lost(tid, exc):
@@ -530,7 +532,7 @@ def _dispatch(spec, ds, catalog, work, run, connection=None):
                 "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
     run_task_window(client, cluster, quiet, todo, submit, records, ds, window=run.window, workers=run.workers,
                     progress=run.progress, desc="campaign", lost_record=lost,
-                    checkpoint=lambda: ds.write_catalog(_catalog_with_records(catalog, records, spec.wanted)))
+                    checkpoint=lambda: ds.write_catalog(_catalog_with_records(catalog, records, spec.recorded)))
 
 
 @dataclass(frozen=True)

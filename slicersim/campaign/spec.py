@@ -26,6 +26,12 @@
     cube_dtype = "float32"                    # or "float64"
     precision = "auto"                        # of the cube kernels: "auto", "double" or "single"
     compression = "none"                      # of the ramps: none, gzip[:level], lz4, zstd, bitshuffle-lz4
+    reduce = false                            # stream: reduce each target's ramps as soon as they are
+                                              # simulated, in the same task (true or "spectra": as
+                                              # `slicersim reduce DATASET --spectra`, "rates": as
+                                              # `slicersim reduce DATASET`); needs ramps = true
+    keep_ramps = "all"                        # with reduce: "all", "none" or N (the ramps of every
+                                              # target whose target_id is a multiple of N)
     [survey]                                  # totals of the plan
     overhead = 0.0                            # s per target (slew, settle, acquisition)
     efficiency = 1.0                          # fraction of time on sky
@@ -56,7 +62,10 @@ _OBSERVATION = {"snr": 20.0, "lbda_range": [4000.0, 6800.0], "frame": "rest", "c
                 "field": None, "field_switch_redshift": None, "psf_profile": "airy",
                 "conventions": "physical", "search": "exact", "per_resolution": True}
 _PRODUCTS = {"spectrum": True, "cube": False, "detector_image": False, "ramps": False,
-             "cube_dtype": "float32", "compression": "none", "precision": "auto"}
+             "cube_dtype": "float32", "compression": "none", "precision": "auto", "reduce": False,
+             "keep_ramps": "all"}
+#: what ``products.reduce`` may be (True is "spectra")
+REDUCE_MODES = (False, "spectra", "rates")
 _SURVEY = {"overhead": 0.0, "efficiency": 1.0, "compression_ratio": 1.0}
 DEFAULT_Z_SWITCH = 0.8
 
@@ -87,6 +96,20 @@ class CampaignSpec:
         """Names of the products to write, in :data:`PRODUCTS` order."""
         return [p for p in PRODUCTS if self.products[p]]
 
+    @property
+    def recorded(self):
+        """Names of the products a done target may record: :attr:`wanted`, and ``reduced`` when the
+        campaign streams (``products.reduce``)."""
+        return self.wanted + (["reduced"] if self.products.get("reduce") else [])
+
+    def keeps_ramps(self, target_id):
+        """True when the ramps of ``target_id`` stay in the dataset (``products.keep_ramps``; always
+        without ``products.reduce``)."""
+        keep = self.products.get("keep_ramps", "all")
+        if not self.products.get("reduce") or keep == "all":
+            return True
+        return keep != "none" and int(target_id) % int(keep) == 0
+
     def field_of(self, redshift):
         """Field observing a target at ``redshift``."""
         obs = self.observation
@@ -103,6 +126,10 @@ class CampaignSpec:
         # the key keep their identity) or when no cube is written
         if out["products"].get("precision") == "auto" or not out["products"].get("cube"):
             out["products"].pop("precision", None)
+        # streaming: left out when off (datasets made before the keys keep their identity)
+        if not out["products"].get("reduce"):
+            out["products"].pop("reduce", None)
+            out["products"].pop("keep_ramps", None)
         if self.config_digests:
             out["observation"]["config_sha256"] = dict(sorted(self.config_digests.items()))
         return out
@@ -235,7 +262,26 @@ def _products(section):
         compression_options(None if prod["compression"] == "none" else prod["compression"])
     except (SlicersimError, ValueError) as exc:
         raise ConfigError(f"products.compression: {exc}") from None
+    _streaming(prod)
     return prod
+
+
+def _streaming(prod):
+    """Check ``products.reduce`` and ``products.keep_ramps`` (``reduce = true`` is "spectra")."""
+    reduce, keep = prod["reduce"], prod["keep_ramps"]
+    if reduce is True:
+        prod["reduce"] = reduce = "spectra"
+    if not ((reduce is False) or (isinstance(reduce, str) and reduce in REDUCE_MODES)):
+        raise ConfigError(f"products.reduce must be false, true, \"spectra\" or \"rates\", got {reduce!r}")
+    if isinstance(keep, bool) or not (keep in ("all", "none") if isinstance(keep, str) else
+                                      isinstance(keep, int) and keep >= 1):
+        raise ConfigError(f"products.keep_ramps must be \"all\", \"none\" or a whole number N ≥ 1 (the ramps of "
+                          f"every target whose target_id is a multiple of N), got {keep!r}")
+    if reduce and not prod["ramps"]:
+        raise ConfigError("products.reduce reduces each target's ramps as they are simulated: set products.ramps "
+                          "= true (and products.keep_ramps to keep none or a sample of them)")
+    if not reduce and keep != "all":
+        raise ConfigError("products.keep_ramps applies only with products.reduce (without it every ramp is kept)")
 
 
 def _survey(section):

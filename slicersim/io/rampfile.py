@@ -3,7 +3,7 @@
 Layout (one file per exposure)::
 
     /SCI            uint16  (nramps, ngroups, ny, nx)   group-averaged reads [ADU]
-    /GROUPDQ        uint8   (nramps, ngroups, ny, nx)   JWST group flags (2 = SATURATED)
+    /GROUPDQ        uint8   (nramps, ngroups, ny, nx)   JWST group flags (2 = SATURATED); sparse
     /PIXELDQ        uint32  (ny, nx)                    JWST pixel flags (1 DO_NOT_USE, 1024 DEAD, 2048 HOT)
     /truth/rate     float32 (ny, nx)   optional         input rate [e-/s]
     /truth/<name>   truth of the detector effects (``effects=``): cosmic_rays (compound: ramp,
@@ -12,7 +12,15 @@ Layout (one file per exposure)::
     root attributes NINTS NGROUPS NFRAMES GROUPGAP TFRAME TGROUP READPATT GAIN READNOISE
                     SEED BUNIT SOFTWARE VERSION CONFIG (JSON) COMPLETE
 
-SCI and GROUPDQ are chunked one group × a row block.  Every dataset carries HDF5's Fletcher-32
+SCI and GROUPDQ are chunked one group × a row block.  GROUPDQ is stored only where it carries
+information: a group's block of rows with no flag is not written at all (HDF5 reads a chunk never
+written as the fill value 0, GOOD: readers of every release see the same array), and the chunks
+written are compressed losslessly (the ramps' ``compression``, else gzip level 1); the attribute
+``SPARSE = True`` says so.  PIXELDQ (mostly 0) and ``truth/rate`` (a smooth rate map) are
+compressed losslessly too (the ramps' ``compression``, else byte-shuffled gzip level 1;
+``truth/rate`` always byte-shuffled gzip level 1): zlib's output depends on the data only, so the
+file bytes do not depend on the run.  Files of earlier releases (GROUPDQ whole, uncompressed) are
+read alike.  Every dataset carries HDF5's Fletcher-32
 checksum (verified by HDF5 on each read: a flipped byte is a :class:`RampFileError` "checksum
 mismatch", :func:`read_error`).  Files read here are inputs we did not write: external storage,
 virtual datasets and external links are refused before any data are read (:func:`check_hdf5_input`).
@@ -46,6 +54,11 @@ DQ = {"GOOD": 0, "DO_NOT_USE": 1, "SATURATED": 2, "JUMP_DET": 4, "DEAD": 1024, "
 #: largest compression ratio assumed by the free-space check of a compressed ramp: noisy uint16
 #: ramps compress ~2-3× losslessly (bit-shuffle + LZ4/Zstd); the check needs uncompressed / this
 MAX_COMPRESSION = 4.0
+#: h5py options of the flags (GROUPDQ, PIXELDQ) of uncompressed ramps: lossless, deterministic bytes
+FLAG_FILTERS = {"compression": "gzip", "compression_opts": 1, "shuffle": True, "fletcher32": True}
+#: h5py options of ``truth/rate``: byte-shuffled gzip level 1 (lossless; a mostly dark rate map stores
+#: in a fraction of its 4 bytes per pixel)
+TRUTH_FILTERS = {"compression": "gzip", "compression_opts": 1, "shuffle": True, "fletcher32": True}
 #: most objects (groups, datasets) :func:`check_hdf5_input` visits in one input file
 MAX_HDF5_OBJECTS = 100_000
 
@@ -139,6 +152,11 @@ class RampWriter(AtomicH5File):
     def _compressed(self):
         return "compression" in self.compression
 
+    def _flag_filters(self):
+        """h5py options of GROUPDQ and PIXELDQ: the ramps' compression, else byte-shuffled gzip
+        level 1 (flags are mostly 0: a full-detector PIXELDQ of 64 MiB stores in well under 1 MiB)."""
+        return self.compression if self._compressed else FLAG_FILTERS
+
     def _check_space(self, need, how="", held=0):
         """RampFileError when ``need`` bytes (+ margin) exceed the free space plus ``held`` bytes
         (those already written by this writer) of the output directory."""
@@ -161,14 +179,15 @@ class RampWriter(AtomicH5File):
         dims = (self.nramps, self.ngroups) + self.shape
         chunks = (1, 1, self.row_block, self.shape[1])
         self.sci = file.create_dataset("SCI", dims, dtype="u2", chunks=chunks, **self.compression)
-        self.groupdq = file.create_dataset("GROUPDQ", dims, dtype="u1", chunks=chunks,
-                                                 **self.compression)
+        self.groupdq = file.create_dataset("GROUPDQ", dims, dtype="u1", chunks=chunks, fillvalue=0,
+                                           **self._flag_filters())
+        self.groupdq.attrs["SPARSE"] = True          # chunks without a flag are not stored: read as 0
         if self.pixeldq:
             self.pixdq = file.create_dataset("PIXELDQ", self.shape, dtype="u4",
-                                                   chunks=(self.row_block, self.shape[1]), **self.compression)
+                                             chunks=(self.row_block, self.shape[1]), **self._flag_filters())
         if self.truth_rate:
             self.truth = file.create_dataset("truth/rate", self.shape, dtype="f4",
-                                                   chunks=(self.row_block, self.shape[1]), fletcher32=True)
+                                             chunks=(self.row_block, self.shape[1]), **TRUTH_FILTERS)
         for key, val in self.attrs.items():
             file.attrs[key] = val if not isinstance(val, (dict, list, tuple)) else json.dumps(val)
         file.attrs["COMPLETE"] = False
@@ -181,16 +200,30 @@ class RampWriter(AtomicH5File):
         def put():
             self.sci[ramp, :, rows, :] = sci
             if groupdq is not None:
-                self.groupdq[ramp, :, rows, :] = groupdq
+                for g in _flagged_groups(groupdq):      # GROUPDQ only where it carries information
+                    self.groupdq[ramp, g, rows, :] = groupdq[g]
         self._h5(put)
         if self._compressed and self.nramps > 1 and ramp == 0 and rows.stop >= self.shape[0]:
             self._check_measured_space()
 
     def write_pixeldq(self, pixeldq):
         self._h5(self.pixdq.__setitem__, Ellipsis, np.asarray(pixeldq, dtype=np.uint32))
+        self._h5(flush_chunks, self.pixdq)
 
     def write_truth(self, rate):
         self._h5(self.truth.__setitem__, Ellipsis, np.asarray(rate, dtype=np.float32))
+        self._h5(flush_chunks, self.truth)
+
+    def _close_file(self):
+        """Flush the chunks of SCI and GROUPDQ (then of every dataset, in a fixed order) before the
+        file closes: where compressed chunks land must not depend on when the last handle to a
+        dataset is released (:func:`~slicersim.io.atomic.flush_chunks`)."""
+        if self._file is not None and (self._fh is None or self._fh.error is None):
+            for name in self._dataset_names:
+                dset = self.__dict__.get(name)
+                if dset is not None:
+                    flush_chunks(dset)
+        super()._close_file()
 
     def write_dataset(self, name, array, attrs=None):
         """Write ``truth/<name>`` (any array, structured arrays as compound datasets) with attributes.
@@ -205,10 +238,14 @@ class RampWriter(AtomicH5File):
             if lazy:
                 k, ny, nx = array.shape
                 rows = max(1, min(ny, (16 << 20) // max(1, k * nx * np.dtype(array.dtype).itemsize)))
+                first = np.asarray(array[:, 0:rows]) if 0 not in array.shape else None
+                # compressed (lossless) when the first block shows it is worth it, as an in-memory array
+                filters = {key: v for key, v in _compression_for(first).items() if key not in ("chunks", "fletcher32")} \
+                    if first is not None else {}
                 ds = self.file.create_dataset(f"truth/{name}", array.shape, dtype=array.dtype,
-                                              chunks=(1, rows, nx), fletcher32=0 not in array.shape)
+                                              chunks=(1, rows, nx), fletcher32=0 not in array.shape, **filters)
                 for y0 in range(0, ny, rows):
-                    ds[:, y0:y0 + rows] = array[:, y0:y0 + rows]
+                    ds[:, y0:y0 + rows] = first if y0 == 0 else array[:, y0:y0 + rows]
             else:
                 kwargs = _compression_for(array)
                 ds = self.file.create_dataset(f"truth/{name}", data=array, **kwargs)
@@ -216,6 +253,12 @@ class RampWriter(AtomicH5File):
                 ds.attrs[key] = val if not isinstance(val, (dict, list, tuple)) else json.dumps(val)
             flush_chunks(ds)
         self._h5(put)
+
+
+def _flagged_groups(groupdq):
+    """Indices of the groups of a (ngroups, rows, nx) GROUPDQ block holding any flag."""
+    flat = np.asarray(groupdq).reshape(len(groupdq), -1)
+    return np.flatnonzero(flat.any(axis=1))
 
 
 def _compression_for(array, probe_bytes=1 << 20, worth=0.75):
