@@ -25,7 +25,7 @@ import numpy as np
 from slicersim import rng
 from slicersim.io.dataset import Dataset, ProductFile, product_info
 
-__all__ = ["target_seeds", "run_target", "SEED_STREAM", "SPECTRUM_GRID", "limit_threads", "mark_failed"]
+__all__ = ["target_seeds", "run_target", "truth_meta", "SEED_STREAM", "SPECTRUM_GRID", "limit_threads", "mark_failed"]
 
 #: Philox stream deriving a target's seeds from (campaign seed, target id)
 SEED_STREAM = 0x43414D50          # "CAMP"
@@ -129,10 +129,28 @@ def _write_image(path, target, row, seed):
                 compression="gzip", compression_opts=1, shuffle=True)     # mostly dark: ~10× smaller
 
 
+#: catalog columns that are not the target's truth (readout, plan, seeds, status)
+_NOT_TRUTH = {"n", "m", "d", "nramps", "seed", "ramp_seed", "status", "error", "exposure_time", "snr", "data_volume",
+              "data_volume_compressed", "redshift", "field"}
+
+
+def truth_meta(spec, row):
+    """The attributes of a target's ``truth/target`` from its catalog row (target_id, phase,
+    peak_absmag, x1, c, host_*, ...: the population's draws) and its population (source, band,
+    magsys of a SN Ia model)."""
+    meta = {k: v for k, v in dict(row).items() if k not in _NOT_TRUTH and not k.endswith(("_product", "_sha256"))
+            and isinstance(v, (int, float, str, np.integer, np.floating))}
+    for key in ("source", "band", "magsys"):
+        value = getattr(spec.population, key, None)
+        if isinstance(value, str):
+            meta.setdefault(key, value)
+    return meta
+
+
 def _write_ramps(path, target, row, seed, spec, memory):
     comp = spec.products["compression"]
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
-                     overwrite=True, max_bytes=memory, progress=False)
+                     overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row))
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None):
