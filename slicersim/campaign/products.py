@@ -18,6 +18,7 @@ ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout)
 from __future__ import annotations
 
 import os
+import time
 import traceback
 
 import numpy as np
@@ -164,6 +165,7 @@ def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, thre
     record = {"target_id": tid, "spec_sha256": spec_sha256, "seed": seed, "ramp_seed": ramp_seed,
               "readout": [int(row["n"]), int(row["m"]), int(row["d"]), int(row["nramps"])],
               "field": str(row["field"])}
+    t0 = time.perf_counter()
     try:
         ds.clean_target(tid)
         pdir = ds.target_dir(tid, make=True)           # a real folder inside the dataset
@@ -183,6 +185,7 @@ def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, thre
         record.update(status="done", products=products, device=_device_name())
     except Exception as exc:                       # recorded, the campaign goes on
         mark_failed(ds, tid, record, exc)
+    ds.write_timing(tid, time.perf_counter() - t0)
     ds.write_record(tid, record)
     return record
 

@@ -465,6 +465,7 @@ def reduce_target(task, threads=None):
     ds = Dataset(task["out"])
     record = {"target_id": tid, "spec_sha256": task["digest"], "source": info["path"],
               "source_sha256": info["sha256"], "mode": "spectra" if task["spectra"] else "rates"}
+    t0 = time.perf_counter()
     try:
         ds.clean_target(tid)
         path = info["path"]
@@ -483,6 +484,7 @@ def reduce_target(task, threads=None):
         record.update(status="done", products={"reduced": product_info(out)})
     except Exception as exc:
         mark_failed(ds, tid, record, exc)
+    ds.write_timing(tid, time.perf_counter() - t0)
     ds.write_record(tid, record)
     return record
 
