@@ -271,6 +271,8 @@ def _reduce_dataset(args, fit_options, options):
           f"in {res['seconds']:.1f} s)")
     for tid, error in res["failed_targets"][:args.show]:
         print(f"  failed {tid}: {error}")
+    if res.get("report"):
+        print(f"summary against the input: {os.path.join(res['out'], 'summary.ecsv')}, report {res['report']}")
     return 0 if res["done"] == res["targets"] else 1
 
 

@@ -12,6 +12,8 @@ directory* with the layout of a dataset (:mod:`slicersim.io.dataset`)::
                               ``spectra=True``, reduced.h5 (rates/, cubes/<field>/, spectra/<field>/)
     OUT/records/tNNNNNNN.json written last: "done" (product size, sha256, the source's sha256) or
                               "failed" (error)
+    OUT/summary.ecsv, report.md, bias_vs_redshift.png, snr_vs_etc.png  with ``spectra=True``: each
+                              target against its truth (:mod:`slicersim.reduction.report`)
 
 so ``slicersim campaign status OUT`` reports it too.  The dask client comes from the campaign
 runner (an embedded LocalCluster of ``workers`` processes, or ``scheduler="tcp://host:port"``;
@@ -278,7 +280,9 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
 
     Returns {"dataset", "out", "targets", "done", "failed", "missing", "unavailable" (targets
     the campaign has no ramps for: failed or not yet simulated), "computed", "seconds",
-    "failed_targets": [(id, error)]}.
+    "failed_targets": [(id, error)], "report"}: with ``spectra``, ``out`` also gets the summary against
+    each target's truth (summary.ecsv, report.md and figures: :mod:`slicersim.reduction.report`), and
+    "report" is the path of report.md (None otherwise).
     """
     from slicersim.campaign.runner import software_versions
     from slicersim.io.dataset import Dataset
@@ -344,9 +348,14 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     ds.unlock()
     status = [str(s) for s in final["status"]]
     failed = [(int(t), str(e)) for t, s, e in zip(final["target_id"], status, final["error"]) if s == "failed"]
+    report = None
+    if spectra:                                    # the spectra against their truth: summary.ecsv, report.md
+        from slicersim.reduction.report import campaign_report
+        report = campaign_report(src.path, ds.path, reduced=ds.path)["report"]
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
             "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
-            "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed}
+            "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed,
+            "report": report}
 
 
 def _check_out_dir(out, src):
