@@ -32,7 +32,8 @@ def target_truth(target, nmd, nramps, **meta):
         Number of ramps.
     **meta
         Further scalar attributes (catalog values: ``target_id``, ``phase``, ``peak_absmag``,
-        ``x1``, ``c``, ``source``, ``band``, ...); None values are left out.
+        ``x1``, ``c``, ``source``, ``band``, ...), over the target's own (a Supernova's ``phase``,
+        ``peak_absmag``, ``source``); None values are left out.
 
     Returns
     -------
@@ -51,6 +52,10 @@ def target_truth(target, nmd, nramps, **meta):
              "field": getattr(target, "field", None), "position_x": float(pos[0]), "position_y": float(pos[1]),
              "cell_scale": float(sim.spectrograph.spatial_scale), "nmd": list(map(int, nmd)), "nramps": int(nramps),
              "gain": gain}
+    for key in ("phase", "peak_absmag", "source", "temperature"):      # a Supernova's (BlackBody's) own
+        value = getattr(target, key, None)
+        if isinstance(value, (int, float, str, np.integer, np.floating)) and not isinstance(value, bool):
+            attrs[key] = value
     attrs.update({k: v for k, v in meta.items() if v is not None})
     return TargetTruth(attrs, np.asarray(sim.lbda, float), np.asarray(sim.spectrograph.dlbda, float)
                        * np.ones(sim.lbda.size), np.asarray(sim.pointsource_flambda, float), rate,

@@ -27,3 +27,12 @@ def test_rate_is_flambda_through_the_instrument_and_the_etc_variance_gives_its_s
     mask = (sim.lbda >= band[0]) & (sim.lbda <= band[1])
     snr = truth.rate[mask].mean() / np.sqrt(truth.etc_variance[mask].mean())
     assert snr == pytest.approx(sim.get_band_snr(band, nmd=nmd, nramps=nramps, frame="obs"), rel=1e-9)
+
+
+def test_a_supernova_records_its_own_phase_and_magnitude():
+    from slicersim.targets import LazuliSupernova
+    sn = LazuliSupernova(0.5, phase=-2.0, peak_absmag=-19.1)
+    truth = target_truth(sn, (8, 4, 0), 1)
+    assert (truth.attrs["phase"], truth.attrs["peak_absmag"], truth.attrs["source"]) == (-2.0, -19.1,
+                                                                                        "hsiao-subsampled")
+    assert target_truth(sn, (8, 4, 0), 1, phase=-2.5).attrs["phase"] == -2.5      # the caller's values win
