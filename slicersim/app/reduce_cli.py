@@ -312,7 +312,9 @@ def add_parsers(sub, fmt):
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     g = p.add_argument_group("rates → cubes → spectra (with --spectra)")
-    g.add_argument("--spectra", action="store_true", help="also rectify cubes and extract spectra")
+    g.add_argument("--spectra", action="store_true",
+                   help="also rectify cubes and extract spectra (for a dataset: and write OUT/summary.ecsv, "
+                        "OUT/report.md and figures, each target against its truth)")
     g.add_argument("--field", choices=("narrow", "wide", "both"),
                    help="field(s) to rectify (default: narrow; for a dataset, each target's own field)")
     g.add_argument("--lbda-edges", metavar="START,STOP,STEP|FILE",
