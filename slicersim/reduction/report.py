@@ -117,11 +117,12 @@ def _markdown(table, bins, dataset, reduced):
             if q.size:
                 lines.append(f"- band SNR {label} / ETC: median {np.median(q):.3f}")
     lo, hi = np.asarray(table["band_lo"], float), np.asarray(table["band_hi"], float)
-    if n and np.isfinite(lo).any():
-        z = np.asarray(table["redshift"], float)
-        frest = lo / (1 + z)
-        lines.append(f"- band: {np.nanmedian(frest):.0f}–{np.nanmedian(hi / (1 + z)):.0f} Å rest frame "
-                     "(observer frame per target: band_lo, band_hi)")
+    ok = np.isfinite(lo) & np.isfinite(hi)
+    if ok.any():
+        first = int(np.argmin(np.where(ok, lo, np.inf)))
+        last = int(np.argmax(np.where(ok, lo, -np.inf)))
+        lines.append(f"- band (observer frame, per target: band_lo, band_hi): {lo[first]:.0f}–{hi[first]:.0f} Å "
+                     f"to {lo[last]:.0f}–{hi[last]:.0f} Å")
     lines += ["", "## Against redshift", "", "![bias and pulls against redshift](bias_vs_redshift.png)", "",
               "| z bin | n | band flux / input | pull |", "|---|---|---|---|"]
     rb, pb = bins["band_flux_ratio"], bins["pull"]
