@@ -75,11 +75,13 @@ def plot_snr_vs_etc(snr_etc, snr_measured, snr_reported=None, title=None, savefi
     etc, meas = np.asarray(snr_etc, float), np.asarray(snr_measured, float)
     ok = np.isfinite(etc) & np.isfinite(meas)
     ax.plot(etc[ok], meas[ok], "o", color="C0", label="measured (residuals vs input)")
+    vals = [etc[ok], meas[ok]]
     if snr_reported is not None:
         rep = np.asarray(snr_reported, float)
         okr = np.isfinite(etc) & np.isfinite(rep)
         ax.plot(etc[okr], rep[okr], "x", color="C3", label="reported (pipeline errors)")
-    vals = np.concatenate([etc[ok], meas[ok]])
+        vals.append(rep[okr])
+    vals = np.concatenate(vals)
     if vals.size:
         lo, hi = float(vals.min()), float(vals.max())
         pad = 0.05 * (hi - lo or max(hi, 1.0))
