@@ -44,3 +44,11 @@ def test_columns_must_have_one_length():
         TargetTruth({}, np.arange(4.0), np.ones(4), np.ones(3), np.ones(4))
     t = TargetTruth({}, np.array([10.0, 20.0]), np.array([10.0, 10.0]), np.ones(2), np.ones(2))
     assert np.isnan(t.etc_variance).all() and t.edges().tolist() == [5.0, 15.0, 25.0]
+
+
+def test_kept_by_the_conversion_to_level_1b(tmp_path):
+    from slicersim.io.uncal import write_uncal_from_hdf5
+    truth = _truth()
+    h5 = simulate(np.full((16, 24), 5.0), (3, 1, 0), seed=1, out=tmp_path / "r.h5", progress=False, target=truth)
+    back = read_target_truth(write_uncal_from_hdf5(h5, tmp_path / "r.fits"))
+    assert np.array_equal(back.rate, truth.rate) and back.attrs == read_target_truth(h5).attrs
