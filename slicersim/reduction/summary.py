@@ -52,7 +52,8 @@ COLUMN_UNITS = {
     "snr_measured": ("", "band flux / (reported error x sqrt(chi2))"),
     "snr_etc": ("", "the ETC's band SNR for the readout used"),
     "position_error": ("arcsec", "fitted minus true position"),
-    "flags": ("", "comma-separated warnings"),
+    "flags": ("", "comma-separated warnings (not-reduced, rates-only, no-truth, no-spectrum, simulated, unreadable, "
+                  "partial-band, chi2, pull, fit-not-converged, failed)"),
     "t_simulate": ("s", "wall time of the target's simulation task"),
     "t_reduce": ("s", "wall time of the target's reduction task"),
 }
@@ -309,10 +310,15 @@ def _target_row(src, spec, row, red, red_row, read_truth):
     out.update(band_lo=lo, band_hi=hi, chi2_fit=np.nan, position_error=np.nan,
                t_simulate=src.read_timing(tid), t_reduce=red.read_timing(tid) if red is not None else np.nan)
     flags = []
+
+    def truth_of(path):
+        try:
+            return read_truth(path)
+        except RampFileError:                    # damaged: that target is flagged, the report goes on
+            flags.append("unreadable")
+            return None
     truth = None
     ramps = str(row["ramps_product"]) if "ramps_product" in row.colnames else ""
-    if ramps and ramps != "--":
-        truth = read_truth(os.path.join(src.path, ramps))
     result = None
     if red is not None:
         status = str(red_row["status"]) if red_row is not None else "missing"
@@ -322,9 +328,17 @@ def _target_row(src, spec, row, red, red_row, read_truth):
             flags.append("not-reduced")
         else:
             path = os.path.join(red.path, product)
-            truth = read_truth(path) or truth
-            spectrum = _reduced_spectrum(path, out["field"])
-            if spectrum is None:
+            truth = truth_of(path)
+            if truth is None and ramps and ramps != "--":          # reduced before files carried it
+                truth = truth_of(os.path.join(src.path, ramps))
+            try:
+                spectrum = _reduced_spectrum(path, out["field"])
+            except RampFileError:
+                spectrum = False
+                flags.append("unreadable")
+            if spectrum is False:
+                pass
+            elif spectrum is None:
                 flags.append("rates-only")
             elif truth is None:
                 flags.append("no-truth")
@@ -336,11 +350,16 @@ def _target_row(src, spec, row, red, red_row, read_truth):
                 if fit.get("converged") is False:
                     flags.append("fit-not-converged")
     else:
+        if ramps and ramps != "--" and out["status"] == "done":
+            truth = truth_of(os.path.join(src.path, ramps))
         sp = str(row["spectrum_product"]) if "spectrum_product" in row.colnames else ""
         if out["status"] == "done" and sp and sp != "--":
-            edges, noisy, var, sim_truth = _simulated_spectrum(os.path.join(src.path, sp))
-            result = compare_band(edges, noisy, var, sim_truth, (lo, hi))
-            flags.append("simulated")
+            try:
+                edges, noisy, var, sim_truth = _simulated_spectrum(os.path.join(src.path, sp))
+                result = compare_band(edges, noisy, var, sim_truth, (lo, hi))
+                flags.append("simulated")
+            except (OSError, KeyError):
+                flags.append("unreadable")
         else:
             flags.append("no-spectrum")
     if truth is not None:
@@ -357,7 +376,7 @@ def _target_row(src, spec, row, red, red_row, read_truth):
             flags.append("pull")
     if out["status"] == "failed":
         flags.append("failed")
-    out["flags"] = ",".join(flags)
+    out["flags"] = ",".join(dict.fromkeys(flags))
     return out
 
 

@@ -126,3 +126,12 @@ def test_bad_inputs_are_refused(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(DatasetError, match="is a file"):
         campaign_report(dataset, tmp_path / "file")
+
+
+def test_a_damaged_reduced_file_is_flagged_and_the_others_reported(tmp_path):
+    from slicersim.reduction.summary import summarize
+    dataset, red, _ = fake_campaign(tmp_path, redshifts=(0.5, 0.9))
+    (red / "products" / "t0000001" / "reduced.h5").write_bytes(b"not hdf5")
+    table = summarize(dataset, red)
+    assert table["flags"][1] == "unreadable" and np.isnan(table["band_flux_ratio"][1])
+    assert np.isfinite(table["band_flux_ratio"][0]) and table["flags"][0] == ""
