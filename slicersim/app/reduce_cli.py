@@ -273,6 +273,9 @@ def _reduce_dataset(args, fit_options, options):
         print(f"  failed {tid}: {error}")
     if res.get("report"):
         print(f"summary against the input: {os.path.join(res['out'], 'summary.ecsv')}, report {res['report']}")
+    elif res.get("report_error"):
+        print(f"no summary against the input ({res['report_error']}); the reductions stand: `slicersim campaign "
+              f"report {args.raw} --reduced {res['out']} --out DIR` makes it")
     return 0 if res["done"] == res["targets"] else 1
 
 

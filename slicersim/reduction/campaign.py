@@ -282,7 +282,7 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     the campaign has no ramps for: failed or not yet simulated), "computed", "seconds",
     "failed_targets": [(id, error)], "report"}: with ``spectra``, ``out`` also gets the summary against
     each target's truth (summary.ecsv, report.md and figures: :mod:`slicersim.reduction.report`), and
-    "report" is the path of report.md (None otherwise).
+    "report" is the path of report.md (None otherwise; "report_error" says why when it failed).
     """
     from slicersim.campaign.runner import software_versions
     from slicersim.io.dataset import Dataset
@@ -348,14 +348,18 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     ds.unlock()
     status = [str(s) for s in final["status"]]
     failed = [(int(t), str(e)) for t, s, e in zip(final["target_id"], status, final["error"]) if s == "failed"]
-    report = None
+    report = report_error = None
     if spectra:                                    # the spectra against their truth: summary.ecsv, report.md
+        from slicersim.errors import SlicersimError
         from slicersim.reduction.report import campaign_report
-        report = campaign_report(src.path, ds.path, reduced=ds.path)["report"]
+        try:
+            report = campaign_report(src.path, ds.path, reduced=ds.path)["report"]
+        except (SlicersimError, OSError) as exc:   # the reduction stands: `slicersim campaign report` redoes it
+            report_error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
             "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
             "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed,
-            "report": report}
+            "report": report, "report_error": report_error}
 
 
 def _check_out_dir(out, src):
