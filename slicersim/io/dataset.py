@@ -10,6 +10,7 @@ Layout::
     DIR/records/tNNNNNN.json  the target's record, written last: status "done" with every
                               product's file name, size and sha256, or "failed" with its error
     DIR/.lock                 held (flock) by the client running the campaign
+    DIR/.timings/tNNNNNNN.json  the wall time of the target's task (hidden: not part of the content)
 
 A target is *done* when its record says so and every product listed there exists with the
 recorded size and sha256; anything else (no record, a missing, truncated or corrupted
