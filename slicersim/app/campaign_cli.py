@@ -1,4 +1,4 @@
-"""``slicersim survey plan`` and ``slicersim campaign {run,status}`` (registered by :mod:`slicersim.app.cli`)."""
+"""``slicersim survey plan`` and ``slicersim campaign {run,status,report}`` (registered by :mod:`slicersim.app.cli`)."""
 from __future__ import annotations
 
 import os
@@ -96,17 +96,18 @@ def _write_figure(plans, path, overwrite):
     write_files({path: draw}, overwrite=overwrite, error_class=ParameterError)
 
 
-def _check_dataset_argument(path):
-    """``campaign status DIR``: a file or FIFO is refused naming what the command takes (a campaign
-    spec given by mistake: the command that runs it)."""
+def _check_dataset_argument(path, command="status", what="DIR"):
+    """``campaign status DIR`` (``report``): a file or FIFO is refused naming what the command takes (a
+    campaign spec given by mistake: the command that runs it)."""
     from slicersim.errors import ParameterError
     if os.path.isdir(path) or not os.path.lexists(path):
         return                          # a directory, or missing: campaign_status says
     kind = "a file" if os.path.isfile(path) else "not a directory (a FIFO, device or socket)"
     hint = (f"; {path} looks like a campaign spec: run it with 'slicersim campaign run {path} --out DIR', then "
-            "'slicersim campaign status DIR'") if path.lower().endswith(".toml") else ""
-    raise ParameterError(f"{path} is {kind}: 'slicersim campaign status' takes a dataset directory (the --out DIR "
-                         f"of 'slicersim campaign run'){hint}")
+            f"'slicersim campaign {command} DIR'") if path.lower().endswith(".toml") else ""
+    takes = f"'slicersim campaign {command}' takes a dataset directory (the --out DIR of 'slicersim campaign run')" \
+        if what == "DIR" else f"{what} takes a reduction directory (the --out DIR of 'slicersim reduce DATASET --spectra')"
+    raise ParameterError(f"{path} is {kind}: {takes}{hint}")
 
 
 def _check_spec_argument(path):
@@ -160,6 +161,21 @@ def cmd_campaign_status(args) -> int:
     for tid, why in st["missing_targets"][:args.show]:
         print(f"  missing {tid}: {why}")
     return 0 if st["missing"] == 0 and st["failed"] == 0 else 1
+
+
+def cmd_campaign_report(args) -> int:
+    from slicersim.reduction.report import campaign_report
+    _check_dataset_argument(args.dataset, "report")
+    if args.reduced is not None:
+        _check_dataset_argument(args.reduced, "report", "--reduced")
+    res = campaign_report(args.dataset, args.out, reduced=args.reduced)
+    table = res["table"]
+    ratio = np.asarray(table["band_flux_ratio"], float)
+    ok = np.isfinite(ratio)
+    mean = f", band flux / input {ratio[ok].mean():.4f} (mean of {int(ok.sum())})" if ok.any() else ""
+    print(f"{res['summary']}: {len(table)} targets{mean}")
+    print(f"wrote {res['report']} and {', '.join(os.path.basename(f) for f in res['figures'])}")
+    return 0
 
 
 def add_dask_arguments(parser, scheduler=True):
@@ -260,3 +276,15 @@ def add_parsers(sub, fmt):
     p.add_argument("--no-verify", action="store_true", help="skip the product checksums (sizes only)")
     p.add_argument("--show", type=int, default=20, help="list at most this many failed/missing targets")
     p.set_defaults(func=cmd_campaign_status)
+    p = csub.add_parser("report", help="summary and report of a campaign against its truth (bias, pulls, SNR)",
+                        description="Per-target summary of a campaign against each target's truth (summary.ecsv: "
+                                    "band flux / input, its error and pull, chi2, SNR reported, measured and "
+                                    "predicted by the ETC, position error, flags, times) and a report (report.md) "
+                                    "with figures: band flux / input and pulls against redshift, SNR against the "
+                                    "ETC.  From the reduced spectra with --reduced, else from the campaign's "
+                                    "simulated spectra.", **fmt)
+    p.add_argument("dataset", metavar="DATASET", help="campaign dataset directory")
+    p.add_argument("--reduced", metavar="RED", help="its reduction directory (slicersim reduce DATASET --out RED "
+                                                    "--spectra)")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder of the report (made when missing)")
+    p.set_defaults(func=cmd_campaign_report)

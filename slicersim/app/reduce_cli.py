@@ -273,6 +273,11 @@ def _reduce_dataset(args, fit_options, options):
         print(f"  failed {tid}: {error}")
     for tid, why in res.get("unavailable_targets", [])[:args.show]:
         print(f"  without ramps {tid}: {why}")
+    if res.get("report"):
+        print(f"summary against the input: {os.path.join(res['out'], 'summary.ecsv')}, report {res['report']}")
+    elif res.get("report_error"):
+        print(f"no summary against the input ({res['report_error']}); the reductions stand: `slicersim campaign "
+              f"report {args.raw} --reduced {res['out']} --out DIR` makes it")
     return 0 if res["done"] == res["targets"] else 1
 
 
@@ -312,7 +317,9 @@ def add_parsers(sub, fmt):
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     g = p.add_argument_group("rates → cubes → spectra (with --spectra)")
-    g.add_argument("--spectra", action="store_true", help="also rectify cubes and extract spectra")
+    g.add_argument("--spectra", action="store_true",
+                   help="also rectify cubes and extract spectra (for a dataset: and write OUT/summary.ecsv, "
+                        "OUT/report.md and figures, each target against its truth)")
     g.add_argument("--field", choices=("narrow", "wide", "both"),
                    help="field(s) to rectify (default: narrow; for a dataset, each target's own field)")
     g.add_argument("--lbda-edges", metavar="START,STOP,STEP|FILE",

@@ -27,6 +27,7 @@ and ``ramps`` only where kept.  The reduction is the reduction layer's, register
 from __future__ import annotations
 
 import os
+import time
 import traceback
 
 import numpy as np
@@ -34,7 +35,7 @@ import numpy as np
 from slicersim import rng
 from slicersim.io.dataset import Dataset, ProductFile, product_info
 
-__all__ = ["target_seeds", "run_target", "SEED_STREAM", "SPECTRUM_GRID", "limit_threads", "mark_failed",
+__all__ = ["target_seeds", "run_target", "truth_meta", "SEED_STREAM", "SPECTRUM_GRID", "limit_threads", "mark_failed",
            "register_reducer", "registered_reducer", "REDUCED_FILES"]
 
 #: the file of the reduced product per ``products.reduce`` mode (the names of ``slicersim reduce DATASET``)
@@ -158,10 +159,28 @@ def _write_image(path, target, row, seed):
                 compression="gzip", compression_opts=1, shuffle=True)     # mostly dark: ~10× smaller
 
 
+#: catalog columns that are not the target's truth (readout, plan, seeds, status)
+_NOT_TRUTH = {"n", "m", "d", "nramps", "seed", "ramp_seed", "status", "error", "exposure_time", "snr", "data_volume",
+              "data_volume_compressed", "redshift", "field"}
+
+
+def truth_meta(spec, row):
+    """The attributes of a target's ``truth/target`` from its catalog row (target_id, phase,
+    peak_absmag, x1, c, host_*, ...: the population's draws) and its population (source, band,
+    magsys of a SN Ia model)."""
+    meta = {k: v for k, v in dict(row).items() if k not in _NOT_TRUTH and not k.endswith(("_product", "_sha256"))
+            and isinstance(v, (int, float, str, np.integer, np.floating))}
+    for key in ("source", "band", "magsys"):
+        value = getattr(spec.population, key, None)
+        if isinstance(value, str):
+            meta.setdefault(key, value)
+    return meta
+
+
 def _write_ramps(path, target, row, seed, spec, memory):
     comp = spec.products["compression"]
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
-                     overwrite=True, max_bytes=memory, progress=False)
+                     overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row))
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None, reducer=None):
@@ -177,6 +196,7 @@ def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, thre
     record = {"target_id": tid, "spec_sha256": spec_sha256, "seed": seed, "ramp_seed": ramp_seed,
               "readout": [int(row["n"]), int(row["m"]), int(row["d"]), int(row["nramps"])],
               "field": str(row["field"])}
+    t0 = time.perf_counter()
     try:
         ds.clean_target(tid)
         pdir = ds.target_dir(tid, make=True)           # a real folder inside the dataset
@@ -198,6 +218,7 @@ def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, thre
         record.update(status="done", products=products, device=_device_name())
     except Exception as exc:                       # recorded, the campaign goes on
         mark_failed(ds, tid, record, exc)
+    ds.write_timing(tid, time.perf_counter() - t0)
     ds.write_record(tid, record)
     return record
 

@@ -10,6 +10,7 @@ Layout::
     DIR/records/tNNNNNN.json  the target's record, written last: status "done" with every
                               product's file name, size and sha256, or "failed" with its error
     DIR/.lock                 held (flock) by the client running the campaign
+    DIR/.timings/tNNNNNNN.json  the wall time of the target's task (hidden: not part of the content)
 
 A target is *done* when its record says so and every product listed there exists with the
 recorded size and sha256; anything else (no record, a missing, truncated or corrupted
@@ -42,6 +43,8 @@ __all__ = ["Dataset", "ProductFile", "canonical_json", "spec_digest", "target_ke
 
 SPEC_TOML, SPEC_JSON, VERSIONS, CATALOG, LOCK = "spec.toml", "spec.json", "versions.json", "catalog.ecsv", ".lock"
 PRODUCTS, RECORDS = "products", "records"
+#: wall times of the targets' tasks (hidden: they vary from run to run, the dataset's content does not)
+TIMINGS = ".timings"
 #: names the dataset gives its own files and folders (nothing else is ever removed)
 _TARGET_RE = re.compile(r"^t\d{7,}$")
 _RECORD_RE = re.compile(r"^t\d{7,}\.json$")
@@ -322,9 +325,10 @@ class Dataset:
             for name in os.listdir(self.file(PRODUCTS)):
                 if _TARGET_RE.match(name):
                     self.clean_target(int(name[1:]))
-        if os.path.isdir(self.file(RECORDS)):
-            _unlink_own(self.file(RECORDS), _RECORD_RE)
-        for name in (RECORDS, PRODUCTS):
+        for name in (RECORDS, TIMINGS):
+            if os.path.isdir(self.file(name)) and not os.path.islink(self.file(name)):
+                _unlink_own(self.file(name), _RECORD_RE)
+        for name in (RECORDS, PRODUCTS, TIMINGS):
             try:
                 os.rmdir(self.file(name))          # only when nothing else is left in it
             except OSError:
@@ -383,6 +387,24 @@ class Dataset:
         self.records_dir()
         atomic_bytes(self.record_path(target_id),
                      (json.dumps(record, indent=1, sort_keys=True) + "\n").encode(), overwrite=True)
+
+    def write_timing(self, target_id, seconds):
+        """Record the wall time [s] a target's task took in ``.timings/tNNNNNNN.json`` (outside the
+        dataset's content: hidden, never checksummed; a failure to write it is ignored)."""
+        try:
+            directory = real_dir(self.file(TIMINGS), make=True)
+            atomic_bytes(os.path.join(directory, target_key(target_id) + ".json"),
+                         json.dumps({"target_id": int(target_id), "seconds": float(seconds)}).encode(), overwrite=True)
+        except (OSError, DatasetError):
+            pass
+
+    def read_timing(self, target_id):
+        """The wall time [s] recorded by :meth:`write_timing`, or NaN."""
+        try:
+            with open(os.path.join(self.file(TIMINGS), target_key(target_id) + ".json"), encoding="utf-8") as fh:
+                return float(json.load(fh)["seconds"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return float("nan")
 
     def read_record(self, target_id):
         """The target's record, or None when absent or unreadable (a torn file counts as absent)."""

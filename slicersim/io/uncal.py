@@ -534,12 +534,18 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 2
                 w.write_pixeldq(read_dataset(fh["PIXELDQ"], h5_path))
             for name in others:
                 dset = fh[name]
-                w.write_dataset(name, dset if dset.ndim == 3 else read_dataset(dset, h5_path))
+                keep = {k: _text(v) for k, v in dset.attrs.items()} if name == "truth/target" else None  # its units
+                w.write_dataset(name, dset if dset.ndim == 3 else read_dataset(dset, h5_path), attrs=keep)
             for ramp, y0, y1 in RowBlocks(ny, rows, nouter=nints, progress=False):
                 block = np.s_[ramp, :, y0:y1, :]
                 w.write_block(ramp, y0, read_dataset(sci, h5_path, block),
                               None if gdq is None else read_dataset(gdq, h5_path, block))
     return writer.path
+
+
+def _text(value):
+    """An HDF5 attribute as a keyword value (bytes decoded)."""
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else value
 
 
 def _open(path):

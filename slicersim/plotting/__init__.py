@@ -7,6 +7,7 @@ figures that need the configuration (both fields, PSF profiles, the default slic
 Every function returns the matplotlib Figure, writes it with ``savefile`` (atomically, then
 releases it from pyplot), imports pyplot lazily and never calls ``plt.show``.
 """
+from slicersim.plotting.campaign import plot_bias_vs_redshift, plot_snr_vs_etc
 from slicersim.plotting.figures import (MAX_PANELS, check_axes, check_savefile, colorbar, figure_writer, finish,
                                         image_norm, new_axes, save_figure)
 from slicersim.plotting.images import (check_region, draw_slices, plot_cube_slices, plot_ramp_group, sky_extent,
@@ -14,6 +15,8 @@ from slicersim.plotting.images import (check_region, draw_slices, plot_cube_slic
 from slicersim.plotting.spectra import (SOURCE_STYLES, plot_curves, plot_instrument, plot_spectrum,
                                         plot_variance_budget, readout_title)
 
-__all__ = ["MAX_PANELS", "check_axes", "check_savefile", "colorbar", "figure_writer", "finish", "image_norm", "new_axes", "save_figure", "check_region",
+__all__ = ["MAX_PANELS", "check_axes", "check_savefile", "colorbar", "figure_writer", "finish", "image_norm",
+           "new_axes", "save_figure", "check_region",
            "draw_slices", "plot_cube_slices", "plot_ramp_group", "sky_extent", "source_zoom", "SOURCE_STYLES",
-           "plot_curves", "plot_instrument", "plot_spectrum", "plot_variance_budget", "readout_title"]
+           "plot_curves", "plot_instrument", "plot_spectrum", "plot_variance_budget", "readout_title",
+           "plot_bias_vs_redshift", "plot_snr_vs_etc"]

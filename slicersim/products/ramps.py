@@ -61,6 +61,8 @@ class RampIO:
     truth : write ``truth/rate`` (and the effects' truth) to the file
     config : configuration recorded in the CONFIG attribute
     return_dq : with ``out=None``, also return GROUPDQ in memory
+    target : a :class:`~slicersim.io.target_truth.TargetTruth` written as ``truth/target`` (the target's
+        redshift, phase, input spectrum and expected rate; :meth:`LazuliTarget.get_ramps` makes it)
     """
 
     format: str | None = None
@@ -69,6 +71,7 @@ class RampIO:
     truth: bool = True
     config: dict | None = None
     return_dq: bool = False
+    target: object = None
 
     def __post_init__(self):
         if self.format is not None:
@@ -129,7 +132,8 @@ class RampResult:
 _LEGACY_ORDER = ("nmd", "nramps", "seed", "out", "tframe", "ron", "dark", "thermal_dark", "roic_glow", "gain",
                  "saturation", "bias", "ktc_noise", "full_well", "dead_pixels", "pixeldq", "sparse_max_group",
                  "gauss_min_mean", "compression", "max_bytes", "truth", "config", "backend", "progress",
-                 "work_group", "return_dq", "overwrite", "effects", "previous_charge", "file_format", "precision")
+                 "work_group", "return_dq", "overwrite", "effects", "previous_charge", "file_format", "precision",
+                 "target")
 _READOUT_KEYS = ("nmd", "nramps", "tframe", "ron", "dark", "thermal_dark", "roic_glow", "gain", "saturation",
                  "bias", "ktc_noise", "full_well", "sparse_max_group", "gauss_min_mean")
 _LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron": 12.0, "dark": 2.8e-3,
@@ -137,7 +141,7 @@ _LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron
                             "bias": DEFAULT_BIAS, "ktc_noise": 0.0, "full_well": None, "sparse_max_group": None,
                             "gauss_min_mean": np.inf}
 _IO_KEYS = {"file_format": "format", "overwrite": "overwrite", "compression": "compression", "truth": "truth",
-            "config": "config", "return_dq": "return_dq"}
+            "config": "config", "return_dq": "return_dq", "target": "target"}
 _RUN_KEYS = ("max_bytes", "progress", "work_group")
 _MAP_KEYS = ("dead_pixels", "pixeldq", "previous_charge")
 _NAMED = ("seed", "out", "backend", "effects", "precision")
@@ -276,6 +280,9 @@ def _simulate(rate, p, named, io, run, maps):
         return RampResult(seed=seed, sci=sci, groupdq=gdq, attrs=attrs)
     writer.attrs = attrs
     with writer as w:
+        if io.target is not None:
+            from slicersim.io.target_truth import write_target_truth
+            write_target_truth(w, io.target)
         realize_ramps(expected, sampler, blocks, w, io)
     return RampResult(seed=seed, path=os.path.abspath(out), attrs=attrs)
 

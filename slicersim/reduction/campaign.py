@@ -12,6 +12,8 @@ directory* with the layout of a dataset (:mod:`slicersim.io.dataset`)::
                               ``spectra=True``, reduced.h5 (rates/, cubes/<field>/, spectra/<field>/)
     OUT/records/tNNNNNNN.json written last: "done" (product size, sha256, the source's sha256) or
                               "failed" (error)
+    OUT/summary.ecsv, report.md, bias_vs_redshift.png, snr_vs_etc.png  with ``spectra=True``: each
+                              target against its truth (:mod:`slicersim.reduction.report`)
 
 so ``slicersim campaign status OUT`` reports it too.  The dask client comes from the campaign
 runner (an embedded LocalCluster of ``workers`` processes, or ``scheduler="tcp://host:port"``;
@@ -278,7 +280,9 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
 
     Returns {"dataset", "out", "targets", "done", "failed", "missing", "unavailable" (targets
     the campaign has no ramps for: failed or not yet simulated), "computed", "seconds",
-    "failed_targets": [(id, error)]}.
+    "failed_targets": [(id, error)], "report"}: with ``spectra``, ``out`` also gets the summary against
+    each target's truth (summary.ecsv, report.md and figures: :mod:`slicersim.reduction.report`), and
+    "report" is the path of report.md (None otherwise; "report_error" says why when it failed).
     """
     from slicersim.campaign.runner import software_versions
     from slicersim.io.dataset import Dataset
@@ -346,10 +350,18 @@ def reduce_dataset(dataset, out, *, workers=None, scheduler=None, spectra=False,
     failed = [(int(t), str(e)) for t, s, e in zip(final["target_id"], status, final["error"]) if s == "failed"]
     unavailable = [(int(t), str(e)) for t, s, e in zip(final["target_id"], status, final["error"])
                    if s == "unavailable"]
+    report = report_error = None
+    if spectra:                                    # the spectra against their truth: summary.ecsv, report.md
+        from slicersim.errors import SlicersimError
+        from slicersim.reduction.report import campaign_report
+        try:
+            report = campaign_report(src.path, ds.path, reduced=ds.path)["report"]
+        except (SlicersimError, OSError) as exc:   # the reduction stands: `slicersim campaign report` redoes it
+            report_error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
     return {"dataset": src.path, "out": ds.path, "targets": len(ids), "done": status.count("done"),
             "failed": len(failed), "missing": status.count("missing"), "unavailable": status.count("unavailable"),
             "computed": len(todo), "seconds": time.perf_counter() - t0, "failed_targets": failed,
-            "unavailable_targets": unavailable}
+            "unavailable_targets": unavailable, "report": report, "report_error": report_error}
 
 
 def _check_out_dir(out, src):
@@ -482,6 +494,7 @@ def reduce_target(task, threads=None):
     ds = Dataset(task["out"])
     record = {"target_id": tid, "spec_sha256": task["digest"], "source": info["path"],
               "source_sha256": info["sha256"], "mode": "spectra" if task["spectra"] else "rates"}
+    t0 = time.perf_counter()
     try:
         ds.clean_target(tid)
         path = info["path"]
@@ -500,6 +513,7 @@ def reduce_target(task, threads=None):
         record.update(status="done", products={"reduced": product_info(out)})
     except Exception as exc:
         mark_failed(ds, tid, record, exc)
+    ds.write_timing(tid, time.perf_counter() - t0)
     ds.write_record(tid, record)
     return record
 

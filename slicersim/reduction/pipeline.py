@@ -11,6 +11,7 @@ file (atomic) when ``out`` is given:
 | ``rates/`` | RATE, VAR, VAR_POISSON, VAR_RNOISE [e-/s, e-²/s²], DQ, NJUMPS (TRUTH_RATE with the truth; DARK_SUBTRACTED, an image dark) |
 | ``cubes/<field>/`` | FLUX, VAR (nλ, slices, columns) [e-/s per cell per bin], LBDA, LBDA_EDGES [Å] |
 | ``spectra/<field>/`` | FLUX, VAR [e-/s per bin], LBDA, LBDA_EDGES, PSF_SIGMA, BACKGROUND, ... |
+| ``truth/target`` | the raw file's target truth, when it has one (:mod:`slicersim.io.target_truth`) |
 """
 from __future__ import annotations
 
@@ -172,6 +173,9 @@ def reduce_exposure(raw_path, options=None, *, out=None, overwrite=False, **keyw
         result = _reduce_forward(rates, rate, var, plan)
     else:
         result = _reduce_cube(rates, rate, var, plan)
+    if isinstance(raw_path, (str, os.PathLike)):          # the target's truth travels with its spectrum
+        from slicersim.io.target_truth import read_target_truth
+        result["target"] = read_target_truth(raw_path)
     if plan.writer is not None:
         result["path"] = _write(plan.writer, result)
     return result
@@ -555,5 +559,8 @@ def _write(writer, result):
         attrs["RECTIFY_METHOD"] = next(iter(result["cubes"].values())).method if result["cubes"] else "none"
         var = np.asarray(result["variance"], np.float32)
         w.write("rates/RECTIFY_VAR", var, attrs={"BUNIT": UNITS["VAR"], "WEIGHTS": attrs["WEIGHTS"]})
+        if result.get("target") is not None:
+            from slicersim.io.target_truth import write_target_truth
+            write_target_truth(w, result["target"])
         w.set_attrs(attrs)
     return os.path.abspath(os.fspath(writer.path))

@@ -110,7 +110,10 @@ class DetectorProducts:
         ``nramps`` must be an integer ≥ 1, ReadoutError otherwise); the detector
         parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
         saturation) come from the configuration.  ``seed``: an integer in [0, 2⁶⁴) or None (default:
-        a fresh seed, recorded in the file's SEED attribute).
+        a fresh seed, recorded in the file's SEED attribute).  A file gets the target's truth,
+        ``truth/target`` (redshift, phase, position, input F_λ and expected rate [e-/s per bin]:
+        :func:`slicersim.targets.truth.target_truth`); ``target_meta``: further attributes of it
+        (e.g. a campaign's catalog row: phase, peak_absmag, x1, c, source).
         Returns SCI or writes ``out`` (HDF5 or level-1b FITS) and returns its path."""
         from slicersim.products.ramps import simulate
         seed = validation.seed(seed)                 # checked before the (slow) detector image
@@ -132,7 +135,11 @@ class DetectorProducts:
                       saturation=min(det.saturation, 65535.0), backend=backend,
                       config={"config": _recorded_config(self.config), "field": self.field,
                               "conventions": sim.conventions, "psf_profile": "gaussian"})
+        meta = kwargs.pop("target_meta", None) or {}
         params.update(kwargs)
+        if out is not None:
+            from slicersim.targets.truth import target_truth
+            params["target"] = target_truth(self, nmd, nramps, **meta)
         return simulate(image, nmd, nramps, seed=seed, out=out, **params)
 
     # -- figures (thin calls of slicersim.plotting) -----------------------------

@@ -166,6 +166,10 @@ def test_ramp_redshift_full_detector(tmp_path):
     with h5py.File(out, "r") as fh:
         assert fh["SCI"].shape == (1, 2, 4096, 4096) and bool(fh.attrs["COMPLETE"])
         assert fh.attrs["TFRAME"] == 3.0                                        # --tframe honoured
+    from slicersim.io.target_truth import read_target_truth
+    truth = read_target_truth(out)                                             # the target's truth beside the ramps
+    assert (truth.attrs["redshift"], truth.attrs["phase"], truth.attrs["field"]) == (1.0, 0.0, "narrow")
+    assert truth.attrs["phase_frame"] == "rest" and truth.attrs["nmd"] == "[2, 1, 0]" and truth.rate.max() > 0
 
 
 @pytest.mark.slow

@@ -20,6 +20,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from astropy.table import Table
 
 from slicersim.errors import DatasetError, ParameterError
 
@@ -78,6 +79,29 @@ def reduced(campaign, tmp_path_factory):
     res = reduce_dataset(campaign, out, workers=2, progress=False)
     assert (res["done"], res["failed"], res["missing"], res["computed"]) == (2, 0, 0, 2), res
     return out
+
+
+@pytest.mark.slow
+def test_campaign_ramps_carry_the_target_truth(campaign, tmp_path):
+    """Each raw file holds its target's truth, equal to the catalog's values; the campaign report
+    (no spectra in this campaign: flagged) runs from the command line."""
+    from slicersim.io.target_truth import read_target_truth
+    cat = Table.read(campaign / "catalog.ecsv", format="ascii.ecsv")
+    for row in cat:
+        truth = read_target_truth(campaign / row["ramps_product"])
+        for key in ("target_id", "redshift", "phase", "peak_absmag", "field"):
+            assert truth.attrs[key] == row[key], key
+        assert truth.attrs["phase_frame"] == "rest" and truth.attrs["source"] == "hsiao-subsampled"
+        assert json.loads(truth.attrs["nmd"]) == [row["n"], row["m"], row["d"]]
+        assert truth.attrs["nramps"] == row["nramps"]
+        # the expected rate is the simulation's: F_λ through the instrument, > 0 where the SN shines
+        ok = np.isfinite(truth.flambda) & (truth.flambda > 0)
+        assert ok.sum() > 100 and np.all(truth.rate[ok] >= 0) and truth.rate[ok].max() > 0
+        assert np.all(truth.etc_variance > 0) and np.all(np.diff(truth.lbda) > 0)
+    proc = run_cli("campaign", "report", campaign, "--out", tmp_path / "rep")
+    assert proc.returncode == 0, proc.stderr
+    summary = Table.read(tmp_path / "rep" / "summary.ecsv", format="ascii.ecsv")
+    assert list(summary["flags"]) == ["no-spectrum"] * 2 and np.all(summary["t_simulate"] > 0)
 
 
 def _record(out, tid):
@@ -337,14 +361,19 @@ def small_dataset(tmp_path_factory):
     from slicersim.products.ramps import simulate
     mapper = small_slicer_mapper()
     ds = Dataset(tmp_path_factory.mktemp("small") / "dataset")
-    spec = {"seed": 1, "name": "small layout", "products": {"ramps": True, "spectrum": False}}
+    from slicersim.io.target_truth import TargetTruth
+    spec = {"seed": 1, "name": "small layout", "products": {"ramps": True, "spectrum": False},
+            "observation": {"lbda_range": [9125.0, 9875.0], "frame": "obs"}}
     ds.initialise("# made by the test\n", spec, {})
     lbda = 0.5 * (EDGES[1:] + EDGES[:-1])
     for tid, field in enumerate(("narrow", "wide")):
         image = mapper.project_fields(lbda, EDGES, **{field: _point_source(400.0)})
         os.makedirs(ds.product_dir(tid))
         path = os.path.join(ds.product_dir(tid), "ramps.h5")
-        simulate(image, (8, 4, 0), seed=tid, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False)
+        truth = TargetTruth({"target_id": tid, "redshift": 0.0, "phase": 1.5, "field": field}, lbda, np.diff(EDGES),
+                            np.full(lbda.size, 1e-17), np.full(lbda.size, 400.0))      # 400 e-/s per bin
+        simulate(image, (8, 4, 0), seed=tid, out=path, ron=5.0, dark=0.0, roic_glow=0.0, progress=False,
+                 target=truth)
         ds.write_record(tid, {"target_id": tid, "status": "done", "field": field,
                               "products": {"ramps": product_info(path)}})
     ds.write_catalog(Table({"target_id": [0, 1], "field": ["narrow", "wide"], "status": ["done", "done"]}))
@@ -363,8 +392,17 @@ def test_spectra_of_every_target_in_its_own_field(small_dataset, tmp_path):
             assert list(fh["cubes"]) == [field] and list(fh["spectra"]) == [field]
             flux, var = fh[f"spectra/{field}/FLUX"][...], fh[f"spectra/{field}/VAR"][...]
             assert fh["rates/TRUTH_RATE"].shape == (660, 600) and fh["cubes"][field]["FLUX"].shape[1:] == (58, NCOL)
+            truth = fh["truth/target"]
+            assert truth.attrs["phase"] == 1.5 and truth.attrs["field"] == field and truth.fletcher32
+            assert np.all(truth["rate"] == 400.0) and truth.attrs["unit_rate"] == "electron/s"
         pulls = (flux - 400.0) / np.sqrt(var)
         assert np.all(np.abs(pulls) < 5), pulls
+    # the summary against the truth: the band's 10 bins of 400 e-/s
+    summary = Table.read(tmp_path / "red" / "summary.ecsv", format="ascii.ecsv")
+    assert list(summary["target_id"]) == [0, 1] and list(summary["phase"]) == [1.5, 1.5]
+    assert np.all(np.abs(summary["band_flux_ratio"] - 1) < 5 * summary["band_flux_ratio_error"])
+    assert np.all(summary["band_flux_ratio_error"] < 0.05) and np.all(summary["t_reduce"] > 0)
+    assert (tmp_path / "red" / "report.md").is_file() and (tmp_path / "red" / "bias_vs_redshift.png").is_file()
     # the same options again: nothing to do; the spectra directory is not a rates one
     again = reduce_dataset(path, tmp_path / "red", spectra=True, mapper=mapper, lbda_edges=EDGES, ncol=NCOL,
                            workers=1, progress=False, fit_options={"with_truth": True})
