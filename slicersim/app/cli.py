@@ -265,9 +265,7 @@ def _ramp_effects(args):
     if args.effects_config is not None:
         effects = DetectorEffects.from_file(args.effects_config, has_previous_charge=prev, name="--effects-config")
     if args.effects is not None:
-        from slicersim.physics.effects import PRESETS
-        name = args.effects.strip().lower()
-        named = DetectorEffects.preset(name, prev) if name in PRESETS else DetectorEffects.from_names(args.effects, prev)
+        named = DetectorEffects.from_text(args.effects, prev)
         effects = named if effects is None else effects.restricted_to(named.enabled)
     if args.cr_rate is not None:
         if effects is None or "cosmic_rays" not in effects.enabled:

@@ -179,8 +179,14 @@ def truth_meta(spec, row):
 
 def _write_ramps(path, target, row, seed, spec, memory):
     comp = spec.products["compression"]
+    named = spec.products.get("effects", "none")
+    effects = None
+    if named != "none":                              # checked with the spec; the same names as `ramp --effects`
+        from slicersim.physics.effects import DetectorEffects
+        effects = DetectorEffects.from_text(named)
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
-                     overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row))
+                     overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row),
+                     effects=effects)
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None, reducer=None):

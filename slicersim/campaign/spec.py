@@ -26,6 +26,7 @@
     cube_dtype = "float32"                    # or "float64"
     precision = "auto"                        # of the cube kernels: "auto", "double" or "single"
     compression = "none"                      # of the ramps: none, gzip[:level], lz4, zstd, bitshuffle-lz4
+    effects = "none"                          # detector effects of the ramps: "lazuli", "all", names
     reduce = false                            # stream: reduce each target's ramps as soon as they are
                                               # simulated, in the same task (true or "spectra": as
                                               # `slicersim reduce DATASET --spectra`, "rates": as
@@ -63,7 +64,7 @@ _OBSERVATION = {"snr": 20.0, "lbda_range": [4000.0, 6800.0], "frame": "rest", "c
                 "conventions": "physical", "search": "exact", "per_resolution": True}
 _PRODUCTS = {"spectrum": True, "cube": False, "detector_image": False, "ramps": False,
              "cube_dtype": "float32", "compression": "none", "precision": "auto", "reduce": False,
-             "keep_ramps": "all"}
+             "keep_ramps": "all", "effects": "none"}
 #: what ``products.reduce`` may be (True is "spectra")
 REDUCE_MODES = (False, "spectra", "rates")
 _SURVEY = {"overhead": 0.0, "efficiency": 1.0, "compression_ratio": 1.0}
@@ -130,6 +131,8 @@ class CampaignSpec:
         if not out["products"].get("reduce"):
             out["products"].pop("reduce", None)
             out["products"].pop("keep_ramps", None)
+        if out["products"].get("effects") == "none":     # no detector effects: the identity of earlier datasets
+            out["products"].pop("effects", None)
         if self.config_digests:
             out["observation"]["config_sha256"] = dict(sorted(self.config_digests.items()))
         return out
@@ -263,7 +266,26 @@ def _products(section):
     except (SlicersimError, ValueError) as exc:
         raise ConfigError(f"products.compression: {exc}") from None
     _streaming(prod)
+    _effects(prod)
     return prod
+
+
+def _effects(prod):
+    """``products.effects``: the detector effects of the ramps ("none", a preset such as "lazuli", "all" or
+    comma-separated names: what ``slicersim ramp --effects`` accepts); only with ramps."""
+    value = prod["effects"]
+    if value is False or value is None or (isinstance(value, str) and value.strip().lower() in ("", "none")):
+        prod["effects"] = "none"
+        return
+    from slicersim.errors import EffectsError
+    from slicersim.physics.effects import DetectorEffects
+    try:
+        DetectorEffects.from_text(value)
+    except EffectsError as exc:
+        raise ConfigError(f"products.effects: {exc}") from None
+    if not prod["ramps"]:
+        raise ConfigError(f"products.effects = {value!r} applies to the raw ramps: set products.ramps = true")
+    prod["effects"] = value.strip().lower()
 
 
 def _streaming(prod):

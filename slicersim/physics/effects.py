@@ -195,6 +195,28 @@ class DetectorEffects:
                     if n != "persistence" or has_previous_charge})
 
     @classmethod
+    def from_text(cls, text, has_previous_charge=False):
+        """The effects a user names in one string, as ``slicersim ramp --effects`` and a campaign's
+        ``[products] effects`` read it.
+
+        Parameters
+        ----------
+        text : str
+            A preset (:data:`PRESETS`, e.g. ``"lazuli"``), ``"all"``, or comma-separated effect names
+            (:data:`EFFECT_NAMES`).
+        has_previous_charge : bool
+            Whether a previous-exposure charge image is given (persistence needs one).
+
+        Returns
+        -------
+        DetectorEffects
+        """
+        if not isinstance(text, str):
+            raise EffectsError(f"effects must be a preset or comma-separated effect names, got {text!r}")
+        name = text.strip().lower()
+        return cls.preset(name, has_previous_charge) if name in PRESETS else cls.from_names(text, has_previous_charge)
+
+    @classmethod
     def from_config(cls, config, has_previous_charge=False):
         """From a config dict: the whole config (with an "effects" table) or the table itself."""
         if not isinstance(config, dict):

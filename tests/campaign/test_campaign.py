@@ -432,6 +432,56 @@ def test_ramps_and_detector_image_products(tmp_path):
     assert rate.dtype == np.float32 and rate.shape == (4096, 4096) and rate.max() > 0
 
 
+@pytest.mark.parametrize("effects, message", [("lazuli", None), ("cosmic_rays, ipc", None), ("none", None),
+                                             ("moonlight", "products.effects: "), (3, "products.effects")])
+def test_a_campaign_chooses_the_detector_effects_of_its_ramps(effects, message):
+    """`[products] effects` takes what `slicersim ramp --effects` takes (campaigns could only make ramps
+    without detector effects: "unknown key products.'effects'"); "none" keeps the identity of earlier datasets."""
+    import tomllib
+
+    from slicersim.campaign.spec import parse_spec
+    base = SPEC.replace("spectrum = true\ncube = true", "spectrum = false\nramps = true")
+    text = base.replace("ramps = true", f"ramps = true\neffects = {effects!r}".replace("'", '"'))
+    if message:
+        with pytest.raises(ConfigError, match=message):
+            parse_spec(tomllib.loads(text), text=text)
+        return
+    spec = parse_spec(tomllib.loads(text), text=text)
+    plain = parse_spec(tomllib.loads(base), text=base)
+    if effects == "none":
+        assert spec.canonical() == plain.canonical()
+    else:
+        assert spec.canonical()["products"]["effects"] == effects and spec.canonical() != plain.canonical()
+    with pytest.raises(ConfigError, match="applies to the raw ramps: set products.ramps = true"):
+        bad = SPEC.replace("cube = true", 'cube = true\neffects = "lazuli"')
+        parse_spec(tomllib.loads(bad), text=bad)
+
+
+@pytest.mark.slow
+def test_campaign_ramps_carry_the_effects_asked_for(tmp_path):
+    """`effects = "lazuli"`: the target's ramps hold the effects and their truth (cosmic rays, ...)."""
+    import h5py
+
+    from slicersim.campaign.products import run_target
+    from slicersim.campaign.runner import plan_campaign
+    from slicersim.campaign.spec import parse_spec
+    from slicersim.io.dataset import Dataset
+    import tomllib
+    text = SPEC.replace("n = 6", "n = 1").replace("snr = 8", "snr = 1").replace(
+        "spectrum = true\ncube = true", 'spectrum = false\nramps = true\neffects = "lazuli"')
+    spec = parse_spec(tomllib.loads(text), text=text)
+    cat, _ = plan_campaign(spec)
+    ds = Dataset(tmp_path / "r")
+    digest = ds.initialise(spec.text, spec.canonical(), {}, False)
+    row = {k: (cat[0][k].item() if hasattr(cat[0][k], "item") else cat[0][k]) for k in cat.colnames}
+    rec = run_target(spec, row, ds.path, digest)
+    assert rec["status"] == "done", rec.get("error")
+    with h5py.File(tmp_path / "r" / "products" / "t0000000" / "ramps.h5", "r") as fh:
+        enabled = json.loads(fh.attrs["EFFECTS"])["effects"]["enabled"]
+        assert {"cosmic_rays", "ipc", "nonlinearity", "correlated_noise"} <= set(enabled)
+        assert "cosmic_rays" in fh["truth"]
+
+
 def test_spec_without_seed_draws_one_records_it_and_resumes_with_it(tmp_path):
     """seed follows the package rule: an integer, or none given → a fresh seed drawn and written into the
     spec's text (the dataset's spec.toml repeats the campaign); the same seedless spec resumes the dataset
