@@ -327,28 +327,10 @@ def _target_row(src, spec, row, red, red_row, read_truth):
         if status != "done" or not product or product == "--":
             flags.append("not-reduced")
         else:
-            path = os.path.join(red.path, product)
-            truth = truth_of(path)
-            if truth is None and ramps and ramps != "--":          # reduced before files carried it
-                truth = truth_of(os.path.join(src.path, ramps))
-            try:
-                spectrum = _reduced_spectrum(path, out["field"])
-            except RampFileError:
-                spectrum = False
-                flags.append("unreadable")
-            if spectrum is False:
-                pass
-            elif spectrum is None:
-                flags.append("rates-only")
-            elif truth is None:
-                flags.append("no-truth")
-            else:
-                edges, flux, var, cov, fit, _ = spectrum
-                result = compare_band(edges, flux, var, truth, (lo, hi), covariance=cov)
-                out["chi2_fit"] = float(fit.get("chi2_dof_pixels", np.nan))
-                out["position_error"] = _position_error(truth, fit)
-                if fit.get("converged") is False:
-                    flags.append("fit-not-converged")
+            truth, result = _reduced_result(os.path.join(red.path, product), src, ramps, out, flags, truth_of)
+    elif out["status"] == "done" and _product(row, "reduced_product"):    # a streaming campaign's own reduction
+        truth, result = _reduced_result(os.path.join(src.path, _product(row, "reduced_product")), src, ramps, out,
+                                        flags, truth_of)
     else:
         if ramps and ramps != "--" and out["status"] == "done":
             truth = truth_of(os.path.join(src.path, ramps))
@@ -378,6 +360,39 @@ def _target_row(src, spec, row, red, red_row, read_truth):
         flags.append("failed")
     out["flags"] = ",".join(dict.fromkeys(flags))
     return out
+
+
+def _product(row, column):
+    """The catalog's product path in ``column`` ("" when absent or empty)."""
+    value = str(row[column]) if column in row.colnames else ""
+    return "" if value in ("", "--") else value
+
+
+def _reduced_result(path, src, ramps, out, flags, truth_of):
+    """(truth, band comparison or None) of the reduced file ``path``; ``out`` gets the fit's χ² and position
+    error, ``flags`` what went wrong (unreadable, rates-only, no-truth, fit-not-converged)."""
+    lo, hi = out["band_lo"], out["band_hi"]
+    truth = truth_of(path)
+    if truth is None and ramps and ramps != "--":          # reduced before files carried it
+        truth = truth_of(os.path.join(src.path, ramps))
+    try:
+        spectrum = _reduced_spectrum(path, out["field"])
+    except RampFileError:
+        flags.append("unreadable")
+        return truth, None
+    if spectrum is None:
+        flags.append("rates-only")
+        return truth, None
+    if truth is None:
+        flags.append("no-truth")
+        return truth, None
+    edges, flux, var, cov, fit, _ = spectrum
+    result = compare_band(edges, flux, var, truth, (lo, hi), covariance=cov)
+    out["chi2_fit"] = float(fit.get("chi2_dof_pixels", np.nan))
+    out["position_error"] = _position_error(truth, fit)
+    if fit.get("converged") is False:
+        flags.append("fit-not-converged")
+    return truth, result
 
 
 def _table(rows):

@@ -135,3 +135,22 @@ def test_a_damaged_reduced_file_is_flagged_and_the_others_reported(tmp_path):
     table = summarize(dataset, red)
     assert table["flags"][1] == "unreadable" and np.isnan(table["band_flux_ratio"][1])
     assert np.isfinite(table["band_flux_ratio"][0]) and table["flags"][0] == ""
+
+
+def test_report_of_a_streaming_campaign_reads_its_own_reduced_products(tmp_path):
+    """A streaming campaign (`[products] reduce = true`) holds each target's reduced.h5 in its own products:
+    `campaign report DATASET` (no --reduced) compares those, not the simulated spectra."""
+    import shutil
+
+    from slicersim.io.dataset import Dataset
+    from slicersim.reduction.report import campaign_report
+    dataset, red, truths = fake_campaign(tmp_path, redshifts=(0.4, 0.9))
+    cat = Table.read(dataset / "catalog.ecsv", format="ascii.ecsv")
+    cat["reduced_product"] = [f"products/t{tid:07d}/reduced.h5" for tid in cat["target_id"]]
+    for tid in cat["target_id"]:                       # the reduction moved into the dataset, as streaming writes it
+        shutil.copy(red / f"products/t{tid:07d}/reduced.h5", dataset / f"products/t{tid:07d}/reduced.h5")
+    Dataset(dataset).write_catalog(cat)
+    table = Table.read(campaign_report(dataset, tmp_path / "rep")["summary"], format="ascii.ecsv")
+    for row in table:
+        assert "simulated" not in row["flags"] and row["chi2_fit"] == 1.01, row["flags"]
+        assert abs(row["band_flux_ratio"] - 1) < 5 * row["band_flux_ratio_error"]
