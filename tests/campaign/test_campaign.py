@@ -614,7 +614,7 @@ def test_embedded_cluster_uses_tls_refuses_other_processes_and_has_no_dashboard(
 
 
 def test_dashboard_and_tls_flags_are_checked(tmp_path):
-    from slicersim.campaign.runner import _dashboard_address, tls_security
+    from slicersim.campaign.cluster import dashboard_address as _dashboard_address, tls_security
     from slicersim.errors import ParameterError
     assert _dashboard_address(False) is None and _dashboard_address(True) == "127.0.0.1:8787"
     assert _dashboard_address("localhost:9000") == "127.0.0.1:9000"
