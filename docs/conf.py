@@ -26,7 +26,6 @@ extensions = [
     "cli_reference",        # docs/_ext: the CLI reference from argparse
     "benchmark_pages",      # docs/_ext: one page per benchmark family from benchmarks/results
     "api_pages",            # docs/_ext: the API reference pages of slicersim.__all__
-    "docstring_guard",      # docs/_ext: docstrings that are not valid reST shown verbatim
 ]
 
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}

@@ -590,8 +590,35 @@ def detector_rate_image(mapper, lbda, lbda_edges, narrow=None, wide=None, *, dar
     painted or not.  ROIC glow is a charge per frame read [e-/px/frame]: it is
     added as the rate ``roic_glow / tframe`` only when both are given (the
     same D_eff = dark + glow/t_f + thermal dark as the noise model); a ramp
-    simulator that adds glow per read should leave it out here.  ``kwargs``: of
-    :meth:`SlicerMapper.project_cube` (``backend``, ``precision`` of the deposit, ...).
+    simulator that adds glow per read should leave it out here.
+
+    Parameters
+    ----------
+    mapper : SlicerMapper
+        The detector mapping.
+    lbda : array_like of shape (nλ,)
+        Bin centres of the cubes [Å].
+    lbda_edges : array_like of shape (nλ+1,)
+        Bin edges of the cubes [Å].
+    narrow, wide : numpy.ndarray of shape (nλ, ny, nx), optional
+        Photo-electron rate cubes of the two fields [e-/s per cell per bin] (photon cube ×
+        QE), projected flux-conservingly.
+    dark : float, optional
+        Dark current added to **every** pixel, painted or not [e-/s/px].
+    thermal_dark : float or numpy.ndarray of shape (rows, cols), optional
+        Thermal dark added to every pixel [e-/s/px].
+    roic_glow : float, optional
+        ROIC glow, a charge per frame read [e-/px/frame]; needs ``tframe``.
+    tframe : float, optional
+        Frame time [s] (> 0 when ``roic_glow`` is given).
+    **kwargs
+        Options of :meth:`SlicerMapper.project_cube` (``backend``, ``precision`` of the
+        deposit, ...).
+
+    Returns
+    -------
+    numpy.ndarray of shape (rows, cols)
+        The rate image of the whole detector [e-/s/px].
     """
     img = mapper.project_fields(lbda, lbda_edges, narrow=narrow, wide=wide, **kwargs)
     img += dark

@@ -96,7 +96,16 @@ class OpticalThroughput:
     T in [0, 1]) interpolated with a not-a-knot cubic spline; spline values in [−1e-3, 0)
     are set to 0 and values in (1, 1 + 1e-3] to 1.  Curves are never extrapolated: evaluating
     outside a curve's wavelength coverage, or where its spline leaves [−1e-3, 1 + 1e-3],
-    raises :class:`ParameterError`.  ``noptics``: non-negative integers (int or integral float).
+    raises :class:`~slicersim.errors.ParameterError`.
+
+    Parameters
+    ----------
+    components : float, tuple of array_like or dict
+        One component, or a dict {name: component}; each component is a float in [0, 1] or
+        a (λ [Å], T) curve.
+    noptics : dict or int, optional
+        Number of times each component is passed, {name: count} or one count for every
+        component: non-negative integers (int or integral float); default 1.
     """
 
     def __init__(self, components, noptics=None):
@@ -199,14 +208,33 @@ class Spectrograph(Versioned):
 
     Parameters
     ----------
-    spectral_range : (float, float)  [Å]
-    dispersion_law : (λ[Å], offset[px]) arrays or a curve file path; or None
-    resolving_power : float or callable, used when ``dispersion_law`` is None
-    dispersion_scale, dispersion_resolution : float  law scaling, pixels per resolution element
-    throughput : float, (λ, T), OpticalThroughput or curve path (with ``throughput_column``)
-    spatial_scale : float  cell size along the slice width [arcsec]
-    spatial_shape : (ny, nx)  cells before anamorphosis
-    optics : dict of lists  temperature, emissivity, nelements, fratio, geometry, dispersed
+    spectral_range : tuple of float
+        (min, max) wavelength of the grid [Å], 0 < min < max.
+    dispersion_law : tuple of array_like or str or None, optional
+        (λ [Å], offset [px]) arrays of the dispersion law, or the path of a curve file; None
+        uses ``resolving_power``.
+    resolving_power : float or callable, optional
+        R = λ/Δλ (or a function of λ [Å]), used when ``dispersion_law`` is None (giving both
+        raises :class:`~slicersim.errors.ParameterError`).
+    dispersion_scale : float, optional
+        Scaling of the dispersion law (> 0).
+    dispersion_resolution : float, optional
+        Pixels per resolution element (> 0).
+    throughput : float, tuple of array_like, OpticalThroughput or str, optional
+        Throughput: a number in [0, 1], a (λ [Å], T) curve, an :class:`OpticalThroughput` or
+        the path of a curve file (with ``throughput_column``).
+    throughput_column : str or int, optional
+        Column of the throughput curve file.
+    spatial_scale : float, optional
+        Cell size along the slice width [arcsec].
+    spatial_shape : tuple of int, optional
+        (ny, nx) cells before anamorphosis.
+    optics : dict of list, optional
+        Thermal optics, one value per optics group for each of the keys ``temperature``
+        [K], ``emissivity``, ``nelements``, ``fratio``, ``geometry`` and ``dispersed``.
+    noptics : dict or int, optional
+        Number of passes through each throughput component (non-negative integers), as for
+        :class:`OpticalThroughput`.
     """
 
     anamorphosis = (1, 1)
@@ -486,7 +514,14 @@ class Spectrograph(Versioned):
 
 class SlicerSpectrograph(Spectrograph):
     """Image slicer: 1×2 anamorphosis, each cell imaged on 2 detector pixels (along the
-    dispersion: the slit image, shared by consecutive bins, so 1 pixel per cell and bin)."""
+    dispersion: the slit image, shared by consecutive bins, so 1 pixel per cell and bin).
+
+    Parameters
+    ----------
+    spectral_range, dispersion_law, resolving_power, dispersion_scale, dispersion_resolution, \
+throughput, throughput_column, spatial_scale, spatial_shape, optics, noptics
+        As for :class:`Spectrograph`.
+    """
     anamorphosis = (1, 2)
     pixels_per_cell = 2
     pixels_per_bin = 1
@@ -496,9 +531,19 @@ class SlicerSpectrograph(Spectrograph):
 class MLASpectrograph(Spectrograph):
     """Micro-lens array: square cells, cross-dispersion profile on the detector.
 
-    Extra parameters: ``xdisp_sigma_spectral`` [px at 1 µm], ``xdisp_sigma`` [px],
-    ``xdisp_width_insigma`` (extraction width).  Each spaxel spectrum spreads over
-    ~2 × xdisp_width_insigma × σ_xdisp pixels across the dispersion.
+    Each spaxel spectrum spreads over ~2 × xdisp_width_insigma × σ_xdisp pixels across
+    the dispersion.
+
+    Parameters
+    ----------
+    *args, **kwargs
+        The parameters of :class:`Spectrograph`.
+    xdisp_sigma_spectral : float, optional
+        Wavelength-dependent part of the cross-dispersion σ [px at 1 µm].
+    xdisp_sigma : float, optional
+        Constant part of the cross-dispersion σ [px].
+    xdisp_width_insigma : float, optional
+        Extraction width [σ].
     """
     anamorphosis = (1, 1)
     kind = "mla"

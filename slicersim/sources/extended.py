@@ -47,6 +47,19 @@ class SersicProfile(Versioned):
     both relative to ``offset`` = (x, y) [arcsec]; r_eff [arcsec] is the
     semi-major axis of the half-light ellipse.  Total flux
     2π n q r_e² e^{b_n} b_n^{−2n} Γ(2n) I_e = 1 fixes I_e.
+
+    Parameters
+    ----------
+    sersic_index : float
+        The Sersic index n (1: exponential disc, 4: de Vaucouleurs).
+    r_eff : float
+        Semi-major axis of the half-light ellipse [arcsec].
+    axis_ratio : float, optional
+        Minor-to-major axis ratio q, in (0, 1].
+    position_angle : float, optional
+        Angle of the major axis counter-clockwise from +x [deg].
+    offset : tuple of float, optional
+        (x, y) of the profile centre relative to the field centre [arcsec].
     """
 
     def __init__(self, sersic_index, r_eff, axis_ratio=1.0, position_angle=0.0, offset=(0.0, 0.0)):
@@ -216,19 +229,30 @@ def _interp_spectrum(lbda_in, flux_in, lbda_grid, name):
 class Host(Versioned):
     """Host galaxy: a (unit-flux) profile times a spectrum, flux per cell before the PSF.
 
-    profile : :class:`SersicProfile` (anything with ``cell_fractions``, ``geometry``,
-        ``radial_profile``, ``axis_ratio`` and ``r_eff``).
-    lbda, flux : spectrum [Å], total F_λ of the galaxy [erg/s/cm²/Å]; linear
-        interpolation onto the instrument grid (ValueError outside its range).
-    redshift : optional redshift the host is seen at (needed by :meth:`at_redshift`);
-        ``cosmology``: astropy cosmology of that move (default Planck18).
-    flux_outskirts : optional second spectrum on ``lbda`` for a radially varying
-        spectrum (Sersic profiles only).  The surface brightness is then
+    Parameters
+    ----------
+    profile : SersicProfile or ImageProfile
+        The unit-flux spatial model: anything with ``cell_fractions``, ``geometry``,
+        ``radial_profile``, ``axis_ratio`` and ``r_eff``
+        (:class:`~slicersim.errors.ParameterError` otherwise).
+    lbda : array_like of shape (n,)
+        Wavelengths of the spectrum [Å].
+    flux : array_like of shape (n,)
+        Total F_λ of the galaxy [erg/s/cm²/Å]; linear interpolation onto the instrument
+        grid (ValueError outside its range).
+    flux_outskirts : array_like of shape (n,), optional
+        A second spectrum on ``lbda`` [erg/s/cm²/Å] for a radially varying spectrum
+        (Sersic profiles only).  The surface brightness is then
         I(r) [w(r) F_core(λ) + (1 − w(r)) F_out(λ)],  w(r) = exp(−r / blend_radius),
-        r the elliptical radius, ``blend_radius`` [arcsec] (default r_eff): ``flux`` is
-        the core spectrum and each spectrum is the total the galaxy would have if it
-        had that spectrum everywhere; the galaxy total is W F_core + (1 − W) F_out
-        with W = ∫ I w dA (:meth:`core_weight`).
+        r the elliptical radius: ``flux`` is the core spectrum and each spectrum is the
+        total the galaxy would have if it had that spectrum everywhere; the galaxy total
+        is W F_core + (1 − W) F_out with W = ∫ I w dA (:meth:`core_weight`).
+    blend_radius : float, optional
+        Scale of the blend weight w(r) [arcsec] (default ``r_eff`` of the profile).
+    redshift : float, optional
+        Redshift the host is seen at (needed by :meth:`at_redshift`).
+    cosmology : astropy.cosmology.Cosmology, optional
+        Cosmology of that move (default Planck18).
     """
 
     def __init__(self, profile, lbda, flux, flux_outskirts=None, blend_radius=None, redshift=None,
@@ -319,11 +343,25 @@ class Host(Versioned):
 class ImageProfile(Versioned):
     """A galaxy image as a unit-flux spatial model (uniformly bright pixels, exact overlaps).
 
-    image : (ny_in, nx_in) ≥ 0 (NaN counted as 0), normalised to a total of 1;
-    pixel_scale : its pixel side [arcsec]; centre_pixel : (x, y) 0-based pixel coordinate of
-    the galaxy centre (default: the geometric centre); offset : (x, y) [arcsec] of the galaxy
-    centre in the field; rotation : [deg] counter-clockwise.  ``r_eff`` is the circular
-    half-light radius [arcsec] of the whole image.
+    Parameters
+    ----------
+    image : array_like of shape (ny_in, nx_in)
+        Pixel values ≥ 0 (NaN counted as 0), normalised to a total of 1.
+    pixel_scale : float
+        Side of an image pixel [arcsec].
+    offset : tuple of float, optional
+        (x, y) of the galaxy centre in the field [arcsec].
+    rotation : float, optional
+        Rotation counter-clockwise [deg].
+    centre_pixel : tuple of float, optional
+        (x, y) 0-based pixel coordinate of the galaxy centre (default: the geometric centre).
+    max_bytes : int, optional
+        Working-memory budget of one block of the resampling [bytes].
+
+    Attributes
+    ----------
+    r_eff : float
+        The circular half-light radius of the whole image [arcsec].
     """
 
     def __init__(self, image, pixel_scale, offset=(0.0, 0.0), rotation=0.0, centre_pixel=None, max_bytes=None):

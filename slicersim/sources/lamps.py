@@ -122,12 +122,18 @@ class FabryPerotEtalon(Versioned):
 
     T(σ) = T_max / (1 + F sin²(π σ / FSR_σ)),  F = (2𝓕/π)²,  σ = 10⁸/λ[Å]  [cm⁻¹].
 
-    Parameters (exactly one of ``fsr`` and ``optical_thickness``)
+    Give exactly one of ``fsr`` and ``optical_thickness``.
+
+    Parameters
     ----------
-    fsr : free spectral range FSR_σ [cm⁻¹] (> 0)
-    optical_thickness : n·d [µm] (> 0); FSR_σ = 10⁴ / (2 n d)
-    finesse : 𝓕 > 0 (≈ FSR/FWHM for 𝓕 ≫ 1)
-    peak_transmission : T_max in (0, 1]
+    fsr : float, optional
+        Free spectral range FSR_σ [cm⁻¹] (> 0).
+    finesse : float, optional
+        𝓕 > 0 (≈ FSR/FWHM for 𝓕 ≫ 1).
+    optical_thickness : float, optional
+        n·d [µm] (> 0); FSR_σ = 10⁴ / (2 n d).
+    peak_transmission : float, optional
+        T_max in (0, 1].
     """
 
     def __init__(self, fsr=None, finesse=25.0, optical_thickness=None, peak_transmission=1.0):
@@ -189,7 +195,15 @@ class TabulatedEtalon(Versioned):
 
     Outside the table the end values are held (1.4.2 holds the first value, with a warning).
     :meth:`from_file` reads a CSV/ECSV with a ``transmission`` column (1.4.2's
-    ``lazuli_fp_transmission.csv`` layout: ``lbda, transmission, R, A``)."""
+    ``lazuli_fp_transmission.csv`` layout: ``lbda, transmission, R, A``).
+
+    Parameters
+    ----------
+    lbda : array_like of shape (n,)
+        Wavelengths of the table [Å].
+    transmission : array_like of shape (n,)
+        Transmission T at those wavelengths [fraction].
+    """
 
     def __init__(self, lbda, transmission):
         lbda, trans = validate_spectrum(lbda, transmission, "etalon transmission")
@@ -257,7 +271,16 @@ def as_etalon(fp_throughput):
 # --------------------------------------------------------------------------- lamps
 class CalibrationLamp(Versioned):
     """Lamp surface brightness S(λ) = S_c(λ) T(λ) [erg/s/cm²/Å/arcsec²]: a continuum seen
-    directly (``etalon=None``) or through an etalon (the continuum's magnitude is set before it)."""
+    directly (``etalon=None``) or through an etalon (the continuum's magnitude is set before it).
+
+    Parameters
+    ----------
+    continuum : object
+        The continuum S_c(λ): anything with ``surface_brightness(lbda)``
+        [erg/s/cm²/Å/arcsec²] (e.g. the black body of :func:`qth_lamp`).
+    etalon : FabryPerotEtalon or TabulatedEtalon, optional
+        Its transmission T(λ); None: the continuum seen directly.
+    """
 
     def __init__(self, continuum, etalon=None):
         self.continuum, self.etalon = continuum, etalon
@@ -355,13 +378,44 @@ class CalibrationLamp(Versioned):
 
 
 def qth_lamp(temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, magsys="ab"):
-    """The QTH lamp: a black body (default :data:`QTH_TEMPERATURE`) of ``mag`` per arcsec² in ``band``."""
+    """The QTH lamp: a black body (default ``QTH_TEMPERATURE``, 3000 K) of ``mag`` per arcsec² in ``band``.
+
+    Parameters
+    ----------
+    temperature : float, optional
+        Black-body temperature [K] (default 3000).
+    mag : float, optional
+        Magnitude per arcsec² in ``band`` [mag/arcsec²].
+    band : str, optional
+        sncosmo band of that magnitude (default "bessellr").
+    magsys : str, optional
+        sncosmo magnitude system of that magnitude.
+
+    Returns
+    -------
+    CalibrationLamp
+        The lamp, seen directly (no etalon).
+    """
     return CalibrationLamp(BlackBodyContinuum(QTH_TEMPERATURE if temperature is None else temperature,
                                               mag, band, magsys))
 
 
 def fabry_perot_lamp(etalon, temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, magsys="ab"):
-    """The QTH lamp seen through an etalon (see :func:`as_etalon`); ``mag`` is the lamp's, before it."""
+    """The QTH lamp seen through an etalon; ``mag`` is the lamp's, before it.
+
+    Parameters
+    ----------
+    etalon : FabryPerotEtalon, TabulatedEtalon, str or callable
+        The etalon: an etalon object, a CSV/ECSV path (``transmission`` column) or a callable
+        T(λ [Å]).
+    temperature, mag, band, magsys
+        The QTH lamp, as :func:`qth_lamp`.
+
+    Returns
+    -------
+    CalibrationLamp
+        The lamp seen through the etalon.
+    """
     etalon = as_etalon(etalon)
     return CalibrationLamp(qth_lamp(temperature, mag, band, magsys).continuum, etalon)
 

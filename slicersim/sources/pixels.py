@@ -268,14 +268,31 @@ class ResampleCache:
 class CubeSource(Versioned):
     """User cube [erg/s/cm²/Å per input pixel] placed on the field, flux conserving.
 
-    cube : (nλ_in, ny_in, nx_in) array-like (numpy array, memmap or h5py dataset: it is read
-    in blocks, never copied whole), lbda_in : (nλ_in,) strictly increasing [Å],
-    pixel_scale : input pixel side [arcsec], centre : (x, y) [arcsec] of the cube
-    centre relative to the field centre, rotation : [deg] counter-clockwise about
-    that centre, flux_scale : factor applied to the values when read, redshift /
-    cosmology : as for :class:`Host` (:meth:`at_redshift`), max_bytes : working-memory
-    budget of one block of input rows (default :data:`HOST_MAX_BYTES`).
+    Parameters
+    ----------
+    cube : array_like of shape (nλ_in, ny_in, nx_in)
+        F_λ per input pixel [erg/s/cm²/Å]: a numpy array, memmap or h5py dataset (it is
+        read in blocks, never copied whole).
+    lbda_in : array_like of shape (nλ_in,)
+        Wavelengths of the planes, strictly increasing [Å].
+    pixel_scale : float
+        Side of an input pixel [arcsec].
+    centre : tuple of float, optional
+        (x, y) of the cube centre relative to the field centre [arcsec].
+    rotation : float, optional
+        Rotation counter-clockwise about that centre [deg].
+    flux_scale : float, optional
+        Factor applied to the values when read.
+    redshift : float, optional
+        Redshift the cube is seen at, as for :class:`~slicersim.Host` (:meth:`at_redshift`).
+    cosmology : astropy.cosmology.Cosmology, optional
+        Cosmology of that move, as for :class:`~slicersim.Host` (default Planck18).
+    max_bytes : int, optional
+        Working-memory budget of one block of input rows [bytes] (default
+        ``HOST_MAX_BYTES``, 64 MiB).
 
+    Notes
+    -----
     Spatial resampling: each input pixel is uniformly bright and shares its flux among
     cells in proportion to the exact overlap areas (:func:`resample_pixels`), in groups of
     output planes of a fixed size (so each plane's result does not depend on the grid it is

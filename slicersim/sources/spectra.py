@@ -376,7 +376,26 @@ def normalise_to_mag(lbda, flux, mag, band="bessellb", magsys="ab"):
 
 
 class PointSource(Versioned):
-    """A point source: spectrum (linear interpolation, NaN outside) at a position [cells]."""
+    """A point source: spectrum (linear interpolation, NaN outside) at a position [cells].
+
+    Parameters
+    ----------
+    lbda : array_like of shape (n,)
+        Wavelengths of the spectrum [Å].
+    flux : array_like of shape (n,)
+        F_λ [erg/s/cm²/Å].
+    position : tuple of float, optional
+        (x, y) of the source in the field [cells].
+    mag : float, optional
+        Magnitude the spectrum is normalised to in ``band`` (``magsys``); the spectrum is
+        used as given when None.
+    band : str, optional
+        sncosmo bandpass of that normalisation.
+    magsys : str, optional
+        sncosmo magnitude system of that normalisation.
+    name : str, optional
+        Label of the source in messages and figures.
+    """
 
     def __init__(self, lbda, flux, position=(0.0, 0.0), mag=None, band="bessellb", magsys="ab",
                  name="pointsource"):

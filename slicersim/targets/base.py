@@ -57,22 +57,34 @@ class Target(DetectorProducts):
 
     Parameters
     ----------
-    lbda, flux : input spectrum [Å], [erg/s/cm²/Å]
-    mag, band : optional renormalisation to an AB magnitude in an sncosmo band
-    config : "cbe", "eol", a TOML path or a list of them
-    field : "narrow", "wide" (Lazuli) or None.  A target has exactly one field: the
-        default is "narrow" when the configuration has Lazuli field throughputs
-        (:func:`config_default_field`), None for single-channel configurations; None with a
-        several-column throughput raises (columns are never multiplied).
-    position : (x, y) [cells] relative to the field centre
-    conventions : "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly
-        (gain in the variance, instrumental blur; :mod:`slicersim.physics.conventions`)
-    redshift : optional; used by ``frame="rest"`` (the spectrum is in the observer frame).  A
-        band (``lbda_range``) is read in the rest frame by default when the target has a
-        redshift, else in the observer frame (``frame=None``; ``"rest"`` / ``"obs"`` explicit)
-    host : optional host galaxy (see :meth:`set_host`): a model name ("sersic:bb-5000",
-        "ngc0628", "sersic:ngc2403", ...), a dict with ``refmodel`` and parameters (1.4.2), a
-        :class:`~slicersim.sources.galaxies.GalaxyModel`, a ``Host`` or a ``CubeSource``
+    lbda : array_like of shape (n,)
+        Wavelengths of the input spectrum [Å].
+    flux : array_like of shape (n,)
+        F_λ of the input spectrum [erg/s/cm²/Å].
+    mag : float, optional
+        Renormalisation to an AB magnitude in ``band`` (none by default).
+    band : str, optional
+        sncosmo band of that renormalisation.
+    config : str, path or list, optional
+        "cbe", "eol", a TOML path or a list of them.
+    field : {"narrow", "wide"} or None, optional
+        The Lazuli field, or None.  A target has exactly one field: the default is "narrow"
+        when the configuration has Lazuli field throughputs (:func:`config_default_field`),
+        None for single-channel configurations; None with a several-column throughput raises
+        (columns are never multiplied).
+    position : tuple of float, optional
+        (x, y) of the point source relative to the field centre [cells].
+    redshift : float, optional
+        Used by ``frame="rest"`` (the spectrum is in the observer frame).  A band
+        (``lbda_range``) is read in the rest frame by default when the target has a redshift,
+        else in the observer frame (``frame=None``; ``"rest"`` / ``"obs"`` explicit).
+    conventions : {"physical", "slicersim-1.0"}, optional
+        "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly (gain in
+        the variance, instrumental blur; :mod:`slicersim.physics.conventions`).
+    host : str, dict, GalaxyModel, Host or CubeSource, optional
+        Host galaxy (see :meth:`set_host`): a model name ("sersic:bb-5000", "ngc0628",
+        "sersic:ngc2403", ...), a dict with ``refmodel`` and parameters (1.4.2), a
+        :class:`~slicersim.sources.galaxies.GalaxyModel`, a ``Host`` or a ``CubeSource``.
     """
 
     default_config, default_field = "cbe", "auto"
@@ -537,7 +549,19 @@ class Supernova(Target):
 
 
 class BlackBody(Target):
-    """Black body of ``temperature`` [K] normalised to ``mag`` (AB) in ``band``."""
+    """Black body of ``temperature`` [K] normalised to ``mag`` (AB) in ``band``.
+
+    Parameters
+    ----------
+    temperature : float
+        Black-body temperature [K].
+    mag : float
+        AB magnitude of the source in ``band`` [mag].
+    band : str, optional
+        sncosmo band of that normalisation.
+    config, field, position, conventions, redshift, host
+        As :class:`Target`.
+    """
 
     def __init__(self, temperature, mag, band="bessellb", config=None, field="default", position=(0.0, 0.0),
                  conventions=DEFAULT_CONVENTIONS, redshift=None, host=None):
@@ -581,11 +605,45 @@ def _result(target, etc):
 
 def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame=None,
                config="cbe", field="narrow", search="exact", redshift=None, **options):
-    """Exposure time for any spectrum with the Lazuli IFS; returns a dict
-    (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target).
-    ``frame`` (None: "rest" with a ``redshift``, else "obs") as :meth:`Target.setup_to_snr`;
-    keywords ``conventions`` (default "physical") and ``allow_partial`` (band coverage rule of
-    :meth:`Target.setup_to_snr`, default False)."""
+    """Exposure time for any spectrum with the Lazuli IFS.
+
+    Parameters
+    ----------
+    lbda : array_like of shape (n,)
+        Wavelengths of the spectrum [Å].
+    flux : array_like of shape (n,)
+        F_λ [erg/s/cm²/Å].
+    snr : float, optional
+        SNR to reach, per resolution element.
+    mag : float, optional
+        Renormalisation to an AB magnitude in ``band``.
+    band : str, optional
+        sncosmo band of that renormalisation.
+    lbda_range : tuple of float, optional
+        (min, max) of the band where the SNR is reached [Å].
+    frame : {"rest", "obs"} or None, optional
+        Frame of ``lbda_range`` (None: "rest" with a ``redshift``, else "obs"), as
+        :meth:`Target.setup_to_snr`.
+    config : str, path or list, optional
+        Configuration ("cbe", "eol", TOML path(s)).
+    field : {"narrow", "wide"}, optional
+        Lazuli field.
+    search : str, optional
+        Readout search of the ETC, as :meth:`Target.setup_to_snr`.
+    redshift : float, optional
+        Redshift of the target (the spectrum is in the observer frame).
+    **options
+        ``conventions`` (default "physical") and ``allow_partial`` (band coverage rule of
+        :meth:`Target.setup_to_snr`, default False).
+
+    Returns
+    -------
+    dict
+        ``nmd``, ``nramps``, ``exposure_time`` [s], ``snr`` (per resolution element),
+        ``snr_per_bin``, ``snr_target_per_bin``, ``lbda_range_obs`` [Å], ``data_volume``
+        [GB], ``config``, ``field``, ``conventions`` and ``target`` (the
+        :class:`LazuliTarget` set to that readout).
+    """
     check_parameter_names("lazuli_etc", options, ("conventions", "allow_partial"))
     target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift,
                           conventions=options.get("conventions", DEFAULT_CONVENTIONS))
@@ -596,8 +654,39 @@ def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 
 def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame=None, config="cbe", field="narrow",
                   search="exact", phase=0.0, source="hsiao-subsampled", conventions=DEFAULT_CONVENTIONS,
                   allow_partial=False):
-    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default;
-    ``allow_partial``: band coverage rule of :meth:`Target.setup_to_snr`)."""
+    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default).
+
+    Parameters
+    ----------
+    redshift : float
+        Redshift z of the SN Ia.
+    snr : float, optional
+        SNR to reach, per resolution element.
+    lbda_range : tuple of float, optional
+        (min, max) of the band [Å], in the rest frame by default.
+    frame : {"rest", "obs"} or None, optional
+        Frame of ``lbda_range`` (None: "rest").
+    config : str, path or list, optional
+        Configuration ("cbe", "eol", TOML path(s)).
+    field : {"narrow", "wide"}, optional
+        Lazuli field.
+    search : str, optional
+        Readout search of the ETC, as :meth:`Target.setup_to_snr`.
+    phase : float, optional
+        Days from B-band maximum [d], as :class:`Supernova`.
+    source : str, optional
+        sncosmo SN Ia source.
+    conventions : {"physical", "slicersim-1.0"}, optional
+        Physics conventions, as :class:`Target`.
+    allow_partial : bool, optional
+        Band coverage rule of :meth:`Target.setup_to_snr`.
+
+    Returns
+    -------
+    dict
+        As :func:`lazuli_etc`: ``nmd``, ``nramps``, ``exposure_time`` [s], ``snr`` (per
+        resolution element), ``data_volume`` [GB], ``target`` (a :class:`LazuliSupernova`), ...
+    """
     target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field,
                              conventions=conventions)
     return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))

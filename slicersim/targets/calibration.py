@@ -64,9 +64,14 @@ MAX_SCATTER = 0.5
 class FlatFieldStructure:
     """Multiplicative flat-field structure of the instrument (ideal by default).
 
-    slice_scatter : σ of the slice throughputs (lognormal, mean 1), in [0, 0.5]
-    pixel_scatter : σ of the per-pixel responses (PRNU, lognormal, mean 1), in [0, 0.5]
-    seed : int in [0, 2⁶⁴) keying the draws
+    Parameters
+    ----------
+    slice_scatter : float, optional
+        σ of the slice throughputs (lognormal, mean 1), in [0, 0.5].
+    pixel_scatter : float, optional
+        σ of the per-pixel responses (PRNU, lognormal, mean 1), in [0, 0.5].
+    seed : int, optional
+        Integer in [0, 2⁶⁴) keying the draws.
     """
 
     def __init__(self, slice_scatter=0.0, pixel_scatter=0.0, seed=0):
