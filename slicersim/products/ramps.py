@@ -147,25 +147,54 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
              io=None, run=None, maps=None, **kwargs):
     """Simulate raw MACC ramps of a rate image.
 
-    rate : (ny, nx) photo-electron rate [e-/s] (detector terms are added here)
-    readout : :class:`RampParameters` (readout and detector: nmd, nramps, tframe [s], ron [electron],
-        dark [e-/s, scalar or image], thermal_dark [e-/s], roic_glow [e-/frame], gain [ADU/e-],
-        saturation [ADU], bias [ADU], ktc_noise [e-], full_well [e-], sparse_max_group, gauss_min_mean)
-    seed : int in [0, 2⁶⁴), or None (default): a fresh seed (:func:`slicersim.validation.new_seed`),
-        recorded in the file's SEED attribute and returned
-    effects : detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a preset
-        (``"lazuli"``), a config dict or a :class:`~slicersim.physics.effects.DetectorEffects`
-        (:mod:`slicersim.products.effects`); their truth goes to ``truth/<name>`` of ``out``.  ``"all"``
-        includes ``persistence`` only with ``maps.previous_charge``.
-    out : output path (HDF5 or JWST level-1b FITS, see :class:`RampIO`) or None (SCI in memory)
-    backend : "auto", "opencl" or "numpy";  precision : "auto", "double" or "single" (single: the
-        same Philox words, ~1e-3 of the values differ by 1 ADU, same statistics)
-    io : :class:`RampIO` (format, overwrite, compression, truth, config, return_dq)
-    run : :class:`RunOptions` (max_bytes, progress, work_group);  maps : :class:`DetectorMaps`
+    The output size is checked against the free disk space (``out``) or memory (``out`` None)
+    before anything is allocated.
 
-    Returns a :class:`RampResult`.  The output size is checked against the free disk space (``out``)
-    or memory (``out`` None) before anything is allocated.
+    Parameters
+    ----------
+    rate : array_like of shape (ny, nx)
+        Photo-electron rate [e-/s] (detector terms are added here).
+    readout : RampParameters
+        Readout and detector: nmd, nramps, tframe [s], ron [electron], dark [e-/s, scalar or
+        image], thermal_dark [e-/s], roic_glow [e-/frame], gain [ADU/e-], saturation [ADU],
+        bias [ADU], ktc_noise [e-], full_well [e-], sparse_max_group, gauss_min_mean.
+    *args
+        The keyword form's positional arguments (see Notes).
+    seed : int, optional
+        Integer in [0, 2⁶⁴), or None (default): a fresh seed
+        (:func:`slicersim.validation.new_seed`), recorded in the file's SEED attribute and
+        returned.
+    effects : str, dict or DetectorEffects, optional
+        Detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a
+        preset (``"lazuli"``), a config dict or a ``DetectorEffects``
+        (``slicersim.products.effects``); their truth goes to ``truth/<name>`` of ``out``.
+        ``"all"`` includes ``persistence`` only with ``maps.previous_charge``.
+    out : str or path, optional
+        Output path (HDF5 or JWST level-1b FITS, see ``RampIO``) or None (SCI in memory).
+    backend : {"auto", "opencl", "numpy"}, optional
+        Where the ramps are computed.
+    precision : {"auto", "double", "single"}, optional
+        Arithmetic of the kernel (single: the same Philox words, ~1e-3 of the values differ by
+        1 ADU, same statistics).
+    io : RampIO, optional
+        Output options (format, overwrite, compression, truth, config, return_dq).
+    run : RunOptions, optional
+        Execution options (max_bytes, progress, work_group).
+    maps : DetectorMaps, optional
+        Per-pixel detector maps.
+    **kwargs
+        The keyword form (see Notes).
 
+    Returns
+    -------
+    RampResult
+        ``seed`` (the one used: record it to repeat the run), ``path`` of the file (None in
+        memory), ``sci`` of shape (nramps, ngroups, ny, nx) uint16 [ADU] and ``groupdq`` uint8
+        in memory (None with a file; GROUPDQ only with ``io.return_dq``), ``attrs`` (the
+        file's root attributes).  The keyword form returns what it did before (see Notes).
+
+    Notes
+    -----
     **Keyword form** (kept from slicersim 0.1): ``simulate(rate, nmd=(16, 8, 0), nramps=1, seed=None,
     out=None, tframe=2.83, ron=12.0, dark=2.8e-3, ..., memory_budget=2**29, file_format=None, ...)``:
     every keyword of :class:`RampParameters`, :class:`RampIO` (``file_format`` for ``format``),
