@@ -126,23 +126,41 @@ SOLVE_OPTIONS = tuple(f.name for f in fields(SolveOptions))
 
 def solve_many(lbda, fluxes, snr, lbda_ranges, frame=None, config="cbe", field="narrow", search="exact",
                redshifts=None, *, options=None, **kwargs):
-    """Solve the ETC for many point sources at once (keyword form of :func:`solve_batch`).
+    """Solve the ETC for many point sources at once (keyword form of ``solve_batch``).
 
     Parameters
     ----------
-    lbda : (k,) [Å];  fluxes : (N, k) [erg/s/cm²/Å]
-    snr : float or (N,)  target SNR (per resolution element when ``per_resolution``)
-    lbda_ranges : (N, 2) or (2,) band [Å] in ``frame``
-    redshifts : None, float or (N,)  the targets' redshifts (``frame="rest"``)
-    frame, config, field, search and the keywords ``per_resolution``, ``backend``, ``max_bytes``,
-    ``progress``, ``conventions``, ``allow_partial``, ``precision``: :class:`SolveOptions`
-    (or ``options=SolveOptions(...)``: the keywords given, and frame/config/field/search when not
-    left at their defaults, override it).
+    lbda : array_like of shape (k,)
+        Wavelengths of the spectra [Å].
+    fluxes : array_like of shape (N, k)
+        F_λ of each target [erg/s/cm²/Å].
+    snr : float or array_like of shape (N,)
+        Target SNR (per resolution element when ``per_resolution``).
+    lbda_ranges : array_like of shape (N, 2) or (2,)
+        Band [Å] in ``frame``.
+    frame : {"rest", "obs"} or None, optional
+        The frame ``lbda_ranges`` are given in (default: "rest" when ``redshifts`` are given,
+        else "obs").
+    config : str, path or list, optional
+        Instrument configuration (see :func:`~slicersim.build_simulation`).
+    field : {"narrow", "wide"}, optional
+        Lazuli field.
+    search : {"exact", "reference"}, optional
+        The readout search.
+    redshifts : float or array_like of shape (N,), optional
+        The targets' redshifts (``frame="rest"``).
+    options : SolveOptions, optional
+        All the options at once (``options=SolveOptions(...)``: the keywords given, and
+        frame/config/field/search when not left at their defaults, override it).
+    **kwargs
+        The other fields of ``SolveOptions``: ``per_resolution``, ``backend``, ``max_bytes``,
+        ``progress``, ``conventions``, ``allow_partial``, ``precision``.
 
     Returns
     -------
-    astropy Table, one row per target: n, m, d, nramps, exposure_time [s], snr
-    (band SNR per resolution element reached), snr_per_bin, data_volume [GB].
+    astropy.table.Table
+        One row per target: n, m, d, nramps, exposure_time [s], snr (band SNR per resolution
+        element reached), snr_per_bin, data_volume [GB].
     """
     check_parameter_names("solve_many", kwargs, SOLVE_OPTIONS)
     base = SolveOptions() if options is None else options

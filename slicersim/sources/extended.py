@@ -117,7 +117,7 @@ class SersicProfile(Versioned):
     def cell_fractions(self, shape, spatial_scale, oversampling=None):
         """(ny, nx) fraction of the total flux in each cell of side ``spatial_scale``
         [arcsec]: exact polar integration (~1e-12 per cell, cusp included), or the
-        midpoint rule on ``oversampling``² sub-cells (see :func:`integrate_radial_cells`)."""
+        midpoint rule on oversampling² sub-cells (``oversampling`` per side) (see :func:`integrate_radial_cells`)."""
         return integrate_radial_cells(self.geometry, [self.radial_profile], shape, spatial_scale,
                                       oversampling)[0]
 

@@ -349,7 +349,7 @@ class CalibrationLamp(Versioned):
         ``centres=None``: the plain average ∫_bin S dλ / Δλ.  With the bin ``centres``: the
         cloud-in-cell deposit — the light at fractional bin position x (x = i at centre i, i ± ½
         at its edges, linear in λ between them) is shared between the two nearest centres with
-        weights 1 − |x − i| (the half bins at the grid's ends go to the end bins), so the total
+        weights 1 − abs(x − i) (the half bins at the grid's ends go to the end bins), so the total
         is conserved, a smooth spectrum gets its bin average to O(Δλ² S″), and a line narrower
         than a bin keeps its position (its first moment) through the discrete LSF, where the
         plain average would move it to the centre of its bin."""

@@ -191,17 +191,28 @@ class Target(DetectorProducts):
     def set_host(self, host, relative=True):
         """Put a host galaxy in the scene, at the target's redshift; ``None`` removes it.
 
-        ``host`` is a model name ("sersic:bb-5000", "ngc0628", "sersic:ngc2403", ...), a dict
-        (``refmodel`` + parameters, slicersim 1.4.2), a :class:`~slicersim.sources.galaxies.GalaxyModel`
-        (all rendered at the target's redshift, or the dict's ``redshift`` when the target has
-        none), or a ready ``Host`` / ``CubeSource``: one with a different ``redshift`` is moved
-        to the target's (:meth:`~slicersim.sources.extended.Host.at_redshift`), one without is
-        taken to be at it.  ``update(redshift=z)`` then moves source and host together.
+        Takes effect at once; ``update(redshift=z)`` then moves source and host together.
 
-        Placement: the host centre (``offset`` [arcsec] of a model, ``profile.offset`` /
-        ``centre`` of an object) is read relative to the target when ``relative`` (the host
-        follows the target; offsets scale with D_A when the redshift changes), else relative to
-        the field centre; a model's 1.4.2 ``position`` [cells] is absolute.  Takes effect at once."""
+        Parameters
+        ----------
+        host : str, dict, GalaxyModel, Host, CubeSource or None
+            A model name ("sersic:bb-5000", "ngc0628", "sersic:ngc2403", ...), a dict
+            (``refmodel`` + parameters, slicersim 1.4.2), a :class:`~slicersim.GalaxyModel`
+            (all rendered at the target's redshift, or the dict's ``redshift`` when the target has
+            none), or a ready ``Host`` / ``CubeSource``: one with a different ``redshift`` is moved
+            to the target's (:meth:`Host.at_redshift <slicersim.Host.at_redshift>`), one without is
+            taken to be at it.
+        relative : bool, optional
+            Placement: the host centre (``offset`` [arcsec] of a model, ``profile.offset`` /
+            ``centre`` of an object) is read relative to the target when ``relative`` (the host
+            follows the target; offsets scale with D_A when the redshift changes), else relative to
+            the field centre; a model's 1.4.2 ``position`` [cells] is absolute.
+
+        Returns
+        -------
+        None
+            The scene is changed in place.
+        """
         if host is None:
             self._host, self._host_state = None, None
             self.simulation.scene.host = None
@@ -222,7 +233,13 @@ class Target(DetectorProducts):
             _move_host(host, _host_centre(self._host_state, self._redshift, position, spatial_scale))
 
     def host_centre(self):
-        """(x, y) [cells] of the host centre in the field (None without host)."""
+        """(x, y) [cells] of the host centre in the field (None without host).
+
+        Returns
+        -------
+        tuple of float or None
+            (x, y) [cells].
+        """
         if self._host is None:
             return None
         s = self.simulation.spectrograph.spatial_scale
@@ -232,12 +249,23 @@ class Target(DetectorProducts):
     # ------------------------------------------------------------------ changes
     def update(self, **params):
         """Change any of ``mutable_parameters`` atomically (validated first; on error nothing
-        changes).  ``redshift`` recomputes the source spectrum in place (SN Ia: same phase,
-        source and peak magnitude; a user spectrum keeps its observer-frame flux and only
-        the label used by ``frame="rest"`` changes); ``position=(x, y)`` [cells] moves the
-        point source in place (and a host attached relative to it); ``field`` / ``config``
-        rebuild the simulation keeping the readout; the other names go to
-        :meth:`Simulation.update <slicersim.simulation.Simulation.update>`.  The readout is kept."""
+        changes).  The readout is kept.
+
+        Parameters
+        ----------
+        **params
+            ``redshift`` recomputes the source spectrum in place (SN Ia: same phase, source and
+            peak magnitude; a user spectrum keeps its observer-frame flux and only the label used
+            by ``frame="rest"`` changes); ``position=(x, y)`` [cells] moves the point source in
+            place (and a host attached relative to it); ``field`` / ``config`` rebuild the
+            simulation keeping the readout; the other names go to
+            :meth:`Simulation.update <slicersim.Simulation.update>`.
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         self._apply_update(self._plan_update(params))
 
     def _plan_update(self, params):
@@ -376,12 +404,36 @@ class Target(DetectorProducts):
     def setup_to_snr(self, snr, lbda_range=None, frame=None, search="exact", per_resolution=True,
                      backend="auto", allow_partial=False):
         """Find and apply the readout reaching ``snr`` (per resolution element by default)
-        in ``lbda_range`` [Å] (default 4000–6800 Å) read in ``frame`` ("rest", "obs", or None: "rest"
-        when the target has a redshift, else "obs"); returns the ETC result dict.
+        in a band.
 
         The band must lie inside the instrument grid and the source spectrum, else
         SpectrumError naming the covered fraction; ``allow_partial=True`` solves on the
-        covered part with a BandCoverageWarning (:mod:`slicersim.snr.bands`)."""
+        covered part with a BandCoverageWarning (``slicersim.snr.bands``).
+
+        Parameters
+        ----------
+        snr : float
+            The SNR to reach.
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å] (default 4000–6800 Å), read in ``frame``.
+        frame : {"rest", "obs"} or None, optional
+            "rest", "obs", or None: "rest" when the target has a redshift, else "obs".
+        search : {"exact", "reference"}, optional
+            The readout search.
+        per_resolution : bool, optional
+            SNR per resolution element (else per bin).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        allow_partial : bool, optional
+            Solve on the covered part of the band.
+
+        Returns
+        -------
+        dict
+            The ETC result: ``nmd``, ``nramps``, ``snr`` (reached, per bin), ``snr_target``,
+            ``snr_per_resolution``, ``exposure_time`` [s], ``trace`` and ``lbda_range_obs`` [Å];
+            also kept as ``last_etc``.
+        """
         band = self._band(lbda_range, frame)
         result = self.simulation.fetch_snr(snr, band, per_resolution=per_resolution, search=search,
                                            backend=backend, allow_partial=allow_partial, frame="obs")
@@ -394,11 +446,23 @@ class Target(DetectorProducts):
         return {"nmd": tuple(self.simulation.detector.nmd), "nramps": self.simulation.nramps}
 
     def get_exposure_time(self):
-        """Total exposure time of all ramps [s]."""
+        """Total exposure time of all ramps [s].
+
+        Returns
+        -------
+        float
+            The exposure time [s].
+        """
         return self.simulation.get_times()["exposure_time"]
 
     def get_exptime(self):
-        """Total exposure time of all ramps [s] (paper name of :meth:`get_exposure_time`)."""
+        """Total exposure time of all ramps [s] (paper name of :meth:`get_exposure_time`).
+
+        Returns
+        -------
+        float
+            The exposure time [s].
+        """
         return self.get_exposure_time()
 
     def get_times(self):
@@ -408,8 +472,24 @@ class Target(DetectorProducts):
         return self.simulation.get_data_volume()
 
     def get_band_snr(self, lbda_range=None, frame=None, per_resolution=False, allow_partial=False):
-        """Band SNR (per bin; per resolution element when ``per_resolution``); ``frame`` and the
-        band coverage rule (``allow_partial``) as :meth:`setup_to_snr`."""
+        """Band SNR (per bin; per resolution element when ``per_resolution``).
+
+        Parameters
+        ----------
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å] (default 4000–6800 Å), read in ``frame``.
+        frame : {"rest", "obs"} or None, optional
+            "rest", "obs", or None: "rest" when the target has a redshift, else "obs".
+        per_resolution : bool, optional
+            SNR per resolution element (else per bin).
+        allow_partial : bool, optional
+            Band coverage rule, as :meth:`setup_to_snr`.
+
+        Returns
+        -------
+        float
+            The band SNR.
+        """
         return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution,
                                             allow_partial=allow_partial, frame="obs")
 
@@ -417,28 +497,48 @@ class Target(DetectorProducts):
                      unit="adu", switch_off=None):
         """(λ [Å], signal, variance) extracted from the noiseless model, all ramps.
 
-        method : "optimal" (PSF-weighted; the point source's true LSF-convolved spectrum and
-            the optimal variance of :meth:`Simulation.get_spectrum`), "aperture" (plain sum
-            over the aperture cells, no aperture correction) or "default" (slicersim 1.4.2's
-            rule: optimal for the "core" aperture, a plain sum otherwise).
-        of_host : extract the host light instead, in an aperture centred on the host.
-        aperture : "core" (the point-source extraction radius), "<x>-arcsec" or "<x>-kpc"
-            (:mod:`slicersim.products.extraction`); None: "core", or "1-arcsec" (1.4.2's) for
-            the host (``of_host``) and for ``method="aperture"``.
-        unit : "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s of integration
-            time: the slope, as the reduced rates and spectra] or "framerate" [ADU/frame] (1.4.2 names accepted: :data:`~slicersim.products.extraction.UNITS`);
-            the variance is in unit².
-        switch_off : components left out of the signal and variance (a name or names:
-            :func:`~slicersim.products.components.check_switch_off`, the rule of cubes and spectra;
-            switching off the extracted component gives zero signal).
-        incl_error : add a Gaussian noise draw (in ADU, before the unit conversion):
+        Parameters
+        ----------
+        incl_error : bool, optional
+            Add a Gaussian noise draw (in ADU, before the unit conversion):
             signal + √variance · z with z the counter-based Philox / Box–Muller
-            normal of :mod:`slicersim.rng` keyed by (seed, bin index,
-            stream :data:`SPECTRUM_NOISE_STREAM`) — the same generator and arithmetic as the
-            noisy cubes (:func:`slicersim.backends.noise.noisy_cube`): the same seed (int in
-            [0, 2⁶⁴)) gives the same draw on every machine and backend; bins with zero variance
-            keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed
-            (:func:`slicersim.validation.new_seed`), recorded in ``last_spectrum_seed``."""
+            normal of ``slicersim.rng`` keyed by (seed, bin index,
+            stream ``SPECTRUM_NOISE_STREAM``) — the same generator and arithmetic as the
+            noisy cubes (``slicersim.backends.noise.noisy_cube``): the same seed gives the same
+            draw on every machine and backend; bins with zero variance keep the signal,
+            non-finite variance gives NaN.
+        seed : int, optional
+            Integer in [0, 2⁶⁴) of that draw; None draws a fresh seed
+            (:func:`slicersim.validation.new_seed`), recorded in ``last_spectrum_seed``.
+        method : {"default", "optimal", "aperture"}, optional
+            "optimal" (PSF-weighted; the point source's true LSF-convolved spectrum and
+            the optimal variance of :meth:`Simulation.get_spectrum <slicersim.Simulation.get_spectrum>`),
+            "aperture" (plain sum over the aperture cells, no aperture correction) or "default"
+            (slicersim 1.4.2's rule: optimal for the "core" aperture, a plain sum otherwise).
+        of_host : bool, optional
+            Extract the host light instead, in an aperture centred on the host.
+        aperture : str, optional
+            "core" (the point-source extraction radius), "<x>-arcsec" or "<x>-kpc"
+            (``slicersim.products.extraction``); None: "core", or "1-arcsec" (1.4.2's) for
+            the host (``of_host``) and for ``method="aperture"``.
+        unit : str, optional
+            "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s of
+            integration time: the slope, as the reduced rates and spectra] or "framerate"
+            [ADU/frame] (1.4.2 names accepted: ``slicersim.products.extraction.UNITS``).
+        switch_off : str or sequence of str, optional
+            Components left out of the signal and variance (a name or names:
+            ``slicersim.products.components.check_switch_off``, the rule of cubes and spectra;
+            switching off the extracted component gives zero signal).
+
+        Returns
+        -------
+        lbda : numpy.ndarray of shape (nλ,)
+            Wavelengths [Å].
+        signal : numpy.ndarray of shape (nλ,)
+            The signal [``unit``].
+        variance : numpy.ndarray of shape (nλ,)
+            Its variance [``unit``²].
+        """
         seed = validation.seed(seed)
         incl_error = validation.flag("incl_error", incl_error)
         of_host = validation.flag("of_host", of_host)
@@ -479,22 +579,69 @@ class Target(DetectorProducts):
         return self.simulation.lbda.copy(), signal, variance
 
     def get_cube(self, seed=None, switch_off=None, psf_profile="gaussian", **options):
-        """Cube [ADU] of the scene (noisy with ``seed``); ``switch_off``: components left out
-        (:func:`~slicersim.products.components.check_switch_off`); ``psf_profile`` "gaussian" or
-        "airy" and the other options (``nmd``, ``nramps``, ``max_bytes``, ``progress``, ``backend``,
-        ``dtype``, ...) as :meth:`Simulation.get_cube <slicersim.simulation.Simulation.get_cube>`."""
+        """Cube [ADU] of the scene (noisy with ``seed``).
+
+        Parameters
+        ----------
+        seed : int, optional
+            Integer in [0, 2⁶⁴) of the noisy realisation; None: noiseless.
+        switch_off : str or sequence of str, optional
+            Components left out (``slicersim.products.components.check_switch_off``).
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF.
+        **options
+            The other options (``nmd``, ``nramps``, ``max_bytes``, ``progress``, ``backend``,
+            ``dtype``, ...) as :meth:`Simulation.get_cube <slicersim.Simulation.get_cube>`.
+
+        Returns
+        -------
+        CubeTuple
+            (signal, variance) of shape (nλ, ny, nx) [ADU, ADU²], then the noisy cube with
+            ``seed``, as :meth:`Simulation.get_cube <slicersim.Simulation.get_cube>`.
+        """
         return self.simulation.get_cube(seed=seed, switch_off=switch_off, psf_profile=psf_profile, **options)
 
     def get_scene_cubes(self, unit="adu", switch_off=None, **kwargs):
-        """Noise-free cube of each scene component (:meth:`Simulation.get_scene_cubes`)."""
+        """Noise-free cube of each scene component.
+
+        Parameters
+        ----------
+        unit : str, optional
+            As :meth:`Simulation.get_scene_cubes <slicersim.Simulation.get_scene_cubes>`.
+        switch_off : str or sequence of str, optional
+            Components left out.
+        **kwargs
+            The other options of
+            :meth:`Simulation.get_scene_cubes <slicersim.Simulation.get_scene_cubes>`.
+
+        Returns
+        -------
+        SceneCubes or numpy.ndarray
+            As :meth:`Simulation.get_scene_cubes <slicersim.Simulation.get_scene_cubes>`.
+        """
         return self.simulation.get_scene_cubes(unit=unit, switch_off=switch_off, **kwargs)
 
     def get_variance_contribution(self):
         return self.simulation.get_variance_contribution()
 
     def get_band_variance_contribution(self, lbda_range=None, frame=None, allow_partial=False):
-        """Band-mean variance contributions (:meth:`Simulation.get_band_variance_contribution
-        <slicersim.simulation.Simulation.get_band_variance_contribution>`); ``frame`` as :meth:`setup_to_snr`."""
+        """Band-mean variance contributions.
+
+        Parameters
+        ----------
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å] (default 4000–6800 Å), read in ``frame``.
+        frame : {"rest", "obs"} or None, optional
+            "rest", "obs", or None: "rest" when the target has a redshift, else "obs".
+        allow_partial : bool, optional
+            Band coverage rule, as :meth:`setup_to_snr`.
+
+        Returns
+        -------
+        dict
+            As :meth:`Simulation.get_band_variance_contribution
+            <slicersim.Simulation.get_band_variance_contribution>`.
+        """
         return self.simulation.get_band_variance_contribution(self._band(lbda_range, frame),
                                                               allow_partial=allow_partial, frame="obs")
 

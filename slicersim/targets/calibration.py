@@ -157,18 +157,24 @@ def _check_structure(structure):
 class Flat3DCalibration(Target):
     """A calibration exposure: a lamp filling the field uniformly, observed with an instrument.
 
-    Parameters
-    ----------
-    lamp : :class:`~slicersim.sources.lamps.CalibrationLamp` (see the ``from_*`` constructors)
-    config : "cbe", "eol", a TOML path or a list of them
-    field : "narrow", "wide" or None (default: as :class:`~slicersim.targets.base.Target`)
-    conventions : "physical" (default) or "slicersim-1.0"
-    structure : None (ideal instrument), a :class:`FlatFieldStructure` or a dict of its arguments
-
     Products: :meth:`get_cube` (signal [ADU], variance [ADU²], noisy with a seed),
     :meth:`get_detector_image` (e-/s/px, both fields lit), :meth:`get_ramps` (raw MACC ramps),
     :meth:`get_scene_cube` (the lamp before the instrument), :meth:`get_lamp_spectrum`.
     The readout is set with :meth:`change_detector` (default: the configuration's).
+
+    Parameters
+    ----------
+    lamp : CalibrationLamp
+        The lamp (:class:`~slicersim.CalibrationLamp`; see the ``from_*`` constructors).
+    config : str, path or list, optional
+        "cbe", "eol", a TOML path or a list of them.
+    field : {"narrow", "wide"} or None, optional
+        The field (default: as :class:`~slicersim.Target`).
+    conventions : {"physical", "slicersim-1.0"}, optional
+        Physics conventions ("physical" by default).
+    structure : FlatFieldStructure or dict, optional
+        None (ideal instrument), a :class:`~slicersim.FlatFieldStructure` or a dict of its
+        arguments.
     """
 
     default_config, default_field = "cbe", "auto"
