@@ -43,6 +43,24 @@ autodoc_member_order = "bysource"
 autodoc_typehints = "none"
 autodoc_default_options = {"members": True, "undoc-members": False, "show-inheritance": True}
 
+# -- cross-references: every one must resolve (``-n``) ----------------------------------------------
+# Not ignored: any reference to slicersim itself (a broken one is a bug in a docstring).  Ignored, and
+# only these: what cannot resolve in an offline build, and the words of numpydoc type fields.
+nitpicky = True
+nitpick_ignore_regex = [
+    # other packages' objects: the build has no network, so intersphinx cannot fetch their inventories
+    (r"py:.*", r"(numpy|astropy|matplotlib|h5py|sncosmo|distributed|dask|scipy|pyopencl|os|pathlib|io"
+               r"|contextlib|collections|typing)(\..+)?"),
+    # numpydoc type vocabulary ("array_like of shape (n,), optional"): words, not objects
+    (r"py:class", r"optional|default|array_like|sequence|iterable|callable|path|file object|scalar"),
+    # dimension names of "of shape (nλ, ny, nx)"
+    (r"py:class", r"n|N|k|m|h|w|ny|nx|nλ|nλ\+1|nλ_in|ny_in|nx_in|rows|cols|nints|ngroups|nramps"),
+    # literal values of type fields ({"rest", "obs"}, "narrow")
+    (r"py:class", r"""[{"'].*|.*["'}]"""),
+    # base classes outside the public API, shown by ``show-inheritance``
+    (r"py:class", r"slicersim\.versioning\.Versioned|slicersim\.[\w.]*\._\w+"),
+]
+
 sphinx_gallery_conf = {
     "examples_dirs": "examples",
     "gallery_dirs": "_generated/gallery",
@@ -61,3 +79,16 @@ html_title = f"slicersim {release}"
 html_theme_options = {"description": "Image-slicer IFS simulator (Lazuli)", "fixed_sidebar": True,
                       "page_width": "1100px", "sidebar_width": "230px"}
 html_static_path = []
+
+
+def _attribute_sentence(app, what, name, obj, options, lines):
+    """The package's attribute, property and module-data docstrings are sentences ("pixels a cell
+    owns per native bin: its slit image"), not napoleon's inline "type: description": a blank
+    first line keeps napoleon (which runs after this, priority 500) from reading the words before
+    the first colon as a type."""
+    if what in ("attribute", "property", "data") and lines and ":" in lines[0]:
+        lines.insert(0, "")
+
+
+def setup(app):
+    app.connect("autodoc-process-docstring", _attribute_sentence, priority=400)

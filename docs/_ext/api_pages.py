@@ -63,8 +63,16 @@ def _entry(directive, dotted, options=()):
     if dotted in HANDWRITTEN:
         return HANDWRITTEN[dotted].rstrip() + "\n\n"
     lines = [f".. {directive}:: {dotted}"]
-    lines += [f"   :{o}:" for o in options]
+    lines += [f"   :{o}" if ": " in o else f"   :{o}:" for o in options]      # "name" or "name: value"
     return "\n".join(lines) + "\n\n"
+
+
+def _inherited(cls, exported):
+    """``inherited-members`` option of an exported class: the members it inherits from bases that
+    have no entry of their own (a mixin such as ``DetectorProducts``: ``Target.get_ramps``), not
+    those of exported bases (documented there), of ``Versioned`` (caching) or of ``object``."""
+    skip = [base.__name__ for base in cls.__mro__[1:] if base in exported]
+    return "inherited-members: " + ", ".join(dict.fromkeys([*skip, "Versioned", "object"]))
 
 
 def _title(text, char="="):
@@ -75,6 +83,7 @@ def top_level_page():
     """reST of the names of ``slicersim.__all__``, grouped by defining subpackage."""
     import slicersim
     groups = {}
+    exported = {getattr(slicersim, n) for n in slicersim.__all__ if inspect.isclass(getattr(slicersim, n))}
     for name in slicersim.__all__:
         if name.startswith("__"):
             continue
@@ -90,7 +99,7 @@ def top_level_page():
         text += _title(f"slicersim.{part}" if part != "slicersim" else "slicersim", "-")
         for name, obj in groups[part]:
             if inspect.isclass(obj):
-                text += _entry("autoclass", f"slicersim.{name}", ("members",))
+                text += _entry("autoclass", f"slicersim.{name}", ("members", _inherited(obj, exported)))
             elif callable(obj):
                 text += _entry("autofunction", f"slicersim.{name}")
             else:

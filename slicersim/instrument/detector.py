@@ -22,17 +22,37 @@ __all__ = ["Detector"]
 class Detector(Versioned):
     """HxRG detector with a MACC readout.
 
+    The numbers with a unit (gain, dark, roic_glow, ron, tframe, pixel_size) are each a plain
+    number in that unit or an astropy Quantity (converted).
+
     Parameters
     ----------
-    qe : float, (λ[Å], QE) arrays or ECSV/CSV path — QE [e-/ph], 0 outside the table
-    gain : ADU/e-;  dark : e-/s/px;  roic_glow : e-/px/frame;  ron : electron (read noise per frame)
-    tframe : s;  pixel_size : µm (gain, tframe, pixel_size finite > 0; dark, roic_glow, ron ≥ 0)
-        each a plain number in that unit or an astropy Quantity (converted)
-    saturation : ADU, finite > 0 (0, None or inf: no saturation)
-    thermal_dark_range : None or (min, max) [Å], 0 < min < max: range of the undispersed thermal dark
-    nmd : (n, m, d);  min_group, max_group : allowed n range (max_group an integer ≥ min_group,
-    or None: no limit)
-    variance_model : "Rauscher07" or "Kubik16"
+    qe : float, tuple of array_like or str, optional
+        QE [e-/ph]: a number, (λ [Å], QE) arrays or an ECSV/CSV path; 0 outside the table.
+    gain : float, optional
+        Gain [ADU/e-], finite > 0.
+    dark : float, optional
+        Dark current [e-/s/px], ≥ 0.
+    roic_glow : float, optional
+        ROIC glow [e-/px/frame], ≥ 0.
+    ron : float, optional
+        Read noise per frame [electron], ≥ 0.
+    tframe : float, optional
+        Frame time [s], finite > 0.
+    pixel_size : float, optional
+        Pixel size [µm], finite > 0.
+    saturation : float, optional
+        Saturation [ADU], finite > 0 (0, None or inf: no saturation).
+    nmd : tuple of int, optional
+        The readout (n, m, d).
+    min_group, max_group : int, optional
+        Allowed n range (max_group an integer ≥ min_group, or None: no limit).
+    variance_model : {"Rauscher07", "Kubik16"}, optional
+        Variance model of a MACC ramp.
+    shape : tuple of int, optional
+        (rows, cols) of the detector [px].
+    thermal_dark_range : tuple of float, optional
+        None or (min, max) [Å], 0 < min < max: range of the undispersed thermal dark.
     """
 
     mutable_parameters = ("qe", "gain", "dark", "roic_glow", "ron", "tframe", "pixel_size",
@@ -158,7 +178,7 @@ class Detector(Versioned):
 
     def show_qe(self, lbda=None, ax=None, savefile=None):
         """Figure of the QE [e-/ph] versus λ [Å] (default: the table's range, else 4000–17000 Å);
-        see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        see :func:`slicersim.plotting.spectra.plot_curves`.  Returns the Figure."""
         from slicersim.plotting import plot_curves
         if lbda is None:
             lo, hi = (self._qe_table[0][0], self._qe_table[0][-1]) if self._qe_table is not None else (4e3, 1.7e4)

@@ -134,19 +134,32 @@ class SlicerMapper:
 
     Parameters
     ----------
-    slice_ids : (S,) int
-    fieldpos_nodes : (J,) increasing, position along the slice (−1 … +1)
-    lbda_nodes : (M,) increasing [Å]
-    values : (S, J, M, 4) float
-        p_x, p_y [px] and σ_x, σ_y [px] at the nodes.
-    detector_shape : (rows, cols)
-    interpolation : "bilinear" or "triangles"
-    face_diagonal : (S, J−1, M−1) int, for "triangles" (default 0 everywhere)
-    table_cache : "default", None, a directory or an
-        :class:`~slicersim.io.table_cache.ArrayCache`: where projection tables are cached on
-        disk (:meth:`projection_tables`); "default" is ``$SLICERSIM_CACHE/projection`` (else
-        ``~/.cache/slicersim/projection``), None keeps them in memory only (``cache_size``
-        tables, least recently used first out).
+    slice_ids : array_like of shape (S,)
+        Slice ids (int).
+    fieldpos_nodes : array_like of shape (J,)
+        Increasing positions along the slice (−1 … +1).
+    lbda_nodes : array_like of shape (M,)
+        Increasing wavelengths [Å].
+    values : array_like of shape (S, J, M, 4)
+        p_x, p_y [px] and σ_x, σ_y [px] at the nodes (float).
+    pixel_size_um : float, optional
+        Detector pixel size [µm].
+    detector_shape : tuple of int, optional
+        (rows, cols) of the detector [px].
+    interpolation : {"bilinear", "triangles"}, optional
+        Interpolation between the nodes.
+    face_diagonal : array_like of shape (S, J−1, M−1), optional
+        int, for "triangles" (default 0 everywhere).
+    cache_size : int, optional
+        Projection tables kept in memory (least recently used first out).
+    table_cache : str, path, ArrayCache or None, optional
+        "default", None, a directory or an ``slicersim.io.table_cache.ArrayCache``: where
+        projection tables are cached on disk (:meth:`projection_tables`); "default" is
+        ``$SLICERSIM_CACHE/projection`` (else ``~/.cache/slicersim/projection``), None keeps
+        them in memory only (``cache_size`` tables, least recently used first out).
+    cube_blur_px : float or tuple of float, optional
+        Aberration σ the projected cube already carries (x, y) [px], ≥ 0: subtracted from the
+        table's spot, which is the total aberration (counted once).
     """
 
     def __init__(self, slice_ids, fieldpos_nodes, lbda_nodes, values, *, pixel_size_um=10.0,
@@ -505,7 +518,7 @@ class SlicerMapper:
         ``fields``: "narrow" (slices 1–58) and/or "wide" (59–116); ``spectrograph``: the cube grid (a
         spectrograph, Simulation or Target; default: 200 bins over the λ nodes [Å], 116 columns);
         ``image``: a detector image [e-/s/px] behind the outlines (default: the label image);
-        ``region`` (row0, row1, col0, col1) [px] zooms in (:func:`slicersim.plotting.draw_slices`)."""
+        ``region`` (row0, row1, col0, col1) [px] zooms in (:func:`slicersim.plotting.images.draw_slices`)."""
         from slicersim.instrument.footprints import detector_label_image, field_footprints
         from slicersim.plotting import check_region, draw_slices
         fields = (fields,) if isinstance(fields, str) else tuple(fields)

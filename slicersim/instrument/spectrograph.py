@@ -499,7 +499,7 @@ class Spectrograph(Versioned):
 
     def show_throughput(self, ax=None, savefile=None):
         """Figure of the throughput [fraction of photons] on the grid (λ [Å]) and of each of its
-        components; see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        components; see :func:`slicersim.plotting.spectra.plot_curves`.  Returns the Figure."""
         from slicersim.plotting import plot_curves
         model = self.throughput_model
         curves = {"total": self.throughput}

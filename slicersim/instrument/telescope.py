@@ -18,11 +18,14 @@ class Telescope(Versioned):
 
     Parameters
     ----------
-    diameter_ext, diameter_int : float  outer / central-obscuration diameter [m] (or astropy Quantities)
-    temperature : float, or one value per mirror group  mirror temperature [K]
-    emissivity, nelements : sequence  per mirror group emissivity and count (a scalar
-        applies to every group)
-    guiding_sigma : float  achromatic Gaussian jitter [arcsec] (or an astropy Quantity)
+    diameter_ext, diameter_int : float or astropy.units.Quantity
+        Outer / central-obscuration diameter [m].
+    temperature : float or sequence of float
+        Mirror temperature [K], or one value per mirror group.
+    emissivity, nelements : sequence
+        Per mirror group emissivity and count (a scalar applies to every group).
+    guiding_sigma : float or astropy.units.Quantity
+        Achromatic Gaussian jitter [arcsec].
     """
 
     mutable_parameters = ("diameter_ext", "diameter_int", "temperature", "emissivity",
@@ -148,7 +151,7 @@ class Telescope(Versioned):
 
     def show_thermal_radiance(self, lbda=None, ax=None, savefile=None):
         """Figure of the mirrors' photon radiance [ph/s/m²/sr/Å] versus λ [Å] (default
-        4000–17000 Å; log scale); see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        4000–17000 Å; log scale); see :func:`slicersim.plotting.spectra.plot_curves`.  Returns the Figure."""
         from slicersim.plotting import plot_curves
         lbda = validation.array("lbda [AA]", np.linspace(4e3, 1.7e4, 500) if lbda is None else lbda, ndim=1)
         fig = plot_curves(lbda, {"mirrors": self.thermal_radiance(lbda)}, "thermal radiance [ph/s/m²/sr/Å]",

@@ -185,8 +185,9 @@ def load_config(config="cbe"):
 
     Returns
     -------
-    dict  table name (e.g. ``"detector"``, ``"spectrograph.optics"``) -> {key: value};
-    the ``"_sources"`` entry lists the files read.
+    dict
+        Table name (e.g. ``"detector"``, ``"spectrograph.optics"``) -> {key: value};
+        the ``"_sources"`` entry lists the files read.
     """
     if isinstance(config, dict):
         return validate_config(copy.deepcopy(config))

@@ -30,17 +30,26 @@ class Galaxy(Target):
 
     Parameters
     ----------
-    redshift : > 0; sets the spectrum, the brightness and the angular size (fixed proper size)
-    model : name ("sersic:bb-5000" default, "ngc0628", "sersic:ngc2403", "ngc4321:bb-6000"),
-        dict with ``refmodel`` or :class:`~slicersim.sources.galaxies.GalaxyModel`
-    aperture : "core" (PSF-weighted optimal extraction at the centre), "<x>-arcsec" or
-        "<x>-kpc" (plain sums; default "1-arcsec")
-    aperture__position : "host" (the galaxy centre, default) or (x, y) [cells] from the field centre
-    method : "default" (optimal for "core", else aperture), "optimal" or "aperture"
-    position : (x, y) [cells] of the galaxy centre from the field centre
-    config, field, conventions : as :class:`~slicersim.targets.base.Target`
-    **host_params : model parameters (``band`` (default "bessellr"), ``magabs`` / ``mag``,
-        ``r_kpc``, ``n``, ``ellip``, ``theta``, ``rotation``, ... see GalaxyModel)
+    redshift : float
+        Redshift > 0; sets the spectrum, the brightness and the angular size (fixed proper
+        size).
+    model : str, dict or GalaxyModel, optional
+        A name ("sersic:bb-5000" default, "ngc0628", "sersic:ngc2403", "ngc4321:bb-6000"),
+        a dict with ``refmodel`` or a :class:`~slicersim.GalaxyModel`.
+    aperture : str, optional
+        "core" (PSF-weighted optimal extraction at the centre), "<x>-arcsec" or "<x>-kpc"
+        (plain sums; default "1-arcsec").
+    aperture__position : str or tuple of float, optional
+        "host" (the galaxy centre, default) or (x, y) [cells] from the field centre.
+    method : {"default", "optimal", "aperture"}, optional
+        "default" (optimal for "core", else aperture), "optimal" or "aperture".
+    config, field, conventions
+        As :class:`~slicersim.Target`.
+    position : tuple of float, optional
+        (x, y) [cells] of the galaxy centre from the field centre.
+    **host_params
+        Model parameters (``band`` (default "bessellr"), ``magabs`` / ``mag``, ``r_kpc``,
+        ``n``, ``ellip``, ``theta``, ``rotation``, ... see :class:`~slicersim.GalaxyModel`).
     """
 
     own_parameters = Target.own_parameters + ("aperture", "aperture__position", "method")
