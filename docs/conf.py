@@ -53,12 +53,13 @@ nitpick_ignore_regex = [
                r"|contextlib|collections|typing)(\..+)?"),
     # numpydoc type vocabulary ("array_like of shape (n,), optional"): words, not objects
     (r"py:class", r"optional|default|array_like|sequence|iterable|callable|path|file object|scalar"),
-    # dimension names of "of shape (nλ, ny, nx)"
-    (r"py:class", r"n|N|k|m|h|w|ny|nx|nλ|nλ\+1|nλ_in|ny_in|nx_in|rows|cols|nints|ngroups|nramps"),
+    # sizes and dimension names of "of shape (nλ, ny, nx)", "(S, J, M, 4)", "(S, J−1, M−1)"
+    (r"py:class", r"\d+|[A-Za-z]|h|w|ny|nx|nλ|nλ\+1|nλ_in|ny_in|nx_in|rows|cols|n_rows|n_cols|nints"
+                  r"|ngroups|nramps|[A-Z][−-]1"),
     # literal values of type fields ({"rest", "obs"}, "narrow")
     (r"py:class", r"""[{"'].*|.*["'}]"""),
     # base classes outside the public API, shown by ``show-inheritance``
-    (r"py:class", r"slicersim\.versioning\.Versioned|slicersim\.[\w.]*\._\w+"),
+    (r"py:class", r"slicersim\.versioning\.Versioned|slicersim\.targets\.detector\.DetectorProducts|slicersim\.[\w.]*\._\w+"),
 ]
 
 sphinx_gallery_conf = {
@@ -81,14 +82,26 @@ html_theme_options = {"description": "Image-slicer IFS simulator (Lazuli)", "fix
 html_static_path = []
 
 
-def _attribute_sentence(app, what, name, obj, options, lines):
-    """The package's attribute, property and module-data docstrings are sentences ("pixels a cell
-    owns per native bin: its slit image"), not napoleon's inline "type: description": a blank
-    first line keeps napoleon (which runs after this, priority 500) from reading the words before
-    the first colon as a type."""
-    if what in ("attribute", "property", "data") and lines and ":" in lines[0]:
-        lines.insert(0, "")
+#: attribute, property and module-data docstrings, kept from napoleon (see ``_keep_sentences``)
+_SENTENCES = {}
+
+
+def _hold_sentences(app, what, name, obj, options, lines):
+    """The package's attribute, property and module-data docstrings are reST sentences ("pixels a
+    cell owns per native bin: its slit image"), not napoleon's inline "type: description", which
+    would read the words before the first colon as a type: hold them before napoleon (priority
+    500) ..."""
+    if what in ("attribute", "property", "data"):
+        _SENTENCES[(what, name)] = list(lines)
+
+
+def _keep_sentences(app, what, name, obj, options, lines):
+    """... and put them back after it (rendered as written)."""
+    held = _SENTENCES.pop((what, name), None)
+    if held is not None:
+        lines[:] = held
 
 
 def setup(app):
-    app.connect("autodoc-process-docstring", _attribute_sentence, priority=400)
+    app.connect("autodoc-process-docstring", _hold_sentences, priority=400)
+    app.connect("autodoc-process-docstring", _keep_sentences, priority=600)

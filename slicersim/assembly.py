@@ -59,7 +59,7 @@ def _warn_ideal_defaults(cfg):
 
 def build_simulation(config="cbe", field="narrow", pointsource=None, background="zodi",
                      position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS):
-    """Simulation from a configuration (see :func:`slicersim.io.config.load_config`) and a field.
+    """Simulation from a configuration (see :func:`~slicersim.load_config`) and a field.
 
     Parameters
     ----------

@@ -89,7 +89,7 @@ class Simulation(Versioned):
     Notes
     -----
     Every derived quantity is cached, keyed on the versions of the scene, its
-    sources and the instrument components (:mod:`slicersim.versioning`): any
+    sources and the instrument components (``slicersim.versioning``): any
     ``update``, ``set_throughput``, ``scene.host = ...`` or attribute assignment
     invalidates it at once.
     """
@@ -160,7 +160,7 @@ class Simulation(Versioned):
         self.apply_update(self.plan_update(_position, **kwargs))
 
     def plan_update(self, _position=None, **kwargs):
-        """The validated new state of :meth:`update` (:class:`SimulationUpdate`), nothing changed:
+        """The validated new state of :meth:`update` (``SimulationUpdate``), nothing changed:
         targets validate their own parts against it before :meth:`apply_update`."""
         check_parameter_names("simulation", kwargs, self.mutable_parameters)
         groups = {"detector": {}, "spectrograph": {}, "telescope": {}}
@@ -271,7 +271,7 @@ class Simulation(Versioned):
 
     def uniform_photons(self, switch_off=None):
         """(background, thermal) photons per cell [ph/s/cell] (nλ,) each, before the LSF, with the
-        terms ``switch_off`` removes set to 0 (rule: :mod:`slicersim.products.components`)."""
+        terms ``switch_off`` removes set to 0 (rule: ``slicersim.products.components``)."""
         on = uniform_terms_on(as_switched_off(switch_off))
         zero = np.zeros_like(self.lbda)
         background = self.background_photons if "background" in on else zero
@@ -391,7 +391,7 @@ class Simulation(Versioned):
     @property
     def detector_pixels_per_cell(self):
         """Pixels whose read noise, dark and full well a cell carries under this simulation's
-        conventions (:func:`slicersim.physics.conventions.detector_pixels_per_cell`)."""
+        conventions (``slicersim.physics.conventions.detector_pixels_per_cell``)."""
         return detector_pixels_per_cell(self.spectrograph, self._conventions)
 
     def cell_variance(self, cell_rate, nmd, off=None):
@@ -495,7 +495,7 @@ class Simulation(Versioned):
         Notes
         -----
         Noise: ``noisy = signal + √variance · z`` with z the Philox/Box–Muller normal keyed
-        by (seed, flat voxel index, stream 0), :func:`slicersim.backends.noise.noisy_cube`.
+        by (seed, flat voxel index, stream 0), ``slicersim.backends.noise.noisy_cube``.
         For the same signal and variance the NumPy twin and the OpenCL kernel give
         bit-identical noisy cubes (same Philox words, same correctly rounded √, no FMA
         contraction).  Between ``backend="numpy"`` and ``"opencl"`` the *expectation and
@@ -519,16 +519,16 @@ class Simulation(Versioned):
     # ------------------------------------------------------------------ extraction
     @property
     def extraction_model(self):
-        """:class:`ExtractionModel` of the current configuration, Gaussian PSF (cached)."""
+        """``ExtractionModel`` of the current configuration, Gaussian PSF (cached)."""
         return self.get_extraction_model("gaussian")
 
     def aperture_psf(self, psf_profile="gaussian", backend="auto"):
         """PSF fractions of the aperture cells (nλ, ncell) of a registered profile
-        (:mod:`slicersim.products.psf_profiles`: "gaussian", "airy")."""
+        (``slicersim.products.psf_profiles``: "gaussian", "airy")."""
         return get_psf_profile(psf_profile).cells(self, self.aperture, backend)
 
     def get_extraction_model(self, psf_profile="gaussian"):
-        """:class:`ExtractionModel` with the cube's PSF model as extraction weights (cached)."""
+        """``ExtractionModel`` with the cube's PSF model as extraction weights (cached)."""
         def build():
             psf = self.aperture_psf(psf_profile)
             lsf = self.spectrograph.apply_lsf
@@ -594,7 +594,7 @@ class Simulation(Versioned):
         the point-source spectrum, else SpectrumError naming the covered fraction;
         ``allow_partial=True`` accepts a partly covered band (≥ 50 % inside the grid) with
         a BandCoverageWarning, the SNR being that of the covered part
-        (:mod:`slicersim.snr.bands`)."""
+        (``slicersim.snr.bands``)."""
         lo, hi = check_band(lbda_range)
         mask = (self.lbda >= lo) & (self.lbda <= hi)
         if not mask.any():
@@ -606,8 +606,8 @@ class Simulation(Versioned):
 
     def band_range(self, lbda_range, frame=None):
         """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame
-        (rest: ×(1 + redshift); needs :attr:`redshift`); ``frame=None`` (default) is "rest" when
-        :attr:`redshift` is known, else "obs" (:func:`resolve_frame`).  Bounds may be astropy
+        (rest: ×(1 + redshift); needs ``redshift``); ``frame=None`` (default) is "rest" when
+        ``redshift`` is known, else "obs" (``resolve_frame``).  Bounds may be astropy
         Quantities (converted to Å)."""
         lo, hi = check_band(lbda_range)
         if resolve_frame(frame, self.redshift) == "rest":

@@ -119,15 +119,38 @@ FIELDS = ("narrow", "wide")
 class SurveyOptions:
     """How a survey is observed and planned (:func:`plan_survey`).
 
-    snr : SNR per resolution element (``per_resolution``, else per bin) in ``lbda_range`` [Å] of
-        ``frame`` ("rest", "obs" or None = "rest": a survey's targets always have redshifts)
-    z_switch : ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field)
-    config, search, conventions : of the batch ETC (:func:`slicersim.etc.solve.solve_many`)
-    overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1 : of the totals (module docstring)
-    progress : the batch ETC's bar (None: when stderr is a terminal);  detector_shape : (ny, nx) of the volume (default: the field's)
-    precision : of the batch ETC's band-variance kernel
-    allow_partial : a band partly outside the grid or the spectrum is answered on its covered part
-        (default); False: such a target fails with the coverage error (as the single-target ETC)
+    Parameters
+    ----------
+    snr : float, optional
+        SNR per resolution element (``per_resolution``, else per bin) in ``lbda_range``.
+    lbda_range : tuple of float, optional
+        (min, max) of the band [Å] in ``frame``.
+    frame : {"rest", "obs"} or None, optional
+        "rest", "obs" or None = "rest" (a survey's targets always have redshifts).
+    z_switch : float, optional
+        ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field).
+    fields : tuple of str, optional
+        The two fields.
+    config, search, conventions : optional
+        Of the batch ETC (:func:`slicersim.etc.solve_many`).
+    overhead : float, optional
+        Overhead [s per target], for the totals (module docstring).
+    efficiency : float, optional
+        Observing efficiency, in (0, 1], for the totals.
+    compression_ratio : float, optional
+        ≥ 1, for the totals.
+    per_resolution : bool, optional
+        SNR per resolution element (else per bin).
+    progress : bool or None, optional
+        The batch ETC's bar (None: when stderr is a terminal).
+    detector_shape : tuple of int, optional
+        (ny, nx) of the volume (default: the field's).
+    precision : {"auto", "double", "single"}, optional
+        Of the batch ETC's band-variance kernel.
+    allow_partial : bool, optional
+        A band partly outside the grid or the spectrum is answered on its covered part
+        (default); False: such a target fails with the coverage error (as the single-target
+        ETC).
     """
     snr: float = 20.0
     lbda_range: tuple = (4000.0, 6800.0)

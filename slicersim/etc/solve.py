@@ -82,19 +82,32 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
 class SolveOptions:
     """How :func:`solve_batch` solves: every option of :func:`solve_many` except the per-target data.
 
-    frame : "rest", "obs" or None (default: "rest" when ``redshifts`` are given, else "obs"): the
-        frame ``lbda_ranges`` are given in
-    config, field : instrument (see :func:`slicersim.targets.build_simulation`)
-    search : "exact" or "reference"
-    per_resolution : the target SNR is per resolution element (default) or per bin
-    backend : "auto", "opencl" or "numpy";  precision : "auto", "double" or "single" for the
-        band-variance kernel (:mod:`slicersim.backends.precision`, product ``"batch_etc"``)
-    max_bytes : memory budget [bytes] of one chunk of targets
-    progress : None (a bar only when stderr is a terminal), True or False
-    conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
-    allow_partial : bands partly outside the grid (≥ 50 % inside) or the input spectrum are
-        answered on the covered part with one BandCoverageWarning naming the targets (default,
-        batch); False raises SpectrumError (:mod:`slicersim.snr.bands`)
+    Parameters
+    ----------
+    frame : {"rest", "obs"} or None, optional
+        The frame ``lbda_ranges`` are given in (default: "rest" when ``redshifts`` are given,
+        else "obs").
+    config, field : optional
+        Instrument (see :func:`slicersim.build_simulation`).
+    search : {"exact", "reference"}, optional
+        The readout search.
+    per_resolution : bool, optional
+        The target SNR is per resolution element (default) or per bin.
+    backend : {"auto", "opencl", "numpy"}, optional
+        Where the band variances are computed.
+    max_bytes : int, optional
+        Memory budget of one chunk of targets [bytes].
+    progress : bool or None, optional
+        None (a bar only when stderr is a terminal), True or False.
+    conventions : {"physical", "slicersim-1.0"}, optional
+        "physical" (default) or "slicersim-1.0" (``slicersim.physics.conventions``).
+    allow_partial : bool, optional
+        Bands partly outside the grid (≥ 50 % inside) or the input spectrum are answered on
+        the covered part with one BandCoverageWarning naming the targets (default, batch);
+        False raises SpectrumError (``slicersim.snr.bands``).
+    precision : {"auto", "double", "single"}, optional
+        Of the band-variance kernel (``slicersim.backends.precision``, product
+        ``"batch_etc"``).
     """
 
     frame: str | None = None

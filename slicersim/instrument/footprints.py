@@ -12,7 +12,7 @@ detector.  So:
   that slice when any positive cube is projected with the same grid and ``truncate``;
 * **core** of slice s: the same union with no blur (t = 0): the pixels its geometric
   image overlaps;
-* **label image**: slice id per pixel, :data:`NO_SLICE` (−1) where no slice sends light.
+* **label image**: slice id per pixel, ``NO_SLICE`` (−1) where no slice sends light.
   With the 4σ windows neighbouring slices share a few columns of faint tails (the Lazuli
   layouts: pitch 121 px, slices ≤ 116 px long, spots 0.8–1.5 px rms); such a pixel goes
   to the slice whose core is nearest to it (distance [px] along its row, or from the core's
@@ -148,7 +148,7 @@ class SliceFootprint:
     core : numpy.ndarray of shape (h, w)
         Pixels of the slice's core, in the same box.
     outlines : tuple
-        Outlines of the mask (see ``mask_outlines`` in :mod:`slicersim.instrument.footprints`).
+        Outlines of the mask (see ``mask_outlines`` in ``slicersim.instrument.footprints``).
     lbda_range : tuple of float
         (min, max) wavelength of the slice [Å].
     trace_lbda : numpy.ndarray of shape (nλ,)
@@ -268,7 +268,7 @@ class FieldFootprints:
         return {s: fp.contour for s, fp in self._fp.items()}
 
     def label_image(self):
-        """(rows, cols) int32 image: slice id per pixel, :data:`NO_SLICE` where no light
+        """(rows, cols) int32 image: slice id per pixel, ``NO_SLICE`` where no light
         falls; shared pixels go to the slice with the nearest core (module docstring)."""
         if self._label is None:
             label = np.full(self.detector_shape, NO_SLICE, np.int32)

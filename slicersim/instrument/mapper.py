@@ -211,7 +211,7 @@ class SlicerMapper:
     @classmethod
     def default(cls, **kwargs):
         """slicersim's own Lazuli layout (``data/lazuli/lazuli_spots.csv``), for cubes of the CBE
-        configuration: ``cube_blur_px`` = :func:`aberration_sigma_px` of its dispersion resolution."""
+        configuration: ``cube_blur_px`` = ``aberration_sigma_px`` of its dispersion resolution."""
         kwargs.setdefault("cube_blur_px", aberration_sigma_px(_cbe_dispersion_resolution()))
         return cls._from_columns(_default_table(str(DEFAULT_SPOT_TABLE)), 10.0, (4096, 4096), **kwargs)
 
@@ -456,10 +456,10 @@ class SlicerMapper:
 
     def projection_tables(self, slices, ncol, lbda_edges, *, oversample=(1, 1), truncate=4.0,
                           weights_dtype=np.float32, block=None, backend="auto"):
-        """:class:`~slicersim.backends.projection.DepositTables` for a field and λ grid.
+        """``slicersim.backends.projection.DepositTables`` for a field and λ grid.
 
-        With a disk cache (``table_cache``, see :mod:`slicersim.io.table_cache`) the tables
-        are built once per content key (:func:`~slicersim.backends.projection.table_key`: the
+        With a disk cache (``table_cache``, see ``slicersim.io.table_cache``) the tables
+        are built once per content key (``slicersim.backends.projection.table_key``: the
         cell boxes, grid, truncation, dtype, backend, code version) and read back
         memory-mapped; nothing is kept in this object but the key, so the tables leave memory
         when the caller drops them.  Without one (or when it cannot be written) they are kept
@@ -556,7 +556,7 @@ class SlicerMapper:
         out : (rows, cols) float64 array, optional
             accumulated into in place.
         precision : "auto" (default), "double" or "single": of the deposit
-            (:func:`~slicersim.backends.projection.deposit`; the tables are built in double),
+            (``slicersim.backends.projection.deposit``; the tables are built in double),
             checked before any work.
         """
         precision = resolve_precision(precision, backend, "projection")[1]

@@ -241,7 +241,7 @@ class Spectrograph(Versioned):
     #: pixels a cell's monochromatic image covers (slicer: its 2-px slit image)
     pixels_per_cell = 1
     #: pixels a cell owns per native bin (one row along the dispersion; see
-    #: :func:`slicersim.physics.conventions.detector_pixels_per_cell`)
+    #: ``slicersim.physics.conventions.detector_pixels_per_cell``)
     pixels_per_bin = 1
     kind = "generic"
     mutable_parameters = ("spectral_range", "dispersion_law", "dispersion_scale", "dispersion_resolution",

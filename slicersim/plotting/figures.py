@@ -58,7 +58,7 @@ def check_axes(ax, count=None, what="Axes"):
 
     Parameters
     ----------
-    ax : matplotlib.axes.Axes or sequence of Axes
+    ax : matplotlib.axes.Axes or sequence of matplotlib.axes.Axes
         One Axes, or a sequence of ``count`` of them.
     count : int, optional
         The number of Axes required (any count when None).
@@ -199,7 +199,7 @@ def new_axes(ax=None, **subplots):
     -------
     fig : matplotlib.figure.Figure
         ``ax``'s figure, else a new figure.
-    axes : matplotlib.axes.Axes or numpy.ndarray of Axes
+    axes : matplotlib.axes.Axes or numpy.ndarray
         ``ax``, else the new axes.
     """
     if ax is not None:

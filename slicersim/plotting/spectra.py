@@ -110,7 +110,7 @@ def plot_spectrum(target_or_sim, ax=None, seed=None, savefile=None):
     ----------
     target_or_sim : Target or Simulation
         What is drawn.
-    ax : matplotlib.axes.Axes or sequence of Axes, optional
+    ax : matplotlib.axes.Axes or sequence of matplotlib.axes.Axes, optional
         None (new figure), a pair of Axes (spectrum, SNR) or a single Axes (spectrum panel
         only).
     seed : int or numpy.random.Generator, optional

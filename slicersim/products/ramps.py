@@ -54,13 +54,22 @@ DEFAULT_MAX_BYTES = 2**29
 class RampIO:
     """What :func:`simulate` writes, and how (the ``io`` options).
 
-    format : ``"hdf5"`` (group-level file, :mod:`slicersim.io.rampfile`) or ``"jwst-uncal"`` (JWST
-        level-1b FITS, :mod:`slicersim.io.uncal`); None: ``jwst-uncal`` for a ``.fits`` name, else hdf5
-    overwrite : replace an existing output (default: refuse with RampFileError)
-    compression : HDF5 compression (:func:`slicersim.io.rampfile.compression_options`), None: none
-    truth : write ``truth/rate`` (and the effects' truth) to the file
-    config : configuration recorded in the CONFIG attribute
-    return_dq : with ``out=None``, also return GROUPDQ in memory
+    Parameters
+    ----------
+    format : {"hdf5", "jwst-uncal"}, optional
+        ``"hdf5"`` (group-level file, ``slicersim.io.rampfile``) or ``"jwst-uncal"`` (JWST
+        level-1b FITS, ``slicersim.io.uncal``); None: ``jwst-uncal`` for a ``.fits`` name, else
+        hdf5.
+    overwrite : bool, optional
+        Replace an existing output (default: refuse with RampFileError).
+    compression : str or dict, optional
+        HDF5 compression (``slicersim.io.rampfile.compression_options``), None: none.
+    truth : bool, optional
+        Write ``truth/rate`` (and the effects' truth) to the file.
+    config : dict, optional
+        Configuration recorded in the CONFIG attribute.
+    return_dq : bool, optional
+        With ``out=None``, also return GROUPDQ in memory.
     """
 
     format: str | None = None
@@ -82,10 +91,17 @@ class RampIO:
 @validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
-    """How :func:`simulate` computes: ``max_bytes`` [bytes] of host memory for the row blocks (and,
-    with correlated noise, a third of it for its cached segments); ``progress`` (None: a bar only
-    when stderr is a terminal); ``work_group``: OpenCL local size (None: 64 on CPUs, the runtime's
-    on GPUs; never changes the result)."""
+    """How :func:`simulate` computes.
+
+    Parameters
+    ----------
+    max_bytes : int, optional
+        Host memory for the row blocks [bytes] (and, with correlated noise, a third of it for
+        its cached segments).
+    progress : bool or None, optional
+        Progress bar (None: a bar only when stderr is a terminal).
+    work_group : int, optional
+        OpenCL local size (None: 64 on CPUs, the runtime's on GPUs; never changes the result)."""
 
     max_bytes: int = DEFAULT_MAX_BYTES
     progress: bool | None = None
@@ -103,9 +119,16 @@ class RunOptions:
 @validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class DetectorMaps:
-    """Per-pixel inputs of :func:`simulate`, each (ny, nx) or None: ``dead_pixels`` (bool, collecting
-    no charge), ``pixeldq`` (uint32 JWST flags), ``previous_charge`` [e-] of the previous exposure
-    (for the ``persistence`` effect)."""
+    """Per-pixel inputs of :func:`simulate`, each of shape (ny, nx) or None.
+
+    Parameters
+    ----------
+    dead_pixels : numpy.ndarray of shape (ny, nx), optional
+        bool: pixels collecting no charge.
+    pixeldq : numpy.ndarray of shape (ny, nx), optional
+        uint32 JWST flags.
+    previous_charge : numpy.ndarray of shape (ny, nx), optional
+        Charge of the previous exposure [e-] (for the ``persistence`` effect)."""
 
     dead_pixels: object = None
     pixeldq: object = None
@@ -114,9 +137,20 @@ class DetectorMaps:
 
 @dataclass(frozen=True)
 class RampResult:
-    """What :func:`simulate` made: ``seed`` (the one used: record it to repeat the run), ``path`` of the
-    file (None in memory), ``sci`` (nramps, ngroups, ny, nx) uint16 and ``groupdq`` uint8 in memory
-    (None with a file; GROUPDQ only with ``io.return_dq``), ``attrs`` (the file's root attributes)."""
+    """What :func:`simulate` made.
+
+    Parameters
+    ----------
+    seed : int
+        The seed used: record it to repeat the run.
+    path : str, optional
+        Path of the file (None in memory).
+    sci : numpy.ndarray of shape (nramps, ngroups, ny, nx), optional
+        uint16 ramps [ADU] in memory (None with a file).
+    groupdq : numpy.ndarray of shape (nramps, ngroups, ny, nx), optional
+        uint8 GROUPDQ in memory (None with a file; only with ``io.return_dq``).
+    attrs : dict, optional
+        The file's root attributes."""
 
     seed: int
     path: str | None = None

@@ -192,23 +192,14 @@ def _refpix_terms(src, bias, kw):
 class FitOptions:
     """Options of :func:`fit_ramps` (every keyword of its keyword form).
 
-    refpix : None (when the file's EFFECTS has reference_pixels), True, False, or refpix_correct options
-    linearity : None (the file's truth coefficients when present), False, "truth" (required), or
-        coefficients (k, ny, nx) of the JWST convention (corrected DN = Σ c_k DN^k, bias removed)
-    superbias : bias [DN] removed before the corrections: None (``truth/bias``, else the BIAS keyword),
-        a number or an (ny, nx) map
-    jump_threshold : σ of the two-point-difference jump test (None or 0: no detection)
-    weighting : "gls" (exact MACC covariance) or "ols" (unweighted; its variance is Rauscher07's)
-    gain [DN/e-], ron [electron] (read noise per frame), saturation [DN]: override the file's GAIN,
-        READNOISE, SATURATION (default 65535 for integer data); an astropy Quantity is converted
-    with_truth : also load ``truth/rate`` [e-/s] (RampFileError if the file has none)
-    return_groupdq : keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx)
-    max_bytes : bytes for the row blocks in flight;  backend : "auto", "opencl", "numpy"
-    progress : progress bar (None: when stderr is a terminal and there are more than 8 row blocks)
-
     The keyword form also takes the deprecated names ``read_noise`` (→ ``ron``) and
     ``memory_budget`` (→ ``max_bytes``) with a DeprecationWarning (:meth:`from_keywords`).
-    work_group : OpenCL local size
+
+    Parameters
+    ----------
+    refpix, linearity, superbias, jump_threshold, weighting, gain, ron, saturation, with_truth, \
+return_groupdq, max_bytes, backend, progress, work_group
+        As :func:`fit_ramps`.
     """
 
     refpix: object = None

@@ -12,7 +12,7 @@ user cube.  Hosts and cubes may carry the ``redshift`` they are seen at:
 ``at_redshift(z)`` moves them at fixed proper size and luminosity
 (:mod:`slicersim.sources.cosmology`).  Image and cube resampling is exact (pixel ∩ cell
 areas) and runs over blocks of input rows within ``max_bytes`` (default
-:data:`HOST_MAX_BYTES`), so inputs larger than the memory budget are processed in pieces.
+``HOST_MAX_BYTES``), so inputs larger than the memory budget are processed in pieces.
 """
 from __future__ import annotations
 
@@ -117,7 +117,7 @@ class SersicProfile(Versioned):
     def cell_fractions(self, shape, spatial_scale, oversampling=None):
         """(ny, nx) fraction of the total flux in each cell of side ``spatial_scale``
         [arcsec]: exact polar integration (~1e-12 per cell, cusp included), or the
-        midpoint rule on oversampling² sub-cells (``oversampling`` per side) (see :func:`integrate_radial_cells`)."""
+        midpoint rule on oversampling² sub-cells (``oversampling`` per side) (see ``integrate_radial_cells``)."""
         return integrate_radial_cells(self.geometry, [self.radial_profile], shape, spatial_scale,
                                       oversampling)[0]
 

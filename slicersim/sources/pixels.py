@@ -4,9 +4,9 @@ Cell grid (see :mod:`slicersim.physics.psf`): cell (j, k) of an (ny, nx) field o
 cells of side s [arcsec] spans x ∈ [(k − nx/2) s, (k + 1 − nx/2) s],
 y ∈ [(j − ny/2) s, (j + 1 − ny/2) s] relative to the field centre.  An input pixel is
 uniformly bright and shares its flux among cells in proportion to the exact overlap areas
-(:func:`resample_pixels`); inputs are read in blocks of rows within a memory budget
-(:data:`HOST_MAX_BYTES`).  :class:`CubeSource` is a user cube placed on the field; its
-resampled cubes are cached (:class:`ResampleCache`), keyed by content.
+(``resample_pixels``); inputs are read in blocks of rows within a memory budget
+(``HOST_MAX_BYTES``).  :class:`CubeSource` is a user cube placed on the field; its
+resampled cubes are cached (``ResampleCache``), keyed by content.
 """
 from __future__ import annotations
 
@@ -166,7 +166,7 @@ def resample_pixels(read, in_shape, pixel_scale, centre, rotation, shape, spatia
     columns j0 … j1 − 1 (any units).  The input grid has pixels of side ``pixel_scale`` [arcsec],
     its geometric centre at ``centre`` (x, y) [arcsec] and is rotated by ``rotation`` [deg]
     counter-clockwise.  Rows and columns that cannot touch the field are never read; the others
-    are read in blocks of rows sized to ``max_bytes`` (default :data:`HOST_MAX_BYTES`), so the
+    are read in blocks of rows sized to ``max_bytes`` (default ``HOST_MAX_BYTES``), so the
     input may be larger than memory (a numpy memmap, an h5py dataset).  Exact overlaps:
     separable for rotation = 0, polygon areas otherwise.
 
@@ -294,12 +294,12 @@ class CubeSource(Versioned):
     Notes
     -----
     Spatial resampling: each input pixel is uniformly bright and shares its flux among
-    cells in proportion to the exact overlap areas (:func:`resample_pixels`), in groups of
+    cells in proportion to the exact overlap areas (``resample_pixels``), in groups of
     output planes of a fixed size (so each plane's result does not depend on the grid it is
     asked with).  Wavelength: F_λ linearly interpolated in λ (flux density, not integrated
     over bins); grids beyond [lbda_in[0], lbda_in[-1]] raise SpectrumError; only the input
     planes the grid needs are read.  Results are cached per (grid, placement, redshift)
-    (:class:`ResampleCache`, ``cache``): the cube's values must not change in place afterwards.
+    (``ResampleCache``, ``cache``): the cube's values must not change in place afterwards.
     """
 
     def __init__(self, cube, lbda_in, pixel_scale, centre=(0.0, 0.0), rotation=0.0, flux_scale=1.0,

@@ -139,7 +139,7 @@ def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-1
     cosmology : astropy.cosmology.Cosmology, optional
         For the distance modulus (default Planck18).
     phase_frame : {"rest", "obs"}
-        Frame of ``phase`` (:func:`slicersim.physics.conventions.phase_frame`: "rest" by default,
+        Frame of ``phase`` (``slicersim.physics.conventions.phase_frame``: "rest" by default,
         "obs" under ``conventions="slicersim-1.0"``).
 
     Returns
@@ -187,7 +187,7 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
     lbda : array_like of shape (k,), optional
         Wavelengths [Å] (default 3000–19990 Å, 10 Å).
     phase_frame : {"rest", "obs"}
-        Frame of ``phase`` (:func:`slicersim.physics.conventions.phase_frame`).
+        Frame of ``phase`` (``slicersim.physics.conventions.phase_frame``).
 
     Returns
     -------

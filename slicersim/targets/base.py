@@ -69,7 +69,7 @@ class Target(DetectorProducts):
         "cbe", "eol", a TOML path or a list of them.
     field : {"narrow", "wide"} or None, optional
         The Lazuli field, or None.  A target has exactly one field: the default is "narrow"
-        when the configuration has Lazuli field throughputs (:func:`config_default_field`),
+        when the configuration has Lazuli field throughputs (``config_default_field``),
         None for single-channel configurations; None with a several-column throughput raises
         (columns are never multiplied).
     position : tuple of float, optional
@@ -80,9 +80,9 @@ class Target(DetectorProducts):
         else in the observer frame (``frame=None``; ``"rest"`` / ``"obs"`` explicit).
     conventions : {"physical", "slicersim-1.0"}, optional
         "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly (gain in
-        the variance, instrumental blur; :mod:`slicersim.physics.conventions`).
+        the variance, instrumental blur; ``slicersim.physics.conventions``).
     host : str, dict, GalaxyModel, Host or CubeSource, optional
-        Host galaxy (see :meth:`set_host`): a model name ("sersic:bb-5000", "ngc0628",
+        Host galaxy (see :meth:`~slicersim.Target.set_host`): a model name ("sersic:bb-5000", "ngc0628",
         "sersic:ngc2403", ...), a dict with ``refmodel`` and parameters (1.4.2), a
         :class:`~slicersim.sources.galaxies.GalaxyModel`, a ``Host`` or a ``CubeSource``.
     """
@@ -651,7 +651,7 @@ class Supernova(Target):
     absolute magnitude ``peak_absmag`` in Bessell B (AB, Planck18), at ``phase`` days from
     B-band maximum in the SN's rest frame (the frame of populations, campaigns, survey plans,
     the CLI and every file that records it; observer-frame days under
-    ``conventions="slicersim-1.0"``, as in slicersim 1.0: :func:`~slicersim.physics.conventions.phase_frame`).
+    ``conventions="slicersim-1.0"``, as in slicersim 1.0: ``slicersim.physics.conventions.phase_frame``).
 
     Parameters
     ----------
@@ -666,7 +666,7 @@ class Supernova(Target):
     config, field, position, conventions, host
         As :class:`Target`.
     **kwargs
-        The SN model's keywords of :func:`~slicersim.sources.spectra.snia_spectrum` (``band``,
+        The SN model's keywords of ``slicersim.sources.spectra.snia_spectrum`` (``band``,
         ``magsys``, ``lbda``, ``x1``, ``c``, ``cosmology``).
     """
 

@@ -157,10 +157,12 @@ def _check_structure(structure):
 class Flat3DCalibration(Target):
     """A calibration exposure: a lamp filling the field uniformly, observed with an instrument.
 
-    Products: :meth:`get_cube` (signal [ADU], variance [ADU²], noisy with a seed),
-    :meth:`get_detector_image` (e-/s/px, both fields lit), :meth:`get_ramps` (raw MACC ramps),
-    :meth:`get_scene_cube` (the lamp before the instrument), :meth:`get_lamp_spectrum`.
-    The readout is set with :meth:`change_detector` (default: the configuration's).
+    Products: :meth:`~slicersim.Flat3DCalibration.get_cube` (signal [ADU], variance [ADU²],
+    noisy with a seed), :meth:`~slicersim.Flat3DCalibration.get_detector_image` (e-/s/px, both
+    fields lit), :meth:`~slicersim.Target.get_ramps` (raw MACC ramps),
+    :meth:`~slicersim.Flat3DCalibration.get_scene_cube` (the lamp before the instrument),
+    :meth:`~slicersim.Flat3DCalibration.get_lamp_spectrum`.  The readout is set with
+    :meth:`~slicersim.Target.change_detector` (default: the configuration's).
 
     Parameters
     ----------
@@ -224,7 +226,7 @@ class Flat3DCalibration(Target):
         """The QTH lamp through a Fabry–Perot etalon (``mag``: the lamp's, before the etalon).
 
         Airy etalon: ``fsr`` [cm⁻¹] or ``optical_thickness`` n·d [µm] (default fsr
-        :data:`DEFAULT_ETALON_FSR`), ``finesse`` (default :data:`DEFAULT_ETALON_FINESSE`),
+        ``DEFAULT_ETALON_FSR``), ``finesse`` (default ``DEFAULT_ETALON_FINESSE``),
         ``peak_transmission`` (default 1).  Or 1.4.2's tabulated form: ``fp_throughput`` = a
         CSV/ECSV with a ``transmission`` column, a callable T(λ [Å]) or an etalon object."""
         airy = dict(fsr=fsr, finesse=finesse, optical_thickness=optical_thickness,
@@ -339,13 +341,13 @@ class Flat3DCalibration(Target):
 
         ``which``: "current" (this field), "narrow", "wide" or "both" (a tuple (narrow, wide), as 1.4.2).
         ``switch_off``: components left out, the rule of every cube
-        (:mod:`slicersim.products.components`: "background" is the lamp, "thermal" the instrument's
+        (``slicersim.products.components``: "background" is the lamp, "thermal" the instrument's
         light, detector terms leave the variance; "pointsource" / "host" are absent anyway).
         One computation with or without flat-field structure: QE · (t_row LSF[lamp] + LSF[thermal])
         per row, × the cell response with pixel structure, then ``Simulation.cell_variance``
         (saturated cells NaN / +inf); noise as every cube (Philox, stream 0, voxel index).
         ``options``: ``dtype`` (float64 / float32); ``precision`` ("auto", "double" or "single": of the
-        noise draw, :func:`slicersim.backends.noise.noisy_cube`; the cubes themselves are NumPy, double);
+        noise draw, ``slicersim.backends.noise.noisy_cube``; the cubes themselves are NumPy, double);
         ``psf_profile``, ``max_bytes``, ``progress``, ``psf_options`` are accepted as for any cube and
         unused (a uniform scene needs no PSF)."""
         from slicersim.backends.precision import check_precision, resolve_precision
@@ -426,8 +428,9 @@ class Flat3DCalibration(Target):
     def get_detector_image(self, mapper=None, backend="auto", precision="auto"):
         """Photo-electron rate on the H4RG [e-/s/px] with both fields lit (flux-conserving
         projection), times the pixel response when ``structure`` has one.  Dark current, thermal
-        dark and ROIC glow are added by :meth:`get_ramps`.  ``precision``: of the projection's
-        deposit, checked first (as :meth:`DetectorProducts.get_detector_image`)."""
+        dark and ROIC glow are added by :meth:`~slicersim.Target.get_ramps`.  ``precision``: of
+        the projection's deposit, checked first (as
+        :meth:`Target.get_detector_image <slicersim.Target.get_detector_image>`)."""
         precision = resolve_precision(precision, backend, "projection")[1]
         mapper = default_mapper() if mapper is None else mapper
         image = np.zeros(mapper.detector_shape)

@@ -185,7 +185,7 @@ class DetectorProducts:
 
         Parameters
         ----------
-        ax : matplotlib.axes.Axes or sequence of Axes, optional
+        ax : matplotlib.axes.Axes or sequence of matplotlib.axes.Axes, optional
             None (new figure), a pair of Axes (spectrum, SNR) or a single Axes.
         seed : int, optional
             If given, a noisy realisation is drawn as points.

@@ -3,7 +3,7 @@
 ``LazuliGalaxy(0.5, model="ngc0628", aperture="2-kpc").setup_to_snr(10)`` is the exposure
 needed for SNR 10 per resolution element in the galaxy light within 2 proper kpc.  The galaxy
 is the host model of the point-source targets (:mod:`slicersim.sources.galaxies`) rendered at
-``redshift``; the extraction follows :mod:`slicersim.products.extraction`.
+``redshift``; the extraction follows ``slicersim.products.extraction``.
 """
 from __future__ import annotations
 

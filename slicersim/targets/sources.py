@@ -6,7 +6,7 @@ band that needs a download raises SpectrumError saying how to provide its files)
 
 * :class:`PowerLaw` — F_λ ∝ (λ / 5500 Å)^α (slicersim 1.4.2's convention), ``mag`` in ``band``;
 * :class:`SncosmoTarget` — ``sncosmo.Model(source)`` at a redshift and phase;
-* :class:`Kilonova` — a POSSIS model file (:mod:`slicersim.sources.kilonova`) through sncosmo;
+* :class:`Kilonova` — a POSSIS model file (``slicersim.sources.kilonova``) through sncosmo;
 * :class:`CalSpec` — a CALSPEC FITS file (absolute flux; optional renormalisation).
 
 Each has a ``Lazuli*`` variant (Lazuli IFS, CBE configuration, narrow field by default).
@@ -87,7 +87,7 @@ class PowerLaw(Target):
 
 class SncosmoTarget(Target):
     """Any sncosmo source at ``redshift`` and ``phase`` [rest-frame days from t0 = 0]:
-    F_λ = ``sncosmo.Model(source).flux(phase (1 + z), λ)`` (:func:`~slicersim.sources.spectra.sncosmo_spectrum`;
+    F_λ = ``sncosmo.Model(source).flux(phase (1 + z), λ)`` (``slicersim.sources.spectra.sncosmo_spectrum``;
     under ``conventions="slicersim-1.0"`` ``phase`` is observer-frame days, as in slicersim 1.0).
 
     ``update(redshift=...)`` recomputes the spectrum with the same normalisation rule.
@@ -147,7 +147,7 @@ class SncosmoTarget(Target):
 
 
 class Kilonova(SncosmoTarget):
-    """Kilonova from a POSSIS model file (``.txt`` or ``.fits``; :mod:`slicersim.sources.kilonova`)
+    """Kilonova from a POSSIS model file (``.txt`` or ``.fits``; ``slicersim.sources.kilonova``)
     at ``redshift``, ``phase`` [rest-frame days since merger; observer-frame under
     ``conventions="slicersim-1.0"``] and viewing angle ``theta``
     [deg, 0 pole-on … 90 edge-on].
