@@ -52,14 +52,15 @@ nitpick_ignore_regex = [
     (r"py:.*", r"(numpy|astropy|matplotlib|h5py|sncosmo|distributed|dask|scipy|pyopencl|os|pathlib|io"
                r"|contextlib|collections|typing)(\..+)?"),
     # numpydoc type vocabulary ("array_like of shape (n,), optional"): words, not objects
-    (r"py:class", r"optional|default|array_like|sequence|iterable|callable|path|file object|scalar"),
+    (r"py:class", r"optional|default|array_like|sequence|iterable|callable|path-like|file object|scalar"),
     # sizes and dimension names of "of shape (nλ, ny, nx)", "(S, J, M, 4)", "(S, J−1, M−1)"
     (r"py:class", r"\d+|[A-Za-z]|h|w|ny|nx|nλ|nλ\+1|nλ_in|ny_in|nx_in|rows|cols|n_rows|n_cols|nints"
                   r"|ngroups|nramps|[A-Z][−-]1"),
     # literal values of type fields ({"rest", "obs"}, "narrow")
     (r"py:class", r"""[{"'].*|.*["'}]"""),
     # base classes outside the public API, shown by ``show-inheritance``
-    (r"py:class", r"slicersim\.versioning\.Versioned|slicersim\.targets\.detector\.DetectorProducts|slicersim\.[\w.]*\._\w+"),
+    (r"py:class", r"slicersim\.versioning\.Versioned|slicersim\.targets\.detector\.DetectorProducts"
+                  r"|slicersim\.[\w.]*\._\w+"),
 ]
 
 sphinx_gallery_conf = {

@@ -63,7 +63,7 @@ def build_simulation(config="cbe", field="narrow", pointsource=None, background=
 
     Parameters
     ----------
-    config : str, path, list or dict, optional
+    config : str, path-like, list or dict, optional
         "cbe", "eol", TOML path(s) or a configuration dict, as :func:`~slicersim.load_config`.
     field : {"narrow", "wide"} or None, optional
         The Lazuli field; None uses the configuration as written (single-channel

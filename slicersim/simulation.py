@@ -160,8 +160,21 @@ class Simulation(Versioned):
         self.apply_update(self.plan_update(_position, **kwargs))
 
     def plan_update(self, _position=None, **kwargs):
-        """The validated new state of :meth:`update` (``SimulationUpdate``), nothing changed:
-        targets validate their own parts against it before :meth:`apply_update`."""
+        """The validated new state of :meth:`update`, nothing changed: targets validate their
+        own parts against it before :meth:`apply_update`.
+
+        Parameters
+        ----------
+        _position : tuple of float, optional
+            As :meth:`update`.
+        **kwargs
+            As :meth:`update`.
+
+        Returns
+        -------
+        SimulationUpdate
+            The new state, for :meth:`apply_update`.
+        """
         check_parameter_names("simulation", kwargs, self.mutable_parameters)
         groups = {"detector": {}, "spectrograph": {}, "telescope": {}}
         own = {}
@@ -183,7 +196,18 @@ class Simulation(Versioned):
         return SimulationUpdate(self, new, nramps, aperture)
 
     def apply_update(self, plan):
-        """Apply a :meth:`plan_update` result of this simulation (nothing here can fail)."""
+        """Apply a :meth:`plan_update` result of this simulation (nothing here can fail).
+
+        Parameters
+        ----------
+        plan : SimulationUpdate
+            The validated new state.
+
+        Returns
+        -------
+        None
+            The simulation is changed in place.
+        """
         if plan.simulation is not self:
             raise ParameterError("plan: this update was planned for another simulation (apply_update takes the "
                                  "plan_update result of the same simulation)")
@@ -259,8 +283,18 @@ class Simulation(Versioned):
         return self.telescope.area * self.spectrograph.cell_solid_angle * self.spectrograph.dlbda * radiance
 
     def thermal_photons_of(self, which):
-        """Thermal photons per cell [ph/s/cell] (before LSF) of ``which``: "telescope" (mirrors)
-        or "optics" (the dispersed internal optics)."""
+        """Thermal photons per cell [ph/s/cell] (before LSF).
+
+        Parameters
+        ----------
+        which : {"telescope", "optics"}
+            "telescope" (mirrors) or "optics" (the dispersed internal optics).
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ,)
+            The thermal photons [ph/s/cell].
+        """
         return self._thermal_photons(validation.choice("which", which, ("telescope", "optics")))
 
     @property
@@ -270,8 +304,19 @@ class Simulation(Versioned):
                             + self._thermal_photons("optics"))
 
     def uniform_photons(self, switch_off=None):
-        """(background, thermal) photons per cell [ph/s/cell] (nλ,) each, before the LSF, with the
-        terms ``switch_off`` removes set to 0 (rule: ``slicersim.products.components``)."""
+        """(background, thermal) photons per cell, before the LSF, with the terms ``switch_off``
+        removes set to 0 (rule: ``slicersim.products.components``).
+
+        Parameters
+        ----------
+        switch_off : str or sequence of str, optional
+            Components left out.
+
+        Returns
+        -------
+        background, thermal : numpy.ndarray of shape (nλ,)
+            Photons per cell [ph/s/cell].
+        """
         on = uniform_terms_on(as_switched_off(switch_off))
         zero = np.zeros_like(self.lbda)
         background = self.background_photons if "background" in on else zero
@@ -322,7 +367,13 @@ class Simulation(Versioned):
                                                                self.aperture_radius))
 
     def get_psf(self):
-        """PSF cube P[λ, y, x] (fraction of the point-source flux per cell)."""
+        """PSF cube P[λ, y, x] (fraction of the point-source flux per cell).
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            The PSF cube.
+        """
         sig_y, sig_x = self.psf_sigmas
         return gaussian_psf_fractions(sig_y, sig_x, self.spectrograph.shape, self.position)
 
@@ -377,7 +428,18 @@ class Simulation(Versioned):
         return self.detector.data_volume(nmd, nramps)
 
     def effective_dark(self, off=None):
-        """Dark + ROIC glow / t_f + thermal dark [e-/s/px], with the sources ``off`` removed."""
+        """Dark + ROIC glow / t_f + thermal dark [e-/s/px], with the sources ``off`` removed.
+
+        Parameters
+        ----------
+        off : str or sequence of str, optional
+            Components switched off (names of ``VARIANCE_SOURCES``).
+
+        Returns
+        -------
+        float or numpy.ndarray
+            The effective dark [e-/s/px].
+        """
         det, off = self.detector, as_switched_off(off)
         dark = 0.0 if "dark" in off else det.dark
         glow = 0.0 if "roic_glow" in off else det.roic_glow
@@ -385,7 +447,18 @@ class Simulation(Versioned):
         return dark + glow / det.tframe + dth
 
     def read_noise(self, off=None):
-        """Read noise per frame [electron]: the detector's, 0 when ``"ron"`` is switched off."""
+        """Read noise per frame [electron]: the detector's, 0 when ``"ron"`` is switched off.
+
+        Parameters
+        ----------
+        off : str or sequence of str, optional
+            Components switched off (names of ``VARIANCE_SOURCES``).
+
+        Returns
+        -------
+        float
+            The read noise per frame [electron].
+        """
         return 0.0 if "ron" in as_switched_off(off) else self.detector.ron
 
     @property
@@ -395,8 +468,25 @@ class Simulation(Versioned):
         return detector_pixels_per_cell(self.spectrograph, self._conventions)
 
     def cell_variance(self, cell_rate, nmd, off=None):
-        """Per-cell variance [ADU²] over one ramp for a cell electron rate [e-/s/cell], with the
-        detector terms ``off`` removed; saturated cells get +inf."""
+        """Per-cell variance [ADU²] over one ramp for a cell electron rate, with the detector
+        terms ``off`` removed; saturated cells get +inf.
+
+        Parameters
+        ----------
+        cell_rate : numpy.ndarray
+            Electron rate per cell [e-/s/cell].
+        nmd : tuple of int
+            Readout (n, m, d).
+        off : str or sequence of str, optional
+            Components switched off (names of ``VARIANCE_SOURCES``).
+
+        Returns
+        -------
+        variance : numpy.ndarray
+            The variance [ADU²], of the shape of ``cell_rate`` (+inf where saturated).
+        saturated : numpy.ndarray
+            bool, the saturated cells.
+        """
         det, ppc = self.detector, self.detector_pixels_per_cell
         dark = self.effective_dark(off)
         ron = self.read_noise(off)
@@ -409,7 +499,22 @@ class Simulation(Versioned):
     # ------------------------------------------------------------------ cubes
     def get_projected_scene(self, switch_off=None, psf_profile="gaussian", backend="auto"):
         """Photon cube C[λ, y, x] = LSF[F f2p P] + LSF[host] + LSF[B f2p s² + N_th] [ph/s/cell]:
-        the sum of the scene components (:meth:`get_scene_cubes`) left on by ``switch_off``."""
+        the sum of the scene components (:meth:`get_scene_cubes`) left on by ``switch_off``.
+
+        Parameters
+        ----------
+        switch_off : str or sequence of str, optional
+            Components left out, as :meth:`get_cube`.
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF profile.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            The photon cube [ph/s/cell].
+        """
         rates = scene_photon_rates(self, check_switch_off(switch_off), psf_profile, backend)
         cube = np.broadcast_to((rates["background"] + rates["thermal"])[:, None, None],
                                (self.lbda.size, *self.spectrograph.shape)).copy()
@@ -523,12 +628,36 @@ class Simulation(Versioned):
         return self.get_extraction_model("gaussian")
 
     def aperture_psf(self, psf_profile="gaussian", backend="auto"):
-        """PSF fractions of the aperture cells (nλ, ncell) of a registered profile
-        (``slicersim.products.psf_profiles``: "gaussian", "airy")."""
+        """PSF fractions of the aperture cells of a registered profile
+        (``slicersim.products.psf_profiles``: "gaussian", "airy").
+
+        Parameters
+        ----------
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF profile.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ncell)
+            Fraction of the point-source flux in each aperture cell.
+        """
         return get_psf_profile(psf_profile).cells(self, self.aperture, backend)
 
     def get_extraction_model(self, psf_profile="gaussian"):
-        """``ExtractionModel`` with the cube's PSF model as extraction weights (cached)."""
+        """``ExtractionModel`` with the cube's PSF model as extraction weights (cached).
+
+        Parameters
+        ----------
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF profile.
+
+        Returns
+        -------
+        ExtractionModel
+            The extraction model.
+        """
         def build():
             psf = self.aperture_psf(psf_profile)
             lsf = self.spectrograph.apply_lsf
@@ -594,7 +723,20 @@ class Simulation(Versioned):
         the point-source spectrum, else SpectrumError naming the covered fraction;
         ``allow_partial=True`` accepts a partly covered band (≥ 50 % inside the grid) with
         a BandCoverageWarning, the SNR being that of the covered part
-        (``slicersim.snr.bands``)."""
+        (``slicersim.snr.bands``).
+
+        Parameters
+        ----------
+        lbda_range : tuple of float
+            (lo, hi) [Å, observer frame].
+        allow_partial : bool, optional
+            Accept a partly covered band.
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ,)
+            bool, True for the bins of the band.
+        """
         lo, hi = check_band(lbda_range)
         mask = (self.lbda >= lo) & (self.lbda <= hi)
         if not mask.any():
@@ -605,10 +747,21 @@ class Simulation(Versioned):
         return mask
 
     def band_range(self, lbda_range, frame=None):
-        """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame
-        (rest: ×(1 + redshift); needs ``redshift``); ``frame=None`` (default) is "rest" when
-        ``redshift`` is known, else "obs" (``resolve_frame``).  Bounds may be astropy
-        Quantities (converted to Å)."""
+        """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame.
+
+        Parameters
+        ----------
+        lbda_range : tuple of float or astropy.units.Quantity
+            (lo, hi) [Å] (Quantities are converted to Å).
+        frame : {"rest", "obs"} or None, optional
+            rest: ×(1 + redshift), needs ``redshift``; None (default) is "rest" when ``redshift``
+            is known, else "obs" (``resolve_frame``).
+
+        Returns
+        -------
+        tuple of float
+            (lo, hi) [Å, observer frame].
+        """
         lo, hi = check_band(lbda_range)
         if resolve_frame(frame, self.redshift) == "rest":
             if self.redshift is None:

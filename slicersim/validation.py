@@ -50,7 +50,7 @@ MAX_FRAMES = 65536
 #: luminous source is expected before z ≈ 30 (the first stars); 50 leaves a margin for toy spectra
 MAX_REDSHIFT = 50.0
 #: upper physical bound of the detector numbers wherever they come from (arguments, options, configuration
-#: files; the raw-file keywords' ranges of :data:`slicersim.reduction.checks.ATTR_RANGES`): gain [ADU/e-], read
+#: files; the raw-file keywords' ranges of ``slicersim.reduction.checks.ATTR_RANGES``): gain [ADU/e-], read
 #: noise per frame [electron], dark [e-/s], ROIC glow [e-/frame], frame time [s].  Beyond them the variance
 #: model overflows (ron = 1e300 squared) instead of giving an answer.
 DETECTOR_MAX = {"gain": 1e3, "ron": 1e4, "dark": 1e6, "roic_glow": 1e6, "tframe": 1e4}
@@ -411,8 +411,8 @@ def choice(name, value, valid, *, error=ParameterError, what=None):
 
 def readout(nmd, *, name="nmd", min_group=2, max_group=None, error=ReadoutError) -> tuple[int, int, int]:
     """A MACC readout (n groups, m frames per group, d dropped frames) as three ints:
-    2 ≤ n ≤ ``max_group`` (≤ :data:`MAX_GROUPS`), 1 ≤ m, 0 ≤ d ≤ :data:`MAX_DROPS`, and at most
-    :data:`MAX_FRAMES` frames per ramp.  Non-integers (``2.7``) are refused, not truncated.
+    2 ≤ n ≤ ``max_group`` (≤ :data:`MAX_GROUPS`), 1 ≤ m, 0 ≤ d ≤ ``MAX_DROPS``, and at most
+    ``MAX_FRAMES`` frames per ramp.  Non-integers (``2.7``) are refused, not truncated.
 
     Parameters
     ----------

@@ -360,7 +360,7 @@ def plot_time_and_volume(plans, path, zbins=None, paper=None):
     ----------
     plans : dict
         {label: SurveyPlan}, one curve (median per redshift bin) each.
-    path : str or path
+    path : str or path-like
         Where the figure is saved.
     zbins : array_like, optional
         Edges of the redshift bins of the medians (default: 15 bins over the planned range).
@@ -369,7 +369,7 @@ def plot_time_and_volume(plans, path, zbins=None, paper=None):
 
     Returns
     -------
-    str or path
+    str or path-like
         ``path``, the figure written.
     """
     import matplotlib

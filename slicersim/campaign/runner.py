@@ -421,9 +421,9 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
 
     Parameters
     ----------
-    spec : CampaignSpec or str or path
+    spec : CampaignSpec or str or path-like
         A ``CampaignSpec`` or the path of its TOML file.
-    out : str or path
+    out : str or path-like
         The dataset directory.
     workers : int, optional
         Embedded LocalCluster size (default: the CPU count; at most ``WORKERS_PER_CPU`` (4)
@@ -649,7 +649,7 @@ def campaign_status(out, verify=True):
 
     Parameters
     ----------
-    out : str or path
+    out : str or path-like
         The dataset directory.
     verify : bool, optional
         Check every product's checksum.

@@ -108,7 +108,7 @@ class CampaignSpec:
 
     @property
     def wanted(self):
-        """Names of the products to write, in :data:`PRODUCTS` order."""
+        """Names of the products to write, in ``PRODUCTS`` order."""
         return [p for p in PRODUCTS if self.products[p]]
 
     def field_of(self, redshift):

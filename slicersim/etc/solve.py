@@ -80,7 +80,7 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
 @validation.checked_fields
 @dataclass(frozen=True)
 class SolveOptions:
-    """How :func:`solve_batch` solves: every option of :func:`solve_many` except the per-target data.
+    """How ``solve_batch`` solves: every option of :func:`~slicersim.etc.solve_many` except the per-target data.
 
     Parameters
     ----------
@@ -154,7 +154,7 @@ def solve_many(lbda, fluxes, snr, lbda_ranges, frame=None, config="cbe", field="
     frame : {"rest", "obs"} or None, optional
         The frame ``lbda_ranges`` are given in (default: "rest" when ``redshifts`` are given,
         else "obs").
-    config : str, path or list, optional
+    config : str, path-like or list, optional
         Instrument configuration (see :func:`~slicersim.build_simulation`).
     field : {"narrow", "wide"}, optional
         Lazuli field.

@@ -521,7 +521,7 @@ def save_footprints(directory, *fields, name="footprints", overwrite=False, also
 
     Parameters
     ----------
-    directory : str or path
+    directory : str or path-like
         Directory the files are written to.
     *fields : FieldFootprints
         One or more fields of the same detector.
@@ -535,7 +535,7 @@ def save_footprints(directory, *fields, name="footprints", overwrite=False, also
 
     Returns
     -------
-    list of path
+    list of str
         The paths written.
     """
     if not fields or not all(isinstance(f, FieldFootprints) for f in fields):

@@ -152,7 +152,7 @@ class SlicerMapper:
         int, for "triangles" (default 0 everywhere).
     cache_size : int, optional
         Projection tables kept in memory (least recently used first out).
-    table_cache : str, path, ArrayCache or None, optional
+    table_cache : str, path-like, object or None, optional
         "default", None, a directory or an ``slicersim.io.table_cache.ArrayCache``: where
         projection tables are cached on disk (:meth:`projection_tables`); "default" is
         ``$SLICERSIM_CACHE/projection`` (else ``~/.cache/slicersim/projection``), None keeps
@@ -547,17 +547,34 @@ class SlicerMapper:
 
         Parameters
         ----------
-        cube : (nλ, n_rows, n_cols) float
-            value per cell per bin (ADU, e-/s, ...); the image is in the same unit per pixel.
-        lbda, lbda_edges : (nλ,), (nλ+1,) [Å]
-            bin centres (checked only) and edges.
-        slices : sequence of n_rows slice ids, or "narrow" / "wide"
-            cube row r ↔ slice ``slices[n_rows − 1 − r]``.
-        out : (rows, cols) float64 array, optional
-            accumulated into in place.
-        precision : "auto" (default), "double" or "single": of the deposit
-            (``slicersim.backends.projection.deposit``; the tables are built in double),
-            checked before any work.
+        cube : array_like of shape (nλ, n_rows, n_cols)
+            Value per cell per bin (ADU, e-/s, ...); the image is in the same unit per pixel.
+        lbda : array_like of shape (nλ,)
+            Bin centres [Å] (checked only).
+        lbda_edges : array_like of shape (nλ+1,)
+            Bin edges [Å].
+        slices : sequence of int or {"narrow", "wide"}, optional
+            n_rows slice ids: cube row r ↔ slice ``slices[n_rows − 1 − r]``.
+        out : numpy.ndarray of shape (rows, cols), optional
+            float64 image accumulated into in place.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        oversample : tuple of int, optional
+            (n_λ, n_φ) sub-cells per cell.
+        truncate : float, optional
+            Window half-width beyond each cell box [spot rms].
+        weights_dtype : numpy.dtype, optional
+            dtype of the projection tables' weights.
+        block : int, optional
+            Block size of the table builder (default: the backend's).
+        precision : {"auto", "double", "single"}, optional
+            Of the deposit (``slicersim.backends.projection.deposit``; the tables are built in
+            double), checked before any work.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            The detector image (``out`` when given).
         """
         precision = resolve_precision(precision, backend, "projection")[1]
         if isinstance(slices, str):

@@ -180,7 +180,7 @@ def load_config(config="cbe"):
 
     Parameters
     ----------
-    config : str, path or list
+    config : str, path-like or list
         ``"cbe"``, ``"eol"``, a TOML path, or a list of names/paths applied in order.
 
     Returns

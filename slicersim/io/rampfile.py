@@ -397,7 +397,7 @@ def read_ramps(path):
 
     Parameters
     ----------
-    path : str or path
+    path : str or path-like
         The HDF5 ramp file.
 
     Returns

@@ -294,7 +294,7 @@ def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None, *, first=0
 
     Parameters
     ----------
-    path : str or path
+    path : str or path-like
         The HDF5 ramp file.
     group : int, optional
         The group shown (negative: from the end).

@@ -198,12 +198,12 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
         Integer in [0, 2⁶⁴), or None (default): a fresh seed
         (:func:`slicersim.validation.new_seed`), recorded in the file's SEED attribute and
         returned.
-    effects : str, dict or DetectorEffects, optional
+    effects : str, dict or object, optional
         Detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a
         preset (``"lazuli"``), a config dict or a ``DetectorEffects``
         (``slicersim.products.effects``); their truth goes to ``truth/<name>`` of ``out``.
         ``"all"`` includes ``persistence`` only with ``maps.previous_charge``.
-    out : str or path, optional
+    out : str or path-like, optional
         Output path (HDF5 or JWST level-1b FITS, see ``RampIO``) or None (SCI in memory).
     backend : {"auto", "opencl", "numpy"}, optional
         Where the ramps are computed.

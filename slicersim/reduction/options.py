@@ -54,7 +54,7 @@ class ReduceOptions:
         Or None (the method's default).
     dark : {"auto"}, float, numpy.ndarray or None, optional
         "auto", None, a rate [e-/s] or an image.
-    config : str, path or list, optional
+    config : str, path-like or list, optional
         Instrument configuration of the forward model (name, TOML path or list) or None.
     ipc : bool, optional
         None (deconvolve the file's IPC when it records one) or False.

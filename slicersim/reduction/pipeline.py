@@ -108,13 +108,13 @@ def reduce_exposure(raw_path, options=None, *, out=None, overwrite=False, **keyw
 
     Parameters
     ----------
-    raw_path : str, path or tuple
+    raw_path : str, path-like or tuple
         Ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts.
     options : ReduceOptions, optional
         A :class:`~slicersim.reduction.options.ReduceOptions` (None: its defaults); the
         keywords below are its fields and replace those of ``options``
         (``reduce_exposure(raw, ncol=116)`` is ``reduce_exposure(raw, ReduceOptions(ncol=116))``).
-    out : str or path, optional
+    out : str or path-like, optional
         HDF5 path written atomically with all three products (module docstring).
     overwrite : bool, optional
         Replace ``out``.
@@ -161,7 +161,7 @@ def reduce_exposure(raw_path, options=None, *, out=None, overwrite=False, **keyw
         coarse cells bias them (−3 % on a noiseless Lazuli SN Ia at z = 0.5 even with the true
         PSF): give ``psf`` a forward-modelled template
         (``slicersim.reduction.templates.point_source_template``).
-    config : str, path or list, optional
+    config : str, path-like or list, optional
         Instrument configuration of the forward model (a name, TOML path or list, as
         :func:`~slicersim.load_config`); None: the one the file records.
     ipc : bool, optional

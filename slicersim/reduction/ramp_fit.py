@@ -235,7 +235,7 @@ return_groupdq, max_bytes, backend, progress, work_group
     @classmethod
     def from_keywords(cls, where="fit_ramps", /, **kwargs):
         """Options from keywords: each name checked (did-you-mean), the deprecated names
-        (:data:`FIT_RENAMED`) moved to their new ones with a DeprecationWarning."""
+        (``FIT_RENAMED``) moved to their new ones with a DeprecationWarning."""
         for old, new in FIT_RENAMED.items():
             validation.renamed_keyword(kwargs, old, new, where, stacklevel=4)
         for key in kwargs:
@@ -257,7 +257,7 @@ def fit_ramps(source, options=None, **kwargs):
 
     Parameters
     ----------
-    source : str, path or tuple
+    source : str, path-like or tuple
         Path of a ramp file (our HDF5 or a JWST level-1b FITS, recognised by content) or arrays
         (SCI (nints, ngroups, ny, nx) [DN], GROUPDQ or None, PIXELDQ or None, attrs) as
         ``read_ramps`` returns them (attrs: NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE; NINTS,

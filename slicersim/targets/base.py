@@ -65,7 +65,7 @@ class Target(DetectorProducts):
         Renormalisation to an AB magnitude in ``band`` (none by default).
     band : str, optional
         sncosmo band of that renormalisation.
-    config : str, path or list, optional
+    config : str, path-like or list, optional
         "cbe", "eol", a TOML path or a list of them.
     field : {"narrow", "wide"} or None, optional
         The Lazuli field, or None.  A target has exactly one field: the default is "narrow"
@@ -352,7 +352,23 @@ class Target(DetectorProducts):
         self.pointsource.position = position
 
     def set_throughput(self, throughput, column=None, noptics=None):
-        """Replace the spectrograph throughput (see :meth:`Spectrograph.set_throughput`); at once."""
+        """Replace the spectrograph throughput (see :meth:`Spectrograph.set_throughput
+        <slicersim.Spectrograph.set_throughput>`); at once.
+
+        Parameters
+        ----------
+        throughput : float, tuple of array_like, OpticalThroughput or str
+            As :class:`~slicersim.Spectrograph`.
+        column : str or int, optional
+            Column of a throughput curve file.
+        noptics : dict or int, optional
+            Passes through each component.
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         try:
             self.simulation.spectrograph.set_throughput(throughput, column=column, noptics=noptics)
         except SlicersimError:
@@ -361,21 +377,62 @@ class Target(DetectorProducts):
             raise ParameterError(f"throughput: invalid throughput {validation.short_repr(throughput)}: {exc}") from exc
 
     def change_configuration(self, config):
-        """Switch to another configuration (``"cbe"``, ``"eol"``, TOML path(s)); keeps the readout."""
+        """Switch to another configuration; keeps the readout.
+
+        Parameters
+        ----------
+        config : str, path-like or list
+            ``"cbe"``, ``"eol"``, TOML path(s).
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         self.update(config=config)
 
     def change_field(self, field):
         self.update(field=field)
 
     def change_spectrograph(self, field=None, **kwargs):
-        """Change the field (Lazuli) and/or spectrograph parameters."""
+        """Change the field (Lazuli) and/or spectrograph parameters.
+
+        Parameters
+        ----------
+        field : {"narrow", "wide"}, optional
+            The Lazuli field.
+        **kwargs
+            Spectrograph parameters (see :class:`~slicersim.Spectrograph`).
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         if field is not None:
             kwargs["field"] = field
         if kwargs:
             self.update(**kwargs)
 
     def change_detector(self, nmd=None, nramps=None, max_group=None, **kwargs):
-        """Set the readout (n, m, d), number of ramps, max_group or other detector parameters."""
+        """Set the readout (n, m, d), number of ramps, max_group or other detector parameters.
+
+        Parameters
+        ----------
+        nmd : tuple of int, optional
+            The readout (n, m, d).
+        nramps : int, optional
+            Number of ramps.
+        max_group : int, optional
+            Largest n allowed.
+        **kwargs
+            Other detector parameters (see :class:`~slicersim.Detector`).
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         params = dict(kwargs)
         if max_group is not None:
             params["max_group"] = validation.integer("max_group", max_group, low=1)
@@ -537,7 +594,7 @@ class Target(DetectorProducts):
         signal : numpy.ndarray of shape (nλ,)
             The signal [``unit``].
         variance : numpy.ndarray of shape (nλ,)
-            Its variance [``unit``²].
+            Its variance [(``unit``)²].
         """
         seed = validation.seed(seed)
         incl_error = validation.flag("incl_error", incl_error)
@@ -771,7 +828,7 @@ def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 
     frame : {"rest", "obs"} or None, optional
         Frame of ``lbda_range`` (None: "rest" with a ``redshift``, else "obs"), as
         :meth:`Target.setup_to_snr`.
-    config : str, path or list, optional
+    config : str, path-like or list, optional
         Configuration ("cbe", "eol", TOML path(s)).
     field : {"narrow", "wide"}, optional
         Lazuli field.
@@ -813,7 +870,7 @@ def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame=None, config=
         (min, max) of the band [Å], in the rest frame by default.
     frame : {"rest", "obs"} or None, optional
         Frame of ``lbda_range`` (None: "rest").
-    config : str, path or list, optional
+    config : str, path-like or list, optional
         Configuration ("cbe", "eol", TOML path(s)).
     field : {"narrow", "wide"}, optional
         Lazuli field.

@@ -168,7 +168,7 @@ class Flat3DCalibration(Target):
     ----------
     lamp : CalibrationLamp
         The lamp (:class:`~slicersim.CalibrationLamp`; see the ``from_*`` constructors).
-    config : str, path or list, optional
+    config : str, path-like or list, optional
         "cbe", "eol", a TOML path or a list of them.
     field : {"narrow", "wide"} or None, optional
         The field (default: as :class:`~slicersim.Target`).

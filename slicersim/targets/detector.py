@@ -133,7 +133,7 @@ class DetectorProducts:
 
         Parameters
         ----------
-        out : str or path, optional
+        out : str or path-like, optional
             Output file (HDF5 or level-1b FITS); None: SCI in memory.
         nmd : tuple of int, optional
             Readout (n, m, d); the current readout unless given (validated first).

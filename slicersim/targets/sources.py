@@ -159,7 +159,7 @@ class Kilonova(SncosmoTarget):
 
     Parameters
     ----------
-    model : str or path
+    model : str or path-like
         The POSSIS model file (``.txt`` or ``.fits``).
     redshift : float, optional
         Redshift z.
@@ -198,11 +198,11 @@ class CalSpec(Target):
 
     Parameters
     ----------
-    name : str or path
+    name : str or path-like
         A FITS path, or a star name (file-name prefix, e.g. ``"bd_17d4708"``) looked up in
         ``calspec_dir`` or $SLICERSIM_CALSPEC_DIR (latest version wins;
         ``slicersim.sources.spectra.find_calspec_file``).
-    calspec_dir : str or path, optional
+    calspec_dir : str or path-like, optional
         Directory of the CALSPEC FITS files.
     mag : float, optional
         AB magnitude in ``band`` the spectrum is renormalised to (none by default).
