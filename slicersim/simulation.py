@@ -200,8 +200,8 @@ class Simulation(Versioned):
 
         Parameters
         ----------
-        plan : SimulationUpdate
-            The validated new state.
+        plan : object
+            The validated new state (a ``SimulationUpdate``).
 
         Returns
         -------
