@@ -378,7 +378,18 @@ class Spectrograph(Versioned):
         return merged
 
     def updated(self, **kwargs):
-        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
+        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`.
+
+        Parameters
+        ----------
+        **kwargs
+            As :meth:`update`.
+
+        Returns
+        -------
+        Spectrograph
+            The copy.
+        """
         import copy
         check_parameter_names("spectrograph", kwargs, self.mutable_parameters)
         params = dict(self._params)
@@ -406,21 +417,44 @@ class Spectrograph(Versioned):
 
     def update(self, **kwargs):
         """Change mutable parameters and rebuild everything that depends on them, atomically:
-        a copy is rebuilt and validated first; on error (:class:`ParameterError`) nothing changes.
+        a copy is rebuilt and validated first; on error (:class:`~slicersim.errors.ParameterError`)
+        nothing changes.
 
-        ``optics`` may give only some keys (the others are kept); each list needs one value
-        per optics group.  ``noptics`` (dict per component or one int) applies to the current
-        throughput.  ``resolving_power`` with a dispersion-law grid raises unless
-        ``dispersion_law=None`` is passed too (then the grid switches to the resolving power);
-        a new ``dispersion_law`` replaces a resolving-power grid."""
+        Parameters
+        ----------
+        **kwargs
+            Names of ``mutable_parameters``.  ``optics`` may give only some keys (the others are
+            kept); each list needs one value per optics group.  ``noptics`` (dict per component or
+            one int) applies to the current throughput.  ``resolving_power`` with a dispersion-law
+            grid raises unless ``dispersion_law=None`` is passed too (then the grid switches to the
+            resolving power); a new ``dispersion_law`` replaces a resolving-power grid.
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         self._adopt(self.updated(**kwargs))
 
     def set_throughput(self, throughput, column=None, noptics=None):
-        """Replace the throughput (float, curve, file, OpticalThroughput or per-component dict).
+        """Replace the throughput.  Takes effect at once (the owning Simulation sees the new version).
 
-        For a file with several columns ``column`` picks one (default: the current
-        ``throughput_column`` when the file has it); ``noptics`` as in :class:`OpticalThroughput`.
-        Takes effect at once (the owning Simulation sees the new version)."""
+        Parameters
+        ----------
+        throughput : float, tuple of array_like, str, OpticalThroughput or dict
+            A float, a (λ [Å], T) curve, a file, an :class:`OpticalThroughput` or a per-component
+            dict.
+        column : str or int, optional
+            For a file with several columns, the one picked (default: the current
+            ``throughput_column`` when the file has it).
+        noptics : dict or int, optional
+            As in :class:`OpticalThroughput`.
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         if column is None and isinstance(throughput, str):
             current = self._params["throughput_column"]
             if current is not None:
@@ -475,7 +509,18 @@ class Spectrograph(Versioned):
         return float(np.sin(self.spatial_scale * ARCSEC) ** 2)
 
     def dispersed_thermal_radiance(self, lbda):
-        """Photon radiance of the dispersed internal optics Σ ε n B_ph(λ, T) [ph/s/m²/sr/Å]."""
+        """Photon radiance of the dispersed internal optics Σ ε n B_ph(λ, T) [ph/s/m²/sr/Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The radiance [ph/s/m²/sr/Å], of the shape of ``lbda``.
+        """
         o = self.optics
         total = np.zeros_like(np.asarray(lbda, dtype=float))
         for temp, eps, n, disp in zip(o["temperature"], o["emissivity"], o["nelements"], o["dispersed"]):
@@ -484,7 +529,13 @@ class Spectrograph(Versioned):
         return total
 
     def undispersed_optics(self):
-        """(temperature, emissivity, nelements, solid angle [sr]) of optics after the disperser."""
+        """The optics after the disperser.
+
+        Returns
+        -------
+        list of tuple
+            (temperature [K], emissivity, nelements, solid angle [sr]) of each such optics group.
+        """
         o = self.optics
         rows = []
         for temp, eps, n, fr, geo, disp in zip(o["temperature"], o["emissivity"], o["nelements"],
@@ -494,12 +545,38 @@ class Spectrograph(Versioned):
         return rows
 
     def apply_lsf(self, values, axis=0):
-        """Apply this spectrograph's LSF along ``axis`` (see :func:`apply_lsf`)."""
+        """Apply this spectrograph's Gaussian LSF along ``axis`` (``slicersim.physics.lsf.apply_lsf``).
+
+        Parameters
+        ----------
+        values : array_like
+            Values on the wavelength grid along ``axis``.
+        axis : int, optional
+            The wavelength axis.
+
+        Returns
+        -------
+        numpy.ndarray
+            The convolved values, of the shape of ``values``.
+        """
         return apply_lsf(values, self.lsf_sigma, axis=axis)
 
     def show_throughput(self, ax=None, savefile=None):
         """Figure of the throughput [fraction of photons] on the grid (λ [Å]) and of each of its
-        components; see :func:`slicersim.plotting.spectra.plot_curves`.  Returns the Figure."""
+        components; see :func:`slicersim.plotting.spectra.plot_curves`.
+
+        Parameters
+        ----------
+        ax : matplotlib.axes.Axes, optional
+            None (new figure) or an Axes.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.plotting import plot_curves
         model = self.throughput_model
         curves = {"total": self.throughput}
