@@ -82,7 +82,18 @@ class SersicProfile(Versioned):
         self.intensity_eff = math.exp(-log_total)  # I_e [1/arcsec²]
 
     def elliptical_radius(self, x, y):
-        """r [arcsec] at sky positions (x, y) [arcsec]."""
+        """r [arcsec] at sky positions (x, y) [arcsec].
+
+        Parameters
+        ----------
+        x, y : array_like
+            Sky positions [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray
+            The elliptical radius r [arcsec].
+        """
         th = math.radians(self.position_angle)
         dx, dy = np.asarray(x, float) - self.offset[0], np.asarray(y, float) - self.offset[1]
         u = dx * math.cos(th) + dy * math.sin(th)
@@ -90,17 +101,50 @@ class SersicProfile(Versioned):
         return np.sqrt(u * u + (v / self.axis_ratio) ** 2)
 
     def surface_brightness(self, x, y):
-        """I(x, y) [fraction of the total flux per arcsec²] at sky positions [arcsec]."""
+        """I(x, y) [fraction of the total flux per arcsec²] at sky positions [arcsec].
+
+        Parameters
+        ----------
+        x, y : array_like
+            Sky positions [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray
+            I [fraction of the total flux per arcsec²].
+        """
         return self.radial_profile(self.elliptical_radius(x, y))
 
     def enclosed_fraction(self, radius):
         """Fraction of the flux inside the ellipse of semi-major axis ``radius`` [arcsec]:
-        P(2n, b_n (r/r_eff)^(1/n))."""
+        P(2n, b_n (r/r_eff)^(1/n)).
+
+        Parameters
+        ----------
+        radius : array_like
+            Semi-major axis [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray
+            The enclosed fraction, in [0, 1].
+        """
         x = self.b_n * (np.asarray(radius, float) / self.r_eff) ** (1.0 / self.sersic_index)
         return gammainc(2.0 * self.sersic_index, x)
 
     def scaled(self, factor):
-        """The same profile with every angle (r_eff, offset) multiplied by ``factor``."""
+        """The same profile with every angle (r_eff, offset) multiplied by ``factor``.
+
+        Parameters
+        ----------
+        factor : float
+            The angle scale factor.
+
+        Returns
+        -------
+        SersicProfile
+            The scaled profile.
+        """
         return SersicProfile(self.sersic_index, self.r_eff * factor, self.axis_ratio, self.position_angle,
                              (self.offset[0] * factor, self.offset[1] * factor))
 
@@ -110,14 +154,40 @@ class SersicProfile(Versioned):
         return (*self.offset, self.position_angle, self.axis_ratio)
 
     def radial_profile(self, r):
-        """I at elliptical radius r [arcsec] (fraction of the total flux per arcsec²)."""
+        """I at elliptical radius r (fraction of the total flux per arcsec²).
+
+        Parameters
+        ----------
+        r : array_like
+            Elliptical radius [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray
+            I [fraction of the total flux per arcsec²].
+        """
         return self.intensity_eff * np.exp(-self.b_n * ((np.asarray(r, float) / self.r_eff)
                                                         ** (1.0 / self.sersic_index) - 1.0))
 
     def cell_fractions(self, shape, spatial_scale, oversampling=None):
-        """(ny, nx) fraction of the total flux in each cell of side ``spatial_scale``
-        [arcsec]: exact polar integration (~1e-12 per cell, cusp included), or the
-        midpoint rule on oversampling² sub-cells (``oversampling`` per side) (see ``integrate_radial_cells``)."""
+        """Fraction of the total flux in each cell: exact polar integration (~1e-12 per cell, cusp
+        included), or the midpoint rule on oversampling² sub-cells (``oversampling`` per side)
+        (see ``integrate_radial_cells``).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (ny, nx) cells.
+        spatial_scale : float
+            Cell side [arcsec].
+        oversampling : int, optional
+            Sub-cells per side of the midpoint rule (None: exact polar integration).
+
+        Returns
+        -------
+        numpy.ndarray of shape (ny, nx)
+            Fraction of the total flux per cell.
+        """
         return integrate_radial_cells(self.geometry, [self.radial_profile], shape, spatial_scale,
                                       oversampling)[0]
 
@@ -280,7 +350,22 @@ class Host(Versioned):
     def at_redshift(self, redshift, cosmology=None, from_redshift=None):
         """A new Host of the same galaxy (proper size, luminosity) seen at ``redshift``:
         angles × D_A(z₀)/D_A(z), λ × (1+z)/(1+z₀), F_λ × (D_L(z₀)/D_L(z))² (1+z₀)/(1+z),
-        z₀ = ``from_redshift`` or the host's own redshift."""
+        z₀ = ``from_redshift`` or the host's own redshift.
+
+        Parameters
+        ----------
+        redshift : float
+            The new redshift z.
+        cosmology : astropy.cosmology.Cosmology, optional
+            Cosmology of the move (default: the host's own, Planck18 unless it was given one).
+        from_redshift : float, optional
+            z₀ (default: the host's own redshift).
+
+        Returns
+        -------
+        Host
+            The new host.
+        """
         z0 = _from_redshift(self, from_redshift)
         cosmo = self.cosmology if cosmology is None else get_cosmology(cosmology)
         z = check_source_redshift(redshift, "host redshift")
@@ -292,7 +377,18 @@ class Host(Versioned):
         return out
 
     def total_flux(self, lbda):
-        """Total F_λ of the galaxy [erg/s/cm²/Å] at λ [Å] (whole profile, not only the field)."""
+        """Total F_λ of the galaxy [erg/s/cm²/Å] at λ [Å] (whole profile, not only the field).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            F_λ [erg/s/cm²/Å], of the shape of ``lbda``.
+        """
         core = _interp_spectrum(self.lbda_in, self.flux_in, lbda, "host spectrum")
         if self.flux_outskirts is None:
             return core
@@ -303,15 +399,37 @@ class Host(Versioned):
         return self.profile.radial_profile(r) * np.exp(-np.asarray(r, float) / self.blend_radius)
 
     def core_weight(self):
-        """W = ∫ I(r) exp(−r/r_b) dA: share of the flux carrying the core spectrum."""
+        """W = ∫ I(r) exp(−r/r_b) dA: share of the flux carrying the core spectrum.
+
+        Returns
+        -------
+        float
+            W, in [0, 1].
+        """
         from scipy.integrate import quad
         q = self.profile.axis_ratio
         return quad(lambda r: self._core_profile(r) * 2 * math.pi * q * r, 0, np.inf,
                     limit=200, epsabs=1e-13, epsrel=1e-11)[0]
 
     def flux_cube(self, lbda_grid, shape, spatial_scale, oversampling=None):
-        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]
-        (cells of side ``spatial_scale`` [arcsec]; before the PSF)."""
+        """Flux density per cell on ``lbda_grid`` (before the PSF).
+
+        Parameters
+        ----------
+        lbda_grid : array_like of shape (nλ,)
+            Wavelengths [Å].
+        shape : tuple of int
+            (ny, nx) cells.
+        spatial_scale : float
+            Cell side [arcsec].
+        oversampling : int, optional
+            Sub-cells per side of the profile's integration (see ``cell_fractions``).
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            Flux density per cell [erg/s/cm²/Å].
+        """
         core = _interp_spectrum(self.lbda_in, self.flux_in, lbda_grid, "host spectrum")
         fractions = self._cell_fractions(tuple(int(v) for v in shape), float(spatial_scale), oversampling)
         if self.flux_outskirts is None:
@@ -390,12 +508,29 @@ class ImageProfile(Versioned):
         self.r_eff = float(r[order][np.searchsorted(cum, 0.5)]) * self.pixel_scale
 
     def scaled(self, factor):
-        """The same image with every angle (pixel scale, offset) multiplied by ``factor``."""
+        """The same image with every angle (pixel scale, offset) multiplied by ``factor``.
+
+        Parameters
+        ----------
+        factor : float
+            The angle scale factor.
+
+        Returns
+        -------
+        ImageProfile
+            The scaled profile.
+        """
         return ImageProfile(self.image, self.pixel_scale * factor, (self.offset[0] * factor,
                             self.offset[1] * factor), self.rotation, self.centre_pixel, self.max_bytes)
 
     def grid_centre(self):
-        """(x, y) [arcsec] of the image's geometric centre in the field."""
+        """(x, y) [arcsec] of the image's geometric centre in the field.
+
+        Returns
+        -------
+        tuple of float
+            (x, y) [arcsec].
+        """
         nyi, nxi = self.image.shape
         du = (self.centre_pixel[0] - (nxi - 1) / 2) * self.pixel_scale
         dv = (self.centre_pixel[1] - (nyi - 1) / 2) * self.pixel_scale
@@ -404,8 +539,22 @@ class ImageProfile(Versioned):
                 self.offset[1] - du * math.sin(th) - dv * math.cos(th))
 
     def cell_fractions(self, shape, spatial_scale, oversampling=None):
-        """(ny, nx) fraction of the total flux in each cell of side ``spatial_scale`` [arcsec]
-        (exact pixel overlaps; ``oversampling`` is not used)."""
+        """Fraction of the total flux in each cell (exact pixel overlaps).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (ny, nx) cells.
+        spatial_scale : float
+            Cell side [arcsec].
+        oversampling : int, optional
+            Not used.
+
+        Returns
+        -------
+        numpy.ndarray of shape (ny, nx)
+            Fraction of the total flux per cell.
+        """
         img = self.image
         return resample_pixels(lambda r0, r1, j0, j1: img[None, r0:r1, j0:j1], img.shape, self.pixel_scale,
                                self.grid_centre(), self.rotation, shape, spatial_scale, 1, self.max_bytes)[0]

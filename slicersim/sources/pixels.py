@@ -329,8 +329,23 @@ class CubeSource(Versioned):
         self.cache = ResampleCache()
 
     def at_redshift(self, redshift, cosmology=None, from_redshift=None):
-        """The same source seen at ``redshift`` (see :meth:`Host.at_redshift`); the cube
-        array (already validated) and the resampling cache are shared, not copied."""
+        """The same source seen at ``redshift`` (see :meth:`Host.at_redshift <slicersim.Host.at_redshift>`);
+        the cube array (already validated) and the resampling cache are shared, not copied.
+
+        Parameters
+        ----------
+        redshift : float
+            The new redshift z.
+        cosmology : astropy.cosmology.Cosmology, optional
+            Cosmology of the move.
+        from_redshift : float, optional
+            z₀ (default: the source's own redshift).
+
+        Returns
+        -------
+        CubeSource
+            The new source.
+        """
         z0 = _from_redshift(self, from_redshift)
         cosmo = self.cosmology if cosmology is None else get_cosmology(cosmology)
         z = check_source_redshift(redshift, "cube redshift")
@@ -349,7 +364,22 @@ class CubeSource(Versioned):
         return int(min(PLANE_GROUP_MAX, max(1, budget // max(1, plane))))
 
     def flux_cube(self, lbda_grid, shape, spatial_scale):
-        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å] (read-only; cached)."""
+        """Flux density per cell on ``lbda_grid`` (read-only; cached).
+
+        Parameters
+        ----------
+        lbda_grid : array_like of shape (nλ,)
+            Wavelengths [Å].
+        shape : tuple of int
+            (ny, nx) cells.
+        spatial_scale : float
+            Cell side [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            Flux density per cell [erg/s/cm²/Å].
+        """
         lbda_grid = np.asarray(lbda_grid, dtype=np.float64)
         shape, s = tuple(int(v) for v in shape), float(spatial_scale)
         L = _lambda_matrix(self.lbda_in, lbda_grid).tocsr()           # validates the grid

@@ -427,7 +427,24 @@ class PointSource(Versioned):
 
     def set_spectrum(self, lbda, flux, flux_ratio=None, native_mag=None):
         """Replace the spectrum in place (validated first; renormalised to ``mag`` when set,
-        unless ``flux_ratio`` is given)."""
+        unless ``flux_ratio`` is given).
+
+        Parameters
+        ----------
+        lbda : array_like of shape (n,)
+            Wavelengths [Å].
+        flux : array_like of shape (n,)
+            F_λ [erg/s/cm²/Å].
+        flux_ratio : float, optional
+            Factor applied to ``flux`` (≥ 0) instead of the renormalisation.
+        native_mag : float, optional
+            Magnitude of the spectrum before that factor (recorded).
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         lbda, flux = validate_spectrum(lbda, flux, self.name)
         if flux_ratio is not None:
             flux_ratio = validation.number("flux_ratio", flux_ratio, low=0.0, error=SpectrumError)
@@ -451,10 +468,32 @@ class PointSource(Versioned):
                           validation.number("position", position[1]))     # y [cells]
 
     def flambda(self, lbda):
-        """F(λ) [erg/s/cm²/Å] at λ [Å]."""
+        """F(λ) [erg/s/cm²/Å] at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            F_λ [erg/s/cm²/Å] (NaN outside the input spectrum).
+        """
         out = np.interp(lbda, self.lbda_in, self.flux_in, left=np.nan, right=np.nan)
         return out * self.flux_ratio
 
     def overlap(self, lo, hi):
-        """True when the input spectrum overlaps [lo, hi] Å."""
+        """True when the input spectrum overlaps [lo, hi] Å.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The band [Å].
+
+        Returns
+        -------
+        bool
+            Whether they overlap.
+        """
         return self.lbda_in[0] < hi and self.lbda_in[-1] > lo
