@@ -633,7 +633,18 @@ class MLASpectrograph(Spectrograph):
         super().__init__(*args, **kwargs)
 
     def xdisp_sigma_at(self, lbda):
-        """Cross-dispersion σ [px] at λ [Å]."""
+        """Cross-dispersion σ [px] at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            σ [px].
+        """
         return np.hypot(self.xdisp_sigma_spectral * np.asarray(lbda) / 1e4, self.xdisp_sigma)
 
     @property

@@ -92,7 +92,18 @@ class Telescope(Versioned):
         return len(self.emissivity)
 
     def updated(self, **kwargs):
-        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
+        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`.
+
+        Parameters
+        ----------
+        **kwargs
+            As :meth:`update`.
+
+        Returns
+        -------
+        Telescope
+            The copy.
+        """
         check_parameter_names("telescope", kwargs, self.mutable_parameters)
         # the mirror set is redefined only when emissivity and nelements change together
         redefine = "emissivity" in kwargs and "nelements" in kwargs
@@ -110,8 +121,20 @@ class Telescope(Versioned):
 
     def update(self, **kwargs):
         """Change mutable parameters (see ``mutable_parameters``), atomically: everything is
-        validated on a copy first; on error (:class:`ParameterError`) nothing changes.
-        ``temperature``, ``emissivity`` and ``nelements`` accept one value per mirror group."""
+        validated on a copy first; on error (:class:`~slicersim.errors.ParameterError`) nothing
+        changes.
+
+        Parameters
+        ----------
+        **kwargs
+            The parameters; ``temperature``, ``emissivity`` and ``nelements`` accept one value per
+            mirror group.
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         self._adopt(self.updated(**kwargs))
 
     @property
@@ -125,7 +148,18 @@ class Telescope(Versioned):
         return self.diameter_int / self.diameter_ext
 
     def airy_radius(self, lbda):
-        """Radius of the first Airy dark ring 1.22 λ/D [arcsec] at λ [Å]."""
+        """Radius of the first Airy dark ring 1.22 λ/D [arcsec] at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The radius [arcsec].
+        """
         return 1.22 * np.asarray(lbda, dtype=float) * 1e-10 / self.diameter_ext / ARCSEC
 
     @property
@@ -140,7 +174,18 @@ class Telescope(Versioned):
 
     def thermal_radiance(self, lbda):
         """Mirror photon radiance ε_eff B_ph(λ, T) [ph/s/m²/sr/Å]; with one temperature per
-        mirror group Σ εᵢ nᵢ B_ph(λ, Tᵢ)."""
+        mirror group Σ εᵢ nᵢ B_ph(λ, Tᵢ).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The radiance [ph/s/m²/sr/Å].
+        """
         if np.ndim(self.temperature) == 0:
             return self.effective_emissivity * photon_radiance(lbda, self.temperature)
         total = np.zeros_like(np.asarray(lbda, dtype=float))
@@ -150,8 +195,23 @@ class Telescope(Versioned):
         return total
 
     def show_thermal_radiance(self, lbda=None, ax=None, savefile=None):
-        """Figure of the mirrors' photon radiance [ph/s/m²/sr/Å] versus λ [Å] (default
-        4000–17000 Å; log scale); see :func:`slicersim.plotting.spectra.plot_curves`.  Returns the Figure."""
+        """Figure of the mirrors' photon radiance [ph/s/m²/sr/Å] versus λ [Å] (log scale); see
+        :func:`slicersim.plotting.spectra.plot_curves`.
+
+        Parameters
+        ----------
+        lbda : array_like, optional
+            Wavelengths [Å] (default 4000–17000 Å).
+        ax : matplotlib.axes.Axes, optional
+            None (new figure) or an Axes.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.plotting import plot_curves
         lbda = validation.array("lbda [AA]", np.linspace(4e3, 1.7e4, 500) if lbda is None else lbda, ndim=1)
         fig = plot_curves(lbda, {"mirrors": self.thermal_radiance(lbda)}, "thermal radiance [ph/s/m²/sr/Å]",
