@@ -185,19 +185,46 @@ class SliceFootprint:
         return int(np.count_nonzero(self.mask))
 
     def pixels(self):
-        """(rows, cols) of the footprint's pixels."""
+        """The footprint's pixels on the detector.
+
+        Returns
+        -------
+        rows, cols : numpy.ndarray
+            Their row and column indices [px].
+        """
         rows, cols = np.nonzero(self.mask)
         return rows + self.origin[0], cols + self.origin[1]
 
     def detector_mask(self, detector_shape, core=False):
-        """Boolean image of the whole detector (``core=True``: the unblurred footprint)."""
+        """Boolean image of the whole detector.
+
+        Parameters
+        ----------
+        detector_shape : tuple of int
+            (rows, cols) of the detector [px].
+        core : bool, optional
+            The unblurred footprint.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            bool mask.
+        """
         img = np.zeros(tuple(detector_shape), bool)
         r0, r1, c0, c1 = self.bbox
         img[r0:r1, c0:c1] = self.core if core else self.mask
         return img
 
     def trace(self):
-        """(λ [Å], x [px], y [px]) of the slice centre at the bin centres."""
+        """The slice centre at the bin centres.
+
+        Returns
+        -------
+        lbda : numpy.ndarray of shape (nλ,)
+            Wavelengths [Å].
+        x, y : numpy.ndarray of shape (nλ,)
+            Detector position [px].
+        """
         return self.trace_lbda, self.trace_x, self.trace_y
 
 
@@ -256,20 +283,51 @@ class FieldFootprints:
         return np.array(list(self._fp), np.int64)
 
     def mask(self, slice_id, core=False):
-        """Boolean detector image of one slice's footprint (``core``: unblurred)."""
+        """Boolean detector image of one slice's footprint.
+
+        Parameters
+        ----------
+        slice_id : int
+            The slice.
+        core : bool, optional
+            The unblurred footprint.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            bool mask.
+        """
         return self[slice_id].detector_mask(self.detector_shape, core)
 
     def union_mask(self):
-        """Pixels receiving light of any slice of the field."""
+        """Pixels receiving light of any slice of the field.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            bool mask.
+        """
         return self.label_image() != NO_SLICE
 
     def contours(self):
-        """{slice id: outer contour (K, 2) [px]}."""
+        """The outer contour of each slice.
+
+        Returns
+        -------
+        dict
+            {slice id: outer contour of shape (K, 2) [px]}.
+        """
         return {s: fp.contour for s, fp in self._fp.items()}
 
     def label_image(self):
-        """(rows, cols) int32 image: slice id per pixel, ``NO_SLICE`` where no light
-        falls; shared pixels go to the slice with the nearest core (module docstring)."""
+        """Slice id per pixel, ``NO_SLICE`` (−1) where no light falls; shared pixels go to the slice
+        with the nearest core (module docstring).
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            int32 label image.
+        """
         if self._label is None:
             label = np.full(self.detector_shape, NO_SLICE, np.int32)
             best = np.full(self.detector_shape, np.inf, np.float32)
@@ -285,8 +343,13 @@ class FieldFootprints:
         return self._label
 
     def overlaps(self):
-        """[(slice a, slice b, shared pixels)] for every pair of slices whose masks share
-        pixels (a < b); empty when the footprints are disjoint."""
+        """Every pair of slices whose masks share pixels (a < b).
+
+        Returns
+        -------
+        list of tuple
+            [(slice a, slice b, shared pixels)]; empty when the footprints are disjoint.
+        """
         if self._pairs is None:
             fps = list(self._fp.values())
             box = np.array([fp.bbox for fp in fps]).reshape(-1, 4)
@@ -308,10 +371,16 @@ class FieldFootprints:
         return list(self._pairs)
 
     def polygons(self):
-        """Plain description for files: the grid (``field``, ``truncate``, ``ncol``, ``nbins``,
-        ``lbda_min``/``lbda_max`` [Å]) and ``slices``: per slice its id, ``lbda_range`` [Å],
-        ``bbox`` (row0, row1, col0, col1) [px], ``npix``, ``outlines`` (lists of [x, y] [px]) and
-        ``trace`` (``lbda`` [Å], ``x``, ``y`` [px] of the slice centre, rounded to 1e-4)."""
+        """Plain description for files.
+
+        Returns
+        -------
+        dict
+            The grid (``field``, ``truncate``, ``ncol``, ``nbins``, ``lbda_min``/``lbda_max``
+            [Å]) and ``slices``: per slice its id, ``lbda_range`` [Å], ``bbox`` (row0, row1, col0,
+            col1) [px], ``npix``, ``outlines`` (lists of [x, y] [px]) and ``trace`` (``lbda`` [Å],
+            ``x``, ``y`` [px] of the slice centre, rounded to 1e-4).
+        """
         return {"field": self.field, "truncate": self.truncate, "ncol": self.ncol,
                 "nbins": int(self.lbda_edges.size - 1), "oversample": list(self.oversample),
                 "lbda_min": float(self.lbda_edges[0]), "lbda_max": float(self.lbda_edges[-1]),
