@@ -318,12 +318,29 @@ class GalaxyModel:
         return f"GalaxyModel({self.name!r})"
 
     def config(self):
-        """Parameters as a dict (``refmodel`` and our parameter names)."""
+        """Parameters as a dict (``refmodel`` and our parameter names).
+
+        Returns
+        -------
+        dict
+            ``{"refmodel": name, **params}``.
+        """
         return {"refmodel": self.name, **self.params}
 
     def updated(self, **params):
         """A new model with some parameters changed (validated; conflicting pairs such as
-        ``mag`` + ``magabs`` given together raise ParameterError)."""
+        ``mag`` + ``magabs`` given together raise ParameterError).
+
+        Parameters
+        ----------
+        **params
+            The parameters changed (as :class:`GalaxyModel`).
+
+        Returns
+        -------
+        GalaxyModel
+            The new model.
+        """
         _check_conflicts(params)
         params = {ALIASES.get(k, k): v for k, v in params.items()}
         current = {**self.params, **params}
@@ -349,14 +366,33 @@ class GalaxyModel:
         return GalaxyModel(model, **current)
 
     def rest_spectrum(self):
-        """Rest-frame SED (λ [Å], F_λ, arbitrary scale)."""
+        """Rest-frame SED (arbitrary scale).
+
+        Returns
+        -------
+        lbda : numpy.ndarray
+            Wavelengths [Å].
+        flux : numpy.ndarray
+            F_λ (arbitrary scale).
+        """
         if self.spectral == "bb":
             return _REST_BB_LBDA, blackbody_flambda(_REST_BB_LBDA, self.params["temperature"])
         return load_galaxy_spectrum(self.spectral)
 
     def host(self, redshift):
-        """The :class:`~slicersim.sources.extended.Host` seen at ``redshift``, centred at (0, 0)
-        (the target places it); ``host.model`` is this model."""
+        """The :class:`~slicersim.Host` seen at ``redshift``, centred at (0, 0) (the target places
+        it); ``host.model`` is this model.
+
+        Parameters
+        ----------
+        redshift : float
+            Redshift z.
+
+        Returns
+        -------
+        Host
+            The host.
+        """
         z = check_source_redshift(redshift, "host redshift")
         p, cosmo = self.params, self.params["cosmology"]
         if self.spatial == "sersic":
@@ -376,7 +412,13 @@ class GalaxyModel:
         return host
 
     def copy(self):
-        """An independent copy (its ``params`` dict is its own)."""
+        """An independent copy (its ``params`` dict is its own).
+
+        Returns
+        -------
+        GalaxyModel
+            The copy.
+        """
         new = copy.copy(self)
         new.params = dict(self.params)
         return new
@@ -384,7 +426,18 @@ class GalaxyModel:
     def pinned(self, redshift):
         """A copy fixed to the target that renders it at ``redshift``: an angular ``r_eff`` becomes
         the proper ``r_kpc`` it has there, and the model's own ``redshift`` is dropped (the
-        target's rules from then on).  The model itself is never changed."""
+        target's rules from then on).  The model itself is never changed.
+
+        Parameters
+        ----------
+        redshift : float
+            The target's redshift.
+
+        Returns
+        -------
+        GalaxyModel
+            The pinned copy.
+        """
         new = self.copy()
         new.redshift = None
         p = new.params
@@ -395,7 +448,18 @@ class GalaxyModel:
 
     @classmethod
     def from_spec(cls, spec):
-        """A model from a name, a dict (``refmodel`` + parameters) or a GalaxyModel."""
+        """A model from a name, a dict (``refmodel`` + parameters) or a GalaxyModel.
+
+        Parameters
+        ----------
+        spec : str, dict or GalaxyModel
+            The model (a GalaxyModel is returned as it is).
+
+        Returns
+        -------
+        GalaxyModel
+            The model.
+        """
         if isinstance(spec, GalaxyModel):
             return spec
         if isinstance(spec, str):

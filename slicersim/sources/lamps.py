@@ -84,7 +84,18 @@ class BlackBodyContinuum(Versioned):
         return self.scale * blackbody_flambda(lbda, self.temperature)
 
     def structure_scale(self, lbda):
-        """Finest spectral structure [Å] at λ: none (smooth)."""
+        """Finest structure [Å]: the peak FWHM (half an FSR when the peaks overlap).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The scale [Å].
+        """
         return np.full(np.shape(lbda), np.inf)
 
     def coverage(self):
@@ -166,23 +177,67 @@ class FabryPerotEtalon(Versioned):
         return 2.0 * self.fsr / math.pi * math.asin(1.0 / math.sqrt(F)) if F > 1 else math.inf
 
     def transmission(self, lbda):
-        """T at λ [Å]."""
+        """T at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The transmission, in [0, ``peak_transmission``].
+        """
         sigma = 1e8 / np.asarray(lbda, dtype=float)
         return self.peak_transmission / (1.0 + self.coefficient_of_finesse
                                          * np.sin(math.pi * sigma / self.fsr) ** 2)
 
     def order(self, lbda):
-        """Interference order σ / FSR_σ (an integer at a peak)."""
+        """Interference order σ / FSR_σ (an integer at a peak).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The order.
+        """
         return 1e8 / np.asarray(lbda, dtype=float) / self.fsr
 
     def peak_wavelengths(self, lo, hi):
-        """Wavelengths [Å] of the transmission peaks σ_k = k·FSR_σ inside [lo, hi] Å, increasing."""
+        """Wavelengths [Å] of the transmission peaks σ_k = k·FSR_σ inside [lo, hi] Å, increasing.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The range [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The peak wavelengths [Å].
+        """
         kmin, kmax = math.ceil(1e8 / hi / self.fsr - 1e-12), math.floor(1e8 / lo / self.fsr + 1e-12)
         k = np.arange(max(kmin, 1), kmax + 1)[::-1]
         return 1e8 / (k * self.fsr)
 
     def fwhm(self, lbda):
-        """FWHM of the peak near λ [Å]: λ² δσ / 10⁸."""
+        """FWHM of the peak near λ [Å]: λ² δσ / 10⁸.
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            FWHM [Å].
+        """
         return np.asarray(lbda, dtype=float) ** 2 * self.fwhm_wavenumber * 1e-8
 
     def structure_scale(self, lbda):
@@ -225,7 +280,18 @@ class TabulatedEtalon(Versioned):
 
     def peak_wavelengths(self, lo, hi):
         """Local maxima of the table inside [lo, hi] Å, refined by a parabola through 3 nodes
-        (maxima below 10 % of the table's maximum are ignored)."""
+        (maxima below 10 % of the table's maximum are ignored).
+
+        Parameters
+        ----------
+        lo, hi : float
+            The range [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The peak wavelengths [Å].
+        """
         t = self.transmission_in
         i = np.flatnonzero((t[1:-1] > t[:-2]) & (t[1:-1] >= t[2:]) & (t[1:-1] > 0.1 * t.max())) + 1
         a, b, c = t[i - 1], t[i], t[i + 1]
@@ -289,17 +355,52 @@ class CalibrationLamp(Versioned):
         return (self.continuum, self.etalon)
 
     def surface_brightness(self, lbda):
-        """S(λ) at λ [Å]."""
+        """S(λ) at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            S [erg/s/cm²/Å/arcsec²].
+        """
         s = self.continuum.surface_brightness(lbda)
         return s if self.etalon is None else s * self.etalon.transmission(lbda)
 
     def spectrum(self, lbda):
-        """(λ, S) as arrays: the lamp as a spectrum (e.g. an arc-lamp line list for a PointSource)."""
+        """The lamp as a spectrum (e.g. an arc-lamp line list for a PointSource).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        lbda : numpy.ndarray
+            Wavelengths [Å].
+        brightness : numpy.ndarray
+            S [erg/s/cm²/Å/arcsec²].
+        """
         lbda = np.asarray(lbda, dtype=float)
         return lbda, self.surface_brightness(lbda)
 
     def line_wavelengths(self, lo, hi):
-        """Wavelengths [Å] of the etalon's transmission peaks in [lo, hi] (empty without etalon)."""
+        """Wavelengths [Å] of the etalon's transmission peaks in [lo, hi] (empty without etalon).
+
+        Parameters
+        ----------
+        lo, hi : float
+            The range [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The peak wavelengths [Å].
+        """
         return np.empty(0) if self.etalon is None else self.etalon.peak_wavelengths(lo, hi)
 
     def structure_scale(self, lbda):
@@ -307,7 +408,18 @@ class CalibrationLamp(Versioned):
         return scale if self.etalon is None else np.minimum(scale, self.etalon.structure_scale(lbda))
 
     def check_coverage(self, lo, hi):
-        """SpectrumError unless the continuum covers [lo, hi] Å."""
+        """SpectrumError unless the continuum covers [lo, hi] Å.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The range [Å].
+
+        Returns
+        -------
+        None
+            It only raises.
+        """
         clo, chi = self.continuum.coverage()
         if lo < clo or hi > chi:
             raise SpectrumError(f"the lamp spectrum covers {clo:g}–{chi:g} Å, not the instrument's "
@@ -352,7 +464,20 @@ class CalibrationLamp(Versioned):
         weights 1 − abs(x − i) (the half bins at the grid's ends go to the end bins), so the total
         is conserved, a smooth spectrum gets its bin average to O(Δλ² S″), and a line narrower
         than a bin keeps its position (its first moment) through the discrete LSF, where the
-        plain average would move it to the centre of its bin."""
+        plain average would move it to the centre of its bin.
+
+        Parameters
+        ----------
+        edges : array_like of shape (nλ+1,)
+            Bin edges [Å].
+        centres : array_like of shape (nλ,), optional
+            Bin centres [Å] (the cloud-in-cell deposit).
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ,)
+            [erg/s/cm²/Å/arcsec²].
+        """
         edges = np.asarray(edges, dtype=float)
         if edges.ndim != 1 or edges.size < 2 or not np.all(np.isfinite(edges)) or np.any(np.diff(edges) <= 0):
             raise ParameterError("bin edges must be a finite, strictly increasing 1-D array [Å]")

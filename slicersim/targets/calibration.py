@@ -94,7 +94,18 @@ class FlatFieldStructure:
         return np.exp(sigma * z - 0.5 * sigma * sigma)
 
     def slice_throughput(self, slice_ids):
-        """Throughput t_s (mean 1) of each slice id."""
+        """Throughput t_s (mean 1) of each slice id.
+
+        Parameters
+        ----------
+        slice_ids : array_like of int
+            Slice ids.
+
+        Returns
+        -------
+        numpy.ndarray
+            The throughputs, of the shape of ``slice_ids``.
+        """
         from slicersim import rng
         ids = np.asarray(slice_ids, dtype=np.uint64)
         if self.slice_scatter == 0.0:
@@ -103,15 +114,45 @@ class FlatFieldStructure:
 
     def row_throughput(self, field, nrows):
         """Slice throughput of each cube row (row r ↔ slice ``slices[nrows − 1 − r]``; Lazuli
-        narrow: slices 1–58, wide 59–116; single-field instruments: 1 … nrows)."""
+        narrow: slices 1–58, wide 59–116; single-field instruments: 1 … nrows).
+
+        Parameters
+        ----------
+        field : str or None
+            The field.
+        nrows : int
+            Cube rows.
+
+        Returns
+        -------
+        numpy.ndarray of shape (nrows,)
+            The throughputs (mean 1).
+        """
         slices = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}.get(field, tuple(range(1, nrows + 1)))
         if len(slices) != nrows:
             slices = tuple(range(1, nrows + 1))
         return self.slice_throughput(slices[::-1])
 
     def cell_response(self, shape, field, pixels_per_cell=2, backend="auto"):
-        """(nλ, ny, nx) response of each cube cell: the mean of its ``pixels_per_cell`` pixel
-        responses (voxel v, pixel k: the Box–Muller branch k mod 2 of Philox draw k div 2)."""
+        """Response of each cube cell: the mean of its ``pixels_per_cell`` pixel responses (voxel v,
+        pixel k: the Box–Muller branch k mod 2 of Philox draw k div 2).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (nλ, ny, nx) of the cube.
+        field : str
+            The field ("narrow", "wide" or None).
+        pixels_per_cell : int, optional
+            Detector pixels per cell.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            The cell responses (mean 1).
+        """
         from slicersim.backends.noise import uniform_normal_grid
         shape = tuple(int(v) for v in shape)
         if self.pixel_scatter == 0.0:
@@ -127,7 +168,20 @@ class FlatFieldStructure:
         return (total / ppc).reshape(shape)
 
     def pixel_response(self, shape, backend="auto"):
-        """(ny, nx) response r_p of each detector pixel (index y·2¹⁶ + x)."""
+        """Response r_p of each detector pixel (index y·2¹⁶ + x).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (ny, nx) of the detector.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        numpy.ndarray of shape (ny, nx)
+            The pixel responses (mean 1).
+        """
         from slicersim.backends.noise import uniform_normal_grid
         ny, nx = (int(v) for v in shape)
         out = np.ones((ny, nx))
