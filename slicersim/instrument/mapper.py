@@ -695,6 +695,7 @@ class SlicerMapper:
         Returns
         -------
         None
+            The memory cache is emptied in place.
         """
         self._cache.clear()
 
@@ -704,6 +705,7 @@ class SlicerMapper:
         Returns
         -------
         None
+            The caches are emptied in place.
         """
         self._cache.clear()
         self._disk_keys.clear()

@@ -241,7 +241,18 @@ class FabryPerotEtalon(Versioned):
         return np.asarray(lbda, dtype=float) ** 2 * self.fwhm_wavenumber * 1e-8
 
     def structure_scale(self, lbda):
-        """Finest structure [Å]: the peak FWHM (half an FSR when the peaks overlap)."""
+        """Finest structure [Å]: the peak FWHM (half an FSR when the peaks overlap).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The scale [Å].
+        """
         return np.asarray(lbda, dtype=float) ** 2 * min(self.fwhm_wavenumber, 0.5 * self.fsr) * 1e-8
 
 

