@@ -35,7 +35,8 @@ exclude_patterns = ["_build", "examples", "Thumbs.db", ".DS_Store"]
 myst_enable_extensions = ["dollarmath", "colon_fence", "deflist"]
 myst_heading_anchors = 3
 
-# numpy-style docstrings (the package's convention: "name : type  description [unit]")
+# numpydoc docstrings: Parameters / Returns sections, "name : type" then an indented description
+# with its [unit]; every docstring renders through napoleon (tests/docs/test_api_docstrings.py)
 napoleon_google_docstring = False
 napoleon_numpy_docstring = True
 napoleon_use_rtype = False
