@@ -568,7 +568,7 @@ def markdown_report(result):
              f"Machine: {m.get('cpu_model')} ({m.get('cpu_count')} CPUs), load average {m.get('loadavg_start')} "
              f"at the start and {m.get('loadavg_end')} at the end (other jobs share the machine: wall times "
              f"are inflated by them, CPU times of each process much less), niceness {m.get('niceness')}.", "",
-             f"{n} SNe Ia z = 0.1–1.5, SNR 20 per resolution element in [4000, 6800](1+z) Å, Lazuli CBE narrow "
+             f"{n} SNe Ia z = 0.1–1.5, SNR 20 per resolution element in [4000, 6800]·(1+z) Å, Lazuli CBE narrow "
              "field.  Per target: the reference's mean over its targets; ours: a `solve_many` call over all "
              "of them / N (warm: the best of the calls after the first).  CPU: `time.process_time` of the "
              "process (ours includes PoCL's worker threads).", "",

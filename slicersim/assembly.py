@@ -59,10 +59,28 @@ def _warn_ideal_defaults(cfg):
 
 def build_simulation(config="cbe", field="narrow", pointsource=None, background="zodi",
                      position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS):
-    """Simulation from a configuration (see :func:`slicersim.io.config.load_config`) and a field.
+    """Simulation from a configuration (see :func:`~slicersim.load_config`) and a field.
 
-    ``field=None`` uses the configuration as written (single-channel instruments);
-    ``conventions``: "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`).
+    Parameters
+    ----------
+    config : str, path-like, list or dict, optional
+        "cbe", "eol", TOML path(s) or a configuration dict, as :func:`~slicersim.load_config`.
+    field : {"narrow", "wide"} or None, optional
+        The Lazuli field; None uses the configuration as written (single-channel
+        instruments).
+    pointsource : PointSource, optional
+        The point source of the scene.
+    background : str, Background or None, optional
+        The background of the scene ("zodi" by default).
+    position : tuple of float, optional
+        (x, y) of the point source relative to the field centre [cells].
+    conventions : {"physical", "slicersim-1.0"}, optional
+        Physics conventions ("physical" by default; ``slicersim.physics.conventions``).
+
+    Returns
+    -------
+    Simulation
+        The simulation (telescope, spectrograph, detector and scene).
     """
     check_field(field)
     cfg = load_config(config)

@@ -69,15 +69,27 @@ class Simulation(Versioned):
 
     Parameters
     ----------
-    scene, telescope, spectrograph, detector : model objects
-    nramps : int  number of identical ramps (summed)
-    aperture_radius_insigma : float  extraction radius in units of σ_ref / s
-    conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
-    redshift : optional redshift of the observed source (set by targets; used by
-        ``frame="rest"`` bands)
+    scene : Scene
+        The sources (point source, background, host).
+    telescope : Telescope
+        The telescope.
+    spectrograph : Spectrograph
+        The spectrograph (:class:`SlicerSpectrograph` or :class:`MLASpectrograph`).
+    detector : Detector
+        The detector and its readout.
+    nramps : int, optional
+        Number of identical ramps (summed).
+    aperture_radius_insigma : float, optional
+        Extraction radius in units of σ_ref / s.
+    conventions : {"physical", "slicersim-1.0"}, optional
+        "physical" (default) or "slicersim-1.0" (``slicersim.physics.conventions``).
+    redshift : float, optional
+        Redshift of the observed source (set by targets; used by ``frame="rest"`` bands).
 
+    Notes
+    -----
     Every derived quantity is cached, keyed on the versions of the scene, its
-    sources and the instrument components (:mod:`slicersim.versioning`): any
+    sources and the instrument components (``slicersim.versioning``): any
     ``update``, ``set_throughput``, ``scene.host = ...`` or attribute assignment
     invalidates it at once.
     """
@@ -126,18 +138,43 @@ class Simulation(Versioned):
     def update(self, _position=None, **kwargs):
         """Change any mutable parameter of the simulation or its components (see
         ``mutable_parameters``), atomically: the new components are built and validated
-        off to the side first; on any error (:class:`ParameterError`, ReadoutError)
+        off to the side first; on any error (:class:`~slicersim.errors.ParameterError`, ReadoutError)
         nothing changes.  Caches follow automatically (version keyed).
 
         The extraction aperture is validated for the new state: a point source outside the
         field or an aperture containing no cell centre raises ParameterError.
-        ``_position`` (internal, used by targets) validates it for a point-source position
-        about to be set."""
+
+        Parameters
+        ----------
+        _position : tuple of float, optional
+            Internal, used by targets: validates the aperture for a point-source position
+            [cells] about to be set.
+        **kwargs
+            The parameters to change (names of ``mutable_parameters``).
+
+        Returns
+        -------
+        None
+            The simulation is changed in place.
+        """
         self.apply_update(self.plan_update(_position, **kwargs))
 
     def plan_update(self, _position=None, **kwargs):
-        """The validated new state of :meth:`update` (:class:`SimulationUpdate`), nothing changed:
-        targets validate their own parts against it before :meth:`apply_update`."""
+        """The validated new state of :meth:`update`, nothing changed: targets validate their
+        own parts against it before :meth:`apply_update`.
+
+        Parameters
+        ----------
+        _position : tuple of float, optional
+            As :meth:`update`.
+        **kwargs
+            As :meth:`update`.
+
+        Returns
+        -------
+        SimulationUpdate
+            The new state, for :meth:`apply_update`.
+        """
         check_parameter_names("simulation", kwargs, self.mutable_parameters)
         groups = {"detector": {}, "spectrograph": {}, "telescope": {}}
         own = {}
@@ -159,7 +196,18 @@ class Simulation(Versioned):
         return SimulationUpdate(self, new, nramps, aperture)
 
     def apply_update(self, plan):
-        """Apply a :meth:`plan_update` result of this simulation (nothing here can fail)."""
+        """Apply a :meth:`plan_update` result of this simulation (nothing here can fail).
+
+        Parameters
+        ----------
+        plan : object
+            The validated new state (a ``SimulationUpdate``).
+
+        Returns
+        -------
+        None
+            The simulation is changed in place.
+        """
         if plan.simulation is not self:
             raise ParameterError("plan: this update was planned for another simulation (apply_update takes the "
                                  "plan_update result of the same simulation)")
@@ -235,8 +283,18 @@ class Simulation(Versioned):
         return self.telescope.area * self.spectrograph.cell_solid_angle * self.spectrograph.dlbda * radiance
 
     def thermal_photons_of(self, which):
-        """Thermal photons per cell [ph/s/cell] (before LSF) of ``which``: "telescope" (mirrors)
-        or "optics" (the dispersed internal optics)."""
+        """Thermal photons per cell [ph/s/cell] (before LSF).
+
+        Parameters
+        ----------
+        which : {"telescope", "optics"}
+            "telescope" (mirrors) or "optics" (the dispersed internal optics).
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ,)
+            The thermal photons [ph/s/cell].
+        """
         return self._thermal_photons(validation.choice("which", which, ("telescope", "optics")))
 
     @property
@@ -246,8 +304,19 @@ class Simulation(Versioned):
                             + self._thermal_photons("optics"))
 
     def uniform_photons(self, switch_off=None):
-        """(background, thermal) photons per cell [ph/s/cell] (nλ,) each, before the LSF, with the
-        terms ``switch_off`` removes set to 0 (rule: :mod:`slicersim.products.components`)."""
+        """(background, thermal) photons per cell, before the LSF, with the terms ``switch_off``
+        removes set to 0 (rule: ``slicersim.products.components``).
+
+        Parameters
+        ----------
+        switch_off : str or sequence of str, optional
+            Components left out.
+
+        Returns
+        -------
+        background, thermal : numpy.ndarray of shape (nλ,)
+            Photons per cell [ph/s/cell].
+        """
         on = uniform_terms_on(as_switched_off(switch_off))
         zero = np.zeros_like(self.lbda)
         background = self.background_photons if "background" in on else zero
@@ -298,7 +367,13 @@ class Simulation(Versioned):
                                                                self.aperture_radius))
 
     def get_psf(self):
-        """PSF cube P[λ, y, x] (fraction of the point-source flux per cell)."""
+        """PSF cube P[λ, y, x] (fraction of the point-source flux per cell).
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            The PSF cube.
+        """
         sig_y, sig_x = self.psf_sigmas
         return gaussian_psf_fractions(sig_y, sig_x, self.spectrograph.shape, self.position)
 
@@ -309,9 +384,23 @@ class Simulation(Versioned):
         return check_readout(nmd, nramps, self.detector.min_group, self.detector.max_group)
 
     def get_times(self, nmd=None, nramps=None):
-        """Readout times [s]: ``frame_time``, ``group_time``, ``exposure_time_per_ramp``,
-        ``integration_time_per_ramp`` and the totals over the ``nramps`` ramps,
-        ``exposure_time`` and ``integration_time`` (plus nmd, nramps, nframes per ramp)."""
+        """Readout times [s] of a readout.
+
+        Parameters
+        ----------
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps (default: the simulation's).
+
+        Returns
+        -------
+        dict
+            ``frame_time``, ``group_time``, ``exposure_time_per_ramp``,
+            ``integration_time_per_ramp`` [s] and the totals over the ``nramps`` ramps,
+            ``exposure_time`` and ``integration_time`` [s] (plus ``nmd``, ``nramps``,
+            ``nframes`` per ramp).
+        """
         nmd, nramps = self._readout(nmd, nramps)
         t = readout_times(nmd, self.detector.tframe)
         return {"nmd": nmd, "nramps": nramps, "nframes": t["nframes"], "frame_time": self.detector.tframe,
@@ -321,12 +410,36 @@ class Simulation(Versioned):
                 "integration_time": nramps * t["integration_time_per_ramp"]}
 
     def get_data_volume(self, nmd=None, nramps=None):
-        """Raw group-level data volume [GB] (16 bit per pixel per group, all ramps)."""
+        """Raw group-level data volume [GB] (16 bit per pixel per group, all ramps).
+
+        Parameters
+        ----------
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps (default: the simulation's).
+
+        Returns
+        -------
+        float
+            The data volume [GB].
+        """
         nmd, nramps = self._readout(nmd, nramps)
         return self.detector.data_volume(nmd, nramps)
 
     def effective_dark(self, off=None):
-        """Dark + ROIC glow / t_f + thermal dark [e-/s/px], with the sources ``off`` removed."""
+        """Dark + ROIC glow / t_f + thermal dark [e-/s/px], with the sources ``off`` removed.
+
+        Parameters
+        ----------
+        off : str or sequence of str, optional
+            Components switched off (names of ``VARIANCE_SOURCES``).
+
+        Returns
+        -------
+        float or numpy.ndarray
+            The effective dark [e-/s/px].
+        """
         det, off = self.detector, as_switched_off(off)
         dark = 0.0 if "dark" in off else det.dark
         glow = 0.0 if "roic_glow" in off else det.roic_glow
@@ -334,18 +447,46 @@ class Simulation(Versioned):
         return dark + glow / det.tframe + dth
 
     def read_noise(self, off=None):
-        """Read noise per frame [electron]: the detector's, 0 when ``"ron"`` is switched off."""
+        """Read noise per frame [electron]: the detector's, 0 when ``"ron"`` is switched off.
+
+        Parameters
+        ----------
+        off : str or sequence of str, optional
+            Components switched off (names of ``VARIANCE_SOURCES``).
+
+        Returns
+        -------
+        float
+            The read noise per frame [electron].
+        """
         return 0.0 if "ron" in as_switched_off(off) else self.detector.ron
 
     @property
     def detector_pixels_per_cell(self):
         """Pixels whose read noise, dark and full well a cell carries under this simulation's
-        conventions (:func:`slicersim.physics.conventions.detector_pixels_per_cell`)."""
+        conventions (``slicersim.physics.conventions.detector_pixels_per_cell``)."""
         return detector_pixels_per_cell(self.spectrograph, self._conventions)
 
     def cell_variance(self, cell_rate, nmd, off=None):
-        """Per-cell variance [ADU²] over one ramp for a cell electron rate [e-/s/cell], with the
-        detector terms ``off`` removed; saturated cells get +inf."""
+        """Per-cell variance [ADU²] over one ramp for a cell electron rate, with the detector
+        terms ``off`` removed; saturated cells get +inf.
+
+        Parameters
+        ----------
+        cell_rate : numpy.ndarray
+            Electron rate per cell [e-/s/cell].
+        nmd : tuple of int
+            Readout (n, m, d).
+        off : str or sequence of str, optional
+            Components switched off (names of ``VARIANCE_SOURCES``).
+
+        Returns
+        -------
+        variance : numpy.ndarray
+            The variance [ADU²], of the shape of ``cell_rate`` (+inf where saturated).
+        saturated : numpy.ndarray
+            bool, the saturated cells.
+        """
         det, ppc = self.detector, self.detector_pixels_per_cell
         dark = self.effective_dark(off)
         ron = self.read_noise(off)
@@ -358,7 +499,22 @@ class Simulation(Versioned):
     # ------------------------------------------------------------------ cubes
     def get_projected_scene(self, switch_off=None, psf_profile="gaussian", backend="auto"):
         """Photon cube C[λ, y, x] = LSF[F f2p P] + LSF[host] + LSF[B f2p s² + N_th] [ph/s/cell]:
-        the sum of the scene components (:meth:`get_scene_cubes`) left on by ``switch_off``."""
+        the sum of the scene components (:meth:`get_scene_cubes`) left on by ``switch_off``.
+
+        Parameters
+        ----------
+        switch_off : str or sequence of str, optional
+            Components left out, as :meth:`get_cube`.
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF profile.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            The photon cube [ph/s/cell].
+        """
         rates = scene_photon_rates(self, check_switch_off(switch_off), psf_profile, backend)
         cube = np.broadcast_to((rates["background"] + rates["thermal"])[:, None, None],
                                (self.lbda.size, *self.spectrograph.shape)).copy()
@@ -369,16 +525,39 @@ class Simulation(Versioned):
 
     def get_scene_cubes(self, unit="adu", nmd=None, nramps=None, per_ramp=False, psf_profile="gaussian",
                         switch_off=None, backend="auto", as_dict=True):
-        """Noise-free cube (nλ, ny, nx) of each scene component: dict ``pointsource``,
-        ``background``, ``host``, ``thermal`` (absent or switched-off components are zeros; 1.4.2's
-        keys ``host_cube`` / ``thermal_cube`` read the same arrays, :class:`~slicersim.products.cube.SceneCubes`).
+        """Noise-free cube (nλ, ny, nx) of each scene component.
 
-        ``unit``: ``"adu"`` (signal: × QE t_int g, × nramps unless ``per_ramp``), ``"electron"``
-        [e-/s/cell], ``"photon"`` [ph/s/cell] or ``"flambda"`` (÷ f2p: erg/s/cm²/Å per cell);
-        1.4.2's ``"default"``, ``"ph"``, ``"photons"`` are accepted.  ``as_dict=False``: one
-        (4, nλ, ny, nx) array in that order (1.4.2).
         In ADU their sum is the signal of :meth:`get_cube` (same readout, PSF and
-        ``switch_off``), to rounding, where no cell saturates (the cube is NaN there)."""
+        ``switch_off``), to rounding, where no cell saturates (the cube is NaN there).
+
+        Parameters
+        ----------
+        unit : str, optional
+            ``"adu"`` (signal: × QE t_int g, × nramps unless ``per_ramp``), ``"electron"``
+            [e-/s/cell], ``"photon"`` [ph/s/cell] or ``"flambda"`` (÷ f2p: erg/s/cm²/Å per cell);
+            1.4.2's ``"default"``, ``"ph"``, ``"photons"`` are accepted.
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps (default: the simulation's).
+        per_ramp : bool, optional
+            ADU of one ramp (else all ramps).
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF.
+        switch_off : str or sequence of str, optional
+            As :meth:`get_cube`.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        as_dict : bool, optional
+            False: one (4, nλ, ny, nx) array in the order below (1.4.2).
+
+        Returns
+        -------
+        SceneCubes or numpy.ndarray
+            Dict ``pointsource``, ``background``, ``host``, ``thermal`` (absent or switched-off
+            components are zeros; 1.4.2's keys ``host_cube`` / ``thermal_cube`` read the same
+            arrays, ``slicersim.products.cube.SceneCubes``), each of shape (nλ, ny, nx) [``unit``].
+        """
         validation.flag("as_dict", as_dict)
         cubes = build_scene_cubes(self, unit=unit, nmd=nmd, nramps=nramps, per_ramp=per_ramp,
                                   psf_profile=psf_profile, switch_off=switch_off, backend=backend)
@@ -387,29 +566,52 @@ class Simulation(Versioned):
     def get_cube(self, nmd=None, nramps=None, seed=None, psf_profile="gaussian", backend="auto",
                  switch_off=None, **options):
         """Signal [ADU] and variance [ADU²] cubes summed over the ramps, plus a noisy
-        realisation when ``seed`` (an int in [0, 2⁶⁴)) is given: a :class:`CubeTuple`
+        realisation when ``seed`` (an int in [0, 2⁶⁴)) is given: a ``CubeTuple``
         whose ``.seed`` records it.  ``seed=None`` (default) gives the noiseless pair only
         (the seed is the noise switch of cubes); a numpy Generator is deprecated (an integer seed
         is drawn from it, with a DeprecationWarning, and recorded in ``.seed``).
 
-        ``switch_off`` (a name or names of :data:`VARIANCE_SOURCES`, or ``"effective_dark"``)
-        removes scene components from the signal and variance and detector terms from the
-        variance (:mod:`slicersim.products.components`).
+        Parameters
+        ----------
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps (default: the simulation's).
+        seed : int, optional
+            Integer in [0, 2⁶⁴) of the noisy realisation; None: noiseless pair only.
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF (``"gaussian"``, reference default).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        switch_off : str or sequence of str, optional
+            A name or names of ``VARIANCE_SOURCES``, or ``"effective_dark"``: removes scene
+            components from the signal and variance and detector terms from the variance
+            (``slicersim.products.components``).
+        **options
+            Options of the cube builder (``max_bytes``, ``progress``, ``psf_options``,
+            ``precision``, ``dtype``, ...), see Notes.
 
+        Returns
+        -------
+        CubeTuple
+            (signal, variance) of shape (nλ, ny, nx) [ADU, ADU²], then the noisy cube [ADU]
+            when ``seed`` is given; ``.seed`` records the seed.
+
+        Notes
+        -----
         Noise: ``noisy = signal + √variance · z`` with z the Philox/Box–Muller normal keyed
-        by (seed, flat voxel index, stream 0), :func:`slicersim.backends.noise.noisy_cube`.
+        by (seed, flat voxel index, stream 0), ``slicersim.backends.noise.noisy_cube``.
         For the same signal and variance the NumPy twin and the OpenCL kernel give
         bit-identical noisy cubes (same Philox words, same correctly rounded √, no FMA
         contraction).  Between ``backend="numpy"`` and ``"opencl"`` the *expectation and
         variance* cubes themselves may differ by a few ulp (different summation order of the
         PSF/LSF contractions), so noisy cubes agree to
-        |Δ| ≤ 1e-13 · (|signal| + √variance) per voxel, not bit for bit.
+        abs(Δ) ≤ 1e-13 · (abs(signal) + √variance) per voxel, not bit for bit.
 
-        ``psf_profile`` is ``"gaussian"`` (reference default) or ``"airy"``; see
-        :func:`slicersim.products.cube.build_cube` for the chunked OpenCL builder, the
+        See ``slicersim.products.cube.build_cube`` for the chunked OpenCL builder, the
         computation path of each scene component and the options
         (``max_bytes``, ``progress``, ``psf_options``, ``precision``: "auto", "double" or
-        "single" kernels, :mod:`slicersim.backends.precision`).
+        "single" kernels, ``slicersim.backends.precision``).
         """
         seed = validation.seed(seed)
         for key in options:
@@ -422,16 +624,40 @@ class Simulation(Versioned):
     # ------------------------------------------------------------------ extraction
     @property
     def extraction_model(self):
-        """:class:`ExtractionModel` of the current configuration, Gaussian PSF (cached)."""
+        """``ExtractionModel`` of the current configuration, Gaussian PSF (cached)."""
         return self.get_extraction_model("gaussian")
 
     def aperture_psf(self, psf_profile="gaussian", backend="auto"):
-        """PSF fractions of the aperture cells (nλ, ncell) of a registered profile
-        (:mod:`slicersim.products.psf_profiles`: "gaussian", "airy")."""
+        """PSF fractions of the aperture cells of a registered profile
+        (``slicersim.products.psf_profiles``: "gaussian", "airy").
+
+        Parameters
+        ----------
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF profile.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ncell)
+            Fraction of the point-source flux in each aperture cell.
+        """
         return get_psf_profile(psf_profile).cells(self, self.aperture, backend)
 
     def get_extraction_model(self, psf_profile="gaussian"):
-        """:class:`ExtractionModel` with the cube's PSF model as extraction weights (cached)."""
+        """``ExtractionModel`` with the cube's PSF model as extraction weights (cached).
+
+        Parameters
+        ----------
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF profile.
+
+        Returns
+        -------
+        ExtractionModel
+            The extraction model.
+        """
         def build():
             psf = self.aperture_psf(psf_profile)
             lsf = self.spectrograph.apply_lsf
@@ -463,8 +689,28 @@ class Simulation(Versioned):
     def get_spectrum(self, nmd=None, nramps=None, psf_profile="gaussian", switch_off=None):
         """Optimally extracted spectrum: (λ [Å], signal [ADU], variance [ADU²]), all ramps.
 
-        The extraction weights are the cube's PSF (``"gaussian"`` or ``"airy"``);
-        ``switch_off`` as :meth:`get_cube` (a switched-off point source has zero signal)."""
+        The extraction weights are the cube's PSF.
+
+        Parameters
+        ----------
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps (default: the simulation's).
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF of the cube and of the weights.
+        switch_off : str or sequence of str, optional
+            As :meth:`get_cube` (a switched-off point source has zero signal).
+
+        Returns
+        -------
+        lbda : numpy.ndarray of shape (nλ,)
+            Wavelengths [Å].
+        signal : numpy.ndarray of shape (nλ,)
+            Extracted signal [ADU].
+        variance : numpy.ndarray of shape (nλ,)
+            Its variance [ADU²].
+        """
         off = check_switch_off(switch_off)
         nmd, nramps = self._readout(nmd, nramps)
         signal, variance = self._spectrum(nmd, nramps, off, psf_profile=psf_profile)
@@ -477,7 +723,20 @@ class Simulation(Versioned):
         the point-source spectrum, else SpectrumError naming the covered fraction;
         ``allow_partial=True`` accepts a partly covered band (≥ 50 % inside the grid) with
         a BandCoverageWarning, the SNR being that of the covered part
-        (:mod:`slicersim.snr.bands`)."""
+        (``slicersim.snr.bands``).
+
+        Parameters
+        ----------
+        lbda_range : tuple of float
+            (lo, hi) [Å, observer frame].
+        allow_partial : bool, optional
+            Accept a partly covered band.
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ,)
+            bool, True for the bins of the band.
+        """
         lo, hi = check_band(lbda_range)
         mask = (self.lbda >= lo) & (self.lbda <= hi)
         if not mask.any():
@@ -488,10 +747,21 @@ class Simulation(Versioned):
         return mask
 
     def band_range(self, lbda_range, frame=None):
-        """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame
-        (rest: ×(1 + redshift); needs :attr:`redshift`); ``frame=None`` (default) is "rest" when
-        :attr:`redshift` is known, else "obs" (:func:`resolve_frame`).  Bounds may be astropy
-        Quantities (converted to Å)."""
+        """(lo, hi) [Å, observer frame] of a band given in the ``"obs"`` or ``"rest"`` frame.
+
+        Parameters
+        ----------
+        lbda_range : tuple of float or astropy.units.Quantity
+            (lo, hi) [Å] (Quantities are converted to Å).
+        frame : {"rest", "obs"} or None, optional
+            rest: ×(1 + redshift), needs ``redshift``; None (default) is "rest" when ``redshift``
+            is known, else "obs" (``resolve_frame``).
+
+        Returns
+        -------
+        tuple of float
+            (lo, hi) [Å, observer frame].
+        """
         lo, hi = check_band(lbda_range)
         if resolve_frame(frame, self.redshift) == "rest":
             if self.redshift is None:
@@ -502,13 +772,35 @@ class Simulation(Versioned):
     def get_band_snr(self, lbda_range, nmd=None, nramps=None, per_resolution=False, frame=None,
                      allow_partial=False, switch_off=None):
         """Band SNR = mean(signal) / √mean(variance) over the bins in ``lbda_range``
-        (per bin; ×√dispersion_resolution when ``per_resolution``); ``frame``: the frame
-        ``lbda_range`` is given in, "rest" (needs :attr:`redshift`), "obs", or None (default:
-        "rest" when :attr:`redshift` is known, else "obs"; :meth:`band_range`).
+        (per bin; ×√dispersion_resolution when ``per_resolution``).
 
         A band not entirely inside the grid and the source spectrum raises SpectrumError
         unless ``allow_partial=True`` (then a BandCoverageWarning, and the means run over
-        the covered bins only); see :meth:`band_mask`.  ``switch_off`` as :meth:`get_cube`."""
+        the covered bins only); see :meth:`band_mask`.
+
+        Parameters
+        ----------
+        lbda_range : tuple of float
+            (min, max) of the band [Å], in ``frame``.
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps (default: the simulation's).
+        per_resolution : bool, optional
+            SNR per resolution element (else per bin).
+        frame : {"rest", "obs"} or None, optional
+            The frame ``lbda_range`` is given in: "rest" (needs ``redshift``), "obs", or None
+            (default: "rest" when ``redshift`` is known, else "obs"; :meth:`band_range`).
+        allow_partial : bool, optional
+            Answer on the covered part of the band.
+        switch_off : str or sequence of str, optional
+            As :meth:`get_cube`.
+
+        Returns
+        -------
+        float
+            The band SNR.
+        """
         off = check_switch_off(switch_off)
         nmd, nramps = self._readout(nmd, nramps)
         mask = self.band_mask(self.band_range(lbda_range, frame), allow_partial=allow_partial)
@@ -517,7 +809,22 @@ class Simulation(Versioned):
         return snr * np.sqrt(self.spectrograph.dispersion_resolution) if per_resolution else snr
 
     def get_variance_contribution(self, nmd=None, nramps=None):
-        """Per-source variance contribution [ADU²] per bin: Var(all) − Var(source off)."""
+        """Per-source variance contribution [ADU²] per bin: Var(all) − Var(source off).
+
+        Parameters
+        ----------
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps (default: the simulation's).
+
+        Returns
+        -------
+        dict
+            ``variance`` (the total) and one entry per source of ``VARIANCE_SOURCES`` (dark,
+            roic_glow, thermal_dark, ron, pointsource, background, host, thermal), each of
+            shape (nλ,) [ADU²].
+        """
         nmd, nramps = self._readout(nmd, nramps)
         _, total = self._spectrum(nmd, nramps)
         out = {"variance": total}
@@ -530,8 +837,28 @@ class Simulation(Versioned):
         return out
 
     def get_band_variance_contribution(self, lbda_range, nmd=None, nramps=None, allow_partial=False, frame=None):
-        """Band-mean variance contributions: absolute [ADU²] and fractions ``frac_<src>``
-        (band coverage rule: :meth:`band_mask`; ``frame`` as :meth:`get_band_snr`)."""
+        """Band-mean variance contributions: absolute [ADU²] and fractions ``frac_<src>``.
+
+        Parameters
+        ----------
+        lbda_range : tuple of float
+            (min, max) of the band [Å], in ``frame``.
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps (default: the simulation's).
+        allow_partial : bool, optional
+            Band coverage rule: :meth:`band_mask`.
+        frame : {"rest", "obs"} or None, optional
+            As :meth:`get_band_snr`.
+
+        Returns
+        -------
+        dict
+            The band means of the total variance and of each source's contribution [ADU²],
+            their fractions ``frac_<src>`` of the total, the band ``snr`` and the exposure and
+            integration times [s].
+        """
         nmd, nramps = self._readout(nmd, nramps)
         mask = self.band_mask(self.band_range(lbda_range, frame), allow_partial=allow_partial)
         signal, total = self._spectrum(nmd, nramps)
@@ -554,17 +881,56 @@ class Simulation(Versioned):
     # ------------------------------------------------------------------ ETC
     def fetch_snr(self, snr, lbda_range, per_resolution=True, search="exact", allow_partial=False, frame=None,
                   backend="auto"):
-        """Readout (n, m, d) × nramps reaching a band SNR (see :mod:`slicersim.snr.search`);
-        ``frame`` as :meth:`get_band_snr` (None: "rest" when :attr:`redshift` is known);
-        band coverage rule (``allow_partial``): :meth:`band_mask`."""
+        """Readout (n, m, d) × nramps reaching a band SNR (see ``slicersim.snr.search``).
+
+        Parameters
+        ----------
+        snr : float
+            The SNR to reach.
+        lbda_range : tuple of float
+            (min, max) of the band [Å].
+        per_resolution : bool, optional
+            SNR per resolution element (else per bin).
+        search : {"exact", "reference"}, optional
+            The readout search.
+        allow_partial : bool, optional
+            Band coverage rule: :meth:`band_mask`.
+        frame : {"rest", "obs"} or None, optional
+            As :meth:`get_band_snr` (None: "rest" when ``redshift`` is known).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        dict
+            ``nmd``, ``nramps``, ``snr`` (reached, per bin), ``snr_target`` (per bin),
+            ``snr_per_resolution``, ``exposure_time`` [s], ``trace`` and ``lbda_range_obs``
+            [Å].
+        """
         from slicersim.snr.search import check_snr, solve_readout
         return solve_readout(self, check_snr(snr), lbda_range, per_resolution=per_resolution, search=search,
                              allow_partial=allow_partial, frame=frame, backend=backend)
 
     def show_cube(self, lbda=None, seed=None, ax=None, savefile=None):
-        """Figure of the cube [ADU, all ramps] at a few wavelengths ``lbda`` [Å] (default: four
-        spread over the grid): the signal cube, or a noisy one drawn with ``seed``; see
-        :func:`slicersim.plotting.plot_cube_slices`.  Returns the Figure."""
+        """Figure of the cube [ADU, all ramps] at a few wavelengths: the signal cube, or a noisy
+        one drawn with ``seed``; see :func:`slicersim.plotting.images.plot_cube_slices`.
+
+        Parameters
+        ----------
+        lbda : array_like, optional
+            Wavelengths of the panels [Å] (default: four spread over the grid).
+        seed : int, optional
+            Seed of a noisy cube (None: the signal cube).
+        ax : sequence of matplotlib.axes.Axes, optional
+            None (new figure) or one Axes per wavelength.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.plotting import plot_cube_slices
         signal, _, *noisy = self.get_cube(seed=seed)
         return plot_cube_slices(self, noisy[0] if noisy else signal, lbda=lbda, ax=ax, savefile=savefile)

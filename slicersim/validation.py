@@ -50,7 +50,7 @@ MAX_FRAMES = 65536
 #: luminous source is expected before z ≈ 30 (the first stars); 50 leaves a margin for toy spectra
 MAX_REDSHIFT = 50.0
 #: upper physical bound of the detector numbers wherever they come from (arguments, options, configuration
-#: files; the raw-file keywords' ranges of :data:`slicersim.reduction.checks.ATTR_RANGES`): gain [ADU/e-], read
+#: files; the raw-file keywords' ranges of ``slicersim.reduction.checks.ATTR_RANGES``): gain [ADU/e-], read
 #: noise per frame [electron], dark [e-/s], ROIC glow [e-/frame], frame time [s].  Beyond them the variance
 #: model overflows (ron = 1e300 squared) instead of giving an answer.
 DETECTOR_MAX = {"gain": 1e3, "ron": 1e4, "dark": 1e6, "roic_glow": 1e6, "tframe": 1e4}
@@ -81,7 +81,18 @@ _SHOWN_NAMES = contextvars.ContextVar("slicersim_shown_names", default={})
 def flag_names(names):
     """Within the block, :func:`shown` (and so every checker here) names a parameter by ``names``
     (``{"nramps": "--nramps", "population.redshift.min": "--zmin"}``); nested blocks add to the
-    outer one's names."""
+    outer one's names.
+
+    Parameters
+    ----------
+    names : dict
+        {parameter name: name shown}.
+
+    Returns
+    -------
+    contextlib.AbstractContextManager
+        A context manager (use it in a ``with`` statement); it yields None.
+    """
     token = _SHOWN_NAMES.set({**_SHOWN_NAMES.get(), **names})
     try:
         yield
@@ -90,13 +101,37 @@ def flag_names(names):
 
 
 def shown(name) -> str:
-    """``name`` as the user gave the parameter: its flag inside :func:`flag_names`, else itself."""
+    """``name`` as the user gave the parameter: its flag inside :func:`flag_names`, else itself.
+
+    Parameters
+    ----------
+    name : str
+        A parameter name (anything else is returned unchanged).
+
+    Returns
+    -------
+    str
+        The name shown.
+    """
     return _SHOWN_NAMES.get().get(name, name) if isinstance(name, str) else name
 
 
 def short_repr(value, limit=60) -> str:
     """``repr(value)`` short enough for one line of an error message: arrays as their shape and
-    dtype, long representations cut with an ellipsis."""
+    dtype, long representations cut with an ellipsis.
+
+    Parameters
+    ----------
+    value : object
+        Anything.
+    limit : int, optional
+        Most characters of the result.
+
+    Returns
+    -------
+    str
+        The representation.
+    """
     if isinstance(value, np.ndarray) and hasattr(value, "unit") and value.shape == ():
         return str(value)                  # an astropy Quantity scalar, e.g. "3.0 m"
     if isinstance(value, np.ndarray):
@@ -138,7 +173,31 @@ def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_op
     """``value`` as a finite float in [low, high] (a bound excluded where ``*_open``); an astropy
     Quantity is converted to ``unit`` first.  ``plausible`` = (lo, hi): a *bare* number outside it
     (not a Quantity, whose unit is explicit) warns :class:`~slicersim.errors.ImplausibleValueWarning`
-    naming the unit it is read in (10 of ``guiding_sigma`` is 10 arcsec, not the paper's 10 mas)."""
+    naming the unit it is read in (10 of ``guiding_sigma`` is 10 arcsec, not the paper's 10 mas).
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : float or astropy.units.Quantity
+        The value.
+    low, high : float, optional
+        Bounds of the accepted interval (in ``unit``).
+    low_open, high_open : bool, optional
+        Exclude that bound.
+    unit : str or astropy.units.Unit, optional
+        The unit the parameter is documented in; a Quantity is converted to it (refused when
+        None or inconvertible).
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+    plausible : tuple of float, optional
+        (lo, hi) plausible range of a bare number, in ``unit``.
+
+    Returns
+    -------
+    float
+        The value in ``unit``.
+    """
     name = shown(name)
     bare = not hasattr(value, "unit")
     value = _quantity_value(name, value, unit, error)
@@ -162,7 +221,24 @@ def number(name, value, *, low=-math.inf, high=math.inf, low_open=False, high_op
 
 def warn_implausible(name, value, unit, plausible):
     """Warn (:class:`~slicersim.errors.ImplausibleValueWarning`) that a bare ``value`` of ``name`` is
-    outside the ``plausible`` (lo, hi) range of its documented ``unit``: a number meant in another unit."""
+    outside the ``plausible`` (lo, hi) range of its documented ``unit``: a number meant in another unit.
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name.
+    value : float
+        The bare value.
+    unit : str or None
+        Its documented unit.
+    plausible : tuple of float
+        (lo, hi) plausible range in ``unit``.
+
+    Returns
+    -------
+    None
+        It only warns.
+    """
     import warnings
     from slicersim.errors import ImplausibleValueWarning
     unit_text = f" {unit}" if unit else ""
@@ -190,7 +266,24 @@ def _interval(low, high, low_open, high_open):
 
 def integer(name, value, *, low=None, high=None, error=ParameterError) -> int:
     """``value`` as an int in [low, high]; integral floats (``3.0``) are accepted, ``2.7``, NaN,
-    bools and strings are refused."""
+    bools and strings are refused.
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : int or float
+        The value.
+    low, high : int, optional
+        Bounds of the accepted interval (included).
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    int
+        The value.
+    """
     name = shown(name)
     bounds = (f" ≥ {low}" if high is None else f" in [{low}, {high}]") if low is not None else \
         (f" ≤ {high}" if high is not None else "")
@@ -209,18 +302,67 @@ def integer(name, value, *, low=None, high=None, error=ParameterError) -> int:
 
 
 def positive_int(name, value, low=1, *, high=None, error=ParameterError) -> int:
-    """An integer ≥ ``low`` (default 1)."""
+    """An integer ≥ ``low`` (default 1).
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : int or float
+        The value (integral floats accepted).
+    low : int, optional
+        Least value accepted.
+    high : int, optional
+        Largest value accepted.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    int
+        The value.
+    """
     return integer(name, value, low=low, high=high, error=error)
 
 
 def fraction(name, value, *, error=ParameterError) -> float:
-    """A number in [0, 1]."""
+    """A number in [0, 1].
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : float
+        The value.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    float
+        The value.
+    """
     return number(name, value, low=0.0, high=1.0, error=error)
 
 
 def flag(name, value, *, error=ParameterError) -> bool:
     """A bool (``True``/``False`` or NumPy's); 0, 1 and strings are refused so a misplaced
-    positional argument is not read as a switch."""
+    positional argument is not read as a switch.
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : bool
+        The value.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    bool
+        The value.
+    """
     name = shown(name)
     if not isinstance(value, (bool, np.bool_)):
         raise error(f"{name} must be True or False, got {short_repr(value)}")
@@ -229,7 +371,26 @@ def flag(name, value, *, error=ParameterError) -> bool:
 
 def choice(name, value, valid, *, error=ParameterError, what=None):
     """``value`` if it is one of ``valid`` (compared as given; strings case-sensitively), else an
-    error listing the valid ones, with a "did you mean" for a near miss."""
+    error listing the valid ones, with a "did you mean" for a near miss.
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : object
+        The value.
+    valid : sequence
+        The valid values.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+    what : str, optional
+        What the value is, in the message (default: ``name``).
+
+    Returns
+    -------
+    object
+        ``value``.
+    """
     name = shown(name)
     valid = list(valid)
     try:
@@ -250,8 +411,27 @@ def choice(name, value, valid, *, error=ParameterError, what=None):
 
 def readout(nmd, *, name="nmd", min_group=2, max_group=None, error=ReadoutError) -> tuple[int, int, int]:
     """A MACC readout (n groups, m frames per group, d dropped frames) as three ints:
-    2 ≤ n ≤ ``max_group`` (≤ :data:`MAX_GROUPS`), 1 ≤ m, 0 ≤ d ≤ :data:`MAX_DROPS`, and at most
-    :data:`MAX_FRAMES` frames per ramp.  Non-integers (``2.7``) are refused, not truncated."""
+    2 ≤ n ≤ ``max_group`` (≤ :data:`MAX_GROUPS`), 1 ≤ m, 0 ≤ d ≤ ``MAX_DROPS``, and at most
+    ``MAX_FRAMES`` frames per ramp.  Non-integers (``2.7``) are refused, not truncated.
+
+    Parameters
+    ----------
+    nmd : sequence of int
+        (n, m, d).
+    name : str, optional
+        The parameter's name in messages.
+    min_group : int, optional
+        Least n (at least 2).
+    max_group : int, optional
+        Largest n (default :data:`MAX_GROUPS`).
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    tuple of int
+        (n, m, d).
+    """
     name = shown(name)
     if isinstance(nmd, (str, bytes)) or not hasattr(nmd, "__len__") or len(nmd) != 3:
         raise error(f"{name} must be a triple (n, m, d) of integers, got {short_repr(nmd)}")
@@ -268,14 +448,46 @@ def readout(nmd, *, name="nmd", min_group=2, max_group=None, error=ReadoutError)
 
 
 def nramps(value, *, name="nramps", error=ReadoutError) -> int:
-    """A number of ramps: an integer ≥ 1."""
+    """A number of ramps: an integer ≥ 1.
+
+    Parameters
+    ----------
+    value : int
+        The value (at most 2³¹ − 1).
+    name : str, optional
+        The parameter's name in messages.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    int
+        The value.
+    """
     return integer(name, value, low=1, high=2**31 - 1, error=error)
 
 
 def seed(value, *, name="seed", allow_none=True, error=ParameterError):
     """A noise seed: an integer in [0, 2⁶⁴), or None where a fresh seed is drawn (see
     :func:`new_seed`).  A NumPy ``Generator`` is accepted for one release with a
-    DeprecationWarning: an integer seed is drawn from it (counter-based noise needs an integer key)."""
+    DeprecationWarning: an integer seed is drawn from it (counter-based noise needs an integer key).
+
+    Parameters
+    ----------
+    value : int or None
+        The seed.
+    name : str, optional
+        The parameter's name in messages.
+    allow_none : bool, optional
+        Accept None.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    int or None
+        The seed.
+    """
     name = shown(name)
     if value is None:
         if allow_none:
@@ -296,7 +508,13 @@ def seed(value, *, name="seed", allow_none=True, error=ParameterError):
 
 
 def new_seed() -> int:
-    """A fresh seed in [0, 2⁶³) from the operating system's entropy (record it to reproduce)."""
+    """A fresh seed in [0, 2⁶³) from the operating system's entropy (record it to reproduce).
+
+    Returns
+    -------
+    int
+        The seed.
+    """
     return secrets.randbits(63)
 
 
@@ -305,7 +523,32 @@ def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, hi
     """``value`` as a NumPy array of real numbers converted to ``dtype``; refuses object,
     structured, complex and string arrays, a wrong number of dimensions, non-finite values
     (``finite``) and values below ``low`` or above ``high``.  An astropy Quantity is converted to ``unit`` (refused
-    when ``unit`` is None or not convertible: its unit must never be dropped silently)."""
+    when ``unit`` is None or not convertible: its unit must never be dropped silently).
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : array_like or astropy.units.Quantity
+        The values.
+    ndim : int or sequence of int, optional
+        Accepted number(s) of dimensions.
+    dtype : numpy.dtype, optional
+        The dtype of the result.
+    finite : bool, optional
+        Refuse non-finite values.
+    low, high : float, optional
+        Bounds of the values (included).
+    unit : str or astropy.units.Unit, optional
+        The unit the parameter is documented in.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    numpy.ndarray
+        The values, of the shape given.
+    """
     name = shown(name)
     value = _quantity_value(name, value, unit, error, plain="an array of plain numbers")
     try:
@@ -328,7 +571,26 @@ def array(name, value, *, ndim=None, dtype=np.float64, finite=True, low=None, hi
 
 
 def shape(name, value, *, ndim=2, max_side=65536, error=ParameterError) -> tuple[int, ...]:
-    """A shape of ``ndim`` integers in [1, max_side]."""
+    """A shape of ``ndim`` integers in [1, max_side].
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : sequence of int
+        The shape.
+    ndim : int, optional
+        Its number of dimensions.
+    max_side : int, optional
+        The largest side accepted.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    tuple of int
+        The shape.
+    """
     name = shown(name)
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != ndim:
         raise error(f"{name} must be {ndim} integers, got {short_repr(value)}")
@@ -337,7 +599,24 @@ def shape(name, value, *, ndim=2, max_side=65536, error=ParameterError) -> tuple
 
 def regular_file(name, path, *, error=ParameterError, max_bytes=None) -> str:
     """``path`` (str or os.PathLike) of an existing regular file (not a directory, FIFO or
-    device), at most ``max_bytes`` long when given; returned as a str."""
+    device), at most ``max_bytes`` long when given.
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    path : str or os.PathLike
+        The path.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+    max_bytes : int, optional
+        Largest file size accepted [bytes].
+
+    Returns
+    -------
+    str
+        The path.
+    """
     name = shown(name)
     try:
         path = os.fspath(path)
@@ -357,7 +636,26 @@ def regular_file(name, path, *, error=ParameterError, max_bytes=None) -> str:
 
 def renamed_keyword(kwargs, old, new, where, *, stacklevel=3):
     """Move a deprecated keyword ``old`` to ``new`` in ``kwargs`` (in place) with a
-    DeprecationWarning; both given is an error."""
+    DeprecationWarning; both given is an error.
+
+    Parameters
+    ----------
+    kwargs : dict
+        The keywords, changed in place.
+    old : str
+        The deprecated name.
+    new : str
+        Its name now.
+    where : str
+        The function, in messages.
+    stacklevel : int, optional
+        ``stacklevel`` of the warning.
+
+    Returns
+    -------
+    dict
+        ``kwargs``.
+    """
     if old not in kwargs:
         return kwargs
     if new in kwargs:
@@ -369,7 +667,24 @@ def renamed_keyword(kwargs, old, new, where, *, stacklevel=3):
 
 
 def redshift(name, value, *, allow_zero=False, error=ParameterError) -> float:
-    """A redshift as a float in (0, :data:`MAX_REDSHIFT`] ([0, ...] with ``allow_zero``)."""
+    """A redshift as a float in (0, :data:`MAX_REDSHIFT`] ([0, ...] with ``allow_zero``).
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name in messages (its CLI flag inside :func:`flag_names`).
+    value : float
+        The redshift.
+    allow_zero : bool, optional
+        Accept 0.
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    float
+        The redshift.
+    """
     try:
         beyond = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) \
             and float(value) > MAX_REDSHIFT
@@ -382,7 +697,13 @@ def redshift(name, value, *, allow_zero=False, error=ParameterError) -> float:
 
 
 def physical_memory() -> int | None:
-    """Bytes of physical memory of this machine (None where the system does not say)."""
+    """Bytes of physical memory of this machine (None where the system does not say).
+
+    Returns
+    -------
+    int or None
+        The physical memory [bytes].
+    """
     try:
         return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (AttributeError, ValueError, OSError):
@@ -391,7 +712,22 @@ def physical_memory() -> int | None:
 
 def memory(what, nbytes, *, hint=""):
     """Refuse (:class:`~slicersim.errors.ResourceError`) before allocating ``nbytes`` for ``what``
-    when they exceed this machine's physical memory; ``hint`` says what bounds them."""
+    when they exceed this machine's physical memory; ``hint`` says what bounds them.
+
+    Parameters
+    ----------
+    what : str
+        What would be allocated, in the message.
+    nbytes : int
+        Its size [bytes].
+    hint : str, optional
+        What bounds them, in the message.
+
+    Returns
+    -------
+    None
+        It only raises.
+    """
     total = physical_memory()
     if total is not None and nbytes > total:
         raise ResourceError(f"{what} would take {nbytes / 2**30:.3g} GiB, more than this machine's "
@@ -433,7 +769,20 @@ def checked_fields(cls=None, *, error=ParameterError):
     None, tuple, list, dict and their unions) raises ``error`` naming the class and the field, with
     the valid field names and a did-you-mean, instead of Python's ``TypeError``.  The class's own
     ``__post_init__`` runs first (its messages are the more precise); the type check names a field
-    it let through, or failed on with another exception than a SlicersimError."""
+    it let through, or failed on with another exception than a SlicersimError.
+
+    Parameters
+    ----------
+    cls : type, optional
+        The dataclass (``@checked_fields`` or ``@checked_fields(error=...)``).
+    error : type, optional
+        The :class:`~slicersim.errors.SlicersimError` subclass raised.
+
+    Returns
+    -------
+    type or callable
+        The class, its ``__init__`` wrapped; a decorator without ``cls``.
+    """
     if cls is None:
         return functools.partial(checked_fields, error=error)
     init = cls.__init__

@@ -32,7 +32,13 @@ class Versioned:
             object.__setattr__(self, "_version", next(_COUNTER))
 
     def touch(self):
-        """Mark the object changed (after an in-place change of a mutable attribute)."""
+        """Mark the object changed (after an in-place change of a mutable attribute).
+
+        Returns
+        -------
+        None
+            The version is bumped in place.
+        """
         object.__setattr__(self, "_version", next(_COUNTER))
 
     def _adopt(self, other):

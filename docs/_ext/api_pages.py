@@ -16,19 +16,29 @@ from _write import write_if_changed
 ENTRY_POINTS = [
     ("etc", "Exposure-time calculator", "The batch ETC; the single-target ETC is a method of every target "
      "(`setup_to_snr`, see the top-level page).",
-     [("autofunction", "slicersim.etc.solve_many")]),
+     [("autofunction", "slicersim.etc.solve_many"),
+      ("autoclass", "slicersim.etc.solve.SolveOptions")]),
     ("ramps", "Raw ramps", "Raw MACC ramps of a rate image, with or without detector effects.",
      [("autofunction", "slicersim.products.ramps.simulate"),
+      ("autoclass", "slicersim.products.ramps.RampParameters"),
+      ("autoclass", "slicersim.products.ramps.RampIO"),
+      ("autoclass", "slicersim.products.ramps.RunOptions"),
+      ("autoclass", "slicersim.products.ramps.DetectorMaps"),
+      ("autoclass", "slicersim.products.ramps.RampResult"),
       ("autofunction", "slicersim.io.rampfile.read_ramps")]),
     ("campaign", "Survey plans and campaigns", "Survey planning (batch ETC of a population) and campaigns on Dask.",
      [("autofunction", "slicersim.campaign.plan.plan_survey"),
+      ("autoclass", "slicersim.campaign.plan.SurveyOptions"),
       ("autoclass", "slicersim.campaign.plan.SurveyPlan"),
       ("autofunction", "slicersim.campaign.plan.plot_time_and_volume"),
+      ("autoclass", "slicersim.campaign.spec.CampaignSpec"),
       ("autofunction", "slicersim.campaign.runner.run_campaign"),
       ("autofunction", "slicersim.campaign.runner.campaign_status")]),
     ("reduction", "Reduction", "Raw ramps back to rates, cubes and spectra.",
      [("autofunction", "slicersim.reduction.pipeline.reduce_exposure"),
+      ("autoclass", "slicersim.reduction.options.ReduceOptions"),
       ("autofunction", "slicersim.reduction.ramp_fit.fit_ramps"),
+      ("autoclass", "slicersim.reduction.ramp_fit.FitOptions"),
       ("autoclass", "slicersim.reduction.ramp_fit.RateProduct")]),
     ("plotting", "Figures", "The figures of the `show_*` methods and of the demo, from arrays and models "
      "(matplotlib; colour bars and axes carry units).",
@@ -63,8 +73,16 @@ def _entry(directive, dotted, options=()):
     if dotted in HANDWRITTEN:
         return HANDWRITTEN[dotted].rstrip() + "\n\n"
     lines = [f".. {directive}:: {dotted}"]
-    lines += [f"   :{o}:" for o in options]
+    lines += [f"   :{o}" if ": " in o else f"   :{o}:" for o in options]      # "name" or "name: value"
     return "\n".join(lines) + "\n\n"
+
+
+def _inherited(cls, exported):
+    """``inherited-members`` option of an exported class: the members it inherits from bases that
+    have no entry of their own (a mixin such as ``DetectorProducts``: ``Target.get_ramps``), not
+    those of exported bases (documented there), of ``Versioned`` (caching) or of ``object``."""
+    skip = [base.__name__ for base in cls.__mro__[1:] if base in exported]
+    return "inherited-members: " + ", ".join(dict.fromkeys([*skip, "Versioned", "object"]))
 
 
 def _title(text, char="="):
@@ -75,6 +93,7 @@ def top_level_page():
     """reST of the names of ``slicersim.__all__``, grouped by defining subpackage."""
     import slicersim
     groups = {}
+    exported = {getattr(slicersim, n) for n in slicersim.__all__ if inspect.isclass(getattr(slicersim, n))}
     for name in slicersim.__all__:
         if name.startswith("__"):
             continue
@@ -90,7 +109,7 @@ def top_level_page():
         text += _title(f"slicersim.{part}" if part != "slicersim" else "slicersim", "-")
         for name, obj in groups[part]:
             if inspect.isclass(obj):
-                text += _entry("autoclass", f"slicersim.{name}", ("members",))
+                text += _entry("autoclass", f"slicersim.{name}", ("members", _inherited(obj, exported)))
             elif callable(obj):
                 text += _entry("autofunction", f"slicersim.{name}")
             else:

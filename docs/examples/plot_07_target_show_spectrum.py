@@ -7,8 +7,8 @@ at z = 0.8 (SNR 15 per resolution element in the rest-frame band 4000–6800 Å)
 ``show_spectrum`` draws the extracted spectrum [ADU, all ramps] with its ±1σ band and a noisy
 draw, and the SNR per bin with the ETC band shaded; ``show_variance_contribution`` draws the
 paper's variance budget: each source's contribution [ADU²] and its fraction of the total.
-Both are thin calls of :func:`slicersim.plotting.plot_spectrum` and
-:func:`slicersim.plotting.plot_variance_budget` and return the matplotlib Figure.
+Both are thin calls of :func:`slicersim.plotting.spectra.plot_spectrum` and
+:func:`slicersim.plotting.spectra.plot_variance_budget` and return the matplotlib Figure.
 """
 import matplotlib.pyplot as plt
 

@@ -37,7 +37,17 @@ PLAN_COLUMNS = ("target_id", "redshift", "field", "n", "m", "d", "nramps", "expo
 
 @dataclass
 class SurveyPlan:
-    """Per-target table (:data:`PLAN_COLUMNS`) and totals (dict, SI units and bytes)."""
+    """Per-target table and totals of a survey plan (made by :func:`plan_survey`).
+
+    Parameters
+    ----------
+    table : astropy.table.Table
+        One row per target, columns ``PLAN_COLUMNS``: target_id, redshift, field, n, m, d,
+        nramps, exposure_time [s], snr, data_volume [bytes], data_volume_compressed [bytes],
+        status, error.
+    totals : dict
+        The totals, in SI units and bytes (see :meth:`summary`).
+    """
 
     table: object
     totals: dict
@@ -109,15 +119,38 @@ FIELDS = ("narrow", "wide")
 class SurveyOptions:
     """How a survey is observed and planned (:func:`plan_survey`).
 
-    snr : SNR per resolution element (``per_resolution``, else per bin) in ``lbda_range`` [Å] of
-        ``frame`` ("rest", "obs" or None = "rest": a survey's targets always have redshifts)
-    z_switch : ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field)
-    config, search, conventions : of the batch ETC (:func:`slicersim.etc.solve.solve_many`)
-    overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1 : of the totals (module docstring)
-    progress : the batch ETC's bar (None: when stderr is a terminal);  detector_shape : (ny, nx) of the volume (default: the field's)
-    precision : of the batch ETC's band-variance kernel
-    allow_partial : a band partly outside the grid or the spectrum is answered on its covered part
-        (default); False: such a target fails with the coverage error (as the single-target ETC)
+    Parameters
+    ----------
+    snr : float, optional
+        SNR per resolution element (``per_resolution``, else per bin) in ``lbda_range``.
+    lbda_range : tuple of float, optional
+        (min, max) of the band [Å] in ``frame``.
+    frame : {"rest", "obs"} or None, optional
+        "rest", "obs" or None = "rest" (a survey's targets always have redshifts).
+    z_switch : float, optional
+        ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field).
+    fields : tuple of str, optional
+        The two fields.
+    config, search, conventions : optional
+        Of the batch ETC (:func:`slicersim.etc.solve_many`).
+    overhead : float, optional
+        Overhead [s per target], for the totals (module docstring).
+    efficiency : float, optional
+        Observing efficiency, in (0, 1], for the totals.
+    compression_ratio : float, optional
+        ≥ 1, for the totals.
+    per_resolution : bool, optional
+        SNR per resolution element (else per bin).
+    progress : bool or None, optional
+        The batch ETC's bar (None: when stderr is a terminal).
+    detector_shape : tuple of int, optional
+        (ny, nx) of the volume (default: the field's).
+    precision : {"auto", "double", "single"}, optional
+        Of the batch ETC's band-variance kernel.
+    allow_partial : bool, optional
+        A band partly outside the grid or the spectrum is answered on its covered part
+        (default); False: such a target fails with the coverage error (as the single-target
+        ETC).
     """
     snr: float = 20.0
     lbda_range: tuple = (4000.0, 6800.0)
@@ -256,17 +289,37 @@ def plan_survey_with(redshift, lbda, fluxes, options, target_ids=None):
 
 def plan_survey(redshift, lbda, fluxes, snr=20.0, lbda_range=(4000.0, 6800.0), frame=None, z_switch=0.8, *,
                 target_ids=None, options=None, **keywords):
-    """Plan a survey of targets with spectra ``fluxes`` (N, k) [erg/s/cm²/Å] on ``lbda`` [Å] at
-    ``redshift`` (N,), ``target_ids`` (N,) unique (default 0 … N − 1).
+    """Plan a survey of targets: the batch ETC of each target and the survey totals.
 
-    snr : SNR per resolution element (``per_resolution``) in ``lbda_range`` [Å] of ``frame``
-        ("rest", "obs"; None = "rest")
-    z_switch : ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field)
-    keywords : the other fields of :class:`SurveyOptions` (fields, config, search, conventions,
+    Parameters
+    ----------
+    redshift : array_like of shape (N,)
+        Redshift of each target.
+    lbda : array_like of shape (k,)
+        Wavelengths of the spectra [Å].
+    fluxes : array_like of shape (N, k)
+        F_λ of each target [erg/s/cm²/Å].
+    snr : float, optional
+        SNR per resolution element (``per_resolution``) in ``lbda_range``.
+    lbda_range : tuple of float, optional
+        (min, max) of the band [Å] in ``frame``.
+    frame : {"rest", "obs"} or None, optional
+        Frame of ``lbda_range`` (None = "rest").
+    z_switch : float, optional
+        ``fields[0]`` below it, ``fields[1]`` at and above it (``inf``: one field).
+    target_ids : array_like of shape (N,), optional
+        Unique target ids (default 0 … N − 1).
+    options : SurveyOptions, optional
+        A whole ``SurveyOptions`` (then no other option keyword).
+    **keywords
+        The other fields of ``SurveyOptions``: fields, config, search, conventions,
         overhead [s per target], efficiency (0, 1], compression_ratio ≥ 1, per_resolution,
-        progress, detector_shape, precision); or ``options`` = a whole :class:`SurveyOptions`
-        (then no other option keyword)
-    Returns a :class:`SurveyPlan`.
+        progress, detector_shape, precision.
+
+    Returns
+    -------
+    SurveyPlan
+        The per-target table and the totals.
     """
     if options is None:
         unknown = sorted(set(keywords) - set(SurveyOptions.__dataclass_fields__))
@@ -301,8 +354,24 @@ def survey_totals(table, overhead, efficiency, compression_ratio):
 
 def plot_time_and_volume(plans, path, zbins=None, paper=None):
     """The paper's figure: redshift upwards, raw data volume [GB] leftwards, exposure time [h]
-    rightwards, one curve per plan (``plans``: {label: SurveyPlan}); ``paper``: optional
-    {label: (z, hours, GB)} points to overlay."""
+    rightwards, one curve per plan.
+
+    Parameters
+    ----------
+    plans : dict
+        {label: SurveyPlan}, one curve (median per redshift bin) each.
+    path : str or path-like
+        Where the figure is saved.
+    zbins : array_like, optional
+        Edges of the redshift bins of the medians (default: 15 bins over the planned range).
+    paper : dict, optional
+        {label: (z, hours, GB)} points to overlay.
+
+    Returns
+    -------
+    str or path-like
+        ``path``, the figure written.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -272,22 +272,44 @@ def _plan_and_connect(spec, run):
 
 def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_failed=False, progress=None,
                  max_bytes=256 * 2**20, threads_per_worker=None, window=None, security=None, dashboard=False):
-    """Run (or resume) a campaign into dataset directory ``out``; returns a summary dict.
+    """Run (or resume) a campaign into dataset directory ``out``.
 
-    spec : a :class:`CampaignSpec` or the path of its TOML file
-    workers : embedded LocalCluster size (default: the CPU count; at most
-        :data:`WORKERS_PER_CPU` × the CPU count); ignored with ``scheduler``
-    scheduler : address of an existing Dask scheduler ("tcp://host:port")
-    force : start again in a directory made from another spec (its products are discarded)
-    retry_failed : run the targets recorded as failed again
-    progress : None (a bar only when stderr is a terminal), True or False
-    max_bytes : memory budget of one task's cube chunks / ramp blocks [bytes]
-    threads_per_worker : OpenCL CPU threads per worker (default: CPUs / workers)
-    window : tasks in flight at once (default 2 per worker): bounds the client's memory
-    security : a :class:`distributed.Security` to reach ``scheduler`` (e.g. :func:`tls_security`;
-        None: Dask's configuration); the embedded cluster always uses TLS with temporary credentials
-    dashboard : the embedded cluster's dashboard: False (default), True (on 127.0.0.1:8787) or
-        "127.0.0.1:PORT"
+    Parameters
+    ----------
+    spec : CampaignSpec or str or path-like
+        A ``CampaignSpec`` or the path of its TOML file.
+    out : str or path-like
+        The dataset directory.
+    workers : int, optional
+        Embedded LocalCluster size (default: the CPU count; at most ``WORKERS_PER_CPU`` (4)
+        × the CPU count); ignored with ``scheduler``.
+    scheduler : str, optional
+        Address of an existing Dask scheduler ("tcp://host:port").
+    force : bool, optional
+        Start again in a directory made from another spec (its products are discarded).
+    retry_failed : bool, optional
+        Run the targets recorded as failed again.
+    progress : bool or None, optional
+        None (a bar only when stderr is a terminal), True or False.
+    max_bytes : int, optional
+        Memory budget of one task's cube chunks / ramp blocks [bytes].
+    threads_per_worker : int, optional
+        OpenCL CPU threads per worker (default: CPUs / workers).
+    window : int, optional
+        Tasks in flight at once (default 2 per worker): bounds the client's memory.
+    security : distributed.Security, optional
+        Security to reach ``scheduler`` (e.g. ``tls_security``; None: Dask's configuration);
+        the embedded cluster always uses TLS with temporary credentials.
+    dashboard : bool or str, optional
+        The embedded cluster's dashboard: False (default), True (on 127.0.0.1:8787) or
+        "127.0.0.1:PORT".
+
+    Returns
+    -------
+    dict
+        The summary: ``dataset`` (its path), ``targets``, ``done``, ``failed``, ``missing``
+        (counts), ``computed`` (targets run now), ``seconds`` (wall time [s]) and ``totals``
+        (of the survey plan).
     """
     from dataclasses import replace
     spec = spec if isinstance(spec, CampaignSpec) else load_spec(spec)
@@ -479,8 +501,21 @@ _QuietDask = QuietDask
 
 
 def campaign_status(out, verify=True):
-    """{"targets", "done", "failed", "missing", "failed_targets": [(id, error)], "missing_targets"}
-    of a dataset; ``verify`` checks every product's checksum."""
+    """State of a campaign dataset.
+
+    Parameters
+    ----------
+    out : str or path-like
+        The dataset directory.
+    verify : bool, optional
+        Check every product's checksum.
+
+    Returns
+    -------
+    dict
+        ``targets``, ``done``, ``failed``, ``missing`` (counts), ``failed_targets`` (a list of
+        (id, error)) and ``missing_targets`` (ids).
+    """
     from astropy.table import Table
     ds = Dataset(out)
     if not os.path.isdir(ds.path):

@@ -80,7 +80,31 @@ def _unknown(section, allowed, where):
 
 @dataclass
 class CampaignSpec:
-    """A validated campaign spec (see the module docstring)."""
+    """A validated campaign spec (see the module docstring of ``slicersim.campaign.spec``).
+
+    Built by ``load_spec`` / ``parse_spec`` from the TOML text, which checks every value.
+
+    Parameters
+    ----------
+    seed : int
+        Campaign seed, in [0, 2⁶⁴).
+    population : object
+        The ``[population]`` table: which targets.
+    observation : dict
+        The ``[observation]`` table: SNR, band [Å], frame, configuration, field, ...
+    products : dict
+        The ``[products]`` table: what is written per target.
+    survey : dict
+        The ``[survey]`` table: overhead [s per target], efficiency, compression ratio.
+    name : str, optional
+        Label.
+    text : str, optional
+        The TOML text the spec was read from.
+    base_dir : str, optional
+        Directory relative configuration paths are read from.
+    config_digests : dict, optional
+        SHA-256 content digests of the configuration files.
+    """
 
     seed: int
     population: object
@@ -94,7 +118,7 @@ class CampaignSpec:
 
     @property
     def wanted(self):
-        """Names of the products to write, in :data:`PRODUCTS` order."""
+        """Names of the products to write, in ``PRODUCTS`` order."""
         return [p for p in PRODUCTS if self.products[p]]
 
     @property

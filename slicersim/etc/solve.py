@@ -80,21 +80,34 @@ def _validate_batch(lbda, fluxes, lbda_ranges):
 @validation.checked_fields
 @dataclass(frozen=True)
 class SolveOptions:
-    """How :func:`solve_batch` solves: every option of :func:`solve_many` except the per-target data.
+    """How ``solve_batch`` solves: every option of :func:`~slicersim.etc.solve_many` except the per-target data.
 
-    frame : "rest", "obs" or None (default: "rest" when ``redshifts`` are given, else "obs"): the
-        frame ``lbda_ranges`` are given in
-    config, field : instrument (see :func:`slicersim.targets.build_simulation`)
-    search : "exact" or "reference"
-    per_resolution : the target SNR is per resolution element (default) or per bin
-    backend : "auto", "opencl" or "numpy";  precision : "auto", "double" or "single" for the
-        band-variance kernel (:mod:`slicersim.backends.precision`, product ``"batch_etc"``)
-    max_bytes : memory budget [bytes] of one chunk of targets
-    progress : None (a bar only when stderr is a terminal), True or False
-    conventions : "physical" (default) or "slicersim-1.0" (:mod:`slicersim.physics.conventions`)
-    allow_partial : bands partly outside the grid (≥ 50 % inside) or the input spectrum are
-        answered on the covered part with one BandCoverageWarning naming the targets (default,
-        batch); False raises SpectrumError (:mod:`slicersim.snr.bands`)
+    Parameters
+    ----------
+    frame : {"rest", "obs"} or None, optional
+        The frame ``lbda_ranges`` are given in (default: "rest" when ``redshifts`` are given,
+        else "obs").
+    config, field : optional
+        Instrument (see :func:`slicersim.build_simulation`).
+    search : {"exact", "reference"}, optional
+        The readout search.
+    per_resolution : bool, optional
+        The target SNR is per resolution element (default) or per bin.
+    backend : {"auto", "opencl", "numpy"}, optional
+        Where the band variances are computed.
+    max_bytes : int, optional
+        Memory budget of one chunk of targets [bytes].
+    progress : bool or None, optional
+        None (a bar only when stderr is a terminal), True or False.
+    conventions : {"physical", "slicersim-1.0"}, optional
+        "physical" (default) or "slicersim-1.0" (``slicersim.physics.conventions``).
+    allow_partial : bool, optional
+        Bands partly outside the grid (≥ 50 % inside) or the input spectrum are answered on
+        the covered part with one BandCoverageWarning naming the targets (default, batch);
+        False raises SpectrumError (``slicersim.snr.bands``).
+    precision : {"auto", "double", "single"}, optional
+        Of the band-variance kernel (``slicersim.backends.precision``, product
+        ``"batch_etc"``).
     """
 
     frame: str | None = None
@@ -126,23 +139,41 @@ SOLVE_OPTIONS = tuple(f.name for f in fields(SolveOptions))
 
 def solve_many(lbda, fluxes, snr, lbda_ranges, frame=None, config="cbe", field="narrow", search="exact",
                redshifts=None, *, options=None, **kwargs):
-    """Solve the ETC for many point sources at once (keyword form of :func:`solve_batch`).
+    """Solve the ETC for many point sources at once (keyword form of ``solve_batch``).
 
     Parameters
     ----------
-    lbda : (k,) [Å];  fluxes : (N, k) [erg/s/cm²/Å]
-    snr : float or (N,)  target SNR (per resolution element when ``per_resolution``)
-    lbda_ranges : (N, 2) or (2,) band [Å] in ``frame``
-    redshifts : None, float or (N,)  the targets' redshifts (``frame="rest"``)
-    frame, config, field, search and the keywords ``per_resolution``, ``backend``, ``max_bytes``,
-    ``progress``, ``conventions``, ``allow_partial``, ``precision``: :class:`SolveOptions`
-    (or ``options=SolveOptions(...)``: the keywords given, and frame/config/field/search when not
-    left at their defaults, override it).
+    lbda : array_like of shape (k,)
+        Wavelengths of the spectra [Å].
+    fluxes : array_like of shape (N, k)
+        F_λ of each target [erg/s/cm²/Å].
+    snr : float or array_like of shape (N,)
+        Target SNR (per resolution element when ``per_resolution``).
+    lbda_ranges : array_like of shape (N, 2) or (2,)
+        Band [Å] in ``frame``.
+    frame : {"rest", "obs"} or None, optional
+        The frame ``lbda_ranges`` are given in (default: "rest" when ``redshifts`` are given,
+        else "obs").
+    config : str, path-like or list, optional
+        Instrument configuration (see :func:`~slicersim.build_simulation`).
+    field : {"narrow", "wide"}, optional
+        Lazuli field.
+    search : {"exact", "reference"}, optional
+        The readout search.
+    redshifts : float or array_like of shape (N,), optional
+        The targets' redshifts (``frame="rest"``).
+    options : SolveOptions, optional
+        All the options at once (``options=SolveOptions(...)``: the keywords given, and
+        frame/config/field/search when not left at their defaults, override it).
+    **kwargs
+        The other fields of ``SolveOptions``: ``per_resolution``, ``backend``, ``max_bytes``,
+        ``progress``, ``conventions``, ``allow_partial``, ``precision``.
 
     Returns
     -------
-    astropy Table, one row per target: n, m, d, nramps, exposure_time [s], snr
-    (band SNR per resolution element reached), snr_per_bin, data_volume [GB].
+    astropy.table.Table
+        One row per target: n, m, d, nramps, exposure_time [s], snr (band SNR per resolution
+        element reached), snr_per_bin, data_volume [GB].
     """
     check_parameter_names("solve_many", kwargs, SOLVE_OPTIONS)
     base = SolveOptions() if options is None else options

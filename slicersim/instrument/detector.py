@@ -22,17 +22,37 @@ __all__ = ["Detector"]
 class Detector(Versioned):
     """HxRG detector with a MACC readout.
 
+    The numbers with a unit (gain, dark, roic_glow, ron, tframe, pixel_size) are each a plain
+    number in that unit or an astropy Quantity (converted).
+
     Parameters
     ----------
-    qe : float, (λ[Å], QE) arrays or ECSV/CSV path — QE [e-/ph], 0 outside the table
-    gain : ADU/e-;  dark : e-/s/px;  roic_glow : e-/px/frame;  ron : electron (read noise per frame)
-    tframe : s;  pixel_size : µm (gain, tframe, pixel_size finite > 0; dark, roic_glow, ron ≥ 0)
-        each a plain number in that unit or an astropy Quantity (converted)
-    saturation : ADU, finite > 0 (0, None or inf: no saturation)
-    thermal_dark_range : None or (min, max) [Å], 0 < min < max: range of the undispersed thermal dark
-    nmd : (n, m, d);  min_group, max_group : allowed n range (max_group an integer ≥ min_group,
-    or None: no limit)
-    variance_model : "Rauscher07" or "Kubik16"
+    qe : float, tuple of array_like or str, optional
+        QE [e-/ph]: a number, (λ [Å], QE) arrays or an ECSV/CSV path; 0 outside the table.
+    gain : float, optional
+        Gain [ADU/e-], finite > 0.
+    dark : float, optional
+        Dark current [e-/s/px], ≥ 0.
+    roic_glow : float, optional
+        ROIC glow [e-/px/frame], ≥ 0.
+    ron : float, optional
+        Read noise per frame [electron], ≥ 0.
+    tframe : float, optional
+        Frame time [s], finite > 0.
+    pixel_size : float, optional
+        Pixel size [µm], finite > 0.
+    saturation : float, optional
+        Saturation [ADU], finite > 0 (0, None or inf: no saturation).
+    nmd : tuple of int, optional
+        The readout (n, m, d).
+    min_group, max_group : int, optional
+        Allowed n range (max_group an integer ≥ min_group, or None: no limit).
+    variance_model : {"Rauscher07", "Kubik16"}, optional
+        Variance model of a MACC ramp.
+    shape : tuple of int, optional
+        (rows, cols) of the detector [px].
+    thermal_dark_range : tuple of float, optional
+        None or (min, max) [Å], 0 < min < max: range of the undispersed thermal dark.
     """
 
     mutable_parameters = ("qe", "gain", "dark", "roic_glow", "ron", "tframe", "pixel_size",
@@ -135,7 +155,18 @@ class Detector(Versioned):
         return lbda, val
 
     def updated(self, **kwargs):
-        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
+        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`.
+
+        Parameters
+        ----------
+        **kwargs
+            As :meth:`update`.
+
+        Returns
+        -------
+        Detector
+            The copy.
+        """
         check_parameter_names("detector", kwargs, self.mutable_parameters)
         params = {k: getattr(self, k) for k in self.mutable_parameters}
         params["saturation"] = 0 if not np.isfinite(self.saturation) else self.saturation
@@ -144,12 +175,35 @@ class Detector(Versioned):
 
     def update(self, **kwargs):
         """Change mutable parameters, atomically: a copy is built and validated first; on
-        error (:class:`ParameterError`, :class:`ReadoutError`) nothing changes."""
+        error (:class:`~slicersim.errors.ParameterError`, :class:`~slicersim.errors.ReadoutError`)
+        nothing changes.
+
+        Parameters
+        ----------
+        **kwargs
+            Names of ``mutable_parameters``.
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         self._adopt(self.updated(**kwargs))
 
     # -- curves -----------------------------------------------------------------
     def get_qe(self, lbda):
-        """QE [e-/ph] at λ [Å]: linear interpolation of the table, 0 outside it."""
+        """QE [e-/ph] at λ [Å]: linear interpolation of the table, 0 outside it.
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The QE [e-/ph], of the shape of ``lbda``.
+        """
         lbda = np.asarray(lbda, dtype=float)
         if self._qe_table is None:
             return np.full_like(lbda, float(self.qe))
@@ -157,8 +211,22 @@ class Detector(Versioned):
         return np.interp(lbda, tl, tv, left=0.0, right=0.0)
 
     def show_qe(self, lbda=None, ax=None, savefile=None):
-        """Figure of the QE [e-/ph] versus λ [Å] (default: the table's range, else 4000–17000 Å);
-        see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        """Figure of the QE [e-/ph] versus λ [Å]; see :func:`slicersim.plotting.spectra.plot_curves`.
+
+        Parameters
+        ----------
+        lbda : array_like, optional
+            Wavelengths [Å] (default: the table's range, else 4000–17000 Å).
+        ax : matplotlib.axes.Axes, optional
+            None (new figure) or an Axes.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.plotting import plot_curves
         if lbda is None:
             lo, hi = (self._qe_table[0][0], self._qe_table[0][-1]) if self._qe_table is not None else (4e3, 1.7e4)
@@ -187,17 +255,63 @@ class Detector(Versioned):
         return self.times()["exposure_time_per_ramp"]
 
     def effective_dark(self, thermal_dark=0.0):
-        """dark + roic_glow / t_f + thermal dark [e-/s/px]."""
+        """dark + roic_glow / t_f + thermal dark [e-/s/px].
+
+        Parameters
+        ----------
+        thermal_dark : float or numpy.ndarray, optional
+            Thermal dark [e-/s/px].
+
+        Returns
+        -------
+        float or numpy.ndarray
+            The effective dark [e-/s/px].
+        """
         return self.dark + self.roic_glow / self.tframe + thermal_dark
 
     def data_volume(self, nmd=None, nramps=1, bits=16):
-        """Raw group-level data volume [GB = 1e9 bytes] of nramps ramps."""
+        """Raw group-level data volume [GB = 1e9 bytes] of nramps ramps.
+
+        Parameters
+        ----------
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        nramps : int, optional
+            Number of ramps.
+        bits : int, optional
+            Bits per pixel per group.
+
+        Returns
+        -------
+        float
+            The data volume [GB].
+        """
         n = (self.nmd if nmd is None else nmd)[0]
         return nramps * n * self.shape[0] * self.shape[1] * bits / 8e9
 
     def pixel_variance(self, flux, thermal_dark=0.0, nmd=None, ron=None, dark=None, conventions="physical"):
-        """Per-pixel variance [ADU²] over one ramp for a rate ``flux`` [e-/s]; ``dark`` [e-/s]
-        overrides the effective dark (dark + glow/t_f + ``thermal_dark``)."""
+        """Per-pixel variance [ADU²] over one ramp for a rate ``flux``.
+
+        Parameters
+        ----------
+        flux : float or numpy.ndarray
+            Photo-electron rate [e-/s].
+        thermal_dark : float or numpy.ndarray, optional
+            Thermal dark [e-/s/px], part of the effective dark.
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the detector's).
+        ron : float, optional
+            Read noise per frame [electron] (default: the detector's).
+        dark : float or numpy.ndarray, optional
+            [e-/s]: overrides the effective dark (dark + glow/t_f + ``thermal_dark``).
+        conventions : {"physical", "slicersim-1.0"}, optional
+            Physics conventions.
+
+        Returns
+        -------
+        numpy.ndarray
+            The variance [ADU²], of the shape of ``flux``.
+        """
         model = VARIANCE_MODELS[self.variance_model.lower()]
         dark = self.effective_dark(thermal_dark) if dark is None else dark
         return model(flux, self.nmd if nmd is None else nmd, self.tframe,

@@ -12,7 +12,7 @@ detector.  So:
   that slice when any positive cube is projected with the same grid and ``truncate``;
 * **core** of slice s: the same union with no blur (t = 0): the pixels its geometric
   image overlaps;
-* **label image**: slice id per pixel, :data:`NO_SLICE` (−1) where no slice sends light.
+* **label image**: slice id per pixel, ``NO_SLICE`` (−1) where no slice sends light.
   With the 4σ windows neighbouring slices share a few columns of faint tails (the Lazuli
   layouts: pitch 121 px, slices ≤ 116 px long, spots 0.8–1.5 px rms); such a pixel goes
   to the slice whose core is nearest to it (distance [px] along its row, or from the core's
@@ -135,9 +135,26 @@ def polygon_area(xy):
 class SliceFootprint:
     """Footprint of one slice on the detector (arrays cropped to its bounding box).
 
-    ``origin`` (row, column) of ``mask``/``core`` on the detector; ``outlines`` see
-    :func:`mask_outlines`; ``trace_lbda`` [Å] bin centres and ``trace_x``, ``trace_y`` [px]
-    the slice centre (fieldpos 0) there; ``lbda_range`` [Å].
+    Parameters
+    ----------
+    slice_id : int
+        Id of the slice.
+    field : str
+        Name of its field.
+    origin : tuple of int
+        (row, column) of ``mask``/``core`` on the detector [px].
+    mask : numpy.ndarray of shape (h, w)
+        Pixels lit by the slice, in its bounding box.
+    core : numpy.ndarray of shape (h, w)
+        Pixels of the slice's core, in the same box.
+    outlines : tuple
+        Outlines of the mask (see ``mask_outlines`` in ``slicersim.instrument.footprints``).
+    lbda_range : tuple of float
+        (min, max) wavelength of the slice [Å].
+    trace_lbda : numpy.ndarray of shape (nλ,)
+        Bin centres of the trace [Å].
+    trace_x, trace_y : numpy.ndarray of shape (nλ,)
+        Detector position of the slice centre (fieldpos 0) at those wavelengths [px].
     """
 
     slice_id: int
@@ -168,27 +185,71 @@ class SliceFootprint:
         return int(np.count_nonzero(self.mask))
 
     def pixels(self):
-        """(rows, cols) of the footprint's pixels."""
+        """The footprint's pixels on the detector.
+
+        Returns
+        -------
+        rows, cols : numpy.ndarray
+            Their row and column indices [px].
+        """
         rows, cols = np.nonzero(self.mask)
         return rows + self.origin[0], cols + self.origin[1]
 
     def detector_mask(self, detector_shape, core=False):
-        """Boolean image of the whole detector (``core=True``: the unblurred footprint)."""
+        """Boolean image of the whole detector.
+
+        Parameters
+        ----------
+        detector_shape : tuple of int
+            (rows, cols) of the detector [px].
+        core : bool, optional
+            The unblurred footprint.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            bool mask.
+        """
         img = np.zeros(tuple(detector_shape), bool)
         r0, r1, c0, c1 = self.bbox
         img[r0:r1, c0:c1] = self.core if core else self.mask
         return img
 
     def trace(self):
-        """(λ [Å], x [px], y [px]) of the slice centre at the bin centres."""
+        """The slice centre at the bin centres.
+
+        Returns
+        -------
+        lbda : numpy.ndarray of shape (nλ,)
+            Wavelengths [Å].
+        x, y : numpy.ndarray of shape (nλ,)
+            Detector position [px].
+        """
         return self.trace_lbda, self.trace_x, self.trace_y
 
 
 class FieldFootprints:
     """Footprints of every slice of a field, indexed by slice id (``fp[12]``, ``for s in fp``).
 
-    ``detector_shape`` (rows, cols); ``lbda_edges`` [Å], ``ncol``, ``truncate`` [spot rms]
-    and ``oversample``: the projection grid the footprints are exact for.
+    Built by :func:`field_footprints`.  ``lbda_edges``, ``ncol``, ``truncate`` and
+    ``oversample`` are the projection grid the footprints are exact for.
+
+    Parameters
+    ----------
+    field : str
+        Name of the field ("narrow", "wide", ...).
+    footprints : sequence of SliceFootprint
+        The footprint of each slice.
+    detector_shape : tuple of int
+        (rows, cols) of the detector [px].
+    lbda_edges : numpy.ndarray of shape (nλ+1,)
+        Bin edges of the cube grid [Å].
+    ncol : int
+        Cube columns per slice.
+    truncate : float
+        Window half-width beyond each cell box [spot rms].
+    oversample : tuple of int, optional
+        (n_λ, n_φ) sub-cells per cell.
     """
 
     def __init__(self, field, footprints, detector_shape, lbda_edges, ncol, truncate, oversample=(1, 1)):
@@ -222,20 +283,51 @@ class FieldFootprints:
         return np.array(list(self._fp), np.int64)
 
     def mask(self, slice_id, core=False):
-        """Boolean detector image of one slice's footprint (``core``: unblurred)."""
+        """Boolean detector image of one slice's footprint.
+
+        Parameters
+        ----------
+        slice_id : int
+            The slice.
+        core : bool, optional
+            The unblurred footprint.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            bool mask.
+        """
         return self[slice_id].detector_mask(self.detector_shape, core)
 
     def union_mask(self):
-        """Pixels receiving light of any slice of the field."""
+        """Pixels receiving light of any slice of the field.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            bool mask.
+        """
         return self.label_image() != NO_SLICE
 
     def contours(self):
-        """{slice id: outer contour (K, 2) [px]}."""
+        """The outer contour of each slice.
+
+        Returns
+        -------
+        dict
+            {slice id: outer contour of shape (K, 2) [px]}.
+        """
         return {s: fp.contour for s, fp in self._fp.items()}
 
     def label_image(self):
-        """(rows, cols) int32 image: slice id per pixel, :data:`NO_SLICE` where no light
-        falls; shared pixels go to the slice with the nearest core (module docstring)."""
+        """Slice id per pixel, ``NO_SLICE`` (−1) where no light falls; shared pixels go to the slice
+        with the nearest core (module docstring).
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            int32 label image.
+        """
         if self._label is None:
             label = np.full(self.detector_shape, NO_SLICE, np.int32)
             best = np.full(self.detector_shape, np.inf, np.float32)
@@ -251,8 +343,13 @@ class FieldFootprints:
         return self._label
 
     def overlaps(self):
-        """[(slice a, slice b, shared pixels)] for every pair of slices whose masks share
-        pixels (a < b); empty when the footprints are disjoint."""
+        """Every pair of slices whose masks share pixels (a < b).
+
+        Returns
+        -------
+        list of tuple
+            [(slice a, slice b, shared pixels)]; empty when the footprints are disjoint.
+        """
         if self._pairs is None:
             fps = list(self._fp.values())
             box = np.array([fp.bbox for fp in fps]).reshape(-1, 4)
@@ -274,10 +371,16 @@ class FieldFootprints:
         return list(self._pairs)
 
     def polygons(self):
-        """Plain description for files: the grid (``field``, ``truncate``, ``ncol``, ``nbins``,
-        ``lbda_min``/``lbda_max`` [Å]) and ``slices``: per slice its id, ``lbda_range`` [Å],
-        ``bbox`` (row0, row1, col0, col1) [px], ``npix``, ``outlines`` (lists of [x, y] [px]) and
-        ``trace`` (``lbda`` [Å], ``x``, ``y`` [px] of the slice centre, rounded to 1e-4)."""
+        """Plain description for files.
+
+        Returns
+        -------
+        dict
+            The grid (``field``, ``truncate``, ``ncol``, ``nbins``, ``lbda_min``/``lbda_max``
+            [Å]) and ``slices``: per slice its id, ``lbda_range`` [Å], ``bbox`` (row0, row1, col0,
+            col1) [px], ``npix``, ``outlines`` (lists of [x, y] [px]) and ``trace`` (``lbda`` [Å],
+            ``x``, ``y`` [px] of the slice centre, rounded to 1e-4).
+        """
         return {"field": self.field, "truncate": self.truncate, "ncol": self.ncol,
                 "nbins": int(self.lbda_edges.size - 1), "oversample": list(self.oversample),
                 "lbda_min": float(self.lbda_edges[0]), "lbda_max": float(self.lbda_edges[-1]),
@@ -365,16 +468,29 @@ def field_footprints(mapper, field="narrow", lbda_edges=None, ncol=None, *, spec
 
     Parameters
     ----------
-    mapper : :class:`~slicersim.instrument.mapper.SlicerMapper`
-    field : "narrow" (slices 1–58) or "wide" (59–116), or any name with ``slices``
-    lbda_edges : (nλ+1,) [Å] bin edges of the cube grid, and ``ncol``, its columns per
-        slice; or ``spectrograph``: a spectrograph (its ``lbda_edges`` and ``shape[1]``), or a
-        :class:`~slicersim.simulation.Simulation` or a Target, whose spectrograph is used
-    slices : slice ids (default: those of ``field``)
-    truncate : window half-width beyond each cell box [spot rms] (the projection's 4)
-    oversample : (n_λ, n_φ) sub-cells per cell, as in :meth:`SlicerMapper.project_cube`
+    mapper : SlicerMapper
+        The detector mapping (:class:`~slicersim.instrument.mapper.SlicerMapper`).
+    field : str, optional
+        "narrow" (slices 1–58) or "wide" (59–116), or any name with ``slices``.
+    lbda_edges : array_like of shape (nλ+1,), optional
+        Bin edges of the cube grid [Å] (or give ``spectrograph``).
+    ncol : int, optional
+        Cube columns per slice (with ``lbda_edges``).
+    spectrograph : Spectrograph, Simulation or Target, optional
+        A spectrograph (its ``lbda_edges`` and ``shape[1]``), or a
+        :class:`~slicersim.simulation.Simulation` or a Target, whose spectrograph is used,
+        instead of ``lbda_edges`` and ``ncol``.
+    slices : sequence of int, optional
+        Slice ids (default: those of ``field``).
+    truncate : float, optional
+        Window half-width beyond each cell box [spot rms] (the projection's 4).
+    oversample : tuple of int, optional
+        (n_λ, n_φ) sub-cells per cell, as in :meth:`SlicerMapper.project_cube`.
 
-    The result is cached per mapper and grid.
+    Returns
+    -------
+    FieldFootprints
+        The footprints; the result is cached per mapper and grid.
     """
     if not (hasattr(mapper, "cell_boxes") and hasattr(mapper, "detector_shape")):
         raise ParameterError(f"expected a SlicerMapper, got {type(mapper).__name__}")
@@ -435,7 +551,18 @@ def _grid_of(spectrograph):
 def detector_label_image(*fields):
     """Label image of several fields together (e.g. narrow and wide: both halves of the
     H4RG); a pixel claimed by two fields is an error (their slices would have to be
-    distinguished by the field too)."""
+    distinguished by the field too).
+
+    Parameters
+    ----------
+    *fields : FieldFootprints
+        One or more fields of the same detector
+        (:class:`~slicersim.errors.ParameterError` otherwise).
+
+    Returns
+    -------
+    numpy.ndarray of shape (rows, cols)
+        int32 image: slice id per pixel, ``NO_SLICE`` (−1) where no light falls."""
     if not fields:
         raise ParameterError("give at least one FieldFootprints")
     label = np.array(fields[0].label_image())
@@ -458,8 +585,27 @@ def save_footprints(directory, *fields, name="footprints", overwrite=False, also
     "coordinates", "no_slice", "fields": [FieldFootprints.polygons(), ...]}``.  Both files
     (and ``also``, {path: bytes or a callable writing to a binary file}, e.g. a figure of
     them) are published together: all or none, never a pair of two writers
-    (:func:`slicersim.io.footprint_files.write_footprint_set`).  Existing files are refused
+    (``slicersim.io.footprint_files.write_footprint_set``).  Existing files are refused
     unless ``overwrite`` (checked before anything is computed or written).
+
+    Parameters
+    ----------
+    directory : str or path-like
+        Directory the files are written to.
+    *fields : FieldFootprints
+        One or more fields of the same detector.
+    name : str, optional
+        Prefix of the file names.
+    overwrite : bool, optional
+        Replace existing files.
+    also : dict, optional
+        Further files published with them, {path: bytes or a callable writing to a binary
+        file}.
+
+    Returns
+    -------
+    list of str
+        The paths written.
     """
     if not fields or not all(isinstance(f, FieldFootprints) for f in fields):
         raise ParameterError("save_footprints needs one or more FieldFootprints")

@@ -134,19 +134,32 @@ class SlicerMapper:
 
     Parameters
     ----------
-    slice_ids : (S,) int
-    fieldpos_nodes : (J,) increasing, position along the slice (−1 … +1)
-    lbda_nodes : (M,) increasing [Å]
-    values : (S, J, M, 4) float
-        p_x, p_y [px] and σ_x, σ_y [px] at the nodes.
-    detector_shape : (rows, cols)
-    interpolation : "bilinear" or "triangles"
-    face_diagonal : (S, J−1, M−1) int, for "triangles" (default 0 everywhere)
-    table_cache : "default", None, a directory or an
-        :class:`~slicersim.io.table_cache.ArrayCache`: where projection tables are cached on
-        disk (:meth:`projection_tables`); "default" is ``$SLICERSIM_CACHE/projection`` (else
-        ``~/.cache/slicersim/projection``), None keeps them in memory only (``cache_size``
-        tables, least recently used first out).
+    slice_ids : array_like of shape (S,)
+        Slice ids (int).
+    fieldpos_nodes : array_like of shape (J,)
+        Increasing positions along the slice (−1 … +1).
+    lbda_nodes : array_like of shape (M,)
+        Increasing wavelengths [Å].
+    values : array_like of shape (S, J, M, 4)
+        p_x, p_y [px] and σ_x, σ_y [px] at the nodes (float).
+    pixel_size_um : float, optional
+        Detector pixel size [µm].
+    detector_shape : tuple of int, optional
+        (rows, cols) of the detector [px].
+    interpolation : {"bilinear", "triangles"}, optional
+        Interpolation between the nodes.
+    face_diagonal : array_like of shape (S, J−1, M−1), optional
+        int, for "triangles" (default 0 everywhere).
+    cache_size : int, optional
+        Projection tables kept in memory (least recently used first out).
+    table_cache : str, path-like, object or None, optional
+        "default", None, a directory or an ``slicersim.io.table_cache.ArrayCache``: where
+        projection tables are cached on disk (:meth:`projection_tables`); "default" is
+        ``$SLICERSIM_CACHE/projection`` (else ``~/.cache/slicersim/projection``), None keeps
+        them in memory only (``cache_size`` tables, least recently used first out).
+    cube_blur_px : float or tuple of float, optional
+        Aberration σ the projected cube already carries (x, y) [px], ≥ 0: subtracted from the
+        table's spot, which is the total aberration (counted once).
     """
 
     def __init__(self, slice_ids, fieldpos_nodes, lbda_nodes, values, *, pixel_size_um=10.0,
@@ -191,14 +204,42 @@ class SlicerMapper:
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_table(cls, table_or_path, pixel_size_um=10.0, detector_shape=(4096, 4096), **kwargs):
-        """Mapper from a spot table (path or columns; λ in µm, x/y in mm, rms in µm)."""
+        """Mapper from a spot table (path or columns; λ in µm, x/y in mm, rms in µm).
+
+        Parameters
+        ----------
+        table_or_path : str, path-like or astropy.table.Table
+            The spot table.
+        pixel_size_um : float, optional
+            Detector pixel size [µm].
+        detector_shape : tuple of int, optional
+            (rows, cols) [px].
+        **kwargs
+            Keyword parameters of :class:`SlicerMapper`.
+
+        Returns
+        -------
+        SlicerMapper
+            The mapper.
+        """
         t = read_spot_table(table_or_path)
         return cls._from_columns(t, pixel_size_um, detector_shape, **kwargs)
 
     @classmethod
     def default(cls, **kwargs):
         """slicersim's own Lazuli layout (``data/lazuli/lazuli_spots.csv``), for cubes of the CBE
-        configuration: ``cube_blur_px`` = :func:`aberration_sigma_px` of its dispersion resolution."""
+        configuration: ``cube_blur_px`` = ``aberration_sigma_px`` of its dispersion resolution.
+
+        Parameters
+        ----------
+        **kwargs
+            Keyword parameters of :class:`SlicerMapper` (``cube_blur_px``, ``table_cache``, ...).
+
+        Returns
+        -------
+        SlicerMapper
+            The mapper.
+        """
         kwargs.setdefault("cube_blur_px", aberration_sigma_px(_cbe_dispersion_resolution()))
         return cls._from_columns(_default_table(str(DEFAULT_SPOT_TABLE)), 10.0, (4096, 4096), **kwargs)
 
@@ -234,7 +275,18 @@ class SlicerMapper:
 
     # ------------------------------------------------------------------ forward map
     def slice_index(self, slice_id):
-        """Row of ``values`` for slice ids (raises on unknown ids)."""
+        """Row of ``values`` for slice ids (raises on unknown ids).
+
+        Parameters
+        ----------
+        slice_id : int or array_like of int
+            Slice ids.
+
+        Returns
+        -------
+        int or numpy.ndarray
+            Their rows of ``values``.
+        """
         sid = np.asarray(slice_id)
         if not np.issubdtype(sid.dtype, np.integer):
             if np.any(sid != np.rint(sid)):
@@ -288,18 +340,64 @@ class SlicerMapper:
         return tuple(out[:, c].reshape(s.shape) for c in range(len(ch)))
 
     def forward(self, slice_id, fieldpos, lbda):
-        """Detector position (p_x, p_y) [px] of (slice id, fieldpos, λ [Å]) (broadcast)."""
+        """Detector position of (slice id, fieldpos, λ) (broadcast).
+
+        Parameters
+        ----------
+        slice_id : int or array_like of int
+            Slice id(s).
+        fieldpos : float or array_like
+            Position along the slice (−1 … +1).
+        lbda : float or array_like
+            Wavelength [Å].
+
+        Returns
+        -------
+        p_x, p_y : numpy.ndarray
+            Detector position [px].
+        """
         return self._evaluate(slice_id, fieldpos, lbda, [0, 1])
 
     def spot_rms(self, slice_id, fieldpos, lbda):
-        """Spot rms (σ_x, σ_y) [px] at (slice id, fieldpos, λ [Å]) (broadcast)."""
+        """Spot rms at (slice id, fieldpos, λ) (broadcast).
+
+        Parameters
+        ----------
+        slice_id : int or array_like of int
+            Slice id(s).
+        fieldpos : float or array_like
+            Position along the slice (−1 … +1).
+        lbda : float or array_like
+            Wavelength [Å].
+
+        Returns
+        -------
+        sigma_x, sigma_y : numpy.ndarray
+            Spot rms (σ_x, σ_y) [px].
+        """
         return self._evaluate(slice_id, fieldpos, lbda, [2, 3])
 
     def forward_grid(self, slice_ids, fieldpos, lbda, channels=(0, 1)):
-        """Channels on the tensor grid: (S, C, len(lbda), len(fieldpos)) (p_x, p_y, σ_x, σ_y).
+        """Channels (p_x, p_y, σ_x, σ_y) [px] on the tensor grid.
 
         Bilinear: products with the (sparse) hat-function matrices; equal to
         :meth:`forward` up to rounding (~1e-12 px).
+
+        Parameters
+        ----------
+        slice_ids : sequence of int
+            S slice ids.
+        fieldpos : array_like
+            Positions along the slice (−1 … +1).
+        lbda : array_like
+            Wavelengths [Å].
+        channels : tuple of int, optional
+            The C channels (0: p_x, 1: p_y, 2: σ_x, 3: σ_y).
+
+        Returns
+        -------
+        numpy.ndarray of shape (S, C, len(lbda), len(fieldpos))
+            The channels [px].
         """
         sidx = self.slice_index(np.asarray(slice_ids).ravel())
         phi, lam = np.asarray(fieldpos, np.float64).ravel(), np.asarray(lbda, np.float64).ravel()
@@ -365,8 +463,29 @@ class SlicerMapper:
 
         Points that are not on a trace (no slice with fieldpos in the node range
         and λ in ``lbda_range``, default the node range, whose forward map hits
-        the point to ``tol`` px) get slice id 0 and NaN.  With ``slice_id`` the
-        search is restricted to that slice (broadcast).
+        the point to ``tol`` px) get slice id 0 and NaN.
+
+        Parameters
+        ----------
+        p_x, p_y : array_like
+            Detector points [px].
+        slice_id : int or array_like of int, optional
+            Restrict the search to that slice (broadcast).
+        lbda_range : tuple of float, optional
+            (min, max) [Å] searched (default: the node range).
+        tol : float, optional
+            Tolerance of the forward map [px].
+        candidates : int, optional
+            Nearest seed points of the search tried per point.
+
+        Returns
+        -------
+        slice_id : numpy.ndarray
+            Slice ids (0: not on a trace).
+        fieldpos : numpy.ndarray
+            Position along the slice (NaN: not on a trace).
+        lbda : numpy.ndarray
+            Wavelength [Å] (NaN: not on a trace).
         """
         px, py = np.broadcast_arrays(np.asarray(p_x, np.float64), np.asarray(p_y, np.float64))
         shape = px.shape
@@ -407,7 +526,7 @@ class SlicerMapper:
 
     # ------------------------------------------------------------------ projection
     def cell_boxes(self, slices, ncol, lbda_edges, oversample=(1, 1)):
-        """(N, 6) detector boxes ax, bx, sx, ay, by, sy [px] of the (sub-)cells, (s, e, q) order.
+        """Detector boxes ax, bx, sx, ay, by, sy [px] of the (sub-)cells, (s, e, q) order.
 
         x-extent: between the mean x of the cell's two corners at each fieldpos
         edge; y-extent: between the mean y at each λ edge (neighbouring cells
@@ -415,6 +534,22 @@ class SlicerMapper:
         along fieldpos, w) widen the spot: σ² = max(0, rms² − b²) + w²/12, b = ``cube_blur_px``
         (the aberration the projected cube already carries in its LSF and spatial blur: the
         table's spot is the total aberration, counted once).
+
+        Parameters
+        ----------
+        slices : sequence of int
+            Slice ids.
+        ncol : int
+            Cube columns per slice.
+        lbda_edges : array_like of shape (nλ+1,)
+            Bin edges [Å].
+        oversample : tuple of int, optional
+            (n_λ, n_φ) sub-cells per cell.
+
+        Returns
+        -------
+        numpy.ndarray of shape (N, 6)
+            ax, bx, sx, ay, by, sy [px] of the (sub-)cells, (s, e, q) order.
         """
         ne, nq = (int(v) for v in oversample)
         edges = np.asarray(lbda_edges, np.float64)
@@ -443,14 +578,31 @@ class SlicerMapper:
 
     def projection_tables(self, slices, ncol, lbda_edges, *, oversample=(1, 1), truncate=4.0,
                           weights_dtype=np.float32, block=None, backend="auto"):
-        """:class:`~slicersim.backends.projection.DepositTables` for a field and λ grid.
+        """``slicersim.backends.projection.DepositTables`` for a field and λ grid.
 
-        With a disk cache (``table_cache``, see :mod:`slicersim.io.table_cache`) the tables
-        are built once per content key (:func:`~slicersim.backends.projection.table_key`: the
+        With a disk cache (``table_cache``, see ``slicersim.io.table_cache``) the tables
+        are built once per content key (``slicersim.backends.projection.table_key``: the
         cell boxes, grid, truncation, dtype, backend, code version) and read back
         memory-mapped; nothing is kept in this object but the key, so the tables leave memory
         when the caller drops them.  Without one (or when it cannot be written) they are kept
-        in memory here (``cache_size`` of them, :meth:`release_tables` drops them)."""
+        in memory here (``cache_size`` of them, :meth:`release_tables` drops them).
+
+        Parameters
+        ----------
+        slices : sequence of int
+            Slice ids of the field.
+        ncol : int
+            Cube columns per slice.
+        lbda_edges : array_like of shape (nλ+1,)
+            Bin edges [Å].
+        oversample, truncate, weights_dtype, block, backend
+            As :meth:`project_cube`.
+
+        Returns
+        -------
+        DepositTables
+            The projection tables.
+        """
         slices = tuple(int(s) for s in slices)
         edges = np.ascontiguousarray(lbda_edges, dtype=np.float64)
         block = default_block(backend) if block is None else int(block)
@@ -500,12 +652,31 @@ class SlicerMapper:
 
     def show_slices(self, fields=("narrow", "wide"), spectrograph=None, *, image=None, region=None, labels=True,
                     ax=None, savefile=None):
-        """Figure of the detector with every slice's footprint outlined and labelled.
+        """Figure of the detector with every slice's footprint outlined and labelled
+        (:func:`slicersim.plotting.images.draw_slices`).
 
-        ``fields``: "narrow" (slices 1–58) and/or "wide" (59–116); ``spectrograph``: the cube grid (a
-        spectrograph, Simulation or Target; default: 200 bins over the λ nodes [Å], 116 columns);
-        ``image``: a detector image [e-/s/px] behind the outlines (default: the label image);
-        ``region`` (row0, row1, col0, col1) [px] zooms in (:func:`slicersim.plotting.draw_slices`)."""
+        Parameters
+        ----------
+        fields : str or sequence of str, optional
+            "narrow" (slices 1–58) and/or "wide" (59–116).
+        spectrograph : Spectrograph, Simulation or Target, optional
+            The cube grid (default: 200 bins over the λ nodes [Å], 116 columns).
+        image : array_like of shape (rows, cols), optional
+            A detector image [e-/s/px] behind the outlines (default: the label image).
+        region : tuple of int, optional
+            (row0, row1, col0, col1) [px] zooms in.
+        labels : bool, optional
+            Write each slice id at the blue end of its trace.
+        ax : matplotlib.axes.Axes, optional
+            None (new figure) or an Axes.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.instrument.footprints import detector_label_image, field_footprints
         from slicersim.plotting import check_region, draw_slices
         fields = (fields,) if isinstance(fields, str) else tuple(fields)
@@ -519,11 +690,23 @@ class SlicerMapper:
         return draw_slices(footprints, image, label_image, region=region, labels=labels, ax=ax, savefile=savefile)
 
     def release_tables(self):
-        """Drop the projection tables held in memory (those on disk stay there)."""
+        """Drop the projection tables held in memory (those on disk stay there).
+
+        Returns
+        -------
+        None
+            The memory cache is emptied in place.
+        """
         self._cache.clear()
 
     def clear_cache(self):
-        """Forget the projection tables held in memory (and the inverse-map seeds)."""
+        """Forget the projection tables held in memory (and the inverse-map seeds).
+
+        Returns
+        -------
+        None
+            The caches are emptied in place.
+        """
         self._cache.clear()
         self._disk_keys.clear()
         self._trees = None
@@ -534,17 +717,34 @@ class SlicerMapper:
 
         Parameters
         ----------
-        cube : (nλ, n_rows, n_cols) float
-            value per cell per bin (ADU, e-/s, ...); the image is in the same unit per pixel.
-        lbda, lbda_edges : (nλ,), (nλ+1,) [Å]
-            bin centres (checked only) and edges.
-        slices : sequence of n_rows slice ids, or "narrow" / "wide"
-            cube row r ↔ slice ``slices[n_rows − 1 − r]``.
-        out : (rows, cols) float64 array, optional
-            accumulated into in place.
-        precision : "auto" (default), "double" or "single": of the deposit
-            (:func:`~slicersim.backends.projection.deposit`; the tables are built in double),
-            checked before any work.
+        cube : array_like of shape (nλ, n_rows, n_cols)
+            Value per cell per bin (ADU, e-/s, ...); the image is in the same unit per pixel.
+        lbda : array_like of shape (nλ,)
+            Bin centres [Å] (checked only).
+        lbda_edges : array_like of shape (nλ+1,)
+            Bin edges [Å].
+        slices : sequence of int or {"narrow", "wide"}, optional
+            n_rows slice ids: cube row r ↔ slice ``slices[n_rows − 1 − r]``.
+        out : numpy.ndarray of shape (rows, cols), optional
+            float64 image accumulated into in place.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        oversample : tuple of int, optional
+            (n_λ, n_φ) sub-cells per cell.
+        truncate : float, optional
+            Window half-width beyond each cell box [spot rms].
+        weights_dtype : numpy.dtype, optional
+            dtype of the projection tables' weights.
+        block : int, optional
+            Block size of the table builder (default: the backend's).
+        precision : {"auto", "double", "single"}, optional
+            Of the deposit (``slicersim.backends.projection.deposit``; the tables are built in
+            double), checked before any work.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            The detector image (``out`` when given).
         """
         precision = resolve_precision(precision, backend, "projection")[1]
         if isinstance(slices, str):
@@ -569,8 +769,26 @@ class SlicerMapper:
         return deposit(value, tables, out=out, backend=backend, precision=precision)
 
     def project_fields(self, lbda, lbda_edges, narrow=None, wide=None, out=None, **kwargs):
-        """Image of the narrow (slices 1–58) and wide (59–116) cubes together (``kwargs``: of
-        :meth:`project_cube`; ``precision`` checked before the image is allocated)."""
+        """Image of the narrow (slices 1–58) and wide (59–116) cubes together.
+
+        Parameters
+        ----------
+        lbda : array_like of shape (nλ,)
+            Bin centres [Å].
+        lbda_edges : array_like of shape (nλ+1,)
+            Bin edges [Å].
+        narrow, wide : array_like of shape (nλ, 58, ncol), optional
+            The cubes of the two fields (value per cell per bin).
+        out : numpy.ndarray of shape (rows, cols), optional
+            float64 image accumulated into.
+        **kwargs
+            Of :meth:`project_cube` (``precision`` checked before the image is allocated).
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            The image, in the cubes' unit per pixel.
+        """
         resolve_precision(kwargs.get("precision", "auto"), kwargs.get("backend", "auto"), "projection")
         if out is None:
             out = np.zeros(self.detector_shape)
@@ -590,8 +808,35 @@ def detector_rate_image(mapper, lbda, lbda_edges, narrow=None, wide=None, *, dar
     painted or not.  ROIC glow is a charge per frame read [e-/px/frame]: it is
     added as the rate ``roic_glow / tframe`` only when both are given (the
     same D_eff = dark + glow/t_f + thermal dark as the noise model); a ramp
-    simulator that adds glow per read should leave it out here.  ``kwargs``: of
-    :meth:`SlicerMapper.project_cube` (``backend``, ``precision`` of the deposit, ...).
+    simulator that adds glow per read should leave it out here.
+
+    Parameters
+    ----------
+    mapper : SlicerMapper
+        The detector mapping.
+    lbda : array_like of shape (nλ,)
+        Bin centres of the cubes [Å].
+    lbda_edges : array_like of shape (nλ+1,)
+        Bin edges of the cubes [Å].
+    narrow, wide : numpy.ndarray of shape (nλ, ny, nx), optional
+        Photo-electron rate cubes of the two fields [e-/s per cell per bin] (photon cube ×
+        QE), projected flux-conservingly.
+    dark : float, optional
+        Dark current added to **every** pixel, painted or not [e-/s/px].
+    thermal_dark : float or numpy.ndarray of shape (rows, cols), optional
+        Thermal dark added to every pixel [e-/s/px].
+    roic_glow : float, optional
+        ROIC glow, a charge per frame read [e-/px/frame]; needs ``tframe``.
+    tframe : float, optional
+        Frame time [s] (> 0 when ``roic_glow`` is given).
+    **kwargs
+        Options of :meth:`SlicerMapper.project_cube` (``backend``, ``precision`` of the
+        deposit, ...).
+
+    Returns
+    -------
+    numpy.ndarray of shape (rows, cols)
+        The rate image of the whole detector [e-/s/px].
     """
     img = mapper.project_fields(lbda, lbda_edges, narrow=narrow, wide=wide, **kwargs)
     img += dark

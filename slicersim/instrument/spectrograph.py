@@ -96,7 +96,16 @@ class OpticalThroughput:
     T in [0, 1]) interpolated with a not-a-knot cubic spline; spline values in [−1e-3, 0)
     are set to 0 and values in (1, 1 + 1e-3] to 1.  Curves are never extrapolated: evaluating
     outside a curve's wavelength coverage, or where its spline leaves [−1e-3, 1 + 1e-3],
-    raises :class:`ParameterError`.  ``noptics``: non-negative integers (int or integral float).
+    raises :class:`~slicersim.errors.ParameterError`.
+
+    Parameters
+    ----------
+    components : float, tuple of array_like or dict
+        One component, or a dict {name: component}; each component is a float in [0, 1] or
+        a (λ [Å], T) curve.
+    noptics : dict or int, optional
+        Number of times each component is passed, {name: count} or one count for every
+        component: non-negative integers (int or integral float); default 1.
     """
 
     def __init__(self, components, noptics=None):
@@ -199,21 +208,40 @@ class Spectrograph(Versioned):
 
     Parameters
     ----------
-    spectral_range : (float, float)  [Å]
-    dispersion_law : (λ[Å], offset[px]) arrays or a curve file path; or None
-    resolving_power : float or callable, used when ``dispersion_law`` is None
-    dispersion_scale, dispersion_resolution : float  law scaling, pixels per resolution element
-    throughput : float, (λ, T), OpticalThroughput or curve path (with ``throughput_column``)
-    spatial_scale : float  cell size along the slice width [arcsec]
-    spatial_shape : (ny, nx)  cells before anamorphosis
-    optics : dict of lists  temperature, emissivity, nelements, fratio, geometry, dispersed
+    spectral_range : tuple of float
+        (min, max) wavelength of the grid [Å], 0 < min < max.
+    dispersion_law : tuple of array_like or str or None, optional
+        (λ [Å], offset [px]) arrays of the dispersion law, or the path of a curve file; None
+        uses ``resolving_power``.
+    resolving_power : float or callable, optional
+        R = λ/Δλ (or a function of λ [Å]), used when ``dispersion_law`` is None (giving both
+        raises :class:`~slicersim.errors.ParameterError`).
+    dispersion_scale : float, optional
+        Scaling of the dispersion law (> 0).
+    dispersion_resolution : float, optional
+        Pixels per resolution element (> 0).
+    throughput : float, tuple of array_like, OpticalThroughput or str, optional
+        Throughput: a number in [0, 1], a (λ [Å], T) curve, an :class:`OpticalThroughput` or
+        the path of a curve file (with ``throughput_column``).
+    throughput_column : str or int, optional
+        Column of the throughput curve file.
+    spatial_scale : float, optional
+        Cell size along the slice width [arcsec].
+    spatial_shape : tuple of int, optional
+        (ny, nx) cells before anamorphosis.
+    optics : dict of list, optional
+        Thermal optics, one value per optics group for each of the keys ``temperature``
+        [K], ``emissivity``, ``nelements``, ``fratio``, ``geometry`` and ``dispersed``.
+    noptics : dict or int, optional
+        Number of passes through each throughput component (non-negative integers), as for
+        :class:`OpticalThroughput`.
     """
 
     anamorphosis = (1, 1)
     #: pixels a cell's monochromatic image covers (slicer: its 2-px slit image)
     pixels_per_cell = 1
     #: pixels a cell owns per native bin (one row along the dispersion; see
-    #: :func:`slicersim.physics.conventions.detector_pixels_per_cell`)
+    #: ``slicersim.physics.conventions.detector_pixels_per_cell``)
     pixels_per_bin = 1
     kind = "generic"
     mutable_parameters = ("spectral_range", "dispersion_law", "dispersion_scale", "dispersion_resolution",
@@ -350,7 +378,18 @@ class Spectrograph(Versioned):
         return merged
 
     def updated(self, **kwargs):
-        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
+        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`.
+
+        Parameters
+        ----------
+        **kwargs
+            As :meth:`update`.
+
+        Returns
+        -------
+        Spectrograph
+            The copy.
+        """
         import copy
         check_parameter_names("spectrograph", kwargs, self.mutable_parameters)
         params = dict(self._params)
@@ -378,21 +417,44 @@ class Spectrograph(Versioned):
 
     def update(self, **kwargs):
         """Change mutable parameters and rebuild everything that depends on them, atomically:
-        a copy is rebuilt and validated first; on error (:class:`ParameterError`) nothing changes.
+        a copy is rebuilt and validated first; on error (:class:`~slicersim.errors.ParameterError`)
+        nothing changes.
 
-        ``optics`` may give only some keys (the others are kept); each list needs one value
-        per optics group.  ``noptics`` (dict per component or one int) applies to the current
-        throughput.  ``resolving_power`` with a dispersion-law grid raises unless
-        ``dispersion_law=None`` is passed too (then the grid switches to the resolving power);
-        a new ``dispersion_law`` replaces a resolving-power grid."""
+        Parameters
+        ----------
+        **kwargs
+            Names of ``mutable_parameters``.  ``optics`` may give only some keys (the others are
+            kept); each list needs one value per optics group.  ``noptics`` (dict per component or
+            one int) applies to the current throughput.  ``resolving_power`` with a dispersion-law
+            grid raises unless ``dispersion_law=None`` is passed too (then the grid switches to the
+            resolving power); a new ``dispersion_law`` replaces a resolving-power grid.
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         self._adopt(self.updated(**kwargs))
 
     def set_throughput(self, throughput, column=None, noptics=None):
-        """Replace the throughput (float, curve, file, OpticalThroughput or per-component dict).
+        """Replace the throughput.  Takes effect at once (the owning Simulation sees the new version).
 
-        For a file with several columns ``column`` picks one (default: the current
-        ``throughput_column`` when the file has it); ``noptics`` as in :class:`OpticalThroughput`.
-        Takes effect at once (the owning Simulation sees the new version)."""
+        Parameters
+        ----------
+        throughput : float, tuple of array_like, str, OpticalThroughput or dict
+            A float, a (λ [Å], T) curve, a file, an :class:`OpticalThroughput` or a per-component
+            dict.
+        column : str or int, optional
+            For a file with several columns, the one picked (default: the current
+            ``throughput_column`` when the file has it).
+        noptics : dict or int, optional
+            As in :class:`OpticalThroughput`.
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         if column is None and isinstance(throughput, str):
             current = self._params["throughput_column"]
             if current is not None:
@@ -447,7 +509,18 @@ class Spectrograph(Versioned):
         return float(np.sin(self.spatial_scale * ARCSEC) ** 2)
 
     def dispersed_thermal_radiance(self, lbda):
-        """Photon radiance of the dispersed internal optics Σ ε n B_ph(λ, T) [ph/s/m²/sr/Å]."""
+        """Photon radiance of the dispersed internal optics Σ ε n B_ph(λ, T) [ph/s/m²/sr/Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The radiance [ph/s/m²/sr/Å], of the shape of ``lbda``.
+        """
         o = self.optics
         total = np.zeros_like(np.asarray(lbda, dtype=float))
         for temp, eps, n, disp in zip(o["temperature"], o["emissivity"], o["nelements"], o["dispersed"]):
@@ -456,7 +529,13 @@ class Spectrograph(Versioned):
         return total
 
     def undispersed_optics(self):
-        """(temperature, emissivity, nelements, solid angle [sr]) of optics after the disperser."""
+        """The optics after the disperser.
+
+        Returns
+        -------
+        list of tuple
+            (temperature [K], emissivity, nelements, solid angle [sr]) of each such optics group.
+        """
         o = self.optics
         rows = []
         for temp, eps, n, fr, geo, disp in zip(o["temperature"], o["emissivity"], o["nelements"],
@@ -466,12 +545,38 @@ class Spectrograph(Versioned):
         return rows
 
     def apply_lsf(self, values, axis=0):
-        """Apply this spectrograph's LSF along ``axis`` (see :func:`apply_lsf`)."""
+        """Apply this spectrograph's Gaussian LSF along ``axis`` (``slicersim.physics.lsf.apply_lsf``).
+
+        Parameters
+        ----------
+        values : array_like
+            Values on the wavelength grid along ``axis``.
+        axis : int, optional
+            The wavelength axis.
+
+        Returns
+        -------
+        numpy.ndarray
+            The convolved values, of the shape of ``values``.
+        """
         return apply_lsf(values, self.lsf_sigma, axis=axis)
 
     def show_throughput(self, ax=None, savefile=None):
         """Figure of the throughput [fraction of photons] on the grid (λ [Å]) and of each of its
-        components; see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        components; see :func:`slicersim.plotting.spectra.plot_curves`.
+
+        Parameters
+        ----------
+        ax : matplotlib.axes.Axes, optional
+            None (new figure) or an Axes.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.plotting import plot_curves
         model = self.throughput_model
         curves = {"total": self.throughput}
@@ -486,7 +591,14 @@ class Spectrograph(Versioned):
 
 class SlicerSpectrograph(Spectrograph):
     """Image slicer: 1×2 anamorphosis, each cell imaged on 2 detector pixels (along the
-    dispersion: the slit image, shared by consecutive bins, so 1 pixel per cell and bin)."""
+    dispersion: the slit image, shared by consecutive bins, so 1 pixel per cell and bin).
+
+    Parameters
+    ----------
+    spectral_range, dispersion_law, resolving_power, dispersion_scale, dispersion_resolution, \
+throughput, throughput_column, spatial_scale, spatial_shape, optics, noptics
+        As for :class:`Spectrograph`.
+    """
     anamorphosis = (1, 2)
     pixels_per_cell = 2
     pixels_per_bin = 1
@@ -496,9 +608,19 @@ class SlicerSpectrograph(Spectrograph):
 class MLASpectrograph(Spectrograph):
     """Micro-lens array: square cells, cross-dispersion profile on the detector.
 
-    Extra parameters: ``xdisp_sigma_spectral`` [px at 1 µm], ``xdisp_sigma`` [px],
-    ``xdisp_width_insigma`` (extraction width).  Each spaxel spectrum spreads over
-    ~2 × xdisp_width_insigma × σ_xdisp pixels across the dispersion.
+    Each spaxel spectrum spreads over ~2 × xdisp_width_insigma × σ_xdisp pixels across
+    the dispersion.
+
+    Parameters
+    ----------
+    *args, **kwargs
+        The parameters of :class:`Spectrograph`.
+    xdisp_sigma_spectral : float, optional
+        Wavelength-dependent part of the cross-dispersion σ [px at 1 µm].
+    xdisp_sigma : float, optional
+        Constant part of the cross-dispersion σ [px].
+    xdisp_width_insigma : float, optional
+        Extraction width [σ].
     """
     anamorphosis = (1, 1)
     kind = "mla"
@@ -511,7 +633,18 @@ class MLASpectrograph(Spectrograph):
         super().__init__(*args, **kwargs)
 
     def xdisp_sigma_at(self, lbda):
-        """Cross-dispersion σ [px] at λ [Å]."""
+        """Cross-dispersion σ [px] at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            σ [px].
+        """
         return np.hypot(self.xdisp_sigma_spectral * np.asarray(lbda) / 1e4, self.xdisp_sigma)
 
     @property

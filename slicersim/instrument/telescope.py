@@ -18,11 +18,14 @@ class Telescope(Versioned):
 
     Parameters
     ----------
-    diameter_ext, diameter_int : float  outer / central-obscuration diameter [m] (or astropy Quantities)
-    temperature : float, or one value per mirror group  mirror temperature [K]
-    emissivity, nelements : sequence  per mirror group emissivity and count (a scalar
-        applies to every group)
-    guiding_sigma : float  achromatic Gaussian jitter [arcsec] (or an astropy Quantity)
+    diameter_ext, diameter_int : float or astropy.units.Quantity
+        Outer / central-obscuration diameter [m].
+    temperature : float or sequence of float
+        Mirror temperature [K], or one value per mirror group.
+    emissivity, nelements : sequence
+        Per mirror group emissivity and count (a scalar applies to every group).
+    guiding_sigma : float or astropy.units.Quantity
+        Achromatic Gaussian jitter [arcsec].
     """
 
     mutable_parameters = ("diameter_ext", "diameter_int", "temperature", "emissivity",
@@ -89,7 +92,18 @@ class Telescope(Versioned):
         return len(self.emissivity)
 
     def updated(self, **kwargs):
-        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`."""
+        """A validated copy with ``kwargs`` changed (``self`` untouched); see :meth:`update`.
+
+        Parameters
+        ----------
+        **kwargs
+            As :meth:`update`.
+
+        Returns
+        -------
+        Telescope
+            The copy.
+        """
         check_parameter_names("telescope", kwargs, self.mutable_parameters)
         # the mirror set is redefined only when emissivity and nelements change together
         redefine = "emissivity" in kwargs and "nelements" in kwargs
@@ -107,8 +121,20 @@ class Telescope(Versioned):
 
     def update(self, **kwargs):
         """Change mutable parameters (see ``mutable_parameters``), atomically: everything is
-        validated on a copy first; on error (:class:`ParameterError`) nothing changes.
-        ``temperature``, ``emissivity`` and ``nelements`` accept one value per mirror group."""
+        validated on a copy first; on error (:class:`~slicersim.errors.ParameterError`) nothing
+        changes.
+
+        Parameters
+        ----------
+        **kwargs
+            The parameters; ``temperature``, ``emissivity`` and ``nelements`` accept one value per
+            mirror group.
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         self._adopt(self.updated(**kwargs))
 
     @property
@@ -122,7 +148,18 @@ class Telescope(Versioned):
         return self.diameter_int / self.diameter_ext
 
     def airy_radius(self, lbda):
-        """Radius of the first Airy dark ring 1.22 λ/D [arcsec] at λ [Å]."""
+        """Radius of the first Airy dark ring 1.22 λ/D [arcsec] at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The radius [arcsec].
+        """
         return 1.22 * np.asarray(lbda, dtype=float) * 1e-10 / self.diameter_ext / ARCSEC
 
     @property
@@ -137,7 +174,18 @@ class Telescope(Versioned):
 
     def thermal_radiance(self, lbda):
         """Mirror photon radiance ε_eff B_ph(λ, T) [ph/s/m²/sr/Å]; with one temperature per
-        mirror group Σ εᵢ nᵢ B_ph(λ, Tᵢ)."""
+        mirror group Σ εᵢ nᵢ B_ph(λ, Tᵢ).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The radiance [ph/s/m²/sr/Å].
+        """
         if np.ndim(self.temperature) == 0:
             return self.effective_emissivity * photon_radiance(lbda, self.temperature)
         total = np.zeros_like(np.asarray(lbda, dtype=float))
@@ -147,8 +195,23 @@ class Telescope(Versioned):
         return total
 
     def show_thermal_radiance(self, lbda=None, ax=None, savefile=None):
-        """Figure of the mirrors' photon radiance [ph/s/m²/sr/Å] versus λ [Å] (default
-        4000–17000 Å; log scale); see :func:`slicersim.plotting.plot_curves`.  Returns the Figure."""
+        """Figure of the mirrors' photon radiance [ph/s/m²/sr/Å] versus λ [Å] (log scale); see
+        :func:`slicersim.plotting.spectra.plot_curves`.
+
+        Parameters
+        ----------
+        lbda : array_like, optional
+            Wavelengths [Å] (default 4000–17000 Å).
+        ax : matplotlib.axes.Axes, optional
+            None (new figure) or an Axes.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.plotting import plot_curves
         lbda = validation.array("lbda [AA]", np.linspace(4e3, 1.7e4, 500) if lbda is None else lbda, ndim=1)
         fig = plot_curves(lbda, {"mirrors": self.thermal_radiance(lbda)}, "thermal radiance [ph/s/m²/sr/Å]",

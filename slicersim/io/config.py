@@ -180,13 +180,14 @@ def load_config(config="cbe"):
 
     Parameters
     ----------
-    config : str, path or list
+    config : str, path-like or list
         ``"cbe"``, ``"eol"``, a TOML path, or a list of names/paths applied in order.
 
     Returns
     -------
-    dict  table name (e.g. ``"detector"``, ``"spectrograph.optics"``) -> {key: value};
-    the ``"_sources"`` entry lists the files read.
+    dict
+        Table name (e.g. ``"detector"``, ``"spectrograph.optics"``) -> {key: value};
+        the ``"_sources"`` entry lists the files read.
     """
     if isinstance(config, dict):
         return validate_config(copy.deepcopy(config))

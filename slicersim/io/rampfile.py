@@ -436,8 +436,29 @@ def open_hdf5_input(path, what="an HDF5 ramp file", datasets=("SCI",)):
 
 
 def read_ramps(path):
-    """(SCI, GROUPDQ, PIXELDQ or None, attrs) of a complete ramp file (checked by
-    :func:`open_hdf5_input`; a failed checksum is a RampFileError)."""
+    """Read a complete ramp file whole (checked by ``open_hdf5_input``).
+
+    Parameters
+    ----------
+    path : str or path-like
+        The HDF5 ramp file.
+
+    Returns
+    -------
+    sci : numpy.ndarray of shape (nramps, ngroups, ny, nx)
+        The ramps SCI [ADU].
+    groupdq : numpy.ndarray of shape (nramps, ngroups, ny, nx)
+        Their group data-quality flags GROUPDQ.
+    pixeldq : numpy.ndarray of shape (ny, nx) or None
+        The pixel data-quality flags PIXELDQ, None when the file has none.
+    attrs : dict
+        The file's root attributes.
+
+    Raises
+    ------
+    slicersim.errors.RampFileError
+        An incomplete or foreign file, or a failed checksum.
+    """
     path = os.fspath(path)
     with open_hdf5_input(path, "an HDF5 ramp file (incomplete file?)") as fh:
         if not fh.attrs.get("COMPLETE", False):

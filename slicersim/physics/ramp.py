@@ -37,11 +37,34 @@ class RampParameters:
     :class:`~slicersim.errors.ParameterError` naming it.  Physical values accept an astropy
     Quantity, converted to the unit given here.
 
-    nmd : (n, m, d) MACC readout;  nramps : ramps (integrations);  tframe : s;
-    ron : electron (read noise per frame);  dark, thermal_dark : e-/s/px (dark may be a per-pixel array);
-    roic_glow : e-/px/frame;  gain : ADU/e-;  saturation, bias : ADU;  ktc_noise : e- per reset;
-    full_well : e- (default (saturation − bias)/gain);  sparse_max_group : e-/group (None: auto);
-    gauss_min_mean : e-/frame above which Poisson increments are drawn as Gaussians.
+    Parameters
+    ----------
+    nmd : tuple of int
+        (n, m, d) MACC readout.
+    nramps : int, optional
+        Ramps (integrations).
+    tframe : float, optional
+        Frame time [s].
+    ron : float, optional
+        Read noise per frame [electron].
+    dark : float or numpy.ndarray of shape (ny, nx), optional
+        Dark current [e-/s/px] (may be a per-pixel array).
+    thermal_dark : float, optional
+        Thermal dark [e-/s/px].
+    roic_glow : float, optional
+        ROIC glow [e-/px/frame].
+    gain : float, optional
+        Gain [ADU/e-].
+    saturation, bias : float, optional
+        Saturation and bias [ADU].
+    ktc_noise : float, optional
+        kTC noise [e- per reset].
+    full_well : float, optional
+        Full well [e-] (default (saturation − bias)/gain).
+    sparse_max_group : float, optional
+        [e-/group] (None: auto).
+    gauss_min_mean : float, optional
+        [e-/frame] above which Poisson increments are drawn as Gaussians.
     """
 
     nmd: tuple

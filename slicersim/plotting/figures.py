@@ -19,9 +19,24 @@ MAX_PANELS = 12
 
 
 def check_savefile(savefile):
-    """``savefile`` checked before anything is drawn: None, a path naming a file (str or os.PathLike, its
-    folder existing) or a binary file object; ParameterError naming it otherwise (``savefile=3``, or
-    ``"."`` that wrote ``..png``)."""
+    """``savefile`` checked before anything is drawn.
+
+    Parameters
+    ----------
+    savefile : str, os.PathLike, file object or None
+        None, a path naming a file (str or os.PathLike, its folder existing) or a binary file
+        object.
+
+    Returns
+    -------
+    str, os.PathLike, file object or None
+        ``savefile`` unchanged.
+
+    Raises
+    ------
+    slicersim.errors.ParameterError
+        Naming it otherwise (``savefile=3``, or ``"."`` that wrote ``..png``).
+    """
     if savefile is None or hasattr(savefile, "write"):
         return savefile
     if isinstance(savefile, bool) or not isinstance(savefile, (str, os.PathLike)):
@@ -39,8 +54,27 @@ def check_savefile(savefile):
 
 
 def check_axes(ax, count=None, what="Axes"):
-    """``ax`` as a list of matplotlib Axes: one Axes, or a sequence of ``count`` of them (any count when
-    None); ParameterError naming the argument otherwise (``ax='foo'`` was an AttributeError)."""
+    """``ax`` as a list of matplotlib Axes.
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes or sequence of matplotlib.axes.Axes
+        One Axes, or a sequence of ``count`` of them.
+    count : int, optional
+        The number of Axes required (any count when None).
+    what : str, optional
+        What the Axes are, in the error message.
+
+    Returns
+    -------
+    list of matplotlib.axes.Axes
+        The Axes.
+
+    Raises
+    ------
+    slicersim.errors.ParameterError
+        Naming the argument otherwise (``ax='foo'`` was an AttributeError).
+    """
     from matplotlib.axes import Axes
     axes = [ax] if isinstance(ax, Axes) else None
     if axes is None:
@@ -62,9 +96,25 @@ def _short(value):
 
 
 def figure_writer(fig, path, **options):
-    """(path, writer) for :func:`slicersim.io.file_set.write_files`: ``writer(file)`` draws ``fig``
-    (``savefig`` ``options``) in the format of the path's suffix (none: matplotlib's
-    default, appended to the path as ``savefig`` does)."""
+    """(path, writer) for ``slicersim.io.file_set.write_files``.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+    path : str or os.PathLike
+        Where it goes; its suffix gives the format (none: matplotlib's default, appended to
+        the path as ``savefig`` does).
+    **options
+        ``savefig`` options.
+
+    Returns
+    -------
+    path : str
+        The path, with the suffix of the format.
+    writer : callable
+        ``writer(file)`` draws ``fig`` in that format to a binary file.
+    """
     import matplotlib
     path = os.fspath(path)
     fmt = os.path.splitext(path)[1][1:].lower()
@@ -78,12 +128,27 @@ def figure_writer(fig, path, **options):
 
 
 def save_figure(fig, savefile, **options):
-    """Write ``fig`` (``savefig`` ``options``) and release it from pyplot; returns the path.
+    """Write ``fig`` and release it from pyplot.
 
-    A path is written atomically (:func:`slicersim.io.file_set.write_files`: a temporary in its
+    A path is written atomically (``slicersim.io.file_set.write_files``: a temporary in its
     directory, renamed in when complete, replacing an existing file; on any error, e.g. a full
     disk, nothing is left; temporaries of killed writers there are removed), see
-    :func:`figure_writer` for the format.  A binary file object is written directly."""
+    :func:`figure_writer` for the format.  A binary file object is written directly.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+    savefile : str, os.PathLike or file object
+        A path or a binary file object.
+    **options
+        ``savefig`` options.
+
+    Returns
+    -------
+    str or file object
+        The path written (with the format's suffix), or the file object.
+    """
     import matplotlib.pyplot as plt
     from slicersim.errors import DatasetError
     from slicersim.io.file_set import write_files
@@ -98,7 +163,22 @@ def save_figure(fig, savefile, **options):
 
 
 def finish(fig, savefile, dpi=120):
-    """Save ``fig`` to ``savefile`` when given (:func:`save_figure`, tight box); returns ``fig``."""
+    """Save ``fig`` to ``savefile`` when given (:func:`save_figure`, tight box).
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+    savefile : str, os.PathLike, file object or None
+        Where to save it (checked by :func:`check_savefile`); None: not saved.
+    dpi : float, optional
+        Resolution [dots per inch].
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        ``fig``.
+    """
     check_savefile(savefile)
     if savefile is not None:
         save_figure(fig, savefile, dpi=dpi, bbox_inches="tight")
@@ -106,8 +186,22 @@ def finish(fig, savefile, dpi=120):
 
 
 def new_axes(ax=None, **subplots):
-    """(figure, axes): ``ax``'s figure and ``ax`` when given, else a new figure
-    (``plt.subplots(**subplots)``, constrained layout)."""
+    """The figure and axes to draw on.
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes, optional
+        Draw there (one Axes).
+    **subplots
+        Without ``ax``: options of ``plt.subplots`` (constrained layout by default).
+
+    Returns
+    -------
+    fig : matplotlib.figure.Figure
+        ``ax``'s figure, else a new figure.
+    axes : matplotlib.axes.Axes or numpy.ndarray
+        ``ax``, else the new axes.
+    """
     if ax is not None:
         ax = check_axes(ax, 1)[0]
         return ax.figure, ax
@@ -119,7 +213,18 @@ def new_axes(ax=None, **subplots):
 def image_norm(img):
     """Colour scale of an image: asinh (linear below 1 % of the peak) for a high contrast (a
     point source: min < 10 % of max); linear for a low contrast; ±0.5 % around the value
-    for a uniform image (a flat), whose rounding noise would else fill the colour bar."""
+    for a uniform image (a flat), whose rounding noise would else fill the colour bar.
+
+    Parameters
+    ----------
+    img : array_like
+        The image (non-finite values, e.g. saturated cells, are ignored).
+
+    Returns
+    -------
+    matplotlib.colors.Normalize
+        ``AsinhNorm`` or ``Normalize`` (0–1 when nothing is finite).
+    """
     from matplotlib.colors import AsinhNorm, Normalize
     finite = np.asarray(img, float)[np.isfinite(img)]               # saturated cells are NaN
     if finite.size == 0:
@@ -138,7 +243,26 @@ def image_norm(img):
 def colorbar(fig, im, ax, label, min_gap=0.09):
     """Colour bar labelled ``label`` (with its unit) whose tick labels do not overlap: ticks
     closer than ``min_gap`` (fraction of the bar) to a kept one are dropped (asinh scales
-    crowd ticks around 0)."""
+    crowd ticks around 0).
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+    im : matplotlib.cm.ScalarMappable
+        The image (or other mappable) the bar describes.
+    ax : matplotlib.axes.Axes
+        The axes the bar is taken from.
+    label : str
+        Label of the bar, with its unit.
+    min_gap : float, optional
+        Least distance between two ticks [fraction of the bar].
+
+    Returns
+    -------
+    matplotlib.colorbar.Colorbar
+        The colour bar.
+    """
     cb = fig.colorbar(im, ax=ax, fraction=0.046, label=label)
     norm = im.norm
     ticks = [t for t in cb.get_ticks() if norm.vmin <= t <= norm.vmax]

@@ -17,7 +17,18 @@ __all__ = ["plot_cube_slices", "draw_slices", "check_region", "plot_ramp_group",
 
 def sky_extent(spectrograph):
     """Field extent [arcsec] (x along the slices, y across them) of a cube image: cells are
-    squares of side ``spatial_scale`` [arcsec], so a round source is drawn round."""
+    squares of side ``spatial_scale`` [arcsec], so a round source is drawn round.
+
+    Parameters
+    ----------
+    spectrograph : Spectrograph
+        Its ``shape`` (ny, nx) [cells] and ``spatial_scale`` [arcsec].
+
+    Returns
+    -------
+    tuple of float
+        (left, right, bottom, top) [arcsec], centred on 0 (matplotlib's ``extent``).
+    """
     ny, nx = spectrograph.shape
     half_y, half_x = 0.5 * ny * spectrograph.spatial_scale, 0.5 * nx * spectrograph.spatial_scale
     return (-half_x, half_x, -half_y, half_y)
@@ -42,12 +53,24 @@ def plot_cube_slices(sim, cube=None, lbda=None, ax=None, savefile=None, unit="AD
 
     Parameters
     ----------
-    sim : Simulation (its ``lbda`` [Å] and ``spectrograph``: shape, ``spatial_scale`` [arcsec])
-    cube : (nλ, ny, nx) values [``unit``]; default: the simulation's signal cube
-        (``sim.get_cube()[0]``, all ramps) [ADU]
-    lbda : wavelengths [Å] of the panels (default: four spread over the grid)
-    ax : None (new figure) or a sequence of Axes, one per wavelength
-    unit : unit of the cube (colour bars)
+    sim : Simulation
+        Its ``lbda`` [Å] and ``spectrograph`` (shape, ``spatial_scale`` [arcsec]).
+    cube : array_like of shape (nλ, ny, nx), optional
+        Values [``unit``]; default: the simulation's signal cube (``sim.get_cube()[0]``, all
+        ramps) [ADU].
+    lbda : array_like, optional
+        Wavelengths of the panels [Å] (default: four spread over the grid).
+    ax : sequence of matplotlib.axes.Axes, optional
+        None (new figure) or a sequence of Axes, one per wavelength.
+    savefile : str, os.PathLike or file object, optional
+        If given the figure is saved there.
+    unit : str, optional
+        Unit of the cube (colour bars).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
     """
     check_savefile(savefile)
     lbda_grid = np.asarray(sim.lbda, dtype=float)
@@ -85,7 +108,25 @@ def plot_cube_slices(sim, cube=None, lbda=None, ax=None, savefile=None, unit="AD
 
 
 def check_region(region, shape):
-    """(row0, row1, col0, col1) [px] of a zoom, checked to lie within a detector of ``shape``."""
+    """A zoom, checked to lie within a detector of ``shape``.
+
+    Parameters
+    ----------
+    region : sequence of int
+        (row0, row1, col0, col1) [px].
+    shape : tuple of int
+        (rows, cols) of the detector [px].
+
+    Returns
+    -------
+    tuple of int
+        (row0, row1, col0, col1) [px].
+
+    Raises
+    ------
+    slicersim.errors.ParameterError
+        Not four integers with 0 ≤ row0 < row1 ≤ rows and 0 ≤ col0 < col1 ≤ cols.
+    """
     if isinstance(region, (str, bytes)) or not hasattr(region, "__len__") or len(region) != 4:
         raise ParameterError(f"region must be (row0, row1, col0, col1) [px], got {validation.short_repr(region)}")
     r0, r1, c0, c1 = (validation.integer(f"region[{i}] ({what}) [px]", v)
@@ -119,13 +160,29 @@ def draw_slices(footprints, image=None, label_image=None, *, region=None, labels
 
     Parameters
     ----------
-    footprints : list of field footprints (``FieldFootprints``: iterable of slices with
-        ``contour`` [px], ``slice_id``, ``trace_x``/``trace_y`` [px]; ``field``,
-        ``detector_shape``, ``lbda_edges`` [Å], ``truncate``, ``overlaps()``)
-    image : (rows, cols) detector image (log scale, colour bar ``image_label`` with its unit),
-        or ``label_image``: slice id per pixel (−1 outside)
-    region : (row0, row1, col0, col1) [px] zoom, already checked; default the whole detector
-    labels : write each slice id at the blue end of its trace
+    footprints : list of FieldFootprints
+        The field footprints (iterables of slices with ``contour`` [px], ``slice_id``,
+        ``trace_x``/``trace_y`` [px]; ``field``, ``detector_shape``, ``lbda_edges`` [Å],
+        ``truncate``, ``overlaps()``).
+    image : array_like of shape (rows, cols), optional
+        Detector image (log scale, colour bar ``image_label`` with its unit).
+    label_image : array_like of shape (rows, cols), optional
+        Instead of ``image``: slice id per pixel (−1 outside).
+    region : tuple of int, optional
+        (row0, row1, col0, col1) [px] zoom, already checked; default the whole detector.
+    labels : bool, optional
+        Write each slice id at the blue end of its trace.
+    ax : matplotlib.axes.Axes, optional
+        None (new figure) or an Axes.
+    savefile : str, os.PathLike or file object, optional
+        If given the figure is saved there.
+    image_label : str, optional
+        Label of the colour bar of ``image``, with its unit.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
     """
     check_savefile(savefile)
     from matplotlib.patches import Polygon
@@ -168,9 +225,22 @@ def draw_slices(footprints, image=None, label_image=None, *, region=None, labels
 #  raw ramps                                                                   #
 # --------------------------------------------------------------------------- #
 def source_zoom(rate, half=(300, 250)):
-    """(row0, row1, col0, col1) [px]: a box of half-sizes ``half`` (rows, cols) around the
-    brightest pixel of ``rate`` once each row's median (the slices' smooth light: background,
-    thermal) is removed, i.e. around the source's trace; clipped to the image."""
+    """A box of half-sizes ``half`` (rows, cols) around the brightest pixel of ``rate`` once
+    each row's median (the slices' smooth light: background, thermal) is removed, i.e. around
+    the source's trace; clipped to the image.
+
+    Parameters
+    ----------
+    rate : array_like of shape (rows, cols)
+        A rate image (NaN counted as 0).
+    half : tuple of int, optional
+        Half-sizes (rows, cols) of the box [px].
+
+    Returns
+    -------
+    tuple of int
+        (row0, row1, col0, col1) [px].
+    """
     rate = np.nan_to_num(np.asarray(rate, dtype=float))
     excess = rate - np.median(rate, axis=1, keepdims=True)
     r, c = np.unravel_index(np.argmax(excess), rate.shape)
@@ -221,6 +291,30 @@ def plot_ramp_group(path, group=-1, ramp=0, savefile=None, zoom=None, *, first=0
     ``origin`` (row, col) [px]: the file's first pixel on the detector (a window's ramp), so
     that axes read detector pixels.  ``title``: first line(s) of the title (e.g. the target and
     the readout the ETC chose); the file's readout pattern follows.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The HDF5 ramp file.
+    group : int, optional
+        The group shown (negative: from the end).
+    ramp : int, optional
+        The ramp (integration) read.
+    savefile : str, os.PathLike or file object, optional
+        If given the figure is saved there.
+    zoom : tuple of int, optional
+        (row0, row1, col0, col1) [px of the file] around the source.
+    first : int, optional
+        The group subtracted from ``group``.
+    title : str, optional
+        First line(s) of the title.
+    origin : tuple of int, optional
+        (row, col) of the file's first pixel on the detector [px].
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
     """
     check_savefile(savefile)
     import matplotlib.pyplot as plt

@@ -49,7 +49,20 @@ def _last_etc(target):
 
 def readout_title(sim, target=None):
     """Title of a figure: the readout (n, m, d) × ramps and exposure time [s], then the target's
-    redshift, configuration and field."""
+    redshift, configuration and field.
+
+    Parameters
+    ----------
+    sim : Simulation
+        The simulation (its readout and exposure time).
+    target : Target, optional
+        The target (its redshift, configuration and field).
+
+    Returns
+    -------
+    str
+        The title, on one or two lines.
+    """
     t = sim.get_times()
     n, m, d = (int(v) for v in t["nmd"])
     texp = float(t["exposure_time"])
@@ -90,16 +103,25 @@ def _add_rest_axis(ax, target):
 def plot_spectrum(target_or_sim, ax=None, seed=None, savefile=None):
     """Extracted spectrum with its ±1σ band (top) and SNR per bin (bottom).
 
+    The ETC band of ``target.last_etc`` (if any) is shaded and its target SNR
+    per bin drawn as a horizontal line.
+
     Parameters
     ----------
     target_or_sim : Target or Simulation
-    ax : None (new figure), a pair of Axes (spectrum, SNR) or a single Axes
-         (spectrum panel only)
-    seed : int or Generator; if given, a noisy realisation is drawn as points
-    savefile : path; if given the figure is saved there
+        What is drawn.
+    ax : matplotlib.axes.Axes or sequence of matplotlib.axes.Axes, optional
+        None (new figure), a pair of Axes (spectrum, SNR) or a single Axes (spectrum panel
+        only).
+    seed : int or numpy.random.Generator, optional
+        If given, a noisy realisation is drawn as points.
+    savefile : str, os.PathLike or file object, optional
+        If given the figure is saved there.
 
-    The ETC band of ``target.last_etc`` (if any) is shaded and its target SNR
-    per bin drawn as a horizontal line.
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
     """
     check_savefile(savefile)
     target, sim = _split(target_or_sim)
@@ -177,8 +199,21 @@ def plot_variance_budget(target_or_sim, ax=None, savefile=None):
     bottom: each contribution as a fraction of the total.  A contribution is
     Var(all) − Var(source off) (see ``Simulation.get_variance_contribution``),
     so the fractions need not add up to exactly 1; their sum is drawn too.
-    Sources that are zero everywhere are listed in the legend as such.  ``ax``: None (new
-    figure) or a pair of Axes (variance, fraction).
+    Sources that are zero everywhere are listed in the legend as such.
+
+    Parameters
+    ----------
+    target_or_sim : Target or Simulation
+        What is drawn.
+    ax : sequence of matplotlib.axes.Axes, optional
+        None (new figure) or a pair of Axes (variance, fraction).
+    savefile : str, os.PathLike or file object, optional
+        If given the figure is saved there.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
     """
     check_savefile(savefile)
     target, sim = _split(target_or_sim)
@@ -242,7 +277,20 @@ def plot_variance_budget(target_or_sim, ax=None, savefile=None):
 #  instrument                                                                  #
 # --------------------------------------------------------------------------- #
 def plot_instrument(sim, savefile=None):
-    """Throughput, QE, throughput × QE (top) and resolving power (bottom) versus λ [Å]."""
+    """Throughput, QE, throughput × QE (top) and resolving power (bottom) versus λ [Å].
+
+    Parameters
+    ----------
+    sim : Simulation or Target
+        The instrument drawn (a target's simulation).
+    savefile : str, os.PathLike or file object, optional
+        If given the figure is saved there.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
+    """
     check_savefile(savefile)
     import matplotlib.pyplot as plt
 
@@ -288,12 +336,29 @@ def plot_curves(lbda, curves, ylabel, title=None, ax=None, savefile=None, ylim=N
 
     Parameters
     ----------
-    lbda : (nλ,) wavelengths [Å]
-    curves : {label: values (scalar or (nλ,))}
-    ylabel : y label, with its unit (e.g. "throughput [fraction of photons]")
-    title, ylim : optional title and y limits; ``yscale``: "linear" or "log"
-    ax : None (new figure) or an Axes
-    savefile : path; if given the figure is saved there
+    lbda : array_like of shape (nλ,)
+        Wavelengths [Å].
+    curves : dict
+        {label: values}, each a scalar or of shape (nλ,).
+    ylabel : str
+        y label, with its unit (e.g. "throughput [fraction of photons]").
+    title : str, optional
+        Title of the axes.
+    ax : matplotlib.axes.Axes, optional
+        None (new figure) or an Axes.
+    savefile : str, os.PathLike or file object, optional
+        If given the figure is saved there.
+    ylim : tuple of float, optional
+        y limits.
+    xlabel : str, optional
+        x label, with its unit.
+    yscale : {"linear", "log"}, optional
+        Scale of the y axis.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
     """
     check_savefile(savefile)
     fig, ax = new_axes(ax, figsize=(8, 4.5))

@@ -54,15 +54,25 @@ DEFAULT_MAX_BYTES = 2**29
 class RampIO:
     """What :func:`simulate` writes, and how (the ``io`` options).
 
-    format : ``"hdf5"`` (group-level file, :mod:`slicersim.io.rampfile`) or ``"jwst-uncal"`` (JWST
-        level-1b FITS, :mod:`slicersim.io.uncal`); None: ``jwst-uncal`` for a ``.fits`` name, else hdf5
-    overwrite : replace an existing output (default: refuse with RampFileError)
-    compression : HDF5 compression (:func:`slicersim.io.rampfile.compression_options`), None: none
-    truth : write ``truth/rate`` (and the effects' truth) to the file
-    config : configuration recorded in the CONFIG attribute
-    return_dq : with ``out=None``, also return GROUPDQ in memory
-    target : a :class:`~slicersim.io.target_truth.TargetTruth` written as ``truth/target`` (the target's
-        redshift, phase, input spectrum and expected rate; :meth:`LazuliTarget.get_ramps` makes it)
+    Parameters
+    ----------
+    format : {"hdf5", "jwst-uncal"}, optional
+        ``"hdf5"`` (group-level file, ``slicersim.io.rampfile``) or ``"jwst-uncal"`` (JWST
+        level-1b FITS, ``slicersim.io.uncal``); None: ``jwst-uncal`` for a ``.fits`` name, else
+        hdf5.
+    overwrite : bool, optional
+        Replace an existing output (default: refuse with RampFileError).
+    compression : str or dict, optional
+        HDF5 compression (``slicersim.io.rampfile.compression_options``), None: none.
+    truth : bool, optional
+        Write ``truth/rate`` (and the effects' truth) to the file.
+    config : dict, optional
+        Configuration recorded in the CONFIG attribute.
+    return_dq : bool, optional
+        With ``out=None``, also return GROUPDQ in memory.
+    target : TargetTruth, optional
+        Written as ``truth/target`` (the target's redshift, phase, input spectrum and expected rate;
+        ``LazuliTarget.get_ramps`` makes it).
     """
 
     format: str | None = None
@@ -85,10 +95,17 @@ class RampIO:
 @validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
-    """How :func:`simulate` computes: ``max_bytes`` [bytes] of host memory for the row blocks (and,
-    with correlated noise, a third of it for its cached segments); ``progress`` (None: a bar only
-    when stderr is a terminal); ``work_group``: OpenCL local size (None: 64 on CPUs, the runtime's
-    on GPUs; never changes the result)."""
+    """How :func:`simulate` computes.
+
+    Parameters
+    ----------
+    max_bytes : int, optional
+        Host memory for the row blocks [bytes] (and, with correlated noise, a third of it for
+        its cached segments).
+    progress : bool or None, optional
+        Progress bar (None: a bar only when stderr is a terminal).
+    work_group : int, optional
+        OpenCL local size (None: 64 on CPUs, the runtime's on GPUs; never changes the result)."""
 
     max_bytes: int = DEFAULT_MAX_BYTES
     progress: bool | None = None
@@ -106,9 +123,16 @@ class RunOptions:
 @validation.checked_fields
 @dataclass(frozen=True, kw_only=True)
 class DetectorMaps:
-    """Per-pixel inputs of :func:`simulate`, each (ny, nx) or None: ``dead_pixels`` (bool, collecting
-    no charge), ``pixeldq`` (uint32 JWST flags), ``previous_charge`` [e-] of the previous exposure
-    (for the ``persistence`` effect)."""
+    """Per-pixel inputs of :func:`simulate`, each of shape (ny, nx) or None.
+
+    Parameters
+    ----------
+    dead_pixels : numpy.ndarray of shape (ny, nx), optional
+        bool: pixels collecting no charge.
+    pixeldq : numpy.ndarray of shape (ny, nx), optional
+        uint32 JWST flags.
+    previous_charge : numpy.ndarray of shape (ny, nx), optional
+        Charge of the previous exposure [e-] (for the ``persistence`` effect)."""
 
     dead_pixels: object = None
     pixeldq: object = None
@@ -117,9 +141,20 @@ class DetectorMaps:
 
 @dataclass(frozen=True)
 class RampResult:
-    """What :func:`simulate` made: ``seed`` (the one used: record it to repeat the run), ``path`` of the
-    file (None in memory), ``sci`` (nramps, ngroups, ny, nx) uint16 and ``groupdq`` uint8 in memory
-    (None with a file; GROUPDQ only with ``io.return_dq``), ``attrs`` (the file's root attributes)."""
+    """What :func:`simulate` made.
+
+    Parameters
+    ----------
+    seed : int
+        The seed used: record it to repeat the run.
+    path : str, optional
+        Path of the file (None in memory).
+    sci : numpy.ndarray of shape (nramps, ngroups, ny, nx), optional
+        uint16 ramps [ADU] in memory (None with a file).
+    groupdq : numpy.ndarray of shape (nramps, ngroups, ny, nx), optional
+        uint8 GROUPDQ in memory (None with a file; only with ``io.return_dq``).
+    attrs : dict, optional
+        The file's root attributes."""
 
     seed: int
     path: str | None = None
@@ -151,25 +186,54 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
              io=None, run=None, maps=None, **kwargs):
     """Simulate raw MACC ramps of a rate image.
 
-    rate : (ny, nx) photo-electron rate [e-/s] (detector terms are added here)
-    readout : :class:`RampParameters` (readout and detector: nmd, nramps, tframe [s], ron [electron],
-        dark [e-/s, scalar or image], thermal_dark [e-/s], roic_glow [e-/frame], gain [ADU/e-],
-        saturation [ADU], bias [ADU], ktc_noise [e-], full_well [e-], sparse_max_group, gauss_min_mean)
-    seed : int in [0, 2⁶⁴), or None (default): a fresh seed (:func:`slicersim.validation.new_seed`),
-        recorded in the file's SEED attribute and returned
-    effects : detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a preset
-        (``"lazuli"``), a config dict or a :class:`~slicersim.physics.effects.DetectorEffects`
-        (:mod:`slicersim.products.effects`); their truth goes to ``truth/<name>`` of ``out``.  ``"all"``
-        includes ``persistence`` only with ``maps.previous_charge``.
-    out : output path (HDF5 or JWST level-1b FITS, see :class:`RampIO`) or None (SCI in memory)
-    backend : "auto", "opencl" or "numpy";  precision : "auto", "double" or "single" (single: the
-        same Philox words, ~1e-3 of the values differ by 1 ADU, same statistics)
-    io : :class:`RampIO` (format, overwrite, compression, truth, config, return_dq)
-    run : :class:`RunOptions` (max_bytes, progress, work_group);  maps : :class:`DetectorMaps`
+    The output size is checked against the free disk space (``out``) or memory (``out`` None)
+    before anything is allocated.
 
-    Returns a :class:`RampResult`.  The output size is checked against the free disk space (``out``)
-    or memory (``out`` None) before anything is allocated.
+    Parameters
+    ----------
+    rate : array_like of shape (ny, nx)
+        Photo-electron rate [e-/s] (detector terms are added here).
+    readout : RampParameters
+        Readout and detector: nmd, nramps, tframe [s], ron [electron], dark [e-/s, scalar or
+        image], thermal_dark [e-/s], roic_glow [e-/frame], gain [ADU/e-], saturation [ADU],
+        bias [ADU], ktc_noise [e-], full_well [e-], sparse_max_group, gauss_min_mean.
+    *args
+        The keyword form's positional arguments (see Notes).
+    seed : int, optional
+        Integer in [0, 2⁶⁴), or None (default): a fresh seed
+        (:func:`slicersim.validation.new_seed`), recorded in the file's SEED attribute and
+        returned.
+    effects : str, dict or object, optional
+        Detector systematics (off by default): names (``"cosmic_rays,ipc"``, ``"all"``), a
+        preset (``"lazuli"``), a config dict or a ``DetectorEffects``
+        (``slicersim.products.effects``); their truth goes to ``truth/<name>`` of ``out``.
+        ``"all"`` includes ``persistence`` only with ``maps.previous_charge``.
+    out : str or path-like, optional
+        Output path (HDF5 or JWST level-1b FITS, see ``RampIO``) or None (SCI in memory).
+    backend : {"auto", "opencl", "numpy"}, optional
+        Where the ramps are computed.
+    precision : {"auto", "double", "single"}, optional
+        Arithmetic of the kernel (single: the same Philox words, ~1e-3 of the values differ by
+        1 ADU, same statistics).
+    io : RampIO, optional
+        Output options (format, overwrite, compression, truth, config, return_dq).
+    run : RunOptions, optional
+        Execution options (max_bytes, progress, work_group).
+    maps : DetectorMaps, optional
+        Per-pixel detector maps.
+    **kwargs
+        The keyword form (see Notes).
 
+    Returns
+    -------
+    RampResult
+        ``seed`` (the one used: record it to repeat the run), ``path`` of the file (None in
+        memory), ``sci`` of shape (nramps, ngroups, ny, nx) uint16 [ADU] and ``groupdq`` uint8
+        in memory (None with a file; GROUPDQ only with ``io.return_dq``), ``attrs`` (the
+        file's root attributes).  The keyword form returns what it did before (see Notes).
+
+    Notes
+    -----
     **Keyword form** (kept from slicersim 0.1): ``simulate(rate, nmd=(16, 8, 0), nramps=1, seed=None,
     out=None, tframe=2.83, ron=12.0, dark=2.8e-3, ..., memory_budget=2**29, file_format=None, ...)``:
     every keyword of :class:`RampParameters`, :class:`RampIO` (``file_format`` for ``format``),

@@ -26,19 +26,38 @@ __all__ = ["ReduceOptions", "ForwardOptions", "PixelNoise"]
 class ReduceOptions:
     """Options of :func:`~slicersim.reduction.pipeline.reduce_exposure` (see its docstring for each).
 
-    mapper : SlicerMapper of the detector (None: ``SlicerMapper.default()``)
-    field : "narrow", "wide", "both" or None (the field the file records, else "narrow")
-    lbda_edges : rectification λ edges [Å] (or a Quantity; None: 2 native bins per bin)
-    ncol : columns per slice of the cubes;  rectify_method : "lsq" or "drizzle"
-    extraction : None (forward when the instrument is known), "forward", "gls", "optimal", "aperture"
-    psf : "fit" or an (nλ, slices, columns) array / (K, nλ, slices, columns) template
-    position : (x, y) [cells from the field centre] or None (fitted)
-    aperture : aperture radius [white-light PSF σ] ("optimal", "aperture")
-    background, propagate, keep_information : switches (True, True, False)
-    fit_options : ``fit_ramps`` keywords (dict) or None
-    weights : None, "forward", "model" or "data";  dark : "auto", None, a rate [e-/s] or an image
-    config : instrument configuration of the forward model (name, TOML path or list) or None
-    ipc : None (deconvolve the file's IPC when it records one) or False
+    Parameters
+    ----------
+    mapper : SlicerMapper, optional
+        The detector mapping (None: ``SlicerMapper.default()``).
+    field : {"narrow", "wide", "both"} or None, optional
+        None: the field the file records, else "narrow".
+    lbda_edges : array_like or astropy.units.Quantity, optional
+        Rectification λ edges [Å] (None: 2 native bins per bin).
+    ncol : int, optional
+        Columns per slice of the cubes.
+    rectify_method : {"lsq", "drizzle"}, optional
+        Rectification method.
+    extraction : {"forward", "gls", "optimal", "aperture"}, optional
+        None: forward when the instrument is known.
+    psf : str or numpy.ndarray, optional
+        "fit" or an (nλ, slices, columns) array / (K, nλ, slices, columns) template.
+    position : tuple of float, optional
+        (x, y) [cells from the field centre] or None (fitted).
+    aperture : float, optional
+        Aperture radius [white-light PSF σ] ("optimal", "aperture").
+    background, propagate, keep_information : bool, optional
+        Switches (True, True, False).
+    fit_options : dict, optional
+        ``fit_ramps`` keywords or None.
+    weights : {"forward", "model", "data"}, optional
+        Or None (the method's default).
+    dark : {"auto"}, float, numpy.ndarray or None, optional
+        "auto", None, a rate [e-/s] or an image.
+    config : str, path-like or list, optional
+        Instrument configuration of the forward model (name, TOML path or list) or None.
+    ipc : bool, optional
+        None (deconvolve the file's IPC when it records one) or False.
     """
 
     mapper: object = None

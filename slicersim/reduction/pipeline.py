@@ -107,63 +107,92 @@ def forward_model_cubes(cubes, spectra, psf=None):
 def reduce_exposure(raw_path, options=None, *, out=None, overwrite=False, **keywords):
     """Reduce one raw exposure to rates, cube(s) and spectra.
 
-    raw_path : ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts
-    options : a :class:`~slicersim.reduction.options.ReduceOptions` (None: its defaults); the keywords
-        below are its fields and replace those of ``options`` (``reduce_exposure(raw, ncol=116)`` is
-        ``reduce_exposure(raw, ReduceOptions(ncol=116))``)
-    mapper : SlicerMapper (default ``SlicerMapper.default()``);  field : "narrow", "wide" or "both"
-    lbda_edges : rectification λ edges [Å] (default :func:`default_lbda_edges`: 2 native bins)
-    ncol : columns per slice;  rectify_method : "lsq" or "drizzle"
-    weights : None (default): "forward" for an lsq cube, "data" for drizzle (which has no other);
-        "forward" (lsq): rectify a second time with the pixel variance
-        (:func:`model_variance`) of the image of the first extraction's own model F̂_λ P_λ + B̂_λ
-        (:func:`forward_model_cubes`; GLS on first cubes of ``ncol`` columns): weights almost free of
-        noise — a Lazuli SN Ia at z = 0.8 on 116 columns: pipeline − exact weights 0.20 % per
-        realisation (0.88 % with "model"), bias −0.08 ± 0.06 %, long-band SNR 1.007 ± 0.008 of the ETC.
-        It models a point source on a uniform background, as the extraction does.  With light it
-        lacks (e.g. a host galaxy) the extraction's own model is wrong anyway, and its result then
-        depends on the weights: +0.2–0.4 % against exact weights on the test layout with a host of
-        half the point source's flux (model weights: < 0.1 %); use "model" for such scenes.
-        "model": the same with the image of the first cubes themselves (first pass on
-        min(ncol, MODEL_NCOL) columns; follows any scene, noisier);
-        "data": the ramp fit's own per-pixel variance only (Poisson-weighting bias)
-    dark : dark rate subtracted from the rates before rectification (:func:`dark_rate_of`): "auto"
+    Parameters
+    ----------
+    raw_path : str, path-like or tuple
+        Ramp file (our HDF5 or JWST level-1b) or the arrays ``fit_ramps`` accepts.
+    options : ReduceOptions, optional
+        A :class:`~slicersim.reduction.options.ReduceOptions` (None: its defaults); the
+        keywords below are its fields and replace those of ``options``
+        (``reduce_exposure(raw, ncol=116)`` is ``reduce_exposure(raw, ReduceOptions(ncol=116))``).
+    out : str or path-like, optional
+        HDF5 path written atomically with all three products (module docstring).
+    overwrite : bool, optional
+        Replace ``out``.
+    mapper : SlicerMapper, optional
+        Default ``SlicerMapper.default()``.
+    field : {"narrow", "wide", "both"}, optional
+        The field(s) reduced.
+    lbda_edges : array_like of shape (nλ+1,), optional
+        Rectification λ edges [Å] (default ``default_lbda_edges``: 2 native bins).
+    ncol : int, optional
+        Columns per slice.
+    rectify_method : {"lsq", "drizzle"}, optional
+        Rectification method.
+    weights : {"forward", "model", "data"}, optional
+        None (default): "forward" for an lsq cube, "data" for drizzle (which has no other).
+        "forward" (lsq): rectify a second time with the pixel variance (``model_variance``) of
+        the image of the first extraction's own model F̂_λ P_λ + B̂_λ (``forward_model_cubes``;
+        GLS on first cubes of ``ncol`` columns): weights almost free of noise — a Lazuli SN Ia
+        at z = 0.8 on 116 columns: pipeline − exact weights 0.20 % per realisation (0.88 %
+        with "model"), bias −0.08 ± 0.06 %, long-band SNR 1.007 ± 0.008 of the ETC.  It models
+        a point source on a uniform background, as the extraction does.  With light it lacks
+        (e.g. a host galaxy) the extraction's own model is wrong anyway, and its result then
+        depends on the weights: +0.2–0.4 % against exact weights on the test layout with a
+        host of half the point source's flux (model weights: < 0.1 %); use "model" for such
+        scenes.  "model": the same with the image of the first cubes themselves (first pass
+        on min(ncol, MODEL_NCOL) columns; follows any scene, noisier).  "data": the ramp fit's
+        own per-pixel variance only (Poisson-weighting bias).
+    dark : {"auto"}, float, numpy.ndarray of shape (ny, nx) or None, optional
+        Dark rate subtracted from the rates before rectification (``dark_rate_of``): "auto"
         (default) the file's DARK_RATE, a number or an image [e-/s], None for none (written:
-        DARK_SUBTRACTED [e-/s], DARK_SUBTRACTED_KIND, and an image as rates/DARK_SUBTRACTED).  A pedestal that
-        is uniform over the pixels is not uniform over the cells (pixel coverage varies across a
-        slice), so the cube's background B_λ cannot absorb it: left in, the dark biased a Lazuli
-        SN Ia at z = 0.8 by −2.0 % (noiseless, exact weights)
-    extraction : None (default): "forward" when the instrument is known (the file's CONFIG, or
-        ``config``): the point source fitted on the detector pixels with the configuration's own PSF,
-        LSF and projection (:func:`~slicersim.reduction.forward_extraction.extract_forward`; unbiased
-        whatever the cube's grid, position fitted); otherwise, with a warning, the cube extraction
-        "gls" (LSQ cube) or "optimal" (drizzle).  Explicit "gls", "optimal", "aperture": an
-        :func:`extract_spectrum` method on the cube; with a Gaussian PSF fitted on the cube
-        (``psf="fit"``) they are refused when the instrument is known, since the coarse cells bias
-        them (−3 % on a noiseless Lazuli SN Ia at z = 0.5 even with the true PSF): give ``psf`` a
-        forward-modelled template (:func:`~slicersim.reduction.templates.point_source_template`)
-    config : instrument configuration of the forward model (a name, TOML path or list, as
-        :func:`~slicersim.io.config.load_config`); None: the one the file records
-    ipc : deconvolve the rates by the file's inter-pixel capacitance kernel before rectification and
-        extraction (:mod:`~slicersim.reduction.ipc_correction`): None (default) when the file records
-        the IPC effect, False never
-    psf, position, aperture, background : :func:`extract_spectrum` options
-    propagate : "optimal" / "aperture" on an LSQ cube: spectrum variance with the full cube
-        covariance (:func:`propagate_variance`; the cells-independent sum is kept as
-        ``diagnostics["variance_diagonal"]``)
-    keep_information : keep the LSQ cube's inverse covariance from the rectification (rectify's
-        ``keep_information``: faster GLS, memory :meth:`InverseCovariance.nbytes`) instead of
-        rebuilding it for the extraction
-    fit_options : keyword arguments of ``fit_ramps`` (refpix, linearity, jump_threshold, weighting, ...)
-    out : HDF5 path written atomically with all three products (module docstring);  overwrite : replace it
+        DARK_SUBTRACTED [e-/s], DARK_SUBTRACTED_KIND, and an image as
+        rates/DARK_SUBTRACTED).  A pedestal that is uniform over the pixels is not uniform
+        over the cells (pixel coverage varies across a slice), so the cube's background B_λ
+        cannot absorb it: left in, the dark biased a Lazuli SN Ia at z = 0.8 by −2.0 %
+        (noiseless, exact weights).
+    extraction : {"forward", "gls", "optimal", "aperture"}, optional
+        None (default): "forward" when the instrument is known (the file's CONFIG, or
+        ``config``): the point source fitted on the detector pixels with the configuration's
+        own PSF, LSF and projection (``slicersim.reduction.forward_extraction.extract_forward``;
+        unbiased whatever the cube's grid, position fitted); otherwise, with a warning, the
+        cube extraction "gls" (LSQ cube) or "optimal" (drizzle).  Explicit "gls", "optimal",
+        "aperture": an ``extract_spectrum`` method on the cube; with a Gaussian PSF fitted on
+        the cube (``psf="fit"``) they are refused when the instrument is known, since the
+        coarse cells bias them (−3 % on a noiseless Lazuli SN Ia at z = 0.5 even with the true
+        PSF): give ``psf`` a forward-modelled template
+        (``slicersim.reduction.templates.point_source_template``).
+    config : str, path-like or list, optional
+        Instrument configuration of the forward model (a name, TOML path or list, as
+        :func:`~slicersim.load_config`); None: the one the file records.
+    ipc : bool, optional
+        Deconvolve the rates by the file's inter-pixel capacitance kernel before
+        rectification and extraction (``slicersim.reduction.ipc_correction``): None (default)
+        when the file records the IPC effect, False never.
+    psf, position, aperture, background
+        ``extract_spectrum`` options.
+    propagate : bool, optional
+        "optimal" / "aperture" on an LSQ cube: spectrum variance with the full cube covariance
+        (``propagate_variance``; the cells-independent sum is kept as
+        ``diagnostics["variance_diagonal"]``).
+    keep_information : bool, optional
+        Keep the LSQ cube's inverse covariance from the rectification (rectify's
+        ``keep_information``: faster GLS, memory ``InverseCovariance.nbytes``) instead of
+        rebuilding it for the extraction.
+    fit_options : dict, optional
+        Keyword arguments of ``fit_ramps`` (refpix, linearity, jump_threshold, weighting, ...).
 
-    Returns ``{"rates": RateProduct, "rate": the rate image rectified and extracted [e-/s] (dark
-    subtracted, IPC deconvolved, 0 where unusable), "cubes": {field: CubeProduct}, "spectra": {field: SpectrumProduct},
-    "variance": the pixel variance the cubes were rectified with, "dark_rate": the dark subtracted,
-    "dark_kind": how it was chosen, "noise_information": {field: B} for the sandwich variance of a GLS
-    extraction or of :func:`propagate_variance` on model-weighted cubes
-    (:func:`~slicersim.reduction.rectify.noise_information`; empty otherwise)}``
-    (and ``"path"``, the absolute path written, with ``out``).
+    Returns
+    -------
+    dict
+        ``"rates"``: the RateProduct; ``"rate"``: the rate image rectified and extracted
+        [e-/s] (dark subtracted, IPC deconvolved, 0 where unusable); ``"cubes"``: {field:
+        CubeProduct}; ``"spectra"``: {field: SpectrumProduct}; ``"variance"``: the pixel
+        variance the cubes were rectified with; ``"dark_rate"``: the dark subtracted;
+        ``"dark_kind"``: how it was chosen; ``"noise_information"``: {field: B} for the
+        sandwich variance of a GLS extraction or of ``propagate_variance`` on model-weighted
+        cubes (``slicersim.reduction.rectify.noise_information``; empty otherwise); and
+        ``"path"``, the absolute path written, with ``out``.
     """
     check_source(raw_path, "reduce_exposure raw_path")
     opts = build_options(ReduceOptions, options, keywords, "reduce_exposure")

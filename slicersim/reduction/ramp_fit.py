@@ -51,10 +51,24 @@ _LINEARITY_TRUTH = "nonlinearity/inverse_coefficients"
 
 @dataclass
 class RateProduct:
-    """Rates of a ramp file: rate [e-/s], variance, var_poisson, var_rnoise [e-²/s²] (ny, nx) float64;
-    dq uint32 (JWST bits: PIXELDQ | SATURATED | JUMP_DET | DO_NOT_USE where no rate); njumps int32;
-    attrs (readout, corrections, units); groupdq with the jump flags (``return_groupdq``);
-    truth_rate [e-/s] (``with_truth``)."""
+    """Rates of a ramp file (made by :func:`fit_ramps`).
+
+    Parameters
+    ----------
+    rate : numpy.ndarray of shape (ny, nx)
+        Fitted rate [e-/s], float64.
+    variance, var_poisson, var_rnoise : numpy.ndarray of shape (ny, nx)
+        Total, Poisson and read-noise variances of the rate [e-²/s²], float64.
+    dq : numpy.ndarray of shape (ny, nx)
+        uint32 JWST bits: PIXELDQ | SATURATED | JUMP_DET | DO_NOT_USE where no rate.
+    njumps : numpy.ndarray of shape (ny, nx)
+        int32 number of jumps detected.
+    attrs : dict, optional
+        Readout, corrections, units.
+    groupdq : numpy.ndarray of shape (nints, ngroups, ny, nx), optional
+        GROUPDQ with the jump flags (``return_groupdq``).
+    truth_rate : numpy.ndarray of shape (ny, nx), optional
+        The true rate [e-/s] (``with_truth``)."""
 
     rate: np.ndarray
     variance: np.ndarray
@@ -178,23 +192,14 @@ def _refpix_terms(src, bias, kw):
 class FitOptions:
     """Options of :func:`fit_ramps` (every keyword of its keyword form).
 
-    refpix : None (when the file's EFFECTS has reference_pixels), True, False, or refpix_correct options
-    linearity : None (the file's truth coefficients when present), False, "truth" (required), or
-        coefficients (k, ny, nx) of the JWST convention (corrected DN = Σ c_k DN^k, bias removed)
-    superbias : bias [DN] removed before the corrections: None (``truth/bias``, else the BIAS keyword),
-        a number or an (ny, nx) map
-    jump_threshold : σ of the two-point-difference jump test (None or 0: no detection)
-    weighting : "gls" (exact MACC covariance) or "ols" (unweighted; its variance is Rauscher07's)
-    gain [DN/e-], ron [electron] (read noise per frame), saturation [DN]: override the file's GAIN,
-        READNOISE, SATURATION (default 65535 for integer data); an astropy Quantity is converted
-    with_truth : also load ``truth/rate`` [e-/s] (RampFileError if the file has none)
-    return_groupdq : keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx)
-    max_bytes : bytes for the row blocks in flight;  backend : "auto", "opencl", "numpy"
-    progress : progress bar (None: when stderr is a terminal and there are more than 8 row blocks)
-
     The keyword form also takes the deprecated names ``read_noise`` (→ ``ron``) and
     ``memory_budget`` (→ ``max_bytes``) with a DeprecationWarning (:meth:`from_keywords`).
-    work_group : OpenCL local size
+
+    Parameters
+    ----------
+    refpix, linearity, superbias, jump_threshold, weighting, gain, ron, saturation, with_truth, \
+return_groupdq, max_bytes, backend, progress, work_group
+        As :func:`fit_ramps`.
     """
 
     refpix: object = None
@@ -230,7 +235,7 @@ class FitOptions:
     @classmethod
     def from_keywords(cls, where="fit_ramps", /, **kwargs):
         """Options from keywords: each name checked (did-you-mean), the deprecated names
-        (:data:`FIT_RENAMED`) moved to their new ones with a DeprecationWarning."""
+        (``FIT_RENAMED``) moved to their new ones with a DeprecationWarning."""
         for old, new in FIT_RENAMED.items():
             validation.renamed_keyword(kwargs, old, new, where, stacklevel=4)
         for key in kwargs:
@@ -248,13 +253,53 @@ FIT_RENAMED = {"read_noise": "ron", "memory_budget": "max_bytes"}
 def fit_ramps(source, options=None, **kwargs):
     """Fit the rates of a raw ramp.
 
-    source : path of a ramp file (our HDF5 or a JWST level-1b FITS, recognised by content) or arrays
-        (SCI (nints, ngroups, ny, nx) [DN], GROUPDQ or None, PIXELDQ or None, attrs) as ``read_ramps``
-        returns them (attrs: NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE; NINTS, NGROUPS, TGROUP,
-        READPATT are checked when present)
-    options : :class:`FitOptions`, or its fields as keywords (``fit_ramps(path, weighting="ols")``)
+    Everything is checked before data are read.
 
-    Returns a :class:`RateProduct`.  Everything is checked before data are read.
+    Parameters
+    ----------
+    source : str, path-like or tuple
+        Path of a ramp file (our HDF5 or a JWST level-1b FITS, recognised by content) or arrays
+        (SCI (nints, ngroups, ny, nx) [DN], GROUPDQ or None, PIXELDQ or None, attrs) as
+        ``read_ramps`` returns them (attrs: NFRAMES, GROUPGAP, TFRAME, GAIN, READNOISE; NINTS,
+        NGROUPS, TGROUP, READPATT are checked when present).
+    options : FitOptions, optional
+        The options, or give its fields as keywords (``fit_ramps(path, weighting="ols")``).
+    refpix : bool or dict, optional
+        None (when the file's EFFECTS has reference_pixels), True, False, or refpix_correct
+        options.
+    linearity : str, bool or numpy.ndarray of shape (k, ny, nx), optional
+        None (the file's truth coefficients when present), False, "truth" (required), or
+        coefficients of the JWST convention (corrected DN = Σ c_k DN^k, bias removed).
+    superbias : float or numpy.ndarray of shape (ny, nx), optional
+        Bias [DN] removed before the corrections: None (``truth/bias``, else the BIAS keyword),
+        a number or a map.
+    jump_threshold : float, optional
+        σ of the two-point-difference jump test (None or 0: no detection).
+    weighting : {"gls", "ols"}, optional
+        "gls" (exact MACC covariance) or "ols" (unweighted; its variance is Rauscher07's).
+    gain : float, optional
+        Gain [DN/e-], overrides the file's GAIN (an astropy Quantity is converted).
+    ron : float, optional
+        Read noise per frame [electron], overrides READNOISE.
+    saturation : float, optional
+        Saturation [DN], overrides SATURATION (default 65535 for integer data).
+    with_truth : bool, optional
+        Also load ``truth/rate`` [e-/s] (RampFileError if the file has none).
+    return_groupdq : bool, optional
+        Keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx).
+    max_bytes : int, optional
+        Bytes for the row blocks in flight.
+    backend : {"auto", "opencl", "numpy"}, optional
+        Where the fit runs.
+    progress : bool or None, optional
+        Progress bar (None: when stderr is a terminal and there are more than 8 row blocks).
+    work_group : int, optional
+        OpenCL local size.
+
+    Returns
+    -------
+    RateProduct
+        The rates, their variances and flags.
     """
     if options is None:
         options = FitOptions.from_keywords(**kwargs)

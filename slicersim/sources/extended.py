@@ -12,7 +12,7 @@ user cube.  Hosts and cubes may carry the ``redshift`` they are seen at:
 ``at_redshift(z)`` moves them at fixed proper size and luminosity
 (:mod:`slicersim.sources.cosmology`).  Image and cube resampling is exact (pixel ∩ cell
 areas) and runs over blocks of input rows within ``max_bytes`` (default
-:data:`HOST_MAX_BYTES`), so inputs larger than the memory budget are processed in pieces.
+``HOST_MAX_BYTES``), so inputs larger than the memory budget are processed in pieces.
 """
 from __future__ import annotations
 
@@ -47,6 +47,19 @@ class SersicProfile(Versioned):
     both relative to ``offset`` = (x, y) [arcsec]; r_eff [arcsec] is the
     semi-major axis of the half-light ellipse.  Total flux
     2π n q r_e² e^{b_n} b_n^{−2n} Γ(2n) I_e = 1 fixes I_e.
+
+    Parameters
+    ----------
+    sersic_index : float
+        The Sersic index n (1: exponential disc, 4: de Vaucouleurs).
+    r_eff : float
+        Semi-major axis of the half-light ellipse [arcsec].
+    axis_ratio : float, optional
+        Minor-to-major axis ratio q, in (0, 1].
+    position_angle : float, optional
+        Angle of the major axis counter-clockwise from +x [deg].
+    offset : tuple of float, optional
+        (x, y) of the profile centre relative to the field centre [arcsec].
     """
 
     def __init__(self, sersic_index, r_eff, axis_ratio=1.0, position_angle=0.0, offset=(0.0, 0.0)):
@@ -69,7 +82,18 @@ class SersicProfile(Versioned):
         self.intensity_eff = math.exp(-log_total)  # I_e [1/arcsec²]
 
     def elliptical_radius(self, x, y):
-        """r [arcsec] at sky positions (x, y) [arcsec]."""
+        """r [arcsec] at sky positions (x, y) [arcsec].
+
+        Parameters
+        ----------
+        x, y : array_like
+            Sky positions [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray
+            The elliptical radius r [arcsec].
+        """
         th = math.radians(self.position_angle)
         dx, dy = np.asarray(x, float) - self.offset[0], np.asarray(y, float) - self.offset[1]
         u = dx * math.cos(th) + dy * math.sin(th)
@@ -77,17 +101,50 @@ class SersicProfile(Versioned):
         return np.sqrt(u * u + (v / self.axis_ratio) ** 2)
 
     def surface_brightness(self, x, y):
-        """I(x, y) [fraction of the total flux per arcsec²] at sky positions [arcsec]."""
+        """I(x, y) [fraction of the total flux per arcsec²] at sky positions [arcsec].
+
+        Parameters
+        ----------
+        x, y : array_like
+            Sky positions [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray
+            I [fraction of the total flux per arcsec²].
+        """
         return self.radial_profile(self.elliptical_radius(x, y))
 
     def enclosed_fraction(self, radius):
         """Fraction of the flux inside the ellipse of semi-major axis ``radius`` [arcsec]:
-        P(2n, b_n (r/r_eff)^(1/n))."""
+        P(2n, b_n (r/r_eff)^(1/n)).
+
+        Parameters
+        ----------
+        radius : array_like
+            Semi-major axis [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray
+            The enclosed fraction, in [0, 1].
+        """
         x = self.b_n * (np.asarray(radius, float) / self.r_eff) ** (1.0 / self.sersic_index)
         return gammainc(2.0 * self.sersic_index, x)
 
     def scaled(self, factor):
-        """The same profile with every angle (r_eff, offset) multiplied by ``factor``."""
+        """The same profile with every angle (r_eff, offset) multiplied by ``factor``.
+
+        Parameters
+        ----------
+        factor : float
+            The angle scale factor.
+
+        Returns
+        -------
+        SersicProfile
+            The scaled profile.
+        """
         return SersicProfile(self.sersic_index, self.r_eff * factor, self.axis_ratio, self.position_angle,
                              (self.offset[0] * factor, self.offset[1] * factor))
 
@@ -97,14 +154,40 @@ class SersicProfile(Versioned):
         return (*self.offset, self.position_angle, self.axis_ratio)
 
     def radial_profile(self, r):
-        """I at elliptical radius r [arcsec] (fraction of the total flux per arcsec²)."""
+        """I at elliptical radius r (fraction of the total flux per arcsec²).
+
+        Parameters
+        ----------
+        r : array_like
+            Elliptical radius [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray
+            I [fraction of the total flux per arcsec²].
+        """
         return self.intensity_eff * np.exp(-self.b_n * ((np.asarray(r, float) / self.r_eff)
                                                         ** (1.0 / self.sersic_index) - 1.0))
 
     def cell_fractions(self, shape, spatial_scale, oversampling=None):
-        """(ny, nx) fraction of the total flux in each cell of side ``spatial_scale``
-        [arcsec]: exact polar integration (~1e-12 per cell, cusp included), or the
-        midpoint rule on ``oversampling``² sub-cells (see :func:`integrate_radial_cells`)."""
+        """Fraction of the total flux in each cell: exact polar integration (~1e-12 per cell, cusp
+        included), or the midpoint rule on oversampling² sub-cells (``oversampling`` per side)
+        (see ``integrate_radial_cells``).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (ny, nx) cells.
+        spatial_scale : float
+            Cell side [arcsec].
+        oversampling : int, optional
+            Sub-cells per side of the midpoint rule (None: exact polar integration).
+
+        Returns
+        -------
+        numpy.ndarray of shape (ny, nx)
+            Fraction of the total flux per cell.
+        """
         return integrate_radial_cells(self.geometry, [self.radial_profile], shape, spatial_scale,
                                       oversampling)[0]
 
@@ -216,19 +299,30 @@ def _interp_spectrum(lbda_in, flux_in, lbda_grid, name):
 class Host(Versioned):
     """Host galaxy: a (unit-flux) profile times a spectrum, flux per cell before the PSF.
 
-    profile : :class:`SersicProfile` (anything with ``cell_fractions``, ``geometry``,
-        ``radial_profile``, ``axis_ratio`` and ``r_eff``).
-    lbda, flux : spectrum [Å], total F_λ of the galaxy [erg/s/cm²/Å]; linear
-        interpolation onto the instrument grid (ValueError outside its range).
-    redshift : optional redshift the host is seen at (needed by :meth:`at_redshift`);
-        ``cosmology``: astropy cosmology of that move (default Planck18).
-    flux_outskirts : optional second spectrum on ``lbda`` for a radially varying
-        spectrum (Sersic profiles only).  The surface brightness is then
+    Parameters
+    ----------
+    profile : SersicProfile or ImageProfile
+        The unit-flux spatial model: anything with ``cell_fractions``, ``geometry``,
+        ``radial_profile``, ``axis_ratio`` and ``r_eff``
+        (:class:`~slicersim.errors.ParameterError` otherwise).
+    lbda : array_like of shape (n,)
+        Wavelengths of the spectrum [Å].
+    flux : array_like of shape (n,)
+        Total F_λ of the galaxy [erg/s/cm²/Å]; linear interpolation onto the instrument
+        grid (ValueError outside its range).
+    flux_outskirts : array_like of shape (n,), optional
+        A second spectrum on ``lbda`` [erg/s/cm²/Å] for a radially varying spectrum
+        (Sersic profiles only).  The surface brightness is then
         I(r) [w(r) F_core(λ) + (1 − w(r)) F_out(λ)],  w(r) = exp(−r / blend_radius),
-        r the elliptical radius, ``blend_radius`` [arcsec] (default r_eff): ``flux`` is
-        the core spectrum and each spectrum is the total the galaxy would have if it
-        had that spectrum everywhere; the galaxy total is W F_core + (1 − W) F_out
-        with W = ∫ I w dA (:meth:`core_weight`).
+        r the elliptical radius: ``flux`` is the core spectrum and each spectrum is the
+        total the galaxy would have if it had that spectrum everywhere; the galaxy total
+        is W F_core + (1 − W) F_out with W = ∫ I w dA (:meth:`core_weight`).
+    blend_radius : float, optional
+        Scale of the blend weight w(r) [arcsec] (default ``r_eff`` of the profile).
+    redshift : float, optional
+        Redshift the host is seen at (needed by :meth:`at_redshift`).
+    cosmology : astropy.cosmology.Cosmology, optional
+        Cosmology of that move (default Planck18).
     """
 
     def __init__(self, profile, lbda, flux, flux_outskirts=None, blend_radius=None, redshift=None,
@@ -256,7 +350,22 @@ class Host(Versioned):
     def at_redshift(self, redshift, cosmology=None, from_redshift=None):
         """A new Host of the same galaxy (proper size, luminosity) seen at ``redshift``:
         angles × D_A(z₀)/D_A(z), λ × (1+z)/(1+z₀), F_λ × (D_L(z₀)/D_L(z))² (1+z₀)/(1+z),
-        z₀ = ``from_redshift`` or the host's own redshift."""
+        z₀ = ``from_redshift`` or the host's own redshift.
+
+        Parameters
+        ----------
+        redshift : float
+            The new redshift z.
+        cosmology : astropy.cosmology.Cosmology, optional
+            Cosmology of the move (default: the host's own, Planck18 unless it was given one).
+        from_redshift : float, optional
+            z₀ (default: the host's own redshift).
+
+        Returns
+        -------
+        Host
+            The new host.
+        """
         z0 = _from_redshift(self, from_redshift)
         cosmo = self.cosmology if cosmology is None else get_cosmology(cosmology)
         z = check_source_redshift(redshift, "host redshift")
@@ -268,7 +377,18 @@ class Host(Versioned):
         return out
 
     def total_flux(self, lbda):
-        """Total F_λ of the galaxy [erg/s/cm²/Å] at λ [Å] (whole profile, not only the field)."""
+        """Total F_λ of the galaxy [erg/s/cm²/Å] at λ [Å] (whole profile, not only the field).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            F_λ [erg/s/cm²/Å], of the shape of ``lbda``.
+        """
         core = _interp_spectrum(self.lbda_in, self.flux_in, lbda, "host spectrum")
         if self.flux_outskirts is None:
             return core
@@ -279,15 +399,37 @@ class Host(Versioned):
         return self.profile.radial_profile(r) * np.exp(-np.asarray(r, float) / self.blend_radius)
 
     def core_weight(self):
-        """W = ∫ I(r) exp(−r/r_b) dA: share of the flux carrying the core spectrum."""
+        """W = ∫ I(r) exp(−r/r_b) dA: share of the flux carrying the core spectrum.
+
+        Returns
+        -------
+        float
+            W, in [0, 1].
+        """
         from scipy.integrate import quad
         q = self.profile.axis_ratio
         return quad(lambda r: self._core_profile(r) * 2 * math.pi * q * r, 0, np.inf,
                     limit=200, epsabs=1e-13, epsrel=1e-11)[0]
 
     def flux_cube(self, lbda_grid, shape, spatial_scale, oversampling=None):
-        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å]
-        (cells of side ``spatial_scale`` [arcsec]; before the PSF)."""
+        """Flux density per cell on ``lbda_grid`` (before the PSF).
+
+        Parameters
+        ----------
+        lbda_grid : array_like of shape (nλ,)
+            Wavelengths [Å].
+        shape : tuple of int
+            (ny, nx) cells.
+        spatial_scale : float
+            Cell side [arcsec].
+        oversampling : int, optional
+            Sub-cells per side of the profile's integration (see ``cell_fractions``).
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            Flux density per cell [erg/s/cm²/Å].
+        """
         core = _interp_spectrum(self.lbda_in, self.flux_in, lbda_grid, "host spectrum")
         fractions = self._cell_fractions(tuple(int(v) for v in shape), float(spatial_scale), oversampling)
         if self.flux_outskirts is None:
@@ -319,11 +461,25 @@ class Host(Versioned):
 class ImageProfile(Versioned):
     """A galaxy image as a unit-flux spatial model (uniformly bright pixels, exact overlaps).
 
-    image : (ny_in, nx_in) ≥ 0 (NaN counted as 0), normalised to a total of 1;
-    pixel_scale : its pixel side [arcsec]; centre_pixel : (x, y) 0-based pixel coordinate of
-    the galaxy centre (default: the geometric centre); offset : (x, y) [arcsec] of the galaxy
-    centre in the field; rotation : [deg] counter-clockwise.  ``r_eff`` is the circular
-    half-light radius [arcsec] of the whole image.
+    Parameters
+    ----------
+    image : array_like of shape (ny_in, nx_in)
+        Pixel values ≥ 0 (NaN counted as 0), normalised to a total of 1.
+    pixel_scale : float
+        Side of an image pixel [arcsec].
+    offset : tuple of float, optional
+        (x, y) of the galaxy centre in the field [arcsec].
+    rotation : float, optional
+        Rotation counter-clockwise [deg].
+    centre_pixel : tuple of float, optional
+        (x, y) 0-based pixel coordinate of the galaxy centre (default: the geometric centre).
+    max_bytes : int, optional
+        Working-memory budget of one block of the resampling [bytes].
+
+    Attributes
+    ----------
+    r_eff : float
+        The circular half-light radius of the whole image [arcsec].
     """
 
     def __init__(self, image, pixel_scale, offset=(0.0, 0.0), rotation=0.0, centre_pixel=None, max_bytes=None):
@@ -352,12 +508,29 @@ class ImageProfile(Versioned):
         self.r_eff = float(r[order][np.searchsorted(cum, 0.5)]) * self.pixel_scale
 
     def scaled(self, factor):
-        """The same image with every angle (pixel scale, offset) multiplied by ``factor``."""
+        """The same image with every angle (pixel scale, offset) multiplied by ``factor``.
+
+        Parameters
+        ----------
+        factor : float
+            The angle scale factor.
+
+        Returns
+        -------
+        ImageProfile
+            The scaled profile.
+        """
         return ImageProfile(self.image, self.pixel_scale * factor, (self.offset[0] * factor,
                             self.offset[1] * factor), self.rotation, self.centre_pixel, self.max_bytes)
 
     def grid_centre(self):
-        """(x, y) [arcsec] of the image's geometric centre in the field."""
+        """(x, y) [arcsec] of the image's geometric centre in the field.
+
+        Returns
+        -------
+        tuple of float
+            (x, y) [arcsec].
+        """
         nyi, nxi = self.image.shape
         du = (self.centre_pixel[0] - (nxi - 1) / 2) * self.pixel_scale
         dv = (self.centre_pixel[1] - (nyi - 1) / 2) * self.pixel_scale
@@ -366,8 +539,22 @@ class ImageProfile(Versioned):
                 self.offset[1] - du * math.sin(th) - dv * math.cos(th))
 
     def cell_fractions(self, shape, spatial_scale, oversampling=None):
-        """(ny, nx) fraction of the total flux in each cell of side ``spatial_scale`` [arcsec]
-        (exact pixel overlaps; ``oversampling`` is not used)."""
+        """Fraction of the total flux in each cell (exact pixel overlaps).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (ny, nx) cells.
+        spatial_scale : float
+            Cell side [arcsec].
+        oversampling : int, optional
+            Not used.
+
+        Returns
+        -------
+        numpy.ndarray of shape (ny, nx)
+            Fraction of the total flux per cell.
+        """
         img = self.image
         return resample_pixels(lambda r0, r1, j0, j1: img[None, r0:r1, j0:j1], img.shape, self.pixel_scale,
                                self.grid_centre(), self.rotation, shape, spatial_scale, 1, self.max_bytes)[0]

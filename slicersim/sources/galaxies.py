@@ -81,7 +81,18 @@ def _file_stem(name):
 
 @functools.lru_cache(maxsize=2)
 def known_galaxies(with_image=False):
-    """Sorted names ("ngc0628", ...) of the galaxies with a spectrum (and an image)."""
+    """Sorted names ("ngc0628", ...) of the galaxies with a spectrum (and an image).
+
+    Parameters
+    ----------
+    with_image : bool, optional
+        Only the galaxies that also have an image.
+
+    Returns
+    -------
+    tuple of str
+        The galaxy names, sorted.
+    """
     suffix = "_thumbnails.fits.gz" if with_image else "_spec.fits"
     names = [p.name[:-len(suffix)].replace("ngc_", "ngc") for p in _data_dir().iterdir() if p.name.endswith(suffix)]
     return tuple(sorted(names))
@@ -194,25 +205,47 @@ def _positive(value, name, upper=None):
 class GalaxyModel:
     """A galaxy independent of its redshift: a named model and its physical parameters.
 
-    Parameters (slicersim 1.4.2 names accepted: ``n``, ``theta``, ``ellip``, ``refmodel``)
+    The keyword parameters accept slicersim 1.4.2 names too: ``n``, ``theta``, ``ellip``,
+    ``refmodel``.  Pairs naming the same thing (``mag``/``magabs``, ``offset``/``position``,
+    ``r_kpc``/``r_eff``, ``ellip``/``axis_ratio``, ``n``/``sersic_index``,
+    ``theta``/``position_angle``, a temperature in the name and ``temperature``) are refused
+    when both are given.
+
+    Parameters
     ----------
-    model : model name (module docstring), default ``"sersic:bb-5000"``
-    r_kpc : proper half-light radius [kpc] (Sersic; default 5), or ``r_eff`` [arcsec] at the
-        redshift a target first renders it at (the target then keeps that proper size when its
-        redshift changes; the model itself is never changed: :meth:`pinned`)
-    sersic_index (n) : in [0.1, 20] (default 2); axis_ratio b/a (default 0.7) or ellip = 1 − b/a;
-    position_angle (theta) : major axis [deg] counter-clockwise from +x (default −30)
-    rotation : NGC image rotation [deg] counter-clockwise (default 0)
-    magabs : AB magnitude in the rest-frame ``band`` (default −21), or ``mag``: observed AB
-        magnitude in ``band`` at the redshift the model is rendered at
-    band : sncosmo band (default "bessellr"); temperature : black body [K] (default 5000)
-    offset : (x, y) [arcsec] relative to the target, or position : (x, y) [cells] from the
-        field centre (1.4.2); resolved by the target
-    cosmology : astropy cosmology or realisation name (default Planck18)
-    redshift : optional (1.4.2 dicts); a target with another redshift refuses the model
-    Pairs naming the same thing (``mag``/``magabs``, ``offset``/``position``, ``r_kpc``/``r_eff``,
-    ``ellip``/``axis_ratio``, ``n``/``sersic_index``, ``theta``/``position_angle``, a temperature in
-    the name and ``temperature``) are refused when both are given.
+    model : str, optional
+        Model name (module docstring), default ``"sersic:bb-5000"``.
+    r_kpc : float, optional
+        Proper half-light radius [kpc] (Sersic; default 5).
+    r_eff : float, optional
+        Instead of ``r_kpc``: half-light radius [arcsec] at the redshift a target first
+        renders it at (the target then keeps that proper size when its redshift changes; the
+        model itself is never changed: :meth:`pinned`).
+    sersic_index : float, optional
+        Sersic index ``n``, in [0.1, 20] (default 2).
+    axis_ratio : float, optional
+        b/a (default 0.7), or ``ellip`` = 1 − b/a.
+    position_angle : float, optional
+        Major axis counter-clockwise from +x [deg] (``theta``; default −30).
+    rotation : float, optional
+        NGC image rotation counter-clockwise [deg] (default 0).
+    magabs : float, optional
+        AB magnitude in the rest-frame ``band`` [mag] (default −21).
+    mag : float, optional
+        Instead of ``magabs``: observed AB magnitude in ``band`` at the redshift the model is
+        rendered at [mag].
+    band : str, optional
+        sncosmo band (default "bessellr").
+    temperature : float, optional
+        Black-body temperature [K] (default 5000).
+    offset : tuple of float, optional
+        (x, y) relative to the target [arcsec]; resolved by the target.
+    position : tuple of float, optional
+        Instead of ``offset``: (x, y) from the field centre [cells] (1.4.2).
+    cosmology : astropy.cosmology.Cosmology or str, optional
+        Astropy cosmology or realisation name (default Planck18).
+    redshift : float, optional
+        1.4.2 dicts only: a target with another redshift refuses the model.
     """
 
     def __init__(self, model="sersic:bb-5000", **params):
@@ -285,12 +318,29 @@ class GalaxyModel:
         return f"GalaxyModel({self.name!r})"
 
     def config(self):
-        """Parameters as a dict (``refmodel`` and our parameter names)."""
+        """Parameters as a dict (``refmodel`` and our parameter names).
+
+        Returns
+        -------
+        dict
+            ``{"refmodel": name, **params}``.
+        """
         return {"refmodel": self.name, **self.params}
 
     def updated(self, **params):
         """A new model with some parameters changed (validated; conflicting pairs such as
-        ``mag`` + ``magabs`` given together raise ParameterError)."""
+        ``mag`` + ``magabs`` given together raise ParameterError).
+
+        Parameters
+        ----------
+        **params
+            The parameters changed (as :class:`GalaxyModel`).
+
+        Returns
+        -------
+        GalaxyModel
+            The new model.
+        """
         _check_conflicts(params)
         params = {ALIASES.get(k, k): v for k, v in params.items()}
         current = {**self.params, **params}
@@ -316,14 +366,33 @@ class GalaxyModel:
         return GalaxyModel(model, **current)
 
     def rest_spectrum(self):
-        """Rest-frame SED (λ [Å], F_λ, arbitrary scale)."""
+        """Rest-frame SED (arbitrary scale).
+
+        Returns
+        -------
+        lbda : numpy.ndarray
+            Wavelengths [Å].
+        flux : numpy.ndarray
+            F_λ (arbitrary scale).
+        """
         if self.spectral == "bb":
             return _REST_BB_LBDA, blackbody_flambda(_REST_BB_LBDA, self.params["temperature"])
         return load_galaxy_spectrum(self.spectral)
 
     def host(self, redshift):
-        """The :class:`~slicersim.sources.extended.Host` seen at ``redshift``, centred at (0, 0)
-        (the target places it); ``host.model`` is this model."""
+        """The :class:`~slicersim.Host` seen at ``redshift``, centred at (0, 0) (the target places
+        it); ``host.model`` is this model.
+
+        Parameters
+        ----------
+        redshift : float
+            Redshift z.
+
+        Returns
+        -------
+        Host
+            The host.
+        """
         z = check_source_redshift(redshift, "host redshift")
         p, cosmo = self.params, self.params["cosmology"]
         if self.spatial == "sersic":
@@ -343,7 +412,13 @@ class GalaxyModel:
         return host
 
     def copy(self):
-        """An independent copy (its ``params`` dict is its own)."""
+        """An independent copy (its ``params`` dict is its own).
+
+        Returns
+        -------
+        GalaxyModel
+            The copy.
+        """
         new = copy.copy(self)
         new.params = dict(self.params)
         return new
@@ -351,7 +426,18 @@ class GalaxyModel:
     def pinned(self, redshift):
         """A copy fixed to the target that renders it at ``redshift``: an angular ``r_eff`` becomes
         the proper ``r_kpc`` it has there, and the model's own ``redshift`` is dropped (the
-        target's rules from then on).  The model itself is never changed."""
+        target's rules from then on).  The model itself is never changed.
+
+        Parameters
+        ----------
+        redshift : float
+            The target's redshift.
+
+        Returns
+        -------
+        GalaxyModel
+            The pinned copy.
+        """
         new = self.copy()
         new.redshift = None
         p = new.params
@@ -362,7 +448,18 @@ class GalaxyModel:
 
     @classmethod
     def from_spec(cls, spec):
-        """A model from a name, a dict (``refmodel`` + parameters) or a GalaxyModel."""
+        """A model from a name, a dict (``refmodel`` + parameters) or a GalaxyModel.
+
+        Parameters
+        ----------
+        spec : str, dict or GalaxyModel
+            The model (a GalaxyModel is returned as it is).
+
+        Returns
+        -------
+        GalaxyModel
+            The model.
+        """
         if isinstance(spec, GalaxyModel):
             return spec
         if isinstance(spec, str):

@@ -84,7 +84,18 @@ class BlackBodyContinuum(Versioned):
         return self.scale * blackbody_flambda(lbda, self.temperature)
 
     def structure_scale(self, lbda):
-        """Finest spectral structure [Å] at λ: none (smooth)."""
+        """Finest structure [Å]: the peak FWHM (half an FSR when the peaks overlap).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The scale [Å].
+        """
         return np.full(np.shape(lbda), np.inf)
 
     def coverage(self):
@@ -122,12 +133,18 @@ class FabryPerotEtalon(Versioned):
 
     T(σ) = T_max / (1 + F sin²(π σ / FSR_σ)),  F = (2𝓕/π)²,  σ = 10⁸/λ[Å]  [cm⁻¹].
 
-    Parameters (exactly one of ``fsr`` and ``optical_thickness``)
+    Give exactly one of ``fsr`` and ``optical_thickness``.
+
+    Parameters
     ----------
-    fsr : free spectral range FSR_σ [cm⁻¹] (> 0)
-    optical_thickness : n·d [µm] (> 0); FSR_σ = 10⁴ / (2 n d)
-    finesse : 𝓕 > 0 (≈ FSR/FWHM for 𝓕 ≫ 1)
-    peak_transmission : T_max in (0, 1]
+    fsr : float, optional
+        Free spectral range FSR_σ [cm⁻¹] (> 0).
+    finesse : float, optional
+        𝓕 > 0 (≈ FSR/FWHM for 𝓕 ≫ 1).
+    optical_thickness : float, optional
+        n·d [µm] (> 0); FSR_σ = 10⁴ / (2 n d).
+    peak_transmission : float, optional
+        T_max in (0, 1].
     """
 
     def __init__(self, fsr=None, finesse=25.0, optical_thickness=None, peak_transmission=1.0):
@@ -160,27 +177,82 @@ class FabryPerotEtalon(Versioned):
         return 2.0 * self.fsr / math.pi * math.asin(1.0 / math.sqrt(F)) if F > 1 else math.inf
 
     def transmission(self, lbda):
-        """T at λ [Å]."""
+        """T at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The transmission, in [0, ``peak_transmission``].
+        """
         sigma = 1e8 / np.asarray(lbda, dtype=float)
         return self.peak_transmission / (1.0 + self.coefficient_of_finesse
                                          * np.sin(math.pi * sigma / self.fsr) ** 2)
 
     def order(self, lbda):
-        """Interference order σ / FSR_σ (an integer at a peak)."""
+        """Interference order σ / FSR_σ (an integer at a peak).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The order.
+        """
         return 1e8 / np.asarray(lbda, dtype=float) / self.fsr
 
     def peak_wavelengths(self, lo, hi):
-        """Wavelengths [Å] of the transmission peaks σ_k = k·FSR_σ inside [lo, hi] Å, increasing."""
+        """Wavelengths [Å] of the transmission peaks σ_k = k·FSR_σ inside [lo, hi] Å, increasing.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The range [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The peak wavelengths [Å].
+        """
         kmin, kmax = math.ceil(1e8 / hi / self.fsr - 1e-12), math.floor(1e8 / lo / self.fsr + 1e-12)
         k = np.arange(max(kmin, 1), kmax + 1)[::-1]
         return 1e8 / (k * self.fsr)
 
     def fwhm(self, lbda):
-        """FWHM of the peak near λ [Å]: λ² δσ / 10⁸."""
+        """FWHM of the peak near λ [Å]: λ² δσ / 10⁸.
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            FWHM [Å].
+        """
         return np.asarray(lbda, dtype=float) ** 2 * self.fwhm_wavenumber * 1e-8
 
     def structure_scale(self, lbda):
-        """Finest structure [Å]: the peak FWHM (half an FSR when the peaks overlap)."""
+        """Finest structure [Å]: the peak FWHM (half an FSR when the peaks overlap).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The scale [Å].
+        """
         return np.asarray(lbda, dtype=float) ** 2 * min(self.fwhm_wavenumber, 0.5 * self.fsr) * 1e-8
 
 
@@ -189,7 +261,15 @@ class TabulatedEtalon(Versioned):
 
     Outside the table the end values are held (1.4.2 holds the first value, with a warning).
     :meth:`from_file` reads a CSV/ECSV with a ``transmission`` column (1.4.2's
-    ``lazuli_fp_transmission.csv`` layout: ``lbda, transmission, R, A``)."""
+    ``lazuli_fp_transmission.csv`` layout: ``lbda, transmission, R, A``).
+
+    Parameters
+    ----------
+    lbda : array_like of shape (n,)
+        Wavelengths of the table [Å].
+    transmission : array_like of shape (n,)
+        Transmission T at those wavelengths [fraction].
+    """
 
     def __init__(self, lbda, transmission):
         lbda, trans = validate_spectrum(lbda, transmission, "etalon transmission")
@@ -211,7 +291,18 @@ class TabulatedEtalon(Versioned):
 
     def peak_wavelengths(self, lo, hi):
         """Local maxima of the table inside [lo, hi] Å, refined by a parabola through 3 nodes
-        (maxima below 10 % of the table's maximum are ignored)."""
+        (maxima below 10 % of the table's maximum are ignored).
+
+        Parameters
+        ----------
+        lo, hi : float
+            The range [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The peak wavelengths [Å].
+        """
         t = self.transmission_in
         i = np.flatnonzero((t[1:-1] > t[:-2]) & (t[1:-1] >= t[2:]) & (t[1:-1] > 0.1 * t.max())) + 1
         a, b, c = t[i - 1], t[i], t[i + 1]
@@ -257,7 +348,16 @@ def as_etalon(fp_throughput):
 # --------------------------------------------------------------------------- lamps
 class CalibrationLamp(Versioned):
     """Lamp surface brightness S(λ) = S_c(λ) T(λ) [erg/s/cm²/Å/arcsec²]: a continuum seen
-    directly (``etalon=None``) or through an etalon (the continuum's magnitude is set before it)."""
+    directly (``etalon=None``) or through an etalon (the continuum's magnitude is set before it).
+
+    Parameters
+    ----------
+    continuum : object
+        The continuum S_c(λ): anything with ``surface_brightness(lbda)``
+        [erg/s/cm²/Å/arcsec²] (e.g. the black body of :func:`qth_lamp`).
+    etalon : FabryPerotEtalon or TabulatedEtalon, optional
+        Its transmission T(λ); None: the continuum seen directly.
+    """
 
     def __init__(self, continuum, etalon=None):
         self.continuum, self.etalon = continuum, etalon
@@ -266,17 +366,52 @@ class CalibrationLamp(Versioned):
         return (self.continuum, self.etalon)
 
     def surface_brightness(self, lbda):
-        """S(λ) at λ [Å]."""
+        """S(λ) at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            S [erg/s/cm²/Å/arcsec²].
+        """
         s = self.continuum.surface_brightness(lbda)
         return s if self.etalon is None else s * self.etalon.transmission(lbda)
 
     def spectrum(self, lbda):
-        """(λ, S) as arrays: the lamp as a spectrum (e.g. an arc-lamp line list for a PointSource)."""
+        """The lamp as a spectrum (e.g. an arc-lamp line list for a PointSource).
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        lbda : numpy.ndarray
+            Wavelengths [Å].
+        brightness : numpy.ndarray
+            S [erg/s/cm²/Å/arcsec²].
+        """
         lbda = np.asarray(lbda, dtype=float)
         return lbda, self.surface_brightness(lbda)
 
     def line_wavelengths(self, lo, hi):
-        """Wavelengths [Å] of the etalon's transmission peaks in [lo, hi] (empty without etalon)."""
+        """Wavelengths [Å] of the etalon's transmission peaks in [lo, hi] (empty without etalon).
+
+        Parameters
+        ----------
+        lo, hi : float
+            The range [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            The peak wavelengths [Å].
+        """
         return np.empty(0) if self.etalon is None else self.etalon.peak_wavelengths(lo, hi)
 
     def structure_scale(self, lbda):
@@ -284,7 +419,18 @@ class CalibrationLamp(Versioned):
         return scale if self.etalon is None else np.minimum(scale, self.etalon.structure_scale(lbda))
 
     def check_coverage(self, lo, hi):
-        """SpectrumError unless the continuum covers [lo, hi] Å."""
+        """SpectrumError unless the continuum covers [lo, hi] Å.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The range [Å].
+
+        Returns
+        -------
+        None
+            It only raises.
+        """
         clo, chi = self.continuum.coverage()
         if lo < clo or hi > chi:
             raise SpectrumError(f"the lamp spectrum covers {clo:g}–{chi:g} Å, not the instrument's "
@@ -326,10 +472,23 @@ class CalibrationLamp(Versioned):
         ``centres=None``: the plain average ∫_bin S dλ / Δλ.  With the bin ``centres``: the
         cloud-in-cell deposit — the light at fractional bin position x (x = i at centre i, i ± ½
         at its edges, linear in λ between them) is shared between the two nearest centres with
-        weights 1 − |x − i| (the half bins at the grid's ends go to the end bins), so the total
+        weights 1 − abs(x − i) (the half bins at the grid's ends go to the end bins), so the total
         is conserved, a smooth spectrum gets its bin average to O(Δλ² S″), and a line narrower
         than a bin keeps its position (its first moment) through the discrete LSF, where the
-        plain average would move it to the centre of its bin."""
+        plain average would move it to the centre of its bin.
+
+        Parameters
+        ----------
+        edges : array_like of shape (nλ+1,)
+            Bin edges [Å].
+        centres : array_like of shape (nλ,), optional
+            Bin centres [Å] (the cloud-in-cell deposit).
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ,)
+            [erg/s/cm²/Å/arcsec²].
+        """
         edges = np.asarray(edges, dtype=float)
         if edges.ndim != 1 or edges.size < 2 or not np.all(np.isfinite(edges)) or np.any(np.diff(edges) <= 0):
             raise ParameterError("bin edges must be a finite, strictly increasing 1-D array [Å]")
@@ -355,13 +514,44 @@ class CalibrationLamp(Versioned):
 
 
 def qth_lamp(temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, magsys="ab"):
-    """The QTH lamp: a black body (default :data:`QTH_TEMPERATURE`) of ``mag`` per arcsec² in ``band``."""
+    """The QTH lamp: a black body (default ``QTH_TEMPERATURE``, 3000 K) of ``mag`` per arcsec² in ``band``.
+
+    Parameters
+    ----------
+    temperature : float, optional
+        Black-body temperature [K] (default 3000).
+    mag : float, optional
+        Magnitude per arcsec² in ``band`` [mag/arcsec²].
+    band : str, optional
+        sncosmo band of that magnitude (default "bessellr").
+    magsys : str, optional
+        sncosmo magnitude system of that magnitude.
+
+    Returns
+    -------
+    CalibrationLamp
+        The lamp, seen directly (no etalon).
+    """
     return CalibrationLamp(BlackBodyContinuum(QTH_TEMPERATURE if temperature is None else temperature,
                                               mag, band, magsys))
 
 
 def fabry_perot_lamp(etalon, temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, magsys="ab"):
-    """The QTH lamp seen through an etalon (see :func:`as_etalon`); ``mag`` is the lamp's, before it."""
+    """The QTH lamp seen through an etalon; ``mag`` is the lamp's, before it.
+
+    Parameters
+    ----------
+    etalon : FabryPerotEtalon, TabulatedEtalon, str or callable
+        The etalon: an etalon object, a CSV/ECSV path (``transmission`` column) or a callable
+        T(λ [Å]).
+    temperature, mag, band, magsys
+        The QTH lamp, as :func:`qth_lamp`.
+
+    Returns
+    -------
+    CalibrationLamp
+        The lamp seen through the etalon.
+    """
     etalon = as_etalon(etalon)
     return CalibrationLamp(qth_lamp(temperature, mag, band, magsys).continuum, etalon)
 

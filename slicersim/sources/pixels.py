@@ -4,9 +4,9 @@ Cell grid (see :mod:`slicersim.physics.psf`): cell (j, k) of an (ny, nx) field o
 cells of side s [arcsec] spans x ∈ [(k − nx/2) s, (k + 1 − nx/2) s],
 y ∈ [(j − ny/2) s, (j + 1 − ny/2) s] relative to the field centre.  An input pixel is
 uniformly bright and shares its flux among cells in proportion to the exact overlap areas
-(:func:`resample_pixels`); inputs are read in blocks of rows within a memory budget
-(:data:`HOST_MAX_BYTES`).  :class:`CubeSource` is a user cube placed on the field; its
-resampled cubes are cached (:class:`ResampleCache`), keyed by content.
+(``resample_pixels``); inputs are read in blocks of rows within a memory budget
+(``HOST_MAX_BYTES``).  :class:`CubeSource` is a user cube placed on the field; its
+resampled cubes are cached (``ResampleCache``), keyed by content.
 """
 from __future__ import annotations
 
@@ -166,7 +166,7 @@ def resample_pixels(read, in_shape, pixel_scale, centre, rotation, shape, spatia
     columns j0 … j1 − 1 (any units).  The input grid has pixels of side ``pixel_scale`` [arcsec],
     its geometric centre at ``centre`` (x, y) [arcsec] and is rotated by ``rotation`` [deg]
     counter-clockwise.  Rows and columns that cannot touch the field are never read; the others
-    are read in blocks of rows sized to ``max_bytes`` (default :data:`HOST_MAX_BYTES`), so the
+    are read in blocks of rows sized to ``max_bytes`` (default ``HOST_MAX_BYTES``), so the
     input may be larger than memory (a numpy memmap, an h5py dataset).  Exact overlaps:
     separable for rotation = 0, polygon areas otherwise.
 
@@ -268,21 +268,38 @@ class ResampleCache:
 class CubeSource(Versioned):
     """User cube [erg/s/cm²/Å per input pixel] placed on the field, flux conserving.
 
-    cube : (nλ_in, ny_in, nx_in) array-like (numpy array, memmap or h5py dataset: it is read
-    in blocks, never copied whole), lbda_in : (nλ_in,) strictly increasing [Å],
-    pixel_scale : input pixel side [arcsec], centre : (x, y) [arcsec] of the cube
-    centre relative to the field centre, rotation : [deg] counter-clockwise about
-    that centre, flux_scale : factor applied to the values when read, redshift /
-    cosmology : as for :class:`Host` (:meth:`at_redshift`), max_bytes : working-memory
-    budget of one block of input rows (default :data:`HOST_MAX_BYTES`).
+    Parameters
+    ----------
+    cube : array_like of shape (nλ_in, ny_in, nx_in)
+        F_λ per input pixel [erg/s/cm²/Å]: a numpy array, memmap or h5py dataset (it is
+        read in blocks, never copied whole).
+    lbda_in : array_like of shape (nλ_in,)
+        Wavelengths of the planes, strictly increasing [Å].
+    pixel_scale : float
+        Side of an input pixel [arcsec].
+    centre : tuple of float, optional
+        (x, y) of the cube centre relative to the field centre [arcsec].
+    rotation : float, optional
+        Rotation counter-clockwise about that centre [deg].
+    flux_scale : float, optional
+        Factor applied to the values when read.
+    redshift : float, optional
+        Redshift the cube is seen at, as for :class:`~slicersim.Host` (:meth:`at_redshift`).
+    cosmology : astropy.cosmology.Cosmology, optional
+        Cosmology of that move, as for :class:`~slicersim.Host` (default Planck18).
+    max_bytes : int, optional
+        Working-memory budget of one block of input rows [bytes] (default
+        ``HOST_MAX_BYTES``, 64 MiB).
 
+    Notes
+    -----
     Spatial resampling: each input pixel is uniformly bright and shares its flux among
-    cells in proportion to the exact overlap areas (:func:`resample_pixels`), in groups of
+    cells in proportion to the exact overlap areas (``resample_pixels``), in groups of
     output planes of a fixed size (so each plane's result does not depend on the grid it is
     asked with).  Wavelength: F_λ linearly interpolated in λ (flux density, not integrated
     over bins); grids beyond [lbda_in[0], lbda_in[-1]] raise SpectrumError; only the input
     planes the grid needs are read.  Results are cached per (grid, placement, redshift)
-    (:class:`ResampleCache`, ``cache``): the cube's values must not change in place afterwards.
+    (``ResampleCache``, ``cache``): the cube's values must not change in place afterwards.
     """
 
     def __init__(self, cube, lbda_in, pixel_scale, centre=(0.0, 0.0), rotation=0.0, flux_scale=1.0,
@@ -312,8 +329,23 @@ class CubeSource(Versioned):
         self.cache = ResampleCache()
 
     def at_redshift(self, redshift, cosmology=None, from_redshift=None):
-        """The same source seen at ``redshift`` (see :meth:`Host.at_redshift`); the cube
-        array (already validated) and the resampling cache are shared, not copied."""
+        """The same source seen at ``redshift`` (see :meth:`Host.at_redshift <slicersim.Host.at_redshift>`);
+        the cube array (already validated) and the resampling cache are shared, not copied.
+
+        Parameters
+        ----------
+        redshift : float
+            The new redshift z.
+        cosmology : astropy.cosmology.Cosmology, optional
+            Cosmology of the move.
+        from_redshift : float, optional
+            z₀ (default: the source's own redshift).
+
+        Returns
+        -------
+        CubeSource
+            The new source.
+        """
         z0 = _from_redshift(self, from_redshift)
         cosmo = self.cosmology if cosmology is None else get_cosmology(cosmology)
         z = check_source_redshift(redshift, "cube redshift")
@@ -332,7 +364,22 @@ class CubeSource(Versioned):
         return int(min(PLANE_GROUP_MAX, max(1, budget // max(1, plane))))
 
     def flux_cube(self, lbda_grid, shape, spatial_scale):
-        """(nλ, ny, nx) flux density per cell [erg/s/cm²/Å] on ``lbda_grid`` [Å] (read-only; cached)."""
+        """Flux density per cell on ``lbda_grid`` (read-only; cached).
+
+        Parameters
+        ----------
+        lbda_grid : array_like of shape (nλ,)
+            Wavelengths [Å].
+        shape : tuple of int
+            (ny, nx) cells.
+        spatial_scale : float
+            Cell side [arcsec].
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            Flux density per cell [erg/s/cm²/Å].
+        """
         lbda_grid = np.asarray(lbda_grid, dtype=np.float64)
         shape, s = tuple(int(v) for v in shape), float(spatial_scale)
         L = _lambda_matrix(self.lbda_in, lbda_grid).tocsr()           # validates the grid

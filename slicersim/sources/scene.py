@@ -20,7 +20,19 @@ def zodiacal_light(lbda, scale=2.0):
 
 
 class Background(Versioned):
-    """Spatially uniform background (zodiacal light by default) [erg/s/cm²/Å/arcsec²]."""
+    """Spatially uniform background (zodiacal light by default) [erg/s/cm²/Å/arcsec²].
+
+    Parameters
+    ----------
+    model : {"zodi", "Aldering01.BB5800"} or callable, optional
+        The surface brightness: the zodiacal light (Aldering 2001, 5800 K black-body fit;
+        both names select it) or a function of the wavelength [Å] returning
+        F_λ [erg/s/cm²/Å/arcsec²].
+    scale : float, optional
+        Factor (≥ 0) applied to the model.
+    name : str, optional
+        Label of the background in reports and figures.
+    """
 
     def __init__(self, model="zodi", scale=2.0, name="zodi"):
         if not callable(model):
@@ -38,7 +50,18 @@ class Scene(Versioned):
     """Container of the point source, background and host (any may be None).
 
     Assigning any of them (``scene.host = Host(...)``) takes effect at once: the
-    Simulation's cache is keyed on the versions of the scene and of its parts."""
+    Simulation's cache is keyed on the versions of the scene and of its parts.
+
+    Parameters
+    ----------
+    pointsource : PointSource, optional
+        The point source (spectrum at a position).
+    background : Background, optional
+        The spatially uniform background.
+    host : Host or CubeSource, optional
+        The extended source: anything with ``flux_cube(lbda, shape, spatial_scale)``
+        (:class:`~slicersim.errors.ParameterError` otherwise).
+    """
 
     def __init__(self, pointsource=None, background=None, host=None):
         self.pointsource, self.background, self.host = pointsource, background, host

@@ -139,7 +139,7 @@ def snia_spectrum(redshift, phase=0.0, source="hsiao-subsampled", peak_absmag=-1
     cosmology : astropy.cosmology.Cosmology, optional
         For the distance modulus (default Planck18).
     phase_frame : {"rest", "obs"}
-        Frame of ``phase`` (:func:`slicersim.physics.conventions.phase_frame`: "rest" by default,
+        Frame of ``phase`` (``slicersim.physics.conventions.phase_frame``: "rest" by default,
         "obs" under ``conventions="slicersim-1.0"``).
 
     Returns
@@ -187,7 +187,7 @@ def sncosmo_spectrum(source, redshift, phase=0.0, peak_absmag=None, band="bessel
     lbda : array_like of shape (k,), optional
         Wavelengths [Å] (default 3000–19990 Å, 10 Å).
     phase_frame : {"rest", "obs"}
-        Frame of ``phase`` (:func:`slicersim.physics.conventions.phase_frame`).
+        Frame of ``phase`` (``slicersim.physics.conventions.phase_frame``).
 
     Returns
     -------
@@ -376,7 +376,26 @@ def normalise_to_mag(lbda, flux, mag, band="bessellb", magsys="ab"):
 
 
 class PointSource(Versioned):
-    """A point source: spectrum (linear interpolation, NaN outside) at a position [cells]."""
+    """A point source: spectrum (linear interpolation, NaN outside) at a position [cells].
+
+    Parameters
+    ----------
+    lbda : array_like of shape (n,)
+        Wavelengths of the spectrum [Å].
+    flux : array_like of shape (n,)
+        F_λ [erg/s/cm²/Å].
+    position : tuple of float, optional
+        (x, y) of the source in the field [cells].
+    mag : float, optional
+        Magnitude the spectrum is normalised to in ``band`` (``magsys``); the spectrum is
+        used as given when None.
+    band : str, optional
+        sncosmo bandpass of that normalisation.
+    magsys : str, optional
+        sncosmo magnitude system of that normalisation.
+    name : str, optional
+        Label of the source in messages and figures.
+    """
 
     def __init__(self, lbda, flux, position=(0.0, 0.0), mag=None, band="bessellb", magsys="ab",
                  name="pointsource"):
@@ -408,7 +427,24 @@ class PointSource(Versioned):
 
     def set_spectrum(self, lbda, flux, flux_ratio=None, native_mag=None):
         """Replace the spectrum in place (validated first; renormalised to ``mag`` when set,
-        unless ``flux_ratio`` is given)."""
+        unless ``flux_ratio`` is given).
+
+        Parameters
+        ----------
+        lbda : array_like of shape (n,)
+            Wavelengths [Å].
+        flux : array_like of shape (n,)
+            F_λ [erg/s/cm²/Å].
+        flux_ratio : float, optional
+            Factor applied to ``flux`` (≥ 0) instead of the renormalisation.
+        native_mag : float, optional
+            Magnitude of the spectrum before that factor (recorded).
+
+        Returns
+        -------
+        None
+            Changed in place.
+        """
         lbda, flux = validate_spectrum(lbda, flux, self.name)
         if flux_ratio is not None:
             flux_ratio = validation.number("flux_ratio", flux_ratio, low=0.0, error=SpectrumError)
@@ -432,10 +468,32 @@ class PointSource(Versioned):
                           validation.number("position", position[1]))     # y [cells]
 
     def flambda(self, lbda):
-        """F(λ) [erg/s/cm²/Å] at λ [Å]."""
+        """F(λ) [erg/s/cm²/Å] at λ [Å].
+
+        Parameters
+        ----------
+        lbda : array_like
+            Wavelengths [Å].
+
+        Returns
+        -------
+        numpy.ndarray
+            F_λ [erg/s/cm²/Å] (NaN outside the input spectrum).
+        """
         out = np.interp(lbda, self.lbda_in, self.flux_in, left=np.nan, right=np.nan)
         return out * self.flux_ratio
 
     def overlap(self, lo, hi):
-        """True when the input spectrum overlaps [lo, hi] Å."""
+        """True when the input spectrum overlaps [lo, hi] Å.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The band [Å].
+
+        Returns
+        -------
+        bool
+            Whether they overlap.
+        """
         return self.lbda_in[0] < hi and self.lbda_in[-1] > lo

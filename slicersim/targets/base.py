@@ -57,22 +57,34 @@ class Target(DetectorProducts):
 
     Parameters
     ----------
-    lbda, flux : input spectrum [Å], [erg/s/cm²/Å]
-    mag, band : optional renormalisation to an AB magnitude in an sncosmo band
-    config : "cbe", "eol", a TOML path or a list of them
-    field : "narrow", "wide" (Lazuli) or None.  A target has exactly one field: the
-        default is "narrow" when the configuration has Lazuli field throughputs
-        (:func:`config_default_field`), None for single-channel configurations; None with a
-        several-column throughput raises (columns are never multiplied).
-    position : (x, y) [cells] relative to the field centre
-    conventions : "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly
-        (gain in the variance, instrumental blur; :mod:`slicersim.physics.conventions`)
-    redshift : optional; used by ``frame="rest"`` (the spectrum is in the observer frame).  A
-        band (``lbda_range``) is read in the rest frame by default when the target has a
-        redshift, else in the observer frame (``frame=None``; ``"rest"`` / ``"obs"`` explicit)
-    host : optional host galaxy (see :meth:`set_host`): a model name ("sersic:bb-5000",
-        "ngc0628", "sersic:ngc2403", ...), a dict with ``refmodel`` and parameters (1.4.2), a
-        :class:`~slicersim.sources.galaxies.GalaxyModel`, a ``Host`` or a ``CubeSource``
+    lbda : array_like of shape (n,)
+        Wavelengths of the input spectrum [Å].
+    flux : array_like of shape (n,)
+        F_λ of the input spectrum [erg/s/cm²/Å].
+    mag : float, optional
+        Renormalisation to an AB magnitude in ``band`` (none by default).
+    band : str, optional
+        sncosmo band of that renormalisation.
+    config : str, path-like or list, optional
+        "cbe", "eol", a TOML path or a list of them.
+    field : {"narrow", "wide"} or None, optional
+        The Lazuli field, or None.  A target has exactly one field: the default is "narrow"
+        when the configuration has Lazuli field throughputs (``config_default_field``),
+        None for single-channel configurations; None with a several-column throughput raises
+        (columns are never multiplied).
+    position : tuple of float, optional
+        (x, y) of the point source relative to the field centre [cells].
+    redshift : float, optional
+        Used by ``frame="rest"`` (the spectrum is in the observer frame).  A band
+        (``lbda_range``) is read in the rest frame by default when the target has a redshift,
+        else in the observer frame (``frame=None``; ``"rest"`` / ``"obs"`` explicit).
+    conventions : {"physical", "slicersim-1.0"}, optional
+        "physical" (default) or "slicersim-1.0": reproduce slicersim 1.0 exactly (gain in
+        the variance, instrumental blur; ``slicersim.physics.conventions``).
+    host : str, dict, GalaxyModel, Host or CubeSource, optional
+        Host galaxy (see :meth:`~slicersim.Target.set_host`): a model name ("sersic:bb-5000", "ngc0628",
+        "sersic:ngc2403", ...), a dict with ``refmodel`` and parameters (1.4.2), a
+        :class:`~slicersim.sources.galaxies.GalaxyModel`, a ``Host`` or a ``CubeSource``.
     """
 
     default_config, default_field = "cbe", "auto"
@@ -179,17 +191,28 @@ class Target(DetectorProducts):
     def set_host(self, host, relative=True):
         """Put a host galaxy in the scene, at the target's redshift; ``None`` removes it.
 
-        ``host`` is a model name ("sersic:bb-5000", "ngc0628", "sersic:ngc2403", ...), a dict
-        (``refmodel`` + parameters, slicersim 1.4.2), a :class:`~slicersim.sources.galaxies.GalaxyModel`
-        (all rendered at the target's redshift, or the dict's ``redshift`` when the target has
-        none), or a ready ``Host`` / ``CubeSource``: one with a different ``redshift`` is moved
-        to the target's (:meth:`~slicersim.sources.extended.Host.at_redshift`), one without is
-        taken to be at it.  ``update(redshift=z)`` then moves source and host together.
+        Takes effect at once; ``update(redshift=z)`` then moves source and host together.
 
-        Placement: the host centre (``offset`` [arcsec] of a model, ``profile.offset`` /
-        ``centre`` of an object) is read relative to the target when ``relative`` (the host
-        follows the target; offsets scale with D_A when the redshift changes), else relative to
-        the field centre; a model's 1.4.2 ``position`` [cells] is absolute.  Takes effect at once."""
+        Parameters
+        ----------
+        host : str, dict, GalaxyModel, Host, CubeSource or None
+            A model name ("sersic:bb-5000", "ngc0628", "sersic:ngc2403", ...), a dict
+            (``refmodel`` + parameters, slicersim 1.4.2), a :class:`~slicersim.GalaxyModel`
+            (all rendered at the target's redshift, or the dict's ``redshift`` when the target has
+            none), or a ready ``Host`` / ``CubeSource``: one with a different ``redshift`` is moved
+            to the target's (:meth:`Host.at_redshift <slicersim.Host.at_redshift>`), one without is
+            taken to be at it.
+        relative : bool, optional
+            Placement: the host centre (``offset`` [arcsec] of a model, ``profile.offset`` /
+            ``centre`` of an object) is read relative to the target when ``relative`` (the host
+            follows the target; offsets scale with D_A when the redshift changes), else relative to
+            the field centre; a model's 1.4.2 ``position`` [cells] is absolute.
+
+        Returns
+        -------
+        None
+            The scene is changed in place.
+        """
         if host is None:
             self._host, self._host_state = None, None
             self.simulation.scene.host = None
@@ -210,7 +233,13 @@ class Target(DetectorProducts):
             _move_host(host, _host_centre(self._host_state, self._redshift, position, spatial_scale))
 
     def host_centre(self):
-        """(x, y) [cells] of the host centre in the field (None without host)."""
+        """(x, y) [cells] of the host centre in the field (None without host).
+
+        Returns
+        -------
+        tuple of float or None
+            (x, y) [cells].
+        """
         if self._host is None:
             return None
         s = self.simulation.spectrograph.spatial_scale
@@ -220,12 +249,23 @@ class Target(DetectorProducts):
     # ------------------------------------------------------------------ changes
     def update(self, **params):
         """Change any of ``mutable_parameters`` atomically (validated first; on error nothing
-        changes).  ``redshift`` recomputes the source spectrum in place (SN Ia: same phase,
-        source and peak magnitude; a user spectrum keeps its observer-frame flux and only
-        the label used by ``frame="rest"`` changes); ``position=(x, y)`` [cells] moves the
-        point source in place (and a host attached relative to it); ``field`` / ``config``
-        rebuild the simulation keeping the readout; the other names go to
-        :meth:`Simulation.update <slicersim.simulation.Simulation.update>`.  The readout is kept."""
+        changes).  The readout is kept.
+
+        Parameters
+        ----------
+        **params
+            ``redshift`` recomputes the source spectrum in place (SN Ia: same phase, source and
+            peak magnitude; a user spectrum keeps its observer-frame flux and only the label used
+            by ``frame="rest"`` changes); ``position=(x, y)`` [cells] moves the point source in
+            place (and a host attached relative to it); ``field`` / ``config`` rebuild the
+            simulation keeping the readout; the other names go to
+            :meth:`Simulation.update <slicersim.Simulation.update>`.
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         self._apply_update(self._plan_update(params))
 
     def _plan_update(self, params):
@@ -312,7 +352,23 @@ class Target(DetectorProducts):
         self.pointsource.position = position
 
     def set_throughput(self, throughput, column=None, noptics=None):
-        """Replace the spectrograph throughput (see :meth:`Spectrograph.set_throughput`); at once."""
+        """Replace the spectrograph throughput (see :meth:`Spectrograph.set_throughput
+        <slicersim.Spectrograph.set_throughput>`); at once.
+
+        Parameters
+        ----------
+        throughput : float, tuple of array_like, OpticalThroughput or str
+            As :class:`~slicersim.Spectrograph`.
+        column : str or int, optional
+            Column of a throughput curve file.
+        noptics : dict or int, optional
+            Passes through each component.
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         try:
             self.simulation.spectrograph.set_throughput(throughput, column=column, noptics=noptics)
         except SlicersimError:
@@ -321,21 +377,62 @@ class Target(DetectorProducts):
             raise ParameterError(f"throughput: invalid throughput {validation.short_repr(throughput)}: {exc}") from exc
 
     def change_configuration(self, config):
-        """Switch to another configuration (``"cbe"``, ``"eol"``, TOML path(s)); keeps the readout."""
+        """Switch to another configuration; keeps the readout.
+
+        Parameters
+        ----------
+        config : str, path-like or list
+            ``"cbe"``, ``"eol"``, TOML path(s).
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         self.update(config=config)
 
     def change_field(self, field):
         self.update(field=field)
 
     def change_spectrograph(self, field=None, **kwargs):
-        """Change the field (Lazuli) and/or spectrograph parameters."""
+        """Change the field (Lazuli) and/or spectrograph parameters.
+
+        Parameters
+        ----------
+        field : {"narrow", "wide"}, optional
+            The Lazuli field.
+        **kwargs
+            Spectrograph parameters (see :class:`~slicersim.Spectrograph`).
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         if field is not None:
             kwargs["field"] = field
         if kwargs:
             self.update(**kwargs)
 
     def change_detector(self, nmd=None, nramps=None, max_group=None, **kwargs):
-        """Set the readout (n, m, d), number of ramps, max_group or other detector parameters."""
+        """Set the readout (n, m, d), number of ramps, max_group or other detector parameters.
+
+        Parameters
+        ----------
+        nmd : tuple of int, optional
+            The readout (n, m, d).
+        nramps : int, optional
+            Number of ramps.
+        max_group : int, optional
+            Largest n allowed.
+        **kwargs
+            Other detector parameters (see :class:`~slicersim.Detector`).
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         params = dict(kwargs)
         if max_group is not None:
             params["max_group"] = validation.integer("max_group", max_group, low=1)
@@ -364,12 +461,36 @@ class Target(DetectorProducts):
     def setup_to_snr(self, snr, lbda_range=None, frame=None, search="exact", per_resolution=True,
                      backend="auto", allow_partial=False):
         """Find and apply the readout reaching ``snr`` (per resolution element by default)
-        in ``lbda_range`` [Å] (default 4000–6800 Å) read in ``frame`` ("rest", "obs", or None: "rest"
-        when the target has a redshift, else "obs"); returns the ETC result dict.
+        in a band.
 
         The band must lie inside the instrument grid and the source spectrum, else
         SpectrumError naming the covered fraction; ``allow_partial=True`` solves on the
-        covered part with a BandCoverageWarning (:mod:`slicersim.snr.bands`)."""
+        covered part with a BandCoverageWarning (``slicersim.snr.bands``).
+
+        Parameters
+        ----------
+        snr : float
+            The SNR to reach.
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å] (default 4000–6800 Å), read in ``frame``.
+        frame : {"rest", "obs"} or None, optional
+            "rest", "obs", or None: "rest" when the target has a redshift, else "obs".
+        search : {"exact", "reference"}, optional
+            The readout search.
+        per_resolution : bool, optional
+            SNR per resolution element (else per bin).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        allow_partial : bool, optional
+            Solve on the covered part of the band.
+
+        Returns
+        -------
+        dict
+            The ETC result: ``nmd``, ``nramps``, ``snr`` (reached, per bin), ``snr_target``,
+            ``snr_per_resolution``, ``exposure_time`` [s], ``trace`` and ``lbda_range_obs`` [Å];
+            also kept as ``last_etc``.
+        """
         band = self._band(lbda_range, frame)
         result = self.simulation.fetch_snr(snr, band, per_resolution=per_resolution, search=search,
                                            backend=backend, allow_partial=allow_partial, frame="obs")
@@ -382,11 +503,23 @@ class Target(DetectorProducts):
         return {"nmd": tuple(self.simulation.detector.nmd), "nramps": self.simulation.nramps}
 
     def get_exposure_time(self):
-        """Total exposure time of all ramps [s]."""
+        """Total exposure time of all ramps [s].
+
+        Returns
+        -------
+        float
+            The exposure time [s].
+        """
         return self.simulation.get_times()["exposure_time"]
 
     def get_exptime(self):
-        """Total exposure time of all ramps [s] (paper name of :meth:`get_exposure_time`)."""
+        """Total exposure time of all ramps [s] (paper name of :meth:`get_exposure_time`).
+
+        Returns
+        -------
+        float
+            The exposure time [s].
+        """
         return self.get_exposure_time()
 
     def get_times(self):
@@ -396,8 +529,24 @@ class Target(DetectorProducts):
         return self.simulation.get_data_volume()
 
     def get_band_snr(self, lbda_range=None, frame=None, per_resolution=False, allow_partial=False):
-        """Band SNR (per bin; per resolution element when ``per_resolution``); ``frame`` and the
-        band coverage rule (``allow_partial``) as :meth:`setup_to_snr`."""
+        """Band SNR (per bin; per resolution element when ``per_resolution``).
+
+        Parameters
+        ----------
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å] (default 4000–6800 Å), read in ``frame``.
+        frame : {"rest", "obs"} or None, optional
+            "rest", "obs", or None: "rest" when the target has a redshift, else "obs".
+        per_resolution : bool, optional
+            SNR per resolution element (else per bin).
+        allow_partial : bool, optional
+            Band coverage rule, as :meth:`setup_to_snr`.
+
+        Returns
+        -------
+        float
+            The band SNR.
+        """
         return self.simulation.get_band_snr(self._band(lbda_range, frame), per_resolution=per_resolution,
                                             allow_partial=allow_partial, frame="obs")
 
@@ -405,28 +554,48 @@ class Target(DetectorProducts):
                      unit="adu", switch_off=None):
         """(λ [Å], signal, variance) extracted from the noiseless model, all ramps.
 
-        method : "optimal" (PSF-weighted; the point source's true LSF-convolved spectrum and
-            the optimal variance of :meth:`Simulation.get_spectrum`), "aperture" (plain sum
-            over the aperture cells, no aperture correction) or "default" (slicersim 1.4.2's
-            rule: optimal for the "core" aperture, a plain sum otherwise).
-        of_host : extract the host light instead, in an aperture centred on the host.
-        aperture : "core" (the point-source extraction radius), "<x>-arcsec" or "<x>-kpc"
-            (:mod:`slicersim.products.extraction`); None: "core", or "1-arcsec" (1.4.2's) for
-            the host (``of_host``) and for ``method="aperture"``.
-        unit : "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s of integration
-            time: the slope, as the reduced rates and spectra] or "framerate" [ADU/frame] (1.4.2 names accepted: :data:`~slicersim.products.extraction.UNITS`);
-            the variance is in unit².
-        switch_off : components left out of the signal and variance (a name or names:
-            :func:`~slicersim.products.components.check_switch_off`, the rule of cubes and spectra;
-            switching off the extracted component gives zero signal).
-        incl_error : add a Gaussian noise draw (in ADU, before the unit conversion):
+        Parameters
+        ----------
+        incl_error : bool, optional
+            Add a Gaussian noise draw (in ADU, before the unit conversion):
             signal + √variance · z with z the counter-based Philox / Box–Muller
-            normal of :mod:`slicersim.rng` keyed by (seed, bin index,
-            stream :data:`SPECTRUM_NOISE_STREAM`) — the same generator and arithmetic as the
-            noisy cubes (:func:`slicersim.backends.noise.noisy_cube`): the same seed (int in
-            [0, 2⁶⁴)) gives the same draw on every machine and backend; bins with zero variance
-            keep the signal, non-finite variance gives NaN.  ``seed=None`` draws a fresh seed
-            (:func:`slicersim.validation.new_seed`), recorded in ``last_spectrum_seed``."""
+            normal of ``slicersim.rng`` keyed by (seed, bin index,
+            stream ``SPECTRUM_NOISE_STREAM``) — the same generator and arithmetic as the
+            noisy cubes (``slicersim.backends.noise.noisy_cube``): the same seed gives the same
+            draw on every machine and backend; bins with zero variance keep the signal,
+            non-finite variance gives NaN.
+        seed : int, optional
+            Integer in [0, 2⁶⁴) of that draw; None draws a fresh seed
+            (:func:`slicersim.validation.new_seed`), recorded in ``last_spectrum_seed``.
+        method : {"default", "optimal", "aperture"}, optional
+            "optimal" (PSF-weighted; the point source's true LSF-convolved spectrum and
+            the optimal variance of :meth:`Simulation.get_spectrum <slicersim.Simulation.get_spectrum>`),
+            "aperture" (plain sum over the aperture cells, no aperture correction) or "default"
+            (slicersim 1.4.2's rule: optimal for the "core" aperture, a plain sum otherwise).
+        of_host : bool, optional
+            Extract the host light instead, in an aperture centred on the host.
+        aperture : str, optional
+            "core" (the point-source extraction radius), "<x>-arcsec" or "<x>-kpc"
+            (``slicersim.products.extraction``); None: "core", or "1-arcsec" (1.4.2's) for
+            the host (``of_host``) and for ``method="aperture"``.
+        unit : str, optional
+            "adu" (default), "flambda" [erg/s/cm²/Å], "fphoton" [ph/s], "rate" [ADU/s of
+            integration time: the slope, as the reduced rates and spectra] or "framerate"
+            [ADU/frame] (1.4.2 names accepted: ``slicersim.products.extraction.UNITS``).
+        switch_off : str or sequence of str, optional
+            Components left out of the signal and variance (a name or names:
+            ``slicersim.products.components.check_switch_off``, the rule of cubes and spectra;
+            switching off the extracted component gives zero signal).
+
+        Returns
+        -------
+        lbda : numpy.ndarray of shape (nλ,)
+            Wavelengths [Å].
+        signal : numpy.ndarray of shape (nλ,)
+            The signal [``unit``].
+        variance : numpy.ndarray of shape (nλ,)
+            Its variance [(``unit``)²].
+        """
         seed = validation.seed(seed)
         incl_error = validation.flag("incl_error", incl_error)
         of_host = validation.flag("of_host", of_host)
@@ -467,22 +636,69 @@ class Target(DetectorProducts):
         return self.simulation.lbda.copy(), signal, variance
 
     def get_cube(self, seed=None, switch_off=None, psf_profile="gaussian", **options):
-        """Cube [ADU] of the scene (noisy with ``seed``); ``switch_off``: components left out
-        (:func:`~slicersim.products.components.check_switch_off`); ``psf_profile`` "gaussian" or
-        "airy" and the other options (``nmd``, ``nramps``, ``max_bytes``, ``progress``, ``backend``,
-        ``dtype``, ...) as :meth:`Simulation.get_cube <slicersim.simulation.Simulation.get_cube>`."""
+        """Cube [ADU] of the scene (noisy with ``seed``).
+
+        Parameters
+        ----------
+        seed : int, optional
+            Integer in [0, 2⁶⁴) of the noisy realisation; None: noiseless.
+        switch_off : str or sequence of str, optional
+            Components left out (``slicersim.products.components.check_switch_off``).
+        psf_profile : {"gaussian", "airy"}, optional
+            The PSF.
+        **options
+            The other options (``nmd``, ``nramps``, ``max_bytes``, ``progress``, ``backend``,
+            ``dtype``, ...) as :meth:`Simulation.get_cube <slicersim.Simulation.get_cube>`.
+
+        Returns
+        -------
+        CubeTuple
+            (signal, variance) of shape (nλ, ny, nx) [ADU, ADU²], then the noisy cube with
+            ``seed``, as :meth:`Simulation.get_cube <slicersim.Simulation.get_cube>`.
+        """
         return self.simulation.get_cube(seed=seed, switch_off=switch_off, psf_profile=psf_profile, **options)
 
     def get_scene_cubes(self, unit="adu", switch_off=None, **kwargs):
-        """Noise-free cube of each scene component (:meth:`Simulation.get_scene_cubes`)."""
+        """Noise-free cube of each scene component.
+
+        Parameters
+        ----------
+        unit : str, optional
+            As :meth:`Simulation.get_scene_cubes <slicersim.Simulation.get_scene_cubes>`.
+        switch_off : str or sequence of str, optional
+            Components left out.
+        **kwargs
+            The other options of
+            :meth:`Simulation.get_scene_cubes <slicersim.Simulation.get_scene_cubes>`.
+
+        Returns
+        -------
+        SceneCubes or numpy.ndarray
+            As :meth:`Simulation.get_scene_cubes <slicersim.Simulation.get_scene_cubes>`.
+        """
         return self.simulation.get_scene_cubes(unit=unit, switch_off=switch_off, **kwargs)
 
     def get_variance_contribution(self):
         return self.simulation.get_variance_contribution()
 
     def get_band_variance_contribution(self, lbda_range=None, frame=None, allow_partial=False):
-        """Band-mean variance contributions (:meth:`Simulation.get_band_variance_contribution
-        <slicersim.simulation.Simulation.get_band_variance_contribution>`); ``frame`` as :meth:`setup_to_snr`."""
+        """Band-mean variance contributions.
+
+        Parameters
+        ----------
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å] (default 4000–6800 Å), read in ``frame``.
+        frame : {"rest", "obs"} or None, optional
+            "rest", "obs", or None: "rest" when the target has a redshift, else "obs".
+        allow_partial : bool, optional
+            Band coverage rule, as :meth:`setup_to_snr`.
+
+        Returns
+        -------
+        dict
+            As :meth:`Simulation.get_band_variance_contribution
+            <slicersim.Simulation.get_band_variance_contribution>`.
+        """
         return self.simulation.get_band_variance_contribution(self._band(lbda_range, frame),
                                                               allow_partial=allow_partial, frame="obs")
 
@@ -492,7 +708,7 @@ class Supernova(Target):
     absolute magnitude ``peak_absmag`` in Bessell B (AB, Planck18), at ``phase`` days from
     B-band maximum in the SN's rest frame (the frame of populations, campaigns, survey plans,
     the CLI and every file that records it; observer-frame days under
-    ``conventions="slicersim-1.0"``, as in slicersim 1.0: :func:`~slicersim.physics.conventions.phase_frame`).
+    ``conventions="slicersim-1.0"``, as in slicersim 1.0: ``slicersim.physics.conventions.phase_frame``).
 
     Parameters
     ----------
@@ -507,7 +723,7 @@ class Supernova(Target):
     config, field, position, conventions, host
         As :class:`Target`.
     **kwargs
-        The SN model's keywords of :func:`~slicersim.sources.spectra.snia_spectrum` (``band``,
+        The SN model's keywords of ``slicersim.sources.spectra.snia_spectrum`` (``band``,
         ``magsys``, ``lbda``, ``x1``, ``c``, ``cosmology``).
     """
 
@@ -537,7 +753,19 @@ class Supernova(Target):
 
 
 class BlackBody(Target):
-    """Black body of ``temperature`` [K] normalised to ``mag`` (AB) in ``band``."""
+    """Black body of ``temperature`` [K] normalised to ``mag`` (AB) in ``band``.
+
+    Parameters
+    ----------
+    temperature : float
+        Black-body temperature [K].
+    mag : float
+        AB magnitude of the source in ``band`` [mag].
+    band : str, optional
+        sncosmo band of that normalisation.
+    config, field, position, conventions, redshift, host
+        As :class:`Target`.
+    """
 
     def __init__(self, temperature, mag, band="bessellb", config=None, field="default", position=(0.0, 0.0),
                  conventions=DEFAULT_CONVENTIONS, redshift=None, host=None):
@@ -581,11 +809,45 @@ def _result(target, etc):
 
 def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 6800), frame=None,
                config="cbe", field="narrow", search="exact", redshift=None, **options):
-    """Exposure time for any spectrum with the Lazuli IFS; returns a dict
-    (nmd, nramps, exposure_time [s], snr per resolution element, data_volume [GB], target).
-    ``frame`` (None: "rest" with a ``redshift``, else "obs") as :meth:`Target.setup_to_snr`;
-    keywords ``conventions`` (default "physical") and ``allow_partial`` (band coverage rule of
-    :meth:`Target.setup_to_snr`, default False)."""
+    """Exposure time for any spectrum with the Lazuli IFS.
+
+    Parameters
+    ----------
+    lbda : array_like of shape (n,)
+        Wavelengths of the spectrum [Å].
+    flux : array_like of shape (n,)
+        F_λ [erg/s/cm²/Å].
+    snr : float, optional
+        SNR to reach, per resolution element.
+    mag : float, optional
+        Renormalisation to an AB magnitude in ``band``.
+    band : str, optional
+        sncosmo band of that renormalisation.
+    lbda_range : tuple of float, optional
+        (min, max) of the band where the SNR is reached [Å].
+    frame : {"rest", "obs"} or None, optional
+        Frame of ``lbda_range`` (None: "rest" with a ``redshift``, else "obs"), as
+        :meth:`Target.setup_to_snr`.
+    config : str, path-like or list, optional
+        Configuration ("cbe", "eol", TOML path(s)).
+    field : {"narrow", "wide"}, optional
+        Lazuli field.
+    search : str, optional
+        Readout search of the ETC, as :meth:`Target.setup_to_snr`.
+    redshift : float, optional
+        Redshift of the target (the spectrum is in the observer frame).
+    **options
+        ``conventions`` (default "physical") and ``allow_partial`` (band coverage rule of
+        :meth:`Target.setup_to_snr`, default False).
+
+    Returns
+    -------
+    dict
+        ``nmd``, ``nramps``, ``exposure_time`` [s], ``snr`` (per resolution element),
+        ``snr_per_bin``, ``snr_target_per_bin``, ``lbda_range_obs`` [Å], ``data_volume``
+        [GB], ``config``, ``field``, ``conventions`` and ``target`` (the
+        :class:`LazuliTarget` set to that readout).
+    """
     check_parameter_names("lazuli_etc", options, ("conventions", "allow_partial"))
     target = LazuliTarget(lbda, flux, mag=mag, band=band, config=config, field=field, redshift=redshift,
                           conventions=options.get("conventions", DEFAULT_CONVENTIONS))
@@ -596,8 +858,39 @@ def lazuli_etc(lbda, flux, snr=20, mag=None, band="bessellb", lbda_range=(4000, 
 def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame=None, config="cbe", field="narrow",
                   search="exact", phase=0.0, source="hsiao-subsampled", conventions=DEFAULT_CONVENTIONS,
                   allow_partial=False):
-    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default;
-    ``allow_partial``: band coverage rule of :meth:`Target.setup_to_snr`)."""
+    """Exposure time for a SN Ia at ``redshift`` (band in the rest frame by default).
+
+    Parameters
+    ----------
+    redshift : float
+        Redshift z of the SN Ia.
+    snr : float, optional
+        SNR to reach, per resolution element.
+    lbda_range : tuple of float, optional
+        (min, max) of the band [Å], in the rest frame by default.
+    frame : {"rest", "obs"} or None, optional
+        Frame of ``lbda_range`` (None: "rest").
+    config : str, path-like or list, optional
+        Configuration ("cbe", "eol", TOML path(s)).
+    field : {"narrow", "wide"}, optional
+        Lazuli field.
+    search : str, optional
+        Readout search of the ETC, as :meth:`Target.setup_to_snr`.
+    phase : float, optional
+        Days from B-band maximum [d], as :class:`Supernova`.
+    source : str, optional
+        sncosmo SN Ia source.
+    conventions : {"physical", "slicersim-1.0"}, optional
+        Physics conventions, as :class:`Target`.
+    allow_partial : bool, optional
+        Band coverage rule of :meth:`Target.setup_to_snr`.
+
+    Returns
+    -------
+    dict
+        As :func:`lazuli_etc`: ``nmd``, ``nramps``, ``exposure_time`` [s], ``snr`` (per
+        resolution element), ``data_volume`` [GB], ``target`` (a :class:`LazuliSupernova`), ...
+    """
     target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field,
                              conventions=conventions)
     return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))

@@ -64,9 +64,14 @@ MAX_SCATTER = 0.5
 class FlatFieldStructure:
     """Multiplicative flat-field structure of the instrument (ideal by default).
 
-    slice_scatter : σ of the slice throughputs (lognormal, mean 1), in [0, 0.5]
-    pixel_scatter : σ of the per-pixel responses (PRNU, lognormal, mean 1), in [0, 0.5]
-    seed : int in [0, 2⁶⁴) keying the draws
+    Parameters
+    ----------
+    slice_scatter : float, optional
+        σ of the slice throughputs (lognormal, mean 1), in [0, 0.5].
+    pixel_scatter : float, optional
+        σ of the per-pixel responses (PRNU, lognormal, mean 1), in [0, 0.5].
+    seed : int, optional
+        Integer in [0, 2⁶⁴) keying the draws.
     """
 
     def __init__(self, slice_scatter=0.0, pixel_scatter=0.0, seed=0):
@@ -89,7 +94,18 @@ class FlatFieldStructure:
         return np.exp(sigma * z - 0.5 * sigma * sigma)
 
     def slice_throughput(self, slice_ids):
-        """Throughput t_s (mean 1) of each slice id."""
+        """Throughput t_s (mean 1) of each slice id.
+
+        Parameters
+        ----------
+        slice_ids : array_like of int
+            Slice ids.
+
+        Returns
+        -------
+        numpy.ndarray
+            The throughputs, of the shape of ``slice_ids``.
+        """
         from slicersim import rng
         ids = np.asarray(slice_ids, dtype=np.uint64)
         if self.slice_scatter == 0.0:
@@ -98,15 +114,45 @@ class FlatFieldStructure:
 
     def row_throughput(self, field, nrows):
         """Slice throughput of each cube row (row r ↔ slice ``slices[nrows − 1 − r]``; Lazuli
-        narrow: slices 1–58, wide 59–116; single-field instruments: 1 … nrows)."""
+        narrow: slices 1–58, wide 59–116; single-field instruments: 1 … nrows).
+
+        Parameters
+        ----------
+        field : str or None
+            The field.
+        nrows : int
+            Cube rows.
+
+        Returns
+        -------
+        numpy.ndarray of shape (nrows,)
+            The throughputs (mean 1).
+        """
         slices = {"narrow": NARROW_SLICES, "wide": WIDE_SLICES}.get(field, tuple(range(1, nrows + 1)))
         if len(slices) != nrows:
             slices = tuple(range(1, nrows + 1))
         return self.slice_throughput(slices[::-1])
 
     def cell_response(self, shape, field, pixels_per_cell=2, backend="auto"):
-        """(nλ, ny, nx) response of each cube cell: the mean of its ``pixels_per_cell`` pixel
-        responses (voxel v, pixel k: the Box–Muller branch k mod 2 of Philox draw k div 2)."""
+        """Response of each cube cell: the mean of its ``pixels_per_cell`` pixel responses (voxel v,
+        pixel k: the Box–Muller branch k mod 2 of Philox draw k div 2).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (nλ, ny, nx) of the cube.
+        field : str
+            The field ("narrow", "wide" or None).
+        pixels_per_cell : int, optional
+            Detector pixels per cell.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            The cell responses (mean 1).
+        """
         from slicersim.backends.noise import uniform_normal_grid
         shape = tuple(int(v) for v in shape)
         if self.pixel_scatter == 0.0:
@@ -122,7 +168,20 @@ class FlatFieldStructure:
         return (total / ppc).reshape(shape)
 
     def pixel_response(self, shape, backend="auto"):
-        """(ny, nx) response r_p of each detector pixel (index y·2¹⁶ + x)."""
+        """Response r_p of each detector pixel (index y·2¹⁶ + x).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (ny, nx) of the detector.
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+
+        Returns
+        -------
+        numpy.ndarray of shape (ny, nx)
+            The pixel responses (mean 1).
+        """
         from slicersim.backends.noise import uniform_normal_grid
         ny, nx = (int(v) for v in shape)
         out = np.ones((ny, nx))
@@ -152,18 +211,26 @@ def _check_structure(structure):
 class Flat3DCalibration(Target):
     """A calibration exposure: a lamp filling the field uniformly, observed with an instrument.
 
+    Products: :meth:`~slicersim.Flat3DCalibration.get_cube` (signal [ADU], variance [ADU²],
+    noisy with a seed), :meth:`~slicersim.Flat3DCalibration.get_detector_image` (e-/s/px, both
+    fields lit), :meth:`~slicersim.Target.get_ramps` (raw MACC ramps),
+    :meth:`~slicersim.Flat3DCalibration.get_scene_cube` (the lamp before the instrument),
+    :meth:`~slicersim.Flat3DCalibration.get_lamp_spectrum`.  The readout is set with
+    :meth:`~slicersim.Target.change_detector` (default: the configuration's).
+
     Parameters
     ----------
-    lamp : :class:`~slicersim.sources.lamps.CalibrationLamp` (see the ``from_*`` constructors)
-    config : "cbe", "eol", a TOML path or a list of them
-    field : "narrow", "wide" or None (default: as :class:`~slicersim.targets.base.Target`)
-    conventions : "physical" (default) or "slicersim-1.0"
-    structure : None (ideal instrument), a :class:`FlatFieldStructure` or a dict of its arguments
-
-    Products: :meth:`get_cube` (signal [ADU], variance [ADU²], noisy with a seed),
-    :meth:`get_detector_image` (e-/s/px, both fields lit), :meth:`get_ramps` (raw MACC ramps),
-    :meth:`get_scene_cube` (the lamp before the instrument), :meth:`get_lamp_spectrum`.
-    The readout is set with :meth:`change_detector` (default: the configuration's).
+    lamp : CalibrationLamp
+        The lamp (:class:`~slicersim.CalibrationLamp`; see the ``from_*`` constructors).
+    config : str, path-like or list, optional
+        "cbe", "eol", a TOML path or a list of them.
+    field : {"narrow", "wide"} or None, optional
+        The field (default: as :class:`~slicersim.Target`).
+    conventions : {"physical", "slicersim-1.0"}, optional
+        Physics conventions ("physical" by default).
+    structure : FlatFieldStructure or dict, optional
+        None (ideal instrument), a :class:`~slicersim.FlatFieldStructure` or a dict of its
+        arguments.
     """
 
     default_config, default_field = "cbe", "auto"
@@ -191,18 +258,80 @@ class Flat3DCalibration(Target):
 
     @classmethod
     def from_spectrum(cls, lbda, flux, mag=None, band="bessellb", magsys="ab", **kwargs):
-        """Uniform lamp of tabulated surface brightness (λ [Å], S [erg/s/cm²/Å/arcsec²]),
-        optionally renormalised to ``mag`` per arcsec² in ``band``."""
+        """Uniform lamp of tabulated surface brightness, optionally renormalised to ``mag`` per
+        arcsec² in ``band``.
+
+        Parameters
+        ----------
+        lbda : array_like of shape (n,)
+            Wavelengths [Å].
+        flux : array_like of shape (n,)
+            Surface brightness S [erg/s/cm²/Å/arcsec²].
+        mag : float, optional
+            Magnitude per arcsec² in ``band`` the lamp is renormalised to [AB mag/arcsec²].
+        band : str, optional
+            sncosmo band of that magnitude.
+        magsys : str, optional
+            sncosmo magnitude system.
+        **kwargs
+            The parameters of :class:`~slicersim.Flat3DCalibration` (``config``, ``field``,
+            ``conventions``, ``structure``).
+
+        Returns
+        -------
+        Flat3DCalibration
+            The calibration exposure (an instance of the class it is called on).
+        """
         return cls(CalibrationLamp(TabulatedContinuum(lbda, flux, mag, band, magsys)), **kwargs)
 
     @classmethod
     def from_blackbody(cls, temperature, mag=15.0, band=DEFAULT_LAMP_BAND, magsys="ab", **kwargs):
-        """Black-body lamp of ``temperature`` [K], ``mag`` per arcsec² (AB) in ``band``."""
+        """Black-body lamp of ``temperature`` [K], ``mag`` per arcsec² (AB) in ``band``.
+
+        Parameters
+        ----------
+        temperature : float
+            Black-body temperature [K].
+        mag : float, optional
+            Magnitude of the lamp per arcsec² in ``band`` [AB mag/arcsec²].
+        band : str, optional
+            sncosmo band of that magnitude.
+        magsys : str, optional
+            sncosmo magnitude system.
+        **kwargs
+            The parameters of :class:`~slicersim.Flat3DCalibration` (``config``, ``field``,
+            ``conventions``, ``structure``).
+
+        Returns
+        -------
+        Flat3DCalibration
+            The calibration exposure (an instance of the class it is called on).
+        """
         return cls(CalibrationLamp(BlackBodyContinuum(temperature, mag, band, magsys)), **kwargs)
 
     @classmethod
     def from_qth(cls, temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, magsys="ab", **kwargs):
-        """The QTH lamp: a black body of ``temperature`` (default 3000 K), ``mag`` per arcsec²."""
+        """The QTH lamp: a black body of ``temperature`` (default 3000 K), ``mag`` per arcsec².
+
+        Parameters
+        ----------
+        temperature : float, optional
+            Black-body temperature [K] (default 3000).
+        mag : float, optional
+            Magnitude of the lamp per arcsec² in ``band`` [AB mag/arcsec²].
+        band : str, optional
+            sncosmo band of that magnitude.
+        magsys : str, optional
+            sncosmo magnitude system.
+        **kwargs
+            The parameters of :class:`~slicersim.Flat3DCalibration` (``config``, ``field``,
+            ``conventions``, ``structure``).
+
+        Returns
+        -------
+        Flat3DCalibration
+            The calibration exposure (an instance of the class it is called on).
+        """
         temperature = QTH_TEMPERATURE if temperature is None else temperature
         return cls.from_blackbody(temperature, mag, band, magsys, **kwargs)
 
@@ -212,10 +341,36 @@ class Flat3DCalibration(Target):
                         **kwargs):
         """The QTH lamp through a Fabry–Perot etalon (``mag``: the lamp's, before the etalon).
 
-        Airy etalon: ``fsr`` [cm⁻¹] or ``optical_thickness`` n·d [µm] (default fsr
-        :data:`DEFAULT_ETALON_FSR`), ``finesse`` (default :data:`DEFAULT_ETALON_FINESSE`),
-        ``peak_transmission`` (default 1).  Or 1.4.2's tabulated form: ``fp_throughput`` = a
-        CSV/ECSV with a ``transmission`` column, a callable T(λ [Å]) or an etalon object."""
+        Parameters
+        ----------
+        fsr : float, optional
+            Airy etalon: free spectral range [cm⁻¹] (default ``DEFAULT_ETALON_FSR``).
+        finesse : float, optional
+            Airy etalon finesse (default ``DEFAULT_ETALON_FINESSE``).
+        optical_thickness : float, optional
+            Airy etalon: n·d [µm], instead of ``fsr``.
+        peak_transmission : float, optional
+            Airy etalon peak transmission (default 1).
+        fp_throughput : str, callable or object, optional
+            Or 1.4.2's tabulated form: a CSV/ECSV with a ``transmission`` column, a callable
+            T(λ [Å]) or an etalon object.
+        temperature : float, optional
+            QTH temperature [K] (default 3000).
+        mag : float, optional
+            Magnitude of the lamp per arcsec² in ``band`` [AB mag/arcsec²].
+        band : str, optional
+            sncosmo band of that magnitude.
+        magsys : str, optional
+            sncosmo magnitude system.
+        **kwargs
+            The parameters of :class:`~slicersim.Flat3DCalibration` (``config``, ``field``,
+            ``conventions``, ``structure``).
+
+        Returns
+        -------
+        Flat3DCalibration
+            The calibration exposure (an instance of the class it is called on).
+        """
         airy = dict(fsr=fsr, finesse=finesse, optical_thickness=optical_thickness,
                     peak_transmission=peak_transmission)
         if fp_throughput is not None:
@@ -233,8 +388,22 @@ class Flat3DCalibration(Target):
 
     @classmethod
     def from_febryperot(cls, fp_throughput=None, temperature=None, mag=12.0, band=DEFAULT_LAMP_BAND, **kwargs):
-        """slicersim 1.4.2's spelling of :meth:`from_fabryperot` (same first argument, ``fp_throughput``;
-        None: the default Airy etalon)."""
+        """slicersim 1.4.2's spelling of :meth:`from_fabryperot` (same first argument,
+        ``fp_throughput``; None: the default Airy etalon).
+
+        Parameters
+        ----------
+        fp_throughput, temperature, mag, band
+            As :meth:`from_fabryperot`.
+        **kwargs
+            The parameters of :class:`~slicersim.Flat3DCalibration` (``config``, ``field``,
+            ``conventions``, ``structure``).
+
+        Returns
+        -------
+        Flat3DCalibration
+            The calibration exposure (an instance of the class it is called on).
+        """
         return cls.from_fabryperot(fp_throughput=fp_throughput, temperature=temperature, mag=mag, band=band,
                                    **kwargs)
 
@@ -272,7 +441,18 @@ class Flat3DCalibration(Target):
 
     def update(self, **params):
         """Change ``field``, ``config`` or any simulation parameter (``Simulation.mutable_parameters``)
-        atomically; the readout is kept."""
+        atomically; the readout is kept.
+
+        Parameters
+        ----------
+        **params
+            The parameters to change.
+
+        Returns
+        -------
+        None
+            The exposure is changed in place.
+        """
         check_parameter_names("calibration", params, self.mutable_parameters)
         sim_params = {k: v for k, v in params.items() if k not in self.own_parameters}
         config = check_config(params["config"]) if "config" in params else self.config
@@ -298,12 +478,26 @@ class Flat3DCalibration(Target):
 
     # ------------------------------------------------------------------ products
     def get_lamp_spectrum(self):
-        """(λ [Å], S̄ [erg/s/cm²/Å/arcsec²]): the lamp averaged over each instrument bin."""
+        """The lamp averaged over each instrument bin.
+
+        Returns
+        -------
+        lbda : numpy.ndarray of shape (nλ,)
+            Wavelengths [Å].
+        flux : numpy.ndarray of shape (nλ,)
+            S̄ [erg/s/cm²/Å/arcsec²].
+        """
         sim = self.simulation
         return sim.lbda.copy(), sim.scene.background.flambda(sim.lbda)
 
     def get_scene_cube(self):
-        """(nλ, ny, nx) lamp flux per cell before the instrument [erg/s/cm²/Å per cell]: S̄(λ) s²."""
+        """Lamp flux per cell before the instrument: S̄(λ) s².
+
+        Returns
+        -------
+        numpy.ndarray of shape (nλ, ny, nx)
+            [erg/s/cm²/Å per cell].
+        """
         sim = self.simulation
         ny, nx = sim.spectrograph.shape
         per_cell = sim.scene.background.flambda(sim.lbda) * sim.spectrograph.spatial_scale ** 2
@@ -326,17 +520,38 @@ class Flat3DCalibration(Target):
                  **options):
         """Signal [ADU] and variance [ADU²] cubes (+ a noisy one with ``seed``), all ramps summed.
 
-        ``which``: "current" (this field), "narrow", "wide" or "both" (a tuple (narrow, wide), as 1.4.2).
-        ``switch_off``: components left out, the rule of every cube
-        (:mod:`slicersim.products.components`: "background" is the lamp, "thermal" the instrument's
-        light, detector terms leave the variance; "pointsource" / "host" are absent anyway).
         One computation with or without flat-field structure: QE · (t_row LSF[lamp] + LSF[thermal])
         per row, × the cell response with pixel structure, then ``Simulation.cell_variance``
         (saturated cells NaN / +inf); noise as every cube (Philox, stream 0, voxel index).
-        ``options``: ``dtype`` (float64 / float32); ``precision`` ("auto", "double" or "single": of the
-        noise draw, :func:`slicersim.backends.noise.noisy_cube`; the cubes themselves are NumPy, double);
-        ``psf_profile``, ``max_bytes``, ``progress``, ``psf_options`` are accepted as for any cube and
-        unused (a uniform scene needs no PSF)."""
+
+        Parameters
+        ----------
+        seed : int, optional
+            Integer in [0, 2⁶⁴) of the noisy cube; None: noiseless.
+        which : {"current", "narrow", "wide", "both"}, optional
+            "current" (this field), "narrow", "wide" or "both" (a tuple (narrow, wide), as 1.4.2).
+        nmd : tuple of int, optional
+            Readout (n, m, d) (default: the current one).
+        nramps : int, optional
+            Number of ramps (default: the current one).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        switch_off : str or sequence of str, optional
+            Components left out, the rule of every cube (``slicersim.products.components``:
+            "background" is the lamp, "thermal" the instrument's light, detector terms leave the
+            variance; "pointsource" / "host" are absent anyway).
+        **options
+            ``dtype`` (float64 / float32); ``precision`` ("auto", "double" or "single": of the
+            noise draw, ``slicersim.backends.noise.noisy_cube``; the cubes themselves are NumPy,
+            double); ``psf_profile``, ``max_bytes``, ``progress``, ``psf_options`` are accepted as
+            for any cube and unused (a uniform scene needs no PSF).
+
+        Returns
+        -------
+        CubeTuple or tuple
+            (signal, variance[, noisy]) of shape (nλ, ny, nx) [ADU, ADU²]; with ``which="both"``
+            a tuple (narrow, wide) of them.
+        """
         from slicersim.backends.precision import check_precision, resolve_precision
         from slicersim.products.components import check_switch_off
         from slicersim.simulation import CubeTuple
@@ -405,7 +620,14 @@ class Flat3DCalibration(Target):
         return lamp[:, None, None] * rows[None, :, None] + thermal[:, None, None]
 
     def get_field_rate_cubes(self):
-        """Photo-electron rate cubes [e-/s per cell per bin] of both Lazuli fields, both lit by the lamp."""
+        """Photo-electron rate cubes [e-/s per cell per bin] of both Lazuli fields, both lit by the lamp.
+
+        Returns
+        -------
+        dict
+            {field: (cube, simulation)} for "narrow" and "wide", each cube of shape
+            (nλ, ny, nx) [e-/s per cell per bin].
+        """
         if self._field is None:
             raise ParameterError("detector images need a Lazuli configuration (narrow and wide fields)")
         return {f: (np.ascontiguousarray(np.broadcast_to(self._rate_cube(sim, f), (sim.lbda.size,
@@ -415,8 +637,23 @@ class Flat3DCalibration(Target):
     def get_detector_image(self, mapper=None, backend="auto", precision="auto"):
         """Photo-electron rate on the H4RG [e-/s/px] with both fields lit (flux-conserving
         projection), times the pixel response when ``structure`` has one.  Dark current, thermal
-        dark and ROIC glow are added by :meth:`get_ramps`.  ``precision``: of the projection's
-        deposit, checked first (as :meth:`DetectorProducts.get_detector_image`)."""
+        dark and ROIC glow are added by :meth:`~slicersim.Target.get_ramps`.
+
+        Parameters
+        ----------
+        mapper : SlicerMapper, optional
+            The detector mapping (default: the built-in one).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        precision : {"auto", "double", "single"}, optional
+            Of the projection's deposit, checked first (as
+            :meth:`Target.get_detector_image <slicersim.Target.get_detector_image>`).
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            The rate image [e-/s/px].
+        """
         precision = resolve_precision(precision, backend, "projection")[1]
         mapper = default_mapper() if mapper is None else mapper
         image = np.zeros(mapper.detector_shape)
@@ -439,7 +676,20 @@ class Flat3DCalibration(Target):
     get_variance_contribution = get_band_variance_contribution = _no_point_source
 
     def set_host(self, host, relative=True):
-        """A flat takes no host: ParameterError (``None``, no host, is accepted)."""
+        """A flat takes no host: ParameterError (``None``, no host, is accepted).
+
+        Parameters
+        ----------
+        host : None
+            Only None (no host) is accepted.
+        relative : bool, optional
+            Unused.
+
+        Returns
+        -------
+        None
+            Nothing changes.
+        """
         if host is not None:
             raise ParameterError("a calibration flat takes no host: its scene is the lamp filling the field "
                                  "(put hosts on astronomical targets: LazuliSupernova(..., host=...), set_host)")

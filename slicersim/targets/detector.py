@@ -79,8 +79,15 @@ class DetectorProducts:
     def get_field_rate_cubes(self):
         """Photo-electron rate cubes [e-/s per cell per bin] of both Lazuli fields: the target's
         field holds its scene; the other field the same sky (host and point source at positions
-        converted between the fields, :func:`field_offset`) with its own background and thermal
-        light.  A target without field is taken to be in the narrow one."""
+        converted between the fields, ``field_offset``) with its own background and thermal
+        light.  A target without field is taken to be in the narrow one.
+
+        Returns
+        -------
+        dict
+            {field: (cube, simulation)} for "narrow" and "wide", each cube of shape
+            (nλ, ny, nx) [e-/s per cell per bin].
+        """
         cubes = {}
         for field in ("narrow", "wide"):
             sim = self.simulation if field == (self.field or "narrow") else self._other_field_simulation(field)
@@ -91,9 +98,24 @@ class DetectorProducts:
         """Photo-electron rate on the H4RG [e-/s/px] (both fields, flux-conserving projection).
 
         Dark current, thermal dark and ROIC glow are not included: :meth:`get_ramps`
-        adds them to every pixel.  ``precision`` ("auto", "double" or "single", checked first):
-        of the projection's deposit (:func:`slicersim.backends.projection.deposit`; single: ≤ 1e-5
-        of the image peak against double); the scene cubes keep their own default."""
+        adds them to every pixel.
+
+        Parameters
+        ----------
+        mapper : SlicerMapper, optional
+            The detector mapping (default: the built-in one).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        precision : {"auto", "double", "single"}, optional
+            Checked first: of the projection's deposit (``slicersim.backends.projection.deposit``;
+            single: ≤ 1e-5 of the image peak against double); the scene cubes keep their own
+            default.
+
+        Returns
+        -------
+        numpy.ndarray of shape (rows, cols)
+            The rate image [e-/s/px].
+        """
         precision = resolve_precision(precision, backend, "projection")[1]
         mapper = default_mapper() if mapper is None else mapper
         cubes = self.get_field_rate_cubes()
@@ -104,17 +126,38 @@ class DetectorProducts:
         return image
 
     def get_ramps(self, out=None, nmd=None, nramps=None, seed=None, mapper=None, backend="auto", **kwargs):
-        """Raw MACC ramps of the full detector (see :func:`slicersim.ramps.simulate`).
+        """Raw MACC ramps of the full detector (see :func:`slicersim.products.ramps.simulate`).
 
-        Uses the current readout unless ``nmd`` / ``nramps`` are given (validated first:
-        ``nramps`` must be an integer ≥ 1, ReadoutError otherwise); the detector
-        parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
-        saturation) come from the configuration.  ``seed``: an integer in [0, 2⁶⁴) or None (default:
-        a fresh seed, recorded in the file's SEED attribute).  A file gets the target's truth,
-        ``truth/target`` (redshift, phase, position, input F_λ and expected rate [e-/s per bin]:
-        :func:`slicersim.targets.truth.target_truth`); ``target_meta``: further attributes of it
-        (e.g. a campaign's catalog row: phase, peak_absmag, x1, c, source).
-        Returns SCI or writes ``out`` (HDF5 or level-1b FITS) and returns its path."""
+        The detector parameters (dark, thermal dark, ROIC glow, read noise, gain, frame time,
+        saturation) come from the configuration.
+
+        Parameters
+        ----------
+        out : str or path-like, optional
+            Output file (HDF5 or level-1b FITS); None: SCI in memory.
+        nmd : tuple of int, optional
+            Readout (n, m, d); the current readout unless given (validated first).
+        nramps : int, optional
+            Number of ramps: an integer ≥ 1 (ReadoutError otherwise); the current one unless given.
+        seed : int, optional
+            An integer in [0, 2⁶⁴) or None (default: a fresh seed, recorded in the file's SEED
+            attribute).
+        mapper : SlicerMapper, optional
+            The detector mapping (default: the built-in one).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        **kwargs
+            Further keywords of the keyword form of :func:`~slicersim.products.ramps.simulate`
+            (they override the configuration's detector parameters), and ``target_meta``: further
+            attributes of the target's truth (e.g. a campaign's catalog row: phase, peak_absmag, x1,
+            c, source).  A file gets the target's truth, ``truth/target`` (redshift, phase,
+            position, input F_λ and expected rate [e-/s per bin]: ``slicersim.targets.truth.target_truth``).
+
+        Returns
+        -------
+        numpy.ndarray or str
+            SCI of shape (nramps, ngroups, rows, cols) [ADU], or the path of ``out`` written.
+        """
         from slicersim.products.ramps import simulate
         seed = validation.seed(seed)                 # checked before the (slow) detector image
         sim, det = self.simulation, self.simulation.detector
@@ -145,18 +188,64 @@ class DetectorProducts:
     # -- figures (thin calls of slicersim.plotting) -----------------------------
     def show_spectrum(self, ax=None, seed=None, savefile=None):
         """Figure of the extracted spectrum [ADU] with its ±1σ band and its SNR per bin (the ETC band
-        shaded); see :func:`slicersim.plotting.plot_spectrum`.  Returns the Figure."""
+        shaded); see :func:`slicersim.plotting.spectra.plot_spectrum`.
+
+        Parameters
+        ----------
+        ax : matplotlib.axes.Axes or sequence of matplotlib.axes.Axes, optional
+            None (new figure), a pair of Axes (spectrum, SNR) or a single Axes.
+        seed : int, optional
+            If given, a noisy realisation is drawn as points.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.plotting import plot_spectrum
         return plot_spectrum(self, ax=ax, seed=seed, savefile=savefile)
 
     def show_variance_contribution(self, ax=None, savefile=None):
         """Figure of the variance budget: each source's contribution [ADU²] and fraction of the
-        total versus λ (the paper's figure); see :func:`slicersim.plotting.plot_variance_budget`."""
+        total versus λ (the paper's figure); see :func:`slicersim.plotting.spectra.plot_variance_budget`.
+
+        Parameters
+        ----------
+        ax : sequence of matplotlib.axes.Axes, optional
+            None (new figure) or a pair of Axes (variance, fraction).
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from slicersim.plotting import plot_variance_budget
         return plot_variance_budget(self, ax=ax, savefile=savefile)
 
     def show_cube(self, lbda=None, seed=None, ax=None, savefile=None):
-        """Figure of the target's cube at a few wavelengths [Å] (:meth:`Simulation.show_cube`)."""
+        """Figure of the target's cube at a few wavelengths (:meth:`Simulation.show_cube
+        <slicersim.Simulation.show_cube>`).
+
+        Parameters
+        ----------
+        lbda : array_like, optional
+            Wavelengths of the panels [Å] (default: four spread over the grid).
+        seed : int, optional
+            Seed of a noisy cube (None: the signal cube).
+        ax : sequence of matplotlib.axes.Axes, optional
+            None (new figure) or one Axes per wavelength.
+        savefile : str, os.PathLike or file object, optional
+            If given the figure is saved there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         return self.simulation.show_cube(lbda=lbda, seed=seed, ax=ax, savefile=savefile)
 
 

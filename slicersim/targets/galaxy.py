@@ -3,7 +3,7 @@
 ``LazuliGalaxy(0.5, model="ngc0628", aperture="2-kpc").setup_to_snr(10)`` is the exposure
 needed for SNR 10 per resolution element in the galaxy light within 2 proper kpc.  The galaxy
 is the host model of the point-source targets (:mod:`slicersim.sources.galaxies`) rendered at
-``redshift``; the extraction follows :mod:`slicersim.products.extraction`.
+``redshift``; the extraction follows ``slicersim.products.extraction``.
 """
 from __future__ import annotations
 
@@ -30,17 +30,26 @@ class Galaxy(Target):
 
     Parameters
     ----------
-    redshift : > 0; sets the spectrum, the brightness and the angular size (fixed proper size)
-    model : name ("sersic:bb-5000" default, "ngc0628", "sersic:ngc2403", "ngc4321:bb-6000"),
-        dict with ``refmodel`` or :class:`~slicersim.sources.galaxies.GalaxyModel`
-    aperture : "core" (PSF-weighted optimal extraction at the centre), "<x>-arcsec" or
-        "<x>-kpc" (plain sums; default "1-arcsec")
-    aperture__position : "host" (the galaxy centre, default) or (x, y) [cells] from the field centre
-    method : "default" (optimal for "core", else aperture), "optimal" or "aperture"
-    position : (x, y) [cells] of the galaxy centre from the field centre
-    config, field, conventions : as :class:`~slicersim.targets.base.Target`
-    **host_params : model parameters (``band`` (default "bessellr"), ``magabs`` / ``mag``,
-        ``r_kpc``, ``n``, ``ellip``, ``theta``, ``rotation``, ... see GalaxyModel)
+    redshift : float
+        Redshift > 0; sets the spectrum, the brightness and the angular size (fixed proper
+        size).
+    model : str, dict or GalaxyModel, optional
+        A name ("sersic:bb-5000" default, "ngc0628", "sersic:ngc2403", "ngc4321:bb-6000"),
+        a dict with ``refmodel`` or a :class:`~slicersim.GalaxyModel`.
+    aperture : str, optional
+        "core" (PSF-weighted optimal extraction at the centre), "<x>-arcsec" or "<x>-kpc"
+        (plain sums; default "1-arcsec").
+    aperture__position : str or tuple of float, optional
+        "host" (the galaxy centre, default) or (x, y) [cells] from the field centre.
+    method : {"default", "optimal", "aperture"}, optional
+        "default" (optimal for "core", else aperture), "optimal" or "aperture".
+    config, field, conventions
+        As :class:`~slicersim.Target`.
+    position : tuple of float, optional
+        (x, y) [cells] of the galaxy centre from the field centre.
+    **host_params
+        Model parameters (``band`` (default "bessellr"), ``magabs`` / ``mag``, ``r_kpc``,
+        ``n``, ``ellip``, ``theta``, ``rotation``, ... see :class:`~slicersim.GalaxyModel`).
     """
 
     own_parameters = Target.own_parameters + ("aperture", "aperture__position", "method")
@@ -93,9 +102,20 @@ class Galaxy(Target):
         return "optimal" if self._aperture.strip().lower() == "core" else "aperture"
 
     def update(self, **params):
-        """As :meth:`Target.update`, plus ``aperture``, ``aperture__position`` and ``method``,
-        atomically: the aperture is checked against the field in the new state (redshift,
-        position, host, instrument) before anything changes."""
+        """As :meth:`Target.update <slicersim.Target.update>`, plus ``aperture``,
+        ``aperture__position`` and ``method``, atomically: the aperture is checked against the
+        field in the new state (redshift, position, host, instrument) before anything changes.
+
+        Parameters
+        ----------
+        **params
+            The parameters to change.
+
+        Returns
+        -------
+        None
+            The target is changed in place.
+        """
         params = dict(params)
         aperture = _check_aperture_name(params.pop("aperture")) if "aperture" in params else self._aperture
         centre = _check_aperture_position(params.pop("aperture__position")) if "aperture__position" in params \
@@ -142,9 +162,21 @@ class Galaxy(Target):
     def get_spectrum(self, incl_error=False, seed=None, method="default", of_host=True, aperture=None,
                      unit="adu", switch_off=None):
         """Spectrum of the galaxy light (λ [Å], signal, variance) in ``aperture`` (default: the
-        target's) by ``method`` ("default": the target's), in ``unit``; see
-        :meth:`Target.get_spectrum` for ``incl_error`` / ``seed`` / ``unit`` / ``switch_off``.  A
-        galaxy target has no point source: ``of_host`` must stay True."""
+        target's) by ``method`` ("default": the target's), in ``unit``.  A galaxy target has no
+        point source: ``of_host`` must stay True.
+
+        Parameters
+        ----------
+        incl_error, seed, method, aperture, unit, switch_off
+            As :meth:`Target.get_spectrum <slicersim.Target.get_spectrum>`.
+        of_host : bool, optional
+            Must stay True.
+
+        Returns
+        -------
+        lbda, signal, variance : numpy.ndarray of shape (nλ,)
+            As :meth:`Target.get_spectrum <slicersim.Target.get_spectrum>`.
+        """
         if validation.flag("of_host", of_host) is False:
             raise ParameterError("a galaxy target has no point source: its spectrum is that of the galaxy "
                                  "(of_host=True)")
@@ -160,7 +192,25 @@ class Galaxy(Target):
     # rest), as for supernovae and 1.4.2; frame="obs" reads them in the observer frame
     def get_band_snr(self, lbda_range=None, frame=None, per_resolution=False, allow_partial=False):
         """Band SNR of the extracted galaxy spectrum: mean(signal) / √mean(variance) over the bins
-        of ``lbda_range`` (per resolution element with ``per_resolution``)."""
+        of ``lbda_range`` (per resolution element with ``per_resolution``).
+
+        Parameters
+        ----------
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å], read in ``frame``, as :meth:`Target.setup_to_snr
+            <slicersim.Target.setup_to_snr>`.
+        frame : {"rest", "obs"} or None, optional
+            The frame of ``lbda_range``.
+        per_resolution : bool, optional
+            SNR per resolution element (else per bin).
+        allow_partial : bool, optional
+            Band coverage rule.
+
+        Returns
+        -------
+        float
+            The band SNR.
+        """
         sim = self.simulation
         mask = sim.band_mask(self._band(lbda_range, frame), allow_partial=allow_partial)
         _, signal, variance = self._extract(None)
@@ -171,8 +221,32 @@ class Galaxy(Target):
     def setup_to_snr(self, snr, lbda_range=None, frame=None, search="exact", per_resolution=True,
                      backend="auto", allow_partial=False):
         """Find and apply the readout with the shortest total exposure reaching ``snr`` in the
-        extracted galaxy spectrum (per resolution element by default); returns the ETC result dict.
-        Every candidate (n, m, d) × ramps of ``snr.search.candidate_readouts`` is evaluated."""
+        extracted galaxy spectrum (per resolution element by default).  Every candidate
+        (n, m, d) × ramps of ``snr.search.candidate_readouts`` is evaluated.
+
+        Parameters
+        ----------
+        snr : float
+            The SNR to reach.
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å], read in ``frame``, as :meth:`Target.setup_to_snr
+            <slicersim.Target.setup_to_snr>`.
+        frame : {"rest", "obs"} or None, optional
+            The frame of ``lbda_range``.
+        search : {"exact", "reference"}, optional
+            Readout search.
+        per_resolution : bool, optional
+            SNR per resolution element (else per bin).
+        backend : str, optional
+            "auto", "opencl" or "numpy".
+        allow_partial : bool, optional
+            Band coverage rule.
+
+        Returns
+        -------
+        dict
+            The ETC result.
+        """
         from slicersim.snr.search import candidate_readouts, exact_choice, limit_error, max_frames_for
         snr = check_snr(snr)
         validation.choice("search", search, ("exact",), error=ETCError, what="search (galaxy targets: 'exact' only)")
@@ -201,7 +275,13 @@ class Galaxy(Target):
 
     def get_variance_contribution(self):
         """Per-source variance contribution [ADU²] per bin of the extracted galaxy spectrum:
-        Var(all) − Var(source off), for the eight sources of slicersim."""
+        Var(all) − Var(source off), for the eight sources of slicersim.
+
+        Returns
+        -------
+        dict
+            ``variance`` (the total) and one entry per source, each of shape (nλ,) [ADU²].
+        """
         _, _, total = self._extract(None)
         out = {"variance": total}
         for src in VARIANCE_SOURCES:
@@ -209,7 +289,23 @@ class Galaxy(Target):
         return out
 
     def get_band_variance_contribution(self, lbda_range=None, frame=None, allow_partial=False):
-        """Band means of :meth:`get_variance_contribution` (absolute [ADU²] and ``frac_<src>``)."""
+        """Band means of :meth:`get_variance_contribution` (absolute [ADU²] and ``frac_<src>``).
+
+        Parameters
+        ----------
+        lbda_range : tuple of float, optional
+            (min, max) of the band [Å], read in ``frame``, as :meth:`Target.setup_to_snr
+            <slicersim.Target.setup_to_snr>`.
+        frame : {"rest", "obs"} or None, optional
+            The frame of ``lbda_range``.
+        allow_partial : bool, optional
+            Band coverage rule.
+
+        Returns
+        -------
+        dict
+            The band-mean contributions [ADU²] and their fractions ``frac_<src>``.
+        """
         mask = self.simulation.band_mask(self._band(lbda_range, frame), allow_partial=allow_partial)
         _, signal, total = self._extract(None)
         mean_total = float(np.nanmean(total[mask]))

@@ -6,7 +6,7 @@ band that needs a download raises SpectrumError saying how to provide its files)
 
 * :class:`PowerLaw` — F_λ ∝ (λ / 5500 Å)^α (slicersim 1.4.2's convention), ``mag`` in ``band``;
 * :class:`SncosmoTarget` — ``sncosmo.Model(source)`` at a redshift and phase;
-* :class:`Kilonova` — a POSSIS model file (:mod:`slicersim.sources.kilonova`) through sncosmo;
+* :class:`Kilonova` — a POSSIS model file (``slicersim.sources.kilonova``) through sncosmo;
 * :class:`CalSpec` — a CALSPEC FITS file (absolute flux; optional renormalisation).
 
 Each has a ``Lazuli*`` variant (Lazuli IFS, CBE configuration, narrow field by default).
@@ -56,9 +56,22 @@ class PowerLaw(Target):
     """F_λ = F_0 (λ / 5500 Å)^α [erg/s/cm²/Å] (F_ν ∝ λ^(α+2)), F_0 such that the spectrum has
     magnitude ``mag`` in ``band`` / ``magsys`` (sncosmo synthetic photometry on ``lbda``).
 
-    ``lbda`` [Å] defaults to :func:`powerlaw_grid` and must cover the band.  ``band`` defaults
-    to ``"bessellr"`` (slicersim 1.4.2's ``"sdssr"`` needs a download).  ``redshift`` is only a
-    label for ``frame="rest"`` bands.  Other arguments: :class:`~slicersim.targets.base.Target`.
+    Parameters
+    ----------
+    alpha : float
+        Power-law index α of F_λ.
+    mag : float
+        Magnitude of the spectrum in ``band`` / ``magsys`` [mag].
+    band : str, optional
+        sncosmo band (default ``"bessellr"``; slicersim 1.4.2's ``"sdssr"`` needs a download).
+    magsys : str, optional
+        sncosmo magnitude system.
+    lbda : array_like of shape (n,), optional
+        Wavelength grid [Å]; defaults to ``powerlaw_grid()`` and must cover the band.
+    config, field, position, conventions, host
+        As :class:`~slicersim.Target`.
+    redshift : float, optional
+        Only a label for ``frame="rest"`` bands.
     """
 
     def __init__(self, alpha, mag, band="bessellr", magsys="ab", lbda=None, config=None, field="default",
@@ -74,19 +87,36 @@ class PowerLaw(Target):
 
 class SncosmoTarget(Target):
     """Any sncosmo source at ``redshift`` and ``phase`` [rest-frame days from t0 = 0]:
-    F_λ = ``sncosmo.Model(source).flux(phase (1 + z), λ)`` (:func:`~slicersim.sources.spectra.sncosmo_spectrum`;
+    F_λ = ``sncosmo.Model(source).flux(phase (1 + z), λ)`` (``slicersim.sources.spectra.sncosmo_spectrum``;
     under ``conventions="slicersim-1.0"`` ``phase`` is observer-frame days, as in slicersim 1.0).
 
-    source : a registry name (e.g. ``"hsiao-subsampled"``, ``"salt3"`` when its files are here),
-        a (name, version) pair, or a ``sncosmo.Source`` built from your own files
-    params : the source's parameters, e.g. {"x1": 1, "c": 0.1} for SALT (finite numbers)
-    peak_absmag : peak absolute magnitude in rest-frame ``band`` (``set_source_peakabsmag``,
-        ``cosmology`` default Planck18), or
-    mag : apparent magnitude of the observed spectrum at ``phase`` in observer-frame ``band``;
-        exactly one of the two
     ``update(redshift=...)`` recomputes the spectrum with the same normalisation rule.
-    ``**target``: ``config``, ``field``, ``position``, ``conventions``, ``host`` as
-    :class:`~slicersim.targets.base.Target` (keywords).
+
+    Parameters
+    ----------
+    source : str, tuple or sncosmo.Source
+        A registry name (e.g. ``"hsiao-subsampled"``, ``"salt3"`` when its files are here),
+        a (name, version) pair, or a ``sncosmo.Source`` built from your own files.
+    redshift : float
+        Redshift z.
+    phase : float, optional
+        Rest-frame days from t0 = 0 [d].
+    peak_absmag : float, optional
+        Peak absolute magnitude in rest-frame ``band`` [AB mag] (``set_source_peakabsmag``,
+        ``cosmology`` default Planck18); exactly one of ``peak_absmag`` and ``mag``.
+    mag : float, optional
+        Apparent magnitude of the observed spectrum at ``phase`` in observer-frame ``band``.
+    band : str, optional
+        sncosmo band of the normalisation.
+    magsys : str, optional
+        sncosmo magnitude system of the normalisation.
+    params : dict, optional
+        The source's parameters, e.g. {"x1": 1, "c": 0.1} for SALT (finite numbers).
+    cosmology : astropy.cosmology.Cosmology, optional
+        Cosmology of ``peak_absmag`` (default Planck18).
+    **target
+        ``config``, ``field``, ``position``, ``conventions``, ``host`` as
+        :class:`~slicersim.Target` (keywords).
     """
 
     def __init__(self, source, redshift, phase=0.0, peak_absmag=None, mag=None, band="bessellb", magsys="ab",
@@ -117,7 +147,7 @@ class SncosmoTarget(Target):
 
 
 class Kilonova(SncosmoTarget):
-    """Kilonova from a POSSIS model file (``.txt`` or ``.fits``; :mod:`slicersim.sources.kilonova`)
+    """Kilonova from a POSSIS model file (``.txt`` or ``.fits``; ``slicersim.sources.kilonova``)
     at ``redshift``, ``phase`` [rest-frame days since merger; observer-frame under
     ``conventions="slicersim-1.0"``] and viewing angle ``theta``
     [deg, 0 pole-on … 90 edge-on].
@@ -126,8 +156,31 @@ class Kilonova(SncosmoTarget):
     (default ``"bessellr"``; 1.4.2's ``"sdssr"`` needs a download), or to the observed ``mag``
     at ``phase`` when given (1.4.2's ``mag`` is instead a rest-frame peak magnitude).
     No model ships with slicersim: a missing file raises SpectrumError saying where to get one.
-    ``theta`` may be an astropy Quantity (converted to degrees).  ``**target``: ``config``, ``field``,
-    ``position``, ``conventions``, ``host`` as :class:`~slicersim.targets.base.Target` (keywords).
+
+    Parameters
+    ----------
+    model : str or path-like
+        The POSSIS model file (``.txt`` or ``.fits``).
+    redshift : float, optional
+        Redshift z.
+    phase : float, optional
+        Rest-frame days since merger [d] (observer frame under
+        ``conventions="slicersim-1.0"``).
+    theta : float or astropy.units.Quantity, optional
+        Viewing angle [deg, 0 pole-on … 90 edge-on] (a Quantity is converted to degrees).
+    peak_absmag : float, optional
+        Peak absolute magnitude in rest-frame ``band`` [AB mag].
+    mag : float, optional
+        Instead: observed magnitude at ``phase`` in ``band`` [AB mag].
+    band : str, optional
+        sncosmo band of the normalisation.
+    magsys : str, optional
+        sncosmo magnitude system of the normalisation.
+    cosmology : astropy.cosmology.Cosmology, optional
+        Cosmology of the distance (default Planck18).
+    **target
+        ``config``, ``field``, ``position``, ``conventions``, ``host`` as
+        :class:`~slicersim.Target` (keywords).
     """
 
     def __init__(self, model, redshift=0.2, phase=1.4, theta=0.0, peak_absmag=-15.8, mag=None, band="bessellr",
@@ -143,11 +196,23 @@ class Kilonova(SncosmoTarget):
 class CalSpec(Target):
     """CALSPEC spectrophotometric standard from a FITS file (absolute F_λ, no redshift).
 
-    ``name``: a FITS path, or a star name (file-name prefix, e.g. ``"bd_17d4708"``) looked up
-    in ``calspec_dir`` or $SLICERSIM_CALSPEC_DIR (latest version wins;
-    :func:`~slicersim.sources.spectra.find_calspec_file`).  ``mag`` (AB, in ``band``)
-    optionally renormalises the spectrum.  ``host`` (and the ``redshift`` a host by name needs)
-    as for every target (:meth:`~slicersim.targets.base.Target.set_host`)."""
+    Parameters
+    ----------
+    name : str or path-like
+        A FITS path, or a star name (file-name prefix, e.g. ``"bd_17d4708"``) looked up in
+        ``calspec_dir`` or $SLICERSIM_CALSPEC_DIR (latest version wins;
+        ``slicersim.sources.spectra.find_calspec_file``).
+    calspec_dir : str or path-like, optional
+        Directory of the CALSPEC FITS files.
+    mag : float, optional
+        AB magnitude in ``band`` the spectrum is renormalised to (none by default).
+    band : str, optional
+        sncosmo band of that renormalisation.
+    config, field, position, conventions
+        As :class:`~slicersim.Target`.
+    redshift, host
+        ``host`` (and the ``redshift`` a host by name needs) as for every target
+        (:meth:`Target.set_host <slicersim.Target.set_host>`)."""
 
     def __init__(self, name, calspec_dir=None, mag=None, band="bessellb", config=None, field="default",
                  position=(0.0, 0.0), conventions=DEFAULT_CONVENTIONS, redshift=None, host=None):
