@@ -91,16 +91,58 @@ def _clipped_read_sum(before, K, pos0, g, w, m, full_well, pix, seed, stream):
     return total
 
 
+#: draw of the block whose word 0 holds a sparse count's low 32 bits (counter (g << 32 | pixel, stream))
+REFINE_DRAW = 0xFFFFFFFF
+
+
+def _frame_position32(x, w):
+    """Frame position in [0, w): (x·w) >> 32 with a 32-bit word x (exact integers)."""
+    return ((np.asarray(x, np.uint64) * np.uint64(w)) >> np.uint64(32)).astype(np.float64)
+
+
+def sparse_count(lam, p_empty, hi, low_words):
+    """K ~ Poisson(lam) by inversion of the 52-bit uniform of :func:`rng.words_to_uniform` whose top
+    32 bits are ``hi``; its low bits come from ``low_words()`` (called with the lanes that need them)
+    only where a CDF value falls between the smallest and the largest uniform with those top bits,
+    so the counts are those of full 52-bit uniforms while nearly all pixels use 32 random bits.
+
+    Parameters
+    ----------
+    lam, p_empty : (npix,) float64
+        Poisson mean and e^−lam.
+    hi : (npix,) uint32
+        Top 32 bits of the uniform.
+    low_words : callable
+        ``low_words(sel)`` → (sel.size,) uint32: the low 32 bits of the lanes ``sel``.
+
+    Returns
+    -------
+    (npix,) float64 counts."""
+    hi = np.asarray(hi, np.uint32)
+    K = rng.inversion_search(lam, p_empty, rng.words_to_uniform(hi, np.uint32(0)))
+    right = rng.inversion_search(lam, p_empty, rng.words_to_uniform(hi, np.uint32(0xFFFFFFFF)))
+    amb = np.nonzero(right > K)[0]
+    if amb.size:
+        u = rng.words_to_uniform(hi[amb], low_words(amb))
+        K[amb] = rng.inversion_search(lam[amb], p_empty[amb], u)
+    return K
+
+
 def _sparse_group(mu, p_empty, before, g, w, m, full_well, pix, seed, stream, fx=None):
     """(read sum, clipped charge after the window, window reached the full well) of group g.
 
-    K ~ Poisson(mu·w) by inversion of the uniform of words 0–1 of block (g << 32 | pixel, stream,
-    0); words 2–3 place event 0, later events use draws ≥ 1 (:func:`_event_words`).  ``fx``
-    (effects twin, :mod:`slicersim.backends.ramp_effects`) adds the window's deposits and the
-    nonlinear read values."""
-    words = rng.random_words(seed, (np.uint64(g) << np.uint64(32)) | pix, stream, 0)
-    K = _inversion(mu * float(w), p_empty, rng.words_to_uniform(words[:, 0], words[:, 1]))
-    pos0 = _frame_position(words[:, 2], words[:, 3], w)
+    One block (g//2 << 32 | pixel, stream, 0) serves windows g = 2i (words 0, 1) and 2i + 1 (words
+    2, 3): K ~ Poisson(mu·w) by inversion (:func:`sparse_count`) of a uniform with top bits word 0
+    (2), low bits word 0 of block (g << 32 | pixel, stream, REFINE_DRAW) where needed; word 1 (3)
+    places event 0 (:func:`_frame_position32`); later events use draws ≥ 1
+    (:func:`_event_words`).  ``fx`` (effects twin, :mod:`slicersim.backends.ramp_effects`) adds the
+    window's deposits and the nonlinear read values."""
+    words = rng.random_words(seed, (np.uint64(g >> 1) << np.uint64(32)) | pix, stream, 0)
+    hi, pw = words[:, 2 * (g & 1)], words[:, 2 * (g & 1) + 1]
+    gidx = np.uint64(g) << np.uint64(32)
+    K = sparse_count(mu * float(w), p_empty, hi,
+                     lambda sel: rng.random_words(seed, gidx | pix[sel], stream, REFINE_DRAW)[:, 0])
+    pos0 = _frame_position32(pw, w)
     seen = _events_seen(K, pos0, g, w, m, pix, seed, stream)
     total = before + K
     dsum = None
