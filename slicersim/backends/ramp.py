@@ -19,7 +19,7 @@ from slicersim.backends import opencl
 from slicersim.backends.opencl import check_vector_width
 from slicersim.errors import ParameterError
 from slicersim.io.rampfile import DQ
-from slicersim.physics.ramp import P_KTC, P_POISSON, P_READ, P_SPARSE, sparse_threshold, to_adu
+from slicersim.physics.ramp import P_KTC, P_POISSON, P_READ, P_SPARSE, RAMP_PTRS_MIN_MEAN, sparse_threshold, to_adu
 
 __all__ = ["simulate_block_numpy", "simulate_block_opencl", "charge_groups", "CPU_WORK_GROUP", "MAX_CPU_WORK_GROUP"]
 
@@ -27,7 +27,7 @@ def _frame_increment(mu, exp_neg_mu, seed, pix, frame, stream, gauss_min_mean):
     """Poisson increments of one frame (twin of the dense path in ramp.cl)."""
     out = np.zeros_like(mu)
     gauss = (mu > 0) & (mu >= gauss_min_mean)
-    ptrs = (mu >= rng.PTRS_MIN_MEAN) & ~gauss
+    ptrs = (mu >= RAMP_PTRS_MIN_MEAN) & ~gauss
     inv = (mu > 0) & ~gauss & ~ptrs
     pair = (np.uint64(frame >> 1) << np.uint64(32))
     if gauss.any():

@@ -21,7 +21,7 @@
  *           Exact, and its cost does not grow with m+d: a dark pixel costs
  *           about one Philox block per group (half for the count and event 0,
  *           half for the read noise).
- *   macc_ramp_dense   a Poisson increment in every frame: inversion below 10 e-
+ *   macc_ramp_dense   a Poisson increment in every frame: inversion below 30 e-
  *           (the CDF of the pixel is tabulated once, same values as the
  *           recurrence), PTRS above; optional Gaussian approximation above
  *           gauss_min_mean, rounded and clipped at 0.
@@ -51,7 +51,7 @@
 #define P_READ 1u
 #define P_KTC 2u
 #define P_SPARSE 3u
-#define RAMP_PTRS_MIN_MEAN 10.0
+#define RAMP_PTRS_MIN_MEAN 30.0   /* physics/ramp.py RAMP_PTRS_MIN_MEAN */
 #define RAMP_PTRS_MAX_ATTEMPTS 1000u
 #define RAMP_INV_TABLE 32           /* tabulated CDF terms of the dense inversion */
 #define RAMP_SPARSE_TABLE 3         /* tabulated CDF terms of a full sparse window */
@@ -374,8 +374,12 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
         rng_real K = 0.0;
         if (any_charge) {
             K = sparse_count(philox_u01(uh, (rng_uint)0u), last, tab_p, tab_cdf, p_last, lam_full, lam_last);
+#ifdef RAMP_REFINE_ALWAYS                /* tests: every lane draws its low bits (same counts) */
+            const ramp_mask amb = mu == mu;
+#else
             const ramp_mask amb = sparse_count(philox_u01(uh, (rng_uint)0xFFFFFFFFu), last, tab_p, tab_cdf, p_last,
                                                lam_full, lam_last) > K;
+#endif
             if (RAMP_ANY(amb)) {
                 ramp_block(((ulong)g << 32) | pixv, stream, RAMP_REFINE_DRAW, k0, k1, &a, &b, &c, &e);
                 K = RNG_SELECT(K, sparse_count(philox_u01(uh, a), last, tab_p, tab_cdf, p_last, lam_full, lam_last),
