@@ -21,15 +21,17 @@ on the same machine and load):
 CPU time = process time of all threads (load-independent on the shared VM); median of
 ``--repeat`` runs of romanisim and of 2 × ``--repeat`` runs of slicersim (half before, half after
 romanisim's), after one untimed warm-up run of slicersim on the same image (kernel builds, device workspace;
-romanisim's imports are likewise outside its timing).  The figure of merit is
+romanisim's imports are likewise outside its timing).  ``--baseline REV`` also times our side at
+another git revision (a temporary worktree, in its own process) between the two.  The figure of merit is
 CPU-seconds per pixel-read (pixels × reads) and the ratio romanisim / slicersim.
 
 Writes ``<out>/ramp_vs_romanisim.json``, ``.md`` and ``.png``.
 
     .venv/bin/python benchmarks/ramp_vs_romanisim.py [--size 1024] [--nmd 16 8 0] [--flat 1.0]
-        [--repeat 3] [--out benchmarks/results]
+        [--repeat 3] [--baseline REV] [--out benchmarks/results]
 """
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -75,6 +77,44 @@ def ours(rate, nmd, repeat):
             "backend": backend, "last_group_mean_adu": float(sci[0, -1].mean())}
 
 
+_BASELINE_SNIPPET = """
+import json, sys, time
+import numpy as np
+from slicersim.products import ramps
+spec = json.loads(sys.argv[1])
+rate = np.load(spec["rate_npy"])
+kw = dict(spec["detector"], effects=spec["effects"], progress=False)
+ramps.simulate(rate, tuple(spec["nmd"]), seed=99, **kw)
+cpus = []
+for r in range(spec["repeat"]):
+    c = time.process_time()
+    ramps.simulate(rate, tuple(spec["nmd"]), seed=100 + r, **kw)
+    cpus.append(time.process_time() - c)
+print(json.dumps(cpus))
+"""
+
+
+def baseline(rev, rate, nmd, repeat, tmp):
+    """Our side at git revision ``rev`` (a temporary worktree, this venv), in its own process: median
+    CPU [s] and the runs."""
+    tree = Path(tmp) / f"baseline_{os.getpid()}"
+    if not tree.exists():
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(tree), rev], check=True)
+    path = Path(tmp) / f"rate_base_{id(rate)}.npy"
+    np.save(path, rate)
+    spec = {"rate_npy": str(path), "nmd": list(nmd), "detector": DETECTOR, "effects": EFFECTS, "repeat": repeat}
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    out = subprocess.run([sys.executable, "-c", _BASELINE_SNIPPET, json.dumps(spec)], env=env, cwd=str(tree),
+                         capture_output=True, text=True, check=True)
+    cpus = json.loads(out.stdout.strip().splitlines()[-1])
+    return {"rev": rev, "cpu_s": float(np.median(cpus)), "cpu_runs_s": cpus}
+
+
+def drop_worktrees(tmp):
+    for tree in Path(tmp).glob("baseline_*"):
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+
+
 def theirs(rate, nmd, repeat, tmp):
     """romanisim's side (runner in its venv): median CPU [s] and the runs."""
     path = Path(tmp) / f"rate_{os.getpid()}_{id(rate)}.npy"
@@ -106,6 +146,11 @@ def plot(result, path):
     xs = np.arange(len(rows))
     ax[0].bar(xs - 0.2, [r["slicersim"]["ns_per_pixel_read"] for r in rows], 0.38, label="slicersim")
     ax[0].bar(xs + 0.2, [r["romanisim"]["ns_per_pixel_read"] for r in rows], 0.38, label="romanisim")
+    if all("baseline" in r for r in rows):
+        ax[0].scatter(xs - 0.2, [r["baseline"]["ns_per_pixel_read"] for r in rows], color="k", marker="_", s=400,
+                      zorder=3, label=f"slicersim at {rows[0]['baseline']['rev']}")
+        ax[1].scatter(xs, [r["baseline_ratio_cpu"] for r in rows], color="k", marker="_", s=600, zorder=3,
+                      label=f"slicersim at {rows[0]['baseline']['rev']}")
     ax[0].set_xticks(xs, [r["image"] for r in rows])
     ax[0].set_ylabel("CPU ns per pixel-read")
     ax[0].set_yscale("log")
@@ -145,6 +190,12 @@ def markdown(result):
               f"{max(r['romanisim']['cpu_s'] - r['romanisim']['make_l1_cpu_s'] for r in result['rows']):.2f} s); "
               "its reads are apportioned by a binomial per pixel and read, ours are sampled per frame (bright "
               "pixels) or per group window (dark pixels, the sparse path)."]
+    based = [r for r in result["rows"] if "baseline" in r]
+    if based:
+        lines += ["", f"The same runs of slicersim at {based[0]['baseline']['rev']} (before the sampler changes of "
+                  "issue 30; own process, this venv): " + "; ".join(
+                      f"{r['image']} {r['baseline']['cpu_s']:.3f} CPU-s, {r['baseline_ratio_cpu']:.1f}× romanisim"
+                      for r in based) + "."]
     return "\n".join(lines) + "\n"
 
 
@@ -154,6 +205,8 @@ def main():
     ap.add_argument("--nmd", type=int, nargs=3, default=[16, 8, 0], metavar=("N", "M", "D"))
     ap.add_argument("--flat", type=float, default=1.0, help="rate of the flat image [e-/s] (default 1.0; 0: none)")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--baseline", default=None, metavar="REV",
+                    help="also time our side at git revision REV (temporary worktree, own process)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     args = ap.parse_args()
     nmd = tuple(args.nmd)
@@ -166,6 +219,7 @@ def main():
     with tempfile.TemporaryDirectory(prefix="slicersim_romanisim_") as tmp:
         for name, rate in images:
             before = ours(rate, nmd, args.repeat)              # ours before and after theirs: the load drifts
+            base = baseline(args.baseline, rate, nmd, args.repeat, tmp) if args.baseline else None
             them = theirs(rate, nmd, args.repeat, tmp)
             us = ours(rate, nmd, args.repeat)
             us["cpu_runs_s"] = before["cpu_runs_s"] + us["cpu_runs_s"]
@@ -177,10 +231,17 @@ def main():
                                                                  ("cpu_s", "wall_s", "make_l1_cpu_s", "runs",
                                                                   "ns_per_pixel_read")},
                    "ratio_cpu": them["cpu_s"] / us["cpu_s"], "ratio_wall": them["wall_s"] / us["wall_s"]}
+            if base is not None:
+                base["ns_per_pixel_read"] = base["cpu_s"] / npr * 1e9
+                row["baseline"] = base
+                row["baseline_ratio_cpu"] = them["cpu_s"] / base["cpu_s"]
+                print(f"  baseline {args.baseline}: {base['cpu_s']:.3f} CPU-s, ratio {row['baseline_ratio_cpu']:.1f}x",
+                      flush=True)
             rows.append(row)
             print(f"{name}: slicersim {us['cpu_s']:.3f} CPU-s ({us['ns_per_pixel_read']:.2f} ns/px-read), romanisim "
                   f"{them['cpu_s']:.2f} CPU-s ({them['ns_per_pixel_read']:.2f}); ratio {row['ratio_cpu']:.1f}x",
                   flush=True)
+        drop_worktrees(tmp)
     dev = opencl.get_device() if opencl.is_available() else None
     result = {"benchmark": "ramp_vs_romanisim", "shape": [args.size, args.size], "nmd": list(nmd),
               "reads": reads(nmd), "pixel_reads": npr, "effects": EFFECTS, "detector": DETECTOR, "cosmic_rays": CR,
