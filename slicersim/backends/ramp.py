@@ -100,6 +100,20 @@ def _frame_position32(x, w):
     return ((np.asarray(x, np.uint64) * np.uint64(w)) >> np.uint64(32)).astype(np.float64)
 
 
+def _inversion_state(mu, p0, u):
+    """:func:`rng.inversion_search` that also returns the term and CDF value where each search stopped."""
+    p = np.array(p0, dtype=np.float64, copy=True)
+    cdf = p.copy()
+    k = np.zeros_like(mu)
+    todo = np.nonzero((u > cdf) & (p > 0.0))[0]
+    while todo.size:
+        k[todo] += 1.0
+        p[todo] = p[todo] * mu[todo] / k[todo]
+        cdf[todo] = cdf[todo] + p[todo]
+        todo = todo[(u[todo] > cdf[todo]) & (p[todo] > 0.0)]
+    return k, p, cdf
+
+
 def sparse_count(lam, p_empty, hi, low_words):
     """K ~ Poisson(lam) by inversion of the 52-bit uniform of :func:`rng.words_to_uniform` whose top
     32 bits are ``hi``; its low bits come from ``low_words()`` (called with the lanes that need them)
@@ -119,9 +133,10 @@ def sparse_count(lam, p_empty, hi, low_words):
     -------
     (npix,) float64 counts."""
     hi = np.asarray(hi, np.uint32)
-    K = rng.inversion_search(lam, p_empty, rng.words_to_uniform(hi, np.uint32(0)))
-    right = rng.inversion_search(lam, p_empty, rng.words_to_uniform(hi, np.uint32(0xFFFFFFFF)))
-    amb = np.nonzero(right > K)[0]
+    K, p, cdf = _inversion_state(lam, p_empty, rng.words_to_uniform(hi, np.uint32(0)))
+    # the search of the largest uniform with these top bits goes on past K iff it exceeds the CDF
+    # value that stopped this one (and the term is not 0): the kernel's second search, in one test
+    amb = np.nonzero((rng.words_to_uniform(hi, np.uint32(0xFFFFFFFF)) > cdf) & (p > 0.0))[0]
     if amb.size:
         u = rng.words_to_uniform(hi[amb], low_words(amb))
         K[amb] = rng.inversion_search(lam[amb], p_empty[amb], u)
