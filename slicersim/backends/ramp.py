@@ -19,7 +19,7 @@ from slicersim.backends import opencl
 from slicersim.backends.opencl import check_vector_width
 from slicersim.errors import ParameterError
 from slicersim.io.rampfile import DQ
-from slicersim.physics.ramp import P_KTC, P_POISSON, P_READ, P_SPARSE, sparse_threshold, to_adu
+from slicersim.physics.ramp import P_KTC, P_POISSON, P_READ, P_SPARSE, RAMP_PTRS_MIN_MEAN, sparse_threshold, to_adu
 
 __all__ = ["simulate_block_numpy", "simulate_block_opencl", "charge_groups", "CPU_WORK_GROUP", "MAX_CPU_WORK_GROUP"]
 
@@ -27,7 +27,7 @@ def _frame_increment(mu, exp_neg_mu, seed, pix, frame, stream, gauss_min_mean):
     """Poisson increments of one frame (twin of the dense path in ramp.cl)."""
     out = np.zeros_like(mu)
     gauss = (mu > 0) & (mu >= gauss_min_mean)
-    ptrs = (mu >= rng.PTRS_MIN_MEAN) & ~gauss
+    ptrs = (mu >= RAMP_PTRS_MIN_MEAN) & ~gauss
     inv = (mu > 0) & ~gauss & ~ptrs
     pair = (np.uint64(frame >> 1) << np.uint64(32))
     if gauss.any():
@@ -91,16 +91,73 @@ def _clipped_read_sum(before, K, pos0, g, w, m, full_well, pix, seed, stream):
     return total
 
 
+#: draw of the block whose word 0 holds a sparse count's low 32 bits (counter (g << 32 | pixel, stream))
+REFINE_DRAW = 0xFFFFFFFF
+
+
+def _frame_position32(x, w):
+    """Frame position in [0, w): (x·w) >> 32 with a 32-bit word x (exact integers)."""
+    return ((np.asarray(x, np.uint64) * np.uint64(w)) >> np.uint64(32)).astype(np.float64)
+
+
+def _inversion_state(mu, p0, u):
+    """:func:`rng.inversion_search` that also returns the term and CDF value where each search stopped."""
+    p = np.array(p0, dtype=np.float64, copy=True)
+    cdf = p.copy()
+    k = np.zeros_like(mu)
+    todo = np.nonzero((u > cdf) & (p > 0.0))[0]
+    while todo.size:
+        k[todo] += 1.0
+        p[todo] = p[todo] * mu[todo] / k[todo]
+        cdf[todo] = cdf[todo] + p[todo]
+        todo = todo[(u[todo] > cdf[todo]) & (p[todo] > 0.0)]
+    return k, p, cdf
+
+
+def sparse_count(lam, p_empty, hi, low_words):
+    """K ~ Poisson(lam) by inversion of the 52-bit uniform of :func:`rng.words_to_uniform` whose top
+    32 bits are ``hi``; its low bits come from ``low_words()`` (called with the lanes that need them)
+    only where a CDF value falls between the smallest and the largest uniform with those top bits,
+    so the counts are those of full 52-bit uniforms while nearly all pixels use 32 random bits.
+
+    Parameters
+    ----------
+    lam, p_empty : (npix,) float64
+        Poisson mean and e^−lam.
+    hi : (npix,) uint32
+        Top 32 bits of the uniform.
+    low_words : callable
+        ``low_words(sel)`` → (sel.size,) uint32: the low 32 bits of the lanes ``sel``.
+
+    Returns
+    -------
+    (npix,) float64 counts."""
+    hi = np.asarray(hi, np.uint32)
+    K, p, cdf = _inversion_state(lam, p_empty, rng.words_to_uniform(hi, np.uint32(0)))
+    # the search of the largest uniform with these top bits goes on past K iff it exceeds the CDF
+    # value that stopped this one (and the term is not 0): the kernel's second search, in one test
+    amb = np.nonzero((rng.words_to_uniform(hi, np.uint32(0xFFFFFFFF)) > cdf) & (p > 0.0))[0]
+    if amb.size:
+        u = rng.words_to_uniform(hi[amb], low_words(amb))
+        K[amb] = rng.inversion_search(lam[amb], p_empty[amb], u)
+    return K
+
+
 def _sparse_group(mu, p_empty, before, g, w, m, full_well, pix, seed, stream, fx=None):
     """(read sum, clipped charge after the window, window reached the full well) of group g.
 
-    K ~ Poisson(mu·w) by inversion of the uniform of words 0–1 of block (g << 32 | pixel, stream,
-    0); words 2–3 place event 0, later events use draws ≥ 1 (:func:`_event_words`).  ``fx``
-    (effects twin, :mod:`slicersim.backends.ramp_effects`) adds the window's deposits and the
-    nonlinear read values."""
-    words = rng.random_words(seed, (np.uint64(g) << np.uint64(32)) | pix, stream, 0)
-    K = _inversion(mu * float(w), p_empty, rng.words_to_uniform(words[:, 0], words[:, 1]))
-    pos0 = _frame_position(words[:, 2], words[:, 3], w)
+    One block (g//2 << 32 | pixel, stream, 0) serves windows g = 2i (words 0, 1) and 2i + 1 (words
+    2, 3): K ~ Poisson(mu·w) by inversion (:func:`sparse_count`) of a uniform with top bits word 0
+    (2), low bits word 0 of block (g << 32 | pixel, stream, REFINE_DRAW) where needed; word 1 (3)
+    places event 0 (:func:`_frame_position32`); later events use draws ≥ 1
+    (:func:`_event_words`).  ``fx`` (effects twin, :mod:`slicersim.backends.ramp_effects`) adds the
+    window's deposits and the nonlinear read values."""
+    words = rng.random_words(seed, (np.uint64(g >> 1) << np.uint64(32)) | pix, stream, 0)
+    hi, pw = words[:, 2 * (g & 1)], words[:, 2 * (g & 1) + 1]
+    gidx = np.uint64(g) << np.uint64(32)
+    K = sparse_count(mu * float(w), p_empty, hi,
+                     lambda sel: rng.random_words(seed, gidx | pix[sel], stream, REFINE_DRAW)[:, 0])
+    pos0 = _frame_position32(pw, w)
     seen = _events_seen(K, pos0, g, w, m, pix, seed, stream)
     total = before + K
     dsum = None

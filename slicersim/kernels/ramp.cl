@@ -19,16 +19,21 @@
  *           events (CDF inversion, one uniform), each at a uniform frame of the
  *           window; an event at position j adds 1 e- to the m - j reads j..m-1.
  *           Exact, and its cost does not grow with m+d: a dark pixel costs
- *           about 1.5 Philox blocks and one Gaussian per group.
- *   macc_ramp_dense   a Poisson increment in every frame: inversion below 10 e-
+ *           about one Philox block per group (half for the count and event 0,
+ *           half for the read noise).
+ *   macc_ramp_dense   a Poisson increment in every frame: inversion below 30 e-
  *           (the CDF of the pixel is tabulated once, same values as the
  *           recurrence), PTRS above; optional Gaussian approximation above
  *           gauss_min_mean, rounded and clipped at 0.
  * Counters (index, stream, draw) of ramp r, pixel p, stream 4r + purpose:
  *   kTC            (p, P_KTC, 0), cos branch
  *   read noise     (p | (g/2) << 32, P_READ, 0): cos for even g, sin for odd g
- *   sparse count   (p | g << 32, P_SPARSE, 0): words x,y the uniform, z,w event 0's frame;
- *                  event k >= 1: draw 1 + (k-1)/2, words x,y (odd k) or z,w (even k)
+ *   sparse count   (p | (g/2) << 32, P_SPARSE, 0): even g words x (top 32 bits of the uniform),
+ *                  y (event 0's frame, (y w) >> 32); odd g words z, w.  Where a CDF value lies
+ *                  between the smallest and largest 52-bit uniform with those top bits, the low
+ *                  bits are word x of (p | g << 32, P_SPARSE, 0xFFFFFFFF) (rare: the counts are
+ *                  those of full 52-bit uniforms);
+ *                  event k >= 1: (p | g << 32, P_SPARSE, 1 + (k-1)/2), words x,y (odd k) or z,w
  *   dense frame f  inversion (p | (f/2) << 32, P_POISSON, 0) words x,y (even f) or z,w;
  *                  Gaussian the same with draw 1, cos / sin; PTRS (p | f << 32,
  *                  P_POISSON + 2^31, attempt)
@@ -46,10 +51,11 @@
 #define P_READ 1u
 #define P_KTC 2u
 #define P_SPARSE 3u
-#define RAMP_PTRS_MIN_MEAN 10.0
+#define RAMP_PTRS_MIN_MEAN 30.0   /* physics/ramp.py RAMP_PTRS_MIN_MEAN */
 #define RAMP_PTRS_MAX_ATTEMPTS 1000u
 #define RAMP_INV_TABLE 32           /* tabulated CDF terms of the dense inversion */
 #define RAMP_SPARSE_TABLE 3         /* tabulated CDF terms of a full sparse window */
+#define RAMP_REFINE_DRAW 0xFFFFFFFFu /* draw of a sparse count's low 32 bits */
 
 #define RAMP_INLINE inline __attribute__((always_inline))
 #define RAMP_CONVERT_INT RNG_PASTE(convert_int, RNG_SUFFIX)
@@ -142,6 +148,49 @@ RAMP_INLINE rng_real frame_position(const rng_uint hi, const rng_uint lo, const 
 {
     const rng_ulong x = philox_x52(hi, lo);
     return rng_convert_real(rng_as_long((x * (ulong)w) >> 52));   /* < 2^12: signed conversion is exact */
+}
+
+/* Frame position in [0, w) from a 32-bit word: (x * w) >> 32 (exact integers; uniform for w a power
+ * of two, else to a relative w 2^-32). */
+RAMP_INLINE rng_real frame_position32(const rng_uint x, const int w)
+{
+    const rng_ulong x64 = (RNG_PASTE(convert_ulong, RNG_SUFFIX)(x >> 1) << 1)     /* no widening of a word */
+                        | RNG_PASTE(convert_ulong, RNG_SUFFIX)(x & 1u);         /* with its top bit set */
+    return rng_convert_real(rng_as_long((x64 * (ulong)w) >> 32));
+}
+
+/* K ~ Poisson by inversion of u (sparse windows): full windows start from the tabulated first terms
+ * of Poisson(lam_full), the last window (m frames) from p_last = exp(-lam_last); then the recurrence
+ * p_k = p_(k-1) lam / k (the twin's rng.inversion_search, bit for bit). */
+RAMP_INLINE rng_real sparse_count(const rng_real u, const int last, const rng_real *tab_p, const rng_real *tab_cdf,
+                                  const rng_real p_last, const rng_real lam_full, const rng_real lam_last)
+{
+    rng_real K = 0.0, p, cdf;
+    ramp_mask act;
+    if (!last) {
+        act = (u > tab_cdf[0]) && (tab_p[0] > 0.0);
+        K = RNG_SELECT(K, K + 1.0, act);
+        for (int k = 1; k < RAMP_SPARSE_TABLE; ++k) {
+            act = act && (u > tab_cdf[k]) && (tab_p[k] > 0.0);
+            K = RNG_SELECT(K, K + 1.0, act);
+        }
+        p = tab_p[RAMP_SPARSE_TABLE - 1];
+        cdf = tab_cdf[RAMP_SPARSE_TABLE - 1];
+    } else {
+        p = p_last;
+        cdf = p_last;
+        act = (u > cdf) && (p > 0.0);
+        K = RNG_SELECT(K, K + 1.0, act);
+    }
+    const rng_real lam = last ? lam_last : lam_full;
+    while (RAMP_ANY(act)) {
+        p = RNG_SELECT(p, p * lam / K, act);
+        const rng_real cdf_before = cdf;
+        cdf = RNG_SELECT(cdf, cdf + p, act);
+        act = act && (u > cdf) && (p > 0.0) RAMP_CDF_GROWS(cdf, cdf_before);
+        K = RNG_SELECT(K, K + 1.0, act);
+    }
+    return K;
 }
 
 /* Position of event k >= 1 of group g: block (g << 32 | pixel, P_SPARSE, 1 + (k-1)/2),
@@ -299,6 +348,7 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
     rng_real before = 0.0;                                     /* clipped charge before the window */
     ramp_mask sat = (ramp_mask)0;
     rng_real z_even = 0.0, z_odd = 0.0;
+    rng_uint pa = 0u, pb = 0u, pc = 0u, pd = 0u;               /* block of the window pair (g/2) */
 #ifdef RAMP_EFFECTS
     uint dp[RNG_VW], de[RNG_VW], ws[RNG_VW];
     rng_real next_dep = deposit_cursor(dep_start, dep_frame, idx, dp, de);
@@ -315,43 +365,29 @@ __kernel void macc_ramp_sparse(RAMP_KERNEL_ARGS)
             z_even = ramp_box_muller(a, b, c, e, &z_odd);
         }
 #endif
-        /* K ~ Poisson(mu w) by inversion of one uniform (words x,y); words z,w place event 0 */
-        rng_real K = 0.0, p, cdf, u = 0.0;
-        ramp_mask act;
-        if (!any_charge) {
-            a = 0u; b = 0u; c = 0u; e = 0u;     /* no lane collects charge: K = 0 without a draw */
-            act = (ramp_mask)0;
-            p = p_last;
-            cdf = p_last;
-        } else if (!last) {
-            ramp_block(((ulong)g << 32) | pixv, stream, 0u, k0, k1, &a, &b, &c, &e);
-            u = philox_u01(a, b);
-            act = (u > tab_cdf[0]) && (tab_p[0] > 0.0);
-            K = RNG_SELECT(K, K + 1.0, act);
-            for (int k = 1; k < RAMP_SPARSE_TABLE; ++k) {
-                act = act && (u > tab_cdf[k]) && (tab_p[k] > 0.0);
-                K = RNG_SELECT(K, K + 1.0, act);
+        /* K ~ Poisson(mu w) by inversion of a uniform whose top 32 bits are word x (even g) or z (odd g)
+         * of the pair's block; words y / w place event 0.  The count is that of every 52-bit uniform
+         * with those top bits unless a CDF value falls between them (then the low bits are drawn). */
+        if (any_charge && (g & 1) == 0)
+            ramp_block(((ulong)(g >> 1) << 32) | pixv, stream, 0u, k0, k1, &pa, &pb, &pc, &pd);
+        const rng_uint uh = (g & 1) ? pc : pa, ph = (g & 1) ? pd : pb;
+        rng_real K = 0.0;
+        if (any_charge) {
+            K = sparse_count(philox_u01(uh, (rng_uint)0u), last, tab_p, tab_cdf, p_last, lam_full, lam_last);
+#ifdef RAMP_REFINE_ALWAYS                /* tests: every lane draws its low bits (same counts) */
+            const ramp_mask amb = mu == mu;
+#else
+            const ramp_mask amb = sparse_count(philox_u01(uh, (rng_uint)0xFFFFFFFFu), last, tab_p, tab_cdf, p_last,
+                                               lam_full, lam_last) > K;
+#endif
+            if (RAMP_ANY(amb)) {
+                ramp_block(((ulong)g << 32) | pixv, stream, RAMP_REFINE_DRAW, k0, k1, &a, &b, &c, &e);
+                K = RNG_SELECT(K, sparse_count(philox_u01(uh, a), last, tab_p, tab_cdf, p_last, lam_full, lam_last),
+                               amb);
             }
-            p = tab_p[RAMP_SPARSE_TABLE - 1];
-            cdf = tab_cdf[RAMP_SPARSE_TABLE - 1];
-        } else {
-            ramp_block(((ulong)g << 32) | pixv, stream, 0u, k0, k1, &a, &b, &c, &e);
-            u = philox_u01(a, b);
-            p = p_last;
-            cdf = p_last;
-            act = (u > cdf) && (p > 0.0);
-            K = RNG_SELECT(K, K + 1.0, act);
-        }
-        const rng_real lam = last ? lam_last : lam_full;
-        while (RAMP_ANY(act)) {                   /* the recurrence p_k = p_(k-1) lam / k */
-            p = RNG_SELECT(p, p * lam / K, act);
-            const rng_real cdf_before = cdf;
-            cdf = RNG_SELECT(cdf, cdf + p, act);
-            act = act && (u > cdf) && (p > 0.0) RAMP_CDF_GROWS(cdf, cdf_before);
-            K = RNG_SELECT(K, K + 1.0, act);
         }
         /* reads that see each event: m - position */
-        const rng_real pos0 = frame_position(c, e, w);
+        const rng_real pos0 = frame_position32(ph, w);
         rng_real seen = RNG_SELECT((rng_real)0.0, (real)m - pos0, (K > 0.0) && (pos0 < (real)m));
 #ifdef RAMP_EFFECTS
         rng_real posk[RAMP_POS_MAX];

@@ -24,6 +24,9 @@ DEFAULT_BIAS = 2000.0          # ADU pedestal: read noise never clips at 0
 #: (exp(−μ) by 2^n, n an int32) overflows
 MAX_FRAME_CHARGE = 1e9
 P_POISSON, P_READ, P_KTC, P_SPARSE = 0, 1, 2, 3
+#: dense ramp sampler: CDF inversion below this mean charge per frame [e-], PTRS at and above (the
+#: inversion's cost grows with the mean, PTRS's rejection loop costs about 30 steps of it per draw)
+RAMP_PTRS_MIN_MEAN = 30.0
 
 
 @validation.checked_fields

@@ -374,11 +374,14 @@ def _small_rate(n=32):
     return 0.01 * (x + 1) * (y % 5) + 50.0 * ((x == 7) & (y == 9))
 
 
-@pytest.mark.parametrize("effects, digest", [(None, "8c8130cf60878e7ce722"),
-                                             ("cosmic_rays,ipc,nonlinearity", "cd6190bc9798d82cb67b")])
+@pytest.mark.parametrize("effects, digest", [(None, "ee8fe4d340f3e69c5d05"),
+                                             ("cosmic_rays,ipc,nonlinearity", "266a922fbdd8604b45aa")])
 @pytest.mark.parametrize("backend", ["numpy", "opencl"])
-def test_seed_0_gives_the_ramps_of_slicersim_0_1(backend, effects, digest):
-    """seed=0 (the old default, now explicit) reproduces the ramps of the code before the refactor."""
+def test_seed_0_gives_the_pinned_ramps(backend, effects, digest):
+    """seed=0 gives pinned ramps on both backends.  Re-pinned (issue 30) when the sparse sampler
+    went to one Philox block per two group windows (32-bit words, exact low-bit refinement):
+    seed=S ramps differ from those of slicersim before that change (were 8c8130cf60878e7ce722 and
+    cd6190bc9798d82cb67b)."""
     import hashlib
     sci, dq = simulate(_small_rate(), (5, 2, 1), nramps=2, seed=0, backend=backend, return_dq=True,
                        progress=False, ktc_noise=3.0, effects=effects)
