@@ -29,6 +29,8 @@ __all__ = ["DARK_FRAMES", "reference_arrays", "write_reference_files", "paramete
 #: frames of the dark reference ramp (stcal's dark step extends it linearly to longer ramps)
 DARK_FRAMES = 4
 _ROWS = 256
+#: the effects whose per-pixel maps or kernel enter the reference files
+_STATIC = ("ipc", "nonlinearity", "reference_pixels", "bad_pixels")
 
 
 def reference_arrays(p, effects, seed, shape, dark_frames=DARK_FRAMES):
@@ -65,7 +67,7 @@ def reference_arrays(p, effects, seed, shape, dark_frames=DARK_FRAMES):
         raise EffectsError(f"the per-pixel dark is {dark.shape}, the detector {(ny, nx)}")
     plan = None
     if fx is not None:
-        fx = fx.restricted_to([n for n in fx.enabled if n != "persistence"])   # persistence: no reference file
+        fx = fx.restricted_to([n for n in fx.enabled if n in _STATIC])   # the others draw no per-pixel map
         plan = EffectsPlan(fx, p, seed, (ny, nx)) if fx.enabled else None
     _, dark_rate, dead, flags = (plan.rate_and_dark(np.zeros((ny, nx)), dark) if plan is not None else
                                  (None, np.broadcast_to(dark, (ny, nx)), np.zeros((ny, nx), bool),
