@@ -184,3 +184,25 @@ def test_bad_input_is_refused_before_writing(tmp_path):
     arrays = reference_arrays(p, None, 1, (8, 8))
     assert np.array_equal(arrays["linearity"][1], np.ones((8, 8))) and not arrays["mask"].any()
     assert np.allclose(arrays["saturation"], 65535 - 5 * np.sqrt(12.0 ** 2 + 1 / 12), atol=0.01)
+
+
+def test_a_campaign_writes_the_reference_files_beside_its_ramps(tmp_path):
+    """The campaign hook: a target's ramps get ``reference/`` beside them, keyed by the ramps' own
+    seed, parameters and effects (a small ramp stands in for the full detector)."""
+    from types import SimpleNamespace
+
+    from slicersim.campaign import products
+
+    class Target:
+        def get_ramps(self, out, seed, effects, **kwargs):
+            return simulate(np.full(SHAPE, 20.0), (3, 1, 0), seed=seed, out=out, effects=effects, overwrite=True)
+
+    spec = SimpleNamespace(products={"compression": "none", "effects": "lazuli"}, population=None)
+    path = tmp_path / "t0000000" / "ramps.h5"
+    path.parent.mkdir()
+    products._write_ramps(str(path), Target(), {}, 77, spec, 1 << 26)
+    ref = read_reference_files(path.parent / products.REFERENCE_DIR)
+    _, _, pdq, _ = read_ramps(path)
+    assert np.array_equal(ref["mask"], pdq) and (pdq != 0).any()      # the maps of seed 77
+    other = reference_arrays(RampParameters(nmd=(3, 1, 0)), DetectorEffects.preset("lazuli"), 78, SHAPE)
+    assert not np.array_equal(other["mask"], pdq)
