@@ -485,7 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
     from slicersim.app import reduce_cli
     reduce_cli.add_parsers(sub, fmt)
     from slicersim.app import reffiles_cli
-    reffiles_cli.add_parsers(sub, fmt)
+    reffiles_cli.add_parsers(sub, fmt, RAMP_DETECTOR_DEFAULTS, _ramp_effects)
     return parser
 
 

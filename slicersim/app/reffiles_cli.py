@@ -9,9 +9,11 @@ __all__ = ["add_parsers", "cmd_reffiles"]
 _DETECTOR_FLAGS = {"tframe": "s", "ron": "electron", "dark": "e-/s", "roic_glow": "e-/frame", "gain": "ADU/e-"}
 
 
-def add_parsers(sub, fmt):
-    """Add the ``reffiles`` sub-command to ``sub`` (argparse sub-parsers)."""
-    from slicersim.app.cli import RAMP_DETECTOR_DEFAULTS as d
+def add_parsers(sub, fmt, detector_defaults, ramp_effects):
+    """Add the ``reffiles`` sub-command to ``sub`` (argparse sub-parsers): ``detector_defaults`` the
+    ``ramp --rate`` detector ({tframe, ron, dark, roic_glow, gain}), ``ramp_effects(args)`` the
+    DetectorEffects of --effects / --effects-config (as ``ramp`` reads them)."""
+    d = dict(detector_defaults)
     p = sub.add_parser("reffiles", help="JWST reference files (gain, read noise, saturation, ...) of the detector",
                        description="The JWST calibration reference files of the simulated detector, as stcal and the "
                                    "jwst pipeline read them (stdatamodels formats): gain [e-/DN], readnoise [CDS DN], "
@@ -41,12 +43,12 @@ def add_parsers(sub, fmt):
     p.add_argument("--dark-frames", type=int, default=4, metavar="N",
                    help="frames of the dark reference ramp (stcal extends it linearly to longer ramps)")
     p.add_argument("--overwrite", action="store_true", help="replace existing reference files")
-    p.set_defaults(func=cmd_reffiles, previous_charge=None, cr_rate=None)
+    p.set_defaults(func=cmd_reffiles, previous_charge=None, cr_rate=None, detector_defaults=d,
+                   ramp_effects=ramp_effects)
 
 
 def _parameters(args):
     """(RampParameters, shape) of the detector the flags describe."""
-    from slicersim.app.cli import RAMP_DETECTOR_DEFAULTS
     from slicersim.errors import ParameterError
     from slicersim.physics.ramp import RampParameters
     given = {k: getattr(args, k) for k in _DETECTOR_FLAGS if getattr(args, k) is not None}
@@ -64,7 +66,7 @@ def _parameters(args):
     else:
         if args.field is not None:
             raise ParameterError("--field applies only with --config")
-        values, shape = dict(RAMP_DETECTOR_DEFAULTS), None
+        values, shape = dict(args.detector_defaults), None
     values.update(given)
     if args.shape is not None:
         shape = validation.shape("--shape", tuple(args.shape))
@@ -75,7 +77,6 @@ def _parameters(args):
 
 def cmd_reffiles(args) -> int:
     """Write the reference files (one line per error, exit 2)."""
-    from slicersim.app.cli import _ramp_effects
     from slicersim.errors import ParameterError
     from slicersim.products import reference
     validation.integer("--dark-frames", args.dark_frames, low=2, high=1 << 16)
@@ -91,7 +92,7 @@ def cmd_reffiles(args) -> int:
             raise ParameterError("--seed is needed: the seed of the ramps, whose per-pixel maps are drawn from it "
                                  "(or --ramps FILE)")
         seed = validation.seed(args.seed, name="--seed")
-        effects = _ramp_effects(args)
+        effects = args.ramp_effects(args)
         p, shape = _parameters(args)
         paths = reference.write_reference_files(args.out, p, effects, seed, shape, detector=args.detector,
                                                 overwrite=args.overwrite, dark_frames=args.dark_frames)

@@ -74,6 +74,7 @@ def _truth_nonlinearity(p, fx, seed):
     return nonlinearity_coefficients(seed, SHAPE, fx.params("nonlinearity"), p.full_well)
 
 
+@pytest.mark.slow
 def test_files_match_the_ramps_truth(tmp_path):
     rate = np.full(SHAPE, 50.0)
     path = _ramps(tmp_path, rate, nmd=(3, 1, 0))
@@ -186,6 +187,7 @@ def test_bad_input_is_refused_before_writing(tmp_path):
     assert np.allclose(arrays["saturation"], 65535 - 5 * np.sqrt(12.0 ** 2 + 1 / 12), atol=0.01)
 
 
+@pytest.mark.slow
 def test_a_campaign_writes_the_reference_files_beside_its_ramps(tmp_path):
     """The campaign hook: a target's ramps get ``reference/`` beside them, keyed by the ramps' own
     seed, parameters and effects (a small ramp stands in for the full detector)."""
