@@ -32,9 +32,12 @@ def add_parsers(sub, fmt, detector_defaults, ramp_effects):
                    help="image size [px] of the ramps (default: the configuration's detector, 4096 4096)")
     p.add_argument("--seed", type=int, help="the ramps' seed: their per-pixel maps (bad pixels, nonlinearity, "
                    "bias) are drawn from it (required unless --ramps)")
+    words = {"tframe": "frame time", "ron": "read noise per frame", "dark": "dark current", "roic_glow": "ROIC glow",
+             "gain": "gain"}
     for key, unit in _DETECTOR_FLAGS.items():
         p.add_argument(f"--{key.replace('_', '-')}", type=float,
-                       help=f"{key.replace('_', ' ')} [{unit}] (default: {d[key]}, or the configuration's)")
+                       help=f"{words[key]} [{unit}] of the ramps (default: {d[key]}; with --config: the "
+                            "configuration's)")
     p.add_argument("--effects", metavar="NAME[,NAME...]", help="the ramps' detector effects, as ramp --effects "
                    "(e.g. the preset 'lazuli'); ipc, nonlinearity, reference_pixels and bad_pixels enter the files")
     p.add_argument("--effects-config", metavar="FILE", help="TOML or JSON file with an [effects] section, as ramp "

@@ -92,7 +92,8 @@ def _build(kind, arrays, datamodels, meta):
         model.dq_def = _dq_def(("NO_SAT_CHECK",))
     elif kind == "superbias":
         model.data = np.asarray(arrays["superbias"], np.float32)
-        model.err = np.asarray(arrays.get("superbias_err", np.zeros(shape, np.float32)), np.float32)
+        if "superbias_err" in arrays:                       # exact here: no ERR unless given
+            model.err = np.asarray(arrays["superbias_err"], np.float32)
         model.dq = np.zeros(shape, np.uint32)
         model.dq_def = _dq_def(("DO_NOT_USE",))
     elif kind == "linearity":
@@ -102,7 +103,6 @@ def _build(kind, arrays, datamodels, meta):
     elif kind == "dark":
         dark = np.asarray(arrays["dark"], np.float32)
         model.data = dark
-        model.err = np.zeros(dark.shape, np.float32)
         model.dq = np.zeros(shape, np.uint32)
         model.dq_def = _dq_def(("DO_NOT_USE",))
         model.meta.exposure.nframes, model.meta.exposure.groupgap = 1, 0
