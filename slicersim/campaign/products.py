@@ -12,7 +12,7 @@ spectrum.h5         lbda [Å], flambda (input F_λ on lbda) [erg/s/cm²/Å], sig
                     variance [ADU²], noisy [ADU] (Philox stream of the extracted spectra)
 cube.h5             lbda [Å], signal [ADU], variance [ADU²], noisy [ADU] (nλ, ny, nx), cube_dtype
 detector_image.h5   rate [e-/s/px] (float32) on the full H4RG, both fields
-ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout), and beside them reference/:
+ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout), and beside those kept reference/:
                     their JWST reference files (gain, readnoise, saturation, ...; one set per target, as
                     the per-pixel maps come from the ramp seed: :mod:`slicersim.products.reference`)
 reduced.h5          with ``products.reduce = "spectra"`` (or true): the ramps reduced as
@@ -191,9 +191,9 @@ def _write_ramps(path, target, row, seed, spec, memory):
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
                      overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row),
                      effects=effects)
-    # the JWST reference files of these ramps, beside them: their per-pixel maps come from the ramp seed
-    from slicersim.products.reference import write_reference_files_for_ramps
-    write_reference_files_for_ramps(path, os.path.join(os.path.dirname(path), REFERENCE_DIR), overwrite=True)
+    if spec.keeps_ramps(int(row["target_id"])):      # the JWST reference files of the ramps kept, beside them:
+        from slicersim.products.reference import write_reference_files_for_ramps   # maps of the ramp seed
+        write_reference_files_for_ramps(path, os.path.join(os.path.dirname(path), REFERENCE_DIR), overwrite=True)
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None, reducer=None):

@@ -199,12 +199,17 @@ def test_a_campaign_writes_the_reference_files_beside_its_ramps(tmp_path):
         def get_ramps(self, out, seed, effects, **kwargs):
             return simulate(np.full(SHAPE, 20.0), (3, 1, 0), seed=seed, out=out, effects=effects, overwrite=True)
 
-    spec = SimpleNamespace(products={"compression": "none", "effects": "lazuli"}, population=None)
+    spec = SimpleNamespace(products={"compression": "none", "effects": "lazuli"}, population=None,
+                           keeps_ramps=lambda tid: tid == 0)
     path = tmp_path / "t0000000" / "ramps.h5"
     path.parent.mkdir()
-    products._write_ramps(str(path), Target(), {}, 77, spec, 1 << 26)
+    products._write_ramps(str(path), Target(), {"target_id": 0}, 77, spec, 1 << 26)
     ref = read_reference_files(path.parent / products.REFERENCE_DIR)
     _, _, pdq, _ = read_ramps(path)
     assert np.array_equal(ref["mask"], pdq) and (pdq != 0).any()      # the maps of seed 77
     other = reference_arrays(RampParameters(nmd=(3, 1, 0)), DetectorEffects.preset("lazuli"), 78, SHAPE)
     assert not np.array_equal(other["mask"], pdq)
+    gone = tmp_path / "t0000001" / "ramps.h5"                        # ramps deleted after the reduction:
+    gone.parent.mkdir()                                              # no reference files
+    products._write_ramps(str(gone), Target(), {"target_id": 1}, 78, spec, 1 << 26)
+    assert not (gone.parent / products.REFERENCE_DIR).exists()
