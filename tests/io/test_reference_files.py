@@ -213,3 +213,26 @@ def test_a_campaign_writes_the_reference_files_beside_its_ramps(tmp_path):
     gone.parent.mkdir()                                              # no reference files
     products._write_ramps(str(gone), Target(), {"target_id": 1}, 78, spec, 1 << 26)
     assert not (gone.parent / products.REFERENCE_DIR).exists()
+
+
+@pytest.mark.slow
+def test_saturation_level_flags_every_full_pixel_even_an_isolated_one_under_ipc(tmp_path):
+    """With IPC a full pixel whose neighbours are empty reads only the kernel's centre share of its
+    signal: the saturation level allows for it, so stcal flags every group after the full well, for
+    an isolated pixel as for a flat, and none before 60 % of it."""
+    from stcal.saturation.saturation import flag_saturated_pixels
+    rate = np.full((8, 32), 5.0)
+    rate[4, 8] = rate[3, 20] = 8000.0                                 # isolated bright pixels
+    rate[:, 26:] = 8000.0                                             # a bright flat band
+    path = simulate(rate, (8, 1, 0), seed=2, out=tmp_path / "r.h5", effects="ipc,nonlinearity")
+    write_reference_files_for_ramps(path, tmp_path / "ref")
+    sci, gdq, pdq, attrs = read_ramps(path)
+    with datamodels.SaturationModel(str(tmp_path / "ref" / reference_file_names()["saturation"])) as m:
+        gdq, _, _ = flag_saturated_pixels(sci.astype(np.float32), np.zeros_like(gdq), pdq, m.data, m.dq, 65535,
+                                          dqflags.pixel, n_pix_grow_sat=0)
+    charge = 8000.0 * float(attrs["TFRAME"]) * np.arange(1, 9)          # at each group (m = 1) [e-]
+    full = charge >= float(attrs["FULLWELL"])
+    for y, x in ((4, 8), (3, 20), (2, 28), (5, 30)):
+        flagged = (gdq[0, :, y, x] & dqflags.pixel["SATURATED"]) != 0
+        assert flagged[full].all(), (y, x, flagged, full)
+        assert not flagged[charge < 0.6 * float(attrs["FULLWELL"])].any(), (y, x, flagged)
