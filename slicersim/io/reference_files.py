@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
+import shutil
+import tempfile
 
 import numpy as np
 
@@ -193,8 +195,6 @@ def write_reference_files(directory, arrays, detector="lazuli", description="", 
     remove_stale_temporaries(directory)
     meta = {"author": "slicersim", "description": str(description),
             "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:23]}
-    import shutil
-    import tempfile
     scratch = tempfile.mkdtemp(prefix=".slicersim-reffiles-", dir=directory)   # FILENAME = the final name
     try:
         for kind in REFERENCE_TYPES:
@@ -203,6 +203,8 @@ def write_reference_files(directory, arrays, detector="lazuli", description="", 
             try:
                 model.save(tmp, overwrite=True)
                 publish(tmp, paths[kind], overwrite=overwrite, error_class=RampFileError)
+            except RampFileError:
+                raise
             except OSError as exc:
                 raise RampFileError(f"cannot write {paths[kind]}: {one_line(exc)}") from exc
             finally:
