@@ -14,7 +14,8 @@ cube.h5             lbda [Å], signal [ADU], variance [ADU²], noisy [ADU] (nλ,
 detector_image.h5   rate [e-/s/px] (float32) on the full H4RG, both fields
 ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout), and beside those kept reference/:
                     their JWST reference files (gain, readnoise, saturation, ...; one set per target, as
-                    the per-pixel maps come from the ramp seed: :mod:`slicersim.products.reference`)
+                    the per-pixel maps come from the ramp seed: :mod:`slicersim.products.reference`;
+                    when stdatamodels is installed)
 reduced.h5          with ``products.reduce = "spectra"`` (or true): the ramps reduced as
                     ``slicersim reduce DATASET --spectra`` does (rates/, cubes/<field>/,
                     spectra/<field>/); rates.h5 with ``"rates"`` (as ``slicersim reduce DATASET``)
@@ -191,9 +192,10 @@ def _write_ramps(path, target, row, seed, spec, memory):
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
                      overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row),
                      effects=effects)
-    if spec.keeps_ramps(int(row["target_id"])):      # the JWST reference files of the ramps kept, beside them:
-        from slicersim.products.reference import write_reference_files_for_ramps   # maps of the ramp seed
-        write_reference_files_for_ramps(path, os.path.join(os.path.dirname(path), REFERENCE_DIR), overwrite=True)
+    from slicersim.products import reference         # the JWST reference files of the ramps kept, beside them
+    if spec.keeps_ramps(int(row["target_id"])) and reference.available():     # (maps of the ramp seed)
+        reference.write_reference_files_for_ramps(path, os.path.join(os.path.dirname(path), REFERENCE_DIR),
+                                                  overwrite=True)
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None, reducer=None):

@@ -33,7 +33,7 @@ from slicersim.io.atomic import one_line, publish, remove_stale_temporaries
 from slicersim.io.uncal import DEFAULT_KEYWORDS
 
 __all__ = ["REFERENCE_TYPES", "USEAFTER", "reference_file_names", "write_reference_files", "read_reference_files",
-           "ramp_file_keywords"]
+           "ramp_file_keywords", "available"]
 
 #: reference-file types, in the order of the JWST detector pipeline (CRDS REFTYPE in lower case)
 REFERENCE_TYPES = ("mask", "saturation", "ipc", "superbias", "linearity", "dark", "gain", "readnoise")
@@ -63,6 +63,12 @@ def reference_file_names(detector="lazuli"):
     if not label or not all(c.isalnum() or c in "-." for c in label):
         raise RampFileError(f"detector label {detector!r}: letters, digits, '-' and '.' only")
     return {kind: f"slicersim_{label}_{kind}.fits" for kind in REFERENCE_TYPES}
+
+
+def available():
+    """True when stdatamodels (which writes the files) is installed."""
+    import importlib.util
+    return importlib.util.find_spec("stdatamodels") is not None
 
 
 def _stdatamodels():

@@ -24,7 +24,10 @@ from slicersim.physics import calibration
 from slicersim.physics.ramp import RampParameters
 
 __all__ = ["DARK_FRAMES", "reference_arrays", "write_reference_files", "parameters_from_attrs",
-           "write_reference_files_for_ramps"]
+           "write_reference_files_for_ramps", "available"]
+
+#: True when the reference files can be written (stdatamodels installed: ``pip install slicersim[jwst]``)
+available = _files.available
 
 #: frames of the dark reference ramp (stcal's dark step extends it linearly to longer ramps)
 DARK_FRAMES = 4

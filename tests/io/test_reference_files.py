@@ -215,6 +215,24 @@ def test_a_campaign_writes_the_reference_files_beside_its_ramps(tmp_path):
     assert not (gone.parent / products.REFERENCE_DIR).exists()
 
 
+def test_a_campaign_without_stdatamodels_still_makes_its_ramps(tmp_path, monkeypatch):
+    """No stdatamodels (it is the [jwst] extra): the ramps are written, the reference files skipped."""
+    from types import SimpleNamespace
+
+    from slicersim.campaign import products
+    from slicersim.products import reference
+
+    class Target:
+        def get_ramps(self, out, **kwargs):
+            np.save(str(out) + ".npy", np.zeros(1))
+
+    monkeypatch.setattr(reference, "available", lambda: False)
+    spec = SimpleNamespace(products={"compression": "none", "effects": "none"}, population=None,
+                           keeps_ramps=lambda tid: True)
+    products._write_ramps(str(tmp_path / "ramps.h5"), Target(), {"target_id": 0}, 1, spec, 1 << 26)
+    assert (tmp_path / "ramps.h5.npy").exists() and not (tmp_path / products.REFERENCE_DIR).exists()
+
+
 @pytest.mark.slow
 def test_saturation_level_flags_every_full_pixel_even_an_isolated_one_under_ipc(tmp_path):
     """With IPC a full pixel whose neighbours are empty reads only the kernel's centre share of its
