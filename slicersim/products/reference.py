@@ -159,7 +159,8 @@ def parameters_from_attrs(attrs):
                        nramps=int(attrs.get("NINTS", 1)), tframe=float(attrs["TFRAME"]), ron=float(attrs["READNOISE"]),
                        gain=float(attrs["GAIN"]), dark=float(attrs.get("DARK", 0.0)),
                        thermal_dark=float(attrs.get("THERMAL_DARK", 0.0)), roic_glow=float(attrs.get("ROIC_GLOW", 0.0)),
-                       bias=float(attrs.get("BIAS", DEFAULT_BIAS)), saturation=float(attrs.get("SATURATION", 65535.0)),
+                       bias=float(attrs.get("BIAS", DEFAULT_BIAS)),
+                       saturation=float(attrs.get("SATURATION", 65535.0)),
                        ktc_noise=float(attrs.get("KTC_NOISE", 0.0)),
                        full_well=None if "FULLWELL" not in attrs else float(attrs["FULLWELL"]))
     effects = attrs.get("EFFECTS")
