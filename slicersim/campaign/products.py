@@ -12,7 +12,10 @@ spectrum.h5         lbda [Å], flambda (input F_λ on lbda) [erg/s/cm²/Å], sig
                     variance [ADU²], noisy [ADU] (Philox stream of the extracted spectra)
 cube.h5             lbda [Å], signal [ADU], variance [ADU²], noisy [ADU] (nλ, ny, nx), cube_dtype
 detector_image.h5   rate [e-/s/px] (float32) on the full H4RG, both fields
-ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout)
+ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout), and beside those kept reference/:
+                    their JWST reference files (gain, readnoise, saturation, ...; one set per target, as
+                    the per-pixel maps come from the ramp seed: :mod:`slicersim.products.reference`;
+                    when stdatamodels is installed)
 reduced.h5          with ``products.reduce = "spectra"`` (or true): the ramps reduced as
                     ``slicersim reduce DATASET --spectra`` does (rates/, cubes/<field>/,
                     spectra/<field>/); rates.h5 with ``"rates"`` (as ``slicersim reduce DATASET``)
@@ -40,6 +43,8 @@ __all__ = ["target_seeds", "run_target", "truth_meta", "SEED_STREAM", "SPECTRUM_
 
 #: the file of the reduced product per ``products.reduce`` mode (the names of ``slicersim reduce DATASET``)
 REDUCED_FILES = {"spectra": "reduced.h5", "rates": "rates.h5"}
+#: folder of a target's JWST reference files, beside its ramps (slicersim reffiles --ramps)
+REFERENCE_DIR = "reference"
 _REDUCER = []
 
 #: Philox stream deriving a target's seeds from (campaign seed, target id)
@@ -187,6 +192,10 @@ def _write_ramps(path, target, row, seed, spec, memory):
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
                      overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row),
                      effects=effects)
+    from slicersim.products import reference         # the JWST reference files of the ramps kept, beside them
+    if spec.keeps_ramps(int(row["target_id"])) and reference.available():     # (maps of the ramp seed)
+        reference.write_reference_files_for_ramps(path, os.path.join(os.path.dirname(path), REFERENCE_DIR),
+                                                  overwrite=True)
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None, reducer=None):
