@@ -12,10 +12,10 @@ spectrum.h5         lbda [Å], flambda (input F_λ on lbda) [erg/s/cm²/Å], sig
                     variance [ADU²], noisy [ADU] (Philox stream of the extracted spectra)
 cube.h5             lbda [Å], signal [ADU], variance [ADU²], noisy [ADU] (nλ, ny, nx), cube_dtype
 detector_image.h5   rate [e-/s/px] (float32) on the full H4RG, both fields
-ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout), and beside those kept reference/:
-                    their JWST reference files (gain, readnoise, saturation, ...; one set per target, as
-                    the per-pixel maps come from the ramp seed: :mod:`slicersim.products.reference`;
-                    when stdatamodels is installed)
+ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout), and with ``products.reference_files``
+                    beside those kept reference/: their JWST reference files (gain, readnoise, saturation, ...;
+                    one set per target, as the per-pixel maps come from the ramp seed:
+                    :mod:`slicersim.products.reference`; stdatamodels needed)
 reduced.h5          with ``products.reduce = "spectra"`` (or true): the ramps reduced as
                     ``slicersim reduce DATASET --spectra`` does (rates/, cubes/<field>/,
                     spectra/<field>/); rates.h5 with ``"rates"`` (as ``slicersim reduce DATASET``)
@@ -193,7 +193,7 @@ def _write_ramps(path, target, row, seed, spec, memory):
                      overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row),
                      effects=effects)
     from slicersim.products import reference         # the JWST reference files of the ramps kept, beside them
-    if spec.keeps_ramps(int(row["target_id"])) and reference.available():     # (maps of the ramp seed)
+    if spec.products.get("reference_files") and spec.keeps_ramps(int(row["target_id"])):   # (maps of the ramp seed)
         reference.write_reference_files_for_ramps(path, os.path.join(os.path.dirname(path), REFERENCE_DIR),
                                                   overwrite=True)
 

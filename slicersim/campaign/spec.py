@@ -27,6 +27,7 @@
     precision = "auto"                        # of the cube kernels: "auto", "double" or "single"
     compression = "none"                      # of the ramps: none, gzip[:level], lz4, zstd, bitshuffle-lz4
     effects = "none"                          # detector effects of the ramps: "lazuli", "all", names
+    reference_files = false                   # JWST reference files beside each target's kept ramps
     reduce = false                            # stream: reduce each target's ramps as soon as they are
                                               # simulated, in the same task (true or "spectra": as
                                               # `slicersim reduce DATASET --spectra`, "rates": as
@@ -64,7 +65,7 @@ _OBSERVATION = {"snr": 20.0, "lbda_range": [4000.0, 6800.0], "frame": "rest", "c
                 "conventions": "physical", "search": "exact", "per_resolution": True}
 _PRODUCTS = {"spectrum": True, "cube": False, "detector_image": False, "ramps": False,
              "cube_dtype": "float32", "compression": "none", "precision": "auto", "reduce": False,
-             "keep_ramps": "all", "effects": "none"}
+             "keep_ramps": "all", "effects": "none", "reference_files": False}
 #: what ``products.reduce`` may be (True is "spectra")
 REDUCE_MODES = (False, "spectra", "rates")
 _SURVEY = {"overhead": 0.0, "efficiency": 1.0, "compression_ratio": 1.0}
@@ -157,6 +158,8 @@ class CampaignSpec:
             out["products"].pop("keep_ramps", None)
         if out["products"].get("effects") == "none":     # no detector effects: the identity of earlier datasets
             out["products"].pop("effects", None)
+        if not out["products"].get("reference_files"):
+            out["products"].pop("reference_files", None)
         if self.config_digests:
             out["observation"]["config_sha256"] = dict(sorted(self.config_digests.items()))
         return out
@@ -291,7 +294,21 @@ def _products(section):
         raise ConfigError(f"products.compression: {exc}") from None
     _streaming(prod)
     _effects(prod)
+    _reference_files(prod)
     return prod
+
+
+def _reference_files(prod):
+    """``products.reference_files``: the JWST reference files of each target's kept ramps (stdatamodels)."""
+    if not isinstance(prod["reference_files"], bool):
+        raise ConfigError(f"products.reference_files must be true or false, got {prod['reference_files']!r}")
+    if not prod["reference_files"]:
+        return
+    if not prod["ramps"]:
+        raise ConfigError("products.reference_files = true describes the raw ramps: set products.ramps = true")
+    from slicersim.products import reference
+    if not reference.available():
+        raise ConfigError("products.reference_files = true needs stdatamodels: pip install 'slicersim[jwst]'")
 
 
 def _effects(prod):

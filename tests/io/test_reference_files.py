@@ -199,8 +199,8 @@ def test_a_campaign_writes_the_reference_files_beside_its_ramps(tmp_path):
         def get_ramps(self, out, seed, effects, **kwargs):
             return simulate(np.full(SHAPE, 20.0), (3, 1, 0), seed=seed, out=out, effects=effects, overwrite=True)
 
-    spec = SimpleNamespace(products={"compression": "none", "effects": "lazuli"}, population=None,
-                           keeps_ramps=lambda tid: tid == 0)
+    spec = SimpleNamespace(products={"compression": "none", "effects": "lazuli", "reference_files": True},
+                           population=None, keeps_ramps=lambda tid: tid == 0)
     path = tmp_path / "t0000000" / "ramps.h5"
     path.parent.mkdir()
     products._write_ramps(str(path), Target(), {"target_id": 0}, 77, spec, 1 << 26)
@@ -215,22 +215,33 @@ def test_a_campaign_writes_the_reference_files_beside_its_ramps(tmp_path):
     assert not (gone.parent / products.REFERENCE_DIR).exists()
 
 
-def test_a_campaign_without_stdatamodels_still_makes_its_ramps(tmp_path, monkeypatch):
-    """No stdatamodels (it is the [jwst] extra): the ramps are written, the reference files skipped."""
+def test_campaign_reference_files_are_asked_for_and_need_stdatamodels(tmp_path, monkeypatch):
+    """`[products] reference_files = true` (off by default: a full-detector set is ~1.2 GB and a minute of CPU per
+    target) needs the ramps and stdatamodels (the [jwst] extra), refused at the spec; off, nothing is written."""
+    import tomllib
     from types import SimpleNamespace
 
     from slicersim.campaign import products
+    from slicersim.campaign.spec import parse_spec
+    from slicersim.errors import ConfigError
     from slicersim.products import reference
 
     class Target:
         def get_ramps(self, out, **kwargs):
             np.save(str(out) + ".npy", np.zeros(1))
 
-    monkeypatch.setattr(reference, "available", lambda: False)
     spec = SimpleNamespace(products={"compression": "none", "effects": "none"}, population=None,
                            keeps_ramps=lambda tid: True)
     products._write_ramps(str(tmp_path / "ramps.h5"), Target(), {"target_id": 0}, 1, spec, 1 << 26)
     assert (tmp_path / "ramps.h5.npy").exists() and not (tmp_path / products.REFERENCE_DIR).exists()
+    text = '[population]\nkind = "snia"\nn = 1\n[products]\nramps = true\nreference_files = true\n'
+    assert parse_spec(tomllib.loads(text), text=text).canonical()["products"]["reference_files"] is True
+    with pytest.raises(ConfigError, match="reference_files = true describes the raw ramps"):
+        bad = text.replace("ramps = true\n", "")
+        parse_spec(tomllib.loads(bad), text=bad)
+    monkeypatch.setattr(reference, "available", lambda: False)
+    with pytest.raises(ConfigError, match=r"needs stdatamodels: pip install 'slicersim\[jwst\]'"):
+        parse_spec(tomllib.loads(text), text=text)
 
 
 @pytest.mark.slow
