@@ -9,8 +9,8 @@ time); the last block is padded with the identity, which changes nothing in the 
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import LinAlgError, cholesky
-from scipy.linalg.lapack import dtrtri
+from scipy.linalg import LinAlgError
+from scipy.linalg.lapack import dpotrf, dtrtri
 
 __all__ = ["BlockCholesky"]
 
@@ -54,8 +54,10 @@ class BlockCholesky:
         self.sub = np.empty((max(nb - 1, 0), block, block))
         S = D[0]
         for i in range(nb):
-            L = cholesky(S, lower=True, check_finite=False)
-            Linv, info = dtrtri(L, lower=1)                            # L⁻¹ (LAPACK)
+            L, info = dpotrf(S, lower=1, clean=1)                      # LAPACK, no wrapper's checks
+            if info != 0:
+                raise LinAlgError("the matrix is not positive definite")
+            Linv, info = dtrtri(L, lower=1)                            # L⁻¹
             if info != 0:
                 raise LinAlgError("singular Cholesky factor")
             self.inv[i] = Linv
@@ -102,8 +104,8 @@ class BlockCholesky:
 
     def inverse_norm1(self, y=None, z=None):
         """Hager's estimate of ‖A⁻¹‖₁ (a lower bound, usually exact: Higham 1988, Algorithm 2.1, for a
-        symmetric A) from two to five solves, two of which the caller may have done already
-        (batched with its own solves).
+        symmetric A, stopped after its first step) from two or three solves, the first two of which
+        the caller may have done already (batched with its own solves).
 
         Parameters
         ----------
@@ -120,7 +122,7 @@ class BlockCholesky:
         x = np.full(n, 1.0 / n)
         y = self.solve(x) if y is None else np.asarray(y, float)
         est = float(np.abs(y).sum())
-        for _ in range(2):
+        for _ in range(1):                       # one step of the iteration: at most one solve more
             z = self.solve(np.where(y >= 0, 1.0, -1.0)) if z is None else np.asarray(z, float)
             j = int(np.argmax(np.abs(z)))
             if abs(z[j]) <= z @ x:
