@@ -104,8 +104,8 @@ class BlockCholesky:
 
     def inverse_norm1(self, y=None, z=None):
         """Hager's estimate of ‖A⁻¹‖₁ (a lower bound, usually exact: Higham 1988, Algorithm 2.1, for a
-        symmetric A, stopped after its first step) from two or three solves, the first two of which
-        the caller may have done already (batched with its own solves).
+        symmetric A, at most two steps) from two to five solves, the first two of which the caller
+        may have done already (batched with its own solves).
 
         Parameters
         ----------
@@ -122,7 +122,7 @@ class BlockCholesky:
         x = np.full(n, 1.0 / n)
         y = self.solve(x) if y is None else np.asarray(y, float)
         est = float(np.abs(y).sum())
-        for _ in range(1):                       # one step of the iteration: at most one solve more
+        for _ in range(2):
             z = self.solve(np.where(y >= 0, 1.0, -1.0)) if z is None else np.asarray(z, float)
             j = int(np.argmax(np.abs(z)))
             if abs(z[j]) <= z @ x:

@@ -32,8 +32,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import cho_solve
-from scipy.linalg.lapack import dpotrf, dpotri
 
 from slicersim.errors import ParameterError, RampFileError, ReductionError
 from slicersim.reduction.spectrum_product import SpectrumProduct
@@ -239,24 +237,6 @@ class _Footprint:
     def background(self):
         return sp.csr_matrix((self.weight, self.bin, self.indptr), shape=(self.pixels.size, self.nbin))
 
-    def with_background(self, values):
-        """``sp.hstack([matrix(values), background()])`` (the same CSR, entries in the same order),
-        without the stacking: the two share their sparsity, so the joined structure is built once."""
-        if not hasattr(self, "_joined"):
-            n = self.weight.size
-            counts = np.diff(self.indptr)
-            row = np.repeat(np.arange(counts.size), counts)
-            # per row: the PSF part's entries, then the background's (hstack's order)
-            order = np.lexsort((np.concatenate([np.arange(n), np.arange(n)]),
-                                np.repeat([0, 1], n), np.concatenate([row, row])))
-            psf = np.flatnonzero(order < n)
-            self._joined = (psf, order[psf], np.concatenate([self.bin, self.bin + self.nbin])[order],
-                            2 * self.indptr, np.concatenate([np.zeros(n), self.weight])[order])
-        psf, source, indices, indptr, base = self._joined
-        data = base.copy()
-        data[psf] = (self.weight * values[self.bin, self.cube_row, self.col])[source]
-        return sp.csr_matrix((data, indices, indptr), shape=(self.pixels.size, 2 * self.nbin))
-
 
 def _psf(sim, profile, position):
     """P[λ, y, x] of the configuration's PSF profile at ``position`` [native cells] (NumPy: the fit's
@@ -292,42 +272,26 @@ def _photon_spectrum(sim, F, qe):
     return phi + 1e-30
 
 
-def _solve(A, d, v, covariance=True):
-    """Weighted LS: (θ̂, covariance) over the columns the data constrain (others NaN / 0); without
-    ``covariance``, (θ̂, None).  The scaled normal matrix is inverted by its Cholesky factor (LAPACK
-    potrf/potri: a third of the general inverse's work), by the general inverse if it is not
-    numerically positive definite, by the pseudo-inverse if singular."""
+def _solve(A, d, v):
+    """Weighted LS: (θ̂, covariance) over the columns the data constrain (others NaN / 0)."""
     w = 1.0 / v
     G = (A.T @ (sp.diags(w) @ A)).toarray()
     b = A.T @ (w * d)
     ok = np.diag(G) > 0
     theta = np.full(G.shape[0], np.nan)
-    cov = np.zeros_like(G) if covariance else None
+    cov = np.zeros_like(G)
     if not ok.any():
         return theta, cov
     Gk = G[np.ix_(ok, ok)]
     scale = 1.0 / np.sqrt(np.diag(Gk))
     Gs = Gk * scale[:, None] * scale[None, :]
-    bs = b[ok] * scale
-    c, info = dpotrf(Gs, lower=1, clean=1)
-    if info == 0 and not covariance:
-        theta[ok] = scale * cho_solve((c, True), bs, check_finite=False)
-        return theta, None
-    inv = None
-    if info == 0:
-        inv, info = dpotri(c, lower=1)
-        if info == 0:
-            inv = np.tril(inv) + np.tril(inv, -1).T
-        else:
-            inv = None
-    if inv is None:
-        try:
-            inv = np.linalg.inv(Gs)
-        except np.linalg.LinAlgError:
-            inv = np.linalg.pinv(Gs)
-    theta[ok] = scale * (inv @ bs)
-    if covariance:
-        cov[np.ix_(ok, ok)] = inv * scale[:, None] * scale[None, :]
+    try:
+        inv = np.linalg.inv(Gs)
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(Gs)
+    inv = inv * scale[:, None] * scale[None, :]
+    theta[ok] = inv @ b[ok]
+    cov[np.ix_(ok, ok)] = inv
     return theta, cov
 
 
@@ -430,9 +394,7 @@ class _Problem:
         """The sparse design matrix A = [𝒫(P̃ δ_j) | 𝒫(1 δ_j)] at ``pos`` (P̃ LSF-averaged with ``phi``)."""
         P = self.psf(pos)
         Pt = P if phi is None else _lsf_averaged(self.sim, P, phi)
-        if self.U is None:
-            return self.fp.matrix(Pt)
-        return self.fp.with_background(Pt)
+        return sp.hstack([self.fp.matrix(Pt)] + ([self.U] if self.U is not None else [])).tocsr()
 
 
 class _Fit:
@@ -494,7 +456,7 @@ def _position_step(prob, fit, F, h=0.02):
         dP = (prob.psf(fit.pos + step) - prob.psf(fit.pos - step)) / (2 * h)
         dcols.append(prob.fp.matrix(dP) @ F)
     J = sp.hstack([fit.A, sp.csr_matrix(np.stack(dcols, axis=1))]).tocsr()
-    theta_j, _ = _solve(J, prob.d - fit.A @ np.nan_to_num(fit.theta), fit.v, covariance=False)
+    theta_j, _ = _solve(J, prob.d - fit.A @ np.nan_to_num(fit.theta), fit.v)
     return np.clip(np.nan_to_num(theta_j[-2:]), -1.0, 1.0)
 
 
