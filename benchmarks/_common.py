@@ -191,16 +191,17 @@ def write_results(out_dir, stem, result, markdown):
 #  timing of commands: wall and CPU seconds (the CPU of a loaded machine's
 #  neighbours does not count; wall time does)
 # --------------------------------------------------------------------------- #
-def timed_command(cmd, env=None):
-    """Run ``cmd`` (a list) to completion, output discarded; returns {"wall": s, "cpu": s}: wall-clock
-    seconds and the CPU seconds (user + system) of the command and its children
-    (``resource.getrusage(RUSAGE_CHILDREN)`` before and after)."""
+def timed_command(cmd, env=None, cwd=None):
+    """Run ``cmd`` (a list) to completion in ``cwd``, output discarded; returns {"wall": s, "cpu": s}:
+    wall-clock seconds and the CPU seconds (user + system) of the command and its children
+    (``resource.getrusage(RUSAGE_CHILDREN)`` before and after).  (``python -c`` puts its working
+    directory first on the path: run such commands elsewhere than a checkout they must not import.)"""
     import resource
     import subprocess
     import time
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=cwd)
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     return {"wall": wall, "cpu": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)}

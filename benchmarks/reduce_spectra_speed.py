@@ -46,7 +46,7 @@ ROOT = HERE.parent
 
 def _cli(tree=None):
     """The ``slicersim`` command line of this checkout (or of the package tree ``tree``) and its environment."""
-    env = dict(os.environ, PYTHONPATH=str(tree or ROOT))
+    env = dict(os.environ, PYTHONPATH=str(tree or ROOT))      # run with cwd outside the checkout (python -c)
     return [sys.executable, "-c", "import sys; from slicersim.app.cli import main; sys.exit(main())"], env
 
 
@@ -186,14 +186,15 @@ def main(argv=None):
         base_cli = _cli(_baseline_tree(args.baseline, tmp)) if args.baseline else None
         for k in range(args.repeat):
             ramps.append(timed_command(cli + ["ramp", "--redshift", str(args.redshift), "--seed", str(k), "--out", raw,
-                                              "--overwrite"], env))
-            reds.append(timed_command(cli + ["reduce", raw, "--out", red, "--spectra", "--quiet", "--overwrite"], env))
+                                              "--overwrite"], env, cwd=tmp))
+            reds.append(timed_command(cli + ["reduce", raw, "--out", red, "--spectra", "--quiet", "--overwrite"], env,
+                                      cwd=tmp))
             line = (f"ramp {ramps[-1]['cpu']:.1f} CPU-s / {ramps[-1]['wall']:.1f} s, reduce --spectra "
                     f"{reds[-1]['cpu']:.1f} CPU-s / {reds[-1]['wall']:.1f} s")
             if base_cli:
                 ref = os.path.join(tmp, "red_baseline.h5")
                 base.append(timed_command(base_cli[0] + ["reduce", raw, "--out", ref, "--spectra", "--quiet",
-                                                         "--overwrite"], base_cli[1]))
+                                                         "--overwrite"], base_cli[1], cwd=tmp))
                 base[-1]["spectrum"] = compare_spectra(red, ref, args.redshift)
                 line += f", baseline {base[-1]['cpu']:.1f} CPU-s / {base[-1]['wall']:.1f} s"
             print(line, flush=True)
