@@ -185,3 +185,37 @@ def write_results(out_dir, stem, result, markdown):
     (out / f"{stem}.json").write_text(json.dumps(jsonable(result), indent=1))
     (out / f"{stem}.md").write_text(markdown)
     return out / f"{stem}.json", out / f"{stem}.md"
+
+
+# --------------------------------------------------------------------------- #
+#  timing of commands: wall and CPU seconds (the CPU of a loaded machine's
+#  neighbours does not count; wall time does)
+# --------------------------------------------------------------------------- #
+def timed_command(cmd, env=None, cwd=None):
+    """Run ``cmd`` (a list) to completion in ``cwd``, output discarded; returns {"wall": s, "cpu": s}:
+    wall-clock seconds and the CPU seconds (user + system) of the command and its children
+    (``resource.getrusage(RUSAGE_CHILDREN)`` before and after).  (``python -c`` puts its working
+    directory first on the path: run such commands elsewhere than a checkout they must not import.)"""
+    import resource
+    import subprocess
+    import time
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=cwd)
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return {"wall": wall, "cpu": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)}
+
+
+def git_commit(short=True):
+    """The checkout's commit (``git rev-parse``), with "+dirty" when tracked files differ; None outside git."""
+    import subprocess
+    root = BENCHMARKS.parent
+    try:
+        head = subprocess.run(["git", "rev-parse", *(["--short"] if short else []), "HEAD"], cwd=root,
+                              capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")

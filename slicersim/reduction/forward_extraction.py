@@ -121,20 +121,21 @@ def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
     at least that of white noise of ``variance`` through the same statistic (for residual images,
     whose own scatter can be far below the noise).  Returns ((x, y) [native cells from the field
     centre], significance [σ])."""
-    floor = 0.0
-    if noise_floor:
-        noise = np.sqrt(np.where(np.isfinite(variance) & (variance > 0), variance, 0.0))
-        noise = noise * np.random.default_rng(0).standard_normal(noise.shape)
-        floor = locate_source(_white_light_cube(noise, variance, tables, rows), scatter=True)
-    return locate_source(_white_light_cube(rate, variance, tables, rows), floor=floor)
-
-
-def _white_light_cube(rate, variance, tables, rows):
     from slicersim.backends.projection_transpose import gather
+    floor = 0.0
     usable = np.isfinite(variance) & (variance > 0)
+    den = gather(usable.astype(float), tables)               # Σ_λ Pᵀ1: shared by both cubes
+    if noise_floor:
+        noise = np.sqrt(np.where(usable, variance, 0.0))
+        noise = noise * np.random.default_rng(0).standard_normal(noise.shape)
+        floor = locate_source(_white_light_cube(noise, usable, den, tables, rows), scatter=True)
+    return locate_source(_white_light_cube(rate, usable, den, tables, rows), floor=floor)
+
+
+def _white_light_cube(rate, usable, den, tables, rows):
+    from slicersim.backends.projection_transpose import gather
     d = np.where(usable, rate, 0.0)
     num = gather(d, tables)                                  # (S, E, Q)
-    den = gather(usable.astype(float), tables)
     with np.errstate(invalid="ignore", divide="ignore"):
         cells = np.where(den > 0.5 * np.median(den[den > 0]) if (den > 0).any() else den > 0, num / den, np.nan)
     cube = np.swapaxes(cells, 0, 1)[:, ::-1, :]              # (E, rows, Q): row r ↔ slice S − 1 − r

@@ -47,9 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import LinAlgError, cholesky
-from scipy.linalg.lapack import dtrtri
-from scipy.sparse.linalg import LinearOperator, onenormest
+from scipy.linalg import LinAlgError
 
 from slicersim.backends.projection import deposit, footprint_windows
 from slicersim.backends.projection_transpose import gather, matrix_entries
@@ -57,6 +55,7 @@ from slicersim.errors import ParameterError
 from slicersim import validation
 from slicersim.backends.precision import float64_kwargs
 from slicersim.instrument.mapper import SlicerMapper
+from slicersim.reduction.block_cholesky import BlockCholesky
 from slicersim.reduction.option_forms import build_options
 from slicersim.reduction.rectify_checks import (FIELDS, METHODS, RectifyOptions, _check_grid, _check_images,
                                                 _check_options, _check_projection)
@@ -134,68 +133,6 @@ def _slice_coverage(mapper, ncol, edges, oversample, truncate):
         inside = np.cumsum(np.cumsum(diff, axis=0), axis=1)[:h, :w] > 0
         count[by0:by0 + h, bx0:bx0 + w] += inside
     return count
-
-
-# --------------------------------------------------------------------------- block Cholesky
-class _BlockCholesky:
-    """Cholesky factor A = L Lᵀ of a symmetric positive-definite block-tridiagonal matrix (sparse A).
-
-    Blocks of ``block`` rows (≥ the bandwidth).  Kept: the inverses of L's lower-triangular
-    diagonal blocks, ``inv[i]`` = L_ii⁻¹, and its sub-diagonal blocks ``sub[i]`` = L[i+1, i]:
-    solves are then matrix products (no small triangular solves)."""
-
-    def __init__(self, A, block):
-        n = A.shape[0]
-        self.bounds = list(range(0, n, block)) + [n]
-        self.inv, self.sub = [], []
-        nb = len(self.bounds) - 1
-        b0, b1 = self.bounds[0], self.bounds[1]
-        S = A[b0:b1, b0:b1].toarray()
-        for i in range(nb):
-            L = cholesky(S, lower=True, check_finite=False)
-            Linv, info = dtrtri(L, lower=1)                                     # L⁻¹ (LAPACK)
-            if info != 0:
-                raise LinAlgError("singular Cholesky factor")
-            self.inv.append(Linv)
-            if i + 1 < nb:
-                b0, b1, b2 = self.bounds[i:i + 3]
-                M = A[b1:b2, b0:b1].toarray() @ Linv.T                       # C L⁻ᵀ
-                self.sub.append(M)
-                S = A[b1:b2, b1:b2].toarray() - M @ M.T
-
-    def solve(self, rhs):
-        """A⁻¹ rhs for (n,) or (n, k) rhs."""
-        b = self.bounds
-        y = np.empty_like(rhs, dtype=np.float64)
-        prev = None
-        for i, Linv in enumerate(self.inv):
-            r = rhs[b[i]:b[i + 1]] if prev is None else rhs[b[i]:b[i + 1]] - self.sub[i - 1] @ prev
-            prev = y[b[i]:b[i + 1]] = Linv @ r
-        x = np.empty_like(y)
-        nxt = None
-        for i in range(len(self.inv) - 1, -1, -1):
-            r = y[b[i]:b[i + 1]] if nxt is None else y[b[i]:b[i + 1]] - self.sub[i].T @ nxt
-            nxt = x[b[i]:b[i + 1]] = self.inv[i].T @ r
-        return x
-
-    def inverse_diagonal(self):
-        """diag(A⁻¹) by the block Takahashi recursion: Z_ii = L_ii⁻ᵀL_ii⁻¹ + Tᵀ Z_{i+1} T,
-        T = L[i+1, i] L_ii⁻¹."""
-        b = self.bounds
-        out = np.empty(b[-1])
-        Z = None
-        for i in range(len(self.inv) - 1, -1, -1):
-            Linv = self.inv[i]
-            Znew = Linv.T @ Linv
-            if Z is not None:
-                T = self.sub[i] @ Linv
-                Znew += T.T @ (Z @ T)
-            Z = Znew
-            out[b[i]:b[i + 1]] = np.diag(Z)
-        return out
-
-    def nbytes(self):
-        return sum(a.nbytes for a in self.inv) + sum(a.nbytes for a in self.sub)
 
 
 def _slice_matrix(tables, s, weight_of):
@@ -321,33 +258,36 @@ def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A):
     if not seen.any():
         return x, var, 1.0
     idx = np.flatnonzero(seen)
-    A = A[idx][:, idx].tocsr()
+    if idx.size < nc:
+        A = A[idx][:, idx].tocsr()
     coo = A.tocoo()
     band = int(np.abs(coo.row - coo.col).max()) if coo.nnz else 0
     block = max(band, 1)
-    need = 2 * idx.size * block * 8 + 4 * block * block * 8
+    need = 4 * (-(-idx.size // block) + 1) * block * block * 8      # blocks of A, of L⁻¹ and of L
     if need > max_bytes:
         raise ParameterError(f"slice {sid}: the normal matrix needs {need / 2**20:.0f} MiB (bandwidth {band}) "
                              f"> max_bytes {max_bytes / 2**20:.0f} MiB: use fewer columns, wider λ bins "
                              "or method='drizzle'")
     try:
-        fac = _BlockCholesky(A, block)
+        fac = BlockCholesky(A, block)
     except LinAlgError:
         raise ParameterError(f"slice {sid}: the normal matrix PᵀWP is singular — the grid is finer than the "
                              "detector samples it (cells smaller than pixel and spot); use fewer columns "
                              "(ncol), wider λ bins or method='drizzle'") from None
-    op = LinearOperator(A.shape, matvec=fac.solve, rmatvec=fac.solve, matmat=fac.solve, dtype=np.float64)
-    # Hager–Higham estimate of ‖A⁻¹‖₁ with one probe vector (t=1): within 1 % of t=2 on the Lazuli
-    # slices, and a third of the rectification's time less
-    cond = float(abs(A).sum(axis=0).max() * onenormest(op, t=1))
+    # the solve, its refinement with the data residual (corrected semi-normal equations) and the first
+    # two solves of Hager's estimate of ‖A⁻¹‖₁ go together (one pass of the recursion for both)
+    n, k = idx.size, rhs.shape[1]
+    Pk = P[:, idx]
+    sol = fac.solve(np.column_stack([rhs[idx], np.full(n, 1.0 / n)]))
+    xs, y = sol[:, :k], sol[:, k]
+    resid = data - Pk @ xs
+    sol = fac.solve(np.column_stack([Pk.T @ (w[:, None] * resid), np.where(y >= 0, 1.0, -1.0)]))
+    xs += sol[:, :k]
+    cond = float(abs(A).sum(axis=0).max() * fac.inverse_norm1(y, sol[:, k]))
     if not cond < MAX_CONDITION:
         raise ParameterError(f"slice {sid}: the normal matrix PᵀWP has condition {cond:.2g} > "
                              f"{MAX_CONDITION:.0e}: the grid is finer than the detector samples it; use fewer "
                              "columns (ncol), wider λ bins or method='drizzle'")
-    Pk = P[:, idx]
-    xs = fac.solve(rhs[idx])
-    resid = data - Pk @ xs                               # refinement with the data residual (CSNE)
-    xs += fac.solve(Pk.T @ (w[:, None] * resid))
     x[idx] = xs
     if want_variance:
         var[idx] = fac.inverse_diagonal()
