@@ -70,9 +70,9 @@ class RampIO:
         Configuration recorded in the CONFIG attribute.
     return_dq : bool, optional
         With ``out=None``, also return GROUPDQ in memory.
-    target : TargetTruth, optional
-        Written as ``truth/target`` (the target's redshift, phase, input spectrum and expected rate;
-        ``LazuliTarget.get_ramps`` makes it).
+    target : object, optional
+        A ``slicersim.io.target_truth.TargetTruth``, written as ``truth/target`` (the target's redshift,
+        phase, input spectrum and expected rate; ``LazuliTarget.get_ramps`` makes it).
     """
 
     format: str | None = None
