@@ -31,7 +31,8 @@ from slicersim.reduction.option_forms import build_options
 from slicersim.reduction.options import ReduceOptions
 from slicersim.reduction.ramp_sources import check_source
 
-__all__ = ["reduce_exposure", "ReduceOptions", "default_lbda_edges", "check_forward_fit", "SUSPECT_CHI2_DOF"]
+__all__ = ["reduce_exposure", "ReduceOptions", "default_lbda_edges", "check_forward_fit", "check_spectrum_has_signal",
+           "SUSPECT_CHI2_DOF"]
 
 _DO_NOT_USE = 1
 
@@ -288,6 +289,8 @@ def _rectify(rate, var, plan, ncol, keep_information):
 
 
 def _result(rates, rate, cubes, spectra, var, noise, plan):
+    for name, spec in (spectra or {}).items():           # every extraction method: no all-NaN spectrum
+        check_spectrum_has_signal(spec, name, plan.dark_rate)
     return {"rates": rates, "rate": rate, "cubes": cubes, "spectra": spectra, "variance": var,
             "dark_rate": plan.dark_rate, "dark_kind": plan.dark_kind, "noise_information": noise,
             "weights": plan.weights}
@@ -502,6 +505,18 @@ SPECTRUM_UNITS = {"LBDA": "Angstrom", "LBDA_EDGES": "Angstrom", "FLUX": "e-/s pe
 #: pixel χ²/dof above which a forward fit is flagged (single point sources on white noise give ≤ 1.01;
 #: two sources 4–20 cells apart gave 1.036–1.038 on the Lazuli detector)
 SUSPECT_CHI2_DOF = 1.02
+
+
+def check_spectrum_has_signal(spec, name, dark_rate=0.0):
+    """Refuse (ReductionError naming the likely cause) a spectrum without one finite bin: writing it would be
+    exit 0 with every F_λ NaN (``--dark 1e6`` removed all the signal, or every pixel of the source is flagged)."""
+    flux = np.asarray(spec.flux, float)
+    if np.isfinite(flux).any():
+        return
+    dark = float(np.max(dark_rate)) if np.size(dark_rate) else 0.0
+    cause = (f"the dark rate subtracted ({dark:g} e-/s per pixel) exceeds the signal everywhere: check --dark"
+             if dark > 0 else "every pixel of the source is flagged (saturated or bad) or has no variance")
+    raise ReductionError(f"the {name} field's spectrum has no finite bin: {cause}")
 
 
 def check_forward_fit(spec, rate, var, tables, name):

@@ -638,3 +638,29 @@ def test_a_negative_position_is_a_value_not_a_flag(monkeypatch):
     assert _parse_position(args.position) == (-29.4, 0.0)
     args = build_parser().parse_args(["reduce", "raw.h5", "--out", "r.h5", "--spectra", "--position", "-1e1,-2"])
     assert _parse_position(args.position) == (-10.0, -2.0)
+
+
+def test_a_dark_that_removes_all_signal_is_an_error_not_an_all_nan_spectrum():
+    """`reduce --spectra --dark 1e6` (the largest accepted) gave exit 0 with all 255 F_λ bins NaN."""
+    from types import SimpleNamespace
+
+    from slicersim.errors import ReductionError
+    from slicersim.reduction.pipeline import check_spectrum_has_signal
+    empty = SimpleNamespace(flux=np.full(255, np.nan))
+    with pytest.raises(ReductionError, match=r"narrow field's spectrum has no finite bin: the dark rate subtracted "
+                                             r"\(1e\+06 e-/s per pixel\) exceeds the signal everywhere: check --dark"):
+        check_spectrum_has_signal(empty, "narrow", 1e6)
+    with pytest.raises(ReductionError, match="every pixel of the source is flagged"):
+        check_spectrum_has_signal(empty, "wide", 0.0)
+    check_spectrum_has_signal(SimpleNamespace(flux=np.r_[np.nan, 1.0]), "narrow", 1e6)     # one finite bin: kept
+
+
+@pytest.mark.slow
+def test_reduce_spectra_with_a_dark_above_the_signal_exits_2(small_layout, tmp_path, capsys):
+    path, _, _ = small_layout
+    out = tmp_path / "red.h5"
+    code = main(["reduce", str(path), "--out", str(out), "--spectra", "--lbda-edges", EDGES, "--ncol", str(NCOL),
+                 "--dark", "1e6", "--quiet"])
+    assert code == 2 and not out.exists()
+    error = _one_line_error(capsys)
+    assert "no finite bin" in error or "no point source" in error, error
