@@ -487,7 +487,7 @@ def _forward_field(name, rates, rate, var, plan):
                              background=plan.opts.background, psf_profile=model["psf_profile"], cell_scale=scale)
     noise = PixelNoise(rates.var_rnoise, rates.var_poisson, rates.rate, plan.dark_rate)
     spec = extract_forward(rate, var, options, sim=sim, mapper=plan.mapper, noise=noise)
-    check_forward_fit(spec, rate, var, tables, name)
+    check_forward_fit(spec, rate, var, tables, name, forced=fixed is not None)
     return spec
 
 
@@ -519,10 +519,12 @@ def check_spectrum_has_signal(spec, name, dark_rate=0.0):
     raise ReductionError(f"the {name} field's spectrum has no finite bin: {cause}")
 
 
-def check_forward_fit(spec, rate, var, tables, name):
+def check_forward_fit(spec, rate, var, tables, name, forced=False):
     """Warn and flag (``diagnostics["warnings"]``, written in SPECTRUM_<FIELD>) a forward fit whose
     pixels are not explained: χ²/dof above :data:`SUSPECT_CHI2_DOF`, or light left in its residual
-    image (a second source ≥ 5 σ in white light)."""
+    image (a second source ≥ 5 σ in white light).  With a ``forced`` position the residual is searched
+    over the whole field (a source elsewhere, e.g. the SN the position missed, is light left), and a
+    spectrum whose band total is below 5 σ is flagged: nothing significant at the position given."""
     from slicersim.reduction.forward_extraction import MIN_DETECTION, white_light_start
     d = spec.diagnostics
     flags = []
@@ -531,10 +533,17 @@ def check_forward_fit(spec, rate, var, tables, name):
                      "another source, extended light or unmodelled detector effects)")
     resid = np.zeros(rate.shape)
     resid.ravel()[d["pixel_index"]] = d["residual"]
-    (x, y), signif = white_light_start(resid, var, tables, rows=d["rows"], noise_floor=True)
+    (x, y), signif = white_light_start(resid, var, tables, rows=None if forced else d["rows"], noise_floor=True)
     if signif >= MIN_DETECTION:
         flags.append(f"light left at ({x:.1f}, {y:.1f}) native cells, {signif:.1f} σ in the residual's white "
-                     "light (a second source?)")
+                     "light (a second source?" + (" or the source the given position missed)" if forced else ")"))
+    if forced:
+        flux, variance = np.asarray(spec.flux, float), np.asarray(spec.variance, float)
+        ok = np.isfinite(flux) & np.isfinite(variance) & (variance > 0)
+        total = float(flux[ok].sum() / np.sqrt(variance[ok].sum())) if ok.any() else 0.0
+        if not total >= MIN_DETECTION:
+            flags.append(f"the spectrum at the given position totals {total:.1f} σ (< {MIN_DETECTION:g} σ): no "
+                         "significant source there")
     d["warnings"] = flags
     for text in flags:
         warnings.warn(f"{name} field: {text}", RuntimeWarning, stacklevel=5)

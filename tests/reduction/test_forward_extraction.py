@@ -239,6 +239,25 @@ def test_a_second_source_is_flagged(scene):
     assert clean.diagnostics["warnings"] == []
 
 
+@pytest.mark.slow
+def test_a_position_forced_on_empty_sky_is_flagged(scene):
+    """`--position 15,10` on empty sky gave exit 0 with 7 % of the SN's flux: the residual check looked only
+    near the forced position and missed the SN at the centre.  A forced fit now searches the whole field's
+    residual and flags a spectrum without a significant total."""
+    from slicersim.instrument.mapper import NARROW_SLICES
+    from slicersim.reduction.pipeline import check_forward_fit
+    sim = scene["sim"]
+    tables = scene["mapper"].projection_tables(NARROW_SLICES, sim.spectrograph.shape[1], scene["edges"])
+    noisy = scene["image"] + np.sqrt(scene["var"]) * np.random.default_rng(7).standard_normal(scene["image"].shape)
+    s = extract_forward(noisy, scene["var"], sim=sim, mapper=scene["mapper"], position=(15.0, 10.0))
+    with pytest.warns(RuntimeWarning, match="light left"):
+        check_forward_fit(s, noisy, scene["var"], tables, "narrow", forced=True)
+    assert any("the given position missed" in w for w in s.diagnostics["warnings"])
+    on_it = extract_forward(noisy, scene["var"], sim=sim, mapper=scene["mapper"], position=(0.0, 0.0))
+    check_forward_fit(on_it, noisy, scene["var"], tables, "narrow", forced=True)
+    assert on_it.diagnostics["warnings"] == []
+
+
 def test_the_instrument_is_checked_before_any_data_are_read():
     """Review findings: --config other than the recorded one warns (it changes flux and F_λ); a CONFIG
     naming a TOML that does not exist is refused, naming the file's CONFIG, before the ramp fit (here the
