@@ -249,8 +249,26 @@ def noise_information(info, variance):
     return out
 
 
-def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A):
-    """Weighted LSQ of one slice (A = PᵀWP): (x (nc, N), variance (nc,) or None, κ₁(A))."""
+#: fraction of a slice's pixels without weight (saturated, flagged) above which an unmeasured cell is blamed on
+#: them rather than on the grid
+FLAGGED_SHARE = 0.05
+
+
+def _why_unmeasured(share):
+    """Why some cells of a slice are not measured: its pixels without weight (saturated or flagged: the
+    source, not the grid) when they hold more than :data:`FLAGGED_SHARE` of the slice's light (``share``),
+    else a grid finer than the pixels."""
+    if share > FLAGGED_SHARE:
+        return (f"{100 * share:.0f} % of its pixels carry no weight (saturated or flagged: a saturated source "
+                "leaves its cells unmeasured); a shorter readout (fewer groups) or --rectify drizzle, whose cells "
+                "take what the good pixels give, avoids it")
+    return ("the grid is finer than the detector samples it (cells smaller than pixel and spot); use fewer "
+            "columns (ncol), wider λ bins or method='drizzle'")
+
+
+def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A, excluded=0.0):
+    """Weighted LSQ of one slice (A = PᵀWP): (x (nc, N), variance (nc,) or None, κ₁(A)); ``excluded``: the
+    share of the slice's projection on pixels without weight (named when the matrix cannot be solved)."""
     nc = P.shape[1]
     seen = A.diagonal() > 0
     x = np.full((nc, rhs.shape[1]), np.nan)
@@ -271,9 +289,7 @@ def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A):
     try:
         fac = BlockCholesky(A, block)
     except LinAlgError:
-        raise ParameterError(f"slice {sid}: the normal matrix PᵀWP is singular — the grid is finer than the "
-                             "detector samples it (cells smaller than pixel and spot); use fewer columns "
-                             "(ncol), wider λ bins or method='drizzle'") from None
+        raise ParameterError(f"slice {sid}: the normal matrix PᵀWP is singular — " + _why_unmeasured(excluded)) from None
     # the solve, its refinement with the data residual (corrected semi-normal equations) and the first
     # two solves of Hager's estimate of ‖A⁻¹‖₁ go together (one pass of the recursion for both)
     n, k = idx.size, rhs.shape[1]
@@ -286,8 +302,7 @@ def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A):
     cond = float(abs(A).sum(axis=0).max() * fac.inverse_norm1(y, sol[:, k]))
     if not cond < MAX_CONDITION:
         raise ParameterError(f"slice {sid}: the normal matrix PᵀWP has condition {cond:.2g} > "
-                             f"{MAX_CONDITION:.0e}: the grid is finer than the detector samples it; use fewer "
-                             "columns (ncol), wider λ bins or method='drizzle'")
+                             f"{MAX_CONDITION:.0e}: " + _why_unmeasured(excluded))
     x[idx] = xs
     if want_variance:
         var[idx] = fac.inverse_diagonal()
@@ -319,7 +334,9 @@ def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend
         P, upix, w, lost_s = _slice_matrix(tables, s, flat_w.__getitem__)
         A = _normal_matrix(P, w)
         info._store(s, A)
-        x, v, c = _solve_slice(P, w, rhs[:, s].T, flat_d[:, upix].T, want_variance, max_bytes, slices[s], A)
+        total = float(lost_s.sum() + P.sum())
+        x, v, c = _solve_slice(P, w, rhs[:, s].T, flat_d[:, upix].T, want_variance, max_bytes, slices[s], A,
+                               excluded=float(lost_s.sum()) / total if total > 0 else 0.0)
         flux[:, s] = x.T
         if want_variance:
             var[s] = v

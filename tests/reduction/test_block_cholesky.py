@@ -100,3 +100,11 @@ def test_rectified_spectrum_is_the_dense_solution(small_scene, monkeypatch):
     assert np.allclose(cf.variance[seen], ce.variance[seen], rtol=1e-7)
     kf, ke = cf.diagnostics["cond1_normal_max"], ce.diagnostics["cond1_normal_max"]
     assert 0.3 * ke <= kf <= ke * (1 + 1e-9)                        # Hager: a lower bound of κ₁
+
+
+def test_an_unmeasured_slice_names_saturation_when_flagged_pixels_hold_its_light():
+    """A saturated source was blamed on the grid ("use method='drizzle'", "fewer columns"): the message now
+    names the pixels without weight when they hold more than 5 % of the slice's light."""
+    from slicersim.reduction.rectify import FLAGGED_SHARE, _why_unmeasured
+    assert "saturated or flagged" in _why_unmeasured(0.3) and "30 %" in _why_unmeasured(0.3)
+    assert "the grid is finer than the detector samples it" in _why_unmeasured(FLAGGED_SHARE / 2)
