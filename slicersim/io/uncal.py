@@ -21,14 +21,13 @@ at a time, so a 2 GB SCI is never held in memory; truth extensions are appended.
 Every HDU carries CHECKSUM and DATASUM (FITS standard 4.0, as JWST files do), summed as the
 blocks are written (:mod:`slicersim.io.fits_checksum`): ``fits.open(path, checksum=True)`` verifies them.
 
-Keyword choices (the schema's enumerations decide; see ``core.schema.yaml`` of stdatamodels):
-INSTRUME, DETECTOR, EXP_TYPE and READPATT are enumerated JWST names that all admit "N/A";
-ours is not a JWST instrument and MACC(n, m, d) is not a named JWST pattern, so they are
-"N/A" (the pattern is fully given by NGROUPS, NFRAMES, GROUPGAP) and the truth is in
-TELESCOP (free text), ORIGIN = "slicersim" and the SLICERSIM keywords.  ``keywords=``
-overrides any of them (e.g. INSTRUME="NIRSPEC" to feed JWST pipeline steps); the file is
-then only as honest as the caller.  NOUTPUTS is omitted (the schema allows 1, 4, 5; an H4RG
-has 32 outputs).
+Instrument keywords (:mod:`slicersim.io.uncal_meta`, their one table): INSTRUME = LAZULI_IFS,
+DETECTOR = H4RG-1, EXP_TYPE = LZ_IFU, READPATT = MACC_<m>_<d>, GAINEDN [e-/DN] and RDNCDSDN
+[CDS DN] as pipelines use them; the simulation's own GAIN [ADU/e-] and READNOISE [e-/frame]
+stay ``HIERARCH SLICERSIM`` cards.  JWST's schema enumerates the first four with JWST names
+only: the file opens in ``Level1bModel``/``RampModel`` and a strict validation names just
+those four; ``keywords=uncal_meta.JWST_STAND_IN`` (or any ``keywords=``) overrides them.
+NOUTPUTS is omitted (the schema allows 1, 4, 5; an H4RG has 32 outputs).
 
 Timing keywords follow the JWST keyword dictionary (archive.stsci.edu/jwst/keyword, build 11):
 TGROUP = (NFRAMES + GROUPGAP)·TFRAME; EFFINTTM = (NGROUPS − 1)·TGROUP, the time between the
@@ -64,14 +63,15 @@ from slicersim.io.fits_blocks import (BLOCK, IMAGE_TYPES, ascii_text, card_value
 from slicersim.io.fits_checksum import StreamedChecksums, verify_datasums
 from slicersim.io.rampfile import open_hdf5_input, read_dataset, soft_links
 from slicersim.io.row_blocks import RowBlocks, rows_per_block
+from slicersim.io.uncal_meta import DETECTOR, EXP_TYPE, INSTRUMENT, TELESCOPE, instrument_keywords
 
 __all__ = ["UncalWriter", "UncalOptions", "write_uncal_from_hdf5", "read_uncal", "read_uncal_truth", "truth_extname",
            "DEFAULT_KEYWORDS"]
 
 _DAY0 = _dt.datetime(2000, 1, 1)                 # GROUP end_day counts days from here
 #: primary keywords written unless ``keywords=`` or a root attribute says otherwise
-DEFAULT_KEYWORDS = {"TELESCOP": "Lazuli", "INSTRUME": "N/A", "DETECTOR": "N/A", "EXP_TYPE": "N/A",
-                    "READPATT": "N/A", "ORIGIN": "slicersim", "TIMESYS": "UTC", "TIMEUNIT": "s",
+DEFAULT_KEYWORDS = {"TELESCOP": TELESCOPE, "INSTRUME": INSTRUMENT, "DETECTOR": DETECTOR, "EXP_TYPE": EXP_TYPE,
+                    "ORIGIN": "slicersim", "TIMESYS": "UTC", "TIMEUNIT": "s",
                     "DATAMODL": "Level1bModel", "ZEROFRAM": False, "DATAPROB": False,
                     "FASTAXIS": 1, "SLOWAXIS": 2}
 _TIMING_DEFAULTS = {"NRSTSTRT": 1, "NRESETS": 1, "DRPFRMS1": 0, "DRPFRMS3": 0}
@@ -341,9 +341,13 @@ class UncalWriter:
                 cards[key] = int(self.attrs[key])
         cards.update({"SUBARRAY": "FULL" if full else "GENERIC", "SUBSTRT1": x0, "SUBSTRT2": y0,
                       "SUBSIZE1": nx, "SUBSIZE2": ny})
+        comments = {}
+        for key, val, comment in instrument_keywords(self.attrs):
+            cards[key], comments[key] = val, comment
         for key, val in self.keywords.items():
             cards[str(key).upper()] = card_value(val)
-        out = list(cards.items())
+            comments.pop(str(key).upper(), None)
+        out = [(k, v, comments[k]) if k in comments else (k, v) for k, v in cards.items()]
         out += [(f"HIERARCH SLICERSIM {ascii_text(k).upper()}", card_value(v)) for k, v in self.attrs.items()]
         return out
 
