@@ -36,8 +36,11 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["TELESCOPE", "INSTRUMENT", "DETECTOR", "EXP_TYPE", "JWST_STAND_IN", "readout_pattern",
-           "pipeline_units", "instrument_keywords"]
+import numpy as np
+
+__all__ = ["TELESCOPE", "INSTRUMENT", "DETECTOR", "EXP_TYPE", "JWST_STAND_IN", "GROUPDQ_FLAGS", "readout_pattern",
+           "pipeline_units", "instrument_keywords", "SATURATION_MARGIN", "saturation_reference", "group_sigma_dn",
+           "observed_saturation"]
 
 TELESCOPE = "Lazuli"
 #: INSTRUME of every slicersim level-1b file (and of the matching reference files)
@@ -48,6 +51,37 @@ DETECTOR = "H4RG-1"
 EXP_TYPE = "LZ_IFU"
 #: JWST names a caller may put in place of ours (``keywords=``) to run JWST pipeline code
 JWST_STAND_IN = {"INSTRUME": "NIRSPEC", "DETECTOR": "NRS1", "EXP_TYPE": "NRS_IFU", "READPATT": "NRSRAPID"}
+
+#: what the GROUPDQ extension holds: "none" (no GROUPDQ, as in flight level-1b files: flags are the
+#: pipeline's to set), "observed" (SATURATED where the observed DN reaches SATURATION, as a
+#: pipeline's saturation step flags it, and every later group), "truth" (the simulator's flags,
+#: from the true charge: the truth, not an observable)
+GROUPDQ_FLAGS = ("none", "observed", "truth")
+
+#: the saturation reference level sits this many σ (white noise of one group) below the plateau
+SATURATION_MARGIN = 5.0
+
+
+def group_sigma_dn(gain_adu_per_e, ron_e, nframes, ktc_e=0.0):
+    """White noise of one group's DN about its plateau [DN]: gain·√(ron²/nframes + kTC²)."""
+    return float(gain_adu_per_e) * math.sqrt(float(ron_e) ** 2 / int(nframes) + float(ktc_e) ** 2)
+
+
+def saturation_reference(plateau_dn, saturation_dn, sigma_dn):
+    """The saturation level a pipeline flags against [DN] (as a JWST saturation reference file):
+    ``min(plateau, saturation) − SATURATION_MARGIN·σ``.
+
+    Parameters
+    ----------
+    plateau_dn : float or (rows, nx) array [DN], bias + gain·R(full well): where a full pixel reads
+    saturation_dn : float [DN], the ADC / SATURATION level (a ramp never reads above it)
+    sigma_dn : float [DN], the white noise of one group about the plateau (:func:`group_sigma_dn`)
+
+    Returns
+    -------
+    float or array [DN] : a group at or above it is SATURATED (and every later one)
+    """
+    return np.minimum(np.asarray(plateau_dn, np.float64), float(saturation_dn)) - SATURATION_MARGIN * float(sigma_dn)
 
 
 def readout_pattern(nframes, groupgap):
@@ -84,3 +118,20 @@ def instrument_keywords(attrs):
         cards += [("GAINEDN", gain, "[e-/DN] gain as pipelines use it"),
                   ("RDNCDSDN", rdn, "[DN] CDS read noise of two frames")]
     return cards
+
+
+def observed_saturation(sci, level):
+    """GROUPDQ of saturation seen in the data: SATURATED (2) from the first group whose DN reaches
+    ``level`` on, as a pipeline's saturation step flags it from what it reads.
+
+    Parameters
+    ----------
+    sci : (ngroups, ...) integer array [DN], the groups of one integration
+    level : float or array broadcasting to ``sci.shape[1:]`` [DN], the saturation level
+
+    Returns
+    -------
+    (ngroups, ...) uint8 : 2 where saturated, else 0
+    """
+    reached = np.asarray(sci) >= np.asarray(level, dtype=np.float64)
+    return np.where(np.logical_or.accumulate(reached, axis=0), np.uint8(2), np.uint8(0)).astype(np.uint8)

@@ -37,6 +37,7 @@ from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
 from slicersim.errors import EffectsError, ParameterError, ResourceError
 from slicersim.io.rampfile import DQ, RampWriter
 from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, rows_per_block
+from slicersim.io.uncal_meta import GROUPDQ_FLAGS
 from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, check_frame_charge, frame_mean_charge,  # noqa: F401
                                     macc_frame_schedule, readpatt)
 from slicersim.physics.readout import readout_times  # noqa: F401
@@ -63,6 +64,10 @@ class RampIO:
     return_dq : with ``out=None``, also return GROUPDQ in memory
     target : a :class:`~slicersim.io.target_truth.TargetTruth` written as ``truth/target`` (the target's
         redshift, phase, input spectrum and expected rate; :meth:`LazuliTarget.get_ramps` makes it)
+    groupdq : what a level-1b file's GROUPDQ holds (:data:`slicersim.io.uncal.GROUPDQ_FLAGS`): None or
+        "none" (no GROUPDQ, as flight level-1b), "observed" (SATURATED from the observed DN) or "truth"
+        (the simulator's flags, from the true charge); an HDF5 file keeps the simulator's flags (None
+        or "truth" only)
     """
 
     format: str | None = None
@@ -72,10 +77,13 @@ class RampIO:
     config: dict | None = None
     return_dq: bool = False
     target: object = None
+    groupdq: str | None = None
 
     def __post_init__(self):
         if self.format is not None:
             validation.choice("file_format", self.format, FILE_FORMATS)
+        if self.groupdq is not None:
+            validation.choice("groupdq", self.groupdq, GROUPDQ_FLAGS)
         for name in ("overwrite", "truth", "return_dq"):              # 0/1 accepted as before, not "yes"
             value = getattr(self, name)
             value = bool(value) if isinstance(value, (int, np.integer)) else value
@@ -133,7 +141,7 @@ _LEGACY_ORDER = ("nmd", "nramps", "seed", "out", "tframe", "ron", "dark", "therm
                  "saturation", "bias", "ktc_noise", "full_well", "dead_pixels", "pixeldq", "sparse_max_group",
                  "gauss_min_mean", "compression", "max_bytes", "truth", "config", "backend", "progress",
                  "work_group", "return_dq", "overwrite", "effects", "previous_charge", "file_format", "precision",
-                 "target")
+                 "target", "groupdq")
 _READOUT_KEYS = ("nmd", "nramps", "tframe", "ron", "dark", "thermal_dark", "roic_glow", "gain", "saturation",
                  "bias", "ktc_noise", "full_well", "sparse_max_group", "gauss_min_mean")
 _LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron": 12.0, "dark": 2.8e-3,
@@ -141,7 +149,7 @@ _LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron
                             "bias": DEFAULT_BIAS, "ktc_noise": 0.0, "full_well": None, "sparse_max_group": None,
                             "gauss_min_mean": np.inf}
 _IO_KEYS = {"file_format": "format", "overwrite": "overwrite", "compression": "compression", "truth": "truth",
-            "config": "config", "return_dq": "return_dq", "target": "target"}
+            "config": "config", "return_dq": "return_dq", "target": "target", "groupdq": "groupdq"}
 _RUN_KEYS = ("max_bytes", "progress", "work_group")
 _MAP_KEYS = ("dead_pixels", "pixeldq", "previous_charge")
 _NAMED = ("seed", "out", "backend", "effects", "precision")
@@ -273,7 +281,8 @@ def _simulate(rate, p, named, io, run, maps):
         _check_memory(p, rate.shape, io.return_dq, run.max_bytes)
     expected = expected_frame_charge(rate, p, seed, fx, dead, pixeldq, previous_charge, noise_cache, precision)
     attrs = _file_attrs(p, seed, backend, precision, io.config, fx)
-    sampler = _Sampler(p, seed, backend, precision, run.work_group, want_dq=out is not None or io.return_dq)
+    want_dq = io.return_dq if writer is None else getattr(writer, "groupdq_flags", "truth") == "truth"
+    sampler = _Sampler(p, seed, backend, precision, run.work_group, want_dq=want_dq)
     blocks = RowBlocks(rate.shape[0], rows, nouter=p.nramps, progress=run.progress, desc="ramps")
     if writer is None:
         sci, gdq = realize_ramps(expected, sampler, blocks, None, io)
@@ -322,8 +331,15 @@ def _open_writer(out, io, p, fx, shape, rows):
     from slicersim.products.effects import EffectsPlan
     writer_class = _writer_class(out, io.format)
     truth_bytes = EffectsPlan.truth_nbytes(fx, p, shape) if (fx is not None and io.truth) else 0
+    extra = {}
+    if writer_class is RampWriter:
+        if io.groupdq not in (None, "truth"):
+            raise ParameterError(f"groupdq {io.groupdq!r} is for level-1b files (jwst-uncal): an HDF5 ramp file "
+                                 "keeps the simulator's flags")
+    else:
+        extra["groupdq_flags"] = io.groupdq or "none"
     return writer_class(out, p.nramps, p.nmd[0], shape, row_block=min(rows, 256), compression=io.compression,
-                        truth_rate=io.truth, overwrite=io.overwrite, extra_bytes=truth_bytes).check()
+                        truth_rate=io.truth, overwrite=io.overwrite, extra_bytes=truth_bytes, **extra).check()
 
 
 def _check_memory(p, shape, return_dq, max_bytes):
@@ -464,6 +480,13 @@ def _write_effects_truth(plan, writer, lanes, nramps, truth):
     plan.drop_photo_maps()                             # used by rate_and_dark and the truth only
 
 
+class _Observed:
+    """A writer's ``write_block`` given the saturation level of the block."""
+
+    def __init__(self, write_block):
+        self.write_block = write_block
+
+
 class _MemorySink:
     """SCI (and GROUPDQ) in memory, written like a file by row blocks."""
 
@@ -476,11 +499,23 @@ class _MemorySink:
             self.gdq[ramp, :, y0:y0 + sci.shape[1]] = gdq
 
 
+def _observed_level(p, plan, y0, y1):
+    """Saturation level [DN] a level-1b file's observed flags use for rows [y0, y1) (per pixel with
+    effects: bias map, nonlinear full well), :func:`slicersim.io.uncal_meta.saturation_reference`."""
+    from slicersim.io.uncal_meta import group_sigma_dn, saturation_reference
+    plateau = p.bias + p.gain * p.full_well if plan is None else plan.plateau_block(y0, y1)
+    return saturation_reference(plateau, p.saturation, group_sigma_dn(p.gain, p.ron, p.nmd[1], p.ktc_noise))
+
+
 def _realize_block(expected, sampler, sink, lanes, ramp, y0, y1, rows):
     """One row block of one ramp into ``sink`` (a writer, or memory)."""
     ny, nx = expected.mu.shape
     n = sampler.p.nmd[0]
     shape = (n, y1 - y0, nx)
+    if getattr(sink, "groupdq_flags", None) == "observed":         # level-1b: flags from the observed DN
+        level = _observed_level(sampler.p, expected.plan, y0, y1)
+        write = sink.write_block
+        sink = _Observed(lambda r, y, s, q: write(r, y, s, q, saturation=level))
     if expected.plan is not None:
         sci, gdq = sampler.effects(expected, ramp, y0, y1)
         if lanes is not None:                          # fresh arrays each block: handed over

@@ -115,6 +115,21 @@ def test_ramp_rate_file_writes_the_simulated_ramp(tmp_path, rate_file):
     assert os.listdir(tmp_path) == ["r.h5"]
 
 
+def test_ramp_groupdq_flag(tmp_path, rate_file):
+    """--groupdq: none (the level-1b default: no GROUPDQ), observed (from the DN read), HDF5 refused."""
+    from slicersim.io.uncal import read_uncal
+    none, obs = tmp_path / "n.fits", tmp_path / "o.fits"
+    for out, extra in ((none, ()), (obs, ("--groupdq", "observed"))):
+        proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--out", out, *extra)
+        assert proc.returncode == 0, proc.stderr
+    assert read_uncal(none)[1] is None
+    sci, gdq, _, header = read_uncal(obs)
+    assert gdq is not None and header["INSTRUME"] == "LAZULI_IFS" and header["READPATT"] == "MACC_1_0"
+    line = one_error_line(run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", tmp_path / "x.h5",
+                              "--groupdq", "observed"))
+    assert "level-1b" in line and not (tmp_path / "x.h5").exists()
+
+
 def test_ramp_default_seed_is_fresh_printed_and_recorded(tmp_path, rate_file):
     """Without --seed each run draws a new seed, printed in the summary and recorded in SEED; passing it
     back with --seed repeats the run."""

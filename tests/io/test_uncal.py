@@ -58,12 +58,13 @@ def _open_strict(path):
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """A 64×64 MACC(4,2,1) ramp, 2 integrations, simulated to HDF5 and converted to FITS."""
+    """A 64×64 MACC(4,2,1) ramp, 2 integrations, simulated to HDF5 and converted to FITS (with the
+    simulator's GROUPDQ: tests/io/test_uncal_groupdq.py checks the flight-like default, none)."""
     d = tmp_path_factory.mktemp("uncal")
     rate = np.random.default_rng(3).uniform(0.0, 50.0, (64, 64))
     h5 = simulate(rate, nmd=NMD, nramps=NINTS, seed=11, out=str(d / "ramp.h5"), tframe=TFRAME,
                   backend="numpy", progress=False)
-    fits_path = write_uncal_from_hdf5(h5, d / "ramp_uncal.fits", start_mjd=60000.25)
+    fits_path = write_uncal_from_hdf5(h5, d / "ramp_uncal.fits", start_mjd=60000.25, groupdq_flags="truth")
     return h5, fits_path, rate
 
 
