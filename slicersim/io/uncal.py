@@ -566,6 +566,9 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 2
         per_row = max(1, ngroups * nx * 3)
         rows = rows_per_block(max(max_bytes, per_row), per_row, ny)
         truth_rate = "truth/rate" in others
+        if "DETECTOR_NY" in attrs and "SUBSTRT1" in attrs and "substrt" not in writer_options:   # a window
+            writer_options = {**writer_options, "detector_shape": (int(attrs["DETECTOR_NY"]), int(attrs["DETECTOR_NX"])),
+                              "substrt": (int(attrs["SUBSTRT2"]), int(attrs["SUBSTRT1"]))}
         writer = UncalWriter(fits_path, nints, ngroups, (ny, nx), attrs=attrs, row_block=rows,
                              truth_rate=truth_rate, pixeldq="PIXELDQ" in fh, groupdq=gdq is not None,
                              overwrite=overwrite, **writer_options)
