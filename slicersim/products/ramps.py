@@ -64,7 +64,7 @@ class RampIO:
     return_dq : with ``out=None``, also return GROUPDQ in memory
     target : a :class:`~slicersim.io.target_truth.TargetTruth` written as ``truth/target`` (the target's
         redshift, phase, input spectrum and expected rate; :meth:`LazuliTarget.get_ramps` makes it)
-    groupdq : what a level-1b file's GROUPDQ holds (:data:`slicersim.io.uncal.GROUPDQ_FLAGS`): None or
+    groupdq : what a level-1b file's GROUPDQ holds (:data:`slicersim.io.uncal_meta.GROUPDQ_FLAGS`): None or
         "none" (no GROUPDQ, as flight level-1b), "observed" (SATURATED from the observed DN) or "truth"
         (the simulator's flags, from the true charge); an HDF5 file keeps the simulator's flags (None
         or "truth" only)
@@ -177,7 +177,7 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
     out : output path (HDF5 or JWST level-1b FITS, see :class:`RampIO`) or None (SCI in memory)
     backend : "auto", "opencl" or "numpy";  precision : "auto", "double" or "single" (single: the
         same Philox words, ~1e-3 of the values differ by 1 ADU, same statistics)
-    io : :class:`RampIO` (format, overwrite, compression, truth, config, return_dq)
+    io : :class:`RampIO` (format, overwrite, compression, truth, config, return_dq, target, groupdq, window)
     run : :class:`RunOptions` (max_bytes, progress, work_group);  maps : :class:`DetectorMaps`
 
     Returns a :class:`RampResult`.  The output size is checked against the free disk space (``out``)
