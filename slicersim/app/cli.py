@@ -330,6 +330,9 @@ def cmd_ramp(args) -> int:
                   precision=args.precision)
     if args.max_bytes is not None:
         common["max_bytes"] = args.max_bytes
+    for key in ("groupdq", "window"):
+        if getattr(args, key) is not None:
+            common[key] = getattr(args, key)
     if args.previous_charge is not None:
         common["previous_charge"] = _load_rate(args.previous_charge, "--previous-charge")
     detector = {k: getattr(args, k) for k in RAMP_DETECTOR_DEFAULTS if getattr(args, k) is not None}
@@ -442,6 +445,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "--format jwst-uncal)")
     p.add_argument("--format", choices=("hdf5", "jwst-uncal"),
                    help="output format (default: jwst-uncal for a .fits name, else hdf5)")
+    p.add_argument("--groupdq", choices=("none", "observed", "truth"),
+                   help="GROUPDQ of a jwst-uncal file: none (as flight level-1b files), observed (SATURATED "
+                        "where the observed DN reaches the saturation level) or truth (the simulator's flags "
+                        "from the true charge) (default: none; HDF5 files keep the simulator's flags)")
+    p.add_argument("--window", type=int, nargs=4, metavar=("X0", "Y0", "NX", "NY"),
+                   help="simulate and write only this window of the detector (first pixel X0 Y0, 0-based; "
+                        "SUBSTRT1/2 = X0+1, Y0+1), read on the full detector's outputs and pixel clock: "
+                        "the same pixels as a full-detector ramp of the same seed")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--compression", choices=("gzip", "lz4", "zstd", "bitshuffle-lz4"),
                    help="HDF5 compression (default: none)")

@@ -12,10 +12,11 @@ spectrum.h5         lbda [Å], flambda (input F_λ on lbda) [erg/s/cm²/Å], sig
                     variance [ADU²], noisy [ADU] (Philox stream of the extracted spectra)
 cube.h5             lbda [Å], signal [ADU], variance [ADU²], noisy [ADU] (nλ, ny, nx), cube_dtype
 detector_image.h5   rate [e-/s/px] (float32) on the full H4RG, both fields
-ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout), and with ``products.reference_files``
-                    beside those kept reference/: their JWST reference files (gain, readnoise, saturation, ...;
-                    one set per target, as the per-pixel maps come from the ramp seed:
-                    :mod:`slicersim.products.reference`; stdatamodels needed)
+ramps.h5            raw MACC ramps (:mod:`slicersim.io.rampfile` layout); ramps.fits with
+                    ``products.ramp_format = "jwst-uncal"`` (level-1b, :mod:`slicersim.io.uncal`); with
+                    ``products.reference_files`` beside those kept reference/: their JWST reference files
+                    (gain, readnoise, saturation, ...; one set per target, as the per-pixel maps come from the
+                    ramp seed: :mod:`slicersim.products.reference`; stdatamodels needed)
 reduced.h5          with ``products.reduce = "spectra"`` (or true): the ramps reduced as
                     ``slicersim reduce DATASET --spectra`` does (rates/, cubes/<field>/,
                     spectra/<field>/); rates.h5 with ``"rates"`` (as ``slicersim reduce DATASET``)
@@ -218,7 +219,8 @@ def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, thre
         target, source = build_target(spec, row)
         products = {}
         for name in spec.wanted:
-            path = os.path.join(pdir, f"{name}.h5")
+            fits = name == "ramps" and spec.products.get("ramp_format") == "jwst-uncal"    # level-1b
+            path = os.path.join(pdir, f"{name}.fits" if fits else f"{name}.h5")
             if name == "spectrum":
                 _write_spectrum(path, target, row, seed, source)
             elif name == "cube":

@@ -65,7 +65,8 @@ _OBSERVATION = {"snr": 20.0, "lbda_range": [4000.0, 6800.0], "frame": "rest", "c
                 "conventions": "physical", "search": "exact", "per_resolution": True}
 _PRODUCTS = {"spectrum": True, "cube": False, "detector_image": False, "ramps": False,
              "cube_dtype": "float32", "compression": "none", "precision": "auto", "reduce": False,
-             "keep_ramps": "all", "effects": "none", "reference_files": False}
+             "keep_ramps": "all", "effects": "none", "reference_files": False,
+             "ramp_format": "hdf5"}
 #: what ``products.reduce`` may be (True is "spectra")
 REDUCE_MODES = (False, "spectra", "rates")
 _SURVEY = {"overhead": 0.0, "efficiency": 1.0, "compression_ratio": 1.0}
@@ -160,6 +161,8 @@ class CampaignSpec:
             out["products"].pop("effects", None)
         if not out["products"].get("reference_files"):
             out["products"].pop("reference_files", None)
+        if out["products"].get("ramp_format") == "hdf5":  # the default: the identity of earlier datasets
+            out["products"].pop("ramp_format", None)
         if self.config_digests:
             out["observation"]["config_sha256"] = dict(sorted(self.config_digests.items()))
         return out
@@ -295,6 +298,10 @@ def _products(section):
     _streaming(prod)
     _effects(prod)
     _reference_files(prod)
+    choice("products.ramp_format", prod["ramp_format"], ("hdf5", "jwst-uncal"), error=ConfigError)
+    if prod["ramp_format"] == "jwst-uncal" and prod["compression"] != "none":
+        raise ConfigError("products.ramp_format = \"jwst-uncal\" writes uncompressed level-1b FITS: set "
+                          "products.compression = \"none\"")
     return prod
 
 

@@ -57,12 +57,12 @@ def show_progress(progress, nblocks=None, auto_min=4):
 
 class RowBlocks:
     """The steps of a pass: for each outer index (a ramp; 1 when there is none) the row blocks
-    [y0, y1) of ``rows`` rows over ``nrows`` rows.  Iterating yields (outer, y0, y1), lazily (the
+    [y0, y1) of ``rows`` rows over rows [``first``, ``nrows``).  Iterating yields (outer, y0, y1), lazily (the
     outer count may be huge), through a tqdm bar when :func:`show_progress` says so."""
 
-    def __init__(self, nrows, rows, *, nouter=1, progress=None, desc="blocks", auto_min=4):
-        self.nrows, self.rows, self.nouter = int(nrows), int(rows), int(nouter)
-        self.per_outer = -(-self.nrows // self.rows)
+    def __init__(self, nrows, rows, *, nouter=1, progress=None, desc="blocks", auto_min=4, first=0):
+        self.nrows, self.rows, self.nouter, self.first = int(nrows), int(rows), int(nouter), int(first)
+        self.per_outer = -(-(self.nrows - self.first) // self.rows)
         self.progress = show_progress(progress, len(self), auto_min)
         self.desc = desc
 
@@ -71,7 +71,7 @@ class RowBlocks:
 
     def _steps(self):
         for outer in range(self.nouter):
-            for y0 in range(0, self.nrows, self.rows):
+            for y0 in range(self.first, self.nrows, self.rows):
                 yield outer, y0, min(self.nrows, y0 + self.rows)
 
     def __iter__(self):

@@ -5,7 +5,8 @@ Layout (readable by ``stdatamodels.jwst.datamodels.Level1bModel``, which validat
     PRIMARY    header only: JWST exposure, subarray and time keywords; every slicersim root
                attribute as ``HIERARCH SLICERSIM <NAME>`` (the truth about the simulation)
     SCI        uint16 (nints, ngroups, ny, nx)  BITPIX 16, BZERO 32768    [DN = ADU]
-    GROUPDQ    uint8  (nints, ngroups, ny, nx)  BITPIX 8                  JWST group flags
+    GROUPDQ    uint8  (nints, ngroups, ny, nx)  BITPIX 8                  JWST group flags, only with
+               ``groupdq_flags`` "observed" or "truth" (flight level-1b files carry none)
     PIXELDQ    uint32 (ny, nx)                  BITPIX 32, BZERO 2**31    JWST pixel flags
     GROUP      binary table, nints·ngroups rows (group end times, sizes)  as in JWST uncal files
     INT_TIMES  binary table, nints rows (integration start/mid/end, MJD UTC)
@@ -21,14 +22,13 @@ at a time, so a 2 GB SCI is never held in memory; truth extensions are appended.
 Every HDU carries CHECKSUM and DATASUM (FITS standard 4.0, as JWST files do), summed as the
 blocks are written (:mod:`slicersim.io.fits_checksum`): ``fits.open(path, checksum=True)`` verifies them.
 
-Keyword choices (the schema's enumerations decide; see ``core.schema.yaml`` of stdatamodels):
-INSTRUME, DETECTOR, EXP_TYPE and READPATT are enumerated JWST names that all admit "N/A";
-ours is not a JWST instrument and MACC(n, m, d) is not a named JWST pattern, so they are
-"N/A" (the pattern is fully given by NGROUPS, NFRAMES, GROUPGAP) and the truth is in
-TELESCOP (free text), ORIGIN = "slicersim" and the SLICERSIM keywords.  ``keywords=``
-overrides any of them (e.g. INSTRUME="NIRSPEC" to feed JWST pipeline steps); the file is
-then only as honest as the caller.  NOUTPUTS is omitted (the schema allows 1, 4, 5; an H4RG
-has 32 outputs).
+Instrument keywords (:mod:`slicersim.io.uncal_meta`, their one table): INSTRUME = LAZULI_IFS,
+DETECTOR = H4RG-1, EXP_TYPE = LZ_IFU, READPATT = MACC_<m>_<d>, GAINEDN [e-/DN] and RDNCDSDN
+[CDS DN] as pipelines use them; the simulation's own GAIN [ADU/e-] and READNOISE [e-/frame]
+stay ``HIERARCH SLICERSIM`` cards.  JWST's schema enumerates the first four with JWST names
+only: the file opens in ``Level1bModel``/``RampModel`` and a strict validation names just
+those four; ``keywords=uncal_meta.JWST_STAND_IN`` (or any ``keywords=``) overrides them.
+NOUTPUTS is omitted (the schema allows 1, 4, 5; an H4RG has 32 outputs).
 
 Timing keywords follow the JWST keyword dictionary (archive.stsci.edu/jwst/keyword, build 11):
 TGROUP = (NFRAMES + GROUPGAP)·TFRAME; EFFINTTM = (NGROUPS − 1)·TGROUP, the time between the
@@ -61,17 +61,20 @@ from slicersim.errors import RampFileError
 from slicersim.io.atomic import _HDF5_MARGIN, one_line, publish, remove_stale_temporaries, temporary_path
 from slicersim.io.fits_blocks import (BLOCK, IMAGE_TYPES, ascii_text, card_value, from_mjd, header_bytes,
                                       image_header, mjd, padded, table_bytes, to_storage)
-from slicersim.io.fits_checksum import StreamedChecksums, verify_datasums
+from slicersim.io.fits_checksum import StreamedChecksums
 from slicersim.io.rampfile import open_hdf5_input, read_dataset, soft_links
 from slicersim.io.row_blocks import RowBlocks, rows_per_block
+from slicersim.io.uncal_meta import (DETECTOR, EXP_TYPE, GROUPDQ_FLAGS, INSTRUMENT, TELESCOPE, group_sigma_dn,  # noqa: F401
+                                    instrument_keywords, observed_saturation, saturation_reference)
+from slicersim.io.uncal_read import read_uncal, read_uncal_truth  # noqa: F401  (public here as before)
 
 __all__ = ["UncalWriter", "UncalOptions", "write_uncal_from_hdf5", "read_uncal", "read_uncal_truth", "truth_extname",
-           "DEFAULT_KEYWORDS"]
+           "DEFAULT_KEYWORDS", "GROUPDQ_FLAGS", "observed_saturation"]
 
 _DAY0 = _dt.datetime(2000, 1, 1)                 # GROUP end_day counts days from here
 #: primary keywords written unless ``keywords=`` or a root attribute says otherwise
-DEFAULT_KEYWORDS = {"TELESCOP": "Lazuli", "INSTRUME": "N/A", "DETECTOR": "N/A", "EXP_TYPE": "N/A",
-                    "READPATT": "N/A", "ORIGIN": "slicersim", "TIMESYS": "UTC", "TIMEUNIT": "s",
+DEFAULT_KEYWORDS = {"TELESCOP": TELESCOPE, "INSTRUME": INSTRUMENT, "DETECTOR": DETECTOR, "EXP_TYPE": EXP_TYPE,
+                    "ORIGIN": "slicersim", "TIMESYS": "UTC", "TIMEUNIT": "s",
                     "DATAMODL": "Level1bModel", "ZEROFRAM": False, "DATAPROB": False,
                     "FASTAXIS": 1, "SLOWAXIS": 2}
 _TIMING_DEFAULTS = {"NRSTSTRT": 1, "NRESETS": 1, "DRPFRMS1": 0, "DRPFRMS3": 0}
@@ -99,14 +102,19 @@ def truth_extname(name):
 @dataclass(frozen=True, kw_only=True)
 class UncalOptions:
     """Keywords of :class:`UncalWriter` beyond those it shares with the HDF5 RampWriter: ``keywords``
-    (primary keywords overriding :data:`DEFAULT_KEYWORDS`), ``start_mjd`` [MJD UTC], ``detector_shape``
+    (primary keywords overriding :data:`DEFAULT_KEYWORDS`), ``groupdq_flags`` (:data:`GROUPDQ_FLAGS`:
+    what GROUPDQ holds), ``start_mjd`` [MJD UTC], ``detector_shape``
     (ny, nx), ``substrt`` 1-based (y, x) of the first pixel, ``extra_bytes`` for the disk-space check."""
 
     keywords: dict | None = None
+    groupdq_flags: str = "none"
     start_mjd: float | None = None
     detector_shape: tuple | None = None
     substrt: tuple = (1, 1)
     extra_bytes: int = 0
+
+    def __post_init__(self):
+        validation.choice("groupdq_flags", self.groupdq_flags, GROUPDQ_FLAGS)
 
 
 class UncalWriter:
@@ -121,7 +129,11 @@ class UncalWriter:
     compression : None only (a level-1b file is uncompressed)
     truth_rate : bool, count a TRUTH_RATE image in the disk-space check
     extra_bytes : further bytes (truth of detector effects) for the disk-space check
-    pixeldq, groupdq : bool, preallocate PIXELDQ / GROUPDQ
+    pixeldq : bool, preallocate PIXELDQ
+    groupdq : bool, accept the simulator's GROUPDQ blocks (False: they are refused); whether a
+        GROUPDQ extension is written, and what it holds, is ``groupdq_flags``
+    groupdq_flags : "none" (default: no GROUPDQ, as flight level-1b files), "observed" (SATURATED
+        from the observed DN, :func:`observed_saturation`) or "truth" (the simulator's flags)
     overwrite : replace an existing ``path`` (default: refuse with :class:`RampFileError`)
     keywords : primary keywords overriding the defaults (:data:`DEFAULT_KEYWORDS`)
     start_mjd : exposure start [MJD UTC] (default: attribute EXPSTART, else now)
@@ -154,7 +166,10 @@ class UncalWriter:
                                 "(use the HDF5 format to compress)")
         self.attrs = dict(attrs or {})
         self.row_block = int(max(1, min(row_block, self.shape[0])))
-        self.truth_rate, self.pixeldq, self.groupdq = bool(truth_rate), bool(pixeldq), bool(groupdq)
+        self.truth_rate, self.pixeldq = bool(truth_rate), bool(pixeldq)
+        self.groupdq_flags = opts.groupdq_flags
+        self.accepts_groupdq = bool(groupdq)
+        self.groupdq = self.groupdq_flags == "observed" or (self.groupdq_flags == "truth" and bool(groupdq))
         self.keywords = dict(keywords or {})
         self.start_mjd = start_mjd
         self.detector_shape = self.shape if detector_shape is None else tuple(int(s) for s in detector_shape)
@@ -341,9 +356,13 @@ class UncalWriter:
                 cards[key] = int(self.attrs[key])
         cards.update({"SUBARRAY": "FULL" if full else "GENERIC", "SUBSTRT1": x0, "SUBSTRT2": y0,
                       "SUBSIZE1": nx, "SUBSIZE2": ny})
+        comments = {}
+        for key, val, comment in instrument_keywords(self.attrs):
+            cards[key], comments[key] = val, comment
         for key, val in self.keywords.items():
             cards[str(key).upper()] = card_value(val)
-        out = list(cards.items())
+            comments.pop(str(key).upper(), None)
+        out = [(k, v, comments[k]) if k in comments else (k, v) for k, v in cards.items()]
         out += [(f"HIERARCH SLICERSIM {ascii_text(k).upper()}", card_value(v)) for k, v in self.attrs.items()]
         return out
 
@@ -400,8 +419,12 @@ class UncalWriter:
         return group, int_times
 
     # ------------------------------------------------------------------ writing
-    def write_block(self, ramp, row0, sci, groupdq=None):
-        """Write groups (ngroups, nrows, nx) of one ramp starting at detector row ``row0``."""
+    def write_block(self, ramp, row0, sci, groupdq=None, saturation=None):
+        """Write groups (ngroups, nrows, nx) of one ramp starting at detector row ``row0``.
+
+        ``groupdq``: the simulator's flags (kept with ``groupdq_flags="truth"`` only);
+        ``saturation``: the level [DN] (scalar or (nrows, nx)) of ``groupdq_flags="observed"``
+        (default: :meth:`saturation_level`, from the root attributes)."""
         ny, nx = self.shape
         sci = np.asarray(sci)
         if sci.ndim != 3 or sci.shape[0] != self.ngroups or sci.shape[2] != nx:
@@ -416,13 +439,30 @@ class UncalWriter:
             groupdq = self._as(np.asarray(groupdq), np.uint8, "GROUPDQ")
             if groupdq.shape != sci.shape:
                 raise RampFileError(f"{self.path}: GROUPDQ block {groupdq.shape} ≠ SCI block {sci.shape}")
-            if not self.groupdq:
+            if not self.accepts_groupdq:
                 raise RampFileError(f"{self.path}: no GROUPDQ extension (groupdq=False)")
+        if self.groupdq_flags == "observed":
+            groupdq = observed_saturation(sci, self.saturation_level() if saturation is None else saturation)
+        elif self.groupdq_flags == "none":
+            groupdq = None                                 # the truth's flags are not an observable
         for g in range(self.ngroups):
             pix = ((int(ramp) * self.ngroups + g) * ny + int(row0)) * nx
             self._data("SCI", to_storage(sci[g]), 2 * pix)
             if groupdq is not None:
                 self._data("GROUPDQ", to_storage(groupdq[g]), pix)
+
+    def saturation_level(self):
+        """The saturation level [DN] of observed flags from the root attributes: BIAS + GAIN·FULLWELL
+        (linear: the nonlinearity truth is not read here) capped at SATURATION, less the margin of
+        :func:`~slicersim.io.uncal_meta.saturation_reference`; SATURATION (else 65535) without them."""
+        a = self.attrs
+        saturation = float(a.get("SATURATION", 65535))
+        try:
+            plateau = float(a["BIAS"]) + float(a["GAIN"]) * float(a["FULLWELL"])
+            sigma = group_sigma_dn(a["GAIN"], a["READNOISE"], a["NFRAMES"], a.get("KTC_NOISE", 0.0))
+        except (KeyError, TypeError, ValueError):
+            return saturation
+        return float(saturation_reference(plateau, saturation, sigma))
 
     def _data(self, name, data, offset):
         """Write ``data`` ``offset`` bytes into the data unit of extension ``name`` (summed for DATASUM)."""
@@ -526,6 +566,9 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 2
         per_row = max(1, ngroups * nx * 3)
         rows = rows_per_block(max(max_bytes, per_row), per_row, ny)
         truth_rate = "truth/rate" in others
+        if "DETECTOR_NY" in attrs and "SUBSTRT1" in attrs and "substrt" not in writer_options:   # a window
+            writer_options = {**writer_options, "detector_shape": (int(attrs["DETECTOR_NY"]), int(attrs["DETECTOR_NX"])),
+                              "substrt": (int(attrs["SUBSTRT2"]), int(attrs["SUBSTRT1"]))}
         writer = UncalWriter(fits_path, nints, ngroups, (ny, nx), attrs=attrs, row_block=rows,
                              truth_rate=truth_rate, pixeldq="PIXELDQ" in fh, groupdq=gdq is not None,
                              overwrite=overwrite, **writer_options)
@@ -546,69 +589,3 @@ def write_uncal_from_hdf5(h5_path, fits_path, overwrite=False, max_bytes=64 << 2
 def _text(value):
     """An HDF5 attribute as a keyword value (bytes decoded)."""
     return value.decode("utf-8", "replace") if isinstance(value, bytes) else value
-
-
-def _open(path):
-    """The HDUList of a regular file (a FIFO or device refused before opening), its CHECKSUM /
-    DATASUM verified where present (a mismatch is a RampFileError naming the extension)."""
-    import warnings
-
-    from astropy.io import fits
-    path = os.fspath(path)
-    if not os.path.lexists(path):
-        raise RampFileError(f"{path}: no such file")
-    path = validation.regular_file("level-1b file", path, error=RampFileError)
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            hdul = fits.open(path, memmap=False, checksum=True, lazy_load_hdus=False)
-            for hdu in hdul:
-                hdu.data                                 # noqa: B018 (loaded: DATASUM verified)
-    except OSError as exc:
-        raise RampFileError(f"{path}: not a FITS file ({one_line(exc)})") from exc
-    bad = [one_line(w.message) for w in caught if "checksum" in str(w.message).lower()]
-    if bad:
-        hdul.close()
-        raise RampFileError(f"{path}: checksum mismatch ({bad[0]}): the file is corrupt")
-    try:                    # astropy keeps a file cut inside a header (its warning) and a changed header byte
-        verify_datasums(path, hdul, RampFileError)
-    except BaseException:
-        hdul.close()
-        raise
-    return hdul
-
-
-def read_uncal(path):
-    """(SCI uint16, GROUPDQ uint8 or None, PIXELDQ uint32 or None, primary header dict) of a
-    level-1b file.  The slicersim root attributes are the header's ``SLICERSIM <NAME>`` keys."""
-    with _open(path) as hdul:
-        names = [h.name for h in hdul]
-        if "SCI" not in names:
-            raise RampFileError(f"{path}: no SCI extension")
-        sci = np.asarray(hdul["SCI"].data, dtype=np.uint16)
-        gdq = np.asarray(hdul["GROUPDQ"].data, dtype=np.uint8) if "GROUPDQ" in names else None
-        pdq = np.asarray(hdul["PIXELDQ"].data, dtype=np.uint32) if "PIXELDQ" in names else None
-        header = {k: v for k, v in hdul[0].header.items() if k not in ("COMMENT", "HISTORY", "")}
-    return sci, gdq, pdq, header
-
-
-def read_uncal_truth(path):
-    """{HDF5 name: array} of the TRUTH_* extensions (images in their original dtype,
-    tables as structured arrays)."""
-    out = {}
-    with _open(path) as hdul:
-        for hdu in hdul[1:]:
-            if not hdu.name.startswith("TRUTH_"):
-                continue
-            name = hdu.header.get("H5PATH", hdu.name)
-            kind = hdu.header.get("H5DTYPE", "")
-            if kind.startswith("["):
-                dtype = np.dtype([tuple(f[:2]) + ((tuple(f[2]),) if len(f) > 2 else ()) for f in json.loads(kind)])
-                table = np.zeros(len(hdu.data), dtype=dtype)
-                for field in dtype.names:
-                    table[field] = hdu.data[field]
-                out[name] = table
-            else:
-                data = np.asarray(hdu.data)
-                out[name] = data.astype(np.dtype(kind) if kind else data.dtype.newbyteorder("="))
-    return out

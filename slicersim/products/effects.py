@@ -249,6 +249,17 @@ class EffectsPlan:
     def bias_block(self, y0, y1):
         return None if self.bias is None else self.bias[y0:y1]
 
+    def plateau_block(self, y0, y1):
+        """(y1 − y0, nx) DN where a full pixel of rows [y0, y1) reads, noise aside: bias (map) +
+        gain·R(full well), R the nonlinear read value when ``nonlinearity`` is on [DN]."""
+        from slicersim.backends.ramp_effects import nl_read
+        nx = self.shape[1]
+        a2, a3 = self.nonlinearity_block(y0, y1)
+        full = np.full((y1 - y0) * nx, float(self.p.full_well))
+        read = full if a2 is None else nl_read(full, a2, a3)
+        bias = self.p.bias if self.bias is None else np.asarray(self.bias[y0:y1], np.float64)
+        return bias + self.p.gain * read.reshape(y1 - y0, nx)
+
     # ------------------------------------------------------------------ truth
     def write_truth(self, writer, nramps, part="all"):
         """Truth of every effect into ``writer`` (RampWriter or UncalWriter: ``write_dataset``).

@@ -37,6 +37,7 @@ from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
 from slicersim.errors import EffectsError, ParameterError, ResourceError
 from slicersim.io.rampfile import DQ, RampWriter
 from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, rows_per_block
+from slicersim.io.uncal_meta import GROUPDQ_FLAGS
 from slicersim.physics.ramp import (DEFAULT_BIAS, RampParameters, check_frame_charge, frame_mean_charge,  # noqa: F401
                                     macc_frame_schedule, readpatt)
 from slicersim.physics.readout import readout_times  # noqa: F401
@@ -73,6 +74,16 @@ class RampIO:
     target : object, optional
         A ``slicersim.io.target_truth.TargetTruth``, written as ``truth/target`` (the target's redshift,
         phase, input spectrum and expected rate; ``LazuliTarget.get_ramps`` makes it).
+    groupdq : {None, "none", "observed", "truth"}, optional
+        What a level-1b file's GROUPDQ holds (``slicersim.io.uncal_meta.GROUPDQ_FLAGS``): None or
+        "none" (no GROUPDQ, as flight level-1b), "observed" (SATURATED from the observed DN) or "truth"
+        (the simulator's flags, from the true charge); an HDF5 file keeps the simulator's flags (None
+        or "truth" only).
+    window : tuple of int, optional
+        (x0, y0, nx, ny) [pixels, 0-based]: simulate and write only this rectangle of the detector
+        (``rate`` is the full detector's), read on the full detector's clock: bit-identical to the same
+        pixels of a full-detector ramp of the same seed (``slicersim.products.windows``).
+
     """
 
     format: str | None = None
@@ -82,10 +93,14 @@ class RampIO:
     config: dict | None = None
     return_dq: bool = False
     target: object = None
+    groupdq: str | None = None
+    window: object = None
 
     def __post_init__(self):
         if self.format is not None:
             validation.choice("file_format", self.format, FILE_FORMATS)
+        if self.groupdq is not None:
+            validation.choice("groupdq", self.groupdq, GROUPDQ_FLAGS)
         for name in ("overwrite", "truth", "return_dq"):              # 0/1 accepted as before, not "yes"
             value = getattr(self, name)
             value = bool(value) if isinstance(value, (int, np.integer)) else value
@@ -168,7 +183,7 @@ _LEGACY_ORDER = ("nmd", "nramps", "seed", "out", "tframe", "ron", "dark", "therm
                  "saturation", "bias", "ktc_noise", "full_well", "dead_pixels", "pixeldq", "sparse_max_group",
                  "gauss_min_mean", "compression", "max_bytes", "truth", "config", "backend", "progress",
                  "work_group", "return_dq", "overwrite", "effects", "previous_charge", "file_format", "precision",
-                 "target")
+                 "target", "groupdq", "window")
 _READOUT_KEYS = ("nmd", "nramps", "tframe", "ron", "dark", "thermal_dark", "roic_glow", "gain", "saturation",
                  "bias", "ktc_noise", "full_well", "sparse_max_group", "gauss_min_mean")
 _LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron": 12.0, "dark": 2.8e-3,
@@ -176,7 +191,8 @@ _LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron
                             "bias": DEFAULT_BIAS, "ktc_noise": 0.0, "full_well": None, "sparse_max_group": None,
                             "gauss_min_mean": np.inf}
 _IO_KEYS = {"file_format": "format", "overwrite": "overwrite", "compression": "compression", "truth": "truth",
-            "config": "config", "return_dq": "return_dq", "target": "target"}
+            "config": "config", "return_dq": "return_dq", "target": "target", "groupdq": "groupdq",
+            "window": "window"}
 _RUN_KEYS = ("max_bytes", "progress", "work_group")
 _MAP_KEYS = ("dead_pixels", "pixeldq", "previous_charge")
 _NAMED = ("seed", "out", "backend", "effects", "precision")
@@ -216,7 +232,7 @@ def simulate(rate, readout=None, *args, seed=None, effects=None, out=None, backe
         Arithmetic of the kernel (single: the same Philox words, ~1e-3 of the values differ by
         1 ADU, same statistics).
     io : RampIO, optional
-        Output options (format, overwrite, compression, truth, config, return_dq).
+        Output options (format, overwrite, compression, truth, config, return_dq, target, groupdq, window).
     run : RunOptions, optional
         Execution options (max_bytes, progress, work_group).
     maps : DetectorMaps, optional
@@ -331,23 +347,30 @@ def _simulate(rate, p, named, io, run, maps):
     out = named["out"]
     if out is not None and not isinstance(out, (str, bytes, os.PathLike)):
         raise ParameterError(f"out must be a file path (str or os.PathLike) or None, got {validation.short_repr(out)}")
+    from slicersim.products.windows import check_window
+    window = check_window(io.window, rate.shape)
+    out_shape = rate.shape if window is None else window.shape
     rows, noise_cache = _block_rows(p, fx, rate.shape, run.max_bytes)
-    writer = _open_writer(out, io, p, fx, rate.shape, rows) if out is not None else None
+    writer = _open_writer(out, io, p, fx, rate.shape, rows, window) if out is not None else None
     if writer is None:
-        _check_memory(p, rate.shape, io.return_dq, run.max_bytes)
+        _check_memory(p, out_shape, io.return_dq, run.max_bytes)
     expected = expected_frame_charge(rate, p, seed, fx, dead, pixeldq, previous_charge, noise_cache, precision)
     attrs = _file_attrs(p, seed, backend, precision, io.config, fx)
-    sampler = _Sampler(p, seed, backend, precision, run.work_group, want_dq=out is not None or io.return_dq)
-    blocks = RowBlocks(rate.shape[0], rows, nouter=p.nramps, progress=run.progress, desc="ramps")
+    if window is not None:
+        attrs.update(window.attrs())
+    want_dq = io.return_dq if writer is None else getattr(writer, "groupdq_flags", "truth") == "truth"
+    sampler = _Sampler(p, seed, backend, precision, run.work_group, want_dq=want_dq)
+    first, last = (0, rate.shape[0]) if window is None else (window.y0, window.y0 + window.ny)
+    blocks = RowBlocks(last, rows, nouter=p.nramps, progress=run.progress, desc="ramps", first=first)
     if writer is None:
-        sci, gdq = realize_ramps(expected, sampler, blocks, None, io)
+        sci, gdq = realize_ramps(expected, sampler, blocks, None, io, window)
         return RampResult(seed=seed, sci=sci, groupdq=gdq, attrs=attrs)
     writer.attrs = attrs
     with writer as w:
         if io.target is not None:
             from slicersim.io.target_truth import write_target_truth
             write_target_truth(w, io.target)
-        realize_ramps(expected, sampler, blocks, w, io)
+        realize_ramps(expected, sampler, blocks, w, io, window)
     return RampResult(seed=seed, path=os.path.abspath(out), attrs=attrs)
 
 
@@ -381,13 +404,23 @@ def _block_rows(p, fx, shape, max_bytes):
     return rows_per_block(max_bytes, per_row, ny, reserve=noise_cache, what=what), noise_cache
 
 
-def _open_writer(out, io, p, fx, shape, rows):
+def _open_writer(out, io, p, fx, shape, rows, window=None):
     """The checked (not yet opened) writer of ``out``: nothing is simulated before it is known to fit."""
     from slicersim.products.effects import EffectsPlan
     writer_class = _writer_class(out, io.format)
     truth_bytes = EffectsPlan.truth_nbytes(fx, p, shape) if (fx is not None and io.truth) else 0
+    extra = {}
+    if writer_class is RampWriter:
+        if io.groupdq not in (None, "truth"):
+            raise ParameterError(f"groupdq {io.groupdq!r} is for level-1b files (jwst-uncal): an HDF5 ramp file "
+                                 "keeps the simulator's flags")
+    else:
+        extra["groupdq_flags"] = io.groupdq or "none"
+        if window is not None:
+            extra.update(detector_shape=shape, substrt=window.substrt)
+    shape = shape if window is None else window.shape
     return writer_class(out, p.nramps, p.nmd[0], shape, row_block=min(rows, 256), compression=io.compression,
-                        truth_rate=io.truth, overwrite=io.overwrite, extra_bytes=truth_bytes).check()
+                        truth_rate=io.truth, overwrite=io.overwrite, extra_bytes=truth_bytes, **extra).check()
 
 
 def _check_memory(p, shape, return_dq, max_bytes):
@@ -479,21 +512,26 @@ class _Sampler:
         return sci[:n * npix].reshape(n, npix), gdq[:n * npix].reshape(n, npix)
 
 
-def realize_ramps(expected, sampler, blocks, writer, io):
+def realize_ramps(expected, sampler, blocks, writer, io, window=None):
     """Noise realization of every ramp, block by block: to ``writer`` (with the PIXELDQ and truth), or
-    in memory; returns (SCI, GROUPDQ or None) in memory, else (None, None)."""
+    in memory; returns (SCI, GROUPDQ or None) in memory, else (None, None).  ``window``: a
+    :class:`~slicersim.products.windows.Window`, the only pixels kept (``blocks`` cover its rows)."""
     p, plan = sampler.p, expected.plan
-    ny, nx = expected.mu.shape
+    ny, nx = expected.mu.shape if window is None else window.shape
+    cut = (lambda image: image) if window is None else window.cut
     n = p.nmd[0]
     if writer is None:
         sci = np.empty((p.nramps, n, ny, nx), np.uint16)
         gdq = np.empty((p.nramps, n, ny, nx), np.uint8) if io.return_dq else None
-        sink = _MemorySink(sci, gdq)
+        sink = memory = _MemorySink(sci, gdq)
     else:
-        writer.write_pixeldq(_pixeldq(expected.pixeldq, expected.dq_dead, expected.rate.shape))
+        writer.write_pixeldq(cut(_pixeldq(expected.pixeldq, expected.dq_dead, expected.rate.shape)))
         if io.truth:
-            writer.write_truth(expected.rate)
+            writer.write_truth(cut(expected.rate))
         sink = writer
+    if window is not None:
+        from slicersim.products.windows import WindowSink
+        sink = WindowSink(sink, window)
     expected.pixeldq = None                            # written: 4 B per pixel less in the blocks
     # effects into an HDF5 file: their truth (mostly single-threaded NumPy) and the HDF5 writes of
     # the blocks run in two background threads while this one computes the next blocks
@@ -508,7 +546,7 @@ def realize_ramps(expected, sampler, blocks, writer, io):
         raise
     if lanes is not None:
         lanes.finish()
-    return (sink.sci, sink.gdq) if writer is None else (None, None)
+    return (memory.sci, memory.gdq) if writer is None else (None, None)
 
 
 def _write_effects_truth(plan, writer, lanes, nramps, truth):
@@ -528,6 +566,13 @@ def _write_effects_truth(plan, writer, lanes, nramps, truth):
     plan.drop_photo_maps()                             # used by rate_and_dark and the truth only
 
 
+class _Observed:
+    """A writer's ``write_block`` given the saturation level of the block."""
+
+    def __init__(self, write_block):
+        self.write_block = write_block
+
+
 class _MemorySink:
     """SCI (and GROUPDQ) in memory, written like a file by row blocks."""
 
@@ -540,11 +585,23 @@ class _MemorySink:
             self.gdq[ramp, :, y0:y0 + sci.shape[1]] = gdq
 
 
+def _observed_level(p, plan, y0, y1):
+    """Saturation level [DN] a level-1b file's observed flags use for rows [y0, y1) (per pixel with
+    effects: bias map, nonlinear full well), :func:`slicersim.io.uncal_meta.saturation_reference`."""
+    from slicersim.io.uncal_meta import group_sigma_dn, saturation_reference
+    plateau = p.bias + p.gain * p.full_well if plan is None else plan.plateau_block(y0, y1)
+    return saturation_reference(plateau, p.saturation, group_sigma_dn(p.gain, p.ron, p.nmd[1], p.ktc_noise))
+
+
 def _realize_block(expected, sampler, sink, lanes, ramp, y0, y1, rows):
     """One row block of one ramp into ``sink`` (a writer, or memory)."""
     ny, nx = expected.mu.shape
     n = sampler.p.nmd[0]
     shape = (n, y1 - y0, nx)
+    if getattr(sink, "groupdq_flags", None) == "observed":         # level-1b: flags from the observed DN
+        level = _observed_level(sampler.p, expected.plan, y0, y1)
+        write = sink.write_block
+        sink = _Observed(lambda r, y, s, q: write(r, y, s, q, saturation=level))
     if expected.plan is not None:
         sci, gdq = sampler.effects(expected, ramp, y0, y1)
         if lanes is not None:                          # fresh arrays each block: handed over

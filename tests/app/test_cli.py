@@ -115,6 +115,37 @@ def test_ramp_rate_file_writes_the_simulated_ramp(tmp_path, rate_file):
     assert os.listdir(tmp_path) == ["r.h5"]
 
 
+def test_ramp_groupdq_flag(tmp_path, rate_file):
+    """--groupdq: none (the level-1b default: no GROUPDQ), observed (from the DN read), HDF5 refused."""
+    from slicersim.io.uncal import read_uncal
+    none, obs = tmp_path / "n.fits", tmp_path / "o.fits"
+    for out, extra in ((none, ()), (obs, ("--groupdq", "observed"))):
+        proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--out", out, *extra)
+        assert proc.returncode == 0, proc.stderr
+    assert read_uncal(none)[1] is None
+    sci, gdq, _, header = read_uncal(obs)
+    assert gdq is not None and header["INSTRUME"] == "LAZULI_IFS" and header["READPATT"] == "MACC_1_0"
+    line = one_error_line(run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", tmp_path / "x.h5",
+                              "--groupdq", "observed"))
+    assert "level-1b" in line and not (tmp_path / "x.h5").exists()
+
+
+def test_ramp_window_flag(tmp_path, rate_file):
+    """--window X0 Y0 NX NY: the window's pixels of the full ramp of the same seed, placed by SUBSTRT."""
+    from slicersim.io.uncal import read_uncal
+    out = tmp_path / "w.fits"
+    proc = run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--seed", "4", "--out", out,
+               "--window", "2", "5", "8", "10")
+    assert proc.returncode == 0, proc.stderr
+    sci, _, _, h = read_uncal(out)
+    full = simulate(np.load(rate_file), (3, 1, 0), seed=4)
+    np.testing.assert_array_equal(sci, full[:, :, 5:15, 2:10])
+    assert (h["SUBSTRT1"], h["SUBSTRT2"], h["SUBSIZE1"], h["SUBSIZE2"]) == (3, 6, 8, 10)
+    line = one_error_line(run("ramp", "--rate", rate_file, "--nmd", "3", "1", "0", "--out", tmp_path / "x.fits",
+                              "--window", "15", "0", "8", "4"))
+    assert "--window" in line and "not inside" in line
+
+
 def test_ramp_default_seed_is_fresh_printed_and_recorded(tmp_path, rate_file):
     """Without --seed each run draws a new seed, printed in the summary and recorded in SEED; passing it
     back with --seed repeats the run."""

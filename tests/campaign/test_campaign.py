@@ -457,6 +457,56 @@ def test_a_campaign_chooses_the_detector_effects_of_its_ramps(effects, message):
         parse_spec(tomllib.loads(bad), text=bad)
 
 
+def test_ramp_format_jwst_uncal_spec():
+    """products.ramp_format: "jwst-uncal" enters the identity (the default "hdf5" does not), needs
+    uncompressed ramps; anything else is one clear error."""
+    import tomllib
+
+    from slicersim.campaign.spec import parse_spec
+    base = SPEC.replace("spectrum = true\ncube = true", 'spectrum = false\nramps = true\neffects = "lazuli"')
+    fits = base.replace("ramps = true", 'ramps = true\nramp_format = "jwst-uncal"')
+    plain = parse_spec(tomllib.loads(base), text=base)
+    same = base.replace("ramps = true", 'ramps = true\nramp_format = "hdf5"')
+    assert parse_spec(tomllib.loads(same), text=same).canonical() == plain.canonical()
+    assert parse_spec(tomllib.loads(fits), text=fits).canonical()["products"]["ramp_format"] == "jwst-uncal"
+    for bad, says in ((fits.replace("ramp_format", 'compression = "gzip"\nramp_format'), "uncompressed"),
+                      (base.replace("ramps = true", 'ramps = true\nramp_format = "fits"'), "ramp_format")):
+        with pytest.raises(ConfigError, match=says):
+            parse_spec(tomllib.loads(bad), text=bad)
+
+
+@pytest.mark.slow
+def test_campaign_level1b_ramps_validate_and_fit(tmp_path):
+    """`ramp_format = "jwst-uncal"` with `effects = "lazuli"`: the target's ramps.fits opens in
+    stdatamodels (only the four instrument names outside JWST's enumerations) and our reduction fits it."""
+    import warnings
+
+    import tomllib
+    from stdatamodels.jwst import datamodels
+
+    from slicersim.campaign.products import run_target
+    from slicersim.campaign.runner import plan_campaign
+    from slicersim.campaign.spec import parse_spec
+    from slicersim.io.dataset import Dataset
+    text = SPEC.replace("n = 6", "n = 1").replace("snr = 8", "snr = 1").replace(
+        "spectrum = true\ncube = true", 'spectrum = false\nramps = true\neffects = "lazuli"\nramp_format = "jwst-uncal"')
+    spec = parse_spec(tomllib.loads(text), text=text)
+    cat, _ = plan_campaign(spec)
+    ds = Dataset(tmp_path / "r")
+    digest = ds.initialise(spec.text, spec.canonical(), {}, False)
+    row = {k: (cat[0][k].item() if hasattr(cat[0][k], "item") else cat[0][k]) for k in cat.colnames}
+    rec = run_target(spec, row, ds.path, digest)
+    assert rec["status"] == "done", rec.get("error")
+    path = tmp_path / "r" / "products" / "t0000000" / "ramps.fits"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = datamodels.RampModel(str(path))
+        model.validate()
+    assert {str(w.message).split()[2] for w in caught} <= {"meta.instrument.name", "meta.instrument.detector",
+                                                           "meta.exposure.type", "meta.exposure.readpatt"}
+    assert model.data.shape[-2:] == (4096, 4096) and not model.groupdq.any()
+
+
 @pytest.mark.slow
 def test_campaign_ramps_carry_the_effects_asked_for(tmp_path):
     """`effects = "lazuli"`: the target's ramps hold the effects and their truth (cosmic rays, ...)."""

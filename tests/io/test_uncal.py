@@ -13,7 +13,7 @@ import pytest
 from stdatamodels.jwst import datamodels          # a [test] dependency (pyproject): never skipped
 
 from slicersim.errors import RampFileError
-from slicersim.io import uncal
+from slicersim.io import uncal, uncal_meta
 from slicersim.io.atomic import _host_tag
 from slicersim.io.rampfile import read_ramps
 from slicersim.io.uncal import UncalWriter, read_uncal, read_uncal_truth, truth_extname, write_uncal_from_hdf5
@@ -29,24 +29,42 @@ def _attrs(**extra):
             "TGROUP": (m + d) * TFRAME, "READPATT": "MACC(4,2,1)", "SEED": 5, "BUNIT": "ADU", **extra}
 
 
-def _open_strict(path):
-    """Level1bModel with schema violations as errors (stdatamodels otherwise drops bad values
-    with a warning and validate() then passes)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        model = datamodels.Level1bModel(str(path), strict_validation=True)
+#: schema paths of the keywords JWST enumerates with JWST names only (our instrument's names differ)
+INSTRUMENT_PATHS = {"meta.instrument.name", "meta.instrument.detector", "meta.exposure.type",
+                    "meta.exposure.readpatt"}
+
+
+def _schema_complaints(path, strict=False):
+    """(model, {schema path stdatamodels complains about: its message}); other warnings count too."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = datamodels.Level1bModel(str(path), strict_validation=strict)
         model.validate()
+    found = {}
+    for w in caught:
+        text = str(w.message)
+        found[text.split()[2] if text.startswith("While validating ") else f"other: {text}"] = text
+    return model, found
+
+
+def _open_strict(path):
+    """Level1bModel with every schema violation an error except the four enumerated instrument
+    keywords, which must hold our values (stdatamodels otherwise drops bad values with a warning
+    and validate() then passes)."""
+    model, found = _schema_complaints(path)
+    assert set(found) <= INSTRUMENT_PATHS, found
     return model
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """A 64×64 MACC(4,2,1) ramp, 2 integrations, simulated to HDF5 and converted to FITS."""
+    """A 64×64 MACC(4,2,1) ramp, 2 integrations, simulated to HDF5 and converted to FITS (with the
+    simulator's GROUPDQ: tests/io/test_uncal_groupdq.py checks the flight-like default, none)."""
     d = tmp_path_factory.mktemp("uncal")
     rate = np.random.default_rng(3).uniform(0.0, 50.0, (64, 64))
     h5 = simulate(rate, nmd=NMD, nramps=NINTS, seed=11, out=str(d / "ramp.h5"), tframe=TFRAME,
                   backend="numpy", progress=False)
-    fits_path = write_uncal_from_hdf5(h5, d / "ramp_uncal.fits", start_mjd=60000.25)
+    fits_path = write_uncal_from_hdf5(h5, d / "ramp_uncal.fits", start_mjd=60000.25, groupdq_flags="truth")
     return h5, fits_path, rate
 
 
@@ -58,7 +76,7 @@ def test_level1b_model_opens_and_validates(exported):
     assert model.data.dtype == np.uint16 and model.data.shape == (NINTS, NMD[0], 64, 64)
     np.testing.assert_array_equal(model.data, sci)               # same seed, same SCI values
     assert model.meta.exposure.nints == NINTS and model.meta.exposure.ngroups == NMD[0]
-    assert model.meta.instrument.name == "N/A" and model.meta.telescope == "Lazuli"
+    assert model.meta.telescope == "Lazuli"
     assert model.meta.subarray.name == "FULL"
     # GROUPDQ / PIXELDQ are not Level1bModel attributes: RampModel reads them from the same file
     ramp_model = datamodels.RampModel(str(path))
@@ -67,13 +85,38 @@ def test_level1b_model_opens_and_validates(exported):
 
 
 def test_schema_enumerations_are_enforced_by_the_check(tmp_path):
-    """The strict check used above does catch a non-JWST instrument name (so passing it means
-    something); our default INSTRUME "N/A" is one of the schema's values."""
-    path = tmp_path / "bad.fits"
-    with UncalWriter(path, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2), keywords={"INSTRUME": "LAZULI"}):
+    """The check used above does catch a non-JWST name (so passing it means something): our
+    instrument's four names are its only complaints; JWST stand-in names validate strictly."""
+    path = tmp_path / "ours.fits"
+    with UncalWriter(path, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2, GAIN=0.5, READNOISE=10.0)):
         pass
-    with pytest.raises(Exception, match="LAZULI"):
-        _open_strict(path)
+    _, found = _schema_complaints(path)
+    assert set(found) == INSTRUMENT_PATHS
+    for value in ("LAZULI_IFS", "H4RG-1", "LZ_IFU", "MACC_2_1"):
+        assert any(value in text for text in found.values()), (value, found)
+    with pytest.raises(Exception, match="LAZULI_IFS"):
+        _schema_complaints(path, strict=True)
+    stand_in = tmp_path / "jwst.fits"
+    with UncalWriter(stand_in, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2), keywords=uncal_meta.JWST_STAND_IN):
+        pass
+    model, found = _schema_complaints(stand_in, strict=True)
+    assert not found and model.meta.instrument.name == "NIRSPEC" and model.meta.exposure.type == "NRS_IFU"
+
+
+def test_instrument_keywords_and_pipeline_units(tmp_path):
+    """INSTRUME/DETECTOR/EXP_TYPE/READPATT from the one table; gain in e-/DN and CDS read noise in
+    DN beside slicersim's own GAIN [ADU/e-] and READNOISE [e-/frame]."""
+    path = tmp_path / "k.fits"
+    with UncalWriter(path, 1, 2, (4, 4), attrs=_attrs(NINTS=1, NGROUPS=2, GAIN=0.5, READNOISE=10.0)):
+        pass
+    h = read_uncal(path)[3]
+    assert (h["INSTRUME"], h["DETECTOR"], h["EXP_TYPE"]) == (uncal_meta.INSTRUMENT, uncal_meta.DETECTOR,
+                                                           uncal_meta.EXP_TYPE)
+    assert h["READPATT"] == "MACC_2_1" and h["TELESCOP"] == "Lazuli"
+    assert h["GAINEDN"] == pytest.approx(2.0) and h["SLICERSIM GAIN"] == 0.5        # 1/(0.5 ADU/e-)
+    assert h["RDNCDSDN"] == pytest.approx(np.sqrt(2) * 10.0 * 0.5)                  # √2·σ·g
+    assert h["SLICERSIM READNOISE"] == 10.0
+    assert uncal_meta.readout_pattern(8, 0) == "MACC_8_0"
 
 
 def test_sci_groupdq_pixeldq_identical_to_hdf5(exported):
@@ -104,7 +147,7 @@ def test_exposure_keywords_follow_the_jwst_definitions(exported):
     assert (h["NRSTSTRT"], h["NRESETS"], h["DRPFRMS1"], h["DRPFRMS3"]) == (1, 1, 0, 0)
     assert h["FRMDIVSR"] == m and h["ZEROFRAM"] is False and h["DATAPROB"] is False
     assert (h["SUBSTRT1"], h["SUBSTRT2"], h["SUBSIZE1"], h["SUBSIZE2"]) == (1, 1, 64, 64)
-    assert h["READPATT"] == "N/A" and h["SLICERSIM READPATT"] == "MACC(4,2,1)"
+    assert h["READPATT"] == "MACC_2_1" and h["SLICERSIM READPATT"] == "MACC(4,2,1)"
     assert h["ORIGIN"] == "slicersim" and h["EXPSTART"] == 60000.25
     assert h["EXPEND"] == pytest.approx(60000.25 + h["DURATION"] / 86400, abs=1e-9)
     model = _open_strict(path)
