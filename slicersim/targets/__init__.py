@@ -4,7 +4,7 @@
 variants and the ETC shortcuts (the ETC and product methods of a target: ``observation``, its
 detector image and ramps: ``detector``); ``sources``: power laws, any sncosmo source, kilonovae, CALSPEC
 stars; ``galaxy``: galaxies alone with aperture extraction; ``calibration``: QTH flats and
-Fabry–Perot exposures.
+Fabry–Perot exposures (their flat-field structure: ``flatfield``).
 """
 from slicersim.targets.base import (SPECTRUM_NOISE_STREAM, BlackBody, LazuliBlackBody, LazuliSupernova,
                                     LazuliTarget, Supernova, Target, build_simulation, config_default_field,
