@@ -36,8 +36,8 @@ def _code_digest():
 
 class ProjectionMixin:
     """Cell boxes, projection tables and cube projection of a
-    :class:`~slicersim.instrument.mapper.SlicerMapper` (its base class: the methods are
-    documented there)."""
+    :class:`~slicersim.instrument.mapper.SlicerMapper` (a base class of it, whose page documents
+    these methods)."""
 
     # ------------------------------------------------------------------ projection
     def cell_boxes(self, slices, ncol, lbda_edges, oversample=(1, 1)):

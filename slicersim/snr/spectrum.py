@@ -39,7 +39,7 @@ def resolve_frame(frame, redshift):
 
 class SpectrumSNRMixin:
     """Readout, variance, extracted spectrum and band SNR of a :class:`~slicersim.simulation.Simulation`
-    (its base class: the methods are documented there)."""
+    (a base class of it, whose page documents these methods)."""
 
     # ------------------------------------------------------------------ readout
     def _readout(self, nmd=None, nramps=None):

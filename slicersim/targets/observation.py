@@ -26,8 +26,8 @@ SPECTRUM_NOISE_STREAM = 0x53504543
 
 
 class ObservationMixin:
-    """ETC, band SNR, spectra and cubes of a :class:`~slicersim.targets.base.Target` (its base
-    class: the methods are documented there)."""
+    """ETC, band SNR, spectra and cubes of a :class:`~slicersim.targets.base.Target` (a base
+    class of it, whose page documents these methods)."""
 
     # ------------------------------------------------------------------ ETC
     def _band(self, lbda_range, frame):
