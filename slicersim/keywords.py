@@ -172,8 +172,6 @@ def renamed_keyword(kwargs, old, new, where, *, stacklevel=3):
     return kwargs
 
 
-
-
 #: atoms of a field annotation :func:`checked_fields` checks, and what a value of each must be: as
 #: lenient as the most lenient class (0/1 for a bool, 3.0 for an int, a Quantity for a float); the
 #: class's own checks then apply its rules

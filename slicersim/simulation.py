@@ -522,4 +522,3 @@ def _check_aperture(value):
 
 #: nramps as an int ≥ 1 (kept for targets/detector.py; use :func:`slicersim.validation.nramps`)
 _check_nramps = validation.nramps
-

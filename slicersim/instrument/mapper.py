@@ -103,7 +103,6 @@ def _hat_matrix(nodes, x):
     return A
 
 
-
 @functools.lru_cache(maxsize=2)
 def _default_table(path):
     return read_spot_table(path)

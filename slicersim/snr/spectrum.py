@@ -464,8 +464,6 @@ def check_band(lbda_range, name="lbda_range"):
     return lo, hi
 
 
-
-
 def _band_snr(signal, variance):
     with np.errstate(invalid="ignore", divide="ignore"):
         return float(np.nanmean(signal) / np.sqrt(np.nanmean(variance)))

@@ -631,4 +631,3 @@ def lazuli_sn_etc(redshift, snr=20, lbda_range=(4000, 6800), frame=None, config=
     target = LazuliSupernova(redshift, phase=phase, source=source, config=config, field=field,
                              conventions=conventions)
     return _result(target, target.setup_to_snr(snr, lbda_range, frame, search=search, allow_partial=allow_partial))
-
