@@ -15,7 +15,7 @@ the command-line flag that gave it (``--nramps``, not ``nramps``): messages writ
 checker name their parameter with :func:`shown`.
 
 The checkers of names and keywords (:func:`flag_names`, :func:`shown`, :func:`short_repr`,
-:func:`choice`, :func:`renamed_keyword`, :func:`checked_fields`) live in :mod:`slicersim.keywords`
+:func:`choice`, :func:`renamed_keyword`, :func:`checked_fields`) live in ``slicersim.keywords``
 and are re-exported here: ``validation.X`` is the import path of every checker.
 """
 from __future__ import annotations
