@@ -61,6 +61,8 @@ nitpick_ignore_regex = [
     (r"py:class", r"""[{"'].*|.*["'}]"""),
     # base classes outside the public API, shown by ``show-inheritance``
     (r"py:class", r"slicersim\.versioning\.Versioned|slicersim\.targets\.detector\.DetectorProducts"
+                  r"|slicersim\.targets\.observation\.ObservationMixin|slicersim\.snr\.spectrum\.SpectrumSNRMixin"
+                  r"|slicersim\.instrument\.mapper_projection\.ProjectionMixin"
                   r"|slicersim\.[\w.]*\._\w+"),
 ]
 

@@ -2,8 +2,8 @@
 
 Layers (:data:`slicersim.layers.LAYERS`, lowest first), each importing only the ones before it,
 never a private (``_``) name of another, nor this package root (the facade above them all):
-``layers`` → ``errors`` → ``constants`` → ``validation`` → ``versioning`` → ``memo`` → ``data`` →
-``rng`` → ``io`` → ``plotting`` → ``physics`` → ``kernels`` → ``backends`` → ``instrument`` →
+``layers`` → ``errors`` → ``constants`` → ``keywords`` → ``validation`` → ``versioning`` → ``memo`` →
+``data`` → ``rng`` → ``io`` → ``plotting`` → ``physics`` → ``kernels`` → ``backends`` → ``instrument`` →
 ``sources`` → ``products`` → ``ramps`` → ``cube`` → ``snr`` → ``simulation`` → ``assembly`` → ``etc`` →
 ``targets`` → ``campaign`` → ``reduction`` → ``app`` → ``__main__``.
 """

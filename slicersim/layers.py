@@ -31,6 +31,7 @@ LAYERS = (
     ("layers", "this list"),
     ("errors", "every exception (SlicersimError and its subclasses)"),
     ("constants", "physical constants"),
+    ("keywords", "names of user input in messages, choices, renamed keywords, dataclass fields"),
     ("validation", "argument checkers"),
     ("versioning", "the release number and the change tracking of model objects"),
     ("memo", "byte-bounded caches keyed by content"),

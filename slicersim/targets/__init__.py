@@ -1,9 +1,10 @@
 """Targets: a source (spectrum, optional host) observed with an instrument configuration.
 
 ``base``: :class:`Target` and the built-in point sources (SN Ia, black body) with their Lazuli
-variants and the ETC shortcuts; ``sources``: power laws, any sncosmo source, kilonovae, CALSPEC
+variants and the ETC shortcuts (the ETC and product methods of a target: ``observation``, its
+detector image and ramps: ``detector``); ``sources``: power laws, any sncosmo source, kilonovae, CALSPEC
 stars; ``galaxy``: galaxies alone with aperture extraction; ``calibration``: QTH flats and
-Fabry–Perot exposures.
+Fabry–Perot exposures (their flat-field structure: ``flatfield``).
 """
 from slicersim.targets.base import (SPECTRUM_NOISE_STREAM, BlackBody, LazuliBlackBody, LazuliSupernova,
                                     LazuliTarget, Supernova, Target, build_simulation, config_default_field,

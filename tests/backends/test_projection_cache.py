@@ -64,7 +64,7 @@ def _count_builds(monkeypatch):
     def counting(*args, **kwargs):
         calls.append(1)
         return real(*args, **kwargs)
-    monkeypatch.setattr("slicersim.instrument.mapper.build_tables", counting)
+    monkeypatch.setattr("slicersim.instrument.mapper_projection.build_tables", counting)
     return calls
 
 

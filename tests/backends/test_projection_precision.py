@@ -171,7 +171,7 @@ def test_device_without_fp64_runs_single_deposit(case, monkeypatch):
 
 @pytest.mark.parametrize("bad", ["half", "float32", None, 32, "Single"])
 def test_bad_precision_refused_before_work(case, bad, monkeypatch):
-    import slicersim.instrument.mapper as mapper_module
+    import slicersim.instrument.mapper_projection as mapper_module      # where project_cube builds and deposits
     from slicersim import LazuliSupernova
     t = cp.build_tables(np.array([[10.2, 11.0, 0.3, 5.5, 6.1, 0.4]]), (1, 1, 1), detector_shape=(20, 20),
                         backend="numpy")
