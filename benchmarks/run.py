@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The benchmark runner: every benchmark of ``benchmarks/registry.py``, or those named.
 
-    python benchmarks/run.py [NAME ...] [--smoke] [--list] [--out DIR] [--network] [--timeout S]
+    python benchmarks/run.py [NAME ...] [--smoke] [--list] [--out DIR] [--network] [--timeout S] [--budget S]
 
 Full size (default): each script with its default arguments, results into ``--out`` (default
 ``benchmarks/results``).  ``--smoke``: each at its smallest size (the registry's ``smoke`` arguments)
@@ -97,7 +97,7 @@ def run_one(bench, smoke, network, out, timeout):
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, 9)                  # the benchmark's own process group only
             proc.wait()
-            status = f"failed (timeout {timeout} s)"
+            status = f"failed (timeout {timeout:.0f} s)"
     wall = time.perf_counter() - t0
     c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
@@ -126,22 +126,45 @@ def table(rows):
                                     ["l", "l", "r", "r", "l", "l"]))
 
 
+def readme_table(benchmarks):
+    """The Markdown table of ``benchmarks/README.md``: one row per registered benchmark."""
+    rows = []
+    for b in benchmarks:
+        if b.smoke_only_help:
+            smoke = f"`--help` only: {b.note}"
+        else:
+            smoke = "`" + " ".join(b.smoke) + "`" if b.smoke else "(defaults)"
+        flags = "".join(f" [{f}]" for f, on in (("network", b.network), ("device", b.device)) if on)
+        rows.append([f"`{b.name}`{flags}", b.question, b.baseline, b.acceptance, smoke])
+    return "\n".join(markdown_table(["benchmark", "question", "baseline", "acceptance", "smallest size (smoke)"],
+                                    rows, ["l"] * 5))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all registered)")
     ap.add_argument("--smoke", action="store_true", help="smallest sizes, into a temporary folder")
     ap.add_argument("--list", action="store_true", help="list the registered benchmarks and exit")
+    ap.add_argument("--markdown", action="store_true",
+                    help="with --list: the Markdown table of benchmarks/README.md (question, baseline, acceptance, "
+                         "smoke command)")
     ap.add_argument("--out", default=None,
                     help="results folder (default: benchmarks/results; with --smoke a temporary one)")
     ap.add_argument("--network", action="store_true",
                     help="with --smoke: also run the reference side (installs reference venvs from PyPI)")
     ap.add_argument("--timeout", type=float, default=None,
                     help="seconds per benchmark (default: the registry's, smoke only; full size: none)")
+    ap.add_argument("--budget", type=float, default=None,
+                    help="seconds for the whole run: each benchmark's timeout is cut to what is left, and "
+                         "those with none left fail (CI: make bench-smoke uses 600)")
     args = ap.parse_args(argv)
     unknown = [n for n in args.names if n not in BY_NAME]
     if unknown:
         ap.error(f"not registered: {', '.join(unknown)} (see --list)")
     chosen = [BY_NAME[n] for n in args.names] if args.names else BENCHMARKS
+    if args.list and args.markdown:
+        print(readme_table(chosen))
+        return 0
     if args.list:
         for b in chosen:
             flags = ", ".join(f for f, on in (("network", b.network), ("device", b.device),
@@ -161,6 +184,14 @@ def main(argv=None):
         timeout = args.timeout or (bench.timeout if args.smoke else None)
         if args.smoke and bench.smoke_only_help:
             timeout = min(timeout, 120)
+        if args.budget is not None:
+            left = args.budget - (time.perf_counter() - t0)
+            if left < 5:
+                rows.append({"name": bench.name, "mode": "-", "argv": [], "wall_s": 0.0, "cpu_s": 0.0,
+                             "status": "failed (no time left in --budget)", "accepted": None,
+                             "acceptance": bench.acceptance, "files": []})
+                continue
+            timeout = left if timeout is None else min(timeout, left)
         # smoke: one folder per benchmark (no clash, no overwrite); full size: the results folder
         where = out / bench.name if args.smoke else out
         print(f"== {bench.name}", flush=True)
