@@ -173,7 +173,7 @@ def run(args):
 
     ctx = {"lbda": lbda, "shape": shape, "position": pos, "kwargs": kw, "oracle": oracle,
            "repeat": args.repeat, "timed": timed, "errors": errors}
-    for p in extra_points(ctx):
+    for p in ([] if args.skip_extra else extra_points(ctx)):
         points.append(p)
 
     wide = wide_field_check(args.oracle, fast)
@@ -272,6 +272,8 @@ def main(argv=None):
     ap.add_argument("--no-numpy-above", type=int, default=15, help="skip NumPy points above this o")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--replot", metavar="JSON", help="only redraw the PNG of an existing JSON")
+    ap.add_argument("--skip-extra", action="store_true",
+                    help="skip the extra points of _psf_extra_points.py (host convolution, the slow part)")
     args = ap.parse_args(argv)
     if args.replot:
         replot(args.replot)
