@@ -12,7 +12,7 @@ OPENCL_CHECK := "$(PY)" -c "import pyopencl; assert pyopencl.get_platforms()"
 OPENCL_PKGS  := pocl-opencl-icd ocl-icd-libopencl1
 OPENCL_VENDORS ?= /etc/OpenCL/vendors
 
-.PHONY: venv opencl test test-all demo bench docs clean distclean
+.PHONY: venv opencl test test-all demo bench bench-smoke docs clean distclean
 
 venv: $(STAMP)
 
@@ -70,11 +70,17 @@ test-all: venv opencl
 demo: venv opencl
 	"$(VENV)/bin/slicersim" demo --outdir demo_output --overwrite
 
+# Benchmarks (benchmarks/registry.py): `make bench` runs every registered one at full size into
+# benchmarks/results (hours); `make bench-smoke` runs each at its smallest size into a temporary folder
+# (no network: the reference side runs only when its venv is cached), what CI runs so none rots;
+# BENCH_BUDGET bounds the whole smoke run [s].
+BENCH_BUDGET ?= 600
+
 bench: venv opencl
-	@set -e; found=0; for f in benchmarks/*.py; do \
-	  case "$$(basename "$$f")" in _*) continue;; esac; \
-	  [ -e "$$f" ] || continue; found=1; echo "== $$f"; "$(PY)" "$$f"; \
-	done; [ $$found = 1 ] || echo "no benchmark scripts in benchmarks/"
+	"$(PY)" benchmarks/run.py
+
+bench-smoke: venv opencl
+	"$(PY)" benchmarks/run.py --smoke --budget $(BENCH_BUDGET)
 
 # The documentation site (Sphinx + MyST + numpydoc + sphinx-gallery): installs the `docs` extra
 # into $(VENV), then builds with -W (any warning, e.g. a broken reference, fails the build).

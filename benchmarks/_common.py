@@ -178,11 +178,12 @@ def markdown_table(header, rows, align=None):
 
 
 def write_results(out_dir, stem, result, markdown):
-    """Write ``stem``.json (:func:`jsonable`, indent 1) and ``stem``.md into ``out_dir``."""
+    """Write ``stem``.json (:func:`jsonable`, indent 1, with :func:`metadata` under ``metadata``) and
+    ``stem``.md into ``out_dir``."""
     import json
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{stem}.json").write_text(json.dumps(jsonable(result), indent=1))
+    (out / f"{stem}.json").write_text(json.dumps(jsonable(with_metadata(result)), indent=1))
     (out / f"{stem}.md").write_text(markdown)
     return out / f"{stem}.json", out / f"{stem}.md"
 
@@ -207,15 +208,124 @@ def timed_command(cmd, env=None, cwd=None):
     return {"wall": wall, "cpu": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)}
 
 
-def git_commit(short=True):
-    """The checkout's commit (``git rev-parse``), with "+dirty" when tracked files differ; None outside git."""
+# --------------------------------------------------------------------------- #
+#  timing and the metadata every result file carries (issue 32)
+# --------------------------------------------------------------------------- #
+class Timing:
+    """What :func:`timed` measured: the last ``result``, and per call ``walls`` and ``cpus`` [s]."""
+
+    def __init__(self, result, walls, cpus):
+        self.result, self.walls, self.cpus = result, walls, cpus
+
+    best_wall = property(lambda self: min(self.walls))
+    best_cpu = property(lambda self: min(self.cpus))
+    median_wall = property(lambda self: float(np.median(self.walls)))
+    median_cpu = property(lambda self: float(np.median(self.cpus)))
+
+
+def timed(fn, repeat=1, warmup=False):
+    """Call ``fn()`` ``repeat`` times (after one untimed call when ``warmup``) and time each call.
+
+    Parameters
+    ----------
+    fn : callable
+        No arguments; its last return value is kept.
+    repeat : int
+        Timed calls.
+    warmup : bool
+        One untimed call first (kernels built, caches filled).
+
+    Returns
+    -------
+    Timing
+        ``result`` (last return value), ``walls`` and ``cpus`` (lists of ``repeat`` floats [s]:
+        wall-clock ``time.perf_counter`` and process CPU ``time.process_time``, all threads of this
+        process — PoCL's workers included — so the CPU time is the measure other jobs' load distorts
+        least), and ``best_*`` / ``median_*`` of both.
+    """
+    import time
+    result = fn() if warmup else None
+    walls, cpus = [], []
+    for _ in range(repeat):
+        t, c = time.perf_counter(), time.process_time()
+        result = fn()
+        walls.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
+    return Timing(result, walls, cpus)
+
+
+def git_commit():
+    """``git rev-parse HEAD`` of the repository (``+dirty`` when tracked files differ), or None."""
     import subprocess
     root = BENCHMARKS.parent
     try:
-        head = subprocess.run(["git", "rev-parse", *(["--short"] if short else []), "HEAD"], cwd=root,
-                              capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              check=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
         return None
     return head + ("+dirty" if dirty else "")
+
+
+def opencl_device():
+    """Name of the first OpenCL device pyopencl finds ("name [platform]"), or None."""
+    try:
+        import pyopencl as cl
+        for platform_ in cl.get_platforms():
+            for dev in platform_.get_devices():
+                return f"{dev.name.strip()} [{platform_.name.strip()}]"
+    except Exception:                                # no pyopencl, no ICD, no device
+        return None
+    return None
+
+
+def metadata():
+    """What every result file names: commit, machine, device, load and date.
+
+    Returns
+    -------
+    dict
+        ``commit`` (str or None), ``date`` (UTC, ISO 8601), ``machine`` ({cpu, cores, platform,
+        node, python}), ``device`` (OpenCL device name or None), ``loadavg`` ([1, 5, 15] min or None).
+    """
+    import datetime
+    import sys
+    return {"commit": git_commit(),
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "machine": {"cpu": cpu_model(), "cores": os.cpu_count(), "platform": platform.platform(),
+                        "node": platform.node(), "python": sys.version.split()[0]},
+            "device": opencl_device(), "loadavg": loadavg()}
+
+
+def with_metadata(result):
+    """``result`` (a dict) with a ``metadata`` key (:func:`metadata`) unless it has one."""
+    if isinstance(result, dict) and "metadata" not in result:
+        result = {**result, "metadata": metadata()}
+    return result
+
+
+def write_json(path, result, indent=1):
+    """Write ``result`` + :func:`metadata` as JSON to ``path`` (temporary name, then renamed).
+
+    Parameters
+    ----------
+    path : str or Path
+        Destination; its folder is created.
+    result : dict
+        The benchmark's result (:func:`jsonable` is applied).
+    indent : int
+        JSON indentation.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    import json
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(jsonable(with_metadata(result)), indent=indent) + "\n")
+    os.replace(tmp, path)
+    return path

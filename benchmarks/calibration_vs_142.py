@@ -24,7 +24,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
 
 REFVENV = HERE / ".refvenv142"
 RESULTS = HERE / "results"
@@ -206,7 +206,7 @@ def main(argv=None):
                  "airy_reference_max_abs": float(np.nanmax(np.abs(ref["airy_offsets_bins"]))) if ref else None}
     res["explanations"] = explanations(res)
     os.makedirs(args.out, exist_ok=True)
-    Path(args.out, "calibration_vs_142.json").write_text(json.dumps(jsonable(res), indent=1))
+    write_json(Path(args.out, "calibration_vs_142.json"), res)
     md = markdown(res)
     Path(args.out, "calibration_vs_142.md").write_text(md)
     print(md)

@@ -34,7 +34,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
 
 BASE_REV = "61a7a28"        # main before the campaign issue (#8)
 
@@ -184,6 +184,7 @@ def main():
     ap.add_argument("--loop", type=int, default=12, help="targets in the single-process loops")
     ap.add_argument("--base", default=BASE_REV, help="git revision of today's loop")
     ap.add_argument("--skip-plan", action="store_true")
+    ap.add_argument("--out", default=str(HERE / "results"), help="results folder (default benchmarks/results)")
     args = ap.parse_args()
     res = {"cpu": cpu_model(), "cores": os.cpu_count(), "load_before": loadavg(), "base_rev": args.base}
     with tempfile.TemporaryDirectory() as tmp:
@@ -233,9 +234,9 @@ def main():
             print(f"[plan] slicersim 1.0.0 loop: {ref['seconds_per_target']:.2f} s/target → "
                   f"{ref['extrapolated_8000_s'] / 3600:.1f} h for 8000 (×{res['plan_speedup_vs_1_0_0']:.0f})")
     res["load_after"] = loadavg()
-    outdir = HERE / "results"
-    outdir.mkdir(exist_ok=True)
-    (outdir / "campaign.json").write_text(json.dumps(jsonable(res), indent=1))
+    outdir = Path(args.out)
+    outdir.mkdir(parents=True, exist_ok=True)
+    write_json(outdir / "campaign.json", res)
     (outdir / "campaign.md").write_text(markdown(res))
     figure(res, outdir / "campaign.png")
     print(markdown(res))

@@ -22,7 +22,6 @@ Writes ``<out>/checksum_cost.json`` and ``.md``.
         [--compression none lz4] [--e2e-repeat 1] [--out benchmarks/results] [--tmp DIR]
 """
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -36,7 +35,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
-from _common import cpu_model, jsonable  # noqa: E402
+from _common import cpu_model, write_json  # noqa: E402
 from slicersim.io.rampfile import RampWriter, read_ramps  # noqa: E402
 
 
@@ -175,9 +174,7 @@ def main(argv=None):
               "e2e_repeat": args.e2e_repeat, "loadavg": os.getloadavg(),
               "uncompressed_bytes": int(sci.nbytes + gdq.nbytes), "cpu": cpu_model(), "rows": rows,
               "command": " ".join(["benchmarks/checksum_cost.py"] + (argv if argv is not None else sys.argv[1:]))}
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, "checksum_cost.json"), "w") as fh:
-        json.dump(jsonable(result), fh, indent=1)
+    write_json(os.path.join(args.out, "checksum_cost.json"), result)
     lines = ["# Fletcher-32 checksum cost of raw-ramp files", "",
              f"{args.side}² pixels, {args.ngroups} groups, 1 ramp ({result['uncompressed_bytes'] / 1e9:.2f} GB "
              f"uncompressed SCI + GROUPDQ), median of {args.repeat}; CPU {result['cpu']}.", "",

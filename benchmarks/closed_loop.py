@@ -32,7 +32,6 @@ extraction, ``get_spectrum()``, of the same 2-bin pairs and exposure: mean S / �
         [--mc-redshifts 0.3 0.5 0.8 --mc-seeds 3] [--no-effects] [--out benchmarks/results]
 """
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -40,6 +39,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+
+from _common import write_json  # noqa: E402  (benchmarks/ is on sys.path: scripts run from it)
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -302,7 +303,7 @@ def pool(summaries):
 
 
 def write_report(res, out):
-    Path(out, "closed_loop.json").write_text(json.dumps(res, indent=1))
+    write_json(Path(out, "closed_loop.json"), res)
     lines = ["# Closed loop: raw ramps → rates → cubes → spectra (`benchmarks/closed_loop.py`)", "",
              f"MACC{tuple(NMD)}, 1 ramp, narrow field, {res['nbins']} bins of 2 native bins, {NCOL} columns; "
              "bias and χ² against the point source's true e-/s per bin; SNR: measured (mean truth / rms "

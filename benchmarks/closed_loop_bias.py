@@ -34,7 +34,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 import closed_loop as cl  # noqa: E402
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
 
 from slicersim.instrument.mapper import SlicerMapper  # noqa: E402
 from slicersim.reduction.pipeline import reduce_exposure  # noqa: E402
@@ -320,7 +320,7 @@ def main():
             summarise(r)
         res["merged_from"] = [str(f) for f in args.from_json]
         out = Path(args.out)
-        (out / "closed_loop_bias.json").write_text(json.dumps(jsonable(res), indent=1))
+        write_json(out / "closed_loop_bias.json", res)
         (out / "closed_loop_bias.md").write_text(markdown(res))
         print(markdown(res))
         return
@@ -332,7 +332,7 @@ def main():
     res["load_after"] = loadavg()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "closed_loop_bias.json").write_text(json.dumps(jsonable(res), indent=1))
+    write_json(out / "closed_loop_bias.json", res)
     (out / "closed_loop_bias.md").write_text(markdown(res))
     print(markdown(res))
 

@@ -56,7 +56,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
-from _common import cpu_model, fmt, jsonable, loadavg, markdown_table  # noqa: E402
+from _common import cpu_model, fmt, loadavg, markdown_table, write_json  # noqa: E402
 
 BENCHMARK = "closed_loop_defaults"
 BAND_REST = (4000.0, 6800.0)            # Å, rest frame
@@ -349,7 +349,7 @@ def write_all(result, out_dir):
     out.mkdir(parents=True, exist_ok=True)
     stem = stem_for(result.get("effects"))
     result["summary"] = summarise(result["realisations"])
-    (out / f"{stem}.json").write_text(json.dumps(jsonable(result), indent=1))
+    write_json(out / f"{stem}.json", result)
     (out / f"{stem}.md").write_text(render_markdown(result))
     render_plot(result, out / f"{stem}.png")
     return [out / f"{stem}.{ext}" for ext in ("json", "md", "png")]

@@ -11,7 +11,6 @@ Writes ``<out>/closed_loop_template.{json,md}``.
     .venv/bin/python benchmarks/closed_loop_template.py [--redshifts 0.3 0.5 0.8] [--seeds 6]
 """
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -23,7 +22,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 import closed_loop as cl  # noqa: E402
-from _common import cpu_model, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
 
 from slicersim.instrument.mapper import SlicerMapper  # noqa: E402
 from slicersim.reduction.pipeline import reduce_exposure  # noqa: E402
@@ -76,7 +75,7 @@ def main():
     res["load_after"] = loadavg()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "closed_loop_template.json").write_text(json.dumps(res, indent=1))
+    write_json(out / "closed_loop_template.json", res)
     lines = ["# Closed loop: forward-modelled template vs fitted coarse PSF (`benchmarks/closed_loop_template.py`)", "",
              f"{args.seeds} white-noise ramp realisations per z; {res['cpu']}; bias ± MC error of the mean.", "",
              "| z | GLS template bias | χ²/dof | reported / ETC | GLS fitted-PSF bias | χ²/dof |",

@@ -74,7 +74,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import cpu_model, fmt_span, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, fmt_span, loadavg, write_json  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -887,7 +887,7 @@ def main(argv=None):
         "survey_line": survey_line(survey) if survey.get("conventions") else None,
         "markdown": md,
     }
-    (out / "conventions_vs_reference.json").write_text(json.dumps(jsonable(result), indent=1))
+    write_json(out / "conventions_vs_reference.json", result)
     (out / "conventions_vs_reference.md").write_text(md)
     try:
         make_plot(out / "conventions_vs_reference.png", rows, meta)

@@ -30,6 +30,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from _common import write_json  # noqa: E402  (benchmarks/ is on sys.path: scripts run from it)
 import scipy
 import scipy.ndimage
 
@@ -158,7 +160,7 @@ def main(argv=None):
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "convolution_speed.json").write_text(json.dumps(result, indent=1))
+    write_json(out / "convolution_speed.json", result)
     plot(result, out / "convolution_speed.png")
     print("crossover k:", result["crossover_k"], "fitted ratio:", result["fitted_fft_cost_per_direct_tap"])
 

@@ -12,7 +12,6 @@ the group-mean variance ratio (m = 8) — the exact generator is the model's ref
 Writes benchmarks/results/correlated_noise.{json,png,md}.  Default run ≈ 1–2 min.
 """
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 from scipy import signal
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
 
 from slicersim.backends.correlated_noise import CorrelatedNoise  # noqa: E402
 from slicersim.physics.correlated_noise import (METHODS, CorrelatedNoiseParameters, ReadoutGeometry,  # noqa: E402
@@ -86,7 +85,9 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ramps", type=int, default=8)
     ap.add_argument("--groups", type=int, default=4)
+    ap.add_argument("--out", default=str(OUT), help="results folder (default benchmarks/results)")
     a = ap.parse_args()
+    out = Path(a.out)
     t0 = time.perf_counter()
     sp = speed(a.groups)
     acc, edges = accuracy(a.ramps)
@@ -96,8 +97,7 @@ def main():
               "setup_ratio_to_multirate_group": {m: sp[m]["per_ramp_setup_s"] / ref for m in sp},
               "speed_seconds_this_run": sp, "accuracy": acc, "psd_band_edges_hz": edges,
               "wall_s": time.perf_counter() - t0}
-    OUT.mkdir(exist_ok=True)
-    (OUT / "correlated_noise.json").write_text(json.dumps(jsonable(result), indent=1))
+    write_json(out / "correlated_noise.json", result)
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -113,7 +113,7 @@ def main():
     ax2.set(xscale="log", yscale="log", xlabel="time per full-detector group / multirate's",
             ylabel="|group-mean variance / model − 1| (m = 8)", title="speed vs accuracy")
     fig.tight_layout()
-    fig.savefig(OUT / "correlated_noise.png", dpi=110)
+    fig.savefig(out / "correlated_noise.png", dpi=110)
     lines = ["# Correlated-noise generators: speed vs accuracy", "",
              f"CPU: {result['cpu_model']}, load {result['loadavg']}; command: "
              "`.venv/bin/python benchmarks/correlated_noise.py`", "",
@@ -128,7 +128,7 @@ def main():
               "in the group variance; *group* keeps the PSD shape within a frame but drops the frame-to-frame 1/f "
               "correlation (group means too quiet at low frequency, variance ≈ half the model's at m = 8); "
               "*white* has the right one-pixel variance by construction but no PSD shape at all (flat)."]
-    (OUT / "correlated_noise.md").write_text("\n".join(lines) + "\n")
+    (out / "correlated_noise.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

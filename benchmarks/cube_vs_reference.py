@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import timed as common_timed, write_json  # noqa: E402  (benchmarks/ is on sys.path)
+
 HERE = Path(__file__).resolve().parent
 REFVENV = HERE / ".refvenv"
 RESULTS = HERE / "results"
@@ -58,12 +60,8 @@ def sn_spectrum(z=1.0):
 
 
 def timed(func, repeat):
-    out = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        func()
-        out.append(time.perf_counter() - t0)
-    return out
+    """Wall times [s] of ``repeat`` calls (:func:`_common.timed`)."""
+    return common_timed(func, repeat).walls
 
 
 def run_reference(lbda, flux, repeat):
@@ -141,7 +139,7 @@ def main(argv=None):
                           "load_average": os.getloadavg()},
               "case": "SN Ia z=1, Lazuli CBE narrow, (16,8,0) x 1, 525x58x116",
               "rows": rows, "ours": ours, "reference": ref}
-    Path(args.out, "cube_vs_reference.json").write_text(json.dumps(result, indent=1, default=str))
+    write_json(Path(args.out, "cube_vs_reference.json"), result)
     try:
         import matplotlib
         matplotlib.use("Agg")

@@ -42,6 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import timed as common_timed, write_json  # noqa: E402  (benchmarks/ is on sys.path)
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 REFVENV = HERE / ".refvenv"
@@ -128,13 +130,8 @@ def run_reference(flux, table, workdir):
 
 def timed(fn, repeat):
     """Result, wall-clock times and process CPU times (all threads, PoCL workers included)."""
-    times, cpu, out = [], [], None
-    for _ in range(repeat):
-        t0, c0 = time.perf_counter(), time.process_time()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return out, times, cpu
+    t = common_timed(fn, repeat)
+    return t.result, t.walls, t.cpus
 
 
 def bench_projection(mapper, lbda, edges, narrow, wide, backend, repeat):
@@ -386,7 +383,7 @@ def main(argv=None):
         result["reference"] = {"available": False, "reason": "../shared/reference not found"}
 
     result["machine"]["load_average_end"] = os.getloadavg()
-    (outdir / "detector_image.json").write_text(json.dumps(result, indent=2, default=float))
+    write_json(outdir / "detector_image.json", result, indent=2)
     make_plot(outdir / "detector_image.png", main_img, rate, rimg if rimg is not None else main_img,
               ref_binned, sorted(timing_rows, key=lambda r: -r[1]))
     print(json.dumps({k: result[k] for k in result if k in ("speedup_vs_reference", "trace_vs_reference")},

@@ -75,7 +75,7 @@ def main():
     if args.child:
         return child()
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from _common import cpu_model, loadavg
+    from _common import cpu_model, loadavg, write_json
     results = {"current": []}
     with tempfile.TemporaryDirectory() as tmp:
         base = None
@@ -111,7 +111,7 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     record = {"machine": {"cpu": cpu_model(), "cores": os.cpu_count(), "loadavg": loadavg()},
               "baseline": args.baseline, "runs": args.runs, "summary": summary, "raw": results}
-    (out / "monte_carlo.json").write_text(json.dumps(record, indent=1))
+    write_json(out / "monte_carlo.json", record)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ speed–accuracy chart) with the device, CPU model and load.
     .venv/bin/python benchmarks/precision.py [--repeat 5]
 """
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -23,7 +22,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
 
 from slicersim import LazuliSupernova  # noqa: E402
 from slicersim.backends import opencl  # noqa: E402
@@ -251,7 +250,7 @@ def main():
     tag = "" if opencl.device_type() == "CPU" else "_" + "".join(c if c.isalnum() else "_" for c in dev.name.strip())
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"precision{tag}.json").write_text(json.dumps(jsonable(res), indent=1))
+    write_json(out / f"precision{tag}.json", res)
     lines = [f"# Single vs double precision kernels (`benchmarks/precision.py`)", "",
              f"{device}; CPU {res['cpu']}; load {res['load_before']} → {res['load_after']}; "
              f"fp32/fp64 FMA throughput {res['fp64_throughput_ratio']:.2f} for the dial (CPUs: 2, not timed), "

@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import timed as common_timed, write_json  # noqa: E402  (benchmarks/ is on sys.path)
+
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 OVERSAMPLINGS = (1, 2, 3, 4, 5, 9, 15, "auto")
@@ -69,14 +71,8 @@ def timed(func, repeat):
     """(result, best wall time [s], all wall times, best process CPU time [s]) after
     one untimed warm-up call.  CPU time sums all threads of this process (the
     OpenCL runtime's too): a load-independent measure of the work on a shared machine."""
-    result = func()
-    times, cpu = [], []
-    for _ in range(repeat):
-        t0, c0 = time.perf_counter(), time.process_time()
-        result = func()
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return result, min(times), times, min(cpu)
+    t = common_timed(func, repeat, warmup=True)
+    return t.result, t.best_wall, t.walls, t.best_cpu
 
 
 def errors(cube, oracle):
@@ -89,10 +85,10 @@ def errors(cube, oracle):
 def extra_points(ctx):
     """Hook for more methods: a list of point dicts {method, setting, seconds,
     max_err_rel_peak, flux_err}.  By default the ``points(ctx)`` of
-    ``benchmarks/psf_extra_points.py`` when that file exists.  ``ctx`` holds
+    ``benchmarks/_psf_extra_points.py`` when that file exists.  ``ctx`` holds
     lbda, shape, kwargs (psf_cube keywords), oracle (cube), repeat, and the
     helpers ``timed`` and ``errors``."""
-    path = HERE / "psf_extra_points.py"
+    path = HERE / "_psf_extra_points.py"
     if not path.is_file():
         return []
     spec = importlib.util.spec_from_file_location("psf_extra_points", path)
@@ -177,7 +173,7 @@ def run(args):
 
     ctx = {"lbda": lbda, "shape": shape, "position": pos, "kwargs": kw, "oracle": oracle,
            "repeat": args.repeat, "timed": timed, "errors": errors}
-    for p in extra_points(ctx):
+    for p in ([] if args.skip_extra else extra_points(ctx)):
         points.append(p)
 
     wide = wide_field_check(args.oracle, fast)
@@ -206,7 +202,7 @@ def run(args):
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "psf_speed_accuracy.json").write_text(json.dumps(result, indent=1))
+    write_json(out / "psf_speed_accuracy.json", result)
     plot(result, out / "psf_speed_accuracy.png")
     print(f"wrote {out / 'psf_speed_accuracy.json'} and .png")
 
@@ -276,6 +272,8 @@ def main(argv=None):
     ap.add_argument("--no-numpy-above", type=int, default=15, help="skip NumPy points above this o")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--replot", metavar="JSON", help="only redraw the PNG of an existing JSON")
+    ap.add_argument("--skip-extra", action="store_true",
+                    help="skip the extra points of _psf_extra_points.py (host convolution, the slow part)")
     args = ap.parse_args(argv)
     if args.replot:
         replot(args.replot)

@@ -33,7 +33,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
 
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
 
 from slicersim.backends.projection_transpose import matrix_entries  # noqa: E402
 from slicersim.instrument.mapper import SlicerMapper  # noqa: E402
@@ -156,7 +156,7 @@ def main():
     for k, v in metrics.items():
         print(k, {a: (round(b, 4) if isinstance(b, float) and b > 1e-3 else b) for a, b in v.items()
                   if a != "diagnostics"})
-    (out_dir / "rectify_speed_accuracy.json").write_text(json.dumps(jsonable(result), indent=1))
+    write_json(out_dir / "rectify_speed_accuracy.json", result)
     _plot(chart, g_lbda, lbda, out_dir / "rectify_speed_accuracy.png")
 
 

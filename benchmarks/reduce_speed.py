@@ -17,11 +17,9 @@ truth)/err of the unflagged pixels are reported as a sanity check.  Writes
     .venv/bin/python benchmarks/reduce_speed.py [--size 4096] [--nmd 64 8 0] [--out benchmarks/results]
 """
 import argparse
-import json
 import os
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
+from _common import timed as common_timed  # noqa: E402
 from ramp_throughput import DETECTOR, lazuli_rate_image  # noqa: E402
 
 from slicersim.backends import opencl  # noqa: E402
@@ -39,9 +38,8 @@ from slicersim.reduction.ramp_fit import fit_ramps  # noqa: E402
 
 
 def timed(fn):
-    t, c = time.perf_counter(), time.process_time()
-    out = fn()
-    return out, time.perf_counter() - t, time.process_time() - c
+    t = common_timed(fn)
+    return t.result, t.walls[0], t.cpus[0]
 
 
 def pulls(product, nmd):
@@ -138,7 +136,7 @@ def main():
     result["goal_met"] = result["fit"]["gls"]["ratio"] <= 1.0
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "reduce_speed.json").write_text(json.dumps(jsonable(result), indent=2) + "\n")
+    write_json(out / "reduce_speed.json", result, indent=2)
     (out / "reduce_speed.md").write_text(markdown(result))
     print(markdown(result))
 

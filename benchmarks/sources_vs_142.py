@@ -31,7 +31,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_model, jsonable  # noqa: E402
+from _common import cpu_model, write_json  # noqa: E402
 
 REFVENV = HERE / ".refvenv142"
 CASES = [(-2, 20), (0, 20), (1, 20), (-2, 22), (0, 22), (1, 22)]
@@ -182,7 +182,7 @@ def main(argv=None):
               "summary": summary, "reference_config": cfg, "cpu": cpu_model()}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "sources_vs_142.json").write_text(json.dumps(jsonable(result), indent=1))
+    write_json(out / "sources_vs_142.json", result)
     text = markdown(result)
     (out / "sources_vs_142.md").write_text(text)
     print(text)

@@ -27,7 +27,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_model, jsonable, loadavg  # noqa: E402
+from _common import cpu_model, loadavg, write_json  # noqa: E402
 
 PAPER = {"volume_gb": {0.2: 1.0, 1.5: 23.0}, "years": {20: 1.0, 25: 1.5}}
 ZS = (0.2, 1.0, 1.5)
@@ -75,6 +75,7 @@ def survey(n, snr, conventions):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=8000)
+    ap.add_argument("--out", default=str(HERE / "results"), help="results folder (default benchmarks/results)")
     args = ap.parse_args()
     res = {"cpu": cpu_model(), "cores": os.cpu_count(), "load_before": loadavg(), "n": args.n, "paper": PAPER,
            "per_redshift": {}, "reference_1_0_0": {}, "survey": {}}
@@ -95,12 +96,12 @@ def main():
             if conv == "physical":
                 plans[f"SNR {snr}"] = plan
     res["load_after"] = loadavg()
-    out = HERE / "results"
-    out.mkdir(exist_ok=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     from slicersim.campaign.plan import plot_time_and_volume
     paper_pts = {"volumes (text)": (np.array([0.2, 1.5]), None, np.array([1.0, 23.0]))}
     plot_time_and_volume(plans, out / "survey_vs_paper.png", paper=paper_pts)
-    (out / "survey_vs_paper.json").write_text(json.dumps(jsonable(res), indent=1))
+    write_json(out / "survey_vs_paper.json", res)
     md = markdown(res)
     (out / "survey_vs_paper.md").write_text(md)
     print(md)

@@ -63,6 +63,18 @@ def descriptions():
     return out
 
 
+def registry():
+    """{name: registry entry} of ``benchmarks/registry.py`` (question, baseline, acceptance), or {}."""
+    import importlib.util
+    path = BENCH / "registry.py"
+    if not path.is_file():
+        return {}
+    spec = importlib.util.spec_from_file_location("_benchmark_registry", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return dict(module.BY_NAME)
+
+
 def shift_headings(text, top=2):
     """Shift the Markdown headings of ``text`` so that its highest one is at level ``top``."""
     levels = [len(m.group(1)) for line in text.splitlines() if (m := HEADING.match(line))]
@@ -108,6 +120,10 @@ def page(family, paths, outdir, about):
     parts = [f"# {title}", ""]
     if family in about:
         parts += [about[family], ""]
+    entry = registry().get(family)
+    if entry is not None:
+        parts += [f"- Question: {entry.question}", f"- Baseline: {entry.baseline}",
+                  f"- Acceptance: {entry.acceptance}", ""]
     if script.is_file():
         parts += [f"Script: `benchmarks/{family}.py`; results: `benchmarks/results/{family}*`.", ""]
     stems = {p.stem for p in paths if p.suffix == ".md"}
