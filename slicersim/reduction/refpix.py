@@ -30,14 +30,18 @@ def refpix_correct(sci, n_outputs=32, border=4, odd_even_columns=True, use_side_
     """Reference-pixel corrected copy of SCI (nints, ngroups, ny, nx) as float64 [same units]."""
     data = np.array(sci, dtype=np.float64, copy=True)
     if data.ndim != 4:
-        raise EffectsError(f"refpix: SCI must be 4-D (nints, ngroups, ny, nx), got shape {data.shape}")
+        raise EffectsError(f"reference-pixel correction: SCI must be 4-D (nints, ngroups, ny, nx), got shape {data.shape}")
     nints, ngroups, ny, nx = data.shape
     if n_outputs < 1 or nx % n_outputs:
-        raise EffectsError(f"refpix: nx = {nx} is not divisible by n_outputs = {n_outputs}")
+        raise EffectsError(f"reference-pixel correction of this file: its width nx = {nx} is not divisible by its "
+                           f"n_outputs = {n_outputs} (the file's EFFECTS ask for the correction; refpix=False in Python, "
+                           "--no-refpix on the command line, skips it)")
     if border < 1 or ny <= 2 * border or nx <= 2 * border:
-        raise EffectsError(f"refpix: border = {border} impossible for a {ny}×{nx} detector")
+        raise EffectsError(f"reference-pixel correction of this file: a border of {border} reference pixels is "
+                           f"impossible for its {ny}×{nx} detector (the file's EFFECTS ask for the correction; "
+                           "refpix=False in Python, --no-refpix on the command line, skips it)")
     if side_smoothing_length < 1:
-        raise EffectsError(f"refpix: side_smoothing_length must be ≥ 1, got {side_smoothing_length}")
+        raise EffectsError(f"reference-pixel correction: side_smoothing_length must be ≥ 1, got {side_smoothing_length}")
     ncol = nx // n_outputs
     parities = (0, 1) if odd_even_columns else (None,)
     for i in range(nints):

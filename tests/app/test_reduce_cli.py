@@ -664,3 +664,18 @@ def test_reduce_spectra_with_a_dark_above_the_signal_exits_2(small_layout, tmp_p
     assert code == 2 and not out.exists()
     error = _one_line_error(capsys)
     assert "no finite bin" in error or "no point source" in error, error
+
+
+def test_a_files_reference_pixel_problem_is_not_blamed_on_the_flag():
+    """The file's reference-pixel problem read "--no-refpix: nx = 50 is not divisible ..." (the message began
+    with the keyword the CLI maps to the flag): it now names the file's correction and the flag as the way out."""
+    from slicersim.app.reduce_cli import cli_message
+    from slicersim.errors import EffectsError
+    from slicersim.reduction.refpix import refpix_correct
+    for shape, words in (((1, 2, 40, 50), "its width nx = 50 is not divisible"),
+                         ((1, 2, 6, 64), "a border of 4 reference pixels is impossible for its 6×64 detector")):
+        with pytest.raises(EffectsError) as err:
+            refpix_correct(np.zeros(shape))
+        text = cli_message(str(err.value))
+        assert text.startswith("reference-pixel correction of this file: ") and words in text
+        assert text.endswith("(the file's EFFECTS ask for the correction; --no-refpix, skips it)"), text
