@@ -62,7 +62,7 @@ PLAUSIBLE = {"guiding_sigma": (0.0, 1.0),            # arcsec (space: ~0.01; a v
              "diameter_int": (0.0, 20.0),            # m
              "pixel_size": (1.0, 100.0),             # µm
              "gain": (0.05, 50.0),                   # ADU / e-
-             "ron": (0.5, 500.0),                    # e- per frame
+             "ron": (0.0, 500.0),                    # e- per frame (0: a noise-free detector)
              "dark": (0.0, 100.0),                   # e- / s / pixel
              "tframe": (1e-3, 100.0),                # s
              "dispersion_resolution": (1.0, 20.0),   # px
@@ -166,7 +166,7 @@ def warn_implausible(name, value, unit, plausible):
     import warnings
     from slicersim.errors import ImplausibleValueWarning
     unit_text = f" {unit}" if unit else ""
-    hint = f"; give an astropy Quantity (e.g. 10 * u.mas) to say which unit you mean" if unit else ""
+    hint = "; give an astropy Quantity (value * unit) to say which unit you mean" if unit else ""
     warnings.warn(f"{name} = {value:g}{unit_text} is implausible (expected {plausible[0]:g} to {plausible[1]:g}"
                   f"{unit_text}): a bare number of {name} is read in{unit_text or ' its documented unit'}{hint}",
                   ImplausibleValueWarning, stacklevel=4)

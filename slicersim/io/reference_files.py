@@ -12,9 +12,10 @@ Eight files, named as CRDS names them (``slicersim_<detector>_<type>.fits``), ea
     mask        MaskModel        DQ (ny, nx) uint32           JWST pixel flags
     ipc         IPCModel         SCI (3, 3) float32           K[1+dy, 1+dx]: share of a pixel's signal at (dy, dx)
 
-Keywords: INSTRUME and DETECTOR are "N/A", as in slicersim's level-1b files
-(:data:`slicersim.io.uncal.DEFAULT_KEYWORDS`); TELESCOP is "JWST", the only value the reference-file
-models accept (``ReferenceFileModel.validate``), ORIGIN "slicersim"; PEDIGREE "SIMULATION"; SUBARRAY FULL with
+Keywords: INSTRUME and DETECTOR are "N/A" — the reference models' schema accepts only JWST names (or
+"N/A"), so the level-1b files' own names (:data:`slicersim.io.uncal.DEFAULT_KEYWORDS`: LAZULI_IFS, H4RG-1)
+are given in DESCRIP; TELESCOP is "JWST", the only value the reference-file models accept
+(``ReferenceFileModel.validate``), ORIGIN "slicersim"; PEDIGREE "SIMULATION"; SUBARRAY FULL with
 the array's size; REFTYPE the type in capitals; USEAFTER 2026-01-01T00:00:00.  Every file is
 written under a temporary name and renamed when complete; an existing file is refused unless
 ``overwrite``.  ``stdatamodels`` is imported only here (``pip install stdatamodels``).
@@ -126,8 +127,11 @@ def _build(kind, arrays, datamodels, meta):
     m = model.meta
     m.reftype, m.pedigree, m.useafter = kind.upper(), "SIMULATION", USEAFTER
     m.author, m.origin, m.telescope = meta["author"], "slicersim", "JWST"      # the models insist on JWST
-    m.description = f"slicersim {_DESCRIPTIONS[kind]}; {meta['description']}"[:250]
-    m.instrument.name, m.instrument.detector = DEFAULT_KEYWORDS["INSTRUME"], DEFAULT_KEYWORDS["DETECTOR"]
+    # the reference models' schema knows only JWST instruments (or "N/A"): the level-1b files' own names
+    # (INSTRUME, DETECTOR of DEFAULT_KEYWORDS) go into the description
+    m.description = (f"slicersim {_DESCRIPTIONS[kind]} of {DEFAULT_KEYWORDS['INSTRUME']} "
+                     f"{DEFAULT_KEYWORDS['DETECTOR']}; {meta['description']}")[:250]
+    m.instrument.name, m.instrument.detector = "N/A", "N/A"
     m.date = meta["date"]
     if kind != "ipc":
         m.subarray.name, m.subarray.xstart, m.subarray.ystart = "FULL", 1, 1
