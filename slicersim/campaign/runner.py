@@ -317,11 +317,16 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
                   security=security, dashboard=dashboard_address(dashboard) or False)
     _check_cube_precision(spec, scheduler)
     ds = Dataset(Dataset.check_path(out, force=force))
-    created = ds.create()                             # atomic: of two runs on one new folder, one creates it
     spec = _resumed_seed(spec, ds, force)
     t0 = time.perf_counter()
     ds.check_spec(spec.canonical(), force)            # refuse early, before planning
     catalog, plan, connection = _plan_and_connect(spec, run)
+    try:
+        created = ds.create()                         # atomic: of two runs on one new folder, one creates it
+    except BaseException:
+        if connection:
+            connection[0].close()
+        raise
     try:
         return _run(spec, ds, (catalog, plan, connection), run, (force, retry_failed, t0))
     except BaseException:
