@@ -74,7 +74,7 @@ demo: venv opencl
 # benchmarks/results (hours); `make bench-smoke` runs each at its smallest size into a temporary folder
 # (no network: the reference side runs only when its venv is cached), what CI runs so none rots;
 # BENCH_BUDGET bounds the whole smoke run [s].
-BENCH_BUDGET ?= 600
+BENCH_BUDGET ?= 1500
 
 bench: venv opencl
 	"$(PY)" benchmarks/run.py
