@@ -401,19 +401,17 @@ def test_a_spec_configuration_that_is_not_a_regular_file_is_named_so(tmp_path, k
         parse_spec(doc)
 
 
-@pytest.mark.slow
-def test_ramps_and_detector_image_products(tmp_path):
-    """One low-SNR target (short readout) with the full-detector products, in-process."""
-    import h5py
+def _one_target(tmp_path, products):
+    """One low-SNR target (short readout) of SPEC with the ``[products]`` lines ``products``, run in-process:
+    (record, dataset, its product folder)."""
+    import tomllib
 
     from slicersim.campaign.products import run_target
     from slicersim.campaign.runner import plan_campaign
     from slicersim.campaign.spec import parse_spec
     from slicersim.io.dataset import Dataset
-    from slicersim.io.rampfile import read_ramps
-    import tomllib
-    text = SPEC.replace("n = 6", "n = 1").replace("snr = 8", "snr = 1").replace(
-        "spectrum = true\ncube = true", 'spectrum = false\ndetector_image = true\nramps = true\ncompression = "lz4"')
+    text = SPEC.replace("n = 6", "n = 1").replace("snr = 8", "snr = 1").replace("spectrum = true\ncube = true",
+                                                                                products)
     spec = parse_spec(tomllib.loads(text), text=text)
     cat, _ = plan_campaign(spec)
     ds = Dataset(tmp_path / "r")
@@ -421,8 +419,18 @@ def test_ramps_and_detector_image_products(tmp_path):
     row = {k: (cat[0][k].item() if hasattr(cat[0][k], "item") else cat[0][k]) for k in cat.colnames}
     rec = run_target(spec, row, ds.path, digest)
     assert rec["status"] == "done", rec.get("error")
+    return rec, ds, row, tmp_path / "r" / "products" / "t0000000"
+
+
+@pytest.mark.slow
+def test_ramps_and_detector_image_products(tmp_path):
+    """One low-SNR target (short readout) with the full-detector products, in-process."""
+    import h5py
+
+    from slicersim.io.rampfile import read_ramps
+    rec, ds, row, pdir = _one_target(tmp_path, 'spectrum = false\ndetector_image = true\nramps = true\n'
+                                               'compression = "lz4"')
     assert ds.verify(rec) == ""
-    pdir = tmp_path / "r" / "products" / "t0000000"
     sci, gdq, pixdq, attrs = read_ramps(pdir / "ramps.h5")
     n, m, d, nramps = rec["readout"]
     assert sci.shape == (nramps, n, 4096, 4096) and int(attrs["SEED"]) == row["ramp_seed"]
@@ -481,23 +489,10 @@ def test_campaign_level1b_ramps_validate_and_fit(tmp_path):
     stdatamodels (only the four instrument names outside JWST's enumerations) and our reduction fits it."""
     import warnings
 
-    import tomllib
     from stdatamodels.jwst import datamodels
-
-    from slicersim.campaign.products import run_target
-    from slicersim.campaign.runner import plan_campaign
-    from slicersim.campaign.spec import parse_spec
-    from slicersim.io.dataset import Dataset
-    text = SPEC.replace("n = 6", "n = 1").replace("snr = 8", "snr = 1").replace(
-        "spectrum = true\ncube = true", 'spectrum = false\nramps = true\neffects = "lazuli"\nramp_format = "jwst-uncal"')
-    spec = parse_spec(tomllib.loads(text), text=text)
-    cat, _ = plan_campaign(spec)
-    ds = Dataset(tmp_path / "r")
-    digest = ds.initialise(spec.text, spec.canonical(), {}, False)
-    row = {k: (cat[0][k].item() if hasattr(cat[0][k], "item") else cat[0][k]) for k in cat.colnames}
-    rec = run_target(spec, row, ds.path, digest)
-    assert rec["status"] == "done", rec.get("error")
-    path = tmp_path / "r" / "products" / "t0000000" / "ramps.fits"
+    _, _, _, pdir = _one_target(tmp_path, 'spectrum = false\nramps = true\neffects = "lazuli"\n'
+                                          'ramp_format = "jwst-uncal"')
+    path = pdir / "ramps.fits"
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         model = datamodels.RampModel(str(path))
@@ -512,21 +507,8 @@ def test_campaign_ramps_carry_the_effects_asked_for(tmp_path):
     """`effects = "lazuli"`: the target's ramps hold the effects and their truth (cosmic rays, ...)."""
     import h5py
 
-    from slicersim.campaign.products import run_target
-    from slicersim.campaign.runner import plan_campaign
-    from slicersim.campaign.spec import parse_spec
-    from slicersim.io.dataset import Dataset
-    import tomllib
-    text = SPEC.replace("n = 6", "n = 1").replace("snr = 8", "snr = 1").replace(
-        "spectrum = true\ncube = true", 'spectrum = false\nramps = true\neffects = "lazuli"')
-    spec = parse_spec(tomllib.loads(text), text=text)
-    cat, _ = plan_campaign(spec)
-    ds = Dataset(tmp_path / "r")
-    digest = ds.initialise(spec.text, spec.canonical(), {}, False)
-    row = {k: (cat[0][k].item() if hasattr(cat[0][k], "item") else cat[0][k]) for k in cat.colnames}
-    rec = run_target(spec, row, ds.path, digest)
-    assert rec["status"] == "done", rec.get("error")
-    with h5py.File(tmp_path / "r" / "products" / "t0000000" / "ramps.h5", "r") as fh:
+    _, _, _, pdir = _one_target(tmp_path, 'spectrum = false\nramps = true\neffects = "lazuli"')
+    with h5py.File(pdir / "ramps.h5", "r") as fh:
         enabled = json.loads(fh.attrs["EFFECTS"])["effects"]["enabled"]
         assert {"cosmic_rays", "ipc", "nonlinearity", "correlated_noise"} <= set(enabled)
         assert "cosmic_rays" in fh["truth"]
