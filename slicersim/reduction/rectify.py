@@ -41,6 +41,8 @@ conditioning says: the variance returned shows it.
 """
 from __future__ import annotations
 
+import warnings
+
 import functools
 import time
 from dataclasses import dataclass, field
@@ -266,6 +268,16 @@ def _why_unmeasured(share):
             "columns (ncol), wider λ bins or method='drizzle'")
 
 
+#: a field with more than 1/UNSOLVED_SHARE of its slices unsolvable (or more than one) is refused (the grid asked
+#: for is finer than the detector samples it); fewer are a few damaged slices (cosmic rays, bad pixels around a
+#: cell): their cells are NaN, with a warning
+UNSOLVED_SHARE = 10
+
+
+class _UnsolvedSlice(Exception):
+    """A slice whose normal matrix cannot be solved (singular or too ill-conditioned); its message says why."""
+
+
 def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A, excluded=0.0):
     """Weighted LSQ of one slice (A = PᵀWP): (x (nc, N), variance (nc,) or None, κ₁(A)); ``excluded``: the
     share of the slice's projection on pixels without weight (named when the matrix cannot be solved)."""
@@ -289,7 +301,8 @@ def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A, excluded=0.0
     try:
         fac = BlockCholesky(A, block)
     except LinAlgError:
-        raise ParameterError(f"slice {sid}: the normal matrix PᵀWP is singular — " + _why_unmeasured(excluded)) from None
+        raise _UnsolvedSlice(f"slice {sid}: the normal matrix PᵀWP is singular — "
+                             + _why_unmeasured(excluded)) from None
     # the solve, its refinement with the data residual (corrected semi-normal equations) and the first
     # two solves of Hager's estimate of ‖A⁻¹‖₁ go together (one pass of the recursion for both)
     n, k = idx.size, rhs.shape[1]
@@ -301,7 +314,7 @@ def _solve_slice(P, w, rhs, data, want_variance, max_bytes, sid, A, excluded=0.0
     xs += sol[:, :k]
     cond = float(abs(A).sum(axis=0).max() * fac.inverse_norm1(y, sol[:, k]))
     if not cond < MAX_CONDITION:
-        raise ParameterError(f"slice {sid}: the normal matrix PᵀWP has condition {cond:.2g} > "
+        raise _UnsolvedSlice(f"slice {sid}: the normal matrix PᵀWP has condition {cond:.2g} > "
                              f"{MAX_CONDITION:.0e}: " + _why_unmeasured(excluded))
     x[idx] = xs
     if want_variance:
@@ -329,18 +342,30 @@ def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend
     flat_w, flat_d = weight.ravel(), images.reshape(N, -1)
     flux = np.empty((N, S, nc))
     var = np.empty((S, nc)) if want_variance else None
-    cond, lost = 0.0, 0.0
+    cond, lost, unsolved = 0.0, 0.0, []
     for s in range(S):
         P, upix, w, lost_s = _slice_matrix(tables, s, flat_w.__getitem__)
         A = _normal_matrix(P, w)
         info._store(s, A)
         total = float(lost_s.sum() + P.sum())
-        x, v, c = _solve_slice(P, w, rhs[:, s].T, flat_d[:, upix].T, want_variance, max_bytes, slices[s], A,
-                               excluded=float(lost_s.sum()) / total if total > 0 else 0.0)
+        try:
+            x, v, c = _solve_slice(P, w, rhs[:, s].T, flat_d[:, upix].T, want_variance, max_bytes, slices[s], A,
+                                   excluded=float(lost_s.sum()) / total if total > 0 else 0.0)
+        except _UnsolvedSlice as exc:             # one bad slice (cosmic rays, bad pixels): its cells NaN, said
+            unsolved.append(str(exc))
+            flux[:, s] = np.nan
+            if want_variance:
+                var[s] = np.nan
+            continue
         flux[:, s] = x.T
         if want_variance:
             var[s] = v
         cond, lost = max(cond, c), max(lost, float(lost_s.max()))
+    if len(unsolved) > max(1, S // UNSOLVED_SHARE):       # the request, not a few damaged slices: refused
+        raise ParameterError(f"{unsolved[0]} ({len(unsolved)} of {S} slices)")
+    if unsolved:
+        warnings.warn(f"{len(unsolved)} of {S} slices not rectified, their cells NaN: {unsolved[0]}", RuntimeWarning,
+                      stacklevel=3)
     flux = flux.reshape((N,) + shape)
     chi2, grad = [], []
     for n in range(N):                                                  # model image P x̂ on the device
@@ -349,7 +374,8 @@ def _field_lsq(images, weight, tables, slices, want_variance, max_bytes, backend
         g = gather(weight * resid, tables, backend=backend)
         grad.append(float(np.linalg.norm(g) / max(np.linalg.norm(rhs[n]), 1e-300)))
     diag = {"cond1_normal_max": cond, "chi2": np.array(chi2), "dof": int(usable.sum()) - int(np.isfinite(
-        flux[0]).sum()), "gradient_rel": np.array(grad), "excluded_flux_max": lost}
+        flux[0]).sum()), "gradient_rel": np.array(grad), "excluded_flux_max": lost,
+            "unsolved_slices": len(unsolved)}
     return flux, None if var is None else var.reshape(shape), diag
 
 
