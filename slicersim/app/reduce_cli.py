@@ -21,7 +21,8 @@ _SPECTRA_FLAGS = (("--field", "field"), ("--lbda-edges", "lbda_edges"), ("--ncol
                   ("--rectify", "rectify"), ("--extraction", "extraction"), ("--psf", "psf"),
                   ("--position", "position"), ("--aperture", "aperture"), ("--config", "config"),
                   ("--no-background", "no_background"), ("--no-ipc", "no_ipc"),
-                  ("--no-propagate", "no_propagate"), ("--dark", "dark"), ("--weights", "weights"))
+                  ("--no-propagate", "no_propagate"), ("--dark", "dark"), ("--weights", "weights"),
+                  ("--cubes", "cubes"))
 #: flags of a dataset directory
 _DATASET_FLAGS = (("--workers", "workers"), ("--scheduler", "scheduler"), ("--retry-failed", "retry_failed"),
                   ("--force", "force"), ("--verify", "verify"), ("--dashboard", "dashboard"),
@@ -32,7 +33,7 @@ MAX_BINS = 100_000
 FLAG_OF = {"field": "--field", "lbda_edges": "--lbda-edges", "ncol": "--ncol", "rectify_method": "--rectify",
            "extraction": "--extraction", "psf": "--psf", "position": "--position", "aperture": "--aperture",
            "config": "--config", "background": "--no-background", "ipc": "--no-ipc", "propagate": "--no-propagate",
-           "dark": "--dark", "weights": "--weights", "weighting": "--weighting", "jump_threshold": "--jump-threshold",
+           "dark": "--dark", "weights": "--weights", "cubes": "--cubes", "weighting": "--weighting", "jump_threshold": "--jump-threshold",
            "gain": "--gain", "read_noise": "--ron", "ron": "--ron", "with_truth": "--with-truth",
            "refpix": "--no-refpix", "linearity": "--no-linearity", "workers": "--workers",
            "scheduler": "--scheduler", "allow_partial": "--allow-partial", "max_bytes": "--max-bytes"}
@@ -212,7 +213,7 @@ def _spectra_options(args):
             "psf": _load_psf(args.psf) if args.psf is not None else None,
             "dark": _parse_dark(args.dark) if args.dark is not None else None, "weights": args.weights,
             "config": (args.config[0] if len(args.config) == 1 else list(args.config)) if args.config else None,
-            "ipc": False if args.no_ipc else None}
+            "ipc": False if args.no_ipc else None, "cubes": True if args.cubes else None}
     opts = {k: v for k, v in opts.items() if v is not None}       # --dark none: "none" (kept, not None)
     with _FlagNames():
         check_spectra_options(**opts)              # every value, before any data are read
@@ -250,10 +251,12 @@ def cmd_reduce(args) -> int:
     line = (f"{result['path']}: rates {rate.shape[-2]}×{rate.shape[-1]} of {rate.shape[0] if rate.ndim == 3 else 1} "
             f"integration(s), {int((result['rates'].njumps > 0).sum())} pixel(s) with jumps")
     if args.spectra:
-        spectra = result["spectra"]
-        line += "; " + ", ".join(f"{name} cube {'×'.join(map(str, cube.flux.shape[-3:]))}, "
+        spectra, cubes = result["spectra"], result["cubes"]
+        names = list(dict.fromkeys([*cubes, *spectra]))
+        line += "; " + ", ".join(name + (f" cube {'×'.join(map(str, cubes[name].flux.shape[-3:]))}," if name in cubes
+                                         else "") + " "
                                  + (f"spectrum ({spectra[name].method})" if name in spectra else "no spectrum (no source)")
-                                 for name, cube in result["cubes"].items())
+                                 for name in names)
     print(line)
     return 0
 
@@ -287,12 +290,13 @@ def add_parsers(sub, fmt):
     from slicersim.reduction.ramp_fit import DEFAULT_JUMP_THRESHOLD, WEIGHTINGS
     from slicersim.reduction.rectify import METHODS as RECTIFY_METHODS
     from slicersim.reduction.spectra import METHODS as EXTRACTION_METHODS
-    p = sub.add_parser("reduce", help="raw ramps → rates [e-/s] (--spectra: cubes and spectra); campaign datasets",
+    p = sub.add_parser("reduce", help="raw ramps → rates [e-/s] (--spectra: spectra, --cubes: cubes); campaign datasets",
                        description="Up-the-ramp fit of a raw ramp file (slicersim HDF5 or JWST level-1b FITS): "
                                    "bias, reference-pixel and nonlinearity corrections when the file carries "
                                    "those effects, saturation, jump detection, GLS or OLS slopes.  With "
-                                   "--spectra, the rates are rectified into (λ, slice, column) cubes and the "
-                                   "point source's spectrum is extracted (one HDF5: rates/, cubes/, spectra/).  "
+                                   "--spectra, the point source's spectrum is extracted (and with --cubes the rates "
+                                   "are rectified into (λ, slice, column) cubes; one HDF5: rates/, spectra/, "
+                                   "cubes/).  "
                                    "RAW may be a campaign dataset directory (products.ramps = true): every "
                                    "target is reduced in a Dask task into the directory --out "
                                    "(products/tNNNNNNN/rates.h5 or reduced.h5, records/, catalog.ecsv); run "
@@ -326,8 +330,11 @@ def add_parsers(sub, fmt):
                    help="λ bin edges [Å]: START, START+STEP, ..., STOP; or a file of edges (.npy or text) "
                         "(default: the prism's native grid, 2 native bins per bin)")
     g.add_argument("--ncol", type=int, metavar="N", help=f"columns per slice, 1 to {MAX_NCOL} (default: 58)")
-    g.add_argument("--rectify", choices=RECTIFY_METHODS, help="lsq: exact weighted least squares (default); "
-                   "drizzle: fast pixel-to-cell sharing, biased")
+    g.add_argument("--cubes", action="store_true",
+                   help="also rectify the (λ, slice, column) cube(s) (default: only for a cube extraction or with "
+                        "--rectify/--weights; the forward extraction's spectrum comes from the pixels)")
+    g.add_argument("--rectify", choices=RECTIFY_METHODS, help="cube rectification (implies --cubes): lsq: exact "
+                   "weighted least squares (default); drizzle: fast pixel-to-cell sharing, smooths the cube")
     g.add_argument("--extraction", choices=("forward", *EXTRACTION_METHODS),
                    help="spectrum extraction: 'forward' (default when the file records its instrument "
                         "configuration) fits the point source on the detector pixels with the configuration's "

@@ -43,7 +43,7 @@ __all__ = ["target_seeds", "run_target", "truth_meta", "SEED_STREAM", "SPECTRUM_
            "register_reducer", "registered_reducer", "REDUCED_FILES"]
 
 #: the file of the reduced product per ``products.reduce`` mode (the names of ``slicersim reduce DATASET``)
-REDUCED_FILES = {"spectra": "reduced.h5", "rates": "rates.h5"}
+REDUCED_FILES = {"spectra": "reduced.h5", "cubes": "reduced.h5", "rates": "rates.h5"}
 #: folder of a target's JWST reference files, beside its ramps (slicersim reffiles --ramps)
 REFERENCE_DIR = "reference"
 _REDUCER = []

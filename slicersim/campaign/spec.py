@@ -30,7 +30,8 @@
     reference_files = false                   # JWST reference files beside each target's kept ramps
     reduce = false                            # stream: reduce each target's ramps as soon as they are
                                               # simulated, in the same task (true or "spectra": as
-                                              # `slicersim reduce DATASET --spectra`, "rates": as
+                                              # `slicersim reduce DATASET --spectra`, "cubes": as
+                                              # `... --spectra --cubes`, "rates": as
                                               # `slicersim reduce DATASET`); needs ramps = true
     keep_ramps = "all"                        # with reduce: "all", "none" or N (the ramps of every
                                               # target whose target_id is a multiple of N)
@@ -68,7 +69,7 @@ _PRODUCTS = {"spectrum": True, "cube": False, "detector_image": False, "ramps": 
              "keep_ramps": "all", "effects": "none", "reference_files": False,
              "ramp_format": "hdf5"}
 #: what ``products.reduce`` may be (True is "spectra")
-REDUCE_MODES = (False, "spectra", "rates")
+REDUCE_MODES = (False, "spectra", "cubes", "rates")
 _SURVEY = {"overhead": 0.0, "efficiency": 1.0, "compression_ratio": 1.0}
 DEFAULT_Z_SWITCH = 0.8
 
@@ -342,7 +343,7 @@ def _streaming(prod):
     if reduce is True:
         prod["reduce"] = reduce = "spectra"
     if not ((reduce is False) or (isinstance(reduce, str) and reduce in REDUCE_MODES)):
-        raise ConfigError(f"products.reduce must be false, true, \"spectra\" or \"rates\", got {reduce!r}")
+        raise ConfigError(f"products.reduce must be false, true, \"spectra\", \"cubes\" or \"rates\", got {reduce!r}")
     if isinstance(keep, bool) or not (keep in ("all", "none") if isinstance(keep, str) else
                                       isinstance(keep, int) and keep >= 1):
         raise ConfigError(f"products.keep_ramps must be \"all\", \"none\" or a whole number N ≥ 1 (the ramps of "

@@ -204,14 +204,14 @@ def _identity(mode, opts, fit, source_digest, mapper):
     fit = _fit_identity(fit)
     if mode == "spectra":
         keys = {"field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
-                "background", "propagate", "dark", "weights", "config", "ipc"}
+                "background", "propagate", "dark", "weights", "config", "ipc", "cubes"}
         opts = {**{k: v for k, v in ReduceOptions.defaults().items() if k in keys}, **opts}
         if opts.get("field") is None:
             opts["field"] = "(each target's)"
         # what the default extraction is: reductions made before the forward model are not resumed into it
         opts["spectrum_model"] = SPECTRUM_MODEL
         if opts.get("weights") is None:                      # the default, as reduce_exposure resolves it
-            opts["weights"] = "forward" if opts.get("rectify_method", "lsq") == "lsq" else "data"
+            opts["weights"] = "forward" if opts.get("rectify_method") in (None, "lsq") else "data"
     canon = {}
     for key, val in sorted(opts.items()):
         if isinstance(val, np.ndarray):

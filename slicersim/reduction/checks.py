@@ -339,7 +339,7 @@ def check_fit_options(fit_options):
 _UNSET = object()       # dark not given (None given: subtract nothing)
 #: the options check_spectra_options knows (reduce_exposure's, with dark)
 _SPECTRA_OPTIONS = ("field", "lbda_edges", "ncol", "rectify_method", "extraction", "psf", "position", "aperture",
-                    "background", "propagate", "dark", "weights", "config", "ipc")
+                    "background", "propagate", "dark", "weights", "config", "ipc", "cubes")
 
 
 def check_spectra_options(mapper=None, **options):
@@ -347,7 +347,7 @@ def check_spectra_options(mapper=None, **options):
     read; returns the dict of those given (None: the pipeline's default), the λ edges as an array.
 
     Options: field, lbda_edges, ncol, rectify_method, extraction, psf, position, aperture,
-    background, propagate, dark, weights, config, ipc (an unknown name is a ParameterError).  The λ
+    background, propagate, dark, weights, config, ipc, cubes (an unknown name is a ParameterError).  The λ
     grid is checked against ``mapper`` (default: the built-in layout) and a PSF array against the
     cube it will be applied to ((nλ, 58, ncol) for the Lazuli fields)."""
     for key in options:
@@ -430,8 +430,8 @@ def _check_extraction_options(given, out):
 
 
 def _check_switches(given, out):
-    """background, propagate, ipc and config."""
-    for key in ("background", "propagate"):
+    """background, propagate, cubes, ipc and config."""
+    for key in ("background", "propagate", "cubes"):
         if key in given:
             out[key] = validation.flag(key, given[key])
     if "ipc" in given:
@@ -461,6 +461,12 @@ def _refuse_unused(out):
     if "aperture" in out and extracted == "gls":
         raise ParameterError("aperture applies to the 'optimal' and 'aperture' extractions (the cells they use), "
                              "not to 'gls' (every cell of the field)")
+    if out.get("cubes") is False and out.get("extraction") not in (None, FORWARD):
+        raise ParameterError(f"cubes=False: the {extracted!r} extraction works on the cube (CLI: it needs the cube)")
+    if out.get("cubes") is False and "rectify_method" in out:
+        raise ParameterError("rectify_method shapes the cube, and cubes=False asks for none")
+    if out.get("cubes") is False and "weights" in out:
+        raise ParameterError("weights shape the cube, and cubes=False asks for none")
     if "propagate" in out and (method != "lsq" or extracted in ("gls", FORWARD)):
         raise ParameterError(f"propagate applies to 'optimal' or 'aperture' extraction of an lsq cube only (this "
                              f"reduction: {extracted!r} on a {method!r} cube)")

@@ -213,29 +213,70 @@ class _Footprint:
             if s in core:
                 mine.append(p)
         pix, cell, wgt = np.concatenate(pix), np.concatenate(cell), np.concatenate(wgt)
-        fitted = np.unique(np.concatenate(mine))
+        size = int(np.prod(tables.detector_shape))
+        mark = np.zeros(size, bool)                              # a mask, not np.unique / np.isin (sorts)
+        mark[np.concatenate(mine)] = True
+        fitted = np.flatnonzero(mark)
         fitted = fitted[usable(fitted)]
-        keep = np.isin(pix, fitted)
+        mark[:] = False
+        mark[fitted] = True
+        keep = mark[pix]
         self.pixels = fitted                                   # flat detector indices
         row = np.searchsorted(fitted, pix[keep])
         cell = cell[keep]
         nbin = (cell // Q) % E
         order = np.lexsort((nbin, row))                         # CSR order, built once (values change)
+        row, nbin = row[order], nbin[order]
         self.weight = wgt[keep][order]
-        self.bin = nbin[order].astype(np.int32)
+        self.bin = nbin.astype(np.int32)
         self.cube_row = (S - 1 - cell // (E * Q))[order]
         self.col = (cell % Q)[order]
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(row, minlength=fitted.size))])
         self.nbin = E
+        # entries sharing a pixel and a native bin (cells of one bin reaching one pixel) summed into one
+        # slot: the matrices have one entry per (pixel, bin), half as many as the entries (Lazuli SN Ia)
+        new = np.ones(row.size, bool)
+        new[1:] = (row[1:] != row[:-1]) | (nbin[1:] != nbin[:-1])
+        self.slot = np.cumsum(new) - 1
+        self.nslot = int(self.slot[-1]) + 1 if row.size else 0
+        self.slot_bin = nbin[new].astype(np.int32)
+        counts = np.bincount(row[new], minlength=fitted.size)
+        self.indptr = np.concatenate([[0], np.cumsum(counts)])
+        # [𝒫(values) | 𝒫(1)] of one row: its slots' bins, then the same bins + nλ (built once)
+        first = np.repeat(self.indptr[:-1], counts)                  # each slot's row start
+        within = np.arange(self.nslot) - first
+        self._pos_p = 2 * first + within
+        self._pos_u = self._pos_p + np.repeat(counts, counts)
+        self._both_indices = np.empty(2 * self.nslot, np.int32)
+        self._both_indices[self._pos_p] = self.slot_bin
+        self._both_indices[self._pos_u] = self.slot_bin + E
+        self._both_indptr = 2 * self.indptr
+
+    def _slots(self, values):
+        """Per (pixel, bin) slot: Σ weight · values[bin, cube row, column] over the slot's cells."""
+        return np.bincount(self.slot, weights=self.weight * values[self.bin, self.cube_row, self.col],
+                           minlength=self.nslot)
 
     def matrix(self, values):
-        """Sparse (pixels × native bins) 𝒫 applied to per-cell values (nλ, ny, nx) bin by bin (CSR with
-        the duplicates of cells sharing a pixel and a bin, which products sum)."""
-        data = self.weight * values[self.bin, self.cube_row, self.col]
-        return sp.csr_matrix((data, self.bin, self.indptr), shape=(self.pixels.size, self.nbin))
+        """Sparse (pixels × native bins) 𝒫 applied to per-cell values (nλ, ny, nx) bin by bin (CSR, one
+        entry per pixel and bin: the cells of a bin sharing a pixel summed)."""
+        return sp.csr_matrix((self._slots(values), self.slot_bin, self.indptr), shape=(self.pixels.size, self.nbin))
 
     def background(self):
-        return sp.csr_matrix((self.weight, self.bin, self.indptr), shape=(self.pixels.size, self.nbin))
+        return self.matrix(np.ones((self.nbin, int(self.cube_row.max()) + 1 if self.cube_row.size else 1,
+                                    int(self.col.max()) + 1 if self.col.size else 1)))
+
+    def with_background(self, values):
+        """[𝒫(values) | 𝒫(1)]: the design with a uniform background per bin (pixels × 2 nλ), built in
+        place of a sparse hstack."""
+        data = np.empty(2 * self.nslot)
+        data[self._pos_p] = self._slots(values)
+        data[self._pos_u] = self._ones()
+        return sp.csr_matrix((data, self._both_indices, self._both_indptr), shape=(self.pixels.size, 2 * self.nbin))
+
+    def _ones(self):
+        if not hasattr(self, "_ones_cache"):
+            self._ones_cache = np.bincount(self.slot, weights=self.weight, minlength=self.nslot)
+        return self._ones_cache
 
 
 def _psf(sim, profile, position):
@@ -273,26 +314,40 @@ def _photon_spectrum(sim, F, qe):
 
 
 def _solve(A, d, v):
-    """Weighted LS: (θ̂, covariance) over the columns the data constrain (others NaN / 0)."""
+    """Weighted LS: (θ̂, covariance) over the columns the data constrain (others NaN / 0); the
+    covariance is a callable computing the (AᵀWA)⁻¹ on demand (only the last fit needs it: the
+    iterations use a Cholesky solve)."""
+    from scipy.linalg import LinAlgError, cho_factor, cho_solve
     w = 1.0 / v
-    G = (A.T @ (sp.diags(w) @ A)).toarray()
+    Aw = A.copy()
+    Aw.data = Aw.data * np.repeat(w, np.diff(A.indptr))
+    G = (A.T @ Aw).toarray()
     b = A.T @ (w * d)
     ok = np.diag(G) > 0
     theta = np.full(G.shape[0], np.nan)
-    cov = np.zeros_like(G)
     if not ok.any():
-        return theta, cov
+        return theta, lambda: np.zeros_like(G)
     Gk = G[np.ix_(ok, ok)]
     scale = 1.0 / np.sqrt(np.diag(Gk))
     Gs = Gk * scale[:, None] * scale[None, :]
+
+    def inverse():
+        try:
+            inv = np.linalg.inv(Gs)
+        except np.linalg.LinAlgError:
+            inv = np.linalg.pinv(Gs)
+        return inv * scale[:, None] * scale[None, :]
+
     try:
-        inv = np.linalg.inv(Gs)
-    except np.linalg.LinAlgError:
-        inv = np.linalg.pinv(Gs)
-    inv = inv * scale[:, None] * scale[None, :]
-    theta[ok] = inv @ b[ok]
-    cov[np.ix_(ok, ok)] = inv
-    return theta, cov
+        theta[ok] = scale * cho_solve(cho_factor(Gs, check_finite=False), scale * b[ok], check_finite=False)
+    except (LinAlgError, ValueError):                     # not positive definite: the inverse's answer
+        theta[ok] = inverse() @ b[ok]
+
+    def covariance():
+        cov = np.zeros_like(G)
+        cov[np.ix_(ok, ok)] = inverse()
+        return cov
+    return theta, covariance
 
 
 def extract_forward(rate, variance, options=None, *, sim, mapper, noise=None, **keywords):
@@ -394,7 +449,7 @@ class _Problem:
         """The sparse design matrix A = [𝒫(P̃ δ_j) | 𝒫(1 δ_j)] at ``pos`` (P̃ LSF-averaged with ``phi``)."""
         P = self.psf(pos)
         Pt = P if phi is None else _lsf_averaged(self.sim, P, phi)
-        return sp.hstack([self.fp.matrix(Pt)] + ([self.U] if self.U is not None else [])).tocsr()
+        return self.fp.with_background(Pt) if self.U is not None else self.fp.matrix(Pt)
 
 
 class _Fit:
@@ -443,6 +498,7 @@ def _fit(prob, noise):
             fit.theta, fit.cov = _solve(fit.A, prob.d, fit.v)
             break
     _check_fit(prob, fit)
+    fit.cov = fit.cov()                                   # (AᵀWA)⁻¹ of the final solve only
     return fit
 
 

@@ -37,7 +37,7 @@ class ReduceOptions:
     ncol : int, optional
         Columns per slice of the cubes.
     rectify_method : {"lsq", "drizzle"}, optional
-        Rectification method.
+        Rectification method (None: "lsq"; giving it asks for the cube, ``cubes``).
     extraction : {"forward", "gls", "optimal", "aperture"}, optional
         None: forward when the instrument is known.
     psf : str or numpy.ndarray, optional
@@ -58,13 +58,17 @@ class ReduceOptions:
         Instrument configuration of the forward model (name, TOML path or list) or None.
     ipc : bool, optional
         None (deconvolve the file's IPC when it records one) or False.
+    cubes : bool, optional
+        Rectify the cube(s) too.  None (default): only when the extraction needs them (a cube
+        extraction) or a cube option (``rectify_method``, ``weights``, ``keep_information``) is
+        given; the forward extraction's spectrum comes from the pixels and needs none.
     """
 
     mapper: object = None
     field: str | None = None
     lbda_edges: object = None
     ncol: int = DEFAULT_NCOL
-    rectify_method: str = "lsq"
+    rectify_method: str | None = None
     extraction: str | None = None
     psf: object = "fit"
     position: tuple | None = None
@@ -77,12 +81,13 @@ class ReduceOptions:
     dark: object = "auto"
     config: object = None
     ipc: bool | None = None
+    cubes: bool | None = None
 
     def __post_init__(self):
         from slicersim.reduction.rectify_checks import angstrom
         set_field(self, "lbda_edges", angstrom("lbda_edges", self.lbda_edges))
         given = {name: getattr(self, name) for name in ("field", "ncol", "rectify_method", "extraction", "position",
-                                                        "background", "weights", "config", "ipc")}
+                                                        "background", "weights", "config", "ipc", "cubes")}
         checked = check_spectra_options(**{k: v for k, v in given.items() if v is not None})
         for name in ("ncol", "position", "background"):
             if name in checked:
@@ -99,8 +104,8 @@ class ReduceOptions:
 
     @property
     def lsq(self):
-        """True for a least-squares cube (``rectify_method="lsq"``)."""
-        return self.rectify_method == "lsq"
+        """True for a least-squares cube (``rectify_method`` "lsq" or None)."""
+        return self.rectify_method in (None, "lsq")
 
     def resolved_weights(self):
         """The lsq weights used: the given ones, or "forward" (lsq) / "data" (drizzle)."""
@@ -114,6 +119,14 @@ class ReduceOptions:
         if self.extraction is not None:
             return self.extraction
         return FORWARD if model is not None else ("gls" if self.lsq else "optimal")
+
+    def resolved_cubes(self, extraction):
+        """Whether the cube(s) are rectified beside ``extraction``: ``cubes`` when given, else for a cube
+        extraction or when a cube option (rectify_method, weights, keep_information) is given."""
+        if self.cubes is not None:
+            return self.cubes
+        asked = self.rectify_method is not None or self.weights is not None or self.keep_information
+        return extraction != FORWARD or bool(asked)
 
     @classmethod
     def defaults(cls):

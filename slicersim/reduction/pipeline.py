@@ -163,6 +163,13 @@ def reduce_exposure(raw_path, options=None, *, out=None, overwrite=False, **keyw
         coarse cells bias them (−3 % on a noiseless Lazuli SN Ia at z = 0.5 even with the true
         PSF): give ``psf`` a forward-modelled template
         (``slicersim.reduction.templates.point_source_template``).
+    cubes : bool, optional
+        Rectify the cube(s) too.  None (default): when the extraction needs them (a cube
+        extraction) or a cube option (``rectify_method``, ``weights``, ``keep_information``) is
+        given; not beside the default forward extraction, whose spectrum comes from the pixels
+        (the cube was ~30 % of a full-detector reduction's CPU time and played no part in its
+        spectrum; ``benchmarks/reduce_spectra_speed.py``).  Without cubes the file has no
+        ``cubes/`` group and no ``rates/RECTIFY_VAR``.
     config : str, path-like or list, optional
         Instrument configuration of the forward model (a name, TOML path or list, as
         :func:`~slicersim.load_config`); None: the one the file records.
@@ -226,6 +233,7 @@ class _Plan:
     writer: object = None
     dark_rate: object = 0.0       # [e-/s]: a number or an image
     dark_kind: str = "none"
+    cubes: bool = True            # rectify the cube(s) (ReduceOptions.resolved_cubes)
 
 
 def _plan(raw_path, opts, out, overwrite):
@@ -246,7 +254,7 @@ def _plan(raw_path, opts, out, overwrite):
     check_spectra_options(mapper=opts.mapper, field=field, lbda_edges=opts.lbda_edges, ncol=opts.ncol,
                           rectify_method=opts.rectify_method, extraction=extraction, psf=opts.psf,
                           position=opts.position, aperture=None if extraction in ("gls", FORWARD) else opts.aperture,
-                          background=opts.background, weights=opts.weights)
+                          background=opts.background, weights=opts.weights, cubes=opts.cubes)
     writer = None
     if out is not None:                                           # refuse before any work
         writer = _Writer(out, overwrite=overwrite)
@@ -255,7 +263,8 @@ def _plan(raw_path, opts, out, overwrite):
     if not (isinstance(opts.dark, str) and opts.dark == "auto"):           # checked before the ramps are read
         dark_rate_of(opts.dark, None, mapper.detector_shape)
     edges = default_lbda_edges(mapper) if opts.lbda_edges is None else np.asarray(opts.lbda_edges, float)
-    return _Plan(opts, raw_attrs, model, field, extraction, opts.resolved_weights(), mapper, edges, writer)
+    return _Plan(opts, raw_attrs, model, field, extraction, opts.resolved_weights(), mapper, edges, writer,
+                 cubes=opts.resolved_cubes(extraction))
 
 
 def _fit_rates(raw_path, plan):
@@ -284,7 +293,7 @@ def _rectify(rate, var, plan, ncol, keep_information):
     """rectify() into {field: CubeProduct} on the plan's grid (looked up at each call: tests record it)."""
     from slicersim.reduction.rectify import rectify
     cubes = rectify(rate, var, mapper=plan.mapper, field=plan.field, lbda_edges=plan.edges, ncol=ncol,
-                    method=plan.opts.rectify_method, keep_information=bool(keep_information))
+                    method=plan.opts.rectify_method or "lsq", keep_information=bool(keep_information))
     return cubes if plan.field == "both" else {plan.field: cubes}
 
 
@@ -458,7 +467,7 @@ def _reduce_forward(rates, rate, var, plan):
     for text in missing:                                          # field="both": the other field is empty
         warnings.warn(text + ": no spectrum for it", RuntimeWarning, stacklevel=3)
     cube_var = var_cube if forward_weights else var
-    cubes = _rectify(rate, cube_var, plan, plan.opts.ncol, plan.opts.keep_information)
+    cubes = _rectify(rate, cube_var, plan, plan.opts.ncol, plan.opts.keep_information) if plan.cubes else {}
     result = _result(rates, rate, cubes, spectra, cube_var, {}, plan)
     result.update(instrument=plan.model, raw_config=(plan.raw_attrs or {}).get("CONFIG"))
     return result
@@ -591,7 +600,8 @@ def _write(writer, result):
                         attrs={"BUNIT": UNITS["VAR_FLAMBDA"]})
         attrs = {k: (json.dumps(v) if isinstance(v, (dict, list, tuple)) else v)
                  for k, v in rates.attrs.items() if v is not None}
-        attrs.update(PRODUCTS="rates,cubes,spectra", SPECTRUM_UNIT="e-/s per bin")
+        attrs.update(PRODUCTS="rates,cubes,spectra" if result["cubes"] else "rates,spectra",
+                     SPECTRUM_UNIT="e-/s per bin")
         dark = result.get("dark_rate", 0.0)
         attrs["DARK_SUBTRACTED"] = float(np.mean(dark))          # [e-/s]; the image's mean for an image
         attrs["DARK_SUBTRACTED_KIND"] = result.get("dark_kind", "none")
@@ -610,8 +620,9 @@ def _write(writer, result):
         # must be built with the same: point_source_template(..., variance=))
         attrs["WEIGHTS"] = result.get("weights", "data")
         attrs["RECTIFY_METHOD"] = next(iter(result["cubes"].values())).method if result["cubes"] else "none"
-        var = np.asarray(result["variance"], np.float32)
-        w.write("rates/RECTIFY_VAR", var, attrs={"BUNIT": UNITS["VAR"], "WEIGHTS": attrs["WEIGHTS"]})
+        if result["cubes"]:
+            var = np.asarray(result["variance"], np.float32)
+            w.write("rates/RECTIFY_VAR", var, attrs={"BUNIT": UNITS["VAR"], "WEIGHTS": attrs["WEIGHTS"]})
         if result.get("target") is not None:
             from slicersim.io.target_truth import write_target_truth
             write_target_truth(w, result["target"])

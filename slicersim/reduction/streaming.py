@@ -23,8 +23,9 @@ def reduce_ramps(ramps_path, out_path, mode, field):
         The target's ramp file (HDF5, :mod:`slicersim.io.rampfile` layout).
     out_path : str
         The reduced product, written atomically (replaced when present): rates, cubes and spectra
-        (``reduced.h5``) with ``mode="spectra"``, rates only (``rates.h5``) with ``mode="rates"``.
-    mode : {"spectra", "rates"}
+        (``reduced.h5``) with ``mode="spectra"`` (spectra; "cubes": and the cubes, as ``--spectra
+        --cubes``), rates only (``rates.h5``) with ``mode="rates"``.
+    mode : {"spectra", "cubes", "rates"}
     field : str
         The target's field ("narrow" or "wide"; empty: "narrow"), whose cube and spectrum are made.
 
@@ -35,10 +36,12 @@ def reduce_ramps(ramps_path, out_path, mode, field):
     """
     from slicersim.errors import ParameterError
     from slicersim.reduction.campaign import reduce_file
-    if mode not in ("spectra", "rates"):
-        raise ParameterError(f"mode must be 'spectra' or 'rates', got {mode!r}")
-    spectra = mode == "spectra"
+    if mode not in ("spectra", "cubes", "rates"):
+        raise ParameterError(f"mode must be 'spectra', 'cubes' or 'rates', got {mode!r}")
+    spectra = mode != "rates"
     options = {"field": field or "narrow"} if spectra else {}       # as reduce_dataset's task
+    if mode == "cubes":
+        options["cubes"] = True
     reduce_file(ramps_path, out_path, spectra=spectra, overwrite=True, progress=False, fit_options={},
                 mapper=None, **options)
     return out_path

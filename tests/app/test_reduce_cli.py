@@ -320,12 +320,22 @@ def test_reduce_spectra_defaults_on_a_full_detector_ramp(tmp_path, capsys):
     """`slicersim ramp --redshift 0.5` then `slicersim reduce RAW --out RED --spectra` with every default:
     the forward extraction in the recorded field, the band flux within 4 σ of the input, units on every
     dataset, valid JSON; `--field both` extracts the field with the source and warns (one line) for the
-    other (review: it failed on every single-source ramp); `--extraction gls` is refused with the reason."""
+    other (review: it failed on every single-source ramp); `--extraction gls` is refused with the reason.
+    The cube is made only when asked (`--cubes`; issue 30: it was ~30 % of the CPU time and the forward
+    spectrum does not use it): the spectrum is the same bit for bit with and without it."""
     from slicersim.targets import LazuliSupernova
     raw, red, both = tmp_path / "raw.h5", tmp_path / "red.h5", tmp_path / "both.h5"
     assert main(["ramp", "--redshift", "0.5", "--seed", "3", "--out", str(raw)]) == 0
     assert main(["reduce", str(raw), "--out", str(red), "--spectra", "--quiet"]) == 0
-    assert "narrow cube" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "narrow spectrum (forward)" in out and "cube" not in out
+    with_cube = tmp_path / "cube.h5"
+    assert main(["reduce", str(raw), "--out", str(with_cube), "--spectra", "--cubes", "--quiet"]) == 0
+    assert "narrow cube 255×58×58, spectrum (forward)" in capsys.readouterr().out
+    with h5py.File(red, "r") as a, h5py.File(with_cube, "r") as b:
+        assert "cubes" not in a and "RECTIFY_VAR" not in a["rates"] and a.attrs["PRODUCTS"] == "rates,spectra"
+        assert b["cubes/narrow/FLUX"].shape == (255, 58, 58) and b.attrs["RECTIFY_METHOD"] == "lsq"
+        assert np.array_equal(a["spectra/narrow/FLUX"][...], b["spectra/narrow/FLUX"][...], equal_nan=True)
     sn = LazuliSupernova(0.5)
     _, rate, _ = sn.get_spectrum(unit="rate")
     ne = sn.simulation.spectrograph.lbda_edges
@@ -348,7 +358,7 @@ def test_reduce_spectra_defaults_on_a_full_detector_ramp(tmp_path, capsys):
     assert abs(ratio - 1) < 4 * sigma
     with pytest.warns(RuntimeWarning, match="no point source in the wide field"):
         assert main(["reduce", str(raw), "--out", str(both), "--spectra", "--field", "both", "--quiet"]) == 0
-    assert "wide cube 255×58×58, no spectrum (no source)" in capsys.readouterr().out
+    assert "narrow spectrum (forward), wide no spectrum (no source)" in capsys.readouterr().out
     with h5py.File(both, "r") as fh:
         assert "spectra/narrow" in fh and "spectra/wide" not in fh
     assert main(["reduce", str(raw), "--out", str(tmp_path / "gls.h5"), "--spectra", "--extraction", "gls"]) == 2

@@ -57,7 +57,7 @@ def _files(root):
 
 # ----------------------------------------------------------------------------- the spec keys
 @pytest.mark.parametrize("extra, message", [
-    ('reduce = "cubes"', "products.reduce must be"),
+    ('reduce = "cube"', "products.reduce must be"),
     ("reduce = 1", "products.reduce must be"),
     ('reduce = true\nkeep_ramps = "some"', "products.keep_ramps must be"),
     ("reduce = true\nkeep_ramps = 0", "products.keep_ramps must be"),
@@ -98,7 +98,24 @@ def test_the_reduction_is_registered_by_the_reduction_layer():
     from slicersim.reduction.streaming import reduce_ramps
     assert registered_reducer() is reduce_ramps
     with pytest.raises(ParameterError, match="mode must be"):
-        reduce_ramps("r.h5", "o.h5", "cubes", "narrow")
+        reduce_ramps("r.h5", "o.h5", "cube", "narrow")
+
+
+def test_reduce_cubes_streams_spectra_and_cubes_as_reduce_spectra_cubes(monkeypatch):
+    """``reduce = "cubes"`` (issue 30: the cube is made only when asked) reduces as `slicersim reduce
+    DATASET --spectra --cubes`: the same reduced.h5, with cubes=True passed; "spectra" passes no cube
+    option (the forward extraction makes none)."""
+    from slicersim.campaign.products import REDUCED_FILES
+    from slicersim.reduction import campaign, streaming
+    on = _spec(PLAIN + 'reduce = "cubes"\n')
+    assert on.products["reduce"] == "cubes" and REDUCED_FILES["cubes"] == REDUCED_FILES["spectra"] == "reduced.h5"
+    assert on.canonical() != _spec(PLAIN + 'reduce = "spectra"\n').canonical()
+    calls = []
+    monkeypatch.setattr(campaign, "reduce_file", lambda raw, out, **kw: calls.append(kw))
+    streaming.reduce_ramps("r.h5", "o.h5", "cubes", "wide")
+    streaming.reduce_ramps("r.h5", "o.h5", "spectra", "")
+    assert calls[0]["spectra"] and calls[0]["cubes"] is True and calls[0]["field"] == "wide"
+    assert calls[1]["spectra"] and "cubes" not in calls[1] and calls[1]["field"] == "narrow"
 
 
 # ----------------------------------------------------------------------------- a real campaign

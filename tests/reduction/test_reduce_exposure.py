@@ -271,6 +271,10 @@ def test_reduce_exposure_propagates_the_sandwich_for_optimal_extraction(tmp_path
     (dict(propagate=False), "propagate applies"),
     (dict(propagate=True, rectify_method="drizzle"), "propagate applies"),
     (dict(propagate=False, rectify_method="drizzle", extraction="aperture"), "propagate applies"),
+    (dict(cubes=False, extraction="gls"), "works on the cube"),
+    (dict(cubes=False, rectify_method="drizzle", extraction="forward"), "rectify_method shapes the cube"),
+    (dict(cubes=False, weights="model", extraction="forward"), "weights shape the cube"),
+    (dict(cubes="yes"), "cubes"),
 ])
 def test_options_that_would_do_nothing_are_refused(options, match):
     """Review finding: --aperture with the gls extraction (every cell is fitted) and --no-propagate with
@@ -347,3 +351,21 @@ def test_reduced_file_records_the_weights(small_exposure, tmp_path):
     with h5py.File(out) as f:
         assert f.attrs["WEIGHTS"] == "forward" and f.attrs["RECTIFY_METHOD"] == "lsq"
         np.testing.assert_allclose(f["rates/RECTIFY_VAR"][()], res["variance"].astype(np.float32))
+
+
+@pytest.mark.parametrize("options, extraction, cubes", [
+    ({}, "forward", False),                                   # the default: the spectrum needs no cube
+    ({}, "gls", True),                                        # a cube extraction needs it
+    ({}, "optimal", True),
+    (dict(cubes=True), "forward", True),
+    (dict(rectify_method="lsq"), "forward", True),            # a cube option asks for the cube
+    (dict(rectify_method="drizzle"), "forward", True),
+    (dict(weights="data"), "forward", True),
+    (dict(keep_information=True), "forward", True),
+    (dict(cubes=False), "forward", False),
+])
+def test_the_cube_is_made_when_the_extraction_needs_it_or_it_is_asked_for(options, extraction, cubes):
+    """Issue 30: beside the forward extraction the lsq cube cost ~30 % of a full-detector reduction and
+    played no part in the spectrum; it is made when asked (cubes=True, --cubes, or a cube option)."""
+    from slicersim.reduction.options import ReduceOptions
+    assert ReduceOptions(**options).resolved_cubes(extraction) is cubes
