@@ -147,10 +147,12 @@ def apply_correction(dn, coeffs):
     """Σ_k c_k DN^k (Horner, as stcal's apply_polynomial) in float64."""
     c = np.asarray(coeffs, np.float64)
     x = np.asarray(dn, np.float64)
-    acc = c[-1] * x
-    for k in range(c.shape[0] - 2, 0, -1):
-        acc = (acc + c[k]) * x
-    return acc + c[0]
+    acc = np.multiply(c[-1], x, out=np.empty(np.broadcast_shapes(c.shape[1:], x.shape)))
+    for k in range(c.shape[0] - 2, 0, -1):          # in place: no temporary of the block per term
+        acc += c[k]
+        acc *= x
+    acc += c[0]
+    return acc
 
 
 def _chebyshev_nodes(count):

@@ -172,17 +172,22 @@ def _bias_rows(bias, y0, y1):
 
 def _refpix_terms(src, bias, kw):
     """Column and row terms of JWST's reference-pixel correction of every frame (bias removed):
-    correction(y, x) = col[i, g, x] + row[i, g, y] (its top/bottom and side steps)."""
-    from slicersim.reduction.refpix import refpix_correct
+    correction(y, x) = col[i, g, x] + row[i, g, y], from each frame's reference pixels only
+    (:func:`~slicersim.reduction.refpix.refpix_offsets`)."""
+    from slicersim.reduction.refpix import check_refpix_layout, refpix_offsets
     nints, n, ny, nx = src.shape
+    check_refpix_layout((ny, nx), **kw)
+    b = int(kw.get("border", 4))
     col, row = np.empty((nints, n, nx)), np.empty((nints, n, ny))
     full_bias = _bias_rows(bias, 0, ny)
+    bias_rows = full_bias if not np.ndim(full_bias) else np.concatenate([full_bias[:b], full_bias[-b:]], axis=0)
+    bias_cols = full_bias if not np.ndim(full_bias) else np.concatenate([full_bias[:, :b], full_bias[:, -b:]], axis=1)
     for i in range(nints):
         for g in range(n):
-            frame = np.asarray(src.frame(i, g), np.float64) - full_bias
-            corr = frame - refpix_correct(frame[None, None], **kw)[0, 0]
-            col[i, g] = corr[0]
-            row[i, g] = corr[:, 0] - corr[0, 0]
+            frame = src.frame(i, g)
+            refrows = np.concatenate([frame[:b], frame[-b:]], axis=0).astype(np.float64) - bias_rows
+            refcols = np.concatenate([frame[:, :b], frame[:, -b:]], axis=1).astype(np.float64) - bias_cols
+            col[i, g], row[i, g] = refpix_offsets(refrows, refcols, **kw)
     return col, row
 
 
@@ -415,8 +420,9 @@ def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):
     from dataclasses import replace
     from slicersim.physics.nonlinearity import apply_correction
     if raw.dtype == np.uint16:
-        gdq |= np.where(raw >= consts.satlim, DQ_SATURATED, 0).astype(np.uint8)
-    dn = raw.astype(np.float64) - _bias_rows(bias, y0, y1)
+        gdq |= (raw >= consts.satlim).view(np.uint8) * np.uint8(DQ_SATURATED)
+    dn = raw.astype(np.float64)
+    dn -= _bias_rows(bias, y0, y1)
     if terms is not None:
         col, row = terms
         dn -= col[:, :, None, :]

@@ -144,3 +144,46 @@ def test_bad_input():
         ReferencePixelParameters(border=-2)
     with pytest.raises(EffectsError, match="too small"):
         reference_pixel_mask((6, 6), border=4)
+
+
+def _loop_refpix(frame, n_outputs, border, side_smoothing_length):
+    """JWST's two steps written out pixel by pixel (the documentation's order), for one frame."""
+    from scipy.ndimage import median_filter
+    out = np.array(frame, np.float64)
+    ny, nx = out.shape
+    ncol = nx // n_outputs
+    ref = np.concatenate([out[:border], out[-border:]])
+    for o in range(n_outputs):
+        for par in (0, 1):
+            cols = [x for x in range(o * ncol, (o + 1) * ncol) if x % 2 == par]
+            out[:, cols] -= ref[:, cols].mean()
+    side = np.concatenate([out[:, :border], out[:, -border:]], axis=1).mean(axis=1)
+    return out - median_filter(side, size=side_smoothing_length, mode="nearest")[:, None]
+
+
+def test_the_fit_s_reference_terms_come_from_the_reference_pixels_alone():
+    """Issue 30: the ramp fit computed its reference-pixel terms by correcting every full frame in float64
+    (16 CPU-s of a 38-group Lazuli ramp); it now reads them off the border pixels (refpix_offsets).  On
+    random frames with a superbias map: frame − bias − terms equals the documented algorithm to 1e-9 DN."""
+    from slicersim.reduction.ramp_fit import _refpix_terms
+    from slicersim.reduction.refpix import refpix_offsets
+    rng = np.random.default_rng(3)
+    ny, nx, n = 40, 64, 3
+    sci = rng.normal(1000, 30, (1, n, ny, nx)) + rng.normal(0, 5, (1, n, 1, nx))
+    bias = rng.normal(200, 10, (ny, nx))
+
+    class Source:
+        shape = sci.shape
+
+        def frame(self, i, g):
+            return sci[i, g]
+    kw = dict(n_outputs=4, border=4, side_smoothing_length=5)
+    col, row = _refpix_terms(Source(), bias, kw)
+    for g in range(n):
+        want = _loop_refpix(sci[0, g] - bias, 4, 4, 5)
+        np.testing.assert_allclose(sci[0, g] - bias - col[0, g][None, :] - row[0, g][:, None], want, atol=1e-9)
+        np.testing.assert_allclose(refpix_correct(sci[:, g:g + 1] - bias, **kw)[0, 0], want, atol=1e-9)
+    with pytest.raises(EffectsError, match="not divisible"):
+        _refpix_terms(Source(), None, dict(n_outputs=5))
+    c, r = refpix_offsets(np.zeros((8, nx)), np.ones((ny, 8)), n_outputs=4, use_side_ref_pixels=False)
+    assert not c.any() and not r.any()
