@@ -33,30 +33,33 @@ _KERNEL = "project_transpose.cl"
 _GATHER_CHUNK = 1 << 13          # sub-cells per NumPy chunk (~ny·nx·8 bytes of temporaries each)
 
 
-def _check_image(image, tables):
+def _check_image(image, tables, band=False):
     """The rows of ``image`` the tables reach, as contiguous float64 (ParameterError naming ``image``
-    for a wrong shape or a NaN/inf pixel there)."""
+    for a wrong shape or a NaN/inf pixel there); ``band``: ``image`` is those rows already."""
     H, W = tables.detector_shape
-    image = np.asarray(image)
-    if image.shape != (H, W) or image.dtype.kind not in "biuf":
-        raise ParameterError(f"image must be a real array of shape {(H, W)} (the tables' detector), "
-                             f"got {image.dtype} {image.shape}")
     r0, r1 = tables.row_range
-    band = np.ascontiguousarray(image[r0:r1], dtype=np.float64)
+    image = np.asarray(image)
+    want = (r1 - r0, W) if band else (H, W)
+    if image.shape != want or image.dtype.kind not in "biuf":
+        raise ParameterError(f"image must be a real array of shape {want} (the tables' detector"
+                             f"{f', rows {r0}:{r1}' if band else ''}), got {image.dtype} {image.shape}")
+    band = np.ascontiguousarray(image if band else image[r0:r1], dtype=np.float64)
     if not np.all(np.isfinite(band)):
         raise ParameterError("image must be finite where the tables reach (replace NaN pixels first)")
     return band
 
 
-def gather(image, tables, power=1, backend="auto"):
+def gather(image, tables, power=1, backend="auto", band=False):
     """Transpose of the deposit: (S, E/ne, Q/nq) cube values of an (H, W) image.
 
     Parameters
     ----------
-    image : (H, W) float array, finite on the rows the tables reach [any unit per pixel]
+    image : (H, W) float array, finite on the rows the tables reach [any unit per pixel]; with
+        ``band``, only those rows: (r1 − r0, W) for ``tables.row_range`` = (r0, r1)
     tables : :class:`~slicersim.backends.projection.DepositTables`
     power : 1 → Pᵀ·image; 2 → (P∘P)ᵀ·image (needs ``oversample == (1, 1)``: with sub-cells
         the square of a cell's summed weight is not the sum of the sub-cells' squares).
+    band : ``image`` holds the tables' rows only (work on a field's band, not the detector)
 
     Pixels off the detector count as zero.  ⟨deposit(v), img⟩ = ⟨v, gather(img)⟩ to rounding.
     """
@@ -64,7 +67,7 @@ def gather(image, tables, power=1, backend="auto"):
     validation.choice("power", power, (1, 2))
     if power == 2 and tuple(t.oversample) != (1, 1):
         raise ParameterError("power=2 (squared weights) needs tables without sub-cells (oversample (1, 1))")
-    band = _check_image(image, t)
+    band = _check_image(image, t, band)
     S, E, Q = t.grid
     ne, nq = t.oversample
     out = np.zeros((S, E // ne, Q // nq), np.float64)

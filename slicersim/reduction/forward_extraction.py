@@ -122,12 +122,15 @@ def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
     whose own scatter can be far below the noise).  Returns ((x, y) [native cells from the field
     centre], significance [σ])."""
     from slicersim.backends.projection_transpose import gather
+    r0, r1 = tables.row_range                                 # the field's rows: the rest plays no part
+    variance = np.asarray(variance)[r0:r1]
+    rate = np.asarray(rate)[r0:r1]
     floor = 0.0
     usable = np.isfinite(variance) & (variance > 0)
-    den = gather(usable.astype(float), tables)               # Σ_λ Pᵀ1: shared by both cubes
+    den = gather(usable.astype(float), tables, band=True)    # Σ_λ Pᵀ1: shared by both cubes
     if noise_floor:
         noise = np.sqrt(np.where(usable, variance, 0.0))
-        noise = noise * np.random.default_rng(0).standard_normal(noise.shape)
+        noise *= np.random.default_rng(0).standard_normal(noise.shape)
         floor = locate_source(_white_light_cube(noise, usable, den, tables, rows), scatter=True)
     return locate_source(_white_light_cube(rate, usable, den, tables, rows), floor=floor)
 
@@ -135,7 +138,7 @@ def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
 def _white_light_cube(rate, usable, den, tables, rows):
     from slicersim.backends.projection_transpose import gather
     d = np.where(usable, rate, 0.0)
-    num = gather(d, tables)                                  # (S, E, Q)
+    num = gather(d, tables, band=True)                       # (S, E, Q)
     with np.errstate(invalid="ignore", divide="ignore"):
         cells = np.where(den > 0.5 * np.median(den[den > 0]) if (den > 0).any() else den > 0, num / den, np.nan)
     cube = np.swapaxes(cells, 0, 1)[:, ::-1, :]              # (E, rows, Q): row r ↔ slice S − 1 − r
@@ -198,9 +201,10 @@ class _Footprint:
         S, E, Q = tables.grid
         self.ny = S
         core = sorted(S - 1 - int(r) for r in rows)          # cube row r ↔ table slice S − 1 − r
-        meta = tables.meta.reshape(S, E * Q, 4).astype(np.int64)
-        x0, y0 = meta[..., 0].min(1), meta[..., 1].min(1)
-        x1, y1 = (meta[..., 0] + meta[..., 2]).max(1), (meta[..., 1] + meta[..., 3]).max(1)
+        meta = tables.meta.reshape(S, E * Q, 4)                  # int32 windows: no int64 copy of all cells
+        x0, y0 = meta[..., 0].min(1).astype(np.int64), meta[..., 1].min(1).astype(np.int64)
+        x1 = (meta[..., 0] + meta[..., 2]).max(1).astype(np.int64)
+        y1 = (meta[..., 1] + meta[..., 3]).max(1).astype(np.int64)
         # slices whose windows may share pixels with the fitted ones: their light is modelled too
         guard = [s for s in range(S) if s not in core and any(
             x0[s] < x1[c] and x0[c] < x1[s] and y0[s] < y1[c] and y0[c] < y1[s] for c in core)]
