@@ -48,6 +48,7 @@ COLUMN_UNITS = {
     "pull": ("", "(band_flux_ratio - 1) / band_flux_ratio_error"),
     "chi2": ("", "chi2 per bin of the spectrum against the input, in the band"),
     "chi2_fit": ("", "chi2 per dof of the forward fit on the pixels"),
+    "noise_scale": ("", "noise level of the fitted pixels in units of the ramp fit's variance (1: as the fit says)"),
     "snr_reported": ("", "band flux / its reported error"),
     "snr_measured": ("", "band flux / (reported error x sqrt(chi2))"),
     "snr_etc": ("", "the ETC's band SNR for the readout used"),
@@ -307,7 +308,7 @@ def _target_row(src, spec, row, red, red_row, read_truth):
            "redshift": z, "phase": _row_value(row, "phase"), "peak_absmag": _row_value(row, "peak_absmag"),
            "field": str(row["field"]) if "field" in row.colnames else ""}
     lo, hi = _band_of(spec, z)
-    out.update(band_lo=lo, band_hi=hi, chi2_fit=np.nan, position_error=np.nan,
+    out.update(band_lo=lo, band_hi=hi, chi2_fit=np.nan, noise_scale=np.nan, position_error=np.nan,
                t_simulate=src.read_timing(tid), t_reduce=red.read_timing(tid) if red is not None else np.nan)
     flags = []
 
@@ -389,6 +390,7 @@ def _reduced_result(path, src, ramps, out, flags, truth_of):
     edges, flux, var, cov, fit, _ = spectrum
     result = compare_band(edges, flux, var, truth, (lo, hi), covariance=cov)
     out["chi2_fit"] = float(fit.get("chi2_dof_pixels", np.nan))
+    out["noise_scale"] = float(fit.get("noise_scale") or np.nan)
     out["position_error"] = _position_error(truth, fit)
     if fit.get("converged") is False:
         flags.append("fit-not-converged")
