@@ -12,7 +12,7 @@ OPENCL_CHECK := "$(PY)" -c "import pyopencl; assert pyopencl.get_platforms()"
 OPENCL_PKGS  := pocl-opencl-icd ocl-icd-libopencl1
 OPENCL_VENDORS ?= /etc/OpenCL/vendors
 
-.PHONY: venv opencl test test-all demo bench bench-smoke docs clean distclean
+.PHONY: venv opencl test test-all test-slow demo bench bench-smoke docs clean distclean
 
 venv: $(STAMP)
 
@@ -63,9 +63,13 @@ opencl: venv
 test: venv opencl
 	"$(PY)" -m pytest -q -rs -m "not slow" --durations=20
 
-# Everything, slow tier included (Dask clusters, kill -9, full-detector ramps, Monte Carlo): what CI runs.
+# Everything, slow tier included (Dask clusters, kill -9, full-detector ramps, Monte Carlo).
 test-all: venv opencl
 	"$(PY)" -m pytest -q -rs
+
+# The slow tier alone (CI runs `make test`, timed, then this: together they are `make test-all`).
+test-slow: venv opencl
+	"$(PY)" -m pytest -q -rs -m slow --durations=20
 
 demo: venv opencl
 	"$(VENV)/bin/slicersim" demo --outdir demo_output --overwrite
