@@ -194,6 +194,9 @@ def load_exposure(path):
     if kind == "hdf5":
         import h5py
 
+        from slicersim.reduction.checks import register_hdf5_filters
+        register_hdf5_filters()                        # campaigns' lz4/zstd ramps
+
         from slicersim.io.rampfile import read_dataset, read_ramps
         sci, gdq, pdq, attrs = read_ramps(path)
         truth = {}

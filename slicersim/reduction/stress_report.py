@@ -159,6 +159,7 @@ def _figures(table, pipelines, path, flux_bins):
         axes[0].set_ylabel("pull mean")
         axes[1].set_ylabel("pull width")
         axes[1].set_xscale("log")
+        axes[1].set_xlim(min(mids) / 2, max(mids) * 2)     # positive limits: no NaN-only autoscale
         axes[1].set_xlabel("expected rate [e-/s]")
         axes[0].legend(fontsize=8)
         fig.tight_layout()
