@@ -495,6 +495,8 @@ def build_parser() -> argparse.ArgumentParser:
     pictures_cli.add_parsers(sub, fmt)
     from slicersim.app import reduce_cli
     reduce_cli.add_parsers(sub, fmt)
+    from slicersim.app import stress_cli
+    stress_cli.add_parsers(sub, fmt)
     from slicersim.app import reffiles_cli
     reffiles_cli.add_parsers(sub, fmt, RAMP_DETECTOR_DEFAULTS, _ramp_effects)
     return parser
