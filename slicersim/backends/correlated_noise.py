@@ -72,6 +72,8 @@ CACHE_BYTES = 2**28
 #: bytes of segment streams synthesised together (spectral draws of several groups in one launch and
 #: one FFT call over all their rows)
 SYNTH_BYTES = 2**25
+#: zero-copy buffers of work arrays and window stacks kept between row blocks (evicted between blocks)
+_MAX_WORK_BUFFERS = 64
 
 
 def _stream(component, output=0):
@@ -464,6 +466,13 @@ class CorrelatedNoise:
             terms = np.stack([np.moveaxis(A[1:1 + nout] + A[0], 0, -1), np.moveaxis(A2[1:1 + nout] + A2[0], 0, -1),
                               np.moveaxis(A[1 + nout:], 0, -1), np.moveaxis(A2[1 + nout:], 0, -1)])
         kern, vw, gpu = assembly_kernel(g.ncol)
+        if len(self._work_buffers) > _MAX_WORK_BUFFERS:
+            # evicted only here, between blocks: the last block's launches are finished (its final wait)
+            # and none of this block's is set up.  Evicting inside _device_array released the buffer of
+            # the segment just set as argument 0 when the window's insertion crossed the limit: the
+            # launch then named a freed cl_mem (PoCL: "PTHREAD ERROR in can_run_command(): Invalid
+            # argument", an abort, in campaign workers) or read the freed host memory of a zero-copy one
+            self._work_buffers.clear()
         small = [opencl.to_device(np.ascontiguousarray(a, np.float32)) for a in
                  (*terms, ped, pf, self._ey[y0:y1], self._ex)]
         d_out = opencl.scratch_buffer("cn_block", out.nbytes) if gpu else opencl.host_buffer(out)
@@ -498,9 +507,7 @@ class CorrelatedNoise:
             return opencl.to_device(np.ascontiguousarray(array), opencl.scratch_buffer(f"cn_{tag}", array.nbytes))
         cache = self._work_buffers
         key = (array.__array_interface__["data"][0], array.nbytes)
-        if key not in cache:
-            if len(cache) > 64:
-                cache.clear()
+        if key not in cache:               # never evicted here: a launch being set up may hold the others
             cache[key] = (array, opencl.host_buffer(array))
         return cache[key][1]
 
