@@ -32,7 +32,7 @@ from slicersim.reduction.options import ReduceOptions
 from slicersim.reduction.ramp_sources import check_source
 
 __all__ = ["reduce_exposure", "ReduceOptions", "default_lbda_edges", "check_forward_fit", "check_spectrum_has_signal",
-           "SUSPECT_CHI2_DOF", "noise_scale"]
+           "SUSPECT_CHI2_DOF", "SUSPECT_NOISE_LEVEL", "noise_scale"]
 
 _DO_NOT_USE = 1
 
@@ -517,6 +517,10 @@ SPECTRUM_UNITS = {"LBDA": "Angstrom", "LBDA_EDGES": "Angstrom", "FLUX": "e-/s pe
 #: χ²/dof ÷ noise level 1.001 (white noise) and 1.003 (``effects = "lazuli"``, χ²/dof 1.34); two sources
 #: 4–20 cells apart gave χ²/dof 1.036–1.038 on white noise
 SUSPECT_CHI2_DOF = 1.02
+#: noise level (:func:`noise_scale`) above which a forward fit is flagged for errors that are too small: the
+#: pixels scatter more than the ramp fit's variance says (1.003 measured on a white-noise ramp; 1.34 with
+#: ``effects = "lazuli"``, whose correlated noise makes spectra scatter 2.5× their reported errors)
+SUSPECT_NOISE_LEVEL = 1.02
 #: the central fraction of the normalised residuals whose mean square measures the noise level
 _NOISE_CORE = 0.999
 
@@ -565,7 +569,8 @@ def check_spectrum_has_signal(spec, name, dark_rate=0.0):
 def check_forward_fit(spec, rate, var, tables, name, forced=False):
     """Warn and flag (``diagnostics["warnings"]``, written in SPECTRUM_<FIELD>) a forward fit whose
     pixels are not explained: χ²/dof above :data:`SUSPECT_CHI2_DOF` times the noise level of its own
-    pixels (:func:`noise_scale`, at least 1; kept as ``diagnostics["noise_scale"]``), or light left in its residual
+    pixels (:func:`noise_scale`, at least 1; kept as ``diagnostics["noise_scale"]``); pixels that scatter
+    more than their variance (noise level above :data:`SUSPECT_NOISE_LEVEL`: the errors are too small); or light left in its residual
     image (a second source ≥ 5 σ in white light).  With a ``forced`` position the residual is searched
     over the whole field (a source elsewhere, e.g. the SN the position missed, is light left), and a
     spectrum whose band total is below 5 σ is flagged: nothing significant at the position given."""
@@ -577,6 +582,11 @@ def check_forward_fit(spec, rate, var, tables, name, forced=False):
         flags.append(f"pixel χ²/dof {d['chi2_dof']:.3f} > {SUSPECT_CHI2_DOF} × the pixels' noise level "
                      f"{max(level, 1.0):.3f} (the model does not explain the data: another source, extended light "
                      "or unmodelled detector effects)")
+    if level > SUSPECT_NOISE_LEVEL:
+        flags.append(f"the pixels scatter {level:.3f}× the ramp fit's variance (correlated read noise or other "
+                     "noise the ramp fit does not model): the spectrum's reported errors are too small, by at "
+                     f"least √{level:.3f} = {np.sqrt(level):.2f}× (more where the excess noise is correlated "
+                     "between pixels)")
     resid = np.zeros(rate.shape)
     resid.ravel()[d["pixel_index"]] = d["residual"]
     (x, y), signif = white_light_start(resid, var, tables, rows=None if forced else d["rows"], noise_floor=True)
