@@ -19,6 +19,9 @@ def cmd_stress(args) -> int:
                          **dask_keywords(args))
     print(f"{res['out']}: {res['exposures']} exposure(s), {len(res['failed'])} failed pipeline run(s) "
           f"in {res['seconds']:.1f} s; report {res['report']}")
+    if res["without_ramps"]:
+        print(f"  {len(res['without_ramps'])} target(s) of the dataset have no ramps (not simulated, failed or made "
+              f"without): not stressed")
     for name, bins in res["biased"].items():
         for b in bins:
             print(f"  {name} biased in flux bin {b['bin']} e-/s ({b['reason']}): bias {b['bias']:+.4g} ± "

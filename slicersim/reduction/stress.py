@@ -183,14 +183,22 @@ def _check_out(out, dataset, overwrite):
 
 
 def _exposures(dataset):
-    """(dataset path, [(target id, ramp path)]) of a campaign dataset with ramps."""
-    from slicersim.reduction.campaign import _source, _sources
+    """(dataset path, [(target id, ramp path)], {target id: (ramp path, why)} of the targets whose ramps
+    the campaign made but are missing or damaged now, [target ids without ramps: not simulated, failed])."""
+    from slicersim.reduction.campaign import _source, _sources, _unavailable_reason
     src, _, _, catalog = _source(dataset)
     ids = [int(t) for t in catalog["target_id"]]
     found = _sources(src, ids)
-    if not found:
+    damaged, without = {}, []
+    for tid, (st, rec, _) in src.state([t for t in ids if t not in found], deep=False).items():
+        info = (rec or {}).get("products", {}).get("ramps") if (rec or {}).get("status") == "done" else None
+        if st != "done" and isinstance(info, dict) and info.get("file"):
+            damaged[tid] = (os.path.join(src.product_dir(tid), str(info["file"])), _unavailable_reason(src, tid))
+        else:
+            without.append(tid)
+    if not found and not damaged:
         raise DatasetError(f"{src.path}: no ramps to stress (no target done with its ramps; run the campaign first)")
-    return src.path, [(tid, found[tid]["path"]) for tid in ids if tid in found]
+    return src.path, [(tid, found[tid]["path"]) for tid in ids if tid in found], damaged, without
 
 
 def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=None, scheduler=None, security=None,
@@ -227,8 +235,10 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
     -------
     dict
         ``out``, ``table`` (astropy Table of stress.ecsv), ``report``, ``figures`` (paths),
-        ``exposures``, ``failed`` [(target id, pipeline, error)], ``biased`` {pipeline: [bins]},
-        ``seconds``.
+        ``exposures`` (those of the targets the campaign made ramps for, a missing or damaged ramp
+        file failed in every pipeline), ``failed`` [(target id, pipeline, error)], ``without_ramps``
+        [target ids with no ramps: not simulated, failed or made without], ``biased`` {pipeline:
+        [bins]}, ``seconds``.
     """
     from slicersim.campaign.runner import QuietDask, check_workers, run_task_window
     from slicersim.io.atomic import temporary_path
@@ -248,7 +258,7 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
     if not os.path.isdir(dataset):
         raise DatasetError(f"{dataset}: not a campaign dataset directory")
     path = _check_out(out, dataset, overwrite)
-    src_path, exposures = _exposures(dataset)
+    src_path, exposures, damaged, without = _exposures(dataset)
     progress = show_progress(progress)
     nw = check_workers(workers) if scheduler is None else 1
     if window is not None:
@@ -261,7 +271,6 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
         tasks = {tid: {"target_id": tid, "path": p, "pipelines": parsed, "flux_bins": flux_bins, "workdir": work}
                  for tid, p in exposures}
         threads = max(1, (os.cpu_count() or 1) // nw)
-        client, cluster = reduction_client(nw, scheduler, threads, security, dashboard)
         records = {}
 
         def submit(tid):
@@ -272,11 +281,17 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
             return {"target_id": tid, "path": tasks[tid]["path"], "status": "failed",
                     "rows": [{"pipeline": name, "status": "failed", "error": f"task lost: {_one_line(exc)}",
                               "seconds": 0.0, "values": {}, "notes": []} for name, _ in parsed]}
-        run_task_window(client, cluster, QuietDask(), list(tasks), submit, records, _NoRecords(), window=window,
-                        workers=nw, progress=progress, desc="stress", lost_record=lost, checkpoint=lambda: None)
+        if tasks:
+            client, cluster = reduction_client(nw, scheduler, threads, security, dashboard)
+            run_task_window(client, cluster, QuietDask(), list(tasks), submit, records, _NoRecords(), window=window,
+                            workers=nw, progress=progress, desc="stress", lost_record=lost, checkpoint=lambda: None)
+        for tid, (ramp, why) in damaged.items():        # made by the campaign, unreadable now: failed, not skipped
+            records[tid] = {"target_id": tid, "path": ramp, "status": "failed",
+                            "rows": [{"pipeline": name, "status": "failed", "error": f"no ramps to read: {why}",
+                                      "seconds": 0.0, "values": {}, "notes": []} for name, _ in parsed]}
         shutil.rmtree(work, ignore_errors=True)
-        result = write_outputs(tmp, [records[tid] for tid, _ in exposures if tid in records], parsed, src_path,
-                               flux_bins)
+        order = sorted({tid for tid, _ in exposures} | set(damaged))
+        result = write_outputs(tmp, [records[tid] for tid in order if tid in records], parsed, src_path, flux_bins)
         _publish(tmp, path, overwrite)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -284,7 +299,8 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
     failed = [(int(r["target_id"]), row["pipeline"], row["error"]) for r in records.values() for row in r["rows"]
               if row["status"] == "failed"]
     return {"out": path, "table": result["table"], "report": os.path.join(path, REPORT),
-            "figures": [os.path.join(path, f) for f in FIGURES], "exposures": len(exposures), "failed": failed,
+            "figures": [os.path.join(path, f) for f in FIGURES], "exposures": len(exposures) + len(damaged),
+            "failed": failed, "without_ramps": without,
             "biased": result["biased"], "seconds": time.perf_counter() - t0}
 
 

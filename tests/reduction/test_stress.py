@@ -200,3 +200,42 @@ def test_missing_stcal_says_how_to_install_it(dataset, tmp_path, monkeypatch):
         stress_dataset(dataset, tmp_path / "out", progress=False)
     assert "\n" not in str(info.value)
     assert not (tmp_path / "out").exists()
+
+
+def _copy_without_ramps(dataset, root, damage):
+    """A copy of ``dataset`` with the ramps of the targets in ``damage`` deleted ("missing") or truncated."""
+    import shutil
+    shutil.copytree(dataset, root)
+    for tid, how in damage.items():
+        ramp = root / "products" / f"t{tid:07d}" / "ramps.h5"
+        if how == "missing":
+            ramp.unlink()
+        else:
+            with open(ramp, "r+b") as fh:
+                fh.truncate(5000)
+    return root
+
+
+def test_damaged_ramps_are_failed_exposures_not_skipped(dataset, tmp_path):
+    """Adversarial finding: a target whose ramp file was deleted or truncated after the campaign was left
+    out without a word ("1 exposure(s), 0 failed", exit 0), or, when every file was, the dataset was said
+    to have no ramps ("run the campaign first").  Each is now a failed exposure naming the damage."""
+    from slicersim.reduction.stress import stress_dataset
+    ds = _copy_without_ramps(dataset, tmp_path / "ds", {0: "missing", 1: "truncated"})
+    res = stress_dataset(ds, tmp_path / "out", pipelines=["slicersim", "exec:never-run"], progress=False)
+    assert res["exposures"] == 2 and len(res["failed"]) == 4
+    why = {tid: err for tid, _, err in res["failed"]}
+    assert "damaged (ramps: missing)" in why[0] and "truncated" in why[1] and "campaign run" in why[0]
+    table = Table.read(Path(res["out"]) / "stress.ecsv", format="ascii.ecsv")
+    assert sorted(table["status"][table["target_id"] >= 0]) == ["failed"] * 4
+    assert "damaged" in (Path(res["out"]) / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_one_damaged_ramp_file_fails_its_exposure_the_others_are_scored(dataset, tmp_path):
+    from slicersim.reduction.stress import stress_dataset
+    ds = _copy_without_ramps(dataset, tmp_path / "ds", {1: "missing"})
+    res = stress_dataset(ds, tmp_path / "out", pipelines=["slicersim"], workers=1, progress=False)
+    assert res["exposures"] == 2 and [(t, p) for t, p, _ in res["failed"]] == [(1, "slicersim")]
+    table = Table.read(Path(res["out"]) / "stress.ecsv", format="ascii.ecsv")
+    assert list(table["status"]) == ["done", "failed", "aggregate"]
