@@ -26,6 +26,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.errors import DatasetError, ParameterError
 from slicersim.reduction import stress_score as score
+from slicersim.reduction.stress_pipelines import EXEC_TIMEOUT
 
 __all__ = ["stress_dataset", "stress_exposure", "score_output", "STRESS_TABLE", "REPORT", "FIGURES"]
 
@@ -141,7 +142,7 @@ def stress_exposure(task, threads=None):
     for name, argv in task["pipelines"]:
         t0 = time.perf_counter()
         try:
-            out = run_pipeline(name, argv, exposure, task.get("workdir"))
+            out = run_pipeline(name, argv, exposure, task.get("workdir"), task.get("exec_timeout", EXEC_TIMEOUT))
             seconds = time.perf_counter() - t0
             sc = score_output(exposure, out, task["flux_bins"])
             rows.append({"pipeline": name, "status": "done", "error": "", "seconds": seconds, "values": sc.values,
@@ -202,7 +203,8 @@ def _exposures(dataset):
 
 
 def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=None, scheduler=None, security=None,
-                   dashboard=False, overwrite=False, progress=None, flux_bins=score.FLUX_BINS, window=None):
+                   dashboard=False, overwrite=False, progress=None, flux_bins=score.FLUX_BINS, window=None,
+                   exec_timeout=None):
     """Run ``pipelines`` on every exposure of campaign ``dataset`` and write the scores into ``out``.
 
     Parameters
@@ -230,6 +232,10 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
         Expected-rate bin edges of the slope scores [e-/s].
     window : int, optional
         Tasks in flight (default 2 per worker).
+    exec_timeout : float, optional
+        Seconds an ``exec:`` pipeline may run on one exposure (default
+        :data:`~slicersim.reduction.stress_pipelines.EXEC_TIMEOUT`, an hour); then it is killed and
+        the exposure is failed for it.
 
     Returns
     -------
@@ -263,12 +269,15 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
     nw = check_workers(workers) if scheduler is None else 1
     if window is not None:
         validation.positive_int("window", window)
+    exec_timeout = EXEC_TIMEOUT if exec_timeout is None else validation.number("exec_timeout [s]", exec_timeout,
+                                                                                 low=0.0, low_open=True)
     tmp = temporary_path(path)
     os.mkdir(tmp)
     try:
         work = os.path.join(tmp, ".work")
         os.mkdir(work)
-        tasks = {tid: {"target_id": tid, "path": p, "pipelines": parsed, "flux_bins": flux_bins, "workdir": work}
+        tasks = {tid: {"target_id": tid, "path": p, "pipelines": parsed, "flux_bins": flux_bins, "workdir": work,
+                      "exec_timeout": exec_timeout}
                  for tid, p in exposures}
         threads = max(1, (os.cpu_count() or 1) // nw)
         records = {}
