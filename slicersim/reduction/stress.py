@@ -176,7 +176,8 @@ def _check_out(out, dataset, overwrite):
             raise ParameterError(f"--out {path} is a dataset or reduction directory: it is never replaced")
     parent = os.path.dirname(path)
     if not os.path.isdir(parent):
-        raise ParameterError(f"--out {path}: its parent folder {parent} does not exist")
+        raise ParameterError(f"--out {path}: its parent {parent} " +
+                             ("is not a folder" if os.path.lexists(parent) else "does not exist"))
     real, src = os.path.realpath(path), os.path.realpath(os.fspath(dataset))
     if real == src or real.startswith(src + os.sep) or src.startswith(real + os.sep):
         raise ParameterError(f"--out {path} must not be the dataset {src}, lie inside it or contain it")
@@ -271,6 +272,7 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
         validation.positive_int("window", window)
     exec_timeout = EXEC_TIMEOUT if exec_timeout is None else validation.number("exec_timeout [s]", exec_timeout,
                                                                                  low=0.0, low_open=True)
+    _remove_stale_folders(path)
     tmp = temporary_path(path)
     os.mkdir(tmp)
     try:
@@ -311,6 +313,23 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
             "figures": [os.path.join(path, f) for f in FIGURES], "exposures": len(exposures) + len(damaged),
             "failed": failed, "without_ramps": without,
             "biased": result["biased"], "seconds": time.perf_counter() - t0}
+
+
+def _remove_stale_folders(path):
+    """Remove the temporary folders of ``path`` left by harness runs that were killed (a dead process of
+    this host); a running writer's folder is kept."""
+    from slicersim.io.atomic import _TMP_RE, _host_tag, _pid_alive
+    directory, base = os.path.split(path)
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return
+    for name in names:
+        m = _TMP_RE.match(name)
+        full = os.path.join(directory, name)
+        if (m is not None and m["final"] == base and m["host"] == _host_tag() and int(m["pid"]) != os.getpid()
+                and not _pid_alive(int(m["pid"])) and os.path.isdir(full) and not os.path.islink(full)):
+            shutil.rmtree(full, ignore_errors=True)
 
 
 def _publish(tmp, path, overwrite):

@@ -294,3 +294,23 @@ def test_a_hanging_exec_pipeline_is_killed_with_what_it_started(dataset, tmp_pat
     with pytest.raises(ParameterError, match="exec_timeout"):
         from slicersim.reduction.stress import stress_dataset
         stress_dataset(dataset, tmp_path / "o", pipelines=["slicersim"], exec_timeout=0, progress=False)
+
+
+def test_a_rerun_after_kill_9_removes_the_dead_run_temporary_folder(dataset, tmp_path):
+    """Adversarial finding: `slicersim stress` killed with -9 left its hidden temporary folder (the
+    exposures' level-1b copies included) beside --out for ever; a rerun worked but never removed it.  A
+    rerun now removes the folders of dead runs of the same --out, not a live writer's nor another name's."""
+    import subprocess
+
+    from slicersim.io.atomic import _host_tag
+    from slicersim.reduction.stress import stress_dataset
+    ds = _copy_without_ramps(dataset, tmp_path / "ds", {0: "missing", 1: "missing"})   # no cluster: fast
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    host = _host_tag()
+    stale, live, other = (tmp_path / f".out.tmp-{dead.pid}-{host}ab12", tmp_path / f".out.tmp-1-{host}cd34",
+                          tmp_path / f".other.tmp-{dead.pid}-{host}ef56")
+    for d in (stale, live, other):
+        (d / ".work").mkdir(parents=True)
+    stress_dataset(ds, tmp_path / "out", pipelines=["slicersim"], progress=False)
+    assert not stale.exists() and live.exists() and other.exists() and (tmp_path / "out" / "stress.ecsv").is_file()
