@@ -14,11 +14,16 @@ def cmd_stress(args) -> int:
     from slicersim.reduction.stress import stress_dataset
     if args.workers is not None:
         validation.integer("--workers", args.workers, low=1)
+    if args.exec_timeout is not None:
+        validation.number("--exec-timeout [s]", args.exec_timeout, low=0.0, low_open=True)
     res = stress_dataset(args.dataset, args.out, pipelines=args.pipeline or ["stcal", "slicersim"],
-                         workers=args.workers, overwrite=args.overwrite, progress=False if args.quiet else None,
+                         workers=args.workers, exec_timeout=args.exec_timeout, overwrite=args.overwrite, progress=False if args.quiet else None,
                          **dask_keywords(args))
     print(f"{res['out']}: {res['exposures']} exposure(s), {len(res['failed'])} failed pipeline run(s) "
           f"in {res['seconds']:.1f} s; report {res['report']}")
+    if res["without_ramps"]:
+        print(f"  {len(res['without_ramps'])} target(s) of the dataset have no ramps (not simulated, failed or made "
+              f"without): not stressed")
     for name, bins in res["biased"].items():
         for b in bins:
             print(f"  {name} biased in flux bin {b['bin']} e-/s ({b['reason']}): bias {b['bias']:+.4g} ± "
@@ -44,6 +49,8 @@ def add_parsers(sub, fmt):
                    help="pipeline to score (repeat; default: stcal and slicersim).  exec:COMMAND runs COMMAND "
                         "INPUT.fits OUTPUT.fits (no shell): INPUT a level-1b file, OUTPUT a FITS file with SCI "
                         "(rate [DN/s], or [e-/s] when its BUNIT says electron), optional ERR and DQ")
+    p.add_argument("--exec-timeout", type=float, metavar="SECONDS", help="seconds an exec: pipeline may run on "
+                   "one exposure before it (and what it started) is killed and the exposure failed (default 3600)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     g = p.add_argument_group("Dask")

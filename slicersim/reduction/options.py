@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim import validation
+from slicersim.errors import ParameterError
 from slicersim.reduction.checks import DEFAULT_NCOL, FORWARD, check_fit_options, check_spectra_options, dark_rate_of
 from slicersim.reduction.option_forms import pair, set_field
 
@@ -94,6 +95,8 @@ class ReduceOptions:
                 set_field(self, name, checked[name])
         set_field(self, "propagate", validation.flag("propagate", self.propagate))
         set_field(self, "keep_information", validation.flag("keep_information", self.keep_information))
+        if self.keep_information and self.cubes is False:
+            raise ParameterError("keep_information keeps the cube's inverse covariance, and cubes=False asks for no cube")
         set_field(self, "aperture", validation.number("aperture [PSF σ]", self.aperture, low=0.0, low_open=True))
         if self.fit_options is not None:
             set_field(self, "fit_options", check_fit_options(self.fit_options))

@@ -26,6 +26,7 @@ import numpy as np
 from slicersim import validation
 from slicersim.errors import DatasetError, ParameterError
 from slicersim.reduction import stress_score as score
+from slicersim.reduction.stress_pipelines import EXEC_TIMEOUT
 
 __all__ = ["stress_dataset", "stress_exposure", "score_output", "STRESS_TABLE", "REPORT", "FIGURES"]
 
@@ -141,7 +142,7 @@ def stress_exposure(task, threads=None):
     for name, argv in task["pipelines"]:
         t0 = time.perf_counter()
         try:
-            out = run_pipeline(name, argv, exposure, task.get("workdir"))
+            out = run_pipeline(name, argv, exposure, task.get("workdir"), task.get("exec_timeout", EXEC_TIMEOUT))
             seconds = time.perf_counter() - t0
             sc = score_output(exposure, out, task["flux_bins"])
             rows.append({"pipeline": name, "status": "done", "error": "", "seconds": seconds, "values": sc.values,
@@ -175,7 +176,8 @@ def _check_out(out, dataset, overwrite):
             raise ParameterError(f"--out {path} is a dataset or reduction directory: it is never replaced")
     parent = os.path.dirname(path)
     if not os.path.isdir(parent):
-        raise ParameterError(f"--out {path}: its parent folder {parent} does not exist")
+        raise ParameterError(f"--out {path}: its parent {parent} " +
+                             ("is not a folder" if os.path.lexists(parent) else "does not exist"))
     real, src = os.path.realpath(path), os.path.realpath(os.fspath(dataset))
     if real == src or real.startswith(src + os.sep) or src.startswith(real + os.sep):
         raise ParameterError(f"--out {path} must not be the dataset {src}, lie inside it or contain it")
@@ -183,18 +185,27 @@ def _check_out(out, dataset, overwrite):
 
 
 def _exposures(dataset):
-    """(dataset path, [(target id, ramp path)]) of a campaign dataset with ramps."""
-    from slicersim.reduction.campaign import _source, _sources
+    """(dataset path, [(target id, ramp path)], {target id: (ramp path, why)} of the targets whose ramps
+    the campaign made but are missing or damaged now, [target ids without ramps: not simulated, failed])."""
+    from slicersim.reduction.campaign import _source, _sources, _unavailable_reason
     src, _, _, catalog = _source(dataset)
     ids = [int(t) for t in catalog["target_id"]]
     found = _sources(src, ids)
-    if not found:
+    damaged, without = {}, []
+    for tid, (st, rec, _) in src.state([t for t in ids if t not in found], deep=False).items():
+        info = (rec or {}).get("products", {}).get("ramps") if (rec or {}).get("status") == "done" else None
+        if st != "done" and isinstance(info, dict) and info.get("file"):
+            damaged[tid] = (os.path.join(src.product_dir(tid), str(info["file"])), _unavailable_reason(src, tid))
+        else:
+            without.append(tid)
+    if not found and not damaged:
         raise DatasetError(f"{src.path}: no ramps to stress (no target done with its ramps; run the campaign first)")
-    return src.path, [(tid, found[tid]["path"]) for tid in ids if tid in found]
+    return src.path, [(tid, found[tid]["path"]) for tid in ids if tid in found], damaged, without
 
 
 def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=None, scheduler=None, security=None,
-                   dashboard=False, overwrite=False, progress=None, flux_bins=score.FLUX_BINS, window=None):
+                   dashboard=False, overwrite=False, progress=None, flux_bins=score.FLUX_BINS, window=None,
+                   exec_timeout=None):
     """Run ``pipelines`` on every exposure of campaign ``dataset`` and write the scores into ``out``.
 
     Parameters
@@ -222,13 +233,19 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
         Expected-rate bin edges of the slope scores [e-/s].
     window : int, optional
         Tasks in flight (default 2 per worker).
+    exec_timeout : float, optional
+        Seconds an ``exec:`` pipeline may run on one exposure (default
+        :data:`~slicersim.reduction.stress_pipelines.EXEC_TIMEOUT`, an hour); then it is killed and
+        the exposure is failed for it.
 
     Returns
     -------
     dict
         ``out``, ``table`` (astropy Table of stress.ecsv), ``report``, ``figures`` (paths),
-        ``exposures``, ``failed`` [(target id, pipeline, error)], ``biased`` {pipeline: [bins]},
-        ``seconds``.
+        ``exposures`` (those of the targets the campaign made ramps for, a missing or damaged ramp
+        file failed in every pipeline), ``failed`` [(target id, pipeline, error)], ``without_ramps``
+        [target ids with no ramps: not simulated, failed or made without], ``biased`` {pipeline:
+        [bins]}, ``seconds``.
     """
     from slicersim.campaign.runner import QuietDask, check_workers, run_task_window
     from slicersim.io.atomic import temporary_path
@@ -248,20 +265,23 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
     if not os.path.isdir(dataset):
         raise DatasetError(f"{dataset}: not a campaign dataset directory")
     path = _check_out(out, dataset, overwrite)
-    src_path, exposures = _exposures(dataset)
+    src_path, exposures, damaged, without = _exposures(dataset)
     progress = show_progress(progress)
     nw = check_workers(workers) if scheduler is None else 1
     if window is not None:
         validation.positive_int("window", window)
+    exec_timeout = EXEC_TIMEOUT if exec_timeout is None else validation.number("exec_timeout [s]", exec_timeout,
+                                                                                 low=0.0, low_open=True)
+    _remove_stale_folders(path)
     tmp = temporary_path(path)
     os.mkdir(tmp)
     try:
         work = os.path.join(tmp, ".work")
         os.mkdir(work)
-        tasks = {tid: {"target_id": tid, "path": p, "pipelines": parsed, "flux_bins": flux_bins, "workdir": work}
+        tasks = {tid: {"target_id": tid, "path": p, "pipelines": parsed, "flux_bins": flux_bins, "workdir": work,
+                      "exec_timeout": exec_timeout}
                  for tid, p in exposures}
         threads = max(1, (os.cpu_count() or 1) // nw)
-        client, cluster = reduction_client(nw, scheduler, threads, security, dashboard)
         records = {}
 
         def submit(tid):
@@ -272,11 +292,17 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
             return {"target_id": tid, "path": tasks[tid]["path"], "status": "failed",
                     "rows": [{"pipeline": name, "status": "failed", "error": f"task lost: {_one_line(exc)}",
                               "seconds": 0.0, "values": {}, "notes": []} for name, _ in parsed]}
-        run_task_window(client, cluster, QuietDask(), list(tasks), submit, records, _NoRecords(), window=window,
-                        workers=nw, progress=progress, desc="stress", lost_record=lost, checkpoint=lambda: None)
+        if tasks:
+            client, cluster = reduction_client(nw, scheduler, threads, security, dashboard)
+            run_task_window(client, cluster, QuietDask(), list(tasks), submit, records, _NoRecords(), window=window,
+                            workers=nw, progress=progress, desc="stress", lost_record=lost, checkpoint=lambda: None)
+        for tid, (ramp, why) in damaged.items():        # made by the campaign, unreadable now: failed, not skipped
+            records[tid] = {"target_id": tid, "path": ramp, "status": "failed",
+                            "rows": [{"pipeline": name, "status": "failed", "error": f"no ramps to read: {why}",
+                                      "seconds": 0.0, "values": {}, "notes": []} for name, _ in parsed]}
         shutil.rmtree(work, ignore_errors=True)
-        result = write_outputs(tmp, [records[tid] for tid, _ in exposures if tid in records], parsed, src_path,
-                               flux_bins)
+        order = sorted({tid for tid, _ in exposures} | set(damaged))
+        result = write_outputs(tmp, [records[tid] for tid in order if tid in records], parsed, src_path, flux_bins)
         _publish(tmp, path, overwrite)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -284,8 +310,26 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
     failed = [(int(r["target_id"]), row["pipeline"], row["error"]) for r in records.values() for row in r["rows"]
               if row["status"] == "failed"]
     return {"out": path, "table": result["table"], "report": os.path.join(path, REPORT),
-            "figures": [os.path.join(path, f) for f in FIGURES], "exposures": len(exposures), "failed": failed,
+            "figures": [os.path.join(path, f) for f in FIGURES], "exposures": len(exposures) + len(damaged),
+            "failed": failed, "without_ramps": without,
             "biased": result["biased"], "seconds": time.perf_counter() - t0}
+
+
+def _remove_stale_folders(path):
+    """Remove the temporary folders of ``path`` left by harness runs that were killed (a dead process of
+    this host); a running writer's folder is kept."""
+    from slicersim.io.atomic import _TMP_RE, _host_tag, _pid_alive
+    directory, base = os.path.split(path)
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return
+    for name in names:
+        m = _TMP_RE.match(name)
+        full = os.path.join(directory, name)
+        if (m is not None and m["final"] == base and m["host"] == _host_tag() and int(m["pid"]) != os.getpid()
+                and not _pid_alive(int(m["pid"])) and os.path.isdir(full) and not os.path.islink(full)):
+            shutil.rmtree(full, ignore_errors=True)
 
 
 def _publish(tmp, path, overwrite):

@@ -359,11 +359,19 @@ def _read_rate_file(path, shape, gain):
             sci = np.asarray(hdul["SCI"].data, np.float64)
             bunit = str(hdul["SCI"].header.get("BUNIT", "DN/s"))
             err = np.asarray(hdul["ERR"].data, np.float64) if "ERR" in names else None
-            dq = np.asarray(hdul["DQ"].data).astype(np.uint32) if "DQ" in names else None
+            dq = np.asarray(hdul["DQ"].data) if "DQ" in names else None
     except OSError as exc:
         raise RampFileError(f"the output is not a FITS file ({' '.join(str(exc).split())})") from None
-    if sci.shape != tuple(shape):
-        raise RampFileError(f"the output SCI is {sci.shape}, the detector {tuple(shape)}")
+    except (TypeError, ValueError) as exc:         # a table or text where an image is expected
+        raise RampFileError(f"the output's SCI, ERR or DQ is not a numeric image ({' '.join(str(exc).split())})") from None
+    for ext, arr in (("SCI", sci), ("ERR", err), ("DQ", dq)):
+        if arr is not None and arr.shape != tuple(shape):
+            raise RampFileError(f"the output {ext} is {arr.shape}, the detector {tuple(shape)}")
+    if dq is not None:
+        if dq.dtype.kind not in "iub" or (dq.dtype.kind == "i" and dq.size and dq.min() < 0):
+            raise RampFileError(f"the output DQ must hold JWST bits (integers ≥ 0), got {dq.dtype} "
+                                f"{'with negative values' if dq.dtype.kind == 'i' else 'values'}")
+        dq = dq.astype(np.uint32)
     electrons = any(w in bunit.lower() for w in ("electron", "e-"))
     scale = 1.0 if electrons else 1.0 / gain                     # DN/s → e-/s: gain [ADU/e-]
     return sci * scale, None if err is None else err * scale, dq, f"rate unit {bunit}"
@@ -375,15 +383,28 @@ def _exec(exposure, argv, workdir, timeout=EXEC_TIMEOUT):
     with tempfile.TemporaryDirectory(prefix="stress-", dir=workdir) as tmp:
         inp, out = os.path.join(tmp, "input_uncal.fits"), os.path.join(tmp, "output_rate.fits")
         _write_level1b(exposure, inp)
-        try:
-            proc = subprocess.run([*argv, inp, out], capture_output=True, text=True, timeout=timeout,
-                                  stdin=subprocess.DEVNULL)
+        try:      # its own session: a timeout kills what it started too (a child holding the pipes: no hang)
+            proc = subprocess.Popen([*argv, inp, out], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                    stdin=subprocess.DEVNULL, text=True, errors="replace", start_new_session=True)
         except FileNotFoundError:
             raise RampFileError(f"command not found: {argv[0]}") from None
-        except subprocess.TimeoutExpired:
-            raise RampFileError(f"timed out after {timeout:g} s") from None
+        except PermissionError:
+            raise RampFileError(f"command not executable: {argv[0]}") from None
+        try:
+            _, stderr = proc.communicate(timeout=timeout)
+        except BaseException as exc:        # timeout, or the harness interrupted: leave no process behind
+            import signal
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except OSError:
+                pass
+            proc.kill()
+            proc.communicate()
+            if isinstance(exc, subprocess.TimeoutExpired):
+                raise RampFileError(f"timed out after {timeout:g} s (killed)") from None
+            raise
         if proc.returncode != 0:
-            lines = [ln for ln in (proc.stderr or "").splitlines() if ln.strip()]
+            lines = [ln for ln in (stderr or "").splitlines() if ln.strip()]
             raise RampFileError(f"exit status {proc.returncode}: {lines[-1].strip() if lines else '(no stderr)'}")
         if not os.path.isfile(out):
             raise RampFileError("exit status 0 but no output file")
@@ -393,7 +414,7 @@ def _exec(exposure, argv, workdir, timeout=EXEC_TIMEOUT):
     return PipelineOutput(rate, err, dq, None, notes)
 
 
-def run_pipeline(name, argv, exposure, workdir=None):
+def run_pipeline(name, argv, exposure, workdir=None, exec_timeout=EXEC_TIMEOUT):
     """Run one pipeline on one exposure.
 
     Parameters
@@ -405,6 +426,9 @@ def run_pipeline(name, argv, exposure, workdir=None):
     exposure : Exposure
     workdir : str, optional
         Folder of the exec pipeline's temporary files (default: the system's).
+    exec_timeout : float
+        Seconds an exec pipeline may run on the exposure; then it and what it started are killed
+        and the exposure fails.
 
     Returns
     -------
@@ -415,7 +439,7 @@ def run_pipeline(name, argv, exposure, workdir=None):
         return _stcal(exposure)
     if name == "slicersim":
         return _slicersim(exposure)
-    return _exec(exposure, argv, workdir)
+    return _exec(exposure, argv, workdir, exec_timeout)
 
 
 def finite_or_nan(value):

@@ -35,3 +35,12 @@ def test_a_run_names_the_biased_pipeline(tmp_path):
     assert again.returncode != 0 and "--overwrite" in again.stderr
     assert run_cli("stress", ds, "--out", tmp_path / "out", "--pipeline", "slicersim", "--overwrite", "--quiet",
                    "--workers", "1").returncode == 0
+
+
+def test_out_under_a_file_names_the_file(tmp_path):
+    """Adversarial finding: --out FILE/x said "its parent folder FILE does not exist" of an existing file."""
+    (tmp_path / "afile").write_text("x")
+    proc = run_cli("stress", tmp_path, "--out", tmp_path / "afile" / "x", "--pipeline", "slicersim")
+    assert proc.returncode == 2 and "afile is not a folder" in proc.stderr, proc.stderr
+    proc = run_cli("stress", tmp_path, "--out", tmp_path / "o", "--pipeline", "slicersim", "--exec-timeout", "0")
+    assert proc.returncode == 2 and "--exec-timeout" in proc.stderr and not (tmp_path / "o").exists()

@@ -288,6 +288,16 @@ def test_options_that_would_do_nothing_are_refused(options, match):
     assert check_spectra_options(propagate=False, extraction="optimal")["propagate"] is False
 
 
+def test_keep_information_without_cubes_is_refused():
+    """Adversarial finding: cubes=False with keep_information=True (a cube option) was accepted and
+    silently did nothing, while rectify_method and weights with cubes=False are refused."""
+    from slicersim.reduction.options import ReduceOptions
+    with pytest.raises(ParameterError, match="keep_information .* cubes=False"):
+        ReduceOptions(cubes=False, keep_information=True)
+    assert ReduceOptions(cubes=True, keep_information=True).resolved_cubes("forward")
+    assert ReduceOptions(keep_information=True).resolved_cubes("forward")
+
+
 @pytest.fixture(scope="module")
 def small_exposure():
     from conftest import small_slicer_mapper

@@ -200,3 +200,117 @@ def test_missing_stcal_says_how_to_install_it(dataset, tmp_path, monkeypatch):
         stress_dataset(dataset, tmp_path / "out", progress=False)
     assert "\n" not in str(info.value)
     assert not (tmp_path / "out").exists()
+
+
+def _copy_without_ramps(dataset, root, damage):
+    """A copy of ``dataset`` with the ramps of the targets in ``damage`` deleted ("missing") or truncated."""
+    import shutil
+    shutil.copytree(dataset, root)
+    for tid, how in damage.items():
+        ramp = root / "products" / f"t{tid:07d}" / "ramps.h5"
+        if how == "missing":
+            ramp.unlink()
+        else:
+            with open(ramp, "r+b") as fh:
+                fh.truncate(5000)
+    return root
+
+
+def test_damaged_ramps_are_failed_exposures_not_skipped(dataset, tmp_path):
+    """Adversarial finding: a target whose ramp file was deleted or truncated after the campaign was left
+    out without a word ("1 exposure(s), 0 failed", exit 0), or, when every file was, the dataset was said
+    to have no ramps ("run the campaign first").  Each is now a failed exposure naming the damage."""
+    from slicersim.reduction.stress import stress_dataset
+    ds = _copy_without_ramps(dataset, tmp_path / "ds", {0: "missing", 1: "truncated"})
+    res = stress_dataset(ds, tmp_path / "out", pipelines=["slicersim", "exec:never-run"], progress=False)
+    assert res["exposures"] == 2 and len(res["failed"]) == 4
+    why = {tid: err for tid, _, err in res["failed"]}
+    assert "damaged (ramps: missing)" in why[0] and "truncated" in why[1] and "campaign run" in why[0]
+    table = Table.read(Path(res["out"]) / "stress.ecsv", format="ascii.ecsv")
+    assert sorted(table["status"][table["target_id"] >= 0]) == ["failed"] * 4
+    assert "damaged" in (Path(res["out"]) / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_one_damaged_ramp_file_fails_its_exposure_the_others_are_scored(dataset, tmp_path):
+    from slicersim.reduction.stress import stress_dataset
+    ds = _copy_without_ramps(dataset, tmp_path / "ds", {1: "missing"})
+    res = stress_dataset(ds, tmp_path / "out", pipelines=["slicersim"], workers=1, progress=False)
+    assert res["exposures"] == 2 and [(t, p) for t, p, _ in res["failed"]] == [(1, "slicersim")]
+    table = Table.read(Path(res["out"]) / "stress.ecsv", format="ascii.ecsv")
+    assert list(table["status"]) == ["done", "failed", "aggregate"]
+
+
+def test_exec_output_with_a_wrong_err_or_dq_is_a_clear_failure(tmp_path):
+    """Adversarial finding: an exec pipeline's ERR of another shape failed with NumPy's "operands could not
+    be broadcast", and a float or negative DQ was cast to uint32 (every bit set: all pixels "lost", the
+    exposure scored as done).  Each is now a one-line RampFileError naming the extension."""
+    from astropy.io import fits
+
+    from slicersim.errors import RampFileError
+    from slicersim.reduction.stress_pipelines import _read_rate_file
+
+    def write(name, **ext):
+        path = tmp_path / f"{name}.fits"
+        fits.HDUList([fits.PrimaryHDU()] + [fits.ImageHDU(v, name=k) for k, v in ext.items()]).writeto(path)
+        return str(path)
+    sci = np.ones(SHAPE, "f4")
+    for ext, match in ((dict(SCI=sci, ERR=np.ones((3, 3), "f4")), r"output ERR is \(3, 3\)"),
+                       (dict(SCI=sci, DQ=np.zeros(7, "i4")), r"output DQ is \(7,\)"),
+                       (dict(SCI=sci, DQ=np.full(SHAPE, -1.5, "f4")), "DQ must hold JWST bits"),
+                       (dict(SCI=sci, DQ=np.full(SHAPE, -1, "i4")), "DQ must hold JWST bits .* negative"),
+                       (dict(SCI=np.ones((2,) + SHAPE, "f4")), r"output SCI is \(2, 64, 128\)")):
+        with pytest.raises(RampFileError, match=match):
+            _read_rate_file(write(f"f{len(list(tmp_path.iterdir()))}", **ext), SHAPE, 1.0)
+    rate, err, dq, _ = _read_rate_file(write("good", SCI=sci, ERR=sci, DQ=np.ones(SHAPE, "i2")), SHAPE, 0.5)
+    assert rate[0, 0] == 2.0 and err[0, 0] == 2.0 and dq.dtype == np.uint32 and dq[0, 0] == 1
+
+
+def test_a_hanging_exec_pipeline_is_killed_with_what_it_started(dataset, tmp_path):
+    """Adversarial finding: an exec pipeline that hangs held its worker for the fixed hour (no way to
+    shorten it), and on a timeout only the command itself was killed: a process it had started was
+    left running.  ``exec_timeout`` (``--exec-timeout``) bounds it; the command's whole session is killed."""
+    import time
+
+    from slicersim.errors import RampFileError
+    from slicersim.reduction.stress_pipelines import load_exposure, run_pipeline
+    exposure = load_exposure(dataset / "products" / "t0000000" / "ramps.h5")
+    pidfile = tmp_path / "child.pid"
+    argv = ["sh", "-c", f'sleep 60 & echo $! > {pidfile}; sleep 60', "sh"]
+    t0 = time.monotonic()
+    with pytest.raises(RampFileError, match="timed out after 1 s"):
+        run_pipeline("exec:hang", argv, exposure, str(tmp_path), exec_timeout=1.0)
+    assert time.monotonic() - t0 < 20
+    pid = int(pidfile.read_text())
+    for _ in range(50):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(pid, 9)
+        raise AssertionError("the pipeline's child process survived the timeout")
+    with pytest.raises(ParameterError, match="exec_timeout"):
+        from slicersim.reduction.stress import stress_dataset
+        stress_dataset(dataset, tmp_path / "o", pipelines=["slicersim"], exec_timeout=0, progress=False)
+
+
+def test_a_rerun_after_kill_9_removes_the_dead_run_temporary_folder(dataset, tmp_path):
+    """Adversarial finding: `slicersim stress` killed with -9 left its hidden temporary folder (the
+    exposures' level-1b copies included) beside --out for ever; a rerun worked but never removed it.  A
+    rerun now removes the folders of dead runs of the same --out, not a live writer's nor another name's."""
+    import subprocess
+
+    from slicersim.io.atomic import _host_tag
+    from slicersim.reduction.stress import stress_dataset
+    ds = _copy_without_ramps(dataset, tmp_path / "ds", {0: "missing", 1: "missing"})   # no cluster: fast
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    host = _host_tag()
+    stale, live, other = (tmp_path / f".out.tmp-{dead.pid}-{host}ab12", tmp_path / f".out.tmp-1-{host}cd34",
+                          tmp_path / f".other.tmp-{dead.pid}-{host}ef56")
+    for d in (stale, live, other):
+        (d / ".work").mkdir(parents=True)
+    stress_dataset(ds, tmp_path / "out", pipelines=["slicersim"], progress=False)
+    assert not stale.exists() and live.exists() and other.exists() and (tmp_path / "out" / "stress.ecsv").is_file()
