@@ -252,7 +252,7 @@ def cmd_reduce(args) -> int:
             f"integration(s), {int((result['rates'].njumps > 0).sum())} pixel(s) with jumps")
     if args.spectra:
         spectra, cubes = result["spectra"], result["cubes"]
-        names = list(dict.fromkeys([*cubes, *spectra]))
+        names = list(dict.fromkeys([*cubes, *spectra, *(("narrow", "wide") if args.field == "both" else ())]))
         line += "; " + ", ".join(name + (f" cube {'×'.join(map(str, cubes[name].flux.shape[-3:]))}," if name in cubes
                                          else "") + " "
                                  + (f"spectrum ({spectra[name].method})" if name in spectra else "no spectrum (no source)")
