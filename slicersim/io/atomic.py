@@ -13,6 +13,7 @@ import errno
 import hashlib
 import os
 import re
+import shutil
 import secrets
 import signal
 import threading
@@ -62,8 +63,24 @@ def _pid_alive(pid):
     return True
 
 
-def remove_stale_temporaries(directory):
-    """Remove temporaries left in ``directory`` by writers that no longer run; returns their paths."""
+def remove_stale_temporaries(directory, final=None, folders=False):
+    """Remove temporaries left in ``directory`` by writers that no longer run; returns their paths.
+
+    Parameters
+    ----------
+    directory : str or path-like
+        The folder searched (not recursively).
+    final : str, optional
+        Only the temporaries of this final name (None: every one).
+    folders : bool, optional
+        Also remove temporary folders (a writer that builds a folder and renames it), never following
+        a link; files only by default.
+
+    Returns
+    -------
+    list of str
+        The paths removed.
+    """
     removed, host = [], _host_tag()
     try:
         names = os.listdir(directory)
@@ -72,11 +89,14 @@ def remove_stale_temporaries(directory):
     for name in names:
         match = _TMP_RE.match(name)
         if (match is None or match["host"] != host or int(match["pid"]) == os.getpid()
-                or _pid_alive(int(match["pid"]))):
+                or (final is not None and match["final"] != final) or _pid_alive(int(match["pid"]))):
             continue
         path = os.path.join(directory, name)
         try:
-            os.remove(path)
+            if folders and os.path.isdir(path) and not os.path.islink(path):
+                shutil.rmtree(path)
+            else:
+                os.remove(path)
             removed.append(path)
         except OSError:
             pass

@@ -318,18 +318,9 @@ def stress_dataset(dataset, out, *, pipelines=("stcal", "slicersim"), workers=No
 def _remove_stale_folders(path):
     """Remove the temporary folders of ``path`` left by harness runs that were killed (a dead process of
     this host); a running writer's folder is kept."""
-    from slicersim.io.atomic import _TMP_RE, _host_tag, _pid_alive
+    from slicersim.io.atomic import remove_stale_temporaries
     directory, base = os.path.split(path)
-    try:
-        names = os.listdir(directory)
-    except OSError:
-        return
-    for name in names:
-        m = _TMP_RE.match(name)
-        full = os.path.join(directory, name)
-        if (m is not None and m["final"] == base and m["host"] == _host_tag() and int(m["pid"]) != os.getpid()
-                and not _pid_alive(int(m["pid"])) and os.path.isdir(full) and not os.path.islink(full)):
-            shutil.rmtree(full, ignore_errors=True)
+    remove_stale_temporaries(directory or ".", final=base, folders=True)
 
 
 def _publish(tmp, path, overwrite):
