@@ -195,6 +195,16 @@ def add_dask_arguments(parser, scheduler=True):
     parser.add_argument("--tls-key", metavar="KEY.pem", help="this client's TLS private key for --scheduler")
 
 
+def add_cluster_arguments(group, scheduler_help):
+    """``--workers N`` or ``--scheduler ADDRESS`` (mutually exclusive) and the other Dask flags
+    (:func:`add_dask_arguments`) on an argument ``group`` of a dataset command (reduce, stress)."""
+    w = group.add_mutually_exclusive_group()
+    w.add_argument("--workers", type=int, metavar="N", help="workers of the embedded Dask LocalCluster "
+                   "(default: CPU count)")
+    w.add_argument("--scheduler", metavar="ADDRESS", help=scheduler_help)
+    add_dask_arguments(group, scheduler=False)
+
+
 def dask_keywords(args):
     """{"scheduler", "security", "dashboard"} keywords of run_campaign / reduce_dataset from the flags
     of :func:`add_dask_arguments`; the --tls-* files apply only with --scheduler."""

@@ -366,13 +366,9 @@ def add_parsers(sub, fmt):
                    help="optimal/aperture on an lsq cube: cells-independent variance instead of the full "
                         "cube covariance")
     g = p.add_argument_group("campaign datasets (RAW is a dataset directory)")
-    w = g.add_mutually_exclusive_group()
-    w.add_argument("--workers", type=int, metavar="N", help="workers of the embedded Dask LocalCluster "
-                   "(default: CPU count)")
-    w.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tls://host:8786 with the "
-                   "--tls-* files (every worker must see both directories; tcp:// only on a trusted network)")
-    from slicersim.app.campaign_cli import add_dask_arguments
-    add_dask_arguments(g, scheduler=False)
+    from slicersim.app.campaign_cli import add_cluster_arguments
+    add_cluster_arguments(g, "existing Dask scheduler, e.g. tls://host:8786 with the --tls-* files (every worker "
+                          "must see both directories; tcp:// only on a trusted network)")
     g.add_argument("--retry-failed", action="store_true", help="reduce the targets recorded as failed again")
     g.add_argument("--force", action="store_true", help="start again in a reduction directory made with other "
                    "options or from another dataset")

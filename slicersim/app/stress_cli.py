@@ -54,11 +54,6 @@ def add_parsers(sub, fmt):
     p.add_argument("--overwrite", action="store_true", help="replace an existing DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     g = p.add_argument_group("Dask")
-    w = g.add_mutually_exclusive_group()
-    w.add_argument("--workers", type=int, metavar="N", help="workers of the embedded Dask LocalCluster "
-                   "(default: CPU count)")
-    w.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler (every worker must see the "
-                   "dataset)")
-    from slicersim.app.campaign_cli import add_dask_arguments
-    add_dask_arguments(g, scheduler=False)
+    from slicersim.app.campaign_cli import add_cluster_arguments
+    add_cluster_arguments(g, "existing Dask scheduler (every worker must see the dataset)")
     p.set_defaults(func=cmd_stress)
