@@ -203,7 +203,7 @@ def decomposition(t, mapper, rate_var, sharp=0.25):
 
 
 def reduce_run(t, mapper, raw, fit_opts=None):
-    r = reduce_exposure(str(raw), mapper=mapper, lbda_edges=t.edges, ncol=NCOL, fit_options=fit_opts)
+    r = reduce_exposure(str(raw), mapper=mapper, lbda_edges=t.edges, ncol=NCOL, fit_options=fit_opts, cubes=True)
     return extractions(r["cubes"]["narrow"], t.psf, t.truth, t.etc_snr), r
 
 

@@ -133,7 +133,7 @@ def one_redshift(z, seeds, mapper, tmp, first_seed=0):
         t0 = time.perf_counter()
         cl.simulate(t, mapper, raw, 7000 + int(100 * z) + k)
         r = reduce_exposure(raw, mapper=mapper, lbda_edges=t.edges, ncol=cl.NCOL, fit_options={"with_truth": True},
-                            psf=T_true, weights=WEIGHTS)
+                            psf=T_true, weights=WEIGHTS, cubes=True)
         rates, dark = r["rates"], float(r["dark_rate"])
         T = point_source_template(native, native_edges, t.edges, mapper=mapper, field="narrow", ncol=cl.NCOL,
                                   variance=r["variance"])

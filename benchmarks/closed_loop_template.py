@@ -34,7 +34,7 @@ KEYS = ("bias_rel", "chi2_dof", "snr_reported", "snr_etc")
 
 def realisation(t, mapper, raw, seed, native, native_edges):
     cl.simulate(t, mapper, raw, seed)
-    r = reduce_exposure(raw, mapper=mapper, lbda_edges=t.edges, ncol=cl.NCOL)
+    r = reduce_exposure(raw, mapper=mapper, lbda_edges=t.edges, ncol=cl.NCOL, cubes=True)
     cube = r["cubes"]["narrow"]
     T = point_source_template(native, native_edges, t.edges, mapper=mapper, field="narrow", ncol=cl.NCOL,
                               variance=r["variance"])           # the weights the data were rectified with
