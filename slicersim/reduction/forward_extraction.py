@@ -37,7 +37,7 @@ from slicersim.errors import ParameterError, RampFileError, ReductionError
 from slicersim.reduction.spectrum_product import SpectrumProduct
 
 __all__ = ["extract_forward", "instrument_model", "model_config", "locate_source", "white_light_start",
-           "aggregate_bins", "FORWARD_PSF_PROFILES"]
+           "aggregate_bins", "isolated_outliers", "FORWARD_PSF_PROFILES"]
 
 #: PSF profiles the forward model reproduces (those the simulation's cube builder uses)
 FORWARD_PSF_PROFILES = ("gaussian", "airy")
@@ -137,12 +137,40 @@ def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
     rate = np.asarray(rate)[r0:r1]
     floor = 0.0
     usable = np.isfinite(variance) & (variance > 0)
+    usable &= ~isolated_outliers(rate, variance, usable)
     den = gather(usable.astype(float), tables, band=True)    # Σ_λ Pᵀ1: shared by both cubes
     if noise_floor:
         noise = np.sqrt(np.where(usable, variance, 0.0))
         noise *= np.random.default_rng(0).standard_normal(noise.shape)
         floor = locate_source(_white_light_cube(noise, usable, den, tables, rows), scatter=True)
     return locate_source(_white_light_cube(rate, usable, den, tables, rows), floor=floor)
+
+
+#: running-median window [pixels] and threshold [σ] of :func:`isolated_outliers`
+_OUTLIER_WINDOW = 7
+_OUTLIER_SIGMA = 5.0
+
+
+def isolated_outliers(rate, variance, usable):
+    """Pixels brighter than their neighbours along *both* detector axes: above the running median of
+    ``_OUTLIER_WINDOW`` pixels of their row and of their column by more than ``_OUTLIER_SIGMA`` σ
+    (σ² = ``variance``) and by more than half that median.  Hot and warm pixels and the unflagged
+    neighbours of cosmic rays are such points; a spectrum is smooth along the dispersion and a slice's
+    image along the slices, so a source's pixels stand out along one axis at most.  In a wide-field
+    Lazuli ramp with ``effects = "lazuli"`` warm pixels (0.6 % of them, median 0.3 e-/s against a
+    faint source's 0.05 e-/s per pixel) dominated the white light's scatter: sources of 8 σ were found
+    at 4.8 σ.
+
+    rate, variance : (ny, nx) [e-/s], [(e-/s)²];  usable : (ny, nx) bool.  Returns (ny, nx) bool."""
+    from scipy.ndimage import median_filter
+    d = np.where(usable, rate, 0.0)
+    sigma = np.sqrt(np.where(usable, variance, np.inf))
+    out = np.asarray(usable, bool).copy()
+    for size in ((_OUTLIER_WINDOW, 1), (1, _OUTLIER_WINDOW)):
+        med = median_filter(d, size=size, mode="mirror")
+        excess = d - med
+        out &= (excess > _OUTLIER_SIGMA * sigma) & (excess > 0.5 * np.abs(med))
+    return out
 
 
 def _white_light_cube(rate, usable, den, tables, rows):
