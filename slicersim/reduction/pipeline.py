@@ -278,13 +278,21 @@ def _fit_rates(raw_path, plan):
         raise ParameterError(f"mapper: the rate image {rates.rate.shape} is not the mapper's detector {shape}")
     plan.dark_rate, plan.dark_kind = dark_rate_of(plan.opts.dark, rates, shape)
     var = rate_variance(rates)
-    rate = np.where(np.isfinite(var), rates.rate - plan.dark_rate, 0.0)
     kernel = None
     if plan.opts.ipc is None:
-        from slicersim.reduction.ipc_correction import deconvolve_ipc, ipc_kernel_of
+        from slicersim.reduction.ipc_correction import ipc_kernel_of
         kernel = ipc_kernel_of(plan.raw_attrs)
-        if kernel is not None:
-            rate = deconvolve_ipc(rate, np.isfinite(var), kernel)
+    if plan.dark_kind == "file DARK_RATE":
+        extra = _extra_dark(raw_path, shape)
+        if extra is not None:                   # the detector's per-pixel dark, as its reference files have it
+            if kernel is not None:              # dark charge is coupled like any other: seen through IPC
+                from slicersim.physics.ipc import apply_ipc
+                extra = apply_ipc(extra, kernel)
+            plan.dark_rate, plan.dark_kind = plan.dark_rate + extra, "file DARK_RATE + bad pixels' extra dark"
+    rate = np.where(np.isfinite(var), rates.rate - plan.dark_rate, 0.0)
+    if kernel is not None:
+        from slicersim.reduction.ipc_correction import deconvolve_ipc
+        rate = deconvolve_ipc(rate, np.isfinite(var), kernel)
     rates.attrs["IPC_CORRECTED"] = kernel is not None
     return rates, rate, var
 
@@ -363,6 +371,23 @@ def _cube_spectra(cubes, var, var_data, plan):
                                                   "full LSQ cube covariance, sandwich N⁻¹BN⁻¹ with the pixels' "
                                                   "variance (propagate_variance)")
     return spectra, noise
+
+
+def _extra_dark(raw_path, shape):
+    """The bad pixels' extra dark [e-/s] (ny, nx) a ramp file records (``truth/bad_pixels/extra_dark``: warm
+    and hot pixels, the per-pixel part of the dark its reference files' DARK holds), or None."""
+    if not isinstance(raw_path, (str, os.PathLike)):
+        return None
+    import h5py
+    try:
+        with h5py.File(raw_path, "r") as fh:
+            node = fh.get("truth/bad_pixels/extra_dark")
+            if node is None or tuple(node.shape) != tuple(shape):
+                return None
+            extra = np.asarray(node[...], np.float64)
+    except OSError:                                   # not HDF5 (a level-1b FITS file): no map
+        return None
+    return np.where(np.isfinite(extra), extra, 0.0)
 
 
 def _raw_attrs(raw_path):
@@ -655,7 +680,7 @@ def _write(writer, result):
         dark = result.get("dark_rate", 0.0)
         attrs["DARK_SUBTRACTED"] = float(np.mean(dark))          # [e-/s]; the image's mean for an image
         attrs["DARK_SUBTRACTED_KIND"] = result.get("dark_kind", "none")
-        if np.ndim(dark) == 2:
+        if np.ndim(dark) == 2 and result.get("dark_kind") == "image":      # the file's own: read again from it
             w.write("rates/DARK_SUBTRACTED", np.asarray(dark, np.float64), attrs={"BUNIT": UNITS["RATE"]})
         attrs.update({f"SPECTRUM_{n.upper()}": json.dumps({"method": s.method, "position": list(s.position),
                                                           "aperture_sigma": s.aperture if np.isfinite(s.aperture)
