@@ -356,7 +356,8 @@ def add_parsers(sub, fmt):
     g.add_argument("--no-background", action="store_true", help="no background subtraction")
     g.add_argument("--dark", metavar="auto|none|E/S|FILE.npy",
                    help="dark rate subtracted before rectification: 'auto' (default) the file's DARK_RATE "
-                        "(dark + thermal dark + glow; nothing, with a warning, if the file has none), "
+                        "(dark + thermal dark + glow; nothing, with a warning, if the file has none) plus the "
+                        "warm and hot pixels' extra dark where the file records its bad pixels, "
                         "'none', a rate [e-/s] or a .npy detector image [e-/s]")
     g.add_argument("--weights", choices=("model", "forward", "data"),
                    help="lsq weights of the cube: 'forward' (default) the variance of the fitted point source + "

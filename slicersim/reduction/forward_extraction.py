@@ -161,7 +161,20 @@ def isolated_outliers(rate, variance, usable):
     faint source's 0.05 e-/s per pixel) dominated the white light's scatter: sources of 8 σ were found
     at 4.8 σ.
 
-    rate, variance : (ny, nx) [e-/s], [(e-/s)²];  usable : (ny, nx) bool.  Returns (ny, nx) bool."""
+    Parameters
+    ----------
+    rate : numpy.ndarray of shape (ny, nx)
+        Rates [e-/s].
+    variance : numpy.ndarray of shape (ny, nx)
+        Their variance [(e-/s)²].
+    usable : numpy.ndarray of shape (ny, nx), bool
+        Pixels with a rate; the others are never outliers.
+
+    Returns
+    -------
+    numpy.ndarray of shape (ny, nx), bool
+        The isolated outliers.
+    """
     from scipy.ndimage import median_filter
     d = np.where(usable, rate, 0.0)
     sigma = np.sqrt(np.where(usable, variance, np.inf))

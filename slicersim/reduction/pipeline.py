@@ -146,9 +146,11 @@ def reduce_exposure(raw_path, options=None, *, out=None, overwrite=False, **keyw
         own per-pixel variance only (Poisson-weighting bias).
     dark : {"auto"}, float, numpy.ndarray of shape (ny, nx) or None, optional
         Dark rate subtracted from the rates before rectification (``dark_rate_of``): "auto"
-        (default) the file's DARK_RATE, a number or an image [e-/s], None for none (written:
-        DARK_SUBTRACTED [e-/s], DARK_SUBTRACTED_KIND, and an image as
-        rates/DARK_SUBTRACTED).  A pedestal that is uniform over the pixels is not uniform
+        (default) the file's DARK_RATE plus, where the file records its bad pixels
+        (``truth/bad_pixels/extra_dark``), the warm and hot pixels' extra dark seen through IPC
+        (the per-pixel dark of its reference files); a number or an image [e-/s]; None for none
+        (written: DARK_SUBTRACTED [e-/s, the image's mean], DARK_SUBTRACTED_KIND, and an image
+        given as rates/DARK_SUBTRACTED).  A pedestal that is uniform over the pixels is not uniform
         over the cells (pixel coverage varies across a slice), so the cube's background B_λ
         cannot absorb it: left in, the dark biased a Lazuli SN Ia at z = 0.8 by −2.0 %
         (noiseless, exact weights).
