@@ -152,8 +152,9 @@ _OUTLIER_SIGMA = 5.0
 
 
 def isolated_outliers(rate, variance, usable):
-    """Pixels brighter than their neighbours along *both* detector axes: above the running median of
-    ``_OUTLIER_WINDOW`` pixels of their row and of their column by more than ``_OUTLIER_SIGMA`` σ
+    """Pixels brighter than their neighbours along both detector axes (those longer than one pixel):
+    above the running median of ``_OUTLIER_WINDOW`` pixels of their row and of their column by more
+    than ``_OUTLIER_SIGMA`` σ
     (σ² = ``variance``) and by more than half that median.  Hot and warm pixels and the unflagged
     neighbours of cosmic rays are such points; a spectrum is smooth along the dispersion and a slice's
     image along the slices, so a source's pixels stand out along one axis at most.  In a wide-field
@@ -175,14 +176,31 @@ def isolated_outliers(rate, variance, usable):
     numpy.ndarray of shape (ny, nx), bool
         The isolated outliers.
     """
-    from scipy.ndimage import median_filter
     d = np.where(usable, rate, 0.0)
     sigma = np.sqrt(np.where(usable, variance, np.inf))
-    out = np.asarray(usable, bool).copy()
-    for size in ((_OUTLIER_WINDOW, 1), (1, _OUTLIER_WINDOW)):
-        med = median_filter(d, size=size, mode="mirror")
-        excess = d - med
-        out &= (excess > _OUTLIER_SIGMA * sigma) & (excess > 0.5 * np.abs(med))
+    ny, nx = d.shape
+    # candidates (cheap, whole image): above the fainter of the two neighbours along the column (pairs of
+    # outliers pass too); the running medians are then taken at the candidates only (the whole-image
+    # filters cost ~3 CPU-s per reduction)
+    if ny > 1:
+        pad = np.pad(d, ((1, 1), (0, 0)), mode="reflect")
+        ys, xs = np.nonzero(usable & (d - np.minimum(pad[:-2], pad[2:]) > _OUTLIER_SIGMA * sigma))
+    else:                                                # one row: the columns say nothing
+        ys, xs = np.nonzero(usable)
+    keep = np.ones(ys.size, bool)
+    offsets = np.arange(-(_OUTLIER_WINDOW // 2), _OUTLIER_WINDOW // 2 + 1)
+    value, thr = d[ys, xs], _OUTLIER_SIGMA * sigma[ys, xs]
+    for n, rows in ((ny, True), (nx, False)):
+        if n == 1:                                               # an axis of one pixel says nothing
+            continue
+        at = np.abs((ys if rows else xs)[:, None] + offsets[None, :])   # mirrored at both ends ("mirror")
+        at = np.where(at > n - 1, 2 * (n - 1) - at, at)
+        at = np.clip(at, 0, n - 1)                               # windows longer than the axis
+        window = d[at, xs[:, None]] if rows else d[ys[:, None], at]
+        med = np.median(window, axis=1)
+        keep &= (value - med > thr) & (value - med > 0.5 * np.abs(med))
+    out = np.zeros(d.shape, bool)
+    out[ys[keep], xs[keep]] = True
     return out
 
 

@@ -427,3 +427,26 @@ def test_warm_pixels_do_not_hide_a_faint_source_from_the_white_light(scene):
     image = scene["image"][r0:r1]
     bright = image > 0.01 * image.max()
     assert not isolated_outliers(image, scene["var"][r0:r1], np.ones(image.shape, bool))[bright].any()
+
+
+def test_isolated_outliers_on_small_and_edge_images():
+    """isolated_outliers: a hot pixel in a corner, on an image edge and in a 1-row or 1-column image is
+    found (the windows are mirrored at the edges); a pair of outliers along a column is found; a bright
+    line along one axis (a spectrum) and pixels without a rate are not."""
+    from slicersim.reduction.forward_extraction import isolated_outliers
+    rng = np.random.default_rng(3)
+    img, var = rng.normal(0, 1, (40, 30)), np.ones((40, 30))
+    usable = np.ones(img.shape, bool)
+    img[0, 0] = img[20, 29] = 50.0
+    img[10, 5] = img[11, 5] = 40.0                       # a pair along a column
+    img[:, 15] += 100.0                                  # a spectrum along the columns
+    img[30, 20] = 60.0
+    usable[30, 20] = False
+    out = isolated_outliers(img, var, usable)
+    assert out[0, 0] and out[20, 29] and out[10, 5] and out[11, 5]
+    assert not out[:, 15].any() and not out[30, 20] and out.sum() == 4
+    for shape in ((1, 30), (40, 1)):
+        im = rng.normal(0, 1, shape)
+        im.flat[7] = 50.0
+        found = isolated_outliers(im, np.ones(shape), np.ones(shape, bool))
+        assert found.flat[7] and found.sum() == 1
