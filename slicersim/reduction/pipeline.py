@@ -285,11 +285,9 @@ def _fit_rates(raw_path, plan):
         from slicersim.reduction.ipc_correction import ipc_kernel_of
         kernel = ipc_kernel_of(plan.raw_attrs)
     if plan.dark_kind == "file DARK_RATE":
-        extra = _extra_dark(raw_path, shape)
-        if extra is not None:                   # the detector's per-pixel dark, as its reference files have it
-            if kernel is not None:              # dark charge is coupled like any other: seen through IPC
-                from slicersim.physics.ipc import apply_ipc
-                extra = apply_ipc(extra, kernel)
+        from slicersim.reduction.dark import extra_dark
+        extra = extra_dark(raw_path, shape, kernel)    # the per-pixel part of the detector's dark
+        if extra is not None:
             plan.dark_rate, plan.dark_kind = plan.dark_rate + extra, "file DARK_RATE + bad pixels' extra dark"
     rate = np.where(np.isfinite(var), rates.rate - plan.dark_rate, 0.0)
     if kernel is not None:
@@ -373,23 +371,6 @@ def _cube_spectra(cubes, var, var_data, plan):
                                                   "full LSQ cube covariance, sandwich N⁻¹BN⁻¹ with the pixels' "
                                                   "variance (propagate_variance)")
     return spectra, noise
-
-
-def _extra_dark(raw_path, shape):
-    """The bad pixels' extra dark [e-/s] (ny, nx) a ramp file records (``truth/bad_pixels/extra_dark``: warm
-    and hot pixels, the per-pixel part of the dark its reference files' DARK holds), or None."""
-    if not isinstance(raw_path, (str, os.PathLike)):
-        return None
-    import h5py
-    try:
-        with h5py.File(raw_path, "r") as fh:
-            node = fh.get("truth/bad_pixels/extra_dark")
-            if node is None or tuple(node.shape) != tuple(shape):
-                return None
-            extra = np.asarray(node[...], np.float64)
-    except OSError:                                   # not HDF5 (a level-1b FITS file): no map
-        return None
-    return np.where(np.isfinite(extra), extra, 0.0)
 
 
 def _raw_attrs(raw_path):

@@ -1,0 +1,52 @@
+"""The per-pixel part of a simulated detector's dark, as a pipeline's dark reference file holds it.
+
+A ramp file records its detector's uniform dark as ``DARK_RATE`` (dark + thermal dark + ROIC glow /
+t_frame) and, when it has bad pixels, their extra dark (warm and hot pixels) in
+``truth/bad_pixels/extra_dark``: together they are the per-pixel dark of the reference files
+``slicersim reffiles`` writes for the same ramps (:func:`slicersim.products.reference.reference_arrays`),
+the calibration a pipeline subtracts.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+__all__ = ["extra_dark"]
+
+
+def extra_dark(raw_path, shape, ipc_kernel=None):
+    """The bad pixels' extra dark a ramp file records, as the rates see it.
+
+    Parameters
+    ----------
+    raw_path : str or path-like
+        The ramp file (HDF5); anything else (a level-1b FITS file, ramps in memory) has no map.
+    shape : (ny, nx)
+        The detector's shape [px]: a map of another shape is not this detector's.
+    ipc_kernel : numpy.ndarray of shape (3, 3), optional
+        The IPC kernel the rates are seen through (dark charge is coupled to the neighbours like any
+        other charge); None: none.
+
+    Returns
+    -------
+    numpy.ndarray of shape (ny, nx) or None
+        The extra dark [e-/s] (float64, 0 where the file has none or a non-finite value), or None when the
+        file records no map.
+    """
+    if not isinstance(raw_path, (str, os.PathLike)):
+        return None
+    import h5py
+    try:
+        with h5py.File(raw_path, "r") as fh:
+            node = fh.get("truth/bad_pixels/extra_dark")
+            if node is None or tuple(node.shape) != tuple(shape):
+                return None
+            extra = np.asarray(node[...], np.float64)
+    except OSError:                                   # not HDF5 (a level-1b FITS file): no map
+        return None
+    extra = np.where(np.isfinite(extra), extra, 0.0)
+    if ipc_kernel is not None:
+        from slicersim.physics.ipc import apply_ipc
+        extra = apply_ipc(extra, ipc_kernel)
+    return extra

@@ -1,0 +1,34 @@
+"""The per-pixel part of a ramp file's dark (slicersim.reduction.dark): the bad pixels' extra dark as
+the rates see it.  The reduction that subtracts it: tests/reduction/test_closed_loop.py
+(test_the_files_warm_pixels_are_dark_subtracted_pixel_by_pixel)."""
+import h5py
+import numpy as np
+
+from slicersim.physics.ipc import ipc_kernel
+from slicersim.reduction.dark import extra_dark
+
+
+def test_the_files_map_seen_through_ipc(tmp_path):
+    """The recorded map, NaN as 0, coupled to the neighbours by the IPC kernel (charge conserved away from
+    the edges); None for a file without a map, for a map of another shape, for a file that is not
+    HDF5 and for ramps given in memory."""
+    m = np.zeros((6, 8), np.float32)
+    m[3, 4], m[0, 0] = 2.0, np.nan
+    path = tmp_path / "raw.h5"
+    with h5py.File(path, "w") as fh:
+        fh["truth/bad_pixels/extra_dark"] = m
+    plain = extra_dark(str(path), (6, 8))
+    assert plain[3, 4] == 2.0 and plain[0, 0] == 0.0 and plain.sum() == 2.0
+    k = ipc_kernel(0.016, 0.002)
+    seen = extra_dark(path, (6, 8), k)
+    np.testing.assert_allclose(seen[2:5, 3:6], 2.0 * k)
+    assert abs(seen.sum() - 2.0) < 1e-12
+    assert extra_dark(str(path), (8, 6)) is None
+    empty = tmp_path / "empty.h5"
+    with h5py.File(empty, "w") as fh:
+        fh["SCI"] = np.zeros((1, 2, 6, 8))
+    assert extra_dark(str(empty), (6, 8)) is None
+    fits = tmp_path / "uncal.fits"
+    fits.write_bytes(b"SIMPLE  =                    T" + b" " * 2849)
+    assert extra_dark(str(fits), (6, 8)) is None
+    assert extra_dark((np.zeros((1, 2, 6, 8)), None, None, {}), (6, 8)) is None
