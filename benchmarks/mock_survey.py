@@ -204,10 +204,15 @@ def main(argv=None):
                                         [[f"{b['z_lo']:.2f}–{b['z_hi']:.2f}", b["n"], f"{b['bias']:+.4f}",
                                           f"{b['sigma_scatter']:.4f}", f"{b['sigma_reported']:.4f}",
                                           f"{b['mean_pull']:+.2f}"] for b in bins]), ""])
-        for name in ("summary.ecsv", "report.md"):          # the per-target truth comparison, kept
-            src = Path(report["summary"]).parent / name
-            if src.exists():
-                shutil.copy(src, Path(args.out) / f"mock_survey_{name}")
+        folder = Path(report["summary"]).parent
+        if (folder / "summary.ecsv").exists():              # the per-target truth comparison, kept
+            shutil.copy(folder / "summary.ecsv", Path(args.out) / "mock_survey_summary.ecsv")
+        if (folder / "report.md").exists():                 # and the report, its figures renamed with it
+            text = (folder / "report.md").read_text()
+            for png in sorted(folder.glob("*.png")):
+                shutil.copy(png, Path(args.out) / f"mock_survey_{png.name}")
+                text = text.replace(f"]({png.name})", f"](mock_survey_{png.name})")
+            (Path(args.out) / "mock_survey_report.md").write_text(text)
         out = write_results(args.out, "mock_survey", result, md)
         _figure(table, Path(args.out) / "mock_survey.png")
         print(md)
