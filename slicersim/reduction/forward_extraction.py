@@ -154,8 +154,7 @@ _OUTLIER_SIGMA = 5.0
 def isolated_outliers(rate, variance, usable):
     """Pixels brighter than their neighbours along both detector axes (those longer than one pixel):
     above the running median of ``_OUTLIER_WINDOW`` pixels of their row and of their column by more
-    than ``_OUTLIER_SIGMA`` σ
-    (σ² = ``variance``) and by more than half that median.  Hot and warm pixels and the unflagged
+    than ``_OUTLIER_SIGMA`` σ (σ² = ``variance``) and by more than half that median.  Hot and warm pixels and the unflagged
     neighbours of cosmic rays are such points; a spectrum is smooth along the dispersion and a slice's
     image along the slices, so a source's pixels stand out along one axis at most.  In a wide-field
     Lazuli ramp with ``effects = "lazuli"`` warm pixels (0.6 % of them, median 0.3 e-/s against a
