@@ -230,16 +230,28 @@ def fit_block_numpy(sci, gdq, pixeldq, k):
 CPU_WORK_GROUP = 64
 
 
+def _check_out(out, npix):
+    """ValueError unless ``out`` is six writeable C-contiguous (npix,) arrays: float64 ×4, uint32, int32."""
+    dtypes = (np.float64,) * 4 + (np.uint32, np.int32)
+    if len(out) != 6 or any(not isinstance(a, np.ndarray) or a.shape != (npix,) or a.dtype != dt
+                            or not a.flags.c_contiguous or not a.flags.writeable for a, dt in zip(out, dtypes)):
+        raise ValueError(f"out must be six writeable C-contiguous ({npix},) arrays (float64 x4, uint32, int32)")  # internal: fit_ramps's images
 
 
-def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True, wait=True):
+
+
+def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True, wait=True,
+                     out=None):
     """OpenCL version of :func:`fit_block_numpy` (same arguments and results).
 
     workspace : dict reusing device buffers between blocks;  want_gdq=False : GROUPDQ out is None;
     wait=False : return at once a function that waits for the kernel and returns the results, so
-    that the caller can read the next block meanwhile.  On CPU devices the kernel works on the
-    arrays in place (zero-copy): ``sci``, ``gdq`` and ``pixeldq`` must then stay untouched until
-    the results are fetched."""
+    that the caller can read the next block meanwhile;  out : (rate, variance, var_poisson,
+    var_rnoise, dq, njump), C-contiguous writeable (npix,) arrays (float64 ×4, uint32, int32) the
+    results are written into (the caller's images: no copy, no fresh memory), returned as the
+    tuple (rate, variance, var_poisson, var_rnoise) in place of fit.  On CPU devices the kernel
+    works on the arrays in place (zero-copy): ``sci``, ``gdq`` and ``pixeldq`` must then stay
+    untouched until the results are fetched."""
     _check_block(sci, gdq, pixeldq, k)
     opencl.require_fp64()
     nints, n, npix = sci.shape
@@ -254,25 +266,33 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
         work_group = None if gpu else CPU_WORK_GROUP
     elif not 1 <= int(work_group) <= int(dev.max_work_group_size):
         raise ParameterError(f"work_group must be in [1, {int(dev.max_work_group_size)}] on this device, got {work_group}")
-    fit, dq, njump = np.empty((4, npix)), np.empty(npix, np.uint32), np.empty(npix, np.int32)
+    if out is None:
+        fit = np.empty((4, npix))
+        rate, var, vpois, vread = fit
+        dq, njump = np.empty(npix, np.uint32), np.empty(npix, np.int32)
+    else:
+        _check_out(out, npix)
+        rate, var, vpois, vread, dq, njump = out
+        fit = (rate, var, vpois, vread)
     gdq_out = np.empty_like(gdq) if want_gdq else np.empty(1, np.uint8)
-    outputs = (fit, dq, njump, gdq_out)
+    outputs = (rate, var, vpois, vread, dq, njump, gdq_out)
+    names = ("rate", "var", "vpois", "vread", "dq", "njump", "gdq_out")
     zero_copy = not gpu and all(a.flags.writeable for a in (sci, gdq, pixeldq))
     if zero_copy:                    # PoCL: the kernel reads and writes the host arrays themselves
         d_sci, d_gdq, d_pdq = (opencl.host_buffer(a) for a in (sci, gdq, pixeldq))
-        d_fit, d_dq, d_nj, d_gout = (opencl.host_buffer(a) for a in outputs)
+        d_out = [opencl.host_buffer(a) for a in outputs]
     else:
         d_sci = opencl.to_device(sci, opencl.workspace_buffer(workspace, "sci", sci.nbytes))
         d_gdq = opencl.to_device(gdq, opencl.workspace_buffer(workspace, "gdq", gdq.nbytes))
         d_pdq = opencl.to_device(pixeldq, opencl.workspace_buffer(workspace, "pdq", pixeldq.nbytes))
-        d_fit, d_dq, d_nj, d_gout = (opencl.workspace_buffer(workspace, name, a.nbytes)
-                                     for name, a in zip(("fit", "dq", "njump", "gdq_out"), outputs))
+        d_out = [opencl.workspace_buffer(workspace, name, a.nbytes) for name, a in zip(names, outputs)]
     nwords = -(-(n - 1) // 64)
     d_bits = opencl.workspace_buffer(workspace, "bits", 8 * nints * nwords * npix if nints > 1 and k.weighting == "gls" else 8)
     gsize, lsize = (npix,), None
     if work_group:
         gsize, lsize = (-(-npix // int(work_group)) * int(work_group),), (int(work_group),)
-    opencl.launch(kernel, gsize, lsize, d_sci, d_gdq, d_gout, d_bits, d_pdq, d_fit, d_dq, d_nj, np.uint32(npix),
+    d_gout = d_out[-1]
+    opencl.launch(kernel, gsize, lsize, d_sci, d_gdq, d_gout, d_bits, d_pdq, *d_out[:6], np.uint32(npix),
                   np.uint32(nints), np.float64(k.inv_gain), np.float64(k.sg2), np.float64(k.tau),
                   np.float64(k.ccorr), np.float64(min(k.satlim, 1e300)), np.float64(k.jump_thr))
 
@@ -282,20 +302,16 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
     # block's finish() (wait=False, as fit_ramps pipelines its blocks), overwrites them, and a copy
     # enqueued in finish() would read that block's results (seen on an H200: every row block but
     # the last got the rates of the next one; pulls -945 +- 60780 on a 4096² ramp).
-    reads = []
-    if not zero_copy:
-        reads = [opencl.from_device_nowait(host, d_buf)
-                 for d_buf, host in zip((d_fit, d_dq, d_nj, d_gout), outputs) if want_gdq or host is not gdq_out]
+    wanted = [(d_buf, host) for d_buf, host in zip(d_out, outputs) if want_gdq or host is not gdq_out]
+    reads = [] if zero_copy else [opencl.from_device_nowait(host, d_buf) for d_buf, host in wanted]
 
     def finish():
         assert inputs
         if not zero_copy:
             for event in reads:
                 event.wait()
-            return fit, dq, njump, (gdq_out if want_gdq else None)
-        for d_buf, host in zip((d_fit, d_dq, d_nj, d_gout), outputs):
-            if host is gdq_out and not want_gdq:
-                continue
-            opencl.sync_to_host(d_buf, host)
+        else:
+            for d_buf, host in wanted:
+                opencl.sync_to_host(d_buf, host)
         return fit, dq, njump, (gdq_out if want_gdq else None)
     return finish() if wait else finish

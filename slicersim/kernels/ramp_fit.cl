@@ -24,7 +24,8 @@
  * 5. rate = sum P / (tau sum S)  [e-/s]; variance = sum_run w^T T w / (tau sum S)^2 split into
  *    read  sg2 sum_p (w_p - w_{p-1})^2  and Poisson  lam0 ((tau - 2c) sum w^2 + 2c sum w_p w_{p+1}).
  *
- * Output: fit (4, npix) = rate, variance, Poisson variance, read variance [e-^2/s^2];
+ * Output: rate_out, var_out, vpois_out, vread_out (npix each) = rate [e-/s], variance, Poisson
+ * variance, read variance [e-^2/s^2] (four arrays, so that a caller's rate images are written in place);
  * dq = PIXELDQ | SATURATED (any group) | JUMP_DET (any jump) | DO_NOT_USE (no used difference,
  * rate NaN); njump = jumps (detected and flagged on input); gdq_out = GROUPDQ with SATURATED and
  * JUMP_DET set (WANT_GDQ); bits: scratch (nints, NWORDS, npix) of the used flags between the passes
@@ -131,7 +132,8 @@ inline void reload(__global const sci_t *sci, __global const ulong *bits, const 
 }
 
 __kernel void ramp_fit(__global const sci_t *sci, __global const uchar *gdq_in, __global uchar *gdq_out,
-                       __global ulong *bits, __global const uint *pixeldq, __global double *fit,
+                       __global ulong *bits, __global const uint *pixeldq, __global double *rate_out,
+                       __global double *var_out, __global double *vpois_out, __global double *vread_out,
                        __global uint *dq_out, __global int *njump_out, const uint npix, const uint nints,
                        const double inv_gain, const double sg2, const double tau, const double ccorr,
                        const double satlim, const double jump_thr)
@@ -298,16 +300,16 @@ __kernel void ramp_fit(__global const sci_t *sci, __global const uchar *gdq_in, 
         const double n2 = norm * norm;
         const double var_read = sg2 * Q / n2;
         const double var_pois = lam0 * (pois_diag * W2 + 2.0 * ccorr * WW) / n2;
-        fit[p] = P / norm;
-        fit[npix + p] = var_read + var_pois;
-        fit[2 * (size_t)npix + p] = var_pois;
-        fit[3 * (size_t)npix + p] = var_read;
+        rate_out[p] = P / norm;
+        var_out[p] = var_read + var_pois;
+        vpois_out[p] = var_pois;
+        vread_out[p] = var_read;
     } else {
         dq |= DQ_DNU;
-        fit[p] = NAN;
-        fit[npix + p] = NAN;
-        fit[2 * (size_t)npix + p] = NAN;
-        fit[3 * (size_t)npix + p] = NAN;
+        rate_out[p] = NAN;
+        var_out[p] = NAN;
+        vpois_out[p] = NAN;
+        vread_out[p] = NAN;
     }
     dq_out[p] = dq;
     njump_out[p] = njump;

@@ -383,6 +383,10 @@ class _FitSetup:
         self.terms = _refpix_terms(src, self.bias, refpix_kw) if refpix_kw is not None else None
 
 
+#: the per-pixel images of a fit, in the order of the kernel's outputs
+_OUT_KEYS = ("rate", "variance", "var_poisson", "var_rnoise", "dq", "njumps")
+
+
 def _fit_blocks(src, setup, options, backend, out, groupdq):
     """Read, correct and fit every row block into ``out`` (and ``groupdq``); on OpenCL the next block is
     read while the device fits the last one (two host buffer sets, :func:`pipelined`)."""
@@ -402,18 +406,19 @@ def _fit_blocks(src, setup, options, backend, out, groupdq):
             sci, consts = _correct(sci, gdq, y0, y1, setup.consts, setup.bias, setup.terms, setup.coeffs)
         npix = (y1 - y0) * nx
         flat = (sci.reshape(nints, n, npix), gdq.reshape(nints, n, npix), src.pixeldq(y0, y1).reshape(npix), consts)
-        if backend == "opencl":
+        if backend == "opencl":                 # written straight into the images (no copy, no fresh memory)
             return fit_block_opencl(*flat, workspace=workspace, work_group=options.work_group,
-                                    want_gdq=options.return_groupdq, wait=False)
+                                    want_gdq=options.return_groupdq, wait=False,
+                                    out=tuple(out[key][y0:y1].reshape(npix) for key in _OUT_KEYS))
         return fit_block_numpy(*flat)
 
     def store(step, results):
         _, y0, y1 = step
         fit, dq, nj, gout = results
-        for key, val in zip(("rate", "variance", "var_poisson", "var_rnoise"), fit):
-            out[key][y0:y1] = val.reshape(y1 - y0, nx)
-        out["dq"][y0:y1] = dq.reshape(y1 - y0, nx)
-        out["njumps"][y0:y1] = nj.reshape(y1 - y0, nx)
+        for key, val in zip(_OUT_KEYS, (*fit, dq, nj)):
+            target = out[key][y0:y1]
+            if not np.shares_memory(target, val):
+                target[...] = val.reshape(y1 - y0, nx)
         if groupdq is not None:
             groupdq[:, :, y0:y1] = gout.reshape(nints, n, y1 - y0, nx)
 

@@ -450,3 +450,30 @@ def test_isolated_outliers_on_small_and_edge_images():
         im.flat[7] = 50.0
         found = isolated_outliers(im, np.ones(shape), np.ones(shape, bool))
         assert found.flat[7] and found.sum() == 1
+
+
+def test_the_sparse_solve_is_the_weighted_least_squares_and_survives_a_singular_system():
+    """``_solve`` factors AᵀWA sparse (a banded system: the dense Cholesky cost 0.1–0.3 s a call on
+    the 2-core VM): θ̂ and (AᵀWA)⁻¹ equal the dense normal equations' to 1e-10; columns no pixel
+    reaches come back NaN with zero covariance; two identical columns (singular) give the
+    pseudo-inverse's minimum-norm answer, not an error or NaN."""
+    import scipy.sparse as sp
+    from slicersim.reduction.forward_extraction import _solve
+    rng = np.random.default_rng(4)
+    npix, n = 400, 30
+    rows = np.repeat(np.arange(npix), 3)
+    cols = np.clip(rng.integers(0, n - 1, npix)[:, None] + np.arange(3)[None, :], 0, n - 2).ravel()
+    A = sp.csr_matrix((rng.uniform(0.1, 1.0, rows.size), (rows, cols)), shape=(npix, n))   # column n−1: empty
+    v = rng.uniform(0.5, 2.0, npix)
+    d = A @ rng.uniform(1, 5, n) + rng.standard_normal(npix) * np.sqrt(v)
+    theta, cov = _solve(A, d, v)
+    Ad = A.toarray()[:, :-1]
+    G = Ad.T @ (Ad / v[:, None])
+    want = np.linalg.solve(G, Ad.T @ (d / v))
+    assert np.allclose(theta[:-1], want, rtol=1e-10, atol=0) and np.isnan(theta[-1])
+    c = cov()
+    assert np.allclose(c[:-1, :-1], np.linalg.inv(G), rtol=1e-9, atol=1e-14) and not c[-1].any()
+    twin = sp.hstack([A[:, :1], A]).tocsr()                   # column 0 twice: AᵀWA singular
+    theta2, cov2 = _solve(twin, d, v)
+    assert np.all(np.isfinite(theta2[:-1])) and np.isclose(theta2[0], theta2[1], rtol=1e-8)
+    assert np.isclose(theta2[0] + theta2[1], want[0], rtol=1e-8) and np.all(np.isfinite(cov2()))
