@@ -176,19 +176,26 @@ def isolated_outliers(rate, variance, usable):
         The isolated outliers.
     """
     d = np.where(usable, rate, 0.0)
-    sigma = np.sqrt(np.where(usable, variance, np.inf))
     ny, nx = d.shape
     # candidates (cheap, whole image): above the fainter of the two neighbours along the column (pairs of
-    # outliers pass too); the running medians are then taken at the candidates only (the whole-image
-    # filters cost ~3 CPU-s per reduction)
+    # outliers pass too; rows mirrored at the ends); the running medians are then taken at the
+    # candidates only (the whole-image filters cost ~3 CPU-s per reduction)
     if ny > 1:
-        pad = np.pad(d, ((1, 1), (0, 0)), mode="reflect")
-        ys, xs = np.nonzero(usable & (d - np.minimum(pad[:-2], pad[2:]) > _OUTLIER_SIGMA * sigma))
+        excess = np.empty_like(d)
+        np.minimum(d[:-2], d[2:], out=excess[1:-1])
+        excess[0], excess[-1] = d[1], d[-2]
+        np.subtract(d, excess, out=excess)
+        cand = excess > 0
+        cand &= usable
+        np.square(excess, out=excess)
+        with np.errstate(invalid="ignore"):
+            cand &= excess > _OUTLIER_SIGMA ** 2 * np.where(cand, variance, np.inf)
+        ys, xs = np.nonzero(cand)
     else:                                                # one row: the columns say nothing
         ys, xs = np.nonzero(usable)
     keep = np.ones(ys.size, bool)
     offsets = np.arange(-(_OUTLIER_WINDOW // 2), _OUTLIER_WINDOW // 2 + 1)
-    value, thr = d[ys, xs], _OUTLIER_SIGMA * sigma[ys, xs]
+    value, thr = d[ys, xs], _OUTLIER_SIGMA * np.sqrt(variance[ys, xs])
     for n, rows in ((ny, True), (nx, False)):
         if n == 1:                                               # an axis of one pixel says nothing
             continue
