@@ -634,13 +634,10 @@ class _Writer(AtomicH5File):
 
 
 def _write(writer, result):
-    from slicersim.reduction.ramp_fit import FLAG_COMPRESSION
     rates = result["rates"]
     with writer as w:
-        for name, data in (("RATE", rates.rate), ("VAR", rates.variance), ("VAR_POISSON", rates.var_poisson),
-                           ("VAR_RNOISE", rates.var_rnoise), ("DQ", rates.dq), ("NJUMPS", rates.njumps)):
-            w.write(f"rates/{name}", data, attrs={"BUNIT": RATE_UNITS[name]},
-                    **(FLAG_COMPRESSION if name in ("DQ", "NJUMPS") else {}))
+        for name, data, options in rates.datasets():
+            w.write(f"rates/{name}", data, attrs={"BUNIT": RATE_UNITS[name]}, **options)
         if rates.truth_rate is not None:                          # fit_options with_truth=True
             w.write("rates/TRUTH_RATE", rates.truth_rate, attrs={"BUNIT": UNITS["RATE"]})
         for name, cube in result["cubes"].items():
