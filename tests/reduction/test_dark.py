@@ -32,3 +32,30 @@ def test_the_files_map_seen_through_ipc(tmp_path):
     fits.write_bytes(b"SIMPLE  =                    T" + b" " * 2849)
     assert extra_dark(str(fits), (6, 8)) is None
     assert extra_dark((np.zeros((1, 2, 6, 8)), None, None, {}), (6, 8)) is None
+
+
+def test_a_damaged_map_is_one_ramp_file_error(tmp_path):
+    """A map that is not one (a group, strings, a compound or complex type, bool) or whose values no
+    detector has (negative, above 1e6 e-/s) is refused as the file's damage (RampFileError naming the
+    dataset): a group or strings were an AttributeError / ValueError traceback, and a negative or
+    1e30 e-/s map was subtracted (the spectrum's flux came out −3e30 with no error)."""
+    import pytest
+    from slicersim.errors import RampFileError
+    m = np.zeros((6, 8), np.float32)
+    m[3, 4] = 2.0
+    cases = {"group": None, "strings": np.full((6, 8), b"x"), "complex": m.astype(np.complex64),
+             "bool": m > 0, "compound": np.zeros((6, 8), dtype=[("a", "f4"), ("b", "f4")]),
+             "negative": -m, "huge": m * 1e30}
+    for name, data in cases.items():
+        path = tmp_path / f"{name}.h5"
+        with h5py.File(path, "w") as fh:
+            if data is None:
+                fh.create_group("truth/bad_pixels/extra_dark")
+            else:
+                fh["truth/bad_pixels/extra_dark"] = data
+        with pytest.raises(RampFileError, match="truth/bad_pixels/extra_dark"):
+            extra_dark(str(path), (6, 8))
+    ok = tmp_path / "int.h5"                                   # integers are rates too
+    with h5py.File(ok, "w") as fh:
+        fh["truth/bad_pixels/extra_dark"] = m.astype(np.int32)
+    assert extra_dark(str(ok), (6, 8)).sum() == 2.0
