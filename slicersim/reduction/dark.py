@@ -41,7 +41,7 @@ def extra_dark(raw_path, shape, ipc_kernel=None):
     ------
     RampFileError
         The file's map is damaged: not a dataset of real numbers, or a value no detector has (negative,
-        above 1e6 e-/s).
+        above 1e6 e-/s), or corrupt (a failed checksum).
     """
     if not isinstance(raw_path, (str, os.PathLike)):
         return None
@@ -61,7 +61,8 @@ def extra_dark(raw_path, shape, ipc_kernel=None):
                                 "the file is damaged (give dark= a rate or an image, or dark=None)")
         if tuple(node.shape) != tuple(shape):
             return None
-        extra = np.asarray(node[...], np.float64)
+        from slicersim.io.rampfile import read_dataset      # a failed checksum named, not "no map"
+        extra = np.asarray(read_dataset(node, os.fspath(raw_path)), np.float64)
     extra = np.where(np.isfinite(extra), extra, 0.0)
     if np.any(extra < 0) or np.any(extra > _DARK_MAX):
         bad = float(extra[(extra < 0) | (extra > _DARK_MAX)].flat[0])

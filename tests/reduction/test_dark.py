@@ -59,3 +59,25 @@ def test_a_damaged_map_is_one_ramp_file_error(tmp_path):
     with h5py.File(ok, "w") as fh:
         fh["truth/bad_pixels/extra_dark"] = m.astype(np.int32)
     assert extra_dark(str(ok), (6, 8)).sum() == 2.0
+
+
+def test_a_corrupt_map_is_a_checksum_error_not_no_map(tmp_path):
+    """A flipped byte of the map (Fletcher-32 checksums, as the simulator writes it) was swallowed with
+    the OSError of a file that is not HDF5: no map, the warm pixels left in the rates with no word;
+    now "checksum mismatch in dataset truth/bad_pixels/extra_dark"."""
+    import pytest
+    from slicersim.errors import RampFileError
+    path = tmp_path / "raw.h5"
+    with h5py.File(path, "w") as fh:
+        fh.create_dataset("truth/bad_pixels/extra_dark", data=np.ones((6, 8), np.float32), chunks=(3, 8),
+                          fletcher32=True)
+    assert extra_dark(str(path), (6, 8)).sum() == 48.0
+    with h5py.File(path, "r") as fh:
+        offset = fh["truth/bad_pixels/extra_dark"].id.get_chunk_info(0).byte_offset + 3
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        byte = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([byte[0] ^ 0x10]))
+    with pytest.raises(RampFileError, match="checksum mismatch in dataset truth/bad_pixels/extra_dark"):
+        extra_dark(str(path), (6, 8))
