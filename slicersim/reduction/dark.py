@@ -15,7 +15,7 @@ import numpy as np
 from slicersim.errors import RampFileError
 from slicersim.reduction.checks import _DARK_MAX
 
-__all__ = ["extra_dark"]
+__all__ = ["extra_dark", "ipc_kernel_seen"]
 
 
 def extra_dark(raw_path, shape, ipc_kernel=None):
@@ -72,3 +72,15 @@ def extra_dark(raw_path, shape, ipc_kernel=None):
         from slicersim.physics.ipc import apply_ipc
         extra = apply_ipc(extra, ipc_kernel)
     return extra
+
+
+def ipc_kernel_seen(attrs):
+    """The IPC kernel a ramp file's rates are seen through, for :func:`extra_dark` when the reduction does
+    not deconvolve them (``ipc=False``: the charge coupling is in the rates all the same); None where the
+    file records none or its EFFECTS keyword cannot be read (``ipc=False`` is the way to reduce such a
+    file)."""
+    from slicersim.reduction.ipc_correction import ipc_kernel_of
+    try:
+        return ipc_kernel_of(attrs)
+    except RampFileError:
+        return None

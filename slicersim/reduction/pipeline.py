@@ -285,8 +285,9 @@ def _fit_rates(raw_path, plan):
         from slicersim.reduction.ipc_correction import ipc_kernel_of
         kernel = ipc_kernel_of(plan.raw_attrs)
     if plan.dark_kind == "file DARK_RATE":
-        from slicersim.reduction.dark import extra_dark
-        extra = extra_dark(raw_path, shape, kernel)    # the per-pixel part of the detector's dark
+        from slicersim.reduction.dark import extra_dark, ipc_kernel_seen
+        # the per-pixel part of the detector's dark, through IPC whether or not the rates are deconvolved
+        extra = extra_dark(raw_path, shape, kernel if plan.opts.ipc is None else ipc_kernel_seen(plan.raw_attrs))
         if extra is not None:
             plan.dark_rate, plan.dark_kind = plan.dark_rate + extra, "file DARK_RATE + bad pixels' extra dark"
     rate = np.where(np.isfinite(var), rates.rate - plan.dark_rate, 0.0)
