@@ -174,9 +174,16 @@ def isolated_outliers(rate, variance, usable):
     -------
     numpy.ndarray of shape (ny, nx), bool
         The isolated outliers.
+
+    Raises
+    ------
+    ParameterError
+        Arrays that are not 2-D real numbers of one shape, or ``usable`` not boolean.
     """
+    rate, variance, usable = _outlier_inputs(rate, variance, usable)
     d = np.where(usable, rate, 0.0)
-    sigma = np.sqrt(np.where(usable, variance, np.inf))
+    with np.errstate(invalid="ignore"):                  # a negative variance: NaN, never an outlier
+        sigma = np.sqrt(np.where(usable, variance, np.inf))
     ny, nx = d.shape
     # candidates (cheap, whole image): above the fainter of the two neighbours along the column (pairs of
     # outliers pass too); the running medians are then taken at the candidates only (the whole-image
@@ -201,6 +208,21 @@ def isolated_outliers(rate, variance, usable):
     out = np.zeros(d.shape, bool)
     out[ys[keep], xs[keep]] = True
     return out
+
+
+def _outlier_inputs(rate, variance, usable):
+    """The arguments of :func:`isolated_outliers` checked: 2-D real rates, variances of their shape and a
+    boolean ``usable`` of their shape (ParameterError otherwise)."""
+    from slicersim import validation
+    rate = validation.array("rate", rate, ndim=2, finite=False)
+    variance = validation.array("variance", variance, ndim=2, finite=False)
+    usable = np.asarray(usable)
+    if variance.shape != rate.shape:
+        raise ParameterError(f"variance must have the rates' shape {rate.shape}, got {variance.shape}")
+    if usable.dtype != bool or usable.shape != rate.shape:
+        raise ParameterError(f"usable must be a boolean array of the rates' shape {rate.shape}, got "
+                             f"{usable.dtype} of shape {usable.shape}")
+    return rate, variance, usable
 
 
 def _white_light_cube(rate, usable, den, tables, rows):

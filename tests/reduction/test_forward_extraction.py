@@ -450,3 +450,20 @@ def test_isolated_outliers_on_small_and_edge_images():
         im.flat[7] = 50.0
         found = isolated_outliers(im, np.ones(shape), np.ones(shape, bool))
         assert found.flat[7] and found.sum() == 1
+
+
+def test_isolated_outliers_bad_input_is_one_parameter_error():
+    """isolated_outliers is public: arrays that are not 2-D, variance or usable of another shape than the
+    rates, usable that is not boolean, and rates or variances that are not real numbers are one
+    ParameterError naming the argument (they were numpy's ValueError / TypeError / DTypePromotionError,
+    and a usable of integers 2 was silently taken as "no pixel usable" by its bitwise and)."""
+    from slicersim.reduction.forward_extraction import isolated_outliers
+    img, var, usable = np.zeros((6, 5)), np.ones((6, 5)), np.ones((6, 5), bool)
+    for args, name in (((img[0], var[0], usable[0]), "rate"), ((img[None], var[None], usable[None]), "rate"),
+                       ((img, np.ones((5, 6)), usable), "variance"), ((img, var, np.ones((6, 6), bool)), "usable"),
+                       ((img, var, np.full((6, 5), 2)), "usable"), ((img, var, np.ones((6, 5))), "usable"),
+                       ((img, var, None), "usable"), ((np.full((6, 5), "a"), var, usable), "rate"),
+                       ((img + 1j, var, usable), "rate"), ((img, var.astype(complex), usable), "variance")):
+        with pytest.raises(ParameterError, match=name):
+            isolated_outliers(*args)
+
