@@ -173,7 +173,7 @@ def isolated_outliers(rate, variance, usable):
     Returns
     -------
     numpy.ndarray of shape (ny, nx), bool
-        The isolated outliers.
+        The isolated outliers (none in a 1 × 1 image: no neighbour says anything).
 
     Raises
     ------
@@ -185,6 +185,8 @@ def isolated_outliers(rate, variance, usable):
     with np.errstate(invalid="ignore"):                  # a negative variance: NaN, never an outlier
         sigma = np.sqrt(np.where(usable, variance, np.inf))
     ny, nx = d.shape
+    if ny == 1 and nx == 1:                              # no neighbour along either axis: nothing to say
+        return np.zeros(d.shape, bool)
     # candidates (cheap, whole image): above the fainter of the two neighbours along the column (pairs of
     # outliers pass too); the running medians are then taken at the candidates only (the whole-image
     # filters cost ~3 CPU-s per reduction)

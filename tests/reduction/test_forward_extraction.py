@@ -467,3 +467,10 @@ def test_isolated_outliers_bad_input_is_one_parameter_error():
         with pytest.raises(ParameterError, match=name):
             isolated_outliers(*args)
 
+
+def test_a_single_pixel_is_no_outlier():
+    """A 1 × 1 image has no neighbour along either axis: nothing says its pixel is brighter than its
+    neighbours (it was always an outlier, whatever its value, since no axis was tested)."""
+    from slicersim.reduction.forward_extraction import isolated_outliers
+    for value in (0.0, 5.0, 1e6):
+        assert not isolated_outliers(np.array([[value]]), np.ones((1, 1)), np.ones((1, 1), bool)).any()
