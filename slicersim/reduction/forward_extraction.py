@@ -136,7 +136,7 @@ def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
     variance = np.asarray(variance)[r0:r1]
     rate = np.asarray(rate)[r0:r1]
     floor = 0.0
-    usable = np.isfinite(variance) & (variance > 0)
+    usable = np.isfinite(variance) & (variance > 0) & np.isfinite(rate)
     usable &= ~isolated_outliers(rate, variance, usable)
     den = gather(usable.astype(float), tables, band=True)    # Σ_λ Pᵀ1: shared by both cubes
     if noise_floor:
@@ -526,6 +526,7 @@ class _Problem:
         rows = np.flatnonzero(reach > _ROW_REACH * reach.max())
         self.rows = np.arange(max(rows.min() - 2, 0), min(rows.max() + 3, ny))   # margin for the position's moves
         self.pixel_var = variance.ravel()
+        self.pixel_rate = rate.ravel()
         self.fp = _Footprint(tables, self.rows, self.usable)
         if self.fp.pixels.size == 0:
             raise ReductionError(f"no usable pixel in the {opts.field} field around the source")
@@ -535,8 +536,10 @@ class _Problem:
         self.qe = np.asarray(sim.qe, float)
 
     def usable(self, pix):
+        """Pixels with a variance and a finite rate (a NaN or inf rate is no rate: fitted, it made every
+        bin NaN)."""
         v = self.pixel_var[pix]
-        return np.isfinite(v) & (v > 0)
+        return np.isfinite(v) & (v > 0) & np.isfinite(self.pixel_rate[pix])
 
     def psf(self, pos):
         return _psf(self.sim, self.profile, pos)

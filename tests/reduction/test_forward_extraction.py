@@ -474,3 +474,29 @@ def test_a_single_pixel_is_no_outlier():
     from slicersim.reduction.forward_extraction import isolated_outliers
     for value in (0.0, 5.0, 1e6):
         assert not isolated_outliers(np.array([[value]]), np.ones((1, 1)), np.ones((1, 1), bool)).any()
+
+
+@pytest.mark.slow
+def test_pixels_without_a_finite_rate_are_left_out_not_spread_over_the_spectrum(scene):
+    """A rate that is NaN or ±inf where the variance is finite (a pixel without a rate) was fitted: one
+    NaN pixel in a thousand made every bin NaN, and one inf pixel, rejected but weighted 0 × inf, too —
+    with exit "converged" and no error.  Such pixels are left out like those without a variance: the
+    spectrum is that of the same image without them; an image without any finite rate has no usable
+    pixel (ReductionError), as one without any variance."""
+    rng = np.random.default_rng(5)
+    img = scene["image"] + np.sqrt(scene["var"]) * rng.standard_normal(scene["image"].shape)
+    kw = dict(sim=scene["sim"], mapper=scene["mapper"], position=(0.0, 0.0))
+    ref = extract_forward(img, scene["var"], **kw)
+    pix = ref.diagnostics["pixel_index"]
+    bad = img.copy()
+    bad.ravel()[pix[::2000]] = np.nan
+    bad.ravel()[pix[1000::2000]] = np.inf
+    bad.ravel()[pix[500::4000]] = -np.inf
+    s = extract_forward(bad, scene["var"], **kw)
+    band = _band(scene["edges"])
+    assert np.isfinite(s.flux[band]).all()
+    err = np.sqrt(np.diag(ref.diagnostics["covariance"]))[band]
+    assert np.abs(s.flux[band] - ref.flux[band]).max() < 0.1 * err.min()
+    assert s.diagnostics["pixels"] == pix.size - pix[::1000].size - pix[500::4000].size
+    with pytest.raises(ReductionError, match="no usable pixel"):
+        extract_forward(np.full(img.shape, np.nan), scene["var"], **kw)
