@@ -63,6 +63,9 @@ _REJECT_SCHEDULE = (100.0, 20.0)
 #: the fit has converged when the position moves less than ``_POSITION_TOL`` and at most this fraction
 #: of the pixels changed side of the rejection threshold (pixels right at the threshold may flip)
 _REJECT_STABLE = 1e-4
+#: a fit that rejects more than this fraction of its pixels is refused: no model explains the image (with
+#: 60 % of the pixels outliers the fit left out 90 % of them and returned native fluxes of 1e150 e-/s)
+_MAX_REJECTED = 0.5
 
 
 def instrument_model(config="cbe", field="narrow", conventions=None):
@@ -624,12 +627,18 @@ def _position_step(prob, fit, F, h=0.02):
 
 
 def _check_fit(prob, fit):
-    """Refuse a fit that did not converge, or whose position is far from the light's centroid."""
+    """Refuse a fit that did not converge, that rejected more than ``_MAX_REJECTED`` of its pixels, or whose
+    position is far from the light's centroid."""
     pos, start = fit.pos, prob.start
     if not fit.converged:
         raise ReductionError(f"the point-source fit in the {prob.field} field did not converge in {_MAX_ITER} "
                              f"iterations (position ({pos[0] / prob.opts.cell_scale[0]:.3f}, {pos[1]:.3f}) cells): "
                              "give position=")
+    frac = np.count_nonzero(fit.rejected) / max(fit.rejected.size, 1)
+    if frac > _MAX_REJECTED:
+        raise ReductionError(f"the point-source fit in the {prob.field} field rejected {100 * frac:.0f} % of its "
+                             f"{fit.rejected.size} pixels (more than {100 * _MAX_REJECTED:.0f} %): no point-source model "
+                             "explains the image (outliers or light that is not a point source)")
     if prob.fixed:
         return
     sig = np.asarray(prob.sim.psf_sigmas, float)                 # (σ_y, σ_x) per bin [cells]

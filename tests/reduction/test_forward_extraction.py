@@ -500,3 +500,22 @@ def test_pixels_without_a_finite_rate_are_left_out_not_spread_over_the_spectrum(
     assert s.diagnostics["pixels"] == pix.size - pix[::1000].size - pix[500::4000].size
     with pytest.raises(ReductionError, match="no usable pixel"):
         extract_forward(np.full(img.shape, np.nan), scene["var"], **kw)
+
+
+@pytest.mark.slow
+def test_a_fit_that_rejects_most_of_its_pixels_is_refused(scene):
+    """Three pixels in five of the fitted region +10 … 10⁴ σ: no model explains the image, and the fit
+    that left out 90 % of its pixels was returned as converged (native fluxes up to 1e150 e-/s,
+    overflow warnings, no error).  A fit that rejects more than half of its pixels is refused
+    (ReductionError naming the fraction); one pixel in fifty stays fine
+    (test_outliers_everywhere_do_not_take_the_source_core_with_them)."""
+    rng = np.random.default_rng(20261207)
+    img = scene["image"] + np.sqrt(scene["var"]) * rng.standard_normal(scene["image"].shape)
+    kw = dict(sim=scene["sim"], mapper=scene["mapper"], position=(0.0, 0.0))
+    pix = extract_forward(img, scene["var"], **kw).diagnostics["pixel_index"]
+    hit = rng.choice(pix, 3 * pix.size // 5, replace=False)
+    img.ravel()[hit] += np.sqrt(scene["var"].ravel()[hit]) * 10 ** rng.uniform(1, 4, hit.size)
+    with pytest.raises(ReductionError, match="rejected"):
+        with np.errstate(all="ignore"):
+            s = extract_forward(img, scene["var"], **kw)
+            print(s.diagnostics["rejected_pixels"], s.diagnostics["pixels"], np.nanmax(np.abs(s.flux)))
