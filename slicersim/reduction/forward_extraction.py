@@ -152,6 +152,9 @@ def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
 #: running-median window [pixels] and threshold [σ] of :func:`isolated_outliers`
 _OUTLIER_WINDOW = 7
 _OUTLIER_SIGMA = 5.0
+#: candidates whose running medians are taken at once (~350 B each): a variance far below the noise
+#: makes most pixels candidates, and a 4096² image then took ~3 GB
+_OUTLIER_CHUNK = 1 << 17
 
 
 def isolated_outliers(rate, variance, usable):
@@ -198,20 +201,22 @@ def isolated_outliers(rate, variance, usable):
         ys, xs = np.nonzero(usable & (d - np.minimum(pad[:-2], pad[2:]) > _OUTLIER_SIGMA * sigma))
     else:                                                # one row: the columns say nothing
         ys, xs = np.nonzero(usable)
-    keep = np.ones(ys.size, bool)
     offsets = np.arange(-(_OUTLIER_WINDOW // 2), _OUTLIER_WINDOW // 2 + 1)
-    value, thr = d[ys, xs], _OUTLIER_SIGMA * sigma[ys, xs]
-    for n, rows in ((ny, True), (nx, False)):
-        if n == 1:                                               # an axis of one pixel says nothing
-            continue
-        at = np.abs((ys if rows else xs)[:, None] + offsets[None, :])   # mirrored at both ends ("mirror")
-        at = np.where(at > n - 1, 2 * (n - 1) - at, at)
-        at = np.clip(at, 0, n - 1)                               # windows longer than the axis
-        window = d[at, xs[:, None]] if rows else d[ys[:, None], at]
-        med = np.median(window, axis=1)
-        keep &= (value - med > thr) & (value - med > 0.5 * np.abs(med))
     out = np.zeros(d.shape, bool)
-    out[ys[keep], xs[keep]] = True
+    for c in range(0, ys.size, _OUTLIER_CHUNK):       # bounded memory when most pixels are candidates
+        cy, cx = ys[c:c + _OUTLIER_CHUNK], xs[c:c + _OUTLIER_CHUNK]
+        keep = np.ones(cy.size, bool)
+        value, thr = d[cy, cx], _OUTLIER_SIGMA * sigma[cy, cx]
+        for n, rows in ((ny, True), (nx, False)):
+            if n == 1:                                           # an axis of one pixel says nothing
+                continue
+            at = np.abs((cy if rows else cx)[:, None] + offsets[None, :])   # mirrored at both ends ("mirror")
+            at = np.where(at > n - 1, 2 * (n - 1) - at, at)
+            at = np.clip(at, 0, n - 1)                           # windows longer than the axis
+            window = d[at, cx[:, None]] if rows else d[cy[:, None], at]
+            med = np.median(window, axis=1)
+            keep &= (value - med > thr) & (value - med > 0.5 * np.abs(med))
+        out[cy[keep], cx[keep]] = True
     return out
 
 
