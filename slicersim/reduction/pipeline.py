@@ -569,7 +569,7 @@ def check_spectrum_has_signal(spec, name, dark_rate=0.0):
     flux = np.asarray(spec.flux, float)
     if np.isfinite(flux).any():
         return
-    dark = float(np.max(dark_rate)) if np.size(dark_rate) else 0.0
+    dark = float(np.median(dark_rate)) if np.size(dark_rate) else 0.0     # a typical pixel's, not a hot pixel's
     cause = (f"the dark rate subtracted ({dark:g} e-/s per pixel) exceeds the signal everywhere: check --dark"
              if dark > 0 else "every pixel of the source is flagged (saturated or bad) or has no variance")
     raise ReductionError(f"the {name} field's spectrum has no finite bin: {cause}")

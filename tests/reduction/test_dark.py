@@ -108,3 +108,20 @@ def test_the_extra_dark_is_seen_through_the_files_ipc_when_the_rates_are_not_dec
         assert r["dark_kind"] == "file DARK_RATE + bad pixels' extra dark"
         np.testing.assert_allclose(r["dark_rate"], float(r["rates"].attrs["DARK_RATE"]) + apply_ipc(extra, kernel),
                                    rtol=1e-12, atol=1e-12, err_msg=f"ipc={ipc}")
+
+
+def test_no_finite_bin_is_not_blamed_on_the_warm_pixels_dark():
+    """With dark="auto" the dark subtracted is an image whose warm and hot pixels reach 100 e-/s: a
+    spectrum without a finite bin was blamed on "the dark rate subtracted (100 e-/s per pixel) ...: check
+    --dark" (its maximum) although a typical pixel had 0.01 e-/s; the typical pixel's dark is what
+    could exceed the signal everywhere."""
+    from types import SimpleNamespace
+    from slicersim.errors import ReductionError
+    from slicersim.reduction.pipeline import check_spectrum_has_signal
+    empty = SimpleNamespace(flux=np.full(4, np.nan))
+    dark = np.full((50, 40), 0.01)
+    dark[::7, ::5] = 100.0
+    with pytest.raises(ReductionError, match=r"\(0\.01 e-/s per pixel\)"):
+        check_spectrum_has_signal(empty, "narrow", dark)
+    with pytest.raises(ReductionError, match=r"\(1e\+06 e-/s per pixel\)"):
+        check_spectrum_has_signal(empty, "narrow", np.full((50, 40), 1e6))
