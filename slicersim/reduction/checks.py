@@ -558,7 +558,8 @@ def dark_rate_of(dark, rates, shape):
     "image".
 
     ``"auto"``: the file's DARK_RATE (dark + thermal dark + ROIC glow / t_frame, the detector's
-    expectation the simulator records; hot and warm pixels' extra dark is truth, not part of it);
+    expectation the simulator records; the bad pixels' extra dark, in the file's truth, is added by the pipeline:
+    :func:`slicersim.reduction.dark.extra_dark`);
     a file without it (e.g. a JWST level-1b file) gets nothing subtracted, with a warning.  A number
     or a detector-shaped float image [e-/s]; None: nothing."""
     if dark is None:

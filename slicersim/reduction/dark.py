@@ -12,7 +12,10 @@ import os
 
 import numpy as np
 
-__all__ = ["extra_dark"]
+from slicersim.errors import RampFileError
+from slicersim.reduction.checks import _DARK_MAX
+
+__all__ = ["extra_dark", "ipc_kernel_seen"]
 
 
 def extra_dark(raw_path, shape, ipc_kernel=None):
@@ -33,20 +36,51 @@ def extra_dark(raw_path, shape, ipc_kernel=None):
     numpy.ndarray of shape (ny, nx) or None
         The extra dark [e-/s] (float64, 0 where the file has none or a non-finite value), or None when the
         file records no map.
+
+    Raises
+    ------
+    RampFileError
+        The file's map is damaged: not a dataset of real numbers, or a value no detector has (negative,
+        above 1e6 e-/s), or corrupt (a failed checksum).
     """
     if not isinstance(raw_path, (str, os.PathLike)):
         return None
     import h5py
     try:
-        with h5py.File(raw_path, "r") as fh:
-            node = fh.get("truth/bad_pixels/extra_dark")
-            if node is None or tuple(node.shape) != tuple(shape):
-                return None
-            extra = np.asarray(node[...], np.float64)
+        fh = h5py.File(raw_path, "r")
     except OSError:                                   # not HDF5 (a level-1b FITS file): no map
         return None
+    where = f"truth/bad_pixels/extra_dark of {os.fspath(raw_path)}"
+    with fh:
+        node = fh.get("truth/bad_pixels/extra_dark")
+        if node is None:
+            return None
+        if not isinstance(node, h5py.Dataset) or node.dtype.kind not in "iuf":
+            raise RampFileError(f"{where} is not a map of real rates [e-/s] "
+                                f"({'a group' if not isinstance(node, h5py.Dataset) else node.dtype}): "
+                                "the file is damaged (give dark= a rate or an image, or dark=None)")
+        if tuple(node.shape) != tuple(shape):
+            return None
+        from slicersim.io.rampfile import read_dataset      # a failed checksum named, not "no map"
+        extra = np.asarray(read_dataset(node, os.fspath(raw_path)), np.float64)
     extra = np.where(np.isfinite(extra), extra, 0.0)
+    if np.any(extra < 0) or np.any(extra > _DARK_MAX):
+        bad = float(extra[(extra < 0) | (extra > _DARK_MAX)].flat[0])
+        raise RampFileError(f"{where} holds {bad:g} e-/s, not a dark rate (≥ 0 and ≤ {_DARK_MAX:g} e-/s): "
+                            "the file is damaged (give dark= a rate or an image, or dark=None)")
     if ipc_kernel is not None:
         from slicersim.physics.ipc import apply_ipc
         extra = apply_ipc(extra, ipc_kernel)
     return extra
+
+
+def ipc_kernel_seen(attrs):
+    """The IPC kernel a ramp file's rates are seen through, for :func:`extra_dark` when the reduction does
+    not deconvolve them (``ipc=False``: the charge coupling is in the rates all the same); None where the
+    file records none or its EFFECTS keyword cannot be read (``ipc=False`` is the way to reduce such a
+    file)."""
+    from slicersim.reduction.ipc_correction import ipc_kernel_of
+    try:
+        return ipc_kernel_of(attrs)
+    except RampFileError:
+        return None

@@ -63,6 +63,9 @@ _REJECT_SCHEDULE = (100.0, 20.0)
 #: the fit has converged when the position moves less than ``_POSITION_TOL`` and at most this fraction
 #: of the pixels changed side of the rejection threshold (pixels right at the threshold may flip)
 _REJECT_STABLE = 1e-4
+#: a fit that rejects more than this fraction of its pixels is refused: no model explains the image (with
+#: 60 % of the pixels outliers the fit left out 90 % of them and returned native fluxes of 1e150 e-/s)
+_MAX_REJECTED = 0.5
 
 
 def instrument_model(config="cbe", field="narrow", conventions=None):
@@ -136,7 +139,7 @@ def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
     variance = np.asarray(variance)[r0:r1]
     rate = np.asarray(rate)[r0:r1]
     floor = 0.0
-    usable = np.isfinite(variance) & (variance > 0)
+    usable = np.isfinite(variance) & (variance > 0) & np.isfinite(rate)
     usable &= ~isolated_outliers(rate, variance, usable)
     den = gather(usable.astype(float), tables, band=True)    # Σ_λ Pᵀ1: shared by both cubes
     if noise_floor:
@@ -149,6 +152,9 @@ def white_light_start(rate, variance, tables, rows=None, noise_floor=False):
 #: running-median window [pixels] and threshold [σ] of :func:`isolated_outliers`
 _OUTLIER_WINDOW = 7
 _OUTLIER_SIGMA = 5.0
+#: candidates whose running medians are taken at once (~350 B each): a variance far below the noise
+#: makes most pixels candidates, and a 4096² image then took ~3 GB
+_OUTLIER_CHUNK = 1 << 17
 
 
 def isolated_outliers(rate, variance, usable):
@@ -173,10 +179,18 @@ def isolated_outliers(rate, variance, usable):
     Returns
     -------
     numpy.ndarray of shape (ny, nx), bool
-        The isolated outliers.
+        The isolated outliers (none in a 1 × 1 image: no neighbour says anything).
+
+    Raises
+    ------
+    ParameterError
+        Arrays that are not 2-D real numbers of one shape, or ``usable`` not boolean.
     """
+    rate, variance, usable = _outlier_inputs(rate, variance, usable)
     d = np.where(usable, rate, 0.0)
     ny, nx = d.shape
+    if ny == 1 and nx == 1:                              # no neighbour along either axis: nothing to say
+        return np.zeros(d.shape, bool)
     # candidates (cheap, whole image): above the fainter of the two neighbours along the column (pairs of
     # outliers pass too; rows mirrored at the ends); the running medians are then taken at the
     # candidates only (the whole-image filters cost ~3 CPU-s per reduction)
@@ -193,21 +207,39 @@ def isolated_outliers(rate, variance, usable):
         ys, xs = np.nonzero(cand)
     else:                                                # one row: the columns say nothing
         ys, xs = np.nonzero(usable)
-    keep = np.ones(ys.size, bool)
     offsets = np.arange(-(_OUTLIER_WINDOW // 2), _OUTLIER_WINDOW // 2 + 1)
-    value, thr = d[ys, xs], _OUTLIER_SIGMA * np.sqrt(variance[ys, xs])
-    for n, rows in ((ny, True), (nx, False)):
-        if n == 1:                                               # an axis of one pixel says nothing
-            continue
-        at = np.abs((ys if rows else xs)[:, None] + offsets[None, :])   # mirrored at both ends ("mirror")
-        at = np.where(at > n - 1, 2 * (n - 1) - at, at)
-        at = np.clip(at, 0, n - 1)                               # windows longer than the axis
-        window = d[at, xs[:, None]] if rows else d[ys[:, None], at]
-        med = np.median(window, axis=1)
-        keep &= (value - med > thr) & (value - med > 0.5 * np.abs(med))
     out = np.zeros(d.shape, bool)
-    out[ys[keep], xs[keep]] = True
+    for c in range(0, ys.size, _OUTLIER_CHUNK):       # bounded memory when most pixels are candidates
+        cy, cx = ys[c:c + _OUTLIER_CHUNK], xs[c:c + _OUTLIER_CHUNK]
+        keep = np.ones(cy.size, bool)
+        with np.errstate(invalid="ignore"):              # a negative variance: NaN, never an outlier
+            value, thr = d[cy, cx], _OUTLIER_SIGMA * np.sqrt(variance[cy, cx])
+        for n, rows in ((ny, True), (nx, False)):
+            if n == 1:                                           # an axis of one pixel says nothing
+                continue
+            at = np.abs((cy if rows else cx)[:, None] + offsets[None, :])   # mirrored at both ends ("mirror")
+            at = np.where(at > n - 1, 2 * (n - 1) - at, at)
+            at = np.clip(at, 0, n - 1)                           # windows longer than the axis
+            window = d[at, cx[:, None]] if rows else d[cy[:, None], at]
+            med = np.median(window, axis=1)
+            keep &= (value - med > thr) & (value - med > 0.5 * np.abs(med))
+        out[cy[keep], cx[keep]] = True
     return out
+
+
+def _outlier_inputs(rate, variance, usable):
+    """The arguments of :func:`isolated_outliers` checked: 2-D real rates, variances of their shape and a
+    boolean ``usable`` of their shape (ParameterError otherwise)."""
+    from slicersim import validation
+    rate = validation.array("rate", rate, ndim=2, finite=False)
+    variance = validation.array("variance", variance, ndim=2, finite=False)
+    usable = np.asarray(usable)
+    if variance.shape != rate.shape:
+        raise ParameterError(f"variance must have the rates' shape {rate.shape}, got {variance.shape}")
+    if usable.dtype != bool or usable.shape != rate.shape:
+        raise ParameterError(f"usable must be a boolean array of the rates' shape {rate.shape}, got "
+                             f"{usable.dtype} of shape {usable.shape}")
+    return rate, variance, usable
 
 
 def _white_light_cube(rate, usable, den, tables, rows):
@@ -518,6 +550,7 @@ class _Problem:
         rows = np.flatnonzero(reach > _ROW_REACH * reach.max())
         self.rows = np.arange(max(rows.min() - 2, 0), min(rows.max() + 3, ny))   # margin for the position's moves
         self.pixel_var = variance.ravel()
+        self.pixel_rate = rate.ravel()
         self.fp = _Footprint(tables, self.rows, self.usable)
         if self.fp.pixels.size == 0:
             raise ReductionError(f"no usable pixel in the {opts.field} field around the source")
@@ -527,8 +560,10 @@ class _Problem:
         self.qe = np.asarray(sim.qe, float)
 
     def usable(self, pix):
+        """Pixels with a variance and a finite rate (a NaN or inf rate is no rate: fitted, it made every
+        bin NaN)."""
         v = self.pixel_var[pix]
-        return np.isfinite(v) & (v > 0)
+        return np.isfinite(v) & (v > 0) & np.isfinite(self.pixel_rate[pix])
 
     def psf(self, pos):
         return _psf(self.sim, self.profile, pos)
@@ -613,12 +648,18 @@ def _position_step(prob, fit, F, h=0.02):
 
 
 def _check_fit(prob, fit):
-    """Refuse a fit that did not converge, or whose position is far from the light's centroid."""
+    """Refuse a fit that did not converge, that rejected more than ``_MAX_REJECTED`` of its pixels, or whose
+    position is far from the light's centroid."""
     pos, start = fit.pos, prob.start
     if not fit.converged:
         raise ReductionError(f"the point-source fit in the {prob.field} field did not converge in {_MAX_ITER} "
                              f"iterations (position ({pos[0] / prob.opts.cell_scale[0]:.3f}, {pos[1]:.3f}) cells): "
                              "give position=")
+    frac = np.count_nonzero(fit.rejected) / max(fit.rejected.size, 1)
+    if frac > _MAX_REJECTED:
+        raise ReductionError(f"the point-source fit in the {prob.field} field rejected {100 * frac:.0f} % of its "
+                             f"{fit.rejected.size} pixels (more than {100 * _MAX_REJECTED:.0f} %): no point-source model "
+                             "explains the image (outliers or light that is not a point source)")
     if prob.fixed:
         return
     sig = np.asarray(prob.sim.psf_sigmas, float)                 # (σ_y, σ_x) per bin [cells]

@@ -288,8 +288,9 @@ def _fit_rates(raw_path, plan):
         from slicersim.reduction.ipc_correction import ipc_kernel_of
         kernel = ipc_kernel_of(plan.raw_attrs)
     if plan.dark_kind == "file DARK_RATE":
-        from slicersim.reduction.dark import extra_dark
-        extra = extra_dark(raw_path, shape, kernel)    # the per-pixel part of the detector's dark
+        from slicersim.reduction.dark import extra_dark, ipc_kernel_seen
+        # the per-pixel part of the detector's dark, through IPC whether or not the rates are deconvolved
+        extra = extra_dark(raw_path, shape, kernel if plan.opts.ipc is None else ipc_kernel_seen(plan.raw_attrs))
         if extra is not None:
             plan.dark_rate, plan.dark_kind = plan.dark_rate + extra, "file DARK_RATE + bad pixels' extra dark"
     rate = np.subtract(rates.rate, plan.dark_rate)          # one image, no temporaries (first touches are dear)
@@ -573,7 +574,7 @@ def check_spectrum_has_signal(spec, name, dark_rate=0.0):
     flux = np.asarray(spec.flux, float)
     if np.isfinite(flux).any():
         return
-    dark = float(np.max(dark_rate)) if np.size(dark_rate) else 0.0
+    dark = float(np.median(dark_rate)) if np.size(dark_rate) else 0.0     # a typical pixel's, not a hot pixel's
     cause = (f"the dark rate subtracted ({dark:g} e-/s per pixel) exceeds the signal everywhere: check --dark"
              if dark > 0 else "every pixel of the source is flagged (saturated or bad) or has no variance")
     raise ReductionError(f"the {name} field's spectrum has no finite bin: {cause}")

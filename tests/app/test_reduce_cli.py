@@ -689,3 +689,22 @@ def test_a_files_reference_pixel_problem_is_not_blamed_on_the_flag():
         text = cli_message(str(err.value))
         assert text.startswith("reference-pixel correction of this file: ") and words in text
         assert text.endswith("(the file's EFFECTS ask for the correction; --no-refpix, skips it)"), text
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("damage", ["group", "strings", "negative"])
+def test_reduce_spectra_with_a_damaged_extra_dark_is_one_line(small_layout, tmp_path, capsys, damage):
+    """--dark auto reads the file's truth/bad_pixels/extra_dark: a damaged one (a group, strings, negative
+    rates) is one line naming it and writes nothing (a group or strings were an AttributeError /
+    ValueError traceback, negative rates were subtracted silently)."""
+    path, _, _ = small_layout
+    with h5py.File(path) as fh:
+        shape = fh["SCI"].shape[2:]
+    data = {"group": None, "strings": np.full(shape, b"x"), "negative": np.full(shape, -1.0, np.float32)}[damage]
+    bad = _h5_copy(path, tmp_path / "bad.h5", lambda fh: fh.create_group("truth/bad_pixels/extra_dark")
+                   if data is None else fh.create_dataset("truth/bad_pixels/extra_dark", data=data))
+    out = tmp_path / "red.h5"
+    code = main(["reduce", str(bad), "--out", str(out), "--spectra", "--lbda-edges", EDGES, "--ncol", str(NCOL),
+                 "--quiet"])
+    assert code == 2 and not out.exists()
+    assert "truth/bad_pixels/extra_dark" in _one_line_error(capsys)
