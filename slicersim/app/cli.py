@@ -577,6 +577,9 @@ def _tolerant_streams():
 
 def main(argv=None) -> int:
     import warnings
+    if argv is None:                      # the command itself (not a caller's main([...])): a short-lived process
+        from slicersim.app.allocator import keep_freed_memory
+        keep_freed_memory()
     _tolerant_streams()
     parser = build_parser()
     args = parser.parse_args(argv)
