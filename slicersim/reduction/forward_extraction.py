@@ -315,33 +315,34 @@ class _Footprint:
         # slices whose windows may share pixels with the fitted ones: their light is modelled too
         guard = [s for s in range(S) if s not in core and any(
             x0[s] < x1[c] and x0[c] < x1[s] and y0[s] < y1[c] and y0[c] < y1[s] for c in core)]
-        pix, cell, wgt, mine = [], [], [], []
+        size = int(np.prod(tables.detector_shape))
+        itype = np.int32 if max(size, S * E * Q) < 2 ** 31 else np.int64   # half the bytes to sort and gather
+        mark = np.zeros(size, bool)                              # a mask, not np.unique / np.isin (sorts)
+        parts = []
         for s in core + guard:
             p, c, w = matrix_entries(tables, s * E * Q, (s + 1) * E * Q)
-            pix.append(p)
-            cell.append(c)
-            wgt.append(w)
+            parts.append((p.astype(itype), c.astype(itype), w))
             if s in core:
-                mine.append(p)
-        pix, cell, wgt = np.concatenate(pix), np.concatenate(cell), np.concatenate(wgt)
-        size = int(np.prod(tables.detector_shape))
-        mark = np.zeros(size, bool)                              # a mask, not np.unique / np.isin (sorts)
-        mark[np.concatenate(mine)] = True
+                mark[p] = True
+        pix = np.concatenate([p for p, _, _ in parts])
+        cell = np.concatenate([c for _, c, _ in parts])
+        wgt = np.concatenate([w for _, _, w in parts])
+        del parts
         fitted = np.flatnonzero(mark)
         fitted = fitted[usable(fitted)]
         mark[:] = False
         mark[fitted] = True
-        keep = mark[pix]
+        keep = np.flatnonzero(mark[pix])
+        pix, cell, wgt = pix[keep], cell[keep], wgt[keep]
         self.pixels = fitted                                   # flat detector indices
-        row = np.searchsorted(fitted, pix[keep])
-        cell = cell[keep]
+        row = np.searchsorted(fitted, pix).astype(itype)
         nbin = (cell // Q) % E
-        order = np.lexsort((nbin, row))                         # CSR order, built once (values change)
-        row, nbin = row[order], nbin[order]
-        self.weight = wgt[keep][order]
+        order = np.argsort(row.astype(np.int64) * E + nbin, kind="stable")   # CSR order, built once (values change)
+        row, nbin, cell = row[order], nbin[order], cell[order]
+        self.weight = wgt[order]
         self.bin = nbin.astype(np.int32)
-        self.cube_row = (S - 1 - cell // (E * Q))[order]
-        self.col = (cell % Q)[order]
+        self.cube_row = S - 1 - cell // (E * Q)
+        self.col = cell % Q
         self.nbin = E
         # entries sharing a pixel and a native bin (cells of one bin reaching one pixel) summed into one
         # slot: the matrices have one entry per (pixel, bin), half as many as the entries (Lazuli SN Ia)
