@@ -89,6 +89,7 @@ def steps(raw, out):
     import slicersim.reduction.pipeline as pl
     import slicersim.reduction.ramp_fit as rf
     import slicersim.reduction.rectify as rc
+    import slicersim.reduction.white_light as wl
     spent = {}
 
     def wrap(mod, name, label):
@@ -105,7 +106,7 @@ def steps(raw, out):
         return f
 
     saved = [(rf, "fit_ramps", wrap(rf, "fit_ramps", "ramp fit")),
-             (fe, "white_light_start", wrap(fe, "white_light_start", "white-light start")),
+             (wl, "white_light_start", wrap(wl, "white_light_start", "white-light start")),
              (fe, "extract_forward", wrap(fe, "extract_forward", "forward extraction")),
              (rc, "rectify", wrap(rc, "rectify", "rectification (lsq, 58 columns)")),
              (pl, "_write", wrap(pl, "_write", "writing"))]

@@ -489,8 +489,8 @@ def _reduce_forward(rates, rate, var, plan):
 def _forward_field(name, rates, rate, var, plan):
     """The forward fit of one field (a SpectrumProduct, checked by :func:`check_forward_fit`), or the
     reason there is none (a str: no significant point source and no ``position`` given)."""
-    from slicersim.reduction.forward_extraction import (MIN_DETECTION, extract_forward, instrument_model,
-                                                        white_light_start)
+    from slicersim.reduction.forward_extraction import MIN_DETECTION, extract_forward, instrument_model
+    from slicersim.reduction.white_light import white_light_start
     from slicersim.reduction.options import ForwardOptions, PixelNoise
     from slicersim.reduction.rectify import FIELDS
     model, position = plan.model, plan.opts.position
@@ -588,7 +588,8 @@ def check_forward_fit(spec, rate, var, tables, name, forced=False):
     image (a second source ≥ 5 σ in white light).  With a ``forced`` position the residual is searched
     over the whole field (a source elsewhere, e.g. the SN the position missed, is light left), and a
     spectrum whose band total is below 5 σ is flagged: nothing significant at the position given."""
-    from slicersim.reduction.forward_extraction import MIN_DETECTION, white_light_start
+    from slicersim.reduction.forward_extraction import MIN_DETECTION
+    from slicersim.reduction.white_light import white_light_start
     d = spec.diagnostics
     flags = []
     d["noise_scale"] = level = noise_scale(d["residual"], d["pixel_variance"])

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from slicersim.errors import ParameterError, RampFileError, ReductionError
-from slicersim.reduction.forward_extraction import (aggregate_bins, extract_forward, instrument_model,
-                                                    locate_source, model_config, white_light_start)
+from slicersim.reduction.forward_extraction import aggregate_bins, extract_forward, instrument_model, model_config
+from slicersim.reduction.white_light import locate_source, white_light_start
 
 Z = 0.5
 
@@ -408,7 +408,7 @@ def test_warm_pixels_do_not_hide_a_faint_source_from_the_white_light(scene):
     where it is, at the significance it has without them; on the noiseless bright image no pixel of
     the source is taken for an outlier."""
     from slicersim.instrument.mapper import NARROW_SLICES
-    from slicersim.reduction.forward_extraction import isolated_outliers
+    from slicersim.reduction.white_light import isolated_outliers
     sim = scene["sim"]
     tables = scene["mapper"].projection_tables(NARROW_SLICES, sim.spectrograph.shape[1], scene["edges"])
     rng = np.random.default_rng(20261207)
@@ -433,7 +433,7 @@ def test_isolated_outliers_on_small_and_edge_images():
     """isolated_outliers: a hot pixel in a corner, on an image edge and in a 1-row or 1-column image is
     found (the windows are mirrored at the edges); a pair of outliers along a column is found; a bright
     line along one axis (a spectrum) and pixels without a rate are not."""
-    from slicersim.reduction.forward_extraction import isolated_outliers
+    from slicersim.reduction.white_light import isolated_outliers
     rng = np.random.default_rng(3)
     img, var = rng.normal(0, 1, (40, 30)), np.ones((40, 30))
     usable = np.ones(img.shape, bool)
@@ -484,7 +484,7 @@ def test_isolated_outliers_bad_input_is_one_parameter_error():
     rates, usable that is not boolean, and rates or variances that are not real numbers are one
     ParameterError naming the argument (they were numpy's ValueError / TypeError / DTypePromotionError,
     and a usable of integers 2 was silently taken as "no pixel usable" by its bitwise and)."""
-    from slicersim.reduction.forward_extraction import isolated_outliers
+    from slicersim.reduction.white_light import isolated_outliers
     img, var, usable = np.zeros((6, 5)), np.ones((6, 5)), np.ones((6, 5), bool)
     for args, name in (((img[0], var[0], usable[0]), "rate"), ((img[None], var[None], usable[None]), "rate"),
                        ((img, np.ones((5, 6)), usable), "variance"), ((img, var, np.ones((6, 6), bool)), "usable"),
@@ -498,7 +498,7 @@ def test_isolated_outliers_bad_input_is_one_parameter_error():
 def test_a_single_pixel_is_no_outlier():
     """A 1 × 1 image has no neighbour along either axis: nothing says its pixel is brighter than its
     neighbours (it was always an outlier, whatever its value, since no axis was tested)."""
-    from slicersim.reduction.forward_extraction import isolated_outliers
+    from slicersim.reduction.white_light import isolated_outliers
     for value in (0.0, 5.0, 1e6):
         assert not isolated_outliers(np.array([[value]]), np.ones((1, 1)), np.ones((1, 1), bool)).any()
 
@@ -553,7 +553,7 @@ def test_isolated_outliers_memory_is_bounded_when_most_pixels_are_candidates():
     at once (~350 B per candidate: 205 MiB on a 1024² image, ~3 GB on the full detector); in chunks the
     peak stays below 100 MiB, with the same answer."""
     import tracemalloc
-    from slicersim.reduction.forward_extraction import isolated_outliers
+    from slicersim.reduction.white_light import isolated_outliers
     rng = np.random.default_rng(0)
     img = rng.normal(0, 1, (1024, 1024))
     tracemalloc.start()
