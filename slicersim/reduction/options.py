@@ -180,3 +180,15 @@ class PixelNoise:
     var_poisson: object
     raw_rate: object
     dark_rate: object = 0.0
+
+    def __post_init__(self):
+        # a negative variance makes the model variance negative: the fit ran all its iterations (64 s
+        # on a test image) and then failed with "did not converge"
+        for name in ("var_rnoise", "var_poisson"):
+            value = np.asarray(getattr(self, name))
+            if value.dtype.kind not in "biuf":
+                raise ParameterError(f"{name} must be real numbers [(e-/s)²], got {value.dtype}")
+            with np.errstate(invalid="ignore"):
+                if np.any(value < 0):
+                    raise ParameterError(f"{name} must be ≥ 0 [(e-/s)²] (NaN or inf where a pixel has no "
+                                         f"rate), got a minimum of {float(np.nanmin(value)):g}")
