@@ -287,7 +287,13 @@ def get_program(name: str, options=()):
         prg = _programs.get(key)
         if prg is None:
             src = kernel_source(name)
-            prg = _cl().Program(state["ctx"], src).build(options=list(options), devices=[state["device"]])
+            with warnings.catch_warnings():
+                if os.environ.get("PYOPENCL_COMPILER_OUTPUT", "") in ("", "0"):
+                    # the compiler's notes are not the user's business: PoCL on a CPU without AVX-512
+                    # prints an ABI note for every 8-wide vector (each build, hundreds of lines, turned
+                    # into a warning on every command); PYOPENCL_COMPILER_OUTPUT=1 shows them
+                    warnings.simplefilter("ignore", _cl().CompilerWarning)
+                prg = _cl().Program(state["ctx"], src).build(options=list(options), devices=[state["device"]])
             _programs[key] = prg
         return prg
 

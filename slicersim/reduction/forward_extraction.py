@@ -62,6 +62,10 @@ _REJECT_SCHEDULE = (100.0, 20.0)
 #: the fit has converged when the position moves less than ``_POSITION_TOL`` and at most this fraction
 #: of the pixels changed side of the rejection threshold (pixels right at the threshold may flip)
 _REJECT_STABLE = 1e-4
+#: times the converged fit looks for outliers it absorbed (:func:`_leveraged_outliers`) and goes on without them
+_LEVERAGE_ROUNDS = 3
+#: 1 − leverage below which a pixel's residual says nothing of it (it alone determines a parameter)
+_NO_INFORMATION = 1e-6
 #: a fit that rejects more than this fraction of its pixels is refused: no model explains the image (with
 #: 60 % of the pixels outliers the fit left out 90 % of them and returned native fluxes of 1e150 e-/s)
 _MAX_REJECTED = 0.5
@@ -422,17 +426,42 @@ class _Fit:
         self.phi = None
         self.converged, self.iterations = prob.fixed, 0
         self.A = self.theta = self.cov = None
+        self.leveraged = 0
 
 
 def _fit(prob, noise):
     """Weighted least squares of the flux (and background), model variance, pixel rejection (afresh at
     every iteration, at the thresholds of ``_REJECT_SCHEDULE`` then ``_REJECT_SIGMA``) and Gauss–Newton
     steps of the position until it moves less than ``_POSITION_TOL`` and the rejected pixels are
-    stable; ReductionError when it does not converge or lands far from the light's centroid."""
+    stable; then the outliers the fit absorbed (:func:`_leveraged_outliers`) leave it and it goes on
+    (at most ``_LEVERAGE_ROUNDS`` times).  ReductionError when it does not converge or lands far from
+    the light's centroid."""
     fit = _Fit(prob)
+    sticky = np.zeros(prob.d.size, bool)
+    first = 1
+    for _ in range(_LEVERAGE_ROUNDS + 1):
+        _iterate(prob, noise, fit, sticky, first)
+        _check_fit(prob, fit)
+        cov = fit.cov()                                   # (AᵀWA)⁻¹ of the final solve only
+        extra = _leveraged_outliers(prob, fit, cov)
+        if not extra.any():
+            break
+        sticky |= extra
+        fit.rejected = fit.rejected | extra
+        fit.v = np.where(extra, np.inf, fit.v)
+        fit.converged = prob.fixed
+        first = len(_REJECT_SCHEDULE) + 1                 # at the final threshold straight away
+    fit.leveraged = int(sticky.sum())
+    fit.cov = cov
+    return fit
+
+
+def _iterate(prob, noise, fit, sticky, first):
+    """Iterations ``first`` … of :func:`_fit` (``first`` > 1: the schedule is over); the pixels of
+    ``sticky`` stay rejected."""
     schedule = _REJECT_SCHEDULE + (_REJECT_SIGMA,)
-    for it in range(1, _MAX_ITER + 1):
-        fit.iterations = it
+    for it in range(first, first + _MAX_ITER):
+        fit.iterations += 1
         fit.A = prob.design(fit.pos, fit.phi)
         fit.theta, fit.cov = _solve(fit.A, prob.d, fit.v)
         F = np.nan_to_num(fit.theta[:prob.nl])
@@ -441,13 +470,14 @@ def _fit(prob, noise):
         # pixels the model cannot explain (an unflagged cosmic ray or hot pixel) leave the fit
         with np.errstate(invalid="ignore", divide="ignore"):
             rejected = np.abs(prob.d - model) > schedule[min(it, len(schedule)) - 1] * np.sqrt(v)
+        rejected |= sticky
         stable = it >= len(schedule) and np.count_nonzero(rejected != fit.rejected) <= _REJECT_STABLE * rejected.size
         fit.rejected = rejected
         fit.v = np.where(rejected, np.inf, v)
         fit.phi = _photon_spectrum(prob.sim, F, prob.qe)
         if prob.fixed:
             if stable:
-                break
+                return
             continue
         delta = _position_step(prob, fit, F)
         fit.pos = fit.pos + delta
@@ -456,10 +486,55 @@ def _fit(prob, noise):
             fit.converged = True
             fit.A = prob.design(fit.pos, fit.phi)
             fit.theta, fit.cov = _solve(fit.A, prob.d, fit.v)
-            break
-    _check_fit(prob, fit)
-    fit.cov = fit.cov()                                   # (AᵀWA)⁻¹ of the final solve only
-    return fit
+            return
+
+
+def _leveraged_outliers(prob, fit, cov):
+    """Fitted pixels whose studentized residual |r| / √(v (1 − h)) exceeds ``_REJECT_SIGMA`` (h: the
+    pixel's leverage w aᵀ C a).  A pixel that alone determines some combination of the native fluxes
+    (h → 1: at the blue end a bin is seen by few pixels) is followed by the model: its plain residual is
+    small whatever its rate.  One outlier among 2 % (h = 0.9993, plain 0.25 σ, studentized 9.2 σ) set
+    native bins 4–8 of a Lazuli SN Ia to +25, −7, +2 … e-/s against a truth of 0.003, χ² normal.
+    Pixels with 1 − h < ``_NO_INFORMATION`` say nothing of themselves and are kept."""
+    kept = np.isfinite(fit.v)
+    out = np.zeros(kept.size, bool)
+    if not kept.any():
+        return out
+    A = fit.A.tocsr()
+    w = np.where(kept, 1.0 / np.where(kept, fit.v, 1.0), 0.0)
+    r = prob.d - A @ np.nan_to_num(fit.theta)
+    z2 = r * r * w
+    # h ≤ w (Σ |a_s| √C_ss)² (Cauchy–Schwarz): the exact leverage only where that bound could flag
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    per_entry = np.abs(A.data) * sd[A.indices]
+    counts = np.diff(A.indptr)
+    row_sum = np.zeros(A.shape[0])
+    has = counts > 0
+    row_sum[has] = np.add.reduceat(per_entry, A.indptr[:-1][has]) if per_entry.size else 0.0
+    need = np.flatnonzero(kept & (w * row_sum ** 2 >= 1.0 - z2 / _REJECT_SIGMA ** 2))
+    if need.size == 0:
+        return out
+    room = 1.0 - _leverage(A[need], w[need], cov)
+    with np.errstate(invalid="ignore"):
+        out[need] = (room > _NO_INFORMATION) & (z2[need] > _REJECT_SIGMA ** 2 * room)
+    return out
+
+
+def _leverage(A, w, cov):
+    """h_i = w_i a_iᵀ C a_i per row of the CSR design ``A`` (C the covariance of the fit)."""
+    counts = np.diff(A.indptr)
+    start = A.indptr[:-1]
+    h = np.zeros(A.shape[0])
+    rows = [np.flatnonzero(counts > p) for p in range(int(counts.max(initial=0)))]
+    for p, rp in enumerate(rows):
+        ip = start[rp] + p
+        cp, ap = A.indices[ip], A.data[ip]
+        h[rp] += ap * ap * cov[cp, cp]
+        for q in range(p + 1, len(rows)):
+            rq = rows[q]                                   # rows with more than q entries (⊂ rp)
+            ip, iq = start[rq] + p, start[rq] + q
+            h[rq] += 2.0 * A.data[ip] * A.data[iq] * cov[A.indices[ip], A.indices[iq]]
+    return w * h
 
 
 def _data_or_model(prob, noise, model):
@@ -533,7 +608,7 @@ def _spectrum(prob, fit, model_variance):
     ee = M @ prob.psf(fit.pos).sum(axis=(1, 2)) / np.where(wsum > 0, wsum, 1.0)
     diag = {"position_native_cells": tuple(float(p) for p in fit.pos), "start": tuple(float(p) for p in prob.start),
             "iterations": fit.iterations, "converged": fit.converged, "chi2": chi2, "dof": dof, "chi2_dof": chi2 / dof,
-            "pixels": int(npix), "rejected_pixels": nrej, "native_flux": Fn, "native_covariance": Cn,
+            "pixels": int(npix), "rejected_pixels": nrej, "leveraged_pixels": fit.leveraged, "native_flux": Fn, "native_covariance": Cn,
             "covariance": cbin, "rows": prob.rows.tolist(),
             "variance_model": "(AᵀWA)⁻¹, W the model variance" if model_variance else "(AᵀWA)⁻¹",
             "pixel_index": prob.fp.pixels, "pixel_variance": fit.v, "residual": np.where(fit.rejected, 0.0, resid),
