@@ -86,10 +86,18 @@ class RateProduct:
         return np.sqrt(self.variance)
 
     def datasets(self):
-        """(name, array, h5py options) of the images as files store them: RATE, VAR, VAR_POISSON,
-        VAR_RNOISE in float32 (:data:`RATE_STORAGE`, as JWST rate files; 6e-8 relative, far below
-        any rate's noise: half the disk and write time of float64), DQ and NJUMPS compressed
-        (:data:`FLAG_COMPRESSION`).  The truth rate is not among them (kept in float64)."""
+        """The images as files store them.
+
+        RATE, VAR, VAR_POISSON, VAR_RNOISE in float32 (``RATE_STORAGE``, as JWST rate files; 6e-8
+        relative, far below any rate's noise: half the disk and write time of float64), DQ and
+        NJUMPS compressed (``FLAG_COMPRESSION``: gzip 1 with shuffle).  The truth rate is not among
+        them (kept in float64).
+
+        Yields
+        ------
+        tuple of (str, numpy.ndarray, dict)
+            Dataset name, its (ny, nx) array and the h5py ``create_dataset`` options.
+        """
         for name, data in (("RATE", self.rate), ("VAR", self.variance), ("VAR_POISSON", self.var_poisson),
                            ("VAR_RNOISE", self.var_rnoise)):
             yield name, np.asarray(data, RATE_STORAGE), {}
