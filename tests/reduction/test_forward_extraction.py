@@ -369,6 +369,19 @@ def test_noise_above_the_ramp_fit_s_variance_is_not_a_misfit(scene):
 
 
 @pytest.mark.slow
+def _fits_without_and_with_outliers(scene, seed):
+    """Forward fits of a white-noise image of the scene, then of the same image with one fitted pixel in
+    fifty +10 … 10⁴ σ: (fit without, fit with, fitted pixels, the outlier pixels)."""
+    rng = np.random.default_rng(seed)
+    img = scene["image"] + np.sqrt(scene["var"]) * rng.standard_normal(scene["image"].shape)
+    ref = extract_forward(img, scene["var"], sim=scene["sim"], mapper=scene["mapper"], start=(0.1, -0.1))
+    pix = ref.diagnostics["pixel_index"]
+    hit = rng.choice(pix, pix.size // 50, replace=False)
+    img.ravel()[hit] += np.sqrt(scene["var"].ravel()[hit]) * 10 ** rng.uniform(1, 4, hit.size)
+    s = extract_forward(img, scene["var"], sim=scene["sim"], mapper=scene["mapper"], start=(0.1, -0.1))
+    return ref, s, pix, hit
+
+
 def test_outliers_everywhere_do_not_take_the_source_core_with_them(scene):
     """One pixel in fifty of the fitted region +10 … 10⁴ σ (hot pixels and the unflagged
     neighbours of cosmic rays, as ``effects = "lazuli"`` leaves them) on a white-noise image: the first
@@ -377,13 +390,7 @@ def test_outliers_everywhere_do_not_take_the_source_core_with_them(scene):
     rejection is decided afresh at every iteration from thresholds that start high: the core stays in
     (≤ 3 % of it rejected), the outliers go (the earlier fit kept some: its first position was
     wrong) and the band flux is that of the same image without them within σ/2."""
-    rng = np.random.default_rng(20261207)
-    img = scene["image"] + np.sqrt(scene["var"]) * rng.standard_normal(scene["image"].shape)
-    ref = extract_forward(img, scene["var"], sim=scene["sim"], mapper=scene["mapper"], start=(0.1, -0.1))
-    pix = ref.diagnostics["pixel_index"]
-    hit = rng.choice(pix, pix.size // 50, replace=False)
-    img.ravel()[hit] += np.sqrt(scene["var"].ravel()[hit]) * 10 ** rng.uniform(1, 4, hit.size)
-    s = extract_forward(img, scene["var"], sim=scene["sim"], mapper=scene["mapper"], start=(0.1, -0.1))
+    ref, s, pix, hit = _fits_without_and_with_outliers(scene, 20261207)
     d = s.diagnostics
     assert np.array_equal(d["pixel_index"], pix)
     rejected = ~np.isfinite(d["pixel_variance"])
@@ -596,13 +603,7 @@ def test_an_outlier_the_model_absorbs_is_found_by_its_leverage(scene):
     normal (adversarial pass, 2 % outliers, seed 1).  Its studentized residual r / √(v (1 − h)) is 9.2 σ:
     the converged fit now leaves it out and goes on.  Every outlier is rejected, every native bin
     agrees with the fit of the image without outliers within 4 σ, and the total flux within 1 %."""
-    rng = np.random.default_rng(1)
-    img = scene["image"] + np.sqrt(scene["var"]) * rng.standard_normal(scene["image"].shape)
-    ref = extract_forward(img, scene["var"], sim=scene["sim"], mapper=scene["mapper"], start=(0.1, -0.1))
-    pix = ref.diagnostics["pixel_index"]
-    hit = rng.choice(pix, pix.size // 50, replace=False)
-    img.ravel()[hit] += np.sqrt(scene["var"].ravel()[hit]) * 10 ** rng.uniform(1, 4, hit.size)
-    s = extract_forward(img, scene["var"], sim=scene["sim"], mapper=scene["mapper"], start=(0.1, -0.1))
+    ref, s, _, hit = _fits_without_and_with_outliers(scene, 1)
     d = s.diagnostics
     rejected = d["pixel_index"][~np.isfinite(d["pixel_variance"])]
     assert np.isin(hit, rejected).all() and d["leveraged_pixels"] >= 1
