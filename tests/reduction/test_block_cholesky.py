@@ -82,8 +82,10 @@ def _cube_and_spectrum(mapper, image, var):
 @pytest.mark.slow
 def test_rectified_spectrum_is_the_dense_solution(small_scene, monkeypatch):
     """Small layout, the default lsq cube and its GLS spectrum: with the block recursion and Hager's
-    estimate they equal those of dense linear algebra — the spectrum to ≤ 1e-6 of its σ per bin and in
-    the band sum, the cube to 1e-6 of its σ per cell and its variance to 1e-7 (κ₁ ~ 1e3)."""
+    estimate they equal those of dense linear algebra — the spectrum to ≤ 1e-5 of its σ per bin and in
+    the band sum, the cube to 1e-5 of its σ per cell and its variance to 1e-7 (κ₁ ~ 1e3).  The
+    rounding follows the CPU's BLAS kernels: the earlier bound of 1e-6 σ held on AVX-512 VMs and failed
+    on an AVX2 one at 1.1e-6 σ (an edge bin, 1.4e-8 of its flux), with this code and with 475d8ae's."""
     mapper, image, var = small_scene
     cf, sf = _cube_and_spectrum(mapper, image, var)
     monkeypatch.setattr(rectify_module, "BlockCholesky", _DenseCholesky)
@@ -91,12 +93,12 @@ def test_rectified_spectrum_is_the_dense_solution(small_scene, monkeypatch):
     ok = np.isfinite(se.flux)
     assert ok.sum() >= 10 and np.array_equal(ok, np.isfinite(sf.flux))
     sigma = np.sqrt(se.variance[ok])
-    assert np.max(np.abs(sf.flux[ok] - se.flux[ok]) / sigma) < 1e-6
-    assert abs(sf.flux[ok].sum() - se.flux[ok].sum()) / np.sqrt(se.variance[ok].sum()) < 1e-6
+    assert np.max(np.abs(sf.flux[ok] - se.flux[ok]) / sigma) < 1e-5
+    assert abs(sf.flux[ok].sum() - se.flux[ok].sum()) / np.sqrt(se.variance[ok].sum()) < 1e-5
     assert np.allclose(sf.variance[ok], se.variance[ok], rtol=1e-7)
     assert np.array_equal(np.isfinite(cf.flux), np.isfinite(ce.flux))
     seen = np.isfinite(ce.flux)
-    assert np.max(np.abs(cf.flux[seen] - ce.flux[seen]) / np.sqrt(ce.variance[seen])) < 1e-6
+    assert np.max(np.abs(cf.flux[seen] - ce.flux[seen]) / np.sqrt(ce.variance[seen])) < 1e-5
     assert np.allclose(cf.variance[seen], ce.variance[seen], rtol=1e-7)
     kf, ke = cf.diagnostics["cond1_normal_max"], ce.diagnostics["cond1_normal_max"]
     assert 0.3 * ke <= kf <= ke * (1 + 1e-9)                        # Hager: a lower bound of κ₁
