@@ -276,6 +276,27 @@ def _include_options() -> tuple:
     return (f"-I{directory}", f"-DSLICERSIM_KERNELS_SHA=0x{_digest[0]}")
 
 
+_TRUE_WORDS = ("y", "yes", "t", "true", "on", "1")
+_FALSE_WORDS = ("n", "no", "f", "false", "off", "0")
+
+
+def _compiler_output_wanted() -> bool:
+    """Whether PYOPENCL_COMPILER_OUTPUT asks for the compiler's output (unset: no).  pyopencl reads the
+    variable with pytools' ``strtobool`` when a build prints anything: any other value (``garbage``, or
+    set but empty) made such builds raise ``ValueError: invalid truth value`` (a traceback from every
+    command projecting a cube on PoCL), ``false`` / ``no`` / ``off`` printed the warning anyway; a
+    ParameterError naming the variable instead."""
+    value = os.environ.get("PYOPENCL_COMPILER_OUTPUT")
+    if value is None:
+        return False
+    if value.lower() in _TRUE_WORDS:
+        return True
+    if value.lower() in _FALSE_WORDS:
+        return False
+    raise ParameterError(f"PYOPENCL_COMPILER_OUTPUT={value!r} is not a truth value (pyopencl fails on it): "
+                         f"set 1 to see the OpenCL compiler's output, 0 or unset it not to")
+
+
 def get_program(name: str, options=()):
     """Built program for ``kernels/<name>``; cached per (name, options, device).
 
@@ -288,7 +309,7 @@ def get_program(name: str, options=()):
         if prg is None:
             src = kernel_source(name)
             with warnings.catch_warnings():
-                if os.environ.get("PYOPENCL_COMPILER_OUTPUT", "") in ("", "0"):
+                if not _compiler_output_wanted():
                     # the compiler's notes are not the user's business: PoCL on a CPU without AVX-512
                     # prints an ABI note for every 8-wide vector (each build, hundreds of lines, turned
                     # into a warning on every command); PYOPENCL_COMPILER_OUTPUT=1 shows them

@@ -6,7 +6,7 @@ import time
 import pytest
 
 from slicersim.backends import opencl
-from slicersim.errors import OpenCLForkError
+from slicersim.errors import OpenCLForkError, ParameterError
 from slicersim.backends import precision as prec
 
 
@@ -432,3 +432,22 @@ def test_compiler_notes_are_not_warnings_unless_asked(fresh):
         warnings.simplefilter("always")
         opencl.get_program("noise.cl", ("-DNOTE_TEST=2",))
     assert [w for w in seen if issubclass(w.category, cl.CompilerWarning)]
+
+
+@pytest.mark.parametrize("value", ["garbage", "", " 1"])
+def test_a_compiler_output_setting_pyopencl_cannot_read_is_one_parameter_error(fresh, value):
+    """pyopencl reads PYOPENCL_COMPILER_OUTPUT with pytools' strtobool when a build prints anything
+    (PoCL: project.cl, project_transpose.cl, correlated_noise.cl print notes): ``garbage``, or the
+    variable set but empty, made those builds a ``ValueError: invalid truth value`` traceback.  Now one
+    ParameterError naming the variable, whatever the kernel; ``false`` hides the notes as ``0`` does."""
+    import warnings
+    if not opencl.is_available():
+        pytest.skip("no OpenCL platform")
+    fresh.setenv("PYOPENCL_COMPILER_OUTPUT", value)
+    with pytest.raises(ParameterError, match="PYOPENCL_COMPILER_OUTPUT"):
+        opencl.get_program("project.cl", ("-DBAD_OUTPUT_TEST=1",))
+    fresh.setenv("PYOPENCL_COMPILER_OUTPUT", "false")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        opencl.get_program("project.cl", ("-DBAD_OUTPUT_TEST=2",))
+    assert not [w for w in seen if issubclass(w.category, opencl._cl().CompilerWarning)]
