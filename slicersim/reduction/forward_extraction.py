@@ -439,10 +439,12 @@ def _fit(prob, noise):
     fit = _Fit(prob)
     sticky = np.zeros(prob.d.size, bool)
     first = 1
-    for _ in range(_LEVERAGE_ROUNDS + 1):
+    for round_ in range(_LEVERAGE_ROUNDS + 1):
         _iterate(prob, noise, fit, sticky, first)
         _check_fit(prob, fit)
         cov = fit.cov()                                   # (AᵀWA)⁻¹ of the final solve only
+        if round_ == _LEVERAGE_ROUNDS:                    # no fit left to go on without them: the fit
+            break                                         # returned is the one solved (was: unconverged, with them in)
         extra = _leveraged_outliers(prob, fit, cov)
         if not extra.any():
             break
