@@ -334,9 +334,22 @@ def extract_forward(rate, variance, options=None, *, sim, mapper, noise=None, **
     position, iterations, chi2 / dof of the pixels, the native flux and its covariance, pixels fitted.
     """
     opts, noise = _forward_options(options, noise, keywords)
+    if noise is not None:
+        _check_noise_shapes(noise, np.shape(rate))
     prob = _Problem(rate, variance, sim, mapper, opts)
     fit = _fit(prob, noise)
     return _spectrum(prob, fit, noise is not None)
+
+
+def _check_noise_shapes(noise, shape):
+    """ParameterError unless the PixelNoise images have the rates' shape (``dark_rate``: or a number):
+    they are read at the fitted pixels' flat indices, so a number was an IndexError and an image of
+    another shape gave other pixels' noise silently."""
+    for name in ("var_rnoise", "var_poisson", "raw_rate", "dark_rate"):
+        got = np.shape(getattr(noise, name))
+        if got != tuple(shape) and not (name == "dark_rate" and got == ()):
+            want = f"{tuple(shape)}" + (" or a number" if name == "dark_rate" else "")
+            raise ParameterError(f"noise {name} must be an image of the rates' shape {want}, got shape {got}")
 
 
 _NOISE_KEYWORDS = ("var_rnoise", "var_poisson", "raw_rate", "dark_rate")

@@ -628,3 +628,16 @@ def test_the_last_leverage_round_returns_the_fit_it_solved(scene, monkeypatch):
     d = s.diagnostics
     assert d["converged"] is True and d["leveraged_pixels"] == 0
 
+
+def test_noise_images_of_another_shape_are_one_parameter_error(scene):
+    """The PixelNoise images are read at the fitted pixels' flat indices: a number (a read-noise variance
+    given as one value) was an IndexError after the first solve, an image of another shape other pixels'
+    noise, silently.  Now one ParameterError naming the term, before the fit; a dark_rate number is fine."""
+    from slicersim.reduction.options import PixelNoise
+    img, var = scene["image"], scene["var"]
+    kw = dict(sim=scene["sim"], mapper=scene["mapper"], start=(0.1, -0.1))
+    bigger = np.ones((img.shape[0], img.shape[1] + 1))
+    for noise, name in ((PixelNoise(0.01, var, img), "var_rnoise"), (PixelNoise(var, bigger, img), "var_poisson"),
+                        (PixelNoise(var, var, img[:10]), "raw_rate"), (PixelNoise(var, var, img, bigger), "dark_rate")):
+        with pytest.raises(ParameterError, match=f"noise {name} must be an image of the rates' shape"):
+            extract_forward(img, var, noise=noise, **kw)
