@@ -192,3 +192,9 @@ class PixelNoise:
                 if np.any(value < 0):
                     raise ParameterError(f"{name} must be ≥ 0 [(e-/s)²] (NaN or inf where a pixel has no "
                                          f"rate), got a minimum of {float(np.nanmin(value)):g}")
+        # the rates too: read as float where the fit starts, strings were numpy's ValueError and complex
+        # numbers lost their imaginary part with a warning
+        for name in ("raw_rate", "dark_rate"):
+            value = np.asarray(getattr(self, name))
+            if value.dtype.kind not in "biuf":
+                raise ParameterError(f"{name} must be real numbers [e-/s], got {value.dtype}")

@@ -641,3 +641,17 @@ def test_noise_images_of_another_shape_are_one_parameter_error(scene):
                         (PixelNoise(var, var, img[:10]), "raw_rate"), (PixelNoise(var, var, img, bigger), "dark_rate")):
         with pytest.raises(ParameterError, match=f"noise {name} must be an image of the rates' shape"):
             extract_forward(img, var, noise=noise, **kw)
+
+
+def test_pixel_noise_rates_that_are_not_real_numbers_are_one_parameter_error():
+    """PixelNoise checked its variances only: a raw_rate or dark_rate of strings reached the fit as
+    numpy's ValueError ("could not convert string to float"), a complex one lost its imaginary part with
+    a ComplexWarning.  Now one ParameterError naming the term when the PixelNoise is made."""
+    from slicersim.reduction.options import PixelNoise
+    good = np.ones((4, 5))
+    for kwargs, name in (({"raw_rate": np.full((4, 5), "1")}, "raw_rate"), ({"raw_rate": good + 1j}, "raw_rate"),
+                         ({"raw_rate": good, "dark_rate": "0.01"}, "dark_rate"),
+                         ({"raw_rate": good, "dark_rate": None}, "dark_rate")):
+        with pytest.raises(ParameterError, match=f"{name} must be real numbers"):
+            PixelNoise(good, good, **kwargs)
+    PixelNoise(good, good, -good, np.float32(0.01))          # a negative raw rate is a rate
