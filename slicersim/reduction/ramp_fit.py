@@ -100,7 +100,15 @@ class RateProduct:
         """
         for name, data in (("RATE", self.rate), ("VAR", self.variance), ("VAR_POISSON", self.var_poisson),
                            ("VAR_RNOISE", self.var_rnoise)):
-            yield name, np.asarray(data, RATE_STORAGE), {}
+            with np.errstate(over="raise"):               # finite beyond float32: inf in the file, silently
+                try:
+                    stored = np.asarray(data, RATE_STORAGE)
+                except FloatingPointError:
+                    big = float(np.max(np.abs(np.asarray(data, float)), where=np.isfinite(data), initial=0.0))
+                    raise RampFileError(f"{name} holds finite values up to {big:.3g}, beyond the range of the rate "
+                                        f"file's float32 ({float(np.finfo(RATE_STORAGE).max):.3g}): they would be stored "
+                                        "as inf (check the ramps' units and values)") from None
+            yield name, stored, {}
         yield "DQ", self.dq, FLAG_COMPRESSION
         yield "NJUMPS", self.njumps, FLAG_COMPRESSION
 

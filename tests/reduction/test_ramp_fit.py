@@ -613,3 +613,25 @@ def test_fit_gain_and_read_noise_beyond_their_range_are_refused(tmp_path, key, m
     path = simulate(np.full((16, 32), 5.0), (4, 2, 0), seed=1, out=tmp_path / "r.h5", **QUIET)
     with pytest.raises(ParameterError, match=match):
         fit_ramps(path, progress=False, **{key: 1e300})
+
+
+def test_rates_beyond_float32_are_refused_not_stored_as_inf(tmp_path):
+    """Rate files store RATE / VAR / VAR_POISSON / VAR_RNOISE in float32: a float64 ramp of 1e36 DN fitted
+    to rates of 6e38 e-/s (finite in memory) and the file held inf for them, with only numpy's
+    'overflow encountered in cast' warning.  Now one RampFileError naming the image; nothing written.
+    NaN and inf (no rate) are stored as they are."""
+    import warnings
+    sci, gdq, pdq = _messy_block(npix=60)
+    attrs = dict(NFRAMES=4, GROUPGAP=1, TFRAME=TF, GAIN=1.0, READNOISE=12.0)
+    p = fit_ramps(((sci * 1e36).reshape(3, 14, 6, 10), gdq.reshape(3, 14, 6, 10), pdq.reshape(6, 10), attrs),
+                  backend="numpy")
+    assert np.isfinite(p.rate).all() and np.nanmax(p.rate) > np.finfo(np.float32).max
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(RampFileError, match="RATE holds finite values up to 6.*float32"):
+            p.write(tmp_path / "rates.h5")
+    assert not list(tmp_path.iterdir())
+    p.rate[...] = np.nan
+    p.rate[0, 0] = np.inf
+    p.variance[...], p.var_poisson[...], p.var_rnoise[...] = 1.0, 0.5, 0.5
+    p.write(tmp_path / "rates.h5")
