@@ -272,6 +272,11 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
         dq, njump = np.empty(npix, np.uint32), np.empty(npix, np.int32)
     else:
         _check_out(out, npix)
+        # the kernel writes each output as it reads the inputs: images sharing memory overwrite one
+        # another (rate is variance: the variance returned as the rate, silently)
+        shared = [a for i, a in enumerate(out) if any(np.may_share_memory(a, b) for b in (*out[i + 1:], sci, gdq, pixeldq))]
+        if shared:
+            raise ValueError("out must be six arrays sharing no memory with one another or with sci, gdq, pixeldq")
         rate, var, vpois, vread, dq, njump = out
         fit = (rate, var, vpois, vread)
     gdq_out = np.empty_like(gdq) if want_gdq else np.empty(1, np.uint8)

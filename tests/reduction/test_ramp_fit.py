@@ -635,3 +635,18 @@ def test_rates_beyond_float32_are_refused_not_stored_as_inf(tmp_path):
     p.rate[0, 0] = np.inf
     p.variance[...], p.var_poisson[...], p.var_rnoise[...] = 1.0, 0.5, 0.5
     p.write(tmp_path / "rates.h5")
+
+
+def test_out_images_sharing_memory_are_refused():
+    """``out=`` checked each array alone: the same float64 array as rate and variance came back as the
+    variance for both with no error, and an output that is a view of the float64 ramp writes into the
+    input the kernel reads in place (which must stay untouched until the results are fetched).  Images sharing memory with one another or with the inputs are refused."""
+    sci, gdq, pdq = _messy_block()
+    sci = sci.astype(np.float64)
+    k = fit_constants((14, 4, 1), TF, 1.0, 12.0, 1 / 12, 40000, 4.0, "gls")
+    npix = sci.shape[2]
+    out = tuple(np.empty(npix) for _ in range(4)) + (np.zeros(npix, np.uint32), np.zeros(npix, np.int32))
+    for bad in ((out[0], out[0]) + out[2:], (sci[0, -1],) + out[1:]):
+        with pytest.raises(ValueError, match="sharing no memory"):
+            fit_block_opencl(sci, gdq, pdq, k, out=bad)
+    fit_block_opencl(sci, gdq, pdq, k, out=out)                   # distinct images: fine
