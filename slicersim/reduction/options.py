@@ -169,6 +169,14 @@ class ForwardOptions:
         set_field(self, "cell_scale", pair("cell_scale", self.cell_scale, positive=True))
 
 
+def _numbers(name, value):
+    """``value`` as an array; a ragged sequence (numpy's ValueError) is a ParameterError naming it."""
+    try:
+        return np.asarray(value)
+    except (ValueError, TypeError) as exc:
+        raise ParameterError(f"{name} must be an array of numbers, got {type(value).__name__} ({exc})") from None
+
+
 @validation.checked_fields
 @dataclass(frozen=True, eq=False)
 class PixelNoise:
@@ -185,7 +193,7 @@ class PixelNoise:
         # a negative variance makes the model variance negative: the fit ran all its iterations (64 s
         # on a test image) and then failed with "did not converge"
         for name in ("var_rnoise", "var_poisson"):
-            value = np.asarray(getattr(self, name))
+            value = _numbers(name, getattr(self, name))
             if value.dtype.kind not in "biuf":
                 raise ParameterError(f"{name} must be real numbers [(e-/s)²], got {value.dtype}")
             with np.errstate(invalid="ignore"):
@@ -195,6 +203,6 @@ class PixelNoise:
         # the rates too: read as float where the fit starts, strings were numpy's ValueError and complex
         # numbers lost their imaginary part with a warning
         for name in ("raw_rate", "dark_rate"):
-            value = np.asarray(getattr(self, name))
+            value = _numbers(name, getattr(self, name))
             if value.dtype.kind not in "biuf":
                 raise ParameterError(f"{name} must be real numbers [e-/s], got {value.dtype}")

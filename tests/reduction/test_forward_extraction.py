@@ -655,3 +655,15 @@ def test_pixel_noise_rates_that_are_not_real_numbers_are_one_parameter_error():
         with pytest.raises(ParameterError, match=f"{name} must be real numbers"):
             PixelNoise(good, good, **kwargs)
     PixelNoise(good, good, -good, np.float32(0.01))          # a negative raw rate is a rate
+
+
+def test_a_ragged_pixel_noise_term_is_one_parameter_error():
+    """A ragged nested list as a PixelNoise term was numpy's ValueError ("setting an array element with a
+    sequence ... inhomogeneous shape") from PixelNoise itself; now one ParameterError naming the term."""
+    from slicersim.reduction.options import PixelNoise
+    good = np.ones((2, 2))
+    for i, name in enumerate(("var_rnoise", "var_poisson", "raw_rate", "dark_rate")):
+        args = [good, good, good, 0.0]
+        args[i] = [[1.0, 2.0], [3.0]]
+        with pytest.raises(ParameterError, match=f"{name} must be an array of numbers"):
+            PixelNoise(*args)
