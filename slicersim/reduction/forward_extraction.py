@@ -368,6 +368,10 @@ def _forward_options(options, noise, keywords):
         if missing:
             raise ParameterError(f"extract_forward: var_rnoise needs {' and '.join(missing)} too")
         noise = PixelNoise(terms["var_rnoise"], terms["var_poisson"], terms["raw_rate"], terms.get("dark_rate", 0.0))
+    elif any(v is not None for v in terms.values()):          # they were ignored: the data variance was used
+        given = [k for k, v in terms.items() if v is not None]
+        raise ParameterError(f"extract_forward: {' and '.join(given)} need{'s' if len(given) == 1 else ''} "
+                             "var_rnoise, var_poisson and raw_rate together (the model variance), or none of them")
     if noise is not None and not isinstance(noise, PixelNoise):
         raise ParameterError(f"noise must be a PixelNoise or None, got {type(noise).__name__}")
     return opts, noise

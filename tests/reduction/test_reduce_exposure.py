@@ -171,6 +171,11 @@ def test_extract_forward_noise_keywords():
         _forward_options(None, PixelNoise(z, z, z), dict(var_rnoise=z))
     with pytest.raises(ParameterError, match="noise must be a PixelNoise"):
         _forward_options(None, {"var_rnoise": z}, {})
+    # without var_rnoise the others were ignored silently (the data variance used)
+    for partial in (dict(var_poisson=z), dict(raw_rate=z, dark_rate=0.5), dict(dark_rate=z)):
+        with pytest.raises(ParameterError, match="need.* var_rnoise, var_poisson and raw_rate together"):
+            _forward_options(None, None, dict(partial))
+    assert _forward_options(None, None, dict(var_rnoise=None, dark_rate=None))[1] is None
 
 
 def test_deconvolve_ipc_bad_kernel_is_a_parameter_error():
