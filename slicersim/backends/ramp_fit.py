@@ -230,12 +230,17 @@ def fit_block_numpy(sci, gdq, pixeldq, k):
 CPU_WORK_GROUP = 64
 
 
-def _check_out(out, npix):
-    """ValueError unless ``out`` is six writeable C-contiguous (npix,) arrays: float64 ×4, uint32, int32."""
+def _check_out(out, npix, inputs):
+    """ValueError unless ``out`` is six writeable C-contiguous (npix,) arrays (float64 ×4, uint32, int32)
+    sharing no memory with one another or with ``inputs``: the kernel writes each output as it reads
+    the inputs, so shared images overwrite one another (rate is variance: the variance returned as
+    the rate, silently)."""
     dtypes = (np.float64,) * 4 + (np.uint32, np.int32)
     if len(out) != 6 or any(not isinstance(a, np.ndarray) or a.shape != (npix,) or a.dtype != dt
                             or not a.flags.c_contiguous or not a.flags.writeable for a, dt in zip(out, dtypes)):
         raise ValueError(f"out must be six writeable C-contiguous ({npix},) arrays (float64 x4, uint32, int32)")  # internal: fit_ramps's images
+    if any(np.may_share_memory(a, b) for i, a in enumerate(out) for b in (*out[i + 1:], *inputs)):
+        raise ValueError("out must be six arrays sharing no memory with one another or with sci, gdq, pixeldq")  # internal: fit_ramps's images
 
 
 
@@ -271,12 +276,7 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
         rate, var, vpois, vread = fit
         dq, njump = np.empty(npix, np.uint32), np.empty(npix, np.int32)
     else:
-        _check_out(out, npix)
-        # the kernel writes each output as it reads the inputs: images sharing memory overwrite one
-        # another (rate is variance: the variance returned as the rate, silently)
-        shared = [a for i, a in enumerate(out) if any(np.may_share_memory(a, b) for b in (*out[i + 1:], sci, gdq, pixeldq))]
-        if shared:
-            raise ValueError("out must be six arrays sharing no memory with one another or with sci, gdq, pixeldq")
+        _check_out(out, npix, (sci, gdq, pixeldq))
         rate, var, vpois, vread, dq, njump = out
         fit = (rate, var, vpois, vread)
     gdq_out = np.empty_like(gdq) if want_gdq else np.empty(1, np.uint8)

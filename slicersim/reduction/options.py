@@ -190,19 +190,15 @@ class PixelNoise:
     dark_rate: object = 0.0
 
     def __post_init__(self):
-        # a negative variance makes the model variance negative: the fit ran all its iterations (64 s
-        # on a test image) and then failed with "did not converge"
-        for name in ("var_rnoise", "var_poisson"):
+        # real numbers: strings were numpy's ValueError in the fit, complex numbers lost their imaginary part;
+        # a negative variance made the model variance negative: the fit ran all its iterations (64 s on a
+        # test image), then "did not converge"
+        for name, unit, variance in (("var_rnoise", "(e-/s)²", True), ("var_poisson", "(e-/s)²", True),
+                                     ("raw_rate", "e-/s", False), ("dark_rate", "e-/s", False)):
             value = _numbers(name, getattr(self, name))
             if value.dtype.kind not in "biuf":
-                raise ParameterError(f"{name} must be real numbers [(e-/s)²], got {value.dtype}")
+                raise ParameterError(f"{name} must be real numbers [{unit}], got {value.dtype}")
             with np.errstate(invalid="ignore"):
-                if np.any(value < 0):
-                    raise ParameterError(f"{name} must be ≥ 0 [(e-/s)²] (NaN or inf where a pixel has no "
+                if variance and np.any(value < 0):
+                    raise ParameterError(f"{name} must be ≥ 0 [{unit}] (NaN or inf where a pixel has no "
                                          f"rate), got a minimum of {float(np.nanmin(value)):g}")
-        # the rates too: read as float where the fit starts, strings were numpy's ValueError and complex
-        # numbers lost their imaginary part with a warning
-        for name in ("raw_rate", "dark_rate"):
-            value = _numbers(name, getattr(self, name))
-            if value.dtype.kind not in "biuf":
-                raise ParameterError(f"{name} must be real numbers [e-/s], got {value.dtype}")
