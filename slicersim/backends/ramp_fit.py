@@ -245,8 +245,21 @@ def _check_out(out, npix, inputs):
 
 
 
+def _lanes(vector_width, gpu, ngroups):
+    """Pixels per work item: ``vector_width`` (1, 2, 4, 8 or 16) or by default 1 on GPUs and on CPUs the
+    widest of 8, 4, 2, 1 whose private arrays (five per difference and lane) stay within 64 KiB."""
+    if vector_width is None:
+        if gpu:
+            return 1
+        return next(w for w in (8, 4, 2, 1) if w == 1 or 41 * ngroups * w <= 65536)
+    if isinstance(vector_width, bool) or not isinstance(vector_width, (int, np.integer)) \
+            or vector_width not in (1, 2, 4, 8, 16):
+        raise ParameterError(f"vector_width must be 1, 2, 4, 8 or 16, got {vector_width!r}")
+    return vector_width
+
+
 def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True, wait=True,
-                     out=None):
+                     out=None, vector_width=None):
     """OpenCL version of :func:`fit_block_numpy` (same arguments and results).
 
     workspace : dict reusing device buffers between blocks;  want_gdq=False : GROUPDQ out is None;
@@ -256,17 +269,20 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
     results are written into (the caller's images: no copy, no fresh memory), returned as the
     tuple (rate, variance, var_poisson, var_rnoise) in place of fit.  On CPU devices the kernel
     works on the arrays in place (zero-copy): ``sci``, ``gdq`` and ``pixeldq`` must then stay
-    untouched until the results are fetched."""
+    untouched until the results are fetched;  vector_width : pixels per work item (lanes of the
+    kernel's vector types; default 8 on CPUs, 1 on GPUs), which does not change the results."""
     _check_block(sci, gdq, pixeldq, k)
     opencl.require_fp64()
     nints, n, npix = sci.shape
     sci, gdq = np.ascontiguousarray(sci), np.ascontiguousarray(gdq)
     pixeldq = np.ascontiguousarray(pixeldq)
-    options = (f"-DNGROUPS={n}", f"-DWEIGHTING={WEIGHTINGS.index(k.weighting)}",
-               f"-DSCI_DOUBLE={int(sci.dtype == np.float64)}", f"-DWANT_GDQ={int(bool(want_gdq))}")
-    kernel = opencl.cached_kernel("ramp_fit.cl", "ramp_fit", options)
     dev = opencl.get_device()
     gpu = "GPU" in opencl.device_type(dev)
+    lanes = _lanes(vector_width, gpu, n)
+    options = (f"-DNGROUPS={n}", f"-DWEIGHTING={WEIGHTINGS.index(k.weighting)}",
+               f"-DSCI_DOUBLE={int(sci.dtype == np.float64)}", f"-DWANT_GDQ={int(bool(want_gdq))}",
+               f"-DVW={lanes}")
+    kernel = opencl.cached_kernel("ramp_fit.cl", "ramp_fit", options)
     if work_group is None:
         work_group = None if gpu else CPU_WORK_GROUP
     elif not 1 <= int(work_group) <= int(dev.max_work_group_size):
@@ -293,9 +309,10 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
         d_out = [opencl.workspace_buffer(workspace, name, a.nbytes) for name, a in zip(names, outputs)]
     nwords = -(-(n - 1) // 64)
     d_bits = opencl.workspace_buffer(workspace, "bits", 8 * nints * nwords * npix if nints > 1 and k.weighting == "gls" else 8)
-    gsize, lsize = (npix,), None
+    items = -(-npix // lanes)
+    gsize, lsize = (items,), None
     if work_group:
-        gsize, lsize = (-(-npix // int(work_group)) * int(work_group),), (int(work_group),)
+        gsize, lsize = (-(-items // int(work_group)) * int(work_group),), (int(work_group),)
     d_gout = d_out[-1]
     opencl.launch(kernel, gsize, lsize, d_sci, d_gdq, d_gout, d_bits, d_pdq, *d_out[:6], np.uint32(npix),
                   np.uint32(nints), np.float64(k.inv_gain), np.float64(k.sg2), np.float64(k.tau),

@@ -1,5 +1,6 @@
 /*
- * ramp_fit.cl: up-the-ramp fit of MACC group means, one work item per pixel, all integrations.
+ * ramp_fit.cl: up-the-ramp fit of MACC group means, one work item per VW consecutive pixels (lanes of
+ * vector types, -DVW=1|2|4|8|16: CPUs vectorise only explicit vectors), all integrations.
  *
  * Input (flat block of npix pixels, group-major): sci (nints, NGROUPS, npix) [DN] as ushort (raw
  * ADU) or double (corrected DN, -DSCI_DOUBLE=1), GROUPDQ (same shape, JWST bits), PIXELDQ (npix).
@@ -29,11 +30,16 @@
  * dq = PIXELDQ | SATURATED (any group) | JUMP_DET (any jump) | DO_NOT_USE (no used difference,
  * rate NaN); njump = jumps (detected and flagged on input); gdq_out = GROUPDQ with SATURATED and
  * JUMP_DET set (WANT_GDQ); bits: scratch (nints, NWORDS, npix) of the used flags between the passes
- * (GLS, nints > 1).  Build with -DNGROUPS=n -DWEIGHTING=0|1 -DSCI_DOUBLE=0|1 -DWANT_GDQ=0|1.
+ * (GLS, nints > 1).  Build with -DNGROUPS=n -DWEIGHTING=0|1 -DSCI_DOUBLE=0|1 -DWANT_GDQ=0|1 -DVW=w.
+ * Lanes: every step is computed for all VW pixels and kept per lane by masks (select), in the
+ * scalar operation order, so each lane's result does not depend on VW; the jump search (data-
+ * dependent loops) runs lane by lane, only for lanes whose range of differences fails the quick
+ * test.  The last work item's lanes past npix repeat the last pixel and are not stored.
  * NumPy twin: slicersim/backends/ramp_fit.py (fit_block_numpy), same operation order.
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
+#include "vector_types.cl"
 
 #ifndef NGROUPS
 #error "build with -DNGROUPS=<groups per integration>"
@@ -56,10 +62,63 @@
 #define JUMP_MIN_DIFFS 3
 
 #if SCI_DOUBLE
-typedef double sci_t;
+#define SCI_NAME double
 #else
-typedef ushort sci_t;
+#define SCI_NAME ushort
 #endif
+typedef SCI_NAME sci_t;
+
+/* lanes: VT(type) the vector of VW values, MASK(comparison) its -1 / 0 long mask */
+#if VW == 1
+#define VT(t) t
+#define MASK(c) (-(long)(c))
+#else
+#define VT(t) CAT(t, VW)
+#define MASK(c) CONVERT_V(long, c)
+#endif
+typedef VT(double) vdouble;
+typedef VT(long) vlong;
+typedef VT(int) vint;
+typedef VT(uint) vuint;
+typedef VT(uchar) vuchar;
+typedef VT(ulong) vulong;
+typedef VT(SCI_NAME) vsci;
+#define ZERO ((vdouble)(0.0))
+#define ONE ((vdouble)(1.0))
+
+/* loads and stores of the VW lanes at p, nvalid of them valid: a short last work item repeats its
+ * last pixel on loads and stores only its valid lanes */
+#define DEFINE_LOAD(T, V, name)                                                                    \
+    inline V name(__global const T *p, const uint nvalid)                                          \
+    {                                                                                              \
+        if (nvalid == VW)                                                                          \
+            return VLOAD(0, p);                                                                    \
+        T t[VW];                                                                                   \
+        for (uint l = 0; l < VW; ++l)                                                              \
+            t[l] = p[l < nvalid ? l : nvalid - 1];                                                 \
+        return VLOAD(0, t);                                                                        \
+    }
+#define DEFINE_STORE(T, V, name)                                                                   \
+    inline void name(const V v, __global T *p, const uint nvalid)                                  \
+    {                                                                                              \
+        if (nvalid == VW) {                                                                        \
+            VSTORE(v, 0, p);                                                                       \
+            return;                                                                                \
+        }                                                                                          \
+        T t[VW];                                                                                   \
+        VSTORE(v, 0, t);                                                                           \
+        for (uint l = 0; l < nvalid; ++l)                                                          \
+            p[l] = t[l];                                                                           \
+    }
+DEFINE_LOAD(sci_t, vsci, load_sci)
+DEFINE_LOAD(uchar, vuchar, load_uchar)
+DEFINE_LOAD(uint, vuint, load_uint)
+DEFINE_LOAD(ulong, vulong, load_ulong)
+DEFINE_STORE(uchar, vuchar, store_uchar)
+DEFINE_STORE(uint, vuint, store_uint)
+DEFINE_STORE(int, vint, store_int)
+DEFINE_STORE(ulong, vulong, store_ulong)
+DEFINE_STORE(double, vdouble, store_double)
 
 /* Jump test of the used D (nv of them, in [dmin, dmax]): 1 when the one farthest from their
  * median med = 0.5 (s[(nv-1)/2] + s[nv/2]) (s: sorted) lies more than jump_thr sigma(med) away,
@@ -114,21 +173,65 @@ inline int find_jump(const double *D, const uchar *used, const int nv, const dou
     return fmax(dmax - med, med - dmin) > jump_thr * sqrt(2.0 * sg2 + (fmax(med, 0.0) / tau) * pois_diag);
 }
 
-/* D [e-] of integration `base` and its used flags from the bits of pass 1 */
+/* D [e-] of integration `base` and its used masks from the bits of pass 1 (lanes) */
 inline void reload(__global const sci_t *sci, __global const ulong *bits, const size_t base, const size_t bbase,
-                   const uint npix, const double inv_gain, double *D, uchar *used)
+                   const uint npix, const uint nvalid, const double inv_gain, double *D, long *U)
 {
-    double prev = (double)sci[base];
+    vdouble prev = CONVERT_V(double, load_sci(sci + base, nvalid));
     for (int k = 1; k < NGROUPS; ++k) {
-        const double x = (double)sci[base + (size_t)k * npix];
-        D[k - 1] = (x - prev) * inv_gain;
+        const vdouble x = CONVERT_V(double, load_sci(sci + base + (size_t)k * npix, nvalid));
+        VSTORE((x - prev) * inv_gain, 0, D + (k - 1) * VW);
         prev = x;
     }
     for (int w = 0; w < NWORDS; ++w) {
-        const ulong word = bits[bbase + (size_t)w * npix];
+        const vulong word = load_ulong(bits + bbase + (size_t)w * npix, nvalid);
         for (int j = 64 * w; j < NDIFF && j < 64 * (w + 1); ++j)
-            used[j] = (word >> (j - 64 * w)) & 1ul;
+            VSTORE(-CONVERT_V(long, (word >> (ulong)(j - 64 * w)) & (ulong)1), 0, U + j * VW);
     }
+}
+
+/* the jump search of lane l of D, U, F (pass 1): jumps dropped from U and flagged in F; returns
+ * their number.  Dl, used, A: scratch of NDIFF values. */
+inline int lane_jumps(const double *D, long *U, uchar *F, const int l, const double sg2, const double tau,
+                      const double pois_diag, const double jump_thr, double *Dl, uchar *used, double *A)
+{
+    int nv = 0, found = 0;
+    double dmin = INFINITY, dmax = -INFINITY, med;
+    for (int j = 0; j < NDIFF; ++j) {
+        Dl[j] = D[j * VW + l];
+        used[j] = U[j * VW + l] != 0;
+        if (used[j]) {
+            ++nv;
+            dmin = fmin(dmin, Dl[j]);
+            dmax = fmax(dmax, Dl[j]);
+        }
+    }
+    while (nv >= JUMP_MIN_DIFFS && find_jump(Dl, used, nv, dmin, dmax, sg2, tau, pois_diag, jump_thr, A, &med)) {
+        int jbest = -1;
+        double dbest = -1.0;
+        for (int j = 0; j < NDIFF; ++j) {
+            const double dev = used[j] ? fabs(Dl[j] - med) : -1.0;
+            if (dev > dbest) {
+                dbest = dev;
+                jbest = j;
+            }
+        }
+        used[jbest] = 0;
+        U[jbest * VW + l] = 0;
+        F[(jbest + 1) * VW + l] |= DQ_JUMP;
+        ++found;
+        nv = 0;
+        dmin = INFINITY;
+        dmax = -INFINITY;
+        for (int j = 0; j < NDIFF; ++j) {
+            if (used[j]) {
+                ++nv;
+                dmin = fmin(dmin, Dl[j]);
+                dmax = fmax(dmax, Dl[j]);
+            }
+        }
+    }
+    return found;
 }
 
 __kernel void ramp_fit(__global const sci_t *sci, __global const uchar *gdq_in, __global uchar *gdq_out,
@@ -138,113 +241,115 @@ __kernel void ramp_fit(__global const sci_t *sci, __global const uchar *gdq_in, 
                        const double inv_gain, const double sg2, const double tau, const double ccorr,
                        const double satlim, const double jump_thr)
 {
-    const size_t p = get_global_id(0);
+    const size_t p = get_global_id(0) * VW;
     if (p >= npix)
         return;
-    double D[NDIFF], A[NDIFF], B[NDIFF], C[NDIFF];
-    uchar used[NDIFF], F[NGROUPS];
+    const uint nvalid = (uint)min((size_t)VW, (size_t)npix - p);
+    double D[NDIFF * VW], A[NDIFF * VW], B[NDIFF * VW], C[NDIFF * VW];
+    long U[NDIFF * VW];                              /* used: -1 / 0 per lane */
+    uchar F[NGROUPS * VW];
+    double Dl[NDIFF];
+    uchar usedl[NDIFF];
     const double pois_diag = tau - 2.0 * ccorr;     /* Poisson variance of a difference per e-/s [s] */
-    int njump = 0;
-    uint anysat = 0;
-    double P = 0.0, S = 0.0, W2 = 0.0, Q = 0.0, WW;
+    vint njump = 0;
+    vlong anysat = 0;
+    vdouble P = ZERO, S = ZERO, W2 = ZERO, Q = ZERO, WW;
 
     /* pass 1: saturation, jumps, OLS sums (closed forms per run of L differences) */
     for (uint i = 0; i < nints; ++i) {
         const size_t base = (size_t)i * NGROUPS * npix + p;
-        uint sat = 0;
-        uchar usable_prev = 0;
-        double prev = 0.0, dmin = INFINITY, dmax = -INFINITY;
-        int nv = 0;
+        vlong sat = 0, usable_prev = 0, allused = -1;
+        vdouble prev = ZERO, dmin = (vdouble)(INFINITY), dmax = (vdouble)(-INFINITY);
+        vint nv = 0;
         for (int k = 0; k < NGROUPS; ++k) {
             const size_t at = base + (size_t)k * npix;
-            uchar f = gdq_in[at];
-            const double x = (double)sci[at];
-            if ((f & DQ_SAT) || x >= satlim)
-                sat = 1;
-            if (sat)
-                f |= DQ_SAT;
-            const uchar usable = !(f & (DQ_SAT | DQ_DNU));
+            vuchar f = load_uchar(gdq_in + at, nvalid);
+            const vdouble x = CONVERT_V(double, load_sci(sci + at, nvalid));
+            sat |= MASK((f & (uchar)DQ_SAT) != (uchar)0) | MASK(x >= satlim);
+            f |= CONVERT_V(uchar, sat) & (uchar)DQ_SAT;
+            const vlong usable = MASK((f & (uchar)(DQ_SAT | DQ_DNU)) == (uchar)0);
             if (k > 0) {
-                const double d = (x - prev) * inv_gain;
-                const uchar both = usable_prev && usable;
-                if (both && (f & DQ_JUMP))
-                    ++njump;
-                const uchar u = both && !(f & DQ_JUMP);
-                D[k - 1] = d;
-                used[k - 1] = u;
-                if (u) {
-                    ++nv;
-                    dmin = fmin(dmin, d);
-                    dmax = fmax(dmax, d);
-                }
+                const vdouble d = (x - prev) * inv_gain;
+                const vlong both = usable_prev & usable;
+                const vlong flagged = MASK((f & (uchar)DQ_JUMP) != (uchar)0);
+                njump -= CONVERT_V(int, both & flagged);
+                const vlong u = both & ~flagged;
+                VSTORE(d, 0, D + (k - 1) * VW);
+                VSTORE(u, 0, U + (k - 1) * VW);
+                nv -= CONVERT_V(int, u);
+                allused &= u;
+                dmin = SELECT(dmin, fmin(dmin, d), u);
+                dmax = SELECT(dmax, fmax(dmax, d), u);
             }
-            F[k] = f;
+            VSTORE(f, 0, F + k * VW);
             prev = x;
             usable_prev = usable;
         }
         anysat |= sat;
-        double med;
-        while (jump_thr > 0.0 && nv >= JUMP_MIN_DIFFS
-               && find_jump(D, used, nv, dmin, dmax, sg2, tau, pois_diag, jump_thr, A, &med)) {
-            int jbest = -1;
-            double dbest = -1.0;
-            for (int j = 0; j < NDIFF; ++j) {
-                const double dev = used[j] ? fabs(D[j] - med) : -1.0;
-                if (dev > dbest) {
-                    dbest = dev;
-                    jbest = j;
-                }
-            }
-            used[jbest] = 0;
-            F[jbest + 1] |= DQ_JUMP;
-            ++njump;
-            nv = 0;
-            dmin = INFINITY;
-            dmax = -INFINITY;
-            for (int j = 0; j < NDIFF; ++j) {
-                if (used[j]) {
-                    ++nv;
-                    dmin = fmin(dmin, D[j]);
-                    dmax = fmax(dmax, D[j]);
-                }
+        if (jump_thr > 0.0) {
+            /* find_jump's first test for all lanes at once: the lanes it does not settle are searched */
+            const vlong search = MASK(nv >= JUMP_MIN_DIFFS)
+                & MASK(fmax(dmax - dmin, dmax - dmin) > jump_thr * sqrt(2.0 * sg2 + (fmax(dmin, 0.0) / tau) * pois_diag));
+            if (ANY(search)) {
+                long wanted[VW];
+                int found[VW];
+                VSTORE(search, 0, wanted);
+                for (int l = 0; l < VW; ++l)
+                    found[l] = wanted[l] ? lane_jumps(D, U, F, l, sg2, tau, pois_diag, jump_thr, Dl, usedl, A) : 0;
+                njump += VLOAD(0, found);
+                allused = 0;
             }
         }
-        double s1 = 0.0, s2 = 0.0;
-        int pos = 0;
-        for (int j = 0; j < NDIFF; ++j) {
-            if (!used[j])
-                continue;
-            ++pos;
-            const double pd = (double)pos;
-            s1 += pd * D[j];
-            s2 += pd * pd * D[j];
-            if (j == NDIFF - 1 || !used[j + 1]) {
-                const double L = pd, L3 = L * (L + 1.0) * (L + 2.0);
-                P += (L + 1.0) * s1 - s2;
-                S += L3 / 6.0;
-                W2 += L3 * (L * L + 2.0 * L + 2.0) / 30.0;
-                Q += L3 / 3.0;
-                s1 = 0.0;
-                s2 = 0.0;
-                pos = 0;
+        if (!ANY(~allused)) {
+            /* every lane uses every difference: one run of NDIFF, the same sums without the masks */
+            vdouble s1 = ZERO, s2 = ZERO;
+            for (int j = 0; j < NDIFF; ++j) {
+                const vdouble dj = VLOAD(0, D + j * VW);
+                const double pd = (double)(j + 1);
+                s1 = s1 + pd * dj;
+                s2 = s2 + pd * pd * dj;
             }
+            const double L = (double)NDIFF, L3 = L * (L + 1.0) * (L + 2.0);
+            P = P + ((L + 1.0) * s1 - s2);
+            S = S + L3 / 6.0;
+            W2 = W2 + L3 * (L * L + 2.0 * L + 2.0) / 30.0;
+            Q = Q + L3 / 3.0;
+        } else {
+        vdouble s1 = ZERO, s2 = ZERO, pos = ZERO;
+        for (int j = 0; j < NDIFF; ++j) {
+            const vlong u = VLOAD(0, U + j * VW);
+            const vdouble dj = VLOAD(0, D + j * VW);
+            const vdouble pd = pos + 1.0;
+            pos = SELECT(pos, pd, u);
+            s1 = SELECT(s1, s1 + pd * dj, u);
+            s2 = SELECT(s2, s2 + pd * pd * dj, u);
+            const vlong end = j == NDIFF - 1 ? u : u & ~VLOAD(0, U + (j + 1) * VW);
+            const vdouble L = pos, L3 = L * (L + 1.0) * (L + 2.0);
+            P = SELECT(P, P + ((L + 1.0) * s1 - s2), end);
+            S = SELECT(S, S + L3 / 6.0, end);
+            W2 = SELECT(W2, W2 + L3 * (L * L + 2.0 * L + 2.0) / 30.0, end);
+            Q = SELECT(Q, Q + L3 / 3.0, end);
+            s1 = SELECT(s1, ZERO, end);
+            s2 = SELECT(s2, ZERO, end);
+            pos = SELECT(pos, ZERO, end);
+        }
         }
 #if WANT_GDQ
         for (int k = 0; k < NGROUPS; ++k)
-            gdq_out[base + (size_t)k * npix] = F[k];
+            store_uchar(VLOAD(0, F + k * VW), gdq_out + base + (size_t)k * npix, nvalid);
 #endif
 #if WEIGHTING == 0
         if (nints > 1) {
             for (int w = 0; w < NWORDS; ++w) {
-                ulong word = 0;
+                vulong word = 0;
                 for (int j = 64 * w; j < NDIFF && j < 64 * (w + 1); ++j)
-                    word |= (ulong)used[j] << (j - 64 * w);
-                bits[((size_t)i * NWORDS + w) * npix + p] = word;
+                    word |= (CONVERT_V(ulong, VLOAD(0, U + j * VW)) & (ulong)1) << (ulong)(j - 64 * w);
+                store_ulong(word, bits + ((size_t)i * NWORDS + w) * npix + p, nvalid);
             }
         }
 #endif
     }
-    const double lam0 = S > 0.0 ? fmax(P / (tau * S), 0.0) : 0.0;
+    const vdouble lam0 = SELECT(ZERO, fmax(P / (tau * S), 0.0), MASK(S > 0.0));
     WW = W2 - 0.5 * Q;
 
 #if WEIGHTING == 0
@@ -252,65 +357,72 @@ __kernel void ramp_fit(__global const sci_t *sci, __global const uchar *gdq_in, 
      * leading minors M_0 = M_1 = 1, M_{q+1} = M_q - r^2 M_{q-1} and e_q = M_q - r e_{q-1} (Thomas
      * without a division in the recurrences): w_q = (e_q - r M_q w_{q+1}) / M_{q+1}.  The common
      * factor 1/a of w cancels in the rate and the variance.  Sums in reverse order. */
-    const double a = 2.0 * sg2 + lam0 * pois_diag;
-    const double r = a > 0.0 ? (lam0 * ccorr - sg2) / a : 0.0;
-    const double r2 = r * r;
-    P = 0.0;
-    S = 0.0;
-    W2 = 0.0;
-    WW = 0.0;
-    Q = 0.0;
+    const vdouble a = 2.0 * sg2 + lam0 * pois_diag;
+    const vlong apos = MASK(a > 0.0);
+    const vdouble r = SELECT(ZERO, (lam0 * ccorr - sg2) / a, apos);
+    const vdouble r2 = r * r;
+    P = ZERO;
+    S = ZERO;
+    W2 = ZERO;
+    WW = ZERO;
+    Q = ZERO;
     for (uint i = 0; i < nints; ++i) {
         if (nints > 1)
-            reload(sci, bits, (size_t)i * NGROUPS * npix + p, (size_t)i * NWORDS * npix + p, npix, inv_gain, D, used);
-        double mq = 1.0, mq1 = 1.0, e = 0.0;           /* M_q, M_{q+1}, e_{q-1} of the run */
-        for (int j = 0; j < NDIFF; ++j) {
-            if (used[j]) {
+            reload(sci, bits, (size_t)i * NGROUPS * npix + p, (size_t)i * NWORDS * npix + p, npix, nvalid, inv_gain, D, U);
+        vdouble mq = ONE, mq1 = ONE, e = ZERO;         /* M_q, M_{q+1}, e_{q-1} of the run */
+        vlong allused = -1;
+        for (int j = 0; j < NDIFF; ++j)
+            allused &= VLOAD(0, U + j * VW);
+        if (!ANY(~allused)) {                          /* one run in every lane: no masks */
+            for (int j = 0; j < NDIFF; ++j) {
                 e = mq - r * e;
-                B[j] = e;
-                C[j] = r * mq;
-                A[j] = 1.0 / mq1;
-                const double next = mq1 - r2 * mq;
+                VSTORE(e, 0, B + j * VW);
+                VSTORE(r * mq, 0, C + j * VW);
+                VSTORE(1.0 / mq1, 0, A + j * VW);
+                const vdouble next = mq1 - r2 * mq;
                 mq = mq1;
                 mq1 = next;
-            } else {
-                mq = 1.0;
-                mq1 = 1.0;
-                e = 0.0;
             }
+        } else
+        for (int j = 0; j < NDIFF; ++j) {
+            const vlong u = VLOAD(0, U + j * VW);
+            const vdouble en = mq - r * e;
+            VSTORE(en, 0, B + j * VW);
+            VSTORE(r * mq, 0, C + j * VW);
+            VSTORE(1.0 / mq1, 0, A + j * VW);
+            const vdouble next = mq1 - r2 * mq;
+            e = SELECT(ZERO, en, u);
+            mq = SELECT(ONE, mq1, u);
+            mq1 = SELECT(ONE, next, u);
         }
-        double wnext = 0.0;
+        vdouble wnext = ZERO;
         for (int j = NDIFF - 1; j >= 0; --j) {
-            const double w = used[j] ? (a > 0.0 ? (B[j] - C[j] * wnext) * A[j] : 1.0) : 0.0;
-            P += w * D[j];
-            S += w;
-            W2 += w * w;
-            WW += w * wnext;
-            const double step = w - wnext;
-            Q += step * step;
+            const vdouble wg = (VLOAD(0, B + j * VW) - VLOAD(0, C + j * VW) * wnext) * VLOAD(0, A + j * VW);
+            const vdouble w = SELECT(ZERO, SELECT(ONE, wg, apos), VLOAD(0, U + j * VW));
+            P = P + w * VLOAD(0, D + j * VW);
+            S = S + w;
+            W2 = W2 + w * w;
+            WW = WW + w * wnext;
+            const vdouble step = w - wnext;
+            Q = Q + step * step;
             wnext = w;
         }
-        Q += wnext * wnext;
+        Q = Q + wnext * wnext;
     }
 #endif
 
-    uint dq = pixeldq[p] | (anysat ? DQ_SAT : 0u) | (njump ? DQ_JUMP : 0u);
-    if (S > 0.0) {
-        const double norm = tau * S;
-        const double n2 = norm * norm;
-        const double var_read = sg2 * Q / n2;
-        const double var_pois = lam0 * (pois_diag * W2 + 2.0 * ccorr * WW) / n2;
-        rate_out[p] = P / norm;
-        var_out[p] = var_read + var_pois;
-        vpois_out[p] = var_pois;
-        vread_out[p] = var_read;
-    } else {
-        dq |= DQ_DNU;
-        rate_out[p] = NAN;
-        var_out[p] = NAN;
-        vpois_out[p] = NAN;
-        vread_out[p] = NAN;
-    }
-    dq_out[p] = dq;
-    njump_out[p] = njump;
+    const vlong ok = MASK(S > 0.0);
+    const vdouble norm = tau * S;
+    const vdouble n2 = norm * norm;
+    const vdouble var_read = sg2 * Q / n2;
+    const vdouble var_pois = lam0 * (pois_diag * W2 + 2.0 * ccorr * WW) / n2;
+    const vdouble nan = (vdouble)(NAN);
+    store_double(SELECT(nan, P / norm, ok), rate_out + p, nvalid);
+    store_double(SELECT(nan, var_read + var_pois, ok), var_out + p, nvalid);
+    store_double(SELECT(nan, var_pois, ok), vpois_out + p, nvalid);
+    store_double(SELECT(nan, var_read, ok), vread_out + p, nvalid);
+    const vuint dq = load_uint(pixeldq + p, nvalid) | (CONVERT_V(uint, anysat) & (uint)DQ_SAT)
+        | (CONVERT_V(uint, MASK(njump != 0)) & (uint)DQ_JUMP) | (CONVERT_V(uint, ~ok) & (uint)DQ_DNU);
+    store_uint(dq, dq_out + p, nvalid);
+    store_int(njump, njump_out + p, nvalid);
 }

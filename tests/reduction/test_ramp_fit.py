@@ -125,6 +125,30 @@ def test_kernel_matches_numpy_twin_at_several_chunkings(weighting):
         assert np.array_equal(p.dq, products[0].dq) and np.array_equal(p.groupdq, products[0].groupdq)
 
 
+@pytest.mark.parametrize("weighting", ["gls", "ols"])
+def test_every_vector_width_gives_the_same_bits(weighting):
+    """The kernel fits VW pixels per work item (lanes of vector types, 8 by default on CPUs, 1 on
+    GPUs): every width gives bit for bit the results of the scalar kernel (VW = 1) on the messy
+    block — jumps, saturation, DO_NOT_USE and upstream flags, 3 integrations (the GLS pass reloads
+    the used flags), uint16 and float64 — including a last work item with fewer valid pixels than
+    lanes (npix = 2999, not a multiple of any width); a lane past the end is never stored."""
+    sci, gdq, pdq = (a[..., :2999] for a in _messy_block())
+    k = fit_constants((14, 4, 1), TF, 1.0, 12.0, 1 / 12, 40000, 4.0, weighting)
+    for data in (sci, sci.astype(np.float64)):
+        scalar = fit_block_opencl(data, gdq, pdq, k, vector_width=1)
+        assert scalar[2].sum() > 500 and (scalar[1] & 2).any()
+        for vw in (2, 4, 8, 16, None):
+            out = tuple(np.full(3000, -7.0) for _ in range(4)) + (np.zeros(3000, np.uint32), np.zeros(3000, np.int32))
+            got = fit_block_opencl(data, gdq, pdq, k, vector_width=vw, out=tuple(a[:2999] for a in out))
+            assert np.array_equal(np.asarray(got[0]), scalar[0], equal_nan=True), vw
+            for a, b in zip(got[1:], scalar[1:]):
+                assert np.array_equal(a, b), vw
+            assert all(a[-1] == -7.0 for a in out[:4]) and out[4][-1] == 0 and out[5][-1] == 0
+    for bad in (3, 0, 32, True, 8.0, "8"):
+        with pytest.raises(ParameterError, match="vector_width"):
+            fit_block_opencl(sci, gdq, pdq, k, vector_width=bad)
+
+
 def test_the_kernel_writes_a_callers_images_in_place():
     """``out=``: fit_ramps hands the kernel its own rate images (no copy of each block, no fresh
     memory: first touches of memory cost 2 ms/MB on the 2-core VM).  The results land in those
