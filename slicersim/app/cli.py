@@ -578,8 +578,9 @@ def _tolerant_streams():
 def main(argv=None) -> int:
     import warnings
     if argv is None:                      # the command itself (not a caller's main([...])): a short-lived process
-        from slicersim.app.allocator import keep_freed_memory
+        from slicersim.app.allocator import keep_freed_memory, no_huge_page_stalls
         keep_freed_memory()
+        no_huge_page_stalls()
     _tolerant_streams()
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -28,3 +28,27 @@ def test_the_command_keeps_freed_memory_and_callers_of_main_are_left_alone(monke
     assert out == str(glibc)
     monkeypatch.setattr(allocator.platform, "libc_ver", lambda: ("musl", "1.2"))
     assert allocator.keep_freed_memory() is False
+
+
+def test_the_command_turns_numpy_s_huge_page_requests_off_unless_the_user_chose(monkeypatch):
+    """First touches of madvised huge pages stalled in compaction (3.5–4 s of system time per reduction
+    on the 2-core VM): the command (argv None) turns NumPy's request off; a caller's ``main([...])``
+    does not, nor does the command where ``NUMPY_MADVISE_HUGEPAGE`` is set."""
+    from slicersim.app import cli
+    switch = pytest.importorskip("numpy._core.multiarray")._set_madvise_hugepage
+    before = switch(True)
+    try:
+        with pytest.raises(SystemExit):
+            cli.main(["--help"])
+        assert switch(True) is True                   # still on
+        monkeypatch.setattr(sys, "argv", ["slicersim", "--help"])
+        monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")
+        with pytest.raises(SystemExit):
+            cli.main()
+        assert switch(True) is True                   # the user's choice stands
+        monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE")
+        with pytest.raises(SystemExit):
+            cli.main()
+        assert switch(True) is False                  # the command turned it off
+    finally:
+        switch(before)
