@@ -234,6 +234,42 @@ inline int lane_jumps(const double *D, long *U, uchar *F, const int l, const dou
     return found;
 }
 
+#ifndef SORT_MAX
+#define SORT_MAX 64
+#endif
+#if NDIFF >= JUMP_MIN_DIFFS && NDIFF <= SORT_MAX
+/* Lanes that use every difference (mask `all`) and certainly have no jump: their D sorted at once
+ * (Batcher's odd-even merge network on the lanes, fmin/fmax, unrolled), the median med as
+ * find_jump's (0.5 (s[(n-1)/2] + s[n/2])) and its test; returns the lanes that do not pass it.  A lane with a
+ * non-finite D is left to find_jump (fmin/fmax drop NaN). */
+inline vlong no_jump_sorted(const double *D, const vdouble dmin, const vdouble dmax, const double sg2,
+                            const double tau, const double pois_diag, const double jump_thr, const vlong all)
+{
+    vdouble s[NDIFF], total = ZERO;
+#pragma unroll
+    for (int j = 0; j < NDIFF; ++j) {
+        s[j] = VLOAD(0, D + j * VW);
+        total = total + s[j];
+    }
+#pragma unroll
+    for (int p = 1; p < NDIFF; p <<= 1)
+#pragma unroll
+        for (int k = p; k >= 1; k >>= 1)
+#pragma unroll
+            for (int j = k % p; j <= NDIFF - 1 - k; j += 2 * k)
+#pragma unroll
+                for (int i = 0; i <= min(k - 1, NDIFF - j - k - 1); ++i)
+                    if ((i + j) / (2 * p) == (i + j + k) / (2 * p)) {
+                        const vdouble a = s[i + j], b = s[i + j + k];
+                        s[i + j] = fmin(a, b);
+                        s[i + j + k] = fmax(a, b);
+                    }
+    const vdouble med = 0.5 * (s[(NDIFF - 1) >> 1] + s[NDIFF >> 1]);
+    const vlong jump = MASK(fmax(dmax - med, med - dmin) > jump_thr * sqrt(2.0 * sg2 + (fmax(med, 0.0) / tau) * pois_diag));
+    return all & MASK(isfinite(total)) & ~jump;
+}
+#endif
+
 __kernel void ramp_fit(__global const sci_t *sci, __global const uchar *gdq_in, __global uchar *gdq_out,
                        __global ulong *bits, __global const uint *pixeldq, __global double *rate_out,
                        __global double *var_out, __global double *vpois_out, __global double *vread_out,
@@ -288,16 +324,21 @@ __kernel void ramp_fit(__global const sci_t *sci, __global const uchar *gdq_in, 
         anysat |= sat;
         if (jump_thr > 0.0) {
             /* find_jump's first test for all lanes at once: the lanes it does not settle are searched */
-            const vlong search = MASK(nv >= JUMP_MIN_DIFFS)
+            vlong search = MASK(nv >= JUMP_MIN_DIFFS)
                 & MASK(fmax(dmax - dmin, dmax - dmin) > jump_thr * sqrt(2.0 * sg2 + (fmax(dmin, 0.0) / tau) * pois_diag));
+#if NDIFF >= JUMP_MIN_DIFFS && NDIFF <= SORT_MAX
+            if (ANY(search & allused))
+                search &= ~no_jump_sorted(D, dmin, dmax, sg2, tau, pois_diag, jump_thr, allused);
+#endif
             if (ANY(search)) {
                 long wanted[VW];
                 int found[VW];
                 VSTORE(search, 0, wanted);
                 for (int l = 0; l < VW; ++l)
                     found[l] = wanted[l] ? lane_jumps(D, U, F, l, sg2, tau, pois_diag, jump_thr, Dl, usedl, A) : 0;
-                njump += VLOAD(0, found);
-                allused = 0;
+                const vint more = VLOAD(0, found);
+                njump += more;
+                allused &= MASK(more == 0);
             }
         }
         if (!ANY(~allused)) {
