@@ -18,7 +18,10 @@ Per pixel, over all integrations of a flat block (group means g_k [DN], gain g [
   inverse-variance combination of the segments' GLS slopes.  Either way rate = Σw·D/(τΣw) and
   the variance is wᵀTw/(τΣw)², split exactly into read and Poisson parts.
 * the jump test brackets the median by counting and stops as soon as the bracket decides it
-  (kernel); the twin sorts.  The decisions are the same.
+  (kernel; lanes that use every one of ≤ 64 differences sort them all at once by a network);
+  the twin sorts.  The decisions are the same.
+* the kernel fits ``vector_width`` pixels per work item (lanes of vector types, 8 on CPUs, 1 on
+  GPUs) in the scalar operation order: every width gives the same bits.
 
 Both backends follow the same operation order (FP contraction off in the kernel); they agree
 to rounding (≈1e-15 relative) and make the same jump decisions.
