@@ -84,10 +84,10 @@ class _HDF5Ramps(_Ramps):
         except ImportError:
             pass
         self.name = path
-        from slicersim.io.rampfile import metadata_errors
+        from slicersim.io.rampfile import READ_CHUNK_CACHE, metadata_errors
         try:
             with metadata_errors(path):
-                self.fh = h5py.File(path, "r")
+                self.fh = h5py.File(path, "r", **READ_CHUNK_CACHE)
         except RampFileError:
             raise
         except OSError as exc:

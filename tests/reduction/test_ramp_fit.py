@@ -674,3 +674,20 @@ def test_out_images_sharing_memory_are_refused():
         with pytest.raises(ValueError, match="sharing no memory"):
             fit_block_opencl(sci, gdq, pdq, k, out=bad)
     fit_block_opencl(sci, gdq, pdq, k, out=out)                   # distinct images: fine
+
+
+def test_ramp_files_are_read_with_a_chunk_cache_wider_than_a_row_block(tmp_path):
+    """The reduction reads row blocks narrower than the files' chunks (20 rows of a 49-row SCI chunk,
+    of a 170-row compressed nonlinearity chunk); with h5py's 1 MiB chunk cache every block read and
+    decompressed those chunks again (16 of 20 CPU-s of reading in one effects reduction).  Both
+    readers of ramp files open them with ``READ_CHUNK_CACHE`` (64 MiB per dataset)."""
+    from slicersim.io.rampfile import READ_CHUNK_CACHE, open_hdf5_input
+    from slicersim.reduction.ramp_sources import open_ramps
+    path = simulate(np.full((32, 32), 5.0), (4, 1, 0), seed=3, out=tmp_path / "c.h5", ron=5.0, **QUIET)
+    src = open_ramps(path)
+    try:
+        assert src.fh.id.get_access_plist().get_cache()[2] == READ_CHUNK_CACHE["rdcc_nbytes"] >= 64 << 20
+    finally:
+        src.close()
+    with open_hdf5_input(path) as fh:
+        assert fh.id.get_access_plist().get_cache()[2] == READ_CHUNK_CACHE["rdcc_nbytes"]
