@@ -143,11 +143,12 @@ def _min_slope(a2, a3, full_well):
     return np.minimum(np.minimum(1.0, slope_fw), slope_v)
 
 
-def apply_correction(dn, coeffs):
-    """Σ_k c_k DN^k (Horner, as stcal's apply_polynomial) in float64."""
+def apply_correction(dn, coeffs, out=None):
+    """Σ_k c_k DN^k (Horner, as stcal's apply_polynomial) in float64; ``out``: a float64 array of the
+    broadcast shape, sharing no memory with ``dn``, to write the result into."""
     c = np.asarray(coeffs, np.float64)
     x = np.asarray(dn, np.float64)
-    acc = np.multiply(c[-1], x, out=np.empty(np.broadcast_shapes(c.shape[1:], x.shape)))
+    acc = np.multiply(c[-1], x, out=np.empty(np.broadcast_shapes(c.shape[1:], x.shape)) if out is None else out)
     for k in range(c.shape[0] - 2, 0, -1):          # in place: no temporary of the block per term
         acc += c[k]
         acc *= x

@@ -454,23 +454,34 @@ def _fit_blocks(src, setup, options, backend, out, groupdq):
 
 
 def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):
-    """Float DN of a block after saturation flags (raw DN), superbias, reference pixels, linearity."""
+    """Float DN of a block after saturation flags (raw DN), superbias, reference pixels, linearity;
+    one (integration, group) plane at a time, so that the polynomial's passes stay in the cache (the
+    whole block at once was memory-bound: 30 of 76 CPU-s of an effects reduction)."""
     from dataclasses import replace
     from slicersim.physics.nonlinearity import apply_correction
     if raw.dtype == np.uint16:
         gdq |= (raw >= consts.satlim).view(np.uint8) * np.uint8(DQ_SATURATED)
-    dn = raw.astype(np.float64)
-    dn -= _bias_rows(bias, y0, y1)
-    if terms is not None:
-        col, row = terms
-        dn -= col[:, :, None, :]
-        dn -= row[:, :, y0:y1, None]
-    if coeffs is not None:
-        dn = apply_correction(dn, np.asarray(coeffs[:, y0:y1], np.float64))
-    bad = ~np.isfinite(dn)
-    if bad.any():
-        gdq[bad] |= np.uint8(DQ_DO_NOT_USE)
-        dn[bad] = 0.0
+    nints, n = raw.shape[:2]
+    dn = np.empty(raw.shape, np.float64)
+    base = _bias_rows(bias, y0, y1)
+    c = None if coeffs is None else np.asarray(coeffs[:, y0:y1], np.float64)
+    scratch = np.empty(raw.shape[2:], np.float64) if c is not None else None
+    for i in range(nints):
+        for k in range(n):
+            plane = dn[i, k]
+            np.subtract(raw[i, k], base, out=plane)
+            if terms is not None:
+                col, row = terms
+                plane -= col[i, k][None, :]
+                plane -= row[i, k, y0:y1, None]
+            if c is not None:
+                np.copyto(scratch, plane)
+                with np.errstate(invalid="ignore", over="ignore"):     # non-finite: DO_NOT_USE below
+                    apply_correction(scratch, c, out=plane)
+            bad = ~np.isfinite(plane)
+            if bad.any():
+                gdq[i, k][bad] |= np.uint8(DQ_DO_NOT_USE)
+                plane[bad] = 0.0
     return dn, replace(consts, satlim=math.inf) if raw.dtype == np.uint16 else consts
 
 

@@ -691,3 +691,35 @@ def test_ramp_files_are_read_with_a_chunk_cache_wider_than_a_row_block(tmp_path)
         src.close()
     with open_hdf5_input(path) as fh:
         assert fh.id.get_access_plist().get_cache()[2] == READ_CHUNK_CACHE["rdcc_nbytes"]
+
+
+def test_corrections_plane_by_plane_equal_the_whole_block_formula():
+    """``_correct`` works one (integration, group) plane at a time (the polynomial's passes in the
+    cache); its DN are bit for bit those of the whole-block formula (superbias, reference-pixel column
+    and row terms, Horner's polynomial), non-finite results DO_NOT_USE and 0, saturation from raw DN."""
+    from slicersim.physics.nonlinearity import apply_correction
+    from slicersim.reduction.ramp_fit import _correct
+    rng = np.random.default_rng(7)
+    nints, n, ny, nx, y0 = 2, 5, 6, 9, 3
+    raw = rng.integers(0, 65535, (nints, n, ny, nx)).astype(np.uint16)
+    raw[0, 2, 1, 1] = 65535
+    bias = rng.normal(1000, 30, (ny + y0, nx))
+    col, row = rng.normal(0, 5, (nints, n, nx)), rng.normal(0, 5, (nints, n, ny + y0))
+    coeffs = np.stack([rng.normal(0, 1, (ny + y0, nx)), 1 + rng.normal(0, 1e-3, (ny + y0, nx)),
+                       rng.normal(0, 1e-7, (ny + y0, nx))])
+    coeffs[2, y0 + 4, 5] = np.inf                       # a non-finite result: DO_NOT_USE, 0
+    k = fit_constants((n, 1, 0), TF, 1.0, 10.0, saturation=60000.0)
+    gdq = np.zeros(raw.shape, np.uint8)
+    dn, k2 = _correct(raw, gdq, y0, y0 + ny, k, bias, (col, row), coeffs)
+    want = raw.astype(np.float64) - bias[y0:]
+    want -= col[:, :, None, :]
+    want -= row[:, :, y0:, None]
+    with np.errstate(invalid="ignore"):
+        want = apply_correction(want, coeffs[:, y0:])
+    bad = ~np.isfinite(want)
+    assert bad.sum() == nints * n and np.all(gdq[bad] & 1) and not np.any(gdq[~bad] & 1)
+    want[bad] = 0.0
+    assert np.array_equal(dn, want) and k2.satlim == math.inf
+    assert np.array_equal((gdq & 2) != 0, raw >= 60000) and ((gdq & 2) != 0).any()
+    out = np.empty_like(want)
+    assert apply_correction(want, coeffs[:, y0:], out=out) is out
