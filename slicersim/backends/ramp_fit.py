@@ -4,7 +4,7 @@ Per pixel, over all integrations of a flat block (group means g_k [DN], gain g [
 
 * differences D_j = (g_{j+1} − g_j)/g [e-] of consecutive usable groups (not SATURATED, not
   DO_NOT_USE; a group at or above ``satlim`` and every later group are SATURATED); a JUMP_DET
-  flag on group j+1 drops D_j;
+  flag on group j+1 drops D_j, and so does a non-finite D_j (a NaN or infinite group mean);
 * jumps (two-point differences, as stcal's): the used difference farthest from their median
   is a jump while |D_j − med| > ``jump_threshold``·σ, σ² = 2σ_g² + (max(med, 0)/τ)(τ − 2c) the
   exact variance of a difference (at least 3 differences are needed);
@@ -102,7 +102,10 @@ def _differences(sci_i, flags, inv_gain):
     raw = sci_i.astype(np.float64, copy=False)
     usable = (flags & (DQ_SATURATED | DQ_DO_NOT_USE)) == 0
     used = usable[:-1] & usable[1:] & ((flags[1:] & DQ_JUMP_DET) == 0)
-    return (raw[1:] - raw[:-1]) * inv_gain, used
+    with np.errstate(invalid="ignore", over="ignore"):
+        D = (raw[1:] - raw[:-1]) * inv_gain
+    used &= np.isfinite(D)                       # a NaN or infinite difference is never used
+    return D, used
 
 
 def _detect_jumps(D, used, flags, njump, k, pois_diag):
@@ -204,7 +207,7 @@ def fit_block_numpy(sci, gdq, pixeldq, k):
         _ols_sums(D, used, ols)
     P, S, W2, Q = ols
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam0 = np.where(S > 0.0, np.maximum(P / (k.tau * S), 0.0), 0.0)
+        lam0 = np.where(S > 0.0, np.fmax(P / (k.tau * S), 0.0), 0.0)     # fmax: as the kernel's (NaN → 0)
     WW = W2 - 0.5 * Q
     if k.weighting == "gls":
         a = 2.0 * k.sg2 + lam0 * pois_diag
@@ -248,17 +251,31 @@ def _check_out(out, npix, inputs):
 
 
 
-def _lanes(vector_width, gpu, ngroups):
+#: private memory of one work group of the kernel on CPUs [bytes]: PoCL keeps the work items' private
+#: arrays (≈ 49 bytes per group and lane) on a thread's stack; 16 lanes × 65 groups × 256 work items
+#: (13 MB) crashed the process
+CPU_PRIVATE_BUDGET = 6 << 20
+
+
+def _lanes(vector_width, gpu, ngroups, work_group):
     """Pixels per work item: ``vector_width`` (1, 2, 4, 8 or 16) or by default 1 on GPUs and on CPUs the
-    widest of 8, 4, 2, 1 whose private arrays (five per difference and lane) stay within 64 KiB."""
-    if vector_width is None:
-        if gpu:
-            return 1
-        return next(w for w in (8, 4, 2, 1) if w == 1 or 41 * ngroups * w <= 65536)
-    if isinstance(vector_width, bool) or not isinstance(vector_width, (int, np.integer)) \
-            or vector_width not in (1, 2, 4, 8, 16):
+    widest of 8, 4, 2, 1 whose work group's private arrays fit :data:`CPU_PRIVATE_BUDGET`; on CPUs an
+    explicit width or work group beyond it is a ParameterError."""
+    if vector_width is not None and (isinstance(vector_width, bool) or not isinstance(vector_width, (int, np.integer))
+                                     or vector_width not in (1, 2, 4, 8, 16)):
         raise ParameterError(f"vector_width must be 1, 2, 4, 8 or 16, got {vector_width!r}")
-    return vector_width
+    if gpu:
+        return 1 if vector_width is None else int(vector_width)
+
+    def private(width):
+        return 49 * ngroups * width * work_group
+    if vector_width is None:
+        vector_width = next((w for w in (8, 4, 2, 1) if private(w) <= CPU_PRIVATE_BUDGET), 1)
+    if private(vector_width) > CPU_PRIVATE_BUDGET:
+        raise ParameterError(f"work_group {work_group} x vector_width {vector_width} x {ngroups} groups needs "
+                             f"{private(vector_width) / 2**20:.1f} MiB of private memory per work group on this CPU "
+                             f"device (at most {CPU_PRIVATE_BUDGET >> 20} MiB): use a smaller work_group or vector_width")
+    return int(vector_width)
 
 
 def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True, wait=True,
@@ -281,15 +298,24 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
     pixeldq = np.ascontiguousarray(pixeldq)
     dev = opencl.get_device()
     gpu = "GPU" in opencl.device_type(dev)
-    lanes = _lanes(vector_width, gpu, n)
+    if work_group is not None and not 1 <= int(work_group) <= int(dev.max_work_group_size):
+        raise ParameterError(f"work_group must be in [1, {int(dev.max_work_group_size)}] on this device, got {work_group}")
+    if work_group is None:
+        work_group = None if gpu else CPU_WORK_GROUP
+    lanes = _lanes(vector_width, gpu, n, int(work_group or CPU_WORK_GROUP))
+    if npix == 0 or nints == 0:          # nothing to launch (a zero-size buffer is an OpenCL error): the twin's results
+        fit0, dq0, nj0, g0 = fit_block_numpy(sci, gdq, pixeldq, k)
+        if out is not None:
+            _check_out(out, npix, (sci, gdq, pixeldq))
+            for a, b in zip(out, (*fit0, dq0, nj0)):
+                a[...] = b
+            fit0, dq0, nj0 = tuple(out[:4]), out[4], out[5]
+        result = (fit0, dq0, nj0, g0 if want_gdq else None)
+        return result if wait else (lambda: result)
     options = (f"-DNGROUPS={n}", f"-DWEIGHTING={WEIGHTINGS.index(k.weighting)}",
                f"-DSCI_DOUBLE={int(sci.dtype == np.float64)}", f"-DWANT_GDQ={int(bool(want_gdq))}",
                f"-DVW={lanes}")
     kernel = opencl.cached_kernel("ramp_fit.cl", "ramp_fit", options)
-    if work_group is None:
-        work_group = None if gpu else CPU_WORK_GROUP
-    elif not 1 <= int(work_group) <= int(dev.max_work_group_size):
-        raise ParameterError(f"work_group must be in [1, {int(dev.max_work_group_size)}] on this device, got {work_group}")
     if out is None:
         fit = np.empty((4, npix))
         rate, var, vpois, vread = fit
@@ -319,7 +345,7 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
     d_gout = d_out[-1]
     opencl.launch(kernel, gsize, lsize, d_sci, d_gdq, d_gout, d_bits, d_pdq, *d_out[:6], np.uint32(npix),
                   np.uint32(nints), np.float64(k.inv_gain), np.float64(k.sg2), np.float64(k.tau),
-                  np.float64(k.ccorr), np.float64(min(k.satlim, 1e300)), np.float64(k.jump_thr))
+                  np.float64(k.ccorr), np.float64(k.satlim), np.float64(k.jump_thr))
 
     inputs = (sci, gdq, pixeldq)                 # alive until the kernel is done with them
     # Device copies (GPUs): the results are read back by copies enqueued now, right behind this kernel.

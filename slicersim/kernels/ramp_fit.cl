@@ -8,7 +8,7 @@
  *
  * 1. saturation: a group flagged SATURATED or reading >= satlim, and every later group, is
  *    SATURATED; a group is usable unless SATURATED or DO_NOT_USE; difference j is used when
- *    groups j and j+1 are usable and group j+1 carries no JUMP_DET flag;
+ *    groups j and j+1 are usable, group j+1 carries no JUMP_DET flag and D_j is finite;
  * 2. jumps (jump_thr > 0): while >= JUMP_MIN_DIFFS differences are used, the one farthest from
  *    their median med is a jump if |D_j - med| > jump_thr * sigma, with
  *    sigma^2 = 2 sg2 + (max(med, 0) / tau) * (tau - 2 c)   (exact variance of a difference);
@@ -309,7 +309,7 @@ __kernel void ramp_fit(__global const sci_t *sci, __global const uchar *gdq_in, 
                 const vlong both = usable_prev & usable;
                 const vlong flagged = MASK((f & (uchar)DQ_JUMP) != (uchar)0);
                 njump -= CONVERT_V(int, both & flagged);
-                const vlong u = both & ~flagged;
+                const vlong u = both & ~flagged & MASK(isfinite(d));     /* NaN / inf: never used */
                 VSTORE(d, 0, D + (k - 1) * VW);
                 VSTORE(u, 0, U + (k - 1) * VW);
                 nv -= CONVERT_V(int, u);

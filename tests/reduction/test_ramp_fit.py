@@ -724,3 +724,156 @@ def test_corrections_plane_by_plane_equal_the_whole_block_formula():
     out = np.empty_like(want)
     with np.errstate(invalid="ignore"):
         assert apply_correction(want, coeffs[:, y0:], out=out) is out
+
+
+# ----------------------------------------------------------------------------- adversarial pass (vector lanes)
+# Findings of an adversarial pass on the vectorised kernel, each fixed: a NaN difference made the median
+# read private memory it had not sorted (results depending on the width, run to run); kernel and twin
+# disagreed on NaN differences and on lam0 = max(NaN, 0); SCI ≥ 1e300 was saturated by the kernel only;
+# 16 lanes × 65 groups × 256 work items crashed the process (PoCL thread stack); empty blocks were an
+# OpenCL error.  The other tests record what was tried and holds.
+import warnings  # noqa: E402
+
+WIDTHS = (1, 2, 4, 8, 16)
+
+
+def _block(ramps, nints=1):
+    """(nints, n, npix) float64 SCI from a list of per-pixel ramps, no flags."""
+    sci = np.array(ramps, float).T[None].repeat(nints, 0).copy()
+    return sci, np.zeros(sci.shape, np.uint8), np.zeros(sci.shape[2], np.uint32)
+
+
+def _fits(sci, gdq, pdq, k, **kw):
+    out = {}
+    for vw in WIDTHS:
+        fit, dq, nj, g = fit_block_opencl(sci, gdq, pdq, k, vector_width=vw, **kw)
+        out[vw] = (np.asarray(fit).copy(), dq.copy(), nj.copy(), None if g is None else g.copy())
+    return out
+
+
+def _same_bits(a, b):
+    return all(np.array_equal(np.asarray(x).view(np.uint8), np.asarray(y).view(np.uint8))
+               for x, y in zip(a, b) if x is not None)
+
+
+def test_nan_difference_gives_the_same_bits_at_every_width():
+    """float64 SCI with a NaN group (no flag): D = [10, NaN, NaN, 500] has nv = 4 used differences,
+    two of them NaN; klo = 1, khi = 2 but only 2 values land in the bracket, so the median reads A[2]."""
+    k = fit_constants((5, 4, 1), TF, 1.0, 12.0, 1 / 12, None, 4.0, "ols")
+    nan_ramp, filler = [0, 10, np.nan, 500, 1000], [0, 1e5, 2e5, 3e5, 3e5 + 10]
+    for ramps in ([nan_ramp], [filler, nan_ramp], ([filler] + [nan_ramp]) * 8):
+        res = _fits(*_block(ramps), k)
+        for vw in WIDTHS[1:]:
+            assert _same_bits(res[vw], res[1]), (len(ramps), vw, res[vw][3][0, :, -1], res[1][3][0, :, -1])
+
+
+@pytest.mark.parametrize("weighting", ["gls", "ols"])
+def test_nan_sci_kernel_matches_twin(weighting):
+    k = fit_constants((10, 4, 1), TF, 1.0, 12.0, 1 / 12, None, 4.0, weighting)
+    sci, gdq, pdq = _block([[0, 10, 20, 3000, 40, 50, 60, 70, 80, np.nan]])
+    cl = fit_block_opencl(sci, gdq, pdq, k, vector_width=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref = fit_block_numpy(sci, gdq, pdq, k)
+    assert np.array_equal(cl[2], ref[2]) and np.array_equal(cl[1], ref[1]) and np.array_equal(cl[3], ref[3])
+    assert np.array_equal(np.isnan(cl[0]), np.isnan(ref[0]))
+
+
+def test_saturation_none_with_huge_float_sci_kernel_matches_twin():
+    k = fit_constants((10, 4, 1), TF, 1.0, 12.0, 1 / 12, None, 4.0, "ols")
+    sci, gdq, pdq = _block([[0, 10, 20, 30, 40, 1e300, 60, 70, 80, 90]])
+    cl = fit_block_opencl(sci, gdq, pdq, k)
+    ref = fit_block_numpy(sci, gdq, pdq, k)
+    assert np.array_equal(cl[1], ref[1]) and np.array_equal(cl[2], ref[2]) and np.array_equal(cl[3], ref[3])
+
+
+@pytest.mark.parametrize("shape", [(1, 6, 0), (0, 6, 5)])
+def test_empty_blocks(shape):
+    k = fit_constants((6, 4, 1), TF, 1.0, 12.0, 1 / 12, 40000, 4.0, "gls")
+    sci, gdq, pdq = np.zeros(shape, np.uint16), np.zeros(shape, np.uint8), np.zeros(shape[2], np.uint32)
+    ref = fit_block_numpy(sci, gdq, pdq, k)
+    cl = fit_block_opencl(sci, gdq, pdq, k)
+    assert np.array_equal(cl[1], ref[1])
+
+
+def _messy(rng, n, nints, npix, sat=40000.0):
+    t = np.arange(n) * 5 * TF
+    kind = rng.integers(0, 9, npix)
+    sci = 2000 + (10 ** rng.uniform(-1, 3, npix))[None, None] * t[None, :, None] + rng.normal(0, 6, (nints, n, npix))
+    hits = rng.random((nints, n, npix)) < 0.08
+    sci += np.cumsum(hits * rng.uniform(30, 3000, hits.shape), axis=1)
+    sci[:, :, kind == 1] = 1234                                                    # all equal
+    m = kind == 2
+    sci[:, :, m] = 2000 + np.cumsum(rng.integers(0, 3, (nints, n, m.sum())) * 10, axis=1)  # tied differences
+    sci = np.clip(np.rint(sci), 0, 65535)
+    gdq = np.zeros(sci.shape, np.uint8)
+    gdq[rng.random(sci.shape) < 0.05] |= 1
+    gdq[rng.random(sci.shape) < 0.05] |= 4
+    gdq[:, 0, kind == 4] |= 2                                                      # saturated at group 0
+    gdq[:, :, kind == 5] |= 1                                                      # every group DO_NOT_USE
+    sci[:, 0, kind == 6] = sat + 1
+    gdq[:, 1:, kind == 7] |= 4
+    pdq = (rng.integers(0, 2**32, npix, dtype=np.uint64) * (rng.random(npix) < 0.3)).astype(np.uint32)
+    return sci, gdq, pdq
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 64, 65, 66])
+@pytest.mark.parametrize("weighting", ["gls", "ols"])
+def test_edge_group_counts_tails_and_flags_are_bit_identical(n, weighting):
+    """NGROUPS at the edges (1 and 2 differences, JUMP_MIN_DIFFS, the sorting network's 64 on/off),
+    npix not a multiple of any width, 1-3 integrations, tied/equal ramps, saturation at the first
+    group, all DO_NOT_USE, upstream jumps, pixeldq bits, a tiny threshold: every width gives the
+    scalar bits, and the twin the same flags and 1e-12 relative floats."""
+    rng = np.random.default_rng(n)
+    for nints, npix, thr in ((1, 13, 4.0), (3, 17, 1e-300)):
+        k = fit_constants((n, 4, 1), TF, 2.3, 12.0, 1 / 12, 40000.0, thr, weighting)
+        sci, gdq, pdq = _messy(rng, n, nints, npix)
+        res = _fits(sci, gdq, pdq, k)
+        for vw in WIDTHS[1:]:
+            assert _same_bits(res[vw], res[1]), vw
+        ref = fit_block_numpy(sci, gdq, pdq, k)
+        for a, b in zip(res[1][1:], ref[1:]):
+            assert np.array_equal(a, b)
+        ok = np.isfinite(ref[0])
+        assert np.array_equal(np.isfinite(res[1][0]), ok)
+        assert np.all(np.abs(res[1][0][ok] - ref[0][ok]) <= 1e-12 * np.abs(ref[0][ok]))
+
+
+@pytest.mark.parametrize("npix", [1, 3, 9, 17])
+def test_out_views_of_larger_buffers_are_not_written_past_npix(npix):
+    rng = np.random.default_rng(npix)
+    k = fit_constants((6, 4, 1), TF, 1.0, 12.0, 1 / 12, 40000, 4.0, "gls")
+    sci = (2000 + np.arange(6)[None, :, None] * 30 + rng.normal(0, 5, (2, 6, npix))).round().astype(np.uint16)
+    sci[:, 3:, ::2] += 900
+    gdq, pdq = np.zeros(sci.shape, np.uint8), np.full(npix, 1024, np.uint32)
+    ref = fit_block_opencl(sci, gdq, pdq, k, vector_width=1)
+    for vw in (2, 4, 8, 16):
+        for wg in (None, 1, 7):
+            bufs = [np.full(npix + 40, -7.0) for _ in range(4)] + [np.full(npix + 40, 77, np.uint32),
+                                                                   np.full(npix + 40, 77, np.int32)]
+            fit_block_opencl(sci, gdq, pdq, k, vector_width=vw, out=tuple(b[3:3 + npix] for b in bufs), work_group=wg)
+            for b, r in zip(bufs, (*ref[0], ref[1], ref[2])):
+                assert np.array_equal(b[3:3 + npix].view(np.uint8), np.ascontiguousarray(r).view(np.uint8))
+                assert np.all(b[:3] == b[0]) and np.all(b[3 + npix:] == b[0]) and b[0] in (-7.0, 77)
+
+
+def test_explicit_wide_lanes_with_a_large_work_group_do_not_crash():
+    """16 lanes × 65 groups × 256 work items crashed the process (SIGSEGV: PoCL keeps a work group's private
+    arrays on a thread's stack).  Such an explicit width is one ParameterError naming work_group and
+    vector_width; with the default width a large work group gets fewer lanes and runs (a subprocess, so
+    that a crash fails the test instead of the suite)."""
+    import subprocess
+    import sys
+    k = fit_constants((65, 4, 1), TF, 1.0, 12.0, 1 / 12, 40000.0, 4.0, "gls")
+    sci = np.zeros((1, 65, 1), np.uint16)
+    with pytest.raises(ParameterError, match="work_group 256 x vector_width 16"):
+        fit_block_opencl(sci, np.zeros(sci.shape, np.uint8), np.zeros(1, np.uint32), k, vector_width=16, work_group=256)
+    code = ("import numpy as np\n"
+            "from slicersim.backends.ramp_fit import fit_block_opencl, fit_constants\n"
+            "for n in (65, 200):\n"
+            "    k = fit_constants((n, 4, 1), 2.83, 1.0, 12.0, 1/12, 40000.0, 4.0, 'gls')\n"
+            "    sci = np.zeros((1, n, 300), np.uint16)\n"
+            "    r = fit_block_opencl(sci, np.zeros(sci.shape, np.uint8), np.zeros(300, np.uint32), k, work_group=256)\n"
+            "    assert np.all(r[0][0] == 0)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
