@@ -125,7 +125,7 @@ def test_kernel_matches_numpy_twin_at_several_chunkings(weighting):
         assert np.array_equal(p.dq, products[0].dq) and np.array_equal(p.groupdq, products[0].groupdq)
 
 
-@pytest.mark.parametrize("weighting", ["gls", "ols"])
+@pytest.mark.parametrize("weighting", ["gls", pytest.param("ols", marks=pytest.mark.slow)])
 def test_every_vector_width_gives_the_same_bits(weighting):
     """The kernel fits VW pixels per work item (lanes of vector types, 8 by default on CPUs, 1 on
     GPUs): every width gives bit for bit the results of the scalar kernel (VW = 1) on the messy
@@ -817,7 +817,8 @@ def _messy(rng, n, nints, npix, sat=40000.0):
     return sci, gdq, pdq
 
 
-@pytest.mark.parametrize("n", [2, 3, 4, 64, 65, 66])
+@pytest.mark.parametrize("n", [pytest.param(2, marks=pytest.mark.slow), 3, pytest.param(4, marks=pytest.mark.slow),
+                               pytest.param(64, marks=pytest.mark.slow), pytest.param(65, marks=pytest.mark.slow), 66])
 @pytest.mark.parametrize("weighting", ["gls", "ols"])
 def test_edge_group_counts_tails_and_flags_are_bit_identical(n, weighting):
     """NGROUPS at the edges (1 and 2 differences, JUMP_MIN_DIFFS, the sorting network's 64 on/off),
@@ -839,6 +840,7 @@ def test_edge_group_counts_tails_and_flags_are_bit_identical(n, weighting):
         assert np.all(np.abs(res[1][0][ok] - ref[0][ok]) <= 1e-12 * np.abs(ref[0][ok]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("npix", [1, 3, 9, 17])
 def test_out_views_of_larger_buffers_are_not_written_past_npix(npix):
     rng = np.random.default_rng(npix)
