@@ -52,3 +52,32 @@ def test_the_command_turns_numpy_s_huge_page_requests_off_unless_the_user_chose(
         assert switch(True) is False                  # the command turned it off
     finally:
         switch(before)
+
+
+@pytest.mark.parametrize("value", ["0", "1", " 1", "2"])
+def test_a_user_s_numpy_madvise_hugepage_stands_in_the_command(value):
+    """Whatever value NumPy accepts, the command (argv None) leaves NumPy's setting as NumPy made it from
+    the variable; ``no_huge_page_stalls`` returns False and never raises ("" and "garbage" already make
+    ``import numpy`` fail, before slicersim is reached)."""
+    import os
+    code = ("import sys\n"
+            "from numpy._core.multiarray import _set_madvise_hugepage as s\n"
+            "before = s(True)\n"
+            "s(before)\n"
+            "from slicersim.app import cli\n"
+            "sys.argv = ['slicersim', '--help']\n"
+            "try:\n"
+            "    cli.main()\n"
+            "except SystemExit:\n"
+            "    pass\n"
+            "print(before, s(True))\n")
+    env = dict(os.environ, NUMPY_MADVISE_HUGEPAGE=value)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+    before, after = out.split()[-2:]
+    assert before == after == str(bool(int(value)))
+
+
+@pytest.mark.parametrize("value", ["", "0", "1", "garbage"])
+def test_no_huge_page_stalls_never_raises_with_the_variable_set(monkeypatch, value):
+    monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", value)
+    assert allocator.no_huge_page_stalls() is False

@@ -99,3 +99,31 @@ def test_bad_parameters_rejected():
             nl.NonlinearityParameters(**kw)
     with pytest.raises(EffectsError, match="full_well"):
         nl.nonlinearity_coefficients(1, (4, 4), P, -5.0)
+
+
+@pytest.mark.xfail(strict=True, reason="apply_correction(dn, c, out=dn) silently returns a wrong polynomial (Horner reads "
+                   "x after overwriting it); the docstring forbids sharing memory but nothing checks it")
+def test_apply_correction_out_aliasing_dn_is_refused_or_correct():
+    rng = np.random.default_rng(1)
+    c = np.stack([rng.normal(0, 1, (3, 4)), 1 + rng.normal(0, 1e-3, (3, 4)), rng.normal(0, 1e-6, (3, 4))])
+    x = rng.normal(1000, 100, (3, 4))
+    ref = nl.apply_correction(x, c)
+    y = x.copy()
+    try:
+        got = nl.apply_correction(y, c, out=y)
+    except ValueError:
+        return
+    assert np.array_equal(got, ref)
+
+
+def test_apply_correction_out_is_bit_identical_and_returned():
+    rng = np.random.default_rng(2)
+    for shape in [(1, 1), (1, 7), (5, 1), (2, 3, 4)]:
+        c = np.stack([rng.normal(0, 1, shape[-2:]), 1 + rng.normal(0, 1e-3, shape[-2:]), rng.normal(0, 1e-6, shape[-2:])])
+        c[2, 0, 0] = np.inf
+        x = rng.normal(1000, 100, shape)
+        with np.errstate(invalid="ignore", over="ignore"):
+            ref = nl.apply_correction(x, c)
+            out = np.empty(shape)
+            assert nl.apply_correction(x, c, out=out) is out
+        assert np.array_equal(out.view(np.uint8), ref.view(np.uint8))
