@@ -36,7 +36,7 @@ import numpy as np
 from slicersim.backends import opencl
 from slicersim.errors import ParameterError
 
-__all__ = ["FitConstants", "fit_constants", "fit_block_numpy", "fit_block_opencl", "WEIGHTINGS",
+__all__ = ["FitConstants", "fit_constants", "fit_block_numpy", "fit_block_opencl", "check_launch", "WEIGHTINGS",
            "JUMP_MIN_DIFFS", "DQ_DO_NOT_USE", "DQ_SATURATED", "DQ_JUMP_DET"]
 
 WEIGHTINGS = ("gls", "ols")
@@ -278,6 +278,35 @@ def _lanes(vector_width, gpu, ngroups, work_group):
     return int(vector_width)
 
 
+def check_launch(ngroups, work_group=None, vector_width=None):
+    """The kernel's launch on this device, checked before any data are read: ParameterError for a
+    work group outside [1, the device's maximum] or beyond :data:`CPU_PRIVATE_BUDGET` with the lanes.
+
+    Parameters
+    ----------
+    ngroups : int
+        Groups per integration.
+    work_group, vector_width : int or None
+        As :func:`fit_block_opencl`'s (None: the defaults).
+
+    Returns
+    -------
+    gpu : bool
+        Whether the device is a GPU.
+    work_group : int or None
+        The work group used (None: the GPU driver's choice).
+    lanes : int
+        Pixels per work item.
+    """
+    dev = opencl.get_device()
+    gpu = "GPU" in opencl.device_type(dev)
+    if work_group is not None and not 1 <= int(work_group) <= int(dev.max_work_group_size):
+        raise ParameterError(f"work_group must be in [1, {int(dev.max_work_group_size)}] on this device, got {work_group}")
+    if work_group is None:
+        work_group = None if gpu else CPU_WORK_GROUP
+    return gpu, work_group, _lanes(vector_width, gpu, ngroups, int(work_group or CPU_WORK_GROUP))
+
+
 def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, want_gdq=True, wait=True,
                      out=None, vector_width=None):
     """OpenCL version of :func:`fit_block_numpy` (same arguments and results).
@@ -296,13 +325,7 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
     nints, n, npix = sci.shape
     sci, gdq = np.ascontiguousarray(sci), np.ascontiguousarray(gdq)
     pixeldq = np.ascontiguousarray(pixeldq)
-    dev = opencl.get_device()
-    gpu = "GPU" in opencl.device_type(dev)
-    if work_group is not None and not 1 <= int(work_group) <= int(dev.max_work_group_size):
-        raise ParameterError(f"work_group must be in [1, {int(dev.max_work_group_size)}] on this device, got {work_group}")
-    if work_group is None:
-        work_group = None if gpu else CPU_WORK_GROUP
-    lanes = _lanes(vector_width, gpu, n, int(work_group or CPU_WORK_GROUP))
+    gpu, work_group, lanes = check_launch(n, work_group, vector_width)
     if npix == 0 or nints == 0:          # nothing to launch (a zero-size buffer is an OpenCL error): the twin's results
         fit0, dq0, nj0, g0 = fit_block_numpy(sci, gdq, pixeldq, k)
         if out is not None:

@@ -418,9 +418,11 @@ def _check_storage(dset, path, where):
 READ_CHUNK_CACHE = {"rdcc_nbytes": 64 << 20, "rdcc_nslots": 100003}
 
 
-def open_hdf5_input(path, what="an HDF5 ramp file", datasets=("SCI",)):
+def open_hdf5_input(path, what="an HDF5 ramp file", datasets=("SCI",), chunk_cache=True):
     """The h5py File of an input we did not write, checked: a regular file (not a FIFO, device or
-    directory; no size bound: ramps are large) and :func:`check_hdf5_input`.  RampFileError naming ``path`` otherwise."""
+    directory; no size bound: ramps are large) and :func:`check_hdf5_input`.  RampFileError naming ``path`` otherwise.
+    ``chunk_cache``: :data:`READ_CHUNK_CACHE` (reads in row blocks); False: h5py's default (whole reads,
+    for which a cache only holds a second copy)."""
     import h5py
     if isinstance(path, (str, os.PathLike)) and not os.path.lexists(path):
         raise RampFileError(f"{os.fspath(path)}: no such file")
@@ -429,7 +431,7 @@ def open_hdf5_input(path, what="an HDF5 ramp file", datasets=("SCI",)):
         raise RampFileError(f"{path}: incomplete file (temporary of an unfinished or killed writer)")
     try:
         with metadata_errors(path):
-            fh = h5py.File(path, "r", **READ_CHUNK_CACHE)
+            fh = h5py.File(path, "r", **(READ_CHUNK_CACHE if chunk_cache else {}))
     except RampFileError:
         raise
     except OSError as exc:
@@ -467,7 +469,7 @@ def read_ramps(path):
         An incomplete or foreign file, or a failed checksum.
     """
     path = os.fspath(path)
-    with open_hdf5_input(path, "an HDF5 ramp file (incomplete file?)") as fh:
+    with open_hdf5_input(path, "an HDF5 ramp file (incomplete file?)", chunk_cache=False) as fh:
         if not fh.attrs.get("COMPLETE", False):
             raise RampFileError(f"{path}: incomplete file (no completion marker)")
         if "SCI" not in fh or "GROUPDQ" not in fh:

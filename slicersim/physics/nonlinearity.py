@@ -148,7 +148,12 @@ def apply_correction(dn, coeffs, out=None):
     broadcast shape, sharing no memory with ``dn``, to write the result into."""
     c = np.asarray(coeffs, np.float64)
     x = np.asarray(dn, np.float64)
-    acc = np.multiply(c[-1], x, out=np.empty(np.broadcast_shapes(c.shape[1:], x.shape)) if out is None else out)
+    shape = np.broadcast_shapes(c.shape[1:], x.shape)
+    if out is not None and (not isinstance(out, np.ndarray) or out.dtype != np.float64 or out.shape != shape
+                            or not out.flags.writeable or np.may_share_memory(out, x) or np.may_share_memory(out, c)):
+        raise ValueError(f"out must be a writeable float64 array of shape {shape} sharing no memory with dn or "
+                         "coeffs (Horner reads dn after each step)")
+    acc = np.multiply(c[-1], x, out=np.empty(shape) if out is None else out)
     for k in range(c.shape[0] - 2, 0, -1):          # in place: no temporary of the block per term
         acc += c[k]
         acc *= x

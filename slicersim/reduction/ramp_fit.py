@@ -36,10 +36,10 @@ import numpy as np
 
 from slicersim import validation
 from slicersim.backends.dispatch import BACKENDS, resolve_backend
-from slicersim.backends.ramp_fit import (DQ_DO_NOT_USE, DQ_SATURATED, WEIGHTINGS, fit_block_numpy,
+from slicersim.backends.ramp_fit import (DQ_DO_NOT_USE, DQ_SATURATED, WEIGHTINGS, check_launch, fit_block_numpy,
                                          fit_block_opencl, fit_constants)
 from slicersim.errors import ParameterError, RampFileError
-from slicersim.io.atomic import AtomicH5File
+from slicersim.io.atomic import AtomicH5File, one_line
 from slicersim.io.row_blocks import BufferRing, RowBlocks, pipelined, rows_per_block
 from slicersim.reduction.ramp_sources import keyword_number, open_ramps, ramp_readout
 
@@ -200,7 +200,17 @@ def _plan_corrections(src, refpix, linearity, superbias, where):
 def _bias_rows(bias, y0, y1):
     if bias is None:
         return 0.0
-    return float(bias) if not np.ndim(bias) else np.asarray(bias[y0:y1], np.float64)
+    return float(bias) if not np.ndim(bias) else _rows(bias, y0, y1)
+
+
+def _rows(data, y0, y1):
+    """float64 rows y0:y1 (of the last two axes) of an array or of a file's dataset; RampFileError
+    naming the dataset when the file's chunks cannot be read (damaged, a failed filter)."""
+    try:
+        return np.asarray(data[..., y0:y1, :], np.float64)
+    except OSError as exc:
+        where = f"{getattr(data, 'name', 'dataset')} of {getattr(getattr(data, 'file', None), 'filename', 'the file')}"
+        raise RampFileError(f"{where}: unreadable rows {y0}-{y1} ({one_line(exc)})") from exc
 
 
 def _refpix_terms(src, bias, kw):
@@ -259,6 +269,8 @@ return_groupdq, max_bytes, backend, progress, work_group
         validation.choice("weighting", self.weighting, WEIGHTINGS)
         validation.choice("backend", self.backend, BACKENDS)
         validation.positive_int("max_bytes", self.max_bytes)
+        if self.work_group is not None:
+            validation.positive_int("work_group", self.work_group)
         for name in ("gain", "ron"):
             if getattr(self, name) is not None:
                 low_open = name == "gain"
@@ -326,7 +338,8 @@ def fit_ramps(source, options=None, **kwargs):
     return_groupdq : bool, optional
         Keep GROUPDQ with the SATURATED and JUMP_DET flags set (nints, ngroups, ny, nx).
     max_bytes : int, optional
-        Bytes for the row blocks in flight.
+        Bytes for the row blocks in flight (besides the whole-detector results, and HDF5's chunk cache of
+        at most 64 MiB per dataset read, ``io.rampfile.READ_CHUNK_CACHE``).
     backend : {"auto", "opencl", "numpy"}, optional
         Where the fit runs.
     progress : bool or None, optional
@@ -347,6 +360,8 @@ def fit_ramps(source, options=None, **kwargs):
     backend = resolve_backend(options.backend)
     with open_ramps(source, "fit_ramps source") as src:
         _check_memory(src, options)
+        if backend == "opencl":              # the device's limits, before any data are read
+            check_launch(src.shape[1], options.work_group)
         setup = _FitSetup(src, options)
         out = {"rate": np.empty(src.shape[2:]), "variance": np.empty(src.shape[2:]),
                "var_poisson": np.empty(src.shape[2:]), "var_rnoise": np.empty(src.shape[2:]),
@@ -464,7 +479,7 @@ def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):
     nints, n = raw.shape[:2]
     dn = np.empty(raw.shape, np.float64)
     base = _bias_rows(bias, y0, y1)
-    c = None if coeffs is None else np.asarray(coeffs[:, y0:y1], np.float64)
+    c = None if coeffs is None else _rows(coeffs, y0, y1)
     scratch = np.empty(raw.shape[2:], np.float64) if c is not None else None
     for i in range(nints):
         for k in range(n):

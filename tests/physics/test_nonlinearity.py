@@ -101,19 +101,21 @@ def test_bad_parameters_rejected():
         nl.nonlinearity_coefficients(1, (4, 4), P, -5.0)
 
 
-@pytest.mark.xfail(strict=True, reason="apply_correction(dn, c, out=dn) silently returns a wrong polynomial (Horner reads "
-                   "x after overwriting it); the docstring forbids sharing memory but nothing checks it")
 def test_apply_correction_out_aliasing_dn_is_refused_or_correct():
+    """``out=dn`` silently returned a wrong polynomial (Horner reads dn after overwriting it; up to 1e3 DN):
+    refused with a ValueError, as a float32 or misshapen ``out``."""
     rng = np.random.default_rng(1)
     c = np.stack([rng.normal(0, 1, (3, 4)), 1 + rng.normal(0, 1e-3, (3, 4)), rng.normal(0, 1e-6, (3, 4))])
     x = rng.normal(1000, 100, (3, 4))
     ref = nl.apply_correction(x, c)
     y = x.copy()
-    try:
-        got = nl.apply_correction(y, c, out=y)
-    except ValueError:
-        return
-    assert np.array_equal(got, ref)
+    with pytest.raises(ValueError, match="sharing no memory"):
+        nl.apply_correction(y, c, out=y)
+    assert np.array_equal(y, x)                      # refused before anything was written
+    for bad in (np.empty((3, 4), np.float32), np.empty((4, 3))):
+        with pytest.raises(ValueError, match="float64 array of shape"):
+            nl.apply_correction(x, c, out=bad)
+    assert np.array_equal(nl.apply_correction(x, c, out=np.empty((3, 4))), ref)
 
 
 def test_apply_correction_out_is_bit_identical_and_returned():

@@ -964,10 +964,9 @@ def test_lazuli_products_identical_at_every_row_block_size(tmp_path, backend):
         assert all(np.array_equal(a, b) for a, b in zip(res[0], other))
 
 
-@pytest.mark.xfail(strict=True, reason="a damaged truth/nonlinearity/inverse_coefficients chunk escapes as h5py's bare "
-                   "OSError 'filter returned failure during read' from _correct's coeffs[:, y0:y1] (pre-existing; "
-                   "the row-block reads of the coefficients are not wrapped like SCI/GROUPDQ)")
 def test_a_damaged_linearity_chunk_is_one_ramp_file_error(tmp_path):
+    """A damaged chunk of the file's linearity coefficients (read row block by row block) was h5py's bare
+    OSError ("filter returned failure during read"); now one RampFileError naming the dataset."""
     path = _lazuli(tmp_path, nramps=1)
     flip_chunk_byte(path, "truth/nonlinearity/inverse_coefficients", offset=100)
     with pytest.raises(RampFileError, match="inverse_coefficients|checksum"):
@@ -976,11 +975,10 @@ def test_a_damaged_linearity_chunk_is_one_ramp_file_error(tmp_path):
             fit_ramps(path, backend="numpy", progress=False)
 
 
-@pytest.mark.xfail(strict=True, reason="FitOptions accepts work_group 0 / -1 / 10**6 (any int); the range and the "
-                   "CPU private-memory budget are checked by fit_block_opencl, after the first row block (and the "
-                   "whole refpix pass) has been read; with backend='numpy' they are silently ignored")
 @pytest.mark.parametrize("work_group", [0, -1, 10**6])
 def test_a_bad_work_group_is_refused_before_reading_data(tmp_path, work_group):
+    """work_group 0 / -1 were accepted by FitOptions, and the device's range was checked only after the
+    first row block (and the reference-pixel pass) had been read: now refused before any read."""
     from slicersim.reduction import ramp_sources
     from slicersim.reduction.ramp_fit import FitOptions
     path = simulate(np.full((16, 16), 5.0), (6, 1, 0), out=tmp_path / "w.h5", seed=1, progress=False)
@@ -992,8 +990,9 @@ def test_a_bad_work_group_is_refused_before_reading_data(tmp_path, work_group):
         return orig(self, *args, **kw)
     ramp_sources._HDF5Ramps.read = spy
     try:
-        with pytest.raises(ParameterError, match="work_group"):
-            FitOptions(work_group=work_group)
+        if work_group < 1:                      # beyond the device's maximum: known at run time, before reading
+            with pytest.raises(ParameterError, match="work_group"):
+                FitOptions(work_group=work_group)
         with pytest.raises(ParameterError, match="work_group"):
             fit_ramps(path, work_group=work_group, backend="opencl", progress=False)
         assert reads == []
@@ -1001,9 +1000,9 @@ def test_a_bad_work_group_is_refused_before_reading_data(tmp_path, work_group):
         ramp_sources._HDF5Ramps.read = orig
 
 
-@pytest.mark.xfail(strict=True, reason="the CPU private-memory refusal (work_group x lanes x ngroups > 6 MiB) comes "
-                   "from fit_block_opencl after the first row block was read")
 def test_a_work_group_beyond_the_private_budget_is_refused_before_reading_data(tmp_path):
+    """The CPU private-memory refusal (work_group × lanes × groups > 6 MiB) came after a row block was
+    read; now ``check_launch`` runs before any read."""
     from slicersim.backends import opencl
     from slicersim.reduction import ramp_sources
     if "GPU" in opencl.device_type(opencl.get_device()) or opencl.get_device().max_work_group_size < 1024:
