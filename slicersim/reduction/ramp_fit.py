@@ -269,8 +269,9 @@ return_groupdq, max_bytes, backend, progress, work_group
         validation.choice("weighting", self.weighting, WEIGHTINGS)
         validation.choice("backend", self.backend, BACKENDS)
         validation.positive_int("max_bytes", self.max_bytes)
-        if self.work_group is not None:
-            validation.positive_int("work_group", self.work_group)
+        if isinstance(self.work_group, (int, np.integer)) and not isinstance(self.work_group, bool) \
+                and self.work_group < 1:        # other types: the class's field check names them
+            raise ParameterError(f"FitOptions.work_group must be an integer >= 1 or None, got {self.work_group}")
         for name in ("gain", "ron"):
             if getattr(self, name) is not None:
                 low_open = name == "gain"
