@@ -54,7 +54,8 @@ def test_the_command_turns_numpy_s_huge_page_requests_off_unless_the_user_chose(
         switch(before)
 
 
-@pytest.mark.parametrize("value", ["0", "1", " 1", "2"])
+@pytest.mark.parametrize("value", ["0", pytest.param("1", marks=pytest.mark.slow), pytest.param(" 1", marks=pytest.mark.slow),
+                                   pytest.param("2", marks=pytest.mark.slow)])
 def test_a_user_s_numpy_madvise_hugepage_stands_in_the_command(value):
     """Whatever value NumPy accepts, the command (argv None) leaves NumPy's setting as NumPy made it from
     the variable; ``no_huge_page_stalls`` returns False and never raises ("" and "garbage" already make

@@ -818,8 +818,9 @@ def _messy(rng, n, nints, npix, sat=40000.0):
 
 
 @pytest.mark.parametrize("n", [pytest.param(2, marks=pytest.mark.slow), 3, pytest.param(4, marks=pytest.mark.slow),
-                               pytest.param(64, marks=pytest.mark.slow), pytest.param(65, marks=pytest.mark.slow), 66])
-@pytest.mark.parametrize("weighting", ["gls", "ols"])
+                               pytest.param(64, marks=pytest.mark.slow), pytest.param(65, marks=pytest.mark.slow),
+                               pytest.param(66, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("weighting", ["gls", pytest.param("ols", marks=pytest.mark.slow)])
 def test_edge_group_counts_tails_and_flags_are_bit_identical(n, weighting):
     """NGROUPS at the edges (1 and 2 differences, JUMP_MIN_DIFFS, the sorting network's 64 on/off),
     npix not a multiple of any width, 1-3 integrations, tied/equal ramps, saturation at the first
@@ -948,7 +949,7 @@ def _lazuli(tmp_path, name="laz.h5", nramps=2):
                     nramps=nramps, progress=False)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("backend", [pytest.param("numpy", marks=pytest.mark.slow), "opencl"])
 def test_lazuli_products_identical_at_every_row_block_size(tmp_path, backend):
     """An effects file (reference pixels, nonlinearity, bias, ...): rates, variances, DQ, jumps and GROUPDQ
     are bit-identical whatever ``max_bytes`` (1 row per block up to the whole detector)."""
@@ -1040,8 +1041,9 @@ def test_empty_blocks_wait_false_and_out(shape, dtype):
         fit_block_opencl(sci, gdq, pdq, k, out=tuple(np.empty(npix + 1) for _ in range(6)))
 
 
-@pytest.mark.parametrize("value", [np.inf, -np.inf, np.nan, 1.7e308, -1.7e308])
-@pytest.mark.parametrize("saturation", [None, 40000.0])
+@pytest.mark.parametrize("value", [np.nan] + [pytest.param(v, marks=pytest.mark.slow)
+                                              for v in (np.inf, -np.inf, 1.7e308, -1.7e308)])
+@pytest.mark.parametrize("saturation", [None, pytest.param(40000.0, marks=pytest.mark.slow)])
 def test_non_finite_and_extreme_float_groups_kernel_matches_twin(value, saturation):
     """A ±inf / NaN / ±1.7e308 group at every position, satlim inf (unclamped) or finite, 1-2 integrations,
     widths 1, 2, 8: the kernel's flags, jumps and GROUPDQ are the twin's; rates 1e-12 relative."""
