@@ -20,8 +20,9 @@ Per pixel, over all integrations of a flat block (group means g_k [DN], gain g [
 * the jump test brackets the median by counting and stops as soon as the bracket decides it
   (kernel; lanes that use every one of ≤ 64 differences sort them all at once by a network);
   the twin sorts.  The decisions are the same.
-* the kernel fits ``vector_width`` pixels per work item (lanes of vector types, 8 on CPUs, 1 on
-  GPUs) in the scalar operation order: every width gives the same bits.
+* the kernel fits ``vector_width`` pixels per work item (lanes of vector types, 8 on CPUs unless
+  the work group's private memory calls for fewer, 1 on GPUs) in the scalar operation order:
+  every width gives the same bits.
 
 Both backends follow the same operation order (FP contraction off in the kernel); they agree
 to rounding (≈1e-15 relative) and make the same jump decisions.
@@ -319,7 +320,8 @@ def fit_block_opencl(sci, gdq, pixeldq, k, *, work_group=None, workspace=None, w
     tuple (rate, variance, var_poisson, var_rnoise) in place of fit.  On CPU devices the kernel
     works on the arrays in place (zero-copy): ``sci``, ``gdq`` and ``pixeldq`` must then stay
     untouched until the results are fetched;  vector_width : pixels per work item (lanes of the
-    kernel's vector types; default 8 on CPUs, 1 on GPUs), which does not change the results."""
+    kernel's vector types; default on CPUs the widest of 8, 4, 2, 1 within :data:`CPU_PRIVATE_BUDGET`,
+    1 on GPUs), which does not change the results."""
     _check_block(sci, gdq, pixeldq, k)
     opencl.require_fp64()
     nints, n, npix = sci.shape
