@@ -33,7 +33,7 @@ its temporary is removed by the next writer in that directory.
 from __future__ import annotations
 
 from slicersim import validation
-from slicersim.errors import RampFileError
+from slicersim.errors import ParameterError, RampFileError
 
 import contextlib
 import json
@@ -42,6 +42,7 @@ import shutil
 
 import numpy as np
 
+from slicersim.io.row_blocks import SIMULATED_ROWS, row_ranges
 from slicersim.io.atomic import _HDF5_MARGIN, AtomicH5File, flush_chunks, is_temporary, one_line, remove_stale_temporaries
 
 __all__ = ["RampWriter", "RampFileError", "compression_options", "read_ramps", "DQ", "is_temporary",
@@ -300,7 +301,25 @@ def read_dataset(dset, path, key=Ellipsis):
         raise read_error(exc, path, dset) from None
 
 
-def check_hdf5_input(fh, path, datasets=("SCI",)):
+def simulated_rows(fh, path):
+    """The row ranges of a ramp file holding only some detector rows (its ``SIMULATED_ROWS`` attribute,
+    :data:`~slicersim.io.row_blocks.SIMULATED_ROWS`), or None for a whole-detector file.  RampFileError
+    naming ``path`` when the attribute is not valid ranges inside SCI's rows."""
+    import h5py
+    if SIMULATED_ROWS not in fh.attrs:
+        return None
+    raw = fh.attrs[SIMULATED_ROWS]
+    sci = fh.get("SCI")
+    ny = int(sci.shape[2]) if isinstance(sci, h5py.Dataset) and sci.ndim == 4 else 0
+    try:
+        value = json.loads(raw if isinstance(raw, str) else bytes(raw).decode())
+        return row_ranges(value, ny, SIMULATED_ROWS)
+    except (ValueError, TypeError, UnicodeDecodeError, ParameterError) as exc:
+        raise RampFileError(f"{path}: attribute {SIMULATED_ROWS} is not a list of [y0, y1) row ranges inside "
+                            f"SCI's {ny} rows ({one_line(exc)})") from None
+
+
+def check_hdf5_input(fh, path, datasets=("SCI",), partial_rows=False):
     """Refuse (RampFileError naming ``path`` and the object) an HDF5 input that would read bytes
     from outside itself or is not the layout asked for, before any data are read:
 
@@ -309,11 +328,20 @@ def check_hdf5_input(fh, path, datasets=("SCI",)):
       of other files' datasets);
     * an object of ``datasets`` that exists but is not a dataset (a group named SCI);
     * a SCI dataset whose declared shape is not stored in the file (:func:`check_stored`: a few
-      bytes declaring 10⁵ × 10⁵ pixels would be read as that many zeros).
+      bytes declaring 10⁵ × 10⁵ pixels would be read as that many zeros);
+    * a file holding only some detector rows (:func:`simulated_rows`) unless ``partial_rows`` (the
+      reader then reads only those rows; with ``partial_rows`` the rows listed must be stored).
     """
-    import h5py
     with metadata_errors(path):
-        _check_objects(fh, path, datasets)
+        ranges = simulated_rows(fh, path)
+        if ranges is not None and not partial_rows:
+            raise RampFileError(f"{path}: holds only detector rows {_ranges_text(ranges)} (a streaming campaign's "
+                                "ramp, simulated for its reduction): read it with fit_ramps or slicersim reduce")
+        _check_objects(fh, path, datasets, ranges)
+
+
+def _ranges_text(ranges):
+    return ", ".join(f"{a}:{b}" for a, b in ranges)
 
 
 @contextlib.contextmanager
@@ -330,7 +358,7 @@ def metadata_errors(path):
                             f"corrupt (HDF5: {one_line(exc)})") from None
 
 
-def _check_objects(fh, path, datasets):
+def _check_objects(fh, path, datasets, ranges=None):
     """:func:`check_hdf5_input`'s walk; every object's attributes are read once, so a failed metadata
     checksum is found here, before any value is used."""
     import h5py
@@ -347,7 +375,7 @@ def _check_objects(fh, path, datasets):
         if not isinstance(target, h5py.Dataset):
             raise RampFileError(f"{path}: {name} is {_kind_of(target)}, not a dataset")
     if "SCI" in datasets and isinstance(fh.get("SCI"), h5py.Dataset):
-        check_stored(fh["SCI"], path, "SCI")
+        check_stored(fh["SCI"], path, "SCI", ranges)
     seen, todo = set(), [fh]
     while todo:
         group = todo.pop()
@@ -372,11 +400,12 @@ def _check_objects(fh, path, datasets):
                 _check_storage(obj, path, where)
 
 
-def check_stored(dset, path, where):
+def check_stored(dset, path, where, ranges=None):
     """Refuse (RampFileError naming ``path``, the dataset and its declared shape) a dataset whose data
     were never written: chunks missing from a chunked dataset, no storage for a contiguous one.  HDF5
     reads such a dataset as its fill value, so a file of a few bytes declaring (1, 4, 10⁵, 10⁵) would
-    allocate 80 GB of zeros before anything else could be said."""
+    allocate 80 GB of zeros before anything else could be said.  ``ranges``: row ranges of axis 2 (a
+    file of some detector rows, :func:`simulated_rows`): only the chunks holding them are needed."""
     if dset.size == 0 or dset.is_virtual:
         return
     nbytes = dset.size * dset.dtype.itemsize
@@ -384,9 +413,14 @@ def check_stored(dset, path, where):
         stored, total = int(dset.id.get_storage_size() > 0), 1
         what = "has no storage for it"
     else:
-        total = int(np.prod([-(-s // c) for s, c in zip(dset.shape, dset.chunks)], dtype=np.float64))
+        counts = [-(-s // c) for s, c in zip(dset.shape, dset.chunks)]
+        if ranges is not None and dset.ndim == 4:
+            c = dset.chunks[2]
+            counts[2] = len({k for a, b in ranges for k in range(a // c, (b - 1) // c + 1)})
+        total = int(np.prod(counts, dtype=np.float64))
         stored = int(dset.id.get_num_chunks())
-        what = f"stores {stored} of its {total} chunks"
+        what = f"stores {stored} of its {total} chunks" + ("" if ranges is None else
+                                                           f" of rows {_ranges_text(ranges)}")
     if stored < total:
         marker = dset.file.attrs.get("COMPLETE", None)
         head = "incomplete file (no completion marker): " if marker is not None and not marker else ""

@@ -24,9 +24,14 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from slicersim import validation
-from slicersim.errors import ResourceError
+from slicersim.errors import ParameterError, ResourceError
 
-__all__ = ["rows_per_block", "RowBlocks", "BufferRing", "pipelined", "BackgroundLanes", "show_progress"]
+__all__ = ["rows_per_block", "RowBlocks", "BufferRing", "pipelined", "BackgroundLanes", "show_progress",
+           "row_ranges", "SIMULATED_ROWS"]
+
+#: root attribute of a ramp file that holds only some detector rows: JSON list of [y0, y1) pairs (the other
+#: rows were never simulated nor written; :func:`row_ranges` reads it)
+SIMULATED_ROWS = "SIMULATED_ROWS"
 
 
 def rows_per_block(max_bytes, bytes_per_row, nrows, *, reserve=0, what="one detector row", chunk=1,
@@ -45,6 +50,50 @@ def rows_per_block(max_bytes, bytes_per_row, nrows, *, reserve=0, what="one dete
     return rows
 
 
+def row_ranges(ranges, nrows, name="rows"):
+    """Sorted, disjoint, non-empty (y0, y1) row ranges (half-open, 0-based) of a detector of ``nrows``
+    rows from any sequence of pairs (overlapping or touching ranges merged).
+
+    Parameters
+    ----------
+    ranges : sequence of (int, int)
+        Row ranges [y0, y1).
+    nrows : int
+        Rows of the detector.
+    name : str, optional
+        The caller's name of ``ranges``, for the error.
+
+    Returns
+    -------
+    tuple of (int, int)
+        The ranges, merged and sorted; ParameterError naming ``name`` when a pair is not two integers
+        with 0 ≤ y0 < y1 ≤ nrows, or when there is none.
+    """
+    pairs = []
+    try:
+        for pair in ranges:
+            a, b = pair
+            if isinstance(a, bool) or isinstance(b, bool) or int(a) != a or int(b) != b:
+                raise ValueError
+            pairs.append((int(a), int(b)))
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be a sequence of (y0, y1) integer row ranges, got "
+                             f"{validation.short_repr(ranges)}") from None
+    if not pairs:
+        raise ParameterError(f"{name} must hold at least one (y0, y1) row range, got none")
+    bad = [p for p in pairs if not 0 <= p[0] < p[1] <= nrows]
+    if bad:
+        raise ParameterError(f"{name}: row range {bad[0]} is not inside the detector's {nrows} rows "
+                             f"(0 ≤ y0 < y1 ≤ {nrows})")
+    merged = []
+    for a, b in sorted(pairs):
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
+        else:
+            merged.append((a, b))
+    return tuple(merged)
+
+
 def show_progress(progress, nblocks=None, auto_min=4):
     """Whether to show a progress bar, the package's one meaning of ``progress``: True/False as
     given; None (every default) only when stderr is a terminal (and, when ``nblocks`` is given, there
@@ -57,12 +106,15 @@ def show_progress(progress, nblocks=None, auto_min=4):
 
 class RowBlocks:
     """The steps of a pass: for each outer index (a ramp; 1 when there is none) the row blocks
-    [y0, y1) of ``rows`` rows over rows [``first``, ``nrows``).  Iterating yields (outer, y0, y1), lazily (the
-    outer count may be huge), through a tqdm bar when :func:`show_progress` says so."""
+    [y0, y1) of ``rows`` rows over rows [``first``, ``nrows``), or over each range of ``ranges``
+    (sorted, disjoint (y0, y1) pairs: only those rows are visited, a block never spans two ranges).
+    Iterating yields (outer, y0, y1), lazily (the outer count may be huge), through a tqdm bar when
+    :func:`show_progress` says so."""
 
-    def __init__(self, nrows, rows, *, nouter=1, progress=None, desc="blocks", auto_min=4, first=0):
+    def __init__(self, nrows, rows, *, nouter=1, progress=None, desc="blocks", auto_min=4, first=0, ranges=None):
         self.nrows, self.rows, self.nouter, self.first = int(nrows), int(rows), int(nouter), int(first)
-        self.per_outer = -(-(self.nrows - self.first) // self.rows)
+        self.ranges = ((self.first, self.nrows),) if ranges is None else tuple((int(a), int(b)) for a, b in ranges)
+        self.per_outer = sum(-(-(b - a) // self.rows) for a, b in self.ranges)
         self.progress = show_progress(progress, len(self), auto_min)
         self.desc = desc
 
@@ -71,8 +123,9 @@ class RowBlocks:
 
     def _steps(self):
         for outer in range(self.nouter):
-            for y0 in range(self.first, self.nrows, self.rows):
-                yield outer, y0, min(self.nrows, y0 + self.rows)
+            for a, b in self.ranges:
+                for y0 in range(a, b, self.rows):
+                    yield outer, y0, min(b, y0 + self.rows)
 
     def __iter__(self):
         if not self.progress:

@@ -51,6 +51,14 @@ class RampIO:
         (x0, y0, nx, ny) [pixels, 0-based]: simulate and write only this rectangle of the detector
         (``rate`` is the full detector's), read on the full detector's clock: bit-identical to the same
         pixels of a full-detector ramp of the same seed (``slicersim.products.windows``).
+    rows : sequence of (int, int), optional
+        Row ranges [y0, y1) [0-based, half-open]: simulate and write only these full-width rows of the
+        detector (HDF5 files only).  The other rows are never simulated and absent from the file, whose
+        ``SIMULATED_ROWS`` attribute lists the ranges; :func:`~slicersim.reduction.ramp_fit.fit_ramps`
+        gives them NaN rates flagged DO_NOT_USE, and readers of whole ramps refuse the file.  The rows
+        written are bit-identical to those of a full-detector ramp of the same seed.  Streaming campaigns
+        use it for the rows their reduction reads
+        (:func:`~slicersim.instrument.footprints.field_rows`).
 
     """
 
@@ -63,6 +71,7 @@ class RampIO:
     target: object = None
     groupdq: str | None = None
     window: object = None
+    rows: object = None
 
     def __post_init__(self):
         if self.format is not None:

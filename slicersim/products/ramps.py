@@ -36,7 +36,7 @@ from slicersim.backends.dispatch import BACKENDS
 from slicersim.backends.ramp import simulate_block_numpy, simulate_block_opencl
 from slicersim.errors import EffectsError, ParameterError, ResourceError
 from slicersim.io.rampfile import DQ, RampWriter
-from slicersim.io.row_blocks import BackgroundLanes, BufferRing, RowBlocks, rows_per_block
+from slicersim.io.row_blocks import SIMULATED_ROWS, BackgroundLanes, BufferRing, RowBlocks, row_ranges, rows_per_block
 from slicersim.io.uncal_meta import GROUPDQ_FLAGS  # noqa: F401
 from slicersim.products.ramp_options import (DEFAULT_MAX_BYTES, FILE_FORMATS, DetectorMaps, RampIO,  # noqa: F401
                                              RampResult, RunOptions)
@@ -53,7 +53,7 @@ _LEGACY_ORDER = ("nmd", "nramps", "seed", "out", "tframe", "ron", "dark", "therm
                  "saturation", "bias", "ktc_noise", "full_well", "dead_pixels", "pixeldq", "sparse_max_group",
                  "gauss_min_mean", "compression", "max_bytes", "truth", "config", "backend", "progress",
                  "work_group", "return_dq", "overwrite", "effects", "previous_charge", "file_format", "precision",
-                 "target", "groupdq", "window")
+                 "target", "groupdq", "window", "rows")
 _READOUT_KEYS = ("nmd", "nramps", "tframe", "ron", "dark", "thermal_dark", "roic_glow", "gain", "saturation",
                  "bias", "ktc_noise", "full_well", "sparse_max_group", "gauss_min_mean")
 _LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron": 12.0, "dark": 2.8e-3,
@@ -62,7 +62,7 @@ _LEGACY_READOUT_DEFAULTS = {"nmd": (16, 8, 0), "nramps": 1, "tframe": 2.83, "ron
                             "gauss_min_mean": np.inf}
 _IO_KEYS = {"file_format": "format", "overwrite": "overwrite", "compression": "compression", "truth": "truth",
             "config": "config", "return_dq": "return_dq", "target": "target", "groupdq": "groupdq",
-            "window": "window"}
+            "window": "window", "rows": "rows"}
 _RUN_KEYS = ("max_bytes", "progress", "work_group")
 _MAP_KEYS = ("dead_pixels", "pixeldq", "previous_charge")
 _NAMED = ("seed", "out", "backend", "effects", "precision")
@@ -220,6 +220,7 @@ def _simulate(rate, p, named, io, run, maps):
     from slicersim.products.windows import check_window
     window = check_window(io.window, rate.shape)
     out_shape = rate.shape if window is None else window.shape
+    ranges = _check_rows(io, window, out, rate.shape)
     rows, noise_cache = _block_rows(p, fx, rate.shape, run.max_bytes)
     writer = _open_writer(out, io, p, fx, rate.shape, rows, window) if out is not None else None
     if writer is None:
@@ -228,10 +229,12 @@ def _simulate(rate, p, named, io, run, maps):
     attrs = _file_attrs(p, seed, backend, precision, io.config, fx)
     if window is not None:
         attrs.update(window.attrs())
+    if ranges is not None:
+        attrs[SIMULATED_ROWS] = [list(r) for r in ranges]
     want_dq = io.return_dq if writer is None else getattr(writer, "groupdq_flags", "truth") == "truth"
     sampler = _Sampler(p, seed, backend, precision, run.work_group, want_dq=want_dq)
     first, last = (0, rate.shape[0]) if window is None else (window.y0, window.y0 + window.ny)
-    blocks = RowBlocks(last, rows, nouter=p.nramps, progress=run.progress, desc="ramps", first=first)
+    blocks = RowBlocks(last, rows, nouter=p.nramps, progress=run.progress, desc="ramps", first=first, ranges=ranges)
     if writer is None:
         sci, gdq = realize_ramps(expected, sampler, blocks, None, io, window)
         return RampResult(seed=seed, sci=sci, groupdq=gdq, attrs=attrs)
@@ -242,6 +245,21 @@ def _simulate(rate, p, named, io, run, maps):
             write_target_truth(w, io.target)
         realize_ramps(expected, sampler, blocks, w, io, window)
     return RampResult(seed=seed, path=os.path.abspath(out), attrs=attrs)
+
+
+def _check_rows(io, window, out, shape):
+    """The row ranges of ``io.rows`` (None: every row), refused with a window or without an out file."""
+    if io.rows is None:
+        return None
+    if window is not None:
+        raise ParameterError("give window or rows, not both")
+    if out is None:
+        raise ParameterError("rows (a ramp of some detector rows) needs an HDF5 out file: in memory the other "
+                             "rows would be undefined")
+    if _writer_class(out, io.format) is not RampWriter:
+        raise ParameterError("rows (a ramp of some detector rows) needs an HDF5 out file: a level-1b file "
+                             "holds whole frames")
+    return row_ranges(io.rows, shape[0], "rows")
 
 
 def _resolve_effects(effects, previous_charge):

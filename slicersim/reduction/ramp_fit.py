@@ -230,8 +230,27 @@ def _refpix_terms(src, bias, kw):
             frame = src.frame(i, g)
             refrows = np.concatenate([frame[:b], frame[-b:]], axis=0).astype(np.float64) - bias_rows
             refcols = np.concatenate([frame[:, :b], frame[:, -b:]], axis=1).astype(np.float64) - bias_cols
-            col[i, g], row[i, g] = refpix_offsets(refrows, refcols, **kw)
+            if src.rows is None:
+                col[i, g], row[i, g] = refpix_offsets(refrows, refcols, **kw)
+                continue
+            row[i, g] = np.nan            # a file of some rows: the side terms of each range from its own rows
+            for y0, y1 in src.rows:
+                col[i, g], row[i, g, y0:y1] = refpix_offsets(refrows, refcols[y0:y1], **kw)
     return col, row
+
+
+def _check_partial_refpix(src, kw, where):
+    """A file of some detector rows corrected with its reference pixels must hold the top and bottom
+    reference rows (the column terms come from them alone)."""
+    ny = src.shape[2]
+    b = int(kw.get("border", 4))
+    held = np.zeros(ny, bool)
+    for a, c in src.rows:
+        held[a:c] = True
+    if not (held[:b].all() and held[ny - b:].all()):
+        raise RampFileError(f"{where}: the reference-pixel correction needs the top and bottom {b} reference rows, "
+                            f"and the file holds only rows {', '.join(f'{a}:{c}' for a, c in src.rows)} "
+                            "(refpix=False in Python, --no-refpix on the command line, skips it)")
 
 
 # ----------------------------------------------------------------------------- driver
@@ -424,6 +443,8 @@ class _FitSetup:
         per_row = nx * (nints * n * (6 + (2 if options.return_groupdq else 0) + (24 if self.corrected else 0)) + 96)
         self.rows = rows_per_block(options.max_bytes, per_row, ny, chunk=getattr(src, "chunk_rows", 1),
                                    what="one detector row", name="max_bytes")
+        if refpix_kw is not None and src.rows is not None:
+            _check_partial_refpix(src, refpix_kw, where)
         self.terms = _refpix_terms(src, self.bias, refpix_kw) if refpix_kw is not None else None
 
 
@@ -435,7 +456,9 @@ def _fit_blocks(src, setup, options, backend, out, groupdq):
     """Read, correct and fit every row block into ``out`` (and ``groupdq``); on OpenCL the next block is
     read while the device fits the last one (two host buffer sets, :func:`pipelined`)."""
     nints, n, ny, nx = src.shape
-    blocks = RowBlocks(ny, setup.rows, progress=options.progress, desc="ramp fit", auto_min=8)
+    blocks = RowBlocks(ny, setup.rows, progress=options.progress, desc="ramp fit", auto_min=8, ranges=src.rows)
+    if src.rows is not None:
+        _not_simulated(src.rows, out, groupdq)
     ring = BufferRing(nints * n * setup.rows * nx, (np.uint16 if src.integer else np.float64, np.uint8),
                       nsets=2 if backend == "opencl" else 1)
     workspace = {}
@@ -467,6 +490,19 @@ def _fit_blocks(src, setup, options, backend, out, groupdq):
             groupdq[:, :, y0:y1] = gout.reshape(nints, n, y1 - y0, nx)
 
     pipelined(blocks, launch, store)
+
+
+def _not_simulated(ranges, out, groupdq):
+    """Rows outside ``ranges`` (a file of some detector rows): NaN rates and variances, DO_NOT_USE."""
+    absent = np.ones(out["rate"].shape[0], bool)
+    for a, b in ranges:
+        absent[a:b] = False
+    for key in ("rate", "variance", "var_poisson", "var_rnoise"):
+        out[key][absent] = np.nan
+    out["dq"][absent] = DQ_DO_NOT_USE
+    out["njumps"][absent] = 0
+    if groupdq is not None:
+        groupdq[:, :, absent] = DQ_DO_NOT_USE
 
 
 def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):

@@ -3,7 +3,8 @@ content, not by name) and in-memory arrays, with their readout keywords checked.
 
 :func:`open_ramps` returns a reader with ``shape`` (nints, ngroups, ny, nx), ``attrs`` (the
 file's keywords), ``integer`` (uint16 SCI), ``read(y0, y1, sci, gdq)`` (SCI [DN] and GROUPDQ of
-rows y0:y1 into the caller's buffers), ``pixeldq(y0, y1)``, ``frame(i, g)``, ``truth(name)``.
+rows y0:y1 into the caller's buffers), ``pixeldq(y0, y1)``, ``frame(i, g)``, ``truth(name)`` and
+``rows`` (the row ranges of a file holding only some detector rows, else None).
 :func:`ramp_readout` gives the validated readout (n, m, d), TFRAME [s], GAIN [DN/e-] and read
 noise [e-/frame].  Every problem is a RampFileError naming the file and the keyword.
 """
@@ -29,6 +30,8 @@ class _Ramps:
     ``truth(name)`` (row-sliceable array or None), ``name``, ``kind``."""
 
     kind, name = "arrays", "<arrays>"
+    #: row ranges [y0, y1) the source holds (a file of some detector rows), None: every row
+    rows = None
 
     def close(self):
         pass
@@ -93,9 +96,10 @@ class _HDF5Ramps(_Ramps):
         except OSError as exc:
             raise RampFileError(f"{path}: not a readable HDF5 ramp file ({one_line(exc)})") from exc
         fh = self.fh
-        from slicersim.io.rampfile import check_hdf5_input
-        try:              # no data from outside the file, a SCI whose declared shape is stored
-            check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ"))
+        from slicersim.io.rampfile import check_hdf5_input, simulated_rows
+        try:              # no data from outside the file, a SCI whose declared shape (or rows) is stored
+            check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ"), partial_rows=True)
+            self.rows = simulated_rows(fh, path)
         except BaseException:
             self.close()
             raise

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from stdatamodels.jwst import datamodels          # a [test] dependency (pyproject): never skipped
 
-from slicersim.errors import ParameterError
+from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.rampfile import read_ramps
 from slicersim.io.uncal import read_uncal, read_uncal_truth, write_uncal_from_hdf5
 from slicersim.products.ramps import simulate
@@ -81,3 +81,83 @@ def test_whole_detector_window_is_full():
 def test_bad_window_is_one_clear_error(window):
     with pytest.raises(ParameterError, match="window"):
         simulate(_rate(), nmd=NMD, seed=5, backend="numpy", progress=False, window=window)
+
+
+# --------------------------------------------------------------------------- some rows (rows=)
+ROWS = ((0, 4), (20, 37), (44, 53), (60, 64))    # border rows, two bands of a field, bottom border rows
+
+
+def _rows_file(tmp_path, rows=ROWS, name="rows.h5", **kw):
+    return simulate(_rate(), nmd=NMD, seed=5, backend="numpy", progress=False, effects="lazuli", rows=rows,
+                    out=str(tmp_path / name), **kw)
+
+
+def test_rows_are_bit_identical_to_the_full_ramp_and_the_rest_absent(tmp_path, full):
+    import h5py
+    from slicersim.io.rampfile import open_hdf5_input
+    from slicersim.reduction.ramp_sources import open_ramps
+    path = _rows_file(tmp_path)
+    with h5py.File(path, "r") as fh:
+        assert fh.attrs["SIMULATED_ROWS"] == "[[0, 4], [20, 37], [44, 53], [60, 64]]"
+        sci = fh["SCI"]
+        c = sci.chunks[2]
+        held = {k for a, b in ROWS for k in range(a // c, (b - 1) // c + 1)}
+        assert sci.id.get_num_chunks() == NMD[0] * len(held)        # nothing written outside the ranges
+        for a, b in ROWS:
+            np.testing.assert_array_equal(sci[:, :, a:b], full[0][:, :, a:b])
+    # readers of whole ramps refuse the file with one clear line; the ramp source reads its rows
+    with pytest.raises(RampFileError, match=r"holds only detector rows 0:4, 20:37, 44:53, 60:64"):
+        read_ramps(path)
+    with pytest.raises(RampFileError, match="holds only detector rows"):
+        open_hdf5_input(path).close()
+    with open_ramps(path) as src:
+        assert src.rows == ROWS
+
+
+def test_rows_fit_as_the_full_ramp_there_and_nan_elsewhere(tmp_path):
+    from slicersim.reduction.ramp_fit import fit_ramps
+    whole = simulate(_rate(), nmd=NMD, seed=5, backend="numpy", progress=False, effects="lazuli",
+                     out=str(tmp_path / "whole.h5"))
+    part = _rows_file(tmp_path)
+    a, b = fit_ramps(whole, backend="numpy"), fit_ramps(part, backend="numpy")
+    held = np.zeros(64, bool)
+    for y0, y1 in ROWS:
+        held[y0:y1] = True
+    assert np.isnan(b.rate[~held]).all() and (b.dq[~held] & 1).all()
+    # away from the ranges' edges (the side reference terms are smoothed over 11 rows) the rates are the same
+    inner = np.zeros(64, bool)
+    inner[25:32] = True
+    np.testing.assert_array_equal(b.rate[inner], a.rate[inner])
+    np.testing.assert_array_equal(b.variance[inner], a.variance[inner])
+    assert np.isfinite(b.rate[held]).mean() > 0.99
+
+
+def test_rows_without_the_reference_rows_refuse_the_refpix_correction(tmp_path):
+    from slicersim.reduction.ramp_fit import fit_ramps
+    path = _rows_file(tmp_path, rows=((20, 37),))
+    with pytest.raises(RampFileError, match="top and bottom 4 reference rows"):
+        fit_ramps(path, backend="numpy")
+    assert np.isfinite(fit_ramps(path, backend="numpy", refpix=False).rate[20:37]).mean() > 0.99
+
+
+@pytest.mark.parametrize("rows, match", [(((0, 65),), "not inside"), (((5, 5),), "not inside"), ((), "at least one"),
+                                         ("0 4", "sequence"), (((0.5, 4),), "sequence"), (((0, 4, 5),), "sequence")])
+def test_bad_rows_are_one_clear_error(tmp_path, rows, match):
+    with pytest.raises(ParameterError, match=match):
+        _rows_file(tmp_path, rows=rows)
+    assert not list(tmp_path.iterdir())
+
+
+def test_rows_need_an_hdf5_file_and_no_window(tmp_path):
+    with pytest.raises(ParameterError, match="HDF5 out file"):
+        simulate(_rate(), nmd=NMD, seed=5, backend="numpy", progress=False, rows=ROWS)
+    with pytest.raises(ParameterError, match="HDF5 out file"):
+        _rows_file(tmp_path, name="r.fits")
+    with pytest.raises(ParameterError, match="not both"):
+        _rows_file(tmp_path, window=WIN)
+    assert not list(tmp_path.iterdir())
+
+
+def test_overlapping_rows_are_merged():
+    from slicersim.io.row_blocks import row_ranges
+    assert row_ranges([(10, 20), (0, 4), (15, 30), (30, 31)], 64) == ((0, 4), (10, 31))
