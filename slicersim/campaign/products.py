@@ -190,13 +190,32 @@ def _write_ramps(path, target, row, seed, spec, memory):
     if named != "none":                              # checked with the spec; the same names as `ramp --effects`
         from slicersim.physics.effects import DetectorEffects
         effects = DetectorEffects.from_text(named)
+    extra = {}
+    rows = reduced_rows(spec, row, target)
+    if rows is not None:
+        extra["rows"] = rows
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
                      overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row),
-                     effects=effects)
+                     effects=effects, **extra)
     from slicersim.products import reference         # the JWST reference files of the ramps kept, beside them
     if spec.products.get("reference_files") and spec.keeps_ramps(int(row["target_id"])):   # (maps of the ramp seed)
         reference.write_reference_files_for_ramps(path, os.path.join(os.path.dirname(path), REFERENCE_DIR),
                                                   overwrite=True)
+
+
+def reduced_rows(spec, row, target):
+    """The detector rows to simulate for a target whose ramps are reduced as they are made and not kept
+    (``products.reduce`` "spectra" or "cubes"): the rows its field's reduction reads
+    (:meth:`~slicersim.instrument.footprints.FieldFootprints.detector_rows`, 27 % of the Lazuli H4RG); the
+    spectra and cubes are those of the full-detector ramp (to rounding), the rate images NaN elsewhere.
+    None (every row) when the ramps are kept, written as level-1b files, or reduced to rates only."""
+    if spec.products.get("reduce") not in ("spectra", "cubes") or spec.keeps_ramps(int(row["target_id"])) \
+            or spec.products.get("ramp_format") == "jwst-uncal":
+        return None
+    from slicersim.assembly import default_mapper
+    from slicersim.instrument.footprints import field_footprints
+    footprints = field_footprints(default_mapper(), target.field, spectrograph=target.simulation.spectrograph)
+    return footprints.detector_rows()
 
 
 def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None, reducer=None):

@@ -43,6 +43,7 @@ from slicersim import validation
 from slicersim.errors import ParameterError
 from slicersim.instrument.slices import NARROW_SLICES, WIDE_SLICES
 from slicersim.io import footprint_files
+from slicersim.io.row_blocks import row_ranges
 
 __all__ = ["SliceFootprint", "FieldFootprints", "field_footprints", "detector_label_image", "save_footprints",
            "mask_outlines", "polygon_area", "FIELD_SLICES", "NO_SLICE", "FOOTPRINT_FORMAT"]
@@ -281,6 +282,32 @@ class FieldFootprints:
     @property
     def slice_ids(self):
         return np.array(list(self._fp), np.int64)
+
+    def detector_rows(self, margin=16, reference_rows=4):
+        """The detector rows a reduction of this field reads: the rows of its slices' footprints,
+        ``margin`` rows on each side (the neighbourhoods the reduction looks at: IPC, outlier medians,
+        the side reference pixels smoothed over 11 rows), and the top and bottom ``reference_rows``
+        (the reference-pixel correction's column terms).
+
+        Parameters
+        ----------
+        margin : int, optional
+            Rows added on each side of the footprints [px].
+        reference_rows : int, optional
+            Reference rows kept at the top and the bottom of the detector [px].
+
+        Returns
+        -------
+        tuple of (int, int)
+            Sorted, disjoint row ranges [y0, y1) (``simulate(rows=...)``).
+        """
+        margin = validation.integer("margin", margin, low=0)
+        reference_rows = validation.integer("reference_rows", reference_rows, low=0)
+        ny = self.detector_shape[0]
+        ranges = [(max(0, fp.origin[0] - margin), min(ny, fp.origin[0] + fp.mask.shape[0] + margin)) for fp in self]
+        if reference_rows:
+            ranges += [(0, min(ny, reference_rows)), (max(0, ny - reference_rows), ny)]
+        return row_ranges(ranges, ny, "rows")
 
     def mask(self, slice_id, core=False):
         """Boolean detector image of one slice's footprint.

@@ -187,7 +187,7 @@ def _check_hdf5_layout(path, with_truth):
         what = _foreign_product(fh)
         if what:
             raise RampFileError(f"{path} is {what}, not a raw ramp file")
-        check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ", "truth/rate"))
+        check_hdf5_input(fh, path, ("SCI", "GROUPDQ", "PIXELDQ", "truth/rate"), partial_rows=True)
         for name, kinds in (("SCI", "u"), ("GROUPDQ", "u"), ("PIXELDQ", "ui")):
             dset = fh.get(name)
             if not isinstance(dset, h5py.Dataset):

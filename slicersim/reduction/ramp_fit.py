@@ -494,15 +494,14 @@ def _fit_blocks(src, setup, options, backend, out, groupdq):
 
 def _not_simulated(ranges, out, groupdq):
     """Rows outside ``ranges`` (a file of some detector rows): NaN rates and variances, DO_NOT_USE."""
-    absent = np.ones(out["rate"].shape[0], bool)
-    for a, b in ranges:
-        absent[a:b] = False
-    for key in ("rate", "variance", "var_poisson", "var_rnoise"):
-        out[key][absent] = np.nan
-    out["dq"][absent] = DQ_DO_NOT_USE
-    out["njumps"][absent] = 0
-    if groupdq is not None:
-        groupdq[:, :, absent] = DQ_DO_NOT_USE
+    edges = [0] + [y for pair in ranges for y in pair] + [out["rate"].shape[0]]
+    for a, b in zip(edges[::2], edges[1::2]):                   # the gaps, as slices (no boolean indexing)
+        for key in ("rate", "variance", "var_poisson", "var_rnoise"):
+            out[key][a:b] = np.nan
+        out["dq"][a:b] = DQ_DO_NOT_USE
+        out["njumps"][a:b] = 0
+        if groupdq is not None:
+            groupdq[:, :, a:b] = DQ_DO_NOT_USE
 
 
 def _correct(raw, gdq, y0, y1, consts, bias, terms, coeffs):
