@@ -18,7 +18,7 @@ from slicersim.reduction.checks import _DARK_MAX
 __all__ = ["extra_dark", "ipc_kernel_seen"]
 
 
-def extra_dark(raw_path, shape, ipc_kernel=None):
+def extra_dark(raw_path, shape, ipc_kernel=None, rows=None):
     """The bad pixels' extra dark a ramp file records, as the rates see it.
 
     Parameters
@@ -30,6 +30,9 @@ def extra_dark(raw_path, shape, ipc_kernel=None):
     ipc_kernel : numpy.ndarray of shape (3, 3), optional
         The IPC kernel the rates are seen through (dark charge is coupled to the neighbours like any
         other charge); None: none.
+    rows : sequence of (int, int), optional
+        Row ranges [y0, y1) to read (a ramp file of some rows): the map elsewhere is 0, and IPC couples
+        the rows of each range among themselves.
 
     Returns
     -------
@@ -62,15 +65,19 @@ def extra_dark(raw_path, shape, ipc_kernel=None):
         if tuple(node.shape) != tuple(shape):
             return None
         from slicersim.io.rampfile import read_dataset      # a failed checksum named, not "no map"
-        extra = np.asarray(read_dataset(node, os.fspath(raw_path)), np.float64)
-    extra = np.where(np.isfinite(extra), extra, 0.0)
+        ranges = ((0, shape[0]),) if rows is None else rows
+        extra = np.zeros(shape)
+        for y0, y1 in ranges:
+            extra[y0:y1] = read_dataset(node, os.fspath(raw_path), np.s_[y0:y1])
+    extra[~np.isfinite(extra)] = 0.0
     if np.any(extra < 0) or np.any(extra > _DARK_MAX):
         bad = float(extra[(extra < 0) | (extra > _DARK_MAX)].flat[0])
         raise RampFileError(f"{where} holds {bad:g} e-/s, not a dark rate (≥ 0 and ≤ {_DARK_MAX:g} e-/s): "
                             "the file is damaged (give dark= a rate or an image, or dark=None)")
     if ipc_kernel is not None:
         from slicersim.physics.ipc import apply_ipc
-        extra = apply_ipc(extra, ipc_kernel)
+        for y0, y1 in ranges:
+            extra[y0:y1] = apply_ipc(extra[y0:y1], ipc_kernel)
     return extra
 
 

@@ -42,19 +42,27 @@ def ipc_kernel_of(attrs):
     return ipc_kernel(p.get("alpha", 0.016), p.get("alpha_diag", 0.002), p.get("kernel"))
 
 
+def _median3_at(img, where):
+    """``scipy.ndimage.median_filter(img, size=3, mode="nearest")`` at the pixels ``where`` only (the 5th of
+    the 9 values of each 3×3 neighbourhood, edges repeated): the same values, without filtering the whole
+    image for the few unusable pixels."""
+    ys, xs = np.nonzero(where)
+    padded = np.pad(img, 1, mode="edge")
+    near = np.stack([padded[ys + 1 + dy, xs + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    return np.partition(near, 4, axis=0)[4]
+
+
 def deconvolve_ipc(rate, usable, kernel):
     """r̂ = K⁻¹ ⊛ rate (module docstring) on an (H, W) image; ``usable`` (H, W) bool: pixels whose rate
     is valid (the others are filled from their neighbours before, and set to 0 after).  Returns float64."""
     from scipy import fft
-    from scipy.ndimage import median_filter
     k = validation.array("kernel", kernel)
     if k.shape != (3, 3) or not np.isclose(k.sum(), 1.0, atol=1e-9):
         raise ParameterError(f"kernel (the IPC kernel) must be a 3×3 array summing to 1, got "
                              f"{validation.short_repr(k) if k.shape != (3, 3) else k.tolist()}")
-    img = np.where(usable, np.asarray(rate, float), np.nan)
+    img = np.where(usable, np.asarray(rate, float), 0.0)
     if not usable.all():
-        fill = median_filter(np.where(usable, img, 0.0), size=3, mode="nearest")
-        img = np.where(usable, img, fill)
+        img[~usable] = _median3_at(img, ~usable)
     H, W = img.shape
     pad = np.zeros((H, W))
     pad[:3, :3] = k

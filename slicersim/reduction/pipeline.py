@@ -276,7 +276,7 @@ def _fit_rates(raw_path, plan):
     """Ramps → (RateProduct, rate, var): the fitted rates, the rate image rectified and extracted
     [e-/s] (dark subtracted, IPC deconvolved when the file records it, 0 where unusable) and the
     pixel variance [(e-/s)²] (+inf where unusable); the dark subtracted is kept in ``plan``."""
-    from slicersim.reduction.ramp_fit import fit_ramps
+    from slicersim.reduction.ramp_fit import fit_ramps, fitted_rows
     shape = tuple(plan.mapper.detector_shape)
     rates = fit_ramps(raw_path, **(plan.opts.fit_options or {}))
     if rates.rate.shape != shape:
@@ -287,17 +287,25 @@ def _fit_rates(raw_path, plan):
     if plan.opts.ipc is None:
         from slicersim.reduction.ipc_correction import ipc_kernel_of
         kernel = ipc_kernel_of(plan.raw_attrs)
+    # a ramp of some rows (a streaming campaign's): the per-pixel steps on those rows only, range by range
+    rows = fitted_rows(rates)
     if plan.dark_kind == "file DARK_RATE":
         from slicersim.reduction.dark import extra_dark, ipc_kernel_seen
         # the per-pixel part of the detector's dark, through IPC whether or not the rates are deconvolved
-        extra = extra_dark(raw_path, shape, kernel if plan.opts.ipc is None else ipc_kernel_seen(plan.raw_attrs))
+        extra = extra_dark(raw_path, shape, kernel if plan.opts.ipc is None else ipc_kernel_seen(plan.raw_attrs),
+                           rows=rows)
         if extra is not None:
             plan.dark_rate, plan.dark_kind = plan.dark_rate + extra, "file DARK_RATE + bad pixels' extra dark"
     rate = np.subtract(rates.rate, plan.dark_rate)          # one image, no temporaries (first touches are dear)
     rate[~np.isfinite(var)] = 0.0
     if kernel is not None:
         from slicersim.reduction.ipc_correction import deconvolve_ipc
-        rate = deconvolve_ipc(rate, np.isfinite(var), kernel)
+        usable = np.isfinite(var)
+        if rows is None:
+            rate = deconvolve_ipc(rate, usable, kernel)
+        else:
+            for y0, y1 in rows:
+                rate[y0:y1] = deconvolve_ipc(rate[y0:y1], usable[y0:y1], kernel)
     rates.attrs["IPC_CORRECTED"] = kernel is not None
     return rates, rate, var
 

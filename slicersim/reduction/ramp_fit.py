@@ -40,7 +40,7 @@ from slicersim.backends.ramp_fit import (DQ_DO_NOT_USE, DQ_SATURATED, WEIGHTINGS
                                          fit_block_opencl, fit_constants)
 from slicersim.errors import ParameterError, RampFileError
 from slicersim.io.atomic import AtomicH5File, one_line
-from slicersim.io.row_blocks import BufferRing, RowBlocks, pipelined, rows_per_block
+from slicersim.io.row_blocks import SIMULATED_ROWS, BufferRing, RowBlocks, pipelined, row_ranges, rows_per_block
 from slicersim.reduction.ramp_sources import keyword_number, open_ramps, ramp_readout
 
 __all__ = ["fit_ramps", "FitOptions", "FIT_DEFAULTS", "FIT_RENAMED", "RateProduct", "DEFAULT_JUMP_THRESHOLD"]
@@ -227,15 +227,22 @@ def _refpix_terms(src, bias, kw):
     bias_cols = full_bias if not np.ndim(full_bias) else np.concatenate([full_bias[:, :b], full_bias[:, -b:]], axis=1)
     for i in range(nints):
         for g in range(n):
-            frame = src.frame(i, g)
-            refrows = np.concatenate([frame[:b], frame[-b:]], axis=0).astype(np.float64) - bias_rows
-            refcols = np.concatenate([frame[:, :b], frame[:, -b:]], axis=1).astype(np.float64) - bias_cols
             if src.rows is None:
+                frame = src.frame(i, g)
+                refrows = np.concatenate([frame[:b], frame[-b:]], axis=0).astype(np.float64) - bias_rows
+                refcols = np.concatenate([frame[:, :b], frame[:, -b:]], axis=1).astype(np.float64) - bias_cols
                 col[i, g], row[i, g] = refpix_offsets(refrows, refcols, **kw)
                 continue
-            row[i, g] = np.nan            # a file of some rows: the side terms of each range from its own rows
+            # a file of some rows (they include the reference rows): only those rows are read, and the side
+            # terms of each range come from its own rows
+            refrows = np.concatenate([src.frame(i, g, 0, b), src.frame(i, g, ny - b, ny)],
+                                     axis=0).astype(np.float64) - bias_rows
+            row[i, g] = np.nan
             for y0, y1 in src.rows:
-                col[i, g], row[i, g, y0:y1] = refpix_offsets(refrows, refcols[y0:y1], **kw)
+                part = src.frame(i, g, y0, y1)
+                refcols = np.concatenate([part[:, :b], part[:, -b:]], axis=1).astype(np.float64) - \
+                    (bias_cols[y0:y1] if np.ndim(bias_cols) else bias_cols)
+                col[i, g], row[i, g, y0:y1] = refpix_offsets(refrows, refcols, **kw)
     return col, row
 
 
@@ -492,6 +499,17 @@ def _fit_blocks(src, setup, options, backend, out, groupdq):
     pipelined(blocks, launch, store)
 
 
+def fitted_rows(rates):
+    """The row ranges [y0, y1) a :class:`RateProduct` holds rates for (a ramp file of some rows), or None
+    when it covers the whole detector."""
+    value = rates.attrs.get(SIMULATED_ROWS)
+    if value is None:
+        return None
+    if isinstance(value, (str, bytes)):
+        value = json.loads(value)
+    return row_ranges(value, rates.rate.shape[0], SIMULATED_ROWS)
+
+
 def _not_simulated(ranges, out, groupdq):
     """Rows outside ``ranges`` (a file of some detector rows): NaN rates and variances, DO_NOT_USE."""
     edges = [0] + [y for pair in ranges for y in pair] + [out["rate"].shape[0]]
@@ -544,6 +562,8 @@ def _attrs(src, nmd, tframe, gain, ron, saturation, jump_threshold, weighting, b
              "TGROUP": (m + d) * tframe, "GAIN": gain, "READNOISE": ron, "SATURATION": saturation,
              "WEIGHTING": weighting, "JUMP_THRESHOLD": float(jump_threshold or 0.0), "BACKEND": backend,
              "SOFTWARE": "slicersim", "VERSION": __version__, **labels}
+    if src.rows is not None:                 # a file of some rows: the others are NaN (DO_NOT_USE)
+        attrs[SIMULATED_ROWS] = [list(r) for r in src.rows]
     keys = ("DARK", "THERMAL_DARK", "ROIC_GLOW")
     if all(k in src.attrs for k in keys):
         attrs["DARK_RATE"] = (keyword_number(src.attrs, "DARK", src.name) + keyword_number(src.attrs, "THERMAL_DARK", src.name)

@@ -3,7 +3,8 @@ content, not by name) and in-memory arrays, with their readout keywords checked.
 
 :func:`open_ramps` returns a reader with ``shape`` (nints, ngroups, ny, nx), ``attrs`` (the
 file's keywords), ``integer`` (uint16 SCI), ``read(y0, y1, sci, gdq)`` (SCI [DN] and GROUPDQ of
-rows y0:y1 into the caller's buffers), ``pixeldq(y0, y1)``, ``frame(i, g)``, ``truth(name)`` and
+rows y0:y1 into the caller's buffers), ``pixeldq(y0, y1)``, ``frame(i, g[, y0, y1])`` (rows of one group),
+``truth(name)`` and
 ``rows`` (the row ranges of a file holding only some detector rows, else None).
 :func:`ramp_readout` gives the validated readout (n, m, d), TFRAME [s], GAIN [DN/e-] and read
 noise [e-/frame].  Every problem is a RampFileError naming the file and the keyword.
@@ -70,8 +71,8 @@ class _ArrayRamps(_Ramps):
     def pixeldq(self, y0, y1):
         return self.pdq[y0:y1].astype(np.uint32)
 
-    def frame(self, i, g):
-        return self.sci[i, g]
+    def frame(self, i, g, y0=0, y1=None):
+        return self.sci[i, g, y0:y1]
 
     def truth(self, name):
         return None
@@ -137,9 +138,9 @@ class _HDF5Ramps(_Ramps):
             return np.zeros((y1 - y0, nx), np.uint32)
         return read_dataset(self.pdq, self.name, np.s_[y0:y1]).astype(np.uint32)
 
-    def frame(self, i, g):
+    def frame(self, i, g, y0=0, y1=None):
         from slicersim.io.rampfile import read_dataset
-        return read_dataset(self.sci, self.name, np.s_[i, g])
+        return read_dataset(self.sci, self.name, np.s_[i, g, y0:y1])
 
     def truth(self, name):
         try:
@@ -241,8 +242,8 @@ class _FitsRamps(_Ramps):
         pdq = self.images.get("PIXELDQ")
         return np.zeros((y1 - y0, self.shape[3]), np.uint32) if pdq is None else pdq[y0:y1].astype(np.uint32)
 
-    def frame(self, i, g):
-        return self.images["SCI"][i, g]
+    def frame(self, i, g, y0=0, y1=None):
+        return self.images["SCI"][i, g, y0:y1]
 
     def truth(self, name):
         from slicersim.io.uncal import truth_extname

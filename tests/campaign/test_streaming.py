@@ -198,3 +198,64 @@ def test_a_target_task_reduces_its_ramps_in_its_field_and_deletes_them(tmp_path,
     rec = products.run_target(spec, row, ds.path, digest, reducer=lambda *a: 1 / 0)
     assert rec["status"] == "failed" and "ZeroDivisionError" in rec["error"]
     assert not os.path.exists(ds.product_dir(0)) or os.listdir(ds.product_dir(0)) == []
+
+
+# ----------------------------------------------------------------------------- only the rows reduced
+ROWS_SPEC = """\
+seed = 4
+name = "streaming rows"
+[population]
+kind = "snia"
+n = 1
+redshift = {{distribution = "uniform", min = 0.5, max = 0.5}}
+[observation]
+snr = 0.15
+config = ["cbe", "short_readout.toml"]
+[products]
+spectrum = false
+ramps = true
+effects = "lazuli"
+reduce = "spectra"
+keep_ramps = {keep}
+"""
+
+
+def test_only_the_rows_a_streamed_spectrum_needs_are_simulated():
+    """reduce = "spectra" or "cubes" and the ramps not kept: the rows the field's reduction reads (its
+    footprints ± 16 rows and the reference rows); every row otherwise."""
+    import slicersim
+    from slicersim.campaign.products import reduced_rows
+    from slicersim.campaign.runner import plan_campaign
+    spec = _spec(PLAIN + 'reduce = "spectra"\nkeep_ramps = 2\n')
+    cat, _ = plan_campaign(spec)
+    row = {k: (cat[1][k].item() if hasattr(cat[1][k], "item") else cat[1][k]) for k in cat.colnames}
+    target = slicersim.LazuliSupernova(0.5, field=row["field"])
+    rows = reduced_rows(spec, row, target)
+    assert rows[0] == (0, 4) and rows[-1] == (4092, 4096) and 1000 < sum(b - a for a, b in rows) < 1200
+    assert reduced_rows(spec, {**row, "target_id": 0}, target) is None                  # kept: every row
+    for text in ('reduce = "rates"\nkeep_ramps = "none"\n', 'reduce = "spectra"\n'):
+        assert reduced_rows(_spec(PLAIN + text), row, target) is None
+
+
+@pytest.mark.slow
+def test_a_streamed_spectrum_from_some_rows_is_the_full_ramps(tmp_path):
+    """The same target streamed with its ramps kept (the whole detector simulated) and not kept (only the
+    rows its reduction reads): the same spectrum, to rounding (the forward fit's sums see no other row)."""
+    import h5py
+    from slicersim.campaign.runner import run_campaign
+    spectra = {}
+    for keep in ('"all"', '"none"'):
+        root = tmp_path / keep.strip('"')
+        root.mkdir()
+        (root / "short_readout.toml").write_text(SHORT_READOUT)
+        (root / "spec.toml").write_text(ROWS_SPEC.format(keep=keep))
+        res = run_campaign(root / "spec.toml", root / "dataset", workers=1, progress=False)
+        assert (res["done"], res["failed"]) == (1, 0), res
+        with h5py.File(root / "dataset/products/t0000000/reduced.h5", "r") as fh:
+            field = list(fh["spectra"])[0]
+            spectra[keep] = (fh[f"spectra/{field}/FLUX"][...], fh[f"spectra/{field}/VAR"][...],
+                             np.isnan(fh["rates/RATE"][...]).mean())
+    (f_all, v_all, _), (f_rows, v_rows, nan_rows) = spectra['"all"'], spectra['"none"']
+    np.testing.assert_allclose(f_rows, f_all, rtol=1e-9, atol=1e-9 * np.abs(f_all).max())
+    np.testing.assert_allclose(v_rows, v_all, rtol=1e-9)
+    assert nan_rows > 0.7                                        # the rate image: NaN outside the rows

@@ -125,3 +125,20 @@ def test_no_finite_bin_is_not_blamed_on_the_warm_pixels_dark():
         check_spectrum_has_signal(empty, "narrow", dark)
     with pytest.raises(ReductionError, match=r"\(1e\+06 e-/s per pixel\)"):
         check_spectrum_has_signal(empty, "narrow", np.full((50, 40), 1e6))
+
+
+def test_rows_read_only_those_rows_and_couple_within_each_range(tmp_path):
+    """A ramp file of some rows (``rows=``): the map of those rows, IPC within each range, 0 elsewhere;
+    the rows of a range away from its edges are the whole map's."""
+    m = np.zeros((20, 8), np.float32)
+    m[4, 3], m[12, 5], m[8, 1] = 2.0, 3.0, 7.0            # row 8 is not read
+    path = tmp_path / "raw.h5"
+    with h5py.File(path, "w") as fh:
+        fh["truth/bad_pixels/extra_dark"] = m
+    k = ipc_kernel(0.016, 0.002)
+    whole = extra_dark(path, (20, 8), k)
+    part = extra_dark(path, (20, 8), k, rows=((0, 7), (10, 16)))
+    np.testing.assert_array_equal(part[1:6], whole[1:6])
+    np.testing.assert_array_equal(part[11:15], whole[11:15])
+    assert (part[7:10] == 0).all() and (part[16:] == 0).all()
+    assert abs(part.sum() - 5.0) < 1e-12

@@ -188,6 +188,27 @@ def test_deconvolve_ipc_bad_kernel_is_a_parameter_error():
     assert issubclass(ParameterError, SlicersimError) and issubclass(ParameterError, ValueError)
 
 
+def test_deconvolve_ipc_fills_unusable_pixels_with_the_median_of_their_neighbours():
+    """Unusable pixels enter the deconvolution as scipy's 3×3 median filter (edges repeated, unusable
+    neighbours as 0) would give them, computed at those pixels only; they are 0 in the result."""
+    from scipy import fft
+    from scipy.ndimage import median_filter
+    from slicersim.physics.ipc import ipc_kernel
+    from slicersim.reduction.ipc_correction import deconvolve_ipc
+    rng = np.random.default_rng(3)
+    img = rng.normal(10, 2, (24, 40))
+    usable = rng.random(img.shape) > 0.2
+    usable[0, 0] = usable[-1, 5] = False                      # edges
+    k = ipc_kernel(0.016, 0.002)
+    zero = np.where(usable, img, 0.0)
+    filled = np.where(usable, img, median_filter(zero, size=3, mode="nearest"))
+    pad = np.roll(np.pad(k, ((0, 21), (0, 37))), (-1, -1), axis=(0, 1))
+    expect = fft.irfft2(fft.rfft2(filled) / fft.rfft2(pad), s=img.shape)
+    out = deconvolve_ipc(img, usable, k)
+    np.testing.assert_allclose(out[usable], expect[usable], rtol=0, atol=1e-12)
+    assert (out[~usable] == 0).all()
+
+
 def test_check_spectra_options_names_and_units():
     """check_spectra_options (reduce_file, reduce_dataset and the CLI check with it): an unknown option is
     refused with a "did you mean"; λ edges given as a Quantity are taken in Å."""
