@@ -192,8 +192,8 @@ def _write_ramps(path, target, row, seed, spec, memory):
         effects = DetectorEffects.from_text(named)
     extra = {}
     rows = reduced_rows(spec, row, target)
-    if rows is not None:
-        extra["rows"] = rows
+    if rows is not None:              # reduced now and deleted: no compression to undo a minute later
+        extra["rows"], comp = rows, "none"
     target.get_ramps(out=path, seed=int(seed), compression=None if comp == "none" else comp,
                      overwrite=True, max_bytes=memory, progress=False, target_meta=truth_meta(spec, row),
                      effects=effects, **extra)

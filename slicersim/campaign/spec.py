@@ -25,7 +25,8 @@
     ramps = false                             # raw MACC ramps (HDF5)
     cube_dtype = "float32"                    # or "float64"
     precision = "auto"                        # of the cube kernels: "auto", "double" or "single"
-    compression = "none"                      # of the ramps: none, gzip[:level], lz4, zstd, bitshuffle-lz4
+    compression = "none"                      # of the ramps kept: none, gzip[:level], lz4, zstd,
+                                              # bitshuffle-lz4 (ramps reduced and deleted: none)
     effects = "none"                          # detector effects of the ramps: "lazuli", "all", names
     reference_files = false                   # JWST reference files beside each target's kept ramps
     reduce = false                            # stream: reduce each target's ramps as soon as they are

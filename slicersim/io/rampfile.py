@@ -121,8 +121,11 @@ class RampWriter(AtomicH5File):
     _dataset_names = ("sci", "groupdq", "pixdq", "truth")
 
     def __init__(self, path, nramps, ngroups, shape, attrs=None, row_block=64, compression=None,
-                 truth_rate=False, pixeldq=True, overwrite=False, extra_bytes=0):
+                 truth_rate=False, pixeldq=True, overwrite=False, extra_bytes=0, rows=None):
         super().__init__(path, overwrite)
+        #: row ranges of a file of some rows (``simulate(rows=)``): lazy truth arrays are computed and
+        #: written on those rows only
+        self.rows = rows
         self.extra_bytes = int(extra_bytes)
         self.nramps, self.ngroups = int(nramps), int(ngroups)
         self.shape = tuple(int(s) for s in shape)
@@ -238,7 +241,7 @@ class RampWriter(AtomicH5File):
         def put():
             if lazy:
                 k, ny, nx = array.shape
-                rows = max(1, min(ny, (16 << 20) // max(1, k * nx * np.dtype(array.dtype).itemsize)))
+                rows = max(1, min(ny, LAZY_BLOCK_BYTES // max(1, k * nx * np.dtype(array.dtype).itemsize)))
                 first = np.asarray(array[:, 0:rows]) if 0 not in array.shape else None
                 # compressed (lossless) when the first block shows it is worth it, as an in-memory array
                 filters = {key: v for key, v in _compression_for(first).items() if key not in ("chunks", "fletcher32")} \
@@ -246,7 +249,13 @@ class RampWriter(AtomicH5File):
                 ds = self.file.create_dataset(f"truth/{name}", array.shape, dtype=array.dtype,
                                               chunks=(1, rows, nx), fletcher32=0 not in array.shape, **filters)
                 for y0 in range(0, ny, rows):
-                    ds[:, y0:y0 + rows] = first if y0 == 0 else array[:, y0:y0 + rows]
+                    if y0 == 0:
+                        ds[:, 0:rows] = first
+                        continue
+                    for a, b in ((y0, min(ny, y0 + rows)),) if self.rows is None else self.rows:
+                        a, b = max(a, y0), min(b, y0 + rows)         # the rows of this block the file holds
+                        if a < b:
+                            ds[:, a:b] = array[:, a:b]
             else:
                 kwargs = _compression_for(array)
                 ds = self.file.create_dataset(f"truth/{name}", data=array, **kwargs)
@@ -444,6 +453,9 @@ def _check_storage(dset, path, where):
         raise RampFileError(f"{path}: dataset {where} has external storage (its bytes are in another file); "
                             "inputs must hold their own data")
 
+
+#: bytes of a lazy truth array (nonlinearity coefficients) computed and written at once
+LAZY_BLOCK_BYTES = 16 << 20
 
 #: HDF5 chunk cache of every dataset of a ramp file opened for reading (h5py's default is 1 MiB): the
 #: reduction reads row blocks narrower than the chunks (20 rows of a 49-row SCI chunk, of a 170-row

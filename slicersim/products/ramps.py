@@ -223,6 +223,8 @@ def _simulate(rate, p, named, io, run, maps):
     ranges = _check_rows(io, window, out, rate.shape)
     rows, noise_cache = _block_rows(p, fx, rate.shape, run.max_bytes)
     writer = _open_writer(out, io, p, fx, rate.shape, rows, window) if out is not None else None
+    if ranges is not None:
+        writer.rows = ranges
     if writer is None:
         _check_memory(p, out_shape, io.return_dq, run.max_bytes)
     expected = expected_frame_charge(rate, p, seed, fx, dead, pixeldq, previous_charge, noise_cache, precision)

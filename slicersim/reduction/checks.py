@@ -159,12 +159,15 @@ def _check_linearity_truth(src, path, block_bytes=64 << 20):
     from slicersim.io.rampfile import read_dataset
     k, ny, nx = coeffs.shape
     rows = max(1, block_bytes // max(1, 8 * k * nx))
-    for y0 in range(0, ny, rows):
-        block = read_dataset(coeffs, path, np.s_[:, y0:y0 + rows]) if hasattr(coeffs, "id") else \
-            np.asarray(coeffs[:, y0:y0 + rows])
-        if not np.all(np.isfinite(block)):
-            raise RampFileError(f"{path}: truth/{_LINEARITY_TRUTH} has non-finite values (rows from {y0}): the "
-                                "linearity correction would make the rates NaN (fit_ramps(linearity=False) skips it)")
+    for a, b in getattr(src, "rows", None) or ((0, ny),):       # a file of some rows: those rows
+        for y0 in range(a, b, rows):
+            y1 = min(b, y0 + rows)
+            block = read_dataset(coeffs, path, np.s_[:, y0:y1]) if hasattr(coeffs, "id") else \
+                np.asarray(coeffs[:, y0:y1])
+            if not np.all(np.isfinite(block)):
+                raise RampFileError(f"{path}: truth/{_LINEARITY_TRUTH} has non-finite values (rows from {y0}): the "
+                                    "linearity correction would make the rates NaN (fit_ramps(linearity=False) skips "
+                                    "it)")
 
 
 def _check_hdf5_layout(path, with_truth):

@@ -207,9 +207,9 @@ name = "streaming rows"
 [population]
 kind = "snia"
 n = 1
-redshift = {{distribution = "uniform", min = 0.5, max = 0.5}}
+redshift = {{distribution = "uniform", min = 0.2, max = 0.21}}
 [observation]
-snr = 0.15
+snr = 2
 config = ["cbe", "short_readout.toml"]
 [products]
 spectrum = false

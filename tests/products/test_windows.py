@@ -92,9 +92,11 @@ def _rows_file(tmp_path, rows=ROWS, name="rows.h5", **kw):
                     out=str(tmp_path / name), **kw)
 
 
-def test_rows_are_bit_identical_to_the_full_ramp_and_the_rest_absent(tmp_path, full):
+def test_rows_are_bit_identical_to_the_full_ramp_and_the_rest_absent(tmp_path, full, monkeypatch):
     import h5py
+    from slicersim.io import rampfile
     from slicersim.io.rampfile import open_hdf5_input
+    monkeypatch.setattr(rampfile, "LAZY_BLOCK_BYTES", 8 * 128 * 6 * 4)       # lazy truth in blocks of 8 rows
     from slicersim.reduction.ramp_sources import open_ramps
     path = _rows_file(tmp_path)
     with h5py.File(path, "r") as fh:
@@ -105,6 +107,15 @@ def test_rows_are_bit_identical_to_the_full_ramp_and_the_rest_absent(tmp_path, f
         assert sci.id.get_num_chunks() == NMD[0] * len(held)        # nothing written outside the ranges
         for a, b in ROWS:
             np.testing.assert_array_equal(sci[:, :, a:b], full[0][:, :, a:b])
+    # the lazy truth (nonlinearity coefficients) computed and written on those rows only
+    whole = simulate(_rate(), nmd=NMD, seed=5, backend="numpy", progress=False, effects="lazuli",
+                     out=str(tmp_path / "whole.h5"))
+    with h5py.File(path, "r") as fh, h5py.File(whole, "r") as fw:
+        for name in ("truth/nonlinearity/inverse_coefficients", "truth/nonlinearity/coefficients"):
+            for a, b in ROWS:
+                np.testing.assert_array_equal(fh[name][:, a:b], fw[name][:, a:b])
+            assert not fh[name][:, 12:20].any()             # past the first block: never computed (fill value)
+        np.testing.assert_array_equal(fh["truth/bias"][...], fw["truth/bias"][...])
     # readers of whole ramps refuse the file with one clear line; the ramp source reads its rows
     with pytest.raises(RampFileError, match=r"holds only detector rows 0:4, 20:37, 44:53, 60:64"):
         read_ramps(path)
