@@ -131,6 +131,9 @@ class CorrelatedNoise:
         self._work = None                 # reusable segment work array (_work_buffer)
         self._work_event = None           # the assembly launch still reading it
         self._work_buffers = {}           # zero-copy buffers of work arrays and window stacks (_device_array)
+        #: row ranges [y0, y1) the blocks will ask for (a ramp of some rows), None: any; the low part's group
+        #: means are then computed on those rows only
+        self.rows = None
 
     # ------------------------------------------------------------------ helpers
     def _coefficients(self, amp, kind, hi, stream, draw):
@@ -235,7 +238,13 @@ class CorrelatedNoise:
         nint = -(-nrows // q)
         wq = (np.arange(q) / q).astype(np.float32)
         nst = kind.size
-        A = np.empty((nst, n, g.ny + 1), np.float32)
+        A = np.zeros((nst, n, g.ny + 1), np.float32)
+        cols = slice(None)                          # rows y whose A[y] (and A[y + 1]) blocks read
+        if self.rows is not None:
+            need = np.zeros(g.ny + 1, bool)
+            for a, b in self.rows:
+                need[a:b + 1] = True
+            cols = np.flatnonzero(need)
         batch = max(1, int(2**26 // (length * 4)))
         for s0 in range(0, nst, batch):
             s1 = min(nst, s0 + batch)
@@ -246,7 +255,7 @@ class CorrelatedNoise:
                 at_rows = ((row[1:nint + 1] - a)[:, None] * wq[None, :] + a[:, None]).reshape(-1)
                 frames = np.lib.stride_tricks.as_strided(at_rows, (int(reads.max()) + 1, g.ny + 1),
                                                          (g.frame_rows * 4, 4), writeable=False)
-                A[s0 + i] = frames[reads].mean(axis=1, dtype=np.float64)
+                A[s0 + i][:, cols] = frames[:, cols][reads].mean(axis=1, dtype=np.float64)
         return A
 
     # ------------------------------------------------------------------ multirate / group: segments

@@ -228,6 +228,9 @@ def _simulate(rate, p, named, io, run, maps):
     if writer is None:
         _check_memory(p, out_shape, io.return_dq, run.max_bytes)
     expected = expected_frame_charge(rate, p, seed, fx, dead, pixeldq, previous_charge, noise_cache, precision)
+    noise = getattr(expected.plan, "noise", None)
+    if ranges is not None and noise is not None:
+        noise.rows = ranges                 # the correlated noise's per-ramp terms on those rows only
     attrs = _file_attrs(p, seed, backend, precision, io.config, fx)
     if window is not None:
         attrs.update(window.attrs())
