@@ -230,7 +230,7 @@ def main(argv=None):
                      f"{_mean(base, 'wall') / _mean(ramps, 'wall'):.2f} |")
         lines += ["", f"Spectrum of this checkout against the baseline {args.baseline} on the same raw file "
                   "(σ: the baseline's reported errors; band: rest 4000–6800 Å):", "",
-                  "| run | band flux ratio | Δ band flux / σ | max per-bin \|ΔF_λ\| / σ | bins |",
+                  "| run | band flux ratio | Δ band flux / σ | max per-bin \\|ΔF_λ\\| / σ | bins |",
                   "|---|---:|---:|---:|---:|"]
         lines += [f"| {k + 1} | {b['spectrum']['band_flux_ratio']:.12f} | {b['spectrum']['band_flux_diff_over_sigma']:.1e} | "
                   f"{b['spectrum']['max_flambda_diff_over_sigma']:.1e} | {b['spectrum']['bins']} |"

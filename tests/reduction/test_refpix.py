@@ -174,6 +174,7 @@ def test_the_fit_s_reference_terms_come_from_the_reference_pixels_alone():
 
     class Source:
         shape = sci.shape
+        rows = None                      # every row (a file of some rows lists its ranges)
 
         def frame(self, i, g):
             return sci[i, g]
