@@ -136,8 +136,10 @@ class RampWriter(AtomicH5File):
 
     # ------------------------------------------------------------------ lifecycle
     def expected_bytes(self):
-        """Uncompressed size of SCI + GROUPDQ (+ PIXELDQ, truth rate, ``extra_bytes``) [bytes]."""
-        n = self.nramps * self.ngroups * self.shape[0] * self.shape[1]
+        """Uncompressed size of SCI + GROUPDQ (of the rows written) (+ PIXELDQ, truth rate, ``extra_bytes``)
+        [bytes]."""
+        held = self.shape[0] if self.rows is None else sum(b - a for a, b in self.rows)
+        n = self.nramps * self.ngroups * held * self.shape[1]
         return n * 3 + self.shape[0] * self.shape[1] * (4 * self.pixeldq + 4 * self.truth_rate) + self.extra_bytes
 
     def check(self):
@@ -207,7 +209,8 @@ class RampWriter(AtomicH5File):
                 for g in _flagged_groups(groupdq):      # GROUPDQ only where it carries information
                     self.groupdq[ramp, g, rows, :] = groupdq[g]
         self._h5(put)
-        if self._compressed and self.nramps > 1 and ramp == 0 and rows.stop >= self.shape[0]:
+        last = self.shape[0] if self.rows is None else self.rows[-1][1]      # the first ramp's last row
+        if self._compressed and self.nramps > 1 and ramp == 0 and rows.stop >= last:
             self._check_measured_space()
 
     def write_pixeldq(self, pixeldq):
@@ -424,10 +427,10 @@ def check_stored(dset, path, where, ranges=None):
     else:
         counts = [-(-s // c) for s, c in zip(dset.shape, dset.chunks)]
         if ranges is not None and dset.ndim == 4:
-            c = dset.chunks[2]
-            counts[2] = len({k for a, b in ranges for k in range(a // c, (b - 1) // c + 1)})
-        total = int(np.prod(counts, dtype=np.float64))
-        stored = int(dset.id.get_num_chunks())
+            stored, total = _stored_row_chunks(dset, ranges)
+        else:
+            total = int(np.prod(counts, dtype=np.float64))
+            stored = int(dset.id.get_num_chunks())
         what = f"stores {stored} of its {total} chunks" + ("" if ranges is None else
                                                            f" of rows {_ranges_text(ranges)}")
     if stored < total:
@@ -436,6 +439,23 @@ def check_stored(dset, path, where, ranges=None):
         raise RampFileError(f"{path}: {head}dataset {where} declares shape {tuple(dset.shape)} {dset.dtype} "
                             f"({nbytes / 2**30:.3g} GiB) but the file {what}: its data were never written "
                             "(an incomplete or forged file)")
+
+
+def _stored_row_chunks(dset, ranges):
+    """(stored, needed): the chunks of a 4-D dataset holding the rows ``ranges`` (axis 2), each looked up
+    by its coordinates: a count of all chunks would pass an attribute naming other rows than those written
+    (the absent rows read as zeros)."""
+    import itertools
+    c = dset.chunks[2]
+    ys = sorted({k * c for a, b in ranges for k in range(a // c, (b - 1) // c + 1)})
+    offsets = [range(0, n, step) for n, step in zip(dset.shape, dset.chunks)]
+    offsets[2] = ys
+    needed = list(itertools.product(*offsets))
+    if hasattr(dset.id, "chunk_iter"):             # one pass over the chunk index (HDF5 ≥ 1.12.3, h5py ≥ 3.8)
+        held = set()
+        dset.id.chunk_iter(lambda info: held.add(tuple(info.chunk_offset)))
+        return sum(o in held for o in needed), len(needed)
+    return sum(dset.id.get_chunk_info_by_coord(o).byte_offset is not None for o in needed), len(needed)
 
 
 def _kind_of(obj):

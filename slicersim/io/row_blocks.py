@@ -76,7 +76,7 @@ def row_ranges(ranges, nrows, name="rows"):
             if isinstance(a, bool) or isinstance(b, bool) or int(a) != a or int(b) != b:
                 raise ValueError
             pairs.append((int(a), int(b)))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):           # OverflowError: int(inf)
         raise ParameterError(f"{name} must be a sequence of (y0, y1) integer row ranges, got "
                              f"{validation.short_repr(ranges)}") from None
     if not pairs:

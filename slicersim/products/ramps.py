@@ -222,9 +222,7 @@ def _simulate(rate, p, named, io, run, maps):
     out_shape = rate.shape if window is None else window.shape
     ranges = _check_rows(io, window, out, rate.shape)
     rows, noise_cache = _block_rows(p, fx, rate.shape, run.max_bytes)
-    writer = _open_writer(out, io, p, fx, rate.shape, rows, window) if out is not None else None
-    if ranges is not None:
-        writer.rows = ranges
+    writer = _open_writer(out, io, p, fx, rate.shape, rows, window, ranges) if out is not None else None
     if writer is None:
         _check_memory(p, out_shape, io.return_dq, run.max_bytes)
     expected = expected_frame_charge(rate, p, seed, fx, dead, pixeldq, previous_charge, noise_cache, precision)
@@ -297,8 +295,9 @@ def _block_rows(p, fx, shape, max_bytes):
     return rows_per_block(max_bytes, per_row, ny, reserve=noise_cache, what=what), noise_cache
 
 
-def _open_writer(out, io, p, fx, shape, rows, window=None):
-    """The checked (not yet opened) writer of ``out``: nothing is simulated before it is known to fit."""
+def _open_writer(out, io, p, fx, shape, rows, window=None, ranges=None):
+    """The checked (not yet opened) writer of ``out`` (of the row ``ranges`` only, when given): nothing is
+    simulated before it is known to fit."""
     from slicersim.products.effects import EffectsPlan
     writer_class = _writer_class(out, io.format)
     truth_bytes = EffectsPlan.truth_nbytes(fx, p, shape) if (fx is not None and io.truth) else 0
@@ -307,6 +306,7 @@ def _open_writer(out, io, p, fx, shape, rows, window=None):
         if io.groupdq not in (None, "truth"):
             raise ParameterError(f"groupdq {io.groupdq!r} is for level-1b files (jwst-uncal): an HDF5 ramp file "
                                  "keeps the simulator's flags")
+        extra["rows"] = ranges
     else:
         extra["groupdq_flags"] = io.groupdq or "none"
         if window is not None:

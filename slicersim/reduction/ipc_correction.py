@@ -65,8 +65,9 @@ def deconvolve_ipc(rate, usable, kernel):
         img[~usable] = _median3_at(img, ~usable)
     H, W = img.shape
     pad = np.zeros((H, W))
-    pad[:3, :3] = k
-    pad = np.roll(pad, (-1, -1), axis=(0, 1))                    # kernel centred on pixel (0, 0)
+    for dy in (-1, 0, 1):                     # kernel centred on pixel (0, 0), wrapped (images of 1 or 2 rows too:
+        for dx in (-1, 0, 1):                 # a row range of a ramp of some rows)
+            pad[dy % H, dx % W] += k[1 + dy, 1 + dx]
     khat = fft.rfft2(pad, workers=-1)
     out = fft.irfft2(fft.rfft2(img, workers=-1) / khat, s=(H, W), workers=-1)
     return np.where(usable, out, 0.0)

@@ -152,7 +152,8 @@ def test_rows_without_the_reference_rows_refuse_the_refpix_correction(tmp_path):
 
 
 @pytest.mark.parametrize("rows, match", [(((0, 65),), "not inside"), (((5, 5),), "not inside"), ((), "at least one"),
-                                         ("0 4", "sequence"), (((0.5, 4),), "sequence"), (((0, 4, 5),), "sequence")])
+                                         ("0 4", "sequence"), (((0.5, 4),), "sequence"), (((0, 4, 5),), "sequence"),
+                                         (((0, float("inf")),), "sequence"), (np.array([[0, np.inf]]), "sequence")])
 def test_bad_rows_are_one_clear_error(tmp_path, rows, match):
     with pytest.raises(ParameterError, match=match):
         _rows_file(tmp_path, rows=rows)
@@ -172,3 +173,34 @@ def test_rows_need_an_hdf5_file_and_no_window(tmp_path):
 def test_overlapping_rows_are_merged():
     from slicersim.io.row_blocks import row_ranges
     assert row_ranges([(10, 20), (0, 4), (15, 30), (30, 31)], 64) == ((0, 4), (10, 31))
+
+
+@pytest.mark.parametrize("forged, match", [("[[0, 4], [8, 12], [60, 64]]", r"stores \d+ of its \d+ chunks of rows 0:4, 8:12"),
+                                           ("[[0, Infinity]]", "not a list of"), ("[[0, 4], [20, 37], [60, 64]]", None)])
+def test_forged_simulated_rows_are_refused_or_read_as_written(tmp_path, forged, match):
+    """SIMULATED_ROWS naming rows whose chunks were never written (a count of the chunks stored passed
+    them, read as zeros: rates of 0), or not integers, is one RampFileError; naming fewer rows than
+    written, the file is read on those."""
+    import h5py
+    from slicersim.reduction.ramp_fit import fit_ramps
+    path = _rows_file(tmp_path, max_bytes=60000)                  # SCI chunks of a few rows
+    with h5py.File(path, "r+") as fh:
+        assert fh["SCI"].chunks[2] <= 4
+        fh.attrs["SIMULATED_ROWS"] = forged
+    if match is None:
+        assert np.isnan(fit_ramps(path, backend="numpy").rate[44:53]).all()
+        return
+    with pytest.raises(RampFileError, match=match):
+        fit_ramps(path, backend="numpy", refpix=False)
+
+
+def test_rows_files_count_only_their_rows(tmp_path, monkeypatch):
+    """The free-space checks of a file of some rows: its rows' bytes before the simulation, and the
+    compression measured once the first ramp's last range is written (not only at the detector's last row)."""
+    from slicersim.io.rampfile import RampWriter
+    writer = RampWriter(str(tmp_path / "w.h5"), 2, 3, (64, 128), rows=((0, 4), (20, 30)), pixeldq=False)
+    assert writer.expected_bytes() == 2 * 3 * 14 * 128 * 3
+    measured = []
+    monkeypatch.setattr(RampWriter, "_check_measured_space", lambda self: measured.append(True))
+    _rows_file(tmp_path, rows=((0, 4), (20, 30)), nramps=2, compression="gzip")
+    assert measured == [True]

@@ -209,6 +209,19 @@ def test_deconvolve_ipc_fills_unusable_pixels_with_the_median_of_their_neighbour
     assert (out[~usable] == 0).all()
 
 
+@pytest.mark.parametrize("rows", [1, 2, 3])
+def test_deconvolve_ipc_of_one_or_two_rows(rows):
+    """A row range of a ramp of some rows may be 1 or 2 rows high: the kernel wraps as in any image (the
+    IPC of the result, periodic, is the input), instead of a broadcasting error."""
+    from slicersim.physics.ipc import ipc_kernel
+    from slicersim.reduction.ipc_correction import deconvolve_ipc
+    k = ipc_kernel(0.016, 0.002)
+    img = np.random.default_rng(4).normal(10, 2, (rows, 16))
+    out = deconvolve_ipc(img, np.ones(img.shape, bool), k)
+    back = sum(k[1 + dy, 1 + dx] * np.roll(out, (dy, dx), axis=(0, 1)) for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+    np.testing.assert_allclose(back, img, rtol=0, atol=1e-12)
+
+
 def test_check_spectra_options_names_and_units():
     """check_spectra_options (reduce_file, reduce_dataset and the CLI check with it): an unknown option is
     refused with a "did you mean"; λ edges given as a Quantity are taken in Å."""
