@@ -272,7 +272,8 @@ def add_parsers(sub, fmt):
     p.add_argument("--workers", type=int, help="workers of the embedded LocalCluster (default: CPU count)")
     add_dask_arguments(p)
     p.add_argument("--threads-per-worker", type=int, help="OpenCL CPU threads per worker (default: CPUs/workers)")
-    p.add_argument("--memory-per-task", type=float, default=256.0, help="memory budget of a task's chunks [MiB]")
+    p.add_argument("--memory-per-task", type=float, default=1024.0,
+                   help="memory budget of a task's chunks and ramp blocks [MiB]")
     p.add_argument("--precision", choices=("auto", "double", "single"),
                    help="precision of the cube kernels (overrides the spec's products.precision; default auto: "
                         "single only on devices without fast fp64)")

@@ -48,6 +48,11 @@ REDUCED_FILES = {"spectra": "reduced.h5", "cubes": "reduced.h5", "rates": "rates
 REFERENCE_DIR = "reference"
 _REDUCER = []
 
+#: default memory budget of one campaign task [bytes]: its cube chunks, its ramp blocks and the correlated
+#: noise's segment cache (one segment per group: ~3 MB per group on the Lazuli H4RG; with 256 MiB a 62-group
+#: ramp synthesised its segments 2.6 times over)
+TASK_MAX_BYTES = 2**30
+
 #: Philox stream deriving a target's seeds from (campaign seed, target id)
 SEED_STREAM = 0x43414D50          # "CAMP"
 #: wavelength grid [Å] on which the input spectra are sampled
@@ -218,7 +223,7 @@ def reduced_rows(spec, row, target):
     return footprints.detector_rows()
 
 
-def run_target(spec, row, dataset_path, spec_sha256, max_bytes=256 * 2**20, threads=None, reducer=None):
+def run_target(spec, row, dataset_path, spec_sha256, max_bytes=TASK_MAX_BYTES, threads=None, reducer=None):
     """Simulate and write the products of one target; returns its record (also written to
     ``records/``).  Any error is caught and recorded (status "failed") so a campaign goes on.
     With ``products.reduce`` the ramps are then reduced by ``reducer`` (None: the registered one,

@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from slicersim.campaign.cluster import DASHBOARD_ADDRESS, dashboard_address, dask_client, tls_security  # noqa: F401
-from slicersim.campaign.products import build_target, registered_reducer, run_target, spectrum_grid, target_seeds
+from slicersim.campaign.products import (TASK_MAX_BYTES, build_target, registered_reducer, run_target, spectrum_grid,
+                                         target_seeds)
 from slicersim.campaign.spec import PRODUCTS, CampaignSpec, load_spec, seed_was_drawn, with_seed
 from slicersim.errors import ConfigError, DatasetError
 from slicersim.io.dataset import CATALOG, PRODUCTS as PRODUCT_DIR, Dataset, not_a_dataset_directory, spec_digest
@@ -209,7 +210,7 @@ class RunOptions:
     workers: int
     scheduler: str | None = None
     progress: bool = False
-    max_bytes: int = 256 * 2**20
+    max_bytes: int = TASK_MAX_BYTES
     threads_per_worker: int | None = None
     window: int | None = None
     #: a distributed.Security for ``scheduler`` (None: Dask's configuration)
@@ -218,7 +219,7 @@ class RunOptions:
     dashboard: object = False
 
     @classmethod
-    def checked(cls, workers=None, scheduler=None, progress=None, max_bytes=256 * 2**20, threads_per_worker=None,
+    def checked(cls, workers=None, scheduler=None, progress=None, max_bytes=TASK_MAX_BYTES, threads_per_worker=None,
                 window=None):
         """Options with every value checked (ParameterError naming the keyword)."""
         return cls(check_workers(workers), scheduler, show_progress(progress),
@@ -271,7 +272,7 @@ def _plan_and_connect(spec, run):
 
 
 def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_failed=False, progress=None,
-                 max_bytes=256 * 2**20, threads_per_worker=None, window=None, security=None, dashboard=False):
+                 max_bytes=TASK_MAX_BYTES, threads_per_worker=None, window=None, security=None, dashboard=False):
     """Run (or resume) a campaign into dataset directory ``out``.
 
     Parameters
@@ -292,7 +293,7 @@ def run_campaign(spec, out, workers=None, scheduler=None, force=False, retry_fai
     progress : bool or None, optional
         None (a bar only when stderr is a terminal), True or False.
     max_bytes : int, optional
-        Memory budget of one task's cube chunks / ramp blocks [bytes].
+        Memory budget of one task's cube chunks / ramp blocks [bytes] (default 1 GiB).
     threads_per_worker : int, optional
         OpenCL CPU threads per worker (default: CPUs / workers).
     window : int, optional

@@ -289,8 +289,13 @@ def _block_rows(p, fx, shape, max_bytes):
     # bytes per pixel in flight: mu + dead + index list + SCI + GDQ (host and device copies); with
     # effects also the group means (8 B), flags, read-domain noise (4 B) and deposits
     per_row = nx * (8 + 1 + 4 + 3 * n) * 2 if fx is None else nx * (8 + 1 + 4 + 16 + 16 * n) * 2
-    # a third of the budget (with correlated noise) keeps the noise segments that span row blocks
-    noise_cache = max_bytes // 3 if fx is not None and "correlated_noise" in fx.enabled else 0
+    # with correlated noise, up to half of the budget keeps the noise segments that span row blocks: one per
+    # group (below that, segments are synthesised again block after block)
+    noise_cache = 0
+    if fx is not None and "correlated_noise" in fx.enabled:
+        from slicersim.backends.correlated_noise import segment_cache_bytes
+        need = segment_cache_bytes(fx.params("correlated_noise"), shape, p.nmd, p.tframe)
+        noise_cache = min(max_bytes // 2, max(max_bytes // 3, need + need // 16))
     what = f"one detector row for {n} groups"
     return rows_per_block(max_bytes, per_row, ny, reserve=noise_cache, what=what), noise_cache
 
