@@ -112,6 +112,39 @@ def test_segment_cache_changes_nothing(method):
 
 
 @pytest.mark.needs_opencl_device
+def test_a_cache_of_segment_cache_bytes_synthesises_each_segment_once(monkeypatch):
+    """With the cache :func:`segment_cache_bytes` sizes (one segment of every group), blocks smaller than a
+    segment synthesise each (group, segment) once (the default segments of 128 rows); a cache of a third of
+    that synthesises most of them again for every block they span.  The ramp sampler's budget split gives
+    the cache that size when the budget allows it."""
+    from slicersim.backends.correlated_noise import segment_cache_bytes
+    from slicersim.physics.effects import DetectorEffects
+    from slicersim.physics.ramp import RampParameters
+    from slicersim.products.ramps import _block_rows
+    p = CorrelatedNoiseParameters(n_outputs=4)
+    shape, nmd = (512, 64), (6, 2, 0)
+    need = segment_cache_bytes(p, shape, nmd, 2.83)
+    counts = {}
+    for label, cache in (("full", need), ("third", need // 3)):
+        gen = CorrelatedNoise(p, shape, nmd, 2.83, 5, cache_bytes=cache)
+        made = []
+        orig = gen._synthesize_segments
+        monkeypatch.setattr(gen, "_synthesize_segments",
+                            lambda ramp, todo, orig=orig, made=made: made.append(sum(m.size for _, m in todo))
+                            or orig(ramp, todo))
+        for y0 in range(0, 512, 16):
+            gen.block(0, y0, y0 + 16)
+        counts[label] = sum(made)
+    nseg = gen._segment_geometry()[2]
+    assert counts["full"] == nmd[0] * nseg                     # each once
+    assert counts["third"] > 2 * counts["full"]
+    fx = DetectorEffects.from_text("correlated_noise")
+    lazuli = fx.params("correlated_noise")
+    rp = RampParameters(nmd=(62, 8, 0))
+    rows, cache = _block_rows(rp, fx, (4096, 4096), 2**30)
+    assert cache >= segment_cache_bytes(lazuli, (4096, 4096), (62, 8, 0), rp.tframe) and cache <= 2**29
+
+
 def test_spectral_draws_twin():
     """Kernel vs NumPy twin: the same Philox words; float32 Box–Muller with libm differences
     (OpenCL log/cospi/sinpi ≤ 4 ulp, NumPy's within 1 ulp): |Δ| ≤ 1e-5·amp (radius ≤ 5.8)."""
