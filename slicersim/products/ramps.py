@@ -311,7 +311,8 @@ def _open_writer(out, io, p, fx, shape, rows, window=None, ranges=None):
         if io.groupdq not in (None, "truth"):
             raise ParameterError(f"groupdq {io.groupdq!r} is for level-1b files (jwst-uncal): an HDF5 ramp file "
                                  "keeps the simulator's flags")
-        extra["rows"] = ranges
+        if ranges is not None:
+            extra["rows"] = ranges
     else:
         extra["groupdq_flags"] = io.groupdq or "none"
         if window is not None:
