@@ -211,7 +211,7 @@ def _write_ramps(path, target, row, seed, spec, memory):
 def reduced_rows(spec, row, target):
     """The detector rows to simulate for a target whose ramps are reduced as they are made and not kept
     (``products.reduce`` "spectra" or "cubes"): the rows its field's reduction reads
-    (:meth:`~slicersim.instrument.footprints.FieldFootprints.detector_rows`, 27 % of the Lazuli H4RG); the
+    (``detector_rows()`` of :class:`~slicersim.instrument.footprints.FieldFootprints`, 27 % of the Lazuli H4RG); the
     spectra and cubes are those of the full-detector ramp (to rounding), the rate images NaN elsewhere.
     None (every row) when the ramps are kept, written as level-1b files, or reduced to rates only."""
     if spec.products.get("reduce") not in ("spectra", "cubes") or spec.keeps_ramps(int(row["target_id"])) \

@@ -58,7 +58,7 @@ class RampIO:
         gives them NaN rates flagged DO_NOT_USE, and readers of whole ramps refuse the file.  The rows
         written are bit-identical to those of a full-detector ramp of the same seed.  Streaming campaigns
         use it for the rows their reduction reads
-        (:meth:`~slicersim.instrument.footprints.FieldFootprints.detector_rows`).
+        (``detector_rows()`` of :class:`~slicersim.instrument.footprints.FieldFootprints`).
 
     """
 
