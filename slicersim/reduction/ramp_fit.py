@@ -227,18 +227,12 @@ def _refpix_terms(src, bias, kw):
     bias_cols = full_bias if not np.ndim(full_bias) else np.concatenate([full_bias[:, :b], full_bias[:, -b:]], axis=1)
     for i in range(nints):
         for g in range(n):
-            if src.rows is None:
-                frame = src.frame(i, g)
-                refrows = np.concatenate([frame[:b], frame[-b:]], axis=0).astype(np.float64) - bias_rows
-                refcols = np.concatenate([frame[:, :b], frame[:, -b:]], axis=1).astype(np.float64) - bias_cols
-                col[i, g], row[i, g] = refpix_offsets(refrows, refcols, **kw)
-                continue
-            # a file of some rows (they include the reference rows): only those rows are read, and the side
-            # terms of each range come from its own rows
+            # a file of some rows holds the reference rows (checked): only its rows are read, and the side
+            # terms of each range come from that range's rows
             refrows = np.concatenate([src.frame(i, g, 0, b), src.frame(i, g, ny - b, ny)],
                                      axis=0).astype(np.float64) - bias_rows
             row[i, g] = np.nan
-            for y0, y1 in src.rows:
+            for y0, y1 in src.rows or ((0, ny),):
                 part = src.frame(i, g, y0, y1)
                 refcols = np.concatenate([part[:, :b], part[:, -b:]], axis=1).astype(np.float64) - \
                     (bias_cols[y0:y1] if np.ndim(bias_cols) else bias_cols)

@@ -176,8 +176,8 @@ def test_the_fit_s_reference_terms_come_from_the_reference_pixels_alone():
         shape = sci.shape
         rows = None                      # every row (a file of some rows lists its ranges)
 
-        def frame(self, i, g):
-            return sci[i, g]
+        def frame(self, i, g, y0=0, y1=None):
+            return sci[i, g, y0:y1]
     kw = dict(n_outputs=4, border=4, side_smoothing_length=5)
     col, row = _refpix_terms(Source(), bias, kw)
     for g in range(n):
